@@ -1,0 +1,47 @@
+# recon — the two commands a new user needs: `make demo` and `make test`.
+VENV    ?= .venv
+PY      := $(VENV)/bin/python
+RECON   := $(VENV)/bin/recon
+STAMP   := $(VENV)/.installed
+EXTRAS  := reference,test,batch,render
+SAMPLE  := sample_data/bunny_scan_000.ply
+OUTDIR  := demo_output
+PYTEST_ARGS ?=
+
+.PHONY: all install sysdeps demo test test-fast bench clean
+
+all: test
+
+# Open3D links against libusb-1.0 at import; install it when missing (machines run as root).
+sysdeps:
+	@if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
+		echo "installing libusb-1.0-0 (needed by open3d)"; \
+		SUDO=""; [ "$$(id -u)" -eq 0 ] || SUDO="sudo"; \
+		$$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq libusb-1.0-0 >/dev/null; \
+	fi
+
+$(STAMP): pyproject.toml
+	@$(MAKE) --no-print-directory sysdeps
+	@[ -x $(PY) ] || python3 -m venv $(VENV)
+	$(PY) -m pip install -q --disable-pip-version-check -e ".[$(EXTRAS)]"
+	@touch $(STAMP)
+
+install: $(STAMP)
+
+demo: $(STAMP)
+	@mkdir -p $(OUTDIR)
+	$(RECON) run pipelines/demo.toml $(SAMPLE) $(OUTDIR)/bunny_scan_000_poisson.ply
+	@echo "result written to $(OUTDIR)/bunny_scan_000_poisson.ply"
+	$(RECON) info $(OUTDIR)/bunny_scan_000_poisson.ply
+
+test: $(STAMP)
+	$(PY) -m pytest -n 2 $(PYTEST_ARGS)
+
+test-fast: $(STAMP)
+	$(PY) -m pytest -n 2 -m "not slow" $(PYTEST_ARGS)
+
+bench: $(STAMP)
+	$(PY) bench/run_bench.py --out bench/results.md
+
+clean:
+	rm -rf $(VENV) $(OUTDIR) .pytest_cache build *.egg-info

@@ -1,0 +1,127 @@
+"""Adapters to Open3D (reference backend). Conversions copy arrays; nothing is shared."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from recon_cli.backends import require
+from recon_cli.geometry import PointCloud, TriangleMesh
+
+
+def to_o3d_cloud(cloud: PointCloud):
+    o3d = require("open3d")
+    pc = o3d.geometry.PointCloud()
+    pc.points = o3d.utility.Vector3dVector(np.asarray(cloud.points, dtype=np.float64))
+    if cloud.normals is not None:
+        pc.normals = o3d.utility.Vector3dVector(np.asarray(cloud.normals, dtype=np.float64))
+    if cloud.colors is not None:
+        pc.colors = o3d.utility.Vector3dVector(_colors01(cloud.colors))
+    return pc
+
+
+def to_o3d_mesh(mesh: TriangleMesh):
+    o3d = require("open3d")
+    m = o3d.geometry.TriangleMesh()
+    m.vertices = o3d.utility.Vector3dVector(np.asarray(mesh.vertices, dtype=np.float64))
+    m.triangles = o3d.utility.Vector3iVector(np.asarray(mesh.faces, dtype=np.int32))
+    if mesh.normals is not None:
+        m.vertex_normals = o3d.utility.Vector3dVector(np.asarray(mesh.normals, dtype=np.float64))
+    return m
+
+
+def from_o3d_mesh(m, history: list[str] | None = None) -> TriangleMesh:
+    v = np.asarray(m.vertices, dtype=np.float64)
+    normals = np.asarray(m.vertex_normals, dtype=np.float64) if m.has_vertex_normals() else None
+    colors = None
+    if m.has_vertex_colors():
+        colors = np.clip(np.round(np.asarray(m.vertex_colors) * 255), 0, 255).astype(np.uint8)
+    return TriangleMesh(
+        vertices=v,
+        faces=np.asarray(m.triangles, dtype=np.int64),
+        normals=normals,
+        colors=colors,
+        history=list(history or []),
+    )
+
+
+def from_o3d_cloud(pc, history: list[str] | None = None) -> PointCloud:
+    normals = np.asarray(pc.normals, dtype=np.float64) if pc.has_normals() else None
+    colors = None
+    if pc.has_colors():
+        colors = np.clip(np.round(np.asarray(pc.colors) * 255), 0, 255).astype(np.uint8)
+    return PointCloud(points=np.asarray(pc.points, dtype=np.float64), normals=normals, colors=colors, history=list(history or []))
+
+
+def _colors01(colors: np.ndarray) -> np.ndarray:
+    c = np.asarray(colors)[:, :3]
+    if c.dtype.kind in "ui":
+        return c.astype(np.float64) / float(np.iinfo(c.dtype).max)
+    return c.astype(np.float64)
+
+
+def estimate_normals(cloud: PointCloud, knn: int = 30, radius: float | None = None, orient_tangent_plane: int | None = None):
+    """Open3D ``estimate_normals`` (+ ``orient_normals_consistent_tangent_plane(k)`` if given)."""
+    o3d = require("open3d")
+    pc = to_o3d_cloud(PointCloud(points=cloud.points))
+    if radius is not None and knn:
+        param = o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=knn)
+    elif radius is not None:
+        param = o3d.geometry.KDTreeSearchParamRadius(radius=radius)
+    else:
+        param = o3d.geometry.KDTreeSearchParamKNN(knn=knn)
+    pc.estimate_normals(param)
+    if orient_tangent_plane:
+        pc.orient_normals_consistent_tangent_plane(orient_tangent_plane)
+    return np.asarray(pc.normals, dtype=np.float64)
+
+
+def poisson(cloud: PointCloud, depth: int = 8, scale: float = 1.1, linear_fit: bool = False):
+    """Open3D screened Poisson; returns (mesh, densities)."""
+    o3d = require("open3d")
+    pc = to_o3d_cloud(cloud)
+    mesh, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
+        pc, depth=depth, scale=scale, linear_fit=linear_fit
+    )
+    return from_o3d_mesh(mesh, cloud.history), np.asarray(dens, dtype=np.float64)
+
+
+def ball_pivoting(cloud: PointCloud, radii: list[float]) -> TriangleMesh:
+    o3d = require("open3d")
+    pc = to_o3d_cloud(cloud)
+    mesh = o3d.geometry.TriangleMesh.create_from_point_cloud_ball_pivoting(pc, o3d.utility.DoubleVector(list(radii)))
+    return from_o3d_mesh(mesh, cloud.history)
+
+
+def signed_distance(mesh: TriangleMesh, query: np.ndarray) -> np.ndarray:
+    """Open3D ``RaycastingScene.compute_signed_distance`` at ``query`` ((k, 3))."""
+    o3d = require("open3d")
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(
+        o3d.core.Tensor(np.asarray(mesh.vertices, dtype=np.float32)),
+        o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)),
+    )
+    d = scene.compute_signed_distance(o3d.core.Tensor(np.asarray(query, dtype=np.float32)))
+    return d.numpy().astype(np.float64)
+
+
+def unsigned_distance(mesh: TriangleMesh, query: np.ndarray) -> np.ndarray:
+    o3d = require("open3d")
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(
+        o3d.core.Tensor(np.asarray(mesh.vertices, dtype=np.float32)),
+        o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)),
+    )
+    return scene.compute_distance(o3d.core.Tensor(np.asarray(query, dtype=np.float32))).numpy().astype(np.float64)
+
+
+def manifold_checks(mesh: TriangleMesh) -> dict:
+    """Open3D's topology predicates on ``mesh``."""
+    m = to_o3d_mesh(mesh)
+    return {
+        "edge_manifold": bool(m.is_edge_manifold(allow_boundary_edges=True)),
+        "vertex_manifold": bool(m.is_vertex_manifold()),
+        "watertight": bool(m.is_watertight()),
+        "orientable": bool(m.is_orientable()),
+        "non_manifold_edges": int(len(np.asarray(m.get_non_manifold_edges(allow_boundary_edges=True)))),
+        "non_manifold_vertices": int(len(np.asarray(m.get_non_manifold_vertices()))),
+    }

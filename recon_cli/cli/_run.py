@@ -1,0 +1,87 @@
+"""Running a stage from a command: load, apply, save atomically, report."""
+
+from __future__ import annotations
+
+import sys
+import time
+from typing import Any
+
+import click
+
+
+def make_progress(ctx: click.Context):
+    from recon_cli.progress import Progress
+
+    quiet = bool(ctx.find_root().obj and ctx.find_root().obj.get("quiet"))
+    return Progress(stream=sys.stderr, enabled=False if quiet else None)
+
+
+def verbosity(ctx: click.Context) -> int:
+    obj = ctx.find_root().obj or {}
+    return int(obj.get("verbose", 0))
+
+
+def is_quiet(ctx: click.Context) -> bool:
+    obj = ctx.find_root().obj or {}
+    return bool(obj.get("quiet", False))
+
+
+def run_stage_command(
+    ctx: click.Context,
+    stage: str,
+    input: str,
+    output: str,
+    params: dict[str, Any],
+    ascii_: bool = False,
+    json_: bool = False,
+) -> None:
+    """Load IN, run ``stage`` with ``params``, write OUT atomically, print the report."""
+    from recon_cli.io.load import load, save
+    from recon_cli.stages import apply_stage
+
+    t0 = time.perf_counter()
+    data = load(input)
+    t1 = time.perf_counter()
+    result = apply_stage(stage, data, params, progress=make_progress(ctx))
+    t2 = time.perf_counter()
+    save(result.output, output, ascii=ascii_)
+    t3 = time.perf_counter()
+    report = dict(result.report)
+    report["timings"] = {"read": t1 - t0, "stage": t2 - t1, "write": t3 - t2}
+    report["output"] = "<stdout>" if output == "-" else output
+    emit_report(ctx, report, json_=json_, data_on_stdout=(output == "-"))
+
+
+def emit_report(ctx: click.Context, report: dict, json_: bool = False, data_on_stdout: bool = False) -> None:
+    """Print ``report``: JSON on stdout (stderr if stdout carries data) or a table on stderr."""
+    from recon_cli.stages import report_json
+
+    if json_:
+        click.echo(report_json(report), err=data_on_stdout)
+        return
+    if is_quiet(ctx):
+        return
+    click.echo(format_report(report, verbose=verbosity(ctx)), err=True)
+
+
+def format_report(report: dict, verbose: int = 0) -> str:
+    """A one-screen text rendering of a report dict."""
+    lines = []
+    for key, value in report.items():
+        if key == "timings" and not verbose:
+            continue
+        if isinstance(value, dict):
+            lines.append(f"{key}:")
+            for k, v in value.items():
+                lines.append(f"  {k:<24} {_fmt(v)}")
+        else:
+            lines.append(f"{key:<26} {_fmt(value)}")
+    return "\n".join(lines)
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    if isinstance(v, (list, tuple)):
+        return ", ".join(_fmt(x) for x in v)
+    return str(v)

@@ -1,0 +1,58 @@
+"""``recon info FILE``."""
+
+from __future__ import annotations
+
+import click
+
+from recon_cli.cli import options
+
+
+@click.command("info")
+@click.argument("files", metavar="FILE...", nargs=-1, required=True, type=click.Path(allow_dash=True, dir_okay=False))
+@options.json_opt
+@click.pass_context
+def cmd(ctx: click.Context, files: tuple[str, ...], json_: bool) -> None:
+    """Describe PLY clouds/meshes and grids: counts, properties, bbox, topology, history."""
+    from recon_cli.info import describe
+    from recon_cli.stages import report_json
+
+    reports = [describe(f) for f in files]
+    if json_:
+        click.echo(report_json(reports[0] if len(reports) == 1 else reports))
+        return
+    for rep in reports:
+        click.echo(format_info(rep))
+
+
+def format_info(rep: dict) -> str:
+    lines = [f"{rep['file']}: {rep['kind'].replace('_', ' ')}"]
+    if rep["kind"] == "grid":
+        lines.append(f"  shape          {' x '.join(map(str, rep['shape']))}")
+        lines.append(f"  origin         {', '.join(f'{v:.6g}' for v in rep['origin'])}")
+        lines.append(f"  voxel size     {rep['voxel_size']:.6g}")
+        lines.append(f"  unknown cells  {rep['unknown_cells']}")
+        if rep["range"]:
+            lines.append(f"  range          {rep['range'][0]:.6g} .. {rep['range'][1]:.6g}")
+        if rep.get("eikonal"):
+            e = rep["eikonal"]
+            lines.append(f"  eikonal |grad| mean {e['mean']:.4f}, within 1±0.1: {e['fraction_within_0.1'] * 100:.1f}% of {e['cells']} cells")
+    else:
+        lines.append(f"  format         {rep['format']}")
+        lines.append(f"  vertices       {rep['vertices']}")
+        if rep["kind"] == "mesh":
+            lines.append(f"  faces          {rep['faces']}")
+        for el, props in rep["properties"].items():
+            lines.append(f"  element {el} ({rep['elements'][el]}): {'; '.join(props)}")
+        if rep["bbox"]["min"] is not None:
+            lines.append(f"  bbox min       {', '.join(f'{v:.6g}' for v in rep['bbox']['min'])}")
+            lines.append(f"  bbox max       {', '.join(f'{v:.6g}' for v in rep['bbox']['max'])}")
+            lines.append(f"  bbox diagonal  {rep['bbox']['diagonal']:.6g}")
+        topo = rep.get("topology")
+        if topo:
+            lines.append("  topology:")
+            for k, v in topo.items():
+                lines.append(f"    {k:<26} {v}")
+    if rep["history"]:
+        lines.append("  history:")
+        lines += [f"    {h}" for h in rep["history"]]
+    return "\n".join(lines)

@@ -1,0 +1,195 @@
+"""The data model: plain dataclasses holding numpy arrays.
+
+A :class:`PointCloud` is what scanners give; a :class:`TriangleMesh` is what the
+reconstruction stages return. Both carry ``history`` (provenance lines, written as PLY
+``comment`` lines) and whatever the source file held that recon does not interpret
+(``attributes`` per vertex, ``extra_elements``), so writing back loses nothing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from recon_cli.errors import InputError
+
+
+@dataclass
+class PointCloud:
+    """A set of points with optional normals, colours and per-point scalars.
+
+    Parameters
+    ----------
+    points : (n, 3) float64
+        Coordinates, in the units of the source.
+    normals : (n, 3) float64 or None
+        Normals (unit length when estimated by recon; input normals are kept as read).
+    colors : (n, 3) or (n, 4) array or None
+        Colours, in the dtype of the source (usually uint8; RGB or RGBA).
+    attributes : dict of str to (n,) array
+        Other per-point scalar properties (``curvature``, ``density``, unknown ones).
+    history : list of str
+        Provenance lines, oldest first (PLY ``comment`` lines).
+    point_dtype : numpy dtype
+        Float type of the coordinates in the file (written back with the same type).
+    extra_elements : list
+        PLY elements recon does not interpret, kept for writing back.
+    obj_info : list of str
+        PLY ``obj_info`` lines.
+    """
+
+    points: np.ndarray
+    normals: np.ndarray | None = None
+    colors: np.ndarray | None = None
+    attributes: dict[str, np.ndarray] = field(default_factory=dict)
+    history: list[str] = field(default_factory=list)
+    point_dtype: Any = np.float32
+    extra_elements: list = field(default_factory=list)
+    obj_info: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.points = np.ascontiguousarray(self.points, dtype=np.float64).reshape(-1, 3)
+        n = len(self.points)
+        if self.normals is not None:
+            self.normals = np.ascontiguousarray(self.normals, dtype=np.float64).reshape(-1, 3)
+            _check_len("normals", self.normals, n)
+        if self.colors is not None:
+            self.colors = np.ascontiguousarray(self.colors)
+            _check_len("colors", self.colors, n)
+        for k, v in self.attributes.items():
+            _check_len(k, v, n)
+
+    @property
+    def vertices(self) -> np.ndarray:
+        """Alias of ``points`` so code taking vertices accepts a cloud."""
+        return self.points
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def copy(self) -> "PointCloud":
+        return PointCloud(
+            points=self.points.copy(),
+            normals=None if self.normals is None else self.normals.copy(),
+            colors=None if self.colors is None else self.colors.copy(),
+            attributes={k: v.copy() for k, v in self.attributes.items()},
+            history=list(self.history),
+            point_dtype=self.point_dtype,
+            extra_elements=list(self.extra_elements),
+            obj_info=list(self.obj_info),
+        )
+
+    def subset(self, mask: np.ndarray) -> "PointCloud":
+        """The cloud restricted to ``mask`` (boolean or index array)."""
+        return PointCloud(
+            points=self.points[mask],
+            normals=None if self.normals is None else self.normals[mask],
+            colors=None if self.colors is None else self.colors[mask],
+            attributes={k: v[mask] for k, v in self.attributes.items()},
+            history=list(self.history),
+            point_dtype=self.point_dtype,
+            obj_info=list(self.obj_info),
+        )
+
+
+@dataclass
+class TriangleMesh:
+    """A triangle mesh with optional per-vertex normals, colours and scalars.
+
+    Parameters
+    ----------
+    vertices : (n, 3) float64
+        Vertex coordinates.
+    faces : (m, 3) int64
+        Vertex indices of each triangle, counter-clockwise seen from outside.
+    normals : (n, 3) float64 or None
+        Per-vertex normals.
+    colors : (n, 3) or (n, 4) array or None
+        Per-vertex colours in the dtype of the source.
+    attributes : dict of str to (n,) array
+        Other per-vertex scalars (``density``, ``distance``, unknown properties).
+    face_attributes : dict of str to (m,) array
+        Per-face scalars (kept from the file; replicated over fan-triangulated polygons).
+    history, point_dtype, extra_elements, obj_info
+        As for :class:`PointCloud`.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    normals: np.ndarray | None = None
+    colors: np.ndarray | None = None
+    attributes: dict[str, np.ndarray] = field(default_factory=dict)
+    face_attributes: dict[str, np.ndarray] = field(default_factory=dict)
+    history: list[str] = field(default_factory=list)
+    point_dtype: Any = np.float32
+    extra_elements: list = field(default_factory=list)
+    obj_info: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float64).reshape(-1, 3)
+        self.faces = np.ascontiguousarray(self.faces, dtype=np.int64).reshape(-1, 3)
+        n = len(self.vertices)
+        if self.normals is not None:
+            self.normals = np.ascontiguousarray(self.normals, dtype=np.float64).reshape(-1, 3)
+            _check_len("normals", self.normals, n)
+        if self.colors is not None:
+            self.colors = np.ascontiguousarray(self.colors)
+            _check_len("colors", self.colors, n)
+        for k, v in self.attributes.items():
+            _check_len(k, v, n)
+        for k, v in self.face_attributes.items():
+            _check_len(k, v, len(self.faces))
+
+    @property
+    def points(self) -> np.ndarray:
+        """Alias of ``vertices`` so code taking points accepts a mesh."""
+        return self.vertices
+
+    def copy(self) -> "TriangleMesh":
+        return TriangleMesh(
+            vertices=self.vertices.copy(),
+            faces=self.faces.copy(),
+            normals=None if self.normals is None else self.normals.copy(),
+            colors=None if self.colors is None else self.colors.copy(),
+            attributes={k: v.copy() for k, v in self.attributes.items()},
+            face_attributes={k: v.copy() for k, v in self.face_attributes.items()},
+            history=list(self.history),
+            point_dtype=self.point_dtype,
+            extra_elements=list(self.extra_elements),
+            obj_info=list(self.obj_info),
+        )
+
+    def to_point_cloud(self) -> PointCloud:
+        """The vertices as a cloud (normals, colours, attributes and history kept)."""
+        return PointCloud(
+            points=self.vertices,
+            normals=self.normals,
+            colors=self.colors,
+            attributes=dict(self.attributes),
+            history=list(self.history),
+            point_dtype=self.point_dtype,
+            obj_info=list(self.obj_info),
+        )
+
+
+def as_point_cloud(obj: PointCloud | TriangleMesh) -> PointCloud:
+    """A point cloud view of ``obj`` (a mesh's vertices)."""
+    if isinstance(obj, PointCloud):
+        return obj
+    if isinstance(obj, TriangleMesh):
+        return obj.to_point_cloud()
+    raise TypeError(f"expected a PointCloud or TriangleMesh, got {type(obj).__name__}")
+
+
+def bbox_diagonal(points: np.ndarray) -> float:
+    """Length of the axis-aligned bounding-box diagonal of ``points`` ((n, 3)), 0 if empty."""
+    if len(points) == 0:
+        return 0.0
+    return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+
+
+def _check_len(name: str, arr: np.ndarray, n: int) -> None:
+    if len(arr) != n:
+        raise InputError(f"{name} has {len(arr)} rows, expected {n}")

@@ -1,0 +1,728 @@
+"""PLY reading and writing, our own code (no PLY library).
+
+Two layers:
+
+* :func:`parse_ply` / :func:`serialize_ply` convert between bytes and a :class:`PlyData`
+  (the header and one array per property, every element and property kept);
+* :func:`read_ply` / :func:`write_ply` convert between files and the data model
+  (:class:`~recon_cli.geometry.PointCloud`, :class:`~recon_cli.geometry.TriangleMesh`).
+
+Binary bodies are decoded with numpy structured dtypes, never a per-vertex Python loop.
+Before anything is allocated, the counts in the header are checked against the bytes the
+file actually holds, so a lying header is an error, not a huge allocation.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from recon_cli.errors import InputError
+from recon_cli.geometry import PointCloud, TriangleMesh
+from recon_cli.io._ply_types import FORMATS, PLY_TYPES, ply_name
+
+MAX_HEADER_BYTES = 1 << 20
+
+_VERTEX_XYZ = ("x", "y", "z")
+_VERTEX_NORMAL = ("nx", "ny", "nz")
+_VERTEX_COLOR = ("red", "green", "blue", "alpha")
+_VERTEX_COLOR_ALT = ("r", "g", "b", "a")
+_VERTEX_COLOR_DIFFUSE = ("diffuse_red", "diffuse_green", "diffuse_blue", "diffuse_alpha")
+_FACE_INDEX_NAMES = ("vertex_indices", "vertex_index")
+
+
+@dataclass
+class PlyProperty:
+    """One property of an element: a scalar, or a list with a count type."""
+
+    name: str
+    dtype: str  # numpy type code without byte order, e.g. "f4"
+    count_dtype: str | None = None  # set for list properties
+
+    @property
+    def is_list(self) -> bool:
+        return self.count_dtype is not None
+
+    def header_line(self) -> str:
+        if self.is_list:
+            return (
+                f"property list {ply_name(np.dtype(self.count_dtype))} "
+                f"{ply_name(np.dtype(self.dtype))} {self.name}"
+            )
+        return f"property {ply_name(np.dtype(self.dtype))} {self.name}"
+
+
+@dataclass
+class PlyElement:
+    """An element of a PLY file and its data.
+
+    ``data`` maps each property name to an array: ``(count,)`` for a scalar property;
+    for a list property ``(count, k)`` when every row has ``k`` items, otherwise an
+    object array of ``count`` 1-d arrays.
+    """
+
+    name: str
+    count: int
+    properties: list[PlyProperty] = field(default_factory=list)
+    data: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+@dataclass
+class PlyData:
+    """A whole PLY file: format, comments, ``obj_info`` lines and elements in order."""
+
+    format: str = "binary_little_endian"
+    comments: list[str] = field(default_factory=list)
+    obj_info: list[str] = field(default_factory=list)
+    elements: list[PlyElement] = field(default_factory=list)
+
+    def element(self, name: str) -> PlyElement | None:
+        for e in self.elements:
+            if e.name == name:
+                return e
+        return None
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def _describe(path: str | None) -> str:
+    return "<stdin>" if path in (None, "-") else str(path)
+
+
+def parse_header(buf: bytes, path: str | None = None) -> tuple[PlyData, int]:
+    """Parse the header of ``buf``; return the (empty) :class:`PlyData` and the body offset."""
+    where = _describe(path)
+    if len(buf) == 0:
+        raise InputError("empty file", where)
+    if not (buf.startswith(b"ply\n") or buf.startswith(b"ply\r\n") or buf.startswith(b"ply\r")):
+        raise InputError("not a PLY file (missing 'ply' magic line)", where)
+    end = _find_end_header(buf)
+    if end is None:
+        if len(buf) > MAX_HEADER_BYTES:
+            raise InputError(f"no 'end_header' in the first {MAX_HEADER_BYTES} bytes", where)
+        raise InputError("header has no 'end_header' line (truncated file?)", where)
+    head_end, body_start = end
+    try:
+        text = buf[:head_end].decode("ascii")
+    except UnicodeDecodeError:
+        raise InputError("header is not ASCII text", where) from None
+    lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
+    ply = PlyData(format="")
+    current: PlyElement | None = None
+    names: set[str] = set()
+    for lineno, raw in enumerate(lines[1:], start=2):
+        line = raw.strip()
+        if not line:
+            continue
+        key, _, rest = line.partition(" ")
+        words = line.split()
+        if key == "format":
+            if len(words) != 3 or words[1] not in FORMATS:
+                raise InputError(f"header line {lineno}: unknown format {line!r}", where)
+            if words[2] not in ("1.0", "1"):
+                raise InputError(f"header line {lineno}: unsupported PLY version {words[2]!r}", where)
+            if ply.format:
+                raise InputError(f"header line {lineno}: second 'format' line", where)
+            ply.format = words[1]
+        elif key == "comment":
+            ply.comments.append(rest.strip() if rest else "")
+        elif key == "obj_info":
+            ply.obj_info.append(rest.strip() if rest else "")
+        elif key == "element":
+            if len(words) != 3:
+                raise InputError(f"header line {lineno}: malformed element line {line!r}", where)
+            try:
+                count = int(words[2])
+            except ValueError:
+                raise InputError(f"header line {lineno}: element count {words[2]!r} is not an integer", where) from None
+            if count < 0:
+                raise InputError(f"header line {lineno}: negative element count {count}", where)
+            if words[1] in names:
+                raise InputError(f"header line {lineno}: element {words[1]!r} declared twice", where)
+            names.add(words[1])
+            current = PlyElement(words[1], count)
+            ply.elements.append(current)
+        elif key == "property":
+            if current is None:
+                raise InputError(f"header line {lineno}: property before any element", where)
+            if len(words) >= 2 and words[1] == "list":
+                if len(words) != 5:
+                    raise InputError(f"header line {lineno}: malformed list property {line!r}", where)
+                ctype, itype, name = words[2], words[3], words[4]
+                for t in (ctype, itype):
+                    if t not in PLY_TYPES:
+                        raise InputError(f"header line {lineno}: unknown type name {t!r}", where)
+                if PLY_TYPES[ctype][0] == "f":
+                    raise InputError(f"header line {lineno}: list count type {ctype!r} is not an integer type", where)
+                prop = PlyProperty(name, PLY_TYPES[itype], PLY_TYPES[ctype])
+            else:
+                if len(words) != 3:
+                    raise InputError(f"header line {lineno}: malformed property {line!r}", where)
+                if words[1] not in PLY_TYPES:
+                    raise InputError(f"header line {lineno}: unknown type name {words[1]!r}", where)
+                prop = PlyProperty(words[2], PLY_TYPES[words[1]])
+            if any(p.name == prop.name for p in current.properties):
+                raise InputError(f"header line {lineno}: property {prop.name!r} declared twice in {current.name!r}", where)
+            current.properties.append(prop)
+        else:
+            raise InputError(f"header line {lineno}: unknown keyword {key!r}", where)
+    if not ply.format:
+        raise InputError("header has no 'format' line", where)
+    return ply, body_start
+
+
+def _find_end_header(buf: bytes) -> tuple[int, int] | None:
+    """(end of header text, start of body), or None when there is no end_header line."""
+    limit = min(len(buf), MAX_HEADER_BYTES)
+    pos = 0
+    while True:
+        i = buf.find(b"end_header", pos, limit)
+        if i < 0:
+            return None
+        # must start a line
+        if i > 0 and buf[i - 1 : i] not in (b"\n", b"\r"):
+            pos = i + 1
+            continue
+        j = i + len(b"end_header")
+        # rest of the line may hold spaces; then \n, \r\n or \r
+        while j < len(buf) and buf[j : j + 1] in (b" ", b"\t"):
+            j += 1
+        if buf[j : j + 2] == b"\r\n":
+            return i, j + 2
+        if buf[j : j + 1] in (b"\n", b"\r"):
+            return i, j + 1
+        if j >= len(buf):
+            return i, j
+        pos = i + 1
+
+
+def parse_ply(buf: bytes, path: str | None = None) -> PlyData:
+    """Decode a whole PLY file held in ``buf``.
+
+    Raises
+    ------
+    InputError
+        On any malformed, truncated or inconsistent content (the message names ``path``).
+    """
+    ply, offset = parse_header(buf, path)
+    where = _describe(path)
+    if ply.format == "ascii":
+        _parse_ascii(ply, buf, offset, where)
+    else:
+        _parse_binary(ply, buf, offset, FORMATS[ply.format], where)
+    return ply
+
+
+def _parse_binary(ply: PlyData, buf: bytes, offset: int, order: str, where: str) -> None:
+    mv = memoryview(buf)
+    for idx, el in enumerate(ply.elements):
+        remaining = len(buf) - offset
+        fixed = sum(np.dtype(p.count_dtype if p.is_list else p.dtype).itemsize for p in el.properties)
+        # every row needs at least its scalars and list counts: check before allocating
+        if el.count and (fixed == 0 or el.count > remaining // max(fixed, 1)):
+            if fixed == 0:
+                raise InputError(f"element {el.name!r} has no properties but {el.count} rows", where)
+            raise InputError(
+                f"truncated: header declares {el.count} {el.name!r} rows "
+                f"(at least {el.count * fixed} bytes) but only {remaining} bytes remain",
+                where,
+            )
+        if not any(p.is_list for p in el.properties):
+            dt = np.dtype([(p.name, order + p.dtype) for p in el.properties])
+            arr = np.frombuffer(mv, dtype=dt, count=el.count, offset=offset)
+            el.data = {p.name: arr[p.name].astype(np.dtype(p.dtype), copy=True) for p in el.properties}
+            offset += dt.itemsize * el.count
+            continue
+        offset = _parse_binary_lists(el, buf, mv, offset, order, where)
+    if offset != len(buf) and not _only_padding(buf[offset:]):
+        # extra bytes after the last element are tolerated (some writers pad), never read
+        pass
+
+
+def _only_padding(tail: bytes) -> bool:
+    return tail.strip(b"\x00\r\n \t") == b""
+
+
+def _parse_binary_lists(el: PlyElement, buf: bytes, mv: memoryview, offset: int, order: str, where: str) -> int:
+    """Decode an element holding list properties; returns the new offset."""
+    if el.count == 0:
+        el.data = {p.name: (np.zeros((0, 0), p.dtype) if p.is_list else np.zeros(0, p.dtype)) for p in el.properties}
+        return offset
+    # fast path: read the first row's list lengths and assume every row has the same
+    ks = _first_row_counts(el, buf, offset, order, where)
+    fields = []
+    for p in el.properties:
+        if p.is_list:
+            fields.append((p.name + "\0n", order + p.count_dtype))
+            if ks[p.name] > 0:
+                fields.append((p.name, order + p.dtype, (ks[p.name],)))
+        else:
+            fields.append((p.name, order + p.dtype))
+    dt = np.dtype(fields)
+    if offset + dt.itemsize * el.count <= len(buf):
+        arr = np.frombuffer(mv, dtype=dt, count=el.count, offset=offset)
+        if all(np.all(arr[p.name + "\0n"] == ks[p.name]) for p in el.properties if p.is_list):
+            data = {}
+            for p in el.properties:
+                if p.is_list:
+                    k = ks[p.name]
+                    data[p.name] = (
+                        arr[p.name].astype(np.dtype(p.dtype)).reshape(el.count, k)
+                        if k > 0
+                        else np.zeros((el.count, 0), np.dtype(p.dtype))
+                    )
+                else:
+                    data[p.name] = arr[p.name].astype(np.dtype(p.dtype))
+            el.data = data
+            return offset + dt.itemsize * el.count
+    return _parse_binary_lists_general(el, buf, offset, order, where)
+
+
+def _first_row_counts(el: PlyElement, buf: bytes, offset: int, order: str, where: str) -> dict[str, int]:
+    ks: dict[str, int] = {}
+    pos = offset
+    for p in el.properties:
+        if p.is_list:
+            cdt = np.dtype(order + p.count_dtype)
+            if pos + cdt.itemsize > len(buf):
+                raise InputError(f"truncated in element {el.name!r}", where)
+            k = int(np.frombuffer(buf, cdt, 1, pos)[0])
+            if k < 0:
+                raise InputError(f"negative list length {k} in element {el.name!r}", where)
+            ks[p.name] = k
+            pos += cdt.itemsize + k * np.dtype(p.dtype).itemsize
+        else:
+            pos += np.dtype(p.dtype).itemsize
+    return ks
+
+
+def _parse_binary_lists_general(el: PlyElement, buf: bytes, offset: int, order: str, where: str) -> int:
+    """Rows of differing list lengths: one pass over the rows to find their offsets.
+
+    Only lists with mixed lengths (e.g. a mesh of triangles and quads) come here.
+    """
+    from recon_cli.io._ply_kernel import scan_list_rows
+
+    layout = []  # per property: (is_list, count size, item size, count signed)
+    for p in el.properties:
+        if p.is_list:
+            c = np.dtype(p.count_dtype)
+            layout.append((1, c.itemsize, np.dtype(p.dtype).itemsize, 1 if c.kind == "i" else 0))
+        else:
+            layout.append((0, 0, np.dtype(p.dtype).itemsize, 0))
+    lay = np.asarray(layout, dtype=np.int64)
+    raw = np.frombuffer(buf, dtype=np.uint8)
+    big = order == ">"
+    # starts[row, prop] = byte offset of the property (of its count for a list); lens[row, prop] = list length
+    starts, lens, end, err = scan_list_rows(raw, offset, el.count, lay, big)
+    if err == 1:
+        raise InputError(f"truncated in element {el.name!r}", where)
+    if err == 2:
+        raise InputError(f"negative list length in element {el.name!r}", where)
+    data: dict[str, np.ndarray] = {}
+    for j, p in enumerate(el.properties):
+        if p.is_list:
+            item = np.dtype(order + p.dtype)
+            cs = np.dtype(p.count_dtype).itemsize
+            k = lens[:, j]
+            # gather every item: position of item i of row r is starts[r]+cs+i*itemsize
+            total = int(k.sum())
+            row_of = np.repeat(np.arange(el.count), k)
+            first = np.cumsum(k) - k
+            within = np.arange(total) - np.repeat(first, k)
+            pos = starts[row_of, j] + cs + within * item.itemsize
+            idx = pos[:, None] + np.arange(item.itemsize)[None, :]
+            items = raw[idx].copy().view(item).reshape(-1).astype(np.dtype(p.dtype))
+            out = np.empty(el.count, dtype=object)
+            for r, piece in enumerate(np.split(items, np.cumsum(k)[:-1])):
+                out[r] = piece
+            data[p.name] = out
+        else:
+            item = np.dtype(order + p.dtype)
+            idx = starts[:, j][:, None] + np.arange(item.itemsize)[None, :]
+            data[p.name] = raw[idx].copy().view(item).reshape(-1).astype(np.dtype(p.dtype))
+    el.data = data
+    return int(end)
+
+
+def _parse_ascii(ply: PlyData, buf: bytes, offset: int, where: str) -> None:
+    body = buf[offset:]
+    tokens = body.split()
+    pos = 0
+    for el in ply.elements:
+        nprop = len(el.properties)
+        if el.count and nprop == 0:
+            raise InputError(f"element {el.name!r} has no properties but {el.count} rows", where)
+        # each row needs at least one token per property: check before allocating
+        if el.count > (len(tokens) - pos) // max(nprop, 1):
+            raise InputError(
+                f"truncated: header declares {el.count} {el.name!r} rows but only "
+                f"{len(tokens) - pos} values remain",
+                where,
+            )
+        if not any(p.is_list for p in el.properties):
+            block = tokens[pos : pos + el.count * nprop]
+            pos += el.count * nprop
+            table = _ascii_values(block, where, el.name).reshape(el.count, nprop)
+            el.data = {p.name: _cast(table[:, j], p.dtype, where, el.name) for j, p in enumerate(el.properties)}
+            continue
+        pos = _parse_ascii_lists(el, tokens, pos, where)
+
+
+def _ascii_values(block: list[bytes], where: str, name: str) -> np.ndarray:
+    if not block:
+        return np.zeros(0, dtype=np.float64)
+    try:
+        return np.array(block).astype(np.float64)
+    except ValueError:
+        bad = next((t for t in block if not _is_number(t)), block[0])
+        raise InputError(f"element {name!r}: {bad[:40].decode('ascii', 'replace')!r} is not a number", where) from None
+
+
+def _is_number(tok: bytes) -> bool:
+    try:
+        float(tok)
+    except ValueError:
+        return False
+    return True
+
+
+def _cast(values: np.ndarray, code: str, where: str, name: str) -> np.ndarray:
+    dt = np.dtype(code)
+    if dt.kind in "iu":
+        finite = np.isfinite(values)
+        if not finite.all() or np.any(values != np.round(values)):
+            raise InputError(f"element {name!r}: non-integer value for an integer property", where)
+        info = np.iinfo(dt)
+        if values.size and (values.min() < info.min or values.max() > info.max):
+            raise InputError(f"element {name!r}: value out of range for {ply_name(dt)}", where)
+    return values.astype(dt)
+
+
+def _parse_ascii_lists(el: PlyElement, tokens: list[bytes], pos: int, where: str) -> int:
+    # rows are sequences of tokens; walk them once (ASCII is not the fast format)
+    cols: dict[str, list] = {p.name: [] for p in el.properties}
+    n = len(tokens)
+    for _ in range(el.count):
+        for p in el.properties:
+            if pos >= n:
+                raise InputError(f"truncated: element {el.name!r} ends early", where)
+            if p.is_list:
+                try:
+                    k = int(tokens[pos])
+                except ValueError:
+                    raise InputError(f"element {el.name!r}: bad list length {tokens[pos][:20]!r}", where) from None
+                if k < 0 or pos + 1 + k > n:
+                    raise InputError(f"element {el.name!r}: bad list length {k}", where)
+                cols[p.name].append(tokens[pos + 1 : pos + 1 + k])
+                pos += 1 + k
+            else:
+                cols[p.name].append(tokens[pos])
+                pos += 1
+    data = {}
+    for p in el.properties:
+        if p.is_list:
+            rows = cols[p.name]
+            lengths = {len(r) for r in rows}
+            if len(lengths) <= 1:
+                k = lengths.pop() if lengths else 0
+                flat = [t for r in rows for t in r]
+                vals = _cast(_ascii_values(flat, where, el.name), p.dtype, where, el.name)
+                data[p.name] = vals.reshape(len(rows), k)
+            else:
+                out = np.empty(len(rows), dtype=object)
+                for i, r in enumerate(rows):
+                    out[i] = _cast(_ascii_values(r, where, el.name), p.dtype, where, el.name)
+                data[p.name] = out
+        else:
+            data[p.name] = _cast(_ascii_values(cols[p.name], where, el.name), p.dtype, where, el.name)
+    el.data = data
+    return pos
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def serialize_ply(ply: PlyData) -> bytes:
+    """Encode ``ply`` (header and body) as bytes."""
+    if ply.format not in FORMATS:
+        raise ValueError(f"unknown PLY format {ply.format!r}")
+    head = ["ply", f"format {ply.format} 1.0"]
+    head += [f"comment {c}" for c in ply.comments]
+    head += [f"obj_info {c}" for c in ply.obj_info]
+    for el in ply.elements:
+        head.append(f"element {el.name} {el.count}")
+        head += [p.header_line() for p in el.properties]
+    head.append("end_header")
+    out = ["\n".join(head).encode("ascii") + b"\n"]
+    if ply.format == "ascii":
+        for el in ply.elements:
+            out.append(_ascii_body(el))
+    else:
+        order = FORMATS[ply.format]
+        for el in ply.elements:
+            out.append(_binary_body(el, order))
+    return b"".join(out)
+
+
+def _binary_body(el: PlyElement, order: str) -> bytes:
+    if el.count == 0:
+        return b""
+    lists_ragged = any(p.is_list and el.data[p.name].dtype == object for p in el.properties)
+    if not lists_ragged:
+        fields = []
+        for p in el.properties:
+            if p.is_list:
+                k = el.data[p.name].shape[1]
+                fields.append((p.name + "\0n", order + p.count_dtype))
+                if k:
+                    fields.append((p.name, order + p.dtype, (k,)))
+            else:
+                fields.append((p.name, order + p.dtype))
+        arr = np.empty(el.count, dtype=np.dtype(fields))
+        for p in el.properties:
+            if p.is_list:
+                values = el.data[p.name]
+                arr[p.name + "\0n"] = values.shape[1]
+                if values.shape[1]:
+                    arr[p.name] = values
+            else:
+                arr[p.name] = el.data[p.name]
+        return arr.tobytes()
+    chunks = []
+    for r in range(el.count):
+        for p in el.properties:
+            v = el.data[p.name][r]
+            if p.is_list:
+                v = np.asarray(v)
+                chunks.append(np.array(len(v), dtype=order + p.count_dtype).tobytes())
+                chunks.append(v.astype(order + p.dtype).tobytes())
+            else:
+                chunks.append(np.array(v, dtype=order + p.dtype).tobytes())
+    return b"".join(chunks)
+
+
+def _fmt(code: str) -> str:
+    kind = np.dtype(code).kind
+    if kind == "f":
+        return "%.9g" if np.dtype(code).itemsize == 4 else "%.17g"
+    return "%d"
+
+
+def _ascii_body(el: PlyElement) -> bytes:
+    if el.count == 0:
+        return b""
+    ragged = any(p.is_list and el.data[p.name].dtype == object for p in el.properties)
+    if not ragged:
+        columns = []
+        for p in el.properties:
+            v = el.data[p.name]
+            if p.is_list:
+                k = v.shape[1]
+                columns.append(np.char.mod("%d", np.full(el.count, k)))
+                for j in range(k):
+                    columns.append(np.char.mod(_fmt(p.dtype), v[:, j].astype(p.dtype)))
+            else:
+                columns.append(np.char.mod(_fmt(p.dtype), v.astype(p.dtype)))
+        rows = columns[0]
+        for c in columns[1:]:
+            rows = np.char.add(np.char.add(rows, " "), c)
+        return ("\n".join(rows.tolist()) + "\n").encode("ascii")
+    lines = []
+    for r in range(el.count):
+        parts = []
+        for p in el.properties:
+            v = el.data[p.name][r]
+            if p.is_list:
+                v = np.asarray(v).astype(p.dtype)
+                parts.append(str(len(v)))
+                parts += [_fmt(p.dtype) % x for x in v]
+            else:
+                parts.append(_fmt(p.dtype) % np.asarray(v).astype(p.dtype))
+        lines.append(" ".join(parts))
+    return ("\n".join(lines) + "\n").encode("ascii")
+
+
+# --------------------------------------------------------------------------- data model
+
+
+def read_bytes(path: str | os.PathLike) -> bytes:
+    """All bytes of ``path`` (``-`` reads standard input)."""
+    if str(path) == "-":
+        return sys.stdin.buffer.read()
+    try:
+        with open(path, "rb") as f:
+            return f.read()
+    except FileNotFoundError:
+        raise InputError("no such file", str(path)) from None
+    except IsADirectoryError:
+        raise InputError("is a directory, not a file", str(path)) from None
+    except PermissionError:
+        raise InputError("permission denied", str(path)) from None
+
+
+def read_ply(path: str | os.PathLike, data: bytes | None = None) -> PointCloud | TriangleMesh:
+    """Read a PLY file as a point cloud (no faces) or a triangle mesh.
+
+    Parameters
+    ----------
+    path : str or path-like
+        File to read; ``-`` reads standard input.
+    data : bytes, optional
+        The file's bytes when already read (``path`` then only names it in errors).
+
+    Returns
+    -------
+    PointCloud or TriangleMesh
+        A mesh when the file has a ``face`` element with at least one face; polygons are
+        fan-triangulated.
+
+    Raises
+    ------
+    InputError
+        Malformed or inconsistent file, NaN/inf coordinates, face indices out of range.
+    """
+    buf = read_bytes(path) if data is None else data
+    ply = parse_ply(buf, str(path))
+    return ply_to_geometry(ply, str(path))
+
+
+def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | TriangleMesh:
+    """Convert a decoded PLY file to the data model (see :func:`read_ply`)."""
+    where = _describe(path)
+    vert = ply.element("vertex")
+    if vert is None:
+        raise InputError("no 'vertex' element", where)
+    props = {p.name: p for p in vert.properties}
+    for c in _VERTEX_XYZ:
+        if c not in props:
+            raise InputError(f"vertex element has no {c!r} property", where)
+        if props[c].is_list:
+            raise InputError(f"vertex property {c!r} is a list", where)
+    d = vert.data
+    pts = np.column_stack([d[c].astype(np.float64) for c in _VERTEX_XYZ]) if vert.count else np.zeros((0, 3))
+    if not np.isfinite(pts).all():
+        bad = int(np.flatnonzero(~np.isfinite(pts).all(axis=1))[0])
+        raise InputError(f"vertex {bad} has a NaN or infinite coordinate", where)
+    used = set(_VERTEX_XYZ)
+    point_dtype = np.float64 if all(props[c].dtype == "f8" for c in _VERTEX_XYZ) else np.float32
+    normals = None
+    if all(c in props and not props[c].is_list for c in _VERTEX_NORMAL):
+        normals = np.column_stack([d[c].astype(np.float64) for c in _VERTEX_NORMAL]) if vert.count else np.zeros((0, 3))
+        used |= set(_VERTEX_NORMAL)
+    colors = None
+    for names in (_VERTEX_COLOR, _VERTEX_COLOR_DIFFUSE, _VERTEX_COLOR_ALT):
+        if all(c in props and not props[c].is_list for c in names[:3]):
+            chosen = [c for c in names if c in props]
+            colors = np.column_stack([d[c] for c in chosen]) if vert.count else np.zeros((0, len(chosen)), np.uint8)
+            used |= set(chosen)
+            break
+    attributes = {p.name: d[p.name] for p in vert.properties if p.name not in used and not p.is_list}
+    extras = [e for e in ply.elements if e.name not in ("vertex", "face")]
+    face = ply.element("face")
+    common = dict(
+        colors=colors,
+        attributes=attributes,
+        history=list(ply.comments),
+        point_dtype=point_dtype,
+        extra_elements=extras,
+        obj_info=list(ply.obj_info),
+    )
+    if face is None or face.count == 0:
+        return PointCloud(points=pts, normals=normals, **common)
+    idx_prop = next((p for p in face.properties if p.name in _FACE_INDEX_NAMES and p.is_list), None)
+    if idx_prop is None:
+        raise InputError("face element has no 'vertex_indices' list property", where)
+    faces, src = _triangulate(face.data[idx_prop.name], where)
+    if faces.size and (faces.min() < 0 or faces.max() >= len(pts)):
+        bad = faces.max() if faces.max() >= len(pts) else faces.min()
+        raise InputError(f"face index {int(bad)} out of range for {len(pts)} vertices", where)
+    face_attrs = {
+        p.name: face.data[p.name][src] for p in face.properties if p is not idx_prop and not p.is_list
+    }
+    return TriangleMesh(vertices=pts, faces=faces, normals=normals, face_attributes=face_attrs, **common)
+
+
+def _triangulate(lists: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """Fan-triangulate polygons; returns (faces (m, 3) int64, source polygon of each face)."""
+    if lists.dtype != object:
+        k = lists.shape[1]
+        n = lists.shape[0]
+        if k < 3:
+            raise InputError(f"faces with {k} vertices (fewer than 3)", where)
+        poly = lists.astype(np.int64)
+        if k == 3:
+            return poly, np.arange(n)
+        fan = [np.column_stack([poly[:, 0], poly[:, j], poly[:, j + 1]]) for j in range(1, k - 1)]
+        faces = np.stack(fan, axis=1).reshape(-1, 3)
+        return faces, np.repeat(np.arange(n), k - 2)
+    lengths = np.fromiter((len(r) for r in lists), dtype=np.int64, count=len(lists))
+    if np.any(lengths < 3):
+        bad = int(np.flatnonzero(lengths < 3)[0])
+        raise InputError(f"face {bad} has {int(lengths[bad])} vertices (fewer than 3)", where)
+    flat = np.concatenate([np.asarray(r, dtype=np.int64) for r in lists])
+    start = np.cumsum(lengths) - lengths
+    ntri = lengths - 2
+    src = np.repeat(np.arange(len(lists)), ntri)
+    j = np.arange(int(ntri.sum())) - np.repeat(np.cumsum(ntri) - ntri, ntri)
+    base = start[src]
+    faces = np.column_stack([flat[base], flat[base + 1 + j], flat[base + 2 + j]])
+    return faces, src
+
+
+def geometry_to_ply(obj: PointCloud | TriangleMesh, ascii: bool = False) -> PlyData:
+    """Convert a cloud or mesh to a :class:`PlyData` ready to serialise."""
+    fmt = "ascii" if ascii else "binary_little_endian"
+    pts = obj.points
+    n = len(pts)
+    fcode = "f8" if np.dtype(obj.point_dtype) == np.float64 else "f4"
+    vprops = [PlyProperty(c, fcode) for c in _VERTEX_XYZ]
+    vdata = {c: pts[:, i] for i, c in enumerate(_VERTEX_XYZ)}
+    if obj.normals is not None:
+        vprops += [PlyProperty(c, fcode) for c in _VERTEX_NORMAL]
+        vdata.update({c: obj.normals[:, i] for i, c in enumerate(_VERTEX_NORMAL)})
+    if obj.colors is not None:
+        ccode = f"{obj.colors.dtype.kind}{obj.colors.dtype.itemsize}"
+        if ccode not in ("u1", "u2", "f4", "f8", "i1", "i2", "i4", "u4"):
+            ccode = "u1"
+        for i in range(obj.colors.shape[1]):
+            vprops.append(PlyProperty(_VERTEX_COLOR[i], ccode))
+            vdata[_VERTEX_COLOR[i]] = obj.colors[:, i]
+    for name, values in obj.attributes.items():
+        vprops.append(PlyProperty(name, _code(values.dtype)))
+        vdata[name] = values
+    elements = [PlyElement("vertex", n, vprops, vdata)]
+    if isinstance(obj, TriangleMesh):
+        fprops = [PlyProperty("vertex_indices", "i4", "u1")]
+        fdata = {"vertex_indices": obj.faces}
+        for name, values in obj.face_attributes.items():
+            fprops.append(PlyProperty(name, _code(values.dtype)))
+            fdata[name] = values
+        elements.append(PlyElement("face", len(obj.faces), fprops, fdata))
+    elements += list(obj.extra_elements)
+    return PlyData(format=fmt, comments=list(obj.history), obj_info=list(obj.obj_info), elements=elements)
+
+
+def _code(dtype: np.dtype) -> str:
+    name = ply_name(dtype)
+    return PLY_TYPES[name]
+
+
+def ply_bytes(obj: PointCloud | TriangleMesh, ascii: bool = False) -> bytes:
+    """The PLY encoding of ``obj``."""
+    return serialize_ply(geometry_to_ply(obj, ascii=ascii))
+
+
+def write_ply(obj: PointCloud | TriangleMesh, path: str | os.PathLike, ascii: bool = False) -> None:
+    """Write ``obj`` to ``path`` (``-``: standard output) atomically.
+
+    The file is written to a temporary name in the target folder and renamed, so a failed
+    run never leaves a partial file.
+    """
+    from recon_cli.io.atomic import write_bytes
+
+    write_bytes(path, ply_bytes(obj, ascii=ascii))
