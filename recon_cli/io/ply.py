@@ -68,6 +68,7 @@ class PlyElement:
     count: int
     properties: list[PlyProperty] = field(default_factory=list)
     data: dict[str, np.ndarray] = field(default_factory=dict)
+    raw: np.ndarray | None = field(default=None, repr=False)  # structured rows, when decoded as such
 
 
 @dataclass
@@ -234,7 +235,9 @@ def _parse_binary(ply: PlyData, buf: bytes, offset: int, order: str, where: str)
         if not any(p.is_list for p in el.properties):
             dt = np.dtype([(p.name, order + p.dtype) for p in el.properties])
             arr = np.frombuffer(mv, dtype=dt, count=el.count, offset=offset)
-            el.data = {p.name: arr[p.name].astype(np.dtype(p.dtype), copy=True) for p in el.properties}
+            # views into the file's bytes; consumers copy what they keep (one pass, not two)
+            el.data = {p.name: arr[p.name] for p in el.properties}
+            el.raw = arr
             offset += dt.itemsize * el.count
             continue
         offset = _parse_binary_lists(el, buf, mv, offset, order, where)
@@ -604,7 +607,7 @@ def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | Trian
         if props[c].is_list:
             raise InputError(f"vertex property {c!r} is a list", where)
     d = vert.data
-    pts = np.column_stack([d[c].astype(np.float64) for c in _VERTEX_XYZ]) if vert.count else np.zeros((0, 3))
+    pts = _columns(vert, _VERTEX_XYZ, np.float64)
     if not np.isfinite(pts).all():
         bad = int(np.flatnonzero(~np.isfinite(pts).all(axis=1))[0])
         raise InputError(f"vertex {bad} has a NaN or infinite coordinate", where)
@@ -612,17 +615,24 @@ def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | Trian
     point_dtype = np.float64 if all(props[c].dtype == "f8" for c in _VERTEX_XYZ) else np.float32
     normals = None
     if all(c in props and not props[c].is_list for c in _VERTEX_NORMAL):
-        normals = np.column_stack([d[c].astype(np.float64) for c in _VERTEX_NORMAL]) if vert.count else np.zeros((0, 3))
+        normals = _columns(vert, _VERTEX_NORMAL, np.float64)
         used |= set(_VERTEX_NORMAL)
     colors = None
     for names in (_VERTEX_COLOR, _VERTEX_COLOR_DIFFUSE, _VERTEX_COLOR_ALT):
         if all(c in props and not props[c].is_list for c in names[:3]):
             chosen = [c for c in names if c in props]
-            colors = np.column_stack([d[c] for c in chosen]) if vert.count else np.zeros((0, len(chosen)), np.uint8)
+            colors = _columns(vert, tuple(chosen), None)
             used |= set(chosen)
             break
-    attributes = {p.name: d[p.name] for p in vert.properties if p.name not in used and not p.is_list}
-    extras = [e for e in ply.elements if e.name not in ("vertex", "face")]
+    attributes = {
+        p.name: np.array(d[p.name], dtype=np.dtype(p.dtype)) for p in vert.properties if p.name not in used and not p.is_list
+    }
+    # copies, so a kept element does not pin the whole file's bytes in memory
+    extras = [
+        PlyElement(e.name, e.count, list(e.properties), {k: np.array(v) for k, v in e.data.items()})
+        for e in ply.elements
+        if e.name not in ("vertex", "face")
+    ]
     face = ply.element("face")
     common = dict(
         colors=colors,
@@ -645,6 +655,27 @@ def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | Trian
         p.name: face.data[p.name][src] for p in face.properties if p is not idx_prop and not p.is_list
     }
     return TriangleMesh(vertices=pts, faces=faces, normals=normals, face_attributes=face_attrs, **common)
+
+
+def _columns(el: PlyElement, names: tuple[str, ...], dtype) -> np.ndarray:
+    """(count, len(names)) array of the named scalar properties, copied once."""
+    if dtype is None:
+        dtype = np.result_type(*[el.data[c].dtype for c in names])
+    if el.raw is not None and el.count and el.raw.flags.c_contiguous:
+        fields = el.raw.dtype.fields
+        types = {fields[c][0] for c in names}
+        if len(types) == 1:
+            from recon_cli.io._ply_kernel import gather_fields
+
+            ftype = types.pop()
+            flat = el.raw.view(np.uint8).reshape(-1)
+            offsets = np.array([fields[c][1] for c in names], dtype=np.int64)
+            out = np.empty((el.count, len(names)), dtype=f"u{ftype.itemsize}")
+            gather_fields(flat, el.raw.dtype.itemsize, offsets, ftype.itemsize, ftype.byteorder == ">", out)
+            return out.view(ftype.newbyteorder("=")).astype(dtype, copy=False)
+    if el.count == 0:
+        return np.zeros((0, len(names)), dtype=dtype)
+    return np.column_stack([el.data[c].astype(dtype) for c in names])
 
 
 def _triangulate(lists: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]:
