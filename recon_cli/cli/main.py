@@ -2,7 +2,7 @@
 
 Exit codes: 0 success; 1 a stage failed on valid input; 2 bad input or parameters
 (click's usage errors too); 3 a reference backend is missing or failed; 4 a batch in
-which some inputs failed; 130 interrupted.
+which some inputs failed (``EXIT_BATCH_SOME_FAILED``: ``recon batch`` returns it); 130 interrupted.
 """
 
 from __future__ import annotations
@@ -33,6 +33,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 EXIT_INTERRUPTED = 130
+# ``recon batch``: the batch ran to the end but some inputs failed (see DIR/batch.json)
+EXIT_BATCH_SOME_FAILED = 4
 
 
 class LazyGroup(click.Group):
