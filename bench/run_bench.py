@@ -10,10 +10,15 @@ from __future__ import annotations
 import argparse
 import importlib
 import math
+import os
 import platform
 import sys
 import time
 from pathlib import Path
+
+# measurements fork; GNU OpenMP (numba's usual threading layer) aborts a child forked after
+# its threads started, the workqueue layer does not. Set before anything imports numba.
+os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
