@@ -73,3 +73,52 @@ def hausdorff(sampled: TriangleMesh, target: TriangleMesh, samples: int) -> dict
     for m in (sampled, target):
         ms.add_mesh(ml.Mesh(vertex_matrix=np.asarray(m.vertices, dtype=np.float64), face_matrix=np.asarray(m.faces, dtype=np.int32)))
     return dict(ms.get_hausdorff_distance(sampledmesh=0, targetmesh=1, samplenum=int(samples), samplevert=False, sampleface=True))
+
+
+def hausdorff_points(points: np.ndarray, target: TriangleMesh) -> dict:
+    """PyMeshLab ``get_hausdorff_distance`` from every one of ``points`` ((k, 3)) to ``target``.
+
+    The points are passed as a vertex-only mesh and all of them are used (vertex sampling),
+    so the result is comparable sample for sample with ours; ``maxdist`` is set beyond
+    both bounding boxes so that no sample is discarded.
+    """
+    ml = require("pymeshlab")
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    allpts = np.vstack([pts, np.asarray(target.vertices, dtype=np.float64)])
+    reach = float(np.linalg.norm(allpts.max(axis=0) - allpts.min(axis=0))) * 2.0 + 1.0
+    ms = ml.MeshSet()
+    ms.add_mesh(ml.Mesh(vertex_matrix=pts))
+    ms.add_mesh(ml.Mesh(vertex_matrix=np.asarray(target.vertices, dtype=np.float64), face_matrix=np.asarray(target.faces, dtype=np.int32)))
+    return dict(
+        ms.get_hausdorff_distance(
+            sampledmesh=0, targetmesh=1, samplenum=len(pts), samplevert=True, sampleface=False, maxdist=ml.PureValue(reach)
+        )
+    )
+
+
+def repair(mesh: TriangleMesh, fill_holes: int = 0) -> TriangleMesh:
+    """PyMeshLab's cleaning chain matching ``recon repair``'s steps: merge duplicate vertices,
+    remove null and duplicate faces and unreferenced vertices, repair non-manifold edges
+    (remove faces) and vertices (split), re-orient coherently, optionally close holes."""
+    ms = meshset(TriangleMesh(vertices=mesh.vertices, faces=mesh.faces))
+    ms.meshing_remove_duplicate_vertices()
+    ms.meshing_remove_null_faces()
+    ms.meshing_remove_duplicate_faces()
+    ms.meshing_remove_unreferenced_vertices()
+    ms.meshing_repair_non_manifold_edges(method="Remove Faces")
+    ms.meshing_repair_non_manifold_vertices()
+    ms.meshing_re_orient_faces_coherently()
+    if fill_holes:
+        ms.meshing_close_holes(maxholesize=int(fill_holes))
+    return current_mesh(ms, mesh.history)
+
+
+def ball_pivoting_radii(cloud: PointCloud, radii: list[float], clustering: float = 20.0, creasethr: float = 90.0) -> TriangleMesh:
+    """PyMeshLab ball pivoting applied once per radius (increasing), keeping earlier faces."""
+    ml = require("pymeshlab")
+    ms = meshset(cloud)
+    for r in radii:
+        ms.generate_surface_reconstruction_ball_pivoting(
+            ballradius=ml.PureValue(float(r)), clustering=clustering, creasethr=creasethr, deletefaces=False
+        )
+    return current_mesh(ms, cloud.history)

@@ -1,0 +1,368 @@
+"""Marching cubes / tetrahedra: tables, invariants over random fields, skimage cross-check."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from recon_cli import _mcubes_luts as L
+from recon_cli.errors import InputError, ParameterError
+from recon_cli.mcubes import marching_cubes, marching_cubes_sparse
+
+
+# --- small mesh checks (local: no dependence on the topology module) ------------------------
+def edge_counts(faces):
+    e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(e, axis=0, return_counts=True)
+    return counts
+
+
+def check_closed_manifold(v, f):
+    """Every edge in exactly two faces, each directed edge once (consistent winding),
+    every vertex's faces form one fan, no zero-area faces, no unused vertices."""
+    assert len(f) > 0
+    counts = edge_counts(f)
+    assert counts.min() == 2 and counts.max() == 2
+    d = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    assert len(np.unique(d, axis=0)) == len(d), "a directed edge appears twice: inconsistent winding"
+    assert np.array_equal(np.unique(f), np.arange(len(v)))
+    area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+    assert area.min() > 0
+    # vertex manifold: the link of each vertex (edges a->b of its faces) is one cycle
+    nxt = {}
+    for a, b, c in f.tolist():
+        nxt[(a, b)] = c
+        nxt[(b, c)] = a
+        nxt[(c, a)] = b
+    valence = np.bincount(f.reshape(-1), minlength=len(v))
+    seen = {}
+    for (vtx, a) in nxt:
+        if vtx in seen:
+            continue
+        n, x = 0, a
+        while True:
+            x = nxt[(vtx, x)]
+            n += 1
+            if x == a:
+                break
+        seen[vtx] = n
+    assert all(seen[i] == valence[i] for i in seen), "a vertex with more than one fan"
+
+
+def signed_volume(v, f):
+    t = v[f]
+    return float(np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() / 6.0)
+
+
+def sphere(n=40, r=0.7, c=(0.0, 0.0, 0.0)):
+    x = np.linspace(-1, 1, n)
+    X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
+    return np.sqrt((X - c[0]) ** 2 + (Y - c[1]) ** 2 + (Z - c[2]) ** 2) - r, x[1] - x[0]
+
+
+def all_cells(vol):
+    n = np.array(vol.shape) - 1
+    idx = np.stack(np.meshgrid(*[np.arange(k) for k in n], indexing="ij"), -1).reshape(-1, 3)
+    vals = np.stack([vol[idx[:, 0] + (q & 1), idx[:, 1] + ((q >> 1) & 1), idx[:, 2] + ((q >> 2) & 1)] for q in range(8)], 1)
+    return idx, vals
+
+
+# --- tables -----------------------------------------------------------------------------------
+def _cube_symmetries():
+    """The 48 symmetries of the cube as (corner permutation, edge map, face map, det)."""
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for flips in range(8):
+            def img(c):
+                p = [(c >> a) & 1 for a in range(3)]
+                q = [p[perm[a]] ^ ((flips >> a) & 1) for a in range(3)]
+                return q[0] | (q[1] << 1) | (q[2] << 2)
+
+            cmap = [img(c) for c in range(8)]
+            emap = [L._MC_EDGE_OF[frozenset((cmap[int(a)], cmap[int(b)]))] for a, b in L.MC_EDGES]
+            fmap = []
+            for f in range(6):
+                corners = {cmap[int(c)] for c in L.FACE_CORNERS[f]}
+                fmap.append(next(g for g in range(6) if set(map(int, L.FACE_CORNERS[g])) == corners))
+            det = round(np.linalg.det(np.eye(3)[list(perm)])) * (-1) ** bin(flips).count("1")
+            out.append((cmap, emap, fmap, det))
+    return out
+
+
+def test_table_every_case_closes_along_face_segments():
+    """For all 256 cases and every decider choice on ambiguous faces: the triangles' boundary
+    (directed edges used once) is exactly the union of the face segments, and triangles only
+    use crossed edges (or the loop centre)."""
+    for case in range(256):
+        amb = int(L.MC_AMBIGUOUS[case])
+        crossed = {e for e, (a, b) in enumerate(L.MC_EDGES) if ((case >> int(a)) & 1) != ((case >> int(b)) & 1)}
+        for bits in range(64):
+            if bits & ~amb:
+                continue
+            row = case * 64 + bits
+            tris = L.MC_TRIS[L.MC_START[row]:L.MC_START[row + 1]].tolist()
+            segs = {s for f in range(6) for s in L.face_segments(case, f, bool((bits >> f) & 1))}
+            used = {e for t in tris for e in t} - {L.CENTER}
+            assert used == crossed, case
+            directed = [(t[i], t[(i + 1) % 3]) for t in tris for i in range(3)]
+            assert len(set(directed)) == len(directed)
+            boundary = {d for d in directed if (d[1], d[0]) not in set(directed)}
+            assert boundary == segs, (case, bits)
+            if case in (0, 255):
+                assert not tris
+
+
+def test_table_base_cases():
+    """Classic counts: one corner -> 1 triangle, a face's 4 corners -> a quad (2), the
+    complement of a case has the same surface reversed."""
+    for c in range(8):
+        assert L.MC_START[(1 << c) * 64 + 1] - L.MC_START[(1 << c) * 64] == 1
+    quad = 0b00001111  # corners 0-3: the z = 0 face
+    assert L.MC_START[quad * 64 + 1] - L.MC_START[quad * 64] == 2
+    for case in range(256):
+        amb = int(L.MC_AMBIGUOUS[case])
+        assert int(L.MC_AMBIGUOUS[255 - case]) == amb
+        for bits in range(64):
+            if bits & ~amb:
+                continue
+            segs = {s for f in range(6) for s in L.face_segments(case, f, bool((bits >> f) & 1))}
+            # complement with the decider flipped on ambiguous faces = same curves, reversed
+            comp = {s for f in range(6) for s in L.face_segments(255 - case, f, not bool((bits >> f) & 1))}
+            assert comp == {(b, a) for a, b in segs}
+
+
+def test_table_invariant_under_cube_symmetries():
+    """Each case's face segments map onto the transformed case's under all 48 symmetries
+    (direction reversed by reflections): the table is the symmetric closure of its base cases."""
+    syms = _cube_symmetries()
+    assert len(syms) == 48
+    for case in range(256):
+        amb = int(L.MC_AMBIGUOUS[case])
+        for bits in range(64):
+            if bits & ~amb:
+                continue
+            segs = {s for f in range(6) for s in L.face_segments(case, f, bool((bits >> f) & 1))}
+            for cmap, emap, fmap, det in syms:
+                case2 = sum(1 << cmap[c] for c in range(8) if (case >> c) & 1)
+                bits2 = sum(1 << fmap[f] for f in range(6) if (bits >> f) & 1)
+                segs2 = {s for f in range(6) for s in L.face_segments(case2, f, bool((bits2 >> f) & 1))}
+                mapped = {(emap[a], emap[b]) if det > 0 else (emap[b], emap[a]) for a, b in segs}
+                assert mapped == segs2, (case, bits)
+
+
+def test_mt_table_cases():
+    for case in range(256):
+        tris = L.MT_TRIS[L.MT_START[case]:L.MT_START[case + 1]]
+        assert (len(tris) == 0) == (case in (0, 255))
+
+
+# --- dense and sparse on known fields ---------------------------------------------------------
+def test_sphere_closed_outward_and_accurate():
+    vol, h = sphere(48)
+    v, f, n = marching_cubes(vol, spacing=h, origin=(-1, -1, -1))
+    check_closed_manifold(v, f)
+    r = np.linalg.norm(v, axis=1)
+    assert np.abs(r - 0.7).max() < 0.05 * h  # linear interpolation of an exact distance
+    assert signed_volume(v, f) == pytest.approx(4 / 3 * np.pi * 0.7**3, rel=3e-3)
+    assert np.einsum("ij,ij->i", n, v / r[:, None]).min() > 0.99
+    c = v[f].mean(axis=1)
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    assert (np.einsum("ij,ij->i", fn, c) > 0).all()
+
+
+def test_cross_check_skimage():
+    from skimage.measure import marching_cubes as sk_mc
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(3)
+    x = np.linspace(-1, 1, 40)
+    X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
+    field = np.full(X.shape, 1e9)
+    for _ in range(5):  # union of spheres
+        c = rng.uniform(-0.5, 0.5, 3)
+        field = np.minimum(field, np.sqrt((X - c[0]) ** 2 + (Y - c[1]) ** 2 + (Z - c[2]) ** 2) - rng.uniform(0.2, 0.4))
+    h = x[1] - x[0]
+    v, f, _ = marching_cubes(field, spacing=h, origin=(-1, -1, -1))
+    vs, fs, _, _ = sk_mc(field, 0.0, spacing=(h, h, h))
+    vs = vs - 1.0
+
+    def on_edges(a):  # crossing vertices: two coordinates on lattice planes (skimage's MC33
+        g = (a + 1.0) / h  # also adds a few vertices inside cells for its tunnel cases)
+        return a[(np.abs(g - np.round(g)) < 1e-4).sum(axis=1) >= 2]
+
+    ce, cs = on_edges(v), on_edges(vs)
+    assert len(ce) == len(v)
+    assert len(ce) == len(cs)  # one vertex per crossed edge in both
+    assert len(vs) - len(cs) <= 3
+    d1, _ = cKDTree(cs).query(ce)
+    d2, _ = cKDTree(ce).query(cs)
+    assert max(d1.max(), d2.max()) < 1e-3 * h + 1e-6  # the same crossings (float32 in skimage)
+    # surface Chamfer: face centres of each mesh to the other surface
+    from recon_cli.distance import closest_points
+
+    da, _, _ = closest_points(vs, fs, v[f].mean(axis=1))
+    db, _, _ = closest_points(v, f, vs[fs].mean(axis=1))
+    assert 0.5 * (da.mean() + db.mean()) < 0.01 * h
+    check_closed_manifold(v, f)
+
+
+def test_sparse_equals_dense_and_subset_is_closed():
+    vol, h = sphere(24, r=0.6)
+    cells, vals = all_cells(vol)
+    v, f, n = marching_cubes(vol, spacing=h, origin=(-1, -1, -1))
+    vs, fs, ns = marching_cubes_sparse(cells, vals, origin=(-1, -1, -1), spacing=h, return_normals=True)
+    assert len(vs) == len(v) and len(fs) == len(f)
+    # same triangles up to vertex numbering
+    key = lambda vv, ff: np.sort(np.round(vv[ff].reshape(len(ff), -1) * 1e9).astype(np.int64), axis=0)  # noqa: E731
+    assert np.array_equal(key(v, f), key(vs, fs))
+    assert np.einsum("ij,ij->i", ns, vs / np.linalg.norm(vs, axis=1, keepdims=True)).min() > 0.99
+    # only the cells that straddle the surface, shuffled: still closed and the same surface
+    keep = (vals.min(axis=1) < 0) & (vals.max(axis=1) >= 0)
+    rng = np.random.default_rng(0)
+    order = rng.permutation(np.flatnonzero(keep))
+    v2, f2 = marching_cubes_sparse(cells[order] + 1000, vals[order], origin=(-1 - 1000 * h,) * 3, spacing=h)
+    check_closed_manifold(v2, f2)
+    assert len(v2) == len(v)
+    assert np.allclose(np.sort(np.linalg.norm(v2, axis=1)), np.sort(np.linalg.norm(v, axis=1)), atol=1e-9)
+
+
+def test_sparse_negative_coordinates_and_validation():
+    vol, h = sphere(10, r=0.5)
+    cells, vals = all_cells(vol)
+    v1, f1 = marching_cubes_sparse(cells - 7, vals)
+    v0, f0 = marching_cubes_sparse(cells, vals)
+    assert np.allclose(v1 + 7, v0) and np.array_equal(f0, f1)
+    with pytest.raises(InputError):
+        marching_cubes_sparse(np.vstack([cells[:1], cells[:1]]), np.vstack([vals[:1], vals[:1]]))
+    with pytest.raises(InputError):
+        marching_cubes_sparse(cells, vals[:, :7])
+    with pytest.raises(InputError):
+        marching_cubes_sparse(cells.astype(float), vals)
+    with pytest.raises(ParameterError):
+        marching_cubes_sparse(cells, vals, spacing=0)
+    v, f = marching_cubes_sparse(np.zeros((0, 3), np.int64), np.zeros((0, 8)))
+    assert v.shape == (0, 3) and f.shape == (0, 3)
+
+
+def test_nan_cells_are_skipped():
+    vol, h = sphere(30)
+    vol = vol.copy()
+    vol[15:, :, :] = np.nan  # unknown half: an open hemisphere, no sheet at the NaN border
+    v, f, _ = marching_cubes(vol, spacing=h, origin=(-1, -1, -1))
+    assert np.isfinite(v).all()
+    assert v[:, 0].max() <= -1 + 14 * h + 1e-12
+    counts = edge_counts(f)
+    assert counts.max() == 2 and (counts == 1).sum() > 0
+    assert np.abs(np.linalg.norm(v, axis=1) - 0.7).max() < 0.05 * h
+
+
+def test_marching_tetrahedra_closed():
+    vol, h = sphere(30)
+    v, f, n = marching_cubes(vol, spacing=h, origin=(-1, -1, -1), method="mt")
+    check_closed_manifold(v, f)
+    assert signed_volume(v, f) == pytest.approx(4 / 3 * np.pi * 0.7**3, rel=1e-2)
+
+
+def test_exact_iso_values_no_degenerate_and_allow_degenerate():
+    # integer field with many values exactly at the iso level
+    x = np.arange(-6, 7)
+    X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
+    vol = (np.abs(X) + np.abs(Y) + np.abs(Z) - 4).astype(np.float64)
+    v, f, _ = marching_cubes(vol)
+    check_closed_manifold(v, f)
+    vd, fd, _ = marching_cubes(vol, allow_degenerate=True)
+    area = 0.5 * np.linalg.norm(np.cross(vd[fd[:, 1]] - vd[fd[:, 0]], vd[fd[:, 2]] - vd[fd[:, 0]]), axis=1)
+    assert (area == 0).any()  # the clamp is what removes them
+
+
+def test_validation():
+    with pytest.raises(InputError):
+        marching_cubes(np.zeros((3, 3)))
+    with pytest.raises(ParameterError):
+        marching_cubes(np.zeros((3, 3, 3)), method="xx")
+    with pytest.raises(ParameterError):
+        marching_cubes(np.zeros((3, 3, 3)), iso=float("nan"))
+    v, f, n = marching_cubes(np.zeros((1, 5, 5)))
+    assert len(v) == 0 and len(f) == 0
+
+
+# --- hypothesis over random fields --------------------------------------------------------------
+def _pad(vol):
+    """Positive border so the surface is closed."""
+    out = np.ones(tuple(s + 2 for s in vol.shape))
+    out[1:-1, 1:-1, 1:-1] = vol
+    return out
+
+
+fields = st.one_of(
+    # raw random values
+    st.tuples(st.just("random"), st.integers(0, 2**31 - 1), st.integers(2, 7)),
+    # small integers: many corners exactly at the iso level 0
+    st.tuples(st.just("integer"), st.integers(0, 2**31 - 1), st.integers(2, 7)),
+    # metaballs
+    st.tuples(st.just("metaball"), st.integers(0, 2**31 - 1), st.integers(4, 12)),
+)
+
+
+def make_field(kind, seed, n):
+    rng = np.random.default_rng(seed)
+    if kind == "random":
+        return _pad(rng.normal(size=(n, n, n)))
+    if kind == "integer":
+        return _pad(rng.integers(-1, 2, size=(n, n, n)).astype(np.float64))
+    x = np.arange(n, dtype=np.float64)
+    X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
+    s = np.zeros_like(X)
+    for _ in range(rng.integers(1, 5)):
+        c = rng.uniform(0, n - 1, 3)
+        s += rng.uniform(0.5, 3.0) / (0.5 + (X - c[0]) ** 2 + (Y - c[1]) ** 2 + (Z - c[2]) ** 2)
+    return _pad(0.5 - s)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(fields, st.sampled_from(["mc", "mt"]))
+def test_random_fields_closed_manifold_oriented(spec, method):
+    vol = make_field(*spec)
+    v, f, n = marching_cubes(vol, method=method)
+    inside = (vol < 0).sum()
+    if inside == 0:
+        assert len(f) == 0
+        return
+    check_closed_manifold(v, f)
+    assert signed_volume(v, f) > 0  # outward winding encloses a positive volume
+    # sparse path gives the same surface
+    cells, vals = all_cells(vol)
+    vs, fs = marching_cubes_sparse(cells, vals, method=method)
+    assert len(vs) == len(v) and len(fs) == len(f)
+    assert signed_volume(vs, fs) == pytest.approx(signed_volume(v, f), rel=1e-9)
+
+
+# --- stage and CLI ------------------------------------------------------------------------------
+def test_run_stage_and_cli(tmp_path):
+    from click.testing import CliRunner
+
+    from recon_cli.cli.main import cli
+    from recon_cli.grid import Grid, write_grid
+    from recon_cli.io import read_ply
+    from recon_cli.stages import apply_stage
+
+    vol, h = sphere(32)
+    grid = Grid(sdf=vol, origin=(-1, -1, -1), voxel_size=h, history=["made by a test"])
+    res = apply_stage("mcubes", grid, {"iso": "0.05", "method": "mt"})
+    assert res.report["boundary_edges"] == 0 and res.report["method"] == "mt"
+    assert np.abs(np.linalg.norm(res.output.vertices, axis=1) - 0.75).max() < 0.05 * h
+    assert res.output.history[0] == "made by a test" and "mcubes" in res.output.history[-1]
+    with pytest.raises(ParameterError):
+        apply_stage("mcubes", grid, {"method": "nope"})
+    p = tmp_path / "g.npz"
+    write_grid(grid, p)
+    out = tmp_path / "m.ply"
+    r = CliRunner().invoke(cli, ["mcubes", str(p), str(out), "--json"])
+    assert r.exit_code == 0, r.output
+    mesh = read_ply(out)
+    assert mesh.normals is not None and len(mesh.faces) > 1000
+    check_closed_manifold(mesh.vertices, mesh.faces)

@@ -1,0 +1,201 @@
+"""Signed distance grids: analytic shapes, Open3D cross-check, winding sign with holes,
+point-cloud IMLS, the eikonal check and the mesh -> sdf -> mcubes round trip."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import ALL_MESHES, CLOSED_MESHES, load_shared, sampled_cloud
+from recon_cli.distance import closest_points
+from recon_cli.errors import InputError, ParameterError
+from recon_cli.geometry import PointCloud, TriangleMesh
+from recon_cli.grid import Grid
+from recon_cli.mcubes import marching_cubes
+from recon_cli.sdf import eikonal_check, grid_frame, grid_points, mesh_sdf
+from recon_cli.stages import apply_stage
+from test_distance import box_mesh, box_distance
+
+
+def analytic_mesh(fn, n=48, lim=1.2):
+    """A closed mesh of the zero set of ``fn`` (marching cubes at n^3)."""
+    x = np.linspace(-lim, lim, n)
+    X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
+    v, f, _ = marching_cubes(fn(X, Y, Z), spacing=x[1] - x[0], origin=(-lim,) * 3)
+    return TriangleMesh(vertices=v, faces=f)
+
+
+def sphere_fn(X, Y, Z):
+    return np.sqrt(X**2 + Y**2 + Z**2) - 0.8
+
+
+def torus_fn(X, Y, Z):
+    return np.sqrt((np.sqrt(X**2 + Y**2) - 0.7) ** 2 + Z**2) - 0.3
+
+
+def chamfer(a: TriangleMesh, b: TriangleMesh) -> tuple[float, float]:
+    """Symmetric mean and max vertex-to-surface distances."""
+    d1, _, _ = closest_points(b.vertices, b.faces, a.vertices)
+    d2, _, _ = closest_points(a.vertices, a.faces, b.vertices)
+    return 0.5 * (d1.mean() + d2.mean()), max(d1.max(), d2.max())
+
+
+def test_box_exact_to_float32():
+    v, f = box_mesh((0, 0, 0), (1, 2, 3))
+    res = apply_stage("sdf", TriangleMesh(vertices=v, faces=f), {"resolution": 40, "padding": 0.2})
+    g = res.output
+    p = grid_points(g.origin, g.voxel_size, g.shape)
+    inside = (p > 0).all(axis=1) & (p < [1, 2, 3]).all(axis=1)
+    ref = box_distance(p, (0, 0, 0), (1, 2, 3)) * np.where(inside, -1, 1)
+    # float32 storage of values up to ~1.5: |error| within float32 rounding
+    assert np.abs(g.sdf.reshape(-1) - ref).max() <= 2 * np.finfo(np.float32).eps * 2.0
+    assert res.report["inside_samples"] == int(inside.sum())
+
+
+@pytest.mark.parametrize("fn", [sphere_fn, torus_fn], ids=["sphere", "torus"])
+def test_analytic_shapes(fn):
+    mesh = analytic_mesh(fn)
+    # the mesh deviates from the analytic surface by its tessellation error, at most:
+    t = mesh.vertices[mesh.faces]
+    probes = np.concatenate([mesh.vertices, t.mean(axis=1), 0.5 * (t[:, 0] + t[:, 1])])
+    tess = np.abs(fn(*probes.T)).max()
+    for sign in ("winding", "pseudonormal"):
+        res = apply_stage("sdf", mesh, {"resolution": 32, "sign": sign})
+        g = res.output
+        p = grid_points(g.origin, g.voxel_size, g.shape)
+        exact = fn(*p.T)
+        ours = g.sdf.reshape(-1).astype(np.float64)
+        # magnitude: the exact distance to the polyhedron, to float32 rounding
+        d, _, _ = closest_points(mesh.vertices, mesh.faces, p)
+        assert np.abs(np.abs(ours) - d).max() <= 1e-6 * max(1.0, d.max())
+        # sign: the analytic inside wherever the tessellation cannot flip it
+        clear = np.abs(exact) > 2 * tess
+        assert np.array_equal(ours[clear] < 0, exact[clear] < 0), sign
+        # and the value: the analytic distance up to the tessellation error
+        assert np.abs(ours - exact).max() <= 1.5 * tess, sign
+    assert tess < 0.01
+
+
+def test_removed_patch_keeps_inside():
+    """Winding-number sign: kitten with a hole has the same inside as the intact kitten
+    away from the hole."""
+    m = load_shared("kitten")
+    diag = np.linalg.norm(m.vertices.max(0) - m.vertices.min(0))
+    centre = m.vertices[0]
+    fc = m.vertices[m.faces].mean(axis=1)
+    cut = np.linalg.norm(fc - centre, axis=1) < 0.06 * diag
+    assert 20 < cut.sum() < 400
+    holed = TriangleMesh(vertices=m.vertices, faces=m.faces[~cut])
+    origin, h, shape = grid_frame(m.vertices.min(0), m.vertices.max(0), 48)
+    intact, _ = mesh_sdf(m.vertices, m.faces, origin, h, shape)
+    open_, info = mesh_sdf(holed.vertices, holed.faces, origin, h, shape, sign="winding")
+    p = grid_points(origin, h, shape)
+    far = (np.linalg.norm(p - centre, axis=1) > 0.15 * diag) & (np.abs(intact.reshape(-1)) > h)
+    assert np.array_equal(intact.reshape(-1)[far] < 0, open_.reshape(-1)[far] < 0)
+    assert (intact < 0).sum() > 1000
+    # the unsigned part does not depend on the sign method
+    pn, _ = mesh_sdf(holed.vertices, holed.faces, origin, h, shape, sign="pseudonormal")
+    assert np.abs(np.abs(pn) - np.abs(open_)).max() == 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", CLOSED_MESHES)
+def test_against_open3d(name):
+    from recon_cli.backends.open3d_backend import signed_distance
+
+    m = load_shared(name)
+    diag = np.linalg.norm(m.vertices.max(0) - m.vertices.min(0))
+    res = apply_stage("sdf", m, {"resolution": 48})
+    g = res.output
+    p = grid_points(g.origin, g.voxel_size, g.shape)
+    ref = signed_distance(m, p)
+    ours = g.sdf.reshape(-1).astype(np.float64)
+    assert np.abs(ours - ref).max() <= 1e-4 * diag
+    far = np.abs(ref) > g.voxel_size
+    assert np.array_equal(ours[far] < 0, ref[far] < 0)
+    e = res.report["eikonal"]
+    assert e["mean"] > 0.9 and e["fraction_within_0.1"] > 0.85
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ALL_MESHES)
+def test_round_trip_mesh_sdf_mcubes(name):
+    m = load_shared(name)
+    g = apply_stage("sdf", m, {"resolution": 48}).output
+    out = apply_stage("mcubes", g, {}).output
+    assert out.normals is not None
+    cnt = np.unique(np.sort(np.concatenate([out.faces[:, [0, 1]], out.faces[:, [1, 2]], out.faces[:, [2, 0]]]), axis=1), axis=0, return_counts=True)[1]
+    assert cnt.min() == 2 and cnt.max() == 2  # watertight, edge-manifold
+    mean, _ = chamfer(m, out)
+    assert mean < g.voxel_size
+
+
+def test_band():
+    m = load_shared("mug")
+    origin, h, shape = grid_frame(m.vertices.min(0), m.vertices.max(0), 40)
+    full, _ = mesh_sdf(m.vertices, m.faces, origin, h, shape)
+    for sign in ("winding", "pseudonormal"):
+        banded, _ = mesh_sdf(m.vertices, m.faces, origin, h, shape, sign=sign, band=3)
+        near = np.abs(full) <= 3 * h
+        assert np.allclose(banded[near], full[near])
+        assert np.allclose(np.abs(banded[~near]), 3 * h)
+        assert np.array_equal(banded[~near] < 0, full[~near] < 0)
+    g = Grid(sdf=banded, origin=origin, voxel_size=h)
+    e = eikonal_check(g)
+    assert 0 < e["cells"] < near.sum()
+
+
+def test_point_cloud_imls():
+    m = load_shared("kitten")
+    cloud = sampled_cloud("kitten", 30_000)
+    res = apply_stage("sdf", cloud, {"resolution": 64})
+    g = res.output
+    assert res.report["source"] == "cloud" and res.report["unknown_samples"] > 0.3 * np.prod(g.shape)
+    out = apply_stage("mcubes", g, {}).output
+    mean, mx = chamfer(m, out)
+    assert mean < 0.25 * g.voxel_size
+    # no sheets far from the data: every output vertex is near the true surface
+    d, _, _ = closest_points(m.vertices, m.faces, out.vertices)
+    assert d.max() < 2 * g.voxel_size
+    with pytest.raises(InputError):
+        apply_stage("sdf", PointCloud(points=cloud.points), {})
+
+
+def test_eikonal_check_exact_sphere():
+    x = np.linspace(-1, 1, 41)
+    X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
+    g = Grid(sdf=np.sqrt(X**2 + Y**2 + Z**2) - 0.5, origin=(-1, -1, -1), voxel_size=x[1] - x[0])
+    e = eikonal_check(g)
+    assert e["mean"] == pytest.approx(1.0, abs=0.01) and e["fraction_within_0.1"] > 0.99
+    assert e["cells"] > 0.8 * 39**3
+    g2 = Grid(sdf=0.3 * g.sdf, origin=g.origin, voxel_size=g.voxel_size)
+    assert eikonal_check(g2)["mean"] == pytest.approx(0.3, abs=0.01)
+
+
+def test_validation_and_cli(tmp_path):
+    from click.testing import CliRunner
+
+    from recon_cli.cli.main import cli
+    from recon_cli.grid import read_grid
+    from recon_cli.info import describe
+
+    v, f = box_mesh()
+    mesh = TriangleMesh(vertices=v, faces=f)
+    for bad in ({"resolution": 1}, {"sign": "x"}, {"band": -1}, {"padding": -0.1}, {"knn": 0}, {"voxel_size": "abc"}):
+        with pytest.raises(ParameterError):
+            apply_stage("sdf", mesh, bad)
+    res = apply_stage("sdf", mesh, {"voxel_size": "0.25", "band": "2"})
+    assert res.output.voxel_size == 0.25 and "voxel-size=0.25" in res.output.history[-1]
+    from recon_cli.io import write_ply
+
+    src = tmp_path / "box.ply"
+    write_ply(mesh, src)
+    out = tmp_path / "box.npz"
+    r = CliRunner().invoke(cli, ["sdf", str(src), str(out), "--resolution", "16", "--sign", "pseudonormal", "--json"])
+    assert r.exit_code == 0, r.output
+    g = read_grid(out)
+    assert g.sdf.dtype == np.float32 and g.shape[2] >= 17
+    info = describe(out)
+    assert info["eikonal"] == eikonal_check(g) and info["eikonal"]["mean"] > 0.9
+    r = CliRunner().invoke(cli, ["sdf", str(src), str(out), "--resolution", "0"])
+    assert isinstance(r.exception, ParameterError)  # main() maps it to exit code 2
