@@ -492,14 +492,13 @@ def _merge_splats(pos, vec, count, s_lo, s_frac):
 def _trim(mesh: TriangleMesh, vdens: np.ndarray, q: float) -> tuple[TriangleMesh, np.ndarray, int]:
     """Drop the surface of the lowest-density ``q`` fraction of vertices; keep it manifold.
 
-    A face goes when at least two of its vertices rank in the lowest ``q`` of the vertex
-    densities (ties ranked by index, so a plateau of zero density counts once); vertices left
-    with several fans are split, unreferenced ones removed.
+    A vertex is low when its density is at most the ``q`` quantile of the vertex densities;
+    a face goes when at least two of its vertices are low; vertices left with several fans
+    are split, unreferenced ones removed. A plateau at the threshold goes whole: on an
+    open scan most of the closing sheet has density exactly 0, and ranking ties by index
+    would keep an arbitrary part of it.
     """
-    order = np.argsort(vdens, kind="stable")
-    rank = np.empty(len(vdens), np.float64)
-    rank[order] = np.arange(len(vdens)) / max(len(vdens), 1)
-    low = rank < q
+    low = vdens <= np.quantile(vdens, q)
     keepf = low[mesh.faces].sum(axis=1) < 2
     faces = mesh.faces[keepf]
     faces, src = _split_nonmanifold_vertices(faces, len(mesh.vertices))

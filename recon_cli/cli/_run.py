@@ -74,6 +74,12 @@ def format_report(report: dict, verbose: int = 0) -> str:
             lines.append(f"{key}:")
             for k, v in value.items():
                 lines.append(f"  {k:<24} {_fmt(v)}")
+        elif isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
+            # a pipeline's per-stage reports: one indented block each
+            for i, sub in enumerate(value, start=1):
+                lines.append(f"{key} {i}: {sub.get('stage', '')}")
+                body = format_report({k: v for k, v in sub.items() if k != "stage"}, verbose)
+                lines += ["  " + ln for ln in body.splitlines()]
         else:
             lines.append(f"{key:<26} {_fmt(value)}")
     return "\n".join(lines)
