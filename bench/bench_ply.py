@@ -46,6 +46,7 @@ def rows(quick: bool) -> list[dict]:
     with tempfile.TemporaryDirectory() as d:
         cloud = os.path.join(d, "cloud.ply")
         _make_cloud(cloud, n)
+        read_ply(cloud)  # load the (serial, fork-safe) numba gather kernel once, outside the timings
         ours = measure(lambda: len(read_ply(cloud).points), rep)
         bare = measure(lambda: len(np.fromfile(cloud, dtype=np.uint8)), rep)
         o3d_ = measure(lambda: len(o3d.io.read_point_cloud(cloud).points), rep)
