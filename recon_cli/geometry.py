@@ -51,15 +51,7 @@ class PointCloud:
 
     def __post_init__(self) -> None:
         self.points = np.ascontiguousarray(self.points, dtype=np.float64).reshape(-1, 3)
-        n = len(self.points)
-        if self.normals is not None:
-            self.normals = np.ascontiguousarray(self.normals, dtype=np.float64).reshape(-1, 3)
-            _check_len("normals", self.normals, n)
-        if self.colors is not None:
-            self.colors = np.ascontiguousarray(self.colors)
-            _check_len("colors", self.colors, n)
-        for k, v in self.attributes.items():
-            _check_len(k, v, n)
+        _normalise_per_point(self, len(self.points))
 
     @property
     def vertices(self) -> np.ndarray:
@@ -130,15 +122,7 @@ class TriangleMesh:
     def __post_init__(self) -> None:
         self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float64).reshape(-1, 3)
         self.faces = np.ascontiguousarray(self.faces, dtype=np.int64).reshape(-1, 3)
-        n = len(self.vertices)
-        if self.normals is not None:
-            self.normals = np.ascontiguousarray(self.normals, dtype=np.float64).reshape(-1, 3)
-            _check_len("normals", self.normals, n)
-        if self.colors is not None:
-            self.colors = np.ascontiguousarray(self.colors)
-            _check_len("colors", self.colors, n)
-        for k, v in self.attributes.items():
-            _check_len(k, v, n)
+        _normalise_per_point(self, len(self.vertices))
         for k, v in self.face_attributes.items():
             _check_len(k, v, len(self.faces))
 
@@ -188,6 +172,18 @@ def bbox_diagonal(points: np.ndarray) -> float:
     if len(points) == 0:
         return 0.0
     return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+
+
+def _normalise_per_point(obj: "PointCloud | TriangleMesh", n: int) -> None:
+    """Make the optional per-point arrays of ``obj`` contiguous and check they have ``n`` rows."""
+    if obj.normals is not None:
+        obj.normals = np.ascontiguousarray(obj.normals, dtype=np.float64).reshape(-1, 3)
+        _check_len("normals", obj.normals, n)
+    if obj.colors is not None:
+        obj.colors = np.ascontiguousarray(obj.colors)
+        _check_len("colors", obj.colors, n)
+    for k, v in obj.attributes.items():
+        _check_len(k, v, n)
 
 
 def _check_len(name: str, arr: np.ndarray, n: int) -> None:
