@@ -294,6 +294,7 @@ def run_stage(
     sign: str = "winding",
     band: float | None = None,
     knn: int = 10,
+    backend: str = "native",
     progress=None,
 ):
     """Stage ``sdf``: a mesh or an oriented cloud -> a signed distance :class:`~recon_cli.grid.Grid`.
@@ -313,6 +314,9 @@ def run_stage(
         Meshes: exact distances only within ``band`` voxels, ``±band * voxel`` beyond.
     knn : int
         Clouds: neighbours per sample.
+    backend : {"native", "open3d"}
+        ``open3d``: Open3D's ``RaycastingScene.compute_signed_distance`` (meshes only; its
+        own inside test, ``sign`` and ``band`` do not apply).
 
     Returns
     -------
@@ -352,7 +356,12 @@ def run_stage(
         raise ParameterError(f"knn must be an integer, got {knn!r}") from None
     if knn < 1:
         raise ParameterError(f"knn must be >= 1, got {knn}")
+    backend = str(backend).lower()
+    if backend not in ("native", "open3d"):
+        raise ParameterError(f"backend must be native or open3d, got {backend!r}")
     is_mesh = isinstance(data, TriangleMesh) and len(data.faces) > 0
+    if backend == "open3d" and not is_mesh:
+        raise ParameterError("the open3d backend computes distances to meshes only (a cloud needs --backend native)")
     pts = data.vertices[np.unique(data.faces)] if is_mesh else data.points
     if len(pts) == 0:
         raise InputError("input has no points")
@@ -366,7 +375,14 @@ def run_stage(
         raise ParameterError(f"grid of {shape} samples is too large; lower the resolution")
 
     with task(progress, "signed distance", 1) as t:
-        if is_mesh:
+        if backend == "open3d":
+            from recon_cli.backends import open3d_backend
+
+            ijk = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), axis=-1).reshape(-1, 3)
+            sdf = open3d_backend.signed_distance(data, origin + ijk * h).reshape(shape)
+            info = {}
+            sign = "open3d"
+        elif is_mesh:
             sdf, info = mesh_sdf(data.vertices, data.faces, origin, h, shape, sign=sign, band=band_v)
         else:
             sdf, info = cloud_sdf(data.points, data.normals, origin, h, shape, knn=knn)
@@ -379,11 +395,12 @@ def run_stage(
         "voxel_size": h,
         "origin": origin.tolist(),
         "sign": sign if is_mesh else "normals",
+        "backend": backend,
         "band": band_v,
         "inside_samples": int((grid.sdf[finite] < 0).sum()),
         "unknown_samples": int((~finite).sum()),
         **info,
         "eikonal": eikonal_check(grid),
-        "provenance": {"voxel_size": round(h, 12)},
+        "provenance": {"voxel_size": round(h, 12), **({"sign": "open3d"} if backend == "open3d" else {})},
     }
     return StageResult(output=grid, report=report)

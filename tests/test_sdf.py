@@ -199,3 +199,18 @@ def test_validation_and_cli(tmp_path):
     assert info["eikonal"] == eikonal_check(g) and info["eikonal"]["mean"] > 0.9
     r = CliRunner().invoke(cli, ["sdf", str(src), str(out), "--resolution", "0"])
     assert isinstance(r.exception, ParameterError)  # main() maps it to exit code 2
+
+
+def test_open3d_backend_agrees_with_native_and_is_meshes_only():
+    from recon_cli.sdf import run_stage as sdf_stage
+
+    mesh = load_shared("kitten")
+    ours = sdf_stage(mesh.copy(), resolution=24)
+    ref = sdf_stage(mesh.copy(), resolution=24, backend="open3d")
+    assert ref.report["backend"] == "open3d" and ref.report["sign"] == "open3d"
+    np.testing.assert_array_equal(ours.output.origin, ref.output.origin)
+    diag = float(np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
+    # Open3D works in float32: agreement to float32 rounding of the coordinates
+    assert np.abs(ours.output.sdf - ref.output.sdf).max() < 1e-5 * diag
+    with pytest.raises(ParameterError, match="meshes only"):
+        sdf_stage(PointCloud(points=mesh.vertices, normals=np.ones_like(mesh.vertices)), backend="open3d")

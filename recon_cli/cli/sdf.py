@@ -22,14 +22,15 @@ from recon_cli.cli._run import run_stage_command
 )
 @click.option("--band", type=float, default=None, help="Meshes: exact distances only within this many voxels.")
 @click.option("--knn", type=int, default=10, show_default=True, help="Clouds: neighbours averaged per sample (IMLS).")
+@options.backend_opt("open3d")
 @click.pass_context
-def cmd(ctx, input, output, ascii_, json_, resolution, voxel_size, padding, sign, band, knn):
+def cmd(ctx, input, output, ascii_, json_, resolution, voxel_size, padding, sign, band, knn, backend):
     """Signed distance grid (.npz, negative inside) of a mesh or an oriented point cloud.
 
     Clouds need normals; samples far from every point are unknown (NaN) and `recon mcubes`
     leaves them out.
     """
-    params = {"resolution": resolution, "padding": padding, "sign": sign, "knn": knn}
+    params = {"resolution": resolution, "padding": padding, "sign": sign, "knn": knn, "backend": backend}
     if voxel_size is not None:
         params["voxel_size"] = voxel_size
     if band is not None:
