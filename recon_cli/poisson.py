@@ -112,6 +112,20 @@ def _check_choice(value: Any, name: str, choices: tuple[str, ...]) -> str:
     return v
 
 
+def _check_options(depth, scale, point_weight, samples_per_node, boundary, density, trim) -> tuple:
+    """Validate and convert the options shared by :func:`screened_poisson` and :func:`run_stage`."""
+    depth = _check_int(depth, "depth", 1, MAX_DEPTH)
+    scale = _check_float(scale, "scale", 1.0)
+    point_weight = _check_float(point_weight, "point-weight", 0.0)
+    samples_per_node = _check_float(samples_per_node, "samples-per-node", 0.0, lo_open=True)
+    boundary = _check_choice(boundary, "boundary", BOUNDARIES)
+    density = _check_bool(density, "density")
+    trim = _check_float(trim, "trim", 0.0, 1.0)
+    if trim >= 1.0:
+        raise ParameterError(f"trim must be < 1 (a quantile), got {trim}")
+    return depth, scale, point_weight, samples_per_node, boundary, density, trim
+
+
 def _check_inputs(points: Any, normals: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Finite (n, 3) points and unit normals; returns (points, normals, kept mask)."""
     if normals is None:
@@ -274,15 +288,9 @@ def screened_poisson(
     -------
     PoissonResult
     """
-    depth = _check_int(depth, "depth", 1, MAX_DEPTH)
-    scale = _check_float(scale, "scale", 1.0)
-    point_weight = _check_float(point_weight, "point-weight", 0.0)
-    samples_per_node = _check_float(samples_per_node, "samples-per-node", 0.0, lo_open=True)
-    boundary = _check_choice(boundary, "boundary", BOUNDARIES)
-    density = _check_bool(density, "density")
-    trim = _check_float(trim, "trim", 0.0, 1.0)
-    if trim >= 1.0:
-        raise ParameterError(f"trim must be < 1 (a quantile), got {trim}")
+    depth, scale, point_weight, samples_per_node, boundary, density, trim = _check_options(
+        depth, scale, point_weight, samples_per_node, boundary, density, trim
+    )
     full_depth = _check_int(full_depth, "full-depth", 0, 7)
     cg_tolerance = _check_float(cg_tolerance, "cg-tolerance", 0.0, 1.0, lo_open=True)
     pts, nrm, keep = _check_inputs(points, normals)
@@ -617,15 +625,9 @@ def run_stage(
     from recon_cli.stages import StageResult
 
     backend = _check_choice(backend, "backend", BACKENDS)
-    depth = _check_int(depth, "depth", 1, MAX_DEPTH)
-    scale = _check_float(scale, "scale", 1.0)
-    point_weight = _check_float(point_weight, "point-weight", 0.0)
-    samples_per_node = _check_float(samples_per_node, "samples-per-node", 0.0, lo_open=True)
-    boundary = _check_choice(boundary, "boundary", BOUNDARIES)
-    density = _check_bool(density, "density")
-    trim = _check_float(trim, "trim", 0.0, 1.0)
-    if trim >= 1.0:
-        raise ParameterError(f"trim must be < 1 (a quantile), got {trim}")
+    depth, scale, point_weight, samples_per_node, boundary, density, trim = _check_options(
+        depth, scale, point_weight, samples_per_node, boundary, density, trim
+    )
     estimate_normals = _check_bool(estimate_normals, "estimate-normals")
     if backend == "pymeshlab" and (density or trim > 0):
         raise ParameterError("the pymeshlab backend gives no densities: --density/--trim need native or open3d")
