@@ -65,7 +65,7 @@ class Grid:
 
 def is_npz(data: bytes) -> bool:
     """True when ``data`` starts like a zip archive (``.npz``)."""
-    return data[:4] == b"PK\x03\x04"
+    return bytes(memoryview(data)[:4]) == b"PK\x03\x04"
 
 
 def grid_bytes(grid: Grid) -> bytes:
