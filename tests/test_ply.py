@@ -423,3 +423,58 @@ def test_write_is_atomic_on_failure(tmp_path):
         write_ply(mesh, target)
     assert target.read_bytes() == b"old content"
     assert os.listdir(tmp_path) == ["out.ply"]
+
+
+@pytest.mark.parametrize("case", sorted(BAD_FILES))
+def test_bad_files_from_disk_same_error(case, tmp_path):
+    # files are read into a numpy buffer, not bytes: the same one-line errors must come out
+    data, needle = BAD_FILES[case]
+    path = tmp_path / "bad.ply"
+    path.write_bytes(data)
+    with pytest.raises(InputError) as exc:
+        read_ply(path)
+    assert str(exc.value).startswith(f"{path}: ") and needle in str(exc.value)
+
+
+def test_read_from_a_pipe_path(tmp_path):
+    # `recon info <(cat scan.ply)`: a path whose size is unknown until read to the end
+    import threading
+
+    fifo = tmp_path / "fifo.ply"
+    os.mkfifo(fifo)
+    data = ply_bytes(tetra())
+    writer = threading.Thread(target=lambda: fifo.write_bytes(data))
+    writer.start()
+    got = read_ply(fifo)
+    writer.join()
+    want = read_ply("mem.ply", data)
+    assert np.array_equal(got.vertices, want.vertices) and np.array_equal(got.faces, want.faces)
+
+
+@pytest.mark.parametrize("order", ["<", ">"])
+@pytest.mark.parametrize("ftype", ["f4", "f8"])
+def test_float_fields_decode_bit_exact(order, ftype, tmp_path):
+    # odd row stride (a uchar first), special values: the byte-assembling decoder equals numpy's
+    rng = np.random.default_rng(1)
+    n = 1000
+    f = np.dtype(order + ftype)
+    vals = rng.normal(scale=1e3, size=(n, 6)).astype(f)
+    info = np.finfo(f)
+    vals[:8, 0] = [0.0, -0.0, info.tiny, info.tiny / 4, info.max, -info.max, info.eps, 1.0]
+    dt = np.dtype([("tag", "u1")] + [(c, f) for c in ("x", "y", "z", "nx", "ny", "nz")])
+    rows = np.zeros(n, dtype=dt)
+    rows["tag"] = 7
+    for j, c in enumerate(("x", "y", "z", "nx", "ny", "nz")):
+        rows[c] = vals[:, j]
+    fmt = "binary_little_endian" if order == "<" else "binary_big_endian"
+    name = "float" if ftype == "f4" else "double"
+    head = f"ply\nformat {fmt} 1.0\nelement vertex {n}\nproperty uchar tag\n" + "".join(
+        f"property {name} {c}\n" for c in ("x", "y", "z", "nx", "ny", "nz")
+    ) + "end_header\n"
+    path = tmp_path / "v.ply"
+    path.write_bytes(head.encode() + rows.tobytes())
+    cloud = read_ply(path)
+    want = vals.astype(np.float64)
+    assert np.array_equal(cloud.points, want[:, :3]) and np.array_equal(cloud.normals, want[:, 3:])
+    assert np.array_equal(np.signbit(cloud.points[:, 0]), np.signbit(want[:, 0]))  # -0.0 kept
+    assert np.array_equal(cloud.attributes["tag"], np.full(n, 7))
