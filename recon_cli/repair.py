@@ -41,7 +41,7 @@ from recon_cli.geometry import TriangleMesh, bbox_diagonal
 from recon_cli.progress import task
 from recon_cli.stages import StageResult
 from recon_cli.tolerances import tol
-from recon_cli.topology import Connectivity
+from recon_cli.topology import _CHUNK, Connectivity, index_dtype, stable_argsort
 
 
 # ---- parameter parsing ---------------------------------------------------------------------
@@ -100,13 +100,19 @@ def _parse_bool(name: str, x: Any) -> bool:
 
 # ---- the working state -------------------------------------------------------------------------
 class _State:
-    """Vertices and faces being repaired, with the source row of each (to carry attributes)."""
+    """Vertices and faces being repaired, with the source row of each (to carry attributes).
+
+    Faces and source rows are kept in :func:`~recon_cli.topology.index_dtype` (int32 below
+    2^31 entries) once changed: the output mesh converts back to int64.
+    """
 
     def __init__(self, mesh: TriangleMesh):
         self.vertices = mesh.vertices
         self.faces = mesh.faces
         self.vsrc = None  # None: identity (nothing changed yet)
         self.fsrc = None
+        # room for the vertices and faces that steps 4 and 6 may add
+        self.it = index_dtype(4 * len(mesh.vertices) + 3 * len(mesh.faces) + 3, 3 * len(mesh.faces) + 3)
 
     @property
     def faces(self) -> np.ndarray:
@@ -118,10 +124,10 @@ class _State:
         self._conn = None  # connectivity is rebuilt only after the faces changed
 
     def _vs(self):
-        return np.arange(len(self.vertices)) if self.vsrc is None else self.vsrc
+        return np.arange(len(self.vertices), dtype=self.it) if self.vsrc is None else self.vsrc
 
     def _fs(self):
-        return np.arange(len(self.faces)) if self.fsrc is None else self.fsrc
+        return np.arange(len(self.faces), dtype=self.it) if self.fsrc is None else self.fsrc
 
     def keep_faces(self, keep: np.ndarray) -> None:
         if keep.all():
@@ -132,7 +138,7 @@ class _State:
     def add_faces(self, faces: np.ndarray) -> None:
         if len(faces) == 0:
             return
-        self.fsrc = np.concatenate([self._fs(), np.full(len(faces), -1, dtype=np.int64)])
+        self.fsrc = np.concatenate([self._fs(), np.full(len(faces), -1, dtype=self.it)])
         self.faces = np.concatenate([self.faces, faces])
 
     def add_vertices(self, rows: np.ndarray) -> np.ndarray:
@@ -140,7 +146,7 @@ class _State:
         n = len(self.vertices)
         self.vsrc = np.concatenate([self._vs(), self._vs()[rows]])
         self.vertices = np.concatenate([self.vertices, self.vertices[rows]])
-        return n + np.arange(len(rows))
+        return n + np.arange(len(rows), dtype=self.it)
 
     def compact(self) -> int:
         """Drop unreferenced vertices (order kept); returns how many."""
@@ -148,11 +154,16 @@ class _State:
         used[self.faces.ravel()] = True
         n_drop = int(len(used) - used.sum())
         if n_drop:
-            new = np.cumsum(used) - 1
+            new = np.cumsum(used, dtype=self.it)
+            new -= 1
             self.faces = new[self.faces]
             self.vsrc = self._vs()[used]
             self.vertices = self.vertices[used]
         return n_drop
+
+    def drop_conn(self) -> None:
+        """Free the cached connectivity (the caller holds no reference to it either)."""
+        self._conn = None
 
     def conn(self) -> Connectivity:
         if self._conn is None or self._conn.n_vertices != len(self.vertices):
@@ -176,8 +187,9 @@ def _merge_vertices(st: _State, tolerance: float | None) -> tuple[int, float]:
         gid = np.cumsum(new) - 1
         # representative: the smallest index of each group (order is stable, so the group's first)
         rep_of_group = order[np.flatnonzero(new)]
-        rep = np.empty(n, dtype=np.int64)
+        rep = np.empty(n, dtype=st.it)
         rep[order] = rep_of_group[gid]
+        del order, sv, new, gid, rep_of_group
         dist = 0.0
     else:
         from scipy.sparse import coo_matrix
@@ -192,7 +204,7 @@ def _merge_vertices(st: _State, tolerance: float | None) -> tuple[int, float]:
         pairs = finite[pairs]
         g = coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
         _, labels = connected_components(g, directed=False)
-        first = np.full(labels.max() + 1, n, dtype=np.int64)
+        first = np.full(labels.max() + 1, n, dtype=st.it)
         np.minimum.at(first, labels, np.arange(n))
         rep = first[labels]
     merged = int((rep != np.arange(n)).sum())
@@ -206,21 +218,21 @@ def _split_fans(st: _State, conn: Connectivity, link_a: np.ndarray, link_b: np.n
     labels = conn.corner_fans(link_a, link_b)
     if len(labels) == 0:
         return 0, 0
-    corner_vertex = st.faces.ravel()
-    n_fans = labels.max() + 1
-    fan_vertex = np.empty(n_fans, dtype=np.int64)
-    fan_vertex[labels] = corner_vertex
+    n_fans = int(labels.max()) + 1
     if n_fans == int(conn.referenced.sum()):
         return 0, 0
-    first_corner = np.full(n_fans, len(labels), dtype=np.int64)
-    np.minimum.at(first_corner, labels, np.arange(len(labels)))
-    order = np.lexsort((first_corner, fan_vertex))
+    fan_vertex = np.empty(n_fans, dtype=st.it)
+    fan_vertex[labels] = st.faces.ravel()
+    # fans are numbered in order of first corner, so a stable sort by vertex puts each
+    # vertex's fan with the first corner first: that one keeps the index
+    order = stable_argsort(fan_vertex, len(st.vertices))
     fv = fan_vertex[order]
     primary = np.ones(n_fans, dtype=bool)
     primary[1:] = fv[1:] != fv[:-1]
     extra = order[~primary]
-    fan_index = np.empty(n_fans, dtype=np.int64)
+    fan_index = np.empty(n_fans, dtype=st.it)
     fan_index[order[primary]] = fv[primary]
+    del order, fv, primary
     fan_index[extra] = st.add_vertices(fan_vertex[extra])
     st.faces = fan_index[labels].reshape(-1, 3)
     return int(len(np.unique(fan_vertex[extra]))), int(len(extra))
@@ -264,7 +276,9 @@ def _non_manifold(st: _State, rep: dict) -> None:
         keep = np.ones(conn.n_faces, dtype=bool)
         keep[extra[support[extra] == 0]] = False
         dropped = int((~keep).sum())
+        del conn, keep_slot, slots, support, extra
         st.keep_faces(keep)
+        del keep
         conn = st.conn()
         nm = conn.non_manifold_edges
     a, b, _ = conn._manifold_pairs
@@ -277,6 +291,7 @@ def _non_manifold(st: _State, rep: dict) -> None:
         a = np.concatenate([a, hs[kept[:, 0]]])
         b = np.concatenate([b, hs[kept[:, 1]]])
     split, added = _split_fans(st, conn, a, b)
+    del a, b, conn
     # edges whose stars stay connected cannot be detached: they lose their extra faces
     while True:
         conn = st.conn()
@@ -287,12 +302,14 @@ def _non_manifold(st: _State, rep: dict) -> None:
         drop = np.unique(conn.edge_half_edges[slots[~keep_slot[slots]]] // 3)
         keep = np.ones(conn.n_faces, dtype=bool)
         keep[drop] = False
+        del conn
         st.keep_faces(keep)
         dropped += int(len(drop))
         detached = max(0, detached - int(len(drop)))
         conn = st.conn()
         a, b, _ = conn._manifold_pairs
         s2, a2 = _split_fans(st, conn, a, b)
+        del a, b, conn
         split += s2
         added += a2
     rep["non_manifold_faces_dropped"] = dropped
@@ -312,7 +329,9 @@ def _orient(st: _State, normals: np.ndarray | None, rep: dict) -> None:
         if rnd < 2:
             # cut along the conflicting edges: do not join fans across them
             a, b, e = conn._manifold_pairs
-            ok = ~np.isin(e, conflict)
+            cut_edge = np.zeros(conn.n_edges, dtype=bool)
+            cut_edge[conflict] = True
+            ok = ~cut_edge[e]
             split, _ = _split_fans(st, conn, a[ok], b[ok])
             cut += int(len(conflict))
             if split:
@@ -335,29 +354,48 @@ def _orient(st: _State, normals: np.ndarray | None, rep: dict) -> None:
         return
     n_comp = int(comp.max()) + 1
     f = st.faces
-    p0 = st.vertices[f[:, 0]]
-    cross = np.cross(st.vertices[f[:, 1]] - p0, st.vertices[f[:, 2]] - p0)  # twice the area vector
-    sign = np.where(flip, -1.0, 1.0)
+    v = st.vertices
     # closed components: outward by signed volume (centred per component for accuracy)
     open_comp = np.zeros(n_comp, dtype=bool)
     open_comp[comp[conn.edge_half_edges[conn.edge_ptr[conn.boundary_edges]] // 3]] = True
+    del conn
     # signed volume about a point of each component (its mean first corner): fewer lost digits
-    fc = np.bincount(comp, minlength=n_comp).astype(np.float64)
-    centre = np.stack([np.bincount(comp, weights=p0[:, k], minlength=n_comp) for k in range(3)], axis=1) / fc[:, None]
-    p0 -= centre[comp]
-    vol = np.bincount(comp, weights=sign * np.einsum("ij,ij->i", p0, cross), minlength=n_comp)
-    del p0
-    if normals is not None:
-        nsum = normals[st._vs()][st.faces].sum(axis=1)
-        agree = np.bincount(comp, weights=sign * np.einsum("ij,ij->i", nsum, cross), minlength=n_comp)
-    else:
-        area = 0.5 * np.linalg.norm(cross, axis=1)
-        agree = np.bincount(comp, weights=sign * area, minlength=n_comp)
+    centre = np.zeros((n_comp, 3))
+    for k in range(3):
+        for s in range(0, m, _CHUNK):
+            centre[:, k] += np.bincount(comp[s : s + _CHUNK], weights=v[f[s : s + _CHUNK, 0], k], minlength=n_comp)
+    centre /= np.bincount(comp, minlength=n_comp)[:, None]
+    vs = None if normals is None else st._vs()
+    # per-face terms in chunks, (chunk, 3) float64 temporaries instead of (m, 3) ones: six
+    # times the signed volume of the face's tetrahedron, and the area (or the agreement
+    # with the vertex normals), both sign-flipped with the face
+    vol = agree = None
+    for kind in ("volume", "side"):
+        term = np.empty(m, dtype=np.float64)
+        for s in range(0, m, _CHUNK):
+            fk = f[s : s + _CHUNK]
+            p0 = v[fk[:, 0]]
+            cross = np.cross(v[fk[:, 1]] - p0, v[fk[:, 2]] - p0)  # twice the area vector
+            if kind == "volume":
+                p0 -= centre[comp[s : s + _CHUNK]]
+                term[s : s + len(fk)] = np.einsum("ij,ij->i", p0, cross)
+            elif normals is not None:
+                term[s : s + len(fk)] = np.einsum("ij,ij->i", normals[vs[fk]].sum(axis=1), cross)
+            else:
+                term[s : s + len(fk)] = 0.5 * np.linalg.norm(cross, axis=1)
+        term[flip] *= -1.0
+        if kind == "volume":
+            vol = np.bincount(comp, weights=term, minlength=n_comp)
+        else:
+            agree = np.bincount(comp, weights=term, minlength=n_comp)
+        del term
+    del vs
     reverse = np.where(open_comp, agree < 0, vol < 0)
-    flip = flip ^ reverse[comp]
+    flip = flip ^ reverse[comp]  # not in place: the connectivity's cached array
     rep["faces_flipped"] = int(flip.sum())
     rep["components_reversed"] = int(reverse.sum())
     if flip.any():
+        st.drop_conn()  # stale once the faces flip: free it before copying them
         f = st.faces.copy()
         f[flip] = f[flip][:, [0, 2, 1]]
         st.faces = f
@@ -373,7 +411,9 @@ def _fill_holes(st: _State, max_edges: int, rep: dict) -> None:
     small = [lp for lp in loops if len(lp) <= max_edges]
     if small:
         n = max(len(st.vertices), 1)
-        keys = np.sort(conn.edges[:, 0] * n + conn.edges[:, 1])
+        edges = conn.edges  # int64: the keys below need it
+        keys = np.sort(edges[:, 0] * n + edges[:, 1])
+        del edges
         ptr = np.zeros(len(small) + 1, dtype=np.int64)
         np.cumsum([len(lp) for lp in small], out=ptr[1:])
         diag = bbox_diagonal(st.vertices)
@@ -517,20 +557,22 @@ def repair(
         st.compact()
         t.advance()
 
-    out = _output(mesh, st)
     conn = st.conn()
     # the output is manifold and oriented by construction, so chi gives the genus directly
     watertight = conn.n_faces > 0 and bool(np.all(conn.edge_face_count == 2))
     rep.update(
-        vertices_out=int(len(out.vertices)),
-        faces_out=int(len(out.faces)),
+        vertices_out=int(len(st.vertices)),
+        faces_out=int(len(st.faces)),
         components=int(conn.n_components),
         boundary_loops=int(len(conn.boundary_loops)),
         watertight=watertight,
         genus=int(sum((2 - conn.component_euler) // 2)) if watertight else None,
         volume=conn.signed_volume() if watertight else None,
     )
-    return out, rep
+    # the connectivity is freed before the output's int64 faces are made
+    del conn
+    st.drop_conn()
+    return _output(mesh, st), rep
 
 
 def _output(mesh: TriangleMesh, st: _State) -> TriangleMesh:

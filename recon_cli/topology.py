@@ -45,7 +45,8 @@ def _check_faces(faces: Any, n_vertices: int | None = None) -> tuple[np.ndarray,
             f = f.astype(np.int64)
         else:
             raise InputError(f"faces must be integer vertex indices, got dtype {f.dtype}")
-    f = np.ascontiguousarray(f, dtype=np.int64)
+    # int32 faces (repair's working copy) are kept as they are: no int64 copy
+    f = np.ascontiguousarray(f, dtype=f.dtype if f.dtype in (np.int32, np.int64) else np.int64)
     if len(f) and f.min() < 0:
         raise InputError("faces hold negative vertex indices")
     top = int(f.max()) + 1 if len(f) else 0
@@ -54,6 +55,11 @@ def _check_faces(faces: Any, n_vertices: int | None = None) -> tuple[np.ndarray,
     elif top > n_vertices:
         raise InputError(f"faces reference vertex {top - 1} but the mesh has {n_vertices} vertices")
     return f, int(n_vertices)
+
+
+def index_dtype(*counts: int) -> type:
+    """int32 when every index below ``max(counts)`` fits in it, else int64 (halves the memory)."""
+    return np.int32 if max(counts, default=0) < 2**31 - 1 else np.int64
 
 
 def faces_to_edges(faces: np.ndarray, return_index: bool = False):
@@ -74,7 +80,7 @@ def faces_to_edges(faces: np.ndarray, return_index: bool = False):
         ``f`` for row ``3 f + k`` (only with ``return_index``).
     """
     f, _ = _check_faces(faces)
-    edges = f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    edges = f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2).astype(np.int64, copy=False)
     if return_index:
         return edges, np.repeat(np.arange(len(f), dtype=np.int64), 3)
     return edges
@@ -100,53 +106,55 @@ def stable_argsort(keys: np.ndarray, max_key: int | None = None) -> np.ndarray:
     return np.argsort(keys, kind="stable")
 
 
-def _group_keys(keys: np.ndarray, max_key: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Sort ``keys``: (order, group id of each sorted entry, group start offsets with the end)."""
-    order = stable_argsort(keys, max_key)
-    sk = keys[order]
-    new = np.empty(len(sk), dtype=bool)
-    if len(sk):
-        new[0] = True
-        np.not_equal(sk[1:], sk[:-1], out=new[1:])
-    del sk
-    gid = np.cumsum(new)
-    gid -= 1
-    ptr = np.append(np.flatnonzero(new), len(new)).astype(np.int64)
-    return order, gid, ptr
+def next_half_edge(h: np.ndarray) -> np.ndarray:
+    """The next half-edge in the same face (``3f+k -> 3f+(k+1)%3``): its start is ``h``'s end."""
+    nxt = h + 1
+    nxt[h % 3 == 2] -= 3
+    return nxt
+
+
+# faces per chunk in the geometric loops: bounds their (chunk, 3) float64 temporaries
+_CHUNK = 1 << 14
 
 
 class Connectivity:
     """Edges, adjacency, fans and components of a triangle mesh, built from its faces.
 
-    Everything is computed lazily (cached on first access) with sorts and ``np.unique``-like
-    grouping; only boundary-loop walking and orientation propagation use numba kernels.
+    Everything is computed lazily (cached on first use). Edges come from one sort of packed
+    half-edge keys; grouping, fans, components and orientation are numba loops (union-find,
+    breadth-first walk) that allocate nothing larger than their outputs. Index arrays use
+    :func:`index_dtype` (int32 below 2^31 half-edges and vertices, else int64): a 1M-face
+    mesh's connectivity holds about 30 MB.
 
     Parameters
     ----------
     faces : (m, 3) int
-        Triangles (any winding, any defects).
+        Triangles (any winding, any defects). int32 and int64 faces are used without a copy.
     n_vertices : int, optional
         Number of vertices (default: largest index + 1).
     vertices : (n, 3) float, optional
         Coordinates; needed for ``area``, ``volume``, ``face_areas`` and the degenerate test.
 
-    Attributes (all arrays, computed on first use)
-    ----------------------------------------------
+    Attributes (all arrays, computed on first use; "int" is :func:`index_dtype`)
+    -----------------------------------------------------------------------------
     half_edges : (3m, 2) int64
-        Directed edges, see :func:`faces_to_edges`.
+        Directed edges, see :func:`faces_to_edges` (built on request only; the structure
+        itself reads the half-edge ``h``'s ends as ``faces.ravel()[h]`` and
+        ``faces.ravel()[next_half_edge(h)]``).
     edges : (E, 2) int64
         Unique undirected edges ``(lo, hi)``, sorted.
-    half_edge_edge : (3m,) int64
+    half_edge_edge : (3m,) int
         Edge of each half-edge (-1 for the zero-length half-edges of repeated-index faces).
-    edge_ptr, edge_half_edges : (E+1,), (H,) int64
+    edge_ptr, edge_half_edges : (E+1,), (H,) int
         CSR: half-edges of edge ``e`` are ``edge_half_edges[edge_ptr[e]:edge_ptr[e+1]]``
-        (their faces are ``// 3``).
-    edge_face_count : (E,) int64
+        in increasing order (their faces are ``// 3``).
+    edge_face_count : (E,) int
     boundary_edges, non_manifold_edges : int64 edge indices (count 1, count > 2)
-    face_adjacency : (k, 2) int64
+    face_adjacency : (k, 2) int
         Face pairs sharing a manifold edge; ``face_adjacency_edge`` (k,) the edge,
         ``face_adjacency_same`` (k,) bool whether both traverse it the same way.
-    vertex_ptr, vertex_faces : CSR vertex -> faces (a face twice if it repeats the vertex).
+    vertex_ptr, vertex_faces : (n+1,) int64, (3m,) int
+        CSR vertex -> faces (a face twice if it repeats the vertex).
     """
 
     def __init__(self, faces: Any, n_vertices: int | None = None, vertices: np.ndarray | None = None):
@@ -155,53 +163,61 @@ class Connectivity:
         self.n_vertices = n
         self.n_faces = len(f)
         self.vertices = None if vertices is None else np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+        self._it = index_dtype(3 * len(f) + 3, n + 1)
+
+    @property
+    def _flat(self) -> np.ndarray:
+        # corner c = 3 f + k is vertex _flat[c]; half-edge h starts at corner h
+        return self.faces.reshape(-1)
 
     # ---- edges -------------------------------------------------------------------------
     @cached_property
     def half_edges(self) -> np.ndarray:
-        return self.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+        return self.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2).astype(np.int64, copy=False)
 
     @cached_property
     def _edge_groups(self):
-        he = self.half_edges
-        a, b = he[:, 0], he[:, 1]
-        nv = max(self.n_vertices, 1)
-        # key of the undirected edge, built in place to keep the peak memory down
-        keys = np.minimum(a, b)
-        keys *= nv
-        keys += np.maximum(a, b)
-        valid = a != b
-        idx = None if valid.all() else np.flatnonzero(valid)
-        order, gid, ptr = _group_keys(keys if idx is None else keys[idx], nv * nv)
-        he_sorted = order if idx is None else idx[order]
-        del order
-        he_edge = np.full(len(he), -1, dtype=np.int64)
-        he_edge[he_sorted] = gid
-        del gid
-        ukeys = keys[he_sorted[ptr[:-1]]]
-        del keys
-        edges = np.stack([ukeys // nv, ukeys % nv], axis=1)
-        return edges.reshape(-1, 2), he_edge, ptr, he_sorted
+        from recon_cli._topology_kernel import group_sorted_keys, half_edge_keys
 
-    @property
+        nh = 3 * self.n_faces
+        nv = max(self.n_vertices, 1)
+        proto = np.zeros(0, self._it)
+        sentinel = nv * nv
+        if (sentinel + 1) * max(nh, 1) < 2**62:
+            # the half-edge index packed into the key: a plain in-place sort is a stable argsort
+            keys = half_edge_keys(self.faces, nv, True)
+            keys.sort()
+            return group_sorted_keys(keys, np.zeros(0, np.int64), nh, sentinel, proto)
+        keys = half_edge_keys(self.faces, nv, False)
+        order = np.argsort(keys, kind="stable")
+        keys = keys[order]
+        return group_sorted_keys(keys, order, nh, sentinel, proto)
+
+    @cached_property
     def edges(self) -> np.ndarray:
-        return self._edge_groups[0]
+        h = self.edge_half_edges[self.edge_ptr[:-1]]
+        a = self._flat[h]
+        b = self._flat[next_half_edge(h)]
+        out = np.empty((len(h), 2), dtype=np.int64)
+        np.minimum(a, b, out=out[:, 0])
+        np.maximum(a, b, out=out[:, 1])
+        return out
 
     @property
     def half_edge_edge(self) -> np.ndarray:
-        return self._edge_groups[1]
+        return self._edge_groups[0]
 
     @property
     def edge_ptr(self) -> np.ndarray:
-        return self._edge_groups[2]
+        return self._edge_groups[1]
 
     @property
     def edge_half_edges(self) -> np.ndarray:
-        return self._edge_groups[3]
+        return self._edge_groups[2]
 
     @property
     def n_edges(self) -> int:
-        return len(self.edges)
+        return len(self.edge_ptr) - 1
 
     @cached_property
     def edge_face_count(self) -> np.ndarray:
@@ -216,22 +232,13 @@ class Connectivity:
         return np.flatnonzero(self.edge_face_count > 2)
 
     @cached_property
-    def _consecutive_pairs(self) -> tuple[np.ndarray, np.ndarray]:
-        """Half-edge pairs (a, b) consecutive within one edge's group: links every face of an edge."""
-        hs = self.edge_half_edges
-        if len(hs) < 2:
-            e = np.empty(0, np.int64)
-            return e, e
-        same_edge = np.ones(len(hs) - 1, dtype=bool)
-        same_edge[self.edge_ptr[1:-1] - 1] = False
-        i = np.flatnonzero(same_edge)
-        return hs[i], hs[i + 1]
-
-    @cached_property
     def _manifold_pairs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        e = np.flatnonzero(self.edge_face_count == 2)
-        a = self.edge_half_edges[self.edge_ptr[e]]
-        b = self.edge_half_edges[self.edge_ptr[e] + 1]
+        """Half-edges (a, b) of each manifold edge e, a < b: ``(a, b, e)``."""
+        e = np.flatnonzero(self.edge_face_count == 2).astype(self._it)
+        s = self.edge_ptr[e]
+        a = self.edge_half_edges[s]
+        s += 1
+        b = self.edge_half_edges[s]
         return a, b, e
 
     @property
@@ -246,17 +253,16 @@ class Connectivity:
     @cached_property
     def face_adjacency_same(self) -> np.ndarray:
         a, b, _ = self._manifold_pairs
-        he = self.half_edges
-        return he[a, 0] == he[b, 0]
+        return self._flat[a] == self._flat[b]
 
     # ---- vertices ----------------------------------------------------------------------
     @cached_property
     def _vertex_csr(self):
-        flat = self.faces.ravel()
-        order = stable_argsort(flat, self.n_vertices)
-        ptr = np.zeros(self.n_vertices + 1, dtype=np.int64)
-        np.cumsum(np.bincount(flat, minlength=self.n_vertices), out=ptr[1:])
-        return ptr, order // 3
+        from recon_cli._topology_kernel import counting_sort
+
+        ptr, order = counting_sort(self._flat, self.n_vertices, np.zeros(0, self._it))
+        order //= 3
+        return ptr, order
 
     @property
     def vertex_ptr(self) -> np.ndarray:
@@ -270,36 +276,24 @@ class Connectivity:
     def referenced(self) -> np.ndarray:
         """(n,) bool: vertex used by some face."""
         r = np.zeros(self.n_vertices, dtype=bool)
-        r[self.faces.ravel()] = True
+        r[self._flat] = True
         return r
 
     def corner_fans(self, link_a: np.ndarray | None = None, link_b: np.ndarray | None = None) -> np.ndarray:
-        """Fan label of each corner (3m,), joining corners of the faces across the given half-edge pairs.
+        """Fan label of each corner (3m,) int, joining corners of the faces across the given half-edge pairs.
 
         By default every pair of consecutive half-edges of an edge is joined (all faces of
         a non-manifold edge touch each other). Corners of one vertex with different labels
-        lie in different fans.
+        lie in different fans. Labels are numbered in order of first corner (so the fan of
+        a smaller label starts at a smaller corner).
         """
-        from scipy.sparse import coo_matrix
-        from scipy.sparse.csgraph import connected_components
+        from recon_cli._topology_kernel import fan_labels_groups, fan_labels_pairs
 
+        labels = np.arange(3 * self.n_faces, dtype=self._it)
         if link_a is None:
-            link_a, link_b = self._consecutive_pairs
-        nc = 3 * self.n_faces
-        he = self.half_edges
-        same = he[link_a, 0] == he[link_b, 0]
-        # int32 indices where they fit: the graph is the largest temporary here
-        it = np.int32 if nc < 2**31 else np.int64
-        la, lb = link_a.astype(it), link_b.astype(it)
-        end_a = la - la % 3 + (la % 3 + 1) % 3
-        end_b = lb - lb % 3 + (lb % 3 + 1) % 3
-        # corner of a's start vertex in b, and of a's end vertex in b
-        u = np.concatenate([la, end_a])
-        v = np.concatenate([np.where(same, lb, end_b), np.where(same, end_b, lb)])
-        del la, lb, end_a, end_b, same
-        g = coo_matrix((np.ones(len(u), dtype=np.int8), (u, v)), shape=(nc, nc)).tocsr()
-        del u, v
-        _, labels = connected_components(g, directed=False)
+            fan_labels_groups(labels, self._flat, self.edge_ptr, self.edge_half_edges)
+        else:
+            fan_labels_pairs(labels, self._flat, np.asarray(link_a), np.asarray(link_b))
         return labels
 
     @cached_property
@@ -308,8 +302,8 @@ class Connectivity:
         labels = self.corner_fans()
         if len(labels) == 0:
             return np.zeros(self.n_vertices, dtype=np.int64)
-        fan_vertex = np.zeros(labels.max() + 1, dtype=np.int64)
-        fan_vertex[labels] = self.faces.ravel()
+        fan_vertex = np.zeros(int(labels.max()) + 1, dtype=self._it)
+        fan_vertex[labels] = self._flat
         return np.bincount(fan_vertex, minlength=self.n_vertices)
 
     @cached_property
@@ -319,14 +313,11 @@ class Connectivity:
     # ---- faces -------------------------------------------------------------------------
     @cached_property
     def face_components(self) -> np.ndarray:
-        """(m,) int64 component label per face, largest component 0 (ties: first face first)."""
-        from scipy.sparse import coo_matrix
-        from scipy.sparse.csgraph import connected_components
+        """(m,) int component label per face, largest component 0 (ties: first face first)."""
+        from recon_cli._topology_kernel import face_labels_groups
 
-        m = self.n_faces
-        a, b = self._consecutive_pairs
-        g = coo_matrix((np.ones(len(a), dtype=np.int8), (a // 3, b // 3)), shape=(m, m)).tocsr()
-        _, labels = connected_components(g, directed=False)
+        labels = np.arange(self.n_faces, dtype=self._it)
+        face_labels_groups(labels, self.edge_ptr, self.edge_half_edges)
         return _relabel_by_size(labels)
 
     @property
@@ -339,23 +330,40 @@ class Connectivity:
         s = np.sort(self.faces, axis=1)
         n = max(self.n_vertices, 1)
         if n**3 < 2**62:
-            order = stable_argsort((s[:, 0] * n + s[:, 1]) * n + s[:, 2], n**3)
+            # one exact int64 key per vertex set
+            key = s[:, 0].astype(np.int64)
+            key *= n
+            key += s[:, 1]
+            key *= n
+            key += s[:, 2]
+            del s
+            order = stable_argsort(key, n**3)
+            key = key[order]
+            dup = np.zeros(len(key), dtype=bool)
+            if len(key) > 1:
+                np.equal(key[1:], key[:-1], out=dup[1:])
         else:
             order = np.lexsort((s[:, 2], s[:, 1], s[:, 0]))
-        ss = s[order]
-        dup = np.zeros(len(s), dtype=bool)
-        if len(s) > 1:
-            dup[1:] = np.all(ss[1:] == ss[:-1], axis=1)
-        # within a group the stable lexsort keeps the first face first, so later ones are duplicates
+            ss = s[order]
+            dup = np.zeros(len(s), dtype=bool)
+            if len(s) > 1:
+                dup[1:] = np.all(ss[1:] == ss[:-1], axis=1)
+        # within a group the stable sort keeps the first face first, so later ones are duplicates
         return np.sort(order[dup])
 
     @cached_property
     def face_areas(self) -> np.ndarray:
         if self.vertices is None:
             raise InputError("face areas need vertex coordinates")
-        tri = self.vertices[self.faces]
+        v = self.vertices
+        out = np.empty(self.n_faces, dtype=np.float64)
         with np.errstate(invalid="ignore", over="ignore"):  # non-finite input gives nan areas, not warnings
-            return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+            for s in range(0, self.n_faces, _CHUNK):
+                f = self.faces[s : s + _CHUNK]
+                p0 = v[f[:, 0]]
+                out[s : s + len(f)] = np.linalg.norm(np.cross(v[f[:, 1]] - p0, v[f[:, 2]] - p0), axis=1)
+        out *= 0.5
+        return out
 
     @cached_property
     def degenerate_faces(self) -> np.ndarray:
@@ -366,28 +374,16 @@ class Connectivity:
             used = self.vertices[self.referenced]
             used = used[np.isfinite(used).all(axis=1)]
             diag = float(np.linalg.norm(used.max(axis=0) - used.min(axis=0))) if len(used) else 0.0
+            del used
             bad |= self.face_areas <= tol.area * diag * diag
         return np.flatnonzero(bad)
 
     @cached_property
     def _orientation(self):
-        from recon_cli._topology_kernel import propagate_orientation
+        from recon_cli._topology_kernel import orient_faces
 
-        m = self.n_faces
-        a, b, e = self._manifold_pairs
-        k = len(a)
-        src = np.concatenate([a // 3, b // 3])
-        ptr = np.zeros(m + 1, dtype=np.int64)
-        np.cumsum(np.bincount(src, minlength=m), out=ptr[1:])
-        order = stable_argsort(src, m)
-        del src
-        # entry j of the CSR is adjacency order[j] % k seen from one of its two faces
-        dst = np.concatenate([b // 3, a // 3])[order]
-        order %= k if k else 1
-        flip, comp, conflict = propagate_orientation(
-            m, ptr, dst, self.face_adjacency_same[order], np.arange(m, dtype=np.int64)
-        )
-        return flip, comp, np.unique(e[order[conflict]])
+        flip, comp, conflict = orient_faces(self._flat, self.half_edge_edge, self.edge_ptr, self.edge_half_edges)
+        return flip, comp, np.flatnonzero(conflict)
 
     def orientation(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Breadth-first orientation across manifold edges, each component rooted at its first face.
@@ -396,7 +392,7 @@ class Connectivity:
         -------
         flip : (m,) bool
             Faces to flip so that windings agree with the root's.
-        component : (m,) int64
+        component : (m,) int
             Component (across manifold edges only) in order of first face.
         conflict_edges : (k,) int64
             Manifold edges whose two faces still disagree (non-orientable cycles); empty if orientable.
@@ -411,13 +407,9 @@ class Connectivity:
     @cached_property
     def is_consistently_oriented(self) -> bool:
         """No directed edge is used by two faces."""
-        he = self.half_edges
-        e = self.half_edge_edge
-        ok = e >= 0
-        fwd = (he[:, 0] < he[:, 1])[ok]
-        nf = np.bincount(e[ok], weights=fwd, minlength=self.n_edges)
-        nb = np.bincount(e[ok], weights=~fwd, minlength=self.n_edges)
-        return bool(np.all(nf <= 1) and np.all(nb <= 1))
+        from recon_cli._topology_kernel import consistently_oriented
+
+        return bool(consistently_oriented(self._flat, self.edge_ptr, self.edge_half_edges))
 
     # ---- boundary ----------------------------------------------------------------------
     @cached_property
@@ -429,8 +421,8 @@ class Connectivity:
         if len(b) == 0:
             return []
         h = self.edge_half_edges[self.edge_ptr[b]]
-        src = self.half_edges[h, 0]
-        dst = self.half_edges[h, 1]
+        src = self._flat[h].astype(np.int64)
+        dst = self._flat[next_half_edge(h)].astype(np.int64)
         order, verts, starts = trace_boundary_loops(src, dst, self.n_vertices)
         return [verts[starts[i] : starts[i + 1]].copy() for i in range(len(starts) - 1)]
 
@@ -443,12 +435,14 @@ class Connectivity:
         if c == 0:
             return np.zeros(0, dtype=np.int64)
         fc = np.bincount(comp, minlength=c)
-        he_face_comp = np.repeat(comp, 3)
         e_first = self.edge_half_edges[self.edge_ptr[:-1]]
-        ec = np.bincount(he_face_comp[e_first], minlength=c)
-        key = np.sort(np.repeat(comp, 3) * max(self.n_vertices, 1) + self.faces.ravel())
-        key = key[np.r_[True, key[1:] != key[:-1]]]
-        vc = np.bincount(key // max(self.n_vertices, 1), minlength=c)
+        ec = np.bincount(comp[e_first // 3], minlength=c)
+        n = max(self.n_vertices, 1)
+        key = np.repeat(comp.astype(np.int64), 3)
+        key *= n
+        key += self._flat
+        key.sort()
+        vc = np.bincount(key[np.r_[True, key[1:] != key[:-1]]] // n, minlength=c)
         return vc - ec + fc
 
     @cached_property
@@ -479,12 +473,15 @@ class Connectivity:
         """Signed volume (divergence theorem); meaningful for closed, oriented parts."""
         if self.vertices is None:
             raise InputError("volume needs vertex coordinates")
-        tri = self.vertices[self.faces]
+        v = self.vertices
+        six = np.empty(self.n_faces, dtype=np.float64)
         # centre first: the sum of large, nearly cancelling terms loses digits far from the origin
-        if len(tri):
-            tri = tri - self.vertices[self.referenced].mean(axis=0)
+        centre = v[self.referenced].mean(axis=0) if self.n_faces else np.zeros(3)
         with np.errstate(invalid="ignore", over="ignore"):
-            six = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2]))
+            for s in range(0, self.n_faces, _CHUNK):
+                f = self.faces[s : s + _CHUNK]
+                p0 = v[f[:, 0]] - centre
+                six[s : s + len(f)] = np.einsum("ij,ij->i", p0, np.cross(v[f[:, 1]] - centre, v[f[:, 2]] - centre))
         if per_component:
             return np.bincount(self.face_components, weights=six, minlength=self.n_components) / 6.0
         return float(six.sum() / 6.0)
@@ -494,13 +491,12 @@ EdgeTopology = Connectivity  # alias (the issue's other name for it)
 
 
 def _relabel_by_size(labels: np.ndarray) -> np.ndarray:
+    """Relabel components numbered in order of first member: largest first, ties in that order."""
     if len(labels) == 0:
-        return labels.astype(np.int64)
+        return labels
     sizes = np.bincount(labels)
-    first = np.full(len(sizes), len(labels), dtype=np.int64)
-    np.minimum.at(first, labels, np.arange(len(labels)))
-    rank = np.lexsort((first, -sizes))
-    new = np.empty(len(sizes), dtype=np.int64)
+    rank = np.argsort(-sizes, kind="stable")
+    new = np.empty(len(sizes), dtype=labels.dtype)
     new[rank] = np.arange(len(sizes))
     return new[labels]
 

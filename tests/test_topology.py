@@ -286,3 +286,76 @@ def test_report_never_crashes_and_is_consistent(soup):
         o3d = open3d_backend.manifold_checks(mesh, self_intersection=False)
         assert rep["non_manifold_edges"] == o3d["non_manifold_edges"]
         assert rep["non_manifold_vertices"] == o3d["non_manifold_vertices"]
+
+
+def _scipy_labels(n: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Reference connected components (scipy numbers them by smallest member, like ours)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    g = coo_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(n, n))
+    return connected_components(g, directed=False)[1]
+
+
+@pytest.mark.parametrize("kind", ["fins", "cones", "split_vertices", "duplicates"])
+def test_union_find_labels_match_scipy(kind):
+    """Fans and components (numba union-find) equal scipy's graph components, label for label."""
+    mesh = damaged(kind)
+    c = Connectivity(mesh.faces, len(mesh.vertices))
+    hs, ptr = c.edge_half_edges.astype(np.int64), c.edge_ptr.astype(np.int64)
+    same = np.ones(len(hs) - 1, dtype=bool)
+    same[ptr[1:-1] - 1] = False  # consecutive half-edges of one edge
+    a, b = hs[:-1][same], hs[1:][same]
+    flat = mesh.faces.ravel()
+    nxt_a, nxt_b = a - a % 3 + (a % 3 + 1) % 3, b - b % 3 + (b % 3 + 1) % 3
+    s = flat[a] == flat[b]
+    ref = _scipy_labels(3 * len(mesh.faces), np.r_[a, nxt_a], np.r_[np.where(s, b, nxt_b), np.where(s, nxt_b, b)])
+    assert np.array_equal(c.corner_fans(), ref)
+    assert np.array_equal(c.corner_fans(a, b), ref)
+    n_fans = len(np.unique(ref))
+    assert int(c.vertex_fan_count.sum()) == n_fans
+    assert (n_fans > int(c.referenced.sum())) == (kind in ("cones", "split_vertices"))
+    comp = _scipy_labels(len(mesh.faces), a // 3, b // 3)
+    sizes = np.bincount(comp)
+    # ours: largest first, ties by first face
+    expected = np.argsort(np.argsort(-sizes, kind="stable"), kind="stable")[comp]
+    assert np.array_equal(c.face_components, expected)
+
+
+def test_int32_faces_and_unpacked_keys_give_the_same_connectivity():
+    """int32 faces are used without a copy, and the argsort fallback (keys too large to pack
+    an index into) groups edges exactly as the packed sort does."""
+    mesh = damaged("fins")
+    c64 = Connectivity(mesh.faces, len(mesh.vertices))
+    f32 = mesh.faces.astype(np.int32)
+    c32 = Connectivity(f32, len(mesh.vertices))
+    assert c32.faces is f32 and c64.faces is mesh.faces
+    assert c32.half_edge_edge.dtype == np.int32 and c32.edge_half_edges.dtype == np.int32
+    big = Connectivity(mesh.faces, 2**31)  # n * n * 3m >= 2^62: unpacked keys, int64 indices
+    assert big.half_edge_edge.dtype == np.int64
+    for c in (c32, big):
+        assert np.array_equal(c.half_edge_edge, c64.half_edge_edge)
+        assert np.array_equal(c.edge_ptr, c64.edge_ptr)
+        assert np.array_equal(c.edge_half_edges, c64.edge_half_edges)
+        assert np.array_equal(c.edges, c64.edges)
+        assert np.array_equal(c.face_components, c64.face_components)
+        assert c.is_consistently_oriented == c64.is_consistently_oriented
+    # (not on ``big``: per-vertex arrays of 2^31 entries)
+    assert np.array_equal(c32.non_manifold_vertices, c64.non_manifold_vertices)
+    assert np.array_equal(c32.corner_fans(), c64.corner_fans())
+    # half-edges of an edge are listed in increasing order, edges by (lo, hi)
+    h = c64.edge_half_edges
+    first = np.zeros(len(h), dtype=bool)
+    first[c64.edge_ptr[:-1]] = True
+    assert np.all(np.diff(h)[~first[1:]] > 0)
+    keys = c64.edges[:, 0] * len(mesh.vertices) + c64.edges[:, 1]
+    assert np.all(np.diff(keys) > 0) and np.all(c64.edges[:, 0] < c64.edges[:, 1])
+    assert np.array_equal(c64.half_edges, faces_to_edges(mesh.faces))
+
+
+def test_vertex_faces_csr():
+    mesh = damaged("cones")
+    c = Connectivity(mesh.faces, len(mesh.vertices))
+    for v in range(len(mesh.vertices)):
+        got = c.vertex_faces[c.vertex_ptr[v] : c.vertex_ptr[v + 1]]
+        assert got.tolist() == np.flatnonzero((mesh.faces == v).any(axis=1)).tolist()
