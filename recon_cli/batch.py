@@ -21,6 +21,12 @@ inputs it was running, never inputs waiting in its queue. Dask's ``retries=1`` i
 set on every task, for errors escaping the task function (which catches recon's own
 errors itself, since rerunning a deterministic failure gains nothing).
 
+An interruption (Ctrl-C: KeyboardInterrupt in the calling thread) cancels the running
+tasks, records the unfinished inputs as ``interrupted`` in the summary, closes the local
+cluster (its workers ignore SIGINT themselves, so a Ctrl-C to the whole process group
+stops them through this process only), removes temporaries of cut-short writes and
+re-raises; the outputs finished so far stay, and a rerun skips them.
+
 ``DIR/batch.json`` is the summary (also returned): per input ``status``, ``error``,
 stage ``stages`` (each stage's report with ``seconds``), ``timings`` (read / pipeline /
 write), ``peak_memory_mb`` (resident memory high-water mark of the worker process during
@@ -383,6 +389,21 @@ def _check_memory_limit(value: Any) -> Any:
         ) from None
 
 
+def dask_setup(worker: Any) -> None:
+    """Dask preload hook, run in each worker process of the local cluster as it starts.
+
+    The worker ignores SIGINT. Ctrl-C on a terminal signals the whole foreground process
+    group; a worker that took it would die with a traceback, and its nanny would restart
+    it while the batch is being stopped. The process running the batch takes the
+    interrupt alone and closes the cluster, which stops the workers.
+    """
+    import signal
+    import threading
+
+    if threading.current_thread() is threading.main_thread():  # signal handlers: main thread only
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 @contextlib.contextmanager
 def _dask_log_level(level: int):
     """Dask's loggers in this process at ``level`` (they propagate to the root logger) for the block."""
@@ -431,25 +452,65 @@ def _client_inner(scheduler, workers, threads_per_worker, memory_limit, log_leve
     # numba's thread pool per worker process = its Dask threads, so workers do not oversubscribe the cores
     env = {"NUMBA_NUM_THREADS": str(threads_per_worker)}
     # allowed-failures=1: an input whose worker dies is rescheduled once, then fails with KilledWorker
+    with _sigint_held() as interrupted:
+        try:
+            with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
+                cluster = LocalCluster(
+                    n_workers=workers,
+                    threads_per_worker=threads_per_worker,
+                    processes=True,
+                    memory_limit=memory_limit,
+                    dashboard_address=None,
+                    # no dashboard; its HTTP server (health, metrics) on a free port, not 8787 (maybe taken)
+                    scheduler_kwargs={"dashboard_address": ":0"},
+                    silence_logs=log_level,
+                    env=env,
+                    # each worker process ignores SIGINT (see dask_setup)
+                    preload=[__name__],
+                )
+        except (OSError, RuntimeError, TimeoutError) as exc:
+            raise ReconError(f"could not start a local Dask cluster: {_error_line(exc)}") from None
+    with cluster:
+        if interrupted:  # Ctrl-C while the cluster started: now that it exists, stop (and close it)
+            raise KeyboardInterrupt
+        with Client(cluster) as client:
+            info = _cluster_info(client, "local")
+            info["memory_limit"] = memory_limit
+            yield client, info
+
+
+@contextlib.contextmanager
+def _sigint_held():
+    """Hold Ctrl-C back while a local cluster starts; yields a list that is non-empty if one came.
+
+    A KeyboardInterrupt inside LocalCluster's start would leave a half-started cluster that
+    nothing closes. In the main thread, SIGINT is recorded instead of raised, and blocked
+    (POSIX): the threads started meanwhile inherit the block, among them Dask's event loop,
+    which starts the worker processes (now and when it restarts a dead one), so the workers
+    start with SIGINT blocked and do not die of a Ctrl-C while they import (dask_setup then
+    ignores it for good).
+    """
+    import signal
+    import threading
+
+    got: list[bool] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield got
+        return
+    old_handler = signal.signal(signal.SIGINT, lambda signum, frame: got.append(True))
+    mask = None
+    if hasattr(signal, "pthread_sigmask"):
+        from multiprocessing import resource_tracker
+
+        # starting its helper process unblocks SIGINT in the calling thread: start it first
+        resource_tracker.ensure_running()
+        mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
-        with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
-            cluster = LocalCluster(
-                n_workers=workers,
-                threads_per_worker=threads_per_worker,
-                processes=True,
-                memory_limit=memory_limit,
-                dashboard_address=None,
-                # no dashboard; its HTTP server (health, metrics) on a free port, not 8787 (maybe taken)
-                scheduler_kwargs={"dashboard_address": ":0"},
-                silence_logs=log_level,
-                env=env,
-            )
-    except (OSError, RuntimeError, TimeoutError) as exc:
-        raise ReconError(f"could not start a local Dask cluster: {_error_line(exc)}") from None
-    with cluster, Client(cluster) as client:
-        info = _cluster_info(client, "local")
-        info["memory_limit"] = memory_limit
-        yield client, info
+        yield got
+    finally:
+        if mask is not None:
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # a pending SIGINT arrives now, and is recorded
+        signal.signal(signal.SIGINT, old_handler)  # (runs pending handlers first)
 
 
 def _cluster_info(client, scheduler: str) -> dict:
@@ -642,62 +703,76 @@ def _submit_and_collect(
     task, but none waits in a worker's queue behind another, so a worker that dies takes
     down (and makes suspect) only the inputs it was running.
     """
+    try:
+        with _client(scheduler, workers, threads, mem, log_level) as (client, info):
+            _collect(client, info, pipe, entries, todo, records, progress, ascii, stage_map,
+                     summary_path, pipeline_path, out_dir, t_start)
+    finally:
+        # after the cluster is closed (its workers are gone): what a write cut short left behind
+        for i in todo:
+            _remove_temporaries(entries[i]["base"])
+    return info
+
+
+def _collect(client, info, pipe, entries, todo, records, progress, ascii, stage_map,
+             summary_path, pipeline_path, out_dir, t_start) -> None:
+    """The submit / collect loop of :func:`_submit_and_collect` on a connected ``client``.
+
+    On an interruption (Ctrl-C) the unfinished inputs are recorded ``interrupted``, their
+    futures cancelled and the summary written before the exception goes on (and the
+    cluster is closed on its way out).
+    """
+    from distributed import as_completed
+
     from recon_cli.io.atomic import write_bytes
     from recon_cli.progress import task
     from recon_cli.stages import report_json
 
-    with _client(scheduler, workers, threads, mem, log_level) as (client, info):
-        from distributed import as_completed
+    pending = list(todo)
+    in_flight: dict[Any, int] = {}
+    done = as_completed()
 
-        pending = list(todo)
-        in_flight: dict[Any, int] = {}
-        done = as_completed()
+    def capacity() -> int:
+        return max(1, sum(client.nthreads().values()))
 
-        def capacity() -> int:
-            return max(1, sum(client.nthreads().values()))
+    def fill() -> None:
+        room = capacity() - len(in_flight)
+        while pending and room > 0:
+            i = pending.pop(0)
+            e = entries[i]
+            fut = client.submit(
+                process_one, pipe, os.path.abspath(e["input"]), e["base"], stage_map, ascii,
+                key=f"recon-batch-{Path(e['input']).name}-{os.urandom(6).hex()}",
+                pure=False,
+                retries=1,
+            )
+            in_flight[fut] = i
+            done.add(fut)
+            room -= 1
 
-        def fill() -> None:
-            room = capacity() - len(in_flight)
-            while pending and room > 0:
-                i = pending.pop(0)
-                e = entries[i]
-                fut = client.submit(
-                    process_one, pipe, os.path.abspath(e["input"]), e["base"], stage_map, ascii,
-                    key=f"recon-batch-{Path(e['input']).name}-{os.urandom(6).hex()}",
-                    pure=False,
-                    retries=1,
-                )
-                in_flight[fut] = i
-                done.add(fut)
-                room -= 1
-
-        try:
-            with task(progress, f"batch ({len(todo)} inputs)", total=len(todo)) as bar:
+    try:
+        with task(progress, f"batch ({len(todo)} inputs)", total=len(todo)) as bar:
+            fill()
+            for fut in done:
+                i = in_flight.pop(fut)
+                if fut.status == "finished":
+                    rec = fut.result()
+                    rec["input"] = entries[i]["input"]
+                else:
+                    exc = fut.exception() if fut.status == "error" else None
+                    rec = _failed_from_future(entries[i], exc, fut.status)
+                records[i] = rec
+                fut.release()  # the scheduler forgets the result: a later worker death cannot recompute it
+                bar.advance(1)
                 fill()
-                for fut in done:
-                    i = in_flight.pop(fut)
-                    if fut.status == "finished":
-                        rec = fut.result()
-                        rec["input"] = entries[i]["input"]
-                    else:
-                        exc = fut.exception() if fut.status == "error" else None
-                        rec = _failed_from_future(entries[i], exc, fut.status)
-                    records[i] = rec
-                    fut.release()  # the scheduler forgets the result: a later worker death cannot recompute it
-                    bar.advance(1)
-                    fill()
-        except BaseException:
-            # interrupted: record what is unfinished, keep the summary of what is done, re-raise
-            for i in todo:
-                if records[i] is None:
-                    records[i] = {"input": entries[i]["input"], "status": STATUS_INTERRUPTED, "output": None}
-            with contextlib.suppress(Exception):
-                client.cancel(list(in_flight))
-            summary = _summary(pipeline_path, out_dir, info, records, t_start)
-            with contextlib.suppress(OSError):
-                write_bytes(summary_path, report_json(summary).encode("utf-8") + b"\n")
-            raise
-        finally:
-            for i in todo:
-                _remove_temporaries(entries[i]["base"])
-    return info
+    except BaseException:
+        # interrupted: record what is unfinished, keep the summary of what is done, re-raise
+        for i in todo:
+            if records[i] is None:
+                records[i] = {"input": entries[i]["input"], "status": STATUS_INTERRUPTED, "output": None}
+        with contextlib.suppress(Exception):
+            client.cancel(list(in_flight))
+        summary = _summary(pipeline_path, out_dir, info, records, t_start)
+        with contextlib.suppress(OSError):
+            write_bytes(summary_path, report_json(summary).encode("utf-8") + b"\n")
+        raise

@@ -406,3 +406,134 @@ def test_batch_mixed_inputs_on_two_workers(tmp_path, test_stages, capsys, cluste
         assert r["stages"][1]["seconds"] >= 0.1
         assert r["peak_memory_scope"] == "task" and r["peak_memory_mb"] >= r["memory_at_start_mb"] > 10
         assert r["seconds"] >= sum(r["timings"].values()) > 0.1
+
+
+# ----------------------------------------------------------------------------- Ctrl-C
+
+# `recon batch` as a user runs it, with the test stages registered first (the workers get them
+# from each task's stage targets; spawned workers inherit sys.path, so they import _batch_stages)
+_RUNNER = (
+    "import sys\n"
+    f"sys.path.insert(0, {TESTS!r})\n"
+    "from _batch_stages import EXTRA_STAGES\n"
+    "from recon_cli import stages\n"
+    "stages.STAGES.update(EXTRA_STAGES)\n"
+    "from recon_cli.cli.main import main\n"
+    "main(sys.argv[1:])\n"
+)
+
+
+def _sigint_blocked(native_id: int) -> bool:
+    with open(f"/proc/self/task/{native_id}/status") as f:
+        mask = next(int(line.split()[1], 16) for line in f if line.startswith("SigBlk:"))
+    return bool(mask & (1 << (signal.SIGINT - 1)))
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self/task/*/status")
+def test_sigint_is_held_while_a_cluster_starts():
+    """A Ctrl-C while the local cluster starts is recorded, not raised mid-start; threads started meanwhile
+    (Dask's event loop, which starts the workers) keep SIGINT blocked; afterwards all is as before."""
+    before = signal.getsignal(signal.SIGINT)
+    seen: list[bool] = []
+
+    def thread_body():
+        seen.append(_sigint_blocked(threading.get_native_id()))
+
+    with batch._sigint_held() as interrupted:
+        os.kill(os.getpid(), signal.SIGINT)  # recorded (now or on leaving), never raised here
+        time.sleep(0.05)
+        assert _sigint_blocked(threading.get_native_id())
+        th = threading.Thread(target=thread_body)
+        th.start()
+        th.join()
+    assert interrupted == [True] and seen == [True]
+    assert signal.getsignal(signal.SIGINT) is before and not _sigint_blocked(threading.get_native_id())
+    with pytest.raises(KeyboardInterrupt):  # the usual behaviour is back
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(1)
+
+
+def _outputs(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.glob("*.ply"))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("target", ["group", "main"])
+def test_ctrl_c_stops_cleanly_and_a_rerun_resumes(tmp_path, target):
+    """SIGINT once the first output exists, to the whole process group (Ctrl-C on a terminal) or to the
+    recon process alone: exit 130, no partial output, every process of the local cluster gone, finished
+    inputs kept; a rerun (after the Ctrl-C) skips those and does the rest."""
+    import subprocess
+
+    import psutil
+
+    from recon_cli.cli.main import EXIT_INTERRUPTED
+    from recon_cli.io import read_ply
+
+    data = tmp_path / "in"
+    data.mkdir()
+    src = shared_path("stereo_fragment")
+    names = [f"part{i}" for i in range(6)]
+    for name in names:
+        shutil.copy(src, data / f"{name}.ply")
+    n_points = len(read_ply(src).vertices)
+    pipe = _pipeline(
+        tmp_path / "p.toml",
+        '[[stage]]\nname = "t_centre"\n\n[[stage]]\nname = "t_sleep"\nseconds = 1.0\n',
+    )
+    out = tmp_path / "out"
+    argv = [sys.executable, "-c", _RUNNER, "batch", pipe, str(data), "--out", str(out), "--workers", "2"]
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not (out.is_dir() and _outputs(out)):
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, "no output after 120 s"
+            time.sleep(0.02)
+        family = psutil.Process(proc.pid).children(recursive=True)
+        assert len(family) >= 2  # at least the two worker processes
+        if target == "group":
+            os.killpg(proc.pid, signal.SIGINT)
+        else:
+            proc.send_signal(signal.SIGINT)
+        t0 = time.monotonic()
+        _, err = proc.communicate(timeout=60)
+        stop_s = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    err = err.decode()
+    assert proc.returncode == EXIT_INTERRUPTED == 130, err
+    assert err.rstrip().splitlines()[-1] == "recon: interrupted", err
+    assert "Traceback" not in err, err
+    assert stop_s < 20, stop_s
+    # the cluster went with it: no worker (or other) process of the batch outlives it
+    _, alive = psutil.wait_procs(family, timeout=10)
+    assert alive == [], [(p.pid, p.name()) for p in alive]
+    # finished inputs are whole files; nothing partial, the unfinished ones are recorded as interrupted
+    done = _outputs(out)
+    assert 1 <= len(done) < len(names)
+    assert _leftover_temporaries(out) == []
+    assert sorted(p.name for p in out.iterdir()) == sorted(done + ["batch.json"])
+    for name in done:
+        assert len(read_ply(out / name).vertices) == n_points
+    summary = json.loads((out / "batch.json").read_text())
+    status = {Path(r["input"]).stem: r["status"] for r in summary["inputs"]}
+    assert set(status) == set(names)
+    assert {n for n, s in status.items() if s == "ok"} <= {Path(n).stem for n in done}
+    assert {n for n, s in status.items() if s != "ok"} >= set(names) - {Path(n).stem for n in done}
+    assert set(status.values()) <= {"ok", "interrupted"} and "interrupted" in status.values()
+
+    if target != "group":
+        return
+    # the rerun resumes: finished inputs are skipped (untouched), the others run
+    before = {n: (out / n).stat().st_mtime_ns for n in done}
+    again = subprocess.run(argv + ["--json"], capture_output=True, timeout=180)
+    assert again.returncode == 0, again.stderr.decode()
+    summary = json.loads(again.stdout)
+    assert summary["counts"] == {"ok": len(names) - len(done), "failed": 0, "skipped": len(done)}
+    skipped = {Path(r["input"]).name for r in summary["inputs"] if r["status"] == "skipped"}
+    assert skipped == set(done)
+    assert {n: (out / n).stat().st_mtime_ns for n in done} == before
+    assert _outputs(out) == [f"{n}.ply" for n in names] and _leftover_temporaries(out) == []

@@ -48,7 +48,9 @@ def cmd(
     a filesystem the workers share). DIR/batch.json records status, stage timings, peak
     memory and output counts per input.
 
-    Exit status 0 when every input is ok or skipped, 4 when some failed.
+    Exit status 0 when every input is ok or skipped, 4 when some failed, 130 when
+    interrupted (Ctrl-C): the local cluster is closed, the outputs finished so far stay,
+    the rest are recorded as interrupted in DIR/batch.json, and a rerun resumes.
     """
     import logging
 
