@@ -478,3 +478,53 @@ def test_float_fields_decode_bit_exact(order, ftype, tmp_path):
     assert np.array_equal(cloud.points, want[:, :3]) and np.array_equal(cloud.normals, want[:, 3:])
     assert np.array_equal(np.signbit(cloud.points[:, 0]), np.signbit(want[:, 0]))  # -0.0 kept
     assert np.array_equal(cloud.attributes["tag"], np.full(n, 7))
+
+
+def _big_cloud_bytes(n: int, order: str, before: str = "") -> tuple[bytes, np.ndarray]:
+    rng = np.random.default_rng(3)
+    dt = np.dtype([(c, order + "f4") for c in ("x", "y", "z", "nx", "ny", "nz")] + [(c, "u1") for c in ("red", "green", "blue")])
+    rows = np.zeros(n, dt)
+    for c in ("x", "y", "z", "nx", "ny", "nz"):
+        rows[c] = rng.normal(size=n)
+    for c in ("red", "green", "blue"):
+        rows[c] = rng.integers(0, 256, n)
+    fmt = "binary_little_endian" if order == "<" else "binary_big_endian"
+    head = f"ply\nformat {fmt} 1.0\n{before}element vertex {n}\n" + "".join(
+        f"property {'float' if dt[c].kind == 'f' else 'uchar'} {c}\n" for c in dt.names
+    ) + "end_header\n"
+    return head.encode(), rows
+
+
+@pytest.mark.parametrize(
+    "order,before,pre",
+    [
+        ("<", "", b""),
+        (">", "", b""),
+        ("<", "element camera 2\nproperty double cx\nproperty uchar tag\n", np.zeros(18, np.uint8).tobytes()),
+        ("<", "element note 1\nproperty list uchar uchar text\n", b"\x02ab"),
+    ],
+    ids=["le", "be", "fixed-element-first", "list-element-first"],
+)
+def test_big_file_decoded_while_read_equals_in_memory_parse(order, before, pre, tmp_path):
+    # files over 4 MB decode their vertex rows while the rest is being read: same result
+    head, rows = _big_cloud_bytes(300_000, order, before)
+    data = head + pre + rows.tobytes()
+    path = tmp_path / "big.ply"
+    path.write_bytes(data)
+    got = read_ply(path)
+    want = read_ply("mem.ply", data)
+    assert np.array_equal(got.points, want.points) and np.array_equal(got.normals, want.normals)
+    assert np.array_equal(got.colors, want.colors)
+    assert np.array_equal(got.points[:, 1], rows["y"].astype(np.float64))
+
+
+def test_big_truncated_or_nan_file_errors_like_in_memory(tmp_path):
+    head, rows = _big_cloud_bytes(300_000, "<")
+    path = tmp_path / "cut.ply"
+    path.write_bytes(head + rows.tobytes()[:-1000])
+    with pytest.raises(InputError, match="truncated"):
+        read_ply(path)
+    rows["z"][250_000] = np.nan
+    path.write_bytes(head + rows.tobytes())
+    with pytest.raises(InputError, match="vertex 250000 has a NaN"):
+        read_ply(path)

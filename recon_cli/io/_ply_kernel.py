@@ -76,7 +76,7 @@ def scan_list_rows(raw, offset, count, layout, big):
     return starts, lens, pos, 0
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def gather_fields(flat, stride, offsets, size, big, out):
     """Read field values out of fixed-size rows into ``out`` ((n, k) unsigned ints of ``size`` bytes).
 
@@ -115,7 +115,7 @@ def gather_fields(flat, stride, offsets, size, big, out):
             out[i, j] = v
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def gather_floats(flat, stride, offsets, size, big, out):
     """Read float fields (``size`` 4 or 8 bytes) out of fixed-size rows straight into float64 ``out`` (n, k).
 
@@ -177,7 +177,7 @@ def gather_floats(flat, stride, offsets, size, big, out):
     return bad
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def gather_bytes(flat, stride, offsets, out):
     """One-byte fields (colours) out of fixed-size rows into ``out`` (n, k) uint8/int8."""
     n = out.shape[0]

@@ -12,6 +12,11 @@ from recon_cli.io.ply import read_bytes, read_ply, write_ply
 
 def load(path: str | os.PathLike) -> PointCloud | TriangleMesh | Grid:
     """Read ``path`` (``-``: stdin), telling PLY from grid ``.npz`` by content."""
+    if str(path) != "-" and os.path.isfile(path):
+        with open(path, "rb") as f:
+            magic = f.read(4)
+        # PLY files go straight to read_ply, which decodes the vertices while it reads
+        return read_grid(path) if is_npz(magic) else read_ply(path)
     data = read_bytes(path)
     if is_npz(data):
         return read_grid(path, data)

@@ -70,6 +70,8 @@ class PlyElement:
     properties: list[PlyProperty] = field(default_factory=list)
     data: dict[str, np.ndarray] = field(default_factory=dict)
     raw: np.ndarray | None = field(default=None, repr=False)  # structured rows, when decoded as such
+    # columns already gathered (while the file was still being read): names -> array, non-finite count
+    decoded: dict = field(default_factory=dict, repr=False)
 
 
 @dataclass
@@ -606,9 +608,123 @@ def read_ply(path: str | os.PathLike, data: bytes | None = None) -> PointCloud |
     InputError
         Malformed or inconsistent file, NaN/inf coordinates, face indices out of range.
     """
-    buf = read_bytes(path) if data is None else data
+    decoded = None
+    if data is None and str(path) != "-":
+        buf, decoded = _read_decoding_vertices(path)
+    else:
+        buf = data
     ply = parse_ply(buf, str(path))
+    if decoded:
+        ply.element("vertex").decoded = decoded
     return ply_to_geometry(ply, str(path))
+
+
+# files below this size are read then decoded; above, the vertex rows are decoded while the
+# rest of the file is still being read (the read and the decoding overlap on two cores)
+_OVERLAP_MIN_BYTES = 4 << 20
+_READ_CHUNK = 4 << 20
+
+
+def _read_decoding_vertices(path: str | os.PathLike) -> tuple[bytes | np.ndarray, dict]:
+    """Read ``path`` (like :func:`read_bytes`) and gather the vertex columns as the bytes arrive.
+
+    A thread reads the file in chunks into one numpy buffer (``readinto`` releases the GIL);
+    meanwhile this thread decodes every vertex row already read (the kernels release the GIL
+    too). Returns the buffer and the columns decoded, keyed as :func:`_columns` keys them
+    (empty when the file is small, ASCII, or its vertex rows are not at a known place: the
+    usual parse then does everything).
+    """
+    import threading
+
+    try:
+        f = open(path, "rb", buffering=0)
+    except OSError:
+        return read_bytes(path), {}  # read_bytes names the problem
+    with f:
+        st = os.fstat(f.fileno())
+        if not stat.S_ISREG(st.st_mode):  # a pipe (e.g. <(cat scan.ply)) can only be opened once
+            return f.read(), {}
+        if st.st_size < _OVERLAP_MIN_BYTES:
+            f.close()
+            return read_bytes(path), {}
+        size = st.st_size
+        buf = np.empty(size, dtype=np.uint8)
+        view = memoryview(buf)
+        state = {"filled": 0, "done": False}
+        cond = threading.Condition()
+
+        def reader() -> None:
+            try:
+                while state["filled"] < size:
+                    k = f.readinto(view[state["filled"] : min(size, state["filled"] + _READ_CHUNK)])
+                    if not k:
+                        break
+                    with cond:
+                        state["filled"] += k
+                        cond.notify()
+            finally:
+                with cond:
+                    state["done"] = True
+                    cond.notify()
+
+        def wait_for(nbytes: int) -> int:
+            with cond:
+                while state["filled"] < nbytes and not state["done"]:
+                    cond.wait()
+                return state["filled"]
+
+        t = threading.Thread(target=reader, daemon=True)
+        t.start()
+        try:
+            decoded = _decode_vertices_as_read(buf, wait_for)
+        finally:
+            t.join()
+        if state["filled"] < size:  # the file shrank while we read it
+            return buf[: state["filled"]], {}
+        return buf, decoded
+
+
+def _decode_vertices_as_read(buf: np.ndarray, wait_for) -> dict:
+    """Decode vertex rows of ``buf`` as ``wait_for(n)`` reports bytes ``[0, n)`` filled."""
+    got = wait_for(min(len(buf), MAX_HEADER_BYTES + 1024))
+    head = bytes(memoryview(buf)[:got])
+    if not head.startswith(b"ply") or _find_end_header(head) is None:
+        return {}
+    try:
+        ply, offset = parse_header(head)
+    except InputError:
+        return {}  # the usual parse reports it
+    if ply.format == "ascii":
+        return {}
+    order = FORMATS[ply.format]
+    for el in ply.elements:
+        if any(p.is_list for p in el.properties):
+            return {}  # rows of unknown size before the vertices
+        dt = np.dtype([(p.name, order + p.dtype) for p in el.properties])
+        if el.name == "vertex":
+            break
+        offset += dt.itemsize * el.count
+    else:
+        return {}
+    if el.count == 0 or offset + dt.itemsize * el.count > len(buf):
+        return {}
+    props = {p.name: p for p in el.properties}
+    plans = [_gather_plan(dt, names, dtype) for names, dtype in _vertex_groups(props)]
+    plans = [plan for plan in plans if plan[0] in ("float", "byte")]  # the rest: the usual parse
+    outs = [np.empty((el.count, len(plan[1])), dtype=plan[5]) for plan in plans]
+    bad = [0] * len(plans)
+    stride = dt.itemsize
+    done = 0
+    while done < el.count:
+        have = wait_for(offset + (done + 1) * stride)
+        upto = min(el.count, (have - offset) // stride)
+        if upto <= done:
+            return {}  # the file ended early: the usual parse reports the truncation
+        rows = buf[offset + done * stride : offset + upto * stride]
+        for i, plan in enumerate(plans):
+            bad[i] += _gather_apply(plan, rows, stride, outs[i][done:upto])
+        done = upto
+    return {plan[1]: (out, b) for plan, out, b in zip(plans, outs, bad)}
 
 
 def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | TriangleMesh:
@@ -630,17 +746,13 @@ def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | Trian
         raise InputError(f"vertex {bad} has a NaN or infinite coordinate", where)
     used = set(_VERTEX_XYZ)
     point_dtype = np.float64 if all(props[c].dtype == "f8" for c in _VERTEX_XYZ) else np.float32
-    normals = None
-    if all(c in props and not props[c].is_list for c in _VERTEX_NORMAL):
-        normals = _columns(vert, _VERTEX_NORMAL, np.float64)
-        used |= set(_VERTEX_NORMAL)
-    colors = None
-    for names in (_VERTEX_COLOR, _VERTEX_COLOR_DIFFUSE, _VERTEX_COLOR_ALT):
-        if all(c in props and not props[c].is_list for c in names[:3]):
-            chosen = [c for c in names if c in props]
-            colors = _columns(vert, tuple(chosen), None)
-            used |= set(chosen)
-            break
+    normals = colors = None
+    for names, dtype in _vertex_groups(props)[1:]:
+        if names == _VERTEX_NORMAL:
+            normals = _columns(vert, names, dtype)
+        else:
+            colors = _columns(vert, names, dtype)
+        used |= set(names)
     attributes = {
         p.name: np.array(d[p.name], dtype=np.dtype(p.dtype)) for p in vert.properties if p.name not in used and not p.is_list
     }
@@ -674,47 +786,87 @@ def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | Trian
     return TriangleMesh(vertices=pts, faces=faces, normals=normals, face_attributes=face_attrs, **common)
 
 
+def _vertex_groups(props: dict) -> list[tuple[tuple[str, ...], object]]:
+    """The column groups read from a vertex element: xyz, then normals and colours when present.
+
+    Each is ``(names, dtype)``; dtype None keeps the file's type (colours).
+    """
+    groups: list[tuple[tuple[str, ...], object]] = [(_VERTEX_XYZ, np.float64)]
+    if all(c in props and not props[c].is_list for c in _VERTEX_NORMAL):
+        groups.append((_VERTEX_NORMAL, np.float64))
+    for names in (_VERTEX_COLOR, _VERTEX_COLOR_DIFFUSE, _VERTEX_COLOR_ALT):
+        if all(c in props and not props[c].is_list for c in names[:3]):
+            groups.append((tuple(c for c in names if c in props), None))
+            break
+    return groups
+
+
 def _columns(el: PlyElement, names: tuple[str, ...], dtype, count_nonfinite: bool = False):
     """(count, len(names)) array of the named scalar properties, copied once.
 
     With ``count_nonfinite`` returns ``(array, number of NaN/inf values)``.
     """
-    out = _gather_columns(el, names, dtype)
+    plan = _gather_plan(el.raw.dtype, names, dtype) if el.raw is not None else None
+    if names in el.decoded:
+        out, bad = el.decoded[names]
+    elif plan is not None and plan[0] != "mixed" and el.count and el.raw.flags.c_contiguous:
+        out = np.empty((el.count, len(names)), dtype=plan[5])
+        bad = _gather_apply(plan, el.raw.view(np.uint8).reshape(-1), el.raw.dtype.itemsize, out)
+        if plan[0] == "int":
+            out = out.view(plan[6]).astype(plan[7], copy=False)
+    else:
+        rtype = dtype if dtype is not None else np.result_type(*[el.data[c].dtype for c in names])
+        if el.count == 0:
+            out = np.zeros((0, len(names)), dtype=rtype)
+        else:
+            out = np.column_stack([el.data[c].astype(rtype) for c in names])
+        bad = -1
     if not count_nonfinite:
-        return out if isinstance(out, np.ndarray) else out[0]
-    if isinstance(out, tuple):
         return out
-    return out, int(out.size - np.count_nonzero(np.isfinite(out))) if out.dtype.kind == "f" else 0
+    if bad < 0:
+        bad = int(out.size - np.count_nonzero(np.isfinite(out))) if out.dtype.kind == "f" else 0
+    return out, int(bad)
 
 
-def _gather_columns(el: PlyElement, names: tuple[str, ...], dtype):
-    """The array, or (array, non-finite count) when the float kernel counted them on the way."""
-    if dtype is None:
-        dtype = np.result_type(*[el.data[c].dtype for c in names])
-    if el.raw is not None and el.count and el.raw.flags.c_contiguous:
-        fields = el.raw.dtype.fields
-        types = {fields[c][0] for c in names}
-        if len(types) == 1:
-            from recon_cli.io._ply_kernel import gather_bytes, gather_fields, gather_floats
+def _gather_plan(rowtype: np.dtype, names: tuple[str, ...], dtype) -> tuple:
+    """How to gather ``names`` out of packed rows of ``rowtype``.
 
-            ftype = types.pop()
-            flat = el.raw.view(np.uint8).reshape(-1)
-            offsets = np.array([fields[c][1] for c in names], dtype=np.int64)
-            if ftype.kind == "f" and np.dtype(dtype) == np.float64:
-                # the usual case (float32/64 coordinates and normals): decode and widen in one pass
-                out64 = np.empty((el.count, len(names)), dtype=np.float64)
-                bad = gather_floats(flat, el.raw.dtype.itemsize, offsets, ftype.itemsize, ftype.byteorder == ">", out64)
-                return out64, int(bad)
-            if ftype.itemsize == 1:
-                out8 = np.empty((el.count, len(names)), dtype=ftype)
-                gather_bytes(flat, el.raw.dtype.itemsize, offsets, out8)
-                return out8 if np.dtype(dtype) == ftype else out8.astype(dtype)
-            out = np.empty((el.count, len(names)), dtype=f"u{ftype.itemsize}")
-            gather_fields(flat, el.raw.dtype.itemsize, offsets, ftype.itemsize, ftype.byteorder == ">", out)
-            return out.view(ftype.newbyteorder("=")).astype(dtype, copy=False)
-    if el.count == 0:
-        return np.zeros((0, len(names)), dtype=dtype)
-    return np.column_stack([el.data[c].astype(dtype) for c in names])
+    ``(kind, names, offsets, size, big, buffer dtype, field dtype, result dtype)``; kind is
+    ``float`` (decoded straight to float64, non-finite values counted), ``byte`` (one-byte
+    fields, e.g. colours) or ``int`` (integers assembled in an unsigned buffer, then viewed
+    and cast). Fields of differing types go through ``mixed`` (numpy, field by field).
+    """
+    fields = rowtype.fields
+    types = {fields[c][0] for c in names}
+    offsets = np.array([fields[c][1] for c in names], dtype=np.int64)
+    if len(types) != 1:
+        rtype = np.dtype(dtype) if dtype is not None else np.result_type(*types)
+        return ("mixed", names, offsets, 0, False, rtype, None, rtype)
+    ftype = types.pop()
+    big = ftype.byteorder == ">"
+    native = ftype.newbyteorder("=")
+    rtype = np.dtype(dtype) if dtype is not None else native
+    if ftype.kind == "f" and rtype == np.float64:
+        return ("float", names, offsets, ftype.itemsize, big, np.dtype(np.float64), native, rtype)
+    if ftype.itemsize == 1 and rtype == native:
+        return ("byte", names, offsets, 1, False, native, native, rtype)
+    return ("int", names, offsets, ftype.itemsize, big, np.dtype(f"u{ftype.itemsize}"), native, rtype)
+
+
+def _gather_apply(plan: tuple, flat: np.ndarray, stride: int, out: np.ndarray) -> int:
+    """Fill ``out`` (rows, k) from the packed rows in ``flat`` (uint8); returns the non-finite count (-1: not counted)."""
+    from recon_cli.io._ply_kernel import gather_bytes, gather_fields, gather_floats
+
+    kind, names, offsets, size, big = plan[:5]
+    if kind == "float":
+        return int(gather_floats(flat, stride, offsets, size, big, out))
+    if kind == "byte":
+        gather_bytes(flat, stride, offsets, out)
+        return -1
+    if kind == "int":
+        gather_fields(flat, stride, offsets, size, big, out)
+        return -1
+    raise ValueError(f"no kernel gathers {kind!r} columns")  # callers handle 'mixed' with numpy
 
 
 def _triangulate(lists: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]:
