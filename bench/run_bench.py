@@ -33,46 +33,69 @@ def fmt(v, digits=3) -> str:
     return str(v)
 
 
+HEAD = "| stage | case | ours s | ours MB | reference | ref s | ref MB | time ours/ref | mem ours/ref | note |"
+KEYS = ("stage", "case", "ours_s", "ours_mb", "ref", "ref_s", "ref_mb", "time_ratio", "mem_ratio", "note")
+
+
+def table(rows: list[dict]) -> list[str]:
+    lines = [HEAD, "|" + "---|" * 10]
+    for r in rows:
+        lines.append("| " + " | ".join(fmt(r.get(k, "")) for k in KEYS) + " |")
+    return lines
+
+
+def old_sections(path: Path) -> dict[str, str]:
+    """Sections of an earlier results file, by module (``## bench_x ...`` up to the next one)."""
+    if not path.exists():
+        return {}
+    out: dict[str, str] = {}
+    name = None
+    for line in path.read_text().splitlines(keepends=True):
+        if line.startswith("## bench_"):
+            name = line.split()[1]
+            out[name] = ""
+        if name:
+            out[name] += line
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--out", default=str(HERE / "results.md"))
-    ap.add_argument("--only", nargs="*", help="bench module names (e.g. ply normals)")
+    ap.add_argument("--only", nargs="*", help="bench module names (e.g. ply normals); the other sections of --out are kept")
     ap.add_argument("--quick", action="store_true", help="smaller inputs, fewer repeats")
     args = ap.parse_args()
-    mods = sorted(p.stem for p in HERE.glob("bench_*.py"))
-    if args.only:
-        mods = [m for m in mods if m.removeprefix("bench_") in args.only]
-    rows = []
+    every = sorted(p.stem for p in HERE.glob("bench_*.py"))
+    mods = [m for m in every if m.removeprefix("bench_") in args.only] if args.only else every
+    sections = old_sections(Path(args.out)) if args.only else {}
     for m in mods:
         t0 = time.perf_counter()
         print(f"# {m} ...", file=sys.stderr, flush=True)
         mod = importlib.import_module(m)
         try:
-            rows += mod.rows(args.quick)
+            rows = mod.rows(args.quick)
         except Exception as exc:  # one broken bench must not hide the others
-            rows.append({"stage": m, "case": f"FAILED: {exc!r}"})
-        print(f"# {m} done in {time.perf_counter() - t0:.1f}s", file=sys.stderr, flush=True)
-    head = "| stage | case | ours s | ours MB | reference | ref s | ref MB | time ours/ref | mem ours/ref | note |"
+            rows = [{"stage": m, "case": f"FAILED: {exc!r}"}]
+        took = time.perf_counter() - t0
+        print(f"# {m} done in {took:.1f}s", file=sys.stderr, flush=True)
+        when = time.strftime("%Y-%m-%d %H:%M")
+        text = "\n".join(
+            [f"## {m} ({when}{', quick' if args.quick else ''}, {took:.0f} s)", "", *table(rows), ""]
+        ) + "\n"
+        print(text, flush=True)
+        sections[m] = text
     lines = [
-        f"# recon benchmark ({time.strftime('%Y-%m-%d %H:%M')}, {platform.machine()}, {platform.python_version()})",
+        f"# recon benchmark ({platform.machine()}, Python {platform.python_version()}, {os.cpu_count()} cores)",
         "",
-        "Times are medians of repeated runs; memory is the peak RSS above the start of each run.",
+        "Times are medians of repeated runs, each in a forked child; memory is the peak RSS above the start",
+        "of each run. Ours and the reference run back to back in one process: read the ratios. Each section",
+        "says when it was measured (`make bench` runs all; `run_bench.py --only NAME` redoes one section).",
         "",
-        head,
-        "|" + "---|" * 10,
     ]
-    for r in rows:
-        lines.append(
-            "| "
-            + " | ".join(
-                fmt(r.get(k, ""))
-                for k in ("stage", "case", "ours_s", "ours_mb", "ref", "ref_s", "ref_mb", "time_ratio", "mem_ratio", "note")
-            )
-            + " |"
-        )
-    text = "\n".join(lines) + "\n"
-    print(text)
-    Path(args.out).write_text(text)
+    for m in every:
+        if m in sections:
+            lines.append(sections[m].rstrip("\n") + "\n")
+    Path(args.out).write_text("\n".join(lines))
     return 0
 
 
