@@ -708,11 +708,11 @@ def _decode_vertices_as_read(buf: np.ndarray, wait_for) -> dict:
         return {}
     if el.count == 0 or offset + dt.itemsize * el.count > len(buf):
         return {}
-    props = {p.name: p for p in el.properties}
-    plans = [_gather_plan(dt, names, dtype) for names, dtype in _vertex_groups(props)]
-    plans = [plan for plan in plans if plan[0] in ("float", "byte")]  # the rest: the usual parse
-    outs = [np.empty((el.count, len(plan[1])), dtype=plan[5]) for plan in plans]
-    bad = [0] * len(plans)
+    fused = _FusedVertexDecode.plan(dt, {p.name: p for p in el.properties})
+    if fused is None:
+        return {}  # the usual parse decodes it
+    outs = fused.alloc(el.count)
+    bad = 0
     stride = dt.itemsize
     done = 0
     while done < el.count:
@@ -721,10 +721,63 @@ def _decode_vertices_as_read(buf: np.ndarray, wait_for) -> dict:
         if upto <= done:
             return {}  # the file ended early: the usual parse reports the truncation
         rows = buf[offset + done * stride : offset + upto * stride]
-        for i, plan in enumerate(plans):
-            bad[i] += _gather_apply(plan, rows, stride, outs[i][done:upto])
+        bad += fused.run(rows, stride, [o[done:upto] for o in outs])
         done = upto
-    return {plan[1]: (out, b) for plan, out, b in zip(plans, outs, bad)}
+    return fused.result(outs, bad)
+
+
+@dataclass
+class _FusedVertexDecode:
+    """Decode xyz, normals and one-byte colours of packed vertex rows in one pass.
+
+    Applies when xyz (and normals, if decoded here) are floats of one type and colours are
+    one-byte; other layouts go through :func:`_columns` group by group.
+    """
+
+    groups: list  # (names, offsets tuple) for xyz, normals, colours; offsets (-1,) when absent
+    load: object  # the _ply_kernel.load_f* decoder for the float type and byte order
+    color_dtype: np.dtype
+
+    @classmethod
+    def plan(cls, rowtype: np.dtype, props: dict) -> "_FusedVertexDecode | None":
+        from recon_cli.io import _ply_kernel as K
+
+        fields = rowtype.fields
+        groups = _vertex_groups(props)
+        ftype = fields[_VERTEX_XYZ[0]][0]
+        if ftype.kind != "f" or any(fields[c][0] != ftype for c in _VERTEX_XYZ):
+            return None
+        out = [(_VERTEX_XYZ, tuple(fields[c][1] for c in _VERTEX_XYZ))]
+        normals = [names for names, _ in groups[1:] if names == _VERTEX_NORMAL]
+        if normals and all(fields[c][0] == ftype for c in _VERTEX_NORMAL):
+            out.append((_VERTEX_NORMAL, tuple(fields[c][1] for c in _VERTEX_NORMAL)))
+        else:
+            out.append(((), (-1,)))
+        colors = [names for names, _ in groups[1:] if names != _VERTEX_NORMAL]
+        ctypes = {fields[c][0] for c in colors[0]} if colors else set()
+        ctype = ctypes.pop() if len(ctypes) == 1 else None
+        if ctype is not None and ctype.itemsize == 1:
+            out.append((colors[0], tuple(fields[c][1] for c in colors[0])))
+        else:
+            out.append(((), (-1,)))
+            ctype = np.dtype(np.uint8)
+        big = ftype.byteorder == ">"
+        load = {(4, False): K.load_f32_le, (4, True): K.load_f32_be, (8, False): K.load_f64_le, (8, True): K.load_f64_be}
+        return cls(out, load[ftype.itemsize, big], ctype)
+
+    def alloc(self, count: int) -> list[np.ndarray]:
+        (na, _), (nb, _), (nc, _) = self.groups
+        return [np.empty((count, len(na))), np.empty((count, len(nb))), np.empty((count, len(nc)), self.color_dtype)]
+
+    def run(self, flat: np.ndarray, stride: int, outs: list[np.ndarray]) -> int:
+        from recon_cli.io._ply_kernel import gather_vertex_rows
+
+        (_, oa), (_, ob), (_, oc) = self.groups
+        return int(gather_vertex_rows(self.load, flat, stride, oa, outs[0], ob, outs[1], oc, outs[2]))
+
+    def result(self, outs: list[np.ndarray], bad: int) -> dict:
+        """Columns keyed as :func:`_columns` keys them (names -> (array, non-finite count))."""
+        return {names: (out, bad if i == 0 else -1) for i, ((names, _), out) in enumerate(zip(self.groups, outs)) if names}
 
 
 def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | TriangleMesh:
@@ -740,6 +793,12 @@ def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | Trian
         if props[c].is_list:
             raise InputError(f"vertex property {c!r} is a list", where)
     d = vert.data
+    if not vert.decoded and vert.raw is not None and vert.count and vert.raw.flags.c_contiguous:
+        fused = _FusedVertexDecode.plan(vert.raw.dtype, props)
+        if fused is not None:
+            outs = fused.alloc(vert.count)
+            bad = fused.run(vert.raw.view(np.uint8).reshape(-1), vert.raw.dtype.itemsize, outs)
+            vert.decoded = fused.result(outs, bad)
     pts, nonfinite = _columns(vert, _VERTEX_XYZ, np.float64, count_nonfinite=True)
     if nonfinite:
         bad = int(np.flatnonzero(~np.isfinite(pts).all(axis=1))[0])
