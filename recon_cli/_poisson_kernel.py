@@ -77,6 +77,28 @@ def lookup_many(tk, tv, bits, keys):
     return out
 
 
+@njit(cache=True, inline="always")
+def bsearch(keys, key):
+    """Index of ``key`` in sorted unique ``keys``, -1 if absent (no hash table to keep)."""
+    lo = 0
+    hi = len(keys)
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if keys[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo if (lo < len(keys) and keys[lo] == key) else -1
+
+
+@njit(cache=True)
+def bsearch_many(keys, queries):
+    out = np.empty(len(queries), np.int32)
+    for i in range(len(queries)):
+        out[i] = bsearch(keys, queries[i])
+    return out
+
+
 @njit(cache=True)
 def _set_insert(tk, bits, key):
     """Insert into a key-only set; True when the key was new."""
@@ -162,9 +184,9 @@ def unpack(keys):
 @njit(cache=True)
 def node_incidence(cell_nodes, n_nodes):
     """Per node: number of incident cells, and one (cell, corner) that holds it."""
-    cnt = np.zeros(n_nodes, np.int64)
-    cell = np.empty(n_nodes, np.int64)
-    corner = np.empty(n_nodes, np.int64)
+    cnt = np.zeros(n_nodes, np.int8)
+    cell = np.empty(n_nodes, np.int32)
+    corner = np.empty(n_nodes, np.int8)
     for c in range(cell_nodes.shape[0]):
         for q in range(8):
             j = cell_nodes[c, q]
@@ -177,7 +199,7 @@ def node_incidence(cell_nodes, n_nodes):
 
 @njit(cache=True)
 def octants(cell_keys):
-    out = np.empty(len(cell_keys), np.int64)
+    out = np.empty(len(cell_keys), np.int8)
     for i in range(len(cell_keys)):
         k = cell_keys[i]
         out[i] = ((k >> 42) & 1) | (((k >> 21) & 1) << 1) | ((k & 1) << 2)
@@ -246,7 +268,7 @@ def stiffness_diag(cell_nodes, ke, n_nodes):
 
 
 @njit(cache=True)
-def sample_cells(pos, level, ctk, ctv, cbits):
+def sample_cells(pos, level, cell_keys):
     """Cell index (at ``level``) holding each sample and its local coordinates in [0, 1)."""
     n = pos.shape[0]
     scale = float(1 << level)
@@ -257,7 +279,7 @@ def sample_cells(pos, level, ctk, ctv, cbits):
         c0 = min(max(int(np.floor(pos[i, 0] * scale)), 0), top)
         c1 = min(max(int(np.floor(pos[i, 1] * scale)), 0), top)
         c2 = min(max(int(np.floor(pos[i, 2] * scale)), 0), top)
-        cell[i] = lookup(ctk, ctv, cbits, _key(c0, c1, c2))
+        cell[i] = bsearch(cell_keys, _key(c0, c1, c2))
         loc[i, 0] = pos[i, 0] * scale - c0
         loc[i, 1] = pos[i, 1] * scale - c1
         loc[i, 2] = pos[i, 2] * scale - c2
@@ -366,7 +388,7 @@ def hat_b2_deriv(v, rho):
 
 
 @njit(cache=True)
-def splat_rhs(pos, normal_w, splat_level, splat_frac, level, node_keys, ntk, ntv, nbits, unknown, n_nodes):
+def splat_rhs(pos, normal_w, splat_level, splat_frac, level, node_keys, unknown, n_nodes):
     """b_i = int grad(B_i) . W at the level's unknown nodes.
 
     ``normal_w`` (n, 3) is the sample's vector (normal times area weight, sign included);
@@ -419,7 +441,7 @@ def splat_rhs(pos, normal_w, splat_level, splat_frac, level, node_keys, ntk, ntv
                         if j >= 0 and j + 1 < len(node_keys) and node_keys[j + 1] == key:
                             j += 1
                         else:
-                            j = lookup(ntk, ntv, nbits, key)
+                            j = bsearch(node_keys, key)
                         if j < 0 or not unknown[j]:
                             continue
                         b[j] += nx * gx * vx[2, tz] + ny * gy * vx[2, tz] + nz * fxy * dx[2, tz]
@@ -587,27 +609,27 @@ def level_matvec(cell_nodes, ke, scell, sloc, sw, x, out):
 def level_pcg(cell_nodes, ke, scell, sloc, sw, rhs, diag, unknown, tol, max_iter):
     """Jacobi-preconditioned conjugate gradients on the unknown nodes (others stay 0).
 
+    ``rhs`` is overwritten by the residual and ``diag`` by the inverse diagonal: at the
+    finest level every (n,) vector is tens of MB, so the solver keeps only x, p, q besides.
     Returns (x, iterations, relative residual).
     """
     n = len(rhs)
     x = np.zeros(n)
-    r = np.empty(n)
-    inv = np.zeros(n)
+    r = rhs
+    inv = diag
     bn = 0.0
+    rz = 0.0
     for i in range(n):
-        r[i] = rhs[i] if unknown[i] else 0.0
+        if not unknown[i]:
+            r[i] = 0.0
+        inv[i] = 1.0 / diag[i] if (unknown[i] and diag[i] > 0.0) else 0.0
         bn += r[i] * r[i]
-        if unknown[i] and diag[i] > 0.0:
-            inv[i] = 1.0 / diag[i]
+        rz += r[i] * r[i] * inv[i]
     bn = np.sqrt(bn)
     if bn == 0.0:
         return x, 0, 0.0
-    z = r * inv
-    p = z.copy()
+    p = r * inv
     q = np.empty(n)
-    rz = 0.0
-    for i in range(n):
-        rz += r[i] * z[i]
     it = 0
     rel = 1.0
     while it < max_iter:
@@ -621,20 +643,52 @@ def level_pcg(cell_nodes, ke, scell, sloc, sw, rhs, diag, unknown, tol, max_iter
             break
         a = rz / pq
         rr = 0.0
+        rz_new = 0.0
         for i in range(n):
             x[i] += a * p[i]
             r[i] -= a * q[i]
             rr += r[i] * r[i]
+            rz_new += r[i] * r[i] * inv[i]
         it += 1
         rel = np.sqrt(rr) / bn
         if rel < tol:
             break
-        rz_new = 0.0
-        for i in range(n):
-            z[i] = r[i] * inv[i]
-            rz_new += r[i] * z[i]
         beta = rz_new / rz
         for i in range(n):
-            p[i] = z[i] + beta * p[i]
+            p[i] = r[i] * inv[i] + beta * p[i]
         rz = rz_new
     return x, it, rel
+
+
+@njit(cache=True)
+def clamp_on_faces(node_keys, g, top, value):
+    """g = min(g, value) at the nodes on the faces of the cube (coordinate 0 or ``top``), in place."""
+    for j in range(len(node_keys)):
+        k = node_keys[j]
+        x = (k >> 42) & MASK21
+        y = (k >> 21) & MASK21
+        z = k & MASK21
+        if x == 0 or y == 0 or z == 0 or x == top or y == top or z == top:
+            if g[j] > value:
+                g[j] = value
+
+
+@njit(cache=True)
+def straddling_leaves(cell_nodes, is_leaf, g, iso, eps):
+    """Indices of the leaf cells whose corner values reach ``iso`` within ``eps`` (a trilinear
+    cell only holds the level set if its corner range does)."""
+    out = np.empty(cell_nodes.shape[0], np.int64)
+    m = 0
+    for c in range(cell_nodes.shape[0]):
+        if not is_leaf[c]:
+            continue
+        lo = g[cell_nodes[c, 0]]
+        hi = lo
+        for q in range(1, 8):
+            v = g[cell_nodes[c, q]]
+            lo = min(lo, v)
+            hi = max(hi, v)
+        if lo <= iso + eps and hi >= iso - eps:
+            out[m] = c
+            m += 1
+    return out[:m]

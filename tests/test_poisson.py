@@ -73,6 +73,14 @@ def test_quality_noisy_depth8(name):
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("noise", [0.0, 0.0025])
+def test_quality_depth9_kitten(noise):
+    # noisy depth 9 is where too strong a screening weight showed (ratio 1.06 before the
+    # weight was calibrated); bench/quality_poisson.py prints every mesh
+    _quality_case("kitten", noise, 9)
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("name", CLOSED_MESHES)
 def test_untrimmed_output_is_watertight_manifold_and_outward(name):
     mesh = _ours(name, 0.0, 8).mesh
@@ -88,8 +96,9 @@ def test_untrimmed_output_is_watertight_manifold_and_outward(name):
 
 def test_open3d_watertight_small():
     c = sampled_cloud("kitten", 20_000)
-    # depth 6: at depth 5 Open3D finds 2 self-intersecting triangles in the kitten's ears
-    mesh = screened_poisson(c.points, c.normals, depth=6).mesh
+    # depth 7: at depths 5-6 Open3D's is_watertight (which includes a self-intersection test)
+    # finds a few self-intersecting triangles in the kitten's thin ears
+    mesh = screened_poisson(c.points, c.normals, depth=7).mesh
     checks = open3d_backend.manifold_checks(mesh)
     assert checks["watertight"] and checks["edge_manifold"] and checks["vertex_manifold"] and checks["orientable"]
 
