@@ -151,27 +151,28 @@ def node_boxes(tri_lo, tri_hi, left, right, start, end):
 
 
 @njit(cache=True, inline="always")
-def _box_d2(p0, p1, p2, lo, hi, node):
+def _box_d2(p0, p1, p2, box, node):
+    """Squared distance from p to node box ``box[node]`` = (lo xyz, hi xyz), 0 inside."""
     d = 0.0
-    x = lo[node, 0] - p0
+    x = box[node, 0] - p0
     if x > 0:
         d += x * x
     else:
-        x = p0 - hi[node, 0]
+        x = p0 - box[node, 3]
         if x > 0:
             d += x * x
-    x = lo[node, 1] - p1
+    x = box[node, 1] - p1
     if x > 0:
         d += x * x
     else:
-        x = p1 - hi[node, 1]
+        x = p1 - box[node, 4]
         if x > 0:
             d += x * x
-    x = lo[node, 2] - p2
+    x = box[node, 2] - p2
     if x > 0:
         d += x * x
     else:
-        x = p2 - hi[node, 2]
+        x = p2 - box[node, 5]
         if x > 0:
             d += x * x
     return d
@@ -291,11 +292,13 @@ def closest_on_triangle(px, py, pz, tri, t, out):
 
 
 @njit(cache=True)
-def _nearest(p, tri, sph, lo, hi, left, right, start, end, best2, stack, q, cbest, seed):
+def _nearest(p, tri, sph, box, left, right, start, end, best2, stack, dstack, q, cbest, seed):
     """Nearest triangle to ``p`` closer than sqrt(best2): (index or -1, d2, feature).
 
     ``seed`` (a triangle index or -1), typically the answer for a nearby point, is tried
-    first: its distance is a tight bound that prunes most of the tree.
+    first: its distance is a tight bound that prunes most of the tree. Each pushed node
+    carries its box distance (``dstack``), so a pop re-checks it against the bound
+    without touching the box again.
     """
     best = -1
     feat = -1
@@ -308,13 +311,15 @@ def _nearest(p, tri, sph, lo, hi, left, right, start, end, best2, stack, q, cbes
             feat = code
             cbest[0], cbest[1], cbest[2] = q[0], q[1], q[2]
     top = 0
-    if _box_d2(p[0], p[1], p[2], lo, hi, 0) < best2:
+    d0 = _box_d2(p[0], p[1], p[2], box, 0)
+    if d0 < best2:
         stack[0] = 0
+        dstack[0] = d0
         top = 1
     while top > 0:
         top -= 1
         node = stack[top]
-        if _box_d2(p[0], p[1], p[2], lo, hi, node) >= best2:
+        if dstack[top] >= best2:  # the bound shrank since the push
             continue
         a = left[node]
         if a < 0:
@@ -335,28 +340,32 @@ def _nearest(p, tri, sph, lo, hi, left, right, start, end, best2, stack, q, cbes
                     cbest[0], cbest[1], cbest[2] = q[0], q[1], q[2]
             continue
         b = right[node]
-        da = _box_d2(p[0], p[1], p[2], lo, hi, a)
-        db = _box_d2(p[0], p[1], p[2], lo, hi, b)
+        da = _box_d2(p[0], p[1], p[2], box, a)
+        db = _box_d2(p[0], p[1], p[2], box, b)
         # nearer child on top of the stack, visited first
         if da <= db:
             if db < best2:
                 stack[top] = b
+                dstack[top] = db
                 top += 1
             if da < best2:
                 stack[top] = a
+                dstack[top] = da
                 top += 1
         else:
             if da < best2:
                 stack[top] = a
+                dstack[top] = da
                 top += 1
             if db < best2:
                 stack[top] = b
+                dstack[top] = db
                 top += 1
     return best, best2, feat
 
 
 @njit(cache=True, parallel=True)
-def query_points(points, tri, sph, lo, hi, left, right, start, end, upper):
+def query_points(points, tri, sph, box, left, right, start, end, upper):
     """Closest point on the BVH's triangles for each row of ``points``.
 
     ``upper`` (k,) bounds the search radius (inf = unbounded); a point with no triangle
@@ -371,13 +380,14 @@ def query_points(points, tri, sph, lo, hi, left, right, start, end, upper):
     nchunks = (k + chunk - 1) // chunk
     for ci in prange(nchunks):
         stack = np.empty(STACK, np.int64)
+        dstack = np.empty(STACK, np.float64)
         q = np.empty(3, np.float64)
         cb = np.empty(3, np.float64)
         seed = -1
         for s in range(ci * chunk, min(k, (ci + 1) * chunk)):
             u = upper[s]
             b2 = u * u if u < np.inf else np.inf
-            t, dd, f = _nearest(points[s], tri, sph, lo, hi, left, right, start, end, b2, stack, q, cb, seed)
+            t, dd, f = _nearest(points[s], tri, sph, box, left, right, start, end, b2, stack, dstack, q, cb, seed)
             if t >= 0:
                 seed = t
             idx[s] = t
@@ -390,7 +400,7 @@ def query_points(points, tri, sph, lo, hi, left, right, start, end, upper):
 
 
 @njit(cache=True, parallel=True)
-def query_grid(origin, h, shape, tri, sph, lo, hi, left, right, start, end, band, pn_face, pn_edge, pn_vert, use_pn):
+def query_grid(origin, h, shape, tri, sph, box, left, right, start, end, band, pn_face, pn_edge, pn_vert, use_pn):
     """Unsigned distance at every sample of a regular grid, line by line along the last axis.
 
     The distance is 1-Lipschitz, so the previous sample's distance + h bounds the search
@@ -407,6 +417,7 @@ def query_grid(origin, h, shape, tri, sph, lo, hi, left, right, start, end, band
         i = line // ny
         j = line % ny
         stack = np.empty(STACK, np.int64)
+        dstack = np.empty(STACK, np.float64)
         q = np.empty(3, np.float64)
         cb = np.empty(3, np.float64)
         p = np.empty(3, np.float64)
@@ -420,10 +431,10 @@ def query_grid(origin, h, shape, tri, sph, lo, hi, left, right, start, end, band
             if prev < np.inf:
                 ub = min(band, (prev + h) * (1.0 + 1e-9) + 1e-300)
             b2 = ub * ub if ub < np.inf else np.inf
-            t, dd, f = _nearest(p, tri, sph, lo, hi, left, right, start, end, b2, stack, q, cb, seed)
+            t, dd, f = _nearest(p, tri, sph, box, left, right, start, end, b2, stack, dstack, q, cb, seed)
             if t < 0 and ub < band:  # bound too tight (rounding): search again unbounded
                 b2 = band * band if band < np.inf else np.inf
-                t, dd, f = _nearest(p, tri, sph, lo, hi, left, right, start, end, b2, stack, q, cb, -1)
+                t, dd, f = _nearest(p, tri, sph, box, left, right, start, end, b2, stack, dstack, q, cb, -1)
             if t < 0:
                 dist[i, j, k] = band
                 prev = np.inf

@@ -29,6 +29,8 @@ class TriangleBVH:
         ``order[t]`` = index of tree triangle ``t`` in the input faces.
     lo, hi : (nodes, 3) float64
         Node boxes.
+    box : (nodes, 6) float64
+        The same boxes packed per node (lo xyz, hi xyz): one cache line per visit.
     left, right, start, end : (nodes,) int64
         Children (-1 for leaves) and the range of tree triangles under each node.
     """
@@ -42,9 +44,11 @@ class TriangleBVH:
     right: np.ndarray
     start: np.ndarray
     end: np.ndarray
+    box: np.ndarray
 
     def arrays(self) -> tuple:
-        return self.tri, self.sph, self.lo, self.hi, self.left, self.right, self.start, self.end
+        """The arguments of the query kernels: tri, sph, box, left, right, start, end."""
+        return self.tri, self.sph, self.box, self.left, self.right, self.start, self.end
 
 
 def _check_mesh(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
@@ -101,7 +105,8 @@ def build_bvh(vertices: np.ndarray, faces: np.ndarray) -> TriangleBVH:
     order, left, right, start, end = K.build_median(tri.mean(axis=1), K.LEAF_SIZE)
     tri = np.ascontiguousarray(tri[order])
     lo, hi = K.node_boxes(tri.min(axis=1), tri.max(axis=1), left, right, start, end)
-    return TriangleBVH(tri, K.bounding_spheres(tri), order.astype(np.int64), lo, hi, left, right, start, end)
+    box = np.ascontiguousarray(np.concatenate([lo, hi], axis=1))
+    return TriangleBVH(tri, K.bounding_spheres(tri), order.astype(np.int64), lo, hi, left, right, start, end, box)
 
 
 def closest_points(

@@ -140,3 +140,10 @@ def test_winding_fast_matches_exact(rng):
     off = d > 0.01 * np.linalg.norm(hi - lo)
     assert np.array_equal(exact[off] > 0.5, fast[off] > 0.5)
     assert np.abs(exact[off] - np.round(exact[off])).max() < 1e-6  # closed mesh: 0 or 1
+    # beta is a real accuracy knob (Barill et al.): a stricter far-field test, a smaller error
+    from recon_cli.winding import WindingTree
+
+    tree = WindingTree(m.vertices, m.faces)
+    err2 = np.abs(tree(q, beta=2.0) - exact).max()
+    err6 = np.abs(tree(q, beta=6.0) - exact).max()
+    assert err6 < 0.5 * err2 and err6 < 0.01
