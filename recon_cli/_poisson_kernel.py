@@ -91,6 +91,18 @@ def bsearch(keys, key):
     return lo if (lo < len(keys) and keys[lo] == key) else -1
 
 
+@njit(cache=True, inline="always")
+def lower_bound(keys, key, lo, hi):
+    """First index in [lo, hi) of sorted ``keys`` whose key is >= ``key`` (``hi`` if none)."""
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if keys[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
 @njit(cache=True)
 def bsearch_many(keys, queries):
     out = np.empty(len(queries), np.int32)
@@ -217,6 +229,17 @@ def halve(keys):
 
 
 @njit(cache=True)
+def double(keys):
+    """Keys with every coordinate doubled (a cell's lower corner on the next finer lattice);
+    order preserved."""
+    out = np.empty(len(keys), np.int64)
+    for i in range(len(keys)):
+        k = keys[i]
+        out[i] = _key(((k >> 42) & MASK21) << 1, ((k >> 21) & MASK21) << 1, (k & MASK21) << 1)
+    return out
+
+
+@njit(cache=True)
 def prolong(node_cell, node_corner, cell_parent, cell_octant, parent_nodes, coarse):
     """Values of the coarse trilinear function at the fine nodes (hat functions interpolate)."""
     n = len(node_cell)
@@ -240,22 +263,47 @@ def prolong(node_cell, node_corner, cell_parent, cell_octant, parent_nodes, coar
 
 
 @njit(cache=True)
-def stiffness_matvec(cell_nodes, ke, x, out):
-    """out += sum over cells of the element matrix ``ke`` (8x8) applied to the corner values."""
+def stiffness_matvec(cell_nodes, ke, cell_screen, x, out):
+    """out += sum over cells of the element matrix ``ke`` (8x8) applied to the corner values,
+    plus the cell's own (8x8) screening matrix when ``cell_screen`` (c, 8, 8) is not empty.
+
+    ``ke`` is the trilinear (Q1) stiffness of a cube: ``ke[a, a]`` on the diagonal, 0 between
+    corners sharing an edge and one value ``f`` for every other pair, so
+    ``(ke x)_a = ke[a, a] x_a + f (S - x_a - E_a)`` with ``S`` the sum of the 8 corner values
+    and ``E_a`` that of the 3 edge neighbours: 5 operations a corner instead of 8 products.
+    """
     xe = np.empty(8)
+    kd = ke[0, 0]
+    f = ke[0, 7]
+    screen = cell_screen.shape[0] > 0
     for c in range(cell_nodes.shape[0]):
-        nz = False
+        s = 0.0
         for q in range(8):
             xe[q] = x[cell_nodes[c, q]]
-            if xe[q] != 0.0:
-                nz = True
-        if not nz:
-            continue
+            s += xe[q]
         for a in range(8):
-            s = 0.0
+            v = kd * xe[a] + f * (s - xe[a] - xe[a ^ 1] - xe[a ^ 2] - xe[a ^ 4])
+            if screen:
+                for b in range(8):
+                    v += cell_screen[c, a, b] * xe[b]
+            out[cell_nodes[c, a]] += v
+
+
+@njit(cache=True)
+def cell_screening(cell, loc, weight, n_cells):
+    """Per cell, the screening matrix sum_p w_p B_a(p) B_b(p) of the samples in it (c, 8, 8):
+    applying it costs per cell, not per sample, where samples outnumber cells."""
+    out = np.zeros((n_cells, 8, 8))
+    wr = np.empty(8)
+    for i in range(len(cell)):
+        c = cell[i]
+        for r in range(8):
+            wr[r] = _tri_w(loc, i, r)
+        for a in range(8):
+            wa = weight[i] * wr[a]
             for b in range(8):
-                s += ke[a, b] * xe[b]
-            out[cell_nodes[c, a]] += s
+                out[c, a, b] += wa * wr[b]
+    return out
 
 
 @njit(cache=True)
@@ -395,6 +443,7 @@ def splat_rhs(pos, normal_w, splat_level, splat_frac, level, node_keys, unknown,
     the sample is splatted with weight (1 - frac) at ``splat_level`` and frac one finer.
     """
     b = np.zeros(n_nodes)
+    n_keys = len(node_keys)
     scale = float(1 << level)
     top = 1 << level
     lo = np.empty(3, np.int64)
@@ -428,23 +477,32 @@ def splat_rhs(pos, normal_w, splat_level, splat_frac, level, node_keys, unknown,
             ny = normal_w[p, 1] * wpart
             nz = normal_w[p, 2] * wpart
             for tx in range(cnt[0]):
+                j = -1
                 for ty in range(cnt[1]):
                     fxy = vx[0, tx] * vx[1, ty]
                     gx = dx[0, tx] * vx[1, ty]
                     gy = vx[0, tx] * dx[1, ty]
                     if fxy == 0.0 and gx == 0.0 and gy == 0.0:
                         continue
-                    # nodes of one (x, y) column are consecutive in the sorted keys: walk them
-                    j = -1
-                    for tz in range(cnt[2]):
-                        key = _key(lo[0] + tx, lo[1] + ty, lo[2] + tz)
-                        if j >= 0 and j + 1 < len(node_keys) and node_keys[j + 1] == key:
-                            j += 1
-                        else:
-                            j = bsearch(node_keys, key)
-                        if j < 0 or not unknown[j]:
-                            continue
-                        b[j] += nx * gx * vx[2, tz] + ny * gy * vx[2, tz] + nz * fxy * dx[2, tz]
+                    # nodes of one (x, y) column are consecutive in the sorted keys: one
+                    # binary search for the column's first key, then walk (missing nodes,
+                    # common where a wide coarse splat meets the finest level, cost nothing)
+                    kz0 = lo[2]
+                    kst = _key(lo[0] + tx, lo[1] + ty, kz0)
+                    if j < 0:
+                        j = lower_bound(node_keys, kst, 0, n_keys)
+                    else:
+                        # the next column of the same x-plane is close: gallop from the last
+                        step = 1
+                        while j + step < n_keys and node_keys[j + step] < kst:
+                            step <<= 1
+                        j = lower_bound(node_keys, kst, j + (step >> 1), min(j + step + 1, n_keys))
+                    kend = _key(lo[0] + tx, lo[1] + ty, kz0 + cnt[2] - 1)
+                    while j < n_keys and node_keys[j] <= kend:
+                        if unknown[j]:
+                            tz = (node_keys[j] & MASK21) - kz0
+                            b[j] += nx * gx * vx[2, tz] + ny * gy * vx[2, tz] + nz * fxy * dx[2, tz]
+                        j += 1
     return b
 
 
@@ -598,15 +656,16 @@ def cell_has_child(child_parent, n_cells):
 
 # ---- one level's system: stiffness (element by element) plus screening, solved by PCG ----
 @njit(cache=True)
-def level_matvec(cell_nodes, ke, scell, sloc, sw, x, out):
+def level_matvec(cell_nodes, ke, cell_screen, scell, sloc, sw, x, out):
+    """out = A x: stiffness, per-cell screening matrices if any, per-sample screening if any."""
     out[:] = 0.0
-    stiffness_matvec(cell_nodes, ke, x, out)
+    stiffness_matvec(cell_nodes, ke, cell_screen, x, out)
     if len(sw):
         screening_matvec(scell, sloc, cell_nodes, sw, x, out)
 
 
 @njit(cache=True)
-def level_pcg(cell_nodes, ke, scell, sloc, sw, rhs, diag, unknown, tol, max_iter):
+def level_pcg(cell_nodes, ke, cell_screen, scell, sloc, sw, rhs, diag, unknown, tol, max_iter):
     """Jacobi-preconditioned conjugate gradients on the unknown nodes (others stay 0).
 
     ``rhs`` is overwritten by the residual and ``diag`` by the inverse diagonal: at the
@@ -633,7 +692,7 @@ def level_pcg(cell_nodes, ke, scell, sloc, sw, rhs, diag, unknown, tol, max_iter
     it = 0
     rel = 1.0
     while it < max_iter:
-        level_matvec(cell_nodes, ke, scell, sloc, sw, p, q)
+        level_matvec(cell_nodes, ke, cell_screen, scell, sloc, sw, p, q)
         pq = 0.0
         for i in range(n):
             if not unknown[i]:
@@ -692,3 +751,62 @@ def straddling_leaves(cell_nodes, is_leaf, g, iso, eps):
             out[m] = c
             m += 1
     return out[:m]
+
+
+@njit(cache=True)
+def children_sorted(parent_keys):
+    """Sorted keys of the 8 children of each of the sorted ``parent_keys``, and the index of
+    each child's parent.
+
+    Keys order by (x, y, z); the children of the parents of one x-run, x-plane by x-plane,
+    and within it of one y-run, y-row by y-row, come out in order with no sort.
+    """
+    n = len(parent_keys)
+    out = np.empty(8 * n, np.int64)
+    par = np.empty(8 * n, np.int32)
+    m = 0
+    i = 0
+    while i < n:
+        px = (parent_keys[i] >> 42) & MASK21
+        ie = i
+        while ie < n and ((parent_keys[ie] >> 42) & MASK21) == px:
+            ie += 1
+        for cx in range(2):
+            j = i
+            while j < ie:
+                py = (parent_keys[j] >> 21) & MASK21
+                je = j
+                while je < ie and ((parent_keys[je] >> 21) & MASK21) == py:
+                    je += 1
+                for cy in range(2):
+                    for k in range(j, je):
+                        pz = parent_keys[k] & MASK21
+                        for cz in range(2):
+                            out[m] = _key(2 * px + cx, 2 * py + cy, 2 * pz + cz)
+                            par[m] = k
+                            m += 1
+                j = je
+        i = ie
+    return out, par
+
+
+@njit(cache=True)
+def unify_corner_values(vals, order_keys, order):
+    """Give every lattice point one value, whichever cell computed it, in place.
+
+    ``vals`` (c, 8) corner values of finest-lattice cells, ``order_keys``
+    the (8c,) lattice keys of the corners sorted and ``order`` their argsort (flat corner
+    index ``8 * cell + corner``). Each run of equal keys takes the value of its first member.
+    """
+    n = len(order)
+    i = 0
+    while i < n:
+        k = order_keys[i]
+        f = order[i]
+        v = vals[f >> 3, f & 7]
+        j = i + 1
+        while j < n and order_keys[j] == k:
+            g = order[j]
+            vals[g >> 3, g & 7] = v
+            j += 1
+        i = j

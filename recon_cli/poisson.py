@@ -40,7 +40,9 @@ log = logging.getLogger("recon")
 BOUNDARIES = ("neumann", "dirichlet")
 BACKENDS = ("native", "open3d", "pymeshlab")
 MAX_DEPTH = 14
-# cells kept around each occupied cell at every level (PoissonRecon keeps the B-spline support)
+# cells kept around each occupied cell at every level (PoissonRecon keeps the B-spline support);
+# _build_levels builds this ring as the children of the parents within 1 of an occupied parent,
+# which holds for 2 only
 _RING = 2
 # the kernel-density level is this much coarser than the finest (PoissonRecon's kernelDepth)
 _KERNEL_OFFSET = 2
@@ -202,18 +204,26 @@ def _build_levels(sample_keys_finest: np.ndarray, depth: int, full_depth: int, b
             g = np.stack(np.meshgrid(r, r, r, indexing="ij"), axis=-1).reshape(-1, 3)
             keys = _pack(g)
         else:
-            keys = occ[d]
+            # the cells within _RING (= 2) of an occupied cell, completed in siblings, are the
+            # children of the parents within 1 of an occupied parent (floor((o +- 2) / 2) =
+            # floor(o / 2) +- 1 for either parity): dilate at the coarser level, 8x fewer keys,
+            # and emit the children already sorted, with their parent index
+            keys = occ[d - 1] if d - 1 > full_depth else np.unique(K.halve(occ[d]))
             for axis in range(3):
-                keys = _dilate(keys, axis, -_RING, _RING, top)
-            # complete in siblings so every cell has 0 or 8 children
-            par = np.unique(K.halve(keys))
-            pxyz = K.unpack(par) << 1
-            keys = np.concatenate([_pack(pxyz) + off for off in _CORNER_OFFSETS])
-        keys = np.sort(keys)
-        nodes = keys
-        for axis in range(3):
-            nodes = _dilate(nodes, axis, 0, 1, top + 1)
-        nodes = np.sort(nodes)
+                keys = _dilate(keys, axis, -1, 1, top >> 1)  # valid for _RING == 2 only
+            # (the last dilation, along z, leaves the keys sorted and unique)
+            par_idx = K.merge_lookup(keys, levels[-1].cell_keys)
+            # the nodes of the children of parent p are 2p + {0, 1, 2}^3
+            nodes = K.double(keys)
+            keys, child_par = K.children_sorted(keys)
+            cell_parent = par_idx[child_par].astype(np.int32)
+            del par_idx, child_par
+            for axis in range(3):
+                nodes = _dilate(nodes, axis, 0, 2, top + 1)
+        if d <= full_depth:
+            nodes = keys
+            for axis in range(3):
+                nodes = _dilate(nodes, axis, 0, 1, top + 1)
         # sorted queries (a constant offset keeps the order): linear merges, no hashing
         cell_nodes = np.empty((len(keys), 8), np.int32)  # int32: half the largest array
         for q in range(8):
@@ -228,7 +238,7 @@ def _build_levels(sample_keys_finest: np.ndarray, depth: int, full_depth: int, b
         del nxyz, inner
         lev = _Level(d, keys, nodes, cell_nodes, unknown, ncell, ncorner)
         if d > 0:
-            lev.cell_parent = K.bsearch_many(levels[-1].cell_keys, K.halve(keys))
+            lev.cell_parent = cell_parent if d > full_depth else K.bsearch_many(levels[-1].cell_keys, K.halve(keys))
             lev.cell_octant = K.octants(keys)
         levels.append(lev)
     return levels
@@ -374,6 +384,7 @@ def screened_poisson(
     per_level = []
     with task(progress, "poisson: solve", total=depth + 1) as tk:
         for lev in levels:
+            tl = time.perf_counter()
             d = lev.depth
             nn = len(lev.node_keys)
             ke = UNIT_STIFFNESS / (1 << d)
@@ -392,25 +403,33 @@ def screened_poisson(
                 diag += sdiag
                 del sdiag, srhs
             sw = screen_w if alpha > 0 else np.zeros(0)
+            cscr = np.zeros((0, 8, 8))
+            if alpha > 0 and 4 * len(lev.cell_keys) <= len(sw) and len(lev.cell_keys) <= 1 << 19:
+                # coarse levels: samples outnumber cells, so sum each cell's samples into its
+                # own 8x8 screening matrix once (exact) and let a CG step cost O(cells);
+                # (c, 8, 8) floats, so only up to 2**19 cells (256 MB)
+                cscr = K.cell_screening(scell, sloc, sw, len(lev.cell_keys))
+                sw = np.zeros(0)
             if g_prev is not None:
                 AG = np.empty(nn)
-                K.level_matvec(lev.cell_nodes, ke, scell, sloc, sw, G, AG)
+                K.level_matvec(lev.cell_nodes, ke, cscr, scell, sloc, sw, G, AG)
                 rhs -= AG
                 del AG
             exact = d <= full_depth
             x, it, rel = K.level_pcg(
-                lev.cell_nodes, ke, scell, sloc, sw, rhs, diag, lev.unknown,
+                lev.cell_nodes, ke, cscr, scell, sloc, sw, rhs, diag, lev.unknown,
                 1e-7 if exact else cg_tolerance, 2000 if exact else 200,
             )
-            del rhs, diag, scell, sloc
+            del rhs, diag, scell, sloc, cscr
             G += x
             del x
             g_prev = G
             gvals.append(g_prev)
             total_it += it
             last_res = rel
-            per_level.append({"depth": d, "nodes": nn, "unknowns": int(lev.unknown.sum()), "iterations": it, "residual": rel})
-            log.info("poisson: level %2d  nodes %9d  unknowns %9d  cg iterations %4d  residual %.2e", d, nn, int(lev.unknown.sum()), it, rel)
+            per_level.append({"depth": d, "nodes": nn, "unknowns": int(lev.unknown.sum()), "iterations": it, "residual": rel,
+                              "seconds": time.perf_counter() - tl})
+            log.info("poisson: level %2d  nodes %9d  unknowns %9d  cg iterations %4d  residual %.2e  %.2f s", d, nn, int(lev.unknown.sum()), it, rel, time.perf_counter() - tl)
             tk.advance(1)
     timings["solve"] = time.perf_counter() - t
 
@@ -453,8 +472,10 @@ def screened_poisson(
     # one value per lattice point whichever leaf computed it (they agree up to rounding)
     corner = np.array([[q & 1, (q >> 1) & 1, (q >> 2) & 1] for q in range(8)], np.int64)
     ckeys = _pack((cells[:, None, :] + corner[None]).reshape(-1, 3))
-    _, first, cinv = np.unique(ckeys, return_index=True, return_inverse=True)
-    vals = vals.reshape(-1)[first][cinv.reshape(-1)].reshape(-1, 8)
+    # one unstable argsort and a linear pass: np.unique's stable sort and inverse cost 4x more
+    order = np.argsort(ckeys)
+    K.unify_corner_values(vals, ckeys[order], order)
+    del ckeys, order
     verts, faces = marching_cubes_sparse(cells, vals, -iso, origin=tuple(origin), spacing=size / res)
     timings["extract"] = time.perf_counter() - t
 
