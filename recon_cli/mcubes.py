@@ -207,8 +207,11 @@ def marching_cubes_sparse(
     dims = cells.max(axis=0) - lo + 2
     if float(np.prod(dims.astype(np.float64))) * 8 >= 2.0**62:
         raise InputError("cells span too large a lattice for 64-bit edge ids")
-    if len(np.unique(cells, axis=0)) != len(cells):
+    flat = ((cells[:, 0] - lo[0]) * dims[1] + (cells[:, 1] - lo[1])) * dims[2] + (cells[:, 2] - lo[2])
+    flat.sort()
+    if np.any(flat[1:] == flat[:-1]):  # one int64 key per cell: far cheaper than np.unique(axis=0)
         raise InputError("cells has duplicate rows")
+    del flat
     from recon_cli import _mcubes_kernel as K
     from recon_cli._mcubes_luts import FACE_CORNERS, MC_AMBIGUOUS
 
@@ -218,18 +221,36 @@ def marching_cubes_sparse(
     offsets = np.zeros(len(cells) + 1, np.int64)
     np.cumsum(counts, out=offsets[1:])
     ekeys, cell_of, edge_of = K.sparse_corners(cells, rows, offsets, start, tris, keys, lo, dims)
-    uniq, first, inverse = np.unique(ekeys, return_index=True, return_inverse=True)
-    faces = inverse.reshape(-1, 3).astype(np.int64)
+    n_unique, first, inverse = _unique_first_inverse(ekeys)
+    faces = inverse.reshape(-1, 3)
     clamp = 0.0 if allow_degenerate else DEGENERATE_CLAMP
     if return_normals:
         pos, grad = K.sparse_points(cells, vals, rows, cell_of, edge_of, edges, centre, centre_id, iso, clamp)
         verts = pos[first] * sp + org
-        acc = np.zeros((len(uniq), 3))
+        acc = np.zeros((n_unique, 3))
         for ax in range(3):
-            acc[:, ax] = np.bincount(inverse.reshape(-1), weights=grad[:, ax], minlength=len(uniq))
+            acc[:, ax] = np.bincount(inverse, weights=grad[:, ax], minlength=n_unique)
         return verts, faces, _unit(acc / sp)
     pos, _ = K.sparse_points(cells, vals, rows, cell_of[first], edge_of[first], edges, centre, centre_id, iso, clamp)
     return pos * sp + org, faces
+
+
+def _unique_first_inverse(keys: np.ndarray) -> tuple[int, np.ndarray, np.ndarray]:
+    """``np.unique(keys, return_index=True, return_inverse=True)`` without the unique values.
+
+    Same results (``first`` is the lowest index of each key), from an unstable sort: the
+    stable merge sort that ``np.unique`` needs for ``return_index`` is the slow part.
+    """
+    order = np.argsort(keys)
+    sk = keys[order]
+    new = np.empty(len(keys), dtype=bool)
+    new[:1] = True
+    np.not_equal(sk[1:], sk[:-1], out=new[1:])
+    starts = np.flatnonzero(new)
+    inverse = np.empty(len(keys), dtype=np.int64)
+    inverse[order] = np.cumsum(new) - 1
+    first = np.minimum.reduceat(order, starts) if len(keys) else order
+    return len(starts), first, inverse
 
 
 def _unit(g: np.ndarray) -> np.ndarray:
