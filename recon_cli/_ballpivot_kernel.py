@@ -19,6 +19,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from recon_cli._topology_kernel import _find  # union-find root with path halving
+
 FRONT = np.int8(0)
 BOUNDARY = np.int8(1)
 INNER = np.int8(2)
@@ -594,14 +596,6 @@ def _vertex_faces(faces, n, alive):
                 vf[fill[v]] = f
                 fill[v] += 1
     return deg, vf
-
-
-@njit(cache=True)
-def _find(parent, x):
-    while parent[x] != x:
-        parent[x] = parent[parent[x]]
-        x = parent[x]
-    return x
 
 
 @njit(cache=True)

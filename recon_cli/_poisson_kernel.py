@@ -80,14 +80,7 @@ def lookup_many(tk, tv, bits, keys):
 @njit(cache=True, inline="always")
 def bsearch(keys, key):
     """Index of ``key`` in sorted unique ``keys``, -1 if absent (no hash table to keep)."""
-    lo = 0
-    hi = len(keys)
-    while lo < hi:
-        mid = (lo + hi) >> 1
-        if keys[mid] < key:
-            lo = mid + 1
-        else:
-            hi = mid
+    lo = lower_bound(keys, key, 0, len(keys))
     return lo if (lo < len(keys) and keys[lo] == key) else -1
 
 
