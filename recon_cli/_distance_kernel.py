@@ -13,7 +13,7 @@ from numba import njit, prange
 
 from recon_cli import _numba_setup  # noqa: F401  (threading layer, see that module)
 
-LEAF_SIZE = 4
+LEAF_SIZE = 8  # with the cheap disk reject per triangle, 8 beats 4 (fewer node visits)
 STACK = 128  # depth bound: log2(n / LEAF_SIZE) + a few, far below this for any real mesh
 
 # closest-feature codes returned with each closest point
@@ -324,13 +324,24 @@ def _nearest(p, tri, sph, box, left, right, start, end, best2, stack, dstack, q,
         a = left[node]
         if a < 0:
             for t in range(start[node], end[node]):
-                # cheap reject by the triangle's bounding sphere (sph: centre xyz, radius)
+                # cheap reject by the triangle's bounding disk (sph: centre xyz, radius,
+                # unit normal xyz): |p - q|^2 = plane^2 + |proj(p) - q|^2 >= plane^2 +
+                # max(0, |proj(p) - c| - r)^2 for every q of the triangle. Unlike a ball
+                # bound it rejects the coplanar neighbours of the nearest triangle, which
+                # far samples otherwise test by the dozen.
                 s0 = p[0] - sph[t, 0]
                 s1 = p[1] - sph[t, 1]
                 s2 = p[2] - sph[t, 2]
-                dc = np.sqrt(s0 * s0 + s1 * s1 + s2 * s2) - sph[t, 3]
-                if dc > 0.0 and dc * dc >= best2:
+                pl = s0 * sph[t, 4] + s1 * sph[t, 5] + s2 * sph[t, 6]
+                lb = pl * pl
+                if lb >= best2:
                     continue
+                l2 = s0 * s0 + s1 * s1 + s2 * s2 - lb
+                r = sph[t, 3]
+                if l2 > r * r:
+                    lat = np.sqrt(l2) - r
+                    if lb + lat * lat >= best2:
+                        continue
                 code = closest_on_triangle(p[0], p[1], p[2], tri, t, q)
                 d2 = (p[0] - q[0]) ** 2 + (p[1] - q[1]) ** 2 + (p[2] - q[2]) ** 2
                 if d2 < best2 and t != seed:
@@ -408,7 +419,7 @@ def query_grid(origin, h, shape, tri, sph, box, left, right, start, end, band, p
     samples farther than it get ``band``. With ``use_pn`` the sign of each sample comes
     from the angle-weighted pseudonormal of the closest feature (face, edge, vertex).
     Returns (dist (nx, ny, nz) float64, sign (nx, ny, nz) int8: -1 inside, 1 outside,
-    0 not known).
+    0 not known). Call it under a dynamic schedule (:func:`recon_cli.distance.dynamic_schedule`).
     """
     nx, ny, nz = shape[0], shape[1], shape[2]
     dist = np.empty((nx, ny, nz), np.float64)
@@ -457,9 +468,10 @@ def query_grid(origin, h, shape, tri, sph, box, left, right, start, end, band, p
 
 @njit(cache=True)
 def bounding_spheres(tri):
-    """Centroid and radius (to the farthest corner) of each triangle: (m, 4)."""
+    """Bounding disk of each triangle: (m, 8) = centroid xyz, radius (to the farthest
+    corner), unit normal xyz (zero for a degenerate triangle: the disk is then a ball), 0."""
     m = tri.shape[0]
-    out = np.empty((m, 4), np.float64)
+    out = np.zeros((m, 8), np.float64)
     for t in range(m):
         for ax in range(3):
             out[t, ax] = (tri[t, 0, ax] + tri[t, 1, ax] + tri[t, 2, ax]) / 3.0
@@ -470,4 +482,20 @@ def bounding_spheres(tri):
                 d += (tri[t, c, ax] - out[t, ax]) ** 2
             r2 = max(r2, d)
         out[t, 3] = np.sqrt(r2) * (1.0 + 1e-12)
+        e10 = tri[t, 1, 0] - tri[t, 0, 0]
+        e11 = tri[t, 1, 1] - tri[t, 0, 1]
+        e12 = tri[t, 1, 2] - tri[t, 0, 2]
+        e20 = tri[t, 2, 0] - tri[t, 0, 0]
+        e21 = tri[t, 2, 1] - tri[t, 0, 1]
+        e22 = tri[t, 2, 2] - tri[t, 0, 2]
+        n0 = e11 * e22 - e12 * e21
+        n1 = e12 * e20 - e10 * e22
+        n2 = e10 * e21 - e11 * e20
+        ln = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        # a sliver's normal is unreliable (direction error ~ eps * r^2 / |n|): keep the
+        # ball bound (normal 0) for it
+        if ln > 1e-6 * r2:
+            out[t, 4] = n0 / ln
+            out[t, 5] = n1 / ln
+            out[t, 6] = n2 / ln
     return out

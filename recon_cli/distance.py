@@ -8,6 +8,7 @@ The hierarchy (:class:`TriangleBVH`) is built once per mesh and can be passed ba
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,8 +24,9 @@ class TriangleBVH:
     ----------
     tri : (m, 3, 3) float64
         Triangle corners, in tree order.
-    sph : (m, 4) float64
-        Bounding sphere (centre, radius) of each tree triangle.
+    sph : (m, 8) float64
+        Bounding disk of each tree triangle: centroid xyz, radius, unit normal xyz, 0
+        (normal 0 for slivers: a bounding ball).
     order : (m,) int64
         ``order[t]`` = index of tree triangle ``t`` in the input faces.
     lo, hi : (nodes, 3) float64
@@ -49,6 +51,22 @@ class TriangleBVH:
     def arrays(self) -> tuple:
         """The arguments of the query kernels: tri, sph, box, left, right, start, end."""
         return self.tri, self.sph, self.box, self.left, self.right, self.start, self.end
+
+
+@contextmanager
+def dynamic_schedule(chunk: int = 16):
+    """Run the numba ``prange`` loops launched inside in chunks of ``chunk`` iterations
+    handed out on demand. Grid lines through thin walls cost far more than lines in empty
+    space, and the default static split leaves one core idle while the other (slowed by
+    the load or by its share of the walls) finishes. Set from Python: the setting inside
+    a kernel would make it uncacheable."""
+    import numba
+
+    old = numba.set_parallel_chunksize(int(chunk))
+    try:
+        yield
+    finally:
+        numba.set_parallel_chunksize(old)
 
 
 def _check_mesh(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
@@ -160,7 +178,8 @@ def closest_points(
         return np.zeros(0), np.zeros(0, np.int64), np.zeros((0, 3))
     # visit queries in Z-order: neighbours share tree paths (cache) and seed each other
     perm = np.argsort(_morton(q), kind="stable") if len(q) > 1 else np.zeros(len(q), np.int64)
-    d2p, idxp, closestp, _ = K.query_points(np.ascontiguousarray(q[perm]), *bvh.arrays(), ub[perm])
+    with dynamic_schedule(1):  # chunks of 256 queries
+        d2p, idxp, closestp, _ = K.query_points(np.ascontiguousarray(q[perm]), *bvh.arrays(), ub[perm])
     d2 = np.empty_like(d2p)
     idx = np.empty_like(idxp)
     closest = np.empty_like(closestp)
@@ -257,5 +276,6 @@ def distance_grid(
         fn, en, vn = fn[o], np.ascontiguousarray(en[o]), np.ascontiguousarray(vn[o])
     else:
         fn, en, vn = np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3, 3))
-    dist, sign = K.query_grid(org, float(voxel_size), shp, *bvh.arrays(), float(band), fn, en, vn, bool(pseudonormal))
+    with dynamic_schedule(16):
+        dist, sign = K.query_grid(org, float(voxel_size), shp, *bvh.arrays(), float(band), fn, en, vn, bool(pseudonormal))
     return dist, (sign if pseudonormal else None)

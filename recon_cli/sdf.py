@@ -2,7 +2,12 @@
 
 Mesh: exact unsigned distance to the nearest triangle (:mod:`recon_cli.distance`), signed
 by the generalised winding number (:mod:`recon_cli.winding`; robust to holes) or by
-angle-weighted pseudonormals (exact on watertight meshes). The winding number is only
+angle-weighted pseudonormals (exact on watertight meshes). On a closed, manifold,
+consistently oriented mesh the two signs agree off the surface (the winding number is 0
+or 1 there), so ``sign="winding"`` takes the pseudonormal sign, which the distance search
+yields for free, once winding numbers on a coarse lattice confirm it (they do not on an
+inside-out mesh; a closed mesh that intersects itself is caught only where the lattice
+sees its winding number leave 0/1). Otherwise the winding number is only
 evaluated where needed: at samples within one voxel of the surface, and on a coarse
 subset of each connected region of the other samples (two neighbouring samples farther
 than one voxel from the mesh cannot have the surface between them, so such a region has
@@ -106,7 +111,11 @@ def mesh_sdf(
         Negative inside.
     info : dict
         ``winding_evaluations`` (samples where the winding number was computed),
-        ``regions`` (connected regions of samples away from the surface).
+        ``regions`` (connected regions of samples away from the surface),
+        ``sign_method`` ("winding" or "pseudonormal": how the sign was found; with
+        ``sign="winding"`` on a closed, manifold, consistently oriented mesh, where the
+        two agree, the pseudonormal sign is used once a coarse lattice of winding numbers
+        confirms it).
     """
     from scipy import ndimage
 
@@ -116,9 +125,15 @@ def mesh_sdf(
     h = float(voxel_size)
     cap = np.inf if band is None else float(band) * h
     bvh = build_bvh(vertices, faces)
-    dist, pn_sign = distance_grid(vertices, faces, origin, h, shape, band=cap, pseudonormal=(sign == "pseudonormal"), bvh=bvh)
+    # on a closed, manifold, consistently oriented mesh the winding number is exactly 0
+    # or 1 off the surface and its sign is the pseudonormal sign, which the distance
+    # search gives at almost no cost; the winding number is then only checked on a
+    # coarse lattice (which catches an inward orientation or a self-intersecting shell)
+    closed = sign == "winding" and _closed_oriented(faces, len(vertices))
+    use_pn = sign == "pseudonormal" or closed
+    dist, pn_sign = distance_grid(vertices, faces, origin, h, shape, band=cap, pseudonormal=use_pn, bvh=bvh)
     tree = None
-    info = {"winding_evaluations": 0, "regions": 0}
+    info = {"winding_evaluations": 0, "regions": 0, "sign_method": sign}
 
     def winding_at(mask: np.ndarray) -> np.ndarray:
         nonlocal tree
@@ -127,18 +142,27 @@ def mesh_sdf(
         info["winding_evaluations"] += int(mask.sum())
         return tree(grid_points(origin, h, shape, mask))
 
-    inside = np.zeros(shape, dtype=bool)
+    if closed:
+        step = max(2, -(-max(shape) // 32))  # about 32 lattice samples per axis
+        check = np.zeros(shape, dtype=bool)
+        check[::step, ::step, ::step] = True
+        check &= (pn_sign != 0) & (dist > h)
+        agree = np.array_equal(winding_at(check) > 0.5, pn_sign[check] < 0)
+        info["sign_method"] = "pseudonormal" if agree else "winding"
+        use_pn = agree
+
     near = dist <= h
-    if sign == "pseudonormal":
-        inside[near] = pn_sign[near] < 0
-        known = pn_sign != 0
-        inside[known] = pn_sign[known] < 0
-        near = near | known  # every sample with a pseudonormal sign
-        far = ~near
+    if use_pn:
+        inside = pn_sign < 0
+        far = pn_sign == 0  # beyond the band: no pseudonormal sign
+        far &= ~near
+        del pn_sign
     else:
+        inside = np.zeros(shape, dtype=bool)
         inside[near] = winding_at(near) > 0.5
         far = ~near
-    labels, n = ndimage.label(far)
+    del near
+    labels, n = ndimage.label(far) if far.any() else (None, 0)
     info["regions"] = int(n)
     if n:
         # a coarse lattice of samples per region; a region the lattice misses (thin or
@@ -170,6 +194,21 @@ def mesh_sdf(
     sdf = dist
     np.negative(sdf, out=sdf, where=inside)
     return sdf, info
+
+
+def _closed_oriented(faces: np.ndarray, n_vertices: int) -> bool:
+    """Every edge has exactly two faces, every vertex one fan, and the faces are
+    consistently oriented: a mesh whose winding number is 0 or 1 off the surface
+    (unless it intersects itself)."""
+    from recon_cli.topology import Connectivity
+
+    c = Connectivity(faces, n_vertices)
+    return bool(
+        c.n_faces > 0
+        and np.all(c.edge_face_count == 2)
+        and len(c.non_manifold_vertices) == 0
+        and c.is_consistently_oriented
+    )
 
 
 def cloud_sdf(
@@ -352,7 +391,8 @@ def run_stage(
     StageResult
         Report keys: ``source`` ("mesh"/"cloud"), ``shape``, ``voxel_size``, ``origin``,
         ``sign``, ``band``, ``inside_samples``, ``unknown_samples``, ``eikonal`` and
-        ``provenance`` (the effective voxel size).
+        ``provenance`` (the effective voxel size); native meshes add ``sign_method``,
+        ``winding_evaluations`` and ``regions`` (see :func:`mesh_sdf`).
     """
     from recon_cli.geometry import PointCloud, TriangleMesh
     from recon_cli.grid import Grid

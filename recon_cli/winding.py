@@ -35,7 +35,10 @@ class WindingTree:
         p = np.ascontiguousarray(points, dtype=np.float64)
         if len(p) == 0:
             return np.zeros(0)
-        return K.winding_tree(p, b.tri, b.left, b.right, b.start, b.end, self.dip, self.cen, self.rad, float(beta))
+        from recon_cli.distance import dynamic_schedule
+
+        with dynamic_schedule(1):  # chunks of 256 points: near-surface ones cost far more
+            return K.winding_tree(p, b.tri, b.left, b.right, b.start, b.end, self.dip, self.cen, self.rad, float(beta))
 
 
 def winding_number(

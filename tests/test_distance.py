@@ -147,3 +147,34 @@ def test_winding_fast_matches_exact(rng):
     err2 = np.abs(tree(q, beta=2.0) - exact).max()
     err6 = np.abs(tree(q, beta=6.0) - exact).max()
     assert err6 < 0.5 * err2 and err6 < 0.01
+
+
+def test_disk_reject_coplanar_and_slivers(rng):
+    """The per-triangle reject (plane distance + in-plane distance to the bounding disk)
+    never drops the nearest triangle: a finely tessellated plane (many coplanar
+    triangles at almost the same distance), needle slivers and a tilted facet, queried
+    from far away, just off the plane and exactly on it; the answer equals a brute-force
+    minimum over the triangles, and a grid over it equals the pointwise answers."""
+    n = 12
+    x, y = np.meshgrid(np.linspace(0, 1, n + 1), np.linspace(0, 1, n + 1), indexing="ij")
+    v = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1)
+    idx = np.arange(x.size).reshape(n + 1, n + 1)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    f = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    # needles (a normal too unreliable for the disk: ball reject) and a tilted facet
+    extra = np.array([[0.3, 0.3, 0.2], [0.9, 0.3, 0.2], [0.6, 0.3, 0.2 + 1e-9], [0.2, 0.8, 0.5], [0.4, 0.9, 0.1], [0.3, 0.6, 0.4]])
+    f = np.concatenate([f, len(v) + np.array([[0, 1, 2], [3, 4, 5]])])
+    v = np.concatenate([v, extra])
+    q = np.concatenate([
+        rng.uniform([-2, -2, -3], [3, 3, 3], size=(1500, 3)),
+        np.c_[rng.uniform(-0.2, 1.2, size=(1500, 2)), rng.normal(scale=1e-3, size=1500)],
+        np.c_[rng.uniform(0, 1, size=(300, 2)), np.zeros(300)],
+    ])
+    dist, face, _ = closest_points(v, f, q)
+    brute = np.array([closest_points(v, f[i : i + 1], q)[0] for i in range(len(f))]).min(axis=0)
+    assert np.allclose(dist, brute, rtol=0, atol=1e-12)
+    assert (dist[-300:] < 1e-12).all()
+    origin, h, shape = np.array([-0.3, -0.2, -0.45]), 0.05, (30, 29, 21)
+    grid, _ = distance_grid(v, f, origin, h, shape)
+    pts = origin + np.indices(shape).reshape(3, -1).T * h
+    assert np.allclose(grid.reshape(-1), closest_points(v, f, pts)[0], rtol=0, atol=1e-12)
