@@ -13,6 +13,12 @@ N_TYPES = 8  # as in _mcubes_luts: 7 edge types and the cell-centre vertex
 
 
 @njit(cache=True, inline="always")
+def _face_code(v0, v1, v2, v3, iso):
+    """Bits of the four corners of a cell face below ``iso`` (corners 0-3 order)."""
+    return (1 if v0 < iso else 0) | (2 if v1 < iso else 0) | (4 if v2 < iso else 0) | (8 if v3 < iso else 0)
+
+
+@njit(cache=True, inline="always")
 def _case(v0, v1, v2, v3, v4, v5, v6, v7, iso):
     """Case index (bit c set when corner c is below ``iso``), -1 when a corner is NaN."""
     case = 0
@@ -197,16 +203,23 @@ def dense_extract(vol, iso, start, tris, edges, edge_key, ambiguous, use_faces, 
         lo_valid = hi_valid
         hi_valid = nv
         for j in range(ny - 1):
+            # slide along k: the upper face's four corner bits become the next cell's lower
+            # face, so each cell reads four new values (three times faster on empty space)
+            r00 = vol[i, j]
+            r10 = vol[i + 1, j]
+            r01 = vol[i, j + 1]
+            r11 = vol[i + 1, j + 1]
+            lower = _face_code(r00[0], r10[0], r01[0], r11[0], iso)
             for k in range(nz - 1):
-                case = _case(
-                    vol[i, j, k], vol[i + 1, j, k], vol[i, j + 1, k], vol[i + 1, j + 1, k],
-                    vol[i, j, k + 1], vol[i + 1, j, k + 1], vol[i, j + 1, k + 1], vol[i + 1, j + 1, k + 1],
-                    iso,
-                )
-                if case <= 0 or case == 255:  # NaN, all outside or all inside
+                upper = _face_code(r00[k + 1], r10[k + 1], r01[k + 1], r11[k + 1], iso)
+                case = lower | (upper << 4)
+                lower = upper
+                if case == 0 or case == 255:  # all outside or all inside
                     continue
                 for c in range(8):
                     v[c] = vol[i + (c & 1), j + ((c >> 1) & 1), k + ((c >> 2) & 1)]
+                if np.isnan(v[0] + v[1] + v[2] + v[3] + v[4] + v[5] + v[6] + v[7]):
+                    continue  # NaN compares false: a cell with a NaN corner is left out
                 row = case
                 if use_faces:
                     row = case * 64 + _face_bits(v, case, iso, ambiguous, face_corners)

@@ -191,60 +191,51 @@ def gather_bytes(flat, stride, offsets, out):
 
 
 @njit(cache=True, inline="always")
-def load_f32_le(flat, o):
-    """float32 at byte ``o`` (unsigned) of ``flat``, little-endian, as float64."""
-    return np.float64(
-        _f32_from_bits(
-            np.uint32(flat[o])
-            | (np.uint32(flat[o + np.uint64(1)]) << np.uint32(8))
-            | (np.uint32(flat[o + np.uint64(2)]) << np.uint32(16))
-            | (np.uint32(flat[o + np.uint64(3)]) << np.uint32(24))
-        )
-    )
+def _load_float(flat, o, size, big):
+    """The float (``size`` 4 or 8 bytes, byte order ``big``) at byte ``o`` (unsigned) of ``flat``, as float64.
 
-
-@njit(cache=True, inline="always")
-def load_f32_be(flat, o):
-    """float32 at byte ``o`` of ``flat``, big-endian, as float64."""
-    return np.float64(
-        _f32_from_bits(
-            (np.uint32(flat[o]) << np.uint32(24))
-            | (np.uint32(flat[o + np.uint64(1)]) << np.uint32(16))
-            | (np.uint32(flat[o + np.uint64(2)]) << np.uint32(8))
-            | np.uint32(flat[o + np.uint64(3)])
-        )
-    )
-
-
-@njit(cache=True, inline="always")
-def load_f64_le(flat, o):
-    """float64 at byte ``o`` of ``flat``, little-endian."""
+    Unsigned positions let numba skip its negative-index wraparound, so LLVM combines the
+    byte loads into one.
+    """
+    if size == 4:
+        if big:
+            bits = (
+                (np.uint32(flat[o]) << np.uint32(24))
+                | (np.uint32(flat[o + np.uint64(1)]) << np.uint32(16))
+                | (np.uint32(flat[o + np.uint64(2)]) << np.uint32(8))
+                | np.uint32(flat[o + np.uint64(3)])
+            )
+        else:
+            bits = (
+                np.uint32(flat[o])
+                | (np.uint32(flat[o + np.uint64(1)]) << np.uint32(8))
+                | (np.uint32(flat[o + np.uint64(2)]) << np.uint32(16))
+                | (np.uint32(flat[o + np.uint64(3)]) << np.uint32(24))
+            )
+        return np.float64(_f32_from_bits(bits))
     u = np.uint64(0)
     for b in range(8):
-        u |= np.uint64(flat[o + np.uint64(b)]) << np.uint64(8 * b)
-    return _f64_from_bits(u)
-
-
-@njit(cache=True, inline="always")
-def load_f64_be(flat, o):
-    """float64 at byte ``o`` of ``flat``, big-endian."""
-    u = np.uint64(0)
-    for b in range(8):
-        u |= np.uint64(flat[o + np.uint64(b)]) << np.uint64(8 * (7 - b))
+        shift = 8 * (7 - b) if big else 8 * b
+        u |= np.uint64(flat[o + np.uint64(b)]) << np.uint64(shift)
     return _f64_from_bits(u)
 
 
 @njit(cache=True, nogil=True)
-def gather_vertex_rows(load, flat, stride, off_a, out_a, off_b, out_b, off_c, out_c):
+def gather_vertex_rows(flat, stride, float_proto, order_proto, off_a, out_a, off_b, out_b, off_c, out_c):
     """One pass over packed vertex rows: float groups ``a`` (xyz) and ``b`` (normals) to
-    float64 with ``load`` (one of the ``load_f*`` decoders), one-byte group ``c`` (colours).
+    float64, one-byte group ``c`` (colours).
 
-    ``load`` and the offset tuples are part of the compiled signature, so each layout gets
-    its own kernel with the decode inlined and the column loops unrolled — twice as fast as
-    run-time sizes and byte orders. An absent group is ``(-1,)`` (numba cannot loop over an
-    empty tuple) with an (n, 0) output. Each row is read from memory once. Returns the
-    number of non-finite values in ``a``.
+    The layout is compiled in, not looked up per value: the float size comes from
+    ``float_proto`` (an empty float32 or float64 array), the byte order from
+    ``order_proto`` (empty uint8: little-endian, uint16: big-endian) — their item sizes are
+    compile-time constants, so each layout gets a branch-free decode (twice as fast as
+    run-time sizes) — and the offsets are tuples, so the column loops are unrolled. An
+    absent group is ``(-1,)`` (numba cannot loop over an empty tuple) with an (n, 0)
+    output. Each row is read from memory once. Returns the number of non-finite values in
+    ``a``.
     """
+    size = float_proto.itemsize
+    big = order_proto.itemsize == 2
     n = out_a.shape[0]
     ustride = np.uint64(stride)
     bad = 0
@@ -252,7 +243,7 @@ def gather_vertex_rows(load, flat, stride, off_a, out_a, off_b, out_b, off_c, ou
         base = np.uint64(i) * ustride
         j = 0
         for o in off_a:
-            v = load(flat, base + np.uint64(o))
+            v = _load_float(flat, base + np.uint64(o), size, big)
             out_a[i, j] = v
             j += 1
             if not np.isfinite(v):
@@ -260,7 +251,7 @@ def gather_vertex_rows(load, flat, stride, off_a, out_a, off_b, out_b, off_c, ou
         j = 0
         for o in off_b:
             if o >= 0:
-                out_b[i, j] = load(flat, base + np.uint64(o))
+                out_b[i, j] = _load_float(flat, base + np.uint64(o), size, big)
             j += 1
         j = 0
         for o in off_c:

@@ -735,13 +735,11 @@ class _FusedVertexDecode:
     """
 
     groups: list  # (names, offsets tuple) for xyz, normals, colours; offsets (-1,) when absent
-    load: object  # the _ply_kernel.load_f* decoder for the float type and byte order
+    protos: tuple  # empty arrays whose item sizes give the float size and byte order (see the kernel)
     color_dtype: np.dtype
 
     @classmethod
     def plan(cls, rowtype: np.dtype, props: dict) -> "_FusedVertexDecode | None":
-        from recon_cli.io import _ply_kernel as K
-
         fields = rowtype.fields
         groups = _vertex_groups(props)
         ftype = fields[_VERTEX_XYZ[0]][0]
@@ -761,9 +759,9 @@ class _FusedVertexDecode:
         else:
             out.append(((), (-1,)))
             ctype = np.dtype(np.uint8)
-        big = ftype.byteorder == ">"
-        load = {(4, False): K.load_f32_le, (4, True): K.load_f32_be, (8, False): K.load_f64_le, (8, True): K.load_f64_be}
-        return cls(out, load[ftype.itemsize, big], ctype)
+        float_proto = np.empty(0, np.float32 if ftype.itemsize == 4 else np.float64)
+        order_proto = np.empty(0, np.uint16 if ftype.byteorder == ">" else np.uint8)
+        return cls(out, (float_proto, order_proto), ctype)
 
     def alloc(self, count: int) -> list[np.ndarray]:
         (na, _), (nb, _), (nc, _) = self.groups
@@ -773,7 +771,7 @@ class _FusedVertexDecode:
         from recon_cli.io._ply_kernel import gather_vertex_rows
 
         (_, oa), (_, ob), (_, oc) = self.groups
-        return int(gather_vertex_rows(self.load, flat, stride, oa, outs[0], ob, outs[1], oc, outs[2]))
+        return int(gather_vertex_rows(flat, stride, *self.protos, oa, outs[0], ob, outs[1], oc, outs[2]))
 
     def result(self, outs: list[np.ndarray], bad: int) -> dict:
         """Columns keyed as :func:`_columns` keys them (names -> (array, non-finite count))."""
