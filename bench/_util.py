@@ -31,8 +31,26 @@ def _reset_hwm() -> None:
         pass
 
 
+def _trim_heap() -> None:
+    """Give the parent's free heap pages back to the system before forking.
+
+    Otherwise a child reuses pages the parent freed (after an earlier big input) and they
+    are already resident: its allocations then never raise its peak RSS, and the memory
+    figure reads far too low.
+    """
+    import ctypes
+    import gc
+
+    gc.collect()
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except OSError:  # not glibc
+        pass
+
+
 def measure_once(fn: Callable[[], Any]) -> tuple[float, float, Any]:
     """Run ``fn`` in a forked child; return (seconds, peak MB above the start, fn's small result)."""
+    _trim_heap()
     r, w = os.pipe()
     pid = os.fork()
     if pid == 0:  # child
