@@ -466,6 +466,18 @@ def query_grid(origin, h, shape, tri, sph, box, left, right, start, end, band, p
     return dist, sign
 
 
+@njit(cache=True, inline="always")
+def triangle_cross(tri, t):
+    """(b - a) x (c - a) of triangle ``t`` of ``tri`` ((m, 3, 3)): twice its area vector."""
+    e10 = tri[t, 1, 0] - tri[t, 0, 0]
+    e11 = tri[t, 1, 1] - tri[t, 0, 1]
+    e12 = tri[t, 1, 2] - tri[t, 0, 2]
+    e20 = tri[t, 2, 0] - tri[t, 0, 0]
+    e21 = tri[t, 2, 1] - tri[t, 0, 1]
+    e22 = tri[t, 2, 2] - tri[t, 0, 2]
+    return e11 * e22 - e12 * e21, e12 * e20 - e10 * e22, e10 * e21 - e11 * e20
+
+
 @njit(cache=True)
 def bounding_spheres(tri):
     """Bounding disk of each triangle: (m, 8) = centroid xyz, radius (to the farthest
@@ -482,15 +494,7 @@ def bounding_spheres(tri):
                 d += (tri[t, c, ax] - out[t, ax]) ** 2
             r2 = max(r2, d)
         out[t, 3] = np.sqrt(r2) * (1.0 + 1e-12)
-        e10 = tri[t, 1, 0] - tri[t, 0, 0]
-        e11 = tri[t, 1, 1] - tri[t, 0, 1]
-        e12 = tri[t, 1, 2] - tri[t, 0, 2]
-        e20 = tri[t, 2, 0] - tri[t, 0, 0]
-        e21 = tri[t, 2, 1] - tri[t, 0, 1]
-        e22 = tri[t, 2, 2] - tri[t, 0, 2]
-        n0 = e11 * e22 - e12 * e21
-        n1 = e12 * e20 - e10 * e22
-        n2 = e10 * e21 - e11 * e20
+        n0, n1, n2 = triangle_cross(tri, t)
         ln = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
         # a sliver's normal is unreliable (direction error ~ eps * r^2 / |n|): keep the
         # ball bound (normal 0) for it

@@ -13,6 +13,7 @@ import numpy as np
 from numba import njit, prange
 
 from recon_cli import _numba_setup  # noqa: F401  (threading layer, see that module)
+from recon_cli._distance_kernel import triangle_cross
 
 FOUR_PI = 4.0 * np.pi
 STACK = 128
@@ -67,15 +68,8 @@ def node_dipoles(tri, left, right, start, end, lo, hi):
     for node in range(m - 1, -1, -1):  # children after parents
         if left[node] < 0:
             for t in range(start[node], end[node]):
-                e10 = tri[t, 1, 0] - tri[t, 0, 0]
-                e11 = tri[t, 1, 1] - tri[t, 0, 1]
-                e12 = tri[t, 1, 2] - tri[t, 0, 2]
-                e20 = tri[t, 2, 0] - tri[t, 0, 0]
-                e21 = tri[t, 2, 1] - tri[t, 0, 1]
-                e22 = tri[t, 2, 2] - tri[t, 0, 2]
-                n0 = 0.5 * (e11 * e22 - e12 * e21)
-                n1 = 0.5 * (e12 * e20 - e10 * e22)
-                n2 = 0.5 * (e10 * e21 - e11 * e20)
+                c0, c1, c2 = triangle_cross(tri, t)
+                n0, n1, n2 = 0.5 * c0, 0.5 * c1, 0.5 * c2
                 ar = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
                 dip[node, 0] += n0
                 dip[node, 1] += n1
