@@ -306,8 +306,8 @@ def sparse_corners(cells, rows, offsets, start, tris, edge_key, lo, dims):
     """Global edge key, cell and local edge of every triangle corner."""
     m = offsets[-1]
     keys = np.empty(3 * m, np.int64)
-    cell_of = np.empty(3 * m, np.int64)
-    edge_of = np.empty(3 * m, np.int64)
+    cell_of = np.empty(3 * m, np.int32)  # cell counts stay far below 2**31 (checked by the caller)
+    edge_of = np.empty(3 * m, np.int8)  # local edge id, < 14
     for i in range(cells.shape[0]):
         r = rows[i]
         if r < 0:

@@ -220,8 +220,11 @@ def marching_cubes_sparse(
     rows, counts = K.sparse_rows(vals, iso, start, MC_AMBIGUOUS, use_faces, FACE_CORNERS)
     offsets = np.zeros(len(cells) + 1, np.int64)
     np.cumsum(counts, out=offsets[1:])
+    if len(cells) >= 2**31:
+        raise InputError("more than 2**31 cells")
     ekeys, cell_of, edge_of = K.sparse_corners(cells, rows, offsets, start, tris, keys, lo, dims)
     n_unique, first, inverse = _unique_first_inverse(ekeys)
+    del ekeys
     faces = inverse.reshape(-1, 3)
     clamp = 0.0 if allow_degenerate else DEGENERATE_CLAMP
     if return_normals:
@@ -246,9 +249,14 @@ def _unique_first_inverse(keys: np.ndarray) -> tuple[int, np.ndarray, np.ndarray
     new = np.empty(len(keys), dtype=bool)
     new[:1] = True
     np.not_equal(sk[1:], sk[:-1], out=new[1:])
+    del sk  # the big temporaries go as soon as they are used (Poisson's extraction peak)
     starts = np.flatnonzero(new)
+    group = np.cumsum(new, dtype=np.int64)
+    del new
+    group -= 1
     inverse = np.empty(len(keys), dtype=np.int64)
-    inverse[order] = np.cumsum(new) - 1
+    inverse[order] = group
+    del group
     first = np.minimum.reduceat(order, starts) if len(keys) else order
     return len(starts), first, inverse
 

@@ -470,8 +470,9 @@ def screened_poisson(
     vals = np.concatenate(vals_l)
     del cells_l, vals_l
     # one value per lattice point whichever leaf computed it (they agree up to rounding)
-    corner = np.array([[q & 1, (q >> 1) & 1, (q >> 2) & 1] for q in range(8)], np.int64)
-    ckeys = _pack((cells[:, None, :] + corner[None]).reshape(-1, 3))
+    # packed keys are linear in each coordinate: add the packed corner offsets (an (8c, 3)
+    # corner array and its int64 copy were this stage's peak)
+    ckeys = (_pack(cells)[:, None] + _CORNER_OFFSETS[None, :]).reshape(-1)
     # one unstable argsort and a linear pass: np.unique's stable sort and inverse cost 4x more
     order = np.argsort(ckeys)
     K.unify_corner_values(vals, ckeys[order], order)
