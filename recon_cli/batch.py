@@ -41,7 +41,9 @@ import glob
 import json
 import logging
 import os
+import signal
 import socket
+import threading
 import time
 import traceback
 from pathlib import Path
@@ -494,8 +496,8 @@ def _sigint_held():
     import threading
 
     got: list[bool] = []
-    if threading.current_thread() is not threading.main_thread():
-        yield got
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        yield got  # off the main thread nothing can be done; ignored (nohup ... &): leave it so
         return
     old_handler = signal.signal(signal.SIGINT, lambda signum, frame: got.append(True))
     mask = None
@@ -750,10 +752,29 @@ def _collect(client, info, pipe, entries, todo, records, progress, ascii, stage_
             done.add(fut)
             room -= 1
 
+    # Ctrl-C only sets a flag, and this loop raises KeyboardInterrupt where it waits: raised
+    # inside one of Dask's blocking calls, it races Dask's own clean-up (a NameError
+    # traceback from distributed.utils.sync's cancel callback)
+    stop: list[bool] = []
+    old_handler = None
+    if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
+        old_handler = signal.signal(signal.SIGINT, lambda signum, frame: stop.append(True))
+
+    def finished():
+        while True:
+            if stop:
+                raise KeyboardInterrupt
+            if done.has_ready():
+                yield from done.next_batch(block=False)
+            elif done.is_empty():
+                return
+            else:
+                time.sleep(0.05)
+
     try:
         with task(progress, f"batch ({len(todo)} inputs)", total=len(todo)) as bar:
             fill()
-            for fut in done:
+            for fut in finished():
                 i = in_flight.pop(fut)
                 if fut.status == "finished":
                     rec = fut.result()
@@ -776,3 +797,6 @@ def _collect(client, info, pipe, entries, todo, records, progress, ascii, stage_
         with contextlib.suppress(OSError):
             write_bytes(summary_path, report_json(summary).encode("utf-8") + b"\n")
         raise
+    finally:
+        if old_handler is not None:
+            signal.signal(signal.SIGINT, old_handler)

@@ -413,7 +413,10 @@ def test_batch_mixed_inputs_on_two_workers(tmp_path, test_stages, capsys, cluste
 # `recon batch` as a user runs it, with the test stages registered first (the workers get them
 # from each task's stage targets; spawned workers inherit sys.path, so they import _batch_stages)
 _RUNNER = (
-    "import sys\n"
+    "import signal, sys\n"
+    # as from an interactive shell: a runner started in the background (nohup, CI) may pass
+    # SIGINT down ignored, and then Python never turns it into KeyboardInterrupt
+    "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
     f"sys.path.insert(0, {TESTS!r})\n"
     "from _batch_stages import EXTRA_STAGES\n"
     "from recon_cli import stages\n"
@@ -433,24 +436,36 @@ def _sigint_blocked(native_id: int) -> bool:
 def test_sigint_is_held_while_a_cluster_starts():
     """A Ctrl-C while the local cluster starts is recorded, not raised mid-start; threads started meanwhile
     (Dask's event loop, which starts the workers) keep SIGINT blocked; afterwards all is as before."""
-    before = signal.getsignal(signal.SIGINT)
-    seen: list[bool] = []
+    # the test runner may have been started with SIGINT ignored (nohup, CI): act as a terminal does
+    outer = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        before = signal.getsignal(signal.SIGINT)
+        seen: list[bool] = []
 
-    def thread_body():
-        seen.append(_sigint_blocked(threading.get_native_id()))
+        def thread_body():
+            seen.append(_sigint_blocked(threading.get_native_id()))
 
-    with batch._sigint_held() as interrupted:
-        os.kill(os.getpid(), signal.SIGINT)  # recorded (now or on leaving), never raised here
-        time.sleep(0.05)
-        assert _sigint_blocked(threading.get_native_id())
-        th = threading.Thread(target=thread_body)
-        th.start()
-        th.join()
-    assert interrupted == [True] and seen == [True]
-    assert signal.getsignal(signal.SIGINT) is before and not _sigint_blocked(threading.get_native_id())
-    with pytest.raises(KeyboardInterrupt):  # the usual behaviour is back
-        os.kill(os.getpid(), signal.SIGINT)
-        time.sleep(1)
+        with batch._sigint_held() as interrupted:
+            os.kill(os.getpid(), signal.SIGINT)  # recorded (now or on leaving), never raised here
+            time.sleep(0.05)
+            assert _sigint_blocked(threading.get_native_id())
+            th = threading.Thread(target=thread_body)
+            th.start()
+            th.join()
+        assert interrupted == [True] and seen == [True]
+        assert signal.getsignal(signal.SIGINT) is before and not _sigint_blocked(threading.get_native_id())
+        with pytest.raises(KeyboardInterrupt):  # the usual behaviour is back
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(1)
+        # started with SIGINT ignored (`nohup recon batch ... &`): left ignored, nothing recorded
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        with batch._sigint_held() as interrupted:
+            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)
+        assert interrupted == [] and signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, outer)
 
 
 def _outputs(folder: Path) -> list[str]:
