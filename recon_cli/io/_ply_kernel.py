@@ -119,61 +119,24 @@ def gather_fields(flat, stride, offsets, size, big, out):
 def gather_floats(flat, stride, offsets, size, big, out):
     """Read float fields (``size`` 4 or 8 bytes) out of fixed-size rows straight into float64 ``out`` (n, k).
 
-    The file's bytes are assembled into an integer in the file's byte order and its bits
-    reinterpreted as the float, then widened: one pass over the rows, no
-    intermediate array. Rows are unaligned in general (a 27-byte xyz+normal+rgb row), which
-    is why this does not view the buffer as floats. Returns the number of values that are
-    NaN or infinite (counted on the way, so the caller needs no second pass to check).
+    The group-by-group path, for layouts :func:`gather_vertex_rows` does not take (e.g.
+    normals of another float type than xyz); each value is decoded by :func:`_load_float`.
+    Rows are unaligned in general (a 27-byte xyz+normal+rgb row), which is why this does
+    not view the buffer as floats. Returns the number of values that are NaN or infinite
+    (counted on the way, so the caller needs no second pass to check).
     """
     n = out.shape[0]
     k = offsets.shape[0]
     bad = 0
-    # unsigned positions: numba then skips its negative-index wraparound, and LLVM can
-    # combine the four byte loads into one (three times faster)
     uoff = offsets.astype(np.uint64)
     ustride = np.uint64(stride)
-    one, two, three = np.uint64(1), np.uint64(2), np.uint64(3)
-    if size == 4 and not big:  # the usual case, kept free of branches
-        for i in range(n):
-            base = np.uint64(i) * ustride
-            for j in range(k):
-                o = base + uoff[j]
-                v = _f32_from_bits(
-                    np.uint32(flat[o])
-                    | (np.uint32(flat[o + one]) << np.uint32(8))
-                    | (np.uint32(flat[o + two]) << np.uint32(16))
-                    | (np.uint32(flat[o + three]) << np.uint32(24))
-                )
-                out[i, j] = v
-                if not np.isfinite(v):
-                    bad += 1
-    elif size == 4:
-        for i in range(n):
-            base = np.uint64(i) * ustride
-            for j in range(k):
-                o = base + uoff[j]
-                v = _f32_from_bits(
-                    (np.uint32(flat[o]) << np.uint32(24))
-                    | (np.uint32(flat[o + one]) << np.uint32(16))
-                    | (np.uint32(flat[o + two]) << np.uint32(8))
-                    | np.uint32(flat[o + three])
-                )
-                out[i, j] = v
-                if not np.isfinite(v):
-                    bad += 1
-    else:
-        for i in range(n):
-            base = np.uint64(i) * ustride
-            for j in range(k):
-                o = base + uoff[j]
-                u = np.uint64(0)
-                for b in range(8):
-                    shift = 8 * (7 - b) if big else 8 * b
-                    u |= np.uint64(flat[o + np.uint64(b)]) << np.uint64(shift)
-                w = _f64_from_bits(u)
-                out[i, j] = w
-                if not np.isfinite(w):
-                    bad += 1
+    for i in range(n):
+        base = np.uint64(i) * ustride
+        for j in range(k):
+            v = _load_float(flat, base + uoff[j], size, big)
+            out[i, j] = v
+            if not np.isfinite(v):
+                bad += 1
     return bad
 
 
