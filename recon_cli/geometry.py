@@ -8,6 +8,7 @@ reconstruction stages return. Both carry ``history`` (provenance lines, written 
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -22,10 +23,14 @@ class PointCloud:
 
     Parameters
     ----------
-    points : (n, 3) float64
-        Coordinates, in the units of the source.
-    normals : (n, 3) float64 or None
-        Normals (unit length when estimated by recon; input normals are kept as read).
+    points : (n, 3) float32 or float64
+        Coordinates, in the units and the precision of the source (float32 columns of a
+        file stay float32; integers become float64). Read from a binary PLY they are a view
+        of the file's rows, not contiguous: code that computes takes :func:`float64` of the
+        object (or ``np.ascontiguousarray(points, np.float64)``) first.
+    normals : (n, 3) float32 or float64 or None
+        Normals, in the precision of the source (unit length when estimated by recon;
+        input normals are kept as read).
     colors : (n, 3) or (n, 4) array or None
         Colours, in the dtype of the source (usually uint8; RGB or RGBA).
     attributes : dict of str to (n,) array
@@ -50,7 +55,7 @@ class PointCloud:
     obj_info: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
-        self.points = np.ascontiguousarray(self.points, dtype=np.float64).reshape(-1, 3)
+        self.points = _float_rows(self.points)
         _normalise_per_point(self, len(self.points))
 
     @property
@@ -92,12 +97,12 @@ class TriangleMesh:
 
     Parameters
     ----------
-    vertices : (n, 3) float64
-        Vertex coordinates.
+    vertices : (n, 3) float32 or float64
+        Vertex coordinates, as ``PointCloud.points`` (the source's precision, maybe a view).
     faces : (m, 3) int64
         Vertex indices of each triangle, counter-clockwise seen from outside.
-    normals : (n, 3) float64 or None
-        Per-vertex normals.
+    normals : (n, 3) float32 or float64 or None
+        Per-vertex normals (the source's precision).
     colors : (n, 3) or (n, 4) array or None
         Per-vertex colours in the dtype of the source.
     attributes : dict of str to (n,) array
@@ -120,7 +125,7 @@ class TriangleMesh:
     obj_info: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
-        self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float64).reshape(-1, 3)
+        self.vertices = _float_rows(self.vertices)
         self.faces = np.ascontiguousarray(self.faces, dtype=np.int64).reshape(-1, 3)
         _normalise_per_point(self, len(self.vertices))
         for k, v in self.face_attributes.items():
@@ -167,20 +172,52 @@ def as_point_cloud(obj: PointCloud | TriangleMesh) -> PointCloud:
     raise TypeError(f"expected a PointCloud or TriangleMesh, got {type(obj).__name__}")
 
 
+def float64(obj: "PointCloud | TriangleMesh") -> "PointCloud | TriangleMesh":
+    """``obj`` with C-contiguous float64 coordinates and normals, ready to compute with.
+
+    ``obj`` itself when they already are; otherwise a shallow copy holding converted copies
+    (colours, attributes and faces are shared). Library functions call this on the objects
+    they are given, so a float32 cloud read from a file is computed on in float64.
+    """
+    def ready(a: np.ndarray | None) -> bool:
+        return a is None or (a.dtype == np.float64 and a.flags.c_contiguous)
+
+    if ready(obj.points) and ready(obj.normals):
+        return obj
+    out = copy.copy(obj)
+    coords = np.ascontiguousarray(obj.points, dtype=np.float64)
+    if isinstance(out, TriangleMesh):
+        out.vertices = coords
+    else:
+        out.points = coords
+    if obj.normals is not None:
+        out.normals = np.ascontiguousarray(obj.normals, dtype=np.float64)
+    return out
+
+
 def bbox_diagonal(points: np.ndarray) -> float:
     """Length of the axis-aligned bounding-box diagonal of ``points`` ((n, 3)), 0 if empty."""
     if len(points) == 0:
         return 0.0
-    return float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+    # in float64 whatever the points' type
+    return float(np.linalg.norm(points.max(axis=0).astype(np.float64) - points.min(axis=0)))
+
+
+def _float_rows(a: Any) -> np.ndarray:
+    """``a`` as (n, 3) rows: float32 and float64 arrays kept as they are (views stay views), anything else as float64."""
+    arr = np.asarray(a)
+    if arr.dtype not in (np.float32, np.float64):
+        arr = arr.astype(np.float64)
+    return arr if arr.ndim == 2 and arr.shape[1:] == (3,) else np.ascontiguousarray(arr).reshape(-1, 3)
 
 
 def _normalise_per_point(obj: "PointCloud | TriangleMesh", n: int) -> None:
-    """Make the optional per-point arrays of ``obj`` contiguous and check they have ``n`` rows."""
+    """Put the optional per-point arrays of ``obj`` in shape and check they have ``n`` rows."""
     if obj.normals is not None:
-        obj.normals = np.ascontiguousarray(obj.normals, dtype=np.float64).reshape(-1, 3)
+        obj.normals = _float_rows(obj.normals)
         _check_len("normals", obj.normals, n)
     if obj.colors is not None:
-        obj.colors = np.ascontiguousarray(obj.colors)
+        obj.colors = np.asarray(obj.colors)
         _check_len("colors", obj.colors, n)
     for k, v in obj.attributes.items():
         _check_len(k, v, n)

@@ -28,7 +28,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from recon_cli.errors import InputError, ParameterError
-from recon_cli.geometry import PointCloud, TriangleMesh, bbox_diagonal
+from recon_cli.geometry import PointCloud, TriangleMesh, bbox_diagonal, float64
 
 DEFAULT_TAUS = ("0.5%", "1%")
 
@@ -88,6 +88,7 @@ def compare_meshes(
     seed = int(seed)
     _check_input(candidate, "candidate")
     _check_input(reference, "reference")
+    candidate, reference = float64(candidate), float64(reference)
     diag = bbox_diagonal(reference.points)
     if not diag > 0:
         raise InputError("reference has a zero-size bounding box")
@@ -163,6 +164,7 @@ def point_distances(query: np.ndarray, target: TriangleMesh | PointCloud) -> np.
     """
     query = np.ascontiguousarray(query, dtype=np.float64).reshape(-1, 3)
     _check_input(target, "target")
+    target = float64(target)
     if not np.isfinite(query).all():
         raise InputError("query points hold NaN or infinite coordinates")
     return _distances(query, target)[0]

@@ -18,7 +18,7 @@ from typing import Sequence
 import numpy as np
 
 from recon_cli.errors import InputError, ParameterError
-from recon_cli.geometry import PointCloud, TriangleMesh
+from recon_cli.geometry import PointCloud, TriangleMesh, float64
 
 # name -> (azimuth, elevation) in degrees; y is up, azimuth 0 looks from +z towards -z
 VIEWS: dict[str, tuple[float, float]] = {
@@ -92,7 +92,7 @@ def camera(view: str | tuple[float, float]) -> np.ndarray:
 
 def frame_of(objects: Sequence[TriangleMesh | PointCloud]) -> tuple[np.ndarray, float]:
     """Centre (3,) and radius of a sphere holding every object, to frame them alike."""
-    pts = [o.points for o in objects if len(o.points)]
+    pts = [float64(o).points for o in objects if len(o.points)]
     if not pts:
         raise InputError("nothing to render: every object is empty")
     lo = np.min([p.min(axis=0) for p in pts], axis=0)
@@ -150,6 +150,7 @@ def render(
         raise ParameterError(f"image size and supersample must be positive, got {size}, {supersample}")
     if not isinstance(obj, (TriangleMesh, PointCloud)):
         raise ParameterError(f"cannot render a {type(obj).__name__}")
+    obj = float64(obj)
     if scalars is not None:
         scalars = np.asarray(scalars, dtype=np.float64).reshape(-1)
         if len(scalars) != len(obj.points):

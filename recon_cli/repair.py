@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from recon_cli.errors import InputError, ParameterError
-from recon_cli.geometry import TriangleMesh, bbox_diagonal
+from recon_cli.geometry import TriangleMesh, bbox_diagonal, float64
 from recon_cli.progress import task
 from recon_cli.stages import StageResult
 from recon_cli.tolerances import tol
@@ -511,6 +511,7 @@ def repair(
     """
     if not isinstance(mesh, TriangleMesh):
         raise InputError(f"repair needs a triangle mesh, got {type(mesh).__name__}")
+    mesh = float64(mesh)
     tolerance = _parse_tolerance(merge_tolerance)
     fill = _parse_int("fill-holes", fill_holes)
     min_comp = _parse_fraction("min-component", min_component)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from recon_cli.errors import InputError
-from recon_cli.geometry import PointCloud, TriangleMesh, bbox_diagonal
+from recon_cli.geometry import PointCloud, TriangleMesh, bbox_diagonal, float64
 
 
 def face_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -56,6 +56,7 @@ def sample_surface(
     """
     if len(mesh.faces) == 0:
         raise InputError("mesh has no faces to sample")
+    mesh = float64(mesh)
     rng = np.random.default_rng(seed)
     fn, area = face_normals(mesh.vertices, mesh.faces)
     total = area.sum()

@@ -244,8 +244,8 @@ def cloud_sdf(
     """
     from scipy.spatial import cKDTree
 
-    pts = np.asarray(points, dtype=np.float64)
-    nrm = np.asarray(normals, dtype=np.float64)
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    nrm = np.ascontiguousarray(normals, dtype=np.float64)
     ln = np.linalg.norm(nrm, axis=1)
     ok = ln > 0
     pts, nrm = pts[ok], nrm[ok] / ln[ok, None]
@@ -394,7 +394,7 @@ def run_stage(
         ``provenance`` (the effective voxel size); native meshes add ``sign_method``,
         ``winding_evaluations`` and ``regions`` (see :func:`mesh_sdf`).
     """
-    from recon_cli.geometry import PointCloud, TriangleMesh
+    from recon_cli.geometry import PointCloud, TriangleMesh, float64
     from recon_cli.grid import Grid
     from recon_cli.progress import task
     from recon_cli.stages import StageResult
@@ -402,6 +402,7 @@ def run_stage(
     # validation first
     if not isinstance(data, (PointCloud, TriangleMesh)):
         raise InputError(f"sdf needs a mesh or a point cloud, got {type(data).__name__}")
+    data = float64(data)
     try:
         resolution = int(resolution)
     except (TypeError, ValueError):

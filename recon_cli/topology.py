@@ -162,7 +162,7 @@ class Connectivity:
         self.faces = f
         self.n_vertices = n
         self.n_faces = len(f)
-        self.vertices = None if vertices is None else np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+        self.vertices = None if vertices is None else np.ascontiguousarray(vertices, dtype=np.float64).reshape(-1, 3)
         self._it = index_dtype(3 * len(f) + 3, n + 1)
 
     @property
@@ -544,7 +544,7 @@ def report(mesh: Any) -> dict[str, Any]:
         :data:`MAX_LISTED_COMPONENTS`; None for a component that is not closed manifold),
         ``area``, ``volume`` (None unless watertight, manifold and consistently oriented).
     """
-    vertices = np.asarray(mesh.vertices, dtype=np.float64).reshape(-1, 3)
+    vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64).reshape(-1, 3)
     c = Connectivity(mesh.faces, len(vertices), vertices)
     n_ref = int(c.referenced.sum())
     edge_manifold = len(c.non_manifold_edges) == 0

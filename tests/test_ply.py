@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from conftest import ALL_MESHES, SCANS, load_shared, shared_path
 from recon_cli.errors import InputError
-from recon_cli.geometry import PointCloud, TriangleMesh
+from recon_cli.geometry import PointCloud, TriangleMesh, float64
 from recon_cli.io.ply import (
     PlyData,
     PlyElement,
@@ -475,6 +475,7 @@ def test_float_fields_decode_bit_exact(order, ftype, tmp_path):
     path.write_bytes(head.encode() + rows.tobytes())
     cloud = read_ply(path)
     want = vals.astype(np.float64)
+    assert cloud.points.dtype == cloud.normals.dtype == f.newbyteorder("=")  # the file's precision
     assert np.array_equal(cloud.points, want[:, :3]) and np.array_equal(cloud.normals, want[:, 3:])
     assert np.array_equal(np.signbit(cloud.points[:, 0]), np.signbit(want[:, 0]))  # -0.0 kept
     assert np.array_equal(cloud.attributes["tag"], np.full(n, 7))
@@ -505,8 +506,8 @@ def _big_cloud_bytes(n: int, order: str, before: str = "") -> tuple[bytes, np.nd
     ],
     ids=["le", "be", "fixed-element-first", "list-element-first"],
 )
-def test_big_file_decoded_while_read_equals_in_memory_parse(order, before, pre, tmp_path):
-    # files over 4 MB decode their vertex rows while the rest is being read: same result
+def test_big_file_from_disk_equals_in_memory_parse(order, before, pre, tmp_path):
+    # from disk the columns view a writable buffer; from bytes (read-only) the rows are copied
     head, rows = _big_cloud_bytes(300_000, order, before)
     data = head + pre + rows.tobytes()
     path = tmp_path / "big.ply"
@@ -518,13 +519,96 @@ def test_big_file_decoded_while_read_equals_in_memory_parse(order, before, pre, 
     assert np.array_equal(got.points[:, 1], rows["y"].astype(np.float64))
 
 
-def test_big_truncated_or_nan_file_errors_like_in_memory(tmp_path):
+def test_big_truncated_file_errors_like_in_memory(tmp_path):
     head, rows = _big_cloud_bytes(300_000, "<")
     path = tmp_path / "cut.ply"
     path.write_bytes(head + rows.tobytes()[:-1000])
     with pytest.raises(InputError, match="truncated"):
         read_ply(path)
-    rows["z"][250_000] = np.nan
+
+
+@pytest.mark.parametrize("order", ["<", ">"])
+@pytest.mark.parametrize("ftype", ["f4", "f8"])
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+@pytest.mark.parametrize("row,col", [(0, "x"), (4_999, "z"), (2_048, "y"), (9_999, "z")])
+def test_first_nonfinite_row_named(order, ftype, bad, row, col, tmp_path):
+    # block boundaries (2048 rows) and the last row; NaN in the normals is not an error
+    n = 10_000
+    dt = np.dtype([("tag", "u1")] + [(c, order + ftype) for c in ("x", "y", "z", "nx")])
+    rows = np.zeros(n, dt)
+    rows["nx"][: row + 1] = np.nan
+    rows[col][row] = bad
+    if row < n - 1:
+        rows["x"][n - 1] = np.nan  # a later bad row is not the one reported
+    fmt = "binary_little_endian" if order == "<" else "binary_big_endian"
+    name = "float" if ftype == "f4" else "double"
+    head = f"ply\nformat {fmt} 1.0\nelement vertex {n}\nproperty uchar tag\n" + "".join(
+        f"property {name} {c}\n" for c in ("x", "y", "z", "nx")
+    ) + "end_header\n"
+    data = head.encode() + rows.tobytes()
+    path = tmp_path / "nan.ply"
+    path.write_bytes(data)
+    for src in (lambda: read_ply(path), lambda: read_ply("mem.ply", data)):
+        with pytest.raises(InputError, match=f"vertex {row} has a NaN or infinite coordinate"):
+            src()
+
+
+def _root(a):
+    """The object at the end of an array's chain of bases (the buffer it views)."""
+    while getattr(a, "base", None) is not None:
+        a = a.base
+    return a
+
+
+def test_columns_are_views_of_the_rows_in_the_files_precision(tmp_path):
+    head, rows = _big_cloud_bytes(1000, "<")
+    path = tmp_path / "c.ply"
     path.write_bytes(head + rows.tobytes())
-    with pytest.raises(InputError, match="vertex 250000 has a NaN"):
-        read_ply(path)
+    cloud = read_ply(path)
+    assert cloud.points.dtype == cloud.normals.dtype == np.float32 and cloud.colors.dtype == np.uint8
+    assert _root(cloud.points) is _root(cloud.normals) is _root(cloud.colors)  # views of the rows, not copies
+    assert cloud.points.flags.writeable and cloud.colors.flags.writeable
+    assert np.array_equal(cloud.points, np.column_stack([rows[c] for c in "xyz"]))
+    assert np.array_equal(cloud.colors, np.column_stack([rows[c] for c in ("red", "green", "blue")]))
+    # from read-only bytes the rows are copied once: still views, and writable
+    mem = read_ply("mem.ply", head + rows.tobytes())
+    assert mem.points.flags.writeable and np.array_equal(mem.points, cloud.points)
+    # ready to compute: float64, contiguous, same values; already-float64 objects pass through
+    c64 = float64(cloud)
+    assert c64.points.dtype == np.float64 and c64.points.flags.c_contiguous and c64.normals.flags.c_contiguous
+    assert np.array_equal(c64.points, cloud.points) and c64.colors is cloud.colors
+    assert float64(c64) is c64
+    # written back in the file's types, byte for byte
+    out = tmp_path / "w.ply"
+    write_ply(cloud, out)
+    assert read_ply(out).points.dtype == np.float32
+    assert np.array_equal(read_ply(out).points, cloud.points)
+
+
+@pytest.mark.parametrize(
+    "xyz,want",
+    [("double", np.float64), ("int", np.float64), ("short", np.float64), ("float", np.float32)],
+)
+def test_coordinate_types_map_to_float32_or_float64(xyz, want):
+    t = np.dtype({"double": "<f8", "int": "<i4", "short": "<i2", "float": "<f4"}[xyz])
+    vals = np.arange(12).reshape(4, 3).astype(t)
+    head = f"ply\nformat binary_little_endian 1.0\nelement vertex 4\n" + "".join(
+        f"property {xyz} {c}\n" for c in "xyz"
+    ) + "end_header\n"
+    cloud = read_ply("t.ply", head.encode() + vals.tobytes())
+    assert cloud.points.dtype == want and np.array_equal(cloud.points, vals)
+
+
+def test_mesh_vertex_views_do_not_hold_the_face_bytes(tmp_path):
+    # a mesh's vertex rows are a small part of its file: they are copied, so the faces' bytes
+    # are freed once read (the columns must not pin the whole file)
+    side = 60
+    x, y = np.meshgrid(np.arange(side, dtype=np.float32), np.arange(side, dtype=np.float32), indexing="ij")
+    v = np.column_stack([x.ravel(), y.ravel(), np.zeros(side * side, np.float32)])
+    idx = np.arange(side * side).reshape(side, side)
+    a, b, c = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    path = tmp_path / "m.ply"
+    write_ply(TriangleMesh(vertices=v, faces=np.column_stack([a, b, c])), path)
+    mesh = read_ply(path)
+    assert memoryview(_root(mesh.vertices)).nbytes == len(v) * 12 < os.path.getsize(path) / 2
+    assert np.array_equal(mesh.vertices, v)

@@ -119,25 +119,19 @@ def gather_fields(flat, stride, offsets, size, big, out):
 def gather_floats(flat, stride, offsets, size, big, out):
     """Read float fields (``size`` 4 or 8 bytes) out of fixed-size rows straight into float64 ``out`` (n, k).
 
-    The group-by-group path, for layouts :func:`gather_vertex_rows` does not take (e.g.
-    normals of another float type than xyz); each value is decoded by :func:`_load_float`.
-    Rows are unaligned in general (a 27-byte xyz+normal+rgb row), which is why this does
-    not view the buffer as floats. Returns the number of values that are NaN or infinite
-    (counted on the way, so the caller needs no second pass to check).
+    For float columns that cannot be viewed in place (big-endian files, fields not adjacent,
+    mixed float types); each value is decoded by :func:`_load_float`. Rows are unaligned in
+    general (a 27-byte xyz+normal+rgb row), which is why this does not view the buffer as
+    floats.
     """
     n = out.shape[0]
     k = offsets.shape[0]
-    bad = 0
     uoff = offsets.astype(np.uint64)
     ustride = np.uint64(stride)
     for i in range(n):
         base = np.uint64(i) * ustride
         for j in range(k):
-            v = _load_float(flat, base + uoff[j], size, big)
-            out[i, j] = v
-            if not np.isfinite(v):
-                bad += 1
-    return bad
+            out[i, j] = _load_float(flat, base + uoff[j], size, big)
 
 
 @njit(cache=True, nogil=True)
@@ -154,71 +148,77 @@ def gather_bytes(flat, stride, offsets, out):
 
 
 @njit(cache=True, inline="always")
-def _load_float(flat, o, size, big):
-    """The float (``size`` 4 or 8 bytes, byte order ``big``) at byte ``o`` (unsigned) of ``flat``, as float64.
+def _load_bits32(flat, o, big):
+    """The 4 bytes at byte ``o`` (unsigned) of ``flat`` as a uint32, in byte order ``big``.
 
     Unsigned positions let numba skip its negative-index wraparound, so LLVM combines the
     byte loads into one.
     """
-    if size == 4:
-        if big:
-            bits = (
-                (np.uint32(flat[o]) << np.uint32(24))
-                | (np.uint32(flat[o + np.uint64(1)]) << np.uint32(16))
-                | (np.uint32(flat[o + np.uint64(2)]) << np.uint32(8))
-                | np.uint32(flat[o + np.uint64(3)])
-            )
-        else:
-            bits = (
-                np.uint32(flat[o])
-                | (np.uint32(flat[o + np.uint64(1)]) << np.uint32(8))
-                | (np.uint32(flat[o + np.uint64(2)]) << np.uint32(16))
-                | (np.uint32(flat[o + np.uint64(3)]) << np.uint32(24))
-            )
-        return np.float64(_f32_from_bits(bits))
+    if big:
+        return (
+            (np.uint32(flat[o]) << np.uint32(24))
+            | (np.uint32(flat[o + np.uint64(1)]) << np.uint32(16))
+            | (np.uint32(flat[o + np.uint64(2)]) << np.uint32(8))
+            | np.uint32(flat[o + np.uint64(3)])
+        )
+    return (
+        np.uint32(flat[o])
+        | (np.uint32(flat[o + np.uint64(1)]) << np.uint32(8))
+        | (np.uint32(flat[o + np.uint64(2)]) << np.uint32(16))
+        | (np.uint32(flat[o + np.uint64(3)]) << np.uint32(24))
+    )
+
+
+@njit(cache=True, inline="always")
+def _load_bits64(flat, o, big):
+    """The 8 bytes at byte ``o`` (unsigned) of ``flat`` as a uint64, in byte order ``big``."""
     u = np.uint64(0)
     for b in range(8):
         shift = 8 * (7 - b) if big else 8 * b
         u |= np.uint64(flat[o + np.uint64(b)]) << np.uint64(shift)
-    return _f64_from_bits(u)
+    return u
+
+
+@njit(cache=True, inline="always")
+def _load_float(flat, o, size, big):
+    """The float (``size`` 4 or 8 bytes, byte order ``big``) at byte ``o`` (unsigned) of ``flat``, as float64."""
+    if size == 4:
+        return np.float64(_f32_from_bits(_load_bits32(flat, o, big)))
+    return _f64_from_bits(_load_bits64(flat, o, big))
+
+
+@njit(cache=True, inline="always")
+def _is_nonfinite(flat, o, size, big):
+    """Whether the float (``size`` 4 or 8 bytes) at byte ``o`` of ``flat`` is NaN or infinite:
+    its exponent bits are all ones (tested on the integer, no float conversion)."""
+    if size == 4:
+        return (_load_bits32(flat, o, big) & np.uint32(0x7F800000)) == np.uint32(0x7F800000)
+    e = np.uint64(0x7FF0000000000000)
+    return (_load_bits64(flat, o, big) & e) == e
 
 
 @njit(cache=True, nogil=True)
-def gather_vertex_rows(flat, stride, float_proto, order_proto, off_a, out_a, off_b, out_b, off_c, out_c):
-    """One pass over packed vertex rows: float groups ``a`` (xyz) and ``b`` (normals) to
-    float64, one-byte group ``c`` (colours).
+def first_nonfinite_row(flat, stride, first, k, size, big):
+    """Index of the first row whose ``k`` floats (``size`` 4 or 8 bytes, from byte ``first``
+    of each ``stride``-byte row of ``flat``) hold a NaN or infinity; -1 when none does.
 
-    The layout is compiled in, not looked up per value: the float size comes from
-    ``float_proto`` (an empty float32 or float64 array), the byte order from
-    ``order_proto`` (empty uint8: little-endian, uint16: big-endian) — their item sizes are
-    compile-time constants, so each layout gets a branch-free decode (twice as fast as
-    run-time sizes) — and the offsets are tuples, so the column loops are unrolled. An
-    absent group is ``(-1,)`` (numba cannot loop over an empty tuple) with an (n, 0)
-    output. Each row is read from memory once. Returns the number of non-finite values in
-    ``a``.
+    Rows are unaligned in general, hence the byte loads. Blocks of rows are tested without
+    a branch per row (1.5x faster); a block that has a bad value is scanned again for it.
     """
-    size = float_proto.itemsize
-    big = order_proto.itemsize == 2
-    n = out_a.shape[0]
+    n = flat.shape[0] // stride
     ustride = np.uint64(stride)
-    bad = 0
-    for i in range(n):
-        base = np.uint64(i) * ustride
-        j = 0
-        for o in off_a:
-            v = _load_float(flat, base + np.uint64(o), size, big)
-            out_a[i, j] = v
-            j += 1
-            if not np.isfinite(v):
-                bad += 1
-        j = 0
-        for o in off_b:
-            if o >= 0:
-                out_b[i, j] = _load_float(flat, base + np.uint64(o), size, big)
-            j += 1
-        j = 0
-        for o in off_c:
-            if o >= 0:
-                out_c[i, j] = flat[base + np.uint64(o)]
-            j += 1
-    return bad
+    block = 2048
+    for lo in range(0, n, block):
+        hi = min(n, lo + block)
+        bad = False
+        for i in range(lo, hi):
+            base = np.uint64(i) * ustride + np.uint64(first)
+            for j in range(k):
+                bad |= _is_nonfinite(flat, base + np.uint64(j * size), size, big)
+        if bad:
+            for i in range(lo, hi):
+                base = np.uint64(i) * ustride + np.uint64(first)
+                for j in range(k):
+                    if _is_nonfinite(flat, base + np.uint64(j * size), size, big):
+                        return i
+    return -1

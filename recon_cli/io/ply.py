@@ -70,8 +70,6 @@ class PlyElement:
     properties: list[PlyProperty] = field(default_factory=list)
     data: dict[str, np.ndarray] = field(default_factory=dict)
     raw: np.ndarray | None = field(default=None, repr=False)  # structured rows, when decoded as such
-    # columns already gathered (while the file was still being read): names -> array, non-finite count
-    decoded: dict = field(default_factory=dict, repr=False)
 
 
 @dataclass
@@ -82,6 +80,7 @@ class PlyData:
     comments: list[str] = field(default_factory=list)
     obj_info: list[str] = field(default_factory=list)
     elements: list[PlyElement] = field(default_factory=list)
+    nbytes: int = 0  # size of the file the elements were decoded from (0: built in memory)
 
     def element(self, name: str) -> PlyElement | None:
         for e in self.elements:
@@ -217,6 +216,7 @@ def parse_ply(buf: bytes, path: str | None = None) -> PlyData:
         On any malformed, truncated or inconsistent content (the message names ``path``).
     """
     ply, offset = parse_header(buf, path)
+    ply.nbytes = len(buf)
     where = _describe(path)
     if ply.format == "ascii":
         _parse_ascii(ply, buf, offset, where)
@@ -608,174 +608,8 @@ def read_ply(path: str | os.PathLike, data: bytes | None = None) -> PointCloud |
     InputError
         Malformed or inconsistent file, NaN/inf coordinates, face indices out of range.
     """
-    decoded = None
-    if data is None and str(path) != "-":
-        buf, decoded = _read_decoding_vertices(path)
-    else:
-        buf = data
-    ply = parse_ply(buf, str(path))
-    if decoded:
-        ply.element("vertex").decoded = decoded
+    ply = parse_ply(read_bytes(path) if data is None else data, str(path))
     return ply_to_geometry(ply, str(path))
-
-
-# files below this size are read then decoded; above, the vertex rows are decoded while the
-# rest of the file is still being read (the read and the decoding overlap on two cores)
-_OVERLAP_MIN_BYTES = 4 << 20
-_READ_CHUNK = 4 << 20
-
-
-def _read_decoding_vertices(path: str | os.PathLike) -> tuple[bytes | np.ndarray, dict]:
-    """Read ``path`` (like :func:`read_bytes`) and gather the vertex columns as the bytes arrive.
-
-    A thread reads the file in chunks into one numpy buffer (``readinto`` releases the GIL);
-    meanwhile this thread decodes every vertex row already read (the kernels release the GIL
-    too). Returns the buffer and the columns decoded, keyed as :func:`_columns` keys them
-    (empty when the file is small, ASCII, or its vertex rows are not at a known place: the
-    usual parse then does everything).
-    """
-    import threading
-
-    try:
-        f = open(path, "rb", buffering=0)
-    except OSError:
-        return read_bytes(path), {}  # read_bytes names the problem
-    with f:
-        st = os.fstat(f.fileno())
-        if not stat.S_ISREG(st.st_mode):  # a pipe (e.g. <(cat scan.ply)) can only be opened once
-            return f.read(), {}
-        if st.st_size < _OVERLAP_MIN_BYTES:
-            f.close()
-            return read_bytes(path), {}
-        size = st.st_size
-        buf = np.empty(size, dtype=np.uint8)
-        view = memoryview(buf)
-        state = {"filled": 0, "done": False}
-        cond = threading.Condition()
-
-        def reader() -> None:
-            try:
-                while state["filled"] < size:
-                    k = f.readinto(view[state["filled"] : min(size, state["filled"] + _READ_CHUNK)])
-                    if not k:
-                        break
-                    with cond:
-                        state["filled"] += k
-                        cond.notify()
-            finally:
-                with cond:
-                    state["done"] = True
-                    cond.notify()
-
-        def wait_for(nbytes: int) -> int:
-            with cond:
-                while state["filled"] < nbytes and not state["done"]:
-                    cond.wait()
-                return state["filled"]
-
-        t = threading.Thread(target=reader, daemon=True)
-        t.start()
-        try:
-            decoded = _decode_vertices_as_read(buf, wait_for)
-        finally:
-            t.join()
-        if state["filled"] < size:  # the file shrank while we read it
-            return buf[: state["filled"]], {}
-        return buf, decoded
-
-
-def _decode_vertices_as_read(buf: np.ndarray, wait_for) -> dict:
-    """Decode vertex rows of ``buf`` as ``wait_for(n)`` reports bytes ``[0, n)`` filled."""
-    got = wait_for(min(len(buf), MAX_HEADER_BYTES + 1024))
-    head = bytes(memoryview(buf)[:got])
-    if not head.startswith(b"ply") or _find_end_header(head) is None:
-        return {}
-    try:
-        ply, offset = parse_header(head)
-    except InputError:
-        return {}  # the usual parse reports it
-    if ply.format == "ascii":
-        return {}
-    order = FORMATS[ply.format]
-    for el in ply.elements:
-        if any(p.is_list for p in el.properties):
-            return {}  # rows of unknown size before the vertices
-        dt = np.dtype([(p.name, order + p.dtype) for p in el.properties])
-        if el.name == "vertex":
-            break
-        offset += dt.itemsize * el.count
-    else:
-        return {}
-    if el.count == 0 or offset + dt.itemsize * el.count > len(buf):
-        return {}
-    fused = _FusedVertexDecode.plan(dt, {p.name: p for p in el.properties})
-    if fused is None:
-        return {}  # the usual parse decodes it
-    outs = fused.alloc(el.count)
-    bad = 0
-    stride = dt.itemsize
-    done = 0
-    while done < el.count:
-        have = wait_for(offset + (done + 1) * stride)
-        upto = min(el.count, (have - offset) // stride)
-        if upto <= done:
-            return {}  # the file ended early: the usual parse reports the truncation
-        rows = buf[offset + done * stride : offset + upto * stride]
-        bad += fused.run(rows, stride, [o[done:upto] for o in outs])
-        done = upto
-    return fused.result(outs, bad)
-
-
-@dataclass
-class _FusedVertexDecode:
-    """Decode xyz, normals and one-byte colours of packed vertex rows in one pass.
-
-    Applies when xyz (and normals, if decoded here) are floats of one type and colours are
-    one-byte; other layouts go through :func:`_columns` group by group.
-    """
-
-    groups: list  # (names, offsets tuple) for xyz, normals, colours; offsets (-1,) when absent
-    protos: tuple  # empty arrays whose item sizes give the float size and byte order (see the kernel)
-    color_dtype: np.dtype
-
-    @classmethod
-    def plan(cls, rowtype: np.dtype, props: dict) -> "_FusedVertexDecode | None":
-        fields = rowtype.fields
-        groups = _vertex_groups(props)
-        ftype = fields[_VERTEX_XYZ[0]][0]
-        if ftype.kind != "f" or any(fields[c][0] != ftype for c in _VERTEX_XYZ):
-            return None
-        out = [(_VERTEX_XYZ, tuple(fields[c][1] for c in _VERTEX_XYZ))]
-        normals = [names for names, _ in groups[1:] if names == _VERTEX_NORMAL]
-        if normals and all(fields[c][0] == ftype for c in _VERTEX_NORMAL):
-            out.append((_VERTEX_NORMAL, tuple(fields[c][1] for c in _VERTEX_NORMAL)))
-        else:
-            out.append(((), (-1,)))
-        colors = [names for names, _ in groups[1:] if names != _VERTEX_NORMAL]
-        ctypes = {fields[c][0] for c in colors[0]} if colors else set()
-        ctype = ctypes.pop() if len(ctypes) == 1 else None
-        if ctype is not None and ctype.itemsize == 1:
-            out.append((colors[0], tuple(fields[c][1] for c in colors[0])))
-        else:
-            out.append(((), (-1,)))
-            ctype = np.dtype(np.uint8)
-        float_proto = np.empty(0, np.float32 if ftype.itemsize == 4 else np.float64)
-        order_proto = np.empty(0, np.uint16 if ftype.byteorder == ">" else np.uint8)
-        return cls(out, (float_proto, order_proto), ctype)
-
-    def alloc(self, count: int) -> list[np.ndarray]:
-        (na, _), (nb, _), (nc, _) = self.groups
-        return [np.empty((count, len(na))), np.empty((count, len(nb))), np.empty((count, len(nc)), self.color_dtype)]
-
-    def run(self, flat: np.ndarray, stride: int, outs: list[np.ndarray]) -> int:
-        from recon_cli.io._ply_kernel import gather_vertex_rows
-
-        (_, oa), (_, ob), (_, oc) = self.groups
-        return int(gather_vertex_rows(flat, stride, *self.protos, oa, outs[0], ob, outs[1], oc, outs[2]))
-
-    def result(self, outs: list[np.ndarray], bad: int) -> dict:
-        """Columns keyed as :func:`_columns` keys them (names -> (array, non-finite count))."""
-        return {names: (out, bad if i == 0 else -1) for i, ((names, _), out) in enumerate(zip(self.groups, outs)) if names}
 
 
 def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | TriangleMesh:
@@ -791,22 +625,21 @@ def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | Trian
         if props[c].is_list:
             raise InputError(f"vertex property {c!r} is a list", where)
     d = vert.data
-    if not vert.decoded and vert.raw is not None and vert.count and vert.raw.flags.c_contiguous:
-        fused = _FusedVertexDecode.plan(vert.raw.dtype, props)
-        if fused is not None:
-            outs = fused.alloc(vert.count)
-            bad = fused.run(vert.raw.view(np.uint8).reshape(-1), vert.raw.dtype.itemsize, outs)
-            vert.decoded = fused.result(outs, bad)
-    pts, nonfinite = _columns(vert, _VERTEX_XYZ, np.float64, count_nonfinite=True)
-    if nonfinite:
-        bad = int(np.flatnonzero(~np.isfinite(pts).all(axis=1))[0])
+    raw = vert.raw
+    if raw is not None and vert.count and (not raw.flags.writeable or 2 * raw.nbytes < ply.nbytes):
+        # the columns below are views of these rows: copy them when they are read-only
+        # bytes, or a small part of the file (the views must not pin a mesh's face bytes)
+        raw = vert.raw = np.array(raw)
+    pts = _columns(vert, _VERTEX_XYZ, _float_type(props, _VERTEX_XYZ))
+    bad = _first_nonfinite_row(vert, pts)
+    if bad >= 0:
         raise InputError(f"vertex {bad} has a NaN or infinite coordinate", where)
     used = set(_VERTEX_XYZ)
     point_dtype = np.float64 if all(props[c].dtype == "f8" for c in _VERTEX_XYZ) else np.float32
     normals = colors = None
     for names, dtype in _vertex_groups(props)[1:]:
         if names == _VERTEX_NORMAL:
-            normals = _columns(vert, names, dtype)
+            normals = _columns(vert, names, _float_type(props, names))
         else:
             colors = _columns(vert, names, dtype)
         used |= set(names)
@@ -858,17 +691,25 @@ def _vertex_groups(props: dict) -> list[tuple[tuple[str, ...], object]]:
     return groups
 
 
-def _columns(el: PlyElement, names: tuple[str, ...], dtype, count_nonfinite: bool = False):
-    """(count, len(names)) array of the named scalar properties, copied once.
+def _float_type(props: dict, names: tuple[str, ...]) -> type:
+    """float32 when every named property is a float32, else float64 (doubles, integers, mixed)."""
+    return np.float32 if all(props[c].dtype == "f4" for c in names) else np.float64
 
-    With ``count_nonfinite`` returns ``(array, number of NaN/inf values)``.
+
+def _columns(el: PlyElement, names: tuple[str, ...], dtype) -> np.ndarray:
+    """(count, len(names)) array of the named scalar properties, in ``dtype`` (None: the file's).
+
+    Adjacent fields of one native-order type already in ``dtype`` are returned as a view of
+    the element's rows (``el.raw``): nothing is copied, so a binary cloud is read in about
+    the time its bytes take to arrive. Other layouts are gathered into a new array.
     """
+    view = _rows_view(el.raw, names, dtype) if el.raw is not None and el.count else None
+    if view is not None:
+        return view
     plan = _gather_plan(el.raw.dtype, names, dtype) if el.raw is not None else None
-    if names in el.decoded:
-        out, bad = el.decoded[names]
-    elif plan is not None and plan[0] != "mixed" and el.count and el.raw.flags.c_contiguous:
+    if plan is not None and plan[0] != "mixed" and el.count and el.raw.flags.c_contiguous:
         out = np.empty((el.count, len(names)), dtype=plan[5])
-        bad = _gather_apply(plan, el.raw.view(np.uint8).reshape(-1), el.raw.dtype.itemsize, out)
+        _gather_apply(plan, el.raw.view(np.uint8).reshape(-1), el.raw.dtype.itemsize, out)
         if plan[0] == "int":
             out = out.view(plan[6]).astype(plan[7], copy=False)
     else:
@@ -877,19 +718,56 @@ def _columns(el: PlyElement, names: tuple[str, ...], dtype, count_nonfinite: boo
             out = np.zeros((0, len(names)), dtype=rtype)
         else:
             out = np.column_stack([el.data[c].astype(rtype) for c in names])
-        bad = -1
-    if not count_nonfinite:
-        return out
-    if bad < 0:
-        bad = int(out.size - np.count_nonzero(np.isfinite(out))) if out.dtype.kind == "f" else 0
-    return out, int(bad)
+    return out.astype(dtype, copy=False) if dtype is not None else out
+
+
+def _rows_view(raw: np.ndarray, names: tuple[str, ...], dtype) -> np.ndarray | None:
+    """The named fields of the structured rows ``raw`` as one ``(count, k)`` strided view, or None.
+
+    Possible when the fields are adjacent, in order, of one native-order type equal to
+    ``dtype`` (any type when None).
+    """
+    fields = raw.dtype.fields
+    ftype, first = fields[names[0]][:2]
+    if not ftype.isnative or (dtype is not None and ftype != np.dtype(dtype)):
+        return None
+    for k, c in enumerate(names):
+        t, off = fields[c][:2]
+        if t != ftype or off != first + k * ftype.itemsize:
+            return None
+    return np.lib.stride_tricks.as_strided(
+        raw[names[0]], shape=(len(raw), len(names)), strides=(raw.strides[0], ftype.itemsize)
+    )
+
+
+def _first_nonfinite_row(el: PlyElement, pts: np.ndarray) -> int:
+    """Index of the first row of ``pts`` with a NaN or infinite value, -1 when all are finite.
+
+    When ``pts`` views the rows of ``el.raw`` the check reads their bytes in one numba pass
+    (numpy's isfinite over an unaligned strided view is several times slower).
+    """
+    from recon_cli.io._ply_kernel import first_nonfinite_row
+
+    raw = el.raw
+    if (
+        raw is not None
+        and len(pts)
+        and raw.flags.c_contiguous
+        and np.shares_memory(pts[:1], raw[:1])
+        and pts.strides[0] == raw.strides[0]
+    ):
+        flat = raw.view(np.uint8).reshape(-1)
+        first = pts.__array_interface__["data"][0] - raw.__array_interface__["data"][0]
+        return int(first_nonfinite_row(flat, raw.strides[0], first, pts.shape[1], pts.dtype.itemsize, sys.byteorder == "big"))
+    ok = np.isfinite(pts).all(axis=1)
+    return -1 if ok.all() else int(np.argmin(ok))
 
 
 def _gather_plan(rowtype: np.dtype, names: tuple[str, ...], dtype) -> tuple:
     """How to gather ``names`` out of packed rows of ``rowtype``.
 
     ``(kind, names, offsets, size, big, buffer dtype, field dtype, result dtype)``; kind is
-    ``float`` (decoded straight to float64, non-finite values counted), ``byte`` (one-byte
+    ``float`` (decoded straight to float64), ``byte`` (one-byte
     fields, e.g. colours) or ``int`` (integers assembled in an unsigned buffer, then viewed
     and cast). Fields of differing types go through ``mixed`` (numpy, field by field).
     """
@@ -910,20 +788,19 @@ def _gather_plan(rowtype: np.dtype, names: tuple[str, ...], dtype) -> tuple:
     return ("int", names, offsets, ftype.itemsize, big, np.dtype(f"u{ftype.itemsize}"), native, rtype)
 
 
-def _gather_apply(plan: tuple, flat: np.ndarray, stride: int, out: np.ndarray) -> int:
-    """Fill ``out`` (rows, k) from the packed rows in ``flat`` (uint8); returns the non-finite count (-1: not counted)."""
+def _gather_apply(plan: tuple, flat: np.ndarray, stride: int, out: np.ndarray) -> None:
+    """Fill ``out`` (rows, k) from the packed rows in ``flat`` (uint8)."""
     from recon_cli.io._ply_kernel import gather_bytes, gather_fields, gather_floats
 
     kind, names, offsets, size, big = plan[:5]
     if kind == "float":
-        return int(gather_floats(flat, stride, offsets, size, big, out))
-    if kind == "byte":
+        gather_floats(flat, stride, offsets, size, big, out)
+    elif kind == "byte":
         gather_bytes(flat, stride, offsets, out)
-        return -1
-    if kind == "int":
+    elif kind == "int":
         gather_fields(flat, stride, offsets, size, big, out)
-        return -1
-    raise ValueError(f"no kernel gathers {kind!r} columns")  # callers handle 'mixed' with numpy
+    else:
+        raise ValueError(f"no kernel gathers {kind!r} columns")  # callers handle 'mixed' with numpy
 
 
 def _triangulate(lists: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]:
