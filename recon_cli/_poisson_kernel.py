@@ -6,7 +6,11 @@ Conventions shared with :mod:`recon_cli.poisson`:
 - a lattice point or cell ``(x, y, z)`` is keyed by ``(x << 42) | (y << 21) | z``;
 - hash tables are open-addressing arrays of keys (``-1`` = empty) and int64 values, with a
   power-of-two capacity; lookups return ``-1`` for a missing key;
-- corner ``q`` (0..7) of a cell sits at offset ``(q & 1, (q >> 1) & 1, (q >> 2) & 1)``.
+- corner ``q`` (0..7) of a cell sits at offset ``(q & 1, (q >> 1) & 1, (q >> 2) & 1)``;
+- a level's ``cell_nodes`` (c, 4) int32 holds the node index of corners 0..3 only (z offset
+  0): corner ``q + 4`` is the next node in the sorted keys, ``cell_nodes[c, q] + 1``, since
+  the node at ``z + 1`` is a node too and no key falls between. Half the largest array of
+  the solver; :func:`corner` gives any corner.
 """
 
 from __future__ import annotations
@@ -174,41 +178,77 @@ def merge_lookup(queries, keys):
     return out
 
 
-@njit(cache=True)
-def unpack(keys):
-    n = len(keys)
-    xyz = np.empty((n, 3), np.int64)
-    for i in range(n):
-        k = keys[i]
-        xyz[i, 0] = (k >> 42) & MASK21
-        xyz[i, 1] = (k >> 21) & MASK21
-        xyz[i, 2] = k & MASK21
-    return xyz
+@njit(cache=True, inline="always")
+def corner(cell_nodes, c, q):
+    """Node index of corner ``q`` (0..7) of cell ``c`` (``cell_nodes`` holds corners 0..3)."""
+    return cell_nodes[c, q & 3] + (q >> 2)
 
 
 @njit(cache=True)
-def node_incidence(cell_nodes, n_nodes):
-    """Per node: number of incident cells, and one (cell, corner) that holds it."""
-    cnt = np.zeros(n_nodes, np.int8)
-    cell = np.empty(n_nodes, np.int32)
-    corner = np.empty(n_nodes, np.int8)
-    for c in range(cell_nodes.shape[0]):
-        for q in range(8):
-            j = cell_nodes[c, q]
-            if cnt[j] == 0:
-                cell[j] = c
-                corner[j] = q
-            cnt[j] += 1
-    return cnt, cell, corner
-
-
-@njit(cache=True)
-def octants(cell_keys):
-    out = np.empty(len(cell_keys), np.int8)
-    for i in range(len(cell_keys)):
-        k = cell_keys[i]
-        out[i] = ((k >> 42) & 1) | (((k >> 21) & 1) << 1) | ((k & 1) << 2)
+def corner_nodes(cell_keys, node_keys):
+    """(c, 4) int32 index in sorted ``node_keys`` of corners 0..3 of each of the sorted
+    ``cell_keys`` (-1 if absent): a constant offset keeps the queries sorted, so each
+    corner is one linear merge."""
+    n = len(cell_keys)
+    m = len(node_keys)
+    out = np.empty((n, 4), np.int32)
+    for q in range(4):
+        off = ((q & 1) << 42) | (((q >> 1) & 1) << 21)
+        j = 0
+        for i in range(n):
+            k = cell_keys[i] + off
+            while j < m and node_keys[j] < k:
+                j += 1
+            out[i, q] = j if (j < m and node_keys[j] == k) else -1
     return out
+
+
+@njit(cache=True)
+def node_cell_count(cell_nodes, n_nodes):
+    """Number of cells incident to each node (int8, at most 8)."""
+    cnt = np.zeros(n_nodes, np.int8)
+    for c in range(cell_nodes.shape[0]):
+        for q in range(4):
+            j = cell_nodes[c, q]
+            cnt[j] += 1
+            cnt[j + 1] += 1
+    return cnt
+
+
+@njit(cache=True)
+def unknown_nodes(node_keys, cnt, top, dirichlet):
+    """Nodes whose hat function is solved for: every cell of its support present (Neumann:
+    those inside the cube, the faces of [0, ``top``]^3 cutting the support); Dirichlet: only
+    interior nodes with all 8 cells. ``cnt``: incident cells per node."""
+    n = len(node_keys)
+    out = np.empty(n, np.bool_)
+    for j in range(n):
+        k = node_keys[j]
+        x = (k >> 42) & MASK21
+        y = (k >> 21) & MASK21
+        z = k & MASK21
+        inner = int(0 < x < top) + int(0 < y < top) + int(0 < z < top)
+        if dirichlet:
+            out[j] = inner == 3 and cnt[j] == 8
+        else:
+            out[j] = cnt[j] == (1 << inner)
+    return out
+
+
+@njit(cache=True)
+def face_nodes(node_keys, top):
+    """Indices of the nodes on the faces of the cube (a coordinate 0 or ``top``)."""
+    out = np.empty(len(node_keys), np.int64)
+    m = 0
+    for j in range(len(node_keys)):
+        k = node_keys[j]
+        x = (k >> 42) & MASK21
+        y = (k >> 21) & MASK21
+        z = k & MASK21
+        if x == 0 or y == 0 or z == 0 or x == top or y == top or z == top:
+            out[m] = j
+            m += 1
+    return out[:m].copy()
 
 
 @njit(cache=True)
@@ -233,25 +273,33 @@ def double(keys):
 
 
 @njit(cache=True)
-def prolong(node_cell, node_corner, cell_parent, cell_octant, parent_nodes, coarse):
-    """Values of the coarse trilinear function at the fine nodes (hat functions interpolate)."""
-    n = len(node_cell)
-    out = np.empty(n, np.float64)
-    for j in range(n):
-        c = node_cell[j]
-        q = node_corner[j]
-        o = cell_octant[c]
+def prolong(cell_nodes, cell_keys, cell_parent, parent_nodes, coarse, n_nodes):
+    """Values of the coarse trilinear function at the fine nodes (hat functions interpolate).
+
+    Each node is computed once, from the first cell (in cell order) that holds it: walking
+    the cells needs no per-node (cell, corner) table, which would cost 5 bytes a node.
+    """
+    # NaN marks a node not computed yet, so no flag array (a node whose value is NaN is
+    # merely recomputed: any cell holding it gives the same terms in the same order)
+    out = np.full(n_nodes, np.nan)
+    for c in range(cell_nodes.shape[0]):
+        k = cell_keys[c]
+        o = ((k >> 42) & 1) | (((k >> 21) & 1) << 1) | ((k & 1) << 2)  # octant in the parent
         p = cell_parent[c]
-        # position of the node inside the parent cell, in halves: 0, 1 or 2 per axis
-        tx = ((o & 1) + (q & 1)) * 0.5
-        ty = (((o >> 1) & 1) + ((q >> 1) & 1)) * 0.5
-        tz = (((o >> 2) & 1) + ((q >> 2) & 1)) * 0.5
-        v = 0.0
-        for r in range(8):
-            w = (tx if r & 1 else 1.0 - tx) * (ty if (r >> 1) & 1 else 1.0 - ty) * (tz if (r >> 2) & 1 else 1.0 - tz)
-            if w != 0.0:
-                v += w * coarse[parent_nodes[p, r]]
-        out[j] = v
+        for q in range(8):
+            j = corner(cell_nodes, c, q)
+            if out[j] == out[j]:
+                continue
+            # position of the node inside the parent cell, in halves: 0, 1 or 2 per axis
+            tx = ((o & 1) + (q & 1)) * 0.5
+            ty = (((o >> 1) & 1) + ((q >> 1) & 1)) * 0.5
+            tz = (((o >> 2) & 1) + ((q >> 2) & 1)) * 0.5
+            v = 0.0
+            for r in range(8):
+                w = (tx if r & 1 else 1.0 - tx) * (ty if (r >> 1) & 1 else 1.0 - ty) * (tz if (r >> 2) & 1 else 1.0 - tz)
+                if w != 0.0:
+                    v += w * coarse[corner(parent_nodes, p, r)]
+            out[j] = v
     return out
 
 
@@ -270,16 +318,19 @@ def stiffness_matvec(cell_nodes, ke, cell_screen, x, out):
     f = ke[0, 7]
     screen = cell_screen.shape[0] > 0
     for c in range(cell_nodes.shape[0]):
+        for q in range(4):
+            j = cell_nodes[c, q]
+            xe[q] = x[j]
+            xe[q + 4] = x[j + 1]
         s = 0.0
         for q in range(8):
-            xe[q] = x[cell_nodes[c, q]]
             s += xe[q]
         for a in range(8):
             v = kd * xe[a] + f * (s - xe[a] - xe[a ^ 1] - xe[a ^ 2] - xe[a ^ 4])
             if screen:
                 for b in range(8):
                     v += cell_screen[c, a, b] * xe[b]
-            out[cell_nodes[c, a]] += v
+            out[corner(cell_nodes, c, a)] += v
 
 
 @njit(cache=True)
@@ -300,11 +351,14 @@ def cell_screening(cell, loc, weight, n_cells):
 
 
 @njit(cache=True)
-def stiffness_diag(cell_nodes, ke, n_nodes):
-    out = np.zeros(n_nodes)
-    for c in range(cell_nodes.shape[0]):
-        for a in range(8):
-            out[cell_nodes[c, a]] += ke[a, a]
+def stiffness_diag_table(ke):
+    """Diagonal of the stiffness matrix at a node with k (0..8) incident cells, summed cell
+    by cell as an assembly would. Every corner has the same ``ke[a, a]`` (the cube's
+    symmetry), so the diagonal is a function of k alone: the solver looks it up instead of
+    keeping an (n,) vector."""
+    out = np.zeros(9)
+    for k in range(1, 9):
+        out[k] = out[k - 1] + ke[0, 0]
     return out
 
 
@@ -343,7 +397,7 @@ def eval_at_samples(cell, loc, cell_nodes, x):
         c = cell[i]
         v = 0.0
         for r in range(8):
-            v += _tri_w(loc, i, r) * x[cell_nodes[c, r]]
+            v += _tri_w(loc, i, r) * x[corner(cell_nodes, c, r)]
         out[i] = v
     return out
 
@@ -355,25 +409,56 @@ def screening_matvec(cell, loc, cell_nodes, weight, x, out):
         c = cell[i]
         v = 0.0
         for r in range(8):
-            v += _tri_w(loc, i, r) * x[cell_nodes[c, r]]
+            v += _tri_w(loc, i, r) * x[corner(cell_nodes, c, r)]
         v *= weight[i]
         if v != 0.0:
             for r in range(8):
-                out[cell_nodes[c, r]] += _tri_w(loc, i, r) * v
+                out[corner(cell_nodes, c, r)] += _tri_w(loc, i, r) * v
 
 
 @njit(cache=True)
-def screening_diag_rhs(cell, loc, cell_nodes, weight, target, n_nodes):
-    """Diagonal of the screening operator and its right-hand side sum_p w_p t B_i(p)."""
-    diag = np.zeros(n_nodes)
-    rhs = np.zeros(n_nodes)
+def screening_diag_rhs(cell, loc, cell_nodes, weight, target, rhs):
+    """Diagonal of the screening operator, and rhs += its right-hand side sum_p w_p t B_i(p)
+    in place.
+
+    The diagonal is returned sparse, (sorted nodes, values) over the nodes the samples
+    touch: at the finest level they are few. Each node's share is summed apart first, then
+    added, so the result rounds as adding a full screening vector would.
+    """
+    # compact slot of each touched node, in first-touch order (an int32 map: sorting the
+    # samples' corners instead is 20x slower on a million samples)
+    slot = np.full(len(rhs), -1, np.int32)
+    nodes = np.empty(8 * len(cell), np.int64)
+    m = 0
+    for i in range(len(cell)):
+        for r in range(8):
+            j = corner(cell_nodes, cell[i], r)
+            if slot[j] < 0:
+                slot[j] = m
+                nodes[m] = j
+                m += 1
+    sd = np.zeros(m)
+    sr = np.zeros(m)
     for i in range(len(cell)):
         c = cell[i]
         for r in range(8):
             w = _tri_w(loc, i, r)
-            diag[cell_nodes[c, r]] += weight[i] * w * w
-            rhs[cell_nodes[c, r]] += weight[i] * target * w
-    return diag, rhs
+            k = slot[corner(cell_nodes, c, r)]
+            sd[k] += weight[i] * w * w
+            sr[k] += weight[i] * target * w
+    for k in range(m):
+        rhs[nodes[k]] += sr[k]
+    # sorted by node for the solver's sequential passes: set the touched slots' values in
+    # node order by walking the map once
+    out_n = np.empty(m, np.int64)
+    out_d = np.empty(m)
+    t = 0
+    for j in range(len(slot)):
+        if slot[j] >= 0:
+            out_n[t] = j
+            out_d[t] = sd[slot[j]]
+            t += 1
+    return out_n, out_d
 
 
 # ---- the vector field: normals splatted with a quadratic B-spline centred at each sample ----
@@ -559,33 +644,45 @@ def density_eval(pos, level, ctk, ctv, cbits, dens):
 
 # ---- extraction: leaves of the tree refined down to the finest lattice where they straddle ----
 @njit(cache=True)
-def refine_leaves(leaf_xyz, leaf_vals, level, depth, iso, eps):
+def refine_leaves(cell_keys, cell_nodes, is_leaf, g, level, depth, iso, eps, out_xyz, out_val):
     """Finest-lattice cells (and their corner values) inside leaves that straddle ``iso``.
 
-    A leaf at ``level`` holds a trilinear function (its 8 corner values); it is split
-    into octants, evaluated exactly, down to ``depth``, keeping only octants whose corner
-    range reaches ``iso`` within ``eps``.
+    A leaf at ``level`` holds a trilinear function (its 8 corner values of ``g``); a leaf
+    whose corner range reaches ``iso`` within ``eps`` is split into octants, evaluated
+    exactly, down to ``depth``, keeping only octants whose range reaches it too. Values are
+    negated (marching cubes puts values below its iso-value inside, chi is 1 inside).
+    Writes the cells' lattice coordinates into ``out_xyz`` (k, 3) and corner values into
+    ``out_val`` (k, 8) and returns k; with empty outputs it only counts, so the caller can
+    allocate the exact size (growing buffers would hold up to twice the cells).
     """
-    n = leaf_xyz.shape[0]
-    cap = 1024
-    out_xyz = np.empty((cap, 3), np.int64)
-    out_val = np.empty((cap, 8))
+    count_only = out_xyz.shape[0] == 0
     m = 0
     steps = depth - level
     side = 1 << steps
     stack_xyz = np.empty((8 * (steps + 1) + 8, 3), np.int64)
     stack_lvl = np.empty(8 * (steps + 1) + 8, np.int64)
     vals = np.empty(8)
-    for c in range(n):
-        lo = leaf_vals[c, 0]
-        hi = leaf_vals[c, 0]
-        for q in range(1, 8):
-            lo = min(lo, leaf_vals[c, q])
-            hi = max(hi, leaf_vals[c, q])
-        if lo > iso + eps or hi < iso - eps:
+    leaf_vals = np.empty(8)
+    niso = -iso
+    for c in range(cell_nodes.shape[0]):
+        if not is_leaf[c]:
             continue
+        for q in range(4):
+            j = cell_nodes[c, q]
+            leaf_vals[q] = -g[j]
+            leaf_vals[q + 4] = -g[j + 1]
+        lo = leaf_vals[0]
+        hi = leaf_vals[0]
+        for q in range(1, 8):
+            lo = min(lo, leaf_vals[q])
+            hi = max(hi, leaf_vals[q])
+        if lo > niso + eps or hi < niso - eps:
+            continue
+        k = cell_keys[c]
+        lx = (k >> 42) & MASK21
+        ly = (k >> 21) & MASK21
+        lz = k & MASK21
         # sub-cells addressed in finest units relative to the leaf's lower corner
-        top = 0
         stack_xyz[0, 0] = 0
         stack_xyz[0, 1] = 0
         stack_xyz[0, 2] = 0
@@ -607,26 +704,19 @@ def refine_leaves(leaf_xyz, leaf_vals, level, depth, iso, eps):
                 v = 0.0
                 for r in range(8):
                     w = (fx if r & 1 else 1.0 - fx) * (fy if (r >> 1) & 1 else 1.0 - fy) * (fz if (r >> 2) & 1 else 1.0 - fz)
-                    v += w * leaf_vals[c, r]
+                    v += w * leaf_vals[r]
                 vals[q] = v
                 lo = min(lo, v)
                 hi = max(hi, v)
-            if lo > iso + eps or hi < iso - eps:
+            if lo > niso + eps or hi < niso - eps:
                 continue
             if sl == steps:
-                if m == cap:
-                    cap *= 2
-                    nx = np.empty((cap, 3), np.int64)
-                    nv = np.empty((cap, 8))
-                    nx[:m] = out_xyz[:m]
-                    nv[:m] = out_val[:m]
-                    out_xyz = nx
-                    out_val = nv
-                out_xyz[m, 0] = leaf_xyz[c, 0] * side + sx
-                out_xyz[m, 1] = leaf_xyz[c, 1] * side + sy
-                out_xyz[m, 2] = leaf_xyz[c, 2] * side + sz
-                for q in range(8):
-                    out_val[m, q] = vals[q]
+                if not count_only:
+                    out_xyz[m, 0] = lx * side + sx
+                    out_xyz[m, 1] = ly * side + sy
+                    out_xyz[m, 2] = lz * side + sz
+                    for q in range(8):
+                        out_val[m, q] = vals[q]
                 m += 1
                 continue
             half = size >> 1
@@ -636,7 +726,7 @@ def refine_leaves(leaf_xyz, leaf_vals, level, depth, iso, eps):
                 stack_xyz[top, 2] = sz + ((o >> 2) & 1) * half
                 stack_lvl[top] = sl + 1
                 top += 1
-    return out_xyz[:m], out_val[:m]
+    return m
 
 
 @njit(cache=True)
@@ -658,29 +748,61 @@ def level_matvec(cell_nodes, ke, cell_screen, scell, sloc, sw, x, out):
 
 
 @njit(cache=True)
-def level_pcg(cell_nodes, ke, cell_screen, scell, sloc, sw, rhs, diag, unknown, tol, max_iter):
+def _residual_update(x, r, p, q, a, ncell, stiff, inv_stiff, sd_nodes, sd_vals, unknown):
+    """x += a p, r -= a q, q = the preconditioned residual; returns (r.r, r.z).
+
+    The inverse diagonal is rebuilt on the fly: the table ``inv_stiff`` (1 / ``stiff``) off
+    the nodes of the sparse screening diagonal, 1 / (stiffness + screening) on them, 0 off
+    the unknowns. With ``a`` = 0 and ``p``, ``q`` zero, x and r stay as they are and ``q``
+    receives the preconditioned residual (the start).
+    """
+    rr = 0.0
+    rz = 0.0
+    k = 0
+    ns = len(sd_nodes)
+    nxt = sd_nodes[0] if ns > 0 else -1
+    for i in range(len(r)):
+        if i == nxt:
+            d = stiff[ncell[i]] + sd_vals[k]
+            inv = 1.0 / d if (unknown[i] and d > 0.0) else 0.0
+            k += 1
+            nxt = sd_nodes[k] if k < ns else -1
+        else:
+            inv = inv_stiff[ncell[i]] if unknown[i] else 0.0
+        x[i] += a * p[i]
+        r[i] -= a * q[i]
+        rr += r[i] * r[i]
+        rz += r[i] * r[i] * inv
+        q[i] = r[i] * inv  # q is free until the next product
+    return rr, rz
+
+
+@njit(cache=True)
+def level_pcg(cell_nodes, ke, cell_screen, scell, sloc, sw, rhs, ncell, sd_nodes, sd_vals, unknown, tol, max_iter):
     """Jacobi-preconditioned conjugate gradients on the unknown nodes (others stay 0).
 
-    ``rhs`` is overwritten by the residual and ``diag`` by the inverse diagonal: at the
-    finest level every (n,) vector is tens of MB, so the solver keeps only x, p, q besides.
-    Returns (x, iterations, relative residual).
+    The diagonal is not stored: it is the stiffness diagonal at each node's incident-cell
+    count ``ncell`` (:func:`stiffness_diag_table`) plus the sparse screening diagonal
+    (``sd_nodes`` sorted, ``sd_vals``), inverted in each pass; ``rhs`` is overwritten by the
+    residual. At the finest level every (n,) vector is tens of MB, so the solver keeps only
+    x, p, q besides. Returns (x, iterations, relative residual).
     """
     n = len(rhs)
+    stiff = stiffness_diag_table(ke)
+    inv_stiff = np.zeros(9)
+    for c in range(1, 9):
+        inv_stiff[c] = 1.0 / stiff[c]
     x = np.zeros(n)
     r = rhs
-    inv = diag
-    bn = 0.0
-    rz = 0.0
     for i in range(n):
         if not unknown[i]:
             r[i] = 0.0
-        inv[i] = 1.0 / diag[i] if (unknown[i] and diag[i] > 0.0) else 0.0
-        bn += r[i] * r[i]
-        rz += r[i] * r[i] * inv[i]
+    p = np.zeros(n)
+    # with a = 0 (p, q = 0) x and r stay as they are and p gets the preconditioned residual
+    bn, rz = _residual_update(x, r, x, p, 0.0, ncell, stiff, inv_stiff, sd_nodes, sd_vals, unknown)
     bn = np.sqrt(bn)
     if bn == 0.0:
         return x, 0, 0.0
-    p = r * inv
     q = np.empty(n)
     it = 0
     rel = 1.0
@@ -694,62 +816,31 @@ def level_pcg(cell_nodes, ke, cell_screen, scell, sloc, sw, rhs, diag, unknown, 
         if pq <= 0.0:
             break
         a = rz / pq
-        rr = 0.0
-        rz_new = 0.0
-        for i in range(n):
-            x[i] += a * p[i]
-            r[i] -= a * q[i]
-            rr += r[i] * r[i]
-            rz_new += r[i] * r[i] * inv[i]
+        rr, rz_new = _residual_update(x, r, p, q, a, ncell, stiff, inv_stiff, sd_nodes, sd_vals, unknown)
         it += 1
         rel = np.sqrt(rr) / bn
         if rel < tol:
             break
         beta = rz_new / rz
         for i in range(n):
-            p[i] = r[i] * inv[i] + beta * p[i]
+            p[i] = q[i] + beta * p[i]
         rz = rz_new
     return x, it, rel
 
 
 @njit(cache=True)
-def clamp_on_faces(node_keys, g, top, value):
-    """g = min(g, value) at the nodes on the faces of the cube (coordinate 0 or ``top``), in place."""
-    for j in range(len(node_keys)):
-        k = node_keys[j]
-        x = (k >> 42) & MASK21
-        y = (k >> 21) & MASK21
-        z = k & MASK21
-        if x == 0 or y == 0 or z == 0 or x == top or y == top or z == top:
-            if g[j] > value:
-                g[j] = value
+def clamp_on_faces(faces, g, value):
+    """g = min(g, value) at the nodes ``faces`` (those on the faces of the cube), in place."""
+    for i in range(len(faces)):
+        j = faces[i]
+        if g[j] > value:
+            g[j] = value
 
 
 @njit(cache=True)
-def straddling_leaves(cell_nodes, is_leaf, g, iso, eps):
-    """Indices of the leaf cells whose corner values reach ``iso`` within ``eps`` (a trilinear
-    cell only holds the level set if its corner range does)."""
-    out = np.empty(cell_nodes.shape[0], np.int64)
-    m = 0
-    for c in range(cell_nodes.shape[0]):
-        if not is_leaf[c]:
-            continue
-        lo = g[cell_nodes[c, 0]]
-        hi = lo
-        for q in range(1, 8):
-            v = g[cell_nodes[c, q]]
-            lo = min(lo, v)
-            hi = max(hi, v)
-        if lo <= iso + eps and hi >= iso - eps:
-            out[m] = c
-            m += 1
-    return out[:m]
-
-
-@njit(cache=True)
-def children_sorted(parent_keys):
-    """Sorted keys of the 8 children of each of the sorted ``parent_keys``, and the index of
-    each child's parent.
+def children_sorted(parent_keys, parent_index):
+    """Sorted keys of the 8 children of each of the sorted ``parent_keys``, and each child's
+    ``parent_index`` (int32) entry.
 
     Keys order by (x, y, z); the children of the parents of one x-run, x-plane by x-plane,
     and within it of one y-run, y-row by y-row, come out in order with no sort.
@@ -776,11 +867,23 @@ def children_sorted(parent_keys):
                         pz = parent_keys[k] & MASK21
                         for cz in range(2):
                             out[m] = _key(2 * px + cx, 2 * py + cy, 2 * pz + cz)
-                            par[m] = k
+                            par[m] = parent_index[k]
                             m += 1
                 j = je
         i = ie
     return out, par
+
+
+@njit(cache=True)
+def corner_keys(cells):
+    """(8c,) keys of the corners of lattice cells (c, 3), corner ``q`` of cell ``i`` at ``8 i + q``."""
+    n = cells.shape[0]
+    out = np.empty(8 * n, np.int64)
+    for i in range(n):
+        k = _key(cells[i, 0], cells[i, 1], cells[i, 2])
+        for q in range(8):
+            out[8 * i + q] = k + (((q & 1) << 42) | (((q >> 1) & 1) << 21) | ((q >> 2) & 1))
+    return out
 
 
 @njit(cache=True)

@@ -132,8 +132,8 @@ def _check_inputs(points: Any, normals: Any) -> tuple[np.ndarray, np.ndarray, np
     """Finite (n, 3) points and unit normals; returns (points, normals, kept mask)."""
     if normals is None:
         raise InputError("the cloud has no normals: run 'recon normals' first (or pass --estimate-normals)")
-    pts = np.asarray(points, dtype=np.float64)
-    nrm = np.asarray(normals, dtype=np.float64)
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    nrm = np.ascontiguousarray(normals, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise InputError(f"points must have shape (n, 3), got {pts.shape}")
     if nrm.shape != pts.shape:
@@ -163,13 +163,37 @@ class _Level:
     depth: int
     # lookups are binary searches in the sorted keys: hash tables would double the memory
     cell_keys: np.ndarray  # (c,) int64 sorted keys
-    node_keys: np.ndarray  # (m,) int64 sorted keys
-    cell_nodes: np.ndarray  # (c, 8) int32
-    unknown: np.ndarray  # (m,) bool: hat functions solved for at this level
-    node_cell: np.ndarray  # (m,) int32: one incident cell ...
-    node_corner: np.ndarray  # ... (m,) int8: and the node's corner in it
+    node_keys: np.ndarray | None  # (m,) int64 sorted keys (dropped once the level is set up)
+    n_nodes: int
+    cell_nodes: np.ndarray  # (c, 4) int32: corners 0..3, corner q + 4 is node cell_nodes[c, q] + 1
+    unknown: np.ndarray | None  # (m,) bool: hat functions solved for at this level
+    ncell: np.ndarray | None  # (m,) int8: cells incident to each node (the stiffness diagonal)
     cell_parent: np.ndarray | None = None  # (c,) int32 index in the coarser level
-    cell_octant: np.ndarray | None = None  # (c,) int8
+    # set by the solve, for the extraction: the nodes on the cube's faces and the leaf cells
+    face_nodes: np.ndarray | None = None
+    leaf: np.ndarray | None = None
+
+
+_LIBC: Any = None
+
+
+def _release_free_heap() -> None:
+    """Give freed heap memory back to the system (glibc's ``malloc_trim``; elsewhere a no-op).
+
+    glibc serves arrays below its mmap threshold (up to 32 MB) from the heap, and a level's
+    freed vectors stay resident as holes that the next level's larger (mmapped) vectors
+    cannot reuse: at the finest level they would add tens of MB to the peak.
+    """
+    global _LIBC
+    if _LIBC is None:
+        import ctypes
+
+        try:
+            _LIBC = ctypes.CDLL("libc.so.6").malloc_trim
+        except (OSError, AttributeError):  # not glibc
+            _LIBC = False
+    if _LIBC:
+        _LIBC(0)
 
 
 def _pack(xyz: np.ndarray) -> np.ndarray:
@@ -183,9 +207,6 @@ def _dilate(keys: np.ndarray, axis: int, lo: int, hi: int, limit: int) -> np.nda
 
     k = np.sort(K.rekey(keys, axis, False))
     return K.rekey(K.dilate_minor(k, lo, hi, limit), axis, True)
-
-
-_CORNER_OFFSETS = np.array([(q & 1) << 42 | ((q >> 1) & 1) << 21 | ((q >> 2) & 1) for q in range(8)], np.int64)
 
 
 def _build_levels(sample_keys_finest: np.ndarray, depth: int, full_depth: int, boundary: str) -> list[_Level]:
@@ -215,31 +236,22 @@ def _build_levels(sample_keys_finest: np.ndarray, depth: int, full_depth: int, b
             par_idx = K.merge_lookup(keys, levels[-1].cell_keys)
             # the nodes of the children of parent p are 2p + {0, 1, 2}^3
             nodes = K.double(keys)
-            keys, child_par = K.children_sorted(keys)
-            cell_parent = par_idx[child_par].astype(np.int32)
-            del par_idx, child_par
+            keys, cell_parent = K.children_sorted(keys, par_idx)
+            del par_idx
             for axis in range(3):
                 nodes = _dilate(nodes, axis, 0, 2, top + 1)
         if d <= full_depth:
             nodes = keys
             for axis in range(3):
                 nodes = _dilate(nodes, axis, 0, 1, top + 1)
-        # sorted queries (a constant offset keeps the order): linear merges, no hashing
-        cell_nodes = np.empty((len(keys), 8), np.int32)  # int32: half the largest array
-        for q in range(8):
-            cell_nodes[:, q] = K.merge_lookup(keys + _CORNER_OFFSETS[q], nodes)
-        cnt, ncell, ncorner = K.node_incidence(cell_nodes, len(nodes))
-        nxyz = K.unpack(nodes)
-        inner = (nxyz > 0) & (nxyz < top + 1)
-        if boundary == "dirichlet":
-            unknown = inner.all(axis=1) & (cnt == 8)
-        else:
-            unknown = cnt == (1 << inner.sum(axis=1))
-        del nxyz, inner
-        lev = _Level(d, keys, nodes, cell_nodes, unknown, ncell, ncorner)
+        # sorted queries (a constant offset keeps the order): linear merges, no hashing;
+        # int32 and 4 corners of 8: a quarter of (c, 8) int64, the largest array
+        cell_nodes = K.corner_nodes(keys, nodes)
+        ncell = K.node_cell_count(cell_nodes, len(nodes))
+        unknown = K.unknown_nodes(nodes, ncell, top + 1, boundary == "dirichlet")
+        lev = _Level(d, keys, nodes, len(nodes), cell_nodes, unknown, ncell)
         if d > 0:
             lev.cell_parent = cell_parent if d > full_depth else K.bsearch_many(levels[-1].cell_keys, K.halve(keys))
-            lev.cell_octant = K.octants(keys)
         levels.append(lev)
     return levels
 
@@ -373,35 +385,39 @@ def screened_poisson(
     # weight means half that alpha here
     alpha = 0.5 * point_weight * mean_area * (1 << depth)
     screen_w = alpha * count
+    del klev
+    if not (density or trim > 0):
+        del ktab, dens_cells  # only the output densities need them
     timings["density"] = time.perf_counter() - t
 
     # ---- cascadic solve
+    # each level's arrays go as soon as no later step needs them: at the finest level the
+    # peak is the level's cells plus the solver's (n,) vectors, tens of MB each
     t = time.perf_counter()
     total_it = 0
     last_res = 0.0
-    g_prev = None
     gvals: list[np.ndarray] = []
     per_level = []
     with task(progress, "poisson: solve", total=depth + 1) as tk:
         for lev in levels:
+            _release_free_heap()
             tl = time.perf_counter()
             d = lev.depth
-            nn = len(lev.node_keys)
+            nn = lev.n_nodes
             ke = UNIT_STIFFNESS / (1 << d)
-            if g_prev is None:
-                G = np.zeros(nn)
-            else:
-                par = levels[d - 1]
-                G = K.prolong(lev.node_cell, lev.node_corner, lev.cell_parent, lev.cell_octant, par.cell_nodes, g_prev)
-            # (n,) vectors are updated in place: at the finest level each is tens of MB
+            # (n,) vectors are updated in place
             rhs = K.splat_rhs(it_pos, it_vec, it_lvl, np.zeros(len(it_lvl)), d, lev.node_keys, lev.unknown, nn)
+            # past the right-hand side only the nodes on the cube's faces are needed (for the
+            # extraction's clamp), not the node keys
+            lev.face_nodes = K.face_nodes(lev.node_keys, 1 << d)
+            lev.node_keys = None
             scell, sloc = K.sample_cells(spos, d, lev.cell_keys)
-            diag = K.stiffness_diag(lev.cell_nodes, ke, nn)
+            # the diagonal, for the preconditioner: a table by incident-cell count (lev.ncell)
+            # plus the sparse screening part, not an (n,) vector
             if alpha > 0:
-                sdiag, srhs = K.screening_diag_rhs(scell, sloc, lev.cell_nodes, screen_w, _TARGET, nn)
-                rhs += srhs
-                diag += sdiag
-                del sdiag, srhs
+                sd_nodes, sd_vals = K.screening_diag_rhs(scell, sloc, lev.cell_nodes, screen_w, _TARGET, rhs)
+            else:
+                sd_nodes, sd_vals = np.zeros(0, np.int64), np.zeros(0)
             sw = screen_w if alpha > 0 else np.zeros(0)
             cscr = np.zeros((0, 8, 8))
             if alpha > 0 and 4 * len(lev.cell_keys) <= len(sw) and len(lev.cell_keys) <= 1 << 19:
@@ -410,74 +426,84 @@ def screened_poisson(
                 # (c, 8, 8) floats, so only up to 2**19 cells (256 MB)
                 cscr = K.cell_screening(scell, sloc, sw, len(lev.cell_keys))
                 sw = np.zeros(0)
-            if g_prev is not None:
+            par = levels[d - 1] if d > 0 else None
+            if par is not None:
+                # the coarser levels' chi at this level's nodes; prolonged again after the
+                # solve rather than kept: one (n,) vector fewer during the conjugate gradients
+                G = K.prolong(lev.cell_nodes, lev.cell_keys, lev.cell_parent, par.cell_nodes, gvals[-1], nn)
                 AG = np.empty(nn)
                 K.level_matvec(lev.cell_nodes, ke, cscr, scell, sloc, sw, G, AG)
+                del G
                 rhs -= AG
                 del AG
             exact = d <= full_depth
+            _release_free_heap()  # the set-up's temporaries: not resident while the solver runs
             x, it, rel = K.level_pcg(
-                lev.cell_nodes, ke, cscr, scell, sloc, sw, rhs, diag, lev.unknown,
+                lev.cell_nodes, ke, cscr, scell, sloc, sw, rhs, lev.ncell, sd_nodes, sd_vals, lev.unknown,
                 1e-7 if exact else cg_tolerance, 2000 if exact else 200,
             )
-            del rhs, diag, scell, sloc, cscr
+            del rhs, sd_nodes, sd_vals, scell, sloc, cscr
+            if par is not None:
+                G = K.prolong(lev.cell_nodes, lev.cell_keys, lev.cell_parent, par.cell_nodes, gvals[-1], nn)
+                # the coarser level's leaves are its cells without children here
+                par.leaf = ~K.cell_has_child(lev.cell_parent, len(par.cell_keys))
+                lev.cell_parent = None
+            else:
+                G = np.zeros(nn)
             G += x
             del x
-            g_prev = G
-            gvals.append(g_prev)
+            gvals.append(G)
             total_it += it
             last_res = rel
-            per_level.append({"depth": d, "nodes": nn, "unknowns": int(lev.unknown.sum()), "iterations": it, "residual": rel,
+            n_unknown = int(lev.unknown.sum())
+            lev.unknown = lev.ncell = None
+            per_level.append({"depth": d, "nodes": nn, "unknowns": n_unknown, "iterations": it, "residual": rel,
                               "seconds": time.perf_counter() - tl})
-            log.info("poisson: level %2d  nodes %9d  unknowns %9d  cg iterations %4d  residual %.2e  %.2f s", d, nn, int(lev.unknown.sum()), it, rel, time.perf_counter() - tl)
+            log.info("poisson: level %2d  nodes %9d  unknowns %9d  cg iterations %4d  residual %.2e  %.2f s", d, nn, n_unknown, it, rel, time.perf_counter() - tl)
             tk.advance(1)
+    del G, par
+    levels[-1].leaf = np.ones(len(levels[-1].cell_keys), bool)
     timings["solve"] = time.perf_counter() - t
 
     # ---- iso-value: weighted mean of chi at the samples
     fin = levels[-1]
     scell, sloc = K.sample_cells(spos, depth, fin.cell_keys)
-    chi_s = K.eval_at_samples(scell, sloc, fin.cell_nodes, g_prev)
+    chi_s = K.eval_at_samples(scell, sloc, fin.cell_nodes, gvals[-1])
     iso = float((chi_s * count).sum() / count.sum())
+    del fin, scell, sloc, chi_s
     log.info("poisson: iso-value %.6f", iso)
 
     # ---- extraction: leaves refined to the finest lattice where they straddle the iso-value
     t = time.perf_counter()
     from recon_cli.mcubes import marching_cubes_sparse
 
-    cells_l, vals_l = [], []
     for lev, g in zip(levels, gvals):
-        d = lev.depth
-        if d < depth:
-            leaf = ~K.cell_has_child(levels[d + 1].cell_parent, len(lev.cell_keys))
-        else:
-            leaf = np.ones(len(lev.cell_keys), bool)
-        if not leaf.any():
-            continue
         # the cube's faces count as outside, so a surface running into them is closed there
         # (in place: chi is not needed after the extraction)
-        K.clamp_on_faces(lev.node_keys, g, 1 << d, iso - _FACE_MARGIN)
-        # only leaves whose corner range reaches the iso-value can hold surface: gather those
-        # alone (all leaves' corner values would be (c, 8) floats, the largest array)
-        sel = K.straddling_leaves(lev.cell_nodes, leaf, g, iso, 1e-9)
-        del leaf
-        # negated: marching cubes puts values below the iso-value inside
-        lv = -g[lev.cell_nodes[sel]]
-        c, v = K.refine_leaves(K.unpack(lev.cell_keys[sel]), lv, d, depth, -iso, 1e-9)
-        cells_l.append(c)
-        vals_l.append(v)
-    del gvals, g_prev, levels, fin, klev, lev, g
-    cells = np.concatenate(cells_l)
-    vals = np.concatenate(vals_l)
-    del cells_l, vals_l
+        K.clamp_on_faces(lev.face_nodes, g, iso - _FACE_MARGIN)
+    # only leaves whose corner range reaches the iso-value can hold surface: count their
+    # finest cells first, then write them straight into arrays of the exact size (per-level
+    # parts and their concatenation would hold the cells twice)
+    none_xyz, none_val = np.zeros((0, 3), np.int64), np.zeros((0, 8))
+    counts = [K.refine_leaves(lev.cell_keys, lev.cell_nodes, lev.leaf, g, lev.depth, depth, iso, 1e-9, none_xyz, none_val)
+              for lev, g in zip(levels, gvals)]
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    cells = np.empty((int(offsets[-1]), 3), np.int64)
+    vals = np.empty((int(offsets[-1]), 8))
+    # finest first, freeing each level once written: it holds most of the memory
+    for d in range(depth, -1, -1):
+        lev = levels.pop()
+        K.refine_leaves(lev.cell_keys, lev.cell_nodes, lev.leaf, gvals.pop(), d, depth, iso, 1e-9,
+                        cells[offsets[d]:offsets[d + 1]], vals[offsets[d]:offsets[d + 1]])
+    del levels, gvals, lev, g
     # one value per lattice point whichever leaf computed it (they agree up to rounding)
-    # packed keys are linear in each coordinate: add the packed corner offsets (an (8c, 3)
-    # corner array and its int64 copy were this stage's peak)
-    ckeys = (_pack(cells)[:, None] + _CORNER_OFFSETS[None, :]).reshape(-1)
+    ckeys = K.corner_keys(cells)
     # one unstable argsort and a linear pass: np.unique's stable sort and inverse cost 4x more
     order = np.argsort(ckeys)
     K.unify_corner_values(vals, ckeys[order], order)
     del ckeys, order
     verts, faces = marching_cubes_sparse(cells, vals, -iso, origin=tuple(origin), spacing=size / res)
+    del cells, vals
     timings["extract"] = time.perf_counter() - t
 
     mesh = TriangleMesh(vertices=verts, faces=faces)
