@@ -629,17 +629,18 @@ def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | Trian
     if raw is not None and vert.count and (not raw.flags.writeable or 2 * raw.nbytes < ply.nbytes):
         # the columns below are views of these rows: copy them when they are read-only
         # bytes, or a small part of the file (the views must not pin a mesh's face bytes)
-        raw = vert.raw = np.array(raw)
-    pts = _columns(vert, _VERTEX_XYZ, _float_type(props, _VERTEX_XYZ))
+        vert.raw = np.array(raw)
+    groups = _vertex_groups(props)
+    pts = _columns(vert, *groups[0])
     bad = _first_nonfinite_row(vert, pts)
     if bad >= 0:
         raise InputError(f"vertex {bad} has a NaN or infinite coordinate", where)
     used = set(_VERTEX_XYZ)
     point_dtype = np.float64 if all(props[c].dtype == "f8" for c in _VERTEX_XYZ) else np.float32
     normals = colors = None
-    for names, dtype in _vertex_groups(props)[1:]:
+    for names, dtype in groups[1:]:
         if names == _VERTEX_NORMAL:
-            normals = _columns(vert, names, _float_type(props, names))
+            normals = _columns(vert, names, dtype)
         else:
             colors = _columns(vert, names, dtype)
         used |= set(names)
@@ -679,11 +680,13 @@ def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | Trian
 def _vertex_groups(props: dict) -> list[tuple[tuple[str, ...], object]]:
     """The column groups read from a vertex element: xyz, then normals and colours when present.
 
-    Each is ``(names, dtype)``; dtype None keeps the file's type (colours).
+    Each is ``(names, dtype)``: float32 for coordinates and normals that are all float32 in
+    the file, float64 for any other type (doubles, integers, mixed); None keeps the file's
+    type (colours).
     """
-    groups: list[tuple[tuple[str, ...], object]] = [(_VERTEX_XYZ, np.float64)]
+    groups: list[tuple[tuple[str, ...], object]] = [(_VERTEX_XYZ, _float_type(props, _VERTEX_XYZ))]
     if all(c in props and not props[c].is_list for c in _VERTEX_NORMAL):
-        groups.append((_VERTEX_NORMAL, np.float64))
+        groups.append((_VERTEX_NORMAL, _float_type(props, _VERTEX_NORMAL)))
     for names in (_VERTEX_COLOR, _VERTEX_COLOR_DIFFUSE, _VERTEX_COLOR_ALT):
         if all(c in props and not props[c].is_list for c in names[:3]):
             groups.append((tuple(c for c in names if c in props), None))
@@ -727,38 +730,45 @@ def _rows_view(raw: np.ndarray, names: tuple[str, ...], dtype) -> np.ndarray | N
     Possible when the fields are adjacent, in order, of one native-order type equal to
     ``dtype`` (any type when None).
     """
-    fields = raw.dtype.fields
-    ftype, first = fields[names[0]][:2]
+    run = _adjacent_fields(raw.dtype, names)
+    if run is None:
+        return None
+    ftype, _ = run
     if not ftype.isnative or (dtype is not None and ftype != np.dtype(dtype)):
         return None
-    for k, c in enumerate(names):
-        t, off = fields[c][:2]
-        if t != ftype or off != first + k * ftype.itemsize:
-            return None
     return np.lib.stride_tricks.as_strided(
         raw[names[0]], shape=(len(raw), len(names)), strides=(raw.strides[0], ftype.itemsize)
     )
 
 
-def _first_nonfinite_row(el: PlyElement, pts: np.ndarray) -> int:
-    """Index of the first row of ``pts`` with a NaN or infinite value, -1 when all are finite.
+def _adjacent_fields(rowtype: np.dtype, names: tuple[str, ...]) -> tuple[np.dtype, int] | None:
+    """(type, byte offset of the first) when the named fields of ``rowtype`` are adjacent, in
+    order, of one type; None otherwise."""
+    fields = rowtype.fields
+    ftype, first = fields[names[0]][:2]
+    for k, c in enumerate(names):
+        if fields[c][:2] != (ftype, first + k * ftype.itemsize):
+            return None
+    return ftype, first
 
-    When ``pts`` views the rows of ``el.raw`` the check reads their bytes in one numba pass
-    (numpy's isfinite over an unaligned strided view is several times slower).
+
+def _first_nonfinite_row(el: PlyElement, pts: np.ndarray) -> int:
+    """Index of the first row of ``pts`` (the x, y, z columns of ``el``) with a NaN or infinite
+    value, -1 when all are finite.
+
+    When x, y, z are adjacent floats of one type in the rows of ``el.raw``, the check reads
+    those bytes in one numba pass, in either byte order (numpy's isfinite over an unaligned
+    strided view is several times slower).
     """
     from recon_cli.io._ply_kernel import first_nonfinite_row
 
     raw = el.raw
-    if (
-        raw is not None
-        and len(pts)
-        and raw.flags.c_contiguous
-        and np.shares_memory(pts[:1], raw[:1])
-        and pts.strides[0] == raw.strides[0]
-    ):
+    run = _adjacent_fields(raw.dtype, _VERTEX_XYZ) if raw is not None and len(raw) and raw.flags.c_contiguous else None
+    if run is not None and run[0].kind == "f":
+        ftype, first = run
+        big = ftype.byteorder == ">" or (ftype.byteorder == "=" and sys.byteorder == "big")
         flat = raw.view(np.uint8).reshape(-1)
-        first = pts.__array_interface__["data"][0] - raw.__array_interface__["data"][0]
-        return int(first_nonfinite_row(flat, raw.strides[0], first, pts.shape[1], pts.dtype.itemsize, sys.byteorder == "big"))
+        return int(first_nonfinite_row(flat, raw.strides[0], first, len(_VERTEX_XYZ), ftype.itemsize, big))
     ok = np.isfinite(pts).all(axis=1)
     return -1 if ok.all() else int(np.argmin(ok))
 
