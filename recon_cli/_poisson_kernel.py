@@ -164,17 +164,24 @@ def dilate_minor(keys, lo, hi, limit):
     return out[:m]
 
 
+@njit(cache=True, inline="always")
+def _merge_into(queries, offset, keys, out):
+    """out[i] = index of ``queries[i] + offset`` in sorted unique ``keys`` (-1 if absent);
+    queries non-decreasing, so one linear merge."""
+    j = 0
+    n = len(keys)
+    for i in range(len(queries)):
+        q = queries[i] + offset
+        while j < n and keys[j] < q:
+            j += 1
+        out[i] = j if (j < n and keys[j] == q) else -1
+
+
 @njit(cache=True)
 def merge_lookup(queries, keys):
     """Index of each query in sorted unique ``keys`` (-1 if absent); queries non-decreasing."""
     out = np.empty(len(queries), np.int64)
-    j = 0
-    n = len(keys)
-    for i in range(len(queries)):
-        q = queries[i]
-        while j < n and keys[j] < q:
-            j += 1
-        out[i] = j if (j < n and keys[j] == q) else -1
+    _merge_into(queries, 0, keys, out)
     return out
 
 
@@ -189,17 +196,9 @@ def corner_nodes(cell_keys, node_keys):
     """(c, 4) int32 index in sorted ``node_keys`` of corners 0..3 of each of the sorted
     ``cell_keys`` (-1 if absent): a constant offset keeps the queries sorted, so each
     corner is one linear merge."""
-    n = len(cell_keys)
-    m = len(node_keys)
-    out = np.empty((n, 4), np.int32)
+    out = np.empty((len(cell_keys), 4), np.int32)
     for q in range(4):
-        off = ((q & 1) << 42) | (((q >> 1) & 1) << 21)
-        j = 0
-        for i in range(n):
-            k = cell_keys[i] + off
-            while j < m and node_keys[j] < k:
-                j += 1
-            out[i, q] = j if (j < m and node_keys[j] == k) else -1
+        _merge_into(cell_keys, ((q & 1) << 42) | (((q >> 1) & 1) << 21), node_keys, out[:, q])
     return out
 
 
@@ -837,6 +836,16 @@ def clamp_on_faces(faces, g, value):
             g[j] = value
 
 
+@njit(cache=True, inline="always")
+def _run_end(keys, start, stop, shift):
+    """End of the run of ``keys[start:stop]`` sharing the coordinate at bit ``shift`` with ``keys[start]``."""
+    v = (keys[start] >> shift) & MASK21
+    end = start
+    while end < stop and ((keys[end] >> shift) & MASK21) == v:
+        end += 1
+    return end
+
+
 @njit(cache=True)
 def children_sorted(parent_keys, parent_index):
     """Sorted keys of the 8 children of each of the sorted ``parent_keys``, and each child's
@@ -852,16 +861,12 @@ def children_sorted(parent_keys, parent_index):
     i = 0
     while i < n:
         px = (parent_keys[i] >> 42) & MASK21
-        ie = i
-        while ie < n and ((parent_keys[ie] >> 42) & MASK21) == px:
-            ie += 1
+        ie = _run_end(parent_keys, i, n, 42)
         for cx in range(2):
             j = i
             while j < ie:
                 py = (parent_keys[j] >> 21) & MASK21
-                je = j
-                while je < ie and ((parent_keys[je] >> 21) & MASK21) == py:
-                    je += 1
+                je = _run_end(parent_keys, j, ie, 21)
                 for cy in range(2):
                     for k in range(j, je):
                         pz = parent_keys[k] & MASK21
