@@ -399,9 +399,6 @@ def dask_setup(worker: Any) -> None:
     it while the batch is being stopped. The process running the batch takes the
     interrupt alone and closes the cluster, which stops the workers.
     """
-    import signal
-    import threading
-
     if threading.current_thread() is threading.main_thread():  # signal handlers: main thread only
         signal.signal(signal.SIGINT, signal.SIG_IGN)
 
@@ -481,6 +478,12 @@ def _client_inner(scheduler, workers, threads_per_worker, memory_limit, log_leve
             yield client, info
 
 
+def _sigint_catchable() -> bool:
+    """Whether to take Ctrl-C with our own handler: only the main thread can, and a SIGINT
+    the parent left ignored (``nohup ... &``) stays ignored."""
+    return threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN
+
+
 @contextlib.contextmanager
 def _sigint_held():
     """Hold Ctrl-C back while a local cluster starts; yields a list that is non-empty if one came.
@@ -492,12 +495,9 @@ def _sigint_held():
     start with SIGINT blocked and do not die of a Ctrl-C while they import (dask_setup then
     ignores it for good).
     """
-    import signal
-    import threading
-
     got: list[bool] = []
-    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
-        yield got  # off the main thread nothing can be done; ignored (nohup ... &): leave it so
+    if not _sigint_catchable():
+        yield got
         return
     old_handler = signal.signal(signal.SIGINT, lambda signum, frame: got.append(True))
     mask = None
@@ -757,7 +757,7 @@ def _collect(client, info, pipe, entries, todo, records, progress, ascii, stage_
     # traceback from distributed.utils.sync's cancel callback)
     stop: list[bool] = []
     old_handler = None
-    if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
+    if _sigint_catchable():
         old_handler = signal.signal(signal.SIGINT, lambda signum, frame: stop.append(True))
 
     def finished():
