@@ -31,16 +31,40 @@ def _points32(origin, h, shape) -> np.ndarray:
     return out.reshape(-1, 3)
 
 
+def _grid_rows(mesh, label: str, res: int, repeat: int) -> list[dict]:
+    """Our whole sdf stage, --sign winding and pseudonormal, against Open3D's signed distance
+    on the same res^3 grid: two rows."""
+    from recon_cli.backends.open3d_backend import signed_distance
+    from recon_cli.sdf import grid_frame, run_stage
+
+    v = mesh.vertices
+    o, h, s = grid_frame(v.min(0), v.max(0), res)
+
+    def ours_fn(sign):
+        return lambda: float(np.abs(run_stage(mesh, resolution=res, sign=sign).output.sdf).sum(dtype=np.float64))
+
+    ref = measure(lambda: float(np.abs(signed_distance(mesh, _points32(o, h, s))).sum()), repeat=repeat)
+    ours = measure(ours_fn("winding"), repeat=repeat)
+    ours_pn = measure(ours_fn("pseudonormal"), repeat=repeat)
+    case = f"{label}, {res}^3 grid ({'x'.join(map(str, s))} = {int(np.prod(s)) / 1e6:.1f}M samples)"
+    target = "; issue target: time ratio <= 1" if res == 256 else ""
+    note = "RaycastingScene.compute_signed_distance" + target + "; " + CLOSED
+    return [
+        row("sdf", case + " --sign winding", ours, "open3d", ref, note=note),
+        row("sdf", case + " --sign pseudonormal", ours_pn, "open3d", ref, note=target.lstrip("; ")),
+    ]
+
+
 def rows(quick: bool) -> list[dict]:
     import numba
 
     # measurements fork after the warm-up: GNU OpenMP (numba's default layer here) aborts
     # on fork, the workqueue layer does not (must be chosen before the first parallel call)
     numba.config.THREADING_LAYER = "workqueue"
-    from recon_cli.backends.open3d_backend import signed_distance, unsigned_distance
+    from recon_cli.backends.open3d_backend import unsigned_distance
     from recon_cli.distance import closest_points
     from recon_cli.io import read_ply
-    from recon_cli.sdf import grid_frame, run_stage
+    from recon_cli.sdf import run_stage
 
     mesh = read_ply(DATA / "armadillo.ply")
     v, f = mesh.vertices, mesh.faces
@@ -49,35 +73,13 @@ def rows(quick: bool) -> list[dict]:
     run_stage(mesh, resolution=8, sign="pseudonormal")
     out = []
     for res in [64] if quick else [128, 256]:
-        o, h, s = grid_frame(v.min(0), v.max(0), res)
-        repeat = 1 if res >= 256 else (2 if quick else 3)
-
-        def ours_fn(sign):
-            return lambda: float(np.abs(run_stage(mesh, resolution=res, sign=sign).output.sdf).sum(dtype=np.float64))
-
-        ref = measure(lambda: float(np.abs(signed_distance(mesh, _points32(o, h, s))).sum()), repeat=repeat)
-        ours = measure(ours_fn("winding"), repeat=repeat)
-        ours_pn = measure(ours_fn("pseudonormal"), repeat=repeat)
-        case = f"armadillo 50k faces, {res}^3 grid ({'x'.join(map(str, s))} = {int(np.prod(s)) / 1e6:.1f}M samples)"
-        target = "; issue target: time ratio <= 1" if res == 256 else ""
-        note = "RaycastingScene.compute_signed_distance" + target + "; " + CLOSED
-        out.append(row("sdf", case + " --sign winding", ours, "open3d", ref, note=note))
-        out.append(row("sdf", case + " --sign pseudonormal", ours_pn, "open3d", ref, note=target.lstrip("; ")))
+        out += _grid_rows(mesh, "armadillo 50k faces", res, 1 if res >= 256 else (2 if quick else 3))
     if not quick:
         # a small mesh with large triangles (10k faces): Open3D's per-sample cost falls with
         # the face count faster than ours does, so this is the harder comparison
         mug = read_ply(DATA / "mug.ply")
         run_stage(mug, resolution=8)
-        o, h, s = grid_frame(mug.vertices.min(0), mug.vertices.max(0), 256)
-        ref = measure(lambda: float(np.abs(signed_distance(mug, _points32(o, h, s))).sum()), repeat=1)
-        ours = measure(lambda: float(np.abs(run_stage(mug, resolution=256).output.sdf).sum(dtype=np.float64)), repeat=1)
-        ours_pn = measure(
-            lambda: float(np.abs(run_stage(mug, resolution=256, sign="pseudonormal").output.sdf).sum(dtype=np.float64)),
-            repeat=1,
-        )
-        case = f"mug 10k faces, 256^3 grid ({'x'.join(map(str, s))} = {int(np.prod(s)) / 1e6:.1f}M samples)"
-        out.append(row("sdf", case + " --sign winding", ours, "open3d", ref, note="issue target: time ratio <= 1; " + CLOSED))
-        out.append(row("sdf", case + " --sign pseudonormal", ours_pn, "open3d", ref, note="issue target: time ratio <= 1"))
+        out += _grid_rows(mug, "mug 10k faces", 256, 1)
     # closest points on random queries (the API `recon diff` uses)
     rng = np.random.default_rng(0)
     lo, hi = v.min(0), v.max(0)
