@@ -13,22 +13,7 @@ import statistics
 import time
 from typing import Any, Callable
 
-
-def _rss_kb(field: str) -> int:
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith(field + ":"):
-                return int(line.split()[1])
-    return 0
-
-
-def _reset_hwm() -> None:
-    # writing 5 to clear_refs resets VmHWM to the current RSS (Linux >= 4.0)
-    try:
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")
-    except OSError:
-        pass
+from recon_cli import memory
 
 
 def _trim_heap() -> None:
@@ -38,14 +23,10 @@ def _trim_heap() -> None:
     are already resident: its allocations then never raise its peak RSS, and the memory
     figure reads far too low.
     """
-    import ctypes
     import gc
 
     gc.collect()
-    try:
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except OSError:  # not glibc
-        pass
+    memory.release_free_heap()
 
 
 def measure_once(fn: Callable[[], Any]) -> tuple[float, float, Any]:
@@ -56,12 +37,12 @@ def measure_once(fn: Callable[[], Any]) -> tuple[float, float, Any]:
     if pid == 0:  # child
         os.close(r)
         try:
-            _reset_hwm()
-            base = _rss_kb("VmRSS")
+            memory.reset_peak()
+            base = memory.rss_mb() or 0.0
             t0 = time.perf_counter()
             out = fn()
             dt = time.perf_counter() - t0
-            peak = max(0, _rss_kb("VmHWM") - base) / 1024.0
+            peak = max(0.0, (memory.peak_mb() or 0.0) - base)
             try:
                 payload = pickle.dumps((dt, peak, out))
             except Exception:

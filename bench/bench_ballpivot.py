@@ -27,9 +27,9 @@ def _boundary(faces: np.ndarray) -> int:
 
 
 def _cloud(n: int):
-    from conftest import load_shared
+    from recon_cli.mesh.sampling import sample_surface
 
-    from recon_cli.sampling import sample_surface
+    from shared_data import load_shared
 
     return sample_surface(load_shared(MESH), n, seed=0)
 

@@ -27,7 +27,7 @@ PIPELINE = '[[stage]]\nname = "normals"\nknn = 30\norient = "mst"\n'
 
 def _inputs(folder: str, quick: bool) -> list[str]:
     from recon_cli.io.ply import read_ply, write_ply
-    from recon_cli.sampling import sample_surface
+    from recon_cli.mesh.sampling import sample_surface
 
     paths = []
     for name in ("bunny_scan_000", "stereo_fragment"):

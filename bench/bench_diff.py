@@ -47,7 +47,7 @@ def meshes(levels: int):
 def rows(quick: bool) -> list[dict]:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     from recon_cli.backends import pymeshlab_backend as pml
-    from recon_cli.metrics import _distances, _samples_of, compare_meshes
+    from recon_cli.eval.metrics import compare_meshes, samples_of, surface_distances
 
     levels = 1 if quick else 2
     n = 200_000 if quick else 1_000_000
@@ -58,10 +58,10 @@ def rows(quick: bool) -> list[dict]:
     measure_once(lambda: compare_meshes(cand, ref, samples=1000)["accuracy"])
 
     def ours_distances():
-        a, _ = _samples_of(cand, n, 0)
-        b, _ = _samples_of(ref, n, 1)
-        da, _ = _distances(a, ref)
-        db, _ = _distances(b, cand)
+        a, _ = samples_of(cand, n, 0)
+        b, _ = samples_of(ref, n, 1)
+        da, _ = surface_distances(a, ref)
+        db, _ = surface_distances(b, cand)
         return {"mean": float(da.mean()), "max": float(max(da.max(), db.max()))}
 
     def ours_full():

@@ -38,7 +38,7 @@ DEPTH = 9
 
 def _cloud(n: int):
     from recon_cli.io.ply import read_ply
-    from recon_cli.sampling import sample_surface
+    from recon_cli.mesh.sampling import sample_surface
 
     return sample_surface(read_ply(SHARED / "armadillo.ply"), n, seed=0)
 

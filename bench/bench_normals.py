@@ -23,7 +23,7 @@ from _util import measure, measure_once, row  # noqa: E402
 
 
 def _cloud(name: str, n: int, noise: float):
-    from conftest import sampled_cloud
+    from shared_data import sampled_cloud
 
     return sampled_cloud(name, n, noise)
 

@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def _cloud(n: int, name: str = "armadillo"):
     from recon_cli.io import read_ply
-    from recon_cli.sampling import sample_surface
+    from recon_cli.mesh.sampling import sample_surface
 
     shared = ROOT.parent / "shared" / "data" / f"{name}.ply"
     return sample_surface(read_ply(shared), n, seed=0)

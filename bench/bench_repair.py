@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 def damaged_mesh(copies: int):
     import mesh_damage as D
-    from conftest import load_shared
+    from shared_data import load_shared
 
     m = D.tile(load_shared("armadillo"), copies)
     rng = np.random.default_rng(0)
@@ -42,8 +42,8 @@ def damaged_mesh(copies: int):
 
 def rows(quick: bool) -> list[dict]:
     from recon_cli.backends import pymeshlab_backend
+    from recon_cli.mesh.topology import report
     from recon_cli.repair import repair
-    from recon_cli.topology import report
 
     copies = 4 if quick else 20
     rep = 1 if quick else 3

@@ -62,8 +62,8 @@ def rows(quick: bool) -> list[dict]:
     # on fork, the workqueue layer does not (must be chosen before the first parallel call)
     numba.config.THREADING_LAYER = "workqueue"
     from recon_cli.backends.open3d_backend import unsigned_distance
-    from recon_cli.distance import closest_points
     from recon_cli.io import read_ply
+    from recon_cli.mesh.distance import closest_points
     from recon_cli.sdf import run_stage
 
     mesh = read_ply(DATA / "armadillo.ply")

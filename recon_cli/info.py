@@ -4,7 +4,7 @@ Keys (PLY): ``file``, ``kind`` ("point_cloud" or "mesh"), ``format``, ``vertices
 ``faces``, ``elements`` (name -> count), ``properties`` (element -> list of
 "type name"), ``bbox`` ({"min", "max", "diagonal"}), ``has_normals``, ``has_colors``,
 ``history`` (provenance lines), and for meshes ``topology`` (see
-:func:`recon_cli.topology.report` when available).
+:func:`recon_cli.mesh.topology.report` when available).
 Keys (grid): ``file``, ``kind`` ("grid"), ``shape``, ``origin``, ``voxel_size``,
 ``unknown_cells``, ``range``, ``eikonal``, ``history``.
 """
@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from recon_cli.geometry import TriangleMesh, bbox_diagonal
-from recon_cli.grid import is_npz, read_grid
+from recon_cli.io.npz import is_npz, read_grid
 from recon_cli.io.ply import parse_ply, ply_to_geometry, read_bytes
 
 
@@ -50,7 +50,7 @@ def describe(path: str | os.PathLike) -> dict[str, Any]:
     }
     if isinstance(geom, TriangleMesh):
         try:
-            from recon_cli.topology import report as topology_report
+            from recon_cli.mesh.topology import report as topology_report
         except ModuleNotFoundError:
             topology_report = None
         if topology_report is not None:

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from recon_cli.geometry import TriangleMesh
-from recon_cli.sampling import face_normals
+from recon_cli.mesh.sampling import face_normals
 
 
 def _with(m: TriangleMesh, faces: np.ndarray, vertices: np.ndarray | None = None) -> TriangleMesh:

@@ -12,14 +12,15 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from conftest import ALL_MESHES, load_shared, sampled_cloud
-from recon_cli import topology
 from recon_cli.backends import open3d_backend, pymeshlab_backend
 from recon_cli.ballpivot import auto_radii, ball_pivoting, nn_spacing, run_stage
 from recon_cli.errors import InputError, ParameterError, StageFailed
 from recon_cli.geometry import PointCloud, TriangleMesh, bbox_diagonal
-from recon_cli.sampling import face_normals, sample_surface
+from recon_cli.mesh import topology
+from recon_cli.mesh.sampling import face_normals, sample_surface
 from recon_cli.stages import apply_stage
+
+from shared_data import ALL_MESHES, load_shared, sampled_cloud
 
 
 # ---------------------------------------------------------------- helpers

@@ -20,17 +20,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import shared_path
+from shared_data import shared_path
 
 TESTS = str(Path(__file__).resolve().parent)
 if TESTS not in sys.path:  # the workers (spawned) inherit sys.path and import _batch_stages from here
     sys.path.insert(0, TESTS)
 
-from _batch_stages import EXTRA_STAGES  # noqa: E402
-
 from recon_cli import batch  # noqa: E402
 from recon_cli.errors import InputError, ParameterError  # noqa: E402
 from recon_cli.progress import Progress  # noqa: E402
+
+from _batch_stages import EXTRA_STAGES  # noqa: E402
 
 
 @pytest.fixture
@@ -164,8 +164,8 @@ def test_temporaries_of_a_dead_write_are_removed(tmp_path):
 
 
 def test_process_one_ok_failed_and_grid(tmp_path, test_stages):
-    from recon_cli.grid import read_grid
     from recon_cli.io import read_ply
+    from recon_cli.io.npz import read_grid
     from recon_cli.pipeline import load_pipeline
 
     pipe = load_pipeline(_pipeline(tmp_path / "p.toml", '[[stage]]\nname = "t_centre"\nfail_above = 38000\n'))

@@ -6,13 +6,13 @@ import json
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from conftest import ROOT, shared_path
 from recon_cli.io.ply import read_ply
+
+from shared_data import ROOT, shared_path
 
 RECON = [sys.executable, "-m", "recon_cli.cli.main"]
 

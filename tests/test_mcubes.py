@@ -9,8 +9,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from recon_cli import _mcubes_luts as L
 from recon_cli.errors import InputError, ParameterError
+from recon_cli.mcubes import _luts as L
 from recon_cli.mcubes import marching_cubes, marching_cubes_sparse
 
 
@@ -175,8 +175,8 @@ def test_sphere_closed_outward_and_accurate():
 
 
 def test_cross_check_skimage():
-    from skimage.measure import marching_cubes as sk_mc
     from scipy.spatial import cKDTree
+    from skimage.measure import marching_cubes as sk_mc
 
     rng = np.random.default_rng(3)
     x = np.linspace(-1, 1, 40)
@@ -202,7 +202,7 @@ def test_cross_check_skimage():
     d2, _ = cKDTree(ce).query(cs)
     assert max(d1.max(), d2.max()) < 1e-3 * h + 1e-6  # the same crossings (float32 in skimage)
     # surface Chamfer: face centres of each mesh to the other surface
-    from recon_cli.distance import closest_points
+    from recon_cli.mesh.distance import closest_points
 
     da, _, _ = closest_points(vs, fs, v[f].mean(axis=1))
     db, _, _ = closest_points(v, f, vs[fs].mean(axis=1))
@@ -346,8 +346,9 @@ def test_run_stage_and_cli(tmp_path):
     from click.testing import CliRunner
 
     from recon_cli.cli.main import cli
-    from recon_cli.grid import Grid, write_grid
+    from recon_cli.grid import Grid
     from recon_cli.io import read_ply
+    from recon_cli.io.npz import write_grid
     from recon_cli.stages import apply_stage
 
     vol, h = sphere(32)

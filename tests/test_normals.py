@@ -6,15 +6,16 @@ import json
 
 import numpy as np
 import pytest
-from conftest import ALL_MESHES, CLOSED_MESHES, load_shared, sampled_cloud
 from scipy.spatial import cKDTree
 
 from recon_cli.backends import open3d_backend
 from recon_cli.errors import InputError, ParameterError
 from recon_cli.geometry import PointCloud
+from recon_cli.mesh.sampling import face_normals
 from recon_cli.normals import estimate_normals, orient_normals, run_stage
-from recon_cli.sampling import face_normals
 from recon_cli.stages import apply_stage
+
+from shared_data import ALL_MESHES, CLOSED_MESHES, load_shared, sampled_cloud
 
 NOISE = 0.0025  # 0.25 % of the bbox diagonal
 

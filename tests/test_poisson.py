@@ -9,13 +9,14 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from conftest import CLOSED_MESHES, load_shared, sampled_cloud
 from recon_cli.backends import open3d_backend
 from recon_cli.errors import InputError, ParameterError
 from recon_cli.geometry import PointCloud, bbox_diagonal
+from recon_cli.mesh.sampling import sample_surface
+from recon_cli.mesh.topology import report as topology_report
 from recon_cli.poisson import run_stage, screened_poisson
-from recon_cli.sampling import sample_surface
-from recon_cli.topology import report as topology_report
+
+from shared_data import CLOSED_MESHES, load_shared, sampled_cloud
 
 N_EVAL = 100_000
 

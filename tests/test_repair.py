@@ -8,15 +8,16 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
-import mesh_damage as D
-from conftest import CLOSED_MESHES, load_shared, sampled_cloud, shared_path
 from recon_cli.backends import open3d_backend, pymeshlab_backend
 from recon_cli.errors import InputError, ParameterError
 from recon_cli.geometry import TriangleMesh, bbox_diagonal
+from recon_cli.mesh.sampling import sample_surface
+from recon_cli.mesh.topology import boundary_loops, report
 from recon_cli.repair import repair, run_stage
-from recon_cli.sampling import sample_surface
 from recon_cli.stages import apply_stage
-from recon_cli.topology import boundary_loops, report
+
+import mesh_damage as D
+from shared_data import CLOSED_MESHES, load_shared, sampled_cloud, shared_path
 
 DAMAGE = {
     "flips": lambda m, rng: D.flip_faces(m, rng, 0.1),

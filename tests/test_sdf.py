@@ -6,15 +6,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import ALL_MESHES, CLOSED_MESHES, load_shared, sampled_cloud
-from recon_cli.distance import closest_points
 from recon_cli.errors import InputError, ParameterError
 from recon_cli.geometry import PointCloud, TriangleMesh
 from recon_cli.grid import Grid
 from recon_cli.mcubes import marching_cubes
+from recon_cli.mesh.distance import closest_points
 from recon_cli.sdf import eikonal_check, grid_frame, grid_points, mesh_sdf
 from recon_cli.stages import apply_stage
-from test_distance import box_mesh, box_distance
+
+from shapes import box_distance, box_mesh
+from shared_data import ALL_MESHES, CLOSED_MESHES, load_shared, sampled_cloud
 
 
 def analytic_mesh(fn, n=48, lim=1.2):
@@ -101,8 +102,9 @@ def test_removed_patch_keeps_inside():
 def test_mesh_lists_cover_shared_data():
     """CLOSED_MESHES / ALL_MESHES are exactly the watertight / all meshes in ../shared/data,
     so the Open3D agreement and the round trip below run on every one of them."""
-    from conftest import SHARED
-    from recon_cli.topology import is_watertight
+    from recon_cli.mesh.topology import is_watertight
+
+    from shared_data import SHARED
 
     meshes, closed = set(), set()
     for path in sorted(SHARED.glob("*.ply")):
@@ -220,8 +222,8 @@ def test_validation_and_cli(tmp_path):
     from click.testing import CliRunner
 
     from recon_cli.cli.main import cli
-    from recon_cli.grid import read_grid
     from recon_cli.info import describe
+    from recon_cli.io.npz import read_grid
 
     v, f = box_mesh()
     mesh = TriangleMesh(vertices=v, faces=f)
@@ -266,7 +268,7 @@ def test_closed_mesh_winding_sign_is_pseudonormal_sign(name):
     pseudonormal sign (``sign_method``); it equals the generalised winding number's
     sign (evaluated here at every sample of a 64^3 grid) wherever the sample is off the
     surface."""
-    from recon_cli.winding import WindingTree
+    from recon_cli.mesh.winding import WindingTree
 
     m = load_shared(name)
     origin, h, shape = grid_frame(m.vertices.min(0), m.vertices.max(0), 64)

@@ -27,7 +27,7 @@ from recon_cli.cli import options
 def cmd(ctx, input, methods, ref, out_dir, samples, seed, tau, views, json_):
     """Run several methods on IN, time each, diff each against --ref; write DIR/report.md, report.html, results.json."""
     from recon_cli.cli._run import is_quiet, make_progress
-    from recon_cli.compare import _table, compare_methods, parse_methods
+    from recon_cli.eval.compare import compare_methods, parse_methods, result_table
     from recon_cli.stages import report_json
 
     result = compare_methods(
@@ -36,7 +36,7 @@ def cmd(ctx, input, methods, ref, out_dir, samples, seed, tau, views, json_):
     if json_:
         click.echo(report_json(result))
         return
-    head, body = _table(result)
+    head, body = result_table(result)
     widths = [max(len(c[i]) for c in [head, *body]) for i in range(len(head))]
     click.echo("  ".join(h.ljust(w) for h, w in zip(head, widths)))
     for cells in body:

@@ -6,7 +6,8 @@ import os
 from typing import Any
 
 from recon_cli.geometry import PointCloud, TriangleMesh
-from recon_cli.grid import Grid, is_npz, read_grid, write_grid
+from recon_cli.grid import Grid
+from recon_cli.io.npz import is_npz, read_grid, write_grid
 from recon_cli.io.ply import read_bytes, read_ply, write_ply
 
 

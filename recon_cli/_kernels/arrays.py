@@ -1,0 +1,22 @@
+"""Arrays that grow inside numba kernels (amortised doubling is the caller's choice of ``cap``)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def grow1(x, cap):
+    """A copy of 1-d ``x`` with capacity ``cap`` (the tail uninitialised)."""
+    y = np.empty(cap, x.dtype)
+    y[: x.shape[0]] = x
+    return y
+
+
+@njit(cache=True)
+def grow2(x, cap):
+    """A copy of 2-d ``x`` with ``cap`` rows (the tail uninitialised)."""
+    y = np.empty((cap, x.shape[1]), x.dtype)
+    y[: x.shape[0]] = x
+    return y

@@ -1,0 +1,74 @@
+"""Numba kernels of the software rasteriser: visibility only (no colour logic).
+
+Both kernels fill, per pixel, the nearest primitive's depth and index (z-buffer); the
+triangle kernel also fills the barycentric coordinates, from which :mod:`recon_cli.eval.render`
+interpolates colours or scalars with numpy.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def rasterize_triangles(sx, sy, sz, faces, depth, face_id, bary):
+    """Z-buffer the triangles ``faces`` with screen vertices (``sx``, ``sy``) and depth ``sz``.
+
+    A pixel (row i, column j) is covered when its centre (j + 0.5, i + 0.5) is inside the
+    triangle (either winding, so back faces of open meshes show). Smaller depth is nearer.
+    ``depth`` (H, W) starts at +inf, ``face_id`` (H, W) at -1; ``bary`` is (H, W, 3).
+    """
+    h, w = depth.shape
+    for f in range(faces.shape[0]):
+        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+        x0, y0, z0 = sx[a], sy[a], sz[a]
+        x1, y1, z1 = sx[b], sy[b], sz[b]
+        x2, y2, z2 = sx[c], sy[c], sz[c]
+        area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+        if area == 0.0 or not np.isfinite(area):
+            continue
+        # pixel range whose centres can be inside
+        jmin = max(int(np.ceil(min(x0, x1, x2) - 0.5)), 0)
+        jmax = min(int(np.floor(max(x0, x1, x2) - 0.5)), w - 1)
+        imin = max(int(np.ceil(min(y0, y1, y2) - 0.5)), 0)
+        imax = min(int(np.floor(max(y0, y1, y2) - 0.5)), h - 1)
+        inv = 1.0 / area
+        for i in range(imin, imax + 1):
+            py = i + 0.5
+            for j in range(jmin, jmax + 1):
+                px = j + 0.5
+                w0 = ((x1 - px) * (y2 - py) - (x2 - px) * (y1 - py)) * inv
+                w1 = ((x2 - px) * (y0 - py) - (x0 - px) * (y2 - py)) * inv
+                w2 = 1.0 - w0 - w1
+                if w0 < 0.0 or w1 < 0.0 or w2 < 0.0:
+                    continue
+                z = w0 * z0 + w1 * z1 + w2 * z2
+                if z < depth[i, j]:
+                    depth[i, j] = z
+                    face_id[i, j] = f
+                    bary[i, j, 0] = w0
+                    bary[i, j, 1] = w1
+                    bary[i, j, 2] = w2
+
+
+@njit(cache=True)
+def splat_points(sx, sy, sz, radius, depth, point_id):
+    """Z-buffer points drawn as discs of ``radius`` pixels (clouds)."""
+    h, w = depth.shape
+    r2 = radius * radius
+    for p in range(sx.shape[0]):
+        x, y, z = sx[p], sy[p], sz[p]
+        if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+            continue
+        jmin = max(int(np.ceil(x - radius - 0.5)), 0)
+        jmax = min(int(np.floor(x + radius - 0.5)), w - 1)
+        imin = max(int(np.ceil(y - radius - 0.5)), 0)
+        imax = min(int(np.floor(y + radius - 0.5)), h - 1)
+        for i in range(imin, imax + 1):
+            dy = i + 0.5 - y
+            for j in range(jmin, jmax + 1):
+                dx = j + 0.5 - x
+                if dx * dx + dy * dy <= r2 and z < depth[i, j]:
+                    depth[i, j] = z
+                    point_id[i, j] = p

@@ -1,0 +1,428 @@
+"""A small software renderer for ``recon diff --png`` and ``recon compare`` pictures.
+
+Orthographic projection from fixed views, a z-buffer rasteriser (numba kernel in
+:mod:`recon_cli.eval._render_kernel`), flat two-sided Lambert shading under a light near the
+camera, per-vertex scalars as a colour ramp (heatmaps) with a colour bar, and a tiny
+bitmap font for titles and labels. Pillow is used only to encode the PNG.
+
+Image arrays are (H, W, 3) uint8, row 0 at the top.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from recon_cli.errors import InputError, ParameterError
+from recon_cli.geometry import PointCloud, TriangleMesh, float64
+
+# name -> (azimuth, elevation) in degrees; y is up, azimuth 0 looks from +z towards -z
+VIEWS: dict[str, tuple[float, float]] = {
+    "front": (0.0, 0.0),
+    "back": (180.0, 0.0),
+    "right": (90.0, 0.0),
+    "left": (-90.0, 0.0),
+    "top": (0.0, 90.0),
+    "bottom": (0.0, -90.0),
+    "iso": (35.0, 25.0),
+}
+
+BACKGROUND = (255, 255, 255)
+BASE_COLOR = (0.74, 0.76, 0.80)
+_AMBIENT = 0.22
+# colour ramp of the heatmaps, low (blue) to high (red): (position, r, g, b)
+_RAMP = np.array(
+    [
+        [0.00, 25, 45, 150],
+        [0.20, 35, 110, 225],
+        [0.40, 45, 195, 215],
+        [0.60, 165, 220, 70],
+        [0.80, 250, 165, 35],
+        [1.00, 200, 25, 25],
+    ],
+    dtype=np.float64,
+)
+
+
+@dataclass
+class Rendering:
+    """One rendered panel.
+
+    Attributes
+    ----------
+    image : (H, W, 3) uint8
+    depth : (H, W) float64
+        Depth of the visible surface along the view direction (world units, smaller is
+        nearer), +inf where nothing is drawn.
+    mask : (H, W) bool
+        Covered pixels.
+    """
+
+    image: np.ndarray
+    depth: np.ndarray
+    mask: np.ndarray
+
+
+def camera(view: str | tuple[float, float]) -> np.ndarray:
+    """Rows right, up and towards-the-camera of a view, shape (3, 3).
+
+    Parameters
+    ----------
+    view : str or (azimuth, elevation)
+        A name of :data:`VIEWS` or angles in degrees.
+    """
+    if isinstance(view, str):
+        if view not in VIEWS:
+            raise ParameterError(f"unknown view {view!r} (views: {', '.join(VIEWS)})")
+        view = VIEWS[view]
+    az, el = np.radians(np.asarray(view, dtype=np.float64).reshape(2))
+    back = np.array([np.cos(el) * np.sin(az), np.sin(el), np.cos(el) * np.cos(az)])
+    up_ref = np.array([0.0, 1.0, 0.0])
+    right = np.cross(up_ref, back)
+    if np.linalg.norm(right) < 1e-9:  # looking straight down or up: keep -z/+z as "up"
+        right = np.cross(np.array([0.0, 0.0, -np.sign(back[1])]), back)
+    right /= np.linalg.norm(right)
+    up = np.cross(back, right)
+    return np.stack([right, up, back])
+
+
+def frame_of(objects: Sequence[TriangleMesh | PointCloud]) -> tuple[np.ndarray, float]:
+    """Centre (3,) and radius of a sphere holding every object, to frame them alike."""
+    pts = [float64(o).points for o in objects if len(o.points)]
+    if not pts:
+        raise InputError("nothing to render: every object is empty")
+    lo = np.min([p.min(axis=0) for p in pts], axis=0)
+    hi = np.max([p.max(axis=0) for p in pts], axis=0)
+    center = 0.5 * (lo + hi)
+    radius = float(max(np.sqrt(((p - center) ** 2).sum(axis=1).max()) for p in pts))
+    return center, radius if radius > 0 else 1.0
+
+
+def render(
+    obj: TriangleMesh | PointCloud,
+    view: str | tuple[float, float] = "iso",
+    size: tuple[int, int] = (320, 320),
+    frame: tuple[np.ndarray, float] | None = None,
+    scalars: np.ndarray | None = None,
+    vmin: float = 0.0,
+    vmax: float | None = None,
+    color: tuple[float, float, float] = BASE_COLOR,
+    supersample: int = 1,
+    point_radius: float | None = None,
+) -> Rendering:
+    """Render one mesh or cloud, shaded, or coloured by per-vertex ``scalars``.
+
+    Parameters
+    ----------
+    obj : TriangleMesh or PointCloud
+        A mesh without faces is drawn as its points.
+    view : str or (azimuth, elevation)
+        See :data:`VIEWS`.
+    size : (width, height)
+        Pixels.
+    frame : (center (3,), radius), optional
+        World sphere mapped to 92 % of the smaller image side (default: ``obj``'s own,
+        see :func:`frame_of`); pass the same frame to draw several objects at one scale.
+    scalars : (n,) float64, optional
+        Per-vertex values drawn with :func:`colormap` between ``vmin`` and ``vmax``
+        (default max: the largest value).
+    color : (r, g, b) in [0, 1]
+        Base colour of the shaded surface.
+    supersample : int
+        Render at this factor and average down (anti-aliasing); 1 for exact pixels.
+    point_radius : float, optional
+        Disc radius of cloud points in output pixels (default: about width / 250).
+
+    Returns
+    -------
+    Rendering
+        ``image``, ``depth`` and ``mask`` at ``size``.
+    """
+    from recon_cli.eval._render_kernel import rasterize_triangles, splat_points
+
+    width, height = (int(v) for v in size)
+    ss = int(supersample)
+    if width < 1 or height < 1 or ss < 1:
+        raise ParameterError(f"image size and supersample must be positive, got {size}, {supersample}")
+    if not isinstance(obj, (TriangleMesh, PointCloud)):
+        raise ParameterError(f"cannot render a {type(obj).__name__}")
+    obj = float64(obj)
+    if scalars is not None:
+        scalars = np.asarray(scalars, dtype=np.float64).reshape(-1)
+        if len(scalars) != len(obj.points):
+            raise ParameterError(f"{len(scalars)} scalars for {len(obj.points)} vertices")
+        if vmax is None:
+            vmax = float(scalars.max()) if len(scalars) else 1.0
+    center, radius = frame if frame is not None else frame_of([obj])
+    rot = camera(view)
+    w, h = width * ss, height * ss
+    scale = 0.46 * min(w, h) / radius
+    p = (obj.points - np.asarray(center, dtype=np.float64)) @ rot.T
+    sx = np.ascontiguousarray(w / 2 + p[:, 0] * scale)
+    sy = np.ascontiguousarray(h / 2 - p[:, 1] * scale)
+    sz = np.ascontiguousarray(-p[:, 2])
+    depth = np.full((h, w), np.inf)
+    index = np.full((h, w), -1, dtype=np.int64)
+    light = _light(rot)
+    img = np.empty((h, w, 3), dtype=np.float64)
+    img[:] = np.asarray(BACKGROUND, dtype=np.float64) / 255.0
+
+    if isinstance(obj, TriangleMesh) and len(obj.faces):
+        bary = np.zeros((h, w, 3), dtype=np.float64)
+        rasterize_triangles(sx, sy, sz, obj.faces, depth, index, bary)
+        mask = index >= 0
+        fid = index[mask]
+        fn = _face_normals(obj.vertices, obj.faces)
+        shade = _AMBIENT + (1 - _AMBIENT) * np.abs(fn[fid] @ light)
+        if scalars is None:
+            img[mask] = shade[:, None] * np.asarray(color, dtype=np.float64)
+        else:
+            value = np.einsum("ij,ij->i", bary[mask], scalars[obj.faces[fid]])
+            ramp = colormap(value, vmin, vmax).astype(np.float64) / 255.0
+            img[mask] = ramp * (0.55 + 0.45 * shade[:, None])
+    else:
+        r = (point_radius if point_radius is not None else max(1.0, width / 250.0)) * ss
+        splat_points(sx, sy, sz, float(r), depth, index)
+        mask = index >= 0
+        pid = index[mask]
+        if obj.normals is not None:
+            n = obj.normals[pid]
+            length = np.linalg.norm(n, axis=1)
+            cos = np.abs(n @ light) / np.where(length > 0, length, 1.0)
+            shade = np.where(length > 0, _AMBIENT + (1 - _AMBIENT) * cos, 0.8)
+        else:
+            shade = np.full(len(pid), 0.8)
+        if scalars is None:
+            img[mask] = shade[:, None] * np.asarray(color, dtype=np.float64)
+        else:
+            ramp = colormap(scalars[pid], vmin, vmax).astype(np.float64) / 255.0
+            img[mask] = ramp * (0.55 + 0.45 * shade[:, None])
+
+    if ss > 1:
+        img = img.reshape(height, ss, width, ss, 3).mean(axis=(1, 3))
+        cover = mask.reshape(height, ss, width, ss).mean(axis=(1, 3))
+        d = depth.reshape(height, ss, width, ss).min(axis=(1, 3))
+        mask = cover >= 0.5
+        depth = np.where(mask, d, np.inf)
+    else:
+        depth = np.where(mask, depth, np.inf)
+    image = np.clip(np.rint(img * 255.0), 0, 255).astype(np.uint8)
+    return Rendering(image=image, depth=depth, mask=mask)
+
+
+def colormap(values: np.ndarray, vmin: float, vmax: float) -> np.ndarray:
+    """Colours (n, 3) uint8 of ``values`` on the blue-to-red ramp, clipped to [vmin, vmax]."""
+    v = np.asarray(values, dtype=np.float64).reshape(-1)
+    span = float(vmax) - float(vmin)
+    t = (v - vmin) / span if span > 0 else np.zeros_like(v)
+    t = np.clip(np.nan_to_num(t, nan=0.0), 0.0, 1.0)
+    out = np.empty((len(v), 3), dtype=np.float64)
+    for k in range(3):
+        out[:, k] = np.interp(t, _RAMP[:, 0], _RAMP[:, 1 + k])
+    return np.rint(out).astype(np.uint8)
+
+
+def colorbar(height: int, vmin: float, vmax: float, width: int = 110, label: str = "") -> np.ndarray:
+    """A vertical colour bar (low at the bottom) with value labels, (height, width, 3) uint8."""
+    img = np.full((height, width, 3), 255, dtype=np.uint8)
+    top, bottom = 28, height - 16
+    bar = max(bottom - top, 2)
+    t = np.linspace(1.0, 0.0, bar)
+    img[top : top + bar, 8:26] = colormap(vmin + t * (vmax - vmin), vmin, vmax)[:, None, :]
+    img[top - 1, 7:27] = img[top + bar, 7:27] = 0
+    img[top : top + bar, 7] = img[top : top + bar, 26] = 0
+    for frac in (0.0, 0.25, 0.5, 0.75, 1.0):
+        y = top + int(round((1.0 - frac) * (bar - 1)))
+        img[y, 26:31] = 0
+        draw_text(img, _num(vmin + frac * (vmax - vmin)), 33, y - 5, scale=2)
+    if label:
+        draw_text(img, label, 4, 6, scale=2)
+    return img
+
+
+def comparison_image(
+    panels: Sequence[tuple[str, TriangleMesh | PointCloud, np.ndarray | None]],
+    views: Sequence[str | tuple[float, float]] = ("iso",),
+    panel_size: int = 320,
+    vmax: float | None = None,
+    supersample: int = 2,
+) -> np.ndarray:
+    """Meshes side by side, shaded, and under each one with distances its heatmap.
+
+    Parameters
+    ----------
+    panels : sequence of (title, mesh or cloud, distances or None)
+        One column each, in order (candidates then the reference); ``distances`` (n,)
+        per vertex gives the column a heatmap row.
+    views : sequence of view names or (azimuth, elevation)
+        One shaded row (and one heatmap row) per view.
+    panel_size : int
+        Width and height of a panel in pixels.
+    vmax : float, optional
+        Distance at the top of the shared colour scale (default: the largest value).
+    supersample : int
+        Anti-aliasing factor.
+
+    Returns
+    -------
+    (H, W, 3) uint8
+    """
+    if not panels:
+        raise ParameterError("nothing to draw")
+    s = int(panel_size)
+    if s < 32:
+        raise ParameterError(f"panel size must be at least 32 pixels, got {panel_size}")
+    frame = frame_of([p[1] for p in panels])
+    heat = [d for _, _, d in panels if d is not None]
+    if heat and vmax is None:
+        vmax = max(float(np.percentile(d, 99)) if len(d) else 0.0 for d in heat) or 1.0
+    title_h = 24
+    bar_w = 110 if heat else 0
+    rows = []
+    for view in views:
+        shaded = [render(obj, view, (s, s), frame, supersample=supersample).image for _, obj, _ in panels]
+        rows.append(_titled_row(shaded, [t for t, _, _ in panels], title_h, bar_w))
+        if heat:
+            tiles, names = [], []
+            for title, obj, d in panels:
+                if d is None:
+                    tiles.append(np.full((s, s, 3), 255, dtype=np.uint8))
+                    names.append("")
+                else:
+                    tiles.append(render(obj, view, (s, s), frame, scalars=d, vmax=vmax, supersample=supersample).image)
+                    names.append(f"{title} distance")
+            row = _titled_row(tiles, names, title_h, 0)
+            bar = colorbar(s + title_h, 0.0, float(vmax), width=bar_w)
+            rows.append(np.concatenate([row, bar], axis=1))
+    width = max(r.shape[1] for r in rows)
+    rows = [np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0)), constant_values=255) for r in rows]
+    return np.concatenate(rows, axis=0)
+
+
+def png_bytes(image: np.ndarray) -> bytes:
+    """PNG encoding of an (H, W, 3) uint8 image (Pillow)."""
+    try:
+        from PIL import Image
+    except ImportError:
+        raise ParameterError("writing PNG needs Pillow: pip install 'recon[render]'") from None
+    arr = np.ascontiguousarray(image, dtype=np.uint8)
+    if arr.ndim != 3 or arr.shape[2] != 3:
+        raise ParameterError(f"expected an (H, W, 3) image, got shape {arr.shape}")
+    buf = io.BytesIO()
+    Image.fromarray(arr).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def write_png(image: np.ndarray, path: str | os.PathLike) -> None:
+    """Write ``image`` ((H, W, 3) uint8) to ``path`` as PNG, atomically."""
+    from recon_cli.io.atomic import write_bytes
+
+    write_bytes(path, png_bytes(image))
+
+
+def draw_text(img: np.ndarray, text: str, x: int, y: int, scale: int = 2, color=(20, 20, 20)) -> int:
+    """Draw ``text`` (upper-cased, 3x5 bitmap glyphs) into ``img`` in place; returns the end x."""
+    h, w = img.shape[:2]
+    for ch in text.upper():
+        glyph = _GLYPHS.get(ch, _GLYPHS["?"])
+        for r, line in enumerate(glyph):
+            for c, bit in enumerate(line):
+                if bit == "#":
+                    y0, x0 = y + r * scale, x + c * scale
+                    if 0 <= y0 and y0 + scale <= h and 0 <= x0 and x0 + scale <= w:
+                        img[y0 : y0 + scale, x0 : x0 + scale] = color
+        x += 4 * scale
+    return x
+
+
+# --------------------------------------------------------------------------- internals
+
+
+def _light(rot: np.ndarray) -> np.ndarray:
+    # a headlight raised and moved right a little, so facing surfaces are not all equally bright
+    d = rot[2] + 0.45 * rot[1] + 0.3 * rot[0]
+    return d / np.linalg.norm(d)
+
+
+def _face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    from recon_cli.mesh.sampling import face_normals
+
+    return face_normals(vertices, faces)[0]
+
+
+def _titled_row(tiles: list[np.ndarray], titles: list[str], title_h: int, pad_right: int) -> np.ndarray:
+    s_h, s_w = tiles[0].shape[:2]
+    out = np.full((s_h + title_h, len(tiles) * s_w + pad_right, 3), 255, dtype=np.uint8)
+    for k, (tile, title) in enumerate(zip(tiles, titles)):
+        out[title_h:, k * s_w : (k + 1) * s_w] = tile
+        max_chars = max(1, (s_w - 8) // 8)
+        text = title if len(title) <= max_chars else title[: max_chars - 1] + "-"
+        draw_text(out, text, k * s_w + 6, 6, scale=2)
+    return out
+
+
+def _num(v: float) -> str:
+    if v == 0:
+        return "0"
+    a = abs(v)
+    if 1e-3 <= a < 1e4:
+        return f"{v:.4g}"
+    return f"{v:.2e}"
+
+
+# 3x5 bitmap font, our own; rows top to bottom, '#' = ink
+_GLYPHS: dict[str, tuple[str, ...]] = {
+    "0": ("###", "#.#", "#.#", "#.#", "###"),
+    "1": (".#.", "##.", ".#.", ".#.", "###"),
+    "2": ("###", "..#", "###", "#..", "###"),
+    "3": ("###", "..#", "###", "..#", "###"),
+    "4": ("#.#", "#.#", "###", "..#", "..#"),
+    "5": ("###", "#..", "###", "..#", "###"),
+    "6": ("###", "#..", "###", "#.#", "###"),
+    "7": ("###", "..#", ".#.", ".#.", ".#."),
+    "8": ("###", "#.#", "###", "#.#", "###"),
+    "9": ("###", "#.#", "###", "..#", "###"),
+    "A": (".#.", "#.#", "###", "#.#", "#.#"),
+    "B": ("##.", "#.#", "##.", "#.#", "##."),
+    "C": (".##", "#..", "#..", "#..", ".##"),
+    "D": ("##.", "#.#", "#.#", "#.#", "##."),
+    "E": ("###", "#..", "##.", "#..", "###"),
+    "F": ("###", "#..", "##.", "#..", "#.."),
+    "G": (".##", "#..", "#.#", "#.#", ".##"),
+    "H": ("#.#", "#.#", "###", "#.#", "#.#"),
+    "I": ("###", ".#.", ".#.", ".#.", "###"),
+    "J": ("..#", "..#", "..#", "#.#", ".#."),
+    "K": ("#.#", "#.#", "##.", "#.#", "#.#"),
+    "L": ("#..", "#..", "#..", "#..", "###"),
+    "M": ("#.#", "###", "###", "#.#", "#.#"),
+    "N": ("##.", "#.#", "#.#", "#.#", "#.#"),
+    "O": (".#.", "#.#", "#.#", "#.#", ".#."),
+    "P": ("##.", "#.#", "##.", "#..", "#.."),
+    "Q": (".#.", "#.#", "#.#", "##.", ".##"),
+    "R": ("##.", "#.#", "##.", "#.#", "#.#"),
+    "S": (".##", "#..", ".#.", "..#", "##."),
+    "T": ("###", ".#.", ".#.", ".#.", ".#."),
+    "U": ("#.#", "#.#", "#.#", "#.#", "###"),
+    "V": ("#.#", "#.#", "#.#", "#.#", ".#."),
+    "W": ("#.#", "#.#", "###", "###", "#.#"),
+    "X": ("#.#", "#.#", ".#.", "#.#", "#.#"),
+    "Y": ("#.#", "#.#", ".#.", ".#.", ".#."),
+    "Z": ("###", "..#", ".#.", "#..", "###"),
+    ".": ("...", "...", "...", "...", ".#."),
+    ",": ("...", "...", "...", ".#.", "#.."),
+    "-": ("...", "...", "###", "...", "..."),
+    "_": ("...", "...", "...", "...", "###"),
+    "+": ("...", ".#.", "###", ".#.", "..."),
+    "=": ("...", "###", "...", "###", "..."),
+    "%": ("#.#", "..#", ".#.", "#..", "#.#"),
+    ":": ("...", ".#.", "...", ".#.", "..."),
+    "/": ("..#", "..#", ".#.", "#..", "#.."),
+    "(": (".#.", "#..", "#..", "#..", ".#."),
+    ")": (".#.", "..#", "..#", "..#", ".#."),
+    " ": ("...", "...", "...", "...", "..."),
+    "?": ("###", "..#", ".#.", "...", ".#."),
+}

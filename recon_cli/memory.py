@@ -1,0 +1,74 @@
+"""This process's memory: resident high-water mark, and giving freed heap back.
+
+One place for what the batch runner, ``recon compare``, the Poisson solver and the
+benchmarks measure. Linux figures come from ``/proc/self/status``; elsewhere the peak is
+the process's lifetime maximum (``getrusage``) and the reset is not possible.
+"""
+
+from __future__ import annotations
+
+import sys
+from typing import Any
+
+
+def status_kb(field: str) -> int | None:
+    """A ``/proc/self/status`` figure (``"VmRSS"``, ``"VmHWM"``, ...) in KiB, or None."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1])
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def rss_mb() -> float | None:
+    """Current resident memory in MiB (None where unknown)."""
+    kb = status_kb("VmRSS")
+    return None if kb is None else kb / 1024.0
+
+
+def peak_mb() -> float | None:
+    """Resident high-water mark in MiB: since the last :func:`reset_peak`, or the process's lifetime."""
+    kb = status_kb("VmHWM")
+    if kb is not None:
+        return kb / 1024.0
+    try:
+        import resource
+
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        return peak / (1024.0 * 1024.0) if sys.platform == "darwin" else peak / 1024.0
+    except (ImportError, OSError):  # pragma: no cover - non-POSIX
+        return None
+
+
+def reset_peak() -> bool:
+    """Reset the high-water mark to the current RSS (Linux >= 4.0); False where not possible."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:  # "5" resets VmHWM
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+_TRIM: Any = None
+
+
+def release_free_heap() -> None:
+    """Give freed heap memory back to the system (glibc's ``malloc_trim(0)``; elsewhere a no-op).
+
+    glibc serves arrays below its mmap threshold (up to 32 MB) from the heap, and freed
+    ones stay resident as holes that later, larger (mmapped) arrays cannot reuse.
+    """
+    global _TRIM
+    if _TRIM is None:
+        import ctypes
+
+        try:
+            _TRIM = ctypes.CDLL("libc.so.6").malloc_trim
+        except (OSError, AttributeError):  # not glibc
+            _TRIM = False
+    if _TRIM:
+        _TRIM(0)

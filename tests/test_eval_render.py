@@ -1,0 +1,148 @@
+"""recon_cli.eval.render: the software rasteriser, checked by pixels."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from recon_cli.errors import ParameterError
+from recon_cli.eval.render import (
+    BACKGROUND,
+    BASE_COLOR,
+    VIEWS,
+    camera,
+    colorbar,
+    colormap,
+    comparison_image,
+    png_bytes,
+    render,
+    write_png,
+)
+from recon_cli.geometry import PointCloud, TriangleMesh
+
+FRAME = (np.zeros(3), 1.0)  # world unit sphere -> 0.46 * side pixels
+
+
+def _sphere(radius, subdivisions=5, center=(0, 0, 0)):
+    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    return TriangleMesh(np.asarray(s.vertices) + np.asarray(center), np.asarray(s.faces))
+
+
+def _quad(x0, x1, y0, y1, z):
+    v = np.array([[x0, y0, z], [x1, y0, z], [x1, y1, z], [x0, y1, z]], dtype=np.float64)
+    return v, np.array([[0, 1, 2], [0, 2, 3]])
+
+
+def test_sphere_silhouette_area():
+    size = 400
+    px = 0.46 * size  # pixels per world unit with FRAME
+    for r, view in ((0.8, "front"), (0.5, "iso"), (0.3, "top")):
+        out = render(_sphere(r), view, (size, size), FRAME)
+        expected = np.pi * (r * px) ** 2
+        assert out.mask.sum() == pytest.approx(expected, rel=0.01)
+        # centred: the centroid of the silhouette is the image centre
+        ii, jj = np.nonzero(out.mask)
+        assert ii.mean() == pytest.approx(size / 2, abs=0.5) and jj.mean() == pytest.approx(size / 2, abs=0.5)
+
+
+def _centres(half_extent_px: float, size: int) -> int:
+    """Pixel centres j + 0.5 within size / 2 +- half_extent_px."""
+    lo, hi = size / 2 - half_extent_px, size / 2 + half_extent_px
+    return int(np.floor(hi - 0.5) - np.ceil(lo - 0.5) + 1)
+
+
+def test_box_silhouette_and_depth():
+    b = trimesh.creation.box(extents=(1.0, 0.5, 0.3))
+    mesh = TriangleMesh(np.asarray(b.vertices), np.asarray(b.faces))
+    size = 310  # box edges off the pixel centres (a centre on an edge counts as inside)
+    px = 0.46 * size
+    for view, (w, h) in (("front", (1.0, 0.5)), ("right", (0.3, 0.5)), ("top", (1.0, 0.3))):
+        out = render(mesh, view, (size, size), FRAME)
+        # exactly the pixel centres inside the projected rectangle, and its area
+        assert out.mask.sum() == _centres(w / 2 * px, size) * _centres(h / 2 * px, size), view
+        assert out.mask.sum() == pytest.approx(w * h * px * px, rel=0.03), view
+    front = render(mesh, "front", (size, size), FRAME)
+    # the visible front face is at z = +0.15, i.e. depth -0.15 along the view
+    assert np.allclose(front.depth[front.mask], -0.15)
+    # everything outside the silhouette is background
+    assert (front.image[~front.mask] == np.array(BACKGROUND, dtype=np.uint8)).all()
+
+
+def test_depth_order_of_overlapping_objects_does_not_depend_on_drawing_order():
+    vn, fn = _quad(-0.6, 0.2, -0.6, 0.2, 0.3)  # near (front view looks from +z)
+    vf, ff = _quad(-0.2, 0.6, -0.2, 0.6, -0.3)  # far, overlapping the near one
+    near_first = TriangleMesh(np.vstack([vn, vf]), np.vstack([fn, ff + 4]))
+    far_first = TriangleMesh(np.vstack([vf, vn]), np.vstack([ff, fn + 4]))
+    values_nf = np.r_[np.ones(4), np.zeros(4)]  # near = 1 (red end), far = 0 (blue end)
+    values_ff = np.r_[np.zeros(4), np.ones(4)]
+    a = render(near_first, "front", (200, 200), FRAME, scalars=values_nf, vmax=1.0)
+    b = render(far_first, "front", (200, 200), FRAME, scalars=values_ff, vmax=1.0)
+    assert np.array_equal(a.image, b.image)
+    px = 0.46 * 200
+    overlap = (100 + int(0.0 * px), 100 + int(0.0 * px))  # world (0, 0) is inside both
+    only_far = (100 - int(0.4 * px), 100 + int(0.4 * px))  # world (0.4, 0.4): row up, column right
+    red, blue = colormap(np.array([1.0, 0.0]), 0.0, 1.0).astype(int)
+    assert a.depth[overlap] == pytest.approx(-0.3)
+    assert a.depth[only_far] == pytest.approx(0.3)
+    # heat colours are shaded (0.55 + 0.45 * Lambert), so compare the hue: red dominates over the overlap
+    assert int(a.image[overlap][0]) > int(a.image[overlap][2]) and red[0] > red[2]
+    assert int(a.image[only_far][2]) > int(a.image[only_far][0]) and blue[2] > blue[0]
+
+
+def test_lambert_shading_of_a_facing_square():
+    v, f = _quad(-0.5, 0.5, -0.5, 0.5, 0.0)
+    out = render(TriangleMesh(v, f), "front", (64, 64), FRAME)
+    rot = camera("front")
+    light = rot[2] + 0.45 * rot[1] + 0.3 * rot[0]
+    cos = light[2] / np.linalg.norm(light)  # the square's normal is +z
+    shade = 0.22 + 0.78 * cos
+    expected = np.rint(255 * shade * np.asarray(BASE_COLOR)).astype(np.uint8)
+    assert (out.image[32, 32] == expected).all()
+    # a square turned away from the light is darker
+    tilted = TriangleMesh(v @ np.array([[np.cos(1.0), 0, np.sin(1.0)], [0, 1, 0], [-np.sin(1.0), 0, np.cos(1.0)]]), f)
+    t = render(tilted, "front", (64, 64), FRAME)
+    assert int(t.image[32, 32].sum()) != int(out.image[32, 32].sum())
+
+
+def test_point_cloud_is_splatted():
+    pts = np.array([[0.0, 0.0, 0.0], [0.5, 0.5, 0.0]])
+    out = render(PointCloud(points=pts), "front", (100, 100), FRAME, point_radius=2.0)
+    # two discs of radius 2 px: 12 or 13 pixel centres each
+    assert 20 <= out.mask.sum() <= 30
+    assert out.mask[50, 50] and out.mask[50 - 23, 50 + 23]
+
+
+def test_cameras_are_orthonormal():
+    for name in VIEWS:
+        r = camera(name)
+        np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(r) == pytest.approx(1.0)
+    with pytest.raises(ParameterError):
+        camera("sideways")
+
+
+def test_colormap_and_colorbar():
+    c = colormap(np.array([-1.0, 0.0, 0.5, 1.0, 9.0, np.nan]), 0.0, 1.0)
+    assert (c[0] == c[1]).all() and (c[3] == c[4]).all() and (c[5] == c[1]).all()
+    assert c[1][2] > c[1][0] and c[3][0] > c[3][2]  # blue low, red high
+    bar = colorbar(200, 0.0, 2.5)
+    assert bar.shape == (200, 110, 3)
+    column = bar[28:184, 16]
+    assert (column[0] == c[3]).all() and (column[-1] == c[1]).all()
+
+
+def test_comparison_image_layout_and_png_round_trip(tmp_path):
+    from PIL import Image
+
+    a, b = _sphere(1.0, 3), _sphere(0.9, 3)
+    d = np.full(len(a.vertices), 0.1)
+    img = comparison_image([("a", a, d), ("b", b, None)], views=("front", "iso"), panel_size=96, supersample=1)
+    assert img.shape == (2 * 2 * (96 + 24), 2 * 96 + 110, 3)
+    out = tmp_path / "x.png"
+    write_png(img, out)
+    back = np.asarray(Image.open(out).convert("RGB"))
+    assert np.array_equal(back, img)
+    assert png_bytes(img)[:8] == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(ParameterError):
+        comparison_image([])
