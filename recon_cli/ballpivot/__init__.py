@@ -168,6 +168,64 @@ def _prepare(points: Any, normals: Any) -> tuple[np.ndarray, np.ndarray, np.ndar
     return np.ascontiguousarray(pts[keep]), np.ascontiguousarray(nrm[keep] / length[keep, None]), keep
 
 
+def _grid_dims(rr: list[float], extent: np.ndarray, diagonal: float) -> np.ndarray:
+    """(len(rr), 3) int64 dimensions of each radius' search grid (cell = 2 r) over ``extent``."""
+    dims = np.empty((len(rr), 3), dtype=np.int64)
+    for i, r in enumerate(rr):
+        d = np.floor(extent / (2.0 * r)).astype(np.float64) + 1.0
+        if float(np.prod(d)) >= _MAX_GRID_CELLS:
+            raise ParameterError(f"radius {r:g} is too small for a cloud of extent {diagonal:g}")
+        dims[i] = d.astype(np.int64)
+    return dims
+
+
+def _spatial_order(pts: np.ndarray, lo: np.ndarray, r0: float, dims0: np.ndarray, diagonal: float):
+    """Indices of the distinct points in the cell order of the first grid, and the number of repeats left out.
+
+    Neighbours then sit close in memory; a point within ``tol.merge`` of the diagonal of an
+    earlier one is a repeat.
+    """
+    from recon_cli.ballpivot import _kernel as K
+
+    _, ustart, order, sorted_pts = K.build_grid(pts, lo, 2.0 * r0, dims0)
+    dup = K.mark_duplicates(ustart, order, sorted_pts, (tol.merge * diagonal) ** 2)
+    n_dup = int(dup.sum())
+    if n_dup:
+        order = order[~dup[order]]
+    if len(order) < 3:
+        raise InputError("ball pivoting needs at least 3 distinct points")
+    return order, n_dup
+
+
+def _pivot_passes(spts: np.ndarray, snrm: np.ndarray, rr: list[float], lo: np.ndarray, dims: np.ndarray,
+                  progress_cb: Any) -> tuple[np.ndarray, np.ndarray, int]:
+    """Run the kernel once per radius, then cut pinched fans and refill: (faces, stats, pinch faces removed).
+
+    Each radius continues from the previous triangles (its front may still glue the pinches
+    of the earlier passes); after the last radius, pinched fans are cut and the largest ball
+    gets up to :data:`REFILL_PASSES` more passes over the holes this leaves.
+    """
+    from recon_cli.ballpivot import _kernel as K
+
+    faces = np.empty((0, 3), dtype=np.int64)
+    stats = np.zeros(4, dtype=np.int64)
+    removed = 0
+    passes = list(range(len(rr))) + [len(rr) - 1] * REFILL_PASSES
+    for p, i in enumerate(passes):
+        faces, st = K.ball_pivot(spts, snrm, rr[i], lo, dims[i], faces)
+        stats += st
+        cut = -1
+        if p >= len(rr) - 1:
+            alive, cut = K.resolve_pinches(faces, len(spts))
+            faces = faces[alive]
+            removed += int(cut)
+        if progress_cb is not None:
+            progress_cb(1)
+        if cut == 0:
+            break
+    return faces, stats, removed
+
+
 def ball_pivoting(
     points: np.ndarray,
     normals: np.ndarray,
@@ -221,47 +279,11 @@ def ball_pivoting(
         parsed = auto_radii(pts)
     rr = _check_radii(parsed, diagonal)
     lo = pts.min(axis=0)
-    extent = pts.max(axis=0) - lo
-    dims = np.empty((len(rr), 3), dtype=np.int64)
-    for i, r in enumerate(rr):
-        d = np.floor(extent / (2.0 * r)).astype(np.float64) + 1.0
-        if float(np.prod(d)) >= _MAX_GRID_CELLS:
-            raise ParameterError(f"radius {r:g} is too small for a cloud of extent {diagonal:g}")
-        dims[i] = d.astype(np.int64)
-
-    from recon_cli.ballpivot import _kernel as K
-
-    # spatial order (by the cells of the first grid) so that neighbours sit close in memory;
-    # points repeating an earlier one (within tol.merge of the diagonal) are left out
-    _, ustart, order, sorted_pts = K.build_grid(pts, lo, 2.0 * rr[0], dims[0])
-    dup = K.mark_duplicates(ustart, order, sorted_pts, (tol.merge * diagonal) ** 2)
-    del sorted_pts
-    n_dup = int(dup.sum())
-    if n_dup:
-        order = order[~dup[order]]
-    if len(order) < 3:
-        raise InputError("ball pivoting needs at least 3 distinct points")
-    spts = np.ascontiguousarray(pts[order])
-    snrm = np.ascontiguousarray(nrm[order])
-    faces_local = np.empty((0, 3), dtype=np.int64)
-    stats = np.zeros(4, dtype=np.int64)
-    removed = 0
-    # each radius continues from the previous triangles (its front may still glue the
-    # pinches of the earlier passes); after the last radius, pinched fans are cut and the
-    # largest ball gets up to REFILL_PASSES more passes over the holes this leaves
-    passes = list(range(len(rr))) + [len(rr) - 1] * REFILL_PASSES
-    for p, i in enumerate(passes):
-        faces_local, st = K.ball_pivot(spts, snrm, rr[i], lo, dims[i], faces_local)
-        stats += st
-        cut = -1
-        if p >= len(rr) - 1:
-            alive, cut = K.resolve_pinches(faces_local, len(order))
-            faces_local = faces_local[alive]
-            removed += int(cut)
-        if progress_cb is not None:
-            progress_cb(1)
-        if cut == 0:
-            break
+    dims = _grid_dims(rr, pts.max(axis=0) - lo, diagonal)
+    order, n_dup = _spatial_order(pts, lo, rr[0], dims[0], diagonal)
+    faces_local, stats, removed = _pivot_passes(
+        np.ascontiguousarray(pts[order]), np.ascontiguousarray(nrm[order]), rr, lo, dims, progress_cb
+    )
     faces = keep[order[faces_local]].astype(np.int64)
     if not return_info:
         return faces

@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache directory, threading layer)
 from recon_cli._kernels.arrays import grow1, grow2
 from recon_cli._kernels.hashtable import probe
 from recon_cli._kernels.unionfind import find
@@ -176,9 +177,10 @@ def _ball_empty(pts, ids, cnt, cx, cy, cz, rho, i, j, k):
     return True
 
 
-# ---------------------------------------------------------------- edge hash
+# ---------------------------------------------------------------- growing state
 @njit(cache=True)
 def _rehash(ea, eb, ne, n, bits):
+    """The edge hash of edges ``0 .. ne-1`` in a table of ``1 << bits`` slots: (hkeys, hvals)."""
     hkeys = np.full(1 << bits, -1, np.int64)
     hvals = np.empty(1 << bits, np.int64)
     for e in range(ne):
@@ -191,6 +193,235 @@ def _rehash(ea, eb, ne, n, bits):
     return hkeys, hvals
 
 
+@njit(cache=True)
+def _grow_edges(ea, eb, eo, es, ec, ne, n, bits):
+    """The edge arrays at twice their capacity, the hash one bit larger: (ea, eb, eo, es, ec, hkeys, hvals, bits)."""
+    cap = 2 * ea.shape[0]
+    ea = grow1(ea, cap)
+    eb = grow1(eb, cap)
+    hkeys, hvals = _rehash(ea, eb, ne, n, bits + 1)
+    return ea, eb, grow1(eo, cap), grow1(es, cap), grow2(ec, cap), hkeys, hvals, bits + 1
+
+
+@njit(cache=True)
+def _grow_stack(queue, qh, qt):
+    """The ring ``queue`` (items ``qh .. qt-1`` mod its size) at twice its size, unwrapped: (queue, 0, qt - qh)."""
+    qcap = queue.shape[0]
+    nq = np.empty(2 * qcap, np.int64)
+    for t in range(qt - qh):
+        nq[t] = queue[(qh + t) & (qcap - 1)]
+    return nq, 0, qt - qh
+
+
+@njit(cache=True)
+def _put_face(faces, nf, used, u0, u1, u2):
+    """Write face (u0, u1, u2) at row ``nf`` (room reserved) and mark its corners used; returns ``nf + 1``."""
+    faces[nf, 0] = u0
+    faces[nf, 1] = u1
+    faces[nf, 2] = u2
+    used[u0] = True
+    used[u1] = True
+    used[u2] = True
+    return nf + 1
+
+
+@njit(cache=True, inline="always")
+def _edge_id(hkeys, hvals, bits, n, u, v):
+    """Id of the edge {u, v}, or -1."""
+    key = min(u, v) * n + max(u, v)
+    s = probe(hkeys, bits, key)
+    return hvals[s] if hkeys[s] == key else -1
+
+
+@njit(cache=True, inline="always")
+def _new_front_edge(ea, eb, eo, es, ec, hkeys, hvals, bits, bcount, n, e, u0, u1, u2, cx, cy, cz):
+    """Make edge ``e`` = u0 -> u1 of face (u0, u1, u2), with ball centre c, a front edge (room reserved)."""
+    key = min(u0, u1) * n + max(u0, u1)
+    s = probe(hkeys, bits, key)
+    hkeys[s] = key
+    hvals[s] = e
+    ea[e] = u0
+    eb[e] = u1
+    eo[e] = u2
+    ec[e, 0] = cx
+    ec[e, 1] = cy
+    ec[e, 2] = cz
+    es[e] = FRONT
+    bcount[u0] += 1
+    bcount[u1] += 1
+
+
+# ---------------------------------------------------------------- phases
+@njit(cache=True)
+def _edges_from_faces(faces0, n, ecap):
+    """Edge state of the triangles ``faces0``; one-face edges are BOUNDARY.
+
+    Returns (ea, eb, eo, es, ec, hkeys, hvals, bits, ne, used, bcount) with edge capacity ``ecap``.
+    """
+    used = np.zeros(n, np.bool_)
+    bcount = np.zeros(n, np.int32)
+    ea = np.empty(ecap, np.int64)
+    eb = np.empty(ecap, np.int64)
+    eo = np.empty(ecap, np.int64)
+    ec = np.empty((ecap, 3), np.float64)
+    es = np.empty(ecap, np.int8)
+    ne = 0
+    bits = 4
+    while (1 << bits) < 2 * ecap:
+        bits += 1
+    hkeys = np.full(1 << bits, -1, np.int64)
+    hvals = np.empty(1 << bits, np.int64)
+    for f in range(faces0.shape[0]):
+        for c in range(3):
+            u0 = faces0[f, c]
+            u1 = faces0[f, (c + 1) % 3]
+            used[u0] = True
+            key = min(u0, u1) * n + max(u0, u1)
+            sl = probe(hkeys, bits, key)
+            if hkeys[sl] == key:
+                e = hvals[sl]
+                es[e] = INNER
+                bcount[u0] -= 1
+                bcount[u1] -= 1
+            else:
+                hkeys[sl] = key
+                hvals[sl] = ne
+                ea[ne] = u0
+                eb[ne] = u1
+                eo[ne] = faces0[f, (c + 2) % 3]
+                es[ne] = BOUNDARY
+                bcount[u0] += 1
+                bcount[u1] += 1
+                ne += 1
+    return ea, eb, eo, es, ec, hkeys, hvals, bits, ne, used, bcount
+
+
+@njit(cache=True)
+def _requeue_boundary(pts, nrm, rho, grid, ea, eb, eo, es, ec, ne, buf, queue):
+    """Put back on the front the boundary edges whose face carries an empty ball of radius rho.
+
+    Their ids are written to ``queue`` (of capacity >= ne) from 0; returns their count.
+    """
+    ukeys, ustart, sidx, spts, lo, cell, dims = grid
+    qt = 0
+    for e in range(ne):
+        if es[e] != BOUNDARY:
+            continue
+        ok, cx, cy, cz = ball_center(pts, nrm, ea[e], eb[e], eo[e], rho, False)
+        if not ok:
+            continue
+        cnt = gather(ukeys, ustart, sidx, spts, lo, cell, dims, cx, cy, cz, rho, buf)
+        if not _ball_empty(pts, buf, cnt, cx, cy, cz, rho, ea[e], eb[e], eo[e]):
+            continue
+        es[e] = FRONT
+        ec[e, 0] = cx
+        ec[e, 1] = cy
+        ec[e, 2] = cz
+        queue[qt] = e
+        qt += 1
+    return qt
+
+
+@njit(cache=True)
+def _pivot(pts, nrm, rho, grid, buf, a, b, o, c0x, c0y, c0z):
+    """Pivot the ball resting on face (a, b, o) with centre c0 around edge a -> b.
+
+    Returns (k, cx, cy, cz): the first point the ball touches (-1 if none) and the ball's
+    centre there, resting on (b, a, k).
+    """
+    ukeys, ustart, sidx, spts, lo, cell, dims = grid
+    mx = 0.5 * (pts[a, 0] + pts[b, 0])
+    my = 0.5 * (pts[a, 1] + pts[b, 1])
+    mz = 0.5 * (pts[a, 2] + pts[b, 2])
+    ux = pts[b, 0] - pts[a, 0]
+    uy = pts[b, 1] - pts[a, 1]
+    uz = pts[b, 2] - pts[a, 2]
+    ul = np.sqrt(ux * ux + uy * uy + uz * uz)
+    ux /= ul
+    uy /= ul
+    uz /= ul
+    acx = c0x - mx
+    acy = c0y - my
+    acz = c0z - mz
+    rp = np.sqrt(acx * acx + acy * acy + acz * acz)
+    cnt = gather(ukeys, ustart, sidx, spts, lo, cell, dims, mx, my, mz, rp + rho, buf)
+    best = -1
+    bth = np.inf
+    bcx = 0.0
+    bcy = 0.0
+    bcz = 0.0
+    for t in range(cnt):
+        k = buf[t]
+        if k == a or k == b or k == o:
+            continue
+        ok, cx, cy, cz = ball_center(pts, nrm, b, a, k, rho, True)
+        if not ok:
+            continue
+        vx = cx - mx
+        vy = cy - my
+        vz = cz - mz
+        # signed angle from ac to v about u
+        sn = ux * (acy * vz - acz * vy) + uy * (acz * vx - acx * vz) + uz * (acx * vy - acy * vx)
+        cs = acx * vx + acy * vy + acz * vz
+        th = np.arctan2(sn, cs)
+        if th < -_ANGLE_EPS:
+            th += _TWO_PI
+        if th < bth:
+            bth = th
+            best = k
+            bcx = cx
+            bcy = cy
+            bcz = cz
+    return best, bcx, bcy, bcz
+
+
+@njit(cache=True)
+def _seed_triangle(pts, nrm, rho, grid, used, s, nbr):
+    """An empty-ball triangle (s, a, b) on unused points near unused point ``s``.
+
+    Returns (found, a, b, cx, cy, cz) with c the ball's centre.
+    """
+    ukeys, ustart, sidx, spts, lo, cell, dims = grid
+    cnt = gather(ukeys, ustart, sidx, spts, lo, cell, dims, pts[s, 0], pts[s, 1], pts[s, 2], 2.0 * rho, nbr)
+    # candidates: unused neighbours, nearest first
+    m = 0
+    d2 = np.empty(cnt, np.float64)
+    cand = np.empty(cnt, np.int64)
+    for t in range(cnt):
+        p = nbr[t]
+        if p == s or used[p]:
+            continue
+        dx = pts[p, 0] - pts[s, 0]
+        dy = pts[p, 1] - pts[s, 1]
+        dz = pts[p, 2] - pts[s, 2]
+        d2[m] = dx * dx + dy * dy + dz * dz
+        cand[m] = p
+        m += 1
+    if m < 2:
+        return False, -1, -1, 0.0, 0.0, 0.0
+    order = np.argsort(d2[:m])
+    m = min(m, SEED_CANDIDATES)
+    for i1 in range(m):
+        for i2 in range(i1 + 1, m):
+            a = cand[order[i1]]
+            b = cand[order[i2]]
+            dx = pts[a, 0] - pts[b, 0]
+            dy = pts[a, 1] - pts[b, 1]
+            dz = pts[a, 2] - pts[b, 2]
+            if dx * dx + dy * dy + dz * dz > 4.0 * rho * rho:
+                continue
+            ok, cx, cy, cz = ball_center(pts, nrm, s, a, b, rho, True)
+            if not ok:
+                a, b = b, a
+                ok, cx, cy, cz = ball_center(pts, nrm, s, a, b, rho, True)
+                if not ok:
+                    continue
+            if not _ball_empty(pts, nbr, cnt, cx, cy, cz, rho, s, a, b):
+                continue
+            return True, a, b, cx, cy, cz
+    return False, -1, -1, 0.0, 0.0, 0.0
+
+
 # ---------------------------------------------------------------- main loop
 @njit(cache=True)
 def ball_pivot(pts, nrm, rho, lo, dims, faces0):
@@ -198,7 +429,8 @@ def ball_pivot(pts, nrm, rho, lo, dims, faces0):
 
     The front state is rebuilt from ``faces0``: edges with one face are boundary edges; those
     whose face carries an empty ball of radius ``rho`` are put back on the front and pivoted
-    first, then seeds are searched among the unused points.
+    first. Each step then pivots the newest front edge; when the front is empty, the next
+    seed triangle is searched among the unused points (in grid order).
 
     Parameters
     ----------
@@ -222,336 +454,103 @@ def ball_pivot(pts, nrm, rho, lo, dims, faces0):
     """
     n = pts.shape[0]
     m0 = faces0.shape[0]
-    used = np.zeros(n, np.bool_)
-    bcount = np.zeros(n, np.int32)
-    fcap = max(2 * n + 64, m0 + 64)
-    faces = np.empty((fcap, 3), np.int64)
+    faces = np.empty((max(2 * n + 64, m0 + 64), 3), np.int64)
     faces[:m0] = faces0
     nf = m0
-    ecap = max(3 * n + 64, 2 * m0 + 64)
-    ea = np.empty(ecap, np.int64)
-    eb = np.empty(ecap, np.int64)
-    eo = np.empty(ecap, np.int64)
-    ec = np.empty((ecap, 3), np.float64)
-    es = np.empty(ecap, np.int8)
-    ne = 0
-    bits = 4
-    while (1 << bits) < 2 * ecap:
-        bits += 1
-    hkeys = np.full(1 << bits, -1, np.int64)
-    hvals = np.empty(1 << bits, np.int64)
-    for f in range(m0):
-        for c in range(3):
-            u0 = faces0[f, c]
-            u1 = faces0[f, (c + 1) % 3]
-            used[u0] = True
-            key = min(u0, u1) * n + max(u0, u1)
-            sl = probe(hkeys, bits, key)
-            if hkeys[sl] == key:
-                e = hvals[sl]
-                es[e] = INNER
-                bcount[u0] -= 1
-                bcount[u1] -= 1
-            else:
-                hkeys[sl] = key
-                hvals[sl] = ne
-                ea[ne] = u0
-                eb[ne] = u1
-                eo[ne] = faces0[f, (c + 2) % 3]
-                es[ne] = BOUNDARY
-                bcount[u0] += 1
-                bcount[u1] += 1
-                ne += 1
+    ea, eb, eo, es, ec, hkeys, hvals, bits, ne, used, bcount = _edges_from_faces(
+        faces0, n, max(3 * n + 64, 2 * m0 + 64)
+    )
     qcap = 1024
-    while qcap < n:
+    while qcap < n or qcap < ne:
         qcap *= 2
     queue = np.empty(qcap, np.int64)
-    qh = 0
-    qt = 0  # stack of edge ids: items at qh .. qt-1 (mod qcap), popped from qt
     buf = np.empty(n, np.int64)
     nbr = np.empty(n, np.int64)
     stats = np.zeros(4, np.int64)
-
     cell = 2.0 * rho
     ukeys, ustart, sidx, spts = build_grid(pts, lo, cell, dims)
+    grid = (ukeys, ustart, sidx, spts, lo, cell, dims)
 
     # boundary edges left by the smaller ball go back to the front if the new ball
     # resting on their face is empty
-    if ne > 0:
-        for e in range(ne):
-            if es[e] != BOUNDARY:
-                continue
-            ok, cx, cy, cz = ball_center(pts, nrm, ea[e], eb[e], eo[e], rho, False)
-            if not ok:
-                continue
-            cnt = gather(ukeys, ustart, sidx, spts, lo, cell, dims, cx, cy, cz, rho, buf)
-            if not _ball_empty(pts, buf, cnt, cx, cy, cz, rho, ea[e], eb[e], eo[e]):
-                continue
-            es[e] = FRONT
-            ec[e, 0] = cx
-            ec[e, 1] = cy
-            ec[e, 2] = cz
-            if qt - qh == qcap:
-                nq = np.empty(2 * qcap, np.int64)
-                for t in range(qt - qh):
-                    nq[t] = queue[(qh + t) & (qcap - 1)]
-                qt = qt - qh
-                qh = 0
-                qcap *= 2
-                queue = nq
-            queue[qt & (qcap - 1)] = e
-            qt += 1
-
+    qh = 0
+    qt = _requeue_boundary(pts, nrm, rho, grid, ea, eb, eo, es, ec, ne, buf, queue)
+    # the front: a stack of edge ids, items at qh .. qt-1 (mod its size), popped from qt
     s_iter = 0
     while True:
-        # ------------------------------------------------ expand the front
-        while qh != qt:
-            qt -= 1
-            e = queue[qt & (qcap - 1)]
-            if es[e] != FRONT:
-                continue
-            # room for one face, two edges, two queue items
-            if nf + 1 > fcap:
-                fcap *= 2
-                faces = grow2(faces, fcap)
-            if ne + 2 > ecap:
-                ecap *= 2
-                ea = grow1(ea, ecap)
-                eb = grow1(eb, ecap)
-                eo = grow1(eo, ecap)
-                es = grow1(es, ecap)
-                ec = grow2(ec, ecap)
-                bits += 1
-                hkeys, hvals = _rehash(ea, eb, ne, n, bits)
-            if qt - qh + 2 > qcap:
-                nq = np.empty(2 * qcap, np.int64)
-                for t in range(qt - qh):
-                    nq[t] = queue[(qh + t) & (qcap - 1)]
-                qt = qt - qh
-                qh = 0
-                qcap *= 2
-                queue = nq
-            a = ea[e]
-            b = eb[e]
-            o = eo[e]
-            mx = 0.5 * (pts[a, 0] + pts[b, 0])
-            my = 0.5 * (pts[a, 1] + pts[b, 1])
-            mz = 0.5 * (pts[a, 2] + pts[b, 2])
-            ux = pts[b, 0] - pts[a, 0]
-            uy = pts[b, 1] - pts[a, 1]
-            uz = pts[b, 2] - pts[a, 2]
-            ul = np.sqrt(ux * ux + uy * uy + uz * uz)
-            ux /= ul
-            uy /= ul
-            uz /= ul
-            acx = ec[e, 0] - mx
-            acy = ec[e, 1] - my
-            acz = ec[e, 2] - mz
-            rp = np.sqrt(acx * acx + acy * acy + acz * acz)
-            cnt = gather(ukeys, ustart, sidx, spts, lo, cell, dims, mx, my, mz, rp + rho, buf)
-            best = -1
-            bth = np.inf
-            bcx = 0.0
-            bcy = 0.0
-            bcz = 0.0
-            for t in range(cnt):
-                k = buf[t]
-                if k == a or k == b or k == o:
-                    continue
-                ok, cx, cy, cz = ball_center(pts, nrm, b, a, k, rho, True)
-                if not ok:
-                    continue
-                vx = cx - mx
-                vy = cy - my
-                vz = cz - mz
-                # signed angle from ac to v about u
-                sn = ux * (acy * vz - acz * vy) + uy * (acz * vx - acx * vz) + uz * (acx * vy - acy * vx)
-                cs = acx * vx + acy * vy + acz * vz
-                th = np.arctan2(sn, cs)
-                if th < -_ANGLE_EPS:
-                    th += _TWO_PI
-                if th < bth:
-                    bth = th
-                    best = k
-                    bcx = cx
-                    bcy = cy
-                    bcz = cz
-            if best < 0:
-                es[e] = BOUNDARY
-                continue
-            k = best
-            if used[k] and bcount[k] == 0:
-                es[e] = BOUNDARY
-                stats[3] += 1
-                continue
-            # new face (b, a, k): edges b->a (e), a->k, k->b
-            key1 = min(a, k) * n + max(a, k)
-            s1 = probe(hkeys, bits, key1)
-            e1 = hvals[s1] if hkeys[s1] == key1 else -1
-            if e1 >= 0 and (es[e1] == INNER or ea[e1] == a):
-                es[e] = BOUNDARY
-                stats[3] += 1
-                continue
-            key2 = min(k, b) * n + max(k, b)
-            s2 = probe(hkeys, bits, key2)
-            e2 = hvals[s2] if hkeys[s2] == key2 else -1
-            if e2 >= 0 and (es[e2] == INNER or ea[e2] == k):
-                es[e] = BOUNDARY
-                stats[3] += 1
-                continue
-            if used[k] and e1 < 0 and e2 < 0:
-                stats[1] += 1
-            faces[nf, 0] = b
-            faces[nf, 1] = a
-            faces[nf, 2] = k
-            nf += 1
-            used[k] = True
-            es[e] = INNER
-            bcount[a] -= 1
-            bcount[b] -= 1
-            if e1 >= 0:
-                es[e1] = INNER
-                bcount[a] -= 1
-                bcount[k] -= 1
-                stats[2] += 1
-            else:
-                hkeys[s1] = key1
-                hvals[s1] = ne
-                ea[ne] = a
-                eb[ne] = k
-                eo[ne] = b
-                ec[ne, 0] = bcx
-                ec[ne, 1] = bcy
-                ec[ne, 2] = bcz
-                es[ne] = FRONT
-                bcount[a] += 1
-                bcount[k] += 1
-                queue[qt & (qcap - 1)] = ne
-                qt += 1
-                ne += 1
-            if e2 >= 0:
-                es[e2] = INNER
-                bcount[k] -= 1
-                bcount[b] -= 1
-                stats[2] += 1
-            else:
-                s2 = probe(hkeys, bits, key2)  # e1's insertion may have taken the slot
-                hkeys[s2] = key2
-                hvals[s2] = ne
-                ea[ne] = k
-                eb[ne] = b
-                eo[ne] = a
-                ec[ne, 0] = bcx
-                ec[ne, 1] = bcy
-                ec[ne, 2] = bcz
-                es[ne] = FRONT
-                bcount[k] += 1
-                bcount[b] += 1
-                queue[qt & (qcap - 1)] = ne
-                qt += 1
-                ne += 1
+        # room for what one step adds at most: one face, three edges, three stack items
+        if nf + 1 > faces.shape[0]:
+            faces = grow2(faces, 2 * faces.shape[0])
+        if ne + 3 > ea.shape[0]:
+            ea, eb, eo, es, ec, hkeys, hvals, bits = _grow_edges(ea, eb, eo, es, ec, ne, n, bits)
+        if qt - qh + 3 > queue.shape[0]:
+            queue, qh, qt = _grow_stack(queue, qh, qt)
+        qmask = queue.shape[0] - 1
 
-        # ------------------------------------------------ next seed triangle
-        found = False
-        while s_iter < n and not found:
-            s = sidx[s_iter]
-            s_iter += 1
-            if used[s]:
-                continue
-            cnt = gather(ukeys, ustart, sidx, spts, lo, cell, dims, pts[s, 0], pts[s, 1], pts[s, 2], 2.0 * rho, nbr)
-            # candidates: unused neighbours, nearest first
-            m = 0
-            d2 = np.empty(cnt, np.float64)
-            cand = np.empty(cnt, np.int64)
-            for t in range(cnt):
-                p = nbr[t]
-                if p == s or used[p]:
-                    continue
-                dx = pts[p, 0] - pts[s, 0]
-                dy = pts[p, 1] - pts[s, 1]
-                dz = pts[p, 2] - pts[s, 2]
-                d2[m] = dx * dx + dy * dy + dz * dz
-                cand[m] = p
-                m += 1
-            if m < 2:
-                continue
-            order = np.argsort(d2[:m])
-            m = min(m, SEED_CANDIDATES)
-            for i1 in range(m):
-                if found:
-                    break
-                for i2 in range(i1 + 1, m):
-                    a = cand[order[i1]]
-                    b = cand[order[i2]]
-                    dx = pts[a, 0] - pts[b, 0]
-                    dy = pts[a, 1] - pts[b, 1]
-                    dz = pts[a, 2] - pts[b, 2]
-                    if dx * dx + dy * dy + dz * dz > 4.0 * rho * rho:
-                        continue
-                    ok, cx, cy, cz = ball_center(pts, nrm, s, a, b, rho, True)
-                    if not ok:
-                        a, b = b, a
-                        ok, cx, cy, cz = ball_center(pts, nrm, s, a, b, rho, True)
-                        if not ok:
-                            continue
-                    if not _ball_empty(pts, nbr, cnt, cx, cy, cz, rho, s, a, b):
-                        continue
-                    # seed face (s, a, b)
-                    found = True
-                    if nf + 1 > fcap:
-                        fcap *= 2
-                        faces = grow2(faces, fcap)
-                    if ne + 3 > ecap:
-                        ecap *= 2
-                        ea = grow1(ea, ecap)
-                        eb = grow1(eb, ecap)
-                        eo = grow1(eo, ecap)
-                        es = grow1(es, ecap)
-                        ec = grow2(ec, ecap)
-                        bits += 1
-                        hkeys, hvals = _rehash(ea, eb, ne, n, bits)
-                    if qt - qh + 3 > qcap:
-                        nq = np.empty(2 * qcap, np.int64)
-                        for t in range(qt - qh):
-                            nq[t] = queue[(qh + t) & (qcap - 1)]
-                        qt = qt - qh
-                        qh = 0
-                        qcap *= 2
-                        queue = nq
-                    faces[nf, 0] = s
-                    faces[nf, 1] = a
-                    faces[nf, 2] = b
-                    nf += 1
-                    used[s] = True
-                    used[a] = True
-                    used[b] = True
-                    stats[0] += 1
-                    for side in range(3):
-                        if side == 0:
-                            u0, u1, u2 = s, a, b
-                        elif side == 1:
-                            u0, u1, u2 = a, b, s
-                        else:
-                            u0, u1, u2 = b, s, a
-                        key = min(u0, u1) * n + max(u0, u1)
-                        sl = probe(hkeys, bits, key)
-                        hkeys[sl] = key
-                        hvals[sl] = ne
-                        ea[ne] = u0
-                        eb[ne] = u1
-                        eo[ne] = u2
-                        ec[ne, 0] = cx
-                        ec[ne, 1] = cy
-                        ec[ne, 2] = cz
-                        es[ne] = FRONT
-                        bcount[u0] += 1
-                        bcount[u1] += 1
-                        queue[qt & (qcap - 1)] = ne
-                        qt += 1
-                        ne += 1
-                    break
-        if not found:
-            break
+        if qh == qt:
+            # ---------------------------------------- the front is empty: next seed triangle
+            found = False
+            while s_iter < n and not found:
+                s = sidx[s_iter]
+                s_iter += 1
+                if not used[s]:
+                    found, a, b, cx, cy, cz = _seed_triangle(pts, nrm, rho, grid, used, s, nbr)
+            if not found:
+                break
+            nf = _put_face(faces, nf, used, s, a, b)
+            stats[0] += 1
+            for side in range(3):
+                u0, u1, u2 = (s, a, b) if side == 0 else ((a, b, s) if side == 1 else (b, s, a))
+                _new_front_edge(ea, eb, eo, es, ec, hkeys, hvals, bits, bcount, n, ne, u0, u1, u2, cx, cy, cz)
+                queue[qt & qmask] = ne
+                qt += 1
+                ne += 1
+            continue
+
+        # -------------------------------------------- pivot the newest front edge
+        qt -= 1
+        e = queue[qt & qmask]
+        if es[e] != FRONT:
+            continue
+        a = ea[e]
+        b = eb[e]
+        k, cx, cy, cz = _pivot(pts, nrm, rho, grid, buf, a, b, eo[e], ec[e, 0], ec[e, 1], ec[e, 2])
+        if k < 0:
+            es[e] = BOUNDARY
+            continue
+        if used[k] and bcount[k] == 0:
+            es[e] = BOUNDARY
+            stats[3] += 1
+            continue
+        # new face (b, a, k): edges b->a (e), a->k, k->b
+        e1 = _edge_id(hkeys, hvals, bits, n, a, k)
+        if e1 >= 0 and (es[e1] == INNER or ea[e1] == a):
+            es[e] = BOUNDARY
+            stats[3] += 1
+            continue
+        e2 = _edge_id(hkeys, hvals, bits, n, k, b)
+        if e2 >= 0 and (es[e2] == INNER or ea[e2] == k):
+            es[e] = BOUNDARY
+            stats[3] += 1
+            continue
+        if used[k] and e1 < 0 and e2 < 0:
+            stats[1] += 1
+        nf = _put_face(faces, nf, used, b, a, k)
+        es[e] = INNER
+        bcount[a] -= 1
+        bcount[b] -= 1
+        for side in range(2):
+            ex, u0, u1, u2 = (e1, a, k, b) if side == 0 else (e2, k, b, a)
+            if ex >= 0:  # glue: the edge gets its second face
+                es[ex] = INNER
+                bcount[u0] -= 1
+                bcount[u1] -= 1
+                stats[2] += 1
+            else:
+                _new_front_edge(ea, eb, eo, es, ec, hkeys, hvals, bits, bcount, n, ne, u0, u1, u2, cx, cy, cz)
+                queue[qt & qmask] = ne
+                qt += 1
+                ne += 1
     return faces[:nf].copy(), stats
 
 
