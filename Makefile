@@ -8,7 +8,7 @@ SAMPLE  := sample_data/bunny_scan_000.ply
 OUTDIR  := demo_output
 PYTEST_ARGS ?=
 
-.PHONY: all install sysdeps demo test test-fast bench clean
+.PHONY: all install sysdeps warmup demo test test-fast bench clean
 
 all: test
 
@@ -24,9 +24,14 @@ $(STAMP): pyproject.toml
 	@$(MAKE) --no-print-directory sysdeps
 	@[ -x $(PY) ] || python3 -m venv $(VENV)
 	$(PY) -m pip install -q --disable-pip-version-check -e ".[$(EXTRAS)]"
+	$(RECON) warmup
 	@touch $(STAMP)
 
 install: $(STAMP)
+
+# compile every numba kernel into the per-user cache (make install does it once; again after editing a kernel)
+warmup: $(STAMP)
+	$(RECON) warmup
 
 demo: $(STAMP)
 	@mkdir -p $(OUTDIR)

@@ -1,20 +1,40 @@
-"""Progress reporting for long steps, free of click.
+"""Progress reporting for long steps, free of click (bars drawn by `rich <https://rich.readthedocs.io>`_).
 
 The library takes an optional :class:`Progress`; the CLI makes one that draws on stderr
-only when stderr is a terminal and ``--quiet`` is off. ``None`` means silent.
+only when stderr is a terminal and ``--quiet`` is off. ``None`` means silent. Stages use
+:func:`task`::
+
+    with task(progress, "estimating normals", total=n) as t:
+        t.advance(k)          # weighted by work: ``total`` is in the stage's own units
+
+A task with a total shows a bar, the percentage, the elapsed time and an estimate of the
+time left; one without a total shows a spinner and the elapsed time. The display is
+redrawn by rich's own thread, so it keeps moving while a kernel runs.
+
+When numba has to compile a kernel (the first run after an install without
+``recon warmup``, or after an upgrade), an enabled :class:`Progress` says so on a line of
+its own ("compiling kernels, first run after install") for as long as compiling lasts,
+instead of a bar frozen at 0 %. A disabled one imports neither rich nor numba.
 """
 
 from __future__ import annotations
 
 import sys
-import time
-from typing import IO
+import threading
+from typing import IO, Any
+
+COMPILING = "compiling kernels, first run after install"
 
 
 class Progress:
-    """A minimal progress reporter.
+    """Progress bars on ``stream`` (default stderr), drawn only when ``enabled``.
 
-    Use ``with progress.task("estimating normals", total=n) as t: t.advance(k)``.
+    Parameters
+    ----------
+    stream : text stream or None
+        Where to draw (stderr by default).
+    enabled : bool or None
+        None: draw when ``stream`` is a terminal.
     """
 
     def __init__(self, stream: IO[str] | None = None, enabled: bool | None = None):
@@ -22,9 +42,104 @@ class Progress:
         if enabled is None:
             enabled = bool(getattr(self.stream, "isatty", lambda: False)())
         self.enabled = enabled
+        self._lock = threading.RLock()
+        self._bars: Any = None  # rich.progress.Progress while a task or a compile is shown
+        self._users = 0
+        self._compile_task: Any = None
+        self._compile_depth = 0
+        self._listener: Any = None
+        if enabled:
+            self._listen_to_numba()
 
     def task(self, name: str, total: float | None = None) -> "_Task":
+        """A context manager drawing one bar (or a spinner when ``total`` is None)."""
+        if not self.enabled:
+            return _Silent()  # type: ignore[return-value]
         return _Task(self, name, total)
+
+    def close(self) -> None:
+        """Stop listening to numba's compiler and clear the display."""
+        if self._listener is not None:
+            from numba.core import event
+
+            event.unregister("numba:compile", self._listener)
+            self._listener = None
+        with self._lock:
+            if self._bars is not None:
+                self._bars.stop()
+                self._bars = None
+                self._users = 0
+
+    # ---------------------------------------------------------------- display
+    def _acquire(self):
+        with self._lock:
+            if self._bars is None:
+                from rich.console import Console
+                from rich.progress import (
+                    BarColumn,
+                    SpinnerColumn,
+                    TaskProgressColumn,
+                    TextColumn,
+                    TimeElapsedColumn,
+                    TimeRemainingColumn,
+                )
+                from rich.progress import Progress as Bars
+
+                console = Console(file=self.stream, force_terminal=True, highlight=False)
+                self._bars = Bars(
+                    SpinnerColumn(),
+                    TextColumn("{task.description:<32}"),
+                    BarColumn(),
+                    TaskProgressColumn(),
+                    TimeElapsedColumn(),
+                    TextColumn("eta"),
+                    TimeRemainingColumn(),
+                    console=console,
+                    transient=False,
+                    refresh_per_second=8,
+                )
+                self._bars.start()
+            self._users += 1
+            return self._bars
+
+    def _release(self) -> None:
+        with self._lock:
+            self._users -= 1
+            if self._users <= 0 and self._bars is not None:
+                self._bars.stop()
+                self._bars = None
+                self._users = 0
+
+    # ---------------------------------------------------------------- numba
+    def _listen_to_numba(self) -> None:
+        from numba.core import event
+
+        owner = self
+
+        class _CompileListener(event.Listener):
+            def on_start(self, ev: Any) -> None:
+                owner._compile_started()
+
+            def on_end(self, ev: Any) -> None:
+                owner._compile_ended()
+
+        self._listener = _CompileListener()
+        event.register("numba:compile", self._listener)
+
+    def _compile_started(self) -> None:
+        with self._lock:
+            self._compile_depth += 1
+            if self._compile_depth == 1 and self._compile_task is None:
+                bars = self._acquire()
+                self._compile_task = bars.add_task(COMPILING, total=None)
+
+    def _compile_ended(self) -> None:
+        with self._lock:
+            self._compile_depth -= 1
+            if self._compile_depth == 0 and self._compile_task is not None:
+                self._bars.remove_task(self._compile_task)
+                self._compile_task = None
+                self._release()
 
 
 class _Task:
@@ -33,42 +148,34 @@ class _Task:
         self.name = name
         self.total = total
         self.done = 0.0
-        self.t0 = time.perf_counter()
-        self._last = 0.0
+        self._id: Any = None
 
     def __enter__(self) -> "_Task":
-        self._draw(force=True)
+        bars = self.p._acquire()
+        self._id = bars.add_task(self.name, total=self.total if self.total else None)
         return self
 
     def __exit__(self, *exc) -> None:
-        if self.total is not None:
-            self.done = self.total
-        self._draw(force=True, end=True)
+        bars = self.p._bars
+        if bars is not None and self._id is not None:
+            if self.total:
+                bars.update(self._id, completed=self.total)
+            else:  # a spinner task: show it finished
+                bars.update(self._id, total=1, completed=1)
+            bars.refresh()
+        self.p._release()
 
     def advance(self, amount: float = 1.0) -> None:
         self.done += amount
-        self._draw()
+        bars = self.p._bars
+        if bars is not None:
+            bars.update(self._id, completed=self.done)
 
     def update(self, done: float) -> None:
         self.done = done
-        self._draw()
-
-    def _draw(self, force: bool = False, end: bool = False) -> None:
-        if not self.p.enabled:
-            return
-        now = time.perf_counter()
-        if not force and now - self._last < 0.1:
-            return
-        self._last = now
-        elapsed = now - self.t0
-        if self.total:
-            frac = min(1.0, self.done / self.total)
-            bar = "#" * int(frac * 30)
-            text = f"\r{self.name:<28} [{bar:<30}] {frac * 100:5.1f}% {elapsed:6.1f}s"
-        else:
-            text = f"\r{self.name:<28} {elapsed:6.1f}s"
-        self.p.stream.write(text + ("\n" if end else ""))
-        self.p.stream.flush()
+        bars = self.p._bars
+        if bars is not None:
+            bars.update(self._id, completed=done)
 
 
 def task(progress: Progress | None, name: str, total: float | None = None):

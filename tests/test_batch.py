@@ -257,7 +257,8 @@ def test_batch_survives_a_killed_worker_then_rerun_skips_everything(tmp_path, te
         th.join(5)
     assert len(killed) == 1
     drawn = bar.getvalue()
-    assert drawn.startswith("\rbatch (3 inputs)") and "  0.0%" in drawn and drawn.rstrip().split("\r")[-1].count("100.0%") == 1
+    final = drawn.rstrip().split("\r")[-1]  # rich redraws the line; the last frame is the finished bar
+    assert "batch (3 inputs)" in drawn and "  0%" in drawn and "batch (3 inputs)" in final and final.count("100%") == 1
     assert summary["counts"] == {"ok": 3, "failed": 0, "skipped": 0}
     assert summary["cluster"]["scheduler"] == "local" and summary["cluster"]["workers"] == 2
     assert summary["cluster"]["threads_per_worker"] == [1] and summary["cluster"]["memory_limit"] == "auto"

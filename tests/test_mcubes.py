@@ -367,3 +367,54 @@ def test_run_stage_and_cli(tmp_path):
     mesh = read_ply(out)
     assert mesh.normals is not None and len(mesh.faces) > 1000
     check_closed_manifold(mesh.vertices, mesh.faces)
+
+
+def test_stored_tables_are_the_derivation():
+    """_lut_data.npz (read by the stage) is exactly what _luts derives; regenerate with `python -m recon_cli.mcubes._luts`."""
+    from recon_cli.mcubes import _lut_data as D
+
+    derived = L.build_tables()
+    assert len(derived) == 12
+    for name, table in derived.items():
+        stored = getattr(D, name)
+        if name == "CENTER":
+            assert stored == int(table) == L.CENTER
+            continue
+        assert stored.dtype == table.dtype and stored.shape == table.shape, name
+        assert np.array_equal(stored, table), name
+
+
+def test_the_stage_derives_no_table():
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, numpy as np\n"
+        "from recon_cli.mcubes import marching_cubes\n"
+        "g = np.linalg.norm(np.mgrid[-1:1:9j, -1:1:9j, -1:1:9j], axis=0) - 0.6\n"
+        "for method in ('mc', 'mt'):\n"
+        "    assert len(marching_cubes(g, method=method)[1])\n"
+        "assert 'recon_cli.mcubes._luts' not in sys.modules\n"
+        "import recon_cli.mcubes._luts as L\n"
+        "assert L.build_tables.cache_info().currsize == 0\n"  # importing the derivation builds nothing either
+    )
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(1, 40), st.integers(0, 120), st.integers(0, 2**32 - 1))
+def test_boundary_edge_count_matches_unique(n_vertices, n_faces, seed):
+    from recon_cli.mcubes import boundary_edge_count
+
+    rng = np.random.default_rng(seed)
+    faces = rng.integers(0, n_vertices, size=(n_faces, 3))
+    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])]
+    if len(faces) and rng.random() < 0.5:  # repeated faces and non-manifold edges too
+        faces = np.vstack([faces, faces[: len(faces) // 2], faces[:3, ::-1]])
+    expect = 0
+    if len(faces):
+        e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+        _, counts = np.unique(e, axis=0, return_counts=True)
+        expect = int((counts == 1).sum())
+    assert boundary_edge_count(faces) == expect
+    assert boundary_edge_count(faces, n_vertices) == expect

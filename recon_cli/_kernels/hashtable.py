@@ -15,6 +15,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache directory, threading layer)
+
 MULT = np.uint64(11400714819323198485)  # 2**64 / golden ratio (Fibonacci hashing)
 
 

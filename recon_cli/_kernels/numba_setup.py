@@ -1,5 +1,21 @@
-"""Numba settings for recon's parallel kernels; imported by every kernel module that uses ``parallel=True``.
+"""Numba settings for every recon kernel: the compile cache's directory and the threading layer.
 
+Every module that defines a numba kernel imports this module *before* ``numba`` (a test
+checks it), because numba fixes where a ``@njit(cache=True)`` function keeps its cache when
+the function is decorated.
+
+Cache directory
+---------------
+Compiled kernels are cached in one per-user directory, so that a command compiles nothing
+after ``recon warmup`` (run by ``make install``) even when the package directory is
+read-only (a system-wide or container install): ``$NUMBA_CACHE_DIR`` when set (numba's own
+variable, honoured as is), else ``$XDG_CACHE_HOME/recon/numba``, else
+``~/.cache/recon/numba``. The variable is also exported, so worker processes (Dask, the
+test-suite's subprocesses) share the cache. Numba keys each entry by the kernel's source
+file (path and modification time), so several checkouts share the directory safely.
+
+Threading layer
+---------------
 The threading layer is chosen once per process, at the first parallel launch. Left to its
 default, numba tries TBB first; Open3D ships an older libtbb, and when open3d was imported
 first numba finds that one and warns that TBB is disabled. OpenMP (then the workqueue)
@@ -10,8 +26,26 @@ is what numba would end up using anyway, so ask for it directly. An explicit
 from __future__ import annotations
 
 import os
+import sys
 
-import numba
+
+def cache_dir() -> str:
+    """The directory of recon's numba cache (see the module docstring)."""
+    explicit = os.environ.get("NUMBA_CACHE_DIR")
+    if explicit:
+        return explicit
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return os.path.join(base, "recon", "numba")
+
+
+CACHE_DIR = cache_dir()
+os.environ["NUMBA_CACHE_DIR"] = CACHE_DIR
+if "numba" in sys.modules:  # imported before recon (by the user or a library): tell its config too
+    sys.modules["numba"].config.CACHE_DIR = CACHE_DIR
+
+import numba  # noqa: E402  (after NUMBA_CACHE_DIR is set)
+
+numba.config.CACHE_DIR = CACHE_DIR
 
 if "NUMBA_THREADING_LAYER" not in os.environ and "NUMBA_THREADING_LAYER_PRIORITY" not in os.environ:
     # the priority must name all three; TBB last is only reached when neither other layer loads

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from numba import njit
 
+from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache directory, threading layer)
+
 
 @njit(cache=True)
 def find(parent, x):

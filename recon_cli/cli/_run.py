@@ -10,10 +10,21 @@ import click
 
 
 def make_progress(ctx: click.Context):
+    """The command's progress display on stderr (off with -q or when stderr is not a terminal).
+
+    One per command, closed when the command ends; made before the input is read, so
+    that a first run's kernel compiling shows from the start.
+    """
     from recon_cli.progress import Progress
 
-    quiet = bool(ctx.find_root().obj and ctx.find_root().obj.get("quiet"))
-    return Progress(stream=sys.stderr, enabled=False if quiet else None)
+    root = ctx.find_root()
+    obj = root.obj if isinstance(root.obj, dict) else {}
+    if obj.get("progress") is None:
+        quiet = bool(obj.get("quiet"))
+        obj["progress"] = Progress(stream=sys.stderr, enabled=False if quiet else None)
+        root.obj = obj
+        root.call_on_close(obj["progress"].close)
+    return obj["progress"]
 
 
 def verbosity(ctx: click.Context) -> int:
@@ -39,10 +50,11 @@ def run_stage_command(
     from recon_cli.io.load import load, save
     from recon_cli.stages import apply_stage
 
+    progress = make_progress(ctx)
     t0 = time.perf_counter()
     data = load(input)
     t1 = time.perf_counter()
-    result = apply_stage(stage, data, params, progress=make_progress(ctx))
+    result = apply_stage(stage, data, params, progress=progress)
     t2 = time.perf_counter()
     save(result.output, output, ascii=ascii_)
     t3 = time.perf_counter()

@@ -30,6 +30,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("run", "Run a pipeline file (TOML) on one input."),
     "batch": ("batch", "Run a pipeline file on many inputs (Dask)."),
     "convert": ("convert", "Re-encode a PLY file (binary/ASCII), keeping everything."),
+    "warmup": ("warmup", "Compile every kernel once (run after installing; make install does)."),
 }
 
 EXIT_INTERRUPTED = 130

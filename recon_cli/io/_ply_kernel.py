@@ -8,6 +8,8 @@ from numba import njit
 from numba.core import types
 from numba.extending import intrinsic
 
+from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache directory, threading layer)
+
 
 @intrinsic
 def _f32_from_bits(typingctx, bits):

@@ -1,6 +1,7 @@
 """Marching cubes (and marching tetrahedra): the iso-surface of a sampled scalar field.
 
-Two entry points share one set of tables (:mod:`recon_cli.mcubes._luts`) and kernels
+Two entry points share one set of tables (derived in :mod:`recon_cli.mcubes._luts`, stored and read
+by :mod:`recon_cli.mcubes._lut_data`) and kernels
 (:mod:`recon_cli.mcubes._kernel`):
 
 * :func:`marching_cubes` on a dense volume (a :class:`~recon_cli.grid.Grid`'s ``sdf``);
@@ -31,7 +32,7 @@ _NO_CENTRE = np.full((257, 12), -1, dtype=np.int8)  # marching tetrahedra never 
 
 
 def _tables(method: str):
-    from recon_cli.mcubes import _luts as L
+    from recon_cli.mcubes import _lut_data as L
 
     if method == "mc":
         return L.MC_START, L.MC_TRIS, L.MC_EDGES, L.MC_EDGE_KEY, True, L.MC_CENTRE, L.CENTER
@@ -121,7 +122,7 @@ def marching_cubes(
     if min(vol.shape) < 2:
         return np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3))
     from recon_cli.mcubes import _kernel as K
-    from recon_cli.mcubes._luts import FACE_CORNERS, MC_AMBIGUOUS
+    from recon_cli.mcubes._lut_data import FACE_CORNERS, MC_AMBIGUOUS
 
     start, tris, edges, keys, use_faces, centre, centre_id = _tables(method)
     vol = np.ascontiguousarray(vol, dtype=np.float64 if vol.dtype == np.float64 else np.float32)
@@ -213,7 +214,7 @@ def marching_cubes_sparse(
         raise InputError("cells has duplicate rows")
     del flat
     from recon_cli.mcubes import _kernel as K
-    from recon_cli.mcubes._luts import FACE_CORNERS, MC_AMBIGUOUS
+    from recon_cli.mcubes._lut_data import FACE_CORNERS, MC_AMBIGUOUS
 
     start, tris, edges, keys, use_faces, centre, centre_id = _tables(method)
     vals = np.ascontiguousarray(vals)
@@ -325,18 +326,20 @@ def run_stage(
         "iso": iso,
         "grid_shape": list(data.shape),
         "skipped_nan_cells": skipped,
-        "boundary_edges": boundary_edge_count(f),
+        "boundary_edges": boundary_edge_count(f, len(v)),
     }
     return StageResult(output=mesh, report=report)
 
 
-def boundary_edge_count(faces: np.ndarray) -> int:
-    """Number of edges used by exactly one face of ``faces`` ((m, 3) int)."""
+def boundary_edge_count(faces: np.ndarray, n_vertices: int | None = None) -> int:
+    """Number of edges used by exactly one face of ``faces`` ((m, 3) int; vertex count ``n_vertices``,
+    default ``faces.max() + 1``), counted by a linear numba pass."""
+    faces = np.ascontiguousarray(faces, dtype=np.int64)
     if len(faces) == 0:
         return 0
-    e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
-    _, counts = np.unique(e, axis=0, return_counts=True)
-    return int((counts == 1).sum())
+    from recon_cli.mcubes import _kernel as K
+
+    return int(K.boundary_edge_count(faces, int(faces.max()) + 1 if n_vertices is None else int(n_vertices)))
 
 
 def _as_bool(v: Any, name: str) -> bool:

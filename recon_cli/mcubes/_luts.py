@@ -57,7 +57,7 @@ import numpy as np
 N_TYPES = 8  # key types: edges along x, y, z, xy, xz, yz, xyz; 7 = a cell's centre vertex
 
 
-# plain-Python vector helpers: the tables are built at import, numpy per call is too slow
+# plain-Python vector helpers: numpy per call would make the derivation several times slower
 def corner_pos(c: int) -> tuple[float, float, float]:
     return (float(c & 1), float((c >> 1) & 1), float((c >> 2) & 1))
 
@@ -286,7 +286,6 @@ def _build_mc() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     return start, np.array(tris, dtype=np.int8).reshape(-1, 3), amb, centre
 
 
-MC_START, MC_TRIS, MC_AMBIGUOUS, MC_CENTRE = _build_mc()
 # the centre vertex (local id 12) belongs to its cell alone: type 7
 MC_EDGE_KEY = np.array([*(_edge_key(int(a), int(b)) for a, b in MC_EDGES), (0, 0, 0, 7)], dtype=np.int8)
 
@@ -340,4 +339,43 @@ def _build_mt() -> tuple[np.ndarray, np.ndarray]:
     return start, np.array(tris, dtype=np.int8).reshape(-1, 3)
 
 
-MT_START, MT_TRIS = _build_mt()
+# --- the stored tables ------------------------------------------------------------------
+# Deriving the marching-cubes table takes ~0.4 s, too long for every command: the result is
+# stored beside the code in _lut_data.npz (read by recon_cli.mcubes._lut_data) and a test
+# derives it again and compares. After changing the derivation, regenerate it with
+#     python -m recon_cli.mcubes._luts
+TABLES_FILE = "_lut_data.npz"
+_DERIVED = ("MC_START", "MC_TRIS", "MC_AMBIGUOUS", "MC_CENTRE", "MT_START", "MT_TRIS")
+
+
+@functools.lru_cache(maxsize=None)
+def build_tables() -> dict[str, np.ndarray]:
+    """Every table the kernels use, derived here: the names of the module docstring's ``Tables``."""
+    mc_start, mc_tris, mc_amb, mc_centre = _build_mc()
+    mt_start, mt_tris = _build_mt()
+    return {
+        "MC_START": mc_start, "MC_TRIS": mc_tris, "MC_AMBIGUOUS": mc_amb, "MC_CENTRE": mc_centre,
+        "MT_START": mt_start, "MT_TRIS": mt_tris,
+        "MC_EDGES": MC_EDGES, "MC_EDGE_KEY": MC_EDGE_KEY, "FACE_CORNERS": FACE_CORNERS,
+        "MT_EDGES": MT_EDGES, "MT_EDGE_KEY": MT_EDGE_KEY, "CENTER": np.array(CENTER, dtype=np.int8),
+    }
+
+
+def __getattr__(name: str):
+    if name in _DERIVED:  # derived on first use, not at import
+        return build_tables()[name]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def write_tables(path: str | None = None) -> str:
+    """Store :func:`build_tables` as ``_lut_data.npz`` beside this module (or at ``path``); returns the path."""
+    import os
+
+    path = path or os.path.join(os.path.dirname(os.path.abspath(__file__)), TABLES_FILE)
+    with open(path, "wb") as fh:
+        np.savez_compressed(fh, **build_tables())
+    return path
+
+
+if __name__ == "__main__":  # pragma: no cover
+    print(write_tables())

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (threading layer, see that module)
+from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache directory, threading layer)
 
 LEAF_SIZE = 8  # with the cheap disk reject per triangle, 8 beats 4 (fewer node visits)
 STACK = 128  # depth bound: log2(n / LEAF_SIZE) + a few, far below this for any real mesh

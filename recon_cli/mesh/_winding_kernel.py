@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (threading layer, see that module)
+from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache directory, threading layer)
 from recon_cli.mesh._distance_kernel import triangle_cross
 
 FOUR_PI = 4.0 * np.pi

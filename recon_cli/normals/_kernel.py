@@ -11,7 +11,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (threading layer, see that module)
+from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache directory, threading layer)
 
 
 @njit(cache=True, parallel=True)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache directory, threading layer)
+
 
 @njit(cache=True)
 def choose_edge_pairs(nm_edges, edge_ptr, edge_half_edges, support):

@@ -1,0 +1,27 @@
+"""``recon warmup``: compile every kernel once, so that no later command compiles."""
+
+from __future__ import annotations
+
+import click
+
+from recon_cli.cli import options
+
+
+@click.command("warmup")
+@options.json_opt
+@click.pass_context
+def cmd(ctx, json_):
+    """Compile recon's numba kernels for the types it uses, into the per-user cache.
+
+    `make install` runs it; after `pip install recon`, run it once (about a minute on two
+    cores): otherwise the first run of each command compiles its kernels. The cache is
+    $NUMBA_CACHE_DIR if set, else $XDG_CACHE_HOME/recon/numba (~/.cache/recon/numba).
+    """
+    from recon_cli.cli._run import emit_report, make_progress
+    from recon_cli.errors import StageFailed
+    from recon_cli.warmup import warmup
+
+    report = warmup(progress=make_progress(ctx), log=lambda line: click.echo(f"recon: {line}", err=True))
+    emit_report(ctx, report, json_=json_)
+    if report["failed"]:
+        raise StageFailed(f"warm-up: {len(report['failed'])} step(s) failed: {', '.join(report['failed'])}")

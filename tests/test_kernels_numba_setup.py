@@ -1,0 +1,64 @@
+"""recon_cli._kernels.numba_setup: one per-user numba cache, set before any kernel is decorated."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import recon_cli
+
+PACKAGE = Path(recon_cli.__file__).resolve().parent
+SETUP_IMPORT = "from recon_cli._kernels import numba_setup"
+
+
+def kernel_files() -> list[Path]:
+    return sorted(f for f in PACKAGE.rglob("*.py") if re.search(r"^@njit", f.read_text(encoding="utf-8"), re.M))
+
+
+def test_every_kernel_module_imports_numba_setup_before_its_first_kernel():
+    files = kernel_files()
+    assert len(files) >= 10
+    for f in files:
+        text = f.read_text(encoding="utf-8")
+        assert SETUP_IMPORT in text, f"{f.relative_to(PACKAGE)} does not import numba_setup"
+        assert text.index(SETUP_IMPORT) < text.index("\n@njit"), f"{f.relative_to(PACKAGE)}: import numba_setup first"
+
+
+def _run(code: str, env: dict) -> str:
+    full = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CACHE_DIR", "XDG_CACHE_HOME")}
+    full.update(env)
+    return subprocess.run([sys.executable, "-c", code], env=full, check=True, capture_output=True, text=True).stdout
+
+
+CALL_KERNEL = (
+    "import numpy as np, numba\n"
+    "from recon_cli._kernels.arrays import grow1\n"
+    "grow1(np.arange(3.0), 5)\n"
+    "print(numba.config.CACHE_DIR)\n"
+)
+
+
+def test_cache_goes_to_xdg_cache_home_not_the_package(tmp_path):
+    out = _run(CALL_KERNEL, {"XDG_CACHE_HOME": str(tmp_path), "HOME": str(tmp_path / "home")})
+    cache = tmp_path / "recon" / "numba"
+    assert out.strip() == str(cache)
+    written = list(cache.rglob("*.nbi"))
+    assert any("arrays" in p.name and "grow1" in p.name for p in written), written
+
+
+def test_numba_cache_dir_is_honoured(tmp_path):
+    mine = tmp_path / "mine"
+    out = _run(CALL_KERNEL, {"NUMBA_CACHE_DIR": str(mine), "XDG_CACHE_HOME": str(tmp_path / "xdg")})
+    assert out.strip() == str(mine)
+    assert list(mine.rglob("*grow1*.nbi"))
+    assert not (tmp_path / "xdg").exists()
+
+
+def test_cache_set_even_when_numba_was_imported_first(tmp_path):
+    code = "import numba\n" + CALL_KERNEL
+    out = _run(code, {"XDG_CACHE_HOME": str(tmp_path)})
+    assert out.strip() == str(tmp_path / "recon" / "numba")
+    assert list((tmp_path / "recon" / "numba").rglob("*grow1*.nbi"))

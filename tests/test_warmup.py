@@ -1,0 +1,68 @@
+"""recon_cli.warmup / `recon warmup`: after it, no command compiles a kernel.
+
+Run with a fresh, empty numba cache (so this checks what a new install gets), then real
+commands on inputs unlike the warm-up's (the shared scan and meshes) in a process that
+counts numba's compile events.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from shared_data import shared_path
+
+ROOT = Path(__file__).resolve().parents[1]
+# kernels no stage calls (kept in the shared helpers' API); the warm-up cannot reach them
+UNUSED = {"recon_cli._kernels.hashtable.lookup_many", "recon_cli._kernels.hashtable.set_insert"}
+
+AFTER = r'''
+import sys, json
+from numba.core import event
+compiled = []
+class L(event.Listener):
+    def on_start(self, ev):
+        compiled.append(ev.data["dispatcher"].py_func.__qualname__)
+    def on_end(self, ev):
+        pass
+event.register("numba:compile", L())
+from recon_cli.cli.main import cli
+d, scan, kitten = sys.argv[1:4]
+runs = [
+    ["normals", scan, f"{d}/n.ply", "--orient", "camera", "--camera", "0,0,1"],
+    ["normals", scan, f"{d}/n2.ply"],
+    ["poisson", f"{d}/n.ply", f"{d}/p.ply", "--depth", "6"],
+    ["ballpivot", f"{d}/n.ply", f"{d}/b.ply"],
+    ["repair", f"{d}/b.ply", f"{d}/r.ply", "--fill-holes", "50"],
+    ["sdf", kitten, f"{d}/k.npz", "--resolution", "24"],
+    ["mcubes", f"{d}/k.npz", f"{d}/m.ply"],
+    ["info", kitten, f"{d}/k.npz"],
+    ["diff", kitten, f"{d}/m.ply", "--samples", "5000"],
+]
+for args in runs:
+    cli.main(args=["-q", *args], prog_name="recon", standalone_mode=False)
+print(json.dumps(compiled))
+'''
+
+
+@pytest.mark.slow
+def test_no_command_compiles_after_warmup(tmp_path):
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"))
+    warm = subprocess.run([sys.executable, "-m", "recon_cli.cli.main", "warmup", "--json"], env=env,
+                          capture_output=True, text=True, cwd=ROOT)
+    assert warm.returncode == 0, warm.stderr
+    report = json.loads(warm.stdout)
+    assert report["failed"] == [] and report["cache_dir"] == str(tmp_path / "cache")
+    assert set(report["uncompiled"]) <= UNUSED, set(report["uncompiled"]) - UNUSED
+    after = subprocess.run(
+        [sys.executable, "-c", AFTER, str(tmp_path), str(ROOT / "sample_data" / "bunny_scan_000.ply"),
+         str(shared_path("kitten"))],
+        env=env, capture_output=True, text=True, cwd=ROOT,
+    )
+    assert after.returncode == 0, after.stderr
+    assert json.loads(after.stdout.strip().splitlines()[-1]) == []
