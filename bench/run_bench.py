@@ -37,10 +37,12 @@ HEAD = "| stage | case | ours s | ours MB | reference | ref s | ref MB | time ou
 KEYS = ("stage", "case", "ours_s", "ours_mb", "ref", "ref_s", "ref_mb", "time_ratio", "mem_ratio", "note")
 
 
-def table(rows: list[dict]) -> list[str]:
-    lines = [HEAD, "|" + "---|" * 10]
+def table(rows: list[dict], columns: list[tuple[str, str]] | None = None) -> list[str]:
+    """The rows as a markdown table: the usual ours-vs-reference columns, or a module's own ``COLUMNS``."""
+    head, keys = (HEAD, KEYS) if columns is None else ("| " + " | ".join(h for _, h in columns) + " |", [k for k, _ in columns])
+    lines = [head, "|" + "---|" * len(keys)]
     for r in rows:
-        lines.append("| " + " | ".join(fmt(r.get(k, "")) for k in KEYS) + " |")
+        lines.append("| " + " | ".join(fmt(r.get(k, "")) for k in keys) + " |")
     return lines
 
 
@@ -80,7 +82,7 @@ def main() -> int:
         print(f"# {m} done in {took:.1f}s", file=sys.stderr, flush=True)
         when = time.strftime("%Y-%m-%d %H:%M")
         text = "\n".join(
-            [f"## {m} ({when}{', quick' if args.quick else ''}, {took:.0f} s)", "", *table(rows), ""]
+            [f"## {m} ({when}{', quick' if args.quick else ''}, {took:.0f} s)", "", *table(rows, getattr(mod, "COLUMNS", None)), ""]
         ) + "\n"
         print(text, flush=True)
         sections[m] = text

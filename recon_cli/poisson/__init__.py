@@ -378,7 +378,8 @@ def screened_poisson(
     last_res = 0.0
     gvals: list[np.ndarray] = []
     per_level = []
-    with task(progress, "poisson: solve", total=depth + 1) as tk:
+    # the bar is weighted by the levels' node counts: the finest levels are most of the work
+    with task(progress, "poisson: solve", total=sum(lev.n_nodes for lev in levels)) as tk:
         for lev in levels:
             release_free_heap()
             tl = time.perf_counter()
@@ -440,7 +441,7 @@ def screened_poisson(
             per_level.append({"depth": d, "nodes": nn, "unknowns": n_unknown, "iterations": it, "residual": rel,
                               "seconds": time.perf_counter() - tl})
             log.info("poisson: level %2d  nodes %9d  unknowns %9d  cg iterations %4d  residual %.2e  %.2f s", d, nn, n_unknown, it, rel, time.perf_counter() - tl)
-            tk.advance(1)
+            tk.advance(nn)
     del G, par
     levels[-1].leaf = np.ones(len(levels[-1].cell_keys), bool)
     timings["solve"] = time.perf_counter() - t

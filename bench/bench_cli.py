@@ -1,0 +1,204 @@
+"""The command line as a user waits for it: each stage's command as a process, cold and warm.
+
+Per row: ``cold`` is the wall time of the command with an empty numba cache (it compiles
+what it needs: what a user saw before ``recon warmup`` existed), ``warm`` the wall time once
+the cache holds the kernels (``make install`` runs ``recon warmup``; median of repeats),
+``floor`` numba's own floor (a fresh process that imports numba and calls one cached recon
+kernel), ``stage`` the stage's in-process time from the command's ``--json`` report, and
+``read`` its input reading time. ``warm - floor`` is what recon adds to numba's floor.
+
+Targets (issue 17): after ``make install`` the first run of ``recon normals`` on the
+sample scan takes <= 1.5x the second (``first/warm``); warm on small inputs (1k points, a
+70k-face mesh for ``recon info``) <= 0.5 s above the floor; ``recon mcubes`` 256^3:
+(warm - floor - read) <= 0.5x scikit-image's in-process ``marching_cubes``; ``recon
+ballpivot`` warm <= 1.0x Open3D's in-process ball pivoting (``ref s`` holds the reference's
+in-process time where there is one).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+RECON = [sys.executable, "-m", "recon_cli.cli.main"]
+
+COLUMNS = [
+    ("stage", "command"),
+    ("case", "input"),
+    ("cold_s", "cold s"),
+    ("first_s", "first after warmup s"),
+    ("warm_s", "warm s"),
+    ("floor_s", "numba floor s"),
+    ("above_s", "warm - floor s"),
+    ("stage_s", "stage in-process s"),
+    ("read_s", "read s"),
+    ("ref", "reference"),
+    ("ref_s", "ref in-process s"),
+    ("ratio", "ratio"),
+    ("note", "note"),
+]
+
+FLOOR = (
+    "import numpy as np\n"
+    "from recon_cli._kernels.arrays import grow1\n"  # imports numba (through numba_setup), loads one cached kernel
+    "grow1(np.zeros(2), 4)\n"
+)
+
+
+def _wall(args: list[str], env: dict | None = None) -> tuple[float, str]:
+    t = time.perf_counter()
+    r = subprocess.run(args, env=env, capture_output=True, text=True, cwd=ROOT)
+    dt = time.perf_counter() - t
+    if r.returncode != 0:
+        raise RuntimeError(f"{' '.join(args[3:])}: exit {r.returncode}: {r.stderr.strip()[-400:]}")
+    return dt, r.stdout
+
+
+def floor(repeat: int) -> float:
+    """Median wall time of a process that imports numba and calls one cached recon kernel."""
+    _wall([sys.executable, "-c", FLOOR])  # make sure it is cached
+    return statistics.median(_wall([sys.executable, "-c", FLOOR])[0] for _ in range(repeat))
+
+
+def command(args: list[str], repeat: int, cold: bool) -> dict:
+    """cold (empty cache), first and warm (median) wall times of ``recon -q ARGS --json``, and its report."""
+    out: dict = {}
+    if cold:
+        with tempfile.TemporaryDirectory(prefix="recon-cold-cache-") as cache:
+            out["cold_s"], _ = _wall([*RECON, "-q", *args], env=dict(os.environ, NUMBA_CACHE_DIR=cache))
+    runs = []
+    for _ in range(repeat + 1):
+        dt, stdout = _wall([*RECON, "-q", *args, "--json"])
+        runs.append(dt)
+    out["first_s"] = runs[0]
+    out["warm_s"] = statistics.median(runs[1:])
+    report = json.loads(stdout) if stdout.strip() else {}
+    timings = report.get("timings", {}) if isinstance(report, dict) else {}
+    out["stage_s"] = timings.get("stage", float("nan"))
+    out["read_s"] = timings.get("read", float("nan"))
+    return out
+
+
+def _inputs(tmp: Path, quick: bool) -> dict[str, str]:
+    from recon_cli.geometry import PointCloud
+    from recon_cli.io.ply import write_ply
+    from recon_cli.mesh.sampling import sample_surface
+
+    from bench_mcubes import metaballs
+    from shared_data import load_shared, shared_path
+    from recon_cli.grid import Grid
+    from recon_cli.io.npz import write_grid
+
+    p = {"scan": str(ROOT / "sample_data" / "bunny_scan_000.ply"), "zipper": str(shared_path("bunny_zipper")),
+         "kitten": str(shared_path("kitten"))}
+    small = sample_surface(load_shared("kitten"), 1000, seed=0)
+    write_ply(PointCloud(points=small.points), tmp / "k1k.ply")
+    p["k1k"] = str(tmp / "k1k.ply")
+    n = 20_000 if quick else 100_000
+    arm = sample_surface(load_shared("armadillo"), n, seed=0)
+    write_ply(arm, tmp / "arm.ply")
+    p["arm"] = str(tmp / "arm.ply")
+    for size in (64, 256):
+        write_grid(Grid(sdf=metaballs(size), origin=np.zeros(3), voxel_size=1.0 / size), tmp / f"mb{size}.npz")
+        p[f"mb{size}"] = str(tmp / f"mb{size}.npz")
+    subprocess.run([*RECON, "-q", "normals", p["scan"], str(tmp / "scan_n.ply"), "--orient", "camera",
+                    "--camera", "0,0,1"], check=True, cwd=ROOT)
+    p["scan_n"] = str(tmp / "scan_n.ply")
+    return p
+
+
+def _skimage(grid_path: str) -> float:
+    from skimage.measure import marching_cubes
+
+    from recon_cli.io.npz import read_grid
+
+    g = read_grid(grid_path)
+    marching_cubes(g.sdf, 0.0)
+    ts = []
+    for _ in range(3):
+        t = time.perf_counter()
+        marching_cubes(g.sdf, 0.0)
+        ts.append(time.perf_counter() - t)
+    return min(ts)
+
+
+def _open3d_bpa(cloud_path: str) -> float:
+    from recon_cli.backends import open3d_backend
+    from recon_cli.ballpivot import auto_radii
+    from recon_cli.io.ply import read_ply
+
+    c = read_ply(cloud_path)
+    rr = auto_radii(np.asarray(c.points, dtype=np.float64))
+    ts = []
+    for _ in range(2):
+        t = time.perf_counter()
+        open3d_backend.ball_pivoting(c, rr)
+        ts.append(time.perf_counter() - t)
+    return min(ts)
+
+
+def rows(quick: bool) -> list[dict]:
+    repeat = 2 if quick else 3
+    with tempfile.TemporaryDirectory(prefix="recon-bench-cli-") as tmpd:
+        tmp = Path(tmpd)
+        p = _inputs(tmp, quick)
+        o = str(tmp / "out.ply")
+        fl = floor(repeat + 2)
+        cases = [
+            ("normals", "sample scan 40k, --orient camera", ["normals", p["scan"], o, "--orient", "camera", "--camera", "0,0,1"], True),
+            ("normals", "sample scan 40k, --orient mst", ["normals", p["scan"], o], not quick),
+            ("normals", "1k points", ["normals", p["k1k"], o], True),
+            ("info", "bunny_zipper (69k faces)", ["info", p["zipper"]], True),
+            ("poisson", "sample scan, --depth 8", ["poisson", p["scan_n"], o, "--depth", "8"], not quick),
+            ("ballpivot", "raw sample scan 40k (normals towards the scanner)", ["ballpivot", p["scan_n"], o], not quick),
+            ("ballpivot", f"armadillo {'20k' if quick else '100k'} samples", ["ballpivot", p["arm"], o], False),
+            ("repair", "kitten", ["repair", p["kitten"], o], False),
+            ("sdf", "kitten, --resolution 128", ["sdf", p["kitten"], str(tmp / "k.npz")], not quick),
+            ("mcubes", "metaballs 64^3", ["mcubes", p["mb64"], o], True),
+            ("mcubes", "metaballs 256^3", ["mcubes", p["mb256"], o], False),
+        ]
+        out = []
+        for stage, case, args, cold in cases:
+            r = {"stage": f"recon {stage}", "case": case, "floor_s": fl, "cold_s": float("nan")}
+            try:
+                r.update(command(args, repeat, cold))
+            except RuntimeError as exc:
+                r["note"] = f"FAILED: {exc}"
+                out.append(r)
+                continue
+            r["above_s"] = r["warm_s"] - fl
+            notes = []
+            if stage == "normals" and "camera" in case:
+                notes.append(f"first/warm {r['first_s'] / r['warm_s']:.2f} (target <= 1.5)")
+            if case in ("1k points",) or stage == "info":
+                notes.append("target warm - floor <= 0.5 s")
+            if stage == "mcubes" and "256" in case:
+                r["ref"] = "skimage marching_cubes"
+                r["ref_s"] = _skimage(p["mb256"])
+                r["ratio"] = (r["warm_s"] - fl - r["read_s"]) / r["ref_s"]
+                notes.append("ratio = (warm - floor - read) / skimage, target <= 0.5")
+            if stage == "ballpivot":
+                src = p["scan_n"] if "scan" in case else p["arm"]
+                r["ref"] = "open3d ball pivoting"
+                r["ref_s"] = _open3d_bpa(src)
+                r["ratio"] = r["warm_s"] / r["ref_s"]
+                notes.append("ratio = warm wall / Open3D in-process, target <= 1.0")
+            r["note"] = "; ".join(notes)
+            out.append(r)
+        return out
+
+
+if __name__ == "__main__":
+    quick = "--quick" in sys.argv
+    for r in rows(quick):
+        print(r, flush=True)
