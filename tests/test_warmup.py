@@ -1,4 +1,4 @@
-"""recon_cli.warmup / `recon warmup`: after it, no command compiles a kernel.
+"""recon_cli.cli._warmup / `recon warmup`: after it, no command compiles a kernel.
 
 Run with a fresh, empty numba cache (so this checks what a new install gets), then real
 commands on inputs unlike the warm-up's (the shared scan and meshes) in a process that

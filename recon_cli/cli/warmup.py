@@ -19,7 +19,7 @@ def cmd(ctx, json_):
     """
     from recon_cli.cli._run import emit_report, make_progress
     from recon_cli.errors import StageFailed
-    from recon_cli.warmup import warmup
+    from recon_cli.cli._warmup import warmup
 
     report = warmup(progress=make_progress(ctx), log=lambda line: click.echo(f"recon: {line}", err=True))
     emit_report(ctx, report, json_=json_)

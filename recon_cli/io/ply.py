@@ -892,3 +892,24 @@ def write_ply(obj: PointCloud | TriangleMesh, path: str | os.PathLike, ascii: bo
     from recon_cli.io.atomic import write_bytes
 
     write_bytes(path, ply_bytes(obj, ascii=ascii))
+
+
+def compile_ply_kernels() -> None:
+    """Call each PLY kernel once for every buffer type a file's properties can give it.
+
+    For ``recon warmup``: which types reach the gatherers depends on the files read, not on
+    a command, so they are compiled (or loaded from the cache) here for all of them.
+    """
+    from recon_cli.io._ply_kernel import first_nonfinite_row, gather_bytes, gather_fields, gather_floats
+
+    offsets = np.array([0, 4, 8], dtype=np.int64)
+    for flat in (np.zeros(24, np.uint8), np.frombuffer(bytes(24), dtype=np.uint8)):  # writable and read-only
+        for big in (False, True):
+            for size, buf in ((1, np.uint8), (2, np.uint16), (4, np.uint32), (8, np.uint64)):
+                k = 2 if size == 8 else 3
+                gather_fields(flat, 12, offsets[:k], size, big, np.empty((2, k), buf))
+            for size in (4, 8):
+                gather_floats(flat, 12, offsets[:1], size, big, np.empty((2, 1), np.float64))
+                first_nonfinite_row(flat, 12, 0, 1, size, big)
+        for out in (np.empty((2, 3), np.uint8), np.empty((2, 3), np.int8)):
+            gather_bytes(flat, 12, offsets, out)

@@ -1,12 +1,12 @@
 """Compile every numba kernel once, for the types recon uses, into the per-user cache.
 
 ``recon warmup`` (run by ``make install``; a ``pip install`` user runs it once) calls
-:func:`warmup`: it makes tiny inputs (a sphere cloud, a sphere mesh, their grids) in a
+:func:`warmup`. It lives with the command line because it drives the commands: it makes tiny inputs (a sphere cloud, a sphere mesh, their grids) in a
 temporary folder and runs every command on them with each option that reaches a different
 kernel, reading and writing the PLY encodings the readers specialise on (float32/float64,
 little/big-endian, ASCII, colours, mixed polygons). Kernels whose argument types depend on
 a file's property types rather than on a command (the PLY field gatherers) are called
-directly for each type. Afterwards no command compiles: they load the compiled code from
+for each type by :func:`recon_cli.io.ply.compile_ply_kernels`. Afterwards no command compiles: they load the compiled code from
 the cache (:mod:`recon_cli._kernels.numba_setup` says where), which takes milliseconds.
 
 :func:`uncompiled_kernels` lists the kernels that were never compiled in this process, so
@@ -31,7 +31,7 @@ def kernel_modules() -> list[str]:
     """Names of recon's modules that define numba kernels (found by their source text, without importing)."""
     from pathlib import Path
 
-    root = Path(__file__).resolve().parent
+    root = Path(__file__).resolve().parents[1]  # the recon_cli package
     mods = []
     for f in sorted(root.rglob("*.py")):
         if re.search(r"^@njit", f.read_text(encoding="utf-8"), re.M):
@@ -65,22 +65,6 @@ def _sphere_mesh(n: int) -> tuple[np.ndarray, np.ndarray]:
     return p, f
 
 
-def _ply_kernel_types() -> None:
-    """The PLY field gatherers, for every buffer type a file's properties can give them."""
-    from recon_cli.io import _ply_kernel as K
-
-    offsets = np.array([0, 4, 8], dtype=np.int64)
-    for flat in (np.zeros(24, np.uint8), np.frombuffer(bytes(24), dtype=np.uint8)):  # writable (file) and read-only (bytes)
-        for big in (False, True):
-            for size, buf in ((1, np.uint8), (2, np.uint16), (4, np.uint32), (8, np.uint64)):
-                K.gather_fields(flat, 12, offsets[:2] if size == 8 else offsets, size, big, np.empty((2, 2 if size == 8 else 3), buf))
-            for size in (4, 8):
-                K.gather_floats(flat, 12, offsets[:1], size, big, np.empty((2, 1), np.float64))
-                K.first_nonfinite_row(flat, 12, 0, 1, size, big)
-        for out in (np.empty((2, 3), np.uint8), np.empty((2, 3), np.int8)):
-            K.gather_bytes(flat, 12, offsets, out)
-
-
 def _library_only(mesh_path: str) -> None:
     """Kernels that only the library API reaches (no command)."""
     from recon_cli.io.ply import read_ply
@@ -94,7 +78,7 @@ def _library_only(mesh_path: str) -> None:
 
 def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
     from recon_cli.geometry import PointCloud, TriangleMesh
-    from recon_cli.io.ply import write_ply
+    from recon_cli.io.ply import compile_ply_kernels, write_ply
 
     def path(name: str) -> str:
         return os.path.join(tmp, name)
@@ -141,7 +125,7 @@ def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
 
     c32, c64, m32, m64 = path("cloud_float32.ply"), path("cloud_float64.ply"), path("mesh_float32.ply"), path("mesh_float64.ply")
     out = path("out.ply")
-    steps: list[tuple[str, Callable[[], Any]]] = [("inputs", inputs), ("ply field types", _ply_kernel_types)]
+    steps: list[tuple[str, Callable[[], Any]]] = [("inputs", inputs), ("ply field types", compile_ply_kernels)]
     for src in (c32, c64, path("mixed.ply")):
         steps += [(f"convert {os.path.basename(src)}", recon("convert", src, path("be.ply"), "--big-endian")),
                   ("read big-endian", recon("info", path("be.ply"))),
