@@ -205,8 +205,12 @@ def rows(quick: bool) -> list[dict]:
             if stage == "mcubes" and "256" in case:
                 r["ref"] = "skimage marching_cubes"
                 r["ref_s"] = _skimage(p["mb256"])
-                r["ratio"] = (r["warm_s"] - fl - r["read_s"]) / r["ref_s"]
-                notes.append("ratio = (warm - floor - read) / skimage, target <= 0.5")
+                if CPU_TIME:  # the report's read time is wall time: not comparable, keep the read in
+                    r["ratio"] = (r["warm_s"] - fl) / r["ref_s"]
+                    notes.append("ratio = (warm - floor, reading included) / skimage, target (reading excluded) <= 0.5")
+                else:
+                    r["ratio"] = (r["warm_s"] - fl - r["read_s"]) / r["ref_s"]
+                    notes.append("ratio = (warm - floor - read) / skimage, target <= 0.5")
             if stage == "ballpivot":
                 src = p["scan_n"] if "scan" in case else p["arm"]
                 r["ref"] = "open3d ball pivoting"
