@@ -130,17 +130,18 @@ def random_rotation(rng):
     return q
 
 
-def transformed(v, rng, scale: float = 1.0, offset=(0.0, 0.0, 0.0)):
-    """``v`` randomly rotated about its centroid, scaled and moved."""
+def transformed(v, rng, scale: float = 1.0, offset=(0.0, 0.0, 0.0), rotate: bool = True):
+    """``v`` randomly rotated about its centroid (unless not ``rotate``), scaled and moved."""
     c = v.mean(axis=0)
-    return (v - c) @ random_rotation(rng).T * scale + np.asarray(offset, float)
+    r = random_rotation(rng) if rotate else np.eye(3)
+    return (v - c) @ r.T * scale + np.asarray(offset, float)
 
 
 def sliver_splits(v, f, rng, fraction: float = 0.3, eps: float = 1e-9):
     """Near-degenerate remesh of a closed mesh, still closed and consistently oriented:
     a ``fraction`` of the triangles get a new vertex ``eps`` (relative) off the middle of
     one of their edges, inside the triangle, and are split into three (one a sliver of
-    height ~eps), and as many edges are split ``eps`` from one end (two needles)."""
+    height ~eps), and up to 300 edges are split ``eps`` from one end (two needles each)."""
     v = np.array(v, float)
     f = np.array(f, np.int64)
     # 1. interior points near an edge: (a, b, c) -> (a, b, p), (b, c, p), (c, a, p)
@@ -152,7 +153,7 @@ def sliver_splits(v, f, rng, fraction: float = 0.3, eps: float = 1e-9):
     v = np.concatenate([v, p])
     f = np.concatenate([f[~pick], np.stack([a, b, pi], 1), np.stack([b, c, pi], 1), np.stack([c, a, pi], 1)])
     # 2. edge splits eps from an end: both triangles of the edge split in two
-    n_split = int(fraction * len(f) / 4)
+    n_split = min(300, int(fraction * len(f) / 4))
     for _ in range(n_split):
         t = rng.integers(len(f))
         k = rng.integers(3)
