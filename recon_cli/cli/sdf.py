@@ -18,7 +18,7 @@ from recon_cli.cli._run import run_stage_command
     type=click.Choice(["winding", "pseudonormal"]),
     default="winding",
     show_default=True,
-    help="Meshes: inside by generalised winding number (robust to holes) or pseudonormals (watertight).",
+    help="Meshes: inside where the winding number is not 0 (exact on closed meshes of either orientation; robust to holes) or by pseudonormals.",
 )
 @click.option("--band", type=float, default=None, help="Meshes: exact distances only within this many voxels.")
 @click.option("--knn", type=int, default=10, show_default=True, help="Clouds: neighbours averaged per sample (IMLS).")

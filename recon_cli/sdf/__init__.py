@@ -1,17 +1,18 @@
 """Signed distance grids: from a triangle mesh (exact) or an oriented point cloud (IMLS).
 
-Mesh: exact unsigned distance to the nearest triangle (:mod:`recon_cli.mesh.distance`), signed
-by the generalised winding number (:mod:`recon_cli.mesh.winding`; robust to holes) or by
-angle-weighted pseudonormals (exact on watertight meshes). On a closed, manifold,
-consistently oriented mesh the two signs agree off the surface (the winding number is 0
-or 1 there), so ``sign="winding"`` takes the pseudonormal sign, which the distance search
-yields for free, once winding numbers on a coarse lattice confirm it (they do not on an
-inside-out mesh; a closed mesh that intersects itself is caught only where the lattice
-sees its winding number leave 0/1). Otherwise the winding number is only
-evaluated where needed: at samples within one voxel of the surface, and on a coarse
-subset of each connected region of the other samples (two neighbouring samples farther
-than one voxel from the mesh cannot have the surface between them, so such a region has
-one side); a region whose subset disagrees is evaluated everywhere.
+Mesh: exact unsigned distance to the nearest triangle (:mod:`recon_cli.mesh.distance`);
+inside where the generalised winding number (:mod:`recon_cli.mesh.winding`) is not 0.
+On a closed mesh (every directed edge matched by its reverse: :func:`is_boundary_free`)
+the winding number is an integer, constant off the surface between samples whose
+distances add up to more than a voxel; one winding number per such class of samples
+gives every sample its exact sign (:func:`closed_mesh_inside`), for a mesh wound inward
+too (winding number -1: the geometric inside). On an open mesh the winding number is
+evaluated at samples within one voxel of the surface, and on a coarse subset of each
+connected region of the other samples (two neighbouring samples farther than one voxel
+from the mesh cannot have the surface between them, so such a region has one side); a
+region whose subset disagrees is evaluated everywhere. ``sign="pseudonormal"`` takes the
+angle-weighted pseudonormal of the closest feature instead (no exactness guarantee in
+floating point; a closed mesh wound inward is refused).
 
 Cloud: implicit moving least squares (Kolluri 2005; Hoppe 1992 with smoothing): the
 Gaussian-weighted mean of the signed distances to the tangent planes of the ``knn``
@@ -515,7 +516,17 @@ def run_stage(
         Report keys: ``source`` ("mesh"/"cloud"), ``shape``, ``voxel_size``, ``origin``,
         ``sign``, ``band``, ``inside_samples``, ``unknown_samples``, ``eikonal`` and
         ``provenance`` (the effective voxel size); native meshes add ``sign_method``,
-        ``winding_evaluations`` and ``regions`` (see :func:`mesh_sdf`).
+        ``winding_evaluations``, ``regions`` and, on closed meshes, ``winding_numbers``
+        (see :func:`mesh_sdf`).
+
+    Raises
+    ------
+    ParameterError
+        Bad parameters, or a grid whose memory cannot be had (refused before allocating,
+        with the estimate: :data:`BYTES_PER_SAMPLE`).
+    InputError
+        No points, non-finite coordinates, a cloud without normals, ``sign="pseudonormal"``
+        on a closed mesh wound inward.
     """
     from recon_cli.geometry import PointCloud, TriangleMesh, float64
     from recon_cli.grid import Grid, allocation_problem
