@@ -390,3 +390,58 @@ def test_closed_mesh_sign_is_exact_winding_number(idx):
     # the distances do not depend on the sign method
     d, _, _ = closest_points(v, f, p[::97])
     assert np.allclose(np.abs(s[::97]), d, rtol=1e-12, atol=1e-12 * (np.abs(v).max() + h))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_side_classes_are_the_components_of_the_link_graph(seed):
+    """The kernel's classes equal scipy's connected components of the graph joining
+    6-neighbours with d1 + d2 > link, and each representative is its class's farthest sample."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from recon_cli.sdf import _kernel as K
+
+    rng = np.random.default_rng(seed)
+    shape = tuple(rng.integers(1, 9, size=3))
+    d = rng.uniform(0, 1, size=shape)
+    link = 1.0
+    idx = np.arange(d.size).reshape(shape)
+    rows, cols = [], []
+    for ax in range(3):
+        a = [slice(None)] * 3
+        b = [slice(None)] * 3
+        a[ax] = slice(0, -1)
+        b[ax] = slice(1, None)
+        ok = d[tuple(a)] + d[tuple(b)] > link
+        rows.append(idx[tuple(a)][ok])
+        cols.append(idx[tuple(b)][ok])
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    n_ref, lab_ref = connected_components(coo_matrix((np.ones(len(r)), (r, c)), shape=(d.size, d.size)), directed=False)
+    for dtype in (np.int32, np.int64):
+        lab = np.empty(d.size, dtype)
+        n, rep = K.side_classes(np.ascontiguousarray(d), link, lab)
+        assert n == n_ref and lab.min() == 0 and lab.max() == n - 1
+        # the same partition: a bijection between labels
+        pairs = np.unique(np.stack([lab, lab_ref], axis=1), axis=0)
+        assert len(pairs) == n
+        flat = d.reshape(-1)
+        best = np.full(n, -1.0)
+        np.maximum.at(best, lab, flat)
+        assert np.array_equal(flat[rep], best) and np.array_equal(lab[rep], np.arange(n))
+
+
+def test_boundary_free_and_signed_volume():
+    from recon_cli.sdf import is_boundary_free, signed_volume
+
+    from shapes import hollow_ball, icosphere
+
+    v, f = icosphere(2)
+    assert is_boundary_free(f) and is_boundary_free(f[:, ::-1])
+    assert signed_volume(v, f) == pytest.approx(4 / 3 * np.pi, rel=0.05) and signed_volume(v, f[:, ::-1]) < 0
+    assert not is_boundary_free(f[1:])  # a hole
+    g = f.copy()
+    g[0] = g[0, ::-1]  # one face flipped against its neighbours
+    assert not is_boundary_free(g)
+    hv, hf = hollow_ball()
+    assert is_boundary_free(hf) and 0 < signed_volume(hv, hf) < 4 / 3 * np.pi
+    assert not is_boundary_free(np.zeros((0, 3), np.int64))
