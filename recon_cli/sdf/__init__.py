@@ -31,12 +31,12 @@ import numpy as np
 from recon_cli.errors import InputError, ParameterError
 
 _SIGNS = ("winding", "pseudonormal")
-_SLAB_CELLS = 500_000
+_SLAB_CELLS = 500_000  # eikonal_check works on slabs of about this many samples
 # peak bytes per grid sample (estimates, for refusing a grid up front): mesh = float64
 # distances + int32 side classes + the float32 grid + the eikonal check's float32 norms;
 # cloud = float64 field + sample coordinates and nearest distances (float64 x 4) + float32
 # grid + norms; open3d = float32 coordinates + float32 distances + float64 copies
-BYTES_PER_SAMPLE = {"mesh": 24, "cloud": 56, "open3d": 48}  # eikonal_check works on slabs of about this many samples
+BYTES_PER_SAMPLE = {"mesh": 24, "cloud": 56, "open3d": 48}
 
 
 def grid_frame(
@@ -237,6 +237,26 @@ def closed_mesh_inside(
     return dist, info
 
 
+class _GridWinding:
+    """|winding number| at masked grid samples; the tree is built on first use and the
+    evaluations are counted."""
+
+    def __init__(self, vertices, faces, origin, h, shape, bvh):
+        self.args = (vertices, faces, bvh)
+        self.frame = (origin, h, shape)
+        self.tree = None
+        self.evaluations = 0
+
+    def __call__(self, mask: np.ndarray) -> np.ndarray:
+        from recon_cli.mesh.winding import WindingTree
+
+        if self.tree is None:
+            v, f, bvh = self.args
+            self.tree = WindingTree(v, f, bvh=bvh)
+        self.evaluations += int(mask.sum())
+        return np.abs(self.tree(grid_points(*self.frame, mask)))
+
+
 def _pseudonormal_sdf(vertices, faces, origin, h, shape, dist, pn_sign, bvh) -> tuple[np.ndarray, dict]:
     """Pseudonormal signs; samples beyond the band (no closest feature) by far regions."""
     near = dist <= h
@@ -244,40 +264,30 @@ def _pseudonormal_sdf(vertices, faces, origin, h, shape, dist, pn_sign, bvh) -> 
     far = pn_sign == 0  # beyond the band: no pseudonormal sign
     far &= ~near
     del pn_sign, near
-    info = {"winding_evaluations": 0, "regions": 0, "sign_method": "pseudonormal"}
-    return _far_regions(vertices, faces, origin, h, shape, dist, inside, far, bvh, info)
+    winding = _GridWinding(vertices, faces, origin, h, shape, bvh)
+    return _far_regions(dist, inside, far, winding, "pseudonormal")
 
 
 def _open_winding_sdf(vertices, faces, origin, h, shape, dist, bvh) -> tuple[np.ndarray, dict]:
     """Winding numbers within a voxel of the surface, and per far region."""
-    info = {"winding_evaluations": 0, "regions": 0, "sign_method": "winding"}
+    winding = _GridWinding(vertices, faces, origin, h, shape, bvh)
     near = dist <= h
     inside = np.zeros(shape, dtype=bool)
-    inside[near] = _winding_at(vertices, faces, origin, h, shape, near, bvh, info) > 0.5
+    inside[near] = winding(near) > 0.5
     far = ~near
     del near
-    return _far_regions(vertices, faces, origin, h, shape, dist, inside, far, bvh, info)
+    return _far_regions(dist, inside, far, winding, "winding")
 
 
-def _winding_at(vertices, faces, origin, h, shape, mask, bvh, info) -> np.ndarray:
-    """|winding number| at the samples where ``mask``."""
-    from recon_cli.mesh.winding import WindingTree
-
-    if "_tree" not in info:
-        info["_tree"] = WindingTree(vertices, faces, bvh=bvh)
-    info["winding_evaluations"] += int(mask.sum())
-    return np.abs(info["_tree"](grid_points(origin, h, shape, mask)))
-
-
-def _far_regions(vertices, faces, origin, h, shape, dist, inside, far, bvh, info) -> tuple[np.ndarray, dict]:
+def _far_regions(dist, inside, far, winding: _GridWinding, method: str) -> tuple[np.ndarray, dict]:
     """Sign the connected regions of ``far`` samples (two neighbouring samples farther than
     one voxel from the mesh cannot have the surface between them, so such a region has one
     side): a coarse subset of each region is evaluated; a region whose subset disagrees
-    (open through a hole) is evaluated everywhere."""
+    (open through a hole) is evaluated everywhere. Negates ``dist`` in place inside."""
     from scipy import ndimage
 
+    shape = dist.shape
     labels, n = ndimage.label(far) if far.any() else (None, 0)
-    info["regions"] = int(n)
     if n:
         # a coarse lattice of samples per region; a region the lattice misses (thin or
         # small) gets its first few samples, found inside its bounding box
@@ -293,7 +303,7 @@ def _far_regions(vertices, faces, origin, h, shape, dist, inside, far, bvh, info
                 first = np.argwhere(labels[sl] == r)[:8] + [s_.start for s_ in sl]
                 pick_mask[tuple(first.T)] = True
         lab = labels[pick_mask]
-        win = _winding_at(vertices, faces, origin, h, shape, pick_mask, bvh, info) > 0.5
+        win = winding(pick_mask) > 0.5
         n_in = np.bincount(lab, weights=win, minlength=n + 1)
         n_all = np.bincount(lab, minlength=n + 1)
         uniform_in = (n_in == n_all) & (n_all > 0)
@@ -303,12 +313,11 @@ def _far_regions(vertices, faces, origin, h, shape, dist, inside, far, bvh, info
         mixed[0] = False
         if mixed.any():  # a region open through a hole: evaluate all its samples
             redo = mixed[labels]
-            inside[redo] = _winding_at(vertices, faces, origin, h, shape, redo, bvh, info) > 0.5
-    info.pop("_tree", None)
+            inside[redo] = winding(redo) > 0.5
     # negate in place: no second full-size array
     sdf = dist
     np.negative(sdf, out=sdf, where=inside)
-    return sdf, info
+    return sdf, {"winding_evaluations": winding.evaluations, "regions": int(n), "sign_method": method}
 
 
 def is_boundary_free(faces: np.ndarray) -> bool:
