@@ -32,3 +32,21 @@ def stage_io(f):
     for deco in reversed((input_arg, output_arg, ascii_opt, json_opt)):
         f = deco(f)
     return f
+
+
+def picture_opts(f):
+    """``--view``, ``--vmax`` and ``--unit``: how ``recon diff --png`` and ``recon compare`` draw."""
+    for deco in reversed((
+        click.option(
+            "--view",
+            "views",
+            multiple=True,
+            default=("turntable",),
+            show_default=True,
+            help="View of the pictures (repeatable): turntable (4 azimuths), front, back, left, right, top, bottom, iso.",
+        ),
+        click.option("--vmax", type=float, help="Distance at the top of the heatmaps' colour scale [default: 99th percentile, at least the smallest tau]."),
+        click.option("--unit", help="Unit of the coordinates, written on the colour bar and in reports (e.g. mm) [default: model units]."),
+    )):
+        f = deco(f)
+    return f
