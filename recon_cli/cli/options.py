@@ -43,7 +43,7 @@ def picture_opts(f):
             multiple=True,
             default=("turntable",),
             show_default=True,
-            help="View of the pictures (repeatable): turntable (4 azimuths), front, back, left, right, top, bottom, iso.",
+            help="View of the pictures (repeatable): turntable (4 azimuths), front, back, left, right, top, bottom, iso, or AZ,EL in degrees.",
         ),
         click.option("--vmax", type=float, help="Distance at the top of the heatmaps' colour scale [default: 99th percentile, at least the smallest tau]."),
         click.option("--unit", help="Unit of the coordinates, written on the colour bar and in reports (e.g. mm) [default: model units]."),

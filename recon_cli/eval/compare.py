@@ -218,6 +218,7 @@ def _plan(methods, samples, views, vmax) -> tuple[list[Method], dict[str, bool],
     Returns the methods, which of them can run (label -> bool: False for a stage not built
     in this version), and the checked ``samples`` and ``vmax``.
     """
+    from recon_cli.eval.figure import require_pillow
     from recon_cli.eval.metrics import check_samples, check_vmax
     from recon_cli.eval.render import resolve_views
     from recon_cli.stages import STAGES, get_stage, stage_parameters
@@ -229,6 +230,7 @@ def _plan(methods, samples, views, vmax) -> tuple[list[Method], dict[str, bool],
         raise ParameterError("no method given")
     samples = check_samples(samples)
     resolve_views(views)
+    require_pillow()  # the pictures are drawn after every method has run: fail before
     if vmax is not None:
         vmax = check_vmax(vmax)
     available: dict[str, bool] = {}
@@ -310,14 +312,15 @@ def _measure(rows, outputs, reference, samples, seed, taus) -> None:
 
 
 def _draw(rows, outputs, reference, reference_path, out_dir, views, vmax, unit) -> dict[str, Any]:
-    """Write ``<method>.png`` per method, ``overview.png`` and ``quality_vs_time.png``.
+    """Write ``<method>.png`` per method (every view), ``overview.png`` (all methods side by side,
+    the first view) and ``quality_vs_time.png``.
 
     One colour scale for every heatmap: ``vmax`` or the shared default of every accuracy
     and completeness array. Returns ``overview``, ``plot`` (paths or None) and ``vmax``.
     """
-    from recon_cli.eval.figure import diff_rows, sheet
+    from recon_cli.eval.figure import diff_rows, overview, sheet
     from recon_cli.eval.metrics import shared_vmax, vertex_distances
-    from recon_cli.eval.render import write_png
+    from recon_cli.eval.render import resolve_views, write_png
 
     good = [r for r in rows if r["status"] == STATUS_OK]
     if not good:
@@ -340,15 +343,15 @@ def _draw(rows, outputs, reference, reference_path, out_dir, views, vmax, unit) 
         fig = sheet(diff_rows([(r["method"], outputs[r["method"]], acc[r["method"]], missed[r["method"]])], ref),
                     views, vmax=vmax, unit=unit, diagonal=diag, title=f"recon compare: {r['method']}")
         write_png(fig.image, r["picture"])
-    overview = os.path.join(out_dir, "overview.png")
-    fig = sheet(diff_rows([(r["method"], outputs[r["method"]], acc[r["method"]], missed[r["method"]]) for r in good], ref),
-                views, vmax=vmax, unit=unit, diagonal=diag, title="recon compare: all methods")
-    write_png(fig.image, overview)
+    overview_path = os.path.join(out_dir, "overview.png")
+    fig = overview([(r["method"], outputs[r["method"]], acc[r["method"]], missed[r["method"]]) for r in good], ref,
+                   resolve_views(views)[0][1], vmax=vmax, unit=unit, diagonal=diag, title="recon compare: all methods")
+    write_png(fig.image, overview_path)
     plot = None
     if reference is not None and any(r["metrics"] for r in good):
         plot = os.path.join(out_dir, "quality_vs_time.png")
         write_png(quality_plot(rows, unit), plot)
-    return {"overview": overview, "plot": plot, "vmax": vmax}
+    return {"overview": overview_path, "plot": plot, "vmax": vmax}
 
 
 def quality_plot(rows: Sequence[dict], unit: str | None = None) -> Any:

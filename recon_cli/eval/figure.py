@@ -28,7 +28,6 @@ from recon_cli.errors import ParameterError
 from recon_cli.geometry import PointCloud, TriangleMesh
 
 TEXT_COLOR = (20, 20, 20)
-MUTED_COLOR = (90, 90, 90)
 MARGIN = 12
 GAP = 6
 TITLE_H = 34
@@ -49,11 +48,11 @@ class Figure:
     ----------
     image : (H, W, 3) uint8
     boxes : dict of str -> (x0, y0, x1, y1)
-        Pixel boxes (end exclusive) of the named parts: ``"title"``, ``"view k"`` (label of
-        view column k), ``"row r"`` (label of row r), ``"tile r k"``, ``"colorbar"`` (the
+        Pixel boxes (end exclusive) of the named parts: ``"title"``, ``"column k"`` (label of
+        column k), ``"row r"`` (label of row r), ``"tile r k"``, ``"colorbar"`` (the
         ramp), ``"colorbar title"``, ``"colorbar top"`` (the ">= max" label),
         ``"colorbar max"``, ``"legend"``; a plot has ``"plot"``, ``"x label"``,
-        ``"y label"``, ``"point k"`` and ``"point label k"``.
+        ``"y label"``, ``"point k"``, ``"point label k"`` and ``"missing"`` (points not drawn).
     """
 
     image: np.ndarray
@@ -85,6 +84,47 @@ class Row:
 def sheet(
     rows: Sequence[Row],
     views: Sequence[str | tuple[float, float]] | str | None = None,
+    **kwargs,
+) -> Figure:
+    """Render ``rows`` from every view (one column per view), on one frame and one colour scale.
+
+    Parameters
+    ----------
+    rows : sequence of Row
+        Top to bottom. All rows share the frame (same scale and centre), so surfaces line up.
+    views : see :func:`recon_cli.eval.render.resolve_views`
+        One column each, labelled with its angles (default: the four-azimuth turntable).
+    **kwargs
+        ``vmax``, ``unit``, ``diagonal``, ``title``, ``bar_title``, ``panel_size``,
+        ``supersample``: see :func:`grid`.
+
+    Returns
+    -------
+    Figure
+    """
+    from recon_cli.eval.render import resolve_views
+
+    if not rows:
+        raise ParameterError("nothing to draw")
+    views = resolve_views(views)
+    cells = [[Cell(row.obj, angles, row.scalars, row.edges) for _, angles in views] for row in rows]
+    return grid(cells, [row.label for row in rows], [label for label, _ in views], **kwargs)
+
+
+@dataclass
+class Cell:
+    """One tile of a :func:`grid`: a surface from one view, shaded or as a heatmap."""
+
+    obj: TriangleMesh | PointCloud
+    view: str | tuple[float, float]
+    scalars: np.ndarray | None = None
+    edges: bool = False
+
+
+def grid(
+    cells: Sequence[Sequence[Cell | None]],
+    row_labels: Sequence[str],
+    column_labels: Sequence[str],
     *,
     vmax: float | None = None,
     unit: str | None = None,
@@ -94,17 +134,17 @@ def sheet(
     panel_size: int = 240,
     supersample: int = 2,
 ) -> Figure:
-    """Render ``rows`` from every view, on one frame and one colour scale, labelled.
+    """Tiles in rows and columns, labelled, on one frame and one colour scale, with a colour bar.
 
     Parameters
     ----------
-    rows : sequence of Row
-        Top to bottom. All rows share the frame (same scale and centre), so surfaces line up.
-    views : see :func:`recon_cli.eval.render.resolve_views`
-        One column each (default: the four-azimuth turntable).
+    cells : rows of (Cell or None)
+        None leaves a tile blank. Every surface shares one frame (same scale and centre).
+    row_labels, column_labels : sequence of str
+        A label above each row, and above each column.
     vmax : float, optional
         Distance at the top of the colour scale; larger values are drawn in the top colour
-        and the bar's top reads ">= vmax". Default: the largest value of any row.
+        and the bar's top reads ">= vmax". Default: the largest value of any heatmap.
     unit : str, optional
         Unit of the distances, written in the colour bar's title (default "model units").
     diagonal : float, optional
@@ -123,37 +163,46 @@ def sheet(
     Figure
     """
     from recon_cli.eval.metrics import check_vmax
-    from recon_cli.eval.render import defect_edges, frame_of, render, resolve_views
+    from recon_cli.eval.render import defect_edges, frame_of, render
 
-    if not rows:
+    flat = [c for row in cells for c in row if c is not None]
+    if not flat:
         raise ParameterError("nothing to draw")
+    n_cols = len(column_labels)
+    if len(row_labels) != len(cells) or any(len(row) != n_cols for row in cells):
+        raise ParameterError("cells, row labels and column labels do not match")
     s = int(panel_size)
     if s < 32:
         raise ParameterError(f"panel size must be at least 32 pixels, got {panel_size}")
-    views = resolve_views(views)
-    heat = [np.asarray(r.scalars, dtype=np.float64) for r in rows if r.scalars is not None]
+    heat = [np.asarray(c.scalars, dtype=np.float64) for c in flat if c.scalars is not None]
     largest = max((float(d.max()) for d in heat if len(d)), default=0.0)
     if heat:
         vmax = check_vmax(vmax if vmax is not None else (largest or 1.0))
-    has_edges = any(r.edges for r in rows)
-    box = layout(len(rows), len(views), s, title=title is not None, colorbar=bool(heat), legend=has_edges)
+    has_edges = any(c.edges for c in flat)
+    box = layout(len(cells), n_cols, s, title=title is not None, colorbar=bool(heat), legend=has_edges)
     width, height = box.pop("size")[2:]
     img = np.full((height, width, 3), 255, dtype=np.uint8)
     texts: list[tuple] = []
-    frame = frame_of([r.obj for r in rows])
+    frame = frame_of([c.obj for c in flat])
+    edge_cache: dict[int, list] = {}
 
     if title is not None:
         texts.append((box["title"], title, FONT_TITLE, TEXT_COLOR))
-    for k, (label, _) in enumerate(views):
-        texts.append((box[f"view {k}"], label, FONT_LABEL, TEXT_COLOR))
-    for r, row in enumerate(rows):
-        texts.append((box[f"row {r}"], row.label, FONT_LABEL, TEXT_COLOR))
-        edges = defect_edges(row.obj) if row.edges else []
-        for k, (_, angles) in enumerate(views):
+    for k, label in enumerate(column_labels):
+        texts.append((box[f"column {k}"], label, FONT_LABEL, TEXT_COLOR))
+    for r, row in enumerate(cells):
+        texts.append((box[f"row {r}"], row_labels[r], FONT_LABEL, TEXT_COLOR))
+        for k, c in enumerate(row):
+            if c is None:
+                continue
+            edges = []
+            if c.edges:
+                if id(c.obj) not in edge_cache:
+                    edge_cache[id(c.obj)] = defect_edges(c.obj)
+                edges = edge_cache[id(c.obj)]
             x0, y0, x1, y1 = box[f"tile {r} {k}"]
-            tile = render(row.obj, angles, (s, s), frame, scalars=row.scalars, vmax=vmax,
-                          supersample=supersample, edges=edges).image
-            img[y0:y1, x0:x1] = tile
+            img[y0:y1, x0:x1] = render(c.obj, c.view, (s, s), frame, scalars=c.scalars, vmax=vmax,
+                                       supersample=supersample, edges=edges).image
             img[y0 - 1 : y1 + 1, [x0 - 1, x1]] = 225  # a light frame around each tile
             img[[y0 - 1, y1], x0 - 1 : x1 + 1] = 225
     if heat:
@@ -163,26 +212,26 @@ def sheet(
     return Figure(_draw_texts(img, texts), box)
 
 
-def layout(n_rows: int, n_views: int, panel_size: int, *, title: bool = False, colorbar: bool = True,
+def layout(n_rows: int, n_columns: int, panel_size: int, *, title: bool = False, colorbar: bool = True,
            legend: bool = False) -> dict[str, Box]:
-    """Boxes of every part of a :func:`sheet` (``"size"`` is ``(0, 0, width, height)``)."""
+    """Boxes of every part of a :func:`grid` (``"size"`` is ``(0, 0, width, height)``)."""
     s = int(panel_size)
     box: dict[str, Box] = {}
     y = MARGIN
-    grid_w = n_views * s + (n_views - 1) * GAP
+    grid_w = n_columns * s + (n_columns - 1) * GAP
     right = MARGIN + grid_w + (BAR_COLUMN_W if colorbar or legend else 0)
     if title:
         box["title"] = (MARGIN, y, right, y + TITLE_H)
         y += TITLE_H
-    for k in range(n_views):
+    for k in range(n_columns):
         x = MARGIN + k * (s + GAP)
-        box[f"view {k}"] = (x, y, x + s, y + HEADER_H)
+        box[f"column {k}"] = (x, y, x + s, y + HEADER_H)
     y += HEADER_H
     top = y
     for r in range(n_rows):
         box[f"row {r}"] = (MARGIN, y, MARGIN + grid_w, y + LABEL_H)
         y += LABEL_H
-        for k in range(n_views):
+        for k in range(n_columns):
             x = MARGIN + k * (s + GAP)
             box[f"tile {r} {k}"] = (x, y, x + s, y + s)
         y += s + GAP
@@ -230,8 +279,8 @@ def scatter_plot(
     -------
     Figure
     """
-    from PIL import Image, ImageDraw
-
+    pil = require_pillow()
+    Image, ImageDraw = pil.Image, pil.ImageDraw
     w, h = (int(v) for v in size)
     good = [(lab, float(x), float(y)) for lab, x, y in points if np.isfinite(x) and np.isfinite(y)]
     left, right, top, bottom = 90, w - 24, MARGIN + (TITLE_H if title else 0) + 8, h - 70
@@ -282,21 +331,29 @@ def scatter_plot(
     missing = [lab for lab, x, y in points if not (np.isfinite(x) and np.isfinite(y))]
     if missing:
         dr.text((left, h - 18), _fit("not shown (no figure): " + ", ".join(missing), small, w - left - MARGIN),
-                font=small, fill=MUTED_COLOR)
+                font=small, fill=TEXT_COLOR)
+        box["missing"] = (left, h - 20, w - MARGIN, h)
     return Figure(np.asarray(im, dtype=np.uint8).copy(), box)
 
 
 # --------------------------------------------------------------------------- internals
 
 
+def require_pillow():
+    """The ``PIL`` package, or :class:`ParameterError` naming the extra to install."""
+    try:
+        import PIL.Image
+        import PIL.ImageDraw
+        import PIL.ImageFont
+    except ImportError:
+        raise ParameterError("drawing pictures needs Pillow: pip install 'recon[render]'") from None
+    return PIL
+
+
 @functools.lru_cache(maxsize=None)
 def _font(size: int):
     """Pillow's own scalable font at ``size`` pixels (Pillow >= 10.1 with FreeType)."""
-    try:
-        from PIL import ImageFont
-    except ImportError:
-        raise ParameterError("drawing pictures needs Pillow: pip install 'recon[render]'") from None
-    return ImageFont.load_default(size=size)
+    return require_pillow().ImageFont.load_default(size=size)
 
 
 def _fit(text: str, font, width: float) -> str:
@@ -310,9 +367,9 @@ def _fit(text: str, font, width: float) -> str:
 
 def _draw_texts(img: np.ndarray, texts: list[tuple]) -> np.ndarray:
     """Set each (box, text, size, colour) left-aligned, vertically centred in its box."""
-    from PIL import Image, ImageDraw
-
-    im = Image.fromarray(img)
+    pil = require_pillow()
+    im = pil.Image.fromarray(img)
+    ImageDraw = pil.ImageDraw
     dr = ImageDraw.Draw(im)
     for (x0, y0, x1, y1), text, size, color in texts:
         font = _font(size)
@@ -345,8 +402,8 @@ def _colorbar(img, box, vmax, largest, unit, diagonal, bar_title) -> list[tuple]
         v = frac * vmax
         label = (f">= {_num(v)}" if frac == 1.0 else _num(v)) + pct(v)
         texts.append(((x1 + 10, y - 10, rx, y + 10), label, FONT_SMALL, TEXT_COLOR))
-    clipped = "above the top: top colour" if largest > vmax else "nothing above the top"
-    texts.append((box["colorbar max"], f"max {_num(largest)}{pct(largest)}\n{clipped}", FONT_SMALL, MUTED_COLOR))
+    clipped = "higher values: the top colour" if largest > vmax else "no value above the top"
+    texts.append((box["colorbar max"], f"max {_num(largest)}{pct(largest)}\n{clipped}", FONT_SMALL, TEXT_COLOR))
     return texts
 
 
@@ -423,6 +480,42 @@ def diff_rows(
     if reference is not None:
         rows.append(Row(f"{reference[0]} (reference) · shape{_edge_note(reference[1])}", reference[1], edges=True))
     return rows
+
+
+def overview(
+    candidates: Sequence[tuple[str, TriangleMesh | PointCloud, np.ndarray | None, np.ndarray | None]],
+    reference: tuple[str, TriangleMesh | PointCloud] | None,
+    view: str | tuple[float, float] | None = None,
+    **kwargs,
+) -> Figure:
+    """All candidates side by side from one view: shape, accuracy and completeness rows.
+
+    Parameters
+    ----------
+    candidates, reference
+        As in :func:`diff_rows`.
+    view : str or (azimuth, elevation), optional
+        Default: the first view of the turntable (the iso view).
+    **kwargs
+        See :func:`grid`.
+    """
+    from recon_cli.eval.render import resolve_views
+
+    if not candidates:
+        raise ParameterError("nothing to draw")
+    label, angles = resolve_views(None if view is None else [view])[0]
+    has_ref = reference is not None
+    cols = [name for name, *_ in candidates] + ([f"{reference[0]} (reference)"] if has_ref else [])
+    blank = [None] if has_ref else []
+    cells = [[Cell(obj, angles, edges=True) for _, obj, _, _ in candidates] + ([Cell(reference[1], angles, edges=True)] if has_ref else [])]
+    labels = [f"shape, from {label}"]
+    if has_ref and any(a is not None for _, _, a, _ in candidates):
+        cells.append([None if a is None else Cell(obj, angles, a) for _, obj, a, _ in candidates] + blank)
+        labels.append("accuracy: each surface coloured by distance to the reference")
+    if has_ref and any(m is not None for *_, m in candidates):
+        cells.append([None if m is None else Cell(reference[1], angles, m) for *_, m in candidates] + blank)
+        labels.append("completeness: the reference coloured by distance to each (red: missed)")
+    return grid(cells, labels, cols, **kwargs)
 
 
 def _edge_note(obj) -> str:

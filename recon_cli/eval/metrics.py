@@ -336,9 +336,11 @@ def diff_files(
         raise ParameterError("no candidate file to compare")
     samples = check_samples(samples)
     if png_path is not None:
+        from recon_cli.eval.figure import require_pillow
         from recon_cli.eval.render import resolve_views
 
         resolve_views(views)  # unknown view names fail before any work
+        require_pillow()
     if vmax is not None:
         vmax = check_vmax(vmax)
     ref = load_geometry(reference)

@@ -274,7 +274,7 @@ def resolve_views(views: Sequence[str | tuple[float, float]] | str | None) -> li
     ----------
     views : sequence of str or (azimuth, elevation), or str, optional
         Names of :data:`VIEWS`, ``"turntable"`` (the four azimuths of :data:`TURNTABLE`),
-        or angles in degrees; a str is one view. Default :data:`DEFAULT_VIEWS`.
+        ``"AZ,EL"`` or (azimuth, elevation) in degrees; a str is one view. Default :data:`DEFAULT_VIEWS`.
 
     Returns
     -------
@@ -284,7 +284,7 @@ def resolve_views(views: Sequence[str | tuple[float, float]] | str | None) -> li
     Raises
     ------
     ParameterError
-        An unknown name, or no view.
+        An unknown name, malformed angles, or no view.
     """
     if views is None:
         views = DEFAULT_VIEWS
@@ -292,6 +292,13 @@ def resolve_views(views: Sequence[str | tuple[float, float]] | str | None) -> li
         views = (views,)
     out: list[tuple[str, tuple[float, float]]] = []
     for v in views:
+        if isinstance(v, str) and "," in v:  # "AZ,EL" in degrees, as on the command line
+            try:
+                v = tuple(float(x) for x in v.split(","))
+            except ValueError:
+                raise ParameterError(f"view {v!r} is not AZIMUTH,ELEVATION in degrees") from None
+            if len(v) != 2 or not all(np.isfinite(v)):
+                raise ParameterError(f"view {','.join(map(str, v))!r} is not AZIMUTH,ELEVATION in degrees")
         if isinstance(v, str):
             if v == "turntable":
                 out += [(f"az {a:g}°, el {e:g}°", (a, e)) for a, e in TURNTABLE]
