@@ -36,6 +36,7 @@ LABEL_H = 24
 BAR_COLUMN_W = 210
 BAR_W = 22
 FONT_TITLE, FONT_LABEL, FONT_SMALL = 20, 15, 13
+MIN_LABEL_W = 560  # row labels get at least this width, even over a single column of tiles
 
 Box = tuple[int, int, int, int]  # x0, y0, x1, y1 (exclusive ends)
 
@@ -218,7 +219,7 @@ def layout(n_rows: int, n_columns: int, panel_size: int, *, title: bool = False,
     s = int(panel_size)
     box: dict[str, Box] = {}
     y = MARGIN
-    grid_w = n_columns * s + (n_columns - 1) * GAP
+    grid_w = max(n_columns * s + (n_columns - 1) * GAP, MIN_LABEL_W)
     right = MARGIN + grid_w + (BAR_COLUMN_W if colorbar or legend else 0)
     if title:
         box["title"] = (MARGIN, y, right, y + TITLE_H)
@@ -239,8 +240,8 @@ def layout(n_rows: int, n_columns: int, panel_size: int, *, title: bool = False,
     bx = MARGIN + grid_w + 16
     by = top
     if colorbar:
-        box["colorbar title"] = (bx, by, right, by + 2 * LABEL_H)
-        by += 2 * LABEL_H + 10
+        box["colorbar title"] = (bx, by, right, by + LABEL_H + 40)
+        by += LABEL_H + 40 + 12
         bar_h = max(120, min(bottom - by - 120, 2 * s))
         box["colorbar"] = (bx, by, bx + BAR_W, by + bar_h)
         box["colorbar top"] = (bx + BAR_W + 10, by - 10, right, by + 10)
@@ -300,14 +301,16 @@ def scatter_plot(
     im = Image.new("RGB", (w, h), (255, 255, 255))
     dr = ImageDraw.Draw(im)
     small, label = _font(FONT_SMALL), _font(FONT_LABEL)
-    for t in _ticks(x_lo, x_hi, log_x):
+    xt = _ticks(x_lo, x_hi, log_x)
+    for t, text in zip(xt, _tick_labels([10**t for t in xt] if log_x else xt)):
         x = sx(10**t if log_x else t)
         dr.line([(x, top), (x, bottom)], fill=(232, 232, 232))
-        dr.text((x, bottom + 6), _num(10**t if log_x else t), font=small, fill=TEXT_COLOR, anchor="ma")
-    for t in _ticks(y_lo, y_hi, False):
+        dr.text((x, bottom + 6), text, font=small, fill=TEXT_COLOR, anchor="ma")
+    yt = _ticks(y_lo, y_hi, False)
+    for t, text in zip(yt, _tick_labels(yt)):
         y = sy(t)
         dr.line([(left, y), (right, y)], fill=(232, 232, 232))
-        dr.text((left - 6, y), _num(t), font=small, fill=TEXT_COLOR, anchor="rm")
+        dr.text((left - 6, y), text, font=small, fill=TEXT_COLOR, anchor="rm")
     dr.rectangle([left, top, right, bottom], outline=(120, 120, 120))
     if title:
         dr.text((MARGIN, MARGIN), title, font=_font(FONT_TITLE), fill=TEXT_COLOR)
@@ -319,15 +322,34 @@ def scatter_plot(
     im.paste(ylab.rotate(90, expand=True), (8, top))
     box["y label"] = (8, top, 30, bottom)
     colors = _point_colors(len(good))
+    placed: list[tuple[float, float, float, float]] = []
     for k, ((lab, x, y), c) in enumerate(zip(good, colors)):
         px, py = sx(x), sy(y)
         dr.ellipse([px - 6, py - 6, px + 6, py + 6], fill=c, outline=TEXT_COLOR)
         box[f"point {k}"] = (int(px - 6), int(py - 6), int(px + 7), int(py + 7))
-        anchor, tx = ("la", px + 9) if px < (left + right) / 2 else ("ra", px - 9)
+        placed.append((px - 7, py - 7, px + 7, py + 7))
+    for k, ((lab, x, y), c) in enumerate(zip(good, colors)):
+        px, py = sx(x), sy(y)
         lab = _fit(lab, small, (right - left) * 0.6)
-        dr.text((tx, py + 2), lab, font=small, fill=TEXT_COLOR, anchor=anchor)
-        x0, y0, x1, y1 = dr.textbbox((tx, py + 2), lab, font=small, anchor=anchor)
-        box[f"point label {k}"] = (int(x0), int(y0), int(x1) + 1, int(y1) + 1)
+        # the first of these places (right, left, above, below ...) that overlaps no disc or label
+        tries = [("lm", px + 10, py), ("rm", px - 10, py), ("mb", px, py - 9), ("mt", px, py + 9),
+                 ("lb", px + 8, py - 7), ("rt", px - 8, py + 7), ("lt", px + 8, py + 7), ("rb", px - 8, py - 7)]
+        best = None
+        for anchor, tx, ty in tries:
+            bb = dr.textbbox((tx, ty), lab, font=small, anchor=anchor)
+            inside = bb[0] >= left + 2 and bb[2] <= right - 2 and bb[1] >= top + 2 and bb[3] <= bottom - 2
+            if inside and not any(_overlap(bb, o) for o in placed):
+                best = (anchor, tx, ty, bb)
+                break
+            if best is None and inside:
+                best = (anchor, tx, ty, bb)
+        if best is None:
+            anchor, tx, ty = tries[0]
+            best = (anchor, tx, ty, dr.textbbox((tx, ty), lab, font=small, anchor=anchor))
+        anchor, tx, ty, bb = best
+        dr.text((tx, ty), lab, font=small, fill=TEXT_COLOR, anchor=anchor)
+        placed.append(bb)
+        box[f"point label {k}"] = (int(bb[0]), int(bb[1]), int(bb[2]) + 1, int(bb[3]) + 1)
     missing = [lab for lab, x, y in points if not (np.isfinite(x) and np.isfinite(y))]
     if missing:
         dr.text((left, h - 18), _fit("not shown (no figure): " + ", ".join(missing), small, w - left - MARGIN),
@@ -394,8 +416,10 @@ def _colorbar(img, box, vmax, largest, unit, diagonal, bar_title) -> list[tuple]
     def pct(v):
         return f" ({100 * v / diagonal:.3g}%)" if diagonal else ""
 
-    texts = [(box["colorbar title"], f"{bar_title}\n({unit or 'model units'}{', % of ref. diagonal' if diagonal else ''})",
-              FONT_LABEL, TEXT_COLOR)]
+    x0t, y0t, x1t, y1t = box["colorbar title"]
+    texts = [((x0t, y0t, x1t, y0t + LABEL_H), bar_title, FONT_LABEL, TEXT_COLOR),
+             ((x0t, y0t + LABEL_H, x1t, y1t), f"[{unit or 'model units'}]" + ("\n(% of ref. diagonal)" if diagonal else ""),
+              FONT_SMALL, TEXT_COLOR)]
     for frac in (1.0, 0.75, 0.5, 0.25, 0.0):
         y = y0 + int(round((1.0 - frac) * (n - 1)))
         img[y, x1 : x1 + 6] = 0
@@ -426,6 +450,24 @@ def _num(v: float) -> str:
     if 1e-3 <= a < 1e4:
         return f"{v:.3g}"
     return f"{v:.2e}"
+
+
+def _tick_labels(ticks: Sequence[float]) -> list[str]:
+    """Labels just precise enough to tell neighbouring ticks apart."""
+    t = np.asarray(ticks, dtype=np.float64)
+    if len(t) == 0:
+        return []
+    step = float(np.min(np.diff(t))) if len(t) > 1 else abs(float(t[0])) or 1.0
+    big = float(np.abs(t).max())
+    if 1e-4 <= step and big < 1e5:
+        dec = max(0, int(-np.floor(np.log10(step) + 1e-9)))
+        return [f"{v:.{dec}f}" for v in t]
+    digits = max(1, int(np.ceil(np.log10(big / step) + 1e-9)) if big > 0 else 1)
+    return [f"{v:.{digits}e}" for v in t]
+
+
+def _overlap(a, b) -> bool:
+    return a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]
 
 
 def _padded(lo: float, hi: float, floor0: bool) -> tuple[float, float]:
