@@ -218,10 +218,10 @@ def markdown(result: dict, out_dir: str) -> str:
 
 
 _SORT_JS = """
-document.querySelectorAll('table.sortable th').forEach(function (th, col) {
+document.querySelectorAll('table.sortable th').forEach(function (th) {
   th.title = 'click to sort';
   th.addEventListener('click', function () {
-    var body = th.closest('table').tBodies[0], rows = Array.from(body.rows);
+    var col = th.cellIndex, body = th.closest('table').tBodies[0], rows = Array.from(body.rows);
     var asc = th.dataset.dir !== 'asc';
     th.closest('tr').querySelectorAll('th').forEach(function (h) { delete h.dataset.dir; });
     th.dataset.dir = asc ? 'asc' : 'desc';
