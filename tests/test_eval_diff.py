@@ -176,6 +176,11 @@ def test_bad_inputs_exit_2(capsys, files, tmp_path):
     assert code == 2 and "samples" in err
     code, out, err = run(capsys, "diff", files["a"], files["gt"], "--png", tmp_path / "x.png", "--view", "sideways")
     assert code == 2 and "view" in err and not (tmp_path / "x.png").exists()
+    for bad in ("0", "-1", "nan"):
+        code, out, err = run(capsys, "diff", files["a"], files["gt"], "--png", tmp_path / "x.png", "--vmax", bad)
+        assert code == 2 and "vmax" in err and not (tmp_path / "x.png").exists(), bad
+    code, out, err = run(capsys, "diff", files["a"], files["gt"], "--png", tmp_path / "x.png", "--view", "1,2,3")
+    assert code == 2 and "AZIMUTH,ELEVATION" in err and not (tmp_path / "x.png").exists()
     code, out, err = run(capsys, "diff", files["a"], files["gt"], "--json", "--csv", "-")
     assert code == 2 and "stdout" in err
     garbage = tmp_path / "garbage.ply"
