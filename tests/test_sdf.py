@@ -308,16 +308,14 @@ def _reference_winding(v, f, p):
     """Winding numbers independent of the stage's side classes: the exact sum of solid
     angles at every point for small problems; else Barill's tree with a stricter
     acceptance (beta 3), and the exact sum wherever that is not within 0.02 of an integer."""
-    from recon_cli.mesh import _winding_kernel as WK
-    from recon_cli.mesh.winding import WindingTree
+    from recon_cli.mesh.winding import WindingTree, winding_number
 
-    tri = np.ascontiguousarray(v[f])
     if len(p) * len(f) <= 10_000_000:
-        return WK.winding_exact(p, tri)
+        return winding_number(v, f, p, method="exact")
     w = WindingTree(v, f)(p, beta=3.0)
     unsure = np.abs(w - np.round(w)) > 0.02
     if unsure.any():
-        w[unsure] = WK.winding_exact(p[unsure], tri)
+        w[unsure] = winding_number(v, f, p[unsure], method="exact")
     return w
 
 

@@ -232,8 +232,7 @@ def closed_mesh_inside(
     generalized winding numbers", SIGGRAPH 2013; Barill et al., "Fast winding numbers for
     soups and clouds", SIGGRAPH 2018.
     """
-    from recon_cli.mesh import _winding_kernel as WK
-    from recon_cli.mesh.winding import WindingTree
+    from recon_cli.mesh.winding import WindingTree, winding_number
     from recon_cli.sdf import _kernel as K
 
     h = float(voxel_size)
@@ -250,7 +249,7 @@ def closed_mesh_inside(
     w = WindingTree(v, f, bvh=bvh)(pts)
     unsure = np.abs(w - np.round(w)) > 0.1
     if unsure.any():
-        w[unsure] = WK.winding_exact(pts[unsure], np.ascontiguousarray(v[f]))
+        w[unsure] = winding_number(v, f, pts[unsure], method="exact")
     wn = np.round(w).astype(np.int64)
     K.negate_inside(dist, classes_of, wn != 0)
     info = {
