@@ -10,6 +10,9 @@ Format (``numpy.savez``, uncompressed):
     float64 scalar: spacing of samples along every axis.
 ``provenance``
     str: history lines joined by newlines (oldest first).
+``point_dtype`` (optional)
+    str, ``float32`` or ``float64``: the float type of the source's coordinates, which
+    meshes extracted from the grid are written with (float32 when absent).
 """
 
 from __future__ import annotations
@@ -39,6 +42,7 @@ def grid_bytes(grid: Grid) -> bytes:
         origin=grid.origin,
         voxel_size=np.float64(grid.voxel_size),
         provenance=np.array("\n".join(grid.history)),
+        point_dtype=np.array(np.dtype(grid.point_dtype).name),
     )
     return buf.getvalue()
 
@@ -64,13 +68,18 @@ def read_grid(path: str | os.PathLike, data: bytes | None = None) -> Grid:
             origin = z["origin"]
             voxel = z["voxel_size"]
             prov = str(z["provenance"]) if "provenance" in z.files else ""
+            pdt = str(z["point_dtype"]) if "point_dtype" in z.files else "float32"
     except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
         raise InputError(f"corrupt grid file ({exc})", where) from None
     if sdf.ndim != 3 or sdf.dtype.kind != "f":
         raise InputError(f"'sdf' must be a 3-d float array, got {sdf.dtype} {sdf.shape}", where)
     if origin.shape != (3,) or voxel.shape != () or not float(voxel) > 0:
         raise InputError("'origin' must have 3 values and 'voxel_size' be one positive value", where)
-    return Grid(sdf=sdf, origin=origin, voxel_size=float(voxel), history=[s for s in prov.split("\n") if s])
+    if pdt not in ("float32", "float64"):
+        raise InputError(f"'point_dtype' must be float32 or float64, got {pdt[:40]!r}", where)
+    return Grid(
+        sdf=sdf, origin=origin, voxel_size=float(voxel), history=[s for s in prov.split("\n") if s], point_dtype=pdt
+    )
 
 
 def write_grid(grid: Grid, path: str | os.PathLike) -> None:

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from recon_cli.errors import InputError
-from recon_cli.geometry import PointCloud, TriangleMesh
+from recon_cli.geometry import PointCloud, TriangleMesh, storage_dtype
 from recon_cli.io._ply_types import FORMATS, PLY_TYPES, ply_name
 
 MAX_HEADER_BYTES = 1 << 20
@@ -845,7 +845,8 @@ def geometry_to_ply(obj: PointCloud | TriangleMesh, ascii: bool = False) -> PlyD
     fmt = "ascii" if ascii else "binary_little_endian"
     pts = obj.points
     n = len(pts)
-    fcode = "f8" if np.dtype(obj.point_dtype) == np.float64 else "f4"
+    # the data model's rule: the source's type, double when float32 would round computed coordinates
+    fcode = "f8" if storage_dtype(obj) == np.float64 else "f4"
     vprops = [PlyProperty(c, fcode) for c in _VERTEX_XYZ]
     vdata = {c: pts[:, i] for i, c in enumerate(_VERTEX_XYZ)}
     if obj.normals is not None:

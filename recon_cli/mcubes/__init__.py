@@ -309,7 +309,7 @@ def run_stage(
             allow_degenerate=allow_degenerate,
         )
         t.advance(1)
-    mesh = TriangleMesh(vertices=v, faces=f, normals=n, history=list(data.history), point_dtype=np.float32)
+    mesh = TriangleMesh(vertices=v, faces=f, normals=n, history=list(data.history), point_dtype=data.point_dtype)
     nan = ~np.isfinite(data.sdf)
     skipped = 0
     if nan.any():

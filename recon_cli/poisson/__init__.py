@@ -718,5 +718,6 @@ def run_stage(
             "iso_value": None, "solver_iterations": None, "residual": None, "trimmed_faces": int(trimmed),
         }
     mesh.history = history
+    mesh.point_dtype = cloud.point_dtype  # double in, double out (float32 in: see geometry.storage_dtype)
     report["backend"] = backend
     return StageResult(output=mesh, report=report)

@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from recon_cli.errors import InputError, ParameterError
-from recon_cli.geometry import TriangleMesh, bbox_diagonal, float64
+from recon_cli.geometry import TriangleMesh, bbox_diagonal, float64, local_origin
 from recon_cli.mesh.topology import CHUNK, Connectivity, index_dtype, stable_argsort
 from recon_cli.progress import task
 from recon_cli.stages import StageResult
@@ -106,8 +106,10 @@ class _State:
     2^31 entries) once changed: the output mesh converts back to int64.
     """
 
-    def __init__(self, mesh: TriangleMesh):
-        self.vertices = mesh.vertices
+    def __init__(self, mesh: TriangleMesh, centre: np.ndarray):
+        # about a local origin (orientation, hole filling and volume take cross products);
+        # the output takes the input's rows (``vsrc``), so no coordinate is rounded
+        self.vertices = mesh.vertices - centre
         self.faces = mesh.faces
         self.vsrc = None  # None: identity (nothing changed yet)
         self.fsrc = None
@@ -525,7 +527,7 @@ def repair(
         raise InputError("mesh has non-finite vertex coordinates")
 
     rep: dict[str, Any] = {"vertices_in": int(len(mesh.vertices)), "faces_in": int(len(f))}
-    st = _State(mesh)
+    st = _State(mesh, local_origin(mesh.vertices[used]))
     with task(progress, "repair", total=7) as t:
         merged, dist = _merge_vertices(st, tolerance)
         rep["vertices_merged"] = merged
@@ -589,7 +591,7 @@ def _output(mesh: TriangleMesh, st: _State) -> TriangleMesh:
         a[ok] = v[fs[ok]]
         fattr[k] = a
     return TriangleMesh(
-        vertices=st.vertices,
+        vertices=mesh.vertices[vs],
         faces=st.faces,
         normals=None if mesh.normals is None else mesh.normals[vs],
         colors=None if mesh.colors is None else mesh.colors[vs],
