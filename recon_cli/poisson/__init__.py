@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from recon_cli.errors import InputError, ParameterError
-from recon_cli.geometry import PointCloud, TriangleMesh, as_point_cloud
+from recon_cli.geometry import PointCloud, TriangleMesh, as_point_cloud, local_origin
 from recon_cli.progress import task
 
 if TYPE_CHECKING:
@@ -700,7 +700,10 @@ def run_stage(
         report["ignored_points"] = rep["ignored_points"]
     else:
         pts, nrm, keep = _check_inputs(cloud.points, cloud.normals)
-        clean = PointCloud(points=pts, normals=nrm, colors=None if cloud.colors is None else cloud.colors[keep], history=history)
+        # the references about a local origin (Open3D's Poisson loses digits at UTM offsets)
+        centre = local_origin(pts)
+        clean = PointCloud(points=pts - centre, normals=nrm, colors=None if cloud.colors is None else cloud.colors[keep],
+                           history=history)
         from recon_cli.backends import backend_module
 
         mod = backend_module(backend)
@@ -708,6 +711,7 @@ def run_stage(
             mesh, dens = mod.poisson(clean, depth=depth, scale=scale)
         else:
             mesh, dens = mod.poisson(clean, depth=depth, scale=scale, samples_per_node=samples_per_node, point_weight=point_weight), None
+        mesh.vertices = mesh.vertices + centre
         trimmed = 0
         if trim > 0 and len(mesh.faces):
             mesh, dens, trimmed = _trim(mesh, dens, trim)
