@@ -242,7 +242,7 @@ def float32_rounding(points: np.ndarray) -> tuple[float, float]:
     lo = points.min(axis=0).astype(np.float64)
     hi = points.max(axis=0).astype(np.float64)
     big = float(np.maximum(np.abs(lo), np.abs(hi)).max())
-    bound = big * 2.0**-24  # round to nearest: half a unit in the last place of 24 bits
+    bound = float(np.spacing(np.float32(big))) / 2  # round to nearest: half a unit in the last place
     diag = float(np.linalg.norm(hi - lo))
     scale = diag if diag > 0 else big
     if bound <= tol.precision * scale:

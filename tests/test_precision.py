@@ -252,7 +252,7 @@ def test_float32_source_far_away_is_written_double_with_a_note(where, tmp_path):
     res = apply_stage("poisson", cloud, {"depth": 5})
     mesh = res.output
     assert mesh.point_dtype == np.float32 and storage_dtype(mesh) == np.float64
-    bound = float(np.abs(mesh.vertices).max()) * 2.0**-24
+    bound = float(np.spacing(np.float32(np.abs(mesh.vertices).max()))) / 2  # half a float32 ulp
     assert bound > tol.precision * 35
     assert res.report["precision"].startswith(f"coordinates kept as double: float32 would round them by up to {bound:.3g}")
     back = read_ply(_file_of(mesh, tmp_path))
@@ -285,3 +285,22 @@ def test_grid_point_dtype_defaults_and_checks(tmp_path):
 
     with pytest.raises(InputError, match="point_dtype"):
         load(tmp_path / "bad.npz")
+
+
+@pytest.mark.parametrize(
+    "types, double",
+    [(("float", "float", "float"), False), (("short", "uchar", "float"), False), (("double", "float", "float"), True),
+     (("int", "int", "int"), True), (("uint", "float", "float"), True)],
+)
+def test_ply_source_type(types, double, tmp_path):
+    """A file's coordinates are a float32 source only when float32 holds every column exactly."""
+    header = "ply\nformat ascii 1.0\nelement vertex 2\n" + "".join(f"property {t} {c}\n" for t, c in zip(types, "xyz"))
+    path = tmp_path / "t.ply"
+    big = types[0] in ("double", "int", "uint")
+    path.write_text(header + "end_header\n" + ("16777217" if big else "7") + " 3 1\n1 2 3\n")
+    cloud = read_ply(path)
+    assert cloud.point_dtype == (np.float64 if double else np.float32)
+    back = read_ply(_file_of(cloud, tmp_path))
+    np.testing.assert_array_equal(back.points, cloud.points)
+    if big:
+        assert back.points[0, 0] == 16777217  # 2**24 + 1: not a float32

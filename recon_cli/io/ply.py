@@ -636,7 +636,9 @@ def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | Trian
     if bad >= 0:
         raise InputError(f"vertex {bad} has a NaN or infinite coordinate", where)
     used = set(_VERTEX_XYZ)
-    point_dtype = np.float64 if all(props[c].dtype == "f8" for c in _VERTEX_XYZ) else np.float32
+    # float32 only when every coordinate column fits in float32 exactly (float, 8- and 16-bit integers):
+    # a double column, or int/uint ones, make the source double (kept through every stage)
+    point_dtype = np.float32 if all(props[c].dtype in _FLOAT32_EXACT for c in _VERTEX_XYZ) else np.float64
     normals = colors = None
     for names, dtype in groups[1:]:
         if names == _VERTEX_NORMAL:
@@ -675,6 +677,10 @@ def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | Trian
         p.name: face.data[p.name][src] for p in face.properties if p is not idx_prop and not p.is_list
     }
     return TriangleMesh(vertices=pts, faces=faces, normals=normals, face_attributes=face_attrs, **common)
+
+
+# PLY types whose every value float32 holds exactly
+_FLOAT32_EXACT = ("f4", "i1", "u1", "i2", "u2")
 
 
 def _vertex_groups(props: dict) -> list[tuple[tuple[str, ...], object]]:
