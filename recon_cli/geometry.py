@@ -9,6 +9,7 @@ reconstruction stages return. Both carry ``history`` (provenance lines, written 
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -206,7 +207,7 @@ def local_origin(points: np.ndarray) -> np.ndarray:
     Stages subtract it (in float64) before anything that loses precision far from the
     origin (float32 arrays, squared norms, cross products, a unit cube) and add it back to
     the coordinates they output, so data at UTM-like offsets (1e6) is computed on as
-    precisely as the same data at the origin. Zeros for an empty array.
+    precisely as the same data at the origin. ``points`` must be finite; zeros for an empty array.
     """
     if len(points) == 0:
         return np.zeros(3)
@@ -242,6 +243,8 @@ def float32_rounding(points: np.ndarray) -> tuple[float, float]:
     lo = points.min(axis=0).astype(np.float64)
     hi = points.max(axis=0).astype(np.float64)
     big = float(np.maximum(np.abs(lo), np.abs(hi)).max())
+    if big > float(np.finfo(np.float32).max):
+        return math.inf, math.inf
     bound = float(np.spacing(np.float32(big))) / 2  # round to nearest: half a unit in the last place
     diag = float(np.linalg.norm(hi - lo))
     scale = diag if diag > 0 else big
@@ -259,6 +262,8 @@ def precision_note(obj: Any) -> str | None:
     bound, rel = float32_rounding(obj.points)
     if bound == 0:
         return None
+    if math.isinf(bound):
+        return "coordinates kept as double: they exceed the float32 range"
     return (
         f"coordinates kept as double: float32 would round them by up to {bound:.3g} "
         f"({rel:.2g} of the bounding-box diagonal)"

@@ -304,3 +304,11 @@ def test_ply_source_type(types, double, tmp_path):
     np.testing.assert_array_equal(back.points, cloud.points)
     if big:
         assert back.points[0, 0] == 16777217  # 2**24 + 1: not a float32
+
+
+def test_coordinates_beyond_float32_range_are_written_double(tmp_path):
+    mesh = TriangleMesh(np.array([[0.0, 0.0, 0.0], [1e39, 0.0, 0.0], [0.0, 1e39, 0.0]]), [[0, 1, 2]], point_dtype=np.float32)
+    assert storage_dtype(mesh) == np.float64
+    res = apply_stage("repair", mesh)
+    assert res.report["precision"] == "coordinates kept as double: they exceed the float32 range"
+    np.testing.assert_array_equal(read_ply(_file_of(res.output, tmp_path)).vertices, mesh.vertices)

@@ -216,7 +216,7 @@ def ball_pivoting(
     """
     pts, nrm, keep = _prepare(points, normals)
     # about a local origin: ball centres and cross products far from the world origin lose digits
-    pts = pts - local_origin(pts)
+    pts -= local_origin(pts)  # pts is _prepare's copy
     diagonal = bbox_diagonal(pts)
     parsed = parse_radii(radii)
     if parsed is None:

@@ -206,17 +206,22 @@ def estimate_normals(points: Any, knn: int | None = 30, radius: float | None = N
     n = len(pts)
     if n == 0:
         return np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=bool)
-    pts = pts - local_origin(pts)  # about a local origin: normals do not depend on it, precision does
+    pts, _ = _local(pts, None, points)  # normals do not depend on the origin, precision does
     order, ps, indptr, indices = _neighbourhoods(pts, knn, radius)
     nrm, curv, deg = _estimate_sorted(ps, indptr, indices)
     return _unsort(order, nrm), _unsort(order, curv), _unsort(order, deg)
 
 
-def _local(pts: np.ndarray, cam: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+def _local(pts: np.ndarray, cam: np.ndarray | None, source: Any) -> tuple[np.ndarray, np.ndarray | None]:
     """``pts`` and the viewpoint ``cam`` about the points' local origin (far from the world
-    origin the kd-tree, centroids and flux sums keep their digits)."""
+    origin the kd-tree, centroids and flux sums keep their digits); in place when ``pts``
+    is a converted copy of ``source``."""
     centre = local_origin(pts)
-    return pts - centre, None if cam is None else cam - centre
+    if np.may_share_memory(pts, source):
+        pts = pts - centre
+    else:
+        pts -= centre
+    return pts, None if cam is None else cam - centre
 
 
 def _unsort(order: np.ndarray, a: np.ndarray) -> np.ndarray:
@@ -409,7 +414,7 @@ def orient_normals(
         raise InputError("normals hold NaN or infinite values")
     method, cam, dirn, ref = _check_orient(method, camera, direction, reference, len(pts))
     k, _ = _check_knn(knn, None)
-    pts, cam = _local(pts, cam)
+    pts, cam = _local(pts, cam, points)
     if method in ("mst", "keep") and len(pts):
         order, ps, indptr, indices = _neighbourhoods(pts, k, None)
         ref_s = None if ref is None else ref[order]
@@ -526,7 +531,7 @@ def run_stage(
         raise ParameterError("--curvature is not available with --backend open3d")
     if n == 0:
         raise InputError("the input has no points")
-    pts, cam = _local(pts, cam)
+    pts, cam = _local(pts, cam, cloud.points)
 
     out = cloud.copy() if isinstance(data, PointCloud) else PointCloud(
         points=cloud.points, colors=cloud.colors, attributes=dict(cloud.attributes), history=list(cloud.history),

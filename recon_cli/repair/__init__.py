@@ -106,10 +106,8 @@ class _State:
     2^31 entries) once changed: the output mesh converts back to int64.
     """
 
-    def __init__(self, mesh: TriangleMesh, centre: np.ndarray):
-        # about a local origin (orientation, hole filling and volume take cross products);
-        # the output takes the input's rows (``vsrc``), so no coordinate is rounded
-        self.vertices = mesh.vertices - centre
+    def __init__(self, mesh: TriangleMesh):
+        self.vertices = mesh.vertices
         self.faces = mesh.faces
         self.vsrc = None  # None: identity (nothing changed yet)
         self.fsrc = None
@@ -527,7 +525,7 @@ def repair(
         raise InputError("mesh has non-finite vertex coordinates")
 
     rep: dict[str, Any] = {"vertices_in": int(len(mesh.vertices)), "faces_in": int(len(f))}
-    st = _State(mesh, local_origin(mesh.vertices[used]))
+    st = _State(mesh)
     with task(progress, "repair", total=7) as t:
         merged, dist = _merge_vertices(st, tolerance)
         rep["vertices_merged"] = merged
@@ -591,7 +589,7 @@ def _output(mesh: TriangleMesh, st: _State) -> TriangleMesh:
         a[ok] = v[fs[ok]]
         fattr[k] = a
     return TriangleMesh(
-        vertices=mesh.vertices[vs],
+        vertices=st.vertices,
         faces=st.faces,
         normals=None if mesh.normals is None else mesh.normals[vs],
         colors=None if mesh.colors is None else mesh.colors[vs],
