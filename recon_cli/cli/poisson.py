@@ -9,10 +9,10 @@ from recon_cli.cli import options
 
 @click.command("poisson")
 @options.stage_io
-@click.option("--depth", type=int, default=8, show_default=True, help="Finest octree level: the finest cell is the bounding cube / 2^depth.")
+@click.option("--depth", type=int, default=8, show_default=True, help="Deepest octree level allowed (finest cell = bounding cube / 2^depth); the tree stops where the samples do.")
 @click.option("--scale", type=float, default=1.1, show_default=True, help="Reconstruction cube / largest side of the bounding box.")
 @click.option("--point-weight", type=float, default=4.0, show_default=True, help="Screening weight (0 = classic unscreened Poisson).")
-@click.option("--samples-per-node", type=float, default=1.5, show_default=True, help="Fewer samples per finest cell than this: splat coarser (smoother).")
+@click.option("--samples-per-node", type=float, default=1.5, show_default=True, help="Samples per node at a sample's depth (as PoissonRecon): sparser samples are splatted coarser.")
 @click.option("--boundary", type=click.Choice(["neumann", "dirichlet"]), default="neumann", show_default=True, help="Condition on the faces of the cube.")
 @click.option("--density", is_flag=True, help="Write the per-vertex sampling density as vertex property 'density'.")
 @click.option("--trim", type=float, default=0.0, show_default=True, metavar="Q", help="Remove the surface whose density is in the lowest Q quantile (0..1).")

@@ -6,16 +6,25 @@ B-spline kernel, weighted by the area each sample stands for); the indicator ``c
 
     int |grad chi - W|^2  +  alpha * sum_p w_p (chi(p) - 1/2)^2,
 
-discretised with trilinear (Q1) hat functions on a sparse multilevel grid: level ``d``
-holds the cells of the ``2**d`` lattice within two cells of a sample (every cell up to
-``full_depth``), complete in siblings, so memory grows with the surface. ``chi`` is the sum
+discretised with trilinear (Q1) hat functions on an adaptive multilevel grid (an octree
+level by level). Each sample is splatted at the depth its local density supports
+(``samples_per_node`` samples per node, as PoissonRecon defines it, at most ``depth``), and
+level ``d`` holds the cells of the ``2**d`` lattice within two cells of a splat of level
+``d`` or finer (every cell up to ``full_depth``), complete in siblings: the tree stops where
+the samples stop, so memory and time follow the data, and a depth beyond what the samples
+support costs nothing (:mod:`.splat`, :mod:`.octree`). ``chi`` is the sum
 of the levels' functions; it is solved cascadically, coarse to fine, each level by
 Jacobi-preconditioned conjugate gradients on the residual left by the coarser ones (as
 PoissonRecon does). The surface is the level set of ``chi`` at the weighted mean of its
 values at the samples, extracted by :func:`recon_cli.mcubes.marching_cubes_sparse` on the
-finest lattice: each leaf of the tree is refined (exactly, ``chi`` being trilinear in it)
+tree's finest lattice: each leaf of the tree is refined (exactly, ``chi`` being trilinear in it)
 down to the finest cells only where it straddles the iso-value, and every lattice value
-is computed once, so there are no cracks between cells of different sizes.
+is computed once, so there are no cracks between cells of different sizes (:mod:`.extract`).
+
+References
+----------
+Kazhdan, M. & Hoppe, H. (2013). Screened Poisson surface reconstruction. ACM TOG 32(3).
+Kazhdan, M., Bolitho, M. & Hoppe, H. (2006). Poisson surface reconstruction. SGP.
 """
 
 from __future__ import annotations
@@ -54,7 +63,8 @@ class PoissonResult:
     report : dict
         ``vertices``, ``faces``, ``depth``, ``iso_value``, ``solver_iterations``,
         ``residual`` (relative residual of the finest level), ``trimmed_faces`` and details
-        (``samples``, ``nodes`` per level, ``timings``).
+        (``tree_depth``: the deepest level the samples support, ``samples``, ``nodes`` per
+        level, ``timings``).
     """
 
     mesh: TriangleMesh
@@ -171,15 +181,18 @@ def screened_poisson(
     normals : (n, 3) float
         Outward normals (any non-zero length; normalised here).
     depth : int
-        Finest level: the finest cell is the bounding cube (largest extent times ``scale``)
-        divided by ``2**depth``. 1 to 14.
+        Deepest level allowed: the finest cell is at most the bounding cube (largest extent
+        times ``scale``) divided by ``2**depth``; the tree goes only as deep as the
+        samples' density supports (``report["tree_depth"]``). 1 to 14.
     scale : float
         Ratio of the reconstruction cube to the bounding box's largest side (>= 1).
     point_weight : float
         Screening weight alpha (>= 0; 0 = classic unscreened Poisson).
     samples_per_node : float
-        Minimum number of samples per finest cell under which samples are splatted at a
-        coarser level (smoother over sparse regions), > 0.
+        Samples per node at a sample's depth (PoissonRecon's ``--samplesPerNode``): a
+        sample is splatted at the level where its kernel density gives this many samples
+        per node, so sparse regions get coarse, smooth nodes and the tree no finer ones;
+        larger values give coarser, smoother surfaces on noisy data. > 0.
     boundary : {"neumann", "dirichlet"}
         Condition on the cube's faces (Dirichlet: ``chi = 0``, the outside).
     density : bool
@@ -224,22 +237,25 @@ def screened_poisson(
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     size = float((hi - lo).max()) * scale
     origin = 0.5 * (lo + hi) - 0.5 * size
-    res = 1 << depth
     smp = merge_samples((pts - origin) / size, nrm, depth)
     ns = len(smp.count)
     timings["samples"] = time.perf_counter() - t0
 
-    # ---- tree
-    t = time.perf_counter()
-    with task(progress, "poisson: tree"):
-        levels = build_levels(smp.keys, depth, full_depth, boundary)
-    timings["tree"] = time.perf_counter() - t
-    log.info("poisson: %d points, %d samples, depth %d, nodes per level %s", len(pts), ns, depth, [len(lv.node_keys) for lv in levels])
-
     # ---- kernel density -> area per point and splat level
     t = time.perf_counter()
-    splats = make_splats(levels, smp, depth, samples_per_node, point_weight, density or trim > 0)
+    splats = make_splats(smp, depth, samples_per_node, point_weight, density or trim > 0)
+    tree_depth = splats.tree_depth
+    full_depth = min(full_depth, tree_depth)
+    res = 1 << tree_depth  # the finest cells of the tree
     timings["density"] = time.perf_counter() - t
+
+    # ---- tree: as deep as the splats, no deeper
+    t = time.perf_counter()
+    with task(progress, "poisson: tree"):
+        levels = build_levels(splats.pos, splats.level, tree_depth, full_depth, boundary)
+    timings["tree"] = time.perf_counter() - t
+    log.info("poisson: %d points, %d samples, depth %d (tree %d), nodes per level %s", len(pts), ns, depth, tree_depth,
+             [len(lv.node_keys) for lv in levels])
 
     # ---- cascadic solve
     t = time.perf_counter()
@@ -247,7 +263,7 @@ def screened_poisson(
     timings["solve"] = time.perf_counter() - t
 
     # ---- iso-value: weighted mean of chi at the samples
-    iso = iso_value(levels, gvals, smp, depth)
+    iso = iso_value(levels, gvals, smp)
 
     # ---- extraction
     t = time.perf_counter()
@@ -272,6 +288,7 @@ def screened_poisson(
         "vertices": int(len(mesh.vertices)),
         "faces": int(len(mesh.faces)),
         "depth": depth,
+        "tree_depth": tree_depth,
         "iso_value": iso,
         "solver_iterations": int(total_it),
         "residual": float(last_res),
@@ -376,6 +393,7 @@ def run_stage(
         report = {k: rep[k] for k in ("vertices", "faces", "depth", "iso_value", "solver_iterations", "residual", "trimmed_faces")}
         report["samples"] = rep["samples"]
         report["ignored_points"] = rep["ignored_points"]
+        report["tree_depth"] = rep["tree_depth"]
     else:
         pts, nrm, keep = _check_inputs(cloud.points, cloud.normals)
         clean = PointCloud(points=pts, normals=nrm, colors=None if cloud.colors is None else cloud.colors[keep], history=history)

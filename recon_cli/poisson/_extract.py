@@ -12,14 +12,23 @@ from numba import njit
 from recon_cli.poisson._octree import MASK21, lattice_key
 
 
+@njit(cache=True, inline="always")
+def _on_face(x, y, z, res):
+    return x == 0 or y == 0 or z == 0 or x == res or y == res or z == res
+
+
 @njit(cache=True)
-def refine_leaves(cell_keys, cell_nodes, is_leaf, g, level, depth, iso, eps, out_xyz, out_val):
+def refine_leaves(cell_keys, cell_nodes, is_leaf, g, level, depth, iso, eps, margin, out_xyz, out_val):
     """Finest-lattice cells (and their corner values) inside leaves that straddle ``iso``.
 
     A leaf at ``level`` holds a trilinear function (its 8 corner values of ``g``); a leaf
-    whose corner range reaches ``iso`` within ``eps`` is split into octants, evaluated
+    whose value range reaches ``iso`` within ``eps`` is split into octants, evaluated
     exactly, down to ``depth``, keeping only octants whose range reaches it too. Values are
     negated (marching cubes puts values below its iso-value inside, chi is 1 inside).
+    On the faces of the cube the value is clamped to at most ``iso - margin`` (outside), so
+    a surface running into them is closed there; the clamp is applied to lattice points,
+    whichever leaf evaluates them, so leaves of different levels agree (clamping the nodes
+    of each level would not: a finer level's nodes are prolonged from unclamped values).
     Writes the cells' lattice coordinates into ``out_xyz`` (k, 3) and corner values into
     ``out_val`` (k, 8) and returns k; with empty outputs it only counts, so the caller can
     allocate the exact size (growing buffers would hold up to twice the cells).
@@ -33,6 +42,8 @@ def refine_leaves(cell_keys, cell_nodes, is_leaf, g, level, depth, iso, eps, out
     vals = np.empty(8)
     leaf_vals = np.empty(8)
     niso = -iso
+    cap = niso + margin  # the clamp, negated
+    res = (np.int64(1) << depth)
     for c in range(cell_nodes.shape[0]):
         if not is_leaf[c]:
             continue
@@ -40,17 +51,22 @@ def refine_leaves(cell_keys, cell_nodes, is_leaf, g, level, depth, iso, eps, out
             j = cell_nodes[c, q]
             leaf_vals[q] = -g[j]
             leaf_vals[q + 4] = -g[j + 1]
-        lo = leaf_vals[0]
-        hi = leaf_vals[0]
-        for q in range(1, 8):
-            lo = min(lo, leaf_vals[q])
-            hi = max(hi, leaf_vals[q])
-        if lo > niso + eps or hi < niso - eps:
-            continue
         k = cell_keys[c]
         lx = (k >> 42) & MASK21
         ly = (k >> 21) & MASK21
         lz = k & MASK21
+        # the clamp only raises values: the low end is the corners' raw minimum (a trilinear
+        # function's range is its corners'), the high end may be a clamped corner
+        lo = 1e300
+        hi = -1e300
+        for q in range(8):
+            v = leaf_vals[q]
+            lo = min(lo, v)
+            if _on_face((lx + (q & 1)) * side, (ly + ((q >> 1) & 1)) * side, (lz + ((q >> 2) & 1)) * side, res):
+                v = max(v, cap)
+            hi = max(hi, v)
+        if lo > niso + eps or hi < niso - eps:
+            continue
         # sub-cells addressed in finest units relative to the leaf's lower corner
         stack_xyz[0, 0] = 0
         stack_xyz[0, 1] = 0
@@ -74,8 +90,11 @@ def refine_leaves(cell_keys, cell_nodes, is_leaf, g, level, depth, iso, eps, out
                 for r in range(8):
                     w = (fx if r & 1 else 1.0 - fx) * (fy if (r >> 1) & 1 else 1.0 - fy) * (fz if (r >> 2) & 1 else 1.0 - fz)
                     v += w * leaf_vals[r]
-                vals[q] = v
                 lo = min(lo, v)
+                if _on_face(lx * side + sx + (q & 1) * size, ly * side + sy + ((q >> 1) & 1) * size,
+                            lz * side + sz + ((q >> 2) & 1) * size, res):
+                    v = max(v, cap)
+                vals[q] = v
                 hi = max(hi, v)
             if lo > niso + eps or hi < niso - eps:
                 continue
@@ -96,15 +115,6 @@ def refine_leaves(cell_keys, cell_nodes, is_leaf, g, level, depth, iso, eps, out
                 stack_lvl[top] = sl + 1
                 top += 1
     return m
-
-
-@njit(cache=True)
-def clamp_on_faces(faces, g, value):
-    """g = min(g, value) at the nodes ``faces`` (those on the faces of the cube), in place."""
-    for i in range(len(faces)):
-        j = faces[i]
-        if g[j] > value:
-            g[j] = value
 
 
 @njit(cache=True)

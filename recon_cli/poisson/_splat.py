@@ -67,15 +67,27 @@ def splat_rhs(pos, normal_w, splat_level, splat_frac, level, node_keys, unknown,
 
     ``normal_w`` (n, 3) is the sample's vector (normal times area weight, sign included);
     the sample is splatted with weight (1 - frac) at ``splat_level`` and frac one finer.
+    A splat ``k`` levels coarser than ``level`` reaches ``1 + 1.5 * 2**k`` nodes along each
+    axis, but the level has nodes only near samples splatted as fine: the nodes in its box
+    are found by walking the sorted keys plane by plane, skipping the columns and runs
+    outside the box by binary search, so the cost follows the nodes present, not the box.
     """
     b = np.zeros(n_nodes)
     n_keys = len(node_keys)
+    if n_keys == 0:
+        return b
     scale = float(1 << level)
     top = 1 << level
     lo = np.empty(3, np.int64)
-    cnt = np.empty(3, np.int64)
-    vx = np.empty((3, 64))
-    dx = np.empty((3, 64))
+    hi = np.empty(3, np.int64)
+    # the widest reach decides the buffers' size
+    smin = level
+    for p in range(pos.shape[0]):
+        smin = min(smin, splat_level[p])
+    wmax = 2 * int(np.ceil(1.0 + 1.5 * 2.0 ** max(level - smin, 0))) + 2
+    vx = np.empty((3, wmax))
+    dx = np.empty((3, wmax))
+    done = np.zeros((3, wmax), np.bool_)
     for p in range(pos.shape[0]):
         for part in range(2):
             frac = splat_frac[p]
@@ -89,47 +101,57 @@ def splat_rhs(pos, normal_w, splat_level, splat_frac, level, node_keys, unknown,
                 continue
             rho = 2.0 ** (level - s)
             reach = 1.0 + 1.5 * rho
+            empty = False
             for a in range(3):
                 u = pos[p, a] * scale
-                i0 = max(int(np.ceil(u - reach)), 0)
-                i1 = min(int(np.floor(u + reach)), top)
-                lo[a] = i0
-                cnt[a] = max(i1 - i0 + 1, 0)
-                for t in range(cnt[a]):
-                    v = u - (i0 + t)
-                    vx[a, t] = hat_b2_value(v, rho)
-                    dx[a, t] = hat_b2_deriv(v, rho) * scale
+                lo[a] = max(int(np.ceil(u - reach)), 0)
+                hi[a] = min(int(np.floor(u + reach)), top)
+                if hi[a] < lo[a]:
+                    empty = True
+                for t in range(hi[a] - lo[a] + 1):
+                    done[a, t] = False
+            if empty:
+                continue
             nx = normal_w[p, 0] * wpart
             ny = normal_w[p, 1] * wpart
             nz = normal_w[p, 2] * wpart
-            for tx in range(cnt[0]):
-                j = -1
-                for ty in range(cnt[1]):
-                    fxy = vx[0, tx] * vx[1, ty]
-                    gx = dx[0, tx] * vx[1, ty]
-                    gy = vx[0, tx] * dx[1, ty]
-                    if fxy == 0.0 and gx == 0.0 and gy == 0.0:
+            for x in range(lo[0], hi[0] + 1):
+                kend = lattice_key(x, hi[1], hi[2])
+                j = lower_bound(node_keys, lattice_key(x, lo[1], lo[2]), 0, n_keys)
+                while j < n_keys and node_keys[j] <= kend:
+                    k = node_keys[j]
+                    y = (k >> 21) & MASK21
+                    z = k & MASK21
+                    if z < lo[2]:
+                        j = lower_bound(node_keys, lattice_key(x, y, lo[2]), j, n_keys)
                         continue
-                    # nodes of one (x, y) column are consecutive in the sorted keys: one
-                    # binary search for the column's first key, then walk (missing nodes,
-                    # common where a wide coarse splat meets the finest level, cost nothing)
-                    kz0 = lo[2]
-                    kst = lattice_key(lo[0] + tx, lo[1] + ty, kz0)
-                    if j < 0:
-                        j = lower_bound(node_keys, kst, 0, n_keys)
-                    else:
-                        # the next column of the same x-plane is close: gallop from the last
-                        step = 1
-                        while j + step < n_keys and node_keys[j + step] < kst:
-                            step <<= 1
-                        j = lower_bound(node_keys, kst, j + (step >> 1), min(j + step + 1, n_keys))
-                    kend = lattice_key(lo[0] + tx, lo[1] + ty, kz0 + cnt[2] - 1)
-                    while j < n_keys and node_keys[j] <= kend:
-                        if unknown[j]:
-                            tz = (node_keys[j] & MASK21) - kz0
-                            b[j] += nx * gx * vx[2, tz] + ny * gy * vx[2, tz] + nz * fxy * dx[2, tz]
-                        j += 1
+                    if z > hi[2]:
+                        j = lower_bound(node_keys, lattice_key(x, y + 1, lo[2]), j, n_keys)
+                        continue
+                    if unknown[j]:
+                        # the 1D factors, computed once per item and coordinate on first use
+                        tx = x - lo[0]
+                        ty = y - lo[1]
+                        tz = z - lo[2]
+                        if not done[0, tx]:
+                            _factors(pos[p, 0] * scale - x, rho, scale, vx, dx, done, 0, tx)
+                        if not done[1, ty]:
+                            _factors(pos[p, 1] * scale - y, rho, scale, vx, dx, done, 1, ty)
+                        if not done[2, tz]:
+                            _factors(pos[p, 2] * scale - z, rho, scale, vx, dx, done, 2, tz)
+                        fxy = vx[0, tx] * vx[1, ty]
+                        gx = dx[0, tx] * vx[1, ty]
+                        gy = vx[0, tx] * dx[1, ty]
+                        b[j] += nx * gx * vx[2, tz] + ny * gy * vx[2, tz] + nz * fxy * dx[2, tz]
+                    j += 1
     return b
+
+
+@njit(cache=True, inline="always")
+def _factors(v, rho, scale, vx, dx, done, a, t):
+    vx[a, t] = hat_b2_value(v, rho)
+    dx[a, t] = hat_b2_deriv(v, rho) * scale
+    done[a, t] = True
 
 
 @njit(cache=True, inline="always")

@@ -20,20 +20,17 @@ def extract(levels: list[Level], gvals: list[np.ndarray], iso: float, origin: np
     Leaves of the tree are refined to the finest lattice where they straddle the iso-value
     (exactly: chi is trilinear in a leaf), every lattice value is computed once, so there are
     no cracks between cells of different sizes. Consumes ``levels`` and ``gvals`` (emptied,
-    finest first, to free memory) and modifies chi in place.
+    finest first, to free memory). The cube's faces count as outside (chi clamped to
+    ``iso - FACE_MARGIN`` there), so a surface running into them is closed.
     """
     depth = len(levels) - 1
     res = 1 << depth
 
-    for lev, g in zip(levels, gvals):
-        # the cube's faces count as outside, so a surface running into them is closed there
-        # (in place: chi is not needed after the extraction)
-        E.clamp_on_faces(lev.face_nodes, g, iso - FACE_MARGIN)
     # only leaves whose corner range reaches the iso-value can hold surface: count their
     # finest cells first, then write them straight into arrays of the exact size (per-level
     # parts and their concatenation would hold the cells twice)
     none_xyz, none_val = np.zeros((0, 3), np.int64), np.zeros((0, 8))
-    counts = [E.refine_leaves(lev.cell_keys, lev.cell_nodes, lev.leaf, g, lev.depth, depth, iso, 1e-9, none_xyz, none_val)
+    counts = [E.refine_leaves(lev.cell_keys, lev.cell_nodes, lev.leaf, g, lev.depth, depth, iso, 1e-9, FACE_MARGIN, none_xyz, none_val)
               for lev, g in zip(levels, gvals)]
     offsets = np.concatenate([[0], np.cumsum(counts)])
     cells = np.empty((int(offsets[-1]), 3), np.int64)
@@ -41,9 +38,9 @@ def extract(levels: list[Level], gvals: list[np.ndarray], iso: float, origin: np
     # finest first, freeing each level once written: it holds most of the memory
     for d in range(depth, -1, -1):
         lev = levels.pop()
-        E.refine_leaves(lev.cell_keys, lev.cell_nodes, lev.leaf, gvals.pop(), d, depth, iso, 1e-9,
+        E.refine_leaves(lev.cell_keys, lev.cell_nodes, lev.leaf, gvals.pop(), d, depth, iso, 1e-9, FACE_MARGIN,
                         cells[offsets[d]:offsets[d + 1]], vals[offsets[d]:offsets[d + 1]])
-    del levels, gvals, lev, g
+    del levels, gvals, lev
     # one value per lattice point whichever leaf computed it (they agree up to rounding)
     ckeys = E.corner_keys(cells)
     # one unstable argsort and a linear pass: np.unique's stable sort and inverse cost 4x more

@@ -42,23 +42,34 @@ def pack_keys(xyz: np.ndarray) -> np.ndarray:
     return (xyz[:, 0] << 42) | (xyz[:, 1] << 21) | xyz[:, 2]
 
 
-def _dilate(keys: np.ndarray, axis: int, lo: int, hi: int, limit: int) -> np.ndarray:
+def unpack_keys(keys: np.ndarray) -> np.ndarray:
+    """(n, 3) int64 coordinates of lattice keys (the inverse of :func:`pack_keys`)."""
+    m = (1 << 21) - 1
+    return np.stack([(keys >> 42) & m, (keys >> 21) & m, keys & m], axis=1)
+
+
+def dilate(keys: np.ndarray, axis: int, lo: int, hi: int, limit: int) -> np.ndarray:
     """Unique keys within [lo, hi] of ``keys`` along ``axis`` (sorted along that axis)."""
     k = np.sort(K.rekey(keys, axis, False))
     return K.rekey(K.dilate_minor(k, lo, hi, limit), axis, True)
 
 
-def build_levels(sample_keys_finest: np.ndarray, depth: int, full_depth: int, boundary: str) -> list[Level]:
-    """Levels 0..``depth``: complete up to ``full_depth``, below it the cells within
-    :data:`RING` of a cell holding a sample (``sample_keys_finest``: sorted keys of the
-    finest cells holding samples), completed in siblings; each level's nodes, its cells'
-    corner nodes and which nodes are unknowns under ``boundary``."""
+def build_levels(item_pos: np.ndarray, item_level: np.ndarray, depth: int, full_depth: int, boundary: str
+                 ) -> list[Level]:
+    """Levels 0..``depth``: complete up to ``full_depth``; below it, at level ``d``, the
+    cells within :data:`RING` of a cell holding a splat item of level ``d`` or finer
+    (``item_pos`` (k, 3) unit-cube positions, ``item_level`` (k,)), completed in siblings:
+    the tree stops where the samples stop. Each level's nodes, its cells' corner nodes and
+    which nodes are unknowns under ``boundary``."""
     levels: list[Level] = []
-    occ_keys = sample_keys_finest
     occ = [None] * (depth + 1)
+    occ_keys = np.zeros(0, np.int64)
     for d in range(depth, full_depth, -1):
+        sel = item_level == d
+        own = pack_keys(np.floor(item_pos[sel] * (1 << d)).clip(0, (1 << d) - 1))
+        occ_keys = np.unique(np.concatenate([occ_keys, own]))
         occ[d] = occ_keys
-        occ_keys = np.unique(K.halve(occ_keys))  # halving breaks the x-major order
+        occ_keys = K.halve(occ_keys)  # halving breaks the x-major order (sorted above)
     for d in range(depth + 1):
         top = (1 << d) - 1
         if d <= full_depth:
@@ -70,9 +81,9 @@ def build_levels(sample_keys_finest: np.ndarray, depth: int, full_depth: int, bo
             # children of the parents within 1 of an occupied parent (floor((o +- 2) / 2) =
             # floor(o / 2) +- 1 for either parity): dilate at the coarser level, 8x fewer keys,
             # and emit the children already sorted, with their parent index
-            keys = occ[d - 1] if d - 1 > full_depth else np.unique(K.halve(occ[d]))
+            keys = np.unique(K.halve(occ[d]))
             for axis in range(3):
-                keys = _dilate(keys, axis, -1, 1, top >> 1)  # valid for RING == 2 only
+                keys = dilate(keys, axis, -1, 1, top >> 1)  # valid for RING == 2 only
             # (the last dilation, along z, leaves the keys sorted and unique)
             par_idx = K.merge_lookup(keys, levels[-1].cell_keys)
             # the nodes of the children of parent p are 2p + {0, 1, 2}^3
@@ -80,11 +91,11 @@ def build_levels(sample_keys_finest: np.ndarray, depth: int, full_depth: int, bo
             keys, cell_parent = K.children_sorted(keys, par_idx)
             del par_idx
             for axis in range(3):
-                nodes = _dilate(nodes, axis, 0, 2, top + 1)
+                nodes = dilate(nodes, axis, 0, 2, top + 1)
         if d <= full_depth:
             nodes = keys
             for axis in range(3):
-                nodes = _dilate(nodes, axis, 0, 1, top + 1)
+                nodes = dilate(nodes, axis, 0, 1, top + 1)
         # sorted queries (a constant offset keeps the order): linear merges, no hashing;
         # int32 and 4 corners of 8: a quarter of (c, 8) int64, the largest array
         cell_nodes = K.corner_nodes(keys, nodes)

@@ -11,14 +11,17 @@ import numpy as np
 from recon_cli._kernels.hashtable import build_table
 from recon_cli.poisson import _splat as S
 from recon_cli.poisson._luts import B2_PLANE_DENSITY
-from recon_cli.poisson.octree import Level, pack_keys
+from recon_cli.poisson.octree import pack_keys, unpack_keys
 
 log = logging.getLogger("recon")
 
 # the kernel-density level is this much coarser than the finest (PoissonRecon's kernelDepth)
 KERNEL_OFFSET = 2
-# sparse samples are splatted at most this many levels coarser than the finest
-MAX_SPLAT_OFFSET = 2
+# a sample's depth is extrapolated from the finest level where its density is at least this
+# many times samples-per-node (one level coarser than where it reaches samples-per-node): at
+# the first level that merely reaches it, the estimate is noisy and biased up (the samples
+# that pass there are the locally dense ones), and would depend on the nominal depth
+ESTIMATE_FACTOR = 4.0
 
 
 @dataclass
@@ -29,6 +32,7 @@ class Samples:
     pos: np.ndarray  # (s, 3) mean position
     normal: np.ndarray  # (s, 3) summed unit normals
     count: np.ndarray  # (s,) float points merged
+    depth: int  # the level of ``keys``
 
 
 @dataclass
@@ -40,6 +44,7 @@ class Splats:
     level: np.ndarray  # (k,) int64 splat level
     screen_w: np.ndarray  # (s,) screening weight per sample
     alpha: float
+    tree_depth: int  # the finest splat level: the tree goes no deeper
     # the kernel density (level, hash table of its cells, per-cell density), kept only for
     # the output densities
     density: tuple | None = None
@@ -59,29 +64,65 @@ def merge_samples(unit: np.ndarray, nrm: np.ndarray, depth: int) -> Samples:
     for a in range(3):
         spos[:, a] = np.bincount(inv, weights=unit[:, a], minlength=ns) / count
         snrm[:, a] = np.bincount(inv, weights=nrm[:, a], minlength=ns)
-    return Samples(skeys, spos, snrm, count)
+    return Samples(skeys, spos, snrm, count, depth)
 
 
-def make_splats(levels: list[Level], smp: Samples, depth: int, samples_per_node: float, point_weight: float,
-                keep_density: bool) -> Splats:
-    """Kernel density of the samples at level ``depth - KERNEL_OFFSET``: the area each
-    sample stands for and the level it is splatted at (coarser where the samples are
-    sparser than ``samples_per_node`` per finest cell); the splat items; the screening
-    weights (``point_weight`` scaled by the mean area and ``2**depth``)."""
+def _density_table(smp: Samples, level: int) -> tuple:
+    """The samples' kernel density at ``level``: (level, hash table of the cells within one
+    of a sample's cell, density per cell); counts splatted with quadratic B-splines centred
+    on cells (the only cells they reach)."""
+    from recon_cli.poisson.octree import dilate
+
+    shift = smp.depth - level
+    keys = np.unique(pack_keys(unpack_keys(smp.keys) >> shift))
+    for axis in range(3):
+        keys = dilate(keys, axis, -1, 1, (1 << level) - 1)
+    tab = build_table(keys)
+    return level, tab, S.density_splat(smp.pos, smp.count, level, *tab, len(keys))
+
+
+def _eval_density(table: tuple, pos: np.ndarray) -> np.ndarray:
+    level, tab, dens = table
+    return S.density_eval(pos, level, *tab, dens)
+
+
+def make_splats(smp: Samples, depth: int, samples_per_node: float, point_weight: float, keep_density: bool
+                ) -> Splats:
+    """The level each sample is splatted at, the area it stands for, the splat items and the
+    screening weights.
+
+    A sample's depth is where its local density reaches ``samples_per_node`` samples per
+    node, as PoissonRecon defines it: its kernel density is estimated at level
+    ``depth - KERNEL_OFFSET`` (PoissonRecon's kernel depth) and, while it is below
+    ``ESTIMATE_FACTOR * samples_per_node``, at coarser levels; from the finest level ``l``
+    where it is reached, the depth is ``l + log4(samples per node / samples_per_node)`` (on a surface a
+    level finer holds a quarter of the samples per node), at most ``depth``. So the tree
+    follows the data: where the samples are sparse they are splatted coarse and no finer
+    node is made. A fractional depth is split between the two levels around it. The area
+    is the node area at ``l`` over the samples per node there; the screening weight is
+    ``point_weight`` times the mean area times ``2**`` (the finest splat level).
+    """
     spos, snrm, count = smp.pos, smp.normal, smp.count
     ns = len(count)
     kd = max(depth - KERNEL_OFFSET, 0)
-    klev = levels[kd]
-    ktab = build_table(klev.cell_keys)  # a coarse level: its hash table is small
-    dens_cells = S.density_splat(spos, count, kd, *ktab, len(klev.cell_keys))
-    rho = S.density_eval(spos, kd, *ktab, dens_cells)
-    hk = 1.0 / (1 << kd)
-    area_pt = B2_PLANE_DENSITY * hk * hk / np.maximum(rho, 1e-12)  # unit-cube area per point
-    per_node = (rho / B2_PLANE_DENSITY) * 4.0 ** (kd - depth)  # samples per finest cell
-    splat = np.full(ns, float(depth))
-    sparse = per_node < samples_per_node
-    splat[sparse] = depth - 0.5 * np.log2(samples_per_node / per_node[sparse])
-    splat = np.clip(splat, max(depth - MAX_SPLAT_OFFSET, 0), depth)
+    splat = np.zeros(ns)
+    area_pt = np.zeros(ns)
+    active = np.arange(ns)
+    tables = {}
+    for lv in range(kd, -1, -1):
+        tables[lv] = _density_table(smp, lv)
+        rho = _eval_density(tables[lv], spos[active])
+        per_node = rho / B2_PLANE_DENSITY  # samples per node of level lv
+        ok = (per_node >= ESTIMATE_FACTOR * samples_per_node) | (lv == 0)
+        idx = active[ok]
+        pn = np.maximum(per_node[ok], 1e-12)
+        splat[idx] = lv + 0.5 * np.log2(pn / samples_per_node)
+        h = 1.0 / (1 << lv)
+        area_pt[idx] = h * h / pn  # unit-cube area per point
+        active = active[~ok]
+        if not len(active):
+            break
+    splat = np.clip(splat, 0.0, depth)
     s_lo = np.floor(splat).astype(np.int64)
     s_frac = splat - s_lo
     s_frac[s_lo == depth] = 0.0
@@ -90,22 +131,27 @@ def make_splats(levels: list[Level], smp: Samples, depth: int, samples_per_node:
     # splat items: each sample's share at its two levels, merged per cell of that level (as
     # PoissonRecon merges samples per node), so coarse splats cost per cell, not per sample
     it_pos, it_vec, it_lvl = merge_splats(spos, normal_w, count, s_lo, s_frac)
-    log.info("poisson: %d splats from %d samples", len(it_pos), ns)
+    tree_depth = int(it_lvl.max())
+    log.info("poisson: %d splats from %d samples, levels %d..%d", len(it_pos), ns, int(it_lvl.min()), tree_depth)
     mean_area = float((area_pt * count).sum() / count.sum())
     # calibrated against the references: with alpha = w * mean_area * 2**depth our fit at
     # weight w matched Open3D's (PoissonRecon's code, weight 2) at w = 1 on noisy samples
     # (Chamfer ratio 0.99-1.0 on armadillo, kitten, bunny at depth 9), so the same nominal
     # weight means half that alpha here
-    alpha = 0.5 * point_weight * mean_area * (1 << depth)
+    alpha = 0.5 * point_weight * mean_area * (1 << tree_depth)
     screen_w = alpha * count
-    del klev
-    return Splats(it_pos, it_vec, it_lvl, screen_w, alpha, (kd, ktab, dens_cells) if keep_density else None)
+    dens = None
+    if keep_density:
+        # the output density at the tree's kernel depth (not the nominal one: on sparse data
+        # a level far finer than the tree sees each sample alone)
+        ko = max(tree_depth - KERNEL_OFFSET, 0)
+        dens = tables[ko] if ko in tables else _density_table(smp, ko)
+    return Splats(it_pos, it_vec, it_lvl, screen_w, alpha, tree_depth, dens)
 
 
 def sample_density(splats: Splats, pos: np.ndarray) -> np.ndarray:
     """The samples' kernel density at ``pos`` (m, 3) unit-cube positions."""
-    kd, ktab, dens_cells = splats.density
-    return S.density_eval(pos, kd, *ktab, dens_cells)
+    return _eval_density(splats.density, pos)
 
 
 def merge_splats(pos, vec, count, s_lo, s_frac):

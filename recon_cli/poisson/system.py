@@ -55,13 +55,19 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, full_depth: int, cg
             lev.face_nodes = O.face_nodes(lev.node_keys, 1 << d)
             lev.node_keys = None
             scell, sloc = Y.sample_cells(spos, d, lev.cell_keys)
+            # the tree is adaptive: only the samples inside this level's cells screen it
+            lw = screen_w
+            have = scell >= 0
+            if not have.all():
+                scell, sloc, lw = scell[have], sloc[have], screen_w[have]
+            del have
             # the diagonal, for the preconditioner: a table by incident-cell count (lev.ncell)
             # plus the sparse screening part, not an (n,) vector
             if alpha > 0:
-                sd_nodes, sd_vals = Y.screening_diag_rhs(scell, sloc, lev.cell_nodes, screen_w, TARGET, rhs)
+                sd_nodes, sd_vals = Y.screening_diag_rhs(scell, sloc, lev.cell_nodes, lw, TARGET, rhs)
             else:
                 sd_nodes, sd_vals = np.zeros(0, np.int64), np.zeros(0)
-            sw = screen_w if alpha > 0 else np.zeros(0)
+            sw = lw if alpha > 0 else np.zeros(0)
             cscr = np.zeros((0, 8, 8))
             if alpha > 0 and 4 * len(lev.cell_keys) <= len(sw) and len(lev.cell_keys) <= 1 << 19:
                 # coarse levels: samples outnumber cells, so sum each cell's samples into its
@@ -85,7 +91,7 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, full_depth: int, cg
                 lev.cell_nodes, ke, cscr, scell, sloc, sw, rhs, lev.ncell, sd_nodes, sd_vals, lev.unknown,
                 1e-7 if exact else cg_tolerance, 2000 if exact else 200,
             )
-            del rhs, sd_nodes, sd_vals, scell, sloc, cscr
+            del rhs, sd_nodes, sd_vals, scell, sloc, cscr, lw
             if par is not None:
                 G = Y.prolong(lev.cell_nodes, lev.cell_keys, lev.cell_parent, par.cell_nodes, gvals[-1], nn)
                 # the coarser level's leaves are its cells without children here
@@ -109,13 +115,19 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, full_depth: int, cg
     return gvals, per_level, total_it, last_res
 
 
-def iso_value(levels: list[Level], gvals: list[np.ndarray], smp: Samples, depth: int) -> float:
-    """The level set's value: the count-weighted mean of chi at the samples."""
+def iso_value(levels: list[Level], gvals: list[np.ndarray], smp: Samples) -> float:
+    """The level set's value: the count-weighted mean of chi at the samples, each evaluated
+    in the finest cell of the tree that holds it (chi is trilinear there)."""
     spos, count = smp.pos, smp.count
-    fin = levels[-1]
-    scell, sloc = Y.sample_cells(spos, depth, fin.cell_keys)
-    chi_s = Y.eval_at_samples(scell, sloc, fin.cell_nodes, gvals[-1])
+    chi_s = np.full(len(count), np.nan)
+    todo = np.arange(len(count))
+    for lev, g in zip(levels[::-1], gvals[::-1]):
+        scell, sloc = Y.sample_cells(spos[todo], lev.depth, lev.cell_keys)
+        have = scell >= 0
+        chi_s[todo[have]] = Y.eval_at_samples(scell[have], sloc[have], lev.cell_nodes, g)
+        todo = todo[~have]
+        if not len(todo):
+            break
     iso = float((chi_s * count).sum() / count.sum())
-    del fin, scell, sloc, chi_s
     log.info("poisson: iso-value %.6f", iso)
     return iso
