@@ -36,13 +36,21 @@ def run_stage_command(
     json_: bool = False,
 ) -> None:
     """Load IN, run ``stage`` with ``params``, write OUT atomically, print the report."""
+    from recon_cli.errors import InputError
     from recon_cli.io.load import load, save
-    from recon_cli.stages import apply_stage
+    from recon_cli.stages import apply_stage, get_spec
 
+    spec = get_spec(stage)
+    spec.check(params, complete=False)  # parameters before reading anything
     t0 = time.perf_counter()
     data = load(input)
     t1 = time.perf_counter()
-    result = apply_stage(stage, data, params, progress=make_progress(ctx))
+    try:
+        result = apply_stage(stage, data, params, progress=make_progress(ctx))
+    except InputError as exc:
+        if exc.path is not None:
+            raise
+        raise InputError(str(exc), "<stdin>" if input == "-" else input) from None
     t2 = time.perf_counter()
     save(result.output, output, ascii=ascii_)
     t3 = time.perf_counter()
