@@ -36,13 +36,19 @@ def run_stage_command(
     json_: bool = False,
 ) -> None:
     """Load IN, run ``stage`` with ``params``, write OUT atomically, print the report."""
+    from recon_cli.cli._signals import immediate
+    from recon_cli.errors import naming
+    from recon_cli.io.atomic import check_output
     from recon_cli.io.load import load, save
     from recon_cli.stages import apply_stage
 
+    check_output(output)  # before any work: a wrong output path is known now
     t0 = time.perf_counter()
     data = load(input)
     t1 = time.perf_counter()
-    result = apply_stage(stage, data, params, progress=make_progress(ctx))
+    # Ctrl-C / SIGTERM leave at once, even inside a kernel: nothing is written yet
+    with naming(input), immediate():
+        result = apply_stage(stage, data, params, progress=make_progress(ctx))
     t2 = time.perf_counter()
     save(result.output, output, ascii=ascii_)
     t3 = time.perf_counter()

@@ -22,10 +22,16 @@ def cmd(ctx: click.Context, pipeline: str, input: str, output: str, ascii_: bool
     from recon_cli.io.load import load, save
     from recon_cli.pipeline import load_pipeline, run_pipeline
 
+    from recon_cli.cli._signals import immediate
+    from recon_cli.errors import naming
+    from recon_cli.io.atomic import check_output
+
     pipe = load_pipeline(pipeline)
+    check_output(output)
     t0 = time.perf_counter()
     data = load(input)
-    out, reports = run_pipeline(pipe, data, progress=make_progress(ctx))
+    with naming(input), immediate():
+        out, reports = run_pipeline(pipe, data, progress=make_progress(ctx))
     save(out, output, ascii=ascii_)
     summary = {
         "pipeline": pipeline,
