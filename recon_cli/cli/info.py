@@ -16,7 +16,12 @@ def cmd(ctx: click.Context, files: tuple[str, ...], json_: bool) -> None:
     from recon_cli.info import describe
     from recon_cli.stages import report_json
 
-    reports = [describe(f) for f in files]
+    from recon_cli.errors import naming
+
+    reports = []
+    for f in files:
+        with naming(f):
+            reports.append(describe(f))
     if json_:
         click.echo(report_json(reports[0] if len(reports) == 1 else reports))
         return
