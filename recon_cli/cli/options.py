@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import click
 
-input_arg = click.argument("input", metavar="IN", type=click.Path(allow_dash=True, dir_okay=False))
-output_arg = click.argument("output", metavar="OUT", type=click.Path(allow_dash=True, dir_okay=False))
+# paths are checked by the reader and the writer (one line naming the path, exit 2), not by click
+input_arg = click.argument("input", metavar="IN", type=click.Path(allow_dash=True))
+output_arg = click.argument("output", metavar="OUT", type=click.Path(allow_dash=True))
 
 ascii_opt = click.option("--ascii", "ascii_", is_flag=True, help="Write ASCII PLY (default binary little-endian).")
 json_opt = click.option(
