@@ -43,13 +43,15 @@ def run_stage_command(
     from recon_cli.stages import apply_stage
 
     check_output(output)  # before any work: a wrong output path is known now
-    t0 = time.perf_counter()
-    data = load(input)
-    t1 = time.perf_counter()
-    # Ctrl-C / SIGTERM leave at once, even inside a kernel: nothing is written yet
-    with naming(input), immediate():
-        result = apply_stage(stage, data, params, progress=make_progress(ctx))
-    t2 = time.perf_counter()
+    # Ctrl-C / SIGTERM leave at once, even inside a numba kernel or while numba loads one:
+    # nothing is written before save()
+    with immediate():
+        t0 = time.perf_counter()
+        data = load(input)
+        t1 = time.perf_counter()
+        with naming(input):
+            result = apply_stage(stage, data, params, progress=make_progress(ctx))
+        t2 = time.perf_counter()
     save(result.output, output, ascii=ascii_)
     t3 = time.perf_counter()
     report = dict(result.report)

@@ -32,7 +32,7 @@ class Interrupted(KeyboardInterrupt):
 # seconds a raised Interrupted has to end the command before the process ends itself: the
 # raise can be lost (inside a ctypes callback, e.g. while numba compiles, Python prints and
 # drops it) and the command would go on as if nothing happened
-DEADLINE = 3.0
+DEADLINE = 2.0
 
 _state: dict = {"signum": None, "done": None}
 

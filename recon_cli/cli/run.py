@@ -29,9 +29,10 @@ def cmd(ctx: click.Context, pipeline: str, input: str, output: str, ascii_: bool
     pipe = load_pipeline(pipeline)
     check_output(output)
     t0 = time.perf_counter()
-    data = load(input)
-    with naming(input), immediate():
-        out, reports = run_pipeline(pipe, data, progress=make_progress(ctx))
+    with immediate():
+        data = load(input)
+        with naming(input):
+            out, reports = run_pipeline(pipe, data, progress=make_progress(ctx))
     save(out, output, ascii=ascii_)
     summary = {
         "pipeline": pipeline,

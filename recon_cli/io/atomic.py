@@ -40,6 +40,8 @@ from recon_cli.errors import OutputError
 # paths that name an already open file descriptor
 _FD_PATH = re.compile(r"^/(?:dev/fd|proc/self/fd)/(\d+)$")
 _FD_ALIASES = {"/dev/stdin": 0, "/dev/stdout": 1, "/dev/stderr": 2}
+# Linux only; None elsewhere (and in tests that exercise the named fallback)
+_O_TMPFILE = getattr(os, "O_TMPFILE", None)
 # O_TMPFILE is refused with one of these where the file system or kernel lacks it
 _NO_TMPFILE = {errno.EOPNOTSUPP, errno.EISDIR, errno.EINVAL, errno.ENOENT}
 
@@ -170,9 +172,11 @@ def _open_replacing(path: str, final: str, folder: str, st: os.stat_result | Non
     named = None  # the temporary file's name while it has one
     try:
         try:
-            fd = os.open(folder, os.O_TMPFILE | os.O_WRONLY | os.O_CLOEXEC, 0o666)
-        except (AttributeError, OSError) as exc:
-            if isinstance(exc, OSError) and exc.errno not in _NO_TMPFILE:
+            if _O_TMPFILE is None:
+                raise OSError(errno.EOPNOTSUPP, "no O_TMPFILE")
+            fd = os.open(folder, _O_TMPFILE | os.O_WRONLY | os.O_CLOEXEC, 0o666)
+        except OSError as exc:
+            if exc.errno not in _NO_TMPFILE:
                 raise
             fd, named = tempfile.mkstemp(prefix="." + os.path.basename(final) + ".", suffix=".tmp", dir=folder)
             _NAMED.add(named)
