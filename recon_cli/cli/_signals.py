@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
+import sys
 import threading
 from typing import Iterator
 
@@ -29,10 +30,13 @@ class Interrupted(KeyboardInterrupt):
         super().__init__(signal.Signals(signum).name)
 
 
-# seconds a raised Interrupted has to end the command before the process ends itself: the
-# raise can be lost (inside a ctypes callback, e.g. while numba compiles, Python prints and
-# drops it) and the command would go on as if nothing happened
-DEADLINE = 2.0
+# A raised Interrupted can be lost: inside a ctypes callback (numba compiling) or a __del__,
+# Python reports it to sys.unraisablehook and drops it, and the command would go on as if
+# nothing happened. The hook below ends the process at once in that case; as a last resort
+# (code that catches and ignores KeyboardInterrupt) the process ends itself DEADLINE seconds
+# after the signal if the command has not ended by then (time for finally blocks, e.g. a
+# Dask cluster closing).
+DEADLINE = 5.0
 
 _state: dict = {"signum": None, "done": None}
 
@@ -76,11 +80,22 @@ def handlers() -> Iterator[None]:
     """Raise :class:`Interrupted` on SIGINT and SIGTERM while inside; restore the previous handlers after."""
     _state.update(signum=None, done=threading.Event())
     old = {s: signal.signal(s, _raise) for s in _ours()}
+    old_hook = sys.unraisablehook
+
+    def hook(unraisable) -> None:
+        if isinstance(unraisable.exc_value, Interrupted):
+            _exit_now(unraisable.exc_value.signum)
+        old_hook(unraisable)
+
+    if old:
+        sys.unraisablehook = hook
     try:
         yield
     finally:
         for s, h in old.items():
             signal.signal(s, h)
+        if old:
+            sys.unraisablehook = old_hook
         _state["done"].set()
         _state.update(signum=None, done=None)
 

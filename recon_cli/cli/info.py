@@ -8,20 +8,21 @@ from recon_cli.cli import options
 
 
 @click.command("info")
-@click.argument("files", metavar="FILE...", nargs=-1, required=True, type=click.Path(allow_dash=True, dir_okay=False))
+@click.argument("files", metavar="FILE...", nargs=-1, required=True, type=click.Path(allow_dash=True))
 @options.json_opt
 @click.pass_context
 def cmd(ctx: click.Context, files: tuple[str, ...], json_: bool) -> None:
     """Describe PLY clouds/meshes and grids: counts, properties, bbox, topology, history."""
+    from recon_cli.cli._signals import immediate
+    from recon_cli.errors import naming
     from recon_cli.info import describe
     from recon_cli.stages import report_json
 
-    from recon_cli.errors import naming
-
     reports = []
-    for f in files:
-        with naming(f):
-            reports.append(describe(f))
+    with immediate():  # reads and computes only: Ctrl-C ends it at once, even in a kernel
+        for f in files:
+            with naming(f):
+                reports.append(describe(f))
     if json_:
         click.echo(report_json(reports[0] if len(reports) == 1 else reports))
         return
