@@ -40,9 +40,11 @@ def run_stage_command(
     from recon_cli.errors import naming
     from recon_cli.io.atomic import check_output
     from recon_cli.io.load import load, save
-    from recon_cli.stages import apply_stage
+    from recon_cli.stages import apply_stage, get_spec
 
-    check_output(output)  # before any work: a wrong output path is known now
+    spec = get_spec(stage)
+    spec.check(params, complete=False)  # parameters before reading anything
+    check_output(output)  # and the output path: a wrong one is known now
     # Ctrl-C / SIGTERM leave at once, even inside a numba kernel or while numba loads one:
     # nothing is written before save()
     with immediate():

@@ -12,7 +12,10 @@ from recon_cli.cli import options
 @options.json_opt
 @click.pass_context
 def cmd(ctx: click.Context, files: tuple[str, ...], json_: bool) -> None:
-    """Describe PLY clouds/meshes and grids: counts, properties, bbox, topology, history."""
+    """Describe PLY clouds/meshes and grids: counts, properties, bbox, topology, history.
+
+    With --json: a JSON list with one object per FILE (also for a single file).
+    """
     from recon_cli.cli._signals import immediate
     from recon_cli.errors import naming
     from recon_cli.info import describe
@@ -24,7 +27,7 @@ def cmd(ctx: click.Context, files: tuple[str, ...], json_: bool) -> None:
             with naming(f):
                 reports.append(describe(f))
     if json_:
-        click.echo(report_json(reports[0] if len(reports) == 1 else reports))
+        click.echo(report_json(reports))  # always a list, one entry per FILE
         return
     for rep in reports:
         click.echo(format_info(rep))
