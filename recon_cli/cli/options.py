@@ -72,8 +72,8 @@ def stage_command(stage: str) -> click.Command:
         run_stage_command(ctx, spec.name, input, output, given, ascii_=ascii_, json_=json_)
 
     doc = inspect.cleandoc(spec.description or spec.summary)
-    out_arg = click.Argument(["output"], metavar="OUT", type=click.Path(allow_dash=True, dir_okay=False))
-    in_arg = click.Argument(["input"], metavar="IN", type=click.Path(allow_dash=True, dir_okay=False))
+    out_arg = click.Argument(["output"], metavar="OUT", type=click.Path(allow_dash=True))  # checked by reader/writer: one line
+    in_arg = click.Argument(["input"], metavar="IN", type=click.Path(allow_dash=True))  # checked by reader/writer: one line
     params: list[click.Parameter] = [
         in_arg, out_arg,
         click.Option(["--ascii", "ascii_"], is_flag=True, help=ASCII_HELP),

@@ -11,8 +11,8 @@ from recon_cli.cli import options
 
 @click.command("run")
 @click.argument("pipeline", metavar="PIPELINE.toml", type=click.Path(dir_okay=False))
-@click.argument("input", metavar="IN", required=False, type=click.Path(allow_dash=True, dir_okay=False))
-@click.argument("output", metavar="OUT", required=False, type=click.Path(allow_dash=True, dir_okay=False))
+@click.argument("input", metavar="IN", required=False, type=click.Path(allow_dash=True))
+@click.argument("output", metavar="OUT", required=False, type=click.Path(allow_dash=True))
 @click.option("--set", "overrides", multiple=True, metavar="STAGE.PARAM=VALUE",
               help="Override a parameter without editing the file (repeatable): poisson.depth=9, or 2.depth=9 for "
               "the second stage.")
