@@ -26,7 +26,7 @@ import traceback
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
-from recon_cli.errors import InputError, ParameterError, ReconError, naming
+from recon_cli.errors import InputError, ParameterError, ReconError
 
 STATUS_OK = "ok"
 STATUS_FAILED = "failed"
@@ -288,8 +288,7 @@ def _run_here(input_path: str | os.PathLike, m: Method, out_path: str) -> dict[s
     tracemalloc.start()
     try:
         t0 = time.perf_counter()
-        with naming(input_path):
-            result = apply_stage(m.stage, data, m.stage_params())
+        result = apply_stage(m.stage, data, m.stage_params())
         seconds = time.perf_counter() - t0
         peak = tracemalloc.get_traced_memory()[1] / 2**20
     except ReconError as exc:
@@ -335,8 +334,7 @@ def _child(conn, input_path: str, stage: str, params: dict, out_path: str) -> No
         memory.reset_peak()
         base = memory.rss_mb() or 0.0
         t0 = time.perf_counter()
-        with naming(input_path):
-            result = apply_stage(stage, data, params)
+        result = apply_stage(stage, data, params)
         seconds = time.perf_counter() - t0
         peak = max(0.0, (memory.peak_mb() or 0.0) - base)
         save(result.output, out_path)
