@@ -20,6 +20,7 @@ import sys
 import click
 
 from recon_cli import __version__
+from recon_cli.errors import ReconError
 
 # subcommand -> module under recon_cli.cli holding a click command named ``cmd``;
 # imported only when run, so ``recon --help`` stays instant
@@ -74,6 +75,12 @@ class LazyGroup(click.Group):
             return super().invoke(ctx)
         except (KeyboardInterrupt, BrokenPipeError) as exc:
             # past click's own handling (a blank line and Abort; exit 1 on a broken pipe) to main()
+            raise _Escape(exc) from None
+
+    def make_context(self, *args, **kwargs) -> click.Context:
+        try:
+            return super().make_context(*args, **kwargs)
+        except KeyboardInterrupt as exc:  # Ctrl-C while the arguments are parsed
             raise _Escape(exc) from None
 
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
@@ -161,8 +168,6 @@ def main(argv: list[str] | None = None) -> None:
 
 
 def _main(argv: list[str] | None) -> int:
-    from recon_cli.errors import ReconError
-
     try:
         try:
             rv = cli.main(args=argv, prog_name="recon", standalone_mode=False)
