@@ -469,7 +469,7 @@ def _check_orient(method, camera, direction, reference, n):
     ref = None
     if method == "keep":
         if reference is None:
-            raise ParameterError("--orient keep needs input normals (the input has none)")
+            raise InputError("--orient keep needs input normals (the input has none)")
         ref = np.asarray(reference, dtype=np.float64)
         if ref.shape != (n, 3):
             raise InputError(f"reference normals have shape {ref.shape}, expected ({n}, 3)")
