@@ -47,23 +47,25 @@ def run_stage_command(
     json_: bool = False,
 ) -> None:
     """Load IN, run ``stage`` with ``params``, write OUT atomically, print the report."""
-    from recon_cli.errors import InputError
+    from recon_cli.cli._signals import immediate
+    from recon_cli.errors import naming
+    from recon_cli.io.atomic import check_output
     from recon_cli.io.load import load, save
     from recon_cli.stages import apply_stage, get_spec
 
     spec = get_spec(stage)
     spec.check(params, complete=False)  # parameters before reading anything
-    progress = make_progress(ctx)
-    t0 = time.perf_counter()
-    data = load(input)
-    t1 = time.perf_counter()
-    try:
-        result = apply_stage(stage, data, params, progress=progress)
-    except InputError as exc:
-        if exc.path is not None:
-            raise
-        raise InputError(str(exc), "<stdin>" if input == "-" else input) from None
-    t2 = time.perf_counter()
+    check_output(output)  # and the output path: a wrong one is known now
+    progress = make_progress(ctx)  # before reading: a first run's compiling shows from the start
+    # Ctrl-C / SIGTERM leave at once, even inside a numba kernel or while numba loads one:
+    # nothing is written before save()
+    with immediate():
+        t0 = time.perf_counter()
+        data = load(input)
+        t1 = time.perf_counter()
+        with naming(input):
+            result = apply_stage(stage, data, params, progress=progress)
+        t2 = time.perf_counter()
     save(result.output, output, ascii=ascii_)
     t3 = time.perf_counter()
     report = dict(result.report)

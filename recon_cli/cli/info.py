@@ -8,7 +8,7 @@ from recon_cli.cli import options
 
 
 @click.command("info")
-@click.argument("files", metavar="FILE...", nargs=-1, required=True, type=click.Path(allow_dash=True, dir_okay=False))
+@click.argument("files", metavar="FILE...", nargs=-1, required=True, type=click.Path(allow_dash=True))
 @options.json_opt
 @click.pass_context
 def cmd(ctx: click.Context, files: tuple[str, ...], json_: bool) -> None:
@@ -16,10 +16,16 @@ def cmd(ctx: click.Context, files: tuple[str, ...], json_: bool) -> None:
 
     With --json: a JSON list with one object per FILE (also for a single file).
     """
+    from recon_cli.cli._signals import immediate
+    from recon_cli.errors import naming
     from recon_cli.info import describe
     from recon_cli.stages import report_json
 
-    reports = [describe(f) for f in files]
+    reports = []
+    with immediate():  # reads and computes only: Ctrl-C ends it at once, even in a kernel
+        for f in files:
+            with naming(f):
+                reports.append(describe(f))
     if json_:
         click.echo(report_json(reports))  # always a list, one entry per FILE
         return
