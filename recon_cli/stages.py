@@ -26,6 +26,7 @@ STAGES: dict[str, str] = {
     "repair": "recon_cli.repair:run_stage",
     "sdf": "recon_cli.sdf:run_stage",
     "mcubes": "recon_cli.mcubes:run_stage",
+    "fit-sdf": "recon_cli.learned:run_stage",
 }
 
 # parameters every stage function takes that are not user parameters
