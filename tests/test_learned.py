@@ -12,6 +12,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -121,7 +122,7 @@ def test_occupancy_field():
     p, n = sphere_cloud(5000, 0.5, (2.0, 0.0, 0.0), seed=6)
     fit = fit_sdf(p, n, field="occupancy", seed=0, **dict(FAST, iterations=400))
     g = _grid(fit, p)
-    assert g.sdf.min() < -0.4 and g.sdf.max() > 0.4  # 0.5 - p: inside ~ -0.5, outside ~ +0.5
+    assert g.sdf.min() < -0.4 and g.sdf.max() > 0.4  # 0.5 - p(inside): inside -> -0.5, outside -> +0.5
     v, f, nv = extract_mesh(fit.model, g)
     r = np.linalg.norm(v - (2.0, 0.0, 0.0), axis=1)
     assert np.abs(r - 0.5).max() <= 0.03 * 0.5
@@ -180,8 +181,11 @@ def test_bad_points():
 
 
 def test_missing_torch_is_one_line(monkeypatch):
+    import recon_cli.learned
+
     monkeypatch.setitem(sys.modules, "torch", None)
     monkeypatch.delitem(sys.modules, "recon_cli.learned._torch_net", raising=False)
+    monkeypatch.delattr(recon_cli.learned, "_torch_net", raising=False)
     p, n = sphere_cloud(100, 1.0)
     with pytest.raises(BackendError, match=r"pip install recon\[learned\]"):
         fit_sdf(p, n, iterations=1)
@@ -193,7 +197,7 @@ def test_model_file_round_trip(tmp_path, sphere_fit):
     back = load_model(tmp_path / "m.npz")
     q = p[:300] * 1.001
     assert np.array_equal(back.values(q), fit.model.values(q))
-    (tmp_path / "bad.npz").write_bytes(b"PK\x03\x04 not really")
+    (tmp_path / "bad.npz").write_bytes(b"not a zip at all")
     with pytest.raises(InputError):
         load_model(tmp_path / "bad.npz")
 
@@ -239,22 +243,20 @@ def test_cli_ctrl_c_writes_best_field(tmp_path):
     # act as a terminal even when the test runner ignores SIGINT (nohup, CI)
     code = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler);"
             "from recon_cli.cli.main import main; main(sys.argv[1:])")
-    proc = subprocess.Popen([sys.executable, "-c", code, "-v", "fit-sdf", str(src), str(out), "--iterations",
+    with subprocess.Popen([sys.executable, "-c", code, "-v", "fit-sdf", str(src), str(out), "--iterations",
                              "10000000", "--width", "32", "--depth", "2", "--resolution", "24", "--threads", "1"],
-                            stderr=subprocess.PIPE, text=True)
-    try:
-        for line in proc.stderr:
-            if "fit-sdf: training" in line:
-                break
-        import time
-
-        time.sleep(2.0)
-        proc.send_signal(signal.SIGINT)
-        rest = proc.stderr.read()
-        assert proc.wait(timeout=120) == 130, rest
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+                          stderr=subprocess.PIPE, text=True) as proc:
+        try:
+            for line in proc.stderr:
+                if "fit-sdf: step 1 done" in line:
+                    break
+            time.sleep(1.0)
+            proc.send_signal(signal.SIGINT)
+            rest = proc.stderr.read()
+            assert proc.wait(timeout=120) == 130, rest
+        finally:
+            if proc.poll() is None:
+                proc.kill()
     assert "best field so far" in rest
     g = read_grid(out)
     assert g.sdf.min() < 0 < g.sdf.max()

@@ -53,6 +53,7 @@ _FORMAT = "recon-fit-sdf-1"
 _EXTENT = 0.8  # the cloud's longest half-side maps to this in the network's coordinates
 _RADIUS = 0.5  # radius of the initial sphere, network coordinates
 _COARSE = 4  # fine samples per coarse cell when sampling the grid
+_OCC_GAIN = 10.0  # occupancy: p(inside) = sigmoid(-gain * s), so the sphere init is a valid field
 
 
 def _torch():
@@ -105,14 +106,14 @@ class SdfModel:
         val = self._to_field(raw)
         if self.field == "sdf":
             return val, g.astype(np.float64)
-        p = 1.0 / (1.0 + np.exp(-raw.astype(np.float64)))
-        return val, -(p * (1 - p))[:, None] * g / self.scale
+        p = 1.0 / (1.0 + np.exp(_OCC_GAIN * raw.astype(np.float64)))  # p(inside)
+        return val, (_OCC_GAIN * p * (1 - p))[:, None] * g / self.scale
 
     def _to_field(self, raw: np.ndarray) -> np.ndarray:
         raw = raw.astype(np.float64)
         if self.field == "sdf":
             return raw * self.scale
-        return 0.5 - 1.0 / (1.0 + np.exp(-raw))
+        return 0.5 - 1.0 / (1.0 + np.exp(_OCC_GAIN * raw))
 
 
 @dataclass
@@ -309,6 +310,7 @@ def fit_sdf(
         normal_weight=normal_weight,
         field=field,
         seed=seed,
+        occupancy_gain=_OCC_GAIN,
     )
     total = float(iterations) if max_seconds is None else None
     logging.getLogger("recon").info(
@@ -319,6 +321,8 @@ def fit_sdf(
         name = getattr(t, "name", None)
 
         def on_step(it: int, loss: float, elapsed: float) -> None:
+            if it == 1:
+                logging.getLogger("recon").info("fit-sdf: step 1 done (%.2f s)", elapsed)
             if name is not None:
                 t.name = f"fitting {field} loss {loss:.4f}"
             if max_seconds is None:
@@ -339,7 +343,8 @@ def sample_grid(model: SdfModel, origin: np.ndarray, voxel_size: float, shape: t
 
     ``sdf``: the network is evaluated at every sample of the coarse cells (``4`` samples a
     side) whose corners can be within reach of the surface (|s| below 1.5 coarse-cell
-    diagonals, or a sign change), elsewhere the coarse grid is interpolated trilinearly.
+    diagonals or 6 % of the grid's diagonal, or a sign change), elsewhere the coarse grid
+    is interpolated trilinearly.
     ``occupancy`` (not a distance: no such bound) is evaluated everywhere.
     """
     from scipy.ndimage import map_coordinates
@@ -362,7 +367,10 @@ def sample_grid(model: SdfModel, origin: np.ndarray, voxel_size: float, shape: t
     # trilinear everywhere (fine sample (i, j, k) sits at coarse index (i/c, j/c, k/c))
     idx = np.indices(shape, dtype=np.float32).reshape(3, -1) / c
     out = map_coordinates(coarse, idx, order=1, mode="nearest").reshape(shape).astype(np.float32)
-    reach = 1.5 * np.sqrt(3.0) * c * h
+    # exact values wherever the surface may be within reach, and in a band of 6 % of the
+    # grid's diagonal (where the eikonal property is checked: trilinear interpolation of a
+    # curved distance field would understate its gradient there)
+    reach = max(1.5 * np.sqrt(3.0) * c * h, 0.06 * h * float(np.linalg.norm(np.array(shape) - 1)))
     a = np.abs(coarse)
     near = np.minimum.reduce([a[dx:dx + cshape[0] - 1, dy:dy + cshape[1] - 1, dz:dz + cshape[2] - 1]
                               for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)]) < reach
@@ -451,7 +459,9 @@ def load_model(path: str | os.PathLike) -> SdfModel:
 
     where = str(path)
     try:
-        with np.load(path, allow_pickle=False) as z:
+        with open(path, "rb") as f:
+            data = f.read()
+        with np.load(io.BytesIO(data), allow_pickle=False) as z:
             meta = json.loads(str(z["meta"]))
             arrays = {k.split(":", 1)[1]: z[k] for k in z.files if k.startswith("param:")}
     except (OSError, KeyError, ValueError, zipfile.BadZipFile, json.JSONDecodeError) as exc:

@@ -72,6 +72,8 @@ class TrainConfig:
     normal_weight: float
     field: str  # "sdf" or "occupancy"
     seed: int
+    offsurface_weight: float = 1.0
+    occupancy_gain: float = 10.0  # p(inside) = sigmoid(-gain * s)
 
 
 @dataclass
@@ -111,10 +113,28 @@ def train(
 
     sdf: L1 zero level on the points + ``normal_weight`` * ||grad s(p) - n_p|| (with normals)
     + ``eikonal_weight`` * (||grad s|| - 1)^2 on points near and away from the surface (IGR).
-    occupancy: binary cross-entropy on labelled samples (``labels_fn``: 1 inside) + the logit
-    held at 0 on the points. On KeyboardInterrupt the best parameters so far are restored and
-    the outcome says ``interrupted``.
+    occupancy: binary cross-entropy of p(inside) = sigmoid(-gain * s) on labelled samples
+    (``labels_fn``: 1 inside) + |s| on the points. On KeyboardInterrupt (at any time, also
+    before the first step) the best parameters so far are restored and the outcome says
+    ``interrupted``.
     """
+    st = {"it": 0, "ema": None, "best": math.inf, "last": math.nan, "history": [],
+          "best_state": {k: v.detach().clone() for k, v in net.state_dict().items()}}
+    t0 = time.perf_counter()
+    interrupted = False
+    try:
+        _loop(net, points, normals, sigma, labels_fn, cfg, on_step, st, t0)
+    except KeyboardInterrupt:
+        interrupted = True
+    ema = st["ema"]
+    if interrupted or (ema is not None and ema > st["best"]):
+        net.load_state_dict(st["best_state"])
+    elif ema is not None:
+        st["best"] = min(st["best"], ema)
+    return TrainOutcome(st["it"], time.perf_counter() - t0, interrupted, st["best"], st["last"], st["history"])
+
+
+def _loop(net, points, normals, sigma, labels_fn, cfg: TrainConfig, on_step, st: dict, t0: float) -> None:
     gen = torch.Generator().manual_seed(cfg.seed)
     pts = torch.from_numpy(points)
     nrm = torch.from_numpy(normals) if normals is not None else None
@@ -122,68 +142,59 @@ def train(
     n = len(pts)
     b = cfg.batch
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
-    best_state = {k: v.detach().clone() for k, v in net.state_dict().items()}
-    best = math.inf
-    ema = None
-    history = []
-    t0 = time.perf_counter()
-    it = 0
-    interrupted = False
-    last = math.nan
-    try:
-        while it < cfg.iterations:
-            elapsed = time.perf_counter() - t0
-            if cfg.max_seconds is not None and elapsed >= cfg.max_seconds:
-                break
-            frac = it / cfg.iterations
-            if cfg.max_seconds is not None:
-                frac = max(frac, elapsed / cfg.max_seconds)
-            lr = cfg.lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(1.0, frac))))
-            for g in opt.param_groups:
-                g["lr"] = lr
-            idx = torch.randint(0, n, (b,), generator=gen)
-            p = pts[idx]
-            near = p + torch.randn(b, 3, generator=gen) * sig[idx, None]
-            wide = p[: b // 2] + torch.randn(b // 2, 3, generator=gen) * 0.1
-            unif = torch.rand(b // 2, 3, generator=gen) * 2.0 - 1.0
-            off = torch.cat([near, wide, unif])
-            if cfg.field == "sdf":
-                p.requires_grad_(True)
-                off.requires_grad_(True)
-                sp = net(p)
-                so = net(off)
-                go = _grad(so, off, True)
-                loss = sp.abs().mean()
-                eik = ((go.norm(dim=1) - 1.0) ** 2).mean()
-                if nrm is not None:
-                    gp = _grad(sp, p, True)
-                    loss = loss + cfg.normal_weight * (gp - nrm[idx]).norm(dim=1).mean()
-                    eik = 0.5 * eik + 0.5 * ((gp.norm(dim=1) - 1.0) ** 2).mean()
-                loss = loss + cfg.eikonal_weight * eik
-            else:
-                lab = torch.from_numpy(labels_fn(off.numpy()))
-                lo = net(off)
-                loss = nn.functional.binary_cross_entropy_with_logits(lo, lab) + net(p).abs().mean()
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            it += 1
-            last = float(loss.detach())
-            ema = last if ema is None else 0.95 * ema + 0.05 * last
-            if it % 10 == 0 or it == cfg.iterations:
-                history.append((it, ema))
-                if ema < best:
-                    best = ema
-                    best_state = {k: v.detach().clone() for k, v in net.state_dict().items()}
-            if on_step is not None:
-                on_step(it, ema, time.perf_counter() - t0)
-    except KeyboardInterrupt:
-        interrupted = True
-    if interrupted or (ema is not None and ema > best):
-        net.load_state_dict(best_state)
-    if ema is not None and ema < best:
-        best = ema
-    return TrainOutcome(it, time.perf_counter() - t0, interrupted, best, last, history)
+    while st["it"] < cfg.iterations:
+        it = st["it"]
+        elapsed = time.perf_counter() - t0
+        if cfg.max_seconds is not None and elapsed >= cfg.max_seconds:
+            break
+        frac = it / cfg.iterations
+        if cfg.max_seconds is not None:
+            frac = max(frac, elapsed / cfg.max_seconds)
+        lr = cfg.lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(1.0, frac))))
+        for g in opt.param_groups:
+            g["lr"] = lr
+        idx = torch.randint(0, n, (b,), generator=gen)
+        p = pts[idx]
+        near = p + torch.randn(b, 3, generator=gen) * sig[idx, None]
+        wide = p[: b // 2] + torch.randn(b // 2, 3, generator=gen) * 0.1
+        unif = torch.rand(b // 2, 3, generator=gen) * 2.0 - 1.0
+        off = torch.cat([near, wide, unif])
+        if cfg.field == "sdf":
+            p.requires_grad_(True)
+            off.requires_grad_(True)
+            sp = net(p)
+            so = net(off)
+            go = _grad(so, off, True)
+            loss = sp.abs().mean()
+            eik = ((go.norm(dim=1) - 1.0) ** 2).mean()
+            if nrm is not None:
+                gp = _grad(sp, p, True)
+                loss = loss + cfg.normal_weight * (gp - nrm[idx]).norm(dim=1).mean()
+                eik = 0.5 * eik + 0.5 * ((gp.norm(dim=1) - 1.0) ** 2).mean()
+            loss = loss + cfg.eikonal_weight * eik
+            if cfg.offsurface_weight:
+                # SIREN's off-surface term: no zero level away from the points
+                far = so[b:]
+                loss = loss + cfg.offsurface_weight * torch.exp(-100.0 * far.abs()).mean()
+        else:
+            lab = torch.from_numpy(labels_fn(off.numpy()))
+            logit = -cfg.occupancy_gain * net(off)
+            loss = nn.functional.binary_cross_entropy_with_logits(logit, lab) + net(p).abs().mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        st["it"] = it = it + 1
+        last = float(loss.detach())
+        st["last"] = last
+        ema = last if st["ema"] is None else 0.95 * st["ema"] + 0.05 * last
+        st["ema"] = ema
+        if it % 10 == 0 or it == cfg.iterations:
+            st["history"].append((it, ema))
+            if ema < st["best"]:
+                st["best"] = ema
+                st["best_state"] = {k: v.detach().clone() for k, v in net.state_dict().items()}
+        if on_step is not None:
+            on_step(it, ema, time.perf_counter() - t0)
 
 
 def values(net: FieldNet, x: np.ndarray, chunk: int = _CHUNK) -> np.ndarray:
