@@ -18,7 +18,7 @@ from recon_cli.cli import options
 @click.option("--depth", type=int, default=4, show_default=True, help="Hidden layers.")
 @click.option("--frequencies", type=int, default=6, show_default=True, help="Octaves of the positional encoding (0: none).")
 @click.option("--batch", type=int, default=2048, show_default=True, help="Surface points per step.")
-@click.option("--eikonal-weight", type=float, default=1.0, show_default=True, help="Weight of the eikonal loss E[(|grad s| - 1)^2].")
+@click.option("--eikonal-weight", type=float, default=3.0, show_default=True, help="Weight of the eikonal loss E[(|grad s| - 1)^2].")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the weights and sampling (fixed seed: same field).")
 @click.option(
     "--field",

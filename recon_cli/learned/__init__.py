@@ -3,7 +3,11 @@
 A small MLP s(x) on Fourier features is fitted to the points by gradient descent (Adam):
 the zero level passes through the points (L1), its gradient matches the normals when the
 cloud has them (||grad s(p) - n_p||), and the eikonal loss (||grad s|| - 1)^2 on samples
-near and away from the surface makes it a distance (IGR, Gropp et al. 2020). Without
+near and away from the surface makes it a distance (IGR, Gropp et al. 2020); SIREN's
+off-surface term exp(-100 |s|) on the samples away from the points (Sitzmann et al. 2020)
+keeps spurious zero levels out of the empty space, which a few CPU minutes of IGR alone
+leave (armadillo, 90 s: 7 components, 11 % of the vertices > 1 % of the diagonal from any
+point; with the term: one watertight component). Without
 normals it is IGR's zero-level + eikonal form, oriented by the geometric (sphere)
 initialisation. ``field="occupancy"`` fits a logistic output instead (Occupancy Networks,
 Mescheder et al. 2019) to inside/outside labels taken from the normals of the nearest points.
@@ -183,7 +187,7 @@ def fit_sdf(
     width: int = 128,
     depth: int = 4,
     frequencies: int = 6,
-    eikonal_weight: float = 1.0,
+    eikonal_weight: float = 3.0,
     normal_weight: float = 1.0,
     batch: int = 2048,
     learning_rate: float = 2e-3,
@@ -211,7 +215,8 @@ def fit_sdf(
         Octaves of the Fourier features (0: the raw coordinates only).
     eikonal_weight : float
         Weight of E[(||grad s|| - 1)^2] (``sdf`` only). IGR's 0.1 needs far more steps than a
-        few minutes of CPU allow; 1.0 keeps ||grad s|| within 0.1 of 1 near the surface.
+        few minutes of CPU allow (kitten, 60 s: within 0.1 of 1 on 74 % of the grid samples
+        near the surface with 1.0, 86 % with 3.0, Chamfer 1.65e-3 and 1.79e-3 of the diagonal).
     normal_weight : float
         Weight of E||grad s(p) - n_p|| (``sdf`` with normals only).
     batch : int
@@ -488,7 +493,7 @@ def run_stage(
     width: int = 128,
     depth: int = 4,
     frequencies: int = 6,
-    eikonal_weight: float = 1.0,
+    eikonal_weight: float = 3.0,
     batch: int = 2048,
     seed: int = 0,
     field: str = "sdf",
