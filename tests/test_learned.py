@@ -85,6 +85,18 @@ def test_sphere_eikonal(sphere_fit):
     assert np.mean(np.abs(np.linalg.norm(grad, axis=1) - 1) <= 0.1) >= 0.9
 
 
+def test_sphere_without_normals_igr():
+    """IGR's form (zero level + eikonal) grows the initial sphere onto the points."""
+    centre = np.array([-40.0, 0.5, 1e4])
+    p, _ = sphere_cloud(5000, 2.0, centre, seed=11)
+    fit = fit_sdf(p, None, seed=1, **dict(FAST, iterations=500))
+    assert fit.eikonal_weight == 0.1
+    v, f, nv = extract_mesh(fit.model, _grid(fit, p))
+    radii = np.linalg.norm(v - centre, axis=1)
+    assert np.abs(radii - 2.0).max() <= 0.01 * 2.0
+    assert np.einsum("ij,ij->i", nv, (v - centre) / radii[:, None]).min() > 0.99
+
+
 def test_fixed_seed_reproducible_other_seed_differs():
     p, n = sphere_cloud(2000, 1.0, seed=2)
     kw = dict(FAST, iterations=40)

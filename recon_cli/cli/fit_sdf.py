@@ -18,7 +18,7 @@ from recon_cli.cli import options
 @click.option("--depth", type=int, default=4, show_default=True, help="Hidden layers.")
 @click.option("--frequencies", type=int, default=6, show_default=True, help="Octaves of the positional encoding (0: none).")
 @click.option("--batch", type=int, default=2048, show_default=True, help="Surface points per step.")
-@click.option("--eikonal-weight", type=float, default=3.0, show_default=True, help="Weight of the eikonal loss E[(|grad s| - 1)^2].")
+@click.option("--eikonal-weight", type=float, default=None, help="Weight of the eikonal loss E[(|grad s| - 1)^2] (default 3 with normals, 0.1 without).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the weights and sampling (fixed seed: same field).")
 @click.option(
     "--field",
@@ -55,9 +55,9 @@ def cmd(ctx, input, output, json_, resolution, iterations, max_seconds, width, d
 
     params = {
         "resolution": resolution, "iterations": iterations, "width": width, "depth": depth,
-        "frequencies": frequencies, "batch": batch, "eikonal_weight": eikonal_weight, "seed": seed, "field": field,
+        "frequencies": frequencies, "batch": batch, "seed": seed, "field": field,
     }
-    for k, v in (("max_seconds", max_seconds), ("threads", threads), ("model", model), ("mesh", mesh)):
+    for k, v in (("eikonal_weight", eikonal_weight), ("max_seconds", max_seconds), ("threads", threads), ("model", model), ("mesh", mesh)):
         if v is not None:
             params[k] = v
     t0 = time.perf_counter()

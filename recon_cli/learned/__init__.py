@@ -137,6 +137,8 @@ class FitResult:
         Best smoothed training loss.
     history : list of (int, float)
         (iteration, smoothed loss) every 10 steps.
+    eikonal_weight : float
+        The weight used (the default depends on the normals).
     """
 
     model: SdfModel
@@ -145,6 +147,7 @@ class FitResult:
     interrupted: bool
     loss: float
     history: list
+    eikonal_weight: float = 0.0
 
 
 def _int(v: Any, name: str, lo: int, hi: int) -> int:
@@ -187,7 +190,7 @@ def fit_sdf(
     width: int = 128,
     depth: int = 4,
     frequencies: int = 6,
-    eikonal_weight: float = 3.0,
+    eikonal_weight: float | None = None,
     normal_weight: float = 1.0,
     batch: int = 2048,
     learning_rate: float = 2e-3,
@@ -213,10 +216,13 @@ def fit_sdf(
         Hidden units per layer and hidden layers of the MLP.
     frequencies : int
         Octaves of the Fourier features (0: the raw coordinates only).
-    eikonal_weight : float
-        Weight of E[(||grad s|| - 1)^2] (``sdf`` only). IGR's 0.1 needs far more steps than a
-        few minutes of CPU allow (kitten, 60 s: within 0.1 of 1 on 74 % of the grid samples
-        near the surface with 1.0, 86 % with 3.0, Chamfer 1.65e-3 and 1.79e-3 of the diagonal).
+    eikonal_weight : float or None
+        Weight of E[(||grad s|| - 1)^2] (``sdf`` only). None: 3.0 with normals, IGR's 0.1
+        without. With normals 0.1 needs far more steps than a few minutes of CPU allow
+        (kitten, 60 s: within 0.1 of 1 on 74 % of the grid samples near the surface with 1.0,
+        86 % with 3.0, Chamfer 1.65e-3 and 1.79e-3 of the diagonal); without normals nothing
+        but the zero level holds the slope, and 3.0 slows the fit (sphere, 250 steps: the
+        zero level 12 % of the radius off with 3.0, 1.4 % with 0.1).
     normal_weight : float
         Weight of E||grad s(p) - n_p|| (``sdf`` with normals only).
     batch : int
@@ -272,6 +278,8 @@ def fit_sdf(
     width = _int(width, "width", 4, 4096)
     depth = _int(depth, "depth", 1, 32)
     frequencies = _int(frequencies, "frequencies", 0, 16)
+    if eikonal_weight is None or (isinstance(eikonal_weight, str) and eikonal_weight.lower() in ("", "none", "auto")):
+        eikonal_weight = 3.0 if normals is not None else 0.1
     eikonal_weight = _float(eikonal_weight, "eikonal_weight", 0.0)
     normal_weight = _float(normal_weight, "normal_weight", 0.0)
     batch = _int(batch, "batch", 16, 1_000_000)
@@ -340,7 +348,7 @@ def fit_sdf(
         out = T.train(net, q, None if nrm is None else nrm.astype(np.float32), sigma, labels_fn, cfg, on_step)
     model = SdfModel(net=net, center=center, scale=scale, field=field,
                      config={"width": width, "depth": depth, "frequencies": frequencies})
-    return FitResult(model, out.iterations, out.seconds, out.interrupted, out.best_loss, out.history)
+    return FitResult(model, out.iterations, out.seconds, out.interrupted, out.best_loss, out.history, eikonal_weight)
 
 
 def sample_grid(model: SdfModel, origin: np.ndarray, voxel_size: float, shape: tuple[int, int, int]) -> np.ndarray:
@@ -493,7 +501,7 @@ def run_stage(
     width: int = 128,
     depth: int = 4,
     frequencies: int = 6,
-    eikonal_weight: float = 3.0,
+    eikonal_weight: float | None = None,
     batch: int = 2048,
     seed: int = 0,
     field: str = "sdf",
@@ -569,7 +577,8 @@ def run_stage(
         "voxel_size": h,
         "eikonal": eikonal_check(grid) if fit.model.field == "sdf" else None,
         "eikonal_near": near_surface_eikonal(grid, 0.05 * diag) if fit.model.field == "sdf" else None,
-        "provenance": {"model": model_path, "mesh": mesh_path, "iterations_done": fit.iterations},
+        "provenance": {"model": model_path, "mesh": mesh_path, "iterations_done": fit.iterations,
+                       "eikonal_weight": fit.eikonal_weight},
     }
     if model_path is not None:
         save_model(fit.model, model_path)

@@ -73,6 +73,7 @@ class TrainConfig:
     field: str  # "sdf" or "occupancy"
     seed: int
     offsurface_weight: float = 1.0
+    surface_weight: float = 1.0
     occupancy_gain: float = 10.0  # p(inside) = sigmoid(-gain * s)
 
 
@@ -165,15 +166,16 @@ def _loop(net, points, normals, sigma, labels_fn, cfg: TrainConfig, on_step, st:
             sp = net(p)
             so = net(off)
             go = _grad(so, off, True)
-            loss = sp.abs().mean()
+            loss = cfg.surface_weight * sp.abs().mean()
             eik = ((go.norm(dim=1) - 1.0) ** 2).mean()
             if nrm is not None:
                 gp = _grad(sp, p, True)
                 loss = loss + cfg.normal_weight * (gp - nrm[idx]).norm(dim=1).mean()
                 eik = 0.5 * eik + 0.5 * ((gp.norm(dim=1) - 1.0) ** 2).mean()
             loss = loss + cfg.eikonal_weight * eik
-            if cfg.offsurface_weight:
-                # SIREN's off-surface term: no zero level away from the points
+            if cfg.offsurface_weight and nrm is not None:
+                # SIREN's off-surface term: no zero level away from the points (with normals
+                # only: without them nothing holds the slope and it fights the zero level)
                 far = so[b:]
                 loss = loss + cfg.offsurface_weight * torch.exp(-100.0 * far.abs()).mean()
         else:
