@@ -34,15 +34,23 @@ def run_stage_command(
     params: dict[str, Any],
     ascii_: bool = False,
     json_: bool = False,
-) -> None:
-    """Load IN, run ``stage`` with ``params``, write OUT atomically, print the report."""
+) -> dict:
+    """Load IN, run ``stage`` with ``params``, write OUT atomically, print the report (and return it)."""
+    from recon_cli.errors import InputError
     from recon_cli.io.load import load, save
-    from recon_cli.stages import apply_stage
+    from recon_cli.stages import apply_stage, get_spec
 
+    spec = get_spec(stage)
+    spec.check(params, complete=False)  # parameters before reading anything
     t0 = time.perf_counter()
     data = load(input)
     t1 = time.perf_counter()
-    result = apply_stage(stage, data, params, progress=make_progress(ctx))
+    try:
+        result = apply_stage(stage, data, params, progress=make_progress(ctx))
+    except InputError as exc:
+        if exc.path is not None:
+            raise
+        raise InputError(str(exc), "<stdin>" if input == "-" else input) from None
     t2 = time.perf_counter()
     save(result.output, output, ascii=ascii_)
     t3 = time.perf_counter()
@@ -50,6 +58,7 @@ def run_stage_command(
     report["timings"] = {"read": t1 - t0, "stage": t2 - t1, "write": t3 - t2}
     report["output"] = "<stdout>" if output == "-" else output
     emit_report(ctx, report, json_=json_, data_on_stdout=(output == "-"))
+    return report
 
 
 def emit_report(ctx: click.Context, report: dict, json_: bool = False, data_on_stdout: bool = False) -> None:

@@ -12,13 +12,16 @@ from recon_cli.cli import options
 @options.json_opt
 @click.pass_context
 def cmd(ctx: click.Context, files: tuple[str, ...], json_: bool) -> None:
-    """Describe PLY clouds/meshes and grids: counts, properties, bbox, topology, history."""
+    """Describe PLY clouds/meshes and grids: counts, properties, bbox, topology, history.
+
+    With --json: a JSON list with one object per FILE (also for a single file).
+    """
     from recon_cli.info import describe
     from recon_cli.stages import report_json
 
     reports = [describe(f) for f in files]
     if json_:
-        click.echo(report_json(reports[0] if len(reports) == 1 else reports))
+        click.echo(report_json(reports))  # always a list, one entry per FILE
         return
     for rep in reports:
         click.echo(format_info(rep))

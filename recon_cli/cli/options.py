@@ -7,13 +7,10 @@ import click
 input_arg = click.argument("input", metavar="IN", type=click.Path(allow_dash=True, dir_okay=False))
 output_arg = click.argument("output", metavar="OUT", type=click.Path(allow_dash=True, dir_okay=False))
 
-ascii_opt = click.option("--ascii", "ascii_", is_flag=True, help="Write ASCII PLY (default binary little-endian).")
-json_opt = click.option(
-    "--json",
-    "json_",
-    is_flag=True,
-    help="Print the report as JSON (on stdout, or stderr when OUT is '-').",
-)
+ASCII_HELP = "Write ASCII PLY (default binary little-endian)."
+JSON_HELP = "Print the report as JSON (on stdout, or stderr when OUT is '-')."
+ascii_opt = click.option("--ascii", "ascii_", is_flag=True, help=ASCII_HELP)
+json_opt = click.option("--json", "json_", is_flag=True, help=JSON_HELP)
 
 
 def backend_opt(*choices: str):
@@ -32,3 +29,54 @@ def stage_io(f):
     for deco in reversed((input_arg, output_arg, ascii_opt, json_opt)):
         f = deco(f)
     return f
+
+
+# ---- options generated from a stage's declaration ---------------------------------------------------
+def option_for(p) -> click.Option:
+    """The click option of a declared :class:`~recon_cli.params.Param`.
+
+    Values are taken as text and checked by the declaration (one checker for the command
+    line, pipelines and the library); booleans are ``--x/--no-x`` flags.
+    """
+    notes = [p.unit] if p.unit else []
+    rng = p.range_text()
+    if rng and p.type != "choice":
+        notes.append(rng)
+    notes += [f"{k!s}: {v}" for k, v in p.special.items()]
+    notes.append(f"default: {p.default_text()}")
+    help_text = f"{p.help} [{'; '.join(notes)}]"
+    if p.type == "bool":
+        return click.Option([f"{p.option}/--no-{p.dashed}", p.name], default=bool(p.default), help=help_text)
+    metavar = p.metavar or {
+        "int": "N", "float": "F", "vector": "X,Y,Z", "floats": "F,...", "any": "VALUE",
+        "choice": "[" + "|".join(p.choices) + "]",
+    }[p.type]
+    return click.Option([p.option, p.name], type=str, default=None, metavar=metavar, help=help_text)
+
+
+def stage_command(stage: str) -> click.Command:
+    """The ``recon STAGE IN OUT [options]`` command, built from the stage's declaration."""
+    import inspect
+
+    from recon_cli.stages import get_spec
+
+    spec = get_spec(stage)
+    names = [p.name for p in spec.params]
+
+    @click.pass_context
+    def callback(ctx: click.Context, input: str, output: str, ascii_: bool, json_: bool, **values) -> None:
+        from recon_cli.cli._run import run_stage_command
+
+        given = {k: values[k] for k in names if ctx.get_parameter_source(k) is not click.core.ParameterSource.DEFAULT}
+        run_stage_command(ctx, spec.name, input, output, given, ascii_=ascii_, json_=json_)
+
+    doc = inspect.cleandoc(spec.description or spec.summary)
+    out_arg = click.Argument(["output"], metavar="OUT", type=click.Path(allow_dash=True, dir_okay=False))
+    in_arg = click.Argument(["input"], metavar="IN", type=click.Path(allow_dash=True, dir_okay=False))
+    params: list[click.Parameter] = [
+        in_arg, out_arg,
+        click.Option(["--ascii", "ascii_"], is_flag=True, help=ASCII_HELP),
+        click.Option(["--json", "json_"], is_flag=True, help=JSON_HELP),
+    ]
+    params += [option_for(p) for p in spec.params]
+    return click.Command(spec.name, callback=callback, params=params, help=doc, short_help=spec.summary)

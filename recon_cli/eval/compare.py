@@ -6,11 +6,11 @@ A method is written ``[BACKEND:]STAGE[:NAME=VALUE[:NAME=VALUE...]]``: ``poisson:
 method (``poisson:depth=8,scale=1.2``); inside a value, ``;`` stands for a comma
 (``ballpivot:radii=0.01;0.02``). Every method runs through :func:`recon_cli.stages.apply_stage`
 (``BACKEND`` becomes its ``backend`` parameter), each in a fresh child process so that its
-wall time and peak memory are its own and a crash stays its own. A stage that is not built
-in this version is reported ``unavailable``; a method that raises is reported ``failed``
-with its message; the others go on. A stage that yields a grid (``sdf`` of a cloud,
-``fit-sdf``: ``fit-sdf:iterations=500``) is meshed by marching cubes at level 0 inside its
-measured time.
+wall time and peak memory are its own and a crash stays its own. A stage that cannot be
+loaded (a plugin whose module is missing) is reported ``unavailable``; a method that raises is reported ``failed``
+with its message; the others go on. A stage that yields a grid (``sdf`` of
+a cloud, ``fit-sdf``: ``fit-sdf:iterations=500``) is meshed by marching cubes at level 0
+inside its measured time.
 
 Outputs in ``DIR``: ``<method>.ply`` (each result), ``<method>.png`` (shaded + heatmap against
 the reference), ``overview.png`` (all methods side by side), ``results.json``, ``report.md``
@@ -207,7 +207,7 @@ def compare_methods(
         }
         rows.append(row)
         if not available[m.label]:
-            row["error"] = f"stage {m.stage!r} is not available in this version of recon yet"
+            row["error"] = f"stage {m.stage!r} is not available (its module cannot be imported)"
             continue
         out_path = os.path.join(out_dir, m.slug + ".ply")
         with progress.task(f"running {m.label}") if progress is not None else contextlib.nullcontext():

@@ -51,6 +51,8 @@ import numpy as np
 
 from recon_cli.errors import BackendError, InputError, ParameterError
 
+from recon_cli.params import Param, StageSpec
+
 FIELDS = ("sdf", "occupancy")
 INSTALL_HINT = "fit-sdf needs PyTorch: pip install recon[learned]"
 _FORMAT = "recon-fit-sdf-1"
@@ -491,23 +493,66 @@ def load_model(path: str | os.PathLike) -> SdfModel:
     return SdfModel(net, np.asarray(meta["center"], dtype=np.float64), float(meta["scale"]), _field(meta["field"]), cfg)
 
 
+SPEC = StageSpec(
+    name="fit-sdf",
+    summary="Fit a neural signed distance field to a cloud (needs recon[learned]).",
+    description="""Fit a neural signed distance field to a cloud; write it on a grid (.npz, negative inside).
+
+    With normals the loss holds the zero level on the points, the gradient on the normals and
+    |grad s| at 1 (eikonal); without, the zero level and the eikonal term (IGR). `recon mcubes
+    OUT.npz mesh.ply` extracts the surface; `recon info OUT.npz` reports the eikonal statistics.
+    Needs PyTorch (pip install recon[learned]). Ctrl-C stops training and writes the best field
+    so far (exit 130).""",
+    takes=("cloud", "mesh"),
+    gives=("grid",),
+    output_suffix=".npz",
+    params=(
+        Param("resolution", "int", 128, "Grid cells along the longest side of the padded box.", unit="cells",
+              min=8, max=1024),
+        Param("padding", "float", 0.05, "Margin around the bounding box.", unit="fraction of the longest side",
+              min=0.0, max=10.0),
+        Param("iterations", "int", 2000, "Optimiser steps (the first of --iterations and --max-seconds wins).",
+              unit="steps", min=1),
+        Param("max_seconds", "float", None, "Stop training after this wall time.", unit="seconds", min=0.0,
+              min_open=True),
+        Param("width", "int", 128, "Hidden units per layer.", unit="units", min=4, max=4096),
+        Param("depth", "int", 4, "Hidden layers.", unit="layers", min=1, max=32),
+        Param("frequencies", "int", 6, "Octaves of the positional encoding (0: raw coordinates).", unit="octaves",
+              min=0, max=16),
+        Param("eikonal_weight", "float", None, "Weight of the eikonal loss E[(|grad s| - 1)^2] (auto: 3 with "
+              "normals, 0.1 without).", min=0.0, words={"auto": None}),
+        Param("batch", "int", 2048, "Surface points per step (plus 2x as many off-surface samples).",
+              unit="points", min=16),
+        Param("seed", "int", 0, "Seed of the weights and the sampling (same seed: same field).", min=0,
+              max=2**32 - 1),
+        Param("field", "choice", "sdf", "sdf: signed distance (IGR); occupancy: logistic inside probability, "
+              "written as 0.5 - p.", choices=FIELDS),
+        Param("threads", "int", None, "CPU threads for training (default: torch's).", min=1, max=1024),
+        Param("model", "any", None, "Also write the fitted weights (.npz) to this file.", metavar="FILE"),
+        Param("mesh", "any", None, "Also write the zero level set (PLY, vertex normals from the network's "
+              "gradient) to this file.", metavar="FILE"),
+    ),
+)
+
+
+@SPEC.runner
 def run_stage(
     data,
     *,
-    resolution: int = 128,
-    padding: float = 0.05,
-    iterations: int = 2000,
-    max_seconds: float | None = None,
-    width: int = 128,
-    depth: int = 4,
-    frequencies: int = 6,
-    eikonal_weight: float | None = None,
-    batch: int = 2048,
-    seed: int = 0,
-    field: str = "sdf",
-    threads: int | None = None,
-    model: str | None = None,
-    mesh: str | None = None,
+    resolution: int,
+    padding: float,
+    iterations: int,
+    max_seconds: float | None,
+    width: int,
+    depth: int,
+    frequencies: int,
+    eikonal_weight: float | None,
+    batch: int,
+    seed: int,
+    field: str,
+    threads: int | None,
+    model: str | None,
+    mesh: str | None,
     progress=None,
 ):
     """Stage ``fit-sdf``: a cloud (or a mesh's vertices) -> the fitted field on a grid.
