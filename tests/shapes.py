@@ -50,3 +50,39 @@ def torus_distance(p, major=1.0, minor=0.35, center=(0.0, 0.0, 0.0)):
     q = np.asarray(p, float) - np.asarray(center, float)
     ring = np.hypot(q[:, 0], q[:, 1]) - major
     return np.hypot(ring, q[:, 2]) - minor
+
+
+def random_rotation(rng) -> np.ndarray:
+    """A uniformly random rotation matrix (3, 3), det +1."""
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    if np.linalg.det(q) < 0:
+        q[:, 0] = -q[:, 0]
+    return q
+
+
+def cut_sphere(rng, subdivisions: int = 4, cap_height: float = 0.35):
+    """A sphere and a copy with a cap cut away, randomly rotated, scaled and moved (offsets up to 1e6).
+
+    Returns
+    -------
+    reference, candidate : TriangleMesh
+        The closed sphere and the one without the faces whose centroid is within
+        ``cap_height`` (fraction of the radius) of the pole ``direction``.
+    direction : (3,) unit vector from the centre to the missing cap's pole
+    center : (3,), radius : float
+    """
+    import trimesh
+
+    from recon_cli.geometry import TriangleMesh
+
+    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
+    v, f = np.asarray(s.vertices), np.asarray(s.faces)
+    rot = random_rotation(rng)
+    radius = float(10.0 ** rng.uniform(-2, 2))
+    center = rng.choice([0.0, 1.0, 1e3, 1e6]) * rng.uniform(-1, 1, size=3)
+    keep = v[f].mean(axis=1)[:, 2] < 1.0 - cap_height
+    world = center + radius * v @ rot.T
+    ref = TriangleMesh(world, f, point_dtype=np.float64)
+    cand = TriangleMesh(world.copy(), f[keep], point_dtype=np.float64)
+    return ref, cand, rot[:, 2].copy(), center, radius
