@@ -219,7 +219,7 @@ def test_cli_grid_mcubes_info_mesh(tmp_path):
     src = tmp_path / "s.ply"
     write_ply(PointCloud(points=p, normals=n), src)
     out, mesh, model = tmp_path / "s.npz", tmp_path / "s_mesh.ply", tmp_path / "m.npz"
-    r = subprocess.run([*RECON, "fit-sdf", src, out, "--iterations", "200", "--width", "48", "--depth", "3",
+    r = subprocess.run([*RECON, "fit-sdf", src, out, "--iterations", "200", "--batch", "2048", "--width", "48", "--depth", "3",
                         "--resolution", "40", "--mesh", mesh, "--model", model, "--threads", "1", "--json"],
                        capture_output=True, timeout=300)
     assert r.returncode == 0, r.stderr.decode()
