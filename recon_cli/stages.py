@@ -35,6 +35,7 @@ STAGES: dict[str, str] = {
     "repair": "recon_cli.repair:SPEC",
     "sdf": "recon_cli.sdf:SPEC",
     "mcubes": "recon_cli.mcubes:SPEC",
+    "fit-sdf": "recon_cli.learned:SPEC",
 }
 BUILTIN = tuple(STAGES)
 

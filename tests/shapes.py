@@ -24,6 +24,34 @@ def box_distance(p, lo, hi):
     return np.where((q > 0).any(axis=1), outside, inside)
 
 
+def sphere_cloud(n=5000, radius=1.0, center=(0.0, 0.0, 0.0), seed=0):
+    """``n`` points uniform on a sphere and their outward unit normals."""
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return np.asarray(center, float) + radius * d, d
+
+
+def torus_cloud(n=5000, major=1.0, minor=0.35, center=(0.0, 0.0, 0.0), seed=0):
+    """``n`` points on a torus around z (area-uniform) and their outward unit normals."""
+    rng = np.random.default_rng(seed)
+    u = rng.uniform(0, 2 * np.pi, 4 * n)
+    v = rng.uniform(0, 2 * np.pi, 4 * n)
+    # area element ~ (major + minor cos v): rejection sampling
+    keep = rng.uniform(0, major + minor, 4 * n) < major + minor * np.cos(v)
+    u, v = u[keep][:n], v[keep][:n]
+    nrm = np.stack([np.cos(v) * np.cos(u), np.cos(v) * np.sin(u), np.sin(v)], axis=1)
+    ring = np.stack([major * np.cos(u), major * np.sin(u), np.zeros_like(u)], axis=1)
+    return np.asarray(center, float) + ring + minor * nrm, nrm
+
+
+def torus_distance(p, major=1.0, minor=0.35, center=(0.0, 0.0, 0.0)):
+    """Signed distance to the torus of :func:`torus_cloud` (negative inside)."""
+    q = np.asarray(p, float) - np.asarray(center, float)
+    ring = np.hypot(q[:, 0], q[:, 1]) - major
+    return np.hypot(ring, q[:, 2]) - minor
+
+
 # --- generated closed meshes (families for sign and topology invariants) ---------------
 
 

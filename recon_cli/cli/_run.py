@@ -45,8 +45,8 @@ def run_stage_command(
     params: dict[str, Any],
     ascii_: bool = False,
     json_: bool = False,
-) -> None:
-    """Load IN, run ``stage`` with ``params``, write OUT atomically, print the report."""
+) -> dict:
+    """Load IN, run ``stage`` with ``params``, write OUT atomically, print the report (and return it)."""
     from recon_cli.cli._signals import immediate
     from recon_cli.errors import naming
     from recon_cli.io.atomic import check_output
@@ -72,6 +72,7 @@ def run_stage_command(
     report["timings"] = {"read": t1 - t0, "stage": t2 - t1, "write": t3 - t2}
     report["output"] = "<stdout>" if output == "-" else output
     emit_report(ctx, report, json_=json_, data_on_stdout=(output == "-"))
+    return report
 
 
 def emit_report(ctx: click.Context, report: dict, json_: bool = False, data_on_stdout: bool = False) -> None:

@@ -31,6 +31,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "ballpivot": ("ballpivot", "Ball-pivoting reconstruction of an oriented cloud."),
     "repair": ("repair", "Make a mesh manifold, clean and consistently oriented."),
     "sdf": ("sdf", "Signed distance grid (.npz) of a mesh or oriented cloud."),
+    "fit-sdf": ("fit_sdf", "Fit a neural signed distance field to a cloud (needs recon[learned])."),
     "mcubes": ("mcubes", "Marching cubes: mesh the zero level set of a grid."),
     "diff": ("diff", "Compare meshes: distances, F-score, topology, pictures."),
     "compare": ("compare", "Run several methods on one input and compare them."),

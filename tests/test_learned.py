@@ -1,0 +1,295 @@
+"""recon fit-sdf: a neural signed distance field fitted to small analytic clouds (seconds each).
+
+Sphere and torus, 5k points, offset and scaled: the zero level within 1 % of the radius, the
+eikonal property on grid samples near the surface, a fixed seed giving the same field, the
+IGR form without normals, the occupancy form, autodiff normals, the model file, Ctrl-C,
+the missing extra, and `recon compare` with fit-sdf as a method.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("torch")
+
+from recon_cli.errors import BackendError, InputError, ParameterError  # noqa: E402
+from recon_cli.geometry import PointCloud  # noqa: E402
+from recon_cli.grid import Grid  # noqa: E402
+from recon_cli.io import read_ply, write_ply  # noqa: E402
+from recon_cli.io.npz import read_grid  # noqa: E402
+from recon_cli.learned import (  # noqa: E402
+    extract_mesh,
+    fit_sdf,
+    load_model,
+    near_surface_eikonal,
+    sample_grid,
+    save_model,
+)
+from recon_cli.sdf import grid_frame  # noqa: E402
+from recon_cli.stages import apply_stage  # noqa: E402
+
+from shapes import sphere_cloud, torus_cloud, torus_distance  # noqa: E402
+
+FAST = {"iterations": 250, "width": 48, "depth": 3, "batch": 512, "threads": 1}
+RECON = [sys.executable, "-m", "recon_cli.cli.main"]
+
+
+def _grid(fit, pts, res=48):
+    o, h, s = grid_frame(pts.min(0), pts.max(0), res)
+    return Grid(sample_grid(fit.model, o, h, s), o, h)
+
+
+@pytest.fixture(scope="module")
+def sphere_fit():
+    """A sphere of radius 0.3 far from the origin, fitted with normals."""
+    centre = np.array([1e3, -250.0, 40.0])
+    p, n = sphere_cloud(5000, 0.3, centre, seed=1)
+    return centre, p, n, fit_sdf(p, n, seed=3, **FAST)
+
+
+def test_sphere_zero_level_within_one_percent(sphere_fit):
+    centre, p, n, fit = sphere_fit
+    r = 0.3
+    # the field on the true sphere, and the surface the grid meshes to
+    d = np.random.default_rng(0).normal(size=(2000, 3))
+    on = centre + r * d / np.linalg.norm(d, axis=1, keepdims=True)
+    assert np.abs(fit.model.values(on)).max() <= 0.01 * r
+    g = _grid(fit, p)
+    v, f, nv = extract_mesh(fit.model, g)
+    radii = np.linalg.norm(v - centre, axis=1)
+    assert len(f) > 1000 and np.abs(radii - r).max() <= 0.01 * r
+    # autodiff normals: outward and radial
+    assert np.einsum("ij,ij->i", nv, (v - centre) / radii[:, None]).min() > 0.99
+    # inside negative, outside positive, both well away from 0
+    assert fit.model.values(centre[None])[0] < -0.3 * r
+    assert fit.model.values(centre[None] + (2 * r, 0, 0))[0] > 0.5 * r
+
+
+def test_sphere_eikonal(sphere_fit):
+    _, p, _, fit = sphere_fit
+    g = _grid(fit, p)
+    diag = float(np.linalg.norm(p.max(0) - p.min(0)))
+    eik = near_surface_eikonal(g, 0.05 * diag)
+    assert eik["cells"] > 1000 and eik["fraction_within_0.1"] >= 0.9
+    # the exact gradient too, at random points near the surface
+    rng = np.random.default_rng(5)
+    q = p[rng.integers(0, len(p), 2000)] + rng.normal(scale=0.02, size=(2000, 3))
+    _, grad = fit.model.gradients(q)
+    assert np.mean(np.abs(np.linalg.norm(grad, axis=1) - 1) <= 0.1) >= 0.9
+
+
+def test_sphere_without_normals_igr():
+    """IGR's form (zero level + eikonal) grows the initial sphere onto the points."""
+    centre = np.array([-40.0, 0.5, 1e4])
+    p, _ = sphere_cloud(5000, 2.0, centre, seed=11)
+    fit = fit_sdf(p, None, seed=1, **dict(FAST, iterations=500))
+    assert fit.eikonal_weight == 0.1
+    v, f, nv = extract_mesh(fit.model, _grid(fit, p))
+    radii = np.linalg.norm(v - centre, axis=1)
+    assert np.abs(radii - 2.0).max() <= 0.01 * 2.0
+    assert np.einsum("ij,ij->i", nv, (v - centre) / radii[:, None]).min() > 0.97
+
+
+def test_fixed_seed_reproducible_other_seed_differs():
+    p, n = sphere_cloud(2000, 1.0, seed=2)
+    kw = dict(FAST, iterations=40)
+    a = fit_sdf(p, n, seed=7, **kw)
+    b = fit_sdf(p, n, seed=7, **kw)
+    c = fit_sdf(p, n, seed=8, **kw)
+    q = p[:500] * 1.1
+    assert np.array_equal(a.model.values(q), b.model.values(q))
+    assert not np.array_equal(a.model.values(q), c.model.values(q))
+    assert a.history == b.history
+
+
+@pytest.mark.parametrize("with_normals", [True, False], ids=["normals", "igr"])
+def test_torus(with_normals):
+    """The torus (genus 1) from the sphere init: with normals, and IGR's form without."""
+    major, minor = 1.0, 0.35
+    centre = np.array([-3.0, 7.0, 2.0])
+    p, n = torus_cloud(5000, major, minor, centre, seed=4)
+    rot = np.linalg.qr(np.random.default_rng(9).normal(size=(3, 3)))[0]
+    pr = (p - centre) @ rot.T + centre
+    nr = n @ rot.T
+    fit = fit_sdf(pr, nr if with_normals else None, seed=0, **dict(FAST, iterations=600 if with_normals else 900))
+    g = _grid(fit, pr, res=64)
+    v, f, _ = extract_mesh(fit.model, g)
+    d = torus_distance((v - centre) @ rot + centre, major, minor, centre)
+    tol = 0.01 if with_normals else 0.02
+    assert np.abs(d).max() <= tol * major, np.abs(d).max()
+    from recon_cli.mesh.topology import report
+
+    topo = report(__import__("recon_cli.geometry", fromlist=["TriangleMesh"]).TriangleMesh(vertices=v, faces=f))
+    assert topo["components"] == 1 and topo.get("genus", 1) == 1
+
+
+def test_occupancy_field():
+    p, n = sphere_cloud(5000, 0.5, (2.0, 0.0, 0.0), seed=6)
+    fit = fit_sdf(p, n, field="occupancy", seed=0, **dict(FAST, iterations=400))
+    g = _grid(fit, p)
+    assert g.sdf.min() < -0.4 and g.sdf.max() > 0.4  # 0.5 - p(inside): inside -> -0.5, outside -> +0.5
+    v, f, nv = extract_mesh(fit.model, g)
+    r = np.linalg.norm(v - (2.0, 0.0, 0.0), axis=1)
+    assert np.abs(r - 0.5).max() <= 0.03 * 0.5
+    assert np.einsum("ij,ij->i", nv, (v - (2.0, 0, 0)) / r[:, None]).min() > 0.9
+    with pytest.raises(ParameterError, match="normals"):
+        fit_sdf(p, None, field="occupancy", iterations=1)
+
+
+def test_interrupt_restores_best_and_says_so(monkeypatch):
+    from recon_cli.learned import _torch_net
+
+    p, n = sphere_cloud(1000, 1.0, seed=3)
+    real = _torch_net.train
+
+    def stopping(*args, **kwargs):
+        on_step = args[-1]
+
+        def stop(it, loss, t):
+            on_step(it, loss, t)
+            if it == 55:
+                raise KeyboardInterrupt
+
+        return real(*args[:-1], stop)
+
+    monkeypatch.setattr(_torch_net, "train", stopping)
+    fit = fit_sdf(p, n, iterations=1000, width=32, depth=2, threads=1)
+    assert fit.interrupted and fit.iterations == 55
+    assert np.isfinite(fit.loss)
+
+
+@pytest.mark.parametrize(
+    "kw, err",
+    [
+        ({"width": 0}, ParameterError),
+        ({"iterations": 0}, ParameterError),
+        ({"field": "udf"}, ParameterError),
+        ({"eikonal_weight": -1}, ParameterError),
+        ({"max_seconds": "soon"}, ParameterError),
+    ],
+)
+def test_bad_parameters(kw, err):
+    p, n = sphere_cloud(100, 1.0)
+    with pytest.raises(err):
+        fit_sdf(p, n, **kw)
+
+
+def test_bad_points():
+    p, n = sphere_cloud(100, 1.0)
+    p[3, 1] = np.nan
+    with pytest.raises(InputError, match="NaN"):
+        fit_sdf(p, n, iterations=1)
+    with pytest.raises(InputError, match="at least"):
+        fit_sdf(p[:5], None, iterations=1)
+    with pytest.raises(InputError, match="normals"):
+        fit_sdf(sphere_cloud(100)[0], n[:50], iterations=1)
+
+
+def test_missing_torch_is_one_line(monkeypatch):
+    import recon_cli.learned
+
+    monkeypatch.setitem(sys.modules, "torch", None)
+    monkeypatch.delitem(sys.modules, "recon_cli.learned._torch_net", raising=False)
+    monkeypatch.delattr(recon_cli.learned, "_torch_net", raising=False)
+    p, n = sphere_cloud(100, 1.0)
+    with pytest.raises(BackendError, match=r"pip install recon\[learned\]"):
+        fit_sdf(p, n, iterations=1)
+
+
+def test_model_file_round_trip(tmp_path, sphere_fit):
+    _, p, _, fit = sphere_fit
+    save_model(fit.model, tmp_path / "m.npz")
+    back = load_model(tmp_path / "m.npz")
+    q = p[:300] * 1.001
+    assert np.array_equal(back.values(q), fit.model.values(q))
+    (tmp_path / "bad.npz").write_bytes(b"not a zip at all")
+    with pytest.raises(InputError):
+        load_model(tmp_path / "bad.npz")
+
+
+def test_cli_grid_mcubes_info_mesh(tmp_path):
+    p, n = sphere_cloud(3000, 1.0, (0.5, 0.5, 0.5), seed=8)
+    src = tmp_path / "s.ply"
+    write_ply(PointCloud(points=p, normals=n), src)
+    out, mesh, model = tmp_path / "s.npz", tmp_path / "s_mesh.ply", tmp_path / "m.npz"
+    r = subprocess.run([*RECON, "fit-sdf", src, out, "--iterations", "200", "--batch", "2048", "--width", "48", "--depth", "3",
+                        "--resolution", "40", "--mesh", mesh, "--model", model, "--threads", "1", "--json"],
+                       capture_output=True, timeout=300)
+    assert r.returncode == 0, r.stderr.decode()
+    import json
+
+    rep = json.loads(r.stdout)
+    assert rep["iterations"] == 200 and rep["normals_used"] and rep["eikonal"]["cells"] > 0
+    g = read_grid(out)
+    assert any("fit-sdf" in h for h in g.history)
+    r = subprocess.run([*RECON, "mcubes", out, tmp_path / "mc.ply"], capture_output=True, timeout=300)
+    assert r.returncode == 0, r.stderr.decode()
+    mc, m = read_ply(tmp_path / "mc.ply"), read_ply(mesh)
+    assert np.allclose(mc.vertices, m.vertices) and np.array_equal(mc.faces, m.faces)
+    radial = (m.vertices - 0.5) / np.linalg.norm(m.vertices - 0.5, axis=1, keepdims=True)
+    assert np.einsum("ij,ij->i", m.normals, radial).min() > 0.98
+    r = subprocess.run([*RECON, "info", "--json", out], capture_output=True, timeout=300)
+    assert r.returncode == 0 and json.loads(r.stdout)[0]["eikonal"]["cells"] > 0
+    assert load_model(model).field == "sdf"
+
+
+def test_cli_bad_input_is_one_line(tmp_path):
+    (tmp_path / "x.ply").write_bytes(b"ply\nformat nonsense\n")
+    r = subprocess.run([*RECON, "fit-sdf", tmp_path / "x.ply", tmp_path / "o.npz"], capture_output=True, timeout=300)
+    assert r.returncode == 2 and len(r.stderr.decode().strip().splitlines()) == 1
+    assert not (tmp_path / "o.npz").exists()
+
+
+def test_cli_ctrl_c_writes_best_field(tmp_path):
+    p, n = sphere_cloud(2000, 1.0, seed=8)
+    src = tmp_path / "s.ply"
+    write_ply(PointCloud(points=p, normals=n), src)
+    out = tmp_path / "s.npz"
+    # act as a terminal even when the test runner ignores SIGINT (nohup, CI)
+    code = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler);"
+            "from recon_cli.cli.main import main; main(sys.argv[1:])")
+    with subprocess.Popen([sys.executable, "-c", code, "-v", "fit-sdf", str(src), str(out), "--iterations",
+                             "10000000", "--width", "32", "--depth", "2", "--resolution", "24", "--threads", "1"],
+                          stderr=subprocess.PIPE, text=True) as proc:
+        try:
+            for line in proc.stderr:
+                if "fit-sdf: step 1 done" in line:
+                    break
+            time.sleep(1.0)
+            proc.send_signal(signal.SIGINT)
+            rest = proc.stderr.read()
+            assert proc.wait(timeout=120) == 130, rest
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert "best field so far" in rest
+    g = read_grid(out)
+    assert g.sdf.min() < 0 < g.sdf.max()
+
+
+def test_compare_takes_fit_sdf(tmp_path):
+    from recon_cli.eval.compare import compare_methods
+
+    p, n = sphere_cloud(3000, 1.0, seed=9)
+    src = tmp_path / "s.ply"
+    write_ply(PointCloud(points=p, normals=n), src)
+    res = compare_methods(src, "fit-sdf:iterations=150:width=32:depth=2:resolution=32:threads=1", src,
+                          tmp_path / "cmp", samples=2000, isolate=False)
+    row = res["methods"][0]
+    assert row["status"] == "ok", row["error"]
+    assert row["faces"] > 0 and row["seconds"] > 0 and row["metrics"]["chamfer_l1"] < 0.02
+
+
+def test_stage_report_and_provenance():
+    p, n = sphere_cloud(2000, 1.0, seed=10)
+    res = apply_stage("fit-sdf", PointCloud(points=p, normals=n),
+                      {"iterations": 50, "width": 32, "depth": 2, "resolution": 24, "threads": 1})
+    assert isinstance(res.output, Grid) and res.report["iterations"] == 50
+    assert "fit-sdf" in res.output.history[-1] and "iterations-done=50" in res.output.history[-1]
