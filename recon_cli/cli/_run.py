@@ -26,6 +26,23 @@ def is_quiet(ctx: click.Context) -> bool:
     return bool(obj.get("quiet", False))
 
 
+def io_formats(ctx: click.Context, input: str, output: str) -> tuple[dict, dict]:
+    """``load`` and ``save`` keyword arguments from ``--format``, ``--input-format``,
+    ``--output-format`` and ``--points-only`` (``--format`` applies to an end whose name
+    does not tell: ``-`` or no suffix)."""
+    import os
+
+    meta = ctx.meta
+    common = meta.get("recon.format")
+
+    def unnamed(p: str) -> bool:
+        return p == "-" or not os.path.splitext(p)[1]
+
+    fin = meta.get("recon.input_format") or (common if unnamed(input) else None)
+    fout = meta.get("recon.output_format") or (common if unnamed(output) else None)
+    return {"format": fin}, {"format": fout, "points_only": bool(meta.get("recon.points_only"))}
+
+
 def run_stage_command(
     ctx: click.Context,
     stage: str,
@@ -39,12 +56,19 @@ def run_stage_command(
     from recon_cli.io.load import load, save
     from recon_cli.stages import apply_stage
 
+    from recon_cli.geometry import TriangleMesh
+
+    load_kw, save_kw = io_formats(ctx, input, output)
     t0 = time.perf_counter()
-    data = load(input)
+    data = load(input, **load_kw)
     t1 = time.perf_counter()
+    if stage == "normals" and isinstance(data, TriangleMesh):
+        from recon_cli.io.text import warn
+
+        warn(f"{input}: a mesh: normals are estimated at its {len(data.vertices)} vertices and the vertices only are written (faces dropped)")
     result = apply_stage(stage, data, params, progress=make_progress(ctx))
     t2 = time.perf_counter()
-    save(result.output, output, ascii=ascii_)
+    save(result.output, output, ascii=ascii_, **save_kw)
     t3 = time.perf_counter()
     report = dict(result.report)
     report["timings"] = {"read": t1 - t0, "stage": t2 - t1, "write": t3 - t2}

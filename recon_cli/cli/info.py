@@ -10,13 +10,18 @@ from recon_cli.cli import options
 @click.command("info")
 @click.argument("files", metavar="FILE...", nargs=-1, required=True, type=click.Path(allow_dash=True, dir_okay=False))
 @options.json_opt
+@options.format_opt
 @click.pass_context
 def cmd(ctx: click.Context, files: tuple[str, ...], json_: bool) -> None:
-    """Describe PLY clouds/meshes and grids: counts, properties, bbox, topology, history."""
+    """Describe clouds/meshes (PLY, OBJ, OFF, STL, XYZ, PCD, LAS/LAZ, E57) and grids: counts,
+    properties, bbox, topology, history."""
+    import os
+
     from recon_cli.info import describe
     from recon_cli.stages import report_json
 
-    reports = [describe(f) for f in files]
+    fmt = ctx.meta.get("recon.format")
+    reports = [describe(f, fmt if (f == "-" or not os.path.splitext(f)[1]) else None) for f in files]
     if json_:
         click.echo(report_json(reports[0] if len(reports) == 1 else reports))
         return
@@ -47,6 +52,8 @@ def format_info(rep: dict) -> str:
             lines.append(f"  bbox min       {', '.join(f'{v:.6g}' for v in rep['bbox']['min'])}")
             lines.append(f"  bbox max       {', '.join(f'{v:.6g}' for v in rep['bbox']['max'])}")
             lines.append(f"  bbox diagonal  {rep['bbox']['diagonal']:.6g}")
+        for k, v in (rep.get("details") or {}).items():
+            lines.append(f"  {k.replace('_', ' '):<14} {', '.join(map(str, v)) if isinstance(v, list) else v}")
         topo = rep.get("topology")
         if topo:
             lines.append("  topology:")

@@ -18,15 +18,16 @@ def cmd(ctx: click.Context, pipeline: str, input: str, output: str, ascii_: bool
 
     The file is checked first: unknown stages or parameters are errors naming the line.
     """
-    from recon_cli.cli._run import emit_report, make_progress
+    from recon_cli.cli._run import emit_report, io_formats, make_progress
     from recon_cli.io.load import load, save
     from recon_cli.pipeline import load_pipeline, run_pipeline
 
     pipe = load_pipeline(pipeline)
     t0 = time.perf_counter()
-    data = load(input)
+    load_kw, save_kw = io_formats(ctx, input, output)
+    data = load(input, **load_kw)
     out, reports = run_pipeline(pipe, data, progress=make_progress(ctx))
-    save(out, output, ascii=ascii_)
+    save(out, output, ascii=ascii_, **save_kw)
     summary = {
         "pipeline": pipeline,
         "input": input,
