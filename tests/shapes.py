@@ -22,3 +22,46 @@ def box_distance(p, lo, hi):
     outside = np.linalg.norm(q, axis=1)
     inside = np.minimum(p - lo, hi - p).min(axis=1)
     return np.where((q > 0).any(axis=1), outside, inside)
+
+
+def random_rotation(rng):
+    """A uniformly random rotation matrix."""
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    return q if np.linalg.det(q) > 0 else -q
+
+
+def torus_mesh(n_major=24, n_minor=12, R=1.0, r=0.3):
+    """A closed torus (genus 1) as a triangle grid, outward."""
+    i, j = np.meshgrid(np.arange(n_major), np.arange(n_minor), indexing="ij")
+    u = 2 * np.pi * i.ravel() / n_major
+    v = 2 * np.pi * j.ravel() / n_minor
+    verts = np.column_stack([(R + r * np.cos(v)) * np.cos(u), (R + r * np.cos(v)) * np.sin(u), r * np.sin(v)])
+    a = (i * n_minor + j).ravel()
+    b = (((i + 1) % n_major) * n_minor + j).ravel()
+    c = (((i + 1) % n_major) * n_minor + (j + 1) % n_minor).ravel()
+    d = (i * n_minor + (j + 1) % n_minor).ravel()
+    faces = np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
+    return verts, faces
+
+
+def mesh_family(seed, dtype=np.float64):
+    """A torus under a random rotation, scale (1e-3 .. 1e3) and offset (up to 1e6), in ``dtype``.
+
+    Returns a :class:`recon_cli.geometry.TriangleMesh` (random per-vertex normals and uint8
+    colours on odd seeds).
+    """
+    from recon_cli.geometry import TriangleMesh
+
+    rng = np.random.default_rng(seed)
+    v, f = torus_mesh(int(rng.integers(5, 30)), int(rng.integers(4, 16)))
+    scale = 10.0 ** rng.uniform(-3, 3)
+    offset = rng.uniform(-1, 1, 3) * 10.0 ** rng.integers(0, 7)
+    v = (v @ random_rotation(rng).T) * scale + offset
+    normals = colors = None
+    if seed % 2:
+        normals = rng.normal(size=v.shape)
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        normals = normals.astype(dtype)
+        colors = rng.integers(0, 256, size=(len(v), 3)).astype(np.uint8)
+    return TriangleMesh(vertices=v.astype(dtype), faces=f, normals=normals, colors=colors, point_dtype=dtype)

@@ -15,6 +15,7 @@ BAD_NORMAL = 3  # a vn line with other than 3 numbers
 SHORT_FACE = 4  # a face with fewer than 3 corners
 BAD_INDEX = 5  # a face corner that is not an index (or 0)
 MIXED_COLOURS = 6  # v lines with and without colours
+BEFORE_FIRST = 7  # a negative index reaching before the first vertex or normal
 
 # counts[] slots
 NV, NVN, NF, NCORNER, NSLOW, COLOURS, NOCOLOURS = range(7)
@@ -136,6 +137,7 @@ def _walk(buf, i, st, verts, colours, vnorms, corner_v, corner_n, face_len, slow
                         s1 += 1
                     vi, ok = _index(buf, p, s1, nv)
                     ni = -1
+                    has_n = False
                     if ok and s1 < q:
                         s2 = s1 + 1
                         while s2 < q and buf[s2] != 47:
@@ -144,8 +146,13 @@ def _walk(buf, i, st, verts, colours, vnorms, corner_v, corner_n, face_len, slow
                             _vt, ok = parse_int(buf, s1 + 1, s2)
                         if ok and s2 < q:
                             ni, ok = _index(buf, s2 + 1, q, nvn)
+                            has_n = True
                     if not ok:
                         code = BAD_INDEX
+                        at = p
+                        break
+                    if vi < 0 or ni < -1 or (ni == -1 and has_n):
+                        code = BEFORE_FIRST
                         at = p
                         break
                     corner_v[nc] = vi

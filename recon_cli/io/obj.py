@@ -30,6 +30,7 @@ _MESSAGES = {
     4: "a face has fewer than 3 corners",
     5: "a face corner is not a vertex index (v, v/vt, v/vt/vn or v//vn; indices start at 1)",
     6: "this 'v' line and an earlier one differ in carrying colours (r g b)",
+    7: "a negative (relative) index reaches before the first vertex or normal",
 }
 
 
@@ -56,6 +57,9 @@ def decode_obj(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
     if nc and (corner_v.min() < 0 or corner_v.max() >= nv):
         bad = int(np.flatnonzero((corner_v < 0) | (corner_v >= nv))[0])
         raise InputError(f"face corner {bad}: vertex index out of range for {nv} vertices", where)
+    if nc and corner_n.max() >= nvn:
+        bad = int(np.flatnonzero(corner_n >= nvn)[0])
+        raise InputError(f"face corner {bad}: normal index out of range for {nvn} normals", where)
     history = _leading_comments(buf)
     details: dict = {"format": "obj", "v": nv, "vn": nvn, "f": nf}
     normals = _vertex_normals(verts, vnorms, corner_v, corner_n, nf, where, details)
@@ -85,9 +89,7 @@ def _vertex_normals(verts, vnorms, corner_v, corner_n, nf, where, details) -> np
         text.warn(f"{where}: {nvn} normals for {nv} vertices and no faces naming them: normals not kept")
         details["normals_dropped"] = True
         return None
-    if corner_n.min() < 0 or corner_n.max() >= nvn:
-        if corner_n.min() < -1 or corner_n.max() >= nvn:
-            raise InputError(f"a face names a normal out of range for {nvn} normals", where)
+    if corner_n.min() < 0:
         text.warn(f"{where}: some face corners have no normal: normals not kept")
         details["normals_dropped"] = True
         return None
