@@ -129,7 +129,7 @@ def stl_bytes(obj: TriangleMesh, ascii: bool = False) -> bytes:
     n = np.cross(t64[:, 1] - t64[:, 0], t64[:, 2] - t64[:, 0])
     ln = np.linalg.norm(n, axis=1, keepdims=True)
     n = np.divide(n, ln, out=np.zeros_like(n), where=ln > 0)
-    head = ("; ".join(obj.history) if obj.history else "recon")[:79]
+    head = "; ".join(obj.history)[:79]
     if ascii:
         fmt = text.float_format(obj.point_dtype)
         body = text.format_rows(
@@ -147,7 +147,7 @@ def stl_bytes(obj: TriangleMesh, ascii: bool = False) -> bytes:
         rows["attribute"] = obj.face_attributes["attribute"]
     header = head.encode("latin-1", "replace").ljust(80, b" ")
     if header[:5].lower() == b"solid":  # a binary file must not look like an ASCII one
-        header = b"recon " + header[:74]
+        header = b"binary " + header[:73]
     return header + np.uint32(len(tri)).tobytes() + rows.tobytes()
 
 
