@@ -10,8 +10,9 @@ format, scale, offset and the VLRs (coordinate system...) are kept in ``obj_info
 (``las_*``), so they survive a pass through PLY stages and are written back.
 
 Writing uses the kept scale and offset (coordinates from a LAS file come back as the same
-integers), or else a power-of-ten scale fine enough for the extent (at most 1e-9 of it)
-and an offset at the minimum; a coordinate not on that grid is rounded and the writer says
+integers), or else the finest power-of-ten scale that both fits the extent in 32-bit
+integers and is at least 1e-9 of the extent (so at most 1e-8 of it), and an offset at the
+minimum; a coordinate not on that grid is rounded and the writer says
 by how much. Normals and attributes that are not standard dimensions of the point format
 are written as extra-bytes dimensions.
 """
