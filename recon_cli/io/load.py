@@ -120,7 +120,8 @@ def sniff(data) -> Format:
         return FORMATS["stl"]
     if word in (b"v", b"vn", b"vt", b"f", b"o", b"g", b"mtllib", b"usemtl") or b"\nv " in head:
         return FORMATS["obj"]
-    if start[:1].isdigit() or start[:1] in (b"-", b"+", b".") or word.lower() in (b"x", b"//x", b"#"):
+    first = word.replace(b";", b",").split(b",")[0].strip(b"\"'").lower()
+    if start[:1].isdigit() or start[:1] in (b"-", b"+", b".") or first in (b"x", b"//x", b"#"):
         return FORMATS["xyz"]
     return FORMATS["ply"]
 

@@ -5,7 +5,8 @@ Read: ``v x y z [w]`` or ``v x y z r g b`` (colours in 0..1), ``vn``, ``f`` with
 polygons are fan-triangulated. Normals are kept per vertex when every corner of a vertex
 names the same normal (or the file has one ``vn`` per ``v`` in order); other per-corner
 normals are dropped with a warning. Texture coordinates, groups and materials are not
-kept. Leading ``#`` lines are the history. A file without faces is a point cloud.
+kept. Leading ``#`` lines are the history (``# recon: float32``, which our writer puts
+first for float32 data, makes the coordinates float32 again). A file without faces is a point cloud.
 Coordinates are read as float64 (text has no type).
 
 The numbers are parsed by a numba kernel (:mod:`recon_cli.io._obj_kernel`) in one pass
@@ -64,13 +65,13 @@ def decode_obj(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
     details: dict = {"format": "obj", "v": nv, "vn": nvn, "f": nf}
     normals = _vertex_normals(verts, vnorms, corner_v, corner_n, nf, where, details)
     cols = text.colours_from_unit(colours) if len(colours) else None
-    common = dict(normals=normals, colors=cols, history=history, point_dtype=np.float64)
+    common = dict(normals=normals, colors=cols, point_dtype=np.float64)
     if nf == 0:
-        return PointCloud(points=verts, **common), details
+        return text.apply_float32_mark(PointCloud(points=verts, **common), history), details
     from recon_cli.io._obj_kernel import fan
 
     faces, _ = fan(corner_v, face_len)
-    return TriangleMesh(vertices=verts, faces=faces, **common), details
+    return text.apply_float32_mark(TriangleMesh(vertices=verts, faces=faces, **common), history), details
 
 
 def _raise(buf: np.ndarray, err: int, at: int, where: str):
@@ -123,7 +124,7 @@ def obj_bytes(obj: PointCloud | TriangleMesh) -> bytes:
     the object has colours), ``vn`` in vertex order and ``f a//a b//b c//c`` (1-based)."""
     pts = obj.points
     fmt = text.float_format(obj.point_dtype)
-    parts = [("".join(f"# {h}\n" for h in obj.history)).encode("utf-8")]
+    parts = [text.mark_lines(obj).encode("utf-8")]
     if obj.colors is not None:
         table = np.column_stack([pts.astype(np.float64), text.colours_to_unit(obj.colors[:, :3])])
         parts.append(text.format_rows(f"v {fmt} {fmt} {fmt} %.9g %.9g %.9g\n", table))

@@ -61,11 +61,12 @@ def decode_off(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
     normals = np.ascontiguousarray(vtab[:, 3:6]) if has_nrm else None
     colors = _colours(vtab[:, base:]) if has_col else None
     details = {"format": "off", "variant": word.decode(), "declared": [nv, nf]}
-    common = dict(normals=normals, colors=colors, history=_comments(buf), point_dtype=np.float64)
+    common = dict(normals=normals, colors=colors, point_dtype=np.float64)
     if nf == 0:
-        return PointCloud(points=pts, **common), details
+        return text.apply_float32_mark(PointCloud(points=pts, **common), _comments(buf)), details
     faces, face_attrs = _faces(values, row_start[1 + nv : 2 + nv + nf], row_line[1 + nv :], nv, where)
-    return TriangleMesh(vertices=pts, faces=faces, face_attributes=face_attrs, **common), details
+    mesh = TriangleMesh(vertices=pts, faces=faces, face_attributes=face_attrs, **common)
+    return text.apply_float32_mark(mesh, _comments(buf)), details
 
 
 def _colours(c: np.ndarray) -> np.ndarray:
@@ -138,7 +139,7 @@ def off_bytes(obj: PointCloud | TriangleMesh) -> bytes:
             cols.append(text.colours_to_unit(c))
             tmpl += ["%.9g"] * c.shape[1]
     faces = obj.faces if isinstance(obj, TriangleMesh) else np.zeros((0, 3), np.int64)
-    head = word + "\n" + "".join(f"# {h}\n" for h in obj.history) + f"{len(pts)} {len(faces)} 0\n"
+    head = word + "\n" + text.mark_lines(obj) + f"{len(pts)} {len(faces)} 0\n"
     body = text.format_rows(" ".join(tmpl) + "\n", np.column_stack(cols))
     fbody = text.format_rows("3 %d %d %d\n", faces)
     return head.encode("utf-8") + body + fbody

@@ -102,6 +102,40 @@ def colours_to_unit(c: np.ndarray) -> np.ndarray:
     return c.astype(np.float64)
 
 
+# a comment line our text writers put first when the coordinates are float32: the reader
+# then returns float32 coordinates (and normals), exactly those written (``%.9g`` round-trips
+# float32), instead of the nearest doubles of the printed decimals
+FLOAT32_MARK = "recon: float32"
+
+
+def float32_marked(history: list[str]) -> tuple[bool, list[str]]:
+    """(whether ``history`` holds the float32 mark, the history without it)."""
+    rest = [h for h in history if h != FLOAT32_MARK]
+    return len(rest) != len(history), rest
+
+
+def apply_float32_mark(obj, history: list[str]):
+    """``obj`` with float32 coordinates and normals when ``history`` holds the mark; sets its history."""
+    marked, rest = float32_marked(history)
+    obj.history = rest
+    if marked:
+        pts = np.ascontiguousarray(obj.points, dtype=np.float32)
+        if hasattr(obj, "faces"):
+            obj.vertices = pts
+        else:
+            obj.points = pts
+        if obj.normals is not None:
+            obj.normals = np.ascontiguousarray(obj.normals, dtype=np.float32)
+        obj.point_dtype = np.float32
+    return obj
+
+
+def mark_lines(obj, prefix: str = "# ") -> str:
+    """The float32 mark line (when ``obj`` is float32) and the history, as comment lines."""
+    lines = [FLOAT32_MARK] if np.dtype(obj.point_dtype) == np.float32 else []
+    return "".join(f"{prefix}{h}\n" for h in lines + list(obj.history))
+
+
 def float_format(dtype) -> str:
     """``%.9g`` for float32 values (enough to round-trip them), ``%.17g`` otherwise."""
     return "%.9g" if np.dtype(dtype) == np.float32 else "%.17g"

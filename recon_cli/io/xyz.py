@@ -120,7 +120,7 @@ def decode_xyz(data, where: str, ext: str = ".xyz") -> tuple[PointCloud, dict]:
         raise InputError(f"rows have {ncol} columns; x y z needs 3", where)
     table = values.reshape(-1, ncol)
     cloud, layout = _columns(table, names, where)
-    cloud.history = history
+    text.apply_float32_mark(cloud, history)
     details = {
         "format": "xyz",
         "delimiter": {None: "white space", b",": "comma", b";": "semicolon"}[delim],
@@ -213,7 +213,7 @@ def xyz_bytes(obj, csv: bool = False) -> bytes:
         cols.append(v.astype(np.float64).reshape(-1, 1))
         tmpl.append("%d" if v.dtype.kind in "uib" else text.float_format(v.dtype))
     sep = "," if csv else " "
-    hist = "".join(f"# {h}\n" for h in obj.history) if not csv else ""
+    hist = text.mark_lines(obj) if not csv else ""
     head = (sep.join(names) + "\n") if csv else ("# " + " ".join(names) + "\n")
     body = text.format_rows(sep.join(tmpl) + "\n", np.column_stack(cols))
     return (hist + head).encode("utf-8") + body
