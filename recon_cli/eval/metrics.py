@@ -319,7 +319,7 @@ def diff_files(
         rows.append(row)
     if heatmap_path is None and png_path is None:
         return rows
-    from recon_cli.io.ply import write_ply
+    from recon_cli.io.load import save
 
     dists = [vertex_distances(c, ref) for c in cands]
     # the colour scale reaches at least the smallest F-score threshold, so that sub-tau noise stays blue
@@ -327,7 +327,7 @@ def diff_files(
     if heatmap_path is not None:
         for k, (path, cand, d) in enumerate(zip(candidates, cands, dists)):
             out = heatmap_path if len(cands) == 1 else _suffixed(heatmap_path, _stem(path), k)
-            write_ply(heatmap(cand, d, vmax=vmax), out)
+            save(heatmap(cand, d, vmax=vmax), out)  # in the format its suffix names
             rows[k]["heatmap"] = os.fspath(out)
     if png_path is not None:
         from recon_cli.eval.render import comparison_image, write_png
