@@ -68,9 +68,12 @@ def decode_obj(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
     common = dict(normals=normals, colors=cols, point_dtype=np.float64)
     if nf == 0:
         return text.apply_float32_mark(PointCloud(points=verts, **common), history), details
-    from recon_cli.io._obj_kernel import fan
+    if np.all(face_len == 3):
+        faces = corner_v.reshape(-1, 3)  # triangles already: no fan to build
+    else:
+        from recon_cli.io._obj_kernel import fan
 
-    faces, _ = fan(corner_v, face_len)
+        faces, _ = fan(corner_v, face_len)
     return text.apply_float32_mark(TriangleMesh(vertices=verts, faces=faces, **common), history), details
 
 
