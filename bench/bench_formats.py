@@ -25,7 +25,9 @@ AUTZEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "autzen_trim.
 def _tile_laz(path: str, copies: int) -> int:
     import laspy
 
-    src = laspy.read(AUTZEN)
+    # the single-threaded backend: lazrs' parallel one starts a thread pool, and the timed reads
+    # run in forked children, which a pool started before the fork would deadlock
+    src = laspy.read(AUTZEN, laz_backend=laspy.LazBackend.Lazrs)
     h = laspy.LasHeader(point_format=src.header.point_format.id, version=src.header.version)
     h.scales = src.header.scales
     h.offsets = src.header.offsets
@@ -35,7 +37,7 @@ def _tile_laz(path: str, copies: int) -> int:
     for k in range(copies):  # side by side, so the tile stays a plausible survey
         arr["X"][k * len(src.points) : (k + 1) * len(src.points)] += k * span
     out.points = laspy.ScaleAwarePointRecord(arr, h.point_format, h.scales, h.offsets)
-    out.write(path)
+    out.write(path, laz_backend=laspy.LazBackend.Lazrs)
     return len(arr)
 
 

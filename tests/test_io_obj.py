@@ -130,7 +130,7 @@ def test_fuzz_truncated_or_corrupted_obj_is_data_or_input_error(seed, cut, junk,
 
 
 @settings(max_examples=500, deadline=None)
-@given(x=st.floats(allow_nan=False, allow_infinity=False), fmt=st.sampled_from(["%r", "%.17g", "%.9g", "%.6f", "%.3e", "%g"]))
+@given(x=st.floats(allow_nan=False, allow_infinity=False), fmt=st.sampled_from(["%r", "%.17g", "%.9g", "%.6f", "%.10f", "%.0f", "%.3e", "%.12E", "%g"]))
 def test_number_parser_is_correctly_rounded(x, fmt):
     tok = (fmt % x).encode()
     buf = np.frombuffer(tok, np.uint8)

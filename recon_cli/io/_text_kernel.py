@@ -65,30 +65,44 @@ def parse_float(buf, s, e):
     extra = 0  # significant digits beyond 19 (slow path)
     exp10 = 0
     digits = 0
-    while i < e and 48 <= buf[i] <= 57:
-        d = buf[i] - 48
-        digits += 1
-        if nd < 19:
-            if nd > 0 or d != 0:
-                m = m * np.uint64(10) + np.uint64(d)
-                nd += 1
-        else:
-            extra += 1
-            exp10 += 1
-        i += 1
-    if i < e and buf[i] == 46:  # .
-        i += 1
-        while i < e and 48 <= buf[i] <= 57:
-            d = buf[i] - 48
-            digits += 1
-            if nd < 19:
-                if nd > 0 or d != 0:
-                    m = m * np.uint64(10) + np.uint64(d)
-                    nd += 1
-                exp10 -= 1
-            else:
-                extra += 1
+    # value = m * 10**exp10; zeros after the last non-zero digit are kept pending (zi in the
+    # integer part, zf in the fraction) and only enter m when a non-zero digit follows, so
+    # trailing zeros ("0.5000", "1200") cost no digits of the 19 m can hold
+    zi = 0
+    zf = 0
+    frac = False
+    while i < e:
+        c = buf[i]
+        if c == 46 and not frac:  # .
+            frac = True
             i += 1
+            continue
+        if c < 48 or c > 57:
+            break
+        d = c - 48
+        digits += 1
+        if d == 0:
+            if nd == 0:
+                if frac:
+                    exp10 -= 1  # leading zeros of a fraction
+            elif frac:
+                zf += 1
+            else:
+                zi += 1
+        elif nd + zi + zf + 1 > 19:
+            extra += 1  # beyond 19 significant digits: the slow path decides
+        else:
+            for _ in range(zi + zf):
+                m = m * np.uint64(10)
+            nd += zi + zf + 1
+            exp10 -= zf
+            m = m * np.uint64(10) + np.uint64(d)
+            if frac:
+                exp10 -= 1
+            zi = 0
+            zf = 0
+        i += 1
+    exp10 += zi  # integer zeros never followed by a non-zero digit scale the value
     if digits == 0:
         return 0.0, 0
     if i < e and (buf[i] == 101 or buf[i] == 69):  # e E
@@ -229,3 +243,18 @@ def parse_rows(buf, start, end, delim, comment, mode, values, row_start, row_lin
     if mode == 1:
         row_start[nrows] = nvals
     return nrows, nvals, nslow, 0, 0
+
+
+@njit(cache=True)
+def gather_tokens(buf, spans):
+    """The tokens ``buf[s:e]`` for the rows ``(s, e)`` of ``spans`` as a zero-padded ``(k, width)``
+    uint8 array (viewed as numpy bytes strings by the caller)."""
+    width = 1
+    for r in range(spans.shape[0]):
+        width = max(width, spans[r, 1] - spans[r, 0])
+    out = np.zeros((spans.shape[0], width), np.uint8)
+    for r in range(spans.shape[0]):
+        s = spans[r, 0]
+        for k in range(spans[r, 1] - s):
+            out[r, k] = buf[s + k]
+    return out

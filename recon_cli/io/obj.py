@@ -50,10 +50,12 @@ def decode_obj(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
     colours = colours[:nv] if counts[K.COLOURS] else np.empty((0, 3), np.float64)
     corner_v, corner_n, face_len = corner_v[:nc], corner_n[:nc], face_len[:nf]
     if counts[K.NSLOW]:
-        targets = (verts.reshape(-1), colours.reshape(-1), vnorms.reshape(-1))
-        for arr, k, s, e in slow[: counts[K.NSLOW]].tolist():
-            if arr != 1 or len(colours):
-                targets[arr][k] = text.slow_value(buf, s, e)
+        slow = slow[: counts[K.NSLOW]]
+        vals = text.slow_values(buf, slow[:, 2:4])
+        for a, target in enumerate((verts, colours, vnorms)):
+            pick = slow[:, 0] == a
+            if pick.any() and len(target):
+                target.reshape(-1)[slow[pick, 1]] = vals[pick]
     text.check_finite(verts, where)
     if nc and (corner_v.min() < 0 or corner_v.max() >= nv):
         bad = int(np.flatnonzero((corner_v < 0) | (corner_v >= nv))[0])

@@ -83,9 +83,7 @@ def _decode_ascii(buf: np.ndarray, where: str) -> tuple[TriangleMesh, dict]:
     corners = np.empty((3 * nf, 3), np.float64)
     slow = np.empty((ns, 3), np.int64)
     ascii_walk(buf, corners, slow, True)
-    flat = corners.reshape(-1)
-    for k, s, e in slow.tolist():
-        flat[k] = text.slow_value(buf, s, e)
+    corners.reshape(-1)[slow[:, 0]] = text.slow_values(buf, slow[:, 1:])
     name = bytes(buf[:256]).lstrip()[5:].split(b"\n", 1)[0].strip().decode("latin-1")
     mesh, details = _weld(corners, where, np.float64)
     details.update(encoding="ascii", header=name)

@@ -44,9 +44,15 @@ def bad_number(buf: np.ndarray, offset: int, where: str) -> InputError:
     return InputError(f"line {line_at(buf, offset)}: {what}", where)
 
 
-def slow_value(buf: np.ndarray, s: int, e: int) -> float:
-    """The correctly rounded value of a token the kernel's fast path declined (syntax already checked)."""
-    return float(bytes(buf[s:e]).decode("ascii"))
+def slow_values(buf: np.ndarray, spans: np.ndarray) -> np.ndarray:
+    """The correctly rounded values of the tokens ``buf[s:e]`` for the rows of ``spans`` ((k, 2)):
+    numpy's string-to-double conversion over a fixed-width array, no Python object per token."""
+    from recon_cli.io._text_kernel import gather_tokens
+
+    if len(spans) == 0:
+        return np.zeros(0, np.float64)
+    raw = gather_tokens(buf, np.ascontiguousarray(spans, dtype=np.int64))
+    return raw.view(f"S{raw.shape[1]}").reshape(-1).astype(np.float64)
 
 
 def read_rows(buf: np.ndarray, start: int, end: int, where: str, delim: int = 0, comment: int = 35):
@@ -74,8 +80,7 @@ def read_rows(buf: np.ndarray, start: int, end: int, where: str, delim: int = 0,
     if nslow:
         slow = np.empty((nslow, 3), np.int64)
         parse_rows(buf, start, end, delim, comment, 2, values, row_start, row_line, slow)
-        for k, s, e in slow.tolist():
-            values[k] = slow_value(buf, s, e)
+        values[slow[:, 0]] = slow_values(buf, slow[:, 1:])
     return values, row_start, row_line
 
 

@@ -139,12 +139,12 @@ def _columns(table: np.ndarray, names: list[str] | None, where: str) -> tuple[Po
     else:
         canon = _guess(table)
     idx = {c: i for i, c in enumerate(canon)}
-    pts = np.ascontiguousarray(table[:, [idx["x"], idx["y"], idx["z"]]])
+    pts = _block(table, [idx["x"], idx["y"], idx["z"]])
     text.check_finite(pts, where, "point")
     used = {"x", "y", "z"}
     normals = None
     if all(c in idx for c in ("nx", "ny", "nz")):
-        normals = np.ascontiguousarray(table[:, [idx["nx"], idx["ny"], idx["nz"]]])
+        normals = _block(table, [idx["nx"], idx["ny"], idx["nz"]])
         used |= {"nx", "ny", "nz"}
     colors = None
     if all(c in idx for c in ("red", "green", "blue")):
@@ -160,6 +160,14 @@ def _columns(table: np.ndarray, names: list[str] | None, where: str) -> tuple[Po
         attributes[name] = col.astype(np.int64) if col.size and np.all(col == np.round(col)) and np.abs(col).max() < 2**53 else col.copy()
     cloud = PointCloud(points=pts, normals=normals, colors=colors, attributes=attributes, point_dtype=np.float64)
     return cloud, canon
+
+
+def _block(table: np.ndarray, cols: list[int]) -> np.ndarray:
+    """Columns ``cols`` of ``table``: a view when they are adjacent and in order (the whole table
+    when that is all it holds), else a copy."""
+    if cols == list(range(cols[0], cols[0] + len(cols))):
+        return table if table.shape[1] == len(cols) else table[:, cols[0] : cols[0] + len(cols)]
+    return np.ascontiguousarray(table[:, cols])
 
 
 def _colours(c: np.ndarray) -> np.ndarray:
