@@ -23,6 +23,9 @@ _LAZY = {
     "load": "recon_cli.io.load",
     "save": "recon_cli.io.load",
     "apply_stage": "recon_cli.stages",
+    "register_stage": "recon_cli.stages",
+    "StageSpec": "recon_cli.params",
+    "Param": "recon_cli.params",
 }
 
 __all__ = ["__version__", *_LAZY]

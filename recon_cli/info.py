@@ -4,7 +4,7 @@ Keys (PLY): ``file``, ``kind`` ("point_cloud" or "mesh"), ``format``, ``vertices
 ``faces``, ``elements`` (name -> count), ``properties`` (element -> list of
 "type name"), ``bbox`` ({"min", "max", "diagonal"}), ``has_normals``, ``has_colors``,
 ``history`` (provenance lines), and for meshes ``topology`` (see
-:func:`recon_cli.mesh.topology.report` when available).
+:func:`recon_cli.mesh.topology.report`).
 Other formats (OBJ, OFF, STL, XYZ, PCD, LAS, E57): the same keys, ``format`` being the
 format's name, plus ``details`` (what the reader reports: STL weld, LAS header, PCD fields...).
 Keys (grid): ``file``, ``kind`` ("grid"), ``shape``, ``origin``, ``voxel_size``,
@@ -61,12 +61,9 @@ def describe(path: str | os.PathLike, format: str | None = None) -> dict[str, An
         "history": list(ply.comments),
     }
     if isinstance(geom, TriangleMesh):
-        try:
-            from recon_cli.mesh.topology import report as topology_report
-        except ModuleNotFoundError:
-            topology_report = None
-        if topology_report is not None:
-            out["topology"] = topology_report(geom)
+        from recon_cli.mesh.topology import report as topology_report
+
+        out["topology"] = topology_report(geom)
     return out
 
 

@@ -134,8 +134,8 @@ def test_run_batch_rejects_bad_options_before_starting(tmp_path, test_stages):
         batch.run_batch(pipe, [src], tmp_path / "o", workers=0)
     with pytest.raises(ParameterError, match="not a size"):
         batch.run_batch(pipe, [src], tmp_path / "o", memory_limit="lots")
-    assert batch._check_memory_limit("4GiB") == 4 * 2**30
-    assert batch._check_memory_limit("none") == 0 and batch._check_memory_limit(None) == "auto"
+    assert batch.cluster._check_memory_limit("4GiB") == 4 * 2**30
+    assert batch.cluster._check_memory_limit("none") == 0 and batch.cluster._check_memory_limit(None) == "auto"
     bad = _pipeline(tmp_path / "bad.toml", '[[stage]]\nname = "t_centre"\nwobble = 1\n')
     with pytest.raises(ParameterError, match="bad.toml:3"):
         batch.run_batch(bad, [src], tmp_path / "o")
@@ -155,7 +155,7 @@ def test_temporaries_of_a_dead_write_are_removed(tmp_path):
         fd, _ = tempfile.mkstemp(prefix="." + name + ".", suffix=".tmp", dir=tmp_path)
         os.close(fd)
     (tmp_path / "scan.ply").write_bytes(b"kept")
-    batch._remove_temporaries(str(tmp_path / "scan"))
+    batch.cluster._remove_temporaries(str(tmp_path / "scan"))
     left = sorted(p.name for p in tmp_path.iterdir())
     assert left[-1] == "scan.ply" and len(left) == 2 and left[0].startswith(".other.ply.")
 
@@ -445,7 +445,7 @@ def test_sigint_is_held_while_a_cluster_starts():
         def thread_body():
             seen.append(_sigint_blocked(threading.get_native_id()))
 
-        with batch._sigint_held() as interrupted:
+        with batch.cluster._sigint_held() as interrupted:
             os.kill(os.getpid(), signal.SIGINT)  # recorded (now or on leaving), never raised here
             time.sleep(0.05)
             assert _sigint_blocked(threading.get_native_id())
@@ -459,7 +459,7 @@ def test_sigint_is_held_while_a_cluster_starts():
             time.sleep(1)
         # started with SIGINT ignored (`nohup recon batch ... &`): left ignored, nothing recorded
         signal.signal(signal.SIGINT, signal.SIG_IGN)
-        with batch._sigint_held() as interrupted:
+        with batch.cluster._sigint_held() as interrupted:
             assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
             os.kill(os.getpid(), signal.SIGINT)
             time.sleep(0.05)

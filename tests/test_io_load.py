@@ -123,9 +123,9 @@ def test_cli_convert_info_and_errors(tmp_path):
     assert r.returncode == 0 and _same_mesh(load(tmp_path / "m.stl"), m)
     for name in ("m.obj", "m.stl"):
         r = recon("info", "--json", tmp_path / name)
-        rep = json.loads(r.stdout)
+        rep = json.loads(r.stdout)[0]
         assert r.returncode == 0 and rep["faces"] == len(m.faces) and rep["topology"]["genus"] == 1
-    assert json.loads(recon("info", "--json", tmp_path / "m.stl").stdout)["details"]["weld_tolerance"] == 0.0
+    assert json.loads(recon("info", "--json", tmp_path / "m.stl").stdout)[0]["details"]["weld_tolerance"] == 0.0
     # unknown suffix: exit 2, one line listing what is supported, nothing written
     r = recon("convert", tmp_path / "m.ply", tmp_path / "m.foo")
     err = r.stderr.decode().strip()
@@ -152,7 +152,7 @@ def test_cli_streams_with_formats(tmp_path):
     assert r2.returncode == 0, r2.stderr
     assert np.abs(load(tmp_path / "c.laz").points - c.points).max() <= 5e-9 * np.ptp(c.points, axis=0).max()
     r3 = recon("info", "--format", "pcd", "--json", "-", input=r.stdout)
-    assert json.loads(r3.stdout)["format"] == "pcd"
+    assert json.loads(r3.stdout)[0]["format"] == "pcd"
     # a stage reads and writes by suffix
     r4 = recon("normals", "--knn", "10", "--format", "xyz", "-", tmp_path / "n.pcd", input=data)
     assert r4.returncode == 0, r4.stderr

@@ -252,7 +252,7 @@ def test_info_cli_prints_topology():
 
     res = CliRunner().invoke(cli, ["info", "--json", str(shared_path("mug"))])
     assert res.exit_code == 0, res.output
-    topo = json.loads(res.output)["topology"]
+    topo = json.loads(res.output)[0]["topology"]
     assert topo["genus"] == 1 and topo["watertight"] is True and topo["faces"] == 10168
     res = CliRunner().invoke(cli, ["info", str(shared_path("bunny_zipper"))])
     assert res.exit_code == 0 and "boundary_loops" in res.output

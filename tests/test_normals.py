@@ -103,7 +103,7 @@ def test_radius_and_hybrid(rng):
     assert not hyb_deg.any() and not rad_deg.any()
     r = run_stage(PointCloud(pts), knn=30, radius=0.05)
     assert r.report["neighbourhood_size"] <= 30
-    r2 = run_stage(PointCloud(pts), knn=None, radius="0.05")
+    r2 = run_stage(PointCloud(pts), knn=0, radius="0.05")
     # radius 0.05 over 4000 points on a unit square: about pi * 0.05^2 * 4000 = 31 neighbours
     assert 22 < r2.report["neighbourhood_size"] < 34
     # a radius smaller than the spacing: lonely points are degenerate, still unit normals
@@ -290,7 +290,7 @@ def test_parameter_errors():
         ({"knn": 2}, "knn must be"),
         ({"knn": "abc"}, "knn must be"),
         ({"radius": -1.0}, "radius must be"),
-        ({"knn": None}, "give knn, radius"),
+        ({"knn": 0}, "give knn, radius"),
         ({"orient": "up"}, "orient must be"),
         ({"orient": "camera"}, "needs --camera"),
         ({"orient": "camera", "camera": "1,2"}, "three"),

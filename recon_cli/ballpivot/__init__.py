@@ -46,6 +46,7 @@ import numpy as np
 
 from recon_cli.errors import InputError, ParameterError, StageFailed
 from recon_cli.geometry import PointCloud, TriangleMesh, as_point_cloud, bbox_diagonal
+from recon_cli.params import Param, StageSpec
 from recon_cli.stages import StageResult
 from recon_cli.tolerances import tol
 
@@ -58,6 +59,25 @@ MAX_RADIUS_DIAGONALS = 1.0
 _MAX_GRID_CELLS = 2**62
 # extra passes of the largest ball over the holes left by cutting pinched fans
 REFILL_PASSES = 1
+
+SPEC = StageSpec(
+    name="ballpivot",
+    summary="Ball-pivoting reconstruction of an oriented cloud.",
+    description="""Ball-pivoting reconstruction (Bernardini et al. 1999) of an oriented cloud.
+
+    Needs point normals (run `recon normals` first); faces are wound to agree with them.
+    The mesh interpolates the points, is edge- and vertex-manifold, and keeps every input
+    point as a vertex (points no ball reached stay unreferenced). The radii used are
+    printed and recorded in the output's history.""",
+    takes=("oriented",),
+    gives=("mesh",),
+    backends=BACKENDS,
+    params=(
+        Param("radii", "floats", "auto", "Ball radii, comma-separated (e.g. 0.002,0.004), or 'auto': "
+              "2x and 4x the median nearest-neighbour spacing.", unit="input units", min=0.0, min_open=True,
+              words={"auto": "auto"}, metavar="auto|R1,R2,..."),
+    ),
+)
 
 
 def nn_spacing(points: np.ndarray) -> float:
@@ -278,11 +298,12 @@ def ball_pivoting(
     return faces, info
 
 
+@SPEC.runner
 def run_stage(
     data: PointCloud | TriangleMesh,
     *,
-    radii: Sequence[float] | str = "auto",
-    backend: str = "native",
+    radii: Sequence[float] | str,
+    backend: str,
     progress: Any = None,
 ) -> StageResult:
     """``recon ballpivot``: mesh an oriented cloud by ball pivoting.
@@ -309,11 +330,7 @@ def run_stage(
     """
     from recon_cli.progress import task
 
-    if backend not in BACKENDS:
-        raise ParameterError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
-    if not isinstance(data, (PointCloud, TriangleMesh)):
-        raise InputError(f"ballpivot needs a point cloud, got {type(data).__name__}")
-    cloud = as_point_cloud(data)
+    cloud = as_point_cloud(data)  # parameters and the input's kind: checked by SPEC
     parsed = parse_radii(radii)
     if cloud.normals is None:
         raise InputError("ball pivoting needs point normals; the input has none (run `recon normals` first)")

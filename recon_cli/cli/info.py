@@ -14,7 +14,10 @@ from recon_cli.cli import options
 @click.pass_context
 def cmd(ctx: click.Context, files: tuple[str, ...], json_: bool) -> None:
     """Describe clouds/meshes (PLY, OBJ, OFF, STL, XYZ, PCD, LAS/LAZ, E57) and grids: counts,
-    properties, bbox, topology, history."""
+    properties, bbox, topology, history.
+
+    With --json: a JSON list with one object per FILE (also for a single file).
+    """
     import os
 
     from recon_cli.info import describe
@@ -23,7 +26,7 @@ def cmd(ctx: click.Context, files: tuple[str, ...], json_: bool) -> None:
     fmt = ctx.meta.get("recon.format")
     reports = [describe(f, fmt if (f == "-" or not os.path.splitext(f)[1]) else None) for f in files]
     if json_:
-        click.echo(report_json(reports[0] if len(reports) == 1 else reports))
+        click.echo(report_json(reports))  # always a list, one entry per FILE
         return
     for rep in reports:
         click.echo(format_info(rep))

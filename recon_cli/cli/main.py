@@ -38,55 +38,96 @@ EXIT_BATCH_SOME_FAILED = 4
 
 
 class LazyGroup(click.Group):
+    """Subcommands imported when used; stages added by plugins (``recon.stages``) become commands too."""
+
     def list_commands(self, ctx: click.Context) -> list[str]:
-        return sorted(COMMANDS)
+        return sorted(set(COMMANDS) | set(_plugin_stages()))
 
     def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
-        if name not in COMMANDS:
+        if name in COMMANDS:
+            cmd = importlib.import_module(f"recon_cli.cli.{COMMANDS[name][0]}").cmd
+        elif name in _plugin_stages():
+            from recon_cli.cli.options import stage_command
+
+            cmd = stage_command(name)
+        else:
             return None
-        module = COMMANDS[name][0]
-        try:
-            mod = importlib.import_module(f"recon_cli.cli.{module}")
-        except ModuleNotFoundError as exc:
-            if exc.name != f"recon_cli.cli.{module}":
-                raise
-            return _missing(name)
-        return mod.cmd
+        return with_global_options(cmd)
 
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         rows = [(name, COMMANDS[name][1]) for name in sorted(COMMANDS)]
+        rows += [(name, "(stage from a plugin)") for name in _plugin_stages()]
         with formatter.section("Commands"):
             formatter.write_dl(rows)
 
 
-def _missing(name: str) -> click.Command:
-    @click.command(name, context_settings={"ignore_unknown_options": True, "allow_extra_args": True})
-    def missing() -> None:
-        from recon_cli.errors import ParameterError
+def _plugin_stages() -> list[str]:
+    from recon_cli.stages import BUILTIN, stage_names
 
-        raise ParameterError(f"'recon {name}' is not available in this version of recon yet")
+    return [n for n in stage_names() if n not in BUILTIN and n not in COMMANDS]
 
-    return missing
+
+# ---- global options: before or after the subcommand -------------------------------------------------
+def _set_quiet(ctx: click.Context, param: click.Parameter, value: bool) -> None:
+    if value:
+        _configure(ctx.find_root(), quiet=True)
+
+
+def _set_verbose(ctx: click.Context, param: click.Parameter, value: int) -> None:
+    if value:
+        _configure(ctx.find_root(), verbose=value)
+
+
+def _root_json() -> bool:
+    ctx = click.get_current_context(silent=True)
+    return bool(ctx is not None and (ctx.find_root().obj or {}).get("json", False))
+
+
+def _configure(root: click.Context, quiet: bool | None = None, verbose: int | None = None) -> None:
+    """Record -q/-v on the root context and set the log level (called from either position)."""
+    root.ensure_object(dict)
+    if quiet is not None:
+        root.obj["quiet"] = root.obj.get("quiet", False) or quiet
+    if verbose is not None:
+        root.obj["verbose_count"] = root.obj.get("verbose_count", 0) + verbose
+    q = root.obj.get("quiet", False)
+    v = root.obj.get("verbose_count", 0)
+    root.obj["verbose"] = 0 if q else v
+    level = logging.WARNING if v == 0 or q else (logging.INFO if v == 1 else logging.DEBUG)
+    logging.basicConfig(level=level, format="recon: %(message)s", stream=sys.stderr, force=True)
+    logging.getLogger("recon").setLevel(level)
+
+
+def with_global_options(cmd: click.Command) -> click.Command:
+    """Add ``-q`` and ``-v`` to a subcommand, so they work after it too (``recon ballpivot IN OUT -q``)."""
+    have = {o for p in cmd.params for o in getattr(p, "opts", [])}
+    for p in cmd.params:
+        if p.name == "json_":  # `recon --json info x.ply` = `recon info x.ply --json`
+            p.default = _root_json
+    if "-q" not in have:
+        cmd.params.append(click.Option(["--quiet", "-q"], is_flag=True, expose_value=False, callback=_set_quiet,
+                                       is_eager=True, help="No progress bars or reports on stderr."))
+    if "-v" not in have:
+        cmd.params.append(click.Option(["--verbose", "-v"], count=True, expose_value=False, callback=_set_verbose,
+                                       is_eager=True, help="More detail (-vv: debug)."))
+    return cmd
 
 
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, "--version", prog_name="recon")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars or reports on stderr.")
 @click.option("--verbose", "-v", count=True, help="More detail: timings, solver iterations (-vv: debug).")
+@click.option("--json", "json_", is_flag=True, help="Reports as JSON (for the commands that write reports).")
 @click.pass_context
-def cli(ctx: click.Context, quiet: bool, verbose: int) -> None:
+def cli(ctx: click.Context, quiet: bool, verbose: int, json_: bool) -> None:
     """recon: surface reconstruction from point clouds.
 
     Stages read IN and write OUT; '-' is stdin/stdout (binary PLY), so stages pipe:
 
         recon normals scan.ply - | recon poisson - - | recon repair - mesh.ply
     """
-    ctx.ensure_object(dict)
-    ctx.obj["quiet"] = quiet
-    ctx.obj["verbose"] = 0 if quiet else verbose
-    level = logging.WARNING if verbose == 0 or quiet else (logging.INFO if verbose == 1 else logging.DEBUG)
-    logging.basicConfig(level=level, format="recon: %(message)s", stream=sys.stderr, force=True)
-    logging.getLogger("recon").setLevel(level)
+    _configure(ctx, quiet=quiet, verbose=verbose)
+    ctx.obj["json"] = json_
 
 
 def main(argv: list[str] | None = None) -> None:

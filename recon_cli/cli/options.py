@@ -7,15 +7,10 @@ import click
 input_arg = click.argument("input", metavar="IN", type=click.Path(allow_dash=True, dir_okay=False))
 output_arg = click.argument("output", metavar="OUT", type=click.Path(allow_dash=True, dir_okay=False))
 
-ascii_opt = click.option(
-    "--ascii", "ascii_", is_flag=True, help="Write text: ASCII PLY / STL, PCD 'DATA ascii' (default binary little-endian)."
-)
-json_opt = click.option(
-    "--json",
-    "json_",
-    is_flag=True,
-    help="Print the report as JSON (on stdout, or stderr when OUT is '-').",
-)
+ASCII_HELP = "Write text: ASCII PLY / STL, PCD 'DATA ascii' (default binary little-endian)."
+JSON_HELP = "Print the report as JSON (on stdout, or stderr when OUT is '-')."
+ascii_opt = click.option("--ascii", "ascii_", is_flag=True, help=ASCII_HELP)
+json_opt = click.option("--json", "json_", is_flag=True, help=JSON_HELP)
 
 
 def backend_opt(*choices: str):
@@ -36,22 +31,33 @@ def _to_meta(ctx: click.Context, param: click.Parameter, value):
     return value
 
 
-def _format_opt(*decls: str, help: str):
-    return click.option(*decls, metavar="FMT", default=None, expose_value=False, callback=_to_meta, help=help)
-
-
-format_opt = _format_opt(
-    "--format", "format", help="Format of '-' and of names without a suffix (ply, obj, off, stl, xyz, csv, pcd, las, laz, e57)."
+_FORMAT_OPTIONS = (
+    (("--format", "format"), "Format of '-' and of names without a suffix (ply, obj, off, stl, xyz, csv, pcd, las, laz, e57)."),
+    (("--input-format", "input_format"), "Format of IN, whatever its name (e.g. IN is '-')."),
+    (("--output-format", "output_format"), "Format of OUT, whatever its name."),
 )
-input_format_opt = _format_opt("--input-format", "input_format", help="Format of IN, whatever its name (e.g. IN is '-').")
-output_format_opt = _format_opt("--output-format", "output_format", help="Format of OUT, whatever its name.")
+_POINTS_ONLY_HELP = "Allow writing a mesh to a points-only format (XYZ, PCD, LAS): its vertices, without the faces."
+
+
+def format_params() -> list[click.Option]:
+    """``--format``, ``--input-format``, ``--output-format`` and ``--points-only`` as click
+    options; their values go to ``ctx.meta`` (read by ``_run.io_formats``), not to the callback."""
+    opts = [
+        click.Option(list(decls), metavar="FMT", default=None, expose_value=False, callback=_to_meta, help=h)
+        for decls, h in _FORMAT_OPTIONS
+    ]
+    opts.append(
+        click.Option(["--points-only", "points_only"], is_flag=True, expose_value=False, callback=_to_meta, help=_POINTS_ONLY_HELP)
+    )
+    return opts
+
+
+format_opt, input_format_opt, output_format_opt = (
+    click.option(*decls, metavar="FMT", default=None, expose_value=False, callback=_to_meta, help=h)
+    for decls, h in _FORMAT_OPTIONS
+)
 points_only_opt = click.option(
-    "--points-only",
-    "points_only",
-    is_flag=True,
-    expose_value=False,
-    callback=_to_meta,
-    help="Allow writing a mesh to a points-only format (XYZ, PCD, LAS): its vertices, without the faces.",
+    "--points-only", "points_only", is_flag=True, expose_value=False, callback=_to_meta, help=_POINTS_ONLY_HELP
 )
 
 
@@ -62,3 +68,55 @@ def stage_io(f):
     ):
         f = deco(f)
     return f
+
+
+# ---- options generated from a stage's declaration ---------------------------------------------------
+def option_for(p) -> click.Option:
+    """The click option of a declared :class:`~recon_cli.params.Param`.
+
+    Values are taken as text and checked by the declaration (one checker for the command
+    line, pipelines and the library); booleans are ``--x/--no-x`` flags.
+    """
+    notes = [p.unit] if p.unit else []
+    rng = p.range_text()
+    if rng and p.type != "choice":
+        notes.append(rng)
+    notes += [f"{k!s}: {v}" for k, v in p.special.items()]
+    notes.append(f"default: {p.default_text()}")
+    help_text = f"{p.help} [{'; '.join(notes)}]"
+    if p.type == "bool":
+        return click.Option([f"{p.option}/--no-{p.dashed}", p.name], default=bool(p.default), help=help_text)
+    metavar = p.metavar or {
+        "int": "N", "float": "F", "vector": "X,Y,Z", "floats": "F,...", "any": "VALUE",
+        "choice": "[" + "|".join(p.choices) + "]",
+    }[p.type]
+    return click.Option([p.option, p.name], type=str, default=None, metavar=metavar, help=help_text)
+
+
+def stage_command(stage: str) -> click.Command:
+    """The ``recon STAGE IN OUT [options]`` command, built from the stage's declaration."""
+    import inspect
+
+    from recon_cli.stages import get_spec
+
+    spec = get_spec(stage)
+    names = [p.name for p in spec.params]
+
+    @click.pass_context
+    def callback(ctx: click.Context, input: str, output: str, ascii_: bool, json_: bool, **values) -> None:
+        from recon_cli.cli._run import run_stage_command
+
+        given = {k: values[k] for k in names if ctx.get_parameter_source(k) is not click.core.ParameterSource.DEFAULT}
+        run_stage_command(ctx, spec.name, input, output, given, ascii_=ascii_, json_=json_)
+
+    doc = inspect.cleandoc(spec.description or spec.summary)
+    out_arg = click.Argument(["output"], metavar="OUT", type=click.Path(allow_dash=True, dir_okay=False))
+    in_arg = click.Argument(["input"], metavar="IN", type=click.Path(allow_dash=True, dir_okay=False))
+    params: list[click.Parameter] = [
+        in_arg, out_arg,
+        click.Option(["--ascii", "ascii_"], is_flag=True, help=ASCII_HELP),
+        click.Option(["--json", "json_"], is_flag=True, help=JSON_HELP),
+    ]
+    params += [option_for(p) for p in spec.params]
+    params += format_params()
+    return click.Command(spec.name, callback=callback, params=params, help=doc, short_help=spec.summary)

@@ -1,4 +1,4 @@
-"""``recon run PIPELINE.toml IN OUT``."""
+"""``recon run PIPELINE.toml IN OUT`` (``--validate``: check only; ``--set STAGE.PARAM=VALUE``)."""
 
 from __future__ import annotations
 
@@ -11,21 +11,52 @@ from recon_cli.cli import options
 
 @click.command("run")
 @click.argument("pipeline", metavar="PIPELINE.toml", type=click.Path(dir_okay=False))
-@options.stage_io
+@click.argument("input", metavar="IN", required=False, type=click.Path(allow_dash=True, dir_okay=False))
+@click.argument("output", metavar="OUT", required=False, type=click.Path(allow_dash=True, dir_okay=False))
+@click.option("--set", "overrides", multiple=True, metavar="STAGE.PARAM=VALUE",
+              help="Override a parameter without editing the file (repeatable): poisson.depth=9, or 2.depth=9 for "
+              "the second stage.")
+@click.option("--validate", is_flag=True, help="Check the pipeline (and IN, when given) and exit; nothing is written.")
+@options.ascii_opt
+@options.json_opt
+@options.format_opt
+@options.input_format_opt
+@options.output_format_opt
+@options.points_only_opt
 @click.pass_context
-def cmd(ctx: click.Context, pipeline: str, input: str, output: str, ascii_: bool, json_: bool) -> None:
+def cmd(ctx: click.Context, pipeline: str, input: str | None, output: str | None, overrides: tuple[str, ...],
+        validate: bool, ascii_: bool, json_: bool) -> None:
     """Run the stages listed in PIPELINE.toml on IN and write OUT.
 
-    The file is checked first: unknown stages or parameters are errors naming the line.
+    The whole pipeline is checked before anything runs: unknown stages or parameters,
+    values of the wrong type or out of range, and stages that do not fit together (each
+    error names the file and line); then IN is read and checked against the first stage.
     """
     from recon_cli.cli._run import emit_report, io_formats, make_progress
-    from recon_cli.io.load import load, save
-    from recon_cli.pipeline import load_pipeline, run_pipeline
+    from recon_cli.errors import ParameterError
+    from recon_cli.pipeline import check_input, load_pipeline, run_pipeline
 
-    pipe = load_pipeline(pipeline)
-    t0 = time.perf_counter()
+    pipe = load_pipeline(pipeline, overrides)
+    if validate:
+        if output is not None:
+            raise ParameterError("--validate writes nothing: give PIPELINE.toml and, optionally, IN")
+        summary = {"pipeline": pipeline, "valid": True,
+                   "stages": [{"stage": s.name, "line": s.line, "params": s.params} for s in pipe.steps]}
+        if input is not None:
+            from recon_cli.io.load import load
+
+            check_input(pipe, load(input, **io_formats(ctx, input, "-")[0]), input)
+            summary["input"] = input
+        emit_report(ctx, summary, json_=json_)
+        return
+    if input is None or output is None:
+        raise click.UsageError("missing IN and OUT (or pass --validate)")
+    from recon_cli.io.load import load, save
+
     load_kw, save_kw = io_formats(ctx, input, output)
+    t0 = time.perf_counter()
     data = load(input, **load_kw)
+    check_input(pipe, data, input)
     out, reports = run_pipeline(pipe, data, progress=make_progress(ctx))
     save(out, output, ascii=ascii_, **save_kw)
     summary = {

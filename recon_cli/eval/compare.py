@@ -6,8 +6,8 @@ A method is written ``[BACKEND:]STAGE[:NAME=VALUE[:NAME=VALUE...]]``: ``poisson:
 method (``poisson:depth=8,scale=1.2``); inside a value, ``;`` stands for a comma
 (``ballpivot:radii=0.01;0.02``). Every method runs through :func:`recon_cli.stages.apply_stage`
 (``BACKEND`` becomes its ``backend`` parameter), each in a fresh child process so that its
-wall time and peak memory are its own and a crash stays its own. A stage that is not built
-in this version is reported ``unavailable``; a method that raises is reported ``failed``
+wall time and peak memory are its own and a crash stays its own. A stage that cannot be
+loaded (a plugin whose module is missing) is reported ``unavailable``; a method that raises is reported ``failed``
 with its message; the others go on.
 
 Outputs in ``DIR``: ``<method>.ply`` (each result), ``<method>.png`` (shaded + heatmap against
@@ -205,7 +205,7 @@ def compare_methods(
         }
         rows.append(row)
         if not available[m.label]:
-            row["error"] = f"stage {m.stage!r} is not available in this version of recon yet"
+            row["error"] = f"stage {m.stage!r} is not available (its module cannot be imported)"
             continue
         out_path = os.path.join(out_dir, m.slug + ".ply")
         with progress.task(f"running {m.label}") if progress is not None else contextlib.nullcontext():

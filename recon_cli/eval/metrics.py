@@ -243,16 +243,11 @@ def parse_taus(taus: Sequence[float | str] | str | None, diagonal: float) -> lis
 
 
 def topology_of(obj: TriangleMesh | PointCloud) -> dict[str, Any] | None:
-    """The topology report of a mesh (:func:`recon_cli.mesh.topology.report` when built), None for a cloud."""
+    """The topology report of a mesh (:func:`recon_cli.mesh.topology.report`), None for a cloud."""
     if not isinstance(obj, TriangleMesh):
         return None
-    try:
-        from recon_cli.mesh.topology import report
-    except ModuleNotFoundError as exc:
-        if exc.name != "recon_cli.mesh.topology":
-            raise
-        # topology module not built yet: the counts we know without it
-        return {"vertices": int(len(obj.vertices)), "faces": int(len(obj.faces))}
+    from recon_cli.mesh.topology import report
+
     return report(obj)
 
 

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from recon_cli.errors import InputError, ParameterError
+from recon_cli.params import Param, StageSpec
 
 # crossings are kept this fraction of an edge away from its corners, so a value exactly
 # at the iso level never collapses a triangle to zero area (moves vertices <= 1e-3 voxel)
@@ -54,20 +55,30 @@ def _origin3(origin: Any) -> np.ndarray:
     return o
 
 
+SPEC = StageSpec(
+    name="mcubes",
+    summary="Marching cubes: mesh the zero level set of a grid.",
+    description="""Mesh the ISO level set of a grid (.npz from `recon sdf`); vertex normals from the field.
+
+    The mesh is closed and manifold wherever the level set stays inside the grid and away
+    from unknown (NaN) cells; unknown cells are left out.""",
+    takes=("grid",),
+    gives=("mesh", "oriented"),
+    params=(
+        Param("iso", "float", 0.0, "Level to extract.", unit="grid values"),
+        Param("method", "choice", "mc", "mc: marching cubes (asymptotic decider); mt: marching tetrahedra.",
+              choices=_METHODS),
+        Param("allow_degenerate", "bool", False, "Keep crossings exactly at corners (may make zero-area triangles)."),
+    ),
+)
+
+
 def _check_method(method: str) -> str:
-    if method not in _METHODS:
-        raise ParameterError(f"method must be one of {', '.join(_METHODS)}, got {method!r}")
-    return method
+    return SPEC.param("method").coerce(method)
 
 
 def _check_iso(iso: Any) -> float:
-    try:
-        v = float(iso)
-    except (TypeError, ValueError):
-        raise ParameterError(f"iso must be a number, got {iso!r}") from None
-    if not np.isfinite(v):
-        raise ParameterError(f"iso must be finite, got {iso!r}")
-    return v
+    return SPEC.param("iso").coerce(iso)
 
 
 def marching_cubes(
@@ -268,12 +279,13 @@ def _unit(g: np.ndarray) -> np.ndarray:
     return out
 
 
+@SPEC.runner
 def run_stage(
     data,
     *,
-    iso: float = 0.0,
-    method: str = "mc",
-    allow_degenerate: bool = False,
+    iso: float,
+    method: str,
+    allow_degenerate: bool,
     progress=None,
 ):
     """Stage ``mcubes``: mesh the ``iso`` level set of a grid.
@@ -294,15 +306,10 @@ def run_stage(
         (cells left out for a NaN corner), ``boundary_edges`` (0 = closed).
     """
     from recon_cli.geometry import TriangleMesh
-    from recon_cli.grid import Grid
     from recon_cli.progress import task
     from recon_cli.stages import StageResult
 
-    if not isinstance(data, Grid):
-        raise InputError(f"mcubes needs a grid (.npz), got {type(data).__name__}")
-    iso = _check_iso(iso)
-    method = _check_method(str(method).lower())
-    allow_degenerate = _as_bool(allow_degenerate, "allow_degenerate")
+    # parameters and the input's kind: checked by SPEC
     with task(progress, "marching cubes", 1) as t:
         v, f, n = marching_cubes(
             data.sdf, iso=iso, spacing=data.voxel_size, origin=data.origin, method=method,
@@ -337,13 +344,3 @@ def boundary_edge_count(faces: np.ndarray) -> int:
     e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
     _, counts = np.unique(e, axis=0, return_counts=True)
     return int((counts == 1).sum())
-
-
-def _as_bool(v: Any, name: str) -> bool:
-    if isinstance(v, (bool, np.bool_)):
-        return bool(v)
-    if isinstance(v, str) and v.lower() in ("true", "1", "yes", "false", "0", "no"):
-        return v.lower() in ("true", "1", "yes")
-    if isinstance(v, (int, np.integer)) and v in (0, 1):
-        return bool(v)
-    raise ParameterError(f"{name} must be true or false, got {v!r}")

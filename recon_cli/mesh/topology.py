@@ -487,7 +487,6 @@ class Connectivity:
         return float(six.sum() / 6.0)
 
 
-EdgeTopology = Connectivity  # alias (the other name for it)
 
 
 def _relabel_by_size(labels: np.ndarray) -> np.ndarray:

@@ -29,7 +29,8 @@ from typing import Any
 import numpy as np
 
 from recon_cli.errors import InputError, ParameterError
-from recon_cli.geometry import PointCloud, TriangleMesh, as_point_cloud
+from recon_cli.geometry import PointCloud, as_point_cloud
+from recon_cli.params import Param, StageSpec
 from recon_cli.progress import task
 from recon_cli.stages import StageResult
 from recon_cli.tolerances import tol
@@ -38,6 +39,29 @@ from recon_cli.tolerances import tol
 _CHUNK = 200_000
 
 ORIENT_METHODS = ("mst", "camera", "direction", "keep", "none")
+
+SPEC = StageSpec(
+    name="normals",
+    summary="Estimate and orient point normals.",
+    description="""Estimate normals by PCA of each point's neighbourhood and orient them.
+
+    Degenerate neighbourhoods (fewer than 3 points, collinear, duplicates) are counted in
+    the report and take their nearest regular neighbour's normal. A mesh's vertices are
+    used (the output is a point cloud).""",
+    takes=("cloud", "mesh"),
+    gives=("cloud", "oriented"),
+    backends=("native", "open3d"),
+    params=(
+        Param("knn", "int", 30, "Neighbours per point (with --radius: at most this many).", unit="points",
+              min=3, also=(0,), special={0: "radius only (needs --radius)"}),
+        Param("radius", "float", None, "Neighbourhood radius.", unit="input units", min=0, min_open=True),
+        Param("orient", "choice", "mst", "mst: consistent propagation, outward; camera/direction: towards --camera/"
+              "--direction; keep: signs of the input normals; none: unoriented.", choices=ORIENT_METHODS),
+        Param("camera", "vector", None, "Viewpoint for --orient camera.", unit="input units", metavar="X,Y,Z"),
+        Param("direction", "vector", None, "Direction for --orient direction.", metavar="X,Y,Z"),
+        Param("curvature", "bool", False, "Also write the vertex property 'curvature' (surface variation)."),
+    ),
+)
 
 # the MST graph uses at most this many nearest neighbours of each point (more adds time, not accuracy)
 _GRAPH_K = 12
@@ -464,16 +488,17 @@ def _orient_sorted(method, ps, nrm_s, indptr, indices, cam, dirn, ref_s):
 # ----------------------------------------------------------------------------- stage
 
 
+@SPEC.runner
 def run_stage(
     data: Any,
     *,
-    knn: int | None = 30,
-    radius: float | None = None,
-    orient: str = "mst",
-    camera: Any = None,
-    direction: Any = None,
-    curvature: bool = False,
-    backend: str = "native",
+    knn: int,
+    radius: float | None,
+    orient: str,
+    camera: tuple[float, float, float] | None,
+    direction: tuple[float, float, float] | None,
+    curvature: bool,
+    backend: str,
     progress: Any = None,
 ) -> StageResult:
     """Stage ``normals``: estimate and orient normals of a cloud (or of a mesh's vertices).
@@ -483,7 +508,7 @@ def run_stage(
     data : PointCloud or TriangleMesh
         Input; a mesh's vertices are used and the output is a point cloud.
     knn, radius
-        Neighbourhood, see :func:`estimate_normals` (``knn=None`` with a radius: radius only).
+        Neighbourhood, see :func:`estimate_normals` (``knn=0`` with a radius: radius only).
     orient : {"mst", "camera", "direction", "keep", "none"}
         See :func:`orient_normals`.
     camera, direction : "X,Y,Z" or (3,) sequence
@@ -501,14 +526,7 @@ def run_stage(
     """
     from recon_cli.normals import _kernel as _normals_kernel  # noqa: F401  (numba compiles before timing starts)
 
-    knn, radius = _check_knn(knn, radius)
-    if backend not in ("native", "open3d"):
-        raise ParameterError(f"backend must be native or open3d, got {backend!r}")
-    if isinstance(curvature, str):
-        curvature = curvature.strip().lower() in ("1", "true", "yes", "on")
-    curvature = bool(curvature)
-    if not isinstance(data, (PointCloud, TriangleMesh)):
-        raise InputError(f"normals needs a point cloud or mesh, got {type(data).__name__}")
+    knn, radius = _check_knn(None if knn == 0 else knn, radius)  # parameters: checked by SPEC
     cloud = as_point_cloud(data)
     pts = _check_points(cloud.points)
     n = len(pts)

@@ -21,7 +21,6 @@ is computed once, so there are no cracks between cells of different sizes.
 from __future__ import annotations
 
 import logging
-import math
 import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -30,6 +29,7 @@ import numpy as np
 
 from recon_cli.errors import InputError, ParameterError
 from recon_cli.geometry import PointCloud, TriangleMesh, as_point_cloud
+from recon_cli.params import Param, StageSpec
 from recon_cli.progress import task
 
 if TYPE_CHECKING:
@@ -73,59 +73,44 @@ class PoissonResult:
 
 
 # ---------------------------------------------------------------------------------------------
-# validation
-def _check_int(value: Any, name: str, lo: int, hi: int) -> int:
-    try:
-        v = int(value)
-        if float(value) != v:
-            raise ValueError
-    except (TypeError, ValueError):
-        raise ParameterError(f"{name} must be an integer, got {value!r}") from None
-    if not lo <= v <= hi:
-        raise ParameterError(f"{name} must be in [{lo}, {hi}], got {v}")
-    return v
+# the declaration (every option's type, default and range) and validation
+SPEC = StageSpec(
+    name="poisson",
+    summary="Screened Poisson reconstruction of an oriented cloud.",
+    description="""Screened Poisson reconstruction (Kazhdan & Hoppe 2013) on a sparse octree.
 
-
-def _check_float(value: Any, name: str, lo: float, hi: float = math.inf, lo_open: bool = False) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ParameterError(f"{name} must be a number, got {value!r}") from None
-    if not math.isfinite(v) or v < lo or (lo_open and v == lo) or v > hi:
-        bound = f"> {lo}" if lo_open else f">= {lo}"
-        raise ParameterError(f"{name} must be finite and {bound}" + (f" and <= {hi}" if hi < math.inf else "") + f", got {value!r}")
-    return v
-
-
-def _check_bool(value: Any, name: str) -> bool:
-    if isinstance(value, (bool, np.bool_)):
-        return bool(value)
-    if isinstance(value, str) and value.lower() in ("true", "1", "yes", "on", "false", "0", "no", "off"):
-        return value.lower() in ("true", "1", "yes", "on")
-    if isinstance(value, (int, np.integer)) and value in (0, 1):
-        return bool(value)
-    raise ParameterError(f"{name} must be true or false, got {value!r}")
-
-
-def _check_choice(value: Any, name: str, choices: tuple[str, ...]) -> str:
-    v = str(value).lower()
-    if v not in choices:
-        raise ParameterError(f"{name} must be one of {', '.join(choices)}, got {value!r}")
-    return v
+    IN must carry normals (run 'recon normals' first, or pass --estimate-normals). Colours
+    on IN are interpolated onto the output vertices. With -v the solver's iterations and
+    residual per level are logged.""",
+    takes=("oriented",),
+    takes_when=lambda p: ("cloud", "mesh") if p["estimate_normals"] else ("oriented",),
+    gives=("mesh",),
+    backends=BACKENDS,
+    params=(
+        Param("depth", "int", 8, "Finest octree level: the finest cell is the reconstruction cube / 2^depth.",
+              min=1, max=MAX_DEPTH),
+        Param("scale", "float", 1.1, "Reconstruction cube / largest side of the bounding box.", unit="ratio", min=1.0),
+        Param("point_weight", "float", 4.0, "Screening weight (0 = classic unscreened Poisson).", min=0.0),
+        Param("samples_per_node", "float", 1.5, "Fewer samples per finest cell than this: splat coarser (smoother).",
+              unit="samples", min=0.0, min_open=True),
+        Param("boundary", "choice", "neumann", "Condition on the faces of the cube.", choices=BOUNDARIES),
+        Param("density", "bool", False, "Write the per-vertex sampling density as vertex property 'density'."),
+        Param("trim", "float", 0.0, "Remove the surface whose density is in the lowest Q quantile.",
+              unit="quantile", min=0.0, max=1.0, max_open=True, metavar="Q"),
+        Param("estimate_normals", "bool", False, "Estimate and orient normals first (as 'recon normals' does)."),
+    ),
+)
+# options of the library function only
+_FULL_DEPTH = Param("full_depth", "int", 5, "Levels up to this one are complete grids.", min=0, max=7)
+_CG_TOLERANCE = Param("cg_tolerance", "float", 1e-3, "Relative residual at which each level's CG stops.",
+                      min=0.0, max=1.0, min_open=True)
 
 
 def _check_options(depth, scale, point_weight, samples_per_node, boundary, density, trim) -> tuple:
     """Validate and convert the options shared by :func:`screened_poisson` and :func:`run_stage`."""
-    depth = _check_int(depth, "depth", 1, MAX_DEPTH)
-    scale = _check_float(scale, "scale", 1.0)
-    point_weight = _check_float(point_weight, "point-weight", 0.0)
-    samples_per_node = _check_float(samples_per_node, "samples-per-node", 0.0, lo_open=True)
-    boundary = _check_choice(boundary, "boundary", BOUNDARIES)
-    density = _check_bool(density, "density")
-    trim = _check_float(trim, "trim", 0.0, 1.0)
-    if trim >= 1.0:
-        raise ParameterError(f"trim must be < 1 (a quantile), got {trim}")
-    return depth, scale, point_weight, samples_per_node, boundary, density, trim
+    v = SPEC.check(dict(depth=depth, scale=scale, point_weight=point_weight, samples_per_node=samples_per_node,
+                        boundary=boundary, density=density, trim=trim), complete=False)
+    return v["depth"], v["scale"], v["point_weight"], v["samples_per_node"], v["boundary"], v["density"], v["trim"]
 
 
 def _check_inputs(points: Any, normals: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -239,16 +224,16 @@ def screened_poisson(
     points: np.ndarray,
     normals: np.ndarray,
     *,
-    depth: int = 8,
-    scale: float = 1.1,
-    point_weight: float = 4.0,
-    samples_per_node: float = 1.5,
-    boundary: str = "neumann",
-    density: bool = False,
-    trim: float = 0.0,
+    depth: int = SPEC.param("depth").default,
+    scale: float = SPEC.param("scale").default,
+    point_weight: float = SPEC.param("point_weight").default,
+    samples_per_node: float = SPEC.param("samples_per_node").default,
+    boundary: str = SPEC.param("boundary").default,
+    density: bool = SPEC.param("density").default,
+    trim: float = SPEC.param("trim").default,
     colors: np.ndarray | None = None,
-    full_depth: int = 5,
-    cg_tolerance: float = 1e-3,
+    full_depth: int = _FULL_DEPTH.default,
+    cg_tolerance: float = _CG_TOLERANCE.default,
     progress: Any = None,
 ) -> PoissonResult:
     """Screened Poisson reconstruction of an oriented point set.
@@ -291,8 +276,8 @@ def screened_poisson(
     depth, scale, point_weight, samples_per_node, boundary, density, trim = _check_options(
         depth, scale, point_weight, samples_per_node, boundary, density, trim
     )
-    full_depth = _check_int(full_depth, "full-depth", 0, 7)
-    cg_tolerance = _check_float(cg_tolerance, "cg-tolerance", 0.0, 1.0, lo_open=True)
+    full_depth = _FULL_DEPTH.coerce(full_depth)
+    cg_tolerance = _CG_TOLERANCE.coerce(cg_tolerance)
     pts, nrm, keep = _check_inputs(points, normals)
     if colors is not None:
         colors = np.asarray(colors)
@@ -626,18 +611,19 @@ def _interpolate_colors(pts: np.ndarray, colors: np.ndarray, verts: np.ndarray, 
     return c.astype(colors.dtype)
 
 
+@SPEC.runner
 def run_stage(
     data: Any,
     *,
-    depth: int = 8,
-    scale: float = 1.1,
-    point_weight: float = 4.0,
-    samples_per_node: float = 1.5,
-    boundary: str = "neumann",
-    density: bool = False,
-    trim: float = 0.0,
-    estimate_normals: bool = False,
-    backend: str = "native",
+    depth: int,
+    scale: float,
+    point_weight: float,
+    samples_per_node: float,
+    boundary: str,
+    density: bool,
+    trim: float,
+    estimate_normals: bool,
+    backend: str,
     progress: Any = None,
 ) -> "StageResult":
     """Stage ``poisson``: screened Poisson reconstruction of an oriented cloud.
@@ -666,15 +652,8 @@ def run_stage(
     """
     from recon_cli.stages import StageResult
 
-    backend = _check_choice(backend, "backend", BACKENDS)
-    depth, scale, point_weight, samples_per_node, boundary, density, trim = _check_options(
-        depth, scale, point_weight, samples_per_node, boundary, density, trim
-    )
-    estimate_normals = _check_bool(estimate_normals, "estimate-normals")
     if backend == "pymeshlab" and (density or trim > 0):
         raise ParameterError("the pymeshlab backend gives no densities: --density/--trim need native or open3d")
-    if not isinstance(data, (PointCloud, TriangleMesh)):
-        raise InputError(f"poisson needs a point cloud, got {type(data).__name__}")
     cloud = as_point_cloud(data)
     history = list(cloud.history)
     if estimate_normals:

@@ -38,64 +38,36 @@ import numpy as np
 
 from recon_cli.errors import InputError, ParameterError
 from recon_cli.geometry import TriangleMesh, bbox_diagonal, float64
+from recon_cli.params import Param, StageSpec
 from recon_cli.mesh.topology import CHUNK, Connectivity, index_dtype, stable_argsort
 from recon_cli.progress import task
 from recon_cli.stages import StageResult
 from recon_cli.tolerances import tol
 
 
-# ---- parameter parsing ---------------------------------------------------------------------
-def _parse_tolerance(x: Any) -> float | None:
-    if x is None:
-        return None
-    if isinstance(x, str):
-        s = x.strip().lower()
-        if s in ("", "none", "exact", "0"):
-            return None
-        try:
-            x = float(s)
-        except ValueError:
-            raise ParameterError(f"merge-tolerance must be a number or 'exact', got {x!r}") from None
-    if isinstance(x, bool):
-        raise ParameterError(f"merge-tolerance must be a number or 'exact', got {x!r}")
-    x = float(x)
-    if not np.isfinite(x) or x < 0:
-        raise ParameterError(f"merge-tolerance must be a finite number >= 0, got {x}")
-    return None if x == 0 else x
+# ---- the declaration -------------------------------------------------------------------------
+SPEC = StageSpec(
+    name="repair",
+    summary="Make a mesh manifold, clean and consistently oriented.",
+    description="""Make a mesh manifold, clean and consistently oriented.
 
-
-def _parse_int(name: str, x: Any) -> int:
-    try:
-        if isinstance(x, bool):
-            raise ValueError
-        v = int(x) if not isinstance(x, float) or x == int(x) else None
-    except (TypeError, ValueError):
-        v = None
-    if v is None or v < 0:
-        raise ParameterError(f"{name} must be an integer >= 0, got {x!r}")
-    return v
-
-
-def _parse_fraction(name: str, x: Any) -> float:
-    try:
-        if isinstance(x, bool):
-            raise ValueError
-        v = float(x)
-    except (TypeError, ValueError):
-        raise ParameterError(f"{name} must be a number in [0, 1], got {x!r}") from None
-    if not (0.0 <= v <= 1.0):
-        raise ParameterError(f"{name} must be a number in [0, 1], got {x!r}")
-    return v
-
-
-def _parse_bool(name: str, x: Any) -> bool:
-    if isinstance(x, (bool, np.bool_)):
-        return bool(x)
-    if isinstance(x, (int, np.integer)) and x in (0, 1):
-        return bool(x)
-    if isinstance(x, str) and x.strip().lower() in ("true", "yes", "1", "on", "false", "no", "0", "off"):
-        return x.strip().lower() in ("true", "yes", "1", "on")
-    raise ParameterError(f"{name} must be true or false, got {x!r}")
+    Steps, in order: merge duplicate vertices; remove degenerate and duplicate faces and
+    unreferenced vertices; keep two faces per edge; split pinched vertices; orient
+    consistently (closed parts outward); fill holes up to N edges; drop small components.
+    A clean mesh passes through unchanged.""",
+    takes=("mesh",),
+    gives=("mesh",),
+    backends=("native", "pymeshlab"),
+    params=(
+        Param("merge_tolerance", "float", None, "Merge vertices closer than this (default: exact duplicates only).",
+              unit="fraction of the bbox diagonal", min=0.0, words={"exact": None, "none": None}, metavar="F|exact"),
+        Param("fill_holes", "int", 0, "Close boundary loops of at most N edges (0: no filling).", unit="edges",
+              min=0, metavar="N"),
+        Param("min_component", "float", 0.0, "Drop components with fewer than this fraction of the faces.",
+              unit="fraction of the faces", min=0.0, max=1.0, metavar="F"),
+        Param("keep_largest", "bool", False, "Keep only the component with most faces."),
+    ),
+)
 
 
 # ---- the working state -------------------------------------------------------------------------
@@ -478,10 +450,10 @@ def _components(st: _State, min_component: float, keep_largest: bool, rep: dict)
 # ---- public ------------------------------------------------------------------------------------
 def repair(
     mesh: TriangleMesh,
-    merge_tolerance: float | str | None = None,
-    fill_holes: int | str = 0,
-    min_component: float | str = 0.0,
-    keep_largest: bool | str = False,
+    merge_tolerance: float | str | None = SPEC.param("merge_tolerance").default,
+    fill_holes: int | str = SPEC.param("fill_holes").default,
+    min_component: float | str = SPEC.param("min_component").default,
+    keep_largest: bool | str = SPEC.param("keep_largest").default,
     progress=None,
 ) -> tuple[TriangleMesh, dict]:
     """Make ``mesh`` edge- and vertex-manifold, clean and consistently oriented.
@@ -512,10 +484,10 @@ def repair(
     if not isinstance(mesh, TriangleMesh):
         raise InputError(f"repair needs a triangle mesh, got {type(mesh).__name__}")
     mesh = float64(mesh)
-    tolerance = _parse_tolerance(merge_tolerance)
-    fill = _parse_int("fill-holes", fill_holes)
-    min_comp = _parse_fraction("min-component", min_component)
-    largest = _parse_bool("keep-largest", keep_largest)
+    v = SPEC.check(dict(merge_tolerance=merge_tolerance, fill_holes=fill_holes, min_component=min_component,
+                        keep_largest=keep_largest), complete=False)
+    tolerance = v["merge_tolerance"] or None  # 0: exact
+    fill, min_comp, largest = v["fill_holes"], v["min_component"], v["keep_largest"]
     f = mesh.faces
     if len(f) and (f.min() < 0 or f.max() >= len(mesh.vertices)):
         raise InputError(f"faces reference vertices outside 0..{len(mesh.vertices) - 1}")
@@ -602,14 +574,15 @@ def _output(mesh: TriangleMesh, st: _State) -> TriangleMesh:
     )
 
 
+@SPEC.runner
 def run_stage(
     data: TriangleMesh,
     *,
-    merge_tolerance: float | str | None = None,
-    fill_holes: int | str = 0,
-    min_component: float | str = 0.0,
-    keep_largest: bool | str = False,
-    backend: str = "native",
+    merge_tolerance: float | None,
+    fill_holes: int,
+    min_component: float,
+    keep_largest: bool,
+    backend: str,
     progress=None,
 ) -> StageResult:
     """Stage ``repair``: see :func:`repair`.
@@ -618,15 +591,9 @@ def run_stage(
     (:func:`recon_cli.backends.pymeshlab_backend.repair`; exact merging, no component
     filtering, its own hole closing).
     """
-    if backend not in ("native", "pymeshlab"):
-        raise ParameterError(f"repair backend must be 'native' or 'pymeshlab', got {backend!r}")
     if backend == "pymeshlab":
-        if not isinstance(data, TriangleMesh):
-            raise InputError(f"repair needs a triangle mesh, got {type(data).__name__}")
-        fill = _parse_int("fill-holes", fill_holes)
-        if _parse_tolerance(merge_tolerance) is not None or _parse_fraction("min-component", min_component) > 0 or _parse_bool(
-            "keep-largest", keep_largest
-        ):
+        fill = fill_holes
+        if merge_tolerance or min_component > 0 or keep_largest:
             raise ParameterError("--backend pymeshlab supports only --fill-holes")
         from recon_cli.backends import pymeshlab_backend
 

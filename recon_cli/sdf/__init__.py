@@ -23,14 +23,39 @@ The ``.npz`` grid format is described in :mod:`recon_cli.grid`.
 
 from __future__ import annotations
 
-from typing import Any
 
 import numpy as np
 
 from recon_cli.errors import InputError, ParameterError
+from recon_cli.params import Param, StageSpec
 
 _SIGNS = ("winding", "pseudonormal")
 _SLAB_CELLS = 500_000  # eikonal_check works on slabs of about this many samples
+
+SPEC = StageSpec(
+    name="sdf",
+    summary="Signed distance grid (.npz) of a mesh or oriented cloud.",
+    description="""Signed distance grid (.npz, negative inside) of a mesh or an oriented point cloud.
+
+    Clouds need normals; samples far from every point are unknown (NaN) and `recon mcubes`
+    leaves them out.""",
+    takes=("mesh", "oriented"),
+    gives=("grid",),
+    backends=("native", "open3d"),
+    output_suffix=".npz",
+    params=(
+        Param("resolution", "int", 128, "Cells along the longest side of the padded box.", unit="cells",
+              min=2, max=2048),
+        Param("voxel_size", "float", None, "Sample spacing (overrides --resolution).", unit="input units",
+              min=0.0, min_open=True, words={"auto": None}),
+        Param("padding", "float", 0.05, "Margin around the bounding box.", unit="fraction of the longest side", min=0.0),
+        Param("sign", "choice", "winding", "Meshes: inside by generalised winding number (robust to holes) or "
+              "pseudonormals (watertight).", choices=_SIGNS),
+        Param("band", "float", None, "Meshes: exact distances only within this many voxels.", unit="voxels",
+              min=0.0, min_open=True),
+        Param("knn", "int", 10, "Clouds: neighbours averaged per sample (IMLS).", unit="points", min=1),
+    ),
+)
 
 
 def grid_frame(
@@ -341,28 +366,17 @@ def eikonal_check(grid) -> dict:
     }
 
 
-def _opt_float(v: Any, name: str) -> float | None:
-    if v is None or (isinstance(v, str) and v.lower() in ("", "none", "auto")):
-        return None
-    try:
-        x = float(v)
-    except (TypeError, ValueError):
-        raise ParameterError(f"{name} must be a number, got {v!r}") from None
-    if not (np.isfinite(x) and x > 0):
-        raise ParameterError(f"{name} must be positive, got {v!r}")
-    return x
-
-
+@SPEC.runner
 def run_stage(
     data,
     *,
-    resolution: int = 128,
-    voxel_size: float | None = None,
-    padding: float = 0.05,
-    sign: str = "winding",
-    band: float | None = None,
-    knn: int = 10,
-    backend: str = "native",
+    resolution: int,
+    voxel_size: float | None,
+    padding: float,
+    sign: str,
+    band: float | None,
+    knn: int,
+    backend: str,
     progress=None,
 ):
     """Stage ``sdf``: a mesh or an oriented cloud -> a signed distance :class:`~recon_cli.grid.Grid`.
@@ -394,41 +408,14 @@ def run_stage(
         ``provenance`` (the effective voxel size); native meshes add ``sign_method``,
         ``winding_evaluations`` and ``regions`` (see :func:`mesh_sdf`).
     """
-    from recon_cli.geometry import PointCloud, TriangleMesh, float64
+    from recon_cli.geometry import TriangleMesh, float64
     from recon_cli.grid import Grid
     from recon_cli.progress import task
     from recon_cli.stages import StageResult
 
-    # validation first
-    if not isinstance(data, (PointCloud, TriangleMesh)):
-        raise InputError(f"sdf needs a mesh or a point cloud, got {type(data).__name__}")
+    # parameters and the input's kind: checked by SPEC
     data = float64(data)
-    try:
-        resolution = int(resolution)
-    except (TypeError, ValueError):
-        raise ParameterError(f"resolution must be an integer, got {resolution!r}") from None
-    if not 2 <= resolution <= 2048:
-        raise ParameterError(f"resolution must be in 2..2048, got {resolution}")
-    voxel = _opt_float(voxel_size, "voxel_size")
-    try:
-        padding = float(padding)
-    except (TypeError, ValueError):
-        raise ParameterError(f"padding must be a number, got {padding!r}") from None
-    if not (np.isfinite(padding) and padding >= 0):
-        raise ParameterError(f"padding must be >= 0, got {padding}")
-    sign = str(sign).lower()
-    if sign not in _SIGNS:
-        raise ParameterError(f"sign must be one of {', '.join(_SIGNS)}, got {sign!r}")
-    band_v = _opt_float(band, "band")
-    try:
-        knn = int(knn)
-    except (TypeError, ValueError):
-        raise ParameterError(f"knn must be an integer, got {knn!r}") from None
-    if knn < 1:
-        raise ParameterError(f"knn must be >= 1, got {knn}")
-    backend = str(backend).lower()
-    if backend not in ("native", "open3d"):
-        raise ParameterError(f"backend must be native or open3d, got {backend!r}")
+    voxel, band_v = voxel_size, band
     is_mesh = isinstance(data, TriangleMesh) and len(data.faces) > 0
     if backend == "open3d" and not is_mesh:
         raise ParameterError("the open3d backend computes distances to meshes only (a cloud needs --backend native)")

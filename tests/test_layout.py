@@ -1,0 +1,107 @@
+"""The package's import rules (CONTRIBUTING.md, "Import rules"), checked on the source."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+from shared_data import ROOT
+
+PKG = ROOT / "recon_cli"
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for p in PKG.rglob("*.py"):
+        rel = p.relative_to(ROOT).with_suffix("")
+        parts = list(rel.parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        out[".".join(parts)] = p
+    return out
+
+
+MODULES = _modules()
+
+
+def _imports(path: Path, top_level_only: bool):
+    """(module imported, names imported, line) for every ``import``/``from`` of recon_cli in ``path``."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    nodes = tree.body if top_level_only else list(ast.walk(tree))
+    for node in nodes:
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            yield node.module, [a.name for a in node.names], node.lineno
+        elif isinstance(node, ast.Import):
+            for a in node.names:
+                yield a.name, [], node.lineno
+
+
+def _package_of(module: str) -> str:
+    return module if MODULES.get(module, Path()).name == "__init__.py" else module.rpartition(".")[0]
+
+
+def test_no_module_imports_another_modules_private_name():
+    bad = []
+    for mod, path in MODULES.items():
+        own_pkg = _package_of(mod)
+        for target, names, line in _imports(path, top_level_only=False):
+            if not target.startswith("recon_cli"):
+                continue
+            for name in names:
+                full = f"{target}.{name}"
+                if full in MODULES:  # a module: private modules only from inside their own package
+                    if name.startswith("_") and _package_of(full) != own_pkg and not own_pkg.startswith(_package_of(full)):
+                        bad.append(f"{path.relative_to(ROOT)}:{line}: imports private module {full}")
+                elif name.startswith("_") and name != "__version__" and target != mod:
+                    bad.append(f"{path.relative_to(ROOT)}:{line}: imports private name {full}")
+    assert not bad, "\n".join(bad)
+
+
+def test_no_import_cycle_at_module_level():
+    graph: dict[str, set[str]] = {m: set() for m in MODULES}
+    for mod, path in MODULES.items():
+        for target, names, _ in _imports(path, top_level_only=True):
+            if not target.startswith("recon_cli"):
+                continue
+            deps = {target} | {f"{target}.{n}" for n in names if f"{target}.{n}" in MODULES}
+            graph[mod] |= {d for d in deps if d in MODULES and d != mod}
+    # a package's __init__ importing its own submodules is how packages re-export: not a cycle
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(m: str) -> None:
+        state[m] = 1
+        stack.append(m)
+        for d in sorted(graph[m]):
+            if d.startswith(m + "."):
+                continue
+            if state.get(d) == 1:
+                cycle = stack[stack.index(d):] + [d]
+                if not all(b.startswith(a + ".") or a.startswith(b + ".") for a, b in zip(cycle, cycle[1:])):
+                    raise AssertionError("import cycle: " + " -> ".join(cycle))
+            elif d not in state:
+                visit(d)
+        stack.pop()
+        state[m] = 2
+
+    for m in sorted(graph):
+        if m not in state:
+            visit(m)
+
+
+def test_library_is_free_of_click_and_kernels_never_import_their_stage():
+    for mod, path in MODULES.items():
+        for target, names, line in _imports(path, top_level_only=False):
+            if not mod.startswith("recon_cli.cli"):
+                assert target != "click" and not target.startswith("recon_cli.cli"), f"{path}:{line}"
+            if path.name.startswith("_") and path.name.endswith(("_kernel.py", "kernel.py")):
+                stage = _package_of(mod)
+                assert target != stage or stage == "recon_cli", f"{path}:{line}: a kernel imports its stage"
+
+
+def test_reference_libraries_only_in_backends():
+    for mod, path in MODULES.items():
+        if mod.startswith("recon_cli.backends"):
+            continue
+        for target, _, line in _imports(path, top_level_only=False):
+            assert target.split(".")[0] not in ("open3d", "pymeshlab"), f"{path}:{line}"
