@@ -65,3 +65,21 @@ def mesh_family(seed, dtype=np.float64):
         normals = normals.astype(dtype)
         colors = rng.integers(0, 256, size=(len(v), 3)).astype(np.uint8)
     return TriangleMesh(vertices=v.astype(dtype), faces=f, normals=normals, colors=colors, point_dtype=dtype)
+
+
+def cloud_family(seed, n=500):
+    """Points on a rotated, scaled, offset (up to 1e6) ellipsoid with unit normals, uint8 colours and
+    attributes ``intensity`` (int64) and ``curvature`` (float64): a :class:`recon_cli.geometry.PointCloud`."""
+    from recon_cli.geometry import PointCloud
+
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    R = random_rotation(rng)
+    scale = 10.0 ** rng.uniform(-2, 3)
+    pts = (d * [1.0, 0.5, 0.3]) @ R.T * scale + rng.uniform(-1, 1, 3) * 10.0 ** rng.integers(0, 7)
+    normals = (d / [1.0, 0.5, 0.3]) @ R.T
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    colors = rng.integers(0, 256, (n, 3)).astype(np.uint8)
+    attrs = {"intensity": rng.integers(0, 4096, n).astype(np.int64), "curvature": rng.random(n)}
+    return PointCloud(points=pts, normals=normals, colors=colors, attributes=attrs, point_dtype=np.float64)

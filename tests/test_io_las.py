@@ -14,10 +14,11 @@ from recon_cli.errors import InputError
 from recon_cli.geometry import PointCloud
 from recon_cli.io.las import decode_las, las_bytes
 
-from test_io_xyz import cloud_family
+from shapes import cloud_family
+from shared_data import SHARED
 
 laspy = pytest.importorskip("laspy")
-AUTZEN = __import__("shared_data").SHARED / "autzen_trim.laz"
+AUTZEN = SHARED / "autzen_trim.laz"
 
 
 def _laspy_file(seed, pf, version, compress, n=300):

@@ -14,8 +14,7 @@ from recon_cli.errors import InputError, ParameterError
 from recon_cli.geometry import PointCloud, TriangleMesh
 from recon_cli.io.load import FORMATS, format_of, load, save, sniff
 
-from shapes import mesh_family
-from test_io_xyz import cloud_family
+from shapes import cloud_family, mesh_family
 
 RECON = [sys.executable, "-m", "recon_cli.cli.main"]
 MESH_SUFFIXES = [".ply", ".obj", ".off", ".stl", ".OBJ"]

@@ -13,7 +13,8 @@ from recon_cli.geometry import PointCloud
 from recon_cli.io._lzf_kernel import lzf_compress, lzf_decompress
 from recon_cli.io.pcd import decode_pcd, pcd_bytes
 
-from test_io_xyz import _o3d_cloud, cloud_family
+from shapes import cloud_family
+from test_io_xyz import o3d_cloud
 
 o3d = pytest.importorskip("open3d")
 DATA = ["ascii", "binary", "binary_compressed"]
@@ -24,7 +25,7 @@ DATA = ["ascii", "binary", "binary_compressed"]
 def test_open3d_written_pcd_reads_with_right_counts_and_coordinates(seed, data, tmp_path):
     c = cloud_family(seed)
     path = tmp_path / "c.pcd"
-    o3d.io.write_point_cloud(str(path), _o3d_cloud(c), write_ascii=data == "ascii", compressed=data == "binary_compressed")
+    o3d.io.write_point_cloud(str(path), o3d_cloud(c), write_ascii=data == "ascii", compressed=data == "binary_compressed")
     ref = o3d.io.read_point_cloud(str(path))
     got, details = decode_pcd(path.read_bytes(), str(path))
     assert details["data"] == data and len(got.points) == len(c.points)

@@ -12,27 +12,12 @@ from recon_cli.errors import InputError
 from recon_cli.geometry import PointCloud
 from recon_cli.io.xyz import decode_xyz, xyz_bytes
 
-from shapes import random_rotation
+from shapes import cloud_family
 
 o3d = pytest.importorskip("open3d")
 
 
-def cloud_family(seed, n=500):
-    """Points on a rotated, scaled, offset (up to 1e6) ellipsoid with unit normals, colours, attributes."""
-    rng = np.random.default_rng(seed)
-    d = rng.normal(size=(n, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    R = random_rotation(rng)
-    scale = 10.0 ** rng.uniform(-2, 3)
-    pts = (d * [1.0, 0.5, 0.3]) @ R.T * scale + rng.uniform(-1, 1, 3) * 10.0 ** rng.integers(0, 7)
-    normals = (d / [1.0, 0.5, 0.3]) @ R.T
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    colors = rng.integers(0, 256, (n, 3)).astype(np.uint8)
-    attrs = {"intensity": rng.integers(0, 4096, n).astype(np.int64), "curvature": rng.random(n)}
-    return PointCloud(points=pts, normals=normals, colors=colors, attributes=attrs, point_dtype=np.float64)
-
-
-def _o3d_cloud(c):
+def o3d_cloud(c):
     p = o3d.geometry.PointCloud()
     p.points = o3d.utility.Vector3dVector(c.points)
     p.normals = o3d.utility.Vector3dVector(c.normals)
@@ -45,7 +30,7 @@ def _o3d_cloud(c):
 def test_open3d_written_files_read_with_right_counts_and_coordinates(seed, ext, tmp_path):
     c = cloud_family(seed)
     path = tmp_path / f"c.{ext}"
-    o3d.io.write_point_cloud(str(path), _o3d_cloud(c), print_progress=False)
+    o3d.io.write_point_cloud(str(path), o3d_cloud(c), print_progress=False)
     ref = o3d.io.read_point_cloud(str(path))
     got, details = decode_xyz(path.read_bytes(), str(path))
     assert len(got.points) == len(c.points)
