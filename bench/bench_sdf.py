@@ -17,7 +17,7 @@ from _util import measure, row
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 # what --sign winding does on the (closed, oriented) bench meshes: see report["sign_method"]
-CLOSED = "closed oriented mesh: pseudonormal sign, checked by winding numbers on a coarse lattice"
+CLOSED = "closed mesh: exact sign, one winding number per class of samples (report['regions'])"
 
 
 def _points32(origin, h, shape) -> np.ndarray:

@@ -39,8 +39,12 @@ class Grid:
         self.voxel_size = float(self.voxel_size)
         if self.sdf.ndim != 3:
             raise InputError(f"sdf must be 3-d, got shape {self.sdf.shape}")
-        if not self.voxel_size > 0:
-            raise InputError(f"voxel_size must be positive, got {self.voxel_size}")
+        if min(self.sdf.shape) == 0:
+            raise InputError(f"the grid has no samples (shape {' x '.join(map(str, self.sdf.shape))})")
+        if not np.isfinite(self.origin).all():
+            raise InputError(f"origin must be finite, got {self.origin.tolist()}")
+        if not (np.isfinite(self.voxel_size) and self.voxel_size > 0):
+            raise InputError(f"voxel_size must be a finite positive number, got {self.voxel_size}")
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -49,3 +53,32 @@ class Grid:
     def positions(self, index: np.ndarray) -> np.ndarray:
         """World coordinates of (fractional) grid indices ``index`` ((k, 3))."""
         return self.origin + np.asarray(index, dtype=np.float64) * self.voxel_size
+
+
+def allocation_problem(shape, bytes_per_sample: float) -> str | None:
+    """Why a grid of ``shape`` (any sizes, even absurd ones) cannot be had, or None.
+
+    ``bytes_per_sample`` is what the caller allocates per sample at its peak. The answer
+    names the estimate and the memory available (:func:`recon_cli.memory.available_bytes`),
+    so a caller can refuse before allocating anything.
+    """
+    from recon_cli.memory import available_bytes
+
+    sizes = [int(s) for s in shape]
+    samples = 1
+    for s in sizes:
+        samples *= s  # Python ints: no overflow for absurd shapes
+    need = samples * float(bytes_per_sample)
+    avail = available_bytes()
+    if samples <= 2**40 and (avail is None or need <= avail):
+        return None
+    dims = " x ".join(str(s) for s in sizes)
+    have = "" if avail is None else f", more than the {_size(avail)} available"
+    return f"a grid of {dims} = {samples:.3g} samples needs about {_size(need)}{have}"
+
+
+def _size(b: float) -> str:
+    for unit, scale in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6)):
+        if b >= scale:
+            return f"{b / scale:.3g} {unit}"
+    return f"{b / 1e3:.3g} kB"

@@ -72,3 +72,29 @@ def release_free_heap() -> None:
             _TRIM = False
     if _TRIM:
         _TRIM(0)
+
+
+def available_bytes() -> int | None:
+    """Memory a new allocation can still get, in bytes: ``MemAvailable`` of
+    ``/proc/meminfo``, lowered to the room left under a cgroup (v2) limit; None where
+    unknown (not Linux)."""
+    avail = None
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    avail = int(line.split()[1]) * 1024
+                    break
+    except (OSError, ValueError, IndexError):
+        return None
+    try:
+        with open("/sys/fs/cgroup/memory.max") as f:
+            limit = f.read().strip()
+        with open("/sys/fs/cgroup/memory.current") as f:
+            used = int(f.read().strip())
+        if limit != "max":
+            room = max(0, int(limit) - used)
+            avail = room if avail is None else min(avail, room)
+    except (OSError, ValueError):
+        pass
+    return avail

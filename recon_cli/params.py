@@ -380,7 +380,10 @@ class StageSpec:
         want = self.input_kinds(values)
         have = kinds_of(data)
         if not have & set(want):
-            hint = " (run 'recon normals' first)" if "oriented" in want and "cloud" in have else ""
+            hint = ""
+            if "oriented" in want and "oriented" not in have and have & {"cloud", "mesh"}:
+                alt = ", or pass --estimate-normals" if "estimate_normals" in self._by_name else ""
+                hint = f" (run 'recon normals' first{alt})"
             raise InputError(f"{self.name} needs {describe_kinds(want)}, got {describe_data(have)}{hint}")
 
     # -- the implementation

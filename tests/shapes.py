@@ -24,25 +24,185 @@ def box_distance(p, lo, hi):
     return np.where((q > 0).any(axis=1), outside, inside)
 
 
-def random_rotation(rng):
-    """A uniformly random rotation matrix."""
+# --- generated closed meshes (families for sign and topology invariants) ---------------
+
+
+def icosphere(subdivisions: int = 2, radius: float = 1.0, centre=(0.0, 0.0, 0.0)):
+    """A closed, outward sphere: the icosahedron split ``subdivisions`` times, projected."""
+    t = (1.0 + 5**0.5) / 2
+    v = [(-1, t, 0), (1, t, 0), (-1, -t, 0), (1, -t, 0), (0, -1, t), (0, 1, t), (0, -1, -t), (0, 1, -t),
+         (t, 0, -1), (t, 0, 1), (-t, 0, -1), (-t, 0, 1)]
+    f = [(0, 11, 5), (0, 5, 1), (0, 1, 7), (0, 7, 10), (0, 10, 11), (1, 5, 9), (5, 11, 4), (11, 10, 2), (10, 7, 6),
+         (7, 1, 8), (3, 9, 4), (3, 4, 2), (3, 2, 6), (3, 6, 8), (3, 8, 9), (4, 9, 5), (2, 4, 11), (6, 2, 10),
+         (8, 6, 7), (9, 8, 1)]
+    v = np.array(v, float)
+    f = np.array(f, np.int64)
+    for _ in range(subdivisions):
+        v, f = _midpoint_split(v, f)
+        v /= np.linalg.norm(v, axis=1, keepdims=True)
+    v = v / np.linalg.norm(v, axis=1, keepdims=True) * radius + np.asarray(centre, float)
+    return v, f
+
+
+def _midpoint_split(v, f):
+    """Each triangle into four (shared edge midpoints)."""
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    uniq, inv = np.unique(e, axis=0, return_inverse=True)
+    inv = inv.reshape(3, -1)
+    mid = len(v) + inv  # midpoints of ab, bc, ca
+    v = np.concatenate([v, 0.5 * (v[uniq[:, 0]] + v[uniq[:, 1]])])
+    a, b, c = f.T
+    ab, bc, ca = mid
+    f = np.concatenate([np.stack(x, axis=1) for x in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
+    return v, f
+
+
+def torus(R: float = 1.0, r: float = 0.3, nu: int = 32, nv: int = 12):
+    """A closed, outward torus around z (genus 1), ``nu`` x ``nv`` quads split in two."""
+    u = np.arange(nu) * 2 * np.pi / nu
+    w = np.arange(nv) * 2 * np.pi / nv
+    U, W = np.meshgrid(u, w, indexing="ij")
+    rho = R + r * np.cos(W)
+    v = np.stack([rho * np.cos(U), rho * np.sin(U), r * np.sin(W)], axis=-1).reshape(-1, 3)
+    i, j = np.meshgrid(np.arange(nu), np.arange(nv), indexing="ij")
+    a = i * nv + j
+    b = ((i + 1) % nu) * nv + j
+    c = ((i + 1) % nu) * nv + (j + 1) % nv
+    d = i * nv + (j + 1) % nv
+    f = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
+    return v, f.astype(np.int64)
+
+
+def implicit_mesh(fn, n: int = 48, lim: float = 1.2):
+    """A closed, outward mesh of the zero set of ``fn(X, Y, Z)`` (our marching cubes at n^3,
+    negative inside)."""
+    from recon_cli.mcubes import marching_cubes
+
+    x = np.linspace(-lim, lim, n)
+    X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
+    v, f, _ = marching_cubes(fn(X, Y, Z), spacing=x[1] - x[0], origin=(-lim,) * 3)
+    return v, f
+
+
+def dumbbell_fn(X, Y, Z, rod: float = 0.06):
+    """Two balls joined by a thin rod of radius ``rod`` (a thin part)."""
+    b1 = np.sqrt((X + 0.6) ** 2 + Y**2 + Z**2) - 0.4
+    b2 = np.sqrt((X - 0.6) ** 2 + Y**2 + Z**2) - 0.4
+    cyl = np.maximum(np.sqrt(Y**2 + Z**2) - rod, np.abs(X) - 0.7)
+    return np.minimum(np.minimum(b1, b2), cyl)
+
+
+def bent_sheet_fn(X, Y, Z, half: float = 0.03):
+    """A curved slab of half-thickness ``half`` (thinner than most test voxels)."""
+    s = Z - 0.4 * np.sin(2.0 * X)
+    return np.maximum(np.abs(s) - half, np.maximum(np.abs(X), np.abs(Y)) - 0.9)
+
+
+def thin_box(thickness: float = 0.01):
+    """A flat plate (12 triangles) much thinner than a voxel."""
+    return box_mesh((-1.0, -0.7, -thickness / 2), (1.0, 0.7, thickness / 2))
+
+
+def hollow_ball():
+    """Outer sphere outward, inner sphere inward (a cavity: winding 0 inside it)."""
+    v1, f1 = icosphere(3, 1.0)
+    v2, f2 = icosphere(2, 0.6)
+    return np.concatenate([v1, v2]), np.concatenate([f1, f2[:, ::-1] + len(v1)])
+
+
+def nested_and_apart():
+    """Three shells: a ball, a ball inside a cavity of a bigger one, and one far away."""
+    pieces = [icosphere(2, 1.0), (lambda v, f: (v, f[:, ::-1]))(*icosphere(2, 0.8)), icosphere(1, 0.3),
+              icosphere(2, 0.5, (2.5, 0.3, 0.0))]
+    v, f, n = [], [], 0
+    for pv, pf in pieces:
+        v.append(pv)
+        f.append(pf + n)
+        n += len(pv)
+    return np.concatenate(v), np.concatenate(f)
+
+
+def random_rotation(rng) -> np.ndarray:
+    """A uniformly random rotation matrix (3, 3), det +1."""
     q, r = np.linalg.qr(rng.normal(size=(3, 3)))
     q = q * np.sign(np.diag(r))
-    return q if np.linalg.det(q) > 0 else -q
+    if np.linalg.det(q) < 0:
+        q[:, 0] = -q[:, 0]
+    return q
 
 
-def torus_mesh(n_major=24, n_minor=12, R=1.0, r=0.3):
-    """A closed torus (genus 1) as a triangle grid, outward."""
-    i, j = np.meshgrid(np.arange(n_major), np.arange(n_minor), indexing="ij")
-    u = 2 * np.pi * i.ravel() / n_major
-    v = 2 * np.pi * j.ravel() / n_minor
-    verts = np.column_stack([(R + r * np.cos(v)) * np.cos(u), (R + r * np.cos(v)) * np.sin(u), r * np.sin(v)])
-    a = (i * n_minor + j).ravel()
-    b = (((i + 1) % n_major) * n_minor + j).ravel()
-    c = (((i + 1) % n_major) * n_minor + (j + 1) % n_minor).ravel()
-    d = (i * n_minor + (j + 1) % n_minor).ravel()
-    faces = np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
-    return verts, faces
+def transformed(v, rng, scale: float = 1.0, offset=(0.0, 0.0, 0.0), rotate: bool = True):
+    """``v`` randomly rotated about its centroid (unless not ``rotate``), scaled and moved."""
+    c = v.mean(axis=0)
+    r = random_rotation(rng) if rotate else np.eye(3)
+    return (v - c) @ r.T * scale + np.asarray(offset, float)
+
+
+def sliver_splits(v, f, rng, fraction: float = 0.3, eps: float = 1e-9):
+    """Near-degenerate remesh of a closed mesh, still closed and consistently oriented:
+    a ``fraction`` of the triangles get a new vertex ``eps`` (relative) off the middle of
+    one of their edges, inside the triangle, and are split into three (one a sliver of
+    height ~eps), and up to 300 edges are split ``eps`` from one end (two needles each)."""
+    v = np.array(v, float)
+    f = np.array(f, np.int64)
+    # 1. interior points near an edge: (a, b, c) -> (a, b, p), (b, c, p), (c, a, p)
+    pick = rng.random(len(f)) < fraction
+    a, b, c = f[pick].T
+    w = np.stack([np.full(len(a), 0.5 - eps / 2), np.full(len(a), 0.5 - eps / 2), np.full(len(a), eps)], axis=1)
+    p = w[:, :1] * v[a] + w[:, 1:2] * v[b] + w[:, 2:] * v[c]
+    pi = len(v) + np.arange(len(a))
+    v = np.concatenate([v, p])
+    f = np.concatenate([f[~pick], np.stack([a, b, pi], 1), np.stack([b, c, pi], 1), np.stack([c, a, pi], 1)])
+    # 2. edge splits eps from an end: both triangles of the edge split in two
+    n_split = min(300, int(fraction * len(f) / 4))
+    for _ in range(n_split):
+        t = rng.integers(len(f))
+        k = rng.integers(3)
+        ea, eb = f[t, k], f[t, (k + 1) % 3]
+        # the other triangle has the directed edge eb -> ea
+        other = np.flatnonzero(((f[:, 0] == eb) & (f[:, 1] == ea)) | ((f[:, 1] == eb) & (f[:, 2] == ea))
+                               | ((f[:, 2] == eb) & (f[:, 0] == ea)))
+        if len(other) != 1:
+            continue
+        s = eps if rng.random() < 0.5 else 1 - eps
+        m = len(v)
+        v = np.concatenate([v, (v[ea] + s * (v[eb] - v[ea]))[None]])
+        new = []
+        for tri, (x, y) in ((t, (ea, eb)), (other[0], (eb, ea))):
+            r = list(f[tri])
+            i = next(i for i in range(3) if r[i] == x and r[(i + 1) % 3] == y)
+            z = r[(i + 2) % 3]
+            f[tri] = (x, m, z)
+            new.append((m, y, z))
+        f = np.concatenate([f, np.array(new, np.int64)])
+    return v, f
+
+
+def cut_sphere(rng, subdivisions: int = 4, cap_height: float = 0.35):
+    """A sphere and a copy with a cap cut away, randomly rotated, scaled and moved (offsets up to 1e6).
+
+    Returns
+    -------
+    reference, candidate : TriangleMesh
+        The closed sphere and the one without the faces whose centroid is within
+        ``cap_height`` (fraction of the radius) of the pole ``direction``.
+    direction : (3,) unit vector from the centre to the missing cap's pole
+    center : (3,), radius : float
+    """
+    import trimesh
+
+    from recon_cli.geometry import TriangleMesh
+
+    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
+    v, f = np.asarray(s.vertices), np.asarray(s.faces)
+    rot = random_rotation(rng)
+    radius = float(10.0 ** rng.uniform(-2, 2))
+    center = rng.choice([0.0, 1.0, 1e3, 1e6]) * rng.uniform(-1, 1, size=3)
+    keep = v[f].mean(axis=1)[:, 2] < 1.0 - cap_height
+    world = center + radius * v @ rot.T
+    ref = TriangleMesh(world, f, point_dtype=np.float64)
+    cand = TriangleMesh(world.copy(), f[keep], point_dtype=np.float64)
+    return ref, cand, rot[:, 2].copy(), center, radius
 
 
 def mesh_family(seed, dtype=np.float64):
@@ -54,7 +214,7 @@ def mesh_family(seed, dtype=np.float64):
     from recon_cli.geometry import TriangleMesh
 
     rng = np.random.default_rng(seed)
-    v, f = torus_mesh(int(rng.integers(5, 30)), int(rng.integers(4, 16)))
+    v, f = torus(nu=int(rng.integers(5, 30)), nv=int(rng.integers(4, 16)))
     scale = 10.0 ** rng.uniform(-3, 3)
     offset = rng.uniform(-1, 1, 3) * 10.0 ** rng.integers(0, 7)
     v = (v @ random_rotation(rng).T) * scale + offset

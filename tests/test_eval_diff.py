@@ -13,8 +13,13 @@ import pytest
 import trimesh
 
 from recon_cli.cli.main import main
+from recon_cli.eval.figure import layout
+from recon_cli.eval.render import colormap
 from recon_cli.geometry import PointCloud, TriangleMesh
 from recon_cli.io import read_ply, write_ply
+
+from shapes import cut_sphere
+from picture_checks import ink
 
 
 def run(capsys, *args) -> tuple[int, str, str]:
@@ -101,14 +106,49 @@ def test_heatmap_and_png(capsys, files, tmp_path):
     # the farthest vertex has the hottest colour
     assert h.colors[np.argmax(h.attributes["distance"])][0] > h.colors[np.argmin(h.attributes["distance"])][0]
     img = np.asarray(Image.open(png).convert("RGB"))
-    # two views, each a shaded row and a heatmap row of 320 px panels (+24 px titles); 2 columns + colour bar
-    assert img.shape == (4 * (320 + 24), 2 * 320 + 110, 3)
+    # rows: the candidate's shape, accuracy, completeness, the reference; one column per view; a colour bar
+    box = layout(4, 2, 240, title=True, colorbar=True, legend=True)
+    assert img.shape == (box["size"][3], box["size"][2], 3)
+    for name in ["title", "column 0", "column 1", *(f"row {r}" for r in range(4)), "colorbar title", "colorbar top", "colorbar max", "legend"]:
+        assert ink(img, box[name]) >= 15, name
+    x0, y0, x1, y1 = box["colorbar"]
+    assert (img[y0, x0 + 5] == colormap(np.array([1.0]), 0.0, 1.0)[0]).all()
     assert (img != 255).any(axis=2).mean() > 0.05
     # several candidates: one heatmap each, named after the candidate
     code, out, err = run(capsys, "diff", files["a"], files["b"], "--ref", files["gt"], "--samples", 500, "--heatmap", tmp_path / "h.ply", "--json")
     rows = json.loads(out)
     assert [r["heatmap"] for r in rows] == [str(tmp_path / "h_0_a.ply"), str(tmp_path / "h_1_b.ply")]
     np.testing.assert_allclose(read_ply(tmp_path / "h_1_b.ply").attributes["distance"], 0.03, rtol=1e-6)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_png_completeness_is_red_where_the_candidate_misses_a_part(capsys, tmp_path, seed):
+    from PIL import Image
+
+    from picture_checks import is_blue, is_red, view_towards
+
+    ref, cand, direction, center, radius = cut_sphere(np.random.default_rng(100 + seed))
+    write_ply(ref, tmp_path / "sphere.ply")
+    write_ply(cand, tmp_path / "cut.ply")
+    png = tmp_path / "cut.png"
+    az, el = view_towards(direction)
+    back = view_towards(-direction)
+    code, out, err = run(capsys, "diff", tmp_path / "cut.ply", tmp_path / "sphere.ply", "--samples", 3000, "--png", png,
+                         "--view", f"{az},{el}", "--view", f"{back[0]},{back[1]}", "--unit", "mm", "--vmax", 0.5 * radius)
+    assert code == 0, err
+    img = np.asarray(Image.open(png).convert("RGB"))
+    box = layout(4, 2, 240, title=True, colorbar=True, legend=True)
+    assert img.shape == (box["size"][3], box["size"][2], 3)
+
+    def centre(name):
+        x0, y0, x1, y1 = box[name]
+        return img[(y0 + y1) // 2, (x0 + x1) // 2]
+
+    assert is_red(centre("tile 2 0"))  # completeness, facing the missing cap
+    assert not is_red(centre("tile 1 0"))  # through the hole: the inside of the far side, exact
+    assert is_blue(centre("tile 2 1")) and is_blue(centre("tile 1 1"))  # the other side is all there
+    for name in ("column 0", "column 1", "row 2", "colorbar top", "colorbar title"):
+        assert ink(img, box[name]) >= 15, name
 
 
 def test_point_cloud_reference_is_stated(capsys, files):
@@ -136,6 +176,11 @@ def test_bad_inputs_exit_2(capsys, files, tmp_path):
     assert code == 2 and "samples" in err
     code, out, err = run(capsys, "diff", files["a"], files["gt"], "--png", tmp_path / "x.png", "--view", "sideways")
     assert code == 2 and "view" in err and not (tmp_path / "x.png").exists()
+    for bad in ("0", "-1", "nan"):
+        code, out, err = run(capsys, "diff", files["a"], files["gt"], "--png", tmp_path / "x.png", "--vmax", bad)
+        assert code == 2 and "vmax" in err and not (tmp_path / "x.png").exists(), bad
+    code, out, err = run(capsys, "diff", files["a"], files["gt"], "--png", tmp_path / "x.png", "--view", "1,2,3")
+    assert code == 2 and "AZIMUTH,ELEVATION" in err and not (tmp_path / "x.png").exists()
     code, out, err = run(capsys, "diff", files["a"], files["gt"], "--json", "--csv", "-")
     assert code == 2 and "stdout" in err
     garbage = tmp_path / "garbage.ply"
@@ -210,6 +255,8 @@ def test_compare_methods_statuses_metrics_and_reports(tmp_path, monkeypatch):
         out,
         samples=5000,
         isolate=False,
+        vmax=0.002,
+        unit="mm",
     )
     rows = {r["method"]: r for r in res["methods"]}
     assert [r["status"] for r in res["methods"]] == ["ok", "ok", "unavailable", "failed"]
@@ -219,14 +266,41 @@ def test_compare_methods_statuses_metrics_and_reports(tmp_path, monkeypatch):
     assert same["faces"] == 12100 and same["seconds"] > 0 and same["peak_mb"] >= 0
     assert "not available" in rows["notbuilt"]["error"] and rows["notbuilt"]["metrics"] is None
     assert rows["fakefail"]["error"] == "nothing to reconstruct"
-    for name in ("results.json", "report.md", "report.html", "overview.png", "fakescale_factor_1.0.ply", "fakescale_factor_1.01.png"):
+    for name in ("results.json", "report.md", "report.html", "overview.png", "quality_vs_time.png", "fakescale_factor_1.0.ply",
+                 "fakescale_factor_1.01.png"):
         assert (out / name).exists(), name
     saved = json.loads((out / "results.json").read_text())
     assert [r["status"] for r in saved["methods"]] == ["ok", "ok", "unavailable", "failed"]
+    # what each ran with: the given factor, resolved with the stage's defaults
+    assert same["params_resolved"] == {"factor": "1.0"} and scaled["params_resolved"] == {"factor": "1.01"}
+    assert same["stage_report"]["faces"] == 12100 and same["library_calls"] == []
+    env = saved["environment"]
+    assert env["recon"] and env["machine"]["cores"] >= 1 and env["date"].endswith("Z") and env["libraries"]["numpy"]
+    prov = saved["provenance"]["input"]
+    assert prov["faces"] == 12100 and len(prov["sha256"]) == 64 and prov["bytes"] == shared_path("kitten").stat().st_size
+    assert res["unit"] == "mm" and res["vmax"] == pytest.approx(0.002)
     md = (out / "report.md").read_text()
     assert "| fakescale:factor=1.01 | ok |" in md and "![overview](overview.png)" in md and "nothing to reconstruct" in md
+    assert "Chamfer-L1 [mm] ↓" in md and "F-score @0.5% ↑" in md and "stage time [s] ↓" in md and "peak memory [MB] ↓" in md
+    assert "  - stage parameters: factor=1.01" in md and "sha256" in md and "cores" in md
     html = (out / "report.html").read_text()
-    assert "<img src='overview.png'" in html and html.count("<tr") == 5
+    assert "<img src='overview.png'" in html and "<img src='quality_vs_time.png'" in html
+    assert html.count("<tr class=") == 4 and "<script>" in html and "http" not in html  # offline: nothing fetched
+    # pictures: the per-method sheet (turntable: 4 columns; shape, accuracy, completeness, reference) and the overview
+    from PIL import Image
+
+    img = np.asarray(Image.open(out / "fakescale_factor_1.01.png").convert("RGB"))
+    box = layout(4, 4, 240, title=True, colorbar=True, legend=True)
+    assert img.shape == (box["size"][3], box["size"][2], 3)
+    for name in ["title", *(f"column {k}" for k in range(4)), *(f"row {r}" for r in range(4)), "colorbar top", "colorbar title"]:
+        assert ink(img, box[name]) >= 15, name
+    img = np.asarray(Image.open(out / "overview.png").convert("RGB"))
+    box = layout(3, 3, 240, title=True, colorbar=True, legend=True)  # 2 methods + the reference; 3 rows
+    assert img.shape == (box["size"][3], box["size"][2], 3)
+    for name in ["column 0", "column 1", "column 2", "row 0", "row 1", "row 2", "colorbar top"]:
+        assert ink(img, box[name]) >= 15, name
+    img = np.asarray(Image.open(out / "quality_vs_time.png").convert("RGB"))
+    assert img.shape == (480, 2 * 760, 3) and ink(img, (0, 0, 760, 480)) > 200 and ink(img, (760, 0, 1520, 480)) > 200
 
 
 def test_compare_cli_runs_a_real_stage_in_a_child(tmp_path, capsys):
@@ -246,5 +320,10 @@ def test_compare_cli_runs_a_real_stage_in_a_child(tmp_path, capsys):
     # ball pivoting interpolates exact samples: accurate to well under 1 % of the diagonal
     assert r["metrics"]["accuracy"] < 1e-3 * r["metrics"]["reference_diagonal"]
     assert (out / "report.md").exists() and (out / "ballpivot.png").exists()
+    # the automatic radii are reported as what it ran with, and the peak memory and process time are there
+    radii = r["stage_report"]["radii"]
+    assert r["params_resolved"]["radii"] == radii and len(radii) >= 1 and r["params"] == {}
+    assert r["process_seconds"] >= r["seconds"]
+    assert "radii=" + ",".join(f"{x:.6g}" for x in radii) in (out / "report.md").read_text()
     code, stdout, err = run(capsys, "compare", src, "--methods", "nosuchstage", "--out", out)
     assert code == 2 and "unknown stage" in err

@@ -11,12 +11,15 @@ from recon_cli.eval.render import (
     BACKGROUND,
     BASE_COLOR,
     VIEWS,
+    BOUNDARY_COLOR,
+    NON_MANIFOLD_COLOR,
+    TURNTABLE,
     camera,
-    colorbar,
     colormap,
-    comparison_image,
+    defect_edges,
     png_bytes,
     render,
+    resolve_views,
     write_png,
 )
 from recon_cli.geometry import PointCloud, TriangleMesh
@@ -122,27 +125,70 @@ def test_cameras_are_orthonormal():
         camera("sideways")
 
 
-def test_colormap_and_colorbar():
+def test_colormap():
     c = colormap(np.array([-1.0, 0.0, 0.5, 1.0, 9.0, np.nan]), 0.0, 1.0)
     assert (c[0] == c[1]).all() and (c[3] == c[4]).all() and (c[5] == c[1]).all()
     assert c[1][2] > c[1][0] and c[3][0] > c[3][2]  # blue low, red high
-    bar = colorbar(200, 0.0, 2.5)
-    assert bar.shape == (200, 110, 3)
-    column = bar[28:184, 16]
-    assert (column[0] == c[3]).all() and (column[-1] == c[1]).all()
 
 
-def test_comparison_image_layout_and_png_round_trip(tmp_path):
+def test_resolve_views():
+    tt = resolve_views(None)
+    assert [a for _, a in tt] == list(TURNTABLE) and len(tt) == 4
+    assert len({az for az, _ in TURNTABLE}) == 4 and tt[0][1] == VIEWS["iso"]  # four azimuths, from the iso view
+    assert resolve_views(["front", (10, 20)]) == [("front (az 0°, el 0°)", (0.0, 0.0)), ("az 10°, el 20°", (10.0, 20.0))]
+    assert resolve_views("-30,45.5") == [("az -30°, el 45.5°", (-30.0, 45.5))]
+    for bad in (["sideways"], [], "1,2,3", "a,b", "nan,1"):
+        with pytest.raises(ParameterError):
+            resolve_views(bad)
+
+
+def _count(img, rgb, tol=30):
+    return int((np.abs(img.astype(int) - np.asarray(rgb)).max(axis=2) < tol).sum())
+
+
+def test_boundary_and_non_manifold_edges_are_drawn_where_visible():
+    # an open square: four boundary edges along its outline, none inside
+    v, f = _quad(-0.5, 0.5, -0.5, 0.5, 0.0)
+    sq = TriangleMesh(v, f)
+    groups = defect_edges(sq)
+    assert len(groups[0][0]) == 4 and len(groups[1][0]) == 0
+    out = render(sq, "front", (200, 200), FRAME, edges=groups, edge_width=2.0).image
+    px = 0.46 * 200
+    lo, hi = int(100 - 0.5 * px), int(100 + 0.5 * px)
+    assert _count(out, BOUNDARY_COLOR) > 4 * (hi - lo)  # the outline, about 2 px wide
+    assert _count(out[lo + 5 : hi - 5, lo + 5 : hi - 5], BOUNDARY_COLOR) == 0  # not the inside
+    assert (out[100, lo] == BOUNDARY_COLOR).all() and (out[lo, 100] == BOUNDARY_COLOR).all()
+    # a closed box has none; a box in front of the square hides the square's outline
+    bv, bf = _box(1.2)
+    box = TriangleMesh(bv + [0, 0, 0.7], bf)  # z from 0.1 to 1.3, wider than the square
+    assert all(len(e) == 0 for e, _ in defect_edges(box))
+    both = TriangleMesh(np.vstack([v, box.vertices]), np.vstack([f, bf + 4]))
+    hidden = render(both, "front", (200, 200), FRAME, edges=defect_edges(both)).image
+    assert _count(hidden, BOUNDARY_COLOR) == 0
+    # three triangles on one edge: that edge is non-manifold, drawn over the boundary colour
+    fan = np.array([[0, 0, 0], [0, 1, 0], [1, 0, 0], [-1, 0, 0], [0.5, 0.5, 0.8]], dtype=np.float64) * 0.5
+    nm = TriangleMesh(fan, np.array([[0, 1, 2], [0, 1, 3], [0, 1, 4]]))
+    groups = defect_edges(nm)
+    assert groups[1][0].tolist() == [[0, 1]]
+    img = render(nm, "front", (200, 200), FRAME, edges=groups).image
+    assert (img[100 - 20, 100] == NON_MANIFOLD_COLOR).all()  # on the shared edge, x = 0, y = 0.2
+    assert _count(img, BOUNDARY_COLOR) > 0
+
+
+def _box(size):
+    h = size / 2
+    from shapes import box_mesh
+
+    return box_mesh((-h, -h, -h), (h, h, h))
+
+
+def test_png_round_trip(tmp_path):
     from PIL import Image
 
-    a, b = _sphere(1.0, 3), _sphere(0.9, 3)
-    d = np.full(len(a.vertices), 0.1)
-    img = comparison_image([("a", a, d), ("b", b, None)], views=("front", "iso"), panel_size=96, supersample=1)
-    assert img.shape == (2 * 2 * (96 + 24), 2 * 96 + 110, 3)
+    img = render(_sphere(1.0, 3), "front", (64, 48), FRAME).image
+    assert img.shape == (48, 64, 3)
     out = tmp_path / "x.png"
     write_png(img, out)
     back = np.asarray(Image.open(out).convert("RGB"))
     assert np.array_equal(back, img)
     assert png_bytes(img)[:8] == b"\x89PNG\r\n\x1a\n"
-    with pytest.raises(ParameterError):
-        comparison_image([])

@@ -367,3 +367,50 @@ def test_run_stage_and_cli(tmp_path):
     mesh = read_ply(out)
     assert mesh.normals is not None and len(mesh.faces) > 1000
     check_closed_manifold(mesh.vertices, mesh.faces)
+
+
+def _closed_meshes_for_pieces():
+    """(name, vertices, faces, resolution): one-piece closed meshes at a resolution that
+    resolves their thinnest part (>= 2 voxels)."""
+    import shapes as S
+    from shared_data import load_shared
+
+    out = [("icosphere", *S.icosphere(3), 40), ("torus", *S.torus(), 48),
+           ("dumbbell", *S.implicit_mesh(S.dumbbell_fn, 64), 48)]
+    for name, res in (("kitten", 48), ("mug", 80), ("armadillo", 80)):
+        m = load_shared(name)
+        out.append((name, m.vertices, m.faces, res))
+    return out
+
+
+@pytest.mark.parametrize("reverse", [False, True], ids=["outward", "inward"])
+@pytest.mark.parametrize("idx", range(6))
+def test_sdf_of_closed_mesh_meshes_to_one_piece(idx, reverse):
+    """Issue 15: ``recon sdf`` then ``recon mcubes`` of a closed one-piece mesh (moved,
+    rotated, rescaled; and wound inward) is one closed, manifold, outward piece whose
+    vertices all lie within half a voxel of the input: a sign error inside (a bubble)
+    adds a piece away from the surface."""
+    import shapes as S
+
+    from recon_cli.geometry import TriangleMesh
+    from recon_cli.mesh.distance import closest_points
+    from recon_cli.mesh.topology import Connectivity
+    from recon_cli.sdf import signed_volume
+    from recon_cli.stages import apply_stage
+
+    name, v, f, res = _closed_meshes_for_pieces()[idx]
+    rng = np.random.default_rng(idx)
+    # the armadillo's claw tips are under 2 voxels thick at 80^3: turned, the grid can
+    # catch one inside sample alone (an 8-face piece at the surface, not a sign error);
+    # it is moved and rescaled only, and checked turned in the sign test of test_sdf.py
+    rotate = name != "armadillo"
+    v = S.transformed(v, rng, 10.0 ** rng.uniform(-2, 2), rng.normal(size=3) * 1e3, rotate=rotate)
+    mesh = TriangleMesh(vertices=v, faces=f[:, ::-1].copy() if reverse else f)
+    grid = apply_stage("sdf", mesh, {"resolution": res}).output
+    out = apply_stage("mcubes", grid, {}).output
+    c = Connectivity(out.faces, len(out.vertices))
+    assert c.n_components == 1, f"{name}: {c.n_components} pieces"
+    assert np.all(c.edge_face_count == 2) and len(c.non_manifold_vertices) == 0 and c.is_consistently_oriented
+    assert signed_volume(out.vertices, out.faces) > 0  # outward, also from an inward input
+    d, _, _ = closest_points(v, f, out.vertices)
+    assert d.max() < 0.5 * grid.voxel_size, name

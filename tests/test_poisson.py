@@ -191,7 +191,7 @@ def test_density_trim_and_colors(rng):
 @pytest.mark.parametrize(
     "cloud, match",
     [
-        (PointCloud(points=np.random.default_rng(0).random((100, 3))), "no normals"),
+        (PointCloud(points=np.random.default_rng(0).random((100, 3))), "without normals .*--estimate-normals"),
         (PointCloud(points=np.random.default_rng(0).random((100, 3)), normals=np.zeros((100, 3))), "zero length"),
         (PointCloud(points=np.ones((50, 3)), normals=np.tile([0.0, 0.0, 1.0], (50, 1))), "coincide"),
         (PointCloud(points=np.eye(3), normals=np.eye(3)), "at least 4"),

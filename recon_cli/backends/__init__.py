@@ -14,6 +14,15 @@ from recon_cli.errors import BackendError
 
 _EXTRA_HINT = "install the reference extra: pip install 'recon[reference]'"
 
+# the reference-library calls made in this process, in order: {"call": name, "arguments": {...}}
+# (what we pass; the library's own defaults apply to the rest). ``recon compare`` reports them.
+CALLS: list[dict] = []
+
+
+def record(call: str, **arguments) -> None:
+    """Note a call into a reference library (see :data:`CALLS`)."""
+    CALLS.append({"call": call, "arguments": arguments})
+
 
 def require(name: str) -> ModuleType:
     """Import ``open3d`` or ``pymeshlab`` or raise :class:`BackendError`."""

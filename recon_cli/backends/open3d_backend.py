@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from recon_cli.backends import require
+from recon_cli.backends import record, require
 from recon_cli.geometry import PointCloud, TriangleMesh
 
 
@@ -69,6 +69,7 @@ def estimate_normals(cloud: PointCloud, knn: int = 30, radius: float | None = No
         param = o3d.geometry.KDTreeSearchParamRadius(radius=radius)
     else:
         param = o3d.geometry.KDTreeSearchParamKNN(knn=knn)
+    record("open3d.geometry.PointCloud.estimate_normals", knn=knn, radius=radius, orient_normals_consistent_tangent_plane=orient_tangent_plane)
     pc.estimate_normals(param)
     if orient_tangent_plane:
         pc.orient_normals_consistent_tangent_plane(orient_tangent_plane)
@@ -79,6 +80,7 @@ def poisson(cloud: PointCloud, depth: int = 8, scale: float = 1.1, linear_fit: b
     """Open3D screened Poisson; returns (mesh, densities)."""
     o3d = require("open3d")
     pc = to_o3d_cloud(cloud)
+    record("open3d.geometry.TriangleMesh.create_from_point_cloud_poisson", depth=depth, scale=scale, linear_fit=linear_fit)
     mesh, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
         pc, depth=depth, scale=scale, linear_fit=linear_fit
     )
@@ -88,6 +90,7 @@ def poisson(cloud: PointCloud, depth: int = 8, scale: float = 1.1, linear_fit: b
 def ball_pivoting(cloud: PointCloud, radii: list[float]) -> TriangleMesh:
     o3d = require("open3d")
     pc = to_o3d_cloud(cloud)
+    record("open3d.geometry.TriangleMesh.create_from_point_cloud_ball_pivoting", radii=[float(r) for r in radii])
     mesh = o3d.geometry.TriangleMesh.create_from_point_cloud_ball_pivoting(pc, o3d.utility.DoubleVector(list(radii)))
     return from_o3d_mesh(mesh, cloud.history)
 

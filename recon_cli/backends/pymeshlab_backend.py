@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from recon_cli.backends import require
+from recon_cli.backends import record, require
 from recon_cli.geometry import PointCloud, TriangleMesh
 
 
@@ -38,12 +38,15 @@ def estimate_normals(cloud: PointCloud, knn: int = 10, viewpoint=None) -> np.nda
     kwargs = {"k": knn}
     if viewpoint is not None:
         kwargs["viewpos"] = np.asarray(viewpoint, dtype=np.float64)
+    record("pymeshlab.compute_normal_for_point_clouds", k=knn, viewpos=None if viewpoint is None else [float(x) for x in kwargs["viewpos"]])
     ms.compute_normal_for_point_clouds(**kwargs)
     return np.asarray(ms.current_mesh().vertex_normal_matrix(), dtype=np.float64)
 
 
 def poisson(cloud: PointCloud, depth: int = 8, scale: float = 1.1, samples_per_node: float = 1.5, point_weight: float = 4.0) -> TriangleMesh:
     ms = meshset(cloud)
+    record("pymeshlab.generate_surface_reconstruction_screened_poisson", depth=depth, scale=scale,
+           samplespernode=samples_per_node, pointweight=point_weight, preclean=False)
     ms.generate_surface_reconstruction_screened_poisson(
         depth=depth, scale=scale, samplespernode=samples_per_node, pointweight=point_weight, preclean=False
     )
@@ -57,6 +60,7 @@ def ball_pivoting(cloud: PointCloud, radius: float | None = None, clustering: fl
     kwargs = {"clustering": clustering, "creasethr": creasethr}
     if radius is not None:
         kwargs["ballradius"] = ml.PureValue(float(radius))
+    record("pymeshlab.generate_surface_reconstruction_ball_pivoting", ballradius=radius, clustering=clustering, creasethr=creasethr)
     ms.generate_surface_reconstruction_ball_pivoting(**kwargs)
     return current_mesh(ms, cloud.history)
 
@@ -100,6 +104,9 @@ def repair(mesh: TriangleMesh, fill_holes: int = 0) -> TriangleMesh:
     """PyMeshLab's cleaning chain matching ``recon repair``'s steps: merge duplicate vertices,
     remove null and duplicate faces and unreferenced vertices, repair non-manifold edges
     (remove faces) and vertices (split), re-orient coherently, optionally close holes."""
+    record("pymeshlab cleaning chain: meshing_remove_duplicate_vertices, _null_faces, _duplicate_faces, _unreferenced_vertices, "
+           "meshing_repair_non_manifold_edges(method='Remove Faces'), _vertices, meshing_re_orient_faces_coherently, meshing_close_holes",
+           maxholesize=int(fill_holes) if fill_holes else None)
     ms = meshset(TriangleMesh(vertices=mesh.vertices, faces=mesh.faces))
     ms.meshing_remove_duplicate_vertices()
     ms.meshing_remove_null_faces()
@@ -117,6 +124,8 @@ def ball_pivoting_radii(cloud: PointCloud, radii: list[float], clustering: float
     """PyMeshLab ball pivoting applied once per radius (increasing), keeping earlier faces."""
     ml = require("pymeshlab")
     ms = meshset(cloud)
+    record("pymeshlab.generate_surface_reconstruction_ball_pivoting (once per radius, deletefaces=False)",
+           ballradius=[float(r) for r in radii], clustering=clustering, creasethr=creasethr)
     for r in radii:
         ms.generate_surface_reconstruction_ball_pivoting(
             ballradius=ml.PureValue(float(r)), clustering=clustering, creasethr=creasethr, deletefaces=False

@@ -21,17 +21,19 @@ from recon_cli.cli import options
 @click.option("--samples", type=int, default=200_000, show_default=True, help="Area-uniform samples on each side.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the sampling.")
 @click.option("--tau", default="0.5%,1%", show_default=True, help="F-score thresholds (absolute, or % of the reference's diagonal).")
-@click.option("--view", "views", multiple=True, default=("iso",), show_default=True, help="View of the pictures (repeatable).")
+@options.picture_opts
 @click.option("--json", "json_", is_flag=True, help="Print results.json on stdout instead of the table.")
 @click.pass_context
-def cmd(ctx, input, methods, ref, out_dir, samples, seed, tau, views, json_):
+def cmd(ctx, input, methods, ref, out_dir, samples, seed, tau, views, vmax, unit, json_):
     """Run several methods on IN, time each, diff each against --ref; write DIR/report.md, report.html, results.json."""
     from recon_cli.cli._run import is_quiet, make_progress
-    from recon_cli.eval.compare import compare_methods, parse_methods, result_table
+    from recon_cli.eval.compare import compare_methods, parse_methods
+    from recon_cli.eval.report import result_table
     from recon_cli.stages import report_json
 
     result = compare_methods(
-        input, parse_methods(list(methods)), ref, out_dir, samples=samples, seed=seed, taus=tau, views=views, progress=make_progress(ctx)
+        input, parse_methods(list(methods)), ref, out_dir, samples=samples, seed=seed, taus=tau, views=views,
+        vmax=vmax, unit=unit, progress=make_progress(ctx),
     )
     if json_:
         click.echo(report_json(result))
@@ -46,3 +48,5 @@ def cmd(ctx, input, methods, ref, out_dir, samples, seed, tau, views, json_):
             if r["error"]:
                 click.echo(f"recon: {r['method']}: {r['status']}: {r['error']}", err=True)
         click.echo(f"report: {result['files']['markdown']}, {result['files']['html']}, {result['files']['results']}", err=True)
+        if result["plot"]:
+            click.echo(f"quality against time: {result['plot']}", err=True)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import click
 
+from recon_cli.cli import options
+
 
 @click.command("diff")
 @click.argument("files", metavar="A B [MORE...]", nargs=-1, required=True, type=click.Path(dir_okay=False))
@@ -19,10 +21,14 @@ import click
 @click.option("--json", "json_", is_flag=True, help="Print the result as JSON on stdout (with --ref: a list of rows).")
 @click.option("--csv", "csv_path", type=click.Path(allow_dash=True, dir_okay=False), help="Write the rows as CSV ('-': stdout).")
 @click.option("--heatmap", type=click.Path(dir_okay=False), help="Write the candidate with per-vertex distance (property and colours).")
-@click.option("--png", type=click.Path(dir_okay=False), help="Write a picture: inputs side by side and heatmaps with a colour bar.")
-@click.option("--view", "views", multiple=True, default=("iso",), show_default=True, help="View of the picture (repeatable): front, back, left, right, top, bottom, iso.")
+@click.option(
+    "--png",
+    type=click.Path(dir_okay=False),
+    help="Write a picture: each candidate's shape, accuracy and completeness heatmaps on one colour scale, and the reference.",
+)
+@options.picture_opts
 @click.pass_context
-def cmd(ctx, files, ref, samples, seed, tau, json_, csv_path, heatmap, png, views):
+def cmd(ctx, files, ref, samples, seed, tau, json_, csv_path, heatmap, png, views, vmax, unit):
     """Compare meshes or clouds.
 
     Two files: A (candidate) against B (reference). With --ref GT: each FILE against GT,
@@ -41,7 +47,7 @@ def cmd(ctx, files, ref, samples, seed, tau, json_, csv_path, heatmap, png, view
         candidates, reference = [files[0]], files[1]
     else:
         candidates, reference = list(files), ref
-    rows = diff_files(candidates, reference, samples=samples, seed=seed, taus=tau, heatmap_path=heatmap, png_path=png, views=views)
+    rows = diff_files(candidates, reference, samples=samples, seed=seed, taus=tau, heatmap_path=heatmap, png_path=png, views=views, vmax=vmax, unit=unit)
     quiet = bool((ctx.find_root().obj or {}).get("quiet"))
     if not quiet:
         for row in rows:

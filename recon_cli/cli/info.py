@@ -41,9 +41,12 @@ def format_info(rep: dict) -> str:
         lines.append(f"  unknown cells  {rep['unknown_cells']}")
         if rep["range"]:
             lines.append(f"  range          {rep['range'][0]:.6g} .. {rep['range'][1]:.6g}")
-        if rep.get("eikonal"):
-            e = rep["eikonal"]
+        lines.append(f"  inside cells   {rep['inside_cells']}")
+        e = rep.get("eikonal")
+        if e and e["cells"]:
             lines.append(f"  eikonal |grad| mean {e['mean']:.4f}, within 1±0.1: {e['fraction_within_0.1'] * 100:.1f}% of {e['cells']} cells")
+        elif e is not None:
+            lines.append("  eikonal        no interior cell with 6 known neighbours")
     else:
         lines.append(f"  format         {rep['format']}")
         lines.append(f"  vertices       {rep['vertices']}")

@@ -120,3 +120,21 @@ def stage_command(stage: str) -> click.Command:
     params += [option_for(p) for p in spec.params]
     params += format_params()
     return click.Command(spec.name, callback=callback, params=params, help=doc, short_help=spec.summary)
+
+
+def picture_opts(f):
+    """``--view``, ``--vmax`` and ``--unit``: how ``recon diff --png`` and ``recon compare`` draw."""
+    for deco in reversed((
+        click.option(
+            "--view",
+            "views",
+            multiple=True,
+            default=("turntable",),
+            show_default=True,
+            help="View of the pictures (repeatable): turntable (4 azimuths), front, back, left, right, top, bottom, iso, or AZ,EL in degrees.",
+        ),
+        click.option("--vmax", type=float, help="Distance at the top of the heatmaps' colour scale [default: 99th percentile, at least the smallest tau]."),
+        click.option("--unit", help="Unit of the coordinates, written on the colour bar and in reports (e.g. mm) [default: model units]."),
+    )):
+        f = deco(f)
+    return f

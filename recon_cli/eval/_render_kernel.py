@@ -72,3 +72,35 @@ def splat_points(sx, sy, sz, radius, depth, point_id):
                 if dx * dx + dy * dy <= r2 and z < depth[i, j]:
                     depth[i, j] = z
                     point_id[i, j] = p
+
+
+@njit(cache=True)
+def draw_segments(sx, sy, sz, edges, tol, half_width, depth, code, value):
+    """Mark the visible pixels of the segments ``edges`` (k, 2) with ``value`` in ``code``.
+
+    A segment is walked in steps of at most half a pixel; every pixel centre within
+    ``half_width`` pixels (square pen) of a step is marked when the step's depth is at most
+    ``depth[i, j] + tol`` (the segment lies on, or in front of, the visible surface).
+    ``code`` (H, W) int8 keeps the largest value written (later kinds win ties).
+    """
+    h, w = depth.shape
+    for e in range(edges.shape[0]):
+        a, b = edges[e, 0], edges[e, 1]
+        x0, y0, z0 = sx[a], sy[a], sz[a]
+        x1, y1, z1 = sx[b], sy[b], sz[b]
+        if not (np.isfinite(x0) and np.isfinite(y0) and np.isfinite(x1) and np.isfinite(y1)):
+            continue
+        steps = int(max(abs(x1 - x0), abs(y1 - y0)) * 2.0) + 1
+        for s in range(steps + 1):
+            t = s / steps
+            x = x0 + t * (x1 - x0)
+            y = y0 + t * (y1 - y0)
+            z = z0 + t * (z1 - z0)
+            jmin = max(int(np.ceil(x - half_width - 0.5)), 0)
+            jmax = min(int(np.floor(x + half_width - 0.5)), w - 1)
+            imin = max(int(np.ceil(y - half_width - 0.5)), 0)
+            imax = min(int(np.floor(y + half_width - 0.5)), h - 1)
+            for i in range(imin, imax + 1):
+                for j in range(jmin, jmax + 1):
+                    if z <= depth[i, j] + tol and code[i, j] < value:
+                        code[i, j] = value

@@ -10,15 +10,15 @@ wall time and peak memory are its own and a crash stays its own. A stage that ca
 loaded (a plugin whose module is missing) is reported ``unavailable``; a method that raises is reported ``failed``
 with its message; the others go on.
 
-Outputs in ``DIR``: ``<method>.ply`` (each result), ``<method>.png`` (shaded + heatmap against
-the reference), ``overview.png`` (all methods side by side), ``results.json``, ``report.md``
-and ``report.html``.
+Outputs in ``DIR``: ``<method>.ply`` (each result), ``<method>.png`` (turntable of its shape,
+accuracy and completeness heatmaps, and the reference), ``overview.png`` (all methods on one
+colour scale), ``quality_vs_time.png`` (Chamfer-L1 and F-score against time, one point per
+method), ``results.json``, ``report.md`` and ``report.html`` (:mod:`recon_cli.eval.report`).
 """
 
 from __future__ import annotations
 
 import contextlib
-import html
 import os
 import re
 import time
@@ -108,11 +108,18 @@ def compare_methods(
     samples: int = 200_000,
     seed: int = 0,
     taus: Sequence[float | str] | str | None = None,
-    views: Sequence[str] = ("iso",),
+    views: Sequence[str] | None = None,
     isolate: bool = True,
     progress: Any = None,
+    vmax: float | None = None,
+    unit: str | None = None,
 ) -> dict[str, Any]:
     """Run ``methods`` on the input file, time them, diff each output against the reference.
+
+    Four phases: check everything that can be checked before running (:func:`_plan`), run
+    each method (:func:`_run_methods`), measure each output against the reference
+    (:func:`_measure`), draw (:func:`_draw`), then write the reports
+    (:func:`recon_cli.eval.report.write_reports`).
 
     Parameters
     ----------
@@ -126,33 +133,94 @@ def compare_methods(
         Folder for the outputs (created if missing).
     samples, seed, taus
         As in :func:`recon_cli.eval.metrics.compare_meshes`.
-    views : sequence of str
-        Views of the pictures (:data:`recon_cli.eval.render.VIEWS`).
+    views : sequence of str, optional
+        Views of the pictures (:func:`recon_cli.eval.render.resolve_views`; default the
+        four-azimuth turntable).
     isolate : bool
         Run each method in a fresh child process (true wall time and peak memory, crash
         isolation). False runs in this process (peak memory then from ``tracemalloc``:
         Python and numpy allocations only).
     progress : Progress or None
+    vmax : float, optional
+        Top of the heatmaps' shared colour scale (default
+        :func:`recon_cli.eval.metrics.shared_vmax` of every accuracy and completeness).
+    unit : str, optional
+        Unit of the coordinates, for the pictures and reports.
 
     Returns
     -------
     dict
-        ``input``, ``reference``, ``samples``, ``seed``, ``methods`` (list of rows:
-        ``method``, ``stage``, ``backend``, ``params``, ``status``, ``error``, ``seconds``
-        (wall time of the stage), ``peak_mb`` (peak resident memory above the start of the
-        stage), ``output``, ``picture``, ``faces``, ``vertices``, ``metrics`` (the
-        :func:`~recon_cli.eval.metrics.compare_meshes` dict or None)), ``overview`` (picture
-        path or None) and ``files`` (report paths).
+        ``input``, ``reference``, ``samples``, ``seed``, ``unit``, ``reference_diagonal``,
+        ``vmax`` (of the pictures), ``environment`` (:func:`recon_cli.eval.report.environment`),
+        ``provenance`` (``input`` / ``reference``: :func:`recon_cli.eval.report.file_provenance`),
+        ``methods`` (list of rows: ``method``, ``stage``, ``backend``, ``params`` (as given),
+        ``params_resolved`` (every parameter the stage ran with: defaults, given values and
+        what it resolved, e.g. automatic radii), ``stage_report`` (the stage's own report),
+        ``library_calls`` (the reference-library calls and the arguments we passed, for a
+        reference backend; its own defaults apply to the rest),
+        ``status``, ``error``, ``seconds`` (wall time of the stage), ``process_seconds``
+        (wall time of the method's child process: start-up, read, stage, write),
+        ``peak_mb`` (peak resident memory above the start of the stage), ``output``,
+        ``picture``, ``faces``, ``vertices``, ``metrics`` (the
+        :func:`~recon_cli.eval.metrics.compare_meshes` dict or None)), ``overview`` and
+        ``plot`` (picture paths or None) and ``files`` (report paths).
 
     Raises
     ------
     ParameterError
-        Unknown stage names or parameters, bad ``samples`` or views (before anything runs).
+        Unknown stage names or parameters, bad ``samples``, ``vmax`` or views (before
+        anything runs).
     InputError
         Unreadable input or reference.
     """
-    from recon_cli.eval.metrics import check_samples, compare_meshes, default_vmax, load_geometry, vertex_distances
-    from recon_cli.eval.render import camera, comparison_image, write_png
+    from recon_cli.eval.metrics import load_geometry
+    from recon_cli.eval.report import environment, file_provenance, write_reports
+
+    methods, available, samples, vmax = _plan(methods, samples, views, vmax)
+    source = load_geometry(input_path)  # fail early on an unreadable input
+    reference = load_geometry(reference_path) if reference_path is not None else None
+    out_dir = os.fspath(out_dir)
+    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
+        raise InputError("exists and is not a folder", out_dir)
+    os.makedirs(out_dir, exist_ok=True)
+    result: dict[str, Any] = {
+        "input": os.fspath(input_path),
+        "reference": None if reference_path is None else os.fspath(reference_path),
+        "samples": samples,
+        "seed": int(seed),
+        "unit": unit,
+        "reference_diagonal": None,
+        "vmax": None,
+        "environment": environment(),
+        "provenance": {
+            "input": file_provenance(input_path, source),
+            "reference": None if reference_path is None else file_provenance(reference_path, reference),
+        },
+    }
+    del source
+    rows, outputs = _run_methods(input_path, methods, available, out_dir, isolate, progress)
+    _measure(rows, outputs, reference, samples, seed, taus)
+    result["reference_diagonal"] = next((r["metrics"]["reference_diagonal"] for r in rows if r["metrics"]), None)
+    result["methods"] = rows
+    result.update(_draw(rows, outputs, reference, reference_path, out_dir, views, vmax, unit))
+    result["files"] = {
+        "results": os.path.join(out_dir, "results.json"),
+        "markdown": os.path.join(out_dir, "report.md"),
+        "html": os.path.join(out_dir, "report.html"),
+    }
+    write_reports(result, out_dir)
+    return result
+
+
+def _plan(methods, samples, views, vmax) -> tuple[list[Method], dict[str, bool], int, float | None]:
+    """Everything checkable before running: methods, their parameters, samples, views, vmax.
+
+    Returns the methods, which of them can run (label -> bool: False for a stage not built
+    in this version), and the checked ``samples`` and ``vmax``.
+    """
+    from recon_cli.eval.figure import require_pillow
+    from recon_cli.eval.metrics import check_samples, check_vmax
+    from recon_cli.eval.render import resolve_views
     from recon_cli.stages import STAGES, get_stage, stage_parameters
 
     if isinstance(methods, str):
@@ -161,9 +229,10 @@ def compare_methods(
     if not methods:
         raise ParameterError("no method given")
     samples = check_samples(samples)
-    for v in views:
-        camera(v)
-    # decide what can run before running anything
+    resolve_views(views)
+    require_pillow()  # the pictures are drawn after every method has run: fail before
+    if vmax is not None:
+        vmax = check_vmax(vmax)
     available: dict[str, bool] = {}
     for m in methods:
         if m.stage not in STAGES:
@@ -178,12 +247,12 @@ def compare_methods(
         for k in m.stage_params():
             if k not in known:
                 raise ParameterError(f"method {m.label!r}: stage {m.stage!r} has no parameter {k!r} (parameters: {', '.join(sorted(known))})")
-    load_geometry(input_path)  # fail early on an unreadable input
-    reference = load_geometry(reference_path) if reference_path is not None else None
-    out_dir = os.fspath(out_dir)
-    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
-        raise InputError("exists and is not a folder", out_dir)
-    os.makedirs(out_dir, exist_ok=True)
+    return methods, available, samples, vmax
+
+
+def _run_methods(input_path, methods, available, out_dir, isolate, progress) -> tuple[list[dict], dict[str, Any]]:
+    """Run each method (a child process each unless ``isolate`` is False): rows and outputs by label."""
+    from recon_cli.eval.metrics import load_geometry
 
     rows: list[dict[str, Any]] = []
     outputs: dict[str, Any] = {}
@@ -193,9 +262,13 @@ def compare_methods(
             "stage": m.stage,
             "backend": m.backend or "native",
             "params": dict(m.params),
+            "params_resolved": None,
+            "stage_report": None,
+            "library_calls": None,
             "status": STATUS_UNAVAILABLE,
             "error": None,
             "seconds": None,
+            "process_seconds": None,
             "peak_mb": None,
             "output": None,
             "picture": None,
@@ -209,8 +282,10 @@ def compare_methods(
             continue
         out_path = os.path.join(out_dir, m.slug + ".ply")
         with progress.task(f"running {m.label}") if progress is not None else contextlib.nullcontext():
+            t0 = time.perf_counter()
             res = _run_isolated(input_path, m, out_path) if isolate else _run_here(input_path, m, out_path)
-        row.update({k: res[k] for k in ("status", "error", "seconds", "peak_mb")})
+            row["process_seconds"] = time.perf_counter() - t0
+        row.update({k: res.get(k) for k in ("status", "error", "seconds", "peak_mb", "params_resolved", "stage_report", "library_calls")})
         if res["status"] != STATUS_OK:
             continue
         row["output"] = out_path
@@ -218,50 +293,98 @@ def compare_methods(
         outputs[m.label] = obj
         row["vertices"] = int(len(obj.points))
         row["faces"] = int(len(getattr(obj, "faces", ())))
-        if reference is not None:
-            try:
-                row["metrics"] = compare_meshes(obj, reference, samples=samples, seed=seed, taus=taus)
-            except InputError as exc:  # e.g. an empty reconstruction
-                row["status"], row["error"] = STATUS_FAILED, f"cannot compare the output: {exc}"
+    return rows, outputs
 
-    overview = None
+
+def _measure(rows, outputs, reference, samples, seed, taus) -> None:
+    """Fill each successful row's ``metrics`` against ``reference`` (a failure to compare fails the row)."""
+    from recon_cli.eval.metrics import compare_meshes
+
+    if reference is None:
+        return
+    for row in rows:
+        if row["status"] != STATUS_OK:
+            continue
+        try:
+            row["metrics"] = compare_meshes(outputs[row["method"]], reference, samples=samples, seed=seed, taus=taus)
+        except InputError as exc:  # e.g. an empty reconstruction
+            row["status"], row["error"] = STATUS_FAILED, f"cannot compare the output: {exc}"
+
+
+def _draw(rows, outputs, reference, reference_path, out_dir, views, vmax, unit) -> dict[str, Any]:
+    """Write ``<method>.png`` per method (every view), ``overview.png`` (all methods side by side,
+    the first view) and ``quality_vs_time.png``.
+
+    One colour scale for every heatmap: ``vmax`` or the shared default of every accuracy
+    and completeness array. Returns ``overview``, ``plot`` (paths or None) and ``vmax``.
+    """
+    from recon_cli.eval.figure import diff_rows, overview, sheet
+    from recon_cli.eval.metrics import shared_vmax, vertex_distances
+    from recon_cli.eval.render import resolve_views, write_png
+
     good = [r for r in rows if r["status"] == STATUS_OK]
-    if good:
-        dists = {}
-        if reference is not None:
-            dists = {r["method"]: vertex_distances(outputs[r["method"]], reference) for r in good}
-        vmax = None
-        if dists:
-            taus_abs = [min(r["metrics"]["tau"]) for r in good if r["metrics"]]
-            vmax = max([default_vmax(list(dists.values()))] + taus_abs)
-        ref_panel = [("reference", reference, None)] if reference is not None else []
+    if not good:
+        return {"overview": None, "plot": None, "vmax": None}
+    acc: dict[str, Any] = {r["method"]: None for r in good}
+    missed: dict[str, Any] = dict(acc)
+    diag = None
+    if reference is not None:
         for r in good:
-            pic = os.path.join(out_dir, _slug(r["method"]) + ".png")
-            panels = [(r["method"], outputs[r["method"]], dists.get(r["method"]))] + ref_panel
-            write_png(comparison_image(panels, views=views, vmax=vmax, panel_size=280), pic)
-            r["picture"] = pic
-        panels = [(r["method"], outputs[r["method"]], dists.get(r["method"])) for r in good] + ref_panel
-        overview = os.path.join(out_dir, "overview.png")
-        write_png(comparison_image(panels, views=views, vmax=vmax, panel_size=280), overview)
+            acc[r["method"]] = vertex_distances(outputs[r["method"]], reference)
+            missed[r["method"]] = vertex_distances(reference, outputs[r["method"]])
+        measured = [r for r in good if r["metrics"]]
+        diag = measured[0]["metrics"]["reference_diagonal"] if measured else None
+        if vmax is None:
+            tau = min((min(r["metrics"]["tau"]) for r in measured), default=None)
+            vmax = shared_vmax(list(acc.values()) + list(missed.values()), tau)
+    ref = (_stem(reference_path), reference) if reference is not None else None
+    for r in good:
+        r["picture"] = os.path.join(out_dir, _slug(r["method"]) + ".png")
+        fig = sheet(diff_rows([(r["method"], outputs[r["method"]], acc[r["method"]], missed[r["method"]])], ref),
+                    views, vmax=vmax, unit=unit, diagonal=diag, title=f"recon compare: {r['method']}")
+        write_png(fig.image, r["picture"])
+    overview_path = os.path.join(out_dir, "overview.png")
+    fig = overview([(r["method"], outputs[r["method"]], acc[r["method"]], missed[r["method"]]) for r in good], ref,
+                   resolve_views(views)[0][1], vmax=vmax, unit=unit, diagonal=diag, title="recon compare: all methods")
+    write_png(fig.image, overview_path)
+    plot = None
+    if reference is not None and any(r["metrics"] for r in good):
+        plot = os.path.join(out_dir, "quality_vs_time.png")
+        write_png(quality_plot(rows, unit), plot)
+    return {"overview": overview_path, "plot": plot, "vmax": vmax}
 
-    result = {
-        "input": os.fspath(input_path),
-        "reference": None if reference_path is None else os.fspath(reference_path),
-        "samples": samples,
-        "seed": int(seed),
-        "methods": rows,
-        "overview": overview,
-        "files": {
-            "results": os.path.join(out_dir, "results.json"),
-            "markdown": os.path.join(out_dir, "report.md"),
-            "html": os.path.join(out_dir, "report.html"),
-        },
-    }
-    _write_reports(result, out_dir)
-    return result
+
+def quality_plot(rows: Sequence[dict], unit: str | None = None) -> Any:
+    """Chamfer-L1 and F-score (at the first tau) against stage time, one point per method, side by side.
+
+    Returns
+    -------
+    (H, W, 3) uint8
+    """
+    import numpy as np
+
+    from recon_cli.eval.figure import scatter_plot
+
+    nan = float("nan")
+    measured = [r for r in rows if r.get("metrics")]
+    tau = measured[0]["metrics"]["tau_relative"][0] * 100 if measured else nan
+
+    def pts(get):
+        return [(r["method"], r["seconds"] if r["seconds"] is not None else nan, get(r) if r.get("metrics") else nan)
+                for r in rows if r["status"] == STATUS_OK]
+
+    left = scatter_plot(pts(lambda r: r["metrics"]["chamfer_l1"]), x_label="stage wall time [s], lower is better",
+                        y_label=f"Chamfer-L1 [{unit or 'model units'}], lower is better", title="Chamfer-L1 against time")
+    right = scatter_plot(pts(lambda r: r["metrics"]["fscore"][0]), x_label="stage wall time [s], lower is better",
+                         y_label=f"F-score @{tau:.3g}% of diagonal, higher is better", title="F-score against time")
+    return np.concatenate([left.image, right.image], axis=1)
 
 
 # ----------------------------------------------------------------------------- running
+
+
+def _stem(path: str | os.PathLike) -> str:
+    return os.path.splitext(os.path.basename(os.fspath(path)))[0] or os.fspath(path)
 
 
 def _slug(label: str) -> str:
@@ -285,6 +408,7 @@ def _run_here(input_path: str | os.PathLike, m: Method, out_path: str) -> dict[s
     from recon_cli.stages import apply_stage
 
     data = load(input_path)
+    calls = _reset_calls()
     tracemalloc.start()
     try:
         t0 = time.perf_counter()
@@ -296,7 +420,7 @@ def _run_here(input_path: str | os.PathLike, m: Method, out_path: str) -> dict[s
     finally:
         tracemalloc.stop()
     save(result.output, out_path)
-    return {"status": STATUS_OK, "error": None, "seconds": seconds, "peak_mb": peak}
+    return {"status": STATUS_OK, "error": None, "seconds": seconds, "peak_mb": peak, **_ran_with(m.stage, m.stage_params(), result, calls)}
 
 
 def _run_isolated(input_path: str | os.PathLike, m: Method, out_path: str) -> dict[str, Any]:
@@ -331,6 +455,7 @@ def _child(conn, input_path: str, stage: str, params: dict, out_path: str) -> No
         from recon_cli.stages import apply_stage
 
         data = load(input_path)
+        calls = _reset_calls()
         memory.reset_peak()
         base = memory.rss_mb() or 0.0
         t0 = time.perf_counter()
@@ -338,7 +463,7 @@ def _child(conn, input_path: str, stage: str, params: dict, out_path: str) -> No
         seconds = time.perf_counter() - t0
         peak = max(0.0, (memory.peak_mb() or 0.0) - base)
         save(result.output, out_path)
-        conn.send({"status": STATUS_OK, "error": None, "seconds": seconds, "peak_mb": peak})
+        conn.send({"status": STATUS_OK, "error": None, "seconds": seconds, "peak_mb": peak, **_ran_with(stage, params, result, calls)})
     except ReconError as exc:
         conn.send({"status": STATUS_FAILED, "error": str(exc).splitlines()[0] if str(exc) else type(exc).__name__, "seconds": None, "peak_mb": None})
     except BaseException as exc:  # a bug in a method must not take the comparison down
@@ -348,93 +473,25 @@ def _child(conn, input_path: str, stage: str, params: dict, out_path: str) -> No
         conn.close()
 
 
-# ----------------------------------------------------------------------------- reports
+def _ran_with(stage: str, params: dict, result: Any, calls: Sequence[dict]) -> dict[str, Any]:
+    """What a stage ran with: its defaults, the given values and what it resolved (its report's
+    ``provenance``, e.g. automatic radii), its report, and the reference-library calls it made
+    (:data:`recon_cli.backends.CALLS`), JSON-safe."""
+    import json
+
+    from recon_cli.stages import get_spec, report_json
+
+    report = result.report if isinstance(result.report, dict) else {}
+    spec = get_spec(stage)
+    resolved = {**spec.defaults(), **spec.check(dict(params), complete=False)}  # as apply_stage ran them
+    if isinstance(report.get("provenance"), dict):
+        resolved.update(report["provenance"])
+    out = {"params_resolved": resolved, "stage_report": report, "library_calls": list(calls)}
+    return json.loads(report_json(out))
 
 
-_COLUMNS = (
-    ("time s", lambda r: r["seconds"], "{:.3g}"),
-    ("peak MB", lambda r: r["peak_mb"], "{:.4g}"),
-    ("faces", lambda r: r["faces"], "{}"),
-    ("accuracy", lambda r: _m(r, "accuracy"), "{:.4g}"),
-    ("completeness", lambda r: _m(r, "completeness"), "{:.4g}"),
-    ("chamfer-L1", lambda r: _m(r, "chamfer_l1"), "{:.4g}"),
-    ("hausdorff", lambda r: _m(r, "hausdorff"), "{:.4g}"),
-    ("hausdorff p95", lambda r: _m(r, "hausdorff_p95"), "{:.4g}"),
-)
+def _reset_calls() -> list[dict]:
+    from recon_cli.backends import CALLS
 
-
-def _m(row: dict, key: str) -> Any:
-    return None if row["metrics"] is None else row["metrics"][key]
-
-
-def result_table(result: dict) -> tuple[list[str], list[list[str]]]:
-    rows = result["methods"]
-    taus = next((r["metrics"]["tau_relative"] for r in rows if r["metrics"]), [])
-    head = ["method", "status"] + [c[0] for c in _COLUMNS] + [f"F-score @{t * 100:.3g}%" for t in taus]
-    head += ["normal consistency", "watertight", "components"]
-    body = []
-    for r in rows:
-        cells = [r["method"], r["status"]]
-        for _, get, fmt in _COLUMNS:
-            v = get(r)
-            cells.append("—" if v is None else fmt.format(v))
-        met = r["metrics"]
-        cells += ["—" if met is None else f"{f:.4f}" for f in (met["fscore"] if met else [None] * len(taus))]
-        nc = None if met is None else met["normal_consistency"]
-        cells.append("—" if nc is None else f"{nc:.4f}")
-        topo = None if met is None else met["topology"]["candidate"]
-        cells.append("—" if not topo or "watertight" not in topo else ("yes" if topo["watertight"] else "no"))
-        cells.append("—" if not topo or "components" not in topo else str(topo["components"]))
-        body.append(cells)
-    return head, body
-
-
-def _write_reports(result: dict, out_dir: str) -> None:
-    from recon_cli.io.atomic import write_bytes
-    from recon_cli.stages import report_json
-
-    write_bytes(result["files"]["results"], (report_json(result) + "\n").encode())
-    head, body = result_table(result)
-    rel = lambda p: os.path.relpath(p, out_dir)  # noqa: E731 - pictures are linked beside the report
-    md = [f"# recon compare: {result['input']}", ""]
-    md.append(f"Reference: {result['reference'] or '(none: timings and topology only)'}; "
-              f"{result['samples']} samples per side, seed {result['seed']}.")
-    md += ["", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    md += ["| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |" for cells in body]
-    problems = [r for r in result["methods"] if r["error"]]
-    if problems:
-        md += ["", "## Not measured", ""] + [f"- `{r['method']}` ({r['status']}): {r['error']}" for r in problems]
-    if result["overview"]:
-        md += ["", "## All methods", "", f"![overview]({rel(result['overview'])})"]
-    for r in result["methods"]:
-        if r["picture"]:
-            md += ["", f"## {r['method']}", "", f"![{r['method']}]({rel(r['picture'])})"]
-    write_bytes(result["files"]["markdown"], ("\n".join(md) + "\n").encode())
-
-    e = html.escape
-    h = [
-        "<!DOCTYPE html>",
-        "<html><head><meta charset='utf-8'>",
-        f"<title>recon compare: {e(result['input'])}</title>",
-        "<style>body{font-family:sans-serif;margin:2em}table{border-collapse:collapse}"
-        "td,th{border:1px solid #bbb;padding:4px 8px;text-align:right}td:first-child{text-align:left}"
-        "tr.failed,tr.unavailable{color:#999}img{max-width:100%}</style>",
-        "</head><body>",
-        f"<h1>recon compare: {e(result['input'])}</h1>",
-        f"<p>Reference: {e(result['reference'] or '(none)')}; {result['samples']} samples per side, seed {result['seed']}.</p>",
-        "<table><tr>" + "".join(f"<th>{e(c)}</th>" for c in head) + "</tr>",
-    ]
-    for r, cells in zip(result["methods"], body):
-        h.append(f"<tr class='{e(r['status'])}'>" + "".join(f"<td>{e(c)}</td>" for c in cells) + "</tr>")
-    h.append("</table>")
-    if problems:
-        h.append("<h2>Not measured</h2><ul>")
-        h += [f"<li><code>{e(r['method'])}</code> ({e(r['status'])}): {e(r['error'])}</li>" for r in problems]
-        h.append("</ul>")
-    if result["overview"]:
-        h.append(f"<h2>All methods</h2><img src='{e(rel(result['overview']))}' alt='overview'>")
-    for r in result["methods"]:
-        if r["picture"]:
-            h.append(f"<h2>{e(r['method'])}</h2><img src='{e(rel(r['picture']))}' alt='{e(r['method'])}'>")
-    h.append("</body></html>")
-    write_bytes(result["files"]["html"], ("\n".join(h) + "\n").encode())
+    CALLS.clear()
+    return CALLS

@@ -210,6 +210,26 @@ def heatmap(
     return out
 
 
+def shared_vmax(distance_arrays: Sequence[np.ndarray], tau: float | None = None) -> float:
+    """Top of a colour scale shared by several heatmaps: :func:`default_vmax`, at least ``tau``.
+
+    Reaching the smallest F-score threshold keeps sub-threshold noise blue.
+    """
+    v = default_vmax(distance_arrays)
+    return max(v, float(tau)) if tau is not None else v
+
+
+def check_vmax(vmax: Any) -> float:
+    """``vmax`` as a positive finite float, or :class:`ParameterError`."""
+    try:
+        v = float(vmax)
+    except (TypeError, ValueError):
+        raise ParameterError(f"vmax must be a number, got {vmax!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise ParameterError(f"vmax must be positive, got {vmax!r}")
+    return v
+
+
 def default_vmax(distance_arrays: Sequence[np.ndarray]) -> float:
     """Shared colour-scale maximum: the largest 99th percentile of the arrays (1 if all are 0)."""
     v = 0.0
@@ -269,7 +289,9 @@ def diff_files(
     taus: Sequence[float | str] | str | None = None,
     heatmap_path: str | os.PathLike | None = None,
     png_path: str | os.PathLike | None = None,
-    views: Sequence[str] = ("iso",),
+    views: Sequence[str] | None = None,
+    vmax: float | None = None,
+    unit: str | None = None,
 ) -> list[dict[str, Any]]:
     """:func:`compare_meshes` of each candidate file against the reference file, with outputs.
 
@@ -285,10 +307,19 @@ def diff_files(
         Write the candidate with per-vertex ``distance`` (to the reference) and colours;
         with several candidates, ``<stem>_<candidate stem>.ply`` beside it.
     png_path : path, optional
-        Write a picture: every input shaded side by side, and each candidate's heatmap
-        under it with a shared colour bar (:func:`recon_cli.eval.render.comparison_image`).
-    views : sequence of str
-        Views of the picture (:data:`recon_cli.eval.render.VIEWS`).
+        Write a picture (:func:`recon_cli.eval.figure.sheet`): per candidate its shape
+        (boundary and non-manifold edges marked), its accuracy heatmap (its vertices
+        coloured by distance to the reference) and its completeness heatmap (the
+        reference's vertices coloured by distance to it: red where it misses a part), then
+        the reference; one colour scale for all.
+    views : sequence of str, optional
+        Views of the picture (:func:`recon_cli.eval.render.resolve_views`; default the
+        four-azimuth turntable).
+    vmax : float, optional
+        Top of the colour scale of the heatmaps (PLY and PNG); default
+        :func:`shared_vmax`.
+    unit : str, optional
+        Unit of the coordinates, written on the picture's colour bar.
 
     Returns
     -------
@@ -299,11 +330,14 @@ def diff_files(
     if not candidates:
         raise ParameterError("no candidate file to compare")
     samples = check_samples(samples)
-    if views is not None:
-        from recon_cli.eval.render import camera
+    if png_path is not None:
+        from recon_cli.eval.figure import require_pillow
+        from recon_cli.eval.render import resolve_views
 
-        for v in views:
-            camera(v)  # unknown view names fail before any work
+        resolve_views(views)  # unknown view names fail before any work
+        require_pillow()
+    if vmax is not None:
+        vmax = check_vmax(vmax)
     ref = load_geometry(reference)
     cands = [load_geometry(c) for c in candidates]
     rows = []
@@ -317,19 +351,24 @@ def diff_files(
     from recon_cli.io.load import save
 
     dists = [vertex_distances(c, ref) for c in cands]
-    # the colour scale reaches at least the smallest F-score threshold, so that sub-tau noise stays blue
-    vmax = max(default_vmax(dists), min(rows[0]["tau"]))
+    # what each candidate misses: the reference's vertices to it (one scale for both directions,
+    # so a heatmap PLY is coloured alike with or without --png)
+    missed = [vertex_distances(ref, c) for c in cands]
+    if vmax is None:
+        vmax = shared_vmax(dists + missed, min(rows[0]["tau"]))
     if heatmap_path is not None:
         for k, (path, cand, d) in enumerate(zip(candidates, cands, dists)):
             out = heatmap_path if len(cands) == 1 else _suffixed(heatmap_path, _stem(path), k)
             save(heatmap(cand, d, vmax=vmax), out)  # in the format its suffix names
             rows[k]["heatmap"] = os.fspath(out)
     if png_path is not None:
-        from recon_cli.eval.render import comparison_image, write_png
+        from recon_cli.eval.figure import diff_rows, sheet
+        from recon_cli.eval.render import write_png
 
-        panels = [(_stem(p), c, d) for p, c, d in zip(candidates, cands, dists)]
-        panels.append((_stem(reference) + " (ref)", ref, None))
-        write_png(comparison_image(panels, views=views, vmax=vmax), png_path)
+        panels = [(_stem(p), c, d, m) for p, c, d, m in zip(candidates, cands, dists, missed)]
+        fig = sheet(diff_rows(panels, (_stem(reference), ref)), views, vmax=vmax, unit=unit,
+                    diagonal=rows[0]["reference_diagonal"], title=f"recon diff against {os.path.basename(os.fspath(reference))}")
+        write_png(fig.image, png_path)
     return rows
 
 

@@ -30,8 +30,13 @@ VIEWS: dict[str, tuple[float, float]] = {
     "bottom": (0.0, -90.0),
     "iso": (35.0, 25.0),
 }
+# ``--view turntable``: four quarter turns about the up axis, starting at the iso view
+TURNTABLE: tuple[tuple[float, float], ...] = tuple((35.0 + 90.0 * k, 25.0) for k in range(4))
+DEFAULT_VIEWS = ("turntable",)
 
 BACKGROUND = (255, 255, 255)
+BOUNDARY_COLOR = (225, 0, 200)  # magenta: neither on the grey shading nor on the blue-to-red ramp
+NON_MANIFOLD_COLOR = (0, 0, 0)
 BASE_COLOR = (0.74, 0.76, 0.80)
 _AMBIENT = 0.22
 # colour ramp of the heatmaps, low (blue) to high (red): (position, r, g, b)
@@ -113,6 +118,8 @@ def render(
     color: tuple[float, float, float] = BASE_COLOR,
     supersample: int = 1,
     point_radius: float | None = None,
+    edges: Sequence[tuple[np.ndarray, tuple[int, int, int]]] = (),
+    edge_width: float = 2.0,
 ) -> Rendering:
     """Render one mesh or cloud, shaded, or coloured by per-vertex ``scalars``.
 
@@ -136,6 +143,12 @@ def render(
         Render at this factor and average down (anti-aliasing); 1 for exact pixels.
     point_radius : float, optional
         Disc radius of cloud points in output pixels (default: about width / 250).
+    edges : sequence of (edges (k, 2) int, (r, g, b) uint8)
+        Mesh edges (vertex index pairs) drawn over the surface in a flat colour where they
+        are not hidden by it (depth test with a tolerance of 2 % of the frame radius); a
+        later group is drawn over an earlier one. See :func:`defect_edges`.
+    edge_width : float
+        Pen width of ``edges`` in output pixels.
 
     Returns
     -------
@@ -202,6 +215,17 @@ def render(
             ramp = colormap(scalars[pid], vmin, vmax).astype(np.float64) / 255.0
             img[mask] = ramp * (0.55 + 0.45 * shade[:, None])
 
+    if len(edges):
+        from recon_cli.eval._render_kernel import draw_segments
+
+        code = np.zeros((h, w), dtype=np.int8)
+        for k, (e, _) in enumerate(edges):
+            e = np.ascontiguousarray(e, dtype=np.int64).reshape(-1, 2)
+            if len(e):
+                draw_segments(sx, sy, sz, e, 0.02 * radius, 0.5 * edge_width * ss, depth, code, k + 1)
+        for k, (_, rgb) in enumerate(edges):
+            img[code == k + 1] = np.asarray(rgb, dtype=np.float64) / 255.0
+
     if ss > 1:
         img = img.reshape(height, ss, width, ss, 3).mean(axis=(1, 3))
         cover = mask.reshape(height, ss, width, ss).mean(axis=(1, 3))
@@ -226,81 +250,69 @@ def colormap(values: np.ndarray, vmin: float, vmax: float) -> np.ndarray:
     return np.rint(out).astype(np.uint8)
 
 
-def colorbar(height: int, vmin: float, vmax: float, width: int = 110, label: str = "") -> np.ndarray:
-    """A vertical colour bar (low at the bottom) with value labels, (height, width, 3) uint8."""
-    img = np.full((height, width, 3), 255, dtype=np.uint8)
-    top, bottom = 28, height - 16
-    bar = max(bottom - top, 2)
-    t = np.linspace(1.0, 0.0, bar)
-    img[top : top + bar, 8:26] = colormap(vmin + t * (vmax - vmin), vmin, vmax)[:, None, :]
-    img[top - 1, 7:27] = img[top + bar, 7:27] = 0
-    img[top : top + bar, 7] = img[top : top + bar, 26] = 0
-    for frac in (0.0, 0.25, 0.5, 0.75, 1.0):
-        y = top + int(round((1.0 - frac) * (bar - 1)))
-        img[y, 26:31] = 0
-        draw_text(img, _num(vmin + frac * (vmax - vmin)), 33, y - 5, scale=2)
-    if label:
-        draw_text(img, label, 4, 6, scale=2)
-    return img
-
-
-def comparison_image(
-    panels: Sequence[tuple[str, TriangleMesh | PointCloud, np.ndarray | None]],
-    views: Sequence[str | tuple[float, float]] = ("iso",),
-    panel_size: int = 320,
-    vmax: float | None = None,
-    supersample: int = 2,
-) -> np.ndarray:
-    """Meshes side by side, shaded, and under each one with distances its heatmap.
-
-    Parameters
-    ----------
-    panels : sequence of (title, mesh or cloud, distances or None)
-        One column each, in order (candidates then the reference); ``distances`` (n,)
-        per vertex gives the column a heatmap row.
-    views : sequence of view names or (azimuth, elevation)
-        One shaded row (and one heatmap row) per view.
-    panel_size : int
-        Width and height of a panel in pixels.
-    vmax : float, optional
-        Distance at the top of the shared colour scale (default: the largest value).
-    supersample : int
-        Anti-aliasing factor.
+def defect_edges(obj: TriangleMesh | PointCloud) -> list[tuple[np.ndarray, tuple[int, int, int]]]:
+    """The boundary and non-manifold edges of a mesh, coloured for :func:`render`'s ``edges``.
 
     Returns
     -------
-    (H, W, 3) uint8
+    list of (edges (k, 2) int64, (r, g, b))
+        ``[(boundary, BOUNDARY_COLOR), (non_manifold, NON_MANIFOLD_COLOR)]`` (non-manifold
+        drawn last, over boundary); empty for a cloud or a mesh without faces.
     """
-    if not panels:
-        raise ParameterError("nothing to draw")
-    s = int(panel_size)
-    if s < 32:
-        raise ParameterError(f"panel size must be at least 32 pixels, got {panel_size}")
-    frame = frame_of([p[1] for p in panels])
-    heat = [d for _, _, d in panels if d is not None]
-    if heat and vmax is None:
-        vmax = max(float(np.percentile(d, 99)) if len(d) else 0.0 for d in heat) or 1.0
-    title_h = 24
-    bar_w = 110 if heat else 0
-    rows = []
-    for view in views:
-        shaded = [render(obj, view, (s, s), frame, supersample=supersample).image for _, obj, _ in panels]
-        rows.append(_titled_row(shaded, [t for t, _, _ in panels], title_h, bar_w))
-        if heat:
-            tiles, names = [], []
-            for title, obj, d in panels:
-                if d is None:
-                    tiles.append(np.full((s, s, 3), 255, dtype=np.uint8))
-                    names.append("")
-                else:
-                    tiles.append(render(obj, view, (s, s), frame, scalars=d, vmax=vmax, supersample=supersample).image)
-                    names.append(f"{title} distance")
-            row = _titled_row(tiles, names, title_h, 0)
-            bar = colorbar(s + title_h, 0.0, float(vmax), width=bar_w)
-            rows.append(np.concatenate([row, bar], axis=1))
-    width = max(r.shape[1] for r in rows)
-    rows = [np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0)), constant_values=255) for r in rows]
-    return np.concatenate(rows, axis=0)
+    if not isinstance(obj, TriangleMesh) or len(obj.faces) == 0:
+        return []
+    from recon_cli.mesh.topology import Connectivity
+
+    con = Connectivity(obj.faces, len(obj.vertices))
+    return [(con.edges[con.boundary_edges], BOUNDARY_COLOR), (con.edges[con.non_manifold_edges], NON_MANIFOLD_COLOR)]
+
+
+def resolve_views(views: Sequence[str | tuple[float, float]] | str | None) -> list[tuple[str, tuple[float, float]]]:
+    """Labelled (azimuth, elevation) views from names, ``"turntable"`` or angle pairs.
+
+    Parameters
+    ----------
+    views : sequence of str or (azimuth, elevation), or str, optional
+        Names of :data:`VIEWS`, ``"turntable"`` (the four azimuths of :data:`TURNTABLE`),
+        ``"AZ,EL"`` or (azimuth, elevation) in degrees; a str is one view. Default :data:`DEFAULT_VIEWS`.
+
+    Returns
+    -------
+    list of (label, (azimuth, elevation))
+        A label such as ``"front (az 0°, el 0°)"``; turntable views are labelled by angle.
+
+    Raises
+    ------
+    ParameterError
+        An unknown name, malformed angles, or no view.
+    """
+    if views is None:
+        views = DEFAULT_VIEWS
+    if isinstance(views, str):
+        views = (views,)
+    out: list[tuple[str, tuple[float, float]]] = []
+    for v in views:
+        if isinstance(v, str) and "," in v:  # "AZ,EL" in degrees, as on the command line
+            try:
+                v = tuple(float(x) for x in v.split(","))
+            except ValueError:
+                raise ParameterError(f"view {v!r} is not AZIMUTH,ELEVATION in degrees") from None
+            if len(v) != 2 or not all(np.isfinite(v)):
+                raise ParameterError(f"view {','.join(map(str, v))!r} is not AZIMUTH,ELEVATION in degrees")
+        if isinstance(v, str):
+            if v == "turntable":
+                out += [(f"az {a:g}°, el {e:g}°", (a, e)) for a, e in TURNTABLE]
+                continue
+            camera(v)
+            a, e = VIEWS[v]
+            out.append((f"{v} (az {a:g}°, el {e:g}°)", (a, e)))
+        else:
+            a, e = (float(x) for x in v)
+            camera((a, e))
+            out.append((f"az {a:g}°, el {e:g}°", (a, e)))
+    if not out:
+        raise ParameterError("no view given")
+    return out
 
 
 def png_bytes(image: np.ndarray) -> bytes:
@@ -324,21 +336,6 @@ def write_png(image: np.ndarray, path: str | os.PathLike) -> None:
     write_bytes(path, png_bytes(image))
 
 
-def draw_text(img: np.ndarray, text: str, x: int, y: int, scale: int = 2, color=(20, 20, 20)) -> int:
-    """Draw ``text`` (upper-cased, 3x5 bitmap glyphs) into ``img`` in place; returns the end x."""
-    h, w = img.shape[:2]
-    for ch in text.upper():
-        glyph = _GLYPHS.get(ch, _GLYPHS["?"])
-        for r, line in enumerate(glyph):
-            for c, bit in enumerate(line):
-                if bit == "#":
-                    y0, x0 = y + r * scale, x + c * scale
-                    if 0 <= y0 and y0 + scale <= h and 0 <= x0 and x0 + scale <= w:
-                        img[y0 : y0 + scale, x0 : x0 + scale] = color
-        x += 4 * scale
-    return x
-
-
 # --------------------------------------------------------------------------- internals
 
 
@@ -352,77 +349,3 @@ def _face_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     from recon_cli.mesh.sampling import face_normals
 
     return face_normals(vertices, faces)[0]
-
-
-def _titled_row(tiles: list[np.ndarray], titles: list[str], title_h: int, pad_right: int) -> np.ndarray:
-    s_h, s_w = tiles[0].shape[:2]
-    out = np.full((s_h + title_h, len(tiles) * s_w + pad_right, 3), 255, dtype=np.uint8)
-    for k, (tile, title) in enumerate(zip(tiles, titles)):
-        out[title_h:, k * s_w : (k + 1) * s_w] = tile
-        max_chars = max(1, (s_w - 8) // 8)
-        text = title if len(title) <= max_chars else title[: max_chars - 1] + "-"
-        draw_text(out, text, k * s_w + 6, 6, scale=2)
-    return out
-
-
-def _num(v: float) -> str:
-    if v == 0:
-        return "0"
-    a = abs(v)
-    if 1e-3 <= a < 1e4:
-        return f"{v:.4g}"
-    return f"{v:.2e}"
-
-
-# 3x5 bitmap font, our own; rows top to bottom, '#' = ink
-_GLYPHS: dict[str, tuple[str, ...]] = {
-    "0": ("###", "#.#", "#.#", "#.#", "###"),
-    "1": (".#.", "##.", ".#.", ".#.", "###"),
-    "2": ("###", "..#", "###", "#..", "###"),
-    "3": ("###", "..#", "###", "..#", "###"),
-    "4": ("#.#", "#.#", "###", "..#", "..#"),
-    "5": ("###", "#..", "###", "..#", "###"),
-    "6": ("###", "#..", "###", "#.#", "###"),
-    "7": ("###", "..#", ".#.", ".#.", ".#."),
-    "8": ("###", "#.#", "###", "#.#", "###"),
-    "9": ("###", "#.#", "###", "..#", "###"),
-    "A": (".#.", "#.#", "###", "#.#", "#.#"),
-    "B": ("##.", "#.#", "##.", "#.#", "##."),
-    "C": (".##", "#..", "#..", "#..", ".##"),
-    "D": ("##.", "#.#", "#.#", "#.#", "##."),
-    "E": ("###", "#..", "##.", "#..", "###"),
-    "F": ("###", "#..", "##.", "#..", "#.."),
-    "G": (".##", "#..", "#.#", "#.#", ".##"),
-    "H": ("#.#", "#.#", "###", "#.#", "#.#"),
-    "I": ("###", ".#.", ".#.", ".#.", "###"),
-    "J": ("..#", "..#", "..#", "#.#", ".#."),
-    "K": ("#.#", "#.#", "##.", "#.#", "#.#"),
-    "L": ("#..", "#..", "#..", "#..", "###"),
-    "M": ("#.#", "###", "###", "#.#", "#.#"),
-    "N": ("##.", "#.#", "#.#", "#.#", "#.#"),
-    "O": (".#.", "#.#", "#.#", "#.#", ".#."),
-    "P": ("##.", "#.#", "##.", "#..", "#.."),
-    "Q": (".#.", "#.#", "#.#", "##.", ".##"),
-    "R": ("##.", "#.#", "##.", "#.#", "#.#"),
-    "S": (".##", "#..", ".#.", "..#", "##."),
-    "T": ("###", ".#.", ".#.", ".#.", ".#."),
-    "U": ("#.#", "#.#", "#.#", "#.#", "###"),
-    "V": ("#.#", "#.#", "#.#", "#.#", ".#."),
-    "W": ("#.#", "#.#", "###", "###", "#.#"),
-    "X": ("#.#", "#.#", ".#.", "#.#", "#.#"),
-    "Y": ("#.#", "#.#", ".#.", ".#.", ".#."),
-    "Z": ("###", "..#", ".#.", "#..", "###"),
-    ".": ("...", "...", "...", "...", ".#."),
-    ",": ("...", "...", "...", ".#.", "#.."),
-    "-": ("...", "...", "###", "...", "..."),
-    "_": ("...", "...", "...", "...", "###"),
-    "+": ("...", ".#.", "###", ".#.", "..."),
-    "=": ("...", "###", "...", "###", "..."),
-    "%": ("#.#", "..#", ".#.", "#..", "#.#"),
-    ":": ("...", ".#.", "...", ".#.", "..."),
-    "/": ("..#", "..#", ".#.", "#..", "#.."),
-    "(": (".#.", "#..", "#..", "#..", ".#."),
-    ")": (".#.", "..#", "..#", "..#", ".#."),
-    " ": ("...", "...", "...", "...", "..."),
-    "?": ("###", "..#", ".#.", "...", ".#."),
-}

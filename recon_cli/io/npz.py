@@ -46,31 +46,76 @@ def grid_bytes(grid: Grid) -> bytes:
 def read_grid(path: str | os.PathLike, data: bytes | None = None) -> Grid:
     """Read a grid ``.npz`` (``-``: standard input).
 
+    Every array's header is checked before its data is read: ``sdf`` a 3-d float array
+    with at least one sample and no more than the file holds or memory can take,
+    ``origin`` three finite numbers, ``voxel_size`` one finite positive number.
+
     Raises
     ------
     InputError
-        Not an npz, missing arrays, wrong shapes or types.
+        Not an npz, missing arrays, wrong shapes or types, non-finite frame, a claimed
+        size the file does not hold or the memory cannot take.
     """
+    from recon_cli.grid import allocation_problem
+
     where = "<stdin>" if str(path) == "-" else str(path)
     buf = read_bytes(path) if data is None else data
     if not is_npz(buf):
         raise InputError("not a grid .npz file", where)
     try:
-        with np.load(io.BytesIO(buf), allow_pickle=False) as z:
-            missing = [k for k in ("sdf", "origin", "voxel_size") if k not in z.files]
+        with zipfile.ZipFile(io.BytesIO(buf)) as zf:
+            members = {n[:-4]: n for n in zf.namelist() if n.endswith(".npy")}
+            missing = [k for k in ("sdf", "origin", "voxel_size") if k not in members]
             if missing:
                 raise InputError(f"grid file lacks {missing[0]!r}", where)
-            sdf = z["sdf"]
-            origin = z["origin"]
-            voxel = z["voxel_size"]
-            prov = str(z["provenance"]) if "provenance" in z.files else ""
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
+            heads = {k: _npy_header(zf, members[k]) for k in ("sdf", "origin", "voxel_size")}
+            shape, dtype, room = heads["sdf"]
+            if len(shape) != 3 or dtype.kind != "f":
+                dims = " x ".join(map(str, shape))
+                raise InputError(f"'sdf' must be a 3-d float array, got {dtype} of shape ({dims})", where)
+            if min(shape) == 0:
+                raise InputError(f"the grid has no samples (shape {' x '.join(map(str, shape))})", where)
+            for k, (shp, dt, rm) in heads.items():
+                if dt.kind not in "fiu" or dt.hasobject:
+                    raise InputError(f"{k!r} must be numeric, got {dt}", where)
+                if _count(shp) * dt.itemsize > rm:
+                    raise InputError(f"{k!r} claims {' x '.join(map(str, shp))} values but the file is shorter", where)
+            if heads["origin"][0] != (3,) or heads["voxel_size"][0] not in ((), (1,)):
+                raise InputError("'origin' must have 3 values and 'voxel_size' one", where)
+            problem = allocation_problem(shape, dtype.itemsize + 8)  # the array, its float32 copy, a mask
+            if problem:
+                raise InputError(f"{problem}: not read", where)
+            with np.load(io.BytesIO(buf), allow_pickle=False) as z:
+                sdf = z["sdf"]
+                origin = z["origin"].astype(np.float64)
+                voxel = float(z["voxel_size"].reshape(-1)[0])
+                prov = str(z["provenance"]) if "provenance" in z.files else ""
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as exc:
         raise InputError(f"corrupt grid file ({exc})", where) from None
-    if sdf.ndim != 3 or sdf.dtype.kind != "f":
-        raise InputError(f"'sdf' must be a 3-d float array, got {sdf.dtype} {sdf.shape}", where)
-    if origin.shape != (3,) or voxel.shape != () or not float(voxel) > 0:
-        raise InputError("'origin' must have 3 values and 'voxel_size' be one positive value", where)
-    return Grid(sdf=sdf, origin=origin, voxel_size=float(voxel), history=[s for s in prov.split("\n") if s])
+    if not np.isfinite(origin).all():
+        raise InputError(f"'origin' must be finite, got {origin.tolist()}", where)
+    if not (np.isfinite(voxel) and voxel > 0):
+        raise InputError(f"'voxel_size' must be a finite positive number, got {voxel}", where)
+    return Grid(sdf=sdf, origin=origin, voxel_size=voxel, history=[s for s in prov.split("\n") if s])
+
+
+def _count(shape: tuple) -> int:
+    n = 1
+    for s in shape:
+        n *= int(s)
+    return n
+
+
+def _npy_header(zf: zipfile.ZipFile, name: str) -> tuple[tuple, np.dtype, int]:
+    """(shape, dtype, data bytes the member holds) of one ``.npy`` member, from its header only."""
+    from numpy.lib import format as npy
+
+    size = zf.getinfo(name).file_size
+    with zf.open(name) as fh:
+        version = npy.read_magic(fh)
+        read = npy.read_array_header_1_0 if version == (1, 0) else npy.read_array_header_2_0
+        shape, _, dtype = read(fh)
+        return tuple(shape), dtype, size - fh.tell()
 
 
 def write_grid(grid: Grid, path: str | os.PathLike) -> None:

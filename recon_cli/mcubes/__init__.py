@@ -304,6 +304,12 @@ def run_stage(
         A :class:`~recon_cli.geometry.TriangleMesh` with vertex normals; report keys
         ``vertices``, ``faces``, ``method``, ``iso``, ``grid_shape``, ``skipped_nan_cells``
         (cells left out for a NaN corner), ``boundary_edges`` (0 = closed).
+
+    Raises
+    ------
+    InputError
+        When the level set is empty (no sample on one side of ``iso``, a grid without a
+        cell, or only cells with unknown corners): an empty mesh is refused, not written.
     """
     from recon_cli.geometry import TriangleMesh
     from recon_cli.progress import task
@@ -316,6 +322,18 @@ def run_stage(
             allow_degenerate=allow_degenerate,
         )
         t.advance(1)
+    if len(f) == 0:
+        # an empty mesh is never a result: say why there is nothing to mesh
+        finite = data.sdf[np.isfinite(data.sdf)]
+        if min(data.shape) < 2:
+            why = f"the grid ({' x '.join(map(str, data.shape))}) has no cell"
+        elif finite.size == 0:
+            why = "every sample is unknown (NaN)"
+        elif finite.min() >= iso or finite.max() <= iso:
+            why = f"no sample is on the other side of iso {iso:g} (values {finite.min():.6g} .. {finite.max():.6g})"
+        else:
+            why = "every cell the level set crosses has an unknown (NaN) corner"
+        raise InputError(f"nothing to mesh: {why}")
     mesh = TriangleMesh(vertices=v, faces=f, normals=n, history=list(data.history), point_dtype=np.float32)
     nan = ~np.isfinite(data.sdf)
     skipped = 0

@@ -1,17 +1,18 @@
 """Signed distance grids: from a triangle mesh (exact) or an oriented point cloud (IMLS).
 
-Mesh: exact unsigned distance to the nearest triangle (:mod:`recon_cli.mesh.distance`), signed
-by the generalised winding number (:mod:`recon_cli.mesh.winding`; robust to holes) or by
-angle-weighted pseudonormals (exact on watertight meshes). On a closed, manifold,
-consistently oriented mesh the two signs agree off the surface (the winding number is 0
-or 1 there), so ``sign="winding"`` takes the pseudonormal sign, which the distance search
-yields for free, once winding numbers on a coarse lattice confirm it (they do not on an
-inside-out mesh; a closed mesh that intersects itself is caught only where the lattice
-sees its winding number leave 0/1). Otherwise the winding number is only
-evaluated where needed: at samples within one voxel of the surface, and on a coarse
-subset of each connected region of the other samples (two neighbouring samples farther
-than one voxel from the mesh cannot have the surface between them, so such a region has
-one side); a region whose subset disagrees is evaluated everywhere.
+Mesh: exact unsigned distance to the nearest triangle (:mod:`recon_cli.mesh.distance`);
+inside where the generalised winding number (:mod:`recon_cli.mesh.winding`) is not 0.
+On a closed mesh (every directed edge matched by its reverse: :func:`is_boundary_free`)
+the winding number is an integer, constant off the surface between samples whose
+distances add up to more than a voxel; one winding number per such class of samples
+gives every sample its exact sign (:func:`closed_mesh_inside`), for a mesh wound inward
+too (winding number -1: the geometric inside). On an open mesh the winding number is
+evaluated at samples within one voxel of the surface, and on a coarse subset of each
+connected region of the other samples (two neighbouring samples farther than one voxel
+from the mesh cannot have the surface between them, so such a region has one side); a
+region whose subset disagrees is evaluated everywhere. ``sign="pseudonormal"`` takes the
+angle-weighted pseudonormal of the closest feature instead (no exactness guarantee in
+floating point; a closed mesh wound inward is refused).
 
 Cloud: implicit moving least squares (Kolluri 2005; Hoppe 1992 with smoothing): the
 Gaussian-weighted mean of the signed distances to the tangent planes of the ``knn``
@@ -31,6 +32,11 @@ from recon_cli.params import Param, StageSpec
 
 _SIGNS = ("winding", "pseudonormal")
 _SLAB_CELLS = 500_000  # eikonal_check works on slabs of about this many samples
+# peak bytes per grid sample (estimates, for refusing a grid up front): mesh = float64
+# distances + int32 side classes + the float32 grid + the eikonal check's float32 norms;
+# cloud = float64 field + sample coordinates and nearest distances (float64 x 4) + float32
+# grid + norms; open3d = float32 coordinates + float32 distances + float64 copies
+BYTES_PER_SAMPLE = {"mesh": 24, "cloud": 56, "open3d": 48}
 
 SPEC = StageSpec(
     name="sdf",
@@ -49,8 +55,8 @@ SPEC = StageSpec(
         Param("voxel_size", "float", None, "Sample spacing (overrides --resolution).", unit="input units",
               min=0.0, min_open=True, words={"auto": None}),
         Param("padding", "float", 0.05, "Margin around the bounding box.", unit="fraction of the longest side", min=0.0),
-        Param("sign", "choice", "winding", "Meshes: inside by generalised winding number (robust to holes) or "
-              "pseudonormals (watertight).", choices=_SIGNS),
+        Param("sign", "choice", "winding", "Meshes: inside where the winding number is not 0 (exact on closed "
+              "meshes of either orientation; robust to holes) or by pseudonormals.", choices=_SIGNS),
         Param("band", "float", None, "Meshes: exact distances only within this many voxels.", unit="voxels",
               min=0.0, min_open=True),
         Param("knn", "int", 10, "Clouds: neighbours averaged per sample (IMLS).", unit="points", min=1),
@@ -89,15 +95,27 @@ def grid_frame(
     org = lo - pad
     size = hi - lo + 2 * pad
     h = float(voxel_size) if voxel_size is not None else float(size.max()) / int(resolution)
-    shape = tuple(int(s) for s in np.ceil(size / h - 1e-9).astype(np.int64) + 1)
+    cells = np.ceil(size / h - 1e-9)
+    if not (np.isfinite(cells).all() and cells.max() < 2**52):
+        raise ParameterError(f"voxel size {h:.6g} is too small for a box of {float(size.max()):.6g}")
+    shape = tuple(int(s) + 1 for s in cells)
     # centre the data in the (slightly larger) sampled box
     org = org - 0.5 * ((np.array(shape) - 1) * h - size)
     return org, h, shape
 
 
-def grid_points(origin: np.ndarray, h: float, shape: tuple[int, int, int], mask: np.ndarray | None = None) -> np.ndarray:
-    """World coordinates ((k, 3)) of all samples, or of those where ``mask``."""
-    if mask is None:
+def grid_points(
+    origin: np.ndarray,
+    h: float,
+    shape: tuple[int, int, int],
+    mask: np.ndarray | None = None,
+    flat: np.ndarray | None = None,
+) -> np.ndarray:
+    """World coordinates ((k, 3)) of all samples, of those where ``mask``, or of the
+    samples at C-order indices ``flat``."""
+    if flat is not None:
+        idx = np.stack(np.unravel_index(np.asarray(flat, dtype=np.int64), shape), axis=1)
+    elif mask is None:
         idx = np.indices(shape).reshape(3, -1).T
     else:
         idx = np.argwhere(mask)
@@ -126,6 +144,11 @@ def mesh_sdf(
         Sample spacing, world units.
     shape : (nx, ny, nz)
     sign : {"winding", "pseudonormal"}
+        ``winding``: inside where the winding number is not 0 (|w| > 1/2): on a closed
+        mesh the geometric inside whatever the orientation, exact (see below);
+        ``pseudonormal``: the angle-weighted pseudonormal of the closest feature (fast,
+        right on a closed, outward, self-intersection-free mesh up to rounding; a closed
+        mesh wound inward is refused).
     band : float, optional
         Half-width in voxels: only samples within it get exact distances, the rest
         ``±band * voxel_size``.
@@ -135,60 +158,160 @@ def mesh_sdf(
     sdf : (nx, ny, nz) float64
         Negative inside.
     info : dict
-        ``winding_evaluations`` (samples where the winding number was computed),
-        ``regions`` (connected regions of samples away from the surface),
-        ``sign_method`` ("winding" or "pseudonormal": how the sign was found; with
-        ``sign="winding"`` on a closed, manifold, consistently oriented mesh, where the
-        two agree, the pseudonormal sign is used once a coarse lattice of winding numbers
-        confirms it).
-    """
-    from scipy import ndimage
+        ``sign_method``: "classes" (closed mesh: one exact winding number per side class,
+        see :func:`closed_mesh_inside`), "winding" (open mesh: winding numbers near the
+        surface and on a lattice of each far region) or "pseudonormal";
+        ``winding_evaluations`` (samples where the winding number was computed);
+        ``regions`` (side classes, or far regions of an open mesh); on a closed mesh
+        ``winding_numbers`` (the distinct winding numbers of the classes: -1 for a mesh
+        wound inward, 2 where it overlaps itself).
 
+    Raises
+    ------
+    InputError
+        ``sign="pseudonormal"`` on a closed mesh of negative volume (wound inward).
+    """
     from recon_cli.mesh.distance import build_bvh, distance_grid
-    from recon_cli.mesh.winding import WindingTree
 
     h = float(voxel_size)
     cap = np.inf if band is None else float(band) * h
     bvh = build_bvh(vertices, faces)
-    # on a closed, manifold, consistently oriented mesh the winding number is exactly 0
-    # or 1 off the surface and its sign is the pseudonormal sign, which the distance
-    # search gives at almost no cost; the winding number is then only checked on a
-    # coarse lattice (which catches an inward orientation or a self-intersecting shell)
-    closed = sign == "winding" and _closed_oriented(faces, len(vertices))
-    use_pn = sign == "pseudonormal" or closed
-    dist, pn_sign = distance_grid(vertices, faces, origin, h, shape, band=cap, pseudonormal=use_pn, bvh=bvh)
-    tree = None
-    info = {"winding_evaluations": 0, "regions": 0, "sign_method": sign}
-
-    def winding_at(mask: np.ndarray) -> np.ndarray:
-        nonlocal tree
-        if tree is None:
-            tree = WindingTree(vertices, faces, bvh=bvh)
-        info["winding_evaluations"] += int(mask.sum())
-        return tree(grid_points(origin, h, shape, mask))
-
+    closed = is_boundary_free(faces)
+    if sign == "pseudonormal":
+        if closed and signed_volume(vertices, faces) < 0:
+            raise InputError(INWARD_MESSAGE)
+        dist, pn_sign = distance_grid(vertices, faces, origin, h, shape, band=cap, pseudonormal=True, bvh=bvh)
+        return _pseudonormal_sdf(vertices, faces, origin, h, shape, dist, pn_sign, bvh)
+    dist, _ = distance_grid(vertices, faces, origin, h, shape, band=cap, bvh=bvh)
     if closed:
-        step = max(2, -(-max(shape) // 32))  # about 32 lattice samples per axis
-        check = np.zeros(shape, dtype=bool)
-        check[::step, ::step, ::step] = True
-        check &= (pn_sign != 0) & (dist > h)
-        agree = np.array_equal(winding_at(check) > 0.5, pn_sign[check] < 0)
-        info["sign_method"] = "pseudonormal" if agree else "winding"
-        use_pn = agree
+        return closed_mesh_inside(vertices, faces, origin, h, dist, bvh=bvh)
+    return _open_winding_sdf(vertices, faces, origin, h, shape, dist, bvh)
 
+
+INWARD_MESSAGE = "the mesh is wound inward (negative volume): run `recon repair`, or use --sign winding"
+
+
+def closed_mesh_inside(
+    vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, voxel_size: float, dist: np.ndarray, bvh=None
+) -> tuple[np.ndarray, dict]:
+    """Sign the distances of a closed mesh's grid exactly: negative where the winding number is not 0.
+
+    The winding number of a closed mesh (:func:`is_boundary_free`) is an integer,
+    constant on each connected piece of space off the surface. Two 6-neighbour samples
+    whose distances add up to more than the voxel size cannot have the surface between
+    them (:func:`recon_cli.sdf._kernel.side_classes`), so the samples joined this way form
+    classes of equal winding number. Each class's winding number is evaluated once, at
+    its sample farthest from the surface (Barill's tree, and the exact sum of solid angles
+    where the tree's value is not within 0.1 of an integer), and rounded.
+
+    Guarantee: every sample whose distance is not within rounding of zero gets the sign
+    of its exact winding number (nonzero rule: the geometric inside, also for a mesh wound
+    inward); a sample within half a voxel of the surface is always either joined to a
+    class or evaluated on its own. Rounding margin: distances are compared against
+    ``voxel * (1 + 1e-6) + 1e-12 * extent``.
+
+    Parameters
+    ----------
+    vertices, faces
+        A boundary-free mesh.
+    origin, voxel_size
+        The grid frame.
+    dist : (nx, ny, nz) float64
+        Unsigned distances (or lower bounds, as beyond a band); negated in place inside.
+
+    Returns
+    -------
+    sdf : the same array as ``dist``
+    info : dict
+        ``sign_method`` ("classes"), ``regions`` (classes), ``winding_evaluations``,
+        ``winding_numbers``.
+
+    References
+    ----------
+    Jacobson, Kavan & Sorkine-Hornung, "Robust inside-outside segmentation using
+    generalized winding numbers", SIGGRAPH 2013; Barill et al., "Fast winding numbers for
+    soups and clouds", SIGGRAPH 2018.
+    """
+    from recon_cli.mesh.winding import WindingTree, winding_number
+    from recon_cli.sdf import _kernel as K
+
+    h = float(voxel_size)
+    v = np.ascontiguousarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    used = v[np.unique(f)]
+    extent = float(np.abs(used).max()) + float(np.abs(np.asarray(origin, float)).max()) + h * max(dist.shape)
+    link = h * (1.0 + 1e-6) + 1e-12 * extent
+    n = dist.size
+    classes_of = np.empty(n, np.int32 if n < 2**31 - 1 else np.int64)
+    dist = np.ascontiguousarray(dist)
+    count, rep = K.side_classes(dist, link, classes_of)
+    pts = grid_points(origin, h, dist.shape, None, flat=rep)
+    w = WindingTree(v, f, bvh=bvh)(pts)
+    unsure = np.abs(w - np.round(w)) > 0.1
+    if unsure.any():
+        w[unsure] = winding_number(v, f, pts[unsure], method="exact")
+    wn = np.round(w).astype(np.int64)
+    K.negate_inside(dist, classes_of, wn != 0)
+    info = {
+        "sign_method": "classes",
+        "regions": int(count),
+        "winding_evaluations": int(count),
+        "winding_numbers": sorted(int(x) for x in np.unique(wn)),
+    }
+    return dist, info
+
+
+class _GridWinding:
+    """|winding number| at masked grid samples; the tree is built on first use and the
+    evaluations are counted."""
+
+    def __init__(self, vertices, faces, origin, h, shape, bvh):
+        self.args = (vertices, faces, bvh)
+        self.frame = (origin, h, shape)
+        self.tree = None
+        self.evaluations = 0
+
+    def __call__(self, mask: np.ndarray) -> np.ndarray:
+        from recon_cli.mesh.winding import WindingTree
+
+        if self.tree is None:
+            v, f, bvh = self.args
+            self.tree = WindingTree(v, f, bvh=bvh)
+        self.evaluations += int(mask.sum())
+        return np.abs(self.tree(grid_points(*self.frame, mask)))
+
+
+def _pseudonormal_sdf(vertices, faces, origin, h, shape, dist, pn_sign, bvh) -> tuple[np.ndarray, dict]:
+    """Pseudonormal signs; samples beyond the band (no closest feature) by far regions."""
     near = dist <= h
-    if use_pn:
-        inside = pn_sign < 0
-        far = pn_sign == 0  # beyond the band: no pseudonormal sign
-        far &= ~near
-        del pn_sign
-    else:
-        inside = np.zeros(shape, dtype=bool)
-        inside[near] = winding_at(near) > 0.5
-        far = ~near
+    inside = pn_sign < 0
+    far = pn_sign == 0  # beyond the band: no pseudonormal sign
+    far &= ~near
+    del pn_sign, near
+    winding = _GridWinding(vertices, faces, origin, h, shape, bvh)
+    return _far_regions(dist, inside, far, winding, "pseudonormal")
+
+
+def _open_winding_sdf(vertices, faces, origin, h, shape, dist, bvh) -> tuple[np.ndarray, dict]:
+    """Winding numbers within a voxel of the surface, and per far region."""
+    winding = _GridWinding(vertices, faces, origin, h, shape, bvh)
+    near = dist <= h
+    inside = np.zeros(shape, dtype=bool)
+    inside[near] = winding(near) > 0.5
+    far = ~near
     del near
+    return _far_regions(dist, inside, far, winding, "winding")
+
+
+def _far_regions(dist, inside, far, winding: _GridWinding, method: str) -> tuple[np.ndarray, dict]:
+    """Sign the connected regions of ``far`` samples (two neighbouring samples farther than
+    one voxel from the mesh cannot have the surface between them, so such a region has one
+    side): a coarse subset of each region is evaluated; a region whose subset disagrees
+    (open through a hole) is evaluated everywhere. Negates ``dist`` in place inside."""
+    from scipy import ndimage
+
+    shape = dist.shape
     labels, n = ndimage.label(far) if far.any() else (None, 0)
-    info["regions"] = int(n)
     if n:
         # a coarse lattice of samples per region; a region the lattice misses (thin or
         # small) gets its first few samples, found inside its bounding box
@@ -204,7 +327,7 @@ def mesh_sdf(
                 first = np.argwhere(labels[sl] == r)[:8] + [s_.start for s_ in sl]
                 pick_mask[tuple(first.T)] = True
         lab = labels[pick_mask]
-        win = winding_at(pick_mask) > 0.5
+        win = winding(pick_mask) > 0.5
         n_in = np.bincount(lab, weights=win, minlength=n + 1)
         n_all = np.bincount(lab, minlength=n + 1)
         uniform_in = (n_in == n_all) & (n_all > 0)
@@ -214,26 +337,35 @@ def mesh_sdf(
         mixed[0] = False
         if mixed.any():  # a region open through a hole: evaluate all its samples
             redo = mixed[labels]
-            inside[redo] = winding_at(redo) > 0.5
+            inside[redo] = winding(redo) > 0.5
     # negate in place: no second full-size array
     sdf = dist
     np.negative(sdf, out=sdf, where=inside)
-    return sdf, info
+    return sdf, {"winding_evaluations": winding.evaluations, "regions": int(n), "sign_method": method}
 
 
-def _closed_oriented(faces: np.ndarray, n_vertices: int) -> bool:
-    """Every edge has exactly two faces, every vertex one fan, and the faces are
-    consistently oriented: a mesh whose winding number is 0 or 1 off the surface
-    (unless it intersects itself)."""
-    from recon_cli.mesh.topology import Connectivity
+def is_boundary_free(faces: np.ndarray) -> bool:
+    """True when every directed edge a->b of ``faces`` is matched by as many b->a: the
+    triangles form a closed surface (a cycle), whose winding number is an integer off the
+    surface. Holds for watertight, consistently oriented meshes, also non-manifold or
+    self-intersecting ones; a face flipped against its neighbours breaks it."""
+    f = np.asarray(faces, dtype=np.int64)
+    if len(f) == 0:
+        return False
+    a = f.reshape(-1)
+    b = f[:, [1, 2, 0]].reshape(-1)
+    n = int(a.max()) + 1
+    fwd = np.sort(a * n + b)
+    rev = np.sort(b * n + a)
+    return bool(np.array_equal(fwd, rev))
 
-    c = Connectivity(faces, n_vertices)
-    return bool(
-        c.n_faces > 0
-        and np.all(c.edge_face_count == 2)
-        and len(c.non_manifold_vertices) == 0
-        and c.is_consistently_oriented
-    )
+
+def signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Volume enclosed by a closed mesh, negative when it is wound inward (divergence theorem)."""
+    t = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64)]
+    c = t.mean(axis=(0, 1))  # relative to a local origin: no cancellation far from 0
+    t = t - c
+    return float(np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() / 6.0)
 
 
 def cloud_sdf(
@@ -406,10 +538,20 @@ def run_stage(
         Report keys: ``source`` ("mesh"/"cloud"), ``shape``, ``voxel_size``, ``origin``,
         ``sign``, ``band``, ``inside_samples``, ``unknown_samples``, ``eikonal`` and
         ``provenance`` (the effective voxel size); native meshes add ``sign_method``,
-        ``winding_evaluations`` and ``regions`` (see :func:`mesh_sdf`).
+        ``winding_evaluations``, ``regions`` and, on closed meshes, ``winding_numbers``
+        (see :func:`mesh_sdf`).
+
+    Raises
+    ------
+    ParameterError
+        Bad parameters, or a grid whose memory cannot be had (refused before allocating,
+        with the estimate: :data:`BYTES_PER_SAMPLE`).
+    InputError
+        No points, non-finite coordinates, a cloud without normals, ``sign="pseudonormal"``
+        on a closed mesh wound inward.
     """
     from recon_cli.geometry import TriangleMesh, float64
-    from recon_cli.grid import Grid
+    from recon_cli.grid import Grid, allocation_problem
     from recon_cli.progress import task
     from recon_cli.stages import StageResult
 
@@ -427,9 +569,11 @@ def run_stage(
     if not is_mesh and data.normals is None:
         raise InputError("point cloud has no normals (run 'recon normals' first)")
     origin, h, shape = grid_frame(pts.min(axis=0), pts.max(axis=0), resolution, voxel, padding)
-    cells = int(np.prod(shape))
-    if cells > 2048**3:
-        raise ParameterError(f"grid of {shape} samples is too large; lower the resolution")
+    # refuse what cannot be had before allocating: the peak bytes per sample of each path
+    per_sample = BYTES_PER_SAMPLE["open3d" if backend == "open3d" else "mesh" if is_mesh else "cloud"]
+    problem = allocation_problem(shape, per_sample)
+    if problem:
+        raise ParameterError(f"{problem}: raise --voxel-size or lower --resolution")
 
     with task(progress, "signed distance", 1) as t:
         if backend == "open3d":
