@@ -6,14 +6,24 @@ library code never calls ``sys.exit``.
 
 from __future__ import annotations
 
+import contextlib
+import os
+from typing import Iterator
+
 
 class ReconError(Exception):
     """Base class of every error recon raises on purpose.
 
-    The message is one line meant for a user, ideally naming the file and the problem.
+    The message is one line meant for a user, naming the file and the problem: ``path``
+    (when given) is put in front of ``message``.
     """
 
     exit_code = 1
+
+    def __init__(self, message: str = "", path: str | None = None):
+        self.message = message
+        self.path = path
+        super().__init__(f"{path}: {message}" if path else message)
 
 
 class InputError(ReconError):
@@ -21,9 +31,12 @@ class InputError(ReconError):
 
     exit_code = 2
 
-    def __init__(self, message: str, path: str | None = None):
-        self.path = path
-        super().__init__(f"{path}: {message}" if path else message)
+
+class OutputError(ReconError):
+    """An output path that cannot be written: missing folder, a directory, read-only or full
+    file system, closed standard output. ``path`` is the output path as given."""
+
+    exit_code = 2
 
 
 class ParameterError(ReconError):
@@ -42,3 +55,19 @@ class StageFailed(ReconError):
     """A stage could not produce a result from valid input (e.g. nothing to reconstruct)."""
 
     exit_code = 1
+
+
+@contextlib.contextmanager
+def naming(path: str | os.PathLike | None) -> Iterator[None]:
+    """Put ``path`` in front of the :class:`InputError` and :class:`StageFailed` raised inside
+    that do not name a file yet (a stage checks its data, the caller knows the file).
+
+    ``-`` is named ``<stdin>``.
+    """
+    try:
+        yield
+    except (InputError, StageFailed) as exc:
+        if exc.path is not None or path is None:
+            raise
+        where = "<stdin>" if str(path) == "-" else os.fspath(path)
+        raise type(exc)(exc.message, where) from exc

@@ -9,6 +9,7 @@ reconstruction stages return. Both carry ``history`` (provenance lines, written 
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -37,8 +38,11 @@ class PointCloud:
         Other per-point scalar properties (``curvature``, ``density``, unknown ones).
     history : list of str
         Provenance lines, oldest first (PLY ``comment`` lines).
-    point_dtype : numpy dtype
-        Float type of the coordinates in the file (written back with the same type).
+    point_dtype : numpy float type or None
+        Float type of the coordinates in the source: ``np.float32`` or ``np.float64``
+        (None: the type of ``points``, so a cloud built from float64 arrays is double). Files
+        are written with :func:`storage_dtype`, which keeps this type unless float32 would
+        round the coordinates by more than ``tol.precision`` of the bbox diagonal.
     extra_elements : list
         PLY elements recon does not interpret, kept for writing back.
     obj_info : list of str
@@ -50,12 +54,13 @@ class PointCloud:
     colors: np.ndarray | None = None
     attributes: dict[str, np.ndarray] = field(default_factory=dict)
     history: list[str] = field(default_factory=list)
-    point_dtype: Any = np.float32
+    point_dtype: Any = None
     extra_elements: list = field(default_factory=list)
     obj_info: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.points = _float_rows(self.points)
+        self.point_dtype = _source_dtype(self.point_dtype, self.points)
         _normalise_per_point(self, len(self.points))
 
     @property
@@ -120,12 +125,13 @@ class TriangleMesh:
     attributes: dict[str, np.ndarray] = field(default_factory=dict)
     face_attributes: dict[str, np.ndarray] = field(default_factory=dict)
     history: list[str] = field(default_factory=list)
-    point_dtype: Any = np.float32
+    point_dtype: Any = None
     extra_elements: list = field(default_factory=list)
     obj_info: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.vertices = _float_rows(self.vertices)
+        self.point_dtype = _source_dtype(self.point_dtype, self.vertices)
         self.faces = np.ascontiguousarray(self.faces, dtype=np.int64).reshape(-1, 3)
         _normalise_per_point(self, len(self.vertices))
         for k, v in self.face_attributes.items():
@@ -195,6 +201,75 @@ def float64(obj: "PointCloud | TriangleMesh") -> "PointCloud | TriangleMesh":
     return out
 
 
+def local_origin(points: np.ndarray) -> np.ndarray:
+    """A local origin for computing near ``points`` ((n, 3)): the centre of their bounding box, (3,) float64.
+
+    Stages subtract it (in float64) before anything that loses precision far from the
+    origin (float32 arrays, squared norms, cross products, a unit cube) and add it back to
+    the coordinates they output, so data at UTM-like offsets (1e6) is computed on as
+    precisely as the same data at the origin. ``points`` must be finite; zeros for an empty array.
+    """
+    if len(points) == 0:
+        return np.zeros(3)
+    lo = points.min(axis=0).astype(np.float64)
+    hi = points.max(axis=0).astype(np.float64)
+    return 0.5 * (lo + hi)
+
+
+def storage_dtype(obj: "PointCloud | TriangleMesh") -> type:
+    """The float type ``obj``'s coordinates (and normals) are written with: the rule of the data model.
+
+    ``np.float64`` when the source is double (``obj.point_dtype``); otherwise ``np.float32``
+    unless the coordinates are float64 values that float32 would round by more than
+    ``tol.precision`` times the bounding-box diagonal (a float32 source far from the origin
+    whose coordinates a stage computed anew): then ``np.float64``, which loses nothing.
+    """
+    if np.dtype(obj.point_dtype) == np.float64:
+        return np.float64
+    return np.float64 if float32_rounding(obj.points)[0] > 0 else np.float32
+
+
+def float32_rounding(points: np.ndarray) -> tuple[float, float]:
+    """How far storing ``points`` ((n, 3)) as float32 would move them, when it matters.
+
+    Returns ``(bound, relative)``: a bound on the rounding of any coordinate and that bound
+    over the bbox diagonal, both 0 when it is within ``tol.precision`` of the diagonal or the
+    values are float32 already (or exactly representable as float32).
+    """
+    from recon_cli.tolerances import tol
+
+    if len(points) == 0 or points.dtype == np.float32:
+        return 0.0, 0.0
+    lo = points.min(axis=0).astype(np.float64)
+    hi = points.max(axis=0).astype(np.float64)
+    big = float(np.maximum(np.abs(lo), np.abs(hi)).max())
+    if big > float(np.finfo(np.float32).max):
+        return math.inf, math.inf
+    bound = float(np.spacing(np.float32(big))) / 2  # round to nearest: half a unit in the last place
+    diag = float(np.linalg.norm(hi - lo))
+    scale = diag if diag > 0 else big
+    if bound <= tol.precision * scale:
+        return 0.0, 0.0
+    if np.array_equal(points.astype(np.float32), points):
+        return 0.0, 0.0
+    return bound, bound / scale
+
+
+def precision_note(obj: Any) -> str | None:
+    """A one-line note when :func:`storage_dtype` writes double for a float32 source, else None."""
+    if not isinstance(obj, (PointCloud, TriangleMesh)) or np.dtype(obj.point_dtype) == np.float64:
+        return None
+    bound, rel = float32_rounding(obj.points)
+    if bound == 0:
+        return None
+    if math.isinf(bound):
+        return "coordinates kept as double: they exceed the float32 range"
+    return (
+        f"coordinates kept as double: float32 would round them by up to {bound:.3g} "
+        f"({rel:.2g} of the bounding-box diagonal)"
+    )
+
+
 def bbox_diagonal(points: np.ndarray) -> float:
     """Length of the axis-aligned bounding-box diagonal of ``points`` ((n, 3)), 0 if empty."""
     if len(points) == 0:
@@ -209,6 +284,13 @@ def _float_rows(a: Any) -> np.ndarray:
     if arr.dtype not in (np.float32, np.float64):
         arr = arr.astype(np.float64)
     return arr if arr.ndim == 2 and arr.shape[1:] == (3,) else np.ascontiguousarray(arr).reshape(-1, 3)
+
+
+def _source_dtype(point_dtype: Any, coords: np.ndarray) -> type:
+    """``np.float64`` or ``np.float32``: ``point_dtype``, or the type of ``coords`` when None."""
+    if point_dtype is None:
+        point_dtype = coords.dtype
+    return np.float64 if np.dtype(point_dtype) == np.float64 else np.float32
 
 
 def _normalise_per_point(obj: "PointCloud | TriangleMesh", n: int) -> None:

@@ -6,6 +6,7 @@ Its file format (``.npz``) is read and written by :mod:`recon_cli.io.npz`.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -26,17 +27,22 @@ class Grid:
         Spacing between samples, in the units of the source.
     history : list of str
         Provenance lines.
+    point_dtype : np.float32 or np.float64
+        Float type of the coordinates of the source the grid was computed from; meshes
+        extracted from it are written with it (see :func:`recon_cli.geometry.storage_dtype`).
     """
 
     sdf: np.ndarray
     origin: np.ndarray
     voxel_size: float
     history: list[str] = field(default_factory=list)
+    point_dtype: Any = np.float32
 
     def __post_init__(self) -> None:
         self.sdf = np.asarray(self.sdf, dtype=np.float32)
         self.origin = np.asarray(self.origin, dtype=np.float64).reshape(3)
         self.voxel_size = float(self.voxel_size)
+        self.point_dtype = np.float64 if np.dtype(self.point_dtype) == np.float64 else np.float32
         if self.sdf.ndim != 3:
             raise InputError(f"sdf must be 3-d, got shape {self.sdf.shape}")
         if min(self.sdf.shape) == 0:

@@ -250,6 +250,11 @@ def apply_stage(name: str, data: Any, params: dict[str, Any] | None = None, prog
     if history is not None:
         history.append(provenance_line(name, effective))
     result.report.setdefault("stage", name)
+    from recon_cli.geometry import precision_note
+
+    note = precision_note(result.output)  # float32 source, double output: say so (README, data model)
+    if note:
+        result.report["precision"] = note
     return result
 
 

@@ -23,6 +23,9 @@ class Tolerance:
         Ratio of middle to largest covariance eigenvalue below which a neighbourhood is a line.
     volume : float
         Relative volume change accepted where an operation must preserve volume.
+    precision : float
+        Relative (to the bounding-box diagonal) rounding that writing float64 coordinates of a
+        float32 source as float32 may add; beyond it they are written as float64.
     """
 
     zero: float = 1e-12
@@ -31,6 +34,7 @@ class Tolerance:
     planar: float = 1e-3
     collinear: float = 1e-6
     volume: float = 1e-6
+    precision: float = 1e-6
 
 
 tol = Tolerance()

@@ -211,7 +211,9 @@ def test_process_one_interrupted_write_leaves_nothing(tmp_path, test_stages, mon
     monkeypatch.setattr(atomic.os, "fsync", broken_fsync)
     rec = batch.process_one(pipe, str(shared_path("mug")), str(tmp_path / "mug"))
     assert rec["status"] == "failed" and "No space left" in rec["error"]
-    assert rec["error_type"] == "OSError" and "traceback" in rec
+    # a full disk is the output's problem, reported in one line naming the path (not a bug with a traceback)
+    assert rec["error_type"] == "OutputError" and "traceback" not in rec
+    assert str(tmp_path / "mug.ply") in rec["error"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p.toml"]  # no output, no temporary
 
 

@@ -266,7 +266,7 @@ def test_input_normals_replaced_or_kept():
     partial[5000:15000] = 0.0
     k2 = run_stage(PointCloud(cloud.points, normals=partial), orient="keep")
     assert _same_way(k2.output.normals, cloud.normals) > 0.999
-    with pytest.raises(ParameterError, match="needs input normals"):
+    with pytest.raises(InputError, match="needs input normals"):
         run_stage(PointCloud(cloud.points), orient="keep")
 
 

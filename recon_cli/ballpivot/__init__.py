@@ -45,7 +45,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from recon_cli.errors import InputError, ParameterError, StageFailed
-from recon_cli.geometry import PointCloud, TriangleMesh, as_point_cloud, bbox_diagonal
+from recon_cli.geometry import PointCloud, TriangleMesh, as_point_cloud, bbox_diagonal, local_origin
 from recon_cli.params import Param, StageSpec
 from recon_cli.stages import StageResult
 from recon_cli.tolerances import tol
@@ -235,6 +235,8 @@ def ball_pivoting(
         that the search grid would overflow.
     """
     pts, nrm, keep = _prepare(points, normals)
+    # about a local origin: ball centres and cross products far from the world origin lose digits
+    pts -= local_origin(pts)  # pts is _prepare's copy
     diagonal = bbox_diagonal(pts)
     parsed = parse_radii(radii)
     if parsed is None:
@@ -345,7 +347,7 @@ def run_stage(
         else:
             pts, nrm, keep = _prepare(cloud.points, cloud.normals)
             rr = _check_radii(auto_radii(pts) if parsed is None else parsed, bbox_diagonal(pts))
-            sub = PointCloud(points=pts, normals=nrm)
+            sub = PointCloud(points=pts - local_origin(pts), normals=nrm)
             if backend == "open3d":
                 from recon_cli.backends import open3d_backend
 

@@ -115,7 +115,7 @@ def plan_batch(
     Raises
     ------
     InputError
-        No inputs at all.
+        No inputs at all, or none usable (missing, an empty folder, a pattern matching nothing).
     ParameterError
         Two inputs that would write the same output name, or an output that would
         overwrite its input.
@@ -124,6 +124,11 @@ def plan_batch(
     expanded = expand_inputs(inputs)
     if not expanded:
         raise InputError("no inputs given")
+    if all(problem is not None for _, problem in expanded):
+        # nothing to run at all (a missing or empty folder, a pattern matching nothing): bad input, not a batch
+        path, problem = expanded[0]
+        more = f" (and {len(expanded) - 1} more inputs, none usable)" if len(expanded) > 1 else ""
+        raise InputError(problem + more, path)
     entries = []
     by_base: dict[str, str] = {}
     for path, problem in expanded:

@@ -53,29 +53,30 @@ def run_stage_command(
     json_: bool = False,
 ) -> None:
     """Load IN, run ``stage`` with ``params``, write OUT atomically, print the report."""
-    from recon_cli.errors import InputError
+    from recon_cli.cli._signals import immediate
+    from recon_cli.errors import naming
+    from recon_cli.geometry import TriangleMesh
+    from recon_cli.io.atomic import check_output
     from recon_cli.io.load import load, save
     from recon_cli.stages import apply_stage, get_spec
 
-    from recon_cli.geometry import TriangleMesh
-
     spec = get_spec(stage)
     spec.check(params, complete=False)  # parameters before reading anything
+    check_output(output)  # and the output path: a wrong one is known now
+    # Ctrl-C / SIGTERM leave at once, even inside a numba kernel or while numba loads one:
+    # nothing is written before save()
     load_kw, save_kw = io_formats(ctx, input, output)
-    t0 = time.perf_counter()
-    data = load(input, **load_kw)
-    t1 = time.perf_counter()
-    if stage == "normals" and isinstance(data, TriangleMesh):
-        from recon_cli.io.text import warn
+    with immediate():
+        t0 = time.perf_counter()
+        data = load(input, **load_kw)
+        t1 = time.perf_counter()
+        if stage == "normals" and isinstance(data, TriangleMesh):
+            from recon_cli.io.text import warn
 
-        warn(f"{input}: a mesh: normals are estimated at its {len(data.vertices)} vertices and the vertices only are written (faces dropped)")
-    try:
-        result = apply_stage(stage, data, params, progress=make_progress(ctx))
-    except InputError as exc:
-        if exc.path is not None:
-            raise
-        raise InputError(str(exc), "<stdin>" if input == "-" else input) from None
-    t2 = time.perf_counter()
+            warn(f"{input}: a mesh: normals are estimated at its {len(data.vertices)} vertices and the vertices only are written (faces dropped)")
+        with naming(input):
+            result = apply_stage(stage, data, params, progress=make_progress(ctx))
+        t2 = time.perf_counter()
     save(result.output, output, ascii=ascii_, **save_kw)
     t3 = time.perf_counter()
     report = dict(result.report)

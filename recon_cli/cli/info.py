@@ -8,7 +8,7 @@ from recon_cli.cli import options
 
 
 @click.command("info")
-@click.argument("files", metavar="FILE...", nargs=-1, required=True, type=click.Path(allow_dash=True, dir_okay=False))
+@click.argument("files", metavar="FILE...", nargs=-1, required=True, type=click.Path(allow_dash=True))
 @options.json_opt
 @options.format_opt
 @click.pass_context
@@ -20,11 +20,17 @@ def cmd(ctx: click.Context, files: tuple[str, ...], json_: bool) -> None:
     """
     import os
 
+    from recon_cli.cli._signals import immediate
+    from recon_cli.errors import naming
     from recon_cli.info import describe
     from recon_cli.stages import report_json
 
     fmt = ctx.meta.get("recon.format")
-    reports = [describe(f, fmt if (f == "-" or not os.path.splitext(f)[1]) else None) for f in files]
+    reports = []
+    with immediate():  # reads and computes only: Ctrl-C ends it at once, even in a kernel
+        for f in files:
+            with naming(f):
+                reports.append(describe(f, fmt if (f == "-" or not os.path.splitext(f)[1]) else None))
     if json_:
         click.echo(report_json(reports))  # always a list, one entry per FILE
         return

@@ -2,18 +2,25 @@
 
 Exit codes: 0 success; 1 a stage failed on valid input; 2 bad input or parameters
 (click's usage errors too); 3 a reference backend is missing or failed; 4 a batch in
-which some inputs failed (``EXIT_BATCH_SOME_FAILED``: ``recon batch`` returns it); 130 interrupted.
+which some inputs failed (``EXIT_BATCH_SOME_FAILED``: ``recon batch`` returns it); 130 interrupted (SIGINT, Ctrl-C),
+143 terminated (SIGTERM); 141 standard output closed by its reader (a broken pipe: quiet, as
+``head`` users expect). Output path errors (missing folder, full or read-only file system)
+are exit 2 like bad input.
 """
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import logging
+import os
+import signal
 import sys
 
 import click
 
 from recon_cli import __version__
+from recon_cli.errors import ReconError
 
 # subcommand -> module under recon_cli.cli holding a click command named ``cmd``;
 # imported only when run, so ``recon --help`` stays instant
@@ -33,8 +40,17 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 EXIT_INTERRUPTED = 130
+EXIT_BROKEN_PIPE = 141
 # ``recon batch``: the batch ran to the end but some inputs failed (see DIR/batch.json)
 EXIT_BATCH_SOME_FAILED = 4
+
+
+class _Escape(BaseException):
+    """Carries an interrupt or a broken pipe from a command to :func:`main` untouched by click."""
+
+    def __init__(self, exc: BaseException):
+        super().__init__(exc)
+        self.exc = exc
 
 
 class LazyGroup(click.Group):
@@ -53,6 +69,19 @@ class LazyGroup(click.Group):
         else:
             return None
         return with_global_options(cmd)
+
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except (KeyboardInterrupt, BrokenPipeError) as exc:
+            # past click's own handling (a blank line and Abort; exit 1 on a broken pipe) to main()
+            raise _Escape(exc) from None
+
+    def make_context(self, *args, **kwargs) -> click.Context:
+        try:
+            return super().make_context(*args, **kwargs)
+        except KeyboardInterrupt as exc:  # Ctrl-C while the arguments are parsed
+            raise _Escape(exc) from None
 
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         rows = [(name, COMMANDS[name][1]) for name in sorted(COMMANDS)]
@@ -132,30 +161,68 @@ def cli(ctx: click.Context, quiet: bool, verbose: int, json_: bool) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     """Run the CLI; map recon's errors to one line on stderr and an exit code."""
-    from recon_cli.errors import ReconError
+    from recon_cli.cli import _signals
 
+    with _signals.handlers():
+        sys.exit(_main(argv))
+
+
+def _main(argv: list[str] | None) -> int:
     try:
-        rv = cli.main(args=argv, prog_name="recon", standalone_mode=False)
+        try:
+            rv = cli.main(args=argv, prog_name="recon", standalone_mode=False)
+        except _Escape as esc:
+            raise esc.exc from None
     except click.exceptions.Exit as exc:
-        sys.exit(exc.exit_code)
+        return exc.exit_code
     except click.ClickException as exc:
         exc.show()
-        sys.exit(2 if isinstance(exc, click.UsageError) else exc.exit_code)
-    except click.exceptions.Abort:
-        click.echo("recon: interrupted", err=True)
-        sys.exit(EXIT_INTERRUPTED)
-    except KeyboardInterrupt:
-        click.echo("recon: interrupted", err=True)
-        sys.exit(EXIT_INTERRUPTED)
+        return 2 if isinstance(exc, click.UsageError) else exc.exit_code
+    except click.exceptions.Abort as exc:
+        return _interrupted(getattr(exc.__cause__, "signum", signal.SIGINT))
+    except KeyboardInterrupt as exc:
+        return _interrupted(getattr(exc, "signum", signal.SIGINT))
+    except SystemError as exc:
+        # Ctrl-C seen while a numba kernel returned: "CPUDispatcher(...) returned a result with an exception set"
+        cause = _interrupt_cause(exc)
+        if cause is None:
+            raise
+        return _interrupted(getattr(cause, "signum", signal.SIGINT))
     except ReconError as exc:
         click.echo(f"recon: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}", err=True)
-        sys.exit(exc.exit_code)
+        return exc.exit_code
     except BrokenPipeError:
-        sys.exit(1)
+        # the reader went away (``recon ... - | head``): quiet, and no second error when Python
+        # flushes stdout at exit
+        with contextlib.suppress(OSError):
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno() if sys.stdout is not None else 1)
+        return EXIT_BROKEN_PIPE
     except MemoryError:
         click.echo("recon: error: out of memory", err=True)
-        sys.exit(1)
-    sys.exit(rv if isinstance(rv, int) else 0)
+        return 1
+    except OSError as exc:
+        # a file-system failure nothing above named: still one line naming the file
+        where = f"{exc.filename}: " if exc.filename else ""
+        click.echo(f"recon: error: {where}{exc.strerror or exc}", err=True)
+        return 2
+    return rv if isinstance(rv, int) else 0
+
+
+def _interrupted(signum: int) -> int:
+    click.echo("recon: interrupted" if signum == signal.SIGINT else "recon: terminated", err=True)
+    return 128 + int(signum)
+
+
+def _interrupt_cause(exc: BaseException) -> BaseException | None:
+    """The KeyboardInterrupt in the cause/context chain of ``exc``, if any."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import click
 
-input_arg = click.argument("input", metavar="IN", type=click.Path(allow_dash=True, dir_okay=False))
-output_arg = click.argument("output", metavar="OUT", type=click.Path(allow_dash=True, dir_okay=False))
+# paths are checked by the reader and the writer (one line naming the path, exit 2), not by click
+input_arg = click.argument("input", metavar="IN", type=click.Path(allow_dash=True))
+output_arg = click.argument("output", metavar="OUT", type=click.Path(allow_dash=True))
 
 ASCII_HELP = "Write text: ASCII PLY / STL, PCD 'DATA ascii' (default binary little-endian)."
 JSON_HELP = "Print the report as JSON (on stdout, or stderr when OUT is '-')."
@@ -110,8 +111,8 @@ def stage_command(stage: str) -> click.Command:
         run_stage_command(ctx, spec.name, input, output, given, ascii_=ascii_, json_=json_)
 
     doc = inspect.cleandoc(spec.description or spec.summary)
-    out_arg = click.Argument(["output"], metavar="OUT", type=click.Path(allow_dash=True, dir_okay=False))
-    in_arg = click.Argument(["input"], metavar="IN", type=click.Path(allow_dash=True, dir_okay=False))
+    out_arg = click.Argument(["output"], metavar="OUT", type=click.Path(allow_dash=True))  # checked by reader/writer: one line
+    in_arg = click.Argument(["input"], metavar="IN", type=click.Path(allow_dash=True))  # checked by reader/writer: one line
     params: list[click.Parameter] = [
         in_arg, out_arg,
         click.Option(["--ascii", "ascii_"], is_flag=True, help=ASCII_HELP),

@@ -11,8 +11,8 @@ from recon_cli.cli import options
 
 @click.command("run")
 @click.argument("pipeline", metavar="PIPELINE.toml", type=click.Path(dir_okay=False))
-@click.argument("input", metavar="IN", required=False, type=click.Path(allow_dash=True, dir_okay=False))
-@click.argument("output", metavar="OUT", required=False, type=click.Path(allow_dash=True, dir_okay=False))
+@click.argument("input", metavar="IN", required=False, type=click.Path(allow_dash=True))
+@click.argument("output", metavar="OUT", required=False, type=click.Path(allow_dash=True))
 @click.option("--set", "overrides", multiple=True, metavar="STAGE.PARAM=VALUE",
               help="Override a parameter without editing the file (repeatable): poisson.depth=9, or 2.depth=9 for "
               "the second stage.")
@@ -45,7 +45,7 @@ def cmd(ctx: click.Context, pipeline: str, input: str | None, output: str | None
         if input is not None:
             from recon_cli.io.load import load
 
-            check_input(pipe, load(input, **io_formats(ctx, input, "-")[0]), input)
+            check_input(pipe, load(input), input)
             summary["input"] = input
         emit_report(ctx, summary, json_=json_)
         return
@@ -53,11 +53,18 @@ def cmd(ctx: click.Context, pipeline: str, input: str | None, output: str | None
         raise click.UsageError("missing IN and OUT (or pass --validate)")
     from recon_cli.io.load import load, save
 
-    load_kw, save_kw = io_formats(ctx, input, output)
+    from recon_cli.cli._signals import immediate
+    from recon_cli.errors import naming
+    from recon_cli.io.atomic import check_output
+
+    check_output(output)
     t0 = time.perf_counter()
-    data = load(input, **load_kw)
-    check_input(pipe, data, input)
-    out, reports = run_pipeline(pipe, data, progress=make_progress(ctx))
+    load_kw, save_kw = io_formats(ctx, input, output)
+    with immediate():
+        data = load(input, **load_kw)
+        with naming(input):
+            check_input(pipe, data, input)
+            out, reports = run_pipeline(pipe, data, progress=make_progress(ctx))
     save(out, output, ascii=ascii_, **save_kw)
     summary = {
         "pipeline": pipeline,

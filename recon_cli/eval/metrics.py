@@ -271,13 +271,21 @@ def topology_of(obj: TriangleMesh | PointCloud) -> dict[str, Any] | None:
     return report(obj)
 
 
-def load_geometry(path: str | os.PathLike) -> TriangleMesh | PointCloud:
-    """Read a mesh or cloud from ``path`` (a grid ``.npz`` is refused with :class:`InputError`)."""
+def load_geometry(path: str | os.PathLike, role: str | None = None) -> TriangleMesh | PointCloud:
+    """Read a mesh or cloud from ``path`` (a grid ``.npz`` is refused with :class:`InputError`).
+
+    With ``role`` ("candidate", "reference") it is also checked as :func:`compare_meshes`
+    would, and the errors name ``path``.
+    """
+    from recon_cli.errors import naming
     from recon_cli.io.load import load
 
     obj = load(path)
     if not isinstance(obj, (TriangleMesh, PointCloud)):
         raise InputError("is a grid, not a mesh or point cloud", str(path))
+    if role is not None:
+        with naming(path):
+            _check_input(obj, role)
     return obj
 
 
@@ -338,12 +346,15 @@ def diff_files(
         require_pillow()
     if vmax is not None:
         vmax = check_vmax(vmax)
-    ref = load_geometry(reference)
-    cands = [load_geometry(c) for c in candidates]
+    from recon_cli.errors import naming
+
+    ref = load_geometry(reference, "reference")
+    cands = [load_geometry(c, "candidate") for c in candidates]
     rows = []
     for path, cand in zip(candidates, cands):
         row = {"candidate": os.fspath(path), "reference": os.fspath(reference)}
-        row.update(compare_meshes(cand, ref, samples=samples, seed=seed, taus=taus))
+        with naming(f"{os.fspath(path)} vs {os.fspath(reference)}"):
+            row.update(compare_meshes(cand, ref, samples=samples, seed=seed, taus=taus))
         row["heatmap"] = None
         rows.append(row)
     if heatmap_path is None and png_path is None:

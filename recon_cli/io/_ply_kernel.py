@@ -222,3 +222,30 @@ def first_nonfinite_row(flat, stride, first, k, size, big):
                     if _is_nonfinite(flat, base + np.uint64(j * size), size, big):
                         return i
     return -1
+
+
+@njit(cache=True, nogil=True)
+def ascii_line_tokens(body):
+    """Number of whitespace-separated tokens on each line of ``body`` (uint8), as ``bytes.split``
+    counts them; lines end at ``\\n``, ``\\r\\n`` or a lone ``\\r``. One int64 per line."""
+    n = body.shape[0]
+    lines = 1
+    for i in range(n):
+        c = body[i]
+        if c == 10 or (c == 13 and (i + 1 >= n or body[i + 1] != 10)):
+            lines += 1
+    out = np.zeros(lines, np.int64)
+    line = 0
+    in_token = False
+    for i in range(n):
+        c = body[i]
+        space = c == 32 or (9 <= c <= 13)
+        if not space:
+            if not in_token:
+                out[line] += 1
+            in_token = True
+        else:
+            in_token = False
+            if c == 10 or (c == 13 and (i + 1 >= n or body[i + 1] != 10)):
+                line += 1
+    return out

@@ -10,6 +10,9 @@ Format (``numpy.savez``, uncompressed):
     float64 scalar: spacing of samples along every axis.
 ``provenance``
     str: history lines joined by newlines (oldest first).
+``point_dtype`` (optional)
+    str, ``float32`` or ``float64``: the float type of the source's coordinates, which
+    meshes extracted from the grid are written with (float32 when absent).
 """
 
 from __future__ import annotations
@@ -39,6 +42,7 @@ def grid_bytes(grid: Grid) -> bytes:
         origin=grid.origin,
         voxel_size=np.float64(grid.voxel_size),
         provenance=np.array("\n".join(grid.history)),
+        point_dtype=np.array(np.dtype(grid.point_dtype).name),
     )
     return buf.getvalue()
 
@@ -90,13 +94,16 @@ def read_grid(path: str | os.PathLike, data: bytes | None = None) -> Grid:
                 origin = z["origin"].astype(np.float64)
                 voxel = float(z["voxel_size"].reshape(-1)[0])
                 prov = str(z["provenance"]) if "provenance" in z.files else ""
+                pdt = str(z["point_dtype"]) if "point_dtype" in z.files else "float32"
     except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as exc:
         raise InputError(f"corrupt grid file ({exc})", where) from None
     if not np.isfinite(origin).all():
         raise InputError(f"'origin' must be finite, got {origin.tolist()}", where)
     if not (np.isfinite(voxel) and voxel > 0):
         raise InputError(f"'voxel_size' must be a finite positive number, got {voxel}", where)
-    return Grid(sdf=sdf, origin=origin, voxel_size=voxel, history=[s for s in prov.split("\n") if s])
+    if pdt not in ("float32", "float64"):
+        raise InputError(f"'point_dtype' must be float32 or float64, got {pdt[:40]!r}", where)
+    return Grid(sdf=sdf, origin=origin, voxel_size=voxel, history=[s for s in prov.split("\n") if s], point_dtype=pdt)
 
 
 def _count(shape: tuple) -> int:

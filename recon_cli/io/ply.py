@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from recon_cli.errors import InputError
-from recon_cli.geometry import PointCloud, TriangleMesh
+from recon_cli.geometry import PointCloud, TriangleMesh, storage_dtype
 from recon_cli.io._ply_types import FORMATS, PLY_TYPES, ply_name
 
 MAX_HEADER_BYTES = 1 << 20
@@ -297,6 +297,12 @@ def _first_row_counts(el: PlyElement, buf: bytes, offset: int, order: str, where
             k = int(np.frombuffer(buf, cdt, 1, pos)[0])
             if k < 0:
                 raise InputError(f"negative list length {k} in element {el.name!r}", where)
+            if pos + cdt.itemsize + k * np.dtype(p.dtype).itemsize > len(buf):
+                raise InputError(
+                    f"truncated: the first {el.name!r} row's {p.name!r} list has length {k}, "
+                    f"longer than the {len(buf) - pos} bytes left",
+                    where,
+                )
             ks[p.name] = k
             pos += cdt.itemsize + k * np.dtype(p.dtype).itemsize
         else:
@@ -354,34 +360,64 @@ def _parse_binary_lists_general(el: PlyElement, buf: bytes, offset: int, order: 
 
 
 def _parse_ascii(ply: PlyData, buf: bytes, offset: int, where: str) -> None:
+    """Decode an ASCII body: one element row per line, every line checked for its number of values.
+
+    A row with a value too many or too few would shift every later value (a silently wrong
+    cloud), so each line must hold exactly its row's values; blank lines are skipped, and
+    lines after the last element are an error.
+    """
+    from recon_cli.io._ply_kernel import ascii_line_tokens
+
     body = bytes(memoryview(buf)[offset:])
     tokens = body.split()
-    pos = 0
+    head = bytes(memoryview(buf)[:offset])
+    # file line number of the body's first line
+    first = head.count(b"\n") + head.count(b"\r") - head.count(b"\r\n") + 1
+    per_line = ascii_line_tokens(np.frombuffer(body, dtype=np.uint8))
+    lines = np.flatnonzero(per_line)  # the lines that hold values, in order
+    counts = per_line[lines]
+    row = 0  # index into lines
+    pos = 0  # index into tokens
     for el in ply.elements:
         nprop = len(el.properties)
         if el.count and nprop == 0:
             raise InputError(f"element {el.name!r} has no properties but {el.count} rows", where)
-        # each row needs at least one token per property: check before allocating
-        if el.count > (len(tokens) - pos) // max(nprop, 1):
+        if el.count > len(lines) - row:
             raise InputError(
                 f"truncated: header declares {el.count} {el.name!r} rows but only "
-                f"{len(tokens) - pos} values remain",
+                f"{len(lines) - row} lines of values remain",
                 where,
             )
+        el_lines = lines[row : row + el.count] + first
+        el_counts = counts[row : row + el.count]
         if not any(p.is_list for p in el.properties):
+            bad = np.flatnonzero(el_counts != nprop)
+            if bad.size:
+                i = int(bad[0])
+                raise InputError(
+                    f"line {int(el_lines[i])}: {el.name!r} row {i} has {int(el_counts[i])} values, expected {nprop}", where
+                )
             block = tokens[pos : pos + el.count * nprop]
             pos += el.count * nprop
             table = _ascii_values(block, where, el.name).reshape(el.count, nprop)
             el.data = {p.name: _cast(table[:, j], p.dtype, where, el.name) for j, p in enumerate(el.properties)}
-            continue
-        pos = _parse_ascii_lists(el, tokens, pos, where)
+        else:
+            pos = _parse_ascii_lists(el, tokens, pos, el_counts, el_lines, where)
+        row += el.count
+    if row < len(lines):
+        raise InputError(
+            f"line {int(lines[row] + first)}: values after the last element "
+            f"({len(lines) - row} more lines than the header declares)",
+            where,
+        )
 
 
 def _ascii_values(block: list[bytes], where: str, name: str) -> np.ndarray:
     if not block:
         return np.zeros(0, dtype=np.float64)
     try:
-        return np.array(block).astype(np.float64)
+        with np.errstate(over="ignore", invalid="ignore"):
+            return np.array(block).astype(np.float64)
     except ValueError:
         bad = next((t for t in block if not _is_number(t)), block[0])
         raise InputError(f"element {name!r}: {bad[:40].decode('ascii', 'replace')!r} is not a number", where) from None
@@ -396,6 +432,7 @@ def _is_number(tok: bytes) -> bool:
 
 
 def _cast(values: np.ndarray, code: str, where: str, name: str) -> np.ndarray:
+    """``values`` (float64) in the property's type; a value the type cannot hold is an error."""
     dt = np.dtype(code)
     if dt.kind in "iu":
         finite = np.isfinite(values)
@@ -404,31 +441,65 @@ def _cast(values: np.ndarray, code: str, where: str, name: str) -> np.ndarray:
         info = np.iinfo(dt)
         if values.size and (values.min() < info.min or values.max() > info.max):
             raise InputError(f"element {name!r}: value out of range for {ply_name(dt)}", where)
+    elif dt.itemsize < 8 and values.size:
+        big = np.abs(values[np.isfinite(values)])
+        if big.size and big.max() > np.finfo(dt).max:
+            raise InputError(f"element {name!r}: value {big.max():g} out of range for {ply_name(dt)}", where)
     return values.astype(dt)
 
 
-def _parse_ascii_lists(el: PlyElement, tokens: list[bytes], pos: int, where: str) -> int:
-    # rows are sequences of tokens; walk them once (ASCII is not the fast format)
-    cols: dict[str, list] = {p.name: [] for p in el.properties}
-    n = len(tokens)
-    for _ in range(el.count):
-        for p in el.properties:
-            if pos >= n:
-                raise InputError(f"truncated: element {el.name!r} ends early", where)
+def _parse_ascii_lists(
+    el: PlyElement, tokens: list[bytes], pos: int, counts: np.ndarray, lines: np.ndarray, where: str
+) -> int:
+    """Rows holding lists; ``counts[i]`` values on file line ``lines[i]`` make row i."""
+    props = el.properties
+    if el.count == 0:
+        el.data = {p.name: (np.zeros((0, 0), p.dtype) if p.is_list else np.zeros(0, p.dtype)) for p in props}
+        return pos
+    # fast path (faces): one list, first, then scalars; every line of one length with matching counts
+    if props[0].is_list and not any(p.is_list for p in props[1:]) and np.all(counts == counts[0]):
+        width = int(counts[0])
+        k = width - len(props)  # items per list
+        block = tokens[pos : pos + el.count * width]
+        table = _ascii_values(block, where, el.name).reshape(el.count, width)
+        if k >= 0 and np.all(table[:, 0] == k):
+            vals = _cast(table[:, 1 : 1 + k].reshape(-1), props[0].dtype, where, el.name)
+            data = {props[0].name: vals.reshape(el.count, k)}
+            for j, p in enumerate(props[1:]):
+                data[p.name] = _cast(table[:, 1 + k + j], p.dtype, where, el.name)
+            el.data = data
+            return pos + el.count * width
+    # rows one by one (ASCII is not the fast format)
+    cols: dict[str, list] = {p.name: [] for p in props}
+    for i in range(el.count):
+        end = pos + int(counts[i])
+        for p in props:
+            if pos >= end:
+                raise InputError(
+                    f"line {int(lines[i])}: {el.name!r} row {i} ends before its {p.name!r} value", where
+                )
             if p.is_list:
                 try:
                     k = int(tokens[pos])
                 except ValueError:
-                    raise InputError(f"element {el.name!r}: bad list length {tokens[pos][:20]!r}", where) from None
-                if k < 0 or pos + 1 + k > n:
-                    raise InputError(f"element {el.name!r}: bad list length {k}", where)
+                    raise InputError(
+                        f"line {int(lines[i])}: bad list length {tokens[pos][:20].decode('ascii', 'replace')!r}", where
+                    ) from None
+                if k < 0 or pos + 1 + k > end:
+                    raise InputError(
+                        f"line {int(lines[i])}: list length {k} but the line holds {end - pos - 1} more values", where
+                    )
                 cols[p.name].append(tokens[pos + 1 : pos + 1 + k])
                 pos += 1 + k
             else:
                 cols[p.name].append(tokens[pos])
                 pos += 1
+        if pos != end:
+            raise InputError(
+                f"line {int(lines[i])}: {el.name!r} row {i} has {end - pos} values more than its properties", where
+            )
     data = {}
-    for p in el.properties:
+    for p in props:
         if p.is_list:
             rows = cols[p.name]
             lengths = {len(r) for r in rows}
@@ -636,7 +707,9 @@ def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | Trian
     if bad >= 0:
         raise InputError(f"vertex {bad} has a NaN or infinite coordinate", where)
     used = set(_VERTEX_XYZ)
-    point_dtype = np.float64 if all(props[c].dtype == "f8" for c in _VERTEX_XYZ) else np.float32
+    # float32 only when every coordinate column fits in float32 exactly (float, 8- and 16-bit integers):
+    # a double column, or int/uint ones, make the source double (kept through every stage)
+    point_dtype = np.float32 if all(props[c].dtype in _FLOAT32_EXACT for c in _VERTEX_XYZ) else np.float64
     normals = colors = None
     for names, dtype in groups[1:]:
         if names == _VERTEX_NORMAL:
@@ -675,6 +748,10 @@ def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | Trian
         p.name: face.data[p.name][src] for p in face.properties if p is not idx_prop and not p.is_list
     }
     return TriangleMesh(vertices=pts, faces=faces, normals=normals, face_attributes=face_attrs, **common)
+
+
+# PLY types whose every value float32 holds exactly
+_FLOAT32_EXACT = ("f4", "i1", "u1", "i2", "u2")
 
 
 def _vertex_groups(props: dict) -> list[tuple[tuple[str, ...], object]]:
@@ -813,6 +890,17 @@ def _gather_apply(plan: tuple, flat: np.ndarray, stride: int, out: np.ndarray) -
         raise ValueError(f"no kernel gathers {kind!r} columns")  # callers handle 'mixed' with numpy
 
 
+def _indices(values: np.ndarray, where: str) -> np.ndarray:
+    """Face vertex indices as int64; indices stored as floats must be whole numbers in range."""
+    if values.dtype.kind == "f":
+        with np.errstate(invalid="ignore"):
+            whole = np.isfinite(values) & (values == np.round(values)) & (np.abs(values) < 2.0**62)
+        if not whole.all():
+            bad = values.reshape(-1)[int(np.argmin(whole.reshape(-1)))]
+            raise InputError(f"face index {float(bad)!r} is not a whole number", where)
+    return values.astype(np.int64)
+
+
 def _triangulate(lists: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]:
     """Fan-triangulate polygons; returns (faces (m, 3) int64, source polygon of each face)."""
     if lists.dtype != object:
@@ -820,7 +908,7 @@ def _triangulate(lists: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]
         n = lists.shape[0]
         if k < 3:
             raise InputError(f"faces with {k} vertices (fewer than 3)", where)
-        poly = lists.astype(np.int64)
+        poly = _indices(lists, where)
         if k == 3:
             return poly, np.arange(n)
         fan = [np.column_stack([poly[:, 0], poly[:, j], poly[:, j + 1]]) for j in range(1, k - 1)]
@@ -830,7 +918,7 @@ def _triangulate(lists: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]
     if np.any(lengths < 3):
         bad = int(np.flatnonzero(lengths < 3)[0])
         raise InputError(f"face {bad} has {int(lengths[bad])} vertices (fewer than 3)", where)
-    flat = np.concatenate([np.asarray(r, dtype=np.int64) for r in lists])
+    flat = _indices(np.concatenate([np.asarray(r) for r in lists]), where)
     start = np.cumsum(lengths) - lengths
     ntri = lengths - 2
     src = np.repeat(np.arange(len(lists)), ntri)
@@ -845,7 +933,8 @@ def geometry_to_ply(obj: PointCloud | TriangleMesh, ascii: bool = False) -> PlyD
     fmt = "ascii" if ascii else "binary_little_endian"
     pts = obj.points
     n = len(pts)
-    fcode = "f8" if np.dtype(obj.point_dtype) == np.float64 else "f4"
+    # the data model's rule: the source's type, double when float32 would round computed coordinates
+    fcode = "f8" if storage_dtype(obj) == np.float64 else "f4"
     vprops = [PlyProperty(c, fcode) for c in _VERTEX_XYZ]
     vdata = {c: pts[:, i] for i, c in enumerate(_VERTEX_XYZ)}
     if obj.normals is not None:

@@ -334,7 +334,7 @@ def run_stage(
         else:
             why = "every cell the level set crosses has an unknown (NaN) corner"
         raise InputError(f"nothing to mesh: {why}")
-    mesh = TriangleMesh(vertices=v, faces=f, normals=n, history=list(data.history), point_dtype=np.float32)
+    mesh = TriangleMesh(vertices=v, faces=f, normals=n, history=list(data.history), point_dtype=data.point_dtype)
     nan = ~np.isfinite(data.sdf)
     skipped = 0
     if nan.any():

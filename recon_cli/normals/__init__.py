@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from recon_cli.errors import InputError, ParameterError
-from recon_cli.geometry import PointCloud, as_point_cloud
+from recon_cli.geometry import PointCloud, as_point_cloud, local_origin
 from recon_cli.params import Param, StageSpec
 from recon_cli.progress import task
 from recon_cli.stages import StageResult
@@ -230,9 +230,22 @@ def estimate_normals(points: Any, knn: int | None = 30, radius: float | None = N
     n = len(pts)
     if n == 0:
         return np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=bool)
+    pts, _ = _local(pts, None, points)  # normals do not depend on the origin, precision does
     order, ps, indptr, indices = _neighbourhoods(pts, knn, radius)
     nrm, curv, deg = _estimate_sorted(ps, indptr, indices)
     return _unsort(order, nrm), _unsort(order, curv), _unsort(order, deg)
+
+
+def _local(pts: np.ndarray, cam: np.ndarray | None, source: Any) -> tuple[np.ndarray, np.ndarray | None]:
+    """``pts`` and the viewpoint ``cam`` about the points' local origin (far from the world
+    origin the kd-tree, centroids and flux sums keep their digits); in place when ``pts``
+    is a converted copy of ``source``."""
+    centre = local_origin(pts)
+    if np.may_share_memory(pts, source):
+        pts = pts - centre
+    else:
+        pts -= centre
+    return pts, None if cam is None else cam - centre
 
 
 def _unsort(order: np.ndarray, a: np.ndarray) -> np.ndarray:
@@ -425,6 +438,7 @@ def orient_normals(
         raise InputError("normals hold NaN or infinite values")
     method, cam, dirn, ref = _check_orient(method, camera, direction, reference, len(pts))
     k, _ = _check_knn(knn, None)
+    pts, cam = _local(pts, cam, points)
     if method in ("mst", "keep") and len(pts):
         order, ps, indptr, indices = _neighbourhoods(pts, k, None)
         ref_s = None if ref is None else ref[order]
@@ -455,7 +469,7 @@ def _check_orient(method, camera, direction, reference, n):
     ref = None
     if method == "keep":
         if reference is None:
-            raise ParameterError("--orient keep needs input normals (the input has none)")
+            raise InputError("--orient keep needs input normals (the input has none)")
         ref = np.asarray(reference, dtype=np.float64)
         if ref.shape != (n, 3):
             raise InputError(f"reference normals have shape {ref.shape}, expected ({n}, 3)")
@@ -535,6 +549,7 @@ def run_stage(
         raise ParameterError("--curvature is not available with --backend open3d")
     if n == 0:
         raise InputError("the input has no points")
+    pts, cam = _local(pts, cam, cloud.points)
 
     out = cloud.copy() if isinstance(data, PointCloud) else PointCloud(
         points=cloud.points, colors=cloud.colors, attributes=dict(cloud.attributes), history=list(cloud.history),

@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from recon_cli.errors import InputError, ParameterError
-from recon_cli.geometry import TriangleMesh, bbox_diagonal, float64
+from recon_cli.geometry import TriangleMesh, bbox_diagonal, float64, local_origin
 from recon_cli.params import Param, StageSpec
 from recon_cli.mesh.topology import CHUNK, Connectivity, index_dtype, stable_argsort
 from recon_cli.progress import task
@@ -597,7 +597,11 @@ def run_stage(
             raise ParameterError("--backend pymeshlab supports only --fill-holes")
         from recon_cli.backends import pymeshlab_backend
 
-        out = pymeshlab_backend.repair(data, fill_holes=fill)
+        # about a local origin (MeshLab's meshes may be float32), its output moved back
+        centre = local_origin(data.vertices[np.isfinite(data.vertices).all(axis=1)])
+        out = pymeshlab_backend.repair(TriangleMesh(data.vertices - centre, data.faces), fill_holes=fill)
+        out.vertices = out.vertices + centre
+        out.history, out.point_dtype = list(data.history), data.point_dtype
         rep = {
             "backend": "pymeshlab",
             "vertices_in": int(len(data.vertices)),

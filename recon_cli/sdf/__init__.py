@@ -24,6 +24,7 @@ The ``.npz`` grid format is described in :mod:`recon_cli.grid`.
 
 from __future__ import annotations
 
+import copy
 
 import numpy as np
 
@@ -550,7 +551,7 @@ def run_stage(
         No points, non-finite coordinates, a cloud without normals, ``sign="pseudonormal"``
         on a closed mesh wound inward.
     """
-    from recon_cli.geometry import TriangleMesh, float64
+    from recon_cli.geometry import TriangleMesh, float64, local_origin
     from recon_cli.grid import Grid, allocation_problem
     from recon_cli.progress import task
     from recon_cli.stages import StageResult
@@ -575,20 +576,30 @@ def run_stage(
     if problem:
         raise ParameterError(f"{problem}: raise --voxel-size or lower --resolution")
 
+    # distances are computed about a local origin (far from the world origin squared norms and
+    # cross products lose digits, Open3D computes in float32); the grid keeps the world origin
+    centre = local_origin(pts)
+    local = copy.copy(data)
+    if is_mesh:
+        local.vertices = data.vertices - centre
+    else:
+        local.points = data.points - centre
     with task(progress, "signed distance", 1) as t:
         if backend == "open3d":
             from recon_cli.backends import open3d_backend
 
             ijk = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), axis=-1).reshape(-1, 3)
-            sdf = open3d_backend.signed_distance(data, origin + ijk * h).reshape(shape)
+            sdf = open3d_backend.signed_distance(local, (origin - centre) + ijk * h).reshape(shape)
             info = {}
             sign = "open3d"
         elif is_mesh:
-            sdf, info = mesh_sdf(data.vertices, data.faces, origin, h, shape, sign=sign, band=band_v)
+            sdf, info = mesh_sdf(local.vertices, data.faces, origin - centre, h, shape, sign=sign, band=band_v)
         else:
-            sdf, info = cloud_sdf(data.points, data.normals, origin, h, shape, knn=knn)
+            sdf, info = cloud_sdf(local.points, data.normals, origin - centre, h, shape, knn=knn)
         t.advance(1)
-    grid = Grid(sdf=sdf.astype(np.float32), origin=origin, voxel_size=h, history=list(data.history))
+    del local
+    grid = Grid(sdf=sdf.astype(np.float32), origin=origin, voxel_size=h, history=list(data.history),
+                point_dtype=data.point_dtype)
     del sdf  # the float64 field: free it before the report's passes over the grid
     known = int(np.count_nonzero(np.isfinite(grid.sdf)))
     report = {

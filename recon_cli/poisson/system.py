@@ -1,0 +1,133 @@
+"""The cascadic solve: level by level, coarse to fine, each level's correction to the
+coarser levels' indicator function by Jacobi-preconditioned conjugate gradients."""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any
+
+import numpy as np
+
+from recon_cli.memory import release_free_heap
+from recon_cli.poisson import _octree as O
+from recon_cli.poisson import _splat as S
+from recon_cli.poisson import _system as Y
+from recon_cli.poisson._luts import UNIT_STIFFNESS
+from recon_cli.poisson.octree import Level
+from recon_cli.poisson.splat import Samples, Splats
+from recon_cli.progress import task
+
+log = logging.getLogger("recon")
+
+# the screening pulls chi towards this value at the samples
+TARGET = 0.5
+
+
+def solve(levels: list[Level], smp: Samples, splats: Splats, full_depth: int, cg_tolerance: float,
+          progress: Any = None) -> tuple[list[np.ndarray], list[dict], int, float]:
+    """Solve every level in turn; returns chi per level (at its nodes, the coarser levels'
+    part included), per-level statistics, total iterations and the finest relative residual.
+
+    Each level's arrays go as soon as no later step needs them (sets ``face_nodes`` and
+    ``leaf`` of every level, drops the rest): at the finest level the peak is the level's
+    cells plus the solver's (n,) vectors, tens of MB each.
+    """
+    depth = len(levels) - 1
+    spos = smp.pos
+    alpha = splats.alpha
+    screen_w = splats.screen_w
+    total_it = 0
+    last_res = 0.0
+    gvals: list[np.ndarray] = []
+    per_level = []
+    with task(progress, "poisson: solve", total=depth + 1) as tk:
+        for lev in levels:
+            release_free_heap()
+            tl = time.perf_counter()
+            d = lev.depth
+            nn = lev.n_nodes
+            ke = UNIT_STIFFNESS / (1 << d)
+            # (n,) vectors are updated in place
+            rhs = S.splat_rhs(splats.pos, splats.vec, splats.level, np.zeros(len(splats.level)), d, lev.node_keys, lev.unknown, nn)
+            # past the right-hand side only the nodes on the cube's faces are needed (for the
+            # extraction's clamp), not the node keys
+            lev.face_nodes = O.face_nodes(lev.node_keys, 1 << d)
+            lev.node_keys = None
+            scell, sloc = Y.sample_cells(spos, d, lev.cell_keys)
+            # the tree is adaptive: only the samples inside this level's cells screen it
+            lw = screen_w
+            have = scell >= 0
+            if not have.all():
+                scell, sloc, lw = scell[have], sloc[have], screen_w[have]
+            del have
+            # the diagonal, for the preconditioner: a table by incident-cell count (lev.ncell)
+            # plus the sparse screening part, not an (n,) vector
+            if alpha > 0:
+                sd_nodes, sd_vals = Y.screening_diag_rhs(scell, sloc, lev.cell_nodes, lw, TARGET, rhs)
+            else:
+                sd_nodes, sd_vals = np.zeros(0, np.int64), np.zeros(0)
+            sw = lw if alpha > 0 else np.zeros(0)
+            cscr = np.zeros((0, 8, 8))
+            if alpha > 0 and 4 * len(lev.cell_keys) <= len(sw) and len(lev.cell_keys) <= 1 << 19:
+                # coarse levels: samples outnumber cells, so sum each cell's samples into its
+                # own 8x8 screening matrix once (exact) and let a CG step cost O(cells);
+                # (c, 8, 8) floats, so only up to 2**19 cells (256 MB)
+                cscr = Y.cell_screening(scell, sloc, sw, len(lev.cell_keys))
+                sw = np.zeros(0)
+            par = levels[d - 1] if d > 0 else None
+            if par is not None:
+                # the coarser levels' chi at this level's nodes; prolonged again after the
+                # solve rather than kept: one (n,) vector fewer during the conjugate gradients
+                G = Y.prolong(lev.cell_nodes, lev.cell_keys, lev.cell_parent, par.cell_nodes, gvals[-1], nn)
+                AG = np.empty(nn)
+                Y.level_matvec(lev.cell_nodes, ke, cscr, scell, sloc, sw, G, AG)
+                del G
+                rhs -= AG
+                del AG
+            exact = d <= full_depth
+            release_free_heap()  # the set-up's temporaries: not resident while the solver runs
+            x, it, rel = Y.level_pcg(
+                lev.cell_nodes, ke, cscr, scell, sloc, sw, rhs, lev.ncell, sd_nodes, sd_vals, lev.unknown,
+                1e-7 if exact else cg_tolerance, 2000 if exact else 200,
+            )
+            del rhs, sd_nodes, sd_vals, scell, sloc, cscr, lw
+            if par is not None:
+                G = Y.prolong(lev.cell_nodes, lev.cell_keys, lev.cell_parent, par.cell_nodes, gvals[-1], nn)
+                # the coarser level's leaves are its cells without children here
+                par.leaf = ~O.cell_has_child(lev.cell_parent, len(par.cell_keys))
+                lev.cell_parent = None
+            else:
+                G = np.zeros(nn)
+            G += x
+            del x
+            gvals.append(G)
+            total_it += it
+            last_res = rel
+            n_unknown = int(lev.unknown.sum())
+            lev.unknown = lev.ncell = None
+            per_level.append({"depth": d, "nodes": nn, "unknowns": n_unknown, "iterations": it, "residual": rel,
+                              "seconds": time.perf_counter() - tl})
+            log.info("poisson: level %2d  nodes %9d  unknowns %9d  cg iterations %4d  residual %.2e  %.2f s", d, nn, n_unknown, it, rel, time.perf_counter() - tl)
+            tk.advance(1)
+    del G, par
+    levels[-1].leaf = np.ones(len(levels[-1].cell_keys), bool)
+    return gvals, per_level, total_it, last_res
+
+
+def iso_value(levels: list[Level], gvals: list[np.ndarray], smp: Samples) -> float:
+    """The level set's value: the count-weighted mean of chi at the samples, each evaluated
+    in the finest cell of the tree that holds it (chi is trilinear there)."""
+    spos, count = smp.pos, smp.count
+    chi_s = np.full(len(count), np.nan)
+    todo = np.arange(len(count))
+    for lev, g in zip(levels[::-1], gvals[::-1]):
+        scell, sloc = Y.sample_cells(spos[todo], lev.depth, lev.cell_keys)
+        have = scell >= 0
+        chi_s[todo[have]] = Y.eval_at_samples(scell[have], sloc[have], lev.cell_nodes, g)
+        todo = todo[~have]
+        if not len(todo):
+            break
+    iso = float((chi_s * count).sum() / count.sum())
+    log.info("poisson: iso-value %.6f", iso)
+    return iso
