@@ -5,6 +5,8 @@ Keys (PLY): ``file``, ``kind`` ("point_cloud" or "mesh"), ``format``, ``vertices
 "type name"), ``bbox`` ({"min", "max", "diagonal"}), ``has_normals``, ``has_colors``,
 ``history`` (provenance lines), and for meshes ``topology`` (see
 :func:`recon_cli.mesh.topology.report`).
+Other formats (OBJ, OFF, STL, XYZ, PCD, LAS, E57): the same keys, ``format`` being the
+format's name, plus ``details`` (what the reader reports: STL weld, LAS header, PCD fields...).
 Keys (grid): ``file``, ``kind`` ("grid"), ``shape``, ``origin``, ``voxel_size``,
 ``unknown_cells``, ``range``, ``eikonal``, ``history``.
 """
@@ -21,10 +23,20 @@ from recon_cli.io.npz import is_npz, read_grid
 from recon_cli.io.ply import parse_ply, ply_to_geometry, read_bytes
 
 
-def describe(path: str | os.PathLike) -> dict[str, Any]:
-    """Describe the file at ``path`` (``-``: stdin)."""
-    data = read_bytes(path)
+def describe(path: str | os.PathLike, format: str | None = None) -> dict[str, Any]:
+    """Describe the file at ``path`` (``-``: stdin) in the format its suffix (or ``format``) names."""
+    from recon_cli.io.load import decode, format_of, load_detailed
+
     name = "<stdin>" if str(path) == "-" else str(path)
+    fmt = format_of(path, format)
+    if fmt is not None and fmt.name in ("las", "e57") and str(path) != "-":
+        geom, details, fmt = load_detailed(path, format)
+        return describe_geometry(geom, name, fmt.name, details)
+    data = read_bytes(path)
+    if fmt is None or fmt.name not in ("ply", "npz"):
+        obj, details, fmt = decode(data, path, fmt)
+        if fmt.name not in ("ply", "npz"):
+            return describe_geometry(obj, name, fmt.name, details)
     if is_npz(data):
         return describe_grid(read_grid(path, data), name)
     ply = parse_ply(data, str(path))
@@ -52,6 +64,50 @@ def describe(path: str | os.PathLike) -> dict[str, Any]:
         from recon_cli.mesh.topology import report as topology_report
 
         out["topology"] = topology_report(geom)
+    return out
+
+
+def describe_geometry(geom, name: str, fmt: str, details: dict) -> dict[str, Any]:
+    """Describe a cloud or mesh read from a non-PLY file (same keys as for PLY, plus ``details``)."""
+    pts = geom.points
+    mesh = isinstance(geom, TriangleMesh)
+    vprops = [f"{np.dtype(pts.dtype).name} x y z"]
+    if geom.normals is not None:
+        vprops.append(f"{geom.normals.dtype.name} normals")
+    if geom.colors is not None:
+        vprops.append(f"{geom.colors.dtype.name} colours x{geom.colors.shape[1]}")
+    vprops += [f"{v.dtype.name} {k}" for k, v in geom.attributes.items()]
+    elements = {"vertex": int(len(pts))}
+    properties = {"vertex": vprops}
+    if mesh:
+        elements["face"] = int(len(geom.faces))
+        properties["face"] = ["int64 vertex_indices x3"] + [f"{v.dtype.name} {k}" for k, v in geom.face_attributes.items()]
+    out: dict[str, Any] = {
+        "file": name,
+        "kind": "mesh" if mesh else "point_cloud",
+        "format": fmt,
+        "vertices": int(len(pts)),
+        "faces": int(len(geom.faces)) if mesh else 0,
+        "elements": elements,
+        "properties": properties,
+        "bbox": {
+            "min": pts.min(axis=0).tolist() if len(pts) else None,
+            "max": pts.max(axis=0).tolist() if len(pts) else None,
+            "diagonal": bbox_diagonal(pts),
+        },
+        "has_normals": geom.normals is not None,
+        "has_colors": geom.colors is not None,
+        "attributes": sorted(geom.attributes),
+        "history": list(geom.history),
+        "details": {k: v for k, v in details.items() if k != "format"},
+    }
+    if mesh:
+        try:
+            from recon_cli.mesh.topology import report as topology_report
+        except ModuleNotFoundError:
+            topology_report = None
+        if topology_report is not None:
+            out["topology"] = topology_report(geom)
     return out
 
 

@@ -341,3 +341,43 @@ def sphere_cloud(n, radius=1.0, centre=(0.0, 0.0, 0.0), seed=0):
     v = np.random.default_rng(seed).normal(size=(n, 3))
     v /= np.linalg.norm(v, axis=1, keepdims=True)
     return np.asarray(centre, float) + radius * v, v
+
+
+def mesh_family(seed, dtype=np.float64):
+    """A torus under a random rotation, scale (1e-3 .. 1e3) and offset (up to 1e6), in ``dtype``.
+
+    Returns a :class:`recon_cli.geometry.TriangleMesh` (random per-vertex normals and uint8
+    colours on odd seeds).
+    """
+    from recon_cli.geometry import TriangleMesh
+
+    rng = np.random.default_rng(seed)
+    v, f = torus(nu=int(rng.integers(5, 30)), nv=int(rng.integers(4, 16)))
+    scale = 10.0 ** rng.uniform(-3, 3)
+    offset = rng.uniform(-1, 1, 3) * 10.0 ** rng.integers(0, 7)
+    v = (v @ random_rotation(rng).T) * scale + offset
+    normals = colors = None
+    if seed % 2:
+        normals = rng.normal(size=v.shape)
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        normals = normals.astype(dtype)
+        colors = rng.integers(0, 256, size=(len(v), 3)).astype(np.uint8)
+    return TriangleMesh(vertices=v.astype(dtype), faces=f, normals=normals, colors=colors, point_dtype=dtype)
+
+
+def cloud_family(seed, n=500):
+    """Points on a rotated, scaled, offset (up to 1e6) ellipsoid with unit normals, uint8 colours and
+    attributes ``intensity`` (int64) and ``curvature`` (float64): a :class:`recon_cli.geometry.PointCloud`."""
+    from recon_cli.geometry import PointCloud
+
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    R = random_rotation(rng)
+    scale = 10.0 ** rng.uniform(-2, 3)
+    pts = (d * [1.0, 0.5, 0.3]) @ R.T * scale + rng.uniform(-1, 1, 3) * 10.0 ** rng.integers(0, 7)
+    normals = (d / [1.0, 0.5, 0.3]) @ R.T
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    colors = rng.integers(0, 256, (n, 3)).astype(np.uint8)
+    attrs = {"intensity": rng.integers(0, 4096, n).astype(np.int64), "curvature": rng.random(n)}
+    return PointCloud(points=pts, normals=normals, colors=colors, attributes=attrs, point_dtype=np.float64)

@@ -37,6 +37,23 @@ def is_quiet(ctx: click.Context) -> bool:
     return bool(obj.get("quiet", False))
 
 
+def io_formats(ctx: click.Context, input: str, output: str) -> tuple[dict, dict]:
+    """``load`` and ``save`` keyword arguments from ``--format``, ``--input-format``,
+    ``--output-format`` and ``--points-only`` (``--format`` applies to an end whose name
+    does not tell: ``-`` or no suffix)."""
+    import os
+
+    meta = ctx.meta
+    common = meta.get("recon.format")
+
+    def unnamed(p: str) -> bool:
+        return p == "-" or not os.path.splitext(p)[1]
+
+    fin = meta.get("recon.input_format") or (common if unnamed(input) else None)
+    fout = meta.get("recon.output_format") or (common if unnamed(output) else None)
+    return {"format": fin}, {"format": fout, "points_only": bool(meta.get("recon.points_only"))}
+
+
 def run_stage_command(
     ctx: click.Context,
     stage: str,
@@ -49,6 +66,7 @@ def run_stage_command(
     """Load IN, run ``stage`` with ``params``, write OUT atomically, print the report (and return it)."""
     from recon_cli.cli._signals import immediate
     from recon_cli.errors import naming
+    from recon_cli.geometry import TriangleMesh
     from recon_cli.io.atomic import check_output
     from recon_cli.io.load import load, save
     from recon_cli.stages import apply_stage, get_spec
@@ -59,14 +77,19 @@ def run_stage_command(
     progress = make_progress(ctx)  # before reading: a first run's compiling shows from the start
     # Ctrl-C / SIGTERM leave at once, even inside a numba kernel or while numba loads one:
     # nothing is written before save()
+    load_kw, save_kw = io_formats(ctx, input, output)
     with immediate():
         t0 = time.perf_counter()
-        data = load(input)
+        data = load(input, **load_kw)
         t1 = time.perf_counter()
+        if stage == "normals" and isinstance(data, TriangleMesh):
+            from recon_cli.io.text import warn
+
+            warn(f"{input}: a mesh: normals are estimated at its {len(data.vertices)} vertices and the vertices only are written (faces dropped)")
         with naming(input):
             result = apply_stage(stage, data, params, progress=progress)
         t2 = time.perf_counter()
-    save(result.output, output, ascii=ascii_)
+    save(result.output, output, ascii=ascii_, **save_kw)
     t3 = time.perf_counter()
     report = dict(result.report)
     report["timings"] = {"read": t1 - t0, "stage": t2 - t1, "write": t3 - t2}

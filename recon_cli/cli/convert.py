@@ -1,4 +1,4 @@
-"""``recon convert IN OUT``: re-encode PLY (binary/ASCII), everything kept."""
+"""``recon convert IN OUT``: between any two formats (PLY to PLY: re-encoded, everything kept)."""
 
 from __future__ import annotations
 
@@ -11,14 +11,37 @@ from recon_cli.cli import options
 @options.input_arg
 @options.output_arg
 @options.ascii_opt
-@click.option("--big-endian", is_flag=True, help="Write binary big-endian.")
-def cmd(input: str, output: str, ascii_: bool, big_endian: bool) -> None:
-    """Re-encode a PLY file; every element and property is kept."""
+@click.option("--big-endian", is_flag=True, help="Write binary big-endian PLY.")
+@options.format_opt
+@options.input_format_opt
+@options.output_format_opt
+@options.points_only_opt
+@click.pass_context
+def cmd(ctx: click.Context, input: str, output: str, ascii_: bool, big_endian: bool) -> None:
+    """Convert between formats, chosen by suffix: PLY, OBJ, OFF, STL, XYZ/TXT/CSV/PTS, PCD,
+    LAS/LAZ (E57 read only). A PLY written from a PLY keeps every element and property."""
+    from recon_cli.cli._run import io_formats
     from recon_cli.io.atomic import write_bytes
+    from recon_cli.io.load import FORMATS, decode, format_of, save
     from recon_cli.io.ply import parse_ply, read_bytes, serialize_ply
 
     if ascii_ and big_endian:
         raise click.UsageError("--ascii and --big-endian exclude each other")
-    ply = parse_ply(read_bytes(input), input)
-    ply.format = "ascii" if ascii_ else ("binary_big_endian" if big_endian else "binary_little_endian")
-    write_bytes(output, serialize_ply(ply))
+    load_kw, save_kw = io_formats(ctx, input, output)
+    fin = format_of(input, load_kw["format"])
+    fout = format_of(output, save_kw["format"]) or FORMATS["ply"]
+    if big_endian and fout.name != "ply":
+        raise click.UsageError(f"--big-endian is for PLY output, not {fout.name.upper()}")
+    if fin is None or fin.name not in ("las", "e57") or input == "-":
+        data = read_bytes(input)
+        if fout.name == "ply" and (fin is None or fin.name == "ply") and bytes(memoryview(data)[:3]) == b"ply":
+            ply = parse_ply(data, input)
+            ply.format = "ascii" if ascii_ else ("binary_big_endian" if big_endian else "binary_little_endian")
+            write_bytes(output, serialize_ply(ply))
+            return
+        obj = decode(data, input, fin)[0]
+    else:
+        from recon_cli.io.load import load
+
+        obj = load(input, **load_kw)
+    save(obj, output, ascii=ascii_, **save_kw)

@@ -10,22 +10,27 @@ from recon_cli.cli import options
 @click.command("info")
 @click.argument("files", metavar="FILE...", nargs=-1, required=True, type=click.Path(allow_dash=True))
 @options.json_opt
+@options.format_opt
 @click.pass_context
 def cmd(ctx: click.Context, files: tuple[str, ...], json_: bool) -> None:
-    """Describe PLY clouds/meshes and grids: counts, properties, bbox, topology, history.
+    """Describe clouds/meshes (PLY, OBJ, OFF, STL, XYZ, PCD, LAS/LAZ, E57) and grids: counts,
+    properties, bbox, topology, history.
 
     With --json: a JSON list with one object per FILE (also for a single file).
     """
+    import os
+
     from recon_cli.cli._signals import immediate
     from recon_cli.errors import naming
     from recon_cli.info import describe
     from recon_cli.stages import report_json
 
+    fmt = ctx.meta.get("recon.format")
     reports = []
     with immediate():  # reads and computes only: Ctrl-C ends it at once, even in a kernel
         for f in files:
             with naming(f):
-                reports.append(describe(f))
+                reports.append(describe(f, fmt if (f == "-" or not os.path.splitext(f)[1]) else None))
     if json_:
         click.echo(report_json(reports))  # always a list, one entry per FILE
         return
@@ -59,6 +64,8 @@ def format_info(rep: dict) -> str:
             lines.append(f"  bbox min       {', '.join(f'{v:.6g}' for v in rep['bbox']['min'])}")
             lines.append(f"  bbox max       {', '.join(f'{v:.6g}' for v in rep['bbox']['max'])}")
             lines.append(f"  bbox diagonal  {rep['bbox']['diagonal']:.6g}")
+        for k, v in (rep.get("details") or {}).items():
+            lines.append(f"  {k.replace('_', ' '):<14} {', '.join(map(str, v)) if isinstance(v, list) else v}")
         topo = rep.get("topology")
         if topo:
             lines.append("  topology:")

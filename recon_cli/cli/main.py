@@ -25,7 +25,7 @@ from recon_cli.errors import ReconError
 # subcommand -> module under recon_cli.cli holding a click command named ``cmd``;
 # imported only when run, so ``recon --help`` stays instant
 COMMANDS: dict[str, tuple[str, str]] = {
-    "info": ("info", "Describe a PLY cloud/mesh or a grid: counts, properties, topology, history."),
+    "info": ("info", "Describe a cloud/mesh (any format) or a grid: counts, properties, topology, history."),
     "normals": ("normals", "Estimate and orient point normals."),
     "poisson": ("poisson", "Screened Poisson reconstruction of an oriented cloud."),
     "ballpivot": ("ballpivot", "Ball-pivoting reconstruction of an oriented cloud."),
@@ -37,7 +37,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "compare": ("compare", "Run several methods on one input and compare them."),
     "run": ("run", "Run a pipeline file (TOML) on one input."),
     "batch": ("batch", "Run a pipeline file on many inputs (Dask)."),
-    "convert": ("convert", "Re-encode a PLY file (binary/ASCII), keeping everything."),
+    "convert": ("convert", "Convert between PLY, OBJ, OFF, STL, XYZ/CSV, PCD, LAS/LAZ (E57 in)."),
     "warmup": ("warmup", "Compile every kernel once (run after installing; make install does)."),
 }
 

@@ -8,7 +8,7 @@ import click
 input_arg = click.argument("input", metavar="IN", type=click.Path(allow_dash=True))
 output_arg = click.argument("output", metavar="OUT", type=click.Path(allow_dash=True))
 
-ASCII_HELP = "Write ASCII PLY (default binary little-endian)."
+ASCII_HELP = "Write text: ASCII PLY / STL, PCD 'DATA ascii' (default binary little-endian)."
 JSON_HELP = "Print the report as JSON (on stdout, or stderr when OUT is '-')."
 ascii_opt = click.option("--ascii", "ascii_", is_flag=True, help=ASCII_HELP)
 json_opt = click.option("--json", "json_", is_flag=True, help=JSON_HELP)
@@ -25,9 +25,48 @@ def backend_opt(*choices: str):
     )
 
 
+def _to_meta(ctx: click.Context, param: click.Parameter, value):
+    """Keep a file-format option in ``ctx.meta`` (read by ``_run.io_formats``), not as an argument."""
+    if value is not None:
+        ctx.meta[f"recon.{param.name}"] = value
+    return value
+
+
+_FORMAT_OPTIONS = (
+    (("--format", "format"), "Format of '-' and of names without a suffix (ply, obj, off, stl, xyz, csv, pcd, las, laz, e57)."),
+    (("--input-format", "input_format"), "Format of IN, whatever its name (e.g. IN is '-')."),
+    (("--output-format", "output_format"), "Format of OUT, whatever its name."),
+)
+_POINTS_ONLY_HELP = "Allow writing a mesh to a points-only format (XYZ, PCD, LAS): its vertices, without the faces."
+
+
+def format_params() -> list[click.Option]:
+    """``--format``, ``--input-format``, ``--output-format`` and ``--points-only`` as click
+    options; their values go to ``ctx.meta`` (read by ``_run.io_formats``), not to the callback."""
+    opts = [
+        click.Option(list(decls), metavar="FMT", default=None, expose_value=False, callback=_to_meta, help=h)
+        for decls, h in _FORMAT_OPTIONS
+    ]
+    opts.append(
+        click.Option(["--points-only", "points_only"], is_flag=True, expose_value=False, callback=_to_meta, help=_POINTS_ONLY_HELP)
+    )
+    return opts
+
+
+format_opt, input_format_opt, output_format_opt = (
+    click.option(*decls, metavar="FMT", default=None, expose_value=False, callback=_to_meta, help=h)
+    for decls, h in _FORMAT_OPTIONS
+)
+points_only_opt = click.option(
+    "--points-only", "points_only", is_flag=True, expose_value=False, callback=_to_meta, help=_POINTS_ONLY_HELP
+)
+
+
 def stage_io(f):
-    """IN, OUT, --ascii and --json: what every stage command takes."""
-    for deco in reversed((input_arg, output_arg, ascii_opt, json_opt)):
+    """IN, OUT, --ascii, --json and the format options: what every stage command takes."""
+    for deco in reversed(
+        (input_arg, output_arg, ascii_opt, json_opt, format_opt, input_format_opt, output_format_opt, points_only_opt)
+    ):
         f = deco(f)
     return f
 
@@ -80,6 +119,7 @@ def stage_command(stage: str) -> click.Command:
         click.Option(["--json", "json_"], is_flag=True, help=JSON_HELP),
     ]
     params += [option_for(p) for p in spec.params]
+    params += format_params()
     return click.Command(spec.name, callback=callback, params=params, help=doc, short_help=spec.summary)
 
 

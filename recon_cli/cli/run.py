@@ -19,6 +19,10 @@ from recon_cli.cli import options
 @click.option("--validate", is_flag=True, help="Check the pipeline (and IN, when given) and exit; nothing is written.")
 @options.ascii_opt
 @options.json_opt
+@options.format_opt
+@options.input_format_opt
+@options.output_format_opt
+@options.points_only_opt
 @click.pass_context
 def cmd(ctx: click.Context, pipeline: str, input: str | None, output: str | None, overrides: tuple[str, ...],
         validate: bool, ascii_: bool, json_: bool) -> None:
@@ -28,7 +32,7 @@ def cmd(ctx: click.Context, pipeline: str, input: str | None, output: str | None
     values of the wrong type or out of range, and stages that do not fit together (each
     error names the file and line); then IN is read and checked against the first stage.
     """
-    from recon_cli.cli._run import emit_report, make_progress
+    from recon_cli.cli._run import emit_report, io_formats, make_progress
     from recon_cli.errors import ParameterError
     from recon_cli.pipeline import check_input, load_pipeline, run_pipeline
 
@@ -55,12 +59,13 @@ def cmd(ctx: click.Context, pipeline: str, input: str | None, output: str | None
 
     check_output(output)
     t0 = time.perf_counter()
+    load_kw, save_kw = io_formats(ctx, input, output)
     with immediate():
-        data = load(input)
+        data = load(input, **load_kw)
         with naming(input):
             check_input(pipe, data, input)
             out, reports = run_pipeline(pipe, data, progress=make_progress(ctx))
-    save(out, output, ascii=ascii_)
+    save(out, output, ascii=ascii_, **save_kw)
     summary = {
         "pipeline": pipeline,
         "input": input,

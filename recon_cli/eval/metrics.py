@@ -359,7 +359,7 @@ def diff_files(
         rows.append(row)
     if heatmap_path is None and png_path is None:
         return rows
-    from recon_cli.io.ply import write_ply
+    from recon_cli.io.load import save
 
     dists = [vertex_distances(c, ref) for c in cands]
     # what each candidate misses: the reference's vertices to it (one scale for both directions,
@@ -370,7 +370,7 @@ def diff_files(
     if heatmap_path is not None:
         for k, (path, cand, d) in enumerate(zip(candidates, cands, dists)):
             out = heatmap_path if len(cands) == 1 else _suffixed(heatmap_path, _stem(path), k)
-            write_ply(heatmap(cand, d, vmax=vmax), out)
+            save(heatmap(cand, d, vmax=vmax), out)  # in the format its suffix names
             rows[k]["heatmap"] = os.fspath(out)
     if png_path is not None:
         from recon_cli.eval.figure import diff_rows, sheet

@@ -1,4 +1,6 @@
-"""File input and output: PLY (our own reader/writer), SDF grids (.npz), atomic writes."""
+"""File input and output: PLY, OBJ, OFF, STL, XYZ/CSV, PCD (our own readers/writers), LAS/LAZ
+(laspy), E57 (pye57, read only), SDF grids (.npz), atomic writes; :mod:`recon_cli.io.load` picks
+the format by suffix."""
 
 from recon_cli.io.atomic import atomic_open, write_bytes
 from recon_cli.io.ply import PlyData, PlyElement, PlyProperty, parse_ply, read_ply, serialize_ply, write_ply

@@ -1,32 +1,243 @@
-"""Load any recon input (PLY cloud or mesh, grid npz) and save any stage output."""
+"""Load any recon input and save any stage output, in the format the file name says.
+
+The format registry: :data:`FORMATS` maps a format name to its suffixes, what it holds and
+the module that reads (and writes) it. A file's format is chosen by its suffix
+(case-insensitive); a name without a suffix, and ``-`` (standard input), are read by
+content (PLY and grid ``.npz`` as before, and every format with a signature), and written
+as PLY (a grid as ``.npz``) unless a format is given. An unknown suffix is an error that
+lists the supported ones.
+"""
 
 from __future__ import annotations
 
+import importlib
 import os
+from dataclasses import dataclass
 from typing import Any
 
+from recon_cli.errors import InputError, ParameterError
 from recon_cli.geometry import PointCloud, TriangleMesh
 from recon_cli.grid import Grid
 from recon_cli.io.npz import is_npz, read_grid, write_grid
 from recon_cli.io.ply import read_bytes, read_ply, write_ply
 
 
-def load(path: str | os.PathLike) -> PointCloud | TriangleMesh | Grid:
-    """Read ``path`` (``-``: stdin), telling PLY from grid ``.npz`` by content."""
-    if str(path) != "-" and os.path.isfile(path):
-        with open(path, "rb") as f:
-            magic = f.read(4)
-        # PLY files go straight to read_ply, which decodes the vertices while it reads
-        return read_grid(path) if is_npz(magic) else read_ply(path)
-    data = read_bytes(path)
-    if is_npz(data):
-        return read_grid(path, data)
-    return read_ply(path, data)
+@dataclass(frozen=True)
+class Format:
+    """One file format: ``holds`` is ``mesh`` (meshes and clouds), ``points`` (clouds only),
+    ``triangles`` (meshes only) or ``grid``."""
+
+    name: str
+    suffixes: tuple[str, ...]
+    holds: str
+    module: str
+    writes: bool
+    extra: str | None
+    kept: str
+
+    def decoder(self):
+        mod = importlib.import_module(f"recon_cli.io.{self.module}")
+        return getattr(mod, f"decode_{self.module}")
 
 
-def save(obj: Any, path: str | os.PathLike, ascii: bool = False) -> None:
-    """Write a stage output atomically: grids as ``.npz``, clouds and meshes as PLY."""
+FORMATS: dict[str, Format] = {
+    f.name: f
+    for f in (
+        Format("ply", (".ply",), "mesh", "ply", True, None,
+               "everything: every element and property, comments, obj_info; float32/float64 as stored"),
+        Format("obj", (".obj",), "mesh", "obj", True, None,
+               "v (float64), v colours, vn per vertex, f (polygons fan-triangulated); # history"),
+        Format("off", (".off",), "mesh", "off", True, None,
+               "vertices (float64), normals and colours (NOFF/COFF), faces, face colours"),
+        Format("stl", (".stl",), "triangles", "stl", True, None,
+               "triangles, corners welded exactly (tolerance 0); binary float32 / ASCII float64; attribute word"),
+        Format("xyz", (".xyz", ".txt", ".csv", ".pts", ".xyzn", ".xyzrgb"), "points", "xyz", True, None,
+               "x y z (float64), normals, colours, every other column as an attribute; header line"),
+        Format("pcd", (".pcd",), "points", "pcd", True, None,
+               "every field (x y z float32/float64, normals, rgb/rgba, the rest as attributes); viewpoint"),
+        Format("las", (".las", ".laz"), "points", "las", True, "las",
+               "float64 coordinates (scale/offset kept), colours, every dimension as an attribute, VLRs"),
+        Format("e57", (".e57",), "points", "e57", False, "e57",
+               "all scans in the file frame (float64), intensity, colours (read only)"),
+        Format("npz", (".npz",), "grid", "npz", True, None, "SDF grids (recon sdf / mcubes)"),
+    )
+}
+_BY_SUFFIX = {s: f for f in FORMATS.values() for s in f.suffixes}
+
+
+def supported() -> str:
+    """The supported suffixes, for messages."""
+    return ", ".join(s for f in FORMATS.values() for s in f.suffixes)
+
+
+def format_named(name: str) -> Format:
+    """The format called ``name`` (a name or a suffix, any case)."""
+    key = name.lower().lstrip(".")
+    if key in FORMATS:
+        return FORMATS[key]
+    if "." + key in _BY_SUFFIX:
+        return _BY_SUFFIX["." + key]
+    raise ParameterError(f"unknown format {name!r} (formats: {', '.join(FORMATS)})")
+
+
+def format_of(path: str | os.PathLike, given: str | None = None) -> Format | None:
+    """The format of ``path`` by ``given`` or its suffix; None for ``-`` or no suffix."""
+    if given:
+        return format_named(given)
+    p = str(path)
+    if p == "-":
+        return None
+    ext = os.path.splitext(p)[1].lower()
+    if not ext:
+        return None
+    if ext not in _BY_SUFFIX:
+        raise ParameterError(f"{p}: unknown file type {ext!r} (supported: {supported()}; or give --format)")
+    return _BY_SUFFIX[ext]
+
+
+def sniff(data) -> Format:
+    """The format of a file's bytes by content (PLY when nothing else is recognised)."""
+    from recon_cli.io.stl import is_binary_stl
+    from recon_cli.io.text import as_uint8
+
+    buf = as_uint8(data)
+    head = bytes(buf[:512])
+    start = head.lstrip()
+    if head.startswith(b"ply"):
+        return FORMATS["ply"]
+    if is_npz(head):
+        return FORMATS["npz"]
+    if head.startswith(b"LASF"):
+        return FORMATS["las"]
+    if head.startswith(b"ASTM-E57"):
+        return FORMATS["e57"]
+    if start.startswith((b"# .PCD", b"VERSION", b"FIELDS")):
+        return FORMATS["pcd"]
+    word = start.split(None, 1)[0] if start.strip() else b""
+    if word in (b"OFF", b"COFF", b"NOFF", b"CNOFF", b"NCOFF"):
+        return FORMATS["off"]
+    if is_binary_stl(buf) or (word == b"solid" and b"facet" in head):
+        return FORMATS["stl"]
+    if word in (b"v", b"vn", b"vt", b"f", b"o", b"g", b"mtllib", b"usemtl") or b"\nv " in head:
+        return FORMATS["obj"]
+    first = word.replace(b";", b",").split(b",")[0].strip(b"\"'").lower()
+    if start[:1].isdigit() or start[:1] in (b"-", b"+", b".") or first in (b"x", b"//x", b"#"):
+        return FORMATS["xyz"]
+    return FORMATS["ply"]
+
+
+def load_detailed(path: str | os.PathLike, format: str | None = None) -> tuple[Any, dict, Format]:
+    """Read ``path`` (``-``: stdin): ``(object, details for recon info, format)``.
+
+    ``details`` is empty for PLY and grids (:mod:`recon_cli.info` describes those itself).
+    """
+    where = "<stdin>" if str(path) == "-" else str(path)
+    fmt = format_of(path, format)
+    if fmt is not None and fmt.name in ("las", "e57") and str(path) != "-":
+        # laspy and pye57 read the file themselves (no second copy of its bytes)
+        if not os.path.isfile(path):
+            if os.path.isdir(path):
+                raise InputError("is a directory, not a file", where)
+            raise InputError("no such file", where)
+        obj, details = fmt.decoder()(None, where, path=str(path))
+        return obj, details, fmt
+    if fmt is not None and fmt.name == "ply" and str(path) != "-" and os.path.isfile(path):
+        return read_ply(path), {}, fmt
+    return decode(read_bytes(path), path, fmt)
+
+
+def decode(data, path: str | os.PathLike, fmt: Format | None = None) -> tuple[Any, dict, Format]:
+    """Decode the bytes of a file named ``path`` in ``fmt`` (None: by content)."""
+    if fmt is None:
+        fmt = sniff(data)
+    if fmt.name == "npz":
+        return read_grid(path, data), {}, fmt
+    if fmt.name == "ply":
+        return read_ply(path, data), {}, fmt
+    obj, details = fmt.decoder()(data, "<stdin>" if str(path) == "-" else str(path))
+    return obj, details, fmt
+
+
+def load(path: str | os.PathLike, format: str | None = None) -> PointCloud | TriangleMesh | Grid:
+    """Read ``path`` (``-``: stdin) in the format its suffix (or ``format``) names.
+
+    Raises
+    ------
+    InputError
+        Malformed file (the message names the file and the line or byte).
+    ParameterError
+        Unknown suffix or format, or a missing optional extra.
+    """
+    return load_detailed(path, format)[0]
+
+
+def save(
+    obj: Any,
+    path: str | os.PathLike,
+    ascii: bool = False,
+    format: str | None = None,
+    points_only: bool = False,
+) -> None:
+    """Write a stage output atomically in the format the suffix of ``path`` (or ``format``)
+    names; ``-`` and names without a suffix get PLY (grids ``.npz``).
+
+    A mesh written to a format that holds points only is refused unless ``points_only``
+    (then its vertices are written and a warning says the faces were dropped); a cloud is
+    refused by STL.
+    """
+    where = "<stdout>" if str(path) == "-" else str(path)
+    fmt = format_of(path, format)
     if isinstance(obj, Grid):
+        if fmt is not None and fmt.name != "npz":
+            raise ParameterError(f"{where}: a grid is written as .npz, not {fmt.name.upper()}")
         write_grid(obj, path)
-    else:
+        return
+    fmt = fmt or FORMATS["ply"]
+    if fmt.holds == "grid":
+        raise ParameterError(f"{where}: .npz holds grids; a {_kind(obj)} is written as PLY, OBJ, ... ({supported()})")
+    if not fmt.writes:
+        raise ParameterError(f"{where}: recon reads {fmt.name.upper()} but does not write it")
+    if fmt.holds == "points" and isinstance(obj, TriangleMesh):
+        if not points_only:
+            raise ParameterError(
+                f"{where}: {fmt.name.upper()} holds points only; the mesh's {len(obj.faces)} faces would be dropped "
+                "(pass --points-only to write its vertices)"
+            )
+        from recon_cli.io.text import warn
+
+        warn(f"{where}: {fmt.name.upper()} holds points only: wrote the {len(obj.vertices)} vertices, dropped {len(obj.faces)} faces")
+        obj = obj.to_point_cloud()
+    if fmt.holds == "triangles" and not isinstance(obj, TriangleMesh):
+        raise ParameterError(f"{where}: {fmt.name.upper()} holds triangles; a point cloud cannot be written as {fmt.name.upper()}")
+    if fmt.name == "ply":
         write_ply(obj, path, ascii=ascii)
+    elif fmt.name == "obj":
+        from recon_cli.io.obj import write_obj
+
+        write_obj(obj, path)
+    elif fmt.name == "off":
+        from recon_cli.io.off import write_off
+
+        write_off(obj, path)
+    elif fmt.name == "stl":
+        from recon_cli.io.stl import write_stl
+
+        write_stl(obj, path, ascii=ascii)
+    elif fmt.name == "xyz":
+        from recon_cli.io.xyz import write_xyz
+
+        write_xyz(obj, path, csv=str(path).lower().endswith(".csv") or (format or "").lower().lstrip(".") == "csv")
+    elif fmt.name == "pcd":
+        from recon_cli.io.pcd import write_pcd
+
+        write_pcd(obj, path, data="ascii" if ascii else "binary")
+    elif fmt.name == "las":
+        from recon_cli.io.las import write_las
+
+        write_las(obj, path, compress=str(path).lower().endswith(".laz") or (format or "").lower().lstrip(".") == "laz")
+    else:  # pragma: no cover - every writing format is listed above
+        raise ParameterError(f"no writer for {fmt.name}")
+
+
+def _kind(obj: Any) -> str:
+    return "mesh" if isinstance(obj, TriangleMesh) else "point cloud"

@@ -1,0 +1,143 @@
+"""File formats: our readers vs the libraries users would otherwise call, on the same files.
+
+* LAZ (1.1M points, the Autzen tile tiled 10 times): ``recon_cli.io.load`` vs ``laspy.read``
+  (ours is laspy plus the float64 coordinates and attribute arrays; target <= 1.2x);
+* PCD binary and XYZ text (1M points): ours vs ``open3d.io.read_point_cloud`` (target <= 1x);
+* PCD binary_compressed: ours (our LZF kernel) vs Open3D;
+* OBJ mesh: ours vs our binary PLY reader on the same mesh (target <= 3x per vertex) and vs
+  ``trimesh.load`` (the library we judged against writing our own);
+* STL binary: ours (with the exact weld) vs ``trimesh.load`` (which also merges vertices).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from _util import measure, row
+
+AUTZEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "autzen_trim.laz"
+
+
+def _tile_laz(path: str, copies: int) -> int:
+    import laspy
+
+    # the single-threaded backend: lazrs' parallel one starts a thread pool, and the timed reads
+    # run in forked children, which a pool started before the fork would deadlock
+    src = laspy.read(AUTZEN, laz_backend=laspy.LazBackend.Lazrs)
+    h = laspy.LasHeader(point_format=src.header.point_format.id, version=src.header.version)
+    h.scales = src.header.scales
+    h.offsets = src.header.offsets
+    out = laspy.LasData(h)
+    arr = np.concatenate([src.points.array] * copies)
+    span = int(np.ptp(src.points.array["X"])) + 100
+    for k in range(copies):  # side by side, so the tile stays a plausible survey
+        arr["X"][k * len(src.points) : (k + 1) * len(src.points)] += k * span
+    out.points = laspy.ScaleAwarePointRecord(arr, h.point_format, h.scales, h.offsets)
+    out.write(path, laz_backend=laspy.LazBackend.Lazrs)
+    return len(arr)
+
+
+def _cloud(n: int):
+    from recon_cli.geometry import PointCloud
+
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(n, 3)).astype(np.float32) * 10
+    nrm = rng.normal(size=(n, 3)).astype(np.float32)
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    col = rng.integers(0, 256, size=(n, 3), dtype=np.uint8)
+    return PointCloud(points=pts, normals=nrm, colors=col, point_dtype=np.float32)
+
+
+def _grid_mesh(n_side: int):
+    from recon_cli.geometry import TriangleMesh
+
+    x, y = np.meshgrid(np.arange(n_side, dtype=np.float32), np.arange(n_side, dtype=np.float32), indexing="ij")
+    v = np.column_stack([x.ravel() * 0.001, y.ravel() * 0.001, np.sin(x.ravel() * 0.01) * 0.1]).astype(np.float32)
+    idx = np.arange(n_side * n_side).reshape(n_side, n_side)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    f = np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
+    return TriangleMesh(vertices=v, faces=f, point_dtype=np.float32)
+
+
+def rows(quick: bool) -> list[dict]:
+    import laspy
+    import open3d as o3d
+    import trimesh
+
+    from recon_cli.io.load import load, save
+    from recon_cli.io.obj import obj_bytes
+    from recon_cli.io.xyz import xyz_bytes
+
+    rep = 3 if quick else 5
+    n = 200_000 if quick else 1_000_000
+    out = []
+    with tempfile.TemporaryDirectory() as d:
+        # LAZ
+        laz = os.path.join(d, "tile.laz")
+        npts = _tile_laz(laz, 2 if quick else 10)
+        # no warm-up read here: lazrs decompresses on a thread pool, which must not exist before a fork
+        ours = measure(lambda: len(load(laz).points), rep)
+        ref = measure(lambda: len(laspy.read(laz).points), rep)
+        out.append(row("formats", f"read {npts // 1000}k-point LAZ (Autzen, format 3)", ours, "laspy.read", ref, "target ≤ 1.2×"))
+
+        cloud = _cloud(n)
+        # PCD binary and compressed
+        for data in ("binary", "binary_compressed"):
+            pcd = os.path.join(d, f"{data}.pcd")
+            if data == "binary":
+                save(cloud, pcd)
+            else:
+                from recon_cli.io.pcd import write_pcd
+
+                write_pcd(cloud, pcd, data=data)
+            load(pcd)
+            ours = measure(lambda: len(load(pcd).points), rep)
+            ref = measure(lambda: len(o3d.io.read_point_cloud(pcd).points), rep)
+            out.append(row("formats", f"read {n // 1000}k-point PCD {data} (xyz, normals, rgb)", ours, "open3d.io.read_point_cloud", ref, "target ≤ 1×"))
+
+        # XYZ text (x y z: the columns Open3D's reader takes): as Open3D writes it (%.10f), and ours
+        # from double data (%.17g: mostly beyond the exact fast path, numpy converts those)
+        xyz = os.path.join(d, "o3d.xyz")
+        p = o3d.geometry.PointCloud()
+        p.points = o3d.utility.Vector3dVector(cloud.points.astype(np.float64) * 1000 + [5e5, 5e6, 100])
+        o3d.io.write_point_cloud(xyz, p)
+        load(xyz)
+        ours = measure(lambda: len(load(xyz).points), rep)
+        ref = measure(lambda: len(o3d.io.read_point_cloud(xyz).points), rep)
+        out.append(row("formats", f"read {n // 1000}k-point XYZ written by Open3D (%.10f, UTM-like)", ours, "open3d.io.read_point_cloud", ref, "target ≤ 1×"))
+        xyz17 = os.path.join(d, "c.xyz")
+        rng = np.random.default_rng(1)
+        plain = type(cloud)(points=rng.normal(size=(n, 3)) * 1000 + [5e5, 5e6, 100], point_dtype=np.float64)
+        Path(xyz17).write_bytes(xyz_bytes(plain))
+        ours = measure(lambda: len(load(xyz17).points), rep)
+        ref = measure(lambda: len(o3d.io.read_point_cloud(xyz17).points), rep)
+        out.append(row("formats", f"read {n // 1000}k-point XYZ of doubles (%.17g)", ours, "open3d.io.read_point_cloud", ref, "target ≤ 1×"))
+
+        # OBJ vs our binary PLY of the same mesh, and vs trimesh
+        mesh = _grid_mesh(400 if quick else 1000)
+        obj = os.path.join(d, "m.obj")
+        ply = os.path.join(d, "m.ply")
+        Path(obj).write_bytes(obj_bytes(mesh))
+        save(mesh, ply)
+        load(obj)
+        load(ply)
+        nv = len(mesh.vertices)
+        ours = measure(lambda: len(load(obj).faces), rep)
+        ref = measure(lambda: len(load(ply).faces), rep)
+        label = f"read OBJ mesh ({nv // 1000}k vertices, {len(mesh.faces) // 1000}k faces)"
+        out.append(row("formats", label, ours, "our binary PLY reader, same mesh", ref, "target ≤ 3×"))
+        tm = measure(lambda: len(trimesh.load(obj, process=False).faces), rep)
+        out.append(row("formats", label, ours, "trimesh.load(process=False)", tm, ""))
+
+        # STL binary (welded)
+        stl = os.path.join(d, "m.stl")
+        save(mesh, stl)
+        load(stl)
+        ours = measure(lambda: len(load(stl).vertices), rep)
+        tm = measure(lambda: len(trimesh.load(stl).vertices), rep)
+        out.append(row("formats", f"read binary STL ({len(mesh.faces) // 1000}k triangles), welded", ours, "trimesh.load (merges vertices)", tm, ""))
+    return out

@@ -1,0 +1,234 @@
+"""LAS and LAZ (1.2 - 1.4) through laspy with the lazrs backend (the optional extra
+``recon[las]``).
+
+Reading gives float64 coordinates ``X * scale + offset`` (LAS stores integers: float32 at
+UTM coordinates would round to decimetres), the colours (uint16, as stored) and every other
+dimension as a per-point attribute under laspy's name (``intensity``, ``return_number``,
+``number_of_returns``, ``classification``, ``gps_time``, ..., and extra-bytes dimensions);
+extra dimensions ``nx ny nz`` (or ``normal_x``...) are the normals. The version, point
+format, scale, offset and the VLRs (coordinate system...) are kept in ``obj_info`` lines
+(``las_*``), so they survive a pass through PLY stages and are written back.
+
+Writing uses the kept scale and offset (coordinates from a LAS file come back as the same
+integers), or else the finest power-of-ten scale that both fits the extent in 32-bit
+integers and is at least 1e-9 of the extent (so at most 1e-8 of it), and an offset at the
+minimum; a coordinate not on that grid is rounded and the writer says
+by how much. Normals and attributes that are not standard dimensions of the point format
+are written as extra-bytes dimensions.
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+import os
+
+import numpy as np
+
+from recon_cli.errors import InputError, ParameterError
+from recon_cli.geometry import PointCloud, bbox_diagonal
+from recon_cli.io import text
+
+_NORMAL_NAMES = (("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z"), ("NormalX", "NormalY", "NormalZ"))
+_WITH_RGB = {0: 2, 1: 3, 4: 5, 6: 7, 9: 10}
+_RGB = ("red", "green", "blue")
+
+
+def _laspy():
+    try:
+        import laspy
+    except ModuleNotFoundError:
+        raise ParameterError("LAS/LAZ needs laspy with lazrs: pip install 'recon[las]'") from None
+    return laspy
+
+
+def decode_las(data, where: str, path=None) -> tuple[PointCloud, dict]:
+    """Decode a LAS/LAZ file (from ``path`` when given, else the bytes ``data``)."""
+    laspy = _laspy()
+    source = path if path is not None else io.BytesIO(bytes(memoryview(text.as_uint8(data))))
+    try:
+        las = laspy.read(source)
+    except FileNotFoundError:
+        raise InputError("no such file", where) from None
+    except Exception as exc:  # laspy raises LaspyException, ValueError, lazrs errors...
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise InputError(f"not a readable LAS/LAZ file ({msg})", where) from None
+    h = las.header
+    n = len(las.points)
+    if n != h.point_count:
+        raise InputError(f"header declares {h.point_count} points, the file holds {n}", where)
+    pts = np.empty((n, 3), np.float64)
+    raw = las.points.array
+    for i, c in enumerate("XYZ"):
+        np.multiply(raw[c], h.scales[i], out=pts[:, i])
+        pts[:, i] += h.offsets[i]
+    names = list(las.point_format.dimension_names)
+    colors = None
+    if all(c in names for c in _RGB):
+        colors = np.column_stack([raw[c] for c in _RGB])
+    extra = {d.name for d in las.point_format.extra_dimensions}
+    normals = None
+    for trio in _NORMAL_NAMES:
+        if all(c in extra for c in trio):
+            normals = np.column_stack([np.asarray(las[c]) for c in trio])
+            break
+    skip = {"X", "Y", "Z", *(_RGB if colors is not None else ()), *(trio if normals is not None else ())}
+    attributes = {name: np.array(las[name]) for name in names if name not in skip}
+    info = [
+        f"las_version {h.version}",
+        f"las_point_format {h.point_format.id}",
+        "las_scale " + " ".join(repr(float(s)) for s in h.scales),
+        "las_offset " + " ".join(repr(float(o)) for o in h.offsets),
+    ]
+    for v in h.vlrs:
+        info.append(
+            "las_vlr "
+            + " ".join(
+                (
+                    base64.b64encode(v.user_id.encode("latin-1")).decode(),
+                    str(int(v.record_id)),
+                    base64.b64encode((v.description or "").encode("latin-1")).decode(),
+                    base64.b64encode(_vlr_bytes(v)).decode(),
+                )
+            )
+        )
+    cloud = PointCloud(points=pts, normals=normals, colors=colors, attributes=attributes, point_dtype=np.float64, obj_info=info)
+    details = {
+        "format": "las",
+        "version": str(h.version),
+        "point_format": int(h.point_format.id),
+        "compressed": bool(getattr(las.header, "are_points_compressed", False)) or str(where).lower().endswith(".laz"),
+        "scale": [float(s) for s in h.scales],
+        "offset": [float(o) for o in h.offsets],
+        "vlrs": [f"{v.user_id}/{v.record_id}" for v in h.vlrs],
+        "software": h.generating_software,
+    }
+    return cloud, details
+
+
+def _vlr_bytes(v) -> bytes:
+    try:
+        return bytes(v.record_data_bytes())
+    except (AttributeError, TypeError):
+        return bytes(getattr(v, "record_data", b""))
+
+
+def _info(obj) -> dict:
+    out: dict = {"vlrs": []}
+    for line in obj.obj_info:
+        key, _, rest = line.partition(" ")
+        if key == "las_vlr":
+            out["vlrs"].append(rest.split(" "))
+        elif key.startswith("las_"):
+            out[key[4:]] = rest
+    return out
+
+
+def _grid(pts: np.ndarray, info: dict) -> tuple[np.ndarray, np.ndarray]:
+    if "scale" in info and "offset" in info:
+        return np.array(info["scale"].split(), float), np.array(info["offset"].split(), float)
+    lo = pts.min(axis=0) if len(pts) else np.zeros(3)
+    hi = pts.max(axis=0) if len(pts) else np.zeros(3)
+    extent = max(float(np.max(hi - lo)), 1e-300)
+    scale = 10.0 ** np.ceil(np.log10(max(extent / 2.0e9, extent * 1e-9, 1e-12)))
+    return np.full(3, scale), np.floor(lo)
+
+
+def las_bytes(obj, compress: bool, where: str = "") -> bytes:
+    """The LAS (or LAZ when ``compress``) encoding of a cloud (a mesh's vertices)."""
+    laspy = _laspy()
+    info = _info(obj)
+    pts = np.asarray(obj.points, np.float64)
+    version = info.get("version", "1.4")
+    pf = int(info.get("point_format", 7 if obj.colors is not None else 6))
+    if obj.colors is not None and pf in _WITH_RGB:
+        pf = _WITH_RGB[pf]
+    header = laspy.LasHeader(point_format=pf, version=version)
+    scale, offset = _grid(pts, info)
+    header.scales = scale
+    header.offsets = offset
+    standard = set(laspy.PointFormat(pf).dimension_names)
+    extras = []
+    if obj.normals is not None:
+        ntype = obj.normals.dtype if obj.normals.dtype in (np.float32, np.float64) else np.float64
+        extras += [(c, obj.normals[:, i].astype(ntype)) for i, c in enumerate(("nx", "ny", "nz"))]
+    for name, v in obj.attributes.items():
+        if name not in standard:
+            extras.append((name, v))
+    if extras:
+        header.add_extra_dims([laspy.ExtraBytesParams(name=name, type=_extra_type(v.dtype)) for name, v in extras])
+    for user, rec, desc, payload in info["vlrs"]:
+        header.vlrs.append(
+            laspy.VLR(
+                user_id=base64.b64decode(user).decode("latin-1"),
+                record_id=int(rec),
+                description=base64.b64decode(desc).decode("latin-1"),
+                record_data=base64.b64decode(payload),
+            )
+        )
+    las = laspy.LasData(header)
+    ints = np.rint((pts - offset) / scale)
+    if len(pts) and (np.abs(ints).max() > 2**31 - 1):
+        raise ParameterError(f"{where}: coordinates do not fit LAS integers with scale {scale[0]:g} and offset {offset.tolist()}")
+    ints = ints.astype(np.int32)
+    las.X, las.Y, las.Z = ints[:, 0], ints[:, 1], ints[:, 2]
+    err = float(np.max(np.abs(ints * scale + offset - pts))) if len(pts) else 0.0
+    if err > 1e-3 * float(scale.min()):
+        text.warn(
+            f"{where}: LAS stores coordinates as integers of scale {scale.min():g}: rounded by up to {err:.3g} "
+            f"({err / max(bbox_diagonal(pts), 1e-300):.2g} of the bounding-box diagonal)"
+        )
+    if obj.colors is not None:
+        c = obj.colors[:, :3]
+        c16 = c.astype(np.uint16) * 257 if c.dtype == np.uint8 else (
+            c.astype(np.uint16) if c.dtype.kind in "ui" else np.clip(np.rint(c * 65535), 0, 65535).astype(np.uint16)
+        )
+        las.red, las.green, las.blue = c16[:, 0], c16[:, 1], c16[:, 2]
+    for name, v in obj.attributes.items():
+        if name in standard:
+            _assign(las, name, v, where)
+    for name, v in extras:
+        las[name] = v
+    buf = io.BytesIO()
+    kw = {"laz_backend": laspy.LazBackend.Lazrs} if compress else {}
+    las.write(buf, do_compress=compress, **kw)
+    return buf.getvalue()
+
+
+def _extra_type(dt: np.dtype) -> str:
+    dt = np.dtype(dt)
+    if dt.kind == "b":
+        return "u1"
+    if dt.kind in "iuf" and dt.itemsize in (1, 2, 4, 8) and not (dt.kind == "f" and dt.itemsize < 4):
+        return f"{dt.kind}{dt.itemsize}"
+    return "f8"
+
+
+def _assign(las, name: str, v: np.ndarray, where: str) -> None:
+    target = np.asarray(las[name]).dtype
+    cast = v.astype(target)
+    if not np.array_equal(cast.astype(np.float64), v.astype(np.float64)):
+        raise ParameterError(f"{where}: attribute {name!r} has values a LAS {name} ({target}) cannot hold")
+    las[name] = cast
+    if not np.array_equal(np.asarray(las[name]).astype(np.float64), v.astype(np.float64)):
+        raise ParameterError(f"{where}: attribute {name!r} has values out of range for the LAS field")
+
+
+def read_las(path: str | os.PathLike, data=None) -> PointCloud:
+    """Read a LAS/LAZ file (``-``: standard input)."""
+    from recon_cli.io.ply import read_bytes
+
+    if data is None and str(path) != "-":
+        if not os.path.isfile(path):
+            raise InputError("no such file", str(path))
+        return decode_las(None, str(path), path=str(path))[0]
+    return decode_las(read_bytes(path) if data is None else data, text.where_of(path))[0]
+
+
+def write_las(obj, path: str | os.PathLike, compress: bool | None = None) -> None:
+    """Write ``obj`` as LAS (LAZ for a ``.laz`` suffix or ``compress``) atomically."""
+    from recon_cli.io.atomic import write_bytes
+
+    if compress is None:
+        compress = str(path).lower().endswith(".laz")
+    write_bytes(path, las_bytes(obj, compress, text.where_of(path)))

@@ -1,0 +1,166 @@
+"""Wavefront OBJ: our own reader and writer.
+
+Read: ``v x y z [w]`` or ``v x y z r g b`` (colours in 0..1), ``vn``, ``f`` with the
+``v``, ``v/vt``, ``v/vt/vn`` and ``v//vn`` corner forms and negative (relative) indices;
+polygons are fan-triangulated. Normals are kept per vertex when every corner of a vertex
+names the same normal (or the file has one ``vn`` per ``v`` in order); other per-corner
+normals are dropped with a warning. Texture coordinates, groups and materials are not
+kept. Leading ``#`` lines are the history (``# recon: float32``, which our writer puts
+first for float32 data, makes the coordinates float32 again). A file without faces is a point cloud.
+Coordinates are read as float64 (text has no type).
+
+The numbers are parsed by a numba kernel (:mod:`recon_cli.io._obj_kernel`) in one pass
+over the bytes, into arrays that grow by doubling; fast-path numbers are exact (see
+:mod:`recon_cli.io._text_kernel`), the others are converted by Python's ``float``.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from recon_cli.errors import InputError
+from recon_cli.geometry import PointCloud, TriangleMesh
+from recon_cli.io import text
+
+_MESSAGES = {
+    1: "is not a number",
+    2: "a 'v' line must hold 3, 4 (x y z w) or 6 (x y z r g b) numbers",
+    3: "a 'vn' line must hold 3 numbers",
+    4: "a face has fewer than 3 corners",
+    5: "a face corner is not a vertex index (v, v/vt, v/vt/vn or v//vn; indices start at 1)",
+    6: "this 'v' line and an earlier one differ in carrying colours (r g b)",
+    7: "a negative (relative) index reaches before the first vertex or normal",
+}
+
+
+def decode_obj(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
+    """Decode the bytes of an OBJ file: ``(geometry, details for recon info)``."""
+    from recon_cli.io import _obj_kernel as K
+
+    buf = text.as_uint8(data)
+    err, at, counts, verts, colours, vnorms, corner_v, corner_n, face_len, slow = K.obj_walk(
+        buf, max(16, len(buf) // 64)
+    )
+    if err:
+        _raise(buf, err, at, where)
+    nv, nvn, nf, nc = (int(counts[k]) for k in (K.NV, K.NVN, K.NF, K.NCORNER))
+    verts, vnorms = verts[:nv], vnorms[:nvn]
+    colours = colours[:nv] if counts[K.COLOURS] else np.empty((0, 3), np.float64)
+    corner_v, corner_n, face_len = corner_v[:nc], corner_n[:nc], face_len[:nf]
+    if counts[K.NSLOW]:
+        slow = slow[: counts[K.NSLOW]]
+        vals = text.slow_values(buf, slow[:, 2:4])
+        for a, target in enumerate((verts, colours, vnorms)):
+            pick = slow[:, 0] == a
+            if pick.any() and len(target):
+                target.reshape(-1)[slow[pick, 1]] = vals[pick]
+    text.check_finite(verts, where)
+    if nc and (corner_v.min() < 0 or corner_v.max() >= nv):
+        bad = int(np.flatnonzero((corner_v < 0) | (corner_v >= nv))[0])
+        raise InputError(f"face corner {bad}: vertex index out of range for {nv} vertices", where)
+    if nc and corner_n.max() >= nvn:
+        bad = int(np.flatnonzero(corner_n >= nvn)[0])
+        raise InputError(f"face corner {bad}: normal index out of range for {nvn} normals", where)
+    history = _leading_comments(buf)
+    details: dict = {"format": "obj", "v": nv, "vn": nvn, "f": nf}
+    normals = _vertex_normals(verts, vnorms, corner_v, corner_n, nf, where, details)
+    cols = text.colours_from_unit(colours) if len(colours) else None
+    common = dict(normals=normals, colors=cols, point_dtype=np.float64)
+    if nf == 0:
+        return text.apply_float32_mark(PointCloud(points=verts, **common), history), details
+    if np.all(face_len == 3):
+        faces = corner_v.reshape(-1, 3)  # triangles already: no fan to build
+    else:
+        from recon_cli.io._obj_kernel import fan
+
+        faces, _ = fan(corner_v, face_len)
+    return text.apply_float32_mark(TriangleMesh(vertices=verts, faces=faces, **common), history), details
+
+
+def _raise(buf: np.ndarray, err: int, at: int, where: str):
+    if err == 1:
+        raise text.bad_number(buf, at, where)
+    raise InputError(f"line {text.line_at(buf, at)}: {_MESSAGES[err]}", where)
+
+
+def _vertex_normals(verts, vnorms, corner_v, corner_n, nf, where, details) -> np.ndarray | None:
+    nv, nvn = len(verts), len(vnorms)
+    if nvn == 0:
+        return None
+    if nf == 0 or (nvn == nv and np.array_equal(corner_n, corner_v)):
+        if nvn == nv:
+            return vnorms
+        text.warn(f"{where}: {nvn} normals for {nv} vertices and no faces naming them: normals not kept")
+        details["normals_dropped"] = True
+        return None
+    if corner_n.min() < 0:
+        text.warn(f"{where}: some face corners have no normal: normals not kept")
+        details["normals_dropped"] = True
+        return None
+    # one normal per vertex when every corner of the vertex gives the same vector
+    owner = np.full(nv, -1, np.int64)
+    owner[corner_v] = corner_n
+    same = np.all(vnorms[owner[corner_v]] == vnorms[corner_n])
+    if same and np.all(owner >= 0):
+        return vnorms[owner]
+    text.warn(f"{where}: normals differ between the corners of a vertex (split normals): normals not kept")
+    details["normals_dropped"] = True
+    return None
+
+
+def _leading_comments(buf: np.ndarray) -> list[str]:
+    """The ``#`` lines before the first other line (our writer puts the history there)."""
+    head = bytes(buf[: min(len(buf), 1 << 16)])
+    out = []
+    for line in head.split(b"\n"):
+        s = line.strip()
+        if not s.startswith(b"#"):
+            if s:
+                break
+            continue
+        out.append(s[1:].strip().decode("utf-8", "replace"))
+    return [h for h in out if h]
+
+
+def obj_bytes(obj: PointCloud | TriangleMesh) -> bytes:
+    """The OBJ encoding of ``obj``: history as ``#`` lines, ``v`` (with ``r g b`` in 0..1 when
+    the object has colours), ``vn`` in vertex order and ``f a//a b//b c//c`` (1-based)."""
+    pts = obj.points
+    fmt = text.float_format(obj.point_dtype)
+    parts = [text.mark_lines(obj).encode("utf-8")]
+    if obj.colors is not None:
+        table = np.column_stack([pts.astype(np.float64), text.colours_to_unit(obj.colors[:, :3])])
+        parts.append(text.format_rows(f"v {fmt} {fmt} {fmt} %.9g %.9g %.9g\n", table))
+    else:
+        parts.append(text.format_rows(f"v {fmt} {fmt} {fmt}\n", pts))
+    if obj.normals is not None:
+        parts.append(text.format_rows(f"vn {fmt} {fmt} {fmt}\n", obj.normals))
+    if isinstance(obj, TriangleMesh) and len(obj.faces):
+        f = obj.faces + 1
+        if obj.normals is not None:
+            parts.append(text.format_rows("f %d//%d %d//%d %d//%d\n", np.repeat(f, 2, axis=1)))
+        else:
+            parts.append(text.format_rows("f %d %d %d\n", f))
+    return b"".join(parts)
+
+
+def read_obj(path: str | os.PathLike, data=None) -> PointCloud | TriangleMesh:
+    """Read an OBJ file (``-``: standard input) as a mesh, or a cloud when it has no faces.
+
+    Raises
+    ------
+    InputError
+        A malformed line (named by number), a face index out of range, NaN coordinates.
+    """
+    from recon_cli.io.ply import read_bytes
+
+    return decode_obj(read_bytes(path) if data is None else data, text.where_of(path))[0]
+
+
+def write_obj(obj: PointCloud | TriangleMesh, path: str | os.PathLike) -> None:
+    """Write ``obj`` as OBJ atomically (``-``: standard output)."""
+    from recon_cli.io.atomic import write_bytes
+
+    write_bytes(path, obj_bytes(obj))

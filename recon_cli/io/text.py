@@ -1,0 +1,161 @@
+"""Helpers shared by the text formats (OBJ, OFF, XYZ, PCD ascii): rows of numbers, error
+positions, colour and number formatting."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from recon_cli.errors import InputError
+
+log = logging.getLogger("recon")
+
+
+def where_of(path) -> str:
+    """How a file is named in messages (``-``: ``<stdin>``)."""
+    return "<stdin>" if path is None or str(path) == "-" else str(path)
+
+
+def as_uint8(data) -> np.ndarray:
+    """The bytes of a file as a ``(n,) uint8`` array (no copy)."""
+    if isinstance(data, np.ndarray):
+        return data.view(np.uint8).reshape(-1)
+    return np.frombuffer(data, dtype=np.uint8)
+
+
+def line_at(buf: np.ndarray, offset: int) -> int:
+    """1-based line number of byte ``offset``."""
+    return int(np.count_nonzero(buf[:offset] == 10)) + 1
+
+
+def token_at(buf: np.ndarray, offset: int) -> str:
+    """The white-space-delimited token at byte ``offset`` (at most 40 characters) for a message."""
+    end = offset
+    n = len(buf)
+    while end < n and end - offset < 40 and buf[end] not in (9, 10, 13, 32, 44, 59):
+        end += 1
+    return bytes(buf[offset:end]).decode("latin-1")
+
+
+def bad_number(buf: np.ndarray, offset: int, where: str) -> InputError:
+    tok = token_at(buf, offset)
+    what = f"{tok!r} is not a number" if tok else "a value is missing"
+    return InputError(f"line {line_at(buf, offset)}: {what}", where)
+
+
+def slow_values(buf: np.ndarray, spans: np.ndarray) -> np.ndarray:
+    """The correctly rounded values of the tokens ``buf[s:e]`` for the rows of ``spans`` ((k, 2)):
+    numpy's string-to-double conversion over a fixed-width array, no Python object per token."""
+    from recon_cli.io._text_kernel import gather_tokens
+
+    if len(spans) == 0:
+        return np.zeros(0, np.float64)
+    raw = gather_tokens(buf, np.ascontiguousarray(spans, dtype=np.int64))
+    return raw.view(f"S{raw.shape[1]}").reshape(-1).astype(np.float64)
+
+
+def read_rows(buf: np.ndarray, start: int, end: int, where: str, delim: int = 0, comment: int = 35):
+    """The rows of numbers in ``buf[start:end]``: ``(values, row_start, row_line)``.
+
+    ``values`` (float64) holds every row's numbers one after the other, row r being
+    ``values[row_start[r]:row_start[r + 1]]``; ``row_line`` gives each row's line number
+    counted from ``start`` (1-based). Blank lines and lines starting with ``comment`` are
+    skipped. A token that is not a number raises :class:`InputError` naming its line.
+    """
+    from recon_cli.io._text_kernel import parse_rows
+
+    e0 = np.empty(0, np.float64)
+    i0 = np.empty(0, np.int64)
+    s0 = np.empty((0, 3), np.int64)
+    nrows, nvals, _, err, at = parse_rows(buf, start, end, delim, comment, 0, e0, i0, i0, s0)
+    if err:
+        raise bad_number(buf, at, where)
+    values = np.empty(nvals, np.float64)
+    row_start = np.empty(nrows + 1, np.int64)
+    row_line = np.empty(nrows, np.int64)
+    _, _, nslow, err, at = parse_rows(buf, start, end, delim, comment, 1, values, row_start, row_line, s0)
+    if err:
+        raise bad_number(buf, at, where)
+    if nslow:
+        slow = np.empty((nslow, 3), np.int64)
+        parse_rows(buf, start, end, delim, comment, 2, values, row_start, row_line, slow)
+        values[slow[:, 0]] = slow_values(buf, slow[:, 1:])
+    return values, row_start, row_line
+
+
+def check_finite(points: np.ndarray, where: str, what: str = "vertex") -> None:
+    ok = np.isfinite(points).all(axis=1)
+    if not ok.all():
+        raise InputError(f"{what} {int(np.argmin(ok))} has a NaN or infinite coordinate", where)
+
+
+def colours_from_unit(c: np.ndarray) -> np.ndarray:
+    """Colours given as floats: uint8 when every value is k/255 (as our writers put uint8
+    colours), otherwise the floats as they are."""
+    if c.size and c.min() >= 0 and c.max() <= 1:
+        q = np.rint(c * 255)
+        if np.all(np.abs(q / 255 - c) <= 1e-6):
+            return q.astype(np.uint8)
+    return c
+
+
+def colours_to_unit(c: np.ndarray) -> np.ndarray:
+    """Colours as floats in 0..1 (integer colours divided by their type's maximum)."""
+    if c.dtype.kind in "ui":
+        return c.astype(np.float64) / float(np.iinfo(c.dtype).max)
+    return c.astype(np.float64)
+
+
+# a comment line our text writers put first when the coordinates are float32: the reader
+# then returns float32 coordinates (and normals), exactly those written (``%.9g`` round-trips
+# float32), instead of the nearest doubles of the printed decimals
+FLOAT32_MARK = "recon: float32"
+
+
+def float32_marked(history: list[str]) -> tuple[bool, list[str]]:
+    """(whether ``history`` holds the float32 mark, the history without it)."""
+    rest = [h for h in history if h != FLOAT32_MARK]
+    return len(rest) != len(history), rest
+
+
+def apply_float32_mark(obj, history: list[str]):
+    """``obj`` with float32 coordinates and normals when ``history`` holds the mark; sets its history."""
+    marked, rest = float32_marked(history)
+    obj.history = rest
+    if marked:
+        pts = np.ascontiguousarray(obj.points, dtype=np.float32)
+        if hasattr(obj, "faces"):
+            obj.vertices = pts
+        else:
+            obj.points = pts
+        if obj.normals is not None:
+            obj.normals = np.ascontiguousarray(obj.normals, dtype=np.float32)
+        obj.point_dtype = np.float32
+    return obj
+
+
+def mark_lines(obj, prefix: str = "# ") -> str:
+    """The float32 mark line (when ``obj`` is float32) and the history, as comment lines."""
+    lines = [FLOAT32_MARK] if np.dtype(obj.point_dtype) == np.float32 else []
+    return "".join(f"{prefix}{h}\n" for h in lines + list(obj.history))
+
+
+def float_format(dtype) -> str:
+    """``%.9g`` for float32 values (enough to round-trip them), ``%.17g`` otherwise."""
+    return "%.9g" if np.dtype(dtype) == np.float32 else "%.17g"
+
+
+def format_rows(template: str, table: np.ndarray, chunk: int = 1 << 16) -> bytes:
+    """``template % row`` for every row of ``table`` ((n, k), numbers), joined, as bytes."""
+    n = len(table)
+    out = []
+    for s in range(0, n, chunk):
+        part = table[s : s + chunk]
+        out.append(((template * len(part)) % tuple(part.ravel().tolist())).encode("ascii"))
+    return b"".join(out)
+
+
+def warn(message: str) -> None:
+    """A one-line warning on stderr (``recon: warning: ...``)."""
+    log.warning("warning: %s", message)

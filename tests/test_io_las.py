@@ -1,0 +1,171 @@
+"""LAS/LAZ through laspy: laspy's files read right, ours read back identically in laspy, the real
+airborne tile kept bit for bit, precision at UTM coordinates, errors and fuzz."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from recon_cli.errors import InputError
+from recon_cli.geometry import PointCloud
+from recon_cli.io.las import decode_las, las_bytes
+
+from shapes import cloud_family
+from shared_data import SHARED
+
+laspy = pytest.importorskip("laspy")
+AUTZEN = SHARED / "autzen_trim.laz"
+
+
+def _laspy_file(seed, pf, version, compress, n=300):
+    rng = np.random.default_rng(seed)
+    h = laspy.LasHeader(point_format=pf, version=version)
+    h.scales = np.array([0.001, 0.001, 0.0001])
+    h.offsets = np.array([5e5, 5e6, 100.0])
+    if pf >= 6:
+        h.add_extra_dims([laspy.ExtraBytesParams(name="nx", type="f4"), laspy.ExtraBytesParams(name="ny", type="f4"),
+                          laspy.ExtraBytesParams(name="nz", type="f4"), laspy.ExtraBytesParams(name="amplitude", type="u2")])
+    las = laspy.LasData(h)
+    las.X = rng.integers(-2**30, 2**30, n)
+    las.Y = rng.integers(-2**30, 2**30, n)
+    las.Z = rng.integers(-2**20, 2**20, n)
+    las.intensity = rng.integers(0, 65535, n)
+    las.classification = rng.integers(0, 20, n)
+    las.return_number = rng.integers(1, 4, n)
+    las.number_of_returns = np.maximum(las.return_number, rng.integers(1, 4, n))
+    if "red" in las.point_format.dimension_names:
+        las.red, las.green, las.blue = (rng.integers(0, 65535, n) for _ in range(3))
+    if pf >= 6:
+        nrm = rng.normal(size=(n, 3)).astype(np.float32)
+        las.nx, las.ny, las.nz = nrm[:, 0], nrm[:, 1], nrm[:, 2]
+        las.amplitude = rng.integers(0, 1000, n)
+    buf = io.BytesIO()
+    las.write(buf, do_compress=compress)
+    return las, buf.getvalue()
+
+
+@pytest.mark.parametrize("seed", range(2))
+@pytest.mark.parametrize("pf, version", [(0, "1.2"), (3, "1.2"), (6, "1.4"), (7, "1.4")])
+@pytest.mark.parametrize("compress", [False, True])
+def test_laspy_written_files_read_with_coordinates_attributes_and_colours(seed, pf, version, compress):
+    las, data = _laspy_file(seed, pf, version, compress)
+    got, details = decode_las(data, "t.las")
+    assert details["point_format"] == pf and details["version"] == version
+    assert got.points.dtype == np.float64
+    assert np.array_equal(got.points, np.column_stack([las.x, las.y, las.z]))  # X * scale + offset, in double
+    for name in ("intensity", "classification", "return_number", "number_of_returns"):
+        assert np.array_equal(got.attributes[name], np.asarray(las[name]))
+    if pf in (3, 7):
+        assert got.colors.dtype == np.uint16 and np.array_equal(got.colors, np.column_stack([las.red, las.green, las.blue]))
+    if pf >= 6:
+        assert np.array_equal(got.normals, np.column_stack([las.nx, las.ny, las.nz]))
+        assert np.array_equal(got.attributes["amplitude"], np.asarray(las.amplitude))
+
+
+@pytest.mark.parametrize("compress", [False, True])
+def test_real_airborne_tile_round_trips_bit_for_bit_in_laspy(compress):
+    src = laspy.read(AUTZEN)
+    cloud, _ = decode_las(None, str(AUTZEN), path=str(AUTZEN))
+    data = las_bytes(cloud, compress, "out")
+    back = laspy.read(io.BytesIO(data))
+    assert back.header.point_format.id == 3 and str(back.header.version) == "1.2"
+    assert np.array_equal(back.points.array, src.points.array)  # every byte of every point record
+    assert [(v.user_id, v.record_id) for v in back.header.vlrs] == [(v.user_id, v.record_id) for v in src.header.vlrs]
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_our_files_from_other_clouds_read_back_in_laspy(seed, caplog):
+    c = cloud_family(seed)
+    with caplog.at_level("WARNING", logger="recon"):
+        data = las_bytes(c, seed % 2 == 1, "o.laz")
+    back = laspy.read(io.BytesIO(data))
+    pts = np.column_stack([back.x, back.y, back.z])
+    # a power-of-ten grid at most 1e-8 of the extent: the rounding is at most half of it, and said
+    extent = np.ptp(c.points, axis=0).max()
+    assert np.abs(pts - c.points).max() <= 5e-9 * extent
+    assert "LAS stores coordinates as integers" in caplog.text
+    assert np.array_equal(np.column_stack([back.nx, back.ny, back.nz]), c.normals)
+    assert np.array_equal(np.asarray(back.intensity), c.attributes["intensity"])
+    assert np.array_equal(np.asarray(back.curvature), c.attributes["curvature"])
+    assert np.array_equal(np.column_stack([back.red, back.green, back.blue]), c.colors.astype(np.uint16) * 257)
+    got = decode_las(data, "o")[0]
+    assert np.array_equal(got.points, pts) and np.array_equal(got.normals, c.normals)
+
+
+def test_attribute_that_does_not_fit_is_refused():
+    from recon_cli.errors import ParameterError
+
+    c = PointCloud(points=np.zeros((2, 3)), attributes={"classification": np.array([1.5, 2.0])}, point_dtype=np.float64)
+    with pytest.raises(ParameterError, match="'classification' has values"):
+        las_bytes(c, False, "x.las")
+
+
+def test_truncated_and_garbage_are_one_line_input_errors():
+    data = AUTZEN.read_bytes()
+    for variant in (data[:100], data[: len(data) // 2], b"LASF" + b"\0" * 300, b"not a las file"):
+        with pytest.raises(InputError) as exc:
+            decode_las(variant, "bad.laz")
+        assert str(exc.value).startswith("bad.laz: ") and "\n" not in str(exc.value)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(cut=st.floats(0, 1), junk=st.binary(min_size=1, max_size=16), pos=st.floats(0, 1), compress=st.booleans())
+def test_fuzz_truncated_or_corrupted_las_is_data_or_input_error(cut, junk, pos, compress):
+    _, data = _laspy_file(1, 3, "1.2", compress, n=50)
+    k = int(cut * len(data))
+    p = int(pos * k)
+    for variant in (data[:k], data[:p] + junk + data[p + len(junk) :]):
+        try:
+            obj = decode_las(variant, "f.las")[0]
+        except InputError as exc:
+            assert str(exc).startswith("f.las: ") and "\n" not in str(exc)
+            continue
+        assert np.isfinite(obj.points).all()
+
+
+def _normals_then_poisson(cloud):
+    """``recon normals IN - | recon poisson - OUT.ply`` in process: each stage's output through PLY bytes."""
+    from recon_cli.io.ply import parse_ply, ply_bytes, ply_to_geometry
+    from recon_cli.stages import apply_stage
+
+    def through_ply(obj):
+        return ply_to_geometry(parse_ply(ply_bytes(obj)))
+
+    oriented = through_ply(apply_stage("normals", cloud, {}).output)
+    return oriented, through_ply(apply_stage("poisson", oriented, {"depth": 7}).output)
+
+
+@pytest.mark.slow
+def test_airborne_tile_at_state_plane_coordinates_keeps_its_coordinates_through_normals():
+    cloud, _ = decode_las(None, str(AUTZEN), path=str(AUTZEN))
+    from recon_cli.io.ply import parse_ply, ply_bytes, ply_to_geometry
+    from recon_cli.stages import apply_stage
+
+    oriented = apply_stage("normals", cloud, {}).output
+    # through a PLY pipe, as `recon normals tile.laz - | recon poisson - ...` does
+    again = ply_to_geometry(parse_ply(ply_bytes(oriented)))
+    assert again.points.dtype == np.float64 and np.array_equal(again.points, cloud.points)
+    assert any(s.startswith("las_scale") for s in again.obj_info)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason="poisson's output mesh keeps the default point_dtype float32 (recon_cli/poisson/__init__.py), so it is "
+    "written as float: at x ~ 6.4e5 ft that rounds to 1/16 ft; double through the stages is issue 15's precision work",
+)
+def test_airborne_tile_at_utm_like_coordinates_meshes_like_the_same_tile_at_the_origin():
+    cloud, _ = decode_las(None, str(AUTZEN), path=str(AUTZEN))
+    cloud = cloud.subset(np.arange(60_000))
+    shift = np.floor(cloud.points.min(axis=0))
+    near = cloud.copy()
+    near.points = cloud.points - shift
+    _, far_mesh = _normals_then_poisson(cloud)
+    _, near_mesh = _normals_then_poisson(near)
+    assert len(far_mesh.faces) == len(near_mesh.faces)
+    diff = np.abs(far_mesh.vertices.astype(np.float64) - shift - near_mesh.vertices.astype(np.float64))
+    assert diff.max() < 1e-3  # feet: the same surface to a third of a millimetre

@@ -1,0 +1,147 @@
+"""OBJ: files written by trimesh read right, ours read back identically (by us and trimesh), fuzz."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from recon_cli.errors import InputError
+from recon_cli.geometry import PointCloud, TriangleMesh
+from recon_cli.io._text_kernel import parse_float
+from recon_cli.io.obj import decode_obj, obj_bytes, read_obj, write_obj
+
+from shapes import mesh_family
+
+trimesh = pytest.importorskip("trimesh")
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_trimesh_written_obj_reads_with_right_counts_and_coordinates(seed):
+    m = mesh_family(seed)
+    tm = trimesh.Trimesh(m.vertices, m.faces, process=False)
+    data = trimesh.exchange.obj.export_obj(tm, include_normals=bool(seed % 2), digits=15).encode()
+    got, details = decode_obj(data, "t.obj")
+    assert isinstance(got, TriangleMesh)
+    assert got.vertices.dtype == np.float64
+    assert np.array_equal(got.faces, m.faces)
+    scale = np.abs(m.vertices).max()
+    assert np.abs(got.vertices - m.vertices).max() <= 1e-14 * scale
+    assert details["v"] == len(m.vertices) and details["f"] == len(m.faces)
+
+
+@pytest.mark.parametrize("seed", range(8))
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_our_obj_reads_back_identically_here_and_in_trimesh(seed, dtype):
+    m = mesh_family(seed, dtype)
+    m.history = ["made by a test", "second line"]
+    data = obj_bytes(m)
+    got = decode_obj(data, "o.obj")[0]
+    # float64 written with 17 digits comes back bit for bit; float32 with 9 digits rounds back to itself
+    assert np.array_equal(got.vertices.astype(dtype), m.vertices)
+    assert np.array_equal(got.faces, m.faces)
+    assert got.history == m.history
+    if m.normals is not None:
+        assert np.array_equal(got.normals.astype(dtype), m.normals)
+        assert np.array_equal(got.colors, m.colors)
+    tm = trimesh.load(io.BytesIO(data), file_type="obj", process=False, maintain_order=True)
+    assert np.array_equal(tm.faces, m.faces)
+    assert np.array_equal(tm.vertices.astype(dtype), m.vertices)
+
+
+def test_corner_forms_polygons_and_negative_indices():
+    data = b"""# a square and a triangle
+v 0 0 0
+v 1 0 0
+v 1 1 0
+v 0 1 0
+vt 0 0
+vn 0 0 1
+f 1/1/1 2/1/1 3/1/1 4/1/1
+v 0 0 1
+f -5//1 -4//1 -1//1
+usemtl x
+o name
+"""
+    m = decode_obj(data, "p.obj")[0]
+    assert m.faces.tolist() == [[0, 1, 2], [0, 2, 3], [0, 1, 4]]
+    # vertex 5 (index 4) is named by a corner with normal 1 like the others: one normal per vertex
+    assert np.array_equal(m.normals, np.tile([0.0, 0.0, 1.0], (5, 1)))
+    assert m.history == ["a square and a triangle"]
+
+
+def test_split_normals_are_dropped_with_a_warning(caplog):
+    data = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 1\nvn 0 0 -1\nf 1//1 2//1 3//1\nf 1//2 3//2 2//2\n"
+    with caplog.at_level("WARNING", logger="recon"):
+        m, details = decode_obj(data, "s.obj")
+    assert m.normals is None and details["normals_dropped"]
+    assert "split normals" in caplog.text
+
+
+def test_points_only_obj_is_a_cloud_with_colours():
+    data = b"v 1 2 3 1 0 0\nv 4 5 6 0 0.5019607843137255 1\n"
+    c = decode_obj(data, "c.obj")[0]
+    assert isinstance(c, PointCloud)
+    assert c.colors.dtype == np.uint8 and c.colors.tolist() == [[255, 0, 0], [0, 128, 255]]
+
+
+@pytest.mark.parametrize(
+    "data, message",
+    [
+        (b"v 1 2\n", "line 1: a 'v' line must hold"),
+        (b"v 1 2 3\nv 1 2 3\nv 1 2 3\nf 1 2\n", "line 4: a face has fewer than 3 corners"),
+        (b"v 1 2 3\nv 1 2 x3\n", "line 2: 'x3' is not a number"),
+        (b"v 1 2 3\nf 1 2 4\n", "out of range"),
+        (b"v 1 2 3\nf 0 1 1\n", "line 2: a face corner is not a vertex index"),
+        (b"v 1 2 3\nf 1/a 1 1\n", "line 2: a face corner is not a vertex index"),
+        (b"v nan 0 0\n", "vertex 0 has a NaN"),
+        (b"v 1 2 3\nv 1 2 3 1 1 1\n", "line 2: this 'v' line and an earlier one differ"),
+        (b"v 1 2 3\nvn 1 2\n", "line 2: a 'vn' line must hold 3 numbers"),
+        (b"v 1 2 3\nf 1//9 1//9 1//9\n", "normal index out of range"),
+        (b"v 1 2 3\nf 1 -2 1\n", "line 2: a negative (relative) index reaches before the first"),
+        (b"v 1_0 2 3\n", "'1_0' is not a number"),
+    ],
+)
+def test_malformed_files_name_the_line(data, message):
+    with pytest.raises(InputError) as exc:
+        decode_obj(data, "bad.obj")
+    assert str(exc.value).startswith("bad.obj: ") and message in str(exc.value)
+    assert "\n" not in str(exc.value)
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 50), cut=st.floats(0, 1), junk=st.binary(max_size=20), pos=st.floats(0, 1))
+def test_fuzz_truncated_or_corrupted_obj_is_data_or_input_error(seed, cut, junk, pos):
+    data = obj_bytes(mesh_family(seed))
+    k = int(cut * len(data))
+    p = int(pos * k)
+    for variant in (data[:k], data[:p] + junk + data[p:k]):
+        try:
+            obj = decode_obj(variant, "f.obj")[0]
+        except InputError as exc:
+            assert str(exc).startswith("f.obj: ") and "\n" not in str(exc)
+            continue
+        assert np.isfinite(obj.points).all()
+        if isinstance(obj, TriangleMesh) and len(obj.faces):
+            assert obj.faces.min() >= 0 and obj.faces.max() < len(obj.points)
+
+
+@settings(max_examples=500, deadline=None)
+@given(x=st.floats(allow_nan=False, allow_infinity=False), fmt=st.sampled_from(["%r", "%.17g", "%.9g", "%.6f", "%.10f", "%.0f", "%.3e", "%.12E", "%g"]))
+def test_number_parser_is_correctly_rounded(x, fmt):
+    tok = (fmt % x).encode()
+    buf = np.frombuffer(tok, np.uint8)
+    v, status = parse_float(buf, 0, len(buf))
+    assert status in (1, 2)
+    if status == 1:  # the fast path must give exactly Python's (correctly rounded) value
+        assert v == float(tok) and np.signbit(v) == np.signbit(float(tok))
+
+
+def test_read_and_write_files(tmp_path):
+    m = mesh_family(3)
+    write_obj(m, tmp_path / "m.obj")
+    got = read_obj(tmp_path / "m.obj")
+    assert np.array_equal(got.vertices, m.vertices) and np.array_equal(got.faces, m.faces)
