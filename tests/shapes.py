@@ -334,15 +334,6 @@ FAR_OFFSETS = {
 }
 
 
-def sphere_cloud(n, radius=1.0, centre=(0.0, 0.0, 0.0), seed=0):
-    """``n`` random points on a sphere and their outward unit normals, float64 (n, 3) each.
-
-    The same ``seed`` gives the same points about any ``centre`` (the offset is added last)."""
-    v = np.random.default_rng(seed).normal(size=(n, 3))
-    v /= np.linalg.norm(v, axis=1, keepdims=True)
-    return np.asarray(centre, float) + radius * v, v
-
-
 def mesh_family(seed, dtype=np.float64):
     """A torus under a random rotation, scale (1e-3 .. 1e3) and offset (up to 1e6), in ``dtype``.
 

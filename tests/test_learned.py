@@ -8,7 +8,6 @@ the missing extra, and `recon compare` with fit-sdf as a method.
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys

@@ -64,22 +64,3 @@ def lookup(tk, tv, bits, key):
     """The value of ``key``, or -1 when absent."""
     s = probe(tk, bits, key)
     return tv[s] if tk[s] == key else -1
-
-
-@njit(cache=True)
-def lookup_many(tk, tv, bits, keys):
-    """:func:`lookup` of every key in ``keys``."""
-    out = np.empty(len(keys), np.int64)
-    for i in range(len(keys)):
-        out[i] = lookup(tk, tv, bits, keys[i])
-    return out
-
-
-@njit(cache=True)
-def set_insert(tk, bits, key):
-    """Insert ``key`` into a key-only set; True when it was new."""
-    s = probe(tk, bits, key)
-    if tk[s] == key:
-        return False
-    tk[s] = key
-    return True

@@ -76,6 +76,16 @@ def _library_only(mesh_path: str) -> None:
     Connectivity(mesh.faces).vertex_faces
 
 
+def _pcd(src: str, dst: str, mode: str) -> Callable[[], Any]:
+    def run() -> None:
+        from recon_cli.io.load import load
+        from recon_cli.io.pcd import write_pcd
+
+        write_pcd(load(src), dst, data=mode)
+
+    return run
+
+
 def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
     from recon_cli.geometry import PointCloud, TriangleMesh
     from recon_cli.io.ply import compile_ply_kernels, write_ply
@@ -110,6 +120,10 @@ def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
         far = np.array([[5.0, 5.0, 5.0], [5.1, 5.0, 5.0], [5.0, 5.1, 5.0]])
         write_ply(TriangleMesh(vertices=np.vstack([v, far]), faces=np.vstack([keep, [[len(v), len(v) + 1, len(v) + 2]]])),
                   path("open.ply"))
+        # dense enough that Poisson's adaptive tree goes past its complete levels
+        pd, nd = _sphere_cloud(20_000, seed=1)
+        write_ply(PointCloud(points=pd.astype(np.float32), normals=nd.astype(np.float32), point_dtype=np.float32),
+                  path("dense.ply"))
         # repeated and collinear points: degenerate neighbourhoods borrow their normal
         line = np.column_stack([np.linspace(2, 3, 12), np.zeros(12), np.zeros(12)])
         write_ply(PointCloud(points=np.vstack([p, np.repeat(p[:1], 40, axis=0), line])), path("degenerate.ply"))
@@ -148,6 +162,7 @@ def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
             ("sdf cloud", recon("sdf", src, path("cloud.npz"), "--resolution", "16")),
         ]
     steps.append(("poisson adaptive levels", recon("poisson", c32, out, "--depth", "7")))
+    steps.append(("poisson levels past the full depth", recon("poisson", path("dense.ply"), out, "--depth", "7")))
     steps.append(("poisson estimate-normals", recon("poisson", path("bare_float32.ply"), out, "--depth", "5",
                                                     "--estimate-normals")))
     for src in (m32, m64, path("open.ply")):
@@ -168,6 +183,20 @@ def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
             ("mcubes", recon("mcubes", grid, out)),
             ("mcubes mt", recon("mcubes", grid, out, "--method", "mt", "--allow-degenerate")),
         ]
+    # every other file format, both ways, from float32 and float64 sources (their parsers are kernels too)
+    for src, kind in ((c32, "cloud"), (c64, "cloud"), (m32, "mesh"), (m64, "mesh")):
+        tag = os.path.basename(src)[:-4]
+        suffixes = ("obj", "off", "stl") if kind == "mesh" else ("xyz", "csv", "pcd", "obj")
+        for suffix in suffixes:
+            dst = path(f"{tag}.{suffix}")
+            steps += [(f"write {suffix}", recon("convert", src, dst)), (f"read {suffix}", recon("info", dst))]
+    for src in (c32, c64):
+        tag = os.path.basename(src)[:-4]
+        for mode in ("ascii", "binary", "binary_compressed"):
+            dst = path(f"{tag}_{mode}.pcd")
+            steps += [(f"write pcd {mode}", _pcd(src, dst, mode)), (f"read pcd {mode}", recon("info", dst))]
+        dst = path(f"{tag}.stl")
+        steps += [("write stl ascii", recon("convert", m32, dst, "--ascii")), ("read stl ascii", recon("info", dst))]
     steps += [
         ("diff", recon("diff", m32, path("open.ply"), "--samples", "2000", "--heatmap", path("heat.ply"),
                        "--png", path("diff.png"), "--view", "iso", "--view", "top")),

@@ -153,12 +153,6 @@ def parse_int(buf, s, e):
     return (-v if neg else v), True
 
 
-@njit(cache=True)
-def line_end(buf, i, n):
-    """Index of the ``\\n`` ending the line that holds ``i`` (``n`` when none)."""
-    while i < n and buf[i] != 10:
-        i += 1
-    return i
 
 
 @njit(cache=True)

@@ -9,7 +9,7 @@ import numpy as np
 from numba import njit
 
 from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (threading layer, see that module)
-from recon_cli._kernels.unionfind import find, union_min
+from recon_cli._kernels.unionfind import union_min
 
 
 @njit(cache=True)
