@@ -50,14 +50,7 @@ def describe(path: str | os.PathLike, format: str | None = None) -> dict[str, An
         "faces": int(len(geom.faces)) if isinstance(geom, TriangleMesh) else 0,
         "elements": {e.name: e.count for e in ply.elements},
         "properties": {e.name: [p.header_line().replace("property ", "") for p in e.properties] for e in ply.elements},
-        "bbox": {
-            "min": pts.min(axis=0).tolist() if len(pts) else None,
-            "max": pts.max(axis=0).tolist() if len(pts) else None,
-            "diagonal": bbox_diagonal(pts),
-        },
-        "has_normals": geom.normals is not None,
-        "has_colors": geom.colors is not None,
-        "attributes": sorted(geom.attributes),
+        **_geometry_keys(geom),
         "history": list(ply.comments),
     }
     if isinstance(geom, TriangleMesh):
@@ -90,14 +83,7 @@ def describe_geometry(geom, name: str, fmt: str, details: dict) -> dict[str, Any
         "faces": int(len(geom.faces)) if mesh else 0,
         "elements": elements,
         "properties": properties,
-        "bbox": {
-            "min": pts.min(axis=0).tolist() if len(pts) else None,
-            "max": pts.max(axis=0).tolist() if len(pts) else None,
-            "diagonal": bbox_diagonal(pts),
-        },
-        "has_normals": geom.normals is not None,
-        "has_colors": geom.colors is not None,
-        "attributes": sorted(geom.attributes),
+        **_geometry_keys(geom),
         "history": list(geom.history),
         "details": {k: v for k, v in details.items() if k != "format"},
     }
@@ -133,3 +119,18 @@ def describe_grid(grid, name: str) -> dict[str, Any]:
     if eikonal_check is not None:
         out["eikonal"] = eikonal_check(grid)
     return out
+
+
+def _geometry_keys(geom: Any) -> dict[str, Any]:
+    """The keys every cloud or mesh description shares: bounding box, normals, colours, attributes."""
+    pts = geom.points
+    return {
+        "bbox": {
+            "min": pts.min(axis=0).tolist() if len(pts) else None,
+            "max": pts.max(axis=0).tolist() if len(pts) else None,
+            "diagonal": bbox_diagonal(pts),
+        },
+        "has_normals": geom.normals is not None,
+        "has_colors": geom.colors is not None,
+        "attributes": sorted(geom.attributes),
+    }

@@ -86,7 +86,7 @@ CHILD = textwrap.dedent(
     elif point == "swallowed":
         import recon_cli.io.load as load_mod
 
-        def load(path):
+        def load(path, **kwargs):
             announce()
             try:
                 time.sleep(120)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (the per-user cache, before the first @njit)
 from recon_cli.io._text_kernel import parse_float, parse_int, skip_space, token_end
 
 # error codes (returned with a byte offset)

@@ -20,6 +20,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (the per-user cache, before the first @njit)
+
 POW10 = np.array([10.0**k for k in range(23)], dtype=np.float64)
 _TWO53 = 1 << 53
 
