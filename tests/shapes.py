@@ -24,12 +24,12 @@ def box_distance(p, lo, hi):
     return np.where((q > 0).any(axis=1), outside, inside)
 
 
-def sphere_cloud(n=5000, radius=1.0, center=(0.0, 0.0, 0.0), seed=0):
+def sphere_cloud(n=5000, radius=1.0, centre=(0.0, 0.0, 0.0), seed=0):
     """``n`` points uniform on a sphere and their outward unit normals."""
     rng = np.random.default_rng(seed)
     d = rng.normal(size=(n, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    return np.asarray(center, float) + radius * d, d
+    return np.asarray(centre, float) + radius * d, d
 
 
 def torus_cloud(n=5000, major=1.0, minor=0.35, center=(0.0, 0.0, 0.0), seed=0):
