@@ -319,6 +319,9 @@ class StageSpec:
         What OUT is, for ``--help`` (``.ply``, ``.npz``).
     declared : bool
         False for a bare function registered as a stage (its kinds are unknown).
+    keeps_partial : bool
+        The stage catches Ctrl-C itself and returns its best result so far (``fit-sdf``): the command
+        then lets the interrupt reach it instead of ending the process at once.
     """
 
     name: str
@@ -331,6 +334,7 @@ class StageSpec:
     takes_when: Callable[[dict], tuple[str, ...]] | None = None
     output_suffix: str = ".ply"
     declared: bool = True
+    keeps_partial: bool = False
     run: Callable[..., Any] | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import time
 from typing import Any
@@ -86,6 +87,8 @@ def run_stage_command(
             from recon_cli.io.text import warn
 
             warn(f"{input}: a mesh: normals are estimated at its {len(data.vertices)} vertices and the vertices only are written (faces dropped)")
+    # a stage that keeps its best result on Ctrl-C (fit-sdf) gets the Python-level handler while it runs
+    with contextlib.nullcontext() if spec.keeps_partial else immediate():
         with naming(input):
             result = apply_stage(stage, data, params, progress=progress)
         t2 = time.perf_counter()

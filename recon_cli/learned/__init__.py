@@ -499,6 +499,7 @@ def load_model(path: str | os.PathLike) -> SdfModel:
 
 SPEC = StageSpec(
     name="fit-sdf",
+    keeps_partial=True,
     summary="Fit a neural signed distance field to a cloud (needs recon[learned]).",
     description="""Fit a neural signed distance field to a cloud; write it on a grid (.npz, negative inside).
 
