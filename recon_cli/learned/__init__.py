@@ -59,6 +59,7 @@ _FORMAT = "recon-fit-sdf-1"
 _EXTENT = 0.8  # the cloud's longest half-side maps to this in the network's coordinates
 _RADIUS = 0.5  # radius of the initial sphere, network coordinates
 _COARSE = 4  # fine samples per coarse cell when sampling the grid
+_BAND = 0.05  # band samples for the eikonal term reach this fraction of the diagonal
 _OCC_GAIN = 10.0  # occupancy: p(inside) = sigmoid(-gain * s), so the sphere init is a valid field
 
 
@@ -282,10 +283,10 @@ def fit_sdf(
     width = _int(width, "width", 4, 4096)
     depth = _int(depth, "depth", 1, 32)
     if frequencies is None or (isinstance(frequencies, str) and frequencies.lower() in ("", "none", "auto")):
-        frequencies = 6 if normals is not None else 2
+        frequencies = 4 if normals is not None else 2
     frequencies = _int(frequencies, "frequencies", 0, 16)
     if eikonal_weight is None or (isinstance(eikonal_weight, str) and eikonal_weight.lower() in ("", "none", "auto")):
-        eikonal_weight = 3.0 if normals is not None else 0.1
+        eikonal_weight = 3.0 if normals is not None else 0.1  # L1 with normals, squared without
     eikonal_weight = _float(eikonal_weight, "eikonal_weight", 0.0)
     normal_weight = _float(normal_weight, "normal_weight", 0.0)
     batch = _int(batch, "batch", 16, 1_000_000)
@@ -330,6 +331,11 @@ def fit_sdf(
         field=field,
         seed=seed,
         occupancy_gain=_OCC_GAIN,
+        # with normals: eikonal samples spread over the band of 5 % of the diagonal around the
+        # surface (where the field is used and `recon info` judges it) and the L1 penalty
+        band=_BAND * float(np.linalg.norm(q.max(axis=0) - q.min(axis=0))),
+        band_share=1.0 if nrm is not None else 0.0,
+        eikonal_l1=nrm is not None,
     )
     total = float(iterations) if max_seconds is None else None
     logging.getLogger("recon").info(
