@@ -121,7 +121,8 @@ def train(
     """Fit ``net`` to ``points`` (normalised coordinates, (n, 3) float32).
 
     sdf: L1 zero level on the points + ``normal_weight`` * ||grad s(p) - n_p|| (with normals)
-    + ``eikonal_weight`` * (||grad s|| - 1)^2 on points near and away from the surface (IGR).
+    + ``eikonal_weight`` * (||grad s|| - 1)^2 (``eikonal_l1``: | ||grad s|| - 1 |) on points near
+    and away from the surface (IGR) and on ``band_share`` * batch band samples.
     occupancy: binary cross-entropy of p(inside) = sigmoid(-gain * s) on labelled samples
     (``labels_fn``: 1 inside) + |s| on the points. On KeyboardInterrupt (at any time, also
     before the first step) the best parameters so far are restored and the outcome says
