@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from recon_cli.errors import InputError, ParameterError
-from recon_cli.geometry import PointCloud, TriangleMesh, as_point_cloud, local_origin
+from recon_cli.geometry import PointCloud, TriangleMesh, as_point_cloud, local_origin, oriented_rows
 from recon_cli.params import Param, StageSpec
 from recon_cli.progress import task
 
@@ -117,19 +117,12 @@ def _check_options(depth, scale, point_weight, samples_per_node, boundary, densi
 
 def _check_inputs(points: Any, normals: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Finite (n, 3) points and unit normals; returns (points, normals, kept mask)."""
-    if normals is None:
-        raise InputError("the cloud has no normals: run 'recon normals' first (or pass --estimate-normals)")
-    pts = np.ascontiguousarray(points, dtype=np.float64)
-    nrm = np.ascontiguousarray(normals, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise InputError(f"points must have shape (n, 3), got {pts.shape}")
-    if nrm.shape != pts.shape:
-        raise InputError(f"normals must have shape {pts.shape}, got {nrm.shape}")
+    pts, nrm, length = oriented_rows(
+        points, normals, "the cloud has no normals: run 'recon normals' first (or pass --estimate-normals)")
     if not np.all(np.isfinite(pts)):
         raise InputError("points contain NaN or infinite coordinates")
-    if not np.all(np.isfinite(nrm)):
+    if not np.all(np.isfinite(length)):
         raise InputError("normals contain NaN or infinite values")
-    length = np.linalg.norm(nrm, axis=1)
     keep = length > 0
     if not keep.any():
         raise InputError("every normal has zero length: run 'recon normals' to estimate them")
