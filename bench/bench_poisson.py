@@ -194,7 +194,7 @@ def _trim_quantile(mesh, dens: np.ndarray, q: float):
 def _open3d(cloud, depth: int, trimmed: bool):
     from recon_cli.backends import open3d_backend
 
-    mesh, dens = open3d_backend.poisson(cloud, depth=depth)
+    mesh, dens = open3d_backend.poisson(cloud, depth=depth, threads=-1)  # its default: all cores
     return _trim_quantile(mesh, dens, REF_TRIM) if trimmed else mesh
 
 
