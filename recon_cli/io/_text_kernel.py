@@ -54,7 +54,6 @@ _U0 = np.uint64(0)
 _U1 = np.uint64(1)
 _U9 = np.uint64(9)
 _U10 = np.uint64(10)
-_U48 = np.uint64(48)
 _TWO53 = np.uint64(1 << 53)
 _HIDDEN = np.uint64(1 << 52)
 _NOT_HIDDEN = np.uint64(((1 << 64) - 1) ^ (1 << 52))
@@ -70,19 +69,19 @@ _EXP_CAP = 10**12  # exponent digits beyond this only saturate (the value is 0 o
 # scanning
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def is_space(c):
     """White space within a line: space, tab, CR, VT, FF (not the newline)."""
     return c == 32 or c == 9 or c == 13 or c == 11 or c == 12
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def is_blank(c):
     """White space or a newline."""
     return c == 10 or is_space(c)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def skip_space(buf, i, e):
     """The first byte at or after ``i`` (up to ``e``) that is not white space (newlines stop it)."""
     while i < e and is_space(buf[i]):
@@ -90,7 +89,7 @@ def skip_space(buf, i, e):
     return i
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def skip_blank(buf, i, e):
     """The first byte at or after ``i`` (up to ``e``) that is neither white space nor a newline."""
     while i < e and is_blank(buf[i]):
@@ -98,7 +97,7 @@ def skip_blank(buf, i, e):
     return i
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def token_end(buf, i, e):
     """The end of the token starting at ``i``: the next white space or newline, or ``e``."""
     while i < e and not is_blank(buf[i]):
@@ -106,7 +105,7 @@ def token_end(buf, i, e):
     return i
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def line_end(buf, i, e):
     """The position of the next newline at or after ``i``, or ``e``."""
     while i < e and buf[i] != 10:
@@ -165,7 +164,7 @@ def eisel_lemire(w, q):
     return mant | (np.uint64(power2) << np.uint64(52)), True
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _lower(c):
     return c + 32 if 65 <= c <= 90 else c
 
@@ -203,9 +202,10 @@ def _mantissa_long(buf, i, e):
     ndig = 0
     dropped = False
     while i < e:
-        d = np.uint64(buf[i]) - _U48
-        if d > _U9:
+        c = buf[i]
+        if c < 48 or c > 57:
             break
+        d = np.uint64(c - 48)
         if nd < 19:
             w = w * _U10 + d
             if w != _U0:
@@ -219,9 +219,10 @@ def _mantissa_long(buf, i, e):
     if i < e and buf[i] == 46:  # .
         i += 1
         while i < e:
-            d = np.uint64(buf[i]) - _U48
-            if d > _U9:
+            c = buf[i]
+            if c < 48 or c > 57:
                 break
+            d = np.uint64(c - 48)
             if nd < 19:
                 w = w * _U10 + d
                 if w != _U0:
@@ -234,46 +235,7 @@ def _mantissa_long(buf, i, e):
     return w, q, dropped, ndig, i
 
 
-@njit(cache=True, inline="always")
-def _mantissa(buf, i, e):
-    """As :func:`_mantissa_long`, without a test per digit while at most 19 significant digits
-    (the usual case); longer mantissas are read again by :func:`_mantissa_long`."""
-    p0 = i
-    while i < e and buf[i] == 48:  # leading zeros
-        i += 1
-    s1 = i
-    w = _U0
-    while i < e:
-        d = np.uint64(buf[i]) - _U48
-        if d > _U9:
-            break
-        w = w * _U10 + d
-        i += 1
-    nsig = i - s1
-    ndig = i - p0
-    q = 0
-    if i < e and buf[i] == 46:  # .
-        i += 1
-        f0 = i
-        if nsig == 0:
-            while i < e and buf[i] == 48:  # zeros after the point, before any other digit
-                i += 1
-        s2 = i
-        while i < e:
-            d = np.uint64(buf[i]) - _U48
-            if d > _U9:
-                break
-            w = w * _U10 + d
-            i += 1
-        nsig += i - s2
-        q = f0 - i
-        ndig += i - f0
-    if nsig > 19:
-        return _mantissa_long(buf, p0, e)
-    return w, q, False, ndig, i
-
-
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def scan_float(buf, i, e):
     """The decimal number starting at byte ``i`` (reading no further than ``e``):
     ``(value, status, stop)`` with ``stop`` the byte after it; see the module docstring.
@@ -287,7 +249,37 @@ def scan_float(buf, i, e):
         elif c == 43:  # +
             i += 1
     p0 = i
-    w, q, dropped, ndig, i = _mantissa(buf, i, e)
+    # the mantissa, written out here (a call per number costs more than the digits: numba
+    # does not inline these small functions well), without a test per digit while at most
+    # 19 significant digits (the usual case); longer mantissas are read again, digit by
+    # digit, by _mantissa_long. The digit loops have their test in the loop condition: numba
+    # compiles the equivalent `while True: ... break` form to code several times slower.
+    while i < e and buf[i] == 48:  # leading zeros
+        i += 1
+    s1 = i
+    w = _U0
+    while i < e and buf[i] >= 48 and buf[i] <= 57:
+        w = w * _U10 + np.uint64(buf[i] - 48)
+        i += 1
+    nsig = i - s1
+    ndig = i - p0
+    q = 0
+    if i < e and buf[i] == 46:  # .
+        i += 1
+        f0 = i
+        if nsig == 0:
+            while i < e and buf[i] == 48:  # zeros after the point, before any other digit
+                i += 1
+        s2 = i
+        while i < e and buf[i] >= 48 and buf[i] <= 57:
+            w = w * _U10 + np.uint64(buf[i] - 48)
+            i += 1
+        nsig += i - s2
+        q = f0 - i
+        ndig += i - f0
+    dropped = False
+    if nsig > 19:
+        w, q, dropped, ndig, i = _mantissa_long(buf, p0, e)
     if ndig == 0:
         return _special(buf, p0, e, neg)
     if i < e and (buf[i] == 101 or buf[i] == 69):  # e E
@@ -296,15 +288,15 @@ def scan_float(buf, i, e):
         if j < e and (buf[j] == 45 or buf[j] == 43):
             eneg = buf[j] == 45
             j += 1
-        if j >= e or np.uint64(buf[j]) - _U48 > _U9:
+        if j >= e or buf[j] < 48 or buf[j] > 57:
             return 0.0, 0, j  # an exponent needs a digit
         x = 0
         while j < e:
-            d = np.uint64(buf[j]) - _U48
-            if d > _U9:
+            c = buf[j]
+            if c < 48 or c > 57:
                 break
             if x < _EXP_CAP:
-                x = x * 10 + np.int64(d)
+                x = x * 10 + (c - 48)
             j += 1
         q += -x if eneg else x
         i = j
@@ -337,7 +329,7 @@ def parse_float(buf, s, e):
     return v, st
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def scan_int(buf, i, e):
     """The decimal integer (optional sign, 1 to 18 digits) starting at ``i``: ``(value, ok, stop)``."""
     neg = False
@@ -346,11 +338,8 @@ def scan_int(buf, i, e):
         i += 1
     p0 = i
     v = 0
-    while i < e:
-        d = np.uint64(buf[i]) - _U48
-        if d > _U9:
-            break
-        v = v * 10 + np.int64(d)
+    while i < e and buf[i] >= 48 and buf[i] <= 57:
+        v = v * 10 + (buf[i] - 48)
         i += 1
     if i == p0 or i - p0 > 18:
         return 0, False, i
