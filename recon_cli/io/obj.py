@@ -10,8 +10,9 @@ first for float32 data, makes the coordinates float32 again). A file without fac
 Coordinates are read as float64 (text has no type).
 
 The numbers are parsed by a numba kernel (:mod:`recon_cli.io._obj_kernel`) in one pass
-over the bytes, into arrays that grow by doubling; fast-path numbers are exact (see
-:mod:`recon_cli.io._text_kernel`), the others are converted by Python's ``float``.
+over the bytes, into arrays sized by a first count of the ``v``/``vn``/``f`` lines (they grow
+when it falls short); every number reads as Python's ``float`` reads it (see
+:mod:`recon_cli.io._text_kernel`; the rare undecided ones are converted by ``float``).
 """
 
 from __future__ import annotations
