@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from recon_cli.errors import InputError
 from recon_cli.io import text
-from recon_cli.io._text_kernel import parse_float, parse_int
+from recon_cli.io._text_kernel import parse_float, scan_int
 
 FORMATS = ["%r", "%.17g", "%.16e", "%.9g", "%.6f", "%.10f", "%.0f", "%e", "%.3e", "%.12E", "%g", "%.25e", "%.40f", "%.30g"]
 
@@ -135,8 +135,8 @@ def test_malformed_tokens_are_refused(tok):
                                          ("9" * 19, False), ("", False), ("-", False), ("1.0", False), ("1e3", False), ("x", False)])
 def test_integers(tok, ok):
     buf = np.frombuffer(tok.encode(), np.uint8)
-    v, good = parse_int(buf, 0, len(buf))
-    assert good == ok and (not ok or v == int(tok))
+    v, good, stop = scan_int(buf, 0, len(buf))
+    assert (good and stop == len(buf)) == ok and (not ok or v == int(tok))
 
 
 @settings(max_examples=60, deadline=None)

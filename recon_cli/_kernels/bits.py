@@ -47,18 +47,3 @@ def f64_from_bits(typingctx, bits):
 
     return types.float64(bits), codegen
 
-
-@intrinsic
-def load_u64(typingctx, arr, idx):
-    """The 8 bytes ``arr[idx:idx + 8]`` of a uint8 array as one uint64 in the machine's byte
-    order (an unaligned load; the caller makes sure the 8 bytes exist)."""
-    if not (isinstance(arr, types.Array) and arr.dtype == types.uint8 and isinstance(idx, types.Integer)):
-        return None
-
-    def codegen(context, builder, signature, args):
-        ary = context.make_array(signature.args[0])(context, builder, args[0])
-        i = context.cast(builder, args[1], signature.args[1], types.intp)
-        ptr = builder.bitcast(builder.gep(ary.data, [i]), ir.IntType(64).as_pointer())
-        return builder.load(ptr, align=1)
-
-    return types.uint64(arr, idx), codegen

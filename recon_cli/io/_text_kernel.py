@@ -346,13 +346,6 @@ def scan_int(buf, i, e):
     return (-v if neg else v), True, i
 
 
-@njit(cache=True)
-def parse_int(buf, s, e):
-    """(value, ok) of the decimal integer that must fill ``buf[s:e]`` (optional sign, at most 18 digits)."""
-    v, ok, stop = scan_int(buf, s, e)
-    return v, ok and stop == e
-
-
 # ---------------------------------------------------------------------------------------------
 # rows of numbers
 
