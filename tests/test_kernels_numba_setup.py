@@ -62,3 +62,21 @@ def test_cache_set_even_when_numba_was_imported_first(tmp_path):
     out = _run(code, {"XDG_CACHE_HOME": str(tmp_path)})
     assert out.strip() == str(tmp_path / "recon" / "numba")
     assert list((tmp_path / "recon" / "numba").rglob("*grow1*.nbi"))
+
+
+def test_numpy_submodules_numba_would_load_stay_lazy_until_used():
+    """numba's start-up (through scipy.linalg) star-imports numpy; numpy.f2py and numpy.testing
+    are not executed by it, and work as usual when first used."""
+    code = (
+        "import sys, numpy as np\n"
+        "from recon_cli._kernels.arrays import grow1\n"
+        "grow1(np.arange(3.0), 5)\n"
+        "assert 'scipy.linalg' in sys.modules\n"  # numba's BLAS check ran
+        "print(sorted(m for m in sys.modules if m.startswith(('numpy.f2py.', 'numpy.testing.'))))\n"
+        "np.testing.assert_allclose(np.ma.masked_array([1.0, 2.0], mask=[0, 1]).sum(), 1.0)\n"
+        "from numpy.f2py import crackfortran\n"
+        "print(sorted(m for m in sys.modules if m.startswith(('numpy.testing.', 'numpy.f2py.')))[:2])\n"
+    )
+    before, after = _run(code, {}).splitlines()
+    assert before == "[]"
+    assert after != "[]"
