@@ -93,3 +93,21 @@ def test_any_kernel_source_change_gets_a_cache_of_its_own(tmp_path):
         f = pkg / name
         os.utime(f, ns=(f.stat().st_atime_ns, f.stat().st_mtime_ns + 1_000_000))
         assert kernel_sources_fingerprint(str(pkg)) == base, name
+
+
+def test_numpy_submodules_numba_would_load_stay_lazy_until_used():
+    """numba's start-up (through scipy.linalg) star-imports numpy; numpy.f2py and numpy.testing
+    are not executed by it, and work as usual when first used."""
+    code = (
+        "import sys, numpy as np\n"
+        "from recon_cli._kernels.arrays import grow1\n"
+        "grow1(np.arange(3.0), 5)\n"
+        "assert 'scipy.linalg' in sys.modules\n"  # numba's BLAS check ran
+        "print(sorted(m for m in sys.modules if m.startswith(('numpy.f2py.', 'numpy.testing.'))))\n"
+        "np.testing.assert_allclose(np.ma.masked_array([1.0, 2.0], mask=[0, 1]).sum(), 1.0)\n"
+        "from numpy.f2py import crackfortran\n"
+        "print(sorted(m for m in sys.modules if m.startswith(('numpy.testing.', 'numpy.f2py.')))[:2])\n"
+    )
+    before, after = _run(code, {}).splitlines()
+    assert before == "[]"
+    assert after != "[]"

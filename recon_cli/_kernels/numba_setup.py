@@ -64,6 +64,36 @@ def cache_dir() -> str:
     return os.path.join(base, "recon", "numba", kernel_sources_fingerprint())
 
 
+# numpy submodules recon never uses that numba's start-up loads anyway: numba checks for
+# BLAS by importing scipy.linalg, whose array-API layer star-imports numpy (numpy 2 loads its
+# submodules on attribute access, so ``from numpy import *`` loads them all): f2py and testing
+# are never used by recon (numba itself uses numpy.ma, so that one stays). Registered as
+# lazy modules they cost nothing until something reads one of their attributes (then they
+# load as usual). About 50 ms of CPU per process, a tenth of numba's floor.
+_LAZY_NUMPY = ("numpy.f2py", "numpy.testing")
+
+
+def _lazy_numpy_submodules() -> None:
+    import importlib.util
+
+    import numpy
+
+    for name in _LAZY_NUMPY:
+        if name in sys.modules:
+            continue
+        spec = importlib.util.find_spec(name)
+        if spec is None or spec.loader is None:
+            continue
+        spec.loader = importlib.util.LazyLoader(spec.loader)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+        setattr(numpy, name.rpartition(".")[2], module)
+
+
+if "scipy.linalg" not in sys.modules:
+    _lazy_numpy_submodules()
+
 CACHE_DIR = cache_dir()
 os.environ["NUMBA_CACHE_DIR"] = CACHE_DIR
 if "numba" in sys.modules:  # imported before recon (by the user or a library): tell its config too
