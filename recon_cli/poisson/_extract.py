@@ -10,7 +10,7 @@ import numpy as np
 from numba import njit
 
 from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache directory, threading layer)
-from recon_cli.poisson._octree import MASK21, lattice_key
+from recon_cli.poisson._octree import MASK21, bsearch, lattice_key, lower_bound
 
 
 @njit(cache=True, inline="always")
@@ -150,3 +150,510 @@ def unify_corner_values(vals, order_keys, order):
             vals[g >> 3, g & 7] = v
             j += 1
         i = j
+
+
+# ---------------------------------------------------------------------------------------------
+# extraction at the leaves' own resolution (Kazhdan, Klein, Dalal & Hoppe 2007)
+#
+# Cells of level l are looked up in ``keys[l]`` (sorted lattice keys, see :mod:`._octree`);
+# ``_state`` gives -1 for a cell that is not in the tree, its index for a leaf and -2 - index
+# for a cell with children. Points are in finest-lattice units (``R = 2**depth``). A minimal
+# edge is keyed by its lower end and axis (:func:`edge_key`).
+
+@njit(cache=True, inline="always")
+def _state(keys, leaf, l, x, y, z):
+    n = np.int64(1) << l
+    if x < 0 or y < 0 or z < 0 or x >= n or y >= n or z >= n:
+        return -1
+    i = bsearch(keys[l], lattice_key(x, y, z))
+    if i < 0:
+        return -1
+    return i if leaf[l][i] else -2 - i
+
+
+@njit(cache=True, inline="always")
+def _corner_val(nodes, g, l, c, q):
+    return g[l][nodes[l][c, q & 3] + (q >> 2)]
+
+
+@njit(cache=True, inline="always")
+def _clamp(v, x, y, z, R, cap):
+    if x == 0 or y == 0 or z == 0 or x == R or y == R or z == R:
+        return min(v, cap)
+    return v
+
+
+@njit(cache=True, inline="always")
+def edge_key(x, y, z, axis, R):
+    """Key of the minimal edge from finest-lattice point (x, y, z) along ``axis``."""
+    return ((np.int64(x) * (R + 1) + y) * (R + 1) + z) * 4 + axis
+
+
+@njit(cache=True)
+def _minimal_edges(keys, leaf, nodes, g, D, R, cap, l0, e0, axis, stack, buf_p, buf_len, buf_v, m):
+    """Append the minimal edges of the level-``l0`` lattice edge from ``e0`` (3,) along ``axis``
+    to the buffers, in increasing order: an edge is split when one of the 4 cells of its level
+    around it has children. Values come from a leaf of the edge's level that holds it (every
+    leaf with a corner at a point gives the same value: finer corrections vanish there and
+    the prolongation copies coincident nodes exactly). Returns the new count."""
+    b = (axis + 1) % 3
+    c = (axis + 2) % 3
+    stack[0, 0] = l0
+    stack[0, 1] = e0[0]
+    stack[0, 2] = e0[1]
+    stack[0, 3] = e0[2]
+    top = 1
+    cell = np.empty(3, np.int64)
+    while top > 0:
+        top -= 1
+        l = stack[top, 0]
+        x = stack[top, 1]
+        y = stack[top, 2]
+        z = stack[top, 3]
+        split = False
+        found = -1
+        fq = 0
+        for db in range(2):
+            for dc in range(2):
+                cell[0] = x
+                cell[1] = y
+                cell[2] = z
+                cell[b] -= db
+                cell[c] -= dc
+                s = _state(keys, leaf, l, cell[0], cell[1], cell[2])
+                if s <= -2:
+                    split = True
+                elif s >= 0 and found < 0:
+                    found = s
+                    fq = (db << b) | (dc << c)
+        if split:
+            # upper half pushed first: the lower one comes out first
+            stack[top, 0] = l + 1
+            stack[top, 1] = 2 * x
+            stack[top, 2] = 2 * y
+            stack[top, 3] = 2 * z
+            stack[top, 1 + axis] += 1
+            stack[top + 1, 0] = l + 1
+            stack[top + 1, 1] = 2 * x
+            stack[top + 1, 2] = 2 * y
+            stack[top + 1, 3] = 2 * z
+            top += 2
+            continue
+        sh = D - l
+        px = x << sh
+        py = y << sh
+        pz = z << sh
+        ln = np.int64(1) << sh
+        v0 = _corner_val(nodes, g, l, found, fq)
+        v1 = _corner_val(nodes, g, l, found, fq | (1 << axis))
+        v0 = _clamp(v0, px, py, pz, R, cap)
+        if axis == 0:
+            v1 = _clamp(v1, px + ln, py, pz, R, cap)
+        elif axis == 1:
+            v1 = _clamp(v1, px, py + ln, pz, R, cap)
+        else:
+            v1 = _clamp(v1, px, py, pz + ln, R, cap)
+        buf_p[m, 0] = px
+        buf_p[m, 1] = py
+        buf_p[m, 2] = pz
+        buf_len[m] = ln
+        buf_v[m, 0] = v0
+        buf_v[m, 1] = v1
+        m += 1
+    return m
+
+
+@njit(cache=True)
+def _grow2(a, n):
+    out = np.empty((max(n, 2 * a.shape[0]), a.shape[1]), a.dtype)
+    out[:a.shape[0]] = a
+    return out
+
+
+@njit(cache=True)
+def _grow1(a, n):
+    out = np.empty(max(n, 2 * a.shape[0]), a.dtype)
+    out[:a.shape[0]] = a
+    return out
+
+
+@njit(cache=True, inline="always")
+def _root(p, ln, axis, v0, v1, iso, clamp, out):
+    """Position (finest units) of the root on a minimal edge: linear interpolation, kept
+    ``clamp`` of the edge away from its ends (no two roots at one point)."""
+    t = (iso - v0) / (v1 - v0)
+    t = min(max(t, clamp), 1.0 - clamp)
+    out[0] = p[0]
+    out[1] = p[1]
+    out[2] = p[2]
+    out[axis] += t * ln
+
+
+@njit(cache=True)
+def _face_segments(keys, leaf, nodes, g, D, R, cap, iso, clamp, l, a, w, u, v, flip, stack,
+                   ebuf_p, ebuf_len, ebuf_v, seg_key, seg_pos, ns):
+    """Iso-segments of the minimal face at level ``l`` normal to axis ``a`` (plane coordinate
+    ``w``, lower corner ``u``, ``v`` along the next two axes), appended to ``seg_key`` (k, 2)
+    and ``seg_pos`` (k, 6) from ``ns`` on, each directed from the root where the face's
+    boundary, walked counter-clockwise about +a, leaves chi > iso to the one where it enters
+    (reversed when ``flip``). The face's roots are paired without crossings by the value at
+    its centre (chi bilinear on the face): inside, the inside arcs are joined. Returns the new
+    count and the (possibly grown) buffers."""
+    b = (a + 1) % 3
+    c = (a + 2) % 3
+    e0 = np.empty(3, np.int64)
+    m = 0
+    starts = np.empty(5, np.int64)
+    for side in range(4):
+        e0[a] = w
+        # side 0: from (u, v) along +b; 1: from (u+1, v) along +c; 2: (u, v+1) along b
+        # (walked backwards); 3: (u, v) along c (backwards)
+        e0[b] = u + (1 if side == 1 else 0)
+        e0[c] = v + (1 if side == 2 else 0)
+        ax = b if side % 2 == 0 else c
+        starts[side] = m
+        m = _minimal_edges(keys, leaf, nodes, g, D, R, cap, l, e0, ax, stack, ebuf_p, ebuf_len, ebuf_v, m)
+    starts[4] = m
+    # walk the loop: edges of sides 2, 3 backwards
+    corner_sum = 0.0
+    nroots = 0
+    # first pass: count roots, centre value
+    for side in range(4):
+        lo = starts[side]
+        hi = starts[side + 1]
+        first = lo if side < 2 else hi - 1
+        corner_sum += ebuf_v[first, 0] if side < 2 else ebuf_v[first, 1]
+        for i in range(lo, hi):
+            if (ebuf_v[i, 0] > iso) != (ebuf_v[i, 1] > iso):
+                nroots += 1
+    if nroots == 0:
+        return ns, seg_key, seg_pos
+    centre_in = corner_sum * 0.25 > iso
+    rkey = np.empty(nroots, np.int64)
+    rup = np.empty(nroots, np.bool_)
+    rpos = np.empty((nroots, 3))
+    k = 0
+    for side in range(4):
+        lo = starts[side]
+        hi = starts[side + 1]
+        ax = b if side % 2 == 0 else c
+        for jj in range(hi - lo):
+            i = lo + jj if side < 2 else hi - 1 - jj
+            va = ebuf_v[i, 0]
+            vb = ebuf_v[i, 1]
+            if (va > iso) == (vb > iso):
+                continue
+            rkey[k] = edge_key(ebuf_p[i, 0], ebuf_p[i, 1], ebuf_p[i, 2], ax, R)
+            # walked from its start (sides 0, 1) or its end (sides 2, 3)
+            inside_after = (vb > iso) if side < 2 else (va > iso)
+            rup[k] = inside_after
+            _root(ebuf_p[i], ebuf_len[i], ax, va, vb, iso, clamp, rpos[k])
+            k += 1
+    if ns + nroots > seg_key.shape[0]:
+        seg_key = _grow2(seg_key, ns + nroots)
+        seg_pos = _grow2(seg_pos, ns + nroots)
+    for i in range(nroots):
+        j = (i + 1) % nroots
+        # down -> next up joins an outside arc (centre inside); up -> next down an inside arc
+        if centre_in and not rup[i] and rup[j]:
+            fr, to = i, j
+        elif (not centre_in) and rup[i] and not rup[j]:
+            fr, to = j, i
+        else:
+            continue
+        if flip:
+            fr, to = to, fr
+        seg_key[ns, 0] = rkey[fr]
+        seg_key[ns, 1] = rkey[to]
+        for q in range(3):
+            seg_pos[ns, q] = rpos[fr, q]
+            seg_pos[ns, 3 + q] = rpos[to, q]
+        ns += 1
+    return ns, seg_key, seg_pos
+
+
+@njit(cache=True)
+def _tri_area(p, i, j, k):
+    ax = p[j, 0] - p[i, 0]
+    ay = p[j, 1] - p[i, 1]
+    az = p[j, 2] - p[i, 2]
+    bx = p[k, 0] - p[i, 0]
+    by = p[k, 1] - p[i, 1]
+    bz = p[k, 2] - p[i, 2]
+    cx = ay * bz - az * by
+    cy = az * bx - ax * bz
+    cz = ax * by - ay * bx
+    return np.sqrt(cx * cx + cy * cy + cz * cz)
+
+
+MAX_DP = 12  # loops up to this size get a minimal-area triangulation, larger ones a fan
+
+
+@njit(cache=True)
+def _triangulate(n, lp, lm, cost, split, tris):
+    """Minimal-area triangulation of the loop ``lp`` (n, 3) whose diagonals join only roots on
+    no common face of the leaf (``lm``: bit masks of the leaf's faces each root lies on; two
+    roots on one face may be joined by the leaf across it too, so such a diagonal could be
+    used twice). Writes (n - 2, 3) loop indices into ``tris`` and returns True, or returns
+    False when no such triangulation exists."""
+    inf = 1e300
+    for i in range(n):
+        for j in range(n):
+            cost[i, j] = inf
+    for i in range(n - 1):
+        cost[i, i + 1] = 0.0
+    for gap in range(2, n):
+        for i in range(n - gap):
+            j = i + gap
+            if not (j - i == 1 or (i == 0 and j == n - 1) or (lm[i] & lm[j]) == 0):
+                continue
+            best = inf
+            bk = -1
+            for k in range(i + 1, j):
+                cc = cost[i, k] + cost[k, j]
+                if cc >= inf:
+                    continue
+                cc += _tri_area(lp, i, k, j)
+                if cc < best:
+                    best = cc
+                    bk = k
+            cost[i, j] = best
+            split[i, j] = bk
+    if cost[0, n - 1] >= inf:
+        return False
+    # unwind the splits
+    st = np.empty((n, 2), np.int64)
+    st[0, 0] = 0
+    st[0, 1] = n - 1
+    top = 1
+    t = 0
+    while top > 0:
+        top -= 1
+        i = st[top, 0]
+        j = st[top, 1]
+        if j - i < 2:
+            continue
+        k = split[i, j]
+        tris[t, 0] = i
+        tris[t, 1] = k
+        tris[t, 2] = j
+        t += 1
+        st[top, 0] = i
+        st[top, 1] = k
+        st[top + 1, 0] = k
+        st[top + 1, 1] = j
+        top += 2
+    return True
+
+
+@njit(cache=True)
+def leaf_polygons(keys, leaf, nodes, g, D, iso, eps, margin, clamp):
+    """Iso-surface triangles of every leaf of the tree at the leaf's own size.
+
+    ``keys``, ``leaf``, ``nodes``, ``g``: per level (typed lists) the sorted cell keys, the
+    leaf flags, the cells' corner nodes and chi at the nodes. Each leaf whose corner range
+    reaches ``iso`` (within ``eps``) gathers the iso-segments of the minimal faces covering
+    its boundary (:func:`_face_segments`), chains them into loops (each root is the end of
+    one segment and the start of another) and triangulates each loop. Points on the cube's
+    faces count as outside (chi clamped to ``iso - margin``).
+
+    Returns ``tri`` (t, 3) int64 vertex references (a minimal edge's key, or ``-1 - i`` for
+    the ``i``-th fan centre), ``vkey`` (k,) and ``vpos`` (k, 3) the roots used (finest-lattice
+    units; a root appears once per loop holding it), ``cpos`` (c, 3) the fan centres, and the
+    number of segments whose loop did not close (0 unless something is wrong).
+    """
+    R = np.int64(1) << D
+    cap = iso - margin
+    tri = np.empty((1024, 3), np.int64)
+    nt = 0
+    vkey = np.empty(1024, np.int64)
+    vpos = np.empty((1024, 3))
+    nv = 0
+    cpos = np.empty((64, 3))
+    nc = 0
+    broken = 0
+    stack = np.empty((2 * (D + 3), 4), np.int64)
+    qstack = np.empty((4 * (D + 3), 3), np.int64)
+    ebuf_p = np.empty((4 * R + 8, 3), np.int64)
+    ebuf_len = np.empty(4 * R + 8, np.int64)
+    ebuf_v = np.empty((4 * R + 8, 2))
+    seg_key = np.empty((64, 2), np.int64)
+    seg_pos = np.empty((64, 6))
+    visited = np.zeros(64, np.bool_)
+    lk = np.empty(64, np.int64)
+    lp = np.empty((64, 3))
+    lm = np.empty(64, np.int64)
+    cost = np.empty((MAX_DP, MAX_DP))
+    split = np.empty((MAX_DP, MAX_DP), np.int64)
+    ltri = np.empty((MAX_DP, 3), np.int64)
+    raw = np.empty(8)
+    clv = np.empty(8)
+    lo3 = np.empty(3, np.int64)
+    hi3 = np.empty(3, np.int64)
+    for l in range(D + 1):
+        kl = keys[l]
+        nl = nodes[l]
+        gl = g[l]
+        side = np.int64(1) << (D - l)
+        for ci in range(len(kl)):
+            if not leaf[l][ci]:
+                continue
+            k = kl[ci]
+            cx = (k >> 42) & MASK21
+            cy = (k >> 21) & MASK21
+            cz = k & MASK21
+            lo = 1e300
+            hi = -1e300
+            for q in range(8):
+                v = gl[nl[ci, q & 3] + (q >> 2)]
+                raw[q] = v
+                clv[q] = _clamp(v, (cx + (q & 1)) * side, (cy + ((q >> 1) & 1)) * side, (cz + (q >> 2)) * side, R, cap)
+                lo = min(lo, clv[q])
+                hi = max(hi, v)
+            if lo > iso + eps or hi < iso - eps:
+                continue
+            lo3[0] = cx * side
+            lo3[1] = cy * side
+            lo3[2] = cz * side
+            for q in range(3):
+                hi3[q] = lo3[q] + side
+            ns = 0
+            for a in range(3):
+                b = (a + 1) % 3
+                c = (a + 2) % 3
+                ca = cx if a == 0 else (cy if a == 1 else cz)
+                cb = cx if b == 0 else (cy if b == 1 else cz)
+                cc = cx if c == 0 else (cy if c == 1 else cz)
+                for s in range(2):
+                    w = ca + s
+                    if w == 0 or w == (np.int64(1) << l):
+                        continue  # on the cube's faces: outside
+                    # the face's range (chi bilinear on it; clamped points only lower it)
+                    flo = 1e300
+                    fhi = -1e300
+                    for q in range(8):
+                        if ((q >> a) & 1) == s:
+                            flo = min(flo, clv[q])
+                            fhi = max(fhi, raw[q])
+                    if flo > iso + eps or fhi < iso - eps:
+                        continue
+                    # minimal faces: the leaves' faces on the far side where it is finer
+                    qstack[0, 0] = l
+                    qstack[0, 1] = cb
+                    qstack[0, 2] = cc
+                    top = 1
+                    while top > 0:
+                        top -= 1
+                        ll = qstack[top, 0]
+                        u = qstack[top, 1]
+                        vv = qstack[top, 2]
+                        wl = w << (ll - l)
+                        na = wl if s == 1 else wl - 1
+                        if a == 0:
+                            st = _state(keys, leaf, ll, na, u, vv)
+                        elif a == 1:
+                            st = _state(keys, leaf, ll, vv, na, u)
+                        else:
+                            st = _state(keys, leaf, ll, u, vv, na)
+                        if st <= -2:
+                            for o in range(4):
+                                qstack[top, 0] = ll + 1
+                                qstack[top, 1] = 2 * u + (o & 1)
+                                qstack[top, 2] = 2 * vv + (o >> 1)
+                                top += 1
+                            continue
+                        ns, seg_key, seg_pos = _face_segments(
+                            keys, leaf, nodes, g, D, R, cap, iso, clamp, ll, a, wl, u, vv, s == 1, stack,
+                            ebuf_p, ebuf_len, ebuf_v, seg_key, seg_pos, ns)
+            if ns == 0:
+                continue
+            # chain the segments into loops
+            if visited.shape[0] < ns:
+                visited = np.zeros(seg_key.shape[0], np.bool_)
+                lk = np.empty(seg_key.shape[0], np.int64)
+                lp = np.empty((seg_key.shape[0], 3))
+                lm = np.empty(seg_key.shape[0], np.int64)
+            order = np.argsort(seg_key[:ns, 0])
+            sfrom = seg_key[:ns, 0][order]
+            for i in range(ns):
+                visited[i] = False
+            for i0 in range(ns):
+                if visited[i0]:
+                    continue
+                n = 0
+                cur = i0
+                ok = True
+                while True:
+                    visited[cur] = True
+                    rk = seg_key[cur, 0]
+                    lk[n] = rk
+                    lp[n, 0] = seg_pos[cur, 0]
+                    lp[n, 1] = seg_pos[cur, 1]
+                    lp[n, 2] = seg_pos[cur, 2]
+                    # the leaf's faces the root's edge lies on
+                    ax = rk & 3
+                    rest = rk >> 2
+                    pz = rest % (R + 1)
+                    rest //= R + 1
+                    py = rest % (R + 1)
+                    px = rest // (R + 1)
+                    mk = 0
+                    for q in range(3):
+                        pq = px if q == 0 else (py if q == 1 else pz)
+                        if q != ax:
+                            if pq == lo3[q]:
+                                mk |= 1 << (2 * q)
+                            if pq == hi3[q]:
+                                mk |= 1 << (2 * q + 1)
+                    lm[n] = mk
+                    n += 1
+                    idx = lower_bound(sfrom, seg_key[cur, 1], 0, ns)
+                    if idx >= ns or sfrom[idx] != seg_key[cur, 1]:
+                        ok = False
+                        break
+                    cur = order[idx]
+                    if cur == i0:
+                        break
+                    if visited[cur]:
+                        ok = False
+                        break
+                if not ok or n < 3:
+                    broken += 1
+                    continue
+                # triangles of the loop (indices into it), then out
+                if nt + n > tri.shape[0]:
+                    tri = _grow2(tri, nt + n)
+                if nv + n > vkey.shape[0]:
+                    vkey = _grow1(vkey, nv + n)
+                    vpos = _grow2(vpos, nv + n)
+                for i in range(n):
+                    vkey[nv + i] = lk[i]
+                    vpos[nv + i, 0] = lp[i, 0]
+                    vpos[nv + i, 1] = lp[i, 1]
+                    vpos[nv + i, 2] = lp[i, 2]
+                nv += n
+                if n == 3:
+                    tri[nt, 0] = lk[0]
+                    tri[nt, 1] = lk[1]
+                    tri[nt, 2] = lk[2]
+                    nt += 1
+                elif n <= MAX_DP and _triangulate(n, lp, lm, cost, split, ltri):
+                    for t in range(n - 2):
+                        for q in range(3):
+                            tri[nt, q] = lk[ltri[t, q]]
+                        nt += 1
+                else:
+                    if nc + 1 > cpos.shape[0]:
+                        cpos = _grow2(cpos, nc + 1)
+                    for q in range(3):
+                        sm = 0.0
+                        for i in range(n):
+                            sm += lp[i, q]
+                        cpos[nc, q] = sm / n
+                    for i in range(n):
+                        tri[nt, 0] = -1 - nc
+                        tri[nt, 1] = lk[i]
+                        tri[nt, 2] = lk[(i + 1) % n]
+                        nt += 1
+                    nc += 1
+    return tri[:nt].copy(), vkey[:nv].copy(), vpos[:nv].copy(), cpos[:nc].copy(), broken

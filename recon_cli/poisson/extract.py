@@ -11,6 +11,8 @@ from recon_cli.poisson.octree import Level
 
 # how far below the iso-value chi is clamped on the cube's faces (chi jumps by about 1)
 FACE_MARGIN = 1e-3
+# roots are kept this fraction of a minimal edge away from its ends (no two at one point)
+ROOT_CLAMP = 1e-3
 
 
 def extract(levels: list[Level], gvals: list[np.ndarray], iso: float, origin: np.ndarray, size: float
@@ -49,6 +51,30 @@ def extract(levels: list[Level], gvals: list[np.ndarray], iso: float, origin: np
     del ckeys, order
     verts, faces = marching_cubes_sparse(cells, vals, -iso, origin=tuple(origin), spacing=size / res)
     del cells, vals
+    return verts, faces
+
+
+def extract_leaves(levels: list[Level], gvals: list[np.ndarray], iso: float, origin: np.ndarray, size: float
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (world units) and faces of the level set ``chi = iso`` at the leaves' own size."""
+    from numba.typed import List
+
+    depth = len(levels) - 1
+    keys, leaf, nodes = List(), List(), List()
+    for lev in levels:
+        keys.append(lev.cell_keys)
+        leaf.append(lev.leaf)
+        nodes.append(lev.cell_nodes)
+    g = List()
+    for x in gvals:
+        g.append(x)
+    tri, vkey, vpos, cpos, broken = E.leaf_polygons(keys, leaf, nodes, g, depth, iso, 1e-9, FACE_MARGIN, ROOT_CLAMP)
+    if broken:
+        raise RuntimeError(f"poisson extraction: {broken} iso-segment loops did not close")
+    uk, first = np.unique(vkey, return_index=True)
+    spacing = size / (1 << depth)
+    verts = np.concatenate([vpos[first], cpos]) * spacing + origin
+    faces = np.where(tri >= 0, np.searchsorted(uk, tri), len(uk) + (-1 - tri))
     return verts, faces
 
 
