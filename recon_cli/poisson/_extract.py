@@ -155,25 +155,28 @@ def unify_corner_values(vals, order_keys, order):
 # ---------------------------------------------------------------------------------------------
 # extraction at the leaves' own resolution (Kazhdan, Klein, Dalal & Hoppe 2007)
 #
-# Cells of level l are looked up in ``keys[l]`` (sorted lattice keys, see :mod:`._octree`);
-# ``_state`` gives -1 for a cell that is not in the tree, its index for a leaf and -2 - index
-# for a cell with children. Points are in finest-lattice units (``R = 2**depth``). A minimal
+# The levels are concatenated: level l's cells are ``keys[coff[l]:coff[l + 1]]`` (sorted
+# lattice keys, see :mod:`._octree`) with ``leaf`` flags and ``nodes`` (corner nodes, indices
+# local to the level), its nodes' chi ``g[goff[l]:goff[l + 1]]``. ``_state`` gives -1 for a
+# cell that is not in the tree, its (global) index for a leaf and -2 - index for a cell with
+# children. Points are in finest-lattice units (``R = 2**depth``). A minimal
 # edge is keyed by its lower end and axis (:func:`edge_key`).
 
 @njit(cache=True, inline="always")
-def _state(keys, leaf, l, x, y, z):
+def _state(keys, leaf, coff, l, x, y, z):
     n = np.int64(1) << l
     if x < 0 or y < 0 or z < 0 or x >= n or y >= n or z >= n:
         return -1
-    i = bsearch(keys[l], lattice_key(x, y, z))
-    if i < 0:
+    key = lattice_key(x, y, z)
+    i = lower_bound(keys, key, coff[l], coff[l + 1])
+    if i == coff[l + 1] or keys[i] != key:
         return -1
-    return i if leaf[l][i] else -2 - i
+    return i if leaf[i] else -2 - i
 
 
 @njit(cache=True, inline="always")
-def _corner_val(nodes, g, l, c, q):
-    return g[l][nodes[l][c, q & 3] + (q >> 2)]
+def _corner_val(nodes, g, goff, l, c, q):
+    return g[goff[l] + nodes[c, q & 3] + (q >> 2)]
 
 
 @njit(cache=True, inline="always")
@@ -190,12 +193,13 @@ def edge_key(x, y, z, axis, R):
 
 
 @njit(cache=True)
-def _minimal_edges(keys, leaf, nodes, g, D, R, cap, l0, e0, axis, stack, buf_p, buf_len, buf_v, m):
+def _minimal_edges(keys, leaf, nodes, g, coff, goff, D, R, cap, l0, e0, axis, hint, hxyz, stack, cell, buf_p, buf_len, buf_v, m):
     """Append the minimal edges of the level-``l0`` lattice edge from ``e0`` (3,) along ``axis``
     to the buffers, in increasing order: an edge is split when one of the 4 cells of its level
     around it has children. Values come from a leaf of the edge's level that holds it (every
     leaf with a corner at a point gives the same value: finer corrections vanish there and
-    the prolongation copies coincident nodes exactly). Returns the new count."""
+    the prolongation copies coincident nodes exactly). ``hint``: index of a leaf of level
+    ``l0`` holding the edge, lower corner ``hxyz`` (3,), or -1. Returns the new count."""
     b = (axis + 1) % 3
     c = (axis + 2) % 3
     stack[0, 0] = l0
@@ -203,7 +207,6 @@ def _minimal_edges(keys, leaf, nodes, g, D, R, cap, l0, e0, axis, stack, buf_p, 
     stack[0, 2] = e0[1]
     stack[0, 3] = e0[2]
     top = 1
-    cell = np.empty(3, np.int64)
     while top > 0:
         top -= 1
         l = stack[top, 0]
@@ -213,14 +216,28 @@ def _minimal_edges(keys, leaf, nodes, g, D, R, cap, l0, e0, axis, stack, buf_p, 
         split = False
         found = -1
         fq = 0
+        use_hint = hint >= 0 and l == l0
+        if use_hint:
+            found = hint
+            fq = ((x - hxyz[0]) | ((y - hxyz[1]) << 1) | ((z - hxyz[2]) << 2))
+            if l == D:
+                top_done = True  # the finest cells have no children: nothing to look up
+            else:
+                top_done = False
+        else:
+            top_done = False
         for db in range(2):
+            if top_done:
+                break
             for dc in range(2):
                 cell[0] = x
                 cell[1] = y
                 cell[2] = z
                 cell[b] -= db
                 cell[c] -= dc
-                s = _state(keys, leaf, l, cell[0], cell[1], cell[2])
+                if use_hint and cell[0] == hxyz[0] and cell[1] == hxyz[1] and cell[2] == hxyz[2]:
+                    continue
+                s = _state(keys, leaf, coff, l, cell[0], cell[1], cell[2])
                 if s <= -2:
                     split = True
                 elif s >= 0 and found < 0:
@@ -244,8 +261,8 @@ def _minimal_edges(keys, leaf, nodes, g, D, R, cap, l0, e0, axis, stack, buf_p, 
         py = y << sh
         pz = z << sh
         ln = np.int64(1) << sh
-        v0 = _corner_val(nodes, g, l, found, fq)
-        v1 = _corner_val(nodes, g, l, found, fq | (1 << axis))
+        v0 = _corner_val(nodes, g, goff, l, found, fq)
+        v1 = _corner_val(nodes, g, goff, l, found, fq | (1 << axis))
         v0 = _clamp(v0, px, py, pz, R, cap)
         if axis == 0:
             v1 = _clamp(v1, px + ln, py, pz, R, cap)
@@ -290,20 +307,19 @@ def _root(p, ln, axis, v0, v1, iso, clamp, out):
 
 
 @njit(cache=True)
-def _face_segments(keys, leaf, nodes, g, D, R, cap, iso, clamp, l, a, w, u, v, flip, stack,
-                   ebuf_p, ebuf_len, ebuf_v, seg_key, seg_pos, ns):
+def _face_segments(keys, leaf, nodes, g, coff, goff, D, R, cap, iso, clamp, l, a, w, u, v, flip, hint, hxyz, stack, cell,
+                   e0, starts, rkey, rup, rpos, ebuf_p, ebuf_len, ebuf_v, seg_key, seg_pos, ns):
     """Iso-segments of the minimal face at level ``l`` normal to axis ``a`` (plane coordinate
     ``w``, lower corner ``u``, ``v`` along the next two axes), appended to ``seg_key`` (k, 2)
     and ``seg_pos`` (k, 6) from ``ns`` on, each directed from the root where the face's
     boundary, walked counter-clockwise about +a, leaves chi > iso to the one where it enters
     (reversed when ``flip``). The face's roots are paired without crossings by the value at
     its centre (chi bilinear on the face): inside, the inside arcs are joined. Returns the new
-    count and the (possibly grown) buffers."""
+    count and the (possibly grown) buffers. ``hint``/``hxyz``: a leaf of level ``l`` whose
+    face this is (see :func:`_minimal_edges`); the rest are scratch arrays."""
     b = (a + 1) % 3
     c = (a + 2) % 3
-    e0 = np.empty(3, np.int64)
     m = 0
-    starts = np.empty(5, np.int64)
     for side in range(4):
         e0[a] = w
         # side 0: from (u, v) along +b; 1: from (u+1, v) along +c; 2: (u, v+1) along b
@@ -312,7 +328,7 @@ def _face_segments(keys, leaf, nodes, g, D, R, cap, iso, clamp, l, a, w, u, v, f
         e0[c] = v + (1 if side == 2 else 0)
         ax = b if side % 2 == 0 else c
         starts[side] = m
-        m = _minimal_edges(keys, leaf, nodes, g, D, R, cap, l, e0, ax, stack, ebuf_p, ebuf_len, ebuf_v, m)
+        m = _minimal_edges(keys, leaf, nodes, g, coff, goff, D, R, cap, l, e0, ax, hint, hxyz, stack, cell, ebuf_p, ebuf_len, ebuf_v, m)
     starts[4] = m
     # walk the loop: edges of sides 2, 3 backwards
     corner_sum = 0.0
@@ -329,9 +345,8 @@ def _face_segments(keys, leaf, nodes, g, D, R, cap, iso, clamp, l, a, w, u, v, f
     if nroots == 0:
         return ns, seg_key, seg_pos
     centre_in = corner_sum * 0.25 > iso
-    rkey = np.empty(nroots, np.int64)
-    rup = np.empty(nroots, np.bool_)
-    rpos = np.empty((nroots, 3))
+    if rkey.shape[0] < nroots:
+        return -1, seg_key, seg_pos  # the caller grows the scratch and calls again
     k = 0
     for side in range(4):
         lo = starts[side]
@@ -447,11 +462,11 @@ def _triangulate(n, lp, lm, cost, split, tris):
 
 
 @njit(cache=True)
-def leaf_polygons(keys, leaf, nodes, g, D, iso, eps, margin, clamp):
+def leaf_polygons(keys, leaf, nodes, g, coff, goff, D, iso, eps, margin, clamp):
     """Iso-surface triangles of every leaf of the tree at the leaf's own size.
 
-    ``keys``, ``leaf``, ``nodes``, ``g``: per level (typed lists) the sorted cell keys, the
-    leaf flags, the cells' corner nodes and chi at the nodes. Each leaf whose corner range
+    ``keys``, ``leaf``, ``nodes``, ``g``, ``coff``, ``goff``: the levels' sorted cell keys,
+    leaf flags, the cells' corner nodes and chi at the nodes, concatenated (see above). Each leaf whose corner range
     reaches ``iso`` (within ``eps``) gathers the iso-segments of the minimal faces covering
     its boundary (:func:`_face_segments`), chains them into loops (each root is the end of
     one segment and the start of another) and triangulates each loop. Points on the cube's
@@ -490,22 +505,27 @@ def leaf_polygons(keys, leaf, nodes, g, D, iso, eps, margin, clamp):
     clv = np.empty(8)
     lo3 = np.empty(3, np.int64)
     hi3 = np.empty(3, np.int64)
+    hxyz = np.empty(3, np.int64)
+    cell = np.empty(3, np.int64)
+    e0 = np.empty(3, np.int64)
+    starts = np.empty(5, np.int64)
+    rkey = np.empty(64, np.int64)
+    rup = np.empty(64, np.bool_)
+    rpos = np.empty((64, 3))
     for l in range(D + 1):
-        kl = keys[l]
-        nl = nodes[l]
-        gl = g[l]
         side = np.int64(1) << (D - l)
-        for ci in range(len(kl)):
-            if not leaf[l][ci]:
+        g0 = goff[l]
+        for ci in range(coff[l], coff[l + 1]):
+            if not leaf[ci]:
                 continue
-            k = kl[ci]
+            k = keys[ci]
             cx = (k >> 42) & MASK21
             cy = (k >> 21) & MASK21
             cz = k & MASK21
             lo = 1e300
             hi = -1e300
             for q in range(8):
-                v = gl[nl[ci, q & 3] + (q >> 2)]
+                v = g[g0 + nodes[ci, q & 3] + (q >> 2)]
                 raw[q] = v
                 clv[q] = _clamp(v, (cx + (q & 1)) * side, (cy + ((q >> 1) & 1)) * side, (cz + (q >> 2)) * side, R, cap)
                 lo = min(lo, clv[q])
@@ -549,12 +569,14 @@ def leaf_polygons(keys, leaf, nodes, g, D, iso, eps, margin, clamp):
                         vv = qstack[top, 2]
                         wl = w << (ll - l)
                         na = wl if s == 1 else wl - 1
-                        if a == 0:
-                            st = _state(keys, leaf, ll, na, u, vv)
+                        if ll == D and ll == l:
+                            st = -1  # a finest leaf: the far side is no finer (and no lookup)
+                        elif a == 0:
+                            st = _state(keys, leaf, coff, ll, na, u, vv)
                         elif a == 1:
-                            st = _state(keys, leaf, ll, vv, na, u)
+                            st = _state(keys, leaf, coff, ll, vv, na, u)
                         else:
-                            st = _state(keys, leaf, ll, u, vv, na)
+                            st = _state(keys, leaf, coff, ll, u, vv, na)
                         if st <= -2:
                             for o in range(4):
                                 qstack[top, 0] = ll + 1
@@ -562,9 +584,29 @@ def leaf_polygons(keys, leaf, nodes, g, D, iso, eps, margin, clamp):
                                 qstack[top, 2] = 2 * vv + (o >> 1)
                                 top += 1
                             continue
-                        ns, seg_key, seg_pos = _face_segments(
-                            keys, leaf, nodes, g, D, R, cap, iso, clamp, ll, a, wl, u, vv, s == 1, stack,
-                            ebuf_p, ebuf_len, ebuf_v, seg_key, seg_pos, ns)
+                        # a leaf whose face this is: the far one when it is a leaf of this
+                        # level, else this one (then the face is the whole of its own)
+                        if st >= 0:
+                            hint = st
+                            hxyz[a] = na
+                            hxyz[b] = u
+                            hxyz[c] = vv
+                        else:
+                            hint = ci
+                            hxyz[0] = cx
+                            hxyz[1] = cy
+                            hxyz[2] = cz
+                        while True:
+                            ns2, seg_key, seg_pos = _face_segments(
+                                keys, leaf, nodes, g, coff, goff, D, R, cap, iso, clamp, ll, a, wl, u, vv, s == 1, hint, hxyz,
+                                stack, cell, e0, starts, rkey, rup, rpos, ebuf_p, ebuf_len, ebuf_v, seg_key, seg_pos, ns)
+                            if ns2 >= 0:
+                                break
+                            nsz = 2 * rkey.shape[0]
+                            rkey = np.empty(nsz, np.int64)
+                            rup = np.empty(nsz, np.bool_)
+                            rpos = np.empty((nsz, 3))
+                        ns = ns2
             if ns == 0:
                 continue
             # chain the segments into loops
@@ -573,8 +615,13 @@ def leaf_polygons(keys, leaf, nodes, g, D, iso, eps, margin, clamp):
                 lk = np.empty(seg_key.shape[0], np.int64)
                 lp = np.empty((seg_key.shape[0], 3))
                 lm = np.empty(seg_key.shape[0], np.int64)
-            order = np.argsort(seg_key[:ns, 0])
-            sfrom = seg_key[:ns, 0][order]
+            small = ns <= 16
+            if small:
+                order = np.empty(0, np.int64)
+                sfrom = np.empty(0, np.int64)
+            else:
+                order = np.argsort(seg_key[:ns, 0])
+                sfrom = seg_key[:ns, 0][order]
             for i in range(ns):
                 visited[i] = False
             for i0 in range(ns):
@@ -607,11 +654,20 @@ def leaf_polygons(keys, leaf, nodes, g, D, iso, eps, margin, clamp):
                                 mk |= 1 << (2 * q + 1)
                     lm[n] = mk
                     n += 1
-                    idx = lower_bound(sfrom, seg_key[cur, 1], 0, ns)
-                    if idx >= ns or sfrom[idx] != seg_key[cur, 1]:
+                    nxt = -1
+                    if small:
+                        for i in range(ns):
+                            if seg_key[i, 0] == seg_key[cur, 1]:
+                                nxt = i
+                                break
+                    else:
+                        idx = lower_bound(sfrom, seg_key[cur, 1], 0, ns)
+                        if idx < ns and sfrom[idx] == seg_key[cur, 1]:
+                            nxt = order[idx]
+                    if nxt < 0:
                         ok = False
                         break
-                    cur = order[idx]
+                    cur = nxt
                     if cur == i0:
                         break
                     if visited[cur]:

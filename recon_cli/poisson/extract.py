@@ -15,8 +15,8 @@ FACE_MARGIN = 1e-3
 ROOT_CLAMP = 1e-3
 
 
-def extract(levels: list[Level], gvals: list[np.ndarray], iso: float, origin: np.ndarray, size: float
-            ) -> tuple[np.ndarray, np.ndarray]:
+def extract_finest(levels: list[Level], gvals: list[np.ndarray], iso: float, origin: np.ndarray, size: float
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (world units) and faces of the level set ``chi = iso``.
 
     Leaves of the tree are refined to the finest lattice where they straddle the iso-value
@@ -54,21 +54,27 @@ def extract(levels: list[Level], gvals: list[np.ndarray], iso: float, origin: np
     return verts, faces
 
 
-def extract_leaves(levels: list[Level], gvals: list[np.ndarray], iso: float, origin: np.ndarray, size: float
-                   ) -> tuple[np.ndarray, np.ndarray]:
+def extract(levels: list[Level], gvals: list[np.ndarray], iso: float, origin: np.ndarray, size: float
+            ) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (world units) and faces of the level set ``chi = iso`` at the leaves' own size."""
-    from numba.typed import List
-
     depth = len(levels) - 1
-    keys, leaf, nodes = List(), List(), List()
-    for lev in levels:
-        keys.append(lev.cell_keys)
-        leaf.append(lev.leaf)
-        nodes.append(lev.cell_nodes)
-    g = List()
-    for x in gvals:
-        g.append(x)
-    tri, vkey, vpos, cpos, broken = E.leaf_polygons(keys, leaf, nodes, g, depth, iso, 1e-9, FACE_MARGIN, ROOT_CLAMP)
+    # the levels concatenated (each freed once copied: the copy is never held twice)
+    coff = np.concatenate([[0], np.cumsum([len(lev.cell_keys) for lev in levels])]).astype(np.int64)
+    goff = np.concatenate([[0], np.cumsum([len(x) for x in gvals])]).astype(np.int64)
+    keys = np.empty(coff[-1], np.int64)
+    leaf = np.empty(coff[-1], np.bool_)
+    nodes = np.empty((coff[-1], 4), np.int32)
+    g = np.empty(goff[-1])
+    for d in range(depth, -1, -1):
+        lev = levels.pop()
+        keys[coff[d]:coff[d + 1]] = lev.cell_keys
+        leaf[coff[d]:coff[d + 1]] = lev.leaf
+        nodes[coff[d]:coff[d + 1]] = lev.cell_nodes
+        g[goff[d]:goff[d + 1]] = gvals.pop()
+        del lev
+    tri, vkey, vpos, cpos, broken = E.leaf_polygons(keys, leaf, nodes, g, coff, goff, depth, iso, 1e-9, FACE_MARGIN,
+                                                    ROOT_CLAMP)
+    del keys, leaf, nodes, g
     if broken:
         raise RuntimeError(f"poisson extraction: {broken} iso-segment loops did not close")
     uk, first = np.unique(vkey, return_index=True)
