@@ -295,99 +295,6 @@ def _grow1(a, n):
 
 
 @njit(cache=True, inline="always")
-def _root(p, ln, axis, v0, v1, iso, clamp, out):
-    """Position (finest units) of the root on a minimal edge: linear interpolation, kept
-    ``clamp`` of the edge away from its ends (no two roots at one point)."""
-    t = (iso - v0) / (v1 - v0)
-    t = min(max(t, clamp), 1.0 - clamp)
-    out[0] = p[0]
-    out[1] = p[1]
-    out[2] = p[2]
-    out[axis] += t * ln
-
-
-@njit(cache=True)
-def _face_segments(keys, leaf, nodes, g, coff, goff, D, R, cap, iso, clamp, l, a, w, u, v, flip, hint, hxyz, stack, cell,
-                   e0, starts, rkey, rup, rpos, ebuf_p, ebuf_len, ebuf_v, seg_key, seg_pos, ns):
-    """Iso-segments of the minimal face at level ``l`` normal to axis ``a`` (plane coordinate
-    ``w``, lower corner ``u``, ``v`` along the next two axes), appended to ``seg_key`` (k, 2)
-    and ``seg_pos`` (k, 6) from ``ns`` on, each directed from the root where the face's
-    boundary, walked counter-clockwise about +a, leaves chi > iso to the one where it enters
-    (reversed when ``flip``). The face's roots are paired without crossings by the value at
-    its centre (chi bilinear on the face): inside, the inside arcs are joined. Returns the new
-    count and the (possibly grown) buffers. ``hint``/``hxyz``: a leaf of level ``l`` whose
-    face this is (see :func:`_minimal_edges`); the rest are scratch arrays."""
-    b = (a + 1) % 3
-    c = (a + 2) % 3
-    m = 0
-    for side in range(4):
-        e0[a] = w
-        # side 0: from (u, v) along +b; 1: from (u+1, v) along +c; 2: (u, v+1) along b
-        # (walked backwards); 3: (u, v) along c (backwards)
-        e0[b] = u + (1 if side == 1 else 0)
-        e0[c] = v + (1 if side == 2 else 0)
-        ax = b if side % 2 == 0 else c
-        starts[side] = m
-        m = _minimal_edges(keys, leaf, nodes, g, coff, goff, D, R, cap, l, e0, ax, hint, hxyz, stack, cell, ebuf_p, ebuf_len, ebuf_v, m)
-    starts[4] = m
-    # walk the loop: edges of sides 2, 3 backwards
-    corner_sum = 0.0
-    nroots = 0
-    # first pass: count roots, centre value
-    for side in range(4):
-        lo = starts[side]
-        hi = starts[side + 1]
-        first = lo if side < 2 else hi - 1
-        corner_sum += ebuf_v[first, 0] if side < 2 else ebuf_v[first, 1]
-        for i in range(lo, hi):
-            if (ebuf_v[i, 0] > iso) != (ebuf_v[i, 1] > iso):
-                nroots += 1
-    if nroots == 0:
-        return ns, seg_key, seg_pos
-    centre_in = corner_sum * 0.25 > iso
-    if rkey.shape[0] < nroots:
-        return -1, seg_key, seg_pos  # the caller grows the scratch and calls again
-    k = 0
-    for side in range(4):
-        lo = starts[side]
-        hi = starts[side + 1]
-        ax = b if side % 2 == 0 else c
-        for jj in range(hi - lo):
-            i = lo + jj if side < 2 else hi - 1 - jj
-            va = ebuf_v[i, 0]
-            vb = ebuf_v[i, 1]
-            if (va > iso) == (vb > iso):
-                continue
-            rkey[k] = edge_key(ebuf_p[i, 0], ebuf_p[i, 1], ebuf_p[i, 2], ax, R)
-            # walked from its start (sides 0, 1) or its end (sides 2, 3)
-            inside_after = (vb > iso) if side < 2 else (va > iso)
-            rup[k] = inside_after
-            _root(ebuf_p[i], ebuf_len[i], ax, va, vb, iso, clamp, rpos[k])
-            k += 1
-    if ns + nroots > seg_key.shape[0]:
-        seg_key = _grow2(seg_key, ns + nroots)
-        seg_pos = _grow2(seg_pos, ns + nroots)
-    for i in range(nroots):
-        j = (i + 1) % nroots
-        # down -> next up joins an outside arc (centre inside); up -> next down an inside arc
-        if centre_in and not rup[i] and rup[j]:
-            fr, to = i, j
-        elif (not centre_in) and rup[i] and not rup[j]:
-            fr, to = j, i
-        else:
-            continue
-        if flip:
-            fr, to = to, fr
-        seg_key[ns, 0] = rkey[fr]
-        seg_key[ns, 1] = rkey[to]
-        for q in range(3):
-            seg_pos[ns, q] = rpos[fr, q]
-            seg_pos[ns, 3 + q] = rpos[to, q]
-        ns += 1
-    return ns, seg_key, seg_pos
-
-
-@njit(cache=True)
 def _tri_area(p, i, j, k):
     ax = p[j, 0] - p[i, 0]
     ay = p[j, 1] - p[i, 1]
@@ -404,8 +311,8 @@ def _tri_area(p, i, j, k):
 MAX_DP = 12  # loops up to this size get a minimal-area triangulation, larger ones a fan
 
 
-@njit(cache=True)
-def _triangulate(n, lp, lm, cost, split, tris):
+@njit(cache=True, inline="always")
+def _triangulate(n, lp, lm, cost, split, st, tris):
     """Minimal-area triangulation of the loop ``lp`` (n, 3) whose diagonals join only roots on
     no common face of the leaf (``lm``: bit masks of the leaf's faces each root lies on; two
     roots on one face may be joined by the leaf across it too, so such a diagonal could be
@@ -436,8 +343,7 @@ def _triangulate(n, lp, lm, cost, split, tris):
             split[i, j] = bk
     if cost[0, n - 1] >= inf:
         return False
-    # unwind the splits
-    st = np.empty((n, 2), np.int64)
+    # unwind the splits (``st``: (n, 2) scratch)
     st[0, 0] = 0
     st[0, 1] = n - 1
     top = 1
@@ -501,6 +407,9 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, D, iso, eps, margin, clamp):
     cost = np.empty((MAX_DP, MAX_DP))
     split = np.empty((MAX_DP, MAX_DP), np.int64)
     ltri = np.empty((MAX_DP, 3), np.int64)
+    tst = np.empty((MAX_DP, 2), np.int64)
+    order = np.empty(0, np.int64)
+    sfrom = np.empty(0, np.int64)
     raw = np.empty(8)
     clv = np.empty(8)
     lo3 = np.empty(3, np.int64)
@@ -596,17 +505,103 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, D, iso, eps, margin, clamp):
                             hxyz[0] = cx
                             hxyz[1] = cy
                             hxyz[2] = cz
-                        while True:
-                            ns2, seg_key, seg_pos = _face_segments(
-                                keys, leaf, nodes, g, coff, goff, D, R, cap, iso, clamp, ll, a, wl, u, vv, s == 1, hint, hxyz,
-                                stack, cell, e0, starts, rkey, rup, rpos, ebuf_p, ebuf_len, ebuf_v, seg_key, seg_pos, ns)
-                            if ns2 >= 0:
-                                break
-                            nsz = 2 * rkey.shape[0]
-                            rkey = np.empty(nsz, np.int64)
-                            rup = np.empty(nsz, np.bool_)
-                            rpos = np.empty((nsz, 3))
-                        ns = ns2
+                        # the iso-segments of this minimal face: its boundary walked counter-
+                        # clockwise about +a (sides 2, 3 backwards), split into minimal edges;
+                        # each segment directed from the root where the walk leaves chi > iso
+                        # to the one where it enters (reversed when the leaf lies above the
+                        # face); roots paired without crossings by the value at the face's
+                        # centre (chi bilinear on it): inside, the inside arcs are joined
+                        m = 0
+                        for sd in range(4):
+                            e0[a] = wl
+                            # sd 0: from (u, vv) along +b; 1: from (u+1, vv) along +c; 2: (u, vv+1) along b
+                            # (walked backwards); 3: (u, vv) along c (backwards)
+                            e0[b] = u + (1 if sd == 1 else 0)
+                            e0[c] = vv + (1 if sd == 2 else 0)
+                            ax = b if sd % 2 == 0 else c
+                            starts[sd] = m
+                            if ll == D:
+                                # a finest edge: never split, its values are the hint leaf's corners (what
+                                # _minimal_edges does, without the call)
+                                fq = (e0[0] - hxyz[0]) | ((e0[1] - hxyz[1]) << 1) | ((e0[2] - hxyz[2]) << 2)
+                                v0 = _clamp(_corner_val(nodes, g, goff, ll, hint, fq), e0[0], e0[1], e0[2], R, cap)
+                                qq = fq | (1 << ax)
+                                v1 = _clamp(_corner_val(nodes, g, goff, ll, hint, qq), e0[0] + (qq & 1) - (fq & 1), e0[1] + ((qq >> 1) & 1) - ((fq >> 1) & 1),
+                                            e0[2] + (qq >> 2) - (fq >> 2), R, cap)
+                                ebuf_p[m, 0] = e0[0]
+                                ebuf_p[m, 1] = e0[1]
+                                ebuf_p[m, 2] = e0[2]
+                                ebuf_len[m] = 1
+                                ebuf_v[m, 0] = v0
+                                ebuf_v[m, 1] = v1
+                                m += 1
+                            else:
+                                m = _minimal_edges(keys, leaf, nodes, g, coff, goff, D, R, cap, ll, e0, ax, hint, hxyz, stack, cell, ebuf_p,
+                                                   ebuf_len, ebuf_v, m)
+                        starts[4] = m
+                        # walk the loop: edges of sides 2, 3 backwards
+                        corner_sum = 0.0
+                        nroots = 0
+                        # first pass: count roots, centre value
+                        for sd in range(4):
+                            elo = starts[sd]
+                            ehi = starts[sd + 1]
+                            first = elo if sd < 2 else ehi - 1
+                            corner_sum += ebuf_v[first, 0] if sd < 2 else ebuf_v[first, 1]
+                            for i in range(elo, ehi):
+                                if (ebuf_v[i, 0] > iso) != (ebuf_v[i, 1] > iso):
+                                    nroots += 1
+                        if nroots == 0:
+                            continue
+                        centre_in = corner_sum * 0.25 > iso
+                        if rkey.shape[0] < nroots:
+                            rkey = np.empty(2 * nroots, np.int64)
+                            rup = np.empty(2 * nroots, np.bool_)
+                            rpos = np.empty((2 * nroots, 3))
+                        kr = 0
+                        for sd in range(4):
+                            elo = starts[sd]
+                            ehi = starts[sd + 1]
+                            ax = b if sd % 2 == 0 else c
+                            for jj in range(ehi - elo):
+                                i = elo + jj if sd < 2 else ehi - 1 - jj
+                                va = ebuf_v[i, 0]
+                                vb = ebuf_v[i, 1]
+                                if (va > iso) == (vb > iso):
+                                    continue
+                                rkey[kr] = edge_key(ebuf_p[i, 0], ebuf_p[i, 1], ebuf_p[i, 2], ax, R)
+                                # walked from its start (sides 0, 1) or its end (sides 2, 3)
+                                inside_after = (vb > iso) if sd < 2 else (va > iso)
+                                rup[kr] = inside_after
+                                # the root: linear interpolation, kept ``clamp`` of the edge
+                                # away from its ends (no two roots at one point)
+                                t = (iso - va) / (vb - va)
+                                t = min(max(t, clamp), 1.0 - clamp)
+                                rpos[kr, 0] = ebuf_p[i, 0]
+                                rpos[kr, 1] = ebuf_p[i, 1]
+                                rpos[kr, 2] = ebuf_p[i, 2]
+                                rpos[kr, ax] += t * ebuf_len[i]
+                                kr += 1
+                        if ns + nroots > seg_key.shape[0]:
+                            seg_key = _grow2(seg_key, ns + nroots)
+                            seg_pos = _grow2(seg_pos, ns + nroots)
+                        for i in range(nroots):
+                            j = (i + 1) % nroots
+                            # down -> next up joins an outside arc (centre inside); up -> next down an inside arc
+                            if centre_in and not rup[i] and rup[j]:
+                                fr, to = i, j
+                            elif (not centre_in) and rup[i] and not rup[j]:
+                                fr, to = j, i
+                            else:
+                                continue
+                            if (s == 1):
+                                fr, to = to, fr
+                            seg_key[ns, 0] = rkey[fr]
+                            seg_key[ns, 1] = rkey[to]
+                            for q in range(3):
+                                seg_pos[ns, q] = rpos[fr, q]
+                                seg_pos[ns, 3 + q] = rpos[to, q]
+                            ns += 1
             if ns == 0:
                 continue
             # chain the segments into loops
@@ -616,10 +611,7 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, D, iso, eps, margin, clamp):
                 lp = np.empty((seg_key.shape[0], 3))
                 lm = np.empty(seg_key.shape[0], np.int64)
             small = ns <= 16
-            if small:
-                order = np.empty(0, np.int64)
-                sfrom = np.empty(0, np.int64)
-            else:
+            if not small:
                 order = np.argsort(seg_key[:ns, 0])
                 sfrom = seg_key[:ns, 0][order]
             for i in range(ns):
@@ -693,7 +685,7 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, D, iso, eps, margin, clamp):
                     tri[nt, 1] = lk[1]
                     tri[nt, 2] = lk[2]
                     nt += 1
-                elif n <= MAX_DP and _triangulate(n, lp, lm, cost, split, ltri):
+                elif n <= MAX_DP and _triangulate(n, lp, lm, cost, split, tst, ltri):
                     for t in range(n - 2):
                         for q in range(3):
                             tri[nt, q] = lk[ltri[t, q]]
