@@ -10,6 +10,7 @@ import numpy as np
 from numba import njit
 
 from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache directory, threading layer)
+from recon_cli._kernels.hashtable import probe
 from recon_cli.poisson._octree import MASK21, bsearch, lattice_key, lower_bound
 
 
@@ -294,6 +295,20 @@ def _grow1(a, n):
     return out
 
 
+@njit(cache=True)
+def _rehash(tk, tv, bits):
+    """The hash table (``tk`` keys, ``tv`` values, capacity ``1 << bits``) at twice the capacity."""
+    nb = bits + 1
+    nk = np.full(1 << nb, -1, np.int64)
+    nv = np.empty(1 << nb, np.int64)
+    for i in range(tk.shape[0]):
+        if tk[i] != -1:
+            s = probe(nk, nb, tk[i])
+            nk[s] = tk[i]
+            nv[s] = tv[i]
+    return nk, nv, nb
+
+
 @njit(cache=True, inline="always")
 def _tri_area(p, i, j, k):
     ax = p[j, 0] - p[i, 0]
@@ -378,20 +393,21 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, D, iso, eps, margin, clamp):
     one segment and the start of another) and triangulates each loop. Points on the cube's
     faces count as outside (chi clamped to ``iso - margin``).
 
-    Returns ``tri`` (t, 3) int64 vertex references (a minimal edge's key, or ``-1 - i`` for
-    the ``i``-th fan centre), ``vkey`` (k,) and ``vpos`` (k, 3) the roots used (finest-lattice
-    units; a root appears once per loop holding it), ``cpos`` (c, 3) the fan centres, and the
-    number of segments whose loop did not close (0 unless something is wrong).
+    Returns ``tri`` (t, 3) int64 vertex indices, ``vpos`` (v, 3) the vertices (finest-lattice
+    units): one per minimal edge crossing the level set, shared by every leaf around it (welded
+    through a hash table of edge keys), and the fan centres; and the number of segment
+    chains that did not close into a loop (0 unless something is wrong).
     """
     R = np.int64(1) << D
     cap = iso - margin
     tri = np.empty((1024, 3), np.int64)
     nt = 0
-    vkey = np.empty(1024, np.int64)
     vpos = np.empty((1024, 3))
     nv = 0
-    cpos = np.empty((64, 3))
-    nc = 0
+    bits = 12
+    tk = np.full(1 << bits, -1, np.int64)  # hash table: root key -> vertex
+    tv = np.empty(1 << bits, np.int64)
+    nroot = 0
     broken = 0
     stack = np.empty((2 * (D + 3), 4), np.int64)
     qstack = np.empty((4 * (D + 3), 3), np.int64)
@@ -404,6 +420,7 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, D, iso, eps, margin, clamp):
     lk = np.empty(64, np.int64)
     lp = np.empty((64, 3))
     lm = np.empty(64, np.int64)
+    lid = np.empty(64, np.int64)
     cost = np.empty((MAX_DP, MAX_DP))
     split = np.empty((MAX_DP, MAX_DP), np.int64)
     ltri = np.empty((MAX_DP, 3), np.int64)
@@ -610,6 +627,7 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, D, iso, eps, margin, clamp):
                 lk = np.empty(seg_key.shape[0], np.int64)
                 lp = np.empty((seg_key.shape[0], 3))
                 lm = np.empty(seg_key.shape[0], np.int64)
+                lid = np.empty(seg_key.shape[0], np.int64)
             small = ns <= 16
             if not small:
                 order = np.argsort(seg_key[:ns, 0])
@@ -668,40 +686,47 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, D, iso, eps, margin, clamp):
                 if not ok or n < 3:
                     broken += 1
                     continue
-                # triangles of the loop (indices into it), then out
+                # the loop's vertices: a root is welded through its edge key (one vertex
+                # per minimal edge, whichever leaf meets it first)
                 if nt + n > tri.shape[0]:
                     tri = _grow2(tri, nt + n)
-                if nv + n > vkey.shape[0]:
-                    vkey = _grow1(vkey, nv + n)
-                    vpos = _grow2(vpos, nv + n)
+                if nv + n + 1 > vpos.shape[0]:
+                    vpos = _grow2(vpos, nv + n + 1)
+                if 2 * (nroot + n) > tk.shape[0]:
+                    tk, tv, bits = _rehash(tk, tv, bits)
                 for i in range(n):
-                    vkey[nv + i] = lk[i]
-                    vpos[nv + i, 0] = lp[i, 0]
-                    vpos[nv + i, 1] = lp[i, 1]
-                    vpos[nv + i, 2] = lp[i, 2]
-                nv += n
+                    sl = probe(tk, bits, lk[i])
+                    if tk[sl] == -1:
+                        tk[sl] = lk[i]
+                        tv[sl] = nv
+                        vpos[nv, 0] = lp[i, 0]
+                        vpos[nv, 1] = lp[i, 1]
+                        vpos[nv, 2] = lp[i, 2]
+                        nv += 1
+                        nroot += 1
+                    lid[i] = tv[sl]
                 if n == 3:
-                    tri[nt, 0] = lk[0]
-                    tri[nt, 1] = lk[1]
-                    tri[nt, 2] = lk[2]
+                    tri[nt, 0] = lid[0]
+                    tri[nt, 1] = lid[1]
+                    tri[nt, 2] = lid[2]
                     nt += 1
                 elif n <= MAX_DP and _triangulate(n, lp, lm, cost, split, tst, ltri):
                     for t in range(n - 2):
                         for q in range(3):
-                            tri[nt, q] = lk[ltri[t, q]]
+                            tri[nt, q] = lid[ltri[t, q]]
                         nt += 1
                 else:
-                    if nc + 1 > cpos.shape[0]:
-                        cpos = _grow2(cpos, nc + 1)
+                    # a fan about a new vertex at the loop's centroid: its edges are its own
                     for q in range(3):
                         sm = 0.0
                         for i in range(n):
                             sm += lp[i, q]
-                        cpos[nc, q] = sm / n
+                        vpos[nv, q] = sm / n
                     for i in range(n):
-                        tri[nt, 0] = -1 - nc
-                        tri[nt, 1] = lk[i]
-                        tri[nt, 2] = lk[(i + 1) % n]
+                        tri[nt, 0] = nv
+                        tri[nt, 1] = lid[i]
+                        tri[nt, 2] = lid[(i + 1) % n]
                         nt += 1
-                    nc += 1
-    return tri[:nt].copy(), vkey[:nv].copy(), vpos[:nv].copy(), cpos[:nc].copy(), broken
+                    nv += 1
+    return tri[:nt].copy(), vpos[:nv].copy(), broken
+

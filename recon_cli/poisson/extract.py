@@ -72,16 +72,13 @@ def extract(levels: list[Level], gvals: list[np.ndarray], iso: float, origin: np
         nodes[coff[d]:coff[d + 1]] = lev.cell_nodes
         g[goff[d]:goff[d + 1]] = gvals.pop()
         del lev
-    tri, vkey, vpos, cpos, broken = E.leaf_polygons(keys, leaf, nodes, g, coff, goff, depth, iso, 1e-9, FACE_MARGIN,
-                                                    ROOT_CLAMP)
+    tri, vpos, broken = E.leaf_polygons(keys, leaf, nodes, g, coff, goff, depth, iso, 1e-9, FACE_MARGIN, ROOT_CLAMP)
     del keys, leaf, nodes, g
     if broken:
-        raise RuntimeError(f"poisson extraction: {broken} iso-segment loops did not close")
-    uk, first = np.unique(vkey, return_index=True)
-    spacing = size / (1 << depth)
-    verts = np.concatenate([vpos[first], cpos]) * spacing + origin
-    faces = np.where(tri >= 0, np.searchsorted(uk, tri), len(uk) + (-1 - tri))
-    return verts, faces
+        raise RuntimeError(f"poisson extraction: {broken} iso-segment chains did not close")
+    vpos *= size / (1 << depth)
+    vpos += origin
+    return vpos, tri
 
 
 def trim_low_density(mesh: TriangleMesh, vdens: np.ndarray, q: float) -> tuple[TriangleMesh, np.ndarray, int]:
