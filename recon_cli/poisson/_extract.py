@@ -683,6 +683,11 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, D, iso, eps, margin, clamp):
                     if visited[cur]:
                         ok = False
                         break
+                if ok and n == 2:
+                    # two roots on one edge of the leaf joined on both its faces there (chi
+                    # clamped at the cube's faces is not linear along such an edge): a loop of
+                    # no area, left out, which glues the leaves across those faces directly
+                    continue
                 if not ok or n < 3:
                     broken += 1
                     continue
