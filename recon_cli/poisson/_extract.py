@@ -156,19 +156,26 @@ def unify_corner_values(vals, order_keys, order):
 # ---------------------------------------------------------------------------------------------
 # extraction at the leaves' own resolution (Kazhdan, Klein, Dalal & Hoppe 2007)
 #
-# The levels are concatenated: level l's cells are ``keys[coff[l]:coff[l + 1]]`` (sorted
-# lattice keys, see :mod:`._octree`) with ``leaf`` flags and ``nodes`` (corner nodes, indices
-# local to the level), its nodes' chi ``g[goff[l]:goff[l + 1]]``. ``_state`` gives -1 for a
-# cell that is not in the tree, its (global) index for a leaf and -2 - index for a cell with
-# children. Points are in finest-lattice units (``R = 2**depth``). A minimal
+# The levels but the finest are concatenated: level l's cells are ``keys[coff[l]:coff[l + 1]]``
+# (sorted lattice keys, see :mod:`._octree`) with ``leaf`` flags and ``nodes`` (corner nodes,
+# indices local to the level), its nodes' chi ``g[goff[l]:goff[l + 1]]``; the finest level D
+# (the largest, all leaves) is passed as it is, ``fkeys``, ``fnodes``, ``fg``, its cells
+# numbered from ``coff[D]`` on (not copied: no second copy of the tree at the peak).
+# ``_state`` gives -1 for a cell that is not in the tree, its index for a leaf and -2 - index
+# for a cell with children. Points are in finest-lattice units (``R = 2**depth``). A minimal
 # edge is keyed by its lower end and axis (:func:`edge_key`).
 
 @njit(cache=True, inline="always")
-def _state(keys, leaf, coff, l, x, y, z):
+def _state(keys, leaf, coff, fkeys, D, l, x, y, z):
     n = np.int64(1) << l
     if x < 0 or y < 0 or z < 0 or x >= n or y >= n or z >= n:
         return -1
     key = lattice_key(x, y, z)
+    if l == D:
+        i = lower_bound(fkeys, key, 0, len(fkeys))
+        if i == len(fkeys) or fkeys[i] != key:
+            return -1
+        return coff[D] + i  # the finest cells are all leaves
     i = lower_bound(keys, key, coff[l], coff[l + 1])
     if i == coff[l + 1] or keys[i] != key:
         return -1
@@ -176,7 +183,9 @@ def _state(keys, leaf, coff, l, x, y, z):
 
 
 @njit(cache=True, inline="always")
-def _corner_val(nodes, g, goff, l, c, q):
+def _corner_val(nodes, g, goff, fnodes, fg, coff, D, l, c, q):
+    if l == D:
+        return fg[fnodes[c - coff[D], q & 3] + (q >> 2)]
     return g[goff[l] + nodes[c, q & 3] + (q >> 2)]
 
 
@@ -194,7 +203,7 @@ def edge_key(x, y, z, axis, R):
 
 
 @njit(cache=True)
-def _minimal_edges(keys, leaf, nodes, g, coff, goff, D, R, cap, l0, e0, axis, hint, hxyz, stack, cell, buf_p, buf_len, buf_v, m):
+def _minimal_edges(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, R, cap, l0, e0, axis, hint, hxyz, stack, cell, buf_p, buf_len, buf_v, m):
     """Append the minimal edges of the level-``l0`` lattice edge from ``e0`` (3,) along ``axis``
     to the buffers, in increasing order: an edge is split when one of the 4 cells of its level
     around it has children. Values come from a leaf of the edge's level that holds it (every
@@ -238,7 +247,7 @@ def _minimal_edges(keys, leaf, nodes, g, coff, goff, D, R, cap, l0, e0, axis, hi
                 cell[c] -= dc
                 if use_hint and cell[0] == hxyz[0] and cell[1] == hxyz[1] and cell[2] == hxyz[2]:
                     continue
-                s = _state(keys, leaf, coff, l, cell[0], cell[1], cell[2])
+                s = _state(keys, leaf, coff, fkeys, D, l, cell[0], cell[1], cell[2])
                 if s <= -2:
                     split = True
                 elif s >= 0 and found < 0:
@@ -262,8 +271,8 @@ def _minimal_edges(keys, leaf, nodes, g, coff, goff, D, R, cap, l0, e0, axis, hi
         py = y << sh
         pz = z << sh
         ln = np.int64(1) << sh
-        v0 = _corner_val(nodes, g, goff, l, found, fq)
-        v1 = _corner_val(nodes, g, goff, l, found, fq | (1 << axis))
+        v0 = _corner_val(nodes, g, goff, fnodes, fg, coff, D, l, found, fq)
+        v1 = _corner_val(nodes, g, goff, fnodes, fg, coff, D, l, found, fq | (1 << axis))
         v0 = _clamp(v0, px, py, pz, R, cap)
         if axis == 0:
             v1 = _clamp(v1, px + ln, py, pz, R, cap)
@@ -383,7 +392,7 @@ def _triangulate(n, lp, lm, cost, split, st, tris):
 
 
 @njit(cache=True)
-def leaf_polygons(keys, leaf, nodes, g, coff, goff, D, iso, eps, margin, clamp):
+def leaf_polygons(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, iso, eps, margin, clamp):
     """Iso-surface triangles of every leaf of the tree at the leaf's own size.
 
     ``keys``, ``leaf``, ``nodes``, ``g``, ``coff``, ``goff``: the levels' sorted cell keys,
@@ -440,18 +449,21 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, D, iso, eps, margin, clamp):
     rpos = np.empty((64, 3))
     for l in range(D + 1):
         side = np.int64(1) << (D - l)
-        g0 = goff[l]
-        for ci in range(coff[l], coff[l + 1]):
-            if not leaf[ci]:
-                continue
-            k = keys[ci]
+        end = coff[l + 1] if l < D else coff[D] + len(fkeys)
+        for ci in range(coff[l], end):
+            if l < D:
+                if not leaf[ci]:
+                    continue
+                k = keys[ci]
+            else:
+                k = fkeys[ci - coff[D]]
             cx = (k >> 42) & MASK21
             cy = (k >> 21) & MASK21
             cz = k & MASK21
             lo = 1e300
             hi = -1e300
             for q in range(8):
-                v = g[g0 + nodes[ci, q & 3] + (q >> 2)]
+                v = _corner_val(nodes, g, goff, fnodes, fg, coff, D, l, ci, q)
                 raw[q] = v
                 clv[q] = _clamp(v, (cx + (q & 1)) * side, (cy + ((q >> 1) & 1)) * side, (cz + (q >> 2)) * side, R, cap)
                 lo = min(lo, clv[q])
@@ -498,11 +510,11 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, D, iso, eps, margin, clamp):
                         if ll == D and ll == l:
                             st = -1  # a finest leaf: the far side is no finer (and no lookup)
                         elif a == 0:
-                            st = _state(keys, leaf, coff, ll, na, u, vv)
+                            st = _state(keys, leaf, coff, fkeys, D, ll, na, u, vv)
                         elif a == 1:
-                            st = _state(keys, leaf, coff, ll, vv, na, u)
+                            st = _state(keys, leaf, coff, fkeys, D, ll, vv, na, u)
                         else:
-                            st = _state(keys, leaf, coff, ll, u, vv, na)
+                            st = _state(keys, leaf, coff, fkeys, D, ll, u, vv, na)
                         if st <= -2:
                             for o in range(4):
                                 qstack[top, 0] = ll + 1
@@ -541,9 +553,9 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, D, iso, eps, margin, clamp):
                                 # a finest edge: never split, its values are the hint leaf's corners (what
                                 # _minimal_edges does, without the call)
                                 fq = (e0[0] - hxyz[0]) | ((e0[1] - hxyz[1]) << 1) | ((e0[2] - hxyz[2]) << 2)
-                                v0 = _clamp(_corner_val(nodes, g, goff, ll, hint, fq), e0[0], e0[1], e0[2], R, cap)
+                                v0 = _clamp(_corner_val(nodes, g, goff, fnodes, fg, coff, D, ll, hint, fq), e0[0], e0[1], e0[2], R, cap)
                                 qq = fq | (1 << ax)
-                                v1 = _clamp(_corner_val(nodes, g, goff, ll, hint, qq), e0[0] + (qq & 1) - (fq & 1), e0[1] + ((qq >> 1) & 1) - ((fq >> 1) & 1),
+                                v1 = _clamp(_corner_val(nodes, g, goff, fnodes, fg, coff, D, ll, hint, qq), e0[0] + (qq & 1) - (fq & 1), e0[1] + ((qq >> 1) & 1) - ((fq >> 1) & 1),
                                             e0[2] + (qq >> 2) - (fq >> 2), R, cap)
                                 ebuf_p[m, 0] = e0[0]
                                 ebuf_p[m, 1] = e0[1]
@@ -553,7 +565,7 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, D, iso, eps, margin, clamp):
                                 ebuf_v[m, 1] = v1
                                 m += 1
                             else:
-                                m = _minimal_edges(keys, leaf, nodes, g, coff, goff, D, R, cap, ll, e0, ax, hint, hxyz, stack, cell, ebuf_p,
+                                m = _minimal_edges(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, R, cap, ll, e0, ax, hint, hxyz, stack, cell, ebuf_p,
                                                    ebuf_len, ebuf_v, m)
                         starts[4] = m
                         # walk the loop: edges of sides 2, 3 backwards
@@ -733,5 +745,5 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, D, iso, eps, margin, clamp):
                         tri[nt, 2] = lid[(i + 1) % n]
                         nt += 1
                     nv += 1
-    return tri[:nt].copy(), vpos[:nv].copy(), broken
+    return tri[:nt], vpos[:nv], broken
 

@@ -58,22 +58,26 @@ def extract(levels: list[Level], gvals: list[np.ndarray], iso: float, origin: np
             ) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (world units) and faces of the level set ``chi = iso`` at the leaves' own size."""
     depth = len(levels) - 1
-    # the levels concatenated (each freed once copied: the copy is never held twice)
+    # the levels but the finest concatenated (each freed once copied); the finest, the
+    # largest, passed as it is
+    fine = levels.pop()
+    fg = gvals.pop()
     coff = np.concatenate([[0], np.cumsum([len(lev.cell_keys) for lev in levels])]).astype(np.int64)
     goff = np.concatenate([[0], np.cumsum([len(x) for x in gvals])]).astype(np.int64)
     keys = np.empty(coff[-1], np.int64)
     leaf = np.empty(coff[-1], np.bool_)
     nodes = np.empty((coff[-1], 4), np.int32)
     g = np.empty(goff[-1])
-    for d in range(depth, -1, -1):
+    for d in range(depth - 1, -1, -1):
         lev = levels.pop()
         keys[coff[d]:coff[d + 1]] = lev.cell_keys
         leaf[coff[d]:coff[d + 1]] = lev.leaf
         nodes[coff[d]:coff[d + 1]] = lev.cell_nodes
         g[goff[d]:goff[d + 1]] = gvals.pop()
         del lev
-    tri, vpos, broken = E.leaf_polygons(keys, leaf, nodes, g, coff, goff, depth, iso, 1e-9, FACE_MARGIN, ROOT_CLAMP)
-    del keys, leaf, nodes, g
+    tri, vpos, broken = E.leaf_polygons(keys, leaf, nodes, g, coff, goff, fine.cell_keys, fine.cell_nodes, fg, depth,
+                                        iso, 1e-9, FACE_MARGIN, ROOT_CLAMP)
+    del keys, leaf, nodes, g, fine, fg
     if broken:
         raise RuntimeError(f"poisson extraction: {broken} iso-segment chains did not close")
     vpos *= size / (1 << depth)
