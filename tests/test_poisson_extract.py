@@ -35,15 +35,24 @@ def _assert_closed_manifold_one_piece(mesh: TriangleMesh) -> None:
     assert tm.is_watertight and tm.is_winding_consistent and tm.is_volume
 
 
+@pytest.fixture(params=["auto", "leaves"])
+def method(request, monkeypatch):
+    """The extraction as chosen (``auto``), or over the leaves even where every leaf holding
+    surface is a finest cell (``leaves``), so that the leaf extraction meets every shape."""
+    if request.param == "leaves":
+        monkeypatch.setattr(extract_mod, "extract", extract_mod.extract_leaves)
+    return request.param
+
+
 @pytest.mark.parametrize("name", sorted(SHAPES))
-def test_generated_shapes_closed_manifold_one_piece(rng, name):
+def test_generated_shapes_closed_manifold_one_piece(rng, name, method):
     scale = 10.0 ** rng.uniform(-2, 2)
     p, n = shape_cloud(name, 12_000, rng, scale=scale, offset=rng.uniform(-1e6, 1e6, 3))
-    _assert_closed_manifold_one_piece(screened_poisson(p, n, depth=7).mesh)
+    _assert_closed_manifold_one_piece(screened_poisson(p, n, depth=int(rng.integers(6, 9))).mesh)
 
 
 @pytest.mark.parametrize("name", ["sphere", "torus", "rounded_box", "plate_with_hole"])
-def test_single_view_scans_closed_manifold_one_piece(rng, name):
+def test_single_view_scans_closed_manifold_one_piece(rng, name, method):
     # an open surface: the solution runs into the sparse, coarse part of the tree and the
     # cube's faces, and must still close
     d = rng.normal(size=3)
@@ -51,7 +60,7 @@ def test_single_view_scans_closed_manifold_one_piece(rng, name):
     _assert_closed_manifold_one_piece(screened_poisson(p, n, depth=8).mesh)
 
 
-def test_sparse_and_dense_halves_closed_manifold_one_piece(rng):
+def test_sparse_and_dense_halves_closed_manifold_one_piece(rng, method):
     p, n = shape_cloud("torus", 40_000, rng, rotate=False)
     keep = (p[:, 0] > 0) | (rng.random(len(p)) < 1 / 16)
     _assert_closed_manifold_one_piece(screened_poisson(p[keep], n[keep], depth=9).mesh)
@@ -68,7 +77,7 @@ def test_sphere_radius_error_falls_with_depth(rng):
     assert err[2] < 0.1 * 2.2 / 2**7, err
 
 
-def test_trimmed_scan_stays_manifold(rng):
+def test_trimmed_scan_stays_manifold(rng, method):
     # the closing sheet of an open scan goes; what is left is an open, manifold surface
     p, n = single_view_scan("sphere", 90, rng, direction=rng.normal(size=3))
     mesh = screened_poisson(p, n, depth=8, trim=0.2).mesh
@@ -105,7 +114,7 @@ def test_leaves_agree_exactly_at_shared_corners(rng, monkeypatch):
         seen["depths"] = sorted({lev.depth for lev in levels if lev.leaf.any()})
         return extract(levels, gvals, iso, origin, size)
 
-    extract = extract_mod.extract
+    extract = extract_mod.extract_leaves
     monkeypatch.setattr(extract_mod, "extract", spy)
     screened_poisson(p[keep], n[keep], depth=8)
     k, v = seen["kv"]
@@ -126,10 +135,14 @@ def _chamfer_to(mesh, sdf) -> float:
 def test_leaf_extraction_as_accurate_as_the_finest_lattice(rng, monkeypatch, name, sdf):
     # coarse leaves hold a trilinear chi: triangles at their size lose nothing measurable on a
     # smooth surface against refining every leaf to the finest lattice first
+    # (within 5 %: on the finest cells the minimal-area triangulation follows the surface
+    # 2-3 % less closely than marching cubes' tables; coarse leaves cost nothing more)
     p, n = shape_cloud(name, 40_000, rng, rotate=False)
+    monkeypatch.setattr(extract_mod, "extract", extract_mod.extract_leaves)
     new = screened_poisson(p, n, depth=8).mesh
     monkeypatch.setattr(extract_mod, "extract", extract_mod.extract_finest)
     old = screened_poisson(p, n, depth=8).mesh
+    assert len(new.faces) < len(old.faces)  # the tree has coarse leaves holding surface here
     assert _chamfer_to(new, sdf) <= 1.05 * _chamfer_to(old, sdf)
 
 
@@ -167,7 +180,7 @@ def test_raw_scan_faces_within_1_5x_open3d():
     assert len(ours.faces) <= 1.5 * len(ref.faces), (len(ours.faces), len(ref.faces))
 
 
-def test_real_stereo_fragment_closed_and_manifold():
+def test_real_stereo_fragment_closed_and_manifold(method):
     # noisy real data whose surface runs into the cube's faces: along a leaf edge leaving a
     # face the clamp can put two roots (a loop of no area, left out); the result is closed
     # and manifold, though Poisson's solution itself has several pieces here

@@ -1,5 +1,7 @@
-"""Numba kernels of the extraction: leaves of the tree refined down to the finest lattice
-where they straddle the iso-value, one value per lattice point.
+"""Numba kernels of the extraction: the level set over the leaves of the tree at their own
+size (:func:`leaf_polygons`, Kazhdan, Klein, Dalal & Hoppe 2007; see :mod:`.extract`), and
+the finest-lattice variant (leaves refined where they straddle the iso-value, one value per
+lattice point).
 
 They only compute; conventions in :mod:`recon_cli.poisson._octree`.
 """
@@ -11,7 +13,7 @@ from numba import njit
 
 from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache directory, threading layer)
 from recon_cli._kernels.hashtable import probe
-from recon_cli.poisson._octree import MASK21, bsearch, lattice_key, lower_bound
+from recon_cli.poisson._octree import MASK21, lattice_key, lower_bound
 
 
 @njit(cache=True, inline="always")
@@ -293,13 +295,6 @@ def _minimal_edges(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, R, ca
 @njit(cache=True)
 def _grow2(a, n):
     out = np.empty((max(n, 2 * a.shape[0]), a.shape[1]), a.dtype)
-    out[:a.shape[0]] = a
-    return out
-
-
-@njit(cache=True)
-def _grow1(a, n):
-    out = np.empty(max(n, 2 * a.shape[0]), a.dtype)
     out[:a.shape[0]] = a
     return out
 
@@ -747,3 +742,29 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, iso, e
                     nv += 1
     return tri[:nt], vpos[:nv], broken
 
+
+
+@njit(cache=True)
+def straddles(cell_keys, cell_nodes, is_leaf, g, level, depth, iso, eps, margin):
+    """Whether a leaf of ``level`` has a corner range (chi clamped to ``iso - margin`` at points
+    on the cube's faces: the range is [clamped minimum, raw maximum]) reaching ``iso``
+    within ``eps``: the test of :func:`leaf_polygons`, stopping at the first such leaf."""
+    side = np.int64(1) << (depth - level)
+    R = np.int64(1) << depth
+    cap = iso - margin
+    for c in range(cell_nodes.shape[0]):
+        if not is_leaf[c]:
+            continue
+        k = cell_keys[c]
+        cx = (k >> 42) & MASK21
+        cy = (k >> 21) & MASK21
+        cz = k & MASK21
+        lo = 1e300
+        hi = -1e300
+        for q in range(8):
+            v = g[cell_nodes[c, q & 3] + (q >> 2)]
+            hi = max(hi, v)
+            lo = min(lo, _clamp(v, (cx + (q & 1)) * side, (cy + ((q >> 1) & 1)) * side, (cz + (q >> 2)) * side, R, cap))
+        if not (lo > iso + eps or hi < iso - eps):
+            return True
+    return False

@@ -1,6 +1,6 @@
 """Extraction of the level set over the tree, and the density trim.
 
-:func:`extract` works at the leaves' own size (Kazhdan, Klein, Dalal & Hoppe 2007,
+:func:`extract_leaves` works at the leaves' own size (Kazhdan, Klein, Dalal & Hoppe 2007,
 "Unconstrained isosurface extraction on arbitrary octrees"). ``gvals[d]`` holds the whole
 ``chi`` at level ``d``'s nodes, and a level's correction vanishes on the border of its region,
 so ``chi`` is trilinear in every leaf and continuous across leaves of any sizes; moreover all
@@ -27,7 +27,9 @@ depends on which leaf reads it.
   is left out, gluing the leaves across those faces directly.
 
 :func:`extract_finest` (every straddling leaf refined to the finest lattice, then sparse
-marching cubes) is kept for comparisons: same surface, about 4x more faces on open scans.
+marching cubes) gives the same vertices when every leaf holding surface is a finest cell (a
+dense closed shape), faster; :func:`extract` takes it then. Where coarser leaves hold
+surface (open scans, sparse regions) it would give several times the faces.
 """
 
 from __future__ import annotations
@@ -86,6 +88,24 @@ def extract_finest(levels: list[Level], gvals: list[np.ndarray], iso: float, ori
 
 def extract(levels: list[Level], gvals: list[np.ndarray], iso: float, origin: np.ndarray, size: float
             ) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (world units) and faces of the level set ``chi = iso``.
+
+    Over the leaves at their own size (:func:`extract_leaves`) when a leaf coarser than the
+    finest cells holds surface; when none does (a dense closed shape), both ways give the same
+    vertices, and marching cubes on the finest cells (:func:`extract_finest`) is faster, needs
+    less memory and its triangles follow the surface a little closer (its tables against the
+    minimal-area triangulation: 2-3 % on smooth shapes).
+    """
+    depth = len(levels) - 1
+    coarse = any(E.straddles(lev.cell_keys, lev.cell_nodes, lev.leaf, g, lev.depth, depth, iso, 1e-9, FACE_MARGIN)
+                 for lev, g in zip(levels[:-1], gvals[:-1]))
+    if coarse:
+        return extract_leaves(levels, gvals, iso, origin, size)
+    return extract_finest(levels, gvals, iso, origin, size)
+
+
+def extract_leaves(levels: list[Level], gvals: list[np.ndarray], iso: float, origin: np.ndarray, size: float
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (world units) and faces of the level set ``chi = iso`` at the leaves' own size.
 
     Closed, edge- and vertex-manifold, consistently oriented (outward), no two vertices at one
