@@ -111,3 +111,27 @@ def test_numpy_submodules_numba_would_load_stay_lazy_until_used():
     before, after = _run(code, {}).splitlines()
     assert before == "[]"
     assert after != "[]"
+
+
+def test_threading_layer_survives_numba_rereading_its_environment(tmp_path):
+    # numba imported first (as a library might), then recon: numba's compiler re-reads the
+    # NUMBA_* variables at the next compile (NUMBA_CACHE_DIR changed) and must still find omp
+    # first, never try the old TBB that Open3D ships (a NumbaWarning)
+    code = (
+        "import warnings; warnings.simplefilter('error')\n"
+        "import numba, numpy as np\n"
+        "from recon_cli._kernels import numba_setup\n"
+        "from numba.core import config\n"
+        "config.reload_config()\n"
+        "print(config.THREADING_LAYER_PRIORITY[0])\n"
+        "@numba.njit(parallel=True)\n"
+        "def f(a):\n"
+        "    s = 0.0\n"
+        "    for i in numba.prange(len(a)):\n"
+        "        s += a[i]\n"
+        "    return s\n"
+        "f(np.ones(10))\n"
+        "print(numba.threading_layer())\n"
+    )
+    first, layer = _run(code, {"XDG_CACHE_HOME": str(tmp_path)}).split()
+    assert first == "omp" and layer in ("omp", "workqueue")

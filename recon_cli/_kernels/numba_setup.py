@@ -104,5 +104,10 @@ import numba  # noqa: E402  (after NUMBA_CACHE_DIR is set)
 numba.config.CACHE_DIR = CACHE_DIR
 
 if "NUMBA_THREADING_LAYER" not in os.environ and "NUMBA_THREADING_LAYER_PRIORITY" not in os.environ:
-    # the priority must name all three; TBB last is only reached when neither other layer loads
+    # the priority must name all three; TBB last is only reached when neither other layer loads.
+    # Through the environment, not numba.config alone: numba's compiler re-reads the NUMBA_*
+    # variables whenever one of them changed since it last looked (ours did, when numba was
+    # imported before recon) and would reset an attribute set here to TBB first (a
+    # NumbaWarning on stderr, an error under pytest's strict warnings)
+    os.environ["NUMBA_THREADING_LAYER_PRIORITY"] = "omp workqueue tbb"
     numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
