@@ -1,0 +1,211 @@
+"""The degree-2 B-spline system (PoissonRecon's default basis): the cascadic solve, the
+iso-value, and chi at the levels' nodes for the extraction.
+
+At level ``d`` every cell of the tree carries the tensor-product quadratic B-spline centred
+on it (support 3 cells per axis), reflected at the cube's faces (even for Neumann, odd for
+Dirichlet, so ``chi = 0`` there). A function of level ``d - 1`` is exactly a combination
+of level-``d`` functions (refinement mask ``(1, 3, 3, 1) / 4`` per axis), so, as for the
+trilinear basis, each level holds the whole ``chi`` of the coarser levels (prolonged) plus
+its own correction, solved by Jacobi-PCG on the residual they leave. The coefficients live
+on ``E``: the level's cells and a ring of two cells around them (the children of the
+parents within one of a parent of the level's cells), enough for the prolongation to be
+exact on the stencil (5 cells per axis) of every cell of the level: the set grows by a
+parent ring per level, and the levels' parents are within one of the tree's parents, so
+the coarser ``E`` always holds what the prolongation reads.
+
+The screening at level ``d`` uses the samples merged per cell of that level (summed
+weights, weighted mean position), as PoissonRecon merges its interpolation points per node.
+
+chi at a lattice point of level ``d`` is the mean of the 8 coefficients of the cells
+around it (the B-spline is 1/2 at its cell's faces): :func:`chi_at_nodes` gives the
+extraction the value at every level's nodes, the leaves' corners. Inside a leaf chi is
+piecewise quadratic, not trilinear; :class:`LevelField` evaluates it anywhere.
+
+References
+----------
+Kazhdan, M. & Hoppe, H. (2013). Screened Poisson surface reconstruction. ACM TOG 32(3).
+Kazhdan, M., Bolitho, M. & Hoppe, H. (2006). Poisson surface reconstruction. SGP.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from recon_cli.memory import release_free_heap
+from recon_cli.poisson import _bspline as B
+from recon_cli.poisson import _octree as O
+from recon_cli.poisson._luts import B2_MASS, B2_STIFFNESS
+from recon_cli.poisson.octree import Level, dilate, pack_keys
+from recon_cli.poisson.splat import Samples, Splats
+from recon_cli.progress import task
+
+log = logging.getLogger("recon")
+
+TARGET = 0.5
+
+
+def folded_tables(n: int, s: float) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 5) mass and stiffness between cell ``i`` and ``i + t`` (column ``t + 2``) of the
+    reflected basis on ``n`` cells: the sum over the images of cell ``i + t`` (``j + 2kn``
+    with sign 1, ``-1 - j + 2kn`` with sign ``s``) within 2 of ``i``."""
+    m1 = np.zeros((n, 5))
+    k1 = np.zeros((n, 5))
+    i = np.arange(n)
+    for t in range(-2, 3):
+        j = i + t
+        ok = (j >= 0) & (j < n)
+        for kk in range(-3, 4):
+            for img, sg in ((j + 2 * kk * n, 1.0), (-1 - j + 2 * kk * n, s)):
+                off = i - img
+                hit = ok & (np.abs(off) <= 2)
+                m1[hit, t + 2] += sg * B2_MASS[off[hit] + 2]
+                k1[hit, t + 2] += sg * B2_STIFFNESS[off[hit] + 2]
+    return m1, k1
+
+
+@dataclass
+class LevelField:
+    """chi on one level in the degree-2 basis: coefficients on ``E`` and the lookups.
+
+    ``chi(p)`` for a point ``p`` in a cell of the level (not of the ring) is
+    ``eval`` of the 27 coefficients around it (:func:`._bspline.eval_at`).
+    """
+
+    depth: int
+    s: float  # 1 Neumann, -1 Dirichlet
+    q_keys: np.ndarray  # (q,) sorted parent keys (level depth - 1)
+    inp: np.ndarray  # (q,) bool: parents of the level's cells (the others are the ring)
+    nb: np.ndarray  # (q, 27) int32
+    ch: np.ndarray  # (q, 8) int32
+    e_keys: np.ndarray  # (e,) sorted cell keys
+    par: np.ndarray  # (e,) int32
+    coef: np.ndarray | None = None  # (e,)
+
+    def locate(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Cell index in E (-1 when not a cell of the level) and local coordinates of unit-cube
+        positions (m, 3)."""
+        return B.locate(pos, self.depth, self.e_keys, self.par, self.inp)
+
+    def evaluate(self, cell: np.ndarray, loc: np.ndarray) -> np.ndarray:
+        return B.eval_at(self.e_keys, self.par, self.nb, self.ch, 1 << self.depth, self.s, cell, loc, self.coef)
+
+    def at_nodes(self, lev: Level) -> np.ndarray:
+        """chi at the nodes of ``lev`` (this field's level): the leaves' corners."""
+        unknown = self.inp[self.par]
+        rank = (np.cumsum(unknown) - 1).astype(np.int32)
+        if int(rank[-1]) + 1 != len(lev.cell_keys):
+            raise RuntimeError("degree-2 field: the level's cells are not its flagged parents' children")
+        return B.node_values(self.q_keys, self.nb, self.ch, self.inp, rank, lev.cell_nodes, self.coef,
+                             1 << self.depth, self.s, lev.n_nodes)
+
+
+def level_field(lev: Level, boundary: str) -> LevelField:
+    """The coefficient set E of level ``lev`` (depth >= 1) and its lookups."""
+    d = lev.depth
+    half = 1 << (d - 1)
+    P = np.unique(O.halve(lev.cell_keys))
+    Q = P
+    for axis in range(3):
+        Q = dilate(Q, axis, -1, 1, half - 1)
+    inp = np.zeros(len(Q), bool)
+    inp[O.merge_lookup(P, Q)] = True
+    e_keys, par = O.children_sorted(Q, np.arange(len(Q), dtype=np.int32))
+    nb = B.neighbour_table(Q, half - 1)
+    ch = B.child_table(e_keys, par, len(Q))
+    return LevelField(d, 1.0 if boundary == "neumann" else -1.0, Q, inp, nb, ch, e_keys, par)
+
+
+def _merge_per_cell(pos: np.ndarray, w: np.ndarray, level: int) -> tuple[np.ndarray, np.ndarray]:
+    """Samples merged per cell of ``level``: weighted mean position, summed weight."""
+    res = 1 << level
+    keys = pack_keys(np.clip(np.floor(pos * res), 0, res - 1))
+    uk, inv = np.unique(keys, return_inverse=True)
+    inv = inv.reshape(-1)
+    sw = np.bincount(inv, weights=w, minlength=len(uk))
+    safe = np.where(sw > 0, sw, 1.0)
+    mp = np.stack([np.bincount(inv, weights=pos[:, a] * w, minlength=len(uk)) / safe for a in range(3)], axis=1)
+    return mp, sw
+
+
+def solve(levels: list[Level], smp: Samples, splats: Splats, boundary: str, full_depth: int, cg_tolerance: float,
+          progress: Any = None) -> tuple[list[np.ndarray], list[dict], int, float, float]:
+    """Solve every level in turn (level 0, a single cell, carries no function); returns chi
+    at each level's nodes (for the extraction), per-level statistics, total iterations, the
+    finest relative residual and the iso-value (count-weighted mean of chi at the samples,
+    each in the finest level holding it)."""
+    spos, count = smp.pos, smp.count
+    alpha = splats.alpha
+    chi_s = np.zeros(len(count))
+    total_it = 0
+    last_res = 0.0
+    gvals: list[np.ndarray] = []
+    per_level = []
+    prev: LevelField | None = None
+    with task(progress, "poisson: solve", total=len(levels)) as tk:
+        for lev in levels:
+            release_free_heap()
+            tl = time.perf_counter()
+            d = lev.depth
+            lev.face_nodes = O.face_nodes(lev.node_keys, 1 << d)
+            lev.node_keys = lev.unknown = lev.ncell = None
+            if d > 0:
+                levels[d - 1].leaf = ~O.cell_has_child(lev.cell_parent, len(levels[d - 1].cell_keys))
+                lev.cell_parent = None
+            if d == 0:
+                gvals.append(np.zeros(lev.n_nodes))
+                tk.advance(1)
+                continue
+            f = level_field(lev, boundary)
+            n = 1 << d
+            h = 1.0 / n
+            m1, k1 = folded_tables(n, f.s)
+            unknown = f.inp[f.par]
+            ne = len(f.e_keys)
+            rhs = B.splat_rhs(splats.pos, splats.vec, splats.level, d, f.e_keys, unknown, f.s)
+            diag = B.stiffness_diag(f.q_keys, f.ch, f.inp, m1, k1, h, ne)
+            if alpha > 0:
+                mp, mw = _merge_per_cell(spos, splats.screen_w, d)
+                scell, sloc = f.locate(mp)
+                have = scell >= 0
+                scell, sloc, sw = scell[have], sloc[have], mw[have]
+                B.screening_diag_rhs(f.e_keys, f.par, f.nb, f.ch, n, f.s, scell, sloc, sw, TARGET, diag, rhs)
+            else:
+                scell, sloc, sw = np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
+            if prev is not None:
+                G = B.prolong(f.q_keys, f.ch, prev.e_keys, prev.coef, n >> 1, f.s, ne)
+                AG = np.empty(ne)
+                B.level_matvec(f.q_keys, f.nb, f.ch, f.inp, m1, k1, h, f.e_keys, f.par, n, f.s, scell, sloc, sw, G, AG)
+                rhs -= AG
+                del AG
+            else:
+                G = np.zeros(ne)
+            exact = d <= full_depth
+            x, it, rel = B.level_pcg(f.q_keys, f.nb, f.ch, f.inp, m1, k1, h, f.e_keys, f.par, n, f.s, scell, sloc, sw,
+                                     rhs, diag, unknown, 1e-7 if exact else cg_tolerance, 2000 if exact else 200)
+            del rhs, diag, scell, sloc, sw
+            G += x
+            del x
+            f.coef = G
+            gvals.append(f.at_nodes(lev))
+            # chi at the samples in this level's cells (finer levels overwrite)
+            cell, loc = f.locate(spos)
+            have = cell >= 0
+            chi_s[have] = f.evaluate(cell[have], loc[have])
+            del cell, loc, have
+            prev = f
+            total_it += it
+            last_res = rel
+            per_level.append({"depth": d, "nodes": ne, "unknowns": int(unknown.sum()), "iterations": it,
+                              "residual": rel, "seconds": time.perf_counter() - tl})
+            log.info("poisson: level %2d  cells %9d  unknowns %9d  cg iterations %4d  residual %.2e  %.2f s", d, ne,
+                     int(unknown.sum()), it, rel, time.perf_counter() - tl)
+            tk.advance(1)
+    levels[-1].leaf = np.ones(len(levels[-1].cell_keys), bool)
+    iso = float((chi_s * count).sum() / count.sum())
+    log.info("poisson: iso-value %.6f", iso)
+    return gvals, per_level, total_it, last_res, iso
