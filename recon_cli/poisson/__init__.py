@@ -236,7 +236,8 @@ def screened_poisson(
 
     # ---- kernel density -> area per point and splat level
     t = time.perf_counter()
-    splats = make_splats(smp, depth, samples_per_node, point_weight, density or trim > 0)
+    splats = make_splats(smp, depth, samples_per_node, point_weight, density or trim > 0,
+                         merge=degree == 1)
     tree_depth = splats.tree_depth
     if degree == 2:
         tree_depth = max(tree_depth, 1)  # level 0 carries no degree-2 function
@@ -257,8 +258,8 @@ def screened_poisson(
     if degree == 2:
         from recon_cli.poisson import bspline
 
-        gvals, per_level, total_it, last_res, iso = bspline.solve(levels, smp, splats, boundary, full_depth,
-                                                                  cg_tolerance, progress)
+        gvals, per_level, total_it, last_res, iso, chi = bspline.solve(levels, smp, splats, boundary, full_depth,
+                                                                       cg_tolerance, progress)
         timings["solve"] = time.perf_counter() - t
     else:
         gvals, per_level, total_it, last_res = solve(levels, smp, splats, full_depth, cg_tolerance, progress)
@@ -270,6 +271,10 @@ def screened_poisson(
     t = time.perf_counter()
     verts, faces = extract(levels, gvals, iso, origin, size)
     del levels, gvals
+    if degree == 2:
+        # chi is not trilinear between the lattice's points: each vertex to chi's root on its edge
+        verts = chi.refine_vertices(verts, iso, origin, size, tree_depth)
+        del chi
     timings["extract"] = time.perf_counter() - t
 
 

@@ -9,12 +9,13 @@ They only compute; conventions in :mod:`recon_cli.poisson._octree`, and these:
   reflected at the cube's faces: evenly (Neumann, ``s = 1``) or oddly (Dirichlet,
   ``s = -1``); cell ``-1 - c`` and ``2n - 1 - c`` are images of ``c`` with sign ``s``
   (:func:`fold`), so every operator is the unbounded one with out-of-range indices folded;
-- a level's coefficients live on ``E``: the children of a parent set ``Q`` (sorted keys),
-  ``E``'s cell ``m`` the child of ``Q[par[m]]``; ``nb`` (q, 27) is the index in ``Q`` of each
-  parent's neighbour at offset ``(dx, dy, dz)`` in ``{-1, 0, 1}^3``, slot
-  ``(dx + 1) + 3 (dy + 1) + 9 (dz + 1)`` (-1 absent), and ``ch`` (q, 8) the index in ``E`` of
-  each parent's child of octant ``ox | oy << 1 | oz << 2``; the neighbour of a cell at any
-  offset in ``[-2, 2]^3`` is the child of one of its parent's neighbours;
+- a level's coefficients live on ``E``: the children of a parent set ``Q`` (sorted keys of
+  the coarser level) in block order, cell ``8 i + o`` the child of octant
+  ``o = ox | oy << 1 | oz << 2`` of ``Q[i]`` (siblings side by side: a gather reads whole
+  blocks); ``nb`` (q, 27) is the index in ``Q`` of each parent's neighbour at offset
+  ``(dx, dy, dz)`` in ``{-1, 0, 1}^3``, slot ``(dx + 1) + 3 (dy + 1) + 9 (dz + 1)`` (-1 absent);
+  the neighbour of a cell at any offset in ``[-2, 2]^3`` is a child of one of its parent's
+  neighbours;
 - the 1D tables ``m1``, ``k1`` (n, 5) hold the folded mass and stiffness between cell ``i``
   and cell ``i + t`` at column ``t + 2`` (cell units).
 """
@@ -139,19 +140,8 @@ def neighbour_table(keys, top):
     return out
 
 
-@njit(cache=True)
-def child_table(e_keys, par, n_parents):
-    """(q, 8) int32 index in ``e_keys`` of each parent's children by octant."""
-    out = np.full((n_parents, 8), -1, np.int32)
-    for m in range(len(e_keys)):
-        k = e_keys[m]
-        o = ((k >> 42) & 1) | (((k >> 21) & 1) << 1) | ((k & 1) << 2)
-        out[par[m], o] = m
-    return out
-
-
 @njit(cache=True, inline="always")
-def _nbr(nb, ch, i, o, tx, ty, tz):
+def _nbr(nb, i, o, tx, ty, tz):
     """Index in E of the neighbour at offset (tx, ty, tz) in [-2, 2]^3 of child ``o`` of
     parent ``i`` (-1 outside the cube)."""
     bx = (o & 1) + tx
@@ -160,16 +150,11 @@ def _nbr(nb, ch, i, o, tx, ty, tz):
     p = nb[i, ((bx >> 1) + 1) + 3 * ((by >> 1) + 1) + 9 * ((bz >> 1) + 1)]
     if p < 0:
         return -1
-    return ch[p, (bx & 1) | ((by & 1) << 1) | ((bz & 1) << 2)]
-
-
-@njit(cache=True, inline="always")
-def _octant(k):
-    return ((k >> 42) & 1) | (((k >> 21) & 1) << 1) | ((k & 1) << 2)
+    return 8 * p + ((bx & 1) | ((by & 1) << 1) | ((bz & 1) << 2))
 
 
 @njit(cache=True)
-def stiffness_matvec(q_keys, nb, ch, inp, m1, k1, h, x, out):
+def stiffness_matvec(q_keys, nb, inp, m1, k1, h, x, out):
     """out[m] += h * sum over the 125 cells within 2 of m of the stiffness times x, for the
     children m of the parents flagged ``inp``: each parent's 6x6x6 block of cells is gathered
     once and the separable stencil (K M M + M K M + M M K) applied one axis at a time to all
@@ -186,7 +171,7 @@ def stiffness_matvec(q_keys, nb, ch, inp, m1, k1, h, x, out):
             for by in range(6):
                 for bx in range(6):
                     p = nb[i, (bx >> 1) + 3 * (by >> 1) + 9 * (bz >> 1)]
-                    X[bx, by, bz] = x[ch[p, (bx & 1) | ((by & 1) << 1) | ((bz & 1) << 2)]] if p >= 0 else 0.0
+                    X[bx, by, bz] = x[8 * p + ((bx & 1) | ((by & 1) << 1) | ((bz & 1) << 2))] if p >= 0 else 0.0
         k = q_keys[i]
         px = 2 * ((k >> 42) & MASK21)
         py = 2 * ((k >> 21) & MASK21)
@@ -225,12 +210,12 @@ def stiffness_matvec(q_keys, nb, ch, inp, m1, k1, h, x, out):
             y = 0.0
             for a in range(5):
                 y += k1[cx, a] * ym[ox + a, oy, oz] + m1[cx, a] * yk[ox + a, oy, oz]
-            out[ch[i, o]] += h * y
+            out[8 * i + o] += h * y
 
 
 @njit(cache=True)
-def stiffness_diag(q_keys, ch, inp, m1, k1, h, n_cells):
-    out = np.zeros(n_cells)
+def stiffness_diag(q_keys, inp, m1, k1, h):
+    out = np.zeros(8 * len(q_keys))
     for i in range(len(q_keys)):
         if not inp[i]:
             continue
@@ -242,34 +227,34 @@ def stiffness_diag(q_keys, ch, inp, m1, k1, h, n_cells):
             cx = 2 * px + (o & 1)
             cy = 2 * py + ((o >> 1) & 1)
             cz = 2 * pz + ((o >> 2) & 1)
-            out[ch[i, o]] = h * (k1[cx, 2] * m1[cy, 2] * m1[cz, 2] + m1[cx, 2] * k1[cy, 2] * m1[cz, 2]
+            out[8 * i + o] = h * (k1[cx, 2] * m1[cy, 2] * m1[cz, 2] + m1[cx, 2] * k1[cy, 2] * m1[cz, 2]
                                  + m1[cx, 2] * m1[cy, 2] * k1[cz, 2])
     return out
 
 
 @njit(cache=True, inline="always")
-def _gather27(e_keys, par, nb, ch, m, n, s, t, wx, wy, wz, idx):
+def _gather27(q_keys, nb, m, n, s, t, wx, wy, wz, idx):
     """The 27 (folded) weights of the functions around cell ``m`` at local coordinates ``t``
     (3,), into wx, wy, wz (3,) and the cells' indices into idx (27,) (-1 outside)."""
-    k = e_keys[m]
-    o = _octant(k)
-    sample_weights(t[0], (k >> 42) & MASK21, n, s, wx)
-    sample_weights(t[1], (k >> 21) & MASK21, n, s, wy)
-    sample_weights(t[2], k & MASK21, n, s, wz)
-    i = par[m]
+    i = m >> 3
+    o = m & 7
+    k = q_keys[i]
+    sample_weights(t[0], 2 * ((k >> 42) & MASK21) + (o & 1), n, s, wx)
+    sample_weights(t[1], 2 * ((k >> 21) & MASK21) + ((o >> 1) & 1), n, s, wy)
+    sample_weights(t[2], 2 * (k & MASK21) + ((o >> 2) & 1), n, s, wz)
     for r in range(27):
-        idx[r] = _nbr(nb, ch, i, o, r % 3 - 1, (r // 3) % 3 - 1, r // 9 - 1)
+        idx[r] = _nbr(nb, i, o, r % 3 - 1, (r // 3) % 3 - 1, r // 9 - 1)
 
 
 @njit(cache=True)
-def screening_matvec(e_keys, par, nb, ch, n, s, scell, sloc, sw, x, out):
+def screening_matvec(q_keys, nb, n, s, scell, sloc, sw, x, out):
     """out += sum_p w_p B_i(p) sum_j B_j(p) x_j over the samples (cell, local coordinates)."""
     wx = np.empty(3)
     wy = np.empty(3)
     wz = np.empty(3)
     idx = np.empty(27, np.int64)
     for p in range(len(scell)):
-        _gather27(e_keys, par, nb, ch, scell[p], n, s, sloc[p], wx, wy, wz, idx)
+        _gather27(q_keys, nb, scell[p], n, s, sloc[p], wx, wy, wz, idx)
         v = 0.0
         for r in range(27):
             j = idx[r]
@@ -283,14 +268,14 @@ def screening_matvec(e_keys, par, nb, ch, n, s, scell, sloc, sw, x, out):
 
 
 @njit(cache=True)
-def screening_diag_rhs(e_keys, par, nb, ch, n, s, scell, sloc, sw, target, diag, rhs):
+def screening_diag_rhs(q_keys, nb, n, s, scell, sloc, sw, target, diag, rhs):
     """diag += sum_p w_p B_i(p)^2 and rhs += sum_p w_p target B_i(p), in place."""
     wx = np.empty(3)
     wy = np.empty(3)
     wz = np.empty(3)
     idx = np.empty(27, np.int64)
     for p in range(len(scell)):
-        _gather27(e_keys, par, nb, ch, scell[p], n, s, sloc[p], wx, wy, wz, idx)
+        _gather27(q_keys, nb, scell[p], n, s, sloc[p], wx, wy, wz, idx)
         for r in range(27):
             j = idx[r]
             if j >= 0:
@@ -300,7 +285,7 @@ def screening_diag_rhs(e_keys, par, nb, ch, n, s, scell, sloc, sw, target, diag,
 
 
 @njit(cache=True)
-def eval_at(e_keys, par, nb, ch, n, s, scell, sloc, coef):
+def eval_at(q_keys, nb, n, s, scell, sloc, coef):
     """The function of coefficients ``coef`` (on E) at the samples (cell, local coordinates)."""
     wx = np.empty(3)
     wy = np.empty(3)
@@ -308,7 +293,7 @@ def eval_at(e_keys, par, nb, ch, n, s, scell, sloc, coef):
     idx = np.empty(27, np.int64)
     out = np.empty(len(scell))
     for p in range(len(scell)):
-        _gather27(e_keys, par, nb, ch, scell[p], n, s, sloc[p], wx, wy, wz, idx)
+        _gather27(q_keys, nb, scell[p], n, s, sloc[p], wx, wy, wz, idx)
         v = 0.0
         for r in range(27):
             j = idx[r]
@@ -318,10 +303,19 @@ def eval_at(e_keys, par, nb, ch, n, s, scell, sloc, coef):
     return out
 
 
+@njit(cache=True, inline="always")
+def find_cell(q_keys, x, y, z):
+    """Index in E of cell (x, y, z) (-1 if its parent is not in ``q_keys``)."""
+    i = bsearch(q_keys, lattice_key(x >> 1, y >> 1, z >> 1))
+    if i < 0:
+        return -1
+    return 8 * i + ((x & 1) | ((y & 1) << 1) | ((z & 1) << 2))
+
+
 @njit(cache=True)
-def locate(pos, level, e_keys, par, inp):
+def locate(pos, level, q_keys, inp):
     """Index in E of the cell (of a flagged parent) holding each position, -1 if none, and
-    the local coordinates in [0, 1)."""
+    the local coordinates in [0, 1]."""
     n = pos.shape[0]
     scale = float(1 << level)
     top = (1 << level) - 1
@@ -331,8 +325,8 @@ def locate(pos, level, e_keys, par, inp):
         c0 = min(max(int(np.floor(pos[i, 0] * scale)), 0), top)
         c1 = min(max(int(np.floor(pos[i, 1] * scale)), 0), top)
         c2 = min(max(int(np.floor(pos[i, 2] * scale)), 0), top)
-        m = bsearch(e_keys, lattice_key(c0, c1, c2))
-        if m >= 0 and not inp[par[m]]:
+        m = find_cell(q_keys, c0, c1, c2)
+        if m >= 0 and not inp[m >> 3]:
             m = -1
         cell[i] = m
         loc[i, 0] = min(max(pos[i, 0] * scale - c0, 0.0), 1.0)
@@ -342,11 +336,27 @@ def locate(pos, level, e_keys, par, inp):
 
 
 @njit(cache=True)
-def prolong(q_keys, ch, coarse_keys, coarse, n_coarse, s, n_cells):
+def level_rank(q_keys, inp, cell_keys):
+    """(8q,) int32: each cell's index in the level's sorted ``cell_keys`` (-1 for the ring)."""
+    out = np.full(8 * len(q_keys), -1, np.int32)
+    for i in range(len(q_keys)):
+        if not inp[i]:
+            continue
+        k = q_keys[i]
+        x = 2 * ((k >> 42) & MASK21)
+        y = 2 * ((k >> 21) & MASK21)
+        z = 2 * (k & MASK21)
+        for o in range(8):
+            out[8 * i + o] = bsearch(cell_keys, lattice_key(x + (o & 1), y + ((o >> 1) & 1), z + ((o >> 2) & 1)))
+    return out
+
+
+@njit(cache=True)
+def prolong(q_keys, coarse_q_keys, coarse_nb, coarse, n_coarse, s):
     """Coefficients on E (the children of ``q_keys``) of the coarser level's function
-    (coefficients ``coarse`` on the sorted ``coarse_keys``): refinement mask (1, 3, 3, 1)/4 per
-    axis, the coarse index folded at the cube's faces."""
-    out = np.zeros(n_cells)
+    (coefficients ``coarse`` on the coarser E, the children of ``coarse_q_keys``):
+    refinement mask (1, 3, 3, 1)/4 per axis, the coarse index folded at the cube's faces."""
+    out = np.zeros(8 * len(q_keys))
     loc = np.zeros(27)
     ox_ = np.empty(2, np.int64)
     oy_ = np.empty(2, np.int64)
@@ -359,16 +369,14 @@ def prolong(q_keys, ch, coarse_keys, coarse, n_coarse, s, n_cells):
         px = (k >> 42) & MASK21
         py = (k >> 21) & MASK21
         pz = k & MASK21
+        # the parent cell in the coarser E and its neighbours there
+        j = find_cell(coarse_q_keys, px, py, pz)
         for t in range(27):
-            X = px + t % 3 - 1
-            Y = py + (t // 3) % 3 - 1
-            Z = pz + t // 9 - 1
             loc[t] = 0.0
-            if X < 0 or Y < 0 or Z < 0 or X >= n_coarse or Y >= n_coarse or Z >= n_coarse:
-                continue
-            j = bsearch(coarse_keys, lattice_key(X, Y, Z))
             if j >= 0:
-                loc[t] = coarse[j]
+                jj = _nbr(coarse_nb, j >> 3, j & 7, t % 3 - 1, (t // 3) % 3 - 1, t // 9 - 1)
+                if jj >= 0:
+                    loc[t] = coarse[jj]
         for o in range(8):
             _mask(o & 1, px, n_coarse, s, ox_, wx_)
             _mask((o >> 1) & 1, py, n_coarse, s, oy_, wy_)
@@ -378,7 +386,7 @@ def prolong(q_keys, ch, coarse_keys, coarse, n_coarse, s, n_cells):
                 for b in range(2):
                     for c in range(2):
                         v += wx_[a] * wy_[b] * wz_[c] * loc[(ox_[a] + 1) + 3 * (oy_[b] + 1) + 9 * (oz_[c] + 1)]
-            out[ch[i, o]] = v
+            out[8 * i + o] = v
     return out
 
 
@@ -398,13 +406,14 @@ def _mask(bit, p, n_coarse, s, off, w):
 
 
 @njit(cache=True)
-def splat_rhs(pos, normal_w, splat_level, level, e_keys, unknown, s):
+def splat_rhs(pos, normal_w, splat_level, level, q_keys, inp, s, width):
     """b_i = int grad(B_i) . W at the unknown cells, W the normals splatted with quadratic
     B-splines of their splat level's width (as :func:`recon_cli.poisson._splat.splat_rhs`
     does for the trilinear basis): per item and axis, the 1D factors of the cells in reach
-    (images folded), then the cells present in the box, walking the sorted keys."""
-    n_keys = len(e_keys)
-    b = np.zeros(n_keys)
+    (images folded), then the flagged parents in the box, walking their sorted keys, and
+    their children in it."""
+    n_keys = len(q_keys)
+    b = np.zeros(8 * n_keys)
     if n_keys == 0:
         return b
     n = 1 << level
@@ -412,13 +421,13 @@ def splat_rhs(pos, normal_w, splat_level, level, e_keys, unknown, s):
     smin = level
     for p in range(pos.shape[0]):
         smin = min(smin, splat_level[p])
-    wmax = min(2 * int(np.ceil(1.5 + 1.5 * 2.0 ** max(level - smin, 0))) + 4, n)
+    wmax = min(2 * int(np.ceil(1.5 + 1.5 * width * 2.0 ** max(level - smin, 0))) + 4, n)
     fv = np.zeros((3, wmax))
     fd = np.zeros((3, wmax))
     lo = np.empty(3, np.int64)
     hi = np.empty(3, np.int64)
     for p in range(pos.shape[0]):
-        rho = 2.0 ** (level - splat_level[p])
+        rho = width * 2.0 ** (level - splat_level[p])
         reach = 1.5 + 1.5 * rho
         empty = False
         for a in range(3):
@@ -448,31 +457,53 @@ def splat_rhs(pos, normal_w, splat_level, level, e_keys, unknown, s):
         nx = normal_w[p, 0]
         ny = normal_w[p, 1]
         nz = normal_w[p, 2]
-        for x in range(lo[0], hi[0] + 1):
-            kend = lattice_key(x, hi[1], hi[2])
-            j = lower_bound(e_keys, lattice_key(x, lo[1], lo[2]), 0, n_keys)
-            while j < n_keys and e_keys[j] <= kend:
-                k = e_keys[j]
+        l0 = lo[0] >> 1
+        l1 = lo[1] >> 1
+        l2 = lo[2] >> 1
+        h1 = hi[1] >> 1
+        h2 = hi[2] >> 1
+        for x in range(l0, (hi[0] >> 1) + 1):
+            kend = lattice_key(x, h1, h2)
+            j = lower_bound(q_keys, lattice_key(x, l1, l2), 0, n_keys)
+            while j < n_keys and q_keys[j] <= kend:
+                k = q_keys[j]
                 y = (k >> 21) & MASK21
                 z = k & MASK21
-                if z < lo[2]:
-                    j = lower_bound(e_keys, lattice_key(x, y, lo[2]), j, n_keys)
+                if z < l2:
+                    j = gallop(q_keys, lattice_key(x, y, l2), j, n_keys)
                     continue
-                if z > hi[2]:
-                    j = lower_bound(e_keys, lattice_key(x, y + 1, lo[2]), j, n_keys)
+                if z > h2:
+                    j = gallop(q_keys, lattice_key(x, y + 1, l2), j, n_keys)
                     continue
-                if unknown[j]:
-                    tx = x - lo[0]
-                    ty = y - lo[1]
-                    tz = z - lo[2]
-                    b[j] += (nx * fd[0, tx] * fv[1, ty] * fv[2, tz] + ny * fv[0, tx] * fd[1, ty] * fv[2, tz]
-                             + nz * fv[0, tx] * fv[1, ty] * fd[2, tz])
+                if inp[j]:
+                    for o in range(8):
+                        cx = 2 * x + (o & 1) - lo[0]
+                        cy = 2 * y + ((o >> 1) & 1) - lo[1]
+                        cz = 2 * z + ((o >> 2) & 1) - lo[2]
+                        if (cx < 0 or cy < 0 or cz < 0 or cx > hi[0] - lo[0] or cy > hi[1] - lo[1]
+                                or cz > hi[2] - lo[2]):
+                            continue
+                        b[8 * j + o] += (nx * fd[0, cx] * fv[1, cy] * fv[2, cz] + ny * fv[0, cx] * fd[1, cy] * fv[2, cz]
+                                         + nz * fv[0, cx] * fv[1, cy] * fd[2, cz])
                 j += 1
     return b
 
 
+@njit(cache=True, inline="always")
+def gallop(keys, key, lo, hi):
+    """First index in [lo, hi) of sorted ``keys`` whose key is >= ``key``, searching from
+    ``lo`` with doubling steps (the next row is usually near)."""
+    step = 1
+    end = lo
+    while end < hi and keys[end] < key:
+        lo = end + 1
+        end = lo + step
+        step *= 2
+    return lower_bound(keys, key, lo, min(end, hi))
+
+
 @njit(cache=True)
-def node_values(q_keys, nb, ch, inp, rank, cell_nodes, coef, n, s, n_nodes):
+def node_values(q_keys, nb, inp, rank, cell_nodes, coef, n, s, n_nodes):
     """The function at the level's nodes (lattice points): at a lattice point the two cells
     around it per axis weigh 1/2 each (folded at the faces), so a node's value is the mean of
     its 8 cells' coefficients. Per flagged parent, its 4x4x4 block of cells gives the 27
@@ -496,7 +527,7 @@ def node_values(q_keys, nb, ch, inp, rank, cell_nodes, coef, n, s, n_nodes):
             for by in range(4):
                 for bx in range(4):
                     p = nb[i, ((bx + 1) >> 1) + 3 * ((by + 1) >> 1) + 9 * ((bz + 1) >> 1)]
-                    C[bx, by, bz] = coef[ch[p, ((bx + 1) & 1) | (((by + 1) & 1) << 1) | (((bz + 1) & 1) << 2)]] if p >= 0 else 0.0
+                    C[bx, by, bz] = coef[8 * p + (((bx + 1) & 1) | (((by + 1) & 1) << 1) | (((bz + 1) & 1) << 2))] if p >= 0 else 0.0
         k = q_keys[i]
         px = 2 * ((k >> 42) & MASK21)
         py = 2 * ((k >> 21) & MASK21)
@@ -517,7 +548,7 @@ def node_values(q_keys, nb, ch, inp, rank, cell_nodes, coef, n, s, n_nodes):
             ox = o & 1
             oy = (o >> 1) & 1
             oz = (o >> 2) & 1
-            r = rank[ch[i, o]]
+            r = rank[8 * i + o]
             for q in range(8):
                 out[cell_nodes[r, q & 3] + (q >> 2)] = val[ox + (q & 1), oy + ((q >> 1) & 1), oz + ((q >> 2) & 1)]
     return out
@@ -540,16 +571,16 @@ def _node_pair(x, j, n, s, idx, w):
 
 
 @njit(cache=True)
-def level_matvec(q_keys, nb, ch, inp, m1, k1, h, e_keys, par, n, s, scell, sloc, sw, x, out):
+def level_matvec(q_keys, nb, inp, m1, k1, h, n, s, scell, sloc, sw, x, out):
     """out = A x (stiffness and screening) at the unknowns; elsewhere whatever A gives."""
     out[:] = 0.0
-    stiffness_matvec(q_keys, nb, ch, inp, m1, k1, h, x, out)
+    stiffness_matvec(q_keys, nb, inp, m1, k1, h, x, out)
     if len(sw):
-        screening_matvec(e_keys, par, nb, ch, n, s, scell, sloc, sw, x, out)
+        screening_matvec(q_keys, nb, n, s, scell, sloc, sw, x, out)
 
 
 @njit(cache=True)
-def level_pcg(q_keys, nb, ch, inp, m1, k1, h, e_keys, par, n, s, scell, sloc, sw, rhs, diag, unknown, tol, max_iter):
+def level_pcg(q_keys, nb, inp, m1, k1, h, n, s, scell, sloc, sw, rhs, diag, unknown, tol, max_iter):
     """Jacobi-preconditioned conjugate gradients on the unknown cells (others stay 0);
     ``rhs`` is overwritten by the residual. Returns (x, iterations, relative residual)."""
     m = len(rhs)
@@ -575,7 +606,7 @@ def level_pcg(q_keys, nb, ch, inp, m1, k1, h, e_keys, par, n, s, scell, sloc, sw
     it = 0
     rel = 1.0
     while it < max_iter:
-        level_matvec(q_keys, nb, ch, inp, m1, k1, h, e_keys, par, n, s, scell, sloc, sw, p, q)
+        level_matvec(q_keys, nb, inp, m1, k1, h, n, s, scell, sloc, sw, p, q)
         pq = 0.0
         for i in range(m):
             if not unknown[i]:
@@ -601,3 +632,94 @@ def level_pcg(q_keys, nb, ch, inp, m1, k1, h, e_keys, par, n, s, scell, sloc, sw
             p[i] = q[i] + beta * p[i]
         rz = rz_new
     return x, it, rel
+
+
+@njit(cache=True)
+def chi_at(pos, top, q_all, q_off, inp_all, nb_all, coef_all, s):
+    """chi at unit-cube positions (m, 3) from every level's coefficients (the levels'
+    arrays concatenated, level ``L``'s parents at ``q_off[L]:q_off[L + 1]``, its ``nb`` rows
+    there with indices local to the level, its coefficients at ``8 q_off[L]``).
+
+    A level's functions are the coarser levels' plus its corrections, which live on its
+    cells and reach the cells next to them: a point takes its value from the finest level
+    with a cell of its own within one cell of the point's (every finer level adds nothing
+    there), evaluated from the 27 coefficients around it (all in that level's E).
+    """
+    m = pos.shape[0]
+    out = np.zeros(m)
+    w = np.empty((3, 3))
+    for p in range(m):
+        for lv in range(top, 0, -1):
+            lo = q_off[lv]
+            hi = q_off[lv + 1]
+            if hi == lo:
+                continue
+            n = 1 << lv
+            scale = float(n)
+            c0 = min(max(int(np.floor(pos[p, 0] * scale)), 0), n - 1)
+            c1 = min(max(int(np.floor(pos[p, 1] * scale)), 0), n - 1)
+            c2 = min(max(int(np.floor(pos[p, 2] * scale)), 0), n - 1)
+            key = lattice_key(c0 >> 1, c1 >> 1, c2 >> 1)
+            i = lower_bound(q_all, key, lo, hi)
+            if i >= hi or q_all[i] != key:
+                continue
+            o = (c0 & 1) | ((c1 & 1) << 1) | ((c2 & 1) << 2)
+            near = False
+            for r in range(27):
+                j = _nbr(nb_all[lo:hi], i - lo, o, r % 3 - 1, (r // 3) % 3 - 1, r // 9 - 1)
+                if j >= 0 and inp_all[lo + (j >> 3)]:
+                    near = True
+                    break
+            if not near:
+                continue
+            sample_weights(min(max(pos[p, 0] * scale - c0, 0.0), 1.0), c0, n, s, w[0])
+            sample_weights(min(max(pos[p, 1] * scale - c1, 0.0), 1.0), c1, n, s, w[1])
+            sample_weights(min(max(pos[p, 2] * scale - c2, 0.0), 1.0), c2, n, s, w[2])
+            v = 0.0
+            for r in range(27):
+                j = _nbr(nb_all[lo:hi], i - lo, o, r % 3 - 1, (r // 3) % 3 - 1, r // 9 - 1)
+                if j >= 0:
+                    v += w[0, r % 3] * w[1, (r // 3) % 3] * w[2, r // 9] * coef_all[8 * lo + j]
+            out[p] = v
+            break
+    return out
+
+
+@njit(cache=True)
+def edge_roots(lat, iso, v0, vm, v1):
+    """Position along each lattice edge where the quadratic through (0, ``v0``),
+    (1/2, ``vm``), (1, ``v1``) crosses ``iso`` (the edge's root nearest the linear
+    estimate ``lat``, a fraction in [0, 1]); ``lat`` itself where the end values do not
+    straddle ``iso``."""
+    n = len(lat)
+    out = lat.copy()
+    for i in range(n):
+        a = v0[i] - iso
+        b = v1[i] - iso
+        if a * b > 0.0 or a == b:
+            continue
+        # q(t) = a + (4 (vm - iso) - 3 a - b) t + (2 a + 2 b - 4 (vm - iso)) t^2
+        c1 = 4.0 * (vm[i] - iso) - 3.0 * a - b
+        c2 = 2.0 * a + 2.0 * b - 4.0 * (vm[i] - iso)
+        t = lat[i]
+        if abs(c2) < 1e-12 * (abs(c1) + abs(a) + 1e-300):
+            if c1 != 0.0:
+                t = -a / c1
+        else:
+            disc = c1 * c1 - 4.0 * c2 * a
+            if disc >= 0.0:
+                sq = np.sqrt(disc)
+                # the numerically stable pair of roots
+                qq = -0.5 * (c1 + (sq if c1 >= 0.0 else -sq))
+                r1 = qq / c2
+                r2 = a / qq if qq != 0.0 else r1
+                best = -1.0
+                bd = 1e300
+                for r in (r1, r2):
+                    if -1e-9 <= r <= 1.0 + 1e-9 and abs(r - lat[i]) < bd:
+                        bd = abs(r - lat[i])
+                        best = r
+                if bd < 1e300:
+                    t = min(max(best, 0.0), 1.0)
+        out[i] = t
+    return out
