@@ -6,8 +6,10 @@ B-spline kernel, weighted by the area each sample stands for); the indicator ``c
 
     int |grad chi - W|^2  +  alpha * sum_p w_p (chi(p) - 1/2)^2,
 
-discretised with trilinear (Q1) hat functions on an adaptive multilevel grid (an octree
-level by level). Each sample is splatted at the depth its local density supports
+discretised on an adaptive multilevel grid (an octree level by level), in one of two bases
+(``degree``): trilinear (Q1) hat functions on the nodes (degree 1), or quadratic B-splines
+centred on the cells, support 3 cells per axis, as PoissonRecon's default (degree 2,
+:mod:`.bspline`). Each sample is splatted at the depth its local density supports
 (``samples_per_node`` samples per node, as PoissonRecon defines it, at most ``depth``), and
 level ``d`` holds the cells of the ``2**d`` lattice within two cells of a splat of level
 ``d`` or finer (every cell up to ``full_depth``), complete in siblings: the tree stops where
@@ -17,9 +19,12 @@ of the levels' functions; it is solved cascadically, coarse to fine, each level 
 Jacobi-preconditioned conjugate gradients on the residual left by the coarser ones (as
 PoissonRecon does). The surface is the level set of ``chi`` at the weighted mean of its
 values at the samples, extracted by :func:`recon_cli.mcubes.marching_cubes_sparse` on the
-tree's finest lattice: each leaf of the tree is refined (exactly, ``chi`` being trilinear in it)
-down to the finest cells only where it straddles the iso-value, and every lattice value
-is computed once, so there are no cracks between cells of different sizes (:mod:`.extract`).
+tree's finest lattice: each leaf of the tree is refined down to the finest cells only where
+it straddles the iso-value, and every lattice value is computed once, so there are no
+cracks between cells of different sizes (:mod:`.extract`). With degree 1 ``chi`` is
+trilinear in a leaf, so the refinement and marching cubes' linear interpolation are exact;
+with degree 2 the leaves' corners take ``chi``'s exact values and each vertex is then moved
+along its edge to ``chi``'s root there (``chi`` is one quadratic along a finest edge).
 
 References
 ----------

@@ -686,11 +686,12 @@ def chi_at(pos, top, q_all, q_off, inp_all, nb_all, coef_all, s):
 
 
 @njit(cache=True)
-def edge_roots(lat, iso, v0, vm, v1):
+def edge_roots(lat, iso, v0, vm, v1, clamp):
     """Position along each lattice edge where the quadratic through (0, ``v0``),
     (1/2, ``vm``), (1, ``v1``) crosses ``iso`` (the edge's root nearest the linear
-    estimate ``lat``, a fraction in [0, 1]); ``lat`` itself where the end values do not
-    straddle ``iso``."""
+    estimate ``lat``, a fraction in [0, 1]), kept ``clamp`` away from the ends as marching
+    cubes keeps its own (a vertex at a lattice point would leave degenerate faces); ``lat``
+    itself where the end values do not straddle ``iso``."""
     n = len(lat)
     out = lat.copy()
     for i in range(n):
@@ -704,7 +705,7 @@ def edge_roots(lat, iso, v0, vm, v1):
         t = lat[i]
         if abs(c2) < 1e-12 * (abs(c1) + abs(a) + 1e-300):
             if c1 != 0.0:
-                t = -a / c1
+                t = min(max(-a / c1, min(lat[i], clamp)), max(lat[i], 1.0 - clamp))
         else:
             disc = c1 * c1 - 4.0 * c2 * a
             if disc >= 0.0:
@@ -720,6 +721,57 @@ def edge_roots(lat, iso, v0, vm, v1):
                         bd = abs(r - lat[i])
                         best = r
                 if bd < 1e300:
-                    t = min(max(best, 0.0), 1.0)
+                    t = min(max(best, min(lat[i], clamp)), max(lat[i], 1.0 - clamp))
         out[i] = t
     return out
+
+
+@njit(cache=True)
+def constrain_to_coarse_leaves(node_keys, g, coarse_keys, coarse_nodes, coarse_leaf, g_coarse):
+    """Nodes of a level on the faces or edges of the coarser level's leaves take the leaves'
+    trilinear interpolation, in place (as hanging nodes do): the extraction interpolates a
+    leaf trilinearly from its corners, so the finer side of a face must see the same values
+    there or the surface cracks along it. Cells of a level touch leaves of the next coarser
+    level only, so one level up suffices (coarse to fine, the coarse values already
+    constrained)."""
+    cand = np.empty((3, 2), np.int64)
+    nc = np.empty(3, np.int64)
+    for j in range(len(node_keys)):
+        k = node_keys[j]
+        x = (k >> 42) & MASK21
+        y = (k >> 21) & MASK21
+        z = k & MASK21
+        if (x & 1) == 0 and (y & 1) == 0 and (z & 1) == 0:
+            continue  # a corner of the coarser lattice: chi's own value on both sides
+        for a in range(3):
+            v = x if a == 0 else (y if a == 1 else z)
+            if v & 1:
+                cand[a, 0] = (v - 1) >> 1
+                nc[a] = 1
+            else:
+                cand[a, 0] = (v >> 1) - 1
+                cand[a, 1] = v >> 1
+                nc[a] = 2
+        done = False
+        for ia in range(nc[0]):
+            for ib in range(nc[1]):
+                for ic in range(nc[2]):
+                    cx = cand[0, ia]
+                    cy = cand[1, ib]
+                    cz = cand[2, ic]
+                    if cx < 0 or cy < 0 or cz < 0 or done:
+                        continue
+                    c = bsearch(coarse_keys, lattice_key(cx, cy, cz))
+                    if c < 0 or not coarse_leaf[c]:
+                        continue
+                    fx = 0.5 * (x - 2 * cx)
+                    fy = 0.5 * (y - 2 * cy)
+                    fz = 0.5 * (z - 2 * cz)
+                    v = 0.0
+                    for r in range(8):
+                        w = ((fx if r & 1 else 1.0 - fx) * (fy if (r >> 1) & 1 else 1.0 - fy)
+                             * (fz if (r >> 2) & 1 else 1.0 - fz))
+                        if w != 0.0:
+                            v += w * g_coarse[coarse_nodes[c, r & 3] + (r >> 2)]
+                    g[j] = v
+                    done = True

@@ -13,13 +13,22 @@ exact on the stencil (5 cells per axis) of every cell of the level: the set grow
 parent ring per level, and the levels' parents are within one of the tree's parents, so
 the coarser ``E`` always holds what the prolongation reads.
 
-The screening at level ``d`` uses the samples merged per cell of that level (summed
-weights, weighted mean position), as PoissonRecon merges its interpolation points per node.
+The right-hand side splats each sample's share at its level(s) unmerged (merging per cell
+moves the items of a curved surface inwards, a bias this basis resolves) with a quadratic
+B-spline kernel :data:`KERNEL_WIDTH` cells of the splat level wide. The screening at level
+``d`` uses the samples merged per cell of that level (summed weights, weighted mean
+position), as PoissonRecon merges its interpolation points per node.
 
-chi at a lattice point of level ``d`` is the mean of the 8 coefficients of the cells
-around it (the B-spline is 1/2 at its cell's faces): :func:`chi_at_nodes` gives the
-extraction the value at every level's nodes, the leaves' corners. Inside a leaf chi is
-piecewise quadratic, not trilinear; :class:`LevelField` evaluates it anywhere.
+The rest of the stage reads chi through one function, :meth:`ChiField.at` (chi at any
+point of the cube: from the finest level whose cells are within one cell of the point, all
+finer levels' functions vanishing there): the iso-value at the samples, chi at every
+level's nodes for the extraction (the leaves' corners; at a lattice point the B-spline is
+1/2 at its cell's faces, so the value is the mean of the 8 cells' coefficients around it),
+and :meth:`ChiField.refine_vertices`, which moves each extracted vertex along its lattice
+edge to chi's root there. Inside a leaf chi is piecewise quadratic, not trilinear: an
+extraction that refines leaves must read the finer lattice points through
+:meth:`ChiField.at` too (the current one interpolates them trilinearly from the leaf's
+corners, exact only at the corners).
 
 References
 ----------
@@ -47,11 +56,17 @@ from recon_cli.progress import task
 log = logging.getLogger("recon")
 
 TARGET = 0.5
-# the normals' kernel is this many times the splat level's cell wide (a quadratic B-spline):
-# chi's step across the surface is then wide enough for its quadratic pieces to place the
-# surface evenly between the lattice's points; measured (exact distances, clean samples,
-# depth 7): sphere / torus / rounded box error 1.8 / 2.9 / 2.1e-4 at 1, 0.67 / 1.9 / 2.3e-4 at 2
-KERNEL_WIDTH = 2.0
+# the normals' kernel is this many times the splat level's cell wide (a quadratic B-spline);
+# wider smooths more: on smooth shapes it is more accurate (exact-distance Chamfer / Open3D's,
+# 100k clean samples, depth 8: sphere 0.34 at 2 against 1.01 at 1, torus 0.76 against
+# 1.69), on detailed ones less (armadillo 1.69 against 1.09, kitten 1.38 against 1.23)
+KERNEL_WIDTH = 1.0
+# the screening weight relative to degree 1's (the same --point-weight): the quadratic
+# B-splines are smaller at a sample (at most 0.42 against a hat's 1) and smoother, so the
+# same alpha pulls chi less towards the samples; measured on the armadillo, 100k clean
+# samples, depth 8 (Chamfer to the mesh, exact distances): 3.25e-2 at 1x, 2.82e-2 at 3x
+# (degree 1: 2.94e-2, Open3D 2.98e-2)
+SCREEN_SCALE = 3.0
 
 
 def folded_tables(n: int, s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -157,13 +172,20 @@ class ChiField:
         by linear interpolation, to where chi crosses ``iso`` along that edge: chi is one
         quadratic along a finest edge (it lies in one cell of every level), so its values at
         the two ends and the middle give the root exactly. Vertices stay on their edges, so
-        the mesh's connectivity is unchanged."""
+        the mesh's connectivity is unchanged. Vertices not on an edge (marching cubes' cell
+        centres of ambiguous cases) stay where they are."""
+        from recon_cli.mcubes import DEGENERATE_CLAMP
+
         if not len(verts):
             return verts
         res = float(1 << depth)
         u = (verts - origin) / size * res
         frac = np.abs(u - np.round(u))
         axis = np.argmax(frac, axis=1)
+        on_edge = np.sort(frac, axis=1)[:, 1] < 1e-6
+        verts = verts.copy()
+        keep_idx = np.flatnonzero(on_edge)
+        u, axis = u[keep_idx], axis[keep_idx]
         rows = np.arange(len(u))
         lo = np.round(u)
         lo[rows, axis] = np.floor(u[rows, axis])
@@ -174,10 +196,11 @@ class ChiField:
             q[rows, axis] += t
             pts[k] = q / res
         v0, vm, v1 = (self.at(pts[k]) for k in range(3))
-        t = B.edge_roots(lat, iso, v0, vm, v1)
+        t = B.edge_roots(lat, iso, v0, vm, v1, DEGENERATE_CLAMP)
         out = lo
         out[rows, axis] += t
-        return out / res * size + origin
+        verts[keep_idx] = out / res * size + origin
+        return verts
 
 
 def _merge_per_cell(pos: np.ndarray, w: np.ndarray, level: int) -> tuple[np.ndarray, np.ndarray]:
@@ -199,7 +222,7 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, boundary: str, full
     finest relative residual, the iso-value (count-weighted mean of chi at the samples) and
     the field (:class:`ChiField`)."""
     spos, count = smp.pos, smp.count
-    alpha = splats.alpha
+    alpha = splats.alpha * SCREEN_SCALE
     total_it = 0
     last_res = 0.0
     per_level = []
@@ -229,7 +252,7 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, boundary: str, full
             rhs = B.splat_rhs(splats.pos, splats.vec, splats.level, d, f.q_keys, f.inp, f.s, KERNEL_WIDTH)
             diag = B.stiffness_diag(f.q_keys, f.inp, m1, k1, h)
             if alpha > 0:
-                mp, mw = _merge_per_cell(spos, splats.screen_w, d)
+                mp, mw = _merge_per_cell(spos, splats.screen_w * SCREEN_SCALE, d)
                 scell, sloc = f.locate(mp)
                 have = scell >= 0
                 scell, sloc, sw = scell[have], sloc[have], mw[have]
@@ -266,6 +289,11 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, boundary: str, full
     chi = ChiField(fields, boundary)
     del fields, prev
     gvals = [chi.at_nodes(lev, keys) for lev, keys in zip(levels, node_keys)]
+    # the extraction interpolates each leaf trilinearly from its corners: the finer side of
+    # a leaf's faces takes those values (chi's own everywhere else)
+    for d in range(1, len(levels)):
+        up = levels[d - 1]
+        B.constrain_to_coarse_leaves(node_keys[d], gvals[d], up.cell_keys, up.cell_nodes, up.leaf, gvals[d - 1])
     del node_keys
     chi_s = chi.at(spos)
     iso = float((chi_s * count).sum() / count.sum())
