@@ -78,22 +78,35 @@ def test_prolongation_is_exact_and_the_field_reads_the_finest_level(rng, boundar
     coarse.coef = rng.normal(size=8 * len(coarse.q_keys))
     fine.coef = B.prolong(fine.q_keys, coarse.q_keys, coarse.nb, coarse.coef, 4, coarse.s)
     pts = rng.random((2000, 3))
-    a = coarse.evaluate(*coarse.locate(pts))
-    np.testing.assert_allclose(fine.evaluate(*fine.locate(pts)), a, rtol=0, atol=1e-12)
+    # (the field reads the finest level holding a point: level 3 with it, level 2 without)
+    a = ChiField([coarse], boundary).at(pts)
+    np.testing.assert_allclose(ChiField([coarse, fine], boundary).at(pts), a, rtol=0, atol=1e-12)
+    # ... against the basis by definition: sum of coefficient times tensor B2, images folded
+    keys = unpack_keys(coarse.q_keys)
+    cells = (2 * keys[:, None, :] + np.array([[o & 1, (o >> 1) & 1, (o >> 2) & 1] for o in range(8)])).reshape(-1, 3)
+    u = pts * 4.0
+    w = np.ones((len(pts), len(cells)))
+    for a_ in range(3):
+        c = cells[None, :, a_]
+        # images of cell c in [0, 4): c + 8k (sign 1) and -1 - c + 8k (sign s)
+        acc = np.zeros((len(pts), len(cells)))
+        for k in range(-1, 2):
+            acc += _b2(u[:, a_, None] - (c + 8 * k + 0.5))
+            acc += coarse.s * _b2(u[:, a_, None] - (-1 - c + 8 * k + 0.5))
+        w *= acc
+    direct = w @ coarse.coef
+    np.testing.assert_allclose(a, direct, rtol=0, atol=1e-12)
     # Dirichlet: chi = 0 on the cube's faces (odd reflection)
     face = rng.random((200, 3))
     face[:, 0] = rng.integers(0, 2, 200)
     if boundary == "dirichlet":
-        np.testing.assert_allclose(coarse.evaluate(*coarse.locate(face)), 0.0, atol=1e-12)
-    # with a correction on level 3 the field is level 3's function everywhere, and its node
-    # values are its values at the lattice points
+        np.testing.assert_allclose(ChiField([coarse], boundary).at(face), 0.0, atol=1e-12)
+    # node values are the field's values at the lattice points
     fine.coef = fine.coef + rng.normal(size=len(fine.coef))
     chi = ChiField([coarse, fine], boundary)
-    np.testing.assert_allclose(chi.at(pts), fine.evaluate(*fine.locate(pts)), rtol=0, atol=1e-12)
     lev = levels[3]
     nodes = unpack_keys(build_levels(np.full((1, 3), 0.5), np.array([3]), 3, 3, boundary)[3].node_keys)
-    g = chi.at_nodes(lev, pack_keys(nodes))
-    np.testing.assert_allclose(g, fine.evaluate(*fine.locate(nodes / 8.0)), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(chi.at_nodes(lev, pack_keys(nodes)), chi.at(nodes / 8.0), rtol=0, atol=0)
 
 
 def test_refined_vertices_sit_on_their_edges_at_the_iso_value(rng):

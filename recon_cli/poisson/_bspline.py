@@ -284,25 +284,6 @@ def screening_diag_rhs(q_keys, nb, n, s, scell, sloc, sw, target, diag, rhs):
                 rhs[j] += sw[p] * target * w
 
 
-@njit(cache=True)
-def eval_at(q_keys, nb, n, s, scell, sloc, coef):
-    """The function of coefficients ``coef`` (on E) at the samples (cell, local coordinates)."""
-    wx = np.empty(3)
-    wy = np.empty(3)
-    wz = np.empty(3)
-    idx = np.empty(27, np.int64)
-    out = np.empty(len(scell))
-    for p in range(len(scell)):
-        _gather27(q_keys, nb, scell[p], n, s, sloc[p], wx, wy, wz, idx)
-        v = 0.0
-        for r in range(27):
-            j = idx[r]
-            if j >= 0:
-                v += wx[r % 3] * wy[(r // 3) % 3] * wz[r // 9] * coef[j]
-        out[p] = v
-    return out
-
-
 @njit(cache=True, inline="always")
 def find_cell(q_keys, x, y, z):
     """Index in E of cell (x, y, z) (-1 if its parent is not in ``q_keys``)."""
@@ -333,22 +314,6 @@ def locate(pos, level, q_keys, inp):
         loc[i, 1] = min(max(pos[i, 1] * scale - c1, 0.0), 1.0)
         loc[i, 2] = min(max(pos[i, 2] * scale - c2, 0.0), 1.0)
     return cell, loc
-
-
-@njit(cache=True)
-def level_rank(q_keys, inp, cell_keys):
-    """(8q,) int32: each cell's index in the level's sorted ``cell_keys`` (-1 for the ring)."""
-    out = np.full(8 * len(q_keys), -1, np.int32)
-    for i in range(len(q_keys)):
-        if not inp[i]:
-            continue
-        k = q_keys[i]
-        x = 2 * ((k >> 42) & MASK21)
-        y = 2 * ((k >> 21) & MASK21)
-        z = 2 * (k & MASK21)
-        for o in range(8):
-            out[8 * i + o] = bsearch(cell_keys, lattice_key(x + (o & 1), y + ((o >> 1) & 1), z + ((o >> 2) & 1)))
-    return out
 
 
 @njit(cache=True)
@@ -500,74 +465,6 @@ def gallop(keys, key, lo, hi):
         end = lo + step
         step *= 2
     return lower_bound(keys, key, lo, min(end, hi))
-
-
-@njit(cache=True)
-def node_values(q_keys, nb, inp, rank, cell_nodes, coef, n, s, n_nodes):
-    """The function at the level's nodes (lattice points): at a lattice point the two cells
-    around it per axis weigh 1/2 each (folded at the faces), so a node's value is the mean of
-    its 8 cells' coefficients. Per flagged parent, its 4x4x4 block of cells gives the 27
-    lattice points of its children; ``rank`` (e,) is each cell's index in the level (its row
-    of ``cell_nodes``). Every node sums the same 8 terms in the same order whichever parent
-    computes it."""
-    out = np.zeros(n_nodes)
-    C = np.zeros((4, 4, 4))
-    val = np.empty((3, 3, 3))
-    wx = np.empty(2)
-    wy = np.empty(2)
-    wz = np.empty(2)
-    ix = np.empty(2, np.int64)
-    iy = np.empty(2, np.int64)
-    iz = np.empty(2, np.int64)
-    for i in range(len(q_keys)):
-        if not inp[i]:
-            continue
-        # block index b holds cell 2p - 1 + b: parent offset (b + 1) // 2 - 1, octant bit (b + 1) & 1
-        for bz in range(4):
-            for by in range(4):
-                for bx in range(4):
-                    p = nb[i, ((bx + 1) >> 1) + 3 * ((by + 1) >> 1) + 9 * ((bz + 1) >> 1)]
-                    C[bx, by, bz] = coef[8 * p + (((bx + 1) & 1) | (((by + 1) & 1) << 1) | (((bz + 1) & 1) << 2))] if p >= 0 else 0.0
-        k = q_keys[i]
-        px = 2 * ((k >> 42) & MASK21)
-        py = 2 * ((k >> 21) & MASK21)
-        pz = 2 * (k & MASK21)
-        for jx in range(3):
-            _node_pair(px + jx, jx, n, s, ix, wx)
-            for jy in range(3):
-                _node_pair(py + jy, jy, n, s, iy, wy)
-                for jz in range(3):
-                    _node_pair(pz + jz, jz, n, s, iz, wz)
-                    v = 0.0
-                    for a in range(2):
-                        for b in range(2):
-                            for c in range(2):
-                                v += wx[a] * wy[b] * wz[c] * C[ix[a], iy[b], iz[c]]
-                    val[jx, jy, jz] = v
-        for o in range(8):
-            ox = o & 1
-            oy = (o >> 1) & 1
-            oz = (o >> 2) & 1
-            r = rank[8 * i + o]
-            for q in range(8):
-                out[cell_nodes[r, q & 3] + (q >> 2)] = val[ox + (q & 1), oy + ((q >> 1) & 1), oz + ((q >> 2) & 1)]
-    return out
-
-
-@njit(cache=True, inline="always")
-def _node_pair(x, j, n, s, idx, w):
-    """The two cells around lattice point ``x`` (block indices ``j``, ``j + 1``), weight 1/2
-    each, the one past a face folded onto the other."""
-    idx[0] = j
-    idx[1] = j + 1
-    w[0] = 0.5
-    w[1] = 0.5
-    if x == 0:
-        idx[0] = j + 1
-        w[0] = 0.5 * s
-    if x == n:
-        idx[1] = j
-        w[1] = 0.5 * s
 
 
 @njit(cache=True)

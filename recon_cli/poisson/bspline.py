@@ -59,7 +59,8 @@ TARGET = 0.5
 # the normals' kernel is this many times the splat level's cell wide (a quadratic B-spline);
 # wider smooths more: on smooth shapes it is more accurate (exact-distance Chamfer / Open3D's,
 # 100k clean samples, depth 8: sphere 0.34 at 2 against 1.01 at 1, torus 0.76 against
-# 1.69), on detailed ones less (armadillo 1.69 against 1.09, kitten 1.38 against 1.23)
+# 1.69), on detailed ones less (armadillo 1.69 against 1.09, kitten 1.38 against 1.23), so
+# one cell, never worse than degree 1 where measured
 KERNEL_WIDTH = 1.0
 # the screening weight relative to degree 1's (the same --point-weight): the quadratic
 # B-splines are smaller at a sample (at most 0.42 against a hat's 1) and smoother, so the
@@ -93,8 +94,7 @@ class LevelField:
     """chi on one level in the degree-2 basis: coefficients on ``E`` and the lookups.
 
     ``E`` is the children of the sorted parent keys ``q_keys`` in block order (cell
-    ``8 i + o``, :mod:`._bspline`); chi at a point of a cell of the level (not of the ring)
-    is :meth:`evaluate` of the 27 coefficients around it.
+    ``8 i + o``, :mod:`._bspline`); :class:`ChiField` reads chi from the levels' fields.
     """
 
     depth: int
@@ -108,17 +108,6 @@ class LevelField:
         """Cell index in E (-1 when not a cell of the level) and local coordinates of unit-cube
         positions (m, 3)."""
         return B.locate(pos, self.depth, self.q_keys, self.inp)
-
-    def evaluate(self, cell: np.ndarray, loc: np.ndarray) -> np.ndarray:
-        """chi at local coordinates ``loc`` (m, 3) in [0, 1] of the cells ``cell`` (m,) (E
-        indices from :meth:`locate`)."""
-        return B.eval_at(self.q_keys, self.nb, 1 << self.depth, self.s, cell, loc, self.coef)
-
-    def at_nodes(self, lev: Level) -> np.ndarray:
-        """chi at the nodes of ``lev`` (this field's level): the leaves' corners."""
-        rank = B.level_rank(self.q_keys, self.inp, lev.cell_keys)
-        return B.node_values(self.q_keys, self.nb, self.inp, rank, lev.cell_nodes, self.coef,
-                             1 << self.depth, self.s, lev.n_nodes)
 
 
 def level_field(lev: Level, boundary: str) -> LevelField:
