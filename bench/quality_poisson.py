@@ -66,7 +66,7 @@ def main(argv: list[str]) -> int:
                 t0 = time.perf_counter()
                 ours = screened_poisson(cloud.points, cloud.normals, depth=depth).mesh
                 t1 = time.perf_counter()
-                ref = open3d_backend.poisson(cloud, depth=depth)[0]
+                ref = open3d_backend.poisson(cloud, depth=depth, threads=-1)[0]
                 t2 = time.perf_counter()
                 ch_o, f_o = chamfer_f(sample_surface(ours, N_EVAL, seed=2).points, tsamp, tau)
                 ch_r, f_r = chamfer_f(sample_surface(ref, N_EVAL, seed=2).points, tsamp, tau)

@@ -278,6 +278,35 @@ def bbox_diagonal(points: np.ndarray) -> float:
     return float(np.linalg.norm(points.max(axis=0).astype(np.float64) - points.min(axis=0)))
 
 
+def oriented_rows(points: Any, normals: Any, missing: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points and normals of an oriented cloud as contiguous float64 (n, 3) arrays, with the normals' lengths.
+
+    The shared entry check of the stages that need normals; each decides what to do with
+    non-finite rows and zero normals (``length`` is NaN or inf where a normal is not finite).
+
+    Parameters
+    ----------
+    points, normals : array-like (n, 3)
+    missing : str
+        The error when ``normals`` is None (say which command gives them).
+
+    Returns
+    -------
+    points (n, 3) float64, normals (n, 3) float64, length (n,) float64
+    """
+    if normals is None:
+        raise InputError(missing)
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    nrm = np.ascontiguousarray(normals, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise InputError(f"points must have shape (n, 3), got {pts.shape}")
+    if nrm.shape != pts.shape:
+        raise InputError(f"normals must have the shape of points {pts.shape}, got {nrm.shape}")
+    with np.errstate(invalid="ignore", over="ignore"):
+        length = np.sqrt(np.einsum("ij,ij->i", nrm, nrm))
+    return pts, nrm, length
+
+
 def _float_rows(a: Any) -> np.ndarray:
     """``a`` as (n, 3) rows: float32 and float64 arrays kept as they are (views stay views), anything else as float64."""
     arr = np.asarray(a)

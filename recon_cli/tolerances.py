@@ -23,6 +23,9 @@ class Tolerance:
         Ratio of middle to largest covariance eigenvalue below which a neighbourhood is a line.
     volume : float
         Relative volume change accepted where an operation must preserve volume.
+    contour : float
+        Fraction of an edge's length within which a contour crossing is moved off the edge's
+        ends when a mesh is cut along a contour (no sliver pieces).
     precision : float
         Relative (to the bounding-box diagonal) rounding that writing float64 coordinates of a
         float32 source as float32 may add; beyond it they are written as float64.
@@ -34,6 +37,7 @@ class Tolerance:
     planar: float = 1e-3
     collinear: float = 1e-6
     volume: float = 1e-6
+    contour: float = 1e-3
     precision: float = 1e-6
 
 

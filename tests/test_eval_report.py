@@ -107,6 +107,7 @@ def test_compare_records_the_reference_library_call(tmp_path):
     row = res["methods"][0]
     assert row["status"] == "ok", row["error"]
     assert row["library_calls"] == [
-        {"call": "open3d.geometry.TriangleMesh.create_from_point_cloud_poisson", "arguments": {"depth": 5, "scale": 1.1, "linear_fit": False}}
+        {"call": "open3d.geometry.TriangleMesh.create_from_point_cloud_poisson",
+         "arguments": {"depth": 5, "scale": 1.1, "linear_fit": False, "n_threads": 1}}
     ]
     assert row["params_resolved"]["depth"] == 5 and res["plot"] is None  # no reference: nothing to plot

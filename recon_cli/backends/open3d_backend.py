@@ -76,13 +76,20 @@ def estimate_normals(cloud: PointCloud, knn: int = 30, radius: float | None = No
     return np.asarray(pc.normals, dtype=np.float64)
 
 
-def poisson(cloud: PointCloud, depth: int = 8, scale: float = 1.1, linear_fit: bool = False):
-    """Open3D screened Poisson; returns (mesh, densities)."""
+def poisson(cloud: PointCloud, depth: int = 8, scale: float = 1.1, linear_fit: bool = False, threads: int = 1):
+    """Open3D screened Poisson; returns (mesh, densities).
+
+    ``threads`` defaults to 1: Open3D 0.20's multi-threaded Poisson crashes the process now
+    and then (a race, isl-org/Open3D#6828, #7229; seen here in the test suite), and a
+    reference backend must not take the user's process down. ``-1`` (Open3D's default, all
+    cores) is what ``make bench`` times, in a child process.
+    """
     o3d = require("open3d")
     pc = to_o3d_cloud(cloud)
-    record("open3d.geometry.TriangleMesh.create_from_point_cloud_poisson", depth=depth, scale=scale, linear_fit=linear_fit)
+    record("open3d.geometry.TriangleMesh.create_from_point_cloud_poisson", depth=depth, scale=scale, linear_fit=linear_fit,
+           n_threads=threads)
     mesh, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
-        pc, depth=depth, scale=scale, linear_fit=linear_fit
+        pc, depth=depth, scale=scale, linear_fit=linear_fit, n_threads=threads
     )
     return from_o3d_mesh(mesh, cloud.history), np.asarray(dens, dtype=np.float64)
 

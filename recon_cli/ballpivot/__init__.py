@@ -45,7 +45,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from recon_cli.errors import InputError, ParameterError, StageFailed
-from recon_cli.geometry import PointCloud, TriangleMesh, as_point_cloud, bbox_diagonal, local_origin
+from recon_cli.geometry import PointCloud, TriangleMesh, as_point_cloud, bbox_diagonal, local_origin, oriented_rows
 from recon_cli.params import Param, StageSpec
 from recon_cli.stages import StageResult
 from recon_cli.tolerances import tol
@@ -169,16 +169,8 @@ def _check_radii(radii: list[float], diagonal: float) -> list[float]:
 
 def _prepare(points: Any, normals: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Validate; return (points, unit normals, indices of the usable rows)."""
-    if normals is None:
-        raise InputError("ball pivoting needs point normals; the input has none (run `recon normals` first)")
-    pts = np.asarray(points, dtype=np.float64)
-    nrm = np.asarray(normals, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise InputError(f"points must have shape (n, 3), got {pts.shape}")
-    if nrm.shape != pts.shape:
-        raise InputError(f"normals must have the shape of points {pts.shape}, got {nrm.shape}")
-    with np.errstate(invalid="ignore", over="ignore"):
-        length = np.sqrt(np.einsum("ij,ij->i", nrm, nrm))
+    pts, nrm, length = oriented_rows(
+        points, normals, "ball pivoting needs point normals; the input has none (run `recon normals` first)")
     usable = np.isfinite(pts).all(axis=1) & np.isfinite(length) & (length > 0)
     keep = np.flatnonzero(usable)
     if len(keep) < 3:

@@ -42,7 +42,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from recon_cli.errors import InputError, ParameterError
-from recon_cli.geometry import PointCloud, TriangleMesh, as_point_cloud, local_origin
+from recon_cli.geometry import PointCloud, TriangleMesh, as_point_cloud, local_origin, oriented_rows
 from recon_cli.params import Param, StageSpec
 from recon_cli.progress import task
 
@@ -67,7 +67,8 @@ class PoissonResult:
         had colours.
     report : dict
         ``vertices``, ``faces``, ``depth``, ``iso_value``, ``solver_iterations``,
-        ``residual`` (relative residual of the finest level), ``trimmed_faces`` and details
+        ``residual`` (relative residual of the finest level), ``trimmed_faces`` (faces cut or
+        removed by ``trim``), ``trimmed_area`` (fraction of the area removed) and details
         (``tree_depth``: the deepest level the samples support, ``samples``, ``nodes`` per
         level, ``timings``).
     """
@@ -101,8 +102,10 @@ SPEC = StageSpec(
               min=1, max=2),
         Param("boundary", "choice", "neumann", "Condition on the faces of the cube.", choices=BOUNDARIES),
         Param("density", "bool", False, "Write the per-vertex sampling density as vertex property 'density'."),
-        Param("trim", "float", 0.0, "Remove the surface whose density is in the lowest Q quantile.",
-              unit="quantile", min=0.0, max=1.0, max_open=True, metavar="Q"),
+        Param("trim", "float", 0.0,
+              "Cut away the surface where the samples' density is below T times its median at the samples "
+              "(0.1-0.3 removes an open scan's closing sheet).",
+              unit="of the median sample density", min=0.0, max=1.0, max_open=True, metavar="T"),
         Param("estimate_normals", "bool", False, "Estimate and orient normals first (as 'recon normals' does)."),
     ),
 )
@@ -122,19 +125,12 @@ def _check_options(depth, scale, point_weight, samples_per_node, degree, boundar
 
 def _check_inputs(points: Any, normals: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Finite (n, 3) points and unit normals; returns (points, normals, kept mask)."""
-    if normals is None:
-        raise InputError("the cloud has no normals: run 'recon normals' first (or pass --estimate-normals)")
-    pts = np.ascontiguousarray(points, dtype=np.float64)
-    nrm = np.ascontiguousarray(normals, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise InputError(f"points must have shape (n, 3), got {pts.shape}")
-    if nrm.shape != pts.shape:
-        raise InputError(f"normals must have shape {pts.shape}, got {nrm.shape}")
+    pts, nrm, length = oriented_rows(
+        points, normals, "the cloud has no normals: run 'recon normals' first (or pass --estimate-normals)")
     if not np.all(np.isfinite(pts)):
         raise InputError("points contain NaN or infinite coordinates")
-    if not np.all(np.isfinite(nrm)):
+    if not np.all(np.isfinite(length)):
         raise InputError("normals contain NaN or infinite values")
-    length = np.linalg.norm(nrm, axis=1)
     keep = length > 0
     if not keep.any():
         raise InputError("every normal has zero length: run 'recon normals' to estimate them")
@@ -222,7 +218,7 @@ def screened_poisson(
             raise InputError(f"colors has {len(colors)} rows, expected {len(keep)}")
         colors = colors[keep]
 
-    from recon_cli.poisson.extract import extract, trim_low_density
+    from recon_cli.poisson.extract import extract
     from recon_cli.poisson.octree import build_levels
     from recon_cli.poisson.splat import make_splats, merge_samples, sample_density
     from recon_cli.poisson.system import iso_value, solve
@@ -287,23 +283,31 @@ def screened_poisson(
     vdens = None
     if density or trim > 0:
         vdens = sample_density(splats, (verts - origin) / size)
-    trimmed = 0
+    trimmed, trimmed_area = 0, 0.0
     if trim > 0 and len(faces):
-        mesh, vdens, trimmed = trim_low_density(mesh, vdens, trim)
+        from recon_cli.poisson.trim import trim_by_density
+
+        at_samples = sample_density(splats, smp.pos)
+        cut = trim_by_density(mesh, vdens, trim * float(np.median(at_samples)))
+        if len(cut.mesh.faces) == 0:
+            raise ParameterError(f"trim {trim:g} removes the whole surface: use a smaller value")
+        trimmed = len(mesh.faces) - cut.untouched_faces
+        mesh, vdens, trimmed_area = cut.mesh, cut.density, cut.removed_area
     if density:
         mesh.attributes["density"] = vdens
     if colors is not None and len(mesh.vertices):
         mesh.colors = _interpolate_colors(pts, colors, mesh.vertices, size / res)
     timings["total"] = time.perf_counter() - t0
     report = {
-        "vertices": int(len(mesh.vertices)),
-        "faces": int(len(mesh.faces)),
+        "vertices": len(mesh.vertices),
+        "faces": len(mesh.faces),
         "depth": depth,
         "tree_depth": tree_depth,
         "iso_value": iso,
         "solver_iterations": int(total_it),
         "residual": float(last_res),
         "trimmed_faces": int(trimmed),
+        "trimmed_area": trimmed_area,
         "samples": int(ns),
         "ignored_points": int((~keep).sum()),
         "finest_cell": size / res,
@@ -347,7 +351,7 @@ def run_stage(
     estimate_normals: bool,
     backend: str,
     progress: Any = None,
-) -> "StageResult":
+) -> StageResult:
     """Stage ``poisson``: screened Poisson reconstruction of an oriented cloud.
 
     Parameters
@@ -369,7 +373,7 @@ def run_stage(
     -------
     StageResult
         ``output`` a TriangleMesh; ``report`` with ``vertices``, ``faces``, ``depth``,
-        ``iso_value``, ``solver_iterations``, ``residual``, ``trimmed_faces``, ``backend``
+        ``iso_value``, ``solver_iterations``, ``residual``, ``trimmed_faces``, ``trimmed_area``, ``backend``
         (the solver keys are None for the reference backends).
     """
     from recon_cli.stages import StageResult
@@ -396,7 +400,8 @@ def run_stage(
             colors=cloud.colors, progress=progress,
         )
         mesh, rep = res.mesh, res.report
-        report = {k: rep[k] for k in ("vertices", "faces", "depth", "iso_value", "solver_iterations", "residual", "trimmed_faces")}
+        report = {k: rep[k] for k in ("vertices", "faces", "depth", "iso_value", "solver_iterations", "residual", "trimmed_faces",
+                                      "trimmed_area")}
         report["samples"] = rep["samples"]
         report["ignored_points"] = rep["ignored_points"]
         report["tree_depth"] = rep["tree_depth"]
@@ -414,16 +419,25 @@ def run_stage(
         else:
             mesh, dens = mod.poisson(clean, depth=depth, scale=scale, samples_per_node=samples_per_node, point_weight=point_weight), None
         mesh.vertices = mesh.vertices + centre
-        trimmed = 0
+        trimmed, trimmed_area = 0, 0.0
         if trim > 0 and len(mesh.faces):
-            from recon_cli.poisson.extract import trim_low_density
+            from scipy.spatial import cKDTree
 
-            mesh, dens, trimmed = trim_low_density(mesh, dens, trim)
+            from recon_cli.poisson.trim import trim_by_density
+
+            # the density at the samples: Open3D's at the vertex nearest each sample
+            at_samples = dens[cKDTree(mesh.vertices).query(pts, workers=-1)[1]]
+            cut = trim_by_density(mesh, dens, trim * float(np.median(at_samples)))
+            if len(cut.mesh.faces) == 0:
+                raise ParameterError(f"trim {trim:g} removes the whole surface: use a smaller value")
+            trimmed = len(mesh.faces) - cut.untouched_faces
+            mesh, dens, trimmed_area = cut.mesh, cut.density, cut.removed_area
         if density and dens is not None:
             mesh.attributes["density"] = dens
         report = {
-            "vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)), "depth": depth,
+            "vertices": len(mesh.vertices), "faces": len(mesh.faces), "depth": depth,
             "iso_value": None, "solver_iterations": None, "residual": None, "trimmed_faces": int(trimmed),
+            "trimmed_area": trimmed_area,
         }
     mesh.history = history
     mesh.point_dtype = cloud.point_dtype  # double in, double out (float32 in: see geometry.storage_dtype)

@@ -1,10 +1,9 @@
-"""Extraction of the level set over the tree, and the density trim."""
+"""Extraction of the level set over the tree."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from recon_cli.geometry import TriangleMesh
 from recon_cli.mcubes import marching_cubes_sparse
 from recon_cli.poisson import _extract as E
 from recon_cli.poisson.octree import Level
@@ -50,73 +49,3 @@ def extract(levels: list[Level], gvals: list[np.ndarray], iso: float, origin: np
     verts, faces = marching_cubes_sparse(cells, vals, -iso, origin=tuple(origin), spacing=size / res)
     del cells, vals
     return verts, faces
-
-
-def trim_low_density(mesh: TriangleMesh, vdens: np.ndarray, q: float) -> tuple[TriangleMesh, np.ndarray, int]:
-    """Drop the surface of the lowest-density ``q`` fraction of vertices; keep it manifold.
-
-    A vertex is low when its density is at most the ``q`` quantile of the vertex densities;
-    a face goes when at least two of its vertices are low; vertices left with several fans
-    are split, unreferenced ones removed. A plateau at the threshold goes whole: on an
-    open scan most of the closing sheet has density exactly 0, and ranking ties by index
-    would keep an arbitrary part of it.
-    """
-    low = vdens <= np.quantile(vdens, q)
-    keepf = low[mesh.faces].sum(axis=1) < 2
-    faces = mesh.faces[keepf]
-    faces, src = split_nonmanifold_vertices(faces, len(mesh.vertices))
-    used = np.unique(faces)
-    remap = np.full(len(src), -1, np.int64)
-    remap[used] = np.arange(len(used))
-    out = TriangleMesh(vertices=mesh.vertices[src[used]], faces=remap[faces], history=list(mesh.history))
-    return out, vdens[src[used]], int((~keepf).sum())
-
-
-def split_nonmanifold_vertices(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
-    """Give each fan of faces around a vertex its own copy of the vertex.
-
-    Returns the new faces and, per new vertex, its source vertex.
-    """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    m = len(faces)
-    if m == 0:
-        return faces, np.arange(n_vertices)
-    # corners (face, k) sharing a vertex are linked when their faces share an edge at it
-    corner_v = faces.reshape(-1)
-    ids = np.arange(3 * m)
-    # each half-edge (a -> b) of face f links corner (f, a) with the corner of vertex a in the
-    # face across the edge, found through the sorted edge key
-    a = faces.reshape(-1)
-    b = faces[:, [1, 2, 0]].reshape(-1)
-    lo_ = np.minimum(a, b)
-    hi_ = np.maximum(a, b)
-    ekey = lo_ * n_vertices + hi_
-    order = np.argsort(ekey, kind="stable")
-    ek = ekey[order]
-    same = np.nonzero(ek[1:] == ek[:-1])[0]
-    h1 = order[same]
-    h2 = order[same + 1]
-    # half-edge h = 3f + k goes from corner 3f + k to corner 3f + (k+1)%3
-    def corner_of(h, v):
-        f = h // 3
-        k = np.where(faces[f, 0] == v, 0, np.where(faces[f, 1] == v, 1, 2))
-        return 3 * f + k
-
-    rows, cols = [], []
-    for end in (lo_, hi_):
-        v1 = end[h1]
-        rows.append(corner_of(h1, v1))
-        cols.append(corner_of(h2, v1))
-    rows = np.concatenate(rows)
-    cols = np.concatenate(cols)
-    g = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(3 * m, 3 * m))
-    _, lab = connected_components(g, directed=False)
-    # one new vertex per (vertex, fan)
-    key = corner_v.astype(np.int64) * (3 * m) + lab
-    _, first, newv = np.unique(key, return_index=True, return_inverse=True)
-    src = np.concatenate([corner_v[first], np.setdiff1d(np.arange(n_vertices), corner_v)])
-    del ids
-    return newv.reshape(-1, 3).astype(np.int64), src
-
