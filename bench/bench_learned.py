@@ -3,7 +3,10 @@
 The issue's targets (section ``learned``): kitten and armadillo, 100k area-uniform samples
 with true normals (seed 0), at most 5 minutes of training: F-score at 1 % of the diagonal
 >= 0.95 against the true mesh, Chamfer-L1 <= 2x Poisson depth 8's, and |‖∇s‖ − 1| <= 0.1
-on >= 90 % of the grid samples within 5 % of the diagonal from the surface. A 10 % hole
+on >= 90 % of the grid samples within 5 % of the diagonal from the surface (central differences
+on the written grid, as ``recon info``; autodiff at the same samples agrees within a point,
+and the exact distance to the true mesh on the same 256^3 grid scores 99.2 % on kitten and
+97.6 % on armadillo, whose medial axis comes within the band: the metric's ceiling). A 10 % hole
 (the samples nearest to one random surface point, 10 % of them, cut away): Chamfer on the
 rest and the distance from the cut-away part of the true surface to the fitted surface.
 
@@ -14,6 +17,7 @@ of the whole stage: training, grid at 256^3, marching cubes).
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -49,10 +53,14 @@ def _fit_metrics(cloud, truth, seconds, res, hole=None):
 
     v, f, _ = marching_cubes(grid.sdf, spacing=grid.voxel_size, origin=grid.origin)
     mesh = TriangleMesh(vertices=v, faces=f)
+    from recon_cli.mesh.topology import report
+
+    topo = report(mesh)
     tsamp = sample_surface(truth, N_EVAL, seed=1).points
     msamp = sample_surface(mesh, N_EVAL, seed=2).points
     out = {"iterations": r.report["iterations"], "train_s": r.report["train_seconds"],
-           "eik": r.report["eikonal_near"]["fraction_within_0.1"]}
+           "eik": r.report["eikonal_near"]["fraction_within_0.1"], "components": topo.get("components"),
+           "genus": topo.get("genus"), "load": os.getloadavg()[0]}
     if hole is None:
         out["chamfer"], out["f1"] = _chamfer_f(msamp, tsamp, 0.01 * diag)
     else:
@@ -108,7 +116,9 @@ def rows(quick: bool) -> list[dict]:
         ok = o["f1"] >= 0.95 and o["chamfer"] <= 2 * p["chamfer"] and o["eik"] >= 0.9
         note = (f"F@1% {o['f1']:.4f} (Poisson {p['f1']:.4f}); Chamfer-L1 {o['chamfer'] / o['diag']:.3g} diag = "
                 f"{o['chamfer'] / p['chamfer']:.2f}x Poisson d8; eikonal within 0.1 on {100 * o['eik']:.1f}% of "
-                f"samples within 5% diag; {o['iterations']} steps in {o['train_s']:.0f}s; "
+                f"samples within 5% diag; {o['iterations']} steps in {o['train_s']:.0f}s "
+                f"({o['iterations'] / o['train_s']:.1f}/s, load {o['load']:.1f}); "
+                f"{o['components']} component(s), genus {o['genus']}; "
                 f"targets F>=0.95, <=2x, >=90%: {'met' if ok else 'NOT met'}")
         out.append(row("fit-sdf", f"{name} 100k samples + true normals, {seconds:.0f}s training, {res}^3 grid",
                        ours, "poisson d8 (ours)", ref, note=note))
@@ -123,7 +133,8 @@ def rows(quick: bool) -> list[dict]:
             if isinstance(h, dict):
                 note = (f"hole radius {radius / h['diag']:.3f} diag; Chamfer-L1 on the rest {h['chamfer'] / h['diag']:.3g} "
                         f"diag, F@1% {h['f1']:.4f}; cut-away true surface to fitted surface: mean "
-                        f"{h['hole_mean']:.3g}, max {h['hole_max']:.3g} diag")
+                        f"{h['hole_mean']:.3g}, max {h['hole_max']:.3g} diag; {h['components']} component(s), genus "
+                        f"{h['genus']}; {h['iterations']} steps in {h['train_s']:.0f}s")
             else:
                 note = f"FAILED {h!r}"
             out.append(row("fit-sdf", f"{name} with a 10% hole, {min(seconds, 150.0):.0f}s training", hm, note=note))

@@ -7,6 +7,15 @@ only when stderr is a terminal and ``--quiet`` is off. ``None`` means silent. St
     with task(progress, "estimating normals", total=n) as t:
         t.advance(k)          # weighted by work: ``total`` is in the stage's own units
 
+A step done by one long call (a numba kernel) announces its work first, so that the bar
+keeps moving while the call runs::
+
+    with task(progress, "poisson: solve", total=sum(work)) as t:
+        for w in work:
+            t.expect(w)       # the bar moves on an estimate (the rate of the steps so far)
+            ...               # until the step's advance
+            t.advance(w)
+
 A task with a total shows a bar, the percentage, the elapsed time and an estimate of the
 time left; one without a total shows a spinner and the elapsed time. The display is
 redrawn by rich's own thread, so it keeps moving while a kernel runs.
@@ -143,19 +152,28 @@ class Progress:
 
 
 class _Task:
+    TICK = 0.125  # seconds between the estimated moves of an expected step
+
     def __init__(self, progress: Progress, name: str, total: float | None):
         self.p = progress
         self.name = name
         self.total = total
         self.done = 0.0
         self._id: Any = None
+        self._t0 = 0.0
+        self._ticker: threading.Thread | None = None
+        self._stop = threading.Event()
 
     def __enter__(self) -> "_Task":
+        import time
+
         bars = self.p._acquire()
         self._id = bars.add_task(self.name, total=self.total if self.total else None)
+        self._t0 = time.perf_counter()
         return self
 
     def __exit__(self, *exc) -> None:
+        self._end_step()
         bars = self.p._bars
         if bars is not None and self._id is not None:
             if self.total:
@@ -166,16 +184,52 @@ class _Task:
         self.p._release()
 
     def advance(self, amount: float = 1.0) -> None:
+        self._end_step()
         self.done += amount
         bars = self.p._bars
         if bars is not None:
             bars.update(self._id, completed=self.done)
 
     def update(self, done: float) -> None:
+        self._end_step()
         self.done = done
         bars = self.p._bars
         if bars is not None:
             bars.update(self._id, completed=done)
+
+    def expect(self, amount: float) -> None:
+        """The next ``amount`` units of work run now, in one call that reports nothing (a
+        kernel): until the next :meth:`advance` (or :meth:`update`) the bar moves on at the
+        rate of the work done so far, stopping short of the step's end (never past it, nor
+        backwards). Before any work is done there is no rate: the bar waits (the spinner and
+        the elapsed time still move). Moves need the call to release the GIL (``nogil``
+        kernels); otherwise the bar catches up when it returns."""
+        import time
+
+        self._end_step()
+        elapsed = time.perf_counter() - self._t0
+        if amount <= 0 or self.done <= 0 or elapsed <= 0 or self.p._bars is None:
+            return
+        rate = self.done / elapsed
+        start, base = time.perf_counter(), self.done
+        stop = self._stop = threading.Event()
+
+        def tick() -> None:
+            while not stop.wait(self.TICK):
+                bars = self.p._bars
+                if bars is None:
+                    return
+                guess = base + min(0.95 * amount, rate * (time.perf_counter() - start))
+                bars.update(self._id, completed=guess)
+
+        self._ticker = threading.Thread(target=tick, name="recon-progress", daemon=True)
+        self._ticker.start()
+
+    def _end_step(self) -> None:
+        if self._ticker is not None:
+            self._stop.set()
+            self._ticker.join()
+            self._ticker = None
 
 
 def task(progress: Progress | None, name: str, total: float | None = None):
@@ -196,4 +250,7 @@ class _Silent:
         return None
 
     def update(self, done: float) -> None:
+        return None
+
+    def expect(self, amount: float) -> None:
         return None

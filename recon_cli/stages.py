@@ -142,7 +142,8 @@ def get_spec(name: str) -> StageSpec:
     ParameterError
         Unknown stage, or a stage whose module cannot be imported.
     """
-    _read_entry_points()
+    if name not in STAGES:  # a plugin's name: entry points cannot shadow a known stage, so
+        _read_entry_points()  # a known one needs no scan of the installed packages' metadata
     if name not in STAGES:
         raise ParameterError(f"unknown stage {name!r} (stages: {', '.join(stage_names())})")
     target = STAGES[name]

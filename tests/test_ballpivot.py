@@ -159,6 +159,41 @@ def test_auto_radii_rule():
     np.testing.assert_allclose(auto_radii(np.r_[pts, pts]), [0.2, 0.4], rtol=1e-9)
 
 
+@pytest.mark.parametrize("seed", range(16))
+def test_nn_spacing_is_the_exact_median_nearest_positive_distance(seed):
+    """nn_spacing (our grid, no k-d tree) equals the brute-force median distance to the
+    nearest point at a positive distance, on blobs, flat and thin sheets, lines, clouds with
+    many exact duplicates, far from the origin and at any scale."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(3, 1500))
+    kind = seed % 5
+    if kind == 0:
+        pts = rng.normal(size=(n, 3))
+    elif kind == 1:  # a sheet, very thin along one axis
+        pts = np.c_[rng.uniform(size=(n, 2)), rng.uniform(size=n) * 1e-6]
+    elif kind == 2:  # a line
+        pts = np.outer(rng.uniform(size=n), rng.normal(size=3))
+    elif kind == 3:  # half the points one repeated point
+        pts = rng.normal(size=(n, 3))
+        pts[: n // 2] = pts[0]
+    else:  # a cluster far from the origin
+        pts = rng.normal(size=(n, 3)) * 1e-3 + 1e6
+    pts = pts * 10.0 ** rng.uniform(-4, 4) @ np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    gap = np.sqrt(((pts[:, None, :] - pts[None, :, :]) ** 2).sum(-1))
+    gap[gap == 0] = np.inf
+    nearest = gap.min(axis=1)
+    want = float(np.median(nearest[np.isfinite(nearest)])) if np.isfinite(nearest).any() else 0.0
+    assert nn_spacing(pts) == pytest.approx(want, rel=1e-12, abs=0)
+    # one point far from all others: its distance is in the median, or the point is left out
+    # (no other point within SPACING_RINGS cells of it)
+    far = np.r_[pts, [pts.min(axis=0) + 1e3 * (np.ptp(pts, axis=0).max() + 1e-9)]]
+    gap = np.sqrt(((far[:, None, :] - far[None, :, :]) ** 2).sum(-1))
+    gap[gap == 0] = np.inf
+    nearest = gap.min(axis=1)
+    with_far = float(np.median(nearest[np.isfinite(nearest)]))
+    assert nn_spacing(far) in (pytest.approx(with_far, rel=1e-12, abs=0), pytest.approx(want, rel=1e-12, abs=0))
+
+
 # ---------------------------------------------------------------- cross-checks
 @pytest.mark.slow
 def test_cross_check_open3d_pymeshlab_chamfer():

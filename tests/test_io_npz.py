@@ -91,6 +91,7 @@ def test_info_on_odd_grids(tmp_path, capsys, kind):
         ("claims_4000_cubed", "the file is shorter"),
         ("missing_voxel", "lacks 'voxel_size'"),
         ("truncated", "corrupt grid file"),
+        ("flipped_byte", "CRC"),
     ],
 )
 def test_bad_grid_files_are_refused(tmp_path, capsys, case, message):
@@ -120,6 +121,13 @@ def test_bad_grid_files_are_refused(tmp_path, capsys, case, message):
     elif case == "truncated":
         save(path, ok)
         path.write_bytes(path.read_bytes()[:200])
+    elif case == "flipped_byte":  # one bit of the stored samples changed: the member's CRC says so
+        values = np.arange(64, dtype=np.float32).reshape(4, 4, 4)
+        save(path, values)
+        raw = bytearray(path.read_bytes())
+        at = raw.find(values.tobytes()) + 37
+        raw[at] ^= 0x10
+        path.write_bytes(bytes(raw))
     out = tmp_path / "out.ply"
     for args in (("info", path), ("mcubes", path, out)):
         code, stdout, err = run(capsys, *args)
@@ -150,6 +158,13 @@ def test_round_trip_and_compressed(tmp_path):
     assert np.array_equal(back.sdf, g.sdf) and np.array_equal(back.origin, g.origin) and back.history == ["a"]
     np.savez_compressed(tmp_path / "c.npz", sdf=g.sdf, origin=g.origin, voxel_size=np.float64(0.5))
     assert np.array_equal(read_grid(tmp_path / "c.npz").sdf, g.sdf)
+    # stored members read straight into the array: any layout and byte order numpy writes
+    values = np.random.default_rng(1).normal(size=(3, 4, 5))
+    for sdf in (np.asfortranarray(values), values.astype(">f4"), values.astype(np.float64), values[:, ::2].copy()):
+        np.savez(tmp_path / "s.npz", sdf=sdf, origin=g.origin, voxel_size=np.float64(0.5))
+        back = read_grid(tmp_path / "s.npz")
+        assert back.sdf.dtype == np.float32 and np.array_equal(back.sdf, sdf.astype(np.float32))
+        assert np.array_equal(read_grid("-", (tmp_path / "s.npz").read_bytes()).sdf, back.sdf)
 
 
 @pytest.mark.parametrize("kind", ["constant", "all_nan", "one_sample", "nan_where_it_crosses"])

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import recon_cli
+from recon_cli._kernels.numba_setup import kernel_sources_fingerprint
 
 PACKAGE = Path(recon_cli.__file__).resolve().parent
 SETUP_IMPORT = "from recon_cli._kernels import numba_setup"
@@ -25,6 +26,8 @@ def test_every_kernel_module_imports_numba_setup_before_its_first_kernel():
         text = f.read_text(encoding="utf-8")
         assert SETUP_IMPORT in text, f"{f.relative_to(PACKAGE)} does not import numba_setup"
         assert text.index(SETUP_IMPORT) < text.index("\n@njit"), f"{f.relative_to(PACKAGE)}: import numba_setup first"
+        # the cache fingerprint covers private modules and _kernels/ only
+        assert f.name.startswith("_") or f.parent.name == "_kernels", f"{f.relative_to(PACKAGE)}: kernels live in private modules"
 
 
 def _run(code: str, env: dict) -> str:
@@ -43,7 +46,7 @@ CALL_KERNEL = (
 
 def test_cache_goes_to_xdg_cache_home_not_the_package(tmp_path):
     out = _run(CALL_KERNEL, {"XDG_CACHE_HOME": str(tmp_path), "HOME": str(tmp_path / "home")})
-    cache = tmp_path / "recon" / "numba"
+    cache = tmp_path / "recon" / "numba" / kernel_sources_fingerprint()
     assert out.strip() == str(cache)
     written = list(cache.rglob("*.nbi"))
     assert any("arrays" in p.name and "grow1" in p.name for p in written), written
@@ -60,5 +63,51 @@ def test_numba_cache_dir_is_honoured(tmp_path):
 def test_cache_set_even_when_numba_was_imported_first(tmp_path):
     code = "import numba\n" + CALL_KERNEL
     out = _run(code, {"XDG_CACHE_HOME": str(tmp_path)})
-    assert out.strip() == str(tmp_path / "recon" / "numba")
-    assert list((tmp_path / "recon" / "numba").rglob("*grow1*.nbi"))
+    cache = tmp_path / "recon" / "numba" / kernel_sources_fingerprint()
+    assert out.strip() == str(cache)
+    assert list(cache.rglob("*grow1*.nbi"))
+
+
+def test_any_kernel_source_change_gets_a_cache_of_its_own(tmp_path):
+    # numba keys an entry by its own file only: a kernel calling into a changed module would
+    # keep stale machine code; the fingerprint moves the whole cache when any kernel source changes
+    pkg = tmp_path / "pkg"
+    (pkg / "_kernels").mkdir(parents=True)
+    (pkg / "stage").mkdir()
+    files = {"_kernels/arrays.py": "a", "stage/_kernel.py": "k", "stage/__init__.py": "i", "stage/public.py": "p"}
+    for name, text in files.items():
+        (pkg / name).write_text(text)
+    base = kernel_sources_fingerprint(str(pkg))
+    assert base == kernel_sources_fingerprint(str(pkg)) and len(base) == 16
+    for name in ("_kernels/arrays.py", "stage/_kernel.py"):
+        f = pkg / name
+        st = f.stat()
+        os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
+        changed = kernel_sources_fingerprint(str(pkg))
+        assert changed != base, name
+        base = changed
+    (pkg / "stage" / "_more.py").write_text("new")  # a new kernel module
+    assert kernel_sources_fingerprint(str(pkg)) != base
+    base = kernel_sources_fingerprint(str(pkg))
+    for name in ("stage/__init__.py", "stage/public.py"):  # no kernels there: no recompiling
+        f = pkg / name
+        os.utime(f, ns=(f.stat().st_atime_ns, f.stat().st_mtime_ns + 1_000_000))
+        assert kernel_sources_fingerprint(str(pkg)) == base, name
+
+
+def test_numpy_submodules_numba_would_load_stay_lazy_until_used():
+    """numba's start-up (through scipy.linalg) star-imports numpy; numpy.f2py and numpy.testing
+    are not executed by it, and work as usual when first used."""
+    code = (
+        "import sys, numpy as np\n"
+        "from recon_cli._kernels.arrays import grow1\n"
+        "grow1(np.arange(3.0), 5)\n"
+        "assert 'scipy.linalg' in sys.modules\n"  # numba's BLAS check ran
+        "print(sorted(m for m in sys.modules if m.startswith(('numpy.f2py.', 'numpy.testing.'))))\n"
+        "np.testing.assert_allclose(np.ma.masked_array([1.0, 2.0], mask=[0, 1]).sum(), 1.0)\n"
+        "from numpy.f2py import crackfortran\n"
+        "print(sorted(m for m in sys.modules if m.startswith(('numpy.testing.', 'numpy.f2py.')))[:2])\n"
+    )
+    before, after = _run(code, {}).splitlines()
+    assert before == "[]"
+    assert after != "[]"

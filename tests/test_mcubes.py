@@ -260,6 +260,42 @@ def test_nan_cells_are_skipped():
     assert np.abs(np.linalg.norm(v, axis=1) - 0.7).max() < 0.05 * h
 
 
+@pytest.mark.parametrize("seed", range(12))
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_skipped_rows_and_left_out_cells(seed, dtype):
+    """Rows of cells with no crossing are skipped whole, rows with NaN or infinite samples
+    are not: the dense mesh equals the sparse one over every cell (which skips nothing),
+    and the stage reports exactly the cells with a NaN corner."""
+    from recon_cli.grid import Grid
+    from recon_cli.stages import apply_stage
+
+    rng = np.random.default_rng(seed)
+    shape = tuple(int(k) for k in rng.integers(3, 11, size=3))
+    vol = rng.normal(size=shape)
+    for _ in range(rng.integers(0, 12)):  # whole rows along the last axis on one side
+        i, j = rng.integers(0, shape[0]), rng.integers(0, shape[1])
+        vol[i, j, :] = rng.choice([-1.0, 1.0]) * rng.uniform(0.5, 2.0, shape[2])
+    if seed % 3 == 0:  # whole slabs on one side: long runs of skipped rows
+        vol[: shape[0] // 2] = np.abs(vol[: shape[0] // 2]) * (1 if seed % 2 else -1)
+    if seed % 4:
+        vol.flat[rng.choice(vol.size, size=rng.integers(1, 6), replace=False)] = np.nan
+    vol = vol.astype(dtype)
+    cells, vals = all_cells(vol.astype(np.float64))
+    left_out = int(np.isnan(vals.sum(axis=1)).sum())
+    v, f, _ = marching_cubes(vol)
+    vs, fs = marching_cubes_sparse(cells, vals)
+    assert len(v) == len(vs) and len(f) == len(fs)
+    if len(f):
+        assert np.isfinite(v).all()
+        assert np.allclose(np.sort(v, axis=0), np.sort(vs, axis=0))
+    grid = Grid(sdf=vol, origin=(0.0, 0.0, 0.0), voxel_size=1.0)
+    if len(f):
+        assert apply_stage("mcubes", grid, {}).report["skipped_nan_cells"] == left_out
+    else:
+        with pytest.raises(InputError):
+            apply_stage("mcubes", grid, {})
+
+
 def test_marching_tetrahedra_closed():
     vol, h = sphere(30)
     v, f, n = marching_cubes(vol, spacing=h, origin=(-1, -1, -1), method="mt")

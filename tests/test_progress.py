@@ -64,3 +64,49 @@ def test_compiling_is_announced_while_numba_compiles():
     before = buf.getvalue()
     assert plus_two(1) == 3
     assert buf.getvalue() == before
+
+
+def test_expected_step_moves_on_the_rate_so_far_and_never_past_its_end():
+    import time
+
+    buf = io.StringIO()
+    p = Progress(stream=buf, enabled=True)
+    with task(p, "levels", 100) as t:
+        t.expect(10)  # no work done yet: no rate, the bar waits
+        time.sleep(0.3)
+        assert p._bars.tasks[0].completed == 0
+        t.advance(10)
+        t.expect(80)  # a long step: moves at the rate so far (~30 units/s here)
+        seen = []
+        for _ in range(8):
+            time.sleep(0.15)
+            seen.append(p._bars.tasks[0].completed)
+        assert 10 < seen[-1] <= 10 + 0.95 * 80
+        assert seen == sorted(seen)  # never backwards
+        t.advance(80)
+        assert p._bars.tasks[0].completed == 90
+        t.expect(10)
+        t.expect(0)  # a new expectation ends the previous one
+        assert t._ticker is None
+        t.advance(10)
+    p.close()
+    assert "100%" in buf.getvalue()
+    with task(None, "silent") as t:
+        t.expect(5)
+        t.advance(5)
+
+
+def test_poisson_solve_bar_is_weighted_by_each_levels_work():
+    """The exact levels and the big fine levels weigh what they cost: the solve's work
+    estimate follows the level sizes, not one unit per level."""
+    from types import SimpleNamespace
+
+    from recon_cli.poisson.system import solve_work
+
+    nodes = [8, 27, 125, 729, 4913, 35937, 43845, 149983, 476578]  # the sample scan at depth 8
+    levels = [SimpleNamespace(depth=d, n_nodes=n) for d, n in enumerate(nodes)]
+    w = solve_work(levels, full_depth=5)
+    share = [x / sum(w) for x in w]
+    # measured seconds per level on that scan: 0.17 0.11 0.08 0.07 0.12 0.77 0.25 0.60 1.09
+    assert max(share[:5]) < 0.06 and share[5] > 0.15 and share[8] > 0.35
+    assert share[8] > share[7] > share[6]

@@ -7,6 +7,7 @@ counts numba's compile events.
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import subprocess
@@ -59,6 +60,9 @@ def test_no_command_compiles_after_warmup(tmp_path):
     report = json.loads(warm.stdout)
     assert report["failed"] == [] and report["cache_dir"] == str(tmp_path / "cache")
     assert set(report["uncompiled"]) <= UNUSED, set(report["uncompiled"]) - UNUSED
+    assert report["bytecode"] is True  # every module's .pyc written: no command compiles Python source
+    for module in ("recon_cli/ballpivot/__init__.py", "recon_cli/mcubes/_kernel.py", "recon_cli/cli/main.py"):
+        assert Path(importlib.util.cache_from_source(str(ROOT / module))).is_file(), module
     after = subprocess.run(
         [sys.executable, "-c", AFTER, str(tmp_path), str(ROOT / "sample_data" / "bunny_scan_000.ply"),
          str(shared_path("kitten"))],

@@ -9,10 +9,17 @@ Cache directory
 Compiled kernels are cached in one per-user directory, so that a command compiles nothing
 after ``recon warmup`` (run by ``make install``) even when the package directory is
 read-only (a system-wide or container install): ``$NUMBA_CACHE_DIR`` when set (numba's own
-variable, honoured as is), else ``$XDG_CACHE_HOME/recon/numba``, else
-``~/.cache/recon/numba``. The variable is also exported, so worker processes (Dask, the
-test-suite's subprocesses) share the cache. Numba keys each entry by the kernel's source
-file (path and modification time), so several checkouts share the directory safely.
+variable, honoured as is), else ``$XDG_CACHE_HOME/recon/numba/<fingerprint>``, else
+``~/.cache/recon/numba/<fingerprint>``. The variable is also exported, so worker processes
+(Dask, the test-suite's subprocesses) share the cache.
+
+Numba keys each entry by the kernel's own source file (path and modification time) only: a
+kernel that calls a function of another module keeps its old machine code when only that
+module changes (an upgrade, a ``git pull``) — silently wrong results. The fingerprint (of
+the path, size and modification time of every module that can hold kernels: the private
+``_*.py`` modules and ``_kernels/``) puts the cache of each state of the sources in a
+directory of its own, so any change to any kernel source compiles everything afresh. With
+an explicit ``$NUMBA_CACHE_DIR`` that invalidation is the user's (numba's own behaviour).
 
 Threading layer
 ---------------
@@ -29,14 +36,63 @@ import os
 import sys
 
 
+def kernel_sources_fingerprint(root: str | None = None) -> str:
+    """16 hex digits naming the state of the modules that can hold kernels under ``root``
+    (default: the recon_cli package): private ``_*.py`` modules and everything in ``_kernels/``
+    (path, size and modification time; a stat per file, about a millisecond)."""
+    import hashlib
+
+    root = root or os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    h = hashlib.blake2b(digest_size=8)
+    for folder, dirs, files in os.walk(root):
+        dirs[:] = sorted(d for d in dirs if d != "__pycache__")
+        in_kernels = os.path.basename(folder) == "_kernels"
+        for name in sorted(files):
+            if name.endswith(".py") and (in_kernels or (name.startswith("_") and not name.startswith("__"))):
+                path = os.path.join(folder, name)
+                st = os.stat(path)
+                h.update(f"{os.path.relpath(path, root)}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+    return h.hexdigest()
+
+
 def cache_dir() -> str:
     """The directory of recon's numba cache (see the module docstring)."""
     explicit = os.environ.get("NUMBA_CACHE_DIR")
     if explicit:
         return explicit
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return os.path.join(base, "recon", "numba")
+    return os.path.join(base, "recon", "numba", kernel_sources_fingerprint())
 
+
+# numpy submodules recon never uses that numba's start-up loads anyway: numba checks for
+# BLAS by importing scipy.linalg, whose array-API layer star-imports numpy (numpy 2 loads its
+# submodules on attribute access, so ``from numpy import *`` loads them all): f2py and testing
+# are never used by recon (numba itself uses numpy.ma, so that one stays). Registered as
+# lazy modules they cost nothing until something reads one of their attributes (then they
+# load as usual). About 50 ms of CPU per process, a tenth of numba's floor.
+_LAZY_NUMPY = ("numpy.f2py", "numpy.testing")
+
+
+def _lazy_numpy_submodules() -> None:
+    import importlib.util
+
+    import numpy
+
+    for name in _LAZY_NUMPY:
+        if name in sys.modules:
+            continue
+        spec = importlib.util.find_spec(name)
+        if spec is None or spec.loader is None:
+            continue
+        spec.loader = importlib.util.LazyLoader(spec.loader)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+        setattr(numpy, name.rpartition(".")[2], module)
+
+
+if "scipy.linalg" not in sys.modules:
+    _lazy_numpy_submodules()
 
 CACHE_DIR = cache_dir()
 os.environ["NUMBA_CACHE_DIR"] = CACHE_DIR

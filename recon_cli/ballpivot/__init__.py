@@ -52,6 +52,9 @@ from recon_cli.tolerances import tol
 
 AUTO_MULTIPLES = (2.0, 4.0)
 AUTO_SAMPLE = 200_000
+# nn_spacing: a point with no other point within this many grid cells is an outlier, left
+# out of the median (the cell is ~2x the spacing of a sample as dense as the cloud's extent)
+SPACING_RINGS = 16
 BACKENDS = ("native", "open3d", "pymeshlab")
 # radii above this multiple of the bounding-box diagonal are rejected (a ball that large
 # only ever sees the convex hull)
@@ -93,25 +96,32 @@ def nn_spacing(points: np.ndarray) -> float:
     float
         Median over (at most :data:`AUTO_SAMPLE` evenly strided) points of the distance to the
         nearest point at a positive distance, in the units of ``points``; 0.0 if all points
-        coincide.
-    """
-    from scipy.spatial import cKDTree
+        coincide. Points with no other point within :data:`SPACING_RINGS` grid cells (far
+        outliers) are left out of the median.
 
-    pts = np.asarray(points, dtype=np.float64)
-    tree = cKDTree(pts)
-    step = max(1, len(pts) // AUTO_SAMPLE)
-    q = pts[::step]
-    k = 2
-    while True:
-        d, _ = tree.query(q, k=min(k, len(pts)))
-        d = np.where(d > 0, d, np.inf).min(axis=1)
-        ok = np.isfinite(d)
-        if ok.mean() > 0.99 or k >= min(64, len(pts)):
-            break
-        k *= 2  # many exact duplicates: look further for a positive distance
-    if not ok.any():
+    Notes
+    -----
+    Exact nearest distances from a uniform grid (our ball-pivoting grid kernels; no k-d tree
+    to import): the cell is twice the spacing a sample covering the bounding box's largest
+    face would have, ``2 * extent / sqrt(n)``, and each query scans shells of cells until its
+    nearest point is known.
+    """
+    from recon_cli.ballpivot import _kernel as K
+
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    lo = pts.min(axis=0)
+    extent = pts.max(axis=0) - lo
+    if not extent.max() > 0:
         return 0.0
-    return float(np.median(d[ok]))
+    cell = 2.0 * float(extent.max()) / np.sqrt(len(pts))
+    dims = (np.floor(extent / cell) + 1).astype(np.int64)
+    ukeys, ustart, _, spts = K.build_grid(pts, lo, cell, dims)
+    step = max(1, len(pts) // AUTO_SAMPLE)
+    d = K.nearest_positive(ukeys, ustart, spts, lo, cell, dims, np.ascontiguousarray(pts[::step]), SPACING_RINGS)
+    d = d[np.isfinite(d)]
+    if not len(d):
+        return 0.0
+    return float(np.median(d))
 
 
 def auto_radii(points: np.ndarray) -> list[float]:

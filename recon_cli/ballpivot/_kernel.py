@@ -100,6 +100,63 @@ def gather(ukeys, ustart, sidx, spts, lo, cell, dims, qx, qy, qz, r, out):
 
 
 @njit(cache=True)
+def _cell_of(x, lo, cell, dim):
+    return min(max(int((x - lo) / cell), 0), dim - 1)
+
+
+@njit(cache=True)
+def nearest_positive(ukeys, ustart, spts, lo, cell, dims, queries, max_rings):
+    """Distance from each query to the nearest grid point at a positive distance (inf if none
+    within ``max_rings`` rings of cells).
+
+    Shells of cells at growing Chebyshev distance r around the query's cell are scanned
+    until the best distance found is at most ``r * cell``: the cells within r of the query's
+    cell hold every point closer than that, so the answer is exact. For each (x, y) column
+    of a shell the occupied cells of the z range are one run of the sorted keys (one binary
+    search per column).
+    """
+    m = queries.shape[0]
+    out = np.empty(m, np.float64)
+    nu = ukeys.shape[0]
+    for q in range(m):
+        qx = queries[q, 0]
+        qy = queries[q, 1]
+        qz = queries[q, 2]
+        cx = _cell_of(qx, lo[0], cell, dims[0])
+        cy = _cell_of(qy, lo[1], cell, dims[1])
+        cz = _cell_of(qz, lo[2], cell, dims[2])
+        best = np.inf
+        r = 0
+        while True:
+            for ix in range(max(cx - r, 0), min(cx + r, dims[0] - 1) + 1):
+                for iy in range(max(cy - r, 0), min(cy + r, dims[1] - 1) + 1):
+                    side = abs(ix - cx) == r or abs(iy - cy) == r
+                    z0 = max(cz - r, 0)
+                    z1 = min(cz + r, dims[2] - 1)
+                    base = (ix * dims[1] + iy) * dims[2]
+                    u = np.searchsorted(ukeys, base + z0)
+                    while u < nu and ukeys[u] <= base + z1:
+                        iz = ukeys[u] - base
+                        if side or iz == cz - r or iz == cz + r:  # inner columns: the two end cells only
+                            for t in range(ustart[u], ustart[u + 1]):
+                                dx = spts[t, 0] - qx
+                                dy = spts[t, 1] - qy
+                                dz = spts[t, 2] - qz
+                                d2 = dx * dx + dy * dy + dz * dz
+                                if d2 > 0.0 and d2 < best:
+                                    best = d2
+                        u += 1
+            reach = r * cell
+            if best <= reach * reach or r >= max_rings:
+                break
+            if cx - r <= 0 and cy - r <= 0 and cz - r <= 0 and cx + r >= dims[0] - 1 and cy + r >= dims[1] - 1 and cz + r >= dims[2] - 1:
+                break  # the whole grid was scanned
+            r += 1
+        out[q] = np.sqrt(best)
+    return out
+
+
+@njit(cache=True)
 def mark_duplicates(ustart, sidx, spts, tol2):
     """Flag every point within sqrt(tol2) of an earlier kept point of its grid cell."""
     n = sidx.shape[0]

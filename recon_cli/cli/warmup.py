@@ -15,7 +15,8 @@ def cmd(ctx, json_):
 
     `make install` runs it; after `pip install recon`, run it once (about a minute on two
     cores): otherwise the first run of each command compiles its kernels. The cache is
-    $NUMBA_CACHE_DIR if set, else $XDG_CACHE_HOME/recon/numba (~/.cache/recon/numba).
+    $NUMBA_CACHE_DIR if set, else $XDG_CACHE_HOME/recon/numba/<fingerprint of the kernel sources>
+    (~/.cache/recon/numba/...).
     """
     from recon_cli.cli._run import emit_report, make_progress
     from recon_cli.errors import StageFailed

@@ -6,27 +6,8 @@ import numpy as np
 from numba import njit
 
 from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (the per-user cache, before the first @njit)
-from recon_cli.io._text_kernel import is_space, parse_float
+from recon_cli.io._text_kernel import parse_float, skip_blank, token_end
 
-
-@njit(cache=True, inline="always")
-def _blank(c):
-    return c == 10 or is_space(c)
-
-
-@njit(cache=True)
-def skip_space(buf, i, n):
-    """Skip white space, newlines included."""
-    while i < n and _blank(buf[i]):
-        i += 1
-    return i
-
-
-@njit(cache=True)
-def token_end(buf, i, n):
-    while i < n and not _blank(buf[i]):
-        i += 1
-    return i
 
 _MULT = np.uint64(11400714819323198485)
 
@@ -104,7 +85,7 @@ def ascii_walk(buf, corners, slow, fill):
     nc = 0
     ns = 0
     while True:
-        i = skip_space(buf, i, n)
+        i = skip_blank(buf, i, n)
         if i >= n:
             break
         e = token_end(buf, i, n)
@@ -117,13 +98,13 @@ def ascii_walk(buf, corners, slow, fill):
             state = 1
         elif state == 1:
             if _word(buf, i, e, _FACET):
-                j = skip_space(buf, e, n)
+                j = skip_blank(buf, e, n)
                 k = token_end(buf, j, n)
                 if not _word(buf, j, k, _NORMAL):
                     return nfacet, ns, 1, j
                 e = k
                 for _ in range(3):
-                    j = skip_space(buf, e, n)
+                    j = skip_blank(buf, e, n)
                     k = token_end(buf, j, n)
                     _v, st = parse_float(buf, j, k)
                     if st == 0:
@@ -140,7 +121,7 @@ def ascii_walk(buf, corners, slow, fill):
         elif state == 2:
             if not _word(buf, i, e, _OUTER):
                 return nfacet, ns, 1, i
-            j = skip_space(buf, e, n)
+            j = skip_blank(buf, e, n)
             k = token_end(buf, j, n)
             if not _word(buf, j, k, _LOOP):
                 return nfacet, ns, 1, j
@@ -151,7 +132,7 @@ def ascii_walk(buf, corners, slow, fill):
                 if nvert == 3:
                     return nfacet, ns, 3, i
                 for c in range(3):
-                    j = skip_space(buf, e, n)
+                    j = skip_blank(buf, e, n)
                     k = token_end(buf, j, n)
                     v, st = parse_float(buf, j, k)
                     if st == 0:
@@ -171,7 +152,7 @@ def ascii_walk(buf, corners, slow, fill):
             elif _word(buf, i, e, _ENDLOOP):
                 if nvert != 3:
                     return nfacet, ns, 3, i
-                j = skip_space(buf, e, n)
+                j = skip_blank(buf, e, n)
                 k = token_end(buf, j, n)
                 if not _word(buf, j, k, _ENDFACET):
                     return nfacet, ns, 1, j

@@ -1,18 +1,42 @@
-"""Numba kernels shared by the text readers (OBJ, OFF, XYZ, PCD ascii): numbers out of bytes.
+"""Numba kernels shared by the text readers (OBJ, OFF, STL ascii, XYZ, PCD ascii): one byte
+scanner and exact number parsing.
 
-Compute only: the readers validate and raise. A number is parsed from ``buf[s:e]`` (uint8):
+Compute only: the readers validate and raise.
 
-* :func:`parse_float` returns ``(value, status)``: status 1 when the value is exact (the
-  decimal mantissa fits 53 bits and the power of ten is at most 22, so one correctly
-  rounded multiplication or division gives the nearest double: Clinger's fast path),
-  2 when the syntax is valid but the value needs a correctly rounded slow path (more
-  digits, large exponents, ``nan``/``inf``: the caller converts those tokens with Python's
-  ``float``), 0 when the token is not a number;
-* :func:`parse_int` returns ``(value, ok)``.
+Scanning: :func:`is_space` is white space within a line (space, tab, CR, VT, FF);
+:func:`is_blank` adds the newline. :func:`skip_space` / :func:`skip_blank` step over them,
+:func:`token_end` finds the end of a token (the next blank byte).
+
+Numbers: :func:`scan_float` reads the longest decimal number starting at byte ``i`` and
+returns ``(value, status, stop)``; :func:`parse_float` requires the number to fill
+``buf[s:e]`` and returns ``(value, status)``. Status 1: ``value`` is the correctly rounded
+double, bit for bit what Python's ``float`` gives for the token; 2: the syntax is valid but
+the value needs the slow path (more than 19 significant digits whose rounding the fast
+algorithm cannot decide: the caller converts those tokens with Python's ``float``); 0: not
+a number. The grammar is ``[+-] digits [. digits] [(e|E) [+-] digits]`` with at least one
+digit in the mantissa (``5.``, ``.5``) and in an exponent, or ``nan``, ``inf``,
+``infinity`` (any case, optional sign).
+
+The mantissa's first 19 significant digits are kept in a 64-bit integer ``w`` and the value
+is ``w * 10**q``. Three ways, fastest first:
+
+* Clinger's fast path when ``w <= 2**53`` and ``|q| <= 22``: ``w`` and ``10**|q|`` are
+  exact doubles, so one correctly rounded multiplication or division gives the answer;
+* else the Eisel-Lemire algorithm: ``w`` times a 128-bit approximation of ``5**q``
+  (:mod:`recon_cli.io._float_luts`) gives the 53 leading bits and the rounding direction,
+  with an exactness test for the rare products where the truncation could matter (those go
+  to the slow path) and the round-half-to-even case for small ``q``;
+* with more than 19 significant digits (the rest dropped, not all zeros) the true value lies
+  between ``w`` and ``w + 1`` (times ``10**q``): when both round to the same double that is
+  the answer, else the slow path.
 
 References
 ----------
 W. D. Clinger, "How to read floating point numbers accurately", PLDI 1990.
+D. Lemire, "Number parsing at a gigabyte per second", Software: Practice and Experience
+51(8), 2021 (the algorithm by M. Eisel).
+N. Mushtak and D. Lemire, "Fast number parsing without fallback", Software: Practice and
+Experience 53(7), 2023.
 """
 
 from __future__ import annotations
@@ -21,236 +45,457 @@ import numpy as np
 from numba import njit
 
 from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (the per-user cache, before the first @njit)
+from recon_cli._kernels.arrays import grow1, grow2
+from recon_cli._kernels.bits import clz64, f64_from_bits, mulhi64
+from recon_cli.io._float_luts import LARGEST_POWER, POW5_128, SMALLEST_POWER
 
 POW10 = np.array([10.0**k for k in range(23)], dtype=np.float64)
-_TWO53 = 1 << 53
+_U0 = np.uint64(0)
+_U1 = np.uint64(1)
+_U9 = np.uint64(9)
+_U10 = np.uint64(10)
+_TWO53 = np.uint64(1 << 53)
+_HIDDEN = np.uint64(1 << 52)
+_NOT_HIDDEN = np.uint64(((1 << 64) - 1) ^ (1 << 52))
+_NOT_ONE = np.uint64(((1 << 64) - 1) ^ 1)
+_LOW9 = np.uint64(0x1FF)
+_ALL = np.uint64((1 << 64) - 1)
+_INF_BITS = np.uint64(0x7FF << 52)
+_SIGN = np.uint64(1 << 63)
+_EXP_CAP = 10**12  # exponent digits beyond this only saturate (the value is 0 or inf long before)
 
 
-@njit(cache=True, inline="always")
+# ---------------------------------------------------------------------------------------------
+# scanning
+
+
+@njit(cache=True)
 def is_space(c):
+    """White space within a line: space, tab, CR, VT, FF (not the newline)."""
     return c == 32 or c == 9 or c == 13 or c == 11 or c == 12
 
 
 @njit(cache=True)
-def _is_word(buf, s, e, word):
-    """``buf[s:e]``, case-insensitively, equals ``word`` (lower-case ASCII codes)."""
-    if e - s != len(word):
-        return False
-    for k in range(e - s):
-        c = buf[s + k]
-        if 65 <= c <= 90:
-            c += 32
-        if c != word[k]:
-            return False
-    return True
-
-
-_NAN = np.frombuffer(b"nan", np.uint8).copy()
-_INF = np.frombuffer(b"inf", np.uint8).copy()
-_INFINITY = np.frombuffer(b"infinity", np.uint8).copy()
-
-
-@njit(cache=True)
-def parse_float(buf, s, e):
-    """(value, status) of the decimal number ``buf[s:e]``; see the module docstring."""
-    i = s
-    neg = False
-    if i < e and (buf[i] == 45 or buf[i] == 43):  # - +
-        neg = buf[i] == 45
-        i += 1
-    if i < e and (buf[i] == 110 or buf[i] == 78 or buf[i] == 105 or buf[i] == 73):  # n N i I
-        if _is_word(buf, i, e, _NAN) or _is_word(buf, i, e, _INF) or _is_word(buf, i, e, _INFINITY):
-            return 0.0, 2
-        return 0.0, 0
-    m = np.uint64(0)
-    nd = 0  # significant digits kept in m
-    extra = 0  # significant digits beyond 19 (slow path)
-    exp10 = 0
-    digits = 0
-    # value = m * 10**exp10; zeros after the last non-zero digit are kept pending (zi in the
-    # integer part, zf in the fraction) and only enter m when a non-zero digit follows, so
-    # trailing zeros ("0.5000", "1200") cost no digits of the 19 m can hold
-    zi = 0
-    zf = 0
-    frac = False
-    while i < e:
-        c = buf[i]
-        if c == 46 and not frac:  # .
-            frac = True
-            i += 1
-            continue
-        if c < 48 or c > 57:
-            break
-        d = c - 48
-        digits += 1
-        if d == 0:
-            if nd == 0:
-                if frac:
-                    exp10 -= 1  # leading zeros of a fraction
-            elif frac:
-                zf += 1
-            else:
-                zi += 1
-        elif nd + zi + zf + 1 > 19:
-            extra += 1  # beyond 19 significant digits: the slow path decides
-        else:
-            for _ in range(zi + zf):
-                m = m * np.uint64(10)
-            nd += zi + zf + 1
-            exp10 -= zf
-            m = m * np.uint64(10) + np.uint64(d)
-            if frac:
-                exp10 -= 1
-            zi = 0
-            zf = 0
-        i += 1
-    exp10 += zi  # integer zeros never followed by a non-zero digit scale the value
-    if digits == 0:
-        return 0.0, 0
-    if i < e and (buf[i] == 101 or buf[i] == 69):  # e E
-        i += 1
-        eneg = False
-        if i < e and (buf[i] == 45 or buf[i] == 43):
-            eneg = buf[i] == 45
-            i += 1
-        if i >= e:
-            return 0.0, 0
-        x = 0
-        while i < e and 48 <= buf[i] <= 57:
-            if x < 100000:
-                x = x * 10 + (buf[i] - 48)
-            i += 1
-        exp10 += -x if eneg else x
-    if i != e:
-        return 0.0, 0
-    if m == 0:
-        return (-0.0 if neg else 0.0), 1
-    if extra > 0 or m > np.uint64(_TWO53) or exp10 < -22 or exp10 > 22:
-        return 0.0, 2
-    v = np.float64(m)
-    if exp10 >= 0:
-        v = v * POW10[exp10]
-    else:
-        v = v / POW10[-exp10]
-    return (-v if neg else v), 1
-
-
-@njit(cache=True)
-def parse_int(buf, s, e):
-    """(value, ok) of the decimal integer ``buf[s:e]`` (optional sign, at most 18 digits)."""
-    i = s
-    neg = False
-    if i < e and (buf[i] == 45 or buf[i] == 43):
-        neg = buf[i] == 45
-        i += 1
-    if i >= e or e - i > 18:
-        return 0, False
-    v = 0
-    while i < e:
-        c = buf[i]
-        if c < 48 or c > 57:
-            return 0, False
-        v = v * 10 + (c - 48)
-        i += 1
-    return (-v if neg else v), True
-
-
+def is_blank(c):
+    """White space or a newline."""
+    return c == 10 or is_space(c)
 
 
 @njit(cache=True)
 def skip_space(buf, i, e):
+    """The first byte at or after ``i`` (up to ``e``) that is not white space (newlines stop it)."""
     while i < e and is_space(buf[i]):
         i += 1
     return i
 
 
 @njit(cache=True)
-def token_end(buf, i, e):
-    while i < e and not is_space(buf[i]):
+def skip_blank(buf, i, e):
+    """The first byte at or after ``i`` (up to ``e``) that is neither white space nor a newline."""
+    while i < e and is_blank(buf[i]):
         i += 1
     return i
 
 
 @njit(cache=True)
-def _field_end(buf, i, e, delim):
-    """End of the field starting at ``i``: the next space, ``delim`` or ``e``."""
+def token_end(buf, i, e):
+    """The end of the token starting at ``i``: the next white space or newline, or ``e``."""
+    while i < e and not is_blank(buf[i]):
+        i += 1
+    return i
+
+
+@njit(cache=True)
+def line_end(buf, i, e):
+    """The position of the next newline at or after ``i``, or ``e``."""
+    while i < e and buf[i] != 10:
+        i += 1
+    return i
+
+
+# ---------------------------------------------------------------------------------------------
+# numbers
+
+
+@njit(cache=True)
+def eisel_lemire(w, q):
+    """``(bits, ok)``: the bit pattern of the double nearest to ``w * 10**q`` (``w`` a non-zero
+    uint64), ok False in the rare case where the 128-bit product cannot decide (slow path)."""
+    if q < SMALLEST_POWER:
+        return _U0, True  # below half the smallest subnormal even for w = 2**64 - 1
+    if q > LARGEST_POWER:
+        return _INF_BITS, True
+    lz = clz64(w)
+    w = w << lz
+    k = 2 * (q - SMALLEST_POWER)
+    t_hi = POW5_128[k]
+    lo = w * t_hi
+    hi = mulhi64(w, t_hi)
+    if (hi & _LOW9) == _LOW9:  # the low bits may carry: add the next 64 bits of the product
+        hi2 = mulhi64(w, POW5_128[k + 1])
+        lo = lo + hi2
+        if hi2 > lo:
+            hi += _U1
+    if lo == _ALL and (q < -27 or q > 55):
+        return _U0, False
+    upper = hi >> np.uint64(63)
+    shift = upper + _U9
+    mant = hi >> shift
+    power2 = ((217706 * q) >> 16) + 63 + np.int64(upper) - np.int64(lz) + 1023
+    if power2 <= 0:  # subnormal (or just below the smallest normal before rounding)
+        if 1 - power2 >= 64:
+            return _U0, True
+        mant = mant >> np.uint64(1 - power2)
+        mant += mant & _U1
+        mant = mant >> _U1
+        # mant is at most 2**52: exactly 2**52 is the smallest normal (exponent field 1)
+        return mant, True
+    if lo <= _U1 and q >= -4 and q <= 23 and (mant & np.uint64(3)) == _U1:
+        if (mant << shift) == hi:  # exactly half way: round to even
+            mant &= _NOT_ONE
+    mant += mant & _U1
+    mant = mant >> _U1
+    if mant >= (_HIDDEN << _U1):
+        mant = _HIDDEN
+        power2 += 1
+    mant &= _NOT_HIDDEN
+    if power2 >= 0x7FF:
+        return _INF_BITS, True
+    return mant | (np.uint64(power2) << np.uint64(52)), True
+
+
+@njit(cache=True)
+def _lower(c):
+    return c + 32 if 65 <= c <= 90 else c
+
+
+@njit(cache=True)
+def _special(buf, i, e, neg):
+    """``nan``, ``inf`` or ``infinity`` (any case) at ``i``: (value, status, stop)."""
+    if i + 3 > e:
+        return 0.0, 0, i
+    a, b, c = _lower(buf[i]), _lower(buf[i + 1]), _lower(buf[i + 2])
+    if a == 110 and b == 97 and c == 110:  # nan
+        return (-np.nan if neg else np.nan), 1, i + 3
+    if a == 105 and b == 110 and c == 102:  # inf
+        stop = i + 3
+        if (
+            i + 8 <= e
+            and _lower(buf[i + 3]) == 105  # i
+            and _lower(buf[i + 4]) == 110  # n
+            and _lower(buf[i + 5]) == 105  # i
+            and _lower(buf[i + 6]) == 116  # t
+            and _lower(buf[i + 7]) == 121  # y
+        ):
+            stop = i + 8
+        return (-np.inf if neg else np.inf), 1, stop
+    return 0.0, 0, i
+
+
+@njit(cache=True)
+def _mantissa_long(buf, i, e):
+    """The mantissa at ``i`` digit by digit: ``(w, q, dropped, ndig, stop)`` with the first 19
+    significant digits in ``w``, value ``w * 10**q`` (``dropped``: a non-zero digit was not kept)."""
+    w = _U0
+    nd = 0  # significant digits in w (leading zeros are not)
+    q = 0
+    ndig = 0
+    dropped = False
     while i < e:
         c = buf[i]
-        if is_space(c) or c == delim:
+        if c < 48 or c > 57:
             break
+        d = np.uint64(c - 48)
+        if nd < 19:
+            w = w * _U10 + d
+            if w != _U0:
+                nd += 1
+        else:
+            q += 1
+            if d != _U0:
+                dropped = True
+        ndig += 1
         i += 1
-    return i
+    if i < e and buf[i] == 46:  # .
+        i += 1
+        while i < e:
+            c = buf[i]
+            if c < 48 or c > 57:
+                break
+            d = np.uint64(c - 48)
+            if nd < 19:
+                w = w * _U10 + d
+                if w != _U0:
+                    nd += 1
+                q -= 1
+            elif d != _U0:
+                dropped = True
+            ndig += 1
+            i += 1
+    return w, q, dropped, ndig, i
 
 
 @njit(cache=True)
-def parse_rows(buf, start, end, delim, comment, mode, values, row_start, row_line, slow):
-    """Walk the lines of ``buf[start:end]``: each non-empty, non-comment line is a row of numbers.
+def scan_float(buf, i, e):
+    """The decimal number starting at byte ``i`` (reading no further than ``e``):
+    ``(value, status, stop)`` with ``stop`` the byte after it; see the module docstring.
+    The caller checks that ``buf[stop]`` may follow a number."""
+    neg = False
+    if i < e:
+        c = buf[i]
+        if c == 45:  # -
+            neg = True
+            i += 1
+        elif c == 43:  # +
+            i += 1
+    p0 = i
+    # the mantissa, written out here (a call per number costs more than the digits: numba
+    # does not inline these small functions well), without a test per digit while at most
+    # 19 significant digits (the usual case); longer mantissas are read again, digit by
+    # digit, by _mantissa_long. The digit loops have their test in the loop condition: numba
+    # compiles the equivalent `while True: ... break` form to code several times slower.
+    while i < e and buf[i] == 48:  # leading zeros
+        i += 1
+    s1 = i
+    w = _U0
+    while i < e and buf[i] >= 48 and buf[i] <= 57:
+        w = w * _U10 + np.uint64(buf[i] - 48)
+        i += 1
+    nsig = i - s1
+    ndig = i - p0
+    q = 0
+    if i < e and buf[i] == 46:  # .
+        i += 1
+        f0 = i
+        if nsig == 0:
+            while i < e and buf[i] == 48:  # zeros after the point, before any other digit
+                i += 1
+        s2 = i
+        while i < e and buf[i] >= 48 and buf[i] <= 57:
+            w = w * _U10 + np.uint64(buf[i] - 48)
+            i += 1
+        nsig += i - s2
+        q = f0 - i
+        ndig += i - f0
+    dropped = False
+    if nsig > 19:
+        w, q, dropped, ndig, i = _mantissa_long(buf, p0, e)
+    if ndig == 0:
+        return _special(buf, p0, e, neg)
+    if i < e and (buf[i] == 101 or buf[i] == 69):  # e E
+        j = i + 1
+        eneg = False
+        if j < e and (buf[j] == 45 or buf[j] == 43):
+            eneg = buf[j] == 45
+            j += 1
+        if j >= e or buf[j] < 48 or buf[j] > 57:
+            return 0.0, 0, j  # an exponent needs a digit
+        x = 0
+        while j < e:
+            c = buf[j]
+            if c < 48 or c > 57:
+                break
+            if x < _EXP_CAP:
+                x = x * 10 + (c - 48)
+            j += 1
+        q += -x if eneg else x
+        i = j
+    if w == _U0:
+        return (-0.0 if neg else 0.0), 1, i
+    if not dropped and w <= _TWO53 and -22 <= q <= 22:  # Clinger: one exact operation
+        v = np.float64(w)
+        if q >= 0:
+            v = v * POW10[q]
+        else:
+            v = v / POW10[-q]
+        return (-v if neg else v), 1, i
+    bits, ok = eisel_lemire(w, q)
+    if ok and dropped:  # the value lies in [w, w + 1) * 10**q: both ends must round alike
+        bits2, ok2 = eisel_lemire(w + _U1, q)
+        ok = ok2 and bits2 == bits
+    if not ok:
+        return np.nan, 2, i
+    if neg:
+        bits |= _SIGN
+    return f64_from_bits(bits), 1, i
 
-    Fields are separated by white space, and by ``delim`` (a byte code; 0: white space
-    only) where given: two delimiters in a row make an empty field, which is an error. A
-    line whose first non-blank byte is ``comment`` (a byte code, 0: none) is skipped.
 
-    ``mode`` 0 counts: returns ``(rows, values, slow, 0, 0)``; ``mode`` 1 fills ``values``
-    (float64, NaN where slow), ``row_start`` (rows + 1) and ``row_line`` (1-based line
-    numbers counted from ``start``); ``mode`` 2 fills ``slow`` ((k, 3): value index, byte
-    start, byte end of each slow token). Returns ``(rows, values, slow, error, where)``:
-    error 1 = a field is not a number, at byte ``where``.
-    """
-    i = start
-    line = 0
-    nrows = 0
-    nvals = 0
-    nslow = 0
+@njit(cache=True)
+def parse_float(buf, s, e):
+    """(value, status) of the number that must fill ``buf[s:e]``; see the module docstring."""
+    v, st, stop = scan_float(buf, s, e)
+    if st == 0 or stop != e:
+        return 0.0, 0
+    return v, st
+
+
+@njit(cache=True)
+def scan_int(buf, i, e):
+    """The decimal integer (optional sign, 1 to 18 digits) starting at ``i``: ``(value, ok, stop)``."""
+    neg = False
+    if i < e and (buf[i] == 45 or buf[i] == 43):
+        neg = buf[i] == 45
+        i += 1
+    p0 = i
+    v = 0
+    while i < e and buf[i] >= 48 and buf[i] <= 57:
+        v = v * 10 + (buf[i] - 48)
+        i += 1
+    if i == p0 or i - p0 > 18:
+        return 0, False, i
+    return (-v if neg else v), True, i
+
+
+# ---------------------------------------------------------------------------------------------
+# rows of numbers
+
+
+# state slots of _rows_walk
+_NV, _NR, _NS, _NCOL, _LINE = range(5)
+
+
+@njit(cache=True)
+def _rows_walk(buf, i, end, delim, comment, fixed, values, row_start, row_line, slow, st):
+    """Rows from byte ``i`` until the end or until an array is full (its arrays are fixed
+    here, so the loop keeps their addresses in registers). ``st`` holds the counts, updated.
+    Returns ``(code, where, bad_count)``: code 0 at the end, -1, -2, -3 when ``values``,
+    ``slow`` or the row arrays are full (``where``: the start of the row to parse again), 1 or
+    2 as :func:`parse_rows`'s errors."""
+    nv = st[_NV]
+    nr = st[_NR]
+    ns = st[_NS]
+    ncol = st[_NCOL]
+    line = st[_LINE]
+    code = 0
+    where = 0
+    bad = 0
+    cap_v = values.shape[0]
+    cap_s = slow.shape[0]
     while i < end:
-        line += 1
-        eol = i
-        while eol < end and buf[eol] != 10:
-            eol += 1
-        j = skip_space(buf, i, eol)
-        if j < eol and not (comment != 0 and buf[j] == comment):
-            if mode == 1:
-                row_start[nrows] = nvals
-                row_line[nrows] = line
-            while True:
-                k = _field_end(buf, j, eol, delim)
-                if mode != 0 or k == j:
-                    v, st = parse_float(buf, j, k)
-                    if st == 0:
-                        return nrows, nvals, nslow, 1, j
-                    if st == 2:
-                        if mode == 2:
-                            slow[nslow, 0] = nvals
-                            slow[nslow, 1] = j
-                            slow[nslow, 2] = k
-                        nslow += 1
-                        v = np.nan
-                    if mode == 1:
-                        values[nvals] = v
-                nvals += 1
-                j = skip_space(buf, k, eol)
-                if j >= eol:
+        j = skip_space(buf, i, end)
+        if j >= end:
+            break
+        c = buf[j]
+        if c == 10:
+            line += 1
+            i = j + 1
+            continue
+        if comment != 0 and c == comment:
+            i = line_end(buf, j, end) + 1
+            line += 1
+            continue
+        if not fixed:
+            if nr == row_line.shape[0]:
+                code = -3
+                where = i
+                break
+            row_start[nr] = nv
+            row_line[nr] = line
+        r0 = j
+        nv0 = nv
+        ns0 = ns
+        full = False
+        while True:
+            v, fs, q = scan_float(buf, j, end)
+            if fs == 0:
+                code = 1
+                where = j
+                break
+            if q < end:
+                c = buf[q]
+                if not (is_blank(c) or (delim != 0 and c == delim)):
+                    code = 1
+                    where = j
                     break
-                if delim != 0 and buf[j] == delim:
-                    j = skip_space(buf, j + 1, eol)
-                    if j >= eol:  # a trailing delimiter: an empty last field
-                        return nrows, nvals, nslow, 1, eol
-            nrows += 1
-        i = eol + 1
-    if mode == 1:
-        row_start[nrows] = nvals
-    return nrows, nvals, nslow, 0, 0
+            if nv == cap_v:
+                full = True
+                code = -1
+                break
+            if fs == 2:
+                if ns == cap_s:
+                    full = True
+                    code = -2
+                    break
+                slow[ns, 0] = nv
+                slow[ns, 1] = j
+                slow[ns, 2] = q
+                ns += 1
+            values[nv] = v
+            nv += 1
+            j = skip_space(buf, q, end)
+            if j >= end or buf[j] == 10:
+                break
+            if delim != 0 and buf[j] == delim:
+                j = skip_space(buf, j + 1, end)
+                if j >= end or buf[j] == 10:  # a trailing delimiter: an empty last field
+                    code = 1
+                    where = j
+                    break
+        if full:
+            nv = nv0
+            ns = ns0
+            where = i
+            break
+        if code != 0:
+            break
+        k = nv - nv0
+        if ncol < 0:
+            ncol = k
+        elif fixed and k != ncol:
+            code = 2
+            where = r0
+            bad = k
+            break
+        nr += 1
+        line += 1
+        i = j + 1
+    st[_NV] = nv
+    st[_NR] = nr
+    st[_NS] = ns
+    st[_NCOL] = ncol
+    st[_LINE] = line
+    return code, where, bad
 
 
 @njit(cache=True)
-def gather_tokens(buf, spans):
-    """The tokens ``buf[s:e]`` for the rows ``(s, e)`` of ``spans`` as a zero-padded ``(k, width)``
-    uint8 array (viewed as numpy bytes strings by the caller)."""
-    width = 1
-    for r in range(spans.shape[0]):
-        width = max(width, spans[r, 1] - spans[r, 0])
-    out = np.zeros((spans.shape[0], width), np.uint8)
-    for r in range(spans.shape[0]):
-        s = spans[r, 0]
-        for k in range(spans[r, 1] - s):
-            out[r, k] = buf[s + k]
-    return out
+def parse_rows(buf, start, end, delim, comment, cap, fixed):
+    """The rows of numbers in ``buf[start:end]``, in one pass into arrays that grow by doubling.
+
+    Each non-empty line whose first non-blank byte is not ``comment`` (a byte code, 0: none)
+    is a row. Fields are separated by white space, and by ``delim`` (a byte code; 0: white
+    space only) where given: two delimiters in a row make an empty field, an error.
+    ``cap`` is the first capacity of the value array. With ``fixed`` every row must have
+    as many fields as the first, and no per-row arrays are kept.
+
+    Returns ``(values, nvals, row_start, row_line, nrows, ncol, slow, nslow, error, where,
+    bad_count)``: ``values`` (over-allocated; NaN where slow), ``row_start`` (nrows + 1
+    entries) and ``row_line`` (1-based lines counted from ``start``) unless ``fixed``,
+    ``ncol`` the first row's field count, ``slow`` ((nslow, 3): value index, byte start and
+    end of each token left to the slow path). Error 1: a field is not a number, at byte
+    ``where``; 2 (``fixed``): the row at byte ``where`` has ``bad_count`` fields.
+    """
+    values = np.empty(max(cap, 16), np.float64)
+    rcap = 0 if fixed else max(cap // 3, 16)
+    row_start = np.empty(rcap + 1, np.int64)
+    row_line = np.empty(rcap, np.int64)
+    slow = np.empty((16, 3), np.int64)
+    st = np.zeros(5, np.int64)
+    st[_NCOL] = -1
+    st[_LINE] = 1
+    i = start
+    while True:
+        code, where, bad = _rows_walk(buf, i, end, delim, comment, fixed, values, row_start, row_line, slow, st)
+        if code >= 0:
+            break
+        i = where
+        if code == -1:
+            values = grow1(values, 2 * values.shape[0])
+        elif code == -2:
+            slow = grow2(slow, 2 * slow.shape[0])
+        else:
+            row_line = grow1(row_line, 2 * row_line.shape[0])
+            row_start = grow1(row_start, row_line.shape[0] + 1)
+    nr = st[_NR]
+    if not fixed and code == 0:
+        row_start[nr] = st[_NV]
+    return values, st[_NV], row_start, row_line, nr, st[_NCOL], slow, st[_NS], code, where, bad

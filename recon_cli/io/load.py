@@ -143,6 +143,8 @@ def load_detailed(path: str | os.PathLike, format: str | None = None) -> tuple[A
         return obj, details, fmt
     if fmt is not None and fmt.name == "ply" and str(path) != "-" and os.path.isfile(path):
         return read_ply(path), {}, fmt
+    if fmt is not None and fmt.name == "npz" and str(path) != "-" and os.path.isfile(path):
+        return read_grid(path), {}, fmt  # reads the stored sdf straight into its array
     return decode(read_bytes(path), path, fmt)
 
 

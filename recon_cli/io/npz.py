@@ -52,22 +52,43 @@ def read_grid(path: str | os.PathLike, data: bytes | None = None) -> Grid:
 
     Every array's header is checked before its data is read: ``sdf`` a 3-d float array
     with at least one sample and no more than the file holds or memory can take,
-    ``origin`` three finite numbers, ``voxel_size`` one finite positive number.
+    ``origin`` three finite numbers, ``voxel_size`` one finite positive number. The CRC of
+    every member read is checked (as ``numpy.load`` does).
+
+    A regular file whose ``sdf`` member is stored uncompressed (what :func:`write_grid` and
+    ``numpy.savez`` write) is read straight from the file into the array (one copy, no
+    whole-file buffer); a compressed member, standard input and ``data`` go through
+    ``numpy.load``.
 
     Raises
     ------
     InputError
         Not an npz, missing arrays, wrong shapes or types, non-finite frame, a claimed
-        size the file does not hold or the memory cannot take.
+        size the file does not hold or the memory cannot take, a CRC mismatch.
     """
-    from recon_cli.grid import allocation_problem
-
     where = "<stdin>" if str(path) == "-" else str(path)
+    if data is None and str(path) != "-" and os.path.isfile(path):
+        try:
+            with open(path, "rb") as fh:
+                if fh.read(4) != b"PK\x03\x04":
+                    raise InputError("not a grid .npz file", where)
+                fh.seek(0)
+                return _read_grid(fh, where, fh)
+        except PermissionError:
+            raise InputError("permission denied", where) from None
     buf = read_bytes(path) if data is None else data
     if not is_npz(buf):
         raise InputError("not a grid .npz file", where)
+    return _read_grid(io.BytesIO(buf), where, None)
+
+
+def _read_grid(source, where: str, fh) -> Grid:
+    """The grid in the zip archive ``source`` (a binary file object); ``fh``: the same object
+    when it is a real file whose stored ``sdf`` member can be read into the array directly."""
+    from recon_cli.grid import allocation_problem
+
     try:
-        with zipfile.ZipFile(io.BytesIO(buf)) as zf:
+        with zipfile.ZipFile(source) as zf:
             members = {n[:-4]: n for n in zf.namelist() if n.endswith(".npy")}
             missing = [k for k in ("sdf", "origin", "voxel_size") if k not in members]
             if missing:
@@ -89,8 +110,13 @@ def read_grid(path: str | os.PathLike, data: bytes | None = None) -> Grid:
             problem = allocation_problem(shape, dtype.itemsize + 8)  # the array, its float32 copy, a mask
             if problem:
                 raise InputError(f"{problem}: not read", where)
-            with np.load(io.BytesIO(buf), allow_pickle=False) as z:
-                sdf = z["sdf"]
+            sdf = None
+            if fh is not None and zf.getinfo(members["sdf"]).compress_type == zipfile.ZIP_STORED:
+                sdf = _read_stored(fh, zf.getinfo(members["sdf"]), where)
+            source.seek(0)
+            with np.load(source, allow_pickle=False) as z:
+                if sdf is None:
+                    sdf = z["sdf"]
                 origin = z["origin"].astype(np.float64)
                 voxel = float(z["voxel_size"].reshape(-1)[0])
                 prov = str(z["provenance"]) if "provenance" in z.files else ""
@@ -104,6 +130,40 @@ def read_grid(path: str | os.PathLike, data: bytes | None = None) -> Grid:
     if pdt not in ("float32", "float64"):
         raise InputError(f"'point_dtype' must be float32 or float64, got {pdt[:40]!r}", where)
     return Grid(sdf=sdf, origin=origin, voxel_size=voxel, history=[s for s in prov.split("\n") if s], point_dtype=pdt)
+
+
+def _read_stored(fh, info: zipfile.ZipInfo, where: str) -> np.ndarray:
+    """The array of the uncompressed ``.npy`` member ``info`` of the zip file ``fh``, read
+    into its own (aligned, writable) memory with ``readinto``; CRC checked."""
+    import struct
+    import zlib
+
+    from numpy.lib import format as npy
+
+    fh.seek(info.header_offset)
+    local = fh.read(30)  # the local file header; the name and an extra field follow
+    if len(local) != 30 or local[:4] != b"PK\x03\x04":
+        raise InputError("corrupt grid file (bad local header of 'sdf')", where)
+    name_len, extra_len = struct.unpack("<HH", local[26:30])
+    start = info.header_offset + 30 + name_len + extra_len
+    fh.seek(start)
+    version = npy.read_magic(fh)
+    shape, fortran, dtype = (npy.read_array_header_1_0 if version == (1, 0) else npy.read_array_header_2_0)(fh)
+    head_len = fh.tell() - start
+    fh.seek(start)
+    crc = zlib.crc32(fh.read(head_len))
+    arr = np.empty(shape, dtype=dtype, order="F" if fortran else "C")
+    raw = memoryview(arr.reshape(-1, order="A")).cast("B") if arr.size else memoryview(b"")
+    got = 0
+    while got < raw.nbytes:
+        k = fh.readinto(raw[got:])
+        if not k:
+            raise InputError("corrupt grid file ('sdf' is shorter than its header says)", where)
+        got += k
+    crc = zlib.crc32(raw, crc)
+    if head_len + raw.nbytes != info.file_size or crc != info.CRC:
+        raise InputError("corrupt grid file (CRC check of 'sdf' failed)", where)
+    return arr
 
 
 def _count(shape: tuple) -> int:

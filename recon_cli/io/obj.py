@@ -10,8 +10,9 @@ first for float32 data, makes the coordinates float32 again). A file without fac
 Coordinates are read as float64 (text has no type).
 
 The numbers are parsed by a numba kernel (:mod:`recon_cli.io._obj_kernel`) in one pass
-over the bytes, into arrays that grow by doubling; fast-path numbers are exact (see
-:mod:`recon_cli.io._text_kernel`), the others are converted by Python's ``float``.
+over the bytes, into arrays sized by a first count of the ``v``/``vn``/``f`` lines (they grow
+when it falls short); every number reads as Python's ``float`` reads it (see
+:mod:`recon_cli.io._text_kernel`; the rare undecided ones are converted by ``float``).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ _MESSAGES = {
     5: "a face corner is not a vertex index (v, v/vt, v/vt/vn or v//vn; indices start at 1)",
     6: "this 'v' line and an earlier one differ in carrying colours (r g b)",
     7: "a negative (relative) index reaches before the first vertex or normal",
+    8: "normal index out of range: the file has no 'vn' line",
 }
 
 
@@ -40,15 +42,24 @@ def decode_obj(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
     from recon_cli.io import _obj_kernel as K
 
     buf = text.as_uint8(data)
-    err, at, counts, verts, colours, vnorms, corner_v, corner_n, face_len, slow = K.obj_walk(
-        buf, max(16, len(buf) // 64)
-    )
+    # arrays from numpy (which asks for huge pages: fewer page faults than the kernel's own)
+    lv, lvn, lf = K.line_kinds(buf)
+    verts = np.empty((lv + 16, 3), np.float64)
+    colours = np.empty((lv + 16, 3), np.float64)  # untouched, so no memory, without colours
+    vnorms = np.empty((lvn + 16 if lvn else 0, 3), np.float64)
+    corner_v = np.empty(3 * lf + 16, np.int64)
+    corner_n = np.empty(3 * lf + 16 if lvn else 0, np.int64)
+    face_len = np.empty(lf + 16, np.int64)
+    slow = np.empty((64, 4), np.int64)
+    out = K.obj_walk(buf, verts, colours, vnorms, corner_v, corner_n, face_len, slow)
+    err, at, counts, verts, colours, vnorms, corner_v, corner_n, face_len, slow = out
     if err:
         _raise(buf, err, at, where)
     nv, nvn, nf, nc = (int(counts[k]) for k in (K.NV, K.NVN, K.NF, K.NCORNER))
     verts, vnorms = verts[:nv], vnorms[:nvn]
     colours = colours[:nv] if counts[K.COLOURS] else np.empty((0, 3), np.float64)
-    corner_v, corner_n, face_len = corner_v[:nc], corner_n[:nc], face_len[:nf]
+    corner_v, face_len = corner_v[:nc], face_len[:nf]
+    corner_n = corner_n[:nc] if len(corner_n) else corner_n  # empty: the file has no vn line
     if counts[K.NSLOW]:
         slow = slow[: counts[K.NSLOW]]
         vals = text.slow_values(buf, slow[:, 2:4])
@@ -60,7 +71,7 @@ def decode_obj(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
     if nc and (corner_v.min() < 0 or corner_v.max() >= nv):
         bad = int(np.flatnonzero((corner_v < 0) | (corner_v >= nv))[0])
         raise InputError(f"face corner {bad}: vertex index out of range for {nv} vertices", where)
-    if nc and corner_n.max() >= nvn:
+    if nc and len(corner_n) and corner_n.max() >= nvn:
         bad = int(np.flatnonzero(corner_n >= nvn)[0])
         raise InputError(f"face corner {bad}: normal index out of range for {nvn} normals", where)
     history = _leading_comments(buf)

@@ -45,14 +45,29 @@ def bad_number(buf: np.ndarray, offset: int, where: str) -> InputError:
 
 
 def slow_values(buf: np.ndarray, spans: np.ndarray) -> np.ndarray:
-    """The correctly rounded values of the tokens ``buf[s:e]`` for the rows of ``spans`` ((k, 2)):
-    numpy's string-to-double conversion over a fixed-width array, no Python object per token."""
-    from recon_cli.io._text_kernel import gather_tokens
+    """The values of the tokens ``buf[s:e]`` for the rows of ``spans`` ((k, 2)) by Python's ``float``
+    (the few numbers the kernel's exact fast paths leave undecided)."""
+    raw = buf.tobytes() if len(spans) > 64 else None
+    out = np.empty(len(spans), np.float64)
+    for r, (s, e) in enumerate(np.asarray(spans, dtype=np.int64).tolist()):
+        out[r] = float(raw[s:e] if raw is not None else bytes(buf[s:e]))
+    return out
 
-    if len(spans) == 0:
-        return np.zeros(0, np.float64)
-    raw = gather_tokens(buf, np.ascontiguousarray(spans, dtype=np.int64))
-    return raw.view(f"S{raw.shape[1]}").reshape(-1).astype(np.float64)
+
+def _run_rows(buf: np.ndarray, start: int, end: int, where: str, delim: int, comment: int, cap: int, fixed: bool):
+    from recon_cli.io._text_kernel import parse_rows
+
+    out = parse_rows(buf, start, end, delim, comment, max(16, cap), fixed)
+    values, nvals, row_start, row_line, nrows, ncol, slow, nslow, err, at, bad_count = out
+    if err == 1:
+        raise bad_number(buf, at, where)
+    if err == 2:
+        raise InputError(f"line {line_at(buf, at)}: {bad_count} columns, the first row has {ncol}", where)
+    values = values[:nvals]
+    if nslow:
+        slow = slow[:nslow]
+        values[slow[:, 0]] = slow_values(buf, slow[:, 1:])
+    return values, row_start[: nrows + 1], row_line[:nrows], nrows, ncol
 
 
 def read_rows(buf: np.ndarray, start: int, end: int, where: str, delim: int = 0, comment: int = 35):
@@ -63,25 +78,18 @@ def read_rows(buf: np.ndarray, start: int, end: int, where: str, delim: int = 0,
     counted from ``start`` (1-based). Blank lines and lines starting with ``comment`` are
     skipped. A token that is not a number raises :class:`InputError` naming its line.
     """
-    from recon_cli.io._text_kernel import parse_rows
-
-    e0 = np.empty(0, np.float64)
-    i0 = np.empty(0, np.int64)
-    s0 = np.empty((0, 3), np.int64)
-    nrows, nvals, _, err, at = parse_rows(buf, start, end, delim, comment, 0, e0, i0, i0, s0)
-    if err:
-        raise bad_number(buf, at, where)
-    values = np.empty(nvals, np.float64)
-    row_start = np.empty(nrows + 1, np.int64)
-    row_line = np.empty(nrows, np.int64)
-    _, _, nslow, err, at = parse_rows(buf, start, end, delim, comment, 1, values, row_start, row_line, s0)
-    if err:
-        raise bad_number(buf, at, where)
-    if nslow:
-        slow = np.empty((nslow, 3), np.int64)
-        parse_rows(buf, start, end, delim, comment, 2, values, row_start, row_line, slow)
-        values[slow[:, 0]] = slow_values(buf, slow[:, 1:])
+    values, row_start, row_line, _, _ = _run_rows(buf, start, end, where, delim, comment, (end - start) // 8, False)
     return values, row_start, row_line
+
+
+def read_table(buf: np.ndarray, start: int, end: int, where: str, delim: int = 0, comment: int = 35, cap: int = 0):
+    """The rows of numbers in ``buf[start:end]`` as an ``(n, k)`` float64 table: every row must
+    have the first row's ``k`` fields (else :class:`InputError` naming the line). ``cap`` is a
+    guess of the number of values (0: from the size); the table is a view of an array that may
+    be somewhat larger. Blank lines and ``comment`` lines are skipped as in :func:`read_rows`.
+    """
+    values, _, _, nrows, ncol = _run_rows(buf, start, end, where, delim, comment, cap or (end - start) // 8, True)
+    return values.reshape(nrows, max(ncol, 0))
 
 
 def check_finite(points: np.ndarray, where: str, what: str = "vertex") -> None:

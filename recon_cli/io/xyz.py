@@ -98,19 +98,17 @@ def decode_xyz(data, where: str, ext: str = ".xyz") -> tuple[PointCloud, dict]:
     if from_comment:
         start = first_start
     d = 0 if delim is None else delim[0]
-    values, row_start, row_line = text.read_rows(buf, start, len(buf), where, delim=d)
-    line0 = text.line_at(buf, start) - 1
-    lens = np.diff(row_start)
-    if len(lens) == 0:
+    # the value array's first size, from the bytes per value of the first data lines
+    sample = [ln for ln, s, _ in data_lines if s >= start][:32]
+    per_value = sum(len(ln) + 1 for ln in sample) / max(1, sum(len(_split(ln, delim)) for ln in sample)) if sample else 8
+    table = text.read_table(buf, start, len(buf), where, delim=d, cap=int((len(buf) - start) / max(per_value, 2) * 1.03) + 64)
+    if len(table) == 0:
         raise InputError("no data rows", where)
-    ncol = int(lens[0])
-    if np.any(lens != ncol):
-        bad = int(np.flatnonzero(lens != ncol)[0])
-        raise InputError(f"line {line0 + int(row_line[bad])}: {int(lens[bad])} columns, the first row has {ncol}", where)
+    ncol = table.shape[1]
     if count_line is not None:
         declared = int(float(count_line))
-        if declared != len(lens):
-            raise InputError(f"line 1 declares {declared} points but the file has {len(lens)} rows", where)
+        if declared != len(table):
+            raise InputError(f"line 1 declares {declared} points but the file has {len(table)} rows", where)
     if names is not None and len(names) != ncol:
         if not from_comment:
             raise InputError(f"the header names {len(names)} columns but the rows have {ncol}", where)
@@ -118,7 +116,6 @@ def decode_xyz(data, where: str, ext: str = ".xyz") -> tuple[PointCloud, dict]:
         names = None
     if ncol < 3:
         raise InputError(f"rows have {ncol} columns; x y z needs 3", where)
-    table = values.reshape(-1, ncol)
     cloud, layout = _columns(table, names, where)
     text.apply_float32_mark(cloud, history)
     details = {

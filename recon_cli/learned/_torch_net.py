@@ -75,6 +75,9 @@ class TrainConfig:
     offsurface_weight: float = 1.0
     surface_weight: float = 1.0
     occupancy_gain: float = 10.0  # p(inside) = sigmoid(-gain * s)
+    band: float = 0.1  # band samples: offsets N(0, (band * U(0, 1))^2) from random points (eikonal only)
+    band_share: float = 0.0  # band samples per surface point
+    eikonal_l1: bool = False  # E| |grad s| - 1 | instead of E(|grad s| - 1)^2
 
 
 @dataclass
@@ -101,6 +104,11 @@ def _grad(y: torch.Tensor, x: torch.Tensor, create_graph: bool) -> torch.Tensor:
     return torch.autograd.grad(y, x, torch.ones_like(y), create_graph=create_graph)[0]
 
 
+def _eikonal(g: torch.Tensor, l1: bool) -> torch.Tensor:
+    dev = g.norm(dim=1) - 1.0
+    return dev.abs().mean() if l1 else (dev**2).mean()
+
+
 def train(
     net: FieldNet,
     points: np.ndarray,
@@ -113,7 +121,8 @@ def train(
     """Fit ``net`` to ``points`` (normalised coordinates, (n, 3) float32).
 
     sdf: L1 zero level on the points + ``normal_weight`` * ||grad s(p) - n_p|| (with normals)
-    + ``eikonal_weight`` * (||grad s|| - 1)^2 on points near and away from the surface (IGR).
+    + ``eikonal_weight`` * (||grad s|| - 1)^2 (``eikonal_l1``: | ||grad s|| - 1 |) on points near
+    and away from the surface (IGR) and on ``band_share`` * batch band samples.
     occupancy: binary cross-entropy of p(inside) = sigmoid(-gain * s) on labelled samples
     (``labels_fn``: 1 inside) + |s| on the points. On KeyboardInterrupt (at any time, also
     before the first step) the best parameters so far are restored and the outcome says
@@ -159,7 +168,13 @@ def _loop(net, points, normals, sigma, labels_fn, cfg: TrainConfig, on_step, st:
         near = p + torch.randn(b, 3, generator=gen) * sig[idx, None]
         wide = p[: b // 2] + torch.randn(b // 2, 3, generator=gen) * 0.1
         unif = torch.rand(b // 2, 3, generator=gen) * 2.0 - 1.0
-        off = torch.cat([near, wide, unif])
+        nb = int(b * cfg.band_share)
+        if nb:
+            bi = torch.randint(0, n, (nb,), generator=gen)
+            band = pts[bi] + torch.randn(nb, 3, generator=gen) * (cfg.band * torch.rand(nb, 1, generator=gen))
+            off = torch.cat([near, wide, unif, band])
+        else:
+            off = torch.cat([near, wide, unif])
         if cfg.field == "sdf":
             p.requires_grad_(True)
             off.requires_grad_(True)
@@ -167,16 +182,16 @@ def _loop(net, points, normals, sigma, labels_fn, cfg: TrainConfig, on_step, st:
             so = net(off)
             go = _grad(so, off, True)
             loss = cfg.surface_weight * sp.abs().mean()
-            eik = ((go.norm(dim=1) - 1.0) ** 2).mean()
+            eik = _eikonal(go, cfg.eikonal_l1)
             if nrm is not None:
                 gp = _grad(sp, p, True)
                 loss = loss + cfg.normal_weight * (gp - nrm[idx]).norm(dim=1).mean()
-                eik = 0.5 * eik + 0.5 * ((gp.norm(dim=1) - 1.0) ** 2).mean()
+                eik = 0.5 * eik + 0.5 * _eikonal(gp, cfg.eikonal_l1)
             loss = loss + cfg.eikonal_weight * eik
             if cfg.offsurface_weight and nrm is not None:
                 # SIREN's off-surface term: no zero level away from the points (with normals
                 # only: without them nothing holds the slope and it fights the zero level)
-                far = so[b:]
+                far = so[b : 2 * b]
                 loss = loss + cfg.offsurface_weight * torch.exp(-100.0 * far.abs()).mean()
         else:
             lab = torch.from_numpy(labels_fn(off.numpy()))

@@ -121,6 +121,12 @@ def marching_cubes(
         Unit field gradient at each vertex (central differences interpolated along the
         edge); points towards increasing values (outward for a signed distance).
     """
+    return _marching_cubes(volume, iso, spacing, origin, method, allow_degenerate)[:3]
+
+
+def _marching_cubes(volume, iso, spacing, origin, method, allow_degenerate):
+    """:func:`marching_cubes` and the number of cells left out (a NaN corner, or +inf and
+    -inf corners together), counted in the same pass."""
     vol = np.asarray(volume)
     if vol.ndim != 3:
         raise InputError(f"volume must be 3-d, got shape {vol.shape}")
@@ -131,13 +137,13 @@ def marching_cubes(
     org = _origin3(origin)
     method = _check_method(method)
     if min(vol.shape) < 2:
-        return np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3))
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3)), 0
     from recon_cli.mcubes import _kernel as K
     from recon_cli.mcubes._lut_data import FACE_CORNERS, MC_AMBIGUOUS
 
     start, tris, edges, keys, use_faces, centre, centre_id = _tables(method)
     vol = np.ascontiguousarray(vol, dtype=np.float64 if vol.dtype == np.float64 else np.float32)
-    verts, grads, faces = K.dense_extract(
+    verts, grads, faces, skipped = K.dense_extract(
         vol,
         iso,
         start,
@@ -151,8 +157,10 @@ def marching_cubes(
         centre_id,
         0.0 if allow_degenerate else DEGENERATE_CLAMP,
     )
-    verts = verts * sp + org
-    return verts, faces, _unit(grads / sp)
+    verts *= sp
+    verts += org
+    grads /= sp
+    return verts, faces, _unit(grads), int(skipped)
 
 
 def marching_cubes_sparse(
@@ -318,10 +326,7 @@ def run_stage(
 
     # parameters and the input's kind: checked by SPEC
     with task(progress, "marching cubes", 1) as t:
-        v, f, n = marching_cubes(
-            data.sdf, iso=iso, spacing=data.voxel_size, origin=data.origin, method=method,
-            allow_degenerate=allow_degenerate,
-        )
+        v, f, n, skipped = _marching_cubes(data.sdf, iso, data.voxel_size, data.origin, method, allow_degenerate)
         t.advance(1)
     if len(f) == 0:
         # an empty mesh is never a result: say why there is nothing to mesh
@@ -336,14 +341,6 @@ def run_stage(
             why = "every cell the level set crosses has an unknown (NaN) corner"
         raise InputError(f"nothing to mesh: {why}")
     mesh = TriangleMesh(vertices=v, faces=f, normals=n, history=list(data.history), point_dtype=data.point_dtype)
-    nan = ~np.isfinite(data.sdf)
-    skipped = 0
-    if nan.any():
-        # a cell is skipped when any of its 8 corners is NaN
-        s = nan[:-1] | nan[1:]
-        s = s[:, :-1] | s[:, 1:]
-        s = s[:, :, :-1] | s[:, :, 1:]
-        skipped = int(s.sum())
     report = {
         "vertices": int(len(v)),
         "faces": int(len(f)),

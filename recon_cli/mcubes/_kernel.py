@@ -175,17 +175,63 @@ def _point_grad(vol, i, j, k, g):
             g[ax] = 0.0
 
 
+@njit(cache=True, inline="always")
+def _sum4(a, b, c, d):
+    """Sum in float64 of four corner values: NaN when one is NaN or +inf and -inf meet."""
+    return np.float64(a) + np.float64(b) + np.float64(c) + np.float64(d)
+
+
+ROW_ABOVE = 0  # every sample of the row >= iso
+ROW_BELOW = 1  # every sample < iso
+ROW_MIXED = 2  # both, no NaN
+ROW_NAN = 3  # a NaN or infinite sample
+
+
+@njit(cache=True)
+def _row_classes(vol, iso):
+    """(nx, ny) int8: the class of each row ``vol[i, j, :]`` (ROW_ABOVE .. ROW_NAN).
+
+    One read of every sample, in loops LLVM vectorises; a row of cells whose four rows are
+    all ROW_ABOVE (or all ROW_BELOW) has no crossing and no cell to leave out, and is
+    skipped whole.
+    """
+    nx, ny, nz = vol.shape
+    cls = np.empty((nx, ny), np.int8)
+    for i in range(nx):
+        for j in range(ny):
+            r = vol[i, j]
+            below = 0
+            nonfinite = 0
+            for k in range(nz):
+                x = r[k]
+                below += 1 if x < iso else 0
+                nonfinite += 0 if (x > -np.inf and x < np.inf) else 1
+            if nonfinite:
+                cls[i, j] = ROW_NAN
+            elif below == 0:
+                cls[i, j] = ROW_ABOVE
+            elif below == nz:
+                cls[i, j] = ROW_BELOW
+            else:
+                cls[i, j] = ROW_MIXED
+    return cls
+
+
 @njit(cache=True)
 def dense_extract(vol, iso, start, tris, edges, edge_key, ambiguous, use_faces, face_corners, centre, centre_id, clamp):
     """Extract the iso-surface of a dense volume, slab by slab along axis 0.
 
-    Returns vertices (k, 3) in index units, unnormalised gradients (k, 3), faces (m, 3).
-    Vertices are made once per crossed edge: a map of the two lattice planes of the
-    current slab (by parity of the plane) holds the vertex id of every edge keyed by its
-    lower corner. An entry of plane P is only valid when made since slab P - 1 started,
-    which saves clearing the map for every slab.
+    Returns vertices (k, 3) in index units, unnormalised gradients (k, 3), faces (m, 3)
+    and the number of cells left out: those whose corner sum is NaN (a NaN corner, or
+    +inf and -inf corners together). Vertices are made once per crossed
+    edge: a map of the two lattice planes of the current slab (by parity of the plane)
+    holds the vertex id of every edge keyed by its lower corner. An entry of plane P is
+    only valid when made since slab P - 1 started, which saves clearing the map for every
+    slab. Rows of cells with no crossing are skipped whole (see :func:`_row_classes`).
     """
     nx, ny, nz = vol.shape
+    rows = _row_classes(vol, iso)
+    skipped = 0
     vmap = np.full((2, ny, nz, N_TYPES), -1, np.int64)
     lo_valid = 0  # first vertex id valid in plane i
     hi_valid = 0  # first vertex id valid in plane i + 1
@@ -205,12 +251,27 @@ def dense_extract(vol, iso, start, tris, edges, edge_key, ambiguous, use_faces, 
         lo_valid = hi_valid
         hi_valid = nv
         for j in range(ny - 1):
+            c00 = rows[i, j]
+            c10 = rows[i + 1, j]
+            c01 = rows[i, j + 1]
+            c11 = rows[i + 1, j + 1]
+            if c00 == c10 and c00 == c01 and c00 == c11 and c00 <= ROW_BELOW:
+                continue  # all four rows on one side, no NaN: no cell of this row crosses
             # slide along k: the upper face's four corner bits become the next cell's lower
             # face, so each cell reads four new values (three times faster on empty space)
             r00 = vol[i, j]
             r10 = vol[i + 1, j]
             r01 = vol[i, j + 1]
             r11 = vol[i + 1, j + 1]
+            if c00 == ROW_NAN or c10 == ROW_NAN or c01 == ROW_NAN or c11 == ROW_NAN:
+                # count the cells left out below: the sum of the 8 corners is NaN (a NaN
+                # corner, or +inf and -inf together: no crossing can be placed)
+                low = _sum4(r00[0], r10[0], r01[0], r11[0])
+                for k in range(nz - 1):
+                    up = _sum4(r00[k + 1], r10[k + 1], r01[k + 1], r11[k + 1])
+                    if np.isnan(low + up):
+                        skipped += 1
+                    low = up
             lower = _face_code(r00[0], r10[0], r01[0], r11[0], iso)
             for k in range(nz - 1):
                 upper = _face_code(r00[k + 1], r10[k + 1], r01[k + 1], r11[k + 1], iso)
@@ -220,8 +281,8 @@ def dense_extract(vol, iso, start, tris, edges, edge_key, ambiguous, use_faces, 
                     continue
                 for c in range(8):
                     v[c] = vol[i + (c & 1), j + ((c >> 1) & 1), k + ((c >> 2) & 1)]
-                if np.isnan(v[0] + v[1] + v[2] + v[3] + v[4] + v[5] + v[6] + v[7]):
-                    continue  # NaN compares false: a cell with a NaN corner is left out
+                if np.isnan((v[0] + v[1] + v[2] + v[3]) + (v[4] + v[5] + v[6] + v[7])):
+                    continue  # NaN compares false: a cell with a NaN corner is left out (counted above)
                 row = case
                 if use_faces:
                     row = case * 64 + _face_bits(v, case, iso, ambiguous, face_corners)
@@ -286,7 +347,7 @@ def dense_extract(vol, iso, start, tris, edges, edge_key, ambiguous, use_faces, 
                             nv += 1
                         faces[nf, q] = vid
                     nf += 1
-    return verts[:nv].copy(), grads[:nv].copy(), faces[:nf].copy()
+    return verts[:nv].copy(), grads[:nv].copy(), faces[:nf].copy(), skipped
 
 
 @njit(cache=True)

@@ -18,17 +18,32 @@ support costs nothing (:mod:`.splat`, :mod:`.octree`). ``chi`` is the sum
 of the levels' functions; it is solved cascadically, coarse to fine, each level by
 Jacobi-preconditioned conjugate gradients on the residual left by the coarser ones (as
 PoissonRecon does). The surface is the level set of ``chi`` at the weighted mean of its
-values at the samples, extracted by :func:`recon_cli.mcubes.marching_cubes_sparse` on the
-tree's finest lattice: each leaf of the tree is refined down to the finest cells only where
-it straddles the iso-value, and every lattice value is computed once, so there are no
-cracks between cells of different sizes (:mod:`.extract`). With degree 1 ``chi`` is
-trilinear in a leaf, so the refinement and marching cubes' linear interpolation are exact;
-with degree 2 the leaves' corners take ``chi``'s exact values and each vertex is then moved
-along its edge to ``chi``'s root there (``chi`` is one quadratic along a finest edge).
+values at the samples, extracted over the leaves of the tree at each leaf's own size
+(Kazhdan, Klein, Dalal & Hoppe 2007): ``chi`` is trilinear in a leaf and continuous across
+leaves, so its roots on the *minimal edges* (leaf edges no smaller leaf splits) are exact,
+each shared by all the leaves around it; every face between leaves pairs the roots on its
+boundary once, for both sides, so neighbouring leaves of different sizes agree and there
+are no cracks; each leaf's segments close into polygons, triangulated without a diagonal any
+other polygon could use. The surface is closed, manifold, welded, and its size follows the
+tree, not the depth asked for (:mod:`.extract`). With degree 2 (``--degree 2``) the leaves'
+corners take ``chi``'s exact values (nodes on the faces of coarser leaves take those leaves'
+values, so neighbours agree) and each vertex is then moved along its edge to ``chi``'s root.
+
+``trim`` removes the surface where the samples' kernel density is low (the closing sheet
+Poisson puts over the open side of a scan), as PoissonRecon's SurfaceTrimmer does: the mesh
+is cut along the contour where the density (linear on each face) equals the threshold, the
+sparse side goes, islands of the kept side below 0.1 % of its area go and holes below it are
+kept (SurfaceTrimmer's ``--aRatio``); the output stays manifold (:mod:`.trim`). The
+threshold differs: SurfaceTrimmer's ``--trim`` is an absolute value of the density
+PoissonRecon writes (a depth-like, logarithmic value; 5 to 7 is typical, smoothed first),
+Open3D users cut a quantile of the vertex densities; ours is a fraction of the median density
+at the samples, so one value (0.1 to 0.3) serves any scan, depth, unit and tessellation.
 
 References
 ----------
 Kazhdan, M. & Hoppe, H. (2013). Screened Poisson surface reconstruction. ACM TOG 32(3).
+Kazhdan, M., Klein, A., Dalal, K. & Hoppe, H. (2007). Unconstrained isosurface extraction on
+arbitrary octrees. SGP.
 Kazhdan, M., Bolitho, M. & Hoppe, H. (2006). Poisson surface reconstruction. SGP.
 """
 
@@ -192,8 +207,9 @@ def screened_poisson(
     density : bool
         Add the per-vertex kernel density of the samples as ``attributes["density"]``.
     trim : float
-        Remove the faces whose mean vertex density is in the lowest ``trim`` quantile
-        (0 <= trim < 1; 0 keeps everything), splitting vertices left non-manifold.
+        Cut away the surface where the samples' density is below ``trim`` times its median
+        at the samples (0 <= trim < 1; 0 keeps everything); see the module docstring for how
+        this relates to PoissonRecon's SurfaceTrimmer.
     colors : (n, 3) or (n, 4) array or None
         Per-point colours, interpolated onto the output vertices.
     full_depth : int

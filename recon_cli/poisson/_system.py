@@ -241,7 +241,7 @@ def _residual_update(x, r, p, q, a, ncell, stiff, inv_stiff, sd_nodes, sd_vals, 
     return rr, rz
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)  # the progress display keeps drawing while it runs
 def level_pcg(cell_nodes, ke, cell_screen, scell, sloc, sw, rhs, ncell, sd_nodes, sd_vals, unknown, tol, max_iter):
     """Jacobi-preconditioned conjugate gradients on the unknown nodes (others stay 0).
 

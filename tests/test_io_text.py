@@ -1,0 +1,163 @@
+"""The shared text kernel (recon_cli/io/_text_kernel.py via recon_cli/io/text.py): every number
+token reads bit for bit as Python's ``float`` reads it; malformed tokens are refused; rows and
+tables come out the same whatever the arrays' first capacity."""
+
+from __future__ import annotations
+
+import math
+import struct
+from decimal import Decimal, localcontext
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from recon_cli.errors import InputError
+from recon_cli.io import text
+from recon_cli.io._text_kernel import parse_float, scan_int
+
+FORMATS = ["%r", "%.17g", "%.16e", "%.9g", "%.6f", "%.10f", "%.0f", "%e", "%.3e", "%.12E", "%g", "%.25e", "%.40f", "%.30g"]
+
+
+def _bits(x: float) -> int:
+    return struct.unpack("<Q", struct.pack("<d", x))[0]
+
+
+def _read_all(tokens: list[str], delim: str = " ") -> np.ndarray:
+    """The tokens through the row reader (fast paths and the slow path for the undecided)."""
+    data = np.frombuffer(delim.join(tokens).encode(), np.uint8)
+    values, row_start, _ = text.read_rows(data, 0, len(data), "t.txt", delim=ord(delim) if delim != " " else 0)
+    assert len(row_start) == 2
+    return values
+
+
+def _assert_identical(tokens: list[str]) -> None:
+    got = _read_all(tokens)
+    assert len(got) == len(tokens)
+    for tok, v in zip(tokens, got.tolist()):
+        ref = float(tok)
+        if math.isnan(ref):
+            assert math.isnan(v)
+        else:
+            assert _bits(v) == _bits(ref), (tok, v, ref)
+
+
+def _significant_digits(tok: str) -> int:
+    mant = tok.lower().split("e")[0].lstrip("+-").replace(".", "").lstrip("0")
+    return len(mant.rstrip("0")) if mant else 0
+
+
+def _from_bits(b: int) -> float:
+    return struct.unpack("<d", struct.pack("<Q", b))[0]
+
+
+doubles = st.one_of(
+    st.floats(allow_nan=False, allow_infinity=False),
+    st.integers(0, (0x7FF << 52) - 1).map(_from_bits),  # every finite bit pattern, subnormals included
+    st.integers(1, (1 << 52) - 1).map(_from_bits),  # subnormals only
+)
+
+
+@settings(max_examples=400, deadline=None)
+@given(xs=st.lists(st.tuples(doubles, st.sampled_from(FORMATS), st.booleans()), min_size=1, max_size=40))
+def test_every_printed_double_reads_as_python_float_reads_it(xs):
+    tokens = []
+    for x, fmt, neg in xs:
+        x = -x if neg else x
+        tokens.append(repr(x) if fmt == "%r" else fmt % x)
+    _assert_identical(tokens)
+    for tok in tokens:  # up to 19 significant digits the kernel decides alone (no slow path)
+        buf = np.frombuffer(tok.encode(), np.uint8)
+        v, status = parse_float(buf, 0, len(buf))
+        if _significant_digits(tok) <= 19:
+            assert status == 1 and _bits(v) == _bits(float(tok)), tok
+
+
+def _halfway(b: int) -> tuple[str, str]:
+    """The exact decimal half way between the double of bits ``b`` and the next one, in two spellings."""
+    x = _from_bits(b)
+    y = math.nextafter(x, math.inf)
+    with localcontext() as ctx:
+        ctx.prec = 1200
+        h = (Decimal(x) + Decimal(y)) / 2
+    return format(h, "e"), format(h, "f")
+
+
+@settings(max_examples=150, deadline=None)
+@given(b=st.one_of(st.integers(1, (0x7FF << 52) - 2), st.integers(1, 1 << 53)), nudge=st.sampled_from(["", "1", "0000001"]))
+def test_exact_halfway_cases_and_their_neighbours_round_as_python(b, nudge):
+    for tok in _halfway(b):
+        if len(tok) > 1100:
+            continue
+        m, _, e = tok.partition("e")
+        if "." not in m:
+            m += "."
+        _assert_identical([m + nudge + (("e" + e) if e else "")])
+
+
+EDGE = [
+    "0", "-0", "-0.0", "+0.0", "0e999999", "-0e-5", "00000.000000",
+    "1e308", "1.7976931348623157e308", "1.7976931348623158e308", "1.7976931348623159e308", "-1e309", "1e400",
+    "2.2250738585072014e-308", "2.2250738585072011e-308", "2.225073858507201136057409796709131975934819546351645648e-308",
+    "4.9406564584124654e-324", "5e-324", "2.4703282292062327e-324", "2.4703282292062328e-324", "3e-324", "1e-400",
+    "0.000000000000000000000000000000000001", "000123.4500", "1.", ".5", "-.5", "+.5e1", "1.e5",
+    "9007199254740993", "9007199254740992.5", "18446744073709551615", "18446744073709551616", "99999999999999999999",
+    "1" + "0" * 30, "1" + "0" * 400 + "e-400", "0." + "0" * 400 + "1e401", "3.14159265358979323846264338327950288419716939937510",
+    "7.2057594037927933e16", "1e23", "8.98846567431158e307", "123456789012345678901234567890e-20",
+    "NaN", "nan", "-nan", "inf", "-Inf", "+INFINITY", "infinity",
+]
+
+
+@pytest.mark.parametrize("tok", EDGE)
+def test_edge_cases_read_as_python_float(tok):
+    _assert_identical([tok])
+    buf = np.frombuffer(tok.encode(), np.uint8)
+    _, status = parse_float(buf, 0, len(buf))
+    assert status in (1, 2)
+
+
+BAD = ["", ".", "-", "+", "e5", ".e5", "1e", "1e+", "1e-", "1E", "1ex", "1e5.5", "--1", "+-1", "1.2.3", "0x10", "1_000",
+       "1,5", "1..", "..1", "nanx", "infinit", "in", "na", "1d5", "1e5e5", "١"]
+
+
+@pytest.mark.parametrize("tok", BAD)
+def test_malformed_tokens_are_refused(tok):
+    buf = np.frombuffer(tok.encode(), np.uint8)
+    assert parse_float(buf, 0, len(buf))[1] == 0
+    if tok.strip(" ,") and tok != "1,5":
+        with pytest.raises(InputError, match=r"^t\.txt: line 2: "):
+            data = np.frombuffer(("1 2 3\n1 " + tok + " 3\n").encode(), np.uint8)
+            text.read_rows(data, 0, len(data), "t.txt")
+
+
+@pytest.mark.parametrize(("tok", "ok"), [("12", True), ("-7", True), ("+3", True), ("0", True), ("9" * 18, True),
+                                         ("9" * 19, False), ("", False), ("-", False), ("1.0", False), ("1e3", False), ("x", False)])
+def test_integers(tok, ok):
+    buf = np.frombuffer(tok.encode(), np.uint8)
+    v, good, stop = scan_int(buf, 0, len(buf))
+    assert (good and stop == len(buf)) == ok and (not ok or v == int(tok))
+
+
+@settings(max_examples=60, deadline=None)
+@given(rows=st.lists(st.lists(doubles, min_size=3, max_size=3), min_size=1, max_size=300), wide=st.integers(0, 200))
+def test_tables_do_not_depend_on_the_first_capacity(rows, wide):
+    body = "".join(" ".join(repr(v) for v in r) + "\n" for r in rows)
+    body = "# a comment\n\n" + body + " ".join(["1"] * 3) + "\n"
+    buf = np.frombuffer(body.encode(), np.uint8)
+    want = np.array([[float(repr(v)) for v in r] for r in rows] + [[1.0] * 3])
+    for cap in (1, 16, 10_000):
+        got = text.read_table(buf, 0, len(buf), "t.xyz", cap=cap)
+        assert got.shape == want.shape and np.array_equal(got.view(np.uint64), want.view(np.uint64))
+    # a row wider than any first capacity, through the variable-width reader
+    line = " ".join(["2.5"] * (wide + 1)) + "\n"
+    data = np.frombuffer((line + "1 2\n").encode(), np.uint8)
+    values, row_start, row_line = text.read_rows(data, 0, len(data), "t.txt")
+    assert row_start.tolist() == [0, wide + 1, wide + 3] and row_line.tolist() == [1, 2]
+    assert np.all(values[: wide + 1] == 2.5) and values[-2:].tolist() == [1.0, 2.0]
+
+
+def test_a_row_with_other_column_count_names_its_line():
+    data = np.frombuffer(b"1 2 3\n\n# c\n4 5 6\n7 8\n", np.uint8)
+    with pytest.raises(InputError, match=r"^t\.xyz: line 5: 2 columns, the first row has 3$"):
+        text.read_table(data, 0, len(data), "t.xyz")
