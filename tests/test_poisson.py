@@ -125,10 +125,11 @@ def test_cross_check_open3d_and_pymeshlab_within_one_cell(name):
     assert ch < 0.5 * cell7, (ch, cell7)
 
 
-def test_report_keys_and_solver_log(caplog):
+@pytest.mark.parametrize("degree", [1, 2])
+def test_report_keys_and_solver_log(caplog, degree):
     c = sampled_cloud("kitten", 20_000)
     with caplog.at_level(logging.INFO, logger="recon"):
-        res = run_stage(c, depth=6)
+        res = run_stage(c, depth=6, degree=degree)
     rep = res.report
     for key in ("vertices", "faces", "depth", "iso_value", "solver_iterations", "residual", "trimmed_faces"):
         assert key in rep
@@ -144,32 +145,35 @@ def _sphere_cloud(n: int, r: float, rng) -> PointCloud:
     return PointCloud(points=r * v + np.array([1.0, -2.0, 0.5]), normals=v)
 
 
+@pytest.mark.parametrize("degree", [1, 2])
 @pytest.mark.parametrize("boundary", ["neumann", "dirichlet"])
-def test_sphere_radius_within_half_a_cell(rng, boundary):
+def test_sphere_radius_within_half_a_cell(rng, boundary, degree):
     r = 2.0
     c = _sphere_cloud(60_000, r, rng)
-    res = screened_poisson(c.points, c.normals, depth=7, boundary=boundary)
+    res = screened_poisson(c.points, c.normals, depth=7, boundary=boundary, degree=degree)
     cell = res.report["finest_cell"]
     dist = np.linalg.norm(res.mesh.vertices - np.array([1.0, -2.0, 0.5]), axis=1)
     assert np.abs(dist - r).max() < 0.5 * cell, (np.abs(dist - r).max(), cell)
     assert topology_report(res.mesh)["watertight"]
 
 
-def test_unscreened_sphere_is_closed_and_close(rng):
+@pytest.mark.parametrize("degree", [1, 2])
+def test_unscreened_sphere_is_closed_and_close(rng, degree):
     c = _sphere_cloud(30_000, 1.0, rng)
-    res = screened_poisson(c.points, c.normals, depth=6, point_weight=0)
+    res = screened_poisson(c.points, c.normals, depth=6, point_weight=0, degree=degree)
     dist = np.linalg.norm(res.mesh.vertices - np.array([1.0, -2.0, 0.5]), axis=1)
     assert np.abs(dist - 1.0).max() < res.report["finest_cell"]
     assert topology_report(res.mesh)["watertight"]
 
 
-def test_density_trim_and_colors(rng):
+@pytest.mark.parametrize("degree", [1, 2])
+def test_density_trim_and_colors(rng, degree):
     # an open half sphere: Poisson closes it with a low-density cap that trimming removes
     c = _sphere_cloud(20_000, 1.0, rng)
     keep = c.normals[:, 2] > -0.2
     half = c.subset(keep)
     half.colors = np.clip((half.normals * 0.5 + 0.5) * 255, 0, 255).astype(np.uint8)
-    full = run_stage(half, depth=6, density=True)
+    full = run_stage(half, depth=6, density=True, degree=degree)
     mesh = full.output
     assert "density" in mesh.attributes and len(mesh.attributes["density"]) == len(mesh.vertices)
     assert topology_report(mesh)["watertight"]
@@ -182,7 +186,7 @@ def test_density_trim_and_colors(rng):
     xs = mesh.vertices[high, 0] - 1.0
     assert np.corrcoef(xs, mesh.colors[high, 0].astype(float))[0, 1] > 0.9
     # about 35 % of the vertices lie on the unsupported extension (density near 0)
-    trimmed = run_stage(half, depth=6, trim=0.4).output
+    trimmed = run_stage(half, depth=6, trim=0.4, degree=degree).output
     t = topology_report(trimmed)
     assert t["edge_manifold"] and t["vertex_manifold"] and not t["watertight"]
     assert trimmed.vertices[:, 2].min() > 0.5 - 0.4

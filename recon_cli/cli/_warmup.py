@@ -163,6 +163,9 @@ def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
         ]
     steps.append(("poisson adaptive levels", recon("poisson", c32, out, "--depth", "7")))
     steps.append(("poisson levels past the full depth", recon("poisson", path("dense.ply"), out, "--depth", "7")))
+    steps.append(("poisson degree 2", recon("poisson", path("dense.ply"), out, "--depth", "7", "--degree", "2")))
+    steps.append(("poisson degree 2 unscreened", recon("poisson", c32, out, "--depth", "5", "--degree", "2",
+                                                       "--point-weight", "0")))
     steps.append(("poisson estimate-normals", recon("poisson", path("bare_float32.ply"), out, "--depth", "5",
                                                     "--estimate-normals")))
     for src in (m32, m64, path("open.ply")):

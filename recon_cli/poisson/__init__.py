@@ -6,8 +6,10 @@ B-spline kernel, weighted by the area each sample stands for); the indicator ``c
 
     int |grad chi - W|^2  +  alpha * sum_p w_p (chi(p) - 1/2)^2,
 
-discretised with trilinear (Q1) hat functions on an adaptive multilevel grid (an octree
-level by level). Each sample is splatted at the depth its local density supports
+discretised on an adaptive multilevel grid (an octree level by level), in one of two bases
+(``degree``): trilinear (Q1) hat functions on the nodes (degree 1), or quadratic B-splines
+centred on the cells, support 3 cells per axis, as PoissonRecon's default (degree 2,
+:mod:`.bspline`). Each sample is splatted at the depth its local density supports
 (``samples_per_node`` samples per node, as PoissonRecon defines it, at most ``depth``), and
 level ``d`` holds the cells of the ``2**d`` lattice within two cells of a splat of level
 ``d`` or finer (every cell up to ``full_depth``), complete in siblings: the tree stops where
@@ -23,7 +25,9 @@ each shared by all the leaves around it; every face between leaves pairs the roo
 boundary once, for both sides, so neighbouring leaves of different sizes agree and there
 are no cracks; each leaf's segments close into polygons, triangulated without a diagonal any
 other polygon could use. The surface is closed, manifold, welded, and its size follows the
-tree, not the depth asked for (:mod:`.extract`).
+tree, not the depth asked for (:mod:`.extract`). With degree 2 (``--degree 2``) the leaves'
+corners take ``chi``'s exact values (nodes on the faces of coarser leaves take those leaves'
+values, so neighbours agree) and each vertex is then moved along its edge to ``chi``'s root.
 
 ``trim`` removes the surface where the samples' kernel density is low (the closing sheet
 Poisson puts over the open side of a scan), as PoissonRecon's SurfaceTrimmer does: the mesh
@@ -109,6 +113,8 @@ SPEC = StageSpec(
         Param("point_weight", "float", 4.0, "Screening weight (0 = classic unscreened Poisson).", min=0.0),
         Param("samples_per_node", "float", 1.5, "Samples per node at a sample's depth (as PoissonRecon): sparser samples are splatted coarser.",
               unit="samples", min=0.0, min_open=True),
+        Param("degree", "int", 1, "B-spline degree of the basis: 1 trilinear, 2 quadratic (PoissonRecon's default; more accurate on smooth surfaces).",
+              min=1, max=2),
         Param("boundary", "choice", "neumann", "Condition on the faces of the cube.", choices=BOUNDARIES),
         Param("density", "bool", False, "Write the per-vertex sampling density as vertex property 'density'."),
         Param("trim", "float", 0.0,
@@ -124,11 +130,12 @@ _CG_TOLERANCE = Param("cg_tolerance", "float", 1e-3, "Relative residual at which
                       min=0.0, max=1.0, min_open=True)
 
 
-def _check_options(depth, scale, point_weight, samples_per_node, boundary, density, trim) -> tuple:
+def _check_options(depth, scale, point_weight, samples_per_node, degree, boundary, density, trim) -> tuple:
     """Validate and convert the options shared by :func:`screened_poisson` and :func:`run_stage`."""
     v = SPEC.check(dict(depth=depth, scale=scale, point_weight=point_weight, samples_per_node=samples_per_node,
-                        boundary=boundary, density=density, trim=trim), complete=False)
-    return v["depth"], v["scale"], v["point_weight"], v["samples_per_node"], v["boundary"], v["density"], v["trim"]
+                        degree=degree, boundary=boundary, density=density, trim=trim), complete=False)
+    return (v["depth"], v["scale"], v["point_weight"], v["samples_per_node"], v["degree"], v["boundary"], v["density"],
+            v["trim"])
 
 
 def _check_inputs(points: Any, normals: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -161,6 +168,7 @@ def screened_poisson(
     scale: float = SPEC.param("scale").default,
     point_weight: float = SPEC.param("point_weight").default,
     samples_per_node: float = SPEC.param("samples_per_node").default,
+    degree: int = SPEC.param("degree").default,
     boundary: str = SPEC.param("boundary").default,
     density: bool = SPEC.param("density").default,
     trim: float = SPEC.param("trim").default,
@@ -190,6 +198,10 @@ def screened_poisson(
         sample is splatted at the level where its kernel density gives this many samples
         per node, so sparse regions get coarse, smooth nodes and the tree no finer ones;
         larger values give coarser, smoother surfaces on noisy data. > 0.
+    degree : {1, 2}
+        B-spline degree of the basis: 1, trilinear hat functions on the nodes; 2, quadratic
+        B-splines centred on the cells (support 3 cells per axis, PoissonRecon's default),
+        whose higher approximation order shows on smooth surfaces (:mod:`.bspline`).
     boundary : {"neumann", "dirichlet"}
         Condition on the cube's faces (Dirichlet: ``chi = 0``, the outside).
     density : bool
@@ -210,8 +222,8 @@ def screened_poisson(
     -------
     PoissonResult
     """
-    depth, scale, point_weight, samples_per_node, boundary, density, trim = _check_options(
-        depth, scale, point_weight, samples_per_node, boundary, density, trim
+    depth, scale, point_weight, samples_per_node, degree, boundary, density, trim = _check_options(
+        depth, scale, point_weight, samples_per_node, degree, boundary, density, trim
     )
     full_depth = _FULL_DEPTH.coerce(full_depth)
     cg_tolerance = _CG_TOLERANCE.coerce(cg_tolerance)
@@ -241,8 +253,11 @@ def screened_poisson(
 
     # ---- kernel density -> area per point and splat level
     t = time.perf_counter()
-    splats = make_splats(smp, depth, samples_per_node, point_weight, density or trim > 0)
+    splats = make_splats(smp, depth, samples_per_node, point_weight, density or trim > 0,
+                         merge=degree == 1)
     tree_depth = splats.tree_depth
+    if degree == 2:
+        tree_depth = max(tree_depth, 1)  # level 0 carries no degree-2 function
     full_depth = min(full_depth, tree_depth)
     res = 1 << tree_depth  # the finest cells of the tree
     timings["density"] = time.perf_counter() - t
@@ -257,16 +272,26 @@ def screened_poisson(
 
     # ---- cascadic solve
     t = time.perf_counter()
-    gvals, per_level, total_it, last_res = solve(levels, smp, splats, full_depth, cg_tolerance, progress)
-    timings["solve"] = time.perf_counter() - t
+    if degree == 2:
+        from recon_cli.poisson import bspline
 
-    # ---- iso-value: weighted mean of chi at the samples
-    iso = iso_value(levels, gvals, smp)
+        gvals, per_level, total_it, last_res, iso, chi = bspline.solve(levels, smp, splats, boundary, full_depth,
+                                                                       cg_tolerance, progress)
+        timings["solve"] = time.perf_counter() - t
+    else:
+        gvals, per_level, total_it, last_res = solve(levels, smp, splats, full_depth, cg_tolerance, progress)
+        timings["solve"] = time.perf_counter() - t
+        # ---- iso-value: weighted mean of chi at the samples
+        iso = iso_value(levels, gvals, smp)
 
     # ---- extraction
     t = time.perf_counter()
     verts, faces = extract(levels, gvals, iso, origin, size)
     del levels, gvals
+    if degree == 2:
+        # chi is not trilinear between the lattice's points: each vertex to chi's root on its edge
+        verts = chi.refine_vertices(verts, iso, origin, size, tree_depth)
+        del chi
     timings["extract"] = time.perf_counter() - t
 
 
@@ -335,6 +360,7 @@ def run_stage(
     scale: float,
     point_weight: float,
     samples_per_node: float,
+    degree: int,
     boundary: str,
     density: bool,
     trim: float,
@@ -348,7 +374,7 @@ def run_stage(
     ----------
     data : PointCloud or TriangleMesh
         Oriented points (a mesh's vertices and vertex normals are used).
-    depth, scale, point_weight, samples_per_node, boundary, density, trim
+    depth, scale, point_weight, samples_per_node, degree, boundary, density, trim
         See :func:`screened_poisson`.
     estimate_normals : bool
         Estimate and orient normals first with the ``normals`` stage (its defaults), replacing
@@ -386,7 +412,7 @@ def run_stage(
     if backend == "native":
         res = screened_poisson(
             cloud.points, cloud.normals, depth=depth, scale=scale, point_weight=point_weight,
-            samples_per_node=samples_per_node, boundary=boundary, density=density, trim=trim,
+            samples_per_node=samples_per_node, degree=degree, boundary=boundary, density=density, trim=trim,
             colors=cloud.colors, progress=progress,
         )
         mesh, rep = res.mesh, res.report

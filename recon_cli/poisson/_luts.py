@@ -37,3 +37,9 @@ if not np.all(np.diag(UNIT_STIFFNESS) == UNIT_STIFFNESS[0, 0]):
 # mean over plane offsets of sum_k B2(t - k)^2: a plane of sigma samples per unit area gives a
 # kernel density of about 0.55 * sigma * h^2 at level spacing h
 B2_PLANE_DENSITY = 0.55
+
+# Degree 2: the centred quadratic B-spline B2 (support [-1.5, 1.5]); between the functions of
+# two cells t = -2..2 apart (cell units): mass int B2(u) B2(u - t) du (the quintic B-spline at
+# t) and stiffness int B2'(u) B2'(u - t) du (minus its second derivative)
+B2_MASS = np.array([1.0 / 120.0, 13.0 / 60.0, 11.0 / 20.0, 13.0 / 60.0, 1.0 / 120.0])
+B2_STIFFNESS = np.array([-1.0 / 6.0, -1.0 / 3.0, 1.0, -1.0 / 3.0, -1.0 / 6.0])

@@ -86,8 +86,8 @@ def _eval_density(table: tuple, pos: np.ndarray) -> np.ndarray:
     return S.density_eval(pos, level, *tab, dens)
 
 
-def make_splats(smp: Samples, depth: int, samples_per_node: float, point_weight: float, keep_density: bool
-                ) -> Splats:
+def make_splats(smp: Samples, depth: int, samples_per_node: float, point_weight: float, keep_density: bool,
+                merge: bool = True) -> Splats:
     """The level each sample is splatted at, the area it stands for, the splat items and the
     screening weights.
 
@@ -130,7 +130,7 @@ def make_splats(smp: Samples, depth: int, samples_per_node: float, point_weight:
     normal_w = -(area_pt * 1.0)[:, None] * snrm  # chi is 1 inside: its gradient is -n
     # splat items: each sample's share at its two levels, merged per cell of that level (as
     # PoissonRecon merges samples per node), so coarse splats cost per cell, not per sample
-    it_pos, it_vec, it_lvl = merge_splats(spos, normal_w, count, s_lo, s_frac)
+    it_pos, it_vec, it_lvl = merge_splats(spos, normal_w, count, s_lo, s_frac, merge)
     tree_depth = int(it_lvl.max())
     log.info("poisson: %d splats from %d samples, levels %d..%d", len(it_pos), ns, int(it_lvl.min()), tree_depth)
     mean_area = float((area_pt * count).sum() / count.sum())
@@ -154,9 +154,11 @@ def sample_density(splats: Splats, pos: np.ndarray) -> np.ndarray:
     return _eval_density(splats.density, pos)
 
 
-def merge_splats(pos, vec, count, s_lo, s_frac):
+def merge_splats(pos, vec, count, s_lo, s_frac, merge=True):
     """Per level, the samples' shares merged per cell: (count-weighted mean position, summed
-    vector, level)."""
+    vector, level); with ``merge`` False each sample's share is an item of its own (merging
+    moves the items of a curved surface to the inside by about its curvature times the
+    squared cell size / 12, a bias the degree-2 basis resolves)."""
     parts = [(s_lo, 1.0 - s_frac), (s_lo + 1, s_frac)]
     out_p, out_v, out_l = [], [], []
     for lvl_arr, w in parts:
@@ -164,6 +166,11 @@ def merge_splats(pos, vec, count, s_lo, s_frac):
             sel = (lvl_arr == lvl) & (w > 0)
             p = pos[sel]
             ww = w[sel]
+            if not merge:
+                out_p.append(p)
+                out_v.append(vec[sel] * ww[:, None])
+                out_l.append(np.full(len(p), int(lvl), np.int64))
+                continue
             keys = pack_keys(np.floor(p * (1 << int(lvl))).astype(np.int64))
             _, inv = np.unique(keys, return_inverse=True)
             inv = inv.reshape(-1)

@@ -1,0 +1,674 @@
+"""Numba kernels of the degree-2 B-spline system: functions centred on cells, stiffness and
+screening operators, prolongation from the coarser level, Jacobi-preconditioned conjugate
+gradients, evaluation.
+
+They only compute; conventions in :mod:`recon_cli.poisson._octree`, and these:
+
+- at level ``d`` (``n = 2**d`` cells per axis) the function of cell ``c`` is the tensor
+  product of the centred quadratic B-spline ``B2(u - c - 1/2)`` per axis (``u`` in cells),
+  reflected at the cube's faces: evenly (Neumann, ``s = 1``) or oddly (Dirichlet,
+  ``s = -1``); cell ``-1 - c`` and ``2n - 1 - c`` are images of ``c`` with sign ``s``
+  (:func:`fold`), so every operator is the unbounded one with out-of-range indices folded;
+- a level's coefficients live on ``E``: the children of a parent set ``Q`` (sorted keys of
+  the coarser level) in block order, cell ``8 i + o`` the child of octant
+  ``o = ox | oy << 1 | oz << 2`` of ``Q[i]`` (siblings side by side: a gather reads whole
+  blocks); ``nb`` (q, 27) is the index in ``Q`` of each parent's neighbour at offset
+  ``(dx, dy, dz)`` in ``{-1, 0, 1}^3``, slot ``(dx + 1) + 3 (dy + 1) + 9 (dz + 1)`` (-1 absent);
+  the neighbour of a cell at any offset in ``[-2, 2]^3`` is a child of one of its parent's
+  neighbours;
+- the 1D tables ``m1``, ``k1`` (n, 5) hold the folded mass and stiffness between cell ``i``
+  and cell ``i + t`` at column ``t + 2`` (cell units).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache directory, threading layer)
+from recon_cli.poisson._octree import MASK21, bsearch, lattice_key, lower_bound
+
+# B2''' = sum_k A_k delta(u - T_k)
+_A = (1.0, -3.0, 3.0, -1.0)
+_T = (-1.5, -0.5, 0.5, 1.5)
+
+
+@njit(cache=True, inline="always")
+def fold(c, n, s):
+    """The in-range cell of which ``c`` is an image, and the image's sign."""
+    sg = 1.0
+    while c < 0 or c >= n:
+        if c < 0:
+            c = -1 - c
+        else:
+            c = 2 * n - 1 - c
+        sg *= s
+    return c, sg
+
+
+@njit(cache=True, inline="always")
+def _p4(x):
+    t = x if x > 0.0 else 0.0
+    t *= t
+    return t * t
+
+
+@njit(cache=True, inline="always")
+def _p5(x):
+    t = x if x > 0.0 else 0.0
+    u = t * t
+    return u * u * t
+
+
+@njit(cache=True)
+def b2_int2(x):
+    """Second antiderivative of the centred quadratic B-spline (0 below -1.5, x above 1.5)."""
+    if x <= -1.5:
+        return 0.0
+    if x >= 1.5:
+        return x
+    return (_p4(x + 1.5) - 3.0 * _p4(x + 0.5) + 3.0 * _p4(x - 0.5)) / 24.0
+
+
+@njit(cache=True)
+def b2_int3(x):
+    """Third antiderivative of the centred quadratic B-spline (0 below -1.5, x^2/2 + 1/8
+    above 1.5)."""
+    if x <= -1.5:
+        return 0.0
+    if x >= 1.5:
+        return 0.5 * x * x + 0.125
+    return (_p5(x + 1.5) - 3.0 * _p5(x + 0.5) + 3.0 * _p5(x - 0.5)) / 120.0
+
+
+@njit(cache=True)
+def b2_factors(v, rho):
+    """int B2(w) K(w - v) dw and int B2'(w) K(w - v) dw for the kernel K = B2(./rho)/rho.
+
+    The derivatives go onto the narrower of the two (three integrations by parts against
+    its third derivative, a sum of deltas), so no term is much larger than the result.
+    """
+    val = 0.0
+    der = 0.0
+    if rho < 1.0:
+        for k in range(4):
+            x = (_T[k] - v) / rho
+            val -= _A[k] * rho * rho * b2_int3(x)
+            der += _A[k] * rho * b2_int2(x)
+    else:
+        r3 = rho * rho * rho
+        for k in range(4):
+            x = rho * _T[k] + v
+            val -= _A[k] * b2_int3(x) / r3
+            der -= _A[k] * b2_int2(x) / r3
+    return val, der
+
+
+@njit(cache=True, inline="always")
+def sample_weights(t, c, n, s, w):
+    """Values of the functions of cells c - 1, c, c + 1 (folded into ``w[0..2]``) at local
+    coordinate ``t`` in cell ``c``."""
+    w[0] = 0.5 * (1.0 - t) * (1.0 - t)
+    w[1] = 0.75 - (t - 0.5) * (t - 0.5)
+    w[2] = 0.5 * t * t
+    if c == 0:
+        w[1] += s * w[0]
+        w[0] = 0.0
+    if c == n - 1:
+        w[1] += s * w[2]
+        w[2] = 0.0
+
+
+@njit(cache=True)
+def neighbour_table(keys, top):
+    """(k, 27) int32: index in sorted ``keys`` of each key's neighbours (-1 absent or outside
+    [0, ``top``])."""
+    n = len(keys)
+    out = np.full((n, 27), -1, np.int32)
+    for i in range(n):
+        k = keys[i]
+        x = (k >> 42) & MASK21
+        y = (k >> 21) & MASK21
+        z = k & MASK21
+        for t in range(27):
+            X = x + t % 3 - 1
+            Y = y + (t // 3) % 3 - 1
+            Z = z + t // 9 - 1
+            if X < 0 or Y < 0 or Z < 0 or X > top or Y > top or Z > top:
+                continue
+            out[i, t] = bsearch(keys, lattice_key(X, Y, Z))
+    return out
+
+
+@njit(cache=True, inline="always")
+def _nbr(nb, i, o, tx, ty, tz):
+    """Index in E of the neighbour at offset (tx, ty, tz) in [-2, 2]^3 of child ``o`` of
+    parent ``i`` (-1 outside the cube)."""
+    bx = (o & 1) + tx
+    by = ((o >> 1) & 1) + ty
+    bz = ((o >> 2) & 1) + tz
+    p = nb[i, ((bx >> 1) + 1) + 3 * ((by >> 1) + 1) + 9 * ((bz >> 1) + 1)]
+    if p < 0:
+        return -1
+    return 8 * p + ((bx & 1) | ((by & 1) << 1) | ((bz & 1) << 2))
+
+
+@njit(cache=True)
+def stiffness_matvec(q_keys, nb, inp, m1, k1, h, x, out):
+    """out[m] += h * sum over the 125 cells within 2 of m of the stiffness times x, for the
+    children m of the parents flagged ``inp``: each parent's 6x6x6 block of cells is gathered
+    once and the separable stencil (K M M + M K M + M M K) applied one axis at a time to all
+    8 children together."""
+    X = np.zeros((6, 6, 6))
+    zm = np.empty((6, 6, 2))
+    zk = np.empty((6, 6, 2))
+    ym = np.empty((6, 2, 2))
+    yk = np.empty((6, 2, 2))
+    for i in range(len(q_keys)):
+        if not inp[i]:
+            continue
+        for bz in range(6):
+            for by in range(6):
+                for bx in range(6):
+                    p = nb[i, (bx >> 1) + 3 * (by >> 1) + 9 * (bz >> 1)]
+                    X[bx, by, bz] = x[8 * p + ((bx & 1) | ((by & 1) << 1) | ((bz & 1) << 2))] if p >= 0 else 0.0
+        k = q_keys[i]
+        px = 2 * ((k >> 42) & MASK21)
+        py = 2 * ((k >> 21) & MASK21)
+        pz = 2 * (k & MASK21)
+        # z: the two children's rows, for every (x, y) of the block
+        for oz in range(2):
+            cz = pz + oz
+            for bx in range(6):
+                for by in range(6):
+                    sm = 0.0
+                    sk = 0.0
+                    for c in range(5):
+                        v = X[bx, by, oz + c]
+                        sm += m1[cz, c] * v
+                        sk += k1[cz, c] * v
+                    zm[bx, by, oz] = sm
+                    zk[bx, by, oz] = sk
+        # y
+        for oy in range(2):
+            cy = py + oy
+            for bx in range(6):
+                for oz in range(2):
+                    sm = 0.0
+                    sk = 0.0
+                    for b in range(5):
+                        sm += m1[cy, b] * zm[bx, oy + b, oz]
+                        sk += k1[cy, b] * zm[bx, oy + b, oz] + m1[cy, b] * zk[bx, oy + b, oz]
+                    ym[bx, oy, oz] = sm
+                    yk[bx, oy, oz] = sk
+        # x
+        for o in range(8):
+            ox = o & 1
+            oy = (o >> 1) & 1
+            oz = (o >> 2) & 1
+            cx = px + ox
+            y = 0.0
+            for a in range(5):
+                y += k1[cx, a] * ym[ox + a, oy, oz] + m1[cx, a] * yk[ox + a, oy, oz]
+            out[8 * i + o] += h * y
+
+
+@njit(cache=True)
+def stiffness_diag(q_keys, inp, m1, k1, h):
+    out = np.zeros(8 * len(q_keys))
+    for i in range(len(q_keys)):
+        if not inp[i]:
+            continue
+        k = q_keys[i]
+        px = (k >> 42) & MASK21
+        py = (k >> 21) & MASK21
+        pz = k & MASK21
+        for o in range(8):
+            cx = 2 * px + (o & 1)
+            cy = 2 * py + ((o >> 1) & 1)
+            cz = 2 * pz + ((o >> 2) & 1)
+            out[8 * i + o] = h * (k1[cx, 2] * m1[cy, 2] * m1[cz, 2] + m1[cx, 2] * k1[cy, 2] * m1[cz, 2]
+                                 + m1[cx, 2] * m1[cy, 2] * k1[cz, 2])
+    return out
+
+
+@njit(cache=True, inline="always")
+def _gather27(q_keys, nb, m, n, s, t, wx, wy, wz, idx):
+    """The 27 (folded) weights of the functions around cell ``m`` at local coordinates ``t``
+    (3,), into wx, wy, wz (3,) and the cells' indices into idx (27,) (-1 outside)."""
+    i = m >> 3
+    o = m & 7
+    k = q_keys[i]
+    sample_weights(t[0], 2 * ((k >> 42) & MASK21) + (o & 1), n, s, wx)
+    sample_weights(t[1], 2 * ((k >> 21) & MASK21) + ((o >> 1) & 1), n, s, wy)
+    sample_weights(t[2], 2 * (k & MASK21) + ((o >> 2) & 1), n, s, wz)
+    for r in range(27):
+        idx[r] = _nbr(nb, i, o, r % 3 - 1, (r // 3) % 3 - 1, r // 9 - 1)
+
+
+@njit(cache=True)
+def screening_matvec(q_keys, nb, n, s, scell, sloc, sw, x, out):
+    """out += sum_p w_p B_i(p) sum_j B_j(p) x_j over the samples (cell, local coordinates)."""
+    wx = np.empty(3)
+    wy = np.empty(3)
+    wz = np.empty(3)
+    idx = np.empty(27, np.int64)
+    for p in range(len(scell)):
+        _gather27(q_keys, nb, scell[p], n, s, sloc[p], wx, wy, wz, idx)
+        v = 0.0
+        for r in range(27):
+            j = idx[r]
+            if j >= 0:
+                v += wx[r % 3] * wy[(r // 3) % 3] * wz[r // 9] * x[j]
+        v *= sw[p]
+        for r in range(27):
+            j = idx[r]
+            if j >= 0:
+                out[j] += wx[r % 3] * wy[(r // 3) % 3] * wz[r // 9] * v
+
+
+@njit(cache=True)
+def screening_diag_rhs(q_keys, nb, n, s, scell, sloc, sw, target, diag, rhs):
+    """diag += sum_p w_p B_i(p)^2 and rhs += sum_p w_p target B_i(p), in place."""
+    wx = np.empty(3)
+    wy = np.empty(3)
+    wz = np.empty(3)
+    idx = np.empty(27, np.int64)
+    for p in range(len(scell)):
+        _gather27(q_keys, nb, scell[p], n, s, sloc[p], wx, wy, wz, idx)
+        for r in range(27):
+            j = idx[r]
+            if j >= 0:
+                w = wx[r % 3] * wy[(r // 3) % 3] * wz[r // 9]
+                diag[j] += sw[p] * w * w
+                rhs[j] += sw[p] * target * w
+
+
+@njit(cache=True, inline="always")
+def find_cell(q_keys, x, y, z):
+    """Index in E of cell (x, y, z) (-1 if its parent is not in ``q_keys``)."""
+    i = bsearch(q_keys, lattice_key(x >> 1, y >> 1, z >> 1))
+    if i < 0:
+        return -1
+    return 8 * i + ((x & 1) | ((y & 1) << 1) | ((z & 1) << 2))
+
+
+@njit(cache=True)
+def locate(pos, level, q_keys, inp):
+    """Index in E of the cell (of a flagged parent) holding each position, -1 if none, and
+    the local coordinates in [0, 1]."""
+    n = pos.shape[0]
+    scale = float(1 << level)
+    top = (1 << level) - 1
+    cell = np.empty(n, np.int64)
+    loc = np.empty((n, 3))
+    for i in range(n):
+        c0 = min(max(int(np.floor(pos[i, 0] * scale)), 0), top)
+        c1 = min(max(int(np.floor(pos[i, 1] * scale)), 0), top)
+        c2 = min(max(int(np.floor(pos[i, 2] * scale)), 0), top)
+        m = find_cell(q_keys, c0, c1, c2)
+        if m >= 0 and not inp[m >> 3]:
+            m = -1
+        cell[i] = m
+        loc[i, 0] = min(max(pos[i, 0] * scale - c0, 0.0), 1.0)
+        loc[i, 1] = min(max(pos[i, 1] * scale - c1, 0.0), 1.0)
+        loc[i, 2] = min(max(pos[i, 2] * scale - c2, 0.0), 1.0)
+    return cell, loc
+
+
+@njit(cache=True)
+def prolong(q_keys, coarse_q_keys, coarse_nb, coarse, n_coarse, s):
+    """Coefficients on E (the children of ``q_keys``) of the coarser level's function
+    (coefficients ``coarse`` on the coarser E, the children of ``coarse_q_keys``):
+    refinement mask (1, 3, 3, 1)/4 per axis, the coarse index folded at the cube's faces."""
+    out = np.zeros(8 * len(q_keys))
+    loc = np.zeros(27)
+    ox_ = np.empty(2, np.int64)
+    oy_ = np.empty(2, np.int64)
+    oz_ = np.empty(2, np.int64)
+    wx_ = np.empty(2)
+    wy_ = np.empty(2)
+    wz_ = np.empty(2)
+    for i in range(len(q_keys)):
+        k = q_keys[i]
+        px = (k >> 42) & MASK21
+        py = (k >> 21) & MASK21
+        pz = k & MASK21
+        # the parent cell in the coarser E and its neighbours there
+        j = find_cell(coarse_q_keys, px, py, pz)
+        for t in range(27):
+            loc[t] = 0.0
+            if j >= 0:
+                jj = _nbr(coarse_nb, j >> 3, j & 7, t % 3 - 1, (t // 3) % 3 - 1, t // 9 - 1)
+                if jj >= 0:
+                    loc[t] = coarse[jj]
+        for o in range(8):
+            _mask(o & 1, px, n_coarse, s, ox_, wx_)
+            _mask((o >> 1) & 1, py, n_coarse, s, oy_, wy_)
+            _mask((o >> 2) & 1, pz, n_coarse, s, oz_, wz_)
+            v = 0.0
+            for a in range(2):
+                for b in range(2):
+                    for c in range(2):
+                        v += wx_[a] * wy_[b] * wz_[c] * loc[(ox_[a] + 1) + 3 * (oy_[b] + 1) + 9 * (oz_[c] + 1)]
+            out[8 * i + o] = v
+    return out
+
+
+@njit(cache=True, inline="always")
+def _mask(bit, p, n_coarse, s, off, w):
+    """The two coarse cells (offsets from the parent) a fine cell of parity ``bit`` takes
+    from, and their weights 3/4 and 1/4 (the far one folded onto the parent at a face)."""
+    off[0] = 0
+    w[0] = 0.75
+    d = 1 if bit else -1
+    if 0 <= p + d < n_coarse:
+        off[1] = d
+        w[1] = 0.25
+    else:
+        off[1] = 0
+        w[1] = 0.25 * s
+
+
+@njit(cache=True)
+def splat_rhs(pos, normal_w, splat_level, level, q_keys, inp, s, width):
+    """b_i = int grad(B_i) . W at the unknown cells, W the normals splatted with quadratic
+    B-splines of their splat level's width (as :func:`recon_cli.poisson._splat.splat_rhs`
+    does for the trilinear basis): per item and axis, the 1D factors of the cells in reach
+    (images folded), then the flagged parents in the box, walking their sorted keys, and
+    their children in it."""
+    n_keys = len(q_keys)
+    b = np.zeros(8 * n_keys)
+    if n_keys == 0:
+        return b
+    n = 1 << level
+    scale = float(n)
+    smin = level
+    for p in range(pos.shape[0]):
+        smin = min(smin, splat_level[p])
+    wmax = min(2 * int(np.ceil(1.5 + 1.5 * width * 2.0 ** max(level - smin, 0))) + 4, n)
+    fv = np.zeros((3, wmax))
+    fd = np.zeros((3, wmax))
+    lo = np.empty(3, np.int64)
+    hi = np.empty(3, np.int64)
+    for p in range(pos.shape[0]):
+        rho = width * 2.0 ** (level - splat_level[p])
+        reach = 1.5 + 1.5 * rho
+        empty = False
+        for a in range(3):
+            u = pos[p, a] * scale
+            e0 = int(np.floor(u - 0.5 - reach))
+            e1 = int(np.ceil(u - 0.5 + reach))
+            lo[a] = max(e0, 0)
+            hi[a] = min(e1, n - 1, lo[a] + wmax - 1)
+            if hi[a] < lo[a]:
+                empty = True
+                continue
+            for t in range(hi[a] - lo[a] + 1):
+                fv[a, t] = 0.0
+                fd[a, t] = 0.0
+            for c in range(e0, e1 + 1):
+                v = u - (c + 0.5)
+                if abs(v) >= reach:
+                    continue
+                cf, sg = fold(c, n, s)
+                if cf < lo[a] or cf > hi[a]:
+                    continue
+                val, der = b2_factors(v, rho)
+                fv[a, cf - lo[a]] += sg * val
+                fd[a, cf - lo[a]] += sg * der * scale
+        if empty:
+            continue
+        nx = normal_w[p, 0]
+        ny = normal_w[p, 1]
+        nz = normal_w[p, 2]
+        l0 = lo[0] >> 1
+        l1 = lo[1] >> 1
+        l2 = lo[2] >> 1
+        h1 = hi[1] >> 1
+        h2 = hi[2] >> 1
+        for x in range(l0, (hi[0] >> 1) + 1):
+            kend = lattice_key(x, h1, h2)
+            j = lower_bound(q_keys, lattice_key(x, l1, l2), 0, n_keys)
+            while j < n_keys and q_keys[j] <= kend:
+                k = q_keys[j]
+                y = (k >> 21) & MASK21
+                z = k & MASK21
+                if z < l2:
+                    j = gallop(q_keys, lattice_key(x, y, l2), j, n_keys)
+                    continue
+                if z > h2:
+                    j = gallop(q_keys, lattice_key(x, y + 1, l2), j, n_keys)
+                    continue
+                if inp[j]:
+                    for o in range(8):
+                        cx = 2 * x + (o & 1) - lo[0]
+                        cy = 2 * y + ((o >> 1) & 1) - lo[1]
+                        cz = 2 * z + ((o >> 2) & 1) - lo[2]
+                        if (cx < 0 or cy < 0 or cz < 0 or cx > hi[0] - lo[0] or cy > hi[1] - lo[1]
+                                or cz > hi[2] - lo[2]):
+                            continue
+                        b[8 * j + o] += (nx * fd[0, cx] * fv[1, cy] * fv[2, cz] + ny * fv[0, cx] * fd[1, cy] * fv[2, cz]
+                                         + nz * fv[0, cx] * fv[1, cy] * fd[2, cz])
+                j += 1
+    return b
+
+
+@njit(cache=True, inline="always")
+def gallop(keys, key, lo, hi):
+    """First index in [lo, hi) of sorted ``keys`` whose key is >= ``key``, searching from
+    ``lo`` with doubling steps (the next row is usually near)."""
+    step = 1
+    end = lo
+    while end < hi and keys[end] < key:
+        lo = end + 1
+        end = lo + step
+        step *= 2
+    return lower_bound(keys, key, lo, min(end, hi))
+
+
+@njit(cache=True)
+def level_matvec(q_keys, nb, inp, m1, k1, h, n, s, scell, sloc, sw, x, out):
+    """out = A x (stiffness and screening) at the unknowns; elsewhere whatever A gives."""
+    out[:] = 0.0
+    stiffness_matvec(q_keys, nb, inp, m1, k1, h, x, out)
+    if len(sw):
+        screening_matvec(q_keys, nb, n, s, scell, sloc, sw, x, out)
+
+
+@njit(cache=True)
+def level_pcg(q_keys, nb, inp, m1, k1, h, n, s, scell, sloc, sw, rhs, diag, unknown, tol, max_iter):
+    """Jacobi-preconditioned conjugate gradients on the unknown cells (others stay 0);
+    ``rhs`` is overwritten by the residual. Returns (x, iterations, relative residual)."""
+    m = len(rhs)
+    inv = np.zeros(m)
+    for i in range(m):
+        if unknown[i] and diag[i] > 0.0:
+            inv[i] = 1.0 / diag[i]
+        if not unknown[i]:
+            rhs[i] = 0.0
+    x = np.zeros(m)
+    r = rhs
+    p = np.empty(m)
+    bn = 0.0
+    rz = 0.0
+    for i in range(m):
+        p[i] = r[i] * inv[i]
+        bn += r[i] * r[i]
+        rz += r[i] * p[i]
+    bn = np.sqrt(bn)
+    if bn == 0.0:
+        return x, 0, 0.0
+    q = np.empty(m)
+    it = 0
+    rel = 1.0
+    while it < max_iter:
+        level_matvec(q_keys, nb, inp, m1, k1, h, n, s, scell, sloc, sw, p, q)
+        pq = 0.0
+        for i in range(m):
+            if not unknown[i]:
+                q[i] = 0.0
+            pq += p[i] * q[i]
+        if pq <= 0.0:
+            break
+        a = rz / pq
+        rr = 0.0
+        rz_new = 0.0
+        for i in range(m):
+            x[i] += a * p[i]
+            r[i] -= a * q[i]
+            rr += r[i] * r[i]
+            q[i] = r[i] * inv[i]
+            rz_new += r[i] * q[i]
+        it += 1
+        rel = np.sqrt(rr) / bn
+        if rel < tol:
+            break
+        beta = rz_new / rz
+        for i in range(m):
+            p[i] = q[i] + beta * p[i]
+        rz = rz_new
+    return x, it, rel
+
+
+@njit(cache=True)
+def chi_at(pos, top, q_all, q_off, inp_all, nb_all, coef_all, s):
+    """chi at unit-cube positions (m, 3) from every level's coefficients (the levels'
+    arrays concatenated, level ``L``'s parents at ``q_off[L]:q_off[L + 1]``, its ``nb`` rows
+    there with indices local to the level, its coefficients at ``8 q_off[L]``).
+
+    A level's functions are the coarser levels' plus its corrections, which live on its
+    cells and reach the cells next to them: a point takes its value from the finest level
+    with a cell of its own within one cell of the point's (every finer level adds nothing
+    there), evaluated from the 27 coefficients around it (all in that level's E).
+    """
+    m = pos.shape[0]
+    out = np.zeros(m)
+    w = np.empty((3, 3))
+    for p in range(m):
+        for lv in range(top, 0, -1):
+            lo = q_off[lv]
+            hi = q_off[lv + 1]
+            if hi == lo:
+                continue
+            n = 1 << lv
+            scale = float(n)
+            c0 = min(max(int(np.floor(pos[p, 0] * scale)), 0), n - 1)
+            c1 = min(max(int(np.floor(pos[p, 1] * scale)), 0), n - 1)
+            c2 = min(max(int(np.floor(pos[p, 2] * scale)), 0), n - 1)
+            key = lattice_key(c0 >> 1, c1 >> 1, c2 >> 1)
+            i = lower_bound(q_all, key, lo, hi)
+            if i >= hi or q_all[i] != key:
+                continue
+            o = (c0 & 1) | ((c1 & 1) << 1) | ((c2 & 1) << 2)
+            near = False
+            for r in range(27):
+                j = _nbr(nb_all[lo:hi], i - lo, o, r % 3 - 1, (r // 3) % 3 - 1, r // 9 - 1)
+                if j >= 0 and inp_all[lo + (j >> 3)]:
+                    near = True
+                    break
+            if not near:
+                continue
+            sample_weights(min(max(pos[p, 0] * scale - c0, 0.0), 1.0), c0, n, s, w[0])
+            sample_weights(min(max(pos[p, 1] * scale - c1, 0.0), 1.0), c1, n, s, w[1])
+            sample_weights(min(max(pos[p, 2] * scale - c2, 0.0), 1.0), c2, n, s, w[2])
+            v = 0.0
+            for r in range(27):
+                j = _nbr(nb_all[lo:hi], i - lo, o, r % 3 - 1, (r // 3) % 3 - 1, r // 9 - 1)
+                if j >= 0:
+                    v += w[0, r % 3] * w[1, (r // 3) % 3] * w[2, r // 9] * coef_all[8 * lo + j]
+            out[p] = v
+            break
+    return out
+
+
+@njit(cache=True)
+def edge_roots(lat, iso, v0, vm, v1, clamp):
+    """Position along each lattice edge where the quadratic through (0, ``v0``),
+    (1/2, ``vm``), (1, ``v1``) crosses ``iso`` (the edge's root nearest the linear
+    estimate ``lat``, a fraction in [0, 1]), kept ``clamp`` away from the ends as marching
+    cubes keeps its own (a vertex at a lattice point would leave degenerate faces); ``lat``
+    itself where the end values do not straddle ``iso``."""
+    n = len(lat)
+    out = lat.copy()
+    for i in range(n):
+        a = v0[i] - iso
+        b = v1[i] - iso
+        if a * b > 0.0 or a == b:
+            continue
+        # q(t) = a + (4 (vm - iso) - 3 a - b) t + (2 a + 2 b - 4 (vm - iso)) t^2
+        c1 = 4.0 * (vm[i] - iso) - 3.0 * a - b
+        c2 = 2.0 * a + 2.0 * b - 4.0 * (vm[i] - iso)
+        t = lat[i]
+        if abs(c2) < 1e-12 * (abs(c1) + abs(a) + 1e-300):
+            if c1 != 0.0:
+                t = min(max(-a / c1, min(lat[i], clamp)), max(lat[i], 1.0 - clamp))
+        else:
+            disc = c1 * c1 - 4.0 * c2 * a
+            if disc >= 0.0:
+                sq = np.sqrt(disc)
+                # the numerically stable pair of roots
+                qq = -0.5 * (c1 + (sq if c1 >= 0.0 else -sq))
+                r1 = qq / c2
+                r2 = a / qq if qq != 0.0 else r1
+                best = -1.0
+                bd = 1e300
+                for r in (r1, r2):
+                    if -1e-9 <= r <= 1.0 + 1e-9 and abs(r - lat[i]) < bd:
+                        bd = abs(r - lat[i])
+                        best = r
+                if bd < 1e300:
+                    t = min(max(best, min(lat[i], clamp)), max(lat[i], 1.0 - clamp))
+        out[i] = t
+    return out
+
+
+@njit(cache=True)
+def constrain_to_coarse_leaves(node_keys, g, coarse_keys, coarse_nodes, coarse_leaf, g_coarse):
+    """Nodes of a level on the faces or edges of the coarser level's leaves take the leaves'
+    trilinear interpolation, in place (as hanging nodes do): the extraction interpolates a
+    leaf trilinearly from its corners, so the finer side of a face must see the same values
+    there or the surface cracks along it. Cells of a level touch leaves of the next coarser
+    level only, so one level up suffices (coarse to fine, the coarse values already
+    constrained)."""
+    cand = np.empty((3, 2), np.int64)
+    nc = np.empty(3, np.int64)
+    for j in range(len(node_keys)):
+        k = node_keys[j]
+        x = (k >> 42) & MASK21
+        y = (k >> 21) & MASK21
+        z = k & MASK21
+        if (x & 1) == 0 and (y & 1) == 0 and (z & 1) == 0:
+            continue  # a corner of the coarser lattice: chi's own value on both sides
+        for a in range(3):
+            v = x if a == 0 else (y if a == 1 else z)
+            if v & 1:
+                cand[a, 0] = (v - 1) >> 1
+                nc[a] = 1
+            else:
+                cand[a, 0] = (v >> 1) - 1
+                cand[a, 1] = v >> 1
+                nc[a] = 2
+        done = False
+        for ia in range(nc[0]):
+            for ib in range(nc[1]):
+                for ic in range(nc[2]):
+                    cx = cand[0, ia]
+                    cy = cand[1, ib]
+                    cz = cand[2, ic]
+                    if cx < 0 or cy < 0 or cz < 0 or done:
+                        continue
+                    c = bsearch(coarse_keys, lattice_key(cx, cy, cz))
+                    if c < 0 or not coarse_leaf[c]:
+                        continue
+                    fx = 0.5 * (x - 2 * cx)
+                    fy = 0.5 * (y - 2 * cy)
+                    fz = 0.5 * (z - 2 * cz)
+                    v = 0.0
+                    for r in range(8):
+                        w = ((fx if r & 1 else 1.0 - fx) * (fy if (r >> 1) & 1 else 1.0 - fy)
+                             * (fz if (r >> 2) & 1 else 1.0 - fz))
+                        if w != 0.0:
+                            v += w * g_coarse[coarse_nodes[c, r & 3] + (r >> 2)]
+                    g[j] = v
+                    done = True

@@ -1,0 +1,290 @@
+"""The degree-2 B-spline system (PoissonRecon's default basis): the cascadic solve, the
+iso-value, and chi at the levels' nodes for the extraction.
+
+At level ``d`` every cell of the tree carries the tensor-product quadratic B-spline centred
+on it (support 3 cells per axis), reflected at the cube's faces (even for Neumann, odd for
+Dirichlet, so ``chi = 0`` there). A function of level ``d - 1`` is exactly a combination
+of level-``d`` functions (refinement mask ``(1, 3, 3, 1) / 4`` per axis), so, as for the
+trilinear basis, each level holds the whole ``chi`` of the coarser levels (prolonged) plus
+its own correction, solved by Jacobi-PCG on the residual they leave. The coefficients live
+on ``E``: the level's cells and a ring of two cells around them (the children of the
+parents within one of a parent of the level's cells, in blocks of siblings), enough for the prolongation to be
+exact on the stencil (5 cells per axis) of every cell of the level: the set grows by a
+parent ring per level, and the levels' parents are within one of the tree's parents, so
+the coarser ``E`` always holds what the prolongation reads.
+
+The right-hand side splats each sample's share at its level(s) unmerged (merging per cell
+moves the items of a curved surface inwards, a bias this basis resolves) with a quadratic
+B-spline kernel :data:`KERNEL_WIDTH` cells of the splat level wide. The screening at level
+``d`` uses the samples merged per cell of that level (summed weights, weighted mean
+position), as PoissonRecon merges its interpolation points per node.
+
+The rest of the stage reads chi through one function, :meth:`ChiField.at` (chi at any
+point of the cube: from the finest level whose cells are within one cell of the point, all
+finer levels' functions vanishing there): the iso-value at the samples, chi at every
+level's nodes for the extraction (the leaves' corners; at a lattice point the B-spline is
+1/2 at its cell's faces, so the value is the mean of the 8 cells' coefficients around it),
+and :meth:`ChiField.refine_vertices`, which moves each extracted vertex along its lattice
+edge to chi's root there. Inside a leaf chi is piecewise quadratic, not trilinear: an
+extraction that refines leaves must read the finer lattice points through
+:meth:`ChiField.at` too (the current one interpolates them trilinearly from the leaf's
+corners, exact only at the corners).
+
+References
+----------
+Kazhdan, M. & Hoppe, H. (2013). Screened Poisson surface reconstruction. ACM TOG 32(3).
+Kazhdan, M., Bolitho, M. & Hoppe, H. (2006). Poisson surface reconstruction. SGP.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from recon_cli.memory import release_free_heap
+from recon_cli.poisson import _bspline as B
+from recon_cli.poisson import _octree as O
+from recon_cli.poisson._luts import B2_MASS, B2_STIFFNESS
+from recon_cli.poisson.octree import Level, dilate, pack_keys, unpack_keys
+from recon_cli.poisson.splat import Samples, Splats
+from recon_cli.progress import task
+
+log = logging.getLogger("recon")
+
+TARGET = 0.5
+# the normals' kernel is this many times the splat level's cell wide (a quadratic B-spline);
+# wider smooths more: on smooth shapes it is more accurate (exact-distance Chamfer / Open3D's,
+# 100k clean samples, depth 8: sphere 0.34 at 2 against 1.01 at 1, torus 0.76 against
+# 1.69), on detailed ones less (armadillo 1.69 against 1.09, kitten 1.38 against 1.23), so
+# one cell, never worse than degree 1 where measured
+KERNEL_WIDTH = 1.0
+# the screening weight relative to degree 1's (the same --point-weight): the quadratic
+# B-splines are smaller at a sample (at most 0.42 against a hat's 1) and smoother, so the
+# same alpha pulls chi less towards the samples; measured on the armadillo, 100k clean
+# samples, depth 8 (Chamfer to the mesh, exact distances): 3.25e-2 at 1x, 2.82e-2 at 3x
+# (degree 1: 2.94e-2, Open3D 2.98e-2)
+SCREEN_SCALE = 3.0
+
+
+def folded_tables(n: int, s: float) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 5) mass and stiffness between cell ``i`` and ``i + t`` (column ``t + 2``) of the
+    reflected basis on ``n`` cells: the sum over the images of cell ``i + t`` (``j + 2kn``
+    with sign 1, ``-1 - j + 2kn`` with sign ``s``) within 2 of ``i``."""
+    m1 = np.zeros((n, 5))
+    k1 = np.zeros((n, 5))
+    i = np.arange(n)
+    for t in range(-2, 3):
+        j = i + t
+        ok = (j >= 0) & (j < n)
+        for kk in range(-3, 4):
+            for img, sg in ((j + 2 * kk * n, 1.0), (-1 - j + 2 * kk * n, s)):
+                off = i - img
+                hit = ok & (np.abs(off) <= 2)
+                m1[hit, t + 2] += sg * B2_MASS[off[hit] + 2]
+                k1[hit, t + 2] += sg * B2_STIFFNESS[off[hit] + 2]
+    return m1, k1
+
+
+@dataclass
+class LevelField:
+    """chi on one level in the degree-2 basis: coefficients on ``E`` and the lookups.
+
+    ``E`` is the children of the sorted parent keys ``q_keys`` in block order (cell
+    ``8 i + o``, :mod:`._bspline`); :class:`ChiField` reads chi from the levels' fields.
+    """
+
+    depth: int
+    s: float  # 1 Neumann, -1 Dirichlet
+    q_keys: np.ndarray  # (q,) sorted parent keys (level depth - 1)
+    inp: np.ndarray  # (q,) bool: parents of the level's cells (the others are the ring)
+    nb: np.ndarray  # (q, 27) int32
+    coef: np.ndarray | None = None  # (8q,)
+
+    def locate(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Cell index in E (-1 when not a cell of the level) and local coordinates of unit-cube
+        positions (m, 3)."""
+        return B.locate(pos, self.depth, self.q_keys, self.inp)
+
+
+def level_field(lev: Level, boundary: str) -> LevelField:
+    """The coefficient set E of level ``lev`` (depth >= 1) and its lookups."""
+    d = lev.depth
+    half = 1 << (d - 1)
+    P = np.unique(O.halve(lev.cell_keys))
+    Q = P
+    for axis in range(3):
+        Q = dilate(Q, axis, -1, 1, half - 1)
+    inp = np.zeros(len(Q), bool)
+    inp[O.merge_lookup(P, Q)] = True
+    nb = B.neighbour_table(Q, half - 1)
+    return LevelField(d, 1.0 if boundary == "neumann" else -1.0, Q, inp, nb)
+
+
+class ChiField:
+    """chi of the degree-2 solve, everywhere in the cube: every level's coefficients and
+    lookups, concatenated (level ``L`` at ``q_off[L]:q_off[L + 1]``).
+
+    :meth:`at` is the one way the rest of the stage reads chi (the iso-value at the
+    samples, the leaves' corners for the extraction, the roots along the edges).
+    """
+
+    def __init__(self, fields: list[LevelField], boundary: str):
+        top = max((f.depth for f in fields), default=0)
+        sizes = np.zeros(top + 2, np.int64)
+        for f in fields:
+            sizes[f.depth + 1] = len(f.q_keys)
+        self.q_off = np.cumsum(sizes)
+        self.top = top
+        self.s = 1.0 if boundary == "neumann" else -1.0
+        order = sorted(fields, key=lambda f: f.depth)
+        self.q_all = np.concatenate([f.q_keys for f in order]) if order else np.zeros(0, np.int64)
+        self.inp_all = np.concatenate([f.inp for f in order]) if order else np.zeros(0, bool)
+        self.nb_all = np.concatenate([f.nb for f in order]) if order else np.zeros((0, 27), np.int32)
+        self.coef_all = np.concatenate([f.coef for f in order]) if order else np.zeros(0)
+
+    def at(self, pos: np.ndarray) -> np.ndarray:
+        """chi at unit-cube positions (m, 3) (:func:`._bspline.chi_at`)."""
+        return B.chi_at(np.ascontiguousarray(pos, dtype=np.float64), self.top, self.q_all, self.q_off, self.inp_all,
+                        self.nb_all, self.coef_all, self.s)
+
+    def at_nodes(self, lev: Level, node_keys: np.ndarray) -> np.ndarray:
+        """chi at the nodes ``node_keys`` of ``lev``: the leaves' corners for the extraction."""
+        return self.at(unpack_keys(node_keys) / float(1 << lev.depth))
+
+    def refine_vertices(self, verts: np.ndarray, iso: float, origin: np.ndarray, size: float, depth: int
+                        ) -> np.ndarray:
+        """Move each vertex, which marching cubes put on an edge of the ``2**depth`` lattice
+        by linear interpolation, to where chi crosses ``iso`` along that edge: chi is one
+        quadratic along a finest edge (it lies in one cell of every level), so its values at
+        the two ends and the middle give the root exactly. Vertices stay on their edges, so
+        the mesh's connectivity is unchanged. Vertices not on an edge (marching cubes' cell
+        centres of ambiguous cases) stay where they are."""
+        from recon_cli.mcubes import DEGENERATE_CLAMP
+
+        if not len(verts):
+            return verts
+        res = float(1 << depth)
+        u = (verts - origin) / size * res
+        frac = np.abs(u - np.round(u))
+        axis = np.argmax(frac, axis=1)
+        on_edge = np.sort(frac, axis=1)[:, 1] < 1e-6
+        verts = verts.copy()
+        keep_idx = np.flatnonzero(on_edge)
+        u, axis = u[keep_idx], axis[keep_idx]
+        rows = np.arange(len(u))
+        lo = np.round(u)
+        lo[rows, axis] = np.floor(u[rows, axis])
+        lat = np.clip(u[rows, axis] - lo[rows, axis], 0.0, 1.0)
+        pts = np.empty((3, len(u), 3))
+        for k, t in enumerate((0.0, 0.5, 1.0)):
+            q = lo.copy()
+            q[rows, axis] += t
+            pts[k] = q / res
+        v0, vm, v1 = (self.at(pts[k]) for k in range(3))
+        t = B.edge_roots(lat, iso, v0, vm, v1, DEGENERATE_CLAMP)
+        out = lo
+        out[rows, axis] += t
+        verts[keep_idx] = out / res * size + origin
+        return verts
+
+
+def _merge_per_cell(pos: np.ndarray, w: np.ndarray, level: int) -> tuple[np.ndarray, np.ndarray]:
+    """Samples merged per cell of ``level``: weighted mean position, summed weight."""
+    res = 1 << level
+    keys = pack_keys(np.clip(np.floor(pos * res), 0, res - 1))
+    uk, inv = np.unique(keys, return_inverse=True)
+    inv = inv.reshape(-1)
+    sw = np.bincount(inv, weights=w, minlength=len(uk))
+    safe = np.where(sw > 0, sw, 1.0)
+    mp = np.stack([np.bincount(inv, weights=pos[:, a] * w, minlength=len(uk)) / safe for a in range(3)], axis=1)
+    return mp, sw
+
+
+def solve(levels: list[Level], smp: Samples, splats: Splats, boundary: str, full_depth: int, cg_tolerance: float,
+          progress: Any = None) -> tuple[list[np.ndarray], list[dict], int, float, float, ChiField]:
+    """Solve every level in turn (level 0, a single cell, carries no function); returns chi
+    at each level's nodes (for the extraction), per-level statistics, total iterations, the
+    finest relative residual, the iso-value (count-weighted mean of chi at the samples) and
+    the field (:class:`ChiField`)."""
+    spos, count = smp.pos, smp.count
+    alpha = splats.alpha * SCREEN_SCALE
+    total_it = 0
+    last_res = 0.0
+    per_level = []
+    fields: list[LevelField] = []
+    node_keys = []
+    prev: LevelField | None = None
+    with task(progress, "poisson: solve", total=len(levels)) as tk:
+        for lev in levels:
+            release_free_heap()
+            tl = time.perf_counter()
+            d = lev.depth
+            lev.face_nodes = O.face_nodes(lev.node_keys, 1 << d)
+            node_keys.append(lev.node_keys)
+            lev.node_keys = lev.unknown = lev.ncell = None
+            if d > 0:
+                levels[d - 1].leaf = ~O.cell_has_child(lev.cell_parent, len(levels[d - 1].cell_keys))
+                lev.cell_parent = None
+            if d == 0:
+                tk.advance(1)
+                continue
+            f = level_field(lev, boundary)
+            n = 1 << d
+            h = 1.0 / n
+            m1, k1 = folded_tables(n, f.s)
+            unknown = np.repeat(f.inp, 8)
+            ne = len(unknown)
+            rhs = B.splat_rhs(splats.pos, splats.vec, splats.level, d, f.q_keys, f.inp, f.s, KERNEL_WIDTH)
+            diag = B.stiffness_diag(f.q_keys, f.inp, m1, k1, h)
+            if alpha > 0:
+                mp, mw = _merge_per_cell(spos, splats.screen_w * SCREEN_SCALE, d)
+                scell, sloc = f.locate(mp)
+                have = scell >= 0
+                scell, sloc, sw = scell[have], sloc[have], mw[have]
+                del mp, mw, have
+                B.screening_diag_rhs(f.q_keys, f.nb, n, f.s, scell, sloc, sw, TARGET, diag, rhs)
+            else:
+                scell, sloc, sw = np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
+            if prev is not None:
+                G = B.prolong(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s)
+                AG = np.empty(ne)
+                B.level_matvec(f.q_keys, f.nb, f.inp, m1, k1, h, n, f.s, scell, sloc, sw, G, AG)
+                rhs -= AG
+                del AG
+            else:
+                G = np.zeros(ne)
+            exact = d <= full_depth
+            release_free_heap()
+            x, it, rel = B.level_pcg(f.q_keys, f.nb, f.inp, m1, k1, h, n, f.s, scell, sloc, sw, rhs, diag, unknown,
+                                     1e-7 if exact else cg_tolerance, 2000 if exact else 200)
+            del rhs, diag, scell, sloc, sw
+            G += x
+            del x
+            f.coef = G
+            fields.append(f)
+            prev = f
+            total_it += it
+            last_res = rel
+            per_level.append({"depth": d, "nodes": ne, "unknowns": int(unknown.sum()), "iterations": it,
+                              "residual": rel, "seconds": time.perf_counter() - tl})
+            log.info("poisson: level %2d  cells %9d  unknowns %9d  cg iterations %4d  residual %.2e  %.2f s", d, ne,
+                     int(unknown.sum()), it, rel, time.perf_counter() - tl)
+            tk.advance(1)
+    levels[-1].leaf = np.ones(len(levels[-1].cell_keys), bool)
+    chi = ChiField(fields, boundary)
+    del fields, prev
+    gvals = [chi.at_nodes(lev, keys) for lev, keys in zip(levels, node_keys)]
+    # the extraction interpolates each leaf trilinearly from its corners: the finer side of
+    # a leaf's faces takes those values (chi's own everywhere else)
+    for d in range(1, len(levels)):
+        up = levels[d - 1]
+        B.constrain_to_coarse_leaves(node_keys[d], gvals[d], up.cell_keys, up.cell_nodes, up.leaf, gvals[d - 1])
+    del node_keys
+    chi_s = chi.at(spos)
+    iso = float((chi_s * count).sum() / count.sum())
+    log.info("poisson: iso-value %.6f", iso)
+    return gvals, per_level, total_it, last_res, iso, chi
