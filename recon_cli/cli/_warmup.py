@@ -124,6 +124,9 @@ def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
         pd, nd = _sphere_cloud(20_000, seed=1)
         write_ply(PointCloud(points=pd.astype(np.float32), normals=nd.astype(np.float32), point_dtype=np.float32),
                   path("dense.ply"))
+        # an open scan (half of it): coarse leaves hold surface, so Poisson extracts at the leaves' size
+        up = pd[:, 2] > 0
+        write_ply(PointCloud(points=pd[up], normals=nd[up]), path("half.ply"))
         # repeated and collinear points: degenerate neighbourhoods borrow their normal
         line = np.column_stack([np.linspace(2, 3, 12), np.zeros(12), np.zeros(12)])
         write_ply(PointCloud(points=np.vstack([p, np.repeat(p[:1], 40, axis=0), line])), path("degenerate.ply"))
@@ -163,6 +166,7 @@ def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
         ]
     steps.append(("poisson adaptive levels", recon("poisson", c32, out, "--depth", "7")))
     steps.append(("poisson levels past the full depth", recon("poisson", path("dense.ply"), out, "--depth", "7")))
+    steps.append(("poisson open scan (leaf extraction)", recon("poisson", path("half.ply"), out, "--depth", "7")))
     steps.append(("poisson degree 2", recon("poisson", path("dense.ply"), out, "--depth", "7", "--degree", "2")))
     steps.append(("poisson degree 2 unscreened", recon("poisson", c32, out, "--depth", "5", "--degree", "2",
                                                        "--point-weight", "0")))
