@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from recon_cli.errors import StageFailed
 from recon_cli.mcubes import marching_cubes_sparse
 from recon_cli.poisson import _extract as E
 from recon_cli.poisson.octree import Level
@@ -134,7 +135,7 @@ def extract_leaves(levels: list[Level], gvals: list[np.ndarray], iso: float, ori
                                         iso, 1e-9, FACE_MARGIN, ROOT_CLAMP)
     del keys, leaf, nodes, g, fine, fg
     if broken:
-        raise RuntimeError(f"poisson extraction: {broken} iso-segment chains did not close")
+        raise StageFailed(f"poisson extraction: {broken} iso-segment chains did not close (please report this input)")
     vpos *= size / (1 << depth)
     vpos += origin
     return vpos, tri
