@@ -206,6 +206,20 @@ def _special(buf, i, e, neg):
 
 
 @njit(cache=True)
+def _significant_digits(buf, s, e):
+    """How many digits of the mantissa ``buf[s:e]`` (digits and at most one point) follow its
+    leading zeros."""
+    n = 0
+    lead = True
+    for i in range(s, e):
+        c = buf[i]
+        if c != 46:
+            lead = lead and c == 48
+            n += not lead
+    return n
+
+
+@njit(cache=True)
 def _mantissa_long(buf, i, e):
     """The mantissa at ``i`` digit by digit: ``(w, q, dropped, ndig, stop)`` with the first 19
     significant digits in ``w``, value ``w * 10**q`` (``dropped``: a non-zero digit was not kept)."""
@@ -297,39 +311,31 @@ def scan_float(buf, i, e):
             i += 1
     p0 = i
     # the mantissa, written out here and inlined into the callers (a call per number costs
-    # more than the digits), eight digits at a time (_digits8) while at most 19 significant
-    # digits (the usual case: w may wrap beyond, unused then); longer mantissas are read
-    # again, digit by digit, by _mantissa_long. The loops have their test in the loop
-    # condition: numba compiles the equivalent `while True: ... break` form to slower code.
-    while i < e and buf[i] == 48:  # leading zeros
-        i += 1
-    s1 = i
+    # more than the digits), eight digits at a time (_digits8). Leading zeros add nothing to
+    # w, so w is exact while at most 19 digits follow them (the usual case; w may wrap
+    # beyond, unused then); longer mantissas are read again, digit by digit, by
+    # _mantissa_long. The loops have their test in the loop condition: numba compiles the
+    # equivalent `while True: ... break` form to slower code.
     w, k = _digits8(buf, i, e)
     i += k
     while k == 8:
         v, k = _digits8(buf, i, e)
         w = w * POW10_INT[k] + v
         i += k
-    nsig = i - s1
     ndig = i - p0
     q = 0
     if i < e and buf[i] == 46:  # .
         i += 1
         f0 = i
-        if nsig == 0:
-            while i < e and buf[i] == 48:  # zeros after the point, before any other digit
-                i += 1
-        s2 = i
         k = 8
         while k == 8:
             v, k = _digits8(buf, i, e)
             w = w * POW10_INT[k] + v
             i += k
-        nsig += i - s2
         q = f0 - i
         ndig += i - f0
     dropped = False
-    if nsig > 19:
+    if ndig > 19 and _significant_digits(buf, p0, i) > 19:
         w, q, dropped, ndig, i = _mantissa_long(buf, p0, e)
     if ndig == 0:
         return _special(buf, p0, e, neg)
