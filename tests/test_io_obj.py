@@ -242,3 +242,10 @@ def test_arrays_sized_from_a_sample_grow_when_it_misses(normals_late, no_estimat
         assert (got.normals is None) == (want.normals is None) == normals_late
         if want.normals is not None:
             assert np.array_equal(got.normals, want.normals)
+
+
+def test_a_polygon_after_triangles_is_fanned_in_place():
+    # face lengths are kept only from the first polygon on: the triangles before it stay triangles
+    data = b"v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 2 2 2\nf 1 2 3\nf 1 3 4\nf 5 1 2 3 4\nf 2 3 4\nf 1 2 5 4\n"
+    m = decode_obj(data, "p.obj")[0]
+    assert m.faces.tolist() == [[0, 1, 2], [0, 2, 3], [4, 0, 1], [4, 1, 2], [4, 2, 3], [1, 2, 3], [0, 1, 4], [0, 4, 3]]

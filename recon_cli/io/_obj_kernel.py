@@ -22,7 +22,7 @@ BEFORE_FIRST = 7  # a negative index reaching before the first vertex or normal
 NO_NORMALS = 8  # a face corner names a normal and the file has no vn line
 
 # counts[] slots
-NV, NVN, NF, NCORNER, NSLOW, COLOURS, NOCOLOURS, HAS_VN, MAX_V, MAX_VN, NONFINITE = range(11)
+NV, NVN, NF, NCORNER, NSLOW, COLOURS, NOCOLOURS, HAS_VN, MAX_V, MAX_VN, NONFINITE, POLYGONS = range(12)
 
 
 @njit(cache=True, inline="always")
@@ -56,7 +56,8 @@ def _walk(buf, i, st, verts, colours, vnorms, corner_v, corner_n, face_len, slow
     NSLOW, COLOURS, NOCOLOURS), the largest vertex and normal index named by a corner (MAX_V,
     MAX_VN, 0-based, -1 when none) and the first vertex with a NaN or infinite coordinate
     (NONFINITE, -1 when none; numbers left to the slow path are not looked at), updated in
-    place. Returns ``(code, byte)``: 0 at the end, -1 at the start of a line that needs more
+    place; ``face_len`` is written only once POLYGONS is set (a face of more than 3 corners
+    seen, or expected by the caller). Returns ``(code, byte)``: 0 at the end, -1 at the start of a line that needs more
     room, else an error code and the offending byte.
     """
     buf = borrowed(buf)  # no reference counting around the inlined number scanners
@@ -73,7 +74,8 @@ def _walk(buf, i, st, verts, colours, vnorms, corner_v, corner_n, face_len, slow
     nonfinite = st[NONFINITE]
     cap_v = verts.shape[0]
     cap_vn = vnorms.shape[0]
-    cap_f = face_len.shape[0]
+    keep_len = st[POLYGONS] != 0  # corners per face kept (not while every face is a triangle)
+    cap_f = face_len.shape[0] if keep_len else 1 << 62
     cap_c = corner_v.shape[0]
     cap_s = slow.shape[0]
     has_vn = st[HAS_VN] != 0
@@ -117,7 +119,8 @@ def _walk(buf, i, st, verts, colours, vnorms, corner_v, corner_n, face_len, slow
                             corner_n[nc + 1] = bn - 1
                             corner_n[nc + 2] = cn - 1
                             max_n = max(max_n, an - 1, bn - 1, cn - 1)
-                        face_len[nf] = 3
+                        if keep_len:
+                            face_len[nf] = 3
                         nf += 1
                         nc += 3
                         i = q + 1
@@ -225,6 +228,9 @@ def _walk(buf, i, st, verts, colours, vnorms, corner_v, corner_n, face_len, slow
                 nc += 1
                 t += 1
                 p = skip_space(buf, q, n)
+            if code == 0 and t > 3 and not keep_len:  # the first polygon
+                st[POLYGONS] = 2  # ask for the face length array
+                code = -1
             if code == -1:
                 nc = nc0
                 max_v = max_v0
@@ -237,7 +243,8 @@ def _walk(buf, i, st, verts, colours, vnorms, corner_v, corner_n, face_len, slow
                 code = SHORT_FACE
                 at = j
                 break
-            face_len[nf] = t
+            if keep_len:
+                face_len[nf] = t
             nf += 1
             i = p + 1
         else:
@@ -311,14 +318,16 @@ def obj_walk(buf, verts, colours, vnorms, corner_v, corner_n, face_len, slow):
     (nv, 3), ``colours`` (nv, 3, meaningful when the v lines carry them), ``vnorms``
     (nvn, 3), ``corner_v`` / ``corner_n`` (0-based vertex and normal index of each corner,
     normal -1 when absent; not range-checked; ``corner_n`` stays empty when the file has no
-    ``vn`` line), ``face_len`` (corners per face) and ``slow`` ((k, 4): array 0 verts / 1
+    ``vn`` line), ``face_len`` (corners per face; empty when the caller expects triangles only
+    and they are: it is made at the first polygon) and ``slow`` ((k, 4): array 0 verts / 1
     colours / 2 vnorms, flat index, byte start, byte end of each number left to the slow
     path, stored as NaN). ``counts`` also gives the largest vertex and normal index any
     corner names (MAX_V, MAX_VN; -1 when none) and the first vertex with a NaN or infinite
     coordinate (NONFINITE; -1 when none; the slow-path numbers are not looked at).
     """
-    st = np.zeros(11, np.int64)
+    st = np.zeros(12, np.int64)
     st[HAS_VN] = 1 if corner_n.shape[0] > 0 else 0
+    st[POLYGONS] = 1 if face_len.shape[0] > 0 else 0
     st[MAX_V] = -1
     st[MAX_VN] = -1
     st[NONFINITE] = -1
@@ -335,7 +344,11 @@ def obj_walk(buf, verts, colours, vnorms, corner_v, corner_n, face_len, slow):
         elif colours.shape[0] < verts.shape[0]:  # nothing in it yet: no copy (its pages stay untouched)
             colours = np.empty_like(verts)
         vnorms = _grown(vnorms, st[NVN] + 1)
-        face_len = _grown(face_len, st[NF] + 1)
+        if st[POLYGONS] == 2:  # the first polygon, and the caller expected none: all before are triangles
+            face_len = np.full(2 * st[NF] + 1024, 3, np.int64)
+            st[POLYGONS] = 1
+        elif st[POLYGONS] == 1:
+            face_len = _grown(face_len, st[NF] + 1)
         corner_v = _grown(corner_v, st[NCORNER] + (eol - i) // 2 + 1)
         if st[HAS_VN] == 2:  # the first vn line, and the caller expected none
             corner_n = np.full(corner_v.shape[0], -1, np.int64)

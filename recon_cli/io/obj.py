@@ -50,7 +50,7 @@ def decode_obj(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
     vnorms = np.empty((lvn, 3), np.float64)
     corner_v = np.empty(lc, np.int64)
     corner_n = np.empty(lc if lvn else 0, np.int64)
-    face_len = np.empty(lf, np.int64)
+    face_len = np.empty(lf if lc > 3 * lf else 0, np.int64)  # none while all faces are triangles
     slow = np.empty((64, 4), np.int64)
     out = K.obj_walk(buf, verts, colours, vnorms, corner_v, corner_n, face_len, slow)
     err, at, counts, verts, colours, vnorms, corner_v, corner_n, face_len, slow = out
@@ -59,7 +59,7 @@ def decode_obj(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
     nv, nvn, nf, nc = (int(counts[k]) for k in (K.NV, K.NVN, K.NF, K.NCORNER))
     verts, vnorms = verts[:nv], vnorms[:nvn]
     colours = colours[:nv] if counts[K.COLOURS] else np.empty((0, 3), np.float64)
-    corner_v, face_len = corner_v[:nc], face_len[:nf]
+    corner_v = corner_v[:nc]
     corner_n = corner_n[:nc] if len(corner_n) else corner_n  # empty: the file has no vn line
     nonfinite = int(counts[K.NONFINITE])
     if counts[K.NSLOW]:
@@ -94,7 +94,7 @@ def decode_obj(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
     else:
         from recon_cli.io._obj_kernel import fan
 
-        faces, _ = fan(corner_v, face_len)
+        faces, _ = fan(corner_v, face_len[:nf])
     return text.apply_float32_mark(TriangleMesh(vertices=verts, faces=faces, **common), history), details
 
 
