@@ -17,8 +17,9 @@ a number. The grammar is ``[+-] digits [. digits] [(e|E) [+-] digits]`` with at 
 digit in the mantissa (``5.``, ``.5``) and in an exponent, or ``nan``, ``inf``,
 ``infinity`` (any case, optional sign).
 
-The mantissa's first 19 significant digits are kept in a 64-bit integer ``w`` and the value
-is ``w * 10**q``. Three ways, fastest first:
+The mantissa's digits are read eight at a time (:func:`_digits8`: one 8-byte load, a SWAR
+digit test and three multiplications); its first 19 significant digits are kept in a 64-bit
+integer ``w`` and the value is ``w * 10**q``. Three ways, fastest first:
 
 * Clinger's fast path when ``w <= 2**53`` and ``|q| <= 22``: ``w`` and ``10**|q|`` are
   exact doubles, so one correctly rounded multiplication or division gives the answer;

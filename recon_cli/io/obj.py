@@ -10,9 +10,12 @@ first for float32 data, makes the coordinates float32 again). A file without fac
 Coordinates are read as float64 (text has no type).
 
 The numbers are parsed by a numba kernel (:mod:`recon_cli.io._obj_kernel`) in one pass
-over the bytes, into arrays sized by a first count of the ``v``/``vn``/``f`` lines (they grow
-when it falls short); every number reads as Python's ``float`` reads it (see
-:mod:`recon_cli.io._text_kernel`; the rare undecided ones are converted by ``float``).
+over the bytes (``v x y z`` and triangle lines through a short path, any other line through
+the general one), into arrays sized from a sample of the file (they grow when it falls
+short); every number reads as Python's ``float`` reads it (see
+:mod:`recon_cli.io._text_kernel`; the rare undecided ones are converted by ``float``). The
+kernel also reports the largest indices and the first non-finite vertex, which this module
+checks (no further pass over the arrays).
 """
 
 from __future__ import annotations
