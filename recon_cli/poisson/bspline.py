@@ -1,4 +1,4 @@
-"""The degree-2 B-spline system (PoissonRecon's default basis): the cascadic solve, the
+"""The degree-2 B-spline system (a default of some PoissonRecon versions; Open3D uses degree 1): the cascadic solve, the
 iso-value, and chi at the levels' nodes for the extraction.
 
 At level ``d`` every cell of the tree carries the tensor-product quadratic B-spline centred
@@ -238,7 +238,7 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, boundary: str, full
             m1, k1 = folded_tables(n, f.s)
             unknown = np.repeat(f.inp, 8)
             ne = len(unknown)
-            rhs = B.splat_rhs(splats.pos, splats.vec, splats.level, d, f.q_keys, f.inp, f.s, KERNEL_WIDTH)
+            rhs = B.splat_rhs(splats.rhs_pos, splats.rhs_vec, splats.rhs_level, d, f.q_keys, f.inp, f.s, KERNEL_WIDTH)
             diag = B.stiffness_diag(f.q_keys, f.inp, m1, k1, h)
             if alpha > 0:
                 mp, mw = _merge_per_cell(spos, splats.screen_w * SCREEN_SCALE, d)

@@ -11,7 +11,7 @@ import numpy as np
 from recon_cli._kernels.hashtable import build_table
 from recon_cli.poisson import _splat as S
 from recon_cli.poisson._luts import B2_PLANE_DENSITY
-from recon_cli.poisson.octree import pack_keys, unpack_keys
+from recon_cli.poisson.octree import dilate, pack_keys, unpack_keys
 
 log = logging.getLogger("recon")
 
@@ -48,6 +48,11 @@ class Splats:
     # the kernel density (level, hash table of its cells, per-cell density), kept only for
     # the output densities
     density: tuple | None = None
+    # the right-hand side's items: the splat items' vectors shared among the 27 cells around
+    # them with quadratic B-spline weights, at the cells' centres (:func:`spread_items`)
+    rhs_pos: np.ndarray | None = None
+    rhs_vec: np.ndarray | None = None
+    rhs_level: np.ndarray | None = None
 
 
 def merge_samples(unit: np.ndarray, nrm: np.ndarray, depth: int) -> Samples:
@@ -71,8 +76,6 @@ def _density_table(smp: Samples, level: int) -> tuple:
     """The samples' kernel density at ``level``: (level, hash table of the cells within one
     of a sample's cell, density per cell); counts splatted with quadratic B-splines centred
     on cells (the only cells they reach)."""
-    from recon_cli.poisson.octree import dilate
-
     shift = smp.depth - level
     keys = np.unique(pack_keys(unpack_keys(smp.keys) >> shift))
     for axis in range(3):
@@ -146,12 +149,44 @@ def make_splats(smp: Samples, depth: int, samples_per_node: float, point_weight:
         # a level far finer than the tree sees each sample alone)
         ko = max(tree_depth - KERNEL_OFFSET, 0)
         dens = tables[ko] if ko in tables else _density_table(smp, ko)
-    return Splats(it_pos, it_vec, it_lvl, screen_w, alpha, tree_depth, dens)
+    r_pos, r_vec, r_lvl = spread_items(it_pos, it_vec, it_lvl)
+    return Splats(it_pos, it_vec, it_lvl, screen_w, alpha, tree_depth, dens, r_pos, r_vec, r_lvl)
 
 
 def sample_density(splats: Splats, pos: np.ndarray) -> np.ndarray:
     """The samples' kernel density at ``pos`` (m, 3) unit-cube positions."""
     return _eval_density(splats.density, pos)
+
+
+def spread_items(pos: np.ndarray, vec: np.ndarray, lvl: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The items' vectors shared among the 27 cells of their level around them with the
+    quadratic B-spline weights at their positions, summed per cell: (cell centres (m, 3),
+    vectors (m, 3), levels (m,)).
+
+    This is PoissonRecon's normal splat (its vector field is a sum of B-splines centred on the
+    cells, with the samples' normals distributed over them). Each sample's share of the field
+    then is a smoothed B-spline (the B-spline weights convolved with the B-spline) rather than
+    one B-spline centred on it; the field's noise from random sample positions is about 1.6x
+    smaller (a sphere, 100k samples, depth 7: the root's mean error 2.8e-4 -> 1.7e-4 of the
+    radius, Open3D's linear fit 1.7e-4). The tree is still built from the items themselves: the
+    spread shares reach at most a cell beyond them, and the right-hand side at the nodes the
+    tree lacks there is left out (the sphere's error is the same with the tree built from the
+    spread items).
+    """
+    out_p, out_v, out_l = [], [], []
+    for lv in np.unique(lvl):
+        sel = lvl == lv
+        d = int(lv)
+        keys = np.unique(pack_keys(np.floor(pos[sel] * (1 << d)).clip(0, (1 << d) - 1)))
+        for axis in range(3):
+            keys = dilate(keys, axis, -1, 1, (1 << d) - 1)
+        tab = build_table(keys)
+        v = S.spread_splat(pos[sel], vec[sel], d, *tab, len(keys))
+        hit = np.any(v != 0.0, axis=1)
+        out_p.append((unpack_keys(keys[hit]) + 0.5) / (1 << d))
+        out_v.append(v[hit])
+        out_l.append(np.full(int(hit.sum()), d, np.int64))
+    return np.concatenate(out_p), np.concatenate(out_v), np.concatenate(out_l)
 
 
 def merge_splats(pos, vec, count, s_lo, s_frac, merge=True):
