@@ -11,7 +11,7 @@ from recon_cli.geometry import PointCloud
 from recon_cli.mesh.sampling import sample_surface
 from recon_cli.poisson import _extract as E
 from recon_cli.poisson import screened_poisson
-from recon_cli.poisson.splat import spread_items
+from recon_cli.poisson.splat import fields_as_items, spread_fields
 
 from reference import isolated
 from shapes import SHAPES, shape_cloud
@@ -21,7 +21,7 @@ def test_spread_keeps_each_levels_total_and_sits_on_cell_centres(rng):
     pos = rng.uniform(0.1, 0.9, size=(500, 3))
     vec = rng.normal(size=(500, 3))
     lvl = rng.integers(4, 8, size=500)  # a cell inside the cube at every level (shares beyond its faces are dropped)
-    p, v, lv = spread_items(pos, vec, lvl)
+    p, v, lv = fields_as_items(spread_fields(pos, vec, lvl))
     for d in np.unique(lvl):
         # the quadratic B-spline weights of the 27 cells sum to one
         np.testing.assert_allclose(v[lv == d].sum(axis=0), vec[lvl == d].sum(axis=0), rtol=1e-12, atol=1e-12)
@@ -30,7 +30,7 @@ def test_spread_keeps_each_levels_total_and_sits_on_cell_centres(rng):
         # one item per cell
         assert len(np.unique(np.round(u), axis=0)) == int((lv == d).sum())
     # each item's first moment is kept too (the weights reproduce linear functions)
-    one = spread_items(pos[:1], vec[:1], lvl[:1])
+    one = fields_as_items(spread_fields(pos[:1], vec[:1], lvl[:1]))
     np.testing.assert_allclose((one[0] * one[1][:, :1]).sum(axis=0), pos[0] * vec[0, 0], rtol=1e-9)
 
 
@@ -78,3 +78,30 @@ def test_smooth_shapes_as_accurate_as_open3d(rng, name):
     ref = isolated(open3d_backend.poisson, PointCloud(points=p, normals=n), depth=8)[0]
     c_o, c_r = chamfer(ours), chamfer(ref)
     assert c_o <= 1.0 * c_r, (c_o, c_r)
+
+
+def test_normal_field_rhs_is_the_direct_splat_of_the_spread_field(rng):
+    """The level-by-level right-hand side (refinement of the coarser fields, fixed stencils,
+    restriction of the finer ones) equals splatting every spread item at every level, on an
+    adaptive tree (a dense and a sparse half: splats from several levels)."""
+    from recon_cli.poisson import _splat as S
+    from recon_cli.poisson.octree import build_levels
+    from recon_cli.poisson.splat import NormalField, make_splats, merge_samples
+
+    p, n = shape_cloud("torus", 20_000, rng, rotate=False)
+    keep = (p[:, 0] > 0) | (rng.random(len(p)) < 1 / 20)
+    p, n = p[keep], n[keep]
+    # well inside the cube: at its faces the stencils integrate over all space (as the direct
+    # splat does) but the restriction drops the finer hats beyond the faces
+    ext = float(np.ptp(p, axis=0).max())
+    lo, size = p.min(axis=0) - 0.35 * ext, 1.7 * ext
+    smp = merge_samples((p - lo) / size, n, 8)
+    splats = make_splats(smp, 8, 1.5, 4.0, False)
+    assert len(splats.rhs_fields) >= 3
+    levels = build_levels(splats.pos, splats.level, splats.tree_depth, 3, "neumann")
+    field = NormalField(splats.rhs_fields, [lev.node_keys for lev in levels])
+    items = fields_as_items(splats.rhs_fields)
+    for lev in levels:
+        b = field.rhs(lev.depth, lev.cell_keys, lev.node_keys, lev.unknown)
+        ref = S.splat_rhs(*items, np.zeros(len(items[2])), lev.depth, lev.node_keys, lev.unknown, lev.n_nodes)
+        np.testing.assert_allclose(b, ref, rtol=0, atol=1e-12 * np.abs(ref).max())

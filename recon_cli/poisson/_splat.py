@@ -215,6 +215,165 @@ def spread_splat(pos, vec, level, ctk, ctv, cbits, n_cells):
     return out
 
 
+@njit(cache=True, inline="always")
+def _gallop(keys, key, lo, n):
+    """lower_bound of ``key`` in ``keys[lo:n]``, searching forward from ``lo`` (cheap when the
+    answer is near it)."""
+    step = 1
+    while lo + step < n and keys[lo + step] < key:
+        lo += step
+        step *= 2
+    return lower_bound(keys, key, lo, min(lo + step + 1, n))
+
+
+@njit(cache=True)
+def refine_field(pkeys, pvec, rel, off):
+    """A field of unit-integral quadratic B-splines centred on the cells of one level (sorted
+    keys ``pkeys``, coefficients ``pvec`` (m, 3)) written exactly on the next finer level's
+    cells: each coarse B-spline is (1, 3, 3, 1) / 8 per axis of the finer ones at cells
+    2p - 1 .. 2p + 2. Keys hold each coordinate plus ``off`` (1: the cells just beyond the
+    cube's faces, where B-splines reaching into it sit, have keys). Only the finer cells in
+    ``rel`` (sorted keys) are kept; they are found column by column, searching forward."""
+    out = np.zeros((len(rel), 3))
+    n = len(rel)
+    if n == 0:
+        return out
+    w = np.array([0.125, 0.375, 0.375, 0.125])
+    cur = np.zeros(16, np.int64)
+    last_col = np.int64(-1)
+    for i in range(len(pkeys)):
+        k = pkeys[i]
+        # offset coordinates of the children: 2 (c - off) - 1 + a + off
+        x = 2 * ((k >> 42) & MASK21) - off - 1
+        y = 2 * ((k >> 21) & MASK21) - off - 1
+        z = 2 * (k & MASK21) - off - 1
+        col = k >> 21
+        fresh = col != last_col
+        last_col = col
+        z0 = max(z, 0)
+        z1 = z + 3
+        for a in range(4):
+            cx = x + a
+            if cx < 0:
+                continue
+            for b in range(4):
+                cy = y + b
+                if cy < 0:
+                    continue
+                s = a * 4 + b
+                j = _gallop(rel, lattice_key(cx, cy, z0), 0 if fresh else cur[s], n)
+                cur[s] = j
+                kend = lattice_key(cx, cy, z1)
+                wab = w[a] * w[b]
+                while j < n and rel[j] <= kend:
+                    wt = wab * w[(rel[j] & MASK21) - z]
+                    out[j, 0] += wt * pvec[i, 0]
+                    out[j, 1] += wt * pvec[i, 1]
+                    out[j, 2] += wt * pvec[i, 2]
+                    j += 1
+    return out
+
+
+@njit(cache=True)
+def stencil_rhs(ckeys, cvec, level, node_keys, n_nodes, off):
+    """b_i = int grad(B_i) . W at a level's nodes for a field of unit-integral quadratic
+    B-splines centred on the same level's cells (keys ``ckeys`` sorted, coefficients
+    ``cvec`` (m, 3), coordinates plus ``off`` in the keys): a fixed 4 x 4 x 4 stencil per cell
+    (nodes c - 1 .. c + 2 per axis).
+    Nodes are found in the sorted ``node_keys`` column by column, searching forward from the
+    previous cell's position in the same column."""
+    b = np.zeros(n_nodes)
+    n = len(node_keys)
+    if n == 0:
+        return b
+    scale = float(1 << level)
+    top = 1 << level
+    av = np.empty(4)
+    dv = np.empty(4)
+    for o in range(4):
+        av[o] = hat_b2_value(1.5 - o, 1.0)
+        dv[o] = hat_b2_deriv(1.5 - o, 1.0) * scale
+    cur = np.zeros(16, np.int64)
+    last_col = np.int64(-1)
+    for i in range(len(ckeys)):
+        k = ckeys[i]
+        x = ((k >> 42) & MASK21) - off
+        y = ((k >> 21) & MASK21) - off
+        z = (k & MASK21) - off
+        col = k >> 21
+        fresh = col != last_col
+        last_col = col
+        vx = cvec[i, 0]
+        vy = cvec[i, 1]
+        vz = cvec[i, 2]
+        z0 = max(z - 1, 0)
+        z1 = min(z + 2, top)
+        for ox in range(4):
+            nx = x - 1 + ox
+            if nx < 0 or nx > top:
+                continue
+            for oy in range(4):
+                ny = y - 1 + oy
+                if ny < 0 or ny > top:
+                    continue
+                s = ox * 4 + oy
+                j = _gallop(node_keys, lattice_key(nx, ny, z0), 0 if fresh else cur[s], n)
+                cur[s] = j
+                kend = lattice_key(nx, ny, z1)
+                fxy = av[ox] * av[oy]
+                gx = dv[ox] * av[oy]
+                gy = av[ox] * dv[oy]
+                while j < n and node_keys[j] <= kend:
+                    oz = (node_keys[j] & MASK21) - z + 1
+                    b[j] += (vx * gx + vy * gy) * av[oz] + vz * fxy * dv[oz]
+                    j += 1
+    return b
+
+
+@njit(cache=True)
+def restrict_nodes(fine_keys, fine_vals, coarse_keys):
+    """Integrals against a level's hat functions from those against the next finer level's:
+    a coarse hat is the fine hats at nodes 2i - 1, 2i, 2i + 1 per axis with weights 1/2, 1,
+    1/2, so ``out_i = sum_j r_ij fine_vals_j`` (fine nodes absent from ``fine_keys`` count as
+    0). Both key arrays sorted; fine nodes found column by column, searching forward."""
+    out = np.zeros(len(coarse_keys))
+    n = len(fine_keys)
+    if n == 0:
+        return out
+    w = np.array([0.5, 1.0, 0.5])
+    cur = np.zeros(9, np.int64)
+    last_col = np.int64(-1)
+    for i in range(len(coarse_keys)):
+        k = coarse_keys[i]
+        x = (k >> 42) & MASK21
+        y = (k >> 21) & MASK21
+        z = k & MASK21
+        col = k >> 21
+        fresh = col != last_col
+        last_col = col
+        z0 = max(2 * z - 1, 0)
+        z1 = 2 * z + 1
+        v = 0.0
+        for a in range(3):
+            fx = 2 * x - 1 + a
+            if fx < 0:
+                continue
+            for b in range(3):
+                fy = 2 * y - 1 + b
+                if fy < 0:
+                    continue
+                s = a * 3 + b
+                j = _gallop(fine_keys, lattice_key(fx, fy, z0), 0 if fresh else cur[s], n)
+                cur[s] = j
+                kend = lattice_key(fx, fy, z1)
+                wab = w[a] * w[b]
+                while j < n and fine_keys[j] <= kend:
+                    v += wab * w[(fine_keys[j] & MASK21) - 2 * z + 1] * fine_vals[j]
+                    j += 1
+        out[i] = v
+    return out
+
+
 @njit(cache=True)
 def density_eval(pos, level, ctk, ctv, cbits, dens):
     n = pos.shape[0]

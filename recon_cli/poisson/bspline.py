@@ -50,7 +50,7 @@ from recon_cli.poisson import _bspline as B
 from recon_cli.poisson import _octree as O
 from recon_cli.poisson._luts import B2_MASS, B2_STIFFNESS
 from recon_cli.poisson.octree import Level, dilate, pack_keys, unpack_keys
-from recon_cli.poisson.splat import Samples, Splats
+from recon_cli.poisson.splat import Samples, Splats, fields_as_items
 from recon_cli.progress import task
 
 log = logging.getLogger("recon")
@@ -218,6 +218,7 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, boundary: str, full
     fields: list[LevelField] = []
     node_keys = []
     prev: LevelField | None = None
+    items = fields_as_items(splats.rhs_fields)
     with task(progress, "poisson: solve", total=len(levels)) as tk:
         for lev in levels:
             release_free_heap()
@@ -238,7 +239,7 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, boundary: str, full
             m1, k1 = folded_tables(n, f.s)
             unknown = np.repeat(f.inp, 8)
             ne = len(unknown)
-            rhs = B.splat_rhs(splats.rhs_pos, splats.rhs_vec, splats.rhs_level, d, f.q_keys, f.inp, f.s, KERNEL_WIDTH)
+            rhs = B.splat_rhs(*items, d, f.q_keys, f.inp, f.s, KERNEL_WIDTH)
             diag = B.stiffness_diag(f.q_keys, f.inp, m1, k1, h)
             if alpha > 0:
                 mp, mw = _merge_per_cell(spos, splats.screen_w * SCREEN_SCALE, d)

@@ -15,7 +15,7 @@ from recon_cli.poisson import _splat as S
 from recon_cli.poisson import _system as Y
 from recon_cli.poisson._luts import UNIT_STIFFNESS
 from recon_cli.poisson.octree import Level
-from recon_cli.poisson.splat import Samples, Splats
+from recon_cli.poisson.splat import NormalField, Samples, Splats
 from recon_cli.progress import task
 
 log = logging.getLogger("recon")
@@ -42,6 +42,7 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, full_depth: int, cg
     gvals: list[np.ndarray] = []
     per_level = []
     work = solve_work(levels, full_depth)
+    field = NormalField(splats.rhs_fields, [lev.node_keys for lev in levels])
     with task(progress, "poisson: solve", total=sum(work)) as tk:
         for lev in levels:
             tk.expect(work[lev.depth])  # the bar moves on an estimate while the level's kernels run
@@ -51,7 +52,7 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, full_depth: int, cg
             nn = lev.n_nodes
             ke = UNIT_STIFFNESS / (1 << d)
             # (n,) vectors are updated in place
-            rhs = S.splat_rhs(splats.rhs_pos, splats.rhs_vec, splats.rhs_level, np.zeros(len(splats.rhs_level)), d, lev.node_keys, lev.unknown, nn)
+            rhs = field.rhs(d, lev.cell_keys, lev.node_keys, lev.unknown)
             # past the right-hand side only the nodes on the cube's faces are needed (for the
             # extraction's clamp), not the node keys
             lev.face_nodes = O.face_nodes(lev.node_keys, 1 << d)
