@@ -95,6 +95,11 @@ def test_points_only_obj_is_a_cloud_with_colours():
         (b"v 1 2 3\nv 1 2 3\nv 1 2 3\nf 1 2\n", "line 4: a face has fewer than 3 corners"),
         (b"v 1 2 3\nv 1 2 x3\n", "line 2: 'x3' is not a number"),
         (b"v 1 2 3\nf 1 2 4\n", "out of range"),
+        (b"v 1 2 3\nf 1 1 99999999999\n", "vertex index out of range for 1 vertices"),
+        (b"v 1 2 3\nvn 0 0 1\nf 1//1 1//1 1//2\n", "normal index out of range for 1 normals"),
+        (b"v 1 2 3\nv 1 2 3\nv 1 2 3\nf 1 2 3/", "line 4: a face corner is not a vertex index"),
+        (b"v 1 inf 3\n", "vertex 0 has a NaN"),
+        (b"v 0 0 0\nv\t1 -inf 3\n", "vertex 1 has a NaN"),
         (b"v 1 2 3\nf 0 1 1\n", "line 2: a face corner is not a vertex index"),
         (b"v 1 2 3\nf 1/a 1 1\n", "line 2: a face corner is not a vertex index"),
         (b"v nan 0 0\n", "vertex 0 has a NaN"),
@@ -145,3 +150,102 @@ def test_read_and_write_files(tmp_path):
     write_obj(m, tmp_path / "m.obj")
     got = read_obj(tmp_path / "m.obj")
     assert np.array_equal(got.vertices, m.vertices) and np.array_equal(got.faces, m.faces)
+
+
+def _obj_text(m, rng) -> list[str]:
+    """OBJ lines of ``m`` written as other tools do: ``%r`` numbers, every corner form, some
+    negative (relative) indices; with normals, one ``vn`` per vertex and ``vt`` lines."""
+    nv = len(m.vertices)
+    lines = ["v %r %r %r" % tuple(p) for p in m.vertices.tolist()]
+    if m.normals is not None:
+        lines += ["vn %r %r %r" % tuple(p) for p in m.normals.tolist()] + ["vt 0.5 0.5"]
+    for tri in (m.faces + 1).tolist():
+        form = int(rng.integers(2)) + (2 if m.normals is not None else 0)
+        corners = []
+        for x in tri:
+            x = x - nv - 1 if rng.random() < 0.2 else x  # relative to the last vertex
+            corners.append([f"{x}", f"{x}/1", f"{x}/1/{x}", f"{x}//{x}"][form])
+        lines.append("f " + " ".join(corners))
+    return lines
+
+
+def _perturbed(lines: list[str], rng) -> bytes:
+    """The same file with other white space on some lines: tabs, double and trailing spaces,
+    CR LF, leading blanks (such lines leave the reader's short path for the general one)."""
+    out = []
+    for line in lines:
+        k = int(rng.integers(8))
+        if k == 0:
+            line = line.replace(" ", "  ", 1)
+        elif k == 1:
+            line = line.replace(" ", "\t")
+        elif k == 2:
+            line += " "
+        elif k == 3:
+            line += "\r"
+        elif k == 4:
+            line = " " + line
+        out.append(line)
+    return ("\n".join(out) + "\n").encode()
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 1000))
+def test_short_and_general_line_paths_read_alike(seed):
+    rng = np.random.default_rng(seed)
+    m = mesh_family(seed)
+    lines = _obj_text(m, rng)
+    plain = decode_obj(("\n".join(lines) + "\n").encode(), "a.obj")[0]
+    mixed = decode_obj(_perturbed(lines, rng), "b.obj")[0]
+    for got in (plain, mixed):
+        assert np.array_equal(got.vertices.view(np.uint64), m.vertices.view(np.uint64))
+        assert np.array_equal(got.faces, m.faces)
+        if m.normals is not None:
+            assert np.array_equal(got.normals, m.normals)
+        else:
+            assert got.normals is None
+
+
+def _big_mesh():
+    from shapes import torus
+
+    rng = np.random.default_rng(5)
+    v, f = torus(nu=120, nv=40)
+    n = rng.normal(size=v.shape)
+    return TriangleMesh(vertices=v * 1e3 + 5e5, faces=f, normals=n / np.linalg.norm(n, axis=1, keepdims=True))
+
+
+@pytest.mark.parametrize("normals_late", [False, True])
+@pytest.mark.parametrize("no_estimate", [False, True])
+def test_arrays_sized_from_a_sample_grow_when_it_misses(normals_late, no_estimate, monkeypatch):
+    # a large file (sampled, not counted) whose geometry sits between long comment blocks
+    # that most sample windows see: the arrays grow from an estimate far too small (or from
+    # nothing at all, the estimate replaced by zeros)
+    m = _big_mesh()
+    if normals_late:  # vn lines only after the faces: the corner normal array is made mid-way
+        normals, m.normals = m.normals, None
+        lines = _obj_text(m, np.random.default_rng(0)) + ["vn %r %r %r" % tuple(p) for p in normals.tolist()]
+    else:
+        lines = _obj_text(m, np.random.default_rng(0))
+    body = ("\n".join(lines) + "\n").encode()
+    pad = b"".join(b"# padding line %07d of a comment block\n" % k for k in range(60_000))
+    cut = body.index(b"\n", len(body) // 2) + 1
+    big = pad + body[:cut] + pad + body[cut:].replace(b"\n", b"\n" + pad, 1)
+    assert len(big) > 4 << 20
+    want = decode_obj(body, "small.obj")[0]
+    if no_estimate:
+        from recon_cli.io import _obj_kernel
+
+        monkeypatch.setattr(_obj_kernel, "line_kinds", lambda *args: (0, 0, 0, 0))
+    for got in (decode_obj(big, "big.obj")[0], decode_obj(body, "small.obj")[0]):
+        assert np.array_equal(got.vertices, m.vertices) and np.array_equal(got.faces, m.faces)
+        assert (got.normals is None) == (want.normals is None) == normals_late
+        if want.normals is not None:
+            assert np.array_equal(got.normals, want.normals)
+
+
+def test_a_polygon_after_triangles_is_fanned_in_place():
+    # face lengths are kept only from the first polygon on: the triangles before it stay triangles
+    data = b"v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 2 2 2\nf 1 2 3\nf 1 3 4\nf 5 1 2 3 4\nf 2 3 4\nf 1 2 5 4\n"
+    m = decode_obj(data, "p.obj")[0]
+    assert m.faces.tolist() == [[0, 1, 2], [0, 2, 3], [4, 0, 1], [4, 1, 2], [4, 2, 3], [1, 2, 3], [0, 1, 4], [0, 4, 3]]

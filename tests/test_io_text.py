@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from recon_cli.errors import InputError
 from recon_cli.io import text
-from recon_cli.io._text_kernel import parse_float, scan_int
+from recon_cli.io._text_kernel import parse_float, scan_float, scan_int
 
 FORMATS = ["%r", "%.17g", "%.16e", "%.9g", "%.6f", "%.10f", "%.0f", "%e", "%.3e", "%.12E", "%g", "%.25e", "%.40f", "%.30g"]
 
@@ -161,3 +161,55 @@ def test_a_row_with_other_column_count_names_its_line():
     data = np.frombuffer(b"1 2 3\n\n# c\n4 5 6\n7 8\n", np.uint8)
     with pytest.raises(InputError, match=r"^t\.xyz: line 5: 2 columns, the first row has 3$"):
         text.read_table(data, 0, len(data), "t.xyz")
+
+
+# --- eight digits at a time: the SWAR scanner must stop exactly where the digit-by-digit one did
+
+_NON_DIGITS = [b for b in range(256) if not 48 <= b <= 57]
+
+
+@pytest.mark.parametrize("run", [0, 1, 5, 7, 8, 9, 15, 16, 17, 18, 19, 24])
+def test_digit_runs_stop_at_every_other_byte_with_more_bytes_after(run):
+    digits = "".join(str((7 * k + 3) % 10) for k in range(run)) or ""
+    for b in _NON_DIGITS:
+        if run == 0 and b in (43, 45):  # a sign: the digits after it are the number
+            continue
+        # 16 digits after the stop byte: the 8-byte loads see them, the scanners must not take them
+        buf = np.frombuffer(digits.encode() + bytes([b]) + b"1234567890123456", np.uint8)
+        v, ok, stop = scan_int(buf, 0, len(buf))
+        assert stop == run and ok == (1 <= run <= 18), (run, b)
+        if ok:
+            assert v == int(digits)
+        value, status, stop = scan_float(buf, 0, len(buf))
+        if run and b not in (46, 69, 101):  # '.', 'e', 'E' continue a number
+            assert stop == run and status in (1, 2) and (status == 2 or value == float(digits)), (run, b)
+
+
+@pytest.mark.parametrize("end", range(0, 21))
+def test_scanners_read_no_byte_at_or_after_the_end_they_are_given(end):
+    buf = np.frombuffer(b"12345678901234567890123.5e7 9", np.uint8)
+    v, ok, stop = scan_int(buf, 0, end)
+    assert stop == end and ok == (1 <= end <= 18) and (not ok or v == int(buf[:end].tobytes()))
+    value, status, stop = scan_float(buf, 0, end)
+    assert stop == end and (status == 0) == (end == 0)
+    if status == 1:
+        assert value == float(buf[:end].tobytes())
+
+
+LONG = ["0.0012345678901234567", "-0.000012345678901234567", "000000000000000000001.5", "0.00000000000000000000123456789012345678901",
+        "1234567890123456789.0", "12345678901234567890", "1.234567890123456789", "0.1234567890123456789", "00000000.000000001",
+        "9999999999999999999", "99999999999999999999e-5", "0." + "0" * 30 + "7" * 19 + "e30"]
+
+
+@pytest.mark.parametrize("tok", EDGE + LONG)
+def test_tokens_followed_by_more_fields_read_as_python_float(tok):
+    # the tokens alone end their buffer (short ones take the byte-by-byte tail); here more
+    # fields follow, so every digit run of the token goes through the 8-byte loads
+    got = _read_all([tok, "1", "22", "333", "4444", "55555", "-0.25"])
+    ref = float(tok)
+    assert (math.isnan(got[0]) and math.isnan(ref)) or _bits(got[0]) == _bits(ref), tok
+    assert got[1:].tolist() == [1.0, 22.0, 333.0, 4444.0, 55555.0, -0.25]
+    if _significant_digits(tok) <= 19 and not math.isnan(ref):  # decided without the slow path
+        buf = np.frombuffer((tok + " 1234567890").encode(), np.uint8)
+        v, status, stop = scan_float(buf, 0, len(buf))
+        assert status == 1 and stop == len(tok) and _bits(v) == _bits(ref), tok

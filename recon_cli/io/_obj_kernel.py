@@ -1,5 +1,6 @@
-"""Kernel of the OBJ reader: one walk over the lines into arrays that grow by doubling.
-Compute only; :mod:`recon_cli.io.obj` validates and raises."""
+"""Kernel of the OBJ reader: one walk over the lines into arrays that grow by doubling
+(sized first from a sample of the file, :func:`line_kinds`). Compute only:
+:mod:`recon_cli.io.obj` validates and raises."""
 
 from __future__ import annotations
 
@@ -7,7 +8,8 @@ import numpy as np
 from numba import njit
 
 from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (the per-user cache, before the first @njit)
-from recon_cli.io._text_kernel import is_blank, line_end, scan_float, scan_int, skip_space
+from recon_cli._kernels.arrays import borrowed
+from recon_cli.io._text_kernel import is_blank, line_end, scan_float, scan_int, skip_space, token_end
 
 # error codes (returned with a byte offset)
 BAD_NUMBER = 1
@@ -20,7 +22,26 @@ BEFORE_FIRST = 7  # a negative index reaching before the first vertex or normal
 NO_NORMALS = 8  # a face corner names a normal and the file has no vn line
 
 # counts[] slots
-NV, NVN, NF, NCORNER, NSLOW, COLOURS, NOCOLOURS, HAS_VN = range(8)
+NV, NVN, NF, NCORNER, NSLOW, COLOURS, NOCOLOURS, HAS_VN, MAX_V, MAX_VN, NONFINITE, POLYGONS = range(12)
+
+
+@njit(cache=True, inline="always")
+def _corner(buf, p, n):
+    """The face corner at ``p`` (``v``, ``v/vt``, ``v/vt/vn`` or ``v//vn``): ``(v, vn, ok,
+    stop)`` with the indices as written (``vn`` 0 when absent); not ok when it is not one of
+    these forms or an index is 0 (the texture index is read and dropped)."""
+    vi, ok, q = scan_int(buf, p, n)
+    ok = ok and vi != 0
+    nn = 0
+    if ok and q < n and buf[q] == 47:  # /
+        q += 1
+        ok = q < n
+        if ok and buf[q] != 47:  # a texture index: checked, not kept
+            _vt, ok, q = scan_int(buf, q, n)
+        if ok and q < n and buf[q] == 47:
+            nn, ok, q = scan_int(buf, q + 1, n)
+            ok = ok and nn != 0
+    return vi, nn, ok, q
 
 
 @njit(cache=True)
@@ -28,10 +49,18 @@ def _walk(buf, i, st, verts, colours, vnorms, corner_v, corner_n, face_len, slow
     """Parse lines from byte ``i`` until the end or until an array is full.
 
     One pass over the bytes: each number is scanned where it starts, and the byte after it
-    must be white space or a newline. ``st`` holds the counts (NV, NVN, NF, NCORNER, NSLOW,
-    COLOURS, NOCOLOURS), updated in place. Returns ``(code, byte)``: 0 at the end, -1 at the
-    start of a line that needs more room, else an error code and the offending byte.
+    must be white space or a newline. The common lines, ``v x y z`` and ``f a b c`` (each
+    corner any of the four forms) with one space between fields, go through a short path
+    that reads the fields in order; any other line (and any such line the short path does not
+    take whole) through the general one. ``st`` holds the counts (NV, NVN, NF, NCORNER,
+    NSLOW, COLOURS, NOCOLOURS), the largest vertex and normal index named by a corner (MAX_V,
+    MAX_VN, 0-based, -1 when none) and the first vertex with a NaN or infinite coordinate
+    (NONFINITE, -1 when none; numbers left to the slow path are not looked at), updated in
+    place; ``face_len`` is written only once POLYGONS is set (a face of more than 3 corners
+    seen, or expected by the caller). Returns ``(code, byte)``: 0 at the end, -1 at the start of a line that needs more
+    room, else an error code and the offending byte.
     """
+    buf = borrowed(buf)  # no reference counting around the inlined number scanners
     n = len(buf)
     nv = st[NV]
     nvn = st[NVN]
@@ -40,9 +69,13 @@ def _walk(buf, i, st, verts, colours, vnorms, corner_v, corner_n, face_len, slow
     ns = st[NSLOW]
     ncol = st[COLOURS]
     nplain = st[NOCOLOURS]
+    max_v = st[MAX_V]
+    max_n = st[MAX_VN]
+    nonfinite = st[NONFINITE]
     cap_v = verts.shape[0]
     cap_vn = vnorms.shape[0]
-    cap_f = face_len.shape[0]
+    keep_len = st[POLYGONS] != 0  # corners per face kept (not while every face is a triangle)
+    cap_f = face_len.shape[0] if keep_len else 1 << 62
     cap_c = corner_v.shape[0]
     cap_s = slow.shape[0]
     has_vn = st[HAS_VN] != 0
@@ -54,6 +87,44 @@ def _walk(buf, i, st, verts, colours, vnorms, corner_v, corner_n, face_len, slow
             break
         c0 = buf[j]
         c1 = buf[j + 1] if j + 1 < n else 10
+        if c1 == 32 and c0 == 118 and ncol == 0 and nv < cap_v:  # short path: v x y z
+            x, s0, q = scan_float(buf, j + 2, n)
+            if s0 == 1 and q < n and buf[q] == 32:
+                y, s1, q = scan_float(buf, q + 1, n)
+                if s1 == 1 and q < n and buf[q] == 32:
+                    z, s2, q = scan_float(buf, q + 1, n)
+                    if s2 == 1 and (q >= n or buf[q] == 10):
+                        verts[nv, 0] = x
+                        verts[nv, 1] = y
+                        verts[nv, 2] = z
+                        if nonfinite < 0 and not (abs(x) < np.inf and abs(y) < np.inf and abs(z) < np.inf):
+                            nonfinite = nv
+                        nv += 1
+                        nplain += 1
+                        i = q + 1
+                        continue
+        if c1 == 32 and c0 == 102 and nf < cap_f and nc + 3 <= cap_c:  # short path: a triangle
+            a, an, ok0, q = _corner(buf, j + 2, n)
+            if ok0 and a > 0 and an >= 0 and q < n and buf[q] == 32:
+                b, bn, ok1, q = _corner(buf, q + 1, n)
+                if ok1 and b > 0 and bn >= 0 and q < n and buf[q] == 32:
+                    c, cn, ok2, q = _corner(buf, q + 1, n)
+                    if ok2 and c > 0 and cn >= 0 and (q >= n or buf[q] == 10) and (has_vn or an + bn + cn == 0):
+                        corner_v[nc] = a - 1
+                        corner_v[nc + 1] = b - 1
+                        corner_v[nc + 2] = c - 1
+                        max_v = max(max_v, a - 1, b - 1, c - 1)
+                        if has_vn:
+                            corner_n[nc] = an - 1
+                            corner_n[nc + 1] = bn - 1
+                            corner_n[nc + 2] = cn - 1
+                            max_n = max(max_n, an - 1, bn - 1, cn - 1)
+                        if keep_len:
+                            face_len[nf] = 3
+                        nf += 1
+                        nc += 3
+                        i = q + 1
+                        continue
         if c0 == 118 and (is_blank(c1) or (c1 == 110 and (j + 2 >= n or is_blank(buf[j + 2])))):  # v, vn
             is_v = is_blank(c1)
             if not is_v and not has_vn:
@@ -89,6 +160,8 @@ def _walk(buf, i, st, verts, colours, vnorms, corner_v, corner_n, face_len, slow
                     if col < 3:
                         if arr == 0:
                             verts[row, col] = val
+                            if fs == 1 and nonfinite < 0 and not abs(val) < np.inf:
+                                nonfinite = row
                         elif arr == 2:
                             vnorms[row, col] = val
                         else:
@@ -124,38 +197,30 @@ def _walk(buf, i, st, verts, colours, vnorms, corner_v, corner_n, face_len, slow
                 at = i
                 break
             nc0 = nc
+            max_v0 = max_v
+            max_n0 = max_n
             t = 0
             p = skip_space(buf, j + 1, n)
             while p < n and buf[p] != 10:
                 if nc == cap_c:
                     code = -1
                     break
-                # v, v/vt, v/vt/vn, v//vn
-                vi, ok, q = scan_int(buf, p, n)
-                ok = ok and vi != 0
-                ni = -1
-                before = False
-                if ok and q < n and buf[q] == 47:  # /
-                    q += 1
-                    if q < n and buf[q] != 47:  # a texture index: checked, not kept
-                        _vt, ok, q = scan_int(buf, q, n)
-                    if ok and q < n and buf[q] == 47:
-                        nn, ok, q = scan_int(buf, q + 1, n)
-                        ok = ok and nn != 0
-                        ni = nn - 1 if nn > 0 else nvn + nn
-                        before = ni < 0
+                vi, nn, ok, q = _corner(buf, p, n)
                 if not ok or (q < n and not is_blank(buf[q])):
                     code = BAD_INDEX
                     at = p
                     break
+                ni = nn - 1 if nn > 0 else (nvn + nn if nn < 0 else -1)
                 vi = vi - 1 if vi > 0 else nv + vi
-                if vi < 0 or before:
+                if vi < 0 or (nn < 0 and ni < 0):
                     code = BEFORE_FIRST
                     at = p
                     break
                 corner_v[nc] = vi
+                max_v = max(max_v, vi)
                 if has_vn:
                     corner_n[nc] = ni
+                    max_n = max(max_n, ni)
                 elif ni >= 0:
                     code = NO_NORMALS
                     at = p
@@ -163,8 +228,13 @@ def _walk(buf, i, st, verts, colours, vnorms, corner_v, corner_n, face_len, slow
                 nc += 1
                 t += 1
                 p = skip_space(buf, q, n)
+            if code == 0 and t > 3 and not keep_len:  # the first polygon
+                st[POLYGONS] = 2  # ask for the face length array
+                code = -1
             if code == -1:
                 nc = nc0
+                max_v = max_v0
+                max_n = max_n0
                 at = i
                 break
             if code != 0:
@@ -173,7 +243,8 @@ def _walk(buf, i, st, verts, colours, vnorms, corner_v, corner_n, face_len, slow
                 code = SHORT_FACE
                 at = j
                 break
-            face_len[nf] = t
+            if keep_len:
+                face_len[nf] = t
             nf += 1
             i = p + 1
         else:
@@ -186,6 +257,9 @@ def _walk(buf, i, st, verts, colours, vnorms, corner_v, corner_n, face_len, slow
     st[NSLOW] = ns
     st[COLOURS] = ncol
     st[NOCOLOURS] = nplain
+    st[MAX_V] = max_v
+    st[MAX_VN] = max_n
+    st[NONFINITE] = nonfinite
     return code, at
 
 
@@ -201,27 +275,36 @@ def _grown(a, need):
 
 
 @njit(cache=True)
-def line_kinds(buf):
-    """``(v, vn, f)``: about how many lines are ``v``, ``vn`` and ``f`` lines (those starting
-    with the word and a space or tab; no branch per byte, so the loop vectorises): sizes for
-    the arrays, which grow when lines with leading white space were missed."""
+def line_kinds(buf, starts, width):
+    """``(v, vn, f, corners)``: how many ``v``, ``vn`` and ``f`` lines start in the windows
+    ``buf[s:s + width]`` (``s`` in ``starts``), and how many corners (fields) their ``f``
+    lines have: a sample from which the caller sizes the arrays (they grow when it falls short)."""
     n = len(buf)
     nv = 0
     nvn = 0
     nf = 0
-    for i in range(n - 2):
-        a = np.int64(buf[i] == 10)
-        b = buf[i + 1]
-        c = buf[i + 2]
-        sp = np.int64((c == 32) | (c == 9))
-        nv += a & np.int64(b == 118) & sp
-        nf += a & np.int64(b == 102) & sp
-        nvn += a & np.int64(b == 118) & np.int64(c == 110)
-    if n >= 2:  # the first line
-        nv += buf[0] == 118 and (buf[1] == 32 or buf[1] == 9)
-        nvn += buf[0] == 118 and buf[1] == 110
-        nf += buf[0] == 102 and (buf[1] == 32 or buf[1] == 9)
-    return nv, nvn, nf
+    nc = 0
+    for s in starts:
+        e = min(s + width, n)
+        p = s if s == 0 else line_end(buf, s - 1, n) + 1  # the first line starting in the window
+        while p < e:
+            j = skip_space(buf, p, n)
+            c1 = buf[j + 1] if j + 1 < n else 10
+            if j < n and buf[j] == 118:
+                if is_blank(c1):
+                    nv += 1
+                elif c1 == 110:
+                    nvn += 1
+            elif j < n and buf[j] == 102 and is_blank(c1):
+                nf += 1
+                j += 1
+                while j < n and buf[j] != 10:
+                    j = skip_space(buf, j, n)
+                    if j < n and buf[j] != 10:
+                        nc += 1
+                        j = token_end(buf, j, n)
+            p = line_end(buf, j, n) + 1
+    return nv, nvn, nf, nc
 
 
 @njit(cache=True)
@@ -235,12 +318,19 @@ def obj_walk(buf, verts, colours, vnorms, corner_v, corner_n, face_len, slow):
     (nv, 3), ``colours`` (nv, 3, meaningful when the v lines carry them), ``vnorms``
     (nvn, 3), ``corner_v`` / ``corner_n`` (0-based vertex and normal index of each corner,
     normal -1 when absent; not range-checked; ``corner_n`` stays empty when the file has no
-    ``vn`` line), ``face_len`` (corners per face) and ``slow`` ((k, 4): array 0 verts / 1
+    ``vn`` line), ``face_len`` (corners per face; empty when the caller expects triangles only
+    and they are: it is made at the first polygon) and ``slow`` ((k, 4): array 0 verts / 1
     colours / 2 vnorms, flat index, byte start, byte end of each number left to the slow
-    path, stored as NaN).
+    path, stored as NaN). ``counts`` also gives the largest vertex and normal index any
+    corner names (MAX_V, MAX_VN; -1 when none) and the first vertex with a NaN or infinite
+    coordinate (NONFINITE; -1 when none; the slow-path numbers are not looked at).
     """
-    st = np.zeros(8, np.int64)
+    st = np.zeros(12, np.int64)
     st[HAS_VN] = 1 if corner_n.shape[0] > 0 else 0
+    st[POLYGONS] = 1 if face_len.shape[0] > 0 else 0
+    st[MAX_V] = -1
+    st[MAX_VN] = -1
+    st[NONFINITE] = -1
     i = 0
     while True:
         code, at = _walk(buf, i, st, verts, colours, vnorms, corner_v, corner_n, face_len, slow)
@@ -249,9 +339,16 @@ def obj_walk(buf, verts, colours, vnorms, corner_v, corner_n, face_len, slow):
         i = at
         eol = line_end(buf, i, len(buf))
         verts = _grown(verts, st[NV] + 1)
-        colours = _grown(colours, verts.shape[0])
+        if st[COLOURS]:
+            colours = _grown(colours, verts.shape[0])
+        elif colours.shape[0] < verts.shape[0]:  # nothing in it yet: no copy (its pages stay untouched)
+            colours = np.empty_like(verts)
         vnorms = _grown(vnorms, st[NVN] + 1)
-        face_len = _grown(face_len, st[NF] + 1)
+        if st[POLYGONS] == 2:  # the first polygon, and the caller expected none: all before are triangles
+            face_len = np.full(2 * st[NF] + 1024, 3, np.int64)
+            st[POLYGONS] = 1
+        elif st[POLYGONS] == 1:
+            face_len = _grown(face_len, st[NF] + 1)
         corner_v = _grown(corner_v, st[NCORNER] + (eol - i) // 2 + 1)
         if st[HAS_VN] == 2:  # the first vn line, and the caller expected none
             corner_n = np.full(corner_v.shape[0], -1, np.int64)

@@ -17,8 +17,9 @@ a number. The grammar is ``[+-] digits [. digits] [(e|E) [+-] digits]`` with at 
 digit in the mantissa (``5.``, ``.5``) and in an exponent, or ``nan``, ``inf``,
 ``infinity`` (any case, optional sign).
 
-The mantissa's first 19 significant digits are kept in a 64-bit integer ``w`` and the value
-is ``w * 10**q``. Three ways, fastest first:
+The mantissa's digits are read eight at a time (:func:`_digits8`: one 8-byte load, a SWAR
+digit test and three multiplications); its first 19 significant digits are kept in a 64-bit
+integer ``w`` and the value is ``w * 10**q``. Three ways, fastest first:
 
 * Clinger's fast path when ``w <= 2**53`` and ``|q| <= 22``: ``w`` and ``10**|q|`` are
   exact doubles, so one correctly rounded multiplication or division gives the answer;
@@ -45,11 +46,12 @@ import numpy as np
 from numba import njit
 
 from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (the per-user cache, before the first @njit)
-from recon_cli._kernels.arrays import grow1, grow2
-from recon_cli._kernels.bits import clz64, f64_from_bits, mulhi64
+from recon_cli._kernels.arrays import borrowed, grow1, grow2
+from recon_cli._kernels.bits import clz64, ctz64, f64_from_bits, load_u64le, mulhi64
 from recon_cli.io._float_luts import LARGEST_POWER, POW5_128, SMALLEST_POWER
 
 POW10 = np.array([10.0**k for k in range(23)], dtype=np.float64)
+POW10_INT = np.array([10**k for k in range(9)], dtype=np.uint64)
 _U0 = np.uint64(0)
 _U1 = np.uint64(1)
 _U9 = np.uint64(9)
@@ -62,6 +64,18 @@ _LOW9 = np.uint64(0x1FF)
 _ALL = np.uint64((1 << 64) - 1)
 _INF_BITS = np.uint64(0x7FF << 52)
 _SIGN = np.uint64(1 << 63)
+_U3 = np.uint64(3)
+_U8 = np.uint64(8)
+_U16 = np.uint64(16)
+_U32 = np.uint64(32)
+_LOW32 = np.uint64(0xFFFFFFFF)
+_ZEROS8 = np.uint64(0x3030303030303030)  # '0' in every byte
+_LOW7 = np.uint64(0x7F7F7F7F7F7F7F7F)
+_ADD76 = np.uint64(0x7676767676767676)
+_HIGH8 = np.uint64(0x8080808080808080)
+_PAIRS = np.uint64(0x000000FF000000FF)
+_MUL1 = np.uint64(100 + (1000000 << 32))
+_MUL2 = np.uint64(1 + (10000 << 32))
 _EXP_CAP = 10**12  # exponent digits beyond this only saturate (the value is 0 or inf long before)
 
 
@@ -193,6 +207,20 @@ def _special(buf, i, e, neg):
 
 
 @njit(cache=True)
+def _significant_digits(buf, s, e):
+    """How many digits of the mantissa ``buf[s:e]`` (digits and at most one point) follow its
+    leading zeros."""
+    n = 0
+    lead = True
+    for i in range(s, e):
+        c = buf[i]
+        if c != 46:
+            lead = lead and c == 48
+            n += not lead
+    return n
+
+
+@njit(cache=True)
 def _mantissa_long(buf, i, e):
     """The mantissa at ``i`` digit by digit: ``(w, q, dropped, ndig, stop)`` with the first 19
     significant digits in ``w``, value ``w * 10**q`` (``dropped``: a non-zero digit was not kept)."""
@@ -235,7 +263,41 @@ def _mantissa_long(buf, i, e):
     return w, q, dropped, ndig, i
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
+def _digits8(buf, i, e):
+    """``(value, count)`` of the run of decimal digits at ``i``, at most 8 of them (a count of
+    8: more may follow), reading no further than ``e``.
+
+    SWAR when the 8 bytes ``buf[i:i + 8]`` lie before ``e``: they are loaded as one integer,
+    each byte XOR ``'0'`` (a digit becomes 0..9), the first non-digit found from the high bit
+    of ``(b & 0x7f) + 0x76 | b`` per byte (set exactly when ``b`` is not 0..9; no carry
+    between bytes), the digits shifted to the top (the bytes after them fall out, zeros enter
+    as leading digits) and combined pairwise with three multiplications (as in Lemire's
+    fast_float). Near ``e`` the digits are read one by one.
+    """
+    if i + 8 <= e:
+        d = load_u64le(buf, i) ^ _ZEROS8
+        nondigit = (((d & _LOW7) + _ADD76) | d) & _HIGH8
+        if nondigit == _U0:
+            k = 8
+        else:
+            k = np.int64(ctz64(nondigit) >> _U3)
+            if k == 0:
+                return _U0, 0
+        t = d << np.uint64(64 - 8 * k)
+        t = t * _U10 + (t >> _U8)
+        t = (((t & _PAIRS) * _MUL1) + (((t >> _U16) & _PAIRS) * _MUL2)) >> _U32
+        return t & _LOW32, k
+    w = _U0
+    k = 0
+    while i < e and k < 8 and buf[i] >= 48 and buf[i] <= 57:
+        w = w * _U10 + np.uint64(buf[i] - 48)
+        i += 1
+        k += 1
+    return w, k
+
+
+@njit(cache=True, inline="always")
 def scan_float(buf, i, e):
     """The decimal number starting at byte ``i`` (reading no further than ``e``):
     ``(value, status, stop)`` with ``stop`` the byte after it; see the module docstring.
@@ -249,36 +311,32 @@ def scan_float(buf, i, e):
         elif c == 43:  # +
             i += 1
     p0 = i
-    # the mantissa, written out here (a call per number costs more than the digits: numba
-    # does not inline these small functions well), without a test per digit while at most
-    # 19 significant digits (the usual case); longer mantissas are read again, digit by
-    # digit, by _mantissa_long. The digit loops have their test in the loop condition: numba
-    # compiles the equivalent `while True: ... break` form to code several times slower.
-    while i < e and buf[i] == 48:  # leading zeros
-        i += 1
-    s1 = i
-    w = _U0
-    while i < e and buf[i] >= 48 and buf[i] <= 57:
-        w = w * _U10 + np.uint64(buf[i] - 48)
-        i += 1
-    nsig = i - s1
+    # the mantissa, written out here and inlined into the callers (a call per number costs
+    # more than the digits), eight digits at a time (_digits8). Leading zeros add nothing to
+    # w, so w is exact while at most 19 digits follow them (the usual case; w may wrap
+    # beyond, unused then); longer mantissas are read again, digit by digit, by
+    # _mantissa_long. The loops have their test in the loop condition: numba compiles the
+    # equivalent `while True: ... break` form to slower code.
+    w, k = _digits8(buf, i, e)
+    i += k
+    while k == 8:
+        v, k = _digits8(buf, i, e)
+        w = w * POW10_INT[k] + v
+        i += k
     ndig = i - p0
     q = 0
     if i < e and buf[i] == 46:  # .
         i += 1
         f0 = i
-        if nsig == 0:
-            while i < e and buf[i] == 48:  # zeros after the point, before any other digit
-                i += 1
-        s2 = i
-        while i < e and buf[i] >= 48 and buf[i] <= 57:
-            w = w * _U10 + np.uint64(buf[i] - 48)
-            i += 1
-        nsig += i - s2
+        k = 8
+        while k == 8:
+            v, k = _digits8(buf, i, e)
+            w = w * POW10_INT[k] + v
+            i += k
         q = f0 - i
         ndig += i - f0
     dropped = False
-    if nsig > 19:
+    if ndig > 19 and _significant_digits(buf, p0, i) > 19:
         w, q, dropped, ndig, i = _mantissa_long(buf, p0, e)
     if ndig == 0:
         return _special(buf, p0, e, neg)
@@ -323,13 +381,13 @@ def scan_float(buf, i, e):
 @njit(cache=True)
 def parse_float(buf, s, e):
     """(value, status) of the number that must fill ``buf[s:e]``; see the module docstring."""
-    v, st, stop = scan_float(buf, s, e)
+    v, st, stop = scan_float(borrowed(buf), s, e)
     if st == 0 or stop != e:
         return 0.0, 0
     return v, st
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def scan_int(buf, i, e):
     """The decimal integer (optional sign, 1 to 18 digits) starting at ``i``: ``(value, ok, stop)``."""
     neg = False
@@ -337,13 +395,16 @@ def scan_int(buf, i, e):
         neg = buf[i] == 45
         i += 1
     p0 = i
-    v = 0
-    while i < e and buf[i] >= 48 and buf[i] <= 57:
-        v = v * 10 + (buf[i] - 48)
-        i += 1
+    w, k = _digits8(buf, i, e)
+    i += k
+    while k == 8:
+        v, k = _digits8(buf, i, e)
+        w = w * POW10_INT[k] + v
+        i += k
     if i == p0 or i - p0 > 18:
         return 0, False, i
-    return (-v if neg else v), True, i
+    x = np.int64(w)
+    return (-x if neg else x), True, i
 
 
 # ---------------------------------------------------------------------------------------------
@@ -361,6 +422,7 @@ def _rows_walk(buf, i, end, delim, comment, fixed, values, row_start, row_line, 
     Returns ``(code, where, bad_count)``: code 0 at the end, -1, -2, -3 when ``values``,
     ``slow`` or the row arrays are full (``where``: the start of the row to parse again), 1 or
     2 as :func:`parse_rows`'s errors."""
+    buf = borrowed(buf)  # no reference counting around the inlined number scanner
     nv = st[_NV]
     nr = st[_NR]
     ns = st[_NS]

@@ -10,9 +10,12 @@ first for float32 data, makes the coordinates float32 again). A file without fac
 Coordinates are read as float64 (text has no type).
 
 The numbers are parsed by a numba kernel (:mod:`recon_cli.io._obj_kernel`) in one pass
-over the bytes, into arrays sized by a first count of the ``v``/``vn``/``f`` lines (they grow
-when it falls short); every number reads as Python's ``float`` reads it (see
-:mod:`recon_cli.io._text_kernel`; the rare undecided ones are converted by ``float``).
+over the bytes (``v x y z`` and triangle lines through a short path, any other line through
+the general one), into arrays sized from a sample of the file (they grow when it falls
+short); every number reads as Python's ``float`` reads it (see
+:mod:`recon_cli.io._text_kernel`; the rare undecided ones are converted by ``float``). The
+kernel also reports the largest indices and the first non-finite vertex, which this module
+checks (no further pass over the arrays).
 """
 
 from __future__ import annotations
@@ -42,14 +45,15 @@ def decode_obj(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
     from recon_cli.io import _obj_kernel as K
 
     buf = text.as_uint8(data)
-    # arrays from numpy (which asks for huge pages: fewer page faults than the kernel's own)
-    lv, lvn, lf = K.line_kinds(buf)
-    verts = np.empty((lv + 16, 3), np.float64)
-    colours = np.empty((lv + 16, 3), np.float64)  # untouched, so no memory, without colours
-    vnorms = np.empty((lvn + 16 if lvn else 0, 3), np.float64)
-    corner_v = np.empty(3 * lf + 16, np.int64)
-    corner_n = np.empty(3 * lf + 16 if lvn else 0, np.int64)
-    face_len = np.empty(lf + 16, np.int64)
+    # arrays from numpy (which asks for huge pages: fewer page faults than the kernel's own),
+    # sized from a sample of the file; pages never written cost no memory
+    lv, lvn, lf, lc = _estimate(buf, K)
+    verts = np.empty((lv, 3), np.float64)
+    colours = np.empty((lv, 3), np.float64)  # untouched, so no memory, without colours
+    vnorms = np.empty((lvn, 3), np.float64)
+    corner_v = np.empty(lc, np.int64)
+    corner_n = np.empty(lc if lvn else 0, np.int64)
+    face_len = np.empty(lf if lc > 3 * lf else 0, np.int64)  # none while all faces are triangles
     slow = np.empty((64, 4), np.int64)
     out = K.obj_walk(buf, verts, colours, vnorms, corner_v, corner_n, face_len, slow)
     err, at, counts, verts, colours, vnorms, corner_v, corner_n, face_len, slow = out
@@ -58,8 +62,9 @@ def decode_obj(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
     nv, nvn, nf, nc = (int(counts[k]) for k in (K.NV, K.NVN, K.NF, K.NCORNER))
     verts, vnorms = verts[:nv], vnorms[:nvn]
     colours = colours[:nv] if counts[K.COLOURS] else np.empty((0, 3), np.float64)
-    corner_v, face_len = corner_v[:nc], face_len[:nf]
+    corner_v = corner_v[:nc]
     corner_n = corner_n[:nc] if len(corner_n) else corner_n  # empty: the file has no vn line
+    nonfinite = int(counts[K.NONFINITE])
     if counts[K.NSLOW]:
         slow = slow[: counts[K.NSLOW]]
         vals = text.slow_values(buf, slow[:, 2:4])
@@ -67,11 +72,17 @@ def decode_obj(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
             pick = slow[:, 0] == a
             if pick.any() and len(target):
                 target.reshape(-1)[slow[pick, 1]] = vals[pick]
-    text.check_finite(verts, where)
-    if nc and (corner_v.min() < 0 or corner_v.max() >= nv):
-        bad = int(np.flatnonzero((corner_v < 0) | (corner_v >= nv))[0])
+        bad = (slow[:, 0] == 0) & ~np.isfinite(vals)  # (a value beyond the largest double)
+        if bad.any():
+            row = int(slow[bad, 1].min()) // 3
+            nonfinite = row if nonfinite < 0 else min(nonfinite, row)
+    if nonfinite >= 0:
+        raise InputError(f"vertex {nonfinite} has a NaN or infinite coordinate", where)
+    # the kernel's largest indices: negative ones it has resolved or refused already
+    if int(counts[K.MAX_V]) >= nv:
+        bad = int(np.flatnonzero(corner_v >= nv)[0])
         raise InputError(f"face corner {bad}: vertex index out of range for {nv} vertices", where)
-    if nc and len(corner_n) and corner_n.max() >= nvn:
+    if len(corner_n) and int(counts[K.MAX_VN]) >= nvn:
         bad = int(np.flatnonzero(corner_n >= nvn)[0])
         raise InputError(f"face corner {bad}: normal index out of range for {nvn} normals", where)
     history = _leading_comments(buf)
@@ -81,13 +92,29 @@ def decode_obj(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
     common = dict(normals=normals, colors=cols, point_dtype=np.float64)
     if nf == 0:
         return text.apply_float32_mark(PointCloud(points=verts, **common), history), details
-    if np.all(face_len == 3):
+    if nc == 3 * nf:  # every face has at least 3 corners: all are triangles
         faces = corner_v.reshape(-1, 3)  # triangles already: no fan to build
     else:
         from recon_cli.io._obj_kernel import fan
 
-        faces, _ = fan(corner_v, face_len)
+        faces, _ = fan(corner_v, face_len[:nf])
     return text.apply_float32_mark(TriangleMesh(vertices=verts, faces=faces, **common), history), details
+
+
+def _estimate(buf: np.ndarray, K) -> tuple[int, int, int, int]:
+    """Room for the ``v``, ``vn``, ``f`` lines and face corners: counted in a small file,
+    estimated from 32 windows of 32 KiB spread over a large one (10 % spare; the kernel's
+    arrays grow when a count falls short)."""
+    n = len(buf)
+    width = 1 << 15
+    if n <= 64 * width:
+        counts = K.line_kinds(buf, np.zeros(1, np.int64), n)
+        scale, spare = 1.0, 16
+    else:
+        counts = K.line_kinds(buf, np.linspace(0, n - width, 32).astype(np.int64), width)
+        scale, spare = 1.1 * n / (32 * width), 1024
+    # no vn line seen: none expected (no normal arrays: the kernel makes them at the first)
+    return tuple(int(c * scale) + spare if c or k != 1 else 0 for k, c in enumerate(counts))
 
 
 def _raise(buf: np.ndarray, err: int, at: int, where: str):
