@@ -166,3 +166,27 @@ def test_cached_kernels_load_without_numba_registries_and_compiling_still_works(
     _run(LEAN, {})  # cache what LEAN calls (compiled the first time if the cache is cold)
     out = _run(LEAN, {"RECON_NUMBA_FULL_REFRESH": "1"} if full else {}).split()
     assert out == ["arraymath" if full else "lean", "True", "15.0"]
+
+
+STAGES_WITHOUT_ARRAYMATH = (
+    "import sys, numpy as np\n"
+    "sys.path.insert(0, %r)\n"
+    "from shapes import sphere_cloud\n"
+    "from recon_cli.geometry import PointCloud\n"
+    "from recon_cli.grid import Grid\n"
+    "from recon_cli.stages import apply_stage\n"
+    "p, n = sphere_cloud(3000, seed=1)\n"
+    "mesh = apply_stage('ballpivot', PointCloud(points=p, normals=n), {}).output\n"
+    "x = np.linspace(-1, 1, 20)\n"
+    "sdf = np.sqrt(x[:, None, None] ** 2 + x[None, :, None] ** 2 + x[None, None, :] ** 2) - 0.7\n"
+    "apply_stage('mcubes', Grid(sdf=sdf, origin=np.zeros(3), voxel_size=0.1), {})\n"
+    "print(len(mesh.faces) > 0, 'numba.np.arraymath' in sys.modules, 'scipy.linalg' in sys.modules)\n"
+)
+
+
+def test_ballpivot_and_mcubes_kernels_load_without_numba_arraymath():
+    """Their cached kernels call no numba.np.arraymath implementation (searchsorted, argmax,
+    cumsum are written out): loading them imports neither it nor scipy.linalg (~0.2 CPU s)."""
+    code = STAGES_WITHOUT_ARRAYMATH % str(Path(__file__).resolve().parent)
+    _run(code, {})  # cache the kernels (compiled the first time if the cache is cold)
+    assert _run(code, {}).split() == ["True", "False", "False"]
