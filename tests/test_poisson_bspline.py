@@ -137,11 +137,13 @@ def _sphere_error(p, n, depth, degree):
     return float(np.abs(np.linalg.norm(v, axis=1) - 1.0).mean())
 
 
-def test_sphere_radius_error_below_degree1_and_falls_with_depth(rng):
+def test_sphere_radius_error_falls_with_depth(rng):
+    # degree 2 was more accurate than degree 1 here until degree 1 got the B-spline normal
+    # splat and the non-linear root fit (60k samples, depth 5-7: degree 1 3.4e-4, 1.1e-4,
+    # 9.1e-5; degree 2 4.8e-4, 1.8e-4, 1.0e-4); what must hold is that its error falls as
+    # the cells shrink
     p, n = shape_cloud("sphere", 60_000, rng)
-    err1 = [_sphere_error(p, n, d, 1) for d in (5, 6, 7)]
     err2 = [_sphere_error(p, n, d, 2) for d in (5, 6, 7)]
-    assert all(e2 < e1 for e1, e2 in zip(err1, err2)), (err1, err2)
     assert err2[1] < 0.7 * err2[0] and err2[2] < 0.7 * err2[1], err2
 
 

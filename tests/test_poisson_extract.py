@@ -67,14 +67,16 @@ def test_sparse_and_dense_halves_closed_manifold_one_piece(rng, method):
 
 
 def test_sphere_radius_error_falls_with_depth(rng):
-    p, n = shape_cloud("sphere", 60_000, rng)
+    # enough samples that depth 7 is not limited by them (3 per finest cell: the error
+    # there is half the samples' noise, 60k samples give 9e-5 where 200k give 5.6e-5)
+    p, n = shape_cloud("sphere", 200_000, rng)
     err = []
     for depth in (5, 6, 7):
         v = screened_poisson(p, n, depth=depth).mesh.vertices
         err.append(float(np.abs(np.linalg.norm(v, axis=1) - 1.0).mean()))
     # the finest cell halves at each depth (2.2 / 2**depth); the error must fall with it
-    assert err[1] < 0.7 * err[0] and err[2] < 0.7 * err[1], err
-    assert err[2] < 0.1 * 2.2 / 2**7, err
+    assert err[1] < 0.6 * err[0] and err[2] < 0.8 * err[1], err
+    assert err[2] < 0.01 * 2.2 / 2**7, err
 
 
 def test_trimmed_scan_stays_manifold(rng, method):

@@ -1,14 +1,16 @@
 """Screened Poisson surface reconstruction (Kazhdan & Hoppe 2013), our own, adaptive.
 
-The oriented samples define a vector field ``W`` (normals splatted with a quadratic
-B-spline kernel, weighted by the area each sample stands for); the indicator ``chi`` (about
-1 inside, 0 outside) minimises
+The oriented samples define a vector field ``W``: each sample's normal, weighted by the area
+it stands for, is shared among the 27 cells around it with quadratic B-spline weights and
+the field is the sum of quadratic B-splines centred on those cells, as PoissonRecon (and
+Open3D's copy of it) splat the normals; the indicator ``chi`` (about 1 inside, 0 outside)
+minimises
 
     int |grad chi - W|^2  +  alpha * sum_p w_p (chi(p) - 1/2)^2,
 
 discretised on an adaptive multilevel grid (an octree level by level), in one of two bases
-(``degree``): trilinear (Q1) hat functions on the nodes (degree 1), or quadratic B-splines
-centred on the cells, support 3 cells per axis, as PoissonRecon's default (degree 2,
+(``degree``): trilinear (Q1) hat functions on the nodes (degree 1, the default, as Open3D's
+Poisson), or quadratic B-splines centred on the cells, support 3 cells per axis (degree 2,
 :mod:`.bspline`). Each sample is splatted at the depth its local density supports
 (``samples_per_node`` samples per node, as PoissonRecon defines it, at most ``depth``), and
 level ``d`` holds the cells of the ``2**d`` lattice within two cells of a splat of level
@@ -25,9 +27,11 @@ each shared by all the leaves around it; every face between leaves pairs the roo
 boundary once, for both sides, so neighbouring leaves of different sizes agree and there
 are no cracks; each leaf's segments close into polygons, triangulated without a diagonal any
 other polygon could use. The surface is closed, manifold, welded, and its size follows the
-tree, not the depth asked for (:mod:`.extract`). With degree 2 (``--degree 2``) the leaves'
-corners take ``chi``'s exact values (nodes on the faces of coarser leaves take those leaves'
-values, so neighbours agree) and each vertex is then moved along its edge to ``chi``'s root.
+tree, not the depth asked for (:mod:`.extract`). Each vertex is then moved along its edge:
+with degree 1 to the root of a quadratic fit of ``chi`` along the edge's line (PoissonRecon's
+non-linear fit: the piecewise-linear ``chi`` stands for a smooth indicator); with degree 2
+the leaves' corners take ``chi``'s exact values (nodes on the faces of coarser leaves take
+those leaves' values, so neighbours agree) and each vertex goes to ``chi``'s root.
 
 ``trim`` removes the surface where the samples' kernel density is low (the closing sheet
 Poisson puts over the open side of a scan), as PoissonRecon's SurfaceTrimmer does: the mesh
@@ -113,7 +117,7 @@ SPEC = StageSpec(
         Param("point_weight", "float", 4.0, "Screening weight (0 = classic unscreened Poisson).", min=0.0),
         Param("samples_per_node", "float", 1.5, "Samples per node at a sample's depth (as PoissonRecon): sparser samples are splatted coarser.",
               unit="samples", min=0.0, min_open=True),
-        Param("degree", "int", 1, "B-spline degree of the basis: 1 trilinear, 2 quadratic (PoissonRecon's default; more accurate on smooth surfaces).",
+        Param("degree", "int", 1, "B-spline degree of the basis: 1 trilinear (as Open3D's Poisson), 2 quadratic (about 5x the time; no more accurate than 1 where measured).",
               min=1, max=2),
         Param("boundary", "choice", "neumann", "Condition on the faces of the cube.", choices=BOUNDARIES),
         Param("density", "bool", False, "Write the per-vertex sampling density as vertex property 'density'."),
@@ -199,9 +203,10 @@ def screened_poisson(
         per node, so sparse regions get coarse, smooth nodes and the tree no finer ones;
         larger values give coarser, smoother surfaces on noisy data. > 0.
     degree : {1, 2}
-        B-spline degree of the basis: 1, trilinear hat functions on the nodes; 2, quadratic
-        B-splines centred on the cells (support 3 cells per axis, PoissonRecon's default),
-        whose higher approximation order shows on smooth surfaces (:mod:`.bspline`).
+        B-spline degree of the basis: 1, trilinear hat functions on the nodes (Open3D's
+        Poisson uses degree 1 too); 2, quadratic B-splines centred on the cells (support 3
+        cells per axis, :mod:`.bspline`), about 5x the time, and since degree 1 got the
+        non-linear root fit, no more accurate where measured.
     boundary : {"neumann", "dirichlet"}
         Condition on the cube's faces (Dirichlet: ``chi = 0``, the outside).
     density : bool
@@ -234,10 +239,10 @@ def screened_poisson(
             raise InputError(f"colors has {len(colors)} rows, expected {len(keep)}")
         colors = colors[keep]
 
-    from recon_cli.poisson.extract import extract
+    from recon_cli.poisson.extract import extract, refine_roots
     from recon_cli.poisson.octree import build_levels
     from recon_cli.poisson.splat import make_splats, merge_samples, sample_density
-    from recon_cli.poisson.system import iso_value, solve
+    from recon_cli.poisson.system import chi_levels, iso_value, solve
 
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -286,12 +291,21 @@ def screened_poisson(
 
     # ---- extraction
     t = time.perf_counter()
-    verts, faces = extract(levels, gvals, iso, origin, size)
-    del levels, gvals
     if degree == 2:
+        verts, faces = extract(levels, gvals, iso, origin, size)
+        del levels, gvals
         # chi is not trilinear between the lattice's points: each vertex to chi's root on its edge
         verts = chi.refine_vertices(verts, iso, origin, size, tree_depth)
         del chi
+    else:
+        chi_lv = chi_levels(levels, gvals)
+        # in finest-lattice units, then each vertex to the root of chi's cubic along its edge
+        verts, faces = extract(levels, gvals, iso, np.zeros(3), float(res))
+        del levels, gvals
+        refine_roots(verts, chi_lv, iso, tree_depth)
+        del chi_lv
+        verts *= size / res
+        verts += origin
     timings["extract"] = time.perf_counter() - t
 
 

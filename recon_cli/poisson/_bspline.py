@@ -373,8 +373,8 @@ def _mask(bit, p, n_coarse, s, off, w):
 @njit(cache=True)
 def splat_rhs(pos, normal_w, splat_level, level, q_keys, inp, s, width):
     """b_i = int grad(B_i) . W at the unknown cells, W the normals splatted with quadratic
-    B-splines of their splat level's width (as :func:`recon_cli.poisson._splat.splat_rhs`
-    does for the trilinear basis): per item and axis, the 1D factors of the cells in reach
+    B-splines of their splat level's width (as the degree-1 solver did before
+    :class:`recon_cli.poisson.splat.NormalField`): per item and axis, the 1D factors of the cells in reach
     (images folded), then the flagged parents in the box, walking their sorted keys, and
     their children in it."""
     n_keys = len(q_keys)

@@ -768,3 +768,46 @@ def straddles(cell_keys, cell_nodes, is_leaf, g, level, depth, iso, eps, margin)
         if not (lo > iso + eps or hi < iso - eps):
             return True
     return False
+
+
+@njit(cache=True)
+def fit_roots(fm, f0, f1, f2, iso, clamp):
+    """Per edge, the root of the quadratic through the ends' values whose slopes at the ends
+    are in the ratio of chi's central differences there (values ``fm``, ``f0``, ``f1``, ``f2``
+    at lattice steps -1, 0, 1, 2), as a fraction of the edge in [clamp, 1 - clamp]: the
+    cubic Hermite interpolant with its end slopes scaled so that their mean is the secant's
+    (its cubic term then vanishes), as PoissonRecon's non-linear fit; the root nearest the
+    linear one when there are two; -1 where the ends do not straddle ``iso``."""
+    n = len(f0)
+    out = np.full(n, -1.0)
+    for i in range(n):
+        g0 = f0[i] - iso
+        g1 = f1[i] - iso
+        if not (g0 * g1 < 0.0):
+            continue
+        lin = g0 / (g0 - g1)
+        m0 = 0.5 * (f1[i] - fm[i])
+        m1 = 0.5 * (f2[i] - f0[i])
+        t = lin
+        if (m0 + m1) * (g1 - g0) > 0.0:
+            # p(t) = g0 + b t + a t^2 with p(1) = g1 and p'(0) / p'(1) = m0 / m1
+            b = m0 * (g1 - g0) / (0.5 * (m0 + m1))
+            a = g1 - g0 - b
+            if abs(a) <= 1e-12 * abs(b):
+                t = -g0 / b
+            else:
+                disc = b * b - 4.0 * a * g0
+                if disc >= 0.0:
+                    sq = np.sqrt(disc)
+                    # the two roots, computed without cancellation
+                    q = -0.5 * (b + sq if b >= 0.0 else b - sq)
+                    r1 = q / a
+                    r2 = g0 / q if q != 0.0 else r1
+                    best = -1.0
+                    for r in (r1, r2):
+                        if 0.0 <= r <= 1.0 and (best < 0.0 or abs(r - lin) < abs(best - lin)):
+                            best = r
+                    if best >= 0.0:
+                        t = best
+        out[i] = min(max(t, clamp), 1.0 - clamp)
+    return out

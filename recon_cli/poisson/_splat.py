@@ -1,6 +1,6 @@
-"""Numba kernels of the splats: the normals splatted with a quadratic B-spline centred at
-each sample (the right-hand side), and the samples' kernel density (counts splatted with
-quadratic B-splines centred on cells).
+"""Numba kernels of the splats: the normals shared among cell-centred quadratic B-splines and
+the right-hand side of that field (refinement, stencil, restriction), and the samples'
+kernel density (counts splatted with quadratic B-splines centred on cells).
 
 They only compute; conventions in :mod:`recon_cli.poisson._octree`; hash tables are
 :mod:`recon_cli._kernels.hashtable`'s (lookups return ``-1`` for a missing key).
@@ -62,99 +62,6 @@ def hat_b2_deriv(v, rho):
     return -_b2_int1((-1.0 - v) / rho) + 2.0 * _b2_int1(-v / rho) - _b2_int1((1.0 - v) / rho)
 
 
-@njit(cache=True)
-def splat_rhs(pos, normal_w, splat_level, splat_frac, level, node_keys, unknown, n_nodes):
-    """b_i = int grad(B_i) . W at the level's unknown nodes.
-
-    ``normal_w`` (n, 3) is the sample's vector (normal times area weight, sign included);
-    the sample is splatted with weight (1 - frac) at ``splat_level`` and frac one finer.
-    A splat ``k`` levels coarser than ``level`` reaches ``1 + 1.5 * 2**k`` nodes along each
-    axis, but the level has nodes only near samples splatted as fine: the nodes in its box
-    are found by walking the sorted keys plane by plane, skipping the columns and runs
-    outside the box by binary search, so the cost follows the nodes present, not the box.
-    """
-    b = np.zeros(n_nodes)
-    n_keys = len(node_keys)
-    if n_keys == 0:
-        return b
-    scale = float(1 << level)
-    top = 1 << level
-    lo = np.empty(3, np.int64)
-    hi = np.empty(3, np.int64)
-    # the widest reach decides the buffers' size
-    smin = level
-    for p in range(pos.shape[0]):
-        smin = min(smin, splat_level[p])
-    wmax = 2 * int(np.ceil(1.0 + 1.5 * 2.0 ** max(level - smin, 0))) + 2
-    vx = np.empty((3, wmax))
-    dx = np.empty((3, wmax))
-    done = np.zeros((3, wmax), np.bool_)
-    for p in range(pos.shape[0]):
-        for part in range(2):
-            frac = splat_frac[p]
-            if part == 0:
-                wpart = 1.0 - frac
-                s = splat_level[p]
-            else:
-                wpart = frac
-                s = splat_level[p] + 1
-            if wpart <= 0.0:
-                continue
-            rho = 2.0 ** (level - s)
-            reach = 1.0 + 1.5 * rho
-            empty = False
-            for a in range(3):
-                u = pos[p, a] * scale
-                lo[a] = max(int(np.ceil(u - reach)), 0)
-                hi[a] = min(int(np.floor(u + reach)), top)
-                if hi[a] < lo[a]:
-                    empty = True
-                for t in range(hi[a] - lo[a] + 1):
-                    done[a, t] = False
-            if empty:
-                continue
-            nx = normal_w[p, 0] * wpart
-            ny = normal_w[p, 1] * wpart
-            nz = normal_w[p, 2] * wpart
-            for x in range(lo[0], hi[0] + 1):
-                kend = lattice_key(x, hi[1], hi[2])
-                j = lower_bound(node_keys, lattice_key(x, lo[1], lo[2]), 0, n_keys)
-                while j < n_keys and node_keys[j] <= kend:
-                    k = node_keys[j]
-                    y = (k >> 21) & MASK21
-                    z = k & MASK21
-                    if z < lo[2]:
-                        j = lower_bound(node_keys, lattice_key(x, y, lo[2]), j, n_keys)
-                        continue
-                    if z > hi[2]:
-                        j = lower_bound(node_keys, lattice_key(x, y + 1, lo[2]), j, n_keys)
-                        continue
-                    if unknown[j]:
-                        # the 1D factors, computed once per item and coordinate on first use
-                        tx = x - lo[0]
-                        ty = y - lo[1]
-                        tz = z - lo[2]
-                        if not done[0, tx]:
-                            _factors(pos[p, 0] * scale - x, rho, scale, vx, dx, done, 0, tx)
-                        if not done[1, ty]:
-                            _factors(pos[p, 1] * scale - y, rho, scale, vx, dx, done, 1, ty)
-                        if not done[2, tz]:
-                            _factors(pos[p, 2] * scale - z, rho, scale, vx, dx, done, 2, tz)
-                        fxy = vx[0, tx] * vx[1, ty]
-                        gx = dx[0, tx] * vx[1, ty]
-                        gy = vx[0, tx] * dx[1, ty]
-                        b[j] += nx * gx * vx[2, tz] + ny * gy * vx[2, tz] + nz * fxy * dx[2, tz]
-                    j += 1
-    return b
-
-
-@njit(cache=True, inline="always")
-def _factors(v, rho, scale, vx, dx, done, a, t):
-    vx[a, t] = hat_b2_value(v, rho)
-    dx[a, t] = hat_b2_deriv(v, rho) * scale
-    done[a, t] = True
-
-
 @njit(cache=True, inline="always")
 def _b2w(t, k):
     # weight of the cell at offset k (-1, 0, 1) for a point at local coordinate t in [0, 1)
@@ -185,6 +92,193 @@ def density_splat(pos, count, level, ctk, ctv, cbits, n_cells):
                     if j >= 0:
                         dens[j] += count[p] * _b2w(t[0], kx) * _b2w(t[1], ky) * _b2w(t[2], kz)
     return dens
+
+
+@njit(cache=True)
+def spread_splat(pos, vec, level, ctk, ctv, cbits, n_cells):
+    """Each item's vector shared among the 27 cells around it with the quadratic B-spline
+    weights at its position (PoissonRecon's normal splat): (n_cells, 3) summed per cell of
+    the table."""
+    out = np.zeros((n_cells, 3))
+    scale = float(1 << level)
+    c = np.empty(3, np.int64)
+    t = np.empty(3)
+    for p in range(pos.shape[0]):
+        for a in range(3):
+            u = pos[p, a] * scale
+            c[a] = int(np.floor(u))
+            t[a] = u - c[a]
+        for kx in range(-1, 2):
+            for ky in range(-1, 2):
+                for kz in range(-1, 2):
+                    if min(c[0] + kx, c[1] + ky, c[2] + kz) < 0:
+                        continue
+                    j = lookup(ctk, ctv, cbits, lattice_key(c[0] + kx, c[1] + ky, c[2] + kz))
+                    if j >= 0:
+                        w = _b2w(t[0], kx) * _b2w(t[1], ky) * _b2w(t[2], kz)
+                        out[j, 0] += w * vec[p, 0]
+                        out[j, 1] += w * vec[p, 1]
+                        out[j, 2] += w * vec[p, 2]
+    return out
+
+
+@njit(cache=True, inline="always")
+def _gallop(keys, key, lo, n):
+    """lower_bound of ``key`` in ``keys[lo:n]``, searching forward from ``lo`` (cheap when the
+    answer is near it)."""
+    step = 1
+    while lo + step < n and keys[lo + step] < key:
+        lo += step
+        step *= 2
+    return lower_bound(keys, key, lo, min(lo + step + 1, n))
+
+
+@njit(cache=True)
+def refine_field(pkeys, pvec, rel, off):
+    """A field of unit-integral quadratic B-splines centred on the cells of one level (sorted
+    keys ``pkeys``, coefficients ``pvec`` (m, 3)) written exactly on the next finer level's
+    cells: each coarse B-spline is (1, 3, 3, 1) / 8 per axis of the finer ones at cells
+    2p - 1 .. 2p + 2. Keys hold each coordinate plus ``off`` (1: the cells just beyond the
+    cube's faces, where B-splines reaching into it sit, have keys). Only the finer cells in
+    ``rel`` (sorted keys) are kept; they are found column by column, searching forward."""
+    out = np.zeros((len(rel), 3))
+    n = len(rel)
+    if n == 0:
+        return out
+    w = np.array([0.125, 0.375, 0.375, 0.125])
+    cur = np.zeros(16, np.int64)
+    last_col = np.int64(-1)
+    for i in range(len(pkeys)):
+        k = pkeys[i]
+        # offset coordinates of the children: 2 (c - off) - 1 + a + off
+        x = 2 * ((k >> 42) & MASK21) - off - 1
+        y = 2 * ((k >> 21) & MASK21) - off - 1
+        z = 2 * (k & MASK21) - off - 1
+        col = k >> 21
+        fresh = col != last_col
+        last_col = col
+        z0 = max(z, 0)
+        z1 = z + 3
+        for a in range(4):
+            cx = x + a
+            if cx < 0:
+                continue
+            for b in range(4):
+                cy = y + b
+                if cy < 0:
+                    continue
+                s = a * 4 + b
+                j = _gallop(rel, lattice_key(cx, cy, z0), 0 if fresh else cur[s], n)
+                cur[s] = j
+                kend = lattice_key(cx, cy, z1)
+                wab = w[a] * w[b]
+                while j < n and rel[j] <= kend:
+                    wt = wab * w[(rel[j] & MASK21) - z]
+                    out[j, 0] += wt * pvec[i, 0]
+                    out[j, 1] += wt * pvec[i, 1]
+                    out[j, 2] += wt * pvec[i, 2]
+                    j += 1
+    return out
+
+
+@njit(cache=True)
+def stencil_rhs(ckeys, cvec, level, node_keys, n_nodes, off):
+    """b_i = int grad(B_i) . W at a level's nodes for a field of unit-integral quadratic
+    B-splines centred on the same level's cells (keys ``ckeys`` sorted, coefficients
+    ``cvec`` (m, 3), coordinates plus ``off`` in the keys): a fixed 4 x 4 x 4 stencil per cell
+    (nodes c - 1 .. c + 2 per axis).
+    Nodes are found in the sorted ``node_keys`` column by column, searching forward from the
+    previous cell's position in the same column."""
+    b = np.zeros(n_nodes)
+    n = len(node_keys)
+    if n == 0:
+        return b
+    scale = float(1 << level)
+    top = 1 << level
+    av = np.empty(4)
+    dv = np.empty(4)
+    for o in range(4):
+        av[o] = hat_b2_value(1.5 - o, 1.0)
+        dv[o] = hat_b2_deriv(1.5 - o, 1.0) * scale
+    cur = np.zeros(16, np.int64)
+    last_col = np.int64(-1)
+    for i in range(len(ckeys)):
+        k = ckeys[i]
+        x = ((k >> 42) & MASK21) - off
+        y = ((k >> 21) & MASK21) - off
+        z = (k & MASK21) - off
+        col = k >> 21
+        fresh = col != last_col
+        last_col = col
+        vx = cvec[i, 0]
+        vy = cvec[i, 1]
+        vz = cvec[i, 2]
+        z0 = max(z - 1, 0)
+        z1 = min(z + 2, top)
+        for ox in range(4):
+            nx = x - 1 + ox
+            if nx < 0 or nx > top:
+                continue
+            for oy in range(4):
+                ny = y - 1 + oy
+                if ny < 0 or ny > top:
+                    continue
+                s = ox * 4 + oy
+                j = _gallop(node_keys, lattice_key(nx, ny, z0), 0 if fresh else cur[s], n)
+                cur[s] = j
+                kend = lattice_key(nx, ny, z1)
+                fxy = av[ox] * av[oy]
+                gx = dv[ox] * av[oy]
+                gy = av[ox] * dv[oy]
+                while j < n and node_keys[j] <= kend:
+                    oz = (node_keys[j] & MASK21) - z + 1
+                    b[j] += (vx * gx + vy * gy) * av[oz] + vz * fxy * dv[oz]
+                    j += 1
+    return b
+
+
+@njit(cache=True)
+def restrict_nodes(fine_keys, fine_vals, coarse_keys):
+    """Integrals against a level's hat functions from those against the next finer level's:
+    a coarse hat is the fine hats at nodes 2i - 1, 2i, 2i + 1 per axis with weights 1/2, 1,
+    1/2, so ``out_i = sum_j r_ij fine_vals_j`` (fine nodes absent from ``fine_keys`` count as
+    0). Both key arrays sorted; fine nodes found column by column, searching forward."""
+    out = np.zeros(len(coarse_keys))
+    n = len(fine_keys)
+    if n == 0:
+        return out
+    w = np.array([0.5, 1.0, 0.5])
+    cur = np.zeros(9, np.int64)
+    last_col = np.int64(-1)
+    for i in range(len(coarse_keys)):
+        k = coarse_keys[i]
+        x = (k >> 42) & MASK21
+        y = (k >> 21) & MASK21
+        z = k & MASK21
+        col = k >> 21
+        fresh = col != last_col
+        last_col = col
+        z0 = max(2 * z - 1, 0)
+        z1 = 2 * z + 1
+        v = 0.0
+        for a in range(3):
+            fx = 2 * x - 1 + a
+            if fx < 0:
+                continue
+            for b in range(3):
+                fy = 2 * y - 1 + b
+                if fy < 0:
+                    continue
+                s = a * 3 + b
+                j = _gallop(fine_keys, lattice_key(fx, fy, z0), 0 if fresh else cur[s], n)
+                cur[s] = j
+                kend = lattice_key(fx, fy, z1)
+                wab = w[a] * w[b]
+                while j < n and fine_keys[j] <= kend:
+                    v += wab * w[(fine_keys[j] & MASK21) - 2 * z + 1] * fine_vals[j]
+                    j += 1
+        out[i] = v
+    return out
 
 
 @njit(cache=True)

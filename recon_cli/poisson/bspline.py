@@ -1,4 +1,4 @@
-"""The degree-2 B-spline system (PoissonRecon's default basis): the cascadic solve, the
+"""The degree-2 B-spline system (a default of some PoissonRecon versions; Open3D uses degree 1): the cascadic solve, the
 iso-value, and chi at the levels' nodes for the extraction.
 
 At level ``d`` every cell of the tree carries the tensor-product quadratic B-spline centred
@@ -50,7 +50,7 @@ from recon_cli.poisson import _bspline as B
 from recon_cli.poisson import _octree as O
 from recon_cli.poisson._luts import B2_MASS, B2_STIFFNESS
 from recon_cli.poisson.octree import Level, dilate, pack_keys, unpack_keys
-from recon_cli.poisson.splat import Samples, Splats
+from recon_cli.poisson.splat import Samples, Splats, fields_as_items
 from recon_cli.progress import task
 
 log = logging.getLogger("recon")
@@ -218,6 +218,7 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, boundary: str, full
     fields: list[LevelField] = []
     node_keys = []
     prev: LevelField | None = None
+    items = fields_as_items(splats.rhs_fields)
     with task(progress, "poisson: solve", total=len(levels)) as tk:
         for lev in levels:
             release_free_heap()
@@ -238,7 +239,7 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, boundary: str, full
             m1, k1 = folded_tables(n, f.s)
             unknown = np.repeat(f.inp, 8)
             ne = len(unknown)
-            rhs = B.splat_rhs(splats.pos, splats.vec, splats.level, d, f.q_keys, f.inp, f.s, KERNEL_WIDTH)
+            rhs = B.splat_rhs(*items, d, f.q_keys, f.inp, f.s, KERNEL_WIDTH)
             diag = B.stiffness_diag(f.q_keys, f.inp, m1, k1, h)
             if alpha > 0:
                 mp, mw = _merge_per_cell(spos, splats.screen_w * SCREEN_SCALE, d)

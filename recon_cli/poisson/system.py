@@ -15,7 +15,7 @@ from recon_cli.poisson import _splat as S
 from recon_cli.poisson import _system as Y
 from recon_cli.poisson._luts import UNIT_STIFFNESS
 from recon_cli.poisson.octree import Level
-from recon_cli.poisson.splat import Samples, Splats
+from recon_cli.poisson.splat import NormalField, Samples, Splats
 from recon_cli.progress import task
 
 log = logging.getLogger("recon")
@@ -42,6 +42,7 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, full_depth: int, cg
     gvals: list[np.ndarray] = []
     per_level = []
     work = solve_work(levels, full_depth)
+    field = NormalField(splats.rhs_fields, [lev.node_keys for lev in levels])
     with task(progress, "poisson: solve", total=sum(work)) as tk:
         for lev in levels:
             tk.expect(work[lev.depth])  # the bar moves on an estimate while the level's kernels run
@@ -51,7 +52,7 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, full_depth: int, cg
             nn = lev.n_nodes
             ke = UNIT_STIFFNESS / (1 << d)
             # (n,) vectors are updated in place
-            rhs = S.splat_rhs(splats.pos, splats.vec, splats.level, np.zeros(len(splats.level)), d, lev.node_keys, lev.unknown, nn)
+            rhs = field.rhs(d, lev.cell_keys, lev.node_keys, lev.unknown)
             # past the right-hand side only the nodes on the cube's faces are needed (for the
             # extraction's clamp), not the node keys
             lev.face_nodes = O.face_nodes(lev.node_keys, 1 << d)
@@ -132,19 +133,32 @@ def solve_work(levels: list[Level], full_depth: int) -> list[float]:
     return out
 
 
-def iso_value(levels: list[Level], gvals: list[np.ndarray], smp: Samples) -> float:
-    """The level set's value: the count-weighted mean of chi at the samples, each evaluated
-    in the finest cell of the tree that holds it (chi is trilinear there)."""
-    spos, count = smp.pos, smp.count
-    chi_s = np.full(len(count), np.nan)
-    todo = np.arange(len(count))
-    for lev, g in zip(levels[::-1], gvals[::-1]):
-        scell, sloc = Y.sample_cells(spos[todo], lev.depth, lev.cell_keys)
+def chi_at(levels: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]], pos: np.ndarray) -> np.ndarray:
+    """chi at unit-cube positions ``pos`` (n, 3), each evaluated in the finest cell of the
+    tree that holds it (chi is trilinear there and continuous across cells).
+
+    ``levels`` holds (depth, cell_keys, cell_nodes, chi at the level's nodes) per level,
+    coarse to fine (:func:`chi_levels`)."""
+    out = np.full(len(pos), np.nan)
+    todo = np.arange(len(pos))
+    for depth, cell_keys, cell_nodes, g in levels[::-1]:
+        scell, sloc = Y.sample_cells(pos[todo], depth, cell_keys)
         have = scell >= 0
-        chi_s[todo[have]] = Y.eval_at_samples(scell[have], sloc[have], lev.cell_nodes, g)
+        out[todo[have]] = Y.eval_at_samples(scell[have], sloc[have], cell_nodes, g)
         todo = todo[~have]
         if not len(todo):
             break
-    iso = float((chi_s * count).sum() / count.sum())
+    return out
+
+
+def chi_levels(levels: list[Level], gvals: list[np.ndarray]) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]:
+    """What :func:`chi_at` needs of the solved levels (references, no copies)."""
+    return [(lev.depth, lev.cell_keys, lev.cell_nodes, g) for lev, g in zip(levels, gvals)]
+
+
+def iso_value(levels: list[Level], gvals: list[np.ndarray], smp: Samples) -> float:
+    """The level set's value: the count-weighted mean of chi at the samples."""
+    chi_s = chi_at(chi_levels(levels, gvals), smp.pos)
+    iso = float((chi_s * smp.count).sum() / smp.count.sum())
     log.info("poisson: iso-value %.6f", iso)
     return iso
