@@ -3,12 +3,17 @@
 Per row: ``cold`` is the wall time of the command with an empty numba cache (it compiles
 what it needs: what a user saw before ``recon warmup`` existed), ``warm`` the wall time once
 the cache holds the kernels (``make install`` runs ``recon warmup``; median of repeats),
-``floor`` numba's own floor (a fresh process that imports numba and calls one cached recon
-kernel), ``stage`` the stage's in-process time from the command's ``--json`` report, and
-``read`` its input reading time. ``warm - floor`` is what recon adds to numba's floor.
+``floor`` numba's own floor (a fresh process that imports numba and calls one cached kernel,
+numba as it comes), ``lean floor`` the same process with what recon's own process does around
+a command (recon_cli/cli/_process.py: OpenBLAS single-threaded, the collector paused during
+start-up and frozen at exit; numba_setup's cache loads without numba's registries): the least a
+recon process using numba's cache can cost. ``stage`` is the stage's in-process time from the
+command's ``--json`` report, and ``read`` its input reading time. ``warm - floor`` is what
+recon adds to numba's floor, ``warm - lean`` what the command costs beyond the lean floor.
 With ``RECON_BENCH_CPU=1`` the process and reference figures are CPU seconds (user + system,
 all threads; the ``stage``/``read`` columns stay the report's wall times): on a loaded
-shared machine wall time mostly measures the other users.
+shared machine wall time mostly measures the other users. ``RECON_BENCH_CLI_ONLY=mcubes,ballpivot``
+runs those commands' rows only.
 
 Targets (issue 17): after ``make install`` the first run of ``recon normals`` on the
 sample scan takes <= 1.5x the second (``first/warm``); warm on small inputs (1k points, a
@@ -44,6 +49,8 @@ COLUMNS = [
     ("warm_s", "warm s"),
     ("floor_s", "numba floor s"),
     ("above_s", "warm - floor s"),
+    ("lean_s", "lean floor s"),
+    ("above_lean_s", "warm - lean s"),
     ("stage_s", "stage in-process s"),
     ("read_s", "read s"),
     ("ref", "reference"),
@@ -56,10 +63,26 @@ COLUMNS = [
 # seconds; on a shared, overloaded machine wall times mostly measure the other users
 CPU_TIME = os.environ.get("RECON_BENCH_CPU") == "1"
 
-FLOOR = (
+# numba's own floor: a throwaway module with one cached kernel (numba as it comes, its own
+# cache directory), imported and called by a fresh process
+FLOOR_MODULE = (
     "import numpy as np\n"
-    "from recon_cli._kernels.arrays import grow1\n"  # imports numba (through numba_setup), loads one cached kernel
+    "from numba import njit\n"
+    "@njit(cache=True)\n"
+    "def grow(x, cap):\n"
+    "    y = np.empty(cap, x.dtype)\n"
+    "    y[: x.shape[0]] = x\n"
+    "    return y\n"
+)
+FLOOR = "import numpy as np, floor_kernel\nfloor_kernel.grow(np.zeros(2), 4)\n"
+# the same with recon's process settings (cli/_process.py) and cache loads (numba_setup)
+LEAN_FLOOR = (
+    "import gc, os\n"
+    "os.environ.setdefault('OPENBLAS_NUM_THREADS', '1'); gc.disable()\n"
+    "import numpy as np\n"
+    "from recon_cli._kernels.arrays import grow1\n"
     "grow1(np.zeros(2), 4)\n"
+    "gc.freeze()\n"
 )
 
 
@@ -84,10 +107,20 @@ def _clock() -> float:
     return time.process_time() if CPU_TIME else time.perf_counter()
 
 
-def floor(repeat: int) -> float:
-    """Median wall time of a process that imports numba and calls one cached recon kernel."""
-    _wall([sys.executable, "-c", FLOOR])  # make sure it is cached
-    return statistics.median(_wall([sys.executable, "-c", FLOOR])[0] for _ in range(repeat))
+def floor(repeat: int, tmp: Path) -> tuple[float, float]:
+    """Median wall times of numba's floor and of the lean floor (see the module docstring)."""
+    (tmp / "floor_kernel.py").write_text(FLOOR_MODULE)
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    env["PYTHONPATH"] = str(tmp)
+    plain = [sys.executable, "-c", FLOOR]
+    lean = [sys.executable, "-c", LEAN_FLOOR]
+    _wall(plain, env)  # cached
+    _wall(lean)
+    a, b = [], []
+    for _ in range(repeat):
+        a.append(_wall(plain, env)[0])
+        b.append(_wall(lean)[0])
+    return statistics.median(a), statistics.median(b)
 
 
 def command(args: list[str], repeat: int, cold: bool) -> dict:
@@ -173,7 +206,7 @@ def rows(quick: bool) -> list[dict]:
         tmp = Path(tmpd)
         p = _inputs(tmp, quick)
         o = str(tmp / "out.ply")
-        fl = floor(repeat + 2)
+        fl, lean = floor(repeat + 2, tmp)
         cases = [
             ("normals", "sample scan 40k, --orient camera", ["normals", p["scan"], o, "--orient", "camera", "--camera", "0,0,1"], True),
             ("normals", "sample scan 40k, --orient mst", ["normals", p["scan"], o], not quick),
@@ -187,9 +220,12 @@ def rows(quick: bool) -> list[dict]:
             ("mcubes", "metaballs 64^3", ["mcubes", p["mb64"], o], True),
             ("mcubes", "metaballs 256^3", ["mcubes", p["mb256"], o], False),
         ]
+        only = os.environ.get("RECON_BENCH_CLI_ONLY")  # e.g. "mcubes,ballpivot": those commands' rows only
+        if only:
+            cases = [c for c in cases if c[0] in only.split(",")]
         out = []
         for stage, case, args, cold in cases:
-            r = {"stage": f"recon {stage}", "case": case, "floor_s": fl, "cold_s": float("nan")}
+            r = {"stage": f"recon {stage}", "case": case, "floor_s": fl, "lean_s": lean, "cold_s": float("nan")}
             try:
                 r.update(command(args, repeat, cold))
             except RuntimeError as exc:
@@ -197,6 +233,7 @@ def rows(quick: bool) -> list[dict]:
                 out.append(r)
                 continue
             r["above_s"] = r["warm_s"] - fl
+            r["above_lean_s"] = r["warm_s"] - lean
             notes = []
             if stage == "normals" and "camera" in case:
                 notes.append(f"first/warm {r['first_s'] / r['warm_s']:.2f} (target <= 1.5)")
@@ -208,9 +245,11 @@ def rows(quick: bool) -> list[dict]:
                 if CPU_TIME:  # the report's read time is wall time: not comparable, keep the read in
                     r["ratio"] = (r["warm_s"] - fl) / r["ref_s"]
                     notes.append("ratio = (warm - floor, reading included) / skimage, target (reading excluded) <= 0.5")
+                    notes.append(f"against the lean floor {(r['warm_s'] - lean) / r['ref_s']:.2f}")
                 else:
                     r["ratio"] = (r["warm_s"] - fl - r["read_s"]) / r["ref_s"]
                     notes.append("ratio = (warm - floor - read) / skimage, target <= 0.5")
+                    notes.append(f"against the lean floor {(r['warm_s'] - lean - r['read_s']) / r['ref_s']:.2f}")
             if stage == "ballpivot":
                 src = p["scan_n"] if "scan" in case else p["arm"]
                 r["ref"] = "open3d ball pivoting"

@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 import recon_cli
 from recon_cli._kernels.numba_setup import kernel_sources_fingerprint
 
@@ -102,6 +104,8 @@ def test_numpy_submodules_numba_would_load_stay_lazy_until_used():
         "import sys, numpy as np\n"
         "from recon_cli._kernels.arrays import grow1\n"
         "grow1(np.arange(3.0), 5)\n"
+        "import numba\n"
+        "numba.njit(lambda x: x + 1)(1)\n"  # a compile: numba's whole context, its BLAS check too
         "assert 'scipy.linalg' in sys.modules\n"  # numba's BLAS check ran
         "print(sorted(m for m in sys.modules if m.startswith(('numpy.f2py.', 'numpy.testing.'))))\n"
         "np.testing.assert_allclose(np.ma.masked_array([1.0, 2.0], mask=[0, 1]).sum(), 1.0)\n"
@@ -135,3 +139,54 @@ def test_threading_layer_survives_numba_rereading_its_environment(tmp_path):
     )
     first, layer = _run(code, {"XDG_CACHE_HOME": str(tmp_path)}).split()
     assert first == "omp" and layer in ("omp", "workqueue")
+
+
+LEAN = (
+    "import sys, numpy as np, numba\n"
+    "from recon_cli._kernels.arrays import grow1\n"
+    "from recon_cli.normals._kernel import pca_normals\n"
+    "grow1(np.arange(3.0), 5)\n"  # cached: loaded without numba's registries
+    "print('arraymath' if 'numba.np.arraymath' in sys.modules else 'lean')\n"
+    "rng = np.random.default_rng(0)\n"
+    "p = np.c_[rng.random(200), rng.random(200), np.zeros(200)]\n"
+    "nbr = np.argsort(((p[:, None] - p[None]) ** 2).sum(-1), axis=1)[:, :8].astype(np.int64).ravel()\n"
+    "nrm = pca_normals(p, np.arange(0, 8 * 200 + 1, 8), nbr, 1e-12)[0]\n"  # a parallel kernel after a lean load
+    "print(np.abs(np.abs(nrm[:, 2]) - 1).max() < 1e-9)\n"
+    "@numba.njit\n"
+    "def det(a):\n"
+    "    return np.linalg.det(a) + np.sum(a) + len(str(3))\n"
+    "print(round(det(np.eye(3) * 2.0), 6))\n"  # compiling afterwards: the full context (LAPACK, unicode)
+)
+
+
+@pytest.mark.parametrize("full", [False, True])
+def test_cached_kernels_load_without_numba_registries_and_compiling_still_works(full):
+    """A cached kernel loads with numba's runtime only (no typing/lowering registries, no
+    scipy.linalg: ~0.2 CPU s per process); kernels compiled afterwards see the whole context."""
+    _run(LEAN, {})  # cache what LEAN calls (compiled the first time if the cache is cold)
+    out = _run(LEAN, {"RECON_NUMBA_FULL_REFRESH": "1"} if full else {}).split()
+    assert out == ["arraymath" if full else "lean", "True", "15.0"]
+
+
+STAGES_WITHOUT_ARRAYMATH = (
+    "import sys, numpy as np\n"
+    "sys.path.insert(0, %r)\n"
+    "from shapes import sphere_cloud\n"
+    "from recon_cli.geometry import PointCloud\n"
+    "from recon_cli.grid import Grid\n"
+    "from recon_cli.stages import apply_stage\n"
+    "p, n = sphere_cloud(3000, seed=1)\n"
+    "mesh = apply_stage('ballpivot', PointCloud(points=p, normals=n), {}).output\n"
+    "x = np.linspace(-1, 1, 20)\n"
+    "sdf = np.sqrt(x[:, None, None] ** 2 + x[None, :, None] ** 2 + x[None, None, :] ** 2) - 0.7\n"
+    "apply_stage('mcubes', Grid(sdf=sdf, origin=np.zeros(3), voxel_size=0.1), {})\n"
+    "print(len(mesh.faces) > 0, 'numba.np.arraymath' in sys.modules, 'scipy.linalg' in sys.modules)\n"
+)
+
+
+def test_ballpivot_and_mcubes_kernels_load_without_numba_arraymath():
+    """Their cached kernels call no numba.np.arraymath implementation (searchsorted, argmax,
+    cumsum are written out): loading them imports neither it nor scipy.linalg (~0.2 CPU s)."""
+    code = STAGES_WITHOUT_ARRAYMATH % str(Path(__file__).resolve().parent)
+    _run(code, {})  # cache the kernels (compiled the first time if the cache is cold)
+    assert _run(code, {}).split() == ["True", "False", "False"]

@@ -111,3 +111,38 @@ if "NUMBA_THREADING_LAYER" not in os.environ and "NUMBA_THREADING_LAYER_PRIORITY
     # NumbaWarning on stderr, an error under pytest's strict warnings)
     os.environ["NUMBA_THREADING_LAYER_PRIORITY"] = "omp workqueue tbb"
     numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
+
+
+# Loading a cached kernel needs numba's runtime (NRT) only; numba refreshes its whole
+# target context first all the same: it imports and installs every typing and lowering
+# registry (numba.np.arraymath, which imports scipy.linalg to look for BLAS, unicode,
+# typed containers...), ~0.2 CPU s of every process, more than loading all the kernels of a
+# stage. Loads skip that refresh (the runtime is initialised as numba's refresh would); a
+# cache miss compiles through numba's compiler, which refreshes the context itself, and a
+# kernel compiled or loaded afterwards sees the full context. Both run under numba's global
+# compiler lock, so no compile sees the shortened refresh.
+def _lean_cache_loads() -> None:
+    from numba.core.caching import Cache
+    from numba.core.compiler_lock import global_compiler_lock
+    from numba.core.runtime import rtsys
+
+    full = Cache.load_overload
+    if getattr(full, "recon_lean", False):
+        return
+
+    def load_overload(self, sig, target_context):
+        with global_compiler_lock:
+            # an instance attribute shadows the method for the length of this load
+            target_context.refresh = lambda: rtsys.initialize(target_context)
+            try:
+                return full(self, sig, target_context)
+            finally:
+                del target_context.refresh
+
+    load_overload.recon_lean = True
+    load_overload.__doc__ = full.__doc__
+    Cache.load_overload = load_overload
+
+
+if os.environ.get("RECON_NUMBA_FULL_REFRESH") != "1":
+    _lean_cache_loads()

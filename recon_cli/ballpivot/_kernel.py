@@ -20,7 +20,7 @@ import numpy as np
 from numba import njit
 
 from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache directory, threading layer)
-from recon_cli._kernels.arrays import grow1, grow2
+from recon_cli._kernels.arrays import grow1, grow2, lower_bound
 from recon_cli._kernels.hashtable import probe
 from recon_cli._kernels.unionfind import find
 
@@ -86,7 +86,7 @@ def gather(ukeys, ustart, sidx, spts, lo, cell, dims, qx, qy, qz, r, out):
         for iy in range(iy0, iy1 + 1):
             base = (ix * dims[1] + iy) * dims[2]
             k1 = base + iz1
-            pos = np.searchsorted(ukeys, base + iz0)
+            pos = lower_bound(ukeys, base + iz0)
             while pos < nu and ukeys[pos] <= k1:
                 for t in range(ustart[pos], ustart[pos + 1]):
                     dx = spts[t, 0] - qx
@@ -134,7 +134,7 @@ def nearest_positive(ukeys, ustart, spts, lo, cell, dims, queries, max_rings):
                     z0 = max(cz - r, 0)
                     z1 = min(cz + r, dims[2] - 1)
                     base = (ix * dims[1] + iy) * dims[2]
-                    u = np.searchsorted(ukeys, base + z0)
+                    u = lower_bound(ukeys, base + z0)
                     while u < nu and ukeys[u] <= base + z1:
                         iz = ukeys[u] - base
                         if side or iz == cz - r or iz == cz + r:  # inner columns: the two end cells only
@@ -675,7 +675,10 @@ def resolve_pinches(faces, n):
             size = np.zeros(d, np.int64)
             for t in range(d):
                 size[find(parent, t)] += 1
-            big = np.argmax(size)
+            big = 0  # the largest fan (np.argmax would load numba.np.arraymath with the kernel)
+            for t in range(1, d):
+                if size[t] > size[big]:
+                    big = t
             if size[big] == d:
                 continue
             for t in range(d):

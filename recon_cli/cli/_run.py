@@ -87,6 +87,9 @@ def run_stage_command(
             from recon_cli.io.text import warn
 
             warn(f"{input}: a mesh: normals are estimated at its {len(data.vertices)} vertices and the vertices only are written (faces dropped)")
+    from recon_cli.cli import _process
+
+    _process.resume()  # start-up ends here: imports, numba's first load, the input
     # a stage that keeps its best result on Ctrl-C (fit-sdf) gets the Python-level handler while it runs
     with contextlib.nullcontext() if spec.keeps_partial else immediate():
         with naming(input):

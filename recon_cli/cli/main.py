@@ -41,6 +41,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "warmup": ("warmup", "Compile every kernel once (run after installing; make install does)."),
 }
 
+# commands run by cli/_run.run_stage_command (which ends the start-up pause itself)
+_STAGE_COMMANDS = frozenset({"normals", "poisson", "ballpivot", "repair", "sdf", "mcubes"})
+
 EXIT_INTERRUPTED = 130
 EXIT_BROKEN_PIPE = 141
 # ``recon batch``: the batch ran to the end but some inputs failed (see DIR/batch.json)
@@ -62,6 +65,10 @@ class LazyGroup(click.Group):
         return sorted(set(COMMANDS) | set(_plugin_stages()))
 
     def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
+        if name not in _STAGE_COMMANDS:
+            from recon_cli.cli import _process
+
+            _process.resume()  # a stage command ends the start-up pause when its stage starts (cli/_run.py)
         if name in COMMANDS:
             cmd = importlib.import_module(f"recon_cli.cli.{COMMANDS[name][0]}").cmd
         elif name in _plugin_stages():
@@ -163,10 +170,18 @@ def cli(ctx: click.Context, quiet: bool, verbose: int, json_: bool) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     """Run the CLI; map recon's errors to one line on stderr and an exit code."""
-    from recon_cli.cli import _signals
+    from recon_cli.cli import _process, _signals
 
-    with _signals.handlers():
-        sys.exit(_main(argv))
+    process = argv is None  # the process's own command line (`recon ...`), not a caller in Python
+    if process:
+        _process.start()  # before numpy loads: see _process (start-up and exit: ~0.4 s of a numba process)
+    try:
+        with _signals.handlers():
+            code = _main(argv)
+    finally:
+        if process:
+            _process.finish()
+    sys.exit(code)
 
 
 def _main(argv: list[str] | None) -> int:

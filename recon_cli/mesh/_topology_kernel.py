@@ -27,7 +27,9 @@ def trace_boundary_loops(src, dst, n_vertices):
     for i in range(k):
         deg[src[i] + 1] += 1
         deg[dst[i] + 1] += 1
-    ptr = np.cumsum(deg)
+    ptr = deg  # running sum in place (np.cumsum would load numba.np.arraymath with the kernel)
+    for v in range(n_vertices):
+        ptr[v + 1] += ptr[v]
     fill = ptr[:-1].copy()
     inc = np.empty(2 * k, np.int64)
     for i in range(k):
