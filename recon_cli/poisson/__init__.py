@@ -299,7 +299,7 @@ def screened_poisson(
         del chi
     else:
         chi_lv = chi_levels(levels, gvals)
-        # in finest-lattice units, then each vertex to the root of chi's cubic along its edge
+        # in finest-lattice units, then each vertex to the root of chi's quadratic fit along its edge
         verts, faces = extract(levels, gvals, iso, np.zeros(3), float(res))
         del levels, gvals
         refine_roots(verts, chi_lv, iso, tree_depth)

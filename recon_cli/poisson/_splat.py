@@ -73,33 +73,12 @@ def _b2w(t, k):
 
 
 @njit(cache=True)
-def density_splat(pos, count, level, ctk, ctv, cbits, n_cells):
-    dens = np.zeros(n_cells)
-    scale = float(1 << level)
-    for p in range(pos.shape[0]):
-        c = np.empty(3, np.int64)
-        t = np.empty(3)
-        for a in range(3):
-            u = pos[p, a] * scale
-            c[a] = int(np.floor(u))
-            t[a] = u - c[a]
-        for kx in range(-1, 2):
-            for ky in range(-1, 2):
-                for kz in range(-1, 2):
-                    if min(c[0] + kx, c[1] + ky, c[2] + kz) < 0:
-                        continue
-                    j = lookup(ctk, ctv, cbits, lattice_key(c[0] + kx, c[1] + ky, c[2] + kz))
-                    if j >= 0:
-                        dens[j] += count[p] * _b2w(t[0], kx) * _b2w(t[1], ky) * _b2w(t[2], kz)
-    return dens
-
-
-@njit(cache=True)
 def spread_splat(pos, vec, level, ctk, ctv, cbits, n_cells):
-    """Each item's vector shared among the 27 cells around it with the quadratic B-spline
-    weights at its position (PoissonRecon's normal splat): (n_cells, 3) summed per cell of
-    the table."""
-    out = np.zeros((n_cells, 3))
+    """Each item's row of ``vec`` (n, k) shared among the 27 cells around it with the quadratic
+    B-spline weights at its position: (n_cells, k) summed per cell of the table. The normals'
+    splat (PoissonRecon's, k = 3) and the samples' kernel density (counts, k = 1)."""
+    k = vec.shape[1]
+    out = np.zeros((n_cells, k))
     scale = float(1 << level)
     c = np.empty(3, np.int64)
     t = np.empty(3)
@@ -116,9 +95,8 @@ def spread_splat(pos, vec, level, ctk, ctv, cbits, n_cells):
                     j = lookup(ctk, ctv, cbits, lattice_key(c[0] + kx, c[1] + ky, c[2] + kz))
                     if j >= 0:
                         w = _b2w(t[0], kx) * _b2w(t[1], ky) * _b2w(t[2], kz)
-                        out[j, 0] += w * vec[p, 0]
-                        out[j, 1] += w * vec[p, 1]
-                        out[j, 2] += w * vec[p, 2]
+                        for q in range(k):
+                            out[j, q] += w * vec[p, q]
     return out
 
 

@@ -79,7 +79,7 @@ def _density_table(smp: Samples, level: int) -> tuple:
     for axis in range(3):
         keys = dilate(keys, axis, -1, 1, (1 << level) - 1)
     tab = build_table(keys)
-    return level, tab, S.density_splat(smp.pos, smp.count, level, *tab, len(keys))
+    return level, tab, S.spread_splat(smp.pos, smp.count[:, None], level, *tab, len(keys))[:, 0]
 
 
 def _eval_density(table: tuple, pos: np.ndarray) -> np.ndarray:

@@ -11,7 +11,6 @@ import numpy as np
 
 from recon_cli.memory import release_free_heap
 from recon_cli.poisson import _octree as O
-from recon_cli.poisson import _splat as S
 from recon_cli.poisson import _system as Y
 from recon_cli.poisson._luts import UNIT_STIFFNESS
 from recon_cli.poisson.octree import Level
