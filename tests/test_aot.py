@@ -276,3 +276,24 @@ def test_values_numba_cannot_take_ahead_of_time_have_no_key():
     assert aot.type_key(np.zeros(2, ">f8")) is None
     assert aot.type_key(np.zeros(2, "U3")) is None
     assert aot.signature_key((np.zeros(2), "x")) is None
+
+
+NO_COMPILER = (
+    "import json\n"
+    "from recon_cli import aot\n"
+    "from recon_cli.cli._warmup import build_ahead_of_time\n"
+    "lines = []\n"
+    "out = build_ahead_of_time(log=lines.append)\n"
+    "print(json.dumps([out['built'], out['reason'], lines, aot.manifest()]))\n"
+)
+
+
+def test_without_a_c_compiler_nothing_is_built_and_warmup_says_why(tmp_path):
+    env = dict(os.environ, CC=str(tmp_path / "no-such-cc"), NUMBA_CACHE_DIR=str(tmp_path / "cache"))
+    r = subprocess.run([sys.executable, "-c", NO_COMPILER], env=env, capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    built, reason, lines, manifest = json.loads(r.stdout)
+    assert built is False and "no working C compiler" in reason and manifest == {}
+    assert lines == [f"ahead-of-time kernels not built ({reason}): ball pivoting and marching cubes run JIT, "
+                     "with numba's start-up in each command"]
+    assert not (tmp_path / "cache" / "aot").exists()

@@ -27,7 +27,6 @@ from __future__ import annotations
 import importlib
 import importlib.machinery
 import importlib.util
-import json
 import os
 import sys
 from typing import Any, Callable
@@ -117,6 +116,8 @@ def manifest() -> dict:
     if _state["manifest"] is None:
         found: dict = {}
         if enabled():
+            import json
+
             path = os.path.join(build_dir(), MANIFEST)
             try:
                 with open(path, encoding="utf-8") as fh:

@@ -132,8 +132,10 @@ def build(modules: tuple[str, ...] = aot.MODULES, c_libraries: dict[str, str] | 
     if not aot.enabled():
         out["reason"] = "RECON_AOT=0"
         return out
-    if not force and os.path.exists(os.path.join(target, aot.MANIFEST)):
-        out.update(built=True, reason="up to date", modules=list(aot.manifest().get("modules", {})))
+    have = aot.manifest()
+    wanted = set(modules) <= set(have.get("modules", {})) and set(c_libraries or {}) <= set(have.get("libraries", {}))
+    if not force and wanted:
+        out.update(built=True, reason="up to date", modules=list(have["modules"]), libraries=sorted(have["libraries"]))
         return out
     problem = compiler_problem()
     if problem:
