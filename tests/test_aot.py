@@ -54,30 +54,47 @@ def _recon(*args: str) -> None:
 
 @pytest.fixture(scope="module")
 def build(tmp_path_factory):
-    """(build report, the cache directory holding it, the inputs): the commands ran JIT here first."""
-    from recon_cli.cli._warmup import build_ahead_of_time
+    """(build report, the cache directory holding it, the inputs): the commands ran JIT here first.
+    The xdist workers of one run share one build (the first to take the lock makes it)."""
+    import fcntl
 
-    d = tmp_path_factory.mktemp("aot")
-    mp = pytest.MonkeyPatch()
-    mp.setenv("RECON_AOT", "0")
+    run = os.environ.get("PYTEST_XDIST_TESTRUNUID")
+    if run is None:
+        made = _build(tmp_path_factory.mktemp("aot"))
+    else:
+        d = tmp_path_factory.getbasetemp().parent / f"aot-{run}"
+        d.mkdir(exist_ok=True)
+        with open(d / "lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            made = _build(d)
     aot.reset()
-    files = _write_inputs(d)
-    for name in ("cloud_float32", "cloud_float64"):
-        _recon("ballpivot", str(files[name]), str(d / "bp.ply"))
-    _recon("mcubes", str(files["grid"]), str(d / "mc.ply"))
-    _recon("mcubes", str(files["grid"]), str(d / "mc.ply"), "--method", "mt")
+    yield made
+    aot.reset()
+
+
+def _build(d: Path) -> tuple[dict, Path, dict[str, Path]]:
+    from recon_cli.cli._warmup import build_ahead_of_time
     from recon_cli.io.ply import compile_ply_kernels
 
-    compile_ply_kernels()
-    mp.delenv("RECON_AOT")
     cache = d / "cache"
-    mp.setenv("NUMBA_CACHE_DIR", str(cache))  # the build's directory only: numba's own cache was fixed at import
-    aot.reset()
-    report = build_ahead_of_time()  # what recon warmup builds: the kernels and the signal handler
-    mp.undo()
-    aot.reset()
-    yield report, cache, files
-    aot.reset()
+    if (d / "report.json").exists():  # made by another worker of this run
+        report, files = json.loads((d / "report.json").read_text())
+        return report, cache, {k: Path(v) for k, v in files.items()}
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("RECON_AOT", "0")
+        aot.reset()
+        files = _write_inputs(d)
+        for name in ("cloud_float32", "cloud_float64"):
+            _recon("ballpivot", str(files[name]), str(d / "bp.ply"))
+        _recon("mcubes", str(files["grid"]), str(d / "mc.ply"))
+        _recon("mcubes", str(files["grid"]), str(d / "mc.ply"), "--method", "mt")
+        compile_ply_kernels()
+        mp.delenv("RECON_AOT")
+        mp.setenv("NUMBA_CACHE_DIR", str(cache))  # the build's directory only: numba's own cache was fixed at import
+        aot.reset()
+        report = build_ahead_of_time()  # what recon warmup builds: the kernels and the signal handler
+    (d / "report.json").write_text(json.dumps([report, {k: str(v) for k, v in files.items()}]))
+    return report, cache, files
 
 
 @pytest.fixture

@@ -15,7 +15,6 @@ import importlib
 import json
 import os
 import shutil
-import sys
 import tempfile
 import time
 import warnings
@@ -85,21 +84,6 @@ def _quiet_pycc() -> Iterator[None]:
         yield
 
 
-@contextlib.contextmanager
-def _stderr_to(path: str) -> Iterator[None]:
-    """The C compiler's own messages (fd 2) into ``path``, not onto the user's terminal."""
-    sys.stderr.flush()
-    saved = os.dup(2)
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600)
-    try:
-        os.dup2(fd, 2)
-        yield
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
-        os.close(fd)
-
-
 def compiler_problem() -> str | None:
     """Why no C compiler can build the extensions (None when one works)."""
     try:
@@ -148,7 +132,6 @@ def build(modules: tuple[str, ...] = aot.MODULES, c_libraries: dict[str, str] | 
     parent = os.path.dirname(target)
     os.makedirs(parent, exist_ok=True)
     work = tempfile.mkdtemp(prefix=".build-", dir=parent)
-    errors = os.path.join(work, "compiler.log")
     manifest: dict[str, Any] = {"fingerprint": os.path.basename(target), "modules": {}, "libraries": {}}
     failures = []
     try:
@@ -159,7 +142,7 @@ def build(modules: tuple[str, ...] = aot.MODULES, c_libraries: dict[str, str] | 
                 continue
             ext = _extension_name(name)
             try:
-                with _quiet_pycc(), _stderr_to(errors):
+                with _quiet_pycc():
                     cc = CC(ext, source_module=importlib.import_module(name))
                     cc.output_dir = work
                     cc.target_cpu = "host"
@@ -173,14 +156,13 @@ def build(modules: tuple[str, ...] = aot.MODULES, c_libraries: dict[str, str] | 
             out["modules"].append(name)
         for lib, source in (c_libraries or {}).items():
             try:
-                with _stderr_to(errors):
-                    tc = Toolchain()
-                    src = os.path.join(work, f"{lib}.c")
-                    with open(src, "w", encoding="utf-8") as fh:
-                        fh.write(source)
-                    objs = tc.compile_objects([src], os.path.join(work, "obj"))
-                    file = f"lib{lib}.so"
-                    tc.link_shared(os.path.join(work, file), objs)
+                tc = Toolchain()
+                src = os.path.join(work, f"{lib}.c")
+                with open(src, "w", encoding="utf-8") as fh:
+                    fh.write(source)
+                objs = tc.compile_objects([src], os.path.join(work, "obj"))
+                file = f"lib{lib}.so"
+                tc.link_shared(os.path.join(work, file), objs)
                 manifest["libraries"][lib] = file
             except Exception as exc:  # noqa: BLE001
                 failures.append(f"{lib}: {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}")
