@@ -13,11 +13,17 @@ PYTEST_ARGS ?=
 all: test
 
 # Open3D links against libusb-1.0 at import; install it when missing (machines run as root).
+# recon warmup compiles the ballpivot/mcubes kernels ahead of time with a C compiler: gcc when none is found.
 sysdeps:
 	@if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
 		echo "installing libusb-1.0-0 (needed by open3d)"; \
 		SUDO=""; [ "$$(id -u)" -eq 0 ] || SUDO="sudo"; \
 		$$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq libusb-1.0-0 >/dev/null; \
+	fi
+	@if ! command -v cc >/dev/null 2>&1 && ! command -v gcc >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1; then \
+		echo "installing gcc (recon warmup compiles kernels ahead of time)"; \
+		SUDO=""; [ "$$(id -u)" -eq 0 ] || SUDO="sudo"; \
+		$$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq gcc libc6-dev >/dev/null; \
 	fi
 
 $(STAMP): pyproject.toml

@@ -23,16 +23,32 @@ redrawn by rich's own thread, so it keeps moving while a kernel runs.
 When numba has to compile a kernel (the first run after an install without
 ``recon warmup``, or after an upgrade), an enabled :class:`Progress` says so on a line of
 its own ("compiling kernels, first run after install") for as long as compiling lasts,
-instead of a bar frozen at 0 %. A disabled one imports neither rich nor numba.
+instead of a bar frozen at 0 %. A disabled one imports neither rich nor numba, and an
+enabled one does not import numba either: it starts listening when numba is loaded (by the
+first kernel module a command imports, see :func:`numba_loaded`; a command that runs
+ahead-of-time kernels only never loads it).
 """
 
 from __future__ import annotations
 
 import sys
 import threading
+import weakref
 from typing import IO, Any
 
 COMPILING = "compiling kernels, first run after install"
+
+# enabled Progress objects made before numba was loaded: they listen from numba_loaded() on
+_WAITING: "weakref.WeakSet[Progress]" = weakref.WeakSet()
+
+
+def numba_loaded() -> None:
+    """Called by :mod:`recon_cli._kernels.numba_setup` once numba is imported: the enabled
+    :class:`Progress` objects made before start listening to its compiler."""
+    for p in list(_WAITING):
+        _WAITING.discard(p)
+        if p.enabled and p._listener is None:
+            p._listen_to_numba()
 
 
 class Progress:
@@ -58,7 +74,10 @@ class Progress:
         self._compile_depth = 0
         self._listener: Any = None
         if enabled:
-            self._listen_to_numba()
+            if "numba" in sys.modules:
+                self._listen_to_numba()
+            else:
+                _WAITING.add(self)
 
     def task(self, name: str, total: float | None = None) -> "_Task":
         """A context manager drawing one bar (or a spinner when ``total`` is None)."""

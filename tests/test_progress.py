@@ -66,6 +66,29 @@ def test_compiling_is_announced_while_numba_compiles():
     assert buf.getvalue() == before
 
 
+def test_a_display_made_before_numba_loads_announces_compiling_without_importing_numba_itself():
+    """A command running ahead-of-time kernels never loads numba, even with a progress display;
+    when a kernel module loads it later (a JIT fallback), the display still says it compiles."""
+    code = (
+        "import io, sys\n"
+        "from recon_cli.progress import COMPILING, Progress, task\n"
+        "buf = io.StringIO()\n"
+        "p = Progress(stream=buf, enabled=True)\n"
+        "assert 'numba' not in sys.modules\n"
+        "from recon_cli._kernels import numba_setup\n"
+        "from numba import njit\n"
+        "@njit\n"
+        "def plus_one(x):\n"
+        "    return x + 1\n"
+        "with task(p, 'stage', 1) as t:\n"
+        "    assert plus_one(1) == 2\n"
+        "    t.advance(1)\n"
+        "p.close()\n"
+        "assert COMPILING in buf.getvalue(), buf.getvalue()\n"
+    )
+    subprocess.run([sys.executable, "-W", "error", "-c", code], check=True)
+
+
 def test_expected_step_moves_on_the_rate_so_far_and_never_past_its_end():
     import time
 

@@ -61,6 +61,9 @@ def test_no_command_compiles_after_warmup(tmp_path):
     assert report["failed"] == [] and report["cache_dir"] == str(tmp_path / "cache")
     assert set(report["uncompiled"]) <= UNUSED, set(report["uncompiled"]) - UNUSED
     assert report["bytecode"] is True  # every module's .pyc written: no command compiles Python source
+    # the ballpivot/mcubes kernels compiled ahead of time (a C compiler is on every machine make install runs on)
+    assert report["aot_built"] is True and report["aot_reason"] is None, report["aot_reason"]
+    assert report["aot_dir"].startswith(str(tmp_path / "cache" / "aot"))
     for module in ("recon_cli/ballpivot/__init__.py", "recon_cli/mcubes/_kernel.py", "recon_cli/cli/main.py"):
         assert Path(importlib.util.cache_from_source(str(ROOT / module))).is_file(), module
     after = subprocess.run(

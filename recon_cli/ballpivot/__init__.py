@@ -44,6 +44,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from recon_cli.aot import kernels
 from recon_cli.errors import InputError, ParameterError, StageFailed
 from recon_cli.geometry import PointCloud, TriangleMesh, as_point_cloud, bbox_diagonal, local_origin, oriented_rows
 from recon_cli.params import Param, StageSpec
@@ -106,7 +107,7 @@ def nn_spacing(points: np.ndarray) -> float:
     face would have, ``2 * extent / sqrt(n)``, and each query scans shells of cells until its
     nearest point is known.
     """
-    from recon_cli.ballpivot import _kernel as K
+    K = kernels("recon_cli.ballpivot._kernel")
 
     pts = np.ascontiguousarray(points, dtype=np.float64)
     lo = pts.min(axis=0)
@@ -121,7 +122,12 @@ def nn_spacing(points: np.ndarray) -> float:
     d = d[np.isfinite(d)]
     if not len(d):
         return 0.0
-    return float(np.median(d))
+    # np.median's value, without the numpy.ma import its NaN check makes (~10 ms of a process)
+    k = len(d) // 2
+    if len(d) % 2:
+        return float(np.partition(d, k)[k])
+    part = np.partition(d, [k - 1, k])
+    return float(0.5 * (part[k - 1] + part[k]))
 
 
 def auto_radii(points: np.ndarray) -> list[float]:
@@ -207,7 +213,7 @@ def _spatial_order(pts: np.ndarray, lo: np.ndarray, r0: float, dims0: np.ndarray
     Neighbours then sit close in memory; a point within ``tol.merge`` of the diagonal of an
     earlier one is a repeat.
     """
-    from recon_cli.ballpivot import _kernel as K
+    K = kernels("recon_cli.ballpivot._kernel")
 
     _, ustart, order, sorted_pts = K.build_grid(pts, lo, 2.0 * r0, dims0)
     dup = K.mark_duplicates(ustart, order, sorted_pts, (tol.merge * diagonal) ** 2)
@@ -227,7 +233,7 @@ def _pivot_passes(spts: np.ndarray, snrm: np.ndarray, rr: list[float], lo: np.nd
     of the earlier passes); after the last radius, pinched fans are cut and the largest ball
     gets up to :data:`REFILL_PASSES` more passes over the holes this leaves.
     """
-    from recon_cli.ballpivot import _kernel as K
+    K = kernels("recon_cli.ballpivot._kernel")
 
     faces = np.empty((0, 3), dtype=np.int64)
     stats = np.zeros(4, dtype=np.int64)

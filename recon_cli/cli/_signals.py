@@ -5,9 +5,12 @@ Two layers:
 * :func:`handlers` (the whole command): Python handlers that raise :class:`Interrupted`
   (a :class:`KeyboardInterrupt`, so ``finally`` blocks and the atomic writer's clean-up
   run); :mod:`recon_cli.cli.main` turns it into the exit code and the one line.
-* :func:`immediate` (around a stage's computation): a handler in machine code
-  (:mod:`recon_cli.cli._signal_kernel`) that exits at once, even inside a numba kernel
-  that holds the interpreter for minutes. Only used while nothing needs cleaning up.
+* :func:`immediate` (around a stage's computation): a handler in machine code that exits
+  at once, even inside a numba kernel that holds the interpreter for minutes. Only used
+  while nothing needs cleaning up. The handler is :data:`HANDLER_C`, compiled by ``recon
+  warmup`` with the ahead-of-time kernels (:mod:`recon_cli.aot`), so a process that
+  runs those never loads numba; without a C compiler, the same handler as a numba ``cfunc``
+  (:mod:`recon_cli.cli._signal_kernel`).
 """
 
 from __future__ import annotations
@@ -20,6 +23,23 @@ import threading
 from typing import Iterator
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+# the handler of immediate(), as recon_cli.cli._signal_kernel.handler: async-signal-safe write and _exit
+HANDLER_C = r"""
+#include <signal.h>
+#include <unistd.h>
+
+void recon_exit_at_once(int signum)
+{
+    static const char interrupted[] = "recon: interrupted\n";
+    static const char terminated[] = "recon: terminated\n";
+    if (signum == SIGINT)
+        (void)!write(2, interrupted, sizeof interrupted - 1);
+    else
+        (void)!write(2, terminated, sizeof terminated - 1);
+    _exit(128 + signum);
+}
+"""
 
 
 class Interrupted(KeyboardInterrupt):
@@ -38,7 +58,7 @@ class Interrupted(KeyboardInterrupt):
 # Dask cluster closing).
 DEADLINE = 5.0
 
-_state: dict = {"signum": None, "done": None}
+_state: dict = {"signum": None, "done": None, "native": None}
 
 
 def _raise(signum, frame) -> None:
@@ -113,16 +133,31 @@ def immediate() -> Iterator[None]:
         return
     import ctypes
 
-    from recon_cli.cli._signal_kernel import handler
-
+    address = _handler_address()
     libc = ctypes.CDLL(None, use_errno=True)
     install = libc.signal
     install.restype = ctypes.c_void_p
     install.argtypes = [ctypes.c_int, ctypes.c_void_p]
     for s in ours:
-        install(s, handler.address)
+        install(s, address)
     try:
         yield
     finally:
         for s in ours:
             signal.signal(s, _raise)  # Python's own handler again (a signal that came meanwhile has exited)
+
+
+def _handler_address() -> int:
+    """The machine-code handler: :data:`HANDLER_C` as built by ``recon warmup``, else the numba cfunc."""
+    import ctypes
+
+    from recon_cli import aot
+
+    if _state["native"] is None:
+        lib = aot.native_library("signal_handler")
+        _state["native"] = lib if lib is not None and hasattr(lib, "recon_exit_at_once") else False
+    if _state["native"]:
+        return int(ctypes.cast(_state["native"].recon_exit_at_once, ctypes.c_void_p).value)
+    from recon_cli.cli._signal_kernel import handler
+
+    return int(handler.address)

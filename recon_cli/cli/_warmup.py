@@ -231,13 +231,14 @@ def warmup(progress: Any = None, log: Callable[[str], None] | None = None) -> di
         ``uncompiled`` (kernels never compiled, see :func:`uncompiled_kernels`) and
         ``bytecode`` (every module's ``.pyc`` written, see :func:`compile_bytecode`).
     """
+    from recon_cli import aot
     from recon_cli._kernels.numba_setup import CACHE_DIR
     from recon_cli.progress import task
 
     t0 = time.perf_counter()
     failed = []
     bytecode = compile_bytecode()
-    with tempfile.TemporaryDirectory(prefix="recon-warmup-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="recon-warmup-") as tmp, _jit_only():
         steps = _steps(tmp)
         with task(progress, "warming up kernels", len(steps)) as t:
             for name, fn in steps:
@@ -248,6 +249,7 @@ def warmup(progress: Any = None, log: Callable[[str], None] | None = None) -> di
                     if log is not None:
                         log(f"warm-up step {name!r} failed: {type(exc).__name__}: {exc}")
                 t.advance(1)
+    ahead = build_ahead_of_time(progress, log)
     return {
         "steps": len(steps),
         "failed": failed,
@@ -255,7 +257,49 @@ def warmup(progress: Any = None, log: Callable[[str], None] | None = None) -> di
         "cache_dir": CACHE_DIR,
         "uncompiled": uncompiled_kernels(),
         "bytecode": bytecode,
+        "aot_built": ahead["built"],
+        "aot_dir": ahead["dir"] if ahead["built"] else None,
+        "aot_modules": ahead["modules"],
+        "aot_reason": ahead["reason"],
     }
+
+
+@contextlib.contextmanager
+def _jit_only():
+    """The warm-up's steps run the numba kernels themselves (an ahead-of-time build would
+    leave them uncompiled, and the build exports the signatures they compiled)."""
+    from recon_cli import aot
+
+    before = os.environ.get("RECON_AOT")
+    os.environ["RECON_AOT"] = "0"
+    aot.reset()
+    try:
+        yield
+    finally:
+        if before is None:
+            del os.environ["RECON_AOT"]
+        else:
+            os.environ["RECON_AOT"] = before
+        aot.reset()
+
+
+def build_ahead_of_time(progress: Any = None, log: Callable[[str], None] | None = None) -> dict:
+    """Build the ahead-of-time kernels and the signal handler (:mod:`recon_cli.aot.build`)
+    from the kernels compiled in this process; one line through ``log`` saying what came of it."""
+    from recon_cli.aot.build import build
+    from recon_cli.cli._signals import HANDLER_C
+    from recon_cli.progress import task
+
+    with task(progress, "compiling kernels ahead of time", 1) as t:
+        out = build(c_libraries={"signal_handler": HANDLER_C}, log=log)
+        t.advance(1)
+    if log is not None:
+        if out["built"]:
+            log(f"ahead-of-time kernels: {out['reason'] or 'built'} ({', '.join(out['modules'])}) in {out['dir']}")
+        else:
+            log(f"ahead-of-time kernels not built ({out['reason']}): ball pivoting and marching cubes run JIT, "
+                "with numba's start-up in each command")
+    return out
 
 
 def compile_bytecode() -> bool:

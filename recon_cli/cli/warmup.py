@@ -17,6 +17,10 @@ def cmd(ctx, json_):
     cores): otherwise the first run of each command compiles its kernels. The cache is
     $NUMBA_CACHE_DIR if set, else $XDG_CACHE_HOME/recon/numba/<fingerprint of the kernel sources>
     (~/.cache/recon/numba/...).
+
+    It then compiles the kernels of `recon ballpivot` and `recon mcubes` ahead of time (numba.pycc,
+    needs a C compiler) into <cache>/aot/<fingerprint>, so those commands never import numba; the
+    report says whether that build was made, and why not. RECON_AOT=0 switches it off.
     """
     from recon_cli.cli._run import emit_report, make_progress
     from recon_cli.errors import StageFailed

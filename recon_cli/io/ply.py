@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from recon_cli.aot import kernels
 from recon_cli.errors import InputError
 from recon_cli.geometry import PointCloud, TriangleMesh, storage_dtype
 from recon_cli.io._ply_types import FORMATS, PLY_TYPES, ply_name
@@ -315,7 +316,8 @@ def _parse_binary_lists_general(el: PlyElement, buf: bytes, offset: int, order: 
 
     Only lists with mixed lengths (e.g. a mesh of triangles and quads) come here.
     """
-    from recon_cli.io._ply_kernel import scan_list_rows
+    K = kernels("recon_cli.io._ply_kernel")
+    scan_list_rows = K.scan_list_rows
 
     layout = []  # per property: (is_list, count size, item size, count signed)
     for p in el.properties:
@@ -366,7 +368,8 @@ def _parse_ascii(ply: PlyData, buf: bytes, offset: int, where: str) -> None:
     cloud), so each line must hold exactly its row's values; blank lines are skipped, and
     lines after the last element are an error.
     """
-    from recon_cli.io._ply_kernel import ascii_line_tokens
+    K = kernels("recon_cli.io._ply_kernel")
+    ascii_line_tokens = K.ascii_line_tokens
 
     body = bytes(memoryview(buf)[offset:])
     tokens = body.split()
@@ -837,7 +840,8 @@ def _first_nonfinite_row(el: PlyElement, pts: np.ndarray) -> int:
     those bytes in one numba pass, in either byte order (numpy's isfinite over an unaligned
     strided view is several times slower).
     """
-    from recon_cli.io._ply_kernel import first_nonfinite_row
+    K = kernels("recon_cli.io._ply_kernel")
+    first_nonfinite_row = K.first_nonfinite_row
 
     raw = el.raw
     run = _adjacent_fields(raw.dtype, _VERTEX_XYZ) if raw is not None and len(raw) and raw.flags.c_contiguous else None
@@ -877,7 +881,8 @@ def _gather_plan(rowtype: np.dtype, names: tuple[str, ...], dtype) -> tuple:
 
 def _gather_apply(plan: tuple, flat: np.ndarray, stride: int, out: np.ndarray) -> None:
     """Fill ``out`` (rows, k) from the packed rows in ``flat`` (uint8)."""
-    from recon_cli.io._ply_kernel import gather_bytes, gather_fields, gather_floats
+    K = kernels("recon_cli.io._ply_kernel")
+    gather_bytes, gather_fields, gather_floats = K.gather_bytes, K.gather_fields, K.gather_floats
 
     kind, names, offsets, size, big = plan[:5]
     if kind == "float":

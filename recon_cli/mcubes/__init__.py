@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from recon_cli.aot import kernels
 from recon_cli.errors import InputError, ParameterError
 from recon_cli.params import Param, StageSpec
 
@@ -138,7 +139,7 @@ def _marching_cubes(volume, iso, spacing, origin, method, allow_degenerate):
     method = _check_method(method)
     if min(vol.shape) < 2:
         return np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3)), 0
-    from recon_cli.mcubes import _kernel as K
+    K = kernels("recon_cli.mcubes._kernel")
     from recon_cli.mcubes._lut_data import FACE_CORNERS, MC_AMBIGUOUS
 
     start, tris, edges, keys, use_faces, centre, centre_id = _tables(method)
@@ -232,7 +233,7 @@ def marching_cubes_sparse(
     if np.any(flat[1:] == flat[:-1]):  # one int64 key per cell: far cheaper than np.unique(axis=0)
         raise InputError("cells has duplicate rows")
     del flat
-    from recon_cli.mcubes import _kernel as K
+    K = kernels("recon_cli.mcubes._kernel")
     from recon_cli.mcubes._lut_data import FACE_CORNERS, MC_AMBIGUOUS
 
     start, tris, edges, keys, use_faces, centre, centre_id = _tables(method)
@@ -359,6 +360,6 @@ def boundary_edge_count(faces: np.ndarray, n_vertices: int | None = None) -> int
     faces = np.ascontiguousarray(faces, dtype=np.int64)
     if len(faces) == 0:
         return 0
-    from recon_cli.mcubes import _kernel as K
+    K = kernels("recon_cli.mcubes._kernel")
 
     return int(K.boundary_edge_count(faces, int(faces.max()) + 1 if n_vertices is None else int(n_vertices)))

@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from recon_cli.aot import kernels
 from recon_cli.errors import InputError
 from recon_cli.tolerances import tol
 
@@ -177,7 +178,8 @@ class Connectivity:
 
     @cached_property
     def _edge_groups(self):
-        from recon_cli.mesh._topology_kernel import group_sorted_keys, half_edge_keys
+        K = kernels("recon_cli.mesh._topology_kernel")
+        group_sorted_keys, half_edge_keys = K.group_sorted_keys, K.half_edge_keys
 
         nh = 3 * self.n_faces
         nv = max(self.n_vertices, 1)
@@ -258,7 +260,8 @@ class Connectivity:
     # ---- vertices ----------------------------------------------------------------------
     @cached_property
     def _vertex_csr(self):
-        from recon_cli.mesh._topology_kernel import counting_sort
+        K = kernels("recon_cli.mesh._topology_kernel")
+        counting_sort = K.counting_sort
 
         ptr, order = counting_sort(self._flat, self.n_vertices, np.zeros(0, self._it))
         order //= 3
@@ -287,7 +290,8 @@ class Connectivity:
         lie in different fans. Labels are numbered in order of first corner (so the fan of
         a smaller label starts at a smaller corner).
         """
-        from recon_cli.mesh._topology_kernel import fan_labels_groups, fan_labels_pairs
+        K = kernels("recon_cli.mesh._topology_kernel")
+        fan_labels_groups, fan_labels_pairs = K.fan_labels_groups, K.fan_labels_pairs
 
         labels = np.arange(3 * self.n_faces, dtype=self._it)
         if link_a is None:
@@ -314,7 +318,8 @@ class Connectivity:
     @cached_property
     def face_components(self) -> np.ndarray:
         """(m,) int component label per face, largest component 0 (ties: first face first)."""
-        from recon_cli.mesh._topology_kernel import face_labels_groups
+        K = kernels("recon_cli.mesh._topology_kernel")
+        face_labels_groups = K.face_labels_groups
 
         labels = np.arange(self.n_faces, dtype=self._it)
         face_labels_groups(labels, self.edge_ptr, self.edge_half_edges)
@@ -380,7 +385,8 @@ class Connectivity:
 
     @cached_property
     def _orientation(self):
-        from recon_cli.mesh._topology_kernel import orient_faces
+        K = kernels("recon_cli.mesh._topology_kernel")
+        orient_faces = K.orient_faces
 
         flip, comp, conflict = orient_faces(self._flat, self.half_edge_edge, self.edge_ptr, self.edge_half_edges)
         return flip, comp, np.flatnonzero(conflict)
@@ -407,7 +413,8 @@ class Connectivity:
     @cached_property
     def is_consistently_oriented(self) -> bool:
         """No directed edge is used by two faces."""
-        from recon_cli.mesh._topology_kernel import consistently_oriented
+        K = kernels("recon_cli.mesh._topology_kernel")
+        consistently_oriented = K.consistently_oriented
 
         return bool(consistently_oriented(self._flat, self.edge_ptr, self.edge_half_edges))
 
@@ -415,7 +422,8 @@ class Connectivity:
     @cached_property
     def boundary_loops(self) -> list[np.ndarray]:
         """Boundary loops as vertex sequences, in the direction of their half-edges."""
-        from recon_cli.mesh._topology_kernel import trace_boundary_loops
+        K = kernels("recon_cli.mesh._topology_kernel")
+        trace_boundary_loops = K.trace_boundary_loops
 
         b = self.boundary_edges
         if len(b) == 0:
