@@ -30,6 +30,7 @@ def _assert_closed_manifold_one_piece(mesh: TriangleMesh) -> None:
     assert rep["consistently_oriented"] and rep["volume"] > 0
     # welded: no two vertices at one position
     assert len(np.unique(mesh.vertices, axis=0)) == len(mesh.vertices)
+    assert rep["components"] <= 2
     trimesh = pytest.importorskip("trimesh")
     tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
     assert tm.is_watertight and tm.is_winding_consistent and tm.is_volume
@@ -148,6 +149,48 @@ def test_leaf_extraction_as_accurate_as_the_finest_lattice(rng, monkeypatch, nam
     assert _chamfer_to(new, sdf) <= 1.05 * _chamfer_to(old, sdf)
 
 
+def test_root_fit_at_each_leafs_own_size(rng, monkeypatch):
+    # a sphere dense on top, ten times sparser below: the lower half's surface lies in leaves
+    # two levels coarser than the finest. The non-linear root fit must take each minimal
+    # edge's own length as its step; with the finest step everywhere it made both halves
+    # worse than the linear roots (radial error 1.67e-4 / 6.6e-5 against 1.66e-4 / 5.8e-5);
+    # with the edge's step the coarse half gains 12-18 %, the dense half 3-11 %
+    p = rng.normal(size=(220_000, 3))
+    p /= np.linalg.norm(p, axis=1)[:, None]
+    p = p[(p[:, 2] > 0) | (np.arange(len(p)) % 10 == 0)]
+    err = {}
+    for fit in (True, False):
+        if not fit:
+            monkeypatch.setattr(extract_mod, "refine_roots", lambda *a: 0)
+        res = screened_poisson(p, p.copy(), depth=9)
+        v = res.mesh.vertices
+        e = np.abs(np.linalg.norm(v, axis=1) - 1)
+        err[fit] = (e[v[:, 2] < -0.2].mean(), e[v[:, 2] > 0.2].mean())
+    assert res.report["tree_depth"] == 9
+    assert err[True][0] <= 0.9 * err[False][0], err
+    assert err[True][1] <= err[False][1], err
+
+
+def test_noise_specks_dropped_small_parts_kept(rng):
+    # noisy sparse samples leave closed specks of a cell or two around single lattice points:
+    # they go (and are counted); a real part a few cells across stays
+    p, n = shape_cloud("sphere", 20_000, rng)
+    p = p + rng.normal(size=p.shape) * 0.01 * np.ptp(p, axis=0).max()
+    res = screened_poisson(p, n, depth=9)
+    assert res.report["bubbles_removed"] > 0
+    _assert_closed_manifold_one_piece(res.mesh)
+    big = rng.normal(size=(20_000, 3))
+    big /= np.linalg.norm(big, axis=1)[:, None]
+    small = rng.normal(size=(2_000, 3))
+    small /= np.linalg.norm(small, axis=1)[:, None]
+    pts = np.vstack([big, 0.1 * small + [1.6, 0, 0]])
+    res = screened_poisson(pts, np.vstack([big, small]), depth=7)
+    # the small sphere is 0.2 / (1.1 * 2.7 / 128) = 8.6 finest cells across
+    assert res.report["bubbles_removed"] == 0
+    rep = topology_report(res.mesh)
+    assert rep["components"] == 2 and rep["watertight"]
+
+
 def test_faces_barely_change_past_the_density(rng):
     # 20k samples on a sphere support about depth 8-9: deeper levels are never built, and the
     # surface (extracted at the leaves) is the same
@@ -185,7 +228,9 @@ def test_raw_scan_faces_within_1_5x_open3d():
 def test_real_stereo_fragment_closed_and_manifold(method):
     # noisy real data whose surface runs into the cube's faces: along a leaf edge leaving a
     # face the clamp can put two roots (a loop of no area, left out); the result is closed
-    # and manifold, though Poisson's solution itself has several pieces here
+    # and manifold; besides the surface, Poisson's solution has closed specks around noisy
+    # samples (dropped) and one blob around a cluster of 5 outlying points, 3.6 cells across
+    # (kept: it is data)
     from recon_cli import normals
     from shared_data import load_shared
 
@@ -195,3 +240,4 @@ def test_real_stereo_fragment_closed_and_manifold(method):
     assert rep["watertight"] and rep["edge_manifold"] and rep["vertex_manifold"]
     assert rep["consistently_oriented"] and rep["degenerate_faces"] == 0 and rep["duplicate_faces"] == 0
     assert len(np.unique(mesh.vertices, axis=0)) == len(mesh.vertices)
+    assert rep["components"] <= 2

@@ -19,7 +19,8 @@ the samples stop, so memory and time follow the data, and a depth beyond what th
 support costs nothing (:mod:`.splat`, :mod:`.octree`). ``chi`` is the sum
 of the levels' functions; it is solved cascadically, coarse to fine, each level by
 Jacobi-preconditioned conjugate gradients on the residual left by the coarser ones (as
-PoissonRecon does). The surface is the level set of ``chi`` at the weighted mean of its
+PoissonRecon does); level ``d`` is screened with weight ``alpha * 2**(d - tree depth)``, as
+PoissonRecon scales a node's point weight by ``2**`` its depth. The surface is the level set of ``chi`` at the weighted mean of its
 values at the samples, extracted over the leaves of the tree at each leaf's own size
 (Kazhdan, Klein, Dalal & Hoppe 2007): ``chi`` is trilinear in a leaf and continuous across
 leaves, so its roots on the *minimal edges* (leaf edges no smaller leaf splits) are exact,
@@ -28,10 +29,13 @@ boundary once, for both sides, so neighbouring leaves of different sizes agree a
 are no cracks; each leaf's segments close into polygons, triangulated without a diagonal any
 other polygon could use. The surface is closed, manifold, welded, and its size follows the
 tree, not the depth asked for (:mod:`.extract`). Each vertex is then moved along its edge:
-with degree 1 to the root of a quadratic fit of ``chi`` along the edge's line (PoissonRecon's
-non-linear fit: the piecewise-linear ``chi`` stands for a smooth indicator); with degree 2
+with degree 1 to the root of a quadratic fit of ``chi`` along the edge's line, with the
+edge's own length as the step (PoissonRecon's non-linear fit: the piecewise-linear ``chi``
+stands for a smooth indicator); with degree 2
 the leaves' corners take ``chi``'s exact values (nodes on the faces of coarser leaves take
-those leaves' values, so neighbours agree) and each vertex goes to ``chi``'s root.
+those leaves' values, so neighbours agree) and each vertex goes to ``chi``'s root. Closed
+specks under two finest cells across (noise leaves chi across the iso-value around single
+lattice points) are dropped and counted; the largest piece always stays.
 
 ``trim`` removes the surface where the samples' kernel density is low (the closing sheet
 Poisson puts over the open side of a scan), as PoissonRecon's SurfaceTrimmer does: the mesh
@@ -73,6 +77,9 @@ log = logging.getLogger("recon")
 BOUNDARIES = ("neumann", "dirichlet")
 BACKENDS = ("native", "open3d", "pymeshlab")
 MAX_DEPTH = 14
+# closed pieces of the extraction smaller than this many finest cells on every side are specks
+# of noise, not surface (_drop_bubbles)
+BUBBLE_CELLS = 2
 
 
 @dataclass
@@ -86,8 +93,9 @@ class PoissonResult:
         had colours.
     report : dict
         ``vertices``, ``faces``, ``depth``, ``iso_value``, ``solver_iterations``,
-        ``residual`` (relative residual of the finest level), ``trimmed_faces`` (faces cut or
-        removed by ``trim``), ``trimmed_area`` (fraction of the area removed) and details
+        ``residual`` (relative residual of the finest level), ``bubbles_removed`` (closed
+        specks under two finest cells across, dropped: :func:`_drop_bubbles`),
+        ``trimmed_faces`` (faces cut or removed by ``trim``), ``trimmed_area`` (fraction of the area removed) and details
         (``tree_depth``: the deepest level the samples support, ``samples``, ``nodes`` per
         level, ``timings``).
     """
@@ -306,8 +314,8 @@ def screened_poisson(
         del chi_lv
         verts *= size / res
         verts += origin
+    verts, faces, bubbles = _drop_bubbles(verts, faces, size / res)
     timings["extract"] = time.perf_counter() - t
-
 
     mesh = TriangleMesh(vertices=verts, faces=faces)
     vdens = None
@@ -336,6 +344,7 @@ def screened_poisson(
         "iso_value": iso,
         "solver_iterations": int(total_it),
         "residual": float(last_res),
+        "bubbles_removed": bubbles,
         "trimmed_faces": int(trimmed),
         "trimmed_area": trimmed_area,
         "samples": int(ns),
@@ -346,6 +355,46 @@ def screened_poisson(
     }
     return PoissonResult(mesh, report)
 
+
+
+def _drop_bubbles(verts: np.ndarray, faces: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """Drop the pieces smaller than :data:`BUBBLE_CELLS` finest cells on every side, but the
+    largest; returns the vertices and faces left and how many pieces went.
+
+    Noisy, sparse samples leave chi slightly across the iso-value around single lattice
+    points off the surface: closed specks of 8-16 triangles, one or two cells across (on the
+    shared stereo fragment at depth 9: 21 of them, 0.8-1.2 cells, beside one surface of 128
+    cells). A piece that small cannot stand for a real feature at this depth (the lattice
+    samples chi once per cell), so it goes; the report counts them (``bubbles_removed``).
+    Every piece of the extraction is closed, so what is left is too.
+    """
+    if not len(faces):
+        return verts, faces, 0
+    from recon_cli.mesh.topology import Connectivity
+
+    lab = Connectivity(faces, len(verts)).face_components
+    n = int(lab.max()) + 1
+    if n == 1:
+        return verts, faces, 0
+    corner = verts[faces.reshape(-1)]
+    flab = np.repeat(lab, 3)
+    ext = np.zeros(n)
+    for a in range(3):
+        hi = np.full(n, -np.inf)
+        lo = np.full(n, np.inf)
+        np.maximum.at(hi, flab, corner[:, a])
+        np.minimum.at(lo, flab, corner[:, a])
+        ext = np.maximum(ext, hi - lo)
+    small = ext < BUBBLE_CELLS * cell
+    small[0] = False  # the largest piece always stays
+    if not small.any():
+        return verts, faces, 0
+    faces = faces[~small[lab]]
+    used = np.zeros(len(verts), bool)
+    used[faces.reshape(-1)] = True
+    remap = np.cumsum(used) - 1
+    log.info("poisson: %d pieces under %d cells across dropped", int(small.sum()), BUBBLE_CELLS)
+    return verts[used], remap[faces].astype(faces.dtype), int(small.sum())
 
 
 def _interpolate_colors(pts: np.ndarray, colors: np.ndarray, verts: np.ndarray, cell: float) -> np.ndarray:
@@ -403,8 +452,8 @@ def run_stage(
     -------
     StageResult
         ``output`` a TriangleMesh; ``report`` with ``vertices``, ``faces``, ``depth``,
-        ``iso_value``, ``solver_iterations``, ``residual``, ``trimmed_faces``, ``trimmed_area``, ``backend``
-        (the solver keys are None for the reference backends).
+        ``iso_value``, ``solver_iterations``, ``residual``, ``bubbles_removed``, ``trimmed_faces``,
+        ``trimmed_area``, ``backend`` (the solver keys are None for the reference backends).
     """
     from recon_cli.stages import StageResult
 
@@ -430,8 +479,8 @@ def run_stage(
             colors=cloud.colors, progress=progress,
         )
         mesh, rep = res.mesh, res.report
-        report = {k: rep[k] for k in ("vertices", "faces", "depth", "iso_value", "solver_iterations", "residual", "trimmed_faces",
-                                      "trimmed_area")}
+        report = {k: rep[k] for k in ("vertices", "faces", "depth", "iso_value", "solver_iterations", "residual",
+                                      "bubbles_removed", "trimmed_faces", "trimmed_area")}
         report["samples"] = rep["samples"]
         report["ignored_points"] = rep["ignored_points"]
         report["tree_depth"] = rep["tree_depth"]
@@ -466,7 +515,8 @@ def run_stage(
             mesh.attributes["density"] = dens
         report = {
             "vertices": len(mesh.vertices), "faces": len(mesh.faces), "depth": depth,
-            "iso_value": None, "solver_iterations": None, "residual": None, "trimmed_faces": int(trimmed),
+            "iso_value": None, "solver_iterations": None, "residual": None, "bubbles_removed": None,
+            "trimmed_faces": int(trimmed),
             "trimmed_area": trimmed_area,
         }
     mesh.history = history

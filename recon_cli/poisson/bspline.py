@@ -66,8 +66,9 @@ KERNEL_WIDTH = 1.0
 # B-splines are smaller at a sample (at most 0.42 against a hat's 1) and smoother, so the
 # same alpha pulls chi less towards the samples; measured on the armadillo, 100k clean
 # samples, depth 8 (Chamfer to the mesh, exact distances): 3.25e-2 at 1x, 2.82e-2 at 3x
-# (degree 1: 2.94e-2, Open3D 2.98e-2)
-SCREEN_SCALE = 3.0
+# (degree 1: 2.94e-2, Open3D 2.98e-2); degree 1's alpha has since grown 1.5x (splat.make_splats),
+# so 2 keeps the measured weight
+SCREEN_SCALE = 2.0
 
 
 def folded_tables(n: int, s: float) -> tuple[np.ndarray, np.ndarray]:

@@ -39,6 +39,7 @@ import numpy as np
 from recon_cli.errors import StageFailed
 from recon_cli.mcubes import marching_cubes_sparse
 from recon_cli.poisson import _extract as E
+from recon_cli.poisson import _system as Y
 from recon_cli.poisson.octree import Level
 from recon_cli.poisson.system import chi_at
 
@@ -142,6 +143,33 @@ def extract_leaves(levels: list[Level], gvals: list[np.ndarray], iso: float, ori
     return vpos, tri
 
 
+def _edge_steps(verts: np.ndarray, axis: np.ndarray, chi: list, depth: int) -> np.ndarray:
+    """Length (finest-lattice units) of the minimal edge each vertex lies on: the size of the
+    finest leaf around the edge, found as the finest level holding one of the four cells
+    that meet along it (the finest cell holding a point is a leaf)."""
+    res = 1 << depth
+    n = len(verts)
+    step = np.zeros(n, np.int64)
+    todo = np.arange(n)
+    offs = [(-0.25, -0.25), (-0.25, 0.25), (0.25, -0.25), (0.25, 0.25)]
+    for lv, cell_keys, _nodes, _g in chi[::-1]:
+        if not len(todo):
+            break
+        hit = np.zeros(len(todo), bool)
+        r = np.arange(len(todo))
+        b = (axis[todo] + 1) % 3
+        c = (axis[todo] + 2) % 3
+        for ob, oc in offs:
+            p = verts[todo].copy()
+            p[r, b] += ob
+            p[r, c] += oc
+            hit |= Y.sample_cells(p / res, lv, cell_keys)[0] >= 0
+        step[todo[hit]] = 1 << (depth - lv)
+        todo = todo[~hit]
+    step[todo] = 1 << depth
+    return step
+
+
 def refine_roots(verts: np.ndarray, chi: list, iso: float, depth: int) -> int:
     """Move each vertex (finest-lattice units, in place) to the root of a quadratic fit of chi
     along its lattice edge; returns how many were moved.
@@ -165,26 +193,37 @@ def refine_roots(verts: np.ndarray, chi: list, iso: float, depth: int) -> int:
     axis = np.argmax(near, axis=1)
     rows = np.arange(len(verts))
     frac_ok = near[rows, axis] > 0
-    lo = np.floor(verts).astype(np.int64)
     other = np.ones(len(verts), bool)
     for a in range(3):
         c = np.round(verts[:, a]).astype(np.int64)
         # the two coordinates off the edge's axis must be inside the cube, not on its faces
         other &= (axis == a) | ((c > 0) & (c < res))
-    la = lo[rows, axis]
-    sel = np.flatnonzero(frac_ok & other & (la >= 1) & (la + 2 <= res - 1))
+    cand = np.flatnonzero(frac_ok & other)
+    if not len(cand):
+        return 0
+    # the step of each vertex's minimal edge: the size of the finest leaf around it
+    step = _edge_steps(verts[cand], axis[cand], chi, depth)
+    ax = axis[cand]
+    r = np.arange(len(cand))
+    la = np.floor(verts[cand, ax] / step).astype(np.int64) * step
+    base = np.round(verts[cand]).astype(np.int64)
+    base[r, ax] = la
+    # the fit's four values lie inside the cube, the far ones off its faces
+    keep = (la - step >= 0) & (la + 2 * step <= res - 1)
+    for a in range(3):
+        keep &= (ax == a) | (base[:, a] % step == 0)
+    sel = cand[keep]
     if not len(sel):
         return 0
-    base = np.round(verts[sel]).astype(np.float64)
-    ax = axis[sel]
-    base[np.arange(len(sel)), ax] = la[sel]
+    base, ax, step, la = base[keep], ax[keep], step[keep], la[keep]
+    r = np.arange(len(sel))
     pts = np.empty((4, len(sel), 3))
-    for k, step in enumerate((-1, 0, 1, 2)):
+    for k, m in enumerate((-1, 0, 1, 2)):
         pts[k] = base
-        pts[k, np.arange(len(sel)), ax] += step
+        pts[k, r, ax] += m * step
     vals = chi_at(chi, pts.reshape(-1, 3) / res).reshape(4, len(sel))
     t = E.fit_roots(vals[0], vals[1], vals[2], vals[3], iso, ROOT_CLAMP)
     ok = t >= 0
     moved = sel[ok]
-    verts[moved, axis[moved]] = la[moved] + t[ok]
+    verts[moved, axis[moved]] = la[ok] + t[ok] * step[ok]
     return int(ok.sum())

@@ -135,11 +135,13 @@ def make_splats(smp: Samples, depth: int, samples_per_node: float, point_weight:
     tree_depth = int(it_lvl.max())
     log.info("poisson: %d splats from %d samples, levels %d..%d", len(it_pos), ns, int(it_lvl.min()), tree_depth)
     mean_area = float((area_pt * count).sum() / count.sum())
-    # calibrated against the references: with alpha = w * mean_area * 2**depth our fit at
-    # weight w matched Open3D's (PoissonRecon's code, weight 2) at w = 1 on noisy samples
-    # (Chamfer ratio 0.99-1.0 on armadillo, kitten, bunny at depth 9), so the same nominal
-    # weight means half that alpha here
-    alpha = 0.5 * point_weight * mean_area * (1 << tree_depth)
+    # calibrated against Open3D (PoissonRecon's code) at its default weight 4: exact-distance
+    # Chamfer of 100k samples, clean and with noise of 0.25 % of the diagonal, depths 8 and 9
+    # (level d screened with alpha * 2**(d - tree_depth), system.solve): at 0.75 the kitten,
+    # armadillo, sphere, torus and mug are at 0.76-1.03x Open3D's (a rounded box, clean, 1.45x);
+    # a stronger weight helps clean samples and costs noisy ones more (1.5x it: clean
+    # 0.75-0.97x, noisy 1.06-1.15x)
+    alpha = 0.75 * point_weight * mean_area * (1 << tree_depth)
     screen_w = alpha * count
     dens = None
     if keep_density:

@@ -57,11 +57,14 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, full_depth: int, cg
             lev.face_nodes = O.face_nodes(lev.node_keys, 1 << d)
             lev.node_keys = None
             scell, sloc = Y.sample_cells(spos, d, lev.cell_keys)
-            # the tree is adaptive: only the samples inside this level's cells screen it
-            lw = screen_w
+            # the tree is adaptive: only the samples inside this level's cells screen it; the
+            # weight halves with each coarser level (PoissonRecon scales a node's point weight
+            # by 2**its depth): coarse levels, which the finer ones only correct, are not
+            # pulled to the samples harder than the finest (measured below, make_splats)
+            lw = screen_w * (2.0 ** (d - depth))
             have = scell >= 0
             if not have.all():
-                scell, sloc, lw = scell[have], sloc[have], screen_w[have]
+                scell, sloc, lw = scell[have], sloc[have], lw[have]
             del have
             # the diagonal, for the preconditioner: a table by incident-cell count (lev.ncell)
             # plus the sparse screening part, not an (n,) vector
