@@ -13,12 +13,21 @@ from recon_cli._kernels.arrays import grow1, grow2, lower_bound
 @given(st.lists(st.integers(-50, 50), max_size=40), st.integers(-60, 60))
 def test_lower_bound_is_searchsorted_left(values, x):
     a = np.sort(np.asarray(values, dtype=np.int64))
-    assert lower_bound(a, x) == np.searchsorted(a, x, side="left")
+    assert lower_bound(a, x, 0, len(a)) == np.searchsorted(a, x, side="left")
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.integers(-50, 50), max_size=40), st.integers(-60, 60), st.data())
+def test_lower_bound_searches_only_its_range(values, x, data):
+    a = np.sort(np.asarray(values, dtype=np.int64))
+    lo = data.draw(st.integers(0, len(a)))
+    hi = data.draw(st.integers(lo, len(a)))
+    assert lower_bound(a, x, lo, hi) == lo + np.searchsorted(a[lo:hi], x, side="left")
 
 
 def test_lower_bound_on_repeated_keys_finds_the_first():
     a = np.array([1, 3, 3, 3, 7], dtype=np.int64)
-    assert [lower_bound(a, x) for x in (0, 1, 2, 3, 4, 7, 8)] == [0, 0, 1, 1, 4, 4, 5]
+    assert [lower_bound(a, x, 0, len(a)) for x in (0, 1, 2, 3, 4, 7, 8)] == [0, 0, 1, 1, 4, 4, 5]
 
 
 def test_grow_keeps_the_head():

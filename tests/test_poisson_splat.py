@@ -12,7 +12,8 @@ from recon_cli.geometry import PointCloud
 from recon_cli.mesh.sampling import sample_surface
 from recon_cli.poisson import _extract as E
 from recon_cli.poisson import screened_poisson
-from recon_cli.poisson._octree import MASK21, lattice_key, lower_bound
+from recon_cli._kernels.arrays import lower_bound
+from recon_cli.poisson._octree import MASK21, lattice_key
 from recon_cli.poisson._splat import hat_b2_deriv, hat_b2_value
 from recon_cli.poisson.splat import fields_as_items, spread_fields
 

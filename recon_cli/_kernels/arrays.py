@@ -57,16 +57,15 @@ def borrowed(typingctx, arr):
     return arr(arr), codegen
 
 
-@njit(cache=True)
-def lower_bound(a, x):
-    """First index ``i`` of sorted 1-d ``a`` with ``a[i] >= x`` (``len(a)`` if none): ``np.searchsorted(a, x)``.
+@njit(cache=True, inline="always")
+def lower_bound(a, x, lo, hi):
+    """First index ``i`` in ``[lo, hi)`` of sorted 1-d ``a`` with ``a[i] >= x`` (``hi`` if none):
+    ``lo + np.searchsorted(a[lo:hi], x)``.
 
     Written out because numba's ``np.searchsorted`` lives in ``numba.np.arraymath``: a kernel
     calling it makes every process that loads the kernel import that module (and scipy.linalg,
     numba's BLAS check), ~0.2 CPU s.
     """
-    lo = 0
-    hi = a.shape[0]
     while lo < hi:
         mid = (lo + hi) >> 1
         if a[mid] < x:

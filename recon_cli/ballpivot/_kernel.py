@@ -86,7 +86,7 @@ def gather(ukeys, ustart, sidx, spts, lo, cell, dims, qx, qy, qz, r, out):
         for iy in range(iy0, iy1 + 1):
             base = (ix * dims[1] + iy) * dims[2]
             k1 = base + iz1
-            pos = lower_bound(ukeys, base + iz0)
+            pos = lower_bound(ukeys, base + iz0, 0, len(ukeys))
             while pos < nu and ukeys[pos] <= k1:
                 for t in range(ustart[pos], ustart[pos + 1]):
                     dx = spts[t, 0] - qx
@@ -134,7 +134,7 @@ def nearest_positive(ukeys, ustart, spts, lo, cell, dims, queries, max_rings):
                     z0 = max(cz - r, 0)
                     z1 = min(cz + r, dims[2] - 1)
                     base = (ix * dims[1] + iy) * dims[2]
-                    u = lower_bound(ukeys, base + z0)
+                    u = lower_bound(ukeys, base + z0, 0, len(ukeys))
                     while u < nu and ukeys[u] <= base + z1:
                         iz = ukeys[u] - base
                         if side or iz == cz - r or iz == cz + r:  # inner columns: the two end cells only

@@ -26,7 +26,8 @@ import numpy as np
 from numba import njit
 
 from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache directory, threading layer)
-from recon_cli.poisson._octree import MASK21, bsearch, lattice_key, lower_bound
+from recon_cli._kernels.arrays import lower_bound
+from recon_cli.poisson._octree import MASK21, bsearch, lattice_key
 
 # B2''' = sum_k A_k delta(u - T_k)
 _A = (1.0, -3.0, 3.0, -1.0)

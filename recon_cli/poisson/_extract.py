@@ -12,8 +12,9 @@ import numpy as np
 from numba import njit
 
 from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache directory, threading layer)
+from recon_cli._kernels.arrays import lower_bound
 from recon_cli._kernels.hashtable import probe
-from recon_cli.poisson._octree import MASK21, lattice_key, lower_bound
+from recon_cli.poisson._octree import MASK21, lattice_key
 
 
 @njit(cache=True, inline="always")

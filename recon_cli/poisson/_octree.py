@@ -20,6 +20,7 @@ import numpy as np
 from numba import njit
 
 from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache directory, threading layer)
+from recon_cli._kernels.arrays import lower_bound
 
 SHIFT_X = 42
 SHIFT_Y = 21
@@ -36,18 +37,6 @@ def bsearch(keys, key):
     """Index of ``key`` in sorted unique ``keys``, -1 if absent (no hash table to keep)."""
     lo = lower_bound(keys, key, 0, len(keys))
     return lo if (lo < len(keys) and keys[lo] == key) else -1
-
-
-@njit(cache=True, inline="always")
-def lower_bound(keys, key, lo, hi):
-    """First index in [lo, hi) of sorted ``keys`` whose key is >= ``key`` (``hi`` if none)."""
-    while lo < hi:
-        mid = (lo + hi) >> 1
-        if keys[mid] < key:
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo
 
 
 @njit(cache=True)

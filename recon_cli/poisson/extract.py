@@ -179,12 +179,13 @@ def refine_roots(verts: np.ndarray, chi: list, iso: float, depth: int) -> int:
     indicator it stands for is smooth. As PoissonRecon's non-linear fit (the default in it and
     in Open3D), the root is taken on the quadratic through the edge's end values whose end
     slopes are in the ratio of chi's slopes there (central differences one lattice step beyond
-    the ends: :func:`._extract.fit_roots`). A sphere, 100k samples, depth 7: mean radial error
-    1.7e-4 -> 7.4e-5 of the radius (Open3D 8.5e-5, 1.7e-4 with its linear fit); exact Chamfer
-    at depth 8 against Open3D, clean: sphere 0.85x, torus 0.89x (1.55x, 2.23x before). Along a
-    coarse leaf's edge chi is linear and the fit keeps the linear root. A vertex stays within
-    its edge (so the topology is unchanged); vertices on edges that touch the cube's faces
-    (clamped in the extraction) stay where they are.
+    the ends: :func:`._extract.fit_roots`). The edge is the vertex's minimal edge, at the size
+    of the finest leaf around it (:func:`_edge_steps`), and the central differences are one
+    edge length beyond its ends (with the finest step on a coarse leaf's edge, the fit made
+    the kitten at depth 9 worse than the linear roots). A sphere, 100k samples, depth 7: mean
+    radial error 1.7e-4 -> 7.4e-5 of the radius (Open3D 8.5e-5, 1.7e-4 with its linear fit).
+    A vertex stays within its edge (so the topology is unchanged); vertices whose four values
+    would reach the cube's faces (clamped in the extraction) stay where they are.
     """
     res = 1 << depth
     if not len(verts):
