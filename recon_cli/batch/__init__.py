@@ -17,7 +17,8 @@ it dies again the input is reported ``failed`` with ``error_type`` ``"KilledWork
 (the local cluster's scheduler runs with ``distributed.scheduler.allowed-failures=1``;
 an existing cluster keeps its own setting, 3 by default). No more inputs are in flight
 than the cluster has threads, so a dying worker only takes down, and makes suspect, the
-inputs it was running, never inputs waiting in its queue. Dask's ``retries=1`` is also
+inputs it was running, never inputs waiting in its queue; an input that had finished but
+whose record was still held by the dying worker is recomputed, not failed. Dask's ``retries=1`` is also
 set on every task, for errors escaping the task function (which catches recon's own
 errors itself, since rerunning a deterministic failure gains nothing).
 

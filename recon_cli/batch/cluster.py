@@ -439,6 +439,11 @@ def _collect(client, info, pipe, entries, todo, records, progress, ascii, stage_
         with task(progress, f"batch ({len(todo)} inputs)", total=len(todo)) as bar:
             fill()
             for fut in finished():
+                if fut.status == "lost":
+                    # it finished, but the worker holding its record died before this loop read it
+                    # (another input's worker death): the scheduler recomputes it, so wait again
+                    done.add(fut)
+                    continue
                 i = in_flight.pop(fut)
                 if fut.status == "finished":
                     rec = fut.result()
