@@ -67,10 +67,10 @@ def rekey(keys, axis, inverse):
 
 
 @njit(cache=True)
-def dilate_minor(keys, lo, hi, limit):
-    """Sorted unique keys of ``key + t`` for t in [lo, hi] along the minor coordinate (kept in
-    [0, limit]); ``keys`` sorted. One pass, since dilation stays inside each column."""
-    out = np.empty(len(keys) * (hi - lo + 1), np.int64)
+def _dilate_minor_pass(keys, lo, hi, limit, out):
+    """One pass of :func:`dilate_minor`: writes the keys into ``out`` unless it is empty;
+    returns how many there are."""
+    write = len(out) > 0
     m = 0
     last = -1
     for i in range(len(keys)):
@@ -82,10 +82,23 @@ def dilate_minor(keys, lo, hi, limit):
         for v in range(z0, z1 + 1):
             kk = base | v
             if kk > last:
-                out[m] = kk
+                if write:
+                    out[m] = kk
                 m += 1
                 last = kk
-    return out[:m]
+    return m
+
+
+@njit(cache=True)
+def dilate_minor(keys, lo, hi, limit):
+    """Sorted unique keys of ``key + t`` for t in [lo, hi] along the minor coordinate (kept in
+    [0, limit]); ``keys`` sorted. Dilation stays inside each column: one pass counts, a
+    second writes an array of the exact size (an array for every key's ``hi - lo + 1``
+    neighbours, cut afterwards, held up to 5x the output while it ran)."""
+    m = _dilate_minor_pass(keys, lo, hi, limit, np.empty(0, np.int64))
+    out = np.empty(m, np.int64)
+    _dilate_minor_pass(keys, lo, hi, limit, out)
+    return out
 
 
 @njit(cache=True, inline="always")

@@ -161,6 +161,22 @@ def refine_field(pkeys, pvec, rel, off):
 
 
 @njit(cache=True)
+def compact_nonzero(keys, vec):
+    """Move the rows of ``vec`` (m, 3) with a component other than 0, and their ``keys``
+    (m,), to the front, in order, in place; returns how many there are."""
+    m = 0
+    for i in range(len(keys)):
+        if vec[i, 0] != 0.0 or vec[i, 1] != 0.0 or vec[i, 2] != 0.0:
+            if m != i:
+                keys[m] = keys[i]
+                vec[m, 0] = vec[i, 0]
+                vec[m, 1] = vec[i, 1]
+                vec[m, 2] = vec[i, 2]
+            m += 1
+    return m
+
+
+@njit(cache=True)
 def stencil_rhs(ckeys, cvec, level, node_keys, n_nodes, off):
     """b_i = int grad(B_i) . W at a level's nodes for a field of unit-integral quadratic
     B-splines centred on the same level's cells (keys ``ckeys`` sorted, coefficients

@@ -47,6 +47,8 @@ from recon_cli.poisson.system import chi_at
 FACE_MARGIN = 1e-3
 # roots are kept this fraction of a minimal edge away from its ends (no two at one point)
 ROOT_CLAMP = 1e-3
+# vertices refined at a time by refine_roots (its temporaries are ~0.5 kB a vertex)
+ROOT_CHUNK = 1 << 18
 
 
 def extract_finest(levels: list[Level], gvals: list[np.ndarray], iso: float, origin: np.ndarray, size: float
@@ -187,6 +189,16 @@ def refine_roots(verts: np.ndarray, chi: list, iso: float, depth: int) -> int:
     A vertex stays within its edge (so the topology is unchanged); vertices whose four values
     would reach the cube's faces (clamped in the extraction) stay where they are.
     """
+    # in chunks: each vertex's fit is its own, and the fit's temporaries (four lattice points
+    # per vertex, their cells and local coordinates at every level) are ~0.5 kB a vertex
+    moved = 0
+    for s in range(0, len(verts), ROOT_CHUNK):
+        moved += _refine_chunk(verts[s:s + ROOT_CHUNK], chi, iso, depth)
+    return moved
+
+
+def _refine_chunk(verts: np.ndarray, chi: list, iso: float, depth: int) -> int:
+    """:func:`refine_roots` on ``verts`` (a view, moved in place)."""
     res = 1 << depth
     if not len(verts):
         return 0

@@ -222,10 +222,13 @@ class NormalField:
     """
 
     def __init__(self, fields: dict[int, tuple[np.ndarray, np.ndarray]], node_keys: list[np.ndarray]):
-        self.fields = fields
+        # a level's own field is dropped once its right-hand side is made (the dict is
+        # copied: the caller's is left whole; drop it there to free the arrays)
+        self.fields = dict(fields)
         self.carry: tuple[int, np.ndarray, np.ndarray] | None = None
         # finer[d]: the integrals of the levels finer than d against level d's hats
         depth = len(node_keys) - 1
+        self.depth = depth
         self.finer: list[np.ndarray | None] = [None] * (depth + 1)
         up = None
         for lv in range(depth, 0, -1):
@@ -245,24 +248,33 @@ class NormalField:
         rel = cell_keys + _ONES
         for axis in range(3):
             rel = dilate(rel, axis, -2, 2, 1 << d)
-        rel = np.sort(rel)
-        own = self.fields.get(d)
+        # (the last dilation, along z, leaves the keys sorted and unique)
+        own = self.fields.pop(d, None)
         if own is not None:
             own = (own[0] + _ONES, own[1])
             at = np.minimum(np.searchsorted(rel, own[0]), len(rel) - 1)
             if not np.array_equal(rel[at], own[0]):
                 rel = np.union1d(rel, own[0])
-        if self.carry is not None and self.carry[0] == d - 1 and len(self.carry[1]):
-            vec = S.refine_field(self.carry[1], self.carry[2], rel, 1)
+            del at
+        carry, self.carry = self.carry, None
+        if carry is not None and carry[0] == d - 1 and len(carry[1]):
+            vec = S.refine_field(carry[1], carry[2], rel, 1)
         else:
             vec = np.zeros((len(rel), 3))
+        del carry
         if own is not None:
             vec[np.searchsorted(rel, own[0])] += own[1]
-        hit = np.any(vec != 0.0, axis=1)
-        keys, vec = rel[hit], vec[hit]
-        del rel, hit
-        self.carry = (d, keys, vec)
+        del own
+        # the cells the field reaches, in place (the finest level's field is the largest
+        # array of the solve: no second copy of it)
+        m = S.compact_nonzero(rel, vec)
+        keys, vec = rel[:m], vec[:m]
+        if d < self.depth:  # carried to the next level: exact-size copies, the rest freed
+            keys, vec = keys.copy(), vec.copy()
+            self.carry = (d, keys, vec)
+        del rel
         b = S.stencil_rhs(keys, vec, d, node_keys, len(node_keys), 1)
+        del keys, vec
         if self.finer[d] is not None:
             b += self.finer[d]
             self.finer[d] = None

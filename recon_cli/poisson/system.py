@@ -29,8 +29,9 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, full_depth: int, cg
     part included), per-level statistics, total iterations and the finest relative residual.
 
     Each level's arrays go as soon as no later step needs them (sets ``face_nodes`` and
-    ``leaf`` of every level, drops the rest): at the finest level the peak is the level's
-    cells plus the solver's (n,) vectors, tens of MB each.
+    ``leaf`` of every level, drops the rest; ``splats.rhs_fields`` is consumed, set to
+    None): at the finest level the peak is the level's cells plus the solver's (n,)
+    vectors, tens of MB each.
     """
     depth = len(levels) - 1
     spos = smp.pos
@@ -42,6 +43,7 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, full_depth: int, cg
     per_level = []
     work = solve_work(levels, full_depth)
     field = NormalField(splats.rhs_fields, [lev.node_keys for lev in levels])
+    splats.rhs_fields = None  # the field drops each level's share once used
     with task(progress, "poisson: solve", total=sum(work)) as tk:
         for lev in levels:
             tk.expect(work[lev.depth])  # the bar moves on an estimate while the level's kernels run
