@@ -110,6 +110,38 @@ def test_normal_field_rhs_is_the_direct_splat_of_the_spread_field(rng):
         np.testing.assert_allclose(b, ref, rtol=0, atol=1e-12 * np.abs(ref).max())
 
 
+def test_normal_field_rhs_in_slabs_is_bitwise_the_one_pass(rng, monkeypatch):
+    """The right-hand side made a slab of x at a time (to bound its memory) is bit for bit the
+    one made in one pass, at every level of an adaptive tree (dense and sparse halves, splats
+    of several levels, the field carried from level to level), and it consumes the fields of
+    a copy of the caller's dict, not the caller's."""
+    from recon_cli.poisson import splat as splat_mod
+    from recon_cli.poisson.octree import build_levels
+    from recon_cli.poisson.splat import NormalField, make_splats, merge_samples
+
+    p, n = shape_cloud("torus", 20_000, rng, rotate=True)
+    keep = (p[:, 0] > 0) | (rng.random(len(p)) < 1 / 20)
+    p, n = p[keep], n[keep]
+    lo, size = p.min(axis=0), 1.1 * float(np.ptp(p, axis=0).max())
+    smp = merge_samples((p - lo) / size, n, 8)
+    splats = make_splats(smp, 8, 1.5, 4.0, False)
+    levels = build_levels(splats.pos, splats.level, splats.tree_depth, 3, "neumann")
+    node_keys = [lev.node_keys for lev in levels]
+    n_fields = len(splats.rhs_fields)
+    one = NormalField(splats.rhs_fields, node_keys)
+    many = NormalField(splats.rhs_fields, node_keys)
+    assert len(splats.rhs_fields) == n_fields
+    whole = max(len(lev.cell_keys) for lev in levels) + 1
+    for lev in levels:
+        monkeypatch.setattr(splat_mod, "RHS_SLAB_CELLS", whole)
+        a = one.rhs(lev.depth, lev.cell_keys, lev.node_keys, lev.unknown)
+        monkeypatch.setattr(splat_mod, "RHS_SLAB_CELLS", 97)
+        b = many.rhs(lev.depth, lev.cell_keys, lev.node_keys, lev.unknown)
+        assert np.array_equal(a, b), lev.depth
+    assert max(len(lev.cell_keys) for lev in levels) > 20 * 97  # many slabs at the fine levels
+    assert not one.fields and not many.fields and one.carry is None and many.carry is None
+
+
 # the reference: every item splatted at every level, each node it reaches found in the sorted
 # keys (what the solver did before NormalField; its cost grows with the nodes a coarse item
 # reaches at the fine levels)

@@ -185,9 +185,17 @@ def stencil_rhs(ckeys, cvec, level, node_keys, n_nodes, off):
     Nodes are found in the sorted ``node_keys`` column by column, searching forward from the
     previous cell's position in the same column."""
     b = np.zeros(n_nodes)
+    stencil_rhs_into(ckeys, cvec, level, node_keys, off, b)
+    return b
+
+
+@njit(cache=True)
+def stencil_rhs_into(ckeys, cvec, level, node_keys, off, b):
+    """:func:`stencil_rhs` added to ``b`` (n_nodes,): the cells may come in consecutive
+    parts, each node then sums its cells' terms in the same order."""
     n = len(node_keys)
     if n == 0:
-        return b
+        return
     scale = float(1 << level)
     top = 1 << level
     av = np.empty(4)
@@ -229,7 +237,6 @@ def stencil_rhs(ckeys, cvec, level, node_keys, n_nodes, off):
                     oz = (node_keys[j] & MASK21) - z + 1
                     b[j] += (vx * gx + vy * gy) * av[oz] + vz * fxy * dv[oz]
                     j += 1
-    return b
 
 
 @njit(cache=True)

@@ -194,6 +194,9 @@ def fields_as_items(fields: dict[int, tuple[np.ndarray, np.ndarray]]) -> tuple[n
 
 
 _ONES = (1 << 42) | (1 << 21) | 1  # the key of (1, 1, 1): adds 1 to each coordinate
+# cells of a level per slab of NormalField.rhs (its field on the cells around a slab is
+# ~2 x 32 bytes a cell)
+RHS_SLAB_CELLS = 1 << 21
 
 
 class NormalField:
@@ -243,43 +246,72 @@ class NormalField:
     def rhs(self, d: int, cell_keys: np.ndarray, node_keys: np.ndarray, unknown: np.ndarray) -> np.ndarray:
         """(n_nodes,) right-hand side at level ``d``'s nodes (0 where not ``unknown``); call
         once per level, coarse to fine."""
-        # keys of the carried field hold each coordinate plus 1: the cells just beyond the
-        # cube's faces carry B-splines that reach into it
-        rel = cell_keys + _ONES
-        for axis in range(3):
-            rel = dilate(rel, axis, -2, 2, 1 << d)
-        # (the last dilation, along z, leaves the keys sorted and unique)
         own = self.fields.pop(d, None)
         if own is not None:
+            # keys of the carried field hold each coordinate plus 1: the cells just beyond the
+            # cube's faces carry B-splines that reach into it
             own = (own[0] + _ONES, own[1])
-            at = np.minimum(np.searchsorted(rel, own[0]), len(rel) - 1)
-            if not np.array_equal(rel[at], own[0]):
-                rel = np.union1d(rel, own[0])
-            del at
         carry, self.carry = self.carry, None
-        if carry is not None and carry[0] == d - 1 and len(carry[1]):
-            vec = S.refine_field(carry[1], carry[2], rel, 1)
-        else:
-            vec = np.zeros((len(rel), 3))
-        del carry
-        if own is not None:
-            vec[np.searchsorted(rel, own[0])] += own[1]
-        del own
-        # the cells the field reaches, in place (the finest level's field is the largest
-        # array of the solve: no second copy of it)
-        m = S.compact_nonzero(rel, vec)
-        keys, vec = rel[:m], vec[:m]
-        if d < self.depth:  # carried to the next level: exact-size copies, the rest freed
-            keys, vec = keys.copy(), vec.copy()
-            self.carry = (d, keys, vec)
-        del rel
-        b = S.stencil_rhs(keys, vec, d, node_keys, len(node_keys), 1)
-        del keys, vec
+        if carry is not None and not (carry[0] == d - 1 and len(carry[1])):
+            carry = None
+        b = np.zeros(len(node_keys))
+        parts = []
+        # slabs of the lattice's x (consecutive in the sorted keys): the field on every cell
+        # within two of the level's is the largest array of the solve (32 bytes a cell), so
+        # it is made, used and dropped a slab at a time; each node's terms still add up in
+        # the cells' order (stencil_rhs_into), as in one pass
+        n_slabs = max(1, len(cell_keys) // RHS_SLAB_CELLS)
+        bounds = np.unique(np.concatenate([[0], (cell_keys[(len(cell_keys) * np.arange(1, n_slabs)) // n_slabs] >> 42) + 1,
+                                           [(1 << d) + 3]]))
+        for x0, x1 in zip(bounds[:-1], bounds[1:]):
+            keys, vec = self._slab(d, int(x0), int(x1), cell_keys, own, carry)
+            if d < self.depth:  # carried to the next level: exact-size copies
+                parts.append((keys.copy(), vec.copy()))
+            S.stencil_rhs_into(keys, vec, d, node_keys, 1, b)
+            del keys, vec
+        del own, carry
+        if parts:
+            self.carry = (d, np.concatenate([k for k, _ in parts]), np.concatenate([v for _, v in parts]))
+        del parts
         if self.finer[d] is not None:
             b += self.finer[d]
             self.finer[d] = None
         b[~unknown] = 0.0
         return b
+
+    @staticmethod
+    def _slab(d: int, x0: int, x1: int, cell_keys: np.ndarray, own: tuple | None, carry: tuple | None
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """Level ``d``'s field on the cells within two of its cells whose x (plus 1, as the
+        carried field's keys and ``own``'s hold it) is in [x0, x1): (sorted keys, vectors), the cells the
+        field reaches only (views of arrays of the slab's size)."""
+        src = cell_keys[np.searchsorted(cell_keys, max(x0 - 3, 0) << 42):np.searchsorted(cell_keys, max(x1 + 1, 0) << 42)]
+        rel = src + _ONES
+        del src
+        for axis in range(3):
+            rel = dilate(rel, axis, -2, 2, 1 << d)
+        # (the last dilation, along z, leaves the keys sorted and unique)
+        rel = rel[np.searchsorted(rel, x0 << 42):np.searchsorted(rel, x1 << 42)]
+        if own is not None:
+            lo, hi = np.searchsorted(own[0], x0 << 42), np.searchsorted(own[0], x1 << 42)
+            own = own[0][lo:hi], own[1][lo:hi]
+            at = np.minimum(np.searchsorted(rel, own[0]), len(rel) - 1)
+            if len(rel) == 0 or not np.array_equal(rel[at], own[0]):
+                rel = np.union1d(rel, own[0])
+            del at
+        if carry is not None:
+            # the coarser cells whose children (x 2p - 2 .. 2p + 1, coordinates plus 1) reach the slab
+            pk = carry[1]
+            lo = np.searchsorted(pk, max(x0 // 2 - 1, 0) << 42)
+            hi = np.searchsorted(pk, (x1 // 2 + 2) << 42)
+            vec = S.refine_field(pk[lo:hi], carry[2][lo:hi], rel, 1)
+        else:
+            vec = np.zeros((len(rel), 3))
+        if own is not None:
+            vec[np.searchsorted(rel, own[0])] += own[1]
+        # the cells the field reaches, in place
+        m = S.compact_nonzero(rel, vec)
+        return rel[:m], vec[:m]
 
 
 def merge_splats(pos, vec, count, s_lo, s_frac, merge=True):
