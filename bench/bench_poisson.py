@@ -154,6 +154,7 @@ def _topology(mesh) -> str:
 # the three methods
 
 
+NO_PYMESHLAB = False  # --no-pymeshlab (command line): ours and Open3D only
 OUR_TRIM = 0.2  # --trim of the trimmed rows (a fraction of the median density at the samples)
 REF_TRIM = 0.05  # Open3D's vertex-density quantile in the same rows
 
@@ -224,7 +225,8 @@ def _rows_for(case: str, cloud, depth: int, truth, kind: str, workdir: Path, tri
               pymeshlab: bool = True) -> list[dict]:
     out = []
     results = {}
-    runners = [("recon (process)", None), ("open3d", _open3d)] + ([("pymeshlab", _pymeshlab)] if pymeshlab and not trimmed else [])
+    pymeshlab = pymeshlab and not trimmed and not NO_PYMESHLAB
+    runners = [("recon (process)", None), ("open3d", _open3d)] + ([("pymeshlab", _pymeshlab)] if pymeshlab else [])
     for name, fn in runners:
         try:
             m, mesh = _ours_process(cloud, depth, trimmed, workdir) if fn is None else _reference(fn, cloud, depth, trimmed)
@@ -245,8 +247,12 @@ def _rows_for(case: str, cloud, depth: int, truth, kind: str, workdir: Path, tri
     return out
 
 
-def rows(quick: bool) -> list[dict]:
+def rows(quick: bool, only: list[str] | None = None) -> list[dict]:
+    """The rows; ``only``: just the cases whose label contains one of these strings."""
     from recon_cli.io import read_ply
+
+    def want(case: str) -> bool:
+        return not only or any(o in case for o in only)
 
     # warm our numba cache the way a user's install does (no compile time in the rows)
     subprocess.run([str(Path(sys.executable).with_name("recon")), "-q", "warmup"], check=False,
@@ -258,9 +264,13 @@ def rows(quick: bool) -> list[dict]:
         scan = _with_our_normals(read_ply(SHARED / "bunny_scan_000.ply"))
         stereo = _with_our_normals(read_ply(SHARED / "stereo_fragment.ply"))
         for depth in (9,) if quick else (9, 10):
-            out += _rows_for(f"bunny scan raw, d{depth}", scan, depth, None, "fit", work)
-            out += _rows_for(f"stereo fragment, d{depth}", stereo, depth, None, "fit", work)
+            if want(f"bunny scan raw, d{depth}"):
+                out += _rows_for(f"bunny scan raw, d{depth}", scan, depth, None, "fit", work)
+            if want(f"stereo fragment, d{depth}"):
+                out += _rows_for(f"stereo fragment, d{depth}", stereo, depth, None, "fit", work)
         for depth in (8, 9):
+            if not want(f"bunny scan, d{depth}, trimmed"):
+                continue
             out += _rows_for(f"bunny scan, d{depth}, trimmed (ours {OUR_TRIM}, o3d {REF_TRIM:.0%} quantile)", scan, depth,
                              bunny_truth, "accuracy", work, trimmed=True)
 
@@ -271,21 +281,27 @@ def rows(quick: bool) -> list[dict]:
         ]
         for name, noise, depth in smooth:
             label = f"{name} 100k{' noisy' if noise else ''}, d{depth}"
+            if not want(label):
+                continue
             if name == "torus":
                 out += _rows_for(label, _torus(100_000, noise), depth, _torus_truth(), "torus", work)
             else:
                 out += _rows_for(label, _samples(name, 100_000, noise), depth, _mesh(name), "chamfer", work)
         noisy = _samples("kitten", 100_000, NOISE)
         noisy.normals = None
-        out += _rows_for("kitten 100k noisy, our normals, d9", _with_our_normals(noisy), 9, _mesh("kitten"),
-                         "chamfer", work)
+        if want("kitten 100k noisy, our normals, d9"):
+            out += _rows_for("kitten 100k noisy, our normals, d9", _with_our_normals(noisy), 9, _mesh("kitten"),
+                             "chamfer", work)
 
-        if not quick:
+        if not quick and any(want(f"armadillo 1M, d{depth}") for depth in (9, 10)):
             big = _samples("armadillo", 1_000_000)
             for depth in (9, 10):
+                if not want(f"armadillo 1M, d{depth}"):
+                    continue
                 out += _rows_for(f"armadillo 1M, d{depth}", big, depth, _mesh("armadillo"), "chamfer", work,
                                  pymeshlab=depth < 10)
             del big
+        if not quick and want("armadillo 5M, d11"):
             huge = _samples("armadillo", 5_000_000)
             m, mesh = _ours_process(huge, 11, False, work)
             out.append({"case": "armadillo 5M, d11", "method": "recon (process)", "faces": len(mesh.faces),
@@ -296,5 +312,9 @@ def rows(quick: bool) -> list[dict]:
 
 if __name__ == "__main__":
     sys.path.insert(0, str(ROOT))
-    for r in rows("--quick" in sys.argv):
+    # --quick: fewer rows; --only A,B: only the cases whose label contains A or B;
+    # --no-pymeshlab: ours and Open3D only
+    NO_PYMESHLAB = "--no-pymeshlab" in sys.argv
+    only = sys.argv[sys.argv.index("--only") + 1].split(",") if "--only" in sys.argv else None
+    for r in rows("--quick" in sys.argv, only):
         print(r)

@@ -262,6 +262,10 @@ def screened_poisson(
     origin = 0.5 * (lo + hi) - 0.5 * size
     smp = merge_samples((pts - origin) / size, nrm, depth)
     ns = len(smp.count)
+    n_pts = len(pts)
+    del nrm  # memory: the points are kept only for the colours
+    if colors is None:
+        del pts
     timings["samples"] = time.perf_counter() - t0
 
     # ---- kernel density -> area per point and splat level
@@ -279,8 +283,10 @@ def screened_poisson(
     t = time.perf_counter()
     with task(progress, "poisson: tree"):
         levels = build_levels(splats.pos, splats.level, tree_depth, full_depth, boundary)
+    # memory: the splat items made the fields and the tree, the samples' normals and keys the splats
+    splats.pos = splats.vec = splats.level = smp.normal = smp.keys = None
     timings["tree"] = time.perf_counter() - t
-    log.info("poisson: %d points, %d samples, depth %d (tree %d), nodes per level %s", len(pts), ns, depth, tree_depth,
+    log.info("poisson: %d points, %d samples, depth %d (tree %d), nodes per level %s", n_pts, ns, depth, tree_depth,
              [len(lv.node_keys) for lv in levels])
 
     # ---- cascadic solve

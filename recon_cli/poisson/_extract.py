@@ -135,21 +135,22 @@ def corner_keys(cells):
 
 
 @njit(cache=True)
-def unify_corner_values(vals, order_keys, order):
+def unify_corner_values(vals, keys, order):
     """Give every lattice point one value, whichever cell computed it, in place.
 
-    ``vals`` (c, 8) corner values of finest-lattice cells, ``order_keys``
-    the (8c,) lattice keys of the corners sorted and ``order`` their argsort (flat corner
-    index ``8 * cell + corner``). Each run of equal keys takes the value of its first member.
+    ``vals`` (c, 8) corner values of finest-lattice cells, ``keys`` the (8c,) lattice keys
+    of the corners (flat corner index ``8 * cell + corner``) and ``order`` their argsort
+    (read through it: no sorted copy). Each run of equal keys takes the value of its first
+    member.
     """
     n = len(order)
     i = 0
     while i < n:
-        k = order_keys[i]
         f = order[i]
+        k = keys[f]
         v = vals[f >> 3, f & 7]
         j = i + 1
-        while j < n and order_keys[j] == k:
+        while j < n and keys[order[j]] == k:
             g = order[j]
             vals[g >> 3, g & 7] = v
             j += 1

@@ -48,7 +48,7 @@ FACE_MARGIN = 1e-3
 # roots are kept this fraction of a minimal edge away from its ends (no two at one point)
 ROOT_CLAMP = 1e-3
 # vertices refined at a time by refine_roots (its temporaries are ~0.5 kB a vertex)
-ROOT_CHUNK = 1 << 18
+ROOT_CHUNK = 1 << 16
 
 
 def extract_finest(levels: list[Level], gvals: list[np.ndarray], iso: float, origin: np.ndarray, size: float
@@ -83,7 +83,7 @@ def extract_finest(levels: list[Level], gvals: list[np.ndarray], iso: float, ori
     ckeys = E.corner_keys(cells)
     # one unstable argsort and a linear pass: np.unique's stable sort and inverse cost 4x more
     order = np.argsort(ckeys)
-    E.unify_corner_values(vals, ckeys[order], order)
+    E.unify_corner_values(vals, ckeys, order)
     del ckeys, order
     verts, faces = marching_cubes_sparse(cells, vals, -iso, origin=tuple(origin), spacing=size / res)
     del cells, vals

@@ -195,8 +195,8 @@ def fields_as_items(fields: dict[int, tuple[np.ndarray, np.ndarray]]) -> tuple[n
 
 _ONES = (1 << 42) | (1 << 21) | 1  # the key of (1, 1, 1): adds 1 to each coordinate
 # cells of a level per slab of NormalField.rhs (its field on the cells around a slab is
-# ~2 x 32 bytes a cell)
-RHS_SLAB_CELLS = 1 << 21
+# ~2 x 32 bytes a cell: 32 MB)
+RHS_SLAB_CELLS = 1 << 19
 
 
 class NormalField:
