@@ -198,6 +198,7 @@ def test_islands_need_ten_points_specks_always_go(rng, offset):
     # within two cells of its box (an island around outliers) and stays with 10; points farther
     # away do not count; the largest piece always stays
     from recon_cli.poisson import ISLAND_POINTS, _drop_bubbles
+
     from shapes import icosphere
 
     cell = 0.02
@@ -235,6 +236,7 @@ def test_faces_barely_change_past_the_density(rng):
 
 def _bunny_scan_oriented():
     from recon_cli import normals
+
     from shared_data import load_shared
 
     return normals.run_stage(load_shared("bunny_scan_000"), progress=None).output
@@ -263,6 +265,7 @@ def test_real_stereo_fragment_closed_and_manifold(method):
     # samples and one blob around a cluster of 5 outlying points, 3.6 cells across: both go,
     # one piece is left
     from recon_cli import normals
+
     from shared_data import load_shared
 
     c = normals.run_stage(load_shared("stereo_fragment"), progress=None).output
