@@ -30,7 +30,7 @@ def _assert_closed_manifold_one_piece(mesh: TriangleMesh) -> None:
     assert rep["consistently_oriented"] and rep["volume"] > 0
     # welded: no two vertices at one position
     assert len(np.unique(mesh.vertices, axis=0)) == len(mesh.vertices)
-    assert rep["components"] <= 2
+    assert rep["components"] == 1
     trimesh = pytest.importorskip("trimesh")
     tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
     assert tm.is_watertight and tm.is_winding_consistent and tm.is_volume
@@ -191,6 +191,38 @@ def test_noise_specks_dropped_small_parts_kept(rng):
     assert rep["components"] == 2 and rep["watertight"]
 
 
+@pytest.mark.parametrize("offset", [0.0, 1e6])
+def test_islands_need_ten_points_specks_always_go(rng, offset):
+    # the rule of _drop_bubbles on built pieces: beside a unit sphere, a speck (under two cells
+    # across) goes whatever points it has; a sphere 10 cells across goes with 9 input points
+    # within two cells of its box (an island around outliers) and stays with 10; points farther
+    # away do not count; the largest piece always stays
+    from recon_cli.poisson import ISLAND_POINTS, _drop_bubbles
+
+    from shapes import icosphere
+
+    cell = 0.02
+    parts = [icosphere(3), icosphere(2, radius=0.1, centre=(2.0, 0.0, 0.0)),
+             icosphere(1, radius=0.01, centre=(0.0, 2.0, 0.0))]
+    verts = np.vstack([v for v, _ in parts]) + offset
+    starts = np.cumsum([0] + [len(v) for v, _ in parts])
+    faces = np.vstack([f + s for (_, f), s in zip(parts, starts, strict=False)])
+    main = rng.normal(size=(500, 3))
+    main /= np.linalg.norm(main, axis=1)[:, None]
+    far = np.array([2.1 + 2.5 * cell, 0.0, 0.0]) + 0.001 * rng.random((50, 3))  # just outside the padded box
+    for k in (ISLAND_POINTS - 1, ISLAND_POINTS):
+        near = np.array([2.0, 0.0, 0.0]) + 0.1 * rng.uniform(-1, 1, size=(k, 3))
+        pts = np.vstack([main, near, far]) + offset
+        v, f, specks, islands = _drop_bubbles(verts, faces, cell, pts)
+        assert specks == 1
+        assert islands == (1 if k < ISLAND_POINTS else 0)
+        assert len(f) == len(parts[0][1]) + (0 if islands else len(parts[1][1]))
+        assert np.array_equal(v[f], verts[faces[: len(f)]])  # what stays is untouched
+    # no points at all: only the largest piece is left
+    v, f, specks, islands = _drop_bubbles(verts, faces, cell, np.zeros((0, 3)) + offset)
+    assert (specks, islands) == (1, 1) and len(f) == len(parts[0][1])
+
+
 def test_faces_barely_change_past_the_density(rng):
     # 20k samples on a sphere support about depth 8-9: deeper levels are never built, and the
     # surface (extracted at the leaves) is the same
@@ -204,6 +236,7 @@ def test_faces_barely_change_past_the_density(rng):
 
 def _bunny_scan_oriented():
     from recon_cli import normals
+
     from shared_data import load_shared
 
     return normals.run_stage(load_shared("bunny_scan_000"), progress=None).output
@@ -229,9 +262,10 @@ def test_real_stereo_fragment_closed_and_manifold(method):
     # noisy real data whose surface runs into the cube's faces: along a leaf edge leaving a
     # face the clamp can put two roots (a loop of no area, left out); the result is closed
     # and manifold; besides the surface, Poisson's solution has closed specks around noisy
-    # samples (dropped) and one blob around a cluster of 5 outlying points, 3.6 cells across
-    # (kept: it is data)
+    # samples and one blob around a cluster of 5 outlying points, 3.6 cells across: both go,
+    # one piece is left
     from recon_cli import normals
+
     from shared_data import load_shared
 
     c = normals.run_stage(load_shared("stereo_fragment"), progress=None).output
@@ -240,4 +274,4 @@ def test_real_stereo_fragment_closed_and_manifold(method):
     assert rep["watertight"] and rep["edge_manifold"] and rep["vertex_manifold"]
     assert rep["consistently_oriented"] and rep["degenerate_faces"] == 0 and rep["duplicate_faces"] == 0
     assert len(np.unique(mesh.vertices, axis=0)) == len(mesh.vertices)
-    assert rep["components"] <= 2
+    assert rep["components"] == 1

@@ -80,6 +80,9 @@ MAX_DEPTH = 14
 # closed pieces of the extraction smaller than this many finest cells on every side are specks
 # of noise, not surface (_drop_bubbles)
 BUBBLE_CELLS = 2
+# a closed piece (not the largest) with fewer input points than this within BUBBLE_CELLS finest
+# cells of its box is an island around a few outliers, not a surface the data shows (_drop_bubbles)
+ISLAND_POINTS = 10
 
 
 @dataclass
@@ -95,6 +98,7 @@ class PoissonResult:
         ``vertices``, ``faces``, ``depth``, ``iso_value``, ``solver_iterations``,
         ``residual`` (relative residual of the finest level), ``bubbles_removed`` (closed
         specks under two finest cells across, dropped: :func:`_drop_bubbles`),
+        ``islands_removed`` (closed pieces around fewer than ten input points, dropped),
         ``trimmed_faces`` (faces cut or removed by ``trim``), ``trimmed_area`` (fraction of the area removed) and details
         (``tree_depth``: the deepest level the samples support, ``samples``, ``nodes`` per
         level, ``timings``).
@@ -320,7 +324,7 @@ def screened_poisson(
         del chi_lv
         verts *= size / res
         verts += origin
-    verts, faces, bubbles = _drop_bubbles(verts, faces, size / res)
+    verts, faces, bubbles, islands = _drop_bubbles(verts, faces, size / res, pts)
     timings["extract"] = time.perf_counter() - t
 
     mesh = TriangleMesh(vertices=verts, faces=faces)
@@ -351,6 +355,7 @@ def screened_poisson(
         "solver_iterations": int(total_it),
         "residual": float(last_res),
         "bubbles_removed": bubbles,
+        "islands_removed": islands,
         "trimmed_faces": int(trimmed),
         "trimmed_area": trimmed_area,
         "samples": int(ns),
@@ -363,44 +368,60 @@ def screened_poisson(
 
 
 
-def _drop_bubbles(verts: np.ndarray, faces: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray, int]:
-    """Drop the pieces smaller than :data:`BUBBLE_CELLS` finest cells on every side, but the
-    largest; returns the vertices and faces left and how many pieces went.
+def _drop_bubbles(verts: np.ndarray, faces: np.ndarray, cell: float,
+                  points: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """Drop the closed pieces that are noise, never the largest; returns the vertices and
+    faces left and how many specks and islands went.
 
-    Noisy, sparse samples leave chi slightly across the iso-value around single lattice
-    points off the surface: closed specks of 8-16 triangles, one or two cells across (on the
-    shared stereo fragment at depth 9: 21 of them, 0.8-1.2 cells, beside one surface of 128
-    cells). A piece that small cannot stand for a real feature at this depth (the lattice
-    samples chi once per cell), so it goes; the report counts them (``bubbles_removed``).
-    Every piece of the extraction is closed, so what is left is too.
+    - **Specks:** pieces smaller than :data:`BUBBLE_CELLS` finest cells on every side.
+      Noisy, sparse samples leave chi slightly across the iso-value around single lattice
+      points off the surface: closed specks of 8-16 triangles, one or two cells across (on
+      the shared stereo fragment at depth 9: 53 of them, 0.8-1.2 cells, beside one surface
+      of 128 cells). A piece that small cannot stand for a real feature at this depth (the
+      lattice samples chi once per cell).
+    - **Islands:** larger pieces with fewer than :data:`ISLAND_POINTS` of the input
+      ``points`` within :data:`BUBBLE_CELLS` cells of their bounding box. A few outliers
+      away from the surface splat a dipole that Poisson closes into a blob (on the stereo
+      fragment: 82 triangles, 3.6 cells across, around 5 stray points); a real part,
+      however small, carries the samples it was made from.
+
+    Every piece of the extraction is closed, so what is left is too. ``verts``, ``points``
+    and ``cell`` are in the same units (the report counts ``bubbles_removed`` and
+    ``islands_removed``).
     """
     if not len(faces):
-        return verts, faces, 0
+        return verts, faces, 0, 0
     from recon_cli.mesh.topology import Connectivity
 
     lab = Connectivity(faces, len(verts)).face_components
     n = int(lab.max()) + 1
     if n == 1:
-        return verts, faces, 0
+        return verts, faces, 0, 0
     corner = verts[faces.reshape(-1)]
     flab = np.repeat(lab, 3)
-    ext = np.zeros(n)
+    hi = np.full((n, 3), -np.inf)
+    lo = np.full((n, 3), np.inf)
     for a in range(3):
-        hi = np.full(n, -np.inf)
-        lo = np.full(n, np.inf)
-        np.maximum.at(hi, flab, corner[:, a])
-        np.minimum.at(lo, flab, corner[:, a])
-        ext = np.maximum(ext, hi - lo)
-    small = ext < BUBBLE_CELLS * cell
-    small[0] = False  # the largest piece always stays
-    if not small.any():
-        return verts, faces, 0
-    faces = faces[~small[lab]]
+        np.maximum.at(hi[:, a], flab, corner[:, a])
+        np.minimum.at(lo[:, a], flab, corner[:, a])
+    speck = (hi - lo).max(axis=1) < BUBBLE_CELLS * cell
+    speck[0] = False  # the largest piece always stays
+    island = np.zeros(n, bool)
+    pad = BUBBLE_CELLS * cell
+    for k in np.flatnonzero(~speck)[1:]:
+        inside = np.all((points >= lo[k] - pad) & (points <= hi[k] + pad), axis=1)
+        island[k] = np.count_nonzero(inside) < ISLAND_POINTS
+    gone = speck | island
+    if not gone.any():
+        return verts, faces, 0, 0
+    faces = faces[~gone[lab]]
     used = np.zeros(len(verts), bool)
     used[faces.reshape(-1)] = True
     remap = np.cumsum(used) - 1
-    log.info("poisson: %d pieces under %d cells across dropped", int(small.sum()), BUBBLE_CELLS)
-    return verts[used], remap[faces].astype(faces.dtype), int(small.sum())
+    n_speck, n_island = int(speck.sum()), int(island.sum())
+    log.info("poisson: %d pieces under %d cells across and %d around fewer than %d points dropped",
+             n_speck, BUBBLE_CELLS, n_island, ISLAND_POINTS)
+    return verts[used], remap[faces].astype(faces.dtype), n_speck, n_island
 
 
 def _interpolate_colors(pts: np.ndarray, colors: np.ndarray, verts: np.ndarray, cell: float) -> np.ndarray:
@@ -458,7 +479,7 @@ def run_stage(
     -------
     StageResult
         ``output`` a TriangleMesh; ``report`` with ``vertices``, ``faces``, ``depth``,
-        ``iso_value``, ``solver_iterations``, ``residual``, ``bubbles_removed``, ``trimmed_faces``,
+        ``iso_value``, ``solver_iterations``, ``residual``, ``bubbles_removed``, ``islands_removed``, ``trimmed_faces``,
         ``trimmed_area``, ``backend`` (the solver keys are None for the reference backends).
     """
     from recon_cli.stages import StageResult
@@ -486,7 +507,7 @@ def run_stage(
         )
         mesh, rep = res.mesh, res.report
         report = {k: rep[k] for k in ("vertices", "faces", "depth", "iso_value", "solver_iterations", "residual",
-                                      "bubbles_removed", "trimmed_faces", "trimmed_area")}
+                                      "bubbles_removed", "islands_removed", "trimmed_faces", "trimmed_area")}
         report["samples"] = rep["samples"]
         report["ignored_points"] = rep["ignored_points"]
         report["tree_depth"] = rep["tree_depth"]
@@ -521,7 +542,7 @@ def run_stage(
             mesh.attributes["density"] = dens
         report = {
             "vertices": len(mesh.vertices), "faces": len(mesh.faces), "depth": depth,
-            "iso_value": None, "solver_iterations": None, "residual": None, "bubbles_removed": None,
+            "iso_value": None, "solver_iterations": None, "residual": None, "bubbles_removed": None, "islands_removed": None,
             "trimmed_faces": int(trimmed),
             "trimmed_area": trimmed_area,
         }
