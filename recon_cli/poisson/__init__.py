@@ -267,9 +267,7 @@ def screened_poisson(
     smp = merge_samples((pts - origin) / size, nrm, depth)
     ns = len(smp.count)
     n_pts = len(pts)
-    del nrm  # memory: the points are kept only for the colours
-    if colors is None:
-        del pts
+    del nrm  # memory: the normals are in the samples now
     timings["samples"] = time.perf_counter() - t0
 
     # ---- kernel density -> area per point and splat level
