@@ -29,11 +29,9 @@ side only); for untrimmed scans the fit (input points to the output), no F-score
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -169,15 +167,24 @@ def _ours_process(cloud, depth: int, trimmed: bool, workdir: Path) -> tuple[dict
     cmd = [str(recon), "-q", "poisson", str(src), str(dst), "--depth", str(depth)]
     if trimmed:
         cmd += ["--trim", str(OUR_TRIM)]
-    t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    _, status, usage = os.wait4(proc.pid, 0)
-    dt = time.perf_counter() - t0
-    err = proc.stderr.read().decode() if proc.stderr else ""
-    proc.returncode = os.waitstatus_to_exitcode(status)
+    # through a small launcher: a child forked from this (large) process reports this
+    # process's resident size as its own peak (ru_maxrss counts the pages it had before exec)
+    proc = subprocess.run([sys.executable, "-c", _LAUNCHER, *cmd], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     if proc.returncode != 0:
-        raise RuntimeError(f"recon poisson failed ({proc.returncode}): {err.strip()}")
-    return {"seconds": dt, "peak_mb": usage.ru_maxrss / 1024.0}, read_ply(dst)
+        raise RuntimeError(f"recon poisson failed ({proc.returncode}): {proc.stderr.decode().strip()}")
+    dt, maxrss_kb = proc.stdout.decode().split()
+    return {"seconds": float(dt), "peak_mb": int(maxrss_kb) / 1024.0}, read_ply(dst)
+
+
+# runs a command, prints its wall seconds and peak RSS (KiB), exits with its status
+_LAUNCHER = """
+import os, subprocess, sys, time
+t0 = time.perf_counter()
+p = subprocess.Popen(sys.argv[1:], stdout=subprocess.DEVNULL)
+_, status, usage = os.wait4(p.pid, 0)
+print(time.perf_counter() - t0, usage.ru_maxrss)
+sys.exit(os.waitstatus_to_exitcode(status))
+"""
 
 
 def _trim_quantile(mesh, dens: np.ndarray, q: float):

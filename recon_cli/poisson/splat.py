@@ -28,9 +28,10 @@ ESTIMATE_FACTOR = 4.0
 class Samples:
     """Points merged per finest cell (as PoissonRecon does), unit-cube coordinates."""
 
-    keys: np.ndarray  # (s,) int64 sorted keys of the finest cells holding points
+    # screened_poisson drops ``keys`` and ``normal`` once the splats and the tree are made
+    keys: np.ndarray | None  # (s,) int64 sorted keys of the finest cells holding points
     pos: np.ndarray  # (s, 3) mean position
-    normal: np.ndarray  # (s, 3) summed unit normals
+    normal: np.ndarray | None  # (s, 3) summed unit normals
     count: np.ndarray  # (s,) float points merged
     depth: int  # the level of ``keys``
 
@@ -39,9 +40,10 @@ class Samples:
 class Splats:
     """The normals' splat items and the screening weights."""
 
-    pos: np.ndarray  # (k, 3) item position (count-weighted mean of its samples' shares)
-    vec: np.ndarray  # (k, 3) summed normal times area (sign included: chi's gradient is -n)
-    level: np.ndarray  # (k,) int64 splat level
+    # screened_poisson drops ``pos``, ``vec`` and ``level`` once the tree is built
+    pos: np.ndarray | None  # (k, 3) item position (count-weighted mean of its samples' shares)
+    vec: np.ndarray | None  # (k, 3) summed normal times area (sign included: chi's gradient is -n)
+    level: np.ndarray | None  # (k,) int64 splat level
     screen_w: np.ndarray  # (s,) screening weight per sample
     alpha: float
     tree_depth: int  # the finest splat level: the tree goes no deeper
