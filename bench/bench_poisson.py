@@ -319,9 +319,9 @@ def rows(quick: bool, only: list[str] | None = None) -> list[dict]:
 
 if __name__ == "__main__":
     sys.path.insert(0, str(ROOT))
-    # --quick: fewer rows; --only A,B: only the cases whose label contains A or B;
+    # --quick: fewer rows; --only "A;B": only the cases whose label contains A or B;
     # --no-pymeshlab: ours and Open3D only
     NO_PYMESHLAB = "--no-pymeshlab" in sys.argv
-    only = sys.argv[sys.argv.index("--only") + 1].split(",") if "--only" in sys.argv else None
+    only = sys.argv[sys.argv.index("--only") + 1].split(";") if "--only" in sys.argv else None
     for r in rows("--quick" in sys.argv, only):
         print(r)

@@ -197,8 +197,8 @@ def fields_as_items(fields: dict[int, tuple[np.ndarray, np.ndarray]]) -> tuple[n
 
 _ONES = (1 << 42) | (1 << 21) | 1  # the key of (1, 1, 1): adds 1 to each coordinate
 # cells of a level per slab of NormalField.rhs (its field on the cells around a slab is
-# ~2 x 32 bytes a cell: 32 MB)
-RHS_SLAB_CELLS = 1 << 19
+# ~2 x 32 bytes a cell: 16 MB)
+RHS_SLAB_CELLS = 1 << 18
 
 
 class NormalField:
@@ -230,7 +230,8 @@ class NormalField:
         # a level's own field is dropped once its right-hand side is made (the dict is
         # copied: the caller's is left whole; drop it there to free the arrays)
         self.fields = dict(fields)
-        self.carry: tuple[int, np.ndarray, np.ndarray] | None = None
+        # (level, [(keys, vectors) per slab]): the field carried to the next level
+        self.carry: tuple[int, list] | None = None
         # finer[d]: the integrals of the levels finer than d against level d's hats
         depth = len(node_keys) - 1
         self.depth = depth
@@ -254,7 +255,7 @@ class NormalField:
             # cube's faces carry B-splines that reach into it
             own = (own[0] + _ONES, own[1])
         carry, self.carry = self.carry, None
-        if carry is not None and not (carry[0] == d - 1 and len(carry[1])):
+        if carry is not None and not (carry[0] == d - 1 and sum(len(k) for k, _ in carry[1])):
             carry = None
         b = np.zeros(len(node_keys))
         parts = []
@@ -267,13 +268,13 @@ class NormalField:
                                            [(1 << d) + 3]]))
         for x0, x1 in zip(bounds[:-1], bounds[1:]):
             keys, vec = self._slab(d, int(x0), int(x1), cell_keys, own, carry)
-            if d < self.depth:  # carried to the next level: exact-size copies
+            if d < self.depth:  # carried to the next level: exact-size copies, slab by slab
                 parts.append((keys.copy(), vec.copy()))
             S.stencil_rhs_into(keys, vec, d, node_keys, 1, b)
             del keys, vec
         del own, carry
         if parts:
-            self.carry = (d, np.concatenate([k for k, _ in parts]), np.concatenate([v for _, v in parts]))
+            self.carry = (d, parts)
         del parts
         if self.finer[d] is not None:
             b += self.finer[d]
@@ -302,11 +303,22 @@ class NormalField:
                 rel = np.union1d(rel, own[0])
             del at
         if carry is not None:
-            # the coarser cells whose children (x 2p - 2 .. 2p + 1, coordinates plus 1) reach the slab
-            pk = carry[1]
-            lo = np.searchsorted(pk, max(x0 // 2 - 1, 0) << 42)
-            hi = np.searchsorted(pk, (x1 // 2 + 2) << 42)
-            vec = S.refine_field(pk[lo:hi], carry[2][lo:hi], rel, 1)
+            # the coarser cells whose children (x 2p - 2 .. 2p + 1, coordinates plus 1) reach
+            # the slab, from the coarser level's slabs (consecutive, in key order)
+            pieces = []
+            for pk, pv in carry[1]:
+                lo = np.searchsorted(pk, max(x0 // 2 - 1, 0) << 42)
+                hi = np.searchsorted(pk, (x1 // 2 + 2) << 42)
+                if hi > lo:
+                    pieces.append((pk[lo:hi], pv[lo:hi]))
+            if len(pieces) == 1:
+                pk, pv = pieces[0]
+            elif pieces:
+                pk, pv = np.concatenate([k for k, _ in pieces]), np.concatenate([v for _, v in pieces])
+            else:
+                pk, pv = np.zeros(0, np.int64), np.zeros((0, 3))
+            del pieces
+            vec = S.refine_field(pk, pv, rel, 1)
         else:
             vec = np.zeros((len(rel), 3))
         if own is not None:
