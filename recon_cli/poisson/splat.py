@@ -196,9 +196,9 @@ def fields_as_items(fields: dict[int, tuple[np.ndarray, np.ndarray]]) -> tuple[n
 
 
 _ONES = (1 << 42) | (1 << 21) | 1  # the key of (1, 1, 1): adds 1 to each coordinate
-# cells of a level per slab of NormalField.rhs (its field on the cells around a slab is
-# ~2 x 32 bytes a cell: 16 MB)
-RHS_SLAB_CELLS = 1 << 18
+# cells of a level per slab of NormalField.rhs, at most (the field on the cells within two of
+# a slab's, with the dilation's temporaries, is ~200 bytes a cell: ~25 MB)
+RHS_SLAB_CELLS = 1 << 17
 
 
 class NormalField:
@@ -263,7 +263,7 @@ class NormalField:
         # within two of the level's is the largest array of the solve (32 bytes a cell), so
         # it is made, used and dropped a slab at a time; each node's terms still add up in
         # the cells' order (stencil_rhs_into), as in one pass
-        n_slabs = max(1, len(cell_keys) // RHS_SLAB_CELLS)
+        n_slabs = max(1, -(-len(cell_keys) // RHS_SLAB_CELLS))
         bounds = np.unique(np.concatenate([[0], (cell_keys[(len(cell_keys) * np.arange(1, n_slabs)) // n_slabs] >> 42) + 1,
                                            [(1 << d) + 3]]))
         for x0, x1 in zip(bounds[:-1], bounds[1:]):
