@@ -395,15 +395,17 @@ def _drop_bubbles(verts: np.ndarray, faces: np.ndarray, cell: float,
     n = int(lab.max()) + 1
     if n == 1:
         return verts, faces, 0, 0
-    corner = verts[faces.reshape(-1)]
-    flab = np.repeat(lab, 3)
+    # boxes of the pieces but the largest (piece 0, which always stays): few faces
+    rest = lab != 0
+    corner = verts[faces[rest].reshape(-1)]
+    flab = np.repeat(lab[rest], 3)
     hi = np.full((n, 3), -np.inf)
     lo = np.full((n, 3), np.inf)
     for a in range(3):
         np.maximum.at(hi[:, a], flab, corner[:, a])
         np.minimum.at(lo[:, a], flab, corner[:, a])
     speck = (hi - lo).max(axis=1) < BUBBLE_CELLS * cell
-    speck[0] = False  # the largest piece always stays
+    speck[0] = False
     island = np.zeros(n, bool)
     pad = BUBBLE_CELLS * cell
     for k in np.flatnonzero(~speck)[1:]:
