@@ -130,6 +130,25 @@ def test_fuzz_truncated_or_corrupted_las_is_data_or_input_error(cut, junk, pos, 
         assert np.isfinite(obj.points).all()
 
 
+@pytest.mark.parametrize(("at", "field", "what"), [
+    (100, (2**32 - 1).to_bytes(4, "little"), "VLRs"),  # number of VLRs
+    (107, (2**32 - 1).to_bytes(4, "little"), "points"),  # legacy number of points
+    (96, (2**32 - 1).to_bytes(4, "little"), "outside the file"),  # offset to the points
+    (131, np.float64(1e300).tobytes(), "beyond float64"),  # x scale
+])
+@pytest.mark.parametrize("from_path", [False, True])
+def test_header_counts_beyond_the_file_refused_before_reading(tmp_path, at, field, what, from_path):
+    # a corrupted count made laspy build millions of VLRs or allocate gigabytes (a fuzz case
+    # took a test worker to 22 GB): the header is checked against the file's size first
+    _, data = _laspy_file(1, 3, "1.2", False, n=50)
+    bad = data[:at] + field + data[at + len(field):]
+    f = tmp_path / "bad.las"
+    f.write_bytes(bad)
+    with pytest.raises(InputError, match=what) as exc:
+        decode_las(None, str(f), path=str(f)) if from_path else decode_las(bad, str(f))
+    assert str(exc.value).startswith(str(f) + ": ") and "\n" not in str(exc.value)
+
+
 def _normals_then_poisson(cloud):
     """``recon normals IN - | recon poisson - OUT.ply`` in process: each stage's output through PLY bytes."""
     from recon_cli.io.ply import parse_ply, ply_bytes, ply_to_geometry
