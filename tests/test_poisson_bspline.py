@@ -12,8 +12,9 @@ from recon_cli.errors import ParameterError
 from recon_cli.mesh.topology import report as topology_report
 from recon_cli.poisson import _bspline as B
 from recon_cli.poisson import screened_poisson
-from recon_cli.poisson.bspline import ChiField, folded_tables, level_field
+from recon_cli.poisson.bspline import KERNEL_WIDTH, ChiField, NormalRHS, folded_tables, level_field
 from recon_cli.poisson.octree import build_levels, pack_keys, unpack_keys
+from recon_cli.poisson.splat import fields_as_items, make_splats, merge_samples
 
 from shapes import SHAPES, shape_cloud
 
@@ -236,3 +237,49 @@ def test_degree2_cross_check_open3d_and_pymeshlab_within_one_cell(name):
     ours7 = screened_poisson(c.points, c.normals, depth=7, degree=2)
     cell7 = ours7.report["finest_cell"]
     assert chamfer(samples(ours7.mesh), samples(pymeshlab_backend.poisson(c, depth=7))) < 0.5 * cell7
+
+
+# (shape, points, depth, full depth, samples per node, margin): dense fields at the finest
+# levels; sparse ones at levels 0..2 (level 0's single cell refined onto level 1 included);
+# a shape touching the cube's faces (fields folded at every face) at mixed levels
+RHS_CASES = [("rounded_box", 3000, 6, 2, 1.0, 0.05), ("sphere", 200, 6, 1, 20.0, 0.0),
+             ("torus", 2000, 7, 2, 1.0, 0.0), ("rounded_box", 500, 6, 0, 3.0, 0.0)]
+
+
+@pytest.mark.parametrize("boundary", ["neumann", "dirichlet"])
+@pytest.mark.parametrize("case", RHS_CASES)
+def test_normal_rhs_equals_the_direct_splat_at_every_level(rng, boundary, case):
+    # NormalRHS (the field refined level to level, a 5x5x5 stencil per cell, the finer levels
+    # restricted upward, folded at the faces) against splatting every share at every level
+    assert KERNEL_WIDTH == 1.0
+    name, n, depth, full_depth, spn, margin = case
+    p, nrm = shape_cloud(name, n, rng)
+    lo = p.min(axis=0)
+    size = (p.max(axis=0) - lo).max() * (1.0 + 2.0 * margin)
+    unit = np.clip((p - lo) / size + margin / (1.0 + 2.0 * margin), 0.0, 1.0 - 1e-12)
+    smp = merge_samples(unit, nrm, depth)
+    splats = make_splats(smp, depth, spn, 4.0, False, merge=False)
+    tree = max(splats.tree_depth, 1)
+    levels = build_levels(splats.pos, splats.level, tree, min(full_depth, tree), boundary)
+    lfs = [None] + [level_field(lev, boundary) for lev in levels[1:]]
+    items = fields_as_items(splats.rhs_fields)
+    fast = NormalRHS(splats.rhs_fields, lfs)
+    compared = 0
+    for d in range(1, len(levels)):
+        f = lfs[d]
+        new = fast.rhs(d)
+        old = B.splat_rhs(*items, d, f.q_keys, f.inp, f.s, KERNEL_WIDTH)
+        assert new.shape == old.shape
+        if not len(old):
+            continue
+        assert np.abs(old).max() > 0
+        np.testing.assert_allclose(new, old, rtol=0, atol=1e-12 * np.abs(old).max())
+        compared += 1
+    assert compared >= len(levels) - 2
+    lv = sorted(splats.rhs_fields)
+    if spn > 10:
+        assert lv[0] == 0 and full_depth >= 1  # the root's field, refined onto a complete level 1
+    if margin == 0.0:
+        # some field cell lies on a face of the cube (its B-spline reaches beyond it)
+        assert any(((unpack_keys(k) == 0) | (unpack_keys(k) == (1 << d) - 1)).any()
+                   for d, (k, _) in splats.rhs_fields.items())

@@ -673,3 +673,284 @@ def constrain_to_coarse_leaves(node_keys, g, coarse_keys, coarse_nodes, coarse_l
                             v += w * g_coarse[coarse_nodes[c, r & 3] + (r >> 2)]
                     g[j] = v
                     done = True
+
+
+@njit(cache=True)
+def cells_to_field(q_keys, keys, vec, out):
+    """Add the rows of ``vec`` (m, 3), at the cells ``keys`` (m,) of the level, to ``out``
+    (8q, 3) on E; returns how many cells are not in E (their rows are left out)."""
+    missing = 0
+    for r in range(len(keys)):
+        k = keys[r]
+        m = find_cell(q_keys, (k >> 42) & MASK21, (k >> 21) & MASK21, k & MASK21)
+        if m < 0:
+            missing += 1
+            continue
+        out[m, 0] += vec[r, 0]
+        out[m, 1] += vec[r, 1]
+        out[m, 2] += vec[r, 2]
+    return missing
+
+
+@njit(cache=True)
+def prolong_field(q_keys, coarse_q_keys, coarse_nb, coarse, n_coarse, s):
+    """A field of unit-integral cell-centred quadratic B-splines (coefficients ``coarse``
+    (8qc, 3) on the coarser E) written exactly on E (the children of ``q_keys``): mask
+    (1, 3, 3, 1) / 8 per axis. The field is kept folded (its images beyond the cube's faces
+    added onto the cells they mirror): a coarse cell beyond a face is its mirror cell with
+    sign ``s``, and ``-s`` for the component along the face's normal (a reflection turns
+    that component over), as the test functions' gradients are reflected (:func:`fold`)."""
+    out = np.zeros((8 * len(q_keys), 3))
+    loc = np.zeros((27, 3))
+    for i in range(len(q_keys)):
+        k = q_keys[i]
+        px = (k >> 42) & MASK21
+        py = (k >> 21) & MASK21
+        pz = k & MASK21
+        j = find_cell(coarse_q_keys, px, py, pz)
+        if j < 0:
+            continue
+        jb = j >> 3
+        jo = j & 7
+        # the coarse cells around the parent (written out rather than through _nbr: a
+        # helper taking arrays, called in the loop, costs far more than its arithmetic)
+        for t in range(27):
+            bx = (jo & 1) + t % 3 - 1
+            by = ((jo >> 1) & 1) + (t // 3) % 3 - 1
+            bz = ((jo >> 2) & 1) + t // 9 - 1
+            p = coarse_nb[jb, ((bx >> 1) + 1) + 3 * ((by >> 1) + 1) + 9 * ((bz >> 1) + 1)]
+            if p < 0:
+                loc[t, 0] = 0.0
+                loc[t, 1] = 0.0
+                loc[t, 2] = 0.0
+            else:
+                jj = 8 * p + ((bx & 1) | ((by & 1) << 1) | ((bz & 1) << 2))
+                loc[t, 0] = coarse[jj, 0]
+                loc[t, 1] = coarse[jj, 1]
+                loc[t, 2] = coarse[jj, 2]
+        for o in range(8):
+            # per axis: the far coarse cell's offset (0 when it lies beyond a face: the
+            # parent's mirror), its weight for the components across and along the axis
+            ex = 1 if o & 1 else -1
+            ey = 1 if (o >> 1) & 1 else -1
+            ez = 1 if (o >> 2) & 1 else -1
+            fx = 0 <= px + ex < n_coarse
+            fy = 0 <= py + ey < n_coarse
+            fz = 0 <= pz + ez < n_coarse
+            dx = ex if fx else 0
+            dy = ey if fy else 0
+            dz = ez if fz else 0
+            wx = 0.125 if fx else 0.125 * s  # far weight, components across x
+            wy = 0.125 if fy else 0.125 * s
+            wz = 0.125 if fz else 0.125 * s
+            for a in range(2):
+                for b in range(2):
+                    for c in range(2):
+                        t = (1 + a * dx) + 3 * (1 + b * dy) + 9 * (1 + c * dz)
+                        ax = wx if a else 0.375
+                        ay = wy if b else 0.375
+                        az = wz if c else 0.375
+                        # along an axis the far mirror's sign is -s: -wx where wx = s / 8
+                        gx = (ax if fx or not a else -ax)
+                        gy = (ay if fy or not b else -ay)
+                        gz = (az if fz or not c else -az)
+                        out[8 * i + o, 0] += gx * ay * az * loc[t, 0]
+                        out[8 * i + o, 1] += ax * gy * az * loc[t, 1]
+                        out[8 * i + o, 2] += ax * ay * gz * loc[t, 2]
+    return out
+
+
+@njit(cache=True)
+def field_rhs(q_keys, nb, flag, n, s, fv, fd, vec, out):
+    """out[m] += int grad(B_m) . W for the children m of the parents flagged ``flag``, W the
+    field of unit-integral cell-centred quadratic B-splines with coefficients ``vec`` (8q, 3)
+    on E (folded, :func:`prolong_field`): a fixed 5 x 5 x 5 stencil, ``fv[t + 2]`` and
+    ``fd[t + 2]`` the value and derivative factors per axis of the field's cell at offset
+    ``t`` (:func:`b2_factors`, width 1; ``fd`` per unit length). Each parent's 6 x 6 x 6
+    block of the field is gathered once (cells beyond the faces: their mirror's, with sign
+    ``s``, ``-s`` for the component along the face's normal) and the separable stencil
+    applied one axis at a time to all 8 children together."""
+    X = np.zeros((6, 6, 6, 3))
+    z3 = np.empty((6, 6, 2, 3))
+    y3 = np.empty((6, 2, 2, 3))
+    for i in range(len(q_keys)):
+        if not flag[i]:
+            continue
+        for bz in range(6):
+            for by in range(6):
+                for bx in range(6):
+                    p = nb[i, (bx >> 1) + 3 * (by >> 1) + 9 * (bz >> 1)]
+                    if p >= 0:
+                        m = 8 * p + ((bx & 1) | ((by & 1) << 1) | ((bz & 1) << 2))
+                        X[bx, by, bz, 0] = vec[m, 0]
+                        X[bx, by, bz, 1] = vec[m, 1]
+                        X[bx, by, bz, 2] = vec[m, 2]
+                    else:
+                        X[bx, by, bz, 0] = 0.0
+                        X[bx, by, bz, 1] = 0.0
+                        X[bx, by, bz, 2] = 0.0
+        k = q_keys[i]
+        px = (k >> 42) & MASK21
+        py = (k >> 21) & MASK21
+        pz = k & MASK21
+        # fold the cells beyond the faces (block rows 0, 1 at the low face mirror 3, 2; rows
+        # 4, 5 at the high face mirror 3, 2), axis by axis
+        lo_x = px == 0
+        hi_x = 2 * px + 2 >= n
+        lo_y = py == 0
+        hi_y = 2 * py + 2 >= n
+        lo_z = pz == 0
+        hi_z = 2 * pz + 2 >= n
+        for r in range(6):
+            if not ((r < 2 and lo_x) or (r > 3 and hi_x)):
+                continue
+            mr = 3 - r if r < 2 else 7 - r
+            for u in range(6):
+                for v in range(6):
+                    X[r, u, v, 0] = -s * X[mr, u, v, 0]
+                    X[r, u, v, 1] = s * X[mr, u, v, 1]
+                    X[r, u, v, 2] = s * X[mr, u, v, 2]
+        for r in range(6):
+            if not ((r < 2 and lo_y) or (r > 3 and hi_y)):
+                continue
+            mr = 3 - r if r < 2 else 7 - r
+            for u in range(6):
+                for v in range(6):
+                    X[u, r, v, 0] = s * X[u, mr, v, 0]
+                    X[u, r, v, 1] = -s * X[u, mr, v, 1]
+                    X[u, r, v, 2] = s * X[u, mr, v, 2]
+        for r in range(6):
+            if not ((r < 2 and lo_z) or (r > 3 and hi_z)):
+                continue
+            mr = 3 - r if r < 2 else 7 - r
+            for u in range(6):
+                for v in range(6):
+                    X[u, v, r, 0] = s * X[u, v, mr, 0]
+                    X[u, v, r, 1] = s * X[u, v, mr, 1]
+                    X[u, v, r, 2] = -s * X[u, v, mr, 2]
+        # z: value factor for the x and y components, derivative for z
+        for oz in range(2):
+            for bx in range(6):
+                for by in range(6):
+                    a0 = 0.0
+                    a1 = 0.0
+                    a2 = 0.0
+                    for c in range(5):
+                        a0 += fv[c] * X[bx, by, oz + c, 0]
+                        a1 += fv[c] * X[bx, by, oz + c, 1]
+                        a2 += fd[c] * X[bx, by, oz + c, 2]
+                    z3[bx, by, oz, 0] = a0
+                    z3[bx, by, oz, 1] = a1
+                    z3[bx, by, oz, 2] = a2
+        # y: derivative for the y component
+        for oy in range(2):
+            for bx in range(6):
+                for oz in range(2):
+                    a0 = 0.0
+                    a1 = 0.0
+                    a2 = 0.0
+                    for c in range(5):
+                        a0 += fv[c] * z3[bx, oy + c, oz, 0]
+                        a1 += fd[c] * z3[bx, oy + c, oz, 1]
+                        a2 += fv[c] * z3[bx, oy + c, oz, 2]
+                    y3[bx, oy, oz, 0] = a0
+                    y3[bx, oy, oz, 1] = a1
+                    y3[bx, oy, oz, 2] = a2
+        # x: derivative for the x component
+        for o in range(8):
+            ox = o & 1
+            oy = (o >> 1) & 1
+            oz = (o >> 2) & 1
+            v = 0.0
+            for c in range(5):
+                v += fd[c] * y3[ox + c, oy, oz, 0] + fv[c] * (y3[ox + c, oy, oz, 1] + y3[ox + c, oy, oz, 2])
+            out[8 * i + o] += v
+
+
+@njit(cache=True)
+def finer_blocks(q_keys, fine_q_keys):
+    """(8q,) int64: for each cell of E, the index in the finer level's parent keys
+    ``fine_q_keys`` of the block of its children (-1 if they are not in the finer E)."""
+    out = np.full(8 * len(q_keys), -1, np.int64)
+    for j in range(len(fine_q_keys)):
+        k = fine_q_keys[j]
+        m = find_cell(q_keys, (k >> 42) & MASK21, (k >> 21) & MASK21, k & MASK21)
+        if m >= 0:
+            out[m] = j
+    return out
+
+
+@njit(cache=True)
+def restrict_rhs(q_keys, nb, flag, blocks, fine, n, s):
+    """Integrals against this level's (folded) functions from those against the next finer
+    level's, ``fine`` (8qf,) on the finer E: a function of cell ``c`` is the finer ones of
+    cells 2c - 1 .. 2c + 2 per axis with weights (1, 3, 3, 1) / 4 (a finer cell beyond a face
+    is its mirror with sign ``s``); at the children of the parents flagged ``flag``, 0
+    elsewhere. ``blocks`` is :func:`finer_blocks`; finer cells not in the finer E count as 0."""
+    out = np.zeros(8 * len(q_keys))
+    X = np.zeros((6, 6, 6))
+    zr = np.empty((6, 6, 2))
+    yr = np.empty((6, 2, 2))
+    r4 = np.array([0.25, 0.75, 0.75, 0.25])
+    for i in range(len(q_keys)):
+        if not flag[i]:
+            continue
+        X[:] = 0.0
+        # the cells 2P - 1 .. 2P + 2 per axis around the parent P (cell 2P - 1 + a is child
+        # (a + 1) & 1 of the parent at offset ((a + 1) >> 1) - 1) and their children: finer
+        # cells 4P - 1 .. 4P + 4, block rows 0..5 (row 2a - 1 + child)
+        for c in range(4):
+            for b in range(4):
+                for a in range(4):
+                    p = nb[i, ((a + 1) >> 1) + 3 * ((b + 1) >> 1) + 9 * ((c + 1) >> 1)]
+                    if p < 0:
+                        continue
+                    jf = blocks[8 * p + (((a + 1) & 1) | (((b + 1) & 1) << 1) | (((c + 1) & 1) << 2))]
+                    if jf < 0:
+                        continue
+                    for of in range(8):
+                        rx = 2 * a - 1 + (of & 1)
+                        ry = 2 * b - 1 + ((of >> 1) & 1)
+                        rz = 2 * c - 1 + ((of >> 2) & 1)
+                        if rx < 0 or ry < 0 or rz < 0 or rx > 5 or ry > 5 or rz > 5:
+                            continue
+                        X[rx, ry, rz] = fine[8 * jf + of]
+        k = q_keys[i]
+        px = (k >> 42) & MASK21
+        py = (k >> 21) & MASK21
+        pz = k & MASK21
+        # finer cells beyond the faces: row 0 (cell -1) mirrors row 1, row 5 (cell 2n) row 4
+        if px == 0:
+            X[0, :, :] = s * X[1, :, :]
+        if 2 * px + 2 >= n:
+            X[5, :, :] = s * X[4, :, :]
+        if py == 0:
+            X[:, 0, :] = s * X[:, 1, :]
+        if 2 * py + 2 >= n:
+            X[:, 5, :] = s * X[:, 4, :]
+        if pz == 0:
+            X[:, :, 0] = s * X[:, :, 1]
+        if 2 * pz + 2 >= n:
+            X[:, :, 5] = s * X[:, :, 4]
+        # child o of the parent: finer rows 2 o .. 2 o + 3 per axis
+        for oz in range(2):
+            for bx in range(6):
+                for by in range(6):
+                    v = 0.0
+                    for c in range(4):
+                        v += r4[c] * X[bx, by, 2 * oz + c]
+                    zr[bx, by, oz] = v
+        for oy in range(2):
+            for bx in range(6):
+                for oz in range(2):
+                    v = 0.0
+                    for c in range(4):
+                        v += r4[c] * zr[bx, 2 * oy + c, oz]
+                    yr[bx, oy, oz] = v
+        for o in range(8):
+            ox = o & 1
+            v = 0.0
+            for c in range(4):
+                v += r4[c] * yr[2 * ox + c, (o >> 1) & 1, (o >> 2) & 1]
+            out[8 * i + o] = v
+    return out

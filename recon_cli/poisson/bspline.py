@@ -193,6 +193,117 @@ class ChiField:
         return verts
 
 
+class NormalRHS:
+    """The right-hand side ``b_i = int grad(B_i) . W`` level by level, coarse to fine, for the
+    field ``W`` of :func:`.splat.spread_fields` (a sum of unit-integral cell-centred quadratic
+    B-splines over the splat levels), in time linear in the cells: the degree-2 counterpart
+    of :class:`.splat.NormalField`.
+
+    - Level ``d``'s own share of ``W`` and the coarser levels' (written exactly on level
+      ``d``'s E by B-spline refinement, :func:`._bspline.prolong_field`, carried from level
+      to level) give a fixed 5 x 5 x 5 stencil per cell (:func:`._bspline.field_rhs`).
+    - The finer levels' shares are their stencils at their own level (on the whole E: a
+      share reaches three cells beyond its items), taken to coarser cells by the quadratic
+      B-splines' restriction (a coarse B-spline is the finer ones with weights
+      (1, 3, 3, 1) / 4 per axis, :func:`._bspline.restrict_rhs`), computed once from the
+      finest level up when the field is made.
+
+    The field is kept folded at the cube's faces (its images beyond them added onto the
+    cells they mirror) and the test functions are reflected: this is, to rounding, what
+    splatting every share at every level with its kernel (:func:`._bspline.splat_rhs`)
+    gives, faces included (tested). Only for :data:`KERNEL_WIDTH` 1, where the kernels are
+    the level's own B-splines.
+    """
+
+    def __init__(self, fields: dict[int, tuple[np.ndarray, np.ndarray]], level_fields: list[LevelField | None]):
+        self.fields = fields
+        self.lf = list(level_fields)
+        depth = len(level_fields) - 1
+        self.depth = depth
+        self.carry: np.ndarray | None = None  # the field on the previous level's E, (8q, 3)
+        self.finer: list[np.ndarray | None] = [None] * (depth + 1)
+        up = None
+        for lv in range(depth, 1, -1):
+            f = level_fields[lv]
+            own = self._own(lv)
+            t = None
+            if own is not None:
+                t = np.zeros(8 * len(f.q_keys))
+                fv, fd = self._factors(lv)
+                B.field_rhs(f.q_keys, f.nb, np.ones(len(f.q_keys), bool), 1 << lv, f.s, fv, fd, own, t)
+                del own
+            if up is not None:
+                t = up if t is None else t + up
+            if t is None:
+                up = None
+                continue
+            c = level_fields[lv - 1]
+            blocks = B.finer_blocks(c.q_keys, f.q_keys)
+            up = B.restrict_rhs(c.q_keys, c.nb, c.inp, blocks, t, 1 << (lv - 1), c.s)
+            self.finer[lv - 1] = up
+            del t, blocks
+
+    @staticmethod
+    def _factors(lv: int) -> tuple[np.ndarray, np.ndarray]:
+        """Value and derivative (per unit length) factors of a field's cell at offset -2..2
+        from a level-``lv`` test function's, per axis."""
+        fv = np.empty(5)
+        fd = np.empty(5)
+        for t in range(-2, 3):
+            fv[t + 2], fd[t + 2] = B.b2_factors(float(t), 1.0)
+        return fv, fd * float(1 << lv)
+
+    def _own(self, lv: int) -> np.ndarray | None:
+        """Level ``lv``'s own share of the field on its E (8q, 3), None if it has none."""
+        own = self.fields.get(lv)
+        if own is None or not len(own[0]):
+            return None
+        f = self.lf[lv]
+        out = np.zeros((8 * len(f.q_keys), 3))
+        missing = B.cells_to_field(f.q_keys, own[0], own[1], out)
+        if missing:
+            raise RuntimeError(f"poisson: {missing} cells of level {lv}'s normal field lie outside its E")
+        return out
+
+    def rhs(self, d: int) -> np.ndarray:
+        """(8q,) right-hand side on level ``d``'s E (0 but at the children of the flagged
+        parents); call once per level, 1 to the finest, in order."""
+        f = self.lf[d]
+        carry, self.carry = self.carry, None
+        if d == 1:
+            root = self.fields.get(0)
+            if root is not None and len(root[0]):
+                # the one cell of level 0, refined onto level 1's 8 cells (each a mirror of the
+                # other across every face: weight (3 + sign) / 8 per axis, sign -s along the
+                # component's axis and s across it)
+                vec = np.zeros((8 * len(f.q_keys), 3))
+                across = (3.0 + f.s) / 8.0
+                along = (3.0 - f.s) / 8.0
+                for a in range(3):
+                    vec[:, a] = root[1][0, a] * along * across * across
+                carry = vec
+        else:
+            p = self.lf[d - 1]
+            if carry is not None:
+                carry = B.prolong_field(f.q_keys, p.q_keys, p.nb, carry, 1 << (d - 1), f.s)
+        own = self._own(d)
+        if own is not None:
+            carry = own if carry is None else carry + own
+        del own
+        b = np.zeros(8 * len(f.q_keys))
+        if carry is not None:
+            fv, fd = self._factors(d)
+            B.field_rhs(f.q_keys, f.nb, f.inp, 1 << d, f.s, fv, fd, carry, b)
+        if d < self.depth:
+            self.carry = carry
+        self.lf[d - 1] = None
+        del carry
+        if self.finer[d] is not None:
+            b += self.finer[d]
+            self.finer[d] = None
+        return b
+
+
 def _merge_per_cell(pos: np.ndarray, w: np.ndarray, level: int) -> tuple[np.ndarray, np.ndarray]:
     """Samples merged per cell of ``level``: weighted mean position, summed weight."""
     res = 1 << level
@@ -219,7 +330,12 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, boundary: str, full
     fields: list[LevelField] = []
     node_keys = []
     prev: LevelField | None = None
-    items = fields_as_items(splats.rhs_fields)
+    # every level's E first: the finer levels' right-hand sides are restricted from the finest up
+    lfs: list[LevelField | None] = [None] + [level_field(lev, boundary) for lev in levels[1:]]
+    if KERNEL_WIDTH == 1.0:
+        normal_rhs = NormalRHS(splats.rhs_fields, lfs)
+    else:  # kernels other than the levels' own B-splines: splat every share at every level
+        items = fields_as_items(splats.rhs_fields)
     with task(progress, "poisson: solve", total=len(levels)) as tk:
         for lev in levels:
             release_free_heap()
@@ -234,13 +350,17 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, boundary: str, full
             if d == 0:
                 tk.advance(1)
                 continue
-            f = level_field(lev, boundary)
+            f = lfs[d]
+            lfs[d] = None
             n = 1 << d
             h = 1.0 / n
             m1, k1 = folded_tables(n, f.s)
             unknown = np.repeat(f.inp, 8)
             ne = len(unknown)
-            rhs = B.splat_rhs(*items, d, f.q_keys, f.inp, f.s, KERNEL_WIDTH)
+            if KERNEL_WIDTH == 1.0:
+                rhs = normal_rhs.rhs(d)
+            else:
+                rhs = B.splat_rhs(*items, d, f.q_keys, f.inp, f.s, KERNEL_WIDTH)
             diag = B.stiffness_diag(f.q_keys, f.inp, m1, k1, h)
             if alpha > 0:
                 mp, mw = _merge_per_cell(spos, splats.screen_w * SCREEN_SCALE, d)
