@@ -539,12 +539,16 @@ def level_matvec(q_keys, nb, inp, m1, k1, h, n, s, scell, sloc, sw, x, out):
 @njit(cache=True)
 def level_pcg(q_keys, nb, inp, m1, k1, h, n, s, scell, sloc, sw, rhs, diag, unknown, tol, max_iter):
     """Jacobi-preconditioned conjugate gradients on the unknown cells (others stay 0);
-    ``rhs`` is overwritten by the residual. Returns (x, iterations, relative residual)."""
+    ``rhs`` is overwritten by the residual and ``diag`` by the preconditioner (its inverse
+    at the unknowns, 0 elsewhere: no array of its own at the largest level). Returns
+    (x, iterations, relative residual)."""
     m = len(rhs)
-    inv = np.zeros(m)
+    inv = diag
     for i in range(m):
         if unknown[i] and diag[i] > 0.0:
             inv[i] = 1.0 / diag[i]
+        else:
+            inv[i] = 0.0
         if not unknown[i]:
             rhs[i] = 0.0
     x = np.zeros(m)
@@ -746,20 +750,30 @@ def constrain_to_coarse_leaves(node_keys, g, coarse_keys, coarse_nodes, coarse_l
 
 
 @njit(cache=True)
-def cells_to_field(q_keys, keys, vec, out):
-    """Add the rows of ``vec`` (m, 3), at the cells ``keys`` (m,) of the level, to ``out``
-    (8q, 3) on E; returns how many cells are not in E (their rows are left out)."""
+def field_rows(q_keys, keys):
+    """(8q,) int32: for each cell of E, the row of ``keys`` (the sorted cells of a field of
+    the level) at that cell, -1 if none; and how many of ``keys`` are not in E."""
+    out = np.full(8 * len(q_keys), -1, np.int32)
     missing = 0
     for r in range(len(keys)):
         k = keys[r]
         m = find_cell(q_keys, (k >> 42) & MASK21, (k >> 21) & MASK21, k & MASK21)
         if m < 0:
             missing += 1
-            continue
-        out[m, 0] += vec[r, 0]
-        out[m, 1] += vec[r, 1]
-        out[m, 2] += vec[r, 2]
-    return missing
+        else:
+            out[m] = r
+    return out, missing
+
+
+@njit(cache=True)
+def add_rows(out, idx, rows):
+    """out[m] += rows[idx[m]] (out (8q, 3) on E) where ``idx[m]`` >= 0."""
+    for m in range(len(idx)):
+        r = idx[m]
+        if r >= 0:
+            out[m, 0] += rows[r, 0]
+            out[m, 1] += rows[r, 1]
+            out[m, 2] += rows[r, 2]
 
 
 @njit(cache=True)
@@ -831,15 +845,19 @@ def prolong_field(q_keys, coarse_q_keys, coarse_nb, coarse, n_coarse, s):
 
 
 @njit(cache=True)
-def field_rhs(q_keys, nb, flag, n, s, fv, fd, vec, out):
+def field_rhs(q_keys, nb, flag, n, s, fv, fd, vec, idx, rows, out):
     """out[m] += int grad(B_m) . W for the children m of the parents flagged ``flag``, W the
     field of unit-integral cell-centred quadratic B-splines with coefficients ``vec`` (8q, 3)
-    on E (folded, :func:`prolong_field`): a fixed 5 x 5 x 5 stencil, ``fv[t + 2]`` and
+    on E (folded, :func:`prolong_field`; or none, shape (0, 3)) plus ``rows[idx[m]]`` (a
+    sparse field, :func:`field_rows`; or none, ``idx`` of length 0; a dense copy on E of the
+    finest level's would be the largest array of the solve): a fixed 5 x 5 x 5 stencil, ``fv[t + 2]`` and
     ``fd[t + 2]`` the value and derivative factors per axis of the field's cell at offset
     ``t`` (:func:`b2_factors`, width 1; ``fd`` per unit length). Each parent's 6 x 6 x 6
     block of the field is gathered once (cells beyond the faces: their mirror's, with sign
     ``s``, ``-s`` for the component along the face's normal) and the separable stencil
     applied one axis at a time to all 8 children together."""
+    dense = len(vec) > 0
+    sparse = len(idx) > 0
     X = np.zeros((6, 6, 6, 3))
     z3 = np.empty((6, 6, 2, 3))
     y3 = np.empty((6, 2, 2, 3))
@@ -852,9 +870,27 @@ def field_rhs(q_keys, nb, flag, n, s, fv, fd, vec, out):
                     p = nb[i, (bx >> 1) + 3 * (by >> 1) + 9 * (bz >> 1)]
                     if p >= 0:
                         m = 8 * p + ((bx & 1) | ((by & 1) << 1) | ((bz & 1) << 2))
-                        X[bx, by, bz, 0] = vec[m, 0]
-                        X[bx, by, bz, 1] = vec[m, 1]
-                        X[bx, by, bz, 2] = vec[m, 2]
+                        v0 = 0.0
+                        v1 = 0.0
+                        v2 = 0.0
+                        if dense:
+                            v0 = vec[m, 0]
+                            v1 = vec[m, 1]
+                            v2 = vec[m, 2]
+                        if sparse:
+                            r = idx[m]
+                            if r >= 0:
+                                if dense:
+                                    v0 += rows[r, 0]
+                                    v1 += rows[r, 1]
+                                    v2 += rows[r, 2]
+                                else:
+                                    v0 = rows[r, 0]
+                                    v1 = rows[r, 1]
+                                    v2 = rows[r, 2]
+                        X[bx, by, bz, 0] = v0
+                        X[bx, by, bz, 1] = v1
+                        X[bx, by, bz, 2] = v2
                     else:
                         X[bx, by, bz, 0] = 0.0
                         X[bx, by, bz, 1] = 0.0

@@ -193,6 +193,10 @@ class ChiField:
         return verts
 
 
+_NO_FIELD = np.zeros((0, 3))
+_NO_ROWS = np.zeros(0, np.int32)
+
+
 class NormalRHS:
     """The right-hand side ``b_i = int grad(B_i) . W`` level by level, coarse to fine, for the
     field ``W`` of :func:`.splat.spread_fields` (a sum of unit-integral cell-centred quadratic
@@ -216,7 +220,9 @@ class NormalRHS:
     """
 
     def __init__(self, fields: dict[int, tuple[np.ndarray, np.ndarray]], level_fields: list[LevelField | None]):
-        self.fields = fields
+        # a level's own share is dropped once its right-hand side is made (the dict is
+        # copied: the caller's is left whole; drop it there to free the arrays)
+        self.fields = dict(fields)
         self.lf = list(level_fields)
         depth = len(level_fields) - 1
         self.depth = depth
@@ -230,7 +236,7 @@ class NormalRHS:
             if own is not None:
                 t = np.zeros(8 * len(f.q_keys))
                 fv, fd = self._factors(lv)
-                B.field_rhs(f.q_keys, f.nb, np.ones(len(f.q_keys), bool), 1 << lv, f.s, fv, fd, own, t)
+                B.field_rhs(f.q_keys, f.nb, np.ones(len(f.q_keys), bool), 1 << lv, f.s, fv, fd, _NO_FIELD, *own, t)
                 del own
             if up is not None:
                 t = up if t is None else t + up
@@ -253,17 +259,16 @@ class NormalRHS:
             fv[t + 2], fd[t + 2] = B.b2_factors(float(t), 1.0)
         return fv, fd * float(1 << lv)
 
-    def _own(self, lv: int) -> np.ndarray | None:
-        """Level ``lv``'s own share of the field on its E (8q, 3), None if it has none."""
+    def _own(self, lv: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """Level ``lv``'s own share of the field: the row of each cell of its E (-1 none) and
+        the rows (:func:`._bspline.field_rows`); None if it has none."""
         own = self.fields.get(lv)
         if own is None or not len(own[0]):
             return None
-        f = self.lf[lv]
-        out = np.zeros((8 * len(f.q_keys), 3))
-        missing = B.cells_to_field(f.q_keys, own[0], own[1], out)
+        idx, missing = B.field_rows(self.lf[lv].q_keys, own[0])
         if missing:
             raise RuntimeError(f"poisson: {missing} cells of level {lv}'s normal field lie outside its E")
-        return out
+        return idx, own[1]
 
     def rhs(self, d: int) -> np.ndarray:
         """(8q,) right-hand side on level ``d``'s E (0 but at the children of the flagged
@@ -287,17 +292,25 @@ class NormalRHS:
             if carry is not None:
                 carry = B.prolong_field(f.q_keys, p.q_keys, p.nb, carry, 1 << (d - 1), f.s)
         own = self._own(d)
-        if own is not None:
-            carry = own if carry is None else carry + own
-        del own
+        self.fields.pop(d, None)
+        if d == 1:
+            self.fields.pop(0, None)
         b = np.zeros(8 * len(f.q_keys))
-        if carry is not None:
-            fv, fd = self._factors(d)
-            B.field_rhs(f.q_keys, f.nb, f.inp, 1 << d, f.s, fv, fd, carry, b)
+        fv, fd = self._factors(d)
         if d < self.depth:
+            # the field on E, carried to the next level
+            if carry is None:
+                carry = np.zeros((8 * len(f.q_keys), 3))
+            if own is not None:
+                B.add_rows(carry, *own)
+            B.field_rhs(f.q_keys, f.nb, f.inp, 1 << d, f.s, fv, fd, carry, _NO_ROWS, _NO_FIELD, b)
             self.carry = carry
+        elif carry is not None or own is not None:
+            # the finest level: its own share read where it is (no copy on E)
+            B.field_rhs(f.q_keys, f.nb, f.inp, 1 << d, f.s, fv, fd, _NO_FIELD if carry is None else carry,
+                        *(own if own is not None else (_NO_ROWS, _NO_FIELD)), b)
         self.lf[d - 1] = None
-        del carry
+        del carry, own
         if self.finer[d] is not None:
             b += self.finer[d]
             self.finer[d] = None
@@ -334,6 +347,7 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, boundary: str, full
     lfs: list[LevelField | None] = [None] + [level_field(lev, boundary) for lev in levels[1:]]
     if KERNEL_WIDTH == 1.0:
         normal_rhs = NormalRHS(splats.rhs_fields, lfs)
+        splats.rhs_fields = None  # NormalRHS drops each level's share once used
     else:  # kernels other than the levels' own B-splines: splat every share at every level
         items = fields_as_items(splats.rhs_fields)
     with task(progress, "poisson: solve", total=len(levels)) as tk:
