@@ -124,8 +124,16 @@ def sample_weights(t, c, n, s, w):
 def neighbour_table(keys, top):
     """(k, 27) int32: index in sorted ``keys`` of each key's neighbours (-1 absent or outside
     [0, ``top``])."""
+    out = np.empty((len(keys), 27), np.int32)
+    neighbour_table_into(keys, top, out)
+    return out
+
+
+@njit(cache=True)
+def neighbour_table_into(keys, top, out):
+    """:func:`neighbour_table` written into ``out`` (k, 27) (a slice of the levels' table)."""
     n = len(keys)
-    out = np.full((n, 27), -1, np.int32)
+    out[:] = -1
     for i in range(n):
         k = keys[i]
         x = (k >> 42) & MASK21

@@ -111,18 +111,48 @@ class LevelField:
         return B.locate(pos, self.depth, self.q_keys, self.inp)
 
 
-def level_field(lev: Level, boundary: str) -> LevelField:
-    """The coefficient set E of level ``lev`` (depth >= 1) and its lookups."""
-    d = lev.depth
-    half = 1 << (d - 1)
+def _level_parents(lev: Level) -> tuple[np.ndarray, np.ndarray]:
+    """The parents ``Q`` of level ``lev``'s E (depth >= 1) and which are the level's cells'."""
+    half = 1 << (lev.depth - 1)
     P = np.unique(O.halve(lev.cell_keys))
     Q = P
     for axis in range(3):
         Q = dilate(Q, axis, -1, 1, half - 1)
     inp = np.zeros(len(Q), bool)
     inp[O.merge_lookup(P, Q)] = True
-    nb = B.neighbour_table(Q, half - 1)
-    return LevelField(d, 1.0 if boundary == "neumann" else -1.0, Q, inp, nb)
+    return Q, inp
+
+
+def level_field(lev: Level, boundary: str) -> LevelField:
+    """The coefficient set E of level ``lev`` (depth >= 1) and its lookups."""
+    Q, inp = _level_parents(lev)
+    nb = B.neighbour_table(Q, (1 << (lev.depth - 1)) - 1)
+    return LevelField(lev.depth, 1.0 if boundary == "neumann" else -1.0, Q, inp, nb)
+
+
+def level_fields(levels: list[Level], boundary: str) -> tuple[list[LevelField | None], tuple]:
+    """Every level's E (:func:`level_field`; None for level 0) as views of arrays holding all
+    the levels (parents, flags, neighbour tables, coefficients: :class:`ChiField`'s layout,
+    filled level by level, so the field is made without a copy); and those arrays
+    ``(q_all, q_off, inp_all, nb_all, coef_all)``."""
+    parts = [_level_parents(lev) for lev in levels[1:]]
+    top = len(levels) - 1
+    sizes = np.zeros(top + 2, np.int64)
+    for lev, (Q, _) in zip(levels[1:], parts):
+        sizes[lev.depth + 1] = len(Q)
+    q_off = np.cumsum(sizes)
+    q_all = np.concatenate([Q for Q, _ in parts]) if parts else np.zeros(0, np.int64)
+    inp_all = np.concatenate([inp for _, inp in parts]) if parts else np.zeros(0, bool)
+    del parts
+    nb_all = np.empty((len(q_all), 27), np.int32)
+    coef_all = np.zeros(8 * len(q_all))
+    s = 1.0 if boundary == "neumann" else -1.0
+    out: list[LevelField | None] = [None]
+    for lev in levels[1:]:
+        lo, hi = q_off[lev.depth], q_off[lev.depth + 1]
+        B.neighbour_table_into(q_all[lo:hi], (1 << (lev.depth - 1)) - 1, nb_all[lo:hi])
+        out.append(LevelField(lev.depth, s, q_all[lo:hi], inp_all[lo:hi], nb_all[lo:hi]))
+    return out, (q_all, q_off, inp_all, nb_all, coef_all)
 
 
 class ChiField:
@@ -133,7 +163,13 @@ class ChiField:
     samples, the leaves' corners for the extraction, the roots along the edges).
     """
 
-    def __init__(self, fields: list[LevelField], boundary: str):
+    def __init__(self, fields: list[LevelField], boundary: str, arrays: tuple | None = None):
+        if arrays is not None:
+            # the levels' arrays as :func:`level_fields` made them (the fields are views)
+            self.q_all, self.q_off, self.inp_all, self.nb_all, self.coef_all = arrays
+            self.top = len(self.q_off) - 2
+            self.s = 1.0 if boundary == "neumann" else -1.0
+            return
         top = max((f.depth for f in fields), default=0)
         sizes = np.zeros(top + 2, np.int64)
         for f in fields:
@@ -153,8 +189,14 @@ class ChiField:
                         self.nb_all, self.coef_all, self.s)
 
     def at_nodes(self, lev: Level, node_keys: np.ndarray) -> np.ndarray:
-        """chi at the nodes ``node_keys`` of ``lev``: the leaves' corners for the extraction."""
-        return self.at(unpack_keys(node_keys) / float(1 << lev.depth))
+        """chi at the nodes ``node_keys`` of ``lev``: the leaves' corners for the extraction
+        (their positions made a chunk at a time: at once they were the largest arrays after
+        the solve)."""
+        out = np.empty(len(node_keys))
+        step = 1 << 16
+        for a in range(0, len(node_keys), step):
+            out[a:a + step] = self.at(unpack_keys(node_keys[a:a + step]) / float(1 << lev.depth))
+        return out
 
     def refine_vertices(self, verts: np.ndarray, iso: float, origin: np.ndarray, size: float, depth: int
                         ) -> np.ndarray:
@@ -344,7 +386,8 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, boundary: str, full
     node_keys = []
     prev: LevelField | None = None
     # every level's E first: the finer levels' right-hand sides are restricted from the finest up
-    lfs: list[LevelField | None] = [None] + [level_field(lev, boundary) for lev in levels[1:]]
+    lfs, arrays = level_fields(levels, boundary)
+    coef_all = arrays[4]
     if KERNEL_WIDTH == 1.0:
         normal_rhs = NormalRHS(splats.rhs_fields, lfs)
         splats.rhs_fields = None  # NormalRHS drops each level's share once used
@@ -400,7 +443,9 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, boundary: str, full
             del rhs, diag, scell, sloc, sw
             G += x
             del x
-            f.coef = G
+            f.coef = coef_all[8 * arrays[1][d]:8 * arrays[1][d + 1]]
+            f.coef[:] = G
+            del G
             fields.append(f)
             prev = f
             total_it += it
@@ -411,7 +456,8 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, boundary: str, full
                      int(unknown.sum()), it, rel, time.perf_counter() - tl)
             tk.advance(1)
     levels[-1].leaf = np.ones(len(levels[-1].cell_keys), bool)
-    chi = ChiField(fields, boundary)
+    chi = ChiField(fields, boundary, arrays)
+    del arrays, coef_all
     del fields, prev
     gvals = [chi.at_nodes(lev, keys) for lev, keys in zip(levels, node_keys)]
     # the extraction interpolates each leaf trilinearly from its corners: the finer side of
