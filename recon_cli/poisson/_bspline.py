@@ -163,11 +163,13 @@ def _nbr(nb, i, o, tx, ty, tz):
 
 
 @njit(cache=True)
-def stiffness_matvec(q_keys, nb, inp, m1, k1, h, x, out):
+def stiffness_matvec(q_keys, nb, inp, cmap, m1, k1, h, x, out):
     """out[m] += h * sum over the 125 cells within 2 of m of the stiffness times x, for the
     children m of the parents flagged ``inp``: each parent's 6x6x6 block of cells is gathered
     once and the separable stencil (K M M + M K M + M M K) applied one axis at a time to all
-    8 children together."""
+    8 children together. ``x`` and ``out`` hold parent ``i``'s block at ``8 cmap[i]`` (none
+    where ``cmap[i]`` < 0, read as 0): the identity for vectors on all of E, the rank among
+    the flagged parents for the solve's vectors on the unknowns only."""
     X = np.zeros((6, 6, 6))
     zm = np.empty((6, 6, 2))
     zk = np.empty((6, 6, 2))
@@ -179,6 +181,8 @@ def stiffness_matvec(q_keys, nb, inp, m1, k1, h, x, out):
         # one neighbour block (8 siblings, contiguous) at a time: 27 reads of nb, not 216
         for t in range(27):
             p = nb[i, t]
+            if p >= 0:
+                p = cmap[p]
             ax = 2 * (t % 3)
             ay = 2 * ((t // 3) % 3)
             az = 2 * (t // 9)
@@ -233,7 +237,7 @@ def stiffness_matvec(q_keys, nb, inp, m1, k1, h, x, out):
             y = 0.0
             for a in range(5):
                 y += k1[cx, a] * ym[ox + a, oy, oz] + m1[cx, a] * yk[ox + a, oy, oz]
-            out[8 * i + o] += h * y
+            out[8 * cmap[i] + o] += h * y
 
 
 @njit(cache=True)
@@ -272,8 +276,9 @@ def _w3(t, c, n, s):
 
 
 @njit(cache=True)
-def screening_matvec(q_keys, nb, n, s, scell, sloc, sw, x, out):
-    """out += sum_p w_p B_i(p) sum_j B_j(p) x_j over the samples (cell, local coordinates).
+def screening_matvec(q_keys, nb, cmap, n, s, scell, sloc, sw, x, out):
+    """out += sum_p w_p B_i(p) sum_j B_j(p) x_j over the samples (cell, local coordinates);
+    ``x`` and ``out`` laid out by ``cmap`` (:func:`stiffness_matvec`).
 
     The 27 cells around a sample and their weights are written out here (and in
     :func:`screening_diag_rhs`): through a helper taking the arrays (``_gather27``, inlined)
@@ -305,6 +310,8 @@ def screening_matvec(q_keys, nb, n, s, scell, sloc, sw, x, out):
                 for a in range(3):
                     bx = ox + a - 1
                     q = nb[i, ((bx >> 1) + 1) + 3 * ((by >> 1) + 1) + 9 * ((bz >> 1) + 1)]
+                    if q >= 0:
+                        q = cmap[q]
                     if q < 0:
                         idx[r] = -1
                     else:
@@ -536,29 +543,30 @@ def gallop(keys, key, lo, hi):
 
 
 @njit(cache=True)
-def level_matvec(q_keys, nb, inp, m1, k1, h, n, s, scell, sloc, sw, x, out):
-    """out = A x (stiffness and screening) at the unknowns; elsewhere whatever A gives."""
+def level_matvec(q_keys, nb, inp, cmap, m1, k1, h, n, s, scell, sloc, sw, x, out):
+    """out = A x (stiffness and screening) at the unknowns; elsewhere whatever A gives;
+    vectors laid out by ``cmap`` (:func:`stiffness_matvec`)."""
     out[:] = 0.0
-    stiffness_matvec(q_keys, nb, inp, m1, k1, h, x, out)
+    stiffness_matvec(q_keys, nb, inp, cmap, m1, k1, h, x, out)
     if len(sw):
-        screening_matvec(q_keys, nb, n, s, scell, sloc, sw, x, out)
+        screening_matvec(q_keys, nb, cmap, n, s, scell, sloc, sw, x, out)
 
 
 @njit(cache=True)
-def level_pcg(q_keys, nb, inp, m1, k1, h, n, s, scell, sloc, sw, rhs, diag, unknown, tol, max_iter):
-    """Jacobi-preconditioned conjugate gradients on the unknown cells (others stay 0);
-    ``rhs`` is overwritten by the residual and ``diag`` by the preconditioner (its inverse
-    at the unknowns, 0 elsewhere: no array of its own at the largest level). Returns
-    (x, iterations, relative residual)."""
+def level_pcg(q_keys, nb, inp, cmap, m1, k1, h, n, s, scell, sloc, sw, rhs, diag, tol, max_iter):
+    """Jacobi-preconditioned conjugate gradients on the unknown cells only: ``rhs``,
+    ``diag`` and the solution hold the children of the flagged parents, parent ``i``'s at
+    ``8 cmap[i]`` (the ring of E, 40 % of its cells at the finest level, carries no unknown:
+    vectors on all of E would be zero there). ``rhs`` is overwritten by the residual and
+    ``diag`` by the preconditioner (its inverse, 0 where not positive). Returns (x,
+    iterations, relative residual)."""
     m = len(rhs)
     inv = diag
     for i in range(m):
-        if unknown[i] and diag[i] > 0.0:
+        if diag[i] > 0.0:
             inv[i] = 1.0 / diag[i]
         else:
             inv[i] = 0.0
-        if not unknown[i]:
-            rhs[i] = 0.0
     x = np.zeros(m)
     r = rhs
     p = np.empty(m)
@@ -575,11 +583,9 @@ def level_pcg(q_keys, nb, inp, m1, k1, h, n, s, scell, sloc, sw, rhs, diag, unkn
     it = 0
     rel = 1.0
     while it < max_iter:
-        level_matvec(q_keys, nb, inp, m1, k1, h, n, s, scell, sloc, sw, p, q)
+        level_matvec(q_keys, nb, inp, cmap, m1, k1, h, n, s, scell, sloc, sw, p, q)
         pq = 0.0
         for i in range(m):
-            if not unknown[i]:
-                q[i] = 0.0
             pq += p[i] * q[i]
         if pq <= 0.0:
             break

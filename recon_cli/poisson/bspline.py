@@ -431,17 +431,23 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, boundary: str, full
             if prev is not None:
                 G = B.prolong(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s)
                 AG = np.empty(ne)
-                B.level_matvec(f.q_keys, f.nb, f.inp, m1, k1, h, n, f.s, scell, sloc, sw, G, AG)
+                B.level_matvec(f.q_keys, f.nb, f.inp, np.arange(len(f.q_keys)), m1, k1, h, n, f.s, scell, sloc, sw,
+                               G, AG)
                 rhs -= AG
                 del AG
             else:
                 G = np.zeros(ne)
             exact = d <= full_depth
             release_free_heap()
-            x, it, rel = B.level_pcg(f.q_keys, f.nb, f.inp, m1, k1, h, n, f.s, scell, sloc, sw, rhs, diag, unknown,
+            # the solve's vectors on the unknowns only (the children of the flagged parents)
+            cmap = np.cumsum(f.inp) - 1
+            cmap[~f.inp] = -1
+            rhs = rhs[unknown]
+            diag = diag[unknown]
+            x, it, rel = B.level_pcg(f.q_keys, f.nb, f.inp, cmap, m1, k1, h, n, f.s, scell, sloc, sw, rhs, diag,
                                      1e-7 if exact else cg_tolerance, 2000 if exact else 200)
-            del rhs, diag, scell, sloc, sw
-            G += x
+            del rhs, diag, scell, sloc, sw, cmap
+            G[unknown] += x
             del x
             f.coef = coef_all[8 * arrays[1][d]:8 * arrays[1][d + 1]]
             f.coef[:] = G
