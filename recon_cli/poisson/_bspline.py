@@ -859,6 +859,89 @@ def prolong_field(q_keys, coarse_q_keys, coarse_nb, coarse, n_coarse, s):
 
 
 @njit(cache=True)
+def _block_rhs(X, z3, y3, k, n, s, fv, fd, out, base):
+    """The stencil of :func:`field_rhs` on one parent's 6 x 6 x 6 block ``X`` of the field
+    (cells 2P - 2 .. 2P + 3 per axis, P the parent's cell ``k``), the cells beyond the
+    faces folded first: out[base + o] += for its 8 children. (A call per parent, thousands
+    of operations each: not the per-element helper call that costs in the hot loops.)"""
+    px = (k >> 42) & MASK21
+    py = (k >> 21) & MASK21
+    pz = k & MASK21
+    # fold the cells beyond the faces (block rows 0, 1 at the low face mirror 3, 2; rows
+    # 4, 5 at the high face mirror 3, 2), axis by axis
+    lo_x = px == 0
+    hi_x = 2 * px + 2 >= n
+    lo_y = py == 0
+    hi_y = 2 * py + 2 >= n
+    lo_z = pz == 0
+    hi_z = 2 * pz + 2 >= n
+    for r in range(6):
+        if not ((r < 2 and lo_x) or (r > 3 and hi_x)):
+            continue
+        mr = 3 - r if r < 2 else 7 - r
+        for u in range(6):
+            for v in range(6):
+                X[r, u, v, 0] = -s * X[mr, u, v, 0]
+                X[r, u, v, 1] = s * X[mr, u, v, 1]
+                X[r, u, v, 2] = s * X[mr, u, v, 2]
+    for r in range(6):
+        if not ((r < 2 and lo_y) or (r > 3 and hi_y)):
+            continue
+        mr = 3 - r if r < 2 else 7 - r
+        for u in range(6):
+            for v in range(6):
+                X[u, r, v, 0] = s * X[u, mr, v, 0]
+                X[u, r, v, 1] = -s * X[u, mr, v, 1]
+                X[u, r, v, 2] = s * X[u, mr, v, 2]
+    for r in range(6):
+        if not ((r < 2 and lo_z) or (r > 3 and hi_z)):
+            continue
+        mr = 3 - r if r < 2 else 7 - r
+        for u in range(6):
+            for v in range(6):
+                X[u, v, r, 0] = s * X[u, v, mr, 0]
+                X[u, v, r, 1] = s * X[u, v, mr, 1]
+                X[u, v, r, 2] = -s * X[u, v, mr, 2]
+    # z: value factor for the x and y components, derivative for z
+    for oz in range(2):
+        for bx in range(6):
+            for by in range(6):
+                a0 = 0.0
+                a1 = 0.0
+                a2 = 0.0
+                for c in range(5):
+                    a0 += fv[c] * X[bx, by, oz + c, 0]
+                    a1 += fv[c] * X[bx, by, oz + c, 1]
+                    a2 += fd[c] * X[bx, by, oz + c, 2]
+                z3[bx, by, oz, 0] = a0
+                z3[bx, by, oz, 1] = a1
+                z3[bx, by, oz, 2] = a2
+    # y: derivative for the y component
+    for oy in range(2):
+        for bx in range(6):
+            for oz in range(2):
+                a0 = 0.0
+                a1 = 0.0
+                a2 = 0.0
+                for c in range(5):
+                    a0 += fv[c] * z3[bx, oy + c, oz, 0]
+                    a1 += fd[c] * z3[bx, oy + c, oz, 1]
+                    a2 += fv[c] * z3[bx, oy + c, oz, 2]
+                y3[bx, oy, oz, 0] = a0
+                y3[bx, oy, oz, 1] = a1
+                y3[bx, oy, oz, 2] = a2
+    # x: derivative for the x component
+    for o in range(8):
+        ox = o & 1
+        oy = (o >> 1) & 1
+        oz = (o >> 2) & 1
+        v = 0.0
+        for c in range(5):
+            v += fd[c] * y3[ox + c, oy, oz, 0] + fv[c] * (y3[ox + c, oy, oz, 1] + y3[ox + c, oy, oz, 2])
+        out[base + o] += v
+
+
+@njit(cache=True)
 def field_rhs(q_keys, nb, flag, n, s, fv, fd, vec, idx, rows, out):
     """out[m] += int grad(B_m) . W for the children m of the parents flagged ``flag``, W the
     field of unit-integral cell-centred quadratic B-splines with coefficients ``vec`` (8q, 3)
@@ -909,82 +992,118 @@ def field_rhs(q_keys, nb, flag, n, s, fv, fd, vec, idx, rows, out):
                         X[bx, by, bz, 0] = 0.0
                         X[bx, by, bz, 1] = 0.0
                         X[bx, by, bz, 2] = 0.0
+        _block_rhs(X, z3, y3, q_keys[i], n, s, fv, fd, out, 8 * i)
+
+
+@njit(cache=True)
+def field_rhs_prolonged(q_keys, nb, flag, n, s, fv, fd, cq_keys, cnb, cvec, idx, rows, out):
+    """:func:`field_rhs` for the field ``cvec`` of the coarser level (on its E, folded) refined
+    on the fly (:func:`prolong_field`'s mask, per parent: the coarser cells P - 2 .. P + 2
+    per axis give the block's cells 2P - 2 .. 2P + 3) plus ``rows[idx]``: for the finest
+    level, whose refined field on E (24 B a cell) would be the largest array of the solve.
+    Equal to :func:`field_rhs` of :func:`prolong_field`'s result to rounding."""
+    w = np.array([0.125, 0.375, 0.375, 0.125])
+    nc = n >> 1
+    sparse = len(idx) > 0
+    C = np.zeros((5, 5, 5, 3))
+    R1 = np.zeros((6, 5, 5, 3))
+    R2 = np.zeros((6, 6, 5, 3))
+    X = np.zeros((6, 6, 6, 3))
+    z3 = np.empty((6, 6, 2, 3))
+    y3 = np.empty((6, 2, 2, 3))
+    for i in range(len(q_keys)):
+        if not flag[i]:
+            continue
         k = q_keys[i]
         px = (k >> 42) & MASK21
         py = (k >> 21) & MASK21
         pz = k & MASK21
-        # fold the cells beyond the faces (block rows 0, 1 at the low face mirror 3, 2; rows
-        # 4, 5 at the high face mirror 3, 2), axis by axis
-        lo_x = px == 0
-        hi_x = 2 * px + 2 >= n
-        lo_y = py == 0
-        hi_y = 2 * py + 2 >= n
-        lo_z = pz == 0
-        hi_z = 2 * pz + 2 >= n
-        for r in range(6):
-            if not ((r < 2 and lo_x) or (r > 3 and hi_x)):
-                continue
-            mr = 3 - r if r < 2 else 7 - r
-            for u in range(6):
-                for v in range(6):
-                    X[r, u, v, 0] = -s * X[mr, u, v, 0]
-                    X[r, u, v, 1] = s * X[mr, u, v, 1]
-                    X[r, u, v, 2] = s * X[mr, u, v, 2]
-        for r in range(6):
-            if not ((r < 2 and lo_y) or (r > 3 and hi_y)):
-                continue
-            mr = 3 - r if r < 2 else 7 - r
-            for u in range(6):
-                for v in range(6):
-                    X[u, r, v, 0] = s * X[u, mr, v, 0]
-                    X[u, r, v, 1] = -s * X[u, mr, v, 1]
-                    X[u, r, v, 2] = s * X[u, mr, v, 2]
-        for r in range(6):
-            if not ((r < 2 and lo_z) or (r > 3 and hi_z)):
-                continue
-            mr = 3 - r if r < 2 else 7 - r
-            for u in range(6):
-                for v in range(6):
-                    X[u, v, r, 0] = s * X[u, v, mr, 0]
-                    X[u, v, r, 1] = s * X[u, v, mr, 1]
-                    X[u, v, r, 2] = -s * X[u, v, mr, 2]
-        # z: value factor for the x and y components, derivative for z
-        for oz in range(2):
-            for bx in range(6):
-                for by in range(6):
-                    a0 = 0.0
-                    a1 = 0.0
-                    a2 = 0.0
-                    for c in range(5):
-                        a0 += fv[c] * X[bx, by, oz + c, 0]
-                        a1 += fv[c] * X[bx, by, oz + c, 1]
-                        a2 += fd[c] * X[bx, by, oz + c, 2]
-                    z3[bx, by, oz, 0] = a0
-                    z3[bx, by, oz, 1] = a1
-                    z3[bx, by, oz, 2] = a2
-        # y: derivative for the y component
-        for oy in range(2):
-            for bx in range(6):
-                for oz in range(2):
-                    a0 = 0.0
-                    a1 = 0.0
-                    a2 = 0.0
-                    for c in range(5):
-                        a0 += fv[c] * z3[bx, oy + c, oz, 0]
-                        a1 += fd[c] * z3[bx, oy + c, oz, 1]
-                        a2 += fv[c] * z3[bx, oy + c, oz, 2]
-                    y3[bx, oy, oz, 0] = a0
-                    y3[bx, oy, oz, 1] = a1
-                    y3[bx, oy, oz, 2] = a2
-        # x: derivative for the x component
-        for o in range(8):
-            ox = o & 1
-            oy = (o >> 1) & 1
-            oz = (o >> 2) & 1
-            v = 0.0
+        C[:] = 0.0
+        j = find_cell(cq_keys, px, py, pz)
+        if j >= 0:
+            jb = j >> 3
+            jo = j & 7
             for c in range(5):
-                v += fd[c] * y3[ox + c, oy, oz, 0] + fv[c] * (y3[ox + c, oy, oz, 1] + y3[ox + c, oy, oz, 2])
-            out[8 * i + o] += v
+                bz = ((jo >> 2) & 1) + c - 2
+                for b in range(5):
+                    by = ((jo >> 1) & 1) + b - 2
+                    for a in range(5):
+                        bx = (jo & 1) + a - 2
+                        q = cnb[jb, ((bx >> 1) + 1) + 3 * ((by >> 1) + 1) + 9 * ((bz >> 1) + 1)]
+                        if q >= 0:
+                            m = 8 * q + ((bx & 1) | ((by & 1) << 1) | ((bz & 1) << 2))
+                            C[a, b, c, 0] = cvec[m, 0]
+                            C[a, b, c, 1] = cvec[m, 1]
+                            C[a, b, c, 2] = cvec[m, 2]
+            # coarser cells beyond the faces: their mirrors' (sign s, -s for the component
+            # along the face's normal), axis by axis
+            for ax in range(3):
+                pc = px if ax == 0 else (py if ax == 1 else pz)
+                for a in range(5):
+                    cc = pc - 2 + a
+                    if cc < 0:
+                        ma = -1 - cc - (pc - 2)
+                    elif cc >= nc:
+                        ma = 2 * nc - 1 - cc - (pc - 2)
+                    else:
+                        continue
+                    for u in range(5):
+                        for v in range(5):
+                            for comp in range(3):
+                                sg = -s if comp == ax else s
+                                if ax == 0:
+                                    C[a, u, v, comp] = sg * C[ma, u, v, comp]
+                                elif ax == 1:
+                                    C[u, a, v, comp] = sg * C[u, ma, v, comp]
+                                else:
+                                    C[u, v, a, comp] = sg * C[u, v, ma, comp]
+        # refine, one axis at a time: block cell 2P - 2 + b takes coarser cell P - 2 + a with
+        # weight w[b + 3 - 2a]
+        for b in range(6):
+            for u in range(5):
+                for v in range(5):
+                    for comp in range(3):
+                        t = 0.0
+                        for a in range(5):
+                            e = b + 3 - 2 * a
+                            if 0 <= e <= 3:
+                                t += w[e] * C[a, u, v, comp]
+                        R1[b, u, v, comp] = t
+        for b in range(6):
+            for u in range(6):
+                for v in range(5):
+                    for comp in range(3):
+                        t = 0.0
+                        for a in range(5):
+                            e = b + 3 - 2 * a
+                            if 0 <= e <= 3:
+                                t += w[e] * R1[u, a, v, comp]
+                        R2[u, b, v, comp] = t
+        for b in range(6):
+            for u in range(6):
+                for v in range(6):
+                    for comp in range(3):
+                        t = 0.0
+                        for a in range(5):
+                            e = b + 3 - 2 * a
+                            if 0 <= e <= 3:
+                                t += w[e] * R2[u, v, a, comp]
+                        X[u, v, b, comp] = t
+        if sparse:
+            for t27 in range(27):
+                p = nb[i, t27]
+                if p < 0:
+                    continue
+                ax = 2 * (t27 % 3)
+                ay = 2 * ((t27 // 3) % 3)
+                az = 2 * (t27 // 9)
+                for o in range(8):
+                    r = idx[8 * p + o]
+                    if r >= 0:
+                        X[ax + (o & 1), ay + ((o >> 1) & 1), az + (o >> 2), 0] += rows[r, 0]
+                        X[ax + (o & 1), ay + ((o >> 1) & 1), az + (o >> 2), 1] += rows[r, 1]
+                        X[ax + (o & 1), ay + ((o >> 1) & 1), az + (o >> 2), 2] += rows[r, 2]
+        _block_rhs(X, z3, y3, k, n, s, fv, fd, out, 8 * i)
 
 
 @njit(cache=True)

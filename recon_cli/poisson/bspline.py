@@ -331,7 +331,7 @@ class NormalRHS:
                 carry = vec
         else:
             p = self.lf[d - 1]
-            if carry is not None:
+            if carry is not None and d < self.depth:
                 carry = B.prolong_field(f.q_keys, p.q_keys, p.nb, carry, 1 << (d - 1), f.s)
         own = self._own(d)
         self.fields.pop(d, None)
@@ -347,8 +347,13 @@ class NormalRHS:
                 B.add_rows(carry, *own)
             B.field_rhs(f.q_keys, f.nb, f.inp, 1 << d, f.s, fv, fd, carry, _NO_ROWS, _NO_FIELD, b)
             self.carry = carry
+        elif carry is not None and d > 1:
+            # the finest level: the coarser field refined and its own share read where they
+            # are (no copy of either on E)
+            p = self.lf[d - 1]
+            B.field_rhs_prolonged(f.q_keys, f.nb, f.inp, 1 << d, f.s, fv, fd, p.q_keys, p.nb, carry,
+                                  *(own if own is not None else (_NO_ROWS, _NO_FIELD)), b)
         elif carry is not None or own is not None:
-            # the finest level: its own share read where it is (no copy on E)
             B.field_rhs(f.q_keys, f.nb, f.inp, 1 << d, f.s, fv, fd, _NO_FIELD if carry is None else carry,
                         *(own if own is not None else (_NO_ROWS, _NO_FIELD)), b)
         self.lf[d - 1] = None
