@@ -129,7 +129,7 @@ SPEC = StageSpec(
         Param("point_weight", "float", 4.0, "Screening weight (0 = classic unscreened Poisson).", min=0.0),
         Param("samples_per_node", "float", 1.5, "Samples per node at a sample's depth (as PoissonRecon): sparser samples are splatted coarser.",
               unit="samples", min=0.0, min_open=True),
-        Param("degree", "int", 1, "B-spline degree of the basis: 1 trilinear (as Open3D's Poisson), 2 quadratic (about 5x the time; no more accurate than 1 where measured).",
+        Param("degree", "int", 1, "B-spline degree of the basis: 1 trilinear (as Open3D's Poisson), 2 quadratic (about 1.4-1.8x the time; no more accurate than 1 where measured).",
               min=1, max=2),
         Param("boundary", "choice", "neumann", "Condition on the faces of the cube.", choices=BOUNDARIES),
         Param("density", "bool", False, "Write the per-vertex sampling density as vertex property 'density'."),
@@ -217,8 +217,8 @@ def screened_poisson(
     degree : {1, 2}
         B-spline degree of the basis: 1, trilinear hat functions on the nodes (Open3D's
         Poisson uses degree 1 too); 2, quadratic B-splines centred on the cells (support 3
-        cells per axis, :mod:`.bspline`), about 5x the time, and since degree 1 got the
-        non-linear root fit, no more accurate where measured.
+        cells per axis, :mod:`.bspline`), about 1.4-1.8x the time of degree 1, and since
+        degree 1 got the non-linear root fit, no more accurate where measured.
     boundary : {"neumann", "dirichlet"}
         Condition on the cube's faces (Dirichlet: ``chi = 0``, the outside).
     density : bool

@@ -105,33 +105,10 @@ def b2_factors(v, rho):
     return val, der
 
 
-@njit(cache=True, inline="always")
-def sample_weights(t, c, n, s, w):
-    """Values of the functions of cells c - 1, c, c + 1 (folded into ``w[0..2]``) at local
-    coordinate ``t`` in cell ``c``."""
-    w[0] = 0.5 * (1.0 - t) * (1.0 - t)
-    w[1] = 0.75 - (t - 0.5) * (t - 0.5)
-    w[2] = 0.5 * t * t
-    if c == 0:
-        w[1] += s * w[0]
-        w[0] = 0.0
-    if c == n - 1:
-        w[1] += s * w[2]
-        w[2] = 0.0
-
-
-@njit(cache=True)
-def neighbour_table(keys, top):
-    """(k, 27) int32: index in sorted ``keys`` of each key's neighbours (-1 absent or outside
-    [0, ``top``])."""
-    out = np.empty((len(keys), 27), np.int32)
-    neighbour_table_into(keys, top, out)
-    return out
-
-
 @njit(cache=True)
 def neighbour_table_into(keys, top, out):
-    """:func:`neighbour_table` written into ``out`` (k, 27) (a slice of the levels' table)."""
+    """Into ``out`` (k, 27) int32 (a slice of the levels' table): index in sorted ``keys`` of
+    each key's neighbours (-1 absent or outside [0, ``top``])."""
     n = len(keys)
     out[:] = -1
     for i in range(n):
@@ -261,8 +238,9 @@ def stiffness_diag(q_keys, inp, m1, k1, h):
 
 @njit(cache=True, inline="always")
 def _w3(t, c, n, s):
-    """:func:`sample_weights` as three scalars (a helper taking no arrays: one that takes
-    arrays, called per sample in the hot loops, cost several times the arithmetic)."""
+    """Values of the functions of cells c - 1, c, c + 1 (folded) at local coordinate ``t``
+    in cell ``c``, as three scalars (a helper taking no arrays: one that takes arrays,
+    called per sample in the hot loops, cost several times the arithmetic)."""
     w0 = 0.5 * (1.0 - t) * (1.0 - t)
     w1 = 0.75 - (t - 0.5) * (t - 0.5)
     w2 = 0.5 * t * t

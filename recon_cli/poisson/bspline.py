@@ -13,9 +13,11 @@ exact on the stencil (5 cells per axis) of every cell of the level: the set grow
 parent ring per level, and the levels' parents are within one of the tree's parents, so
 the coarser ``E`` always holds what the prolongation reads.
 
-The right-hand side splats each sample's share at its level(s) unmerged (merging per cell
-moves the items of a curved surface inwards, a bias this basis resolves) with a quadratic
-B-spline kernel :data:`KERNEL_WIDTH` cells of the splat level wide. The screening at level
+The right-hand side is that of the normals' field of :func:`.splat.spread_fields` (each
+sample's share at its level(s) unmerged: merging per cell moves the items of a curved
+surface inwards, a bias this basis resolves), its B-splines :data:`KERNEL_WIDTH` cells of
+the splat level wide; for a width of 1 (the levels' own B-splines) it is made in time
+linear in the cells by :class:`NormalRHS` (refinement, a fixed stencil, restriction). The screening at level
 ``d`` uses the samples merged per cell of that level (summed weights, weighted mean
 position), as PoissonRecon merges its interpolation points per node.
 
@@ -126,7 +128,8 @@ def _level_parents(lev: Level) -> tuple[np.ndarray, np.ndarray]:
 def level_field(lev: Level, boundary: str) -> LevelField:
     """The coefficient set E of level ``lev`` (depth >= 1) and its lookups."""
     Q, inp = _level_parents(lev)
-    nb = B.neighbour_table(Q, (1 << (lev.depth - 1)) - 1)
+    nb = np.empty((len(Q), 27), np.int32)
+    B.neighbour_table_into(Q, (1 << (lev.depth - 1)) - 1, nb)
     return LevelField(lev.depth, 1.0 if boundary == "neumann" else -1.0, Q, inp, nb)
 
 
