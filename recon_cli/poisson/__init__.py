@@ -99,7 +99,9 @@ class PoissonResult:
         ``residual`` (relative residual of the finest level), ``bubbles_removed`` (closed
         specks under two finest cells across, dropped: :func:`_drop_bubbles`),
         ``islands_removed`` (closed pieces around fewer than ten input points, dropped),
-        ``trimmed_faces`` (faces cut or removed by ``trim``), ``trimmed_area`` (fraction of the area removed) and details
+        ``trimmed_faces`` (faces cut or removed by ``trim``), ``trimmed_area`` (fraction of the area removed),
+        ``noise`` (the samples' median noise in finest cells of the tree, :func:`.splat.noise_fraction`;
+        None without screening) and details
         (``tree_depth``: the deepest level the samples support, ``samples``, ``nodes`` per
         level, ``timings``).
     """
@@ -253,7 +255,7 @@ def screened_poisson(
 
     from recon_cli.poisson.extract import extract, refine_roots
     from recon_cli.poisson.octree import build_levels
-    from recon_cli.poisson.splat import make_splats, merge_samples, sample_density
+    from recon_cli.poisson.splat import make_splats, merge_samples, noise_fraction, sample_density
     from recon_cli.poisson.system import chi_levels, iso_value, solve
 
     timings: dict[str, float] = {}
@@ -280,6 +282,14 @@ def screened_poisson(
     full_depth = min(full_depth, tree_depth)
     res = 1 << tree_depth  # the finest cells of the tree
     timings["density"] = time.perf_counter() - t
+    # ---- the samples' noise: noisy neighbourhoods are screened less (Splats.screening)
+    t = time.perf_counter()
+    if point_weight > 0:
+        splats.clean, noise = noise_fraction((pts - origin) / size, smp, tree_depth)
+        noise = float(np.median(noise))
+    else:
+        noise = None
+    timings["noise"] = time.perf_counter() - t
 
     # ---- tree: as deep as the splats, no deeper
     t = time.perf_counter()
@@ -356,6 +366,7 @@ def screened_poisson(
         "islands_removed": islands,
         "trimmed_faces": int(trimmed),
         "trimmed_area": trimmed_area,
+        "noise": noise,
         "samples": int(ns),
         "ignored_points": int((~keep).sum()),
         "finest_cell": size / res,
@@ -511,6 +522,7 @@ def run_stage(
         report["samples"] = rep["samples"]
         report["ignored_points"] = rep["ignored_points"]
         report["tree_depth"] = rep["tree_depth"]
+        report["noise"] = rep["noise"]
     else:
         pts, nrm, keep = _check_inputs(cloud.points, cloud.normals)
         # the references about a local origin (Open3D's Poisson loses digits at UTM offsets)
@@ -544,7 +556,7 @@ def run_stage(
             "vertices": len(mesh.vertices), "faces": len(mesh.faces), "depth": depth,
             "iso_value": None, "solver_iterations": None, "residual": None, "bubbles_removed": None, "islands_removed": None,
             "trimmed_faces": int(trimmed),
-            "trimmed_area": trimmed_area,
+            "trimmed_area": trimmed_area, "noise": None,
         }
     mesh.history = history
     mesh.point_dtype = cloud.point_dtype  # double in, double out (float32 in: see geometry.storage_dtype)

@@ -306,3 +306,40 @@ def density_eval(pos, level, ctk, ctv, cbits, dens):
                         v += dens[j] * _b2w(t[0], kx) * _b2w(t[1], ky) * _b2w(t[2], kz)
         out[p] = v
     return out
+
+
+@njit(cache=True)
+def height_fit_moments(unit, inv, cen, frame, res, m):
+    """The normal equations of a quadratic height field per cell: each point ``unit[i]`` (unit
+    cube) of cell ``inv[i]`` in that cell's frame (rows: two tangents and the normal, origin
+    ``cen``, lengths in cells of ``res``), ``w = a + b u + c v + d u^2 + e u v + f v^2``.
+    Returns (m, 6, 6) sums of the monomials' products, (m, 6) their products with ``w`` and
+    (m,) the sums of ``w^2``."""
+    A = np.zeros((m, 6, 6))
+    b = np.zeros((m, 6))
+    ww = np.zeros(m)
+    x = np.empty(6)
+    for i in range(unit.shape[0]):
+        c = inv[i]
+        dx = (unit[i, 0] - cen[c, 0]) * res
+        dy = (unit[i, 1] - cen[c, 1]) * res
+        dz = (unit[i, 2] - cen[c, 2]) * res
+        u = dx * frame[c, 0, 0] + dy * frame[c, 0, 1] + dz * frame[c, 0, 2]
+        v = dx * frame[c, 1, 0] + dy * frame[c, 1, 1] + dz * frame[c, 1, 2]
+        w = dx * frame[c, 2, 0] + dy * frame[c, 2, 1] + dz * frame[c, 2, 2]
+        x[0] = 1.0
+        x[1] = u
+        x[2] = v
+        x[3] = u * u
+        x[4] = u * v
+        x[5] = v * v
+        for j in range(6):
+            b[c, j] += x[j] * w
+            for k in range(j, 6):
+                A[c, j, k] += x[j] * x[k]
+        ww[c] += w * w
+    for c in range(m):
+        for j in range(6):
+            for k in range(j):
+                A[c, j, k] = A[c, k, j]
+    return A, b, ww

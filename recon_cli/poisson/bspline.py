@@ -64,13 +64,16 @@ TARGET = 0.5
 # 1.69), on detailed ones less (armadillo 1.69 against 1.09, kitten 1.38 against 1.23), so
 # one cell, never worse than degree 1 where measured
 KERNEL_WIDTH = 1.0
-# the screening weight relative to degree 1's (the same --point-weight): the quadratic
-# B-splines are smaller at a sample (at most 0.42 against a hat's 1) and smoother, so the
-# same alpha pulls chi less towards the samples; measured on the armadillo, 100k clean
-# samples, depth 8 (Chamfer to the mesh, exact distances): 3.25e-2 at 1x, 2.82e-2 at 3x
-# (degree 1: 2.94e-2, Open3D 2.98e-2); degree 1's alpha has since grown 1.5x (splat.make_splats),
-# so 2 keeps the measured weight
-SCREEN_SCALE = 2.0
+# the screening weight relative to make_splats' where the samples are clean and where they are
+# noisy (Splats.screening, splat.noise_fraction): the quadratic B-splines are smaller at a sample
+# (at most 0.42 against a hat's 1) and smoother, so clean samples want a stronger pull than
+# degree 1's, noisy ones a weaker; measured (exact-distance Chamfer / Open3D's, 100k samples of
+# a sphere, torus, rounded box, the kitten, armadillo and mug, clean and with noise of 0.25 % of
+# the diagonal): one weight for both cannot serve (clean kitten / armadillo at depth 8 want 5x,
+# 0.91x / 0.95x Open3D's, and are 1.00x / 1.07x at 2x; the noisy ones 1.05x / 1.03x at 2x and
+# 0.77x / 0.85x at 0.5x); with 5 and 0.5 every row at depths 8 and 9 is 0.44-1.00x
+SCREEN_CLEAN = 5.0
+SCREEN_NOISY = 0.5
 
 
 def folded_tables(n: int, s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -386,7 +389,8 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, boundary: str, full
     finest relative residual, the iso-value (count-weighted mean of chi at the samples) and
     the field (:class:`ChiField`)."""
     spos, count = smp.pos, smp.count
-    alpha = splats.alpha * SCREEN_SCALE
+    alpha = splats.alpha
+    screen_w = splats.screening(SCREEN_CLEAN, SCREEN_NOISY)
     total_it = 0
     last_res = 0.0
     per_level = []
@@ -428,7 +432,7 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, boundary: str, full
                 rhs = B.splat_rhs(*items, d, f.q_keys, f.inp, f.s, KERNEL_WIDTH)
             diag = B.stiffness_diag(f.q_keys, f.inp, m1, k1, h)
             if alpha > 0:
-                mp, mw = _merge_per_cell(spos, splats.screen_w * SCREEN_SCALE, d)
+                mp, mw = _merge_per_cell(spos, screen_w, d)
                 scell, sloc = f.locate(mp)
                 have = scell >= 0
                 scell, sloc, sw = scell[have], sloc[have], mw[have]

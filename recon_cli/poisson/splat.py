@@ -53,6 +53,18 @@ class Splats:
     # the right-hand side's field: the splat items' vectors shared among the 27 cells around
     # them with quadratic B-spline weights, per level (:func:`spread_fields`)
     rhs_fields: dict | None = None
+    # (s,) how clean each sample's neighbourhood is, 1 clean .. 0 noisy (noise_fraction); None
+    # until measured (screened as clean)
+    clean: np.ndarray | None = None
+
+    def screening(self, clean_scale: float, noisy_scale: float) -> np.ndarray:
+        """(s,) screening weight per sample: ``screen_w`` times ``clean_scale`` where the
+        samples are clean, ``noisy_scale`` where they are noisy (:func:`noise_fraction`), in
+        between as their measured noise says; each basis has its pair (the system's and the
+        B-splines' solve)."""
+        if self.clean is None:
+            return self.screen_w * clean_scale
+        return self.screen_w * (noisy_scale + (clean_scale - noisy_scale) * self.clean)
 
 
 def merge_samples(unit: np.ndarray, nrm: np.ndarray, depth: int) -> Samples:
@@ -142,7 +154,8 @@ def make_splats(smp: Samples, depth: int, samples_per_node: float, point_weight:
     # (level d screened with alpha * 2**(d - tree_depth), system.solve): at 0.75 the kitten,
     # armadillo, sphere, torus and mug are at 0.76-1.03x Open3D's (a rounded box, clean, 1.45x);
     # a stronger weight helps clean samples and costs noisy ones more (1.5x it: clean
-    # 0.75-0.97x, noisy 1.06-1.15x)
+    # 0.75-0.97x, noisy 1.06-1.15x), so each basis scales it by the samples' measured noise
+    # (Splats.screening, noise_fraction; system.SCREEN_CLEAN, bspline.SCREEN_CLEAN)
     alpha = 0.75 * point_weight * mean_area * (1 << tree_depth)
     screen_w = alpha * count
     dens = None
@@ -358,3 +371,109 @@ def merge_splats(pos, vec, count, s_lo, s_frac, merge=True):
             out_l.append(np.full(m, int(lvl), np.int64))
     return np.concatenate(out_p), np.concatenate(out_v), np.concatenate(out_l)
 
+
+
+# ---- the samples' noise, for the screening weight (noise_fraction)
+# noise is measured in cells of this many levels above the tree's finest (4 finest cells wide)
+NOISE_LEVEL_OFFSET = 2
+# ... or coarser, up to this many levels more, where a cell holds too few points or both sides
+# of a thin part
+NOISE_MORE_LEVELS = 3
+# a cell's fit needs this many points (6 unknowns) ...
+NOISE_MIN_POINTS = 16
+# ... and normals this coherent (|sum of normals| / points; two sides of a thin part cancel)
+NOISE_COHERENCE = 0.5
+# the noise, in finest cells, at which a sample's screening is halfway between clean and noisy
+NOISE_TAU = 0.2
+
+
+def _cell_noise(c: np.ndarray, unit: np.ndarray, pn: np.ndarray, sk: np.ndarray, snrm: np.ndarray, depth: int,
+                shift: int, off: int) -> np.ndarray:
+    """The noise of each sample's cell (NaN where it cannot be measured): ``c`` (k, 3) the
+    points' finest-lattice coordinates, ``unit`` their positions, ``pn`` their samples' summed
+    normals, ``sk`` (m, 3) and ``snrm`` the samples' finest coordinates and summed normals, both
+    lattices of level ``depth`` (the noise is in its cells); cells are ``2**shift`` finest cells
+    wide, their lattice moved by ``off`` finest cells."""
+    keys = pack_keys((c + off) >> shift)
+    uk, inv = np.unique(keys, return_inverse=True)
+    inv = inv.reshape(-1)
+    del keys
+    m = len(uk)
+    skeys = pack_keys((sk + off) >> shift)
+    scell = np.minimum(np.searchsorted(uk, skeys), m - 1)
+    mine = uk[scell] == skeys
+    nsum = np.stack([np.bincount(scell[mine], weights=snrm[mine, a], minlength=m) for a in range(3)], axis=1)
+    nlen = np.linalg.norm(nsum, axis=1)
+    # the points of the cell's side only: on a thin part the other side's points face away
+    side = np.einsum("ij,ij->i", pn, nsum[inv]) > 0
+    unit, inv = unit[side], inv[side]
+    cnt = np.bincount(inv, minlength=m).astype(np.float64)
+    ok = (cnt >= NOISE_MIN_POINTS) & (nlen >= NOISE_COHERENCE * np.bincount(scell[mine], weights=np.linalg.norm(
+        snrm[mine], axis=1), minlength=m))
+    cs = np.full(m, np.nan)
+    if ok.any():
+        cen = np.stack([np.bincount(inv, weights=unit[:, a], minlength=m) for a in range(3)], axis=1)
+        cen /= np.maximum(cnt, 1.0)[:, None]
+        nz = nsum / np.where(nlen > 0, nlen, 1.0)[:, None]
+        e = np.zeros((m, 3))
+        e[np.arange(m), np.argmin(np.abs(nz), axis=1)] = 1.0
+        t1 = np.cross(nz, e)
+        t1 /= np.maximum(np.linalg.norm(t1, axis=1), 1e-300)[:, None]
+        frame = np.stack([t1, np.cross(nz, t1), nz], axis=1)
+        # lengths in the cells' own units (the fit's conditioning)
+        A, b, ww = S.height_fit_moments(unit, inv, cen, frame, float(1 << (depth - shift)), m)
+        A, b = A[ok] + 1e-9 * np.eye(6), b[ok]
+        beta = np.linalg.solve(A, b[:, :, None])[:, :, 0]
+        cs[ok] = np.sqrt(np.maximum(ww[ok] - np.einsum("ij,ij->i", beta, b), 0.0) / (cnt[ok] - 6)) * (1 << shift)
+    out = np.full(len(sk), np.nan)
+    out[mine] = cs[scell[mine]]
+    return out
+
+
+def noise_fraction(unit: np.ndarray, smp: Samples, tree_depth: int) -> tuple[np.ndarray, np.ndarray]:
+    """How clean each sample's neighbourhood is: (s,) ``1 / (1 + (sigma / (NOISE_TAU h))**2)``
+    (1 clean, towards 0 noisy) and (s,) ``sigma / h``, ``h`` the tree's finest cell.
+
+    ``sigma`` is the RMS residual of the raw points ``unit`` (n, 3) (unit cube) about a
+    quadratic height field fitted, by least squares, over the sample's cell of level
+    ``tree_depth - NOISE_LEVEL_OFFSET`` along the cell's mean normal (the samples' summed
+    normals): the points' spread across the surface that its shape does not explain. Only the
+    points whose own normals face the mean's side count (on a thin part the other side's points
+    face away: its thickness is not noise). Two lattices half a cell apart are fitted and the
+    larger answer kept (a cell's fit sees only the part of the noise inside it: a surface along
+    a face of one lattice is inside the other's cells). Where a cell holds fewer than
+    :data:`NOISE_MIN_POINTS` points or normals that mostly cancel (under
+    :data:`NOISE_COHERENCE` of their lengths), its parent answers, up to
+    :data:`NOISE_MORE_LEVELS` levels coarser; samples still without an answer take the median
+    of the others (0 if none has one).
+    Requires ``smp.keys`` and ``smp.normal``.
+    """
+    ns = len(smp.count)
+    sig = np.full(ns, np.nan)  # in finest cells of the samples' lattice
+    dd = smp.depth
+    c = np.clip(np.floor(unit * (1 << dd)), 0, (1 << dd) - 1).astype(np.int64)
+    sk = unpack_keys(smp.keys)
+    sidx = np.searchsorted(smp.keys, pack_keys(c))  # each point's sample
+    top = max(tree_depth - NOISE_LEVEL_OFFSET, 0)
+    for level in range(top, max(top - NOISE_MORE_LEVELS, 0) - 1, -1):
+        todo = np.isnan(sig)
+        if not todo.any():
+            break
+        if todo.all():  # the first level: every point (no copies)
+            pc, pu, pn = c, unit, smp.normal[sidx]
+        else:
+            sel = todo[sidx]
+            pc, pu, pn = c[sel], unit[sel], smp.normal[sidx[sel]]
+            del sel
+        shift = dd - level
+        best = np.full(int(todo.sum()), np.nan)
+        # two lattices half a cell apart: a surface along a face of one is inside the cells of
+        # the other (a cell's fit sees only the part of the noise inside it)
+        for off in (0, (1 << shift) >> 1):
+            best = np.fmax(best, _cell_noise(pc, pu, pn, sk[todo], smp.normal[todo], dd, shift, off))
+        del pc, pu, pn
+        sig[todo] = best
+    have = ~np.isnan(sig)
+    sig[~have] = float(np.median(sig[have])) if have.any() else 0.0
+    rel = sig / (1 << (dd - tree_depth))
+    return 1.0 / (1.0 + (rel / NOISE_TAU) ** 2), rel
