@@ -1,7 +1,7 @@
 """Poisson's degree-2 B-spline basis: the operators against their definitions (quadrature,
 partition of unity, exact refinement), and the surfaces it gives: sphere radius error below
 degree 1's and falling with depth, closed manifold one-piece output on generated shapes,
-agreement with Open3D (PoissonRecon's code, degree 2)."""
+agreement with Open3D (PoissonRecon's code, degree 1) and PyMeshLab."""
 
 from __future__ import annotations
 

@@ -162,7 +162,7 @@ def test_root_fit_at_each_leafs_own_size(rng, monkeypatch):
     for fit in (True, False):
         if not fit:
             monkeypatch.setattr(extract_mod, "refine_roots", lambda *a: 0)
-        res = screened_poisson(p, p.copy(), depth=9)
+        res = screened_poisson(p, p.copy(), depth=9, degree=1)  # the fit is degree 1's
         v = res.mesh.vertices
         e = np.abs(np.linalg.norm(v, axis=1) - 1)
         err[fit] = (e[v[:, 2] < -0.2].mean(), e[v[:, 2] > 0.2].mean())
@@ -174,11 +174,11 @@ def test_root_fit_at_each_leafs_own_size(rng, monkeypatch):
 def test_noise_specks_dropped_small_parts_kept(rng):
     # noisy sparse samples screened hard leave closed specks of a cell or two around single
     # lattice points: they go (and are counted); a real part a few cells across stays (at the
-    # default weight the measured noise lowers the screening and no speck forms here: 0 at
-    # weight 4, 36 at 8, 821 at 16)
+    # default weight the measured noise lowers the screening and no speck forms here: degree 1,
+    # 0 at weight 4, 36 at 8, 821 at 16; degree 2 is smoother still)
     p, n = shape_cloud("sphere", 20_000, rng)
     p = p + rng.normal(size=p.shape) * 0.01 * np.ptp(p, axis=0).max()
-    res = screened_poisson(p, n, depth=9, point_weight=16)
+    res = screened_poisson(p, n, depth=9, point_weight=16, degree=1)
     assert res.report["bubbles_removed"] > 0
     _assert_closed_manifold_one_piece(res.mesh)
     big = rng.normal(size=(20_000, 3))

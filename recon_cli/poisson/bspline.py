@@ -1,5 +1,5 @@
-"""The degree-2 B-spline system (a default of some PoissonRecon versions; Open3D uses degree 1): the cascadic solve, the
-iso-value, and chi at the levels' nodes for the extraction.
+"""The degree-2 B-spline system (the stage's default basis, as PoissonRecon's ``--degree 2``; Open3D uses degree 1): the
+cascadic solve, the iso-value, and chi at the levels' nodes for the extraction.
 
 At level ``d`` every cell of the tree carries the tensor-product quadratic B-spline centred
 on it (support 3 cells per axis), reflected at the cube's faces (even for Neumann, odd for
