@@ -161,11 +161,17 @@ def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
             ("poisson", recon("poisson", src, out, "--depth", "5")),
             ("poisson density", recon("poisson", src, out, "--depth", "5", "--density", "--trim", "0.1",
                                       "--boundary", "dirichlet")),
+            ("poisson degree 1", recon("poisson", src, out, "--depth", "5", "--degree", "1")),
+            ("poisson degree 1 density", recon("poisson", src, out, "--depth", "5", "--degree", "1", "--density",
+                                               "--trim", "0.1", "--boundary", "dirichlet")),
             ("ballpivot", recon("ballpivot", src, out)),
             ("sdf cloud", recon("sdf", src, path("cloud.npz"), "--resolution", "16")),
         ]
-    steps.append(("poisson adaptive levels", recon("poisson", c32, out, "--depth", "7")))
-    steps.append(("poisson levels past the full depth", recon("poisson", path("dense.ply"), out, "--depth", "7")))
+    for deg in ("1", "2"):
+        steps.append((f"poisson adaptive levels, degree {deg}", recon("poisson", c32, out, "--depth", "7", "--degree",
+                                                                      deg)))
+        steps.append((f"poisson levels past the full depth, degree {deg}", recon("poisson", path("dense.ply"), out,
+                                                                                 "--depth", "7", "--degree", deg)))
     steps.append(("poisson open scan (leaf extraction)", recon("poisson", path("half.ply"), out, "--depth", "7")))
     steps.append(("poisson degree 2", recon("poisson", path("dense.ply"), out, "--depth", "7", "--degree", "2")))
     steps.append(("poisson degree 2 unscreened", recon("poisson", c32, out, "--depth", "5", "--degree", "2",
