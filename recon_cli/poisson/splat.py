@@ -381,7 +381,8 @@ NOISE_LEVEL_OFFSET = 2
 NOISE_MORE_LEVELS = 3
 # a cell's fit needs this many points (6 unknowns) ...
 NOISE_MIN_POINTS = 16
-# ... and normals this coherent (|sum of normals| / points; two sides of a thin part cancel)
+# ... and normals this coherent (|sum of the samples' normals| / the sum of their lengths; two
+# sides of a thin part cancel)
 NOISE_COHERENCE = 0.5
 # the noise, in finest cells, at which a sample's screening is halfway between clean and noisy
 NOISE_TAU = 0.2

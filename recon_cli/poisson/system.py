@@ -23,9 +23,10 @@ log = logging.getLogger("recon")
 TARGET = 0.5
 # the screening weight where the samples are clean and where they are noisy, relative to
 # make_splats' (Splats.screening); measured with exact-distance Chamfer against Open3D's, 100k
-# samples of a sphere, torus, rounded box, the kitten, armadillo and mug, depth 8: noisy
-# samples (0.25 % of the diagonal) at half the weight 0.82-0.89x Open3D's (0.99-1.03x at the
-# full weight), clean ones unchanged (0.81-1.01x; twice the weight: torus 1.01x, box 1.23x)
+# samples of a sphere, torus, rounded box, the kitten, armadillo and mug, depths 8 and 9: noisy
+# samples (0.25 % of the diagonal) at half the weight 0.80-0.89x Open3D's (0.99-1.03x at the
+# full weight); clean ones at 1.3x 0.75-0.98x (the lattice-aligned box 1.34-1.36x; at 1x the
+# armadillo was 1.07x, at 2x the torus 1.01x and the box 1.23x)
 SCREEN_CLEAN = 1.3
 SCREEN_NOISY = 0.5
 
