@@ -140,13 +140,14 @@ def _nbr(nb, i, o, tx, ty, tz):
 
 
 @njit(cache=True)
-def stiffness_matvec(q_keys, nb, inp, cmap, m1, k1, h, x, out):
+def stiffness_matvec(q_keys, nb, inp, xmap, omap, m1, k1, h, x, out):
     """out[m] += h * sum over the 125 cells within 2 of m of the stiffness times x, for the
     children m of the parents flagged ``inp``: each parent's 6x6x6 block of cells is gathered
     once and the separable stencil (K M M + M K M + M M K) applied one axis at a time to all
-    8 children together. ``x`` and ``out`` hold parent ``i``'s block at ``8 cmap[i]`` (none
-    where ``cmap[i]`` < 0, read as 0): the identity for vectors on all of E, the rank among
-    the flagged parents for the solve's vectors on the unknowns only."""
+    8 children together. ``x`` holds parent ``i``'s block at ``8 xmap[i]`` (none where
+    ``xmap[i]`` < 0, read as 0), ``out`` at ``8 omap[i]``: the identity for vectors on all
+    of E, the rank among the flagged parents for the solve's vectors on the unknowns only
+    (the prolonged coarse field is on all of E, its product only needed at the unknowns)."""
     X = np.zeros((6, 6, 6))
     zm = np.empty((6, 6, 2))
     zk = np.empty((6, 6, 2))
@@ -159,7 +160,7 @@ def stiffness_matvec(q_keys, nb, inp, cmap, m1, k1, h, x, out):
         for t in range(27):
             p = nb[i, t]
             if p >= 0:
-                p = cmap[p]
+                p = xmap[p]
             ax = 2 * (t % 3)
             ay = 2 * ((t // 3) % 3)
             az = 2 * (t // 9)
@@ -214,7 +215,7 @@ def stiffness_matvec(q_keys, nb, inp, cmap, m1, k1, h, x, out):
             y = 0.0
             for a in range(5):
                 y += k1[cx, a] * ym[ox + a, oy, oz] + m1[cx, a] * yk[ox + a, oy, oz]
-            out[8 * cmap[i] + o] += h * y
+            out[8 * omap[i] + o] += h * y
 
 
 @njit(cache=True)
@@ -254,9 +255,9 @@ def _w3(t, c, n, s):
 
 
 @njit(cache=True)
-def screening_matvec(q_keys, nb, cmap, n, s, scell, sloc, sw, x, out):
+def screening_matvec(q_keys, nb, xmap, omap, n, s, scell, sloc, sw, x, out):
     """out += sum_p w_p B_i(p) sum_j B_j(p) x_j over the samples (cell, local coordinates);
-    ``x`` and ``out`` laid out by ``cmap`` (:func:`stiffness_matvec`).
+    ``x`` laid out by ``xmap``, ``out`` by ``omap`` (:func:`stiffness_matvec`).
 
     The 27 cells around a sample and their weights are written out here (and in
     :func:`screening_diag_rhs`): through a helper taking the arrays (``_gather27``, inlined)
@@ -288,16 +289,17 @@ def screening_matvec(q_keys, nb, cmap, n, s, scell, sloc, sw, x, out):
                 for a in range(3):
                     bx = ox + a - 1
                     q = nb[i, ((bx >> 1) + 1) + 3 * ((by >> 1) + 1) + 9 * ((bz >> 1) + 1)]
+                    idx[r] = -1
                     if q >= 0:
-                        q = cmap[q]
-                    if q < 0:
-                        idx[r] = -1
-                    else:
-                        j = 8 * q + ((bx & 1) | ((by & 1) << 1) | ((bz & 1) << 2))
-                        idx[r] = j
+                        c8 = (bx & 1) | ((by & 1) << 1) | ((bz & 1) << 2)
                         w = wx[a] * wyz
                         wr[r] = w
-                        v += w * x[j]
+                        qx = xmap[q]
+                        if qx >= 0:
+                            v += w * x[8 * qx + c8]
+                        qo = omap[q]
+                        if qo >= 0:
+                            idx[r] = 8 * qo + c8
                     r += 1
         v *= sw[p]
         for r in range(27):
@@ -374,7 +376,14 @@ def prolong(q_keys, coarse_q_keys, coarse_nb, coarse, n_coarse, s):
     """Coefficients on E (the children of ``q_keys``) of the coarser level's function
     (coefficients ``coarse`` on the coarser E, the children of ``coarse_q_keys``):
     refinement mask (1, 3, 3, 1)/4 per axis, the coarse index folded at the cube's faces."""
-    out = np.zeros(8 * len(q_keys))
+    out = np.empty(8 * len(q_keys))
+    prolong_into(q_keys, coarse_q_keys, coarse_nb, coarse, n_coarse, s, out)
+    return out
+
+
+@njit(cache=True)
+def prolong_into(q_keys, coarse_q_keys, coarse_nb, coarse, n_coarse, s, out):
+    """:func:`prolong` into ``out`` (8q,) (every entry written)."""
     loc = np.zeros(27)
     ox_ = np.empty(2, np.int64)
     oy_ = np.empty(2, np.int64)
@@ -521,13 +530,13 @@ def gallop(keys, key, lo, hi):
 
 
 @njit(cache=True)
-def level_matvec(q_keys, nb, inp, cmap, m1, k1, h, n, s, scell, sloc, sw, x, out):
+def level_matvec(q_keys, nb, inp, xmap, omap, m1, k1, h, n, s, scell, sloc, sw, x, out):
     """out = A x (stiffness and screening) at the unknowns; elsewhere whatever A gives;
-    vectors laid out by ``cmap`` (:func:`stiffness_matvec`)."""
+    ``x`` laid out by ``xmap``, ``out`` by ``omap`` (:func:`stiffness_matvec`)."""
     out[:] = 0.0
-    stiffness_matvec(q_keys, nb, inp, cmap, m1, k1, h, x, out)
+    stiffness_matvec(q_keys, nb, inp, xmap, omap, m1, k1, h, x, out)
     if len(sw):
-        screening_matvec(q_keys, nb, cmap, n, s, scell, sloc, sw, x, out)
+        screening_matvec(q_keys, nb, xmap, omap, n, s, scell, sloc, sw, x, out)
 
 
 @njit(cache=True)
@@ -561,7 +570,7 @@ def level_pcg(q_keys, nb, inp, cmap, m1, k1, h, n, s, scell, sloc, sw, rhs, diag
     it = 0
     rel = 1.0
     while it < max_iter:
-        level_matvec(q_keys, nb, inp, cmap, m1, k1, h, n, s, scell, sloc, sw, p, q)
+        level_matvec(q_keys, nb, inp, cmap, cmap, m1, k1, h, n, s, scell, sloc, sw, p, q)
         pq = 0.0
         for i in range(m):
             pq += p[i] * q[i]

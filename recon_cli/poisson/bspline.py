@@ -51,7 +51,7 @@ from recon_cli.memory import release_free_heap
 from recon_cli.poisson import _bspline as B
 from recon_cli.poisson import _octree as O
 from recon_cli.poisson._luts import B2_MASS, B2_STIFFNESS
-from recon_cli.poisson.octree import Level, dilate, pack_keys, unpack_keys
+from recon_cli.poisson.octree import Level, dilate, pack_keys, set_corners, unpack_keys
 from recon_cli.poisson.splat import Samples, Splats, fields_as_items
 from recon_cli.progress import task
 
@@ -192,7 +192,23 @@ class ChiField:
     def at(self, pos: np.ndarray) -> np.ndarray:
         """chi at unit-cube positions (m, 3) (:func:`._bspline.chi_at`)."""
         return B.chi_at(np.ascontiguousarray(pos, dtype=np.float64), self.top, self.q_all, self.q_off, self.inp_all,
-                        self.nb_all, self.coef_all, self.s)
+                        self._neighbours(), self.coef_all, self.s)
+
+    def drop_neighbours(self) -> None:
+        """Free the levels' neighbour tables (27 int32 a parent, the field's largest arrays:
+        1.7x its coefficients) while chi is not read; :meth:`at` makes them again (in time
+        linear in the parents: 0.1 s at depth 9) when next called. The extraction runs
+        between the leaves' corner values and the vertices' roots without them."""
+        self.nb_all = None
+
+    def _neighbours(self) -> np.ndarray:
+        if self.nb_all is None:
+            nb = np.empty((len(self.q_all), 27), np.int32)
+            for lv in range(1, self.top + 1):
+                lo, hi = self.q_off[lv], self.q_off[lv + 1]
+                B.neighbour_table_into(self.q_all[lo:hi], (1 << (lv - 1)) - 1, nb[lo:hi])
+            self.nb_all = nb
+        return self.nb_all
 
     def at_nodes(self, lev: Level, node_keys: np.ndarray) -> np.ndarray:
         """chi at the nodes ``node_keys`` of ``lev``: the leaves' corners for the extraction
@@ -212,10 +228,18 @@ class ChiField:
         the two ends and the middle give the root exactly. Vertices stay on their edges, so
         the mesh's connectivity is unchanged. Vertices not on an edge (marching cubes' cell
         centres of ambiguous cases) stay where they are."""
+        verts = verts.copy()
+        # a chunk at a time: on all 2M vertices of a depth-10 mesh at once the temporaries
+        # (three points per vertex, their lattice coordinates) were the process's peak
+        step = 1 << 16
+        for a in range(0, len(verts), step):
+            verts[a:a + step] = self._refine_chunk(verts[a:a + step], iso, origin, size, depth)
+        return verts
+
+    def _refine_chunk(self, verts: np.ndarray, iso: float, origin: np.ndarray, size: float, depth: int
+                      ) -> np.ndarray:
         from recon_cli.mcubes import DEGENERATE_CLAMP
 
-        if not len(verts):
-            return verts
         res = float(1 << depth)
         u = (verts - origin) / size * res
         frac = np.abs(u - np.round(u))
@@ -440,30 +464,34 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, boundary: str, full
                 B.screening_diag_rhs(f.q_keys, f.nb, n, f.s, scell, sloc, sw, TARGET, diag, rhs)
             else:
                 scell, sloc, sw = np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
-            if prev is not None:
-                G = B.prolong(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s)
-                AG = np.empty(ne)
-                B.level_matvec(f.q_keys, f.nb, f.inp, np.arange(len(f.q_keys)), m1, k1, h, n, f.s, scell, sloc, sw,
-                               G, AG)
-                rhs -= AG
-                del AG
-            else:
-                G = np.zeros(ne)
-            exact = d <= full_depth
-            release_free_heap()
-            # the solve's vectors on the unknowns only (the children of the flagged parents)
+            # the solve's vectors on the unknowns only (the children of the flagged parents),
+            # made before the coarser levels' field is prolonged: at the finest level of 1M
+            # samples at depth 10 the right-hand side, the diagonal, the prolonged field and its
+            # product on all of E were alive at once, the process's peak
             cmap = np.cumsum(f.inp) - 1
             cmap[~f.inp] = -1
             rhs = rhs[unknown]
             diag = diag[unknown]
+            if prev is not None:
+                # the residual the coarser levels leave: A G at the unknowns, G on all of E
+                G = B.prolong(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s)
+                AG = np.empty(len(rhs))
+                B.level_matvec(f.q_keys, f.nb, f.inp, np.arange(len(f.q_keys)), cmap, m1, k1, h, n, f.s, scell, sloc,
+                               sw, G, AG)
+                rhs -= AG
+                del AG, G
+            exact = d <= full_depth
+            release_free_heap()
             x, it, rel = B.level_pcg(f.q_keys, f.nb, f.inp, cmap, m1, k1, h, n, f.s, scell, sloc, sw, rhs, diag,
                                      1e-7 if exact else cg_tolerance, 2000 if exact else 200)
             del rhs, diag, scell, sloc, sw, cmap
-            G[unknown] += x
-            del x
+            # the level's chi: the coarser field prolonged again (cheaper than keeping it on all
+            # of E through the conjugate gradients) plus the correction
             f.coef = coef_all[8 * arrays[1][d]:8 * arrays[1][d + 1]]
-            f.coef[:] = G
-            del G
+            if prev is not None:
+                B.prolong_into(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s, f.coef)
+            f.coef[unknown] += x
+            del x
             fields.append(f)
             prev = f
             total_it += it
@@ -474,6 +502,8 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, boundary: str, full
                      int(unknown.sum()), it, rel, time.perf_counter() - tl)
             tk.advance(1)
     levels[-1].leaf = np.ones(len(levels[-1].cell_keys), bool)
+    for lev, keys in zip(levels, node_keys, strict=True):
+        set_corners(lev, keys)
     chi = ChiField(fields, boundary, arrays)
     del arrays, coef_all
     del fields, prev
