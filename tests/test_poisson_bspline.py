@@ -283,3 +283,23 @@ def test_normal_rhs_equals_the_direct_splat_at_every_level(rng, boundary, case):
         # some field cell lies on a face of the cube (its B-spline reaches beyond it)
         assert any(((unpack_keys(k) == 0) | (unpack_keys(k) == (1 << d) - 1)).any()
                    for d, (k, _) in splats.rhs_fields.items())
+
+
+@pytest.mark.parametrize("top", [0, 1, 3, 40])
+def test_neighbour_table_matches_a_dictionary(rng, top):
+    # the merged lookup (27 sorted cursors) against a dictionary of the keys: every offset,
+    # the cube's faces (-1 outside [0, top]) and absent neighbours
+    n = min(3 * (top + 1) ** 3 // 4 + 1, 5_000)
+    xyz = rng.integers(0, top + 1, size=(n, 3))
+    keys = np.unique(pack_keys(xyz))
+    out = np.empty((len(keys), 27), np.int32)
+    B.neighbour_table_into(keys, top, out)
+    index = {int(k): i for i, k in enumerate(keys)}
+    c = unpack_keys(keys)
+    for t in range(27):
+        off = np.array([t % 3 - 1, (t // 3) % 3 - 1, t // 9 - 1])
+        q = c + off
+        inside = np.all((q >= 0) & (q <= top), axis=1)
+        qk = pack_keys(q.clip(0))
+        want = np.array([index.get(int(k), -1) if ok else -1 for k, ok in zip(qk, inside, strict=True)])
+        np.testing.assert_array_equal(out[:, t], want)

@@ -83,3 +83,70 @@ def test_sparse_half_is_splatted_coarser(rng):
     assert 1.5 <= lu - ll <= 2.5, (lu, ll)
     # the tree stops where the samples stop: no splat deeper than the dense half supports
     assert sp.tree_depth == int(sp.level[upper].max())
+
+
+def _cells(level) -> set:
+    from recon_cli.poisson.octree import unpack_keys
+
+    return set(map(tuple, unpack_keys(level.cell_keys).tolist()))
+
+
+def _sibling_block(cells, ring: int, top: int) -> set:
+    """The cells within ``ring`` of ``cells`` (coordinates 0..top), completed in siblings."""
+    out = set()
+    r = range(-ring, ring + 1)
+    for x, y, z in cells:
+        for dx in r:
+            for dy in r:
+                for dz in r:
+                    X, Y, Z = x + dx, y + dy, z + dz
+                    if 0 <= X <= top and 0 <= Y <= top and 0 <= Z <= top:
+                        px, py, pz = X >> 1, Y >> 1, Z >> 1
+                        out.update((2 * px + a, 2 * py + b, 2 * pz + c) for a in (0, 1) for b in (0, 1) for c in (0, 1))
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_own_ring_1_tree_is_poissonrecons(seed):
+    # items at two depths in one cloud (a dense patch splatted at 6 inside a sparse sphere
+    # splatted at 5): with own_ring 1 each level is exactly the cells within 1 of its own
+    # items plus those within 2 of its cells over finer items, completed in siblings
+    # (PoissonRecon's finest nodes); a subset of own_ring 2's, graded (a cell's parent's
+    # neighbours all exist one level up) and containing every cell its items' field reaches
+    from recon_cli.poisson.octree import build_levels, unpack_keys
+
+    rng = np.random.default_rng(seed)
+    p, _ = shape_cloud("sphere", 400, rng)
+    u = _unit(p)
+    dense = u[u[:, 2] > u[:, 2].mean() + 0.25 * np.ptp(u[:, 2])]
+    pos = np.concatenate([u, dense])
+    lvl = np.concatenate([np.full(len(u), 5), np.full(len(dense), 6)])
+    depth, full = 6, 2
+    one = build_levels(pos, lvl, depth, full, "neumann", own_ring=1)
+    two = build_levels(pos, lvl, depth, full, "neumann", own_ring=2)
+    for d in range(full + 1, depth + 1):
+        top = (1 << d) - 1
+        own = {tuple(c) for c in np.floor(pos[lvl == d] * (1 << d)).astype(int).clip(0, top).tolist()}
+        over_finer = {tuple(c) for c in np.floor(pos[lvl > d] * (1 << d)).astype(int).clip(0, top).tolist()}
+        expect = _sibling_block(own, 1, top) | _sibling_block(over_finer, 2, top)
+        got = _cells(one[d])
+        assert got == expect, (d, len(got), len(expect))
+        assert got <= _cells(two[d])
+        # graded: the neighbours (within 1) of every cell's parent exist one level up
+        up = _cells(one[d - 1])
+        for x, y, z in got:
+            for dx in (-1, 0, 1):
+                for dy in (-1, 0, 1):
+                    for dz in (-1, 0, 1):
+                        q = ((x >> 1) + dx, (y >> 1) + dy, (z >> 1) + dz)
+                        if all(0 <= c <= top >> 1 for c in q):
+                            assert q in up, (d, (x, y, z), q)
+    assert len(one[depth].cell_keys) < len(two[depth].cell_keys)
+    assert unpack_keys(one[depth].cell_keys).max() <= (1 << depth) - 1
+
+
+def test_own_ring_is_validated():
+    from recon_cli.poisson.octree import build_levels
+
+    with pytest.raises(ValueError, match="own_ring"):
+        build_levels(np.full((1, 3), 0.5), np.array([3]), 3, 1, "neumann", own_ring=3)

@@ -108,9 +108,17 @@ def b2_factors(v, rho):
 @njit(cache=True)
 def neighbour_table_into(keys, top, out):
     """Into ``out`` (k, 27) int32 (a slice of the levels' table): index in sorted ``keys`` of
-    each key's neighbours (-1 absent or outside [0, ``top``])."""
+    each key's neighbours (-1 absent or outside [0, ``top``]).
+
+    A neighbour's key is the key plus a constant (its offset, packed), so the 27 queries of
+    all keys, taken in the keys' order, are 27 sorted sequences: one cursor per offset walks
+    ``keys`` once (linear merges; a binary search per query cost ~3x more at depth 9).
+    """
     n = len(keys)
-    out[:] = -1
+    cur = np.zeros(27, np.int64)
+    offs = np.empty(27, np.int64)
+    for t in range(27):
+        offs[t] = ((t % 3 - 1) << 42) + (((t // 3) % 3 - 1) << 21) + (t // 9 - 1)
     for i in range(n):
         k = keys[i]
         x = (k >> 42) & MASK21
@@ -121,8 +129,14 @@ def neighbour_table_into(keys, top, out):
             Y = y + (t // 3) % 3 - 1
             Z = z + t // 9 - 1
             if X < 0 or Y < 0 or Z < 0 or X > top or Y > top or Z > top:
+                out[i, t] = -1
                 continue
-            out[i, t] = bsearch(keys, lattice_key(X, Y, Z))
+            q = k + offs[t]
+            j = cur[t]
+            while j < n and keys[j] < q:
+                j += 1
+            cur[t] = j
+            out[i, t] = j if j < n and keys[j] == q else -1
     return out
 
 

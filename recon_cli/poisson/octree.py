@@ -64,8 +64,8 @@ def build_levels(item_pos: np.ndarray, item_level: np.ndarray, depth: int, full_
     the tree stops where the samples stop.
 
     With ``own_ring`` 1 (the degree-2 solve), a level keeps the ring of 2 only around its
-    cells that have children, and around the cells holding its own items only the ring of
-    1 the items' field reaches (their quadratic B-splines' 27 cells): PoissonRecon's tree,
+    cells over finer items, and around the cells holding its own items only the ring of 1
+    the items' field reaches (their quadratic B-splines' 27 cells): as in PoissonRecon,
     whose finest nodes are those its splats make, their neighbours only made at the coarser
     depths (the B-splines' overlap around nodes with children). On 1M samples of the
     armadillo at depth 10 the finest level's unknowns fall from 11.7M to 7.5M (process
@@ -87,10 +87,10 @@ def build_levels(item_pos: np.ndarray, item_level: np.ndarray, depth: int, full_
         sel = item_level == d
         own = np.unique(pack_keys(np.floor(item_pos[sel] * (1 << d)).clip(0, (1 << d) - 1)))
         if own_ring == 1:
-            # ring 2 around the cells that have children (occ), and the parents of the cells
+            # ring 2 around the cells over finer items (occ), and the parents of the cells
             # within 1 of the level's own items (near)
             near[d] = _ring1_parents(own, (1 << (d - 1)) - 1)
-            occ[d] = np.unique(occ_keys)  # halved from the finer level: the cells with children
+            occ[d] = np.unique(occ_keys)  # halved from the finer level: the cells over finer items
             occ_keys = np.unique(np.concatenate([occ_keys, own]))
         else:
             occ_keys = np.unique(np.concatenate([occ_keys, own]))
