@@ -150,15 +150,24 @@ def level_fields(levels: list[Level], boundary: str) -> tuple[list[LevelField | 
     q_all = np.concatenate([Q for Q, _ in parts]) if parts else np.zeros(0, np.int64)
     inp_all = np.concatenate([inp for _, inp in parts]) if parts else np.zeros(0, bool)
     del parts
-    nb_all = np.empty((len(q_all), 27), np.int32)
+    nb_all = neighbour_tables(q_all, q_off)
     coef_all = np.zeros(8 * len(q_all))
     s = 1.0 if boundary == "neumann" else -1.0
     out: list[LevelField | None] = [None]
     for lev in levels[1:]:
         lo, hi = q_off[lev.depth], q_off[lev.depth + 1]
-        B.neighbour_table_into(q_all[lo:hi], (1 << (lev.depth - 1)) - 1, nb_all[lo:hi])
         out.append(LevelField(lev.depth, s, q_all[lo:hi], inp_all[lo:hi], nb_all[lo:hi]))
     return out, (q_all, q_off, inp_all, nb_all, coef_all)
+
+
+def neighbour_tables(q_all: np.ndarray, q_off: np.ndarray) -> np.ndarray:
+    """(q, 27) int32: every level's neighbour table (:func:`._bspline.neighbour_table_into`)
+    for the levels' parents concatenated (level ``L`` at ``q_off[L]:q_off[L + 1]``)."""
+    nb = np.empty((len(q_all), 27), np.int32)
+    for lv in range(1, len(q_off) - 1):
+        lo, hi = q_off[lv], q_off[lv + 1]
+        B.neighbour_table_into(q_all[lo:hi], (1 << (lv - 1)) - 1, nb[lo:hi])
+    return nb
 
 
 class ChiField:
@@ -203,11 +212,7 @@ class ChiField:
 
     def _neighbours(self) -> np.ndarray:
         if self.nb_all is None:
-            nb = np.empty((len(self.q_all), 27), np.int32)
-            for lv in range(1, self.top + 1):
-                lo, hi = self.q_off[lv], self.q_off[lv + 1]
-                B.neighbour_table_into(self.q_all[lo:hi], (1 << (lv - 1)) - 1, nb[lo:hi])
-            self.nb_all = nb
+            self.nb_all = neighbour_tables(self.q_all, self.q_off)
         return self.nb_all
 
     def at_nodes(self, lev: Level, node_keys: np.ndarray) -> np.ndarray:
@@ -233,11 +238,11 @@ class ChiField:
         # (three points per vertex, their lattice coordinates) were the process's peak
         step = 1 << 16
         for a in range(0, len(verts), step):
-            verts[a:a + step] = self._refine_chunk(verts[a:a + step], iso, origin, size, depth)
+            self._refine_chunk(verts[a:a + step], iso, origin, size, depth)
         return verts
 
-    def _refine_chunk(self, verts: np.ndarray, iso: float, origin: np.ndarray, size: float, depth: int
-                      ) -> np.ndarray:
+    def _refine_chunk(self, verts: np.ndarray, iso: float, origin: np.ndarray, size: float, depth: int) -> None:
+        """:meth:`refine_vertices` on ``verts`` (a view, moved in place)."""
         from recon_cli.mcubes import DEGENERATE_CLAMP
 
         res = float(1 << depth)
@@ -245,7 +250,6 @@ class ChiField:
         frac = np.abs(u - np.round(u))
         axis = np.argmax(frac, axis=1)
         on_edge = np.sort(frac, axis=1)[:, 1] < 1e-6
-        verts = verts.copy()
         keep_idx = np.flatnonzero(on_edge)
         u, axis = u[keep_idx], axis[keep_idx]
         rows = np.arange(len(u))
@@ -262,7 +266,6 @@ class ChiField:
         out = lo
         out[rows, axis] += t
         verts[keep_idx] = out / res * size + origin
-        return verts
 
 
 _NO_FIELD = np.zeros((0, 3))
