@@ -72,7 +72,14 @@ def measure(fn: Callable[[], Any], repeat: int = 3) -> dict:
     }
 
 
-def row(stage: str, case: str, ours: dict, ref_name: str | None = None, ref: dict | None = None, note: str = "") -> dict:
+def row(
+    stage: str,
+    case: str,
+    ours: dict,
+    ref_name: str | None = None,
+    ref: dict | None = None,
+    note: str = "",
+) -> dict:
     """One table row: ours vs a reference, with ratios ours/theirs."""
     out = {
         "stage": stage,

@@ -69,12 +69,23 @@ def rows(quick: bool) -> list[dict]:
         for name, fn, rep in refs:
             b = measure(fn, rep)
             fa, fb = a["result"], b["result"]
-            note = f"faces {fa[0]} vs {fb[0]}, boundary edges {fa[1]} vs {fb[1]}" if fa and fb else ""
+            note = (
+                f"faces {fa[0]} vs {fb[0]}, boundary edges {fa[1]} vs {fb[1]}" if fa and fb else ""
+            )
             if rep == 1:
                 note += " (1 run)"
             out.append(row("ballpivot", case, a, name, b, note))
         if not pml_repeat:
-            out.append(row("ballpivot", case, a, "pymeshlab", None, "pymeshlab not run at this size (> 1 h)"))
+            out.append(
+                row(
+                    "ballpivot",
+                    case,
+                    a,
+                    "pymeshlab",
+                    None,
+                    "pymeshlab not run at this size (> 1 h)",
+                )
+            )
     return out
 
 

@@ -80,15 +80,29 @@ def rows(quick: bool) -> list[dict]:
         task_s = sum(r["seconds"] for r in done)
         ours = {"seconds": first, "peak_mb": max(peaks) if peaks else float("nan")}
         label = f"{len(paths)} inputs, normals knn 30 mst, 2 workers x 1 thread"
-        out_rows.append(row("batch", label, ours, "same inputs sequentially, 1 process", seq,
-                            f"{len(done)}/{len(paths)} ok; tasks {task_s:.1f} s in all (first per worker: "
-                            f"numba load); wall includes cluster start/stop; MB: largest per-input peak above "
-                            f"the worker's footprint"))
+        out_rows.append(
+            row(
+                "batch",
+                label,
+                ours,
+                "same inputs sequentially, 1 process",
+                seq,
+                f"{len(done)}/{len(paths)} ok; tasks {task_s:.1f} s in all (first per worker: "
+                f"numba load); wall includes cluster start/stop; MB: largest per-input peak above "
+                f"the worker's footprint",
+            )
+        )
         t0 = time.perf_counter()
         again = run_batch(pipe, paths, out, workers=2, threads_per_worker=1)
         rerun = {"seconds": time.perf_counter() - t0, "peak_mb": float("nan")}
-        out_rows.append(row("batch", f"rerun of the above ({again['counts']['skipped']} skipped)", rerun,
-                            note="no cluster is started when nothing is to do"))
+        out_rows.append(
+            row(
+                "batch",
+                f"rerun of the above ({again['counts']['skipped']} skipped)",
+                rerun,
+                note="no cluster is started when nothing is to do",
+            )
+        )
         with open(os.path.join(out, "batch.json")) as f:
             json.load(f)
     return out_rows

@@ -140,7 +140,9 @@ def command(args: list[str], repeat: int, cold: bool) -> dict:
     out: dict = {}
     if cold:
         with tempfile.TemporaryDirectory(prefix="recon-cold-cache-") as cache:
-            out["cold_s"], _ = _wall([*RECON, "-q", *args], env=dict(os.environ, NUMBA_CACHE_DIR=cache))
+            out["cold_s"], _ = _wall(
+                [*RECON, "-q", *args], env=dict(os.environ, NUMBA_CACHE_DIR=cache)
+            )
     runs = []
     for _ in range(repeat + 1):
         dt, stdout = _wall([*RECON, "-q", *args, "--json"])
@@ -164,8 +166,11 @@ def _inputs(tmp: Path, quick: bool) -> dict[str, str]:
     from recon_cli.grid import Grid
     from recon_cli.io.npz import write_grid
 
-    p = {"scan": str(ROOT / "sample_data" / "bunny_scan_000.ply"), "zipper": str(shared_path("bunny_zipper")),
-         "kitten": str(shared_path("kitten"))}
+    p = {
+        "scan": str(ROOT / "sample_data" / "bunny_scan_000.ply"),
+        "zipper": str(shared_path("bunny_zipper")),
+        "kitten": str(shared_path("kitten")),
+    }
     small = sample_surface(load_shared("kitten"), 1000, seed=0)
     write_ply(PointCloud(points=small.points), tmp / "k1k.ply")
     p["k1k"] = str(tmp / "k1k.ply")
@@ -174,10 +179,26 @@ def _inputs(tmp: Path, quick: bool) -> dict[str, str]:
     write_ply(arm, tmp / "arm.ply")
     p["arm"] = str(tmp / "arm.ply")
     for size in (64, 256):
-        write_grid(Grid(sdf=metaballs(size), origin=np.zeros(3), voxel_size=1.0 / size), tmp / f"mb{size}.npz")
+        write_grid(
+            Grid(sdf=metaballs(size), origin=np.zeros(3), voxel_size=1.0 / size),
+            tmp / f"mb{size}.npz",
+        )
         p[f"mb{size}"] = str(tmp / f"mb{size}.npz")
-    subprocess.run([*RECON, "-q", "normals", p["scan"], str(tmp / "scan_n.ply"), "--orient", "camera",
-                    "--camera", "0,0,1"], check=True, cwd=ROOT)
+    subprocess.run(
+        [
+            *RECON,
+            "-q",
+            "normals",
+            p["scan"],
+            str(tmp / "scan_n.ply"),
+            "--orient",
+            "camera",
+            "--camera",
+            "0,0,1",
+        ],
+        check=True,
+        cwd=ROOT,
+    )
     p["scan_n"] = str(tmp / "scan_n.ply")
     return p
 
@@ -213,7 +234,9 @@ def alternating(args: list[str], reference, rounds: int) -> dict:
     for _ in range(rounds):
         c0 = _cpu_children()
         t = time.perf_counter()
-        r = subprocess.run([*RECON, "-q", *args, "--json"], capture_output=True, text=True, cwd=ROOT)
+        r = subprocess.run(
+            [*RECON, "-q", *args, "--json"], capture_output=True, text=True, cwd=ROOT
+        )
         ours_wall.append(time.perf_counter() - t)
         ours_cpu.append(_cpu_children() - c0)
         if r.returncode != 0:
@@ -225,8 +248,14 @@ def alternating(args: list[str], reference, rounds: int) -> dict:
         ref_cpu.append(time.process_time() - c0)
     med = statistics.median
     timings = report.get("timings", {})
-    return {"ours_cpu": med(ours_cpu), "ours_wall": med(ours_wall), "ref_cpu": med(ref_cpu), "ref_wall": med(ref_wall),
-            "stage_s": timings.get("stage", float("nan")), "read_s": timings.get("read", float("nan"))}
+    return {
+        "ours_cpu": med(ours_cpu),
+        "ours_wall": med(ours_wall),
+        "ref_cpu": med(ref_cpu),
+        "ref_wall": med(ref_wall),
+        "stage_s": timings.get("stage", float("nan")),
+        "read_s": timings.get("read", float("nan")),
+    }
 
 
 def rows(quick: bool) -> list[dict]:
@@ -237,27 +266,62 @@ def rows(quick: bool) -> list[dict]:
         o = str(tmp / "out.ply")
         fl, lean = floor(repeat + 2, tmp)
         cases = [
-            ("normals", "sample scan 40k, --orient camera", ["normals", p["scan"], o, "--orient", "camera", "--camera", "0,0,1"], True),
+            (
+                "normals",
+                "sample scan 40k, --orient camera",
+                ["normals", p["scan"], o, "--orient", "camera", "--camera", "0,0,1"],
+                True,
+            ),
             ("normals", "sample scan 40k, --orient mst", ["normals", p["scan"], o], not quick),
             ("normals", "1k points", ["normals", p["k1k"], o], True),
             ("info", "bunny_zipper (69k faces)", ["info", p["zipper"]], True),
-            ("poisson", "sample scan, --depth 8", ["poisson", p["scan_n"], o, "--depth", "8"], not quick),
-            ("ballpivot", "raw sample scan 40k (normals towards the scanner)", ["ballpivot", p["scan_n"], o], not quick),
-            ("ballpivot", f"armadillo {'20k' if quick else '100k'} samples", ["ballpivot", p["arm"], o], False),
+            (
+                "poisson",
+                "sample scan, --depth 8",
+                ["poisson", p["scan_n"], o, "--depth", "8"],
+                not quick,
+            ),
+            (
+                "ballpivot",
+                "raw sample scan 40k (normals towards the scanner)",
+                ["ballpivot", p["scan_n"], o],
+                not quick,
+            ),
+            (
+                "ballpivot",
+                f"armadillo {'20k' if quick else '100k'} samples",
+                ["ballpivot", p["arm"], o],
+                False,
+            ),
             ("repair", "kitten", ["repair", p["kitten"], o], False),
-            ("sdf", "kitten, --resolution 128", ["sdf", p["kitten"], str(tmp / "k.npz")], not quick),
+            (
+                "sdf",
+                "kitten, --resolution 128",
+                ["sdf", p["kitten"], str(tmp / "k.npz")],
+                not quick,
+            ),
             ("mcubes", "metaballs 64^3", ["mcubes", p["mb64"], o], True),
             ("mcubes", "metaballs 256^3", ["mcubes", p["mb256"], o], False),
         ]
-        only = os.environ.get("RECON_BENCH_CLI_ONLY")  # e.g. "mcubes,ballpivot": those commands' rows only
+        only = os.environ.get(
+            "RECON_BENCH_CLI_ONLY"
+        )  # e.g. "mcubes,ballpivot": those commands' rows only
         if only:
             cases = [c for c in cases if c[0] in only.split(",")]
         out = []
         for stage, case, args, cold in cases:
-            r = {"stage": f"recon {stage}", "case": case, "floor_s": fl, "lean_s": lean, "cold_s": float("nan")}
+            r = {
+                "stage": f"recon {stage}",
+                "case": case,
+                "floor_s": fl,
+                "lean_s": lean,
+                "cold_s": float("nan"),
+            }
             if stage == "ballpivot" or (stage == "mcubes" and "256" in case):
                 try:
-                    out.append(_against_reference(r, stage, case, args, p, fl, lean, rounds=2 * repeat + 1))
+                    out.append(
+                        _against_reference(r, stage, case, args, p, fl, lean, rounds=2 * repeat + 1)
+                    )
                 except RuntimeError as exc:
                     r["note"] = f"FAILED: {exc}"
                     out.append(r)
@@ -280,33 +344,45 @@ def rows(quick: bool) -> list[dict]:
         return out
 
 
-def _against_reference(r: dict, stage: str, case: str, args: list[str], p: dict, fl: float, lean: float,
-                       rounds: int) -> dict:
+def _against_reference(
+    r: dict, stage: str, case: str, args: list[str], p: dict, fl: float, lean: float, rounds: int
+) -> dict:
     """A row of ours as a process against the reference in-process, alternating (:func:`alternating`):
     the row's figures are CPU or wall seconds as the rest of the table (``RECON_BENCH_CPU``), the note gives both ratios."""
     if stage == "mcubes":
         r["ref"], ref = "skimage marching_cubes", _skimage(p["mb256"])
     else:
-        r["ref"], ref = "open3d ball pivoting", _open3d_bpa(p["scan_n"] if "scan" in case else p["arm"])
+        r["ref"], ref = (
+            "open3d ball pivoting",
+            _open3d_bpa(p["scan_n"] if "scan" in case else p["arm"]),
+        )
     a = alternating(args, ref, rounds)
     kind = "cpu" if CPU_TIME else "wall"
-    r.update(warm_s=a[f"ours_{kind}"], ref_s=a[f"ref_{kind}"], stage_s=a["stage_s"], read_s=a["read_s"])
+    r.update(
+        warm_s=a[f"ours_{kind}"], ref_s=a[f"ref_{kind}"], stage_s=a["stage_s"], read_s=a["read_s"]
+    )
     r["first_s"] = float("nan")
     r["above_s"], r["above_lean_s"] = r["warm_s"] - fl, r["warm_s"] - lean
-    notes = [f"{rounds} alternating runs; ours {a['ours_cpu']:.3f} CPU s / {a['ours_wall']:.3f} wall s, "
-             f"reference {a['ref_cpu']:.3f} CPU s / {a['ref_wall']:.3f} wall s"]
+    notes = [
+        f"{rounds} alternating runs; ours {a['ours_cpu']:.3f} CPU s / {a['ours_wall']:.3f} wall s, "
+        f"reference {a['ref_cpu']:.3f} CPU s / {a['ref_wall']:.3f} wall s"
+    ]
     if stage == "mcubes":
         # the floors are of this table's kind (CPU or wall); the read is the report's wall time
         r["ratio"] = (r["warm_s"] - fl - a["read_s"]) / r["ref_s"]
         notes.append("ratio = (warm - numba floor - read) / skimage, target <= 0.5")
         npf = numpy_floor(5)
-        notes.append(f"a process without numba (ahead-of-time kernels): (warm - python+numpy floor {npf:.3f} - read) / "
-                     f"skimage {(r['warm_s'] - npf - a['read_s']) / r['ref_s']:.2f}, whole process / skimage "
-                     f"{r['warm_s'] / r['ref_s']:.2f}")
+        notes.append(
+            f"a process without numba (ahead-of-time kernels): (warm - python+numpy floor {npf:.3f} - read) / "
+            f"skimage {(r['warm_s'] - npf - a['read_s']) / r['ref_s']:.2f}, whole process / skimage "
+            f"{r['warm_s'] / r['ref_s']:.2f}"
+        )
     else:
         r["ratio"] = r["warm_s"] / r["ref_s"]
-        notes.append(f"ratio = ours as a process / Open3D in-process, target <= 1.0: CPU {a['ours_cpu'] / a['ref_cpu']:.2f}, "
-                     f"wall {a['ours_wall'] / a['ref_wall']:.2f}")
+        notes.append(
+            f"ratio = ours as a process / Open3D in-process, target <= 1.0: CPU {a['ours_cpu'] / a['ref_cpu']:.2f}, "
+            f"wall {a['ours_wall'] / a['ref_wall']:.2f}"
+        )
     r["note"] = "; ".join(notes)
     return r
 

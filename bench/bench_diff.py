@@ -26,7 +26,14 @@ def _subdivide(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     v2 = np.vstack([v, 0.5 * (v[uniq[:, 0]] + v[uniq[:, 1]])])
     a, b, c = f[:, 0], f[:, 1], f[:, 2]
     ab, bc, ca = mid[:, 0], mid[:, 1], mid[:, 2]
-    f2 = np.concatenate([np.column_stack([a, ab, ca]), np.column_stack([ab, b, bc]), np.column_stack([ca, bc, c]), np.column_stack([ab, bc, ca])])
+    f2 = np.concatenate(
+        [
+            np.column_stack([a, ab, ca]),
+            np.column_stack([ab, b, bc]),
+            np.column_stack([ca, bc, c]),
+            np.column_stack([ab, bc, ca]),
+        ]
+    )
     return v2, f2
 
 
@@ -85,8 +92,22 @@ def rows(quick: bool) -> list[dict]:
         return f"target ≤ 0.5×; mean {o['mean']:.4g} vs {t['mean']:.4g}, max {o['max']:.4g} vs {t['max']:.4g}"
 
     return [
-        row("diff", f"distances both ways, {case}", t_dist, "pymeshlab get_hausdorff_distance ×2", t_ref, note(t_dist)),
-        row("diff", f"compare_meshes (all metrics + topology), {case}", t_full, "pymeshlab get_hausdorff_distance ×2", t_ref, note(t_full)),
+        row(
+            "diff",
+            f"distances both ways, {case}",
+            t_dist,
+            "pymeshlab get_hausdorff_distance ×2",
+            t_ref,
+            note(t_dist),
+        ),
+        row(
+            "diff",
+            f"compare_meshes (all metrics + topology), {case}",
+            t_full,
+            "pymeshlab get_hausdorff_distance ×2",
+            t_ref,
+            note(t_full),
+        ),
     ]
 
 

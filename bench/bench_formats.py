@@ -75,7 +75,12 @@ def _process_once(path: str) -> tuple[float, float]:
 def _process(path: str, repeat: int) -> dict:
     """``recon info PATH`` as a process: median wall and CPU seconds (after one run not counted)."""
     runs = [_process_once(path) for _ in range(repeat + 1)][1:]
-    return {"seconds": statistics.median(w for w, _ in runs), "peak_mb": float("nan"), "cpu": statistics.median(c for _, c in runs)}
+    return {
+        "seconds": statistics.median(w for w, _ in runs),
+        "peak_mb": float("nan"),
+        "cpu": statistics.median(c for _, c in runs),
+    }
+
 
 AUTZEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "autzen_trim.laz"
 
@@ -113,10 +118,19 @@ def _cloud(n: int):
 def _grid_mesh(n_side: int):
     from recon_cli.geometry import TriangleMesh
 
-    x, y = np.meshgrid(np.arange(n_side, dtype=np.float32), np.arange(n_side, dtype=np.float32), indexing="ij")
-    v = np.column_stack([x.ravel() * 0.001, y.ravel() * 0.001, np.sin(x.ravel() * 0.01) * 0.1]).astype(np.float32)
+    x, y = np.meshgrid(
+        np.arange(n_side, dtype=np.float32), np.arange(n_side, dtype=np.float32), indexing="ij"
+    )
+    v = np.column_stack(
+        [x.ravel() * 0.001, y.ravel() * 0.001, np.sin(x.ravel() * 0.01) * 0.1]
+    ).astype(np.float32)
     idx = np.arange(n_side * n_side).reshape(n_side, n_side)
-    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    a, b, c, d = (
+        idx[:-1, :-1].ravel(),
+        idx[1:, :-1].ravel(),
+        idx[1:, 1:].ravel(),
+        idx[:-1, 1:].ravel(),
+    )
     f = np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
     return TriangleMesh(vertices=v, faces=f, point_dtype=np.float32)
 
@@ -138,7 +152,15 @@ def rows(quick: bool) -> list[dict]:
         # no warm-up read here: lazrs decompresses on a thread pool, which must not exist before a fork
         ours = measure(lambda: len(load(laz).points), rep)
         ref = measure(lambda: len(laspy.read(laz).points), rep)
-        out.append(_row(f"read {npts // 1000}k-point LAZ (Autzen, format 3)", ours, "laspy.read", ref, "target ≤ 1.2×"))
+        out.append(
+            _row(
+                f"read {npts // 1000}k-point LAZ (Autzen, format 3)",
+                ours,
+                "laspy.read",
+                ref,
+                "target ≤ 1.2×",
+            )
+        )
         files = [("LAZ", laz)]
 
         cloud = _cloud(n)
@@ -154,27 +176,55 @@ def rows(quick: bool) -> list[dict]:
             load(pcd)
             ours = measure(lambda: len(load(pcd).points), rep)
             ref = measure(lambda: len(o3d.io.read_point_cloud(pcd).points), rep)
-            out.append(_row(f"read {n // 1000}k-point PCD {data} (xyz, normals, rgb)", ours, "open3d.io.read_point_cloud", ref, "target ≤ 1×"))
+            out.append(
+                _row(
+                    f"read {n // 1000}k-point PCD {data} (xyz, normals, rgb)",
+                    ours,
+                    "open3d.io.read_point_cloud",
+                    ref,
+                    "target ≤ 1×",
+                )
+            )
             files.append((f"PCD {data}", pcd))
 
         # XYZ text (x y z: the columns Open3D's reader takes): as Open3D writes it (%.10f), and ours
         # from double data (%.17g: mostly beyond the exact fast path, numpy converts those)
         xyz = os.path.join(d, "o3d.xyz")
         p = o3d.geometry.PointCloud()
-        p.points = o3d.utility.Vector3dVector(cloud.points.astype(np.float64) * 1000 + [5e5, 5e6, 100])
+        p.points = o3d.utility.Vector3dVector(
+            cloud.points.astype(np.float64) * 1000 + [5e5, 5e6, 100]
+        )
         o3d.io.write_point_cloud(xyz, p)
         load(xyz)
         ours = measure(lambda: len(load(xyz).points), rep)
         ref = measure(lambda: len(o3d.io.read_point_cloud(xyz).points), rep)
-        out.append(_row(f"read {n // 1000}k-point XYZ written by Open3D (%.10f, UTM-like)", ours, "open3d.io.read_point_cloud", ref, "target ≤ 1×"))
+        out.append(
+            _row(
+                f"read {n // 1000}k-point XYZ written by Open3D (%.10f, UTM-like)",
+                ours,
+                "open3d.io.read_point_cloud",
+                ref,
+                "target ≤ 1×",
+            )
+        )
         files.append(("XYZ %.10f", xyz))
         xyz17 = os.path.join(d, "c.xyz")
         rng = np.random.default_rng(1)
-        plain = type(cloud)(points=rng.normal(size=(n, 3)) * 1000 + [5e5, 5e6, 100], point_dtype=np.float64)
+        plain = type(cloud)(
+            points=rng.normal(size=(n, 3)) * 1000 + [5e5, 5e6, 100], point_dtype=np.float64
+        )
         Path(xyz17).write_bytes(xyz_bytes(plain))
         ours = measure(lambda: len(load(xyz17).points), rep)
         ref = measure(lambda: len(o3d.io.read_point_cloud(xyz17).points), rep)
-        out.append(_row(f"read {n // 1000}k-point XYZ of doubles (%.17g)", ours, "open3d.io.read_point_cloud", ref, "target ≤ 1×"))
+        out.append(
+            _row(
+                f"read {n // 1000}k-point XYZ of doubles (%.17g)",
+                ours,
+                "open3d.io.read_point_cloud",
+                ref,
+                "target ≤ 1×",
+            )
+        )
         files.append(("XYZ %.17g", xyz17))
 
         # OBJ vs our binary PLY of the same mesh (per vertex: the same vertices), and vs trimesh
@@ -189,15 +239,34 @@ def rows(quick: bool) -> list[dict]:
         load(stl)
         ours = measure(lambda: len(load(stl).vertices), rep)
         tm = measure(lambda: len(trimesh.load(stl).vertices), rep)
-        out.append(_row(f"read binary STL ({len(mesh.faces) // 1000}k triangles), welded", ours, "trimesh.load (merges vertices)", tm, ""))
+        out.append(
+            _row(
+                f"read binary STL ({len(mesh.faces) // 1000}k triangles), welded",
+                ours,
+                "trimesh.load (merges vertices)",
+                tm,
+                "",
+            )
+        )
         files.append(("STL binary", stl))
 
         # what the user waits for: `recon info FILE` as a process
         for name, path in files:
             p = _process(path, 2 if quick else 3)
-            out.append({"stage": "formats", "case": f"`recon info` process, {name}", "ours_s": p["seconds"], "ours_mb": float("nan"),
-                        "ref": "", "ref_s": float("nan"), "ref_mb": float("nan"), "time_ratio": float("nan"), "mem_ratio": float("nan"),
-                        "note": f"CPU {p['cpu']:.3g} s (start-up and imports included)"})
+            out.append(
+                {
+                    "stage": "formats",
+                    "case": f"`recon info` process, {name}",
+                    "ours_s": p["seconds"],
+                    "ours_mb": float("nan"),
+                    "ref": "",
+                    "ref_s": float("nan"),
+                    "ref_mb": float("nan"),
+                    "time_ratio": float("nan"),
+                    "mem_ratio": float("nan"),
+                    "note": f"CPU {p['cpu']:.3g} s (start-up and imports included)",
+                }
+            )
         out.append(obj_process_row(obj_files, 2 if quick else 3))
     return out
 
@@ -223,13 +292,18 @@ def obj_rows(mesh, d: str, rep: int) -> tuple[list[dict], list[tuple[str, str]]]
         runs_p.append(measure_once(_cpu_of(lambda: len(load(ply).faces))))
 
     def stats(runs):
-        return {"seconds": statistics.median(r[0] for r in runs), "peak_mb": statistics.median(r[1] for r in runs),
-                "cpu": statistics.median(r[2] for r in runs)}
+        return {
+            "seconds": statistics.median(r[0] for r in runs),
+            "peak_mb": statistics.median(r[1] for r in runs),
+            "cpu": statistics.median(r[2] for r in runs),
+        }
 
     ours, ref = stats(runs_o), stats(runs_p)
-    per = (f"per vertex: OBJ {1e9 * ours['seconds'] / nv:.0f} ns vs PLY {1e9 * ref['seconds'] / nv:.0f} ns wall "
-           f"= {ours['seconds'] / ref['seconds']:.2f}×, CPU {1e9 * ours['cpu'] / nv:.0f} vs {1e9 * ref['cpu'] / nv:.0f} ns "
-           f"= {ours['cpu'] / ref['cpu']:.2f}×; target ≤ 3×; {os.path.getsize(obj) / 1e6:.0f} MB OBJ")
+    per = (
+        f"per vertex: OBJ {1e9 * ours['seconds'] / nv:.0f} ns vs PLY {1e9 * ref['seconds'] / nv:.0f} ns wall "
+        f"= {ours['seconds'] / ref['seconds']:.2f}×, CPU {1e9 * ours['cpu'] / nv:.0f} vs {1e9 * ref['cpu'] / nv:.0f} ns "
+        f"= {ours['cpu'] / ref['cpu']:.2f}×; target ≤ 3×; {os.path.getsize(obj) / 1e6:.0f} MB OBJ"
+    )
     label = f"read OBJ mesh ({nv // 1000}k vertices, {len(mesh.faces) // 1000}k faces)"
     out = [_row(label, ours, "our binary PLY reader, same mesh", ref, per)]
     tm = measure(lambda: len(trimesh.load(obj, process=False).faces), rep)
@@ -246,7 +320,20 @@ def obj_process_row(obj_files, repeat: int) -> dict:
     for _ in range(repeat):  # alternately
         po.append(_process_once(obj))
         pp.append(_process_once(ply))
-    o = {"seconds": statistics.median(w for w, _ in po), "cpu": statistics.median(c for _, c in po), "peak_mb": float("nan")}
-    r = {"seconds": statistics.median(w for w, _ in pp), "cpu": statistics.median(c for _, c in pp), "peak_mb": float("nan")}
-    return _row("`recon info` process, OBJ vs binary PLY of the same mesh", o, "`recon info` process, binary PLY", r,
-                "start-up and imports included; target ≤ 3× per vertex")
+    o = {
+        "seconds": statistics.median(w for w, _ in po),
+        "cpu": statistics.median(c for _, c in po),
+        "peak_mb": float("nan"),
+    }
+    r = {
+        "seconds": statistics.median(w for w, _ in pp),
+        "cpu": statistics.median(c for _, c in pp),
+        "peak_mb": float("nan"),
+    }
+    return _row(
+        "`recon info` process, OBJ vs binary PLY of the same mesh",
+        o,
+        "`recon info` process, binary PLY",
+        r,
+        "start-up and imports included; target ≤ 3× per vertex",
+    )

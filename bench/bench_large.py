@@ -52,7 +52,9 @@ def _normals_stage(points, true_normals=None) -> dict:
     res = run_stage(PointCloud(points=points), knn=KNN)  # orient: the stage's default (mst)
     out = {k: res.report[k] for k in ("orient", "components", "degenerate")}
     if true_normals is not None:  # a sanity figure: share of normals facing like the true ones
-        out["agree"] = round(float(np.mean(np.einsum("ij,ij->i", res.output.normals, true_normals) > 0)), 4)
+        out["agree"] = round(
+            float(np.mean(np.einsum("ij,ij->i", res.output.normals, true_normals) > 0)), 4
+        )
     return out
 
 
@@ -78,25 +80,45 @@ def rows(quick: bool) -> list[dict]:
     measure_once(lambda: (_normals_stage(warm), _poisson_stage(_cloud(5000)))[0])
 
     n = 1_000_000 if quick else 5_000_000
-    cloud = _cloud(n)  # in the parent: the children share its pages (fork), so only their own work counts
+    cloud = _cloud(
+        n
+    )  # in the parent: the children share its pages (fork), so only their own work counts
     points = np.ascontiguousarray(cloud.points)
     label = f"armadillo {n / 1e6:g}M points"
     out = []
 
     ours = measure(lambda: _normals_stage(points, cloud.normals), repeat=1)
     info = ours["result"] if isinstance(ours["result"], dict) else {}
-    out.append(row("large", f"{label}: normals stage knn {KNN}, orient mst", ours,
-                   note=f"no reference (Open3D MST orientation far too slow at this size); {info}"))
+    out.append(
+        row(
+            "large",
+            f"{label}: normals stage knn {KNN}, orient mst",
+            ours,
+            note=f"no reference (Open3D MST orientation far too slow at this size); {info}",
+        )
+    )
 
     est = measure(lambda: _estimate_ours(points), repeat=1)
-    out.append(row("large", f"{label}: normal estimation only, knn {KNN}", est,
-                   note=f"kNN (chunked queries) + PCA, part of the row above; {est['result']} degenerate; "
-                        "Open3D vs ours at 1M in bench_normals"))
+    out.append(
+        row(
+            "large",
+            f"{label}: normal estimation only, knn {KNN}",
+            est,
+            note=f"kNN (chunked queries) + PCA, part of the row above; {est['result']} degenerate; "
+            "Open3D vs ours at 1M in bench_normals",
+        )
+    )
 
     pois = measure(lambda: _poisson_stage(cloud), repeat=1)
     info = pois["result"] if isinstance(pois["result"], dict) else {}
-    out.append(row("large", f"{label}: poisson stage depth {DEPTH}, true normals", pois,
-                   note=f"no reference here (see bench_poisson at 1M); {info}"))
+    out.append(
+        row(
+            "large",
+            f"{label}: poisson stage depth {DEPTH}, true normals",
+            pois,
+            note=f"no reference here (see bench_poisson at 1M); {info}",
+        )
+    )
     return out
 
 

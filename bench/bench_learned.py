@@ -58,9 +58,14 @@ def _fit_metrics(cloud, truth, seconds, res, hole=None):
     topo = report(mesh)
     tsamp = sample_surface(truth, N_EVAL, seed=1).points
     msamp = sample_surface(mesh, N_EVAL, seed=2).points
-    out = {"iterations": r.report["iterations"], "train_s": r.report["train_seconds"],
-           "eik": r.report["eikonal_near"]["fraction_within_0.1"], "components": topo.get("components"),
-           "genus": topo.get("genus"), "load": os.getloadavg()[0]}
+    out = {
+        "iterations": r.report["iterations"],
+        "train_s": r.report["train_seconds"],
+        "eik": r.report["eikonal_near"]["fraction_within_0.1"],
+        "components": topo.get("components"),
+        "genus": topo.get("genus"),
+        "load": os.getloadavg()[0],
+    }
     if hole is None:
         out["chamfer"], out["f1"] = _chamfer_f(msamp, tsamp, 0.01 * diag)
     else:
@@ -81,8 +86,11 @@ def _poisson_metrics(cloud, truth):
 
     m = screened_poisson(cloud.points, cloud.normals, depth=8).mesh
     diag = bbox_diagonal(truth.vertices)
-    ch, f1 = _chamfer_f(sample_surface(m, N_EVAL, seed=2).points, sample_surface(truth, N_EVAL, seed=1).points,
-                        0.01 * diag)
+    ch, f1 = _chamfer_f(
+        sample_surface(m, N_EVAL, seed=2).points,
+        sample_surface(truth, N_EVAL, seed=1).points,
+        0.01 * diag,
+    )
     return {"chamfer": ch, "f1": f1}
 
 
@@ -95,7 +103,12 @@ def rows(quick: bool) -> list[dict]:
     # never import torch here: the measured children must import it themselves (recon sets
     # OMP_WAIT_POLICY=PASSIVE before the import; busy-waiting threads crawl on a loaded CPU)
     if importlib.util.find_spec("torch") is None:
-        return [{"stage": "fit-sdf", "case": "skipped: torch not installed (pip install recon[learned])"}]
+        return [
+            {
+                "stage": "fit-sdf",
+                "case": "skipped: torch not installed (pip install recon[learned])",
+            }
+        ]
     from recon_cli.io import read_ply
     from recon_cli.mesh.sampling import sample_surface
     from recon_cli.poisson import screened_poisson
@@ -106,7 +119,9 @@ def rows(quick: bool) -> list[dict]:
     for name in ["kitten"] if quick else ["kitten", "armadillo"]:
         truth = read_ply(DATA / f"{name}.ply")
         cloud = sample_surface(truth, N_POINTS, seed=0)
-        screened_poisson(cloud.points[:2000], cloud.normals[:2000], depth=5)  # compile outside the timing
+        screened_poisson(
+            cloud.points[:2000], cloud.normals[:2000], depth=5
+        )  # compile outside the timing
         ref = measure(lambda: _poisson_metrics(cloud, truth), repeat=1)
         ours = measure(lambda: _fit_metrics(cloud, truth, seconds, res), repeat=1)
         o, p = ours["result"], ref["result"]
@@ -114,28 +129,50 @@ def rows(quick: bool) -> list[dict]:
             out.append({"stage": "fit-sdf", "case": f"{name}: FAILED {o!r} / {p!r}"})
             continue
         ok = o["f1"] >= 0.95 and o["chamfer"] <= 2 * p["chamfer"] and o["eik"] >= 0.9
-        note = (f"F@1% {o['f1']:.4f} (Poisson {p['f1']:.4f}); Chamfer-L1 {o['chamfer'] / o['diag']:.3g} diag = "
-                f"{o['chamfer'] / p['chamfer']:.2f}x Poisson d8; eikonal within 0.1 on {100 * o['eik']:.1f}% of "
-                f"samples within 5% diag; {o['iterations']} steps in {o['train_s']:.0f}s "
-                f"({o['iterations'] / o['train_s']:.1f}/s, load {o['load']:.1f}); "
-                f"{o['components']} component(s), genus {o['genus']}; "
-                f"targets F>=0.95, <=2x, >=90%: {'met' if ok else 'NOT met'}")
-        out.append(row("fit-sdf", f"{name} 100k samples + true normals, {seconds:.0f}s training, {res}^3 grid",
-                       ours, "poisson d8 (ours)", ref, note=note))
+        note = (
+            f"F@1% {o['f1']:.4f} (Poisson {p['f1']:.4f}); Chamfer-L1 {o['chamfer'] / o['diag']:.3g} diag = "
+            f"{o['chamfer'] / p['chamfer']:.2f}x Poisson d8; eikonal within 0.1 on {100 * o['eik']:.1f}% of "
+            f"samples within 5% diag; {o['iterations']} steps in {o['train_s']:.0f}s "
+            f"({o['iterations'] / o['train_s']:.1f}/s, load {o['load']:.1f}); "
+            f"{o['components']} component(s), genus {o['genus']}; "
+            f"targets F>=0.95, <=2x, >=90%: {'met' if ok else 'NOT met'}"
+        )
+        out.append(
+            row(
+                "fit-sdf",
+                f"{name} 100k samples + true normals, {seconds:.0f}s training, {res}^3 grid",
+                ours,
+                "poisson d8 (ours)",
+                ref,
+                note=note,
+            )
+        )
         if name == "kitten" or quick:
             rng = np.random.default_rng(3)
             c = cloud.points[rng.integers(len(cloud.points))]
             d = np.linalg.norm(cloud.points - c, axis=1)
             radius = float(np.sort(d)[len(d) // 10])
             holed = cloud.subset(d > radius)
-            hm = measure(lambda: _fit_metrics(holed, truth, min(seconds, 150.0), res, hole=(c, radius)), repeat=1)
+            hm = measure(
+                lambda: _fit_metrics(holed, truth, min(seconds, 150.0), res, hole=(c, radius)),
+                repeat=1,
+            )
             h = hm["result"]
             if isinstance(h, dict):
-                note = (f"hole radius {radius / h['diag']:.3f} diag; Chamfer-L1 on the rest {h['chamfer'] / h['diag']:.3g} "
-                        f"diag, F@1% {h['f1']:.4f}; cut-away true surface to fitted surface: mean "
-                        f"{h['hole_mean']:.3g}, max {h['hole_max']:.3g} diag; {h['components']} component(s), genus "
-                        f"{h['genus']}; {h['iterations']} steps in {h['train_s']:.0f}s")
+                note = (
+                    f"hole radius {radius / h['diag']:.3f} diag; Chamfer-L1 on the rest {h['chamfer'] / h['diag']:.3g} "
+                    f"diag, F@1% {h['f1']:.4f}; cut-away true surface to fitted surface: mean "
+                    f"{h['hole_mean']:.3g}, max {h['hole_max']:.3g} diag; {h['components']} component(s), genus "
+                    f"{h['genus']}; {h['iterations']} steps in {h['train_s']:.0f}s"
+                )
             else:
                 note = f"FAILED {h!r}"
-            out.append(row("fit-sdf", f"{name} with a 10% hole, {min(seconds, 150.0):.0f}s training", hm, note=note))
+            out.append(
+                row(
+                    "fit-sdf",
+                    f"{name} with a 10% hole, {min(seconds, 150.0):.0f}s training",
+                    hm,
+                    note=note,
+                )
+            )
     return out

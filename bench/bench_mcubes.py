@@ -15,7 +15,11 @@ def metaballs(n: int, seed: int = 0) -> np.ndarray:
     f = np.full(X.shape, 1e9, np.float32)
     for _ in range(6):
         c = rng.uniform(-0.5, 0.5, 3).astype(np.float32)
-        f = np.minimum(f, np.sqrt((X - c[0]) ** 2 + (Y - c[1]) ** 2 + (Z - c[2]) ** 2) - np.float32(rng.uniform(0.2, 0.4)))
+        f = np.minimum(
+            f,
+            np.sqrt((X - c[0]) ** 2 + (Y - c[1]) ** 2 + (Z - c[2]) ** 2)
+            - np.float32(rng.uniform(0.2, 0.4)),
+        )
     return f
 
 
@@ -26,13 +30,23 @@ def rows(quick: bool) -> list[dict]:
 
     marching_cubes(metaballs(16))  # compile (or load the numba cache) outside the timings
     out = []
-    for n in ([128] if quick else [128, 256]):
+    for n in [128] if quick else [128, 256]:
         f = metaballs(n)
         repeat = 3 if quick else 5
         ours = measure(lambda: len(marching_cubes(f)[1]), repeat=repeat)
         ref = measure(lambda: len(sk_mc(f, 0.0)[1]), repeat=repeat)
         ours_mt = measure(lambda: len(marching_cubes(f, method="mt")[1]), repeat=repeat)
-        out.append(row("mcubes", f"metaballs {n}^3 (faces {ours['result']})", ours, "skimage", ref,
-                       note=f"skimage faces {ref['result']}; ours includes vertex normals"))
-        out.append(row("mcubes", f"--method mt {n}^3 (faces {ours_mt['result']})", ours_mt, "skimage", ref))
+        out.append(
+            row(
+                "mcubes",
+                f"metaballs {n}^3 (faces {ours['result']})",
+                ours,
+                "skimage",
+                ref,
+                note=f"skimage faces {ref['result']}; ours includes vertex normals",
+            )
+        )
+        out.append(
+            row("mcubes", f"--method mt {n}^3 (faces {ours_mt['result']})", ours_mt, "skimage", ref)
+        )
     return out

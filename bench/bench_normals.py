@@ -39,7 +39,9 @@ def _o3d(points, knn, orient_k):
     from recon_cli.backends import open3d_backend
     from recon_cli.geometry import PointCloud
 
-    return open3d_backend.estimate_normals(PointCloud(points), knn=knn, orient_tangent_plane=orient_k)
+    return open3d_backend.estimate_normals(
+        PointCloud(points), knn=knn, orient_tangent_plane=orient_k
+    )
 
 
 def rows(quick: bool) -> list[dict]:
@@ -52,26 +54,57 @@ def rows(quick: bool) -> list[dict]:
     pts = _cloud("armadillo", n_est, 0.0025).points
     ours = measure(lambda: _ours(pts, 30, "none") is not None, repeat=rep)
     ref = measure(lambda: _o3d(pts, 30, None) is not None, repeat=rep)
-    out.append(row("normals", f"estimate {n_est // 1000}k K=30 (armadillo, noisy)", ours, "open3d estimate_normals", ref))
+    out.append(
+        row(
+            "normals",
+            f"estimate {n_est // 1000}k K=30 (armadillo, noisy)",
+            ours,
+            "open3d estimate_normals",
+            ref,
+        )
+    )
 
-    for n in ([200_000] if quick else [200_000, 1_000_000]):
+    for n in [200_000] if quick else [200_000, 1_000_000]:
         pts = _cloud("armadillo", n, 0.0025).points
-        ours = measure(lambda: _ours(pts, 10, "mst") is not None, repeat=1 if n >= 1_000_000 else rep)
+        ours = measure(
+            lambda: _ours(pts, 10, "mst") is not None, repeat=1 if n >= 1_000_000 else rep
+        )
         ref = measure(lambda: _o3d(pts, 10, 10) is not None, repeat=1)
         out.append(
-            row("normals", f"estimate+orient mst {n // 1000}k K=10 (armadillo, noisy)", ours,
-                "open3d estimate + orient_consistent_tangent_plane(10)", ref, note="Open3D measured once")
+            row(
+                "normals",
+                f"estimate+orient mst {n // 1000}k K=10 (armadillo, noisy)",
+                ours,
+                "open3d estimate + orient_consistent_tangent_plane(10)",
+                ref,
+                note="Open3D measured once",
+            )
         )
 
     n_acc = 30_000 if quick else 50_000
     for name in ("armadillo", "kitten", "mug"):
         for noise in (0.0, 0.0025):
             c = _cloud(name, n_acc, noise)
-            ours = measure(lambda: float((np.einsum("ij,ij->i", _ours(c.points, 30, "mst"), c.normals) > 0).mean()), 1)
-            ref = measure(lambda: float((np.einsum("ij,ij->i", _o3d(c.points, 30, 30), c.normals) > 0).mean()), 1)
+            ours = measure(
+                lambda: float(
+                    (np.einsum("ij,ij->i", _ours(c.points, 30, "mst"), c.normals) > 0).mean()
+                ),
+                1,
+            )
+            ref = measure(
+                lambda: float(
+                    (np.einsum("ij,ij->i", _o3d(c.points, 30, 30), c.normals) > 0).mean()
+                ),
+                1,
+            )
             out.append(
-                row("normals", f"orient accuracy {name} {n_acc // 1000}k {'noisy' if noise else 'clean'} K=30",
-                    ours, "open3d tangent plane(30)", ref,
-                    note=f"same-way fraction ours {ours['result']:.5f} vs open3d {ref['result']:.5f}")
+                row(
+                    "normals",
+                    f"orient accuracy {name} {n_acc // 1000}k {'noisy' if noise else 'clean'} K=30",
+                    ours,
+                    "open3d tangent plane(30)",
+                    ref,
+                    note=f"same-way fraction ours {ours['result']:.5f} vs open3d {ref['result']:.5f}",
+                )
             )
     return out

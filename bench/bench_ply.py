@@ -27,10 +27,17 @@ def _make_mesh(path: str, n_side: int) -> None:
     from recon_cli.io.ply import write_ply
 
     # a grid of n_side^2 vertices, 2 (n_side-1)^2 triangles
-    x, y = np.meshgrid(np.arange(n_side, dtype=float), np.arange(n_side, dtype=float), indexing="ij")
+    x, y = np.meshgrid(
+        np.arange(n_side, dtype=float), np.arange(n_side, dtype=float), indexing="ij"
+    )
     v = np.column_stack([x.ravel(), y.ravel(), np.sin(x.ravel() * 0.01)])
     idx = np.arange(n_side * n_side).reshape(n_side, n_side)
-    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    a, b, c, d = (
+        idx[:-1, :-1].ravel(),
+        idx[1:, :-1].ravel(),
+        idx[1:, 1:].ravel(),
+        idx[:-1, 1:].ravel(),
+    )
     f = np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
     write_ply(TriangleMesh(vertices=v, faces=f), path)
 
@@ -46,7 +53,9 @@ def rows(quick: bool) -> list[dict]:
     with tempfile.TemporaryDirectory() as d:
         cloud = os.path.join(d, "cloud.ply")
         _make_cloud(cloud, n)
-        read_ply(cloud)  # load the (serial, fork-safe) numba gather kernel once, outside the timings
+        read_ply(
+            cloud
+        )  # load the (serial, fork-safe) numba gather kernel once, outside the timings
         ours = measure(lambda: len(read_ply(cloud).points), rep)
         bare = measure(lambda: len(np.fromfile(cloud, dtype=np.uint8)), rep)
         o3d_ = measure(lambda: len(o3d.io.read_point_cloud(cloud).points), rep)
@@ -58,5 +67,13 @@ def rows(quick: bool) -> list[dict]:
         _make_mesh(mesh, side)
         ours_m = measure(lambda: len(read_ply(mesh).faces), rep)
         o3d_m = measure(lambda: len(o3d.io.read_triangle_mesh(mesh).triangles), rep)
-        out.append(row("ply", f"read {2 * (side - 1) ** 2 // 1000}k-face binary mesh", ours_m, "open3d.io.read_triangle_mesh", o3d_m))
+        out.append(
+            row(
+                "ply",
+                f"read {2 * (side - 1) ** 2 // 1000}k-face binary mesh",
+                ours_m,
+                "open3d.io.read_triangle_mesh",
+                o3d_m,
+            )
+        )
     return out

@@ -49,10 +49,19 @@ N_EVAL = 100_000
 NOISE = 0.0025
 
 COLUMNS = [
-    ("case", "case"), ("method", "method"), ("faces", "faces"), ("topology", "closed·manifold·pieces"),
-    ("seconds", "s"), ("mb", "MB"), ("cd", "CD / diag"), ("f", "F@0.5 %"),
-    ("faces_ratio", "faces ours/o3d"), ("time_ratio", "s ours/o3d"), ("mem_ratio", "MB ours/o3d"),
-    ("cd_ratio", "CD ours/o3d"), ("note", "note"),
+    ("case", "case"),
+    ("method", "method"),
+    ("faces", "faces"),
+    ("topology", "closed·manifold·pieces"),
+    ("seconds", "s"),
+    ("mb", "MB"),
+    ("cd", "CD / diag"),
+    ("f", "F@0.5 %"),
+    ("faces_ratio", "faces ours/o3d"),
+    ("time_ratio", "s ours/o3d"),
+    ("mem_ratio", "MB ours/o3d"),
+    ("cd_ratio", "CD ours/o3d"),
+    ("note", "note"),
 ]
 
 
@@ -147,8 +156,11 @@ def _topology(mesh) -> str:
         return "empty"
     rep = report(mesh)
     closed = "closed" if rep["watertight"] else f"open ({rep['boundary_edges']} boundary edges)"
-    manifold = "manifold" if rep["edge_manifold"] and rep["vertex_manifold"] else (
-        f"NON-manifold ({rep['non_manifold_edges']} e, {rep['non_manifold_vertices']} v)")
+    manifold = (
+        "manifold"
+        if rep["edge_manifold"] and rep["vertex_manifold"]
+        else (f"NON-manifold ({rep['non_manifold_edges']} e, {rep['non_manifold_vertices']} v)")
+    )
     return f"{closed} · {manifold} · {rep['components']}"
 
 
@@ -173,9 +185,13 @@ def _ours_process(cloud, depth: int, trimmed: bool, workdir: Path) -> tuple[dict
         cmd += ["--trim", str(OUR_TRIM)]
     # through a small launcher: a child forked from this (large) process reports this
     # process's resident size as its own peak (ru_maxrss counts the pages it had before exec)
-    proc = subprocess.run([sys.executable, "-c", _LAUNCHER, *cmd], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc = subprocess.run(
+        [sys.executable, "-c", _LAUNCHER, *cmd], stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )
     if proc.returncode != 0:
-        raise RuntimeError(f"recon poisson failed ({proc.returncode}): {proc.stderr.decode().strip()}")
+        raise RuntimeError(
+            f"recon poisson failed ({proc.returncode}): {proc.stderr.decode().strip()}"
+        )
     dt, maxrss_kb = proc.stdout.decode().split()
     return {"seconds": float(dt), "peak_mb": int(maxrss_kb) / 1024.0}, read_ply(dst)
 
@@ -232,26 +248,54 @@ def _reference(fn, cloud, depth: int, trimmed: bool) -> tuple[dict, object]:
     return m, TriangleMesh(vertices=v, faces=f)
 
 
-def _rows_for(case: str, cloud, depth: int, truth, kind: str, workdir: Path, trimmed: bool = False,
-              pymeshlab: bool = True) -> list[dict]:
+def _rows_for(
+    case: str,
+    cloud,
+    depth: int,
+    truth,
+    kind: str,
+    workdir: Path,
+    trimmed: bool = False,
+    pymeshlab: bool = True,
+) -> list[dict]:
     out = []
     results = {}
     pymeshlab = pymeshlab and not trimmed and not NO_PYMESHLAB
-    runners = [("recon (process)", None), ("open3d", _open3d)] + ([("pymeshlab", _pymeshlab)] if pymeshlab else [])
+    runners = [("recon (process)", None), ("open3d", _open3d)] + (
+        [("pymeshlab", _pymeshlab)] if pymeshlab else []
+    )
     for name, fn in runners:
         try:
-            m, mesh = _ours_process(cloud, depth, trimmed, workdir) if fn is None else _reference(fn, cloud, depth, trimmed)
+            m, mesh = (
+                _ours_process(cloud, depth, trimmed, workdir)
+                if fn is None
+                else _reference(fn, cloud, depth, trimmed)
+            )
         except Exception as exc:  # one failing method must not hide the others
             out.append({"case": case, "method": name, "note": f"FAILED: {exc}"})
             continue
         cd, f = _accuracy(mesh, truth, kind, cloud.points)
-        r = {"case": case, "method": name, "faces": len(mesh.faces), "topology": _topology(mesh),
-             "seconds": m["seconds"], "mb": m["peak_mb"], "cd": cd, "f": f, "note": ""}
+        r = {
+            "case": case,
+            "method": name,
+            "faces": len(mesh.faces),
+            "topology": _topology(mesh),
+            "seconds": m["seconds"],
+            "mb": m["peak_mb"],
+            "cd": cd,
+            "f": f,
+            "note": "",
+        }
         results[name] = r
         out.append(r)
     ours, ref = results.get("recon (process)"), results.get("open3d")
     if ours and ref:
-        for key, ratio in (("faces", "faces_ratio"), ("seconds", "time_ratio"), ("mb", "mem_ratio"), ("cd", "cd_ratio")):
+        for key, ratio in (
+            ("faces", "faces_ratio"),
+            ("seconds", "time_ratio"),
+            ("mb", "mem_ratio"),
+            ("cd", "cd_ratio"),
+        ):
             ours[ratio] = ours[key] / ref[key] if ref[key] else float("nan")
         if kind not in ("fit", "accuracy"):
             ours["note"] = f"dF {ours['f'] - ref['f']:+.4f}"
@@ -266,8 +310,12 @@ def rows(quick: bool, only: list[str] | None = None) -> list[dict]:
         return not only or any(o in case for o in only)
 
     # warm our numba cache the way a user's install does (no compile time in the rows)
-    subprocess.run([str(Path(sys.executable).with_name("recon")), "-q", "warmup"], check=False,
-                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    subprocess.run(
+        [str(Path(sys.executable).with_name("recon")), "-q", "warmup"],
+        check=False,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     out: list[dict] = []
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
@@ -282,42 +330,85 @@ def rows(quick: bool, only: list[str] | None = None) -> list[dict]:
         for depth in (8, 9):
             if not want(f"bunny scan, d{depth}, trimmed"):
                 continue
-            out += _rows_for(f"bunny scan, d{depth}, trimmed (ours {OUR_TRIM}, o3d {REF_TRIM:.0%} quantile)", scan, depth,
-                             bunny_truth, "accuracy", work, trimmed=True)
+            out += _rows_for(
+                f"bunny scan, d{depth}, trimmed (ours {OUR_TRIM}, o3d {REF_TRIM:.0%} quantile)",
+                scan,
+                depth,
+                bunny_truth,
+                "accuracy",
+                work,
+                trimmed=True,
+            )
 
-        smooth = [("kitten", 0.0, 8), ("kitten", NOISE, 9)] if quick else [
-            ("kitten", 0.0, 8), ("kitten", 0.0, 9), ("kitten", NOISE, 8), ("kitten", NOISE, 9),
-            ("armadillo", 0.0, 8), ("armadillo", 0.0, 9), ("armadillo", NOISE, 9),
-            ("torus", 0.0, 8), ("torus", NOISE, 9), ("mug", 0.0, 9),
-        ]
+        smooth = (
+            [("kitten", 0.0, 8), ("kitten", NOISE, 9)]
+            if quick
+            else [
+                ("kitten", 0.0, 8),
+                ("kitten", 0.0, 9),
+                ("kitten", NOISE, 8),
+                ("kitten", NOISE, 9),
+                ("armadillo", 0.0, 8),
+                ("armadillo", 0.0, 9),
+                ("armadillo", NOISE, 9),
+                ("torus", 0.0, 8),
+                ("torus", NOISE, 9),
+                ("mug", 0.0, 9),
+            ]
+        )
         for name, noise, depth in smooth:
             label = f"{name} 100k{' noisy' if noise else ''}, d{depth}"
             if not want(label):
                 continue
             if name == "torus":
-                out += _rows_for(label, _torus(100_000, noise), depth, _torus_truth(), "torus", work)
+                out += _rows_for(
+                    label, _torus(100_000, noise), depth, _torus_truth(), "torus", work
+                )
             else:
-                out += _rows_for(label, _samples(name, 100_000, noise), depth, _mesh(name), "chamfer", work)
+                out += _rows_for(
+                    label, _samples(name, 100_000, noise), depth, _mesh(name), "chamfer", work
+                )
         noisy = _samples("kitten", 100_000, NOISE)
         noisy.normals = None
         if want("kitten 100k noisy, our normals, d9"):
-            out += _rows_for("kitten 100k noisy, our normals, d9", _with_our_normals(noisy), 9, _mesh("kitten"),
-                             "chamfer", work)
+            out += _rows_for(
+                "kitten 100k noisy, our normals, d9",
+                _with_our_normals(noisy),
+                9,
+                _mesh("kitten"),
+                "chamfer",
+                work,
+            )
 
         if not quick and any(want(f"armadillo 1M, d{depth}") for depth in (9, 10)):
             big = _samples("armadillo", 1_000_000)
             for depth in (9, 10):
                 if not want(f"armadillo 1M, d{depth}"):
                     continue
-                out += _rows_for(f"armadillo 1M, d{depth}", big, depth, _mesh("armadillo"), "chamfer", work,
-                                 pymeshlab=depth < 10)
+                out += _rows_for(
+                    f"armadillo 1M, d{depth}",
+                    big,
+                    depth,
+                    _mesh("armadillo"),
+                    "chamfer",
+                    work,
+                    pymeshlab=depth < 10,
+                )
             del big
         if not quick and want("armadillo 5M, d11"):
             huge = _samples("armadillo", 5_000_000)
             m, mesh = _ours_process(huge, 11, False, work)
-            out.append({"case": "armadillo 5M, d11", "method": "recon (process)", "faces": len(mesh.faces),
-                        "topology": _topology(mesh), "seconds": m["seconds"], "mb": m["peak_mb"],
-                        "note": "ours only; target within 12 GiB"})
+            out.append(
+                {
+                    "case": "armadillo 5M, d11",
+                    "method": "recon (process)",
+                    "faces": len(mesh.faces),
+                    "topology": _topology(mesh),
+                    "seconds": m["seconds"],
+                    "mb": m["peak_mb"],
+                    "note": "ours only; target within 12 GiB",
+                }
+            )
     return out
 
 

@@ -80,5 +80,13 @@ def rows(quick: bool) -> list[dict]:
 
     c = measure(ours_report, rep)
     d = measure(theirs_report, rep)
-    out.append(row("repair", f"topology report {len(mesh.faces) / 1e6:.2f}M faces", c, "pymeshlab get_topological_measures", d))
+    out.append(
+        row(
+            "repair",
+            f"topology report {len(mesh.faces) / 1e6:.2f}M faces",
+            c,
+            "pymeshlab get_topological_measures",
+            d,
+        )
+    )
     return out

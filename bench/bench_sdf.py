@@ -41,9 +41,13 @@ def _grid_rows(mesh, label: str, res: int, repeat: int) -> list[dict]:
     o, h, s = grid_frame(v.min(0), v.max(0), res)
 
     def ours_fn(sign):
-        return lambda: float(np.abs(run_stage(mesh, resolution=res, sign=sign).output.sdf).sum(dtype=np.float64))
+        return lambda: float(
+            np.abs(run_stage(mesh, resolution=res, sign=sign).output.sdf).sum(dtype=np.float64)
+        )
 
-    ref = measure(lambda: float(np.abs(signed_distance(mesh, _points32(o, h, s))).sum()), repeat=repeat)
+    ref = measure(
+        lambda: float(np.abs(signed_distance(mesh, _points32(o, h, s))).sum()), repeat=repeat
+    )
     ours = measure(ours_fn("winding"), repeat=repeat)
     ours_pn = measure(ours_fn("pseudonormal"), repeat=repeat)
     case = f"{label}, {res}^3 grid ({'x'.join(map(str, s))} = {int(np.prod(s)) / 1e6:.1f}M samples)"
@@ -73,7 +77,9 @@ def rows(quick: bool) -> list[dict]:
     run_stage(mesh, resolution=8, sign="pseudonormal")
     out = []
     for res in [64] if quick else [128, 256]:
-        out += _grid_rows(mesh, "armadillo 50k faces", res, 1 if res >= 256 else (2 if quick else 3))
+        out += _grid_rows(
+            mesh, "armadillo 50k faces", res, 1 if res >= 256 else (2 if quick else 3)
+        )
     if not quick:
         # a small mesh with large triangles (10k faces): Open3D's per-sample cost falls with
         # the face count faster than ours does, so this is the harder comparison
@@ -87,5 +93,14 @@ def rows(quick: bool) -> list[dict]:
     q = rng.uniform(lo - 0.1 * (hi - lo), hi + 0.1 * (hi - lo), size=(k, 3))
     ours = measure(lambda: float(closest_points(v, f, q)[0].sum()), repeat=2)
     ref = measure(lambda: float(unsigned_distance(mesh, q).sum()), repeat=2)
-    out.append(row("distance", f"closest_points {k} queries, armadillo", ours, "open3d", ref, note="compute_distance"))
+    out.append(
+        row(
+            "distance",
+            f"closest_points {k} queries, armadillo",
+            ours,
+            "open3d",
+            ref,
+            note="compute_distance",
+        )
+    )
     return out

@@ -34,12 +34,27 @@ def fmt(v, digits=3) -> str:
 
 
 HEAD = "| stage | case | ours s | ours MB | reference | ref s | ref MB | time ours/ref | mem ours/ref | note |"
-KEYS = ("stage", "case", "ours_s", "ours_mb", "ref", "ref_s", "ref_mb", "time_ratio", "mem_ratio", "note")
+KEYS = (
+    "stage",
+    "case",
+    "ours_s",
+    "ours_mb",
+    "ref",
+    "ref_s",
+    "ref_mb",
+    "time_ratio",
+    "mem_ratio",
+    "note",
+)
 
 
 def table(rows: list[dict], columns: list[tuple[str, str]] | None = None) -> list[str]:
     """The rows as a markdown table: the usual ours-vs-reference columns, or a module's own ``COLUMNS``."""
-    head, keys = (HEAD, KEYS) if columns is None else ("| " + " | ".join(h for _, h in columns) + " |", [k for k, _ in columns])
+    head, keys = (
+        (HEAD, KEYS)
+        if columns is None
+        else ("| " + " | ".join(h for _, h in columns) + " |", [k for k, _ in columns])
+    )
     lines = [head, "|" + "---|" * len(keys)]
     for r in rows:
         lines.append("| " + " | ".join(fmt(r.get(k, "")) for k in keys) + " |")
@@ -64,7 +79,11 @@ def old_sections(path: Path) -> dict[str, str]:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--out", default=str(HERE / "results.md"))
-    ap.add_argument("--only", nargs="*", help="bench module names (e.g. ply normals); the other sections of --out are kept")
+    ap.add_argument(
+        "--only",
+        nargs="*",
+        help="bench module names (e.g. ply normals); the other sections of --out are kept",
+    )
     ap.add_argument("--quick", action="store_true", help="smaller inputs, fewer repeats")
     args = ap.parse_args()
     every = sorted(p.stem for p in HERE.glob("bench_*.py"))
@@ -81,9 +100,17 @@ def main() -> int:
         took = time.perf_counter() - t0
         print(f"# {m} done in {took:.1f}s", file=sys.stderr, flush=True)
         when = time.strftime("%Y-%m-%d %H:%M")
-        text = "\n".join(
-            [f"## {m} ({when}{', quick' if args.quick else ''}, {took:.0f} s)", "", *table(rows, getattr(mod, "COLUMNS", None)), ""]
-        ) + "\n"
+        text = (
+            "\n".join(
+                [
+                    f"## {m} ({when}{', quick' if args.quick else ''}, {took:.0f} s)",
+                    "",
+                    *table(rows, getattr(mod, "COLUMNS", None)),
+                    "",
+                ]
+            )
+            + "\n"
+        )
         print(text, flush=True)
         sections[m] = text
     lines = [

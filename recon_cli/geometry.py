@@ -185,6 +185,7 @@ def float64(obj: "PointCloud | TriangleMesh") -> "PointCloud | TriangleMesh":
     (colours, attributes and faces are shared). Library functions call this on the objects
     they are given, so a float32 cloud read from a file is computed on in float64.
     """
+
     def ready(a: np.ndarray | None) -> bool:
         return a is None or (a.dtype == np.float64 and a.flags.c_contiguous)
 
@@ -245,7 +246,9 @@ def float32_rounding(points: np.ndarray) -> tuple[float, float]:
     big = float(np.maximum(np.abs(lo), np.abs(hi)).max())
     if big > float(np.finfo(np.float32).max):
         return math.inf, math.inf
-    bound = float(np.spacing(np.float32(big))) / 2  # round to nearest: half a unit in the last place
+    bound = (
+        float(np.spacing(np.float32(big))) / 2
+    )  # round to nearest: half a unit in the last place
     diag = float(np.linalg.norm(hi - lo))
     scale = diag if diag > 0 else big
     if bound <= tol.precision * scale:
@@ -278,7 +281,9 @@ def bbox_diagonal(points: np.ndarray) -> float:
     return float(np.linalg.norm(points.max(axis=0).astype(np.float64) - points.min(axis=0)))
 
 
-def oriented_rows(points: Any, normals: Any, missing: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def oriented_rows(
+    points: Any, normals: Any, missing: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Points and normals of an oriented cloud as contiguous float64 (n, 3) arrays, with the normals' lengths.
 
     The shared entry check of the stages that need normals; each decides what to do with
@@ -312,7 +317,9 @@ def _float_rows(a: Any) -> np.ndarray:
     arr = np.asarray(a)
     if arr.dtype not in (np.float32, np.float64):
         arr = arr.astype(np.float64)
-    return arr if arr.ndim == 2 and arr.shape[1:] == (3,) else np.ascontiguousarray(arr).reshape(-1, 3)
+    return (
+        arr if arr.ndim == 2 and arr.shape[1:] == (3,) else np.ascontiguousarray(arr).reshape(-1, 3)
+    )
 
 
 def _source_dtype(point_dtype: Any, coords: np.ndarray) -> type:

@@ -46,7 +46,9 @@ class Grid:
         if self.sdf.ndim != 3:
             raise InputError(f"sdf must be 3-d, got shape {self.sdf.shape}")
         if min(self.sdf.shape) == 0:
-            raise InputError(f"the grid has no samples (shape {' x '.join(map(str, self.sdf.shape))})")
+            raise InputError(
+                f"the grid has no samples (shape {' x '.join(map(str, self.sdf.shape))})"
+            )
         if not np.isfinite(self.origin).all():
             raise InputError(f"origin must be finite, got {self.origin.tolist()}")
         if not (np.isfinite(self.voxel_size) and self.voxel_size > 0):

@@ -49,7 +49,10 @@ def describe(path: str | os.PathLike, format: str | None = None) -> dict[str, An
         "vertices": int(len(pts)),
         "faces": int(len(geom.faces)) if isinstance(geom, TriangleMesh) else 0,
         "elements": {e.name: e.count for e in ply.elements},
-        "properties": {e.name: [p.header_line().replace("property ", "") for p in e.properties] for e in ply.elements},
+        "properties": {
+            e.name: [p.header_line().replace("property ", "") for p in e.properties]
+            for e in ply.elements
+        },
         **_geometry_keys(geom),
         "history": list(ply.comments),
     }
@@ -74,7 +77,9 @@ def describe_geometry(geom, name: str, fmt: str, details: dict) -> dict[str, Any
     properties = {"vertex": vprops}
     if mesh:
         elements["face"] = int(len(geom.faces))
-        properties["face"] = ["int64 vertex_indices x3"] + [f"{v.dtype.name} {k}" for k, v in geom.face_attributes.items()]
+        properties["face"] = ["int64 vertex_indices x3"] + [
+            f"{v.dtype.name} {k}" for k, v in geom.face_attributes.items()
+        ]
     out: dict[str, Any] = {
         "file": name,
         "kind": "mesh" if mesh else "point_cloud",

@@ -202,13 +202,17 @@ class Param:
         if value is None:
             if self.default is None or None in self.words.values():
                 return None
-            word = {"int": "an integer", "float": "a number", "bool": "true or false"}.get(self.type, "a value")
+            word = {"int": "an integer", "float": "a number", "bool": "true or false"}.get(
+                self.type, "a value"
+            )
             raise self._error(self._expect(word) if self.type in ("int", "float") else word, value)
         t = self.type
         if t == "any":
             return value
         if t == "bool":
-            if isinstance(value, bool) or (type(value).__module__ == "numpy" and "bool" in type(value).__name__):
+            if isinstance(value, bool) or (
+                type(value).__module__ == "numpy" and "bool" in type(value).__name__
+            ):
                 return bool(value)
             if isinstance(value, str) and text_ok:
                 try:
@@ -223,7 +227,11 @@ class Param:
         if t == "int":
             if isinstance(value, str) and text_ok and _INT.fullmatch(value.strip()):
                 v: Any = int(value.strip())
-            elif _is_number(value) and not isinstance(value, float) and "float" not in type(value).__name__:
+            elif (
+                _is_number(value)
+                and not isinstance(value, float)
+                and "float" not in type(value).__name__
+            ):
                 v = int(value)
             else:
                 raise self._error(self._expect("an integer"), value, typed=not text_ok)
@@ -268,9 +276,8 @@ class Param:
     def _in_range(self, v: float, given: Any, what: str) -> Any:
         if v in self.also:
             return v
-        bad = (
-            (self.min is not None and (v < self.min or (self.min_open and v == self.min)))
-            or (self.max is not None and (v > self.max or (self.max_open and v == self.max)))
+        bad = (self.min is not None and (v < self.min or (self.min_open and v == self.min))) or (
+            self.max is not None and (v > self.max or (self.max_open and v == self.max))
         )
         if bad:
             raise self._error(self._expect(what), given)
@@ -344,8 +351,14 @@ class StageSpec:
         if len(self.backends) > 1 and "backend" not in {p.name for p in self.params}:
             self.params = (
                 *self.params,
-                Param("backend", "choice", "native", "Implementation: ours (native) or a reference library "
-                      "(needs recon[reference]).", choices=self.backends),
+                Param(
+                    "backend",
+                    "choice",
+                    "native",
+                    "Implementation: ours (native) or a reference library "
+                    "(needs recon[reference]).",
+                    choices=self.backends,
+                ),
             )
         names = [p.name for p in self.params]
         if len(set(names)) != len(names):
@@ -358,13 +371,17 @@ class StageSpec:
         key = name.replace("-", "_")
         if key not in self._by_name:
             known = ", ".join(p.dashed for p in self.params) or "none"
-            raise ParameterError(f"stage {self.name!r} has no parameter {name.replace('_', '-')!r} (parameters: {known})")
+            raise ParameterError(
+                f"stage {self.name!r} has no parameter {name.replace('_', '-')!r} (parameters: {known})"
+            )
         return self._by_name[key]
 
     def defaults(self) -> dict[str, Any]:
         return {p.name: p.default for p in self.params}
 
-    def check(self, values: Mapping[str, Any], text_ok: bool = True, complete: bool = True) -> dict[str, Any]:
+    def check(
+        self, values: Mapping[str, Any], text_ok: bool = True, complete: bool = True
+    ) -> dict[str, Any]:
         """``values`` checked (unknown names, types, ranges) and, with ``complete``, the defaults added."""
         out = self.defaults() if complete else {}
         for k, v in values.items():
@@ -388,7 +405,9 @@ class StageSpec:
             if "oriented" in want and "oriented" not in have and have & {"cloud", "mesh"}:
                 alt = ", or pass --estimate-normals" if "estimate_normals" in self._by_name else ""
                 hint = f" (run 'recon normals' first{alt})"
-            raise InputError(f"{self.name} needs {describe_kinds(want)}, got {describe_data(have)}{hint}")
+            raise InputError(
+                f"{self.name} needs {describe_kinds(want)}, got {describe_data(have)}{hint}"
+            )
 
     # -- the implementation
     def runner(self, fn: Callable[..., Any]) -> Callable[..., Any]:
@@ -401,9 +420,15 @@ class StageSpec:
         """
         sig = inspect.signature(fn)
         declared = [p.name for p in self.params]
-        own = [k for k, p in sig.parameters.items() if p.kind is inspect.Parameter.KEYWORD_ONLY and k != "progress"]
+        own = [
+            k
+            for k, p in sig.parameters.items()
+            if p.kind is inspect.Parameter.KEYWORD_ONLY and k != "progress"
+        ]
         if sorted(own) != sorted(declared):
-            raise TypeError(f"{fn.__qualname__}: keywords {own} differ from the declaration of {self.name!r}: {declared}")
+            raise TypeError(
+                f"{fn.__qualname__}: keywords {own} differ from the declaration of {self.name!r}: {declared}"
+            )
 
         @functools.wraps(fn)
         def run(data: Any, *, progress: Any = None, **values: Any) -> Any:
@@ -414,7 +439,10 @@ class StageSpec:
         data_param = next(iter(sig.parameters.values()))
         run.__signature__ = inspect.Signature(  # type: ignore[attr-defined]
             [data_param]
-            + [inspect.Parameter(p.name, inspect.Parameter.KEYWORD_ONLY, default=p.default) for p in self.params]
+            + [
+                inspect.Parameter(p.name, inspect.Parameter.KEYWORD_ONLY, default=p.default)
+                for p in self.params
+            ]
             + [inspect.Parameter("progress", inspect.Parameter.KEYWORD_ONLY, default=None)],
             return_annotation=sig.return_annotation,
         )
@@ -425,7 +453,10 @@ class StageSpec:
     # -- documentation
     def markdown_table(self) -> str:
         """The README's parameter table of this stage."""
-        rows = ["| option | type | default | allowed | unit | meaning |", "|---|---|---|---|---|---|"]
+        rows = [
+            "| option | type | default | allowed | unit | meaning |",
+            "|---|---|---|---|---|---|",
+        ]
         for p in self.params:
             allowed = f"{p.option} / --no-{p.dashed}" if p.type == "bool" else p.range_text()
             extra = [f"`{_fmt(k)}`: {v}" for k, v in p.special.items()]
@@ -445,7 +476,9 @@ def describe_data(have: frozenset[str] | set[str]) -> str:
     if "mesh" in have:
         return "a triangle mesh"
     if "cloud" in have:
-        return "a point cloud with normals" if "oriented" in have else "a point cloud without normals"
+        return (
+            "a point cloud with normals" if "oriented" in have else "a point cloud without normals"
+        )
     return "nothing usable"
 
 

@@ -82,7 +82,9 @@ def parse_pipeline(text: str, path: str = "<pipeline>", check: bool = True) -> P
     unknown_top = sorted(set(doc) - {"stage", "description"})
     if unknown_top:
         key = unknown_top[0]
-        raise ParameterError(f"{path}:{_line_of_key(text, key, 0, None)}: unknown top-level key {key!r} (expected [[stage]] tables)")
+        raise ParameterError(
+            f"{path}:{_line_of_key(text, key, 0, None)}: unknown top-level key {key!r} (expected [[stage]] tables)"
+        )
     stages = doc.get("stage", [])
     if not isinstance(stages, list) or not stages or not all(isinstance(s, dict) for s in stages):
         raise InputError("no [[stage]] tables", path)
@@ -102,7 +104,9 @@ def parse_pipeline(text: str, path: str = "<pipeline>", check: bool = True) -> P
                 continue
             norm = key.replace("-", "_")
             if norm in params:
-                raise ParameterError(f"{path}:{_line_of_key(text, key, start, end)}: parameter {key!r} is given twice")
+                raise ParameterError(
+                    f"{path}:{_line_of_key(text, key, start, end)}: parameter {key!r} is given twice"
+                )
             params[norm] = value
             plines[norm] = _line_of_key(text, key, start, end)
         steps.append(PipelineStep(name=str(name), params=params, line=start, param_lines=plines))
@@ -143,11 +147,17 @@ def check_pipeline(pipe: Pipeline, input_kinds: frozenset[str] | None = None) ->
             raise ParameterError(f"{where}: {exc}") from None
         for key in list(step.params):
             line = step.param_lines.get(key, step.line)
-            at = f"--set {step.text_params[key]}" if key in step.text_params else f"{pipe.path}:{line}"
+            at = (
+                f"--set {step.text_params[key]}"
+                if key in step.text_params
+                else f"{pipe.path}:{line}"
+            )
             if key not in spec.defaults():
                 known = ", ".join(p.dashed for p in spec.params) or "none"
-                raise ParameterError(f"{at}: stage {i} ({step.name}) has no parameter {key.replace('_', '-')!r} "
-                                     f"(parameters: {known})")
+                raise ParameterError(
+                    f"{at}: stage {i} ({step.name}) has no parameter {key.replace('_', '-')!r} "
+                    f"(parameters: {known})"
+                )
             try:
                 p = spec.param(key)
                 value = p.coerce(step.params[key], text_ok=key in step.text_params)
@@ -183,26 +193,36 @@ def apply_overrides(pipe: Pipeline, overrides: list[str] | tuple[str, ...]) -> N
     for item in overrides:
         m = re.fullmatch(r"\s*([A-Za-z0-9_-]+)\.([A-Za-z0-9_-]+)\s*=(.*)", item, re.S)
         if not m:
-            raise ParameterError(f"--set {item!r}: expected STAGE.PARAM=VALUE (e.g. poisson.depth=9 or 2.depth=9)")
+            raise ParameterError(
+                f"--set {item!r}: expected STAGE.PARAM=VALUE (e.g. poisson.depth=9 or 2.depth=9)"
+            )
         stage, key, value = m.group(1), m.group(2).replace("-", "_"), m.group(3).strip()
         if stage.isdigit():
             k = int(stage)
             if not 1 <= k <= len(pipe.steps):
-                raise ParameterError(f"--set {item!r}: the pipeline has stages 1..{len(pipe.steps)}")
+                raise ParameterError(
+                    f"--set {item!r}: the pipeline has stages 1..{len(pipe.steps)}"
+                )
             step = pipe.steps[k - 1]
         else:
             matches = [s for s in pipe.steps if s.name == stage]
             if not matches:
                 names = ", ".join(s.name for s in pipe.steps)
-                raise ParameterError(f"--set {item!r}: no stage {stage!r} in {pipe.path} (stages: {names})")
+                raise ParameterError(
+                    f"--set {item!r}: no stage {stage!r} in {pipe.path} (stages: {names})"
+                )
             if len(matches) > 1:
-                raise ParameterError(f"--set {item!r}: {len(matches)} stages are called {stage!r}; use its number")
+                raise ParameterError(
+                    f"--set {item!r}: {len(matches)} stages are called {stage!r}; use its number"
+                )
             step = matches[0]
         step.params[key] = value
         step.text_params[key] = item
 
 
-def load_pipeline(path: str | os.PathLike, overrides: list[str] | tuple[str, ...] = (), check: bool = True) -> Pipeline:
+def load_pipeline(
+    path: str | os.PathLike, overrides: list[str] | tuple[str, ...] = (), check: bool = True
+) -> Pipeline:
     """Read the pipeline file at ``path``, apply ``--set`` overrides, and check it."""
     try:
         with open(path, encoding="utf-8") as f:

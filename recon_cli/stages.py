@@ -84,7 +84,9 @@ def register_stage(spec: StageSpec | str, name: str | None = None) -> None:
     """
     if isinstance(spec, str):
         if name is None or spec.count(":") != 1:
-            raise ParameterError(f"a stage target must be 'module:attribute' with a name, got {spec!r}")
+            raise ParameterError(
+                f"a stage target must be 'module:attribute' with a name, got {spec!r}"
+            )
         if name in BUILTIN and STAGES.get(name) != spec:
             raise ParameterError(f"stage {name!r} is built in and cannot be replaced by {spec!r}")
         STAGES[name] = spec
@@ -96,7 +98,9 @@ def register_stage(spec: StageSpec | str, name: str | None = None) -> None:
     if name in BUILTIN:
         raise ParameterError(f"stage {name!r} is built in and cannot be replaced")
     if spec.run is None:
-        raise ParameterError(f"stage {name!r} has no implementation (decorate its run_stage with @SPEC.runner)")
+        raise ParameterError(
+            f"stage {name!r} has no implementation (decorate its run_stage with @SPEC.runner)"
+        )
     _OBJECTS[name] = spec
     STAGES[name] = f"<registered>:{name}"
     _LOADED.pop(name, None)
@@ -157,7 +161,9 @@ def get_spec(name: str) -> StageSpec:
         mod = importlib.import_module(module)
     except ModuleNotFoundError as exc:
         if exc.name and module.startswith(exc.name):
-            raise ParameterError(f"stage {name!r} is not available: no module {exc.name!r}") from None
+            raise ParameterError(
+                f"stage {name!r} is not available: no module {exc.name!r}"
+            ) from None
         raise
     obj = getattr(mod, attr, None)
     if obj is None:
@@ -194,15 +200,35 @@ def spec_from_function(name: str, fn: Callable[..., Any]) -> StageSpec:
     """
     params = []
     for k, p in inspect.signature(fn).parameters.items():
-        if k in _INTERNAL or p.kind in (inspect.Parameter.VAR_KEYWORD, inspect.Parameter.VAR_POSITIONAL):
+        if k in _INTERNAL or p.kind in (
+            inspect.Parameter.VAR_KEYWORD,
+            inspect.Parameter.VAR_POSITIONAL,
+        ):
             continue
-        if p.kind is inspect.Parameter.POSITIONAL_ONLY or (p.kind is inspect.Parameter.POSITIONAL_OR_KEYWORD and p.default is inspect.Parameter.empty):
+        if p.kind is inspect.Parameter.POSITIONAL_ONLY or (
+            p.kind is inspect.Parameter.POSITIONAL_OR_KEYWORD
+            and p.default is inspect.Parameter.empty
+        ):
             continue  # the data argument
         d = None if p.default is inspect.Parameter.empty else p.default
-        t = "bool" if isinstance(d, bool) else "int" if isinstance(d, int) else "float" if isinstance(d, float) else "any"
+        t = (
+            "bool"
+            if isinstance(d, bool)
+            else "int"
+            if isinstance(d, int)
+            else "float"
+            if isinstance(d, float)
+            else "any"
+        )
         params.append(Param(k, t, d, f"{k} (undeclared stage parameter)"))
-    spec = StageSpec(name=name, summary=(fn.__doc__ or name).strip().splitlines()[0], takes=tuple(KINDS),
-                     gives=tuple(KINDS), params=tuple(params), declared=False)
+    spec = StageSpec(
+        name=name,
+        summary=(fn.__doc__ or name).strip().splitlines()[0],
+        takes=tuple(KINDS),
+        gives=tuple(KINDS),
+        params=tuple(params),
+        declared=False,
+    )
     accepts = set(inspect.signature(fn).parameters)
 
     def run(data: Any, *, progress: Any = None, **values: Any) -> Any:
@@ -224,12 +250,16 @@ def provenance_line(name: str, params: dict[str, Any]) -> str:
         if v is None:
             continue
         if isinstance(v, (list, tuple)):  # "0,0,1" as written, not "0.0,0.0,1.0"
-            v = ",".join(str(int(x)) if isinstance(x, float) and x.is_integer() else str(x) for x in v)
+            v = ",".join(
+                str(int(x)) if isinstance(x, float) and x.is_integer() else str(x) for x in v
+            )
         parts.append(f"{k.replace('_', '-')}={v}")
     return " ".join(["recon", __version__, name, *parts]).replace("\n", " ")
 
 
-def apply_stage(name: str, data: Any, params: dict[str, Any] | None = None, progress: Any = None) -> StageResult:
+def apply_stage(
+    name: str, data: Any, params: dict[str, Any] | None = None, progress: Any = None
+) -> StageResult:
     """Run stage ``name`` on ``data`` with ``params`` and record its provenance.
 
     Raises
@@ -254,7 +284,9 @@ def apply_stage(name: str, data: Any, params: dict[str, Any] | None = None, prog
     result.report.setdefault("stage", name)
     from recon_cli.geometry import precision_note
 
-    note = precision_note(result.output)  # float32 source, double output: say so (README, data model)
+    note = precision_note(
+        result.output
+    )  # float32 source, double output: say so (README, data model)
     if note:
         result.report["precision"] = note
     return result

@@ -71,8 +71,10 @@ def to_grid(data, *, n: int = 8, progress=None) -> StageResult:
     c = v.mean(axis=0)
     r = np.linalg.norm(v - c, axis=1).mean()
     sdf = np.linalg.norm(pos - c, axis=-1) - r
-    return StageResult(output=Grid(sdf=sdf, origin=lo, voxel_size=voxel, history=list(data.history)),
-                       report={"grid_shape": [int(n)] * 3})
+    return StageResult(
+        output=Grid(sdf=sdf, origin=lo, voxel_size=voxel, history=list(data.history)),
+        report={"grid_shape": [int(n)] * 3},
+    )
 
 
 __all__ = ["EXTRA_STAGES", "centre", "sleep", "to_grid"]

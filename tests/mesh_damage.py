@@ -44,7 +44,9 @@ def glue_fins(m: TriangleMesh, rng, k: int = 20) -> TriangleMesh:
     return _with(m, np.concatenate([m.faces, np.stack([b, a, new], 1)]), v)
 
 
-def remove_patches(m: TriangleMesh, rng, k: int = 3, rings: int = 2, min_sep: float = 0.15) -> TriangleMesh:
+def remove_patches(
+    m: TriangleMesh, rng, k: int = 3, rings: int = 2, min_sep: float = 0.15
+) -> TriangleMesh:
     """Remove ``k`` disk-like patches: the faces within ``rings`` rings of seed vertices at least
     ``min_sep`` times the diagonal apart (unreferenced vertices are kept)."""
     v = m.vertices
@@ -76,7 +78,9 @@ def two_cones(n: int = 16) -> TriangleMesh:
     """Two closed cones (double cones with caps' apexes) joined at one shared tip vertex, outward."""
     t = np.linspace(0, 2 * np.pi, n, endpoint=False)
     ring = np.stack([np.cos(t), np.sin(t), np.zeros(n)], 1)
-    v = np.concatenate([[[0.0, 0, 0]], ring + [0, 0, 1], ring - [0, 0, 1], [[0, 0, 1.5]], [[0, 0, -1.5]]])
+    v = np.concatenate(
+        [[[0.0, 0, 0]], ring + [0, 0, 1], ring - [0, 0, 1], [[0, 0, 1.5]], [[0, 0, -1.5]]]
+    )
     r1 = 1 + np.arange(n)
     r2 = 1 + n + np.arange(n)
     c1, c2 = 2 * n + 1, 2 * n + 2

@@ -58,11 +58,42 @@ def torus_distance(p, major=1.0, minor=0.35, center=(0.0, 0.0, 0.0)):
 def icosphere(subdivisions: int = 2, radius: float = 1.0, centre=(0.0, 0.0, 0.0)):
     """A closed, outward sphere: the icosahedron split ``subdivisions`` times, projected."""
     t = (1.0 + 5**0.5) / 2
-    v = [(-1, t, 0), (1, t, 0), (-1, -t, 0), (1, -t, 0), (0, -1, t), (0, 1, t), (0, -1, -t), (0, 1, -t),
-         (t, 0, -1), (t, 0, 1), (-t, 0, -1), (-t, 0, 1)]
-    f = [(0, 11, 5), (0, 5, 1), (0, 1, 7), (0, 7, 10), (0, 10, 11), (1, 5, 9), (5, 11, 4), (11, 10, 2), (10, 7, 6),
-         (7, 1, 8), (3, 9, 4), (3, 4, 2), (3, 2, 6), (3, 6, 8), (3, 8, 9), (4, 9, 5), (2, 4, 11), (6, 2, 10),
-         (8, 6, 7), (9, 8, 1)]
+    v = [
+        (-1, t, 0),
+        (1, t, 0),
+        (-1, -t, 0),
+        (1, -t, 0),
+        (0, -1, t),
+        (0, 1, t),
+        (0, -1, -t),
+        (0, 1, -t),
+        (t, 0, -1),
+        (t, 0, 1),
+        (-t, 0, -1),
+        (-t, 0, 1),
+    ]
+    f = [
+        (0, 11, 5),
+        (0, 5, 1),
+        (0, 1, 7),
+        (0, 7, 10),
+        (0, 10, 11),
+        (1, 5, 9),
+        (5, 11, 4),
+        (11, 10, 2),
+        (10, 7, 6),
+        (7, 1, 8),
+        (3, 9, 4),
+        (3, 4, 2),
+        (3, 2, 6),
+        (3, 6, 8),
+        (3, 8, 9),
+        (4, 9, 5),
+        (2, 4, 11),
+        (6, 2, 10),
+        (8, 6, 7),
+        (9, 8, 1),
+    ]
     v = np.array(v, float)
     f = np.array(f, np.int64)
     for _ in range(subdivisions):
@@ -81,7 +112,9 @@ def _midpoint_split(v, f):
     v = np.concatenate([v, 0.5 * (v[uniq[:, 0]] + v[uniq[:, 1]])])
     a, b, c = f.T
     ab, bc, ca = mid
-    f = np.concatenate([np.stack(x, axis=1) for x in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
+    f = np.concatenate(
+        [np.stack(x, axis=1) for x in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))]
+    )
     return v, f
 
 
@@ -97,7 +130,9 @@ def torus(R: float = 1.0, r: float = 0.3, nu: int = 32, nv: int = 12):
     b = ((i + 1) % nu) * nv + j
     c = ((i + 1) % nu) * nv + (j + 1) % nv
     d = i * nv + (j + 1) % nv
-    f = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
+    f = np.concatenate(
+        [np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)]
+    )
     return v, f.astype(np.int64)
 
 
@@ -140,8 +175,12 @@ def hollow_ball():
 
 def nested_and_apart():
     """Three shells: a ball, a ball inside a cavity of a bigger one, and one far away."""
-    pieces = [icosphere(2, 1.0), (lambda v, f: (v, f[:, ::-1]))(*icosphere(2, 0.8)), icosphere(1, 0.3),
-              icosphere(2, 0.5, (2.5, 0.3, 0.0))]
+    pieces = [
+        icosphere(2, 1.0),
+        (lambda v, f: (v, f[:, ::-1]))(*icosphere(2, 0.8)),
+        icosphere(1, 0.3),
+        icosphere(2, 0.5, (2.5, 0.3, 0.0)),
+    ]
     v, f, n = [], [], 0
     for pv, pf in pieces:
         v.append(pv)
@@ -176,11 +215,16 @@ def sliver_splits(v, f, rng, fraction: float = 0.3, eps: float = 1e-9):
     # 1. interior points near an edge: (a, b, c) -> (a, b, p), (b, c, p), (c, a, p)
     pick = rng.random(len(f)) < fraction
     a, b, c = f[pick].T
-    w = np.stack([np.full(len(a), 0.5 - eps / 2), np.full(len(a), 0.5 - eps / 2), np.full(len(a), eps)], axis=1)
+    w = np.stack(
+        [np.full(len(a), 0.5 - eps / 2), np.full(len(a), 0.5 - eps / 2), np.full(len(a), eps)],
+        axis=1,
+    )
     p = w[:, :1] * v[a] + w[:, 1:2] * v[b] + w[:, 2:] * v[c]
     pi = len(v) + np.arange(len(a))
     v = np.concatenate([v, p])
-    f = np.concatenate([f[~pick], np.stack([a, b, pi], 1), np.stack([b, c, pi], 1), np.stack([c, a, pi], 1)])
+    f = np.concatenate(
+        [f[~pick], np.stack([a, b, pi], 1), np.stack([b, c, pi], 1), np.stack([c, a, pi], 1)]
+    )
     # 2. edge splits eps from an end: both triangles of the edge split in two
     n_split = min(300, int(fraction * len(f) / 4))
     for _ in range(n_split):
@@ -188,8 +232,11 @@ def sliver_splits(v, f, rng, fraction: float = 0.3, eps: float = 1e-9):
         k = rng.integers(3)
         ea, eb = f[t, k], f[t, (k + 1) % 3]
         # the other triangle has the directed edge eb -> ea
-        other = np.flatnonzero(((f[:, 0] == eb) & (f[:, 1] == ea)) | ((f[:, 1] == eb) & (f[:, 2] == ea))
-                               | ((f[:, 2] == eb) & (f[:, 0] == ea)))
+        other = np.flatnonzero(
+            ((f[:, 0] == eb) & (f[:, 1] == ea))
+            | ((f[:, 1] == eb) & (f[:, 2] == ea))
+            | ((f[:, 2] == eb) & (f[:, 0] == ea))
+        )
         if len(other) != 1:
             continue
         s = eps if rng.random() < 0.5 else 1 - eps
@@ -353,7 +400,9 @@ def mesh_family(seed, dtype=np.float64):
         normals /= np.linalg.norm(normals, axis=1, keepdims=True)
         normals = normals.astype(dtype)
         colors = rng.integers(0, 256, size=(len(v), 3)).astype(np.uint8)
-    return TriangleMesh(vertices=v.astype(dtype), faces=f, normals=normals, colors=colors, point_dtype=dtype)
+    return TriangleMesh(
+        vertices=v.astype(dtype), faces=f, normals=normals, colors=colors, point_dtype=dtype
+    )
 
 
 def cloud_family(seed, n=500):
@@ -371,4 +420,6 @@ def cloud_family(seed, n=500):
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     colors = rng.integers(0, 256, (n, 3)).astype(np.uint8)
     attrs = {"intensity": rng.integers(0, 4096, n).astype(np.int64), "curvature": rng.random(n)}
-    return PointCloud(points=pts, normals=normals, colors=colors, attributes=attrs, point_dtype=np.float64)
+    return PointCloud(
+        points=pts, normals=normals, colors=colors, attributes=attrs, point_dtype=np.float64
+    )

@@ -37,12 +37,18 @@ def _write_inputs(d: Path) -> dict[str, Path]:
     p, n = shape_cloud("torus", 4000, rng)
     for dtype in (np.float32, np.float64):
         out[f"cloud_{np.dtype(dtype).name}"] = d / f"cloud_{np.dtype(dtype).name}.ply"
-        write_ply(PointCloud(points=p.astype(dtype), normals=n.astype(dtype), point_dtype=dtype), out[f"cloud_{np.dtype(dtype).name}"])
+        write_ply(
+            PointCloud(points=p.astype(dtype), normals=n.astype(dtype), point_dtype=dtype),
+            out[f"cloud_{np.dtype(dtype).name}"],
+        )
     x = np.linspace(-1.3, 1.3, 40)
     X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
     sdf = SHAPES["torus"][0](np.stack([X, Y, Z], axis=-1).reshape(-1, 3)).reshape(X.shape)
     out["grid"] = d / "torus.npz"
-    write_grid(Grid(sdf=sdf.astype(np.float32), origin=np.full(3, -1.3), voxel_size=float(x[1] - x[0])), out["grid"])
+    write_grid(
+        Grid(sdf=sdf.astype(np.float32), origin=np.full(3, -1.3), voxel_size=float(x[1] - x[0])),
+        out["grid"],
+    )
     return out
 
 
@@ -90,9 +96,13 @@ def _build(d: Path) -> tuple[dict, Path, dict[str, Path]]:
         _recon("mcubes", str(files["grid"]), str(d / "mc.ply"), "--method", "mt")
         compile_ply_kernels()
         mp.delenv("RECON_AOT")
-        mp.setenv("NUMBA_CACHE_DIR", str(cache))  # the build's directory only: numba's own cache was fixed at import
+        mp.setenv(
+            "NUMBA_CACHE_DIR", str(cache)
+        )  # the build's directory only: numba's own cache was fixed at import
         aot.reset()
-        report = build_ahead_of_time()  # what recon warmup builds: the kernels and the signal handler
+        report = (
+            build_ahead_of_time()
+        )  # what recon warmup builds: the kernels and the signal handler
     (d / "report.json").write_text(json.dumps([report, {k: str(v) for k, v in files.items()}]))
     return report, cache, files
 
@@ -119,7 +129,9 @@ def test_build_exports_the_command_kernels(build):
     assert sorted(report["modules"]) == sorted(aot.MODULES)
     assert report["libraries"] == ["signal_handler"]
     manifest = json.loads((Path(report["dir"]) / aot.MANIFEST).read_text())
-    assert {"ball_pivot", "build_grid", "resolve_pinches"} <= set(manifest["modules"][BP]["functions"])
+    assert {"ball_pivot", "build_grid", "resolve_pinches"} <= set(
+        manifest["modules"][BP]["functions"]
+    )
     assert "dense_extract" in manifest["modules"][MC]["functions"]
 
 
@@ -164,15 +176,20 @@ def test_mcubes_aot_and_jit_give_identical_meshes(use_build):
     for name, (sdf, ext) in SHAPES.items():
         size = int(rng.integers(12, 48))
         x = np.linspace(-ext, ext, size)
-        P = np.stack(np.meshgrid(x, x, x, indexing="ij"), axis=-1).reshape(-1, 3) @ random_rotation(rng).T
+        P = (
+            np.stack(np.meshgrid(x, x, x, indexing="ij"), axis=-1).reshape(-1, 3)
+            @ random_rotation(rng).T
+        )
         vol = sdf(P).reshape(size, size, size).astype(np.float32)
         vol[rng.random(vol.shape) < 0.002] = np.nan  # unknown samples: their cells are left out
         grids.append((name, vol, float(rng.uniform(-0.05, 0.05))))
     runs = {}
     for mode in ("aot", "jit"):
         for method in ("mc", "mt"):
-            runs[mode, method] = [marching_cubes(v, iso, spacing=0.1, origin=(1e6, 0, -3), method=method)
-                                  for _, v, iso in grids]
+            runs[mode, method] = [
+                marching_cubes(v, iso, spacing=0.1, origin=(1e6, 0, -3), method=method)
+                for _, v, iso in grids
+            ]
         if mode == "aot":
             assert not isinstance(aot.kernels(MC), types.ModuleType) and aot.fallbacks() == set()
         use_build()  # JIT for the second round
@@ -188,7 +205,9 @@ def test_arguments_without_a_variant_run_the_jit_kernel(use_build):
     pts = np.random.default_rng(0).random((500, 3))
     lo, cell, dims = pts.min(axis=0), 0.1, np.full(3, 11, np.int64)
     a = k.build_grid(pts, lo, cell, dims)  # a compiled variant
-    f = k.build_grid(np.asfortranarray(pts), lo, cell, dims)  # F layout: no variant, numba compiles one
+    f = k.build_grid(
+        np.asfortranarray(pts), lo, cell, dims
+    )  # F layout: no variant, numba compiles one
     kw = k.build_grid(pts, lo, cell=cell, dims=dims)  # keywords: the numba kernel
     from recon_cli.ballpivot import _kernel
 
@@ -248,7 +267,9 @@ RUN_COMMAND = (
 
 
 @pytest.mark.parametrize("command", ["ballpivot", "mcubes"])
-def test_the_command_as_a_process_never_loads_numba_and_writes_the_jit_result(build, tmp_path, command):
+def test_the_command_as_a_process_never_loads_numba_and_writes_the_jit_result(
+    build, tmp_path, command
+):
     report, cache, files = build
     src = str(files["grid"] if command == "mcubes" else files["cloud_float32"])
     outs = {}
@@ -260,8 +281,13 @@ def test_the_command_as_a_process_never_loads_numba_and_writes_the_jit_result(bu
         else:
             env["RECON_AOT"] = "0"
         outs[mode] = tmp_path / f"{mode}.ply"
-        r = subprocess.run([sys.executable, "-c", RUN_COMMAND, "-q", command, src, str(outs[mode])],
-                           env=env, capture_output=True, text=True, cwd=ROOT)
+        r = subprocess.run(
+            [sys.executable, "-c", RUN_COMMAND, "-q", command, src, str(outs[mode])],
+            env=env,
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+        )
         assert r.returncode == 0, r.stderr
         assert r.stdout.split()[-1] == ("False" if mode == "aot" else "True"), r.stderr
     assert outs["aot"].read_bytes() == outs["jit"].read_bytes()
@@ -272,9 +298,33 @@ def _typeof_cases():
     ro = np.arange(5, dtype=np.int32)
     ro.flags.writeable = False
     unaligned = np.frombuffer(bytes(81), dtype=np.uint8)[1:].view(np.float64)
-    return [a, a.T, a[:, ::2], a[0], np.zeros((2, 2, 2), np.float32), ro, np.zeros(3, bool), np.zeros(0, np.uint16),
-            unaligned, np.array(1.5), 3, -(2**62), 2.5, True, np.float32(1), np.int8(3), np.bool_(False), np.uint64(5),
-            (1, 2, 3), (1, 2.0), (), (a, 1), None, 1 + 2j, np.zeros(2, np.complex64)]
+    return [
+        a,
+        a.T,
+        a[:, ::2],
+        a[0],
+        np.zeros((2, 2, 2), np.float32),
+        ro,
+        np.zeros(3, bool),
+        np.zeros(0, np.uint16),
+        unaligned,
+        np.array(1.5),
+        3,
+        -(2**62),
+        2.5,
+        True,
+        np.float32(1),
+        np.int8(3),
+        np.bool_(False),
+        np.uint64(5),
+        (1, 2, 3),
+        (1, 2.0),
+        (),
+        (a, 1),
+        None,
+        1 + 2j,
+        np.zeros(2, np.complex64),
+    ]
 
 
 @pytest.mark.parametrize("value", _typeof_cases(), ids=lambda v: type(v).__name__)
@@ -307,10 +357,14 @@ NO_COMPILER = (
 
 def test_without_a_c_compiler_nothing_is_built_and_warmup_says_why(tmp_path):
     env = dict(os.environ, CC=str(tmp_path / "no-such-cc"), NUMBA_CACHE_DIR=str(tmp_path / "cache"))
-    r = subprocess.run([sys.executable, "-c", NO_COMPILER], env=env, capture_output=True, text=True, cwd=ROOT)
+    r = subprocess.run(
+        [sys.executable, "-c", NO_COMPILER], env=env, capture_output=True, text=True, cwd=ROOT
+    )
     assert r.returncode == 0, r.stderr
     built, reason, lines, manifest = json.loads(r.stdout)
     assert built is False and "no working C compiler" in reason and manifest == {}
-    assert lines == [f"ahead-of-time kernels not built ({reason}): ball pivoting and marching cubes run JIT, "
-                     "with numba's start-up in each command"]
+    assert lines == [
+        f"ahead-of-time kernels not built ({reason}): ball pivoting and marching cubes run JIT, "
+        "with numba's start-up in each command"
+    ]
     assert not (tmp_path / "cache" / "aot").exists()

@@ -191,7 +191,10 @@ def test_nn_spacing_is_the_exact_median_nearest_positive_distance(seed):
     gap[gap == 0] = np.inf
     nearest = gap.min(axis=1)
     with_far = float(np.median(nearest[np.isfinite(nearest)]))
-    assert nn_spacing(far) in (pytest.approx(with_far, rel=1e-12, abs=0), pytest.approx(want, rel=1e-12, abs=0))
+    assert nn_spacing(far) in (
+        pytest.approx(with_far, rel=1e-12, abs=0),
+        pytest.approx(want, rel=1e-12, abs=0),
+    )
 
 
 # ---------------------------------------------------------------- cross-checks
@@ -230,7 +233,14 @@ def test_stage_report_and_provenance():
     cloud.history = ["made by a test"]
     res = apply_stage("ballpivot", cloud, {"radii": "auto"})
     rep = res.report
-    for key in ("faces", "boundary_edges", "boundary_loops", "radii", "non_manifold_edges", "non_manifold_vertices"):
+    for key in (
+        "faces",
+        "boundary_edges",
+        "boundary_loops",
+        "radii",
+        "non_manifold_edges",
+        "non_manifold_vertices",
+    ):
         assert key in rep
     assert rep["radii"] == pytest.approx(auto_radii(cloud.points))
     assert rep["provenance"] == {"radii": rep["radii"]}
@@ -238,7 +248,10 @@ def test_stage_report_and_provenance():
     assert rep["faces"] == len(res.output.faces)
     out = res.output
     assert out.history[0] == "made by a test"
-    assert "ballpivot" in out.history[-1] and "radii=" + ",".join(str(r) for r in rep["radii"]) in out.history[-1]
+    assert (
+        "ballpivot" in out.history[-1]
+        and "radii=" + ",".join(str(r) for r in rep["radii"]) in out.history[-1]
+    )
     np.testing.assert_array_equal(out.vertices, cloud.points)
     np.testing.assert_array_equal(out.normals, cloud.normals)
     # the CLI string form gives the same mesh
@@ -323,12 +336,16 @@ def test_nan_rows_are_ignored():
     assert faces.max() < len(pts)
     # a square with a missing corner keeps the one triangle of its other three corners
     idx = np.arange(nx * ny).reshape(nx, ny)
-    corners = np.stack([idx[:-1, :-1], idx[1:, :-1], idx[:-1, 1:], idx[1:, 1:]], axis=-1).reshape(-1, 4)
+    corners = np.stack([idx[:-1, :-1], idx[1:, :-1], idx[:-1, 1:], idx[1:, 1:]], axis=-1).reshape(
+        -1, 4
+    )
     missing = np.isin(corners, bad).sum(axis=1)
     assert missing.max() == 1
     assert len(faces) == 2 * (missing == 0).sum() + (missing == 1).sum()
     rep = assert_clean_topology(TriangleMesh(pts, faces))
-    assert rep["boundary_loops"] == 2  # the outer border (through two holes' notches) and the inner hole
+    assert (
+        rep["boundary_loops"] == 2
+    )  # the outer border (through two holes' notches) and the inner hole
     assert rep["unreferenced_vertices"] == 3
 
 

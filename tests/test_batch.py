@@ -23,7 +23,9 @@ import pytest
 from shared_data import shared_path
 
 TESTS = str(Path(__file__).resolve().parent)
-if TESTS not in sys.path:  # the workers (spawned) inherit sys.path and import _batch_stages from here
+if (
+    TESTS not in sys.path
+):  # the workers (spawned) inherit sys.path and import _batch_stages from here
     sys.path.insert(0, TESTS)
 
 from recon_cli import batch  # noqa: E402
@@ -58,7 +60,9 @@ def _recon(argv: list[str]) -> int:
 
 
 def _leftover_temporaries(folder: Path) -> list[str]:
-    return sorted(p.name for p in folder.iterdir() if p.name.startswith(".") and p.name.endswith(".tmp"))
+    return sorted(
+        p.name for p in folder.iterdir() if p.name.startswith(".") and p.name.endswith(".tmp")
+    )
 
 
 # ----------------------------------------------------------------------------- inputs and plan
@@ -71,8 +75,14 @@ def test_expand_inputs_files_folders_globs(tmp_path):
         (d / name).write_bytes(b"x")
     (tmp_path / "empty").mkdir()
     got = batch.expand_inputs(
-        [d, str(tmp_path / "scans" / "b.ply"), str(tmp_path / "sc*" / "*.ply"), str(tmp_path / "empty"),
-         str(tmp_path / "nope*.ply"), str(tmp_path / "missing.ply")]
+        [
+            d,
+            str(tmp_path / "scans" / "b.ply"),
+            str(tmp_path / "sc*" / "*.ply"),
+            str(tmp_path / "empty"),
+            str(tmp_path / "nope*.ply"),
+            str(tmp_path / "missing.ply"),
+        ]
     )
     paths = [p for p, problem in got if problem is None]
     # folder: .ply/.npz only, sorted; the explicit file and the glob name files already listed
@@ -105,7 +115,11 @@ def test_plan_skips_only_outputs_newer_than_input_and_pipeline(tmp_path):
     plan = batch.plan_batch(pipe, ins, out)
     assert [e["action"] for e in plan] == ["skip", "run", "run"]
     assert plan[0]["output"] == str((out / "a.ply").resolve())
-    assert [e["action"] for e in batch.plan_batch(pipe, ins, out, force=True)] == ["run", "run", "run"]
+    assert [e["action"] for e in batch.plan_batch(pipe, ins, out, force=True)] == [
+        "run",
+        "run",
+        "run",
+    ]
     os.utime(pipe, None)  # pipeline edited after the output: everything reruns
     assert [e["action"] for e in batch.plan_batch(pipe, ins, out)] == ["run", "run", "run"]
 
@@ -118,7 +132,9 @@ def test_plan_refuses_clashing_names_and_overwriting_inputs(tmp_path):
     pipe = tmp_path / "p.toml"
     pipe.write_text("x")
     with pytest.raises(ParameterError, match="would both write"):
-        batch.plan_batch(pipe, [tmp_path / "x" / "s.ply", tmp_path / "y" / "s.npz"], tmp_path / "out")
+        batch.plan_batch(
+            pipe, [tmp_path / "x" / "s.ply", tmp_path / "y" / "s.npz"], tmp_path / "out"
+        )
     with pytest.raises(ParameterError, match="overwrite its input"):
         batch.plan_batch(pipe, [tmp_path / "x" / "s.ply"], tmp_path / "x")
     with pytest.raises(InputError, match="no inputs"):
@@ -135,14 +151,21 @@ def test_run_batch_rejects_bad_options_before_starting(tmp_path, test_stages):
     with pytest.raises(ParameterError, match="not a size"):
         batch.run_batch(pipe, [src], tmp_path / "o", memory_limit="lots")
     assert batch.cluster._check_memory_limit("4GiB") == 4 * 2**30
-    assert batch.cluster._check_memory_limit("none") == 0 and batch.cluster._check_memory_limit(None) == "auto"
+    assert (
+        batch.cluster._check_memory_limit("none") == 0
+        and batch.cluster._check_memory_limit(None) == "auto"
+    )
     bad = _pipeline(tmp_path / "bad.toml", '[[stage]]\nname = "t_centre"\nwobble = 1\n')
     with pytest.raises(ParameterError, match="bad.toml:3"):
         batch.run_batch(bad, [src], tmp_path / "o")
     (tmp_path / "copy").mkdir()
     shutil.copy(src, tmp_path / "copy" / "mug.ply")
     with pytest.raises(ParameterError, match="would both write"):
-        batch.run_batch(pipe, [src, str(shared_path("kitten")), str(tmp_path / "copy" / "mug.ply")], tmp_path / "o")
+        batch.run_batch(
+            pipe,
+            [src, str(shared_path("kitten")), str(tmp_path / "copy" / "mug.ply")],
+            tmp_path / "o",
+        )
     assert not (tmp_path / "o").exists()
 
 
@@ -168,7 +191,9 @@ def test_process_one_ok_failed_and_grid(tmp_path, test_stages):
     from recon_cli.io.npz import read_grid
     from recon_cli.pipeline import load_pipeline
 
-    pipe = load_pipeline(_pipeline(tmp_path / "p.toml", '[[stage]]\nname = "t_centre"\nfail_above = 38000\n'))
+    pipe = load_pipeline(
+        _pipeline(tmp_path / "p.toml", '[[stage]]\nname = "t_centre"\nfail_above = 38000\n')
+    )
     rec = batch.process_one(pipe, str(shared_path("kitten")), str(tmp_path / "kitten"))
     assert rec["status"] == "ok" and rec["output"] == str(tmp_path / "kitten.ply")
     mesh = read_ply(rec["output"])
@@ -182,21 +207,31 @@ def test_process_one_ok_failed_and_grid(tmp_path, test_stages):
 
     rec = batch.process_one(pipe, str(shared_path("bunny_scan_000")), str(tmp_path / "bunny"))
     assert rec["status"] == "failed" and rec["error_type"] == "StageFailed"
-    assert rec["error"].startswith(str(shared_path("bunny_scan_000")) + ": t_centre: 40256 vertices")
+    assert rec["error"].startswith(
+        str(shared_path("bunny_scan_000")) + ": t_centre: 40256 vertices"
+    )
     assert "\n" not in rec["error"]
     assert not list(tmp_path.glob("bunny*"))
 
     corrupt = tmp_path / "corrupt.ply"
     corrupt.write_bytes(shared_path("kitten").read_bytes()[:100_000])
     rec = batch.process_one(pipe, str(corrupt), str(tmp_path / "c"))
-    assert rec["status"] == "failed" and rec["error_type"] == "InputError" and "truncated" in rec["error"]
+    assert (
+        rec["status"] == "failed"
+        and rec["error_type"] == "InputError"
+        and "truncated" in rec["error"]
+    )
 
     gpipe = load_pipeline(_pipeline(tmp_path / "g.toml", '[[stage]]\nname = "t_grid"\nn = 6\n'))
     rec = batch.process_one(gpipe, str(shared_path("mug")), str(tmp_path / "mug"))
     assert rec["status"] == "ok" and rec["output"] == str(tmp_path / "mug.npz")
     assert rec["output_stats"]["grid_shape"] == [6, 6, 6]
     g = read_grid(rec["output"])
-    assert g.shape == (6, 6, 6) and g.history[-1].startswith("recon ") and "t_grid n=6" in g.history[-1]
+    assert (
+        g.shape == (6, 6, 6)
+        and g.history[-1].startswith("recon ")
+        and "t_grid n=6" in g.history[-1]
+    )
 
 
 def test_process_one_interrupted_write_leaves_nothing(tmp_path, test_stages, monkeypatch):
@@ -252,18 +287,35 @@ def test_batch_survives_a_killed_worker_then_rerun_skips_everything(tmp_path, te
     th.start()
     bar = io.StringIO()
     try:
-        summary = batch.run_batch(pipe, inputs, out, workers=2, threads_per_worker=1, extra_stages=EXTRA_STAGES,
-                                  progress=Progress(stream=bar, enabled=True))
+        summary = batch.run_batch(
+            pipe,
+            inputs,
+            out,
+            workers=2,
+            threads_per_worker=1,
+            extra_stages=EXTRA_STAGES,
+            progress=Progress(stream=bar, enabled=True),
+        )
     finally:
         stop.set()
         th.join(5)
     assert len(killed) == 1
     drawn = bar.getvalue()
-    final = drawn.rstrip().split("\r")[-1]  # rich redraws the line; the last frame is the finished bar
-    assert "batch (3 inputs)" in drawn and "  0%" in drawn and "batch (3 inputs)" in final and final.count("100%") == 1
+    final = drawn.rstrip().split("\r")[
+        -1
+    ]  # rich redraws the line; the last frame is the finished bar
+    assert (
+        "batch (3 inputs)" in drawn
+        and "  0%" in drawn
+        and "batch (3 inputs)" in final
+        and final.count("100%") == 1
+    )
     assert summary["counts"] == {"ok": 3, "failed": 0, "skipped": 0}
     assert summary["cluster"]["scheduler"] == "local" and summary["cluster"]["workers"] == 2
-    assert summary["cluster"]["threads_per_worker"] == [1] and summary["cluster"]["memory_limit"] == "auto"
+    assert (
+        summary["cluster"]["threads_per_worker"] == [1]
+        and summary["cluster"]["memory_limit"] == "auto"
+    )
     assert summary["cluster"]["memory_limit_per_worker"] > 2**28
     # the killed input ran exactly twice (the second time in another process), the others once
     runs: dict[int, list[int]] = {}
@@ -276,7 +328,11 @@ def test_batch_survives_a_killed_worker_then_rerun_skips_everything(tmp_path, te
     assert sorted(p.name for p in out.iterdir()) == ["batch.json"] + [f"{n}.ply" for n in names]
     assert _leftover_temporaries(out) == []
     # outputs equal a run of the same pipeline in this process
-    quiet = load_pipeline(_pipeline(tmp_path / "q.toml", '[[stage]]\nname = "t_centre"\n\n[[stage]]\nname = "t_sleep"\n'))
+    quiet = load_pipeline(
+        _pipeline(
+            tmp_path / "q.toml", '[[stage]]\nname = "t_centre"\n\n[[stage]]\nname = "t_sleep"\n'
+        )
+    )
     for n in names:
         rec = batch.process_one(quiet, str(shared_path(n)), str(tmp_path / f"alone_{n}"))
         got = (out / f"{n}.ply").read_bytes()
@@ -313,8 +369,14 @@ def cluster():
     from distributed import LocalCluster
 
     with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
-        c = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
-                         scheduler_kwargs={"dashboard_address": ":0"}, silence_logs=logging.CRITICAL)
+        c = LocalCluster(
+            n_workers=2,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=None,
+            scheduler_kwargs={"dashboard_address": ":0"},
+            silence_logs=logging.CRITICAL,
+        )
     with c:
         yield c
 
@@ -325,13 +387,21 @@ def test_batch_real_normals_on_an_existing_cluster(tmp_path, cluster):
     from recon_cli.stages import get_stage
 
     get_stage("normals")  # built
-    pipe = _pipeline(tmp_path / "n.toml", '[[stage]]\nname = "normals"\nknn = 30\norient = "camera"\ncamera = "0,0,1"\n')
+    pipe = _pipeline(
+        tmp_path / "n.toml",
+        '[[stage]]\nname = "normals"\nknn = 30\norient = "camera"\ncamera = "0,0,1"\n',
+    )
     scans = [str(shared_path(n)) for n in ("bunny_scan_000", "stereo_fragment")]
     out = tmp_path / "out"
-    code = _recon(["-q", "batch", pipe, *scans, "--out", str(out), "--scheduler", cluster.scheduler_address])
+    code = _recon(
+        ["-q", "batch", pipe, *scans, "--out", str(out), "--scheduler", cluster.scheduler_address]
+    )
     assert code == 0
     summary = json.loads((out / "batch.json").read_text())
-    assert summary["cluster"]["scheduler"] == cluster.scheduler_address and summary["cluster"]["workers"] == 2
+    assert (
+        summary["cluster"]["scheduler"] == cluster.scheduler_address
+        and summary["cluster"]["workers"] == 2
+    )
     assert summary["counts"] == {"ok": 2, "failed": 0, "skipped": 0}
     for src, r in zip(scans, summary["inputs"]):
         name = Path(src).stem
@@ -339,8 +409,13 @@ def test_batch_real_normals_on_an_existing_cluster(tmp_path, cluster):
         assert _recon(["-q", "run", pipe, src, str(alone)]) == 0
         assert (out / f"{name}.ply").read_bytes() == alone.read_bytes(), name
         assert r["output_stats"]["normals"] is True
-        assert r["output_stats"]["points"] == {"bunny_scan_000": 40256, "stereo_fragment": 3748}[name]
-        assert r["stages"][0]["stage"] == "normals" and r["stages"][0]["points"] == r["output_stats"]["points"]
+        assert (
+            r["output_stats"]["points"] == {"bunny_scan_000": 40256, "stereo_fragment": 3748}[name]
+        )
+        assert (
+            r["stages"][0]["stage"] == "normals"
+            and r["stages"][0]["points"] == r["output_stats"]["points"]
+        )
 
 
 @pytest.mark.slow
@@ -358,7 +433,9 @@ def test_batch_mixed_inputs_on_two_workers(tmp_path, test_stages, capsys, cluste
     for name in good + ["bunny_scan_000"]:
         shutil.copy(shared_path(name), data / f"{name}.ply")
     (data / "corrupt.ply").write_bytes(shared_path("kitten").read_bytes()[:100_000])
-    small = read_ply(shared_path("stereo_fragment")).subset(np.arange(1000))  # 1000 real points: the worker dies
+    small = read_ply(shared_path("stereo_fragment")).subset(
+        np.arange(1000)
+    )  # 1000 real points: the worker dies
     write_ply(small, data / "small.ply")
     pipe = _pipeline(
         tmp_path / "p.toml",
@@ -368,8 +445,19 @@ def test_batch_mixed_inputs_on_two_workers(tmp_path, test_stages, capsys, cluste
     out = tmp_path / "out"
     capsys.readouterr()
     # the CLI passes no extra stages: each task carries the stage targets this process resolved
-    code = _recon(["batch", pipe, str(data / "*.ply"), str(data / "missing.ply"), "--out", str(out),
-                   "--scheduler", cluster.scheduler_address, "--json"])
+    code = _recon(
+        [
+            "batch",
+            pipe,
+            str(data / "*.ply"),
+            str(data / "missing.ply"),
+            "--out",
+            str(out),
+            "--scheduler",
+            cluster.scheduler_address,
+            "--json",
+        ]
+    )
     assert code == EXIT_BATCH_SOME_FAILED == 4
     summary = json.loads(capsys.readouterr().out)
     assert json.loads((out / "batch.json").read_text()) == summary
@@ -378,21 +466,36 @@ def test_batch_mixed_inputs_on_two_workers(tmp_path, test_stages, capsys, cluste
     assert summary["cluster"]["scheduler"] == cluster.scheduler_address
     assert summary["cluster"]["workers"] == 2 and summary["cluster"]["threads_per_worker"] == [1]
     assert {n: by_name[n]["status"] for n in by_name} == {
-        "kitten": "ok", "mug": "ok", "stereo_fragment": "ok",
-        "bunny_scan_000": "failed", "corrupt": "failed", "small": "failed", "missing": "failed",
+        "kitten": "ok",
+        "mug": "ok",
+        "stereo_fragment": "ok",
+        "bunny_scan_000": "failed",
+        "corrupt": "failed",
+        "small": "failed",
+        "missing": "failed",
     }
     assert by_name["bunny_scan_000"]["error_type"] == "StageFailed"
     assert "40256 vertices" in by_name["bunny_scan_000"]["error"]
-    assert by_name["corrupt"]["error_type"] == "InputError" and "truncated" in by_name["corrupt"]["error"]
+    assert (
+        by_name["corrupt"]["error_type"] == "InputError"
+        and "truncated" in by_name["corrupt"]["error"]
+    )
     assert by_name["small"]["error_type"] == "KilledWorker"
-    assert by_name["small"]["error"].endswith("small.ply: the worker process running it died twice (killed or out of memory)")
+    assert by_name["small"]["error"].endswith(
+        "small.ply: the worker process running it died twice (killed or out of memory)"
+    )
     assert by_name["missing"]["error"].endswith("no such file")
     for r in summary["inputs"]:
         assert "\n" not in r.get("error", "")
         if r["status"] == "failed":
             assert r["input"] in r["error"] or str(Path(r["input"]).resolve()) in r["error"]
     # outputs exist only for the good inputs, nothing partial is left
-    assert sorted(p.name for p in out.iterdir()) == ["batch.json", "kitten.ply", "mug.ply", "stereo_fragment.ply"]
+    assert sorted(p.name for p in out.iterdir()) == [
+        "batch.json",
+        "kitten.ply",
+        "mug.ply",
+        "stereo_fragment.ply",
+    ]
     # the same bytes as `recon run` on each input alone
     for name in good:
         alone = tmp_path / f"alone_{name}.ply"
@@ -402,12 +505,19 @@ def test_batch_mixed_inputs_on_two_workers(tmp_path, test_stages, capsys, cluste
         assert r["output"] == str(out / f"{name}.ply")
         n_in = len(read_ply(data / f"{name}.ply").vertices)
         assert r["output_stats"] == (
-            {"kind": "cloud", "points": n_in, "normals": False} if name == "stereo_fragment"
-            else {"kind": "mesh", "vertices": n_in, "faces": 2 * n_in}  # kitten and mug: closed, genus 1
+            {"kind": "cloud", "points": n_in, "normals": False}
+            if name == "stereo_fragment"
+            else {
+                "kind": "mesh",
+                "vertices": n_in,
+                "faces": 2 * n_in,
+            }  # kitten and mug: closed, genus 1
         )
         assert [s["stage"] for s in r["stages"]] == ["t_centre", "t_sleep"]
         assert r["stages"][1]["seconds"] >= 0.1
-        assert r["peak_memory_scope"] == "task" and r["peak_memory_mb"] >= r["memory_at_start_mb"] > 10
+        assert (
+            r["peak_memory_scope"] == "task" and r["peak_memory_mb"] >= r["memory_at_start_mb"] > 10
+        )
         assert r["seconds"] >= sum(r["timings"].values()) > 0.1
 
 
@@ -456,7 +566,9 @@ def test_sigint_is_held_while_a_cluster_starts():
             th.start()
             th.join()
         assert interrupted == [True] and seen == [True]
-        assert signal.getsignal(signal.SIGINT) is before and not _sigint_blocked(threading.get_native_id())
+        assert signal.getsignal(signal.SIGINT) is before and not _sigint_blocked(
+            threading.get_native_id()
+        )
         with pytest.raises(KeyboardInterrupt):  # the usual behaviour is back
             os.kill(os.getpid(), signal.SIGINT)
             time.sleep(1)
@@ -500,8 +612,21 @@ def test_ctrl_c_stops_cleanly_and_a_rerun_resumes(tmp_path, target):
         '[[stage]]\nname = "t_centre"\n\n[[stage]]\nname = "t_sleep"\nseconds = 1.0\n',
     )
     out = tmp_path / "out"
-    argv = [sys.executable, "-c", _RUNNER, "batch", pipe, str(data), "--out", str(out), "--workers", "2"]
-    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    argv = [
+        sys.executable,
+        "-c",
+        _RUNNER,
+        "batch",
+        pipe,
+        str(data),
+        "--out",
+        str(out),
+        "--workers",
+        "2",
+    ]
+    proc = subprocess.Popen(
+        argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True
+    )
     try:
         deadline = time.monotonic() + 120
         while not (out.is_dir() and _outputs(out)):

@@ -20,7 +20,9 @@ RECON = [sys.executable, "-m", "recon_cli.cli.main"]
 def recon(*args, input: bytes | None = None, cwd=None) -> subprocess.CompletedProcess:
     env = dict(os.environ)
     env.pop("COLUMNS", None)
-    return subprocess.run([*RECON, *map(str, args)], input=input, capture_output=True, cwd=cwd, env=env, timeout=300)
+    return subprocess.run(
+        [*RECON, *map(str, args)], input=input, capture_output=True, cwd=cwd, env=env, timeout=300
+    )
 
 
 def test_help_is_instant_and_imports_no_numpy():
@@ -42,7 +44,18 @@ def test_info_json_keys_are_stable():
     r = recon("info", "--json", shared_path("kitten"))
     assert r.returncode == 0, r.stderr
     [rep] = json.loads(r.stdout)  # always a list, one entry per file
-    for key in ("file", "kind", "format", "vertices", "faces", "elements", "properties", "bbox", "history", "has_normals"):
+    for key in (
+        "file",
+        "kind",
+        "format",
+        "vertices",
+        "faces",
+        "elements",
+        "properties",
+        "bbox",
+        "history",
+        "has_normals",
+    ):
         assert key in rep
     assert rep["kind"] == "mesh" and rep["vertices"] == 6050 and rep["faces"] == 12100
     assert rep["bbox"]["diagonal"] == pytest.approx(2.23, abs=0.01)
@@ -64,7 +77,10 @@ def test_info_reads_stdin_and_several_files():
     [
         (b"", "empty file"),
         (b"hello, not a ply\n", "not a PLY file"),
-        (b"ply\nformat binary_little_endian 1.0\nelement vertex 1000000000\nproperty double x\nproperty double y\nproperty double z\nend_header\n\0\0", "truncated"),
+        (
+            b"ply\nformat binary_little_endian 1.0\nelement vertex 1000000000\nproperty double x\nproperty double y\nproperty double z\nend_header\n\0\0",
+            "truncated",
+        ),
     ],
 )
 def test_bad_input_one_line_exit_2_no_output(tmp_path, content, needle):
@@ -97,7 +113,9 @@ def test_convert_pipes_through_stdin_stdout(tmp_path):
     p1 = subprocess.Popen([*RECON, "convert", "--ascii", str(src), "-"], stdout=subprocess.PIPE)
     p2 = subprocess.Popen([*RECON, "convert", "-", "-"], stdin=p1.stdout, stdout=subprocess.PIPE)
     p1.stdout.close()
-    p3 = subprocess.run([*RECON, "convert", "-", str(tmp_path / "k.ply")], stdin=p2.stdout, capture_output=True)
+    p3 = subprocess.run(
+        [*RECON, "convert", "-", str(tmp_path / "k.ply")], stdin=p2.stdout, capture_output=True
+    )
     p2.stdout.close()
     assert p1.wait() == 0 and p2.wait() == 0 and p3.returncode == 0, p3.stderr
     a, b = read_ply(src), read_ply(tmp_path / "k.ply")
@@ -140,7 +158,9 @@ def test_pipeline_parameter_errors_name_the_line(monkeypatch):
 
     monkeypatch.setitem(stages.STAGES, "scale", "test_cli:_scale_stage")
     text = '[[stage]]\nname = "scale"\nfactor = 2.0\n\n[[stage]]\nname = "scale"\nfactor = 3\nfactr = 1\n'
-    with pytest.raises(ParameterError, match=r"p.toml:8: stage 2 \(scale\) has no parameter 'factr'"):
+    with pytest.raises(
+        ParameterError, match=r"p.toml:8: stage 2 \(scale\) has no parameter 'factr'"
+    ):
         parse_pipeline(text, "p.toml")
     pipe = parse_pipeline(text.replace("factr = 1\n", ""), "p.toml")
     from recon_cli.geometry import PointCloud

@@ -134,7 +134,12 @@ def test_immutable_file_and_folder(src, tmp_path, capfd):
 @contextlib.contextmanager
 def _tmpfs(where: Path, options: str):
     where.mkdir()
-    if not ROOT or subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", where], capture_output=True).returncode:
+    if (
+        not ROOT
+        or subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", options, "tmpfs", where], capture_output=True
+        ).returncode
+    ):
         pytest.skip("cannot mount a tmpfs here")
     try:
         yield where
@@ -229,7 +234,9 @@ def test_shell_outputs(src, tmp_path):
     assert (code[1], err[1]) == (0, "") and (tmp_path / "stdout.ply").read_bytes() == data
     assert (code[2], err[2]) == (0, "")
     for _ in range(100):  # cat may finish after recon
-        if (tmp_path / "procsub.ply").exists() and (tmp_path / "procsub.ply").stat().st_size == len(data):
+        if (tmp_path / "procsub.ply").exists() and (tmp_path / "procsub.ply").stat().st_size == len(
+            data
+        ):
             break
         threading.Event().wait(0.05)
     assert (tmp_path / "procsub.ply").read_bytes() == data

@@ -45,15 +45,21 @@ def grid(tmp_path_factory):
 
 
 def _run(args, env_extra=None):
-    env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS")}
+    env = {
+        k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS")
+    }
     env.update(env_extra or {})
-    return subprocess.run([sys.executable, "-c", PROBE, *map(str, args)], capture_output=True, text=True, env=env)
+    return subprocess.run(
+        [sys.executable, "-c", PROBE, *map(str, args)], capture_output=True, text=True, env=env
+    )
 
 
 @pytest.mark.parametrize("user", [None, "3"])
 def test_stage_runs_with_collector_on_and_blas_setting(grid, tmp_path, user):
     out = tmp_path / "m.ply"
-    r = _run(["mcubes", grid, out, "--json"], None if user is None else {"OPENBLAS_NUM_THREADS": user})
+    r = _run(
+        ["mcubes", grid, out, "--json"], None if user is None else {"OPENBLAS_NUM_THREADS": user}
+    )
     assert r.returncode == 0, r.stderr
     assert f"gc True blas {user or '1'}" in r.stderr
     report = json.loads(r.stdout)  # stdout flushed in full before the process ends

@@ -112,7 +112,9 @@ def cloud(tmp_path_factory) -> Path:
     return path
 
 
-def _assert_clean_end(proc: subprocess.Popen, err: str, sig: int, folder: Path, out: Path, label: str) -> None:
+def _assert_clean_end(
+    proc: subprocess.Popen, err: str, sig: int, folder: Path, out: Path, label: str
+) -> None:
     assert proc.returncode == 128 + sig, f"{label}: exit {proc.returncode}: {err}"
     assert err == MESSAGE[sig], f"{label}: {err!r}"
     left = sorted(n for n in os.listdir(folder) if n.startswith("."))
@@ -121,8 +123,14 @@ def _assert_clean_end(proc: subprocess.Popen, err: str, sig: int, folder: Path, 
 
 
 def test_signals_at_fixed_points(cloud, tmp_path):
-    cases = [("kernel", signal.SIGINT), ("kernel", signal.SIGTERM), ("write", signal.SIGINT),
-             ("write-named", signal.SIGTERM), ("unraisable", signal.SIGINT), ("swallowed", signal.SIGINT)]
+    cases = [
+        ("kernel", signal.SIGINT),
+        ("kernel", signal.SIGTERM),
+        ("write", signal.SIGINT),
+        ("write-named", signal.SIGTERM),
+        ("unraisable", signal.SIGINT),
+        ("swallowed", signal.SIGINT),
+    ]
     runs = []
     for k, (point, sig) in enumerate(cases):
         folder = tmp_path / f"{k}-{point}-{sig.name}"
@@ -133,14 +141,17 @@ def test_signals_at_fixed_points(cloud, tmp_path):
         marker = folder.parent / f"{folder.name}.ready"
         proc = subprocess.Popen(
             [sys.executable, "-c", CHILD, point, str(cloud), str(out), str(marker)],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
         )
         runs.append((point, sig, folder, out, marker, proc))
     try:
         for point, sig, folder, out, marker, proc in runs:
             deadline = time.monotonic() + 120
             while not marker.exists():
-                assert proc.poll() is None, f"{point}: ended early: {proc.communicate()[1].decode()}"
+                assert proc.poll() is None, (
+                    f"{point}: ended early: {proc.communicate()[1].decode()}"
+                )
                 assert time.monotonic() < deadline, f"{point}: never reached its point"
                 time.sleep(0.05)
             t0 = time.monotonic()
@@ -148,7 +159,9 @@ def test_signals_at_fixed_points(cloud, tmp_path):
             err = proc.communicate(timeout=30)[1].decode()
             waited = time.monotonic() - t0
             # at once, even from inside the kernel; the swallowed raise waits for the deadline
-            assert waited < (_signals.DEADLINE + 10 if point == "swallowed" else 5), f"{point}: {waited:.1f} s"
+            assert waited < (_signals.DEADLINE + 10 if point == "swallowed" else 5), (
+                f"{point}: {waited:.1f} s"
+            )
             _assert_clean_end(proc, err, sig, folder, out, f"{point} {sig.name}")
     finally:
         _reap(r[-1] for r in runs)
@@ -156,15 +169,31 @@ def test_signals_at_fixed_points(cloud, tmp_path):
 
 def test_poisson_signalled_at_spread_times(cloud, tmp_path):
     """Whatever point of a real run the signal meets: 128+signal and one line, or a finished output."""
-    delays = [(0.0, signal.SIGINT), (0.5, signal.SIGTERM), (1.5, signal.SIGINT), (3.0, signal.SIGTERM)]
+    delays = [
+        (0.0, signal.SIGINT),
+        (0.5, signal.SIGTERM),
+        (1.5, signal.SIGINT),
+        (3.0, signal.SIGTERM),
+    ]
     runs = []
     for k, (delay, sig) in enumerate(delays):
         folder = tmp_path / f"run{k}"
         folder.mkdir()
         out = folder / "mesh.ply"
         proc = subprocess.Popen(
-            [sys.executable, "-m", "recon_cli.cli.main", "-q", "poisson", "--depth", "8", str(cloud), str(out)],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+            [
+                sys.executable,
+                "-m",
+                "recon_cli.cli.main",
+                "-q",
+                "poisson",
+                "--depth",
+                "8",
+                str(cloud),
+                str(out),
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
         )
         runs.append((delay, sig, folder, out, proc))
     try:
@@ -193,7 +222,9 @@ def _handlers_installed(proc: subprocess.Popen) -> float:
             status = Path(f"/proc/{proc.pid}/status").read_text()
         except OSError:
             break
-        caught = int(next(ln.split()[1] for ln in status.splitlines() if ln.startswith("SigCgt:")), 16)
+        caught = int(
+            next(ln.split()[1] for ln in status.splitlines() if ln.startswith("SigCgt:")), 16
+        )
         if caught & (1 << (signal.SIGTERM - 1)):
             break
         time.sleep(0.01)

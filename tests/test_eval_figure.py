@@ -25,11 +25,30 @@ def test_sheet_size_labels_and_colour_bar_are_where_the_layout_says():
     a = _sphere(1.0)
     d = np.linspace(0.0, 0.2, len(a.vertices))
     rows = [Row("shape of a", a, edges=True), Row("a coloured", a, d)]
-    fig = sheet(rows, ("front", "iso", "top"), unit="mm", diagonal=2.0, title="a title", panel_size=96, supersample=1)
+    fig = sheet(
+        rows,
+        ("front", "iso", "top"),
+        unit="mm",
+        diagonal=2.0,
+        title="a title",
+        panel_size=96,
+        supersample=1,
+    )
     box = layout(2, 3, 96, title=True, colorbar=True, legend=True)
     assert fig.image.shape == (box["size"][3], box["size"][2], 3)
     assert {k: v for k, v in fig.boxes.items()} == {k: v for k, v in box.items() if k != "size"}
-    names = ["title", "column 0", "column 1", "column 2", "row 0", "row 1", "colorbar title", "colorbar top", "colorbar max", "legend"]
+    names = [
+        "title",
+        "column 0",
+        "column 1",
+        "column 2",
+        "row 0",
+        "row 1",
+        "colorbar title",
+        "colorbar top",
+        "colorbar max",
+        "legend",
+    ]
     for name in names:
         assert ink(fig.image, box[name]) >= 15, name  # text is there
     # and nowhere text should not be: the margins between the tiles and the bar's column
@@ -90,14 +109,20 @@ def test_completeness_heatmap_is_red_where_the_candidate_misses_a_part(seed):
     assert is_blue(centre("tile 2 1")) and is_blue(centre("tile 1 1"))
     # the cut's rim is a boundary loop, drawn in the boundary colour on the candidate's shape row
     x0, y0, x1, y1 = box["tile 0 0"]
-    assert (np.abs(fig.image[y0:y1, x0:x1].astype(int) - BOUNDARY_COLOR).max(axis=2) < 30).sum() > 50
+    assert (
+        np.abs(fig.image[y0:y1, x0:x1].astype(int) - BOUNDARY_COLOR).max(axis=2) < 30
+    ).sum() > 50
     x0, y0, x1, y1 = box["tile 3 0"]  # the closed reference has none
-    assert (np.abs(fig.image[y0:y1, x0:x1].astype(int) - BOUNDARY_COLOR).max(axis=2) < 30).sum() == 0
+    assert (
+        np.abs(fig.image[y0:y1, x0:x1].astype(int) - BOUNDARY_COLOR).max(axis=2) < 30
+    ).sum() == 0
 
 
 def test_scatter_plot_points_and_labels():
     pts = [("fast", 1.0, 0.3), ("slow", 30.0, 0.1), ("broken", float("nan"), 0.2)]
-    fig = scatter_plot(pts, x_label="time [s], lower is better", y_label="error [mm], lower is better", title="t")
+    fig = scatter_plot(
+        pts, x_label="time [s], lower is better", y_label="error [mm], lower is better", title="t"
+    )
     h, w = fig.image.shape[:2]
     assert (w, h) == (760, 480)
     for name in ("title", "x label", "y label", "point label 0", "point label 1"):

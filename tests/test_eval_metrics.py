@@ -7,7 +7,13 @@ import pytest
 import trimesh
 
 from recon_cli.errors import InputError, ParameterError
-from recon_cli.eval.metrics import compare_meshes, heatmap, parse_taus, point_distances, vertex_distances
+from recon_cli.eval.metrics import (
+    compare_meshes,
+    heatmap,
+    parse_taus,
+    point_distances,
+    vertex_distances,
+)
 from recon_cli.geometry import PointCloud, TriangleMesh
 
 from shared_data import load_shared, sampled_cloud
@@ -37,11 +43,19 @@ def brute_distance(vertices: np.ndarray, faces: np.ndarray, query: np.ndarray, c
             best = a + ab * v[..., None] + ac * w[..., None]  # interior
             # edges, then vertices (later assignments win: the regions are disjoint)
             t_ab = d1 / (d1 - d3)
-            best = np.where(((vc <= 0) & (d1 >= 0) & (d3 <= 0))[..., None], a + ab * t_ab[..., None], best)
+            best = np.where(
+                ((vc <= 0) & (d1 >= 0) & (d3 <= 0))[..., None], a + ab * t_ab[..., None], best
+            )
             t_ac = d2 / (d2 - d6)
-            best = np.where(((vb <= 0) & (d2 >= 0) & (d6 <= 0))[..., None], a + ac * t_ac[..., None], best)
+            best = np.where(
+                ((vb <= 0) & (d2 >= 0) & (d6 <= 0))[..., None], a + ac * t_ac[..., None], best
+            )
             t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-            best = np.where(((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0))[..., None], b + (c - b) * t_bc[..., None], best)
+            best = np.where(
+                ((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0))[..., None],
+                b + (c - b) * t_bc[..., None],
+                best,
+            )
         best = np.where(((d1 <= 0) & (d2 <= 0))[..., None], a, best)
         best = np.where(((d3 >= 0) & (d4 <= d3))[..., None], b, best)
         best = np.where(((d6 >= 0) & (d5 <= d6))[..., None], c, best)
@@ -67,7 +81,12 @@ def plate(z: float = 0.0, n: int = 4) -> TriangleMesh:
     x, y = np.meshgrid(g, g, indexing="ij")
     v = np.column_stack([x.ravel(), y.ravel(), np.full(x.size, z)])
     idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
-    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    a, b, c, d = (
+        idx[:-1, :-1].ravel(),
+        idx[1:, :-1].ravel(),
+        idx[1:, 1:].ravel(),
+        idx[:-1, 1:].ravel(),
+    )
     return TriangleMesh(v, np.concatenate([np.column_stack([a, b, c]), np.column_stack([a, c, d])]))
 
 
@@ -76,9 +95,13 @@ def plate(z: float = 0.0, n: int = 4) -> TriangleMesh:
 
 def test_point_distances_match_brute_force(rng):
     m = sphere(1.0, 2)
-    m.vertices = m.vertices * np.array([1.0, 0.6, 1.3]) + rng.normal(scale=0.02, size=m.vertices.shape)
+    m.vertices = m.vertices * np.array([1.0, 0.6, 1.3]) + rng.normal(
+        scale=0.02, size=m.vertices.shape
+    )
     q = rng.uniform(-2, 2, size=(3000, 3))
-    q[:1000] = m.vertices[rng.integers(0, len(m.vertices), 1000)] + rng.normal(scale=1e-3, size=(1000, 3))
+    q[:1000] = m.vertices[rng.integers(0, len(m.vertices), 1000)] + rng.normal(
+        scale=1e-3, size=(1000, 3)
+    )
     ours = point_distances(q, m)
     ref, _ = brute_distance(m.vertices, m.faces, q)
     np.testing.assert_allclose(ours, ref, rtol=1e-9, atol=1e-12)
@@ -88,7 +111,14 @@ def test_mesh_against_itself_is_zero():
     m = load_shared("kitten")
     r = compare_meshes(m, m, samples=20_000, seed=3)
     diag = r["reference_diagonal"]
-    for key in ("accuracy", "completeness", "chamfer_l1", "hausdorff", "hausdorff_p95", "hausdorff_p99"):
+    for key in (
+        "accuracy",
+        "completeness",
+        "chamfer_l1",
+        "hausdorff",
+        "hausdorff_p95",
+        "hausdorff_p99",
+    ):
         assert r[key] <= 1e-12 * diag, key
     assert r["chamfer_l2"] <= (1e-12 * diag) ** 2
     assert r["precision"] == [1.0, 1.0] and r["recall"] == [1.0, 1.0] and r["fscore"] == [1.0, 1.0]
@@ -123,7 +153,14 @@ def test_translated_plate_is_the_translation():
     t = 0.0125
     a, b = plate(0.0), plate(t)
     r = compare_meshes(a, b, samples=20_000, seed=0, taus=[t / 2, 2 * t])
-    for key in ("accuracy", "completeness", "chamfer_l1", "hausdorff", "hausdorff_p95", "hausdorff_p99"):
+    for key in (
+        "accuracy",
+        "completeness",
+        "chamfer_l1",
+        "hausdorff",
+        "hausdorff_p95",
+        "hausdorff_p99",
+    ):
         assert r[key] == pytest.approx(t, rel=1e-9), key
     assert r["chamfer_l2"] == pytest.approx(t * t, rel=1e-9)
     assert r["precision"] == [0.0, 1.0] and r["recall"] == [0.0, 1.0] and r["fscore"] == [0.0, 1.0]
@@ -273,7 +310,10 @@ def test_hausdorff_matches_pymeshlab_on_shared_meshes(name):
     n = 20_000
     r = compare_meshes(cand, ref, samples=n, seed=5)
     acc, comp = _pml_both(cand, ref, r, n, 5)
-    for ours, theirs in ((r["directions"]["accuracy"], acc), (r["directions"]["completeness"], comp)):
+    for ours, theirs in (
+        (r["directions"]["accuracy"], acc),
+        (r["directions"]["completeness"], comp),
+    ):
         assert theirs["n_samples"] == n
         assert ours["mean"] == pytest.approx(theirs["mean"], rel=1e-3)
         assert ours["max"] == pytest.approx(theirs["max"], rel=1e-3)
@@ -295,7 +335,10 @@ def test_hausdorff_matches_pymeshlab_on_reconstructions(method):
     n = 20_000
     r = compare_meshes(cand, ref, samples=n, seed=9)
     acc, comp = _pml_both(cand, ref, r, n, 9)
-    for ours, theirs in ((r["directions"]["accuracy"], acc), (r["directions"]["completeness"], comp)):
+    for ours, theirs in (
+        (r["directions"]["accuracy"], acc),
+        (r["directions"]["completeness"], comp),
+    ):
         assert ours["mean"] == pytest.approx(theirs["mean"], rel=1e-3)
         assert ours["max"] == pytest.approx(theirs["max"], rel=1e-3)
 

@@ -46,7 +46,9 @@ def test_sphere_silhouette_area():
         assert out.mask.sum() == pytest.approx(expected, rel=0.01)
         # centred: the centroid of the silhouette is the image centre
         ii, jj = np.nonzero(out.mask)
-        assert ii.mean() == pytest.approx(size / 2, abs=0.5) and jj.mean() == pytest.approx(size / 2, abs=0.5)
+        assert ii.mean() == pytest.approx(size / 2, abs=0.5) and jj.mean() == pytest.approx(
+            size / 2, abs=0.5
+        )
 
 
 def _centres(half_extent_px: float, size: int) -> int:
@@ -103,7 +105,9 @@ def test_lambert_shading_of_a_facing_square():
     expected = np.rint(255 * shade * np.asarray(BASE_COLOR)).astype(np.uint8)
     assert (out.image[32, 32] == expected).all()
     # a square turned away from the light is darker
-    tilted = TriangleMesh(v @ np.array([[np.cos(1.0), 0, np.sin(1.0)], [0, 1, 0], [-np.sin(1.0), 0, np.cos(1.0)]]), f)
+    tilted = TriangleMesh(
+        v @ np.array([[np.cos(1.0), 0, np.sin(1.0)], [0, 1, 0], [-np.sin(1.0), 0, np.cos(1.0)]]), f
+    )
     t = render(tilted, "front", (64, 64), FRAME)
     assert int(t.image[32, 32].sum()) != int(out.image[32, 32].sum())
 
@@ -134,8 +138,13 @@ def test_colormap():
 def test_resolve_views():
     tt = resolve_views(None)
     assert [a for _, a in tt] == list(TURNTABLE) and len(tt) == 4
-    assert len({az for az, _ in TURNTABLE}) == 4 and tt[0][1] == VIEWS["iso"]  # four azimuths, from the iso view
-    assert resolve_views(["front", (10, 20)]) == [("front (az 0°, el 0°)", (0.0, 0.0)), ("az 10°, el 20°", (10.0, 20.0))]
+    assert (
+        len({az for az, _ in TURNTABLE}) == 4 and tt[0][1] == VIEWS["iso"]
+    )  # four azimuths, from the iso view
+    assert resolve_views(["front", (10, 20)]) == [
+        ("front (az 0°, el 0°)", (0.0, 0.0)),
+        ("az 10°, el 20°", (10.0, 20.0)),
+    ]
     assert resolve_views("-30,45.5") == [("az -30°, el 45.5°", (-30.0, 45.5))]
     for bad in (["sideways"], [], "1,2,3", "a,b", "nan,1"):
         with pytest.raises(ParameterError):
@@ -166,7 +175,10 @@ def test_boundary_and_non_manifold_edges_are_drawn_where_visible():
     hidden = render(both, "front", (200, 200), FRAME, edges=defect_edges(both)).image
     assert _count(hidden, BOUNDARY_COLOR) == 0
     # three triangles on one edge: that edge is non-manifold, drawn over the boundary colour
-    fan = np.array([[0, 0, 0], [0, 1, 0], [1, 0, 0], [-1, 0, 0], [0.5, 0.5, 0.8]], dtype=np.float64) * 0.5
+    fan = (
+        np.array([[0, 0, 0], [0, 1, 0], [1, 0, 0], [-1, 0, 0], [0.5, 0.5, 0.8]], dtype=np.float64)
+        * 0.5
+    )
     nm = TriangleMesh(fan, np.array([[0, 1, 2], [0, 1, 3], [0, 1, 4]]))
     groups = defect_edges(nm)
     assert groups[1][0].tolist() == [[0, 1]]

@@ -30,13 +30,31 @@ from recon_cli.io.load import load
 
 # ----------------------------------------------------------------------------- base files
 
-PTS = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 1.0, 0.5], [0.25, 0.5, 2.0]])
+PTS = np.array(
+    [
+        [0.0, 0.0, 0.0],
+        [1.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0],
+        [0.0, 0.0, 1.0],
+        [1.0, 1.0, 0.5],
+        [0.25, 0.5, 2.0],
+    ]
+)
 NRM = np.array([[0, 0, 1], [0, 1, 0], [1, 0, 0], [0, 0, -1], [0, -1, 0], [-1, 0, 0]], dtype=float)
 RGB = np.array([[255, 0, 0], [0, 255, 0], [0, 0, 255], [10, 20, 30], [40, 50, 60], [70, 80, 90]])
 TRIS = [[0, 1, 2], [0, 2, 3], [0, 3, 1], [1, 3, 2]]
 QUAD = [1, 4, 5, 2]
 
-_PACK = {"float": "f", "double": "d", "uchar": "B", "char": "b", "ushort": "H", "short": "h", "uint": "I", "int": "i"}
+_PACK = {
+    "float": "f",
+    "double": "d",
+    "uchar": "B",
+    "char": "b",
+    "ushort": "H",
+    "short": "h",
+    "uint": "I",
+    "int": "i",
+}
 
 
 def _header(fmt: str, elements: list[tuple[str, int, list[str]]]) -> bytes:
@@ -50,24 +68,47 @@ def _header(fmt: str, elements: list[tuple[str, int, list[str]]]) -> bytes:
 
 def cloud_file(fmt: str) -> bytes:
     """6 points with float xyz, float normals and uchar colours."""
-    props = ["float x", "float y", "float z", "float nx", "float ny", "float nz", "uchar red", "uchar green", "uchar blue"]
+    props = [
+        "float x",
+        "float y",
+        "float z",
+        "float nx",
+        "float ny",
+        "float nz",
+        "uchar red",
+        "uchar green",
+        "uchar blue",
+    ]
     head = _header(fmt, [("vertex", len(PTS), props)])
     if fmt == "ascii":
-        rows = [" ".join([*(f"{v:g}" for v in PTS[i]), *(f"{v:g}" for v in NRM[i]), *(str(c) for c in RGB[i])])
-                for i in range(len(PTS))]
+        rows = [
+            " ".join(
+                [
+                    *(f"{v:g}" for v in PTS[i]),
+                    *(f"{v:g}" for v in NRM[i]),
+                    *(str(c) for c in RGB[i]),
+                ]
+            )
+            for i in range(len(PTS))
+        ]
         return head + ("\n".join(rows) + "\n").encode()
     order = "<" if fmt == "binary_little_endian" else ">"
     body = b"".join(struct.pack(order + "6f3B", *PTS[i], *NRM[i], *RGB[i]) for i in range(len(PTS)))
     return head + body
 
 
-def mesh_file(fmt: str, count_type: str = "uchar", index_type: str = "int", quad: bool = True) -> bytes:
+def mesh_file(
+    fmt: str, count_type: str = "uchar", index_type: str = "int", quad: bool = True
+) -> bytes:
     """6 double vertices, 4 triangles and (``quad``) one quad; faces carry a uchar ``flag``."""
     faces = TRIS + ([QUAD] if quad else [])
-    head = _header(fmt, [
-        ("vertex", len(PTS), ["double x", "double y", "double z"]),
-        ("face", len(faces), [f"list {count_type} {index_type} vertex_indices", "uchar flag"]),
-    ])
+    head = _header(
+        fmt,
+        [
+            ("vertex", len(PTS), ["double x", "double y", "double z"]),
+            ("face", len(faces), [f"list {count_type} {index_type} vertex_indices", "uchar flag"]),
+        ],
+    )
     if fmt == "ascii":
         vrows = [" ".join(f"{v:g}" for v in p) for p in PTS]
         frows = [" ".join([str(len(f)), *map(str, f), str(7)]) for f in faces]
@@ -75,7 +116,9 @@ def mesh_file(fmt: str, count_type: str = "uchar", index_type: str = "int", quad
     o = "<" if fmt == "binary_little_endian" else ">"
     body = b"".join(struct.pack(o + "3d", *p) for p in PTS)
     for f in faces:
-        body += struct.pack(o + _PACK[count_type], len(f)) + struct.pack(o + _PACK[index_type] * len(f), *f)
+        body += struct.pack(o + _PACK[count_type], len(f)) + struct.pack(
+            o + _PACK[index_type] * len(f), *f
+        )
         body += struct.pack(o + "B", 7)
     return head + body
 
@@ -140,7 +183,9 @@ def test_bases_read_exactly(tmp_path):
             np.testing.assert_array_equal(np.asarray(obj.normals, dtype=float), NRM, err_msg=name)
             np.testing.assert_array_equal(obj.colors, RGB, err_msg=name)
         else:
-            np.testing.assert_array_equal(obj.faces, _expected_faces("tri" not in name), err_msg=name)
+            np.testing.assert_array_equal(
+                obj.faces, _expected_faces("tri" not in name), err_msg=name
+            )
 
 
 # ----------------------------------------------------------------------------- mutations
@@ -174,9 +219,16 @@ def _header_mutations(data: bytes) -> list[tuple[str, bytes, bool]]:
     out = []
     for m in re.finditer(r"element (\w+) (\d+)", head):
         n = int(m.group(2))
-        for new, fail in ((n + 1, True), (n - 1, False), (0, False), (n * 1000, True), (2**31, True),
-                          (2**63, True), (-1, True)):
-            h = head[: m.start(2)] + str(new) + head[m.end(2):]
+        for new, fail in (
+            (n + 1, True),
+            (n - 1, False),
+            (0, False),
+            (n * 1000, True),
+            (2**31, True),
+            (2**63, True),
+            (-1, True),
+        ):
+            h = head[: m.start(2)] + str(new) + head[m.end(2) :]
             out.append((f"{m.group(1)} count {new}", h.encode() + body, fail))
     types = ["char", "uchar", "short", "ushort", "int", "uint", "float", "double"]
     for m in re.finditer(r"property (?:list (\w+) )?(\w+) (\w+)", head):
@@ -184,7 +236,7 @@ def _header_mutations(data: bytes) -> list[tuple[str, bytes, bool]]:
             for grp in (1, 2):
                 if m.group(grp) is None or m.group(grp) == t:
                     continue
-                h = head[: m.start(grp)] + t + head[m.end(grp):]
+                h = head[: m.start(grp)] + t + head[m.end(grp) :]
                 out.append((f"{m.group(3)} type {m.group(grp)}->{t}", h.encode() + body, False))
     return out
 
@@ -197,11 +249,16 @@ def test_header_count_and_type_mutations(tmp_path, name):
         _check(p, f"{name}: {label}", must_fail)
 
 
-_LIMITS = {"uchar": (1, "B", [0, 1, 2, 255]), "ushort": (2, "H", [0, 2, 65535]),
-           "uint": (4, "I", [0, 2, 2**31 - 1, 2**31, 4_000_000_000, 2**32 - 1])}
+_LIMITS = {
+    "uchar": (1, "B", [0, 1, 2, 255]),
+    "ushort": (2, "H", [0, 2, 65535]),
+    "uint": (4, "I", [0, 2, 2**31 - 1, 2**31, 4_000_000_000, 2**32 - 1]),
+}
 
 
-@pytest.mark.parametrize("name", [n for n in sorted(BASES) if n.startswith("mesh-") and "ascii" not in n])
+@pytest.mark.parametrize(
+    "name", [n for n in sorted(BASES) if n.startswith("mesh-") and "ascii" not in n]
+)
 def test_binary_list_counts_at_type_limits(tmp_path, name):
     """The count of the first, a middle and the last face set to 0, 1, 2 and the type's maximum."""
     data = BASES[name]
@@ -220,7 +277,7 @@ def test_binary_list_counts_at_type_limits(tmp_path, name):
     for which in (0, len(starts) // 2, len(starts) - 1):
         for v in values:
             mutated = bytearray(data)
-            mutated[starts[which]: starts[which] + size] = struct.pack(order + code, v)
+            mutated[starts[which] : starts[which] + size] = struct.pack(order + code, v)
             p.write_bytes(bytes(mutated))
             # 0, 1, 2 vertices are never a face; a huge count overruns the file
             _check(p, f"{name}: face {which} count {v}", must_fail=True)
@@ -235,24 +292,39 @@ def _ascii_token_mutations(data: bytes, rng) -> list[tuple[str, bytes, bool]]:
     for i, j in spots:
         toks = lines[i].split()
         # one token too few / too many on a row: must be refused
-        dele = lines[:i] + [" ".join(toks[:j] + toks[j + 1:])] + lines[i + 1:]
+        dele = lines[:i] + [" ".join(toks[:j] + toks[j + 1 :])] + lines[i + 1 :]
         out.append((f"line {i} token {j} deleted", head + "\n".join(dele).encode(), True))
-        ins = lines[:i] + [" ".join(toks[:j] + ["3"] + toks[j:])] + lines[i + 1:]
+        ins = lines[:i] + [" ".join(toks[:j] + ["3"] + toks[j:])] + lines[i + 1 :]
         out.append((f"line {i} token 3 inserted at {j}", head + "\n".join(ins).encode(), True))
         if 0 < j:
-            split = lines[:i] + [" ".join(toks[:j]), " ".join(toks[j:])] + lines[i + 1:]
+            split = lines[:i] + [" ".join(toks[:j]), " ".join(toks[j:])] + lines[i + 1 :]
             out.append((f"line {i} split before token {j}", head + "\n".join(split).encode(), True))
     # one row's value moved to the end of the previous row (both rows wrong, counts add up)
     for i in range(1, len(lines) - 1):
         a, b = lines[i - 1].split(), lines[i].split()
         if a and b:
-            shifted = lines[: i - 1] + [" ".join(a + b[:1]), " ".join(b[1:])] + lines[i + 1:]
+            shifted = lines[: i - 1] + [" ".join(a + b[:1]), " ".join(b[1:])] + lines[i + 1 :]
             out.append((f"line {i} first token moved up", head + "\n".join(shifted).encode(), True))
-    for word in ("nan", "inf", "-inf", "1e400", "-1e400", "3.5e38", "-1", "1.5", "x", "0x10", "4294967296", "1e20"):
-        for i, j in [spots[k] for k in rng.choice(len(spots), size=min(12, len(spots)), replace=False)]:
+    for word in (
+        "nan",
+        "inf",
+        "-inf",
+        "1e400",
+        "-1e400",
+        "3.5e38",
+        "-1",
+        "1.5",
+        "x",
+        "0x10",
+        "4294967296",
+        "1e20",
+    ):
+        for i, j in [
+            spots[k] for k in rng.choice(len(spots), size=min(12, len(spots)), replace=False)
+        ]:
             toks = lines[i].split()
             toks[j] = word
-            rep = lines[:i] + [" ".join(toks)] + lines[i + 1:]
+            rep = lines[:i] + [" ".join(toks)] + lines[i + 1 :]
             out.append((f"line {i} token {j} -> {word}", head + "\n".join(rep).encode(), False))
     out.append(("an extra row at the end", data + b"1 2 3\n", True))
     out.append(("blank lines", head + body.replace("\n", "\n\n").encode(), False))
@@ -276,14 +348,16 @@ def test_ascii_row_error_names_the_line(tmp_path):
     data = BASES["cloud-ascii"].replace(b"\n1 0 0 0 1 0 0 255 0\n", b"\n1 0 0 0 1 0 0 255 0 9\n")
     p = tmp_path / "extra.ply"
     p.write_bytes(data)
-    with pytest.raises(InputError, match=r"extra\.ply: line 16: 'vertex' row 1 has 10 values, expected 9"):
+    with pytest.raises(
+        InputError, match=r"extra\.ply: line 16: 'vertex' row 1 has 10 values, expected 9"
+    ):
         load(p)
 
 
 def test_uint_list_count_near_4e9_in_first_row(tmp_path):
     data = bytearray(BASES["mesh-le-uint"])
     pos = _body_start(bytes(data)) + 24 * len(PTS)
-    data[pos: pos + 4] = struct.pack("<I", 4_000_000_000)
+    data[pos : pos + 4] = struct.pack("<I", 4_000_000_000)
     p = tmp_path / "huge.ply"
     p.write_bytes(bytes(data))
     with pytest.raises(InputError, match=r"huge\.ply: truncated"):
@@ -293,7 +367,7 @@ def test_uint_list_count_near_4e9_in_first_row(tmp_path):
 def test_nan_face_index_refused_without_warning(tmp_path):
     data = bytearray(BASES["mesh-le-float-index"])
     pos = _body_start(bytes(data)) + 24 * len(PTS) + 1
-    data[pos: pos + 4] = struct.pack("<f", float("nan"))
+    data[pos : pos + 4] = struct.pack("<f", float("nan"))
     p = tmp_path / "nanface.ply"
     p.write_bytes(bytes(data))
     with pytest.raises(InputError, match=r"nanface\.ply: face index nan is not a whole number"):
@@ -317,10 +391,15 @@ def test_cli_on_broken_files_one_line_and_output_untouched(tmp_path, capfd):
     cases = []
     for name in sorted(BASES):
         data = BASES[name]
-        cases += [(f"{name} cut {o}", data[:o]) for o in rng.choice(_truncations(data, rng), 4, replace=False)]
+        cases += [
+            (f"{name} cut {o}", data[:o])
+            for o in rng.choice(_truncations(data, rng), 4, replace=False)
+        ]
         cases += [(f"{name} {label}", d) for label, d, _ in _header_mutations(data)[::9]]
         if "ascii" in name:
-            cases += [(f"{name} {label}", d) for label, d, _ in _ascii_token_mutations(data, rng)[::7]]
+            cases += [
+                (f"{name} {label}", d) for label, d, _ in _ascii_token_mutations(data, rng)[::7]
+            ]
     src = tmp_path / "in.ply"
     out = tmp_path / "out.ply"
     sentinel = b"the output that was there before\n"
@@ -332,10 +411,14 @@ def test_cli_on_broken_files_one_line_and_output_untouched(tmp_path, capfd):
         assert code in (0, 2), f"{label}: exit {code}: {err}"
         codes[code] += 1
         if code == 2:
-            assert err.count("\n") == 1 and err.startswith(f"recon: error: {src}: "), f"{label}: {err!r}"
+            assert err.count("\n") == 1 and err.startswith(f"recon: error: {src}: "), (
+                f"{label}: {err!r}"
+            )
             assert out.read_bytes() == sentinel, f"{label}: output replaced on error"
         else:
             assert err == "", f"{label}: {err!r}"
             assert out.read_bytes() != sentinel
-        assert sorted(os.listdir(tmp_path)) == ["in.ply", "out.ply"], f"{label}: left {os.listdir(tmp_path)}"
+        assert sorted(os.listdir(tmp_path)) == ["in.ply", "out.ply"], (
+            f"{label}: left {os.listdir(tmp_path)}"
+        )
     assert codes[2] > 0.5 * len(cases)

@@ -24,17 +24,26 @@ def _lying_file(tmp_path, fmt: str, element: str, count: int):
     """A 3-vertex, 1-triangle file whose ``element`` count in the header is ``count``."""
     verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], dtype=np.float32)
     head = [
-        "ply", f"format {fmt} 1.0", "comment a header that lies",
+        "ply",
+        f"format {fmt} 1.0",
+        "comment a header that lies",
         f"element vertex {count if element == 'vertex' else 3}",
-        "property float x", "property float y", "property float z",
+        "property float x",
+        "property float y",
+        "property float z",
         f"element face {count if element == 'face' else 1}",
-        "property list uchar int vertex_indices", "end_header",
+        "property list uchar int vertex_indices",
+        "end_header",
     ]
     order = FORMATS[fmt]
     if order is None:
         body = b"0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n"
     else:
-        body = verts.astype(order + "f4").tobytes() + np.uint8(3).tobytes() + np.array([0, 1, 2], order + "i4").tobytes()
+        body = (
+            verts.astype(order + "f4").tobytes()
+            + np.uint8(3).tobytes()
+            + np.array([0, 1, 2], order + "i4").tobytes()
+        )
     path = tmp_path / f"lying_{element}_{fmt}.ply"
     path.write_bytes(("\n".join(head) + "\n").encode() + body)
     return path
@@ -105,5 +114,7 @@ def test_batch_task_and_cli_report_the_lying_file(tmp_path, capsys):
         main(["info", str(path)])
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith(f"recon: error: {path}: truncated: header declares {TERA} 'vertex' rows"), err
+    assert err.startswith(
+        f"recon: error: {path}: truncated: header declares {TERA} 'vertex' rows"
+    ), err
     assert len(err.splitlines()) == 1

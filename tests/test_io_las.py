@@ -27,12 +27,18 @@ def _laspy_file(seed, pf, version, compress, n=300):
     h.scales = np.array([0.001, 0.001, 0.0001])
     h.offsets = np.array([5e5, 5e6, 100.0])
     if pf >= 6:
-        h.add_extra_dims([laspy.ExtraBytesParams(name="nx", type="f4"), laspy.ExtraBytesParams(name="ny", type="f4"),
-                          laspy.ExtraBytesParams(name="nz", type="f4"), laspy.ExtraBytesParams(name="amplitude", type="u2")])
+        h.add_extra_dims(
+            [
+                laspy.ExtraBytesParams(name="nx", type="f4"),
+                laspy.ExtraBytesParams(name="ny", type="f4"),
+                laspy.ExtraBytesParams(name="nz", type="f4"),
+                laspy.ExtraBytesParams(name="amplitude", type="u2"),
+            ]
+        )
     las = laspy.LasData(h)
-    las.X = rng.integers(-2**30, 2**30, n)
-    las.Y = rng.integers(-2**30, 2**30, n)
-    las.Z = rng.integers(-2**20, 2**20, n)
+    las.X = rng.integers(-(2**30), 2**30, n)
+    las.Y = rng.integers(-(2**30), 2**30, n)
+    las.Z = rng.integers(-(2**20), 2**20, n)
     las.intensity = rng.integers(0, 65535, n)
     las.classification = rng.integers(0, 20, n)
     las.return_number = rng.integers(1, 4, n)
@@ -51,16 +57,22 @@ def _laspy_file(seed, pf, version, compress, n=300):
 @pytest.mark.parametrize("seed", range(2))
 @pytest.mark.parametrize("pf, version", [(0, "1.2"), (3, "1.2"), (6, "1.4"), (7, "1.4")])
 @pytest.mark.parametrize("compress", [False, True])
-def test_laspy_written_files_read_with_coordinates_attributes_and_colours(seed, pf, version, compress):
+def test_laspy_written_files_read_with_coordinates_attributes_and_colours(
+    seed, pf, version, compress
+):
     las, data = _laspy_file(seed, pf, version, compress)
     got, details = decode_las(data, "t.las")
     assert details["point_format"] == pf and details["version"] == version
     assert got.points.dtype == np.float64
-    assert np.array_equal(got.points, np.column_stack([las.x, las.y, las.z]))  # X * scale + offset, in double
+    assert np.array_equal(
+        got.points, np.column_stack([las.x, las.y, las.z])
+    )  # X * scale + offset, in double
     for name in ("intensity", "classification", "return_number", "number_of_returns"):
         assert np.array_equal(got.attributes[name], np.asarray(las[name]))
     if pf in (3, 7):
-        assert got.colors.dtype == np.uint16 and np.array_equal(got.colors, np.column_stack([las.red, las.green, las.blue]))
+        assert got.colors.dtype == np.uint16 and np.array_equal(
+            got.colors, np.column_stack([las.red, las.green, las.blue])
+        )
     if pf >= 6:
         assert np.array_equal(got.normals, np.column_stack([las.nx, las.ny, las.nz]))
         assert np.array_equal(got.attributes["amplitude"], np.asarray(las.amplitude))
@@ -74,7 +86,9 @@ def test_real_airborne_tile_round_trips_bit_for_bit_in_laspy(compress):
     back = laspy.read(io.BytesIO(data))
     assert back.header.point_format.id == 3 and str(back.header.version) == "1.2"
     assert np.array_equal(back.points.array, src.points.array)  # every byte of every point record
-    assert [(v.user_id, v.record_id) for v in back.header.vlrs] == [(v.user_id, v.record_id) for v in src.header.vlrs]
+    assert [(v.user_id, v.record_id) for v in back.header.vlrs] == [
+        (v.user_id, v.record_id) for v in src.header.vlrs
+    ]
 
 
 @pytest.mark.parametrize("seed", range(4))
@@ -91,7 +105,9 @@ def test_our_files_from_other_clouds_read_back_in_laspy(seed, caplog):
     assert np.array_equal(np.column_stack([back.nx, back.ny, back.nz]), c.normals)
     assert np.array_equal(np.asarray(back.intensity), c.attributes["intensity"])
     assert np.array_equal(np.asarray(back.curvature), c.attributes["curvature"])
-    assert np.array_equal(np.column_stack([back.red, back.green, back.blue]), c.colors.astype(np.uint16) * 257)
+    assert np.array_equal(
+        np.column_stack([back.red, back.green, back.blue]), c.colors.astype(np.uint16) * 257
+    )
     got = decode_las(data, "o")[0]
     assert np.array_equal(got.points, pts) and np.array_equal(got.normals, c.normals)
 
@@ -99,7 +115,11 @@ def test_our_files_from_other_clouds_read_back_in_laspy(seed, caplog):
 def test_attribute_that_does_not_fit_is_refused():
     from recon_cli.errors import ParameterError
 
-    c = PointCloud(points=np.zeros((2, 3)), attributes={"classification": np.array([1.5, 2.0])}, point_dtype=np.float64)
+    c = PointCloud(
+        points=np.zeros((2, 3)),
+        attributes={"classification": np.array([1.5, 2.0])},
+        point_dtype=np.float64,
+    )
     with pytest.raises(ParameterError, match="'classification' has values"):
         las_bytes(c, False, "x.las")
 
@@ -116,7 +136,12 @@ def test_truncated_and_garbage_are_one_line_input_errors():
 # LAS only: lazrs (the LAZ decoder under laspy) can abort the whole process on some corrupted LAZ chunks (seen
 # here: "Fatal Python error: Aborted" inside lazrs' read_n_points), which no Python code can catch; the README says
 # so. Truncated and garbage LAZ files are tested above.
-@given(cut=st.floats(0, 1), junk=st.binary(min_size=1, max_size=16), pos=st.floats(0, 1), compress=st.just(False))
+@given(
+    cut=st.floats(0, 1),
+    junk=st.binary(min_size=1, max_size=16),
+    pos=st.floats(0, 1),
+    compress=st.just(False),
+)
 def test_fuzz_truncated_or_corrupted_las_is_data_or_input_error(cut, junk, pos, compress):
     _, data = _laspy_file(1, 3, "1.2", compress, n=50)
     k = int(cut * len(data))
@@ -130,18 +155,21 @@ def test_fuzz_truncated_or_corrupted_las_is_data_or_input_error(cut, junk, pos, 
         assert np.isfinite(obj.points).all()
 
 
-@pytest.mark.parametrize(("at", "field", "what"), [
-    (100, (2**32 - 1).to_bytes(4, "little"), "VLRs"),  # number of VLRs
-    (107, (2**32 - 1).to_bytes(4, "little"), "points"),  # legacy number of points
-    (96, (2**32 - 1).to_bytes(4, "little"), "outside the file"),  # offset to the points
-    (131, np.float64(1e300).tobytes(), "beyond float64"),  # x scale
-])
+@pytest.mark.parametrize(
+    ("at", "field", "what"),
+    [
+        (100, (2**32 - 1).to_bytes(4, "little"), "VLRs"),  # number of VLRs
+        (107, (2**32 - 1).to_bytes(4, "little"), "points"),  # legacy number of points
+        (96, (2**32 - 1).to_bytes(4, "little"), "outside the file"),  # offset to the points
+        (131, np.float64(1e300).tobytes(), "beyond float64"),  # x scale
+    ],
+)
 @pytest.mark.parametrize("from_path", [False, True])
 def test_header_counts_beyond_the_file_refused_before_reading(tmp_path, at, field, what, from_path):
     # a corrupted count made laspy build millions of VLRs or allocate gigabytes (a fuzz case
     # took a test worker to 22 GB): the header is checked against the file's size first
     _, data = _laspy_file(1, 3, "1.2", False, n=50)
-    bad = data[:at] + field + data[at + len(field):]
+    bad = data[:at] + field + data[at + len(field) :]
     f = tmp_path / "bad.las"
     f.write_bytes(bad)
     with pytest.raises(InputError, match=what) as exc:

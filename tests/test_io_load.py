@@ -18,7 +18,19 @@ from shapes import cloud_family, mesh_family
 
 RECON = [sys.executable, "-m", "recon_cli.cli.main"]
 MESH_SUFFIXES = [".ply", ".obj", ".off", ".stl", ".OBJ"]
-CLOUD_SUFFIXES = [".ply", ".obj", ".off", ".xyz", ".txt", ".csv", ".pts", ".pcd", ".las", ".laz", ".PCD"]
+CLOUD_SUFFIXES = [
+    ".ply",
+    ".obj",
+    ".off",
+    ".xyz",
+    ".txt",
+    ".csv",
+    ".pts",
+    ".pcd",
+    ".las",
+    ".laz",
+    ".PCD",
+]
 
 
 def recon(*args, input: bytes | None = None):
@@ -28,7 +40,11 @@ def recon(*args, input: bytes | None = None):
 def _same_mesh(a, b, exact=True):
     ta = a.vertices[a.faces].astype(np.float64)
     tb = b.vertices[b.faces].astype(np.float64)
-    return ta.shape == tb.shape and (np.array_equal(ta, tb) if exact else np.allclose(ta, tb, rtol=0, atol=1e-6 * np.abs(ta).max()))
+    return ta.shape == tb.shape and (
+        np.array_equal(ta, tb)
+        if exact
+        else np.allclose(ta, tb, rtol=0, atol=1e-6 * np.abs(ta).max())
+    )
 
 
 @pytest.mark.parametrize("src", MESH_SUFFIXES)
@@ -56,7 +72,11 @@ def test_clouds_convert_to_every_cloud_format_and_back(dst, tmp_path):
 
 
 def test_registry_suffixes_case_and_unknown(tmp_path):
-    assert format_of("A.LAZ").name == "las" and format_of("x.Csv").name == "xyz" and format_of("-") is None
+    assert (
+        format_of("A.LAZ").name == "las"
+        and format_of("x.Csv").name == "xyz"
+        and format_of("-") is None
+    )
     with pytest.raises(ParameterError) as exc:
         format_of("scan.foo")
     assert ".ply" in str(exc.value) and ".laz" in str(exc.value)
@@ -77,7 +97,9 @@ def test_sniffing_recognises_our_output(suffix, tmp_path):
 
 def test_mesh_to_points_only_format_refused_or_points_only(tmp_path, caplog):
     m = mesh_family(2)
-    with pytest.raises(ParameterError, match="holds points only; the mesh's .* faces would be dropped"):
+    with pytest.raises(
+        ParameterError, match="holds points only; the mesh's .* faces would be dropped"
+    ):
         save(m, tmp_path / "m.xyz")
     assert not (tmp_path / "m.xyz").exists()
     with caplog.at_level("WARNING", logger="recon"):
@@ -98,10 +120,21 @@ def test_e57_written_by_pye57_reads_with_right_counts_and_coordinates(tmp_path):
     pye57 = pytest.importorskip("pye57")
     rng = np.random.default_rng(4)
     # pye57 stores float32 coordinates: values it holds exactly, at UTM-like magnitudes
-    pts = (rng.integers(0, 2**20, (200, 3)) * 0.125 + [5e5, 5e6, 0]).astype(np.float32).astype(np.float64)
+    pts = (
+        (rng.integers(0, 2**20, (200, 3)) * 0.125 + [5e5, 5e6, 0])
+        .astype(np.float32)
+        .astype(np.float64)
+    )
     path = tmp_path / "s.e57"
     e = pye57.E57(str(path), mode="w")
-    e.write_scan_raw({"cartesianX": pts[:, 0], "cartesianY": pts[:, 1], "cartesianZ": pts[:, 2], "intensity": rng.random(200)})
+    e.write_scan_raw(
+        {
+            "cartesianX": pts[:, 0],
+            "cartesianY": pts[:, 1],
+            "cartesianZ": pts[:, 2],
+            "intensity": rng.random(200),
+        }
+    )
     e.close()
     got = load(path)
     assert np.array_equal(got.points, pts) and len(got.attributes["intensity"]) == 200
@@ -124,20 +157,38 @@ def test_cli_convert_info_and_errors(tmp_path):
         r = recon("info", "--json", tmp_path / name)
         rep = json.loads(r.stdout)[0]
         assert r.returncode == 0 and rep["faces"] == len(m.faces) and rep["topology"]["genus"] == 1
-    assert json.loads(recon("info", "--json", tmp_path / "m.stl").stdout)[0]["details"]["weld_tolerance"] == 0.0
+    assert (
+        json.loads(recon("info", "--json", tmp_path / "m.stl").stdout)[0]["details"][
+            "weld_tolerance"
+        ]
+        == 0.0
+    )
     # unknown suffix: exit 2, one line listing what is supported, nothing written
     r = recon("convert", tmp_path / "m.ply", tmp_path / "m.foo")
     err = r.stderr.decode().strip()
-    assert r.returncode == 2 and len(err.splitlines()) == 1 and ".laz" in err and not (tmp_path / "m.foo").exists()
+    assert (
+        r.returncode == 2
+        and len(err.splitlines()) == 1
+        and ".laz" in err
+        and not (tmp_path / "m.foo").exists()
+    )
     # faces to a points-only format: refused, then allowed with --points-only
     r = recon("convert", tmp_path / "m.ply", tmp_path / "m.xyz")
-    assert r.returncode == 2 and "--points-only" in r.stderr.decode() and not (tmp_path / "m.xyz").exists()
+    assert (
+        r.returncode == 2
+        and "--points-only" in r.stderr.decode()
+        and not (tmp_path / "m.xyz").exists()
+    )
     r = recon("convert", "--points-only", tmp_path / "m.ply", tmp_path / "m.xyz")
     assert r.returncode == 0 and "dropped" in r.stderr.decode()
     # a malformed file: exit 2, one line naming the file and the line
     (tmp_path / "bad.obj").write_bytes(b"v 1 2 3\nv 1 2 oops\n")
     r = recon("info", tmp_path / "bad.obj")
-    assert r.returncode == 2 and r.stderr.decode().strip() == f"recon: error: {tmp_path / 'bad.obj'}: line 2: 'oops' is not a number"
+    assert (
+        r.returncode == 2
+        and r.stderr.decode().strip()
+        == f"recon: error: {tmp_path / 'bad.obj'}: line 2: 'oops' is not a number"
+    )
 
 
 def test_cli_streams_with_formats(tmp_path):
@@ -149,7 +200,10 @@ def test_cli_streams_with_formats(tmp_path):
     assert r.returncode == 0 and r.stdout.startswith(b"# .PCD")
     r2 = recon("convert", "--input-format", "pcd", "-", tmp_path / "c.laz", input=r.stdout)
     assert r2.returncode == 0, r2.stderr
-    assert np.abs(load(tmp_path / "c.laz").points - c.points).max() <= 5e-9 * np.ptp(c.points, axis=0).max()
+    assert (
+        np.abs(load(tmp_path / "c.laz").points - c.points).max()
+        <= 5e-9 * np.ptp(c.points, axis=0).max()
+    )
     r3 = recon("info", "--format", "pcd", "--json", "-", input=r.stdout)
     assert json.loads(r3.stdout)[0]["format"] == "pcd"
     # a stage reads and writes by suffix

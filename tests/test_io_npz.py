@@ -35,7 +35,9 @@ def save(path, sdf, origin=(0.0, 0.0, 0.0), voxel_size=0.1, **extra):
 def lying_header(path, shape):
     """An .npz whose 'sdf' header claims ``shape`` float32 but holds 64 bytes of data."""
     head = io.BytesIO()
-    np.lib.format.write_array_header_1_0(head, {"descr": "<f4", "fortran_order": False, "shape": shape})
+    np.lib.format.write_array_header_1_0(
+        head, {"descr": "<f4", "fortran_order": False, "shape": shape}
+    )
     with zipfile.ZipFile(path, "w") as zf:
         zf.writestr("sdf.npy", head.getvalue() + bytes(64))
         for name, arr in (("origin", np.zeros(3)), ("voxel_size", np.float64(0.1))):
@@ -50,7 +52,9 @@ def planar_cloud_grid(tmp_path, capsys):
     from recon_cli.geometry import PointCloud
     from recon_cli.io import write_ply
 
-    g = np.stack(np.meshgrid(np.linspace(0, 1, 30), np.linspace(0, 1, 30), indexing="ij"), -1).reshape(-1, 2)
+    g = np.stack(
+        np.meshgrid(np.linspace(0, 1, 30), np.linspace(0, 1, 30), indexing="ij"), -1
+    ).reshape(-1, 2)
     pts = np.column_stack([g, np.zeros(len(g))])
     src = tmp_path / "plane.ply"
     write_ply(PointCloud(points=pts, normals=np.tile([0.0, 0.0, 1.0], (len(pts), 1))), src)
@@ -67,8 +71,12 @@ def test_info_on_odd_grids(tmp_path, capsys, kind):
     if kind == "planar_cloud":
         path = planar_cloud_grid(tmp_path, capsys)
     else:
-        sdf = {"all_nan": np.full((4, 5, 6), np.nan, np.float32), "constant": np.full((8, 8, 8), 0.5, np.float32),
-               "one_sample": np.zeros((1, 1, 1), np.float32), "two_cubed": np.array([-1, 1] * 4, np.float32).reshape(2, 2, 2)}[kind]
+        sdf = {
+            "all_nan": np.full((4, 5, 6), np.nan, np.float32),
+            "constant": np.full((8, 8, 8), 0.5, np.float32),
+            "one_sample": np.zeros((1, 1, 1), np.float32),
+            "two_cubed": np.array([-1, 1] * 4, np.float32).reshape(2, 2, 2),
+        }[kind]
         save(path, sdf)
     code, out, err = run(capsys, "info", path)
     assert code == 0 and err == "" and "Traceback" not in out, err
@@ -140,27 +148,49 @@ def test_grid_whose_memory_cannot_be_had_is_refused_before_reading(tmp_path, mon
     path = save(tmp_path / "g.npz", np.zeros((16, 16, 16), np.float32))
     assert read_grid(path).shape == (16, 16, 16)
     monkeypatch.setattr("recon_cli.memory.available_bytes", lambda: 10_000)
-    with pytest.raises(InputError, match=r"16 x 16 x 16 = 4.1e\+03 samples needs about .* more than the 10 kB available"):
+    with pytest.raises(
+        InputError,
+        match=r"16 x 16 x 16 = 4.1e\+03 samples needs about .* more than the 10 kB available",
+    ):
         read_grid(path)
 
 
 def test_grid_class_checks_its_frame():
-    for kw in ({"origin": (0, np.nan, 0)}, {"voxel_size": np.inf}, {"voxel_size": -1.0}, {"sdf": np.zeros((0, 2, 2))}):
+    for kw in (
+        {"origin": (0, np.nan, 0)},
+        {"voxel_size": np.inf},
+        {"voxel_size": -1.0},
+        {"sdf": np.zeros((0, 2, 2))},
+    ):
         args = {"sdf": np.zeros((2, 2, 2)), "origin": (0, 0, 0), "voxel_size": 1.0, **kw}
         with pytest.raises(InputError):
             Grid(**args)
 
 
 def test_round_trip_and_compressed(tmp_path):
-    g = Grid(sdf=np.random.default_rng(0).normal(size=(3, 4, 5)), origin=(1.0, 2.0, 3.0), voxel_size=0.5, history=["a"])
+    g = Grid(
+        sdf=np.random.default_rng(0).normal(size=(3, 4, 5)),
+        origin=(1.0, 2.0, 3.0),
+        voxel_size=0.5,
+        history=["a"],
+    )
     write_grid(g, tmp_path / "g.npz")
     back = read_grid(tmp_path / "g.npz")
-    assert np.array_equal(back.sdf, g.sdf) and np.array_equal(back.origin, g.origin) and back.history == ["a"]
+    assert (
+        np.array_equal(back.sdf, g.sdf)
+        and np.array_equal(back.origin, g.origin)
+        and back.history == ["a"]
+    )
     np.savez_compressed(tmp_path / "c.npz", sdf=g.sdf, origin=g.origin, voxel_size=np.float64(0.5))
     assert np.array_equal(read_grid(tmp_path / "c.npz").sdf, g.sdf)
     # stored members read straight into the array: any layout and byte order numpy writes
     values = np.random.default_rng(1).normal(size=(3, 4, 5))
-    for sdf in (np.asfortranarray(values), values.astype(">f4"), values.astype(np.float64), values[:, ::2].copy()):
+    for sdf in (
+        np.asfortranarray(values),
+        values.astype(">f4"),
+        values.astype(np.float64),
+        values[:, ::2].copy(),
+    ):
         np.savez(tmp_path / "s.npz", sdf=sdf, origin=g.origin, voxel_size=np.float64(0.5))
         back = read_grid(tmp_path / "s.npz")
         assert back.sdf.dtype == np.float32 and np.array_equal(back.sdf, sdf.astype(np.float32))
@@ -171,7 +201,11 @@ def test_round_trip_and_compressed(tmp_path):
 def test_mcubes_refuses_an_empty_level_set(tmp_path, capsys, kind):
     """A grid with no sign change (or no cell, or only unknown cells where it changes) is
     exit 2 'nothing to mesh', never an empty mesh written with exit 0."""
-    sdf = {"constant": np.full((8, 8, 8), 0.5), "all_nan": np.full((4, 4, 4), np.nan), "one_sample": np.zeros((1, 1, 1)) - 1}.get(kind)
+    sdf = {
+        "constant": np.full((8, 8, 8), 0.5),
+        "all_nan": np.full((4, 4, 4), np.nan),
+        "one_sample": np.zeros((1, 1, 1)) - 1,
+    }.get(kind)
     if sdf is None:
         sdf = np.ones((6, 6, 6))
         sdf[:3] = -1

@@ -118,7 +118,9 @@ def test_malformed_files_name_the_line(data, message):
 
 
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(seed=st.integers(0, 50), cut=st.floats(0, 1), junk=st.binary(max_size=20), pos=st.floats(0, 1))
+@given(
+    seed=st.integers(0, 50), cut=st.floats(0, 1), junk=st.binary(max_size=20), pos=st.floats(0, 1)
+)
 def test_fuzz_truncated_or_corrupted_obj_is_data_or_input_error(seed, cut, junk, pos):
     data = obj_bytes(mesh_family(seed))
     k = int(cut * len(data))
@@ -135,7 +137,10 @@ def test_fuzz_truncated_or_corrupted_obj_is_data_or_input_error(seed, cut, junk,
 
 
 @settings(max_examples=500, deadline=None)
-@given(x=st.floats(allow_nan=False, allow_infinity=False), fmt=st.sampled_from(["%r", "%.17g", "%.9g", "%.6f", "%.10f", "%.0f", "%.3e", "%.12E", "%g"]))
+@given(
+    x=st.floats(allow_nan=False, allow_infinity=False),
+    fmt=st.sampled_from(["%r", "%.17g", "%.9g", "%.6f", "%.10f", "%.0f", "%.3e", "%.12E", "%g"]),
+)
 def test_number_parser_is_correctly_rounded(x, fmt):
     tok = (fmt % x).encode()
     buf = np.frombuffer(tok, np.uint8)
@@ -212,7 +217,9 @@ def _big_mesh():
     rng = np.random.default_rng(5)
     v, f = torus(nu=120, nv=40)
     n = rng.normal(size=v.shape)
-    return TriangleMesh(vertices=v * 1e3 + 5e5, faces=f, normals=n / np.linalg.norm(n, axis=1, keepdims=True))
+    return TriangleMesh(
+        vertices=v * 1e3 + 5e5, faces=f, normals=n / np.linalg.norm(n, axis=1, keepdims=True)
+    )
 
 
 @pytest.mark.parametrize("normals_late", [False, True])
@@ -224,7 +231,9 @@ def test_arrays_sized_from_a_sample_grow_when_it_misses(normals_late, no_estimat
     m = _big_mesh()
     if normals_late:  # vn lines only after the faces: the corner normal array is made mid-way
         normals, m.normals = m.normals, None
-        lines = _obj_text(m, np.random.default_rng(0)) + ["vn %r %r %r" % tuple(p) for p in normals.tolist()]
+        lines = _obj_text(m, np.random.default_rng(0)) + [
+            "vn %r %r %r" % tuple(p) for p in normals.tolist()
+        ]
     else:
         lines = _obj_text(m, np.random.default_rng(0))
     body = ("\n".join(lines) + "\n").encode()
@@ -248,4 +257,13 @@ def test_a_polygon_after_triangles_is_fanned_in_place():
     # face lengths are kept only from the first polygon on: the triangles before it stay triangles
     data = b"v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 2 2 2\nf 1 2 3\nf 1 3 4\nf 5 1 2 3 4\nf 2 3 4\nf 1 2 5 4\n"
     m = decode_obj(data, "p.obj")[0]
-    assert m.faces.tolist() == [[0, 1, 2], [0, 2, 3], [4, 0, 1], [4, 1, 2], [4, 2, 3], [1, 2, 3], [0, 1, 4], [0, 4, 3]]
+    assert m.faces.tolist() == [
+        [0, 1, 2],
+        [0, 2, 3],
+        [4, 0, 1],
+        [4, 1, 2],
+        [4, 2, 3],
+        [1, 2, 3],
+        [0, 1, 4],
+        [0, 4, 3],
+    ]

@@ -36,21 +36,30 @@ def test_our_off_reads_back_identically_here_and_in_trimesh(seed, dtype):
     m.history = ["from a test"]
     data = off_bytes(m)
     got = decode_off(data, "o.off")[0]
-    assert np.array_equal(got.vertices.astype(dtype), m.vertices) and np.array_equal(got.faces, m.faces)
+    assert np.array_equal(got.vertices.astype(dtype), m.vertices) and np.array_equal(
+        got.faces, m.faces
+    )
     assert got.history == ["from a test"]
     if m.colors is not None:
         assert data.startswith(b"CNOFF")
-        assert np.array_equal(got.colors, m.colors) and np.array_equal(got.normals.astype(dtype), m.normals)
+        assert np.array_equal(got.colors, m.colors) and np.array_equal(
+            got.normals.astype(dtype), m.normals
+        )
     else:
         tm = trimesh.load(io.BytesIO(data), file_type="off", process=False)
-        assert np.array_equal(tm.faces, m.faces) and np.array_equal(tm.vertices.astype(dtype), m.vertices)
+        assert np.array_equal(tm.faces, m.faces) and np.array_equal(
+            tm.vertices.astype(dtype), m.vertices
+        )
 
 
 def test_polygons_face_colours_and_counts_on_the_keyword_line():
     data = b"OFF 5 2 0\n# a comment\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n0 0 1\n4 0 1 2 3 255 0 0\n3 0 1 4 0 255 0\n"
     m = decode_off(data, "p.off")[0]
     assert m.faces.tolist() == [[0, 1, 2], [0, 2, 3], [0, 1, 4]]
-    assert m.face_attributes["red"].tolist() == [255, 255, 0] and m.face_attributes["red"].dtype == np.uint8
+    assert (
+        m.face_attributes["red"].tolist() == [255, 255, 0]
+        and m.face_attributes["red"].dtype == np.uint8
+    )
     cloud = decode_off(b"OFF\n2 0 0\n1 2 3\n4 5 6\n", "c.off")[0]
     assert isinstance(cloud, PointCloud) and cloud.points.tolist() == [[1, 2, 3], [4, 5, 6]]
 
@@ -59,10 +68,22 @@ def test_polygons_face_colours_and_counts_on_the_keyword_line():
     "data, message",
     [
         (b"OFX\n", "not an OFF file"),
-        (b"OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n", "truncated: the header declares 3 vertices and 1 faces but the file has 3 rows"),
-        (b"OFF\n3 1 0\n0 0 0\n1 0\n0 1 0\n3 0 1 2\n", "line 4: a OFF vertex row holds 3 numbers, not 2"),
-        (b"OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n", "line 6: vertex index 7 out of range for 3 vertices"),
-        (b"OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n2 0 1\n", "line 6: a face must start with its number of corners"),
+        (
+            b"OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n",
+            "truncated: the header declares 3 vertices and 1 faces but the file has 3 rows",
+        ),
+        (
+            b"OFF\n3 1 0\n0 0 0\n1 0\n0 1 0\n3 0 1 2\n",
+            "line 4: a OFF vertex row holds 3 numbers, not 2",
+        ),
+        (
+            b"OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n",
+            "line 6: vertex index 7 out of range for 3 vertices",
+        ),
+        (
+            b"OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n2 0 1\n",
+            "line 6: a face must start with its number of corners",
+        ),
         (b"OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n3 0 1 2\n", "line 7: more rows than"),
         (b"OFF\n99999999999 1 0\n0 0 0\n", "truncated"),
         (b"OFF\n-1 0 0\n", "line 2: the counts must be"),
@@ -77,7 +98,9 @@ def test_malformed_files_name_the_line(data, message):
 
 
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(seed=st.integers(0, 50), cut=st.floats(0, 1), junk=st.binary(max_size=20), pos=st.floats(0, 1))
+@given(
+    seed=st.integers(0, 50), cut=st.floats(0, 1), junk=st.binary(max_size=20), pos=st.floats(0, 1)
+)
 def test_fuzz_truncated_or_corrupted_off_is_data_or_input_error(seed, cut, junk, pos):
     data = off_bytes(mesh_family(seed))
     k = int(cut * len(data))

@@ -25,7 +25,9 @@ DATA = ["ascii", "binary", "binary_compressed"]
 def test_open3d_written_pcd_reads_with_right_counts_and_coordinates(seed, data, tmp_path):
     c = cloud_family(seed)
     path = tmp_path / "c.pcd"
-    o3d.io.write_point_cloud(str(path), o3d_cloud(c), write_ascii=data == "ascii", compressed=data == "binary_compressed")
+    o3d.io.write_point_cloud(
+        str(path), o3d_cloud(c), write_ascii=data == "ascii", compressed=data == "binary_compressed"
+    )
     ref = o3d.io.read_point_cloud(str(path))
     got, details = decode_pcd(path.read_bytes(), str(path))
     assert details["data"] == data and len(got.points) == len(c.points)
@@ -54,7 +56,9 @@ def test_our_pcd_reads_back_identically_here_and_in_open3d(seed, data, dtype, tm
     path = tmp_path / "o.pcd"
     path.write_bytes(raw)
     ref = o3d.io.read_point_cloud(str(path))
-    if data == "ascii" and dtype == np.float32:  # printed with %.9g: Open3D reads the decimals as doubles
+    if (
+        data == "ascii" and dtype == np.float32
+    ):  # printed with %.9g: Open3D reads the decimals as doubles
         assert np.array_equal(np.asarray(ref.points).astype(np.float32), c.points)
     else:
         assert np.array_equal(np.asarray(ref.points), c.points.astype(np.float64))
@@ -66,19 +70,39 @@ def test_fields_with_counts_padding_and_viewpoint_kept():
         "VERSION .7\nFIELDS x y z _ label hist\nSIZE 4 4 4 1 2 4\nTYPE F F F U U F\nCOUNT 1 1 1 1 1 2\n"
         "WIDTH 2\nHEIGHT 1\nVIEWPOINT 1 2 3 1 0 0 0\nPOINTS 2\nDATA binary\n"
     ).encode()
-    rows = np.zeros(2, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("_", "u1"), ("label", "<u2"), ("hist", "<f4", 2)])
+    rows = np.zeros(
+        2,
+        dtype=[
+            ("x", "<f4"),
+            ("y", "<f4"),
+            ("z", "<f4"),
+            ("_", "u1"),
+            ("label", "<u2"),
+            ("hist", "<f4", 2),
+        ],
+    )
     rows["x"] = [1, 2]
     rows["label"] = [7, 9]
     rows["hist"] = [[0.5, 1.5], [2.5, 3.5]]
     got = decode_pcd(head + rows.tobytes(), "f.pcd")[0]
-    assert got.attributes["label"].tolist() == [7, 9] and got.attributes["hist_1"].tolist() == [1.5, 3.5]
+    assert got.attributes["label"].tolist() == [7, 9] and got.attributes["hist_1"].tolist() == [
+        1.5,
+        3.5,
+    ]
     assert "pcd_viewpoint 1 2 3 1 0 0 0" in got.obj_info
     again = decode_pcd(pcd_bytes(got), "g.pcd")[0]
     assert again.obj_info == got.obj_info and again.attributes["label"].tolist() == [7, 9]
 
 
 @settings(max_examples=200, deadline=None)
-@given(data=st.one_of(st.binary(max_size=3000), st.lists(st.sampled_from([b"ab", b"abc", b"\0\0\0\0", b"xyz1"]), max_size=400).map(b"".join)))
+@given(
+    data=st.one_of(
+        st.binary(max_size=3000),
+        st.lists(st.sampled_from([b"ab", b"abc", b"\0\0\0\0", b"xyz1"]), max_size=400).map(
+            b"".join
+        ),
+    )
+)
 def test_lzf_round_trip(data):
     src = np.frombuffer(data, np.uint8)
     comp = lzf_compress(src)
@@ -97,15 +121,39 @@ def test_lzf_decoder_never_overruns(data, size):
 @pytest.mark.parametrize(
     "head, message",
     [
-        ("FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 100\nHEIGHT 1\nPOINTS 100\nDATA binary\n", "truncated: POINTS 100 need 1200 bytes"),
-        ("FIELDS x y z\nSIZE 4 4\nTYPE F F F\nWIDTH 1\nPOINTS 1\nDATA binary\n", "FIELDS, SIZE, TYPE and COUNT differ"),
+        (
+            "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 100\nHEIGHT 1\nPOINTS 100\nDATA binary\n",
+            "truncated: POINTS 100 need 1200 bytes",
+        ),
+        (
+            "FIELDS x y z\nSIZE 4 4\nTYPE F F F\nWIDTH 1\nPOINTS 1\nDATA binary\n",
+            "FIELDS, SIZE, TYPE and COUNT differ",
+        ),
         ("FIELDS x y\nSIZE 4 4\nTYPE F F\nWIDTH 1\nPOINTS 1\nDATA binary\n", "no 'z' field"),
-        ("FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH 2\nHEIGHT 2\nPOINTS 1\nDATA binary\n", "WIDTH 2 x HEIGHT 2 is not POINTS 1"),
-        ("FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH 1\nPOINTS 1\nDATA zip\n", "unknown DATA 'zip'"),
-        ("FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH 2\nPOINTS 2\nDATA ascii\n1 2 3\n4 5\n", "line 9: 2 values, the fields need 3"),
-        ("FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH 2\nPOINTS 2\nDATA ascii\n1 2 3\n", "POINTS 2 declared but the data has 1 rows"),
-        ("FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH 1\nPOINTS 1\nDATA binary_compressed\n", "truncated: no compressed sizes"),
-        ("FIELDS x y z\nSIZE 3 4 4\nTYPE F F F\nWIDTH 1\nPOINTS 1\nDATA binary\n", "unsupported field type F3"),
+        (
+            "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH 2\nHEIGHT 2\nPOINTS 1\nDATA binary\n",
+            "WIDTH 2 x HEIGHT 2 is not POINTS 1",
+        ),
+        (
+            "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH 1\nPOINTS 1\nDATA zip\n",
+            "unknown DATA 'zip'",
+        ),
+        (
+            "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH 2\nPOINTS 2\nDATA ascii\n1 2 3\n4 5\n",
+            "line 9: 2 values, the fields need 3",
+        ),
+        (
+            "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH 2\nPOINTS 2\nDATA ascii\n1 2 3\n",
+            "POINTS 2 declared but the data has 1 rows",
+        ),
+        (
+            "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH 1\nPOINTS 1\nDATA binary_compressed\n",
+            "truncated: no compressed sizes",
+        ),
+        (
+            "FIELDS x y z\nSIZE 3 4 4\nTYPE F F F\nWIDTH 1\nPOINTS 1\nDATA binary\n",
+            "unsupported field type F3",
+        ),
         ("FIELDS x y z\nSIZE 4 4 4\n", "truncated header"),
     ],
 )
@@ -124,7 +172,13 @@ def test_compressed_sizes_checked_before_allocation():
 
 
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(seed=st.integers(0, 30), cut=st.floats(0, 1), junk=st.binary(max_size=20), pos=st.floats(0, 1), data=st.sampled_from(DATA))
+@given(
+    seed=st.integers(0, 30),
+    cut=st.floats(0, 1),
+    junk=st.binary(max_size=20),
+    pos=st.floats(0, 1),
+    data=st.sampled_from(DATA),
+)
 def test_fuzz_truncated_or_corrupted_pcd_is_data_or_input_error(seed, cut, junk, pos, data):
     raw = pcd_bytes(cloud_family(seed, 30), data)
     k = int(cut * len(raw))

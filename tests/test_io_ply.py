@@ -37,8 +37,20 @@ def tetra() -> TriangleMesh:
 def cube() -> TriangleMesh:
     v = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=np.float64)
     f = np.array(
-        [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
-         [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]
+        [
+            [0, 1, 3],
+            [0, 3, 2],
+            [4, 6, 7],
+            [4, 7, 5],
+            [0, 4, 5],
+            [0, 5, 1],
+            [2, 3, 7],
+            [2, 7, 6],
+            [0, 2, 6],
+            [0, 6, 4],
+            [1, 5, 7],
+            [1, 7, 3],
+        ]
     )
     return TriangleMesh(vertices=v, faces=f)
 
@@ -48,14 +60,25 @@ def colored_cloud() -> PointCloud:
     p = rng.normal(size=(50, 3)).astype(np.float32).astype(np.float64)
     n = rng.normal(size=(50, 3)).astype(np.float32).astype(np.float64)
     c = rng.integers(0, 256, size=(50, 4), dtype=np.uint8)
-    return PointCloud(points=p, normals=n, colors=c, attributes={"quality": rng.random(50).astype(np.float32)})
+    return PointCloud(
+        points=p, normals=n, colors=c, attributes={"quality": rng.random(50).astype(np.float32)}
+    )
 
 
 def single_triangle() -> TriangleMesh:
-    return TriangleMesh(vertices=np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.5]]), faces=np.array([[0, 1, 2]]), point_dtype=np.float64)
+    return TriangleMesh(
+        vertices=np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.5]]),
+        faces=np.array([[0, 1, 2]]),
+        point_dtype=np.float64,
+    )
 
 
-CANONICAL = {"tetra": tetra, "cube": cube, "colored_cloud": colored_cloud, "triangle": single_triangle}
+CANONICAL = {
+    "tetra": tetra,
+    "cube": cube,
+    "colored_cloud": colored_cloud,
+    "triangle": single_triangle,
+}
 
 
 def assert_same_geometry(a, b) -> None:
@@ -104,8 +127,19 @@ def test_round_trip_shared_ascii(name, tmp_path):
     assert_same_geometry(obj, read_ply(out))
 
 
-@pytest.mark.parametrize("alias", [("char", "int8"), ("uchar", "uint8"), ("short", "int16"), ("ushort", "uint16"),
-                                   ("int", "int32"), ("uint", "uint32"), ("float", "float32"), ("double", "float64")])
+@pytest.mark.parametrize(
+    "alias",
+    [
+        ("char", "int8"),
+        ("uchar", "uint8"),
+        ("short", "int16"),
+        ("ushort", "uint16"),
+        ("int", "int32"),
+        ("uint", "uint32"),
+        ("float", "float32"),
+        ("double", "float64"),
+    ],
+)
 @pytest.mark.parametrize("fmt", FORMATS)
 def test_every_type_name_and_alias(alias, fmt):
     values = np.array([0, 1, 2, 100, 7], dtype=np.float64)
@@ -119,9 +153,13 @@ def test_every_type_name_and_alias(alias, fmt):
 
         code = PLY_TYPES[tname]
         if order is None:
-            body = "".join(f"{i} {i} {i} {int(v) if code[0] != 'f' else v}\n" for i, v in enumerate(values)).encode()
+            body = "".join(
+                f"{i} {i} {i} {int(v) if code[0] != 'f' else v}\n" for i, v in enumerate(values)
+            ).encode()
         else:
-            dt = np.dtype([("x", order + "f4"), ("y", order + "f4"), ("z", order + "f4"), ("q", order + code)])
+            dt = np.dtype(
+                [("x", order + "f4"), ("y", order + "f4"), ("z", order + "f4"), ("q", order + code)]
+            )
             arr = np.zeros(5, dt)
             for c in "xyz":
                 arr[c] = np.arange(5)
@@ -134,7 +172,10 @@ def test_every_type_name_and_alias(alias, fmt):
 
 
 @pytest.mark.parametrize("fmt", FORMATS)
-@pytest.mark.parametrize("ctype,itype", [("uchar", "int"), ("ushort", "uint"), ("int", "int"), ("uint8", "int32"), ("char", "uint16")])
+@pytest.mark.parametrize(
+    "ctype,itype",
+    [("uchar", "int"), ("ushort", "uint"), ("int", "int"), ("uint8", "int32"), ("char", "uint16")],
+)
 def test_list_count_and_item_types(fmt, ctype, itype):
     mesh = cube()
     ply = parse_ply(ply_bytes(mesh))
@@ -150,7 +191,9 @@ def test_list_count_and_item_types(fmt, ctype, itype):
 @pytest.mark.parametrize("fmt", FORMATS)
 def test_polygons_fan_triangulated_and_mixed(fmt):
     # a quad and a pentagon and a triangle: ragged lists, and 'vertex_index' spelling
-    verts = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0, 0], [2, 1, 0], [3, 0.5, 0]], float)
+    verts = np.array(
+        [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0, 0], [2, 1, 0], [3, 0.5, 0]], float
+    )
     polys = np.empty(3, dtype=object)
     polys[0] = np.array([0, 1, 2, 3])
     polys[1] = np.array([1, 4, 6, 5, 2])
@@ -158,9 +201,18 @@ def test_polygons_fan_triangulated_and_mixed(fmt):
     ply = PlyData(
         format=fmt,
         elements=[
-            PlyElement("vertex", 7, [PlyProperty(c, "f8") for c in "xyz"], {c: verts[:, i] for i, c in enumerate("xyz")}),
-            PlyElement("face", 3, [PlyProperty("vertex_index", "i4", "u1"), PlyProperty("flag", "u1")],
-                       {"vertex_index": polys, "flag": np.array([7, 8, 9], np.uint8)}),
+            PlyElement(
+                "vertex",
+                7,
+                [PlyProperty(c, "f8") for c in "xyz"],
+                {c: verts[:, i] for i, c in enumerate("xyz")},
+            ),
+            PlyElement(
+                "face",
+                3,
+                [PlyProperty("vertex_index", "i4", "u1"), PlyProperty("flag", "u1")],
+                {"vertex_index": polys, "flag": np.array([7, 8, 9], np.uint8)},
+            ),
         ],
     )
     mesh = read_ply("p.ply", serialize_ply(ply))
@@ -178,11 +230,36 @@ def test_unknown_elements_kept_and_order_free(fmt):
         comments=["hello world", ""],
         obj_info=["scanner 42"],
         elements=[
-            PlyElement("camera", 1, [PlyProperty("view_px", "f4"), PlyProperty("k", "i2")], {"view_px": np.array([1.5], np.float32), "k": np.array([-3], np.int16)}),
-            PlyElement("vertex", 4, [PlyProperty("confidence", "f4")] + [PlyProperty(c, "f8") for c in "xyz"] + [PlyProperty("id", "u4")],
-                       {"confidence": np.ones(4, np.float32), "id": np.arange(4, dtype=np.uint32), **{c: verts[:, i] for i, c in enumerate("xyz")}}),
-            PlyElement("edge", 2, [PlyProperty("vertex1", "i4"), PlyProperty("vertex2", "i4")], {"vertex1": np.array([0, 1], np.int32), "vertex2": np.array([2, 3], np.int32)}),
-            PlyElement("face", 2, [PlyProperty("vertex_indices", "i4", "u1")], {"vertex_indices": np.array([[0, 1, 2], [0, 2, 3]])}),
+            PlyElement(
+                "camera",
+                1,
+                [PlyProperty("view_px", "f4"), PlyProperty("k", "i2")],
+                {"view_px": np.array([1.5], np.float32), "k": np.array([-3], np.int16)},
+            ),
+            PlyElement(
+                "vertex",
+                4,
+                [PlyProperty("confidence", "f4")]
+                + [PlyProperty(c, "f8") for c in "xyz"]
+                + [PlyProperty("id", "u4")],
+                {
+                    "confidence": np.ones(4, np.float32),
+                    "id": np.arange(4, dtype=np.uint32),
+                    **{c: verts[:, i] for i, c in enumerate("xyz")},
+                },
+            ),
+            PlyElement(
+                "edge",
+                2,
+                [PlyProperty("vertex1", "i4"), PlyProperty("vertex2", "i4")],
+                {"vertex1": np.array([0, 1], np.int32), "vertex2": np.array([2, 3], np.int32)},
+            ),
+            PlyElement(
+                "face",
+                2,
+                [PlyProperty("vertex_indices", "i4", "u1")],
+                {"vertex_indices": np.array([[0, 1, 2], [0, 2, 3]])},
+            ),
         ],
     )
     mesh = read_ply("u.ply", serialize_ply(ply))
@@ -198,7 +275,9 @@ def test_unknown_elements_kept_and_order_free(fmt):
 
 
 def test_crlf_header_and_comments():
-    body = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], "<f4").tobytes() + struct.pack("<Biii", 3, 0, 1, 2)
+    body = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], "<f4").tobytes() + struct.pack(
+        "<Biii", 3, 0, 1, 2
+    )
     header = (
         "ply\r\nformat binary_little_endian 1.0\r\ncomment made on windows\r\nobj_info x\r\n"
         "element vertex 3\r\nproperty float x\r\nproperty float y\r\nproperty float z\r\n"
@@ -285,34 +364,97 @@ def test_our_files_open_in_open3d_and_pymeshlab(ascii, tmp_path):
 # ------------------------------------------------------------------ bad files
 
 GOOD_HEADER = "ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
-GOOD_BODY = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], "<f4").tobytes() + struct.pack("<Biii", 3, 0, 1, 2)
+GOOD_BODY = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], "<f4").tobytes() + struct.pack(
+    "<Biii", 3, 0, 1, 2
+)
 
 BAD_FILES = {
     "empty": (b"", "empty file"),
     "not ply": (b"solid cube\nfacet normal 0 0 1\n", "not a PLY file"),
     "truncated body": (GOOD_HEADER.encode() + GOOD_BODY[:-5], "truncated"),
-    "lying count": (GOOD_HEADER.replace("vertex 3", "vertex 3000000000").encode() + GOOD_BODY, "truncated"),
-    "lying face count": (GOOD_HEADER.replace("face 1", "face 999999999999").encode() + GOOD_BODY, "truncated"),
-    "unknown format": (GOOD_HEADER.replace("binary_little_endian", "binary_middle_endian").encode() + GOOD_BODY, "unknown format"),
-    "bad type": (GOOD_HEADER.replace("property float y", "property flaot y").encode() + GOOD_BODY, "unknown type name"),
-    "float list count": (GOOD_HEADER.replace("list uchar int", "list float int").encode() + GOOD_BODY, "not an integer type"),
-    "index out of range": (GOOD_HEADER.encode() + GOOD_BODY[:-4] + struct.pack("<i", 7), "out of range"),
-    "negative index": (GOOD_HEADER.encode() + GOOD_BODY[:-4] + struct.pack("<i", -1), "out of range"),
-    "nan coordinate": (GOOD_HEADER.encode() + np.array([[0, 0, 0], [np.nan, 0, 0], [0, 1, 0]], "<f4").tobytes() + GOOD_BODY[36:], "NaN"),
-    "inf coordinate": (GOOD_HEADER.encode() + np.array([[0, 0, 0], [np.inf, 0, 0], [0, 1, 0]], "<f4").tobytes() + GOOD_BODY[36:], "NaN or infinite"),
+    "lying count": (
+        GOOD_HEADER.replace("vertex 3", "vertex 3000000000").encode() + GOOD_BODY,
+        "truncated",
+    ),
+    "lying face count": (
+        GOOD_HEADER.replace("face 1", "face 999999999999").encode() + GOOD_BODY,
+        "truncated",
+    ),
+    "unknown format": (
+        GOOD_HEADER.replace("binary_little_endian", "binary_middle_endian").encode() + GOOD_BODY,
+        "unknown format",
+    ),
+    "bad type": (
+        GOOD_HEADER.replace("property float y", "property flaot y").encode() + GOOD_BODY,
+        "unknown type name",
+    ),
+    "float list count": (
+        GOOD_HEADER.replace("list uchar int", "list float int").encode() + GOOD_BODY,
+        "not an integer type",
+    ),
+    "index out of range": (
+        GOOD_HEADER.encode() + GOOD_BODY[:-4] + struct.pack("<i", 7),
+        "out of range",
+    ),
+    "negative index": (
+        GOOD_HEADER.encode() + GOOD_BODY[:-4] + struct.pack("<i", -1),
+        "out of range",
+    ),
+    "nan coordinate": (
+        GOOD_HEADER.encode()
+        + np.array([[0, 0, 0], [np.nan, 0, 0], [0, 1, 0]], "<f4").tobytes()
+        + GOOD_BODY[36:],
+        "NaN",
+    ),
+    "inf coordinate": (
+        GOOD_HEADER.encode()
+        + np.array([[0, 0, 0], [np.inf, 0, 0], [0, 1, 0]], "<f4").tobytes()
+        + GOOD_BODY[36:],
+        "NaN or infinite",
+    ),
     "no end_header": (GOOD_HEADER.replace("end_header\n", "").encode(), "end_header"),
-    "no format": (GOOD_HEADER.replace("format binary_little_endian 1.0\n", "").encode() + GOOD_BODY, "no 'format'"),
-    "negative count": (GOOD_HEADER.replace("vertex 3", "vertex -3").encode() + GOOD_BODY, "negative"),
-    "property before element": (b"ply\nformat ascii 1.0\nproperty float x\nend_header\n", "before any element"),
-    "no vertex element": (b"ply\nformat ascii 1.0\nelement point 1\nproperty float x\nend_header\n1\n", "no 'vertex' element"),
-    "missing z": (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nend_header\n1 2\n", "'z'"),
-    "ascii text in numbers": (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 two 3\n", "not a number"),
-    "ascii truncated": (b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n", "truncated"),
-    "ascii lying count": (b"ply\nformat ascii 1.0\nelement vertex 99999999999\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n", "truncated"),
-    "two-vertex face": (b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n2 0 1\n", "fewer than 3"),
+    "no format": (
+        GOOD_HEADER.replace("format binary_little_endian 1.0\n", "").encode() + GOOD_BODY,
+        "no 'format'",
+    ),
+    "negative count": (
+        GOOD_HEADER.replace("vertex 3", "vertex -3").encode() + GOOD_BODY,
+        "negative",
+    ),
+    "property before element": (
+        b"ply\nformat ascii 1.0\nproperty float x\nend_header\n",
+        "before any element",
+    ),
+    "no vertex element": (
+        b"ply\nformat ascii 1.0\nelement point 1\nproperty float x\nend_header\n1\n",
+        "no 'vertex' element",
+    ),
+    "missing z": (
+        b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nend_header\n1 2\n",
+        "'z'",
+    ),
+    "ascii text in numbers": (
+        b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 two 3\n",
+        "not a number",
+    ),
+    "ascii truncated": (
+        b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n",
+        "truncated",
+    ),
+    "ascii lying count": (
+        b"ply\nformat ascii 1.0\nelement vertex 99999999999\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n",
+        "truncated",
+    ),
+    "two-vertex face": (
+        b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n2 0 1\n",
+        "fewer than 3",
+    ),
     "bad version": (GOOD_HEADER.replace("1.0", "2.0").encode() + GOOD_BODY, "version"),
     "binary header": (b"ply\nformat ascii 1.0\ncomment \xff\xfe\nend_header\n", "not ASCII"),
-    "int property with fraction": (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nproperty int q\nend_header\n1 2 3 4.5\n", "non-integer"),
+    "int property with fraction": (
+        b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nproperty int q\nend_header\n1 2 3 4.5\n",
+        "non-integer",
+    ),
 }
 
 
@@ -329,7 +471,10 @@ def test_bad_files_raise_one_line_input_error(case):
 
 def test_lying_header_does_not_allocate(tmp_path):
     # 2**31 - 1 doubles per row promised: any allocation of that size would take > 40 GB
-    data = GOOD_HEADER.replace("vertex 3", "vertex 2147483647").replace("float", "double").encode() + GOOD_BODY
+    data = (
+        GOOD_HEADER.replace("vertex 3", "vertex 2147483647").replace("float", "double").encode()
+        + GOOD_BODY
+    )
     import tracemalloc
 
     tracemalloc.start()
@@ -342,10 +487,32 @@ def test_lying_header_does_not_allocate(tmp_path):
 
 # ------------------------------------------------------------------ fuzzing
 
-_type_names = st.sampled_from(["char", "uchar", "short", "ushort", "int", "uint", "float", "double", "int8", "uint32", "float64", "flaot", "int64"])
+_type_names = st.sampled_from(
+    [
+        "char",
+        "uchar",
+        "short",
+        "ushort",
+        "int",
+        "uint",
+        "float",
+        "double",
+        "int8",
+        "uint32",
+        "float64",
+        "flaot",
+        "int64",
+    ]
+)
 _prop = st.one_of(
-    st.tuples(st.just("scalar"), _type_names, st.sampled_from(["x", "y", "z", "nx", "red", "q", "x"])),
-    st.tuples(st.just("list"), st.tuples(_type_names, _type_names), st.sampled_from(["vertex_indices", "vertex_index", "l"])),
+    st.tuples(
+        st.just("scalar"), _type_names, st.sampled_from(["x", "y", "z", "nx", "red", "q", "x"])
+    ),
+    st.tuples(
+        st.just("list"),
+        st.tuples(_type_names, _type_names),
+        st.sampled_from(["vertex_indices", "vertex_index", "l"]),
+    ),
 )
 _element = st.tuples(
     st.sampled_from(["vertex", "face", "edge", "camera", "vertex"]),
@@ -385,7 +552,11 @@ def test_fuzz_reader_only_returns_data_or_input_error(fmt, elements, body, crlf)
 @settings(max_examples=200, deadline=None)
 @given(data=st.binary(max_size=400))
 def test_fuzz_random_bytes(data):
-    for prefix in (b"", b"ply\nformat ascii 1.0\n", b"ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n"):
+    for prefix in (
+        b"",
+        b"ply\nformat ascii 1.0\n",
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n",
+    ):
         try:
             read_ply("r.ply", prefix + data)
         except InputError:
@@ -403,7 +574,12 @@ def test_fuzz_round_trip_random_meshes(n, fmt, seed, dtype):
     rng = np.random.default_rng(seed)
     v = rng.normal(size=(n + 2, 3)).astype(dtype)
     f = rng.integers(0, n + 2, size=(n, 3))
-    mesh = TriangleMesh(vertices=v, faces=f, point_dtype=dtype, attributes={"s": rng.random(n + 2).astype(np.float32)})
+    mesh = TriangleMesh(
+        vertices=v,
+        faces=f,
+        point_dtype=dtype,
+        attributes={"s": rng.random(n + 2).astype(np.float32)},
+    )
     ply = parse_ply(ply_bytes(mesh))
     ply.format = fmt
     from recon_cli.io.ply import ply_to_geometry
@@ -469,9 +645,11 @@ def test_float_fields_decode_bit_exact(order, ftype, tmp_path):
         rows[c] = vals[:, j]
     fmt = "binary_little_endian" if order == "<" else "binary_big_endian"
     name = "float" if ftype == "f4" else "double"
-    head = f"ply\nformat {fmt} 1.0\nelement vertex {n}\nproperty uchar tag\n" + "".join(
-        f"property {name} {c}\n" for c in ("x", "y", "z", "nx", "ny", "nz")
-    ) + "end_header\n"
+    head = (
+        f"ply\nformat {fmt} 1.0\nelement vertex {n}\nproperty uchar tag\n"
+        + "".join(f"property {name} {c}\n" for c in ("x", "y", "z", "nx", "ny", "nz"))
+        + "end_header\n"
+    )
     path = tmp_path / "v.ply"
     path.write_bytes(head.encode() + rows.tobytes())
     cloud = read_ply(path)
@@ -484,16 +662,21 @@ def test_float_fields_decode_bit_exact(order, ftype, tmp_path):
 
 def _big_cloud_bytes(n: int, order: str, before: str = "") -> tuple[bytes, np.ndarray]:
     rng = np.random.default_rng(3)
-    dt = np.dtype([(c, order + "f4") for c in ("x", "y", "z", "nx", "ny", "nz")] + [(c, "u1") for c in ("red", "green", "blue")])
+    dt = np.dtype(
+        [(c, order + "f4") for c in ("x", "y", "z", "nx", "ny", "nz")]
+        + [(c, "u1") for c in ("red", "green", "blue")]
+    )
     rows = np.zeros(n, dt)
     for c in ("x", "y", "z", "nx", "ny", "nz"):
         rows[c] = rng.normal(size=n)
     for c in ("red", "green", "blue"):
         rows[c] = rng.integers(0, 256, n)
     fmt = "binary_little_endian" if order == "<" else "binary_big_endian"
-    head = f"ply\nformat {fmt} 1.0\n{before}element vertex {n}\n" + "".join(
-        f"property {'float' if dt[c].kind == 'f' else 'uchar'} {c}\n" for c in dt.names
-    ) + "end_header\n"
+    head = (
+        f"ply\nformat {fmt} 1.0\n{before}element vertex {n}\n"
+        + "".join(f"property {'float' if dt[c].kind == 'f' else 'uchar'} {c}\n" for c in dt.names)
+        + "end_header\n"
+    )
     return head.encode(), rows
 
 
@@ -502,7 +685,11 @@ def _big_cloud_bytes(n: int, order: str, before: str = "") -> tuple[bytes, np.nd
     [
         ("<", "", b""),
         (">", "", b""),
-        ("<", "element camera 2\nproperty double cx\nproperty uchar tag\n", np.zeros(18, np.uint8).tobytes()),
+        (
+            "<",
+            "element camera 2\nproperty double cx\nproperty uchar tag\n",
+            np.zeros(18, np.uint8).tobytes(),
+        ),
         ("<", "element note 1\nproperty list uchar uchar text\n", b"\x02ab"),
     ],
     ids=["le", "be", "fixed-element-first", "list-element-first"],
@@ -543,9 +730,11 @@ def test_first_nonfinite_row_named(order, ftype, bad, row, col, tmp_path):
         rows["x"][n - 1] = np.nan  # a later bad row is not the one reported
     fmt = "binary_little_endian" if order == "<" else "binary_big_endian"
     name = "float" if ftype == "f4" else "double"
-    head = f"ply\nformat {fmt} 1.0\nelement vertex {n}\nproperty uchar tag\n" + "".join(
-        f"property {name} {c}\n" for c in ("x", "y", "z", "nx")
-    ) + "end_header\n"
+    head = (
+        f"ply\nformat {fmt} 1.0\nelement vertex {n}\nproperty uchar tag\n"
+        + "".join(f"property {name} {c}\n" for c in ("x", "y", "z", "nx"))
+        + "end_header\n"
+    )
     data = head.encode() + rows.tobytes()
     path = tmp_path / "nan.ply"
     path.write_bytes(data)
@@ -566,17 +755,27 @@ def test_columns_are_views_of_the_rows_in_the_files_precision(tmp_path):
     path = tmp_path / "c.ply"
     path.write_bytes(head + rows.tobytes())
     cloud = read_ply(path)
-    assert cloud.points.dtype == cloud.normals.dtype == np.float32 and cloud.colors.dtype == np.uint8
-    assert _root(cloud.points) is _root(cloud.normals) is _root(cloud.colors)  # views of the rows, not copies
+    assert (
+        cloud.points.dtype == cloud.normals.dtype == np.float32 and cloud.colors.dtype == np.uint8
+    )
+    assert (
+        _root(cloud.points) is _root(cloud.normals) is _root(cloud.colors)
+    )  # views of the rows, not copies
     assert cloud.points.flags.writeable and cloud.colors.flags.writeable
     assert np.array_equal(cloud.points, np.column_stack([rows[c] for c in "xyz"]))
-    assert np.array_equal(cloud.colors, np.column_stack([rows[c] for c in ("red", "green", "blue")]))
+    assert np.array_equal(
+        cloud.colors, np.column_stack([rows[c] for c in ("red", "green", "blue")])
+    )
     # from read-only bytes the rows are copied once: still views, and writable
     mem = read_ply("mem.ply", head + rows.tobytes())
     assert mem.points.flags.writeable and np.array_equal(mem.points, cloud.points)
     # ready to compute: float64, contiguous, same values; already-float64 objects pass through
     c64 = float64(cloud)
-    assert c64.points.dtype == np.float64 and c64.points.flags.c_contiguous and c64.normals.flags.c_contiguous
+    assert (
+        c64.points.dtype == np.float64
+        and c64.points.flags.c_contiguous
+        and c64.normals.flags.c_contiguous
+    )
     assert np.array_equal(c64.points, cloud.points) and c64.colors is cloud.colors
     assert float64(c64) is c64
     # written back in the file's types, byte for byte
@@ -593,9 +792,11 @@ def test_columns_are_views_of_the_rows_in_the_files_precision(tmp_path):
 def test_coordinate_types_map_to_float32_or_float64(xyz, want):
     t = np.dtype({"double": "<f8", "int": "<i4", "short": "<i2", "float": "<f4"}[xyz])
     vals = np.arange(12).reshape(4, 3).astype(t)
-    head = f"ply\nformat binary_little_endian 1.0\nelement vertex 4\n" + "".join(
-        f"property {xyz} {c}\n" for c in "xyz"
-    ) + "end_header\n"
+    head = (
+        f"ply\nformat binary_little_endian 1.0\nelement vertex 4\n"
+        + "".join(f"property {xyz} {c}\n" for c in "xyz")
+        + "end_header\n"
+    )
     cloud = read_ply("t.ply", head.encode() + vals.tobytes())
     assert cloud.points.dtype == want and np.array_equal(cloud.points, vals)
 
@@ -604,7 +805,9 @@ def test_mesh_vertex_views_do_not_hold_the_face_bytes(tmp_path):
     # a mesh's vertex rows are a small part of its file: they are copied, so the faces' bytes
     # are freed once read (the columns must not pin the whole file)
     side = 60
-    x, y = np.meshgrid(np.arange(side, dtype=np.float32), np.arange(side, dtype=np.float32), indexing="ij")
+    x, y = np.meshgrid(
+        np.arange(side, dtype=np.float32), np.arange(side, dtype=np.float32), indexing="ij"
+    )
     v = np.column_stack([x.ravel(), y.ravel(), np.zeros(side * side, np.float32)])
     idx = np.arange(side * side).reshape(side, side)
     a, b, c = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()

@@ -28,7 +28,11 @@ def _same_triangles(a, b):
 def test_trimesh_written_stl_reads_welded_with_the_topology_of_the_source(seed, ascii):
     m = mesh_family(seed)
     tm = trimesh.Trimesh(m.vertices, m.faces, process=False)
-    data = trimesh.exchange.stl.export_stl_ascii(tm).encode() if ascii else trimesh.exchange.stl.export_stl(tm)
+    data = (
+        trimesh.exchange.stl.export_stl_ascii(tm).encode()
+        if ascii
+        else trimesh.exchange.stl.export_stl(tm)
+    )
     got, details = decode_stl(data, "t.stl")
     assert details["encoding"] == ("ascii" if ascii else "binary")
     assert details["triangles"] == len(m.faces) and details["weld_tolerance"] == 0.0
@@ -53,7 +57,9 @@ def test_our_stl_reads_back_identically_here_and_in_trimesh(seed, ascii):
     assert np.array_equal(tm.vertices.reshape(-1, 3, 3).astype(np.float32), m.vertices[m.faces])
     if not ascii:  # facet normals: the triangles' unit normals (from the float64 coordinates)
         ref = trimesh.Trimesh(m.vertices.astype(np.float64), m.faces, process=False).face_normals
-        stored = np.frombuffer(data[84:], dtype=[("n", "<f4", 3), ("v", "<f4", 9), ("a", "<u2")])["n"]
+        stored = np.frombuffer(data[84:], dtype=[("n", "<f4", 3), ("v", "<f4", 9), ("a", "<u2")])[
+            "n"
+        ]
         assert np.allclose(stored, ref, atol=1e-6)
 
 
@@ -71,7 +77,10 @@ def test_float64_to_binary_stl_warns_with_the_rounding(tmp_path, caplog):
 
 
 def test_negative_zero_welds_with_zero_and_attribute_kept():
-    m = TriangleMesh(vertices=np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [-0.0, 0, 0]], np.float32), faces=[[0, 1, 2], [3, 2, 1]])
+    m = TriangleMesh(
+        vertices=np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [-0.0, 0, 0]], np.float32),
+        faces=[[0, 1, 2], [3, 2, 1]],
+    )
     m.face_attributes["attribute"] = np.array([7, 0], np.uint16)
     got = decode_stl(stl_bytes(m), "z.stl")[0]
     assert len(got.vertices) == 3 and got.face_attributes["attribute"].tolist() == [7, 0]
@@ -80,8 +89,14 @@ def test_negative_zero_welds_with_zero_and_attribute_kept():
 @pytest.mark.parametrize(
     "data, message",
     [
-        (b"solid x\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 1 0 0\nendloop\nendfacet\nendsolid\n", "line 6: a facet must have exactly 3 vertices"),
-        (b"solid x\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 1 0 0\nvertex 0 q 0\n", "line 6: 'q' is not a number"),
+        (
+            b"solid x\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 1 0 0\nendloop\nendfacet\nendsolid\n",
+            "line 6: a facet must have exactly 3 vertices",
+        ),
+        (
+            b"solid x\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 1 0 0\nvertex 0 q 0\n",
+            "line 6: 'q' is not a number",
+        ),
         (b"solid x\nfacet normal 0 0 1\n outer loop\n", "the file ends inside a facet"),
         (b"solid x\nfacet normal 0 0 1\nouter lop\n", "line 3: unexpected word"),
         (b"x" * 100, "binary STL header declares"),
@@ -104,7 +119,13 @@ def test_nan_corner_is_refused():
 
 
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(seed=st.integers(0, 30), cut=st.floats(0, 1), junk=st.binary(max_size=20), pos=st.floats(0, 1), ascii=st.booleans())
+@given(
+    seed=st.integers(0, 30),
+    cut=st.floats(0, 1),
+    junk=st.binary(max_size=20),
+    pos=st.floats(0, 1),
+    ascii=st.booleans(),
+)
 def test_fuzz_truncated_or_corrupted_stl_is_data_or_input_error(seed, cut, junk, pos, ascii):
     data = stl_bytes(mesh_family(seed), ascii=ascii)
     k = int(cut * len(data))

@@ -17,7 +17,22 @@ from recon_cli.errors import InputError
 from recon_cli.io import text
 from recon_cli.io._text_kernel import parse_float, scan_float, scan_int
 
-FORMATS = ["%r", "%.17g", "%.16e", "%.9g", "%.6f", "%.10f", "%.0f", "%e", "%.3e", "%.12E", "%g", "%.25e", "%.40f", "%.30g"]
+FORMATS = [
+    "%r",
+    "%.17g",
+    "%.16e",
+    "%.9g",
+    "%.6f",
+    "%.10f",
+    "%.0f",
+    "%e",
+    "%.3e",
+    "%.12E",
+    "%g",
+    "%.25e",
+    "%.40f",
+    "%.30g",
+]
 
 
 def _bits(x: float) -> int:
@@ -27,7 +42,9 @@ def _bits(x: float) -> int:
 def _read_all(tokens: list[str], delim: str = " ") -> np.ndarray:
     """The tokens through the row reader (fast paths and the slow path for the undecided)."""
     data = np.frombuffer(delim.join(tokens).encode(), np.uint8)
-    values, row_start, _ = text.read_rows(data, 0, len(data), "t.txt", delim=ord(delim) if delim != " " else 0)
+    values, row_start, _ = text.read_rows(
+        data, 0, len(data), "t.txt", delim=ord(delim) if delim != " " else 0
+    )
     assert len(row_start) == 2
     return values
 
@@ -54,13 +71,19 @@ def _from_bits(b: int) -> float:
 
 doubles = st.one_of(
     st.floats(allow_nan=False, allow_infinity=False),
-    st.integers(0, (0x7FF << 52) - 1).map(_from_bits),  # every finite bit pattern, subnormals included
+    st.integers(0, (0x7FF << 52) - 1).map(
+        _from_bits
+    ),  # every finite bit pattern, subnormals included
     st.integers(1, (1 << 52) - 1).map(_from_bits),  # subnormals only
 )
 
 
 @settings(max_examples=400, deadline=None)
-@given(xs=st.lists(st.tuples(doubles, st.sampled_from(FORMATS), st.booleans()), min_size=1, max_size=40))
+@given(
+    xs=st.lists(
+        st.tuples(doubles, st.sampled_from(FORMATS), st.booleans()), min_size=1, max_size=40
+    )
+)
 def test_every_printed_double_reads_as_python_float_reads_it(xs):
     tokens = []
     for x, fmt, neg in xs:
@@ -85,7 +108,10 @@ def _halfway(b: int) -> tuple[str, str]:
 
 
 @settings(max_examples=150, deadline=None)
-@given(b=st.one_of(st.integers(1, (0x7FF << 52) - 2), st.integers(1, 1 << 53)), nudge=st.sampled_from(["", "1", "0000001"]))
+@given(
+    b=st.one_of(st.integers(1, (0x7FF << 52) - 2), st.integers(1, 1 << 53)),
+    nudge=st.sampled_from(["", "1", "0000001"]),
+)
 def test_exact_halfway_cases_and_their_neighbours_round_as_python(b, nudge):
     for tok in _halfway(b):
         if len(tok) > 1100:
@@ -97,15 +123,55 @@ def test_exact_halfway_cases_and_their_neighbours_round_as_python(b, nudge):
 
 
 EDGE = [
-    "0", "-0", "-0.0", "+0.0", "0e999999", "-0e-5", "00000.000000",
-    "1e308", "1.7976931348623157e308", "1.7976931348623158e308", "1.7976931348623159e308", "-1e309", "1e400",
-    "2.2250738585072014e-308", "2.2250738585072011e-308", "2.225073858507201136057409796709131975934819546351645648e-308",
-    "4.9406564584124654e-324", "5e-324", "2.4703282292062327e-324", "2.4703282292062328e-324", "3e-324", "1e-400",
-    "0.000000000000000000000000000000000001", "000123.4500", "1.", ".5", "-.5", "+.5e1", "1.e5",
-    "9007199254740993", "9007199254740992.5", "18446744073709551615", "18446744073709551616", "99999999999999999999",
-    "1" + "0" * 30, "1" + "0" * 400 + "e-400", "0." + "0" * 400 + "1e401", "3.14159265358979323846264338327950288419716939937510",
-    "7.2057594037927933e16", "1e23", "8.98846567431158e307", "123456789012345678901234567890e-20",
-    "NaN", "nan", "-nan", "inf", "-Inf", "+INFINITY", "infinity",
+    "0",
+    "-0",
+    "-0.0",
+    "+0.0",
+    "0e999999",
+    "-0e-5",
+    "00000.000000",
+    "1e308",
+    "1.7976931348623157e308",
+    "1.7976931348623158e308",
+    "1.7976931348623159e308",
+    "-1e309",
+    "1e400",
+    "2.2250738585072014e-308",
+    "2.2250738585072011e-308",
+    "2.225073858507201136057409796709131975934819546351645648e-308",
+    "4.9406564584124654e-324",
+    "5e-324",
+    "2.4703282292062327e-324",
+    "2.4703282292062328e-324",
+    "3e-324",
+    "1e-400",
+    "0.000000000000000000000000000000000001",
+    "000123.4500",
+    "1.",
+    ".5",
+    "-.5",
+    "+.5e1",
+    "1.e5",
+    "9007199254740993",
+    "9007199254740992.5",
+    "18446744073709551615",
+    "18446744073709551616",
+    "99999999999999999999",
+    "1" + "0" * 30,
+    "1" + "0" * 400 + "e-400",
+    "0." + "0" * 400 + "1e401",
+    "3.14159265358979323846264338327950288419716939937510",
+    "7.2057594037927933e16",
+    "1e23",
+    "8.98846567431158e307",
+    "123456789012345678901234567890e-20",
+    "NaN",
+    "nan",
+    "-nan",
+    "inf",
+    "-Inf",
+    "+INFINITY",
+    "infinity",
 ]
 
 
@@ -117,8 +183,35 @@ def test_edge_cases_read_as_python_float(tok):
     assert status in (1, 2)
 
 
-BAD = ["", ".", "-", "+", "e5", ".e5", "1e", "1e+", "1e-", "1E", "1ex", "1e5.5", "--1", "+-1", "1.2.3", "0x10", "1_000",
-       "1,5", "1..", "..1", "nanx", "infinit", "in", "na", "1d5", "1e5e5", "١"]
+BAD = [
+    "",
+    ".",
+    "-",
+    "+",
+    "e5",
+    ".e5",
+    "1e",
+    "1e+",
+    "1e-",
+    "1E",
+    "1ex",
+    "1e5.5",
+    "--1",
+    "+-1",
+    "1.2.3",
+    "0x10",
+    "1_000",
+    "1,5",
+    "1..",
+    "..1",
+    "nanx",
+    "infinit",
+    "in",
+    "na",
+    "1d5",
+    "1e5e5",
+    "١",
+]
 
 
 @pytest.mark.parametrize("tok", BAD)
@@ -131,8 +224,22 @@ def test_malformed_tokens_are_refused(tok):
             text.read_rows(data, 0, len(data), "t.txt")
 
 
-@pytest.mark.parametrize(("tok", "ok"), [("12", True), ("-7", True), ("+3", True), ("0", True), ("9" * 18, True),
-                                         ("9" * 19, False), ("", False), ("-", False), ("1.0", False), ("1e3", False), ("x", False)])
+@pytest.mark.parametrize(
+    ("tok", "ok"),
+    [
+        ("12", True),
+        ("-7", True),
+        ("+3", True),
+        ("0", True),
+        ("9" * 18, True),
+        ("9" * 19, False),
+        ("", False),
+        ("-", False),
+        ("1.0", False),
+        ("1e3", False),
+        ("x", False),
+    ],
+)
 def test_integers(tok, ok):
     buf = np.frombuffer(tok.encode(), np.uint8)
     v, good, stop = scan_int(buf, 0, len(buf))
@@ -140,7 +247,10 @@ def test_integers(tok, ok):
 
 
 @settings(max_examples=60, deadline=None)
-@given(rows=st.lists(st.lists(doubles, min_size=3, max_size=3), min_size=1, max_size=300), wide=st.integers(0, 200))
+@given(
+    rows=st.lists(st.lists(doubles, min_size=3, max_size=3), min_size=1, max_size=300),
+    wide=st.integers(0, 200),
+)
 def test_tables_do_not_depend_on_the_first_capacity(rows, wide):
     body = "".join(" ".join(repr(v) for v in r) + "\n" for r in rows)
     body = "# a comment\n\n" + body + " ".join(["1"] * 3) + "\n"
@@ -182,7 +292,10 @@ def test_digit_runs_stop_at_every_other_byte_with_more_bytes_after(run):
             assert v == int(digits)
         value, status, stop = scan_float(buf, 0, len(buf))
         if run and b not in (46, 69, 101):  # '.', 'e', 'E' continue a number
-            assert stop == run and status in (1, 2) and (status == 2 or value == float(digits)), (run, b)
+            assert stop == run and status in (1, 2) and (status == 2 or value == float(digits)), (
+                run,
+                b,
+            )
 
 
 @pytest.mark.parametrize("end", range(0, 21))
@@ -196,9 +309,20 @@ def test_scanners_read_no_byte_at_or_after_the_end_they_are_given(end):
         assert value == float(buf[:end].tobytes())
 
 
-LONG = ["0.0012345678901234567", "-0.000012345678901234567", "000000000000000000001.5", "0.00000000000000000000123456789012345678901",
-        "1234567890123456789.0", "12345678901234567890", "1.234567890123456789", "0.1234567890123456789", "00000000.000000001",
-        "9999999999999999999", "99999999999999999999e-5", "0." + "0" * 30 + "7" * 19 + "e30"]
+LONG = [
+    "0.0012345678901234567",
+    "-0.000012345678901234567",
+    "000000000000000000001.5",
+    "0.00000000000000000000123456789012345678901",
+    "1234567890123456789.0",
+    "12345678901234567890",
+    "1.234567890123456789",
+    "0.1234567890123456789",
+    "00000000.000000001",
+    "9999999999999999999",
+    "99999999999999999999e-5",
+    "0." + "0" * 30 + "7" * 19 + "e30",
+]
 
 
 @pytest.mark.parametrize("tok", EDGE + LONG)

@@ -34,7 +34,9 @@ def test_open3d_written_files_read_with_right_counts_and_coordinates(seed, ext, 
     ref = o3d.io.read_point_cloud(str(path))
     got, details = decode_xyz(path.read_bytes(), str(path))
     assert len(got.points) == len(c.points)
-    assert np.array_equal(got.points, np.asarray(ref.points))  # same text, same correctly rounded doubles
+    assert np.array_equal(
+        got.points, np.asarray(ref.points)
+    )  # same text, same correctly rounded doubles
     assert np.abs(got.points - c.points).max() <= 1e-9 * max(1.0, np.abs(c.points).max())
     if ext == "xyzn":
         assert np.abs(got.normals - c.normals).max() < 1e-9
@@ -60,7 +62,9 @@ def test_our_files_read_back_identically_here_and_in_open3d(seed, csv, tmp_path)
         path = tmp_path / "o.xyzn"
         path.write_bytes(xyz_bytes(plain))
         ref = o3d.io.read_point_cloud(str(path))
-        assert np.array_equal(np.asarray(ref.points), c.points) and np.array_equal(np.asarray(ref.normals), c.normals)
+        assert np.array_equal(np.asarray(ref.points), c.points) and np.array_equal(
+            np.asarray(ref.normals), c.normals
+        )
 
 
 @pytest.mark.parametrize(
@@ -68,9 +72,15 @@ def test_our_files_read_back_identically_here_and_in_open3d(seed, csv, tmp_path)
     [
         (b"1 2 3\n4 5 6\n", ["x", "y", "z"]),
         (b"1;2;3;9\n4;5;6;8\n", ["x", "y", "z", "intensity"]),
-        (b"X,Y,Z,Intensity,R,G,B\n1,2,3,4,5,6,7\n", ["x", "y", "z", "Intensity", "red", "green", "blue"]),
+        (
+            b"X,Y,Z,Intensity,R,G,B\n1,2,3,4,5,6,7\n",
+            ["x", "y", "z", "Intensity", "red", "green", "blue"],
+        ),
         (b"//X Y Z Nx Ny Nz\n1 2 3 0 0 1\n", ["x", "y", "z", "nx", "ny", "nz"]),
-        (b"2\n1 2 3 0 10 20 30\n4 5 6 0 40 50 60\n", ["x", "y", "z", "intensity", "red", "green", "blue"]),
+        (
+            b"2\n1 2 3 0 10 20 30\n4 5 6 0 40 50 60\n",
+            ["x", "y", "z", "intensity", "red", "green", "blue"],
+        ),
         (b"1\t2\t3\t0\t0\t1\n", ["x", "y", "z", "nx", "ny", "nz"]),
         (b"1 2 3 10 20 30\n", ["x", "y", "z", "red", "green", "blue"]),
         (b"1 2 3 10 20 300\n", ["x", "y", "z", "column_3", "column_4", "column_5"]),
@@ -104,7 +114,13 @@ def test_malformed_files_name_the_line(data, message):
 
 
 @settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(seed=st.integers(0, 30), cut=st.floats(0, 1), junk=st.binary(max_size=20), pos=st.floats(0, 1), csv=st.booleans())
+@given(
+    seed=st.integers(0, 30),
+    cut=st.floats(0, 1),
+    junk=st.binary(max_size=20),
+    pos=st.floats(0, 1),
+    csv=st.booleans(),
+)
 def test_fuzz_truncated_or_corrupted_text_is_data_or_input_error(seed, cut, junk, pos, csv):
     data = xyz_bytes(cloud_family(seed, 20), csv=csv)
     k = int(cut * len(data))

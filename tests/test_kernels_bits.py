@@ -31,17 +31,23 @@ def _ctz(x):
 def test_load_u64le_reads_eight_bytes_at_any_offset_first_byte_lowest():
     rng = np.random.default_rng(0)
     buf = rng.integers(0, 256, 4099, dtype=np.uint8)
-    at = np.concatenate([np.arange(16), rng.integers(0, len(buf) - 8, 500), [len(buf) - 8]]).astype(np.int64)
+    at = np.concatenate([np.arange(16), rng.integers(0, len(buf) - 8, 500), [len(buf) - 8]]).astype(
+        np.int64
+    )
     got = _loads(buf, at)
     raw = buf.tobytes()
     assert got.tolist() == [int.from_bytes(raw[a : a + 8], "little") for a in at.tolist()]
     view = buf[3:]  # a view starting at an odd address
-    assert _loads(view, np.array([0, 1], np.int64)).tolist() == [int.from_bytes(raw[3 + a : 11 + a], "little") for a in (0, 1)]
+    assert _loads(view, np.array([0, 1], np.int64)).tolist() == [
+        int.from_bytes(raw[3 + a : 11 + a], "little") for a in (0, 1)
+    ]
 
 
 def test_ctz64_counts_trailing_zero_bits():
     rng = np.random.default_rng(1)
-    x = np.concatenate([[0, 1, 2, 1 << 63], rng.integers(1, 1 << 62, 200) << rng.integers(0, 2, 200)]).astype(np.uint64)
+    x = np.concatenate(
+        [[0, 1, 2, 1 << 63], rng.integers(1, 1 << 62, 200) << rng.integers(0, 2, 200)]
+    ).astype(np.uint64)
     want = [64 if v == 0 else (v & -v).bit_length() - 1 for v in x.tolist()]
     assert _ctz(x).tolist() == want
 

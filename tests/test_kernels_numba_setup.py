@@ -18,7 +18,11 @@ SETUP_IMPORT = "from recon_cli._kernels import numba_setup"
 
 
 def kernel_files() -> list[Path]:
-    return sorted(f for f in PACKAGE.rglob("*.py") if re.search(r"^@njit", f.read_text(encoding="utf-8"), re.M))
+    return sorted(
+        f
+        for f in PACKAGE.rglob("*.py")
+        if re.search(r"^@njit", f.read_text(encoding="utf-8"), re.M)
+    )
 
 
 def test_every_kernel_module_imports_numba_setup_before_its_first_kernel():
@@ -27,15 +31,21 @@ def test_every_kernel_module_imports_numba_setup_before_its_first_kernel():
     for f in files:
         text = f.read_text(encoding="utf-8")
         assert SETUP_IMPORT in text, f"{f.relative_to(PACKAGE)} does not import numba_setup"
-        assert text.index(SETUP_IMPORT) < text.index("\n@njit"), f"{f.relative_to(PACKAGE)}: import numba_setup first"
+        assert text.index(SETUP_IMPORT) < text.index("\n@njit"), (
+            f"{f.relative_to(PACKAGE)}: import numba_setup first"
+        )
         # the cache fingerprint covers private modules and _kernels/ only
-        assert f.name.startswith("_") or f.parent.name == "_kernels", f"{f.relative_to(PACKAGE)}: kernels live in private modules"
+        assert f.name.startswith("_") or f.parent.name == "_kernels", (
+            f"{f.relative_to(PACKAGE)}: kernels live in private modules"
+        )
 
 
 def _run(code: str, env: dict) -> str:
     full = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CACHE_DIR", "XDG_CACHE_HOME")}
     full.update(env)
-    return subprocess.run([sys.executable, "-c", code], env=full, check=True, capture_output=True, text=True).stdout
+    return subprocess.run(
+        [sys.executable, "-c", code], env=full, check=True, capture_output=True, text=True
+    ).stdout
 
 
 CALL_KERNEL = (
@@ -76,7 +86,12 @@ def test_any_kernel_source_change_gets_a_cache_of_its_own(tmp_path):
     pkg = tmp_path / "pkg"
     (pkg / "_kernels").mkdir(parents=True)
     (pkg / "stage").mkdir()
-    files = {"_kernels/arrays.py": "a", "stage/_kernel.py": "k", "stage/__init__.py": "i", "stage/public.py": "p"}
+    files = {
+        "_kernels/arrays.py": "a",
+        "stage/_kernel.py": "k",
+        "stage/__init__.py": "i",
+        "stage/public.py": "p",
+    }
     for name, text in files.items():
         (pkg / name).write_text(text)
     base = kernel_sources_fingerprint(str(pkg))

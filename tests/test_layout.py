@@ -37,7 +37,9 @@ def _imports(path: Path, top_level_only: bool):
 
 
 def _package_of(module: str) -> str:
-    return module if MODULES.get(module, Path()).name == "__init__.py" else module.rpartition(".")[0]
+    return (
+        module if MODULES.get(module, Path()).name == "__init__.py" else module.rpartition(".")[0]
+    )
 
 
 def test_no_module_imports_another_modules_private_name():
@@ -50,8 +52,14 @@ def test_no_module_imports_another_modules_private_name():
             for name in names:
                 full = f"{target}.{name}"
                 if full in MODULES:  # a module: private modules only from inside their own package
-                    if name.startswith("_") and _package_of(full) != own_pkg and not own_pkg.startswith(_package_of(full)):
-                        bad.append(f"{path.relative_to(ROOT)}:{line}: imports private module {full}")
+                    if (
+                        name.startswith("_")
+                        and _package_of(full) != own_pkg
+                        and not own_pkg.startswith(_package_of(full))
+                    ):
+                        bad.append(
+                            f"{path.relative_to(ROOT)}:{line}: imports private module {full}"
+                        )
                 elif name.startswith("_") and name != "__version__" and target != mod:
                     bad.append(f"{path.relative_to(ROOT)}:{line}: imports private name {full}")
     assert not bad, "\n".join(bad)
@@ -76,8 +84,10 @@ def test_no_import_cycle_at_module_level():
             if d.startswith(m + "."):
                 continue
             if state.get(d) == 1:
-                cycle = stack[stack.index(d):] + [d]
-                if not all(b.startswith(a + ".") or a.startswith(b + ".") for a, b in zip(cycle, cycle[1:])):
+                cycle = stack[stack.index(d) :] + [d]
+                if not all(
+                    b.startswith(a + ".") or a.startswith(b + ".") for a, b in zip(cycle, cycle[1:])
+                ):
                     raise AssertionError("import cycle: " + " -> ".join(cycle))
             elif d not in state:
                 visit(d)
@@ -93,10 +103,14 @@ def test_library_is_free_of_click_and_kernels_never_import_their_stage():
     for mod, path in MODULES.items():
         for target, names, line in _imports(path, top_level_only=False):
             if not mod.startswith("recon_cli.cli"):
-                assert target != "click" and not target.startswith("recon_cli.cli"), f"{path}:{line}"
+                assert target != "click" and not target.startswith("recon_cli.cli"), (
+                    f"{path}:{line}"
+                )
             if path.name.startswith("_") and path.name.endswith(("_kernel.py", "kernel.py")):
                 stage = _package_of(mod)
-                assert target != stage or stage == "recon_cli", f"{path}:{line}: a kernel imports its stage"
+                assert target != stage or stage == "recon_cli", (
+                    f"{path}:{line}: a kernel imports its stage"
+                )
 
 
 def test_reference_libraries_only_in_backends():

@@ -117,7 +117,12 @@ def test_torus(with_normals):
     rot = np.linalg.qr(np.random.default_rng(9).normal(size=(3, 3)))[0]
     pr = (p - centre) @ rot.T + centre
     nr = n @ rot.T
-    fit = fit_sdf(pr, nr if with_normals else None, seed=0, **dict(FAST, iterations=300 if with_normals else 900))
+    fit = fit_sdf(
+        pr,
+        nr if with_normals else None,
+        seed=0,
+        **dict(FAST, iterations=300 if with_normals else 900),
+    )
     g = _grid(fit, pr, res=64)
     v, f, _ = extract_mesh(fit.model, g)
     d = torus_distance((v - centre) @ rot + centre, major, minor, centre)
@@ -133,8 +138,10 @@ def test_torus(with_normals):
         assert eik["cells"] > 1000 and eik["fraction_within_0.1"] >= 0.9, eik
 
 
-@pytest.mark.parametrize("shape, iterations", [("sphere", 30), ("sphere", 120), ("rounded_box", 60),
-                                               ("rounded_box", 200)])
+@pytest.mark.parametrize(
+    "shape, iterations",
+    [("sphere", 30), ("sphere", 120), ("rounded_box", 60), ("rounded_box", 200)],
+)
 def test_short_fits_do_not_fold(shape, iterations):
     """A fit stopped early is still one closed surface of the input's genus: no spurious
     sheets or bubbles in the empty space (SIREN's off-surface term keeps zero levels away)."""
@@ -153,7 +160,9 @@ def test_occupancy_field():
     p, n = sphere_cloud(5000, 0.5, (2.0, 0.0, 0.0), seed=6)
     fit = fit_sdf(p, n, field="occupancy", seed=0, **dict(FAST, iterations=400))
     g = _grid(fit, p)
-    assert g.sdf.min() < -0.4 and g.sdf.max() > 0.4  # 0.5 - p(inside): inside -> -0.5, outside -> +0.5
+    assert (
+        g.sdf.min() < -0.4 and g.sdf.max() > 0.4
+    )  # 0.5 - p(inside): inside -> -0.5, outside -> +0.5
     v, f, nv = extract_mesh(fit.model, g)
     r = np.linalg.norm(v - (2.0, 0.0, 0.0), axis=1)
     assert np.abs(r - 0.5).max() <= 0.03 * 0.5
@@ -238,9 +247,33 @@ def test_cli_grid_mcubes_info_mesh(tmp_path):
     src = tmp_path / "s.ply"
     write_ply(PointCloud(points=p, normals=n), src)
     out, mesh, model = tmp_path / "s.npz", tmp_path / "s_mesh.ply", tmp_path / "m.npz"
-    r = subprocess.run([*RECON, "fit-sdf", src, out, "--iterations", "200", "--batch", "2048", "--width", "48", "--depth", "3",
-                        "--resolution", "40", "--mesh", mesh, "--model", model, "--threads", "1", "--json"],
-                       capture_output=True, timeout=300)
+    r = subprocess.run(
+        [
+            *RECON,
+            "fit-sdf",
+            src,
+            out,
+            "--iterations",
+            "200",
+            "--batch",
+            "2048",
+            "--width",
+            "48",
+            "--depth",
+            "3",
+            "--resolution",
+            "40",
+            "--mesh",
+            mesh,
+            "--model",
+            model,
+            "--threads",
+            "1",
+            "--json",
+        ],
+        capture_output=True,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stderr.decode()
     import json
 
@@ -263,7 +296,11 @@ def test_cli_grid_mcubes_info_mesh(tmp_path):
 
 def test_cli_bad_input_is_one_line(tmp_path):
     (tmp_path / "x.ply").write_bytes(b"ply\nformat nonsense\n")
-    r = subprocess.run([*RECON, "fit-sdf", tmp_path / "x.ply", tmp_path / "o.npz"], capture_output=True, timeout=300)
+    r = subprocess.run(
+        [*RECON, "fit-sdf", tmp_path / "x.ply", tmp_path / "o.npz"],
+        capture_output=True,
+        timeout=300,
+    )
     assert r.returncode == 2 and len(r.stderr.decode().strip().splitlines()) == 1
     assert not (tmp_path / "o.npz").exists()
 
@@ -274,11 +311,33 @@ def test_cli_ctrl_c_writes_best_field(tmp_path):
     write_ply(PointCloud(points=p, normals=n), src)
     out = tmp_path / "s.npz"
     # act as a terminal even when the test runner ignores SIGINT (nohup, CI)
-    code = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler);"
-            "from recon_cli.cli.main import main; main(sys.argv[1:])")
-    with subprocess.Popen([sys.executable, "-c", code, "-v", "fit-sdf", str(src), str(out), "--iterations",
-                             "10000000", "--width", "32", "--depth", "2", "--resolution", "24", "--threads", "1"],
-                          stderr=subprocess.PIPE, text=True) as proc:
+    code = (
+        "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler);"
+        "from recon_cli.cli.main import main; main(sys.argv[1:])"
+    )
+    with subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            code,
+            "-v",
+            "fit-sdf",
+            str(src),
+            str(out),
+            "--iterations",
+            "10000000",
+            "--width",
+            "32",
+            "--depth",
+            "2",
+            "--resolution",
+            "24",
+            "--threads",
+            "1",
+        ],
+        stderr=subprocess.PIPE,
+        text=True,
+    ) as proc:
         try:
             for line in proc.stderr:
                 if "fit-sdf: step 1 done" in line:
@@ -301,8 +360,14 @@ def test_compare_takes_fit_sdf(tmp_path):
     p, n = sphere_cloud(3000, 1.0, seed=9)
     src = tmp_path / "s.ply"
     write_ply(PointCloud(points=p, normals=n), src)
-    res = compare_methods(src, "fit-sdf:iterations=150:width=32:depth=2:resolution=32:threads=1", src,
-                          tmp_path / "cmp", samples=2000, isolate=False)
+    res = compare_methods(
+        src,
+        "fit-sdf:iterations=150:width=32:depth=2:resolution=32:threads=1",
+        src,
+        tmp_path / "cmp",
+        samples=2000,
+        isolate=False,
+    )
     row = res["methods"][0]
     assert row["status"] == "ok", row["error"]
     assert row["faces"] > 0 and row["seconds"] > 0 and row["metrics"]["chamfer_l1"] < 0.02
@@ -310,7 +375,10 @@ def test_compare_takes_fit_sdf(tmp_path):
 
 def test_stage_report_and_provenance():
     p, n = sphere_cloud(2000, 1.0, seed=10)
-    res = apply_stage("fit-sdf", PointCloud(points=p, normals=n),
-                      {"iterations": 50, "width": 32, "depth": 2, "resolution": 24, "threads": 1})
+    res = apply_stage(
+        "fit-sdf",
+        PointCloud(points=p, normals=n),
+        {"iterations": 50, "width": 32, "depth": 2, "resolution": 24, "threads": 1},
+    )
     assert isinstance(res.output, Grid) and res.report["iterations"] == 50
     assert "fit-sdf" in res.output.history[-1] and "iterations-done=50" in res.output.history[-1]

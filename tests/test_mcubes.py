@@ -28,7 +28,9 @@ def check_closed_manifold(v, f):
     counts = edge_counts(f)
     assert counts.min() == 2 and counts.max() == 2
     d = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    assert len(np.unique(d, axis=0)) == len(d), "a directed edge appears twice: inconsistent winding"
+    assert len(np.unique(d, axis=0)) == len(d), (
+        "a directed edge appears twice: inconsistent winding"
+    )
     assert np.array_equal(np.unique(f), np.arange(len(v)))
     area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
     assert area.min() > 0
@@ -40,7 +42,7 @@ def check_closed_manifold(v, f):
         nxt[(c, a)] = b
     valence = np.bincount(f.reshape(-1), minlength=len(v))
     seen = {}
-    for (vtx, a) in nxt:
+    for vtx, a in nxt:
         if vtx in seen:
             continue
         n, x = 0, a
@@ -67,7 +69,13 @@ def sphere(n=40, r=0.7, c=(0.0, 0.0, 0.0)):
 def all_cells(vol):
     n = np.array(vol.shape) - 1
     idx = np.stack(np.meshgrid(*[np.arange(k) for k in n], indexing="ij"), -1).reshape(-1, 3)
-    vals = np.stack([vol[idx[:, 0] + (q & 1), idx[:, 1] + ((q >> 1) & 1), idx[:, 2] + ((q >> 2) & 1)] for q in range(8)], 1)
+    vals = np.stack(
+        [
+            vol[idx[:, 0] + (q & 1), idx[:, 1] + ((q >> 1) & 1), idx[:, 2] + ((q >> 2) & 1)]
+            for q in range(8)
+        ],
+        1,
+    )
     return idx, vals
 
 
@@ -77,6 +85,7 @@ def _cube_symmetries():
     out = []
     for perm in itertools.permutations(range(3)):
         for flips in range(8):
+
             def img(c):
                 p = [(c >> a) & 1 for a in range(3)]
                 q = [p[perm[a]] ^ ((flips >> a) & 1) for a in range(3)]
@@ -87,7 +96,9 @@ def _cube_symmetries():
             fmap = []
             for f in range(6):
                 corners = {cmap[int(c)] for c in L.FACE_CORNERS[f]}
-                fmap.append(next(g for g in range(6) if set(map(int, L.FACE_CORNERS[g])) == corners))
+                fmap.append(
+                    next(g for g in range(6) if set(map(int, L.FACE_CORNERS[g])) == corners)
+                )
             det = round(np.linalg.det(np.eye(3)[list(perm)])) * (-1) ** bin(flips).count("1")
             out.append((cmap, emap, fmap, det))
     return out
@@ -99,12 +110,16 @@ def test_table_every_case_closes_along_face_segments():
     use crossed edges (or the loop centre)."""
     for case in range(256):
         amb = int(L.MC_AMBIGUOUS[case])
-        crossed = {e for e, (a, b) in enumerate(L.MC_EDGES) if ((case >> int(a)) & 1) != ((case >> int(b)) & 1)}
+        crossed = {
+            e
+            for e, (a, b) in enumerate(L.MC_EDGES)
+            if ((case >> int(a)) & 1) != ((case >> int(b)) & 1)
+        }
         for bits in range(64):
             if bits & ~amb:
                 continue
             row = case * 64 + bits
-            tris = L.MC_TRIS[L.MC_START[row]:L.MC_START[row + 1]].tolist()
+            tris = L.MC_TRIS[L.MC_START[row] : L.MC_START[row + 1]].tolist()
             segs = {s for f in range(6) for s in L.face_segments(case, f, bool((bits >> f) & 1))}
             used = {e for t in tris for e in t} - {L.CENTER}
             assert used == crossed, case
@@ -131,7 +146,11 @@ def test_table_base_cases():
                 continue
             segs = {s for f in range(6) for s in L.face_segments(case, f, bool((bits >> f) & 1))}
             # complement with the decider flipped on ambiguous faces = same curves, reversed
-            comp = {s for f in range(6) for s in L.face_segments(255 - case, f, not bool((bits >> f) & 1))}
+            comp = {
+                s
+                for f in range(6)
+                for s in L.face_segments(255 - case, f, not bool((bits >> f) & 1))
+            }
             assert comp == {(b, a) for a, b in segs}
 
 
@@ -149,14 +168,16 @@ def test_table_invariant_under_cube_symmetries():
             for cmap, emap, fmap, det in syms:
                 case2 = sum(1 << cmap[c] for c in range(8) if (case >> c) & 1)
                 bits2 = sum(1 << fmap[f] for f in range(6) if (bits >> f) & 1)
-                segs2 = {s for f in range(6) for s in L.face_segments(case2, f, bool((bits2 >> f) & 1))}
+                segs2 = {
+                    s for f in range(6) for s in L.face_segments(case2, f, bool((bits2 >> f) & 1))
+                }
                 mapped = {(emap[a], emap[b]) if det > 0 else (emap[b], emap[a]) for a, b in segs}
                 assert mapped == segs2, (case, bits)
 
 
 def test_mt_table_cases():
     for case in range(256):
-        tris = L.MT_TRIS[L.MT_START[case]:L.MT_START[case + 1]]
+        tris = L.MT_TRIS[L.MT_START[case] : L.MT_START[case + 1]]
         assert (len(tris) == 0) == (case in (0, 255))
 
 
@@ -184,7 +205,10 @@ def test_cross_check_skimage():
     field = np.full(X.shape, 1e9)
     for _ in range(5):  # union of spheres
         c = rng.uniform(-0.5, 0.5, 3)
-        field = np.minimum(field, np.sqrt((X - c[0]) ** 2 + (Y - c[1]) ** 2 + (Z - c[2]) ** 2) - rng.uniform(0.2, 0.4))
+        field = np.minimum(
+            field,
+            np.sqrt((X - c[0]) ** 2 + (Y - c[1]) ** 2 + (Z - c[2]) ** 2) - rng.uniform(0.2, 0.4),
+        )
     h = x[1] - x[0]
     v, f, _ = marching_cubes(field, spacing=h, origin=(-1, -1, -1))
     vs, fs, _, _ = sk_mc(field, 0.0, spacing=(h, h, h))
@@ -214,20 +238,28 @@ def test_sparse_equals_dense_and_subset_is_closed():
     vol, h = sphere(24, r=0.6)
     cells, vals = all_cells(vol)
     v, f, n = marching_cubes(vol, spacing=h, origin=(-1, -1, -1))
-    vs, fs, ns = marching_cubes_sparse(cells, vals, origin=(-1, -1, -1), spacing=h, return_normals=True)
+    vs, fs, ns = marching_cubes_sparse(
+        cells, vals, origin=(-1, -1, -1), spacing=h, return_normals=True
+    )
     assert len(vs) == len(v) and len(fs) == len(f)
     # same triangles up to vertex numbering
-    key = lambda vv, ff: np.sort(np.round(vv[ff].reshape(len(ff), -1) * 1e9).astype(np.int64), axis=0)  # noqa: E731
+    key = lambda vv, ff: np.sort(
+        np.round(vv[ff].reshape(len(ff), -1) * 1e9).astype(np.int64), axis=0
+    )  # noqa: E731
     assert np.array_equal(key(v, f), key(vs, fs))
     assert np.einsum("ij,ij->i", ns, vs / np.linalg.norm(vs, axis=1, keepdims=True)).min() > 0.99
     # only the cells that straddle the surface, shuffled: still closed and the same surface
     keep = (vals.min(axis=1) < 0) & (vals.max(axis=1) >= 0)
     rng = np.random.default_rng(0)
     order = rng.permutation(np.flatnonzero(keep))
-    v2, f2 = marching_cubes_sparse(cells[order] + 1000, vals[order], origin=(-1 - 1000 * h,) * 3, spacing=h)
+    v2, f2 = marching_cubes_sparse(
+        cells[order] + 1000, vals[order], origin=(-1 - 1000 * h,) * 3, spacing=h
+    )
     check_closed_manifold(v2, f2)
     assert len(v2) == len(v)
-    assert np.allclose(np.sort(np.linalg.norm(v2, axis=1)), np.sort(np.linalg.norm(v, axis=1)), atol=1e-9)
+    assert np.allclose(
+        np.sort(np.linalg.norm(v2, axis=1)), np.sort(np.linalg.norm(v, axis=1)), atol=1e-9
+    )
 
 
 def test_sparse_negative_coordinates_and_validation():
@@ -311,7 +343,9 @@ def test_exact_iso_values_no_degenerate_and_allow_degenerate():
     v, f, _ = marching_cubes(vol)
     check_closed_manifold(v, f)
     vd, fd, _ = marching_cubes(vol, allow_degenerate=True)
-    area = 0.5 * np.linalg.norm(np.cross(vd[fd[:, 1]] - vd[fd[:, 0]], vd[fd[:, 2]] - vd[fd[:, 0]]), axis=1)
+    area = 0.5 * np.linalg.norm(
+        np.cross(vd[fd[:, 1]] - vd[fd[:, 0]], vd[fd[:, 2]] - vd[fd[:, 0]]), axis=1
+    )
     assert (area == 0).any()  # the clamp is what removes them
 
 
@@ -444,7 +478,9 @@ def test_boundary_edge_count_matches_unique(n_vertices, n_faces, seed):
 
     rng = np.random.default_rng(seed)
     faces = rng.integers(0, n_vertices, size=(n_faces, 3))
-    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])]
+    faces = faces[
+        (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
+    ]
     if len(faces) and rng.random() < 0.5:  # repeated faces and non-manifold edges too
         faces = np.vstack([faces, faces[: len(faces) // 2], faces[:3, ::-1]])
     expect = 0
@@ -462,8 +498,11 @@ def _closed_meshes_for_pieces():
     import shapes as S
     from shared_data import load_shared
 
-    out = [("icosphere", *S.icosphere(3), 40), ("torus", *S.torus(), 48),
-           ("dumbbell", *S.implicit_mesh(S.dumbbell_fn, 64), 48)]
+    out = [
+        ("icosphere", *S.icosphere(3), 40),
+        ("torus", *S.torus(), 48),
+        ("dumbbell", *S.implicit_mesh(S.dumbbell_fn, 64), 48),
+    ]
     for name, res in (("kitten", 48), ("mug", 80), ("armadillo", 80)):
         m = load_shared(name)
         out.append((name, m.vertices, m.faces, res))
@@ -497,7 +536,11 @@ def test_sdf_of_closed_mesh_meshes_to_one_piece(idx, reverse):
     out = apply_stage("mcubes", grid, {}).output
     c = Connectivity(out.faces, len(out.vertices))
     assert c.n_components == 1, f"{name}: {c.n_components} pieces"
-    assert np.all(c.edge_face_count == 2) and len(c.non_manifold_vertices) == 0 and c.is_consistently_oriented
+    assert (
+        np.all(c.edge_face_count == 2)
+        and len(c.non_manifold_vertices) == 0
+        and c.is_consistently_oriented
+    )
     assert signed_volume(out.vertices, out.faces) > 0  # outward, also from an inward input
     d, _, _ = closest_points(v, f, out.vertices)
     assert d.max() < 0.5 * grid.voxel_size, name

@@ -17,7 +17,9 @@ def test_box_exact(rng):
     v, f = box_mesh()
     # outward winding check of the helper itself
     t = v[f]
-    assert np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() / 6 == pytest.approx(6.0)
+    assert np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() / 6 == pytest.approx(
+        6.0
+    )
     q = rng.uniform(-2, 4, size=(20000, 3))
     d, face, c = closest_points(v, f, q)
     assert np.allclose(d, box_distance(q, (0, 0, 0), (1, 2, 3)), atol=1e-12)
@@ -38,10 +40,13 @@ def test_against_open3d_on_real_meshes(rng):
         m = load_shared(name)
         lo, hi = m.vertices.min(0), m.vertices.max(0)
         diag = np.linalg.norm(hi - lo)
-        q = np.concatenate([
-            rng.uniform(lo - 0.2 * diag, hi + 0.2 * diag, size=(20000, 3)),
-            m.vertices[rng.integers(0, len(m.vertices), 5000)] + rng.normal(scale=1e-3 * diag, size=(5000, 3)),
-        ])
+        q = np.concatenate(
+            [
+                rng.uniform(lo - 0.2 * diag, hi + 0.2 * diag, size=(20000, 3)),
+                m.vertices[rng.integers(0, len(m.vertices), 5000)]
+                + rng.normal(scale=1e-3 * diag, size=(5000, 3)),
+            ]
+        )
         d, face, c = closest_points(m.vertices, m.faces, q)
         ref = unsigned_distance(m, q)
         # Open3D works in float32
@@ -106,7 +111,9 @@ def test_distance_grid_matches_points(rng):
     assert np.allclose(dist.reshape(-1), d, atol=1e-12)
     w = winding_number(m.vertices, m.faces, pts)
     assert np.array_equal(sign.reshape(-1) < 0, w > 0.5)
-    band, bsign = distance_grid(m.vertices, m.faces, origin, h, shape, band=2 * h, pseudonormal=True)
+    band, bsign = distance_grid(
+        m.vertices, m.faces, origin, h, shape, band=2 * h, pseudonormal=True
+    )
     near = d <= 2 * h
     assert np.allclose(band.reshape(-1)[near], d[near]) and (band.reshape(-1)[~near] == 2 * h).all()
     assert (bsign.reshape(-1)[~near] == 0).all()
@@ -142,17 +149,33 @@ def test_disk_reject_coplanar_and_slivers(rng):
     x, y = np.meshgrid(np.linspace(0, 1, n + 1), np.linspace(0, 1, n + 1), indexing="ij")
     v = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1)
     idx = np.arange(x.size).reshape(n + 1, n + 1)
-    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    a, b, c, d = (
+        idx[:-1, :-1].ravel(),
+        idx[1:, :-1].ravel(),
+        idx[1:, 1:].ravel(),
+        idx[:-1, 1:].ravel(),
+    )
     f = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
     # needles (a normal too unreliable for the disk: ball reject) and a tilted facet
-    extra = np.array([[0.3, 0.3, 0.2], [0.9, 0.3, 0.2], [0.6, 0.3, 0.2 + 1e-9], [0.2, 0.8, 0.5], [0.4, 0.9, 0.1], [0.3, 0.6, 0.4]])
+    extra = np.array(
+        [
+            [0.3, 0.3, 0.2],
+            [0.9, 0.3, 0.2],
+            [0.6, 0.3, 0.2 + 1e-9],
+            [0.2, 0.8, 0.5],
+            [0.4, 0.9, 0.1],
+            [0.3, 0.6, 0.4],
+        ]
+    )
     f = np.concatenate([f, len(v) + np.array([[0, 1, 2], [3, 4, 5]])])
     v = np.concatenate([v, extra])
-    q = np.concatenate([
-        rng.uniform([-2, -2, -3], [3, 3, 3], size=(1500, 3)),
-        np.c_[rng.uniform(-0.2, 1.2, size=(1500, 2)), rng.normal(scale=1e-3, size=1500)],
-        np.c_[rng.uniform(0, 1, size=(300, 2)), np.zeros(300)],
-    ])
+    q = np.concatenate(
+        [
+            rng.uniform([-2, -2, -3], [3, 3, 3], size=(1500, 3)),
+            np.c_[rng.uniform(-0.2, 1.2, size=(1500, 2)), rng.normal(scale=1e-3, size=1500)],
+            np.c_[rng.uniform(0, 1, size=(300, 2)), np.zeros(300)],
+        ]
+    )
     dist, face, _ = closest_points(v, f, q)
     brute = np.array([closest_points(v, f[i : i + 1], q)[0] for i in range(len(f))]).min(axis=0)
     assert np.allclose(dist, brute, rtol=0, atol=1e-12)

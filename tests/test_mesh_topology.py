@@ -58,7 +58,9 @@ def _pinched(m: TriangleMesh) -> TriangleMesh:
     rm, lm = int(np.argmax(v0[:, 0])), int(np.argmin(v0[:, 0]))
     f1 = m.faces + n
     f1[f1 == lm + n] = rm  # the copy's leftmost vertex is the original's rightmost one
-    return TriangleMesh(vertices=np.concatenate([v0, v0 + (v0[rm] - v0[lm])]), faces=np.concatenate([m.faces, f1]))
+    return TriangleMesh(
+        vertices=np.concatenate([v0, v0 + (v0[rm] - v0[lm])]), faces=np.concatenate([m.faces, f1])
+    )
 
 
 def _compare_references(mesh: TriangleMesh, rep: dict) -> None:
@@ -73,9 +75,15 @@ def _compare_references(mesh: TriangleMesh, rep: dict) -> None:
     # returns the incident-face count), so edges are checked against Open3D and the incident
     # faces against PyMeshLab
     assert rep["non_manifold_edges"] == o3d["non_manifold_edges"]
-    nm_faces = np.unique(c.edge_half_edges[np.isin(c.half_edge_edge[c.edge_half_edges], c.non_manifold_edges)] // 3)
+    nm_faces = np.unique(
+        c.edge_half_edges[np.isin(c.half_edge_edge[c.edge_half_edges], c.non_manifold_edges)] // 3
+    )
     assert len(nm_faces) == pml["incident_faces_on_non_two_manifold_edges"]
-    assert rep["non_manifold_vertices"] == pml["non_two_manifold_vertices"] == o3d["non_manifold_vertices"]
+    assert (
+        rep["non_manifold_vertices"]
+        == pml["non_two_manifold_vertices"]
+        == o3d["non_manifold_vertices"]
+    )
     nm_vfaces = np.flatnonzero(np.isin(mesh.faces, c.non_manifold_vertices).any(axis=1))
     assert len(nm_vfaces) == pml["incident_faces_on_non_two_manifold_vertices"]
     assert rep["unreferenced_vertices"] == pml["unreferenced_vertices"]
@@ -122,16 +130,24 @@ def test_report_shared_meshes_agree_with_references(name):
         assert rep["boundary_loops"] == 5 and rep["volume"] is None and rep["genus"] is None
 
 
-@pytest.mark.parametrize("kind", ["flips", "duplicates", "fins", "patches", "split_vertices", "cones", "pinched"])
+@pytest.mark.parametrize(
+    "kind", ["flips", "duplicates", "fins", "patches", "split_vertices", "cones", "pinched"]
+)
 def test_report_damaged_meshes_agree_with_references(kind):
     mesh = damaged(kind)
     rep = report(mesh)
     _compare_references(mesh, rep)
     expected = {
-        "flips": dict(consistently_oriented=False, orientable=True, watertight=True, non_manifold_edges=0),
+        "flips": dict(
+            consistently_oriented=False, orientable=True, watertight=True, non_manifold_edges=0
+        ),
         "duplicates": dict(duplicate_faces=50, non_manifold_edges=150, edge_manifold=False),
-        "fins": dict(non_manifold_edges=20, boundary_edges=40, boundary_loops=20, edge_manifold=False),
-        "patches": dict(boundary_loops=3, watertight=False, edge_manifold=True, vertex_manifold=True),
+        "fins": dict(
+            non_manifold_edges=20, boundary_edges=40, boundary_loops=20, edge_manifold=False
+        ),
+        "patches": dict(
+            boundary_loops=3, watertight=False, edge_manifold=True, vertex_manifold=True
+        ),
         "split_vertices": dict(non_manifold_edges=0, vertex_manifold=False),
         "cones": dict(components=2, non_manifold_vertices=1, watertight=True, genus=None),
         "pinched": dict(components=2, non_manifold_vertices=1, watertight=True, genus=None),
@@ -192,7 +208,12 @@ def test_mobius_strip_is_not_orientable():
         if i == n - 1:
             tb, b = b, b + n  # the twist
         faces += [[a, b, ta], [b, tb, ta]]
-    v = np.concatenate([np.stack([np.cos(t), np.sin(t), np.full(n, -0.2)], 1), np.stack([np.cos(t), np.sin(t), np.full(n, 0.2)], 1)])
+    v = np.concatenate(
+        [
+            np.stack([np.cos(t), np.sin(t), np.full(n, -0.2)], 1),
+            np.stack([np.cos(t), np.sin(t), np.full(n, 0.2)], 1),
+        ]
+    )
     mesh = TriangleMesh(vertices=v, faces=np.array(faces))
     rep = report(mesh)
     o3d = open3d_backend.manifold_checks(mesh, self_intersection=False)
@@ -203,27 +224,36 @@ def test_mobius_strip_is_not_orientable():
 
 
 def test_duplicate_and_degenerate_counts():
-    f = np.concatenate([TETRA, TETRA[:1, [0, 2, 1]], np.roll(TETRA[1:2], 1, axis=1), [[0, 0, 1]], [[0, 1, 1]]])
+    f = np.concatenate(
+        [TETRA, TETRA[:1, [0, 2, 1]], np.roll(TETRA[1:2], 1, axis=1), [[0, 0, 1]], [[0, 1, 1]]]
+    )
     v = np.concatenate([TETRA_V, [[0.5, 0, 0]]])
     f = np.concatenate([f, [[0, 1, 4]]])  # collinear: zero area
     c = Connectivity(f, len(v), v)
     assert c.duplicate_faces.tolist() == [4, 5]
     assert c.degenerate_faces.tolist() == [6, 7, 8]
     rep = report(TriangleMesh(vertices=np.concatenate([v, [[9.0, 9, 9]]]), faces=f))
-    assert rep["duplicate_faces"] == 2 and rep["degenerate_faces"] == 3 and rep["unreferenced_vertices"] == 1
+    assert (
+        rep["duplicate_faces"] == 2
+        and rep["degenerate_faces"] == 3
+        and rep["unreferenced_vertices"] == 1
+    )
 
 
 def test_per_component_genus_and_volume():
     kitten = load_shared("kitten")
     arm = load_shared("armadillo")
     both = TriangleMesh(
-        vertices=np.concatenate([arm.vertices, kitten.vertices + 500]), faces=np.concatenate([arm.faces, kitten.faces + len(arm.vertices)])
+        vertices=np.concatenate([arm.vertices, kitten.vertices + 500]),
+        faces=np.concatenate([arm.faces, kitten.faces + len(arm.vertices)]),
     )
     rep = report(both)
     assert rep["components"] == 2
     assert rep["component_genus"] == [0, 1]  # largest (armadillo) first
     assert rep["genus"] == 1
-    assert rep["volume"] == pytest.approx(report(arm)["volume"] + report(kitten)["volume"], rel=1e-9)
+    assert rep["volume"] == pytest.approx(
+        report(arm)["volume"] + report(kitten)["volume"], rel=1e-9
+    )
     c = Connectivity(both.faces, len(both.vertices), both.vertices)
     assert c.component_euler.tolist() == [2, 0]
 
@@ -270,7 +300,10 @@ soups = st.integers(min_value=3, max_value=25).flatmap(
 @given(soups)
 def test_report_never_crashes_and_is_consistent(soup):
     v, f = soup
-    mesh = TriangleMesh(vertices=np.array(v, dtype=float).reshape(-1, 3), faces=np.array(f, dtype=np.int64).reshape(-1, 3))
+    mesh = TriangleMesh(
+        vertices=np.array(v, dtype=float).reshape(-1, 3),
+        faces=np.array(f, dtype=np.int64).reshape(-1, 3),
+    )
     rep = report(mesh)
     c = Connectivity(mesh.faces, len(mesh.vertices), mesh.vertices)
     # every half-edge that is not a self-loop lies on exactly one edge
@@ -280,7 +313,9 @@ def test_report_never_crashes_and_is_consistent(soup):
     shared = len(pairs) - len({vv for _, vv in pairs})
     assert rep["euler_characteristic"] == int(c.component_euler.sum()) - shared
     assert rep["edge_manifold"] == (rep["non_manifold_edges"] == 0)
-    assert rep["watertight"] == (rep["faces"] > 0 and rep["boundary_edges"] == 0 and rep["non_manifold_edges"] == 0)
+    assert rep["watertight"] == (
+        rep["faces"] > 0 and rep["boundary_edges"] == 0 and rep["non_manifold_edges"] == 0
+    )
     if rep["genus"] is not None:
         assert rep["watertight"] and rep["vertex_manifold"] and rep["orientable"]
     if len(mesh.faces) and rep["degenerate_faces"] == 0:
@@ -310,7 +345,9 @@ def test_union_find_labels_match_scipy(kind):
     flat = mesh.faces.ravel()
     nxt_a, nxt_b = a - a % 3 + (a % 3 + 1) % 3, b - b % 3 + (b % 3 + 1) % 3
     s = flat[a] == flat[b]
-    ref = _scipy_labels(3 * len(mesh.faces), np.r_[a, nxt_a], np.r_[np.where(s, b, nxt_b), np.where(s, nxt_b, b)])
+    ref = _scipy_labels(
+        3 * len(mesh.faces), np.r_[a, nxt_a], np.r_[np.where(s, b, nxt_b), np.where(s, nxt_b, b)]
+    )
     assert np.array_equal(c.corner_fans(), ref)
     assert np.array_equal(c.corner_fans(a, b), ref)
     n_fans = len(np.unique(ref))

@@ -307,14 +307,27 @@ def test_parameter_errors():
 
 def test_stage_report_history_and_open3d_backend():
     cloud = sampled_cloud("mug", 20_000)
-    res = apply_stage("normals", PointCloud(cloud.points, history=["source"]), {"knn": 20, "curvature": True})
+    res = apply_stage(
+        "normals", PointCloud(cloud.points, history=["source"]), {"knn": 20, "curvature": True}
+    )
     rep = res.report
-    for key in ("points", "knn", "radius", "neighbourhood_size", "degenerate", "components", "flipped", "orient"):
+    for key in (
+        "points",
+        "knn",
+        "radius",
+        "neighbourhood_size",
+        "degenerate",
+        "components",
+        "flipped",
+        "orient",
+    ):
         assert key in rep
     assert rep["points"] == 20_000 and rep["knn"] == 20 and rep["neighbourhood_size"] == 20.0
     assert res.output.history[0] == "source" and "normals" in res.output.history[1]
     assert res.output.attributes["curvature"].shape == (20_000,)
-    o3d = run_stage(PointCloud(cloud.points), knn=20, orient="camera", camera="0,0,1000", backend="open3d")
+    o3d = run_stage(
+        PointCloud(cloud.points), knn=20, orient="camera", camera="0,0,1000", backend="open3d"
+    )
     assert o3d.report["backend"] == "open3d"
     assert (_abs_cos(o3d.output.normals, res.output.normals) > 0.99).mean() > 0.99
     assert (np.einsum("ij,ij->i", o3d.output.normals, [0, 0, 1000] - cloud.points) >= 0).all()

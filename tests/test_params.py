@@ -45,7 +45,11 @@ def test_typed_values_must_have_the_declared_type():
         with pytest.raises(ParameterError, match=r"1 <= x <= 14"):
             depth.coerce(bad)
     flag = Param("density", "bool", False, "d")
-    assert flag.coerce(True) is True and flag.coerce("off") is False and flag.coerce(np.bool_(True)) is True
+    assert (
+        flag.coerce(True) is True
+        and flag.coerce("off") is False
+        and flag.coerce(np.bool_(True)) is True
+    )
     for bad in (1, 0, "maybe", 1.0):
         with pytest.raises(ParameterError, match="true or false"):
             flag.coerce(bad)
@@ -60,12 +64,20 @@ def test_floats_vectors_words_and_extra_values():
         with pytest.raises(ParameterError, match="--trim"):
             w.coerce(bad)
     v = Param("camera", "vector", None, "c")
-    assert v.coerce("0,0,1") == (0.0, 0.0, 1.0) and v.coerce([1, 2, 3]) == (1.0, 2.0, 3.0) and v.coerce(None) is None
+    assert (
+        v.coerce("0,0,1") == (0.0, 0.0, 1.0)
+        and v.coerce([1, 2, 3]) == (1.0, 2.0, 3.0)
+        and v.coerce(None) is None
+    )
     for bad in ("0,1", [1, 2, 3, 4], "a,b,c", 5):
         with pytest.raises(ParameterError, match="three numbers"):
             v.coerce(bad)
     r = Param("radii", "floats", "auto", "r", min=0.0, min_open=True, words={"auto": "auto"})
-    assert r.coerce("AUTO") == "auto" and r.coerce("0.1, 0.2") == (0.1, 0.2) and r.coerce(0.5) == (0.5,)
+    assert (
+        r.coerce("AUTO") == "auto"
+        and r.coerce("0.1, 0.2") == (0.1, 0.2)
+        and r.coerce(0.5) == (0.5,)
+    )
     with pytest.raises(ParameterError, match="'auto'"):
         r.coerce("0.1,-2")
     knn = Param("knn", "int", 30, "k", min=3, also=(0,))
@@ -109,7 +121,11 @@ def test_builtin_stage_is_registered_and_derived_from_its_declaration(name):
     assert spec.name == name and spec.declared and spec.run is not None
     # the library function's keyword defaults are the declaration's
     sig = inspect.signature(spec.run)
-    kw = {k: p.default for k, p in sig.parameters.items() if p.kind is inspect.Parameter.KEYWORD_ONLY and k != "progress"}
+    kw = {
+        k: p.default
+        for k, p in sig.parameters.items()
+        if p.kind is inspect.Parameter.KEYWORD_ONLY and k != "progress"
+    }
     assert kw == spec.defaults()
     # the command: registered, its summary and options from the declaration
     assert COMMANDS[name][1] == spec.summary
@@ -119,7 +135,9 @@ def test_builtin_stage_is_registered_and_derived_from_its_declaration(name):
         assert p.option in opts
         if p.type != "bool":
             help_text = next(q.help for q in cmd.params if p.option in getattr(q, "opts", []))
-            assert f"default: {p.default_text()}" in help_text and (not p.unit or p.unit in help_text)
+            assert f"default: {p.default_text()}" in help_text and (
+                not p.unit or p.unit in help_text
+            )
     res = CliRunner().invoke(cmd, ["--help"])
     assert res.exit_code == 0 and inspect.cleandoc(spec.description).split()[0] in res.output
 
@@ -137,12 +155,17 @@ def test_readme_parameter_tables_match_the_declarations():
     tables = readme_tables((ROOT / "README.md").read_text(encoding="utf-8"))
     assert set(tables) == set(BUILTIN)
     for name, table in tables.items():
-        assert table == get_spec(name).markdown_table(), f"README table of {name!r} is stale: python -m recon_cli.params README.md"
+        assert table == get_spec(name).markdown_table(), (
+            f"README table of {name!r} is stale: python -m recon_cli.params README.md"
+        )
 
 
 def test_runner_refuses_a_function_that_differs_from_its_declaration():
-    spec = StageSpec("toy2", "t", takes=("cloud",), gives=("cloud",), params=(Param("a", "int", 1, "a"),))
+    spec = StageSpec(
+        "toy2", "t", takes=("cloud",), gives=("cloud",), params=(Param("a", "int", 1, "a"),)
+    )
     with pytest.raises(TypeError, match="differ"):
+
         @spec.runner
         def run_stage(data, *, a, b, progress=None):  # b is not declared
             return StageResult(data)
@@ -154,13 +177,18 @@ def test_library_call_checks_values_and_input_kind():
     pts = np.random.default_rng(0).normal(size=(50, 3))
     with pytest.raises(ParameterError, match="--depth must be an integer"):
         run_stage(PointCloud(pts, normals=pts), depth=True)
-    with pytest.raises(InputError, match="poisson needs points with normals, got a point cloud without normals"):
+    with pytest.raises(
+        InputError, match="poisson needs points with normals, got a point cloud without normals"
+    ):
         run_stage(PointCloud(pts))
 
 
 # ---- a toy stage through the public registration API -------------------------------------------------
 TOY = StageSpec(
-    "toy-scale", "Scale a cloud (toy).", takes=("cloud",), gives=("cloud",),
+    "toy-scale",
+    "Scale a cloud (toy).",
+    takes=("cloud",),
+    gives=("cloud",),
     params=(Param("factor", "float", 2.0, "Scale factor.", min=0.0, min_open=True),),
 )
 
@@ -188,13 +216,17 @@ def test_toy_stage_runs_in_a_pipeline_and_as_a_command(toy, tmp_path):
     pipe = tmp_path / "p.toml"
     pipe.write_text('[[stage]]\nname = "toy-scale"\nfactor = 3\n\n[[stage]]\nname = "toy-scale"\n')
     out = tmp_path / "out.ply"
-    res = CliRunner().invoke(cli, ["run", str(pipe), str(src), str(out), "-q", "--set", "2.factor=0.5"])
+    res = CliRunner().invoke(
+        cli, ["run", str(pipe), str(src), str(out), "-q", "--set", "2.factor=0.5"]
+    )
     assert res.exit_code == 0, res.output
     np.testing.assert_allclose(read_ply(out).points, [[1.5, 3.0, 4.5], [0.0, 0.0, 1.5]])
     assert "toy-scale factor=3.0" in read_ply(out).history[-2]
     # the stage is a command too, its option generated from the declaration
     res = CliRunner().invoke(cli, ["toy-scale", str(src), str(out), "--factor", "-1"])
-    assert isinstance(res.exception, ParameterError) and "--factor must be a number with 0 < x" in str(res.exception)
+    assert isinstance(
+        res.exception, ParameterError
+    ) and "--factor must be a number with 0 < x" in str(res.exception)
     res = CliRunner().invoke(cli, ["--help"])
     assert "toy-scale" in res.output
     with pytest.raises(ParameterError, match="built in"):
@@ -205,7 +237,9 @@ def test_entry_points_group_registers_stages(monkeypatch):
     import importlib.metadata as md
 
     ep = EntryPoint(name="toy-ep", value="test_params:TOY", group=stages.ENTRY_POINT_GROUP)
-    monkeypatch.setattr(md, "entry_points", lambda group=None: [ep] if group == stages.ENTRY_POINT_GROUP else [])
+    monkeypatch.setattr(
+        md, "entry_points", lambda group=None: [ep] if group == stages.ENTRY_POINT_GROUP else []
+    )
     monkeypatch.setattr(stages, "_entry_points_read", False)
     monkeypatch.setattr(stages, "STAGES", dict(stages.STAGES))
     assert "toy-ep" in stages.stage_names()
@@ -225,10 +259,15 @@ def test_global_options_before_and_after_the_subcommand(tmp_path):
     p /= np.linalg.norm(p, axis=1, keepdims=True)
     src = tmp_path / "s.ply"
     write_ply(PointCloud(p), src)
-    for argv in (["-q", "normals", str(src), str(tmp_path / "a.ply")], ["normals", str(src), str(tmp_path / "b.ply"), "-q"]):
+    for argv in (
+        ["-q", "normals", str(src), str(tmp_path / "a.ply")],
+        ["normals", str(src), str(tmp_path / "b.ply"), "-q"],
+    ):
         res = CliRunner().invoke(cli, argv)
         assert res.exit_code == 0 and res.output == "", (argv, res.output)
-    res = CliRunner().invoke(cli, ["normals", str(src), str(tmp_path / "c.ply"), "-v", "--knn", "10"])
+    res = CliRunner().invoke(
+        cli, ["normals", str(src), str(tmp_path / "c.ply"), "-v", "--knn", "10"]
+    )
     assert res.exit_code == 0 and "points" in res.output
     res = CliRunner().invoke(cli, ["--json", "info", str(src)])
     assert res.exit_code == 0 and res.output.lstrip().startswith("[")
@@ -237,14 +276,35 @@ def test_global_options_before_and_after_the_subcommand(tmp_path):
 def test_validate_answers_fast_in_a_fresh_process(tmp_path):
     # the check runs before any stage (and without compiling anything): a bad value in stage 2
     pipe = tmp_path / "p.toml"
-    pipe.write_text('[[stage]]\nname = "normals"\nknn = 20\n\n[[stage]]\nname = "poisson"\ndepth = -3\n')
+    pipe.write_text(
+        '[[stage]]\nname = "normals"\nknn = 20\n\n[[stage]]\nname = "poisson"\ndepth = -3\n'
+    )
     out = tmp_path / "out.ply"
-    r = subprocess.run([sys.executable, "-m", "recon_cli.cli.main", "run", str(pipe), str(ROOT / "sample_data" / "bunny_scan_000.ply"),
-                        str(out)], capture_output=True, text=True, timeout=120)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "recon_cli.cli.main",
+            "run",
+            str(pipe),
+            str(ROOT / "sample_data" / "bunny_scan_000.ply"),
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode == 2 and not out.exists()
-    assert r.stderr.strip() == f"recon: error: {pipe}:7: stage 2 (poisson): --depth must be an integer with 1 <= x <= 14, got -3"
+    assert (
+        r.stderr.strip()
+        == f"recon: error: {pipe}:7: stage 2 (poisson): --depth must be an integer with 1 <= x <= 14, got -3"
+    )
     # checking a pipeline loads the declarations, never a kernel (so nothing compiles)
-    code = ("import sys; from recon_cli.pipeline import load_pipeline; load_pipeline(sys.argv[1], ['2.depth=9']); "
-            "print(sorted(m for m in sys.modules if m == 'numba' or m.endswith('_kernel')))")
-    r = subprocess.run([sys.executable, "-c", code, str(pipe)], capture_output=True, text=True, timeout=120)
+    code = (
+        "import sys; from recon_cli.pipeline import load_pipeline; load_pipeline(sys.argv[1], ['2.depth=9']); "
+        "print(sorted(m for m in sys.modules if m == 'numba' or m.endswith('_kernel')))"
+    )
+    r = subprocess.run(
+        [sys.executable, "-c", code, str(pipe)], capture_output=True, text=True, timeout=120
+    )
     assert r.returncode == 0 and r.stdout.strip() == "[]", r.stdout + r.stderr

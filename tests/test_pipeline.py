@@ -23,21 +23,52 @@ def _pipe(text: str, overrides=()):
 @pytest.mark.parametrize(
     "text, message",
     [
-        ('[[stage]]\nname = "normals"\n\n[[stage]]\nname = "poisson"\ndepth = -3\n',
-         r"p.toml:6: stage 2 \(poisson\): --depth must be an integer with 1 <= x <= 14, got -3"),
-        ('[[stage]]\nname = "poisson"\ndepth = true\n', r"p.toml:3: .*--depth must be an integer .* got true \(a boolean\)"),
-        ('[[stage]]\nname = "poisson"\ndepth = "9"\n', r"p.toml:3: .*--depth must be an integer .* got '9' \(a string\)"),
+        (
+            '[[stage]]\nname = "normals"\n\n[[stage]]\nname = "poisson"\ndepth = -3\n',
+            r"p.toml:6: stage 2 \(poisson\): --depth must be an integer with 1 <= x <= 14, got -3",
+        ),
+        (
+            '[[stage]]\nname = "poisson"\ndepth = true\n',
+            r"p.toml:3: .*--depth must be an integer .* got true \(a boolean\)",
+        ),
+        (
+            '[[stage]]\nname = "poisson"\ndepth = "9"\n',
+            r"p.toml:3: .*--depth must be an integer .* got '9' \(a string\)",
+        ),
         ('[[stage]]\nname = "poisson"\ndepth = 8.0\n', r"p.toml:3: .*--depth must be an integer"),
-        ('[[stage]]\nname = "normals"\ncurvature = "maybe"\n', r"p.toml:3: .*--curvature must be true or false"),
-        ('[[stage]]\nname = "normals"\ncurvature = 1\n', r"p.toml:3: .*--curvature must be true or false"),
-        ('[[stage]]\nname = "normals"\n\n[[stage]]\nname = "mcubes"\n',
-         r"p.toml:4: stage 2 \(mcubes\) needs a grid \(.npz\), but stage 1 \(normals\) gives a point cloud with normals"),
-        ('[[stage]]\nname = "sdf"\n\n[[stage]]\nname = "repair"\n', r"p.toml:4: stage 2 \(repair\) needs a triangle mesh, but stage 1 \(sdf\) gives a grid"),
+        (
+            '[[stage]]\nname = "normals"\ncurvature = "maybe"\n',
+            r"p.toml:3: .*--curvature must be true or false",
+        ),
+        (
+            '[[stage]]\nname = "normals"\ncurvature = 1\n',
+            r"p.toml:3: .*--curvature must be true or false",
+        ),
+        (
+            '[[stage]]\nname = "normals"\n\n[[stage]]\nname = "mcubes"\n',
+            r"p.toml:4: stage 2 \(mcubes\) needs a grid \(.npz\), but stage 1 \(normals\) gives a point cloud with normals",
+        ),
+        (
+            '[[stage]]\nname = "sdf"\n\n[[stage]]\nname = "repair"\n',
+            r"p.toml:4: stage 2 \(repair\) needs a triangle mesh, but stage 1 \(sdf\) gives a grid",
+        ),
         ('[[stage]]\nname = "frob"\n', r"p.toml:1: unknown stage 'frob'"),
-        ('[[stage]]\nname = "poisson"\n\ndepht = 9\n', r"p.toml:4: stage 1 \(poisson\) has no parameter 'depht'"),
-        ('[[stage]]\nname = "poisson"\npoint-weight = 2\npoint_weight = 3\n', r"p.toml:4: parameter 'point_weight' is given twice"),
-        ('[[stage]]\nname = "ballpivot"\nradii = [0.1, -1]\n', r"p.toml:3: .*--radii must be numbers"),
-        ('[[stage]]\nname = "normals"\norient = "camera"\ncamera = [0, 1]\n', r"p.toml:4: .*--camera must be three numbers"),
+        (
+            '[[stage]]\nname = "poisson"\n\ndepht = 9\n',
+            r"p.toml:4: stage 1 \(poisson\) has no parameter 'depht'",
+        ),
+        (
+            '[[stage]]\nname = "poisson"\npoint-weight = 2\npoint_weight = 3\n',
+            r"p.toml:4: parameter 'point_weight' is given twice",
+        ),
+        (
+            '[[stage]]\nname = "ballpivot"\nradii = [0.1, -1]\n',
+            r"p.toml:3: .*--radii must be numbers",
+        ),
+        (
+            '[[stage]]\nname = "normals"\norient = "camera"\ncamera = [0, 1]\n',
+            r"p.toml:4: .*--camera must be three numbers",
+        ),
     ],
 )
 def test_pipeline_errors_name_file_and_line(text, message):
@@ -46,8 +77,14 @@ def test_pipeline_errors_name_file_and_line(text, message):
 
 
 def test_values_are_typed_and_mean_the_same_as_on_the_command_line():
-    pipe = _pipe('[[stage]]\nname = "normals"\nknn = 0\nradius = 1\ncamera = "0,0,1"\n\n[[stage]]\nname = "ballpivot"\nradii = [0.5, 1]\n')
-    assert pipe.steps[0].params == {"knn": 0, "radius": 1.0, "camera": (0.0, 0.0, 1.0)}  # knn 0 = radius only, as on the CLI
+    pipe = _pipe(
+        '[[stage]]\nname = "normals"\nknn = 0\nradius = 1\ncamera = "0,0,1"\n\n[[stage]]\nname = "ballpivot"\nradii = [0.5, 1]\n'
+    )
+    assert pipe.steps[0].params == {
+        "knn": 0,
+        "radius": 1.0,
+        "camera": (0.0, 0.0, 1.0),
+    }  # knn 0 = radius only, as on the CLI
     assert pipe.steps[1].params == {"radii": (0.5, 1.0)}
     pipe = _pipe('[[stage]]\nname = "poisson"\nestimate-normals = true\n')
     assert pipe.steps[0].params == {"estimate_normals": True}
@@ -59,7 +96,10 @@ def test_set_overrides_by_name_and_index():
     assert pipe.steps[1].params["depth"] == 9 and pipe.steps[2].params["fill_holes"] == 20
     assert pipe.steps[0].params["curvature"] is True
     for bad, msg in [
-        (["poisson.depth=abc"], r"--set poisson.depth=abc: stage 2 \(poisson\): --depth must be an integer"),
+        (
+            ["poisson.depth=abc"],
+            r"--set poisson.depth=abc: stage 2 \(poisson\): --depth must be an integer",
+        ),
         (["4.depth=9"], r"stages 1..3"),
         (["mcubes.iso=0"], r"no stage 'mcubes'"),
         (["poisson-depth=9"], r"expected STAGE.PARAM=VALUE"),
@@ -74,7 +114,10 @@ def test_set_overrides_by_name_and_index():
 def test_estimate_normals_changes_what_poisson_takes():
     pipe = _pipe('[[stage]]\nname = "poisson"\n')
     bare = PointCloud(np.random.default_rng(0).normal(size=(20, 3)))
-    with pytest.raises(InputError, match=r"in.ply: poisson needs points with normals, got a point cloud without normals"):
+    with pytest.raises(
+        InputError,
+        match=r"in.ply: poisson needs points with normals, got a point cloud without normals",
+    ):
         check_input(pipe, bare, "in.ply")
     check_input(_pipe('[[stage]]\nname = "poisson"\nestimate_normals = true\n'), bare, "in.ply")
 
@@ -86,7 +129,9 @@ def test_run_checks_before_touching_the_output(tmp_path, monkeypatch):
     called = []
     monkeypatch.setattr(normals.SPEC, "run", lambda *a, **k: called.append(1))
     pipe = tmp_path / "p.toml"
-    pipe.write_text('[[stage]]\nname = "normals"\n\n[[stage]]\nname = "poisson"\nboundary = "periodic"\n')
+    pipe.write_text(
+        '[[stage]]\nname = "normals"\n\n[[stage]]\nname = "poisson"\nboundary = "periodic"\n'
+    )
     src = tmp_path / "in.ply"
     from recon_cli.io import write_ply
 
@@ -96,5 +141,7 @@ def test_run_checks_before_touching_the_output(tmp_path, monkeypatch):
     assert isinstance(res.exception, ParameterError) and "p.toml:6:" in str(res.exception)
     assert "--boundary must be one of neumann, dirichlet" in str(res.exception)
     assert not called and not out.exists()
-    res = CliRunner().invoke(cli, ["run", str(pipe), "--validate", "--set", "poisson.boundary=dirichlet", "--json"])
+    res = CliRunner().invoke(
+        cli, ["run", str(pipe), "--validate", "--set", "poisson.boundary=dirichlet", "--json"]
+    )
     assert res.exit_code == 0 and '"valid": true' in res.output and not called

@@ -39,7 +39,9 @@ def _ours(name: str, noise: float, depth: int):
 @functools.lru_cache(maxsize=None)
 def _open3d(name: str, noise: float, depth: int):
     c = sampled_cloud(name, 100_000, noise=noise)
-    return isolated(open3d_backend.poisson, c, depth=depth)[0]  # its own process: see tests/reference.py
+    return isolated(open3d_backend.poisson, c, depth=depth)[
+        0
+    ]  # its own process: see tests/reference.py
 
 
 @functools.lru_cache(maxsize=None)
@@ -103,7 +105,9 @@ def _separation(a, b):
     ea = [a[1] - a[0], a[2] - a[1], a[0] - a[2]]
     eb = [b[1] - b[0], b[2] - b[1], b[0] - b[2]]
     best = -np.inf
-    for ax in [np.cross(ea[0], ea[1]), np.cross(eb[0], eb[1])] + [np.cross(u, v) for u in ea for v in eb]:
+    for ax in [np.cross(ea[0], ea[1]), np.cross(eb[0], eb[1])] + [
+        np.cross(u, v) for u in ea for v in eb
+    ]:
         norm = np.linalg.norm(ax)
         if norm > 1e-300:
             pa, pb = a @ (ax / norm), b @ (ax / norm)
@@ -115,8 +119,12 @@ def test_separation_tells_crossing_from_apart():
     a = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
     assert _separation(a, np.array([[0.2, 0.2, -1], [0.3, 0.2, 1], [0.2, 0.3, 1]])) < 0  # pierces a
     assert _separation(a, a + [0, 0, 1e-3]) == pytest.approx(1e-3)  # parallel, above
-    assert _separation(a, np.array([[0.501, 0.5, 0], [2, 0, 1], [2, 2, -1]])) > 0  # beside a's long edge, tilted
-    assert _separation(a, np.array([[0.499, 0.5, 0], [2, 0, 1], [2, 2, -1]])) <= 0  # its corner inside a
+    assert (
+        _separation(a, np.array([[0.501, 0.5, 0], [2, 0, 1], [2, 2, -1]])) > 0
+    )  # beside a's long edge, tilted
+    assert (
+        _separation(a, np.array([[0.499, 0.5, 0], [2, 0, 1], [2, 2, -1]])) <= 0
+    )  # its corner inside a
     assert _separation(a, np.array([[1.0, 0, 0], [2, 0, 0], [1, 1, 0]])) <= 0  # shares a vertex
 
 
@@ -131,7 +139,12 @@ def test_open3d_closed_manifold_no_self_intersections(name, depth):
     c = sampled_cloud(name, 20_000)
     mesh = screened_poisson(c.points, c.normals, depth=depth).mesh
     checks = open3d_backend.manifold_checks(mesh, self_intersection=False)
-    assert checks["watertight"] and checks["edge_manifold"] and checks["vertex_manifold"] and checks["orientable"]
+    assert (
+        checks["watertight"]
+        and checks["edge_manifold"]
+        and checks["vertex_manifold"]
+        and checks["orientable"]
+    )
     flagged = np.asarray(open3d_backend.to_o3d_mesh(mesh).get_self_intersecting_triangles())
     assert len(flagged) <= 1e-3 * len(mesh.faces)
     v, f = mesh.vertices, mesh.faces
@@ -165,7 +178,15 @@ def test_report_keys_and_solver_log(caplog, degree):
     with caplog.at_level(logging.INFO, logger="recon"):
         res = run_stage(c, depth=6, degree=degree)
     rep = res.report
-    for key in ("vertices", "faces", "depth", "iso_value", "solver_iterations", "residual", "trimmed_faces"):
+    for key in (
+        "vertices",
+        "faces",
+        "depth",
+        "iso_value",
+        "solver_iterations",
+        "residual",
+        "trimmed_faces",
+    ):
         assert key in rep
     assert rep["depth"] == 6 and rep["faces"] == len(res.output.faces) and rep["trimmed_faces"] == 0
     assert rep["solver_iterations"] > 0 and 0 <= rep["residual"] < 1e-3
@@ -230,9 +251,20 @@ def test_density_trim_and_colors(rng, degree):
 @pytest.mark.parametrize(
     "cloud, match",
     [
-        (PointCloud(points=np.random.default_rng(0).random((100, 3))), "without normals .*--estimate-normals"),
-        (PointCloud(points=np.random.default_rng(0).random((100, 3)), normals=np.zeros((100, 3))), "zero length"),
-        (PointCloud(points=np.ones((50, 3)), normals=np.tile([0.0, 0.0, 1.0], (50, 1))), "coincide"),
+        (
+            PointCloud(points=np.random.default_rng(0).random((100, 3))),
+            "without normals .*--estimate-normals",
+        ),
+        (
+            PointCloud(
+                points=np.random.default_rng(0).random((100, 3)), normals=np.zeros((100, 3))
+            ),
+            "zero length",
+        ),
+        (
+            PointCloud(points=np.ones((50, 3)), normals=np.tile([0.0, 0.0, 1.0], (50, 1))),
+            "coincide",
+        ),
         (PointCloud(points=np.eye(3), normals=np.eye(3)), "at least 4"),
     ],
 )
@@ -241,8 +273,20 @@ def test_bad_input(cloud, match):
         run_stage(cloud)
 
 
-@pytest.mark.parametrize("params", [{"depth": 0}, {"depth": 20}, {"depth": "x"}, {"scale": 0.5}, {"point_weight": -1},
-                                    {"samples_per_node": 0}, {"boundary": "periodic"}, {"trim": 1.0}, {"backend": "cgal"}])
+@pytest.mark.parametrize(
+    "params",
+    [
+        {"depth": 0},
+        {"depth": 20},
+        {"depth": "x"},
+        {"scale": 0.5},
+        {"point_weight": -1},
+        {"samples_per_node": 0},
+        {"boundary": "periodic"},
+        {"trim": 1.0},
+        {"backend": "cgal"},
+    ],
+)
 def test_bad_parameters(params):
     c = sampled_cloud("kitten", 1000)
     with pytest.raises(ParameterError):
@@ -262,7 +306,9 @@ def test_reference_backends_report():
     c = sampled_cloud("kitten", 20_000)
     for backend in ("open3d", "pymeshlab"):
         res = run_stage(c, depth=6, backend=backend)
-        assert res.report["backend"] == backend and res.report["faces"] == len(res.output.faces) > 1000
+        assert (
+            res.report["backend"] == backend and res.report["faces"] == len(res.output.faces) > 1000
+        )
         assert res.report["iso_value"] is None
 
 
@@ -275,7 +321,9 @@ def test_cli_poisson(tmp_path):
     src = tmp_path / "in.ply"
     write_ply(sampled_cloud("kitten", 20_000), src)
     out = tmp_path / "out.ply"
-    r = CliRunner().invoke(cli, ["poisson", str(src), str(out), "--depth", "6", "--density", "--json"])
+    r = CliRunner().invoke(
+        cli, ["poisson", str(src), str(out), "--depth", "6", "--density", "--json"]
+    )
     assert r.exit_code == 0, r.output
     mesh = read_ply(out)
     assert len(mesh.faces) > 1000 and "density" in mesh.attributes

@@ -84,7 +84,9 @@ def test_prolongation_is_exact_and_the_field_reads_the_finest_level(rng, boundar
     np.testing.assert_allclose(ChiField([coarse, fine], boundary).at(pts), a, rtol=0, atol=1e-12)
     # ... against the basis by definition: sum of coefficient times tensor B2, images folded
     keys = unpack_keys(coarse.q_keys)
-    cells = (2 * keys[:, None, :] + np.array([[o & 1, (o >> 1) & 1, (o >> 2) & 1] for o in range(8)])).reshape(-1, 3)
+    cells = (
+        2 * keys[:, None, :] + np.array([[o & 1, (o >> 1) & 1, (o >> 2) & 1] for o in range(8)])
+    ).reshape(-1, 3)
     u = pts * 4.0
     w = np.ones((len(pts), len(cells)))
     for a_ in range(3):
@@ -106,8 +108,12 @@ def test_prolongation_is_exact_and_the_field_reads_the_finest_level(rng, boundar
     fine.coef = fine.coef + rng.normal(size=len(fine.coef))
     chi = ChiField([coarse, fine], boundary)
     lev = levels[3]
-    nodes = unpack_keys(build_levels(np.full((1, 3), 0.5), np.array([3]), 3, 3, boundary)[3].node_keys)
-    np.testing.assert_allclose(chi.at_nodes(lev, pack_keys(nodes)), chi.at(nodes / 8.0), rtol=0, atol=0)
+    nodes = unpack_keys(
+        build_levels(np.full((1, 3), 0.5), np.array([3]), 3, 3, boundary)[3].node_keys
+    )
+    np.testing.assert_allclose(
+        chi.at_nodes(lev, pack_keys(nodes)), chi.at(nodes / 8.0), rtol=0, atol=0
+    )
 
 
 def test_refined_vertices_sit_on_their_edges_at_the_iso_value(rng):
@@ -153,7 +159,9 @@ def test_degree2_generated_shapes_closed_manifold_one_piece(rng, name):
     scale = 10.0 ** rng.uniform(-2, 2)
     p, n = shape_cloud(name, 12_000, rng, scale=scale, offset=rng.uniform(-1e6, 1e6, 3))
     rep = topology_report(screened_poisson(p, n, depth=7, degree=2).mesh)
-    assert rep["faces"] > 0 and rep["watertight"] and rep["edge_manifold"] and rep["vertex_manifold"]
+    assert (
+        rep["faces"] > 0 and rep["watertight"] and rep["edge_manifold"] and rep["vertex_manifold"]
+    )
     assert rep["components"] == 1 and rep["consistently_oriented"] and rep["volume"] > 0
 
 
@@ -180,7 +188,9 @@ def test_degree2_single_view_scan_closed_manifold_one_piece(rng, name):
 
     p, n = single_view_scan(name, 90, rng, direction=rng.normal(size=3))
     rep = topology_report(screened_poisson(p, n, depth=8, degree=2).mesh)
-    assert rep["faces"] > 0 and rep["watertight"] and rep["edge_manifold"] and rep["vertex_manifold"]
+    assert (
+        rep["faces"] > 0 and rep["watertight"] and rep["edge_manifold"] and rep["vertex_manifold"]
+    )
     assert rep["components"] == 1 and rep["degenerate_faces"] == 0
 
 
@@ -206,7 +216,9 @@ def test_degree2_rounded_box_as_accurate_as_open3d():
     p, n = shape_cloud("rounded_box", 100_000, np.random.default_rng(0), rotate=False)
     truth, _ = shape_cloud("rounded_box", 50_000, np.random.default_rng(1), rotate=False)
     ours = _exact_chamfer(screened_poisson(p, n, depth=8, degree=2).mesh, sdf, truth)
-    ref = _exact_chamfer(isolated(open3d_backend.poisson, PointCloud(points=p, normals=n), depth=8)[0], sdf, truth)
+    ref = _exact_chamfer(
+        isolated(open3d_backend.poisson, PointCloud(points=p, normals=n), depth=8)[0], sdf, truth
+    )
     assert ours <= ref, (ours, ref)
 
 
@@ -232,18 +244,27 @@ def test_degree2_cross_check_open3d_and_pymeshlab_within_one_cell(name):
     c = sampled_cloud(name, 100_000)
     ours = screened_poisson(c.points, c.normals, depth=8, degree=2)
     cell = ours.report["finest_cell"]
-    assert chamfer(samples(ours.mesh), samples(isolated(open3d_backend.poisson, c, depth=8)[0])) < 0.5 * cell
+    assert (
+        chamfer(samples(ours.mesh), samples(isolated(open3d_backend.poisson, c, depth=8)[0]))
+        < 0.5 * cell
+    )
     c = sampled_cloud(name, 50_000)
     ours7 = screened_poisson(c.points, c.normals, depth=7, degree=2)
     cell7 = ours7.report["finest_cell"]
-    assert chamfer(samples(ours7.mesh), samples(pymeshlab_backend.poisson(c, depth=7))) < 0.5 * cell7
+    assert (
+        chamfer(samples(ours7.mesh), samples(pymeshlab_backend.poisson(c, depth=7))) < 0.5 * cell7
+    )
 
 
 # (shape, points, depth, full depth, samples per node, margin): dense fields at the finest
 # levels; sparse ones at levels 0..2 (level 0's single cell refined onto level 1 included);
 # a shape touching the cube's faces (fields folded at every face) at mixed levels
-RHS_CASES = [("rounded_box", 3000, 6, 2, 1.0, 0.05), ("sphere", 200, 6, 1, 20.0, 0.0),
-             ("torus", 2000, 7, 2, 1.0, 0.0), ("rounded_box", 500, 6, 0, 3.0, 0.0)]
+RHS_CASES = [
+    ("rounded_box", 3000, 6, 2, 1.0, 0.05),
+    ("sphere", 200, 6, 1, 20.0, 0.0),
+    ("torus", 2000, 7, 2, 1.0, 0.0),
+    ("rounded_box", 500, 6, 0, 3.0, 0.0),
+]
 
 
 @pytest.mark.parametrize("boundary", ["neumann", "dirichlet"])
@@ -281,8 +302,10 @@ def test_normal_rhs_equals_the_direct_splat_at_every_level(rng, boundary, case):
         assert lv[0] == 0 and full_depth >= 1  # the root's field, refined onto a complete level 1
     if margin == 0.0:
         # some field cell lies on a face of the cube (its B-spline reaches beyond it)
-        assert any(((unpack_keys(k) == 0) | (unpack_keys(k) == (1 << d) - 1)).any()
-                   for d, (k, _) in splats.rhs_fields.items())
+        assert any(
+            ((unpack_keys(k) == 0) | (unpack_keys(k) == (1 << d) - 1)).any()
+            for d, (k, _) in splats.rhs_fields.items()
+        )
 
 
 @pytest.mark.parametrize("top", [0, 1, 3, 40])
@@ -301,5 +324,7 @@ def test_neighbour_table_matches_a_dictionary(rng, top):
         q = c + off
         inside = np.all((q >= 0) & (q <= top), axis=1)
         qk = pack_keys(q.clip(0))
-        want = np.array([index.get(int(k), -1) if ok else -1 for k, ok in zip(qk, inside, strict=True)])
+        want = np.array(
+            [index.get(int(k), -1) if ok else -1 for k, ok in zip(qk, inside, strict=True)]
+        )
         np.testing.assert_array_equal(out[:, t], want)

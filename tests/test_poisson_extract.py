@@ -24,7 +24,10 @@ def _assert_closed_manifold_one_piece(mesh: TriangleMesh) -> None:
     rep = topology_report(mesh)
     assert rep["faces"] > 0
     assert rep["watertight"] and rep["boundary_edges"] == 0, rep["boundary_edges"]
-    assert rep["edge_manifold"] and rep["vertex_manifold"], (rep["non_manifold_edges"], rep["non_manifold_vertices"])
+    assert rep["edge_manifold"] and rep["vertex_manifold"], (
+        rep["non_manifold_edges"],
+        rep["non_manifold_vertices"],
+    )
     assert rep["components"] == 1, rep["components"]
     assert rep["duplicate_faces"] == 0 and rep["degenerate_faces"] == 0
     assert rep["consistently_oriented"] and rep["volume"] > 0
@@ -204,14 +207,19 @@ def test_islands_need_ten_points_specks_always_go(rng, offset):
     from shapes import icosphere
 
     cell = 0.02
-    parts = [icosphere(3), icosphere(2, radius=0.1, centre=(2.0, 0.0, 0.0)),
-             icosphere(1, radius=0.01, centre=(0.0, 2.0, 0.0))]
+    parts = [
+        icosphere(3),
+        icosphere(2, radius=0.1, centre=(2.0, 0.0, 0.0)),
+        icosphere(1, radius=0.01, centre=(0.0, 2.0, 0.0)),
+    ]
     verts = np.vstack([v for v, _ in parts]) + offset
     starts = np.cumsum([0] + [len(v) for v, _ in parts])
     faces = np.vstack([f + s for (_, f), s in zip(parts, starts, strict=False)])
     main = rng.normal(size=(500, 3))
     main /= np.linalg.norm(main, axis=1)[:, None]
-    far = np.array([2.1 + 2.5 * cell, 0.0, 0.0]) + 0.001 * rng.random((50, 3))  # just outside the padded box
+    far = np.array([2.1 + 2.5 * cell, 0.0, 0.0]) + 0.001 * rng.random(
+        (50, 3)
+    )  # just outside the padded box
     for k in (ISLAND_POINTS - 1, ISLAND_POINTS):
         near = np.array([2.0, 0.0, 0.0]) + 0.1 * rng.uniform(-1, 1, size=(k, 3))
         pts = np.vstack([main, near, far]) + offset
@@ -274,6 +282,10 @@ def test_real_stereo_fragment_closed_and_manifold(method):
     mesh = screened_poisson(c.points, c.normals, depth=9).mesh
     rep = topology_report(mesh)
     assert rep["watertight"] and rep["edge_manifold"] and rep["vertex_manifold"]
-    assert rep["consistently_oriented"] and rep["degenerate_faces"] == 0 and rep["duplicate_faces"] == 0
+    assert (
+        rep["consistently_oriented"]
+        and rep["degenerate_faces"] == 0
+        and rep["duplicate_faces"] == 0
+    )
     assert len(np.unique(mesh.vertices, axis=0)) == len(mesh.vertices)
     assert rep["components"] == 1

@@ -102,7 +102,12 @@ def _sibling_block(cells, ring: int, top: int) -> set:
                     X, Y, Z = x + dx, y + dy, z + dz
                     if 0 <= X <= top and 0 <= Y <= top and 0 <= Z <= top:
                         px, py, pz = X >> 1, Y >> 1, Z >> 1
-                        out.update((2 * px + a, 2 * py + b, 2 * pz + c) for a in (0, 1) for b in (0, 1) for c in (0, 1))
+                        out.update(
+                            (2 * px + a, 2 * py + b, 2 * pz + c)
+                            for a in (0, 1)
+                            for b in (0, 1)
+                            for c in (0, 1)
+                        )
     return out
 
 
@@ -126,8 +131,12 @@ def test_own_ring_1_tree_is_poissonrecons(seed):
     two = build_levels(pos, lvl, depth, full, "neumann", own_ring=2)
     for d in range(full + 1, depth + 1):
         top = (1 << d) - 1
-        own = {tuple(c) for c in np.floor(pos[lvl == d] * (1 << d)).astype(int).clip(0, top).tolist()}
-        over_finer = {tuple(c) for c in np.floor(pos[lvl > d] * (1 << d)).astype(int).clip(0, top).tolist()}
+        own = {
+            tuple(c) for c in np.floor(pos[lvl == d] * (1 << d)).astype(int).clip(0, top).tolist()
+        }
+        over_finer = {
+            tuple(c) for c in np.floor(pos[lvl > d] * (1 << d)).astype(int).clip(0, top).tolist()
+        }
         expect = _sibling_block(own, 1, top) | _sibling_block(over_finer, 2, top)
         got = _cells(one[d])
         assert got == expect, (d, len(got), len(expect))

@@ -24,11 +24,15 @@ from shapes import SHAPES, shape_cloud
 def test_spread_keeps_each_levels_total_and_sits_on_cell_centres(rng):
     pos = rng.uniform(0.1, 0.9, size=(500, 3))
     vec = rng.normal(size=(500, 3))
-    lvl = rng.integers(4, 8, size=500)  # a cell inside the cube at every level (shares beyond its faces are dropped)
+    lvl = rng.integers(
+        4, 8, size=500
+    )  # a cell inside the cube at every level (shares beyond its faces are dropped)
     p, v, lv = fields_as_items(spread_fields(pos, vec, lvl))
     for d in np.unique(lvl):
         # the quadratic B-spline weights of the 27 cells sum to one
-        np.testing.assert_allclose(v[lv == d].sum(axis=0), vec[lvl == d].sum(axis=0), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(
+            v[lv == d].sum(axis=0), vec[lvl == d].sum(axis=0), rtol=1e-12, atol=1e-12
+        )
         u = p[lv == d] * (1 << int(d)) - 0.5
         np.testing.assert_allclose(u, np.round(u), atol=1e-9)
         # one item per cell
@@ -76,7 +80,9 @@ def test_smooth_shapes_as_accurate_as_open3d(rng, name):
         from recon_cli.mesh.distance import closest_points
 
         a = sample_surface(mesh, 50_000, seed=2).points
-        return 0.5 * (np.abs(sdf(a)).mean() + closest_points(mesh.vertices, mesh.faces, truth)[0].mean())
+        return 0.5 * (
+            np.abs(sdf(a)).mean() + closest_points(mesh.vertices, mesh.faces, truth)[0].mean()
+        )
 
     ours = screened_poisson(p, n, depth=8).mesh
     ref = isolated(open3d_backend.poisson, PointCloud(points=p, normals=n), depth=8)[0]
@@ -106,7 +112,9 @@ def test_normal_field_rhs_is_the_direct_splat_of_the_spread_field(rng):
     items = fields_as_items(splats.rhs_fields)
     for lev in levels:
         b = field.rhs(lev.depth, lev.cell_keys, lev.node_keys, lev.unknown)
-        ref = direct_rhs(*items, np.zeros(len(items[2])), lev.depth, lev.node_keys, lev.unknown, lev.n_nodes)
+        ref = direct_rhs(
+            *items, np.zeros(len(items[2])), lev.depth, lev.node_keys, lev.unknown, lev.n_nodes
+        )
         np.testing.assert_allclose(b, ref, rtol=0, atol=1e-12 * np.abs(ref).max())
 
 
@@ -299,7 +307,10 @@ def test_noisy_samples_are_screened_less_and_come_out_closer(rng, monkeypatch):
     assert res.report["noise"] > 0.3
     adaptive = error(res.mesh)
     # the stage imports the function when it runs: every sample read as clean
-    monkeypatch.setattr(splat_mod, "noise_fraction",
-                        lambda unit, smp, depth: (np.ones(len(smp.count)), np.zeros(len(smp.count))))
+    monkeypatch.setattr(
+        splat_mod,
+        "noise_fraction",
+        lambda unit, smp, depth: (np.ones(len(smp.count)), np.zeros(len(smp.count))),
+    )
     fixed = error(screened_poisson(q, n, depth=8).mesh)
     assert adaptive < 0.9 * fixed, (adaptive, fixed)

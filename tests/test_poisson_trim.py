@@ -65,7 +65,9 @@ def test_small_islands_filled_and_dropped():
     rep = _manifold_oriented(m)
     assert rep["components"] == 1 and rep["boundary_loops"] == 1
     assert m.vertices[:, 2].max() > 0.999  # the dip stayed
-    assert m.vertices[:, 2].min() >= 0.2 - 1e-4 and not (m.vertices[:, 0] > 0.99).any()  # the bump went
+    assert (
+        m.vertices[:, 2].min() >= 0.2 - 1e-4 and not (m.vertices[:, 0] > 0.99).any()
+    )  # the bump went
     # with no island rule both stay as they are
     m0 = trim_by_density(s, d, 0.2, island_ratio=0.0).mesh
     assert topology_report(m0)["components"] == 2 and topology_report(m0)["boundary_loops"] == 3
@@ -96,7 +98,10 @@ def test_single_view_scans_lose_the_sheet_keep_the_scan(name, seed):
     cell = res.report["finest_cell"]
     local = (m.vertices - off) @ rot  # back in the shape's frame
     dist = np.abs(sdf(local))
-    assert np.quantile(dist, 0.99) < 2.5 * cell and dist.max() < 3 * cell, (dist.max(), cell)  # no sheet left
+    assert np.quantile(dist, 0.99) < 2.5 * cell and dist.max() < 3 * cell, (
+        dist.max(),
+        cell,
+    )  # no sheet left
     from scipy.spatial import cKDTree
 
     covered = cKDTree(local).query(pts)[0] < 2 * cell

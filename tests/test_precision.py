@@ -73,7 +73,9 @@ def test_normals_far_from_origin_as_at_origin(where, tmp_path):
 def test_poisson_far_from_origin_as_at_origin(where, tmp_path):
     p0, n0 = sphere_cloud(20_000, radius=10.0)
     ref = apply_stage("poisson", PointCloud(points=p0, normals=n0), {"depth": 6}).output
-    out = apply_stage("poisson", PointCloud(points=p0 + _offset(where), normals=n0), {"depth": 6}).output
+    out = apply_stage(
+        "poisson", PointCloud(points=p0 + _offset(where), normals=n0), {"depth": 6}
+    ).output
     e0 = _radius_errors(ref.vertices, np.zeros(3), 10.0)
     e = _radius_errors(out.vertices, _offset(where), 10.0)
     assert len(out.faces) == len(ref.faces)
@@ -81,7 +83,10 @@ def test_poisson_far_from_origin_as_at_origin(where, tmp_path):
     assert np.median(e) <= 1.05 * np.median(e0) + 1e-6
     assert e.max() <= 1.05 * e0.max() + 1e-6
     back = _assert_double(out, tmp_path)
-    assert np.median(_radius_errors(back.vertices, _offset(where), 10.0)) <= 1.05 * np.median(e0) + 1e-6
+    assert (
+        np.median(_radius_errors(back.vertices, _offset(where), 10.0))
+        <= 1.05 * np.median(e0) + 1e-6
+    )
 
 
 @pytest.mark.parametrize("where", FAR)
@@ -91,8 +96,10 @@ def test_ballpivot_far_from_origin_as_at_origin(where, tmp_path):
     out = apply_stage("ballpivot", PointCloud(points=p0 + _offset(where), normals=n0)).output
     np.testing.assert_array_equal(out.vertices, p0 + _offset(where))
     # the same triangles as at the origin (ball centres are computed about a local origin)
-    assert np.array_equal(np.sort(out.faces, axis=1)[np.lexsort(np.sort(out.faces, axis=1).T)],
-                          np.sort(ref.faces, axis=1)[np.lexsort(np.sort(ref.faces, axis=1).T)])
+    assert np.array_equal(
+        np.sort(out.faces, axis=1)[np.lexsort(np.sort(out.faces, axis=1).T)],
+        np.sort(ref.faces, axis=1)[np.lexsort(np.sort(ref.faces, axis=1).T)],
+    )
     _assert_double(out, tmp_path)
 
 
@@ -152,7 +159,9 @@ def test_sdf_and_mcubes_far_from_origin_as_at_origin(where, source, tmp_path):
     m = apply_stage("mcubes", g_back).output
     assert np.array_equal(m.faces, m0.faces)
     # vertices in world units: the grid's double origin plus the same local positions
-    np.testing.assert_allclose(m.vertices, m0.vertices + _offset(where), rtol=0, atol=1e-6 * g0.voxel_size)
+    np.testing.assert_allclose(
+        m.vertices, m0.vertices + _offset(where), rtol=0, atol=1e-6 * g0.voxel_size
+    )
     _assert_double(m, tmp_path)
 
 
@@ -195,10 +204,21 @@ def test_utm_normals_then_poisson_on_the_command_line_as_at_origin(tmp_path):
     for where in ("origin", "utm"):
         p, _ = sphere_cloud(20_000, radius=10.0, centre=FAR_OFFSETS[where])
         write_ply(PointCloud(points=p), tmp_path / f"{where}.ply")
-        normals = subprocess.run([*RECON, "-q", "normals", str(tmp_path / f"{where}.ply"), "-"], capture_output=True,
-                                 check=True, env=env, timeout=300).stdout
-        subprocess.run([*RECON, "-q", "poisson", "--depth", "7", "-", str(tmp_path / f"{where}.mesh.ply")],
-                       input=normals, capture_output=True, check=True, env=env, timeout=300)
+        normals = subprocess.run(
+            [*RECON, "-q", "normals", str(tmp_path / f"{where}.ply"), "-"],
+            capture_output=True,
+            check=True,
+            env=env,
+            timeout=300,
+        ).stdout
+        subprocess.run(
+            [*RECON, "-q", "poisson", "--depth", "7", "-", str(tmp_path / f"{where}.mesh.ply")],
+            input=normals,
+            capture_output=True,
+            check=True,
+            env=env,
+            timeout=300,
+        )
         mesh = read_ply(tmp_path / f"{where}.mesh.ply")
         assert mesh.point_dtype == np.float64 and mesh.vertices.dtype == np.float64
         errors[where] = _radius_errors(mesh.vertices, _offset(where), 10.0)
@@ -254,7 +274,9 @@ def test_float32_source_far_away_is_written_double_with_a_note(where, tmp_path):
     assert mesh.point_dtype == np.float32 and storage_dtype(mesh) == np.float64
     bound = float(np.spacing(np.float32(np.abs(mesh.vertices).max()))) / 2  # half a float32 ulp
     assert bound > tol.precision * 35
-    assert res.report["precision"].startswith(f"coordinates kept as double: float32 would round them by up to {bound:.3g}")
+    assert res.report["precision"].startswith(
+        f"coordinates kept as double: float32 would round them by up to {bound:.3g}"
+    )
     back = read_ply(_file_of(mesh, tmp_path))
     assert back.point_dtype == np.float64
     np.testing.assert_array_equal(back.vertices, mesh.vertices)
@@ -262,7 +284,11 @@ def test_float32_source_far_away_is_written_double_with_a_note(where, tmp_path):
 
 def test_float32_values_in_a_float64_array_stay_float32(tmp_path):
     """Float64 arrays holding float32 values (a stage that converted and kept them) lose nothing as float32."""
-    p = sphere_cloud(100, radius=10.0, centre=FAR_OFFSETS["utm"])[0].astype(np.float32).astype(np.float64)
+    p = (
+        sphere_cloud(100, radius=10.0, centre=FAR_OFFSETS["utm"])[0]
+        .astype(np.float32)
+        .astype(np.float64)
+    )
     cloud = PointCloud(points=p, point_dtype=np.float32)
     assert storage_dtype(cloud) == np.float32
     back = read_ply(_file_of(cloud, tmp_path))
@@ -289,12 +315,19 @@ def test_grid_point_dtype_defaults_and_checks(tmp_path):
 
 @pytest.mark.parametrize(
     "types, double",
-    [(("float", "float", "float"), False), (("short", "uchar", "float"), False), (("double", "float", "float"), True),
-     (("int", "int", "int"), True), (("uint", "float", "float"), True)],
+    [
+        (("float", "float", "float"), False),
+        (("short", "uchar", "float"), False),
+        (("double", "float", "float"), True),
+        (("int", "int", "int"), True),
+        (("uint", "float", "float"), True),
+    ],
 )
 def test_ply_source_type(types, double, tmp_path):
     """A file's coordinates are a float32 source only when float32 holds every column exactly."""
-    header = "ply\nformat ascii 1.0\nelement vertex 2\n" + "".join(f"property {t} {c}\n" for t, c in zip(types, "xyz"))
+    header = "ply\nformat ascii 1.0\nelement vertex 2\n" + "".join(
+        f"property {t} {c}\n" for t, c in zip(types, "xyz")
+    )
     path = tmp_path / "t.ply"
     big = types[0] in ("double", "int", "uint")
     path.write_text(header + "end_header\n" + ("16777217" if big else "7") + " 3 1\n1 2 3\n")
@@ -307,7 +340,11 @@ def test_ply_source_type(types, double, tmp_path):
 
 
 def test_coordinates_beyond_float32_range_are_written_double(tmp_path):
-    mesh = TriangleMesh(np.array([[0.0, 0.0, 0.0], [1e39, 0.0, 0.0], [0.0, 1e39, 0.0]]), [[0, 1, 2]], point_dtype=np.float32)
+    mesh = TriangleMesh(
+        np.array([[0.0, 0.0, 0.0], [1e39, 0.0, 0.0], [0.0, 1e39, 0.0]]),
+        [[0, 1, 2]],
+        point_dtype=np.float32,
+    )
     assert storage_dtype(mesh) == np.float64
     res = apply_stage("repair", mesh)
     assert res.report["precision"] == "coordinates kept as double: they exceed the float32 range"

@@ -24,7 +24,9 @@ DAMAGE = {
     "duplicates": lambda m, rng: D.duplicate_faces(m, rng, 80),
     "fins": lambda m, rng: D.glue_fins(m, rng, 30),
     "split_vertices": lambda m, rng: D.split_vertices(m, rng, 0.03),
-    "all": lambda m, rng: D.glue_fins(D.duplicate_faces(D.flip_faces(D.split_vertices(m, rng), rng), rng), rng),
+    "all": lambda m, rng: D.glue_fins(
+        D.duplicate_faces(D.flip_faces(D.split_vertices(m, rng), rng), rng), rng
+    ),
 }
 
 
@@ -76,7 +78,24 @@ def test_clean_meshes_pass_through_unchanged(name):
         mesh = compacted(mesh)
     out, rep = repair(mesh)
     assert np.array_equal(out.faces, mesh.faces) and np.array_equal(out.vertices, mesh.vertices)
-    changes = [k for k, v in rep.items() if k.endswith(("_removed", "_merged", "_dropped", "_detached", "_split", "_added", "_flipped", "_reversed", "_cut")) and v]
+    changes = [
+        k
+        for k, v in rep.items()
+        if k.endswith(
+            (
+                "_removed",
+                "_merged",
+                "_dropped",
+                "_detached",
+                "_split",
+                "_added",
+                "_flipped",
+                "_reversed",
+                "_cut",
+            )
+        )
+        and v
+    ]
     assert changes == []
     assert rep["watertight"] == (name in CLOSED_MESHES)
 
@@ -93,7 +112,12 @@ def test_damaged_closed_meshes_come_back(name, kind):
     rng = np.random.default_rng(3)
     bad = DAMAGE[kind](mesh, rng)
     before = report(bad)
-    assert not (before["edge_manifold"] and before["vertex_manifold"] and before["consistently_oriented"] and before["duplicate_faces"] == 0)
+    assert not (
+        before["edge_manifold"]
+        and before["vertex_manifold"]
+        and before["consistently_oriented"]
+        and before["duplicate_faces"] == 0
+    )
     out, rep = repair(bad)
     after = assert_clean(out, closed=True)
     assert after["genus"] == ref["genus"] and after["components"] == 1
@@ -124,7 +148,9 @@ def test_inward_mesh_is_turned_outward():
 def test_open_mesh_follows_vertex_normals():
     mesh = compacted(load_shared("bunny_zipper"))
     # the file is wound outward; true outward vertex normals from the faces
-    fn = np.cross(*(mesh.vertices[mesh.faces[:, 1:]] - mesh.vertices[mesh.faces[:, :1]]).transpose(1, 0, 2))
+    fn = np.cross(
+        *(mesh.vertices[mesh.faces[:, 1:]] - mesh.vertices[mesh.faces[:, :1]]).transpose(1, 0, 2)
+    )
     vn = np.zeros_like(mesh.vertices)
     np.add.at(vn, mesh.faces.ravel(), np.repeat(fn, 3, axis=0))
     rng = np.random.default_rng(0)
@@ -159,10 +185,15 @@ def test_pinched_real_mesh_is_split():
     rm, lm = int(np.argmax(v0[:, 0])), int(np.argmin(v0[:, 0]))
     f1 = mesh.faces + n
     f1[f1 == lm + n] = rm
-    pinched = TriangleMesh(vertices=np.concatenate([v0, v0 + (v0[rm] - v0[lm])]), faces=np.concatenate([mesh.faces, f1]))
+    pinched = TriangleMesh(
+        vertices=np.concatenate([v0, v0 + (v0[rm] - v0[lm])]),
+        faces=np.concatenate([mesh.faces, f1]),
+    )
     out, rep = repair(pinched)
     after = assert_clean(out)
-    assert rep["non_manifold_vertices_split"] == 1 and after["components"] == 2 and after["genus"] == 2
+    assert (
+        rep["non_manifold_vertices_split"] == 1 and after["components"] == 2 and after["genus"] == 2
+    )
     assert after["volume"] == pytest.approx(2 * report(mesh)["volume"], rel=1e-6)
 
 
@@ -190,7 +221,12 @@ def test_hole_filling_on_bunny_base():
     mesh = load_shared("bunny_zipper")
     out, rep = repair(mesh, fill_holes=400)
     after = assert_clean(out)
-    assert rep["holes"] == 5 and rep["holes_filled"] == 5 and after["watertight"] and after["genus"] == 0
+    assert (
+        rep["holes"] == 5
+        and rep["holes_filled"] == 5
+        and after["watertight"]
+        and after["genus"] == 0
+    )
     assert after["volume"] > 0
 
 
@@ -219,7 +255,9 @@ def test_merge_tolerance():
     rng = np.random.default_rng(5)
     soup = D.split_vertices(mesh, rng, 0.05)
     jitter = soup.vertices.copy()
-    jitter[len(mesh.vertices) :] += rng.normal(scale=1e-9 * bbox_diagonal(mesh.vertices), size=jitter[len(mesh.vertices) :].shape)
+    jitter[len(mesh.vertices) :] += rng.normal(
+        scale=1e-9 * bbox_diagonal(mesh.vertices), size=jitter[len(mesh.vertices) :].shape
+    )
     soup = TriangleMesh(vertices=jitter, faces=soup.faces)
     exact, rep0 = repair(soup)
     assert rep0["vertices_merged"] == 0 and not rep0["watertight"]
@@ -234,8 +272,13 @@ def test_merge_tolerance():
 def test_small_components():
     kitten = load_shared("kitten")
     arm = load_shared("armadillo")
-    small = TriangleMesh(vertices=kitten.vertices * 3 + 400, faces=kitten.faces)  # 12100 faces vs 50000
-    both = TriangleMesh(vertices=np.concatenate([arm.vertices, small.vertices]), faces=np.concatenate([arm.faces, small.faces + len(arm.vertices)]))
+    small = TriangleMesh(
+        vertices=kitten.vertices * 3 + 400, faces=kitten.faces
+    )  # 12100 faces vs 50000
+    both = TriangleMesh(
+        vertices=np.concatenate([arm.vertices, small.vertices]),
+        faces=np.concatenate([arm.faces, small.faces + len(arm.vertices)]),
+    )
     out, rep = repair(both, min_component=0.2)
     assert rep["components_removed"] == 1 and rep["component_faces_removed"] == len(kitten.faces)
     assert np.array_equal(out.faces, arm.faces) and np.array_equal(out.vertices, arm.vertices)
@@ -253,7 +296,14 @@ def test_pymeshlab_chain_agrees_on_counts():
     ref = pymeshlab_backend.repair(bad)
     assert len(out.faces) == len(ref.faces) == len(mesh.faces)
     ours, theirs = report(out), report(ref)
-    for k in ("edges", "components", "boundary_edges", "genus", "watertight", "consistently_oriented"):
+    for k in (
+        "edges",
+        "components",
+        "boundary_edges",
+        "genus",
+        "watertight",
+        "consistently_oriented",
+    ):
         assert ours[k] == theirs[k], k
     assert abs(ours["volume"]) == pytest.approx(abs(theirs["volume"]), rel=1e-9)
 
@@ -278,14 +328,21 @@ def test_marching_cubes_output_passes_unchanged():
     verts, faces, _, _ = marching_cubes(torus, 0.0, spacing=(g[1] - g[0],) * 3)
     mesh = TriangleMesh(vertices=verts, faces=faces)
     rep0 = report(mesh)
-    assert rep0["watertight"] and rep0["genus"] == 1 and rep0["volume"] > 0 and rep0["degenerate_faces"] == 0
+    assert (
+        rep0["watertight"]
+        and rep0["genus"] == 1
+        and rep0["volume"] > 0
+        and rep0["degenerate_faces"] == 0
+    )
     out, rep = repair(mesh)
     assert np.array_equal(out.faces, mesh.faces) and np.array_equal(out.vertices, mesh.vertices)
 
 
 def test_attributes_follow_vertices():
     cones = D.two_cones()
-    cones.normals = cones.vertices / np.maximum(np.linalg.norm(cones.vertices, axis=1, keepdims=True), 1e-9)
+    cones.normals = cones.vertices / np.maximum(
+        np.linalg.norm(cones.vertices, axis=1, keepdims=True), 1e-9
+    )
     cones.colors = np.arange(len(cones.vertices) * 3, dtype=np.uint8).reshape(-1, 3)
     cones.attributes = {"q": np.arange(len(cones.vertices), dtype=np.float32)}
     cones.face_attributes = {"label": np.arange(len(cones.faces), dtype=np.int32)}
@@ -306,7 +363,9 @@ REPAIR_KEYS = [
 
 def test_parameters_strings_and_errors():
     mesh = load_shared("kitten")
-    out, rep = repair(mesh, merge_tolerance="exact", fill_holes="5", min_component="0", keep_largest="false")
+    out, rep = repair(
+        mesh, merge_tolerance="exact", fill_holes="5", min_component="0", keep_largest="false"
+    )
     assert np.array_equal(out.faces, mesh.faces) and rep["merge_distance"] == 0
     assert list(rep) == REPAIR_KEYS and list(repair(mesh)[1]) == REPAIR_KEYS
     for kw in (
@@ -322,7 +381,9 @@ def test_parameters_strings_and_errors():
             repair(mesh, **kw)
     with pytest.raises(InputError):
         repair(sampled_cloud("kitten", 100))
-    bad = TriangleMesh(vertices=np.array([[0, 0, 0], [1, 0, 0], [np.nan, 0, 0]]), faces=np.array([[0, 1, 2]]))
+    bad = TriangleMesh(
+        vertices=np.array([[0, 0, 0], [1, 0, 0], [np.nan, 0, 0]]), faces=np.array([[0, 1, 2]])
+    )
     with pytest.raises(InputError):
         repair(bad)
 
@@ -337,7 +398,11 @@ def test_stage_and_cli(tmp_path):
     bad = D.flip_faces(mesh, np.random.default_rng(1))
     bad.history = ["earlier line"]
     res = apply_stage("repair", bad, {"fill_holes": 10})
-    assert res.output.history[0] == "earlier line" and res.output.history[-1].startswith("recon ") and "repair" in res.output.history[-1]
+    assert (
+        res.output.history[0] == "earlier line"
+        and res.output.history[-1].startswith("recon ")
+        and "repair" in res.output.history[-1]
+    )
     assert res.report["stage"] == "repair" and res.report["watertight"] is True
     assert isinstance(run_stage(bad), type(res))
     src = tmp_path / "bad.ply"
@@ -349,7 +414,9 @@ def test_stage_and_cli(tmp_path):
     assert np.array_equal(fixed.faces, mesh.faces)
     r = CliRunner().invoke(cli, ["repair", str(src), str(dst), "--backend", "pymeshlab"])
     assert r.exit_code == 0, r.output
-    assert report(read_ply(dst))["consistently_oriented"] and len(read_ply(dst).faces) == len(mesh.faces)
+    assert report(read_ply(dst))["consistently_oriented"] and len(read_ply(dst).faces) == len(
+        mesh.faces
+    )
     with pytest.raises(ParameterError):
         run_stage(bad, backend="pymeshlab", keep_largest=True)
     with pytest.raises(ParameterError):
@@ -373,14 +440,19 @@ soups = st.integers(min_value=3, max_value=30).flatmap(
 @given(soups)
 def test_repair_of_any_soup_is_manifold_and_oriented(soup):
     v, f, fill, tolerance = soup
-    mesh = TriangleMesh(vertices=np.array(v, dtype=float).reshape(-1, 3), faces=np.array(f, dtype=np.int64).reshape(-1, 3))
+    mesh = TriangleMesh(
+        vertices=np.array(v, dtype=float).reshape(-1, 3),
+        faces=np.array(f, dtype=np.int64).reshape(-1, 3),
+    )
     out, rep = repair(mesh, fill_holes=fill, merge_tolerance=tolerance)
     after = assert_clean(out)
     assert rep["faces_out"] == len(out.faces) and after["faces"] == len(out.faces)
     # a clean output passes unchanged (split vertices coincide with their twins: that is not clean)
     if len(np.unique(out.vertices, axis=0)) == len(out.vertices):
         twice, _ = repair(out)
-        assert np.array_equal(twice.faces, out.faces) and np.array_equal(twice.vertices, out.vertices)
+        assert np.array_equal(twice.faces, out.faces) and np.array_equal(
+            twice.vertices, out.vertices
+        )
 
 
 def test_our_marching_cubes_output_passes_unchanged():
@@ -392,7 +464,12 @@ def test_our_marching_cubes_output_passes_unchanged():
     v, f, *_ = marching_cubes(torus, 0.0, spacing=g[1] - g[0], origin=(g[0],) * 3)
     mesh = TriangleMesh(vertices=v, faces=f)
     rep0 = report(mesh)
-    assert rep0["watertight"] and rep0["genus"] == 1 and rep0["consistently_oriented"] and rep0["volume"] > 0
+    assert (
+        rep0["watertight"]
+        and rep0["genus"] == 1
+        and rep0["consistently_oriented"]
+        and rep0["volume"] > 0
+    )
     out, rep = repair(mesh)
     assert np.array_equal(out.faces, mesh.faces) and np.array_equal(out.vertices, mesh.vertices)
 

@@ -148,7 +148,14 @@ def test_round_trip_mesh_sdf_mcubes(name):
     g = apply_stage("sdf", m, {"resolution": 48}).output
     out = apply_stage("mcubes", g, {}).output
     assert out.normals is not None
-    cnt = np.unique(np.sort(np.concatenate([out.faces[:, [0, 1]], out.faces[:, [1, 2]], out.faces[:, [2, 0]]]), axis=1), axis=0, return_counts=True)[1]
+    cnt = np.unique(
+        np.sort(
+            np.concatenate([out.faces[:, [0, 1]], out.faces[:, [1, 2]], out.faces[:, [2, 0]]]),
+            axis=1,
+        ),
+        axis=0,
+        return_counts=True,
+    )[1]
     assert cnt.min() == 2 and cnt.max() == 2  # watertight, edge-manifold
     mean, _ = chamfer(m, out)
     assert mean < g.voxel_size
@@ -174,7 +181,9 @@ def test_point_cloud_imls():
     cloud = sampled_cloud("kitten", 30_000)
     res = apply_stage("sdf", cloud, {"resolution": 64})
     g = res.output
-    assert res.report["source"] == "cloud" and res.report["unknown_samples"] > 0.3 * np.prod(g.shape)
+    assert res.report["source"] == "cloud" and res.report["unknown_samples"] > 0.3 * np.prod(
+        g.shape
+    )
     out = apply_stage("mcubes", g, {}).output
     mean, mx = chamfer(m, out)
     assert mean < 0.25 * g.voxel_size
@@ -227,7 +236,14 @@ def test_validation_and_cli(tmp_path):
 
     v, f = box_mesh()
     mesh = TriangleMesh(vertices=v, faces=f)
-    for bad in ({"resolution": 1}, {"sign": "x"}, {"band": -1}, {"padding": -0.1}, {"knn": 0}, {"voxel_size": "abc"}):
+    for bad in (
+        {"resolution": 1},
+        {"sign": "x"},
+        {"band": -1},
+        {"padding": -0.1},
+        {"knn": 0},
+        {"voxel_size": "abc"},
+    ):
         with pytest.raises(ParameterError):
             apply_stage("sdf", mesh, bad)
     res = apply_stage("sdf", mesh, {"voxel_size": "0.25", "band": "2"})
@@ -237,7 +253,9 @@ def test_validation_and_cli(tmp_path):
     src = tmp_path / "box.ply"
     write_ply(mesh, src)
     out = tmp_path / "box.npz"
-    r = CliRunner().invoke(cli, ["sdf", str(src), str(out), "--resolution", "16", "--sign", "pseudonormal", "--json"])
+    r = CliRunner().invoke(
+        cli, ["sdf", str(src), str(out), "--resolution", "16", "--sign", "pseudonormal", "--json"]
+    )
     assert r.exit_code == 0, r.output
     g = read_grid(out)
     assert g.sdf.dtype == np.float32 and g.shape[2] >= 17
@@ -259,7 +277,9 @@ def test_open3d_backend_agrees_with_native_and_is_meshes_only():
     # Open3D works in float32: agreement to float32 rounding of the coordinates
     assert np.abs(ours.output.sdf - ref.output.sdf).max() < 1e-5 * diag
     with pytest.raises(ParameterError, match="meshes only"):
-        sdf_stage(PointCloud(points=mesh.vertices, normals=np.ones_like(mesh.vertices)), backend="open3d")
+        sdf_stage(
+            PointCloud(points=mesh.vertices, normals=np.ones_like(mesh.vertices)), backend="open3d"
+        )
 
 
 @pytest.mark.parametrize("name", CLOSED_MESHES)
@@ -271,7 +291,9 @@ def test_closed_mesh_signs_by_classes_agree_with_pseudonormals(name):
     origin, h, shape = grid_frame(m.vertices.min(0), m.vertices.max(0), 64)
     sdf, info = mesh_sdf(m.vertices, m.faces, origin, h, shape, sign="winding")
     assert info["sign_method"] == "classes" and info["winding_numbers"] == [0, 1]
-    assert 2 <= info["winding_evaluations"] == info["regions"] < sdf.size / 50  # thin walls: singletons
+    assert (
+        2 <= info["winding_evaluations"] == info["regions"] < sdf.size / 50
+    )  # thin walls: singletons
     pn, pinfo = mesh_sdf(m.vertices, m.faces, origin, h, shape, sign="pseudonormal")
     assert pinfo["sign_method"] == "pseudonormal"
     off = np.abs(sdf) > 0.5 * h
@@ -382,7 +404,9 @@ def test_closed_mesh_sign_is_exact_winding_number(idx):
     w = _reference_winding(v, f, p[far])
     assert np.abs(w - np.round(w)).max() < 0.02, name  # the reference is sure of itself
     inside = np.round(w) != 0
-    assert inside.any() or name.startswith(("thin_box", "bent_sheet")), name  # thinner than the voxel
+    assert inside.any() or name.startswith(("thin_box", "bent_sheet")), (
+        name
+    )  # thinner than the voxel
     wrong = np.flatnonzero((s[far] < 0) != inside)
     assert len(wrong) == 0, f"{name}: {len(wrong)} of {far.sum()} samples with the wrong sign"
     # the distances do not depend on the sign method
@@ -414,7 +438,9 @@ def test_side_classes_are_the_components_of_the_link_graph(seed):
         rows.append(idx[tuple(a)][ok])
         cols.append(idx[tuple(b)][ok])
     r, c = np.concatenate(rows), np.concatenate(cols)
-    n_ref, lab_ref = connected_components(coo_matrix((np.ones(len(r)), (r, c)), shape=(d.size, d.size)), directed=False)
+    n_ref, lab_ref = connected_components(
+        coo_matrix((np.ones(len(r)), (r, c)), shape=(d.size, d.size)), directed=False
+    )
     for dtype in (np.int32, np.int64):
         lab = np.empty(d.size, dtype)
         n, rep = K.side_classes(np.ascontiguousarray(d), link, lab)
@@ -435,7 +461,10 @@ def test_boundary_free_and_signed_volume():
 
     v, f = icosphere(2)
     assert is_boundary_free(f) and is_boundary_free(f[:, ::-1])
-    assert signed_volume(v, f) == pytest.approx(4 / 3 * np.pi, rel=0.05) and signed_volume(v, f[:, ::-1]) < 0
+    assert (
+        signed_volume(v, f) == pytest.approx(4 / 3 * np.pi, rel=0.05)
+        and signed_volume(v, f[:, ::-1]) < 0
+    )
     assert not is_boundary_free(f[1:])  # a hole
     g = f.copy()
     g[0] = g[0, ::-1]  # one face flipped against its neighbours

@@ -26,7 +26,7 @@ UNUSED: set[str] = {
     "recon_cli.poisson._bspline.splat_rhs",
 }
 
-AFTER = r'''
+AFTER = r"""
 import sys, json
 from numba.core import event
 compiled = []
@@ -52,28 +52,48 @@ runs = [
 for args in runs:
     cli.main(args=["-q", *args], prog_name="recon", standalone_mode=False)
 print(json.dumps(compiled))
-'''
+"""
 
 
 @pytest.mark.slow
 def test_no_command_compiles_after_warmup(tmp_path):
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"))
-    warm = subprocess.run([sys.executable, "-m", "recon_cli.cli.main", "warmup", "--json"], env=env,
-                          capture_output=True, text=True, cwd=ROOT)
+    warm = subprocess.run(
+        [sys.executable, "-m", "recon_cli.cli.main", "warmup", "--json"],
+        env=env,
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
     assert warm.returncode == 0, warm.stderr
     report = json.loads(warm.stdout)
     assert report["failed"] == [] and report["cache_dir"] == str(tmp_path / "cache")
     assert set(report["uncompiled"]) <= UNUSED, set(report["uncompiled"]) - UNUSED
-    assert report["bytecode"] is True  # every module's .pyc written: no command compiles Python source
+    assert (
+        report["bytecode"] is True
+    )  # every module's .pyc written: no command compiles Python source
     # the ballpivot/mcubes kernels compiled ahead of time (a C compiler is on every machine make install runs on)
     assert report["aot_built"] is True and report["aot_reason"] is None, report["aot_reason"]
     assert report["aot_dir"].startswith(str(tmp_path / "cache" / "aot"))
-    for module in ("recon_cli/ballpivot/__init__.py", "recon_cli/mcubes/_kernel.py", "recon_cli/cli/main.py"):
+    for module in (
+        "recon_cli/ballpivot/__init__.py",
+        "recon_cli/mcubes/_kernel.py",
+        "recon_cli/cli/main.py",
+    ):
         assert Path(importlib.util.cache_from_source(str(ROOT / module))).is_file(), module
     after = subprocess.run(
-        [sys.executable, "-c", AFTER, str(tmp_path), str(ROOT / "sample_data" / "bunny_scan_000.ply"),
-         str(shared_path("kitten"))],
-        env=env, capture_output=True, text=True, cwd=ROOT,
+        [
+            sys.executable,
+            "-c",
+            AFTER,
+            str(tmp_path),
+            str(ROOT / "sample_data" / "bunny_scan_000.ply"),
+            str(shared_path("kitten")),
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
     )
     assert after.returncode == 0, after.stderr
     assert json.loads(after.stdout.strip().splitlines()[-1]) == []

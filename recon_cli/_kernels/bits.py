@@ -16,7 +16,12 @@ from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache
 @intrinsic
 def mulhi64(typingctx, a, b):
     """The high 64 bits of the 128-bit product of the uint64 ``a`` and ``b``."""
-    if not (isinstance(a, types.Integer) and isinstance(b, types.Integer) and a.bitwidth == 64 and b.bitwidth == 64):
+    if not (
+        isinstance(a, types.Integer)
+        and isinstance(b, types.Integer)
+        and a.bitwidth == 64
+        and b.bitwidth == 64
+    ):
         return None
 
     def codegen(context, builder, signature, args):
@@ -89,4 +94,3 @@ def f64_from_bits(typingctx, bits):
         return builder.bitcast(args[0], ir.DoubleType())
 
     return types.float64(bits), codegen
-

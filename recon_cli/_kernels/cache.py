@@ -21,10 +21,14 @@ def kernel_sources_fingerprint(root: str | None = None) -> str:
         dirs[:] = sorted(d for d in dirs if d != "__pycache__")
         in_kernels = os.path.basename(folder) == "_kernels"
         for name in sorted(files):
-            if name.endswith(".py") and (in_kernels or (name.startswith("_") and not name.startswith("__"))):
+            if name.endswith(".py") and (
+                in_kernels or (name.startswith("_") and not name.startswith("__"))
+            ):
                 path = os.path.join(folder, name)
                 st = os.stat(path)
-                h.update(f"{os.path.relpath(path, root)}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+                h.update(
+                    f"{os.path.relpath(path, root)}\0{st.st_size}\0{st.st_mtime_ns}\n".encode()
+                )
     return h.hexdigest()
 
 

@@ -97,8 +97,16 @@ def fingerprint() -> str:
     import hashlib
 
     h = hashlib.blake2b(digest_size=8)
-    parts = [FORMAT, kernel_sources_fingerprint(), _package_stamp("numba"), _package_stamp("llvmlite"), np.__version__,
-             sys.version, sys.implementation.cache_tag, _cpu_id()]
+    parts = [
+        FORMAT,
+        kernel_sources_fingerprint(),
+        _package_stamp("numba"),
+        _package_stamp("llvmlite"),
+        np.__version__,
+        sys.version,
+        sys.implementation.cache_tag,
+        _cpu_id(),
+    ]
     h.update("\n\0".join(parts).encode())
     return h.hexdigest()
 
@@ -193,7 +201,9 @@ class _Kernels:
         # a kernel the build has no variant of gets a dispatcher over none: it imports its
         # module (numba) only if it is called
         variants = self._table.get(attr, {})
-        value = _dispatcher(self.__name__, attr, {k: getattr(self._ext, v) for k, v in variants.items()})
+        value = _dispatcher(
+            self.__name__, attr, {k: getattr(self._ext, v) for k, v in variants.items()}
+        )
         setattr(self, attr, value)
         return value
 

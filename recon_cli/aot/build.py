@@ -48,7 +48,9 @@ def numba_type_key(t: Any) -> str | None:
     return None
 
 
-def exports(module_name: str) -> tuple[list[tuple[str, Any, Any]], dict[str, dict[str, str]], list[str]]:
+def exports(
+    module_name: str,
+) -> tuple[list[tuple[str, Any, Any]], dict[str, dict[str, str]], list[str]]:
     """What to export from ``module_name``: (export name, signature, function) triples, the
     manifest's table ``{kernel: {signature key: export name}}``, and the kernels left to JIT (why)."""
     from numba.core.registry import CPUDispatcher
@@ -58,7 +60,11 @@ def exports(module_name: str) -> tuple[list[tuple[str, Any, Any]], dict[str, dic
     table: dict[str, dict[str, str]] = {}
     skipped: list[str] = []
     for name, obj in sorted(vars(mod).items()):
-        if not isinstance(obj, CPUDispatcher) or obj.py_func.__module__ != module_name or name.startswith("_"):
+        if (
+            not isinstance(obj, CPUDispatcher)
+            or obj.py_func.__module__ != module_name
+            or name.startswith("_")
+        ):
             continue
         if obj.targetoptions.get("parallel"):
             skipped.append(f"{name} (parallel)")
@@ -102,8 +108,12 @@ def _extension_name(module_name: str) -> str:
     return "recon_aot_" + module_name.replace(".", "_")
 
 
-def build(modules: tuple[str, ...] = aot.MODULES, c_libraries: dict[str, str] | None = None,
-          log: Callable[[str], None] | None = None, force: bool = False) -> dict:
+def build(
+    modules: tuple[str, ...] = aot.MODULES,
+    c_libraries: dict[str, str] | None = None,
+    log: Callable[[str], None] | None = None,
+    force: bool = False,
+) -> dict:
     """Build the extensions of ``modules`` (and the C ``c_libraries``, name -> source) into
     :func:`~recon_cli.aot.build_dir`.
 
@@ -112,14 +122,27 @@ def build(modules: tuple[str, ...] = aot.MODULES, c_libraries: dict[str, str] | 
     """
     t0 = time.perf_counter()
     target = aot.build_dir()
-    out: dict[str, Any] = {"built": False, "dir": target, "modules": [], "skipped": [], "reason": None}
+    out: dict[str, Any] = {
+        "built": False,
+        "dir": target,
+        "modules": [],
+        "skipped": [],
+        "reason": None,
+    }
     if not aot.enabled():
         out["reason"] = "RECON_AOT=0"
         return out
     have = aot.manifest()
-    wanted = set(modules) <= set(have.get("modules", {})) and set(c_libraries or {}) <= set(have.get("libraries", {}))
+    wanted = set(modules) <= set(have.get("modules", {})) and set(c_libraries or {}) <= set(
+        have.get("libraries", {})
+    )
     if not force and wanted:
-        out.update(built=True, reason="up to date", modules=list(have["modules"]), libraries=sorted(have["libraries"]))
+        out.update(
+            built=True,
+            reason="up to date",
+            modules=list(have["modules"]),
+            libraries=sorted(have["libraries"]),
+        )
         return out
     problem = compiler_problem()
     if problem:
@@ -132,7 +155,11 @@ def build(modules: tuple[str, ...] = aot.MODULES, c_libraries: dict[str, str] | 
     parent = os.path.dirname(target)
     os.makedirs(parent, exist_ok=True)
     work = tempfile.mkdtemp(prefix=".build-", dir=parent)
-    manifest: dict[str, Any] = {"fingerprint": os.path.basename(target), "modules": {}, "libraries": {}}
+    manifest: dict[str, Any] = {
+        "fingerprint": os.path.basename(target),
+        "modules": {},
+        "libraries": {},
+    }
     failures = []
     try:
         for name in modules:
@@ -150,9 +177,15 @@ def build(modules: tuple[str, ...] = aot.MODULES, c_libraries: dict[str, str] | 
                         cc.export(export, sig)(fn)
                     cc.compile()
             except Exception as exc:  # noqa: BLE001  (this module stays JIT; the report says why)
-                failures.append(f"{name}: {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}")
+                failures.append(
+                    f"{name}: {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
+                )
                 continue
-            manifest["modules"][name] = {"extension": ext, "file": cc.output_file, "functions": table}
+            manifest["modules"][name] = {
+                "extension": ext,
+                "file": cc.output_file,
+                "functions": table,
+            }
             out["modules"].append(name)
         for lib, source in (c_libraries or {}).items():
             try:
@@ -165,14 +198,18 @@ def build(modules: tuple[str, ...] = aot.MODULES, c_libraries: dict[str, str] | 
                 tc.link_shared(os.path.join(work, file), objs)
                 manifest["libraries"][lib] = file
             except Exception as exc:  # noqa: BLE001
-                failures.append(f"{lib}: {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}")
+                failures.append(
+                    f"{lib}: {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
+                )
         shutil.rmtree(os.path.join(work, "obj"), ignore_errors=True)
         for leaf in os.listdir(work):
             if leaf.endswith(".c"):
                 os.remove(os.path.join(work, leaf))
         with open(os.path.join(work, aot.MANIFEST), "w", encoding="utf-8") as fh:
             json.dump(manifest, fh, indent=1, sort_keys=True)
-        if os.path.exists(target):  # a stale or partial build of this very state (or --force): ours replaces it
+        if os.path.exists(
+            target
+        ):  # a stale or partial build of this very state (or --force): ours replaces it
             shutil.rmtree(target, ignore_errors=True)
         os.replace(work, target)
     finally:

@@ -49,7 +49,12 @@ def from_o3d_cloud(pc, history: list[str] | None = None) -> PointCloud:
     colors = None
     if pc.has_colors():
         colors = np.clip(np.round(np.asarray(pc.colors) * 255), 0, 255).astype(np.uint8)
-    return PointCloud(points=np.asarray(pc.points, dtype=np.float64), normals=normals, colors=colors, history=list(history or []))
+    return PointCloud(
+        points=np.asarray(pc.points, dtype=np.float64),
+        normals=normals,
+        colors=colors,
+        history=list(history or []),
+    )
 
 
 def _colors01(colors: np.ndarray) -> np.ndarray:
@@ -59,7 +64,12 @@ def _colors01(colors: np.ndarray) -> np.ndarray:
     return c.astype(np.float64)
 
 
-def estimate_normals(cloud: PointCloud, knn: int = 30, radius: float | None = None, orient_tangent_plane: int | None = None):
+def estimate_normals(
+    cloud: PointCloud,
+    knn: int = 30,
+    radius: float | None = None,
+    orient_tangent_plane: int | None = None,
+):
     """Open3D ``estimate_normals`` (+ ``orient_normals_consistent_tangent_plane(k)`` if given)."""
     o3d = require("open3d")
     pc = to_o3d_cloud(PointCloud(points=cloud.points))
@@ -69,14 +79,25 @@ def estimate_normals(cloud: PointCloud, knn: int = 30, radius: float | None = No
         param = o3d.geometry.KDTreeSearchParamRadius(radius=radius)
     else:
         param = o3d.geometry.KDTreeSearchParamKNN(knn=knn)
-    record("open3d.geometry.PointCloud.estimate_normals", knn=knn, radius=radius, orient_normals_consistent_tangent_plane=orient_tangent_plane)
+    record(
+        "open3d.geometry.PointCloud.estimate_normals",
+        knn=knn,
+        radius=radius,
+        orient_normals_consistent_tangent_plane=orient_tangent_plane,
+    )
     pc.estimate_normals(param)
     if orient_tangent_plane:
         pc.orient_normals_consistent_tangent_plane(orient_tangent_plane)
     return np.asarray(pc.normals, dtype=np.float64)
 
 
-def poisson(cloud: PointCloud, depth: int = 8, scale: float = 1.1, linear_fit: bool = False, threads: int = 1):
+def poisson(
+    cloud: PointCloud,
+    depth: int = 8,
+    scale: float = 1.1,
+    linear_fit: bool = False,
+    threads: int = 1,
+):
     """Open3D screened Poisson; returns (mesh, densities).
 
     ``threads`` defaults to 1: Open3D 0.20's multi-threaded Poisson crashes the process now
@@ -86,8 +107,13 @@ def poisson(cloud: PointCloud, depth: int = 8, scale: float = 1.1, linear_fit: b
     """
     o3d = require("open3d")
     pc = to_o3d_cloud(cloud)
-    record("open3d.geometry.TriangleMesh.create_from_point_cloud_poisson", depth=depth, scale=scale, linear_fit=linear_fit,
-           n_threads=threads)
+    record(
+        "open3d.geometry.TriangleMesh.create_from_point_cloud_poisson",
+        depth=depth,
+        scale=scale,
+        linear_fit=linear_fit,
+        n_threads=threads,
+    )
     mesh, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
         pc, depth=depth, scale=scale, linear_fit=linear_fit, n_threads=threads
     )
@@ -97,8 +123,13 @@ def poisson(cloud: PointCloud, depth: int = 8, scale: float = 1.1, linear_fit: b
 def ball_pivoting(cloud: PointCloud, radii: list[float]) -> TriangleMesh:
     o3d = require("open3d")
     pc = to_o3d_cloud(cloud)
-    record("open3d.geometry.TriangleMesh.create_from_point_cloud_ball_pivoting", radii=[float(r) for r in radii])
-    mesh = o3d.geometry.TriangleMesh.create_from_point_cloud_ball_pivoting(pc, o3d.utility.DoubleVector(list(radii)))
+    record(
+        "open3d.geometry.TriangleMesh.create_from_point_cloud_ball_pivoting",
+        radii=[float(r) for r in radii],
+    )
+    mesh = o3d.geometry.TriangleMesh.create_from_point_cloud_ball_pivoting(
+        pc, o3d.utility.DoubleVector(list(radii))
+    )
     return from_o3d_mesh(mesh, cloud.history)
 
 
@@ -121,7 +152,11 @@ def unsigned_distance(mesh: TriangleMesh, query: np.ndarray) -> np.ndarray:
         o3d.core.Tensor(np.asarray(mesh.vertices, dtype=np.float32)),
         o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)),
     )
-    return scene.compute_distance(o3d.core.Tensor(np.asarray(query, dtype=np.float32))).numpy().astype(np.float64)
+    return (
+        scene.compute_distance(o3d.core.Tensor(np.asarray(query, dtype=np.float32)))
+        .numpy()
+        .astype(np.float64)
+    )
 
 
 def manifold_checks(mesh: TriangleMesh, self_intersection: bool = True) -> dict:
@@ -141,6 +176,8 @@ def manifold_checks(mesh: TriangleMesh, self_intersection: bool = True) -> dict:
         "vertex_manifold": bool(m.is_vertex_manifold()),
         "watertight": bool(watertight),
         "orientable": bool(m.is_orientable()),
-        "non_manifold_edges": int(len(np.asarray(m.get_non_manifold_edges(allow_boundary_edges=True)))),
+        "non_manifold_edges": int(
+            len(np.asarray(m.get_non_manifold_edges(allow_boundary_edges=True)))
+        ),
         "non_manifold_vertices": int(len(np.asarray(m.get_non_manifold_vertices()))),
     }

@@ -15,7 +15,11 @@ def meshset(obj: PointCloud | TriangleMesh):
     if obj.normals is not None:
         kwargs["v_normals_matrix"] = np.asarray(obj.normals, dtype=np.float64)
     if isinstance(obj, TriangleMesh):
-        m = ml.Mesh(vertex_matrix=np.asarray(obj.vertices, dtype=np.float64), face_matrix=np.asarray(obj.faces, dtype=np.int32), **kwargs)
+        m = ml.Mesh(
+            vertex_matrix=np.asarray(obj.vertices, dtype=np.float64),
+            face_matrix=np.asarray(obj.faces, dtype=np.int32),
+            **kwargs,
+        )
     else:
         m = ml.Mesh(vertex_matrix=np.asarray(obj.points, dtype=np.float64), **kwargs)
     ms = ml.MeshSet()
@@ -38,29 +42,59 @@ def estimate_normals(cloud: PointCloud, knn: int = 10, viewpoint=None) -> np.nda
     kwargs = {"k": knn}
     if viewpoint is not None:
         kwargs["viewpos"] = np.asarray(viewpoint, dtype=np.float64)
-    record("pymeshlab.compute_normal_for_point_clouds", k=knn, viewpos=None if viewpoint is None else [float(x) for x in kwargs["viewpos"]])
+    record(
+        "pymeshlab.compute_normal_for_point_clouds",
+        k=knn,
+        viewpos=None if viewpoint is None else [float(x) for x in kwargs["viewpos"]],
+    )
     ms.compute_normal_for_point_clouds(**kwargs)
     return np.asarray(ms.current_mesh().vertex_normal_matrix(), dtype=np.float64)
 
 
-def poisson(cloud: PointCloud, depth: int = 8, scale: float = 1.1, samples_per_node: float = 1.5, point_weight: float = 4.0) -> TriangleMesh:
+def poisson(
+    cloud: PointCloud,
+    depth: int = 8,
+    scale: float = 1.1,
+    samples_per_node: float = 1.5,
+    point_weight: float = 4.0,
+) -> TriangleMesh:
     ms = meshset(cloud)
-    record("pymeshlab.generate_surface_reconstruction_screened_poisson", depth=depth, scale=scale,
-           samplespernode=samples_per_node, pointweight=point_weight, preclean=False)
+    record(
+        "pymeshlab.generate_surface_reconstruction_screened_poisson",
+        depth=depth,
+        scale=scale,
+        samplespernode=samples_per_node,
+        pointweight=point_weight,
+        preclean=False,
+    )
     ms.generate_surface_reconstruction_screened_poisson(
-        depth=depth, scale=scale, samplespernode=samples_per_node, pointweight=point_weight, preclean=False
+        depth=depth,
+        scale=scale,
+        samplespernode=samples_per_node,
+        pointweight=point_weight,
+        preclean=False,
     )
     return current_mesh(ms, cloud.history)
 
 
-def ball_pivoting(cloud: PointCloud, radius: float | None = None, clustering: float = 20.0, creasethr: float = 90.0) -> TriangleMesh:
+def ball_pivoting(
+    cloud: PointCloud,
+    radius: float | None = None,
+    clustering: float = 20.0,
+    creasethr: float = 90.0,
+) -> TriangleMesh:
     """PyMeshLab ball pivoting; ``radius`` None = its automatic radius."""
     ml = require("pymeshlab")
     ms = meshset(cloud)
     kwargs = {"clustering": clustering, "creasethr": creasethr}
     if radius is not None:
         kwargs["ballradius"] = ml.PureValue(float(radius))
-    record("pymeshlab.generate_surface_reconstruction_ball_pivoting", ballradius=radius, clustering=clustering, creasethr=creasethr)
+    record(
+        "pymeshlab.generate_surface_reconstruction_ball_pivoting",
+        ballradius=radius,
+        clustering=clustering,
+        creasethr=creasethr,
+    )
     ms.generate_surface_reconstruction_ball_pivoting(**kwargs)
     return current_mesh(ms, cloud.history)
 
@@ -75,8 +109,17 @@ def hausdorff(sampled: TriangleMesh, target: TriangleMesh, samples: int) -> dict
     ml = require("pymeshlab")
     ms = ml.MeshSet()
     for m in (sampled, target):
-        ms.add_mesh(ml.Mesh(vertex_matrix=np.asarray(m.vertices, dtype=np.float64), face_matrix=np.asarray(m.faces, dtype=np.int32)))
-    return dict(ms.get_hausdorff_distance(sampledmesh=0, targetmesh=1, samplenum=int(samples), samplevert=False, sampleface=True))
+        ms.add_mesh(
+            ml.Mesh(
+                vertex_matrix=np.asarray(m.vertices, dtype=np.float64),
+                face_matrix=np.asarray(m.faces, dtype=np.int32),
+            )
+        )
+    return dict(
+        ms.get_hausdorff_distance(
+            sampledmesh=0, targetmesh=1, samplenum=int(samples), samplevert=False, sampleface=True
+        )
+    )
 
 
 def hausdorff_points(points: np.ndarray, target: TriangleMesh) -> dict:
@@ -92,10 +135,20 @@ def hausdorff_points(points: np.ndarray, target: TriangleMesh) -> dict:
     reach = float(np.linalg.norm(allpts.max(axis=0) - allpts.min(axis=0))) * 2.0 + 1.0
     ms = ml.MeshSet()
     ms.add_mesh(ml.Mesh(vertex_matrix=pts))
-    ms.add_mesh(ml.Mesh(vertex_matrix=np.asarray(target.vertices, dtype=np.float64), face_matrix=np.asarray(target.faces, dtype=np.int32)))
+    ms.add_mesh(
+        ml.Mesh(
+            vertex_matrix=np.asarray(target.vertices, dtype=np.float64),
+            face_matrix=np.asarray(target.faces, dtype=np.int32),
+        )
+    )
     return dict(
         ms.get_hausdorff_distance(
-            sampledmesh=0, targetmesh=1, samplenum=len(pts), samplevert=True, sampleface=False, maxdist=ml.PureValue(reach)
+            sampledmesh=0,
+            targetmesh=1,
+            samplenum=len(pts),
+            samplevert=True,
+            sampleface=False,
+            maxdist=ml.PureValue(reach),
         )
     )
 
@@ -104,9 +157,11 @@ def repair(mesh: TriangleMesh, fill_holes: int = 0) -> TriangleMesh:
     """PyMeshLab's cleaning chain matching ``recon repair``'s steps: merge duplicate vertices,
     remove null and duplicate faces and unreferenced vertices, repair non-manifold edges
     (remove faces) and vertices (split), re-orient coherently, optionally close holes."""
-    record("pymeshlab cleaning chain: meshing_remove_duplicate_vertices, _null_faces, _duplicate_faces, _unreferenced_vertices, "
-           "meshing_repair_non_manifold_edges(method='Remove Faces'), _vertices, meshing_re_orient_faces_coherently, meshing_close_holes",
-           maxholesize=int(fill_holes) if fill_holes else None)
+    record(
+        "pymeshlab cleaning chain: meshing_remove_duplicate_vertices, _null_faces, _duplicate_faces, _unreferenced_vertices, "
+        "meshing_repair_non_manifold_edges(method='Remove Faces'), _vertices, meshing_re_orient_faces_coherently, meshing_close_holes",
+        maxholesize=int(fill_holes) if fill_holes else None,
+    )
     ms = meshset(TriangleMesh(vertices=mesh.vertices, faces=mesh.faces))
     ms.meshing_remove_duplicate_vertices()
     ms.meshing_remove_null_faces()
@@ -120,14 +175,23 @@ def repair(mesh: TriangleMesh, fill_holes: int = 0) -> TriangleMesh:
     return current_mesh(ms, mesh.history)
 
 
-def ball_pivoting_radii(cloud: PointCloud, radii: list[float], clustering: float = 20.0, creasethr: float = 90.0) -> TriangleMesh:
+def ball_pivoting_radii(
+    cloud: PointCloud, radii: list[float], clustering: float = 20.0, creasethr: float = 90.0
+) -> TriangleMesh:
     """PyMeshLab ball pivoting applied once per radius (increasing), keeping earlier faces."""
     ml = require("pymeshlab")
     ms = meshset(cloud)
-    record("pymeshlab.generate_surface_reconstruction_ball_pivoting (once per radius, deletefaces=False)",
-           ballradius=[float(r) for r in radii], clustering=clustering, creasethr=creasethr)
+    record(
+        "pymeshlab.generate_surface_reconstruction_ball_pivoting (once per radius, deletefaces=False)",
+        ballradius=[float(r) for r in radii],
+        clustering=clustering,
+        creasethr=creasethr,
+    )
     for r in radii:
         ms.generate_surface_reconstruction_ball_pivoting(
-            ballradius=ml.PureValue(float(r)), clustering=clustering, creasethr=creasethr, deletefaces=False
+            ballradius=ml.PureValue(float(r)),
+            clustering=clustering,
+            creasethr=creasethr,
+            deletefaces=False,
         )
     return current_mesh(ms, cloud.history)

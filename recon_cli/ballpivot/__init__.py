@@ -46,7 +46,14 @@ import numpy as np
 
 from recon_cli.aot import kernels
 from recon_cli.errors import InputError, ParameterError, StageFailed
-from recon_cli.geometry import PointCloud, TriangleMesh, as_point_cloud, bbox_diagonal, local_origin, oriented_rows
+from recon_cli.geometry import (
+    PointCloud,
+    TriangleMesh,
+    as_point_cloud,
+    bbox_diagonal,
+    local_origin,
+    oriented_rows,
+)
 from recon_cli.params import Param, StageSpec
 from recon_cli.stages import StageResult
 from recon_cli.tolerances import tol
@@ -77,9 +84,18 @@ SPEC = StageSpec(
     gives=("mesh",),
     backends=BACKENDS,
     params=(
-        Param("radii", "floats", "auto", "Ball radii, comma-separated (e.g. 0.002,0.004), or 'auto': "
-              "2x and 4x the median nearest-neighbour spacing.", unit="input units", min=0.0, min_open=True,
-              words={"auto": "auto"}, metavar="auto|R1,R2,..."),
+        Param(
+            "radii",
+            "floats",
+            "auto",
+            "Ball radii, comma-separated (e.g. 0.002,0.004), or 'auto': "
+            "2x and 4x the median nearest-neighbour spacing.",
+            unit="input units",
+            min=0.0,
+            min_open=True,
+            words={"auto": "auto"},
+            metavar="auto|R1,R2,...",
+        ),
     ),
 )
 
@@ -118,7 +134,9 @@ def nn_spacing(points: np.ndarray) -> float:
     dims = (np.floor(extent / cell) + 1).astype(np.int64)
     ukeys, ustart, _, spts = K.build_grid(pts, lo, cell, dims)
     step = max(1, len(pts) // AUTO_SAMPLE)
-    d = K.nearest_positive(ukeys, ustart, spts, lo, cell, dims, np.ascontiguousarray(pts[::step]), SPACING_RINGS)
+    d = K.nearest_positive(
+        ukeys, ustart, spts, lo, cell, dims, np.ascontiguousarray(pts[::step]), SPACING_RINGS
+    )
     d = d[np.isfinite(d)]
     if not len(d):
         return 0.0
@@ -160,7 +178,9 @@ def parse_radii(radii: Any) -> list[float] | None:
         try:
             return [float(x) for x in text.split(",") if x.strip()]
         except ValueError:
-            raise ParameterError(f"--radii must be 'auto' or comma-separated numbers, got {radii!r}") from None
+            raise ParameterError(
+                f"--radii must be 'auto' or comma-separated numbers, got {radii!r}"
+            ) from None
     if np.isscalar(radii):
         return [float(radii)]
     try:
@@ -186,14 +206,21 @@ def _check_radii(radii: list[float], diagonal: float) -> list[float]:
 def _prepare(points: Any, normals: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Validate; return (points, unit normals, indices of the usable rows)."""
     pts, nrm, length = oriented_rows(
-        points, normals, "ball pivoting needs point normals; the input has none (run `recon normals` first)")
+        points,
+        normals,
+        "ball pivoting needs point normals; the input has none (run `recon normals` first)",
+    )
     usable = np.isfinite(pts).all(axis=1) & np.isfinite(length) & (length > 0)
     keep = np.flatnonzero(usable)
     if len(keep) < 3:
         raise InputError(
             f"ball pivoting needs at least 3 points with finite coordinates and non-zero normals, got {len(keep)}"
         )
-    return np.ascontiguousarray(pts[keep]), np.ascontiguousarray(nrm[keep] / length[keep, None]), keep
+    return (
+        np.ascontiguousarray(pts[keep]),
+        np.ascontiguousarray(nrm[keep] / length[keep, None]),
+        keep,
+    )
 
 
 def _grid_dims(rr: list[float], extent: np.ndarray, diagonal: float) -> np.ndarray:
@@ -225,8 +252,14 @@ def _spatial_order(pts: np.ndarray, lo: np.ndarray, r0: float, dims0: np.ndarray
     return order, n_dup
 
 
-def _pivot_passes(spts: np.ndarray, snrm: np.ndarray, rr: list[float], lo: np.ndarray, dims: np.ndarray,
-                  progress_cb: Any) -> tuple[np.ndarray, np.ndarray, int]:
+def _pivot_passes(
+    spts: np.ndarray,
+    snrm: np.ndarray,
+    rr: list[float],
+    lo: np.ndarray,
+    dims: np.ndarray,
+    progress_cb: Any,
+) -> tuple[np.ndarray, np.ndarray, int]:
     """Run the kernel once per radius, then cut pinched fans and refill: (faces, stats, pinch faces removed).
 
     Each radius continues from the previous triangles (its front may still glue the pinches
@@ -312,7 +345,12 @@ def ball_pivoting(
     dims = _grid_dims(rr, pts.max(axis=0) - lo, diagonal)
     order, n_dup = _spatial_order(pts, lo, rr[0], dims[0], diagonal)
     faces_local, stats, removed = _pivot_passes(
-        np.ascontiguousarray(pts[order]), np.ascontiguousarray(nrm[order]), rr, lo, dims, progress_cb
+        np.ascontiguousarray(pts[order]),
+        np.ascontiguousarray(nrm[order]),
+        rr,
+        lo,
+        dims,
+        progress_cb,
     )
     faces = keep[order[faces_local]].astype(np.int64)
     if not return_info:
@@ -365,13 +403,21 @@ def run_stage(
     cloud = as_point_cloud(data)  # parameters and the input's kind: checked by SPEC
     parsed = parse_radii(radii)
     if cloud.normals is None:
-        raise InputError("ball pivoting needs point normals; the input has none (run `recon normals` first)")
+        raise InputError(
+            "ball pivoting needs point normals; the input has none (run `recon normals` first)"
+        )
     info: dict[str, Any] = {}
     n_radii = len(AUTO_MULTIPLES) if parsed is None else len(set(parsed))
-    with task(progress, "ball pivoting", n_radii + REFILL_PASSES if backend == "native" else 1) as t:
+    with task(
+        progress, "ball pivoting", n_radii + REFILL_PASSES if backend == "native" else 1
+    ) as t:
         if backend == "native":
             faces, info = ball_pivoting(
-                cloud.points, cloud.normals, "auto" if parsed is None else parsed, return_info=True, progress_cb=t.advance
+                cloud.points,
+                cloud.normals,
+                "auto" if parsed is None else parsed,
+                return_info=True,
+                progress_cb=t.advance,
             )
             rr = info["radii"]
         else:
@@ -387,7 +433,9 @@ def run_stage(
 
                 ref = pymeshlab_backend.ball_pivoting_radii(sub, rr)
             if len(ref.vertices) != len(pts):
-                raise StageFailed(f"{backend} ball pivoting changed the vertex count ({len(pts)} -> {len(ref.vertices)})")
+                raise StageFailed(
+                    f"{backend} ball pivoting changed the vertex count ({len(pts)} -> {len(ref.vertices)})"
+                )
             faces = keep[np.asarray(ref.faces, dtype=np.int64)]
             info = {"skipped_points": int(len(cloud.points) - len(keep))}
             t.advance(1)

@@ -137,7 +137,9 @@ def nearest_positive(ukeys, ustart, spts, lo, cell, dims, queries, max_rings):
                     u = lower_bound(ukeys, base + z0, 0, len(ukeys))
                     while u < nu and ukeys[u] <= base + z1:
                         iz = ukeys[u] - base
-                        if side or iz == cz - r or iz == cz + r:  # inner columns: the two end cells only
+                        if (
+                            side or iz == cz - r or iz == cz + r
+                        ):  # inner columns: the two end cells only
                             for t in range(ustart[u], ustart[u + 1]):
                                 dx = spts[t, 0] - qx
                                 dy = spts[t, 1] - qy
@@ -149,7 +151,14 @@ def nearest_positive(ukeys, ustart, spts, lo, cell, dims, queries, max_rings):
             reach = r * cell
             if best <= reach * reach or r >= max_rings:
                 break
-            if cx - r <= 0 and cy - r <= 0 and cz - r <= 0 and cx + r >= dims[0] - 1 and cy + r >= dims[1] - 1 and cz + r >= dims[2] - 1:
+            if (
+                cx - r <= 0
+                and cy - r <= 0
+                and cz - r <= 0
+                and cx + r >= dims[0] - 1
+                and cy + r >= dims[1] - 1
+                and cz + r >= dims[2] - 1
+            ):
                 break  # the whole grid was scanned
             r += 1
         out[q] = np.sqrt(best)
@@ -439,7 +448,9 @@ def _seed_triangle(pts, nrm, rho, grid, used, s, nbr):
     Returns (found, a, b, cx, cy, cz) with c the ball's centre.
     """
     ukeys, ustart, sidx, spts, lo, cell, dims = grid
-    cnt = gather(ukeys, ustart, sidx, spts, lo, cell, dims, pts[s, 0], pts[s, 1], pts[s, 2], 2.0 * rho, nbr)
+    cnt = gather(
+        ukeys, ustart, sidx, spts, lo, cell, dims, pts[s, 0], pts[s, 1], pts[s, 2], 2.0 * rho, nbr
+    )
     # candidates: unused neighbours, nearest first
     m = 0
     d2 = np.empty(cnt, np.float64)
@@ -558,7 +569,9 @@ def ball_pivot(pts, nrm, rho, lo, dims, faces0):
             stats[0] += 1
             for side in range(3):
                 u0, u1, u2 = (s, a, b) if side == 0 else ((a, b, s) if side == 1 else (b, s, a))
-                _new_front_edge(ea, eb, eo, es, ec, hkeys, hvals, bits, bcount, n, ne, u0, u1, u2, cx, cy, cz)
+                _new_front_edge(
+                    ea, eb, eo, es, ec, hkeys, hvals, bits, bcount, n, ne, u0, u1, u2, cx, cy, cz
+                )
                 queue[qt & qmask] = ne
                 qt += 1
                 ne += 1
@@ -604,7 +617,9 @@ def ball_pivot(pts, nrm, rho, lo, dims, faces0):
                 bcount[u1] -= 1
                 stats[2] += 1
             else:
-                _new_front_edge(ea, eb, eo, es, ec, hkeys, hvals, bits, bcount, n, ne, u0, u1, u2, cx, cy, cz)
+                _new_front_edge(
+                    ea, eb, eo, es, ec, hkeys, hvals, bits, bcount, n, ne, u0, u1, u2, cx, cy, cz
+                )
                 queue[qt & qmask] = ne
                 qt += 1
                 ne += 1

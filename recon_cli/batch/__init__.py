@@ -59,4 +59,24 @@ from recon_cli.batch.plan import (
 )
 from recon_cli.batch.task import data_stats, process_one, register_stages, registered_stages
 
-__all__ = ['dask_setup', 'run_batch', 'expand_inputs', 'output_base', 'existing_output', 'is_up_to_date', 'plan_batch', 'read_previous', 'INPUT_SUFFIXES', 'OUTPUT_SUFFIXES', 'SUMMARY_NAME', 'STATUS_OK', 'STATUS_FAILED', 'STATUS_SKIPPED', 'STATUS_INTERRUPTED', 'register_stages', 'registered_stages', 'data_stats', 'process_one']
+__all__ = [
+    "dask_setup",
+    "run_batch",
+    "expand_inputs",
+    "output_base",
+    "existing_output",
+    "is_up_to_date",
+    "plan_batch",
+    "read_previous",
+    "INPUT_SUFFIXES",
+    "OUTPUT_SUFFIXES",
+    "SUMMARY_NAME",
+    "STATUS_OK",
+    "STATUS_FAILED",
+    "STATUS_SKIPPED",
+    "STATUS_INTERRUPTED",
+    "register_stages",
+    "registered_stages",
+    "data_stats",
+    "process_one",
+]

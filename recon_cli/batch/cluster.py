@@ -92,7 +92,9 @@ def _client(scheduler, workers, threads_per_worker, memory_limit, log_level):
     try:
         import distributed  # noqa: F401  (first: importing it configures its loggers)
     except ImportError:
-        raise BackendError("recon batch needs dask.distributed: pip install 'recon[batch]'") from None
+        raise BackendError(
+            "recon batch needs dask.distributed: pip install 'recon[batch]'"
+        ) from None
     with _dask_log_level(log_level):
         with _client_inner(scheduler, workers, threads_per_worker, memory_limit, log_level) as got:
             yield got
@@ -104,13 +106,17 @@ def _client_inner(scheduler, workers, threads_per_worker, memory_limit, log_leve
         import dask
         from distributed import Client, LocalCluster
     except ImportError:
-        raise BackendError("recon batch needs dask.distributed: pip install 'recon[batch]'") from None
+        raise BackendError(
+            "recon batch needs dask.distributed: pip install 'recon[batch]'"
+        ) from None
 
     if scheduler is not None:
         try:
             client = Client(scheduler, timeout="20s")
         except (OSError, TimeoutError) as exc:
-            raise ParameterError(f"cannot reach the Dask scheduler at {scheduler}: {error_line(exc)}") from None
+            raise ParameterError(
+                f"cannot reach the Dask scheduler at {scheduler}: {error_line(exc)}"
+            ) from None
         with client:
             yield client, _cluster_info(client, scheduler)
         return
@@ -152,7 +158,10 @@ def _client_inner(scheduler, workers, threads_per_worker, memory_limit, log_leve
 def _sigint_catchable() -> bool:
     """Whether to take Ctrl-C with our own handler: only the main thread can, and a SIGINT
     the parent left ignored (``nohup ... &``) stays ignored."""
-    return threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN
+    return (
+        threading.current_thread() is threading.main_thread()
+        and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN
+    )
 
 
 @contextlib.contextmanager
@@ -182,7 +191,9 @@ def _sigint_held():
         yield got
     finally:
         if mask is not None:
-            signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # a pending SIGINT arrives now, and is recorded
+            signal.pthread_sigmask(
+                signal.SIG_SETMASK, mask
+            )  # a pending SIGINT arrives now, and is recorded
         signal.signal(signal.SIGINT, old_handler)  # (runs pending handlers first)
 
 
@@ -197,13 +208,13 @@ def _cluster_info(client, scheduler: str) -> dict:
     }
 
 
-
-
 def _remove_temporaries(base: str) -> None:
     """Remove temporary files that an interrupted atomic write of ``base.*`` left behind."""
     folder, name = os.path.split(base)
     for suffix in OUTPUT_SUFFIXES:
-        for tmp in glob.glob(os.path.join(glob.escape(folder), glob.escape("." + name + suffix) + ".*.tmp")):
+        for tmp in glob.glob(
+            os.path.join(glob.escape(folder), glob.escape("." + name + suffix) + ".*.tmp")
+        ):
             with contextlib.suppress(OSError):
                 os.unlink(tmp)
 
@@ -213,14 +224,18 @@ def _failed_from_future(entry: dict, exc: BaseException | None, status: str) -> 
 
     rec: dict[str, Any] = {"input": entry["input"], "status": STATUS_FAILED, "output": None}
     if isinstance(exc, KilledWorker):
-        deaths = {1: "once", 2: "twice"}.get(exc.allowed_failures + 1, f"{exc.allowed_failures + 1} times")
+        deaths = {1: "once", 2: "twice"}.get(
+            exc.allowed_failures + 1, f"{exc.allowed_failures + 1} times"
+        )
         rec.update(
             error=f"{entry['input']}: the worker process running it died {deaths} (killed or out of memory)",
             error_type="KilledWorker",
         )
     elif exc is not None:
-        rec.update(error=f"{entry['input']}: task failed: {type(exc).__name__}: {error_line(exc)}",
-                   error_type=type(exc).__name__)
+        rec.update(
+            error=f"{entry['input']}: task failed: {type(exc).__name__}: {error_line(exc)}",
+            error_type=type(exc).__name__,
+        )
     else:
         rec.update(error=f"{entry['input']}: task {status}", error_type=status)
     return rec
@@ -296,10 +311,16 @@ def run_batch(
     t_start = time.perf_counter()
     pipeline_path = os.fspath(pipeline_path)
     out_dir = os.fspath(out_dir)
-    if scheduler is not None and (workers is not None or threads_per_worker is not None or memory_limit is not None):
-        raise ParameterError("--workers, --threads-per-worker and --memory-limit size a local cluster; "
-                             "leave them out with --scheduler")
-    threads = 1 if threads_per_worker is None else _check_count(threads_per_worker, "threads per worker")
+    if scheduler is not None and (
+        workers is not None or threads_per_worker is not None or memory_limit is not None
+    ):
+        raise ParameterError(
+            "--workers, --threads-per-worker and --memory-limit size a local cluster; "
+            "leave them out with --scheduler"
+        )
+    threads = (
+        1 if threads_per_worker is None else _check_count(threads_per_worker, "threads per worker")
+    )
     if workers is not None:
         workers = _check_count(workers, "workers")
     mem = _check_memory_limit(memory_limit)
@@ -320,14 +341,25 @@ def run_batch(
     todo = []
     for i, e in enumerate(entries):
         if e["action"] == "fail":
-            records[i] = {"input": e["input"], "status": STATUS_FAILED, "output": None,
-                          "error": e["error"], "error_type": e["error_type"]}
+            records[i] = {
+                "input": e["input"],
+                "status": STATUS_FAILED,
+                "output": None,
+                "error": e["error"],
+                "error_type": e["error_type"],
+            }
         elif e["action"] == "skip":
-            rec = {"input": e["input"], "status": STATUS_SKIPPED, "output": e["output"],
-                   "reason": "output is newer than the input and the pipeline file (--force to redo)"}
+            rec = {
+                "input": e["input"],
+                "status": STATUS_SKIPPED,
+                "output": e["output"],
+                "reason": "output is newer than the input and the pipeline file (--force to redo)",
+            }
             old = previous.get(e["input"])
             if old and old.get("output") == e["output"]:
-                rec["previous"] = old.get("previous", old) if old.get("status") == STATUS_SKIPPED else old
+                rec["previous"] = (
+                    old.get("previous", old) if old.get("status") == STATUS_SKIPPED else old
+                )
             records[i] = rec
         else:
             todo.append(i)
@@ -335,8 +367,22 @@ def run_batch(
     cluster_info: dict[str, Any] = {"scheduler": None}
     if todo:
         cluster_info = _submit_and_collect(
-            pipe, entries, todo, records, scheduler, workers, threads, mem, progress, ascii, stage_map, log_level,
-            summary_path, pipeline_path, out_dir, t_start,
+            pipe,
+            entries,
+            todo,
+            records,
+            scheduler,
+            workers,
+            threads,
+            mem,
+            progress,
+            ascii,
+            stage_map,
+            log_level,
+            summary_path,
+            pipeline_path,
+            out_dir,
+            t_start,
         )
 
     summary = _summary(pipeline_path, out_dir, cluster_info, records, t_start)
@@ -360,8 +406,22 @@ def _summary(pipeline_path, out_dir, cluster_info, records, t_start) -> dict:
 
 
 def _submit_and_collect(
-    pipe, entries, todo, records, scheduler, workers, threads, mem, progress, ascii, stage_map, log_level,
-    summary_path, pipeline_path, out_dir, t_start,
+    pipe,
+    entries,
+    todo,
+    records,
+    scheduler,
+    workers,
+    threads,
+    mem,
+    progress,
+    ascii,
+    stage_map,
+    log_level,
+    summary_path,
+    pipeline_path,
+    out_dir,
+    t_start,
 ) -> dict:
     """Submit one task per input in ``todo`` and fill ``records`` as they finish.
 
@@ -371,8 +431,21 @@ def _submit_and_collect(
     """
     try:
         with _client(scheduler, workers, threads, mem, log_level) as (client, info):
-            _collect(client, info, pipe, entries, todo, records, progress, ascii, stage_map,
-                     summary_path, pipeline_path, out_dir, t_start)
+            _collect(
+                client,
+                info,
+                pipe,
+                entries,
+                todo,
+                records,
+                progress,
+                ascii,
+                stage_map,
+                summary_path,
+                pipeline_path,
+                out_dir,
+                t_start,
+            )
     finally:
         # after the cluster is closed (its workers are gone): what a write cut short left behind
         for i in todo:
@@ -380,8 +453,21 @@ def _submit_and_collect(
     return info
 
 
-def _collect(client, info, pipe, entries, todo, records, progress, ascii, stage_map,
-             summary_path, pipeline_path, out_dir, t_start) -> None:
+def _collect(
+    client,
+    info,
+    pipe,
+    entries,
+    todo,
+    records,
+    progress,
+    ascii,
+    stage_map,
+    summary_path,
+    pipeline_path,
+    out_dir,
+    t_start,
+) -> None:
     """The submit / collect loop of :func:`_submit_and_collect` on a connected ``client``.
 
     On an interruption (Ctrl-C) the unfinished inputs are recorded ``interrupted``, their
@@ -407,7 +493,12 @@ def _collect(client, info, pipe, entries, todo, records, progress, ascii, stage_
             i = pending.pop(0)
             e = entries[i]
             fut = client.submit(
-                process_one, pipe, os.path.abspath(e["input"]), e["base"], stage_map, ascii,
+                process_one,
+                pipe,
+                os.path.abspath(e["input"]),
+                e["base"],
+                stage_map,
+                ascii,
                 key=f"recon-batch-{Path(e['input']).name}-{os.urandom(6).hex()}",
                 pure=False,
                 retries=1,
@@ -459,7 +550,11 @@ def _collect(client, info, pipe, entries, todo, records, progress, ascii, stage_
         # interrupted: record what is unfinished, keep the summary of what is done, re-raise
         for i in todo:
             if records[i] is None:
-                records[i] = {"input": entries[i]["input"], "status": STATUS_INTERRUPTED, "output": None}
+                records[i] = {
+                    "input": entries[i]["input"],
+                    "status": STATUS_INTERRUPTED,
+                    "output": None,
+                }
         with contextlib.suppress(Exception):
             client.cancel(list(in_flight))
         summary = _summary(pipeline_path, out_dir, info, records, t_start)

@@ -51,7 +51,9 @@ def expand_inputs(inputs: Iterable[str | os.PathLike]) -> list[tuple[str, str | 
         arg = os.fspath(arg)
         if os.path.isdir(arg):
             found = sorted(
-                str(p) for p in Path(arg).iterdir() if p.is_file() and p.suffix.lower() in INPUT_SUFFIXES
+                str(p)
+                for p in Path(arg).iterdir()
+                if p.is_file() and p.suffix.lower() in INPUT_SUFFIXES
             )
             if not found:
                 add(arg, "folder holds no .ply or .npz file")
@@ -133,8 +135,15 @@ def plan_batch(
     by_base: dict[str, str] = {}
     for path, problem in expanded:
         if problem is not None:
-            entries.append({"input": path, "base": None, "action": "fail", "error": f"{path}: {problem}",
-                            "error_type": "InputError"})
+            entries.append(
+                {
+                    "input": path,
+                    "base": None,
+                    "action": "fail",
+                    "error": f"{path}: {problem}",
+                    "error_type": "InputError",
+                }
+            )
             continue
         base = os.path.abspath(output_base(out_dir, path))
         key = base
@@ -145,7 +154,9 @@ def plan_batch(
         by_base[key] = path
         for suffix in OUTPUT_SUFFIXES:
             if os.path.exists(base + suffix) and os.path.samefile(base + suffix, path):
-                raise ParameterError(f"output {base + suffix} would overwrite its input; choose another --out folder")
+                raise ParameterError(
+                    f"output {base + suffix} would overwrite its input; choose another --out folder"
+                )
         out = existing_output(base)
         if not force and is_up_to_date(out, path, pipeline_path):
             entries.append({"input": path, "base": base, "action": "skip", "output": out})
@@ -153,10 +164,13 @@ def plan_batch(
             entries.append({"input": path, "base": base, "action": "run"})
     return entries
 
+
 def read_previous(summary_path: str) -> dict[str, dict]:
     try:
         with open(summary_path, encoding="utf-8") as f:
             doc = json.load(f)
-        return {r["input"]: r for r in doc.get("inputs", []) if isinstance(r, dict) and "input" in r}
+        return {
+            r["input"]: r for r in doc.get("inputs", []) if isinstance(r, dict) and "input" in r
+        }
     except (OSError, ValueError, TypeError, KeyError):
         return {}

@@ -27,10 +27,14 @@ def register_stages(extra_stages: dict[str, str] | None) -> None:
 
     for name, target in extra_stages.items():
         if not isinstance(target, str) or target.count(":") != 1:
-            raise ParameterError(f"extra stage {name!r}: target must be 'module:function', got {target!r}")
+            raise ParameterError(
+                f"extra stage {name!r}: target must be 'module:function', got {target!r}"
+            )
         current = STAGES.get(name)
         if current is not None and current != target:
-            raise ParameterError(f"extra stage {name!r} would replace the registered stage {current!r}")
+            raise ParameterError(
+                f"extra stage {name!r} would replace the registered stage {current!r}"
+            )
         STAGES[name] = target
 
 
@@ -123,7 +127,10 @@ def process_one(
         rec.update(status=STATUS_OK, output=path, stages=reports, output_stats=data_stats(out))
     except ReconError as exc:
         line = error_line(exc)
-        rec.update(error=line if input_path in line else f"{input_path}: {line}", error_type=type(exc).__name__)
+        rec.update(
+            error=line if input_path in line else f"{input_path}: {line}",
+            error_type=type(exc).__name__,
+        )
     except MemoryError:
         rec.update(error=f"{input_path}: out of memory", error_type="MemoryError")
     except Exception as exc:  # a bug: keep the batch going and say where

@@ -86,7 +86,9 @@ def run_stage_command(
         if stage == "normals" and isinstance(data, TriangleMesh):
             from recon_cli.io.text import warn
 
-            warn(f"{input}: a mesh: normals are estimated at its {len(data.vertices)} vertices and the vertices only are written (faces dropped)")
+            warn(
+                f"{input}: a mesh: normals are estimated at its {len(data.vertices)} vertices and the vertices only are written (faces dropped)"
+            )
     from recon_cli.cli import _process
 
     _process.resume()  # start-up ends here: imports, numba's first load, the input
@@ -104,7 +106,9 @@ def run_stage_command(
     return report
 
 
-def emit_report(ctx: click.Context, report: dict, json_: bool = False, data_on_stdout: bool = False) -> None:
+def emit_report(
+    ctx: click.Context, report: dict, json_: bool = False, data_on_stdout: bool = False
+) -> None:
     """Print ``report``: JSON on stdout (stderr if stdout carries data) or a table on stderr."""
     from recon_cli.stages import report_json
 

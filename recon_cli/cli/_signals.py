@@ -144,7 +144,9 @@ def immediate() -> Iterator[None]:
         yield
     finally:
         for s in ours:
-            signal.signal(s, _raise)  # Python's own handler again (a signal that came meanwhile has exited)
+            signal.signal(
+                s, _raise
+            )  # Python's own handler again (a signal that came meanwhile has exited)
 
 
 def _handler_address() -> int:

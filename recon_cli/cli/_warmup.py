@@ -26,7 +26,6 @@ from typing import Any, Callable
 import numpy as np
 
 
-
 def kernel_modules() -> list[str]:
     """Names of recon's modules that define numba kernels (found by their source text, without importing)."""
     from pathlib import Path
@@ -98,7 +97,10 @@ def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
             from recon_cli.cli.main import cli
 
             # the commands' reports (info and diff print theirs on stdout) are not wanted here
-            with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+            with (
+                contextlib.redirect_stdout(io.StringIO()),
+                contextlib.redirect_stderr(io.StringIO()),
+            ):
                 return cli.main(args=["-q", *args], prog_name="recon", standalone_mode=False)
 
         return run
@@ -108,85 +110,219 @@ def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
         rgb = (np.abs(nrm) * 255).astype(np.uint8)
         for dtype in (np.float32, np.float64):
             tag = np.dtype(dtype).name
-            write_ply(PointCloud(points=p.astype(dtype), point_dtype=dtype), path(f"bare_{tag}.ply"))
-            write_ply(PointCloud(points=p.astype(dtype), normals=nrm.astype(dtype), colors=rgb, point_dtype=dtype),
-                      path(f"cloud_{tag}.ply"))
+            write_ply(
+                PointCloud(points=p.astype(dtype), point_dtype=dtype), path(f"bare_{tag}.ply")
+            )
+            write_ply(
+                PointCloud(
+                    points=p.astype(dtype), normals=nrm.astype(dtype), colors=rgb, point_dtype=dtype
+                ),
+                path(f"cloud_{tag}.ply"),
+            )
         v, f = _sphere_mesh(300)
         for dtype in (np.float32, np.float64):
             tag = np.dtype(dtype).name
-            write_ply(TriangleMesh(vertices=v.astype(dtype), faces=f, point_dtype=dtype), path(f"mesh_{tag}.ply"))
+            write_ply(
+                TriangleMesh(vertices=v.astype(dtype), faces=f, point_dtype=dtype),
+                path(f"mesh_{tag}.ply"),
+            )
         # an open mesh with a stray component: repair and the topology report have work to do
         keep = f[np.asarray(v)[f].mean(axis=1)[:, 2] < 0.7]
         far = np.array([[5.0, 5.0, 5.0], [5.1, 5.0, 5.0], [5.0, 5.1, 5.0]])
-        write_ply(TriangleMesh(vertices=np.vstack([v, far]), faces=np.vstack([keep, [[len(v), len(v) + 1, len(v) + 2]]])),
-                  path("open.ply"))
+        write_ply(
+            TriangleMesh(
+                vertices=np.vstack([v, far]),
+                faces=np.vstack([keep, [[len(v), len(v) + 1, len(v) + 2]]]),
+            ),
+            path("open.ply"),
+        )
         # dense enough that Poisson's adaptive tree goes past its complete levels
         pd, nd = _sphere_cloud(20_000, seed=1)
-        write_ply(PointCloud(points=pd.astype(np.float32), normals=nd.astype(np.float32), point_dtype=np.float32),
-                  path("dense.ply"))
+        write_ply(
+            PointCloud(
+                points=pd.astype(np.float32), normals=nd.astype(np.float32), point_dtype=np.float32
+            ),
+            path("dense.ply"),
+        )
         # an open scan (half of it): coarse leaves hold surface, so Poisson extracts at the leaves' size
         up = pd[:, 2] > 0
         write_ply(PointCloud(points=pd[up], normals=nd[up]), path("half.ply"))
         # repeated and collinear points: degenerate neighbourhoods borrow their normal
         line = np.column_stack([np.linspace(2, 3, 12), np.zeros(12), np.zeros(12)])
-        write_ply(PointCloud(points=np.vstack([p, np.repeat(p[:1], 40, axis=0), line])), path("degenerate.ply"))
+        write_ply(
+            PointCloud(points=np.vstack([p, np.repeat(p[:1], 40, axis=0), line])),
+            path("degenerate.ply"),
+        )
         # three triangles on one edge: repair chooses which two stay together
-        fin = np.array([[0, 0, 0], [1, 0, 0], [0.5, 1, 0], [0.5, -1, 0], [0.5, 0, 1]], dtype=np.float64)
-        write_ply(TriangleMesh(vertices=fin, faces=np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4]])), path("fin.ply"))
+        fin = np.array(
+            [[0, 0, 0], [1, 0, 0], [0.5, 1, 0], [0.5, -1, 0], [0.5, 0, 1]], dtype=np.float64
+        )
+        write_ply(
+            TriangleMesh(vertices=fin, faces=np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4]])),
+            path("fin.ply"),
+        )
         # a mixed-polygon mesh (a quad among triangles): the general list reader
         with open(path("mixed.ply"), "wb") as fh:
-            fh.write(b"ply\nformat binary_little_endian 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
-                     b"property float z\nelement face 2\nproperty list uchar int vertex_indices\nend_header\n")
+            fh.write(
+                b"ply\nformat binary_little_endian 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
+                b"property float z\nelement face 2\nproperty list uchar int vertex_indices\nend_header\n"
+            )
             fh.write(np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], "<f4").tobytes())
-            fh.write(bytes([4]) + np.array([0, 1, 2, 3], "<i4").tobytes() + bytes([3]) + np.array([0, 2, 3], "<i4").tobytes())
+            fh.write(
+                bytes([4])
+                + np.array([0, 1, 2, 3], "<i4").tobytes()
+                + bytes([3])
+                + np.array([0, 2, 3], "<i4").tobytes()
+            )
 
-    c32, c64, m32, m64 = path("cloud_float32.ply"), path("cloud_float64.ply"), path("mesh_float32.ply"), path("mesh_float64.ply")
+    c32, c64, m32, m64 = (
+        path("cloud_float32.ply"),
+        path("cloud_float64.ply"),
+        path("mesh_float32.ply"),
+        path("mesh_float64.ply"),
+    )
     out = path("out.ply")
-    steps: list[tuple[str, Callable[[], Any]]] = [("inputs", inputs), ("ply field types", compile_ply_kernels)]
+    steps: list[tuple[str, Callable[[], Any]]] = [
+        ("inputs", inputs),
+        ("ply field types", compile_ply_kernels),
+    ]
     for src in (c32, c64, path("mixed.ply")):
-        steps += [(f"convert {os.path.basename(src)}", recon("convert", src, path("be.ply"), "--big-endian")),
-                  ("read big-endian", recon("info", path("be.ply"))),
-                  ("convert ascii", recon("convert", src, path("ascii.ply"), "--ascii")),
-                  ("read ascii", recon("info", path("ascii.ply")))]
+        steps += [
+            (
+                f"convert {os.path.basename(src)}",
+                recon("convert", src, path("be.ply"), "--big-endian"),
+            ),
+            ("read big-endian", recon("info", path("be.ply"))),
+            ("convert ascii", recon("convert", src, path("ascii.ply"), "--ascii")),
+            ("read ascii", recon("info", path("ascii.ply"))),
+        ]
     for src in (path("bare_float32.ply"), path("bare_float64.ply")):
-        for orient in (["--orient", "mst"], ["--orient", "camera", "--camera", "0,0,5"],
-                       ["--orient", "direction", "--direction", "0,0,1"], ["--orient", "none"]):
+        for orient in (
+            ["--orient", "mst"],
+            ["--orient", "camera", "--camera", "0,0,5"],
+            ["--orient", "direction", "--direction", "0,0,1"],
+            ["--orient", "none"],
+        ):
             steps.append((f"normals {orient[1]}", recon("normals", src, out, *orient)))
-        steps.append(("normals radius", recon("normals", src, out, "--knn", "0", "--radius", "0.2", "--curvature")))
+        steps.append(
+            (
+                "normals radius",
+                recon("normals", src, out, "--knn", "0", "--radius", "0.2", "--curvature"),
+            )
+        )
         steps.append(("normals knn+radius", recon("normals", src, out, "--radius", "0.2")))
     steps.append(("normals keep", recon("normals", c32, out, "--orient", "keep")))
     steps.append(("normals degenerate", recon("normals", path("degenerate.ply"), out)))
     for src in (c32, c64):
         steps += [
             ("poisson", recon("poisson", src, out, "--depth", "5")),
-            ("poisson density", recon("poisson", src, out, "--depth", "5", "--density", "--trim", "0.1",
-                                      "--boundary", "dirichlet")),
+            (
+                "poisson density",
+                recon(
+                    "poisson",
+                    src,
+                    out,
+                    "--depth",
+                    "5",
+                    "--density",
+                    "--trim",
+                    "0.1",
+                    "--boundary",
+                    "dirichlet",
+                ),
+            ),
             ("poisson degree 1", recon("poisson", src, out, "--depth", "5", "--degree", "1")),
-            ("poisson degree 1 density", recon("poisson", src, out, "--depth", "5", "--degree", "1", "--density",
-                                               "--trim", "0.1", "--boundary", "dirichlet")),
+            (
+                "poisson degree 1 density",
+                recon(
+                    "poisson",
+                    src,
+                    out,
+                    "--depth",
+                    "5",
+                    "--degree",
+                    "1",
+                    "--density",
+                    "--trim",
+                    "0.1",
+                    "--boundary",
+                    "dirichlet",
+                ),
+            ),
             ("ballpivot", recon("ballpivot", src, out)),
             ("sdf cloud", recon("sdf", src, path("cloud.npz"), "--resolution", "16")),
         ]
     for deg in ("1", "2"):
-        steps.append((f"poisson adaptive levels, degree {deg}", recon("poisson", c32, out, "--depth", "7", "--degree",
-                                                                      deg)))
-        steps.append((f"poisson levels past the full depth, degree {deg}", recon("poisson", path("dense.ply"), out,
-                                                                                 "--depth", "7", "--degree", deg)))
-    steps.append(("poisson open scan (leaf extraction)", recon("poisson", path("half.ply"), out, "--depth", "7")))
-    steps.append(("poisson degree 2", recon("poisson", path("dense.ply"), out, "--depth", "7", "--degree", "2")))
-    steps.append(("poisson degree 2 unscreened", recon("poisson", c32, out, "--depth", "5", "--degree", "2",
-                                                       "--point-weight", "0")))
-    steps.append(("poisson estimate-normals", recon("poisson", path("bare_float32.ply"), out, "--depth", "5",
-                                                    "--estimate-normals")))
+        steps.append(
+            (
+                f"poisson adaptive levels, degree {deg}",
+                recon("poisson", c32, out, "--depth", "7", "--degree", deg),
+            )
+        )
+        steps.append(
+            (
+                f"poisson levels past the full depth, degree {deg}",
+                recon("poisson", path("dense.ply"), out, "--depth", "7", "--degree", deg),
+            )
+        )
+    steps.append(
+        (
+            "poisson open scan (leaf extraction)",
+            recon("poisson", path("half.ply"), out, "--depth", "7"),
+        )
+    )
+    steps.append(
+        (
+            "poisson degree 2",
+            recon("poisson", path("dense.ply"), out, "--depth", "7", "--degree", "2"),
+        )
+    )
+    steps.append(
+        (
+            "poisson degree 2 unscreened",
+            recon("poisson", c32, out, "--depth", "5", "--degree", "2", "--point-weight", "0"),
+        )
+    )
+    steps.append(
+        (
+            "poisson estimate-normals",
+            recon("poisson", path("bare_float32.ply"), out, "--depth", "5", "--estimate-normals"),
+        )
+    )
     for src in (m32, m64, path("open.ply")):
         steps += [
             ("info mesh", recon("info", src)),
             ("repair", recon("repair", src, out)),
-            ("repair all", recon("repair", src, out, "--merge-tolerance", "1e-6", "--fill-holes", "100",
-                                 "--min-component", "0.1", "--keep-largest")),
+            (
+                "repair all",
+                recon(
+                    "repair",
+                    src,
+                    out,
+                    "--merge-tolerance",
+                    "1e-6",
+                    "--fill-holes",
+                    "100",
+                    "--min-component",
+                    "0.1",
+                    "--keep-largest",
+                ),
+            ),
             ("sdf winding", recon("sdf", src, path("mesh.npz"), "--resolution", "16")),
-            ("sdf pseudonormal", recon("sdf", src, path("mesh.npz"), "--resolution", "16", "--sign", "pseudonormal",
-                                       "--band", "2")),
+            (
+                "sdf pseudonormal",
+                recon(
+                    "sdf",
+                    src,
+                    path("mesh.npz"),
+                    "--resolution",
+                    "16",
+                    "--sign",
+                    "pseudonormal",
+                    "--band",
+                    "2",
+                ),
+            ),
         ]
     steps.append(("repair mixed polygons", recon("repair", path("mixed.ply"), out)))
     steps.append(("repair non-manifold edge", recon("repair", path("fin.ply"), out)))
@@ -202,19 +338,47 @@ def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
         suffixes = ("obj", "off", "stl") if kind == "mesh" else ("xyz", "csv", "pcd", "obj")
         for suffix in suffixes:
             dst = path(f"{tag}.{suffix}")
-            steps += [(f"write {suffix}", recon("convert", src, dst)), (f"read {suffix}", recon("info", dst))]
+            steps += [
+                (f"write {suffix}", recon("convert", src, dst)),
+                (f"read {suffix}", recon("info", dst)),
+            ]
     for src in (c32, c64):
         tag = os.path.basename(src)[:-4]
         for mode in ("ascii", "binary", "binary_compressed"):
             dst = path(f"{tag}_{mode}.pcd")
-            steps += [(f"write pcd {mode}", _pcd(src, dst, mode)), (f"read pcd {mode}", recon("info", dst))]
+            steps += [
+                (f"write pcd {mode}", _pcd(src, dst, mode)),
+                (f"read pcd {mode}", recon("info", dst)),
+            ]
         dst = path(f"{tag}.stl")
-        steps += [("write stl ascii", recon("convert", m32, dst, "--ascii")), ("read stl ascii", recon("info", dst))]
+        steps += [
+            ("write stl ascii", recon("convert", m32, dst, "--ascii")),
+            ("read stl ascii", recon("info", dst)),
+        ]
     steps += [
-        ("diff", recon("diff", m32, path("open.ply"), "--samples", "2000", "--heatmap", path("heat.ply"),
-                       "--png", path("diff.png"), "--view", "iso", "--view", "top")),
+        (
+            "diff",
+            recon(
+                "diff",
+                m32,
+                path("open.ply"),
+                "--samples",
+                "2000",
+                "--heatmap",
+                path("heat.ply"),
+                "--png",
+                path("diff.png"),
+                "--view",
+                "iso",
+                "--view",
+                "top",
+            ),
+        ),
         ("diff ref", recon("diff", "--ref", m64, c32, m32, "--samples", "2000")),
-        ("diff cloud picture", recon("diff", c32, m32, "--samples", "2000", "--png", path("cloud.png"))),
+        (
+            "diff cloud picture",
+            recon("diff", c32, m32, "--samples", "2000", "--png", path("cloud.png")),
+        ),
         ("library only", lambda: _library_only(m64)),
     ]
     return steps
@@ -301,10 +465,14 @@ def build_ahead_of_time(progress: Any = None, log: Callable[[str], None] | None 
         t.advance(1)
     if log is not None:
         if out["built"]:
-            log(f"ahead-of-time kernels: {out['reason'] or 'built'} ({', '.join(out['modules'])}) in {out['dir']}")
+            log(
+                f"ahead-of-time kernels: {out['reason'] or 'built'} ({', '.join(out['modules'])}) in {out['dir']}"
+            )
         else:
-            log(f"ahead-of-time kernels not built ({out['reason']}): ball pivoting and marching cubes run JIT, "
-                "with numba's start-up in each command")
+            log(
+                f"ahead-of-time kernels not built ({out['reason']}): ball pivoting and marching cubes run JIT, "
+                "with numba's start-up in each command"
+            )
     return out
 
 

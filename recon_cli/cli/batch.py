@@ -10,18 +10,43 @@ from recon_cli.cli import options
 @click.command("batch")
 @click.argument("pipeline", metavar="PIPELINE.toml", type=click.Path(dir_okay=False))
 @click.argument("inputs", metavar="INPUTS...", nargs=-1, required=True)
-@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False),
-              help="Output folder: DIR/<name>.ply (.npz for a grid) and DIR/batch.json.")
-@click.option("--workers", type=click.IntRange(min=1), default=None,
-              help="Worker processes of the local cluster  [default: cores / threads per worker]")
-@click.option("--threads-per-worker", type=click.IntRange(min=1), default=None,
-              help="Threads per worker process  [default: 1]")
-@click.option("--memory-limit", default=None, metavar="SIZE",
-              help="Memory limit per worker, e.g. 4GiB; 'auto' shares the machine's memory out, 'none' = no limit "
-                   " [default: auto]")
-@click.option("--scheduler", default=None, metavar="ADDRESS",
-              help="Use the Dask cluster whose scheduler is at ADDRESS (tcp://host:8786) instead of a local one.")
-@click.option("--force", is_flag=True, help="Redo inputs whose output is already newer than input and pipeline.")
+@click.option(
+    "--out",
+    "out_dir",
+    required=True,
+    type=click.Path(file_okay=False),
+    help="Output folder: DIR/<name>.ply (.npz for a grid) and DIR/batch.json.",
+)
+@click.option(
+    "--workers",
+    type=click.IntRange(min=1),
+    default=None,
+    help="Worker processes of the local cluster  [default: cores / threads per worker]",
+)
+@click.option(
+    "--threads-per-worker",
+    type=click.IntRange(min=1),
+    default=None,
+    help="Threads per worker process  [default: 1]",
+)
+@click.option(
+    "--memory-limit",
+    default=None,
+    metavar="SIZE",
+    help="Memory limit per worker, e.g. 4GiB; 'auto' shares the machine's memory out, 'none' = no limit "
+    " [default: auto]",
+)
+@click.option(
+    "--scheduler",
+    default=None,
+    metavar="ADDRESS",
+    help="Use the Dask cluster whose scheduler is at ADDRESS (tcp://host:8786) instead of a local one.",
+)
+@click.option(
+    "--force",
+    is_flag=True,
+    help="Redo inputs whose output is already newer than input and pipeline.",
+)
 @options.ascii_opt
 @options.json_opt
 @click.pass_context
@@ -87,10 +112,16 @@ def format_summary(summary: dict) -> str:
         status = r["status"]
         if status == "ok":
             stats = r.get("output_stats", {})
-            what = ", ".join(f"{k} {v}" for k, v in stats.items() if k in ("points", "vertices", "faces", "grid_shape"))
+            what = ", ".join(
+                f"{k} {v}"
+                for k, v in stats.items()
+                if k in ("points", "vertices", "faces", "grid_shape")
+            )
             mem = r.get("peak_memory_mb")
             mem_text = f", {mem:.0f} MB" if isinstance(mem, (int, float)) else ""
-            lines.append(f"{status:<8} {r['input']} -> {r['output']} ({what}; {r['seconds']:.2f} s{mem_text})")
+            lines.append(
+                f"{status:<8} {r['input']} -> {r['output']} ({what}; {r['seconds']:.2f} s{mem_text})"
+            )
         elif status == "skipped":
             lines.append(f"{status:<8} {r['input']} (up to date: {r['output']})")
         else:

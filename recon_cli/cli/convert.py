@@ -34,9 +34,17 @@ def cmd(ctx: click.Context, input: str, output: str, ascii_: bool, big_endian: b
         raise click.UsageError(f"--big-endian is for PLY output, not {fout.name.upper()}")
     if fin is None or fin.name not in ("las", "e57") or input == "-":
         data = read_bytes(input)
-        if fout.name == "ply" and (fin is None or fin.name == "ply") and bytes(memoryview(data)[:3]) == b"ply":
+        if (
+            fout.name == "ply"
+            and (fin is None or fin.name == "ply")
+            and bytes(memoryview(data)[:3]) == b"ply"
+        ):
             ply = parse_ply(data, input)
-            ply.format = "ascii" if ascii_ else ("binary_big_endian" if big_endian else "binary_little_endian")
+            ply.format = (
+                "ascii"
+                if ascii_
+                else ("binary_big_endian" if big_endian else "binary_little_endian")
+            )
             write_bytes(output, serialize_ply(ply))
             return
         obj = decode(data, input, fin)[0]

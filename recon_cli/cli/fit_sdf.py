@@ -16,14 +16,23 @@ _NAMES = [p.name for p in get_spec("fit-sdf").params]
 
 
 @click.pass_context
-def _callback(ctx: click.Context, input: str, output: str, ascii_: bool, json_: bool, **values) -> None:
+def _callback(
+    ctx: click.Context, input: str, output: str, ascii_: bool, json_: bool, **values
+) -> None:
     from recon_cli.cli._run import run_stage_command
     from recon_cli.cli.main import EXIT_INTERRUPTED
 
-    given = {k: values[k] for k in _NAMES if ctx.get_parameter_source(k) is not click.core.ParameterSource.DEFAULT}
+    given = {
+        k: values[k]
+        for k in _NAMES
+        if ctx.get_parameter_source(k) is not click.core.ParameterSource.DEFAULT
+    }
     report = run_stage_command(ctx, "fit-sdf", input, output, given, ascii_=ascii_, json_=json_)
     if report.get("interrupted"):
-        click.echo(f"recon: interrupted: wrote the best field so far ({report['iterations']} iterations)", err=True)
+        click.echo(
+            f"recon: interrupted: wrote the best field so far ({report['iterations']} iterations)",
+            err=True,
+        )
         ctx.exit(EXIT_INTERRUPTED)
 
 

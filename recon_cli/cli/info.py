@@ -8,7 +8,9 @@ from recon_cli.cli import options
 
 
 @click.command("info")
-@click.argument("files", metavar="FILE...", nargs=-1, required=True, type=click.Path(allow_dash=True))
+@click.argument(
+    "files", metavar="FILE...", nargs=-1, required=True, type=click.Path(allow_dash=True)
+)
 @options.json_opt
 @options.format_opt
 @click.pass_context
@@ -30,7 +32,9 @@ def cmd(ctx: click.Context, files: tuple[str, ...], json_: bool) -> None:
     with immediate():  # reads and computes only: Ctrl-C ends it at once, even in a kernel
         for f in files:
             with naming(f):
-                reports.append(describe(f, fmt if (f == "-" or not os.path.splitext(f)[1]) else None))
+                reports.append(
+                    describe(f, fmt if (f == "-" or not os.path.splitext(f)[1]) else None)
+                )
     if json_:
         click.echo(report_json(reports))  # always a list, one entry per FILE
         return
@@ -50,7 +54,9 @@ def format_info(rep: dict) -> str:
         lines.append(f"  inside cells   {rep['inside_cells']}")
         e = rep.get("eikonal")
         if e and e["cells"]:
-            lines.append(f"  eikonal |grad| mean {e['mean']:.4f}, within 1±0.1: {e['fraction_within_0.1'] * 100:.1f}% of {e['cells']} cells")
+            lines.append(
+                f"  eikonal |grad| mean {e['mean']:.4f}, within 1±0.1: {e['fraction_within_0.1'] * 100:.1f}% of {e['cells']} cells"
+            )
         elif e is not None:
             lines.append("  eikonal        no interior cell with 6 known neighbours")
     else:
@@ -65,7 +71,9 @@ def format_info(rep: dict) -> str:
             lines.append(f"  bbox max       {', '.join(f'{v:.6g}' for v in rep['bbox']['max'])}")
             lines.append(f"  bbox diagonal  {rep['bbox']['diagonal']:.6g}")
         for k, v in (rep.get("details") or {}).items():
-            lines.append(f"  {k.replace('_', ' '):<14} {', '.join(map(str, v)) if isinstance(v, list) else v}")
+            lines.append(
+                f"  {k.replace('_', ' '):<14} {', '.join(map(str, v)) if isinstance(v, list) else v}"
+            )
         topo = rep.get("topology")
         if topo:
             lines.append("  topology:")

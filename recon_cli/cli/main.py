@@ -25,7 +25,10 @@ from recon_cli.errors import ReconError
 # subcommand -> module under recon_cli.cli holding a click command named ``cmd``;
 # imported only when run, so ``recon --help`` stays instant
 COMMANDS: dict[str, tuple[str, str]] = {
-    "info": ("info", "Describe a cloud/mesh (any format) or a grid: counts, properties, topology, history."),
+    "info": (
+        "info",
+        "Describe a cloud/mesh (any format) or a grid: counts, properties, topology, history.",
+    ),
     "normals": ("normals", "Estimate and orient point normals."),
     "poisson": ("poisson", "Screened Poisson reconstruction of an oriented cloud."),
     "ballpivot": ("ballpivot", "Ball-pivoting reconstruction of an oriented cloud."),
@@ -143,19 +146,39 @@ def with_global_options(cmd: click.Command) -> click.Command:
         if p.name == "json_":  # `recon --json info x.ply` = `recon info x.ply --json`
             p.default = _root_json
     if "-q" not in have:
-        cmd.params.append(click.Option(["--quiet", "-q"], is_flag=True, expose_value=False, callback=_set_quiet,
-                                       is_eager=True, help="No progress bars or reports on stderr."))
+        cmd.params.append(
+            click.Option(
+                ["--quiet", "-q"],
+                is_flag=True,
+                expose_value=False,
+                callback=_set_quiet,
+                is_eager=True,
+                help="No progress bars or reports on stderr.",
+            )
+        )
     if "-v" not in have:
-        cmd.params.append(click.Option(["--verbose", "-v"], count=True, expose_value=False, callback=_set_verbose,
-                                       is_eager=True, help="More detail (-vv: debug)."))
+        cmd.params.append(
+            click.Option(
+                ["--verbose", "-v"],
+                count=True,
+                expose_value=False,
+                callback=_set_verbose,
+                is_eager=True,
+                help="More detail (-vv: debug).",
+            )
+        )
     return cmd
 
 
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, "--version", prog_name="recon")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars or reports on stderr.")
-@click.option("--verbose", "-v", count=True, help="More detail: timings, solver iterations (-vv: debug).")
-@click.option("--json", "json_", is_flag=True, help="Reports as JSON (for the commands that write reports).")
+@click.option(
+    "--verbose", "-v", count=True, help="More detail: timings, solver iterations (-vv: debug)."
+)
+@click.option(
+    "--json", "json_", is_flag=True, help="Reports as JSON (for the commands that write reports)."
+)
 @click.pass_context
 def cli(ctx: click.Context, quiet: bool, verbose: int, json_: bool) -> None:
     """recon: surface reconstruction from point clouds.
@@ -206,7 +229,10 @@ def _main(argv: list[str] | None) -> int:
             raise
         return _interrupted(getattr(cause, "signum", signal.SIGINT))
     except ReconError as exc:
-        click.echo(f"recon: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}", err=True)
+        click.echo(
+            f"recon: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}",
+            err=True,
+        )
         return exc.exit_code
     except BrokenPipeError:
         # the reader went away (``recon ... - | head``): quiet, and no second error when Python

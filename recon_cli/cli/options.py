@@ -33,22 +33,35 @@ def _to_meta(ctx: click.Context, param: click.Parameter, value):
 
 
 _FORMAT_OPTIONS = (
-    (("--format", "format"), "Format of '-' and of names without a suffix (ply, obj, off, stl, xyz, csv, pcd, las, laz, e57)."),
+    (
+        ("--format", "format"),
+        "Format of '-' and of names without a suffix (ply, obj, off, stl, xyz, csv, pcd, las, laz, e57).",
+    ),
     (("--input-format", "input_format"), "Format of IN, whatever its name (e.g. IN is '-')."),
     (("--output-format", "output_format"), "Format of OUT, whatever its name."),
 )
-_POINTS_ONLY_HELP = "Allow writing a mesh to a points-only format (XYZ, PCD, LAS): its vertices, without the faces."
+_POINTS_ONLY_HELP = (
+    "Allow writing a mesh to a points-only format (XYZ, PCD, LAS): its vertices, without the faces."
+)
 
 
 def format_params() -> list[click.Option]:
     """``--format``, ``--input-format``, ``--output-format`` and ``--points-only`` as click
     options; their values go to ``ctx.meta`` (read by ``_run.io_formats``), not to the callback."""
     opts = [
-        click.Option(list(decls), metavar="FMT", default=None, expose_value=False, callback=_to_meta, help=h)
+        click.Option(
+            list(decls), metavar="FMT", default=None, expose_value=False, callback=_to_meta, help=h
+        )
         for decls, h in _FORMAT_OPTIONS
     ]
     opts.append(
-        click.Option(["--points-only", "points_only"], is_flag=True, expose_value=False, callback=_to_meta, help=_POINTS_ONLY_HELP)
+        click.Option(
+            ["--points-only", "points_only"],
+            is_flag=True,
+            expose_value=False,
+            callback=_to_meta,
+            help=_POINTS_ONLY_HELP,
+        )
     )
     return opts
 
@@ -58,14 +71,28 @@ format_opt, input_format_opt, output_format_opt = (
     for decls, h in _FORMAT_OPTIONS
 )
 points_only_opt = click.option(
-    "--points-only", "points_only", is_flag=True, expose_value=False, callback=_to_meta, help=_POINTS_ONLY_HELP
+    "--points-only",
+    "points_only",
+    is_flag=True,
+    expose_value=False,
+    callback=_to_meta,
+    help=_POINTS_ONLY_HELP,
 )
 
 
 def stage_io(f):
     """IN, OUT, --ascii, --json and the format options: what every stage command takes."""
     for deco in reversed(
-        (input_arg, output_arg, ascii_opt, json_opt, format_opt, input_format_opt, output_format_opt, points_only_opt)
+        (
+            input_arg,
+            output_arg,
+            ascii_opt,
+            json_opt,
+            format_opt,
+            input_format_opt,
+            output_format_opt,
+            points_only_opt,
+        )
     ):
         f = deco(f)
     return f
@@ -86,11 +113,20 @@ def option_for(p) -> click.Option:
     notes.append(f"default: {p.default_text()}")
     help_text = f"{p.help} [{'; '.join(notes)}]"
     if p.type == "bool":
-        return click.Option([f"{p.option}/--no-{p.dashed}", p.name], default=bool(p.default), help=help_text)
-    metavar = p.metavar or {
-        "int": "N", "float": "F", "vector": "X,Y,Z", "floats": "F,...", "any": "VALUE",
-        "choice": "[" + "|".join(p.choices) + "]",
-    }[p.type]
+        return click.Option(
+            [f"{p.option}/--no-{p.dashed}", p.name], default=bool(p.default), help=help_text
+        )
+    metavar = (
+        p.metavar
+        or {
+            "int": "N",
+            "float": "F",
+            "vector": "X,Y,Z",
+            "floats": "F,...",
+            "any": "VALUE",
+            "choice": "[" + "|".join(p.choices) + "]",
+        }[p.type]
+    )
     return click.Option([p.option, p.name], type=str, default=None, metavar=metavar, help=help_text)
 
 
@@ -104,38 +140,60 @@ def stage_command(stage: str) -> click.Command:
     names = [p.name for p in spec.params]
 
     @click.pass_context
-    def callback(ctx: click.Context, input: str, output: str, ascii_: bool, json_: bool, **values) -> None:
+    def callback(
+        ctx: click.Context, input: str, output: str, ascii_: bool, json_: bool, **values
+    ) -> None:
         from recon_cli.cli._run import run_stage_command
 
-        given = {k: values[k] for k in names if ctx.get_parameter_source(k) is not click.core.ParameterSource.DEFAULT}
+        given = {
+            k: values[k]
+            for k in names
+            if ctx.get_parameter_source(k) is not click.core.ParameterSource.DEFAULT
+        }
         run_stage_command(ctx, spec.name, input, output, given, ascii_=ascii_, json_=json_)
 
     doc = inspect.cleandoc(spec.description or spec.summary)
-    out_arg = click.Argument(["output"], metavar="OUT", type=click.Path(allow_dash=True))  # checked by reader/writer: one line
-    in_arg = click.Argument(["input"], metavar="IN", type=click.Path(allow_dash=True))  # checked by reader/writer: one line
+    out_arg = click.Argument(
+        ["output"], metavar="OUT", type=click.Path(allow_dash=True)
+    )  # checked by reader/writer: one line
+    in_arg = click.Argument(
+        ["input"], metavar="IN", type=click.Path(allow_dash=True)
+    )  # checked by reader/writer: one line
     params: list[click.Parameter] = [
-        in_arg, out_arg,
+        in_arg,
+        out_arg,
         click.Option(["--ascii", "ascii_"], is_flag=True, help=ASCII_HELP),
         click.Option(["--json", "json_"], is_flag=True, help=JSON_HELP),
     ]
     params += [option_for(p) for p in spec.params]
     params += format_params()
-    return click.Command(spec.name, callback=callback, params=params, help=doc, short_help=spec.summary)
+    return click.Command(
+        spec.name, callback=callback, params=params, help=doc, short_help=spec.summary
+    )
 
 
 def picture_opts(f):
     """``--view``, ``--vmax`` and ``--unit``: how ``recon diff --png`` and ``recon compare`` draw."""
-    for deco in reversed((
-        click.option(
-            "--view",
-            "views",
-            multiple=True,
-            default=("turntable",),
-            show_default=True,
-            help="View of the pictures (repeatable): turntable (4 azimuths), front, back, left, right, top, bottom, iso, or AZ,EL in degrees.",
-        ),
-        click.option("--vmax", type=float, help="Distance at the top of the heatmaps' colour scale [default: 99th percentile, at least the smallest tau]."),
-        click.option("--unit", help="Unit of the coordinates, written on the colour bar and in reports (e.g. mm) [default: model units]."),
-    )):
+    for deco in reversed(
+        (
+            click.option(
+                "--view",
+                "views",
+                multiple=True,
+                default=("turntable",),
+                show_default=True,
+                help="View of the pictures (repeatable): turntable (4 azimuths), front, back, left, right, top, bottom, iso, or AZ,EL in degrees.",
+            ),
+            click.option(
+                "--vmax",
+                type=float,
+                help="Distance at the top of the heatmaps' colour scale [default: 99th percentile, at least the smallest tau].",
+            ),
+            click.option(
+                "--unit",
+                help="Unit of the coordinates, written on the colour bar and in reports (e.g. mm) [default: model units].",
+            ),
+        )
+    ):
         f = deco(f)
     return f

@@ -13,10 +13,19 @@ from recon_cli.cli import options
 @click.argument("pipeline", metavar="PIPELINE.toml", type=click.Path(dir_okay=False))
 @click.argument("input", metavar="IN", required=False, type=click.Path(allow_dash=True))
 @click.argument("output", metavar="OUT", required=False, type=click.Path(allow_dash=True))
-@click.option("--set", "overrides", multiple=True, metavar="STAGE.PARAM=VALUE",
-              help="Override a parameter without editing the file (repeatable): poisson.depth=9, or 2.depth=9 for "
-              "the second stage.")
-@click.option("--validate", is_flag=True, help="Check the pipeline (and IN, when given) and exit; nothing is written.")
+@click.option(
+    "--set",
+    "overrides",
+    multiple=True,
+    metavar="STAGE.PARAM=VALUE",
+    help="Override a parameter without editing the file (repeatable): poisson.depth=9, or 2.depth=9 for "
+    "the second stage.",
+)
+@click.option(
+    "--validate",
+    is_flag=True,
+    help="Check the pipeline (and IN, when given) and exit; nothing is written.",
+)
 @options.ascii_opt
 @options.json_opt
 @options.format_opt
@@ -24,8 +33,16 @@ from recon_cli.cli import options
 @options.output_format_opt
 @options.points_only_opt
 @click.pass_context
-def cmd(ctx: click.Context, pipeline: str, input: str | None, output: str | None, overrides: tuple[str, ...],
-        validate: bool, ascii_: bool, json_: bool) -> None:
+def cmd(
+    ctx: click.Context,
+    pipeline: str,
+    input: str | None,
+    output: str | None,
+    overrides: tuple[str, ...],
+    validate: bool,
+    ascii_: bool,
+    json_: bool,
+) -> None:
     """Run the stages listed in PIPELINE.toml on IN and write OUT.
 
     The whole pipeline is checked before anything runs: unknown stages or parameters,
@@ -39,9 +56,14 @@ def cmd(ctx: click.Context, pipeline: str, input: str | None, output: str | None
     pipe = load_pipeline(pipeline, overrides)
     if validate:
         if output is not None:
-            raise ParameterError("--validate writes nothing: give PIPELINE.toml and, optionally, IN")
-        summary = {"pipeline": pipeline, "valid": True,
-                   "stages": [{"stage": s.name, "line": s.line, "params": s.params} for s in pipe.steps]}
+            raise ParameterError(
+                "--validate writes nothing: give PIPELINE.toml and, optionally, IN"
+            )
+        summary = {
+            "pipeline": pipeline,
+            "valid": True,
+            "stages": [{"stage": s.name, "line": s.line, "params": s.params} for s in pipe.steps],
+        }
         if input is not None:
             from recon_cli.io.load import load
 

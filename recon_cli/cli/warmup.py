@@ -26,7 +26,11 @@ def cmd(ctx, json_):
     from recon_cli.errors import StageFailed
     from recon_cli.cli._warmup import warmup
 
-    report = warmup(progress=make_progress(ctx), log=lambda line: click.echo(f"recon: {line}", err=True))
+    report = warmup(
+        progress=make_progress(ctx), log=lambda line: click.echo(f"recon: {line}", err=True)
+    )
     emit_report(ctx, report, json_=json_)
     if report["failed"]:
-        raise StageFailed(f"warm-up: {len(report['failed'])} step(s) failed: {', '.join(report['failed'])}")
+        raise StageFailed(
+            f"warm-up: {len(report['failed'])} step(s) failed: {', '.join(report['failed'])}"
+        )

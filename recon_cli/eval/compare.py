@@ -196,13 +196,17 @@ def compare_methods(
         "environment": environment(),
         "provenance": {
             "input": file_provenance(input_path, source),
-            "reference": None if reference_path is None else file_provenance(reference_path, reference),
+            "reference": None
+            if reference_path is None
+            else file_provenance(reference_path, reference),
         },
     }
     del source
     rows, outputs = _run_methods(input_path, methods, available, out_dir, isolate, progress)
     _measure(rows, outputs, reference, samples, seed, taus)
-    result["reference_diagonal"] = next((r["metrics"]["reference_diagonal"] for r in rows if r["metrics"]), None)
+    result["reference_diagonal"] = next(
+        (r["metrics"]["reference_diagonal"] for r in rows if r["metrics"]), None
+    )
     result["methods"] = rows
     result.update(_draw(rows, outputs, reference, reference_path, out_dir, views, vmax, unit))
     result["files"] = {
@@ -238,7 +242,9 @@ def _plan(methods, samples, views, vmax) -> tuple[list[Method], dict[str, bool],
     available: dict[str, bool] = {}
     for m in methods:
         if m.stage not in STAGES:
-            raise ParameterError(f"unknown stage {m.stage!r} in method {m.label!r} (stages: {', '.join(sorted(STAGES))})")
+            raise ParameterError(
+                f"unknown stage {m.stage!r} in method {m.label!r} (stages: {', '.join(sorted(STAGES))})"
+            )
         try:
             get_stage(m.stage)
         except ParameterError:
@@ -248,11 +254,15 @@ def _plan(methods, samples, views, vmax) -> tuple[list[Method], dict[str, bool],
         known = stage_parameters(m.stage)
         for k in m.stage_params():
             if k not in known:
-                raise ParameterError(f"method {m.label!r}: stage {m.stage!r} has no parameter {k!r} (parameters: {', '.join(sorted(known))})")
+                raise ParameterError(
+                    f"method {m.label!r}: stage {m.stage!r} has no parameter {k!r} (parameters: {', '.join(sorted(known))})"
+                )
     return methods, available, samples, vmax
 
 
-def _run_methods(input_path, methods, available, out_dir, isolate, progress) -> tuple[list[dict], dict[str, Any]]:
+def _run_methods(
+    input_path, methods, available, out_dir, isolate, progress
+) -> tuple[list[dict], dict[str, Any]]:
     """Run each method (a child process each unless ``isolate`` is False): rows and outputs by label."""
     from recon_cli.eval.metrics import load_geometry
 
@@ -283,11 +293,32 @@ def _run_methods(input_path, methods, available, out_dir, isolate, progress) -> 
             row["error"] = f"stage {m.stage!r} is not available (its module cannot be imported)"
             continue
         out_path = os.path.join(out_dir, m.slug + ".ply")
-        with progress.task(f"running {m.label}") if progress is not None else contextlib.nullcontext():
+        with (
+            progress.task(f"running {m.label}")
+            if progress is not None
+            else contextlib.nullcontext()
+        ):
             t0 = time.perf_counter()
-            res = _run_isolated(input_path, m, out_path) if isolate else _run_here(input_path, m, out_path)
+            res = (
+                _run_isolated(input_path, m, out_path)
+                if isolate
+                else _run_here(input_path, m, out_path)
+            )
             row["process_seconds"] = time.perf_counter() - t0
-        row.update({k: res.get(k) for k in ("status", "error", "seconds", "peak_mb", "params_resolved", "stage_report", "library_calls")})
+        row.update(
+            {
+                k: res.get(k)
+                for k in (
+                    "status",
+                    "error",
+                    "seconds",
+                    "peak_mb",
+                    "params_resolved",
+                    "stage_report",
+                    "library_calls",
+                )
+            }
+        )
         if res["status"] != STATUS_OK:
             continue
         row["output"] = out_path
@@ -308,7 +339,9 @@ def _measure(rows, outputs, reference, samples, seed, taus) -> None:
         if row["status"] != STATUS_OK:
             continue
         try:
-            row["metrics"] = compare_meshes(outputs[row["method"]], reference, samples=samples, seed=seed, taus=taus)
+            row["metrics"] = compare_meshes(
+                outputs[row["method"]], reference, samples=samples, seed=seed, taus=taus
+            )
         except InputError as exc:  # e.g. an empty reconstruction
             row["status"], row["error"] = STATUS_FAILED, f"cannot compare the output: {exc}"
 
@@ -342,12 +375,27 @@ def _draw(rows, outputs, reference, reference_path, out_dir, views, vmax, unit) 
     ref = (_stem(reference_path), reference) if reference is not None else None
     for r in good:
         r["picture"] = os.path.join(out_dir, _slug(r["method"]) + ".png")
-        fig = sheet(diff_rows([(r["method"], outputs[r["method"]], acc[r["method"]], missed[r["method"]])], ref),
-                    views, vmax=vmax, unit=unit, diagonal=diag, title=f"recon compare: {r['method']}")
+        fig = sheet(
+            diff_rows(
+                [(r["method"], outputs[r["method"]], acc[r["method"]], missed[r["method"]])], ref
+            ),
+            views,
+            vmax=vmax,
+            unit=unit,
+            diagonal=diag,
+            title=f"recon compare: {r['method']}",
+        )
         write_png(fig.image, r["picture"])
     overview_path = os.path.join(out_dir, "overview.png")
-    fig = overview([(r["method"], outputs[r["method"]], acc[r["method"]], missed[r["method"]]) for r in good], ref,
-                   resolve_views(views)[0][1], vmax=vmax, unit=unit, diagonal=diag, title="recon compare: all methods")
+    fig = overview(
+        [(r["method"], outputs[r["method"]], acc[r["method"]], missed[r["method"]]) for r in good],
+        ref,
+        resolve_views(views)[0][1],
+        vmax=vmax,
+        unit=unit,
+        diagonal=diag,
+        title="recon compare: all methods",
+    )
     write_png(fig.image, overview_path)
     plot = None
     if reference is not None and any(r["metrics"] for r in good):
@@ -372,13 +420,28 @@ def quality_plot(rows: Sequence[dict], unit: str | None = None) -> Any:
     tau = measured[0]["metrics"]["tau_relative"][0] * 100 if measured else nan
 
     def pts(get):
-        return [(r["method"], r["seconds"] if r["seconds"] is not None else nan, get(r) if r.get("metrics") else nan)
-                for r in rows if r["status"] == STATUS_OK]
+        return [
+            (
+                r["method"],
+                r["seconds"] if r["seconds"] is not None else nan,
+                get(r) if r.get("metrics") else nan,
+            )
+            for r in rows
+            if r["status"] == STATUS_OK
+        ]
 
-    left = scatter_plot(pts(lambda r: r["metrics"]["chamfer_l1"]), x_label="stage wall time [s], lower is better",
-                        y_label=f"Chamfer-L1 [{unit or 'model units'}], lower is better", title="Chamfer-L1 against time")
-    right = scatter_plot(pts(lambda r: r["metrics"]["fscore"][0]), x_label="stage wall time [s], lower is better",
-                         y_label=f"F-score @{tau:.3g}% of diagonal, higher is better", title="F-score against time")
+    left = scatter_plot(
+        pts(lambda r: r["metrics"]["chamfer_l1"]),
+        x_label="stage wall time [s], lower is better",
+        y_label=f"Chamfer-L1 [{unit or 'model units'}], lower is better",
+        title="Chamfer-L1 against time",
+    )
+    right = scatter_plot(
+        pts(lambda r: r["metrics"]["fscore"][0]),
+        x_label="stage wall time [s], lower is better",
+        y_label=f"F-score @{tau:.3g}% of diagonal, higher is better",
+        title="F-score against time",
+    )
     return np.concatenate([left.image, right.image], axis=1)
 
 
@@ -418,11 +481,22 @@ def _run_here(input_path: str | os.PathLike, m: Method, out_path: str) -> dict[s
         seconds = time.perf_counter() - t0
         peak = tracemalloc.get_traced_memory()[1] / 2**20
     except ReconError as exc:
-        return {"status": STATUS_FAILED, "error": str(exc).splitlines()[0] if str(exc) else type(exc).__name__, "seconds": None, "peak_mb": None}
+        return {
+            "status": STATUS_FAILED,
+            "error": str(exc).splitlines()[0] if str(exc) else type(exc).__name__,
+            "seconds": None,
+            "peak_mb": None,
+        }
     finally:
         tracemalloc.stop()
     save(result.output, out_path)
-    return {"status": STATUS_OK, "error": None, "seconds": seconds, "peak_mb": peak, **_ran_with(m.stage, m.stage_params(), result, calls)}
+    return {
+        "status": STATUS_OK,
+        "error": None,
+        "seconds": seconds,
+        "peak_mb": peak,
+        **_ran_with(m.stage, m.stage_params(), result, calls),
+    }
 
 
 def _surface(result):
@@ -442,7 +516,11 @@ def _run_isolated(input_path: str | os.PathLike, m: Method, out_path: str) -> di
     # spawn, not fork: the parent may hold numba/OpenMP threads that a fork would break
     ctx = mp.get_context("spawn")
     recv, send = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_child, args=(send, os.fspath(input_path), m.stage, m.stage_params(), out_path), daemon=True)
+    proc = ctx.Process(
+        target=_child,
+        args=(send, os.fspath(input_path), m.stage, m.stage_params(), out_path),
+        daemon=True,
+    )
     proc.start()
     send.close()
     try:
@@ -476,12 +554,34 @@ def _child(conn, input_path: str, stage: str, params: dict, out_path: str) -> No
         seconds = time.perf_counter() - t0
         peak = max(0.0, (memory.peak_mb() or 0.0) - base)
         save(result.output, out_path)
-        conn.send({"status": STATUS_OK, "error": None, "seconds": seconds, "peak_mb": peak, **_ran_with(stage, params, result, calls)})
+        conn.send(
+            {
+                "status": STATUS_OK,
+                "error": None,
+                "seconds": seconds,
+                "peak_mb": peak,
+                **_ran_with(stage, params, result, calls),
+            }
+        )
     except ReconError as exc:
-        conn.send({"status": STATUS_FAILED, "error": str(exc).splitlines()[0] if str(exc) else type(exc).__name__, "seconds": None, "peak_mb": None})
+        conn.send(
+            {
+                "status": STATUS_FAILED,
+                "error": str(exc).splitlines()[0] if str(exc) else type(exc).__name__,
+                "seconds": None,
+                "peak_mb": None,
+            }
+        )
     except BaseException as exc:  # a bug in a method must not take the comparison down
         last = traceback.format_exception_only(type(exc), exc)[-1].strip()
-        conn.send({"status": STATUS_FAILED, "error": f"unexpected error: {last}", "seconds": None, "peak_mb": None})
+        conn.send(
+            {
+                "status": STATUS_FAILED,
+                "error": f"unexpected error: {last}",
+                "seconds": None,
+                "peak_mb": None,
+            }
+        )
     finally:
         conn.close()
 
@@ -496,7 +596,10 @@ def _ran_with(stage: str, params: dict, result: Any, calls: Sequence[dict]) -> d
 
     report = result.report if isinstance(result.report, dict) else {}
     spec = get_spec(stage)
-    resolved = {**spec.defaults(), **spec.check(dict(params), complete=False)}  # as apply_stage ran them
+    resolved = {
+        **spec.defaults(),
+        **spec.check(dict(params), complete=False),
+    }  # as apply_stage ran them
     if isinstance(report.get("provenance"), dict):
         resolved.update(report["provenance"])
     out = {"params_resolved": resolved, "stage_report": report, "library_calls": list(calls)}

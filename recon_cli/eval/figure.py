@@ -180,7 +180,9 @@ def grid(
     if heat:
         vmax = check_vmax(vmax if vmax is not None else (largest or 1.0))
     has_edges = any(c.edges for c in flat)
-    box = layout(len(cells), n_cols, s, title=title is not None, colorbar=bool(heat), legend=has_edges)
+    box = layout(
+        len(cells), n_cols, s, title=title is not None, colorbar=bool(heat), legend=has_edges
+    )
     width, height = box.pop("size")[2:]
     img = np.full((height, width, 3), 255, dtype=np.uint8)
     texts: list[tuple] = []
@@ -202,8 +204,16 @@ def grid(
                     edge_cache[id(c.obj)] = defect_edges(c.obj)
                 edges = edge_cache[id(c.obj)]
             x0, y0, x1, y1 = box[f"tile {r} {k}"]
-            img[y0:y1, x0:x1] = render(c.obj, c.view, (s, s), frame, scalars=c.scalars, vmax=vmax,
-                                       supersample=supersample, edges=edges).image
+            img[y0:y1, x0:x1] = render(
+                c.obj,
+                c.view,
+                (s, s),
+                frame,
+                scalars=c.scalars,
+                vmax=vmax,
+                supersample=supersample,
+                edges=edges,
+            ).image
             img[y0 - 1 : y1 + 1, [x0 - 1, x1]] = 225  # a light frame around each tile
             img[[y0 - 1, y1], x0 - 1 : x1 + 1] = 225
     if heat:
@@ -213,8 +223,15 @@ def grid(
     return Figure(_draw_texts(img, texts), box)
 
 
-def layout(n_rows: int, n_columns: int, panel_size: int, *, title: bool = False, colorbar: bool = True,
-           legend: bool = False) -> dict[str, Box]:
+def layout(
+    n_rows: int,
+    n_columns: int,
+    panel_size: int,
+    *,
+    title: bool = False,
+    colorbar: bool = True,
+    legend: bool = False,
+) -> dict[str, Box]:
     """Boxes of every part of a :func:`grid` (``"size"`` is ``(0, 0, width, height)``)."""
     s = int(panel_size)
     box: dict[str, Box] = {}
@@ -318,7 +335,9 @@ def scatter_plot(
     dr.text(((left + right) / 2, h - 26), x_label, font=label, fill=TEXT_COLOR, anchor="ms")
     box["x label"] = (left, h - 46, right, h - 20)
     ylab = Image.new("RGB", (bottom - top, 22), (255, 255, 255))
-    ImageDraw.Draw(ylab).text(((bottom - top) / 2, 11), y_label, font=label, fill=TEXT_COLOR, anchor="mm")
+    ImageDraw.Draw(ylab).text(
+        ((bottom - top) / 2, 11), y_label, font=label, fill=TEXT_COLOR, anchor="mm"
+    )
     im.paste(ylab.rotate(90, expand=True), (8, top))
     box["y label"] = (8, top, 30, bottom)
     colors = _point_colors(len(good))
@@ -332,12 +351,25 @@ def scatter_plot(
         px, py = sx(x), sy(y)
         lab = _fit(lab, small, (right - left) * 0.6)
         # the first of these places (right, left, above, below ...) that overlaps no disc or label
-        tries = [("lm", px + 10, py), ("rm", px - 10, py), ("mb", px, py - 9), ("mt", px, py + 9),
-                 ("lb", px + 8, py - 7), ("rt", px - 8, py + 7), ("lt", px + 8, py + 7), ("rb", px - 8, py - 7)]
+        tries = [
+            ("lm", px + 10, py),
+            ("rm", px - 10, py),
+            ("mb", px, py - 9),
+            ("mt", px, py + 9),
+            ("lb", px + 8, py - 7),
+            ("rt", px - 8, py + 7),
+            ("lt", px + 8, py + 7),
+            ("rb", px - 8, py - 7),
+        ]
         best = None
         for anchor, tx, ty in tries:
             bb = dr.textbbox((tx, ty), lab, font=small, anchor=anchor)
-            inside = bb[0] >= left + 2 and bb[2] <= right - 2 and bb[1] >= top + 2 and bb[3] <= bottom - 2
+            inside = (
+                bb[0] >= left + 2
+                and bb[2] <= right - 2
+                and bb[1] >= top + 2
+                and bb[3] <= bottom - 2
+            )
             if inside and not any(_overlap(bb, o) for o in placed):
                 best = (anchor, tx, ty, bb)
                 break
@@ -352,8 +384,12 @@ def scatter_plot(
         box[f"point label {k}"] = (int(bb[0]), int(bb[1]), int(bb[2]) + 1, int(bb[3]) + 1)
     missing = [lab for lab, x, y in points if not (np.isfinite(x) and np.isfinite(y))]
     if missing:
-        dr.text((left, h - 18), _fit("not shown (no figure): " + ", ".join(missing), small, w - left - MARGIN),
-                font=small, fill=TEXT_COLOR)
+        dr.text(
+            (left, h - 18),
+            _fit("not shown (no figure): " + ", ".join(missing), small, w - left - MARGIN),
+            font=small,
+            fill=TEXT_COLOR,
+        )
         box["missing"] = (left, h - 20, w - MARGIN, h)
     return Figure(np.asarray(im, dtype=np.uint8).copy(), box)
 
@@ -398,7 +434,13 @@ def _draw_texts(img: np.ndarray, texts: list[tuple]) -> np.ndarray:
         lines = text.split("\n")
         step = (y1 - y0) / len(lines)
         for i, line in enumerate(lines):
-            dr.text((x0 + 2, y0 + step * (i + 0.5)), _fit(line, font, x1 - x0 - 4), font=font, fill=color, anchor="lm")
+            dr.text(
+                (x0 + 2, y0 + step * (i + 0.5)),
+                _fit(line, font, x1 - x0 - 4),
+                font=font,
+                fill=color,
+                anchor="lm",
+            )
     return np.asarray(im, dtype=np.uint8).copy()
 
 
@@ -417,9 +459,15 @@ def _colorbar(img, box, vmax, largest, unit, diagonal, bar_title) -> list[tuple]
         return f" ({100 * v / diagonal:.3g}%)" if diagonal else ""
 
     x0t, y0t, x1t, y1t = box["colorbar title"]
-    texts = [((x0t, y0t, x1t, y0t + LABEL_H), bar_title, FONT_LABEL, TEXT_COLOR),
-             ((x0t, y0t + LABEL_H, x1t, y1t), f"[{unit or 'model units'}]" + ("\n(% of ref. diagonal)" if diagonal else ""),
-              FONT_SMALL, TEXT_COLOR)]
+    texts = [
+        ((x0t, y0t, x1t, y0t + LABEL_H), bar_title, FONT_LABEL, TEXT_COLOR),
+        (
+            (x0t, y0t + LABEL_H, x1t, y1t),
+            f"[{unit or 'model units'}]" + ("\n(% of ref. diagonal)" if diagonal else ""),
+            FONT_SMALL,
+            TEXT_COLOR,
+        ),
+    ]
     for frac in (1.0, 0.75, 0.5, 0.25, 0.0):
         y = y0 + int(round((1.0 - frac) * (n - 1)))
         img[y, x1 : x1 + 6] = 0
@@ -427,7 +475,14 @@ def _colorbar(img, box, vmax, largest, unit, diagonal, bar_title) -> list[tuple]
         label = (f">= {_num(v)}" if frac == 1.0 else _num(v)) + pct(v)
         texts.append(((x1 + 10, y - 10, rx, y + 10), label, FONT_SMALL, TEXT_COLOR))
     clipped = "higher values: the top colour" if largest > vmax else "no value above the top"
-    texts.append((box["colorbar max"], f"max {_num(largest)}{pct(largest)}\n{clipped}", FONT_SMALL, TEXT_COLOR))
+    texts.append(
+        (
+            box["colorbar max"],
+            f"max {_num(largest)}{pct(largest)}\n{clipped}",
+            FONT_SMALL,
+            TEXT_COLOR,
+        )
+    )
     return texts
 
 
@@ -436,10 +491,14 @@ def _legend(img, legend_box) -> list[tuple]:
 
     x0, y0, x1, y1 = legend_box
     texts = []
-    for i, (color, text) in enumerate(((BOUNDARY_COLOR, "boundary edge"), (NON_MANIFOLD_COLOR, "non-manifold edge"))):
+    for i, (color, text) in enumerate(
+        ((BOUNDARY_COLOR, "boundary edge"), (NON_MANIFOLD_COLOR, "non-manifold edge"))
+    ):
         yc = y0 + i * LABEL_H + LABEL_H // 2
         img[yc - 2 : yc + 2, x0 : x0 + 22] = color
-        texts.append(((x0 + 28, yc - LABEL_H // 2, x1, yc + LABEL_H // 2), text, FONT_SMALL, TEXT_COLOR))
+        texts.append(
+            ((x0 + 28, yc - LABEL_H // 2, x1, yc + LABEL_H // 2), text, FONT_SMALL, TEXT_COLOR)
+        )
     return texts
 
 
@@ -492,13 +551,25 @@ def _ticks(lo: float, hi: float, log: bool) -> list[float]:
 
 
 def _point_colors(n: int) -> list[tuple[int, int, int]]:
-    palette = [(31, 119, 180), (214, 39, 40), (44, 160, 44), (255, 127, 14), (148, 103, 189),
-               (140, 86, 75), (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207)]
+    palette = [
+        (31, 119, 180),
+        (214, 39, 40),
+        (44, 160, 44),
+        (255, 127, 14),
+        (148, 103, 189),
+        (140, 86, 75),
+        (227, 119, 194),
+        (127, 127, 127),
+        (188, 189, 34),
+        (23, 190, 207),
+    ]
     return [palette[k % len(palette)] for k in range(n)]
 
 
 def diff_rows(
-    candidates: Sequence[tuple[str, TriangleMesh | PointCloud, np.ndarray | None, np.ndarray | None]],
+    candidates: Sequence[
+        tuple[str, TriangleMesh | PointCloud, np.ndarray | None, np.ndarray | None]
+    ],
     reference: tuple[str, TriangleMesh | PointCloud] | None,
 ) -> list[Row]:
     """The rows of a comparison sheet: each candidate's shape, accuracy and completeness, then the reference.
@@ -515,17 +586,36 @@ def diff_rows(
     for name, obj, acc, comp in candidates:
         rows.append(Row(f"{name} · shape{_edge_note(obj)}", obj, edges=True))
         if acc is not None:
-            rows.append(Row(f"{name} · accuracy: its surface coloured by distance to the reference", obj, acc))
+            rows.append(
+                Row(
+                    f"{name} · accuracy: its surface coloured by distance to the reference",
+                    obj,
+                    acc,
+                )
+            )
         if comp is not None and reference is not None:
-            rows.append(Row(f"{name} · completeness: the reference coloured by distance to it (red: missed)",
-                            reference[1], comp))
+            rows.append(
+                Row(
+                    f"{name} · completeness: the reference coloured by distance to it (red: missed)",
+                    reference[1],
+                    comp,
+                )
+            )
     if reference is not None:
-        rows.append(Row(f"{reference[0]} (reference) · shape{_edge_note(reference[1])}", reference[1], edges=True))
+        rows.append(
+            Row(
+                f"{reference[0]} (reference) · shape{_edge_note(reference[1])}",
+                reference[1],
+                edges=True,
+            )
+        )
     return rows
 
 
 def overview(
-    candidates: Sequence[tuple[str, TriangleMesh | PointCloud, np.ndarray | None, np.ndarray | None]],
+    candidates: Sequence[
+        tuple[str, TriangleMesh | PointCloud, np.ndarray | None, np.ndarray | None]
+    ],
     reference: tuple[str, TriangleMesh | PointCloud] | None,
     view: str | tuple[float, float] | None = None,
     **kwargs,
@@ -549,13 +639,20 @@ def overview(
     has_ref = reference is not None
     cols = [name for name, *_ in candidates] + ([f"{reference[0]} (reference)"] if has_ref else [])
     blank = [None] if has_ref else []
-    cells = [[Cell(obj, angles, edges=True) for _, obj, _, _ in candidates] + ([Cell(reference[1], angles, edges=True)] if has_ref else [])]
+    cells = [
+        [Cell(obj, angles, edges=True) for _, obj, _, _ in candidates]
+        + ([Cell(reference[1], angles, edges=True)] if has_ref else [])
+    ]
     labels = [f"shape, from {label}"]
     if has_ref and any(a is not None for _, _, a, _ in candidates):
-        cells.append([None if a is None else Cell(obj, angles, a) for _, obj, a, _ in candidates] + blank)
+        cells.append(
+            [None if a is None else Cell(obj, angles, a) for _, obj, a, _ in candidates] + blank
+        )
         labels.append("accuracy: each surface coloured by distance to the reference")
     if has_ref and any(m is not None for *_, m in candidates):
-        cells.append([None if m is None else Cell(reference[1], angles, m) for *_, m in candidates] + blank)
+        cells.append(
+            [None if m is None else Cell(reference[1], angles, m) for *_, m in candidates] + blank
+        )
         labels.append("completeness: the reference coloured by distance to each (red: missed)")
     return grid(cells, labels, cols, **kwargs)
 

@@ -106,7 +106,9 @@ def compare_meshes(
     else:
         mode = f"accuracy {mode_acc}, completeness {mode_comp}"
     if isinstance(reference, PointCloud):
-        warnings.append("reference has no faces: distances to it are point-to-point (nearest reference point)")
+        warnings.append(
+            "reference has no faces: distances to it are point-to-point (nearest reference point)"
+        )
 
     acc_stats = _stats(d_acc)
     comp_stats = _stats(d_comp)
@@ -141,7 +143,10 @@ def compare_meshes(
         "normal_consistency_oriented": nc_oriented,
         "directions": {"accuracy": acc_stats, "completeness": comp_stats},
         "area": {"candidate": _area(candidate, topo_c), "reference": _area(reference, topo_r)},
-        "volume": {"candidate": _volume(candidate, topo_c), "reference": _volume(reference, topo_r)},
+        "volume": {
+            "candidate": _volume(candidate, topo_c),
+            "reference": _volume(reference, topo_r),
+        },
         "topology": {"candidate": topo_c, "reference": topo_r},
         "warnings": warnings,
     }
@@ -170,7 +175,9 @@ def point_distances(query: np.ndarray, target: TriangleMesh | PointCloud) -> np.
     return surface_distances(query, target)[0]
 
 
-def vertex_distances(candidate: TriangleMesh | PointCloud, reference: TriangleMesh | PointCloud) -> np.ndarray:
+def vertex_distances(
+    candidate: TriangleMesh | PointCloud, reference: TriangleMesh | PointCloud
+) -> np.ndarray:
     """Distance from each vertex (point) of ``candidate`` to ``reference``, shape (n,), for heatmaps."""
     _check_input(candidate, "candidate")
     return point_distances(candidate.points, reference)
@@ -377,8 +384,14 @@ def diff_files(
         from recon_cli.eval.render import write_png
 
         panels = [(_stem(p), c, d, m) for p, c, d, m in zip(candidates, cands, dists, missed)]
-        fig = sheet(diff_rows(panels, (_stem(reference), ref)), views, vmax=vmax, unit=unit,
-                    diagonal=rows[0]["reference_diagonal"], title=f"recon diff against {os.path.basename(os.fspath(reference))}")
+        fig = sheet(
+            diff_rows(panels, (_stem(reference), ref)),
+            views,
+            vmax=vmax,
+            unit=unit,
+            diagonal=rows[0]["reference_diagonal"],
+            title=f"recon diff against {os.path.basename(os.fspath(reference))}",
+        )
         write_png(fig.image, png_path)
     return rows
 
@@ -435,7 +448,9 @@ def _as_target(obj: TriangleMesh | PointCloud) -> TriangleMesh | PointCloud:
     return obj
 
 
-def samples_of(obj: TriangleMesh | PointCloud, n: int, seed: int) -> tuple[np.ndarray, np.ndarray | None]:
+def samples_of(
+    obj: TriangleMesh | PointCloud, n: int, seed: int
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Sample points and their unit normals (None when unknown)."""
     from recon_cli.mesh.sampling import sample_surface
 
@@ -451,7 +466,9 @@ def samples_of(obj: TriangleMesh | PointCloud, n: int, seed: int) -> tuple[np.nd
     return pts, nrm
 
 
-def surface_distances(query: np.ndarray, target: TriangleMesh | PointCloud) -> tuple[np.ndarray, np.ndarray | None]:
+def surface_distances(
+    query: np.ndarray, target: TriangleMesh | PointCloud
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Distances from ``query`` to ``target`` and the target's unit normal at each closest point."""
     target = _as_target(target)
     if isinstance(target, TriangleMesh):
@@ -477,7 +494,13 @@ def surface_distances(query: np.ndarray, target: TriangleMesh | PointCloud) -> t
 def _spread_bits(x: np.ndarray) -> np.ndarray:
     """Insert two zero bits between each of the low 21 bits of ``x`` (uint64)."""
     x = x.astype(np.uint64) & np.uint64(0x1FFFFF)
-    for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F), (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)):
+    for shift, mask in (
+        (32, 0x1F00000000FFFF),
+        (16, 0x1F0000FF0000FF),
+        (8, 0x100F00F00F00F00F),
+        (4, 0x10C30C30C30C30C3),
+        (2, 0x1249249249249249),
+    ):
         x = (x | (x << np.uint64(shift))) & np.uint64(mask)
     return x
 
@@ -489,7 +512,11 @@ def _morton_order(points: np.ndarray) -> np.ndarray:
     lo = points.min(axis=0)
     span = float((points.max(axis=0) - lo).max()) or 1.0
     q = np.clip(((points - lo) * ((2**21 - 1) / span)).astype(np.int64), 0, 2**21 - 1)
-    code = _spread_bits(q[:, 0]) | (_spread_bits(q[:, 1]) << np.uint64(1)) | (_spread_bits(q[:, 2]) << np.uint64(2))
+    code = (
+        _spread_bits(q[:, 0])
+        | (_spread_bits(q[:, 1]) << np.uint64(1))
+        | (_spread_bits(q[:, 2]) << np.uint64(2))
+    )
     return np.argsort(code, kind="stable")
 
 
@@ -531,7 +558,9 @@ def _area(obj: TriangleMesh | PointCloud, topo: dict | None = None) -> float | N
     if topo and topo.get("area") is not None:
         return float(topo["area"])
     tri = obj.vertices[obj.faces]
-    return float(0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
+    return float(
+        0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum()
+    )
 
 
 def _volume(obj: TriangleMesh | PointCloud, topo: dict | None = None) -> float | None:
@@ -546,7 +575,9 @@ def _volume(obj: TriangleMesh | PointCloud, topo: dict | None = None) -> float |
     return float(np.einsum("ij,ij->i", a, np.cross(b, d)).sum() / 6.0)
 
 
-def _units_warnings(candidate: TriangleMesh | PointCloud, reference: TriangleMesh | PointCloud) -> list[str]:
+def _units_warnings(
+    candidate: TriangleMesh | PointCloud, reference: TriangleMesh | PointCloud
+) -> list[str]:
     out = []
     dc, dr = bbox_diagonal(candidate.points), bbox_diagonal(reference.points)
     if dc > 0 and dr > 0:

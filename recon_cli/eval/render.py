@@ -160,7 +160,9 @@ def render(
     width, height = (int(v) for v in size)
     ss = int(supersample)
     if width < 1 or height < 1 or ss < 1:
-        raise ParameterError(f"image size and supersample must be positive, got {size}, {supersample}")
+        raise ParameterError(
+            f"image size and supersample must be positive, got {size}, {supersample}"
+        )
     if not isinstance(obj, (TriangleMesh, PointCloud)):
         raise ParameterError(f"cannot render a {type(obj).__name__}")
     obj = float64(obj)
@@ -222,7 +224,9 @@ def render(
         for k, (e, _) in enumerate(edges):
             e = np.ascontiguousarray(e, dtype=np.int64).reshape(-1, 2)
             if len(e):
-                draw_segments(sx, sy, sz, e, 0.02 * radius, 0.5 * edge_width * ss, depth, code, k + 1)
+                draw_segments(
+                    sx, sy, sz, e, 0.02 * radius, 0.5 * edge_width * ss, depth, code, k + 1
+                )
         for k, (_, rgb) in enumerate(edges):
             img[code == k + 1] = np.asarray(rgb, dtype=np.float64) / 255.0
 
@@ -264,10 +268,15 @@ def defect_edges(obj: TriangleMesh | PointCloud) -> list[tuple[np.ndarray, tuple
     from recon_cli.mesh.topology import Connectivity
 
     con = Connectivity(obj.faces, len(obj.vertices))
-    return [(con.edges[con.boundary_edges], BOUNDARY_COLOR), (con.edges[con.non_manifold_edges], NON_MANIFOLD_COLOR)]
+    return [
+        (con.edges[con.boundary_edges], BOUNDARY_COLOR),
+        (con.edges[con.non_manifold_edges], NON_MANIFOLD_COLOR),
+    ]
 
 
-def resolve_views(views: Sequence[str | tuple[float, float]] | str | None) -> list[tuple[str, tuple[float, float]]]:
+def resolve_views(
+    views: Sequence[str | tuple[float, float]] | str | None,
+) -> list[tuple[str, tuple[float, float]]]:
     """Labelled (azimuth, elevation) views from names, ``"turntable"`` or angle pairs.
 
     Parameters
@@ -298,7 +307,9 @@ def resolve_views(views: Sequence[str | tuple[float, float]] | str | None) -> li
             except ValueError:
                 raise ParameterError(f"view {v!r} is not AZIMUTH,ELEVATION in degrees") from None
             if len(v) != 2 or not all(np.isfinite(v)):
-                raise ParameterError(f"view {','.join(map(str, v))!r} is not AZIMUTH,ELEVATION in degrees")
+                raise ParameterError(
+                    f"view {','.join(map(str, v))!r} is not AZIMUTH,ELEVATION in degrees"
+                )
         if isinstance(v, str):
             if v == "turntable":
                 out += [(f"az {a:g}°, el {e:g}°", (a, e)) for a, e in TURNTABLE]

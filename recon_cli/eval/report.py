@@ -63,7 +63,9 @@ def environment() -> dict[str, Any]:
     }
 
 
-def file_provenance(path: str | os.PathLike, obj: TriangleMesh | PointCloud | None = None) -> dict[str, Any]:
+def file_provenance(
+    path: str | os.PathLike, obj: TriangleMesh | PointCloud | None = None
+) -> dict[str, Any]:
     """Where an input came from: path, size, SHA-256, what it holds and its recorded history.
 
     Parameters
@@ -93,13 +95,15 @@ def file_provenance(path: str | os.PathLike, obj: TriangleMesh | PointCloud | No
     }
     if obj is not None:
         is_mesh = isinstance(obj, TriangleMesh) and len(obj.faces) > 0
-        out.update({
-            "kind": "mesh" if is_mesh else "cloud",
-            "points": int(len(obj.points)),
-            "faces": int(len(obj.faces)) if is_mesh else 0,
-            "normals": obj.normals is not None,
-            "history": [str(x) for x in getattr(obj, "history", [])],
-        })
+        out.update(
+            {
+                "kind": "mesh" if is_mesh else "cloud",
+                "points": int(len(obj.points)),
+                "faces": int(len(obj.faces)) if is_mesh else 0,
+                "normals": obj.normals is not None,
+                "history": [str(x) for x in getattr(obj, "history", [])],
+            }
+        )
     return out
 
 
@@ -147,11 +151,16 @@ def result_table(result: dict, unit: str | None = None) -> tuple[list[str], list
             v = get(r)
             cells.append("—" if v is None else fmt.format(v))
         met = r["metrics"]
-        cells += ["—" if met is None else f"{f:.4f}" for f in (met["fscore"] if met else [None] * len(taus))]
+        cells += [
+            "—" if met is None else f"{f:.4f}"
+            for f in (met["fscore"] if met else [None] * len(taus))
+        ]
         nc = None if met is None else met["normal_consistency"]
         cells.append("—" if nc is None else f"{nc:.4f}")
         topo = None if met is None else met["topology"]["candidate"]
-        cells.append("—" if not topo or "watertight" not in topo else ("yes" if topo["watertight"] else "no"))
+        cells.append(
+            "—" if not topo or "watertight" not in topo else ("yes" if topo["watertight"] else "no")
+        )
         cells.append("—" if not topo or "components" not in topo else str(topo["components"]))
         body.append(cells)
     return head, body
@@ -165,14 +174,23 @@ def parameter_lines(row: dict) -> list[str]:
     params = row.get("params_resolved")
     calls = row.get("library_calls") or []
     if params:
-        head = "stage parameters" + (" (the backend passes only those in its library call)" if calls else "")
-        out.append(f"{head}: " + ", ".join(f"{k.replace('_', '-')}={_value(v)}" for k, v in params.items()))
+        head = "stage parameters" + (
+            " (the backend passes only those in its library call)" if calls else ""
+        )
+        out.append(
+            f"{head}: " + ", ".join(f"{k.replace('_', '-')}={_value(v)}" for k, v in params.items())
+        )
     for c in calls:
         args = ", ".join(f"{k}={_value(v)}" for k, v in c["arguments"].items())
         out.append(f"library call: {c['call']}({args}), the library's defaults for the rest")
-    rep = {k: v for k, v in (row.get("stage_report") or {}).items() if k not in ("stage", "provenance")}
+    rep = {
+        k: v for k, v in (row.get("stage_report") or {}).items() if k not in ("stage", "provenance")
+    }
     if rep:
-        out.append("stage reported: " + ", ".join(f"{k.replace('_', '-')} {_value(v)}" for k, v in rep.items()))
+        out.append(
+            "stage reported: "
+            + ", ".join(f"{k.replace('_', '-')} {_value(v)}" for k, v in rep.items())
+        )
     return out
 
 
@@ -200,7 +218,9 @@ def markdown(result: dict, out_dir: str) -> str:
     md += ["", _legend_line(result)]
     problems = [r for r in result["methods"] if r["error"]]
     if problems:
-        md += ["", "## Not measured", ""] + [f"- `{r['method']}` ({r['status']}): {r['error']}" for r in problems]
+        md += ["", "## Not measured", ""] + [
+            f"- `{r['method']}` ({r['status']}): {r['error']}" for r in problems
+        ]
     md += ["", "## Parameters each method ran with", ""]
     for r in result["methods"]:
         lines = parameter_lines(r)
@@ -255,7 +275,9 @@ def html_page(result: dict, out_dir: str) -> str:
         "</head><body>",
         f"<h1>recon compare: {e(result['input'])}</h1>",
         "<ul>" + "".join(f"<li>{e(line)}</li>" for line in _setting_lines(result)) + "</ul>",
-        "<table class='sortable'><thead><tr>" + "".join(f"<th>{e(c)}</th>" for c in head) + "</tr></thead><tbody>",
+        "<table class='sortable'><thead><tr>"
+        + "".join(f"<th>{e(c)}</th>" for c in head)
+        + "</tr></thead><tbody>",
     ]
     for r, cells in zip(result["methods"], body):
         tds = []
@@ -270,23 +292,38 @@ def html_page(result: dict, out_dir: str) -> str:
     problems = [r for r in result["methods"] if r["error"]]
     if problems:
         h.append("<h2>Not measured</h2><ul>")
-        h += [f"<li><code>{e(r['method'])}</code> ({e(r['status'])}): {e(r['error'])}</li>" for r in problems]
+        h += [
+            f"<li><code>{e(r['method'])}</code> ({e(r['status'])}): {e(r['error'])}</li>"
+            for r in problems
+        ]
         h.append("</ul>")
     h.append("<h2>Parameters each method ran with</h2>")
-    h.append("<table class='sortable'><thead><tr><th>method</th><th>backend</th><th>parameters</th></tr></thead><tbody>")
+    h.append(
+        "<table class='sortable'><thead><tr><th>method</th><th>backend</th><th>parameters</th></tr></thead><tbody>"
+    )
     for r in result["methods"]:
         lines = parameter_lines(r)
-        h.append(f"<tr><td><code>{e(r['method'])}</code></td><td>{e(r['backend'])}</td>"
-                 f"<td style='text-align:left'>{'<br>'.join(e(x) for x in lines) if lines else 'not run'}</td></tr>")
+        h.append(
+            f"<tr><td><code>{e(r['method'])}</code></td><td>{e(r['backend'])}</td>"
+            f"<td style='text-align:left'>{'<br>'.join(e(x) for x in lines) if lines else 'not run'}</td></tr>"
+        )
     h.append("</tbody></table>")
     if result.get("plot"):
-        h.append(f"<h2>Quality against time</h2><img src='{e(rel(result['plot']))}' alt='quality against time'>")
+        h.append(
+            f"<h2>Quality against time</h2><img src='{e(rel(result['plot']))}' alt='quality against time'>"
+        )
     if result["overview"]:
         h.append(f"<h2>All methods</h2><img src='{e(rel(result['overview']))}' alt='overview'>")
     for r in result["methods"]:
         if r["picture"]:
-            h.append(f"<h2>{e(r['method'])}</h2><img src='{e(rel(r['picture']))}' alt='{e(r['method'])}'>")
-    h.append("<h2>Inputs</h2><ul>" + "".join(f"<li>{e(line)}</li>" for line in _input_lines(result)) + "</ul>")
+            h.append(
+                f"<h2>{e(r['method'])}</h2><img src='{e(rel(r['picture']))}' alt='{e(r['method'])}'>"
+            )
+    h.append(
+        "<h2>Inputs</h2><ul>"
+        + "".join(f"<li>{e(line)}</li>" for line in _input_lines(result))
+        + "</ul>"
+    )
     h.append(f"<script>{_SORT_JS}</script>")
     h.append("</body></html>")
     return "\n".join(h) + "\n"
@@ -309,21 +346,29 @@ def _setting_lines(result: dict) -> list[str]:
     ]
     if env:
         load = mach.get("load_average")
-        lines.append(f"recon {env.get('recon')} (Python {env.get('python')}; {libs}), run {env.get('date')}.")
+        lines.append(
+            f"recon {env.get('recon')} (Python {env.get('python')}; {libs}), run {env.get('date')}."
+        )
         lines.append(
             f"Machine: {mach.get('cpu') or 'unknown CPU'}, {mach.get('cores')} cores, "
             f"{mach.get('memory_gb')} GB memory, {mach.get('system')}"
-            + (f"; load average {load[0]} at the start (times are from a shared machine when it is above 0)" if load else "")
+            + (
+                f"; load average {load[0]} at the start (times are from a shared machine when it is above 0)"
+                if load
+                else ""
+            )
             + "."
         )
     return lines
 
 
 def _legend_line(result: dict) -> str:
-    return ("↓ lower is better, ↑ higher is better. Stage time: wall time of the stage itself; process time: "
-            "the method's whole child process (start-up, reading the input, the stage, writing the output), what a "
-            "user waits for; peak memory: resident high-water mark of the process above its level before the stage. "
-            "F-score thresholds are % of the reference's bounding-box diagonal.")
+    return (
+        "↓ lower is better, ↑ higher is better. Stage time: wall time of the stage itself; process time: "
+        "the method's whole child process (start-up, reading the input, the stage, writing the output), what a "
+        "user waits for; peak memory: resident high-water mark of the process above its level before the stage. "
+        "F-score thresholds are % of the reference's bounding-box diagonal."
+    )
 
 
 def _input_lines(result: dict) -> list[str]:
@@ -334,10 +379,19 @@ def _input_lines(result: dict) -> list[str]:
             continue
         what = ""
         if "kind" in p:
-            what = (f"; {p['kind']}, {p['points']} points" + (f", {p['faces']} faces" if p["faces"] else "")
-                    + (", with normals" if p["normals"] else ", no normals"))
-        hist = "; history: " + " | ".join(p["history"]) if p.get("history") else "; no recorded history"
-        out.append(f"{role}: {p['path']} ({p['bytes']} bytes, sha256 {p['sha256'][:16]}…, modified {p['modified']}{what}){hist}")
+            what = (
+                f"; {p['kind']}, {p['points']} points"
+                + (f", {p['faces']} faces" if p["faces"] else "")
+                + (", with normals" if p["normals"] else ", no normals")
+            )
+        hist = (
+            "; history: " + " | ".join(p["history"])
+            if p.get("history")
+            else "; no recorded history"
+        )
+        out.append(
+            f"{role}: {p['path']} ({p['bytes']} bytes, sha256 {p['sha256'][:16]}…, modified {p['modified']}{what}){hist}"
+        )
     return out
 
 

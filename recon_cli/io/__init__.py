@@ -3,7 +3,15 @@
 the format by suffix."""
 
 from recon_cli.io.atomic import atomic_open, write_bytes
-from recon_cli.io.ply import PlyData, PlyElement, PlyProperty, parse_ply, read_ply, serialize_ply, write_ply
+from recon_cli.io.ply import (
+    PlyData,
+    PlyElement,
+    PlyProperty,
+    parse_ply,
+    read_ply,
+    serialize_ply,
+    write_ply,
+)
 
 __all__ = [
     "atomic_open",

@@ -71,12 +71,20 @@ def lzf_compress(src):
     lit_start = 0  # first byte of the pending literal run
     i = 0
     while i + 2 < n:
-        h = ((np.int64(src[i]) << 16) | (np.int64(src[i + 1]) << 8) | np.int64(src[i + 2])) * 2654435761
+        h = (
+            (np.int64(src[i]) << 16) | (np.int64(src[i + 1]) << 8) | np.int64(src[i + 2])
+        ) * 2654435761
         h = (h >> 8) & ((1 << hbits) - 1)
         ref = table[h]
         table[h] = i
         off = i - ref - 1
-        if ref >= 0 and off < 8192 and src[ref] == src[i] and src[ref + 1] == src[i + 1] and src[ref + 2] == src[i + 2]:
+        if (
+            ref >= 0
+            and off < 8192
+            and src[ref] == src[i]
+            and src[ref + 1] == src[i + 1]
+            and src[ref + 2] == src[i + 2]
+        ):
             k = 3
             maxk = min(264, n - i)
             while k < maxk and src[ref + k] == src[i + k]:

@@ -9,7 +9,14 @@ from numba import njit
 
 from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (the per-user cache, before the first @njit)
 from recon_cli._kernels.arrays import borrowed
-from recon_cli.io._text_kernel import is_blank, line_end, scan_float, scan_int, skip_space, token_end
+from recon_cli.io._text_kernel import (
+    is_blank,
+    line_end,
+    scan_float,
+    scan_int,
+    skip_space,
+    token_end,
+)
 
 # error codes (returned with a byte offset)
 BAD_NUMBER = 1
@@ -22,7 +29,9 @@ BEFORE_FIRST = 7  # a negative index reaching before the first vertex or normal
 NO_NORMALS = 8  # a face corner names a normal and the file has no vn line
 
 # counts[] slots
-NV, NVN, NF, NCORNER, NSLOW, COLOURS, NOCOLOURS, HAS_VN, MAX_V, MAX_VN, NONFINITE, POLYGONS = range(12)
+NV, NVN, NF, NCORNER, NSLOW, COLOURS, NOCOLOURS, HAS_VN, MAX_V, MAX_VN, NONFINITE, POLYGONS = range(
+    12
+)
 
 
 @njit(cache=True, inline="always")
@@ -97,7 +106,9 @@ def _walk(buf, i, st, verts, colours, vnorms, corner_v, corner_n, face_len, slow
                         verts[nv, 0] = x
                         verts[nv, 1] = y
                         verts[nv, 2] = z
-                        if nonfinite < 0 and not (abs(x) < np.inf and abs(y) < np.inf and abs(z) < np.inf):
+                        if nonfinite < 0 and not (
+                            abs(x) < np.inf and abs(y) < np.inf and abs(z) < np.inf
+                        ):
                             nonfinite = nv
                         nv += 1
                         nplain += 1
@@ -109,7 +120,13 @@ def _walk(buf, i, st, verts, colours, vnorms, corner_v, corner_n, face_len, slow
                 b, bn, ok1, q = _corner(buf, q + 1, n)
                 if ok1 and b > 0 and bn >= 0 and q < n and buf[q] == 32:
                     c, cn, ok2, q = _corner(buf, q + 1, n)
-                    if ok2 and c > 0 and cn >= 0 and (q >= n or buf[q] == 10) and (has_vn or an + bn + cn == 0):
+                    if (
+                        ok2
+                        and c > 0
+                        and cn >= 0
+                        and (q >= n or buf[q] == 10)
+                        and (has_vn or an + bn + cn == 0)
+                    ):
                         corner_v[nc] = a - 1
                         corner_v[nc + 1] = b - 1
                         corner_v[nc + 2] = c - 1
@@ -125,7 +142,9 @@ def _walk(buf, i, st, verts, colours, vnorms, corner_v, corner_n, face_len, slow
                         nc += 3
                         i = q + 1
                         continue
-        if c0 == 118 and (is_blank(c1) or (c1 == 110 and (j + 2 >= n or is_blank(buf[j + 2])))):  # v, vn
+        if c0 == 118 and (
+            is_blank(c1) or (c1 == 110 and (j + 2 >= n or is_blank(buf[j + 2])))
+        ):  # v, vn
             is_v = is_blank(c1)
             if not is_v and not has_vn:
                 st[HAS_VN] = 2  # ask for the corner normal array
@@ -341,10 +360,14 @@ def obj_walk(buf, verts, colours, vnorms, corner_v, corner_n, face_len, slow):
         verts = _grown(verts, st[NV] + 1)
         if st[COLOURS]:
             colours = _grown(colours, verts.shape[0])
-        elif colours.shape[0] < verts.shape[0]:  # nothing in it yet: no copy (its pages stay untouched)
+        elif (
+            colours.shape[0] < verts.shape[0]
+        ):  # nothing in it yet: no copy (its pages stay untouched)
             colours = np.empty_like(verts)
         vnorms = _grown(vnorms, st[NVN] + 1)
-        if st[POLYGONS] == 2:  # the first polygon, and the caller expected none: all before are triangles
+        if (
+            st[POLYGONS] == 2
+        ):  # the first polygon, and the caller expected none: all before are triangles
             face_len = np.full(2 * st[NF] + 1024, 3, np.int64)
             st[POLYGONS] = 1
         elif st[POLYGONS] == 1:

@@ -546,7 +546,9 @@ def parse_rows(buf, start, end, delim, comment, cap, fixed):
     st[_LINE] = 1
     i = start
     while True:
-        code, where, bad = _rows_walk(buf, i, end, delim, comment, fixed, values, row_start, row_line, slow, st)
+        code, where, bad = _rows_walk(
+            buf, i, end, delim, comment, fixed, values, row_start, row_line, slow, st
+        )
         if code >= 0:
             break
         i = where

@@ -167,7 +167,9 @@ def _open_special(path: str) -> Iterator[IO[bytes]]:
 
 
 @contextlib.contextmanager
-def _open_replacing(path: str, final: str, folder: str, st: os.stat_result | None) -> Iterator[IO[bytes]]:
+def _open_replacing(
+    path: str, final: str, folder: str, st: os.stat_result | None
+) -> Iterator[IO[bytes]]:
     """Write a regular file to an unnamed (else hidden) temporary file, then give it ``final``'s name."""
     named = None  # the temporary file's name while it has one
     try:
@@ -178,7 +180,9 @@ def _open_replacing(path: str, final: str, folder: str, st: os.stat_result | Non
         except OSError as exc:
             if exc.errno not in _NO_TMPFILE:
                 raise
-            fd, named = tempfile.mkstemp(prefix="." + os.path.basename(final) + ".", suffix=".tmp", dir=folder)
+            fd, named = tempfile.mkstemp(
+                prefix="." + os.path.basename(final) + ".", suffix=".tmp", dir=folder
+            )
             _NAMED.add(named)
             umask = os.umask(0)
             os.umask(umask)

@@ -40,7 +40,10 @@ def decode_e57(data, where: str, path=None) -> tuple[PointCloud, dict]:
         try:
             e = pye57.E57(str(path))
         except Exception as exc:  # libE57Format raises its own exception types
-            raise InputError(f"not a readable E57 file ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})", where) from None
+            raise InputError(
+                f"not a readable E57 file ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})",
+                where,
+            ) from None
         parts, inten, cols, scan = [], [], [], []
         try:
             for k in range(e.scan_count):
@@ -49,13 +52,22 @@ def decode_e57(data, where: str, path=None) -> tuple[PointCloud, dict]:
                 has_i = "intensity" in fields
                 has_c = {"colorRed", "colorGreen", "colorBlue"} <= fields
                 d = e.read_scan(k, intensity=has_i, colors=has_c, ignore_missing_fields=True)
-                pts = np.column_stack([d["cartesianX"], d["cartesianY"], d["cartesianZ"]]).astype(np.float64)
+                pts = np.column_stack([d["cartesianX"], d["cartesianY"], d["cartesianZ"]]).astype(
+                    np.float64
+                )
                 parts.append(pts)
                 inten.append(d["intensity"] if has_i else None)
-                cols.append(np.column_stack([d["colorRed"], d["colorGreen"], d["colorBlue"]]) if has_c else None)
+                cols.append(
+                    np.column_stack([d["colorRed"], d["colorGreen"], d["colorBlue"]])
+                    if has_c
+                    else None
+                )
                 scan.append(np.full(len(pts), k, np.int32))
         except Exception as exc:
-            raise InputError(f"E57 scan could not be read ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})", where) from None
+            raise InputError(
+                f"E57 scan could not be read ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})",
+                where,
+            ) from None
         finally:
             e.close()
     finally:

@@ -29,7 +29,11 @@ from recon_cli.errors import InputError, ParameterError
 from recon_cli.geometry import PointCloud, bbox_diagonal
 from recon_cli.io import text
 
-_NORMAL_NAMES = (("nx", "ny", "nz"), ("normal_x", "normal_y", "normal_z"), ("NormalX", "NormalY", "NormalZ"))
+_NORMAL_NAMES = (
+    ("nx", "ny", "nz"),
+    ("normal_x", "normal_y", "normal_z"),
+    ("NormalX", "NormalY", "NormalZ"),
+)
 _WITH_RGB = {0: 2, 1: 3, 4: 5, 6: 7, 9: 10}
 _RGB = ("red", "green", "blue")
 
@@ -64,15 +68,27 @@ def _check_counts(head: bytes, size: int, where: str) -> None:
         count = int.from_bytes(head[247:255], "little") or count
         n_evlr = int.from_bytes(head[243:247], "little")
         if n_evlr * 60 > size:
-            raise InputError(f"header declares {n_evlr} extended VLRs, more than its {size} bytes can hold", where)
+            raise InputError(
+                f"header declares {n_evlr} extended VLRs, more than its {size} bytes can hold",
+                where,
+            )
     if not header_size <= to_points <= size:
-        raise InputError(f"header puts the points at byte {to_points}, outside the file ({size} bytes) or inside the header", where)
+        raise InputError(
+            f"header puts the points at byte {to_points}, outside the file ({size} bytes) or inside the header",
+            where,
+        )
     if n_vlr * 54 > to_points - header_size:
-        raise InputError(f"header declares {n_vlr} VLRs, more than the {to_points - header_size} bytes before the points hold", where)
+        raise InputError(
+            f"header declares {n_vlr} VLRs, more than the {to_points - header_size} bytes before the points hold",
+            where,
+        )
     room = size - to_points
     compressed = bool(fmt & 0xC0)
     if count * record > (_LAZ_MAX_RATIO if compressed else 1) * room:
-        raise InputError(f"header declares {count} points of {record} bytes, more than the file's {room} bytes of points can hold", where)
+        raise InputError(
+            f"header declares {count} points of {record} bytes, more than the file's {room} bytes of points can hold",
+            where,
+        )
 
 
 def decode_las(data, where: str, path=None) -> tuple[PointCloud, dict]:
@@ -109,8 +125,11 @@ def decode_las(data, where: str, path=None) -> tuple[PointCloud, dict]:
             np.multiply(raw[c], h.scales[i], out=pts[:, i])
             pts[:, i] += h.offsets[i]
     if not np.isfinite(pts).all():
-        raise InputError(f"scale {list(map(float, h.scales))} and offset {list(map(float, h.offsets))} give coordinates "
-                         "beyond float64", where)
+        raise InputError(
+            f"scale {list(map(float, h.scales))} and offset {list(map(float, h.offsets))} give coordinates "
+            "beyond float64",
+            where,
+        )
     names = list(las.point_format.dimension_names)
     colors = None
     if all(c in names for c in _RGB):
@@ -121,7 +140,13 @@ def decode_las(data, where: str, path=None) -> tuple[PointCloud, dict]:
         if all(c in extra for c in trio):
             normals = np.column_stack([np.asarray(las[c]) for c in trio])
             break
-    skip = {"X", "Y", "Z", *(_RGB if colors is not None else ()), *(trio if normals is not None else ())}
+    skip = {
+        "X",
+        "Y",
+        "Z",
+        *(_RGB if colors is not None else ()),
+        *(trio if normals is not None else ()),
+    }
     attributes = {name: np.array(las[name]) for name in names if name not in skip}
     info = [
         f"las_version {h.version}",
@@ -141,12 +166,20 @@ def decode_las(data, where: str, path=None) -> tuple[PointCloud, dict]:
                 )
             )
         )
-    cloud = PointCloud(points=pts, normals=normals, colors=colors, attributes=attributes, point_dtype=np.float64, obj_info=info)
+    cloud = PointCloud(
+        points=pts,
+        normals=normals,
+        colors=colors,
+        attributes=attributes,
+        point_dtype=np.float64,
+        obj_info=info,
+    )
     details = {
         "format": "las",
         "version": str(h.version),
         "point_format": int(h.point_format.id),
-        "compressed": bool(getattr(las.header, "are_points_compressed", False)) or str(where).lower().endswith(".laz"),
+        "compressed": bool(getattr(las.header, "are_points_compressed", False))
+        or str(where).lower().endswith(".laz"),
         "scale": [float(s) for s in h.scales],
         "offset": [float(o) for o in h.offsets],
         "vlrs": [f"{v.user_id}/{v.record_id}" for v in h.vlrs],
@@ -205,7 +238,9 @@ def las_bytes(obj, compress: bool, where: str = "") -> bytes:
         if name not in standard:
             extras.append((name, v))
     if extras:
-        header.add_extra_dims([laspy.ExtraBytesParams(name=name, type=_extra_type(v.dtype)) for name, v in extras])
+        header.add_extra_dims(
+            [laspy.ExtraBytesParams(name=name, type=_extra_type(v.dtype)) for name, v in extras]
+        )
     for user, rec, desc, payload in info["vlrs"]:
         header.vlrs.append(
             laspy.VLR(
@@ -218,7 +253,9 @@ def las_bytes(obj, compress: bool, where: str = "") -> bytes:
     las = laspy.LasData(header)
     ints = np.rint((pts - offset) / scale)
     if len(pts) and (np.abs(ints).max() > 2**31 - 1):
-        raise ParameterError(f"{where}: coordinates do not fit LAS integers with scale {scale[0]:g} and offset {offset.tolist()}")
+        raise ParameterError(
+            f"{where}: coordinates do not fit LAS integers with scale {scale[0]:g} and offset {offset.tolist()}"
+        )
     ints = ints.astype(np.int32)
     las.X, las.Y, las.Z = ints[:, 0], ints[:, 1], ints[:, 2]
     err = float(np.max(np.abs(ints * scale + offset - pts))) if len(pts) else 0.0
@@ -229,8 +266,14 @@ def las_bytes(obj, compress: bool, where: str = "") -> bytes:
         )
     if obj.colors is not None:
         c = obj.colors[:, :3]
-        c16 = c.astype(np.uint16) * 257 if c.dtype == np.uint8 else (
-            c.astype(np.uint16) if c.dtype.kind in "ui" else np.clip(np.rint(c * 65535), 0, 65535).astype(np.uint16)
+        c16 = (
+            c.astype(np.uint16) * 257
+            if c.dtype == np.uint8
+            else (
+                c.astype(np.uint16)
+                if c.dtype.kind in "ui"
+                else np.clip(np.rint(c * 65535), 0, 65535).astype(np.uint16)
+            )
         )
         las.red, las.green, las.blue = c16[:, 0], c16[:, 1], c16[:, 2]
     for name, v in obj.attributes.items():
@@ -248,7 +291,11 @@ def _extra_type(dt: np.dtype) -> str:
     dt = np.dtype(dt)
     if dt.kind == "b":
         return "u1"
-    if dt.kind in "iuf" and dt.itemsize in (1, 2, 4, 8) and not (dt.kind == "f" and dt.itemsize < 4):
+    if (
+        dt.kind in "iuf"
+        and dt.itemsize in (1, 2, 4, 8)
+        and not (dt.kind == "f" and dt.itemsize < 4)
+    ):
         return f"{dt.kind}{dt.itemsize}"
     return "f8"
 
@@ -257,10 +304,14 @@ def _assign(las, name: str, v: np.ndarray, where: str) -> None:
     target = np.asarray(las[name]).dtype
     cast = v.astype(target)
     if not np.array_equal(cast.astype(np.float64), v.astype(np.float64)):
-        raise ParameterError(f"{where}: attribute {name!r} has values a LAS {name} ({target}) cannot hold")
+        raise ParameterError(
+            f"{where}: attribute {name!r} has values a LAS {name} ({target}) cannot hold"
+        )
     las[name] = cast
     if not np.array_equal(np.asarray(las[name]).astype(np.float64), v.astype(np.float64)):
-        raise ParameterError(f"{where}: attribute {name!r} has values out of range for the LAS field")
+        raise ParameterError(
+            f"{where}: attribute {name!r} has values out of range for the LAS field"
+        )
 
 
 def read_las(path: str | os.PathLike, data=None) -> PointCloud:

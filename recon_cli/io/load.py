@@ -43,22 +43,78 @@ class Format:
 FORMATS: dict[str, Format] = {
     f.name: f
     for f in (
-        Format("ply", (".ply",), "mesh", "ply", True, None,
-               "everything: every element and property, comments, obj_info; float32/float64 as stored"),
-        Format("obj", (".obj",), "mesh", "obj", True, None,
-               "v (float64), v colours, vn per vertex, f (polygons fan-triangulated); # history"),
-        Format("off", (".off",), "mesh", "off", True, None,
-               "vertices (float64), normals and colours (NOFF/COFF), faces, face colours"),
-        Format("stl", (".stl",), "triangles", "stl", True, None,
-               "triangles, corners welded exactly (tolerance 0); binary float32 / ASCII float64; attribute word"),
-        Format("xyz", (".xyz", ".txt", ".csv", ".pts", ".xyzn", ".xyzrgb"), "points", "xyz", True, None,
-               "x y z (float64), normals, colours, every other column as an attribute; header line"),
-        Format("pcd", (".pcd",), "points", "pcd", True, None,
-               "every field (x y z float32/float64, normals, rgb/rgba, the rest as attributes); viewpoint"),
-        Format("las", (".las", ".laz"), "points", "las", True, "las",
-               "float64 coordinates (scale/offset kept), colours, every dimension as an attribute, VLRs"),
-        Format("e57", (".e57",), "points", "e57", False, "e57",
-               "all scans in the file frame (float64), intensity, colours (read only)"),
+        Format(
+            "ply",
+            (".ply",),
+            "mesh",
+            "ply",
+            True,
+            None,
+            "everything: every element and property, comments, obj_info; float32/float64 as stored",
+        ),
+        Format(
+            "obj",
+            (".obj",),
+            "mesh",
+            "obj",
+            True,
+            None,
+            "v (float64), v colours, vn per vertex, f (polygons fan-triangulated); # history",
+        ),
+        Format(
+            "off",
+            (".off",),
+            "mesh",
+            "off",
+            True,
+            None,
+            "vertices (float64), normals and colours (NOFF/COFF), faces, face colours",
+        ),
+        Format(
+            "stl",
+            (".stl",),
+            "triangles",
+            "stl",
+            True,
+            None,
+            "triangles, corners welded exactly (tolerance 0); binary float32 / ASCII float64; attribute word",
+        ),
+        Format(
+            "xyz",
+            (".xyz", ".txt", ".csv", ".pts", ".xyzn", ".xyzrgb"),
+            "points",
+            "xyz",
+            True,
+            None,
+            "x y z (float64), normals, colours, every other column as an attribute; header line",
+        ),
+        Format(
+            "pcd",
+            (".pcd",),
+            "points",
+            "pcd",
+            True,
+            None,
+            "every field (x y z float32/float64, normals, rgb/rgba, the rest as attributes); viewpoint",
+        ),
+        Format(
+            "las",
+            (".las", ".laz"),
+            "points",
+            "las",
+            True,
+            "las",
+            "float64 coordinates (scale/offset kept), colours, every dimension as an attribute, VLRs",
+        ),
+        Format(
+            "e57",
+            (".e57",),
+            "points",
+            "e57",
+            False,
+            "e57",
+            "all scans in the file frame (float64), intensity, colours (read only)",
+        ),
         Format("npz", (".npz",), "grid", "npz", True, None, "SDF grids (recon sdf / mcubes)"),
     )
 }
@@ -91,7 +147,9 @@ def format_of(path: str | os.PathLike, given: str | None = None) -> Format | Non
     if not ext:
         return None
     if ext not in _BY_SUFFIX:
-        raise ParameterError(f"{p}: unknown file type {ext!r} (supported: {supported()}; or give --format)")
+        raise ParameterError(
+            f"{p}: unknown file type {ext!r} (supported: {supported()}; or give --format)"
+        )
     return _BY_SUFFIX[ext]
 
 
@@ -196,7 +254,9 @@ def save(
         return
     fmt = fmt or FORMATS["ply"]
     if fmt.holds == "grid":
-        raise ParameterError(f"{where}: .npz holds grids; a {_kind(obj)} is written as PLY, OBJ, ... ({supported()})")
+        raise ParameterError(
+            f"{where}: .npz holds grids; a {_kind(obj)} is written as PLY, OBJ, ... ({supported()})"
+        )
     if not fmt.writes:
         raise ParameterError(f"{where}: recon reads {fmt.name.upper()} but does not write it")
     if fmt.holds == "points" and isinstance(obj, TriangleMesh):
@@ -207,10 +267,14 @@ def save(
             )
         from recon_cli.io.text import warn
 
-        warn(f"{where}: {fmt.name.upper()} holds points only: wrote the {len(obj.vertices)} vertices, dropped {len(obj.faces)} faces")
+        warn(
+            f"{where}: {fmt.name.upper()} holds points only: wrote the {len(obj.vertices)} vertices, dropped {len(obj.faces)} faces"
+        )
         obj = obj.to_point_cloud()
     if fmt.holds == "triangles" and not isinstance(obj, TriangleMesh):
-        raise ParameterError(f"{where}: {fmt.name.upper()} holds triangles; a point cloud cannot be written as {fmt.name.upper()}")
+        raise ParameterError(
+            f"{where}: {fmt.name.upper()} holds triangles; a point cloud cannot be written as {fmt.name.upper()}"
+        )
     if fmt.name == "ply":
         write_ply(obj, path, ascii=ascii)
     elif fmt.name == "obj":
@@ -228,7 +292,11 @@ def save(
     elif fmt.name == "xyz":
         from recon_cli.io.xyz import write_xyz
 
-        write_xyz(obj, path, csv=str(path).lower().endswith(".csv") or (format or "").lower().lstrip(".") == "csv")
+        write_xyz(
+            obj,
+            path,
+            csv=str(path).lower().endswith(".csv") or (format or "").lower().lstrip(".") == "csv",
+        )
     elif fmt.name == "pcd":
         from recon_cli.io.pcd import write_pcd
 
@@ -236,7 +304,12 @@ def save(
     elif fmt.name == "las":
         from recon_cli.io.las import write_las
 
-        write_las(obj, path, compress=str(path).lower().endswith(".laz") or (format or "").lower().lstrip(".") == "laz")
+        write_las(
+            obj,
+            path,
+            compress=str(path).lower().endswith(".laz")
+            or (format or "").lower().lstrip(".") == "laz",
+        )
     else:  # pragma: no cover - every writing format is listed above
         raise ParameterError(f"no writer for {fmt.name}")
 

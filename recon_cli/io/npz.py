@@ -97,17 +97,26 @@ def _read_grid(source, where: str, fh) -> Grid:
             shape, dtype, room = heads["sdf"]
             if len(shape) != 3 or dtype.kind != "f":
                 dims = " x ".join(map(str, shape))
-                raise InputError(f"'sdf' must be a 3-d float array, got {dtype} of shape ({dims})", where)
+                raise InputError(
+                    f"'sdf' must be a 3-d float array, got {dtype} of shape ({dims})", where
+                )
             if min(shape) == 0:
-                raise InputError(f"the grid has no samples (shape {' x '.join(map(str, shape))})", where)
+                raise InputError(
+                    f"the grid has no samples (shape {' x '.join(map(str, shape))})", where
+                )
             for k, (shp, dt, rm) in heads.items():
                 if dt.kind not in "fiu" or dt.hasobject:
                     raise InputError(f"{k!r} must be numeric, got {dt}", where)
                 if _count(shp) * dt.itemsize > rm:
-                    raise InputError(f"{k!r} claims {' x '.join(map(str, shp))} values but the file is shorter", where)
+                    raise InputError(
+                        f"{k!r} claims {' x '.join(map(str, shp))} values but the file is shorter",
+                        where,
+                    )
             if heads["origin"][0] != (3,) or heads["voxel_size"][0] not in ((), (1,)):
                 raise InputError("'origin' must have 3 values and 'voxel_size' one", where)
-            problem = allocation_problem(shape, dtype.itemsize + 8)  # the array, its float32 copy, a mask
+            problem = allocation_problem(
+                shape, dtype.itemsize + 8
+            )  # the array, its float32 copy, a mask
             if problem:
                 raise InputError(f"{problem}: not read", where)
             sdf = None
@@ -129,7 +138,13 @@ def _read_grid(source, where: str, fh) -> Grid:
         raise InputError(f"'voxel_size' must be a finite positive number, got {voxel}", where)
     if pdt not in ("float32", "float64"):
         raise InputError(f"'point_dtype' must be float32 or float64, got {pdt[:40]!r}", where)
-    return Grid(sdf=sdf, origin=origin, voxel_size=voxel, history=[s for s in prov.split("\n") if s], point_dtype=pdt)
+    return Grid(
+        sdf=sdf,
+        origin=origin,
+        voxel_size=voxel,
+        history=[s for s in prov.split("\n") if s],
+        point_dtype=pdt,
+    )
 
 
 def _read_stored(fh, info: zipfile.ZipInfo, where: str) -> np.ndarray:
@@ -148,7 +163,9 @@ def _read_stored(fh, info: zipfile.ZipInfo, where: str) -> np.ndarray:
     start = info.header_offset + 30 + name_len + extra_len
     fh.seek(start)
     version = npy.read_magic(fh)
-    shape, fortran, dtype = (npy.read_array_header_1_0 if version == (1, 0) else npy.read_array_header_2_0)(fh)
+    shape, fortran, dtype = (
+        npy.read_array_header_1_0 if version == (1, 0) else npy.read_array_header_2_0
+    )(fh)
     head_len = fh.tell() - start
     fh.seek(start)
     crc = zlib.crc32(fh.read(head_len))

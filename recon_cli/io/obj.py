@@ -98,7 +98,9 @@ def decode_obj(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
         from recon_cli.io._obj_kernel import fan
 
         faces, _ = fan(corner_v, face_len[:nf])
-    return text.apply_float32_mark(TriangleMesh(vertices=verts, faces=faces, **common), history), details
+    return text.apply_float32_mark(
+        TriangleMesh(vertices=verts, faces=faces, **common), history
+    ), details
 
 
 def _estimate(buf: np.ndarray, K) -> tuple[int, int, int, int]:
@@ -130,7 +132,9 @@ def _vertex_normals(verts, vnorms, corner_v, corner_n, nf, where, details) -> np
     if nf == 0 or (nvn == nv and np.array_equal(corner_n, corner_v)):
         if nvn == nv:
             return vnorms
-        text.warn(f"{where}: {nvn} normals for {nv} vertices and no faces naming them: normals not kept")
+        text.warn(
+            f"{where}: {nvn} normals for {nv} vertices and no faces naming them: normals not kept"
+        )
         details["normals_dropped"] = True
         return None
     if corner_n.min() < 0:
@@ -143,7 +147,9 @@ def _vertex_normals(verts, vnorms, corner_v, corner_n, nf, where, details) -> np
     same = np.all(vnorms[owner[corner_v]] == vnorms[corner_n])
     if same and np.all(owner >= 0):
         return vnorms[owner]
-    text.warn(f"{where}: normals differ between the corners of a vertex (split normals): normals not kept")
+    text.warn(
+        f"{where}: normals differ between the corners of a vertex (split normals): normals not kept"
+    )
     details["normals_dropped"] = True
     return None
 

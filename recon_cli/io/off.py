@@ -18,7 +18,13 @@ from recon_cli.errors import InputError
 from recon_cli.geometry import PointCloud, TriangleMesh
 from recon_cli.io import text
 
-_KEYWORDS = {b"OFF": (False, False), b"COFF": (True, False), b"NOFF": (False, True), b"CNOFF": (True, True), b"NCOFF": (True, True)}
+_KEYWORDS = {
+    b"OFF": (False, False),
+    b"COFF": (True, False),
+    b"NOFF": (False, True),
+    b"CNOFF": (True, True),
+    b"NCOFF": (True, True),
+}
 
 
 def decode_off(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
@@ -37,13 +43,21 @@ def decode_off(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
         raise InputError("line 1-2: missing the counts 'vertices faces edges'", where)
     counts = values[row_start[0] : row_start[0] + min(3, int(lens[0]))]
     if np.any(counts < 0) or np.any(counts != np.round(counts)) or lens[0] > 3:
-        raise InputError(f"line {int(row_line[0])}: the counts must be 2 or 3 non-negative integers", where)
+        raise InputError(
+            f"line {int(row_line[0])}: the counts must be 2 or 3 non-negative integers", where
+        )
     nv, nf = int(counts[0]), int(counts[1])
     rows = len(lens) - 1
     if nv + nf > rows:
-        raise InputError(f"truncated: the header declares {nv} vertices and {nf} faces but the file has {rows} rows", where)
+        raise InputError(
+            f"truncated: the header declares {nv} vertices and {nf} faces but the file has {rows} rows",
+            where,
+        )
     if nv + nf < rows:
-        raise InputError(f"line {int(row_line[1 + nv + nf])}: more rows than the {nv} vertices and {nf} faces declared", where)
+        raise InputError(
+            f"line {int(row_line[1 + nv + nf])}: more rows than the {nv} vertices and {nf} faces declared",
+            where,
+        )
     base = 3 + (3 if has_nrm else 0)
     vl = lens[1 : 1 + nv]
     allowed = (base + 3, base + 4) if has_col else (base,)
@@ -64,7 +78,9 @@ def decode_off(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
     common = dict(normals=normals, colors=colors, point_dtype=np.float64)
     if nf == 0:
         return text.apply_float32_mark(PointCloud(points=pts, **common), _comments(buf)), details
-    faces, face_attrs = _faces(values, row_start[1 + nv : 2 + nv + nf], row_line[1 + nv :], nv, where)
+    faces, face_attrs = _faces(
+        values, row_start[1 + nv : 2 + nv + nf], row_line[1 + nv :], nv, where
+    )
     mesh = TriangleMesh(vertices=pts, faces=faces, face_attributes=face_attrs, **common)
     return text.apply_float32_mark(mesh, _comments(buf)), details
 
@@ -83,18 +99,31 @@ def _faces(values, starts, lines, nv, where):
     k = values[first]
     if np.any(k != np.round(k)) or np.any(k < 3):
         bad = int(np.flatnonzero((k != np.round(k)) | (k < 3))[0])
-        raise InputError(f"line {int(lines[bad])}: a face must start with its number of corners (3 or more)", where)
+        raise InputError(
+            f"line {int(lines[bad])}: a face must start with its number of corners (3 or more)",
+            where,
+        )
     k = k.astype(np.int64)
     extra = lens - 1 - k
     if np.any((extra != 0) & (extra != 3) & (extra != 4)):
         bad = int(np.flatnonzero((extra != 0) & (extra != 3) & (extra != 4))[0])
-        raise InputError(f"line {int(lines[bad])}: a face row holds k indices and optionally 3 or 4 colour values", where)
+        raise InputError(
+            f"line {int(lines[bad])}: a face row holds k indices and optionally 3 or 4 colour values",
+            where,
+        )
     idx_pos = np.repeat(first + 1, k) + (np.arange(int(k.sum())) - np.repeat(np.cumsum(k) - k, k))
     corners = values[idx_pos]
-    if np.any(corners != np.round(corners)) or (corners.size and (corners.min() < 0 or corners.max() >= nv)):
-        bad_corner = int(np.flatnonzero((corners != np.round(corners)) | (corners < 0) | (corners >= nv))[0])
+    if np.any(corners != np.round(corners)) or (
+        corners.size and (corners.min() < 0 or corners.max() >= nv)
+    ):
+        bad_corner = int(
+            np.flatnonzero((corners != np.round(corners)) | (corners < 0) | (corners >= nv))[0]
+        )
         bad = int(np.searchsorted(np.cumsum(k), bad_corner, side="right"))
-        raise InputError(f"line {int(lines[bad])}: vertex index {corners[bad_corner]:g} out of range for {nv} vertices", where)
+        raise InputError(
+            f"line {int(lines[bad])}: vertex index {corners[bad_corner]:g} out of range for {nv} vertices",
+            where,
+        )
     faces, src = fan(corners.astype(np.int64), k)
     attrs: dict[str, np.ndarray] = {}
     if np.all(extra >= 3):
@@ -124,7 +153,9 @@ def off_bytes(obj: PointCloud | TriangleMesh) -> bytes:
     history as ``#`` lines after the keyword."""
     pts = obj.points
     fmt = text.float_format(obj.point_dtype)
-    word = ("C" if obj.colors is not None else "") + ("N" if obj.normals is not None else "") + "OFF"
+    word = (
+        ("C" if obj.colors is not None else "") + ("N" if obj.normals is not None else "") + "OFF"
+    )
     cols = [pts.astype(np.float64)]
     tmpl = [fmt] * 3
     if obj.normals is not None:

@@ -21,7 +21,18 @@ from recon_cli.errors import InputError
 from recon_cli.geometry import PointCloud
 from recon_cli.io import text
 
-_KEYS = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT", "POINTS", "DATA")
+_KEYS = (
+    "VERSION",
+    "FIELDS",
+    "SIZE",
+    "TYPE",
+    "COUNT",
+    "WIDTH",
+    "HEIGHT",
+    "VIEWPOINT",
+    "POINTS",
+    "DATA",
+)
 _NORMALS = ("normal_x", "normal_y", "normal_z")
 MAX_HEADER_LINES = 64
 
@@ -64,7 +75,9 @@ def parse_header(buf: np.ndarray, where: str) -> tuple[dict, int]:
     k = len(names)
     counts = head.get("COUNT", ["1"] * k)
     if not (len(head["SIZE"]) == len(head["TYPE"]) == len(counts) == k):
-        raise InputError(f"line {lines['FIELDS']}: FIELDS, SIZE, TYPE and COUNT differ in length", where)
+        raise InputError(
+            f"line {lines['FIELDS']}: FIELDS, SIZE, TYPE and COUNT differ in length", where
+        )
     try:
         sizes = [int(s) for s in head["SIZE"]]
         counts = [int(c) for c in counts]
@@ -72,7 +85,9 @@ def parse_header(buf: np.ndarray, where: str) -> tuple[dict, int]:
         width = int(head.get("WIDTH", [npts])[0])
         height = int(head.get("HEIGHT", ["1"])[0])
     except (ValueError, IndexError):
-        raise InputError("a SIZE, COUNT, WIDTH, HEIGHT or POINTS value is not an integer", where) from None
+        raise InputError(
+            "a SIZE, COUNT, WIDTH, HEIGHT or POINTS value is not an integer", where
+        ) from None
     if npts < 0 or any(c < 1 for c in counts):
         raise InputError("negative POINTS or a COUNT below 1", where)
     if width * height != npts:
@@ -134,7 +149,10 @@ def decode_pcd(data, where: str) -> tuple[PointCloud, dict]:
         "format": "pcd",
         "data": h["data"],
         "version": h["version"],
-        "fields": [f"{n_}:{dt.kind.upper()}{dt.itemsize}x{c}" for n_, dt, c in zip(h["names"], h["dtypes"], h["counts"])],
+        "fields": [
+            f"{n_}:{dt.kind.upper()}{dt.itemsize}x{c}"
+            for n_, dt, c in zip(h["names"], h["dtypes"], h["counts"])
+        ],
         "width": h["width"],
         "height": h["height"],
     }
@@ -149,9 +167,15 @@ def _decompress(buf, off, h, rowdt, where) -> dict:
     csize, usize = (int(v) for v in buf[off : off + 8].view("<u4"))
     n = h["points"]
     if usize != n * rowdt.itemsize:
-        raise InputError(f"byte {off}: uncompressed size {usize} is not POINTS {n} x {rowdt.itemsize} bytes", where)
+        raise InputError(
+            f"byte {off}: uncompressed size {usize} is not POINTS {n} x {rowdt.itemsize} bytes",
+            where,
+        )
     if csize > len(buf) - off - 8:
-        raise InputError(f"truncated: {csize} compressed bytes declared at byte {off}, {len(buf) - off - 8} remain", where)
+        raise InputError(
+            f"truncated: {csize} compressed bytes declared at byte {off}, {len(buf) - off - 8} remain",
+            where,
+        )
     out = np.empty(usize, np.uint8)
     got = lzf_decompress(buf[off + 8 : off + 8 + csize], out) if csize else 0
     if got < 0:
@@ -179,7 +203,10 @@ def _ascii(buf, off, h, rowdt, where) -> dict:
         raise InputError(f"POINTS {n} declared but the data has {len(lens)} rows", where)
     if n and np.any(lens != width):
         bad = int(np.flatnonzero(lens != width)[0])
-        raise InputError(f"line {first_line + int(row_line[bad])}: {int(lens[bad])} values, the fields need {width}", where)
+        raise InputError(
+            f"line {first_line + int(row_line[bad])}: {int(lens[bad])} values, the fields need {width}",
+            where,
+        )
     table = values.reshape(n, width)
     cols = {}
     j = 0
@@ -189,8 +216,12 @@ def _ascii(buf, off, h, rowdt, where) -> dict:
         if dt.kind in "iu":
             info = np.iinfo(dt)
             # a packed rgb written as a float value (old PCL) is an integer type here only when the file says so
-            if np.any(block != np.round(block)) or (block.size and (block.min() < info.min or block.max() > info.max)):
-                raise InputError(f"field {name!r}: values are not {dt.kind.upper()}{dt.itemsize} integers", where)
+            if np.any(block != np.round(block)) or (
+                block.size and (block.min() < info.min or block.max() > info.max)
+            ):
+                raise InputError(
+                    f"field {name!r}: values are not {dt.kind.upper()}{dt.itemsize} integers", where
+                )
         if name in ("rgb", "rgba") and dt.kind == "f":
             col = block.astype(np.float32)  # the float's bits are the colour
         else:
@@ -208,7 +239,8 @@ def _to_cloud(cols: dict, h: dict, where: str) -> PointCloud:
     if not ok.all():
         if h["height"] > 1:
             raise InputError(
-                f"point {int(np.argmin(ok))} has a NaN coordinate (an organized cloud: remove invalid points first)", where
+                f"point {int(np.argmin(ok))} has a NaN coordinate (an organized cloud: remove invalid points first)",
+                where,
             )
         raise InputError(f"point {int(np.argmin(ok))} has a NaN or infinite coordinate", where)
     used = {"x", "y", "z"}
@@ -241,14 +273,25 @@ def _to_cloud(cols: dict, h: dict, where: str) -> PointCloud:
     info = []
     if h["viewpoint"]:
         info.append("pcd_viewpoint " + " ".join(h["viewpoint"]))
-    return PointCloud(points=pts, normals=normals, colors=colors, attributes=attributes, point_dtype=ptype, obj_info=info)
+    return PointCloud(
+        points=pts,
+        normals=normals,
+        colors=colors,
+        attributes=attributes,
+        point_dtype=ptype,
+        obj_info=info,
+    )
 
 
 def _code(dt: np.dtype) -> tuple[str, int]:
     dt = np.dtype(dt)
     if dt.kind == "b":
         return "U", 1
-    if dt.kind not in "iuf" or dt.itemsize not in (1, 2, 4, 8) or (dt.kind == "f" and dt.itemsize < 4):
+    if (
+        dt.kind not in "iuf"
+        or dt.itemsize not in (1, 2, 4, 8)
+        or (dt.kind == "f" and dt.itemsize < 4)
+    ):
         return "F", 8
     return {"i": "I", "u": "U", "f": "F"}[dt.kind], dt.itemsize
 
@@ -264,17 +307,32 @@ def pcd_bytes(obj, data: str = "binary") -> bytes:
         ntype = obj.normals.dtype if obj.normals.dtype in (np.float32, np.float64) else np.float64
         cols += [(c, obj.normals[:, i].astype(ntype)) for i, c in enumerate(_NORMALS)]
     if obj.colors is not None:
-        c8 = obj.colors if obj.colors.dtype == np.uint8 else np.clip(np.rint(text.colours_to_unit(obj.colors) * 255), 0, 255).astype(np.uint8)
-        packed = (c8[:, 0].astype(np.uint32) << 16) | (c8[:, 1].astype(np.uint32) << 8) | c8[:, 2].astype(np.uint32)
+        c8 = (
+            obj.colors
+            if obj.colors.dtype == np.uint8
+            else np.clip(np.rint(text.colours_to_unit(obj.colors) * 255), 0, 255).astype(np.uint8)
+        )
+        packed = (
+            (c8[:, 0].astype(np.uint32) << 16)
+            | (c8[:, 1].astype(np.uint32) << 8)
+            | c8[:, 2].astype(np.uint32)
+        )
         if c8.shape[1] == 4:
             cols.append(("rgba", packed | (c8[:, 3].astype(np.uint32) << 24)))
         else:
             cols.append(("rgb", packed))
     for name, v in obj.attributes.items():
         t, s = _code(v.dtype)
-        cols.append((name.replace(" ", "_"), v.astype(np.dtype(f"<{t.lower()}{s}") if t != "F" else np.dtype(f"<f{s}"))))
+        cols.append(
+            (
+                name.replace(" ", "_"),
+                v.astype(np.dtype(f"<{t.lower()}{s}") if t != "F" else np.dtype(f"<f{s}")),
+            )
+        )
     kinds = [_code(v.dtype) for _, v in cols]
-    view = next((s for s in obj.obj_info if s.startswith("pcd_viewpoint ")), "pcd_viewpoint 0 0 0 1 0 0 0")
+    view = next(
+        (s for s in obj.obj_info if s.startswith("pcd_viewpoint ")), "pcd_viewpoint 0 0 0 1 0 0 0"
+    )
     head = [
         "# .PCD v0.7 - Point Cloud Data file format",
         "VERSION 0.7",
@@ -295,7 +353,9 @@ def pcd_bytes(obj, data: str = "binary") -> bytes:
         for (name, v), (t, s) in zip(cols, kinds):
             fmts.append(("%.9g" if s == 4 else "%.17g") if t == "F" else "%d")
             table.append(v.astype(np.float64))
-        return out + text.format_rows(" ".join(fmts) + "\n", np.column_stack(table) if table else np.zeros((n, 0)))
+        return out + text.format_rows(
+            " ".join(fmts) + "\n", np.column_stack(table) if table else np.zeros((n, 0))
+        )
     dt = np.dtype([(name, v.dtype.newbyteorder("<")) for name, v in cols])
     if data == "binary":
         rows = np.empty(n, dtype=dt)
@@ -306,7 +366,16 @@ def pcd_bytes(obj, data: str = "binary") -> bytes:
         raise ValueError(f"unknown PCD data {data!r}")
     from recon_cli.io._lzf_kernel import lzf_compress
 
-    raw = np.concatenate([np.ascontiguousarray(v, dtype=v.dtype.newbyteorder("<")).view(np.uint8) for _, v in cols]) if n else np.zeros(0, np.uint8)
+    raw = (
+        np.concatenate(
+            [
+                np.ascontiguousarray(v, dtype=v.dtype.newbyteorder("<")).view(np.uint8)
+                for _, v in cols
+            ]
+        )
+        if n
+        else np.zeros(0, np.uint8)
+    )
     comp = lzf_compress(raw)
     return out + np.array([len(comp), len(raw)], dtype="<u4").tobytes() + comp.tobytes()
 

@@ -70,7 +70,9 @@ class PlyElement:
     count: int
     properties: list[PlyProperty] = field(default_factory=list)
     data: dict[str, np.ndarray] = field(default_factory=dict)
-    raw: np.ndarray | None = field(default=None, repr=False)  # structured rows, when decoded as such
+    raw: np.ndarray | None = field(
+        default=None, repr=False
+    )  # structured rows, when decoded as such
 
 
 @dataclass
@@ -132,7 +134,9 @@ def parse_header(buf: bytes, path: str | None = None) -> tuple[PlyData, int]:
             if len(words) != 3 or words[1] not in FORMATS:
                 raise InputError(f"header line {lineno}: unknown format {line!r}", where)
             if words[2] not in ("1.0", "1"):
-                raise InputError(f"header line {lineno}: unsupported PLY version {words[2]!r}", where)
+                raise InputError(
+                    f"header line {lineno}: unsupported PLY version {words[2]!r}", where
+                )
             if ply.format:
                 raise InputError(f"header line {lineno}: second 'format' line", where)
             ply.format = words[1]
@@ -146,11 +150,15 @@ def parse_header(buf: bytes, path: str | None = None) -> tuple[PlyData, int]:
             try:
                 count = int(words[2])
             except ValueError:
-                raise InputError(f"header line {lineno}: element count {words[2]!r} is not an integer", where) from None
+                raise InputError(
+                    f"header line {lineno}: element count {words[2]!r} is not an integer", where
+                ) from None
             if count < 0:
                 raise InputError(f"header line {lineno}: negative element count {count}", where)
             if words[1] in names:
-                raise InputError(f"header line {lineno}: element {words[1]!r} declared twice", where)
+                raise InputError(
+                    f"header line {lineno}: element {words[1]!r} declared twice", where
+                )
             names.add(words[1])
             current = PlyElement(words[1], count)
             ply.elements.append(current)
@@ -159,13 +167,18 @@ def parse_header(buf: bytes, path: str | None = None) -> tuple[PlyData, int]:
                 raise InputError(f"header line {lineno}: property before any element", where)
             if len(words) >= 2 and words[1] == "list":
                 if len(words) != 5:
-                    raise InputError(f"header line {lineno}: malformed list property {line!r}", where)
+                    raise InputError(
+                        f"header line {lineno}: malformed list property {line!r}", where
+                    )
                 ctype, itype, name = words[2], words[3], words[4]
                 for t in (ctype, itype):
                     if t not in PLY_TYPES:
                         raise InputError(f"header line {lineno}: unknown type name {t!r}", where)
                 if PLY_TYPES[ctype][0] == "f":
-                    raise InputError(f"header line {lineno}: list count type {ctype!r} is not an integer type", where)
+                    raise InputError(
+                        f"header line {lineno}: list count type {ctype!r} is not an integer type",
+                        where,
+                    )
                 prop = PlyProperty(name, PLY_TYPES[itype], PLY_TYPES[ctype])
             else:
                 if len(words) != 3:
@@ -174,7 +187,10 @@ def parse_header(buf: bytes, path: str | None = None) -> tuple[PlyData, int]:
                     raise InputError(f"header line {lineno}: unknown type name {words[1]!r}", where)
                 prop = PlyProperty(words[2], PLY_TYPES[words[1]])
             if any(p.name == prop.name for p in current.properties):
-                raise InputError(f"header line {lineno}: property {prop.name!r} declared twice in {current.name!r}", where)
+                raise InputError(
+                    f"header line {lineno}: property {prop.name!r} declared twice in {current.name!r}",
+                    where,
+                )
             current.properties.append(prop)
         else:
             raise InputError(f"header line {lineno}: unknown keyword {key!r}", where)
@@ -230,11 +246,15 @@ def _parse_binary(ply: PlyData, buf: bytes, offset: int, order: str, where: str)
     mv = memoryview(buf)
     for idx, el in enumerate(ply.elements):
         remaining = len(buf) - offset
-        fixed = sum(np.dtype(p.count_dtype if p.is_list else p.dtype).itemsize for p in el.properties)
+        fixed = sum(
+            np.dtype(p.count_dtype if p.is_list else p.dtype).itemsize for p in el.properties
+        )
         # every row needs at least its scalars and list counts: check before allocating
         if el.count and (fixed == 0 or el.count > remaining // max(fixed, 1)):
             if fixed == 0:
-                raise InputError(f"element {el.name!r} has no properties but {el.count} rows", where)
+                raise InputError(
+                    f"element {el.name!r} has no properties but {el.count} rows", where
+                )
             raise InputError(
                 f"truncated: header declares {el.count} {el.name!r} rows "
                 f"(at least {el.count * fixed} bytes) but only {remaining} bytes remain",
@@ -252,10 +272,15 @@ def _parse_binary(ply: PlyData, buf: bytes, offset: int, order: str, where: str)
     # extra bytes after the last element are tolerated (some writers pad), never read
 
 
-def _parse_binary_lists(el: PlyElement, buf: bytes, mv: memoryview, offset: int, order: str, where: str) -> int:
+def _parse_binary_lists(
+    el: PlyElement, buf: bytes, mv: memoryview, offset: int, order: str, where: str
+) -> int:
     """Decode an element holding list properties; returns the new offset."""
     if el.count == 0:
-        el.data = {p.name: (np.zeros((0, 0), p.dtype) if p.is_list else np.zeros(0, p.dtype)) for p in el.properties}
+        el.data = {
+            p.name: (np.zeros((0, 0), p.dtype) if p.is_list else np.zeros(0, p.dtype))
+            for p in el.properties
+        }
         return offset
     # fast path: read the first row's list lengths and assume every row has the same
     ks = _first_row_counts(el, buf, offset, order, where)
@@ -287,7 +312,9 @@ def _parse_binary_lists(el: PlyElement, buf: bytes, mv: memoryview, offset: int,
     return _parse_binary_lists_general(el, buf, offset, order, where)
 
 
-def _first_row_counts(el: PlyElement, buf: bytes, offset: int, order: str, where: str) -> dict[str, int]:
+def _first_row_counts(
+    el: PlyElement, buf: bytes, offset: int, order: str, where: str
+) -> dict[str, int]:
     ks: dict[str, int] = {}
     pos = offset
     for p in el.properties:
@@ -311,7 +338,9 @@ def _first_row_counts(el: PlyElement, buf: bytes, offset: int, order: str, where
     return ks
 
 
-def _parse_binary_lists_general(el: PlyElement, buf: bytes, offset: int, order: str, where: str) -> int:
+def _parse_binary_lists_general(
+    el: PlyElement, buf: bytes, offset: int, order: str, where: str
+) -> int:
     """Rows of differing list lengths: one pass over the rows to find their offsets.
 
     Only lists with mixed lengths (e.g. a mesh of triangles and quads) come here.
@@ -398,12 +427,16 @@ def _parse_ascii(ply: PlyData, buf: bytes, offset: int, where: str) -> None:
             if bad.size:
                 i = int(bad[0])
                 raise InputError(
-                    f"line {int(el_lines[i])}: {el.name!r} row {i} has {int(el_counts[i])} values, expected {nprop}", where
+                    f"line {int(el_lines[i])}: {el.name!r} row {i} has {int(el_counts[i])} values, expected {nprop}",
+                    where,
                 )
             block = tokens[pos : pos + el.count * nprop]
             pos += el.count * nprop
             table = _ascii_values(block, where, el.name).reshape(el.count, nprop)
-            el.data = {p.name: _cast(table[:, j], p.dtype, where, el.name) for j, p in enumerate(el.properties)}
+            el.data = {
+                p.name: _cast(table[:, j], p.dtype, where, el.name)
+                for j, p in enumerate(el.properties)
+            }
         else:
             pos = _parse_ascii_lists(el, tokens, pos, el_counts, el_lines, where)
         row += el.count
@@ -423,7 +456,9 @@ def _ascii_values(block: list[bytes], where: str, name: str) -> np.ndarray:
             return np.array(block).astype(np.float64)
     except ValueError:
         bad = next((t for t in block if not _is_number(t)), block[0])
-        raise InputError(f"element {name!r}: {bad[:40].decode('ascii', 'replace')!r} is not a number", where) from None
+        raise InputError(
+            f"element {name!r}: {bad[:40].decode('ascii', 'replace')!r} is not a number", where
+        ) from None
 
 
 def _is_number(tok: bytes) -> bool:
@@ -447,7 +482,9 @@ def _cast(values: np.ndarray, code: str, where: str, name: str) -> np.ndarray:
     elif dt.itemsize < 8 and values.size:
         big = np.abs(values[np.isfinite(values)])
         if big.size and big.max() > np.finfo(dt).max:
-            raise InputError(f"element {name!r}: value {big.max():g} out of range for {ply_name(dt)}", where)
+            raise InputError(
+                f"element {name!r}: value {big.max():g} out of range for {ply_name(dt)}", where
+            )
     return values.astype(dt)
 
 
@@ -457,7 +494,10 @@ def _parse_ascii_lists(
     """Rows holding lists; ``counts[i]`` values on file line ``lines[i]`` make row i."""
     props = el.properties
     if el.count == 0:
-        el.data = {p.name: (np.zeros((0, 0), p.dtype) if p.is_list else np.zeros(0, p.dtype)) for p in props}
+        el.data = {
+            p.name: (np.zeros((0, 0), p.dtype) if p.is_list else np.zeros(0, p.dtype))
+            for p in props
+        }
         return pos
     # fast path (faces): one list, first, then scalars; every line of one length with matching counts
     if props[0].is_list and not any(p.is_list for p in props[1:]) and np.all(counts == counts[0]):
@@ -479,18 +519,21 @@ def _parse_ascii_lists(
         for p in props:
             if pos >= end:
                 raise InputError(
-                    f"line {int(lines[i])}: {el.name!r} row {i} ends before its {p.name!r} value", where
+                    f"line {int(lines[i])}: {el.name!r} row {i} ends before its {p.name!r} value",
+                    where,
                 )
             if p.is_list:
                 try:
                     k = int(tokens[pos])
                 except ValueError:
                     raise InputError(
-                        f"line {int(lines[i])}: bad list length {tokens[pos][:20].decode('ascii', 'replace')!r}", where
+                        f"line {int(lines[i])}: bad list length {tokens[pos][:20].decode('ascii', 'replace')!r}",
+                        where,
                     ) from None
                 if k < 0 or pos + 1 + k > end:
                     raise InputError(
-                        f"line {int(lines[i])}: list length {k} but the line holds {end - pos - 1} more values", where
+                        f"line {int(lines[i])}: list length {k} but the line holds {end - pos - 1} more values",
+                        where,
                     )
                 cols[p.name].append(tokens[pos + 1 : pos + 1 + k])
                 pos += 1 + k
@@ -499,7 +542,8 @@ def _parse_ascii_lists(
                 pos += 1
         if pos != end:
             raise InputError(
-                f"line {int(lines[i])}: {el.name!r} row {i} has {end - pos} values more than its properties", where
+                f"line {int(lines[i])}: {el.name!r} row {i} has {end - pos} values more than its properties",
+                where,
             )
     data = {}
     for p in props:
@@ -517,7 +561,9 @@ def _parse_ascii_lists(
                     out[i] = _cast(_ascii_values(r, where, el.name), p.dtype, where, el.name)
                 data[p.name] = out
         else:
-            data[p.name] = _cast(_ascii_values(cols[p.name], where, el.name), p.dtype, where, el.name)
+            data[p.name] = _cast(
+                _ascii_values(cols[p.name], where, el.name), p.dtype, where, el.name
+            )
     el.data = data
     return pos
 
@@ -640,7 +686,9 @@ def read_bytes(path: str | os.PathLike) -> bytes | np.ndarray:
     try:
         with open(path, "rb", buffering=0) as f:
             st = os.fstat(f.fileno())
-            if not stat.S_ISREG(st.st_mode):  # a pipe or device (e.g. <(cat scan.ply)): size unknown
+            if not stat.S_ISREG(
+                st.st_mode
+            ):  # a pipe or device (e.g. <(cat scan.ply)): size unknown
                 return f.read()
             size = st.st_size
             buf = np.empty(size, dtype=np.uint8)
@@ -712,7 +760,9 @@ def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | Trian
     used = set(_VERTEX_XYZ)
     # float32 only when every coordinate column fits in float32 exactly (float, 8- and 16-bit integers):
     # a double column, or int/uint ones, make the source double (kept through every stage)
-    point_dtype = np.float32 if all(props[c].dtype in _FLOAT32_EXACT for c in _VERTEX_XYZ) else np.float64
+    point_dtype = (
+        np.float32 if all(props[c].dtype in _FLOAT32_EXACT for c in _VERTEX_XYZ) else np.float64
+    )
     normals = colors = None
     for names, dtype in groups[1:]:
         if names == _VERTEX_NORMAL:
@@ -721,7 +771,9 @@ def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | Trian
             colors = _columns(vert, names, dtype)
         used |= set(names)
     attributes = {
-        p.name: np.array(d[p.name], dtype=np.dtype(p.dtype)) for p in vert.properties if p.name not in used and not p.is_list
+        p.name: np.array(d[p.name], dtype=np.dtype(p.dtype))
+        for p in vert.properties
+        if p.name not in used and not p.is_list
     }
     # copies, so a kept element does not pin the whole file's bytes in memory
     extras = [
@@ -748,9 +800,13 @@ def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | Trian
         bad = faces.max() if faces.max() >= len(pts) else faces.min()
         raise InputError(f"face index {int(bad)} out of range for {len(pts)} vertices", where)
     face_attrs = {
-        p.name: face.data[p.name][src] for p in face.properties if p is not idx_prop and not p.is_list
+        p.name: face.data[p.name][src]
+        for p in face.properties
+        if p is not idx_prop and not p.is_list
     }
-    return TriangleMesh(vertices=pts, faces=faces, normals=normals, face_attributes=face_attrs, **common)
+    return TriangleMesh(
+        vertices=pts, faces=faces, normals=normals, face_attributes=face_attrs, **common
+    )
 
 
 # PLY types whose every value float32 holds exactly
@@ -844,12 +900,18 @@ def _first_nonfinite_row(el: PlyElement, pts: np.ndarray) -> int:
     first_nonfinite_row = K.first_nonfinite_row
 
     raw = el.raw
-    run = _adjacent_fields(raw.dtype, _VERTEX_XYZ) if raw is not None and len(raw) and raw.flags.c_contiguous else None
+    run = (
+        _adjacent_fields(raw.dtype, _VERTEX_XYZ)
+        if raw is not None and len(raw) and raw.flags.c_contiguous
+        else None
+    )
     if run is not None and run[0].kind == "f":
         ftype, first = run
         big = ftype.byteorder == ">" or (ftype.byteorder == "=" and sys.byteorder == "big")
         flat = raw.view(np.uint8).reshape(-1)
-        return int(first_nonfinite_row(flat, raw.strides[0], first, len(_VERTEX_XYZ), ftype.itemsize, big))
+        return int(
+            first_nonfinite_row(flat, raw.strides[0], first, len(_VERTEX_XYZ), ftype.itemsize, big)
+        )
     ok = np.isfinite(pts).all(axis=1)
     return -1 if ok.all() else int(np.argmin(ok))
 
@@ -876,7 +938,16 @@ def _gather_plan(rowtype: np.dtype, names: tuple[str, ...], dtype) -> tuple:
         return ("float", names, offsets, ftype.itemsize, big, np.dtype(np.float64), native, rtype)
     if ftype.itemsize == 1 and rtype == native:
         return ("byte", names, offsets, 1, False, native, native, rtype)
-    return ("int", names, offsets, ftype.itemsize, big, np.dtype(f"u{ftype.itemsize}"), native, rtype)
+    return (
+        "int",
+        names,
+        offsets,
+        ftype.itemsize,
+        big,
+        np.dtype(f"u{ftype.itemsize}"),
+        native,
+        rtype,
+    )
 
 
 def _gather_apply(plan: tuple, flat: np.ndarray, stride: int, out: np.ndarray) -> None:
@@ -964,7 +1035,9 @@ def geometry_to_ply(obj: PointCloud | TriangleMesh, ascii: bool = False) -> PlyD
             fdata[name] = values
         elements.append(PlyElement("face", len(obj.faces), fprops, fdata))
     elements += list(obj.extra_elements)
-    return PlyData(format=fmt, comments=list(obj.history), obj_info=list(obj.obj_info), elements=elements)
+    return PlyData(
+        format=fmt, comments=list(obj.history), obj_info=list(obj.obj_info), elements=elements
+    )
 
 
 def _code(dtype: np.dtype) -> str:
@@ -994,10 +1067,18 @@ def compile_ply_kernels() -> None:
     For ``recon warmup``: which types reach the gatherers depends on the files read, not on
     a command, so they are compiled (or loaded from the cache) here for all of them.
     """
-    from recon_cli.io._ply_kernel import first_nonfinite_row, gather_bytes, gather_fields, gather_floats
+    from recon_cli.io._ply_kernel import (
+        first_nonfinite_row,
+        gather_bytes,
+        gather_fields,
+        gather_floats,
+    )
 
     offsets = np.array([0, 4, 8], dtype=np.int64)
-    for flat in (np.zeros(24, np.uint8), np.frombuffer(bytes(24), dtype=np.uint8)):  # writable and read-only
+    for flat in (
+        np.zeros(24, np.uint8),
+        np.frombuffer(bytes(24), dtype=np.uint8),
+    ):  # writable and read-only
         for big in (False, True):
             for size, buf in ((1, np.uint8), (2, np.uint16), (4, np.uint32), (8, np.uint64)):
                 k = 2 if size == 8 else 3

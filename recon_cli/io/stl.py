@@ -50,7 +50,9 @@ def decode_stl(data, where: str) -> tuple[TriangleMesh, dict]:
     if stripped.startswith(b"solid"):
         return _decode_ascii(buf, where)
     if len(buf) < 84:
-        raise InputError(f"truncated: a binary STL needs at least 84 bytes, the file has {len(buf)}", where)
+        raise InputError(
+            f"truncated: a binary STL needs at least 84 bytes, the file has {len(buf)}", where
+        )
     count = int(buf[80:84].view("<u4")[0])
     raise InputError(
         f"binary STL header declares {count} triangles ({84 + 50 * count} bytes) but the file has {len(buf)} bytes",
@@ -77,7 +79,9 @@ def _decode_ascii(buf: np.ndarray, where: str) -> tuple[TriangleMesh, dict]:
     from recon_cli.io._stl_kernel import ascii_walk
 
     # a counting pass, then a filling one into arrays of the counted size
-    nf, ns, err, at = ascii_walk(buf, np.empty((0, 3), np.float64), np.empty((0, 3), np.int64), False)
+    nf, ns, err, at = ascii_walk(
+        buf, np.empty((0, 3), np.float64), np.empty((0, 3), np.int64), False
+    )
     if err:
         _ascii_error(buf, err, at, where)
     corners = np.empty((3 * nf, 3), np.float64)
@@ -112,7 +116,13 @@ def _weld(corners: np.ndarray, where: str, dtype) -> tuple[TriangleMesh, dict]:
     inverse, first = weld_exact(bits)
     verts = c[first]
     faces = inverse.reshape(-1, 3)
-    details = {"format": "stl", "triangles": len(faces), "corners": len(c), "vertices": len(verts), "weld_tolerance": 0.0}
+    details = {
+        "format": "stl",
+        "triangles": len(faces),
+        "corners": len(c),
+        "vertices": len(verts),
+        "weld_tolerance": 0.0,
+    }
     return TriangleMesh(vertices=verts, faces=faces, point_dtype=dtype), details
 
 
@@ -137,7 +147,11 @@ def stl_bytes(obj: TriangleMesh, ascii: bool = False) -> bytes:
             np.column_stack([n, t64.reshape(len(t64), 9)]),
         )
         name = head.replace("\n", " ")
-        return f"solid {name}\n".encode("latin-1", "replace") + body + f"endsolid {name}\n".encode("latin-1", "replace")
+        return (
+            f"solid {name}\n".encode("latin-1", "replace")
+            + body
+            + f"endsolid {name}\n".encode("latin-1", "replace")
+        )
     rows = np.zeros(len(tri), dtype=_ROW)
     rows["normal"] = n
     rows["v"] = tri

@@ -54,7 +54,16 @@ def slow_values(buf: np.ndarray, spans: np.ndarray) -> np.ndarray:
     return out
 
 
-def _run_rows(buf: np.ndarray, start: int, end: int, where: str, delim: int, comment: int, cap: int, fixed: bool):
+def _run_rows(
+    buf: np.ndarray,
+    start: int,
+    end: int,
+    where: str,
+    delim: int,
+    comment: int,
+    cap: int,
+    fixed: bool,
+):
     from recon_cli.io._text_kernel import parse_rows
 
     out = parse_rows(buf, start, end, delim, comment, max(16, cap), fixed)
@@ -62,7 +71,9 @@ def _run_rows(buf: np.ndarray, start: int, end: int, where: str, delim: int, com
     if err == 1:
         raise bad_number(buf, at, where)
     if err == 2:
-        raise InputError(f"line {line_at(buf, at)}: {bad_count} columns, the first row has {ncol}", where)
+        raise InputError(
+            f"line {line_at(buf, at)}: {bad_count} columns, the first row has {ncol}", where
+        )
     values = values[:nvals]
     if nslow:
         slow = slow[:nslow]
@@ -78,17 +89,29 @@ def read_rows(buf: np.ndarray, start: int, end: int, where: str, delim: int = 0,
     counted from ``start`` (1-based). Blank lines and lines starting with ``comment`` are
     skipped. A token that is not a number raises :class:`InputError` naming its line.
     """
-    values, row_start, row_line, _, _ = _run_rows(buf, start, end, where, delim, comment, (end - start) // 8, False)
+    values, row_start, row_line, _, _ = _run_rows(
+        buf, start, end, where, delim, comment, (end - start) // 8, False
+    )
     return values, row_start, row_line
 
 
-def read_table(buf: np.ndarray, start: int, end: int, where: str, delim: int = 0, comment: int = 35, cap: int = 0):
+def read_table(
+    buf: np.ndarray,
+    start: int,
+    end: int,
+    where: str,
+    delim: int = 0,
+    comment: int = 35,
+    cap: int = 0,
+):
     """The rows of numbers in ``buf[start:end]`` as an ``(n, k)`` float64 table: every row must
     have the first row's ``k`` fields (else :class:`InputError` naming the line). ``cap`` is a
     guess of the number of values (0: from the size); the table is a view of an array that may
     be somewhat larger. Blank lines and ``comment`` lines are skipped as in :func:`read_rows`.
     """
-    values, _, _, nrows, ncol = _run_rows(buf, start, end, where, delim, comment, cap or (end - start) // 8, True)
+    values, _, _, nrows, ncol = _run_rows(
+        buf, start, end, where, delim, comment, cap or (end - start) // 8, True
+    )
     return values.reshape(nrows, max(ncol, 0))
 
 

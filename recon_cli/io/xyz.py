@@ -31,13 +31,30 @@ from recon_cli.geometry import PointCloud
 from recon_cli.io import text
 
 _ALIASES = {
-    "x": "x", "y": "y", "z": "z",
-    "nx": "nx", "ny": "ny", "nz": "nz", "normal_x": "nx", "normal_y": "ny", "normal_z": "nz",
-    "normalx": "nx", "normaly": "ny", "normalz": "nz",
-    "r": "red", "g": "green", "b": "blue", "a": "alpha",
-    "red": "red", "green": "green", "blue": "blue", "alpha": "alpha",
+    "x": "x",
+    "y": "y",
+    "z": "z",
+    "nx": "nx",
+    "ny": "ny",
+    "nz": "nz",
+    "normal_x": "nx",
+    "normal_y": "ny",
+    "normal_z": "nz",
+    "normalx": "nx",
+    "normaly": "ny",
+    "normalz": "nz",
+    "r": "red",
+    "g": "green",
+    "b": "blue",
+    "a": "alpha",
+    "red": "red",
+    "green": "green",
+    "blue": "blue",
+    "alpha": "alpha",
 }
-_NUMBER = re.compile(rb"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$|^[+-]?(nan|inf|infinity)$", re.IGNORECASE)
+_NUMBER = re.compile(
+    rb"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$|^[+-]?(nan|inf|infinity)$", re.IGNORECASE
+)
 
 
 def _lines_head(buf: np.ndarray, limit: int = 64):
@@ -100,18 +117,33 @@ def decode_xyz(data, where: str, ext: str = ".xyz") -> tuple[PointCloud, dict]:
     d = 0 if delim is None else delim[0]
     # the value array's first size, from the bytes per value of the first data lines
     sample = [ln for ln, s, _ in data_lines if s >= start][:32]
-    per_value = sum(len(ln) + 1 for ln in sample) / max(1, sum(len(_split(ln, delim)) for ln in sample)) if sample else 8
-    table = text.read_table(buf, start, len(buf), where, delim=d, cap=int((len(buf) - start) / max(per_value, 2) * 1.03) + 64)
+    per_value = (
+        sum(len(ln) + 1 for ln in sample) / max(1, sum(len(_split(ln, delim)) for ln in sample))
+        if sample
+        else 8
+    )
+    table = text.read_table(
+        buf,
+        start,
+        len(buf),
+        where,
+        delim=d,
+        cap=int((len(buf) - start) / max(per_value, 2) * 1.03) + 64,
+    )
     if len(table) == 0:
         raise InputError("no data rows", where)
     ncol = table.shape[1]
     if count_line is not None:
         declared = int(float(count_line))
         if declared != len(table):
-            raise InputError(f"line 1 declares {declared} points but the file has {len(table)} rows", where)
+            raise InputError(
+                f"line 1 declares {declared} points but the file has {len(table)} rows", where
+            )
     if names is not None and len(names) != ncol:
         if not from_comment:
-            raise InputError(f"the header names {len(names)} columns but the rows have {ncol}", where)
+            raise InputError(
+                f"the header names {len(names)} columns but the rows have {ncol}", where
+            )
         history.append(" ".join(names))  # a comment, not a header
         names = None
     if ncol < 3:
@@ -127,7 +159,9 @@ def decode_xyz(data, where: str, ext: str = ".xyz") -> tuple[PointCloud, dict]:
     return cloud, details
 
 
-def _columns(table: np.ndarray, names: list[str] | None, where: str) -> tuple[PointCloud, list[str]]:
+def _columns(
+    table: np.ndarray, names: list[str] | None, where: str
+) -> tuple[PointCloud, list[str]]:
     n, ncol = table.shape
     if names is not None:
         canon = [_ALIASES.get(nm.lower(), nm) for nm in names]
@@ -154,8 +188,14 @@ def _columns(table: np.ndarray, names: list[str] | None, where: str) -> tuple[Po
         if name in used:
             continue
         col = table[:, i]
-        attributes[name] = col.astype(np.int64) if col.size and np.all(col == np.round(col)) and np.abs(col).max() < 2**53 else col.copy()
-    cloud = PointCloud(points=pts, normals=normals, colors=colors, attributes=attributes, point_dtype=np.float64)
+        attributes[name] = (
+            col.astype(np.int64)
+            if col.size and np.all(col == np.round(col)) and np.abs(col).max() < 2**53
+            else col.copy()
+        )
+    cloud = PointCloud(
+        points=pts, normals=normals, colors=colors, attributes=attributes, point_dtype=np.float64
+    )
     return cloud, canon
 
 
@@ -186,7 +226,9 @@ def _guess(table: np.ndarray) -> list[str]:
         b = table[:, 3:6]
         if np.all(np.abs(np.linalg.norm(b, axis=1) - 1) < 1e-3):
             return ["x", "y", "z", "nx", "ny", "nz"]
-        if (np.all(b == np.round(b)) and b.min() >= 0 and b.max() <= 255) or (b.min() >= 0 and b.max() <= 1):
+        if (np.all(b == np.round(b)) and b.min() >= 0 and b.max() <= 255) or (
+            b.min() >= 0 and b.max() <= 1
+        ):
             return ["x", "y", "z", "red", "green", "blue"]
         return ["x", "y", "z"] + rest[3:]
     if ncol == 7:

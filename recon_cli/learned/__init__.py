@@ -66,7 +66,9 @@ _OCC_GAIN = 10.0  # occupancy: p(inside) = sigmoid(-gain * s), so the sphere ini
 
 def _torch():
     """The compute module, importing torch; a one-line error when the extra is missing."""
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # busy-waiting threads crawl on a shared CPU
+    os.environ.setdefault(
+        "OMP_WAIT_POLICY", "PASSIVE"
+    )  # busy-waiting threads crawl on a shared CPU
     try:
         from recon_cli.learned import _torch_net
     except ModuleNotFoundError as exc:
@@ -166,7 +168,9 @@ def _int(v: Any, name: str, lo: int, hi: int) -> int:
     return x
 
 
-def _float(v: Any, name: str, lo: float, hi: float = np.inf, allow_none: bool = False) -> float | None:
+def _float(
+    v: Any, name: str, lo: float, hi: float = np.inf, allow_none: bool = False
+) -> float | None:
     if allow_none and (v is None or (isinstance(v, str) and v.lower() in ("", "none"))):
         return None
     try:
@@ -294,10 +298,14 @@ def fit_sdf(
     max_seconds = _float(max_seconds, "max_seconds", 0.0, allow_none=True)
     width = _int(width, "width", 4, 4096)
     depth = _int(depth, "depth", 1, 32)
-    if frequencies is None or (isinstance(frequencies, str) and frequencies.lower() in ("", "none", "auto")):
+    if frequencies is None or (
+        isinstance(frequencies, str) and frequencies.lower() in ("", "none", "auto")
+    ):
         frequencies = 4 if normals is not None else 2
     frequencies = _int(frequencies, "frequencies", 0, 16)
-    if eikonal_weight is None or (isinstance(eikonal_weight, str) and eikonal_weight.lower() in ("", "none", "auto")):
+    if eikonal_weight is None or (
+        isinstance(eikonal_weight, str) and eikonal_weight.lower() in ("", "none", "auto")
+    ):
         eikonal_weight = 3.0 if normals is not None else 0.1  # L1 with normals, squared without
     eikonal_weight = _float(eikonal_weight, "eikonal_weight", 0.0)
     normal_weight = _float(normal_weight, "normal_weight", 0.0)
@@ -308,7 +316,9 @@ def fit_sdf(
     if threads is not None:
         threads = _int(threads, "threads", 1, 1024)
     if field == "occupancy" and nrm is None:
-        raise ParameterError("field occupancy needs a cloud with normals (they tell inside from outside)")
+        raise ParameterError(
+            "field occupancy needs a cloud with normals (they tell inside from outside)"
+        )
 
     T = _torch()
     T.set_threads(threads)
@@ -351,8 +361,12 @@ def fit_sdf(
     )
     total = float(iterations) if max_seconds is None else None
     logging.getLogger("recon").info(
-        "fit-sdf: training %s (%d points, %s normals, width %d, depth %d)", field, len(pts),
-        "with" if nrm is not None else "without", width, depth,
+        "fit-sdf: training %s (%d points, %s normals, width %d, depth %d)",
+        field,
+        len(pts),
+        "with" if nrm is not None else "without",
+        width,
+        depth,
     )
     with task(progress, "fitting sdf", total) as t:
         name = getattr(t, "name", None)
@@ -369,13 +383,30 @@ def fit_sdf(
 
         if max_seconds is not None and hasattr(t, "total"):
             t.total = max_seconds
-        out = T.train(net, q, None if nrm is None else nrm.astype(np.float32), sigma, labels_fn, cfg, on_step)
-    model = SdfModel(net=net, center=center, scale=scale, field=field,
-                     config={"width": width, "depth": depth, "frequencies": frequencies})
-    return FitResult(model, out.iterations, out.seconds, out.interrupted, out.best_loss, out.history, eikonal_weight)
+        out = T.train(
+            net, q, None if nrm is None else nrm.astype(np.float32), sigma, labels_fn, cfg, on_step
+        )
+    model = SdfModel(
+        net=net,
+        center=center,
+        scale=scale,
+        field=field,
+        config={"width": width, "depth": depth, "frequencies": frequencies},
+    )
+    return FitResult(
+        model,
+        out.iterations,
+        out.seconds,
+        out.interrupted,
+        out.best_loss,
+        out.history,
+        eikonal_weight,
+    )
 
 
-def sample_grid(model: SdfModel, origin: np.ndarray, voxel_size: float, shape: tuple[int, int, int]) -> np.ndarray:
+def sample_grid(
+    model: SdfModel, origin: np.ndarray, voxel_size: float, shape: tuple[int, int, int]
+) -> np.ndarray:
     """The field on a regular grid, (nx, ny, nz) float32 (world units, negative inside).
 
     ``sdf``: the network is evaluated at every sample of the coarse cells (``4`` samples a
@@ -409,13 +440,34 @@ def sample_grid(model: SdfModel, origin: np.ndarray, voxel_size: float, shape: t
     # curved distance field would understate its gradient there)
     reach = max(1.5 * np.sqrt(3.0) * c * h, 0.06 * h * float(np.linalg.norm(np.array(shape) - 1)))
     a = np.abs(coarse)
-    near = np.minimum.reduce([a[dx:dx + cshape[0] - 1, dy:dy + cshape[1] - 1, dz:dz + cshape[2] - 1]
-                              for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)]) < reach
+    near = (
+        np.minimum.reduce(
+            [
+                a[dx : dx + cshape[0] - 1, dy : dy + cshape[1] - 1, dz : dz + cshape[2] - 1]
+                for dx in (0, 1)
+                for dy in (0, 1)
+                for dz in (0, 1)
+            ]
+        )
+        < reach
+    )
     neg = coarse < 0
-    anyneg = np.logical_or.reduce([neg[dx:dx + cshape[0] - 1, dy:dy + cshape[1] - 1, dz:dz + cshape[2] - 1]
-                                   for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)])
-    allneg = np.logical_and.reduce([neg[dx:dx + cshape[0] - 1, dy:dy + cshape[1] - 1, dz:dz + cshape[2] - 1]
-                                    for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)])
+    anyneg = np.logical_or.reduce(
+        [
+            neg[dx : dx + cshape[0] - 1, dy : dy + cshape[1] - 1, dz : dz + cshape[2] - 1]
+            for dx in (0, 1)
+            for dy in (0, 1)
+            for dz in (0, 1)
+        ]
+    )
+    allneg = np.logical_and.reduce(
+        [
+            neg[dx : dx + cshape[0] - 1, dy : dy + cshape[1] - 1, dz : dz + cshape[2] - 1]
+            for dx in (0, 1)
+            for dy in (0, 1)
+            for dz in (0, 1)
+        ]
+    )
     near |= anyneg & ~allneg
     cells = np.argwhere(near)
     if len(cells):
@@ -468,8 +520,11 @@ def near_surface_eikonal(grid, distance: float) -> dict:
     vals = norm[sel]
     if not len(vals):
         return {"cells": 0, "fraction_within_0.1": None, "median": None}
-    return {"cells": int(len(vals)), "fraction_within_0.1": float(np.mean(np.abs(vals - 1) <= 0.1)),
-            "median": float(np.median(vals))}
+    return {
+        "cells": int(len(vals)),
+        "fraction_within_0.1": float(np.mean(np.abs(vals - 1) <= 0.1)),
+        "median": float(np.median(vals)),
+    }
 
 
 def save_model(model: SdfModel, path: str | os.PathLike) -> None:
@@ -477,8 +532,13 @@ def save_model(model: SdfModel, path: str | os.PathLike) -> None:
     from recon_cli.io.atomic import write_bytes
 
     arrays = {f"param:{k}": v for k, v in _torch().state_arrays(model.net).items()}
-    meta = {"format": _FORMAT, "field": model.field, "scale": model.scale, "center": list(map(float, model.center)),
-            **model.config}
+    meta = {
+        "format": _FORMAT,
+        "field": model.field,
+        "scale": model.scale,
+        "center": list(map(float, model.center)),
+        **model.config,
+    }
     buf = io.BytesIO()
     np.savez(buf, meta=np.array(json.dumps(meta)), **arrays)
     write_bytes(path, buf.getvalue())
@@ -510,9 +570,17 @@ def load_model(path: str | os.PathLike) -> SdfModel:
     try:
         T.load_state(net, arrays)
     except (RuntimeError, KeyError) as exc:
-        raise InputError(f"model weights do not match its description ({str(exc).splitlines()[0]})", where) from None
+        raise InputError(
+            f"model weights do not match its description ({str(exc).splitlines()[0]})", where
+        ) from None
     cfg = {k: int(meta[k]) for k in ("width", "depth", "frequencies")}
-    return SdfModel(net, np.asarray(meta["center"], dtype=np.float64), float(meta["scale"]), _field(meta["field"]), cfg)
+    return SdfModel(
+        net,
+        np.asarray(meta["center"], dtype=np.float64),
+        float(meta["scale"]),
+        _field(meta["field"]),
+        cfg,
+    )
 
 
 SPEC = StageSpec(
@@ -530,30 +598,105 @@ SPEC = StageSpec(
     gives=("grid",),
     output_suffix=".npz",
     params=(
-        Param("resolution", "int", 128, "Grid cells along the longest side of the padded box.", unit="cells",
-              min=8, max=1024),
-        Param("padding", "float", 0.05, "Margin around the bounding box.", unit="fraction of the longest side",
-              min=0.0, max=10.0),
-        Param("iterations", "int", 2000, "Optimiser steps (the first of --iterations and --max-seconds wins).",
-              unit="steps", min=1),
-        Param("max_seconds", "float", None, "Stop training after this wall time.", unit="seconds", min=0.0,
-              min_open=True),
+        Param(
+            "resolution",
+            "int",
+            128,
+            "Grid cells along the longest side of the padded box.",
+            unit="cells",
+            min=8,
+            max=1024,
+        ),
+        Param(
+            "padding",
+            "float",
+            0.05,
+            "Margin around the bounding box.",
+            unit="fraction of the longest side",
+            min=0.0,
+            max=10.0,
+        ),
+        Param(
+            "iterations",
+            "int",
+            2000,
+            "Optimiser steps (the first of --iterations and --max-seconds wins).",
+            unit="steps",
+            min=1,
+        ),
+        Param(
+            "max_seconds",
+            "float",
+            None,
+            "Stop training after this wall time.",
+            unit="seconds",
+            min=0.0,
+            min_open=True,
+        ),
         Param("width", "int", 64, "Hidden units per layer.", unit="units", min=4, max=4096),
         Param("depth", "int", 4, "Hidden layers.", unit="layers", min=1, max=32),
-        Param("frequencies", "int", None, "Octaves of the positional encoding (0: raw coordinates; auto: 4 with "
-              "normals, 2 without).", unit="octaves", min=0, max=16, words={"auto": None}),
-        Param("eikonal_weight", "float", None, "Weight of the eikonal loss: E||grad s| - 1| with normals (auto: 3), "
-              "E[(|grad s| - 1)^2] without (auto: 0.1).", min=0.0, words={"auto": None}),
-        Param("batch", "int", 1024, "Surface points per step (plus 2x as many off-surface samples).",
-              unit="points", min=16),
-        Param("seed", "int", 0, "Seed of the weights and the sampling (same seed: same field).", min=0,
-              max=2**32 - 1),
-        Param("field", "choice", "sdf", "sdf: signed distance (IGR); occupancy: logistic inside probability, "
-              "written as 0.5 - p.", choices=FIELDS),
-        Param("threads", "int", None, "CPU threads for training (default: torch's).", min=1, max=1024),
-        Param("model", "any", None, "Also write the fitted weights (.npz) to this file.", metavar="FILE"),
-        Param("mesh", "any", None, "Also write the zero level set (PLY, vertex normals from the network's "
-              "gradient) to this file.", metavar="FILE"),
+        Param(
+            "frequencies",
+            "int",
+            None,
+            "Octaves of the positional encoding (0: raw coordinates; auto: 4 with "
+            "normals, 2 without).",
+            unit="octaves",
+            min=0,
+            max=16,
+            words={"auto": None},
+        ),
+        Param(
+            "eikonal_weight",
+            "float",
+            None,
+            "Weight of the eikonal loss: E||grad s| - 1| with normals (auto: 3), "
+            "E[(|grad s| - 1)^2] without (auto: 0.1).",
+            min=0.0,
+            words={"auto": None},
+        ),
+        Param(
+            "batch",
+            "int",
+            1024,
+            "Surface points per step (plus 2x as many off-surface samples).",
+            unit="points",
+            min=16,
+        ),
+        Param(
+            "seed",
+            "int",
+            0,
+            "Seed of the weights and the sampling (same seed: same field).",
+            min=0,
+            max=2**32 - 1,
+        ),
+        Param(
+            "field",
+            "choice",
+            "sdf",
+            "sdf: signed distance (IGR); occupancy: logistic inside probability, "
+            "written as 0.5 - p.",
+            choices=FIELDS,
+        ),
+        Param(
+            "threads", "int", None, "CPU threads for training (default: torch's).", min=1, max=1024
+        ),
+        Param(
+            "model",
+            "any",
+            None,
+            "Also write the fitted weights (.npz) to this file.",
+            metavar="FILE",
+        ),
+        Param(
+            "mesh",
+            "any",
+            None,
+            "Also write the zero level set (PLY, vertex normals from the network's "
+            "gradient) to this file.",
+            metavar="FILE",
+        ),
     ),
 )
 
@@ -621,8 +764,18 @@ def run_stage(
     mesh_path = None if mesh in (None, "") else os.fspath(mesh)
     pts = data.points
     fit = fit_sdf(
-        pts, data.normals, iterations=iterations, max_seconds=max_seconds, width=width, depth=depth,
-        frequencies=frequencies, eikonal_weight=eikonal_weight, batch=batch, field=field, seed=seed, threads=threads,
+        pts,
+        data.normals,
+        iterations=iterations,
+        max_seconds=max_seconds,
+        width=width,
+        depth=depth,
+        frequencies=frequencies,
+        eikonal_weight=eikonal_weight,
+        batch=batch,
+        field=field,
+        seed=seed,
+        threads=threads,
         progress=progress,
     )
     origin, h, shape = grid_frame(pts.min(axis=0), pts.max(axis=0), resolution, None, padding)
@@ -644,9 +797,16 @@ def run_stage(
         "shape": list(shape),
         "voxel_size": h,
         "eikonal": eikonal_check(grid) if fit.model.field == "sdf" else None,
-        "eikonal_near": near_surface_eikonal(grid, 0.05 * diag) if fit.model.field == "sdf" else None,
-        "provenance": {"model": model_path, "mesh": mesh_path, "iterations_done": fit.iterations,
-                       "eikonal_weight": fit.eikonal_weight, "frequencies": fit.model.config["frequencies"]},
+        "eikonal_near": near_surface_eikonal(grid, 0.05 * diag)
+        if fit.model.field == "sdf"
+        else None,
+        "provenance": {
+            "model": model_path,
+            "mesh": mesh_path,
+            "iterations_done": fit.iterations,
+            "eikonal_weight": fit.eikonal_weight,
+            "frequencies": fit.model.config["frequencies"],
+        },
     }
     if model_path is not None:
         save_model(fit.model, model_path)
@@ -654,8 +814,12 @@ def run_stage(
         from recon_cli.io.ply import write_ply
 
         v, f, n = extract_mesh(fit.model, grid)
-        write_ply(TriangleMesh(vertices=v, faces=f, normals=n, history=list(grid.history), point_dtype=np.float32),
-                  mesh_path)
+        write_ply(
+            TriangleMesh(
+                vertices=v, faces=f, normals=n, history=list(grid.history), point_dtype=np.float32
+            ),
+            mesh_path,
+        )
         report["mesh_vertices"] = int(len(v))
         report["mesh_faces"] = int(len(f))
     return StageResult(output=grid, report=report)

@@ -27,7 +27,9 @@ class FieldNet(nn.Module):
     set so that s(x) ~= |x| - radius, a signed distance to a sphere, before any training.
     """
 
-    def __init__(self, width: int, depth: int, frequencies: int, radius: float, beta: float = 100.0):
+    def __init__(
+        self, width: int, depth: int, frequencies: int, radius: float, beta: float = 100.0
+    ):
         super().__init__()
         self.frequencies = frequencies
         dims_in = 3 + 6 * frequencies
@@ -47,7 +49,9 @@ class FieldNet(nn.Module):
         nn.init.normal_(self.out.weight, math.sqrt(math.pi) / math.sqrt(d), 1e-4)
         nn.init.constant_(self.out.bias, -radius)
         self.act = nn.Softplus(beta=beta)
-        self.register_buffer("bands", (2.0 ** torch.arange(frequencies, dtype=torch.float32)) * math.pi)
+        self.register_buffer(
+            "bands", (2.0 ** torch.arange(frequencies, dtype=torch.float32)) * math.pi
+        )
 
     def encode(self, x: torch.Tensor) -> torch.Tensor:
         if not self.frequencies:
@@ -75,7 +79,9 @@ class TrainConfig:
     offsurface_weight: float = 1.0
     surface_weight: float = 1.0
     occupancy_gain: float = 10.0  # p(inside) = sigmoid(-gain * s)
-    band: float = 0.1  # band samples: offsets N(0, (band * U(0, 1))^2) from random points (eikonal only)
+    band: float = (
+        0.1  # band samples: offsets N(0, (band * U(0, 1))^2) from random points (eikonal only)
+    )
     band_share: float = 0.0  # band samples per surface point
     eikonal_l1: bool = False  # E| |grad s| - 1 | instead of E(|grad s| - 1)^2
 
@@ -128,8 +134,14 @@ def train(
     before the first step) the best parameters so far are restored and the outcome says
     ``interrupted``.
     """
-    st = {"it": 0, "ema": None, "best": math.inf, "last": math.nan, "history": [],
-          "best_state": {k: v.detach().clone() for k, v in net.state_dict().items()}}
+    st = {
+        "it": 0,
+        "ema": None,
+        "best": math.inf,
+        "last": math.nan,
+        "history": [],
+        "best_state": {k: v.detach().clone() for k, v in net.state_dict().items()},
+    }
     t0 = time.perf_counter()
     interrupted = False
     try:
@@ -141,10 +153,14 @@ def train(
         net.load_state_dict(st["best_state"])
     elif ema is not None:
         st["best"] = min(st["best"], ema)
-    return TrainOutcome(st["it"], time.perf_counter() - t0, interrupted, st["best"], st["last"], st["history"])
+    return TrainOutcome(
+        st["it"], time.perf_counter() - t0, interrupted, st["best"], st["last"], st["history"]
+    )
 
 
-def _loop(net, points, normals, sigma, labels_fn, cfg: TrainConfig, on_step, st: dict, t0: float) -> None:
+def _loop(
+    net, points, normals, sigma, labels_fn, cfg: TrainConfig, on_step, st: dict, t0: float
+) -> None:
     gen = torch.Generator().manual_seed(cfg.seed)
     pts = torch.from_numpy(points)
     nrm = torch.from_numpy(normals) if normals is not None else None
@@ -171,7 +187,9 @@ def _loop(net, points, normals, sigma, labels_fn, cfg: TrainConfig, on_step, st:
         nb = int(b * cfg.band_share)
         if nb:
             bi = torch.randint(0, n, (nb,), generator=gen)
-            band = pts[bi] + torch.randn(nb, 3, generator=gen) * (cfg.band * torch.rand(nb, 1, generator=gen))
+            band = pts[bi] + torch.randn(nb, 3, generator=gen) * (
+                cfg.band * torch.rand(nb, 1, generator=gen)
+            )
             off = torch.cat([near, wide, unif, band])
         else:
             off = torch.cat([near, wide, unif])
@@ -224,12 +242,16 @@ def values(net: FieldNet, x: np.ndarray, chunk: int = _CHUNK) -> np.ndarray:
     return out
 
 
-def gradients(net: FieldNet, x: np.ndarray, chunk: int = _CHUNK // 4) -> tuple[np.ndarray, np.ndarray]:
+def gradients(
+    net: FieldNet, x: np.ndarray, chunk: int = _CHUNK // 4
+) -> tuple[np.ndarray, np.ndarray]:
     """Network output and its gradient (autodiff) at (k, 3) normalised points."""
     val = np.empty(len(x), np.float32)
     grad = np.empty((len(x), 3), np.float32)
     for i in range(0, len(x), chunk):
-        xi = torch.from_numpy(np.ascontiguousarray(x[i : i + chunk], dtype=np.float32)).requires_grad_(True)
+        xi = torch.from_numpy(
+            np.ascontiguousarray(x[i : i + chunk], dtype=np.float32)
+        ).requires_grad_(True)
         y = net(xi)
         g = _grad(y, xi, False)
         val[i : i + chunk] = y.detach().numpy()

@@ -68,9 +68,19 @@ SPEC = StageSpec(
     gives=("mesh", "oriented"),
     params=(
         Param("iso", "float", 0.0, "Level to extract.", unit="grid values"),
-        Param("method", "choice", "mc", "mc: marching cubes (asymptotic decider); mt: marching tetrahedra.",
-              choices=_METHODS),
-        Param("allow_degenerate", "bool", False, "Keep crossings exactly at corners (may make zero-area triangles)."),
+        Param(
+            "method",
+            "choice",
+            "mc",
+            "mc: marching cubes (asymptotic decider); mt: marching tetrahedra.",
+            choices=_METHODS,
+        ),
+        Param(
+            "allow_degenerate",
+            "bool",
+            False,
+            "Keep crossings exactly at corners (may make zero-area triangles).",
+        ),
     ),
 )
 
@@ -228,7 +238,9 @@ def marching_cubes_sparse(
     dims = cells.max(axis=0) - lo + 2
     if float(np.prod(dims.astype(np.float64))) * 8 >= 2.0**62:
         raise InputError("cells span too large a lattice for 64-bit edge ids")
-    flat = ((cells[:, 0] - lo[0]) * dims[1] + (cells[:, 1] - lo[1])) * dims[2] + (cells[:, 2] - lo[2])
+    flat = ((cells[:, 0] - lo[0]) * dims[1] + (cells[:, 1] - lo[1])) * dims[2] + (
+        cells[:, 2] - lo[2]
+    )
     flat.sort()
     if np.any(flat[1:] == flat[:-1]):  # one int64 key per cell: far cheaper than np.unique(axis=0)
         raise InputError("cells has duplicate rows")
@@ -249,13 +261,17 @@ def marching_cubes_sparse(
     faces = inverse.reshape(-1, 3)
     clamp = 0.0 if allow_degenerate else DEGENERATE_CLAMP
     if return_normals:
-        pos, grad = K.sparse_points(cells, vals, rows, cell_of, edge_of, edges, centre, centre_id, iso, clamp)
+        pos, grad = K.sparse_points(
+            cells, vals, rows, cell_of, edge_of, edges, centre, centre_id, iso, clamp
+        )
         verts = pos[first] * sp + org
         acc = np.zeros((n_unique, 3))
         for ax in range(3):
             acc[:, ax] = np.bincount(inverse, weights=grad[:, ax], minlength=n_unique)
         return verts, faces, _unit(acc / sp)
-    pos, _ = K.sparse_points(cells, vals, rows, cell_of[first], edge_of[first], edges, centre, centre_id, iso, clamp)
+    pos, _ = K.sparse_points(
+        cells, vals, rows, cell_of[first], edge_of[first], edges, centre, centre_id, iso, clamp
+    )
     return pos * sp + org, faces
 
 
@@ -327,7 +343,9 @@ def run_stage(
 
     # parameters and the input's kind: checked by SPEC
     with task(progress, "marching cubes", 1) as t:
-        v, f, n, skipped = _marching_cubes(data.sdf, iso, data.voxel_size, data.origin, method, allow_degenerate)
+        v, f, n, skipped = _marching_cubes(
+            data.sdf, iso, data.voxel_size, data.origin, method, allow_degenerate
+        )
         t.advance(1)
     if len(f) == 0:
         # an empty mesh is never a result: say why there is nothing to mesh
@@ -341,7 +359,9 @@ def run_stage(
         else:
             why = "every cell the level set crosses has an unknown (NaN) corner"
         raise InputError(f"nothing to mesh: {why}")
-    mesh = TriangleMesh(vertices=v, faces=f, normals=n, history=list(data.history), point_dtype=data.point_dtype)
+    mesh = TriangleMesh(
+        vertices=v, faces=f, normals=n, history=list(data.history), point_dtype=data.point_dtype
+    )
     report = {
         "vertices": int(len(v)),
         "faces": int(len(f)),
@@ -362,4 +382,8 @@ def boundary_edge_count(faces: np.ndarray, n_vertices: int | None = None) -> int
         return 0
     K = kernels("recon_cli.mcubes._kernel")
 
-    return int(K.boundary_edge_count(faces, int(faces.max()) + 1 if n_vertices is None else int(n_vertices)))
+    return int(
+        K.boundary_edge_count(
+            faces, int(faces.max()) + 1 if n_vertices is None else int(n_vertices)
+        )
+    )

@@ -17,7 +17,12 @@ N_TYPES = 8  # as in _mcubes_luts: 7 edge types and the cell-centre vertex
 @njit(cache=True, inline="always")
 def _face_code(v0, v1, v2, v3, iso):
     """Bits of the four corners of a cell face below ``iso`` (corners 0-3 order)."""
-    return (1 if v0 < iso else 0) | (2 if v1 < iso else 0) | (4 if v2 < iso else 0) | (8 if v3 < iso else 0)
+    return (
+        (1 if v0 < iso else 0)
+        | (2 if v1 < iso else 0)
+        | (4 if v2 < iso else 0)
+        | (8 if v3 < iso else 0)
+    )
 
 
 @njit(cache=True, inline="always")
@@ -218,7 +223,20 @@ def _row_classes(vol, iso):
 
 
 @njit(cache=True)
-def dense_extract(vol, iso, start, tris, edges, edge_key, ambiguous, use_faces, face_corners, centre, centre_id, clamp):
+def dense_extract(
+    vol,
+    iso,
+    start,
+    tris,
+    edges,
+    edge_key,
+    ambiguous,
+    use_faces,
+    face_corners,
+    centre,
+    centre_id,
+    clamp,
+):
     """Extract the iso-surface of a dense volume, slab by slab along axis 0.
 
     Returns vertices (k, 3) in index units, unnormalised gradients (k, 3), faces (m, 3)
@@ -460,4 +478,3 @@ def boundary_edge_count(faces, n_vertices):
                 count += 1
             i = j
     return count
-

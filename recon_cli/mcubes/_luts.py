@@ -240,7 +240,12 @@ def _triangulate(loop: list[int]) -> list[tuple[int, int, int]] | None:
             j = i + span
             cand = (inf, -1)
             for k in range(i + 1, j):
-                c = w(i, k) + w(k, j) + (best[(i, k)][0] if k - i > 1 else 0.0) + (best[(k, j)][0] if j - k > 1 else 0.0)
+                c = (
+                    w(i, k)
+                    + w(k, j)
+                    + (best[(i, k)][0] if k - i > 1 else 0.0)
+                    + (best[(k, j)][0] if j - k > 1 else 0.0)
+                )
                 if c < cand[0]:
                     cand = (c, k)
             best[(i, j)] = cand
@@ -287,15 +292,25 @@ def _build_mc() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
 
 
 # the centre vertex (local id 12) belongs to its cell alone: type 7
-MC_EDGE_KEY = np.array([*(_edge_key(int(a), int(b)) for a, b in MC_EDGES), (0, 0, 0, 7)], dtype=np.int8)
+MC_EDGE_KEY = np.array(
+    [*(_edge_key(int(a), int(b)) for a, b in MC_EDGES), (0, 0, 0, 7)], dtype=np.int8
+)
 
 # --- marching tetrahedra -------------------------------------------------------------------
 # the 6 tetrahedra of the Kuhn split: paths 0 -> 0 + e_i -> 0 + e_i + e_j -> 7
 TETS = np.array(
-    [[0, 1 << i, (1 << i) | (1 << j), 7] for i in range(3) for j in range(3) if i != j], dtype=np.int8
+    [[0, 1 << i, (1 << i) | (1 << j), 7] for i in range(3) for j in range(3) if i != j],
+    dtype=np.int8,
 )
 MT_EDGES = np.array(
-    sorted({tuple(sorted((int(t[a]), int(t[b])))) for t in TETS for a in range(4) for b in range(a + 1, 4)}),
+    sorted(
+        {
+            tuple(sorted((int(t[a]), int(t[b]))))
+            for t in TETS
+            for a in range(4)
+            for b in range(a + 1, 4)
+        }
+    ),
     dtype=np.int8,
 )
 _MT_EDGE_OF = _edge_index(MT_EDGES)
@@ -322,7 +337,9 @@ def _tet_triangles(case: int, tet: np.ndarray) -> list[tuple[int, int, int]]:
         normal = (normal[0] + c[0], normal[1] + c[1], normal[2] + c[2])
     po = [corner_pos(c) for c in out]
     pi = [corner_pos(c) for c in ins]
-    direction = tuple(sum(p[a] for p in po) / len(po) - sum(p[a] for p in pi) / len(pi) for a in range(3))
+    direction = tuple(
+        sum(p[a] for p in po) / len(po) - sum(p[a] for p in pi) / len(pi) for a in range(3)
+    )
     if _dot(normal, direction) < 0:
         poly = poly[::-1]
     return _fan(poly)
@@ -354,10 +371,18 @@ def build_tables() -> dict[str, np.ndarray]:
     mc_start, mc_tris, mc_amb, mc_centre = _build_mc()
     mt_start, mt_tris = _build_mt()
     return {
-        "MC_START": mc_start, "MC_TRIS": mc_tris, "MC_AMBIGUOUS": mc_amb, "MC_CENTRE": mc_centre,
-        "MT_START": mt_start, "MT_TRIS": mt_tris,
-        "MC_EDGES": MC_EDGES, "MC_EDGE_KEY": MC_EDGE_KEY, "FACE_CORNERS": FACE_CORNERS,
-        "MT_EDGES": MT_EDGES, "MT_EDGE_KEY": MT_EDGE_KEY, "CENTER": np.array(CENTER, dtype=np.int8),
+        "MC_START": mc_start,
+        "MC_TRIS": mc_tris,
+        "MC_AMBIGUOUS": mc_amb,
+        "MC_CENTRE": mc_centre,
+        "MT_START": mt_start,
+        "MT_TRIS": mt_tris,
+        "MC_EDGES": MC_EDGES,
+        "MC_EDGE_KEY": MC_EDGE_KEY,
+        "FACE_CORNERS": FACE_CORNERS,
+        "MT_EDGES": MT_EDGES,
+        "MT_EDGE_KEY": MT_EDGE_KEY,
+        "CENTER": np.array(CENTER, dtype=np.int8),
     }
 
 

@@ -116,7 +116,13 @@ def build_median(cent, leaf_size):
         top += 1
         stack[top] = a
         top += 1
-    return order, left[:count].copy(), right[:count].copy(), start[:count].copy(), end[:count].copy()
+    return (
+        order,
+        left[:count].copy(),
+        right[:count].copy(),
+        start[:count].copy(),
+        end[:count].copy(),
+    )
 
 
 @njit(cache=True)
@@ -398,7 +404,9 @@ def query_points(points, tri, sph, box, left, right, start, end, upper):
         for s in range(ci * chunk, min(k, (ci + 1) * chunk)):
             u = upper[s]
             b2 = u * u if u < np.inf else np.inf
-            t, dd, f = _nearest(points[s], tri, sph, box, left, right, start, end, b2, stack, dstack, q, cb, seed)
+            t, dd, f = _nearest(
+                points[s], tri, sph, box, left, right, start, end, b2, stack, dstack, q, cb, seed
+            )
             if t >= 0:
                 seed = t
             idx[s] = t
@@ -411,7 +419,23 @@ def query_points(points, tri, sph, box, left, right, start, end, upper):
 
 
 @njit(cache=True, parallel=True)
-def query_grid(origin, h, shape, tri, sph, box, left, right, start, end, band, pn_face, pn_edge, pn_vert, use_pn):
+def query_grid(
+    origin,
+    h,
+    shape,
+    tri,
+    sph,
+    box,
+    left,
+    right,
+    start,
+    end,
+    band,
+    pn_face,
+    pn_edge,
+    pn_vert,
+    use_pn,
+):
     """Unsigned distance at every sample of a regular grid, line by line along the last axis.
 
     The distance is 1-Lipschitz, so the previous sample's distance + h bounds the search
@@ -442,10 +466,14 @@ def query_grid(origin, h, shape, tri, sph, box, left, right, start, end, band, p
             if prev < np.inf:
                 ub = min(band, (prev + h) * (1.0 + 1e-9) + 1e-300)
             b2 = ub * ub if ub < np.inf else np.inf
-            t, dd, f = _nearest(p, tri, sph, box, left, right, start, end, b2, stack, dstack, q, cb, seed)
+            t, dd, f = _nearest(
+                p, tri, sph, box, left, right, start, end, b2, stack, dstack, q, cb, seed
+            )
             if t < 0 and ub < band:  # bound too tight (rounding): search again unbounded
                 b2 = band * band if band < np.inf else np.inf
-                t, dd, f = _nearest(p, tri, sph, box, left, right, start, end, b2, stack, dstack, q, cb, -1)
+                t, dd, f = _nearest(
+                    p, tri, sph, box, left, right, start, end, b2, stack, dstack, q, cb, -1
+                )
             if t < 0:
                 dist[i, j, k] = band
                 prev = np.inf

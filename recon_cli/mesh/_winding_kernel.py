@@ -136,5 +136,7 @@ def winding_tree(points, tri, left, right, start, end, dip, cen, rad, beta):
     for ci in prange(nchunks):
         stack = np.empty(STACK, np.int64)
         for s in range(ci * chunk, min(k, (ci + 1) * chunk)):
-            out[s] = _winding_one(points[s], tri, left, right, start, end, dip, cen, rad, beta * beta, stack)
+            out[s] = _winding_one(
+                points[s], tri, left, right, start, end, dip, cen, rad, beta * beta, stack
+            )
     return out

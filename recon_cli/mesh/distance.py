@@ -124,7 +124,9 @@ def build_bvh(vertices: np.ndarray, faces: np.ndarray) -> TriangleBVH:
     tri = np.ascontiguousarray(tri[order])
     lo, hi = K.node_boxes(tri.min(axis=1), tri.max(axis=1), left, right, start, end)
     box = np.ascontiguousarray(np.concatenate([lo, hi], axis=1))
-    return TriangleBVH(tri, K.bounding_spheres(tri), order.astype(np.int64), lo, hi, left, right, start, end, box)
+    return TriangleBVH(
+        tri, K.bounding_spheres(tri), order.astype(np.int64), lo, hi, left, right, start, end, box
+    )
 
 
 def closest_points(
@@ -179,7 +181,9 @@ def closest_points(
     # visit queries in Z-order: neighbours share tree paths (cache) and seed each other
     perm = np.argsort(_morton(q), kind="stable") if len(q) > 1 else np.zeros(len(q), np.int64)
     with dynamic_schedule(1):  # chunks of 256 queries
-        d2p, idxp, closestp, _ = K.query_points(np.ascontiguousarray(q[perm]), *bvh.arrays(), ub[perm])
+        d2p, idxp, closestp, _ = K.query_points(
+            np.ascontiguousarray(q[perm]), *bvh.arrays(), ub[perm]
+        )
     d2 = np.empty_like(d2p)
     idx = np.empty_like(idxp)
     closest = np.empty_like(closestp)
@@ -192,7 +196,9 @@ def closest_points(
     return dist, face, closest
 
 
-def pseudonormals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def pseudonormals(
+    vertices: np.ndarray, faces: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Angle-weighted pseudonormals (Baerentzen & Aanaes 2005) per face, edge and corner.
 
     Returns
@@ -215,7 +221,9 @@ def pseudonormals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, 
     for c in range(3):
         e1 = t[:, (c + 1) % 3] - t[:, c]
         e2 = t[:, (c + 2) % 3] - t[:, c]
-        ang[:, c] = np.arctan2(np.linalg.norm(np.cross(e1, e2), axis=1), np.einsum("ij,ij->i", e1, e2))
+        ang[:, c] = np.arctan2(
+            np.linalg.norm(np.cross(e1, e2), axis=1), np.einsum("ij,ij->i", e1, e2)
+        )
     vn = np.zeros((len(v), 3))
     for c in range(3):
         np.add.at(vn, f[:, c], fn * ang[:, c : c + 1])
@@ -277,5 +285,7 @@ def distance_grid(
     else:
         fn, en, vn = np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3, 3))
     with dynamic_schedule(16):
-        dist, sign = K.query_grid(org, float(voxel_size), shp, *bvh.arrays(), float(band), fn, en, vn, bool(pseudonormal))
+        dist, sign = K.query_grid(
+            org, float(voxel_size), shp, *bvh.arrays(), float(band), fn, en, vn, bool(pseudonormal)
+        )
     return dist, (sign if pseudonormal else None)

@@ -68,7 +68,16 @@ def sample_surface(
     r1 = np.sqrt(rng.random(n))
     r2 = rng.random(n)
     tri = mesh.vertices[mesh.faces[face]]
-    pts = (1 - r1)[:, None] * tri[:, 0] + (r1 * (1 - r2))[:, None] * tri[:, 1] + (r1 * r2)[:, None] * tri[:, 2]
+    pts = (
+        (1 - r1)[:, None] * tri[:, 0]
+        + (r1 * (1 - r2))[:, None] * tri[:, 1]
+        + (r1 * r2)[:, None] * tri[:, 2]
+    )
     if noise > 0:
         pts = pts + rng.normal(scale=noise * bbox_diagonal(mesh.vertices), size=pts.shape)
-    return PointCloud(points=pts, normals=fn[face], attributes={"face": face.astype(np.int32)}, point_dtype=np.float64)
+    return PointCloud(
+        points=pts,
+        normals=fn[face],
+        attributes={"face": face.astype(np.int32)},
+        point_dtype=np.float64,
+    )

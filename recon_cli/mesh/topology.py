@@ -158,12 +158,21 @@ class Connectivity:
         CSR vertex -> faces (a face twice if it repeats the vertex).
     """
 
-    def __init__(self, faces: Any, n_vertices: int | None = None, vertices: np.ndarray | None = None):
-        f, n = _check_faces(faces, n_vertices if n_vertices is not None else (None if vertices is None else len(vertices)))
+    def __init__(
+        self, faces: Any, n_vertices: int | None = None, vertices: np.ndarray | None = None
+    ):
+        f, n = _check_faces(
+            faces,
+            n_vertices if n_vertices is not None else (None if vertices is None else len(vertices)),
+        )
         self.faces = f
         self.n_vertices = n
         self.n_faces = len(f)
-        self.vertices = None if vertices is None else np.ascontiguousarray(vertices, dtype=np.float64).reshape(-1, 3)
+        self.vertices = (
+            None
+            if vertices is None
+            else np.ascontiguousarray(vertices, dtype=np.float64).reshape(-1, 3)
+        )
         self._it = index_dtype(3 * len(f) + 3, n + 1)
 
     @property
@@ -282,7 +291,9 @@ class Connectivity:
         r[self._flat] = True
         return r
 
-    def corner_fans(self, link_a: np.ndarray | None = None, link_b: np.ndarray | None = None) -> np.ndarray:
+    def corner_fans(
+        self, link_a: np.ndarray | None = None, link_b: np.ndarray | None = None
+    ) -> np.ndarray:
         """Fan label of each corner (3m,) int, joining corners of the faces across the given half-edge pairs.
 
         By default every pair of consecutive half-edges of an edge is joined (all faces of
@@ -362,11 +373,15 @@ class Connectivity:
             raise InputError("face areas need vertex coordinates")
         v = self.vertices
         out = np.empty(self.n_faces, dtype=np.float64)
-        with np.errstate(invalid="ignore", over="ignore"):  # non-finite input gives nan areas, not warnings
+        with np.errstate(
+            invalid="ignore", over="ignore"
+        ):  # non-finite input gives nan areas, not warnings
             for s in range(0, self.n_faces, CHUNK):
                 f = self.faces[s : s + CHUNK]
                 p0 = v[f[:, 0]]
-                out[s : s + len(f)] = np.linalg.norm(np.cross(v[f[:, 1]] - p0, v[f[:, 2]] - p0), axis=1)
+                out[s : s + len(f)] = np.linalg.norm(
+                    np.cross(v[f[:, 1]] - p0, v[f[:, 2]] - p0), axis=1
+                )
         out *= 0.5
         return out
 
@@ -388,7 +403,9 @@ class Connectivity:
         K = kernels("recon_cli.mesh._topology_kernel")
         orient_faces = K.orient_faces
 
-        flip, comp, conflict = orient_faces(self._flat, self.half_edge_edge, self.edge_ptr, self.edge_half_edges)
+        flip, comp, conflict = orient_faces(
+            self._flat, self.half_edge_edge, self.edge_ptr, self.edge_half_edges
+        )
         return flip, comp, np.flatnonzero(conflict)
 
     def orientation(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -467,7 +484,9 @@ class Connectivity:
         conflict_edges = self._orientation[2]
         bad[comp[e_first[conflict_edges] // 3]] = True
         degenerate = self.faces[:, 0] == self.faces[:, 1]
-        degenerate |= (self.faces[:, 1] == self.faces[:, 2]) | (self.faces[:, 0] == self.faces[:, 2])
+        degenerate |= (self.faces[:, 1] == self.faces[:, 2]) | (
+            self.faces[:, 0] == self.faces[:, 2]
+        )
         bad[comp[degenerate]] = True
         return ~bad
 
@@ -489,12 +508,12 @@ class Connectivity:
             for s in range(0, self.n_faces, CHUNK):
                 f = self.faces[s : s + CHUNK]
                 p0 = v[f[:, 0]] - centre
-                six[s : s + len(f)] = np.einsum("ij,ij->i", p0, np.cross(v[f[:, 1]] - centre, v[f[:, 2]] - centre))
+                six[s : s + len(f)] = np.einsum(
+                    "ij,ij->i", p0, np.cross(v[f[:, 1]] - centre, v[f[:, 2]] - centre)
+                )
         if per_component:
             return np.bincount(self.face_components, weights=six, minlength=self.n_components) / 6.0
         return float(six.sum() / 6.0)
-
-
 
 
 def _relabel_by_size(labels: np.ndarray) -> np.ndarray:

@@ -26,7 +26,9 @@ class WindingTree:
 
         self.bvh = bvh if bvh is not None else build_bvh(vertices, faces)
         b = self.bvh
-        self.dip, self.cen, self.rad = K.node_dipoles(b.tri, b.left, b.right, b.start, b.end, b.lo, b.hi)
+        self.dip, self.cen, self.rad = K.node_dipoles(
+            b.tri, b.left, b.right, b.start, b.end, b.lo, b.hi
+        )
 
     def __call__(self, points: np.ndarray, beta: float = 2.0) -> np.ndarray:
         from recon_cli.mesh import _winding_kernel as K
@@ -38,7 +40,9 @@ class WindingTree:
         from recon_cli.mesh.distance import dynamic_schedule
 
         with dynamic_schedule(1):  # chunks of 256 points: near-surface ones cost far more
-            return K.winding_tree(p, b.tri, b.left, b.right, b.start, b.end, self.dip, self.cen, self.rad, float(beta))
+            return K.winding_tree(
+                p, b.tri, b.left, b.right, b.start, b.end, self.dip, self.cen, self.rad, float(beta)
+            )
 
 
 def winding_number(

@@ -52,14 +52,48 @@ SPEC = StageSpec(
     gives=("cloud", "oriented"),
     backends=("native", "open3d"),
     params=(
-        Param("knn", "int", 30, "Neighbours per point (with --radius: at most this many).", unit="points",
-              min=3, also=(0,), special={0: "radius only (needs --radius)"}),
-        Param("radius", "float", None, "Neighbourhood radius.", unit="input units", min=0, min_open=True),
-        Param("orient", "choice", "mst", "mst: consistent propagation, outward; camera/direction: towards --camera/"
-              "--direction; keep: signs of the input normals; none: unoriented.", choices=ORIENT_METHODS),
-        Param("camera", "vector", None, "Viewpoint for --orient camera.", unit="input units", metavar="X,Y,Z"),
+        Param(
+            "knn",
+            "int",
+            30,
+            "Neighbours per point (with --radius: at most this many).",
+            unit="points",
+            min=3,
+            also=(0,),
+            special={0: "radius only (needs --radius)"},
+        ),
+        Param(
+            "radius",
+            "float",
+            None,
+            "Neighbourhood radius.",
+            unit="input units",
+            min=0,
+            min_open=True,
+        ),
+        Param(
+            "orient",
+            "choice",
+            "mst",
+            "mst: consistent propagation, outward; camera/direction: towards --camera/"
+            "--direction; keep: signs of the input normals; none: unoriented.",
+            choices=ORIENT_METHODS,
+        ),
+        Param(
+            "camera",
+            "vector",
+            None,
+            "Viewpoint for --orient camera.",
+            unit="input units",
+            metavar="X,Y,Z",
+        ),
         Param("direction", "vector", None, "Direction for --orient direction.", metavar="X,Y,Z"),
-        Param("curvature", "bool", False, "Also write the vertex property 'curvature' (surface variation)."),
+        Param(
+            "curvature",
+            "bool",
+            False,
+            "Also write the vertex property 'curvature' (surface variation).",
+        ),
     ),
 )
 
@@ -236,7 +270,9 @@ def estimate_normals(points: Any, knn: int | None = 30, radius: float | None = N
     return _unsort(order, nrm), _unsort(order, curv), _unsort(order, deg)
 
 
-def _local(pts: np.ndarray, cam: np.ndarray | None, source: Any) -> tuple[np.ndarray, np.ndarray | None]:
+def _local(
+    pts: np.ndarray, cam: np.ndarray | None, source: Any
+) -> tuple[np.ndarray, np.ndarray | None]:
     """``pts`` and the viewpoint ``cam`` about the points' local origin (far from the world
     origin the kd-tree, centroids and flux sums keep their digits); in place when ``pts``
     is a converted copy of ``source``."""
@@ -264,7 +300,11 @@ def _orient_mst_sorted(ps, nrm, indptr, indices, seed_mask=None, seed_sign=None)
     known point are seeded outward and checked by flux.
     """
     from scipy import sparse
-    from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
+    from scipy.sparse.csgraph import (
+        breadth_first_order,
+        connected_components,
+        minimum_spanning_tree,
+    )
 
     from recon_cli.normals import _kernel as K
 
@@ -277,7 +317,10 @@ def _orient_mst_sorted(ps, nrm, indptr, indices, seed_mask=None, seed_sign=None)
 
     # outward seed per component: farthest point from the component's centroid
     cnt = np.bincount(labels, minlength=ncomp).astype(np.float64)
-    cen = np.stack([np.bincount(labels, ps[:, d], minlength=ncomp) for d in range(3)], axis=1) / cnt[:, None]
+    cen = (
+        np.stack([np.bincount(labels, ps[:, d], minlength=ncomp) for d in range(3)], axis=1)
+        / cnt[:, None]
+    )
     rel = ps - cen[labels]
     d2 = np.einsum("ij,ij->i", rel, rel)
     by = np.lexsort((-d2, labels))  # per label, farthest first
@@ -492,7 +535,9 @@ def _orient_sorted(method, ps, nrm_s, indptr, indices, cam, dirn, ref_s):
         return _orient_direct(method, ps, nrm_s, cam, dirn), None
     seed_mask = seed_sign = None
     if method == "keep":
-        ok = np.isfinite(ref_s).all(axis=1) & (np.einsum("ij,ij->i", np.nan_to_num(ref_s), np.nan_to_num(ref_s)) > 0)
+        ok = np.isfinite(ref_s).all(axis=1) & (
+            np.einsum("ij,ij->i", np.nan_to_num(ref_s), np.nan_to_num(ref_s)) > 0
+        )
         dots = np.einsum("ij,ij->i", nrm_s, np.nan_to_num(ref_s))
         seed_mask = ok & (dots != 0)
         seed_sign = np.where(dots < 0, -1, 1).astype(np.int8)
@@ -551,9 +596,17 @@ def run_stage(
         raise InputError("the input has no points")
     pts, cam = _local(pts, cam, cloud.points)
 
-    out = cloud.copy() if isinstance(data, PointCloud) else PointCloud(
-        points=cloud.points, colors=cloud.colors, attributes=dict(cloud.attributes), history=list(cloud.history),
-        point_dtype=cloud.point_dtype, obj_info=list(cloud.obj_info),
+    out = (
+        cloud.copy()
+        if isinstance(data, PointCloud)
+        else PointCloud(
+            points=cloud.points,
+            colors=cloud.colors,
+            attributes=dict(cloud.attributes),
+            history=list(cloud.history),
+            point_dtype=cloud.point_dtype,
+            obj_info=list(cloud.obj_info),
+        )
     )
     report: dict[str, Any] = {
         "points": n,
@@ -564,7 +617,9 @@ def run_stage(
         "components": None,
         "flipped": 0,
         "orient": method,
-        "input_normals": "none" if cloud.normals is None else ("sign kept" if method == "keep" else "replaced"),
+        "input_normals": "none"
+        if cloud.normals is None
+        else ("sign kept" if method == "keep" else "replaced"),
         "backend": backend,
     }
     if backend == "open3d":
@@ -572,7 +627,9 @@ def run_stage(
 
         with task(progress, "open3d normals"):
             nrm = open3d_backend.estimate_normals(
-                PointCloud(points=pts), knn=knn, radius=radius,
+                PointCloud(points=pts),
+                knn=knn,
+                radius=radius,
                 orient_tangent_plane=(knn or 30) if method == "mst" else None,
             )
         if method != "mst":
@@ -600,5 +657,7 @@ def run_stage(
     if curvature:
         out.attributes["curvature"] = _unsort(order, curv_s)
     if report["degenerate"]:
-        report["warning"] = f"{report['degenerate']} degenerate neighbourhoods (< 3 points, collinear or duplicates)"
+        report["warning"] = (
+            f"{report['degenerate']} degenerate neighbourhoods (< 3 points, collinear or duplicates)"
+        )
     return StageResult(out, report)

@@ -94,7 +94,11 @@ def _smallest_eigvec(a00, a01, a02, a11, a12, a22):
         # a multiple of the identity: every direction is an eigenvector
         return 0.0, 0.0, 1.0, q * m, q * m, q * m
     p = math.sqrt(p2 / 6.0)
-    det = b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02)
+    det = (
+        b00 * (b11 * b22 - a12 * a12)
+        - a01 * (a01 * b22 - a12 * a02)
+        + a02 * (a01 * a12 - b11 * a02)
+    )
     r = det / (2.0 * p * p * p)
     r = min(1.0, max(-1.0, r))
     phi = math.acos(r) / 3.0
@@ -242,7 +246,11 @@ def _relation(pts, normals, i, j):
     ey = pts[j, 1] - pts[i, 1]
     ez = pts[j, 2] - pts[i, 2]
     el = math.sqrt(ex * ex + ey * ey + ez * ez)
-    dot = normals[i, 0] * normals[j, 0] + normals[i, 1] * normals[j, 1] + normals[i, 2] * normals[j, 2]
+    dot = (
+        normals[i, 0] * normals[j, 0]
+        + normals[i, 1] * normals[j, 1]
+        + normals[i, 2] * normals[j, 2]
+    )
     if el == 0.0:
         return dot, 0.0
     ie = (normals[i, 0] * ex + normals[i, 1] * ey + normals[i, 2] * ez) / el

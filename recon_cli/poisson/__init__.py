@@ -127,41 +127,130 @@ SPEC = StageSpec(
     gives=("mesh",),
     backends=BACKENDS,
     params=(
-        Param("depth", "int", 8, "Deepest octree level allowed (finest cell = reconstruction cube / 2^depth); the tree stops where the samples do.",
-              min=1, max=MAX_DEPTH),
-        Param("scale", "float", 1.1, "Reconstruction cube / largest side of the bounding box.", unit="ratio", min=1.0),
-        Param("point_weight", "float", 4.0, "Screening weight (0 = classic unscreened Poisson).", min=0.0),
-        Param("samples_per_node", "float", 1.5, "Samples per node at a sample's depth (as PoissonRecon): sparser samples are splatted coarser.",
-              unit="samples", min=0.0, min_open=True),
-        Param("degree", "int", 2, "B-spline degree of the basis: 2 quadratic (as PoissonRecon's --degree 2; more accurate on smooth surfaces), 1 trilinear (as Open3D's Poisson; about 0.6x the time).",
-              min=1, max=2),
-        Param("boundary", "choice", "neumann", "Condition on the faces of the cube.", choices=BOUNDARIES),
-        Param("density", "bool", False, "Write the per-vertex sampling density as vertex property 'density'."),
-        Param("trim", "float", 0.0,
-              "Cut away the surface where the samples' density is below T times its median at the samples "
-              "(0.1-0.3 removes an open scan's closing sheet).",
-              unit="of the median sample density", min=0.0, max=1.0, max_open=True, metavar="T"),
-        Param("estimate_normals", "bool", False, "Estimate and orient normals first (as 'recon normals' does)."),
+        Param(
+            "depth",
+            "int",
+            8,
+            "Deepest octree level allowed (finest cell = reconstruction cube / 2^depth); the tree stops where the samples do.",
+            min=1,
+            max=MAX_DEPTH,
+        ),
+        Param(
+            "scale",
+            "float",
+            1.1,
+            "Reconstruction cube / largest side of the bounding box.",
+            unit="ratio",
+            min=1.0,
+        ),
+        Param(
+            "point_weight",
+            "float",
+            4.0,
+            "Screening weight (0 = classic unscreened Poisson).",
+            min=0.0,
+        ),
+        Param(
+            "samples_per_node",
+            "float",
+            1.5,
+            "Samples per node at a sample's depth (as PoissonRecon): sparser samples are splatted coarser.",
+            unit="samples",
+            min=0.0,
+            min_open=True,
+        ),
+        Param(
+            "degree",
+            "int",
+            2,
+            "B-spline degree of the basis: 2 quadratic (as PoissonRecon's --degree 2; more accurate on smooth surfaces), 1 trilinear (as Open3D's Poisson; about 0.6x the time).",
+            min=1,
+            max=2,
+        ),
+        Param(
+            "boundary",
+            "choice",
+            "neumann",
+            "Condition on the faces of the cube.",
+            choices=BOUNDARIES,
+        ),
+        Param(
+            "density",
+            "bool",
+            False,
+            "Write the per-vertex sampling density as vertex property 'density'.",
+        ),
+        Param(
+            "trim",
+            "float",
+            0.0,
+            "Cut away the surface where the samples' density is below T times its median at the samples "
+            "(0.1-0.3 removes an open scan's closing sheet).",
+            unit="of the median sample density",
+            min=0.0,
+            max=1.0,
+            max_open=True,
+            metavar="T",
+        ),
+        Param(
+            "estimate_normals",
+            "bool",
+            False,
+            "Estimate and orient normals first (as 'recon normals' does).",
+        ),
     ),
 )
 # options of the library function only
-_FULL_DEPTH = Param("full_depth", "int", 5, "Levels up to this one are complete grids.", min=0, max=7)
-_CG_TOLERANCE = Param("cg_tolerance", "float", 1e-3, "Relative residual at which each level's CG stops.",
-                      min=0.0, max=1.0, min_open=True)
+_FULL_DEPTH = Param(
+    "full_depth", "int", 5, "Levels up to this one are complete grids.", min=0, max=7
+)
+_CG_TOLERANCE = Param(
+    "cg_tolerance",
+    "float",
+    1e-3,
+    "Relative residual at which each level's CG stops.",
+    min=0.0,
+    max=1.0,
+    min_open=True,
+)
 
 
-def _check_options(depth, scale, point_weight, samples_per_node, degree, boundary, density, trim) -> tuple:
+def _check_options(
+    depth, scale, point_weight, samples_per_node, degree, boundary, density, trim
+) -> tuple:
     """Validate and convert the options shared by :func:`screened_poisson` and :func:`run_stage`."""
-    v = SPEC.check(dict(depth=depth, scale=scale, point_weight=point_weight, samples_per_node=samples_per_node,
-                        degree=degree, boundary=boundary, density=density, trim=trim), complete=False)
-    return (v["depth"], v["scale"], v["point_weight"], v["samples_per_node"], v["degree"], v["boundary"], v["density"],
-            v["trim"])
+    v = SPEC.check(
+        dict(
+            depth=depth,
+            scale=scale,
+            point_weight=point_weight,
+            samples_per_node=samples_per_node,
+            degree=degree,
+            boundary=boundary,
+            density=density,
+            trim=trim,
+        ),
+        complete=False,
+    )
+    return (
+        v["depth"],
+        v["scale"],
+        v["point_weight"],
+        v["samples_per_node"],
+        v["degree"],
+        v["boundary"],
+        v["density"],
+        v["trim"],
+    )
 
 
 def _check_inputs(points: Any, normals: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Finite (n, 3) points and unit normals; returns (points, normals, kept mask)."""
     pts, nrm, length = oriented_rows(
-        points, normals, "the cloud has no normals: run 'recon normals' first (or pass --estimate-normals)")
+        points,
+        normals,
+        "the cloud has no normals: run 'recon normals' first (or pass --estimate-normals)",
+    )
     if not np.all(np.isfinite(pts)):
         raise InputError("points contain NaN or infinite coordinates")
     if not np.all(np.isfinite(length)):
@@ -170,7 +259,9 @@ def _check_inputs(points: Any, normals: Any) -> tuple[np.ndarray, np.ndarray, np
     if not keep.any():
         raise InputError("every normal has zero length: run 'recon normals' to estimate them")
     if keep.sum() < 4:
-        raise InputError(f"poisson needs at least 4 points with non-zero normals, got {int(keep.sum())}")
+        raise InputError(
+            f"poisson needs at least 4 points with non-zero normals, got {int(keep.sum())}"
+        )
     pts = pts[keep]
     nrm = nrm[keep] / length[keep, None]
     extent = pts.max(axis=0) - pts.min(axis=0)
@@ -279,8 +370,9 @@ def screened_poisson(
 
     # ---- kernel density -> area per point and splat level
     t = time.perf_counter()
-    splats = make_splats(smp, depth, samples_per_node, point_weight, density or trim > 0,
-                         merge=degree == 1)
+    splats = make_splats(
+        smp, depth, samples_per_node, point_weight, density or trim > 0, merge=degree == 1
+    )
     tree_depth = splats.tree_depth
     if degree == 2:
         tree_depth = max(tree_depth, 1)  # level 0 carries no degree-2 function
@@ -299,24 +391,40 @@ def screened_poisson(
     # ---- tree: as deep as the splats, no deeper
     t = time.perf_counter()
     with task(progress, "poisson: tree"):
-        levels = build_levels(splats.pos, splats.level, tree_depth, full_depth, boundary, corners=degree == 1,
-                              own_ring=2 if degree == 1 else 1)
+        levels = build_levels(
+            splats.pos,
+            splats.level,
+            tree_depth,
+            full_depth,
+            boundary,
+            corners=degree == 1,
+            own_ring=2 if degree == 1 else 1,
+        )
     # memory: the splat items made the fields and the tree, the samples' normals and keys the splats
     splats.pos = splats.vec = splats.level = smp.normal = smp.keys = None
     timings["tree"] = time.perf_counter() - t
-    log.info("poisson: %d points, %d samples, depth %d (tree %d), nodes per level %s", n_pts, ns, depth, tree_depth,
-             [len(lv.node_keys) for lv in levels])
+    log.info(
+        "poisson: %d points, %d samples, depth %d (tree %d), nodes per level %s",
+        n_pts,
+        ns,
+        depth,
+        tree_depth,
+        [len(lv.node_keys) for lv in levels],
+    )
 
     # ---- cascadic solve
     t = time.perf_counter()
     if degree == 2:
         from recon_cli.poisson import bspline
 
-        gvals, per_level, total_it, last_res, iso, chi = bspline.solve(levels, smp, splats, boundary, full_depth,
-                                                                       cg_tolerance, progress)
+        gvals, per_level, total_it, last_res, iso, chi = bspline.solve(
+            levels, smp, splats, boundary, full_depth, cg_tolerance, progress
+        )
         timings["solve"] = time.perf_counter() - t
     else:
-        gvals, per_level, total_it, last_res = solve(levels, smp, splats, full_depth, cg_tolerance, progress)
+        gvals, per_level, total_it, last_res = solve(
+            levels, smp, splats, full_depth, cg_tolerance, progress
+        )
         timings["solve"] = time.perf_counter() - t
         # ---- iso-value: weighted mean of chi at the samples
         iso = iso_value(levels, gvals, smp)
@@ -388,9 +496,9 @@ def screened_poisson(
     return PoissonResult(mesh, report)
 
 
-
-def _drop_bubbles(verts: np.ndarray, faces: np.ndarray, cell: float,
-                  points: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, int]:
+def _drop_bubbles(
+    verts: np.ndarray, faces: np.ndarray, cell: float, points: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, int, int]:
     """Drop the closed pieces that are noise, never the largest; returns the vertices and
     faces left and how many specks and islands went.
 
@@ -442,12 +550,19 @@ def _drop_bubbles(verts: np.ndarray, faces: np.ndarray, cell: float,
     used[faces.reshape(-1)] = True
     remap = np.cumsum(used) - 1
     n_speck, n_island = int(speck.sum()), int(island.sum())
-    log.info("poisson: %d pieces under %d cells across and %d around fewer than %d points dropped",
-             n_speck, BUBBLE_CELLS, n_island, ISLAND_POINTS)
+    log.info(
+        "poisson: %d pieces under %d cells across and %d around fewer than %d points dropped",
+        n_speck,
+        BUBBLE_CELLS,
+        n_island,
+        ISLAND_POINTS,
+    )
     return verts[used], remap[faces].astype(faces.dtype), n_speck, n_island
 
 
-def _interpolate_colors(pts: np.ndarray, colors: np.ndarray, verts: np.ndarray, cell: float) -> np.ndarray:
+def _interpolate_colors(
+    pts: np.ndarray, colors: np.ndarray, verts: np.ndarray, cell: float
+) -> np.ndarray:
     """Gaussian-weighted mean colour of the nearest input points (sigma = one finest cell)."""
     from scipy.spatial import cKDTree
 
@@ -508,29 +623,57 @@ def run_stage(
     from recon_cli.stages import StageResult
 
     if backend == "pymeshlab" and (density or trim > 0):
-        raise ParameterError("the pymeshlab backend gives no densities: --density/--trim need native or open3d")
+        raise ParameterError(
+            "the pymeshlab backend gives no densities: --density/--trim need native or open3d"
+        )
     cloud = as_point_cloud(data)
     history = list(cloud.history)
     if estimate_normals:
         try:
             from recon_cli import normals as normals_mod
         except ModuleNotFoundError:
-            raise ParameterError("--estimate-normals needs the normals stage, which is not available") from None
+            raise ParameterError(
+                "--estimate-normals needs the normals stage, which is not available"
+            ) from None
         est = normals_mod.run_stage(PointCloud(points=cloud.points), progress=progress)
         cloud = cloud.copy()
         cloud.normals = est.output.normals
     if cloud.normals is None:
-        raise InputError("the cloud has no normals: run 'recon normals' first (or pass --estimate-normals)")
+        raise InputError(
+            "the cloud has no normals: run 'recon normals' first (or pass --estimate-normals)"
+        )
 
     if backend == "native":
         res = screened_poisson(
-            cloud.points, cloud.normals, depth=depth, scale=scale, point_weight=point_weight,
-            samples_per_node=samples_per_node, degree=degree, boundary=boundary, density=density, trim=trim,
-            colors=cloud.colors, progress=progress,
+            cloud.points,
+            cloud.normals,
+            depth=depth,
+            scale=scale,
+            point_weight=point_weight,
+            samples_per_node=samples_per_node,
+            degree=degree,
+            boundary=boundary,
+            density=density,
+            trim=trim,
+            colors=cloud.colors,
+            progress=progress,
         )
         mesh, rep = res.mesh, res.report
-        report = {k: rep[k] for k in ("vertices", "faces", "depth", "iso_value", "solver_iterations", "residual",
-                                      "bubbles_removed", "islands_removed", "trimmed_faces", "trimmed_area")}
+        report = {
+            k: rep[k]
+            for k in (
+                "vertices",
+                "faces",
+                "depth",
+                "iso_value",
+                "solver_iterations",
+                "residual",
+                "bubbles_removed",
+                "islands_removed",
+                "trimmed_faces",
+                "trimmed_area",
+            )
+        }
         report["samples"] = rep["samples"]
         report["ignored_points"] = rep["ignored_points"]
         report["tree_depth"] = rep["tree_depth"]
@@ -539,15 +682,28 @@ def run_stage(
         pts, nrm, keep = _check_inputs(cloud.points, cloud.normals)
         # the references about a local origin (Open3D's Poisson loses digits at UTM offsets)
         centre = local_origin(pts)
-        clean = PointCloud(points=pts - centre, normals=nrm, colors=None if cloud.colors is None else cloud.colors[keep],
-                           history=history)
+        clean = PointCloud(
+            points=pts - centre,
+            normals=nrm,
+            colors=None if cloud.colors is None else cloud.colors[keep],
+            history=history,
+        )
         from recon_cli.backends import backend_module
 
         mod = backend_module(backend)
         if backend == "open3d":
             mesh, dens = mod.poisson(clean, depth=depth, scale=scale)
         else:
-            mesh, dens = mod.poisson(clean, depth=depth, scale=scale, samples_per_node=samples_per_node, point_weight=point_weight), None
+            mesh, dens = (
+                mod.poisson(
+                    clean,
+                    depth=depth,
+                    scale=scale,
+                    samples_per_node=samples_per_node,
+                    point_weight=point_weight,
+                ),
+                None,
+            )
         mesh.vertices = mesh.vertices + centre
         trimmed, trimmed_area = 0, 0.0
         if trim > 0 and len(mesh.faces):
@@ -559,18 +715,29 @@ def run_stage(
             at_samples = dens[cKDTree(mesh.vertices).query(pts, workers=-1)[1]]
             cut = trim_by_density(mesh, dens, trim * float(np.median(at_samples)))
             if len(cut.mesh.faces) == 0:
-                raise ParameterError(f"trim {trim:g} removes the whole surface: use a smaller value")
+                raise ParameterError(
+                    f"trim {trim:g} removes the whole surface: use a smaller value"
+                )
             trimmed = len(mesh.faces) - cut.untouched_faces
             mesh, dens, trimmed_area = cut.mesh, cut.density, cut.removed_area
         if density and dens is not None:
             mesh.attributes["density"] = dens
         report = {
-            "vertices": len(mesh.vertices), "faces": len(mesh.faces), "depth": depth,
-            "iso_value": None, "solver_iterations": None, "residual": None, "bubbles_removed": None, "islands_removed": None,
+            "vertices": len(mesh.vertices),
+            "faces": len(mesh.faces),
+            "depth": depth,
+            "iso_value": None,
+            "solver_iterations": None,
+            "residual": None,
+            "bubbles_removed": None,
+            "islands_removed": None,
             "trimmed_faces": int(trimmed),
-            "trimmed_area": trimmed_area, "noise": None,
+            "trimmed_area": trimmed_area,
+            "noise": None,
         }
     mesh.history = history
-    mesh.point_dtype = cloud.point_dtype  # double in, double out (float32 in: see geometry.storage_dtype)
+    mesh.point_dtype = (
+        cloud.point_dtype
+    )  # double in, double out (float32 in: see geometry.storage_dtype)
     report["backend"] = backend
     return StageResult(output=mesh, report=report)

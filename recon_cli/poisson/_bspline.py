@@ -217,9 +217,14 @@ def stiffness_matvec(q_keys, nb, inp, xmap, omap, m1, k1, h, x, out):
                     u3 = zm[bx, oy + 3, oz]
                     u4 = zm[bx, oy + 4, oz]
                     ym[bx, oy, oz] = 0.0 + a0 * u0 + a1 * u1 + a2 * u2 + a3 * u3 + a4 * u4
-                    yk[bx, oy, oz] = (0.0 + (b0 * u0 + a0 * zk[bx, oy, oz]) + (b1 * u1 + a1 * zk[bx, oy + 1, oz])
-                                      + (b2 * u2 + a2 * zk[bx, oy + 2, oz]) + (b3 * u3 + a3 * zk[bx, oy + 3, oz])
-                                      + (b4 * u4 + a4 * zk[bx, oy + 4, oz]))
+                    yk[bx, oy, oz] = (
+                        0.0
+                        + (b0 * u0 + a0 * zk[bx, oy, oz])
+                        + (b1 * u1 + a1 * zk[bx, oy + 1, oz])
+                        + (b2 * u2 + a2 * zk[bx, oy + 2, oz])
+                        + (b3 * u3 + a3 * zk[bx, oy + 3, oz])
+                        + (b4 * u4 + a4 * zk[bx, oy + 4, oz])
+                    )
         # x
         for o in range(8):
             ox = o & 1
@@ -246,8 +251,11 @@ def stiffness_diag(q_keys, inp, m1, k1, h):
             cx = 2 * px + (o & 1)
             cy = 2 * py + ((o >> 1) & 1)
             cz = 2 * pz + ((o >> 2) & 1)
-            out[8 * i + o] = h * (k1[cx, 2] * m1[cy, 2] * m1[cz, 2] + m1[cx, 2] * k1[cy, 2] * m1[cz, 2]
-                                 + m1[cx, 2] * m1[cy, 2] * k1[cz, 2])
+            out[8 * i + o] = h * (
+                k1[cx, 2] * m1[cy, 2] * m1[cz, 2]
+                + m1[cx, 2] * k1[cy, 2] * m1[cz, 2]
+                + m1[cx, 2] * m1[cy, 2] * k1[cz, 2]
+            )
     return out
 
 
@@ -426,7 +434,12 @@ def prolong_into(q_keys, coarse_q_keys, coarse_nb, coarse, n_coarse, s, out):
             for a in range(2):
                 for b in range(2):
                     for c in range(2):
-                        v += wx_[a] * wy_[b] * wz_[c] * loc[(ox_[a] + 1) + 3 * (oy_[b] + 1) + 9 * (oz_[c] + 1)]
+                        v += (
+                            wx_[a]
+                            * wy_[b]
+                            * wz_[c]
+                            * loc[(ox_[a] + 1) + 3 * (oy_[b] + 1) + 9 * (oz_[c] + 1)]
+                        )
             out[8 * i + o] = v
     return out
 
@@ -521,11 +534,20 @@ def splat_rhs(pos, normal_w, splat_level, level, q_keys, inp, s, width):
                         cx = 2 * x + (o & 1) - lo[0]
                         cy = 2 * y + ((o >> 1) & 1) - lo[1]
                         cz = 2 * z + ((o >> 2) & 1) - lo[2]
-                        if (cx < 0 or cy < 0 or cz < 0 or cx > hi[0] - lo[0] or cy > hi[1] - lo[1]
-                                or cz > hi[2] - lo[2]):
+                        if (
+                            cx < 0
+                            or cy < 0
+                            or cz < 0
+                            or cx > hi[0] - lo[0]
+                            or cy > hi[1] - lo[1]
+                            or cz > hi[2] - lo[2]
+                        ):
                             continue
-                        b[8 * j + o] += (nx * fd[0, cx] * fv[1, cy] * fv[2, cz] + ny * fv[0, cx] * fd[1, cy] * fv[2, cz]
-                                         + nz * fv[0, cx] * fv[1, cy] * fd[2, cz])
+                        b[8 * j + o] += (
+                            nx * fd[0, cx] * fv[1, cy] * fv[2, cz]
+                            + ny * fv[0, cx] * fd[1, cy] * fv[2, cz]
+                            + nz * fv[0, cx] * fv[1, cy] * fd[2, cz]
+                        )
                 j += 1
     return b
 
@@ -756,8 +778,11 @@ def constrain_to_coarse_leaves(node_keys, g, coarse_keys, coarse_nodes, coarse_l
                     fz = 0.5 * (z - 2 * cz)
                     v = 0.0
                     for r in range(8):
-                        w = ((fx if r & 1 else 1.0 - fx) * (fy if (r >> 1) & 1 else 1.0 - fy)
-                             * (fz if (r >> 2) & 1 else 1.0 - fz))
+                        w = (
+                            (fx if r & 1 else 1.0 - fx)
+                            * (fy if (r >> 1) & 1 else 1.0 - fy)
+                            * (fz if (r >> 2) & 1 else 1.0 - fz)
+                        )
                         if w != 0.0:
                             v += w * g_coarse[coarse_nodes[c, r & 3] + (r >> 2)]
                     g[j] = v
@@ -850,9 +875,9 @@ def prolong_field(q_keys, coarse_q_keys, coarse_nb, coarse, n_coarse, s):
                         ay = wy if b else 0.375
                         az = wz if c else 0.375
                         # along an axis the far mirror's sign is -s: -wx where wx = s / 8
-                        gx = (ax if fx or not a else -ax)
-                        gy = (ay if fy or not b else -ay)
-                        gz = (az if fz or not c else -az)
+                        gx = ax if fx or not a else -ax
+                        gy = ay if fy or not b else -ay
+                        gz = az if fz or not c else -az
                         out[8 * i + o, 0] += gx * ay * az * loc[t, 0]
                         out[8 * i + o, 1] += ax * gy * az * loc[t, 1]
                         out[8 * i + o, 2] += ax * ay * gz * loc[t, 2]
@@ -938,7 +963,9 @@ def _block_rhs(X, z3, y3, k, n, s, fv, fd, out, base):
         oz = (o >> 2) & 1
         v = 0.0
         for c in range(5):
-            v += fd[c] * y3[ox + c, oy, oz, 0] + fv[c] * (y3[ox + c, oy, oz, 1] + y3[ox + c, oy, oz, 2])
+            v += fd[c] * y3[ox + c, oy, oz, 0] + fv[c] * (
+                y3[ox + c, oy, oz, 1] + y3[ox + c, oy, oz, 2]
+            )
         out[base + o] += v
 
 
@@ -1145,7 +1172,9 @@ def restrict_rhs(q_keys, nb, flag, blocks, fine, n, s):
                     p = nb[i, ((a + 1) >> 1) + 3 * ((b + 1) >> 1) + 9 * ((c + 1) >> 1)]
                     if p < 0:
                         continue
-                    jf = blocks[8 * p + (((a + 1) & 1) | (((b + 1) & 1) << 1) | (((c + 1) & 1) << 2))]
+                    jf = blocks[
+                        8 * p + (((a + 1) & 1) | (((b + 1) & 1) << 1) | (((c + 1) & 1) << 2))
+                    ]
                     if jf < 0:
                         continue
                     for of in range(8):

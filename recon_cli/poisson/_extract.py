@@ -23,7 +23,9 @@ def _on_face(x, y, z, res):
 
 
 @njit(cache=True)
-def refine_leaves(cell_keys, cell_nodes, is_leaf, g, level, depth, iso, eps, margin, out_xyz, out_val):
+def refine_leaves(
+    cell_keys, cell_nodes, is_leaf, g, level, depth, iso, eps, margin, out_xyz, out_val
+):
     """Finest-lattice cells (and their corner values) inside leaves that straddle ``iso``.
 
     A leaf at ``level`` holds a trilinear function (its 8 corner values of ``g``); a leaf
@@ -48,7 +50,7 @@ def refine_leaves(cell_keys, cell_nodes, is_leaf, g, level, depth, iso, eps, mar
     leaf_vals = np.empty(8)
     niso = -iso
     cap = niso + margin  # the clamp, negated
-    res = (np.int64(1) << depth)
+    res = np.int64(1) << depth
     for c in range(cell_nodes.shape[0]):
         if not is_leaf[c]:
             continue
@@ -67,7 +69,12 @@ def refine_leaves(cell_keys, cell_nodes, is_leaf, g, level, depth, iso, eps, mar
         for q in range(8):
             v = leaf_vals[q]
             lo = min(lo, v)
-            if _on_face((lx + (q & 1)) * side, (ly + ((q >> 1) & 1)) * side, (lz + ((q >> 2) & 1)) * side, res):
+            if _on_face(
+                (lx + (q & 1)) * side,
+                (ly + ((q >> 1) & 1)) * side,
+                (lz + ((q >> 2) & 1)) * side,
+                res,
+            ):
                 v = max(v, cap)
             hi = max(hi, v)
         if lo > niso + eps or hi < niso - eps:
@@ -93,11 +100,19 @@ def refine_leaves(cell_keys, cell_nodes, is_leaf, g, level, depth, iso, eps, mar
                 fz = (sz + ((q >> 2) & 1) * size) / side
                 v = 0.0
                 for r in range(8):
-                    w = (fx if r & 1 else 1.0 - fx) * (fy if (r >> 1) & 1 else 1.0 - fy) * (fz if (r >> 2) & 1 else 1.0 - fz)
+                    w = (
+                        (fx if r & 1 else 1.0 - fx)
+                        * (fy if (r >> 1) & 1 else 1.0 - fy)
+                        * (fz if (r >> 2) & 1 else 1.0 - fz)
+                    )
                     v += w * leaf_vals[r]
                 lo = min(lo, v)
-                if _on_face(lx * side + sx + (q & 1) * size, ly * side + sy + ((q >> 1) & 1) * size,
-                            lz * side + sz + ((q >> 2) & 1) * size, res):
+                if _on_face(
+                    lx * side + sx + (q & 1) * size,
+                    ly * side + sy + ((q >> 1) & 1) * size,
+                    lz * side + sz + ((q >> 2) & 1) * size,
+                    res,
+                ):
                     v = max(v, cap)
                 vals[q] = v
                 hi = max(hi, v)
@@ -174,6 +189,7 @@ def unify_corner_values(vals, keys, order):
 # for a cell with children. Points are in finest-lattice units (``R = 2**depth``). A minimal
 # edge is keyed by its lower end and axis (:func:`edge_key`).
 
+
 @njit(cache=True, inline="always")
 def _state(keys, leaf, coff, fkeys, D, l, x, y, z):
     n = np.int64(1) << l
@@ -205,7 +221,31 @@ def edge_key(x, y, z, axis, R):
 
 
 @njit(cache=True)
-def _minimal_edges(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, R, cap, l0, e0, axis, hint, hxyz, stack, cell, buf_p, buf_len, buf_v, m):
+def _minimal_edges(
+    keys,
+    leaf,
+    nodes,
+    g,
+    coff,
+    goff,
+    fkeys,
+    fnodes,
+    fg,
+    D,
+    R,
+    cap,
+    l0,
+    e0,
+    axis,
+    hint,
+    hxyz,
+    stack,
+    cell,
+    buf_p,
+    buf_len,
+    buf_v,
+    m,
+):
     """Append the minimal edges of the level-``l0`` lattice edge from ``e0`` (3,) along ``axis``
     to the buffers, in increasing order: an edge is split when one of the 4 cells of its level
     around it has children. Values come from a leaf of the edge's level that holds it (every
@@ -231,7 +271,7 @@ def _minimal_edges(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, R, ca
         use_hint = hint >= 0 and l == l0
         if use_hint:
             found = hint
-            fq = ((x - hxyz[0]) | ((y - hxyz[1]) << 1) | ((z - hxyz[2]) << 2))
+            fq = (x - hxyz[0]) | ((y - hxyz[1]) << 1) | ((z - hxyz[2]) << 2)
             if l == D:
                 top_done = True  # the finest cells have no children: nothing to look up
             else:
@@ -300,7 +340,7 @@ def _minimal_edges(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, R, ca
 @njit(cache=True)
 def _grow2(a, n):
     out = np.empty((max(n, 2 * a.shape[0]), a.shape[1]), a.dtype)
-    out[:a.shape[0]] = a
+    out[: a.shape[0]] = a
     return out
 
 
@@ -463,9 +503,20 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, iso, e
             lo = 1e300
             hi = -1e300
             for q in range(8):
-                v = fg[fnodes[ci - coff[D], q & 3] + (q >> 2)] if l == D else g[goff[l] + nodes[ci, q & 3] + (q >> 2)]
+                v = (
+                    fg[fnodes[ci - coff[D], q & 3] + (q >> 2)]
+                    if l == D
+                    else g[goff[l] + nodes[ci, q & 3] + (q >> 2)]
+                )
                 raw[q] = v
-                clv[q] = _clamp(v, (cx + (q & 1)) * side, (cy + ((q >> 1) & 1)) * side, (cz + (q >> 2)) * side, R, cap)
+                clv[q] = _clamp(
+                    v,
+                    (cx + (q & 1)) * side,
+                    (cy + ((q >> 1) & 1)) * side,
+                    (cz + (q >> 2)) * side,
+                    R,
+                    cap,
+                )
                 lo = min(lo, clv[q])
                 hi = max(hi, v)
             if lo > iso + eps or hi < iso - eps:
@@ -552,12 +603,24 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, iso, e
                             if ll == D:
                                 # a finest edge: never split, its values are the hint leaf's corners (what
                                 # _minimal_edges does, without the call)
-                                fq = (e0[0] - hxyz[0]) | ((e0[1] - hxyz[1]) << 1) | ((e0[2] - hxyz[2]) << 2)
+                                fq = (
+                                    (e0[0] - hxyz[0])
+                                    | ((e0[1] - hxyz[1]) << 1)
+                                    | ((e0[2] - hxyz[2]) << 2)
+                                )
                                 hf = hint - coff[D]  # a finest leaf
-                                v0 = _clamp(fg[fnodes[hf, fq & 3] + (fq >> 2)], e0[0], e0[1], e0[2], R, cap)
+                                v0 = _clamp(
+                                    fg[fnodes[hf, fq & 3] + (fq >> 2)], e0[0], e0[1], e0[2], R, cap
+                                )
                                 qq = fq | (1 << ax)
-                                v1 = _clamp(fg[fnodes[hf, qq & 3] + (qq >> 2)], e0[0] + (qq & 1) - (fq & 1), e0[1] + ((qq >> 1) & 1) - ((fq >> 1) & 1),
-                                            e0[2] + (qq >> 2) - (fq >> 2), R, cap)
+                                v1 = _clamp(
+                                    fg[fnodes[hf, qq & 3] + (qq >> 2)],
+                                    e0[0] + (qq & 1) - (fq & 1),
+                                    e0[1] + ((qq >> 1) & 1) - ((fq >> 1) & 1),
+                                    e0[2] + (qq >> 2) - (fq >> 2),
+                                    R,
+                                    cap,
+                                )
                                 ebuf_p[m, 0] = e0[0]
                                 ebuf_p[m, 1] = e0[1]
                                 ebuf_p[m, 2] = e0[2]
@@ -566,8 +629,31 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, iso, e
                                 ebuf_v[m, 1] = v1
                                 m += 1
                             else:
-                                m = _minimal_edges(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, R, cap, ll, e0, ax, hint, hxyz, stack, cell, ebuf_p,
-                                                   ebuf_len, ebuf_v, m)
+                                m = _minimal_edges(
+                                    keys,
+                                    leaf,
+                                    nodes,
+                                    g,
+                                    coff,
+                                    goff,
+                                    fkeys,
+                                    fnodes,
+                                    fg,
+                                    D,
+                                    R,
+                                    cap,
+                                    ll,
+                                    e0,
+                                    ax,
+                                    hint,
+                                    hxyz,
+                                    stack,
+                                    cell,
+                                    ebuf_p,
+                                    ebuf_len,
+                                    ebuf_v,
+                                    m,
+                                )
                         starts[4] = m
                         # walk the loop: edges of sides 2, 3 backwards
                         corner_sum = 0.0
@@ -624,7 +710,7 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, iso, e
                                 fr, to = j, i
                             else:
                                 continue
-                            if (s == 1):
+                            if s == 1:
                                 fr, to = to, fr
                             seg_key[ns, 0] = rkey[fr]
                             seg_key[ns, 1] = rkey[to]
@@ -749,7 +835,6 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, iso, e
     return tri[:nt], vpos[:nv], broken
 
 
-
 @njit(cache=True)
 def straddles(cell_keys, cell_nodes, is_leaf, g, level, depth, iso, eps, margin):
     """Whether a leaf of ``level`` has a corner range (chi clamped to ``iso - margin`` at points
@@ -770,7 +855,17 @@ def straddles(cell_keys, cell_nodes, is_leaf, g, level, depth, iso, eps, margin)
         for q in range(8):
             v = g[cell_nodes[c, q & 3] + (q >> 2)]
             hi = max(hi, v)
-            lo = min(lo, _clamp(v, (cx + (q & 1)) * side, (cy + ((q >> 1) & 1)) * side, (cz + (q >> 2)) * side, R, cap))
+            lo = min(
+                lo,
+                _clamp(
+                    v,
+                    (cx + (q & 1)) * side,
+                    (cy + ((q >> 1) & 1)) * side,
+                    (cz + (q >> 2)) * side,
+                    R,
+                    cap,
+                ),
+            )
         if not (lo > iso + eps or hi < iso - eps):
             return True
     return False

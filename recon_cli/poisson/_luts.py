@@ -32,7 +32,9 @@ UNIT_STIFFNESS = _element_stiffness()
 # the solver's diagonal is a table by incident-cell count (stiffness_diag_table): exact only
 # because every corner has the same diagonal entry, bit for bit
 if not np.all(np.diag(UNIT_STIFFNESS) == UNIT_STIFFNESS[0, 0]):
-    raise RuntimeError("element stiffness: corner diagonal entries differ; the solver's diagonal table needs them equal")
+    raise RuntimeError(
+        "element stiffness: corner diagonal entries differ; the solver's diagonal table needs them equal"
+    )
 
 # mean over plane offsets of sum_k B2(t - k)^2: a plane of sigma samples per unit area gives a
 # kernel density of about 0.55 * sigma * h^2 at level spacing h

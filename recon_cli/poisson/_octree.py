@@ -193,7 +193,9 @@ def halve(keys):
     out = np.empty(len(keys), np.int64)
     for i in range(len(keys)):
         k = keys[i]
-        out[i] = lattice_key(((k >> 42) & MASK21) >> 1, ((k >> 21) & MASK21) >> 1, (k & MASK21) >> 1)
+        out[i] = lattice_key(
+            ((k >> 42) & MASK21) >> 1, ((k >> 21) & MASK21) >> 1, (k & MASK21) >> 1
+        )
     return out
 
 
@@ -204,7 +206,9 @@ def double(keys):
     out = np.empty(len(keys), np.int64)
     for i in range(len(keys)):
         k = keys[i]
-        out[i] = lattice_key(((k >> 42) & MASK21) << 1, ((k >> 21) & MASK21) << 1, (k & MASK21) << 1)
+        out[i] = lattice_key(
+            ((k >> 42) & MASK21) << 1, ((k >> 21) & MASK21) << 1, (k & MASK21) << 1
+        )
     return out
 
 

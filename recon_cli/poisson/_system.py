@@ -37,7 +37,11 @@ def prolong(cell_nodes, cell_keys, cell_parent, parent_nodes, coarse, n_nodes):
             tz = (((o >> 2) & 1) + ((q >> 2) & 1)) * 0.5
             v = 0.0
             for r in range(8):
-                w = (tx if r & 1 else 1.0 - tx) * (ty if (r >> 1) & 1 else 1.0 - ty) * (tz if (r >> 2) & 1 else 1.0 - tz)
+                w = (
+                    (tx if r & 1 else 1.0 - tx)
+                    * (ty if (r >> 1) & 1 else 1.0 - ty)
+                    * (tz if (r >> 2) & 1 else 1.0 - tz)
+                )
                 if w != 0.0:
                     v += w * coarse[corner(parent_nodes, p, r)]
             out[j] = v
@@ -127,7 +131,11 @@ def _tri_w(loc, i, r):
     tx = loc[i, 0]
     ty = loc[i, 1]
     tz = loc[i, 2]
-    return (tx if r & 1 else 1.0 - tx) * (ty if (r >> 1) & 1 else 1.0 - ty) * (tz if (r >> 2) & 1 else 1.0 - tz)
+    return (
+        (tx if r & 1 else 1.0 - tx)
+        * (ty if (r >> 1) & 1 else 1.0 - ty)
+        * (tz if (r >> 2) & 1 else 1.0 - tz)
+    )
 
 
 @njit(cache=True)
@@ -242,7 +250,21 @@ def _residual_update(x, r, p, q, a, ncell, stiff, inv_stiff, sd_nodes, sd_vals, 
 
 
 @njit(cache=True, nogil=True)  # the progress display keeps drawing while it runs
-def level_pcg(cell_nodes, ke, cell_screen, scell, sloc, sw, rhs, ncell, sd_nodes, sd_vals, unknown, tol, max_iter):
+def level_pcg(
+    cell_nodes,
+    ke,
+    cell_screen,
+    scell,
+    sloc,
+    sw,
+    rhs,
+    ncell,
+    sd_nodes,
+    sd_vals,
+    unknown,
+    tol,
+    max_iter,
+):
     """Jacobi-preconditioned conjugate gradients on the unknown nodes (others stay 0).
 
     The diagonal is not stored: it is the stiffness diagonal at each node's incident-cell
@@ -280,7 +302,9 @@ def level_pcg(cell_nodes, ke, cell_screen, scell, sloc, sw, rhs, ncell, sd_nodes
         if pq <= 0.0:
             break
         a = rz / pq
-        rr, rz_new = _residual_update(x, r, p, q, a, ncell, stiff, inv_stiff, sd_nodes, sd_vals, unknown)
+        rr, rz_new = _residual_update(
+            x, r, p, q, a, ncell, stiff, inv_stiff, sd_nodes, sd_vals, unknown
+        )
         it += 1
         rel = np.sqrt(rr) / bn
         if rel < tol:

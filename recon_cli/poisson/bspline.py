@@ -195,13 +195,23 @@ class ChiField:
         order = sorted(fields, key=lambda f: f.depth)
         self.q_all = np.concatenate([f.q_keys for f in order]) if order else np.zeros(0, np.int64)
         self.inp_all = np.concatenate([f.inp for f in order]) if order else np.zeros(0, bool)
-        self.nb_all = np.concatenate([f.nb for f in order]) if order else np.zeros((0, 27), np.int32)
+        self.nb_all = (
+            np.concatenate([f.nb for f in order]) if order else np.zeros((0, 27), np.int32)
+        )
         self.coef_all = np.concatenate([f.coef for f in order]) if order else np.zeros(0)
 
     def at(self, pos: np.ndarray) -> np.ndarray:
         """chi at unit-cube positions (m, 3) (:func:`._bspline.chi_at`)."""
-        return B.chi_at(np.ascontiguousarray(pos, dtype=np.float64), self.top, self.q_all, self.q_off, self.inp_all,
-                        self._neighbours(), self.coef_all, self.s)
+        return B.chi_at(
+            np.ascontiguousarray(pos, dtype=np.float64),
+            self.top,
+            self.q_all,
+            self.q_off,
+            self.inp_all,
+            self._neighbours(),
+            self.coef_all,
+            self.s,
+        )
 
     def drop_neighbours(self) -> None:
         """Free the levels' neighbour tables (27 int32 a parent, the field's largest arrays:
@@ -222,11 +232,14 @@ class ChiField:
         out = np.empty(len(node_keys))
         step = 1 << 16
         for a in range(0, len(node_keys), step):
-            out[a:a + step] = self.at(unpack_keys(node_keys[a:a + step]) / float(1 << lev.depth))
+            out[a : a + step] = self.at(
+                unpack_keys(node_keys[a : a + step]) / float(1 << lev.depth)
+            )
         return out
 
-    def refine_vertices(self, verts: np.ndarray, iso: float, origin: np.ndarray, size: float, depth: int
-                        ) -> np.ndarray:
+    def refine_vertices(
+        self, verts: np.ndarray, iso: float, origin: np.ndarray, size: float, depth: int
+    ) -> np.ndarray:
         """Move each vertex, which marching cubes put on an edge of the ``2**depth`` lattice
         by linear interpolation, to where chi crosses ``iso`` along that edge: chi is one
         quadratic along a finest edge (it lies in one cell of every level), so its values at
@@ -238,10 +251,12 @@ class ChiField:
         # (three points per vertex, their lattice coordinates) were the process's peak
         step = 1 << 16
         for a in range(0, len(verts), step):
-            self._refine_chunk(verts[a:a + step], iso, origin, size, depth)
+            self._refine_chunk(verts[a : a + step], iso, origin, size, depth)
         return verts
 
-    def _refine_chunk(self, verts: np.ndarray, iso: float, origin: np.ndarray, size: float, depth: int) -> None:
+    def _refine_chunk(
+        self, verts: np.ndarray, iso: float, origin: np.ndarray, size: float, depth: int
+    ) -> None:
         """:meth:`refine_vertices` on ``verts`` (a view, moved in place)."""
         from recon_cli.mcubes import DEGENERATE_CLAMP
 
@@ -294,7 +309,11 @@ class NormalRHS:
     the level's own B-splines.
     """
 
-    def __init__(self, fields: dict[int, tuple[np.ndarray, np.ndarray]], level_fields: list[LevelField | None]):
+    def __init__(
+        self,
+        fields: dict[int, tuple[np.ndarray, np.ndarray]],
+        level_fields: list[LevelField | None],
+    ):
         # a level's own share is dropped once its right-hand side is made (the dict is
         # copied: the caller's is left whole; drop it there to free the arrays)
         self.fields = dict(fields)
@@ -311,7 +330,18 @@ class NormalRHS:
             if own is not None:
                 t = np.zeros(8 * len(f.q_keys))
                 fv, fd = self._factors(lv)
-                B.field_rhs(f.q_keys, f.nb, np.ones(len(f.q_keys), bool), 1 << lv, f.s, fv, fd, _NO_FIELD, *own, t)
+                B.field_rhs(
+                    f.q_keys,
+                    f.nb,
+                    np.ones(len(f.q_keys), bool),
+                    1 << lv,
+                    f.s,
+                    fv,
+                    fd,
+                    _NO_FIELD,
+                    *own,
+                    t,
+                )
                 del own
             if up is not None:
                 t = up if t is None else t + up
@@ -342,7 +372,9 @@ class NormalRHS:
             return None
         idx, missing = B.field_rows(self.lf[lv].q_keys, own[0])
         if missing:
-            raise RuntimeError(f"poisson: {missing} cells of level {lv}'s normal field lie outside its E")
+            raise RuntimeError(
+                f"poisson: {missing} cells of level {lv}'s normal field lie outside its E"
+            )
         return idx, own[1]
 
     def rhs(self, d: int) -> np.ndarray:
@@ -384,11 +416,33 @@ class NormalRHS:
             # the finest level: the coarser field refined and its own share read where they
             # are (no copy of either on E)
             p = self.lf[d - 1]
-            B.field_rhs_prolonged(f.q_keys, f.nb, f.inp, 1 << d, f.s, fv, fd, p.q_keys, p.nb, carry,
-                                  *(own if own is not None else (_NO_ROWS, _NO_FIELD)), b)
+            B.field_rhs_prolonged(
+                f.q_keys,
+                f.nb,
+                f.inp,
+                1 << d,
+                f.s,
+                fv,
+                fd,
+                p.q_keys,
+                p.nb,
+                carry,
+                *(own if own is not None else (_NO_ROWS, _NO_FIELD)),
+                b,
+            )
         elif carry is not None or own is not None:
-            B.field_rhs(f.q_keys, f.nb, f.inp, 1 << d, f.s, fv, fd, _NO_FIELD if carry is None else carry,
-                        *(own if own is not None else (_NO_ROWS, _NO_FIELD)), b)
+            B.field_rhs(
+                f.q_keys,
+                f.nb,
+                f.inp,
+                1 << d,
+                f.s,
+                fv,
+                fd,
+                _NO_FIELD if carry is None else carry,
+                *(own if own is not None else (_NO_ROWS, _NO_FIELD)),
+                b,
+            )
         self.lf[d - 1] = None
         del carry, own
         if self.finer[d] is not None:
@@ -405,12 +459,22 @@ def _merge_per_cell(pos: np.ndarray, w: np.ndarray, level: int) -> tuple[np.ndar
     inv = inv.reshape(-1)
     sw = np.bincount(inv, weights=w, minlength=len(uk))
     safe = np.where(sw > 0, sw, 1.0)
-    mp = np.stack([np.bincount(inv, weights=pos[:, a] * w, minlength=len(uk)) / safe for a in range(3)], axis=1)
+    mp = np.stack(
+        [np.bincount(inv, weights=pos[:, a] * w, minlength=len(uk)) / safe for a in range(3)],
+        axis=1,
+    )
     return mp, sw
 
 
-def solve(levels: list[Level], smp: Samples, splats: Splats, boundary: str, full_depth: int, cg_tolerance: float,
-          progress: Any = None) -> tuple[list[np.ndarray], list[dict], int, float, float, ChiField]:
+def solve(
+    levels: list[Level],
+    smp: Samples,
+    splats: Splats,
+    boundary: str,
+    full_depth: int,
+    cg_tolerance: float,
+    progress: Any = None,
+) -> tuple[list[np.ndarray], list[dict], int, float, float, ChiField]:
     """Solve every level in turn (level 0, a single cell, carries no function); returns chi
     at each level's nodes (for the extraction), per-level statistics, total iterations, the
     finest relative residual, the iso-value (count-weighted mean of chi at the samples) and
@@ -441,7 +505,9 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, boundary: str, full
             node_keys.append(lev.node_keys)
             lev.node_keys = lev.unknown = lev.ncell = None
             if d > 0:
-                levels[d - 1].leaf = ~O.cell_has_child(lev.cell_parent, len(levels[d - 1].cell_keys))
+                levels[d - 1].leaf = ~O.cell_has_child(
+                    lev.cell_parent, len(levels[d - 1].cell_keys)
+                )
                 lev.cell_parent = None
             if d == 0:
                 tk.advance(1)
@@ -479,18 +545,49 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, boundary: str, full
                 # the residual the coarser levels leave: A G at the unknowns, G on all of E
                 G = B.prolong(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s)
                 AG = np.empty(len(rhs))
-                B.level_matvec(f.q_keys, f.nb, f.inp, np.arange(len(f.q_keys)), cmap, m1, k1, h, n, f.s, scell, sloc,
-                               sw, G, AG)
+                B.level_matvec(
+                    f.q_keys,
+                    f.nb,
+                    f.inp,
+                    np.arange(len(f.q_keys)),
+                    cmap,
+                    m1,
+                    k1,
+                    h,
+                    n,
+                    f.s,
+                    scell,
+                    sloc,
+                    sw,
+                    G,
+                    AG,
+                )
                 rhs -= AG
                 del AG, G
             exact = d <= full_depth
             release_free_heap()
-            x, it, rel = B.level_pcg(f.q_keys, f.nb, f.inp, cmap, m1, k1, h, n, f.s, scell, sloc, sw, rhs, diag,
-                                     1e-7 if exact else cg_tolerance, 2000 if exact else 200)
+            x, it, rel = B.level_pcg(
+                f.q_keys,
+                f.nb,
+                f.inp,
+                cmap,
+                m1,
+                k1,
+                h,
+                n,
+                f.s,
+                scell,
+                sloc,
+                sw,
+                rhs,
+                diag,
+                1e-7 if exact else cg_tolerance,
+                2000 if exact else 200,
+            )
             del rhs, diag, scell, sloc, sw, cmap
             # the level's chi: the coarser field prolonged again (cheaper than keeping it on all
             # of E through the conjugate gradients) plus the correction
-            f.coef = coef_all[8 * arrays[1][d]:8 * arrays[1][d + 1]]
+            f.coef = coef_all[8 * arrays[1][d] : 8 * arrays[1][d + 1]]
             if prev is not None:
                 B.prolong_into(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s, f.coef)
             f.coef[unknown] += x
@@ -499,10 +596,25 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, boundary: str, full
             prev = f
             total_it += it
             last_res = rel
-            per_level.append({"depth": d, "nodes": ne, "unknowns": int(unknown.sum()), "iterations": it,
-                              "residual": rel, "seconds": time.perf_counter() - tl})
-            log.info("poisson: level %2d  cells %9d  unknowns %9d  cg iterations %4d  residual %.2e  %.2f s", d, ne,
-                     int(unknown.sum()), it, rel, time.perf_counter() - tl)
+            per_level.append(
+                {
+                    "depth": d,
+                    "nodes": ne,
+                    "unknowns": int(unknown.sum()),
+                    "iterations": it,
+                    "residual": rel,
+                    "seconds": time.perf_counter() - tl,
+                }
+            )
+            log.info(
+                "poisson: level %2d  cells %9d  unknowns %9d  cg iterations %4d  residual %.2e  %.2f s",
+                d,
+                ne,
+                int(unknown.sum()),
+                it,
+                rel,
+                time.perf_counter() - tl,
+            )
             tk.advance(1)
     levels[-1].leaf = np.ones(len(levels[-1].cell_keys), bool)
     for lev, keys in zip(levels, node_keys, strict=True):
@@ -515,7 +627,9 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, boundary: str, full
     # a leaf's faces takes those values (chi's own everywhere else)
     for d in range(1, len(levels)):
         up = levels[d - 1]
-        B.constrain_to_coarse_leaves(node_keys[d], gvals[d], up.cell_keys, up.cell_nodes, up.leaf, gvals[d - 1])
+        B.constrain_to_coarse_leaves(
+            node_keys[d], gvals[d], up.cell_keys, up.cell_nodes, up.leaf, gvals[d - 1]
+        )
     del node_keys
     chi_s = chi.at(spos)
     iso = float((chi_s * count).sum() / count.sum())

@@ -51,8 +51,9 @@ ROOT_CLAMP = 1e-3
 ROOT_CHUNK = 1 << 16
 
 
-def extract_finest(levels: list[Level], gvals: list[np.ndarray], iso: float, origin: np.ndarray, size: float
-                   ) -> tuple[np.ndarray, np.ndarray]:
+def extract_finest(
+    levels: list[Level], gvals: list[np.ndarray], iso: float, origin: np.ndarray, size: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (world units) and faces of the level set ``chi = iso`` on the finest lattice.
 
     Leaves of the tree are refined to the finest lattice where they straddle the iso-value
@@ -68,16 +69,41 @@ def extract_finest(levels: list[Level], gvals: list[np.ndarray], iso: float, ori
     # finest cells first, then write them straight into arrays of the exact size (per-level
     # parts and their concatenation would hold the cells twice)
     none_xyz, none_val = np.zeros((0, 3), np.int64), np.zeros((0, 8))
-    counts = [E.refine_leaves(lev.cell_keys, lev.cell_nodes, lev.leaf, g, lev.depth, depth, iso, 1e-9, FACE_MARGIN, none_xyz, none_val)
-              for lev, g in zip(levels, gvals)]
+    counts = [
+        E.refine_leaves(
+            lev.cell_keys,
+            lev.cell_nodes,
+            lev.leaf,
+            g,
+            lev.depth,
+            depth,
+            iso,
+            1e-9,
+            FACE_MARGIN,
+            none_xyz,
+            none_val,
+        )
+        for lev, g in zip(levels, gvals)
+    ]
     offsets = np.concatenate([[0], np.cumsum(counts)])
     cells = np.empty((int(offsets[-1]), 3), np.int64)
     vals = np.empty((int(offsets[-1]), 8))
     # finest first, freeing each level once written: it holds most of the memory
     for d in range(depth, -1, -1):
         lev = levels.pop()
-        E.refine_leaves(lev.cell_keys, lev.cell_nodes, lev.leaf, gvals.pop(), d, depth, iso, 1e-9, FACE_MARGIN,
-                        cells[offsets[d]:offsets[d + 1]], vals[offsets[d]:offsets[d + 1]])
+        E.refine_leaves(
+            lev.cell_keys,
+            lev.cell_nodes,
+            lev.leaf,
+            gvals.pop(),
+            d,
+            depth,
+            iso,
+            1e-9,
+            FACE_MARGIN,
+            cells[offsets[d] : offsets[d + 1]],
+            vals[offsets[d] : offsets[d + 1]],
+        )
     del levels, gvals, lev
     # one value per lattice point whichever leaf computed it (they agree up to rounding)
     ckeys = E.corner_keys(cells)
@@ -85,13 +111,16 @@ def extract_finest(levels: list[Level], gvals: list[np.ndarray], iso: float, ori
     order = np.argsort(ckeys)
     E.unify_corner_values(vals, ckeys, order)
     del ckeys, order
-    verts, faces = marching_cubes_sparse(cells, vals, -iso, origin=tuple(origin), spacing=size / res)
+    verts, faces = marching_cubes_sparse(
+        cells, vals, -iso, origin=tuple(origin), spacing=size / res
+    )
     del cells, vals
     return verts, faces
 
 
-def extract(levels: list[Level], gvals: list[np.ndarray], iso: float, origin: np.ndarray, size: float
-            ) -> tuple[np.ndarray, np.ndarray]:
+def extract(
+    levels: list[Level], gvals: list[np.ndarray], iso: float, origin: np.ndarray, size: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (world units) and faces of the level set ``chi = iso``.
 
     Over the leaves at their own size (:func:`extract_leaves`) when a leaf coarser than the
@@ -101,15 +130,20 @@ def extract(levels: list[Level], gvals: list[np.ndarray], iso: float, origin: np
     minimal-area triangulation: 2-3 % on smooth shapes).
     """
     depth = len(levels) - 1
-    coarse = any(E.straddles(lev.cell_keys, lev.cell_nodes, lev.leaf, g, lev.depth, depth, iso, 1e-9, FACE_MARGIN)
-                 for lev, g in zip(levels[:-1], gvals[:-1]))
+    coarse = any(
+        E.straddles(
+            lev.cell_keys, lev.cell_nodes, lev.leaf, g, lev.depth, depth, iso, 1e-9, FACE_MARGIN
+        )
+        for lev, g in zip(levels[:-1], gvals[:-1])
+    )
     if coarse:
         return extract_leaves(levels, gvals, iso, origin, size)
     return extract_finest(levels, gvals, iso, origin, size)
 
 
-def extract_leaves(levels: list[Level], gvals: list[np.ndarray], iso: float, origin: np.ndarray, size: float
-                   ) -> tuple[np.ndarray, np.ndarray]:
+def extract_leaves(
+    levels: list[Level], gvals: list[np.ndarray], iso: float, origin: np.ndarray, size: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (world units) and faces of the level set ``chi = iso`` at the leaves' own size.
 
     Closed, edge- and vertex-manifold, consistently oriented (outward), no two vertices at one
@@ -130,16 +164,32 @@ def extract_leaves(levels: list[Level], gvals: list[np.ndarray], iso: float, ori
     g = np.empty(goff[-1])
     for d in range(depth - 1, -1, -1):
         lev = levels.pop()
-        keys[coff[d]:coff[d + 1]] = lev.cell_keys
-        leaf[coff[d]:coff[d + 1]] = lev.leaf
-        nodes[coff[d]:coff[d + 1]] = lev.cell_nodes
-        g[goff[d]:goff[d + 1]] = gvals.pop()
+        keys[coff[d] : coff[d + 1]] = lev.cell_keys
+        leaf[coff[d] : coff[d + 1]] = lev.leaf
+        nodes[coff[d] : coff[d + 1]] = lev.cell_nodes
+        g[goff[d] : goff[d + 1]] = gvals.pop()
         del lev
-    tri, vpos, broken = E.leaf_polygons(keys, leaf, nodes, g, coff, goff, fine.cell_keys, fine.cell_nodes, fg, depth,
-                                        iso, 1e-9, FACE_MARGIN, ROOT_CLAMP)
+    tri, vpos, broken = E.leaf_polygons(
+        keys,
+        leaf,
+        nodes,
+        g,
+        coff,
+        goff,
+        fine.cell_keys,
+        fine.cell_nodes,
+        fg,
+        depth,
+        iso,
+        1e-9,
+        FACE_MARGIN,
+        ROOT_CLAMP,
+    )
     del keys, leaf, nodes, g, fine, fg
     if broken:
-        raise StageFailed(f"poisson extraction: {broken} iso-segment chains did not close (please report this input)")
+        raise StageFailed(
+            f"poisson extraction: {broken} iso-segment chains did not close (please report this input)"
+        )
     vpos *= size / (1 << depth)
     vpos += origin
     return vpos, tri
@@ -193,7 +243,7 @@ def refine_roots(verts: np.ndarray, chi: list, iso: float, depth: int) -> int:
     # per vertex, their cells and local coordinates at every level) are ~0.5 kB a vertex
     moved = 0
     for s in range(0, len(verts), ROOT_CHUNK):
-        moved += _refine_chunk(verts[s:s + ROOT_CHUNK], chi, iso, depth)
+        moved += _refine_chunk(verts[s : s + ROOT_CHUNK], chi, iso, depth)
     return moved
 
 

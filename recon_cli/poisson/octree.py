@@ -56,8 +56,15 @@ def dilate(keys: np.ndarray, axis: int, lo: int, hi: int, limit: int) -> np.ndar
     return K.rekey(K.dilate_minor(k, lo, hi, limit), axis, True)
 
 
-def build_levels(item_pos: np.ndarray, item_level: np.ndarray, depth: int, full_depth: int, boundary: str,
-                 corners: bool = True, own_ring: int = 2) -> list[Level]:
+def build_levels(
+    item_pos: np.ndarray,
+    item_level: np.ndarray,
+    depth: int,
+    full_depth: int,
+    boundary: str,
+    corners: bool = True,
+    own_ring: int = 2,
+) -> list[Level]:
     """Levels 0..``depth``: complete up to ``full_depth``; below it, at level ``d``, the
     cells within :data:`RING` of a cell holding a splat item of level ``d`` or finer
     (``item_pos`` (k, 3) unit-cube positions, ``item_level`` (k,)), completed in siblings:
@@ -133,7 +140,11 @@ def build_levels(item_pos: np.ndarray, item_level: np.ndarray, depth: int, full_
             unknown = K.unknown_nodes(nodes, ncell, top + 1, boundary == "dirichlet")
         lev = Level(d, keys, nodes, len(nodes), cell_nodes, unknown, ncell)
         if d > 0:
-            lev.cell_parent = cell_parent if d > full_depth else K.bsearch_many(levels[-1].cell_keys, K.halve(keys))
+            lev.cell_parent = (
+                cell_parent
+                if d > full_depth
+                else K.bsearch_many(levels[-1].cell_keys, K.halve(keys))
+            )
         levels.append(lev)
     return levels
 

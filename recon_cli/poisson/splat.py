@@ -101,8 +101,14 @@ def _eval_density(table: tuple, pos: np.ndarray) -> np.ndarray:
     return S.density_eval(pos, level, *tab, dens)
 
 
-def make_splats(smp: Samples, depth: int, samples_per_node: float, point_weight: float, keep_density: bool,
-                merge: bool = True) -> Splats:
+def make_splats(
+    smp: Samples,
+    depth: int,
+    samples_per_node: float,
+    point_weight: float,
+    keep_density: bool,
+    merge: bool = True,
+) -> Splats:
     """The level each sample is splatted at, the area it stands for, the splat items and the
     screening weights.
 
@@ -147,7 +153,13 @@ def make_splats(smp: Samples, depth: int, samples_per_node: float, point_weight:
     # PoissonRecon merges samples per node), so coarse splats cost per cell, not per sample
     it_pos, it_vec, it_lvl = merge_splats(spos, normal_w, count, s_lo, s_frac, merge)
     tree_depth = int(it_lvl.max())
-    log.info("poisson: %d splats from %d samples, levels %d..%d", len(it_pos), ns, int(it_lvl.min()), tree_depth)
+    log.info(
+        "poisson: %d splats from %d samples, levels %d..%d",
+        len(it_pos),
+        ns,
+        int(it_lvl.min()),
+        tree_depth,
+    )
     mean_area = float((area_pt * count).sum() / count.sum())
     # calibrated against Open3D (PoissonRecon's code) at its default weight 4: exact-distance
     # Chamfer of 100k samples, clean and with noise of 0.25 % of the diagonal, depths 8 and 9
@@ -164,7 +176,16 @@ def make_splats(smp: Samples, depth: int, samples_per_node: float, point_weight:
         # a level far finer than the tree sees each sample alone)
         ko = max(tree_depth - KERNEL_OFFSET, 0)
         dens = tables[ko] if ko in tables else _density_table(smp, ko)
-    return Splats(it_pos, it_vec, it_lvl, screen_w, alpha, tree_depth, dens, spread_fields(it_pos, it_vec, it_lvl))
+    return Splats(
+        it_pos,
+        it_vec,
+        it_lvl,
+        screen_w,
+        alpha,
+        tree_depth,
+        dens,
+        spread_fields(it_pos, it_vec, it_lvl),
+    )
 
 
 def sample_density(splats: Splats, pos: np.ndarray) -> np.ndarray:
@@ -172,7 +193,9 @@ def sample_density(splats: Splats, pos: np.ndarray) -> np.ndarray:
     return _eval_density(splats.density, pos)
 
 
-def spread_fields(pos: np.ndarray, vec: np.ndarray, lvl: np.ndarray) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+def spread_fields(
+    pos: np.ndarray, vec: np.ndarray, lvl: np.ndarray
+) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """The items' vectors shared among the 27 cells of their level around them with the
     quadratic B-spline weights at their positions, summed per cell: per level, (sorted cell
     keys (m,), vectors (m, 3)).
@@ -198,14 +221,18 @@ def spread_fields(pos: np.ndarray, vec: np.ndarray, lvl: np.ndarray) -> dict[int
     return out
 
 
-def fields_as_items(fields: dict[int, tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def fields_as_items(
+    fields: dict[int, tuple[np.ndarray, np.ndarray]],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`spread_fields`'s fields as splat items: (cell centres (m, 3) in the unit cube,
     vectors (m, 3), levels (m,))."""
     if not fields:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
-    return (np.concatenate([(unpack_keys(k) + 0.5) / (1 << d) for d, (k, _) in fields.items()]),
-            np.concatenate([v for _, v in fields.values()]),
-            np.concatenate([np.full(len(k), d, np.int64) for d, (k, _) in fields.items()]))
+    return (
+        np.concatenate([(unpack_keys(k) + 0.5) / (1 << d) for d, (k, _) in fields.items()]),
+        np.concatenate([v for _, v in fields.values()]),
+        np.concatenate([np.full(len(k), d, np.int64) for d, (k, _) in fields.items()]),
+    )
 
 
 _ONES = (1 << 42) | (1 << 21) | 1  # the key of (1, 1, 1): adds 1 to each coordinate
@@ -239,7 +266,9 @@ class NormalField:
     fields at coarse levels reach the faces: the cube is 1.1x the samples' box).
     """
 
-    def __init__(self, fields: dict[int, tuple[np.ndarray, np.ndarray]], node_keys: list[np.ndarray]):
+    def __init__(
+        self, fields: dict[int, tuple[np.ndarray, np.ndarray]], node_keys: list[np.ndarray]
+    ):
         # a level's own field is dropped once its right-hand side is made (the dict is
         # copied: the caller's is left whole; drop it there to free the arrays)
         self.fields = dict(fields)
@@ -259,7 +288,9 @@ class NormalField:
                 up = S.restrict_nodes(node_keys[lv], up, node_keys[lv - 1])
                 self.finer[lv - 1] = up
 
-    def rhs(self, d: int, cell_keys: np.ndarray, node_keys: np.ndarray, unknown: np.ndarray) -> np.ndarray:
+    def rhs(
+        self, d: int, cell_keys: np.ndarray, node_keys: np.ndarray, unknown: np.ndarray
+    ) -> np.ndarray:
         """(n_nodes,) right-hand side at level ``d``'s nodes (0 where not ``unknown``); call
         once per level, coarse to fine."""
         own = self.fields.pop(d, None)
@@ -277,8 +308,15 @@ class NormalField:
         # it is made, used and dropped a slab at a time; each node's terms still add up in
         # the cells' order (stencil_rhs_into), as in one pass
         n_slabs = max(1, -(-len(cell_keys) // RHS_SLAB_CELLS))
-        bounds = np.unique(np.concatenate([[0], (cell_keys[(len(cell_keys) * np.arange(1, n_slabs)) // n_slabs] >> 42) + 1,
-                                           [(1 << d) + 3]]))
+        bounds = np.unique(
+            np.concatenate(
+                [
+                    [0],
+                    (cell_keys[(len(cell_keys) * np.arange(1, n_slabs)) // n_slabs] >> 42) + 1,
+                    [(1 << d) + 3],
+                ]
+            )
+        )
         for x0, x1 in zip(bounds[:-1], bounds[1:]):
             keys, vec = self._slab(d, int(x0), int(x1), cell_keys, own, carry)
             if d < self.depth:  # carried to the next level: exact-size copies, slab by slab
@@ -296,18 +334,23 @@ class NormalField:
         return b
 
     @staticmethod
-    def _slab(d: int, x0: int, x1: int, cell_keys: np.ndarray, own: tuple | None, carry: tuple | None
-              ) -> tuple[np.ndarray, np.ndarray]:
+    def _slab(
+        d: int, x0: int, x1: int, cell_keys: np.ndarray, own: tuple | None, carry: tuple | None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Level ``d``'s field on the cells within two of its cells whose x (plus 1, as the
         carried field's keys and ``own``'s hold it) is in [x0, x1): (sorted keys, vectors), the cells the
         field reaches only (views of arrays of the slab's size)."""
-        src = cell_keys[np.searchsorted(cell_keys, max(x0 - 3, 0) << 42):np.searchsorted(cell_keys, max(x1 + 1, 0) << 42)]
+        src = cell_keys[
+            np.searchsorted(cell_keys, max(x0 - 3, 0) << 42) : np.searchsorted(
+                cell_keys, max(x1 + 1, 0) << 42
+            )
+        ]
         rel = src + _ONES
         del src
         for axis in range(3):
             rel = dilate(rel, axis, -2, 2, 1 << d)
         # (the last dilation, along z, leaves the keys sorted and unique)
-        rel = rel[np.searchsorted(rel, x0 << 42):np.searchsorted(rel, x1 << 42)]
+        rel = rel[np.searchsorted(rel, x0 << 42) : np.searchsorted(rel, x1 << 42)]
         if own is not None:
             lo, hi = np.searchsorted(own[0], x0 << 42), np.searchsorted(own[0], x1 << 42)
             own = own[0][lo:hi], own[1][lo:hi]
@@ -327,7 +370,10 @@ class NormalField:
             if len(pieces) == 1:
                 pk, pv = pieces[0]
             elif pieces:
-                pk, pv = np.concatenate([k for k, _ in pieces]), np.concatenate([v for _, v in pieces])
+                pk, pv = (
+                    np.concatenate([k for k, _ in pieces]),
+                    np.concatenate([v for _, v in pieces]),
+                )
             else:
                 pk, pv = np.zeros(0, np.int64), np.zeros((0, 3))
             del pieces
@@ -364,13 +410,17 @@ def merge_splats(pos, vec, count, s_lo, s_frac, merge=True):
             m = int(inv.max()) + 1
             cw = count[sel] * ww
             tot = np.bincount(inv, weights=cw, minlength=m)
-            mp = np.stack([np.bincount(inv, weights=p[:, a] * cw, minlength=m) / tot for a in range(3)], axis=1)
-            mv = np.stack([np.bincount(inv, weights=vec[sel, a] * ww, minlength=m) for a in range(3)], axis=1)
+            mp = np.stack(
+                [np.bincount(inv, weights=p[:, a] * cw, minlength=m) / tot for a in range(3)],
+                axis=1,
+            )
+            mv = np.stack(
+                [np.bincount(inv, weights=vec[sel, a] * ww, minlength=m) for a in range(3)], axis=1
+            )
             out_p.append(mp)
             out_v.append(mv)
             out_l.append(np.full(m, int(lvl), np.int64))
     return np.concatenate(out_p), np.concatenate(out_v), np.concatenate(out_l)
-
 
 
 # ---- the samples' noise, for the screening weight (noise_fraction)
@@ -388,8 +438,16 @@ NOISE_COHERENCE = 0.5
 NOISE_TAU = 0.2
 
 
-def _cell_noise(c: np.ndarray, unit: np.ndarray, pn: np.ndarray, sk: np.ndarray, snrm: np.ndarray, depth: int,
-                shift: int, off: int) -> np.ndarray:
+def _cell_noise(
+    c: np.ndarray,
+    unit: np.ndarray,
+    pn: np.ndarray,
+    sk: np.ndarray,
+    snrm: np.ndarray,
+    depth: int,
+    shift: int,
+    off: int,
+) -> np.ndarray:
     """The noise of each sample's cell (NaN where it cannot be measured): ``c`` (k, 3) the
     points' finest-lattice coordinates, ``unit`` their positions, ``pn`` their samples' summed
     normals, ``sk`` (m, 3) and ``snrm`` the samples' finest coordinates and summed normals, both
@@ -403,17 +461,24 @@ def _cell_noise(c: np.ndarray, unit: np.ndarray, pn: np.ndarray, sk: np.ndarray,
     skeys = pack_keys((sk + off) >> shift)
     scell = np.minimum(np.searchsorted(uk, skeys), m - 1)
     mine = uk[scell] == skeys
-    nsum = np.stack([np.bincount(scell[mine], weights=snrm[mine, a], minlength=m) for a in range(3)], axis=1)
+    nsum = np.stack(
+        [np.bincount(scell[mine], weights=snrm[mine, a], minlength=m) for a in range(3)], axis=1
+    )
     nlen = np.linalg.norm(nsum, axis=1)
     # the points of the cell's side only: on a thin part the other side's points face away
     side = np.einsum("ij,ij->i", pn, nsum[inv]) > 0
     unit, inv = unit[side], inv[side]
     cnt = np.bincount(inv, minlength=m).astype(np.float64)
-    ok = (cnt >= NOISE_MIN_POINTS) & (nlen >= NOISE_COHERENCE * np.bincount(scell[mine], weights=np.linalg.norm(
-        snrm[mine], axis=1), minlength=m))
+    ok = (cnt >= NOISE_MIN_POINTS) & (
+        nlen
+        >= NOISE_COHERENCE
+        * np.bincount(scell[mine], weights=np.linalg.norm(snrm[mine], axis=1), minlength=m)
+    )
     cs = np.full(m, np.nan)
     if ok.any():
-        cen = np.stack([np.bincount(inv, weights=unit[:, a], minlength=m) for a in range(3)], axis=1)
+        cen = np.stack(
+            [np.bincount(inv, weights=unit[:, a], minlength=m) for a in range(3)], axis=1
+        )
         cen /= np.maximum(cnt, 1.0)[:, None]
         nz = nsum / np.where(nlen > 0, nlen, 1.0)[:, None]
         e = np.zeros((m, 3))
@@ -425,13 +490,17 @@ def _cell_noise(c: np.ndarray, unit: np.ndarray, pn: np.ndarray, sk: np.ndarray,
         A, b, ww = S.height_fit_moments(unit, inv, cen, frame, float(1 << (depth - shift)), m)
         A, b = A[ok] + 1e-9 * np.eye(6), b[ok]
         beta = np.linalg.solve(A, b[:, :, None])[:, :, 0]
-        cs[ok] = np.sqrt(np.maximum(ww[ok] - np.einsum("ij,ij->i", beta, b), 0.0) / (cnt[ok] - 6)) * (1 << shift)
+        cs[ok] = np.sqrt(
+            np.maximum(ww[ok] - np.einsum("ij,ij->i", beta, b), 0.0) / (cnt[ok] - 6)
+        ) * (1 << shift)
     out = np.full(len(sk), np.nan)
     out[mine] = cs[scell[mine]]
     return out
 
 
-def noise_fraction(unit: np.ndarray, smp: Samples, tree_depth: int) -> tuple[np.ndarray, np.ndarray]:
+def noise_fraction(
+    unit: np.ndarray, smp: Samples, tree_depth: int
+) -> tuple[np.ndarray, np.ndarray]:
     """How clean each sample's neighbourhood is: (s,) ``1 / (1 + (sigma / (NOISE_TAU h))**2)``
     (1 clean, towards 0 noisy) and (s,) ``sigma / h``, ``h`` the tree's finest cell.
 
@@ -471,7 +540,9 @@ def noise_fraction(unit: np.ndarray, smp: Samples, tree_depth: int) -> tuple[np.
         # two lattices half a cell apart: a surface along a face of one is inside the cells of
         # the other (a cell's fit sees only the part of the noise inside it)
         for off in (0, (1 << shift) >> 1):
-            best = np.fmax(best, _cell_noise(pc, pu, pn, sk[todo], smp.normal[todo], dd, shift, off))
+            best = np.fmax(
+                best, _cell_noise(pc, pu, pn, sk[todo], smp.normal[todo], dd, shift, off)
+            )
         del pc, pu, pn
         sig[todo] = best
     have = ~np.isnan(sig)

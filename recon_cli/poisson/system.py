@@ -31,8 +31,14 @@ SCREEN_CLEAN = 1.3
 SCREEN_NOISY = 0.5
 
 
-def solve(levels: list[Level], smp: Samples, splats: Splats, full_depth: int, cg_tolerance: float,
-          progress: Any = None) -> tuple[list[np.ndarray], list[dict], int, float]:
+def solve(
+    levels: list[Level],
+    smp: Samples,
+    splats: Splats,
+    full_depth: int,
+    cg_tolerance: float,
+    progress: Any = None,
+) -> tuple[list[np.ndarray], list[dict], int, float]:
     """Solve every level in turn; returns chi per level (at its nodes, the coarser levels'
     part included), per-level statistics, total iterations and the finest relative residual.
 
@@ -79,7 +85,9 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, full_depth: int, cg
             # the diagonal, for the preconditioner: a table by incident-cell count (lev.ncell)
             # plus the sparse screening part, not an (n,) vector
             if alpha > 0:
-                sd_nodes, sd_vals = Y.screening_diag_rhs(scell, sloc, lev.cell_nodes, lw, TARGET, rhs)
+                sd_nodes, sd_vals = Y.screening_diag_rhs(
+                    scell, sloc, lev.cell_nodes, lw, TARGET, rhs
+                )
             else:
                 sd_nodes, sd_vals = np.zeros(0, np.int64), np.zeros(0)
             sw = lw if alpha > 0 else np.zeros(0)
@@ -94,7 +102,9 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, full_depth: int, cg
             if par is not None:
                 # the coarser levels' chi at this level's nodes; prolonged again after the
                 # solve rather than kept: one (n,) vector fewer during the conjugate gradients
-                G = Y.prolong(lev.cell_nodes, lev.cell_keys, lev.cell_parent, par.cell_nodes, gvals[-1], nn)
+                G = Y.prolong(
+                    lev.cell_nodes, lev.cell_keys, lev.cell_parent, par.cell_nodes, gvals[-1], nn
+                )
                 AG = np.empty(nn)
                 Y.level_matvec(lev.cell_nodes, ke, cscr, scell, sloc, sw, G, AG)
                 del G
@@ -103,12 +113,25 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, full_depth: int, cg
             exact = d <= full_depth
             release_free_heap()  # the set-up's temporaries: not resident while the solver runs
             x, it, rel = Y.level_pcg(
-                lev.cell_nodes, ke, cscr, scell, sloc, sw, rhs, lev.ncell, sd_nodes, sd_vals, lev.unknown,
-                1e-7 if exact else cg_tolerance, 2000 if exact else 200,
+                lev.cell_nodes,
+                ke,
+                cscr,
+                scell,
+                sloc,
+                sw,
+                rhs,
+                lev.ncell,
+                sd_nodes,
+                sd_vals,
+                lev.unknown,
+                1e-7 if exact else cg_tolerance,
+                2000 if exact else 200,
             )
             del rhs, sd_nodes, sd_vals, scell, sloc, cscr, lw
             if par is not None:
-                G = Y.prolong(lev.cell_nodes, lev.cell_keys, lev.cell_parent, par.cell_nodes, gvals[-1], nn)
+                G = Y.prolong(
+                    lev.cell_nodes, lev.cell_keys, lev.cell_parent, par.cell_nodes, gvals[-1], nn
+                )
                 # the coarser level's leaves are its cells without children here
                 par.leaf = ~O.cell_has_child(lev.cell_parent, len(par.cell_keys))
                 lev.cell_parent = None
@@ -121,9 +144,25 @@ def solve(levels: list[Level], smp: Samples, splats: Splats, full_depth: int, cg
             last_res = rel
             n_unknown = int(lev.unknown.sum())
             lev.unknown = lev.ncell = None
-            per_level.append({"depth": d, "nodes": nn, "unknowns": n_unknown, "iterations": it, "residual": rel,
-                              "seconds": time.perf_counter() - tl})
-            log.info("poisson: level %2d  nodes %9d  unknowns %9d  cg iterations %4d  residual %.2e  %.2f s", d, nn, n_unknown, it, rel, time.perf_counter() - tl)
+            per_level.append(
+                {
+                    "depth": d,
+                    "nodes": nn,
+                    "unknowns": n_unknown,
+                    "iterations": it,
+                    "residual": rel,
+                    "seconds": time.perf_counter() - tl,
+                }
+            )
+            log.info(
+                "poisson: level %2d  nodes %9d  unknowns %9d  cg iterations %4d  residual %.2e  %.2f s",
+                d,
+                nn,
+                n_unknown,
+                it,
+                rel,
+                time.perf_counter() - tl,
+            )
             tk.advance(work[d])
     del G, par
     levels[-1].leaf = np.ones(len(levels[-1].cell_keys), bool)
@@ -145,7 +184,9 @@ def solve_work(levels: list[Level], full_depth: int) -> list[float]:
     return out
 
 
-def chi_at(levels: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]], pos: np.ndarray) -> np.ndarray:
+def chi_at(
+    levels: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]], pos: np.ndarray
+) -> np.ndarray:
     """chi at unit-cube positions ``pos`` (n, 3), each evaluated in the finest cell of the
     tree that holds it (chi is trilinear there and continuous across cells).
 
@@ -163,7 +204,9 @@ def chi_at(levels: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]], pos: np
     return out
 
 
-def chi_levels(levels: list[Level], gvals: list[np.ndarray]) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]:
+def chi_levels(
+    levels: list[Level], gvals: list[np.ndarray]
+) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]:
     """What :func:`chi_at` needs of the solved levels (references, no copies)."""
     return [(lev.depth, lev.cell_keys, lev.cell_nodes, g) for lev, g in zip(levels, gvals)]
 

@@ -47,8 +47,12 @@ class Trimmed:
     untouched_faces: int  # input faces kept whole (the others were cut or removed)
 
 
-def trim_by_density(mesh: TriangleMesh, density: np.ndarray, threshold: float,
-                    island_ratio: float = ISLAND_AREA_RATIO) -> Trimmed:
+def trim_by_density(
+    mesh: TriangleMesh,
+    density: np.ndarray,
+    threshold: float,
+    island_ratio: float = ISLAND_AREA_RATIO,
+) -> Trimmed:
     """Remove the part of ``mesh`` where ``density`` (per vertex, linear on faces) is at most ``threshold``.
 
     Parameters
@@ -108,8 +112,15 @@ def trim_by_density(mesh: TriangleMesh, density: np.ndarray, threshold: float,
     tri_high = lone_high
     # every face: (vertices, is high)
     faces = np.concatenate([f[nh == 3], f[nh == 0], tri, quad_a, quad_b])
-    side = np.concatenate([np.ones(int((nh == 3).sum()), bool), np.zeros(int((nh == 0).sum()), bool),
-                           tri_high, ~tri_high, ~tri_high])
+    side = np.concatenate(
+        [
+            np.ones(int((nh == 3).sum()), bool),
+            np.zeros(int((nh == 0).sum()), bool),
+            tri_high,
+            ~tri_high,
+            ~tri_high,
+        ]
+    )
     verts = np.concatenate([v, new_v])
     dens = np.concatenate([d, np.full(len(new_v), threshold)])
 
@@ -133,5 +144,7 @@ def trim_by_density(mesh: TriangleMesh, density: np.ndarray, threshold: float,
     remap[used] = np.arange(len(used))
     out = TriangleMesh(vertices=verts[used], faces=remap[out_f], history=list(mesh.history))
     removed = float(area[~keep].sum()) / total if total > 0 else 0.0
-    untouched = int((nh == 3).sum() + keep[int((nh == 3).sum()):int((nh == 3).sum() + (nh == 0).sum())].sum())
+    untouched = int(
+        (nh == 3).sum() + keep[int((nh == 3).sum()) : int((nh == 3).sum() + (nh == 0).sum())].sum()
+    )
     return Trimmed(out, dens[used], removed, threshold, untouched)

@@ -59,12 +59,35 @@ SPEC = StageSpec(
     gives=("mesh",),
     backends=("native", "pymeshlab"),
     params=(
-        Param("merge_tolerance", "float", None, "Merge vertices closer than this (default: exact duplicates only).",
-              unit="fraction of the bbox diagonal", min=0.0, words={"exact": None, "none": None}, metavar="F|exact"),
-        Param("fill_holes", "int", 0, "Close boundary loops of at most N edges (0: no filling).", unit="edges",
-              min=0, metavar="N"),
-        Param("min_component", "float", 0.0, "Drop components with fewer than this fraction of the faces.",
-              unit="fraction of the faces", min=0.0, max=1.0, metavar="F"),
+        Param(
+            "merge_tolerance",
+            "float",
+            None,
+            "Merge vertices closer than this (default: exact duplicates only).",
+            unit="fraction of the bbox diagonal",
+            min=0.0,
+            words={"exact": None, "none": None},
+            metavar="F|exact",
+        ),
+        Param(
+            "fill_holes",
+            "int",
+            0,
+            "Close boundary loops of at most N edges (0: no filling).",
+            unit="edges",
+            min=0,
+            metavar="N",
+        ),
+        Param(
+            "min_component",
+            "float",
+            0.0,
+            "Drop components with fewer than this fraction of the faces.",
+            unit="fraction of the faces",
+            min=0.0,
+            max=1.0,
+            metavar="F",
+        ),
         Param("keep_largest", "bool", False, "Keep only the component with most faces."),
     ),
 )
@@ -84,7 +107,9 @@ class _State:
         self.vsrc = None  # None: identity (nothing changed yet)
         self.fsrc = None
         # room for the vertices and faces that steps 4 and 6 may add
-        self.it = index_dtype(4 * len(mesh.vertices) + 3 * len(mesh.faces) + 3, 3 * len(mesh.faces) + 3)
+        self.it = index_dtype(
+            4 * len(mesh.vertices) + 3 * len(mesh.faces) + 3, 3 * len(mesh.faces) + 3
+        )
 
     @property
     def faces(self) -> np.ndarray:
@@ -174,7 +199,9 @@ def _merge_vertices(st: _State, tolerance: float | None) -> tuple[int, float]:
         if len(pairs) == 0:
             return 0, dist
         pairs = finite[pairs]
-        g = coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+        g = coo_matrix(
+            (np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n)
+        )
         _, labels = connected_components(g, directed=False)
         first = np.full(labels.max() + 1, n, dtype=st.it)
         np.minimum.at(first, labels, np.arange(n))
@@ -185,7 +212,9 @@ def _merge_vertices(st: _State, tolerance: float | None) -> tuple[int, float]:
     return merged, dist
 
 
-def _split_fans(st: _State, conn: Connectivity, link_a: np.ndarray, link_b: np.ndarray) -> tuple[int, int]:
+def _split_fans(
+    st: _State, conn: Connectivity, link_a: np.ndarray, link_b: np.ndarray
+) -> tuple[int, int]:
     """Give every fan but one of each vertex its own vertex; returns (vertices split, vertices added)."""
     labels = conn.corner_fans(link_a, link_b)
     if len(labels) == 0:
@@ -335,7 +364,9 @@ def _orient(st: _State, normals: np.ndarray | None, rep: dict) -> None:
     centre = np.zeros((n_comp, 3))
     for k in range(3):
         for s in range(0, m, CHUNK):
-            centre[:, k] += np.bincount(comp[s : s + CHUNK], weights=v[f[s : s + CHUNK, 0], k], minlength=n_comp)
+            centre[:, k] += np.bincount(
+                comp[s : s + CHUNK], weights=v[f[s : s + CHUNK, 0], k], minlength=n_comp
+            )
     centre /= np.bincount(comp, minlength=n_comp)[:, None]
     vs = None if normals is None else st._vs()
     # per-face terms in chunks, (chunk, 3) float64 temporaries instead of (m, 3) ones: six
@@ -389,7 +420,9 @@ def _fill_holes(st: _State, max_edges: int, rep: dict) -> None:
         ptr = np.zeros(len(small) + 1, dtype=np.int64)
         np.cumsum([len(lp) for lp in small], out=ptr[1:])
         diag = bbox_diagonal(st.vertices)
-        new, filled = fill_loops(np.concatenate(small), ptr, st.vertices, keys, n, tol.area * diag * diag)
+        new, filled = fill_loops(
+            np.concatenate(small), ptr, st.vertices, keys, n, tol.area * diag * diag
+        )
         # a 3-loop that bounds a lone triangle would be closed by its own duplicate: skip such fills
         if len(new):
             c = Connectivity(np.concatenate([st.faces, new]), len(st.vertices))
@@ -484,8 +517,15 @@ def repair(
     if not isinstance(mesh, TriangleMesh):
         raise InputError(f"repair needs a triangle mesh, got {type(mesh).__name__}")
     mesh = float64(mesh)
-    v = SPEC.check(dict(merge_tolerance=merge_tolerance, fill_holes=fill_holes, min_component=min_component,
-                        keep_largest=keep_largest), complete=False)
+    v = SPEC.check(
+        dict(
+            merge_tolerance=merge_tolerance,
+            fill_holes=fill_holes,
+            min_component=min_component,
+            keep_largest=keep_largest,
+        ),
+        complete=False,
+    )
     tolerance = v["merge_tolerance"] or None  # 0: exact
     fill, min_comp, largest = v["fill_holes"], v["min_component"], v["keep_largest"]
     f = mesh.faces
@@ -599,7 +639,9 @@ def run_stage(
 
         # about a local origin (MeshLab's meshes may be float32), its output moved back
         centre = local_origin(data.vertices[np.isfinite(data.vertices).all(axis=1)])
-        out = pymeshlab_backend.repair(TriangleMesh(data.vertices - centre, data.faces), fill_holes=fill)
+        out = pymeshlab_backend.repair(
+            TriangleMesh(data.vertices - centre, data.faces), fill_holes=fill
+        )
         out.vertices = out.vertices + centre
         out.history, out.point_dtype = list(data.history), data.point_dtype
         rep = {

@@ -26,9 +26,13 @@ def choose_edge_pairs(nm_edges, edge_ptr, edge_half_edges, support):
             for j in range(s, t):
                 if keep[j]:
                     continue
-                if best < 0 or support[edge_half_edges[j] // 3] > support[edge_half_edges[best] // 3] or (
-                    support[edge_half_edges[j] // 3] == support[edge_half_edges[best] // 3]
-                    and edge_half_edges[j] < edge_half_edges[best]
+                if (
+                    best < 0
+                    or support[edge_half_edges[j] // 3] > support[edge_half_edges[best] // 3]
+                    or (
+                        support[edge_half_edges[j] // 3] == support[edge_half_edges[best] // 3]
+                        and edge_half_edges[j] < edge_half_edges[best]
+                    )
                 ):
                     best = j
             keep[best] = True

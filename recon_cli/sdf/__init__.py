@@ -51,22 +51,63 @@ SPEC = StageSpec(
     backends=("native", "open3d"),
     output_suffix=".npz",
     params=(
-        Param("resolution", "int", 128, "Cells along the longest side of the padded box.", unit="cells",
-              min=2, max=2048),
-        Param("voxel_size", "float", None, "Sample spacing (overrides --resolution).", unit="input units",
-              min=0.0, min_open=True, words={"auto": None}),
-        Param("padding", "float", 0.05, "Margin around the bounding box.", unit="fraction of the longest side", min=0.0),
-        Param("sign", "choice", "winding", "Meshes: inside where the winding number is not 0 (exact on closed "
-              "meshes of either orientation; robust to holes) or by pseudonormals.", choices=_SIGNS),
-        Param("band", "float", None, "Meshes: exact distances only within this many voxels.", unit="voxels",
-              min=0.0, min_open=True),
-        Param("knn", "int", 10, "Clouds: neighbours averaged per sample (IMLS).", unit="points", min=1),
+        Param(
+            "resolution",
+            "int",
+            128,
+            "Cells along the longest side of the padded box.",
+            unit="cells",
+            min=2,
+            max=2048,
+        ),
+        Param(
+            "voxel_size",
+            "float",
+            None,
+            "Sample spacing (overrides --resolution).",
+            unit="input units",
+            min=0.0,
+            min_open=True,
+            words={"auto": None},
+        ),
+        Param(
+            "padding",
+            "float",
+            0.05,
+            "Margin around the bounding box.",
+            unit="fraction of the longest side",
+            min=0.0,
+        ),
+        Param(
+            "sign",
+            "choice",
+            "winding",
+            "Meshes: inside where the winding number is not 0 (exact on closed "
+            "meshes of either orientation; robust to holes) or by pseudonormals.",
+            choices=_SIGNS,
+        ),
+        Param(
+            "band",
+            "float",
+            None,
+            "Meshes: exact distances only within this many voxels.",
+            unit="voxels",
+            min=0.0,
+            min_open=True,
+        ),
+        Param(
+            "knn", "int", 10, "Clouds: neighbours averaged per sample (IMLS).", unit="points", min=1
+        ),
     ),
 )
 
 
 def grid_frame(
-    lo: np.ndarray, hi: np.ndarray, resolution: int | None = 128, voxel_size: float | None = None, padding: float = 0.05
+    lo: np.ndarray,
+    hi: np.ndarray,
+    resolution: int | None = 128,
+    voxel_size: float | None = None,
+    padding: float = 0.05,
 ) -> tuple[np.ndarray, float, tuple[int, int, int]]:
     """Origin, voxel size and shape of a grid covering the box [lo, hi].
 
@@ -98,7 +139,9 @@ def grid_frame(
     h = float(voxel_size) if voxel_size is not None else float(size.max()) / int(resolution)
     cells = np.ceil(size / h - 1e-9)
     if not (np.isfinite(cells).all() and cells.max() < 2**52):
-        raise ParameterError(f"voxel size {h:.6g} is too small for a box of {float(size.max()):.6g}")
+        raise ParameterError(
+            f"voxel size {h:.6g} is too small for a box of {float(size.max()):.6g}"
+        )
     shape = tuple(int(s) + 1 for s in cells)
     # centre the data in the (slightly larger) sampled box
     org = org - 0.5 * ((np.array(shape) - 1) * h - size)
@@ -181,7 +224,9 @@ def mesh_sdf(
     if sign == "pseudonormal":
         if closed and signed_volume(vertices, faces) < 0:
             raise InputError(INWARD_MESSAGE)
-        dist, pn_sign = distance_grid(vertices, faces, origin, h, shape, band=cap, pseudonormal=True, bvh=bvh)
+        dist, pn_sign = distance_grid(
+            vertices, faces, origin, h, shape, band=cap, pseudonormal=True, bvh=bvh
+        )
         return _pseudonormal_sdf(vertices, faces, origin, h, shape, dist, pn_sign, bvh)
     dist, _ = distance_grid(vertices, faces, origin, h, shape, band=cap, bvh=bvh)
     if closed:
@@ -189,11 +234,18 @@ def mesh_sdf(
     return _open_winding_sdf(vertices, faces, origin, h, shape, dist, bvh)
 
 
-INWARD_MESSAGE = "the mesh is wound inward (negative volume): run `recon repair`, or use --sign winding"
+INWARD_MESSAGE = (
+    "the mesh is wound inward (negative volume): run `recon repair`, or use --sign winding"
+)
 
 
 def closed_mesh_inside(
-    vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, voxel_size: float, dist: np.ndarray, bvh=None
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    origin: np.ndarray,
+    voxel_size: float,
+    dist: np.ndarray,
+    bvh=None,
 ) -> tuple[np.ndarray, dict]:
     """Sign the distances of a closed mesh's grid exactly: negative where the winding number is not 0.
 
@@ -240,7 +292,11 @@ def closed_mesh_inside(
     v = np.ascontiguousarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
     used = v[np.unique(f)]
-    extent = float(np.abs(used).max()) + float(np.abs(np.asarray(origin, float)).max()) + h * max(dist.shape)
+    extent = (
+        float(np.abs(used).max())
+        + float(np.abs(np.asarray(origin, float)).max())
+        + h * max(dist.shape)
+    )
     link = h * (1.0 + 1e-6) + 1e-12 * extent
     n = dist.size
     classes_of = np.empty(n, np.int32 if n < 2**31 - 1 else np.int64)
@@ -282,7 +338,9 @@ class _GridWinding:
         return np.abs(self.tree(grid_points(*self.frame, mask)))
 
 
-def _pseudonormal_sdf(vertices, faces, origin, h, shape, dist, pn_sign, bvh) -> tuple[np.ndarray, dict]:
+def _pseudonormal_sdf(
+    vertices, faces, origin, h, shape, dist, pn_sign, bvh
+) -> tuple[np.ndarray, dict]:
     """Pseudonormal signs; samples beyond the band (no closest feature) by far regions."""
     near = dist <= h
     inside = pn_sign < 0
@@ -342,7 +400,11 @@ def _far_regions(dist, inside, far, winding: _GridWinding, method: str) -> tuple
     # negate in place: no second full-size array
     sdf = dist
     np.negative(sdf, out=sdf, where=inside)
-    return sdf, {"winding_evaluations": winding.evaluations, "regions": int(n), "sign_method": method}
+    return sdf, {
+        "winding_evaluations": winding.evaluations,
+        "regions": int(n),
+        "sign_method": method,
+    }
 
 
 def is_boundary_free(faces: np.ndarray) -> bool:
@@ -561,7 +623,9 @@ def run_stage(
     voxel, band_v = voxel_size, band
     is_mesh = isinstance(data, TriangleMesh) and len(data.faces) > 0
     if backend == "open3d" and not is_mesh:
-        raise ParameterError("the open3d backend computes distances to meshes only (a cloud needs --backend native)")
+        raise ParameterError(
+            "the open3d backend computes distances to meshes only (a cloud needs --backend native)"
+        )
     pts = data.vertices[np.unique(data.faces)] if is_mesh else data.points
     if len(pts) == 0:
         raise InputError("input has no points")
@@ -571,7 +635,9 @@ def run_stage(
         raise InputError("point cloud has no normals (run 'recon normals' first)")
     origin, h, shape = grid_frame(pts.min(axis=0), pts.max(axis=0), resolution, voxel, padding)
     # refuse what cannot be had before allocating: the peak bytes per sample of each path
-    per_sample = BYTES_PER_SAMPLE["open3d" if backend == "open3d" else "mesh" if is_mesh else "cloud"]
+    per_sample = BYTES_PER_SAMPLE[
+        "open3d" if backend == "open3d" else "mesh" if is_mesh else "cloud"
+    ]
     problem = allocation_problem(shape, per_sample)
     if problem:
         raise ParameterError(f"{problem}: raise --voxel-size or lower --resolution")
@@ -588,18 +654,27 @@ def run_stage(
         if backend == "open3d":
             from recon_cli.backends import open3d_backend
 
-            ijk = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), axis=-1).reshape(-1, 3)
+            ijk = np.stack(
+                np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), axis=-1
+            ).reshape(-1, 3)
             sdf = open3d_backend.signed_distance(local, (origin - centre) + ijk * h).reshape(shape)
             info = {}
             sign = "open3d"
         elif is_mesh:
-            sdf, info = mesh_sdf(local.vertices, data.faces, origin - centre, h, shape, sign=sign, band=band_v)
+            sdf, info = mesh_sdf(
+                local.vertices, data.faces, origin - centre, h, shape, sign=sign, band=band_v
+            )
         else:
             sdf, info = cloud_sdf(local.points, data.normals, origin - centre, h, shape, knn=knn)
         t.advance(1)
     del local
-    grid = Grid(sdf=sdf.astype(np.float32), origin=origin, voxel_size=h, history=list(data.history),
-                point_dtype=data.point_dtype)
+    grid = Grid(
+        sdf=sdf.astype(np.float32),
+        origin=origin,
+        voxel_size=h,
+        history=list(data.history),
+        point_dtype=data.point_dtype,
+    )
     del sdf  # the float64 field: free it before the report's passes over the grid
     known = int(np.count_nonzero(np.isfinite(grid.sdf)))
     report = {
@@ -614,6 +689,9 @@ def run_stage(
         "unknown_samples": int(grid.sdf.size - known),
         **info,
         "eikonal": eikonal_check(grid),
-        "provenance": {"voxel_size": round(h, 12), **({"sign": "open3d"} if backend == "open3d" else {})},
+        "provenance": {
+            "voxel_size": round(h, 12),
+            **({"sign": "open3d"} if backend == "open3d" else {}),
+        },
     }
     return StageResult(output=grid, report=report)
