@@ -36,7 +36,7 @@ def _cloud(n: int):
 
 def rows(quick: bool) -> list[dict]:
     from recon_cli.backends import open3d_backend, pymeshlab_backend
-    from recon_cli.ballpivot import auto_radii, ball_pivoting
+    from recon_cli.stages.ballpivot import auto_radii, ball_pivoting
 
     # compile / load the numba cache in the parent, so forked children start warm
     warm = _cloud(2_000)

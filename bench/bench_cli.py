@@ -217,7 +217,7 @@ def _skimage(grid_path: str):
 def _open3d_bpa(cloud_path: str):
     """One in-process run of Open3D's ball pivoting on the cloud, with our automatic radii (warmed up once)."""
     from recon_cli.backends import open3d_backend
-    from recon_cli.ballpivot import auto_radii
+    from recon_cli.stages.ballpivot import auto_radii
     from recon_cli.io.ply import read_ply
 
     c = read_ply(cloud_path)

@@ -47,7 +47,7 @@ def _normals_stage(points, true_normals=None) -> dict:
     import numpy as np
 
     from recon_cli.geometry import PointCloud
-    from recon_cli.normals import run_stage
+    from recon_cli.stages.normals import run_stage
 
     res = run_stage(PointCloud(points=points), knn=KNN)  # orient: the stage's default (mst)
     out = {k: res.report[k] for k in ("orient", "components", "degenerate")}
@@ -59,14 +59,14 @@ def _normals_stage(points, true_normals=None) -> dict:
 
 
 def _estimate_ours(points) -> int:
-    from recon_cli.normals import estimate_normals
+    from recon_cli.stages.normals import estimate_normals
 
     nrm, _, deg = estimate_normals(points, knn=KNN)
     return int(deg.sum())
 
 
 def _poisson_stage(cloud) -> dict:
-    from recon_cli.poisson import run_stage
+    from recon_cli.stages.poisson import run_stage
 
     rep = run_stage(cloud, depth=DEPTH).report
     return {k: rep[k] for k in ("vertices", "faces", "solver_iterations")}

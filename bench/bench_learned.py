@@ -43,13 +43,13 @@ def _fit_metrics(cloud, truth, seconds, res, hole=None):
     from scipy.spatial import cKDTree
 
     from recon_cli.geometry import TriangleMesh, bbox_diagonal
-    from recon_cli.learned import extract_mesh, run_stage
+    from recon_cli.stages.learned import extract_mesh, run_stage
     from recon_cli.mesh.sampling import sample_surface
 
     r = run_stage(cloud, resolution=res, iterations=10**7, max_seconds=seconds, threads=2)
     grid = r.output
     diag = bbox_diagonal(truth.vertices)
-    from recon_cli.mcubes import marching_cubes
+    from recon_cli.stages.mcubes import marching_cubes
 
     v, f, _ = marching_cubes(grid.sdf, spacing=grid.voxel_size, origin=grid.origin)
     mesh = TriangleMesh(vertices=v, faces=f)
@@ -82,7 +82,7 @@ def _fit_metrics(cloud, truth, seconds, res, hole=None):
 def _poisson_metrics(cloud, truth):
     from recon_cli.geometry import bbox_diagonal
     from recon_cli.mesh.sampling import sample_surface
-    from recon_cli.poisson import screened_poisson
+    from recon_cli.stages.poisson import screened_poisson
 
     m = screened_poisson(cloud.points, cloud.normals, depth=8).mesh
     diag = bbox_diagonal(truth.vertices)
@@ -111,7 +111,7 @@ def rows(quick: bool) -> list[dict]:
         ]
     from recon_cli.io import read_ply
     from recon_cli.mesh.sampling import sample_surface
-    from recon_cli.poisson import screened_poisson
+    from recon_cli.stages.poisson import screened_poisson
 
     seconds = 20.0 if quick else 240.0
     res = 128 if quick else 256

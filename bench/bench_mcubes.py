@@ -26,7 +26,7 @@ def metaballs(n: int, seed: int = 0) -> np.ndarray:
 def rows(quick: bool) -> list[dict]:
     from skimage.measure import marching_cubes as sk_mc
 
-    from recon_cli.mcubes import marching_cubes
+    from recon_cli.stages.mcubes import marching_cubes
 
     marching_cubes(metaballs(16))  # compile (or load the numba cache) outside the timings
     out = []

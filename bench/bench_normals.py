@@ -30,7 +30,7 @@ def _cloud(name: str, n: int, noise: float):
 
 def _ours(points, knn, orient):
     from recon_cli.geometry import PointCloud
-    from recon_cli.normals import run_stage
+    from recon_cli.stages.normals import run_stage
 
     return run_stage(PointCloud(points), knn=knn, orient=orient).output.normals
 

@@ -82,7 +82,7 @@ def _samples(name: str, n: int, noise: float = 0.0):
 
 
 def _with_our_normals(cloud):
-    from recon_cli import normals
+    from recon_cli.stages import normals
 
     return normals.run_stage(cloud).output
 

@@ -43,7 +43,7 @@ def damaged_mesh(copies: int):
 def rows(quick: bool) -> list[dict]:
     from recon_cli.backends import pymeshlab_backend
     from recon_cli.mesh.topology import report
-    from recon_cli.repair import repair
+    from recon_cli.stages.repair import repair
 
     copies = 4 if quick else 20
     rep = 1 if quick else 3

@@ -2,7 +2,7 @@
 
 The issue's target is the 256^3 row: ``recon sdf`` no slower than Open3D's
 ``compute_signed_distance`` on the same mesh and grid. Ours is the whole stage
-(:func:`recon_cli.sdf.run_stage`: grid frame, BVH, exact distances, sign, float32 grid
+(:func:`recon_cli.stages.sdf.run_stage`: grid frame, BVH, exact distances, sign, float32 grid
 and the eikonal report); Open3D's is the scene build plus the query, with the float32
 sample coordinates it needs made inside the timed call (its API takes explicit points).
 """
@@ -35,7 +35,7 @@ def _grid_rows(mesh, label: str, res: int, repeat: int) -> list[dict]:
     """Our whole sdf stage, --sign winding and pseudonormal, against Open3D's signed distance
     on the same res^3 grid: two rows."""
     from recon_cli.backends.open3d_backend import signed_distance
-    from recon_cli.sdf import grid_frame, run_stage
+    from recon_cli.stages.sdf import grid_frame, run_stage
 
     v = mesh.vertices
     o, h, s = grid_frame(v.min(0), v.max(0), res)
@@ -68,7 +68,7 @@ def rows(quick: bool) -> list[dict]:
     from recon_cli.backends.open3d_backend import unsigned_distance
     from recon_cli.io import read_ply
     from recon_cli.mesh.distance import closest_points
-    from recon_cli.sdf import run_stage
+    from recon_cli.stages.sdf import run_stage
 
     mesh = read_ply(DATA / "armadillo.ply")
     v, f = mesh.vertices, mesh.faces

@@ -43,7 +43,7 @@ def main(argv: list[str]) -> int:
     from recon_cli.geometry import bbox_diagonal
     from recon_cli.io import read_ply
     from recon_cli.mesh.sampling import sample_surface
-    from recon_cli.poisson import screened_poisson
+    from recon_cli.stages.poisson import screened_poisson
 
     ap = argparse.ArgumentParser()
     ap.add_argument("--depth", default="8,9")

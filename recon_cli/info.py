@@ -118,7 +118,7 @@ def describe_grid(grid, name: str) -> dict[str, Any]:
         "history": list(grid.history),
     }
     try:
-        from recon_cli.sdf import eikonal_check
+        from recon_cli.stages.sdf import eikonal_check
     except ModuleNotFoundError:
         eikonal_check = None
     if eikonal_check is not None:

@@ -139,7 +139,7 @@ def torus(R: float = 1.0, r: float = 0.3, nu: int = 32, nv: int = 12):
 def implicit_mesh(fn, n: int = 48, lim: float = 1.2):
     """A closed, outward mesh of the zero set of ``fn(X, Y, Z)`` (our marching cubes at n^3,
     negative inside)."""
-    from recon_cli.mcubes import marching_cubes
+    from recon_cli.stages.mcubes import marching_cubes
 
     x = np.linspace(-lim, lim, n)
     X, Y, Z = np.meshgrid(x, x, x, indexing="ij")

@@ -155,7 +155,7 @@ def _ballpivot_family():
 
 
 def test_ballpivot_aot_and_jit_give_identical_meshes(use_build):
-    from recon_cli.ballpivot import ball_pivoting
+    from recon_cli.stages.ballpivot import ball_pivoting
 
     cases = list(_ballpivot_family())
     aot_out = [ball_pivoting(p, n) for _, p, n in cases]
@@ -169,7 +169,7 @@ def test_ballpivot_aot_and_jit_give_identical_meshes(use_build):
 
 
 def test_mcubes_aot_and_jit_give_identical_meshes(use_build):
-    from recon_cli.mcubes import marching_cubes
+    from recon_cli.stages.mcubes import marching_cubes
 
     rng = np.random.default_rng(5)
     grids = []
@@ -209,7 +209,7 @@ def test_arguments_without_a_variant_run_the_jit_kernel(use_build):
         np.asfortranarray(pts), lo, cell, dims
     )  # F layout: no variant, numba compiles one
     kw = k.build_grid(pts, lo, cell=cell, dims=dims)  # keywords: the numba kernel
-    from recon_cli.ballpivot import _kernel
+    from recon_cli.stages.ballpivot import _kernel
 
     j = _kernel.build_grid(pts, lo, cell, dims)
     fortran = aot.signature_key((np.asfortranarray(pts), lo, cell, dims))

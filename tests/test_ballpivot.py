@@ -1,4 +1,4 @@
-"""Ball pivoting (recon_cli.ballpivot): quality against Open3D, topology by construction,
+"""Ball pivoting (recon_cli.stages.ballpivot): quality against Open3D, topology by construction,
 exact triangulations, cross-checks with Open3D and PyMeshLab, bad input, CLI."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from recon_cli.backends import open3d_backend, pymeshlab_backend
-from recon_cli.ballpivot import auto_radii, ball_pivoting, nn_spacing, run_stage
+from recon_cli.stages.ballpivot import auto_radii, ball_pivoting, nn_spacing, run_stage
 from recon_cli.errors import InputError, ParameterError, StageFailed
 from recon_cli.geometry import PointCloud, TriangleMesh, bbox_diagonal
 from recon_cli.mesh import topology

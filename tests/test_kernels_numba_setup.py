@@ -159,7 +159,7 @@ def test_threading_layer_survives_numba_rereading_its_environment(tmp_path):
 LEAN = (
     "import sys, numpy as np, numba\n"
     "from recon_cli._kernels.arrays import grow1\n"
-    "from recon_cli.normals._kernel import pca_normals\n"
+    "from recon_cli.stages.normals._kernel import pca_normals\n"
     "grow1(np.arange(3.0), 5)\n"  # cached: loaded without numba's registries
     "print('arraymath' if 'numba.np.arraymath' in sys.modules else 'lean')\n"
     "rng = np.random.default_rng(0)\n"

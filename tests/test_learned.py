@@ -23,7 +23,7 @@ from recon_cli.geometry import PointCloud, TriangleMesh  # noqa: E402
 from recon_cli.grid import Grid  # noqa: E402
 from recon_cli.io import read_ply, write_ply  # noqa: E402
 from recon_cli.io.npz import read_grid  # noqa: E402
-from recon_cli.learned import (  # noqa: E402
+from recon_cli.stages.learned import (  # noqa: E402
     extract_mesh,
     fit_sdf,
     load_model,
@@ -31,7 +31,7 @@ from recon_cli.learned import (  # noqa: E402
     sample_grid,
     save_model,
 )
-from recon_cli.sdf import grid_frame  # noqa: E402
+from recon_cli.stages.sdf import grid_frame  # noqa: E402
 from recon_cli.stages import apply_stage  # noqa: E402
 
 from shapes import sphere_cloud, torus_cloud, torus_distance  # noqa: E402
@@ -172,7 +172,7 @@ def test_occupancy_field():
 
 
 def test_interrupt_restores_best_and_says_so(monkeypatch):
-    from recon_cli.learned import _torch_net
+    from recon_cli.stages.learned import _torch_net
 
     p, n = sphere_cloud(1000, 1.0, seed=3)
     real = _torch_net.train
@@ -221,11 +221,11 @@ def test_bad_points():
 
 
 def test_missing_torch_is_one_line(monkeypatch):
-    import recon_cli.learned
+    import recon_cli.stages.learned
 
     monkeypatch.setitem(sys.modules, "torch", None)
-    monkeypatch.delitem(sys.modules, "recon_cli.learned._torch_net", raising=False)
-    monkeypatch.delattr(recon_cli.learned, "_torch_net", raising=False)
+    monkeypatch.delitem(sys.modules, "recon_cli.stages.learned._torch_net", raising=False)
+    monkeypatch.delattr(recon_cli.stages.learned, "_torch_net", raising=False)
     p, n = sphere_cloud(100, 1.0)
     with pytest.raises(BackendError, match=r"pip install recon\[learned\]"):
         fit_sdf(p, n, iterations=1)
@@ -283,7 +283,7 @@ def test_cli_grid_mcubes_info_mesh(tmp_path):
     assert any("fit-sdf" in h for h in g.history)
     # the written grid meshes (as `recon mcubes` does) to the mesh written with --mesh
     from recon_cli.info import describe
-    from recon_cli.mcubes import marching_cubes
+    from recon_cli.stages.mcubes import marching_cubes
 
     mv, mf, _ = marching_cubes(g.sdf, iso=0.0, spacing=g.voxel_size, origin=g.origin)
     m = read_ply(mesh)

@@ -10,8 +10,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from recon_cli.errors import InputError, ParameterError
-from recon_cli.mcubes import _luts as L
-from recon_cli.mcubes import marching_cubes, marching_cubes_sparse
+from recon_cli.stages.mcubes import _luts as L
+from recon_cli.stages.mcubes import marching_cubes, marching_cubes_sparse
 
 
 # --- small mesh checks (local: no dependence on the topology module) ------------------------
@@ -440,8 +440,8 @@ def test_run_stage_and_cli(tmp_path):
 
 
 def test_stored_tables_are_the_derivation():
-    """_lut_data.npz (read by the stage) is exactly what _luts derives; regenerate with `python -m recon_cli.mcubes._luts`."""
-    from recon_cli.mcubes import _lut_data as D
+    """_lut_data.npz (read by the stage) is exactly what _luts derives; regenerate with `python -m recon_cli.stages.mcubes._luts`."""
+    from recon_cli.stages.mcubes import _lut_data as D
 
     derived = L.build_tables()
     assert len(derived) == 12
@@ -460,12 +460,12 @@ def test_the_stage_derives_no_table():
 
     code = (
         "import sys, numpy as np\n"
-        "from recon_cli.mcubes import marching_cubes\n"
+        "from recon_cli.stages.mcubes import marching_cubes\n"
         "g = np.linalg.norm(np.mgrid[-1:1:9j, -1:1:9j, -1:1:9j], axis=0) - 0.6\n"
         "for method in ('mc', 'mt'):\n"
         "    assert len(marching_cubes(g, method=method)[1])\n"
-        "assert 'recon_cli.mcubes._luts' not in sys.modules\n"
-        "import recon_cli.mcubes._luts as L\n"
+        "assert 'recon_cli.stages.mcubes._luts' not in sys.modules\n"
+        "import recon_cli.stages.mcubes._luts as L\n"
         "assert L.build_tables.cache_info().currsize == 0\n"  # importing the derivation builds nothing either
     )
     subprocess.run([sys.executable, "-c", code], check=True)
@@ -474,7 +474,7 @@ def test_the_stage_derives_no_table():
 @settings(max_examples=40, deadline=None)
 @given(st.integers(1, 40), st.integers(0, 120), st.integers(0, 2**32 - 1))
 def test_boundary_edge_count_matches_unique(n_vertices, n_faces, seed):
-    from recon_cli.mcubes import boundary_edge_count
+    from recon_cli.stages.mcubes import boundary_edge_count
 
     rng = np.random.default_rng(seed)
     faces = rng.integers(0, n_vertices, size=(n_faces, 3))
@@ -521,7 +521,7 @@ def test_sdf_of_closed_mesh_meshes_to_one_piece(idx, reverse):
     from recon_cli.geometry import TriangleMesh
     from recon_cli.mesh.distance import closest_points
     from recon_cli.mesh.topology import Connectivity
-    from recon_cli.sdf import signed_volume
+    from recon_cli.stages.sdf import signed_volume
     from recon_cli.stages import apply_stage
 
     name, v, f, res = _closed_meshes_for_pieces()[idx]

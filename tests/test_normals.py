@@ -1,4 +1,4 @@
-"""Tests of recon_cli.normals: estimation, orientation, the stage and the command."""
+"""Tests of recon_cli.stages.normals: estimation, orientation, the stage and the command."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from recon_cli.backends import open3d_backend
 from recon_cli.errors import InputError, ParameterError
 from recon_cli.geometry import PointCloud
 from recon_cli.mesh.sampling import face_normals
-from recon_cli.normals import estimate_normals, orient_normals, run_stage
+from recon_cli.stages.normals import estimate_normals, orient_normals, run_stage
 from recon_cli.stages import apply_stage
 
 from shared_data import ALL_MESHES, CLOSED_MESHES, load_shared, sampled_cloud
@@ -234,7 +234,7 @@ def test_two_disconnected_spheres_outward(rng):
 
 def test_flux_check_flips_inside_out_seed(rng, monkeypatch):
     # force every component seed to point inward: the flux check must turn the spheres out
-    import recon_cli.normals as mod
+    import recon_cli.stages.normals as mod
 
     a, na = _sphere(5000, rng, (0, 0, 0), 1.0)
     b, nb = _sphere(2000, rng, (4, 0, 0), 0.5)

@@ -143,7 +143,7 @@ def test_builtin_stage_is_registered_and_derived_from_its_declaration(name):
 
 
 def test_public_functions_share_the_declared_defaults():
-    from recon_cli import poisson, repair
+    from recon_cli.stages import poisson, repair
 
     for fn, spec in ((poisson.screened_poisson, poisson.SPEC), (repair.repair, repair.SPEC)):
         for k, p in inspect.signature(fn).parameters.items():
@@ -172,7 +172,7 @@ def test_runner_refuses_a_function_that_differs_from_its_declaration():
 
 
 def test_library_call_checks_values_and_input_kind():
-    from recon_cli.poisson import run_stage
+    from recon_cli.stages.poisson import run_stage
 
     pts = np.random.default_rng(0).normal(size=(50, 3))
     with pytest.raises(ParameterError, match="--depth must be an integer"):

@@ -123,7 +123,7 @@ def test_estimate_normals_changes_what_poisson_takes():
 
 
 def test_run_checks_before_touching_the_output(tmp_path, monkeypatch):
-    from recon_cli import normals
+    from recon_cli.stages import normals
     from recon_cli.cli.main import cli
 
     called = []

@@ -14,7 +14,7 @@ from recon_cli.errors import InputError, ParameterError
 from recon_cli.geometry import PointCloud, bbox_diagonal
 from recon_cli.mesh.sampling import sample_surface
 from recon_cli.mesh.topology import report as topology_report
-from recon_cli.poisson import run_stage, screened_poisson
+from recon_cli.stages.poisson import run_stage, screened_poisson
 
 from reference import isolated
 from shared_data import CLOSED_MESHES, load_shared, sampled_cloud

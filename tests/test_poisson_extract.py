@@ -9,12 +9,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import recon_cli.poisson.extract as extract_mod
+import recon_cli.stages.poisson.extract as extract_mod
 from recon_cli.geometry import TriangleMesh
 from recon_cli.mesh.sampling import sample_surface
 from recon_cli.mesh.topology import report as topology_report
-from recon_cli.poisson import screened_poisson
-from recon_cli.poisson.octree import unpack_keys
+from recon_cli.stages.poisson import screened_poisson
+from recon_cli.stages.poisson.octree import unpack_keys
 
 from reference import isolated
 from shapes import SHAPES, shape_cloud, single_view_scan, sphere_sdf, torus_sdf
@@ -202,7 +202,7 @@ def test_islands_need_ten_points_specks_always_go(rng, offset):
     # across) goes whatever points it has; a sphere 10 cells across goes with 9 input points
     # within two cells of its box (an island around outliers) and stays with 10; points farther
     # away do not count; the largest piece always stays
-    from recon_cli.poisson import ISLAND_POINTS, _drop_bubbles
+    from recon_cli.stages.poisson import ISLAND_POINTS, _drop_bubbles
 
     from shapes import icosphere
 
@@ -245,7 +245,7 @@ def test_faces_barely_change_past_the_density(rng):
 
 
 def _bunny_scan_oriented():
-    from recon_cli import normals
+    from recon_cli.stages import normals
 
     from shared_data import load_shared
 
@@ -274,7 +274,7 @@ def test_real_stereo_fragment_closed_and_manifold(method):
     # and manifold; besides the surface, Poisson's solution has closed specks around noisy
     # samples and one blob around a cluster of 5 outlying points, 3.6 cells across: both go,
     # one piece is left
-    from recon_cli import normals
+    from recon_cli.stages import normals
 
     from shared_data import load_shared
 

@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from recon_cli.poisson import screened_poisson
-from recon_cli.poisson.splat import make_splats, merge_samples
+from recon_cli.stages.poisson import screened_poisson
+from recon_cli.stages.poisson.splat import make_splats, merge_samples
 
 from shapes import shape_cloud, sphere_sdf  # noqa: F401  (sphere_sdf documents the shape)
 
@@ -86,7 +86,7 @@ def test_sparse_half_is_splatted_coarser(rng):
 
 
 def _cells(level) -> set:
-    from recon_cli.poisson.octree import unpack_keys
+    from recon_cli.stages.poisson.octree import unpack_keys
 
     return set(map(tuple, unpack_keys(level.cell_keys).tolist()))
 
@@ -118,7 +118,7 @@ def test_own_ring_1_tree_is_poissonrecons(seed):
     # items plus those within 2 of its cells over finer items, completed in siblings
     # (PoissonRecon's finest nodes); a subset of own_ring 2's, graded (a cell's parent's
     # neighbours all exist one level up) and containing every cell its items' field reaches
-    from recon_cli.poisson.octree import build_levels, unpack_keys
+    from recon_cli.stages.poisson.octree import build_levels, unpack_keys
 
     rng = np.random.default_rng(seed)
     p, _ = shape_cloud("sphere", 400, rng)
@@ -155,7 +155,7 @@ def test_own_ring_1_tree_is_poissonrecons(seed):
 
 
 def test_own_ring_is_validated():
-    from recon_cli.poisson.octree import build_levels
+    from recon_cli.stages.poisson.octree import build_levels
 
     with pytest.raises(ValueError, match="own_ring"):
         build_levels(np.full((1, 3), 0.5), np.array([3]), 3, 1, "neumann", own_ring=3)

@@ -10,12 +10,12 @@ from numba import njit
 from recon_cli.backends import open3d_backend
 from recon_cli.geometry import PointCloud
 from recon_cli.mesh.sampling import sample_surface
-from recon_cli.poisson import _extract as E
-from recon_cli.poisson import screened_poisson
+from recon_cli.stages.poisson import _extract as E
+from recon_cli.stages.poisson import screened_poisson
 from recon_cli._kernels.arrays import lower_bound
-from recon_cli.poisson._octree import MASK21, lattice_key
-from recon_cli.poisson._splat import hat_b2_deriv, hat_b2_value
-from recon_cli.poisson.splat import fields_as_items, merge_samples, noise_fraction, spread_fields
+from recon_cli.stages.poisson._octree import MASK21, lattice_key
+from recon_cli.stages.poisson._splat import hat_b2_deriv, hat_b2_value
+from recon_cli.stages.poisson.splat import fields_as_items, merge_samples, noise_fraction, spread_fields
 
 from reference import isolated
 from shapes import SHAPES, shape_cloud
@@ -94,8 +94,8 @@ def test_normal_field_rhs_is_the_direct_splat_of_the_spread_field(rng):
     """The level-by-level right-hand side (refinement of the coarser fields, fixed stencils,
     restriction of the finer ones) equals splatting every spread item at every level, on an
     adaptive tree (a dense and a sparse half: splats from several levels)."""
-    from recon_cli.poisson.octree import build_levels
-    from recon_cli.poisson.splat import NormalField, make_splats, merge_samples
+    from recon_cli.stages.poisson.octree import build_levels
+    from recon_cli.stages.poisson.splat import NormalField, make_splats, merge_samples
 
     p, n = shape_cloud("torus", 20_000, rng, rotate=False)
     keep = (p[:, 0] > 0) | (rng.random(len(p)) < 1 / 20)
@@ -123,9 +123,9 @@ def test_normal_field_rhs_in_slabs_is_bitwise_the_one_pass(rng, monkeypatch):
     one made in one pass, at every level of an adaptive tree (dense and sparse halves, splats
     of several levels, the field carried from level to level), and it consumes the fields of
     a copy of the caller's dict, not the caller's."""
-    from recon_cli.poisson import splat as splat_mod
-    from recon_cli.poisson.octree import build_levels
-    from recon_cli.poisson.splat import NormalField, make_splats, merge_samples
+    from recon_cli.stages.poisson import splat as splat_mod
+    from recon_cli.stages.poisson.octree import build_levels
+    from recon_cli.stages.poisson.splat import NormalField, make_splats, merge_samples
 
     p, n = shape_cloud("torus", 20_000, rng, rotate=True)
     keep = (p[:, 0] > 0) | (rng.random(len(p)) < 1 / 20)
@@ -293,7 +293,7 @@ def test_noisy_samples_are_screened_less_and_come_out_closer(rng, monkeypatch):
     """On a noisy sphere (noise 0.4 % of the radius) the measured noise lowers the screening
     (weight per sample between the clean and the noisy scale) and the surface is closer to the
     true sphere than with the clean weight everywhere."""
-    from recon_cli.poisson import splat as splat_mod
+    from recon_cli.stages.poisson import splat as splat_mod
 
     p, n = shape_cloud("sphere", 80_000, rng)
     centre = p.mean(axis=0)

@@ -1,4 +1,4 @@
-"""Trimming a Poisson surface along a density contour (recon_cli.poisson.trim)."""
+"""Trimming a Poisson surface along a density contour (recon_cli.stages.poisson.trim)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import pytest
 from recon_cli.geometry import TriangleMesh
 from recon_cli.mesh.topology import Connectivity
 from recon_cli.mesh.topology import report as topology_report
-from recon_cli.poisson import screened_poisson
-from recon_cli.poisson.trim import trim_by_density
+from recon_cli.stages.poisson import screened_poisson
+from recon_cli.stages.poisson.trim import trim_by_density
 from recon_cli.tolerances import tol
 
 from shapes import SHAPES, icosphere, random_rotation, single_view_scan

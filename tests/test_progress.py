@@ -124,7 +124,7 @@ def test_poisson_solve_bar_is_weighted_by_each_levels_work():
     estimate follows the level sizes, not one unit per level."""
     from types import SimpleNamespace
 
-    from recon_cli.poisson.system import solve_work
+    from recon_cli.stages.poisson.system import solve_work
 
     nodes = [8, 27, 125, 729, 4913, 35937, 43845, 149983, 476578]  # the sample scan at depth 8
     levels = [SimpleNamespace(depth=d, n_nodes=n) for d, n in enumerate(nodes)]

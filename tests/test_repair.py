@@ -13,7 +13,7 @@ from recon_cli.errors import InputError, ParameterError
 from recon_cli.geometry import TriangleMesh, bbox_diagonal
 from recon_cli.mesh.sampling import sample_surface
 from recon_cli.mesh.topology import boundary_loops, report
-from recon_cli.repair import repair, run_stage
+from recon_cli.stages.repair import repair, run_stage
 from recon_cli.stages import apply_stage
 
 import mesh_damage as D
@@ -456,7 +456,7 @@ def test_repair_of_any_soup_is_manifold_and_oriented(soup):
 
 
 def test_our_marching_cubes_output_passes_unchanged():
-    from recon_cli.mcubes import marching_cubes
+    from recon_cli.stages.mcubes import marching_cubes
 
     g = np.linspace(-1.5, 1.5, 40)
     x, y, z = np.meshgrid(g, g, g, indexing="ij")
@@ -476,7 +476,7 @@ def test_our_marching_cubes_output_passes_unchanged():
 
 @pytest.mark.slow  # over 10 s on a cold numba cache of the ball-pivoting kernels
 def test_our_ball_pivoting_output_keeps_every_face():
-    from recon_cli.ballpivot import ball_pivoting
+    from recon_cli.stages.ballpivot import ball_pivoting
 
     cloud = sampled_cloud("kitten", 10_000)
     mesh = TriangleMesh(vertices=cloud.points, faces=ball_pivoting(cloud.points, cloud.normals))

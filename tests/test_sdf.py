@@ -9,9 +9,9 @@ import pytest
 from recon_cli.errors import InputError, ParameterError
 from recon_cli.geometry import PointCloud, TriangleMesh
 from recon_cli.grid import Grid
-from recon_cli.mcubes import marching_cubes
+from recon_cli.stages.mcubes import marching_cubes
 from recon_cli.mesh.distance import closest_points
-from recon_cli.sdf import eikonal_check, grid_frame, grid_points, mesh_sdf
+from recon_cli.stages.sdf import eikonal_check, grid_frame, grid_points, mesh_sdf
 from recon_cli.stages import apply_stage
 
 from shapes import box_distance, box_mesh
@@ -208,7 +208,7 @@ def test_eikonal_check_exact_sphere():
 def test_eikonal_check_slabs(monkeypatch):
     """The slab-by-slab evaluation gives the same statistics whatever the slab size,
     with NaN (unknown) samples and a band cap present."""
-    import recon_cli.sdf as sdf_mod
+    import recon_cli.stages.sdf as sdf_mod
 
     rng = np.random.default_rng(3)
     x = np.linspace(-1, 1, 41)
@@ -266,7 +266,7 @@ def test_validation_and_cli(tmp_path):
 
 
 def test_open3d_backend_agrees_with_native_and_is_meshes_only():
-    from recon_cli.sdf import run_stage as sdf_stage
+    from recon_cli.stages.sdf import run_stage as sdf_stage
 
     mesh = load_shared("kitten")
     ours = sdf_stage(mesh.copy(), resolution=24)
@@ -421,7 +421,7 @@ def test_side_classes_are_the_components_of_the_link_graph(seed):
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    from recon_cli.sdf import _kernel as K
+    from recon_cli.stages.sdf import _kernel as K
 
     rng = np.random.default_rng(seed)
     shape = tuple(rng.integers(1, 9, size=3))
@@ -455,7 +455,7 @@ def test_side_classes_are_the_components_of_the_link_graph(seed):
 
 
 def test_boundary_free_and_signed_volume():
-    from recon_cli.sdf import is_boundary_free, signed_volume
+    from recon_cli.stages.sdf import is_boundary_free, signed_volume
 
     from shapes import hollow_ball, icosphere
 

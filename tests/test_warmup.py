@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 UNUSED: set[str] = {
     # degree 2's direct splat of the normals: the solve uses it only for a KERNEL_WIDTH other
     # than 1 (bspline.NormalRHS otherwise); the reference of NormalRHS's test
-    "recon_cli.poisson._bspline.splat_rhs",
+    "recon_cli.stages.poisson._bspline.splat_rhs",
 }
 
 AFTER = r"""
@@ -76,8 +76,8 @@ def test_no_command_compiles_after_warmup(tmp_path):
     assert report["aot_built"] is True and report["aot_reason"] is None, report["aot_reason"]
     assert report["aot_dir"].startswith(str(tmp_path / "cache" / "aot"))
     for module in (
-        "recon_cli/ballpivot/__init__.py",
-        "recon_cli/mcubes/_kernel.py",
+        "recon_cli/stages/ballpivot/__init__.py",
+        "recon_cli/stages/mcubes/_kernel.py",
         "recon_cli/cli/main.py",
     ):
         assert Path(importlib.util.cache_from_source(str(ROOT / module))).is_file(), module

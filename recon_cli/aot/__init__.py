@@ -39,9 +39,9 @@ from recon_cli._kernels.cache import cache_dir, kernel_sources_fingerprint
 # (reading and writing PLY, the stages, the mesh topology of their reports)
 MODULES = (
     "recon_cli.io._ply_kernel",
-    "recon_cli.ballpivot._kernel",
+    "recon_cli.stages.ballpivot._kernel",
     "recon_cli.mesh._topology_kernel",
-    "recon_cli.mcubes._kernel",
+    "recon_cli.stages.mcubes._kernel",
 )
 MANIFEST = "manifest.json"
 # the layout of a build (manifest, signature keys): part of the fingerprint, so a loader
@@ -235,7 +235,7 @@ def _load_extension(name: str, path: str) -> Any:
 
 
 def kernels(name: str) -> Any:
-    """The kernels of module ``name`` (e.g. ``"recon_cli.ballpivot._kernel"``): its ahead-of-time
+    """The kernels of module ``name`` (e.g. ``"recon_cli.stages.ballpivot._kernel"``): its ahead-of-time
     build when there is one, else the module itself (numba JIT, from the cache)."""
     ns = _state["namespaces"].get(name)
     if ns is None:

@@ -1,4 +1,4 @@
-"""``recon ballpivot IN OUT``: its options come from the stage's declaration (``recon_cli.ballpivot.SPEC``)."""
+"""``recon ballpivot IN OUT``: its options come from the stage's declaration (``recon_cli.stages.ballpivot.SPEC``)."""
 
 from __future__ import annotations
 

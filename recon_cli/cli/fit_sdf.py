@@ -1,4 +1,4 @@
-"""``recon fit-sdf IN OUT.npz``: options from the stage's declaration (``recon_cli.learned.SPEC``).
+"""``recon fit-sdf IN OUT.npz``: options from the stage's declaration (``recon_cli.stages.learned.SPEC``).
 
 The one addition to the generated command: a training stopped by Ctrl-C still writes the best
 field so far, and the command then exits 130.

@@ -1,4 +1,4 @@
-"""``recon mcubes IN OUT``: its options come from the stage's declaration (``recon_cli.mcubes.SPEC``)."""
+"""``recon mcubes IN OUT``: its options come from the stage's declaration (``recon_cli.stages.mcubes.SPEC``)."""
 
 from __future__ import annotations
 

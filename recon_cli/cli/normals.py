@@ -1,4 +1,4 @@
-"""``recon normals IN OUT``: its options come from the stage's declaration (``recon_cli.normals.SPEC``)."""
+"""``recon normals IN OUT``: its options come from the stage's declaration (``recon_cli.stages.normals.SPEC``)."""
 
 from __future__ import annotations
 

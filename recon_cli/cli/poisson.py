@@ -1,4 +1,4 @@
-"""``recon poisson IN OUT``: its options come from the stage's declaration (``recon_cli.poisson.SPEC``)."""
+"""``recon poisson IN OUT``: its options come from the stage's declaration (``recon_cli.stages.poisson.SPEC``)."""
 
 from __future__ import annotations
 

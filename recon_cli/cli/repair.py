@@ -1,4 +1,4 @@
-"""``recon repair IN OUT``: its options come from the stage's declaration (``recon_cli.repair.SPEC``)."""
+"""``recon repair IN OUT``: its options come from the stage's declaration (``recon_cli.stages.repair.SPEC``)."""
 
 from __future__ import annotations
 

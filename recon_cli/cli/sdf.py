@@ -1,4 +1,4 @@
-"""``recon sdf IN OUT``: its options come from the stage's declaration (``recon_cli.sdf.SPEC``)."""
+"""``recon sdf IN OUT``: its options come from the stage's declaration (``recon_cli.stages.sdf.SPEC``)."""
 
 from __future__ import annotations
 

@@ -1,0 +1,267 @@
+"""PyTorch compute for :mod:`recon_cli.stages.learned`: the network, its training loop, batched queries.
+
+Compute only: the stage (:mod:`recon_cli.stages.learned`) validates every input and turns the
+results into grids and meshes. Imported only when a field is fitted or queried, so that
+``recon --help`` and every other command never load torch.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import torch
+from torch import nn
+
+_CHUNK = 65_536  # query points per forward pass (bounds the activations' memory)
+
+
+class FieldNet(nn.Module):
+    """MLP s(x) on Fourier features [x, sin(2^k pi x), cos(2^k pi x)], softplus activations.
+
+    Geometric initialisation (Atzmon & Lipman 2020, with the positional-encoding form of
+    Yariv et al. 2020): the weights of the encoded features start at zero and the layers are
+    set so that s(x) ~= |x| - radius, a signed distance to a sphere, before any training.
+    """
+
+    def __init__(
+        self, width: int, depth: int, frequencies: int, radius: float, beta: float = 100.0
+    ):
+        super().__init__()
+        self.frequencies = frequencies
+        dims_in = 3 + 6 * frequencies
+        layers = []
+        d = dims_in
+        for i in range(depth):
+            lin = nn.Linear(d, width)
+            nn.init.normal_(lin.weight, 0.0, math.sqrt(2.0) / math.sqrt(width))
+            nn.init.zeros_(lin.bias)
+            if i == 0 and frequencies:
+                with torch.no_grad():
+                    lin.weight[:, 3:] = 0.0
+            layers.append(lin)
+            d = width
+        self.hidden = nn.ModuleList(layers)
+        self.out = nn.Linear(d, 1)
+        nn.init.normal_(self.out.weight, math.sqrt(math.pi) / math.sqrt(d), 1e-4)
+        nn.init.constant_(self.out.bias, -radius)
+        self.act = nn.Softplus(beta=beta)
+        self.register_buffer(
+            "bands", (2.0 ** torch.arange(frequencies, dtype=torch.float32)) * math.pi
+        )
+
+    def encode(self, x: torch.Tensor) -> torch.Tensor:
+        if not self.frequencies:
+            return x
+        xb = (x[:, :, None] * self.bands).reshape(len(x), -1)
+        return torch.cat([x, torch.sin(xb), torch.cos(xb)], dim=1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        h = self.encode(x)
+        for lin in self.hidden:
+            h = self.act(lin(h))
+        return self.out(h)[:, 0]
+
+
+@dataclass
+class TrainConfig:
+    iterations: int
+    max_seconds: float | None
+    batch: int
+    lr: float
+    eikonal_weight: float
+    normal_weight: float
+    field: str  # "sdf" or "occupancy"
+    seed: int
+    offsurface_weight: float = 1.0
+    surface_weight: float = 1.0
+    occupancy_gain: float = 10.0  # p(inside) = sigmoid(-gain * s)
+    band: float = (
+        0.1  # band samples: offsets N(0, (band * U(0, 1))^2) from random points (eikonal only)
+    )
+    band_share: float = 0.0  # band samples per surface point
+    eikonal_l1: bool = False  # E| |grad s| - 1 | instead of E(|grad s| - 1)^2
+
+
+@dataclass
+class TrainOutcome:
+    iterations: int
+    seconds: float
+    interrupted: bool
+    best_loss: float
+    final_loss: float
+    history: list  # (iteration, smoothed loss) every few iterations
+
+
+def set_threads(n: int | None) -> None:
+    if n:
+        torch.set_num_threads(int(n))
+
+
+def build(width: int, depth: int, frequencies: int, radius: float, seed: int) -> FieldNet:
+    torch.manual_seed(seed)
+    return FieldNet(width, depth, frequencies, radius)
+
+
+def _grad(y: torch.Tensor, x: torch.Tensor, create_graph: bool) -> torch.Tensor:
+    return torch.autograd.grad(y, x, torch.ones_like(y), create_graph=create_graph)[0]
+
+
+def _eikonal(g: torch.Tensor, l1: bool) -> torch.Tensor:
+    dev = g.norm(dim=1) - 1.0
+    return dev.abs().mean() if l1 else (dev**2).mean()
+
+
+def train(
+    net: FieldNet,
+    points: np.ndarray,
+    normals: np.ndarray | None,
+    sigma: np.ndarray,
+    labels_fn: Callable[[np.ndarray], np.ndarray] | None,
+    cfg: TrainConfig,
+    on_step: Callable[[int, float, float], None] | None = None,
+) -> TrainOutcome:
+    """Fit ``net`` to ``points`` (normalised coordinates, (n, 3) float32).
+
+    sdf: L1 zero level on the points + ``normal_weight`` * ||grad s(p) - n_p|| (with normals)
+    + ``eikonal_weight`` * (||grad s|| - 1)^2 (``eikonal_l1``: | ||grad s|| - 1 |) on points near
+    and away from the surface (IGR) and on ``band_share`` * batch band samples.
+    occupancy: binary cross-entropy of p(inside) = sigmoid(-gain * s) on labelled samples
+    (``labels_fn``: 1 inside) + |s| on the points. On KeyboardInterrupt (at any time, also
+    before the first step) the best parameters so far are restored and the outcome says
+    ``interrupted``.
+    """
+    st = {
+        "it": 0,
+        "ema": None,
+        "best": math.inf,
+        "last": math.nan,
+        "history": [],
+        "best_state": {k: v.detach().clone() for k, v in net.state_dict().items()},
+    }
+    t0 = time.perf_counter()
+    interrupted = False
+    try:
+        _loop(net, points, normals, sigma, labels_fn, cfg, on_step, st, t0)
+    except KeyboardInterrupt:
+        interrupted = True
+    ema = st["ema"]
+    if interrupted or (ema is not None and ema > st["best"]):
+        net.load_state_dict(st["best_state"])
+    elif ema is not None:
+        st["best"] = min(st["best"], ema)
+    return TrainOutcome(
+        st["it"], time.perf_counter() - t0, interrupted, st["best"], st["last"], st["history"]
+    )
+
+
+def _loop(
+    net, points, normals, sigma, labels_fn, cfg: TrainConfig, on_step, st: dict, t0: float
+) -> None:
+    gen = torch.Generator().manual_seed(cfg.seed)
+    pts = torch.from_numpy(points)
+    nrm = torch.from_numpy(normals) if normals is not None else None
+    sig = torch.from_numpy(sigma)
+    n = len(pts)
+    b = cfg.batch
+    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    while st["it"] < cfg.iterations:
+        it = st["it"]
+        elapsed = time.perf_counter() - t0
+        if cfg.max_seconds is not None and elapsed >= cfg.max_seconds:
+            break
+        frac = it / cfg.iterations
+        if cfg.max_seconds is not None:
+            frac = max(frac, elapsed / cfg.max_seconds)
+        lr = cfg.lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(1.0, frac))))
+        for g in opt.param_groups:
+            g["lr"] = lr
+        idx = torch.randint(0, n, (b,), generator=gen)
+        p = pts[idx]
+        near = p + torch.randn(b, 3, generator=gen) * sig[idx, None]
+        wide = p[: b // 2] + torch.randn(b // 2, 3, generator=gen) * 0.1
+        unif = torch.rand(b // 2, 3, generator=gen) * 2.0 - 1.0
+        nb = int(b * cfg.band_share)
+        if nb:
+            bi = torch.randint(0, n, (nb,), generator=gen)
+            band = pts[bi] + torch.randn(nb, 3, generator=gen) * (
+                cfg.band * torch.rand(nb, 1, generator=gen)
+            )
+            off = torch.cat([near, wide, unif, band])
+        else:
+            off = torch.cat([near, wide, unif])
+        if cfg.field == "sdf":
+            p.requires_grad_(True)
+            off.requires_grad_(True)
+            sp = net(p)
+            so = net(off)
+            go = _grad(so, off, True)
+            loss = cfg.surface_weight * sp.abs().mean()
+            eik = _eikonal(go, cfg.eikonal_l1)
+            if nrm is not None:
+                gp = _grad(sp, p, True)
+                loss = loss + cfg.normal_weight * (gp - nrm[idx]).norm(dim=1).mean()
+                eik = 0.5 * eik + 0.5 * _eikonal(gp, cfg.eikonal_l1)
+            loss = loss + cfg.eikonal_weight * eik
+            if cfg.offsurface_weight and nrm is not None:
+                # SIREN's off-surface term: no zero level away from the points (with normals
+                # only: without them nothing holds the slope and it fights the zero level)
+                far = so[b : 2 * b]
+                loss = loss + cfg.offsurface_weight * torch.exp(-100.0 * far.abs()).mean()
+        else:
+            lab = torch.from_numpy(labels_fn(off.numpy()))
+            logit = -cfg.occupancy_gain * net(off)
+            loss = nn.functional.binary_cross_entropy_with_logits(logit, lab) + net(p).abs().mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        st["it"] = it = it + 1
+        last = float(loss.detach())
+        st["last"] = last
+        ema = last if st["ema"] is None else 0.95 * st["ema"] + 0.05 * last
+        st["ema"] = ema
+        if it % 10 == 0 or it == cfg.iterations:
+            st["history"].append((it, ema))
+            if ema < st["best"]:
+                st["best"] = ema
+                st["best_state"] = {k: v.detach().clone() for k, v in net.state_dict().items()}
+        if on_step is not None:
+            on_step(it, ema, time.perf_counter() - t0)
+
+
+def values(net: FieldNet, x: np.ndarray, chunk: int = _CHUNK) -> np.ndarray:
+    """Network output at (k, 3) normalised points, float32."""
+    out = np.empty(len(x), np.float32)
+    with torch.no_grad():
+        for i in range(0, len(x), chunk):
+            xi = torch.from_numpy(np.ascontiguousarray(x[i : i + chunk], dtype=np.float32))
+            out[i : i + chunk] = net(xi).numpy()
+    return out
+
+
+def gradients(
+    net: FieldNet, x: np.ndarray, chunk: int = _CHUNK // 4
+) -> tuple[np.ndarray, np.ndarray]:
+    """Network output and its gradient (autodiff) at (k, 3) normalised points."""
+    val = np.empty(len(x), np.float32)
+    grad = np.empty((len(x), 3), np.float32)
+    for i in range(0, len(x), chunk):
+        xi = torch.from_numpy(
+            np.ascontiguousarray(x[i : i + chunk], dtype=np.float32)
+        ).requires_grad_(True)
+        y = net(xi)
+        g = _grad(y, xi, False)
+        val[i : i + chunk] = y.detach().numpy()
+        grad[i : i + chunk] = g.numpy()
+    return val, grad
+
+
+def state_arrays(net: FieldNet) -> dict[str, np.ndarray]:
+    return {k: v.detach().cpu().numpy().copy() for k, v in net.state_dict().items()}
+
+
+def load_state(net: FieldNet, arrays: dict[str, np.ndarray]) -> None:
+    net.load_state_dict({k: torch.from_numpy(np.asarray(v)) for k, v in arrays.items()})

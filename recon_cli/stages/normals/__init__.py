@@ -1,0 +1,663 @@
+"""Normal estimation (batched PCA) and consistent orientation (MST, camera, direction).
+
+Estimation: each point's neighbourhood (``knn`` nearest, all within ``radius``, or at most
+``knn`` within ``radius``) gives a covariance; the normal is the eigenvector of its smallest
+eigenvalue and the surface variation l0 / (l0 + l1 + l2) is the curvature. Neighbourhoods
+with fewer than 3 points, or collinear/coincident ones, are *degenerate*: they take the
+normal of their nearest non-degenerate neighbour, or, with none, a unit vector orthogonal
+to their line (``(0, 0, 1)`` for coincident points). Never NaN.
+
+Orientation ``mst`` (Hoppe et al. 1992, changed for thin parts): a minimum spanning forest of
+the kNN graph, then a traversal from one seed per connected component, flipping a neighbour
+when ``n_i . n_j < 0``. Edge weights are ``1 - |n_i . n_j|`` plus a penalty ``|n . e|`` on edges
+``e`` that leave the tangent planes: an edge jumping across a thin part (a mug handle) joins
+two nearly anti-parallel normals, costs almost nothing under Hoppe's weight alone and flips
+the far side; with the penalty the tree stays on one sheet. Each component's seed is the
+point farthest from its centroid, turned to face away from it. After the traversal a
+neighbour vote fixes isolated points that disagree with nearly all of their neighbours, a
+consensus pass gives points with a poorly defined normal (noise) the side their whole
+neighbourhood agrees on, a flux check (sum of ``(p - c) . n`` weighted by local area, the
+divergence-theorem volume estimate) flips a component that came out inside-out, and small
+open components (a scan in patches) follow the normals of the nearest points of the large
+or closed ones.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from recon_cli.errors import InputError, ParameterError
+from recon_cli.geometry import PointCloud, as_point_cloud, local_origin
+from recon_cli.params import Param, StageSpec
+from recon_cli.progress import task
+from recon_cli.stages import StageResult
+from recon_cli.tolerances import tol
+
+# rows per kNN query (bounds the temporary memory)
+_CHUNK = 200_000
+
+ORIENT_METHODS = ("mst", "camera", "direction", "keep", "none")
+
+SPEC = StageSpec(
+    name="normals",
+    summary="Estimate and orient point normals.",
+    description="""Estimate normals by PCA of each point's neighbourhood and orient them.
+
+    Degenerate neighbourhoods (fewer than 3 points, collinear, duplicates) are counted in
+    the report and take their nearest regular neighbour's normal. A mesh's vertices are
+    used (the output is a point cloud).""",
+    takes=("cloud", "mesh"),
+    gives=("cloud", "oriented"),
+    backends=("native", "open3d"),
+    params=(
+        Param(
+            "knn",
+            "int",
+            30,
+            "Neighbours per point (with --radius: at most this many).",
+            unit="points",
+            min=3,
+            also=(0,),
+            special={0: "radius only (needs --radius)"},
+        ),
+        Param(
+            "radius",
+            "float",
+            None,
+            "Neighbourhood radius.",
+            unit="input units",
+            min=0,
+            min_open=True,
+        ),
+        Param(
+            "orient",
+            "choice",
+            "mst",
+            "mst: consistent propagation, outward; camera/direction: towards --camera/"
+            "--direction; keep: signs of the input normals; none: unoriented.",
+            choices=ORIENT_METHODS,
+        ),
+        Param(
+            "camera",
+            "vector",
+            None,
+            "Viewpoint for --orient camera.",
+            unit="input units",
+            metavar="X,Y,Z",
+        ),
+        Param("direction", "vector", None, "Direction for --orient direction.", metavar="X,Y,Z"),
+        Param(
+            "curvature",
+            "bool",
+            False,
+            "Also write the vertex property 'curvature' (surface variation).",
+        ),
+    ),
+)
+
+# the MST graph uses at most this many nearest neighbours of each point (more adds time, not accuracy)
+_GRAPH_K = 12
+# weight of the out-of-tangent-plane penalty on MST edges
+_BETA = 2.0
+# tiny weight floor: scipy treats zero-weight edges as absent
+_EPS = 1e-9
+# a component is flipped by the flux check only when clearly inside-out
+_FLUX_MIN = 0.02
+# normalised flux above which a component counts as closed (a sphere gives 1, a flat patch 0)
+_CLOSED_FLUX = 0.3
+# neighbour-vote passes after propagation
+_VOTE_PASSES = 2
+# passes taking the side of the (tangent-weighted) mean oriented normal of the full neighbourhood
+_CONSENSUS_PASSES = 2
+
+
+# ----------------------------------------------------------------------------- validation
+
+
+def _check_points(points: Any) -> np.ndarray:
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise InputError(f"points must have shape (n, 3), got {pts.shape}")
+    bad = ~np.isfinite(pts).all(axis=1)
+    if bad.any():
+        raise InputError(
+            f"points have {int(bad.sum())} rows with NaN or infinite coordinates (first: row {int(np.argmax(bad))}); "
+            "remove them first"
+        )
+    return np.ascontiguousarray(pts)
+
+
+def _check_knn(knn: Any, radius: Any) -> tuple[int | None, float | None]:
+    if isinstance(knn, str):
+        knn = None if knn.strip().lower() in ("", "none", "0") else knn
+    if knn is not None:
+        try:
+            kf = float(knn)
+        except (TypeError, ValueError):
+            raise ParameterError(f"knn must be an integer >= 3, got {knn!r}") from None
+        if not kf.is_integer() or kf < 3:
+            raise ParameterError(f"knn must be an integer >= 3, got {knn!r}")
+        knn = int(kf)
+    if isinstance(radius, str):
+        radius = None if radius.strip().lower() in ("", "none") else radius
+    if radius is not None:
+        try:
+            radius = float(radius)
+        except (TypeError, ValueError):
+            raise ParameterError(f"radius must be a positive number, got {radius!r}") from None
+        if not (np.isfinite(radius) and radius > 0):
+            raise ParameterError(f"radius must be a positive number, got {radius!r}")
+    if knn is None and radius is None:
+        raise ParameterError("give knn, radius or both")
+    return knn, radius
+
+
+def _parse_vector(v: Any, name: str, unit: bool = False) -> np.ndarray | None:
+    if v is None:
+        return None
+    if isinstance(v, str):
+        parts = [s for s in v.replace(" ", ",").split(",") if s]
+    else:
+        parts = list(np.ravel(np.asarray(v, dtype=object)))
+    try:
+        vec = np.array([float(x) for x in parts], dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ParameterError(f"{name} must be three numbers X,Y,Z, got {v!r}") from None
+    if vec.shape != (3,) or not np.isfinite(vec).all():
+        raise ParameterError(f"{name} must be three finite numbers X,Y,Z, got {v!r}")
+    if unit:
+        length = np.linalg.norm(vec)
+        if length == 0:
+            raise ParameterError(f"{name} must not be the zero vector")
+        vec = vec / length
+    return vec
+
+
+# ----------------------------------------------------------------------------- neighbourhoods
+
+
+def _neighbourhoods(pts: np.ndarray, knn: int | None, radius: float | None):
+    """Neighbourhoods in a spatially coherent order.
+
+    Returns (order, ps, indptr, indices): ``ps = pts[order]`` and CSR neighbour lists
+    indexing ``ps``; kNN and hybrid rows are sorted by distance (the point itself first
+    unless it has duplicates).
+    """
+    from scipy.spatial import cKDTree
+
+    n = len(pts)
+    tree = cKDTree(pts)
+    # the tree's leaf order is spatially coherent: querying and computing in it is cache friendly
+    order = np.asarray(tree.indices, dtype=np.int64)
+    ps = np.ascontiguousarray(pts[order])
+    inv = np.empty(n + 1, dtype=np.int32)
+    inv[order] = np.arange(n, dtype=np.int32)
+    inv[n] = n  # cKDTree's "missing" marker
+    if knn is not None:
+        k = min(knn, n)
+        # query in chunks: cKDTree's float64 distances and int64 indices would triple the memory
+        idx = np.empty((n, k), dtype=np.int32)
+        bound = np.inf if radius is None else radius
+        for a in range(0, n, _CHUNK):
+            _, got = tree.query(ps[a : a + _CHUNK], k, distance_upper_bound=bound, workers=-1)
+            idx[a : a + _CHUNK] = inv[np.asarray(got).reshape(-1, k)]
+        if radius is None:
+            return order, ps, np.arange(0, n * k + 1, k, dtype=np.int64), idx.ravel()
+        valid = idx < n
+        indptr = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(valid.sum(axis=1), out=indptr[1:])
+        return order, ps, indptr, idx[valid]
+    lists = tree.query_ball_point(ps, radius, workers=-1)
+    counts = np.fromiter((len(x) for x in lists), dtype=np.int64, count=n)
+    indptr = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(counts, out=indptr[1:])
+    flat = inv[np.fromiter((j for x in lists for j in x), dtype=np.int64, count=int(indptr[-1]))]
+    # rows nearest first, like the kNN rows (the orientation graph takes the first few)
+    row = np.repeat(np.arange(n), counts)
+    d2 = np.einsum("ij,ij->i", ps[flat] - ps[row], ps[flat] - ps[row])
+    return order, ps, indptr, flat[np.lexsort((d2, row))]
+
+
+def _estimate_sorted(ps, indptr, indices):
+    from recon_cli.stages.normals import _kernel as K
+
+    nrm, curv, deg = K.pca_normals(ps, indptr, indices, tol.collinear)
+    if deg.any():
+        nrm, _ = K.borrow_from_neighbours(ps, nrm, deg, indptr, indices)
+    return nrm, curv, deg
+
+
+def estimate_normals(points: Any, knn: int | None = 30, radius: float | None = None):
+    """Unoriented normals by PCA of each point's neighbourhood.
+
+    Parameters
+    ----------
+    points : (n, 3) array_like of float
+        Coordinates (any unit). Rows with NaN or inf are rejected.
+    knn : int or None
+        Neighbourhood size (the point itself included), at least 3. With ``radius`` too: at
+        most ``knn`` neighbours within ``radius`` (hybrid).
+    radius : float or None
+        Neighbourhood radius, in the units of ``points``.
+
+    Returns
+    -------
+    normals : (n, 3) float64
+        Unit normals, sign arbitrary (see :func:`orient_normals`). Never NaN.
+    curvature : (n,) float64
+        Surface variation l0 / (l0 + l1 + l2) in [0, 1/3]; 0 for coincident neighbourhoods.
+    degenerate : (n,) bool
+        Neighbourhoods with fewer than 3 points, or collinear/coincident ones; their normal
+        is the nearest non-degenerate neighbour's, else orthogonal to their line, else (0, 0, 1).
+
+    Raises
+    ------
+    InputError
+        ``points`` not of shape (n, 3), or holding NaN/inf.
+    ParameterError
+        ``knn`` < 3 or not an integer, ``radius`` <= 0, or neither given.
+    """
+    pts = _check_points(points)
+    knn, radius = _check_knn(knn, radius)
+    n = len(pts)
+    if n == 0:
+        return np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=bool)
+    pts, _ = _local(pts, None, points)  # normals do not depend on the origin, precision does
+    order, ps, indptr, indices = _neighbourhoods(pts, knn, radius)
+    nrm, curv, deg = _estimate_sorted(ps, indptr, indices)
+    return _unsort(order, nrm), _unsort(order, curv), _unsort(order, deg)
+
+
+def _local(
+    pts: np.ndarray, cam: np.ndarray | None, source: Any
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """``pts`` and the viewpoint ``cam`` about the points' local origin (far from the world
+    origin the kd-tree, centroids and flux sums keep their digits); in place when ``pts``
+    is a converted copy of ``source``."""
+    centre = local_origin(pts)
+    if np.may_share_memory(pts, source):
+        pts = pts - centre
+    else:
+        pts -= centre
+    return pts, None if cam is None else cam - centre
+
+
+def _unsort(order: np.ndarray, a: np.ndarray) -> np.ndarray:
+    out = np.empty_like(a)
+    out[order] = a
+    return out
+
+
+# ----------------------------------------------------------------------------- orientation
+
+
+def _orient_mst_sorted(ps, nrm, indptr, indices, seed_mask=None, seed_sign=None):
+    """Signs (+1/-1 int8) orienting ``nrm`` consistently, and the number of components.
+
+    ``seed_mask``/``seed_sign``: points whose sign is known (``keep``); components with no
+    known point are seeded outward and checked by flux.
+    """
+    from scipy import sparse
+    from scipy.sparse.csgraph import (
+        breadth_first_order,
+        connected_components,
+        minimum_spanning_tree,
+    )
+
+    from recon_cli.stages.normals import _kernel as K
+
+    n = len(ps)
+    eptr, dst = K.graph_edges(indptr, indices, _GRAPH_K)
+    w = K.edge_weights(ps, nrm, eptr, dst, _BETA, _EPS)
+    g = sparse.csr_matrix((w, dst, eptr), shape=(n, n))
+    ncomp, labels = connected_components(g, directed=True, connection="weak")
+    tree = minimum_spanning_tree(g).tocoo()
+
+    # outward seed per component: farthest point from the component's centroid
+    cnt = np.bincount(labels, minlength=ncomp).astype(np.float64)
+    cen = (
+        np.stack([np.bincount(labels, ps[:, d], minlength=ncomp) for d in range(3)], axis=1)
+        / cnt[:, None]
+    )
+    rel = ps - cen[labels]
+    d2 = np.einsum("ij,ij->i", rel, rel)
+    by = np.lexsort((-d2, labels))  # per label, farthest first
+    first = np.ones(n, dtype=bool)
+    first[1:] = labels[by[1:]] != labels[by[:-1]]
+    seeds = by[first]
+    sign0 = _seed_signs(nrm[seeds], rel[seeds])
+    free = np.ones(ncomp, dtype=bool)
+    seed_sign_all = np.zeros(n, dtype=np.int8)
+    if seed_mask is not None and seed_mask.any():
+        free[np.unique(labels[seed_mask])] = False
+        seed_sign_all[seed_mask] = seed_sign[seed_mask]
+        root_nodes = np.concatenate([np.flatnonzero(seed_mask), seeds[free[labels[seeds]]]])
+    else:
+        root_nodes = seeds
+    keep = free[labels[seeds]]
+    seed_sign_all[seeds[keep]] = sign0[keep]
+
+    # forest + a virtual root joined to every seed: one traversal covers all components
+    rows = np.concatenate([tree.row, tree.col, np.full(len(root_nodes), n)])
+    cols = np.concatenate([tree.col, tree.row, root_nodes])
+    adj = sparse.csr_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(n + 1, n + 1))
+    order, pred = breadth_first_order(adj, n, directed=True, return_predecessors=True)
+    sign = K.propagate_signs(ps, nrm, order, pred, n, seed_sign_all)
+
+    # isolated disagreements (noise at sharp or thin places): follow a clear neighbour majority
+    deg = K.degree(eptr, dst)
+    for _ in range(_VOTE_PASSES):
+        vote = K.vote_flips(ps, nrm, sign, eptr, dst)
+        # only points that disagree with a clear majority, and never known seeds
+        bad = vote < -0.25 * np.maximum(deg, 1)
+        if seed_mask is not None:
+            bad &= ~seed_mask
+        if not bad.any():
+            break
+        sign[bad] = -sign[bad]
+
+    # points with a poorly defined normal (noise): take the side their whole neighbourhood agrees on
+    for _ in range(_CONSENSUS_PASSES):
+        cons = K.consensus(ps, nrm, sign, indptr, indices, 1.0)
+        new = np.where(cons < 0, -1, np.where(cons > 0, 1, sign)).astype(np.int8)
+        if seed_mask is not None:
+            new[seed_mask] = sign[seed_mask]
+        if (new == sign).all():
+            break
+        sign = new
+
+    # global check per free component: outward flux (divergence theorem volume estimate)
+    if free.any():
+        # local area ~ squared distance to the farthest neighbour
+        far_pt = ps[indices[np.maximum(indptr[1:] - 1, 0)]]
+        far = np.einsum("ij,ij->i", ps - far_pt, ps - far_pt)
+        flux_i = np.einsum("ij,ij->i", rel, nrm) * sign * far
+        flux = np.bincount(labels, flux_i, minlength=ncomp)
+        scale = np.bincount(labels, np.sqrt(d2) * far, minlength=ncomp)
+        inside_out = free & (flux < -_FLUX_MIN * scale)
+        if inside_out.any():
+            sign[inside_out[labels]] = -sign[inside_out[labels]]
+            flux[inside_out] = -flux[inside_out]
+        # small open pieces (a scan broken into patches) have no inside: follow the normals
+        # of the nearest points of the anchors (the largest component and every closed one)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            closedness = np.where(scale > 0, flux / scale, 0.0)
+        anchor = (np.abs(closedness) >= _CLOSED_FLUX) | ~free
+        anchor[np.argmax(cnt)] = True
+        follow = ~anchor
+        if follow.any():
+            _align_to_anchors(ps, nrm, sign, labels, anchor, follow)
+    return sign, ncomp
+
+
+def _seed_signs(nrm: np.ndarray, rel: np.ndarray) -> np.ndarray:
+    """Signs turning seed normals ``nrm`` away from their component centroid (``rel`` = p - c)."""
+    out_dot = np.einsum("ij,ij->i", nrm, rel)
+    sign0 = np.where(out_dot < 0, -1, 1).astype(np.int8)
+    flat = np.abs(out_dot) <= 1e-9 * np.sqrt(np.einsum("ij,ij->i", rel, rel))
+    if flat.any():  # a flat component: any consistent choice; make it deterministic
+        big = np.argmax(np.abs(nrm[flat]), axis=1)
+        sign0[flat] = np.where(nrm[flat, big] < 0, -1, 1)
+    return sign0
+
+
+def _align_to_anchors(ps, nrm, sign, labels, anchor, follow) -> None:
+    """Flip each ``follow`` component whose normals mostly disagree with those of the
+    nearest anchor points (in place on ``sign``)."""
+    from scipy.spatial import cKDTree
+
+    amask = anchor[labels]
+    fmask = follow[labels]
+    if not amask.any():
+        return
+    a_idx = np.flatnonzero(amask)
+    f_idx = np.flatnonzero(fmask)
+    dist, j = cKDTree(ps[a_idx]).query(ps[f_idx], 1, workers=-1)
+    j = a_idx[j]
+    agree = np.einsum("ij,ij->i", nrm[f_idx] * sign[f_idx, None], nrm[j] * sign[j, None])
+    # nearer pairs count more
+    scale = np.median(dist) + 1e-300
+    vote = np.bincount(labels[f_idx], agree / (1.0 + dist / scale), minlength=len(anchor))
+    flip = follow & (vote < 0)
+    if flip.any():
+        sign[flip[labels]] = -sign[flip[labels]]
+
+
+def orient_normals(
+    points: Any,
+    normals: Any,
+    method: str = "mst",
+    *,
+    knn: int = 30,
+    camera: Any = None,
+    direction: Any = None,
+    reference: Any = None,
+) -> tuple[np.ndarray, dict]:
+    """Orient (flip) unit normals consistently.
+
+    Parameters
+    ----------
+    points : (n, 3) array_like of float
+        Coordinates.
+    normals : (n, 3) array_like of float
+        Normals to orient (sign arbitrary), e.g. from :func:`estimate_normals`.
+    method : {"mst", "camera", "direction", "keep", "none"}
+        ``mst``: consistent propagation over the kNN graph, outward per component;
+        ``camera``: towards the viewpoint ``camera``; ``direction``: along ``direction``;
+        ``keep``: the sign of ``reference`` where it is a non-zero finite vector, propagated
+        by ``mst`` to the other points; ``none``: unchanged.
+    knn : int
+        Neighbourhood size for ``mst``/``keep``: the spanning-tree graph uses the 12 nearest
+        at most, the final neighbourhood consensus all ``knn``.
+    camera : (3,) array_like or "X,Y,Z"
+        Viewpoint for ``camera``, in the units of ``points``.
+    direction : (3,) array_like or "X,Y,Z"
+        Direction for ``direction`` (any length but zero).
+    reference : (n, 3) array_like
+        Normals whose signs ``keep`` follows.
+
+    Returns
+    -------
+    normals : (n, 3) float64
+        The oriented normals (same lines as the input).
+    info : dict
+        ``components`` (connected components of the graph, ``mst``/``keep`` only, else None)
+        and ``flipped`` (number of normals whose sign changed).
+
+    Raises
+    ------
+    InputError
+        Bad shapes, NaN/inf coordinates or normals.
+    ParameterError
+        Unknown method, missing or bad ``camera``/``direction``/``reference``.
+    """
+    pts = _check_points(points)
+    nrm = np.ascontiguousarray(np.asarray(normals, dtype=np.float64))
+    if nrm.shape != pts.shape:
+        raise InputError(f"normals have shape {nrm.shape}, expected {pts.shape}")
+    if not np.isfinite(nrm).all():
+        raise InputError("normals hold NaN or infinite values")
+    method, cam, dirn, ref = _check_orient(method, camera, direction, reference, len(pts))
+    k, _ = _check_knn(knn, None)
+    pts, cam = _local(pts, cam, points)
+    if method in ("mst", "keep") and len(pts):
+        order, ps, indptr, indices = _neighbourhoods(pts, k, None)
+        ref_s = None if ref is None else ref[order]
+        sign_s, ncomp = _orient_sorted(method, ps, nrm[order], indptr, indices, None, None, ref_s)
+        sign = _unsort(order, sign_s)
+        info = {"components": int(ncomp)}
+    else:
+        sign = _orient_direct(method, pts, nrm, cam, dirn)
+        info = {"components": None}
+    info["flipped"] = int((sign < 0).sum())
+    return nrm * sign[:, None], info
+
+
+def _check_orient(method, camera, direction, reference, n):
+    if not isinstance(method, str) or method.lower() not in ORIENT_METHODS:
+        raise ParameterError(f"orient must be one of {', '.join(ORIENT_METHODS)}, got {method!r}")
+    method = method.lower()
+    cam = _parse_vector(camera, "camera")
+    dirn = _parse_vector(direction, "direction", unit=True)
+    if method == "camera" and cam is None:
+        raise ParameterError("--orient camera needs --camera X,Y,Z")
+    if method == "direction" and dirn is None:
+        raise ParameterError("--orient direction needs --direction X,Y,Z")
+    if cam is not None and method != "camera":
+        raise ParameterError("--camera is only used with --orient camera")
+    if dirn is not None and method != "direction":
+        raise ParameterError("--direction is only used with --orient direction")
+    ref = None
+    if method == "keep":
+        if reference is None:
+            raise InputError("--orient keep needs input normals (the input has none)")
+        ref = np.asarray(reference, dtype=np.float64)
+        if ref.shape != (n, 3):
+            raise InputError(f"reference normals have shape {ref.shape}, expected ({n}, 3)")
+    return method, cam, dirn, ref
+
+
+def _orient_direct(method, pts, nrm, cam, dirn) -> np.ndarray:
+    if method == "camera":
+        d = np.einsum("ij,ij->i", nrm, cam[None, :] - pts)
+    elif method == "direction":
+        d = nrm @ dirn
+    else:
+        d = np.ones(len(pts))
+    return np.where(d < 0, -1, 1).astype(np.int8)
+
+
+def _orient_sorted(method, ps, nrm_s, indptr, indices, cam, dirn, ref_s):
+    """Signs in sorted order and the component count (None for direct methods)."""
+    if method in ("camera", "direction", "none"):
+        return _orient_direct(method, ps, nrm_s, cam, dirn), None
+    seed_mask = seed_sign = None
+    if method == "keep":
+        ok = np.isfinite(ref_s).all(axis=1) & (
+            np.einsum("ij,ij->i", np.nan_to_num(ref_s), np.nan_to_num(ref_s)) > 0
+        )
+        dots = np.einsum("ij,ij->i", nrm_s, np.nan_to_num(ref_s))
+        seed_mask = ok & (dots != 0)
+        seed_sign = np.where(dots < 0, -1, 1).astype(np.int8)
+    return _orient_mst_sorted(ps, nrm_s, indptr, indices, seed_mask, seed_sign)
+
+
+# ----------------------------------------------------------------------------- stage
+
+
+@SPEC.runner
+def run_stage(
+    data: Any,
+    *,
+    knn: int,
+    radius: float | None,
+    orient: str,
+    camera: tuple[float, float, float] | None,
+    direction: tuple[float, float, float] | None,
+    curvature: bool,
+    backend: str,
+    progress: Any = None,
+) -> StageResult:
+    """Stage ``normals``: estimate and orient normals of a cloud (or of a mesh's vertices).
+
+    Parameters
+    ----------
+    data : PointCloud or TriangleMesh
+        Input; a mesh's vertices are used and the output is a point cloud.
+    knn, radius
+        Neighbourhood, see :func:`estimate_normals` (``knn=0`` with a radius: radius only).
+    orient : {"mst", "camera", "direction", "keep", "none"}
+        See :func:`orient_normals`.
+    camera, direction : "X,Y,Z" or (3,) sequence
+        For ``orient="camera"`` / ``"direction"``.
+    curvature : bool
+        Also write the vertex attribute ``curvature`` (surface variation).
+    backend : {"native", "open3d"}
+        ``open3d``: Open3D's estimate_normals (+ orient_normals_consistent_tangent_plane(knn) for ``mst``).
+
+    Returns
+    -------
+    StageResult
+        ``output``: a PointCloud with unit ``normals``; ``report`` keys: points, knn, radius,
+        neighbourhood_size, degenerate, components, flipped, orient, input_normals, backend.
+    """
+    from recon_cli.stages.normals import _kernel as _normals_kernel  # noqa: F401  (numba compiles before timing starts)
+
+    knn, radius = _check_knn(None if knn == 0 else knn, radius)  # parameters: checked by SPEC
+    cloud = as_point_cloud(data)
+    pts = _check_points(cloud.points)
+    n = len(pts)
+    method, cam, dirn, ref = _check_orient(orient, camera, direction, cloud.normals, n)
+    if backend == "open3d" and curvature:
+        raise ParameterError("--curvature is not available with --backend open3d")
+    if n == 0:
+        raise InputError("the input has no points")
+    pts, cam = _local(pts, cam, cloud.points)
+
+    out = (
+        cloud.copy()
+        if isinstance(data, PointCloud)
+        else PointCloud(
+            points=cloud.points,
+            colors=cloud.colors,
+            attributes=dict(cloud.attributes),
+            history=list(cloud.history),
+            point_dtype=cloud.point_dtype,
+            obj_info=list(cloud.obj_info),
+        )
+    )
+    report: dict[str, Any] = {
+        "points": n,
+        "knn": knn,
+        "radius": radius,
+        "neighbourhood_size": None,
+        "degenerate": None,
+        "components": None,
+        "flipped": 0,
+        "orient": method,
+        "input_normals": "none"
+        if cloud.normals is None
+        else ("sign kept" if method == "keep" else "replaced"),
+        "backend": backend,
+    }
+    if backend == "open3d":
+        from recon_cli.backends import open3d_backend
+
+        with task(progress, "open3d normals"):
+            nrm = open3d_backend.estimate_normals(
+                PointCloud(points=pts),
+                knn=knn,
+                radius=radius,
+                orient_tangent_plane=(knn or 30) if method == "mst" else None,
+            )
+        if method != "mst":
+            sign = _orient_direct(method, pts, nrm, cam, dirn) if method != "keep" else None
+            if method == "keep":
+                d = np.einsum("ij,ij->i", nrm, np.nan_to_num(ref))
+                sign = np.where(d < 0, -1, 1).astype(np.int8)
+            report["flipped"] = int((sign < 0).sum())
+            nrm = nrm * sign[:, None]
+        out.normals = nrm
+        return StageResult(out, report)
+
+    with task(progress, "neighbourhoods"):
+        order, ps, indptr, indices = _neighbourhoods(pts, knn, radius)
+    with task(progress, "estimating normals"):
+        nrm_s, curv_s, deg_s = _estimate_sorted(ps, indptr, indices)
+    report["neighbourhood_size"] = float(indptr[-1] / n)
+    report["degenerate"] = int(deg_s.sum())
+    with task(progress, f"orienting ({method})"):
+        ref_s = None if ref is None else ref[order]
+        sign_s, ncomp = _orient_sorted(method, ps, nrm_s, indptr, indices, cam, dirn, ref_s)
+    report["components"] = None if ncomp is None else int(ncomp)
+    report["flipped"] = int((sign_s < 0).sum())
+    out.normals = _unsort(order, nrm_s * sign_s[:, None])
+    if curvature:
+        out.attributes["curvature"] = _unsort(order, curv_s)
+    if report["degenerate"]:
+        report["warning"] = (
+            f"{report['degenerate']} degenerate neighbourhoods (< 3 points, collinear or duplicates)"
+        )
+    return StageResult(out, report)

@@ -1,0 +1,637 @@
+"""The degree-2 B-spline system (the stage's default basis, as PoissonRecon's ``--degree 2``; Open3D uses degree 1): the
+cascadic solve, the iso-value, and chi at the levels' nodes for the extraction.
+
+At level ``d`` every cell of the tree carries the tensor-product quadratic B-spline centred
+on it (support 3 cells per axis), reflected at the cube's faces (even for Neumann, odd for
+Dirichlet, so ``chi = 0`` there). A function of level ``d - 1`` is exactly a combination
+of level-``d`` functions (refinement mask ``(1, 3, 3, 1) / 4`` per axis), so, as for the
+trilinear basis, each level holds the whole ``chi`` of the coarser levels (prolonged) plus
+its own correction, solved by Jacobi-PCG on the residual they leave. The coefficients live
+on ``E``: the level's cells and a ring of two cells around them (the children of the
+parents within one of a parent of the level's cells, in blocks of siblings), enough for the prolongation to be
+exact on the stencil (5 cells per axis) of every cell of the level: the set grows by a
+parent ring per level, and the levels' parents are within one of the tree's parents, so
+the coarser ``E`` always holds what the prolongation reads.
+
+The right-hand side is that of the normals' field of :func:`.splat.spread_fields` (each
+sample's share at its level(s) unmerged: merging per cell moves the items of a curved
+surface inwards, a bias this basis resolves), its B-splines :data:`KERNEL_WIDTH` cells of
+the splat level wide; for a width of 1 (the levels' own B-splines) it is made in time
+linear in the cells by :class:`NormalRHS` (refinement, a fixed stencil, restriction). The screening at level
+``d`` uses the samples merged per cell of that level (summed weights, weighted mean
+position), as PoissonRecon merges its interpolation points per node.
+
+The rest of the stage reads chi through one function, :meth:`ChiField.at` (chi at any
+point of the cube: from the finest level whose cells are within one cell of the point, all
+finer levels' functions vanishing there): the iso-value at the samples, chi at every
+level's nodes for the extraction (the leaves' corners; at a lattice point the B-spline is
+1/2 at its cell's faces, so the value is the mean of the 8 cells' coefficients around it),
+and :meth:`ChiField.refine_vertices`, which moves each extracted vertex along its lattice
+edge to chi's root there. Inside a leaf chi is piecewise quadratic, not trilinear: an
+extraction that refines leaves must read the finer lattice points through
+:meth:`ChiField.at` too (the current one interpolates them trilinearly from the leaf's
+corners, exact only at the corners).
+
+References
+----------
+Kazhdan, M. & Hoppe, H. (2013). Screened Poisson surface reconstruction. ACM TOG 32(3).
+Kazhdan, M., Bolitho, M. & Hoppe, H. (2006). Poisson surface reconstruction. SGP.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from recon_cli.memory import release_free_heap
+from recon_cli.stages.poisson import _bspline as B
+from recon_cli.stages.poisson import _octree as O
+from recon_cli.stages.poisson._luts import B2_MASS, B2_STIFFNESS
+from recon_cli.stages.poisson.octree import Level, dilate, pack_keys, set_corners, unpack_keys
+from recon_cli.stages.poisson.splat import Samples, Splats, fields_as_items
+from recon_cli.progress import task
+
+log = logging.getLogger("recon")
+
+TARGET = 0.5
+# the normals' kernel is this many times the splat level's cell wide (a quadratic B-spline);
+# wider smooths more: on smooth shapes it is more accurate (exact-distance Chamfer / Open3D's,
+# 100k clean samples, depth 8: sphere 0.34 at 2 against 1.01 at 1, torus 0.76 against
+# 1.69), on detailed ones less (armadillo 1.69 against 1.09, kitten 1.38 against 1.23), so
+# one cell, never worse than degree 1 where measured
+KERNEL_WIDTH = 1.0
+# the screening weight relative to make_splats' where the samples are clean and where they are
+# noisy (Splats.screening, splat.noise_fraction): the quadratic B-splines are smaller at a sample
+# (at most 0.42 against a hat's 1) and smoother, so clean samples want a stronger pull than
+# degree 1's, noisy ones a weaker; measured (exact-distance Chamfer / Open3D's, 100k samples of
+# a sphere, torus, rounded box, the kitten, armadillo and mug, clean and with noise of 0.25 % of
+# the diagonal): one weight for both cannot serve (clean kitten / armadillo at depth 8 want 5x,
+# 0.91x / 0.95x Open3D's, and are 1.00x / 1.07x at 2x; the noisy ones 1.05x / 1.03x at 2x and
+# 0.77x / 0.85x at 0.5x); with 5 and 0.5 every row at depths 8 and 9 is 0.44-1.00x
+SCREEN_CLEAN = 5.0
+SCREEN_NOISY = 0.5
+
+
+def folded_tables(n: int, s: float) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 5) mass and stiffness between cell ``i`` and ``i + t`` (column ``t + 2``) of the
+    reflected basis on ``n`` cells: the sum over the images of cell ``i + t`` (``j + 2kn``
+    with sign 1, ``-1 - j + 2kn`` with sign ``s``) within 2 of ``i``."""
+    m1 = np.zeros((n, 5))
+    k1 = np.zeros((n, 5))
+    i = np.arange(n)
+    for t in range(-2, 3):
+        j = i + t
+        ok = (j >= 0) & (j < n)
+        for kk in range(-3, 4):
+            for img, sg in ((j + 2 * kk * n, 1.0), (-1 - j + 2 * kk * n, s)):
+                off = i - img
+                hit = ok & (np.abs(off) <= 2)
+                m1[hit, t + 2] += sg * B2_MASS[off[hit] + 2]
+                k1[hit, t + 2] += sg * B2_STIFFNESS[off[hit] + 2]
+    return m1, k1
+
+
+@dataclass
+class LevelField:
+    """chi on one level in the degree-2 basis: coefficients on ``E`` and the lookups.
+
+    ``E`` is the children of the sorted parent keys ``q_keys`` in block order (cell
+    ``8 i + o``, :mod:`._bspline`); :class:`ChiField` reads chi from the levels' fields.
+    """
+
+    depth: int
+    s: float  # 1 Neumann, -1 Dirichlet
+    q_keys: np.ndarray  # (q,) sorted parent keys (level depth - 1)
+    inp: np.ndarray  # (q,) bool: parents of the level's cells (the others are the ring)
+    nb: np.ndarray  # (q, 27) int32
+    coef: np.ndarray | None = None  # (8q,)
+
+    def locate(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Cell index in E (-1 when not a cell of the level) and local coordinates of unit-cube
+        positions (m, 3)."""
+        return B.locate(pos, self.depth, self.q_keys, self.inp)
+
+
+def _level_parents(lev: Level) -> tuple[np.ndarray, np.ndarray]:
+    """The parents ``Q`` of level ``lev``'s E (depth >= 1) and which are the level's cells'."""
+    half = 1 << (lev.depth - 1)
+    P = np.unique(O.halve(lev.cell_keys))
+    Q = P
+    for axis in range(3):
+        Q = dilate(Q, axis, -1, 1, half - 1)
+    inp = np.zeros(len(Q), bool)
+    inp[O.merge_lookup(P, Q)] = True
+    return Q, inp
+
+
+def level_field(lev: Level, boundary: str) -> LevelField:
+    """The coefficient set E of level ``lev`` (depth >= 1) and its lookups."""
+    Q, inp = _level_parents(lev)
+    nb = np.empty((len(Q), 27), np.int32)
+    B.neighbour_table_into(Q, (1 << (lev.depth - 1)) - 1, nb)
+    return LevelField(lev.depth, 1.0 if boundary == "neumann" else -1.0, Q, inp, nb)
+
+
+def level_fields(levels: list[Level], boundary: str) -> tuple[list[LevelField | None], tuple]:
+    """Every level's E (:func:`level_field`; None for level 0) as views of arrays holding all
+    the levels (parents, flags, neighbour tables, coefficients: :class:`ChiField`'s layout,
+    filled level by level, so the field is made without a copy); and those arrays
+    ``(q_all, q_off, inp_all, nb_all, coef_all)``."""
+    parts = [_level_parents(lev) for lev in levels[1:]]
+    top = len(levels) - 1
+    sizes = np.zeros(top + 2, np.int64)
+    for lev, (Q, _) in zip(levels[1:], parts):
+        sizes[lev.depth + 1] = len(Q)
+    q_off = np.cumsum(sizes)
+    q_all = np.concatenate([Q for Q, _ in parts]) if parts else np.zeros(0, np.int64)
+    inp_all = np.concatenate([inp for _, inp in parts]) if parts else np.zeros(0, bool)
+    del parts
+    nb_all = neighbour_tables(q_all, q_off)
+    coef_all = np.zeros(8 * len(q_all))
+    s = 1.0 if boundary == "neumann" else -1.0
+    out: list[LevelField | None] = [None]
+    for lev in levels[1:]:
+        lo, hi = q_off[lev.depth], q_off[lev.depth + 1]
+        out.append(LevelField(lev.depth, s, q_all[lo:hi], inp_all[lo:hi], nb_all[lo:hi]))
+    return out, (q_all, q_off, inp_all, nb_all, coef_all)
+
+
+def neighbour_tables(q_all: np.ndarray, q_off: np.ndarray) -> np.ndarray:
+    """(q, 27) int32: every level's neighbour table (:func:`._bspline.neighbour_table_into`)
+    for the levels' parents concatenated (level ``L`` at ``q_off[L]:q_off[L + 1]``)."""
+    nb = np.empty((len(q_all), 27), np.int32)
+    for lv in range(1, len(q_off) - 1):
+        lo, hi = q_off[lv], q_off[lv + 1]
+        B.neighbour_table_into(q_all[lo:hi], (1 << (lv - 1)) - 1, nb[lo:hi])
+    return nb
+
+
+class ChiField:
+    """chi of the degree-2 solve, everywhere in the cube: every level's coefficients and
+    lookups, concatenated (level ``L`` at ``q_off[L]:q_off[L + 1]``).
+
+    :meth:`at` is the one way the rest of the stage reads chi (the iso-value at the
+    samples, the leaves' corners for the extraction, the roots along the edges).
+    """
+
+    def __init__(self, fields: list[LevelField], boundary: str, arrays: tuple | None = None):
+        if arrays is not None:
+            # the levels' arrays as :func:`level_fields` made them (the fields are views)
+            self.q_all, self.q_off, self.inp_all, self.nb_all, self.coef_all = arrays
+            self.top = len(self.q_off) - 2
+            self.s = 1.0 if boundary == "neumann" else -1.0
+            return
+        top = max((f.depth for f in fields), default=0)
+        sizes = np.zeros(top + 2, np.int64)
+        for f in fields:
+            sizes[f.depth + 1] = len(f.q_keys)
+        self.q_off = np.cumsum(sizes)
+        self.top = top
+        self.s = 1.0 if boundary == "neumann" else -1.0
+        order = sorted(fields, key=lambda f: f.depth)
+        self.q_all = np.concatenate([f.q_keys for f in order]) if order else np.zeros(0, np.int64)
+        self.inp_all = np.concatenate([f.inp for f in order]) if order else np.zeros(0, bool)
+        self.nb_all = (
+            np.concatenate([f.nb for f in order]) if order else np.zeros((0, 27), np.int32)
+        )
+        self.coef_all = np.concatenate([f.coef for f in order]) if order else np.zeros(0)
+
+    def at(self, pos: np.ndarray) -> np.ndarray:
+        """chi at unit-cube positions (m, 3) (:func:`._bspline.chi_at`)."""
+        return B.chi_at(
+            np.ascontiguousarray(pos, dtype=np.float64),
+            self.top,
+            self.q_all,
+            self.q_off,
+            self.inp_all,
+            self._neighbours(),
+            self.coef_all,
+            self.s,
+        )
+
+    def drop_neighbours(self) -> None:
+        """Free the levels' neighbour tables (27 int32 a parent, the field's largest arrays:
+        1.7x its coefficients) while chi is not read; :meth:`at` makes them again (in time
+        linear in the parents: 0.1 s at depth 9) when next called. The extraction runs
+        between the leaves' corner values and the vertices' roots without them."""
+        self.nb_all = None
+
+    def _neighbours(self) -> np.ndarray:
+        if self.nb_all is None:
+            self.nb_all = neighbour_tables(self.q_all, self.q_off)
+        return self.nb_all
+
+    def at_nodes(self, lev: Level, node_keys: np.ndarray) -> np.ndarray:
+        """chi at the nodes ``node_keys`` of ``lev``: the leaves' corners for the extraction
+        (their positions made a chunk at a time: at once they were the largest arrays after
+        the solve)."""
+        out = np.empty(len(node_keys))
+        step = 1 << 16
+        for a in range(0, len(node_keys), step):
+            out[a : a + step] = self.at(
+                unpack_keys(node_keys[a : a + step]) / float(1 << lev.depth)
+            )
+        return out
+
+    def refine_vertices(
+        self, verts: np.ndarray, iso: float, origin: np.ndarray, size: float, depth: int
+    ) -> np.ndarray:
+        """Move each vertex, which marching cubes put on an edge of the ``2**depth`` lattice
+        by linear interpolation, to where chi crosses ``iso`` along that edge: chi is one
+        quadratic along a finest edge (it lies in one cell of every level), so its values at
+        the two ends and the middle give the root exactly. Vertices stay on their edges, so
+        the mesh's connectivity is unchanged. Vertices not on an edge (marching cubes' cell
+        centres of ambiguous cases) stay where they are."""
+        verts = verts.copy()
+        # a chunk at a time: on all 2M vertices of a depth-10 mesh at once the temporaries
+        # (three points per vertex, their lattice coordinates) were the process's peak
+        step = 1 << 16
+        for a in range(0, len(verts), step):
+            self._refine_chunk(verts[a : a + step], iso, origin, size, depth)
+        return verts
+
+    def _refine_chunk(
+        self, verts: np.ndarray, iso: float, origin: np.ndarray, size: float, depth: int
+    ) -> None:
+        """:meth:`refine_vertices` on ``verts`` (a view, moved in place)."""
+        from recon_cli.stages.mcubes import DEGENERATE_CLAMP
+
+        res = float(1 << depth)
+        u = (verts - origin) / size * res
+        frac = np.abs(u - np.round(u))
+        axis = np.argmax(frac, axis=1)
+        on_edge = np.sort(frac, axis=1)[:, 1] < 1e-6
+        keep_idx = np.flatnonzero(on_edge)
+        u, axis = u[keep_idx], axis[keep_idx]
+        rows = np.arange(len(u))
+        lo = np.round(u)
+        lo[rows, axis] = np.floor(u[rows, axis])
+        lat = np.clip(u[rows, axis] - lo[rows, axis], 0.0, 1.0)
+        pts = np.empty((3, len(u), 3))
+        for k, t in enumerate((0.0, 0.5, 1.0)):
+            q = lo.copy()
+            q[rows, axis] += t
+            pts[k] = q / res
+        v0, vm, v1 = (self.at(pts[k]) for k in range(3))
+        t = B.edge_roots(lat, iso, v0, vm, v1, DEGENERATE_CLAMP)
+        out = lo
+        out[rows, axis] += t
+        verts[keep_idx] = out / res * size + origin
+
+
+_NO_FIELD = np.zeros((0, 3))
+_NO_ROWS = np.zeros(0, np.int32)
+
+
+class NormalRHS:
+    """The right-hand side ``b_i = int grad(B_i) . W`` level by level, coarse to fine, for the
+    field ``W`` of :func:`.splat.spread_fields` (a sum of unit-integral cell-centred quadratic
+    B-splines over the splat levels), in time linear in the cells: the degree-2 counterpart
+    of :class:`.splat.NormalField`.
+
+    - Level ``d``'s own share of ``W`` and the coarser levels' (written exactly on level
+      ``d``'s E by B-spline refinement, :func:`._bspline.prolong_field`, carried from level
+      to level) give a fixed 5 x 5 x 5 stencil per cell (:func:`._bspline.field_rhs`).
+    - The finer levels' shares are their stencils at their own level (on the whole E: a
+      share reaches three cells beyond its items), taken to coarser cells by the quadratic
+      B-splines' restriction (a coarse B-spline is the finer ones with weights
+      (1, 3, 3, 1) / 4 per axis, :func:`._bspline.restrict_rhs`), computed once from the
+      finest level up when the field is made.
+
+    The field is kept folded at the cube's faces (its images beyond them added onto the
+    cells they mirror) and the test functions are reflected: this is, to rounding, what
+    splatting every share at every level with its kernel (:func:`._bspline.splat_rhs`)
+    gives, faces included (tested). Only for :data:`KERNEL_WIDTH` 1, where the kernels are
+    the level's own B-splines.
+    """
+
+    def __init__(
+        self,
+        fields: dict[int, tuple[np.ndarray, np.ndarray]],
+        level_fields: list[LevelField | None],
+    ):
+        # a level's own share is dropped once its right-hand side is made (the dict is
+        # copied: the caller's is left whole; drop it there to free the arrays)
+        self.fields = dict(fields)
+        self.lf = list(level_fields)
+        depth = len(level_fields) - 1
+        self.depth = depth
+        self.carry: np.ndarray | None = None  # the field on the previous level's E, (8q, 3)
+        self.finer: list[np.ndarray | None] = [None] * (depth + 1)
+        up = None
+        for lv in range(depth, 1, -1):
+            f = level_fields[lv]
+            own = self._own(lv)
+            t = None
+            if own is not None:
+                t = np.zeros(8 * len(f.q_keys))
+                fv, fd = self._factors(lv)
+                B.field_rhs(
+                    f.q_keys,
+                    f.nb,
+                    np.ones(len(f.q_keys), bool),
+                    1 << lv,
+                    f.s,
+                    fv,
+                    fd,
+                    _NO_FIELD,
+                    *own,
+                    t,
+                )
+                del own
+            if up is not None:
+                t = up if t is None else t + up
+            if t is None:
+                up = None
+                continue
+            c = level_fields[lv - 1]
+            blocks = B.finer_blocks(c.q_keys, f.q_keys)
+            up = B.restrict_rhs(c.q_keys, c.nb, c.inp, blocks, t, 1 << (lv - 1), c.s)
+            self.finer[lv - 1] = up
+            del t, blocks
+
+    @staticmethod
+    def _factors(lv: int) -> tuple[np.ndarray, np.ndarray]:
+        """Value and derivative (per unit length) factors of a field's cell at offset -2..2
+        from a level-``lv`` test function's, per axis."""
+        fv = np.empty(5)
+        fd = np.empty(5)
+        for t in range(-2, 3):
+            fv[t + 2], fd[t + 2] = B.b2_factors(float(t), 1.0)
+        return fv, fd * float(1 << lv)
+
+    def _own(self, lv: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """Level ``lv``'s own share of the field: the row of each cell of its E (-1 none) and
+        the rows (:func:`._bspline.field_rows`); None if it has none."""
+        own = self.fields.get(lv)
+        if own is None or not len(own[0]):
+            return None
+        idx, missing = B.field_rows(self.lf[lv].q_keys, own[0])
+        if missing:
+            raise RuntimeError(
+                f"poisson: {missing} cells of level {lv}'s normal field lie outside its E"
+            )
+        return idx, own[1]
+
+    def rhs(self, d: int) -> np.ndarray:
+        """(8q,) right-hand side on level ``d``'s E (0 but at the children of the flagged
+        parents); call once per level, 1 to the finest, in order."""
+        f = self.lf[d]
+        carry, self.carry = self.carry, None
+        if d == 1:
+            root = self.fields.get(0)
+            if root is not None and len(root[0]):
+                # the one cell of level 0, refined onto level 1's 8 cells (each a mirror of the
+                # other across every face: weight (3 + sign) / 8 per axis, sign -s along the
+                # component's axis and s across it)
+                vec = np.zeros((8 * len(f.q_keys), 3))
+                across = (3.0 + f.s) / 8.0
+                along = (3.0 - f.s) / 8.0
+                for a in range(3):
+                    vec[:, a] = root[1][0, a] * along * across * across
+                carry = vec
+        else:
+            p = self.lf[d - 1]
+            if carry is not None and d < self.depth:
+                carry = B.prolong_field(f.q_keys, p.q_keys, p.nb, carry, 1 << (d - 1), f.s)
+        own = self._own(d)
+        self.fields.pop(d, None)
+        if d == 1:
+            self.fields.pop(0, None)
+        b = np.zeros(8 * len(f.q_keys))
+        fv, fd = self._factors(d)
+        if d < self.depth:
+            # the field on E, carried to the next level
+            if carry is None:
+                carry = np.zeros((8 * len(f.q_keys), 3))
+            if own is not None:
+                B.add_rows(carry, *own)
+            B.field_rhs(f.q_keys, f.nb, f.inp, 1 << d, f.s, fv, fd, carry, _NO_ROWS, _NO_FIELD, b)
+            self.carry = carry
+        elif carry is not None and d > 1:
+            # the finest level: the coarser field refined and its own share read where they
+            # are (no copy of either on E)
+            p = self.lf[d - 1]
+            B.field_rhs_prolonged(
+                f.q_keys,
+                f.nb,
+                f.inp,
+                1 << d,
+                f.s,
+                fv,
+                fd,
+                p.q_keys,
+                p.nb,
+                carry,
+                *(own if own is not None else (_NO_ROWS, _NO_FIELD)),
+                b,
+            )
+        elif carry is not None or own is not None:
+            B.field_rhs(
+                f.q_keys,
+                f.nb,
+                f.inp,
+                1 << d,
+                f.s,
+                fv,
+                fd,
+                _NO_FIELD if carry is None else carry,
+                *(own if own is not None else (_NO_ROWS, _NO_FIELD)),
+                b,
+            )
+        self.lf[d - 1] = None
+        del carry, own
+        if self.finer[d] is not None:
+            b += self.finer[d]
+            self.finer[d] = None
+        return b
+
+
+def _merge_per_cell(pos: np.ndarray, w: np.ndarray, level: int) -> tuple[np.ndarray, np.ndarray]:
+    """Samples merged per cell of ``level``: weighted mean position, summed weight."""
+    res = 1 << level
+    keys = pack_keys(np.clip(np.floor(pos * res), 0, res - 1))
+    uk, inv = np.unique(keys, return_inverse=True)
+    inv = inv.reshape(-1)
+    sw = np.bincount(inv, weights=w, minlength=len(uk))
+    safe = np.where(sw > 0, sw, 1.0)
+    mp = np.stack(
+        [np.bincount(inv, weights=pos[:, a] * w, minlength=len(uk)) / safe for a in range(3)],
+        axis=1,
+    )
+    return mp, sw
+
+
+def solve(
+    levels: list[Level],
+    smp: Samples,
+    splats: Splats,
+    boundary: str,
+    full_depth: int,
+    cg_tolerance: float,
+    progress: Any = None,
+) -> tuple[list[np.ndarray], list[dict], int, float, float, ChiField]:
+    """Solve every level in turn (level 0, a single cell, carries no function); returns chi
+    at each level's nodes (for the extraction), per-level statistics, total iterations, the
+    finest relative residual, the iso-value (count-weighted mean of chi at the samples) and
+    the field (:class:`ChiField`)."""
+    spos, count = smp.pos, smp.count
+    alpha = splats.alpha
+    screen_w = splats.screening(SCREEN_CLEAN, SCREEN_NOISY)
+    total_it = 0
+    last_res = 0.0
+    per_level = []
+    fields: list[LevelField] = []
+    node_keys = []
+    prev: LevelField | None = None
+    # every level's E first: the finer levels' right-hand sides are restricted from the finest up
+    lfs, arrays = level_fields(levels, boundary)
+    coef_all = arrays[4]
+    if KERNEL_WIDTH == 1.0:
+        normal_rhs = NormalRHS(splats.rhs_fields, lfs)
+        splats.rhs_fields = None  # NormalRHS drops each level's share once used
+    else:  # kernels other than the levels' own B-splines: splat every share at every level
+        items = fields_as_items(splats.rhs_fields)
+    with task(progress, "poisson: solve", total=len(levels)) as tk:
+        for lev in levels:
+            release_free_heap()
+            tl = time.perf_counter()
+            d = lev.depth
+            lev.face_nodes = O.face_nodes(lev.node_keys, 1 << d)
+            node_keys.append(lev.node_keys)
+            lev.node_keys = lev.unknown = lev.ncell = None
+            if d > 0:
+                levels[d - 1].leaf = ~O.cell_has_child(
+                    lev.cell_parent, len(levels[d - 1].cell_keys)
+                )
+                lev.cell_parent = None
+            if d == 0:
+                tk.advance(1)
+                continue
+            f = lfs[d]
+            lfs[d] = None
+            n = 1 << d
+            h = 1.0 / n
+            m1, k1 = folded_tables(n, f.s)
+            unknown = np.repeat(f.inp, 8)
+            ne = len(unknown)
+            if KERNEL_WIDTH == 1.0:
+                rhs = normal_rhs.rhs(d)
+            else:
+                rhs = B.splat_rhs(*items, d, f.q_keys, f.inp, f.s, KERNEL_WIDTH)
+            diag = B.stiffness_diag(f.q_keys, f.inp, m1, k1, h)
+            if alpha > 0:
+                mp, mw = _merge_per_cell(spos, screen_w, d)
+                scell, sloc = f.locate(mp)
+                have = scell >= 0
+                scell, sloc, sw = scell[have], sloc[have], mw[have]
+                del mp, mw, have
+                B.screening_diag_rhs(f.q_keys, f.nb, n, f.s, scell, sloc, sw, TARGET, diag, rhs)
+            else:
+                scell, sloc, sw = np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
+            # the solve's vectors on the unknowns only (the children of the flagged parents),
+            # made before the coarser levels' field is prolonged: at the finest level of 1M
+            # samples at depth 10 the right-hand side, the diagonal, the prolonged field and its
+            # product on all of E were alive at once, the process's peak
+            cmap = np.cumsum(f.inp) - 1
+            cmap[~f.inp] = -1
+            rhs = rhs[unknown]
+            diag = diag[unknown]
+            if prev is not None:
+                # the residual the coarser levels leave: A G at the unknowns, G on all of E
+                G = B.prolong(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s)
+                AG = np.empty(len(rhs))
+                B.level_matvec(
+                    f.q_keys,
+                    f.nb,
+                    f.inp,
+                    np.arange(len(f.q_keys)),
+                    cmap,
+                    m1,
+                    k1,
+                    h,
+                    n,
+                    f.s,
+                    scell,
+                    sloc,
+                    sw,
+                    G,
+                    AG,
+                )
+                rhs -= AG
+                del AG, G
+            exact = d <= full_depth
+            release_free_heap()
+            x, it, rel = B.level_pcg(
+                f.q_keys,
+                f.nb,
+                f.inp,
+                cmap,
+                m1,
+                k1,
+                h,
+                n,
+                f.s,
+                scell,
+                sloc,
+                sw,
+                rhs,
+                diag,
+                1e-7 if exact else cg_tolerance,
+                2000 if exact else 200,
+            )
+            del rhs, diag, scell, sloc, sw, cmap
+            # the level's chi: the coarser field prolonged again (cheaper than keeping it on all
+            # of E through the conjugate gradients) plus the correction
+            f.coef = coef_all[8 * arrays[1][d] : 8 * arrays[1][d + 1]]
+            if prev is not None:
+                B.prolong_into(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s, f.coef)
+            f.coef[unknown] += x
+            del x
+            fields.append(f)
+            prev = f
+            total_it += it
+            last_res = rel
+            per_level.append(
+                {
+                    "depth": d,
+                    "nodes": ne,
+                    "unknowns": int(unknown.sum()),
+                    "iterations": it,
+                    "residual": rel,
+                    "seconds": time.perf_counter() - tl,
+                }
+            )
+            log.info(
+                "poisson: level %2d  cells %9d  unknowns %9d  cg iterations %4d  residual %.2e  %.2f s",
+                d,
+                ne,
+                int(unknown.sum()),
+                it,
+                rel,
+                time.perf_counter() - tl,
+            )
+            tk.advance(1)
+    levels[-1].leaf = np.ones(len(levels[-1].cell_keys), bool)
+    for lev, keys in zip(levels, node_keys, strict=True):
+        set_corners(lev, keys)
+    chi = ChiField(fields, boundary, arrays)
+    del arrays, coef_all
+    del fields, prev
+    gvals = [chi.at_nodes(lev, keys) for lev, keys in zip(levels, node_keys)]
+    # the extraction interpolates each leaf trilinearly from its corners: the finer side of
+    # a leaf's faces takes those values (chi's own everywhere else)
+    for d in range(1, len(levels)):
+        up = levels[d - 1]
+        B.constrain_to_coarse_leaves(
+            node_keys[d], gvals[d], up.cell_keys, up.cell_nodes, up.leaf, gvals[d - 1]
+        )
+    del node_keys
+    chi_s = chi.at(spos)
+    iso = float((chi_s * count).sum() / count.sum())
+    log.info("poisson: iso-value %.6f", iso)
+    return gvals, per_level, total_it, last_res, iso, chi

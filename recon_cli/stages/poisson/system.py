@@ -1,0 +1,219 @@
+"""The cascadic solve: level by level, coarse to fine, each level's correction to the
+coarser levels' indicator function by Jacobi-preconditioned conjugate gradients."""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any
+
+import numpy as np
+
+from recon_cli.memory import release_free_heap
+from recon_cli.stages.poisson import _octree as O
+from recon_cli.stages.poisson import _system as Y
+from recon_cli.stages.poisson._luts import UNIT_STIFFNESS
+from recon_cli.stages.poisson.octree import Level
+from recon_cli.stages.poisson.splat import NormalField, Samples, Splats
+from recon_cli.progress import task
+
+log = logging.getLogger("recon")
+
+# the screening pulls chi towards this value at the samples
+TARGET = 0.5
+# the screening weight where the samples are clean and where they are noisy, relative to
+# make_splats' (Splats.screening); measured with exact-distance Chamfer against Open3D's, 100k
+# samples of a sphere, torus, rounded box, the kitten, armadillo and mug, depths 8 and 9: noisy
+# samples (0.25 % of the diagonal) at half the weight 0.80-0.89x Open3D's (0.99-1.03x at the
+# full weight); clean ones at 1.3x 0.75-0.98x (the lattice-aligned box 1.34-1.36x; at 1x the
+# armadillo was 1.07x, at 2x the torus 1.01x and the box 1.23x)
+SCREEN_CLEAN = 1.3
+SCREEN_NOISY = 0.5
+
+
+def solve(
+    levels: list[Level],
+    smp: Samples,
+    splats: Splats,
+    full_depth: int,
+    cg_tolerance: float,
+    progress: Any = None,
+) -> tuple[list[np.ndarray], list[dict], int, float]:
+    """Solve every level in turn; returns chi per level (at its nodes, the coarser levels'
+    part included), per-level statistics, total iterations and the finest relative residual.
+
+    Each level's arrays go as soon as no later step needs them (sets ``face_nodes`` and
+    ``leaf`` of every level, drops the rest; ``splats.rhs_fields`` is consumed, set to
+    None): at the finest level the peak is the level's cells plus the solver's (n,)
+    vectors, tens of MB each.
+    """
+    depth = len(levels) - 1
+    spos = smp.pos
+    alpha = splats.alpha
+    screen_w = splats.screening(SCREEN_CLEAN, SCREEN_NOISY)
+    total_it = 0
+    last_res = 0.0
+    gvals: list[np.ndarray] = []
+    per_level = []
+    work = solve_work(levels, full_depth)
+    field = NormalField(splats.rhs_fields, [lev.node_keys for lev in levels])
+    splats.rhs_fields = None  # the field drops each level's share once used
+    with task(progress, "poisson: solve", total=sum(work)) as tk:
+        for lev in levels:
+            tk.expect(work[lev.depth])  # the bar moves on an estimate while the level's kernels run
+            release_free_heap()
+            tl = time.perf_counter()
+            d = lev.depth
+            nn = lev.n_nodes
+            ke = UNIT_STIFFNESS / (1 << d)
+            # (n,) vectors are updated in place
+            rhs = field.rhs(d, lev.cell_keys, lev.node_keys, lev.unknown)
+            # past the right-hand side only the nodes on the cube's faces are needed (for the
+            # extraction's clamp), not the node keys
+            lev.face_nodes = O.face_nodes(lev.node_keys, 1 << d)
+            lev.node_keys = None
+            scell, sloc = Y.sample_cells(spos, d, lev.cell_keys)
+            # the tree is adaptive: only the samples inside this level's cells screen it; the
+            # weight halves with each coarser level (PoissonRecon scales a node's point weight
+            # by 2**its depth): coarse levels, which the finer ones only correct, are not
+            # pulled to the samples harder than the finest (measured below, make_splats)
+            lw = screen_w * (2.0 ** (d - depth))
+            have = scell >= 0
+            if not have.all():
+                scell, sloc, lw = scell[have], sloc[have], lw[have]
+            del have
+            # the diagonal, for the preconditioner: a table by incident-cell count (lev.ncell)
+            # plus the sparse screening part, not an (n,) vector
+            if alpha > 0:
+                sd_nodes, sd_vals = Y.screening_diag_rhs(
+                    scell, sloc, lev.cell_nodes, lw, TARGET, rhs
+                )
+            else:
+                sd_nodes, sd_vals = np.zeros(0, np.int64), np.zeros(0)
+            sw = lw if alpha > 0 else np.zeros(0)
+            cscr = np.zeros((0, 8, 8))
+            if alpha > 0 and 4 * len(lev.cell_keys) <= len(sw) and len(lev.cell_keys) <= 1 << 19:
+                # coarse levels: samples outnumber cells, so sum each cell's samples into its
+                # own 8x8 screening matrix once (exact) and let a CG step cost O(cells);
+                # (c, 8, 8) floats, so only up to 2**19 cells (256 MB)
+                cscr = Y.cell_screening(scell, sloc, sw, len(lev.cell_keys))
+                sw = np.zeros(0)
+            par = levels[d - 1] if d > 0 else None
+            if par is not None:
+                # the coarser levels' chi at this level's nodes; prolonged again after the
+                # solve rather than kept: one (n,) vector fewer during the conjugate gradients
+                G = Y.prolong(
+                    lev.cell_nodes, lev.cell_keys, lev.cell_parent, par.cell_nodes, gvals[-1], nn
+                )
+                AG = np.empty(nn)
+                Y.level_matvec(lev.cell_nodes, ke, cscr, scell, sloc, sw, G, AG)
+                del G
+                rhs -= AG
+                del AG
+            exact = d <= full_depth
+            release_free_heap()  # the set-up's temporaries: not resident while the solver runs
+            x, it, rel = Y.level_pcg(
+                lev.cell_nodes,
+                ke,
+                cscr,
+                scell,
+                sloc,
+                sw,
+                rhs,
+                lev.ncell,
+                sd_nodes,
+                sd_vals,
+                lev.unknown,
+                1e-7 if exact else cg_tolerance,
+                2000 if exact else 200,
+            )
+            del rhs, sd_nodes, sd_vals, scell, sloc, cscr, lw
+            if par is not None:
+                G = Y.prolong(
+                    lev.cell_nodes, lev.cell_keys, lev.cell_parent, par.cell_nodes, gvals[-1], nn
+                )
+                # the coarser level's leaves are its cells without children here
+                par.leaf = ~O.cell_has_child(lev.cell_parent, len(par.cell_keys))
+                lev.cell_parent = None
+            else:
+                G = np.zeros(nn)
+            G += x
+            del x
+            gvals.append(G)
+            total_it += it
+            last_res = rel
+            n_unknown = int(lev.unknown.sum())
+            lev.unknown = lev.ncell = None
+            per_level.append(
+                {
+                    "depth": d,
+                    "nodes": nn,
+                    "unknowns": n_unknown,
+                    "iterations": it,
+                    "residual": rel,
+                    "seconds": time.perf_counter() - tl,
+                }
+            )
+            log.info(
+                "poisson: level %2d  nodes %9d  unknowns %9d  cg iterations %4d  residual %.2e  %.2f s",
+                d,
+                nn,
+                n_unknown,
+                it,
+                rel,
+                time.perf_counter() - tl,
+            )
+            tk.advance(work[d])
+    del G, par
+    levels[-1].leaf = np.ones(len(levels[-1].cell_keys), bool)
+    return gvals, per_level, total_it, last_res
+
+
+def solve_work(levels: list[Level], full_depth: int) -> list[float]:
+    """Estimated work of each level's solve, for the progress bar (arbitrary units).
+
+    Set-up and each CG iteration cost about the same per node; an exact level (depth <=
+    ``full_depth``, tolerance 1e-7) takes about ``4.5 * 2**depth`` iterations, a finer one
+    about 10 (measured on the shared scans: 9..144 iterations); each level also costs a fixed
+    amount (kernel calls, freeing the heap) worth ~30k nodes.
+    """
+    out = []
+    for lev in levels:
+        its = 4.5 * (1 << lev.depth) if lev.depth <= full_depth else 10.0
+        out.append(30_000.0 + lev.n_nodes * (1.0 + its / 15.0))
+    return out
+
+
+def chi_at(
+    levels: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]], pos: np.ndarray
+) -> np.ndarray:
+    """chi at unit-cube positions ``pos`` (n, 3), each evaluated in the finest cell of the
+    tree that holds it (chi is trilinear there and continuous across cells).
+
+    ``levels`` holds (depth, cell_keys, cell_nodes, chi at the level's nodes) per level,
+    coarse to fine (:func:`chi_levels`)."""
+    out = np.full(len(pos), np.nan)
+    todo = np.arange(len(pos))
+    for depth, cell_keys, cell_nodes, g in levels[::-1]:
+        scell, sloc = Y.sample_cells(pos[todo], depth, cell_keys)
+        have = scell >= 0
+        out[todo[have]] = Y.eval_at_samples(scell[have], sloc[have], cell_nodes, g)
+        todo = todo[~have]
+        if not len(todo):
+            break
+    return out
+
+
+def chi_levels(
+    levels: list[Level], gvals: list[np.ndarray]
+) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]:
+    """What :func:`chi_at` needs of the solved levels (references, no copies)."""
+    return [(lev.depth, lev.cell_keys, lev.cell_nodes, g) for lev, g in zip(levels, gvals)]
+
+
+def iso_value(levels: list[Level], gvals: list[np.ndarray], smp: Samples) -> float:
+    """The level set's value: the count-weighted mean of chi at the samples."""
+    chi_s = chi_at(chi_levels(levels, gvals), smp.pos)
+    iso = float((chi_s * smp.count).sum() / smp.count.sum())
+    log.info("poisson: iso-value %.6f", iso)
+    return iso
