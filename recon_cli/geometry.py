@@ -51,6 +51,7 @@ class Sensor:
     source: str = ""
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "source", " ".join(str(self.source).split()))  # one line
         if (self.position is None) == (self.direction is None):
             raise InputError("a sensor has either a position or a direction")
         for name, k in (("position", 3), ("orientation", 4), ("direction", 3)):
@@ -80,7 +81,7 @@ class Sensor:
             v = getattr(self, name)
             if v is not None:
                 parts += [name, *(repr(x) for x in v)]
-        parts += ["source", self.source.replace("\n", " ")]
+        parts += ["source", self.source]
         return " ".join(parts).rstrip()
 
 

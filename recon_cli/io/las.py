@@ -225,6 +225,12 @@ def las_bytes(obj, compress: bool, where: str = "") -> bytes:
     laspy = _laspy()
     info = _info(obj)
     pts = np.asarray(obj.points, np.float64)
+    bad = ~np.isfinite(pts).all(axis=1)
+    if bad.any():  # LAS coordinates are integers: there is no NaN to write
+        raise ParameterError(
+            f"{where}: LAS cannot store the {int(bad.sum())} points with a NaN or infinite "
+            f"coordinate (first: point {int(np.argmax(bad))})"
+        )
     version = info.get("version", "1.4")
     pf = int(info.get("point_format", 7 if obj.colors is not None else 6))
     if obj.colors is not None and pf in _WITH_RGB:
