@@ -236,7 +236,7 @@ def _neighbourhoods(pts: np.ndarray, knn: int | None, radius: float | None):
 def _pixel_neighbourhoods(pts: np.ndarray, pixels: Any, knn: int, radius: float | None):
     """Neighbourhoods of an organized cloud from its pixel grid: the ``knn`` nearest points
     (within ``radius`` when given) among the pixels of a window around each point's pixel,
-    ``_PIXEL_WINDOW`` times ``knn`` pixels wide (PCL's organized neighbour search).
+    about ``_PIXEL_WINDOW`` times ``knn`` pixels in all (PCL's organized neighbour search).
 
     Same returns as :func:`_neighbourhoods`; ``order`` sorts the points by pixel (row-major,
     image by image), a spatially coherent order.
@@ -336,6 +336,13 @@ def estimate_normals(
     ParameterError
         ``knn`` < 3 or not an integer, ``radius`` <= 0, or neither given; ``pixels``
         without ``knn``.
+
+    References
+    ----------
+    Hoppe, DeRose, Duchamp, McDonald & Stuetzle, "Surface reconstruction from unorganized
+    points", SIGGRAPH 1992 (the normal of a neighbourhood's covariance); Holz, Holzer, Rusu &
+    Behnke, "Real-time plane segmentation using RGB-D cameras", RoboCup 2011 (neighbourhoods
+    of an organized cloud from its image, as PCL's organized search).
     """
     pts = _check_points(points)
     knn, radius = _check_knn(knn, radius)
@@ -703,7 +710,7 @@ def _use_pixels(neighbours: str, pixels: Any, knn: int | None, radius: float | N
     return True
 
 
-def _viewpoints_report(method, cam, views, sensors, camera) -> list[str] | None:
+def _viewpoints_report(method, views, sensors, camera) -> list[str] | None:
     """What ``--orient camera`` oriented towards: the ``--camera`` given, or each sensor used
     (with its point count when there are several)."""
     if method != "camera":
@@ -816,7 +823,7 @@ def run_stage(
         "components": None,
         "flipped": 0,
         "orient": method,
-        "viewpoints": _viewpoints_report(method, cam, views, cloud.sensors, camera),
+        "viewpoints": _viewpoints_report(method, views, cloud.sensors, camera),
         "input_normals": "none"
         if cloud.normals is None
         else ("sign kept" if method == "keep" else "replaced"),
