@@ -112,13 +112,13 @@ def annotation_source(p: Param) -> str:
 
 
 def _data_kinds(spec: StageSpec) -> tuple[str, ...]:
-    return spec.takes if spec.declared else ("cloud", "mesh", "grid")
+    return spec.takes if spec.declared and spec.takes else ("cloud", "mesh", "grid")
 
 
 def data_name(spec: StageSpec) -> str:
     """The name of the function's first argument: ``cloud``, ``mesh``, ``grid`` (by the first
     kind the stage takes) or ``data`` (an undeclared stage, or a parameter of that name)."""
-    name = _DATA_NAMES.get(spec.takes[0], "data") if spec.declared else "data"
+    name = _DATA_NAMES.get(spec.takes[0], "data") if spec.declared and spec.takes else "data"
     return "data" if name in {p.name for p in spec.params} else name
 
 
@@ -131,7 +131,7 @@ def takes_normals(spec: StageSpec) -> bool:
 
 def return_source(spec: StageSpec) -> str:
     """The return annotation's source text."""
-    if not spec.declared:
+    if not spec.declared or not spec.gives:
         return "PointCloud | TriangleMesh | Grid"
     return _RETURNS[spec.gives[0]]
 

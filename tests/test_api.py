@@ -170,6 +170,23 @@ def test_bad_inputs_are_refused_in_one_line():
         recon_cli.mcubes(np.zeros((10, 3)))
     with pytest.raises(InputError, match="faces must be an"):
         recon_cli.repair((np.zeros((4, 3)), np.zeros((2, 3), dtype=float)))
+    with pytest.raises(ParameterError, match="progress must be true, false or a Progress"):
+        recon_cli.normals(np.zeros((10, 3)), progress="yes")
+
+
+def test_progress_draws_on_the_given_progress(capsys):
+    import io
+
+    from recon_cli.progress import Progress
+
+    stream = io.StringIO()
+    p = Progress(stream=stream, enabled=True)
+    pts = np.random.default_rng(1).normal(size=(300, 3))
+    recon_cli.normals(pts, knn=10, progress=p)
+    p.close()
+    assert "orienting" in stream.getvalue()
+    recon_cli.normals(pts, knn=10, progress=True)  # stderr is no terminal here: nothing drawn
+    assert capsys.readouterr().err == ""
 
 
 # ---- a session, as in trimesh's README ----------------------------------------------------------------
