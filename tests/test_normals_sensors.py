@@ -178,7 +178,6 @@ def test_no_scanner_position_is_a_one_line_error_naming_the_file(tmp_path):
         run_stage(two, orient="camera")
 
 
-@pytest.mark.slow
 def test_raw_organized_pcd_through_recon_run_normals_camera_poisson(tmp_path):
     from recon_cli.mesh.distance import closest_points
 
