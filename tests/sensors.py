@@ -202,7 +202,7 @@ def write_organized_pcd(
     rows["rgba"] = (255 << 24) | (c[:, 0] << 16) | (c[:, 1] << 8) | c[:, 2]
     view = "0 0 0 1 0 0 0"
     if camera is not None:
-        view = " ".join(f"{x:.17g}" for x in (*camera.eye, *_quaternion(camera.rotation)))
+        view = " ".join(f"{x:.17g}" for x in (*camera.eye, *quaternion(camera.rotation)))
     size = int(dtype[1])
     header = (
         "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z rgba\n"
@@ -257,7 +257,7 @@ def exact_image(camera: DepthCamera, sdf) -> np.ndarray:
     return pts
 
 
-def _quaternion(r: np.ndarray) -> tuple[float, float, float, float]:
+def quaternion(r: np.ndarray) -> tuple[float, float, float, float]:
     """(w, x, y, z) of a rotation matrix."""
     w = np.sqrt(max(0.0, 1 + r[0, 0] + r[1, 1] + r[2, 2])) / 2
     x = np.copysign(np.sqrt(max(0.0, 1 + r[0, 0] - r[1, 1] - r[2, 2])) / 2, r[2, 1] - r[1, 2])

@@ -12,16 +12,21 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from sensors import (
+    DepthCamera,
+    depth_image,
+    look_at,
+    quaternion,
+    tabletop_scene,
+    write_organized_pcd,
+)
+from shapes import cloud_family, random_rotation
 
 from recon_cli.errors import InputError, ParameterError
 from recon_cli.geometry import PointCloud, Sensor, TriangleMesh
 from recon_cli.io.load import load, load_detailed, save
 from recon_cli.io.pcd import decode_pcd
 from recon_cli.io.xyz import decode_xyz
-
-from sensors import DepthCamera, depth_image, look_at, tabletop_scene, write_organized_pcd
-from sensors import _quaternion as quaternion
-from shapes import cloud_family, random_rotation
 
 RECON = [sys.executable, "-m", "recon_cli.cli.main"]
 
@@ -300,8 +305,8 @@ def test_e57_multi_scan_poses_invalid_points_and_structured_grids(tmp_path):
     )
     assert [s.position for s in got.sensors] == [tuple(e[1]) for e in expect]
     assert [s.source for s in got.sensors] == [f"E57 scan {k} 'station {k}' pose" for k in range(3)]
-    assert got.attributes["scan"].tolist() == sum(
-        ([k] * int(e[2].sum()) for k, e in enumerate(expect)), []
+    assert np.array_equal(
+        got.attributes["scan"], np.repeat(np.arange(3), [int(e[2].sum()) for e in expect])
     )
     # not every scan structured: no pixel grid; the two structured alone give one
     assert got.pixels is None and details["structured"] == [True, True, False]

@@ -10,12 +10,6 @@ import sys
 
 import numpy as np
 import pytest
-
-from recon_cli.errors import InputError
-from recon_cli.geometry import PixelGrid, PointCloud, Sensor
-from recon_cli.io.load import load, save
-from recon_cli.stages.normals import estimate_normals, orient_normals, run_stage
-
 from sensors import (
     DepthCamera,
     depth_image,
@@ -25,7 +19,12 @@ from sensors import (
     true_normals,
     write_organized_pcd,
 )
-from shapes import random_rotation, sphere_sdf
+from shapes import random_rotation
+
+from recon_cli.errors import InputError
+from recon_cli.geometry import PixelGrid, PointCloud, Sensor
+from recon_cli.io.load import load, save
+from recon_cli.stages.normals import estimate_normals, orient_normals, run_stage
 
 RECON = [sys.executable, "-m", "recon_cli.cli.main"]
 
@@ -48,7 +47,7 @@ def _organized_case(seed, offset=0.0, w=96, h=72):
     rng = np.random.default_rng(seed)
     off = np.array([offset, 0.5 * offset, -0.25 * offset])
     scene = tabletop_scene()
-    shifted = lambda p: scene(p - off)  # noqa: E731
+    shifted = lambda p: scene(p - off)
     cam = _view(rng, off, w, h)
     org = depth_image(cam, shifted, rng)
     exact = exact_image(cam, shifted).reshape(-1, 3)
@@ -79,7 +78,7 @@ def test_orient_camera_uses_the_viewpoint_of_an_organized_pcd(seed, offset, tmp_
 
 
 def test_pixel_neighbourhoods_as_accurate_as_the_kdtree():
-    org, cam, truth = _organized_case(4, w=160, h=120)
+    org, _, truth = _organized_case(4, w=160, h=120)
     flat = org.reshape(-1, 3)
     valid = np.isfinite(flat).all(axis=1)
     pts = flat[valid]
