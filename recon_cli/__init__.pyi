@@ -52,6 +52,7 @@ def normals(
     camera: tuple[float, float, float] | None = None,
     direction: tuple[float, float, float] | None = None,
     curvature: bool = False,
+    neighbours: Literal["auto", "kdtree", "pixels"] = "auto",
     backend: Literal["native", "open3d"] = "native",
     progress: Progress | bool | None = None,
 ) -> PointCloud:

@@ -153,6 +153,18 @@ def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
             PointCloud(points=np.vstack([p, np.repeat(p[:1], 40, axis=0), line])),
             path("degenerate.ply"),
         )
+        # an organized depth image (NaN pixels, a VIEWPOINT): normals from its pixel grid
+        hh, ww = 12, 16
+        yy, xx = np.mgrid[0:hh, 0:ww].astype(np.float32)
+        grid = np.stack([xx * 0.1, yy * 0.1, 2.0 + 0.01 * xx * yy], axis=-1).reshape(-1, 3)
+        grid[::7] = np.nan
+        with open(path("organized.pcd"), "wb") as fh:
+            fh.write(
+                b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+                + f"WIDTH {ww}\nHEIGHT {hh}\nVIEWPOINT 0.8 0.6 0 1 0 0 0\n".encode()
+                + f"POINTS {hh * ww}\nDATA binary\n".encode()
+            )
+            fh.write(grid.astype("<f4").tobytes())
         # three triangles on one edge: repair chooses which two stay together
         fin = np.array(
             [[0, 0, 0], [1, 0, 0], [0.5, 1, 0], [0.5, -1, 0], [0.5, 0, 1]], dtype=np.float64
@@ -212,6 +224,14 @@ def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
         )
         steps.append(("normals knn+radius", recon("normals", src, out, "--radius", "0.2")))
     steps.append(("normals keep", recon("normals", c32, out, "--orient", "keep")))
+    organized = path("organized.pcd")
+    steps.append(("normals pixels", recon("normals", organized, out, "--orient", "camera")))
+    steps.append(
+        (
+            "normals pixels radius",
+            recon("normals", organized, out, "--neighbours", "pixels", "--radius", "0.5"),
+        )
+    )
     steps.append(("normals degenerate", recon("normals", path("degenerate.ply"), out)))
     for src in (c32, c64):
         steps += [
