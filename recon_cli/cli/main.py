@@ -33,6 +33,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "poisson": ("poisson", "Screened Poisson reconstruction of an oriented cloud."),
     "ballpivot": ("ballpivot", "Ball-pivoting reconstruction of an oriented cloud."),
     "repair": ("repair", "Make a mesh manifold, clean and consistently oriented."),
+    "simplify": ("simplify", "Quadric edge-collapse simplification of a mesh (stays manifold)."),
+    "smooth": ("smooth", "Taubin lambda|mu smoothing of a mesh (keeps its volume)."),
     "sdf": ("sdf", "Signed distance grid (.npz) of a mesh or oriented cloud."),
     "fit-sdf": ("fit_sdf", "Fit a neural signed distance field to a cloud (needs recon[learned])."),
     "mcubes": ("mcubes", "Marching cubes: mesh the zero level set of a grid."),
@@ -45,7 +47,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 # commands run by cli/_run.run_stage_command (which ends the start-up pause itself)
-_STAGE_COMMANDS = frozenset({"normals", "poisson", "ballpivot", "repair", "sdf", "mcubes"})
+_STAGE_COMMANDS = frozenset(
+    {"normals", "poisson", "ballpivot", "repair", "simplify", "smooth", "sdf", "mcubes"}
+)
 
 EXIT_INTERRUPTED = 130
 EXIT_BROKEN_PIPE = 141
