@@ -14,8 +14,8 @@ A collapse is made only when
   corners of the edge's faces, and an interior edge does not join two boundary vertices):
   an edge- and vertex-manifold mesh stays so, its genus and boundary loops unchanged;
 - it closes no tetrahedron and leaves no vertex without faces;
-- no other face around the two ends flips, turns by more than 90 degrees or becomes
-  degenerate.
+- no other face around the two ends flips, turns by more than 90 degrees, comes to face
+  away from its own input normal or becomes degenerate.
 
 Vertices on non-manifold edges, with several fans of faces, or in faces that repeat an
 index are locked (never moved): the rest of such a mesh is simplified, those parts are kept.
@@ -165,7 +165,7 @@ class Decimator:
         self.boundary, self.locked, self.nm_edges, self.nm_vertices = K.classify(
             self.faces, n, self.vstart, self.vcount, self.refs
         )
-        self.Q = K.quadrics(
+        self.Q, self.fn = K.quadrics(
             self.pos,
             self.faces,
             self.vstart,
@@ -174,7 +174,8 @@ class Decimator:
             self.boundary,
             float(boundary_weight),
         )
-        self.has_boundary = bool(self.boundary.any())
+        # a boundary edge that may collapse (removing one face) needs two free ends
+        self.has_boundary = bool((self.boundary & ~self.locked).any())
         self.ea, self.eb, self.estart, self.ecount, self.erefs = K.vertex_edges(
             self.faces, n, self.vstart, self.vcount, self.refs
         )
@@ -202,13 +203,13 @@ class Decimator:
 
     def run(self, target: int, stop_at: int) -> None:
         """Collapse until ``stop_at`` faces remain (never below ``target``) or none can go."""
-        K = self.K
         self.K.collapse(
             self.pos,
             self.faces,
             self.falive,
             self.valive,
             self.Q,
+            self.fn,
             self.boundary,
             self.locked,
             self.vstart,
@@ -244,7 +245,7 @@ class Decimator:
         if left == target + 1 and self.meta[K.M_BUDGET] > 0:
             return (
                 f"stopped at {left} faces: every remaining collapse removes 2 faces "
-                f"(a closed surface has an even number of faces)"
+                f"(no free boundary: a closed surface has an even number of faces)"
             )
         why = []
         if self.meta[K.M_LINK]:
@@ -306,6 +307,7 @@ def simplify(
     preserving edge contraction", Publ. Inst. Math. (Beograd) 66, 1999 (the link condition).
     """
     v = SPEC.check(dict(faces=faces, ratio=ratio, boundary_weight=boundary_weight), complete=False)
+    normal_dtype = None if mesh.normals is None else np.asarray(mesh.normals).dtype
     mesh = _check_mesh(mesh)
     m = len(mesh.faces)
     target = target_faces(m, v["faces"], v["ratio"])
@@ -318,7 +320,7 @@ def simplify(
             t.advance(before - d.n_faces)
             if d.stuck:
                 break
-    out = _output(mesh, d)
+    out = _output(mesh, d, normal_dtype)
     rep = {
         "vertices_in": int(len(mesh.vertices)),
         "faces_in": int(m),
@@ -336,8 +338,9 @@ def simplify(
     return out, rep
 
 
-def _output(mesh: TriangleMesh, d: Decimator) -> TriangleMesh:
-    """The surviving vertices and faces, with the input's data carried through the collapses."""
+def _output(mesh: TriangleMesh, d: Decimator, normal_dtype=None) -> TriangleMesh:
+    """The surviving vertices and faces, with the input's data carried through the collapses
+    (normals in ``normal_dtype``, default their own)."""
     n = len(mesh.vertices)
     keep_v = d.valive
     new_index = np.cumsum(keep_v) - 1
@@ -368,7 +371,7 @@ def _output(mesh: TriangleMesh, d: Decimator) -> TriangleMesh:
         nrm = values[:, c : c + 3]
         length = np.linalg.norm(nrm, axis=1, keepdims=True)
         normals = np.divide(nrm, length, out=np.zeros_like(nrm), where=length > 0)
-        normals = normals.astype(mesh.normals.dtype)
+        normals = normals.astype(normal_dtype or mesh.normals.dtype)
         c += 3
     if mesh.colors is not None:
         w = mesh.colors.shape[1] if mesh.colors.ndim == 2 else 1

@@ -10,10 +10,9 @@ are skipped and the array is compacted when full) and an indexed heap of the edg
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache directory)
-
-from numba import njit
 
 # slots of the ``meta`` counters array shared by the kernels and the stage
 M_REFS = 0  # used length of refs
@@ -160,7 +159,7 @@ def _shares_edge(faces, vstart, vcount, refs, a, b, skip):
 
 @njit(cache=True)
 def quadrics(pos, faces, vstart, vcount, refs, boundary, boundary_weight):
-    """Per-vertex error quadrics, (n, 10).
+    """Per-vertex error quadrics (n, 10) and the faces' unit normals (m, 3).
 
     Each face adds its plane weighted by its area to its corners (Garland & Heckbert 1997,
     area-weighted); each boundary edge adds the plane through it perpendicular to its face,
@@ -168,6 +167,7 @@ def quadrics(pos, faces, vstart, vcount, refs, boundary, boundary_weight):
     """
     n = pos.shape[0]
     Q = np.zeros((n, 10))
+    fn = np.zeros((faces.shape[0], 3))
     for f in range(faces.shape[0]):
         a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
         e1x = pos[b, 0] - pos[a, 0]
@@ -185,6 +185,9 @@ def quadrics(pos, faces, vstart, vcount, refs, boundary, boundary_weight):
         nx /= ln
         ny /= ln
         nz /= ln
+        fn[f, 0] = nx
+        fn[f, 1] = ny
+        fn[f, 2] = nz
         d = -(nx * pos[a, 0] + ny * pos[a, 1] + nz * pos[a, 2])
         area = 0.5 * ln
         _add_plane(Q, a, nx, ny, nz, d, area)
@@ -216,7 +219,7 @@ def quadrics(pos, faces, vstart, vcount, refs, boundary, boundary_weight):
             w = boundary_weight * (ex * ex + ey * ey + ez * ez)
             _add_plane(Q, p, mx, my, mz, dm, w)
             _add_plane(Q, q, mx, my, mz, dm, w)
-    return Q
+    return Q, fn
 
 
 @njit(cache=True)
@@ -456,12 +459,13 @@ def build_heap(pos, Q, locked, ea, eb, ealive, hk, hpos, meta):
 
 
 @njit(cache=True)
-def _normal_change(pos, a, b, c, which, x, y, z, min_cos):
+def _normal_change(pos, a, b, c, which, x, y, z, min_cos, nx, ny, nz):
     """Check of a face (a, b, c) whose corner ``which`` moves to (x, y, z).
 
     Returns 0 when the face keeps its orientation (its normal turns by less than the angle
-    whose cosine is ``min_cos``), 1 when it flips or turns too far, 2 when it would become
-    degenerate (a face already degenerate may move anywhere).
+    whose cosine is ``min_cos`` and stays on the side of the input face's normal
+    (nx, ny, nz)), 1 when it flips or turns too far, 2 when it would become degenerate (a
+    face already degenerate may move anywhere).
     """
     ax, ay, az = pos[a, 0], pos[a, 1], pos[a, 2]
     bx, by, bz = pos[b, 0], pos[b, 1], pos[b, 2]
@@ -493,6 +497,9 @@ def _normal_change(pos, a, b, c, which, x, y, z, min_cos):
     dot = n0x * n1x + n0y * n1y + n0z * n1z
     if dot <= 0.0 or dot * dot < min_cos * abs(min_cos) * l0 * l1:
         return 1
+    # successive turns must not add up to a face facing away from where it started
+    if n1x * nx + n1y * ny + n1z * nz <= 0.0 and nx * nx + ny * ny + nz * nz > 0.0:
+        return 1
     return 0
 
 
@@ -503,6 +510,7 @@ def collapse(
     falive,
     valive,
     Q,
+    fn,
     boundary,
     locked,
     vstart,
@@ -536,7 +544,8 @@ def collapse(
     are exactly the third corners of the faces on the edge, and an interior edge does not
     join two boundary vertices), which keeps a manifold mesh manifold; the edge does not
     close a tetrahedron or take the last face of a vertex; and no other face around u or v
-    flips, turns by more than ``acos(min_cos)`` or becomes degenerate. A rejected edge
+    flips, turns by more than ``acos(min_cos)``, faces away from its input normal (``fn``)
+    or becomes degenerate. A rejected edge
     leaves the heap until one of its ends changes; when the heap runs empty it is built
     again from every edge (a rejected collapse may be possible now). ``meta[M_STUCK]`` is
     set when a whole pass collapsed nothing or ``max_passes`` ran, or when one face is left
@@ -613,15 +622,21 @@ def collapse(
         if not bad and ku + kv - 2 * k == 0:
             bad = True  # the edge's faces are the whole component
         if not bad and k == 2:
-            # a tetrahedron: a face of u holds both third corners
-            for i in range(vstart[u], vstart[u] + vcount[u]):
-                f = refs[i]
-                if falive[f] and f != shared[0] and f != shared[1]:
-                    a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
-                    if (a == opp[0] or b == opp[0] or c == opp[0]) and (
-                        a == opp[1] or b == opp[1] or c == opp[1]
-                    ):
-                        bad = True
+            # a tetrahedron: a face of u and a face of v hold both third corners (the two
+            # would become one face twice)
+            both = 0
+            for side in range(2):
+                w = u if side == 0 else v
+                for i in range(vstart[w], vstart[w] + vcount[w]):
+                    f = refs[i]
+                    if falive[f] and f != shared[0] and f != shared[1]:
+                        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+                        if (a == opp[0] or b == opp[0] or c == opp[0]) and (
+                            a == opp[1] or b == opp[1] or c == opp[1]
+                        ):
+                            both += 1
+                            break
+            bad = both == 2
         if not bad:
             # a third corner whose only face is on the edge would be left without faces
             for j in range(k):
@@ -646,7 +661,12 @@ def collapse(
                     continue
                 a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
                 which = 0 if a == w else (1 if b == w else 2)
-                if _normal_change(pos, a, b, c, which, x, y, z, min_cos) != 0:
+                if (
+                    _normal_change(
+                        pos, a, b, c, which, x, y, z, min_cos, fn[f, 0], fn[f, 1], fn[f, 2]
+                    )
+                    != 0
+                ):
                     bad = True
                     break
             if bad:

@@ -175,6 +175,7 @@ def smooth(
         dict(iterations=iterations, step=step, pass_band=pass_band, fixed_boundary=fixed_boundary),
         complete=False,
     )
+    source_normals = mesh.normals if isinstance(mesh, TriangleMesh) else None
     mesh = _check_mesh(mesh)
     lam, kpb = v["step"], v["pass_band"]
     mu = taubin_mu(lam, kpb)
@@ -213,7 +214,7 @@ def smooth(
     out = TriangleMesh(
         vertices=verts,
         faces=f,
-        normals=None if mesh.normals is None else _vertex_normals(verts, f, mesh.normals),
+        normals=None if mesh.normals is None else _vertex_normals(verts, f, source_normals),
         colors=mesh.colors,
         attributes=dict(mesh.attributes),
         face_attributes=dict(mesh.face_attributes),

@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache directory)
-
-from numba import njit
 
 
 @njit(cache=True)
