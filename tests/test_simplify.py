@@ -1,6 +1,6 @@
 """``recon simplify``: quadric edge collapse that keeps manifolds manifold, faces unflipped,
-boundaries in place and every attribute; exact on planar and polyhedral shapes; checked
-against Open3D's and PyMeshLab's quadric decimation."""
+boundaries in place and every attribute; exact on planar and polyhedral shapes; as accurate
+as Open3D's and PyMeshLab's quadric decimation."""
 
 from __future__ import annotations
 
@@ -306,8 +306,8 @@ def test_attributes_follow_the_collapses_with_their_types():
     assert len(np.unique(ids)) == len(ids)  # each face kept its own
 
 
-@pytest.mark.parametrize("name", ["kitten", "armadillo"])
-def test_as_accurate_as_open3d_and_close_to_pymeshlab(name):
+@pytest.mark.parametrize("name", ["mug", "armadillo"])
+def test_as_accurate_as_open3d_and_pymeshlab(name):
     m = load_shared(name)
     target = len(m.faces) // 10
     out, rep = simplify(m, faces=target)
@@ -317,7 +317,7 @@ def test_as_accurate_as_open3d_and_close_to_pymeshlab(name):
     ml = pymeshlab_backend.simplify_quadric(m, target)
     ours, theirs, meshlab = chamfer(m, out)[0], chamfer(m, o3)[0], chamfer(m, ml)[0]
     assert ours <= 1.02 * theirs, (ours, theirs)
-    assert ours <= 1.25 * meshlab, (ours, meshlab)
+    assert ours <= 1.02 * meshlab, (ours, meshlab)
 
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])

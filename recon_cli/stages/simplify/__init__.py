@@ -181,6 +181,7 @@ class Decimator:
         )
         n_edges = len(self.ea)
         self.ealive = np.ones(n_edges, dtype=bool)
+        self.epen = np.zeros(n_edges, dtype=bool)
         self.hk = np.empty(n_edges, dtype=np.int64)
         self.hpos = np.full(n_edges, -1, dtype=np.int64)
         self.mark = np.zeros(n, dtype=np.int64)
@@ -218,6 +219,7 @@ class Decimator:
             self.ea,
             self.eb,
             self.ealive,
+            self.epen,
             self.estart,
             self.ecount,
             self.erefs,

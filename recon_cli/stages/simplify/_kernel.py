@@ -31,6 +31,13 @@ N_META = 12
 
 # quadric coefficients: a00 a01 a02 a03 a11 a12 a13 a22 a23 a33
 
+# added to a collapse's error per squared squared edge length (coordinates scaled to a unit
+# diagonal): the error of moving an edge's square by 1e-6 of its length; orders equal errors
+TIE = 1e-12
+# collapses leaving a triangle of quality (4 sqrt(3) area / sum of squared edges, 1 for an
+# equilateral one) below this have their error divided by quality / QUALITY (as VCG's)
+QUALITY = 0.3
+
 
 @njit(cache=True)
 def vertex_faces(faces, n):
@@ -291,7 +298,8 @@ def _placement(Q, pos, u, v, out):
         + 2.0 * (b0 * x + b1 * y + b2 * z)
         + c
     )
-    return max(err, 0.0)
+    # equal errors (flat parts: none) go shortest edge first
+    return max(err, 0.0) + TIE * dd * dd
 
 
 # ---- edges and the heap -------------------------------------------------------------------------
@@ -442,11 +450,12 @@ def _compact(alive, valive, start, count, refs, meta, slot):
 
 
 @njit(cache=True)
-def build_heap(pos, Q, locked, ea, eb, ealive, hk, hpos, meta):
+def build_heap(pos, Q, locked, ea, eb, ealive, epen, hk, hpos, meta):
     """Every current edge between unlocked vertices in the heap, with its cost."""
     out = np.empty(4)
     h = 0
     hpos[:] = -1
+    epen[:] = False
     for e in range(ea.shape[0]):
         if ealive[e] and not (locked[ea[e]] or locked[eb[e]]):
             hk[h] = _key(_placement(Q, pos, ea[e], eb[e], out), e)
@@ -462,10 +471,10 @@ def build_heap(pos, Q, locked, ea, eb, ealive, hk, hpos, meta):
 def _normal_change(pos, a, b, c, which, x, y, z, min_cos, nx, ny, nz):
     """Check of a face (a, b, c) whose corner ``which`` moves to (x, y, z).
 
-    Returns 0 when the face keeps its orientation (its normal turns by less than the angle
-    whose cosine is ``min_cos`` and stays on the side of the input face's normal
-    (nx, ny, nz)), 1 when it flips or turns too far, 2 when it would become degenerate (a
-    face already degenerate may move anywhere).
+    Returns the moved face's quality (see QUALITY) when it keeps its orientation (its
+    normal turns by less than the angle whose cosine is ``min_cos`` and stays on the side of
+    the input face's normal (nx, ny, nz)), -1 when it flips, turns too far or would become
+    degenerate (a face already degenerate may move anywhere).
     """
     ax, ay, az = pos[a, 0], pos[a, 1], pos[a, 2]
     bx, by, bz = pos[b, 0], pos[b, 1], pos[b, 2]
@@ -490,17 +499,30 @@ def _normal_change(pos, a, b, c, which, x, y, z, min_cos, nx, ny, nz):
         (cx - bx) ** 2 + (cy - by) ** 2 + (cz - bz) ** 2,
         (ax - cx) ** 2 + (ay - cy) ** 2 + (az - cz) ** 2,
     )
+    # quality: 4 sqrt(3) area / sum of squared edges = 2 sqrt(3) |n1| / sum
+    s2 = (
+        (bx - ax) ** 2
+        + (by - ay) ** 2
+        + (bz - az) ** 2
+        + (cx - bx) ** 2
+        + (cy - by) ** 2
+        + (cz - bz) ** 2
+        + (ax - cx) ** 2
+        + (ay - cy) ** 2
+        + (az - cz) ** 2
+    )
     if l1 <= 1e-20 * e * e:
-        return 0 if l0 == 0.0 else 2
+        return 0.0 if l0 == 0.0 else -1.0
+    quality = 3.4641016151377544 * np.sqrt(l1) / s2
     if l0 == 0.0:
-        return 0
+        return quality
     dot = n0x * n1x + n0y * n1y + n0z * n1z
     if dot <= 0.0 or dot * dot < min_cos * abs(min_cos) * l0 * l1:
-        return 1
+        return -1.0
     # successive turns must not add up to a face facing away from where it started
     if n1x * nx + n1y * ny + n1z * nz <= 0.0 and nx * nx + ny * ny + nz * nz > 0.0:
-        return 1
-    return 0
+        return -1.0
+    return quality
 
 
 @njit(cache=True)
@@ -519,6 +541,7 @@ def collapse(
     ea,
     eb,
     ealive,
+    epen,
     estart,
     ecount,
     erefs,
@@ -564,7 +587,7 @@ def collapse(
             if meta[M_PASSES] > 0 and (meta[M_PASS_DONE] == 0 or meta[M_PASSES] >= max_passes):
                 meta[M_STUCK] = 1
                 return
-            build_heap(pos, Q, locked, ea, eb, ealive, hk, hpos, meta)
+            build_heap(pos, Q, locked, ea, eb, ealive, epen, hk, hpos, meta)
             meta[M_PASSES] += 1
             meta[M_PASS_DONE] = 0
             meta[M_LINK] = 0
@@ -650,9 +673,10 @@ def collapse(
         if bad:
             meta[M_LINK] += 1
             continue
-        _placement(Q, pos, u, v, out)
+        cost = _placement(Q, pos, u, v, out)
         x, y, z = out[0], out[1], out[2]
         # the faces that stay: none may flip, turn too far or degenerate
+        worst = 1.0
         for side in range(2):
             w = u if side == 0 else v
             for i in range(vstart[w], vstart[w] + vcount[w]):
@@ -661,18 +685,24 @@ def collapse(
                     continue
                 a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
                 which = 0 if a == w else (1 if b == w else 2)
-                if (
-                    _normal_change(
-                        pos, a, b, c, which, x, y, z, min_cos, fn[f, 0], fn[f, 1], fn[f, 2]
-                    )
-                    != 0
-                ):
+                q = _normal_change(
+                    pos, a, b, c, which, x, y, z, min_cos, fn[f, 0], fn[f, 1], fn[f, 2]
+                )
+                if q < 0.0:
                     bad = True
                     break
+                worst = min(worst, q)
             if bad:
                 break
         if bad:
             meta[M_GEOM] += 1
+            continue
+        if worst < QUALITY and not epen[edge]:
+            # a poor triangle would follow: back in the heap at the penalised error (the
+            # key only grows, so the order is the one of penalties computed up front)
+            epen[edge] = True
+            cost *= QUALITY / max(worst, 1e-3)
+            _update(hk, hpos, meta, edge, _key(cost, edge))
             continue
         # collapse v into u: faces
         for j in range(k):
@@ -750,6 +780,7 @@ def collapse(
         for i in range(estart[u], estart[u] + ecount[u]):
             g = erefs[i]
             if not locked[ea[g]] and not locked[eb[g]]:
+                epen[g] = False
                 _update(hk, hpos, meta, g, _key(_placement(Q, pos, ea[g], eb[g], out), g))
 
 
