@@ -98,6 +98,18 @@ SPEC = StageSpec(
 )
 
 
+def zorder(points: np.ndarray) -> np.ndarray:
+    """Z-order (Morton) keys of ``points`` (n, 3) on a 1024^3 lattice over their box."""
+    lo = points.min(axis=0)
+    ext = float((points.max(axis=0) - lo).max()) or 1.0
+    q = np.clip((points - lo) / ext * 1023.0, 0, 1023).astype(np.int64)
+    key = np.zeros(len(points), dtype=np.int64)
+    for bit in range(10):
+        for axis in range(3):
+            key |= ((q[:, axis] >> bit) & 1) << (3 * bit + axis)
+    return key
+
+
 def target_faces(m: int, faces: int | None, ratio: float | None) -> int:
     """The face count asked for, checked against the input's ``m`` faces."""
     if faces is not None and ratio is not None:
@@ -156,9 +168,17 @@ class Decimator:
         self.scale = bbox_diagonal(vertices[used]) or 1.0
         # centred and scaled to a unit diagonal: the tests' thresholds are scale-free and
         # offsets of 1e6 cost no digits
-        self.pos = (vertices - self.origin) / self.scale
-        self.pos[~used] = 0.0
-        self.faces = np.array(faces, dtype=np.int64, order="C")
+        pos = (vertices - self.origin) / self.scale
+        pos[~used] = 0.0
+        # vertices in Z-order and faces by their first vertex: a collapse's neighbourhood
+        # then sits in few cache lines
+        self.order = np.argsort(zorder(pos), kind="stable")
+        self.inv = np.empty(n, dtype=np.int64)
+        self.inv[self.order] = np.arange(n)
+        self.pos = np.ascontiguousarray(pos[self.order])
+        faces = self.inv[faces]
+        self.forder = np.argsort(faces.min(axis=1), kind="stable")
+        self.faces = np.ascontiguousarray(faces[self.forder])
         self.falive = np.ones(m, dtype=bool)
         self.valive = np.ones(n, dtype=bool)
         self.vstart, self.vcount, self.refs = K.vertex_faces(self.faces, n)
@@ -193,6 +213,26 @@ class Decimator:
         self.log_u = np.empty(n, dtype=np.int64)
         self.log_v = np.empty(n, dtype=np.int64)
         self.log_t = np.empty(n, dtype=np.float64)
+
+    def result(self) -> dict[str, np.ndarray]:
+        """The state in the input's numbering: ``valive``, ``moved`` (n,) bool, ``positions``
+        (n, 3) (in the input's units), ``falive`` (m,) bool, ``faces`` (m, 3) (input
+        vertex indices), and the collapses in order: ``log_u`` (kept), ``log_v`` (merged
+        into it), ``log_t`` (where along u -> v the new vertex projects)."""
+        inv, order = self.inv, self.order
+        finv = np.empty(len(self.forder), dtype=np.int64)
+        finv[self.forder] = np.arange(len(self.forder))
+        n_log = int(self.meta[self.K.M_LOG])
+        return {
+            "valive": self.valive[inv],
+            "moved": self.moved[inv],
+            "positions": self.pos[inv] * self.scale + self.origin,
+            "falive": self.falive[finv],
+            "faces": order[self.faces[finv]],
+            "log_u": order[self.log_u[:n_log]],
+            "log_v": order[self.log_v[:n_log]],
+            "log_t": self.log_t[:n_log],
+        }
 
     @property
     def n_faces(self) -> int:
@@ -344,14 +384,14 @@ def _output(mesh: TriangleMesh, d: Decimator, normal_dtype=None) -> TriangleMesh
     """The surviving vertices and faces, with the input's data carried through the collapses
     (normals in ``normal_dtype``, default their own)."""
     n = len(mesh.vertices)
-    keep_v = d.valive
+    r = d.result()
+    keep_v, falive = r["valive"], r["falive"]
     new_index = np.cumsum(keep_v) - 1
-    faces = new_index[d.faces[d.falive]]
+    faces = new_index[r["faces"][falive]]
     verts = np.array(mesh.vertices, dtype=np.float64)
-    moved = d.moved
-    verts[moved] = d.pos[moved] * d.scale + d.origin
-    n_log = int(d.meta[d.K.M_LOG])
-    lu, lv, lt = d.log_u[:n_log], d.log_v[:n_log], d.log_t[:n_log]
+    moved = r["moved"]
+    verts[moved] = r["positions"][moved]
+    lu, lv, lt = r["log_u"], r["log_v"], r["log_t"]
 
     # float data interpolated in one table; integer data follows the nearer end
     cols: list[np.ndarray] = []
@@ -394,7 +434,7 @@ def _output(mesh: TriangleMesh, d: Decimator, normal_dtype=None) -> TriangleMesh
         normals=normals,
         colors=colors,
         attributes=attrs,
-        face_attributes={k: a[d.falive] for k, a in mesh.face_attributes.items()},
+        face_attributes={k: a[falive] for k, a in mesh.face_attributes.items()},
         history=list(mesh.history),
         point_dtype=mesh.point_dtype,
         extra_elements=list(mesh.extra_elements),
