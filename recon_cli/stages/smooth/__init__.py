@@ -120,9 +120,11 @@ def _volume(v: np.ndarray, faces: np.ndarray) -> float:
 def _vertex_normals(v: np.ndarray, faces: np.ndarray, old: np.ndarray) -> np.ndarray:
     """Area-weighted vertex normals; a vertex without faces keeps ``old``'s row."""
     cross = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
-    acc = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(acc, faces[:, k], cross)
+    corners = faces.ravel()
+    acc = np.stack(
+        [np.bincount(corners, np.repeat(cross[:, a], 3), minlength=len(v)) for a in range(3)],
+        axis=1,
+    )
     length = np.linalg.norm(acc, axis=1, keepdims=True)
     out = np.array(old, dtype=np.float64)
     ok = length[:, 0] > 0
