@@ -30,6 +30,15 @@ their attributes.
 Report keys (stable): ``vertices_in``, ``faces_in``, ``faces_target``, ``vertices_out``,
 ``faces_out``, ``collapses``, ``passes``, ``locked_vertices``, ``non_manifold_edges``,
 ``non_manifold_vertices``, ``boundary_vertices``, ``stopped``.
+
+References
+----------
+Garland, M. & Heckbert, P. S. (1997). Surface simplification using quadric error metrics.
+SIGGRAPH (the quadrics, optimal placement and its fallback, boundary penalty planes).
+Dey, T. K., Edelsbrunner, H., Guha, S. & Nekhayev, D. V. (1999). Topology preserving edge
+contraction. Publ. Inst. Math. (Beograd) 66 (the link condition).
+Cignoni, P., Montani, C. & Scopigno, R. (1998). A comparison of mesh simplification
+algorithms. Computers & Graphics 22(1) (the triangle-quality weighting of VCG / MeshLab).
 """
 
 from __future__ import annotations

@@ -18,6 +18,11 @@ Report keys (stable): ``vertices``, ``faces``, ``iterations``, ``mu``, ``boundar
 ``mean_displacement`` and ``max_displacement`` (fractions of the bounding-box diagonal),
 ``volume_in``, ``volume_out`` and ``volume_change`` (relative; None unless the mesh is
 closed).
+
+References
+----------
+Taubin, G. (1995). A signal processing approach to fair surface design. SIGGRAPH (the
+lambda|mu filter, its pass-band frequency, uniform umbrella weights).
 """
 
 from __future__ import annotations
