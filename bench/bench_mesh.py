@@ -50,9 +50,9 @@ COLUMNS = [
     ("h", "H / diag"),
     ("err", "err"),
     ("vol", "vol"),
-    ("time_ratio", "s ours/ref"),
-    ("mem_ratio", "MB ours/ref"),
-    ("quality_ratio", "CD or err ours/ref"),
+    ("time_ratio", "s ours/o3d"),
+    ("mem_ratio", "MB ours/o3d"),
+    ("quality_ratio", "CD, err or |vol| ours/o3d"),
     ("note", "note"),
 ]
 
@@ -133,7 +133,7 @@ def _ratios(rows: list[dict], key: str) -> None:
         parts = [
             f"s {ours['seconds'] / ref['seconds']:.2f}x",
             f"MB {ours['mb'] / ref['mb']:.2f}x" if ref["mb"] > 0 else "",
-            f"{key} {ours[key] / ref[key]:.3f}x" if ref.get(key) else "",
+            f"{key} {abs(ours[key] / ref[key]):.3f}x" if ref.get(key) else "",
         ]
         ref["note"] = (
             ref.get("note", "") + f" ours/{tag}: " + ", ".join(p for p in parts if p)
@@ -141,7 +141,7 @@ def _ratios(rows: list[dict], key: str) -> None:
         if tag == "open3d":
             ours["time_ratio"] = ours["seconds"] / ref["seconds"]
             ours["mem_ratio"] = ours["mb"] / ref["mb"] if ref["mb"] > 0 else float("nan")
-            ours["quality_ratio"] = ours[key] / ref[key] if ref.get(key) else float("nan")
+            ours["quality_ratio"] = abs(ours[key] / ref[key]) if ref.get(key) else float("nan")
 
 
 def _simplify_rows(case: str, mesh, work: Path) -> list[dict]:
