@@ -98,6 +98,27 @@ def repair(
 ) -> TriangleMesh:
     """Make a mesh manifold, clean and consistently oriented."""
 
+def simplify(
+    mesh: Any,
+    *,
+    faces: int | Literal["none"] | None = None,
+    ratio: float | Literal["none"] | None = None,
+    boundary_weight: float = 1000.0,
+    progress: Progress | bool | None = None,
+) -> TriangleMesh:
+    """Quadric edge-collapse simplification of a mesh (stays manifold)."""
+
+def smooth(
+    mesh: Any,
+    *,
+    iterations: int = 10,
+    step: float = 0.5,
+    pass_band: float = 0.1,
+    fixed_boundary: bool = False,
+    progress: Progress | bool | None = None,
+) -> TriangleMesh:
+    """Taubin lambda|mu smoothing of a mesh (keeps its volume)."""
+
 def sdf(
     mesh: Any,
     *,
@@ -173,6 +194,8 @@ __all__ = [
     "repair",
     "save",
     "sdf",
+    "simplify",
+    "smooth",
     "write",
     "write_ply",
 ]

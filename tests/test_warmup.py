@@ -47,6 +47,8 @@ runs = [
     ["poisson", f"{d}/n.ply", f"{d}/p.ply", "--depth", "6"],
     ["ballpivot", f"{d}/n.ply", f"{d}/b.ply"],
     ["repair", f"{d}/b.ply", f"{d}/r.ply", "--fill-holes", "50"],
+    ["simplify", f"{d}/r.ply", f"{d}/s.ply", "--ratio", "0.5"],
+    ["smooth", f"{d}/s.ply", f"{d}/sm.ply", "--iterations", "3"],
     ["sdf", kitten, f"{d}/k.npz", "--resolution", "24"],
     ["mcubes", f"{d}/k.npz", f"{d}/m.ply"],
     ["info", kitten, f"{d}/k.npz"],

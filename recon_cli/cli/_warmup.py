@@ -346,6 +346,12 @@ def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
         ]
     steps.append(("repair mixed polygons", recon("repair", path("mixed.ply"), out)))
     steps.append(("repair non-manifold edge", recon("repair", path("fin.ply"), out)))
+    steps += [
+        ("simplify", recon("simplify", m32, out, "--ratio", "0.3")),
+        ("simplify open", recon("simplify", path("open.ply"), out, "--faces", "21")),
+        ("smooth", recon("smooth", m64, out)),
+        ("smooth open", recon("smooth", path("open.ply"), out, "--fixed-boundary")),
+    ]
     for grid in (path("mesh.npz"), path("cloud.npz")):
         steps += [
             ("info grid", recon("info", grid)),
