@@ -76,7 +76,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("recon")
 
-BOUNDARIES = ("neumann", "dirichlet")
+BOUNDARIES = ("neumann", "dirichlet", "free")
 BACKENDS = ("native", "open3d", "pymeshlab")
 MAX_DEPTH = 14
 # closed pieces of the extraction smaller than this many finest cells on every side are specks
@@ -171,8 +171,16 @@ SPEC = StageSpec(
             "boundary",
             "choice",
             "neumann",
-            "Condition on the faces of the cube.",
+            "Condition on the faces of the cube: neumann (the surface meets them at right angles), "
+            "dirichlet (outside), free (none, as PoissonRecon's --bType 1: an open surface runs "
+            "on to the faces and is cut there; degree 2).",
             choices=BOUNDARIES,
+        ),
+        Param(
+            "confidence",
+            "bool",
+            False,
+            "Weight each point by its normal's length (as PoissonRecon's --confidence).",
         ),
         Param(
             "density",
@@ -232,6 +240,8 @@ def _check_options(
         ),
         complete=False,
     )
+    if v["boundary"] == "free" and v["degree"] != 2:
+        raise ParameterError("--boundary free needs --degree 2")
     return (
         v["depth"],
         v["scale"],
@@ -244,8 +254,11 @@ def _check_options(
     )
 
 
-def _check_inputs(points: Any, normals: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Finite (n, 3) points and unit normals; returns (points, normals, kept mask)."""
+def _check_inputs(
+    points: Any, normals: Any, lengths: list | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Finite (n, 3) points and unit normals; returns (points, normals, kept mask) (and
+    appends the kept normals' lengths to ``lengths`` when given)."""
     pts, nrm, length = oriented_rows(
         points,
         normals,
@@ -264,6 +277,8 @@ def _check_inputs(points: Any, normals: Any) -> tuple[np.ndarray, np.ndarray, np
         )
     pts = pts[keep]
     nrm = nrm[keep] / length[keep, None]
+    if lengths is not None:
+        lengths.append(length[keep])
     extent = pts.max(axis=0) - pts.min(axis=0)
     if not extent.max() > 0:
         raise InputError("all points coincide: there is no surface to reconstruct")
@@ -283,6 +298,7 @@ def screened_poisson(
     boundary: str = SPEC.param("boundary").default,
     density: bool = SPEC.param("density").default,
     trim: float = SPEC.param("trim").default,
+    confidence: bool = SPEC.param("confidence").default,
     colors: np.ndarray | None = None,
     full_depth: int = _FULL_DEPTH.default,
     cg_tolerance: float = _CG_TOLERANCE.default,
@@ -316,14 +332,27 @@ def screened_poisson(
         Open3D's, where degree 1 is 0.75-0.98x and 1.35x on a box aligned with the lattice);
         1, trilinear hat functions on the nodes (Open3D's Poisson uses degree 1), about
         0.55-0.7x the time of degree 2.
-    boundary : {"neumann", "dirichlet"}
-        Condition on the cube's faces (Dirichlet: ``chi = 0``, the outside).
+    boundary : {"neumann", "dirichlet", "free"}
+        Condition on the cube's faces: Neumann (``chi``'s normal derivative 0: the surface
+        meets the faces at right angles), Dirichlet (``chi = 0``, the outside) or none
+        (free, PoissonRecon's ``BOUNDARY_FREE``, degree 2 only: the functions of the cells
+        just beyond the faces are added and every integral runs over the cube only, so chi
+        takes whatever value and slope the data ask for at the faces; an open surface runs
+        straight on to them and is cut there, the mesh is open along the faces). Made by
+        solving on a cube twice as large, one level deeper, with the integrals over its
+        middle half only (:data:`.bspline.FREE_DOMAIN`): the same finest cell.
     density : bool
         Add the per-vertex kernel density of the samples as ``attributes["density"]``.
     trim : float
         Cut away the surface where the samples' density is below ``trim`` times its median
         at the samples (0 <= trim < 1; 0 keeps everything); see the module docstring for how
         this relates to PoissonRecon's SurfaceTrimmer.
+    confidence : bool
+        Weight each point by its normal's length, as PoissonRecon's ``--confidence``: its
+        position and normal count that much in its finest cell's sample, whose weight (in the
+        kernel density, the area per sample, the screening and the iso-value) is their sum.
+        The weights are divided by their mean, so only their ratios matter (PoissonRecon
+        uses the lengths as they are: their scale moves its splat depths).
     colors : (n, 3) or (n, 4) array or None
         Per-point colours, interpolated onto the output vertices.
     full_depth : int
@@ -341,7 +370,11 @@ def screened_poisson(
     )
     full_depth = _FULL_DEPTH.coerce(full_depth)
     cg_tolerance = _CG_TOLERANCE.coerce(cg_tolerance)
-    pts, nrm, keep = _check_inputs(points, normals)
+    confidence = SPEC.param("confidence").coerce(confidence)
+    lengths: list = []
+    pts, nrm, keep = _check_inputs(points, normals, lengths)
+    weight = lengths[0] / float(lengths[0].mean()) if confidence else None
+    del lengths
     if colors is not None:
         colors = np.asarray(colors)
         if len(colors) != len(keep):
@@ -351,18 +384,30 @@ def screened_poisson(
     from recon_cli.memory import release_free_heap
     from recon_cli.stages.poisson.extract import extract, refine_roots
     from recon_cli.stages.poisson.octree import build_levels
-    from recon_cli.stages.poisson.splat import make_splats, merge_samples, noise_fraction, sample_density
+    from recon_cli.stages.poisson.splat import (
+        make_splats,
+        merge_samples,
+        noise_fraction,
+        sample_density,
+    )
     from recon_cli.stages.poisson.system import chi_levels, iso_value, solve
 
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    full_depth = min(full_depth, depth)
 
     # ---- unit cube and samples (points merged per finest cell, as PoissonRecon does)
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     size = float((hi - lo).max()) * scale
     origin = 0.5 * (lo + hi) - 0.5 * size
-    smp = merge_samples((pts - origin) / size, nrm, depth)
+    # ---- free boundary: the cube is the middle half of the solve's, one level deeper
+    user_depth, domain = depth, None
+    if boundary == "free":
+        domain = (origin.copy(), size)
+        origin = origin - 0.5 * size
+        size *= 2.0
+        depth += 1
+    full_depth = min(full_depth, depth)
+    smp = merge_samples((pts - origin) / size, nrm, depth, weight)
     ns = len(smp.count)
     n_pts = len(pts)
     del nrm  # memory: the normals are in the samples now
@@ -375,7 +420,8 @@ def screened_poisson(
     )
     tree_depth = splats.tree_depth
     if degree == 2:
-        tree_depth = max(tree_depth, 1)  # level 0 carries no degree-2 function
+        # level 0 carries no degree-2 function (nor level 1 with the free boundary)
+        tree_depth = max(tree_depth, 1 if domain is None else 2)
     full_depth = min(full_depth, tree_depth)
     res = 1 << tree_depth  # the finest cells of the tree
     timings["density"] = time.perf_counter() - t
@@ -452,6 +498,8 @@ def screened_poisson(
         del chi_lv
         verts *= size / res
         verts += origin
+    if domain is not None:
+        verts, faces = _clip_to_cube(verts, faces, *domain)
     verts, faces, bubbles, islands = _drop_bubbles(verts, faces, size / res, pts)
     timings["extract"] = time.perf_counter() - t
 
@@ -477,8 +525,8 @@ def screened_poisson(
     report = {
         "vertices": len(mesh.vertices),
         "faces": len(mesh.faces),
-        "depth": depth,
-        "tree_depth": tree_depth,
+        "depth": user_depth,
+        "tree_depth": tree_depth - (depth - user_depth),
         "iso_value": iso,
         "solver_iterations": int(total_it),
         "residual": float(last_res),
@@ -494,6 +542,24 @@ def screened_poisson(
         "timings": timings,
     }
     return PoissonResult(mesh, report)
+
+
+def _clip_to_cube(
+    verts: np.ndarray, faces: np.ndarray, origin: np.ndarray, size: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The faces inside the cube ``origin + [0, size]^3`` (the free boundary's domain) and
+    their vertices: the extraction's leaves are cells of levels whose lattice the cube's
+    faces follow, so every triangle lies in a leaf on one side; its centroid says which."""
+    if not len(faces):
+        return verts, faces
+    cen = verts[faces].mean(axis=1)
+    eps = 1e-9 * size
+    inside = np.all((cen > origin - eps) & (cen < origin + size + eps), axis=1)
+    faces = faces[inside]
+    used = np.zeros(len(verts), bool)
+    used[faces.reshape(-1)] = True
+    remap = np.cumsum(used) - 1
+    return verts[used], remap[faces].astype(faces.dtype)
 
 
 def _drop_bubbles(
@@ -590,6 +656,7 @@ def run_stage(
     samples_per_node: float,
     degree: int,
     boundary: str,
+    confidence: bool,
     density: bool,
     trim: float,
     estimate_normals: bool,
@@ -602,7 +669,7 @@ def run_stage(
     ----------
     data : PointCloud or TriangleMesh
         Oriented points (a mesh's vertices and vertex normals are used).
-    depth, scale, point_weight, samples_per_node, degree, boundary, density, trim
+    depth, scale, point_weight, samples_per_node, degree, boundary, confidence, density, trim
         See :func:`screened_poisson`.
     estimate_normals : bool
         Estimate and orient normals first with the ``normals`` stage (its defaults), replacing
@@ -626,6 +693,11 @@ def run_stage(
         raise ParameterError(
             "the pymeshlab backend gives no densities: --density/--trim need native or open3d"
         )
+    # ---- PoissonRecon parity options (free boundary, confidence): the native solver only
+    if backend != "native":
+        for name, used in (("--boundary free", boundary == "free"), ("--confidence", confidence)):
+            if used:
+                raise ParameterError(f"{name} needs the native backend")
     cloud = as_point_cloud(data)
     history = list(cloud.history)
     if estimate_normals:
@@ -655,6 +727,7 @@ def run_stage(
             boundary=boundary,
             density=density,
             trim=trim,
+            confidence=confidence,
             colors=cloud.colors,
             progress=progress,
         )

@@ -40,6 +40,7 @@ Kazhdan, M., Bolitho, M. & Hoppe, H. (2006). Poisson surface reconstruction. SGP
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
 from dataclasses import dataclass
@@ -95,6 +96,77 @@ def folded_tables(n: int, s: float) -> tuple[np.ndarray, np.ndarray]:
     return m1, k1
 
 
+# the free boundary (PoissonRecon's BOUNDARY_FREE): the reconstruction cube is the middle half
+# of the solve's cube along every axis (screened_poisson doubles the cube and adds a level), so
+# the functions of the cells just beyond its faces exist; every integral runs over it only
+FREE_DOMAIN = (0.25, 0.75)
+# Gauss-Legendre points and weights on [0, 1]: exact for the quartic products of two pieces
+_GAUSS_T = 0.5 + 0.5 * np.array([-np.sqrt(0.6), 0.0, np.sqrt(0.6)])
+_GAUSS_W = np.array([5.0, 8.0, 5.0]) / 18.0
+
+
+def domain_tables(n: int, lo: float, hi: float) -> tuple[np.ndarray, ...]:
+    """(n, 5) tables ``m1``, ``k1``, ``fv``, ``fd`` of the (unreflected) functions of cells
+    ``0..n-1`` integrated over ``[lo, hi]`` (cell units) only: between cell ``i`` and cell
+    ``i + t`` (column ``t + 2``) the mass, the stiffness, the value factor (the mass) and
+    the derivative factor ``int B_i' B_{i+t}`` (per cell, not per unit length). Rows of the
+    cells whose support misses the interval are 0 (no equation: fixed in the solve)."""
+    m1 = np.zeros((n, 5))
+    k1 = np.zeros((n, 5))
+    fd = np.zeros((n, 5))
+    lo, hi = max(lo, -2.0), min(hi, n + 2.0)
+    cells = np.arange(int(np.floor(lo)), int(np.ceil(hi)))
+    a = np.maximum(cells, lo)
+    b = np.minimum(cells + 1, hi)
+    keep = b > a
+    cells, a, b = cells[keep], a[keep], b[keep]
+    if not len(cells):
+        return m1, k1, m1.copy(), fd
+    # quadrature points (p,) in the cells, their local coordinate and weight
+    u = (a[:, None] + (b - a)[:, None] * _GAUSS_T[None, :]).reshape(-1)
+    w = ((b - a)[:, None] * _GAUSS_W[None, :]).reshape(-1)
+    c = np.repeat(cells, 3)
+    t = u - c
+    # the functions of cells c - 1, c, c + 1 at u: values and derivatives
+    val = np.stack([0.5 * (1 - t) ** 2, 0.75 - (t - 0.5) ** 2, 0.5 * t * t], axis=1)
+    der = np.stack([-(1 - t), -2.0 * (t - 0.5), t], axis=1)
+    for ia in range(3):
+        i = c - 1 + ia
+        ok = (i >= 0) & (i < n)
+        for ib in range(3):
+            col = ib - ia + 2
+            np.add.at(m1[:, col], i[ok], (w * val[:, ia] * val[:, ib])[ok])
+            np.add.at(k1[:, col], i[ok], (w * der[:, ia] * der[:, ib])[ok])
+            np.add.at(fd[:, col], i[ok], (w * der[:, ia] * val[:, ib])[ok])
+    return m1, k1, m1.copy(), fd
+
+
+@functools.lru_cache(maxsize=32)
+def level_tables(n: int, s: float, free: bool) -> tuple[np.ndarray, ...]:
+    """The 1D tables of a level of ``n`` cells: ``m1``, ``k1`` (:func:`folded_tables`, or
+    over :data:`FREE_DOMAIN` only with ``free``) and the right-hand side's ``fv``, ``fd``
+    (n, 5) (:func:`._bspline.field_rhs`; ``fd`` per cell). With ``free``, the level of 2
+    cells, whose domain is not made of whole cells, carries no function (its rows are 0):
+    the finer levels, solved exactly up to the full depth, hold everything it would."""
+    if free:
+        if n < 4:
+            z = np.zeros((n, 5))
+            return z, z, z, z
+        return domain_tables(n, FREE_DOMAIN[0] * n, FREE_DOMAIN[1] * n)
+    m1, k1 = folded_tables(n, s)
+    fv = np.empty(5)
+    fd = np.empty(5)
+    for t in range(-2, 3):
+        fv[t + 2], fd[t + 2] = B.b2_factors(float(t), 1.0)
+    return m1, k1, np.tile(fv, (n, 1)), np.tile(fd, (n, 1))
+
+
+def boundary_sign(boundary: str) -> float:
+    """The reflection's sign at the solve's cube faces: -1 Dirichlet, 1 otherwise (the free
+    boundary's cube faces lie outside its domain)."""
+    return -1.0 if boundary == "dirichlet" else 1.0
+
+
 @dataclass
 class LevelField:
     """chi on one level in the degree-2 basis: coefficients on ``E`` and the lookups.
@@ -133,7 +205,7 @@ def level_field(lev: Level, boundary: str) -> LevelField:
     Q, inp = _level_parents(lev)
     nb = np.empty((len(Q), 27), np.int32)
     B.neighbour_table_into(Q, (1 << (lev.depth - 1)) - 1, nb)
-    return LevelField(lev.depth, 1.0 if boundary == "neumann" else -1.0, Q, inp, nb)
+    return LevelField(lev.depth, boundary_sign(boundary), Q, inp, nb)
 
 
 def level_fields(levels: list[Level], boundary: str) -> tuple[list[LevelField | None], tuple]:
@@ -152,7 +224,7 @@ def level_fields(levels: list[Level], boundary: str) -> tuple[list[LevelField | 
     del parts
     nb_all = neighbour_tables(q_all, q_off)
     coef_all = np.zeros(8 * len(q_all))
-    s = 1.0 if boundary == "neumann" else -1.0
+    s = boundary_sign(boundary)
     out: list[LevelField | None] = [None]
     for lev in levels[1:]:
         lo, hi = q_off[lev.depth], q_off[lev.depth + 1]
@@ -183,7 +255,7 @@ class ChiField:
             # the levels' arrays as :func:`level_fields` made them (the fields are views)
             self.q_all, self.q_off, self.inp_all, self.nb_all, self.coef_all = arrays
             self.top = len(self.q_off) - 2
-            self.s = 1.0 if boundary == "neumann" else -1.0
+            self.s = boundary_sign(boundary)
             return
         top = max((f.depth for f in fields), default=0)
         sizes = np.zeros(top + 2, np.int64)
@@ -191,7 +263,7 @@ class ChiField:
             sizes[f.depth + 1] = len(f.q_keys)
         self.q_off = np.cumsum(sizes)
         self.top = top
-        self.s = 1.0 if boundary == "neumann" else -1.0
+        self.s = boundary_sign(boundary)
         order = sorted(fields, key=lambda f: f.depth)
         self.q_all = np.concatenate([f.q_keys for f in order]) if order else np.zeros(0, np.int64)
         self.inp_all = np.concatenate([f.inp for f in order]) if order else np.zeros(0, bool)
@@ -313,10 +385,12 @@ class NormalRHS:
         self,
         fields: dict[int, tuple[np.ndarray, np.ndarray]],
         level_fields: list[LevelField | None],
+        free: bool = False,
     ):
         # a level's own share is dropped once its right-hand side is made (the dict is
         # copied: the caller's is left whole; drop it there to free the arrays)
         self.fields = dict(fields)
+        self.free = free  # integrals over the free boundary's domain only (level_tables)
         self.lf = list(level_fields)
         depth = len(level_fields) - 1
         self.depth = depth
@@ -354,14 +428,11 @@ class NormalRHS:
             self.finer[lv - 1] = up
             del t, blocks
 
-    @staticmethod
-    def _factors(lv: int) -> tuple[np.ndarray, np.ndarray]:
-        """Value and derivative (per unit length) factors of a field's cell at offset -2..2
-        from a level-``lv`` test function's, per axis."""
-        fv = np.empty(5)
-        fd = np.empty(5)
-        for t in range(-2, 3):
-            fv[t + 2], fd[t + 2] = B.b2_factors(float(t), 1.0)
+    def _factors(self, lv: int) -> tuple[np.ndarray, np.ndarray]:
+        """(n, 5) value and derivative (per unit length) factors of a field's cell at offset
+        -2..2 from a level-``lv`` test function's, per axis (:func:`level_tables`)."""
+        f = self.lf[lv]
+        fv, fd = level_tables(1 << lv, f.s, self.free)[2:]
         return fv, fd * float(1 << lv)
 
     def _own(self, lv: int) -> tuple[np.ndarray, np.ndarray] | None:
@@ -492,7 +563,7 @@ def solve(
     lfs, arrays = level_fields(levels, boundary)
     coef_all = arrays[4]
     if KERNEL_WIDTH == 1.0:
-        normal_rhs = NormalRHS(splats.rhs_fields, lfs)
+        normal_rhs = NormalRHS(splats.rhs_fields, lfs, free=boundary == "free")
         splats.rhs_fields = None  # NormalRHS drops each level's share once used
     else:  # kernels other than the levels' own B-splines: splat every share at every level
         items = fields_as_items(splats.rhs_fields)
@@ -516,13 +587,24 @@ def solve(
             lfs[d] = None
             n = 1 << d
             h = 1.0 / n
-            m1, k1 = folded_tables(n, f.s)
+            m1, k1 = level_tables(n, f.s, boundary == "free")[:2]
             unknown = np.repeat(f.inp, 8)
             ne = len(unknown)
             if KERNEL_WIDTH == 1.0:
                 rhs = normal_rhs.rhs(d)
             else:
                 rhs = B.splat_rhs(*items, d, f.q_keys, f.inp, f.s, KERNEL_WIDTH)
+            if not m1.any():
+                # the free boundary's level 1 carries no function (level_tables): chi is 0 on it
+                f.coef = coef_all[8 * arrays[1][d] : 8 * arrays[1][d + 1]]
+                fields.append(f)
+                prev = f
+                per_level.append(
+                    {"depth": d, "nodes": ne, "unknowns": 0, "iterations": 0, "residual": 0.0}
+                )
+                per_level[-1]["seconds"] = time.perf_counter() - tl
+                tk.advance(1)
+                continue
             diag = B.stiffness_diag(f.q_keys, f.inp, m1, k1, h)
             if alpha > 0:
                 mp, mw = _merge_per_cell(spos, screen_w, d)
