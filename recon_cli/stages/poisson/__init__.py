@@ -59,19 +59,22 @@ Kazhdan, M., Bolitho, M. & Hoppe, H. (2006). Poisson surface reconstruction. SGP
 
 from __future__ import annotations
 
+import functools
 import logging
+import os
 import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from recon_cli.errors import InputError, ParameterError
+from recon_cli.errors import InputError, ParameterError, StageFailed
 from recon_cli.geometry import PointCloud, TriangleMesh, as_point_cloud, local_origin, oriented_rows
 from recon_cli.params import Param, StageSpec
 from recon_cli.progress import task
 
 if TYPE_CHECKING:
+    from recon_cli.grid import Grid
     from recon_cli.stages import StageResult
 
 log = logging.getLogger("recon")
@@ -96,6 +99,9 @@ class PoissonResult:
     mesh : TriangleMesh
         The surface; ``attributes["density"]`` when asked for, ``colors`` when the input
         had colours.
+    grid : Grid or None
+        With ``grid``: the solved field on the finest lattice around the surface
+        (:mod:`.field`).
     report : dict
         ``vertices``, ``faces``, ``depth``, ``iso_value``, ``solver_iterations``,
         ``residual`` (relative residual of the finest level), ``bubbles_removed`` (closed
@@ -110,6 +116,7 @@ class PoissonResult:
 
     mesh: TriangleMesh
     report: dict = field(default_factory=dict)
+    grid: Grid | None = None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -199,6 +206,23 @@ SPEC = StageSpec(
             max=1.0,
             max_open=True,
             metavar="T",
+        ),
+        Param(
+            "attributes",
+            "any",
+            "all",
+            "Input point properties carried onto the vertices (intensity, classification, colours, "
+            "any PLY property): all, none, or names separated by commas; from the points near each "
+            "vertex on its side (no bleeding through thin parts), codes by majority.",
+            metavar="all|none|NAME,...",
+        ),
+        Param(
+            "grid",
+            "any",
+            None,
+            "Also write the solved field on the finest lattice to this grid file (.npz): zero on "
+            "the surface, negative inside ('recon mcubes' extracts it).",
+            metavar="OUT.npz",
         ),
         Param(
             "estimate_normals",
@@ -300,6 +324,8 @@ def screened_poisson(
     trim: float = SPEC.param("trim").default,
     confidence: bool = SPEC.param("confidence").default,
     colors: np.ndarray | None = None,
+    attributes: dict[str, np.ndarray] | None = None,
+    grid: bool = False,
     full_depth: int = _FULL_DEPTH.default,
     cg_tolerance: float = _CG_TOLERANCE.default,
     progress: Any = None,
@@ -354,7 +380,16 @@ def screened_poisson(
         The weights are divided by their mean, so only their ratios matter (PoissonRecon
         uses the lengths as they are: their scale moves its splat depths).
     colors : (n, 3) or (n, 4) array or None
-        Per-point colours, interpolated onto the output vertices.
+        Per-point colours, carried onto the output vertices (:mod:`.attributes`).
+    attributes : dict of str to (n,) array, optional
+        Per-point properties carried onto the vertices as ``mesh.attributes`` in their
+        dtypes (:func:`.attributes.transfer`: from the points near each vertex on its side;
+        integer codes by majority). A requested ``density`` replaces an input one.
+    grid : bool
+        Also return the solved field on a regular grid (``PoissonResult.grid``,
+        :func:`.field.indicator_grid`): the finest lattice's points around the surface,
+        ``(iso - chi) / g`` (zero on the untrimmed surface, negative inside, about the
+        distance near it).
     full_depth : int
         Levels up to this one are complete grids.
     cg_tolerance : float
@@ -380,6 +415,15 @@ def screened_poisson(
         if len(colors) != len(keep):
             raise InputError(f"colors has {len(colors)} rows, expected {len(keep)}")
         colors = colors[keep]
+    props: dict[str, np.ndarray] = {}
+    for name, values in (attributes or {}).items():
+        values = np.asarray(values)
+        if values.ndim != 1 or len(values) != len(keep):
+            raise InputError(
+                f"attribute {name!r} has shape {values.shape}, expected ({len(keep)},)"
+            )
+        props[name] = values[keep]
+    unit_nrm = nrm if (props or colors is not None) else None
 
     from recon_cli.memory import release_free_heap
     from recon_cli.stages.poisson.extract import extract, refine_roots
@@ -390,7 +434,8 @@ def screened_poisson(
         noise_fraction,
         sample_density,
     )
-    from recon_cli.stages.poisson.system import chi_levels, iso_value, solve
+    from recon_cli.stages.poisson.free import FREE_DOMAIN, clip_to_cube
+    from recon_cli.stages.poisson.system import chi_at, chi_levels, iso_value, solve
 
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -483,6 +528,8 @@ def screened_poisson(
         # extraction left 95 MB of freed heap resident, where the roots' tables went on top)
         chi.drop_neighbours()
         release_free_heap()
+        # the grid reads chi as the extraction does: trilinear in each leaf from its corners
+        chi_fn = functools.partial(chi_at, chi_levels(levels, gvals)) if grid else None
         verts, faces = extract(levels, gvals, iso, origin, size)
         del levels, gvals
         release_free_heap()
@@ -495,13 +542,26 @@ def screened_poisson(
         verts, faces = extract(levels, gvals, iso, np.zeros(3), float(res))
         del levels, gvals
         refine_roots(verts, chi_lv, iso, tree_depth)
-        del chi_lv
         verts *= size / res
         verts += origin
+        chi_fn = functools.partial(chi_at, chi_lv) if grid else None
+        del chi_lv
     if domain is not None:
-        verts, faces = _clip_to_cube(verts, faces, *domain)
+        verts, faces = clip_to_cube(verts, faces, *domain)
     verts, faces, bubbles, islands = _drop_bubbles(verts, faces, size / res, pts)
     timings["extract"] = time.perf_counter() - t
+    # ---- the field on a regular grid (--grid)
+    field_grid = None
+    if grid and len(faces):
+        from recon_cli.stages.poisson.field import indicator_grid
+
+        t = time.perf_counter()
+        with task(progress, "poisson: grid"):
+            field_grid = indicator_grid(
+                chi_fn, iso, verts, origin, size, res, FREE_DOMAIN if domain else (0.0, 1.0)
+            )
+        timings["grid"] = time.perf_counter() - t
+    del chi_fn
 
     mesh = TriangleMesh(vertices=verts, faces=faces)
     vdens = None
@@ -517,10 +577,19 @@ def screened_poisson(
             raise ParameterError(f"trim {trim:g} removes the whole surface: use a smaller value")
         trimmed = len(mesh.faces) - cut.untouched_faces
         mesh, vdens, trimmed_area = cut.mesh, cut.density, cut.removed_area
+    # ---- the input's properties on the vertices, from the points on each vertex's side
+    fallback = 0
+    if props or colors is not None:
+        from recon_cli.stages.poisson.attributes import transfer
+
+        t = time.perf_counter()
+        moved = transfer(pts, unit_nrm, props, colors, mesh.vertices, mesh.faces, size / res)
+        mesh.attributes.update(moved.values)
+        mesh.colors, fallback = moved.colors, moved.fallback
+        timings["attributes"] = time.perf_counter() - t
+    del unit_nrm
     if density:
         mesh.attributes["density"] = vdens
-    if colors is not None and len(mesh.vertices):
-        mesh.colors = _interpolate_colors(pts, colors, mesh.vertices, size / res)
     timings["total"] = time.perf_counter() - t0
     report = {
         "vertices": len(mesh.vertices),
@@ -535,31 +604,17 @@ def screened_poisson(
         "trimmed_faces": int(trimmed),
         "trimmed_area": trimmed_area,
         "noise": noise,
+        "attributes": sorted(props) + (["colors"] if colors is not None else []),
+        "attribute_fallback_vertices": fallback,
         "samples": int(ns),
         "ignored_points": int((~keep).sum()),
         "finest_cell": size / res,
         "levels": per_level,
         "timings": timings,
     }
-    return PoissonResult(mesh, report)
-
-
-def _clip_to_cube(
-    verts: np.ndarray, faces: np.ndarray, origin: np.ndarray, size: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """The faces inside the cube ``origin + [0, size]^3`` (the free boundary's domain) and
-    their vertices: the extraction's leaves are cells of levels whose lattice the cube's
-    faces follow, so every triangle lies in a leaf on one side; its centroid says which."""
-    if not len(faces):
-        return verts, faces
-    cen = verts[faces].mean(axis=1)
-    eps = 1e-9 * size
-    inside = np.all((cen > origin - eps) & (cen < origin + size + eps), axis=1)
-    faces = faces[inside]
-    used = np.zeros(len(verts), bool)
-    used[faces.reshape(-1)] = True
-    remap = np.cumsum(used) - 1
-    return verts[used], remap[faces].astype(faces.dtype)
+    if field_grid is not None:
+        report["grid_shape"] = list(field_grid.shape)
+    return PoissonResult(mesh, report, field_grid)
 
 
 def _drop_bubbles(
@@ -626,26 +681,6 @@ def _drop_bubbles(
     return verts[used], remap[faces].astype(faces.dtype), n_speck, n_island
 
 
-def _interpolate_colors(
-    pts: np.ndarray, colors: np.ndarray, verts: np.ndarray, cell: float
-) -> np.ndarray:
-    """Gaussian-weighted mean colour of the nearest input points (sigma = one finest cell)."""
-    from scipy.spatial import cKDTree
-
-    k = min(8, len(pts))
-    dist, idx = cKDTree(pts).query(verts, k=k)
-    dist = dist.reshape(len(verts), k)
-    idx = idx.reshape(len(verts), k)
-    w = np.exp(-0.5 * (dist / cell) ** 2)
-    w[:, 0] = np.maximum(w[:, 0], 1e-300)  # the nearest point always counts
-    w /= w.sum(axis=1, keepdims=True)
-    c = (colors[idx].astype(np.float64) * w[:, :, None]).sum(axis=1)
-    if colors.dtype.kind in "ui":
-        info = np.iinfo(colors.dtype)
-        return np.clip(np.round(c), info.min, info.max).astype(colors.dtype)
-    return c.astype(colors.dtype)
-
-
 @SPEC.runner
 def run_stage(
     data: Any,
@@ -659,6 +694,8 @@ def run_stage(
     confidence: bool,
     density: bool,
     trim: float,
+    attributes: Any,
+    grid: Any,
     estimate_normals: bool,
     backend: str,
     progress: Any = None,
@@ -671,6 +708,12 @@ def run_stage(
         Oriented points (a mesh's vertices and vertex normals are used).
     depth, scale, point_weight, samples_per_node, degree, boundary, confidence, density, trim
         See :func:`screened_poisson`.
+    attributes : str or list of str
+        ``all`` (every property of the input and its colours), ``none``, or names
+        separated by commas (``colors`` for the colours): carried onto the vertices
+        (:mod:`.attributes`; with a reference backend, Open3D's colours are its own).
+    grid : path or None
+        Also write the solved field here as a grid file (:mod:`.field`; native only).
     estimate_normals : bool
         Estimate and orient normals first with the ``normals`` stage (its defaults), replacing
         any the input has.
@@ -693,12 +736,27 @@ def run_stage(
         raise ParameterError(
             "the pymeshlab backend gives no densities: --density/--trim need native or open3d"
         )
-    # ---- PoissonRecon parity options (free boundary, confidence): the native solver only
+    # ---- PoissonRecon parity options (free boundary, confidence, grid): the native solver only
+    grid_path = None if grid in (None, "") else os.fspath(grid)
     if backend != "native":
-        for name, used in (("--boundary free", boundary == "free"), ("--confidence", confidence)):
+        for name, used in (
+            ("--boundary free", boundary == "free"),
+            ("--confidence", confidence),
+            ("--grid", grid_path is not None),
+        ):
             if used:
                 raise ParameterError(f"{name} needs the native backend")
+    if grid_path is not None:
+        from recon_cli.io.atomic import check_output
+
+        if grid_path == "-":
+            raise ParameterError("--grid needs a file name ('-' is the mesh's standard output)")
+        check_output(grid_path)
     cloud = as_point_cloud(data)
+    from recon_cli.stages.poisson.attributes import select
+
+    prop_names, keep_colors = select(attributes, list(cloud.attributes), cloud.colors is not None)
+    props = {k: cloud.attributes[k] for k in prop_names}
     history = list(cloud.history)
     if estimate_normals:
         try:
@@ -728,7 +786,9 @@ def run_stage(
             density=density,
             trim=trim,
             confidence=confidence,
-            colors=cloud.colors,
+            colors=cloud.colors if keep_colors else None,
+            attributes=props,
+            grid=grid_path is not None,
             progress=progress,
         )
         mesh, rep = res.mesh, res.report
@@ -751,6 +811,22 @@ def run_stage(
         report["ignored_points"] = rep["ignored_points"]
         report["tree_depth"] = rep["tree_depth"]
         report["noise"] = rep["noise"]
+        report["attributes"] = rep["attributes"]
+        report["attribute_fallback_vertices"] = rep["attribute_fallback_vertices"]
+        if grid_path is not None:
+            if res.grid is None:
+                raise StageFailed("--grid: the surface is empty; no field to write")
+            from recon_cli.io.npz import write_grid
+
+            line = (
+                f"poisson: (iso - chi) / |grad chi| on the finest lattice, depth {depth}, "
+                f"boundary {boundary}, iso {rep['iso_value']:.9g}"
+            )
+            res.grid.history = [*history, line]
+            res.grid.point_dtype = cloud.point_dtype
+            write_grid(res.grid, grid_path)
+            report["grid"] = grid_path
+            report["grid_shape"] = rep["grid_shape"]
     else:
         pts, nrm, keep = _check_inputs(cloud.points, cloud.normals)
         # the references about a local origin (Open3D's Poisson loses digits at UTM offsets)
@@ -758,7 +834,7 @@ def run_stage(
         clean = PointCloud(
             points=pts - centre,
             normals=nrm,
-            colors=None if cloud.colors is None else cloud.colors[keep],
+            colors=None if cloud.colors is None or not keep_colors else cloud.colors[keep],
             history=history,
         )
         from recon_cli.backends import backend_module
@@ -793,6 +869,16 @@ def run_stage(
                 )
             trimmed = len(mesh.faces) - cut.untouched_faces
             mesh, dens, trimmed_area = cut.mesh, cut.density, cut.removed_area
+        fallback = 0
+        if props and len(mesh.faces):
+            from recon_cli.stages.poisson.attributes import transfer
+
+            e = mesh.vertices[mesh.faces[:, [0, 1]]]
+            sigma = float(np.median(np.linalg.norm(e[:, 0] - e[:, 1], axis=1)))
+            kept = {k: v[keep] for k, v in props.items()}
+            moved = transfer(pts, nrm, kept, None, mesh.vertices, mesh.faces, sigma)
+            mesh.attributes.update(moved.values)
+            fallback = moved.fallback
         if density and dens is not None:
             mesh.attributes["density"] = dens
         report = {
@@ -807,6 +893,8 @@ def run_stage(
             "trimmed_faces": int(trimmed),
             "trimmed_area": trimmed_area,
             "noise": None,
+            "attributes": sorted(props) + (["colors"] if mesh.colors is not None else []),
+            "attribute_fallback_vertices": fallback,
         }
     mesh.history = history
     mesh.point_dtype = (

@@ -52,6 +52,7 @@ from recon_cli.memory import release_free_heap
 from recon_cli.stages.poisson import _bspline as B
 from recon_cli.stages.poisson import _octree as O
 from recon_cli.stages.poisson._luts import B2_MASS, B2_STIFFNESS
+from recon_cli.stages.poisson.free import FREE_DOMAIN, domain_tables
 from recon_cli.stages.poisson.octree import Level, dilate, pack_keys, set_corners, unpack_keys
 from recon_cli.stages.poisson.splat import Samples, Splats, fields_as_items
 from recon_cli.progress import task
@@ -94,51 +95,6 @@ def folded_tables(n: int, s: float) -> tuple[np.ndarray, np.ndarray]:
                 m1[hit, t + 2] += sg * B2_MASS[off[hit] + 2]
                 k1[hit, t + 2] += sg * B2_STIFFNESS[off[hit] + 2]
     return m1, k1
-
-
-# the free boundary (PoissonRecon's BOUNDARY_FREE): the reconstruction cube is the middle half
-# of the solve's cube along every axis (screened_poisson doubles the cube and adds a level), so
-# the functions of the cells just beyond its faces exist; every integral runs over it only
-FREE_DOMAIN = (0.25, 0.75)
-# Gauss-Legendre points and weights on [0, 1]: exact for the quartic products of two pieces
-_GAUSS_T = 0.5 + 0.5 * np.array([-np.sqrt(0.6), 0.0, np.sqrt(0.6)])
-_GAUSS_W = np.array([5.0, 8.0, 5.0]) / 18.0
-
-
-def domain_tables(n: int, lo: float, hi: float) -> tuple[np.ndarray, ...]:
-    """(n, 5) tables ``m1``, ``k1``, ``fv``, ``fd`` of the (unreflected) functions of cells
-    ``0..n-1`` integrated over ``[lo, hi]`` (cell units) only: between cell ``i`` and cell
-    ``i + t`` (column ``t + 2``) the mass, the stiffness, the value factor (the mass) and
-    the derivative factor ``int B_i' B_{i+t}`` (per cell, not per unit length). Rows of the
-    cells whose support misses the interval are 0 (no equation: fixed in the solve)."""
-    m1 = np.zeros((n, 5))
-    k1 = np.zeros((n, 5))
-    fd = np.zeros((n, 5))
-    lo, hi = max(lo, -2.0), min(hi, n + 2.0)
-    cells = np.arange(int(np.floor(lo)), int(np.ceil(hi)))
-    a = np.maximum(cells, lo)
-    b = np.minimum(cells + 1, hi)
-    keep = b > a
-    cells, a, b = cells[keep], a[keep], b[keep]
-    if not len(cells):
-        return m1, k1, m1.copy(), fd
-    # quadrature points (p,) in the cells, their local coordinate and weight
-    u = (a[:, None] + (b - a)[:, None] * _GAUSS_T[None, :]).reshape(-1)
-    w = ((b - a)[:, None] * _GAUSS_W[None, :]).reshape(-1)
-    c = np.repeat(cells, 3)
-    t = u - c
-    # the functions of cells c - 1, c, c + 1 at u: values and derivatives
-    val = np.stack([0.5 * (1 - t) ** 2, 0.75 - (t - 0.5) ** 2, 0.5 * t * t], axis=1)
-    der = np.stack([-(1 - t), -2.0 * (t - 0.5), t], axis=1)
-    for ia in range(3):
-        i = c - 1 + ia
-        ok = (i >= 0) & (i < n)
-        for ib in range(3):
-            col = ib - ia + 2
-            np.add.at(m1[:, col], i[ok], (w * val[:, ia] * val[:, ib])[ok])
-            np.add.at(k1[:, col], i[ok], (w * der[:, ia] * der[:, ib])[ok])
-            np.add.at(fd[:, col], i[ok], (w * der[:, ia] * val[:, ib])[ok])
-    return m1, k1, m1.copy(), fd
 
 
 @functools.lru_cache(maxsize=32)
