@@ -217,6 +217,14 @@ SPEC = StageSpec(
             metavar="all|none|NAME,...",
         ),
         Param(
+            "envelope",
+            "any",
+            None,
+            "A closed mesh the surface must lie in (as PoissonRecon's --envelope): chi is 0 "
+            "outside it, so an open scan's closing sheet stays inside it (degree 2).",
+            metavar="MESH",
+        ),
+        Param(
             "grid",
             "any",
             None,
@@ -326,6 +334,7 @@ def screened_poisson(
     colors: np.ndarray | None = None,
     attributes: dict[str, np.ndarray] | None = None,
     grid: bool = False,
+    envelope: Any = None,
     full_depth: int = _FULL_DEPTH.default,
     cg_tolerance: float = _CG_TOLERANCE.default,
     progress: Any = None,
@@ -390,6 +399,13 @@ def screened_poisson(
         :func:`.field.indicator_grid`): the finest lattice's points around the surface,
         ``(iso - chi) / g`` (zero on the untrimmed surface, negative inside, about the
         distance near it).
+    envelope : TriangleMesh or .envelope.Envelope or None
+        A closed mesh (world units) the surface must lie in, as PoissonRecon's
+        ``--envelope``: chi is fixed to 0 where a cell's support leaves it, so no part of the
+        surface is outside and an open scan's closing sheet follows it (:mod:`.envelope`;
+        degree 2). The report counts the input points outside it
+        (``envelope_outside_points``, which the surface cannot reach) and the vertices pulled
+        onto it (``envelope_pulled_vertices``).
     full_depth : int
         Levels up to this one are complete grids.
     cg_tolerance : float
@@ -406,6 +422,8 @@ def screened_poisson(
     full_depth = _FULL_DEPTH.coerce(full_depth)
     cg_tolerance = _CG_TOLERANCE.coerce(cg_tolerance)
     confidence = SPEC.param("confidence").coerce(confidence)
+    if envelope is not None and degree != 2:
+        raise ParameterError("--envelope needs --degree 2")
     lengths: list = []
     pts, nrm, keep = _check_inputs(points, normals, lengths)
     weight = lengths[0] / float(lengths[0].mean()) if confidence else None
@@ -479,18 +497,41 @@ def screened_poisson(
         noise = None
     timings["noise"] = time.perf_counter() - t
 
+    # ---- envelope: cells whose support leaves it are fixed at 0; the tree refined along it
+    env, sample_ok, free_cells, outside_points = None, None, None, 0
+    item_pos, item_level = splats.pos, splats.level
+    if envelope is not None:
+        from recon_cli.stages.poisson.envelope import REFINE_OFFSET, CellClassifier, Envelope
+
+        t = time.perf_counter()
+        env = envelope if isinstance(envelope, Envelope) else Envelope(envelope)
+        outside_points = int(np.count_nonzero(~env.inside(pts)))
+        sample_ok = env.free_cells(origin + size * smp.pos, size / res)
+        if not sample_ok.any():
+            raise InputError(
+                "every point lies outside the envelope or within 2.6 finest cells of its surface"
+            )
+        lv = min(tree_depth, max(full_depth, tree_depth - REFINE_OFFSET))
+        extra = env.surface_items(origin, size, lv)
+        item_pos = np.concatenate([splats.pos, extra])
+        item_level = np.concatenate([splats.level, np.full(len(extra), lv, np.int64)])
+        free_cells = CellClassifier(env, origin, size)
+
+        timings["envelope"] = time.perf_counter() - t
+
     # ---- tree: as deep as the splats, no deeper
     t = time.perf_counter()
     with task(progress, "poisson: tree"):
         levels = build_levels(
-            splats.pos,
-            splats.level,
+            item_pos,
+            item_level,
             tree_depth,
             full_depth,
             boundary,
             corners=degree == 1,
             own_ring=2 if degree == 1 else 1,
         )
+    del item_pos, item_level
     # memory: the splat items made the fields and the tree, the samples' normals and keys the splats
     splats.pos = splats.vec = splats.level = smp.normal = smp.keys = None
     timings["tree"] = time.perf_counter() - t
@@ -509,7 +550,15 @@ def screened_poisson(
         from recon_cli.stages.poisson import bspline
 
         gvals, per_level, total_it, last_res, iso, chi = bspline.solve(
-            levels, smp, splats, boundary, full_depth, cg_tolerance, progress
+            levels,
+            smp,
+            splats,
+            boundary,
+            full_depth,
+            cg_tolerance,
+            progress,
+            free_cells=free_cells,
+            sample_ok=sample_ok,
         )
         timings["solve"] = time.perf_counter() - t
     else:
@@ -549,6 +598,9 @@ def screened_poisson(
     if domain is not None:
         verts, faces = clip_to_cube(verts, faces, *domain)
     verts, faces, bubbles, islands = _drop_bubbles(verts, faces, size / res, pts)
+    pulled = 0
+    if env is not None:
+        verts, pulled = env.pull_inside(verts)
     timings["extract"] = time.perf_counter() - t
     # ---- the field on a regular grid (--grid)
     field_grid = None
@@ -606,6 +658,8 @@ def screened_poisson(
         "noise": noise,
         "attributes": sorted(props) + (["colors"] if colors is not None else []),
         "attribute_fallback_vertices": fallback,
+        "envelope_outside_points": outside_points if env is not None else None,
+        "envelope_pulled_vertices": pulled if env is not None else None,
         "samples": int(ns),
         "ignored_points": int((~keep).sum()),
         "finest_cell": size / res,
@@ -695,6 +749,7 @@ def run_stage(
     density: bool,
     trim: float,
     attributes: Any,
+    envelope: Any,
     grid: Any,
     estimate_normals: bool,
     backend: str,
@@ -712,6 +767,9 @@ def run_stage(
         ``all`` (every property of the input and its colours), ``none``, or names
         separated by commas (``colors`` for the colours): carried onto the vertices
         (:mod:`.attributes`; with a reference backend, Open3D's colours are its own).
+    envelope : path or None
+        A closed mesh file (any format recon reads) the surface must lie in
+        (:mod:`.envelope`; native only).
     grid : path or None
         Also write the solved field here as a grid file (:mod:`.field`; native only).
     estimate_normals : bool
@@ -743,6 +801,7 @@ def run_stage(
             ("--boundary free", boundary == "free"),
             ("--confidence", confidence),
             ("--grid", grid_path is not None),
+            ("--envelope", envelope not in (None, "")),
         ):
             if used:
                 raise ParameterError(f"{name} needs the native backend")
@@ -752,6 +811,13 @@ def run_stage(
         if grid_path == "-":
             raise ParameterError("--grid needs a file name ('-' is the mesh's standard output)")
         check_output(grid_path)
+    env = None
+    if envelope not in (None, ""):
+        if degree != 2:
+            raise ParameterError("--envelope needs --degree 2")
+        from recon_cli.stages.poisson.envelope import load_envelope
+
+        env = load_envelope(envelope)
     cloud = as_point_cloud(data)
     from recon_cli.stages.poisson.attributes import select
 
@@ -789,6 +855,7 @@ def run_stage(
             colors=cloud.colors if keep_colors else None,
             attributes=props,
             grid=grid_path is not None,
+            envelope=env,
             progress=progress,
         )
         mesh, rep = res.mesh, res.report
@@ -813,6 +880,9 @@ def run_stage(
         report["noise"] = rep["noise"]
         report["attributes"] = rep["attributes"]
         report["attribute_fallback_vertices"] = rep["attribute_fallback_vertices"]
+        if env is not None:
+            report["envelope_outside_points"] = rep["envelope_outside_points"]
+            report["envelope_pulled_vertices"] = rep["envelope_pulled_vertices"]
         if grid_path is not None:
             if res.grid is None:
                 raise StageFailed("--grid: the surface is empty; no field to write")

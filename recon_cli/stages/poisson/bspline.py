@@ -493,6 +493,12 @@ def _merge_per_cell(pos: np.ndarray, w: np.ndarray, level: int) -> tuple[np.ndar
     return mp, sw
 
 
+def cell_keys(q_keys: np.ndarray) -> np.ndarray:
+    """(8q,) lattice keys of the cells of E (the children of ``q_keys``, block order)."""
+    off = np.array([(o & 1) << 42 | ((o >> 1) & 1) << 21 | (o >> 2) & 1 for o in range(8)])
+    return (2 * q_keys[:, None] + off[None, :]).reshape(-1)
+
+
 def solve(
     levels: list[Level],
     smp: Samples,
@@ -501,14 +507,25 @@ def solve(
     full_depth: int,
     cg_tolerance: float,
     progress: Any = None,
+    free_cells: Any = None,
+    sample_ok: np.ndarray | None = None,
 ) -> tuple[list[np.ndarray], list[dict], int, float, float, ChiField]:
     """Solve every level in turn (level 0, a single cell, carries no function); returns chi
     at each level's nodes (for the extraction), per-level statistics, total iterations, the
     finest relative residual, the iso-value (count-weighted mean of chi at the samples) and
-    the field (:class:`ChiField`)."""
+    the field (:class:`ChiField`).
+
+    With ``free_cells`` (``f(level, keys)`` -> bool, the cells' lattice keys:
+    :class:`.envelope.CellClassifier`) the other cells of each level are fixed: their coefficient is 0 in the
+    level's whole chi (the coarser levels' part included) and not solved for; ``sample_ok``
+    (s,) bool then says which samples screen the solve and make the iso-value (the others lie
+    where chi is fixed)."""
     spos, count = smp.pos, smp.count
     alpha = splats.alpha
     screen_w = splats.screening(SCREEN_CLEAN, SCREEN_NOISY)
+    if sample_ok is not None:
+        screen_w = screen_w * sample_ok
+        count = count * sample_ok
     total_it = 0
     last_res = 0.0
     per_level = []
@@ -546,6 +563,7 @@ def solve(
             m1, k1 = level_tables(n, f.s, boundary == "free")[:2]
             unknown = np.repeat(f.inp, 8)
             ne = len(unknown)
+            fixed = None if free_cells is None else ~free_cells(d, cell_keys(f.q_keys))
             if KERNEL_WIDTH == 1.0:
                 rhs = normal_rhs.rhs(d)
             else:
@@ -577,11 +595,16 @@ def solve(
             # product on all of E were alive at once, the process's peak
             cmap = np.cumsum(f.inp) - 1
             cmap[~f.inp] = -1
+            if fixed is not None:
+                diag[fixed] = 0.0  # level_pcg leaves the rows without a diagonal at 0
+                rhs[fixed] = 0.0
             rhs = rhs[unknown]
             diag = diag[unknown]
             if prev is not None:
                 # the residual the coarser levels leave: A G at the unknowns, G on all of E
                 G = B.prolong(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s)
+                if fixed is not None:
+                    G[fixed] = 0.0
                 AG = np.empty(len(rhs))
                 B.level_matvec(
                     f.q_keys,
@@ -628,6 +651,8 @@ def solve(
             f.coef = coef_all[8 * arrays[1][d] : 8 * arrays[1][d + 1]]
             if prev is not None:
                 B.prolong_into(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s, f.coef)
+            if fixed is not None:
+                f.coef[fixed] = 0.0
             f.coef[unknown] += x
             del x
             fields.append(f)
