@@ -445,6 +445,7 @@ def screened_poisson(
 
     from recon_cli.memory import release_free_heap
     from recon_cli.stages.poisson.extract import extract, refine_roots
+    from recon_cli.stages.poisson.free import FREE_DOMAIN, clip_to_cube
     from recon_cli.stages.poisson.octree import build_levels
     from recon_cli.stages.poisson.splat import (
         make_splats,
@@ -452,7 +453,6 @@ def screened_poisson(
         noise_fraction,
         sample_density,
     )
-    from recon_cli.stages.poisson.free import FREE_DOMAIN, clip_to_cube
     from recon_cli.stages.poisson.system import chi_at, chi_levels, iso_value, solve
 
     timings: dict[str, float] = {}

@@ -46,7 +46,8 @@ class Envelope:
     Parameters
     ----------
     mesh : TriangleMesh
-        The envelope: closed (every edge shared by exactly two faces), either orientation.
+        The envelope: closed (every edge shared by exactly two faces) and orientable; its
+        windings are made to agree (either way out: the inside test takes |winding number|).
     name : str
         For the errors (the file's name).
 
@@ -76,6 +77,12 @@ class Envelope:
                 "exactly two faces",
                 name,
             )
+        flip, _, conflict = c.orientation()
+        if len(conflict):
+            raise InputError("--envelope is not orientable (a closed mesh must be)", name)
+        if flip.any():  # windings made to agree (the inside test needs it), either way out
+            f = f.copy()
+            f[flip] = f[flip][:, ::-1]
         self.vertices, self.faces = v, f
         self.bvh = build_bvh(v, f)
         self.winding = WindingTree(v, f, bvh=self.bvh)
