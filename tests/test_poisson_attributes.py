@@ -107,7 +107,7 @@ def test_thin_plate_colours_do_not_bleed(rng):
     # 0.016 thick at depth 7: under one finest cell (0.02), the other face's points are nearer
     # than a cell to every vertex
     p, n, col, rot = _plate(rng, 0.008)
-    res = screened_poisson(p, n, depth=7, colors=col, attributes={"side": (col[:, 0] > 0)})
+    res = screened_poisson(p, n, depth=7, colors=col, properties={"side": (col[:, 0] > 0)})
     local = (res.mesh.vertices - 1e6) @ rot
     vn = vertex_normals(res.mesh.vertices, res.mesh.faces) @ rot
     inner = (np.abs(local[:, 0]) < 0.9) & (np.abs(local[:, 1]) < 0.7)

@@ -43,7 +43,7 @@ def test_mcubes_of_the_grid_is_the_surface(rng, name, degree, boundary, offset, 
         p = p * scale + offset
     else:
         p, n = shape_cloud(name, 15_000, rng, offset=offset, scale=scale)
-    r = screened_poisson(p, n, depth=6, degree=degree, boundary=boundary, grid=True)
+    r = screened_poisson(p, n, depth=6, degree=degree, boundary=boundary, with_grid=True)
     g = r.grid
     cell = r.report["finest_cell"]
     assert g.voxel_size == pytest.approx(cell, rel=1e-12)

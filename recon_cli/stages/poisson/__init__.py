@@ -100,7 +100,7 @@ class PoissonResult:
         The surface; ``attributes["density"]`` when asked for, ``colors`` when the input
         had colours.
     grid : Grid or None
-        With ``grid``: the solved field on the finest lattice around the surface
+        With ``with_grid``: the solved field on the finest lattice around the surface
         (:mod:`.field`).
     report : dict
         ``vertices``, ``faces``, ``depth``, ``iso_value``, ``solver_iterations``,
@@ -332,8 +332,8 @@ def screened_poisson(
     trim: float = SPEC.param("trim").default,
     confidence: bool = SPEC.param("confidence").default,
     colors: np.ndarray | None = None,
-    attributes: dict[str, np.ndarray] | None = None,
-    grid: bool = False,
+    properties: dict[str, np.ndarray] | None = None,
+    with_grid: bool = False,
     envelope: Any = None,
     full_depth: int = _FULL_DEPTH.default,
     cg_tolerance: float = _CG_TOLERANCE.default,
@@ -390,11 +390,11 @@ def screened_poisson(
         uses the lengths as they are: their scale moves its splat depths).
     colors : (n, 3) or (n, 4) array or None
         Per-point colours, carried onto the output vertices (:mod:`.attributes`).
-    attributes : dict of str to (n,) array, optional
+    properties : dict of str to (n,) array, optional
         Per-point properties carried onto the vertices as ``mesh.attributes`` in their
         dtypes (:func:`.attributes.transfer`: from the points near each vertex on its side;
         integer codes by majority). A requested ``density`` replaces an input one.
-    grid : bool
+    with_grid : bool
         Also return the solved field on a regular grid (``PoissonResult.grid``,
         :func:`.field.indicator_grid`): the finest lattice's points around the surface,
         ``(iso - chi) / g`` (zero on the untrimmed surface, negative inside, about the
@@ -434,7 +434,7 @@ def screened_poisson(
             raise InputError(f"colors has {len(colors)} rows, expected {len(keep)}")
         colors = colors[keep]
     props: dict[str, np.ndarray] = {}
-    for name, values in (attributes or {}).items():
+    for name, values in (properties or {}).items():
         values = np.asarray(values)
         if values.ndim != 1 or len(values) != len(keep):
             raise InputError(
@@ -578,7 +578,7 @@ def screened_poisson(
         chi.drop_neighbours()
         release_free_heap()
         # the grid reads chi as the extraction does: trilinear in each leaf from its corners
-        chi_fn = functools.partial(chi_at, chi_levels(levels, gvals)) if grid else None
+        chi_fn = functools.partial(chi_at, chi_levels(levels, gvals)) if with_grid else None
         verts, faces = extract(levels, gvals, iso, origin, size)
         del levels, gvals
         release_free_heap()
@@ -593,7 +593,7 @@ def screened_poisson(
         refine_roots(verts, chi_lv, iso, tree_depth)
         verts *= size / res
         verts += origin
-        chi_fn = functools.partial(chi_at, chi_lv) if grid else None
+        chi_fn = functools.partial(chi_at, chi_lv) if with_grid else None
         del chi_lv
     if domain is not None:
         verts, faces = clip_to_cube(verts, faces, *domain)
@@ -604,7 +604,7 @@ def screened_poisson(
     timings["extract"] = time.perf_counter() - t
     # ---- the field on a regular grid (--grid)
     field_grid = None
-    if grid and len(faces):
+    if with_grid and len(faces):
         from recon_cli.stages.poisson.field import indicator_grid
 
         t = time.perf_counter()
@@ -853,8 +853,8 @@ def run_stage(
             trim=trim,
             confidence=confidence,
             colors=cloud.colors if keep_colors else None,
-            attributes=props,
-            grid=grid_path is not None,
+            properties=props,
+            with_grid=grid_path is not None,
             envelope=env,
             progress=progress,
         )
