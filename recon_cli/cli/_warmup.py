@@ -147,6 +147,11 @@ def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
         # an open scan (half of it): coarse leaves hold surface, so Poisson extracts at the leaves' size
         up = pd[:, 2] > 0
         write_ply(PointCloud(points=pd[up], normals=nd[up]), path("half.ply"))
+        # ... with integer codes (Poisson's --attributes votes on them)
+        codes = {"classification": (pd[up, 0] > 0).astype(np.uint8) + 1}
+        write_ply(
+            PointCloud(points=pd[up], normals=nd[up], attributes=codes), path("half_codes.ply")
+        )
         # Poisson's envelope: a closed sphere around the clouds
         write_ply(TriangleMesh(vertices=1.5 * v, faces=f), path("envelope.ply"))
         # repeated and collinear points: degenerate neighbourhoods borrow their normal
@@ -284,7 +289,7 @@ def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
             "poisson free boundary, envelope, confidence, grid",
             recon(
                 "poisson",
-                path("half.ply"),
+                path("half_codes.ply"),
                 out,
                 "--depth",
                 "6",

@@ -240,22 +240,22 @@ def _mean(v: np.ndarray, idx: np.ndarray, w: np.ndarray) -> np.ndarray:
 
 
 def _majority(v: np.ndarray, idx: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """The value with the largest summed weight per row (ties: the smallest)."""
-    m, k = idx.shape
-    vals = v[idx].reshape(-1)
-    rows = np.repeat(np.arange(m), k)
-    ww = w.reshape(-1)
-    order = np.lexsort((vals, rows))
-    vals, rows, ww = vals[order], rows[order], ww[order]
-    start = np.ones(len(vals), bool)
-    start[1:] = (rows[1:] != rows[:-1]) | (vals[1:] != vals[:-1])
-    first = np.flatnonzero(start)
-    gsum = np.add.reduceat(ww, first)
-    grow, gval = rows[first], vals[first]
-    # per row the group of largest weight, then the smallest value (the groups are by value)
-    pick = np.lexsort((np.arange(len(first)), -gsum, grow))
-    best = np.ones(len(pick), bool)
-    best[1:] = grow[pick][1:] != grow[pick][:-1]
-    out = np.empty(m, v.dtype)
-    out[grow[pick][best]] = gval[pick][best]
+    """The value with the largest summed weight per row (ties: the smallest): each row's
+    values sorted, equal ones summed, the first largest sum taken."""
+    vals = v[idx]
+    out = vals[:, 0].copy()
+    # rows whose neighbours all agree (most, away from class borders) need no vote
+    mixed = np.flatnonzero((vals != vals[:, :1]).any(axis=1))
+    if len(mixed):
+        out[mixed] = _vote(vals[mixed], w[mixed])
     return out
+
+
+def _vote(vals: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """:func:`_majority` on rows of values (m, k) and weights (codes as int64 in the kernel:
+    one compiled signature for every dtype)."""
+    from recon_cli.stages.poisson._attributes import weighted_mode
+
+    out = np.empty(len(vals), np.int64)
+    weighted_mode(np.ascontiguousarray(vals, np.int64), np.ascontiguousarray(w, np.float64), out)
+    return out.astype(vals.dtype)
