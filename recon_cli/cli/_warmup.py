@@ -147,6 +147,13 @@ def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
         # an open scan (half of it): coarse leaves hold surface, so Poisson extracts at the leaves' size
         up = pd[:, 2] > 0
         write_ply(PointCloud(points=pd[up], normals=nd[up]), path("half.ply"))
+        # ... with integer codes (Poisson's --attributes votes on them)
+        codes = {"classification": (pd[up, 0] > 0).astype(np.uint8) + 1}
+        write_ply(
+            PointCloud(points=pd[up], normals=nd[up], attributes=codes), path("half_codes.ply")
+        )
+        # Poisson's envelope: a closed sphere around the clouds
+        write_ply(TriangleMesh(vertices=1.5 * v, faces=f), path("envelope.ply"))
         # repeated and collinear points: degenerate neighbourhoods borrow their normal
         line = np.column_stack([np.linspace(2, 3, 12), np.zeros(12), np.zeros(12)])
         write_ply(
@@ -295,6 +302,25 @@ def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
         (
             "poisson degree 2",
             recon("poisson", path("dense.ply"), out, "--depth", "7", "--degree", "2"),
+        )
+    )
+    steps.append(
+        (
+            "poisson free boundary, envelope, confidence, grid",
+            recon(
+                "poisson",
+                path("half_codes.ply"),
+                out,
+                "--depth",
+                "6",
+                "--boundary",
+                "free",
+                "--confidence",
+                "--envelope",
+                path("envelope.ply"),
+                "--grid",
+                path("poisson_grid.npz"),
+            ),
         )
     )
     steps.append(
