@@ -637,14 +637,51 @@ def run_stage(
         No points, non-finite coordinates, a cloud without normals, ``sign="pseudonormal"``
         on a closed mesh wound inward.
     """
-    from recon_cli.geometry import TriangleMesh, float64, local_origin
-    from recon_cli.grid import Grid, allocation_problem
-    from recon_cli.progress import task
+    from recon_cli.geometry import float64
+    from recon_cli.grid import Grid
     from recon_cli.stages import StageResult
 
     # parameters and the input's kind: checked by SPEC
     data = float64(data)
-    voxel, band_v = voxel_size, band
+    is_mesh, pts = _source_points(data, backend)
+    origin, h, shape = _checked_frame(pts, resolution, voxel_size, padding, backend, is_mesh)
+    sdf, info, sign = _signed_distances(
+        data, is_mesh, pts, origin, h, shape, sign, band, knn, backend, progress
+    )
+    grid = Grid(
+        sdf=sdf.astype(np.float32),
+        origin=origin,
+        voxel_size=h,
+        history=list(data.history),
+        point_dtype=data.point_dtype,
+    )
+    del sdf  # the float64 field: free it before the report's passes over the grid
+    known = int(np.count_nonzero(np.isfinite(grid.sdf)))
+    report = {
+        "source": "mesh" if is_mesh else "cloud",
+        "shape": list(shape),
+        "voxel_size": h,
+        "origin": origin.tolist(),
+        "sign": sign if is_mesh else "normals",
+        "backend": backend,
+        "band": band,
+        "inside_samples": int(np.count_nonzero(grid.sdf < 0)),  # NaN < 0 is False
+        "unknown_samples": int(grid.sdf.size - known),
+        **info,
+        "eikonal": eikonal_check(grid),
+        "provenance": {
+            "voxel_size": round(h, 12),
+            **({"sign": "open3d"} if backend == "open3d" else {}),
+        },
+    }
+    return StageResult(output=grid, report=report)
+
+
+def _source_points(data, backend: str) -> tuple[bool, np.ndarray]:
+    """Whether the input is meshed, and the points that bound the grid (a mesh's used
+    vertices); refuses what the stage cannot take."""
+    from recon_cli.geometry import TriangleMesh
+
     is_mesh = isinstance(data, TriangleMesh) and len(data.faces) > 0
     if backend == "open3d" and not is_mesh:
         raise ParameterError(
@@ -657,14 +694,30 @@ def run_stage(
         raise InputError("input has non-finite coordinates")
     if not is_mesh and data.normals is None:
         raise InputError("point cloud has no normals (run 'recon normals' first)")
-    origin, h, shape = grid_frame(pts.min(axis=0), pts.max(axis=0), resolution, voxel, padding)
-    # refuse what cannot be had before allocating: the peak bytes per sample of each path
+    return is_mesh, pts
+
+
+def _checked_frame(pts, resolution, voxel_size, padding, backend: str, is_mesh: bool):
+    """The grid's origin, voxel size and shape; refuses a grid whose memory cannot be had
+    before allocating (the peak bytes per sample of each path)."""
+    from recon_cli.grid import allocation_problem
+
+    origin, h, shape = grid_frame(pts.min(axis=0), pts.max(axis=0), resolution, voxel_size, padding)
     per_sample = BYTES_PER_SAMPLE[
         "open3d" if backend == "open3d" else "mesh" if is_mesh else "cloud"
     ]
     problem = allocation_problem(shape, per_sample)
     if problem:
         raise ParameterError(f"{problem}: raise --voxel-size or lower --resolution")
+    return origin, h, shape
+
+
+def _signed_distances(
+    data, is_mesh, pts, origin, h, shape, sign, band, knn, backend, progress
+) -> tuple[np.ndarray, dict, str]:
+    """The signed distances (float64), the path's report keys and the sign method used."""
+    from recon_cli.geometry import local_origin
+    from recon_cli.progress import task
 
     # distances are computed about a local origin (far from the world origin squared norms and
     # cross products lose digits, Open3D computes in float32); the grid keeps the world origin
@@ -682,40 +735,12 @@ def run_stage(
                 np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), axis=-1
             ).reshape(-1, 3)
             sdf = open3d_backend.signed_distance(local, (origin - centre) + ijk * h).reshape(shape)
-            info = {}
-            sign = "open3d"
+            info, sign = {}, "open3d"
         elif is_mesh:
             sdf, info = mesh_sdf(
-                local.vertices, data.faces, origin - centre, h, shape, sign=sign, band=band_v
+                local.vertices, data.faces, origin - centre, h, shape, sign=sign, band=band
             )
         else:
             sdf, info = cloud_sdf(local.points, data.normals, origin - centre, h, shape, knn=knn)
         t.advance(1)
-    del local
-    grid = Grid(
-        sdf=sdf.astype(np.float32),
-        origin=origin,
-        voxel_size=h,
-        history=list(data.history),
-        point_dtype=data.point_dtype,
-    )
-    del sdf  # the float64 field: free it before the report's passes over the grid
-    known = int(np.count_nonzero(np.isfinite(grid.sdf)))
-    report = {
-        "source": "mesh" if is_mesh else "cloud",
-        "shape": list(shape),
-        "voxel_size": h,
-        "origin": origin.tolist(),
-        "sign": sign if is_mesh else "normals",
-        "backend": backend,
-        "band": band_v,
-        "inside_samples": int(np.count_nonzero(grid.sdf < 0)),  # NaN < 0 is False
-        "unknown_samples": int(grid.sdf.size - known),
-        **info,
-        "eikonal": eikonal_check(grid),
-        "provenance": {
-            "voxel_size": round(h, 12),
-            **({"sign": "open3d"} if backend == "open3d" else {}),
-        },
-    }
-    return StageResult(output=grid, report=report)
+    return sdf, info, sign
