@@ -15,11 +15,13 @@ import sys
 from pip._vendor.packaging.requirements import Requirement
 
 
-def extra_requirements(extras: list[str]) -> list[str]:
-    """The requirements of recon's metadata that only the ``extras`` bring, without markers
-    of ``extra`` (other markers, e.g. a Python version, kept)."""
+def extra_requirements(extras: list[str], requires: list[str] | None = None) -> list[str]:
+    """The requirements (``requires``: default, those of the installed recon's metadata)
+    that only the ``extras`` bring and this environment's markers select, without markers."""
     out = []
-    for line in importlib.metadata.requires("recon") or []:
+    if requires is None:
+        requires = importlib.metadata.requires("recon") or []
+    for line in requires:
         req = Requirement(line)
         if req.marker is None or req.marker.evaluate({"extra": ""}):
             continue  # a core requirement: installed already
