@@ -306,7 +306,14 @@ def _run_jobs(
         return
     from concurrent.futures import as_completed
 
-    futures = {submit(fn, *args): args[0] for fn, args in jobs}
+    futures = {}
+    for fn, args in jobs:
+        try:
+            futures[submit(fn, *args)] = args[0]
+        except Exception as exc:  # noqa: BLE001  (the executor is gone, e.g. a worker died)
+            if done is not None:
+                done()
+            yield {"failure": f"{args[0]}: {_first_line(exc)}"}
     for future in as_completed(futures):
         try:
             result = future.result()

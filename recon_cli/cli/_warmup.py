@@ -244,7 +244,7 @@ def phase(weight: float) -> Callable[[Callable[[Files], list[Step]]], Callable]:
     return declare
 
 
-@phase(weight=12)
+@phase(weight=9)
 def _ply(f: Files) -> list[Step]:
     from recon_cli.io.ply import compile_ply_kernels
 
@@ -259,7 +259,7 @@ def _ply(f: Files) -> list[Step]:
     return steps
 
 
-@phase(weight=10)
+@phase(weight=3)
 def _normals(f: Files) -> list[Step]:
     steps = []
     for src in (f.bare32, f.bare64):
@@ -277,7 +277,7 @@ def _normals(f: Files) -> list[Step]:
     ]
 
 
-@phase(weight=45)
+@phase(weight=50)
 def _poisson(f: Files) -> list[Step]:
     """Degree 2, the default basis."""
     steps = []
@@ -305,13 +305,13 @@ def _poisson(f: Files) -> list[Step]:
     ]
 
 
-@phase(weight=22)
+@phase(weight=25)
 def _poisson_leaves(f: Files) -> list[Step]:
     """An open scan: coarse leaves hold surface, so Poisson extracts at the leaves' size."""
     return [recon("poisson", f.half, f.out(), "--depth", "7")]
 
 
-@phase(weight=15)
+@phase(weight=12)
 def _poisson_degree1(f: Files) -> list[Step]:
     steps = []
     for src in (f.c32, f.c64):
@@ -338,7 +338,7 @@ def _poisson_degree1(f: Files) -> list[Step]:
     ]
 
 
-@phase(weight=22)
+@phase(weight=20)
 def _ballpivot(f: Files) -> list[Step]:
     return [recon("ballpivot", src, f.out()) for src in (f.c32, f.c64)]
 
@@ -395,7 +395,7 @@ def _repair(f: Files) -> list[Step]:
     return steps + [recon("repair", f.mixed, f.out()), recon("repair", f.fin, f.out())]
 
 
-@phase(weight=40)
+@phase(weight=45)
 def _obj(f: Files) -> list[Step]:
     steps = []
     for src in (f.c32, f.c64, f.m32, f.m64):
@@ -404,7 +404,7 @@ def _obj(f: Files) -> list[Step]:
     return steps
 
 
-@phase(weight=20)
+@phase(weight=16)
 def _formats(f: Files) -> list[Step]:
     """Every other file format, both ways, from float32 and float64 sources (their parsers
     are kernels too)."""
@@ -428,7 +428,7 @@ def _formats(f: Files) -> list[Step]:
     ]
 
 
-@phase(weight=14)
+@phase(weight=6)
 def _diff(f: Files) -> list[Step]:
     views = ["--view", "iso", "--view", "top"]
     return [
@@ -449,7 +449,7 @@ def _diff(f: Files) -> list[Step]:
     ]
 
 
-@phase(weight=3)
+@phase(weight=1)
 def _library(f: Files) -> list[Step]:
     """Kernels that only the library API reaches (no command)."""
     return [("library only", lambda: _library_only(f.m64))]
@@ -636,9 +636,12 @@ def _run_in_workers(
                 return
 
     workers = min(jobs, len(order))
-    with ProcessPoolExecutor(
-        workers, mp_context=ctx, initializer=_worker_init, initargs=(q, lock_dir)
-    ) as pool:
+    with (
+        ProcessPoolExecutor(
+            workers, mp_context=ctx, initializer=_worker_init, initargs=(q, lock_dir)
+        ) as pool,
+        _stopping_workers(pool),
+    ):
         pending = {pool.submit(_worker_phase, ph.name, root): ph.name for ph in order}
         bytecode = compile_bytecode()  # here, while the workers start
         while pending:
@@ -666,6 +669,21 @@ def _run_in_workers(
         drain()
     tick(len(_aot_modules()) + 1 - ahead.get("jobs", 0))
     return {"phases": phases, "failed": failed, "bytecode": bytecode, "ahead": ahead}
+
+
+@contextlib.contextmanager
+def _stopping_workers(pool: Any):
+    """On an interruption (Ctrl-C, SIGTERM as recon's handlers raise it), the queued phases
+    are dropped and the workers ended at once, not left to finish their compiles."""
+    import multiprocessing
+
+    try:
+        yield
+    except BaseException:
+        pool.shutdown(wait=False, cancel_futures=True)
+        for proc in multiprocessing.active_children():
+            proc.terminate()
+        raise
 
 
 def serialize_kernel_compiles(lock_dir: str) -> None:
