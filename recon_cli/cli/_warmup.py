@@ -511,7 +511,7 @@ def warmup(
         "jobs": jobs,
         "phases": result["phases"],
         "cache_dir": CACHE_DIR,
-        "uncompiled": uncompiled_kernels(),
+        "uncompiled": result["uncompiled"],
         "bytecode": result["bytecode"],
         "aot_built": ahead["built"],
         "aot_dir": ahead["dir"] if ahead["built"] else None,
@@ -589,7 +589,13 @@ def _run_here(
                 failed_step(step)
     ahead = build_ahead_of_time(log=log, done=lambda: tick(1))
     tick(len(_aot_modules()) + 1 - ahead.get("jobs", 0))
-    return {"phases": phases, "failed": failed, "bytecode": bytecode, "ahead": ahead}
+    return {
+        "phases": phases,
+        "failed": failed,
+        "bytecode": bytecode,
+        "ahead": ahead,
+        "uncompiled": uncompiled_kernels(),
+    }
 
 
 # set in each worker process by _worker_init: where it reports finished steps
@@ -665,10 +671,25 @@ def _run_in_workers(
                 for module, kernels_ in r["sigs"].items():
                     for kernel, variants in kernels_.items():
                         sigs.setdefault(module, {}).setdefault(kernel, []).extend(variants)
+        # the cache is complete now: a worker checks it while the others build
+        try:
+            uncompiled = pool.submit(uncompiled_kernels)
+        except RuntimeError:  # the pool is broken (a worker died): checked here below
+            uncompiled = None
         ahead = build_ahead_of_time(log=log, sigs=sigs, submit=pool.submit, done=lambda: tick(1))
         drain()
+        try:
+            unreached = uncompiled.result() if uncompiled is not None else uncompiled_kernels()
+        except RuntimeError:
+            unreached = uncompiled_kernels()
     tick(len(_aot_modules()) + 1 - ahead.get("jobs", 0))
-    return {"phases": phases, "failed": failed, "bytecode": bytecode, "ahead": ahead}
+    return {
+        "phases": phases,
+        "failed": failed,
+        "bytecode": bytecode,
+        "ahead": ahead,
+        "uncompiled": unreached,
+    }
 
 
 @contextlib.contextmanager
