@@ -97,51 +97,51 @@ def _walk(buf, i, st, verts, colours, vnorms, corner_v, corner_n, face_len, slow
         c0 = buf[j]
         c1 = buf[j + 1] if j + 1 < n else 10
         if c1 == 32 and c0 == 118 and ncol == 0 and nv < cap_v:  # short path: v x y z
-            x, s0, q = scan_float(buf, j + 2, n)
-            if s0 == 1 and q < n and buf[q] == 32:
-                y, s1, q = scan_float(buf, q + 1, n)
-                if s1 == 1 and q < n and buf[q] == 32:
-                    z, s2, q = scan_float(buf, q + 1, n)
-                    if s2 == 1 and (q >= n or buf[q] == 10):
-                        verts[nv, 0] = x
-                        verts[nv, 1] = y
-                        verts[nv, 2] = z
-                        if nonfinite < 0 and not (
-                            abs(x) < np.inf and abs(y) < np.inf and abs(z) < np.inf
-                        ):
-                            nonfinite = nv
-                        nv += 1
-                        nplain += 1
-                        i = q + 1
-                        continue
+            # the three numbers by one loop: one inlined copy of scan_float, not three
+            # (each copy costs the compile seconds; written into the row before it counts)
+            q = j + 1
+            k = 0
+            finite = True
+            while k < 3:
+                val, s0, q = scan_float(buf, q + 1, n)
+                if s0 != 1 or not ((q < n and buf[q] == 32) if k < 2 else (q >= n or buf[q] == 10)):
+                    break
+                verts[nv, k] = val
+                finite = finite and abs(val) < np.inf
+                k += 1
+            if k == 3:
+                if nonfinite < 0 and not finite:
+                    nonfinite = nv
+                nv += 1
+                nplain += 1
+                i = q + 1
+                continue
         if c1 == 32 and c0 == 102 and nf < cap_f and nc + 3 <= cap_c:  # short path: a triangle
-            a, an, ok0, q = _corner(buf, j + 2, n)
-            if ok0 and a > 0 and an >= 0 and q < n and buf[q] == 32:
-                b, bn, ok1, q = _corner(buf, q + 1, n)
-                if ok1 and b > 0 and bn >= 0 and q < n and buf[q] == 32:
-                    c, cn, ok2, q = _corner(buf, q + 1, n)
-                    if (
-                        ok2
-                        and c > 0
-                        and cn >= 0
-                        and (q >= n or buf[q] == 10)
-                        and (has_vn or an + bn + cn == 0)
-                    ):
-                        corner_v[nc] = a - 1
-                        corner_v[nc + 1] = b - 1
-                        corner_v[nc + 2] = c - 1
-                        max_v = max(max_v, a - 1, b - 1, c - 1)
-                        if has_vn:
-                            corner_n[nc] = an - 1
-                            corner_n[nc + 1] = bn - 1
-                            corner_n[nc + 2] = cn - 1
-                            max_n = max(max_n, an - 1, bn - 1, cn - 1)
-                        if keep_len:
-                            face_len[nf] = 3
-                        nf += 1
-                        nc += 3
-                        i = q + 1
-                        continue
+            # the three corners by one loop, as the numbers above
+            q = j + 1
+            k = 0
+            named = 0  # corners that name a normal
+            while k < 3:
+                a, an, ok0, q = _corner(buf, q + 1, n)
+                if not (ok0 and a > 0 and an >= 0):
+                    break
+                if not ((q < n and buf[q] == 32) if k < 2 else (q >= n or buf[q] == 10)):
+                    break
+                corner_v[nc + k] = a - 1
+                if has_vn:
+                    corner_n[nc + k] = an - 1
+                named += an
+                k += 1
+            if k == 3 and (has_vn or named == 0):
+                max_v = max(max_v, corner_v[nc], corner_v[nc + 1], corner_v[nc + 2])
+                if has_vn:
+                    max_n = max(max_n, corner_n[nc], corner_n[nc + 1], corner_n[nc + 2])
+                if keep_len:
+                    face_len[nf] = 3
+                nf += 1
+                nc += 3
+                i = q + 1
+                continue
         if c0 == 118 and (
             is_blank(c1) or (c1 == 110 and (j + 2 >= n or is_blank(buf[j + 2])))
         ):  # v, vn
@@ -350,7 +350,7 @@ def obj_walk(buf, verts, colours, vnorms, corner_v, corner_n, face_len, slow):
     st[MAX_V] = -1
     st[MAX_VN] = -1
     st[NONFINITE] = -1
-    i = 0
+    i = np.int64(0)  # not a literal 0: _walk (slow to compile) gets one variant, not two
     while True:
         code, at = _walk(buf, i, st, verts, colours, vnorms, corner_v, corner_n, face_len, slow)
         if code != -1:

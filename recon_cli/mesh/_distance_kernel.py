@@ -471,8 +471,9 @@ def query_grid(
             )
             if t < 0 and ub < band:  # bound too tight (rounding): search again unbounded
                 b2 = band * band if band < np.inf else np.inf
+                no_seed = np.int64(-1)  # not a literal -1: numba would compile _nearest twice
                 t, dd, f = _nearest(
-                    p, tri, sph, box, left, right, start, end, b2, stack, dstack, q, cb, -1
+                    p, tri, sph, box, left, right, start, end, b2, stack, dstack, q, cb, no_seed
                 )
             if t < 0:
                 dist[i, j, k] = band
