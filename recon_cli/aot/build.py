@@ -18,15 +18,18 @@ import shutil
 import tempfile
 import time
 import warnings
-from typing import Any, Callable, Iterator
+from collections.abc import Callable, Iterator
+from typing import Any
 
 from recon_cli import aot
 from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache directory, before numba)
 
 
 def numba_type_key(t: Any) -> str | None:
-    """The key :func:`recon_cli.aot.type_key` computes for a value of numba type ``t``
-    (None for a type no ahead-of-time variant takes: records, lists, literals, omitted args...)."""
+    """The key :func:`recon_cli.aot.type_key` computes for a value of numba type ``t``.
+
+    None for a type no ahead-of-time variant takes: records, lists, literals, omitted args...
+    """
     from numba.core import types
     from numba.np.numpy_support import as_dtype
 
@@ -35,7 +38,8 @@ def numba_type_key(t: Any) -> str | None:
     if isinstance(t, types.Array):
         if not isinstance(t.dtype, (types.Boolean, types.Integer, types.Float, types.Complex)):
             return None
-        return f"{as_dtype(t.dtype).str}:{t.ndim}{t.layout}{'' if t.mutable else 'r'}{'' if t.aligned else 'u'}"
+        flags = ("" if t.mutable else "r") + ("" if t.aligned else "u")
+        return f"{as_dtype(t.dtype).str}:{t.ndim}{t.layout}{flags}"
     if isinstance(t, types.Boolean):
         return "bool"
     if isinstance(t, (types.Integer, types.Float, types.Complex)):
@@ -51,8 +55,11 @@ def numba_type_key(t: Any) -> str | None:
 def exports(
     module_name: str,
 ) -> tuple[list[tuple[str, Any, Any]], dict[str, dict[str, str]], list[str]]:
-    """What to export from ``module_name``: (export name, signature, function) triples, the
-    manifest's table ``{kernel: {signature key: export name}}``, and the kernels left to JIT (why)."""
+    """What to export from ``module_name``.
+
+    (export name, signature, function) triples, the manifest's table ``{kernel: {signature key:
+    export name}}``, and the kernels left to JIT (why).
+    """
     from numba.core.registry import CPUDispatcher
 
     mod = importlib.import_module(module_name)
@@ -75,14 +82,15 @@ def exports(
                 skipped.append(f"{name}{tuple(str(a) for a in args)} (argument types)")
                 continue
             export = f"{name}__{i}"
-            entries.append((export, cres.signature, obj.py_func))
+            # CompileResult's fields are set at run time (numba's own typing lacks them)
+            entries.append((export, cres.signature, obj.py_func))  # type: ignore[attr-defined]
             table.setdefault(name, {})[key] = export
     return entries, table, skipped
 
 
 @contextlib.contextmanager
 def _quiet_pycc() -> Iterator[None]:
-    """pycc's pending-deprecation warning, for the length of the build only."""
+    """Pycc's pending-deprecation warning, for the length of the build only."""
     from numba.core.errors import NumbaPendingDeprecationWarning
 
     with warnings.catch_warnings():
@@ -114,11 +122,11 @@ def build(
     log: Callable[[str], None] | None = None,
     force: bool = False,
 ) -> dict:
-    """Build the extensions of ``modules`` (and the C ``c_libraries``, name -> source) into
-    :func:`~recon_cli.aot.build_dir`.
+    """Build the extensions of ``modules`` into :func:`~recon_cli.aot.build_dir`.
 
-    Returns ``{"built": bool, "dir", "modules", "skipped", "seconds", "reason"}``: ``reason``
-    says why nothing was built (no compiler, pycc failed) or that the build was up to date.
+    The C ``c_libraries`` (name -> source) are built there too. Returns ``{"built": bool, "dir",
+    "modules", "skipped", "seconds", "reason"}``: ``reason`` says why nothing was built (no
+    compiler, pycc failed) or that the build was up to date.
     """
     t0 = time.perf_counter()
     target = aot.build_dir()
