@@ -15,7 +15,7 @@ and :class:`~recon_cli.grid.Grid`; an (n, 3) array of points (with ``normals=`` 
 array of normals); a ``(vertices, faces)`` pair; a 3-d array of grid values (unit spacing,
 origin 0); Open3D and trimesh point clouds and meshes (converted by
 :func:`recon_cli.geometry.geometry_from`; Open3D and trimesh are imported only for their own
-objects); a file name (read by :func:`read`).
+objects); a file name (read by :func:`~recon_cli.api.read`).
 """
 
 from __future__ import annotations
@@ -258,7 +258,7 @@ def docstring(spec: StageSpec, name: str | None = None) -> str:
         "Parameters",
         "----------",
         f"{data} : {', '.join(types)} or path",
-        *_wrap(f"The input: {kinds}. " + "; ".join(forms) + "; a path is read (:func:`read`)."),
+        *_wrap(f"The input: {kinds}. " + "; ".join(forms) + "; a path is read (:func:`~recon_cli.api.read`)."),
     ]
     if takes_normals(spec):
         out += [

@@ -1,6 +1,6 @@
 """Error types of recon.
 
-The library raises these; only :mod:`recon_cli.cli.main` maps them to exit codes, so
+The library raises these; only ``recon_cli.cli.main`` maps them to exit codes, so
 library code never calls ``sys.exit``.
 """
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -268,7 +268,10 @@ def as_point_cloud(obj: PointCloud | TriangleMesh) -> PointCloud:
     raise TypeError(f"expected a PointCloud or TriangleMesh, got {type(obj).__name__}")
 
 
-def float64(obj: "PointCloud | TriangleMesh") -> "PointCloud | TriangleMesh":
+_Geometry = TypeVar("_Geometry", bound="PointCloud | TriangleMesh")
+
+
+def float64(obj: _Geometry) -> _Geometry:
     """``obj`` with C-contiguous float64 coordinates and normals, ready to compute with.
 
     ``obj`` itself when they already are; otherwise a shallow copy holding converted copies

@@ -5,7 +5,7 @@ default, range or choices, unit and help, and the kinds of data it takes and giv
 that one declaration come
 
 - the library's keyword defaults and checks (:meth:`StageSpec.runner` wraps ``run_stage``),
-- the click options of the stage's command (:func:`recon_cli.cli.options.stage_command`),
+- the click options of the stage's command (``recon_cli.cli.options.stage_command``),
 - the checks of a pipeline file before anything runs (:mod:`recon_cli.pipeline`),
 - ``recon run --set STAGE.PARAM=VALUE`` and
 - the README's parameter tables (:meth:`StageSpec.markdown_table`; ``python -m
@@ -452,22 +452,47 @@ class StageSpec:
         return run
 
     # -- documentation
-    def markdown_table(self) -> str:
-        """The README's parameter table of this stage."""
-        rows = [
-            "| option | type | default | allowed | unit | meaning |",
-            "|---|---|---|---|---|---|",
-        ]
+    #: the columns of :meth:`table_rows`
+    TABLE_COLUMNS = ("option", "type", "default", "allowed", "unit", "meaning")
+
+    def table_rows(self, code: Callable[[str], str] = str) -> list[tuple[str, ...]]:
+        """The parameter table of this stage: a row of :data:`TABLE_COLUMNS` per parameter.
+
+        Parameters
+        ----------
+        code : callable
+            Marks up a literal (an option, a value, a word), e.g. as inline code.
+
+        Returns
+        -------
+        list of tuple of str
+            Option, type, default, allowed values ("any" when unrestricted), unit ("–" when
+            none) and meaning (the help, then the values with a meaning of their own).
+        """
+        rows = []
         for p in self.params:
             allowed = f"{p.option} / --no-{p.dashed}" if p.type == "bool" else p.range_text()
-            extra = [f"`{_fmt(k)}`: {v}" for k, v in p.special.items()]
-            extra += [f"`{w}`" for w in p.words if p.words[w] is not None or p.default is not None]
+            extra = [f"{code(_fmt(k))}: {v}" for k, v in p.special.items()]
+            extra += [code(w) for w in p.words if p.words[w] is not None or p.default is not None]
             meaning = p.help + ("" if not extra else " (" + "; ".join(extra) + ")")
             rows.append(
-                f"| `{p.option}` | {p.type} | `{p.default_text()}` | {allowed.replace('|', '/') or 'any'} | "
-                f"{p.unit or '–'} | {meaning.replace('|', '/')} |"
+                (
+                    code(p.option),
+                    p.type,
+                    code(p.default_text()),
+                    allowed or "any",
+                    p.unit or "–",
+                    meaning,
+                )
             )
-        return "\n".join(rows)
+        return rows
+
+    def markdown_table(self) -> str:
+        """The README's parameter table of this stage (:meth:`table_rows` in Markdown)."""
+        lines = ["| " + " | ".join(self.TABLE_COLUMNS) + " |", "|---|---|---|---|---|---|"]
+        for row in self.table_rows(code=lambda s: f"`{s}`"):
+            lines.append("| " + " | ".join(cell.replace("|", "/") for cell in row) + " |")
+        return "\n".join(lines)
 
 
 def describe_data(have: frozenset[str] | set[str]) -> str:

@@ -43,7 +43,7 @@ _WAITING: "weakref.WeakSet[Progress]" = weakref.WeakSet()
 
 
 def numba_loaded() -> None:
-    """Called by :mod:`recon_cli._kernels.numba_setup` once numba is imported: the enabled
+    """Called by ``recon_cli._kernels.numba_setup`` once numba is imported: the enabled
     :class:`Progress` objects made before start listening to its compiler."""
     for p in list(_WAITING):
         _WAITING.discard(p)

@@ -40,6 +40,7 @@ class Format:
         return getattr(mod, f"decode_{self.module}")
 
 
+#: format name -> its suffixes, what it holds and how it is read and written
 FORMATS: dict[str, Format] = {
     f.name: f
     for f in (

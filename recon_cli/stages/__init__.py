@@ -28,7 +28,7 @@ from recon_cli.params import KINDS, Param, StageSpec
 
 ENTRY_POINT_GROUP = "recon.stages"
 
-# stage name -> "module:attribute" (a StageSpec, or a bare stage function)
+#: stage name -> ``"module:attribute"`` (a StageSpec, or a bare stage function)
 STAGES: dict[str, str] = {
     "normals": "recon_cli.stages.normals:SPEC",
     "poisson": "recon_cli.stages.poisson:SPEC",
@@ -73,7 +73,7 @@ def register_stage(spec: StageSpec | str, name: str | None = None) -> None:
     Parameters
     ----------
     spec : StageSpec or str
-        The declaration (its ``run`` set by :meth:`StageSpec.runner`), or its
+        The declaration (its ``run`` set by :meth:`~recon_cli.params.StageSpec.runner`), or its
         ``"module:attribute"`` target (what an entry point names).
     name : str, optional
         Registered name (default: the spec's own).

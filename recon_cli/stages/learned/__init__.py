@@ -163,7 +163,7 @@ SPEC = StageSpec(
     description="""Fit a neural signed distance field to a cloud; write it on a grid (.npz, negative inside).
 
     With normals the loss holds the zero level on the points, the gradient on the normals and
-    |grad s| at 1 (eikonal); without, the zero level and the eikonal term (IGR). `recon mcubes
+    the gradient's norm at 1 (eikonal); without, the zero level and the eikonal term (IGR). `recon mcubes
     OUT.npz mesh.ply` extracts the surface; `recon info OUT.npz` reports the eikonal statistics.
     Needs PyTorch (pip install recon[learned]). Ctrl-C stops training and writes the best field
     so far (exit 130).""",
@@ -223,8 +223,8 @@ SPEC = StageSpec(
             "eikonal_weight",
             "float",
             None,
-            "Weight of the eikonal loss: E||grad s| - 1| with normals (auto: 3), "
-            "E[(|grad s| - 1)^2] without (auto: 0.1).",
+            "Weight of the eikonal loss: the mean of abs(norm(grad s) - 1) with normals "
+            "(auto: 3), of (norm(grad s) - 1)^2 without (auto: 0.1).",
             min=0.0,
             words={"auto": None},
         ),
