@@ -19,8 +19,10 @@ from recon_cli.errors import InputError
 
 
 class Geometry:
-    """What :class:`PointCloud` and :class:`TriangleMesh` share: conversions to and from Open3D
-    and trimesh (:mod:`recon_cli.backends.interop`) and the report of the stage that made them.
+    """What :class:`PointCloud` and :class:`TriangleMesh` share.
+
+    Conversions to and from Open3D and trimesh (:mod:`recon_cli.backends.interop`) and the report of
+    the stage that made them.
 
     Attributes
     ----------
@@ -37,7 +39,7 @@ class Geometry:
         return {k: getattr(self, k, None) for k in names}
 
     def to_open3d(self, tensor: bool = False) -> Any:
-        """This object as Open3D geometry (a copy; coordinates and normals in float64).
+        """The object as Open3D geometry (a copy; coordinates and normals in float64).
 
         Parameters
         ----------
@@ -60,7 +62,7 @@ class Geometry:
         return interop.to_open3d(**self._arrays(), tensor=tensor)
 
     def to_trimesh(self) -> Any:
-        """This object as a ``trimesh.Trimesh`` or ``trimesh.PointCloud`` (a copy, float64).
+        """The object as a ``trimesh.Trimesh`` or ``trimesh.PointCloud`` (a copy, float64).
 
         A mesh keeps its vertex order (``process=False``), vertex normals, colours (RGBA 8-bit)
         and every vertex and face attribute; a cloud's normals and attributes go to the
@@ -125,7 +127,8 @@ class PointCloud(Geometry):
     def __len__(self) -> int:
         return len(self.points)
 
-    def copy(self) -> "PointCloud":
+    def copy(self) -> PointCloud:
+        """A copy with every array copied (the history and file metadata carried over)."""
         return PointCloud(
             points=self.points.copy(),
             normals=None if self.normals is None else self.normals.copy(),
@@ -137,7 +140,7 @@ class PointCloud(Geometry):
             obj_info=list(self.obj_info),
         )
 
-    def subset(self, mask: np.ndarray) -> "PointCloud":
+    def subset(self, mask: np.ndarray) -> PointCloud:
         """The cloud restricted to ``mask`` (boolean or index array)."""
         return PointCloud(
             points=self.points[mask],
@@ -196,7 +199,8 @@ class TriangleMesh(Geometry):
         """Alias of ``vertices`` so code taking points accepts a mesh."""
         return self.vertices
 
-    def copy(self) -> "TriangleMesh":
+    def copy(self) -> TriangleMesh:
+        """A copy with every array copied (the history and file metadata carried over)."""
         return TriangleMesh(
             vertices=self.vertices.copy(),
             faces=self.faces.copy(),
@@ -224,8 +228,9 @@ class TriangleMesh(Geometry):
 
 
 def geometry_from(obj: Any) -> PointCloud | TriangleMesh:
-    """recon's :class:`PointCloud` or :class:`TriangleMesh` for an Open3D or trimesh point cloud
-    or triangle mesh (legacy or tensor Open3D geometry); a recon object is returned as it is.
+    """Recon's :class:`PointCloud` or :class:`TriangleMesh` for an Open3D or trimesh object.
+
+    Open3D geometry may be legacy or tensor; a recon object is returned as it is.
 
     The arrays are copied; coordinates and normals are float64, colours 8-bit (see
     :mod:`recon_cli.backends.interop` for what each library holds).
@@ -296,7 +301,7 @@ def float64(obj: _Geometry) -> _Geometry:
 
 
 def local_origin(points: np.ndarray) -> np.ndarray:
-    """A local origin for computing near ``points`` ((n, 3)): the centre of their bounding box, (3,) float64.
+    """A local origin for computing near ``points`` ((n, 3)): their bounding box's centre, (3,).
 
     Stages subtract it (in float64) before anything that loses precision far from the
     origin (float32 arrays, squared norms, cross products, a unit cube) and add it back to
@@ -310,8 +315,8 @@ def local_origin(points: np.ndarray) -> np.ndarray:
     return 0.5 * (lo + hi)
 
 
-def storage_dtype(obj: "PointCloud | TriangleMesh") -> type:
-    """The float type ``obj``'s coordinates (and normals) are written with: the rule of the data model.
+def storage_dtype(obj: PointCloud | TriangleMesh) -> type:
+    """The float type ``obj``'s coordinates (and normals) are written with, by the data model.
 
     ``np.float64`` when the source is double (``obj.point_dtype``); otherwise ``np.float32``
     unless the coordinates are float64 values that float32 would round by more than
@@ -377,7 +382,7 @@ def bbox_diagonal(points: np.ndarray) -> float:
 def oriented_rows(
     points: Any, normals: Any, missing: str
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Points and normals of an oriented cloud as contiguous float64 (n, 3) arrays, with the normals' lengths.
+    """Points and normals of an oriented cloud as contiguous float64 (n, 3), and normal lengths.
 
     The shared entry check of the stages that need normals; each decides what to do with
     non-finite rows and zero normals (``length`` is NaN or inf where a normal is not finite).
@@ -406,7 +411,7 @@ def oriented_rows(
 
 
 def _float_rows(a: Any) -> np.ndarray:
-    """``a`` as (n, 3) rows: float32 and float64 arrays kept as they are (views stay views), anything else as float64."""
+    """``a`` as (n, 3) rows: float32 and float64 kept as they are (views stay), others float64."""
     arr = np.asarray(a)
     if arr.dtype not in (np.float32, np.float64):
         arr = arr.astype(np.float64)
@@ -422,7 +427,7 @@ def _source_dtype(point_dtype: Any, coords: np.ndarray) -> type:
     return np.float64 if np.dtype(point_dtype) == np.float64 else np.float32
 
 
-def _normalise_per_point(obj: "PointCloud | TriangleMesh", n: int) -> None:
+def _normalise_per_point(obj: PointCloud | TriangleMesh, n: int) -> None:
     """Put the optional per-point arrays of ``obj`` in shape and check they have ``n`` rows."""
     if obj.normals is not None:
         obj.normals = _float_rows(obj.normals)

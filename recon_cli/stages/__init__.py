@@ -19,8 +19,9 @@ import importlib
 import inspect
 import json
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 from recon_cli import __version__
 from recon_cli.errors import ParameterError

@@ -45,13 +45,13 @@ import io
 import json
 import logging
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from dataclasses import field as dataclass_field
 from typing import Any
 
 import numpy as np
 
 from recon_cli.errors import BackendError, InputError, ParameterError
-
 from recon_cli.params import Param, StageSpec
 
 FIELDS = ("sdf", "occupancy")
@@ -98,15 +98,18 @@ class SdfModel:
     center: np.ndarray
     scale: float
     field: str
-    config: dict = field(default_factory=dict)
+    config: dict = dataclass_field(default_factory=dict)
 
     def _q(self, x: np.ndarray) -> np.ndarray:
         x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
         return ((x - self.center) / self.scale).astype(np.float32)
 
     def values(self, points: np.ndarray) -> np.ndarray:
-        """Field at (k, 3) world points: signed distance (world units, negative inside) for
-        ``sdf``, ``0.5 - p(inside)`` for ``occupancy`` (negative inside, zero at p = 1/2)."""
+        """Field at (k, 3) world points.
+
+        Signed distance (world units, negative inside) for ``sdf``, ``0.5 - p(inside)`` for
+        ``occupancy`` (negative inside, zero at p = 1/2).
+        """
         raw = _torch().values(self.net, self._q(points))
         return self._to_field(raw)
 
@@ -160,13 +163,13 @@ SPEC = StageSpec(
     name="fit-sdf",
     keeps_partial=True,
     summary="Fit a neural signed distance field to a cloud (needs recon[learned]).",
-    description="""Fit a neural signed distance field to a cloud; write it on a grid (.npz, negative inside).
+    description="""Fit a neural signed distance field to a cloud; write it on a grid (.npz).
 
-    With normals the loss holds the zero level on the points, the gradient on the normals and
-    the gradient's norm at 1 (eikonal); without, the zero level and the eikonal term (IGR). `recon mcubes
-    OUT.npz mesh.ply` extracts the surface; `recon info OUT.npz` reports the eikonal statistics.
-    Needs PyTorch (pip install recon[learned]). Ctrl-C stops training and writes the best field
-    so far (exit 130).""",
+    The grid is negative inside. With normals the loss holds the zero level on the points, the
+    gradient on the normals and the gradient's norm at 1 (eikonal); without, the zero level and
+    the eikonal term (IGR). `recon mcubes OUT.npz mesh.ply` extracts the surface; `recon info
+    OUT.npz` reports the eikonal statistics. Needs PyTorch (pip install recon[learned]). Ctrl-C
+    stops training and writes the best field so far (exit 130).""",
     takes=("cloud", "mesh"),
     gives=("grid",),
     output_suffix=".npz",
@@ -441,6 +444,7 @@ def fit_sdf(
     sigma = np.maximum(sigma, 1e-4)
     labels_fn = None
     if field == "occupancy":
+        assert nrm is not None  # checked above
         nq = nrm.astype(np.float32)
 
         def labels_fn(x: np.ndarray) -> np.ndarray:
@@ -524,7 +528,8 @@ def sample_grid(
     """
     from scipy.ndimage import map_coordinates
 
-    shape = tuple(int(s) for s in shape)
+    nx, ny, nz = (int(s) for s in shape)
+    shape = (nx, ny, nz)
     origin = np.asarray(origin, dtype=np.float64)
     h = float(voxel_size)
     axes = [origin[a] + h * np.arange(shape[a]) for a in range(3)]
@@ -741,8 +746,8 @@ def run_stage(
     """
     from recon_cli.geometry import PointCloud, TriangleMesh, bbox_diagonal, float64
     from recon_cli.grid import Grid
-    from recon_cli.stages.sdf import eikonal_check, grid_frame
     from recon_cli.stages import StageResult
+    from recon_cli.stages.sdf import eikonal_check, grid_frame
 
     if not isinstance(data, (PointCloud, TriangleMesh)):
         raise InputError(f"fit-sdf needs a point cloud (or mesh), got {type(data).__name__}")
