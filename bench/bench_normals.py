@@ -67,9 +67,9 @@ def rows(quick: bool) -> list[dict]:
     for n in [200_000] if quick else [200_000, 1_000_000]:
         pts = _cloud("armadillo", n, 0.0025).points
         ours = measure(
-            lambda: _ours(pts, 10, "mst") is not None, repeat=1 if n >= 1_000_000 else rep
+            lambda pts=pts: _ours(pts, 10, "mst") is not None, repeat=1 if n >= 1_000_000 else rep
         )
-        ref = measure(lambda: _o3d(pts, 10, 10) is not None, repeat=1)
+        ref = measure(lambda pts=pts: _o3d(pts, 10, 10) is not None, repeat=1)
         out.append(
             row(
                 "normals",
@@ -86,13 +86,13 @@ def rows(quick: bool) -> list[dict]:
         for noise in (0.0, 0.0025):
             c = _cloud(name, n_acc, noise)
             ours = measure(
-                lambda: float(
+                lambda c=c: float(
                     (np.einsum("ij,ij->i", _ours(c.points, 30, "mst"), c.normals) > 0).mean()
                 ),
                 1,
             )
             ref = measure(
-                lambda: float(
+                lambda c=c: float(
                     (np.einsum("ij,ij->i", _o3d(c.points, 30, 30), c.normals) > 0).mean()
                 ),
                 1,
@@ -104,7 +104,9 @@ def rows(quick: bool) -> list[dict]:
                     ours,
                     "open3d tangent plane(30)",
                     ref,
-                    note=f"same-way fraction ours {ours['result']:.5f} vs open3d {ref['result']:.5f}",
+                    note=(
+                        f"same-way fraction ours {ours['result']:.5f} vs open3d {ref['result']:.5f}"
+                    ),
                 )
             )
     return out

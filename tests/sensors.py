@@ -136,7 +136,8 @@ def depth_image(
     noise: float = 1.0,
     flying: float = 0.5,
 ) -> np.ndarray:
-    """An organized cloud of ``sdf`` seen by ``camera``: (height, width, 3), NaN where nothing is hit.
+    """An organized cloud of ``sdf`` seen by ``camera``: (height, width, 3), NaN where nothing is
+    hit.
 
     Parameters
     ----------
@@ -192,7 +193,8 @@ def write_organized_pcd(
         view = " ".join(f"{x:.9g}" for x in (*camera.eye, *_quaternion(camera.rotation)))
     header = (
         "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z rgba\nSIZE 4 4 4 4\n"
-        f"TYPE F F F U\nCOUNT 1 1 1 1\nWIDTH {w}\nHEIGHT {h}\nVIEWPOINT {view}\nPOINTS {n}\nDATA binary\n"
+        f"TYPE F F F U\nCOUNT 1 1 1 1\nWIDTH {w}\nHEIGHT {h}\nVIEWPOINT {view}\nPOINTS {n}\n"
+        "DATA binary\n"
     )
     with open(path, "wb") as f:
         f.write(header.encode("ascii"))
