@@ -1,13 +1,14 @@
 """Compile every numba kernel once, for the types recon uses, into the per-user cache.
 
 ``recon warmup`` (run by ``make install``; a ``pip install`` user runs it once) calls
-:func:`warmup`. It lives with the command line because it drives the commands: it makes tiny inputs (a sphere cloud, a sphere mesh, their grids) in a
-temporary folder and runs every command on them with each option that reaches a different
-kernel, reading and writing the PLY encodings the readers specialise on (float32/float64,
-little/big-endian, ASCII, colours, mixed polygons). Kernels whose argument types depend on
-a file's property types rather than on a command (the PLY field gatherers) are called
-for each type by :func:`recon_cli.io.ply.compile_ply_kernels`. Afterwards no command compiles: they load the compiled code from
-the cache (:mod:`recon_cli._kernels.numba_setup` says where), which takes milliseconds.
+:func:`warmup`. It lives with the command line because it drives the commands: it makes tiny inputs
+(a sphere cloud, a sphere mesh, their grids) in a temporary folder and runs every command on them
+with each option that reaches a different kernel, reading and writing the PLY encodings the readers
+specialise on (float32/float64, little/big-endian, ASCII, colours, mixed polygons). Kernels whose
+argument types depend on a file's property types rather than on a command (the PLY field gatherers)
+are called for each type by :func:`recon_cli.io.ply.compile_ply_kernels`. Afterwards no command
+compiles: they load the compiled code from the cache (:mod:`recon_cli._kernels.numba_setup` says
+where), which takes milliseconds.
 
 :func:`uncompiled_kernels` lists the kernels that were never compiled in this process, so
 a test can check that the warm-up reaches all of them.
@@ -21,13 +22,17 @@ import os
 import re
 import tempfile
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
 
 def kernel_modules() -> list[str]:
-    """Names of recon's modules that define numba kernels (found by their source text, without importing)."""
+    """Names of recon's modules that define numba kernels, found by their source text.
+
+    Nothing is imported.
+    """
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[1]  # the recon_cli package
@@ -40,7 +45,7 @@ def kernel_modules() -> list[str]:
 
 
 def _sphere_cloud(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """``n`` points on the unit sphere (Fibonacci spiral, slightly jittered) and their outward normals."""
+    """``n`` points on the unit sphere (Fibonacci spiral, slightly jittered) and outward normals."""
     i = np.arange(n) + 0.5
     z = 1.0 - 2.0 * i / n
     r = np.sqrt(1.0 - z * z)
@@ -66,13 +71,15 @@ def _sphere_mesh(n: int) -> tuple[np.ndarray, np.ndarray]:
 
 def _library_only(mesh_path: str) -> None:
     """Kernels that only the library API reaches (no command)."""
+    from recon_cli.geometry import TriangleMesh
     from recon_cli.io.ply import read_ply
     from recon_cli.mesh.topology import Connectivity
     from recon_cli.mesh.winding import winding_number
 
     mesh = read_ply(mesh_path)
+    assert isinstance(mesh, TriangleMesh)  # the warm-up's own mesh file
     winding_number(mesh.vertices, mesh.faces, np.zeros((2, 3)), method="exact")
-    Connectivity(mesh.faces).vertex_faces
+    _ = Connectivity(mesh.faces).vertex_faces  # the property compiles its kernels
 
 
 def _pcd(src: str, dst: str, mode: str) -> Callable[[], Any]:
@@ -144,7 +151,8 @@ def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
             ),
             path("dense.ply"),
         )
-        # an open scan (half of it): coarse leaves hold surface, so Poisson extracts at the leaves' size
+        # an open scan (half of it): coarse leaves hold surface, so Poisson extracts at the leaves'
+        # size
         up = pd[:, 2] > 0
         write_ply(PointCloud(points=pd[up], normals=nd[up]), path("half.ply"))
         # repeated and collinear points: degenerate neighbourhoods borrow their normal
@@ -164,8 +172,10 @@ def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
         # a mixed-polygon mesh (a quad among triangles): the general list reader
         with open(path("mixed.ply"), "wb") as fh:
             fh.write(
-                b"ply\nformat binary_little_endian 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
-                b"property float z\nelement face 2\nproperty list uchar int vertex_indices\nend_header\n"
+                b"ply\nformat binary_little_endian 1.0\nelement vertex 4\nproperty float x\n"
+                b"property float y\n"
+                b"property float z\nelement face 2\nproperty list uchar int vertex_indices\n"
+                b"end_header\n"
             )
             fh.write(np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], "<f4").tobytes())
             fh.write(
@@ -332,7 +342,8 @@ def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
             ("mcubes", recon("mcubes", grid, out)),
             ("mcubes mt", recon("mcubes", grid, out, "--method", "mt", "--allow-degenerate")),
         ]
-    # every other file format, both ways, from float32 and float64 sources (their parsers are kernels too)
+    # every other file format, both ways, from float32 and float64 sources (their parsers are
+    # kernels too)
     for src, kind in ((c32, "cloud"), (c64, "cloud"), (m32, "mesh"), (m64, "mesh")):
         tag = os.path.basename(src)[:-4]
         suffixes = ("obj", "off", "stl") if kind == "mesh" else ("xyz", "csv", "pcd", "obj")
@@ -401,7 +412,6 @@ def warmup(progress: Any = None, log: Callable[[str], None] | None = None) -> di
         ``uncompiled`` (kernels never compiled, see :func:`uncompiled_kernels`) and
         ``bytecode`` (every module's ``.pyc`` written, see :func:`compile_bytecode`).
     """
-    from recon_cli import aot
     from recon_cli._kernels.numba_setup import CACHE_DIR
     from recon_cli.progress import task
 
@@ -436,8 +446,10 @@ def warmup(progress: Any = None, log: Callable[[str], None] | None = None) -> di
 
 @contextlib.contextmanager
 def _jit_only():
-    """The warm-up's steps run the numba kernels themselves (an ahead-of-time build would
-    leave them uncompiled, and the build exports the signatures they compiled)."""
+    """The warm-up's steps run the numba kernels themselves, not their ahead-of-time build.
+
+    The build would leave them uncompiled, and it exports the signatures they compiled.
+    """
     from recon_cli import aot
 
     before = os.environ.get("RECON_AOT")
@@ -454,8 +466,11 @@ def _jit_only():
 
 
 def build_ahead_of_time(progress: Any = None, log: Callable[[str], None] | None = None) -> dict:
-    """Build the ahead-of-time kernels and the signal handler (:mod:`recon_cli.aot.build`)
-    from the kernels compiled in this process; one line through ``log`` saying what came of it."""
+    """Build the ahead-of-time kernels and the signal handler (:mod:`recon_cli.aot.build`).
+
+    They are built from the kernels compiled in this process; one line through ``log`` says
+    what came of it.
+    """
     from recon_cli.aot.build import build
     from recon_cli.cli._signals import HANDLER_C
     from recon_cli.progress import task
@@ -466,22 +481,26 @@ def build_ahead_of_time(progress: Any = None, log: Callable[[str], None] | None 
     if log is not None:
         if out["built"]:
             log(
-                f"ahead-of-time kernels: {out['reason'] or 'built'} ({', '.join(out['modules'])}) in {out['dir']}"
+                f"ahead-of-time kernels: {out['reason'] or 'built'} "
+                f"({', '.join(out['modules'])}) in {out['dir']}"
             )
         else:
             log(
-                f"ahead-of-time kernels not built ({out['reason']}): ball pivoting and marching cubes run JIT, "
+                f"ahead-of-time kernels not built ({out['reason']}): ball pivoting and "
+                "marching cubes run JIT, "
                 "with numba's start-up in each command"
             )
     return out
 
 
 def compile_bytecode() -> bool:
-    """Write the ``.pyc`` of every module of the package (``compileall``), so no command
-    compiles Python source either: an editable install (``make install``) or an environment
-    with ``PYTHONDONTWRITEBYTECODE`` set would otherwise compile every recon module it
-    imports in every process (~45 ms of CPU for a stage command). False when some file
-    could not be written (a read-only install: pip wrote its ``.pyc`` files already)."""
+    """Write the ``.pyc`` of every module of the package (``compileall``).
+
+    Then no command compiles Python source either: an editable install (``make install``) or an
+    environment with ``PYTHONDONTWRITEBYTECODE`` set would otherwise compile every recon module it
+    imports in every process (~45 ms of CPU for a stage command). False when some file could not be
+    written (a read-only install: pip wrote its ``.pyc`` files already).
+    """
     import compileall
     from pathlib import Path
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+from typing import Any
 
 import numpy as np
 
@@ -34,17 +35,21 @@ def decode_e57(data, where: str, path=None) -> tuple[PointCloud, dict]:
     if path is None:
         fd, tmp = tempfile.mkstemp(suffix=".e57")
         with os.fdopen(fd, "wb") as f:
-            f.write(memoryview(text.as_uint8(data)))
+            f.write(text.as_uint8(data).data)
         path = tmp
     try:
         try:
             e = pye57.E57(str(path))
         except Exception as exc:  # libE57Format raises its own exception types
             raise InputError(
-                f"not a readable E57 file ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})",
+                "not a readable E57 file "
+                f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})",
                 where,
             ) from None
-        parts, inten, cols, scan = [], [], [], []
+        parts: list[np.ndarray] = []
+        inten: list[Any] = []  # None for a scan without intensity
+        cols: list[Any] = []  # None for a scan without colours
+        scan: list[np.ndarray] = []
         try:
             for k in range(e.scan_count):
                 header = e.get_header(k)
@@ -65,7 +70,8 @@ def decode_e57(data, where: str, path=None) -> tuple[PointCloud, dict]:
                 scan.append(np.full(len(pts), k, np.int32))
         except Exception as exc:
             raise InputError(
-                f"E57 scan could not be read ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})",
+                "E57 scan could not be read "
+                f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})",
                 where,
             ) from None
         finally:
@@ -77,7 +83,7 @@ def decode_e57(data, where: str, path=None) -> tuple[PointCloud, dict]:
         raise InputError("E57 file holds no scan", where)
     pts = np.concatenate(parts)
     text.check_finite(pts, where, "point")
-    attributes = {}
+    attributes: dict[str, np.ndarray] = {}
     if all(i is not None for i in inten):
         attributes["intensity"] = np.concatenate(inten)
     if len(parts) > 1:
@@ -88,6 +94,7 @@ def decode_e57(data, where: str, path=None) -> tuple[PointCloud, dict]:
 
 
 def read_e57(path: str | os.PathLike, data=None) -> PointCloud:
+    """Every scan of the E57 file ``path`` in the file's frame, as one float64 cloud."""
     from recon_cli.io.ply import read_bytes
 
     if data is None and str(path) != "-":

@@ -59,7 +59,7 @@ _NUMBER = re.compile(
 
 def _lines_head(buf: np.ndarray, limit: int = 64):
     """(line bytes, byte offset of the next line) for the first non-blank lines."""
-    out = []
+    out: list[tuple[bytes, int, int]] = []
     pos = 0
     n = len(buf)
     while pos < n and len(out) < limit:
@@ -200,8 +200,11 @@ def _columns(
 
 
 def _block(table: np.ndarray, cols: list[int]) -> np.ndarray:
-    """Columns ``cols`` of ``table``: a view when they are adjacent and in order (the whole table
-    when that is all it holds), else a copy."""
+    """Columns ``cols`` of ``table``.
+
+    A view when they are adjacent and in order (the whole table when that is all it holds), else a
+    copy.
+    """
     if cols == list(range(cols[0], cols[0] + len(cols))):
         return table if table.shape[1] == len(cols) else table[:, cols[0] : cols[0] + len(cols)]
     return np.ascontiguousarray(table[:, cols])
@@ -239,8 +242,11 @@ def _guess(table: np.ndarray) -> list[str]:
 
 
 def xyz_bytes(obj, csv: bool = False) -> bytes:
-    """The text encoding of a cloud (a mesh's vertices): space-separated with a ``#`` header
-    line, or comma-separated with a plain header line when ``csv``."""
+    """The text encoding of a cloud (a mesh's vertices).
+
+    Space-separated with a ``#`` header line, or comma-separated with a plain header line when
+    ``csv``.
+    """
     pts = obj.points
     fmt = text.float_format(obj.point_dtype)
     names = ["x", "y", "z"]

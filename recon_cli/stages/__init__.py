@@ -361,8 +361,8 @@ def apply_stage(
     return result
 
 
-def report_json(report: dict) -> str:
-    """``report`` as JSON (numpy scalars converted)."""
+def report_json(report: dict | list[dict]) -> str:
+    """``report`` (or a list of them) as JSON, numpy scalars converted."""
     return json.dumps(report, default=_jsonable, indent=2, sort_keys=False)
 
 
