@@ -24,9 +24,9 @@ from recon_cli.io.ply import parse_ply, ply_to_geometry, read_bytes
 
 
 def describe(path: str | os.PathLike, format: str | None = None) -> dict[str, Any]:
-    """Describe the file at ``path`` (``-``.
+    """Describe the file at ``path`` (``-``: stdin).
 
-    Stdin) in the format its suffix (or ``format``) names.
+    It is read in the format its suffix (or ``format``) names.
     """
     from recon_cli.io.load import decode, format_of, load_detailed
 

@@ -10,10 +10,11 @@ import os
 
 
 def kernel_sources_fingerprint(root: str | None = None) -> str:
-    """16 hex digits naming the state of the modules that can hold kernels under ``root`` (default.
+    """16 hex digits naming the state of the modules that can hold kernels under ``root``.
 
-    The recon_cli package): private ``_*.py`` modules and everything in ``_kernels/`` (path, size
-    and modification time; a stat per file, about a millisecond).
+    ``root`` defaults to the recon_cli package. The modules are the private ``_*.py`` modules and
+    everything in ``_kernels/`` (path, size and modification time; a stat per file, about a
+    millisecond).
     """
     import hashlib
 

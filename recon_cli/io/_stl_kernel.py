@@ -13,9 +13,9 @@ _MULT = np.uint64(11400714819323198485)
 
 @njit(cache=True)
 def weld_exact(bits):
-    """Merge rows of ``bits`` ((n, 3) uint32 or uint64.
+    """Merge the equal rows of ``bits``, the coordinates' bit patterns ((n, 3) uint32 or uint64).
 
-    The coordinates' bit patterns) that are equal. Returns ``(unique row of each input row, index of
+    Returns ``(unique row of each input row, index of
     the first input row of each unique row)``, unique rows numbered in order of first appearance.
     """
     n = bits.shape[0]

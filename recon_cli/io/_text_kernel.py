@@ -274,9 +274,9 @@ def _mantissa_long(buf, i, e):
 
 @njit(cache=True, inline="always")
 def _digits8(buf, i, e):
-    """``(value, count)`` of the run of decimal digits at ``i``, at most 8 of them (a count of 8.
+    """``(value, count)`` of the run of decimal digits at ``i``, at most 8 of them.
 
-    More may follow), reading no further than ``e``.
+    A count of 8: more may follow. Reads no further than ``e``.
 
     SWAR when the 8 bytes ``buf[i:i + 8]`` lie before ``e``: they are loaded as one integer,
     each byte XOR ``'0'`` (a digit becomes 0..9), the first non-digit found from the high bit

@@ -388,9 +388,10 @@ def run_stage(
 
 
 def boundary_edge_count(faces: np.ndarray, n_vertices: int | None = None) -> int:
-    """Number of edges used by exactly one face of ``faces`` ((m, 3) int.
+    """Number of edges used by exactly one face of ``faces`` ((m, 3) int).
 
-    Vertex count ``n_vertices``, default ``faces.max() + 1``), counted by a linear numba pass.
+    The vertex count is ``n_vertices``, default ``faces.max() + 1``; counted by a linear numba
+    pass.
     """
     faces = np.ascontiguousarray(faces, dtype=np.int64)
     if len(faces) == 0:

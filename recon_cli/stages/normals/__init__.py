@@ -104,7 +104,8 @@ SPEC = StageSpec(
     ),
 )
 
-# the MST graph uses at most this many nearest neighbours of each point (more adds time, not accuracy)
+# the MST graph uses at most this many nearest neighbours of each point (more adds time, not
+# accuracy)
 _GRAPH_K = 12
 # weight of the out-of-tangent-plane penalty on MST edges
 _BETA = 2.0
@@ -130,7 +131,8 @@ def _check_points(points: Any) -> np.ndarray:
     bad = ~np.isfinite(pts).all(axis=1)
     if bad.any():
         raise InputError(
-            f"points have {int(bad.sum())} rows with NaN or infinite coordinates (first: row {int(np.argmax(bad))}); "
+            f"points have {int(bad.sum())} rows with NaN or infinite coordinates (first: row "
+            f"{int(np.argmax(bad))}); "
             "remove them first"
         )
     return np.ascontiguousarray(pts)
@@ -238,7 +240,7 @@ def estimate_normals(
     ParameterError
         ``knn`` not 0 or at least 3, ``radius`` <= 0, or ``knn`` 0 without a radius.
     """
-    knn, radius = _check_knn(knn, radius)
+    knn, radius = _check_knn(knn, radius)  # type: ignore[assignment]  # knn 0 becomes None
     pts = _check_points(points)
     n = len(pts)
     if n == 0:
@@ -252,9 +254,12 @@ def estimate_normals(
 def _local(
     pts: np.ndarray, cam: np.ndarray | None, source: Any
 ) -> tuple[np.ndarray, np.ndarray | None]:
-    """``pts`` and the viewpoint ``cam`` about the points' local origin (far from the world
-    origin the kd-tree, centroids and flux sums keep their digits); in place when ``pts``
-    is a converted copy of ``source``."""
+    """``pts`` and the viewpoint ``cam`` about the points' local origin.
+
+    Far from the world origin the kd-tree, centroids and flux sums keep their digits. In place
+    when ``pts``
+    is a converted copy of ``source``.
+    """
     centre = local_origin(pts)
     if np.may_share_memory(pts, source):
         pts = pts - centre
@@ -383,8 +388,10 @@ def _seed_signs(nrm: np.ndarray, rel: np.ndarray) -> np.ndarray:
 
 
 def _align_to_anchors(ps, nrm, sign, labels, anchor, follow) -> None:
-    """Flip each ``follow`` component whose normals mostly disagree with those of the
-    nearest anchor points (in place on ``sign``)."""
+    """Flip each ``follow`` component whose normals mostly disagree with the nearest anchors'.
+
+    In place on ``sign``.
+    """
     from scipy.spatial import cKDTree
 
     amask = anchor[labels]
@@ -469,7 +476,7 @@ def orient_normals(
         ref_s = None if ref is None else ref[order]
         sign_s, ncomp = _orient_sorted(method, ps, nrm[order], indptr, indices, None, None, ref_s)
         sign = _unsort(order, sign_s)
-        info = {"components": int(ncomp)}
+        info: dict[str, Any] = {"components": int(ncomp)}
     else:
         sign = _orient_direct(method, pts, nrm, cam, dirn)
         info = {"components": None}
@@ -566,7 +573,8 @@ def run_stage(
     curvature : bool
         Also write the vertex attribute ``curvature`` (surface variation).
     backend : {"native", "open3d"}
-        ``open3d``: Open3D's estimate_normals (+ orient_normals_consistent_tangent_plane(knn) for ``mst``).
+        ``open3d``: Open3D's estimate_normals (+ orient_normals_consistent_tangent_plane(knn) for
+        ``mst``).
 
     Returns
     -------
@@ -576,7 +584,8 @@ def run_stage(
     """
     from recon_cli.stages.normals import _kernel as _normals_kernel  # noqa: F401  (numba compiles before timing starts)
 
-    knn, radius = _check_knn(knn, radius)  # each value checked by SPEC, the pair here
+    # each value checked by SPEC, the pair here; knn 0 becomes None (radius only)
+    knn, radius = _check_knn(knn, radius)  # type: ignore[assignment]
     method, cam, dirn = _check_orient(orient, camera, direction)
     cloud = as_point_cloud(data)
     pts = _check_points(cloud.points)
@@ -625,10 +634,11 @@ def run_stage(
                 orient_tangent_plane=(knn or 30) if method == "mst" else None,
             )
         if method != "mst":
-            sign = _orient_direct(method, pts, nrm, cam, dirn) if method != "keep" else None
             if method == "keep":
                 d = np.einsum("ij,ij->i", nrm, np.nan_to_num(ref))
                 sign = np.where(d < 0, -1, 1).astype(np.int8)
+            else:
+                sign = _orient_direct(method, pts, nrm, cam, dirn)
             report["flipped"] = int((sign < 0).sum())
             nrm = nrm * sign[:, None]
         out.normals = nrm
@@ -650,6 +660,7 @@ def run_stage(
         out.attributes["curvature"] = _unsort(order, curv_s)
     if report["degenerate"]:
         report["warning"] = (
-            f"{report['degenerate']} degenerate neighbourhoods (< 3 points, collinear or duplicates)"
+            f"{report['degenerate']} degenerate neighbourhoods (< 3 points, collinear or "
+            "duplicates)"
         )
     return StageResult(out, report)

@@ -346,7 +346,7 @@ def closed_mesh_inside(
 
 
 class _GridWinding:
-    """|winding number| at masked grid samples.
+    """Absolute winding number at masked grid samples.
 
     The tree is built on first use and the evaluations are counted.
     """
