@@ -59,20 +59,13 @@ from recon_cli.stages.poisson.splat import Samples, Splats, fields_as_items
 log = logging.getLogger("recon")
 
 TARGET = 0.5
-# the normals' kernel is this many times the splat level's cell wide (a quadratic B-spline);
-# wider smooths more: on smooth shapes it is more accurate (exact-distance Chamfer / Open3D's,
-# 100k clean samples, depth 8: sphere 0.34 at 2 against 1.01 at 1, torus 0.76 against
-# 1.69), on detailed ones less (armadillo 1.69 against 1.09, kitten 1.38 against 1.23), so
-# one cell, never worse than degree 1 where measured
+# the normals' kernel is this many times the splat level's cell wide (a quadratic B-spline):
+# wider is better on smooth shapes and worse on detailed ones (bench/calibration.md)
 KERNEL_WIDTH = 1.0
 # the screening weight relative to make_splats' where the samples are clean and where they are
 # noisy (Splats.screening, splat.noise_fraction): the quadratic B-splines are smaller at a sample
 # (at most 0.42 against a hat's 1) and smoother, so clean samples want a stronger pull than
-# degree 1's, noisy ones a weaker; measured (exact-distance Chamfer / Open3D's, 100k samples of
-# a sphere, torus, rounded box, the kitten, armadillo and mug, clean and with noise of 0.25 % of
-# the diagonal): one weight for both cannot serve (clean kitten / armadillo at depth 8 want 5x,
-# 0.91x / 0.95x Open3D's, and are 1.00x / 1.07x at 2x; the noisy ones 1.05x / 1.03x at 2x and
-# 0.77x / 0.85x at 0.5x); with 5 and 0.5 every row at depths 8 and 9 is 0.44-1.00x
+# degree 1's, noisy ones a weaker (bench/calibration.md)
 SCREEN_CLEAN = 5.0
 SCREEN_NOISY = 0.5
 

@@ -231,17 +231,16 @@ def refine_roots(verts: np.ndarray, chi: list, iso: float, depth: int) -> int:
     In finest-lattice units, in place; returns how many were moved.
 
     ``chi`` is :func:`recon_cli.stages.poisson.system.chi_levels`'s list. chi is trilinear in the
-    leaves, so the extracted vertices are the roots of a piecewise linear function; the
-    indicator it stands for is smooth. As PoissonRecon's non-linear fit (the default in it and
-    in Open3D), the root is taken on the quadratic through the edge's end values whose end
-    slopes are in the ratio of chi's slopes there (central differences one lattice step beyond
-    the ends: :func:`._extract.fit_roots`). The edge is the vertex's minimal edge, at the size
-    of the finest leaf around it (:func:`_edge_steps`), and the central differences are one
-    edge length beyond its ends (with the finest step on a coarse leaf's edge, the fit made
-    the kitten at depth 9 worse than the linear roots). A sphere, 100k samples, depth 7: mean
-    radial error 1.7e-4 -> 7.4e-5 of the radius (Open3D 8.5e-5, 1.7e-4 with its linear fit).
-    A vertex stays within its edge (so the topology is unchanged); vertices whose four values
-    would reach the cube's faces (clamped in the extraction) stay where they are.
+    leaves, so the extracted vertices are the roots of a piecewise linear function; the indicator it
+    stands for is smooth. As PoissonRecon's non-linear fit (the default in it and in Open3D), the
+    root is taken on the quadratic through the edge's end values whose end slopes are in the ratio
+    of chi's slopes there (central differences one lattice step beyond the ends:
+    :func:`._extract.fit_roots`). The edge is the vertex's minimal edge, at the size of the finest
+    leaf around it (:func:`_edge_steps`), and the central differences are one edge length beyond its
+    ends (the finest step on a coarse leaf's edge fitted worse than the linear roots; figures in
+    ``bench/calibration.md``). A vertex stays within its edge (so the topology is unchanged);
+    vertices whose four values would reach the cube's faces (clamped in the extraction) stay where
+    they are.
     """
     # in chunks: each vertex's fit is its own, and the fit's temporaries (four lattice points
     # per vertex, their cells and local coordinates at every level) are ~0.5 kB a vertex

@@ -75,11 +75,9 @@ def build_levels(
     cells over finer items, and around the cells holding its own items only the ring of 1
     the items' field reaches (their quadratic B-splines' 27 cells): as in PoissonRecon,
     whose finest nodes are those its splats make, their neighbours only made at the coarser
-    depths (the B-splines' overlap around nodes with children). On 1M samples of the
-    armadillo at depth 10 the finest level's unknowns fall from 11.7M to 7.5M (process
-    peak 1617 -> 1394 MiB, Chamfer unchanged: 1.544e-5 -> 1.540e-5 of the diagonal); on
-    100k at depth 9, 470k -> 401k faces, 6.5 -> 5.3 s (Chamfer 1.124e-4 -> 1.146e-4,
-    Open3D's 1.255e-4).
+    depths (the B-splines' overlap around nodes with children). It takes a third of the
+    finest unknowns and a seventh of the peak memory off at the same accuracy
+    (``bench/calibration.md``).
 
     Each level's nodes, its cells' corner nodes and which nodes are unknowns under
     ``boundary`` (the corners and unknowns only if ``corners``: the degree-2 solve needs

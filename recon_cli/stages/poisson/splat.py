@@ -170,13 +170,8 @@ def make_splats(
         tree_depth,
     )
     mean_area = float((area_pt * count).sum() / count.sum())
-    # calibrated against Open3D (PoissonRecon's code) at its default weight 4: exact-distance
-    # Chamfer of 100k samples, clean and with noise of 0.25 % of the diagonal, depths 8 and 9
-    # (level d screened with alpha * 2**(d - tree_depth), system.solve): at 0.75 the kitten,
-    # armadillo, sphere, torus and mug are at 0.76-1.03x Open3D's (a rounded box, clean, 1.45x);
-    # a stronger weight helps clean samples and costs noisy ones more (1.5x it: clean
-    # 0.75-0.97x, noisy 1.06-1.15x), so each basis scales it by the samples' measured noise
-    # (Splats.screening, noise_fraction; system.SCREEN_CLEAN, bspline.SCREEN_CLEAN)
+    # 0.75 matches Open3D's accuracy at its default weight 4 (bench/calibration.md); each basis
+    # scales it by the samples' measured noise (Splats.screening)
     alpha = 0.75 * point_weight * mean_area * (1 << tree_depth)
     screen_w = alpha * count
     dens = None
@@ -215,8 +210,7 @@ def spread_fields(
     cells, with the samples' normals distributed over them). Each sample's share of the field
     then is a smoothed B-spline (the B-spline weights convolved with the B-spline) rather than
     one B-spline centred on it; the field's noise from random sample positions is about 1.6x
-    smaller (a sphere, 100k samples, depth 7: the root's mean error 2.8e-4 -> 1.7e-4 of the
-    radius, Open3D's linear fit 1.7e-4). Shares beyond the cube's faces are dropped.
+    smaller (``bench/calibration.md``). Shares beyond the cube's faces are dropped.
     """
     out = {}
     for lv in np.unique(lvl):
@@ -268,8 +262,8 @@ class NormalField:
       from the finest level up when the field is made.
 
     So a coarse field costs per cell of the finer levels near it and a fine field per node of
-    the coarser levels, not per node each item reaches (kitten, 100k samples, depth 9: 0.9 s
-    where splatting every spread item at every level took 7 s). The carried field is kept on
+    the coarser levels, not per node each item reaches (about 8x faster than splatting every
+    spread item at every level; see ``bench/calibration.md``). The carried field is kept on
     the tree's cells and two cells around them, including the cells just beyond the cube's
     faces (all a node of the tree, or of the next level through the refinement, sees); the
     finer levels' integrals on the tree's nodes (all a finer field reaches: the tree holds two

@@ -25,11 +25,7 @@ log = logging.getLogger("recon")
 # the screening pulls chi towards this value at the samples
 TARGET = 0.5
 # the screening weight where the samples are clean and where they are noisy, relative to
-# make_splats' (Splats.screening); measured with exact-distance Chamfer against Open3D's, 100k
-# samples of a sphere, torus, rounded box, the kitten, armadillo and mug, depths 8 and 9: noisy
-# samples (0.25 % of the diagonal) at half the weight 0.80-0.89x Open3D's (0.99-1.03x at the
-# full weight); clean ones at 1.3x 0.75-0.98x (the lattice-aligned box 1.34-1.36x; at 1x the
-# armadillo was 1.07x, at 2x the torus 1.01x and the box 1.23x)
+# make_splats' (Splats.screening): the best accuracy against Open3D's (bench/calibration.md)
 SCREEN_CLEAN = 1.3
 SCREEN_NOISY = 0.5
 
@@ -185,7 +181,7 @@ def solve_work(levels: list[Level], full_depth: int) -> list[float]:
 
     Set-up and each CG iteration cost about the same per node; an exact level (depth <=
     ``full_depth``, tolerance 1e-7) takes about ``4.5 * 2**depth`` iterations, a finer one
-    about 10 (measured on the shared scans: 9..144 iterations); each level also costs a fixed
+    about 10 (see ``bench/calibration.md``); each level also costs a fixed
     amount (kernel calls, freeing the heap) worth ~30k nodes.
     """
     out = []
