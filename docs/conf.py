@@ -29,6 +29,8 @@ extensions = [
 source_suffix = {".rst": "restructuredtext", ".md": "markdown"}
 exclude_patterns = ["_build"]
 root_doc = "index"
+# options are written --like-this: no en dashes, no curly quotes in commands
+smartquotes = False
 
 try:  # the `docs` extra installs furo; a bare Sphinx still builds
     import furo  # noqa: F401
