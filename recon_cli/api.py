@@ -57,8 +57,7 @@ _DATA_NAMES = {"cloud": "cloud", "oriented": "cloud", "mesh": "mesh", "grid": "g
 _OPTION = re.compile(r"--([a-z][a-z0-9]*(?:-[a-z0-9]+)*)")
 
 
-# ---- names
-# -----------------------------------------------------------------------------------------
+# ---- names ---------------------------------------------------------------------------------------
 def function_name(stage: str) -> str:
     """The Python name of stage ``stage``'s function: ``fit-sdf`` -> ``fit_sdf``."""
     return stage.replace("-", "_")
@@ -90,8 +89,7 @@ def function_named(name: str) -> Callable[..., Any] | None:
     return None
 
 
-# ---- the declaration as Python
-# ---------------------------------------------------------------------
+# ---- the declaration as Python -------------------------------------------------------------------
 def annotation_source(p: Param) -> str:
     """The type annotation of parameter ``p``, as source text (``"int"``, ``"float | None"``)."""
     base = {
@@ -310,8 +308,7 @@ def docstring(spec: StageSpec, name: str | None = None) -> str:
     return "\n".join(out) + "\n"
 
 
-# ---- inputs
-# ----------------------------------------------------------------------------------------
+# ---- inputs --------------------------------------------------------------------------------------
 def as_input(data: Any, spec: StageSpec, normals: Any = None) -> PointCloud | TriangleMesh | Grid:
     """``data`` as recon's own object for stage ``spec`` (see the module docstring).
 
@@ -381,8 +378,7 @@ def _progress(progress: Any) -> Iterator[Progress | None]:
         raise ParameterError(f"progress must be true, false or a Progress, got {progress!r}")
 
 
-# ---- the functions
-# ---------------------------------------------------------------------------------
+# ---- the functions -------------------------------------------------------------------------------
 _FUNCTIONS: dict[str, tuple[StageSpec, Callable[..., Any]]] = {}
 
 
@@ -436,8 +432,7 @@ def _make(stage: str, spec: StageSpec) -> Callable[..., Any]:
     return run
 
 
-# ---- files
-# -----------------------------------------------------------------------------------------
+# ---- files ---------------------------------------------------------------------------------------
 def read(
     path: str | os.PathLike[str], format: str | None = None
 ) -> PointCloud | TriangleMesh | Grid:

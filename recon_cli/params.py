@@ -63,8 +63,7 @@ def describe_kinds(kinds: Sequence[str]) -> str:
     return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " or " + names[-1]
 
 
-# ---- text forms
-# ------------------------------------------------------------------------------------
+# ---- text forms ----------------------------------------------------------------------------------
 _TRUE = ("true", "yes", "on", "1")
 _FALSE = ("false", "no", "off", "0")
 _INT = re.compile(r"[+-]?\d+")
@@ -102,8 +101,7 @@ def _fmt(v: Any) -> str:
     return str(v)
 
 
-# ---- one parameter
-# ---------------------------------------------------------------------------------
+# ---- one parameter -------------------------------------------------------------------------------
 TYPES = ("int", "float", "bool", "choice", "vector", "floats", "any")
 
 
@@ -307,8 +305,7 @@ class Param:
         return ParameterError(f"{self.option} must be {expected}{words}, got {got}")
 
 
-# ---- one stage
-# -------------------------------------------------------------------------------------
+# ---- one stage -----------------------------------------------------------------------------------
 @dataclass
 class StageSpec:
     """The declaration of a stage: what it takes, gives, and every parameter.

@@ -30,8 +30,7 @@ from recon_cli.tools.readme import readme_tables
 
 from shared_data import ROOT
 
-# ---- Param.coerce: one checker
-# --------------------------------------------------------------------
+# ---- Param.coerce: one checker -------------------------------------------------------------------
 
 
 def test_bool_words_are_exactly_the_documented_ones():
@@ -122,8 +121,7 @@ def test_bool_parser_never_guesses(s):
             p.coerce(s)
 
 
-# ---- every built-in stage: declaration, library, command, README
-# ----------------------------------------
+# ---- every built-in stage: declaration, library, command, README ---------------------------------
 @pytest.mark.parametrize("name", BUILTIN)
 def test_builtin_stage_is_registered_and_derived_from_its_declaration(name):
     from recon_cli.cli.main import COMMANDS, cli
@@ -250,8 +248,7 @@ def test_library_call_checks_values_and_input_kind():
         run_stage(PointCloud(pts))
 
 
-# ---- a toy stage through the public registration API
-# -------------------------------------------------
+# ---- a toy stage through the public registration API ---------------------------------------------
 TOY = StageSpec(
     "toy-scale",
     "Scale a cloud (toy).",
@@ -317,8 +314,7 @@ def test_entry_points_group_registers_stages(monkeypatch):
     np.testing.assert_allclose(res.output.points, 4.0)
 
 
-# ---- global options after the subcommand
-# -----------------------------------------------------------------
+# ---- global options after the subcommand ---------------------------------------------------------
 def test_global_options_before_and_after_the_subcommand(tmp_path):
     from recon_cli.cli.main import cli
     from recon_cli.io import write_ply

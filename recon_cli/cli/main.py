@@ -111,8 +111,7 @@ def _stages() -> list[str]:
     return [n for n in stage_names() if n not in COMMANDS]
 
 
-# ---- global options: before or after the subcommand
-# -------------------------------------------------
+# ---- global options: before or after the subcommand ----------------------------------------------
 def _set_quiet(ctx: click.Context, param: click.Parameter, value: bool) -> None:
     if value:
         _configure(ctx.find_root(), quiet=True)

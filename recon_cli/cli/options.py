@@ -101,8 +101,7 @@ def stage_io(f):
     return f
 
 
-# ---- options generated from a stage's declaration
-# ---------------------------------------------------
+# ---- options generated from a stage's declaration ------------------------------------------------
 def option_for(p) -> click.Option:
     """The click option of a declared :class:`~recon_cli.params.Param`.
 
