@@ -315,10 +315,8 @@ def screened_poisson(
     degree : {1, 2}
         B-spline degree of the basis: 2 (the default), quadratic B-splines centred on the
         cells (support 3 cells per axis, :mod:`.bspline`): on smooth surfaces clearly more
-        accurate (exact-distance Chamfer on 100k samples at depths 8 and 9: 0.44-0.98x
-        Open3D's, where degree 1 is 0.75-0.98x and 1.35x on a box aligned with the lattice);
-        1, trilinear hat functions on the nodes (Open3D's Poisson uses degree 1), about
-        0.55-0.7x the time of degree 2.
+        accurate; 1, trilinear hat functions on the nodes (Open3D's Poisson uses degree 1),
+        faster (figures of both in ``bench/calibration.md``).
     boundary : {"neumann", "dirichlet"}
         Condition on the cube's faces (Dirichlet: ``chi = 0``, the outside).
     density : bool

@@ -295,7 +295,7 @@ def screening_matvec(q_keys, nb, xmap, omap, n, s, scell, sloc, sw, x, out):
 
     The 27 cells around a sample and their weights are written out here (and in
     :func:`screening_diag_rhs`): through a helper taking the arrays (``_gather27``, inlined)
-    the matvec took 15 ms of CPU on 74k samples (1.7M cells) against 9 ms written out.
+    the matvec was 1.7x slower (``bench/calibration.md``).
     """
     wx = np.empty(3)
     wy = np.empty(3)
@@ -694,8 +694,8 @@ def chi_at(pos, top, q_all, q_off, inp_all, nb_all, coef_all, s):
             ox = c0 & 1
             oy = c1 & 1
             oz = c2 & 1
-            # the 27 cells around, looked up once for both loops below (measured: as fast as
-            # through _nbr on a slice of nb_all, 18-20 ms CPU at 74k points of 1.7M cells)
+            # the 27 cells around, looked up once for both loops below (as fast as through _nbr on
+            # a slice of nb_all: bench/calibration.md)
             near = False
             for r in range(27):
                 bx = ox + r % 3 - 1
