@@ -76,7 +76,7 @@ def cmd(
     from recon_cli.cli._signals import immediate
     from recon_cli.errors import naming
     from recon_cli.io.atomic import check_output
-    from recon_cli.io.load import load, save
+    from recon_cli.io.load import load, read_report, save
 
     check_output(output)
     t0 = time.perf_counter()
@@ -94,4 +94,7 @@ def cmd(
         "seconds": time.perf_counter() - t0,
         "stages": reports,
     }
+    read = read_report(data)  # invalid points dropped, an organized cloud: never silently
+    if read:
+        summary["read"] = read
     emit_report(ctx, summary, json_=json_, data_on_stdout=(output == "-"))
