@@ -11,7 +11,7 @@ SAMPLE  := sample_data/bunny_scan_000.ply
 OUTDIR  := demo_output
 PYTEST_ARGS ?=
 
-.PHONY: all install sysdeps warmup demo test test-fast bench clean
+.PHONY: all install sysdeps warmup demo test test-fast bench lint docs clean
 
 all: test
 
@@ -70,5 +70,26 @@ test-fast: $(STAMP)
 bench: $(STAMP)
 	$(PY) bench/run_bench.py --out bench/results.md
 
+# ruff (format and lint) and mypy, configured in pyproject.toml; the `lint` extra holds them
+LINT_STAMP := $(VENV)/.lint-installed
+$(LINT_STAMP): pyproject.toml $(STAMP)
+	$(PY) -m pip install -q --disable-pip-version-check -e ".[lint]"
+	@touch $(LINT_STAMP)
+
+lint: $(LINT_STAMP)
+	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/ruff check .
+	$(PY) -m mypy
+
+# Sphinx with warnings as errors and nitpicky cross-references; the `docs` extra holds it
+DOCS_STAMP := $(VENV)/.docs-installed
+$(DOCS_STAMP): pyproject.toml $(STAMP)
+	$(PY) -m pip install -q --disable-pip-version-check -e ".[docs]"
+	@touch $(DOCS_STAMP)
+
+docs: $(DOCS_STAMP)
+	$(PY) -m sphinx -W -n --keep-going -q -b html docs docs/_build/html
+	@echo "docs written to docs/_build/html/index.html"
+
 clean:
-	rm -rf $(VENV) $(OUTDIR) .pytest_cache build *.egg-info
+	rm -rf $(VENV) $(OUTDIR) .pytest_cache .mypy_cache .ruff_cache docs/_build docs/stages build *.egg-info

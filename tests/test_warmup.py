@@ -77,7 +77,8 @@ def test_no_command_compiles_after_warmup(tmp_path):
     assert (
         report["bytecode"] is True
     )  # every module's .pyc written: no command compiles Python source
-    # the ballpivot/mcubes kernels compiled ahead of time (a C compiler is on every machine make install runs on)
+    # the ballpivot/mcubes kernels compiled ahead of time (a C compiler is on every machine make
+    # install runs on)
     assert report["aot_built"] is True and report["aot_reason"] is None, report["aot_reason"]
     assert report["aot_dir"].startswith(str(tmp_path / "cache" / "aot"))
     for module in (

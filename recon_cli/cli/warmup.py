@@ -30,8 +30,8 @@ def cmd(ctx, jobs, json_):
     report says whether that build was made, and why not. RECON_AOT=0 switches it off.
     """
     from recon_cli.cli._run import emit_report, make_progress
-    from recon_cli.errors import StageFailed
     from recon_cli.cli._warmup import warmup
+    from recon_cli.errors import StageFailed
 
     report = warmup(
         progress=make_progress(ctx),

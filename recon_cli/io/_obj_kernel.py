@@ -1,6 +1,8 @@
-"""Kernel of the OBJ reader: one walk over the lines into arrays that grow by doubling
-(sized first from a sample of the file, :func:`line_kinds`). Compute only:
-:mod:`recon_cli.io.obj` validates and raises."""
+"""Kernel of the OBJ reader: one walk over the lines into arrays that grow by doubling.
+
+The arrays are sized first from a sample of the file (:func:`line_kinds`). Compute only:
+:mod:`recon_cli.io.obj` validates and raises.
+"""
 
 from __future__ import annotations
 
@@ -36,9 +38,11 @@ NV, NVN, NF, NCORNER, NSLOW, COLOURS, NOCOLOURS, HAS_VN, MAX_V, MAX_VN, NONFINIT
 
 @njit(cache=True, inline="always")
 def _corner(buf, p, n):
-    """The face corner at ``p`` (``v``, ``v/vt``, ``v/vt/vn`` or ``v//vn``): ``(v, vn, ok,
-    stop)`` with the indices as written (``vn`` 0 when absent); not ok when it is not one of
-    these forms or an index is 0 (the texture index is read and dropped)."""
+    """The face corner at ``p`` (``v``, ``v/vt``, ``v/vt/vn`` or ``v//vn``).
+
+    ``(v, vn, ok, stop)`` with the indices as written (``vn`` 0 when absent); not ok when it is not
+    one of these forms or an index is 0 (the texture index is read and dropped).
+    """
     vi, ok, q = scan_int(buf, p, n)
     ok = ok and vi != 0
     nn = 0
@@ -57,17 +61,16 @@ def _corner(buf, p, n):
 def _walk(buf, i, st, verts, colours, vnorms, corner_v, corner_n, face_len, slow):
     """Parse lines from byte ``i`` until the end or until an array is full.
 
-    One pass over the bytes: each number is scanned where it starts, and the byte after it
-    must be white space or a newline. The common lines, ``v x y z`` and ``f a b c`` (each
-    corner any of the four forms) with one space between fields, go through a short path
-    that reads the fields in order; any other line (and any such line the short path does not
-    take whole) through the general one. ``st`` holds the counts (NV, NVN, NF, NCORNER,
-    NSLOW, COLOURS, NOCOLOURS), the largest vertex and normal index named by a corner (MAX_V,
-    MAX_VN, 0-based, -1 when none) and the first vertex with a NaN or infinite coordinate
-    (NONFINITE, -1 when none; numbers left to the slow path are not looked at), updated in
-    place; ``face_len`` is written only once POLYGONS is set (a face of more than 3 corners
-    seen, or expected by the caller). Returns ``(code, byte)``: 0 at the end, -1 at the start of a line that needs more
-    room, else an error code and the offending byte.
+    One pass over the bytes: each number is scanned where it starts, and the byte after it must be
+    white space or a newline. The common lines, ``v x y z`` and ``f a b c`` (each corner any of the
+    four forms) with one space between fields, go through a short path that reads the fields in
+    order; any other line (and any such line the short path does not take whole) through the general
+    one. ``st`` holds the counts (NV, NVN, NF, NCORNER, NSLOW, COLOURS, NOCOLOURS), the largest
+    vertex and normal index named by a corner (MAX_V, MAX_VN, 0-based, -1 when none) and the first
+    vertex with a NaN or infinite coordinate (NONFINITE, -1 when none; numbers left to the slow path
+    are not looked at), updated in place; ``face_len`` is written only once POLYGONS is set (a face
+    of more than 3 corners seen, or expected by the caller). Returns ``(code, byte)``: 0 at the end,
+    -1 at the start of a line that needs more room, else an error code and the offending byte.
     """
     buf = borrowed(buf)  # no reference counting around the inlined number scanners
     n = len(buf)
@@ -295,9 +298,12 @@ def _grown(a, need):
 
 @njit(cache=True)
 def line_kinds(buf, starts, width):
-    """``(v, vn, f, corners)``: how many ``v``, ``vn`` and ``f`` lines start in the windows
-    ``buf[s:s + width]`` (``s`` in ``starts``), and how many corners (fields) their ``f``
-    lines have: a sample from which the caller sizes the arrays (they grow when it falls short)."""
+    """``(v, vn, f, corners)`` counted in sample windows of ``buf``.
+
+    How many ``v``, ``vn`` and ``f`` lines start in the windows ``buf[s:s + width]`` (``s`` in
+    ``starts``), and how many corners (fields) their ``f`` lines have: a sample from which the
+    caller sizes the arrays (they grow when it falls short).
+    """
     n = len(buf)
     nv = 0
     nvn = 0
@@ -328,8 +334,9 @@ def line_kinds(buf, starts, width):
 
 @njit(cache=True)
 def obj_walk(buf, verts, colours, vnorms, corner_v, corner_n, face_len, slow):
-    """Walk an OBJ file held in ``buf`` (uint8) once, into the given arrays (sized by the
-    caller from :func:`line_kinds`), which grow when they are too small. ``corner_n`` empty:
+    """Walk an OBJ file held in ``buf`` (uint8) once, into the given arrays.
+
+    The caller sizes them from :func:`line_kinds`; they grow when too small. ``corner_n`` empty:
     the caller expects no ``vn`` line; it is made (normals -1 so far) at the first.
 
     Returns ``(error, byte offset, counts, verts, colours, vnorms, corner_v, corner_n,
@@ -383,7 +390,10 @@ def obj_walk(buf, verts, colours, vnorms, corner_v, corner_n, face_len, slow):
 
 @njit(cache=True)
 def fan(corner_v, face_len):
-    """Fan-triangulate polygons given as runs of ``corner_v``: ((m, 3) int64, source face of each)."""
+    """Fan-triangulate polygons given as runs of ``corner_v``.
+
+    ((m, 3) int64, source face of each).
+    """
     m = 0
     for f in range(len(face_len)):
         m += face_len[f] - 2
