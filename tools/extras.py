@@ -16,8 +16,10 @@ from pip._vendor.packaging.requirements import Requirement
 
 
 def extra_requirements(extras: list[str], requires: list[str] | None = None) -> list[str]:
-    """The requirements (``requires``: default, those of the installed recon's metadata)
-    that only the ``extras`` bring and this environment's markers select, without markers."""
+    """The requirements that only the ``extras`` bring and this environment's markers select.
+
+    ``requires`` defaults to the installed recon's metadata; markers are dropped.
+    """
     out = []
     if requires is None:
         requires = importlib.metadata.requires("recon") or []

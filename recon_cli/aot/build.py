@@ -20,15 +20,18 @@ import shutil
 import tempfile
 import time
 import warnings
-from typing import Any, Callable, Iterator
+from collections.abc import Callable, Iterator
+from typing import Any
 
 from recon_cli import aot
 from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache dir, before numba)
 
 
 def numba_type_key(t: Any) -> str | None:
-    """The key :func:`recon_cli.aot.type_key` computes for a value of numba type ``t``
-    (None for a type no ahead-of-time variant takes: records, lists, literals, omitted args...)."""
+    """The :func:`recon_cli.aot.type_key` of a value of numba type ``t``.
+
+    None for a type no ahead-of-time variant takes: records, lists, literals, omitted arguments.
+    """
     from numba.core import types
     from numba.np.numpy_support import as_dtype
 
@@ -52,9 +55,11 @@ def numba_type_key(t: Any) -> str | None:
 
 
 def signatures(module_name: str) -> dict[str, list[tuple[Any, Any]]]:
-    """The ``(argument types, return type)`` of every variant the public kernels of
-    ``module_name`` hold in this process (compiled or loaded from the cache): what a warm-up
-    worker hands back so that another process can build them (numba types pickle)."""
+    """The ``(argument types, return type)`` of every variant of ``module_name``'s kernels.
+
+    Those its public kernels hold in this process (compiled or loaded from the cache): what a
+    warm-up worker hands back so that another process can build them (numba types pickle).
+    """
     from numba.core.registry import CPUDispatcher
 
     mod = importlib.import_module(module_name)
@@ -67,7 +72,9 @@ def signatures(module_name: str) -> dict[str, list[tuple[Any, Any]]]:
             and obj.overloads
         ):
             out[name] = [
-                (tuple(args), cres.signature.return_type) for args, cres in obj.overloads.items()
+                # CompileResult's fields are set at run time (numba's own typing lacks them)
+                (tuple(args), cres.signature.return_type)  # type: ignore[attr-defined]
+                for args, cres in obj.overloads.items()
             ]
     return out
 
@@ -75,11 +82,15 @@ def signatures(module_name: str) -> dict[str, list[tuple[Any, Any]]]:
 def exports(
     module_name: str, sigs: dict[str, list[tuple[Any, Any]]] | None = None
 ) -> tuple[list[tuple[str, Any, Any]], dict[str, dict[str, str]], list[str]]:
-    """What to export from ``module_name``: (export name, signature, function) triples, the
-    manifest's table ``{kernel: {signature key: export name}}``, and the kernels left to JIT (why).
+    """What to export from ``module_name``.
+
+    (export name, signature, function) triples, the manifest's table ``{kernel: {signature key:
+    export name}}``, and the kernels left to JIT (why).
 
     ``sigs`` (as :func:`signatures` gives them, from any process) names the variants; by
-    default those the kernels hold in this process."""
+    default those the kernels hold in this process.
+
+    """
     from numba.core.registry import CPUDispatcher
 
     mod = importlib.import_module(module_name)
@@ -110,7 +121,7 @@ def exports(
 
 @contextlib.contextmanager
 def _quiet_pycc() -> Iterator[None]:
-    """pycc's pending-deprecation warning, for the length of the build only."""
+    """Pycc's pending-deprecation warning, for the length of the build only."""
     from numba.core.errors import NumbaPendingDeprecationWarning
 
     with warnings.catch_warnings():
@@ -139,10 +150,12 @@ def _extension_name(module_name: str) -> str:
 def compile_extension(
     name: str, work: str, sigs: dict[str, list[tuple[Any, Any]]] | None = None
 ) -> dict:
-    """Build the extension of kernel module ``name`` into the folder ``work`` (one job of
-    :func:`build`, possibly in another process). Returns ``{"module", "entry"}`` (its
-    manifest entry, None when nothing was exported), ``"skipped"`` and ``"failure"``
-    (None, or why pycc failed)."""
+    """Build the extension of kernel module ``name`` into the folder ``work``.
+
+    One job of :func:`build`, possibly in another process. Returns ``{"module", "entry"}`` (its
+    manifest entry, None when nothing was exported), ``"skipped"`` and ``"failure"`` (None, or
+    why pycc failed).
+    """
     out: dict[str, Any] = {"module": name, "entry": None, "skipped": [], "failure": None}
     entries, table, skipped = exports(name, sigs)
     out["skipped"] = [f"{name}.{s}" for s in skipped]
@@ -198,8 +211,9 @@ def build(
     submit: Callable[..., Any] | None = None,
     done: Callable[[], None] | None = None,
 ) -> dict:
-    """Build the extensions of ``modules`` (and the C ``c_libraries``, name -> source) into
-    :func:`~recon_cli.aot.build_dir`.
+    """Build the extensions of ``modules`` into :func:`~recon_cli.aot.build_dir`.
+
+    The C ``c_libraries`` (name -> source) are built there too.
 
     ``sigs`` gives each module's variants (``{module: signatures(module)}``, gathered from the
     warm-up's workers); by default those its kernels hold in this process. With ``submit``
@@ -208,6 +222,7 @@ def build(
 
     Returns ``{"built": bool, "dir", "modules", "skipped", "seconds", "reason"}``: ``reason``
     says why nothing was built (no compiler, pycc failed) or that the build was up to date.
+
     """
     t0 = time.perf_counter()
     target = aot.build_dir()
@@ -295,8 +310,10 @@ def _run_jobs(
     submit: Callable[..., Any] | None,
     done: Callable[[], None] | None,
 ) -> Iterator[dict]:
-    """Each job's result: in turn here, or through ``submit`` as they end (a job that
-    died, e.g. with its worker process, gives a failure)."""
+    """Each job's result, in turn here or through ``submit`` as they end.
+
+    A job that died (e.g. with its worker process) gives a failure.
+    """
     if submit is None:
         for fn, args in jobs:
             result = fn(*args)

@@ -38,8 +38,9 @@ import re
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -49,8 +50,7 @@ LOCK_WAIT_S = 900.0
 
 
 def kernel_modules() -> list[str]:
-    """Names of recon's modules that define numba kernels (found by their source text,
-    without importing)."""
+    """Names of recon's modules that define numba kernels (by their source text, not imported)."""
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[1]  # the recon_cli package
@@ -63,8 +63,7 @@ def kernel_modules() -> list[str]:
 
 
 def _sphere_cloud(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """``n`` points on the unit sphere (Fibonacci spiral, slightly jittered) and their
-    outward normals."""
+    """``n`` points on the unit sphere (a jittered Fibonacci spiral) and their outward normals."""
     i = np.arange(n) + 0.5
     z = 1.0 - 2.0 * i / n
     r = np.sqrt(1.0 - z * z)
@@ -90,13 +89,15 @@ def _sphere_mesh(n: int) -> tuple[np.ndarray, np.ndarray]:
 
 def _library_only(mesh_path: str) -> None:
     """Kernels that only the library API reaches (no command)."""
+    from recon_cli.geometry import TriangleMesh
     from recon_cli.io.ply import read_ply
     from recon_cli.mesh.topology import Connectivity
     from recon_cli.mesh.winding import winding_number
 
     mesh = read_ply(mesh_path)
+    assert isinstance(mesh, TriangleMesh)  # the warm-up's own mesh file
     winding_number(mesh.vertices, mesh.faces, np.zeros((2, 3)), method="exact")
-    Connectivity(mesh.faces).vertex_faces
+    _ = Connectivity(mesh.faces).vertex_faces  # the property runs its kernel
 
 
 def make_inputs(root: str) -> None:
@@ -191,8 +192,11 @@ def make_inputs(root: str) -> None:
 
 @dataclass(frozen=True)
 class Files:
-    """The inputs :func:`make_inputs` wrote into ``root``, and a phase's own folder for what
-    its steps write (:meth:`out`), so that phases running at once never share a file."""
+    """The inputs :func:`make_inputs` wrote into ``root``, and a phase's own folder.
+
+    What a phase's steps write goes to its own folder (:meth:`out`), so that phases running at
+    once never share a file.
+    """
 
     root: str
     own: str
@@ -229,8 +233,10 @@ _INPUTS = {
 
 
 def recon(*args: str) -> Step:
-    """A step running ``recon ARGS`` in this process (quiet, its reports dropped), named by
-    its command line (paths by their file names)."""
+    """A step running ``recon ARGS`` in this process, quiet, its reports dropped.
+
+    It is named by its command line (paths by their file names).
+    """
 
     def run() -> Any:
         from recon_cli.cli.main import cli
@@ -253,8 +259,11 @@ PHASES: dict[str, Phase] = {}
 
 
 def phase(weight: float) -> Callable[[Callable[[Files], list[Step]]], Callable]:
-    """Declare a phase: a function of the :class:`Files` returning its steps, run in order in
-    one worker. ``weight`` orders the phases (the costliest first); any rough figure will do."""
+    """Declare a phase: a function of the :class:`Files` returning its steps.
+
+    The steps run in order in one worker. ``weight`` orders the phases (the costliest first); any
+    rough figure will do.
+    """
 
     def declare(fn: Callable[[Files], list[Step]]) -> Callable[[Files], list[Step]]:
         name = fn.__name__.lstrip("_")
@@ -459,8 +468,7 @@ def _obj(f: Files) -> list[Step]:
 
 @phase(weight=16)
 def _formats(f: Files) -> list[Step]:
-    """Every other file format, both ways, from float32 and float64 sources (their parsers
-    are kernels too)."""
+    """Every other file format, both ways, from float32 and float64 sources."""
     steps = []
     for src, suffixes in (
         (f.c32, ("xyz", "csv", "pcd")),
@@ -521,8 +529,9 @@ def _pcd(src: str, dst: str, mode: str) -> Callable[[], Any]:
 def warmup(
     progress: Any = None, log: Callable[[str], None] | None = None, jobs: int | None = None
 ) -> dict:
-    """Run every kernel once on tiny inputs so that numba compiles (or loads) each of them,
-    then build the ahead-of-time kernels.
+    """Run every kernel once on tiny inputs, then build the ahead-of-time kernels.
+
+    Numba compiles (or loads) each kernel as its step runs.
 
     Parameters
     ----------
@@ -541,6 +550,7 @@ def warmup(
         (kernels never compiled, see :func:`uncompiled_kernels`), ``bytecode`` (every
         module's ``.pyc`` written, see :func:`compile_bytecode`) and the ahead-of-time
         build's ``aot_*``.
+
     """
     from recon_cli._kernels.numba_setup import CACHE_DIR
     from recon_cli.progress import task
@@ -596,9 +606,11 @@ def _aot_modules() -> tuple[str, ...]:
 
 
 def run_phase(name: str, root: str, tick: Callable[[int], Any] | None = None) -> dict:
-    """Run phase ``name``'s steps in order (each step's failure noted, the others run):
-    ``{"phase", "failed": [(step, message)], "seconds", "sigs"}``, ``sigs`` the variants
-    the ahead-of-time modules' kernels hold in this process so far."""
+    """Run phase ``name``'s steps in order; a step's failure is noted and the others run.
+
+    Returns ``{"phase", "failed": [(step, message)], "seconds", "sigs"}``, ``sigs`` the variants
+    the ahead-of-time modules' kernels hold in this process so far.
+    """
     from recon_cli.aot.build import signatures
 
     t0, c0 = time.perf_counter(), time.process_time()
@@ -673,8 +685,10 @@ def _run_in_workers(
     failed_step: Callable[[tuple[str, str]], None],
     log: Callable[[str], None] | None = None,
 ) -> dict:
-    """The phases in ``jobs`` worker processes (the costliest first, each to the next free
-    worker), then the ahead-of-time jobs in the same workers."""
+    """The phases in ``jobs`` worker processes, then the ahead-of-time jobs in the same workers.
+
+    The costliest phases start first, each on the next free worker.
+    """
     import multiprocessing
     import queue as queue_mod
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -747,8 +761,11 @@ def _run_in_workers(
 
 @contextlib.contextmanager
 def _stopping_workers(pool: Any):
-    """On an interruption (Ctrl-C, SIGTERM as recon's handlers raise it), the queued phases
-    are dropped and the workers ended at once, not left to finish their compiles."""
+    """On an interruption, drop the queued phases and end the workers at once.
+
+    Ctrl-C, or SIGTERM as recon's handlers raise it: the workers are not left to finish their
+    compiles.
+    """
     import multiprocessing
 
     try:
@@ -761,12 +778,14 @@ def _stopping_workers(pool: Any):
 
 
 def serialize_kernel_compiles(lock_dir: str) -> None:
-    """In this process, compile or load each cached kernel under a file lock of that kernel
-    in ``lock_dir``, shared by the warm-up's workers: a worker that needs a kernel another
-    one is compiling waits, then loads it from the cache, instead of compiling it too (and
-    no two processes rewrite one kernel's cache index at once, where one's variant could be
-    lost). A kernel's callees take their own locks; a lock not had within
-    :data:`LOCK_WAIT_S` is done without."""
+    """Compile or load each cached kernel under a file lock of that kernel in ``lock_dir``.
+
+    The lock is shared by the warm-up's workers: a worker that needs a kernel another one is
+    compiling waits, then loads it from the cache, instead of compiling it too (and no two
+    processes rewrite one kernel's cache index at once, where one's variant could be lost). A
+    kernel's callees take their own locks; a lock not had within :data:`LOCK_WAIT_S` is done
+    without.
+    """
     import fcntl
     import hashlib
 
@@ -802,13 +821,15 @@ def serialize_kernel_compiles(lock_dir: str) -> None:
                 held.discard(index)  # the lock goes with the file's closing
 
     compile.recon_serialized = True  # type: ignore[attr-defined]
-    Dispatcher.compile = compile
+    Dispatcher.compile = compile  # type: ignore[method-assign]  # numba's, wrapped for the run
 
 
 @contextlib.contextmanager
 def _jit_only():
-    """The warm-up's steps run the numba kernels themselves (an ahead-of-time build would
-    leave them uncompiled, and the build exports the signatures they compiled)."""
+    """Make the warm-up's steps run the numba kernels, not an ahead-of-time build.
+
+    A build would leave the kernels uncompiled, and it exports the signatures they compiled.
+    """
     from recon_cli import aot
 
     before = os.environ.get("RECON_AOT")
@@ -831,10 +852,12 @@ def build_ahead_of_time(
     submit: Callable[..., Any] | None = None,
     done: Callable[[], None] | None = None,
 ) -> dict:
-    """Build the ahead-of-time kernels and the signal handler (:mod:`recon_cli.aot.build`),
-    from the variants ``sigs`` (default: those the kernels hold in this process), the jobs
-    through ``submit`` when given; one line through ``log`` saying what came of it.
-    ``jobs`` in the result: how many jobs ran (each called ``done``)."""
+    """Build the ahead-of-time kernels and the signal handler (:mod:`recon_cli.aot.build`).
+
+    From the variants ``sigs`` (default: those the kernels hold in this process), the jobs through
+    ``submit`` when given; one line through ``log`` saying what came of it. ``jobs`` in the
+    result: how many jobs ran (each called ``done``).
+    """
     from recon_cli.aot.build import build
     from recon_cli.cli._signals import HANDLER_C
     from recon_cli.progress import task
@@ -874,11 +897,13 @@ def _log_ahead(out: dict, log: Callable[[str], None] | None) -> None:
 
 
 def compile_bytecode() -> bool:
-    """Write the ``.pyc`` of every module of the package (``compileall``), so no command
-    compiles Python source either: an editable install (``make install``) or an environment
-    with ``PYTHONDONTWRITEBYTECODE`` set would otherwise compile every recon module it
-    imports in every process (~45 ms of CPU for a stage command). False when some file
-    could not be written (a read-only install: pip wrote its ``.pyc`` files already)."""
+    """Write the ``.pyc`` of every module of the package (``compileall``).
+
+    So no command compiles Python source either: an editable install (``make install``) or an
+    environment with ``PYTHONDONTWRITEBYTECODE`` set would otherwise compile every recon module it
+    imports in every process. False when some file could not be written (a read-only install:
+    pip wrote its ``.pyc`` files already).
+    """
     import compileall
     from pathlib import Path
 
