@@ -7,8 +7,7 @@ surface makes it a distance (IGR, Gropp et al. 2020; with normals its L1 form on
 spread over the band of 5 % of the diagonal around the surface); SIREN's
 off-surface term exp(-100 |s|) on the samples away from the points (Sitzmann et al. 2020)
 keeps spurious zero levels out of the empty space, which a few CPU minutes of IGR alone
-leave (armadillo, 90 s: 7 components, 11 % of the vertices > 1 % of the diagonal from any
-point; with the term: one watertight component). Without
+leave (figures in ``bench/calibration.md``). Without
 normals it is IGR's zero-level + eikonal form, oriented by the geometric (sphere)
 initialisation. ``field="occupancy"`` fits a logistic output instead (Occupancy Networks,
 Mescheder et al. 2019) to inside/outside labels taken from the normals of the nearest points.
@@ -77,13 +76,13 @@ SPEC = StageSpec(
     name="fit-sdf",
     keeps_partial=True,
     summary="Fit a neural signed distance field to a cloud (needs recon[learned]).",
-    description="""Fit a neural signed distance field to a cloud; write it on a grid (.npz, negative inside).
+    description="""Fit a neural signed distance field to a cloud; write it on a grid (.npz).
 
-    With normals the loss holds the zero level on the points, the gradient on the normals and
-    |grad s| at 1 (eikonal); without, the zero level and the eikonal term (IGR). `recon mcubes
-    OUT.npz mesh.ply` extracts the surface; `recon info OUT.npz` reports the eikonal statistics.
-    Needs PyTorch (pip install recon[learned]). Ctrl-C stops training and writes the best field
-    so far (exit 130).""",
+    The grid is negative inside. With normals the loss holds the zero level on the points, the
+    gradient on the normals and the gradient's norm at 1 (eikonal); without, the zero level and
+    the eikonal term (IGR). `recon mcubes OUT.npz mesh.ply` extracts the surface; `recon info
+    OUT.npz` reports the eikonal statistics. Needs PyTorch (pip install recon[learned]). Ctrl-C
+    stops training and writes the best field so far (exit 130).""",
     takes=("cloud", "mesh"),
     gives=("grid",),
     output_suffix=".npz",
@@ -140,8 +139,8 @@ SPEC = StageSpec(
             "eikonal_weight",
             "float",
             None,
-            "Weight of the eikonal loss: E||grad s| - 1| with normals (auto: 3), "
-            "E[(|grad s| - 1)^2] without (auto: 0.1).",
+            "Weight of the eikonal loss: the mean of abs(norm(grad s) - 1) with normals "
+            "(auto: 3), of (norm(grad s) - 1)^2 without (auto: 0.1).",
             min=0.0,
             words={"auto": None},
         ),
@@ -257,24 +256,16 @@ def fit_sdf(
         Hidden units per layer and hidden layers of the MLP.
     frequencies : int or None
         Octaves of the Fourier features (0: the raw coordinates only). None: 4 with normals,
-        2 without. High octaves make ||grad s|| ripple off the surface (armadillo, 2000 steps,
-        the band samples and L1 eikonal below: within 0.1 of 1 on 90 % of the grid samples
-        near the surface with 4, 88 % with 5; with weight 10 (squared) 84 % with 4, 72 % with 6
-        and 3 pieces); IGR's form fits high octaves as noise (a torus, 900 steps, had its zero
-        level 0.96 % of the major radius off with 2, 1.2 % with 0, 43 pieces with 6).
+        2 without: high octaves make the gradient's norm ripple off the surface, and IGR's
+        form fits them as noise (figures in ``bench/calibration.md``).
     eikonal_weight : float or None
         Weight of the eikonal term (``sdf`` only). With normals it is the L1 form
         E| ||grad s|| - 1 |, on the samples near the points, uniform ones, and as many spread
         over the band of 5 % of the diagonal around the surface (the field's useful part,
         where ``recon info`` judges it); None: 3.0. Without normals it is IGR's squared form
         E(||grad s|| - 1)^2 with IGR's 0.1: nothing but the zero level holds the slope, and
-        3.0 slows the fit (sphere, 250 steps: the zero level 12 % of the radius off with
-        3.0, 1.4 % with 0.1). Measured on armadillo (100k points, 2000 steps, grid samples
-        within 5 % of the diagonal, share with | ||grad s|| - 1 | <= 0.1; Chamfer-L1 of the
-        diagonal): squared 3.0 without band samples 54 %, 2.0e-3; squared 3.0 with them 58 %;
-        squared 10 84 %, 2.5e-3; squared 30 93 %, 4.0e-3; L1 3.0 90 %, 2.9e-3; L1 10 94 %,
-        6.5e-3. The squared penalty barely pulls deviations under 0.1; the L1 one pulls
-        every sample to 1 alike.
+        3.0 slows the fit. The squared penalty barely pulls deviations under 0.1; the L1 one
+        pulls every sample to 1 alike (figures in ``bench/calibration.md``).
     normal_weight : float
         Weight of E||grad s(p) - n_p|| (``sdf`` with normals only).
     batch : int

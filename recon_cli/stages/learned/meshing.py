@@ -58,7 +58,8 @@ def sample_grid(
     """
     from scipy.ndimage import map_coordinates
 
-    shape = tuple(int(s) for s in shape)
+    nx, ny, nz = (int(s) for s in shape)
+    shape = (nx, ny, nz)
     origin = np.asarray(origin, dtype=np.float64)
     h = float(voxel_size)
     c = COARSE

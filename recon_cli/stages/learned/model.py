@@ -1,5 +1,7 @@
-"""The fitted field of :mod:`recon_cli.stages.learned`: the network with its coordinate map,
-and its file (weights and description in one ``.npz``, no pickle).
+"""The fitted field of :mod:`recon_cli.stages.learned`: the network and its file.
+
+The network comes with its map from world coordinates; the file holds weights and
+description in one ``.npz`` (no pickle).
 
 PyTorch is imported through :func:`compute` only when a field is fitted or queried.
 """
@@ -9,7 +11,8 @@ from __future__ import annotations
 import io
 import json
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from dataclasses import field as dataclass_field
 from typing import Any
 
 import numpy as np
@@ -65,15 +68,18 @@ class SdfModel:
     center: np.ndarray
     scale: float
     field: str
-    config: dict = field(default_factory=dict)
+    config: dict = dataclass_field(default_factory=dict)
 
     def _q(self, x: np.ndarray) -> np.ndarray:
         x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
         return ((x - self.center) / self.scale).astype(np.float32)
 
     def values(self, points: np.ndarray) -> np.ndarray:
-        """Field at (k, 3) world points: signed distance (world units, negative inside) for
-        ``sdf``, ``0.5 - p(inside)`` for ``occupancy`` (negative inside, zero at p = 1/2)."""
+        """Field at (k, 3) world points.
+
+        Signed distance (world units, negative inside) for ``sdf``, ``0.5 - p(inside)`` for
+        ``occupancy`` (negative inside, zero at p = 1/2).
+        """
         raw = compute().values(self.net, self._q(points))
         return self._to_field(raw)
 

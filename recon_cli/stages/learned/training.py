@@ -1,5 +1,8 @@
-"""Training of :mod:`recon_cli.stages.learned`: the cloud in network coordinates, the sampling
-spread, the loss settings and the optimisation with its progress (inputs already checked)."""
+"""Training of :mod:`recon_cli.stages.learned` (inputs already checked).
+
+The cloud in network coordinates, the sampling spread, the loss settings and the
+optimisation with its progress.
+"""
 
 from __future__ import annotations
 
@@ -63,8 +66,11 @@ class Settings:
 
 
 def network_frame(pts: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
-    """Centre, scale (world units per network unit) and the points in network coordinates
-    (float32): the bounding box's centre at 0, its longest half-side at :data:`EXTENT`."""
+    """Centre, scale (world units per network unit) and the points in network coordinates.
+
+    The points are float32, the bounding box's centre at 0, its longest half-side at
+    :data:`EXTENT`.
+    """
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     center = 0.5 * (lo + hi)
     half = 0.5 * float((hi - lo).max())
@@ -80,8 +86,11 @@ def sampling_spread(tree, q: np.ndarray) -> np.ndarray:
 
 
 def occupancy_labels(tree, q: np.ndarray, normals: np.ndarray):
-    """Labels of training samples: inside (1) when the offsets to the 8 nearest points point
-    against their normals."""
+    """The labeller of training samples for ``occupancy``.
+
+    A sample is inside (1) when its offsets to the 8 nearest points point against their
+    normals.
+    """
     nq = normals.astype(np.float32)
 
     def labels_fn(x: np.ndarray) -> np.ndarray:
@@ -147,7 +156,10 @@ def fit(
     center, scale, q = network_frame(pts)
     tree = cKDTree(q)
     sigma = sampling_spread(tree, q)
-    labels_fn = occupancy_labels(tree, q, nrm) if s.field == "occupancy" else None
+    labels_fn = None
+    if s.field == "occupancy":
+        assert nrm is not None  # checked by fit_sdf
+        labels_fn = occupancy_labels(tree, q, nrm)
     net = T.build(s.width, s.depth, s.frequencies, RADIUS, s.seed)
     cfg = train_config(T, s, q, nrm is not None)
     logging.getLogger("recon").info(

@@ -224,8 +224,10 @@ def _row_classes(vol, iso):
 
 @njit(cache=True, inline="always")
 def _nan_cells(r00, r10, r01, r11, nz):
-    """Cells of a row left out: the sum of their 8 corners is NaN (a NaN corner, or +inf and
-    -inf together: no crossing can be placed)."""
+    """Count the cells of a row left out: the sum of their 8 corners is NaN.
+
+    That is a NaN corner, or +inf and -inf together: no crossing can be placed.
+    """
     count = 0
     low = _sum4(r00[0], r10[0], r01[0], r11[0])
     for k in range(nz - 1):
@@ -238,8 +240,10 @@ def _nan_cells(r00, r10, r01, r11, nz):
 
 @njit(cache=True, inline="always")
 def _centre_vertex(v, loop, edges, iso, clamp, i, j, k, verts, grads, cid, p, g):
-    """Vertex ``cid``: the mean of the loop's crossings in cell (i, j, k), with the gradient
-    of the cell's trilinear interpolant there."""
+    """Write vertex ``cid``: the mean of the loop's crossings in cell (i, j, k).
+
+    Its gradient is the cell's trilinear interpolant's there.
+    """
     _centre_point(v, loop, edges, iso, clamp, p)
     verts[cid, 0] = i + p[0]
     verts[cid, 1] = j + p[1]
@@ -251,8 +255,11 @@ def _centre_vertex(v, loop, edges, iso, clamp, i, j, k, verts, grads, cid, p, g)
 
 @njit(cache=True, inline="always")
 def _edge_vertex(vol, v, ends, iso, clamp, i, j, k, verts, grads, nv, ga, gb):
-    """Vertex ``nv``: the crossing on the edge between corners ``ends`` of cell (i, j, k),
-    with the gradient interpolated between the corners' central differences."""
+    """Write vertex ``nv``: the crossing on the edge between corners ``ends`` of a cell.
+
+    The cell is (i, j, k); the gradient is interpolated between the corners' central
+    differences.
+    """
     ca = ends[0]
     cb = ends[1]
     tt = _lerp_t(v[ca], v[cb], iso, clamp)
@@ -344,7 +351,8 @@ def dense_extract(
                 for c in range(8):
                     v[c] = vol[i + (c & 1), j + ((c >> 1) & 1), k + ((c >> 2) & 1)]
                 if np.isnan((v[0] + v[1] + v[2] + v[3]) + (v[4] + v[5] + v[6] + v[7])):
-                    continue  # NaN compares false: a cell with a NaN corner is left out (counted above)
+                    # NaN compares false: a cell with a NaN corner is left out (counted above)
+                    continue
                 row = case
                 if use_faces:
                     row = case * 64 + _face_bits(v, case, iso, ambiguous, face_corners)
