@@ -28,11 +28,10 @@ from recon_cli.stages.learned import (  # noqa: E402
     extract_mesh,
     fit_sdf,
     load_model,
-    near_surface_eikonal,
     sample_grid,
     save_model,
 )
-from recon_cli.stages.sdf import grid_frame  # noqa: E402
+from recon_cli.stages.sdf import eikonal_check, grid_frame  # noqa: E402
 
 from shapes import sphere_cloud, torus_cloud, torus_distance  # noqa: E402
 
@@ -74,8 +73,7 @@ def test_sphere_zero_level_within_one_percent(sphere_fit):
 def test_sphere_eikonal(sphere_fit):
     _, p, _, fit = sphere_fit
     g = _grid(fit, p)
-    diag = float(np.linalg.norm(p.max(0) - p.min(0)))
-    eik = near_surface_eikonal(g, 0.05 * diag)
+    eik = eikonal_check(g)["near"]
     assert eik["cells"] > 1000 and eik["fraction_within_0.1"] >= 0.9
     # the exact gradient too, at random points near the surface
     rng = np.random.default_rng(5)
@@ -133,8 +131,7 @@ def test_torus(with_normals):
     topo = report(TriangleMesh(vertices=v, faces=f))
     assert topo["components"] == 1 and topo["watertight"] and topo["genus"] == 1
     if with_normals:
-        diag = float(np.linalg.norm(pr.max(0) - pr.min(0)))
-        eik = near_surface_eikonal(g, 0.05 * diag)
+        eik = eikonal_check(g)["near"]
         assert eik["cells"] > 1000 and eik["fraction_within_0.1"] >= 0.9, eik
 
 
@@ -291,7 +288,8 @@ def test_cli_grid_mcubes_info_mesh(tmp_path):
     assert np.allclose(mv, m.vertices) and np.array_equal(mf, m.faces)
     radial = (m.vertices - 0.5) / np.linalg.norm(m.vertices - 0.5, axis=1, keepdims=True)
     assert np.einsum("ij,ij->i", m.normals, radial).min() > 0.98
-    assert describe(out)["eikonal"]["cells"] > 0
+    # `recon info` measures the written grid as the stage's report does
+    assert describe(out)["eikonal"] == rep["eikonal"] and rep["eikonal_near"]["cells"] > 0
     assert load_model(model).field == "sdf"
 
 

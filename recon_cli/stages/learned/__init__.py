@@ -47,7 +47,7 @@ import numpy as np
 
 from recon_cli.errors import InputError, ParameterError
 from recon_cli.params import Param, StageSpec
-from recon_cli.stages.learned.meshing import extract_mesh, near_surface_eikonal, sample_grid
+from recon_cli.stages.learned.meshing import extract_mesh, sample_grid
 from recon_cli.stages.learned.model import (
     FIELDS,
     INSTALL_HINT,
@@ -66,7 +66,6 @@ __all__ = [
     "extract_mesh",
     "fit_sdf",
     "load_model",
-    "near_surface_eikonal",
     "run_stage",
     "sample_grid",
     "save_model",
@@ -373,10 +372,11 @@ def run_stage(
         A :class:`~recon_cli.grid.Grid` (``sdf``: signed distance, world units; ``occupancy``:
         ``0.5 - p(inside)``; both negative inside, the surface at 0). Report keys
         ``field``, ``points``, ``normals_used``, ``iterations``, ``train_seconds``,
-        ``loss``, ``interrupted``, ``shape``, ``voxel_size``, ``eikonal`` (whole grid,
-        :func:`recon_cli.stages.sdf.eikonal_check`), ``eikonal_near`` (samples within 5 % of the
-        diagonal of the surface, :func:`near_surface_eikonal`), and with ``mesh``:
-        ``mesh_vertices``, ``mesh_faces``.
+        ``loss``, ``interrupted``, ``shape``, ``voxel_size``, ``eikonal``
+        (:func:`recon_cli.stages.sdf.eikonal_check` on the written grid, as ``recon info``
+        reports it), ``eikonal_near`` (its ``near`` part: the samples near the zero level
+        but kinks, the figure the fit aims at), and with ``mesh``: ``mesh_vertices``,
+        ``mesh_faces``.
     """
     from recon_cli.geometry import PointCloud, TriangleMesh, float64
     from recon_cli.stages import StageResult
@@ -426,12 +426,10 @@ def _written_grid(model: SdfModel, data, resolution: int, padding: float, progre
 
 def _report(fitted: FitResult, data, grid, model_path, mesh_path) -> dict:
     """The stage's report (see :func:`run_stage`)."""
-    from recon_cli.geometry import bbox_diagonal
     from recon_cli.stages.sdf import eikonal_check
 
     pts = data.points
-    sdf = fitted.model.field == "sdf"
-    diag = bbox_diagonal(pts)
+    eikonal = eikonal_check(grid) if fitted.model.field == "sdf" else None
     return {
         "field": fitted.model.field,
         "points": len(pts),
@@ -442,8 +440,8 @@ def _report(fitted: FitResult, data, grid, model_path, mesh_path) -> dict:
         "interrupted": fitted.interrupted,
         "shape": list(grid.sdf.shape),
         "voxel_size": grid.voxel_size,
-        "eikonal": eikonal_check(grid) if sdf else None,
-        "eikonal_near": near_surface_eikonal(grid, 0.05 * diag) if sdf else None,
+        "eikonal": eikonal,
+        "eikonal_near": None if eikonal is None else eikonal["near"],
         "provenance": {
             "model": model_path,
             "mesh": mesh_path,

@@ -102,27 +102,3 @@ def extract_mesh(model: SdfModel, grid) -> tuple[np.ndarray, np.ndarray, np.ndar
     _, g = model.gradients(v)
     n = np.linalg.norm(g, axis=1, keepdims=True)
     return v, f, np.divide(g, n, out=np.zeros_like(g), where=n > 0)
-
-
-def near_surface_eikonal(grid, distance: float) -> dict:
-    """Eikonal statistics (central differences) over grid samples with |s| <= ``distance``.
-
-    Returns
-    -------
-    dict
-        ``cells``, ``fraction_within_0.1`` (share with | ||grad s|| - 1 | <= 0.1), ``median``.
-    """
-    s = np.asarray(grid.sdf, dtype=np.float64)
-    h = grid.voxel_size
-    g = np.gradient(s, h)
-    norm = np.sqrt(g[0] ** 2 + g[1] ** 2 + g[2] ** 2)[1:-1, 1:-1, 1:-1]
-    sel = np.abs(s[1:-1, 1:-1, 1:-1]) <= distance
-    sel &= np.isfinite(norm)
-    vals = norm[sel]
-    if not len(vals):
-        return {"cells": 0, "fraction_within_0.1": None, "median": None}
-    return {
-        "cells": len(vals),
-        "fraction_within_0.1": float(np.mean(np.abs(vals - 1) <= 0.1)),
-        "median": float(np.median(vals)),
-    }
