@@ -11,7 +11,7 @@ Other formats (OBJ, OFF, STL, XYZ, PCD, LAS, E57): the same keys, ``format`` bei
 format's name, plus ``details`` (what the reader reports: STL weld, LAS header, PCD fields...).
 Keys (grid): ``file``, ``kind`` ("grid"), ``shape``, ``origin``, ``voxel_size``,
 ``unknown_cells``, ``range``, ``eikonal`` (with ``near``: the figures near the zero level,
-:func:`recon_cli.stages.sdf.eikonal_check`), ``history``.
+``recon_cli.stages.sdf.eikonal_check``), ``history``.
 """
 
 from __future__ import annotations
