@@ -384,19 +384,20 @@ def test_stage_report_and_provenance():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["torus", "rounded_box"])
-def test_defaults_meet_the_eikonal_target(tmp_path, name):
+def test_defaults_meet_the_eikonal_target(tmp_path):
     """At the defaults the written grid, as `recon info` measures it near the zero level,
-    has |grad s| within 0.1 of 1 on >= 90 % of the samples (a generated shape, rotated,
-    scaled and 1e6 off); the stage reports the same figure."""
+    has |grad s| within 0.1 of 1 on >= 90 % of the samples (a rounded box, its medial axis
+    reaching the band, rotated, scaled and 1e6 off); the stage reports the same figure."""
     from recon_cli.info import describe
     from recon_cli.io.npz import write_grid
 
     from shapes import shape_cloud
 
     rng = np.random.default_rng(21)
-    p, n = shape_cloud(name, 20_000, rng, scale=rng.uniform(0.2, 30), offset=np.full(3, 1e6))
-    res = apply_stage("fit-sdf", PointCloud(points=p, normals=n), {"threads": 2})
+    p, n = shape_cloud(
+        "rounded_box", 20_000, rng, scale=rng.uniform(0.2, 30), offset=np.full(3, 1e6)
+    )
+    res = apply_stage("fit-sdf", PointCloud(points=p, normals=n), {"threads": 1})
     write_grid(res.output, tmp_path / "f.npz")
     near = describe(tmp_path / "f.npz")["eikonal"]["near"]
     assert near == res.report["eikonal_near"]
