@@ -647,7 +647,7 @@ def _cap_and_zero_span(s: np.ndarray, step: int) -> tuple[float, np.ndarray | No
     lo = np.full(3, np.iinfo(np.int64).max)
     hi = np.full(3, -1)
     for i0 in range(0, nx, step):
-        blk = s[i0 : min(nx, i0 + step + 1)].astype(np.float64)  # one row over: axis-0 pairs
+        blk = s[i0 : min(nx, i0 + step + 1)]  # one row over: axis-0 pairs
         a = np.abs(blk[: min(step, nx - i0)])
         a = a[np.isfinite(a)]
         if a.size:
