@@ -236,6 +236,11 @@ def test_eikonal_check_near_without_zero_level():
     e = eikonal_check(Grid(sdf=s, origin=(0, 0, 0), voxel_size=x[1]))
     assert e["fraction_within_0.1"] == 1.0
     assert e["near"]["distance"] is None and e["near"]["cells"] == 0
+    from recon_cli.cli.info import format_info
+    from recon_cli.info import describe_grid
+
+    text = format_info(describe_grid(Grid(sdf=s, origin=(0, 0, 0), voxel_size=x[1]), "g.npz"))
+    assert "within 1±0.1: 100.0%" in text and "no zero level to measure near" in text
 
 
 def test_eikonal_check_slabs(monkeypatch):

@@ -70,6 +70,8 @@ def format_info(rep: dict) -> str:
                 f"{near['fraction_within_0.1'] * 100:.1f}% of {near['cells']} cells "
                 f"({near['kinks']} at kinks left out)"
             )
+        elif near and near["distance"] is None:
+            lines.append("  eikonal near   no sign change: no zero level to measure near")
     else:
         lines.append(f"  format         {rep['format']}")
         lines.append(f"  vertices       {rep['vertices']}")
