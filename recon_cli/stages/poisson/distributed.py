@@ -1,0 +1,604 @@
+"""Screened Poisson reconstruction of one cloud over many processes (a Dask cluster), in slabs.
+
+Design, after Kazhdan & Hoppe's distributed PoissonRecon (2023: a coarse solve of the whole
+domain on a server, the finer levels in slabs along one axis with padding on clients, and a
+merge of the slabs into one seamless mesh), on this stage's own solver (:mod:`.bspline`,
+degree 2) and Dask, the engine ``recon batch`` already uses.
+
+**Partition.** The cube of the single-process solve (the same origin and size) is cut along
+its longest axis into slabs whose seams are planes of the level-5 lattice
+(:data:`.slab.PARTITION_DEPTH`; the slabs' axis becomes ``x`` by a cyclic turn of the axes,
+so a slab's cells are a run of the x-major lattice keys). Levels up to ``full_depth`` (5)
+are complete grids, so no leaf of the tree crosses a seam. Seams are chosen to balance the
+slabs' points. A slab reads its own points and those within a pad beyond each seam (whole
+sub-slabs of level 8): ``PAD_CELLS`` cells of the first level the slabs solve, plus the reach
+of the kernel density, so that every sample it splats has exactly the single-process splat.
+The coordinator never holds the cloud: from a file each worker reads the rows of its
+chunks and writes them per sub-slab (:func:`read_chunk`), each slab then reads its range.
+
+**Global values.** What the single-process solve sums over all samples the coordinator sums
+over the slabs, each slab giving its own samples' share: the bounding box, the kernel
+density at the coarse levels (the finest one, ``depth - 2``, is a slab's own, exact within
+the pad), the tree's depth and the mean area per sample (the screening weight), the noise
+median that stands in where no fit answers (exact, by a histogram of the values' bit
+patterns and a second round for the values in the median's bins), the iso-value (the
+samples' mean chi). Each slab places its samples at their splat depths from these.
+
+**Coarse solve.** Levels up to ``coarse_depth = depth - 3`` (at least 5) are solved by the
+coordinator for the whole cube, as the single-process solve does: its tree is built from the
+slabs' own coarse items and, for the finer ones, the cells of level ``coarse_depth + 1``
+they occupy (all the coarse levels depend on); the right-hand side is the coarse items'
+field plus the finer items' part restricted onto level ``coarse_depth``, which each slab
+computes for its own items; the screening is the samples summed per cell. Its chi is every
+slab's starting point: the slabs' finer levels are solved on top of the same coarse chi.
+
+**Fine solve.** Each slab builds the tree's finer levels from its items (own and pad: the
+tree near a seam is the same in both slabs), and solves them cascadically, coarse to fine,
+each level's correction on the residual the coarser ones leave, as the single-process solve
+does; beyond its pad the corrections are zero. The cascade makes this local: the coarse chi
+carries the low frequencies, each finer level's correction is a few cells wide.
+
+**Seams, exactly.** After the solve each slab takes, from its neighbour, the coefficients of
+the neighbour's column of parent cells next to the seam at every finer level (chi at a point
+reads the 27 cells around it, one parent column on each side of the seam). So both slabs of
+a seam evaluate the same chi, with the same coefficients and the same tree, anywhere within
+a cell of it: the neighbour's coefficients on its side, their own on theirs. Each slab then
+extracts the leaves it owns (the finest-lattice extraction, :func:`.extract.extract_finest`,
+restricted to its cells), with one rule for the points on a seam plane, which both slabs
+compute alike (:func:`.slab.plane_values`: the leaf holding the finest cell above the point,
+the same corner values): the faces on a seam have the same values on both sides, hence the
+same crossings, the same vertices (marching cubes puts a vertex at the linear root along
+the edge, then chi's root along it: same numbers, same bits) and the same triangulation of
+their segments. Vertices on a seam are welded by their position on the lattice (the same
+bits on both sides; the coordinator checks the two sides' lists are equal, else the run
+fails): the right slab owns them, the left one refers to them by rank. The mesh is one
+surface, closed and manifold where the single-process mesh is, with no vertex twice.
+
+**Merge.** Pieces are joined across seams by their seam vertices (union-find over the
+slabs' pieces); specks and islands (:func:`._drop_bubbles`' rules) are decided on the
+joined pieces, the largest always kept. Each slab then writes its vertices (density,
+colours) and faces; the coordinator concatenates them (face indices offset, references to
+the right seam resolved), turns the axes back and writes the file atomically: a failed run
+leaves no output.
+
+**Workers.** Every slab step is a deterministic function of the slab's inputs and the global
+values before it; a slab whose worker dies is rebuilt by running its steps again on
+another worker (:class:`DaskRunner`), the global values being the coordinator's.
+
+Differences from the single-process output: the finer levels' corrections near a seam are
+solved in the two slabs' pads (the seam takes the owner's), sums are added in another
+order, and the extraction is always on the finest lattice (where the single-process
+extraction meshes coarse leaves at their own size, e.g. an open scan's closing sheet, this
+gives more, smaller faces on the same surface).
+
+References
+----------
+Kazhdan, M. & Hoppe, H. (2023). Distributed Poisson surface reconstruction. Computer
+Graphics Forum 42(6).
+Kazhdan, M. & Hoppe, H. (2013). Screened Poisson surface reconstruction. ACM TOG 32(3).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from typing import Any, Callable
+
+import numpy as np
+
+from recon_cli.errors import ParameterError, StageFailed
+from recon_cli.stages.poisson import slab as S
+from recon_cli.stages.poisson.splat import KERNEL_OFFSET, screening_alpha
+
+log = logging.getLogger("recon")
+
+
+# ---------------------------------------------------------------------------------------------
+# runners: where the slabs' steps run
+
+
+class LocalRunner:
+    """Every slab in this process, one after another (tests, and the library without a
+    cluster): the same steps and messages as on a cluster."""
+
+    def __init__(self, slabs: list[S.Slab]):
+        self.slabs = slabs
+        self.phases: dict[str, dict] = {}
+
+    def run(self, name: str, fn: Callable, args: Callable[[int], tuple]) -> list[dict]:
+        t0 = time.perf_counter()
+        out = [fn(s, *args(k)) for k, s in enumerate(self.slabs)]
+        _note_phase(self.phases, name, out, time.perf_counter() - t0)
+        return out
+
+    def close(self) -> None:
+        self.slabs = []
+
+
+def _note_phase(phases: dict, name: str, msgs: list[dict], wall: float) -> None:
+    p = phases.setdefault(name, {"seconds": 0.0, "slab_seconds_max": 0.0, "peak_mb_max": 0.0})
+    p["seconds"] += wall
+    p["slab_seconds_max"] = max(
+        p["slab_seconds_max"], max((m.get("seconds", 0.0) for m in msgs), default=0.0)
+    )
+    p["peak_mb_max"] = max(
+        p["peak_mb_max"], max((m.get("peak_mb") or 0.0 for m in msgs), default=0.0)
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# the plan
+
+
+def choose_seams(counts: np.ndarray, parts: int) -> list[int]:
+    """Seam positions (in level-``PARTITION_DEPTH`` slabs, strictly increasing, 1..31) that
+    balance ``counts`` (points per level-5 slab) over ``parts`` slabs."""
+    n = len(counts)
+    if parts > n:
+        raise ParameterError(f"at most {n} partitions (the seams are level-5 planes), got {parts}")
+    cum = np.concatenate([[0], np.cumsum(counts)])
+    total = cum[-1]
+    seams = []
+    for k in range(1, parts):
+        target = total * k / parts
+        b = int(np.argmin(np.abs(cum[1:n] - target))) + 1
+        lo = (seams[-1] + 1) if seams else 1
+        hi = n - (parts - k)
+        seams.append(min(max(b, lo), hi))
+    return seams
+
+
+def plan_slabs(job: S.Job, sub_counts: np.ndarray, parts: int) -> list[tuple]:
+    """Per slab: own, pad (points read) and usable (samples splatted) x ranges (unit cube)."""
+    nsub = len(sub_counts)
+    per = nsub >> S.PARTITION_DEPTH
+    counts = sub_counts.reshape(-1, per).sum(axis=1)
+    seams = [0] + choose_seams(counts, parts) + [1 << S.PARTITION_DEPTH]
+    first_fine = job.coarse_depth + 1
+    pad_items = math.ceil(S.PAD_CELLS * nsub / (1 << first_fine))
+    reach = math.ceil(S.DENSITY_REACH * nsub / (1 << (job.local_density + 1)))
+    out = []
+    for k in range(parts):
+        a, b = seams[k] * per, seams[k + 1] * per
+        ua, ub = max(a - pad_items, 0), min(b + pad_items, nsub)
+        pa, pb = max(ua - reach, 0), min(ub + reach, nsub)
+        out.append(((a / nsub, b / nsub), (pa / nsub, pb / nsub), (ua / nsub, ub / nsub)))
+    return out
+
+
+def sub_slab(x_unit: np.ndarray, nsub: int) -> np.ndarray:
+    return np.clip(np.floor(x_unit * nsub), 0, nsub - 1).astype(np.int64)
+
+
+def coarse_depth_for(depth: int) -> int:
+    return min(depth, max(S.PARTITION_DEPTH, depth - S.COARSE_OFFSET))
+
+
+# ---------------------------------------------------------------------------------------------
+# the coordinator's steps
+
+
+def _sum_tables(msgs: list[dict]) -> tuple[np.ndarray, np.ndarray]:
+    keys = np.concatenate([m["keys"] for m in msgs])
+    dens = np.concatenate([m["dens"] for m in msgs])
+    uk, inv = np.unique(keys, return_inverse=True)
+    return uk, np.bincount(inv.reshape(-1), weights=dens, minlength=len(uk))
+
+
+def _sum_fields(parts: list[dict]) -> dict:
+    out = {}
+    levels = sorted({d for p in parts for d in p})
+    for d in levels:
+        keys = np.concatenate([p[d][0] for p in parts if d in p])
+        vec = np.concatenate([p[d][1] for p in parts if d in p])
+        uk, inv = np.unique(keys, return_inverse=True)
+        inv = inv.reshape(-1)
+        out[d] = (uk, np.stack([np.bincount(inv, vec[:, a], len(uk)) for a in range(3)], axis=1))
+    return out
+
+
+def _sum_screening(parts: list[dict]) -> dict:
+    out = {}
+    for d in sorted({d for p in parts for d in p}):
+        keys = np.concatenate([p[d][0] for p in parts if d in p])
+        sw = np.concatenate([p[d][1] for p in parts if d in p])
+        sp = np.concatenate([p[d][2] for p in parts if d in p])
+        uk, inv = np.unique(keys, return_inverse=True)
+        inv = inv.reshape(-1)
+        w = np.bincount(inv, sw, len(uk))
+        p3 = np.stack([np.bincount(inv, sp[:, a], len(uk)) for a in range(3)], axis=1)
+        out[d] = (S.merged_positions(w, p3), w)
+    return out
+
+
+def exact_median(runner, name: str, fn: Callable, hists: list[dict], phase: str) -> float | None:
+    """The median (as ``np.median``) of values spread over the slabs, from their
+    :func:`.slab.float_histogram` s and a second round for the values in the median's bins
+    (``fn(slab, bins)`` returns them)."""
+    bins = np.concatenate([h["bins"] for h in hists])
+    counts = np.concatenate([h["counts"] for h in hists])
+    n = int(counts.sum())
+    if n == 0:
+        return None
+    ub, inv = np.unique(bins, return_inverse=True)
+    tot = np.bincount(inv.reshape(-1), counts, len(ub)).astype(np.int64)
+    cum = np.cumsum(tot)
+    ranks = [(n - 1) // 2, n // 2]
+    want = np.unique([int(np.searchsorted(cum, r, side="right")) for r in ranks])
+    msgs = runner.run(phase, fn, lambda k: (ub[want],))
+    vals = np.sort(np.concatenate([m["values"] for m in msgs]))
+    before = int(cum[want[0] - 1]) if want[0] > 0 else 0
+    pick = [vals[r - before] for r in ranks]
+    return float(np.mean(pick))
+
+
+def solve_coarse(
+    levels: list, job: S.Job, fields: dict, finer: np.ndarray | None, screening: dict
+) -> tuple[list, list[dict], int, float]:
+    """The coordinator's solve of the coarse levels; returns each level's coefficients (None
+    for level 0), per-level figures, iterations, last residual."""
+    from recon_cli.stages.poisson.bspline import NormalRHS, level_fields
+
+    dc = len(levels) - 1
+    lfs, arrays = level_fields(levels, job.boundary)
+    nrhs = NormalRHS(fields, lfs)
+    if finer is not None:
+        # the finer levels' part, restricted onto the coarser levels as NormalRHS restricts
+        from recon_cli.stages.poisson import _bspline as B
+
+        nrhs.finer[dc] = finer if nrhs.finer[dc] is None else nrhs.finer[dc] + finer
+        up = finer
+        for lv in range(dc, 1, -1):
+            c, f = lfs[lv - 1], lfs[lv]
+            blocks = B.finer_blocks(c.q_keys, f.q_keys)
+            up = B.restrict_rhs(c.q_keys, c.nb, c.inp, blocks, up, 1 << (lv - 1), c.s)
+            nrhs.finer[lv - 1] = up if nrhs.finer[lv - 1] is None else nrhs.finer[lv - 1] + up
+
+    def scr(d):
+        return screening.get(d)
+
+    stats, it, rel = S.solve_levels(
+        levels, lfs, arrays, nrhs, scr, 1, job.full_depth, job.cg_tolerance
+    )
+    coefs = [None] + [lfs[d].coef.copy() for d in range(1, dc + 1)]
+    return coefs, stats, it, rel
+
+
+# ---------------------------------------------------------------------------------------------
+# the whole run
+
+
+def frame_of(lo: np.ndarray, hi: np.ndarray, scale: float) -> tuple[np.ndarray, float, tuple]:
+    """The single-process solve's cube (origin, size) for the kept points' box, and the
+    cyclic turn of the axes that makes the longest one ``x``."""
+    size = float((hi - lo).max()) * scale
+    origin = 0.5 * (lo + hi) - 0.5 * size
+    axis = int(np.argmax(hi - lo))
+    perm = (axis, (axis + 1) % 3, (axis + 2) % 3)
+    return origin, size, perm
+
+
+def make_job(origin, size, perm, depth, p: dict) -> S.Job:
+    dc = coarse_depth_for(depth)
+    return S.Job(
+        origin=tuple(float(v) for v in np.asarray(origin)[list(perm)]),
+        size=size,
+        depth=depth,
+        samples_per_node=p["samples_per_node"],
+        point_weight=p["point_weight"],
+        boundary=p["boundary"],
+        full_depth=p["full_depth"],
+        cg_tolerance=p["cg_tolerance"],
+        coarse_depth=dc,
+        local_density=dc,
+        density=p["density"],
+        trim=p["trim"],
+    )
+
+
+def reconstruct(runner, job: S.Job, loaded: list[dict], progress: Any = None) -> dict:
+    """Every step after the slabs' ``load`` (whose messages are ``loaded``): returns the
+    mesh's parts per slab and the report (module docstring)."""
+    from recon_cli.stages.poisson import BUBBLE_CELLS, ISLAND_POINTS
+
+    t0 = time.perf_counter()
+    timings: dict[str, float] = {}
+    msgs = loaded
+    # ---- the samples' splat depths: the slabs' own density levels, then the global ones
+    tables: dict[int, tuple] = {}
+    level = job.local_density
+    while sum(m["unplaced"] for m in msgs) and level >= 0:
+        keys, dens = _sum_tables(runner.run("density", S.own_table, lambda k, lv=level: (lv,)))
+        tables[level] = (keys, dens)
+        msgs = runner.run("place", S.place, lambda k, lv=level, ks=keys, ds=dens: (lv, ks, ds))
+        level -= 1
+    if sum(m["unplaced"] for m in msgs):
+        raise StageFailed("distributed poisson: samples left without a splat depth")
+    tree_depth = max(max(m["max_level"] for m in msgs), 1)
+    if tree_depth < S.PARTITION_DEPTH:
+        raise ParameterError(
+            f"the samples support a tree of depth {tree_depth} only: too sparse for a "
+            f"distributed reconstruction (it needs {S.PARTITION_DEPTH}); run without workers"
+        )
+    count = sum(m["count"] for m in msgs)
+    mean_area = sum(m["area_count"] for m in msgs) / count
+    alpha = screening_alpha(job.point_weight, mean_area, tree_depth)
+    timings["samples"] = time.perf_counter() - t0
+    # ---- noise: the median of the measured values stands in for the others
+    t = time.perf_counter()
+    fallback = 0.0
+    if alpha > 0:
+        nm = runner.run("noise", S.noise, lambda k: (tree_depth,))
+        if sum(m["missing"] for m in nm):
+            med = exact_median(runner, "sigma", S.noise_values, [m["hist"] for m in nm], "noise")
+            fallback = 0.0 if med is None else med
+    timings["noise"] = time.perf_counter() - t
+    # ---- items, fields, the slabs' trees; the coarse levels' data
+    t = time.perf_counter()
+    im = runner.run("items", S.items, lambda k: (tree_depth, alpha, fallback))
+    noise_med = None
+    if alpha > 0:
+        noise_med = exact_median(
+            runner, "noise", S.noise_report_values, [m["noise_hist"] for m in im], "noise"
+        )
+    dc = min(job.coarse_depth, tree_depth)
+    coarse_fields = _sum_fields([m["coarse_fields"] for m in im])
+    screening = _sum_screening([m["screening"] for m in im]) if alpha > 0 else {}
+    cpos, clvl = S.coarse_item_set(im, dc)
+    del im
+    coarse = S.build_coarse_levels(cpos, clvl, tree_depth, job)
+    del cpos, clvl
+    rm = runner.run("restrict", S.restrict, lambda k: (S.level_message(coarse),))
+    finer = None
+    parts = [m["finer"] for m in rm if "finer" in m]
+    if parts:
+        from recon_cli.stages.poisson.bspline import _level_parents
+
+        n8 = 8 * len(_level_parents(coarse[dc])[0])
+        finer = np.zeros(n8)
+        for idx, val in parts:
+            np.add.at(finer, idx, val)
+    timings["tree"] = time.perf_counter() - t
+    # ---- the coarse solve, then the slabs' finer levels
+    t = time.perf_counter()
+    coefs, cstats, cit, cres = solve_coarse(coarse, job, coarse_fields, finer, screening)
+    del finer, screening
+    timings["coarse_solve"] = time.perf_counter() - t
+    t = time.perf_counter()
+    sm = runner.run("solve", S.solve, lambda k: (coefs, coarse_fields))
+    iso = sum(m["iso_sum"] for m in sm) / sum(m["iso_count"] for m in sm)
+    timings["solve"] = time.perf_counter() - t
+    # ---- extraction, each slab with its neighbours' bands
+    t = time.perf_counter()
+    n = len(sm)
+    bands = [
+        (sm[k - 1]["band_right"] if k > 0 else None, sm[k + 1]["band_left"] if k < n - 1 else None)
+        for k in range(n)
+    ]
+    levels_stats = cstats + [s for m in sm for s in m["levels"]]
+    iterations = cit + sum(m.get("iterations", 0) for m in sm)
+    residual = max([m.get("residual", 0.0) for m in sm] + [cres])
+    del sm
+    em = runner.run("extract", S.extract, lambda k: (iso, *bands[k]))
+    bands = None
+    cell = job.size / (1 << tree_depth)
+    drop, specks, islands, seam_dev = _merge_pieces(runner, em, cell, BUBBLE_CELLS, ISLAND_POINTS)
+    timings["extract"] = time.perf_counter() - t
+    # ---- each slab's output
+    t = time.perf_counter()
+    dens_spec = None
+    if job.density or job.trim > 0:
+        ko = max(tree_depth - KERNEL_OFFSET, 0)
+        if ko > job.local_density:
+            dens_spec = (ko,)
+        else:
+            if ko not in tables:
+                tables[ko] = _sum_tables(runner.run("density", S.own_table, lambda k: (ko,)))
+            dens_spec = (ko, *tables[ko])
+    fm = runner.run("finish", S.finish, lambda k: (drop[k], dens_spec))
+    timings["finish"] = time.perf_counter() - t
+    report = {
+        "depth": job.depth,
+        "tree_depth": tree_depth,
+        "iso_value": iso,
+        "solver_iterations": int(iterations),
+        "residual": float(residual),
+        "bubbles_removed": specks,
+        "islands_removed": islands,
+        "trimmed_faces": 0,
+        "trimmed_area": 0.0,
+        "noise": noise_med,
+        "samples": int(sum(m["own_samples"] for m in loaded)),
+        "finest_cell": cell,
+        "levels": levels_stats,
+        "timings": timings,
+        "seam_max_deviation": seam_dev,
+    }
+    return {"parts": fm, "report": report, "phases": getattr(runner, "phases", {})}
+
+
+def _merge_pieces(runner, em: list[dict], cell: float, bubble_cells: int, island_points: int):
+    """Join the slabs' pieces across the seams (their seam vertices), decide the specks and
+    islands on the joined pieces (:func:`._drop_bubbles`' rules); returns per slab the local
+    labels to drop, the counts, and the largest distance between the two slabs' positions of
+    a seam vertex (0: the same bits)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(em)
+    sizes = [len(m["pieces"][0]) for m in em]
+    off = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    total = int(off[-1])
+    rows, cols = [], []
+    dev = 0.0
+    for k in range(1, n):
+        lyz, lpos, llab = em[k - 1]["seam_right"]
+        ryz, rpos, rlab = em[k]["seam_left"]
+        if len(lyz) != len(ryz) or not np.array_equal(lyz, ryz):
+            raise StageFailed(
+                f"distributed poisson: slabs {k - 1} and {k} disagree on their seam's vertices "
+                f"({len(lyz)} against {len(ryz)})"
+            )
+        if len(lpos):
+            dev = max(dev, float(np.abs(lpos - rpos).max()))
+        ok = (llab >= 0) & (rlab >= 0)
+        rows.append(llab[ok] + off[k - 1])
+        cols.append(rlab[ok] + off[k])
+    if total == 0:
+        return [np.zeros(0, np.int64)] * n, 0, 0, dev
+    r = np.concatenate(rows) if rows else np.zeros(0, np.int64)
+    c = np.concatenate(cols) if cols else np.zeros(0, np.int64)
+    g = coo_matrix((np.ones(len(r)), (r, c)), shape=(total, total))
+    ncomp, comp = connected_components(g, directed=False)
+    faces = np.zeros(ncomp, np.int64)
+    lo = np.full((ncomp, 3), np.inf)
+    hi = np.full((ncomp, 3), -np.inf)
+    for k, m in enumerate(em):
+        cnt, plo, phi = m["pieces"]
+        gid = comp[off[k] : off[k + 1]]
+        np.add.at(faces, gid, cnt)
+        for ax in range(3):
+            np.minimum.at(lo[:, ax], gid, plo[:, ax])
+            np.maximum.at(hi[:, ax], gid, phi[:, ax])
+    largest = int(np.argmax(faces))
+    speck = (hi - lo).max(axis=1) < bubble_cells * cell
+    speck[largest] = False
+    island = np.zeros(ncomp, bool)
+    cand = np.flatnonzero(~speck)
+    cand = cand[cand != largest]
+    if len(cand):
+        pad = bubble_cells * cell
+        im = runner.run("islands", S.island_points, lambda k: (lo[cand] - pad, hi[cand] + pad))
+        pts = np.sum([m["counts"] for m in im], axis=0)
+        island[cand] = pts < island_points
+    gone = speck | island
+    drop = [np.flatnonzero(gone[comp[off[k] : off[k + 1]]]) for k in range(n)]
+    if gone.any():
+        log.info(
+            "poisson: %d pieces under %d cells across and %d around fewer than %d points dropped",
+            int(speck.sum()),
+            bubble_cells,
+            int(island.sum()),
+            island_points,
+        )
+    return drop, int(speck.sum()), int(island.sum()), dev
+
+
+def assemble(out: dict, job: S.Job, perm: tuple, colors: bool):
+    """The mesh from the slabs' parts (in memory): vertices concatenated in slab order, face
+    references to a right seam resolved to the next slab's vertices, axes turned back."""
+    from recon_cli.geometry import TriangleMesh
+
+    parts = out["parts"]
+    nv = [len(p["vertices"]) for p in parts]
+    off = np.concatenate([[0], np.cumsum(nv)]).astype(np.int64)
+    faces = []
+    for k, p in enumerate(parts):
+        f = p["faces"]
+        g = np.where(f >= 0, f + off[k], off[min(k + 1, len(parts) - 1)] + (-1 - f))
+        faces.append(g)
+    inv = np.argsort(perm)
+    verts = np.concatenate([p["vertices"] for p in parts])[:, inv] if parts else np.zeros((0, 3))
+    mesh = TriangleMesh(
+        vertices=np.ascontiguousarray(verts),
+        faces=np.concatenate(faces).astype(np.int64) if faces else np.zeros((0, 3), np.int64),
+    )
+    if job.density:
+        mesh.attributes["density"] = np.concatenate([p["density"] for p in parts])
+    if colors:
+        mesh.colors = np.concatenate([p["colors"] for p in parts if "colors" in p])
+    rep = out["report"]
+    rep["vertices"] = len(mesh.vertices)
+    rep["faces"] = len(mesh.faces)
+    rep["distributed"] = {"slabs": len(parts), "phases": out.get("phases", {})}
+    return mesh
+
+
+def distributed_poisson(
+    points: np.ndarray,
+    normals: np.ndarray,
+    *,
+    partitions: int = 2,
+    depth: int = 8,
+    scale: float = 1.1,
+    point_weight: float = 4.0,
+    samples_per_node: float = 1.5,
+    boundary: str = "neumann",
+    density: bool = False,
+    trim: float = 0.0,
+    colors: np.ndarray | None = None,
+    full_depth: int = 5,
+    cg_tolerance: float = 1e-3,
+    runner_factory: Callable | None = None,
+    progress: Any = None,
+):
+    """Screened Poisson reconstruction in ``partitions`` slabs (module docstring), the cloud
+    given in memory; ``runner_factory(slabs)`` makes the runner (default: all in this
+    process, :class:`LocalRunner`). Returns a :class:`.PoissonResult` like
+    :func:`.screened_poisson`'s, whose report has a ``distributed`` part."""
+    from recon_cli.stages.poisson import PoissonResult, _check_inputs, _check_options
+
+    depth, scale, point_weight, samples_per_node, _, boundary, density, trim = _check_options(
+        depth, scale, point_weight, samples_per_node, 2, boundary, density, trim
+    )
+    params = dict(
+        samples_per_node=samples_per_node,
+        point_weight=point_weight,
+        boundary=boundary,
+        full_depth=min(int(full_depth), depth),
+        cg_tolerance=float(cg_tolerance),
+        density=density,
+        trim=trim,
+    )
+    _check_distributed(depth, params["full_depth"], partitions)
+    t0 = time.perf_counter()
+    pts, nrm, keep = _check_inputs(points, normals)
+    if colors is not None:
+        colors = np.asarray(colors)
+        if len(colors) != len(keep):
+            raise ParameterError(f"colors has {len(colors)} rows, expected {len(keep)}")
+        colors = colors[keep]
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    origin, size, perm = frame_of(lo, hi, scale)
+    job = make_job(origin, size, perm, depth, params)
+    pts = pts[:, list(perm)]
+    nrm = nrm[:, list(perm)]
+    nsub = 1 << min(S.SUB_DEPTH, depth)
+    sub = sub_slab((pts[:, 0] - job.origin[0]) / size, nsub)
+    plan = plan_slabs(job, np.bincount(sub, minlength=nsub), partitions)
+    slabs = [S.slab_of(job, k, partitions, *plan[k]) for k in range(partitions)]
+    runner = (runner_factory or LocalRunner)(slabs)
+    try:
+
+        def load_args(k):
+            pa, pb = (int(round(v * nsub)) for v in plan[k][1])
+            sel = (sub >= pa) & (sub < pb)
+            return pts[sel], nrm[sel], None if colors is None else colors[sel]
+
+        loaded = runner.run("load", S.load, load_args)
+        out = reconstruct(runner, job, loaded, progress)
+    finally:
+        runner.close()
+    mesh = assemble(out, job, perm, colors is not None)
+    rep = out["report"]
+    rep["ignored_points"] = int((~keep).sum())
+    rep["timings"]["total"] = time.perf_counter() - t0
+    return PoissonResult(mesh, rep)
+
+
+def _check_distributed(depth: int, full_depth: int, partitions: int) -> None:
+    if partitions < 1 or partitions > (1 << S.PARTITION_DEPTH):
+        raise ParameterError(
+            f"partitions must be 1..{1 << S.PARTITION_DEPTH} (the seams are level-"
+            f"{S.PARTITION_DEPTH} planes), got {partitions}"
+        )
+    if depth < S.PARTITION_DEPTH + 1:
+        raise ParameterError(
+            f"a distributed reconstruction needs depth {S.PARTITION_DEPTH + 1} or more, got {depth}"
+        )
+    if full_depth < S.PARTITION_DEPTH:
+        raise ParameterError(
+            f"a distributed reconstruction needs full_depth >= {S.PARTITION_DEPTH} "
+            f"(no leaf may cross a seam), got {full_depth}"
+        )

@@ -1,0 +1,931 @@
+"""One slab of a distributed Poisson reconstruction: what a worker computes.
+
+:mod:`.distributed` holds the design (read it first) and the coordinator. Each function
+here takes the slab's state (:class:`Slab`, kept in the worker between steps) and returns a
+small message for the coordinator, which sums the messages of all slabs and hands the
+global values to the next step. Every step is a deterministic function of the slab's
+inputs and of those global values, so a slab whose worker died is rebuilt by running its
+steps again (:func:`replay`).
+
+Coordinates are the job's frame (:class:`Job`): the input's axes turned cyclically so that
+the slabs' axis is ``x`` (the lattice keys are x-major: a slab's cells are a run of keys),
+and the unit cube of the single-process solve.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from recon_cli.errors import StageFailed
+from recon_cli.memory import peak_mb, release_free_heap, reset_peak
+from recon_cli.stages.poisson import _bspline as B
+from recon_cli.stages.poisson import _extract as E
+from recon_cli.stages.poisson import _octree as O
+from recon_cli.stages.poisson.bspline import (
+    SCREEN_CLEAN,
+    SCREEN_NOISY,
+    TARGET,
+    ChiField,
+    LevelField,
+    NormalRHS,
+    folded_tables,
+    level_fields,
+)
+from recon_cli.stages.poisson.octree import Level, build_levels, pack_keys, set_corners, unpack_keys
+from recon_cli.stages.poisson.splat import (
+    KERNEL_OFFSET,
+    Samples,
+    Splats,
+    _density_table,
+    _eval_density,
+    clean_fraction,
+    merge_samples,
+    merge_splats,
+    noise_sigma,
+    splat_at_level,
+    spread_fields,
+)
+
+# seams lie on the planes of this level's lattice: the levels up to full_depth (5 by default)
+# are complete grids, so no leaf of the tree crosses a seam
+PARTITION_DEPTH = 5
+# slabs and their pads are made of whole sub-slabs, the cells of this level along x
+SUB_DEPTH = 8
+# the coordinator solves the levels up to depth - COARSE_OFFSET for the whole cube
+COARSE_OFFSET = 3
+# a slab solves its finer levels over its own cells and this many cells of the first fine
+# level (coarse depth + 1) beyond each seam
+PAD_CELLS = 8
+# a sample's kernel density reads the samples within this many cells of the density's level
+DENSITY_REACH = 3
+
+
+@dataclass(frozen=True)
+class Job:
+    """What every slab of one reconstruction shares."""
+
+    origin: tuple[float, float, float]  # the unit cube's corner, in the job's frame
+    size: float  # the unit cube's side
+    depth: int
+    samples_per_node: float
+    point_weight: float
+    boundary: str
+    full_depth: int
+    cg_tolerance: float
+    coarse_depth: int  # the levels the coordinator solves for the whole cube
+    local_density: int  # kernel-density levels above this one are a slab's own, the rest global
+    density: bool
+    trim: float
+
+
+@dataclass
+class Slab:
+    """A slab's state. ``own`` is the x range (unit cube) whose cells and output it owns,
+    ``pad`` the range of points it reads, ``usable`` the range whose samples it splats (their
+    kernel density is exact: all the samples it reads are within ``pad``)."""
+
+    job: Job
+    index: int
+    count: int
+    own: tuple[float, float]
+    pad: tuple[float, float]
+    usable: tuple[float, float]
+    # filled by the steps
+    pts: np.ndarray | None = None  # (n, 3) kept points, job frame
+    own_pt: np.ndarray | None = None
+    colors: np.ndarray | None = None
+    smp: Samples | None = None
+    own_s: np.ndarray | None = None
+    use_s: np.ndarray | None = None
+    splat: np.ndarray | None = None  # (s,) fractional splat depth, NaN until placed
+    area: np.ndarray | None = None
+    tables: dict = field(default_factory=dict)  # kernel-density tables by level
+    sigma: np.ndarray | None = None
+    noise: np.ndarray | None = None  # (s,) noise in finest cells of the tree
+    screen_w: np.ndarray | None = None
+    tree_depth: int = 0
+    fine_levels: list = field(default_factory=list)
+    fine_fields: dict = field(default_factory=dict)
+    own_fine_fields: dict = field(default_factory=dict)
+    levels: list | None = None
+    node_keys: list | None = None
+    lfs: list | None = None
+    arrays: tuple | None = None
+    chi: ChiField | None = None
+    verts: np.ndarray | None = None
+    faces: np.ndarray | None = None
+    seam: dict = field(default_factory=dict)
+    labels: np.ndarray | None = None
+    vdens: np.ndarray | None = None
+
+    @property
+    def res(self) -> int:
+        return 1 << self.job.depth
+
+    def x_range(self, bounds: tuple[float, float], scale: int) -> tuple[int, int]:
+        """``bounds`` (unit cube) in cells of a lattice of ``scale`` cells along x."""
+        return int(round(bounds[0] * scale)), int(round(bounds[1] * scale))
+
+
+def slab_of(job: Job, index: int, count: int, own, pad, usable) -> Slab:
+    return Slab(job, index, count, tuple(own), tuple(pad), tuple(usable))
+
+
+def timed(fn: Callable) -> Callable:
+    """A step that also reports its wall and CPU seconds and the worker's peak memory."""
+
+    def step(slab: Slab, *args: Any) -> dict:
+        reset_peak()
+        t0, c0 = time.perf_counter(), time.process_time()
+        msg = fn(slab, *args) or {}
+        msg["seconds"] = time.perf_counter() - t0
+        msg["cpu_seconds"] = time.process_time() - c0
+        msg["peak_mb"] = peak_mb()
+        return msg
+
+    step.__name__ = fn.__name__
+    step.__qualname__ = fn.__qualname__
+    step.__doc__ = fn.__doc__
+    step.__module__ = fn.__module__
+    return step
+
+
+# ---------------------------------------------------------------------------------------------
+# samples and their depths
+
+
+def _own_samples(slab: Slab) -> Samples:
+    s, m = slab.smp, slab.own_s
+    return Samples(s.keys[m], s.pos[m], None, s.count[m], s.depth)
+
+
+def _splat_stats(slab: Slab) -> dict:
+    """The slab's share of the global splat figures (its own samples)."""
+    own = slab.own_s & ~np.isnan(slab.splat)
+    sp = np.clip(slab.splat[own], 0.0, slab.job.depth)
+    lo = np.floor(sp)
+    top = int((lo + ((sp - lo) > 0) * (lo < slab.job.depth)).max()) if own.any() else 0
+    c = slab.smp.count[own]
+    return {
+        "max_level": top,
+        "area_count": float((slab.area[own] * c).sum()),
+        "count": float(c.sum()),
+        "unplaced": int((np.isnan(slab.splat) & slab.use_s).sum()),
+    }
+
+
+def _place(slab: Slab, table: tuple, level: int) -> None:
+    """Place the usable samples not placed yet whose density at ``level`` suffices."""
+    todo = np.flatnonzero(np.isnan(slab.splat) & slab.use_s)
+    if not len(todo):
+        return
+    rho = _eval_density(table, slab.smp.pos[todo])
+    ok, dep, area = splat_at_level(rho, level, slab.job.samples_per_node)
+    slab.splat[todo[ok]] = dep
+    slab.area[todo[ok]] = area
+
+
+@timed
+def load(slab: Slab, points: np.ndarray, normals: np.ndarray, colors: np.ndarray | None) -> dict:
+    """Read the slab's points (own and pad, job frame, finite), merge them per finest cell,
+    place the samples the slab's own density levels place; returns the splat figures."""
+    job = slab.job
+    pts = np.asarray(points, dtype=np.float64)
+    nrm = np.asarray(normals, dtype=np.float64)
+    length = np.linalg.norm(nrm, axis=1)
+    keep = length > 0
+    pts, nrm = pts[keep], nrm[keep] / length[keep, None]
+    slab.colors = None if colors is None else np.asarray(colors)[keep]
+    res = slab.res
+    origin = np.asarray(job.origin)
+    unit = (pts - origin) / job.size
+    xc = np.clip(np.floor(unit[:, 0] * res), 0, res - 1)
+    a, b = slab.x_range(slab.own, res)
+    slab.own_pt = (xc >= a) & (xc < b)
+    slab.pts = pts
+    del xc
+    smp = merge_samples(unit, nrm, job.depth)
+    del nrm
+    slab.smp = smp
+    sx = smp.keys >> 42
+    slab.own_s = (sx >= a) & (sx < b)
+    u0, u1 = slab.x_range(slab.usable, res)
+    slab.use_s = (sx >= u0) & (sx < u1)
+    ns = len(smp.count)
+    slab.splat = np.full(ns, np.nan)
+    slab.area = np.zeros(ns)
+    kd = max(job.depth - KERNEL_OFFSET, 0)
+    for lv in range(kd, job.local_density, -1):
+        if ns:
+            slab.tables[lv] = _density_table(smp, lv)
+            _place(slab, slab.tables[lv], lv)
+    msg = _splat_stats(slab)
+    msg.update(points=int(len(pts)), own_points=int(slab.own_pt.sum()), samples=ns)
+    msg["own_samples"] = int(slab.own_s.sum())
+    msg["ignored_points"] = int((~keep).sum())
+    return msg
+
+
+@timed
+def own_table(slab: Slab, level: int) -> dict:
+    """The kernel-density table of the slab's own samples at ``level`` (the coordinator adds
+    the slabs' tables into the global one): sorted cell keys and densities."""
+    if not slab.own_s.any():
+        return {"keys": np.zeros(0, np.int64), "dens": np.zeros(0)}
+    _, (tk, tv, _bits), dens = _density_table(_own_samples(slab), level)
+    used = tk >= 0
+    keys, rows = tk[used], tv[used]
+    order = np.argsort(keys)
+    return {"keys": keys[order], "dens": dens[rows[order]]}
+
+
+def global_table(level: int, keys: np.ndarray, dens: np.ndarray) -> tuple:
+    """A density table (as :func:`.splat._density_table` makes them) from sorted keys and
+    summed densities."""
+    from recon_cli._kernels.hashtable import build_table
+
+    tab = build_table(keys)
+    return level, tab, dens
+
+
+@timed
+def place(slab: Slab, level: int, keys: np.ndarray, dens: np.ndarray) -> dict:
+    """Place the samples left with the global density table at ``level``."""
+    table = global_table(level, keys, dens)
+    slab.tables[level] = table
+    _place(slab, table, level)
+    return _splat_stats(slab)
+
+
+# ---------------------------------------------------------------------------------------------
+# noise and the exact medians
+
+
+def float_bins(values: np.ndarray) -> np.ndarray:
+    """Bin of each non-negative float: the top 16 bits of its IEEE pattern (monotone)."""
+    return (np.ascontiguousarray(values, dtype=np.float64).view(np.int64) >> 48).astype(np.int64)
+
+
+def float_histogram(values: np.ndarray) -> dict:
+    """Sparse histogram of non-negative floats by :func:`float_bins` (the first round of an
+    exact distributed median)."""
+    b, c = np.unique(float_bins(values), return_counts=True)
+    return {"bins": b, "counts": c, "n": int(len(values))}
+
+
+def values_in(values: np.ndarray, bins: np.ndarray) -> np.ndarray:
+    """The values whose bin is one of ``bins`` (the second round)."""
+    return np.sort(values[np.isin(float_bins(values), bins)])
+
+
+@timed
+def noise(slab: Slab, tree_depth: int) -> dict:
+    """Each sample's noise (:func:`.splat.noise_sigma`); returns the histogram of the own
+    samples' measured values, for the global median that stands in for the others."""
+    slab.tree_depth = tree_depth
+    unit = (slab.pts - np.asarray(slab.job.origin)) / slab.job.size
+    slab.sigma = noise_sigma(unit, slab.smp, tree_depth)
+    own = slab.sigma[slab.own_s]
+    have = own[~np.isnan(own)]
+    return {"hist": float_histogram(have), "missing": int(np.isnan(own).sum())}
+
+
+@timed
+def noise_values(slab: Slab, bins: np.ndarray) -> dict:
+    own = slab.sigma[slab.own_s]
+    return {"values": values_in(own[~np.isnan(own)], bins)}
+
+
+@timed
+def noise_report_values(slab: Slab, bins: np.ndarray) -> dict:
+    return {"values": values_in(slab.noise[slab.own_s], bins)}
+
+
+# ---------------------------------------------------------------------------------------------
+# items, fields, the tree
+
+
+def merge_per_cell_sums(pos: np.ndarray, w: np.ndarray, level: int) -> tuple:
+    """Samples summed per cell of ``level``: sorted keys, summed weight, summed weight times
+    position (the slabs' sums add up to :func:`.bspline._merge_per_cell`'s)."""
+    res = 1 << level
+    keys = pack_keys(np.clip(np.floor(pos * res), 0, res - 1))
+    uk, inv = np.unique(keys, return_inverse=True)
+    inv = inv.reshape(-1)
+    sw = np.bincount(inv, weights=w, minlength=len(uk))
+    sp = np.stack(
+        [np.bincount(inv, weights=pos[:, a] * w, minlength=len(uk)) for a in range(3)], axis=1
+    )
+    return uk, sw, sp
+
+
+def merged_positions(sw: np.ndarray, sp: np.ndarray) -> np.ndarray:
+    safe = np.where(sw > 0, sw, 1.0)
+    return sp / safe[:, None]
+
+
+@timed
+def items(slab: Slab, tree_depth: int, alpha: float, fallback: float | None) -> dict:
+    """The splat items, the fields, the slab's tree; returns the slab's share of the coarse
+    levels: its own items' fields there, the cells its finer items occupy, the screening
+    sums of its own samples."""
+    job = slab.job
+    smp = slab.smp
+    dc = min(job.coarse_depth, tree_depth)
+    slab.tree_depth = tree_depth
+    if alpha > 0:
+        sig = slab.sigma
+        sig[np.isnan(sig)] = fallback
+        clean, slab.noise = clean_fraction(sig, job.depth, tree_depth)
+        slab.sigma = None
+    else:
+        clean = None
+    sp = Splats(None, None, None, alpha * smp.count, alpha, tree_depth, clean=clean)
+    slab.screen_w = sp.screening(SCREEN_CLEAN, SCREEN_NOISY)
+    # the splat items of the usable samples (the own ones first), as make_splats makes them
+    splat = np.clip(np.nan_to_num(slab.splat), 0.0, job.depth)
+    s_lo = np.floor(splat).astype(np.int64)
+    s_frac = splat - s_lo
+    s_frac[s_lo == job.depth] = 0.0
+    normal_w = -slab.area[:, None] * smp.normal
+    parts = []
+    for sel in (slab.own_s, slab.use_s & ~slab.own_s):
+        if sel.any():
+            parts.append(
+                merge_splats(
+                    smp.pos[sel], normal_w[sel], smp.count[sel], s_lo[sel], s_frac[sel], False
+                )
+            )
+        else:
+            parts.append((np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)))
+    n_own = len(parts[0][0])
+    pos = np.concatenate([p[0] for p in parts])
+    vec = np.concatenate([p[1] for p in parts])
+    lvl = np.concatenate([p[2] for p in parts])
+    del parts, normal_w
+    own = np.zeros(len(pos), bool)
+    own[:n_own] = True
+    coarse = lvl <= dc
+    fine = ~coarse
+    msg: dict[str, Any] = {}
+    msg["coarse_fields"] = spread_fields(pos[own & coarse], vec[own & coarse], lvl[own & coarse])
+    # the cells (level dc + 1) the slab's own finer items occupy: all the coarse tree needs of them
+    rep = np.unique(
+        pack_keys(np.clip(np.floor(pos[own & fine] * (1 << (dc + 1))), 0, (1 << (dc + 1)) - 1))
+    )
+    msg["coarse_items"] = (pos[own & coarse], lvl[own & coarse])
+    msg["fine_cells"] = rep
+    sums = {}
+    if alpha > 0 and slab.own_s.any():
+        for d in range(1, dc + 1):
+            sums[d] = merge_per_cell_sums(smp.pos[slab.own_s], slab.screen_w[slab.own_s], d)
+    msg["screening"] = sums
+    if slab.noise is not None:
+        msg["noise_hist"] = float_histogram(slab.noise[slab.own_s])
+    # the slab's own finer levels: fields (own + pad, and own alone for the coarse rhs) and tree
+    slab.fine_fields = spread_fields(pos[fine], vec[fine], lvl[fine]) if fine.any() else {}
+    of = own & fine
+    slab.own_fine_fields = spread_fields(pos[of], vec[of], lvl[of]) if of.any() else {}
+    if fine.any() and tree_depth > dc:
+        levels = build_levels(
+            pos[fine],
+            lvl[fine],
+            tree_depth,
+            job.full_depth,
+            job.boundary,
+            corners=False,
+            own_ring=1,
+        )
+        slab.fine_levels = levels[dc + 1 :]
+    else:
+        slab.fine_levels = []
+    del pos, vec, lvl
+    smp.normal = None
+    release_free_heap()
+    return msg
+
+
+def coarse_item_set(msgs: list[dict], dc: int) -> tuple[np.ndarray, np.ndarray]:
+    """The coarse tree's items from the slabs' messages: their own coarse items, and a
+    representative item (the cell's centre, level ``dc + 1``) per cell their finer items
+    occupy."""
+    pos = [m["coarse_items"][0] for m in msgs]
+    lvl = [m["coarse_items"][1] for m in msgs]
+    cells = np.unique(np.concatenate([m["fine_cells"] for m in msgs]))
+    pos.append((unpack_keys(cells) + 0.5) / (1 << (dc + 1)))
+    lvl.append(np.full(len(cells), dc + 1, np.int64))
+    return np.concatenate(pos), np.concatenate(lvl)
+
+
+def build_coarse_levels(pos, lvl, tree_depth: int, job: Job) -> list[Level]:
+    """Levels 0..min(coarse depth, tree depth) of the whole cube's tree (the coordinator's)."""
+    dc = min(job.coarse_depth, tree_depth)
+    top = tree_depth if tree_depth <= dc else dc + 1
+    levels = build_levels(pos, lvl, top, min(job.full_depth, top), job.boundary, False, 1)
+    return levels[: dc + 1]
+
+
+def level_message(levels: list[Level]) -> list[tuple]:
+    return [(lev.cell_keys, lev.node_keys, lev.cell_parent) for lev in levels]
+
+
+def levels_from_message(msg: list[tuple]) -> list[Level]:
+    out = []
+    for d, (ck, nk, cp) in enumerate(msg):
+        out.append(Level(d, ck, nk, len(nk), None, None, None, cp))
+    return out
+
+
+@timed
+def restrict(slab: Slab, coarse: list[tuple]) -> dict:
+    """The slab's whole tree (the global coarse levels and its own finer ones) and the
+    coefficient sets; returns its own items' right-hand side on the finest coarse level,
+    restricted from the finer levels (the coordinator adds the slabs' parts)."""
+    job = slab.job
+    levels = levels_from_message(coarse)
+    dc = len(levels) - 1
+    if slab.fine_levels:
+        first = slab.fine_levels[0]
+        parent = O.merge_lookup(np.unique(O.halve(first.cell_keys)), levels[-1].cell_keys)
+        if (parent < 0).any():
+            raise StageFailed(
+                f"distributed poisson: slab {slab.index}'s tree is not inside the coarse tree"
+            )
+        first.cell_parent = O.bsearch_many(levels[-1].cell_keys, O.halve(first.cell_keys))
+    levels += slab.fine_levels
+    slab.fine_levels = []
+    slab.levels = levels
+    slab.lfs, slab.arrays = (
+        level_fields(levels, job.boundary) if len(levels) > 1 else ([None], None)
+    )
+    msg: dict[str, Any] = {"cells": [len(lev.cell_keys) for lev in levels]}
+    if len(levels) - 1 > dc and slab.own_fine_fields and dc >= 1:
+        up = NormalRHS(slab.own_fine_fields, slab.lfs).finer[dc]
+        if up is not None:
+            nz = np.flatnonzero(up)
+            msg["finer"] = (nz, up[nz])
+    slab.own_fine_fields = {}
+    release_free_heap()
+    return msg
+
+
+# ---------------------------------------------------------------------------------------------
+# the solve
+
+
+def solve_levels(
+    levels: list[Level],
+    lfs: list,
+    arrays: tuple,
+    normal_rhs: NormalRHS,
+    screening: Callable[[int], tuple[np.ndarray, np.ndarray] | None],
+    first: int,
+    full_depth: int,
+    cg_tolerance: float,
+    on_level: Callable[[int], None] | None = None,
+) -> tuple[list[dict], int, float]:
+    """Levels ``first``.. of the cascadic degree-2 solve (:func:`.bspline.solve`'s loop): each
+    level's correction to the coarser levels' chi, whose coefficients (level ``first - 1``)
+    are set. ``screening(d)`` gives the samples merged per cell of level ``d`` (positions,
+    weights) or None. Returns per-level statistics, iterations and the last residual."""
+    coef_all = arrays[4]
+    q_off = arrays[1]
+    prev = lfs[first - 1] if first > 1 else None
+    stats = []
+    total_it, last_res = 0, 0.0
+    for d in range(1, first):
+        normal_rhs.rhs(d)  # the coarser levels' field, carried to the finer ones
+    for d in range(first, len(levels)):
+        release_free_heap()
+        tl = time.perf_counter()
+        f = lfs[d]
+        n = 1 << d
+        h = 1.0 / n
+        m1, k1 = folded_tables(n, f.s)
+        unknown = np.repeat(f.inp, 8)
+        rhs = normal_rhs.rhs(d)
+        diag = B.stiffness_diag(f.q_keys, f.inp, m1, k1, h)
+        scr = screening(d)
+        if scr is not None and len(scr[0]):
+            scell, sloc = f.locate(scr[0])
+            have = scell >= 0
+            scell, sloc, sw = scell[have], sloc[have], scr[1][have]
+            B.screening_diag_rhs(f.q_keys, f.nb, n, f.s, scell, sloc, sw, TARGET, diag, rhs)
+        else:
+            scell, sloc, sw = np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
+        del scr
+        cmap = np.cumsum(f.inp) - 1
+        cmap[~f.inp] = -1
+        rhs = rhs[unknown]
+        diag = diag[unknown]
+        if prev is not None:
+            G = B.prolong(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s)
+            AG = np.empty(len(rhs))
+            B.level_matvec(
+                f.q_keys,
+                f.nb,
+                f.inp,
+                np.arange(len(f.q_keys)),
+                cmap,
+                m1,
+                k1,
+                h,
+                n,
+                f.s,
+                scell,
+                sloc,
+                sw,
+                G,
+                AG,
+            )
+            rhs -= AG
+            del AG, G
+        exact = d <= full_depth
+        release_free_heap()
+        x, it, rel = B.level_pcg(
+            f.q_keys,
+            f.nb,
+            f.inp,
+            cmap,
+            m1,
+            k1,
+            h,
+            n,
+            f.s,
+            scell,
+            sloc,
+            sw,
+            rhs,
+            diag,
+            1e-7 if exact else cg_tolerance,
+            2000 if exact else 200,
+        )
+        del rhs, diag, scell, sloc, sw, cmap
+        f.coef = coef_all[8 * q_off[d] : 8 * q_off[d + 1]]
+        if prev is not None:
+            B.prolong_into(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s, f.coef)
+        f.coef[unknown] += x
+        del x
+        prev = f
+        total_it += it
+        last_res = rel
+        stats.append(
+            {
+                "depth": d,
+                "nodes": len(unknown),
+                "unknowns": int(unknown.sum()),
+                "iterations": int(it),
+                "residual": float(rel),
+                "seconds": time.perf_counter() - tl,
+            }
+        )
+        if on_level is not None:
+            on_level(d)
+    return stats, total_it, last_res
+
+
+def set_coefficients(lfs: list, arrays: tuple, coefs: list) -> None:
+    """Give levels 1.. their coefficients (views into the concatenated array)."""
+    q_off = arrays[1]
+    for d, c in enumerate(coefs):
+        if d == 0 or c is None:
+            continue
+        f = lfs[d]
+        f.coef = arrays[4][8 * q_off[d] : 8 * q_off[d + 1]]
+        f.coef[:] = c
+
+
+def _band_parents(lf: LevelField, px: int) -> np.ndarray:
+    """Indices of the parents of ``lf`` (level ``lf.depth - 1``) whose x is ``px``."""
+    lo = np.searchsorted(lf.q_keys, np.int64(px) << 42)
+    hi = np.searchsorted(lf.q_keys, np.int64(px + 1) << 42)
+    return np.arange(lo, hi)
+
+
+def band_message(slab: Slab, side: int) -> dict:
+    """The coefficients of the slab's column of parents next to its seam on ``side`` (-1
+    left, +1 right), at every finer level: the neighbour reads chi there from them."""
+    out = {}
+    x = slab.own[0] if side < 0 else slab.own[1]
+    for d in range(slab.job.coarse_depth + 1, len(slab.levels)):
+        f = slab.lfs[d]
+        px = int(round(x * (1 << (d - 1)))) - (0 if side < 0 else 1)
+        rows = _band_parents(f, px)
+        coef = f.coef.reshape(-1, 8)[rows]
+        out[d] = (f.q_keys[rows], f.inp[rows], coef)
+    return out
+
+
+def apply_band(slab: Slab, side: int, band: dict) -> None:
+    """Take the neighbour's coefficients for its column of parents next to the seam on
+    ``side``; the trees must agree there."""
+    x = slab.own[0] if side < 0 else slab.own[1]
+    for d in range(slab.job.coarse_depth + 1, len(slab.levels)):
+        f = slab.lfs[d]
+        px = int(round(x * (1 << (d - 1)))) - (1 if side < 0 else 0)
+        rows = _band_parents(f, px)
+        keys, inp, coef = band.get(d, (np.zeros(0, np.int64), np.zeros(0, bool), np.zeros((0, 8))))
+        if not (np.array_equal(f.q_keys[rows], keys) and np.array_equal(f.inp[rows], inp)):
+            raise StageFailed(
+                f"distributed poisson: slabs {slab.index} and {slab.index + side} disagree on "
+                f"the tree at their seam (level {d}): the pad is too small for this input"
+            )
+        f.coef.reshape(-1, 8)[rows] = coef
+
+
+@timed
+def solve(slab: Slab, coefs: list, coarse_fields: dict) -> dict:
+    """Solve the slab's finer levels on the coordinator's coarse chi; returns the own
+    samples' share of the iso-value, the per-level figures and the bands for the
+    neighbours."""
+    job = slab.job
+    levels, lfs, arrays = slab.levels, slab.lfs, slab.arrays
+    dc = len(coefs) - 1
+    msg: dict[str, Any] = {"levels": []}
+    if arrays is None:  # a tree of one level: nothing to solve
+        raise StageFailed("distributed poisson: the tree has a single level")
+    set_coefficients(lfs, arrays, coefs)
+    fields = dict(coarse_fields)
+    fields.update(slab.fine_fields)
+    slab.fine_fields = {}
+    smp = slab.smp
+
+    def screening(d):
+        if job.point_weight <= 0 or not len(smp.count):
+            return None
+        _, sw, sp = merge_per_cell_sums(smp.pos, slab.screen_w, d)
+        return merged_positions(sw, sp), sw
+
+    if len(levels) - 1 > dc:
+        normal_rhs = NormalRHS(fields, lfs)
+        stats, it, rel = solve_levels(
+            levels, lfs, arrays, normal_rhs, screening, dc + 1, job.full_depth, job.cg_tolerance
+        )
+        del normal_rhs
+        msg["levels"] = stats
+        msg["iterations"] = it
+        msg["residual"] = rel
+    del fields
+    # the leaves (cells without children in the next level) and the field
+    for d in range(1, len(levels)):
+        levels[d - 1].leaf = ~O.cell_has_child(levels[d].cell_parent, len(levels[d - 1].cell_keys))
+    levels[-1].leaf = np.ones(len(levels[-1].cell_keys), bool)
+    slab.chi = ChiField([f for f in lfs[1:]], job.boundary, arrays)
+    own = slab.own_s
+    if own.any():
+        chi_s = slab.chi.at(smp.pos[own])
+        msg["iso_sum"] = float((chi_s * smp.count[own]).sum())
+        msg["iso_count"] = float(smp.count[own].sum())
+    else:
+        msg["iso_sum"] = msg["iso_count"] = 0.0
+    msg["band_left"] = band_message(slab, -1) if slab.index > 0 else None
+    msg["band_right"] = band_message(slab, 1) if slab.index < slab.count - 1 else None
+    release_free_heap()
+    return msg
+
+
+# ---------------------------------------------------------------------------------------------
+# the extraction
+
+
+def plane_values(
+    levels: list[Level], gvals: list[np.ndarray], pts: np.ndarray, iso: float, margin: float
+) -> np.ndarray:
+    """The extraction's value (negated chi, clamped on the cube's faces as
+    :func:`._extract.refine_leaves` clamps) at finest-lattice points ``pts`` (m, 3) of a seam
+    plane, from one leaf whichever slab asks: the leaf holding the finest cell whose lower
+    corner the point is (the one below along an axis where the point is on the cube's far
+    face). Both slabs of a seam read the same leaves and corner values there, so they give
+    the same bits."""
+    top = len(levels) - 1
+    R = 1 << top
+    cap = -iso + margin
+    out = np.full(len(pts), np.nan)
+    cell = np.minimum(pts, R - 1)
+    todo = np.arange(len(pts))
+    for lev, g in zip(levels[::-1], gvals[::-1]):
+        if not len(todo) or not len(lev.cell_keys):
+            continue
+        sh = top - lev.depth
+        key = pack_keys(cell[todo] >> sh)
+        i = np.minimum(np.searchsorted(lev.cell_keys, key), len(lev.cell_keys) - 1)
+        hit = lev.cell_keys[i] == key  # the finest cell holding the point's cell: a leaf
+        if not hit.any():
+            continue
+        rows = todo[hit]
+        c = i[hit]
+        side = float(1 << sh)
+        f = (pts[rows] - ((cell[rows] >> sh) << sh)) / side
+        fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
+        v = np.zeros(len(rows))
+        for r in range(8):
+            w = (
+                (fx if r & 1 else 1.0 - fx)
+                * (fy if (r >> 1) & 1 else 1.0 - fy)
+                * (fz if (r >> 2) & 1 else 1.0 - fz)
+            )
+            v += w * -g[lev.cell_nodes[c, r & 3] + (r >> 2)]
+        face = np.any((pts[rows] == 0) | (pts[rows] == R), axis=1)
+        v[face] = np.maximum(v[face], cap)
+        out[rows] = v
+        todo = todo[~hit]
+    if len(todo):
+        raise StageFailed("distributed poisson: a seam point lies in no leaf of the tree")
+    return out
+
+
+def _seam_order(lat: np.ndarray, on: np.ndarray) -> np.ndarray:
+    """Indices of the vertices flagged ``on``, sorted by their lattice (y, z) then x."""
+    idx = np.flatnonzero(on)
+    return idx[np.lexsort((lat[idx, 0], lat[idx, 2], lat[idx, 1]))]
+
+
+@timed
+def extract(slab: Slab, iso: float, band_left: dict | None, band_right: dict | None) -> dict:
+    """The slab's part of the surface: the finest-lattice extraction over the leaves it owns,
+    the points on its seams given the values both slabs of a seam compute alike
+    (:func:`plane_values`), vertices moved to chi's roots; returns its pieces (faces, boxes)
+    and, per seam, its vertices there and their pieces."""
+    from recon_cli.mesh.topology import Connectivity
+    from recon_cli.stages.mcubes import marching_cubes_sparse
+    from recon_cli.stages.poisson.extract import FACE_MARGIN
+
+    job = slab.job
+    if band_left is not None:
+        apply_band(slab, -1, band_left)
+    if band_right is not None:
+        apply_band(slab, 1, band_right)
+    levels = slab.levels
+    top = len(levels) - 1
+    chi = slab.chi
+    for lev in levels:
+        set_corners(lev, lev.node_keys)
+    gvals = [chi.at_nodes(lev, lev.node_keys) for lev in levels]
+    # the extraction interpolates each leaf from its corners: the finer side of a coarse
+    # leaf's faces takes its values (bspline.solve)
+    for d in range(1, len(levels)):
+        up = levels[d - 1]
+        B.constrain_to_coarse_leaves(
+            levels[d].node_keys, gvals[d], up.cell_keys, up.cell_nodes, up.leaf, gvals[d - 1]
+        )
+    chi.drop_neighbours()
+    release_free_heap()
+    R = 1 << top
+    a, b = slab.x_range(slab.own, R)
+    masks = []
+    for lev in levels:
+        sh = top - lev.depth
+        cx = (lev.cell_keys >> 42) << sh
+        masks.append(lev.leaf & (cx >= a) & (cx < b))
+    none_xyz, none_val = np.zeros((0, 3), np.int64), np.zeros((0, 8))
+    counts = [
+        E.refine_leaves(
+            lev.cell_keys,
+            lev.cell_nodes,
+            m,
+            g,
+            lev.depth,
+            top,
+            iso,
+            1e-9,
+            FACE_MARGIN,
+            none_xyz,
+            none_val,
+        )
+        for lev, m, g in zip(levels, masks, gvals)
+    ]
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    cells = np.empty((int(offsets[-1]), 3), np.int64)
+    vals = np.empty((int(offsets[-1]), 8))
+    for d, (lev, m, g) in enumerate(zip(levels, masks, gvals)):
+        E.refine_leaves(
+            lev.cell_keys,
+            lev.cell_nodes,
+            m,
+            g,
+            lev.depth,
+            top,
+            iso,
+            1e-9,
+            FACE_MARGIN,
+            cells[offsets[d] : offsets[d + 1]],
+            vals[offsets[d] : offsets[d + 1]],
+        )
+    del masks
+    ckeys = E.corner_keys(cells)
+    order = np.argsort(ckeys)
+    E.unify_corner_values(vals, ckeys, order)
+    del order
+    planes = ([a] if slab.index > 0 else []) + ([b] if slab.index < slab.count - 1 else [])
+    if planes and len(ckeys):
+        on = np.flatnonzero(np.isin(ckeys >> 42, planes))
+        pv = plane_values(levels, gvals, unpack_keys(ckeys[on]), iso, FACE_MARGIN)
+        vals.reshape(-1)[on] = pv
+        del on, pv
+    del ckeys, gvals
+    slab.levels = None
+    release_free_heap()
+    lat, faces = marching_cubes_sparse(cells, vals, -iso)
+    del cells, vals
+    origin = np.asarray(job.origin)
+    verts = lat * np.repeat(job.size / R, 3) + origin
+    verts = chi.refine_vertices(verts, iso, origin, job.size, top)
+    slab.chi = slab.lfs = slab.arrays = None
+    release_free_heap()
+    # seam vertices first (left seam, by position), then the others, then the right seam's
+    left = lat[:, 0] == a if slab.index > 0 else np.zeros(len(lat), bool)
+    right = lat[:, 0] == b if slab.index < slab.count - 1 else np.zeros(len(lat), bool)
+    li, ri = _seam_order(lat, left), _seam_order(lat, right)
+    mid = np.flatnonzero(~(left | right))
+    perm = np.concatenate([li, mid, ri])
+    inv = np.empty(len(perm), np.int64)
+    inv[perm] = np.arange(len(perm))
+    slab.verts = verts[perm]
+    slab.faces = inv[faces]
+    slab.seam = {"left": len(li), "right": len(ri)}
+    lat = lat[perm]
+    nv = len(perm)
+    del verts, faces, perm, inv
+    msg: dict[str, Any] = {"vertices": nv, "faces": len(slab.faces)}
+    if len(slab.faces):
+        lab = Connectivity(slab.faces, nv).face_components.astype(np.int64)
+    else:
+        lab = np.zeros(0, np.int64)
+    slab.labels = lab
+    n = int(lab.max()) + 1 if len(lab) else 0
+    corner = slab.verts[slab.faces.reshape(-1)]
+    flab = np.repeat(lab, 3)
+    lo = np.full((n, 3), np.inf)
+    hi = np.full((n, 3), -np.inf)
+    for ax in range(3):
+        np.minimum.at(lo[:, ax], flab, corner[:, ax])
+        np.maximum.at(hi[:, ax], flab, corner[:, ax])
+    msg["pieces"] = (np.bincount(lab, minlength=n), lo, hi)
+    vlab = np.full(nv, -1, np.int64)
+    vlab[slab.faces.reshape(-1)] = flab
+    del corner, flab
+    nl, nr = slab.seam["left"], slab.seam["right"]
+    msg["seam_left"] = (lat[:nl, 1:], slab.verts[:nl], vlab[:nl])
+    msg["seam_right"] = (lat[nv - nr :, 1:], slab.verts[nv - nr :], vlab[nv - nr :])
+    return msg
+
+
+@timed
+def island_points(slab: Slab, lo: np.ndarray, hi: np.ndarray) -> dict:
+    """How many of the slab's own points lie in each box (k, 3) ``lo``..``hi``."""
+    pts = slab.pts[slab.own_pt]
+    out = np.zeros(len(lo), np.int64)
+    for k in range(len(lo)):
+        out[k] = np.count_nonzero(np.all((pts >= lo[k]) & (pts <= hi[k]), axis=1))
+    return {"counts": out}
+
+
+@timed
+def finish(slab: Slab, drop: np.ndarray, density: tuple | None) -> dict:
+    """The slab's output: its pieces but the dropped ones, its own vertices (the left seam's
+    first, then the others; the right seam's belong to the next slab) with density and
+    colours, and its faces, whose references to the right seam's vertices are ``-1 - rank``.
+    ``density``: None, ``(level,)`` (the slab's own table) or ``(level, keys, dens)`` (a
+    global one)."""
+    job = slab.job
+    faces, verts, labels = slab.faces, slab.verts, slab.labels
+    if len(drop):
+        faces = faces[~np.isin(labels, drop)]
+    nv = len(verts)
+    nl, nr = slab.seam["left"], slab.seam["right"]
+    used = np.zeros(nv, bool)
+    used[faces.reshape(-1)] = True
+    right = np.zeros(nv, bool)
+    right[nv - nr :] = True
+    exported = used & ~right
+    index = np.cumsum(exported) - 1
+    rank = np.cumsum(used & right) - 1
+    fl = faces.reshape(-1)
+    out_f = np.where(right[fl], -1 - rank[fl], index[fl]).reshape(-1, 3)
+    v = verts[exported]
+    res = 1 << slab.tree_depth
+    msg: dict[str, Any] = {
+        "left_seam": int(used[:nl].sum()),
+        "right_seam": int((used & right).sum()),
+    }
+    origin = np.asarray(job.origin)
+    if density is not None:
+        if len(density) == 1:
+            table = slab.tables.get(density[0])
+            if table is None:
+                table = _density_table(slab.smp, density[0])
+        else:
+            table = global_table(*density)
+        msg["density"] = _eval_density(table, (v - origin) / job.size) if len(v) else np.zeros(0)
+    if slab.colors is not None and len(v):
+        from recon_cli.stages.poisson import _interpolate_colors
+
+        msg["colors"] = _interpolate_colors(slab.pts, slab.colors, v, job.size / res)
+    msg["vertices"] = v
+    msg["faces"] = out_f
+    slab.faces = slab.verts = slab.labels = None
+    return msg
