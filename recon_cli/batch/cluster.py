@@ -87,6 +87,26 @@ def _dask_log_level(level: int):
 
 
 @contextlib.contextmanager
+def open_client(
+    scheduler: str | None = None,
+    workers: Any = None,
+    memory_limit: Any = None,
+    log_level: int = logging.CRITICAL,
+):
+    """A Dask client for one job: on the scheduler at ``scheduler``, or on a local cluster of
+    ``workers`` processes (one thread each, ``memory_limit`` each: a size, ``"auto"`` or
+    ``"none"``), the batch's, closed on exit. Yields ``(client, info)``."""
+    if scheduler is not None and (workers is not None or memory_limit is not None):
+        raise ParameterError(
+            "--workers and --memory-limit size a local cluster; leave them out with --scheduler"
+        )
+    n = None if workers is None else _check_count(workers, "workers")
+    mem = _check_memory_limit(memory_limit)
+    with _client(scheduler, n, 1, mem, log_level) as got:
+        yield got
+
+
+@contextlib.contextmanager
 def _client(scheduler, workers, threads_per_worker, memory_limit, log_level):
     """A Client on an existing scheduler, or on a LocalCluster closed on exit."""
     try:

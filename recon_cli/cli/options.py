@@ -130,8 +130,9 @@ def option_for(p) -> click.Option:
     return click.Option([p.option, p.name], type=str, default=None, metavar=metavar, help=help_text)
 
 
-def stage_command(stage: str) -> click.Command:
-    """The ``recon STAGE IN OUT [options]`` command, built from the stage's declaration."""
+def stage_command(stage: str, run=None) -> click.Command:
+    """The ``recon STAGE IN OUT [options]`` command, built from the stage's declaration;
+    ``run`` (default :func:`recon_cli.cli._run.run_stage_command`, same arguments) runs it."""
     import inspect
 
     from recon_cli.stages import get_spec
@@ -145,12 +146,13 @@ def stage_command(stage: str) -> click.Command:
     ) -> None:
         from recon_cli.cli._run import run_stage_command
 
+        runner = run or run_stage_command
         given = {
             k: values[k]
             for k in names
             if ctx.get_parameter_source(k) is not click.core.ParameterSource.DEFAULT
         }
-        run_stage_command(ctx, spec.name, input, output, given, ascii_=ascii_, json_=json_)
+        runner(ctx, spec.name, input, output, given, ascii_=ascii_, json_=json_)
 
     doc = inspect.cleandoc(spec.description or spec.summary)
     out_arg = click.Argument(

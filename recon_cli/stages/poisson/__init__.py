@@ -198,6 +198,41 @@ SPEC = StageSpec(
             False,
             "Estimate and orient normals first (as 'recon normals' does).",
         ),
+        Param(
+            "workers",
+            "int",
+            None,
+            "Reconstruct on a local Dask cluster of N worker processes, the cloud in slabs "
+            "(a coarse solve of the whole cube, the finer levels per slab, one seamless mesh); "
+            "the workers read IN by chunks, no process holds it whole.",
+            min=1,
+            max=1024,
+        ),
+        Param(
+            "scheduler",
+            "any",
+            None,
+            "Reconstruct as --workers does on the existing Dask cluster at this address "
+            "(tcp://host:8786); IN and the output folder must be on a file system its workers share.",
+            metavar="ADDRESS",
+        ),
+        Param(
+            "partitions",
+            "int",
+            None,
+            "Slabs of a --workers/--scheduler run (default: one per worker); more slabs, less "
+            "memory per worker.",
+            min=1,
+            max=32,
+        ),
+        Param(
+            "memory_limit",
+            "any",
+            None,
+            "Memory per worker process of --workers' local cluster (e.g. 4GiB; 'none': no "
+            "limit; default: the machine's memory shared out).",
+            metavar="SIZE",
+        ),
     ),
 )
 # options of the library function only
@@ -351,7 +386,12 @@ def screened_poisson(
     from recon_cli.memory import release_free_heap
     from recon_cli.stages.poisson.extract import extract, refine_roots
     from recon_cli.stages.poisson.octree import build_levels
-    from recon_cli.stages.poisson.splat import make_splats, merge_samples, noise_fraction, sample_density
+    from recon_cli.stages.poisson.splat import (
+        make_splats,
+        merge_samples,
+        noise_fraction,
+        sample_density,
+    )
     from recon_cli.stages.poisson.system import chi_levels, iso_value, solve
 
     timings: dict[str, float] = {}
@@ -580,6 +620,48 @@ def _interpolate_colors(
     return c.astype(colors.dtype)
 
 
+# the native solve's report keys, in the report's order
+REPORT_KEYS = (
+    "vertices",
+    "faces",
+    "depth",
+    "iso_value",
+    "solver_iterations",
+    "residual",
+    "bubbles_removed",
+    "islands_removed",
+    "trimmed_faces",
+    "trimmed_area",
+    "samples",
+    "ignored_points",
+    "tree_depth",
+    "noise",
+)
+
+
+def check_distributed_options(
+    backend: str,
+    degree: int,
+    estimate_normals: bool,
+    scheduler: Any,
+    workers: Any,
+    memory_limit: Any,
+) -> None:
+    """What a ``--workers`` / ``--scheduler`` run does not take (one line each)."""
+    if backend != "native":
+        raise ParameterError("--workers/--scheduler run the native solver: leave out --backend")
+    if degree != 2:
+        raise ParameterError("a distributed reconstruction uses degree 2: leave out --degree 1")
+    if estimate_normals:
+        raise ParameterError(
+            "--estimate-normals with --workers/--scheduler: run 'recon normals' first"
+        )
+    if scheduler is not None and (workers is not None or memory_limit is not None):
+        raise ParameterError(
+            "--workers and --memory-limit size a local cluster; leave them out with --scheduler"
+        )
+
+
 @SPEC.runner
 def run_stage(
     data: Any,
@@ -594,6 +676,10 @@ def run_stage(
     trim: float,
     estimate_normals: bool,
     backend: str,
+    workers: int | None,
+    scheduler: str | None,
+    partitions: int | None,
+    memory_limit: Any,
     progress: Any = None,
 ) -> StageResult:
     """Stage ``poisson``: screened Poisson reconstruction of an oriented cloud.
@@ -622,6 +708,13 @@ def run_stage(
     """
     from recon_cli.stages import StageResult
 
+    distributed = workers is not None or scheduler is not None
+    if distributed:
+        check_distributed_options(
+            backend, degree, estimate_normals, scheduler, workers, memory_limit
+        )
+    elif partitions is not None or memory_limit is not None:
+        raise ParameterError("--partitions and --memory-limit go with --workers or --scheduler")
     if backend == "pymeshlab" and (density or trim > 0):
         raise ParameterError(
             "the pymeshlab backend gives no densities: --density/--trim need native or open3d"
@@ -643,7 +736,30 @@ def run_stage(
             "the cloud has no normals: run 'recon normals' first (or pass --estimate-normals)"
         )
 
-    if backend == "native":
+    if distributed:
+        from recon_cli.batch.cluster import open_client
+        from recon_cli.stages.poisson.distributed import distributed_poisson
+
+        with open_client(scheduler, workers, memory_limit) as (client, info):
+            res = distributed_poisson(
+                cloud.points,
+                cloud.normals,
+                partitions=partitions or max(1, int(info.get("workers") or 1)),
+                depth=depth,
+                scale=scale,
+                point_weight=point_weight,
+                samples_per_node=samples_per_node,
+                boundary=boundary,
+                density=density,
+                trim=trim,
+                colors=cloud.colors,
+                client=client,
+                progress=progress,
+            )
+        mesh, rep = res.mesh, res.report
+        report = {k: rep[k] for k in REPORT_KEYS}
+        report["distributed"] = {"cluster": info, **rep["distributed"]}
+    elif backend == "native":
         res = screened_poisson(
             cloud.points,
             cloud.normals,
@@ -659,25 +775,7 @@ def run_stage(
             progress=progress,
         )
         mesh, rep = res.mesh, res.report
-        report = {
-            k: rep[k]
-            for k in (
-                "vertices",
-                "faces",
-                "depth",
-                "iso_value",
-                "solver_iterations",
-                "residual",
-                "bubbles_removed",
-                "islands_removed",
-                "trimmed_faces",
-                "trimmed_area",
-            )
-        }
-        report["samples"] = rep["samples"]
-        report["ignored_points"] = rep["ignored_points"]
-        report["tree_depth"] = rep["tree_depth"]
-        report["noise"] = rep["noise"]
+        report = {k: rep[k] for k in REPORT_KEYS}
     else:
         pts, nrm, keep = _check_inputs(cloud.points, cloud.normals)
         # the references about a local origin (Open3D's Poisson loses digits at UTM offsets)

@@ -82,49 +82,17 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import time
 from typing import Any, Callable
 
 import numpy as np
 
-from recon_cli.errors import ParameterError, StageFailed
+from recon_cli.errors import InputError, ParameterError, StageFailed
 from recon_cli.stages.poisson import slab as S
 from recon_cli.stages.poisson.splat import KERNEL_OFFSET, screening_alpha
 
 log = logging.getLogger("recon")
-
-
-# ---------------------------------------------------------------------------------------------
-# runners: where the slabs' steps run
-
-
-class LocalRunner:
-    """Every slab in this process, one after another (tests, and the library without a
-    cluster): the same steps and messages as on a cluster."""
-
-    def __init__(self, slabs: list[S.Slab]):
-        self.slabs = slabs
-        self.phases: dict[str, dict] = {}
-
-    def run(self, name: str, fn: Callable, args: Callable[[int], tuple]) -> list[dict]:
-        t0 = time.perf_counter()
-        out = [fn(s, *args(k)) for k, s in enumerate(self.slabs)]
-        _note_phase(self.phases, name, out, time.perf_counter() - t0)
-        return out
-
-    def close(self) -> None:
-        self.slabs = []
-
-
-def _note_phase(phases: dict, name: str, msgs: list[dict], wall: float) -> None:
-    p = phases.setdefault(name, {"seconds": 0.0, "slab_seconds_max": 0.0, "peak_mb_max": 0.0})
-    p["seconds"] += wall
-    p["slab_seconds_max"] = max(
-        p["slab_seconds_max"], max((m.get("seconds", 0.0) for m in msgs), default=0.0)
-    )
-    p["peak_mb_max"] = max(
-        p["peak_mb_max"], max((m.get("peak_mb") or 0.0 for m in msgs), default=0.0)
-    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -530,12 +498,12 @@ def distributed_poisson(
     colors: np.ndarray | None = None,
     full_depth: int = 5,
     cg_tolerance: float = 1e-3,
-    runner_factory: Callable | None = None,
+    client: Any = None,
     progress: Any = None,
 ):
     """Screened Poisson reconstruction in ``partitions`` slabs (module docstring), the cloud
-    given in memory; ``runner_factory(slabs)`` makes the runner (default: all in this
-    process, :class:`LocalRunner`). Returns a :class:`.PoissonResult` like
+    given in memory; on the Dask ``client``'s cluster, or else all in this process
+    (:class:`recon_cli.batch.steps.LocalRunner`). Returns a :class:`.PoissonResult` like
     :func:`.screened_poisson`'s, whose report has a ``distributed`` part."""
     from recon_cli.stages.poisson import PoissonResult, _check_inputs, _check_options
 
@@ -568,7 +536,7 @@ def distributed_poisson(
     sub = sub_slab((pts[:, 0] - job.origin[0]) / size, nsub)
     plan = plan_slabs(job, np.bincount(sub, minlength=nsub), partitions)
     slabs = [S.slab_of(job, k, partitions, *plan[k]) for k in range(partitions)]
-    runner = (runner_factory or LocalRunner)(slabs)
+    runner = make_runner(client, slabs, progress)
     try:
 
         def load_args(k):
@@ -587,6 +555,14 @@ def distributed_poisson(
     return PoissonResult(mesh, rep)
 
 
+def make_runner(client: Any, slabs: list, progress: Any = None):
+    from recon_cli.batch.steps import DaskRunner, LocalRunner
+
+    if client is None:
+        return LocalRunner(slabs, progress, "poisson")
+    return DaskRunner(client, slabs, progress, "poisson")
+
+
 def _check_distributed(depth: int, full_depth: int, partitions: int) -> None:
     if partitions < 1 or partitions > (1 << S.PARTITION_DEPTH):
         raise ParameterError(
@@ -602,3 +578,186 @@ def _check_distributed(depth: int, full_depth: int, partitions: int) -> None:
             f"a distributed reconstruction needs full_depth >= {S.PARTITION_DEPTH} "
             f"(no leaf may cross a seam), got {full_depth}"
         )
+
+
+# ---------------------------------------------------------------------------------------------
+# from files: chunks read by the workers
+
+
+def scan_chunk(chunk) -> dict:
+    """A chunk's figures for the plan: the box of its points with a usable normal, counts,
+    types (each worker reads its own chunk)."""
+    from recon_cli.io.chunks import read_chunk
+
+    cloud = read_chunk(chunk)
+    where = chunk.path
+    if cloud.normals is None:
+        raise InputError(
+            "the cloud has no normals: run 'recon normals' first (or pass --estimate-normals)",
+            where,
+        )
+    pts = np.asarray(cloud.points, dtype=np.float64)
+    nrm = np.asarray(cloud.normals, dtype=np.float64)
+    if not np.all(np.isfinite(pts)):
+        raise InputError("points contain NaN or infinite coordinates", where)
+    length = np.linalg.norm(nrm, axis=1)
+    if not np.all(np.isfinite(length)):
+        raise InputError("normals contain NaN or infinite values", where)
+    keep = length > 0
+    out = {
+        "rows": len(pts),
+        "kept": int(keep.sum()),
+        "point_dtype": np.dtype(cloud.point_dtype).str,
+        "colors": None if cloud.colors is None else (cloud.colors.dtype.str, cloud.colors.shape[1]),
+        "history": list(cloud.history),
+    }
+    if keep.any():
+        out["lo"] = pts[keep].min(axis=0)
+        out["hi"] = pts[keep].max(axis=0)
+    return out
+
+
+def bucket_chunk(chunk, origin, size: float, perm: tuple, nsub: int, prefix: str) -> dict:
+    """Write a chunk's rows (job frame, finite) sorted by sub-slab to ``prefix.*.npy``;
+    returns where each sub-slab's rows start and the kept points per sub-slab."""
+    from recon_cli.io.chunks import read_chunk
+
+    cloud = read_chunk(chunk)
+    pts = np.asarray(cloud.points, dtype=np.float64)[:, list(perm)]
+    nrm = np.asarray(cloud.normals, dtype=np.float64)[:, list(perm)]
+    sub = sub_slab((pts[:, 0] - origin[0]) / size, nsub)
+    order = np.argsort(sub, kind="stable")
+    sub = sub[order]
+    np.save(prefix + ".pts.npy", pts[order])
+    np.save(prefix + ".nrm.npy", nrm[order])
+    if cloud.colors is not None:
+        np.save(prefix + ".col.npy", np.asarray(cloud.colors)[order])
+    kept = np.linalg.norm(nrm[order], axis=1) > 0
+    off = np.searchsorted(sub, np.arange(nsub + 1))
+    return {"offsets": off, "counts": np.bincount(sub[kept], minlength=nsub)}
+
+
+def reconstruct_files(
+    inputs,
+    *,
+    client: Any,
+    partitions: int | None = None,
+    depth: int = 8,
+    scale: float = 1.1,
+    point_weight: float = 4.0,
+    samples_per_node: float = 1.5,
+    boundary: str = "neumann",
+    density: bool = False,
+    trim: float = 0.0,
+    full_depth: int = 5,
+    cg_tolerance: float = 1e-3,
+    temp_dir: str | None = None,
+    progress: Any = None,
+):
+    """:func:`distributed_poisson` from files (``inputs``: a file, folder or pattern, or a
+    list of them; :mod:`recon_cli.io.chunks`) that no process reads whole: the workers read
+    the chunks, write them per sub-slab into a temporary folder (``temp_dir``, which the
+    workers must share; removed at the end), and each slab reads its rows. Returns the
+    :class:`.PoissonResult` (its mesh assembled here)."""
+    import shutil
+    import tempfile
+
+    from recon_cli.batch.steps import DaskRunner
+    from recon_cli.io.chunks import plan_chunks
+    from recon_cli.stages.poisson import PoissonResult, _check_options
+
+    depth, scale, point_weight, samples_per_node, _, boundary, density, trim = _check_options(
+        depth, scale, point_weight, samples_per_node, 2, boundary, density, trim
+    )
+    nworkers = max(1, len(client.scheduler_info().get("workers", {})))
+    parts = int(partitions) if partitions else nworkers
+    params = {
+        "samples_per_node": samples_per_node,
+        "point_weight": point_weight,
+        "boundary": boundary,
+        "full_depth": min(int(full_depth), depth),
+        "cg_tolerance": float(cg_tolerance),
+        "density": density,
+        "trim": trim,
+    }
+    _check_distributed(depth, params["full_depth"], parts)
+    t0 = time.perf_counter()
+    chunks = plan_chunks(inputs)
+    with _task(progress, "poisson: reading the chunks' boxes", len(chunks)) as bar:
+        scans = []
+        for f in _as_done(client, [client.submit(scan_chunk, c, pure=False) for c in chunks]):
+            scans.append(f.result())
+            bar.advance(1)
+    kept = sum(s["kept"] for s in scans)
+    rows = sum(s["rows"] for s in scans)
+    if kept == 0:
+        raise InputError("every normal has zero length: run 'recon normals' to estimate them")
+    if kept < 4:
+        raise InputError(f"poisson needs at least 4 points with non-zero normals, got {kept}")
+    colors = {s["colors"] for s in scans}
+    if len(colors) > 1:
+        raise InputError(
+            "the tiles do not all have the same colours (some have none, or other types)"
+        )
+    lo = np.min([s["lo"] for s in scans if "lo" in s], axis=0)
+    hi = np.max([s["hi"] for s in scans if "lo" in s], axis=0)
+    if not (hi - lo).max() > 0:
+        raise InputError("all points coincide: there is no surface to reconstruct")
+    origin, size, perm = frame_of(lo, hi, scale)
+    job = make_job(origin, size, perm, depth, params)
+    nsub = 1 << min(S.SUB_DEPTH, depth)
+    tmp = tempfile.mkdtemp(prefix=".recon-poisson-", dir=temp_dir)
+    runner = None
+    try:
+        with _task(progress, "poisson: sorting the chunks into slabs", len(chunks)) as bar:
+            futs = [
+                client.submit(
+                    bucket_chunk,
+                    c,
+                    job.origin,
+                    size,
+                    perm,
+                    nsub,
+                    os.path.join(tmp, f"c{i:05d}"),
+                    pure=False,
+                )
+                for i, c in enumerate(chunks)
+            ]
+            buckets = []
+            for f in futs:
+                buckets.append(f.result())
+                bar.advance(1)
+        counts = np.sum([b["counts"] for b in buckets], axis=0)
+        plan = plan_slabs(job, counts, parts)
+        files = [(os.path.join(tmp, f"c{i:05d}"), b["offsets"]) for i, b in enumerate(buckets)]
+        read_s = time.perf_counter() - t0
+        slabs = [S.slab_of(job, k, parts, *plan[k]) for k in range(parts)]
+        runner = DaskRunner(client, slabs, progress, "poisson")
+        loaded = runner.run("load", S.load_files, lambda k: (files, nsub))
+        out = reconstruct(runner, job, loaded, progress)
+    finally:
+        if runner is not None:
+            runner.close()
+        shutil.rmtree(tmp, ignore_errors=True)
+    mesh = assemble(out, job, perm, colors != {None})
+    dtypes = {s["point_dtype"] for s in scans}
+    mesh.point_dtype = np.float64 if np.dtype("<f8").str in dtypes else np.float32
+    mesh.history = list(scans[0]["history"]) if scans else []
+    rep = out["report"]
+    rep["ignored_points"] = int(rows - kept)
+    rep["timings"]["read"] = read_s
+    rep["timings"]["total"] = time.perf_counter() - t0
+    rep["distributed"]["chunks"] = len(chunks)
+    return PoissonResult(mesh, rep)
+
+
+def _task(progress, name, total):
+    from recon_cli.progress import task
+
+    return task(progress, name, total=total)
+
+
+def _as_done(client, futs):
+    from distributed import as_completed
+
+    return as_completed(futs)

@@ -14,6 +14,7 @@ and the unit cube of the single-process solve.
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -189,10 +190,7 @@ def _place(slab: Slab, table: tuple, level: int) -> None:
     slab.area[todo[ok]] = area
 
 
-@timed
-def load(slab: Slab, points: np.ndarray, normals: np.ndarray, colors: np.ndarray | None) -> dict:
-    """Read the slab's points (own and pad, job frame, finite), merge them per finest cell,
-    place the samples the slab's own density levels place; returns the splat figures."""
+def _load(slab: Slab, points: np.ndarray, normals: np.ndarray, colors: np.ndarray | None) -> dict:
     job = slab.job
     pts = np.asarray(points, dtype=np.float64)
     nrm = np.asarray(normals, dtype=np.float64)
@@ -228,6 +226,13 @@ def load(slab: Slab, points: np.ndarray, normals: np.ndarray, colors: np.ndarray
     msg["own_samples"] = int(slab.own_s.sum())
     msg["ignored_points"] = int((~keep).sum())
     return msg
+
+
+@timed
+def load(slab: Slab, points: np.ndarray, normals: np.ndarray, colors: np.ndarray | None) -> dict:
+    """Read the slab's points (own and pad, job frame, finite), merge them per finest cell,
+    place the samples the slab's own density levels place; returns the splat figures."""
+    return _load(slab, points, normals, colors)
 
 
 @timed
@@ -929,3 +934,49 @@ def finish(slab: Slab, drop: np.ndarray, density: tuple | None) -> dict:
     msg["faces"] = out_f
     slab.faces = slab.verts = slab.labels = None
     return msg
+
+
+def state_bytes(obj: Any, depth: int = 0) -> int:
+    """Bytes of the numpy arrays a slab's state holds (what Dask's memory accounting sees of
+    it: its own estimate of an object is a few hundred bytes)."""
+    if isinstance(obj, np.ndarray):
+        return int(obj.nbytes)
+    if depth > 4 or obj is None or isinstance(obj, (int, float, str, bool)):
+        return 0
+    if isinstance(obj, dict):
+        return sum(state_bytes(v, depth + 1) for v in obj.values())
+    if isinstance(obj, (list, tuple)):
+        return sum(state_bytes(v, depth + 1) for v in obj)
+    if hasattr(obj, "__dict__"):
+        return sum(state_bytes(v, depth + 1) for v in vars(obj).values())
+    return 0
+
+
+try:  # dask is an extra (recon[batch])
+    from dask.sizeof import sizeof as _dask_sizeof
+
+    _dask_sizeof.register(Slab)(state_bytes)
+except ImportError:  # pragma: no cover
+    pass
+
+
+@timed
+def load_files(slab: Slab, parts: list[tuple[str, np.ndarray]], nsub: int) -> dict:
+    """:func:`load` from the chunks' files (``(prefix, offsets)``: each chunk's rows sorted by
+    sub-slab, ``offsets`` (nsub + 1,) where each sub-slab's rows start), the rows of the
+    slab's pad range."""
+    pa, pb = slab.x_range(slab.pad, nsub)
+    pts, nrm, col = [], [], []
+    for prefix, off in parts:
+        a, b = int(off[pa]), int(off[pb])
+        if b <= a:
+            continue
+        pts.append(np.load(prefix + ".pts.npy", mmap_mode="r")[a:b])
+        nrm.append(np.load(prefix + ".nrm.npy", mmap_mode="r")[a:b])
+        if os.path.exists(prefix + ".col.npy"):
+            col.append(np.load(prefix + ".col.npy", mmap_mode="r")[a:b])
+    P = np.concatenate(pts) if pts else np.zeros((0, 3))
+    N = np.concatenate(nrm) if nrm else np.zeros((0, 3))
+    C = np.concatenate(col) if col else None
+    del pts, nrm, col
+    return _load(slab, P, N, C)
