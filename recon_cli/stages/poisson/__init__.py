@@ -126,6 +126,7 @@ SPEC = StageSpec(
     takes_when=lambda p: ("cloud", "mesh") if p["estimate_normals"] else ("oriented",),
     gives=("mesh",),
     backends=BACKENDS,
+    from_files="recon_cli.stages.poisson.distributed:run_from_files",
     params=(
         Param(
             "depth",

@@ -761,3 +761,71 @@ def _as_done(client, futs):
     from distributed import as_completed
 
     return as_completed(futs)
+
+
+def run_from_files(
+    input: str,
+    output: str,
+    params: dict,
+    *,
+    load_kw: dict,
+    save_kw: dict,
+    ascii: bool = False,
+    progress: Any = None,
+) -> dict | None:
+    """``recon poisson IN OUT --workers N`` / ``--scheduler ADDRESS``: the stage's
+    ``from_files`` (:class:`recon_cli.params.StageSpec`). Returns None without those options
+    (the command then runs the stage as usual); else reconstructs from IN by chunks on the
+    cluster (:func:`reconstruct_files`), writes OUT and returns the report."""
+    from recon_cli.batch.cluster import open_client
+    from recon_cli.io.load import save
+    from recon_cli.stages.poisson import REPORT_KEYS, SPEC, check_distributed_options
+
+    if params.get("workers") is None and params.get("scheduler") is None:
+        return None
+    v = SPEC.check(params, complete=True)
+    check_distributed_options(
+        v["backend"],
+        v["degree"],
+        v["estimate_normals"],
+        v["scheduler"],
+        v["workers"],
+        v["memory_limit"],
+    )
+    if input == "-":
+        raise ParameterError("--workers/--scheduler read IN by chunks: give a file, not '-'")
+    if load_kw.get("format"):
+        raise ParameterError(
+            "--workers/--scheduler read IN by its suffix: leave out --input-format"
+        )
+    folder = os.path.dirname(os.path.abspath(output)) if output != "-" else None
+    t0 = time.perf_counter()
+    with open_client(v["scheduler"], v["workers"], v["memory_limit"]) as (client, info):
+        res = reconstruct_files(
+            input,
+            client=client,
+            partitions=v["partitions"],
+            depth=v["depth"],
+            scale=v["scale"],
+            point_weight=v["point_weight"],
+            samples_per_node=v["samples_per_node"],
+            boundary=v["boundary"],
+            density=v["density"],
+            trim=v["trim"],
+            temp_dir=folder,
+            progress=progress,
+        )
+    t1 = time.perf_counter()
+    save(res.mesh, output, ascii=ascii, **save_kw)
+    t2 = time.perf_counter()
+    rep = res.report
+    report = {k: rep[k] for k in REPORT_KEYS}
+    report["backend"] = "native"
+    report["distributed"] = {"cluster": info, **rep["distributed"]}
+    report["timings"] = {
+        "read": rep["timings"].get("read", 0.0),
+        "stage": t1 - t0,
+        "write": t2 - t1,
+    }
+    report["output"] = "<stdout>" if output == "-" else output
+    return report
