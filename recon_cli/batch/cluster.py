@@ -92,22 +92,25 @@ def open_client(
     workers: Any = None,
     memory_limit: Any = None,
     log_level: int = logging.CRITICAL,
+    stealing: bool = True,
 ):
     """A Dask client for one job: on the scheduler at ``scheduler``, or on a local cluster of
     ``workers`` processes (one thread each, ``memory_limit`` each: a size, ``"auto"`` or
-    ``"none"``), the batch's, closed on exit. Yields ``(client, info)``."""
+    ``"none"``), the batch's, closed on exit; ``stealing`` False turns the local scheduler's
+    work stealing off (tasks that keep big states stay where they are). Yields
+    ``(client, info)``."""
     if scheduler is not None and (workers is not None or memory_limit is not None):
         raise ParameterError(
             "--workers and --memory-limit size a local cluster; leave them out with --scheduler"
         )
     n = None if workers is None else _check_count(workers, "workers")
     mem = _check_memory_limit(memory_limit)
-    with _client(scheduler, n, 1, mem, log_level) as got:
+    with _client(scheduler, n, 1, mem, log_level, stealing) as got:
         yield got
 
 
 @contextlib.contextmanager
-def _client(scheduler, workers, threads_per_worker, memory_limit, log_level):
+def _client(scheduler, workers, threads_per_worker, memory_limit, log_level, stealing=True):
     """A Client on an existing scheduler, or on a LocalCluster closed on exit."""
     try:
         import distributed  # noqa: F401  (first: importing it configures its loggers)
@@ -116,12 +119,14 @@ def _client(scheduler, workers, threads_per_worker, memory_limit, log_level):
             "recon batch needs dask.distributed: pip install 'recon[batch]'"
         ) from None
     with _dask_log_level(log_level):
-        with _client_inner(scheduler, workers, threads_per_worker, memory_limit, log_level) as got:
+        with _client_inner(
+            scheduler, workers, threads_per_worker, memory_limit, log_level, stealing
+        ) as got:
             yield got
 
 
 @contextlib.contextmanager
-def _client_inner(scheduler, workers, threads_per_worker, memory_limit, log_level):
+def _client_inner(scheduler, workers, threads_per_worker, memory_limit, log_level, stealing=True):
     try:
         import dask
         from distributed import Client, LocalCluster
@@ -150,7 +155,11 @@ def _client_inner(scheduler, workers, threads_per_worker, memory_limit, log_leve
     # allowed-failures=1: an input whose worker dies is rescheduled once, then fails with KilledWorker
     with _sigint_held() as interrupted:
         try:
-            with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
+            # no work stealing when the tasks keep big states: a stolen task copies its state
+            config = {"distributed.scheduler.allowed-failures": 1}
+            if not stealing:
+                config["distributed.scheduler.work-stealing"] = False
+            with dask.config.set(config):
                 cluster = LocalCluster(
                     n_workers=workers,
                     threads_per_worker=threads_per_worker,

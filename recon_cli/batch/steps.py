@@ -96,8 +96,11 @@ def _second(pair: tuple) -> Any:
     return pair[1]
 
 
-def _identity(x: Any) -> Any:
-    return x
+def _start(x: Any) -> Any:
+    # a copy: the task's argument is not the state a recomputation would start from
+    import copy
+
+    return copy.deepcopy(x)
 
 
 class DaskRunner:
@@ -117,7 +120,7 @@ class DaskRunner:
             where = [workers[k % len(workers)]] if workers else None
             self.states.append(
                 client.submit(
-                    _identity,
+                    _start,
                     s,
                     key=f"{label}-{self.token}-{k}-start",
                     workers=where,

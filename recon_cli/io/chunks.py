@@ -111,8 +111,10 @@ def _las_count(path: str) -> int:
         raise InputError(f"not a readable LAS/LAZ file ({msg})", path) from None
 
 
-def plan_chunks(inputs: list[str] | str, rows: int = CHUNK_ROWS) -> list[Chunk]:
-    """The chunks of ``inputs`` (files, folders, patterns), ``rows`` rows at most each."""
+def plan_chunks(inputs: list[str] | str, rows: int | None = None) -> list[Chunk]:
+    """The chunks of ``inputs`` (files, folders, patterns), ``rows`` rows at most each
+    (default :data:`CHUNK_ROWS`)."""
+    rows = CHUNK_ROWS if rows is None else int(rows)
     out = []
     for path in expand_inputs(inputs):
         low = path.lower()

@@ -741,7 +741,7 @@ def run_stage(
         from recon_cli.batch.cluster import open_client
         from recon_cli.stages.poisson.distributed import distributed_poisson
 
-        with open_client(scheduler, workers, memory_limit) as (client, info):
+        with open_client(scheduler, workers, memory_limit, stealing=False) as (client, info):
             res = distributed_poisson(
                 cloud.points,
                 cloud.normals,

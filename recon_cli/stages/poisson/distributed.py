@@ -117,12 +117,23 @@ def choose_seams(counts: np.ndarray, parts: int) -> list[int]:
     return seams
 
 
-def plan_slabs(job: S.Job, sub_counts: np.ndarray, parts: int) -> list[tuple]:
-    """Per slab: own, pad (points read) and usable (samples splatted) x ranges (unit cube)."""
+def plan_slabs(
+    job: S.Job, sub_counts: np.ndarray, parts: int, seams: list[int] | None = None
+) -> list[tuple]:
+    """Per slab: own, pad (points read) and usable (samples splatted) x ranges (unit cube).
+    ``seams``: the seams' level-5 planes (1..31, increasing), else balanced by the counts."""
     nsub = len(sub_counts)
     per = nsub >> S.PARTITION_DEPTH
     counts = sub_counts.reshape(-1, per).sum(axis=1)
-    seams = [0] + choose_seams(counts, parts) + [1 << S.PARTITION_DEPTH]
+    if seams is None:
+        seams = choose_seams(counts, parts)
+    elif (
+        len(seams) != parts - 1
+        or list(seams) != sorted(set(seams))
+        or (seams and not (1 <= seams[0] and seams[-1] < len(counts)))
+    ):
+        raise ParameterError(f"seams must be {parts - 1} increasing planes in 1..{len(counts) - 1}")
+    seams = [0] + [int(s) for s in seams] + [1 << S.PARTITION_DEPTH]
     first_fine = job.coarse_depth + 1
     pad_items = math.ceil(S.PAD_CELLS * nsub / (1 << first_fine))
     reach = math.ceil(S.DENSITY_REACH * nsub / (1 << (job.local_density + 1)))
@@ -381,7 +392,20 @@ def reconstruct(runner, job: S.Job, loaded: list[dict], progress: Any = None) ->
         "finest_cell": cell,
         "levels": levels_stats,
         "timings": timings,
-        "seam_max_deviation": seam_dev,
+        "distributed": {
+            "coarse_depth": dc,
+            "seam_max_deviation": seam_dev,
+            "slabs": [
+                {
+                    "own": lm["own"],
+                    "points": lm["own_points"],
+                    "samples": lm["own_samples"],
+                    "faces": e["faces"],
+                    "seam_vertices": len(e["seam_left"][0]),
+                }
+                for lm, e in zip(loaded, em)
+            ],
+        },
     }
     return {"parts": fm, "report": report, "phases": getattr(runner, "phases", {})}
 
@@ -479,7 +503,7 @@ def assemble(out: dict, job: S.Job, perm: tuple, colors: bool):
     rep = out["report"]
     rep["vertices"] = len(mesh.vertices)
     rep["faces"] = len(mesh.faces)
-    rep["distributed"] = {"slabs": len(parts), "phases": out.get("phases", {})}
+    rep["distributed"]["phases"] = out.get("phases", {})
     return mesh
 
 
@@ -499,6 +523,7 @@ def distributed_poisson(
     full_depth: int = 5,
     cg_tolerance: float = 1e-3,
     client: Any = None,
+    seams: list[int] | None = None,
     progress: Any = None,
 ):
     """Screened Poisson reconstruction in ``partitions`` slabs (module docstring), the cloud
@@ -534,7 +559,7 @@ def distributed_poisson(
     nrm = nrm[:, list(perm)]
     nsub = 1 << min(S.SUB_DEPTH, depth)
     sub = sub_slab((pts[:, 0] - job.origin[0]) / size, nsub)
-    plan = plan_slabs(job, np.bincount(sub, minlength=nsub), partitions)
+    plan = plan_slabs(job, np.bincount(sub, minlength=nsub), partitions, seams)
     slabs = [S.slab_of(job, k, partitions, *plan[k]) for k in range(partitions)]
     runner = make_runner(client, slabs, progress)
     try:
@@ -800,7 +825,10 @@ def run_from_files(
         )
     folder = os.path.dirname(os.path.abspath(output)) if output != "-" else None
     t0 = time.perf_counter()
-    with open_client(v["scheduler"], v["workers"], v["memory_limit"]) as (client, info):
+    with open_client(v["scheduler"], v["workers"], v["memory_limit"], stealing=False) as (
+        client,
+        info,
+    ):
         res = reconstruct_files(
             input,
             client=client,

@@ -146,6 +146,7 @@ def timed(fn: Callable) -> Callable:
         msg["seconds"] = time.perf_counter() - t0
         msg["cpu_seconds"] = time.process_time() - c0
         msg["peak_mb"] = peak_mb()
+        msg["pid"] = os.getpid()
         return msg
 
     step.__name__ = fn.__name__
@@ -225,6 +226,7 @@ def _load(slab: Slab, points: np.ndarray, normals: np.ndarray, colors: np.ndarra
     msg.update(points=int(len(pts)), own_points=int(slab.own_pt.sum()), samples=ns)
     msg["own_samples"] = int(slab.own_s.sum())
     msg["ignored_points"] = int((~keep).sum())
+    msg["own"] = [float(v) for v in slab.own]
     return msg
 
 
@@ -627,19 +629,24 @@ def band_message(slab: Slab, side: int) -> dict:
 
 def apply_band(slab: Slab, side: int, band: dict) -> None:
     """Take the neighbour's coefficients for its column of parents next to the seam on
-    ``side``; the trees must agree there."""
+    ``side``; the trees must agree there. Written into the field's own array (a state that
+    moved between processes keeps no views into it)."""
     x = slab.own[0] if side < 0 else slab.own[1]
+    coef = slab.chi.coef_all.reshape(-1, 8)
+    q_off = slab.chi.q_off
     for d in range(slab.job.coarse_depth + 1, len(slab.levels)):
         f = slab.lfs[d]
         px = int(round(x * (1 << (d - 1)))) - (1 if side < 0 else 0)
         rows = _band_parents(f, px)
-        keys, inp, coef = band.get(d, (np.zeros(0, np.int64), np.zeros(0, bool), np.zeros((0, 8))))
+        keys, inp, band_coef = band.get(
+            d, (np.zeros(0, np.int64), np.zeros(0, bool), np.zeros((0, 8)))
+        )
         if not (np.array_equal(f.q_keys[rows], keys) and np.array_equal(f.inp[rows], inp)):
             raise StageFailed(
                 f"distributed poisson: slabs {slab.index} and {slab.index + side} disagree on "
                 f"the tree at their seam (level {d}): the pad is too small for this input"
             )
-        f.coef.reshape(-1, 8)[rows] = coef
+        coef[q_off[d] + rows] = band_coef
 
 
 @timed

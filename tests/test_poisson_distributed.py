@@ -1,0 +1,258 @@
+"""Distributed Poisson (recon_cli.stages.poisson.distributed): seams, slabs of any density,
+empty slabs, one slab against the single-process solve, killed workers, the command."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import threading
+import time
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+import recon_cli.stages.poisson.extract as X
+from recon_cli.errors import ParameterError
+from recon_cli.io.load import load, save
+from recon_cli.geometry import PointCloud
+from recon_cli.mesh.topology import report as topology_report
+from recon_cli.stages.poisson import screened_poisson
+from recon_cli.stages.poisson.distributed import distributed_poisson
+
+from shapes import random_rotation, sphere_cloud
+
+
+def _closed_one_piece(mesh, pieces: int = 1) -> None:
+    rep = topology_report(mesh)
+    assert rep["components"] == pieces
+    assert rep["watertight"] and rep["edge_manifold"] and rep["vertex_manifold"]
+    assert rep["consistently_oriented"]
+    assert rep["duplicate_faces"] == 0 and rep["degenerate_faces"] == 0
+    assert rep["unreferenced_vertices"] == 0
+    # no vertex twice: the two slabs of a seam share theirs
+    assert len(np.unique(mesh.vertices, axis=0)) == len(mesh.vertices)
+    assert rep["volume"] > 0
+
+
+def _radial_error(mesh, centre, radius) -> float:
+    return float(np.abs(np.linalg.norm(mesh.vertices - centre, axis=1) - radius).mean())
+
+
+@pytest.fixture
+def finest(monkeypatch):
+    """The single-process solve with the finest-lattice extraction (the slabs' own)."""
+    monkeypatch.setattr(X, "extract", X.extract_finest)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_sphere_cut_by_every_slab_plane_is_one_closed_piece(seed, finest):
+    """Four slabs of a rotated, scaled sphere 1e6 from the origin: every seam crosses it, the
+    mesh is one closed manifold piece, no vertex duplicated, the two sides' seam vertices are
+    the same bits, and it is as close to the sphere as the single-process mesh."""
+    rng = np.random.default_rng(seed)
+    p, n = sphere_cloud(12_000, seed=seed)
+    r = random_rotation(rng)
+    scale = 10.0 ** rng.uniform(-2, 2)
+    centre = np.array([1e6, -2e6, 3e5])
+    pts, nrm = p @ r.T * scale + centre, n @ r.T
+    res = distributed_poisson(pts, nrm, depth=7, partitions=4)
+    _closed_one_piece(res.mesh)
+    dist = res.report["distributed"]
+    assert dist["seam_max_deviation"] == 0.0
+    assert [s["seam_vertices"] > 0 for s in dist["slabs"]] == [False, True, True, True]
+    single = screened_poisson(pts, nrm, depth=7)
+    e_single = _radial_error(single.mesh, centre, scale)
+    e_dist = _radial_error(res.mesh, centre, scale)
+    assert e_dist <= 1.02 * e_single
+    assert res.mesh.vertices.dtype == np.float64
+
+
+def test_one_slab_is_the_single_process_finest_extraction(finest):
+    """With one slab, the coarse and fine solves split and the whole pipeline give the
+    single-process solve's finest-lattice mesh, to rounding (the same vertices)."""
+    pts, nrm = sphere_cloud(8000, seed=3)
+    pts = pts * np.array([1.0, 0.8, 0.7])  # x the longest axis: the same frame
+    res = distributed_poisson(pts, nrm, depth=7, partitions=1)
+    single = screened_poisson(pts, nrm, depth=7)
+    assert len(res.mesh.vertices) == len(single.mesh.vertices)
+    assert len(res.mesh.faces) == len(single.mesh.faces)
+    d, i = cKDTree(single.mesh.vertices).query(res.mesh.vertices)
+    assert d.max() < 1e-12
+    assert len(np.unique(i)) == len(i)
+    assert abs(res.report["iso_value"] - single.report["iso_value"]) < 1e-12
+
+
+def test_slabs_of_very_different_density(finest):
+    """One slab holds 16x the samples per area of the other (the seam through the middle of
+    an ellipsoid, x its longest axis): still one closed piece, and as close to the samples'
+    surface as the single-process mesh."""
+    rng = np.random.default_rng(5)
+    p, n = sphere_cloud(40_000, seed=5)
+    keep = (p[:, 0] > 0) | (rng.random(len(p)) < 1 / 16)
+    axes = np.array([1.3, 1.0, 0.9])
+    p, n = p[keep] * axes, n[keep] / axes
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    res = distributed_poisson(p, n, depth=7, partitions=2, seams=[16])
+    _closed_one_piece(res.mesh)
+    slabs = res.report["distributed"]["slabs"]
+    assert slabs[1]["points"] > 12 * slabs[0]["points"]
+
+    def err(mesh):  # the ellipsoid's algebraic distance, about the distance near the surface
+        return float(np.abs(np.linalg.norm(mesh.vertices / axes, axis=1) - 1).mean())
+
+    single = screened_poisson(p, n, depth=7)
+    assert err(res.mesh) <= 1.02 * err(single.mesh)
+
+
+def test_an_empty_slab(finest):
+    """Two spheres apart along x, the middle slab owning only the empty space between them:
+    it gives no faces, the others two closed spheres."""
+    a, na = sphere_cloud(6000, centre=(-3.0, 0, 0), seed=7)
+    b, nb = sphere_cloud(6000, centre=(3.0, 0, 0), seed=8)
+    pts, nrm = np.vstack([a, b]), np.vstack([na, nb])
+    res = distributed_poisson(pts, nrm, depth=7, partitions=3, seams=[12, 20])
+    slabs = res.report["distributed"]["slabs"]
+    assert slabs[1]["points"] == 0 and slabs[1]["faces"] == 0
+    assert slabs[0]["faces"] > 0 and slabs[2]["faces"] > 0
+    _closed_one_piece(res.mesh, pieces=2)
+    single = screened_poisson(pts, nrm, depth=7)
+    assert abs(len(res.mesh.vertices) - len(single.mesh.vertices)) < 0.01 * len(
+        single.mesh.vertices
+    )
+
+
+def test_colours_and_density_per_vertex(finest):
+    pts, nrm = sphere_cloud(8000, seed=9)
+    colors = (np.clip(pts * 0.5 + 0.5, 0, 1) * 255).astype(np.uint8)
+    res = distributed_poisson(pts, nrm, depth=7, partitions=3, colors=colors, density=True)
+    single = screened_poisson(pts, nrm, depth=7, colors=colors, density=True)
+    m = res.mesh
+    assert m.colors.dtype == np.uint8 and len(m.colors) == len(m.vertices)
+    d, i = cKDTree(single.mesh.vertices).query(m.vertices)
+    assert np.abs(m.colors.astype(int) - single.mesh.colors[i].astype(int)).max() <= 2
+    dens = m.attributes["density"]
+    ref = single.mesh.attributes["density"][i]
+    assert np.allclose(dens, ref, rtol=1e-3)
+
+
+@pytest.mark.parametrize(
+    "kw, msg",
+    [
+        ({"partitions": 0}, "partitions must be 1..32"),
+        ({"partitions": 33}, "partitions must be 1..32"),
+        ({"depth": 5}, "needs depth 6 or more"),
+        ({"full_depth": 4}, "full_depth >= 5"),
+        ({"partitions": 2, "seams": [40]}, "seams must be 1 increasing planes in 1..31"),
+    ],
+)
+def test_refused_options(kw, msg):
+    pts, nrm = sphere_cloud(2000, seed=1)
+    with pytest.raises(ParameterError, match=msg):
+        distributed_poisson(pts, nrm, **{"depth": 7, "partitions": 2, **kw})
+
+
+# ---- on a Dask cluster ----------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    from recon_cli.batch.cluster import open_client
+
+    with open_client(workers=2, memory_limit="none", stealing=False) as (client, info):
+        yield client
+
+
+@pytest.mark.slow
+def test_killed_worker_mid_solve_gives_the_same_mesh(cluster):
+    """A worker SIGKILLed while the slabs solve: its slabs are recomputed on a live worker and
+    the mesh is the one an undisturbed run gives, bit for bit."""
+    from recon_cli.batch import steps
+
+    pts, nrm = sphere_cloud(12_000, seed=11)
+    ref = distributed_poisson(pts, nrm, depth=7, partitions=2, client=cluster)
+    pids = cluster.run(os.getpid)
+    killed: list[int] = []
+    orig = steps.DaskRunner.run
+
+    def run(self, name, fn, args):
+        if name == "solve" and not killed:
+
+            def killer():
+                time.sleep(0.3)
+                pid = sorted(pids.values())[0]
+                os.kill(pid, signal.SIGKILL)
+                killed.append(pid)
+
+            threading.Thread(target=killer, daemon=True).start()
+        return orig(self, name, fn, args)
+
+    steps.DaskRunner.run = run
+    try:
+        res = distributed_poisson(pts, nrm, depth=7, partitions=2, client=cluster)
+    finally:
+        steps.DaskRunner.run = orig
+    assert killed and killed[0] not in cluster.run(os.getpid).values()
+    assert np.array_equal(res.mesh.vertices, ref.mesh.vertices)
+    assert np.array_equal(res.mesh.faces, ref.mesh.faces)
+
+
+def _recon(argv: list[str]) -> int:
+    """The real CLI entry point in-process; its exit status."""
+    from recon_cli.cli.main import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    return exc.value.code
+
+
+@pytest.mark.slow
+def test_command_reads_the_file_by_chunks(tmp_path, monkeypatch, capsys, finest):
+    """``recon poisson IN OUT --workers 2``: the command never loads IN (the workers read its
+    chunks); the mesh is the in-memory distributed run's, double in, double out."""
+    import recon_cli.io.chunks as C
+    import recon_cli.io.load as L
+
+    pts, nrm = sphere_cloud(12_000, seed=12)
+    src = tmp_path / "sphere.ply"
+    save(PointCloud(points=pts, normals=nrm), str(src))
+    monkeypatch.setattr(C, "CHUNK_ROWS", 5000)  # three chunks
+
+    def refuse(*a, **k):
+        raise AssertionError("the command loaded IN")
+
+    monkeypatch.setattr(L, "load", refuse)
+    out = tmp_path / "mesh.ply"
+    code = _recon(["poisson", str(src), str(out), "--workers", "2", "--depth", "7", "--json"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    monkeypatch.undo()
+    rep = json.loads(captured.out)
+    assert rep["distributed"]["chunks"] == 3
+    assert set(rep["distributed"]["phases"]) >= {"load", "solve", "extract", "finish"}
+    mesh = load(str(out))
+    _closed_one_piece(mesh)
+    assert mesh.vertices.dtype == np.float64
+    ref = distributed_poisson(pts, nrm, depth=7, partitions=2)
+    assert len(ref.mesh.vertices) == len(mesh.vertices)
+    assert not [f for f in os.listdir(tmp_path) if f.startswith(".recon-poisson-")]
+
+
+@pytest.mark.parametrize(
+    "args, msg",
+    [
+        (["--partitions", "2"], "--partitions and --memory-limit go with --workers"),
+        (["--workers", "2", "--degree", "1"], "uses degree 2"),
+        (["--workers", "2", "--scheduler", "tcp://x:1"], "leave them out with --scheduler"),
+        (["--workers", "2", "--backend", "open3d"], "native solver"),
+    ],
+)
+def test_command_refuses(tmp_path, capsys, args, msg):
+    pts, nrm = sphere_cloud(500, seed=1)
+    src = tmp_path / "s.ply"
+    save(PointCloud(points=pts, normals=nrm), str(src))
+    assert _recon(["poisson", str(src), str(tmp_path / "o.ply"), *args]) == 2
+    err = capsys.readouterr().err
+    assert msg in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "o.ply").exists()
