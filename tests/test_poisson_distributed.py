@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-import recon_cli.stages.poisson.extract as X
 from recon_cli.errors import ParameterError
 from recon_cli.io.load import load, save
 from recon_cli.geometry import PointCloud
@@ -40,39 +39,40 @@ def _radial_error(mesh, centre, radius) -> float:
     return float(np.abs(np.linalg.norm(mesh.vertices - centre, axis=1) - radius).mean())
 
 
-@pytest.fixture
-def finest(monkeypatch):
-    """The single-process solve with the finest-lattice extraction (the slabs' own)."""
-    monkeypatch.setattr(X, "extract", X.extract_finest)
-
-
-@pytest.mark.parametrize("seed", [0, 1])
-def test_sphere_cut_by_every_slab_plane_is_one_closed_piece(seed, finest):
+@pytest.mark.parametrize("seed, n, mode", [(0, 12_000, "leaves"), (1, 40_000, "finest")])
+def test_sphere_cut_by_every_slab_plane_is_one_closed_piece(seed, n, mode):
     """Four slabs of a rotated, scaled sphere 1e6 from the origin: every seam crosses it, the
     mesh is one closed manifold piece, no vertex duplicated, the two sides' seam vertices are
-    the same bits, and it is as close to the sphere as the single-process mesh."""
+    the same bits, and it is as close to the sphere as the single-process mesh; sparse
+    samples (coarse leaves hold surface: the extraction at the leaves' own size) and dense
+    ones (the finest-lattice extraction), as the single-process solve chooses."""
     rng = np.random.default_rng(seed)
-    p, n = sphere_cloud(12_000, seed=seed)
+    p, nrm0 = sphere_cloud(n, seed=seed)
     r = random_rotation(rng)
     scale = 10.0 ** rng.uniform(-2, 2)
     centre = np.array([1e6, -2e6, 3e5])
-    pts, nrm = p @ r.T * scale + centre, n @ r.T
+    pts, nrm = p @ r.T * scale + centre, nrm0 @ r.T
     res = distributed_poisson(pts, nrm, depth=7, partitions=4)
     _closed_one_piece(res.mesh)
     dist = res.report["distributed"]
+    assert dist["extraction"] == mode
     assert dist["seam_max_deviation"] == 0.0
     assert [s["seam_vertices"] > 0 for s in dist["slabs"]] == [False, True, True, True]
     single = screened_poisson(pts, nrm, depth=7)
+    assert abs(len(res.mesh.vertices) - len(single.mesh.vertices)) <= 0.001 * len(
+        single.mesh.vertices
+    )
     e_single = _radial_error(single.mesh, centre, scale)
     e_dist = _radial_error(res.mesh, centre, scale)
     assert e_dist <= 1.02 * e_single
     assert res.mesh.vertices.dtype == np.float64
 
 
-def test_one_slab_is_the_single_process_finest_extraction(finest):
+@pytest.mark.parametrize("n", [8000, 40_000])
+def test_one_slab_is_the_single_process_mesh(n):
     """With one slab, the coarse and fine solves split and the whole pipeline give the
-    single-process solve's finest-lattice mesh, to rounding (the same vertices)."""
-    pts, nrm = sphere_cloud(8000, seed=3)
+    single-process solve's mesh, to rounding (the same vertices), in both extractions."""
+    pts, nrm = sphere_cloud(n, seed=3)
     pts = pts * np.array([1.0, 0.8, 0.7])  # x the longest axis: the same frame
     res = distributed_poisson(pts, nrm, depth=7, partitions=1)
     single = screened_poisson(pts, nrm, depth=7)
@@ -84,7 +84,7 @@ def test_one_slab_is_the_single_process_finest_extraction(finest):
     assert abs(res.report["iso_value"] - single.report["iso_value"]) < 1e-12
 
 
-def test_slabs_of_very_different_density(finest):
+def test_slabs_of_very_different_density():
     """One slab holds 16x the samples per area of the other (the seam through the middle of
     an ellipsoid, x its longest axis): still one closed piece, and as close to the samples'
     surface as the single-process mesh."""
@@ -106,7 +106,7 @@ def test_slabs_of_very_different_density(finest):
     assert err(res.mesh) <= 1.02 * err(single.mesh)
 
 
-def test_an_empty_slab(finest):
+def test_an_empty_slab():
     """Two spheres apart along x, the middle slab owning only the empty space between them:
     it gives no faces, the others two closed spheres."""
     a, na = sphere_cloud(6000, centre=(-3.0, 0, 0), seed=7)
@@ -123,7 +123,7 @@ def test_an_empty_slab(finest):
     )
 
 
-def test_colours_and_density_per_vertex(finest):
+def test_colours_and_density_per_vertex():
     pts, nrm = sphere_cloud(8000, seed=9)
     colors = (np.clip(pts * 0.5 + 0.5, 0, 1) * 255).astype(np.uint8)
     res = distributed_poisson(pts, nrm, depth=7, partitions=3, colors=colors, density=True)
@@ -208,7 +208,7 @@ def _recon(argv: list[str]) -> int:
 
 
 @pytest.mark.slow
-def test_command_reads_the_file_by_chunks(tmp_path, monkeypatch, capsys, finest):
+def test_command_reads_the_file_by_chunks(tmp_path, monkeypatch, capsys):
     """``recon poisson IN OUT --workers 2``: the command never loads IN (the workers read its
     chunks); the mesh is the in-memory distributed run's, double in, double out."""
     import recon_cli.io.chunks as C

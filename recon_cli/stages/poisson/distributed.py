@@ -359,8 +359,12 @@ def reconstruct(runner, job: S.Job, loaded: list[dict], progress: Any = None) ->
     iterations = cit + sum(m.get("iterations", 0) for m in sm)
     residual = max([m.get("residual", 0.0) for m in sm] + [cres])
     del sm
-    em = runner.run("extract", S.extract, lambda k: (iso, *bands[k]))
+    fm = runner.run("field", S.field, lambda k: (iso, *bands[k]))
     bands = None
+    # as the single-process extraction decides: at the leaves' own size when a coarse leaf
+    # holds surface, else on the finest lattice (the same surface, faster)
+    at_leaves = any(m["coarse"] for m in fm)
+    em = runner.run("extract", S.extract, lambda k: (iso, at_leaves))
     cell = job.size / (1 << tree_depth)
     drop, specks, islands, seam_dev = _merge_pieces(runner, em, cell, BUBBLE_CELLS, ISLAND_POINTS)
     timings["extract"] = time.perf_counter() - t
@@ -394,6 +398,7 @@ def reconstruct(runner, job: S.Job, loaded: list[dict], progress: Any = None) ->
         "timings": timings,
         "distributed": {
             "coarse_depth": dc,
+            "extraction": "leaves" if at_leaves else "finest",
             "seam_max_deviation": seam_dev,
             "slabs": [
                 {

@@ -114,6 +114,7 @@ class Slab:
     own_fine_fields: dict = field(default_factory=dict)
     levels: list | None = None
     node_keys: list | None = None
+    gvals: list | None = None
     lfs: list | None = None
     arrays: tuple | None = None
     chi: ChiField | None = None
@@ -757,16 +758,13 @@ def _seam_order(lat: np.ndarray, on: np.ndarray) -> np.ndarray:
 
 
 @timed
-def extract(slab: Slab, iso: float, band_left: dict | None, band_right: dict | None) -> dict:
-    """The slab's part of the surface: the finest-lattice extraction over the leaves it owns,
-    the points on its seams given the values both slabs of a seam compute alike
-    (:func:`plane_values`), vertices moved to chi's roots; returns its pieces (faces, boxes)
-    and, per seam, its vertices there and their pieces."""
-    from recon_cli.mesh.topology import Connectivity
-    from recon_cli.stages.mcubes import marching_cubes_sparse
+def field(slab: Slab, iso: float, band_left: dict | None, band_right: dict | None) -> dict:
+    """The neighbours' bands, chi at every level's nodes (the finer side of a coarse leaf's
+    faces constrained to it, as the single-process solve does); returns whether a leaf
+    coarser than the finest the slab owns holds surface (then every slab extracts at the
+    leaves' own size, as :func:`.extract.extract` decides)."""
     from recon_cli.stages.poisson.extract import FACE_MARGIN
 
-    job = slab.job
     if band_left is not None:
         apply_band(slab, -1, band_left)
     if band_right is not None:
@@ -785,14 +783,30 @@ def extract(slab: Slab, iso: float, band_left: dict | None, band_right: dict | N
             levels[d].node_keys, gvals[d], up.cell_keys, up.cell_nodes, up.leaf, gvals[d - 1]
         )
     chi.drop_neighbours()
+    slab.gvals = gvals
+    masks = _own_leaves(slab)
+    coarse = any(
+        E.straddles(lev.cell_keys, lev.cell_nodes, m, g, lev.depth, top, iso, 1e-9, FACE_MARGIN)
+        for lev, m, g in zip(levels[:-1], masks[:-1], gvals[:-1])
+    )
     release_free_heap()
-    R = 1 << top
-    a, b = slab.x_range(slab.own, R)
-    masks = []
-    for lev in levels:
-        sh = top - lev.depth
-        cx = (lev.cell_keys >> 42) << sh
-        masks.append(lev.leaf & (cx >= a) & (cx < b))
+    return {"coarse": bool(coarse)}
+
+
+def _own_leaves(slab: Slab) -> list[np.ndarray]:
+    """Per level, the leaves the slab owns (lower x in its range)."""
+    top = len(slab.levels) - 1
+    return _own_leaves_of(slab.levels, *slab.x_range(slab.own, 1 << top))
+
+
+def _finest(slab: Slab, levels: list, gvals: list, iso: float, a: int, b: int) -> tuple:
+    """The finest-lattice extraction of the leaves the slab owns (lattice units); the points
+    on its seam planes take :func:`plane_values`."""
+    from recon_cli.stages.mcubes import marching_cubes_sparse
+    from recon_cli.stages.poisson.extract import FACE_MARGIN
+
+    top = len(levels) - 1
+    masks = _own_leaves_of(levels, a, b)
     none_xyz, none_val = np.zeros((0, 3), np.int64), np.zeros((0, 8))
     counts = [
         E.refine_leaves(
@@ -838,11 +852,43 @@ def extract(slab: Slab, iso: float, band_left: dict | None, band_right: dict | N
         pv = plane_values(levels, gvals, unpack_keys(ckeys[on]), iso, FACE_MARGIN)
         vals.reshape(-1)[on] = pv
         del on, pv
-    del ckeys, gvals
-    slab.levels = None
+    del ckeys, gvals, levels
     release_free_heap()
     lat, faces = marching_cubes_sparse(cells, vals, -iso)
-    del cells, vals
+    return lat, faces
+
+
+def _own_leaves_of(levels: list, a: int, b: int) -> list[np.ndarray]:
+    top = len(levels) - 1
+    out = []
+    for lev in levels:
+        cx = (lev.cell_keys >> 42) << (top - lev.depth)
+        out.append(lev.leaf & (cx >= a) & (cx < b))
+    return out
+
+
+@timed
+def extract(slab: Slab, iso: float, at_leaves: bool) -> dict:
+    """The slab's part of the surface, over the leaves it owns: at the leaves' own size
+    (``at_leaves``, :func:`.extract.extract_leaves`), else on the finest lattice
+    (:func:`.extract.extract_finest`) with the points on its seams given the values both
+    slabs of a seam compute alike (:func:`plane_values`); vertices moved to chi's roots.
+    Returns its pieces (faces, boxes) and, per seam, its vertices there and their pieces."""
+    from recon_cli.mesh.topology import Connectivity
+    from recon_cli.stages.poisson.extract import extract_leaves
+
+    job = slab.job
+    levels, gvals, chi = slab.levels, slab.gvals, slab.chi
+    slab.levels = slab.gvals = None
+    top = len(levels) - 1
+    R = 1 << top
+    a, b = slab.x_range(slab.own, R)
+    if at_leaves:
+        lat, faces = extract_leaves(levels, gvals, iso, np.zeros(3), float(R), (a, b))
+        del levels, gvals
+    else:
+        lat, faces = _finest(slab, levels, gvals, iso, a, b)
+    release_free_heap()
     origin = np.asarray(job.origin)
     verts = lat * np.repeat(job.size / R, 3) + origin
     verts = chi.refine_vertices(verts, iso, origin, job.size, top)
