@@ -20,7 +20,7 @@ from recon_cli.mesh.topology import report as topology_report
 from recon_cli.stages.poisson import screened_poisson
 from recon_cli.stages.poisson.distributed import distributed_poisson
 
-from shapes import random_rotation, sphere_cloud
+from shapes import random_rotation, single_view_scan, sphere_cloud
 
 
 def _closed_one_piece(mesh, pieces: int = 1) -> None:
@@ -135,6 +135,25 @@ def test_colours_and_density_per_vertex():
     dens = m.attributes["density"]
     ref = single.mesh.attributes["density"][i]
     assert np.allclose(dens, ref, rtol=1e-3)
+
+
+def test_trim_of_an_open_scan_as_single():
+    """A single-view scan's closing sheet trimmed over three slabs: the holes and islands the
+    trim decides are joined across seams, the cut vertices on seams shared; the mesh is the
+    single-process one (faces, area removed, boundary loops), manifold, no vertex twice."""
+    rng = np.random.default_rng(0)
+    pts, nrm = single_view_scan("torus", 160, rng, direction=(0.3, 0.2, -1.0))
+    single = screened_poisson(pts, nrm, depth=7, trim=0.2)
+    res = distributed_poisson(pts, nrm, depth=7, partitions=3, trim=0.2, density=True)
+    a, b = topology_report(single.mesh), topology_report(res.mesh)
+    assert abs(b["faces"] - a["faces"]) <= 0.001 * a["faces"]
+    assert abs(res.report["trimmed_area"] - single.report["trimmed_area"]) < 1e-3
+    assert b["boundary_loops"] == a["boundary_loops"] > 0
+    assert b["components"] == a["components"]
+    assert b["edge_manifold"] and b["vertex_manifold"] and b["consistently_oriented"]
+    assert abs(b["area"] - a["area"]) < 1e-3 * a["area"]
+    assert len(np.unique(res.mesh.vertices, axis=0)) == len(res.mesh.vertices)
+    assert len(res.mesh.attributes["density"]) == len(res.mesh.vertices)
 
 
 @pytest.mark.parametrize(

@@ -379,8 +379,18 @@ def reconstruct(runner, job: S.Job, loaded: list[dict], progress: Any = None) ->
             if ko not in tables:
                 tables[ko] = _sum_tables(runner.run("density", S.own_table, lambda k: (ko,)))
             dens_spec = (ko, *tables[ko])
-    fm = runner.run("finish", S.finish, lambda k: (drop[k], dens_spec))
+    pm = runner.run("prepare", S.prepare, lambda k: (drop[k], dens_spec, job.trim > 0))
+    seam_keep = _seams_used([m["seam_use"] for m in pm])
     timings["finish"] = time.perf_counter() - t
+    trimmed, trimmed_area = 0, 0.0
+    if job.trim > 0:
+        t = time.perf_counter()
+        seam_keep, trimmed, trimmed_area = _trim(runner, job.trim, pm, seam_keep)
+        timings["trim"] = time.perf_counter() - t
+    del pm
+    t = time.perf_counter()
+    fm = runner.run("export", S.export, lambda k: (seam_keep[k],))
+    timings["finish"] += time.perf_counter() - t
     report = {
         "depth": job.depth,
         "tree_depth": tree_depth,
@@ -389,8 +399,8 @@ def reconstruct(runner, job: S.Job, loaded: list[dict], progress: Any = None) ->
         "residual": float(residual),
         "bubbles_removed": specks,
         "islands_removed": islands,
-        "trimmed_faces": 0,
-        "trimmed_area": 0.0,
+        "trimmed_faces": int(trimmed),
+        "trimmed_area": float(trimmed_area),
         "noise": noise_med,
         "samples": int(sum(m["own_samples"] for m in loaded)),
         "finest_cell": cell,
@@ -413,6 +423,87 @@ def reconstruct(runner, job: S.Job, loaded: list[dict], progress: Any = None) ->
         },
     }
     return {"parts": fm, "report": report, "phases": getattr(runner, "phases", {})}
+
+
+def _seams_used(uses: list[dict]) -> list[dict]:
+    """Per slab, the seam vertices either slab of each of its seams uses (the two export
+    the same ones): ``{"left": mask, "right": mask}``."""
+    n = len(uses)
+    out = [{"left": u["left"].copy(), "right": u["right"].copy()} for u in uses]
+    for k in range(1, n):
+        both = uses[k - 1]["right"] | uses[k]["left"]
+        out[k - 1]["right"] = both
+        out[k]["left"] = both.copy()
+    return out
+
+
+def _join(parts: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Join the slabs' pieces (``{"areas": (n_k,), "links": {side: (edge keys, labels)}}``)
+    across the seams' edges: the global piece of each slab's piece (concatenated, slab
+    offsets) and the pieces' summed areas."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    sizes = [len(p["areas"]) for p in parts]
+    off = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    total = int(off[-1])
+    rows, cols = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    for k in range(1, len(parts)):
+        rk, rl = parts[k - 1]["links"]["right"]
+        lk, ll = parts[k]["links"]["left"]
+        _, ia, ib = np.intersect1d(rk, lk, return_indices=True)
+        rows.append(rl[ia] + off[k - 1])
+        cols.append(ll[ib] + off[k])
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    g = coo_matrix((np.ones(len(r)), (r, c)), shape=(total, total))
+    ncomp, comp = connected_components(g, directed=False)
+    areas = np.bincount(comp, weights=np.concatenate([p["areas"] for p in parts]), minlength=ncomp)
+    return comp, off, areas
+
+
+def _trim(
+    runner, trim: float, pm: list[dict], seam_keep: list[dict]
+) -> tuple[list[dict | None], int, float]:
+    """The trim over the slabs (:func:`.trim.trim_by_density`'s steps, its islands and holes
+    joined across seams); returns the seam vertices kept, the trimmed faces and the fraction
+    of the area removed."""
+    from recon_cli.stages.poisson.trim import ISLAND_AREA_RATIO
+
+    med = exact_median(runner, "density", S.density_values, [m["hist"] for m in pm], "trim")
+    threshold = trim * float(med)
+    cm = runner.run("trim", S.trim_cut, lambda k: (threshold,))
+    faces_before = sum(m["faces"] for m in cm)
+    n = len(cm)
+    if not any(m["cut"] for m in cm):
+        # nothing below the threshold: the mesh as it is
+        return seam_keep, 0, 0.0
+    total = sum(m["area"] for m in cm)
+    kept_area = sum(m["kept_area"] for m in cm)
+    # small low pieces are holes in a sparse patch: kept
+    comp, off, areas = _join(cm)
+    small = areas < ISLAND_AREA_RATIO * kept_area
+    flip = [np.flatnonzero(small[comp[off[k] : off[k + 1]]]) for k in range(n)]
+    km = runner.run("trim", S.trim_keep, lambda k: (flip[k],))
+    # small kept pieces are islands in the closing sheet: dropped
+    comp, off, areas = _join(km)
+    small = areas < ISLAND_AREA_RATIO * kept_area
+    drop = [np.flatnonzero(small[comp[off[k] : off[k + 1]]]) for k in range(n)]
+    use = []
+    for k, m in enumerate(km):
+        u = {}
+        for side, (ranks, labels) in m["seam_pieces"].items():
+            alive = ~np.isin(labels, drop[k])
+            mask = np.zeros(m["seam_counts"][side], bool)
+            mask[ranks[alive]] = True
+            u[side] = mask
+        use.append(u)
+    keep = _seams_used(use)
+    dm = runner.run("trim", S.trim_drop, lambda k: (drop[k], keep[k]))
+    removed = sum(m["removed_area"] for m in dm)
+    untouched = sum(m["untouched"] for m in dm)
+    if sum(m["faces"] for m in dm) == 0:
+        raise ParameterError(f"trim {trim:g} removes the whole surface: use a smaller value")
+    return [None] * n, faces_before - untouched, removed / total if total > 0 else 0.0
 
 
 def _merge_pieces(runner, em: list[dict], cell: float, bubble_cells: int, island_points: int):

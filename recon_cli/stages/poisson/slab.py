@@ -123,6 +123,8 @@ class Slab:
     seam: dict = field(default_factory=dict)
     labels: np.ndarray | None = None
     vdens: np.ndarray | None = None
+    at_samples: np.ndarray | None = None
+    trim: dict | None = None
 
     @property
     def res(self) -> int:
@@ -942,35 +944,72 @@ def island_points(slab: Slab, lo: np.ndarray, hi: np.ndarray) -> dict:
     return {"counts": out}
 
 
-@timed
-def finish(slab: Slab, drop: np.ndarray, density: tuple | None) -> dict:
-    """The slab's output: its pieces but the dropped ones, its own vertices (the left seam's
-    first, then the others; the right seam's belong to the next slab) with density and
-    colours, and its faces, whose references to the right seam's vertices are ``-1 - rank``.
-    ``density``: None, ``(level,)`` (the slab's own table) or ``(level, keys, dens)`` (a
-    global one)."""
-    job = slab.job
-    faces, verts, labels = slab.faces, slab.verts, slab.labels
-    if len(drop):
-        faces = faces[~np.isin(labels, drop)]
-    nv = len(verts)
+def _seam_ranks(slab: Slab) -> tuple[np.ndarray, np.ndarray]:
+    """(nv,) rank of each vertex among the left seam's / right seam's vertices (-1 if none):
+    the seam vertices sit first (left) and last (right) in the slab's vertices, in the order
+    both slabs of a seam give them."""
+    nv = len(slab.verts)
     nl, nr = slab.seam["left"], slab.seam["right"]
-    used = np.zeros(nv, bool)
+    rl = np.full(nv, -1, np.int64)
+    rr = np.full(nv, -1, np.int64)
+    rl[:nl] = np.arange(nl)
+    rr[nv - nr :] = np.arange(nr)
+    return rl, rr
+
+
+def _links(slab: Slab, faces: np.ndarray, labels: np.ndarray) -> dict:
+    """Per seam, the seam edges (both ends on it) of ``faces`` and the faces' pieces: a piece
+    goes on across the seam through its edges there (an edge key: the ends' ranks)."""
+    rl, rr = _seam_ranks(slab)
+    out = {}
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    lab = np.tile(labels, 3)
+    for side, rank in (("left", rl), ("right", rr)):
+        ra, rb = rank[e[:, 0]], rank[e[:, 1]]
+        ok = (ra >= 0) & (rb >= 0)
+        key = np.minimum(ra, rb)[ok] * (1 << 31) + np.maximum(ra, rb)[ok]
+        out[side] = (key, lab[ok])
+    return out
+
+
+def _seam_use(slab: Slab, faces: np.ndarray) -> dict:
+    """Per seam, which of its vertices ``faces`` use."""
+    used = np.zeros(len(slab.verts), bool)
     used[faces.reshape(-1)] = True
-    right = np.zeros(nv, bool)
-    right[nv - nr :] = True
-    exported = used & ~right
-    index = np.cumsum(exported) - 1
-    rank = np.cumsum(used & right) - 1
-    fl = faces.reshape(-1)
-    out_f = np.where(right[fl], -1 - rank[fl], index[fl]).reshape(-1, 3)
-    v = verts[exported]
-    res = 1 << slab.tree_depth
-    msg: dict[str, Any] = {
-        "left_seam": int(used[:nl].sum()),
-        "right_seam": int((used & right).sum()),
-    }
-    origin = np.asarray(job.origin)
+    nv = len(used)
+    nl, nr = slab.seam["left"], slab.seam["right"]
+    return {"left": used[:nl], "right": used[nv - nr :]}
+
+
+def _compact(slab: Slab, keep_faces: np.ndarray, extra: dict | None = None) -> None:
+    """Keep the faces flagged and the vertices they use, seam layout kept (the left seam's
+    vertices first, the right seam's last, in their order)."""
+    faces = slab.faces[keep_faces]
+    used = np.zeros(len(slab.verts), bool)
+    used[faces.reshape(-1)] = True
+    nv = len(used)
+    nl, nr = slab.seam["left"], slab.seam["right"]
+    # seam vertices stay when either slab of the seam uses them (extra: the global verdict)
+    if extra is not None:
+        used[:nl] |= extra["left"]
+        used[nv - nr :] |= extra["right"]
+    remap = np.cumsum(used) - 1
+    slab.faces = remap[faces]
+    slab.verts = slab.verts[used]
+    if slab.vdens is not None:
+        slab.vdens = slab.vdens[used]
+    slab.seam = {"left": int(used[:nl].sum()), "right": int(used[nv - nr :].sum())}
+
+
+@timed
+def prepare(slab: Slab, drop: np.ndarray, density: tuple | None, at_samples: bool) -> dict:
+    """Drop the pieces the coordinator dropped; the density at the vertices (``density``:
+    None, ``(level,)`` the slab's own table, ``(level, keys, dens)`` a global one) and, with
+    ``at_samples``, the histogram of the own samples' density (the trim's median)."""
+    job = slab.job
+    keep = ~np.isin(slab.labels, drop) if len(drop) else np.ones(len(slab.faces), bool)
+    slab.labels = None
+    msg: dict[str, Any] = {}
     if density is not None:
         if len(density) == 1:
             table = slab.tables.get(density[0])
@@ -978,14 +1017,167 @@ def finish(slab: Slab, drop: np.ndarray, density: tuple | None) -> dict:
                 table = _density_table(slab.smp, density[0])
         else:
             table = global_table(*density)
-        msg["density"] = _eval_density(table, (v - origin) / job.size) if len(v) else np.zeros(0)
+        slab.tables = {"out": table}
+        origin = np.asarray(job.origin)
+        v = slab.verts
+        slab.vdens = _eval_density(table, (v - origin) / job.size) if len(v) else np.zeros(0)
+        if at_samples:
+            own = slab.smp.pos[slab.own_s]
+            slab.at_samples = _eval_density(table, own) if len(own) else np.zeros(0)
+            msg["hist"] = float_histogram(slab.at_samples)
+    _compact(slab, keep)
+    msg["seam_use"] = _seam_use(slab, slab.faces)
+    return msg
+
+
+@timed
+def density_values(slab: Slab, bins: np.ndarray) -> dict:
+    return {"values": values_in(slab.at_samples, bins)}
+
+
+@timed
+def trim_cut(slab: Slab, threshold: float) -> dict:
+    """The trim's cut (:func:`.trim.cut_by_density`) of the slab's faces; returns the areas
+    and the pieces of the low side (small ones are holes the trim keeps)."""
+    from recon_cli.mesh.topology import Connectivity
+    from recon_cli.stages.poisson.trim import cut_by_density
+
+    v, f, d = slab.verts, slab.faces, slab.vdens
+    high = d > threshold
+    nh = high[f].sum(axis=1) if len(f) else np.zeros(0, np.int64)
+    nv = len(v)
+    nl, nr = slab.seam["left"], slab.seam["right"]
+    slab.trim = {"whole_high": int((nh == 3).sum()), "whole_low": int((nh == 0).sum())}
+    msg: dict[str, Any] = {"faces": len(f), "cut": bool(len(f) and nh.min() < 3)}
+    if len(f):
+        verts, faces, side, dens, edges = cut_by_density(v, f, d, threshold, high, nh)
+    else:
+        verts, faces, side, dens, edges = v, f, np.zeros(0, bool), d, np.zeros((0, 2), np.int64)
+    # the new vertices on a seam's edges belong to the seam: they join its vertices, in the
+    # order both slabs give them (by position along the plane)
+    sd = np.zeros(len(verts), np.int8)
+    sd[:nl] = -1
+    sd[nv - nr : nv] = 1
+    if len(edges):
+        # a new vertex on an edge of two vertices of one seam is on that seam
+        a, b = sd[edges[:, 0]], sd[edges[:, 1]]
+        sd[nv:] = np.where(a == b, a, 0)
+    order = np.concatenate(
+        [
+            _by_plane_position(verts, np.flatnonzero(sd == -1)),
+            np.flatnonzero(sd == 0),
+            _by_plane_position(verts, np.flatnonzero(sd == 1)),
+        ]
+    )
+    inv = np.empty(len(order), np.int64)
+    inv[order] = np.arange(len(order))
+    slab.verts, slab.vdens, slab.faces = verts[order], dens[order], inv[faces]
+    slab.seam = {"left": int((sd == -1).sum()), "right": int((sd == 1).sum())}
+    area = Connectivity(slab.faces, len(slab.verts), slab.verts).face_areas
+    slab.trim.update(side=side, area=area)
+    msg["area"] = float(area.sum())
+    msg["kept_area"] = float(area[side].sum())
+    msg.update(_part(slab, ~side, area))
+    return msg
+
+
+def _by_plane_position(verts: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    return idx[np.lexsort((verts[idx, 2], verts[idx, 1]))]
+
+
+def _part(slab: Slab, part: np.ndarray, area: np.ndarray) -> dict:
+    """The pieces of the faces flagged ``part`` (joined across edges), their areas and seam
+    links."""
+    from recon_cli.mesh.topology import Connectivity
+
+    idx = np.flatnonzero(part)
+    faces = slab.faces[idx]
+    lab = (
+        Connectivity(faces, len(slab.verts)).face_components.astype(np.int64)
+        if len(idx)
+        else np.zeros(0, np.int64)
+    )
+    slab.trim["part"], slab.trim["labels"] = idx, lab
+    n = int(lab.max()) + 1 if len(lab) else 0
+    return {
+        "areas": np.bincount(lab, weights=area[idx], minlength=n),
+        "links": _links(slab, faces, lab),
+    }
+
+
+@timed
+def trim_keep(slab: Slab, flip: np.ndarray) -> dict:
+    """Keep the holes the coordinator re-admitted (low pieces ``flip``); returns the pieces
+    of what is kept (small ones are islands the trim drops) and the seams' vertices they use
+    per piece."""
+    t = slab.trim
+    keep = t["side"].copy()
+    if len(flip):
+        keep[t["part"][np.isin(t["labels"], flip)]] = True
+    t["keep"] = keep
+    msg = _part(slab, keep, t["area"])
+    idx = slab.trim["part"]
+    faces = slab.faces[idx]
+    lab = slab.trim["labels"]
+    rl, rr = _seam_ranks(slab)
+    fl = faces.reshape(-1)
+    lab3 = np.repeat(lab, 3)
+    msg["seam_pieces"] = {
+        "left": (rl[fl][rl[fl] >= 0], lab3[rl[fl] >= 0]),
+        "right": (rr[fl][rr[fl] >= 0], lab3[rr[fl] >= 0]),
+    }
+    msg["seam_counts"] = dict(slab.seam)
+    return msg
+
+
+@timed
+def trim_drop(slab: Slab, drop: np.ndarray, seam_keep: dict) -> dict:
+    """Drop the kept side's islands; the report's figures of the trim."""
+    t = slab.trim
+    keep = t["keep"]
+    if len(drop):
+        keep[t["part"][np.isin(t["labels"], drop)]] = False
+    wh, wl = t["whole_high"], t["whole_low"]
+    msg = {
+        "removed_area": float(t["area"][~keep].sum()),
+        "untouched": int(wh + keep[wh : wh + wl].sum()),
+    }
+    slab.trim = None
+    _compact(slab, keep, seam_keep)
+    msg["faces"] = len(slab.faces)
+    return msg
+
+
+@timed
+def export(slab: Slab, seam_keep: dict | None) -> dict:
+    """The slab's output: its own vertices (the left seam's first, then the others; the
+    right seam's belong to the next slab) with density and colours, and its faces, whose
+    references to the right seam's vertices are ``-1 - rank``. ``seam_keep``: per seam, the
+    vertices either slab uses (both export the same ones)."""
+    job = slab.job
+    if seam_keep is not None:
+        _compact(slab, np.ones(len(slab.faces), bool), seam_keep)
+    faces, verts = slab.faces, slab.verts
+    nv = len(verts)
+    nr = slab.seam["right"]
+    right = np.zeros(nv, bool)
+    right[nv - nr :] = True
+    index = np.cumsum(~right) - 1
+    rank = np.cumsum(right) - 1
+    fl = faces.reshape(-1)
+    out_f = np.where(right[fl], -1 - rank[fl], index[fl]).reshape(-1, 3)
+    v = verts[~right]
+    res = 1 << slab.tree_depth
+    msg: dict[str, Any] = {"left_seam": slab.seam["left"], "right_seam": nr}
+    if job.density:
+        msg["density"] = slab.vdens[~right]
     if slab.colors is not None and len(v):
         from recon_cli.stages.poisson import _interpolate_colors
 
         msg["colors"] = _interpolate_colors(slab.pts, slab.colors, v, job.size / res)
     msg["vertices"] = v
     msg["faces"] = out_f
-    slab.faces = slab.verts = slab.labels = None
+    slab.faces = slab.verts = slab.vdens = None
     return msg
 
 
