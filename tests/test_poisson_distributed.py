@@ -249,7 +249,7 @@ def test_command_reads_the_file_by_chunks(tmp_path, monkeypatch, capsys):
     monkeypatch.undo()
     rep = json.loads(captured.out)
     assert rep["distributed"]["chunks"] == 3
-    assert set(rep["distributed"]["phases"]) >= {"load", "solve", "extract", "finish"}
+    assert set(rep["distributed"]["phases"]) >= {"load", "solve", "extract", "export"}
     mesh = load(str(out))
     _closed_one_piece(mesh)
     assert mesh.vertices.dtype == np.float64

@@ -24,8 +24,8 @@ median that stands in where no fit answers (exact, by a histogram of the values'
 patterns and a second round for the values in the median's bins), the iso-value (the
 samples' mean chi). Each slab places its samples at their splat depths from these.
 
-**Coarse solve.** Levels up to ``coarse_depth = depth - 3`` (at least 5) are solved by the
-coordinator for the whole cube, as the single-process solve does: its tree is built from the
+**Coarse solve.** Levels up to ``coarse_depth = depth - 3`` (between 5 and 8) are solved by
+the coordinator for the whole cube, as the single-process solve does: its tree is built from the
 slabs' own coarse items and, for the finer ones, the cells of level ``coarse_depth + 1``
 they occupy (all the coarse levels depend on); the right-hand side is the coarse items'
 field plus the finer items' part restricted onto level ``coarse_depth``, which each slab
@@ -151,7 +151,10 @@ def sub_slab(x_unit: np.ndarray, nsub: int) -> np.ndarray:
 
 
 def coarse_depth_for(depth: int) -> int:
-    return min(depth, max(S.PARTITION_DEPTH, depth - S.COARSE_OFFSET))
+    """The levels the coordinator solves: ``depth - COARSE_OFFSET``, at least the partition
+    depth, at most :data:`.slab.COARSE_MAX` (the coarse tree stays small at any depth; the
+    slabs solve the rest)."""
+    return min(depth, max(S.PARTITION_DEPTH, min(depth - S.COARSE_OFFSET, S.COARSE_MAX)))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -276,9 +279,12 @@ def make_job(origin, size, perm, depth, p: dict) -> S.Job:
     )
 
 
-def reconstruct(runner, job: S.Job, loaded: list[dict], progress: Any = None) -> dict:
+def reconstruct(
+    runner, job: S.Job, loaded: list[dict], progress: Any = None, out_dir: str | None = None
+) -> dict:
     """Every step after the slabs' ``load`` (whose messages are ``loaded``): returns the
-    mesh's parts per slab and the report (module docstring)."""
+    mesh's parts per slab (in ``out_dir``'s files when given) and the report (module
+    docstring)."""
     from recon_cli.stages.poisson import BUBBLE_CELLS, ISLAND_POINTS
 
     t0 = time.perf_counter()
@@ -328,7 +334,7 @@ def reconstruct(runner, job: S.Job, loaded: list[dict], progress: Any = None) ->
     del im
     coarse = S.build_coarse_levels(cpos, clvl, tree_depth, job)
     del cpos, clvl
-    rm = runner.run("restrict", S.restrict, lambda k: (S.level_message(coarse),))
+    rm = runner.run("restrict", S.restrict, lambda k: (S.level_message(coarse), coarse_fields))
     finer = None
     parts = [m["finer"] for m in rm if "finer" in m]
     if parts:
@@ -345,7 +351,7 @@ def reconstruct(runner, job: S.Job, loaded: list[dict], progress: Any = None) ->
     del finer, screening
     timings["coarse_solve"] = time.perf_counter() - t
     t = time.perf_counter()
-    sm = runner.run("solve", S.solve, lambda k: (coefs, coarse_fields))
+    sm = runner.run("solve", S.solve, lambda k: (coefs,))
     iso = sum(m["iso_sum"] for m in sm) / sum(m["iso_count"] for m in sm)
     timings["solve"] = time.perf_counter() - t
     # ---- extraction, each slab with its neighbours' bands
@@ -389,7 +395,11 @@ def reconstruct(runner, job: S.Job, loaded: list[dict], progress: Any = None) ->
         timings["trim"] = time.perf_counter() - t
     del pm
     t = time.perf_counter()
-    fm = runner.run("export", S.export, lambda k: (seam_keep[k],))
+    fm = runner.run(
+        "export",
+        S.export,
+        lambda k: (seam_keep[k], None if out_dir is None else os.path.join(out_dir, f"s{k:03d}")),
+    )
     timings["finish"] += time.perf_counter() - t
     report = {
         "depth": job.depth,
@@ -773,13 +783,17 @@ def reconstruct_files(
     full_depth: int = 5,
     cg_tolerance: float = 1e-3,
     temp_dir: str | None = None,
+    output: str | None = None,
+    history: list[str] | None = None,
     progress: Any = None,
 ):
     """:func:`distributed_poisson` from files (``inputs``: a file, folder or pattern, or a
     list of them; :mod:`recon_cli.io.chunks`) that no process reads whole: the workers read
     the chunks, write them per sub-slab into a temporary folder (``temp_dir``, which the
     workers must share; removed at the end), and each slab reads its rows. Returns the
-    :class:`.PoissonResult` (its mesh assembled here)."""
+    :class:`.PoissonResult`; with ``output`` (a binary PLY path) the mesh is streamed there
+    from the slabs' files instead (``history`` its comments, after the input's) and the
+    result's mesh is None."""
     import shutil
     import tempfile
 
@@ -855,15 +869,28 @@ def reconstruct_files(
         slabs = [S.slab_of(job, k, parts, *plan[k]) for k in range(parts)]
         runner = DaskRunner(client, slabs, progress, "poisson")
         loaded = runner.run("load", S.load_files, lambda k: (files, nsub))
-        out = reconstruct(runner, job, loaded, progress)
+        out = reconstruct(runner, job, loaded, progress, tmp if output is not None else None)
+        dtypes = {s["point_dtype"] for s in scans}
+        point_dtype = np.float64 if np.dtype("<f8").str in dtypes else np.float32
+        hist = (list(scans[0]["history"]) if scans else []) + list(history or [])
+        if output is not None:
+            t = time.perf_counter()
+            cd = next(iter(colors))
+            write_parts_ply(output, out["parts"], perm, point_dtype, cd, job.density, hist)
+            out["report"]["timings"]["write"] = time.perf_counter() - t
+            mesh = None
+            rep = out["report"]
+            rep["vertices"] = sum(p["counts"][0] for p in out["parts"])
+            rep["faces"] = sum(p["counts"][1] for p in out["parts"])
+            rep["distributed"]["phases"] = out.get("phases", {})
     finally:
         if runner is not None:
             runner.close()
         shutil.rmtree(tmp, ignore_errors=True)
-    mesh = assemble(out, job, perm, colors != {None})
-    dtypes = {s["point_dtype"] for s in scans}
-    mesh.point_dtype = np.float64 if np.dtype("<f8").str in dtypes else np.float32
-    mesh.history = list(scans[0]["history"]) if scans else []
+    if output is None:
+        mesh = assemble(out, job, perm, colors != {None})
+        mesh.point_dtype = point_dtype
+        mesh.history = hist
     rep = out["report"]
     rep["ignored_points"] = int(rows - kept)
     rep["timings"]["read"] = read_s
@@ -919,7 +946,22 @@ def run_from_files(
         raise ParameterError(
             "--workers/--scheduler read IN by its suffix: leave out --input-format"
         )
+    from recon_cli.stages import provenance_line
+
     folder = os.path.dirname(os.path.abspath(output)) if output != "-" else None
+    # a binary PLY file is streamed from the slabs' parts; anything else is assembled here
+    fmt = save_kw.get("format")
+    stream = (
+        output != "-"
+        and not ascii
+        and not save_kw.get("points_only")
+        and (fmt == "ply" or (fmt is None and output.lower().endswith(".ply")))
+    )
+    if stream:
+        from recon_cli.io.atomic import check_output
+
+        check_output(output)
+    prov = provenance_line("poisson", {**SPEC.defaults(), **params})
     t0 = time.perf_counter()
     with open_client(v["scheduler"], v["workers"], v["memory_limit"], stealing=False) as (
         client,
@@ -937,10 +979,14 @@ def run_from_files(
             density=v["density"],
             trim=v["trim"],
             temp_dir=folder,
+            output=output if stream else None,
+            history=[prov],
             progress=progress,
         )
     t1 = time.perf_counter()
-    save(res.mesh, output, ascii=ascii, **save_kw)
+    if res.mesh is not None:
+        res.mesh.history.append(prov)
+        save(res.mesh, output, ascii=ascii, **save_kw)
     t2 = time.perf_counter()
     rep = res.report
     report = {k: rep[k] for k in REPORT_KEYS}
@@ -953,3 +999,83 @@ def run_from_files(
     }
     report["output"] = "<stdout>" if output == "-" else output
     return report
+
+
+# ---------------------------------------------------------------------------------------------
+# the output, streamed
+
+# rows written at a time when streaming the slabs' parts
+WRITE_ROWS = 1 << 20
+
+
+def _parts_header(parts: list[dict], perm, point_dtype, colors_dtype, density: bool, history):
+    """The PLY header of the whole mesh (:func:`recon_cli.io.ply.geometry_to_ply`'s layout for
+    the same data) and its vertex element's properties."""
+    from recon_cli.geometry import TriangleMesh, float32_rounding
+    from recon_cli.io.ply import geometry_to_ply, header_bytes
+
+    boxes = [p["box"] for p in parts if p["box"] is not None]
+    inv = np.argsort(perm)
+    lo = np.min([b[0] for b in boxes], axis=0)[inv] if boxes else np.zeros(3)
+    hi = np.max([b[1] for b in boxes], axis=0)[inv] if boxes else np.zeros(3)
+    double = np.dtype(point_dtype) == np.float64 or float32_rounding(np.stack([lo, hi]))[0] > 0
+    dummy = TriangleMesh(
+        vertices=np.zeros((1, 3)), faces=np.zeros((1, 3), np.int64), history=list(history)
+    )
+    dummy.point_dtype = np.float64 if double else np.float32
+    if colors_dtype is not None:
+        dummy.colors = np.zeros((1, colors_dtype[1]), np.dtype(colors_dtype[0]))
+    if density:
+        dummy.attributes["density"] = np.zeros(1)
+    ply = geometry_to_ply(dummy)
+    ply.elements[0].count = sum(p["counts"][0] for p in parts)
+    ply.elements[1].count = sum(p["counts"][1] for p in parts)
+    return header_bytes(ply), ply.elements[0].properties
+
+
+def write_parts_ply(
+    path: str, parts: list[dict], perm, point_dtype, colors_dtype, density: bool, history
+) -> None:
+    """Write the slabs' parts (files, :func:`.slab.export`) as one binary PLY mesh, a block
+    of rows at a time (this process never holds the mesh): vertices in slab order with the
+    axes turned back, then the faces, references to a right seam resolved to the next
+    slab's first vertices. Atomic: a failure leaves no file."""
+    from recon_cli.io.atomic import atomic_open
+
+    head, props = _parts_header(parts, perm, point_dtype, colors_dtype, density, history)
+    vdt = np.dtype([(p.name, "<" + p.dtype) for p in props])
+    fdt = np.dtype([("n", "u1"), ("i", "<i4", (3,))])
+    inv = list(np.argsort(perm))
+    names = [p.name for p in props]
+    nv = [p["counts"][0] for p in parts]
+    off = np.concatenate([[0], np.cumsum(nv)]).astype(np.int64)
+    if off[-1] >= 2**31:
+        raise StageFailed(
+            "the mesh has more than 2**31 vertices: PLY's int face indices cannot hold it"
+        )
+    with atomic_open(path) as f:
+        f.write(head)
+        for p in parts:
+            v = np.load(p["vertices"], mmap_mode="r")
+            col = np.load(p["colors"], mmap_mode="r") if "colors" in p else None
+            den = np.load(p["density"], mmap_mode="r") if "density" in p else None
+            for a in range(0, len(v), WRITE_ROWS):
+                rows = np.empty(min(WRITE_ROWS, len(v) - a), vdt)
+                block = v[a : a + WRITE_ROWS]
+                for j, c in enumerate(("x", "y", "z")):
+                    rows[c] = block[:, inv[j]]
+                if col is not None:
+                    for j, c in enumerate(names[3 : 3 + col.shape[1]]):
+                        rows[c] = col[a : a + WRITE_ROWS, j]
+                if den is not None:
+                    rows["density"] = den[a : a + WRITE_ROWS]
+                f.write(rows.tobytes())
+        for k, p in enumerate(parts):
+            fc = np.load(p["faces"], mmap_mode="r")
+            nxt = off[min(k + 1, len(parts) - 1)]
+            for a in range(0, len(fc), WRITE_ROWS):
+                block = np.asarray(fc[a : a + WRITE_ROWS])
+                rows = np.empty(len(block), fdt)
+                rows["n"] = 3
+                rows["i"] = np.where(block >= 0, block + off[k], nxt + (-1 - block))
+                f.write(rows.tobytes())

@@ -56,8 +56,10 @@ from recon_cli.stages.poisson.splat import (
 PARTITION_DEPTH = 5
 # slabs and their pads are made of whole sub-slabs, the cells of this level along x
 SUB_DEPTH = 8
-# the coordinator solves the levels up to depth - COARSE_OFFSET for the whole cube
+# the coordinator solves the levels up to depth - COARSE_OFFSET for the whole cube, at most
+# COARSE_MAX (a 256^3 lattice: its tree stays small whatever the depth)
 COARSE_OFFSET = 3
+COARSE_MAX = 8
 # a slab solves its finer levels over its own cells and this many cells of the first fine
 # level (coarse depth + 1) beyond each seam
 PAD_CELLS = 8
@@ -111,7 +113,7 @@ class Slab:
     tree_depth: int = 0
     fine_levels: list = field(default_factory=list)
     fine_fields: dict = field(default_factory=dict)
-    own_fine_fields: dict = field(default_factory=dict)
+    normal_rhs: Any = None
     levels: list | None = None
     node_keys: list | None = None
     gvals: list | None = None
@@ -398,8 +400,6 @@ def items(slab: Slab, tree_depth: int, alpha: float, fallback: float | None) -> 
         msg["noise_hist"] = float_histogram(slab.noise[slab.own_s])
     # the slab's own finer levels: fields (own + pad, and own alone for the coarse rhs) and tree
     slab.fine_fields = spread_fields(pos[fine], vec[fine], lvl[fine]) if fine.any() else {}
-    of = own & fine
-    slab.own_fine_fields = spread_fields(pos[of], vec[of], lvl[of]) if of.any() else {}
     if fine.any() and tree_depth > dc:
         levels = build_levels(
             pos[fine],
@@ -451,10 +451,12 @@ def levels_from_message(msg: list[tuple]) -> list[Level]:
 
 
 @timed
-def restrict(slab: Slab, coarse: list[tuple]) -> dict:
-    """The slab's whole tree (the global coarse levels and its own finer ones) and the
-    coefficient sets; returns its own items' right-hand side on the finest coarse level,
-    restricted from the finer levels (the coordinator adds the slabs' parts)."""
+def restrict(slab: Slab, coarse: list[tuple], coarse_fields: dict) -> dict:
+    """The slab's whole tree (the global coarse levels and its own finer ones), the
+    coefficient sets and the normals' right-hand side (:class:`.bspline.NormalRHS`, the
+    coarse items' field the coordinator's); returns the finer levels' part of the right-hand
+    side on the finest coarse level at the cells the slab owns (every item it reaches is
+    within the pad: the slabs' parts add up to the whole cube's)."""
     job = slab.job
     levels = levels_from_message(coarse)
     dc = len(levels) - 1
@@ -473,12 +475,21 @@ def restrict(slab: Slab, coarse: list[tuple]) -> dict:
         level_fields(levels, job.boundary) if len(levels) > 1 else ([None], None)
     )
     msg: dict[str, Any] = {"cells": [len(lev.cell_keys) for lev in levels]}
-    if len(levels) - 1 > dc and slab.own_fine_fields and dc >= 1:
-        up = NormalRHS(slab.own_fine_fields, slab.lfs).finer[dc]
+    if len(levels) - 1 > dc and dc >= 1:
+        fields = dict(coarse_fields)
+        fields.update(slab.fine_fields)
+        slab.fine_fields = {}
+        slab.normal_rhs = NormalRHS(fields, slab.lfs)
+        del fields
+        up = slab.normal_rhs.finer[dc]
         if up is not None:
-            nz = np.flatnonzero(up)
+            # the children of each parent of E, in blocks of 8 (x offset: bit 0)
+            f = slab.lfs[dc]
+            cx = 2 * (f.q_keys >> 42)[:, None] + (np.arange(8) & 1)[None, :]
+            a, b = slab.x_range(slab.own, 1 << dc)
+            mine = ((cx >= a) & (cx < b)).reshape(-1) & (up != 0)
+            nz = np.flatnonzero(mine)
             msg["finer"] = (nz, up[nz])
-    slab.own_fine_fields = {}
     release_free_heap()
     return msg
 
@@ -653,7 +664,7 @@ def apply_band(slab: Slab, side: int, band: dict) -> None:
 
 
 @timed
-def solve(slab: Slab, coefs: list, coarse_fields: dict) -> dict:
+def solve(slab: Slab, coefs: list) -> dict:
     """Solve the slab's finer levels on the coordinator's coarse chi; returns the own
     samples' share of the iso-value, the per-level figures and the bands for the
     neighbours."""
@@ -664,9 +675,6 @@ def solve(slab: Slab, coefs: list, coarse_fields: dict) -> dict:
     if arrays is None:  # a tree of one level: nothing to solve
         raise StageFailed("distributed poisson: the tree has a single level")
     set_coefficients(lfs, arrays, coefs)
-    fields = dict(coarse_fields)
-    fields.update(slab.fine_fields)
-    slab.fine_fields = {}
     smp = slab.smp
 
     def screening(d):
@@ -676,7 +684,7 @@ def solve(slab: Slab, coefs: list, coarse_fields: dict) -> dict:
         return merged_positions(sw, sp), sw
 
     if len(levels) - 1 > dc:
-        normal_rhs = NormalRHS(fields, lfs)
+        normal_rhs, slab.normal_rhs = slab.normal_rhs, None
         stats, it, rel = solve_levels(
             levels, lfs, arrays, normal_rhs, screening, dc + 1, job.full_depth, job.cg_tolerance
         )
@@ -684,7 +692,6 @@ def solve(slab: Slab, coefs: list, coarse_fields: dict) -> dict:
         msg["levels"] = stats
         msg["iterations"] = it
         msg["residual"] = rel
-    del fields
     # the leaves (cells without children in the next level) and the field
     for d in range(1, len(levels)):
         levels[d - 1].leaf = ~O.cell_has_child(levels[d].cell_parent, len(levels[d - 1].cell_keys))
@@ -776,7 +783,16 @@ def field(slab: Slab, iso: float, band_left: dict | None, band_right: dict | Non
     chi = slab.chi
     for lev in levels:
         set_corners(lev, lev.node_keys)
-    gvals = [chi.at_nodes(lev, lev.node_keys) for lev in levels]
+    # chi at the nodes within a cell of the slab's own range, at every level (the rest, the
+    # pad's and the coarse levels' far away, is never read: 0)
+    gvals = []
+    for lev in levels:
+        a, b = slab.x_range(slab.own, 1 << lev.depth)
+        nx = lev.node_keys >> 42
+        sel = np.flatnonzero((nx >= a - 1) & (nx <= b + 1))
+        g = np.zeros(len(lev.node_keys))
+        g[sel] = chi.at_nodes(lev, lev.node_keys[sel])
+        gvals.append(g)
     # the extraction interpolates each leaf from its corners: the finer side of a coarse
     # leaf's faces takes its values (bspline.solve)
     for d in range(1, len(levels)):
@@ -1149,11 +1165,12 @@ def trim_drop(slab: Slab, drop: np.ndarray, seam_keep: dict) -> dict:
 
 
 @timed
-def export(slab: Slab, seam_keep: dict | None) -> dict:
+def export(slab: Slab, seam_keep: dict | None, prefix: str | None = None) -> dict:
     """The slab's output: its own vertices (the left seam's first, then the others; the
     right seam's belong to the next slab) with density and colours, and its faces, whose
     references to the right seam's vertices are ``-1 - rank``. ``seam_keep``: per seam, the
-    vertices either slab uses (both export the same ones)."""
+    vertices either slab uses (both export the same ones). With ``prefix`` the arrays go to
+    ``prefix.<name>.npy`` (the message names them), else in the message."""
     job = slab.job
     if seam_keep is not None:
         _compact(slab, np.ones(len(slab.faces), bool), seam_keep)
@@ -1178,6 +1195,13 @@ def export(slab: Slab, seam_keep: dict | None) -> dict:
     msg["vertices"] = v
     msg["faces"] = out_f
     slab.faces = slab.verts = slab.vdens = None
+    msg["counts"] = (len(v), len(out_f))
+    msg["box"] = (v.min(axis=0), v.max(axis=0)) if len(v) else None
+    if prefix is not None:
+        for name in ("vertices", "faces", "colors", "density"):
+            if name in msg:
+                np.save(f"{prefix}.{name}.npy", msg[name])
+                msg[name] = f"{prefix}.{name}.npy"
     return msg
 
 
