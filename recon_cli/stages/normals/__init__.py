@@ -101,7 +101,41 @@ SPEC = StageSpec(
             False,
             "Also write the vertex property 'curvature' (surface variation).",
         ),
+        Param(
+            "workers",
+            "int",
+            None,
+            "Estimate on a local Dask cluster of N worker processes, the cloud in slabs with "
+            "halos (orientation joined across slabs); the workers read IN by chunks.",
+            min=1,
+            max=1024,
+        ),
+        Param(
+            "scheduler",
+            "any",
+            None,
+            "Estimate as --workers does on the existing Dask cluster at this address "
+            "(tcp://host:8786); IN and the output folder on a file system its workers share.",
+            metavar="ADDRESS",
+        ),
+        Param(
+            "partitions",
+            "int",
+            None,
+            "Slabs of a --workers/--scheduler run (default: one per worker).",
+            min=1,
+            max=32,
+        ),
+        Param(
+            "memory_limit",
+            "any",
+            None,
+            "Memory per worker process of --workers' local cluster (e.g. 4GiB; 'none': no "
+            "limit; default: the machine's memory shared out).",
+            metavar="SIZE",
+        ),
     ),
+    from_files="recon_cli.stages.normals.distributed:run_from_files",
 )
 
 # the MST graph uses at most this many nearest neighbours of each point (more adds time, not accuracy)
@@ -549,6 +583,10 @@ def run_stage(
     direction: tuple[float, float, float] | None,
     curvature: bool,
     backend: str,
+    workers: int | None,
+    scheduler: str | None,
+    partitions: int | None,
+    memory_limit: Any,
     progress: Any = None,
 ) -> StageResult:
     """Stage ``normals``: estimate and orient normals of a cloud (or of a mesh's vertices).
@@ -586,6 +624,24 @@ def run_stage(
         raise ParameterError("--curvature is not available with --backend open3d")
     if n == 0:
         raise InputError("the input has no points")
+    if workers is not None or scheduler is not None:
+        return _run_distributed(
+            cloud,
+            knn,
+            radius,
+            method,
+            cam,
+            dirn,
+            curvature,
+            backend,
+            workers,
+            scheduler,
+            partitions,
+            memory_limit,
+            progress,
+        )
+    if partitions is not None or memory_limit is not None:
+        raise ParameterError("--partitions and --memory-limit go with --workers or --scheduler")
     pts, cam = _local(pts, cam, cloud.points)
 
     out = (
@@ -652,4 +708,55 @@ def run_stage(
         report["warning"] = (
             f"{report['degenerate']} degenerate neighbourhoods (< 3 points, collinear or duplicates)"
         )
+    return StageResult(out, report)
+
+
+def _run_distributed(
+    cloud,
+    knn,
+    radius,
+    method,
+    cam,
+    dirn,
+    curvature,
+    backend,
+    workers,
+    scheduler,
+    partitions,
+    memory_limit,
+    progress,
+) -> StageResult:
+    """:func:`run_stage` on a Dask cluster (:mod:`.distributed`), the cloud in memory."""
+    from recon_cli.batch.cluster import open_client
+    from recon_cli.stages.normals.distributed import distributed_normals
+
+    if backend != "native":
+        raise ParameterError("--workers/--scheduler run the native normals: leave out --backend")
+    if scheduler is not None and (workers is not None or memory_limit is not None):
+        raise ParameterError(
+            "--workers and --memory-limit size a local cluster; leave them out with --scheduler"
+        )
+    with open_client(scheduler, workers, memory_limit, stealing=False) as (client, info):
+        nrm, curv, report = distributed_normals(
+            cloud.points,
+            cloud.normals,
+            knn=knn or 0,
+            radius=radius,
+            orient=method,
+            camera=cam,
+            direction=dirn,
+            curvature=curvature,
+            partitions=partitions or max(1, int(info.get("workers") or 1)),
+            client=client,
+            progress=progress,
+        )
+    out = cloud.copy()
+    out.normals = nrm
+    if curvature:
+        out.attributes["curvature"] = curv
+    report["input_normals"] = (
+        "none" if cloud.normals is None else ("sign kept" if method == "keep" else "replaced")
+    )
+    report["backend"] = backend
+    report["distributed"]["cluster"] = info
     return StageResult(out, report)
