@@ -100,9 +100,9 @@ def _ply_layout(path: str) -> tuple[P.PlyData, int, np.dtype, int] | None:
 
 
 def _las_count(path: str) -> int:
-    from recon_cli.io.las import _laspy
+    from recon_cli.io.las import laspy_module
 
-    laspy = _laspy()
+    laspy = laspy_module()
     try:
         with laspy.open(path) as r:
             return int(r.header.point_count)
@@ -176,9 +176,9 @@ def _read_las_rows(chunk: Chunk) -> PointCloud:
     """Rows of a LAS/LAZ file, decoded as :func:`recon_cli.io.las.decode_las` decodes."""
     import io as _io
 
-    from recon_cli.io.las import _laspy, decode_las
+    from recon_cli.io.las import laspy_module, decode_las
 
-    laspy = _laspy()
+    laspy = laspy_module()
     n = chunk.stop - chunk.start
     try:
         with laspy.open(chunk.path) as r:

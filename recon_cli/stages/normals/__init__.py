@@ -760,3 +760,14 @@ def _run_distributed(
     report["backend"] = backend
     report["distributed"]["cluster"] = info
     return StageResult(out, report)
+
+
+# public names of the pieces the distributed normals (.distributed) run per slab
+neighbourhoods = _neighbourhoods
+estimate_sorted = _estimate_sorted
+orient_sorted = _orient_sorted
+check_knn = _check_knn
+check_orient = _check_orient
+check_points = _check_points
+GRAPH_K = _GRAPH_K
+FLUX_MIN = _FLUX_MIN

@@ -111,15 +111,15 @@ def nload(slab: NSlab, parts: list, nsub: int, has_ref: bool) -> dict:
 def nestimate(slab: NSlab, knn: int | None, radius: float | None) -> dict:
     """Neighbourhoods (kd-tree over the slab and its halo) and PCA normals; returns how far
     past the halo's edge an own point's neighbourhood may reach (0: every one exact)."""
-    from recon_cli.stages.normals import _estimate_sorted, _neighbourhoods
+    from recon_cli.stages.normals import estimate_sorted, neighbourhoods
 
     n = len(slab.pts)
     if n == 0:
         slab.order = np.zeros(0, np.int64)
         slab.nrm, slab.curv = np.zeros((0, 3)), np.zeros(0)
         return {"reach": 0.0, "degenerate": 0, "neighbours": 0}
-    order, ps, indptr, indices = _neighbourhoods(slab.pts, knn, radius)
-    nrm, curv, deg = _estimate_sorted(ps, indptr, indices)
+    order, ps, indptr, indices = neighbourhoods(slab.pts, knn, radius)
+    nrm, curv, deg = estimate_sorted(ps, indptr, indices)
     slab.order, slab.nrm, slab.curv = order, nrm, curv
     slab.info = {"indptr": indptr, "indices": indices}
     own = slab.own_pt[order]
@@ -150,7 +150,7 @@ def norient(slab: NSlab, method: str, cam, dirn) -> dict:
     from scipy import sparse
     from scipy.sparse.csgraph import connected_components
 
-    from recon_cli.stages.normals import _GRAPH_K, _orient_sorted
+    from recon_cli.stages.normals import GRAPH_K, orient_sorted
     from recon_cli.stages.normals import _kernel as K
 
     order = slab.order
@@ -161,10 +161,10 @@ def norient(slab: NSlab, method: str, cam, dirn) -> dict:
         return {"comps": np.zeros(0), "left": None, "right": None}
     indptr, indices = slab.info["indptr"], slab.info["indices"]
     ref = None if slab.ref is None else slab.ref[order]
-    sign, _ = _orient_sorted(method, ps, slab.nrm, indptr, indices, cam, dirn, ref)
+    sign, _ = orient_sorted(method, ps, slab.nrm, indptr, indices, cam, dirn, ref)
     slab.sign = sign
     if method in ("mst", "keep"):
-        eptr, dst = K.graph_edges(indptr, indices, _GRAPH_K)
+        eptr, dst = K.graph_edges(indptr, indices, GRAPH_K)
         g = sparse.csr_matrix((np.ones(len(dst)), dst, eptr), shape=(n, n))
         _, comp = connected_components(g, directed=True, connection="weak")
     else:
@@ -338,7 +338,7 @@ def _core(client, files, counts, frame, n_rows: int, p: dict, tmp: str, progress
     """The slabs' steps on bucketed rows (``files``: per chunk its file prefix and sub-slab
     offsets); returns each slab's output file prefix and the report's figures."""
     from recon_cli.batch.steps import DaskRunner, LocalRunner
-    from recon_cli.stages.normals import _CLOSED_FLUX, _FLUX_MIN  # noqa: F401
+    from recon_cli.stages.normals import FLUX_MIN
 
     origin, size, perm = frame
     nsub = len(counts)
@@ -381,7 +381,7 @@ def _core(client, files, counts, frame, n_rows: int, p: dict, tmp: str, progress
                 )
                 flux = np.bincount(gid, np.concatenate([m["flux"] for m in fm]), ngroups)
                 scale = np.bincount(gid, np.concatenate([m["scale"] for m in fm]), ngroups)
-                inside_out = flux < -_FLUX_MIN * scale
+                inside_out = flux < -FLUX_MIN * scale
                 flip = (flip * np.where(inside_out[gid], -1, 1)).astype(np.int8)
             wm = runner.run(
                 "write",
@@ -462,12 +462,12 @@ def distributed_normals(
     import tempfile
 
     from recon_cli.geometry import PointCloud
-    from recon_cli.stages.normals import SPEC, _check_knn, _check_orient, _check_points
+    from recon_cli.stages.normals import SPEC, check_knn, check_orient, check_points
 
-    knn, radius = _check_knn(knn, radius)
-    method, cam, dirn = _check_orient(orient, camera, direction)
+    knn, radius = check_knn(knn, radius)
+    method, cam, dirn = check_orient(orient, camera, direction)
     SPEC.check({"curvature": curvature}, complete=False)
-    pts = _check_points(points)
+    pts = check_points(points)
     if method == "keep" and normals is None:
         raise ParameterError("--orient keep needs input normals")
     if not 1 <= int(partitions) <= MAX_SLABS:
@@ -548,7 +548,7 @@ def run_from_files(
     from recon_cli.batch.cluster import open_client
     from recon_cli.io.chunks import plan_chunks
     from recon_cli.stages import provenance_line
-    from recon_cli.stages.normals import SPEC, _check_knn, _check_orient
+    from recon_cli.stages.normals import SPEC, check_knn, check_orient
 
     if params.get("workers") is None and params.get("scheduler") is None:
         return None
@@ -565,8 +565,8 @@ def run_from_files(
         raise ParameterError(
             "--workers/--scheduler read IN by its suffix: leave out --input-format"
         )
-    knn, radius = _check_knn(v["knn"], v["radius"])
-    method, cam, dirn = _check_orient(v["orient"], v["camera"], v["direction"])
+    knn, radius = check_knn(v["knn"], v["radius"])
+    method, cam, dirn = check_orient(v["orient"], v["camera"], v["direction"])
     t0 = time.perf_counter()
     chunks = plan_chunks(input)
     folder = os.path.dirname(os.path.abspath(output)) if output != "-" else None

@@ -840,3 +840,9 @@ def run_stage(
     )  # double in, double out (float32 in: see geometry.storage_dtype)
     report["backend"] = backend
     return StageResult(output=mesh, report=report)
+
+
+# public names of the pieces the distributed solve (.distributed, .slab) shares
+interpolate_colors = _interpolate_colors
+check_inputs = _check_inputs
+check_options = _check_options

@@ -338,9 +338,9 @@ def reconstruct(
     finer = None
     parts = [m["finer"] for m in rm if "finer" in m]
     if parts:
-        from recon_cli.stages.poisson.bspline import _level_parents
+        from recon_cli.stages.poisson.bspline import level_parents
 
-        n8 = 8 * len(_level_parents(coarse[dc])[0])
+        n8 = 8 * len(level_parents(coarse[dc])[0])
         finer = np.zeros(n8)
         for idx, val in parts:
             np.add.at(finer, idx, val)
@@ -636,9 +636,9 @@ def distributed_poisson(
     given in memory; on the Dask ``client``'s cluster, or else all in this process
     (:class:`recon_cli.batch.steps.LocalRunner`). Returns a :class:`.PoissonResult` like
     :func:`.screened_poisson`'s, whose report has a ``distributed`` part."""
-    from recon_cli.stages.poisson import PoissonResult, _check_inputs, _check_options
+    from recon_cli.stages.poisson import PoissonResult, check_inputs, check_options
 
-    depth, scale, point_weight, samples_per_node, _, boundary, density, trim = _check_options(
+    depth, scale, point_weight, samples_per_node, _, boundary, density, trim = check_options(
         depth, scale, point_weight, samples_per_node, 2, boundary, density, trim
     )
     params = dict(
@@ -652,7 +652,7 @@ def distributed_poisson(
     )
     _check_distributed(depth, params["full_depth"], partitions)
     t0 = time.perf_counter()
-    pts, nrm, keep = _check_inputs(points, normals)
+    pts, nrm, keep = check_inputs(points, normals)
     if colors is not None:
         colors = np.asarray(colors)
         if len(colors) != len(keep):
@@ -799,9 +799,9 @@ def reconstruct_files(
 
     from recon_cli.batch.steps import DaskRunner
     from recon_cli.io.chunks import plan_chunks
-    from recon_cli.stages.poisson import PoissonResult, _check_options
+    from recon_cli.stages.poisson import PoissonResult, check_options
 
-    depth, scale, point_weight, samples_per_node, _, boundary, density, trim = _check_options(
+    depth, scale, point_weight, samples_per_node, _, boundary, density, trim = check_options(
         depth, scale, point_weight, samples_per_node, 2, boundary, density, trim
     )
     nworkers = max(1, len(client.scheduler_info().get("workers", {})))

@@ -41,8 +41,8 @@ from recon_cli.stages.poisson.splat import (
     KERNEL_OFFSET,
     Samples,
     Splats,
-    _density_table,
-    _eval_density,
+    density_table,
+    eval_density,
     clean_fraction,
     merge_samples,
     merge_splats,
@@ -190,7 +190,7 @@ def _place(slab: Slab, table: tuple, level: int) -> None:
     todo = np.flatnonzero(np.isnan(slab.splat) & slab.use_s)
     if not len(todo):
         return
-    rho = _eval_density(table, slab.smp.pos[todo])
+    rho = eval_density(table, slab.smp.pos[todo])
     ok, dep, area = splat_at_level(rho, level, slab.job.samples_per_node)
     slab.splat[todo[ok]] = dep
     slab.area[todo[ok]] = area
@@ -225,7 +225,7 @@ def _load(slab: Slab, points: np.ndarray, normals: np.ndarray, colors: np.ndarra
     kd = max(job.depth - KERNEL_OFFSET, 0)
     for lv in range(kd, job.local_density, -1):
         if ns:
-            slab.tables[lv] = _density_table(smp, lv)
+            slab.tables[lv] = density_table(smp, lv)
             _place(slab, slab.tables[lv], lv)
     msg = _splat_stats(slab)
     msg.update(points=int(len(pts)), own_points=int(slab.own_pt.sum()), samples=ns)
@@ -248,7 +248,7 @@ def own_table(slab: Slab, level: int) -> dict:
     the slabs' tables into the global one): sorted cell keys and densities."""
     if not slab.own_s.any():
         return {"keys": np.zeros(0, np.int64), "dens": np.zeros(0)}
-    _, (tk, tv, _bits), dens = _density_table(_own_samples(slab), level)
+    _, (tk, tv, _bits), dens = density_table(_own_samples(slab), level)
     used = tk >= 0
     keys, rows = tk[used], tv[used]
     order = np.argsort(keys)
@@ -256,7 +256,7 @@ def own_table(slab: Slab, level: int) -> dict:
 
 
 def global_table(level: int, keys: np.ndarray, dens: np.ndarray) -> tuple:
-    """A density table (as :func:`.splat._density_table` makes them) from sorted keys and
+    """A density table (as :func:`.splat.density_table` makes them) from sorted keys and
     summed densities."""
     from recon_cli._kernels.hashtable import build_table
 
@@ -1030,16 +1030,16 @@ def prepare(slab: Slab, drop: np.ndarray, density: tuple | None, at_samples: boo
         if len(density) == 1:
             table = slab.tables.get(density[0])
             if table is None:
-                table = _density_table(slab.smp, density[0])
+                table = density_table(slab.smp, density[0])
         else:
             table = global_table(*density)
         slab.tables = {"out": table}
         origin = np.asarray(job.origin)
         v = slab.verts
-        slab.vdens = _eval_density(table, (v - origin) / job.size) if len(v) else np.zeros(0)
+        slab.vdens = eval_density(table, (v - origin) / job.size) if len(v) else np.zeros(0)
         if at_samples:
             own = slab.smp.pos[slab.own_s]
-            slab.at_samples = _eval_density(table, own) if len(own) else np.zeros(0)
+            slab.at_samples = eval_density(table, own) if len(own) else np.zeros(0)
             msg["hist"] = float_histogram(slab.at_samples)
     _compact(slab, keep)
     msg["seam_use"] = _seam_use(slab, slab.faces)
@@ -1189,9 +1189,9 @@ def export(slab: Slab, seam_keep: dict | None, prefix: str | None = None) -> dic
     if job.density:
         msg["density"] = slab.vdens[~right]
     if slab.colors is not None and len(v):
-        from recon_cli.stages.poisson import _interpolate_colors
+        from recon_cli.stages.poisson import interpolate_colors
 
-        msg["colors"] = _interpolate_colors(slab.pts, slab.colors, v, job.size / res)
+        msg["colors"] = interpolate_colors(slab.pts, slab.colors, v, job.size / res)
     msg["vertices"] = v
     msg["faces"] = out_f
     slab.faces = slab.verts = slab.vdens = None

@@ -580,3 +580,8 @@ def clean_fraction(
     the tree."""
     rel = sig / (1 << (sample_depth - tree_depth))
     return 1.0 / (1.0 + (rel / NOISE_TAU) ** 2), rel
+
+
+# public names of the kernel-density pieces the distributed solve (.slab) runs per slab
+density_table = _density_table
+eval_density = _eval_density
