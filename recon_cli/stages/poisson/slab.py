@@ -781,18 +781,22 @@ def field(slab: Slab, iso: float, band_left: dict | None, band_right: dict | Non
     levels = slab.levels
     top = len(levels) - 1
     chi = slab.chi
-    for lev in levels:
-        set_corners(lev, lev.node_keys)
-    # chi at the nodes within a cell of the slab's own range, at every level (the rest, the
-    # pad's and the coarse levels' far away, is never read: 0)
-    gvals = []
+    # the extraction reads the tree within two cells of the slab's own range (its leaves,
+    # their neighbours across its seams): every level cut to that (the coarse levels are
+    # the whole cube's, the finer ones reach into the pad)
     for lev in levels:
         a, b = slab.x_range(slab.own, 1 << lev.depth)
-        nx = lev.node_keys >> 42
-        sel = np.flatnonzero((nx >= a - 1) & (nx <= b + 1))
-        g = np.zeros(len(lev.node_keys))
-        g[sel] = chi.at_nodes(lev, lev.node_keys[sel])
-        gvals.append(g)
+        lo = np.searchsorted(lev.cell_keys, np.int64(max(a - 2, 0)) << 42)
+        hi = np.searchsorted(lev.cell_keys, np.int64(b + 2) << 42)
+        lev.cell_keys, lev.leaf = lev.cell_keys[lo:hi].copy(), lev.leaf[lo:hi].copy()
+        lo = np.searchsorted(lev.node_keys, np.int64(max(a - 2, 0)) << 42)
+        hi = np.searchsorted(lev.node_keys, np.int64(b + 3) << 42)
+        lev.node_keys = lev.node_keys[lo:hi].copy()
+        lev.n_nodes = len(lev.node_keys)
+        lev.cell_parent = None
+        set_corners(lev, lev.node_keys)
+    release_free_heap()
+    gvals = [chi.at_nodes(lev, lev.node_keys) for lev in levels]
     # the extraction interpolates each leaf from its corners: the finer side of a coarse
     # leaf's faces takes its values (bspline.solve)
     for d in range(1, len(levels)):
