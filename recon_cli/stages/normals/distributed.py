@@ -11,7 +11,8 @@ sort its rows per sub-slab, each slab reads its own points and a halo beyond eac
   edge; a slab with a point whose neighbourhood may reach past it says by how much, and
   the coordinator widens that halo and runs the slabs again. The normals (PCA) of a slab's
   own points are then the single-process ones.
-- **Orientation.** ``camera``, ``direction``: per point, nothing to join. ``mst`` and
+- **Orientation.** ``camera`` (a ``--camera`` point, or each point's own scanner from the
+  file's sensors), ``direction``: per point, nothing to join. ``mst`` and
   ``keep``: each slab orients its points and halo with the single-process algorithm
   (:func:`.orient_normals`: the minimum spanning forest, seeds, votes, flux); then each
   slab's graph components are joined across the seams: the points two slabs both hold (the
@@ -70,6 +71,7 @@ class NSlab:
     size: float
     pts: np.ndarray | None = None
     ref: np.ndarray | None = None
+    scan: np.ndarray | None = None  # each point's sensor (orientation towards the sensors)
     rows: np.ndarray | None = None
     own_pt: np.ndarray | None = None
     order: np.ndarray | None = None
@@ -86,11 +88,11 @@ def _timed(fn):
     return timed(fn)
 
 
-def nload(slab: NSlab, parts: list, nsub: int, has_ref: bool) -> dict:
+def nload(slab: NSlab, parts: list, nsub: int, has_ref: bool, has_scan: bool = False) -> dict:
     """Read the slab's rows (own and halo) from the chunks' sub-slab files."""
     pa, pb = (int(round(v * nsub)) for v in slab.pad)
     oa, ob = (int(round(v * nsub)) for v in slab.own)
-    pts, ref, rows, sub = [], [], [], []
+    pts, ref, rows, sub, scan = [], [], [], [], []
     for prefix, off in parts:
         a, b = int(off[pa]), int(off[pb])
         if b <= a:
@@ -100,6 +102,10 @@ def nload(slab: NSlab, parts: list, nsub: int, has_ref: bool) -> dict:
         sub.append(np.repeat(np.arange(pa, pb), np.diff(off[pa : pb + 1])))
         if has_ref:
             ref.append(np.load(prefix + ".nrm.npy", mmap_mode="r")[a:b])
+        if has_scan:
+            scan.append(np.load(prefix + ".scan.npy", mmap_mode="r")[a:b])
+    if has_scan:
+        slab.scan = np.concatenate(scan) if scan else np.zeros(0, np.int64)
     slab.pts = np.concatenate(pts) if pts else np.zeros((0, 3))
     slab.rows = np.concatenate(rows) if rows else np.zeros(0, np.int64)
     s = np.concatenate(sub) if sub else np.zeros(0, np.int64)
@@ -161,6 +167,9 @@ def norient(slab: NSlab, method: str, cam, dirn) -> dict:
         return {"comps": np.zeros(0), "left": None, "right": None}
     indptr, indices = slab.info["indptr"], slab.info["indices"]
     ref = None if slab.ref is None else slab.ref[order]
+    if slab.scan is not None:  # cam: the sensors (positions, directions, is a direction)
+        method, cam = "sensors", (*cam, slab.scan[order])
+        slab.scan = None
     sign, _ = orient_sorted(method, ps, slab.nrm, indptr, indices, cam, dirn, ref)
     slab.sign = sign
     if method in ("mst", "keep"):
@@ -240,18 +249,34 @@ def scan_rows(chunk) -> dict:
     pts = np.asarray(cloud.points, dtype=np.float64)
     if not np.all(np.isfinite(pts)):
         raise InputError("points contain NaN or infinite coordinates", chunk.path)
-    out = {"rows": len(pts), "normals": cloud.normals is not None}
+    out = {
+        "rows": len(pts),
+        "normals": cloud.normals is not None,
+        "sensors": tuple(cloud.sensors),
+        "invalid_dropped": int(cloud.invalid_dropped),
+    }
     if len(pts):
         out["lo"], out["hi"] = pts.min(axis=0), pts.max(axis=0)
     return out
 
 
-def bucket_rows(chunk, first_row: int, frame: tuple, nsub: int, prefix: str, ref: bool) -> dict:
+def bucket_rows(
+    chunk, first_row: int, frame: tuple, nsub: int, prefix: str, ref: bool, sensors: int = 0
+) -> dict:
     """Write a chunk's points (job frame: axes turned, about the cube's corner), their input
-    rows and, for ``keep``, their input normals, sorted by sub-slab, to ``prefix.*.npy``."""
+    rows, for ``keep`` their input normals and, with ``sensors`` (how many the file gives),
+    each point's sensor, sorted by sub-slab, to ``prefix.*.npy``."""
+    from recon_cli.geometry import SCAN_ATTRIBUTE
     from recon_cli.io.chunks import read_chunk
+    from recon_cli.stages.normals import sensor_views
 
-    return _bucket_cloud(read_chunk(chunk), first_row, frame, nsub, prefix, ref)
+    cloud = read_chunk(chunk)
+    scan = None
+    if sensors:
+        scan = sensor_views(
+            cloud.sensors, cloud.attributes.get(SCAN_ATTRIBUTE), len(cloud.points), 0
+        )[3]
+    return _bucket_cloud(cloud, first_row, frame, nsub, prefix, ref, scan)
 
 
 def _plan(counts: np.ndarray, parts: int, halo: int) -> list[tuple]:
@@ -346,6 +371,14 @@ def _core(client, files, counts, frame, n_rows: int, p: dict, tmp: str, progress
     method = p["orient"]
     cam = None if p["camera"] is None else np.asarray(p["camera"], float)[list(perm)] - origin
     dirn = None if p["direction"] is None else np.asarray(p["direction"], float)[list(perm)]
+    sensors = p.get("sensors")
+    if sensors is not None:  # each point towards its own sensor, in the job's frame
+        pos, dirs, is_dir = (np.asarray(a) for a in sensors[:3])
+        cam = (
+            np.where(is_dir[:, None], 0.0, pos[:, list(perm)] - origin),
+            dirs[:, list(perm)],
+            is_dir,
+        )
     halo = HALO
     sub_w = size / nsub
     phases: dict = {}
@@ -358,7 +391,9 @@ def _core(client, files, counts, frame, n_rows: int, p: dict, tmp: str, progress
             else DaskRunner(client, slabs, progress, "normals")
         )
         try:
-            lm = runner.run("load", nload, lambda k: (files, nsub, method == "keep"))
+            lm = runner.run(
+                "load", nload, lambda k: (files, nsub, method == "keep", sensors is not None)
+            )
             em = runner.run("neighbourhoods", nestimate, lambda k: (p["knn"], p["radius"]))
             reach = max(m["reach"] for m in em)
             if reach > 0 and halo < nsub:
@@ -452,12 +487,15 @@ def distributed_normals(
     direction=None,
     curvature: bool = False,
     partitions: int = 2,
+    sensors: tuple | None = None,
     client: Any = None,
     progress: Any = None,
 ) -> tuple[np.ndarray, np.ndarray | None, dict]:
     """Normals of a cloud given in memory, in ``partitions`` slabs (module docstring): on the
-    Dask ``client``'s cluster, or else all in this process. Returns the oriented normals,
-    the curvature (or None) and the report."""
+    Dask ``client``'s cluster, or else all in this process. ``sensors``: for ``orient=
+    "camera"`` without ``camera``, ``(positions, directions, is_direction, which)`` as
+    :func:`.sensor_views` gives them (about the origin: world coordinates). Returns the
+    oriented normals, the curvature (or None) and the report."""
     import shutil
     import tempfile
 
@@ -482,14 +520,20 @@ def distributed_normals(
         direction=dirn,
         curvature=bool(curvature),
         partitions=int(partitions),
+        sensors=None if sensors is None else tuple(sensors[:3]),
     )
+    if method == "camera" and cam is None and sensors is None:
+        raise ParameterError("--orient camera needs --camera X,Y,Z (or the data's sensors)")
     frame = _frame(pts.min(axis=0), pts.max(axis=0))
     tmp = tempfile.mkdtemp(prefix=".recon-normals-")
     try:
         cloud = PointCloud(
             points=pts, normals=None if normals is None else np.asarray(normals, float)
         )
-        b = _bucket_cloud(cloud, 0, frame, SUB_SLABS, os.path.join(tmp, "c00000"), method == "keep")
+        scan = None if sensors is None else sensors[3]
+        b = _bucket_cloud(
+            cloud, 0, frame, SUB_SLABS, os.path.join(tmp, "c00000"), method == "keep", scan
+        )
         prefixes, report = _core(
             client,
             [(os.path.join(tmp, "c00000"), b["offsets"])],
@@ -511,7 +555,7 @@ def distributed_normals(
     return nrm_out, curv_out, report
 
 
-def _bucket_cloud(cloud, first_row, frame, nsub, prefix, ref):
+def _bucket_cloud(cloud, first_row, frame, nsub, prefix, ref, scan=None):
     origin, size, perm = frame
     pts = np.asarray(cloud.points, dtype=np.float64)[:, list(perm)] - origin
     sub = np.clip(np.floor(pts[:, 0] / size * nsub), 0, nsub - 1).astype(np.int64)
@@ -521,6 +565,8 @@ def _bucket_cloud(cloud, first_row, frame, nsub, prefix, ref):
     if ref:
         nrm = np.asarray(cloud.normals, dtype=np.float64)[:, list(perm)]
         np.save(prefix + ".nrm.npy", nrm[order])
+    if scan is not None:
+        np.save(prefix + ".scan.npy", np.asarray(scan, np.int64)[order])
     sub = sub[order]
     return {
         "offsets": np.searchsorted(sub, np.arange(nsub + 1)),
@@ -548,11 +594,18 @@ def run_from_files(
     from recon_cli.batch.cluster import open_client
     from recon_cli.io.chunks import plan_chunks
     from recon_cli.stages import provenance_line
-    from recon_cli.stages.normals import SPEC, check_knn, check_orient
+    from recon_cli.stages.normals import (
+        SPEC,
+        check_distributed_neighbours,
+        check_knn,
+        check_orient,
+        sensor_views,
+    )
 
     if params.get("workers") is None and params.get("scheduler") is None:
         return None
     v = SPEC.check(params, complete=True)
+    check_distributed_neighbours(v["neighbours"])
     if v["backend"] != "native":
         raise ParameterError("--workers/--scheduler run the native normals: leave out --backend")
     if v["scheduler"] is not None and (v["workers"] is not None or v["memory_limit"] is not None):
@@ -582,6 +635,13 @@ def run_from_files(
                 raise InputError("the input has no points")
             if method == "keep" and not all(s["normals"] for s in scans):
                 raise ParameterError("--orient keep needs input normals")
+            sensors = None
+            if method == "camera" and cam is None:  # each point towards its own scanner
+                if len({s["sensors"] for s in scans}) > 1:
+                    raise InputError("the tiles do not all give the same scanner positions")
+                sensors = list(scans[0]["sensors"])
+                # the sensors' positions and directions (no point: their checks come per chunk)
+                views = sensor_views(sensors, np.zeros(0, np.int64), 0, 0)
             lo = np.min([s["lo"] for s in scans if "lo" in s], axis=0)
             hi = np.max([s["hi"] for s in scans if "lo" in s], axis=0)
             frame = _frame(lo, hi)
@@ -595,6 +655,7 @@ def run_from_files(
                     SUB_SLABS,
                     os.path.join(tmp, f"c{i:05d}"),
                     method == "keep",
+                    len(sensors or ()),
                     pure=False,
                 )
                 for i, c in enumerate(chunks)
@@ -610,6 +671,7 @@ def run_from_files(
                 direction=dirn,
                 curvature=v["curvature"],
                 partitions=v["partitions"] or max(1, int(info.get("workers") or 1)),
+                sensors=None if sensors is None else views[:3],
             )
             if not 1 <= p["partitions"] <= MAX_SLABS:
                 raise ParameterError(f"--partitions must be 1..{MAX_SLABS}, got {p['partitions']}")
@@ -622,6 +684,15 @@ def run_from_files(
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     report["backend"] = "native"
+    if method == "camera":
+        report["viewpoints"] = (
+            [f"--camera ({', '.join(f'{float(x):.9g}' for x in cam)})"]
+            if sensors is None
+            else [s.describe() for s in sensors]
+        )
+    dropped = sum(s["invalid_dropped"] for s in scans)
+    if dropped:  # as the command's report of a reader's drops
+        report["read"] = {"kept": n_rows, "invalid_dropped": dropped}
     report["distributed"]["cluster"] = info
     report["distributed"]["chunks"] = len(chunks)
     report["timings"] = {"stage": t1 - t0, "write": t2 - t1}

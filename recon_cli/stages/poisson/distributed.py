@@ -276,15 +276,22 @@ def make_job(origin, size, perm, depth, p: dict) -> S.Job:
         local_density=dc,
         density=p["density"],
         trim=p["trim"],
+        weight_scale=p.get("weight_scale"),
     )
 
 
 def reconstruct(
-    runner, job: S.Job, loaded: list[dict], progress: Any = None, out_dir: str | None = None
+    runner,
+    job: S.Job,
+    loaded: list[dict],
+    progress: Any = None,
+    out_dir: str | None = None,
+    carry: bool = False,
 ) -> dict:
     """Every step after the slabs' ``load`` (whose messages are ``loaded``): returns the
     mesh's parts per slab (in ``out_dir``'s files when given) and the report (module
-    docstring)."""
+    docstring); ``carry``: the slabs carry the input's properties or colours onto their
+    vertices."""
     from recon_cli.stages.poisson import BUBBLE_CELLS, ISLAND_POINTS
 
     t0 = time.perf_counter()
@@ -395,12 +402,24 @@ def reconstruct(
         timings["trim"] = time.perf_counter() - t
     del pm
     t = time.perf_counter()
+    left = [None] * len(seam_keep)
+    if carry:
+        # the surface's normal at a seam vertex sums both slabs' faces (the attributes' side)
+        nm = runner.run("attributes", S.seam_normals, lambda k: (seam_keep[k],))
+        left = [None] + [m["right"] for m in nm[:-1]]
+        seam_keep = [None] * len(seam_keep)
+        del nm
     fm = runner.run(
-        "export",
+        "export" if not carry else "attributes",
         S.export,
-        lambda k: (seam_keep[k], None if out_dir is None else os.path.join(out_dir, f"s{k:03d}")),
+        lambda k: (
+            seam_keep[k],
+            None if out_dir is None else os.path.join(out_dir, f"s{k:03d}"),
+            left[k],
+        ),
     )
     timings["finish"] += time.perf_counter() - t
+    astats = [m.pop("attribute_stats", None) for m in fm]
     report = {
         "depth": job.depth,
         "tree_depth": tree_depth,
@@ -413,6 +432,7 @@ def reconstruct(
         "trimmed_area": float(trimmed_area),
         "noise": noise_med,
         "samples": int(sum(m["own_samples"] for m in loaded)),
+        "attribute_fallback_vertices": sum(a["fallback"] for a in astats if a),
         "finest_cell": cell,
         "levels": levels_stats,
         "timings": timings,
@@ -420,6 +440,8 @@ def reconstruct(
             "coarse_depth": dc,
             "extraction": "leaves" if at_leaves else "finest",
             "seam_max_deviation": seam_dev,
+            # vertices whose attribute neighbours may lie past their slab's pad
+            "attribute_inexact_vertices": sum(a["inexact"] for a in astats if a),
             "slabs": [
                 {
                     "own": lm["own"],
@@ -602,8 +624,8 @@ def assemble(out: dict, job: S.Job, perm: tuple, colors: bool):
         vertices=np.ascontiguousarray(verts),
         faces=np.concatenate(faces).astype(np.int64) if faces else np.zeros((0, 3), np.int64),
     )
-    if job.density:
-        mesh.attributes["density"] = np.concatenate([p["density"] for p in parts])
+    for name in parts[0]["attributes"] if parts else ():
+        mesh.attributes[name] = np.concatenate([p["attributes"][name] for p in parts])
     if colors:
         mesh.colors = np.concatenate([p["colors"] for p in parts if "colors" in p])
     rep = out["report"]
@@ -625,7 +647,9 @@ def distributed_poisson(
     boundary: str = "neumann",
     density: bool = False,
     trim: float = 0.0,
+    confidence: bool = False,
     colors: np.ndarray | None = None,
+    properties: dict[str, np.ndarray] | None = None,
     full_depth: int = 5,
     cg_tolerance: float = 1e-3,
     client: Any = None,
@@ -635,8 +659,9 @@ def distributed_poisson(
     """Screened Poisson reconstruction in ``partitions`` slabs (module docstring), the cloud
     given in memory; on the Dask ``client``'s cluster, or else all in this process
     (:class:`recon_cli.batch.steps.LocalRunner`). Returns a :class:`.PoissonResult` like
-    :func:`.screened_poisson`'s, whose report has a ``distributed`` part."""
-    from recon_cli.stages.poisson import PoissonResult, check_inputs, check_options
+    :func:`.screened_poisson`'s (``confidence``, ``colors``, ``properties`` as there), whose
+    report has a ``distributed`` part."""
+    from recon_cli.stages.poisson import SPEC, PoissonResult, check_inputs, check_options
 
     depth, scale, point_weight, samples_per_node, _, boundary, density, trim = check_options(
         depth, scale, point_weight, samples_per_node, 2, boundary, density, trim
@@ -652,12 +677,25 @@ def distributed_poisson(
     )
     _check_distributed(depth, params["full_depth"], partitions)
     t0 = time.perf_counter()
-    pts, nrm, keep = check_inputs(points, normals)
+    lengths: list = []
+    pts, nrm, keep = check_inputs(points, normals, lengths)
+    if SPEC.param("confidence").coerce(confidence):
+        params["weight_scale"] = 1.0 / float(lengths[0].mean())
+        nrm = nrm * lengths[0][:, None]  # a slab weighs each point by its normal's length
+    del lengths
     if colors is not None:
         colors = np.asarray(colors)
         if len(colors) != len(keep):
-            raise ParameterError(f"colors has {len(colors)} rows, expected {len(keep)}")
+            raise InputError(f"colors has {len(colors)} rows, expected {len(keep)}")
         colors = colors[keep]
+    props: dict[str, np.ndarray] = {}
+    for name, values in (properties or {}).items():
+        values = np.asarray(values)
+        if values.ndim != 1 or len(values) != len(keep):
+            raise InputError(
+                f"attribute {name!r} has shape {values.shape}, expected ({len(keep)},)"
+            )
+        props[name] = values[keep]
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     origin, size, perm = frame_of(lo, hi, scale)
     job = make_job(origin, size, perm, depth, params)
@@ -673,15 +711,21 @@ def distributed_poisson(
         def load_args(k):
             pa, pb = (int(round(v * nsub)) for v in plan[k][1])
             sel = (sub >= pa) & (sub < pb)
-            return pts[sel], nrm[sel], None if colors is None else colors[sel]
+            return (
+                pts[sel],
+                nrm[sel],
+                None if colors is None else colors[sel],
+                {k: v[sel] for k, v in props.items()},
+            )
 
         loaded = runner.run("load", S.load, load_args)
-        out = reconstruct(runner, job, loaded, progress)
+        out = reconstruct(runner, job, loaded, progress, carry=bool(props) or colors is not None)
     finally:
         runner.close()
     mesh = assemble(out, job, perm, colors is not None)
     rep = out["report"]
     rep["ignored_points"] = int((~keep).sum())
+    rep["attributes"] = sorted(props) + (["colors"] if colors is not None else [])
     rep["timings"]["total"] = time.perf_counter() - t0
     return PoissonResult(mesh, rep)
 
@@ -738,8 +782,11 @@ def scan_chunk(chunk) -> dict:
     out = {
         "rows": len(pts),
         "kept": int(keep.sum()),
+        "length_sum": float(length[keep].sum()),
+        "invalid_dropped": int(cloud.invalid_dropped),
         "point_dtype": np.dtype(cloud.point_dtype).str,
         "colors": None if cloud.colors is None else (cloud.colors.dtype.str, cloud.colors.shape[1]),
+        "attributes": tuple((k, np.asarray(v).dtype.str) for k, v in cloud.attributes.items()),
         "history": list(cloud.history),
     }
     if keep.any():
@@ -748,9 +795,19 @@ def scan_chunk(chunk) -> dict:
     return out
 
 
-def bucket_chunk(chunk, origin, size: float, perm: tuple, nsub: int, prefix: str) -> dict:
-    """Write a chunk's rows (job frame, finite) sorted by sub-slab to ``prefix.*.npy``;
-    returns where each sub-slab's rows start and the kept points per sub-slab."""
+def bucket_chunk(
+    chunk,
+    origin,
+    size: float,
+    perm: tuple,
+    nsub: int,
+    prefix: str,
+    colors: bool = True,
+    names: tuple = (),
+) -> dict:
+    """Write a chunk's rows (job frame, finite) sorted by sub-slab to ``prefix.*.npy`` (the
+    colours with ``colors``, the properties ``names`` as ``prefix.a<i>.npy``); returns where
+    each sub-slab's rows start and the kept points per sub-slab."""
     from recon_cli.io.chunks import read_chunk
 
     cloud = read_chunk(chunk)
@@ -761,8 +818,10 @@ def bucket_chunk(chunk, origin, size: float, perm: tuple, nsub: int, prefix: str
     sub = sub[order]
     np.save(prefix + ".pts.npy", pts[order])
     np.save(prefix + ".nrm.npy", nrm[order])
-    if cloud.colors is not None:
+    if colors and cloud.colors is not None:
         np.save(prefix + ".col.npy", np.asarray(cloud.colors)[order])
+    for i, name in enumerate(names):
+        np.save(f"{prefix}.a{i:03d}.npy", np.asarray(cloud.attributes[name])[order])
     kept = np.linalg.norm(nrm[order], axis=1) > 0
     off = np.searchsorted(sub, np.arange(nsub + 1))
     return {"offsets": off, "counts": np.bincount(sub[kept], minlength=nsub)}
@@ -780,6 +839,8 @@ def reconstruct_files(
     boundary: str = "neumann",
     density: bool = False,
     trim: float = 0.0,
+    confidence: bool = False,
+    attributes: Any = "all",
     full_depth: int = 5,
     cg_tolerance: float = 1e-3,
     temp_dir: str | None = None,
@@ -793,13 +854,14 @@ def reconstruct_files(
     workers must share; removed at the end), and each slab reads its rows. Returns the
     :class:`.PoissonResult`; with ``output`` (a binary PLY path) the mesh is streamed there
     from the slabs' files instead (``history`` its comments, after the input's) and the
-    result's mesh is None."""
+    result's mesh is None. ``attributes``: the input's properties carried onto the vertices
+    (:func:`.attributes.select`)."""
     import shutil
     import tempfile
 
     from recon_cli.batch.steps import DaskRunner
     from recon_cli.io.chunks import plan_chunks
-    from recon_cli.stages.poisson import PoissonResult, check_options
+    from recon_cli.stages.poisson import SPEC, PoissonResult, check_options
 
     depth, scale, point_weight, samples_per_node, _, boundary, density, trim = check_options(
         depth, scale, point_weight, samples_per_node, 2, boundary, density, trim
@@ -834,6 +896,16 @@ def reconstruct_files(
         raise InputError(
             "the tiles do not all have the same colours (some have none, or other types)"
         )
+    if len({s["attributes"] for s in scans}) > 1:
+        raise InputError("the tiles do not all have the same properties (names and types)")
+    from recon_cli.stages.poisson.attributes import select
+
+    have = dict(scans[0]["attributes"])
+    names, keep_colors = select(attributes, list(have), colors != {None})
+    dtypes = tuple(have[k] for k in names)
+    color_type = next(iter(colors)) if keep_colors else None
+    if SPEC.param("confidence").coerce(confidence):
+        params["weight_scale"] = kept / sum(s["length_sum"] for s in scans)
     lo = np.min([s["lo"] for s in scans if "lo" in s], axis=0)
     hi = np.max([s["hi"] for s in scans if "lo" in s], axis=0)
     if not (hi - lo).max() > 0:
@@ -854,6 +926,8 @@ def reconstruct_files(
                     perm,
                     nsub,
                     os.path.join(tmp, f"c{i:05d}"),
+                    keep_colors,
+                    tuple(names),
                     pure=False,
                 )
                 for i, c in enumerate(chunks)
@@ -868,15 +942,23 @@ def reconstruct_files(
         read_s = time.perf_counter() - t0
         slabs = [S.slab_of(job, k, parts, *plan[k]) for k in range(parts)]
         runner = DaskRunner(client, slabs, progress, "poisson")
-        loaded = runner.run("load", S.load_files, lambda k: (files, nsub))
-        out = reconstruct(runner, job, loaded, progress, tmp if output is not None else None)
+        loaded = runner.run(
+            "load", S.load_files, lambda k: (files, nsub, color_type, tuple(names), dtypes)
+        )
+        out = reconstruct(
+            runner,
+            job,
+            loaded,
+            progress,
+            tmp if output is not None else None,
+            carry=bool(names) or color_type is not None,
+        )
         dtypes = {s["point_dtype"] for s in scans}
         point_dtype = np.float64 if np.dtype("<f8").str in dtypes else np.float32
         hist = (list(scans[0]["history"]) if scans else []) + list(history or [])
         if output is not None:
             t = time.perf_counter()
-            cd = next(iter(colors))
-            write_parts_ply(output, out["parts"], perm, point_dtype, cd, job.density, hist)
+            write_parts_ply(output, out["parts"], perm, point_dtype, color_type, hist)
             out["report"]["timings"]["write"] = time.perf_counter() - t
             mesh = None
             rep = out["report"]
@@ -888,11 +970,14 @@ def reconstruct_files(
             runner.close()
         shutil.rmtree(tmp, ignore_errors=True)
     if output is None:
-        mesh = assemble(out, job, perm, colors != {None})
+        mesh = assemble(out, job, perm, color_type is not None)
         mesh.point_dtype = point_dtype
         mesh.history = hist
     rep = out["report"]
     rep["ignored_points"] = int(rows - kept)
+    rep["invalid_dropped"] = sum(s["invalid_dropped"] for s in scans)
+    rep["points_read"] = int(rows)
+    rep["attributes"] = sorted(names) + (["colors"] if color_type is not None else [])
     rep["timings"]["read"] = read_s
     rep["timings"]["total"] = time.perf_counter() - t0
     rep["distributed"]["chunks"] = len(chunks)
@@ -939,6 +1024,9 @@ def run_from_files(
         v["scheduler"],
         v["workers"],
         v["memory_limit"],
+        v["boundary"],
+        v["envelope"],
+        v["grid"],
     )
     if input == "-":
         raise ParameterError("--workers/--scheduler read IN by chunks: give a file, not '-'")
@@ -978,6 +1066,8 @@ def run_from_files(
             boundary=v["boundary"],
             density=v["density"],
             trim=v["trim"],
+            confidence=v["confidence"],
+            attributes=v["attributes"],
             temp_dir=folder,
             output=output if stream else None,
             history=[prov],
@@ -990,6 +1080,11 @@ def run_from_files(
     t2 = time.perf_counter()
     rep = res.report
     report = {k: rep[k] for k in REPORT_KEYS}
+    if rep.get("invalid_dropped"):  # as the command's report of a reader's drops
+        report["read"] = {
+            "kept": rep["points_read"],
+            "invalid_dropped": rep["invalid_dropped"],
+        }
     report["backend"] = "native"
     report["distributed"] = {"cluster": info, **rep["distributed"]}
     report["timings"] = {
@@ -1008,9 +1103,9 @@ def run_from_files(
 WRITE_ROWS = 1 << 20
 
 
-def _parts_header(parts: list[dict], perm, point_dtype, colors_dtype, density: bool, history):
+def _parts_header(parts: list[dict], perm, point_dtype, colors_dtype, history):
     """The PLY header of the whole mesh (:func:`recon_cli.io.ply.geometry_to_ply`'s layout for
-    the same data) and its vertex element's properties."""
+    the same data), its vertex element's properties and the colours' property names."""
     from recon_cli.geometry import TriangleMesh, float32_rounding
     from recon_cli.io.ply import geometry_to_ply, header_bytes
 
@@ -1023,30 +1118,30 @@ def _parts_header(parts: list[dict], perm, point_dtype, colors_dtype, density: b
         vertices=np.zeros((1, 3)), faces=np.zeros((1, 3), np.int64), history=list(history)
     )
     dummy.point_dtype = np.float64 if double else np.float32
+    for name, path in parts[0]["attributes"].items() if parts else ():
+        dummy.attributes[name] = np.zeros(1, np.load(path, mmap_mode="r").dtype)
+    names_before = [p.name for p in geometry_to_ply(dummy).elements[0].properties]
     if colors_dtype is not None:
         dummy.colors = np.zeros((1, colors_dtype[1]), np.dtype(colors_dtype[0]))
-    if density:
-        dummy.attributes["density"] = np.zeros(1)
     ply = geometry_to_ply(dummy)
+    props = ply.elements[0].properties
+    color_names = [p.name for p in props if p.name not in names_before]
     ply.elements[0].count = sum(p["counts"][0] for p in parts)
     ply.elements[1].count = sum(p["counts"][1] for p in parts)
-    return header_bytes(ply), ply.elements[0].properties
+    return header_bytes(ply), props, color_names
 
 
-def write_parts_ply(
-    path: str, parts: list[dict], perm, point_dtype, colors_dtype, density: bool, history
-) -> None:
+def write_parts_ply(path: str, parts: list[dict], perm, point_dtype, colors_dtype, history) -> None:
     """Write the slabs' parts (files, :func:`.slab.export`) as one binary PLY mesh, a block
     of rows at a time (this process never holds the mesh): vertices in slab order with the
     axes turned back, then the faces, references to a right seam resolved to the next
     slab's first vertices. Atomic: a failure leaves no file."""
     from recon_cli.io.atomic import atomic_open
 
-    head, props = _parts_header(parts, perm, point_dtype, colors_dtype, density, history)
+    head, props, color_names = _parts_header(parts, perm, point_dtype, colors_dtype, history)
     vdt = np.dtype([(p.name, "<" + p.dtype) for p in props])
     fdt = np.dtype([("n", "u1"), ("i", "<i4", (3,))])
     inv = list(np.argsort(perm))
-    names = [p.name for p in props]
     nv = [p["counts"][0] for p in parts]
     off = np.concatenate([[0], np.cumsum(nv)]).astype(np.int64)
     if off[-1] >= 2**31:
@@ -1058,17 +1153,17 @@ def write_parts_ply(
         for p in parts:
             v = np.load(p["vertices"], mmap_mode="r")
             col = np.load(p["colors"], mmap_mode="r") if "colors" in p else None
-            den = np.load(p["density"], mmap_mode="r") if "density" in p else None
+            att = {k: np.load(fn, mmap_mode="r") for k, fn in p["attributes"].items()}
             for a in range(0, len(v), WRITE_ROWS):
                 rows = np.empty(min(WRITE_ROWS, len(v) - a), vdt)
                 block = v[a : a + WRITE_ROWS]
                 for j, c in enumerate(("x", "y", "z")):
                     rows[c] = block[:, inv[j]]
                 if col is not None:
-                    for j, c in enumerate(names[3 : 3 + col.shape[1]]):
+                    for j, c in enumerate(color_names):
                         rows[c] = col[a : a + WRITE_ROWS, j]
-                if den is not None:
-                    rows["density"] = den[a : a + WRITE_ROWS]
+                for k, arr in att.items():
+                    rows[k] = arr[a : a + WRITE_ROWS]
                 f.write(rows.tobytes())
         for k, p in enumerate(parts):
             fc = np.load(p["faces"], mmap_mode="r")

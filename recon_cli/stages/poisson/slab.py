@@ -83,6 +83,8 @@ class Job:
     local_density: int  # kernel-density levels above this one are a slab's own, the rest global
     density: bool
     trim: float
+    # --confidence: each point's weight is its normal's length times this (1 / the mean length)
+    weight_scale: float | None = None
 
 
 @dataclass
@@ -101,6 +103,9 @@ class Slab:
     pts: np.ndarray | None = None  # (n, 3) kept points, job frame
     own_pt: np.ndarray | None = None
     colors: np.ndarray | None = None
+    props: dict | None = None  # per-point properties carried onto the vertices (kept rows)
+    unit_nrm: np.ndarray | None = None  # (n, 3) the kept points' unit normals (for props)
+    vn_sum: np.ndarray | None = None  # (nv, 3) the faces' normals summed at each vertex
     smp: Samples | None = None
     own_s: np.ndarray | None = None
     use_s: np.ndarray | None = None
@@ -196,14 +201,24 @@ def _place(slab: Slab, table: tuple, level: int) -> None:
     slab.area[todo[ok]] = area
 
 
-def _load(slab: Slab, points: np.ndarray, normals: np.ndarray, colors: np.ndarray | None) -> dict:
+def _load(
+    slab: Slab,
+    points: np.ndarray,
+    normals: np.ndarray,
+    colors: np.ndarray | None,
+    props: dict | None = None,
+) -> dict:
     job = slab.job
     pts = np.asarray(points, dtype=np.float64)
     nrm = np.asarray(normals, dtype=np.float64)
     length = np.linalg.norm(nrm, axis=1)
     keep = length > 0
     pts, nrm = pts[keep], nrm[keep] / length[keep, None]
+    weight = None if job.weight_scale is None else length[keep] * job.weight_scale
     slab.colors = None if colors is None else np.asarray(colors)[keep]
+    slab.props = {k: np.asarray(v)[keep] for k, v in (props or {}).items()}
+    # the attributes' transfer reads the points' normals after the solve
+    slab.unit_nrm = nrm.copy() if (slab.props or slab.colors is not None) else None
     res = slab.res
     origin = np.asarray(job.origin)
     unit = (pts - origin) / job.size
@@ -212,8 +227,8 @@ def _load(slab: Slab, points: np.ndarray, normals: np.ndarray, colors: np.ndarra
     slab.own_pt = (xc >= a) & (xc < b)
     slab.pts = pts
     del xc
-    smp = merge_samples(unit, nrm, job.depth)
-    del nrm
+    smp = merge_samples(unit, nrm, job.depth, weight)
+    del nrm, weight
     slab.smp = smp
     sx = smp.keys >> 42
     slab.own_s = (sx >= a) & (sx < b)
@@ -236,10 +251,16 @@ def _load(slab: Slab, points: np.ndarray, normals: np.ndarray, colors: np.ndarra
 
 
 @timed
-def load(slab: Slab, points: np.ndarray, normals: np.ndarray, colors: np.ndarray | None) -> dict:
+def load(
+    slab: Slab,
+    points: np.ndarray,
+    normals: np.ndarray,
+    colors: np.ndarray | None,
+    props: dict | None = None,
+) -> dict:
     """Read the slab's points (own and pad, job frame, finite), merge them per finest cell,
     place the samples the slab's own density levels place; returns the splat figures."""
-    return _load(slab, points, normals, colors)
+    return _load(slab, points, normals, colors, props)
 
 
 @timed
@@ -1169,11 +1190,67 @@ def trim_drop(slab: Slab, drop: np.ndarray, seam_keep: dict) -> dict:
 
 
 @timed
-def export(slab: Slab, seam_keep: dict | None, prefix: str | None = None) -> dict:
+def seam_normals(slab: Slab, seam_keep: dict | None) -> dict:
+    """Keep the seam vertices either slab uses (``seam_keep``, as :func:`export`); the faces'
+    normals summed at each vertex (the attributes' side test); returns the right seam's sums:
+    the next slab owns those vertices and adds them to its own faces'."""
+    from recon_cli.stages.poisson.attributes import vertex_normal_sums
+
+    if seam_keep is not None:
+        _compact(slab, np.ones(len(slab.faces), bool), seam_keep)
+    v, f = slab.verts, slab.faces
+    slab.vn_sum = vertex_normal_sums(v, f) if len(f) else np.zeros_like(v)
+    return {"right": slab.vn_sum[len(v) - slab.seam["right"] :]}
+
+
+def _pad_gap(slab: Slab, x: np.ndarray) -> np.ndarray:
+    """Distance (world units) from job-frame x to the nearer end of the slab's points (inf on
+    the side where the cube ends: no point lies beyond)."""
+    job = slab.job
+    u = (x - job.origin[0]) / job.size
+    lo = np.inf if slab.pad[0] <= 0.0 else (u - slab.pad[0]) * job.size
+    hi = np.inf if slab.pad[1] >= 1.0 else (slab.pad[1] - u) * job.size
+    return np.minimum(lo, hi)
+
+
+def _attributes(slab: Slab, v: np.ndarray, own: np.ndarray, left_sum) -> tuple[dict, Any, dict]:
+    """The input's properties at the slab's own vertices ``v`` (:func:`.attributes.transfer`,
+    the surface's normal at a seam vertex summed over both slabs' faces)."""
+    from recon_cli.stages.poisson.attributes import transfer, unit_rows
+
+    vn = slab.vn_sum
+    nl = slab.seam["left"]
+    if left_sum is not None and nl:
+        vn[:nl] += left_sum
+    cell = slab.job.size / (1 << slab.tree_depth)
+    if len(v) and not len(slab.pts):
+        raise StageFailed(
+            f"distributed poisson: slab {slab.index} has surface but no input point within "
+            "its pad to carry attributes from: use fewer --partitions or --attributes none"
+        )
+    moved = transfer(
+        slab.pts, slab.unit_nrm, slab.props, slab.colors, v, None, cell, unit_rows(vn[own])
+    )
+    inexact = 0
+    if moved.reach is not None:
+        inexact = int(np.count_nonzero(moved.reach >= _pad_gap(slab, v[:, 0])))
+    stats = {"fallback": int(moved.fallback), "inexact": inexact}
+    return moved.values, moved.colors, stats
+
+
+@timed
+def export(
+    slab: Slab,
+    seam_keep: dict | None,
+    prefix: str | None = None,
+    left_sum: np.ndarray | None = None,
+) -> dict:
     """The slab's output: its own vertices (the left seam's first, then the others; the
-    right seam's belong to the next slab) with density and colours, and its faces, whose
-    references to the right seam's vertices are ``-1 - rank``. ``seam_keep``: per seam, the
-    vertices either slab uses (both export the same ones). With ``prefix`` the arrays go to
+    right seam's belong to the next slab) with the input's properties, colours and density,
+    and its faces, whose references to the right seam's vertices are ``-1 - rank``.
+    ``seam_keep``: per seam, the vertices either slab uses (both export the same ones; None
+    when :func:`seam_normals` kept them); ``left_sum``: the previous slab's face normals
+    summed at the left seam's vertices. With ``prefix`` the arrays go to
     ``prefix.<name>.npy`` (the message names them), else in the message."""
     job = slab.job
     if seam_keep is not None:
@@ -1188,24 +1265,30 @@ def export(slab: Slab, seam_keep: dict | None, prefix: str | None = None) -> dic
     fl = faces.reshape(-1)
     out_f = np.where(right[fl], -1 - rank[fl], index[fl]).reshape(-1, 3)
     v = verts[~right]
-    res = 1 << slab.tree_depth
-    msg: dict[str, Any] = {"left_seam": slab.seam["left"], "right_seam": nr}
+    msg: dict[str, Any] = {"left_seam": slab.seam["left"], "right_seam": nr, "attributes": {}}
+    if slab.props or slab.colors is not None:
+        values, colors, msg["attribute_stats"] = _attributes(slab, v, ~right, left_sum)
+        msg["attributes"] = values
+        if colors is not None:
+            msg["colors"] = colors
     if job.density:
-        msg["density"] = slab.vdens[~right]
-    if slab.colors is not None and len(v):
-        from recon_cli.stages.poisson import interpolate_colors
-
-        msg["colors"] = interpolate_colors(slab.pts, slab.colors, v, job.size / res)
+        msg["attributes"]["density"] = slab.vdens[~right]
     msg["vertices"] = v
     msg["faces"] = out_f
-    slab.faces = slab.verts = slab.vdens = None
+    slab.faces = slab.verts = slab.vdens = slab.vn_sum = None
+    slab.props = slab.colors = slab.unit_nrm = None
     msg["counts"] = (len(v), len(out_f))
     msg["box"] = (v.min(axis=0), v.max(axis=0)) if len(v) else None
     if prefix is not None:
-        for name in ("vertices", "faces", "colors", "density"):
+        for name in ("vertices", "faces", "colors"):
             if name in msg:
                 np.save(f"{prefix}.{name}.npy", msg[name])
                 msg[name] = f"{prefix}.{name}.npy"
+        files = {}
+        for i, (name, arr) in enumerate(msg["attributes"].items()):
+            files[name] = f"{prefix}.a{i:03d}.npy"
+            np.save(files[name], arr)
+        msg["attributes"] = files
     return msg
 
 
@@ -1234,22 +1317,37 @@ except ImportError:  # pragma: no cover
 
 
 @timed
-def load_files(slab: Slab, parts: list[tuple[str, np.ndarray]], nsub: int) -> dict:
+def load_files(
+    slab: Slab,
+    parts: list[tuple[str, np.ndarray]],
+    nsub: int,
+    colors: tuple | None = None,
+    names: tuple = (),
+    dtypes: tuple = (),
+) -> dict:
     """:func:`load` from the chunks' files (``(prefix, offsets)``: each chunk's rows sorted by
     sub-slab, ``offsets`` (nsub + 1,) where each sub-slab's rows start), the rows of the
-    slab's pad range."""
+    slab's pad range; ``colors`` (dtype, columns) when the chunks have colours, ``names``
+    and ``dtypes`` the properties carried (``prefix.a<i>.npy``)."""
     pa, pb = slab.x_range(slab.pad, nsub)
     pts, nrm, col = [], [], []
+    props: dict[str, list] = {name: [] for name in names}
     for prefix, off in parts:
         a, b = int(off[pa]), int(off[pb])
         if b <= a:
             continue
         pts.append(np.load(prefix + ".pts.npy", mmap_mode="r")[a:b])
         nrm.append(np.load(prefix + ".nrm.npy", mmap_mode="r")[a:b])
-        if os.path.exists(prefix + ".col.npy"):
+        if colors:
             col.append(np.load(prefix + ".col.npy", mmap_mode="r")[a:b])
+        for i, name in enumerate(names):
+            props[name].append(np.load(f"{prefix}.a{i:03d}.npy", mmap_mode="r")[a:b])
     P = np.concatenate(pts) if pts else np.zeros((0, 3))
     N = np.concatenate(nrm) if nrm else np.zeros((0, 3))
-    C = np.concatenate(col) if col else None
-    del pts, nrm, col
-    return _load(slab, P, N, C)
+    C = (np.concatenate(col) if col else np.zeros((0, colors[1]), colors[0])) if colors else None
+    A = {
+        name: np.concatenate(v) if v else np.zeros(0, dtypes[i])
+        for i, (name, v) in enumerate(props.items())
+    }
+    del pts, nrm, col, props
+    return _load(slab, P, N, C, A)
