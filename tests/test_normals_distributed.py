@@ -67,6 +67,29 @@ def test_camera_and_keep():
     assert (np.einsum("ij,ij->i", nrm, truth * signs) > 0).mean() > 0.99
 
 
+def test_camera_towards_each_points_own_scanner():
+    """``--orient camera`` without ``--camera``: each point towards the scanner that took it
+    (the cloud's sensors and its per-point scan index), as the single-process run."""
+    from recon_cli.geometry import SCAN_ATTRIBUTE, Sensor
+    from recon_cli.stages.normals import run_stage, sensor_views
+
+    rng = np.random.default_rng(7)
+    p = rng.normal(size=(6000, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    p = p * np.array([3.0, 1.0, 1.0]) + 1e5
+    which = (p[:, 0] < 1e5).astype(np.int64)
+    sensors = [Sensor(position=(1e5 + 8.0, 1e5, 1e5)), Sensor(position=(1e5 - 8.0, 1e5, 1e5))]
+    cloud = PointCloud(points=p, sensors=sensors, attributes={SCAN_ATTRIBUTE: which})
+    ref = run_stage(cloud, orient="camera").output.normals
+    views = sensor_views(sensors, which, len(p), 0)
+    nrm, _, _ = distributed_normals(p, orient="camera", partitions=3, sensors=views)
+    assert np.einsum("ij,ij->i", nrm, ref).min() > 1 - 1e-9
+    # each towards its own scanner (not the other one: the sides facing away flip)
+    at = np.array([s.position for s in sensors])
+    assert (np.einsum("ij,ij->i", nrm, at[which] - p) >= 0).all()
+    assert (np.einsum("ij,ij->i", nrm, at[1 - which] - p) < 0).mean() > 0.2
+
+
 def test_refused():
     p = np.random.default_rng(1).normal(size=(100, 3))
     with pytest.raises(ParameterError, match="partitions must be 1..32"):

@@ -137,6 +137,60 @@ def test_colours_and_density_per_vertex():
     assert np.allclose(dens, ref, rtol=1e-3)
 
 
+def test_attributes_carried_as_single():
+    """Every property keeps its dtype and comes from the points on the vertex's side, as in the
+    single-process run: codes (a classification by a plane the seams cross) only take codes
+    the points have and match the single-process vertex nearest; measurements (intensity,
+    colours) within a unit of it; no vertex's neighbours reach past its slab's pad."""
+    rng = np.random.default_rng(21)
+    p, n = sphere_cloud(20_000, seed=21)
+    r = random_rotation(rng)
+    pts, nrm = p @ r.T * 3.0 + 1e5, n @ r.T
+    props = {
+        "classification": np.where(p[:, 0] + 0.3 * p[:, 1] > 0.1, 6, 2).astype(np.uint8),
+        "intensity": (1000 + 500 * p[:, 2]).astype(np.uint16),
+        "gps_time": 1e9 + p[:, 1],
+    }
+    colors = (np.clip(p * 0.5 + 0.5, 0, 1) * 255).astype(np.uint8)
+    res = distributed_poisson(
+        pts, nrm, depth=7, partitions=3, properties=props, colors=colors, density=True
+    )
+    single = screened_poisson(pts, nrm, depth=7, properties=props, colors=colors, density=True)
+    m, s = res.mesh, single.mesh
+    assert list(m.attributes) == list(s.attributes) == [*props, "density"]
+    for k, v in props.items():
+        assert m.attributes[k].dtype == v.dtype and len(m.attributes[k]) == len(m.vertices)
+    assert res.report["attributes"] == single.report["attributes"]
+    assert res.report["distributed"]["attribute_inexact_vertices"] == 0
+    _, i = cKDTree(s.vertices).query(m.vertices)
+    cls = m.attributes["classification"]
+    assert set(np.unique(cls)) == {2, 6}
+    assert (cls != s.attributes["classification"][i]).mean() < 0.001
+    di = np.abs(m.attributes["intensity"].astype(int) - s.attributes["intensity"][i].astype(int))
+    assert di.max() <= 2
+    assert np.abs(m.colors.astype(int) - s.colors[i].astype(int)).max() <= 2
+    assert np.abs(m.attributes["gps_time"] - s.attributes["gps_time"][i]).max() < 1e-3
+    _closed_one_piece(m)
+
+
+def test_one_slab_with_confidence_is_the_single_process_mesh():
+    """--confidence weighs each point by its normal's length over the mean of all of them:
+    with one slab the mesh is the single-process one to rounding."""
+    rng = np.random.default_rng(22)
+    pts, nrm = sphere_cloud(12_000, seed=22)
+    pts = pts * np.array([1.0, 0.8, 0.7])
+    nrm = nrm * rng.uniform(0.2, 3.0, size=(len(nrm), 1))
+    res = distributed_poisson(pts, nrm, depth=7, partitions=1, confidence=True)
+    single = screened_poisson(pts, nrm, depth=7, confidence=True)
+    plain = screened_poisson(pts, nrm, depth=7)
+    assert len(res.mesh.vertices) == len(single.mesh.vertices)
+    d, _ = cKDTree(single.mesh.vertices).query(res.mesh.vertices)
+    assert d.max() < 1e-12
+    # and the weights did something
+    d2, _ = cKDTree(plain.mesh.vertices).query(res.mesh.vertices)
+    assert d2.max() > 1e-6
+
+
 def test_trim_of_an_open_scan_as_single():
     """A single-view scan's closing sheet trimmed over three slabs: the holes and islands the
     trim decides are joined across seams, the cut vertices on seams shared; the mesh is the
@@ -229,13 +283,22 @@ def _recon(argv: list[str]) -> int:
 @pytest.mark.slow
 def test_command_reads_the_file_by_chunks(tmp_path, monkeypatch, capsys):
     """``recon poisson IN OUT --workers 2``: the command never loads IN (the workers read its
-    chunks); the mesh is the in-memory distributed run's, double in, double out."""
+    chunks, dropping and counting a NaN row as the reader does); the mesh is the in-memory
+    distributed run's, double in, double out, with the input's properties in their types."""
     import recon_cli.io.chunks as C
     import recon_cli.io.load as L
 
     pts, nrm = sphere_cloud(12_000, seed=12)
+    props = {
+        "classification": np.where(pts[:, 2] > 0.2, 6, 2).astype(np.uint8),
+        "intensity": (100 + 50 * pts[:, 0]).astype(np.uint16),
+    }
     src = tmp_path / "sphere.ply"
-    save(PointCloud(points=pts, normals=nrm), str(src))
+    bad = np.insert(pts, 7000, [np.nan, 0.0, 0.0], axis=0)
+    attrs = {k: np.insert(v, 7000, 0) for k, v in props.items()}
+    save(
+        PointCloud(points=bad, normals=np.insert(nrm, 7000, nrm[0], 0), attributes=attrs), str(src)
+    )
     monkeypatch.setattr(C, "CHUNK_ROWS", 5000)  # three chunks
 
     def refuse(*a, **k):
@@ -249,12 +312,17 @@ def test_command_reads_the_file_by_chunks(tmp_path, monkeypatch, capsys):
     monkeypatch.undo()
     rep = json.loads(captured.out)
     assert rep["distributed"]["chunks"] == 3
-    assert set(rep["distributed"]["phases"]) >= {"load", "solve", "extract", "export"}
+    assert set(rep["distributed"]["phases"]) >= {"load", "solve", "extract", "attributes"}
+    assert rep["read"] == {"kept": len(pts), "invalid_dropped": 1}
+    assert rep["attributes"] == ["classification", "intensity"]
     mesh = load(str(out))
     _closed_one_piece(mesh)
     assert mesh.vertices.dtype == np.float64
-    ref = distributed_poisson(pts, nrm, depth=7, partitions=2)
+    ref = distributed_poisson(pts, nrm, depth=7, partitions=2, properties=props)
     assert len(ref.mesh.vertices) == len(mesh.vertices)
+    for k in props:
+        assert mesh.attributes[k].dtype == props[k].dtype
+        assert np.array_equal(mesh.attributes[k], ref.mesh.attributes[k])
     assert not [f for f in os.listdir(tmp_path) if f.startswith(".recon-poisson-")]
 
 
@@ -265,6 +333,8 @@ def test_command_reads_the_file_by_chunks(tmp_path, monkeypatch, capsys):
         (["--workers", "2", "--degree", "1"], "uses degree 2"),
         (["--workers", "2", "--scheduler", "tcp://x:1"], "leave them out with --scheduler"),
         (["--workers", "2", "--backend", "open3d"], "native solver"),
+        (["--workers", "2", "--boundary", "free"], "--boundary free is not available with"),
+        (["--workers", "2", "--grid", "g.npz"], "--grid is not available with --workers"),
     ],
 )
 def test_command_refuses(tmp_path, capsys, args, msg):
