@@ -210,6 +210,47 @@ def test_trim_of_an_open_scan_as_single():
     assert len(res.mesh.attributes["density"]) == len(res.mesh.vertices)
 
 
+class _Bars:
+    """A stand-in for recon_cli.progress.Progress recording every task's advances."""
+
+    def __init__(self):
+        self.tasks: dict[str, list] = {}
+
+    def task(self, name, total=None):
+        bars = self
+
+        class T:
+            def __enter__(self):
+                bars.tasks[name] = [total, 0.0, 0]
+                return self
+
+            def __exit__(self, *exc):
+                return None
+
+            def advance(self, amount=1.0):
+                bars.tasks[name][1] += amount
+                bars.tasks[name][2] += 1
+
+            def expect(self, amount):
+                return None
+
+        return T()
+
+
+@pytest.mark.parametrize("kw", [{}, {"trim": 0.2, "colors": True, "point_weight": 0.0}])
+def test_progress_over_the_whole_job_reaches_its_total(kw):
+    """The job's bar is advanced by every phase that runs, a slab at a time, to its total
+    exactly (no phase weighed that does not run, none run unweighed)."""
+    pts, nrm = sphere_cloud(6000, seed=13)
+    if kw.pop("colors", False):
+        kw["colors"] = (np.abs(nrm) * 255).astype(np.uint8)
+    bars = _Bars()
+    distributed_poisson(pts, nrm, depth=7, partitions=3, progress=bars, **kw)
+    total, done, steps = bars.tasks["poisson: the whole job"]
+    assert done == pytest.approx(total, rel=1e-12) and steps > 3 * 10
+    assert bars.tasks["poisson: solve"][:2] == [3, 3]
+
+
 @pytest.mark.parametrize(
     "kw, msg",
     [

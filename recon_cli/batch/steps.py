@@ -16,13 +16,16 @@ Two runners with one interface (``run(name, fn, args) -> messages``):
   the part's first one, the coordinator's values being part of the tasks), on another
   worker; a step whose worker dies again (``allowed-failures``) fails the job.
 
-Both note per step (phase): the wall time, the slowest part's time and the largest part's
+Both advance an optional :class:`Overall` bar over the whole job (each phase its share,
+a part's share as each part finishes: partitions done, and an estimate of the time left
+over every phase) and note per step (phase): the wall time, the slowest part's time and the largest part's
 peak memory (from the messages' ``seconds`` and ``peak_mb``), and the bytes the messages
 and arguments carried (Dask's ``sizeof``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from typing import Any, Callable
@@ -51,6 +54,39 @@ def note_phase(phases: dict, name: str, msgs: list[dict], wall: float, moved: in
     p["bytes_moved"] += int(moved)
 
 
+class Overall:
+    """One progress bar over a whole job: phase ``name`` is ``weights[name]`` of it (its
+    first run only: a phase run again, such as a median's second round, adds nothing), a
+    part's share added as each part finishes; the coordinator's own steps through
+    :meth:`step`. ``bar`` is a :func:`recon_cli.progress.task` (its total the weights' sum
+    over the phases that will run)."""
+
+    def __init__(self, bar: Any, weights: dict[str, float]):
+        self.bar = bar
+        self.weights = dict(weights)
+        self.seen: set[str] = set()
+
+    def claim(self, name: str) -> float:
+        """The weight a phase's run adds (0 after its first run)."""
+        if name in self.seen:
+            return 0.0
+        self.seen.add(name)
+        return float(self.weights.get(name, 0.0))
+
+    def advance(self, amount: float) -> None:
+        if amount > 0:
+            self.bar.advance(amount)
+
+    @contextlib.contextmanager
+    def step(self, name: str):
+        """A coordinator's step (one long call): the bar moves on an estimate meanwhile."""
+        w = self.claim(name)
+        if w > 0:
+            self.bar.expect(w)
+        yield
+        self.advance(w)
+
+
 def _sizeof(obj: Any) -> int:
     try:
         from dask.sizeof import sizeof
@@ -62,21 +98,31 @@ def _sizeof(obj: Any) -> int:
 class LocalRunner:
     """Every part in this process, one after another."""
 
-    def __init__(self, states: list, progress: Any = None, label: str = "parts"):
+    def __init__(
+        self,
+        states: list,
+        progress: Any = None,
+        label: str = "parts",
+        overall: Overall | None = None,
+    ):
         self.states = list(states)
         self.phases: dict[str, dict] = {}
         self.progress = progress
         self.label = label
+        self.overall = overall
 
     def run(self, name: str, fn: Callable, args: Callable[[int], tuple]) -> list[dict]:
         from recon_cli.progress import task
 
         t0 = time.perf_counter()
         out = []
+        share = self.overall.claim(name) / max(len(self.states), 1) if self.overall else 0.0
         with task(self.progress, f"{self.label}: {name}", total=len(self.states)) as bar:
             for k, s in enumerate(self.states):
                 out.append(fn(s, *args(k)))
                 bar.advance(1)
+                if share:
+                    self.overall.advance(share)
         note_phase(self.phases, name, out, time.perf_counter() - t0)
         return out
 
@@ -106,11 +152,19 @@ def _start(x: Any) -> Any:
 class DaskRunner:
     """Each part's state on a Dask worker (module docstring)."""
 
-    def __init__(self, client: Any, states: list, progress: Any = None, label: str = "parts"):
+    def __init__(
+        self,
+        client: Any,
+        states: list,
+        progress: Any = None,
+        label: str = "parts",
+        overall: Overall | None = None,
+    ):
         self.client = client
         self.phases: dict[str, dict] = {}
         self.progress = progress
         self.label = label
+        self.overall = overall
         self.token = os.urandom(4).hex()
         self.round = 0
         workers = sorted(client.scheduler_info().get("workers", {}))
@@ -149,10 +203,13 @@ class DaskRunner:
             msgs_f.append(c.submit(_second, p, key=f"{tag}-msg", pure=False))
         index = {f.key: k for k, f in enumerate(msgs_f)}
         out: list[Any] = [None] * len(msgs_f)
+        share = self.overall.claim(name) / max(len(msgs_f), 1) if self.overall else 0.0
         with task(self.progress, f"{self.label}: {name}", total=len(msgs_f)) as bar:
             for f in as_completed(msgs_f):
                 out[index[f.key]] = f.result()  # raises the step's own error
                 bar.advance(1)
+                if share:
+                    self.overall.advance(share)
         moved += sum(_sizeof(m) for m in out)
         self.states = states
         for f in pairs + msgs_f:

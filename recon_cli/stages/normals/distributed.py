@@ -361,7 +361,23 @@ def _join(msgs: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def _core(client, files, counts, frame, n_rows: int, p: dict, tmp: str, progress=None) -> tuple:
     """The slabs' steps on bucketed rows (``files``: per chunk its file prefix and sub-slab
-    offsets); returns each slab's output file prefix and the report's figures."""
+    offsets), on one progress bar over them all; returns each slab's output file prefix and
+    the report's figures."""
+    from recon_cli.batch.steps import Overall
+    from recon_cli.progress import task
+
+    weights = {k: w for k, w in PHASE_WEIGHTS.items() if k != "flux" or p["orient"] == "mst"}
+    with task(progress, "normals: the whole job", sum(weights.values())) as bar:
+        return _core_steps(
+            client, files, counts, frame, n_rows, p, tmp, progress, Overall(bar, weights)
+        )
+
+
+# each phase's share of a run's wall time (the progress bar over the whole job)
+PHASE_WEIGHTS = {"load": 10.0, "neighbourhoods": 45.0, "orient": 30.0, "flux": 5.0, "write": 10.0}
+
+
+def _core_steps(client, files, counts, frame, n_rows, p, tmp, progress, overall) -> tuple:
     from recon_cli.batch.steps import DaskRunner, LocalRunner
     from recon_cli.stages.normals import FLUX_MIN
 
@@ -386,9 +402,9 @@ def _core(client, files, counts, frame, n_rows: int, p: dict, tmp: str, progress
         plan = _plan(counts, parts, halo)
         slabs = [NSlab(k, parts, *plan[k], origin, size) for k in range(parts)]
         runner = (
-            LocalRunner(slabs, progress, "normals")
+            LocalRunner(slabs, progress, "normals", overall)
             if client is None
-            else DaskRunner(client, slabs, progress, "normals")
+            else DaskRunner(client, slabs, progress, "normals", overall)
         )
         try:
             lm = runner.run(

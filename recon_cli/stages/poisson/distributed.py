@@ -88,6 +88,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from recon_cli.batch.steps import Overall
 from recon_cli.errors import InputError, ParameterError, StageFailed
 from recon_cli.stages.poisson import slab as S
 from recon_cli.stages.poisson.splat import KERNEL_OFFSET, screening_alpha
@@ -159,6 +160,52 @@ def coarse_depth_for(depth: int) -> int:
 
 # ---------------------------------------------------------------------------------------------
 # the coordinator's steps
+
+# each phase's share of a run's wall time, for the progress bar over the whole job (measured
+# on the bench's runs: bench/bench_distributed.py; a phase that does not run adds nothing)
+PHASE_WEIGHTS = {
+    "sort": 6.0,
+    "load": 6.0,
+    "density": 1.0,
+    "place": 1.0,
+    "noise": 8.0,
+    "items": 10.0,
+    "restrict": 6.0,
+    "coarse tree": 1.0,
+    "coarse solve": 5.0,
+    "solve": 25.0,
+    "field": 6.0,
+    "extract": 12.0,
+    "prepare": 1.0,
+    "trim": 4.0,
+    "seams": 1.0,
+    "attributes": 8.0,
+    "export": 2.0,
+    "write": 4.0,
+}
+
+
+def job_weights(from_files: bool, noise: bool, trim: bool, carry: bool, write: bool) -> dict:
+    """The phases a run goes through and their weights (:data:`PHASE_WEIGHTS`)."""
+    skip = set()
+    if not from_files:
+        skip.add("sort")
+    if not noise:
+        skip.add("noise")
+    if not trim:
+        skip.add("trim")
+    skip.update(("export",) if carry else ("seams", "attributes"))
+    if not write:
+        skip.add("write")
+    return {k: w for k, w in PHASE_WEIGHTS.items() if k not in skip}
+
+
+def _coordinator_step(runner, name: str):
+    """The coordinator's own step ``name``, on the job's bar (when there is one)."""
+    import contextlib
+
+    overall = getattr(runner, "overall", None)
+    return overall.step(name) if overall is not None else contextlib.nullcontext()
 
 
 def _sum_tables(msgs: list[dict]) -> tuple[np.ndarray, np.ndarray]:
@@ -339,7 +386,8 @@ def reconstruct(
     screening = _sum_screening([m["screening"] for m in im]) if alpha > 0 else {}
     cpos, clvl = S.coarse_item_set(im, dc)
     del im
-    coarse = S.build_coarse_levels(cpos, clvl, tree_depth, job)
+    with _coordinator_step(runner, "coarse tree"):
+        coarse = S.build_coarse_levels(cpos, clvl, tree_depth, job)
     del cpos, clvl
     rm = runner.run("restrict", S.restrict, lambda k: (S.level_message(coarse), coarse_fields))
     finer = None
@@ -354,7 +402,8 @@ def reconstruct(
     timings["tree"] = time.perf_counter() - t
     # ---- the coarse solve, then the slabs' finer levels
     t = time.perf_counter()
-    coefs, cstats, cit, cres = solve_coarse(coarse, job, coarse_fields, finer, screening)
+    with _coordinator_step(runner, "coarse solve"):
+        coefs, cstats, cit, cres = solve_coarse(coarse, job, coarse_fields, finer, screening)
     del finer, screening
     timings["coarse_solve"] = time.perf_counter() - t
     t = time.perf_counter()
@@ -405,12 +454,12 @@ def reconstruct(
     left = [None] * len(seam_keep)
     if carry:
         # the surface's normal at a seam vertex sums both slabs' faces (the attributes' side)
-        nm = runner.run("attributes", S.seam_normals, lambda k: (seam_keep[k],))
+        nm = runner.run("seams", S.seam_normals, lambda k: (seam_keep[k],))
         left = [None] + [m["right"] for m in nm[:-1]]
         seam_keep = [None] * len(seam_keep)
         del nm
     fm = runner.run(
-        "export" if not carry else "attributes",
+        "attributes" if carry else "export",
         S.export,
         lambda k: (
             seam_keep[k],
@@ -705,23 +754,26 @@ def distributed_poisson(
     sub = sub_slab((pts[:, 0] - job.origin[0]) / size, nsub)
     plan = plan_slabs(job, np.bincount(sub, minlength=nsub), partitions, seams)
     slabs = [S.slab_of(job, k, partitions, *plan[k]) for k in range(partitions)]
-    runner = make_runner(client, slabs, progress)
-    try:
+    carry = bool(props) or colors is not None
+    weights = job_weights(False, point_weight > 0, trim > 0, carry, False)
 
-        def load_args(k):
-            pa, pb = (int(round(v * nsub)) for v in plan[k][1])
-            sel = (sub >= pa) & (sub < pb)
-            return (
-                pts[sel],
-                nrm[sel],
-                None if colors is None else colors[sel],
-                {k: v[sel] for k, v in props.items()},
-            )
+    def load_args(k):
+        pa, pb = (int(round(v * nsub)) for v in plan[k][1])
+        sel = (sub >= pa) & (sub < pb)
+        return (
+            pts[sel],
+            nrm[sel],
+            None if colors is None else colors[sel],
+            {name: v[sel] for name, v in props.items()},
+        )
 
-        loaded = runner.run("load", S.load, load_args)
-        out = reconstruct(runner, job, loaded, progress, carry=bool(props) or colors is not None)
-    finally:
-        runner.close()
+    with _task(progress, "poisson: the whole job", sum(weights.values())) as bar:
+        runner = make_runner(client, slabs, progress, Overall(bar, weights))
+        try:
+            loaded = runner.run("load", S.load, load_args)
+            out = reconstruct(runner, job, loaded, progress, carry=carry)
+        finally:
+            runner.close()
     mesh = assemble(out, job, perm, colors is not None)
     rep = out["report"]
     rep["ignored_points"] = int((~keep).sum())
@@ -730,12 +782,12 @@ def distributed_poisson(
     return PoissonResult(mesh, rep)
 
 
-def make_runner(client: Any, slabs: list, progress: Any = None):
+def make_runner(client: Any, slabs: list, progress: Any = None, overall: Any = None):
     from recon_cli.batch.steps import DaskRunner, LocalRunner
 
     if client is None:
-        return LocalRunner(slabs, progress, "poisson")
-    return DaskRunner(client, slabs, progress, "poisson")
+        return LocalRunner(slabs, progress, "poisson", overall)
+    return DaskRunner(client, slabs, progress, "poisson", overall)
 
 
 def _check_distributed(depth: int, full_depth: int, partitions: int) -> None:
@@ -759,7 +811,7 @@ def _check_distributed(depth: int, full_depth: int, partitions: int) -> None:
 # from files: chunks read by the workers
 
 
-def scan_chunk(chunk) -> dict:
+def _scan_chunk(chunk) -> dict:
     """A chunk's figures for the plan: the box of its points with a usable normal, counts,
     types (each worker reads its own chunk)."""
     from recon_cli.io.chunks import read_chunk
@@ -795,7 +847,7 @@ def scan_chunk(chunk) -> dict:
     return out
 
 
-def bucket_chunk(
+def _bucket_chunk(
     chunk,
     origin,
     size: float,
@@ -825,6 +877,22 @@ def bucket_chunk(
     kept = np.linalg.norm(nrm[order], axis=1) > 0
     off = np.searchsorted(sub, np.arange(nsub + 1))
     return {"offsets": off, "counts": np.bincount(sub[kept], minlength=nsub)}
+
+
+def _timed_task(fn: Callable) -> Callable:
+    """A chunk's task that also reports its seconds and the worker's peak memory (as a
+    slab's step: :func:`.slab.timed`)."""
+
+    def task(*args: Any) -> dict:
+        return S.timed(lambda _none, *a: fn(*a))(None, *args)
+
+    task.__name__ = task.__qualname__ = fn.__name__.lstrip("_")
+    task.__doc__ = fn.__doc__
+    return task
+
+
+scan_chunk = _timed_task(_scan_chunk)
+bucket_chunk = _timed_task(_bucket_chunk)
 
 
 def reconstruct_files(
@@ -859,7 +927,7 @@ def reconstruct_files(
     import shutil
     import tempfile
 
-    from recon_cli.batch.steps import DaskRunner
+    from recon_cli.batch.steps import DaskRunner, note_phase
     from recon_cli.io.chunks import plan_chunks
     from recon_cli.stages.poisson import SPEC, PoissonResult, check_options
 
@@ -881,10 +949,15 @@ def reconstruct_files(
     t0 = time.perf_counter()
     chunks = plan_chunks(inputs)
     with _task(progress, "poisson: reading the chunks' boxes", len(chunks)) as bar:
-        scans = []
-        for f in _as_done(client, [client.submit(scan_chunk, c, pure=False) for c in chunks]):
-            scans.append(f.result())
+        futs = [client.submit(scan_chunk, c, pure=False) for c in chunks]
+        index = {f.key: i for i, f in enumerate(futs)}
+        scans: list[dict] = [{}] * len(futs)
+        for f in _as_done(client, futs):
+            scans[index[f.key]] = f.result()  # in the chunks' order: the first one's header
             bar.advance(1)
+        del futs
+    scan_phase: dict = {}
+    note_phase(scan_phase, "scan", scans, time.perf_counter() - t0)
     kept = sum(s["kept"] for s in scans)
     rows = sum(s["rows"] for s in scans)
     if kept == 0:
@@ -913,58 +986,66 @@ def reconstruct_files(
     origin, size, perm = frame_of(lo, hi, scale)
     job = make_job(origin, size, perm, depth, params)
     nsub = 1 << min(S.SUB_DEPTH, depth)
+    carry = bool(names) or color_type is not None
+    weights = job_weights(True, point_weight > 0, trim > 0, carry, output is not None)
     tmp = tempfile.mkdtemp(prefix=".recon-poisson-", dir=temp_dir)
     runner = None
     try:
-        with _task(progress, "poisson: sorting the chunks into slabs", len(chunks)) as bar:
-            futs = [
-                client.submit(
-                    bucket_chunk,
-                    c,
-                    job.origin,
-                    size,
-                    perm,
-                    nsub,
-                    os.path.join(tmp, f"c{i:05d}"),
-                    keep_colors,
-                    tuple(names),
-                    pure=False,
-                )
-                for i, c in enumerate(chunks)
-            ]
-            buckets = []
-            for f in futs:
-                buckets.append(f.result())
-                bar.advance(1)
-        counts = np.sum([b["counts"] for b in buckets], axis=0)
-        plan = plan_slabs(job, counts, parts)
-        files = [(os.path.join(tmp, f"c{i:05d}"), b["offsets"]) for i, b in enumerate(buckets)]
-        read_s = time.perf_counter() - t0
-        slabs = [S.slab_of(job, k, parts, *plan[k]) for k in range(parts)]
-        runner = DaskRunner(client, slabs, progress, "poisson")
-        loaded = runner.run(
-            "load", S.load_files, lambda k: (files, nsub, color_type, tuple(names), dtypes)
-        )
-        out = reconstruct(
-            runner,
-            job,
-            loaded,
-            progress,
-            tmp if output is not None else None,
-            carry=bool(names) or color_type is not None,
-        )
-        dtypes = {s["point_dtype"] for s in scans}
-        point_dtype = np.float64 if np.dtype("<f8").str in dtypes else np.float32
-        hist = (list(scans[0]["history"]) if scans else []) + list(history or [])
-        if output is not None:
+        with _task(progress, "poisson: the whole job", sum(weights.values())) as job_bar:
+            overall = Overall(job_bar, weights)
+            share = overall.claim("sort") / len(chunks)
             t = time.perf_counter()
-            write_parts_ply(output, out["parts"], perm, point_dtype, color_type, hist)
-            out["report"]["timings"]["write"] = time.perf_counter() - t
-            mesh = None
-            rep = out["report"]
-            rep["vertices"] = sum(p["counts"][0] for p in out["parts"])
-            rep["faces"] = sum(p["counts"][1] for p in out["parts"])
-            rep["distributed"]["phases"] = out.get("phases", {})
+            with _task(progress, "poisson: sorting the chunks into slabs", len(chunks)) as bar:
+                futs = [
+                    client.submit(
+                        bucket_chunk,
+                        c,
+                        job.origin,
+                        size,
+                        perm,
+                        nsub,
+                        os.path.join(tmp, f"c{i:05d}"),
+                        keep_colors,
+                        tuple(names),
+                        pure=False,
+                    )
+                    for i, c in enumerate(chunks)
+                ]
+                buckets = []
+                for f in futs:
+                    buckets.append(f.result())
+                    bar.advance(1)
+                    overall.advance(share)
+            del futs
+            sort_phase = {}
+            note_phase(sort_phase, "sort", buckets, time.perf_counter() - t)
+            counts = np.sum([b["counts"] for b in buckets], axis=0)
+            plan = plan_slabs(job, counts, parts)
+            files = [(os.path.join(tmp, f"c{i:05d}"), b["offsets"]) for i, b in enumerate(buckets)]
+            read_s = time.perf_counter() - t0
+            slabs = [S.slab_of(job, k, parts, *plan[k]) for k in range(parts)]
+            runner = DaskRunner(client, slabs, progress, "poisson", overall)
+            runner.phases.update(scan_phase)
+            runner.phases.update(sort_phase)
+            loaded = runner.run(
+                "load", S.load_files, lambda k: (files, nsub, color_type, tuple(names), dtypes)
+            )
+            out = reconstruct(
+                runner, job, loaded, progress, tmp if output is not None else None, carry=carry
+            )
+            point_types = {s["point_dtype"] for s in scans}
+            point_dtype = np.float64 if np.dtype("<f8").str in point_types else np.float32
+            hist = (list(scans[0]["history"]) if scans else []) + list(history or [])
+            if output is not None:
+                t = time.perf_counter()
+                with overall.step("write"):
+                    write_parts_ply(output, out["parts"], perm, point_dtype, color_type, hist)
+                out["report"]["timings"]["write"] = time.perf_counter() - t
+                mesh = None
+                rep = out["report"]
+                rep["vertices"] = sum(p["counts"][0] for p in out["parts"])
+                rep["faces"] = sum(p["counts"][1] for p in out["parts"])
+                rep["distributed"]["phases"] = out.get("phases", {})
     finally:
         if runner is not None:
             runner.close()
