@@ -42,34 +42,51 @@ carries the low frequencies, each finer level's correction is a few cells wide.
 the neighbour's column of parent cells next to the seam at every finer level (chi at a point
 reads the 27 cells around it, one parent column on each side of the seam). So both slabs of
 a seam evaluate the same chi, with the same coefficients and the same tree, anywhere within
-a cell of it: the neighbour's coefficients on its side, their own on theirs. Each slab then
-extracts the leaves it owns (the finest-lattice extraction, :func:`.extract.extract_finest`,
-restricted to its cells), with one rule for the points on a seam plane, which both slabs
-compute alike (:func:`.slab.plane_values`: the leaf holding the finest cell above the point,
-the same corner values): the faces on a seam have the same values on both sides, hence the
-same crossings, the same vertices (marching cubes puts a vertex at the linear root along
-the edge, then chi's root along it: same numbers, same bits) and the same triangulation of
-their segments. Vertices on a seam are welded by their position on the lattice (the same
-bits on both sides; the coordinator checks the two sides' lists are equal, else the run
-fails): the right slab owns them, the left one refers to them by rank. The mesh is one
-surface, closed and manifold where the single-process mesh is, with no vertex twice.
+a cell of it: the neighbour's coefficients on its side, their own on theirs; chi at the
+tree's nodes (within two cells of the slab) is then the same bits on both sides. Each slab
+extracts the leaves it owns (lower x in its range) as the single-process solve would: at
+the leaves' own size (:func:`.extract.extract_leaves`, restricted to the slab's leaves)
+when a coarse leaf holds surface anywhere (every slab says, the coordinator decides), else
+on the finest lattice (:func:`.extract.extract_finest`'s steps, the points on a seam plane
+given one rule both slabs compute alike: :func:`.slab.plane_values`). A face on a seam has
+the same node values on both sides, hence the same crossings, the same vertices (the same
+root along the same edge, then chi's root along it: same numbers, same bits) and the same
+pairing of its segments. Vertices on a seam are welded by their position on the lattice
+(the coordinator checks the two sides' lists are equal, else the run fails): the right
+slab owns them, the left one refers to them by rank. The mesh is one surface, closed and
+manifold where the single-process mesh is, with no vertex twice.
 
 **Merge.** Pieces are joined across seams by their seam vertices (union-find over the
 slabs' pieces); specks and islands (:func:`._drop_bubbles`' rules) are decided on the
-joined pieces, the largest always kept. Each slab then writes its vertices (density,
-colours) and faces; the coordinator concatenates them (face indices offset, references to
-the right seam resolved), turns the axes back and writes the file atomically: a failed run
-leaves no output.
+joined pieces, the largest always kept. ``trim`` cuts each slab's faces at the global
+threshold (the exact median of the samples' density: two rounds of histograms), the new
+vertices on a seam's edges shared; holes and islands are pieces joined across seams and
+decided on the global kept area (:func:`.trim.trim_by_density`'s rules). Each slab then
+writes its vertices and faces: the input's properties and colours carried as the
+single-process run carries them (:mod:`.attributes`: the points near each vertex on its
+side, from the slab's points and pad; the surface's normal at a seam vertex summed over
+both slabs' faces; the report counts the vertices whose neighbours may lie past the pad,
+``attribute_inexact_vertices``), the density. The coordinator writes a binary PLY a block
+of rows at a time from the slabs' files (face indices offset, references to the right seam
+resolved, axes turned back), atomically: a failed run leaves no output. It never holds the
+cloud nor the mesh.
 
 **Workers.** Every slab step is a deterministic function of the slab's inputs and the global
 values before it; a slab whose worker dies is rebuilt by running its steps again on
-another worker (:class:`DaskRunner`), the global values being the coordinator's.
+another worker (:class:`recon_cli.batch.steps.DaskRunner`), the global values being the
+coordinator's.
+
+**Progress and report.** One bar over the whole job (:class:`recon_cli.batch.steps.Overall`:
+each phase its measured share, advanced as each slab finishes it, with the time left);
+the report's ``distributed.phases`` gives per phase the wall seconds, the slowest slab's
+seconds, the CPU seconds, the largest worker's peak memory and the bytes moved between the
+coordinator and the workers.
 
 Differences from the single-process output: the finer levels' corrections near a seam are
-solved in the two slabs' pads (the seam takes the owner's), sums are added in another
-order, and the extraction is always on the finest lattice (where the single-process
-extraction meshes coarse leaves at their own size, e.g. an open scan's closing sheet, this
-gives more, smaller faces on the same surface).
+solved in the two slabs' pads (the seam takes the owner's), and sums are added in another
+order: with one slab the mesh is the single-process one to rounding, with more the
+vertices near the seams move by a small fraction of a finest cell. ``--boundary free``, ``--envelope`` and
+``--grid`` are not distributed (refused).
 
 References
 ----------
