@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from recon_cli.errors import ParameterError
+from recon_cli.errors import InputError, ParameterError
 from recon_cli.io.load import load, save
 from recon_cli.geometry import PointCloud
 from recon_cli.mesh.topology import report as topology_report
@@ -310,6 +310,50 @@ def test_killed_worker_mid_solve_gives_the_same_mesh(cluster):
     assert killed and killed[0] not in cluster.run(os.getpid).values()
     assert np.array_equal(res.mesh.vertices, ref.mesh.vertices)
     assert np.array_equal(res.mesh.faces, ref.mesh.faces)
+
+
+@pytest.mark.slow
+def test_laz_tiles_read_by_chunks(cluster, tmp_path, monkeypatch):
+    """A folder of LAZ tiles (a sphere cut in two at 1e5), read by the workers in chunks of a
+    few rows (laspy seeking in the compressed files): the mesh of the in-memory run on the
+    same points, with the LAS classification carried as codes; a tile with colours the
+    others lack is refused and leaves no temporary folder."""
+    import recon_cli.io.chunks as C
+    from recon_cli.io.las import write_las
+    from recon_cli.stages.poisson.distributed import reconstruct_files
+
+    pts, nrm = sphere_cloud(10_000, seed=14)
+    pts = pts * 20.0 + np.array([1e5, 2e5, 50.0])
+    cls = np.where(nrm[:, 2] > 0, 6, 2).astype(np.uint8)
+    for name, sel in (("a.laz", pts[:, 0] < 1e5), ("b.laz", pts[:, 0] >= 1e5)):
+        write_las(
+            PointCloud(points=pts[sel], normals=nrm[sel], attributes={"classification": cls[sel]}),
+            str(tmp_path / name),
+        )
+    monkeypatch.setattr(C, "CHUNK_ROWS", 3000)
+    res = reconstruct_files(
+        str(tmp_path), client=cluster, depth=7, partitions=2, attributes="classification"
+    )
+    back = [load(str(tmp_path / n)) for n in ("a.laz", "b.laz")]
+    p2 = np.vstack([b.points for b in back])
+    n2 = np.vstack([b.normals for b in back])
+    c2 = np.concatenate([b.attributes["classification"] for b in back])
+    ref = distributed_poisson(p2, n2, depth=7, partitions=2, properties={"classification": c2})
+    assert res.report["distributed"]["chunks"] == 4
+    # the same mesh (the normals normalised once here, twice there: the last bits differ)
+    assert np.abs(res.mesh.vertices - ref.mesh.vertices).max() < 1e-9
+    assert np.array_equal(res.mesh.faces, ref.mesh.faces)
+    assert np.array_equal(
+        res.mesh.attributes["classification"], ref.mesh.attributes["classification"]
+    )
+    assert res.mesh.attributes["classification"].dtype == np.uint8
+    _closed_one_piece(res.mesh)
+    # a tile with colours the others have not: refused before anything is written
+    rgb = np.full((100, 3), 40000, np.uint16)
+    write_las(PointCloud(points=pts[:100], normals=nrm[:100], colors=rgb), str(tmp_path / "c.laz"))
+    with pytest.raises(InputError, match="do not all have the same"):
+        reconstruct_files(str(tmp_path), client=cluster, depth=7, temp_dir=str(tmp_path))
+    assert not [f for f in os.listdir(tmp_path) if f.startswith(".recon-")]
 
 
 def _recon(argv: list[str]) -> int:
