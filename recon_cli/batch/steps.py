@@ -184,6 +184,7 @@ class DaskRunner:
             )
 
     def run(self, name: str, fn: Callable, args: Callable[[int], tuple]) -> list[dict]:
+        import dask
         from distributed import as_completed
 
         from recon_cli.progress import task
@@ -197,7 +198,10 @@ class DaskRunner:
             a = args(k)
             moved += _sizeof(a)
             tag = f"{self.label}-{self.token}-{k}-{self.round}-{name}"
-            p = c.submit(_step, st, fn, a, key=f"{tag}-step", pure=False)
+            # the arguments go in the task (a recomputed part reads them again from its
+            # lineage), however large: Dask's warning of large graphs is not for this
+            with dask.config.set({"distributed.admin.large-graph-warning-threshold": "1TiB"}):
+                p = c.submit(_step, st, fn, a, key=f"{tag}-step", pure=False)
             pairs.append(p)
             states.append(c.submit(_first, p, key=f"{tag}-state", pure=False))
             msgs_f.append(c.submit(_second, p, key=f"{tag}-msg", pure=False))
