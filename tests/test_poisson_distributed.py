@@ -14,8 +14,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from recon_cli.errors import InputError, ParameterError
-from recon_cli.io.load import load, save
 from recon_cli.geometry import PointCloud
+from recon_cli.io.load import load, save
 from recon_cli.mesh.topology import report as topology_report
 from recon_cli.stages.poisson import screened_poisson
 from recon_cli.stages.poisson.distributed import distributed_poisson

@@ -99,7 +99,8 @@ def open_client(
     ``workers`` processes (one thread each, ``memory_limit`` each: a size, ``"auto"`` or
     ``"none"``), the batch's, closed on exit; ``stealing`` False turns the local scheduler's
     work stealing off (tasks that keep big states stay where they are). Yields
-    ``(client, info)``."""
+    ``(client, info)``.
+    """
     if scheduler is not None and (workers is not None or memory_limit is not None):
         raise ParameterError(
             "--workers and --memory-limit size a local cluster; leave them out with --scheduler"

@@ -28,7 +28,8 @@ from __future__ import annotations
 import contextlib
 import os
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 
 def note_phase(phases: dict, name: str, msgs: list[dict], wall: float, moved: int = 0) -> None:
@@ -59,7 +60,8 @@ class Overall:
     first run only: a phase run again, such as a median's second round, adds nothing), a
     part's share added as each part finishes; the coordinator's own steps through
     :meth:`step`. ``bar`` is a :func:`recon_cli.progress.task` (its total the weights' sum
-    over the phases that will run)."""
+    over the phases that will run).
+    """
 
     def __init__(self, bar: Any, weights: dict[str, float]):
         self.bar = bar

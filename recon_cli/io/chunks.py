@@ -34,7 +34,8 @@ TILE_SUFFIXES = (".ply", ".las", ".laz")
 @dataclass(frozen=True)
 class Chunk:
     """Rows ``start..stop`` of ``path``; ``kind`` ``"ply"``, ``"las"`` or ``"whole"`` (the
-    whole file: ``start`` 0, ``stop`` -1)."""
+    whole file: ``start`` 0, ``stop`` -1).
+    """
 
     path: str
     start: int
@@ -73,7 +74,8 @@ def expand_inputs(inputs: list[str] | str) -> list[str]:
 
 def _ply_layout(path: str) -> tuple[P.PlyData, int, np.dtype, int] | None:
     """(header, vertex rows' byte offset, row dtype, row count) of a binary PLY whose vertex
-    rows have a fixed size, or None."""
+    rows have a fixed size, or None.
+    """
     with open(path, "rb") as f:
         head = f.read(P.MAX_HEADER_BYTES + 1024)
     ply, body = P.parse_header(head, path)
@@ -113,7 +115,8 @@ def _las_count(path: str) -> int:
 
 def plan_chunks(inputs: list[str] | str, rows: int | None = None) -> list[Chunk]:
     """The chunks of ``inputs`` (files, folders, patterns), ``rows`` rows at most each
-    (default :data:`CHUNK_ROWS`)."""
+    (default :data:`CHUNK_ROWS`).
+    """
     rows = CHUNK_ROWS if rows is None else int(rows)
     out = []
     for path in expand_inputs(inputs):
@@ -136,7 +139,8 @@ def plan_chunks(inputs: list[str] | str, rows: int | None = None) -> list[Chunk]
 def read_chunk(chunk: Chunk) -> PointCloud:
     """The rows of ``chunk`` as a cloud (points, normals, colours, the other properties as
     attributes), as the whole file's reader would give them: rows with a NaN or infinite
-    coordinate dropped and counted (``invalid_dropped``)."""
+    coordinate dropped and counted (``invalid_dropped``).
+    """
     if chunk.kind == "whole":
         from recon_cli.io.load import load
 
@@ -169,7 +173,7 @@ def _read_las_rows(chunk: Chunk) -> PointCloud:
     """Rows of a LAS/LAZ file, decoded as :func:`recon_cli.io.las.decode_las` decodes."""
     import io as _io
 
-    from recon_cli.io.las import laspy_module, decode_las
+    from recon_cli.io.las import decode_las, laspy_module
 
     laspy = laspy_module()
     n = chunk.stop - chunk.start

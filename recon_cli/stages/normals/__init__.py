@@ -998,7 +998,8 @@ def _run_distributed(
 
 def check_distributed_neighbours(neighbours: str) -> None:
     """A ``--workers`` / ``--scheduler`` run finds neighbours with the kd-tree (a slab's pixels
-    are not an image)."""
+    are not an image).
+    """
     if neighbours == "pixels":
         raise ParameterError(
             "--neighbours pixels is not available with --workers/--scheduler (kd-tree only)"

@@ -40,11 +40,10 @@ from unorganized points. SIGGRAPH.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any
-
 import os
 import time
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -61,7 +60,8 @@ MAX_SLABS = 32
 @dataclass
 class NSlab:
     """A slab of the distributed normals: its own x range (unit cube of the job), its halo,
-    its points (job frame), their input rows."""
+    its points (job frame), their input rows.
+    """
 
     index: int
     count: int
@@ -116,7 +116,8 @@ def nload(slab: NSlab, parts: list, nsub: int, has_ref: bool, has_scan: bool = F
 
 def nestimate(slab: NSlab, knn: int | None, radius: float | None) -> dict:
     """Neighbourhoods (kd-tree over the slab and its halo) and PCA normals; returns how far
-    past the halo's edge an own point's neighbourhood may reach (0: every one exact)."""
+    past the halo's edge an own point's neighbourhood may reach (0: every one exact).
+    """
     from recon_cli.stages.normals import estimate_sorted, neighbourhoods
 
     n = len(slab.pts)
@@ -152,7 +153,8 @@ def nestimate(slab: NSlab, knn: int | None, radius: float | None) -> dict:
 def norient(slab: NSlab, method: str, cam, dirn) -> dict:
     """Orient the slab's normals (points and halo) as the single-process run would; returns
     its components' figures and, per seam, the oriented normals of the points the
-    neighbour holds too (by input row)."""
+    neighbour holds too (by input row).
+    """
     from scipy import sparse
     from scipy.sparse.csgraph import connected_components
 
@@ -265,7 +267,8 @@ def bucket_rows(
 ) -> dict:
     """Write a chunk's points (job frame: axes turned, about the cube's corner), their input
     rows, for ``keep`` their input normals and, with ``sensors`` (how many the file gives),
-    each point's sensor, sorted by sub-slab, to ``prefix.*.npy``."""
+    each point's sensor, sorted by sub-slab, to ``prefix.*.npy``.
+    """
     from recon_cli.geometry import SCAN_ATTRIBUTE
     from recon_cli.io.chunks import read_chunk
     from recon_cli.stages.normals import sensor_views
@@ -295,7 +298,8 @@ def _plan(counts: np.ndarray, parts: int, halo: int) -> list[tuple]:
 def _join(msgs: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each slab component's flip and group, joining components across seams by the agreement
     of the normals their shared points have (a maximum spanning forest, Kruskal, parity
-    union-find); the largest component of a group keeps its orientation."""
+    union-find); the largest component of a group keeps its orientation.
+    """
     sizes = [len(m["comps"]) for m in msgs]
     off = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
     total = int(off[-1])
@@ -362,7 +366,8 @@ def _join(msgs: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def _core(client, files, counts, frame, n_rows: int, p: dict, tmp: str, progress=None) -> tuple:
     """The slabs' steps on bucketed rows (``files``: per chunk its file prefix and sub-slab
     offsets), on one progress bar over them all; returns each slab's output file prefix and
-    the report's figures."""
+    the report's figures.
+    """
     from recon_cli.batch.steps import Overall
     from recon_cli.progress import task
 
@@ -511,7 +516,8 @@ def distributed_normals(
     Dask ``client``'s cluster, or else all in this process. ``sensors``: for ``orient=
     "camera"`` without ``camera``, ``(positions, directions, is_direction, which)`` as
     :func:`.sensor_views` gives them (about the origin: world coordinates). Returns the
-    oriented normals, the curvature (or None) and the report."""
+    oriented normals, the curvature (or None) and the report.
+    """
     import shutil
     import tempfile
 
@@ -603,7 +609,8 @@ def run_from_files(
     """``recon normals IN OUT --workers N`` / ``--scheduler ADDRESS`` (the stage's
     ``from_files``): None without those options; else the normals from IN by chunks on the
     cluster, OUT written a chunk of IN at a time (binary PLY; other formats assembled here),
-    and the report."""
+    and the report.
+    """
     import shutil
     import tempfile
 
@@ -719,7 +726,8 @@ def run_from_files(
 
 def _write(chunks, first, nrm, curv, perm, output, save_kw, ascii, prov, method, report) -> None:
     """OUT: the input's rows, chunk by chunk, with their normals (axes turned back) and
-    curvature; a binary PLY streamed, any other format assembled in memory."""
+    curvature; a binary PLY streamed, any other format assembled in memory.
+    """
     from recon_cli.io.chunks import read_chunk
     from recon_cli.io.load import save
 

@@ -215,7 +215,8 @@ def _weights(
     tree, points: np.ndarray, normals: np.ndarray, verts: np.ndarray, vn: np.ndarray, cell: float
 ) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
     """(m, k) neighbour indices and weights (rows sum to 1), the number of fallbacks and the
-    distance of each row's farthest neighbour read."""
+    distance of each row's farthest neighbour read.
+    """
     k = min(NEIGHBOURS, len(points))
     dist, idx = tree.query(verts, k=k, workers=-1)
     dist, idx = dist.reshape(len(verts), k), idx.reshape(len(verts), k)

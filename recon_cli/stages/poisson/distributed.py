@@ -101,7 +101,8 @@ import logging
 import math
 import os
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -119,7 +120,8 @@ log = logging.getLogger("recon")
 
 def choose_seams(counts: np.ndarray, parts: int) -> list[int]:
     """Seam positions (in level-``PARTITION_DEPTH`` slabs, strictly increasing, 1..31) that
-    balance ``counts`` (points per level-5 slab) over ``parts`` slabs."""
+    balance ``counts`` (points per level-5 slab) over ``parts`` slabs.
+    """
     n = len(counts)
     if parts > n:
         raise ParameterError(f"at most {n} partitions (the seams are level-5 planes), got {parts}")
@@ -139,7 +141,8 @@ def plan_slabs(
     job: S.Job, sub_counts: np.ndarray, parts: int, seams: list[int] | None = None
 ) -> list[tuple]:
     """Per slab: own, pad (points read) and usable (samples splatted) x ranges (unit cube).
-    ``seams``: the seams' level-5 planes (1..31, increasing), else balanced by the counts."""
+    ``seams``: the seams' level-5 planes (1..31, increasing), else balanced by the counts.
+    """
     nsub = len(sub_counts)
     per = nsub >> S.PARTITION_DEPTH
     counts = sub_counts.reshape(-1, per).sum(axis=1)
@@ -171,7 +174,8 @@ def sub_slab(x_unit: np.ndarray, nsub: int) -> np.ndarray:
 def coarse_depth_for(depth: int) -> int:
     """The levels the coordinator solves: ``depth - COARSE_OFFSET``, at least the partition
     depth, at most :data:`.slab.COARSE_MAX` (the coarse tree stays small at any depth; the
-    slabs solve the rest)."""
+    slabs solve the rest).
+    """
     return min(depth, max(S.PARTITION_DEPTH, min(depth - S.COARSE_OFFSET, S.COARSE_MAX)))
 
 
@@ -261,7 +265,8 @@ def _sum_screening(parts: list[dict]) -> dict:
 def exact_median(runner, name: str, fn: Callable, hists: list[dict], phase: str) -> float | None:
     """The median (as ``np.median``) of values spread over the slabs, from their
     :func:`.slab.float_histogram` s and a second round for the values in the median's bins
-    (``fn(slab, bins)`` returns them)."""
+    (``fn(slab, bins)`` returns them).
+    """
     bins = np.concatenate([h["bins"] for h in hists])
     counts = np.concatenate([h["counts"] for h in hists])
     n = int(counts.sum())
@@ -283,7 +288,8 @@ def solve_coarse(
     levels: list, job: S.Job, fields: dict, finer: np.ndarray | None, screening: dict
 ) -> tuple[list, list[dict], int, float]:
     """The coordinator's solve of the coarse levels; returns each level's coefficients (None
-    for level 0), per-level figures, iterations, last residual."""
+    for level 0), per-level figures, iterations, last residual.
+    """
     from recon_cli.stages.poisson.bspline import NormalRHS, level_fields
 
     dc = len(levels) - 1
@@ -317,7 +323,8 @@ def solve_coarse(
 
 def frame_of(lo: np.ndarray, hi: np.ndarray, scale: float) -> tuple[np.ndarray, float, tuple]:
     """The single-process solve's cube (origin, size) for the kept points' box, and the
-    cyclic turn of the axes that makes the longest one ``x``."""
+    cyclic turn of the axes that makes the longest one ``x``.
+    """
     size = float((hi - lo).max()) * scale
     origin = 0.5 * (lo + hi) - 0.5 * size
     axis = int(np.argmax(hi - lo))
@@ -355,7 +362,8 @@ def reconstruct(
     """Every step after the slabs' ``load`` (whose messages are ``loaded``): returns the
     mesh's parts per slab (in ``out_dir``'s files when given) and the report (module
     docstring); ``carry``: the slabs carry the input's properties or colours onto their
-    vertices."""
+    vertices.
+    """
     from recon_cli.stages.poisson import BUBBLE_CELLS, ISLAND_POINTS
 
     t0 = time.perf_counter()
@@ -525,7 +533,8 @@ def reconstruct(
 
 def _seams_used(uses: list[dict]) -> list[dict]:
     """Per slab, the seam vertices either slab of each of its seams uses (the two export
-    the same ones): ``{"left": mask, "right": mask}``."""
+    the same ones): ``{"left": mask, "right": mask}``.
+    """
     n = len(uses)
     out = [{"left": u["left"].copy(), "right": u["right"].copy()} for u in uses]
     for k in range(1, n):
@@ -538,7 +547,8 @@ def _seams_used(uses: list[dict]) -> list[dict]:
 def _join(parts: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Join the slabs' pieces (``{"areas": (n_k,), "links": {side: (edge keys, labels)}}``)
     across the seams' edges: the global piece of each slab's piece (concatenated, slab
-    offsets) and the pieces' summed areas."""
+    offsets) and the pieces' summed areas.
+    """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -564,7 +574,8 @@ def _trim(
 ) -> tuple[list[dict | None], int, float]:
     """The trim over the slabs (:func:`.trim.trim_by_density`'s steps, its islands and holes
     joined across seams); returns the seam vertices kept, the trimmed faces and the fraction
-    of the area removed."""
+    of the area removed.
+    """
     from recon_cli.stages.poisson.trim import ISLAND_AREA_RATIO
 
     med = exact_median(runner, "density", S.density_values, [m["hist"] for m in pm], "trim")
@@ -608,7 +619,8 @@ def _merge_pieces(runner, em: list[dict], cell: float, bubble_cells: int, island
     """Join the slabs' pieces across the seams (their seam vertices), decide the specks and
     islands on the joined pieces (:func:`._drop_bubbles`' rules); returns per slab the local
     labels to drop, the counts, and the largest distance between the two slabs' positions of
-    a seam vertex (0: the same bits)."""
+    a seam vertex (0: the same bits).
+    """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -673,7 +685,8 @@ def _merge_pieces(runner, em: list[dict], cell: float, bubble_cells: int, island
 
 def assemble(out: dict, job: S.Job, perm: tuple, colors: bool):
     """The mesh from the slabs' parts (in memory): vertices concatenated in slab order, face
-    references to a right seam resolved to the next slab's vertices, axes turned back."""
+    references to a right seam resolved to the next slab's vertices, axes turned back.
+    """
     from recon_cli.geometry import TriangleMesh
 
     parts = out["parts"]
@@ -726,7 +739,8 @@ def distributed_poisson(
     given in memory; on the Dask ``client``'s cluster, or else all in this process
     (:class:`recon_cli.batch.steps.LocalRunner`). Returns a :class:`.PoissonResult` like
     :func:`.screened_poisson`'s (``confidence``, ``colors``, ``properties`` as there), whose
-    report has a ``distributed`` part."""
+    report has a ``distributed`` part.
+    """
     from recon_cli.stages.poisson import SPEC, PoissonResult, check_inputs, check_options
 
     depth, scale, point_weight, samples_per_node, _, boundary, density, trim = check_options(
@@ -830,7 +844,8 @@ def _check_distributed(depth: int, full_depth: int, partitions: int) -> None:
 
 def _scan_chunk(chunk) -> dict:
     """A chunk's figures for the plan: the box of its points with a usable normal, counts,
-    types (each worker reads its own chunk)."""
+    types (each worker reads its own chunk).
+    """
     from recon_cli.io.chunks import read_chunk
 
     cloud = read_chunk(chunk)
@@ -876,7 +891,8 @@ def _bucket_chunk(
 ) -> dict:
     """Write a chunk's rows (job frame, finite) sorted by sub-slab to ``prefix.*.npy`` (the
     colours with ``colors``, the properties ``names`` as ``prefix.a<i>.npy``); returns where
-    each sub-slab's rows start and the kept points per sub-slab."""
+    each sub-slab's rows start and the kept points per sub-slab.
+    """
     from recon_cli.io.chunks import read_chunk
 
     cloud = read_chunk(chunk)
@@ -898,7 +914,8 @@ def _bucket_chunk(
 
 def _timed_task(fn: Callable) -> Callable:
     """A chunk's task that also reports its seconds and the worker's peak memory (as a
-    slab's step: :func:`.slab.timed`)."""
+    slab's step: :func:`.slab.timed`).
+    """
 
     def task(*args: Any) -> dict:
         return S.timed(lambda _none, *a: fn(*a))(None, *args)
@@ -940,7 +957,8 @@ def reconstruct_files(
     :class:`.PoissonResult`; with ``output`` (a binary PLY path) the mesh is streamed there
     from the slabs' files instead (``history`` its comments, after the input's) and the
     result's mesh is None. ``attributes``: the input's properties carried onto the vertices
-    (:func:`.attributes.select`)."""
+    (:func:`.attributes.select`).
+    """
     import shutil
     import tempfile
 
@@ -1107,7 +1125,8 @@ def run_from_files(
     """``recon poisson IN OUT --workers N`` / ``--scheduler ADDRESS``: the stage's
     ``from_files`` (:class:`recon_cli.params.StageSpec`). Returns None without those options
     (the command then runs the stage as usual); else reconstructs from IN by chunks on the
-    cluster (:func:`reconstruct_files`), writes OUT and returns the report."""
+    cluster (:func:`reconstruct_files`), writes OUT and returns the report.
+    """
     from recon_cli.batch.cluster import open_client
     from recon_cli.io.load import save
     from recon_cli.stages.poisson import REPORT_KEYS, SPEC, check_distributed_options
@@ -1203,7 +1222,8 @@ WRITE_ROWS = 1 << 20
 
 def _parts_header(parts: list[dict], perm, point_dtype, colors_dtype, history):
     """The PLY header of the whole mesh (:func:`recon_cli.io.ply.geometry_to_ply`'s layout for
-    the same data), its vertex element's properties and the colours' property names."""
+    the same data), its vertex element's properties and the colours' property names.
+    """
     from recon_cli.geometry import TriangleMesh, float32_rounding
     from recon_cli.io.ply import geometry_to_ply, header_bytes
 
@@ -1233,7 +1253,8 @@ def write_parts_ply(path: str, parts: list[dict], perm, point_dtype, colors_dtyp
     """Write the slabs' parts (files, :func:`.slab.export`) as one binary PLY mesh, a block
     of rows at a time (this process never holds the mesh): vertices in slab order with the
     axes turned back, then the faces, references to a right seam resolved to the next
-    slab's first vertices. Atomic: a failure leaves no file."""
+    slab's first vertices. Atomic: a failure leaves no file.
+    """
     from recon_cli.io.atomic import atomic_open
 
     head, props, color_names = _parts_header(parts, perm, point_dtype, colors_dtype, history)

@@ -16,8 +16,9 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -41,9 +42,9 @@ from recon_cli.stages.poisson.splat import (
     KERNEL_OFFSET,
     Samples,
     Splats,
+    clean_fraction,
     density_table,
     eval_density,
-    clean_fraction,
     merge_samples,
     merge_splats,
     noise_sigma,
@@ -91,7 +92,8 @@ class Job:
 class Slab:
     """A slab's state. ``own`` is the x range (unit cube) whose cells and output it owns,
     ``pad`` the range of points it reads, ``usable`` the range whose samples it splats (their
-    kernel density is exact: all the samples it reads are within ``pad``)."""
+    kernel density is exact: all the samples it reads are within ``pad``).
+    """
 
     job: Job
     index: int
@@ -259,14 +261,16 @@ def load(
     props: dict | None = None,
 ) -> dict:
     """Read the slab's points (own and pad, job frame, finite), merge them per finest cell,
-    place the samples the slab's own density levels place; returns the splat figures."""
+    place the samples the slab's own density levels place; returns the splat figures.
+    """
     return _load(slab, points, normals, colors, props)
 
 
 @timed
 def own_table(slab: Slab, level: int) -> dict:
     """The kernel-density table of the slab's own samples at ``level`` (the coordinator adds
-    the slabs' tables into the global one): sorted cell keys and densities."""
+    the slabs' tables into the global one): sorted cell keys and densities.
+    """
     if not slab.own_s.any():
         return {"keys": np.zeros(0, np.int64), "dens": np.zeros(0)}
     _, (tk, tv, _bits), dens = density_table(_own_samples(slab), level)
@@ -278,7 +282,8 @@ def own_table(slab: Slab, level: int) -> dict:
 
 def global_table(level: int, keys: np.ndarray, dens: np.ndarray) -> tuple:
     """A density table (as :func:`.splat.density_table` makes them) from sorted keys and
-    summed densities."""
+    summed densities.
+    """
     from recon_cli._kernels.hashtable import build_table
 
     tab = build_table(keys)
@@ -305,7 +310,8 @@ def float_bins(values: np.ndarray) -> np.ndarray:
 
 def float_histogram(values: np.ndarray) -> dict:
     """Sparse histogram of non-negative floats by :func:`float_bins` (the first round of an
-    exact distributed median)."""
+    exact distributed median).
+    """
     b, c = np.unique(float_bins(values), return_counts=True)
     return {"bins": b, "counts": c, "n": int(len(values))}
 
@@ -318,7 +324,8 @@ def values_in(values: np.ndarray, bins: np.ndarray) -> np.ndarray:
 @timed
 def noise(slab: Slab, tree_depth: int) -> dict:
     """Each sample's noise (:func:`.splat.noise_sigma`); returns the histogram of the own
-    samples' measured values, for the global median that stands in for the others."""
+    samples' measured values, for the global median that stands in for the others.
+    """
     slab.tree_depth = tree_depth
     unit = (slab.pts - np.asarray(slab.job.origin)) / slab.job.size
     slab.sigma = noise_sigma(unit, slab.smp, tree_depth)
@@ -344,7 +351,8 @@ def noise_report_values(slab: Slab, bins: np.ndarray) -> dict:
 
 def merge_per_cell_sums(pos: np.ndarray, w: np.ndarray, level: int) -> tuple:
     """Samples summed per cell of ``level``: sorted keys, summed weight, summed weight times
-    position (the slabs' sums add up to :func:`.bspline._merge_per_cell`'s)."""
+    position (the slabs' sums add up to :func:`.bspline._merge_per_cell`'s).
+    """
     res = 1 << level
     keys = pack_keys(np.clip(np.floor(pos * res), 0, res - 1))
     uk, inv = np.unique(keys, return_inverse=True)
@@ -365,7 +373,8 @@ def merged_positions(sw: np.ndarray, sp: np.ndarray) -> np.ndarray:
 def items(slab: Slab, tree_depth: int, alpha: float, fallback: float | None) -> dict:
     """The splat items, the fields, the slab's tree; returns the slab's share of the coarse
     levels: its own items' fields there, the cells its finer items occupy, the screening
-    sums of its own samples."""
+    sums of its own samples.
+    """
     job = slab.job
     smp = slab.smp
     dc = min(job.coarse_depth, tree_depth)
@@ -443,7 +452,8 @@ def items(slab: Slab, tree_depth: int, alpha: float, fallback: float | None) -> 
 def coarse_item_set(msgs: list[dict], dc: int) -> tuple[np.ndarray, np.ndarray]:
     """The coarse tree's items from the slabs' messages: their own coarse items, and a
     representative item (the cell's centre, level ``dc + 1``) per cell their finer items
-    occupy."""
+    occupy.
+    """
     pos = [m["coarse_items"][0] for m in msgs]
     lvl = [m["coarse_items"][1] for m in msgs]
     cells = np.unique(np.concatenate([m["fine_cells"] for m in msgs]))
@@ -477,7 +487,8 @@ def restrict(slab: Slab, coarse: list[tuple], coarse_fields: dict) -> dict:
     coefficient sets and the normals' right-hand side (:class:`.bspline.NormalRHS`, the
     coarse items' field the coordinator's); returns the finer levels' part of the right-hand
     side on the finest coarse level at the cells the slab owns (every item it reaches is
-    within the pad: the slabs' parts add up to the whole cube's)."""
+    within the pad: the slabs' parts add up to the whole cube's).
+    """
     job = slab.job
     levels = levels_from_message(coarse)
     dc = len(levels) - 1
@@ -533,7 +544,8 @@ def solve_levels(
     """Levels ``first``.. of the cascadic degree-2 solve (:func:`.bspline.solve`'s loop): each
     level's correction to the coarser levels' chi, whose coefficients (level ``first - 1``)
     are set. ``screening(d)`` gives the samples merged per cell of level ``d`` (positions,
-    weights) or None. Returns per-level statistics, iterations and the last residual."""
+    weights) or None. Returns per-level statistics, iterations and the last residual.
+    """
     coef_all = arrays[4]
     q_off = arrays[1]
     prev = lfs[first - 1] if first > 1 else None
@@ -650,7 +662,8 @@ def _band_parents(lf: LevelField, px: int) -> np.ndarray:
 
 def band_message(slab: Slab, side: int) -> dict:
     """The coefficients of the slab's column of parents next to its seam on ``side`` (-1
-    left, +1 right), at every finer level: the neighbour reads chi there from them."""
+    left, +1 right), at every finer level: the neighbour reads chi there from them.
+    """
     out = {}
     x = slab.own[0] if side < 0 else slab.own[1]
     for d in range(slab.job.coarse_depth + 1, len(slab.levels)):
@@ -665,7 +678,8 @@ def band_message(slab: Slab, side: int) -> dict:
 def apply_band(slab: Slab, side: int, band: dict) -> None:
     """Take the neighbour's coefficients for its column of parents next to the seam on
     ``side``; the trees must agree there. Written into the field's own array (a state that
-    moved between processes keeps no views into it)."""
+    moved between processes keeps no views into it).
+    """
     x = slab.own[0] if side < 0 else slab.own[1]
     coef = slab.chi.coef_all.reshape(-1, 8)
     q_off = slab.chi.q_off
@@ -688,7 +702,8 @@ def apply_band(slab: Slab, side: int, band: dict) -> None:
 def solve(slab: Slab, coefs: list) -> dict:
     """Solve the slab's finer levels on the coordinator's coarse chi; returns the own
     samples' share of the iso-value, the per-level figures and the bands for the
-    neighbours."""
+    neighbours.
+    """
     job = slab.job
     levels, lfs, arrays = slab.levels, slab.lfs, slab.arrays
     dc = len(coefs) - 1
@@ -743,7 +758,8 @@ def plane_values(
     plane, from one leaf whichever slab asks: the leaf holding the finest cell whose lower
     corner the point is (the one below along an axis where the point is on the cube's far
     face). Both slabs of a seam read the same leaves and corner values there, so they give
-    the same bits."""
+    the same bits.
+    """
     top = len(levels) - 1
     R = 1 << top
     cap = -iso + margin
@@ -792,7 +808,8 @@ def field(slab: Slab, iso: float, band_left: dict | None, band_right: dict | Non
     """The neighbours' bands, chi at every level's nodes (the finer side of a coarse leaf's
     faces constrained to it, as the single-process solve does); returns whether a leaf
     coarser than the finest the slab owns holds surface (then every slab extracts at the
-    leaves' own size, as :func:`.extract.extract` decides)."""
+    leaves' own size, as :func:`.extract.extract` decides).
+    """
     from recon_cli.stages.poisson.extract import FACE_MARGIN
 
     if band_left is not None:
@@ -844,7 +861,8 @@ def _own_leaves(slab: Slab) -> list[np.ndarray]:
 
 def _finest(slab: Slab, levels: list, gvals: list, iso: float, a: int, b: int) -> tuple:
     """The finest-lattice extraction of the leaves the slab owns (lattice units); the points
-    on its seam planes take :func:`plane_values`."""
+    on its seam planes take :func:`plane_values`.
+    """
     from recon_cli.stages.mcubes import marching_cubes_sparse
     from recon_cli.stages.poisson.extract import FACE_MARGIN
 
@@ -916,7 +934,8 @@ def extract(slab: Slab, iso: float, at_leaves: bool) -> dict:
     (``at_leaves``, :func:`.extract.extract_leaves`), else on the finest lattice
     (:func:`.extract.extract_finest`) with the points on its seams given the values both
     slabs of a seam compute alike (:func:`plane_values`); vertices moved to chi's roots.
-    Returns its pieces (faces, boxes) and, per seam, its vertices there and their pieces."""
+    Returns its pieces (faces, boxes) and, per seam, its vertices there and their pieces.
+    """
     from recon_cli.mesh.topology import Connectivity
     from recon_cli.stages.poisson.extract import extract_leaves
 
@@ -988,7 +1007,8 @@ def island_points(slab: Slab, lo: np.ndarray, hi: np.ndarray) -> dict:
 def _seam_ranks(slab: Slab) -> tuple[np.ndarray, np.ndarray]:
     """(nv,) rank of each vertex among the left seam's / right seam's vertices (-1 if none):
     the seam vertices sit first (left) and last (right) in the slab's vertices, in the order
-    both slabs of a seam give them."""
+    both slabs of a seam give them.
+    """
     nv = len(slab.verts)
     nl, nr = slab.seam["left"], slab.seam["right"]
     rl = np.full(nv, -1, np.int64)
@@ -1000,7 +1020,8 @@ def _seam_ranks(slab: Slab) -> tuple[np.ndarray, np.ndarray]:
 
 def _links(slab: Slab, faces: np.ndarray, labels: np.ndarray) -> dict:
     """Per seam, the seam edges (both ends on it) of ``faces`` and the faces' pieces: a piece
-    goes on across the seam through its edges there (an edge key: the ends' ranks)."""
+    goes on across the seam through its edges there (an edge key: the ends' ranks).
+    """
     rl, rr = _seam_ranks(slab)
     out = {}
     e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
@@ -1024,7 +1045,8 @@ def _seam_use(slab: Slab, faces: np.ndarray) -> dict:
 
 def _compact(slab: Slab, keep_faces: np.ndarray, extra: dict | None = None) -> None:
     """Keep the faces flagged and the vertices they use, seam layout kept (the left seam's
-    vertices first, the right seam's last, in their order)."""
+    vertices first, the right seam's last, in their order).
+    """
     faces = slab.faces[keep_faces]
     used = np.zeros(len(slab.verts), bool)
     used[faces.reshape(-1)] = True
@@ -1046,7 +1068,8 @@ def _compact(slab: Slab, keep_faces: np.ndarray, extra: dict | None = None) -> N
 def prepare(slab: Slab, drop: np.ndarray, density: tuple | None, at_samples: bool) -> dict:
     """Drop the pieces the coordinator dropped; the density at the vertices (``density``:
     None, ``(level,)`` the slab's own table, ``(level, keys, dens)`` a global one) and, with
-    ``at_samples``, the histogram of the own samples' density (the trim's median)."""
+    ``at_samples``, the histogram of the own samples' density (the trim's median).
+    """
     job = slab.job
     keep = ~np.isin(slab.labels, drop) if len(drop) else np.ones(len(slab.faces), bool)
     slab.labels = None
@@ -1079,7 +1102,8 @@ def density_values(slab: Slab, bins: np.ndarray) -> dict:
 @timed
 def trim_cut(slab: Slab, threshold: float) -> dict:
     """The trim's cut (:func:`.trim.cut_by_density`) of the slab's faces; returns the areas
-    and the pieces of the low side (small ones are holes the trim keeps)."""
+    and the pieces of the low side (small ones are holes the trim keeps).
+    """
     from recon_cli.mesh.topology import Connectivity
     from recon_cli.stages.poisson.trim import cut_by_density
 
@@ -1128,7 +1152,8 @@ def _by_plane_position(verts: np.ndarray, idx: np.ndarray) -> np.ndarray:
 
 def _part(slab: Slab, part: np.ndarray, area: np.ndarray) -> dict:
     """The pieces of the faces flagged ``part`` (joined across edges), their areas and seam
-    links."""
+    links.
+    """
     from recon_cli.mesh.topology import Connectivity
 
     idx = np.flatnonzero(part)
@@ -1150,7 +1175,8 @@ def _part(slab: Slab, part: np.ndarray, area: np.ndarray) -> dict:
 def trim_keep(slab: Slab, flip: np.ndarray) -> dict:
     """Keep the holes the coordinator re-admitted (low pieces ``flip``); returns the pieces
     of what is kept (small ones are islands the trim drops) and the seams' vertices they use
-    per piece."""
+    per piece.
+    """
     t = slab.trim
     keep = t["side"].copy()
     if len(flip):
@@ -1193,7 +1219,8 @@ def trim_drop(slab: Slab, drop: np.ndarray, seam_keep: dict) -> dict:
 def seam_normals(slab: Slab, seam_keep: dict | None) -> dict:
     """Keep the seam vertices either slab uses (``seam_keep``, as :func:`export`); the faces'
     normals summed at each vertex (the attributes' side test); returns the right seam's sums:
-    the next slab owns those vertices and adds them to its own faces'."""
+    the next slab owns those vertices and adds them to its own faces'.
+    """
     from recon_cli.stages.poisson.attributes import vertex_normal_sums
 
     if seam_keep is not None:
@@ -1205,7 +1232,8 @@ def seam_normals(slab: Slab, seam_keep: dict | None) -> dict:
 
 def _pad_gap(slab: Slab, x: np.ndarray) -> np.ndarray:
     """Distance (world units) from job-frame x to the nearer end of the slab's points (inf on
-    the side where the cube ends: no point lies beyond)."""
+    the side where the cube ends: no point lies beyond).
+    """
     job = slab.job
     u = (x - job.origin[0]) / job.size
     lo = np.inf if slab.pad[0] <= 0.0 else (u - slab.pad[0]) * job.size
@@ -1215,7 +1243,8 @@ def _pad_gap(slab: Slab, x: np.ndarray) -> np.ndarray:
 
 def _attributes(slab: Slab, v: np.ndarray, own: np.ndarray, left_sum) -> tuple[dict, Any, dict]:
     """The input's properties at the slab's own vertices ``v`` (:func:`.attributes.transfer`,
-    the surface's normal at a seam vertex summed over both slabs' faces)."""
+    the surface's normal at a seam vertex summed over both slabs' faces).
+    """
     from recon_cli.stages.poisson.attributes import transfer, unit_rows
 
     vn = slab.vn_sum
@@ -1251,7 +1280,8 @@ def export(
     ``seam_keep``: per seam, the vertices either slab uses (both export the same ones; None
     when :func:`seam_normals` kept them); ``left_sum``: the previous slab's face normals
     summed at the left seam's vertices. With ``prefix`` the arrays go to
-    ``prefix.<name>.npy`` (the message names them), else in the message."""
+    ``prefix.<name>.npy`` (the message names them), else in the message.
+    """
     job = slab.job
     if seam_keep is not None:
         _compact(slab, np.ones(len(slab.faces), bool), seam_keep)
@@ -1294,7 +1324,8 @@ def export(
 
 def state_bytes(obj: Any, depth: int = 0) -> int:
     """Bytes of the numpy arrays a slab's state holds (what Dask's memory accounting sees of
-    it: its own estimate of an object is a few hundred bytes)."""
+    it: its own estimate of an object is a few hundred bytes).
+    """
     if isinstance(obj, np.ndarray):
         return int(obj.nbytes)
     if depth > 4 or obj is None or isinstance(obj, (int, float, str, bool)):
@@ -1328,7 +1359,8 @@ def load_files(
     """:func:`load` from the chunks' files (``(prefix, offsets)``: each chunk's rows sorted by
     sub-slab, ``offsets`` (nsub + 1,) where each sub-slab's rows start), the rows of the
     slab's pad range; ``colors`` (dtype, columns) when the chunks have colours, ``names``
-    and ``dtypes`` the properties carried (``prefix.a<i>.npy``)."""
+    and ``dtypes`` the properties carried (``prefix.a<i>.npy``).
+    """
     pa, pb = slab.x_range(slab.pad, nsub)
     pts, nrm, col = [], [], []
     props: dict[str, list] = {name: [] for name in names}

@@ -121,7 +121,8 @@ def splat_at_level(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Which samples level ``lv``'s kernel density ``rho`` (at the samples) places, their
     fractional splat depth and unit-cube area per point (:func:`make_splats`' rule; level 0
-    places every sample left)."""
+    places every sample left).
+    """
     per_node = rho / B2_PLANE_DENSITY  # samples per node of level lv
     ok = (per_node >= ESTIMATE_FACTOR * samples_per_node) | (lv == 0)
     pn = np.maximum(per_node[ok], 1e-12)
@@ -567,7 +568,8 @@ def noise_fraction(
 
 def noise_sigma(unit: np.ndarray, smp: Samples, tree_depth: int) -> np.ndarray:
     """(s,) each sample's noise ``sigma`` (:func:`noise_fraction`) in finest cells of the
-    samples' lattice, NaN where no cell up to :data:`NOISE_MORE_LEVELS` coarser answers."""
+    samples' lattice, NaN where no cell up to :data:`NOISE_MORE_LEVELS` coarser answers.
+    """
     ns = len(smp.count)
     sig = np.full(ns, np.nan)  # in finest cells of the samples' lattice
     dd = smp.depth
@@ -604,7 +606,8 @@ def clean_fraction(
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`noise_fraction`'s result from the noise ``sig`` in finest cells of the samples'
     lattice (level ``sample_depth``): (s,) clean fraction and (s,) noise in finest cells of
-    the tree."""
+    the tree.
+    """
     rel = sig / (1 << (sample_depth - tree_depth))
     return 1.0 / (1.0 + (rel / NOISE_TAU) ** 2), rel
 
