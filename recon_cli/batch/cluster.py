@@ -95,11 +95,12 @@ def open_client(
     log_level: int = logging.CRITICAL,
     stealing: bool = True,
 ):
-    """A Dask client for one job: on the scheduler at ``scheduler``, or on a local cluster of
-    ``workers`` processes (one thread each, ``memory_limit`` each: a size, ``"auto"`` or
-    ``"none"``), the batch's, closed on exit; ``stealing`` False turns the local scheduler's
-    work stealing off (tasks that keep big states stay where they are). Yields
-    ``(client, info)``.
+    """A Dask client for one job.
+
+    On the scheduler at ``scheduler``, or on a local cluster of ``workers`` processes (one thread
+    each, ``memory_limit`` each: a size, ``"auto"`` or ``"none"``), the batch's, closed on exit;
+    ``stealing`` False turns the local scheduler's work stealing off (tasks that keep big states
+    stay where they are). Yields ``(client, info)``.
     """
     if scheduler is not None and (workers is not None or memory_limit is not None):
         raise ParameterError(

@@ -56,11 +56,12 @@ def note_phase(phases: dict, name: str, msgs: list[dict], wall: float, moved: in
 
 
 class Overall:
-    """One progress bar over a whole job: phase ``name`` is ``weights[name]`` of it (its
-    first run only: a phase run again, such as a median's second round, adds nothing), a
-    part's share added as each part finishes; the coordinator's own steps through
-    :meth:`step`. ``bar`` is a :func:`recon_cli.progress.task` (its total the weights' sum
-    over the phases that will run).
+    """One progress bar over a whole job.
+
+    Phase ``name`` is ``weights[name]`` of it (its first run only: a phase run again, such as a
+    median's second round, adds nothing), a part's share added as each part finishes; the
+    coordinator's own steps through :meth:`step`. ``bar`` is a :func:`recon_cli.progress.task` (its
+    total the weights' sum over the phases that will run).
     """
 
     def __init__(self, bar: Any, weights: dict[str, float]):

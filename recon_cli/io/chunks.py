@@ -33,8 +33,9 @@ TILE_SUFFIXES = (".ply", ".las", ".laz")
 
 @dataclass(frozen=True)
 class Chunk:
-    """Rows ``start..stop`` of ``path``; ``kind`` ``"ply"``, ``"las"`` or ``"whole"`` (the
-    whole file: ``start`` 0, ``stop`` -1).
+    """Rows ``start..stop`` of ``path``.
+
+    ``kind`` ``"ply"``, ``"las"`` or ``"whole"`` (the whole file: ``start`` 0, ``stop`` -1).
     """
 
     path: str

@@ -1,5 +1,6 @@
-"""Normals of one cloud over many processes (a Dask cluster), in slabs: ``recon normals
---workers N`` / ``--scheduler ADDRESS``.
+"""Normals of one cloud over many processes (a Dask cluster), in slabs.
+
+``recon normals --workers N`` / ``--scheduler ADDRESS``.
 
 The cloud is cut along its longest axis into slabs (as the distributed Poisson solve cuts
 it, :mod:`recon_cli.stages.poisson.distributed`); the workers read the file by chunks and
@@ -59,8 +60,9 @@ MAX_SLABS = 32
 
 @dataclass
 class NSlab:
-    """A slab of the distributed normals: its own x range (unit cube of the job), its halo,
-    its points (job frame), their input rows.
+    """A slab of the distributed normals.
+
+    Its own x range (unit cube of the job), its halo, its points (job frame), their input rows.
     """
 
     index: int
@@ -115,8 +117,10 @@ def nload(slab: NSlab, parts: list, nsub: int, has_ref: bool, has_scan: bool = F
 
 
 def nestimate(slab: NSlab, knn: int | None, radius: float | None) -> dict:
-    """Neighbourhoods (kd-tree over the slab and its halo) and PCA normals; returns how far
-    past the halo's edge an own point's neighbourhood may reach (0: every one exact).
+    """Neighbourhoods (kd-tree over the slab and its halo) and PCA normals.
+
+    Returns how far past the halo's edge an own point's neighbourhood may reach (0: every one
+    exact).
     """
     from recon_cli.stages.normals import estimate_sorted, neighbourhoods
 
@@ -151,9 +155,10 @@ def nestimate(slab: NSlab, knn: int | None, radius: float | None) -> dict:
 
 
 def norient(slab: NSlab, method: str, cam, dirn) -> dict:
-    """Orient the slab's normals (points and halo) as the single-process run would; returns
-    its components' figures and, per seam, the oriented normals of the points the
-    neighbour holds too (by input row).
+    """Orient the slab's normals (points and halo) as the single-process run would.
+
+    Returns its components' figures and, per seam, the oriented normals of the points the neighbour
+    holds too (by input row).
     """
     from scipy import sparse
     from scipy.sparse.csgraph import connected_components
@@ -512,11 +517,12 @@ def distributed_normals(
     client: Any = None,
     progress: Any = None,
 ) -> tuple[np.ndarray, np.ndarray | None, dict]:
-    """Normals of a cloud given in memory, in ``partitions`` slabs (module docstring): on the
-    Dask ``client``'s cluster, or else all in this process. ``sensors``: for ``orient=
+    """Normals of a cloud given in memory, in ``partitions`` slabs (module docstring).
+
+    On the Dask ``client``'s cluster, or else all in this process. ``sensors``: for ``orient=
     "camera"`` without ``camera``, ``(positions, directions, is_direction, which)`` as
-    :func:`.sensor_views` gives them (about the origin: world coordinates). Returns the
-    oriented normals, the curvature (or None) and the report.
+    :func:`.sensor_views` gives them (about the origin: world coordinates). Returns the oriented
+    normals, the curvature (or None) and the report.
     """
     import shutil
     import tempfile
@@ -606,10 +612,10 @@ def run_from_files(
     ascii: bool = False,
     progress: Any = None,
 ) -> dict | None:
-    """``recon normals IN OUT --workers N`` / ``--scheduler ADDRESS`` (the stage's
-    ``from_files``): None without those options; else the normals from IN by chunks on the
-    cluster, OUT written a chunk of IN at a time (binary PLY; other formats assembled here),
-    and the report.
+    """``recon normals IN OUT --workers N`` / ``--scheduler ADDRESS`` (the stage's ``from_files``).
+
+    None without those options; else the normals from IN by chunks on the cluster, OUT written a
+    chunk of IN at a time (binary PLY; other formats assembled here), and the report.
     """
     import shutil
     import tempfile
@@ -725,8 +731,9 @@ def run_from_files(
 
 
 def _write(chunks, first, nrm, curv, perm, output, save_kw, ascii, prov, method, report) -> None:
-    """OUT: the input's rows, chunk by chunk, with their normals (axes turned back) and
-    curvature; a binary PLY streamed, any other format assembled in memory.
+    """OUT: the input's rows, chunk by chunk, with their normals (axes turned back) and curvature.
+
+    A binary PLY streamed, any other format assembled in memory.
     """
     from recon_cli.io.chunks import read_chunk
     from recon_cli.io.load import save

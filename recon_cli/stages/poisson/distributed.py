@@ -141,6 +141,7 @@ def plan_slabs(
     job: S.Job, sub_counts: np.ndarray, parts: int, seams: list[int] | None = None
 ) -> list[tuple]:
     """Per slab: own, pad (points read) and usable (samples splatted) x ranges (unit cube).
+
     ``seams``: the seams' level-5 planes (1..31, increasing), else balanced by the counts.
     """
     nsub = len(sub_counts)
@@ -172,9 +173,10 @@ def sub_slab(x_unit: np.ndarray, nsub: int) -> np.ndarray:
 
 
 def coarse_depth_for(depth: int) -> int:
-    """The levels the coordinator solves: ``depth - COARSE_OFFSET``, at least the partition
-    depth, at most :data:`.slab.COARSE_MAX` (the coarse tree stays small at any depth; the
-    slabs solve the rest).
+    """The levels the coordinator solves.
+
+    ``depth - COARSE_OFFSET``, at least the partition depth, at most :data:`.slab.COARSE_MAX` (the
+    coarse tree stays small at any depth; the slabs solve the rest).
     """
     return min(depth, max(S.PARTITION_DEPTH, min(depth - S.COARSE_OFFSET, S.COARSE_MAX)))
 
@@ -287,8 +289,10 @@ def exact_median(runner, name: str, fn: Callable, hists: list[dict], phase: str)
 def solve_coarse(
     levels: list, job: S.Job, fields: dict, finer: np.ndarray | None, screening: dict
 ) -> tuple[list, list[dict], int, float]:
-    """The coordinator's solve of the coarse levels; returns each level's coefficients (None
-    for level 0), per-level figures, iterations, last residual.
+    """The coordinator's solve of the coarse levels.
+
+    Returns each level's coefficients (None for level 0), per-level figures, iterations, last
+    residual.
     """
     from recon_cli.stages.poisson.bspline import NormalRHS, level_fields
 
@@ -359,10 +363,10 @@ def reconstruct(
     out_dir: str | None = None,
     carry: bool = False,
 ) -> dict:
-    """Every step after the slabs' ``load`` (whose messages are ``loaded``): returns the
-    mesh's parts per slab (in ``out_dir``'s files when given) and the report (module
-    docstring); ``carry``: the slabs carry the input's properties or colours onto their
-    vertices.
+    """Every step after the slabs' ``load`` (whose messages are ``loaded``).
+
+    Returns the mesh's parts per slab (in ``out_dir``'s files when given) and the report (module
+    docstring); ``carry``: the slabs carry the input's properties or colours onto their vertices.
     """
     from recon_cli.stages.poisson import BUBBLE_CELLS, ISLAND_POINTS
 
@@ -684,8 +688,10 @@ def _merge_pieces(runner, em: list[dict], cell: float, bubble_cells: int, island
 
 
 def assemble(out: dict, job: S.Job, perm: tuple, colors: bool):
-    """The mesh from the slabs' parts (in memory): vertices concatenated in slab order, face
-    references to a right seam resolved to the next slab's vertices, axes turned back.
+    """The mesh from the slabs' parts (in memory).
+
+    Vertices concatenated in slab order, face references to a right seam resolved to the next slab's
+    vertices, axes turned back.
     """
     from recon_cli.geometry import TriangleMesh
 
@@ -843,8 +849,9 @@ def _check_distributed(depth: int, full_depth: int, partitions: int) -> None:
 
 
 def _scan_chunk(chunk) -> dict:
-    """A chunk's figures for the plan: the box of its points with a usable normal, counts,
-    types (each worker reads its own chunk).
+    """A chunk's figures for the plan.
+
+    The box of its points with a usable normal, counts, types (each worker reads its own chunk).
     """
     from recon_cli.io.chunks import read_chunk
 
@@ -1122,9 +1129,10 @@ def run_from_files(
     ascii: bool = False,
     progress: Any = None,
 ) -> dict | None:
-    """``recon poisson IN OUT --workers N`` / ``--scheduler ADDRESS``: the stage's
-    ``from_files`` (:class:`recon_cli.params.StageSpec`). Returns None without those options
-    (the command then runs the stage as usual); else reconstructs from IN by chunks on the
+    """``recon poisson IN OUT --workers N`` / ``--scheduler ADDRESS``.
+
+    The stage's ``from_files`` (:class:`recon_cli.params.StageSpec`). Returns None without those
+    options (the command then runs the stage as usual); else reconstructs from IN by chunks on the
     cluster (:func:`reconstruct_files`), writes OUT and returns the report.
     """
     from recon_cli.batch.cluster import open_client

@@ -323,8 +323,10 @@ def values_in(values: np.ndarray, bins: np.ndarray) -> np.ndarray:
 
 @timed
 def noise(slab: Slab, tree_depth: int) -> dict:
-    """Each sample's noise (:func:`.splat.noise_sigma`); returns the histogram of the own
-    samples' measured values, for the global median that stands in for the others.
+    """Each sample's noise (:func:`.splat.noise_sigma`).
+
+    Returns the histogram of the own samples' measured values, for the global median that stands in
+    for the others.
     """
     slab.tree_depth = tree_depth
     unit = (slab.pts - np.asarray(slab.job.origin)) / slab.job.size
@@ -350,8 +352,10 @@ def noise_report_values(slab: Slab, bins: np.ndarray) -> dict:
 
 
 def merge_per_cell_sums(pos: np.ndarray, w: np.ndarray, level: int) -> tuple:
-    """Samples summed per cell of ``level``: sorted keys, summed weight, summed weight times
-    position (the slabs' sums add up to :func:`.bspline._merge_per_cell`'s).
+    """Samples summed per cell of ``level``.
+
+    Sorted keys, summed weight, summed weight times position (the slabs' sums add up to
+    :func:`.bspline._merge_per_cell`'s).
     """
     res = 1 << level
     keys = pack_keys(np.clip(np.floor(pos * res), 0, res - 1))
@@ -371,9 +375,10 @@ def merged_positions(sw: np.ndarray, sp: np.ndarray) -> np.ndarray:
 
 @timed
 def items(slab: Slab, tree_depth: int, alpha: float, fallback: float | None) -> dict:
-    """The splat items, the fields, the slab's tree; returns the slab's share of the coarse
-    levels: its own items' fields there, the cells its finer items occupy, the screening
-    sums of its own samples.
+    """The splat items, the fields, the slab's tree.
+
+    Returns the slab's share of the coarse levels: its own items' fields there, the cells its finer
+    items occupy, the screening sums of its own samples.
     """
     job = slab.job
     smp = slab.smp
@@ -450,9 +455,10 @@ def items(slab: Slab, tree_depth: int, alpha: float, fallback: float | None) -> 
 
 
 def coarse_item_set(msgs: list[dict], dc: int) -> tuple[np.ndarray, np.ndarray]:
-    """The coarse tree's items from the slabs' messages: their own coarse items, and a
-    representative item (the cell's centre, level ``dc + 1``) per cell their finer items
-    occupy.
+    """The coarse tree's items from the slabs' messages.
+
+    Their own coarse items, and a representative item (the cell's centre, level ``dc + 1``) per cell
+    their finer items occupy.
     """
     pos = [m["coarse_items"][0] for m in msgs]
     lvl = [m["coarse_items"][1] for m in msgs]
@@ -541,10 +547,11 @@ def solve_levels(
     cg_tolerance: float,
     on_level: Callable[[int], None] | None = None,
 ) -> tuple[list[dict], int, float]:
-    """Levels ``first``.. of the cascadic degree-2 solve (:func:`.bspline.solve`'s loop): each
-    level's correction to the coarser levels' chi, whose coefficients (level ``first - 1``)
-    are set. ``screening(d)`` gives the samples merged per cell of level ``d`` (positions,
-    weights) or None. Returns per-level statistics, iterations and the last residual.
+    """Levels ``first``.. of the cascadic degree-2 solve (:func:`.bspline.solve`'s loop).
+
+    Each level's correction to the coarser levels' chi, whose coefficients (level ``first - 1``) are
+    set. ``screening(d)`` gives the samples merged per cell of level ``d`` (positions, weights) or
+    None. Returns per-level statistics, iterations and the last residual.
     """
     coef_all = arrays[4]
     q_off = arrays[1]
@@ -676,9 +683,10 @@ def band_message(slab: Slab, side: int) -> dict:
 
 
 def apply_band(slab: Slab, side: int, band: dict) -> None:
-    """Take the neighbour's coefficients for its column of parents next to the seam on
-    ``side``; the trees must agree there. Written into the field's own array (a state that
-    moved between processes keeps no views into it).
+    """Take the neighbour's coefficients for its column of parents next to the seam on ``side``.
+
+    The trees must agree there. Written into the field's own array (a state that moved between
+    processes keeps no views into it).
     """
     x = slab.own[0] if side < 0 else slab.own[1]
     coef = slab.chi.coef_all.reshape(-1, 8)
@@ -700,8 +708,9 @@ def apply_band(slab: Slab, side: int, band: dict) -> None:
 
 @timed
 def solve(slab: Slab, coefs: list) -> dict:
-    """Solve the slab's finer levels on the coordinator's coarse chi; returns the own
-    samples' share of the iso-value, the per-level figures and the bands for the
+    """Solve the slab's finer levels on the coordinator's coarse chi.
+
+    Returns the own samples' share of the iso-value, the per-level figures and the bands for the
     neighbours.
     """
     job = slab.job
@@ -860,8 +869,9 @@ def _own_leaves(slab: Slab) -> list[np.ndarray]:
 
 
 def _finest(slab: Slab, levels: list, gvals: list, iso: float, a: int, b: int) -> tuple:
-    """The finest-lattice extraction of the leaves the slab owns (lattice units); the points
-    on its seam planes take :func:`plane_values`.
+    """The finest-lattice extraction of the leaves the slab owns (lattice units).
+
+    The points on its seam planes take :func:`plane_values`.
     """
     from recon_cli.stages.mcubes import marching_cubes_sparse
     from recon_cli.stages.poisson.extract import FACE_MARGIN
@@ -930,11 +940,12 @@ def _own_leaves_of(levels: list, a: int, b: int) -> list[np.ndarray]:
 
 @timed
 def extract(slab: Slab, iso: float, at_leaves: bool) -> dict:
-    """The slab's part of the surface, over the leaves it owns: at the leaves' own size
-    (``at_leaves``, :func:`.extract.extract_leaves`), else on the finest lattice
-    (:func:`.extract.extract_finest`) with the points on its seams given the values both
-    slabs of a seam compute alike (:func:`plane_values`); vertices moved to chi's roots.
-    Returns its pieces (faces, boxes) and, per seam, its vertices there and their pieces.
+    """The slab's part of the surface, over the leaves it owns.
+
+    At the leaves' own size (``at_leaves``, :func:`.extract.extract_leaves`), else on the finest
+    lattice (:func:`.extract.extract_finest`) with the points on its seams given the values both
+    slabs of a seam compute alike (:func:`plane_values`); vertices moved to chi's roots. Returns its
+    pieces (faces, boxes) and, per seam, its vertices there and their pieces.
     """
     from recon_cli.mesh.topology import Connectivity
     from recon_cli.stages.poisson.extract import extract_leaves
@@ -1005,9 +1016,10 @@ def island_points(slab: Slab, lo: np.ndarray, hi: np.ndarray) -> dict:
 
 
 def _seam_ranks(slab: Slab) -> tuple[np.ndarray, np.ndarray]:
-    """(nv,) rank of each vertex among the left seam's / right seam's vertices (-1 if none):
-    the seam vertices sit first (left) and last (right) in the slab's vertices, in the order
-    both slabs of a seam give them.
+    """(nv,) rank of each vertex among the left seam's / right seam's vertices (-1 if none).
+
+    The seam vertices sit first (left) and last (right) in the slab's vertices, in the order both
+    slabs of a seam give them.
     """
     nv = len(slab.verts)
     nl, nr = slab.seam["left"], slab.seam["right"]
@@ -1019,8 +1031,9 @@ def _seam_ranks(slab: Slab) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _links(slab: Slab, faces: np.ndarray, labels: np.ndarray) -> dict:
-    """Per seam, the seam edges (both ends on it) of ``faces`` and the faces' pieces: a piece
-    goes on across the seam through its edges there (an edge key: the ends' ranks).
+    """Per seam, the seam edges (both ends on it) of ``faces`` and the faces' pieces.
+
+    A piece goes on across the seam through its edges there (an edge key: the ends' ranks).
     """
     rl, rr = _seam_ranks(slab)
     out = {}
@@ -1066,9 +1079,11 @@ def _compact(slab: Slab, keep_faces: np.ndarray, extra: dict | None = None) -> N
 
 @timed
 def prepare(slab: Slab, drop: np.ndarray, density: tuple | None, at_samples: bool) -> dict:
-    """Drop the pieces the coordinator dropped; the density at the vertices (``density``:
-    None, ``(level,)`` the slab's own table, ``(level, keys, dens)`` a global one) and, with
-    ``at_samples``, the histogram of the own samples' density (the trim's median).
+    """Drop the pieces the coordinator dropped.
+
+    The density at the vertices (``density``: None, ``(level,)`` the slab's own table, ``(level,
+    keys, dens)`` a global one) and, with ``at_samples``, the histogram of the own samples' density
+    (the trim's median).
     """
     job = slab.job
     keep = ~np.isin(slab.labels, drop) if len(drop) else np.ones(len(slab.faces), bool)
@@ -1101,8 +1116,9 @@ def density_values(slab: Slab, bins: np.ndarray) -> dict:
 
 @timed
 def trim_cut(slab: Slab, threshold: float) -> dict:
-    """The trim's cut (:func:`.trim.cut_by_density`) of the slab's faces; returns the areas
-    and the pieces of the low side (small ones are holes the trim keeps).
+    """The trim's cut (:func:`.trim.cut_by_density`) of the slab's faces.
+
+    Returns the areas and the pieces of the low side (small ones are holes the trim keeps).
     """
     from recon_cli.mesh.topology import Connectivity
     from recon_cli.stages.poisson.trim import cut_by_density
@@ -1173,9 +1189,10 @@ def _part(slab: Slab, part: np.ndarray, area: np.ndarray) -> dict:
 
 @timed
 def trim_keep(slab: Slab, flip: np.ndarray) -> dict:
-    """Keep the holes the coordinator re-admitted (low pieces ``flip``); returns the pieces
-    of what is kept (small ones are islands the trim drops) and the seams' vertices they use
-    per piece.
+    """Keep the holes the coordinator re-admitted (low pieces ``flip``).
+
+    Returns the pieces of what is kept (small ones are islands the trim drops) and the seams'
+    vertices they use per piece.
     """
     t = slab.trim
     keep = t["side"].copy()
@@ -1217,9 +1234,10 @@ def trim_drop(slab: Slab, drop: np.ndarray, seam_keep: dict) -> dict:
 
 @timed
 def seam_normals(slab: Slab, seam_keep: dict | None) -> dict:
-    """Keep the seam vertices either slab uses (``seam_keep``, as :func:`export`); the faces'
-    normals summed at each vertex (the attributes' side test); returns the right seam's sums:
-    the next slab owns those vertices and adds them to its own faces'.
+    """Keep the seam vertices either slab uses (``seam_keep``, as :func:`export`).
+
+    The faces' normals summed at each vertex (the attributes' side test); returns the right seam's
+    sums: the next slab owns those vertices and adds them to its own faces'.
     """
     from recon_cli.stages.poisson.attributes import vertex_normal_sums
 
