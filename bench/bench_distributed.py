@@ -46,7 +46,8 @@ def _topology(mesh) -> str:
     r = report(mesh)
     dup = len(mesh.vertices) - len(np.unique(mesh.vertices, axis=0))
     closed = r["watertight"] and r["edge_manifold"] and r["vertex_manifold"]
-    return f"{'closed manifold' if closed else 'NOT closed manifold'}, {r['components']} piece(s), {dup} dup. vertices"
+    shape = "closed manifold" if closed else "NOT closed manifold"
+    return f"{shape}, {r['components']} piece(s), {dup} dup. vertices"
 
 
 _LAUNCH = (

@@ -18,9 +18,9 @@ Two runners with one interface (``run(name, fn, args) -> messages``):
 
 Both advance an optional :class:`Overall` bar over the whole job (each phase its share,
 a part's share as each part finishes: partitions done, and an estimate of the time left
-over every phase) and note per step (phase): the wall time, the slowest part's time and the largest part's
-peak memory (from the messages' ``seconds`` and ``peak_mb``), and the bytes the messages
-and arguments carried (Dask's ``sizeof``).
+over every phase) and note per step (phase): the wall time, the slowest part's time and the
+largest part's peak memory (from the messages' ``seconds`` and ``peak_mb``), and the bytes the
+messages and arguments carried (Dask's ``sizeof``).
 """
 
 from __future__ import annotations
@@ -77,6 +77,7 @@ class Overall:
         return float(self.weights.get(name, 0.0))
 
     def advance(self, amount: float) -> None:
+        """Move the bar by ``amount`` of the coordinator's own steps."""
         if amount > 0:
             self.bar.advance(amount)
 
@@ -115,6 +116,7 @@ class LocalRunner:
         self.overall = overall
 
     def run(self, name: str, fn: Callable, args: Callable[[int], tuple]) -> list[dict]:
+        """Step ``name``: ``fn(state, *args(k))`` on every part ``k``; returns their messages."""
         from recon_cli.progress import task
 
         t0 = time.perf_counter()
@@ -124,12 +126,13 @@ class LocalRunner:
             for k, s in enumerate(self.states):
                 out.append(fn(s, *args(k)))
                 bar.advance(1)
-                if share:
+                if share and self.overall is not None:
                     self.overall.advance(share)
         note_phase(self.phases, name, out, time.perf_counter() - t0)
         return out
 
     def close(self) -> None:
+        """Let go of the parts' states."""
         self.states = []
 
 
@@ -187,6 +190,7 @@ class DaskRunner:
             )
 
     def run(self, name: str, fn: Callable, args: Callable[[int], tuple]) -> list[dict]:
+        """Step ``name``: ``fn(state, *args(k))`` on every part ``k``; returns their messages."""
         import dask
         from distributed import as_completed
 
@@ -215,7 +219,7 @@ class DaskRunner:
             for f in as_completed(msgs_f):
                 out[index[f.key]] = f.result()  # raises the step's own error
                 bar.advance(1)
-                if share:
+                if share and self.overall is not None:
                     self.overall.advance(share)
         moved += sum(_sizeof(m) for m in out)
         self.states = states
@@ -225,6 +229,7 @@ class DaskRunner:
         return out
 
     def close(self) -> None:
+        """Let go of the parts' states."""
         for f in self.states:
             f.release()
         self.states = []

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from recon_cli.errors import InputError
-from recon_cli.geometry import PointCloud
+from recon_cli.geometry import PointCloud, TriangleMesh, as_point_cloud
 from recon_cli.io import ply as P
 
 # rows per chunk: a chunk's arrays (points, normals, colours) stay near 100 MB
@@ -69,13 +69,13 @@ def expand_inputs(inputs: list[str] | str) -> list[str]:
             if not os.path.exists(item):
                 raise InputError("no such file", item)
             out.append(item)
-    seen = set()
-    return [f for f in out if not (f in seen or seen.add(f))]
+    return list(dict.fromkeys(out))  # each file once, in order
 
 
 def _ply_layout(path: str) -> tuple[P.PlyData, int, np.dtype, int] | None:
-    """(header, vertex rows' byte offset, row dtype, row count) of a binary PLY whose vertex
-    rows have a fixed size, or None.
+    """The layout of a binary PLY whose vertex rows have a fixed size.
+
+    Returns (header, vertex rows' byte offset, row dtype, row count), or None.
     """
     with open(path, "rb") as f:
         head = f.read(P.MAX_HEADER_BYTES + 1024)
@@ -115,8 +115,9 @@ def _las_count(path: str) -> int:
 
 
 def plan_chunks(inputs: list[str] | str, rows: int | None = None) -> list[Chunk]:
-    """The chunks of ``inputs`` (files, folders, patterns), ``rows`` rows at most each
-    (default :data:`CHUNK_ROWS`).
+    """The chunks of ``inputs`` (files, folders, patterns).
+
+    ``rows`` rows at most each (default :data:`CHUNK_ROWS`).
     """
     rows = CHUNK_ROWS if rows is None else int(rows)
     out = []
@@ -138,22 +139,26 @@ def plan_chunks(inputs: list[str] | str, rows: int | None = None) -> list[Chunk]
 
 
 def read_chunk(chunk: Chunk) -> PointCloud:
-    """The rows of ``chunk`` as a cloud (points, normals, colours, the other properties as
-    attributes), as the whole file's reader would give them: rows with a NaN or infinite
+    """The rows of ``chunk`` as a cloud, as the whole file's reader would give them.
+
+    Points, normals, colours, the other properties as attributes; rows with a NaN or infinite
     coordinate dropped and counted (``invalid_dropped``).
     """
     if chunk.kind == "whole":
         from recon_cli.io.load import load
 
         obj = load(chunk.path)
-        if not isinstance(obj, PointCloud):
-            from recon_cli.geometry import as_point_cloud
-
-            obj = as_point_cloud(obj)
-        return obj
+        if isinstance(obj, PointCloud):
+            return obj
+        if not isinstance(obj, TriangleMesh):
+            raise InputError("a grid is not a point cloud", chunk.path)
+        return as_point_cloud(obj)
     if chunk.kind == "las":
         return _read_las_rows(chunk)
-    ply, offset, dt, count = _ply_layout(chunk.path)
+    layout = _ply_layout(chunk.path)
+    if layout is None:
+        raise InputError("not a binary PLY with fixed-size vertex rows", chunk.path)
+    ply, offset, dt, _ = layout
     n = chunk.stop - chunk.start
     rows = np.fromfile(chunk.path, dtype=dt, count=n, offset=offset + chunk.start * dt.itemsize)
     if len(rows) != n:
@@ -162,12 +167,13 @@ def read_chunk(chunk: Chunk) -> PointCloud:
         )
     vert = next(e for e in ply.elements if e.name == "vertex")
     el = P.PlyElement(
-        "vertex", n, list(vert.properties), {p: rows[p] for p in rows.dtype.names}, rows
+        "vertex", n, list(vert.properties), {p: rows[p] for p in rows.dtype.names or ()}, rows
     )
     part = P.PlyData(
         format=ply.format, comments=list(ply.comments), obj_info=list(ply.obj_info), elements=[el]
     )
-    return P.ply_to_geometry(part, chunk.path)
+    obj = P.ply_to_geometry(part, chunk.path)
+    return obj if isinstance(obj, PointCloud) else as_point_cloud(obj)
 
 
 def _read_las_rows(chunk: Chunk) -> PointCloud:

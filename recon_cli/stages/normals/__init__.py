@@ -967,7 +967,9 @@ def _run_distributed(
         )
     views = None
     if method == "camera" and cam is None:  # each point towards its own scanner
-        views = _sensor_views(cloud.sensors, cloud.attributes.get(SCAN_ATTRIBUTE), len(cloud), 0)
+        views = _sensor_views(
+            cloud.sensors, cloud.attributes.get(SCAN_ATTRIBUTE), len(cloud), np.zeros(3)
+        )
     with open_client(scheduler, workers, memory_limit, stealing=False) as (client, info):
         nrm, curv, report = distributed_normals(
             cloud.points,
@@ -997,8 +999,9 @@ def _run_distributed(
 
 
 def check_distributed_neighbours(neighbours: str) -> None:
-    """A ``--workers`` / ``--scheduler`` run finds neighbours with the kd-tree (a slab's pixels
-    are not an image).
+    """Refuse ``--neighbours pixels`` in a ``--workers`` / ``--scheduler`` run.
+
+    Such a run finds neighbours with the kd-tree (a slab's pixels are not an image).
     """
     if neighbours == "pixels":
         raise ParameterError(

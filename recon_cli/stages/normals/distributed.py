@@ -71,16 +71,17 @@ class NSlab:
     pad: tuple[float, float]
     origin: np.ndarray
     size: float
-    pts: np.ndarray | None = None
-    ref: np.ndarray | None = None
-    scan: np.ndarray | None = None  # each point's sensor (orientation towards the sensors)
-    rows: np.ndarray | None = None
-    own_pt: np.ndarray | None = None
-    order: np.ndarray | None = None
-    nrm: np.ndarray | None = None  # (n,) in the kd-tree order (``order``)
-    curv: np.ndarray | None = None
-    sign: np.ndarray | None = None
-    comp: np.ndarray | None = None
+    # filled by the steps in order: Any, as a step reads only what an earlier step set
+    pts: Any = None
+    ref: Any = None
+    scan: Any = None  # each point's sensor (orientation towards the sensors)
+    rows: Any = None
+    own_pt: Any = None
+    order: Any = None
+    nrm: Any = None  # (n,) in the kd-tree order (``order``)
+    curv: Any = None
+    sign: Any = None
+    comp: Any = None
     info: dict = field(default_factory=dict)
 
 
@@ -270,9 +271,11 @@ def scan_rows(chunk) -> dict:
 def bucket_rows(
     chunk, first_row: int, frame: tuple, nsub: int, prefix: str, ref: bool, sensors: int = 0
 ) -> dict:
-    """Write a chunk's points (job frame: axes turned, about the cube's corner), their input
-    rows, for ``keep`` their input normals and, with ``sensors`` (how many the file gives),
-    each point's sensor, sorted by sub-slab, to ``prefix.*.npy``.
+    """Write a chunk's points, sorted by sub-slab, to ``prefix.*.npy``.
+
+    The points in the job frame (axes turned, about the cube's corner), their input rows, for
+    ``keep`` their input normals and, with ``sensors`` (how many the file gives), each point's
+    sensor.
     """
     from recon_cli.geometry import SCAN_ATTRIBUTE
     from recon_cli.io.chunks import read_chunk
@@ -282,7 +285,7 @@ def bucket_rows(
     scan = None
     if sensors:
         scan = sensor_views(
-            cloud.sensors, cloud.attributes.get(SCAN_ATTRIBUTE), len(cloud.points), 0
+            cloud.sensors, cloud.attributes.get(SCAN_ATTRIBUTE), len(cloud.points), np.zeros(3)
         )[3]
     return _bucket_cloud(cloud, first_row, frame, nsub, prefix, ref, scan)
 
@@ -301,9 +304,11 @@ def _plan(counts: np.ndarray, parts: int, halo: int) -> list[tuple]:
 
 
 def _join(msgs: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each slab component's flip and group, joining components across seams by the agreement
-    of the normals their shared points have (a maximum spanning forest, Kruskal, parity
-    union-find); the largest component of a group keeps its orientation.
+    """Each slab component's flip and group, components joined across seams.
+
+    Components are joined by the agreement of the normals their shared points have (a maximum
+    spanning forest, Kruskal, parity union-find); the largest component of a group keeps its
+    orientation.
     """
     sizes = [len(m["comps"]) for m in msgs]
     off = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
@@ -324,7 +329,7 @@ def _join(msgs: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         score = np.bincount(inv.reshape(-1), dots, len(uk))
         edges += [
             (abs(sc), int(u // total), int(u % total), 1 if sc >= 0 else -1)
-            for u, sc in zip(uk, score)
+            for u, sc in zip(uk, score, strict=True)
         ]
     parent = list(range(total))
     parity = [1] * total  # the node's flip relative to its parent
@@ -344,7 +349,7 @@ def _join(msgs: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             acc *= py
         return x, p
 
-    for w, u, v, sg in sorted(edges, reverse=True):
+    for _w, u, v, sg in sorted(edges, reverse=True):
         ru, pu = find(u)
         rv, pv = find(v)
         if ru == rv:
@@ -369,9 +374,10 @@ def _join(msgs: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def _core(client, files, counts, frame, n_rows: int, p: dict, tmp: str, progress=None) -> tuple:
-    """The slabs' steps on bucketed rows (``files``: per chunk its file prefix and sub-slab
-    offsets), on one progress bar over them all; returns each slab's output file prefix and
-    the report's figures.
+    """The slabs' steps on bucketed rows, on one progress bar over them all.
+
+    ``files``: per chunk its file prefix and sub-slab offsets. Returns each slab's output file
+    prefix and the report's figures.
     """
     from recon_cli.batch.steps import Overall
     from recon_cli.progress import task
@@ -408,9 +414,9 @@ def _core_steps(client, files, counts, frame, n_rows, p, tmp, progress, overall)
     halo = HALO
     sub_w = size / nsub
     phases: dict = {}
-    for attempt in range(4):
+    for _attempt in range(4):
         plan = _plan(counts, parts, halo)
-        slabs = [NSlab(k, parts, *plan[k], origin, size) for k in range(parts)]
+        slabs = [NSlab(k, parts, plan[k][0], plan[k][1], origin, size) for k in range(parts)]
         runner = (
             LocalRunner(slabs, progress, "normals", overall)
             if client is None
@@ -432,27 +438,31 @@ def _core_steps(client, files, counts, frame, n_rows, p, tmp, progress, overall)
             if method == "mst" and ngroups:
                 cnt = np.concatenate([m["comps"] for m in om]).astype(np.float64)
                 sums = np.concatenate([m["sum"] for m in om])
-                gc = np.stack([np.bincount(gid, sums[:, a], ngroups) for a in range(3)], axis=1)
+                gc: np.ndarray = np.stack(
+                    [np.bincount(gid, sums[:, a], ngroups) for a in range(3)], axis=1
+                )
                 gc /= np.maximum(np.bincount(gid, cnt, ngroups), 1.0)[:, None]
                 centre = gc[gid]
-                fm = runner.run(
-                    "flux",
-                    nflux,
-                    lambda k: (flip[off[k] : off[k + 1]], centre[off[k] : off[k + 1]]),
-                )
+
+                def flux_args(
+                    k: int, flip: np.ndarray = flip, off: np.ndarray = off, c: np.ndarray = centre
+                ) -> tuple:
+                    return flip[off[k] : off[k + 1]], c[off[k] : off[k + 1]]
+
+                fm = runner.run("flux", nflux, flux_args)
                 flux = np.bincount(gid, np.concatenate([m["flux"] for m in fm]), ngroups)
                 scale = np.bincount(gid, np.concatenate([m["scale"] for m in fm]), ngroups)
                 inside_out = flux < -FLUX_MIN * scale
                 flip = (flip * np.where(inside_out[gid], -1, 1)).astype(np.int8)
-            wm = runner.run(
-                "write",
-                nwrite,
-                lambda k: (
+
+            def write_args(k: int, flip: np.ndarray = flip, off: np.ndarray = off) -> tuple:
+                return (
                     flip[off[k] : off[k + 1]],
                     os.path.join(tmp, f"n{k:03d}"),
                     p["curvature"],
-                ),
-            )
+                )
+
+            wm = runner.run("write", nwrite, write_args)
             for name, ph in runner.phases.items():
                 phases[name] = ph
         finally:
@@ -489,7 +499,7 @@ def _gather(prefixes: list[str], n_rows: int, curvature: bool, tmp: str):
     for pre in prefixes:
         rows = np.load(pre + ".row.npy")
         nrm[rows] = np.load(pre + ".nrm.npy")
-        if curvature:
+        if curv is not None:
             curv[rows] = np.load(pre + ".curv.npy")
     return nrm, curv
 
@@ -506,7 +516,7 @@ def distributed_normals(
     points: np.ndarray,
     normals: np.ndarray | None = None,
     *,
-    knn: int = 30,
+    knn: int | None = 30,
     radius: float | None = None,
     orient: str = "mst",
     camera=None,
@@ -670,7 +680,7 @@ def run_from_files(
                     raise InputError("the tiles do not all give the same scanner positions")
                 sensors = list(scans[0]["sensors"])
                 # the sensors' positions and directions (no point: their checks come per chunk)
-                views = sensor_views(sensors, np.zeros(0, np.int64), 0, 0)
+                views = sensor_views(sensors, np.zeros(0, np.int64), 0, np.zeros(3))
             lo = np.min([s["lo"] for s in scans if "lo" in s], axis=0)
             hi = np.max([s["hi"] for s in scans if "lo" in s], axis=0)
             frame = _frame(lo, hi)

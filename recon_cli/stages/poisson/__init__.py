@@ -257,7 +257,8 @@ SPEC = StageSpec(
             "any",
             None,
             "Reconstruct as --workers does on the existing Dask cluster at this address "
-            "(tcp://host:8786); IN and the output folder must be on a file system its workers share.",
+            "(tcp://host:8786); IN and the output folder must be on a file system its workers "
+            "share.",
             metavar="ADDRESS",
         ),
         Param(

@@ -439,8 +439,10 @@ def _triangulate(n, lp, lm, cost, split, st, tris):
 def leaf_polygons(
     keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, iso, eps, margin, clamp, xlo, xhi
 ):
-    """Iso-surface triangles of every leaf of the tree at the leaf's own size (the leaves
-    whose lower x, finest-lattice units, is in [``xlo``, ``xhi``): a slab's part of the mesh).
+    """Iso-surface triangles of every leaf of the tree at the leaf's own size.
+
+    The leaves are those whose lower x (finest-lattice units) is in [``xlo``, ``xhi``): a slab's
+    part of the mesh.
 
     ``keys``, ``leaf``, ``nodes``, ``g``, ``coff``, ``goff``: the levels' sorted cell keys, leaf
     flags, the cells' corner nodes and chi at the nodes, concatenated (see above). Each leaf whose

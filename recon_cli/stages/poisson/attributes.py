@@ -193,7 +193,12 @@ def transfer(
         out.colors = None if colors is None else colors[:0].copy()
         return out
     tree = cKDTree(points)
-    vn = vertex_normals(verts, faces) if vertex_unit_normals is None else vertex_unit_normals
+    if vertex_unit_normals is not None:
+        vn = vertex_unit_normals
+    elif faces is not None:
+        vn = vertex_normals(verts, faces)
+    else:
+        raise ValueError("transfer needs the faces or the vertices' unit normals")
     out.reach = np.empty(m)
     res = {k: np.empty(m, v.dtype) for k, v in values.items()}
     col = None if colors is None else np.empty((m, colors.shape[1]), colors.dtype)
@@ -214,7 +219,9 @@ def transfer(
 def _weights(
     tree, points: np.ndarray, normals: np.ndarray, verts: np.ndarray, vn: np.ndarray, cell: float
 ) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
-    """(m, k) neighbour indices and weights (rows sum to 1), the number of fallbacks and the
+    """The vertices' neighbours among the points and their weights.
+
+    Returns (m, k) neighbour indices and weights (rows sum to 1), the number of fallbacks and the
     distance of each row's farthest neighbour read.
     """
     k = min(NEIGHBOURS, len(points))

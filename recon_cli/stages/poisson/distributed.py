@@ -85,8 +85,8 @@ coordinator and the workers.
 Differences from the single-process output: the finer levels' corrections near a seam are
 solved in the two slabs' pads (the seam takes the owner's), and sums are added in another
 order: with one slab the mesh is the single-process one to rounding, with more the
-vertices near the seams move by a small fraction of a finest cell. ``--boundary free``, ``--envelope`` and
-``--grid`` are not distributed (refused).
+vertices near the seams move by a small fraction of a finest cell. ``--boundary free``,
+``--envelope`` and ``--grid`` are not distributed (refused).
 
 References
 ----------
@@ -102,7 +102,8 @@ import math
 import os
 import time
 from collections.abc import Callable
-from typing import Any
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -110,6 +111,9 @@ from recon_cli.batch.steps import Overall
 from recon_cli.errors import InputError, ParameterError, StageFailed
 from recon_cli.stages.poisson import slab as S
 from recon_cli.stages.poisson.splat import KERNEL_OFFSET, screening_alpha
+
+if TYPE_CHECKING:
+    from recon_cli.stages.poisson import PoissonResult
 
 log = logging.getLogger("recon")
 
@@ -119,15 +123,17 @@ log = logging.getLogger("recon")
 
 
 def choose_seams(counts: np.ndarray, parts: int) -> list[int]:
-    """Seam positions (in level-``PARTITION_DEPTH`` slabs, strictly increasing, 1..31) that
-    balance ``counts`` (points per level-5 slab) over ``parts`` slabs.
+    """Seam positions that balance ``counts`` over ``parts`` slabs.
+
+    In level-``PARTITION_DEPTH`` slabs, strictly increasing, 1..31; ``counts`` are the points per
+    level-5 slab.
     """
     n = len(counts)
     if parts > n:
         raise ParameterError(f"at most {n} partitions (the seams are level-5 planes), got {parts}")
     cum = np.concatenate([[0], np.cumsum(counts)])
     total = cum[-1]
-    seams = []
+    seams: list[int] = []
     for k in range(1, parts):
         target = total * k / parts
         b = int(np.argmin(np.abs(cum[1:n] - target))) + 1
@@ -169,6 +175,7 @@ def plan_slabs(
 
 
 def sub_slab(x_unit: np.ndarray, nsub: int) -> np.ndarray:
+    """(n,) the sub-slab (of ``nsub`` along x) of each unit-cube x."""
     return np.clip(np.floor(x_unit * nsub), 0, nsub - 1).astype(np.int64)
 
 
@@ -265,9 +272,10 @@ def _sum_screening(parts: list[dict]) -> dict:
 
 
 def exact_median(runner, name: str, fn: Callable, hists: list[dict], phase: str) -> float | None:
-    """The median (as ``np.median``) of values spread over the slabs, from their
-    :func:`.slab.float_histogram` s and a second round for the values in the median's bins
-    (``fn(slab, bins)`` returns them).
+    """The median (as ``np.median``) of values spread over the slabs.
+
+    From their :func:`.slab.float_histogram` s and a second round for the values in the median's
+    bins (``fn(slab, bins)`` returns them).
     """
     bins = np.concatenate([h["bins"] for h in hists])
     counts = np.concatenate([h["counts"] for h in hists])
@@ -307,6 +315,7 @@ def solve_coarse(
         up = finer
         for lv in range(dc, 1, -1):
             c, f = lfs[lv - 1], lfs[lv]
+            assert c is not None and f is not None  # levels 1.. have their fields
             blocks = B.finer_blocks(c.q_keys, f.q_keys)
             up = B.restrict_rhs(c.q_keys, c.nb, c.inp, blocks, up, 1 << (lv - 1), c.s)
             nrhs.finer[lv - 1] = up if nrhs.finer[lv - 1] is None else nrhs.finer[lv - 1] + up
@@ -317,7 +326,11 @@ def solve_coarse(
     stats, it, rel = S.solve_levels(
         levels, lfs, arrays, nrhs, scr, 1, job.full_depth, job.cg_tolerance
     )
-    coefs = [None] + [lfs[d].coef.copy() for d in range(1, dc + 1)]
+    coefs: list[np.ndarray | None] = [None]
+    for d in range(1, dc + 1):
+        lf = lfs[d]
+        assert lf is not None and lf.coef is not None  # solved above
+        coefs.append(lf.coef.copy())
     return coefs, stats, it, rel
 
 
@@ -326,8 +339,9 @@ def solve_coarse(
 
 
 def frame_of(lo: np.ndarray, hi: np.ndarray, scale: float) -> tuple[np.ndarray, float, tuple]:
-    """The single-process solve's cube (origin, size) for the kept points' box, and the
-    cyclic turn of the axes that makes the longest one ``x``.
+    """The single-process solve's cube (origin, size) for the kept points' box.
+
+    And the cyclic turn of the axes that makes the longest one ``x``.
     """
     size = float((hi - lo).max()) * scale
     origin = 0.5 * (lo + hi) - 0.5 * size
@@ -337,9 +351,11 @@ def frame_of(lo: np.ndarray, hi: np.ndarray, scale: float) -> tuple[np.ndarray, 
 
 
 def make_job(origin, size, perm, depth, p: dict) -> S.Job:
+    """The job every slab shares: the cube in the turned axes, the depths, the parameters."""
     dc = coarse_depth_for(depth)
+    o = np.asarray(origin, dtype=np.float64)[list(perm)]
     return S.Job(
-        origin=tuple(float(v) for v in np.asarray(origin)[list(perm)]),
+        origin=(float(o[0]), float(o[1]), float(o[2])),
         size=size,
         depth=depth,
         samples_per_node=p["samples_per_node"],
@@ -451,7 +467,7 @@ def reconstruct(
     residual = max([m.get("residual", 0.0) for m in sm] + [cres])
     del sm
     fm = runner.run("field", S.field, lambda k: (iso, *bands[k]))
-    bands = None
+    bands = []  # released: the slabs have theirs
     # as the single-process extraction decides: at the leaves' own size when a coarse leaf
     # holds surface, else on the finest lattice (the same surface, faster)
     at_leaves = any(m["coarse"] for m in fm)
@@ -471,7 +487,7 @@ def reconstruct(
                 tables[ko] = _sum_tables(runner.run("density", S.own_table, lambda k: (ko,)))
             dens_spec = (ko, *tables[ko])
     pm = runner.run("prepare", S.prepare, lambda k: (drop[k], dens_spec, job.trim > 0))
-    seam_keep = _seams_used([m["seam_use"] for m in pm])
+    seam_keep: list[dict | None] = list(_seams_used([m["seam_use"] for m in pm]))
     timings["finish"] = time.perf_counter() - t
     trimmed, trimmed_area = 0, 0.0
     if job.trim > 0:
@@ -528,7 +544,7 @@ def reconstruct(
                     "faces": e["faces"],
                     "seam_vertices": len(e["seam_left"][0]),
                 }
-                for lm, e in zip(loaded, em)
+                for lm, e in zip(loaded, em, strict=True)
             ],
         },
     }
@@ -536,8 +552,9 @@ def reconstruct(
 
 
 def _seams_used(uses: list[dict]) -> list[dict]:
-    """Per slab, the seam vertices either slab of each of its seams uses (the two export
-    the same ones): ``{"left": mask, "right": mask}``.
+    """Per slab, the seam vertices either slab of each of its seams uses.
+
+    The two export the same ones: ``{"left": mask, "right": mask}``.
     """
     n = len(uses)
     out = [{"left": u["left"].copy(), "right": u["right"].copy()} for u in uses]
@@ -549,9 +566,10 @@ def _seams_used(uses: list[dict]) -> list[dict]:
 
 
 def _join(parts: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Join the slabs' pieces (``{"areas": (n_k,), "links": {side: (edge keys, labels)}}``)
-    across the seams' edges: the global piece of each slab's piece (concatenated, slab
-    offsets) and the pieces' summed areas.
+    """Join the slabs' pieces across the seams' edges.
+
+    The pieces are ``{"areas": (n_k,), "links": {side: (edge keys, labels)}}``. Returns the global
+    piece of each slab's piece (concatenated, slab offsets) and the pieces' summed areas.
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
@@ -574,15 +592,18 @@ def _join(parts: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def _trim(
-    runner, trim: float, pm: list[dict], seam_keep: list[dict]
+    runner, trim: float, pm: list[dict], seam_keep: list[dict | None]
 ) -> tuple[list[dict | None], int, float]:
-    """The trim over the slabs (:func:`.trim.trim_by_density`'s steps, its islands and holes
-    joined across seams); returns the seam vertices kept, the trimmed faces and the fraction
-    of the area removed.
+    """The trim over the slabs.
+
+    :func:`.trim.trim_by_density`'s steps, its islands and holes joined across seams; returns the
+    seam vertices kept, the trimmed faces and the fraction of the area removed.
     """
     from recon_cli.stages.poisson.trim import ISLAND_AREA_RATIO
 
     med = exact_median(runner, "density", S.density_values, [m["hist"] for m in pm], "trim")
+    if med is None:  # no sample to measure: nothing is below the threshold
+        return seam_keep, 0, 0.0
     threshold = trim * float(med)
     cm = runner.run("trim", S.trim_cut, lambda k: (threshold,))
     faces_before = sum(m["faces"] for m in cm)
@@ -620,10 +641,11 @@ def _trim(
 
 
 def _merge_pieces(runner, em: list[dict], cell: float, bubble_cells: int, island_points: int):
-    """Join the slabs' pieces across the seams (their seam vertices), decide the specks and
-    islands on the joined pieces (:func:`._drop_bubbles`' rules); returns per slab the local
-    labels to drop, the counts, and the largest distance between the two slabs' positions of
-    a seam vertex (0: the same bits).
+    """Join the slabs' pieces across the seams, decide the specks and islands.
+
+    Pieces join through their seam vertices; the specks and islands follow :func:`._drop_bubbles`'
+    rules on the joined pieces. Returns per slab the local labels to drop, the counts, and the
+    largest distance between the two slabs' positions of a seam vertex (0: the same bits).
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
@@ -741,18 +763,19 @@ def distributed_poisson(
     seams: list[int] | None = None,
     progress: Any = None,
 ):
-    """Screened Poisson reconstruction in ``partitions`` slabs (module docstring), the cloud
-    given in memory; on the Dask ``client``'s cluster, or else all in this process
+    """Screened Poisson reconstruction in ``partitions`` slabs, the cloud given in memory.
+
+    See the module docstring. On the Dask ``client``'s cluster, or else all in this process
     (:class:`recon_cli.batch.steps.LocalRunner`). Returns a :class:`.PoissonResult` like
-    :func:`.screened_poisson`'s (``confidence``, ``colors``, ``properties`` as there), whose
-    report has a ``distributed`` part.
+    :func:`.screened_poisson`'s (``confidence``, ``colors``, ``properties`` as there), whose report
+    has a ``distributed`` part.
     """
     from recon_cli.stages.poisson import SPEC, PoissonResult, check_inputs, check_options
 
     depth, scale, point_weight, samples_per_node, _, boundary, density, trim = check_options(
         depth, scale, point_weight, samples_per_node, 2, boundary, density, trim
     )
-    params = dict(
+    params: dict[str, Any] = dict(
         samples_per_node=samples_per_node,
         point_weight=point_weight,
         boundary=boundary,
@@ -820,6 +843,7 @@ def distributed_poisson(
 
 
 def make_runner(client: Any, slabs: list, progress: Any = None, overall: Any = None):
+    """The slabs' runner: on the Dask ``client``'s cluster, or in this process without one."""
     from recon_cli.batch.steps import DaskRunner, LocalRunner
 
     if client is None:
@@ -896,9 +920,10 @@ def _bucket_chunk(
     colors: bool = True,
     names: tuple = (),
 ) -> dict:
-    """Write a chunk's rows (job frame, finite) sorted by sub-slab to ``prefix.*.npy`` (the
-    colours with ``colors``, the properties ``names`` as ``prefix.a<i>.npy``); returns where
-    each sub-slab's rows start and the kept points per sub-slab.
+    """Write a chunk's rows (job frame, finite) sorted by sub-slab to ``prefix.*.npy``.
+
+    The colours with ``colors``, the properties ``names`` as ``prefix.a<i>.npy``; returns where each
+    sub-slab's rows start and the kept points per sub-slab.
     """
     from recon_cli.io.chunks import read_chunk
 
@@ -920,8 +945,9 @@ def _bucket_chunk(
 
 
 def _timed_task(fn: Callable) -> Callable:
-    """A chunk's task that also reports its seconds and the worker's peak memory (as a
-    slab's step: :func:`.slab.timed`).
+    """A chunk's task that also reports its seconds and the worker's peak memory.
+
+    As a slab's step does (:func:`.slab.timed`).
     """
 
     def task(*args: Any) -> dict:
@@ -934,6 +960,14 @@ def _timed_task(fn: Callable) -> Callable:
 
 scan_chunk = _timed_task(_scan_chunk)
 bucket_chunk = _timed_task(_bucket_chunk)
+
+
+@dataclass
+class Streamed:
+    """What :func:`reconstruct_files` returns when it streamed the mesh to ``output``."""
+
+    report: dict
+    mesh: None = None
 
 
 def reconstruct_files(
@@ -956,14 +990,15 @@ def reconstruct_files(
     output: str | None = None,
     history: list[str] | None = None,
     progress: Any = None,
-):
-    """:func:`distributed_poisson` from files (``inputs``: a file, folder or pattern, or a
-    list of them; :mod:`recon_cli.io.chunks`) that no process reads whole: the workers read
-    the chunks, write them per sub-slab into a temporary folder (``temp_dir``, which the
-    workers must share; removed at the end), and each slab reads its rows. Returns the
-    :class:`.PoissonResult`; with ``output`` (a binary PLY path) the mesh is streamed there
-    from the slabs' files instead (``history`` its comments, after the input's) and the
-    result's mesh is None. ``attributes``: the input's properties carried onto the vertices
+) -> PoissonResult | Streamed:
+    """:func:`distributed_poisson` from files that no process reads whole.
+
+    ``inputs``: a file, folder or pattern, or a list of them (:mod:`recon_cli.io.chunks`). The
+    workers read the chunks, write them per sub-slab into a temporary folder (``temp_dir``, which
+    the workers must share; removed at the end), and each slab reads its rows. Returns the
+    :class:`.PoissonResult`; with ``output`` (a binary PLY path) the mesh is streamed there from the
+    slabs' files instead (``history`` its comments, after the input's) and the result's mesh is
+    None. ``attributes``: the input's properties carried onto the vertices
     (:func:`.attributes.select`).
     """
     import shutil
@@ -978,7 +1013,7 @@ def reconstruct_files(
     )
     nworkers = max(1, len(client.scheduler_info().get("workers", {})))
     parts = int(partitions) if partitions else nworkers
-    params = {
+    params: dict[str, Any] = {
         "samples_per_node": samples_per_node,
         "point_weight": point_weight,
         "boundary": boundary,
@@ -1059,7 +1094,7 @@ def reconstruct_files(
                     bar.advance(1)
                     overall.advance(share)
             del futs
-            sort_phase = {}
+            sort_phase: dict = {}
             note_phase(sort_phase, "sort", buckets, time.perf_counter() - t)
             counts = np.sum([b["counts"] for b in buckets], axis=0)
             plan = plan_slabs(job, counts, parts)
@@ -1104,6 +1139,8 @@ def reconstruct_files(
     rep["timings"]["read"] = read_s
     rep["timings"]["total"] = time.perf_counter() - t0
     rep["distributed"]["chunks"] = len(chunks)
+    if mesh is None:
+        return Streamed(rep)
     return PoissonResult(mesh, rep)
 
 
@@ -1229,8 +1266,9 @@ WRITE_ROWS = 1 << 20
 
 
 def _parts_header(parts: list[dict], perm, point_dtype, colors_dtype, history):
-    """The PLY header of the whole mesh (:func:`recon_cli.io.ply.geometry_to_ply`'s layout for
-    the same data), its vertex element's properties and the colours' property names.
+    """The PLY header of the whole mesh, its vertex properties and colour names.
+
+    The header follows :func:`recon_cli.io.ply.geometry_to_ply`'s layout for the same data.
     """
     from recon_cli.geometry import TriangleMesh, float32_rounding
     from recon_cli.io.ply import geometry_to_ply, header_bytes
@@ -1258,9 +1296,10 @@ def _parts_header(parts: list[dict], perm, point_dtype, colors_dtype, history):
 
 
 def write_parts_ply(path: str, parts: list[dict], perm, point_dtype, colors_dtype, history) -> None:
-    """Write the slabs' parts (files, :func:`.slab.export`) as one binary PLY mesh, a block
-    of rows at a time (this process never holds the mesh): vertices in slab order with the
-    axes turned back, then the faces, references to a right seam resolved to the next
+    """Write the slabs' parts as one binary PLY mesh, a block of rows at a time.
+
+    The parts are files (:func:`.slab.export`); this process never holds the mesh. Vertices in slab
+    order with the axes turned back, then the faces, references to a right seam resolved to the next
     slab's first vertices. Atomic: a failure leaves no file.
     """
     from recon_cli.io.atomic import atomic_open

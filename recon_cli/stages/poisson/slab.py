@@ -14,10 +14,11 @@ and the unit cube of the single-process solve.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -90,9 +91,11 @@ class Job:
 
 @dataclass
 class Slab:
-    """A slab's state. ``own`` is the x range (unit cube) whose cells and output it owns,
-    ``pad`` the range of points it reads, ``usable`` the range whose samples it splats (their
-    kernel density is exact: all the samples it reads are within ``pad``).
+    """A slab's state.
+
+    ``own`` is the x range (unit cube) whose cells and output it owns, ``pad`` the range of points
+    it reads, ``usable`` the range whose samples it splats (their kernel density is exact: all the
+    samples it reads are within ``pad``).
     """
 
     job: Job
@@ -101,42 +104,43 @@ class Slab:
     own: tuple[float, float]
     pad: tuple[float, float]
     usable: tuple[float, float]
-    # filled by the steps
-    pts: np.ndarray | None = None  # (n, 3) kept points, job frame
-    own_pt: np.ndarray | None = None
+    # filled by the steps in order: Any, as a step reads only what an earlier step set
+    pts: Any = None  # (n, 3) kept points, job frame
+    own_pt: Any = None
     colors: np.ndarray | None = None
     props: dict | None = None  # per-point properties carried onto the vertices (kept rows)
-    unit_nrm: np.ndarray | None = None  # (n, 3) the kept points' unit normals (for props)
-    vn_sum: np.ndarray | None = None  # (nv, 3) the faces' normals summed at each vertex
-    smp: Samples | None = None
-    own_s: np.ndarray | None = None
-    use_s: np.ndarray | None = None
-    splat: np.ndarray | None = None  # (s,) fractional splat depth, NaN until placed
-    area: np.ndarray | None = None
-    tables: dict = field(default_factory=dict)  # kernel-density tables by level
-    sigma: np.ndarray | None = None
+    unit_nrm: Any = None  # (n, 3) the kept points' unit normals (for props)
+    vn_sum: Any = None  # (nv, 3) the faces' normals summed at each vertex
+    smp: Any = None
+    own_s: Any = None
+    use_s: Any = None
+    splat: Any = None  # (s,) fractional splat depth, NaN until placed
+    area: Any = None
+    tables: dict = dataclasses.field(default_factory=dict)  # kernel-density tables by level
+    sigma: Any = None
     noise: np.ndarray | None = None  # (s,) noise in finest cells of the tree
-    screen_w: np.ndarray | None = None
+    screen_w: Any = None
     tree_depth: int = 0
-    fine_levels: list = field(default_factory=list)
-    fine_fields: dict = field(default_factory=dict)
+    fine_levels: list = dataclasses.field(default_factory=list)
+    fine_fields: dict = dataclasses.field(default_factory=dict)
     normal_rhs: Any = None
-    levels: list | None = None
-    node_keys: list | None = None
-    gvals: list | None = None
-    lfs: list | None = None
-    arrays: tuple | None = None
-    chi: ChiField | None = None
-    verts: np.ndarray | None = None
-    faces: np.ndarray | None = None
-    seam: dict = field(default_factory=dict)
-    labels: np.ndarray | None = None
+    levels: Any = None
+    node_keys: Any = None
+    gvals: Any = None
+    lfs: Any = None
+    arrays: Any = None
+    chi: Any = None
+    verts: Any = None
+    faces: Any = None
+    seam: dict = dataclasses.field(default_factory=dict)
+    labels: Any = None
     vdens: np.ndarray | None = None
-    at_samples: np.ndarray | None = None
-    trim: dict | None = None
+    at_samples: Any = None
+    trim: Any = None
 
     @property
     def res(self) -> int:
+        """Cells along an axis at the finest level."""
         return 1 << self.job.depth
 
     def x_range(self, bounds: tuple[float, float], scale: int) -> tuple[int, int]:
@@ -145,6 +149,7 @@ class Slab:
 
 
 def slab_of(job: Job, index: int, count: int, own, pad, usable) -> Slab:
+    """Slab ``index`` of ``count``, its ranges as :class:`Slab` holds them."""
     return Slab(job, index, count, tuple(own), tuple(pad), tuple(usable))
 
 
@@ -232,6 +237,7 @@ def _load(
     smp = merge_samples(unit, nrm, job.depth, weight)
     del nrm, weight
     slab.smp = smp
+    assert smp.keys is not None  # merge_samples keeps them
     sx = smp.keys >> 42
     slab.own_s = (sx >= a) & (sx < b)
     u0, u1 = slab.x_range(slab.usable, res)
@@ -260,16 +266,19 @@ def load(
     colors: np.ndarray | None,
     props: dict | None = None,
 ) -> dict:
-    """Read the slab's points (own and pad, job frame, finite), merge them per finest cell,
-    place the samples the slab's own density levels place; returns the splat figures.
+    """Read the slab's points, merge them per finest cell, place its samples.
+
+    Points own and pad, job frame, finite; the samples placed are those the slab's own density
+    levels place. Returns the splat figures.
     """
     return _load(slab, points, normals, colors, props)
 
 
 @timed
 def own_table(slab: Slab, level: int) -> dict:
-    """The kernel-density table of the slab's own samples at ``level`` (the coordinator adds
-    the slabs' tables into the global one): sorted cell keys and densities.
+    """The kernel-density table of the slab's own samples at ``level``.
+
+    Sorted cell keys and densities; the coordinator adds the slabs' tables into the global one.
     """
     if not slab.own_s.any():
         return {"keys": np.zeros(0, np.int64), "dens": np.zeros(0)}
@@ -281,8 +290,9 @@ def own_table(slab: Slab, level: int) -> dict:
 
 
 def global_table(level: int, keys: np.ndarray, dens: np.ndarray) -> tuple:
-    """A density table (as :func:`.splat.density_table` makes them) from sorted keys and
-    summed densities.
+    """A density table from sorted keys and summed densities.
+
+    As :func:`.splat.density_table` makes them.
     """
     from recon_cli._kernels.hashtable import build_table
 
@@ -309,8 +319,9 @@ def float_bins(values: np.ndarray) -> np.ndarray:
 
 
 def float_histogram(values: np.ndarray) -> dict:
-    """Sparse histogram of non-negative floats by :func:`float_bins` (the first round of an
-    exact distributed median).
+    """Sparse histogram of non-negative floats by :func:`float_bins`.
+
+    The first round of an exact distributed median.
     """
     b, c = np.unique(float_bins(values), return_counts=True)
     return {"bins": b, "counts": c, "n": int(len(values))}
@@ -338,12 +349,15 @@ def noise(slab: Slab, tree_depth: int) -> dict:
 
 @timed
 def noise_values(slab: Slab, bins: np.ndarray) -> dict:
+    """The own samples' measured noise values in ``bins`` (a median's second round)."""
     own = slab.sigma[slab.own_s]
     return {"values": values_in(own[~np.isnan(own)], bins)}
 
 
 @timed
 def noise_report_values(slab: Slab, bins: np.ndarray) -> dict:
+    """The own samples' reported noise values in ``bins`` (a median's second round)."""
+    assert slab.noise is not None  # called when the report measures the noise
     return {"values": values_in(slab.noise[slab.own_s], bins)}
 
 
@@ -369,6 +383,7 @@ def merge_per_cell_sums(pos: np.ndarray, w: np.ndarray, level: int) -> tuple:
 
 
 def merged_positions(sw: np.ndarray, sp: np.ndarray) -> np.ndarray:
+    """Mean positions from summed weights ``sw`` and weighted positions ``sp``."""
     safe = np.where(sw > 0, sw, 1.0)
     return sp / safe[:, None]
 
@@ -477,10 +492,12 @@ def build_coarse_levels(pos, lvl, tree_depth: int, job: Job) -> list[Level]:
 
 
 def level_message(levels: list[Level]) -> list[tuple]:
+    """The levels' keys and parents, as a message between processes."""
     return [(lev.cell_keys, lev.node_keys, lev.cell_parent) for lev in levels]
 
 
 def levels_from_message(msg: list[tuple]) -> list[Level]:
+    """The levels of :func:`level_message`'s message."""
     out = []
     for d, (ck, nk, cp) in enumerate(msg):
         out.append(Level(d, ck, nk, len(nk), None, None, None, cp))
@@ -489,11 +506,12 @@ def levels_from_message(msg: list[tuple]) -> list[Level]:
 
 @timed
 def restrict(slab: Slab, coarse: list[tuple], coarse_fields: dict) -> dict:
-    """The slab's whole tree (the global coarse levels and its own finer ones), the
-    coefficient sets and the normals' right-hand side (:class:`.bspline.NormalRHS`, the
-    coarse items' field the coordinator's); returns the finer levels' part of the right-hand
-    side on the finest coarse level at the cells the slab owns (every item it reaches is
-    within the pad: the slabs' parts add up to the whole cube's).
+    """Build the slab's whole tree, its coefficient sets and right-hand side.
+
+    The tree holds the global coarse levels and the slab's own finer ones; the right-hand side is
+    the normals' (:class:`.bspline.NormalRHS`, the coarse items' field the coordinator's). Returns
+    the finer levels' part of the right-hand side on the finest coarse level at the cells the slab
+    owns (every item it reaches is within the pad: the slabs' parts add up to the whole cube's).
     """
     job = slab.job
     levels = levels_from_message(coarse)
@@ -668,8 +686,9 @@ def _band_parents(lf: LevelField, px: int) -> np.ndarray:
 
 
 def band_message(slab: Slab, side: int) -> dict:
-    """The coefficients of the slab's column of parents next to its seam on ``side`` (-1
-    left, +1 right), at every finer level: the neighbour reads chi there from them.
+    """The coefficients of the slab's column of parents next to its seam on ``side``.
+
+    ``side`` -1 left, +1 right; at every finer level: the neighbour reads chi there from them.
     """
     out = {}
     x = slab.own[0] if side < 0 else slab.own[1]
@@ -762,12 +781,12 @@ def solve(slab: Slab, coefs: list) -> dict:
 def plane_values(
     levels: list[Level], gvals: list[np.ndarray], pts: np.ndarray, iso: float, margin: float
 ) -> np.ndarray:
-    """The extraction's value (negated chi, clamped on the cube's faces as
-    :func:`._extract.refine_leaves` clamps) at finest-lattice points ``pts`` (m, 3) of a seam
-    plane, from one leaf whichever slab asks: the leaf holding the finest cell whose lower
-    corner the point is (the one below along an axis where the point is on the cube's far
-    face). Both slabs of a seam read the same leaves and corner values there, so they give
-    the same bits.
+    """The extraction's value at finest-lattice points ``pts`` (m, 3) of a seam plane.
+
+    The value is negated chi, clamped on the cube's faces as :func:`._extract.refine_leaves` clamps,
+    from one leaf whichever slab asks: the leaf holding the finest cell whose lower corner the point
+    is (the one below along an axis where the point is on the cube's far face). Both slabs of a seam
+    read the same leaves and corner values there, so they give the same bits.
     """
     top = len(levels) - 1
     R = 1 << top
@@ -775,7 +794,7 @@ def plane_values(
     out = np.full(len(pts), np.nan)
     cell = np.minimum(pts, R - 1)
     todo = np.arange(len(pts))
-    for lev, g in zip(levels[::-1], gvals[::-1]):
+    for lev, g in zip(levels[::-1], gvals[::-1], strict=True):
         if not len(todo) or not len(lev.cell_keys):
             continue
         sh = top - lev.depth
@@ -790,6 +809,7 @@ def plane_values(
         f = (pts[rows] - ((cell[rows] >> sh) << sh)) / side
         fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
         v = np.zeros(len(rows))
+        assert lev.cell_nodes is not None  # the tree's levels have their corners set
         for r in range(8):
             w = (
                 (fx if r & 1 else 1.0 - fx)
@@ -814,10 +834,11 @@ def _seam_order(lat: np.ndarray, on: np.ndarray) -> np.ndarray:
 
 @timed
 def field(slab: Slab, iso: float, band_left: dict | None, band_right: dict | None) -> dict:
-    """The neighbours' bands, chi at every level's nodes (the finer side of a coarse leaf's
-    faces constrained to it, as the single-process solve does); returns whether a leaf
-    coarser than the finest the slab owns holds surface (then every slab extracts at the
-    leaves' own size, as :func:`.extract.extract` decides).
+    """Take the neighbours' bands and set chi at every level's nodes.
+
+    The finer side of a coarse leaf's faces is constrained to it, as the single-process solve does.
+    Returns whether a leaf coarser than the finest the slab owns holds surface (then every slab
+    extracts at the leaves' own size, as :func:`.extract.extract` decides).
     """
     from recon_cli.stages.poisson.extract import FACE_MARGIN
 
@@ -856,7 +877,7 @@ def field(slab: Slab, iso: float, band_left: dict | None, band_right: dict | Non
     masks = _own_leaves(slab)
     coarse = any(
         E.straddles(lev.cell_keys, lev.cell_nodes, m, g, lev.depth, top, iso, 1e-9, FACE_MARGIN)
-        for lev, m, g in zip(levels[:-1], masks[:-1], gvals[:-1])
+        for lev, m, g in zip(levels[:-1], masks[:-1], gvals[:-1], strict=True)
     )
     release_free_heap()
     return {"coarse": bool(coarse)}
@@ -893,12 +914,12 @@ def _finest(slab: Slab, levels: list, gvals: list, iso: float, a: int, b: int) -
             none_xyz,
             none_val,
         )
-        for lev, m, g in zip(levels, masks, gvals)
+        for lev, m, g in zip(levels, masks, gvals, strict=True)
     ]
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     cells = np.empty((int(offsets[-1]), 3), np.int64)
     vals = np.empty((int(offsets[-1]), 8))
-    for d, (lev, m, g) in enumerate(zip(levels, masks, gvals)):
+    for d, (lev, m, g) in enumerate(zip(levels, masks, gvals, strict=True)):
         E.refine_leaves(
             lev.cell_keys,
             lev.cell_nodes,
@@ -1057,8 +1078,9 @@ def _seam_use(slab: Slab, faces: np.ndarray) -> dict:
 
 
 def _compact(slab: Slab, keep_faces: np.ndarray, extra: dict | None = None) -> None:
-    """Keep the faces flagged and the vertices they use, seam layout kept (the left seam's
-    vertices first, the right seam's last, in their order).
+    """Keep the faces flagged and the vertices they use, seam layout kept.
+
+    The left seam's vertices first, the right seam's last, in their order.
     """
     faces = slab.faces[keep_faces]
     used = np.zeros(len(slab.verts), bool)
@@ -1111,6 +1133,7 @@ def prepare(slab: Slab, drop: np.ndarray, density: tuple | None, at_samples: boo
 
 @timed
 def density_values(slab: Slab, bins: np.ndarray) -> dict:
+    """The density at the own samples in ``bins`` (a median's second round)."""
     return {"values": values_in(slab.at_samples, bins)}
 
 
@@ -1124,6 +1147,7 @@ def trim_cut(slab: Slab, threshold: float) -> dict:
     from recon_cli.stages.poisson.trim import cut_by_density
 
     v, f, d = slab.verts, slab.faces, slab.vdens
+    assert d is not None  # the trim runs on the density at the vertices
     high = d > threshold
     nh = high[f].sum(axis=1) if len(f) else np.zeros(0, np.int64)
     nv = len(v)
@@ -1167,8 +1191,9 @@ def _by_plane_position(verts: np.ndarray, idx: np.ndarray) -> np.ndarray:
 
 
 def _part(slab: Slab, part: np.ndarray, area: np.ndarray) -> dict:
-    """The pieces of the faces flagged ``part`` (joined across edges), their areas and seam
-    links.
+    """The pieces of the faces flagged ``part``, their areas and seam links.
+
+    Pieces are joined across edges.
     """
     from recon_cli.mesh.topology import Connectivity
 
@@ -1249,8 +1274,9 @@ def seam_normals(slab: Slab, seam_keep: dict | None) -> dict:
 
 
 def _pad_gap(slab: Slab, x: np.ndarray) -> np.ndarray:
-    """Distance (world units) from job-frame x to the nearer end of the slab's points (inf on
-    the side where the cube ends: no point lies beyond).
+    """Distance (world units) from job-frame x to the nearer end of the slab's points.
+
+    Inf on the side where the cube ends: no point lies beyond.
     """
     job = slab.job
     u = (x - job.origin[0]) / job.size
@@ -1260,8 +1286,10 @@ def _pad_gap(slab: Slab, x: np.ndarray) -> np.ndarray:
 
 
 def _attributes(slab: Slab, v: np.ndarray, own: np.ndarray, left_sum) -> tuple[dict, Any, dict]:
-    """The input's properties at the slab's own vertices ``v`` (:func:`.attributes.transfer`,
-    the surface's normal at a seam vertex summed over both slabs' faces).
+    """The input's properties at the slab's own vertices ``v``.
+
+    By :func:`.attributes.transfer`, the surface's normal at a seam vertex summed over both slabs'
+    faces.
     """
     from recon_cli.stages.poisson.attributes import transfer, unit_rows
 
@@ -1276,7 +1304,7 @@ def _attributes(slab: Slab, v: np.ndarray, own: np.ndarray, left_sum) -> tuple[d
             "its pad to carry attributes from: use fewer --partitions or --attributes none"
         )
     moved = transfer(
-        slab.pts, slab.unit_nrm, slab.props, slab.colors, v, None, cell, unit_rows(vn[own])
+        slab.pts, slab.unit_nrm, slab.props or {}, slab.colors, v, None, cell, unit_rows(vn[own])
     )
     inexact = 0
     if moved.reach is not None:
@@ -1292,12 +1320,13 @@ def export(
     prefix: str | None = None,
     left_sum: np.ndarray | None = None,
 ) -> dict:
-    """The slab's output: its own vertices (the left seam's first, then the others; the
-    right seam's belong to the next slab) with the input's properties, colours and density,
-    and its faces, whose references to the right seam's vertices are ``-1 - rank``.
-    ``seam_keep``: per seam, the vertices either slab uses (both export the same ones; None
-    when :func:`seam_normals` kept them); ``left_sum``: the previous slab's face normals
-    summed at the left seam's vertices. With ``prefix`` the arrays go to
+    """The slab's output: its own vertices and its faces.
+
+    The vertices (the left seam's first, then the others; the right seam's belong to the next slab)
+    carry the input's properties, colours and density; the faces' references to the right seam's
+    vertices are ``-1 - rank``. ``seam_keep``: per seam, the vertices either slab uses (both export
+    the same ones; None when :func:`seam_normals` kept them); ``left_sum``: the previous slab's face
+    normals summed at the left seam's vertices. With ``prefix`` the arrays go to
     ``prefix.<name>.npy`` (the message names them), else in the message.
     """
     job = slab.job
@@ -1320,6 +1349,7 @@ def export(
         if colors is not None:
             msg["colors"] = colors
     if job.density:
+        assert slab.vdens is not None  # set by extract with the density asked
         msg["attributes"]["density"] = slab.vdens[~right]
     msg["vertices"] = v
     msg["faces"] = out_f
@@ -1341,8 +1371,9 @@ def export(
 
 
 def state_bytes(obj: Any, depth: int = 0) -> int:
-    """Bytes of the numpy arrays a slab's state holds (what Dask's memory accounting sees of
-    it: its own estimate of an object is a few hundred bytes).
+    """Bytes of the numpy arrays a slab's state holds.
+
+    What Dask's memory accounting sees of it: its own estimate of an object is a few hundred bytes.
     """
     if isinstance(obj, np.ndarray):
         return int(obj.nbytes)
@@ -1374,10 +1405,11 @@ def load_files(
     names: tuple = (),
     dtypes: tuple = (),
 ) -> dict:
-    """:func:`load` from the chunks' files (``(prefix, offsets)``: each chunk's rows sorted by
-    sub-slab, ``offsets`` (nsub + 1,) where each sub-slab's rows start), the rows of the
-    slab's pad range; ``colors`` (dtype, columns) when the chunks have colours, ``names``
-    and ``dtypes`` the properties carried (``prefix.a<i>.npy``).
+    """:func:`load` from the chunks' files, the rows of the slab's pad range.
+
+    ``(prefix, offsets)``: each chunk's rows sorted by sub-slab, ``offsets`` (nsub + 1,) where each
+    sub-slab's rows start; ``colors`` (dtype, columns) when the chunks have colours, ``names`` and
+    ``dtypes`` the properties carried (``prefix.a<i>.npy``).
     """
     pa, pb = slab.x_range(slab.pad, nsub)
     pts, nrm, col = [], [], []

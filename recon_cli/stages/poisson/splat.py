@@ -119,9 +119,10 @@ def _eval_density(table: tuple, pos: np.ndarray) -> np.ndarray:
 def splat_at_level(
     rho: np.ndarray, lv: int, samples_per_node: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Which samples level ``lv``'s kernel density ``rho`` (at the samples) places, their
-    fractional splat depth and unit-cube area per point (:func:`make_splats`' rule; level 0
-    places every sample left).
+    """Which samples level ``lv``'s kernel density ``rho`` (at the samples) places.
+
+    Returns them, their fractional splat depth and unit-cube area per point (:func:`make_splats`'
+    rule; level 0 places every sample left).
     """
     per_node = rho / B2_PLANE_DENSITY  # samples per node of level lv
     ok = (per_node >= ESTIMATE_FACTOR * samples_per_node) | (lv == 0)
@@ -567,8 +568,10 @@ def noise_fraction(
 
 
 def noise_sigma(unit: np.ndarray, smp: Samples, tree_depth: int) -> np.ndarray:
-    """(s,) each sample's noise ``sigma`` (:func:`noise_fraction`) in finest cells of the
-    samples' lattice, NaN where no cell up to :data:`NOISE_MORE_LEVELS` coarser answers.
+    """(s,) each sample's noise ``sigma`` (:func:`noise_fraction`).
+
+    In finest cells of the samples' lattice, NaN where no cell up to :data:`NOISE_MORE_LEVELS`
+    coarser answers.
     """
     ns = len(smp.count)
     sig = np.full(ns, np.nan)  # in finest cells of the samples' lattice
@@ -604,9 +607,10 @@ def noise_sigma(unit: np.ndarray, smp: Samples, tree_depth: int) -> np.ndarray:
 def clean_fraction(
     sig: np.ndarray, sample_depth: int, tree_depth: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`noise_fraction`'s result from the noise ``sig`` in finest cells of the samples'
-    lattice (level ``sample_depth``): (s,) clean fraction and (s,) noise in finest cells of
-    the tree.
+    """:func:`noise_fraction`'s result from the noise ``sig``.
+
+    ``sig`` is in finest cells of the samples' lattice (level ``sample_depth``): (s,) clean fraction
+    and (s,) noise in finest cells of the tree.
     """
     rel = sig / (1 << (sample_depth - tree_depth))
     return 1.0 / (1.0 + (rel / NOISE_TAU) ** 2), rel
