@@ -844,27 +844,78 @@ def run_stage(
     if partitions is not None or memory_limit is not None:
         raise ParameterError("--partitions and --memory-limit go with --workers or --scheduler")
     use_pixels = _use_pixels(neighbours, cloud.pixels, knn, radius, n)
-    views = None
+    views: tuple | None = None
     if from_sensors:
         views = _sensor_views(
             cloud.sensors, cloud.attributes.get(SCAN_ATTRIBUTE), n, local_origin(pts)
         )
     pts, cam = _local(pts, cam, cloud.points)
-
-    out = (
-        cloud.copy()
-        if isinstance(data, PointCloud)
-        else PointCloud(
-            points=cloud.points,
-            colors=cloud.colors,
-            attributes=dict(cloud.attributes),
-            history=list(cloud.history),
-            point_dtype=cloud.point_dtype,
-            obj_info=list(cloud.obj_info),
-            sensors=list(cloud.sensors),
+    out = _output_cloud(data, cloud)
+    report = _first_report(cloud, n, knn, radius, method, backend, use_pixels, views, camera)
+    if backend == "open3d":
+        out.normals = _open3d_normals(
+            pts, knn, radius, method, views, cam, dirn, ref, report, progress
         )
+        return StageResult(out, report)
+
+    with task(progress, "neighbourhoods"):
+        if use_pixels:
+            order, ps, indptr, indices = _pixel_neighbourhoods(pts, cloud.pixels, knn, radius)
+        else:
+            order, ps, indptr, indices = _neighbourhoods(pts, knn, radius)
+    with task(progress, "estimating normals"):
+        nrm_s, curv_s, deg_s = _estimate_sorted(ps, indptr, indices)
+    report["neighbourhood_size"] = float(indptr[-1] / n)
+    report["degenerate"] = int(deg_s.sum())
+    with task(progress, f"orienting ({method})"):
+        ref_s = None if ref is None else ref[order]
+        omethod = method
+        cview: Any = cam
+        if views is not None:  # each point towards its own sensor, in the sorted order
+            omethod, cview = "sensors", (*views[:3], views[3][order])
+        sign_s, ncomp = _orient_sorted(omethod, ps, nrm_s, indptr, indices, cview, dirn, ref_s)
+    report["components"] = None if ncomp is None else int(ncomp)
+    report["flipped"] = int((sign_s < 0).sum())
+    report["provenance"] = {"neighbours": "pixels" if use_pixels else "kdtree"}
+    out.normals = _unsort(order, nrm_s * sign_s[:, None])
+    if curvature:
+        out.attributes["curvature"] = _unsort(order, curv_s)
+    if report["degenerate"]:
+        report["warning"] = (
+            f"{report['degenerate']} degenerate neighbourhoods (< 3 points, collinear or "
+            "duplicates)"
+        )
+    return StageResult(out, report)
+
+
+def _output_cloud(data: Any, cloud: PointCloud) -> PointCloud:
+    """The output: a copy of the input cloud, or a cloud of a mesh's vertices."""
+    if isinstance(data, PointCloud):
+        return cloud.copy()
+    return PointCloud(
+        points=cloud.points,
+        colors=cloud.colors,
+        attributes=dict(cloud.attributes),
+        history=list(cloud.history),
+        point_dtype=cloud.point_dtype,
+        obj_info=list(cloud.obj_info),
+        sensors=list(cloud.sensors),
     )
-    report: dict[str, Any] = {
+
+
+def _first_report(
+    cloud: PointCloud,
+    n: int,
+    knn: int,
+    radius: float | None,
+    method: str,
+    backend: str,
+    use_pixels: bool,
+    views: Any,
+    camera: Any,
+) -> dict[str, Any]:
+    """The report's keys, the figures the estimate fills in still None."""
+    return {
         "points": n,
         "knn": knn,
         "radius": radius,
@@ -887,57 +938,43 @@ def run_stage(
         else ("sign kept" if method == "keep" else "replaced"),
         "backend": backend,
     }
-    if backend == "open3d":
-        from recon_cli.backends import open3d_backend
 
-        with task(progress, "open3d normals"):
-            nrm = open3d_backend.estimate_normals(
-                PointCloud(points=pts),
-                knn=knn,
-                radius=radius,
-                orient_tangent_plane=(knn or 30) if method == "mst" else None,
-            )
-        if method != "mst":
-            omethod = "sensors" if views is not None else method
-            cview = views if views is not None else cam
-            sign = _orient_direct(omethod, pts, nrm, cview, dirn) if method != "keep" else None
-            if method == "keep":
-                d = np.einsum("ij,ij->i", nrm, np.nan_to_num(ref))
-                sign = np.where(d < 0, -1, 1).astype(np.int8)
-            else:
-                sign = _orient_direct(method, pts, nrm, cam, dirn)
-            report["flipped"] = int((sign < 0).sum())
-            nrm = nrm * sign[:, None]
-        out.normals = nrm
-        return StageResult(out, report)
 
-    with task(progress, "neighbourhoods"):
-        if use_pixels:
-            order, ps, indptr, indices = _pixel_neighbourhoods(pts, cloud.pixels, knn, radius)
-        else:
-            order, ps, indptr, indices = _neighbourhoods(pts, knn, radius)
-    with task(progress, "estimating normals"):
-        nrm_s, curv_s, deg_s = _estimate_sorted(ps, indptr, indices)
-    report["neighbourhood_size"] = float(indptr[-1] / n)
-    report["degenerate"] = int(deg_s.sum())
-    with task(progress, f"orienting ({method})"):
-        ref_s = None if ref is None else ref[order]
-        omethod, cview = method, cam
-        if views is not None:  # each point towards its own sensor, in the sorted order
-            omethod, cview = "sensors", (*views[:3], views[3][order])
-        sign_s, ncomp = _orient_sorted(omethod, ps, nrm_s, indptr, indices, cview, dirn, ref_s)
-    report["components"] = None if ncomp is None else int(ncomp)
-    report["flipped"] = int((sign_s < 0).sum())
-    report["provenance"] = {"neighbours": "pixels" if use_pixels else "kdtree"}
-    out.normals = _unsort(order, nrm_s * sign_s[:, None])
-    if curvature:
-        out.attributes["curvature"] = _unsort(order, curv_s)
-    if report["degenerate"]:
-        report["warning"] = (
-            f"{report['degenerate']} degenerate neighbourhoods (< 3 points, collinear or "
-            "duplicates)"
+def _open3d_normals(
+    pts: np.ndarray,
+    knn: int,
+    radius: float | None,
+    method: str,
+    views: Any,
+    cam: Any,
+    dirn: Any,
+    ref: np.ndarray | None,
+    report: dict[str, Any],
+    progress: Any,
+) -> np.ndarray:
+    """Open3D's normals of ``pts``, oriented as ``method`` asks; ``report["flipped"]`` set."""
+    from recon_cli.backends import open3d_backend
+
+    with task(progress, "open3d normals"):
+        nrm = open3d_backend.estimate_normals(
+            PointCloud(points=pts),
+            knn=knn,
+            radius=radius,
+            orient_tangent_plane=(knn or 30) if method == "mst" else None,
         )
-    return StageResult(out, report)
+    if method != "mst":
+        omethod = "sensors" if views is not None else method
+        cview = views if views is not None else cam
+        sign = _orient_direct(omethod, pts, nrm, cview, dirn) if method != "keep" else None
+        if method == "keep":
+            assert ref is not None  # _check_reference gives the input's normals for keep
+            d = np.einsum("ij,ij->i", nrm, np.nan_to_num(ref))
+            sign = np.where(d < 0, -1, 1).astype(np.int8)
+        else:
+            sign = _orient_direct(method, pts, nrm, cam, dirn)
+        report["flipped"] = int((sign < 0).sum())
+        nrm = nrm * sign[:, None]
+    return nrm
 
 
 def _run_distributed(
