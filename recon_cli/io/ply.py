@@ -590,8 +590,8 @@ def _parse_ascii_lists(
 # --------------------------------------------------------------------------- writing
 
 
-def serialize_ply(ply: PlyData) -> bytes:
-    """Encode ``ply`` (header and body) as bytes."""
+def header_bytes(ply: PlyData) -> bytes:
+    """The header of ``ply`` (its elements' counts and properties), ``end_header`` included."""
     if ply.format not in FORMATS:
         raise ValueError(f"unknown PLY format {ply.format!r}")
     head = ["ply", f"format {ply.format} 1.0"]
@@ -601,7 +601,12 @@ def serialize_ply(ply: PlyData) -> bytes:
         head.append(f"element {el.name} {el.count}")
         head += [p.header_line() for p in el.properties]
     head.append("end_header")
-    out = ["\n".join(head).encode("ascii") + b"\n"]
+    return "\n".join(head).encode("ascii") + b"\n"
+
+
+def serialize_ply(ply: PlyData) -> bytes:
+    """Encode ``ply`` (header and body) as bytes."""
+    out = [header_bytes(ply)]
     if ply.format == "ascii":
         for el in ply.elements:
             out.append(_ascii_body(el))
