@@ -29,6 +29,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "info",
         "Describe a cloud/mesh (any format) or a grid: counts, properties, topology, history.",
     ),
+    "filter": ("filter", "Drop invalid points, crop, select LAS classes, remove outliers, thin."),
     "normals": ("normals", "Estimate and orient point normals."),
     "poisson": ("poisson", "Screened Poisson reconstruction of an oriented cloud."),
     "ballpivot": ("ballpivot", "Ball-pivoting reconstruction of an oriented cloud."),
@@ -45,7 +46,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 # commands run by cli/_run.run_stage_command (which ends the start-up pause itself)
-_STAGE_COMMANDS = frozenset({"normals", "poisson", "ballpivot", "repair", "sdf", "mcubes"})
+_STAGE_COMMANDS = frozenset(
+    {"filter", "normals", "poisson", "ballpivot", "repair", "sdf", "mcubes"}
+)
 
 EXIT_INTERRUPTED = 130
 EXIT_BROKEN_PIPE = 141
