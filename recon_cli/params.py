@@ -133,6 +133,9 @@ class Param:
         Run on the value once its type is checked (not on None): returns it, maybe converted,
         or raises ValueError with the expected values (``six numbers ... with x0 <= x1``), so
         a rule between the numbers of one value is checked wherever the type is.
+    allowed : str
+        The allowed values in words, for ``--help`` and the README, where a range cannot
+        say them (a ``validate`` rule: ``x0 <= x1, y0 <= y1, z0 <= z1``).
     """
 
     name: str
@@ -150,6 +153,7 @@ class Param:
     metavar: str | None = None
     also: tuple = ()
     validate: Callable[[Any], Any] | None = field(default=None, compare=False, repr=False)
+    allowed: str = ""
 
     def __post_init__(self) -> None:
         if self.type not in TYPES:
@@ -172,6 +176,8 @@ class Param:
         """``"0 <= x <= 1"``-like text of the allowed values ("" when unrestricted)."""
         if self.type == "choice":
             return " | ".join(self.choices)
+        if self.allowed:
+            return self.allowed
         lo = None if self.min is None else f"{_fmt(self.min)} {'<' if self.min_open else '<='} "
         hi = None if self.max is None else f" {'<' if self.max_open else '<='} {_fmt(self.max)}"
         if lo is None and hi is None:

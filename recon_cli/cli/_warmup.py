@@ -147,6 +147,22 @@ def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
         # an open scan (half of it): coarse leaves hold surface, so Poisson extracts at the leaves' size
         up = pd[:, 2] > 0
         write_ply(PointCloud(points=pd[up], normals=nd[up]), path("half.ply"))
+        # LAS-like classes and returns: filter's selections and its majority vote per voxel
+        cls = np.where(np.arange(len(p)) % 3 == 0, 6, 2).astype(np.uint8)
+        write_ply(
+            PointCloud(
+                points=p,
+                normals=nrm,
+                colors=rgb,
+                attributes={
+                    "classification": cls,
+                    "return_number": np.ones(len(p), np.uint8),
+                    "number_of_returns": np.ones(len(p), np.uint8),
+                    "intensity": np.arange(len(p), dtype=np.uint16),
+                },
+            ),
+            path("classified.ply"),
+        )
         # repeated and collinear points: degenerate neighbourhoods borrow their normal
         line = np.column_stack([np.linspace(2, 3, 12), np.zeros(12), np.zeros(12)])
         write_ply(
@@ -212,6 +228,28 @@ def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
         )
         steps.append(("normals knn+radius", recon("normals", src, out, "--radius", "0.2")))
     steps.append(("normals keep", recon("normals", c32, out, "--orient", "keep")))
+    steps.append(
+        (
+            "filter",
+            recon(
+                "filter",
+                path("classified.ply"),
+                out,
+                "--crop",
+                "-2,-2,-2,2,2,2",
+                "--classes",
+                "ground,building",
+                "--returns",
+                "last",
+                "--radius-outliers",
+                "0.3,2",
+                "--outliers",
+                "10,2",
+                "--voxel",
+                "0.2",
+            ),
+        )
+    )
     steps.append(("normals degenerate", recon("normals", path("degenerate.ply"), out)))
     for src in (c32, c64):
         steps += [

@@ -167,6 +167,7 @@ SPEC = StageSpec(
             "Keep the points inside this box (faces included).",
             unit="input units",
             metavar="X0,Y0,Z0,X1,Y1,Z1",
+            allowed="x0 <= x1, y0 <= y1, z0 <= z1",
             validate=_crop_box,
         ),
         Param(
@@ -176,6 +177,7 @@ SPEC = StageSpec(
             "Keep the points of these LAS classes: codes 0-255 or ASPRS names (ground, "
             "building, low-vegetation, ...), comma-separated.",
             metavar="C,...",
+            allowed="codes 0-255 or ASPRS class names",
             validate=_class_codes,
         ),
         Param(
@@ -194,6 +196,7 @@ SPEC = StageSpec(
             "remove_radius_outlier(N, R)).",
             unit="R input units, N points",
             metavar="R,N",
+            allowed="R > 0, integer N >= 1",
             validate=_radius_rule,
         ),
         Param(
@@ -205,6 +208,7 @@ SPEC = StageSpec(
             "remove_statistical_outlier(K, STD)).",
             unit="K points, STD standard deviations",
             metavar="K,STD",
+            allowed="integer K >= 1, STD > 0",
             validate=_outlier_rule,
         ),
         Param(
@@ -526,7 +530,7 @@ def voxel_downsample(cloud: PointCloud, size: float) -> PointCloud:
 
 def _bare(name: str) -> str:
     low = name.lower()
-    return low[len("scalar_") :] if low.startswith("scalar_") else low
+    return low.removeprefix("scalar_")
 
 
 def _averaged(mean: np.ndarray, dtype: np.dtype) -> np.ndarray:
