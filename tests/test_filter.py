@@ -132,6 +132,25 @@ def test_voxel_cells_follow_open3ds_anchor_exactly():
     np.testing.assert_allclose(ours[a], ref[b], rtol=0, atol=1e-15)
 
 
+def test_fine_grids_over_a_wide_box_as_open3d(rng):
+    # 5e6 cells a side: more than 2**62 in the box, the three-coordinate table
+    pts = rng.uniform(0, 1, (400, 3))
+    pts = np.vstack([pts, pts[:100] + rng.normal(scale=1e-7, size=(100, 3)), pts[:50]])
+    size = 2e-7
+    ours = voxel_downsample(PointCloud(points=pts), size).points
+    ref = open3d_backend.voxel_down_sample(PointCloud(points=pts), size)["points"]
+    assert 400 < len(ours) == len(ref) < len(pts)
+    a, b = np.lexsort(np.round(ours, 12).T), np.lexsort(np.round(ref, 12).T)
+    np.testing.assert_allclose(ours[a], ref[b], rtol=0, atol=1e-15)
+    for n_min in (1, 2):
+        np.testing.assert_array_equal(
+            np.flatnonzero(radius_outlier_mask(pts, size, n_min)),
+            open3d_backend.radius_outlier_indices(pts, size, n_min),
+        )
+    with pytest.raises(ParameterError, match="--voxel 1e-10 is too small"):
+        voxel_downsample(PointCloud(points=pts), 1e-10)
+
+
 def test_voxel_attributes_averaged_codes_by_majority():
     # two cells of edge 1 anchored at -0.5: x in [-0.5, 0.5) and [0.5, 1.5)
     x = np.array([0.0, 0.1, 0.2, 1.0, 1.1])

@@ -52,7 +52,7 @@ from typing import Any
 import numpy as np
 
 from recon_cli.errors import InputError, ParameterError
-from recon_cli.geometry import PointCloud, local_origin
+from recon_cli.geometry import PointCloud
 from recon_cli.params import Param, StageSpec
 from recon_cli.progress import task
 from recon_cli.stages import StageResult
@@ -343,20 +343,18 @@ def radius_outlier_mask(points: Any, radius: float, min_neighbours: int) -> np.n
     ----------
     Zhou, Park & Koltun, "Open3D", arXiv:1801.09847, 2018 (``RemoveRadiusOutliers``).
     """
-    from recon_cli.stages.filter import _kernel
-
     radius, n_min = SPEC.param("radius_outliers").coerce((radius, min_neighbours))
     pts = _finite(points)
     if len(pts) == 0:
         return np.zeros(0, dtype=bool)
     size = radius * _CELL_MARGIN
-    lo = pts.min(axis=0)
-    if float((pts.max(axis=0) - lo).max()) / size > _MAX_CELLS:
+    lo, hi = _kernels().bounds(pts)
+    if float((hi - lo).max()) / size > _MAX_CELLS:
         raise ParameterError(
             f"--radius-outliers radius {radius:g} is too small for the extent of the points "
             f"(more than {_MAX_CELLS} cells along an axis)"
         )
-    return _kernel.radius_keep(pts, lo, size, float(radius), np.int64(n_min))
+    return _kernels().radius_keep(pts, size, float(radius), np.int64(n_min))
 
 
 def mean_neighbour_distances(points: Any, k: int) -> np.ndarray:
@@ -371,8 +369,6 @@ def mean_neighbour_distances(points: Any, k: int) -> np.ndarray:
     """
     from scipy.spatial import cKDTree
 
-    from recon_cli.stages.filter import _kernel
-
     pts = _finite(points)
     n = len(pts)
     k = min(int(k), n)
@@ -382,7 +378,7 @@ def mean_neighbour_distances(points: Any, k: int) -> np.ndarray:
     out = np.empty(n)
     for a in range(0, n, _CHUNK):
         d, _ = tree.query(ps[a : a + _CHUNK], k, workers=-1)
-        out[order[a : a + _CHUNK]] = _kernel.row_means(np.asarray(d).reshape(-1, k))
+        out[order[a : a + _CHUNK]] = _kernels().row_means(np.asarray(d).reshape(-1, k))
     return out
 
 
@@ -412,22 +408,27 @@ def statistical_outlier_mask(
     Rusu et al., "Towards 3D point cloud based object maps for household environments",
     2008; Zhou, Park & Koltun, "Open3D", 2018 (``RemoveStatisticalOutliers``).
     """
-    from recon_cli.stages.filter import _kernel
-
     k, std_ratio = SPEC.param("outliers").coerce((k, std_ratio))
     pts = _finite(points)
     if len(pts) == 0:
         return np.zeros(0, dtype=bool), {"mean": 0.0, "std": 0.0, "threshold": 0.0}
-    keep, mean, std = _kernel.statistical_keep(mean_neighbour_distances(pts, k), std_ratio)
+    keep, mean, std = _kernels().statistical_keep(mean_neighbour_distances(pts, k), std_ratio)
     return keep, {"mean": mean, "std": std, "threshold": mean + std_ratio * std}
 
 
-def voxel_cells(points: Any, size: float) -> tuple[np.ndarray, np.ndarray]:
+def voxel_cells(points: Any, size: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The voxel cell of every point, as Open3D's ``voxel_down_sample`` numbers them.
 
     Cells have edge ``size`` and are anchored at ``min - size / 2`` (the points' minimum
     corner): cell ``floor((p - (min - size/2)) / size)`` computed in that order in float64,
     so a point lands in Open3D's cell.
+
+    Parameters
+    ----------
+    points : (n, 3) array_like of float
+        Finite coordinates.
+    size : float
+        Cell edge (> 0), in the units of ``points``.
 
     Returns
     -------
@@ -435,27 +436,28 @@ def voxel_cells(points: Any, size: float) -> tuple[np.ndarray, np.ndarray]:
         Cell of each point, cells numbered in the order of their first point.
     first : (m,) int64
         The first point of each cell.
+    count : (m,) int64
+        Points per cell.
+    centroid : (m, 3) float64
+        The mean of each cell's points (summed about the centre of their bounding box).
 
     Raises
     ------
     ParameterError
         ``size`` <= 0, or more than 2**31 - 1 cells along an axis (Open3D's limit).
     """
-    from recon_cli.stages.filter import _kernel
-
     size = SPEC.param("voxel").coerce(size)
     pts = _finite(points)
     if len(pts) == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    lo = pts.min(axis=0) - size * 0.5
-    hi = pts.max(axis=0) + size * 0.5
-    if size * _MAX_CELLS < float((hi - lo).max()):
+        e = np.zeros(0, np.int64)
+        return e, e, e, np.zeros((0, 3))
+    cell, first, count, centroid, along = _kernels().voxel_grid(pts, float(size))
+    if along > _MAX_CELLS:
         raise ParameterError(
             f"--voxel {size:g} is too small for the extent of the points "
-            f"(more than {_MAX_CELLS} cells along an axis)"
+            f"({along:.3g} cells along an axis, at most {_MAX_CELLS})"
         )
-    cell, first, _, _, _, _ = _kernel.grid_cells(pts, lo, float(size))
-    return cell, first
+    return cell, first, count, centroid
 
 
 def voxel_downsample(cloud: PointCloud, size: float) -> PointCloud:
@@ -483,49 +485,40 @@ def voxel_downsample(cloud: PointCloud, size: float) -> PointCloud:
     ----------
     Zhou, Park & Koltun, "Open3D", arXiv:1801.09847, 2018 (``VoxelDownSample``).
     """
-    from recon_cli.stages.filter import _kernel
+    K = _kernels()
+    cell, first, count, centroid = voxel_cells(cloud.points, size)
 
-    pts = _finite(cloud.points)
-    cell, first = voxel_cells(pts, size)
-    m = len(first)
-    counts = np.bincount(cell, minlength=m).astype(np.float64)
+    def mean(values: np.ndarray, skip_nan_rows: bool = False) -> np.ndarray:
+        rows = np.ascontiguousarray(values, dtype=np.float64).reshape(len(cell), -1)
+        return K.cell_means(cell, count, rows, skip_nan_rows)
 
-    def mean(col: np.ndarray) -> np.ndarray:
-        return np.bincount(cell, weights=col, minlength=m) / counts
-
-    origin = local_origin(pts)
     out = cloud.subset(first)  # every field the cloud carries, from each cell's first point
     if getattr(out, "pixels", None) is not None:
         out.pixels = None  # a centroid is no pixel of the image
-    out.points = np.column_stack([mean(pts[:, i] - origin[i]) + origin[i] for i in range(3)])
+    out.points = centroid
     if cloud.normals is not None:
-        nrm = np.asarray(cloud.normals, dtype=np.float64)
-        nrm = np.where(np.isnan(nrm).any(axis=1, keepdims=True), 0.0, nrm)
-        avg = np.column_stack([mean(nrm[:, i]) for i in range(3)])
-        length = np.linalg.norm(avg, axis=1, keepdims=True)
+        avg = mean(cloud.normals, skip_nan_rows=True)  # Open3D leaves NaN normals out
+        length = np.sqrt(np.einsum("ij,ij->i", avg, avg))[:, None]
         np.divide(avg, length, out=avg, where=length > 0)
         out.normals = avg.astype(cloud.normals.dtype, copy=False)
     if cloud.colors is not None:
-        out.colors = np.column_stack(
-            [
-                _averaged(mean(cloud.colors[:, i].astype(np.float64)), cloud.colors.dtype)
-                for i in range(cloud.colors.shape[1])
-            ]
-        )
-    members = None
+        out.colors = _averaged(mean(cloud.colors), cloud.colors.dtype)
     for name, values in cloud.attributes.items():
         v = np.asarray(values)
-        if v.dtype.kind == "f":
-            out.attributes[name] = mean(v.astype(np.float64)).astype(v.dtype)
-        elif v.dtype.kind in "iu" and _bare(name) in MEASURES:
-            out.attributes[name] = _averaged(mean(v.astype(np.float64)), v.dtype)
+        if v.dtype.kind == "f" or (v.dtype.kind in "iu" and _bare(name) in MEASURES):
+            out.attributes[name] = _averaged(mean(v)[:, 0], v.dtype)
         elif v.dtype.kind in "iub":
-            if members is None:
-                members = _kernel.cell_members(cell, m)
-            modes = _kernel.cell_modes(members[0], members[1], v.astype(np.int64))
+            modes = K.cell_modes(cell, count, np.ascontiguousarray(v, dtype=np.int64))
             out.attributes[name] = modes.astype(v.dtype)
         # any other kind (strings, records) stays the first point's
     return out
+
+
+def _kernels() -> Any:
+    """The stage's kernels: built ahead of time when ``recon warmup`` made them (no numba)."""
+    from recon_cli.aot import kernels
+
+    return kernels("recon_cli.stages.filter._kernel")
 
 
 def _bare(name: str) -> str:
@@ -726,8 +719,6 @@ def run_stage(
     StageResult
         ``output``: the filtered PointCloud; ``report``: :func:`filter_cloud`'s.
     """
-    from recon_cli.stages.filter import _kernel  # noqa: F401  (numba loads before timing starts)
-
     out, report = filter_cloud(
         data,
         crop=crop,
