@@ -47,6 +47,7 @@ arXiv:1801.09847, 2018 (the rules followed); ASPRS, "LAS specification 1.4 R15",
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
@@ -236,7 +237,7 @@ def _points(points: Any) -> np.ndarray:
 def _finite(points: np.ndarray) -> np.ndarray:
     """``points`` (n, 3) float64, checked finite (the neighbourhood rules take no NaN)."""
     pts = _points(points)
-    if not np.isfinite(pts).all():
+    if not _kernels().finite_rows(pts).all():
         raise InputError("points have NaN or infinite coordinates: drop them first (filter does)")
     return pts
 
@@ -260,9 +261,7 @@ def crop_mask(points: Any, box: Any) -> np.ndarray:
         Not six numbers, or a minimum above its maximum.
     """
     lo_hi = SPEC.param("crop").coerce(box)
-    pts = _points(points)
-    lo, hi = np.asarray(lo_hi[:3]), np.asarray(lo_hi[3:])
-    return ((pts >= lo) & (pts <= hi)).all(axis=1)
+    return _kernels().inside_box(_points(points), np.array(lo_hi, dtype=np.float64))
 
 
 def find_attribute(cloud: PointCloud, names: tuple[str, ...]) -> str | None:
@@ -599,8 +598,8 @@ def filter_cloud(
         values["outliers"],
         values["voxel"],
     )
-    raw = np.asarray(cloud.points)
-    n = len(raw)
+    pts = _points(cloud.points)  # float64 once: a binary PLY's points are a view of its rows
+    n = len(pts)
     if n == 0:
         raise InputError("the input has no points")
     report: dict[str, Any] = {
@@ -631,7 +630,7 @@ def filter_cloud(
         return a if sel is None else a[sel]
 
     def apply(key: str, keep: np.ndarray, what: str) -> None:
-        nonlocal sel
+        nonlocal sel, pts
         before = len(keep)
         kept = int(np.count_nonzero(keep))
         report[key] = before - kept
@@ -640,15 +639,16 @@ def filter_cloud(
         if kept < before:
             rows = np.flatnonzero(keep)
             sel = rows if sel is None else sel[rows]
+            pts = pts[rows]
 
     with task(progress, "invalid points"):
-        finite = np.isfinite(raw).all(axis=1)
+        finite = _kernels().finite_rows(pts)
         if not finite.any():
             raise InputError(f"every point (of {n}) has a NaN or infinite coordinate")
         apply("invalid_removed", finite, "")
     if crop is not None:
         with task(progress, "crop"):
-            apply("crop_removed", crop_mask(current(raw), crop), f"--crop {_text(crop)}")
+            apply("crop_removed", crop_mask(pts, crop), f"--crop {_text(crop)}")
     if classes is not None:
         with task(progress, "classes"):
             codes = current(cloud.attributes[class_attr])
@@ -668,21 +668,24 @@ def filter_cloud(
             apply("returns_removed", keep, f"--returns {returns}")
     if radius_outliers is not None:
         with task(progress, "radius outliers"):
-            keep = radius_outlier_mask(current(raw), *radius_outliers)
+            keep = radius_outlier_mask(pts, *radius_outliers)
             apply("radius_outliers_removed", keep, f"--radius-outliers {_text(radius_outliers)}")
     if outliers is not None:
         with task(progress, "statistical outliers"):
-            keep, figures = statistical_outlier_mask(current(raw), *outliers)
+            keep, figures = statistical_outlier_mask(pts, *outliers)
             report["outlier_threshold"] = figures["threshold"]
             apply("outliers_removed", keep, f"--outliers {_text(outliers)}")
-    out = cloud if sel is None else cloud.subset(sel)
+    # nothing removed: the same arrays in a new cloud (with its own history)
+    out = (
+        dataclasses.replace(cloud, history=list(cloud.history))
+        if sel is None
+        else cloud.subset(sel)
+    )
     if voxel is not None:
         with task(progress, "voxel thinning"):
             thinned = voxel_downsample(out, voxel)
             report["voxel_merged"] = len(out) - len(thinned)
             out = thinned
-    elif out is cloud:
-        out = cloud.copy()
     report["points_out"] = len(out)
     return out, report
 

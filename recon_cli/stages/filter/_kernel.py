@@ -38,6 +38,36 @@ def bounds(pts):
     return lo, hi
 
 
+@njit(cache=True)
+def finite_rows(pts):
+    """Whether each row of ``pts`` (n, 3) has three finite coordinates."""
+    n = pts.shape[0]
+    out = np.empty(n, np.bool_)
+    for i in range(n):
+        out[i] = math.isfinite(pts[i, 0]) and math.isfinite(pts[i, 1]) and math.isfinite(pts[i, 2])
+    return out
+
+
+@njit(cache=True)
+def inside_box(pts, box):
+    """Whether each row of ``pts`` (n, 3) lies in ``box`` (x0, y0, z0, x1, y1, z1), faces included."""
+    n = pts.shape[0]
+    out = np.empty(n, np.bool_)
+    for i in range(n):
+        x = pts[i, 0]
+        y = pts[i, 1]
+        z = pts[i, 2]
+        out[i] = (
+            x >= box[0]
+            and x <= box[3]
+            and y >= box[1]
+            and y <= box[4]
+            and z >= box[2]
+            and z <= box[5]
+        )
+    return out
+
+
 @njit(cache=True, inline="always")
 def _coord(pts, i, a, lo, size):
     return np.int64(math.floor((pts[i, a] - lo[a]) / size))
