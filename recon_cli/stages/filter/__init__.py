@@ -356,11 +356,20 @@ def radius_outlier_mask(points: Any, radius: float, min_neighbours: int) -> np.n
     return _kernels().radius_keep(pts, size, float(radius), np.int64(n_min))
 
 
-def mean_neighbour_distances(points: Any, k: int) -> np.ndarray:
+def mean_neighbour_distances(points: Any, k: int, progress: Any = None) -> np.ndarray:
     """Each point's mean distance to its ``k`` nearest points (itself included, at 0).
 
     The kNN search runs in the kd-tree's leaf order (cache friendly) in chunks; distances
-    are differences of float64 coordinates, exact far from the origin too.
+    are differences of float64 coordinates, as precise far from the origin as near it.
+
+    Parameters
+    ----------
+    points : (n, 3) array_like of float
+        Finite coordinates.
+    k : int
+        Neighbours, the point itself included (fewer when ``n < k``).
+    progress : Progress, optional
+        A bar over the points.
 
     Returns
     -------
@@ -371,18 +380,20 @@ def mean_neighbour_distances(points: Any, k: int) -> np.ndarray:
     pts = _finite(points)
     n = len(pts)
     k = min(int(k), n)
-    tree = cKDTree(pts)
-    order = np.asarray(tree.indices, dtype=np.int64)
-    ps = pts[order]
     out = np.empty(n)
-    for a in range(0, n, _CHUNK):
-        d, _ = tree.query(ps[a : a + _CHUNK], k, workers=-1)
-        out[order[a : a + _CHUNK]] = _kernels().row_means(np.asarray(d).reshape(-1, k))
+    with task(progress, "statistical outliers", total=n) as bar:
+        tree = cKDTree(pts)
+        order = np.asarray(tree.indices, dtype=np.int64)
+        ps = pts[order]
+        for a in range(0, n, _CHUNK):
+            d, _ = tree.query(ps[a : a + _CHUNK], k, workers=-1)
+            out[order[a : a + _CHUNK]] = _kernels().row_means(np.asarray(d).reshape(-1, k))
+            bar.advance(min(_CHUNK, n - a))
     return out
 
 
 def statistical_outlier_mask(
-    points: Any, k: int, std_ratio: float
+    points: Any, k: int, std_ratio: float, progress: Any = None
 ) -> tuple[np.ndarray, dict[str, float]]:
     """Open3D's ``remove_statistical_outlier(k, std_ratio)``: the points to keep.
 
@@ -394,6 +405,8 @@ def statistical_outlier_mask(
         Neighbours (the point itself included, as Open3D's kNN search counts it), >= 1.
     std_ratio : float
         Standard deviations above the mean of the mean distances, > 0.
+    progress : Progress, optional
+        A bar over the points' kNN searches.
 
     Returns
     -------
@@ -411,7 +424,8 @@ def statistical_outlier_mask(
     pts = _finite(points)
     if len(pts) == 0:
         return np.zeros(0, dtype=bool), {"mean": 0.0, "std": 0.0, "threshold": 0.0}
-    keep, mean, std = _kernels().statistical_keep(mean_neighbour_distances(pts, k), std_ratio)
+    mean_dist = mean_neighbour_distances(pts, k, progress)
+    keep, mean, std = _kernels().statistical_keep(mean_dist, std_ratio)
     return keep, {"mean": mean, "std": std, "threshold": mean + std_ratio * std}
 
 
@@ -671,10 +685,9 @@ def filter_cloud(
             keep = radius_outlier_mask(pts, *radius_outliers)
             apply("radius_outliers_removed", keep, f"--radius-outliers {_text(radius_outliers)}")
     if outliers is not None:
-        with task(progress, "statistical outliers"):
-            keep, figures = statistical_outlier_mask(pts, *outliers)
-            report["outlier_threshold"] = figures["threshold"]
-            apply("outliers_removed", keep, f"--outliers {_text(outliers)}")
+        keep, figures = statistical_outlier_mask(pts, *outliers, progress=progress)
+        report["outlier_threshold"] = figures["threshold"]
+        apply("outliers_removed", keep, f"--outliers {_text(outliers)}")
     # nothing removed: the same arrays in a new cloud (with its own history)
     out = (
         dataclasses.replace(cloud, history=list(cloud.history))
