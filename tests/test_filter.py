@@ -322,6 +322,18 @@ def test_depth_camera_frame_invalid_pixels_and_flying_pixels():
     assert rep["outliers_removed"] > 0
 
 
+def test_library_function_drops_nan_rows_of_arrays(rng):
+    import recon_cli
+
+    pts = rng.normal(size=(500, 3)) + 1e6
+    pts[::9] = np.nan
+    out = recon_cli.filter(pts, voxel=0.5)
+    assert out.report["invalid_removed"] == len(pts[::9])
+    assert np.isfinite(out.points).all() and out.history[-1].split()[2] == "filter"
+    ref = open3d_backend.voxel_down_sample(PointCloud(points=pts[np.isfinite(pts[:, 0])]), 0.5)
+    assert len(out.points) == len(ref["points"]) == out.report["points_out"]
+
+
 def test_stage_order_report_and_pipeline_kinds(tmp_path):
     from recon_cli.pipeline import check_pipeline, parse_pipeline
 
