@@ -593,7 +593,7 @@ def serialize_ply(ply: PlyData) -> bytes:
     return b"".join(out)
 
 
-def _binary_body(el: PlyElement, order: str) -> bytes:
+def _binary_body(el: PlyElement, order: str) -> bytes | np.ndarray:
     if el.count == 0:
         return b""
     lists_ragged = any(p.is_list and el.data[p.name].dtype == object for p in el.properties)
@@ -616,7 +616,7 @@ def _binary_body(el: PlyElement, order: str) -> bytes:
                     arr[p.name] = values
             else:
                 arr[p.name] = el.data[p.name]
-        return arr.tobytes()
+        return arr.view(np.uint8).reshape(-1)  # bytes-like: the caller's join is the one copy
     chunks = []
     for r in range(el.count):
         for p in el.properties:

@@ -94,6 +94,8 @@ _CLASS_ATTRS = ("classification", "scalar_classification")
 _RETURN_ATTRS = ("return_number", "scalar_return_number")
 _NRETURNS_ATTRS = ("number_of_returns", "scalar_number_of_returns")
 
+# rows per chunk of the row-wise tests (a float64 buffer that stays in cache)
+_ROWS = 1 << 14
 # kNN rows per query (bounds the distance matrix held at once)
 _CHUNK = 200_000
 # at most this many cells along an axis (Open3D's limit: its cell indices are C ints)
@@ -231,10 +233,30 @@ def _points(points: Any) -> np.ndarray:
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise InputError(f"points must have shape (n, 3), got {pts.shape}")
-    return np.ascontiguousarray(pts, dtype=np.float64)
+    pts = np.ascontiguousarray(pts, dtype=np.float64)
+    return pts if pts.flags.writeable else pts.copy()  # the kernels' compiled variants write
 
 
-def _finite(points: np.ndarray) -> np.ndarray:
+def _rowwise(points: Any, kernel: Any, *args: Any) -> np.ndarray:
+    """``kernel(rows, *args)`` (a bool per row) over ``points`` (n, 3) of any float type and
+    layout, a chunk at a time through one float64 buffer: a binary PLY's points are a strided
+    view, and a contiguous float64 copy of a million of them costs more than the test."""
+    pts = np.asarray(points)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise InputError(f"points must have shape (n, 3), got {pts.shape}")
+    n = len(pts)
+    if pts.dtype == np.float64 and pts.flags.c_contiguous and pts.flags.writeable:
+        return kernel(pts, *args)
+    out = np.empty(n, dtype=bool)
+    buf = np.empty((min(n, _ROWS), 3))
+    for a in range(0, n, _ROWS):
+        rows = buf[: min(_ROWS, n - a)]
+        rows[...] = pts[a : a + _ROWS]
+        out[a : a + len(rows)] = kernel(rows, *args)
+    return out
+
+
+def _finite(points: Any) -> np.ndarray:
     """``points`` (n, 3) float64, checked finite (the neighbourhood rules take no NaN)."""
     pts = _points(points)
     if not _kernels().finite_rows(pts).all():
@@ -261,7 +283,7 @@ def crop_mask(points: Any, box: Any) -> np.ndarray:
         Not six numbers, or a minimum above its maximum.
     """
     lo_hi = SPEC.param("crop").coerce(box)
-    return _kernels().inside_box(_points(points), np.array(lo_hi, dtype=np.float64))
+    return _rowwise(points, _kernels().inside_box, np.array(lo_hi, dtype=np.float64))
 
 
 def find_attribute(cloud: PointCloud, names: tuple[str, ...]) -> str | None:
@@ -612,8 +634,8 @@ def filter_cloud(
         values["outliers"],
         values["voxel"],
     )
-    pts = _points(cloud.points)  # float64 once: a binary PLY's points are a view of its rows
-    n = len(pts)
+    raw = cloud.points
+    n = len(raw)
     if n == 0:
         raise InputError("the input has no points")
     report: dict[str, Any] = {
@@ -644,7 +666,7 @@ def filter_cloud(
         return a if sel is None else a[sel]
 
     def apply(key: str, keep: np.ndarray, what: str) -> None:
-        nonlocal sel, pts
+        nonlocal sel
         before = len(keep)
         kept = int(np.count_nonzero(keep))
         report[key] = before - kept
@@ -653,16 +675,15 @@ def filter_cloud(
         if kept < before:
             rows = np.flatnonzero(keep)
             sel = rows if sel is None else sel[rows]
-            pts = pts[rows]
 
     with task(progress, "invalid points"):
-        finite = _kernels().finite_rows(pts)
+        finite = _rowwise(raw, _kernels().finite_rows)
         if not finite.any():
             raise InputError(f"every point (of {n}) has a NaN or infinite coordinate")
         apply("invalid_removed", finite, "")
     if crop is not None:
         with task(progress, "crop"):
-            apply("crop_removed", crop_mask(pts, crop), f"--crop {_text(crop)}")
+            apply("crop_removed", crop_mask(current(raw), crop), f"--crop {_text(crop)}")
     if classes is not None:
         with task(progress, "classes"):
             codes = current(cloud.attributes[class_attr])
@@ -682,10 +703,10 @@ def filter_cloud(
             apply("returns_removed", keep, f"--returns {returns}")
     if radius_outliers is not None:
         with task(progress, "radius outliers"):
-            keep = radius_outlier_mask(pts, *radius_outliers)
+            keep = radius_outlier_mask(current(raw), *radius_outliers)
             apply("radius_outliers_removed", keep, f"--radius-outliers {_text(radius_outliers)}")
     if outliers is not None:
-        keep, figures = statistical_outlier_mask(pts, *outliers, progress=progress)
+        keep, figures = statistical_outlier_mask(current(raw), *outliers, progress=progress)
         report["outlier_threshold"] = figures["threshold"]
         apply("outliers_removed", keep, f"--outliers {_text(outliers)}")
     # nothing removed: the same arrays in a new cloud (with its own history)
