@@ -30,7 +30,7 @@ from recon_cli.stages.filter import (
     voxel_downsample,
 )
 
-from sensors import DepthCamera, depth_image, look_at, tabletop_scene
+from sensors import DepthCamera, depth_image, look_at, tabletop_scene, write_organized_pcd
 from shapes import FAR_OFFSETS, cloud_family, shape_cloud
 from shared_data import ROOT, SHARED
 
@@ -320,6 +320,52 @@ def test_depth_camera_frame_invalid_pixels_and_flying_pixels():
     ref = open3d_backend.statistical_outlier_indices(flat[~nan], 20, 2.0)
     np.testing.assert_array_equal(out.points, flat[~nan][ref])
     assert rep["outliers_removed"] > 0
+
+
+def test_organized_frame_keeps_pixels_and_camera_through_filter(tmp_path):
+    from recon_cli.io.load import load
+
+    rng = np.random.default_rng(11)
+    eye = np.array([0.3, -2.0, 1.2])
+    cam = DepthCamera(eye=eye, rotation=look_at(eye, (0, 0, 0.2)), width=96, height=72)
+    src = tmp_path / "frame.pcd"
+    write_organized_pcd(src, depth_image(cam, tabletop_scene(), rng, flying=0.6), cam)
+    cloud = load(src)
+    assert cloud.pixels is not None and cloud.sensors and cloud.invalid_dropped > 0
+    out, rep = filter_cloud(cloud, outliers=(20, 2.0))
+    rows = np.flatnonzero(statistical_outlier_mask(cloud.points, 20, 2.0)[0])
+    assert rep["outliers_removed"] == len(cloud) - len(rows) > 0
+    np.testing.assert_array_equal(out.pixels.pixel, cloud.pixels.pixel[rows])
+    assert out.pixels.shapes == cloud.pixels.shapes and out.sensors == cloud.sensors
+    assert out.invalid_dropped == cloud.invalid_dropped
+    # the next stage still finds the pixel neighbourhoods and the file's camera
+    res = apply_stage("normals", out, {"orient": "camera"})
+    assert res.report["neighbours"].startswith("pixels") and res.report["viewpoints"]
+    assert (np.einsum("ij,ij->i", res.output.normals, eye - out.points) >= 0).all()
+    # a centroid is no pixel: thinned, the cloud is not organized but keeps its camera
+    thin = voxel_downsample(out, 0.05)
+    assert thin.pixels is None and thin.sensors == cloud.sensors and len(thin) < len(out)
+
+
+def test_other_ply_elements_travel_unless_they_index_the_points(rng):
+    from recon_cli.io.ply import PlyElement, PlyProperty
+
+    camera = PlyElement("camera", 1, [PlyProperty("k", "i2")], {"k": np.array([-3], np.int16)})
+    edge = PlyElement(
+        "edge",
+        1,
+        [PlyProperty("vertex1", "i4"), PlyProperty("vertex2", "i4")],
+        {"vertex1": np.array([0], np.int32), "vertex2": np.array([1], np.int32)},
+    )
+    pts = rng.uniform(0, 1, (200, 3))
+    out, _ = filter_cloud(
+        PointCloud(points=pts, extra_elements=[camera]), crop=(0, 0, 0, 1, 1, 0.5)
+    )
+    assert out.extra_elements == [camera] and len(out) < len(pts)
+    linked = PointCloud(points=pts, extra_elements=[camera, edge])
+    assert filter_cloud(linked, crop=(0, 0, 0, 1, 1, 1))[0].extra_elements == [camera, edge]
+    with pytest.raises(InputError, match="element 'edge' refers to the points by index"):
+        filter_cloud(linked, voxel=0.5)
 
 
 def test_library_function_drops_nan_rows_of_arrays(rng):

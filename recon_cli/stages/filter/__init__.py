@@ -3,7 +3,9 @@
 The operations run in a fixed order, each on what the one before kept, and the report
 counts the points each removed:
 
-1. **invalid**: points with a NaN or infinite coordinate (always; normals may be NaN);
+1. **invalid**: points with a NaN or infinite coordinate (always; normals may be NaN). The
+   readers drop them already (``recon filter``'s report shows that count under ``read``):
+   this step is for arrays given from Python;
 2. **crop** ``x0,y0,z0,x1,y1,z1``: points outside the axis-aligned box (its faces included
    in it, as Open3D's ``crop``);
 3. **classes** ``2,6`` or ``ground,building``: points of other LAS classes (attribute
@@ -720,8 +722,20 @@ def filter_cloud(
             thinned = voxel_downsample(out, voxel)
             report["voxel_merged"] = len(out) - len(thinned)
             out = thinned
+    # PLY elements that are not per point travel; one indexing the points would go stale
+    linked = [e.name for e in cloud.extra_elements if _indexes_points(e)]
+    if linked and len(out) < n:
+        raise InputError(
+            f"element {linked[0]!r} refers to the points by index: filter cannot drop points "
+            "from under it"
+        )
+    out.extra_elements = list(cloud.extra_elements)
     report["points_out"] = len(out)
     return out, report
+
+
+def _indexes_points(element: Any) -> bool:
+    return any("vertex" in p.name for p in getattr(element, "properties", ()))
 
 
 def _text(v: Any) -> str:
