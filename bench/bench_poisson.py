@@ -185,9 +185,7 @@ def _ours_process(cloud, depth: int, trimmed: bool, workdir: Path) -> tuple[dict
         cmd += ["--trim", str(OUR_TRIM)]
     # through a small launcher: a child forked from this (large) process reports this
     # process's resident size as its own peak (ru_maxrss counts the pages it had before exec)
-    proc = subprocess.run(
-        [sys.executable, "-c", _LAUNCHER, *cmd], stdout=subprocess.PIPE, stderr=subprocess.PIPE
-    )
+    proc = subprocess.run([sys.executable, "-c", _LAUNCHER, *cmd], capture_output=True)
     if proc.returncode != 0:
         raise RuntimeError(
             f"recon poisson failed ({proc.returncode}): {proc.stderr.decode().strip()}"
@@ -227,7 +225,8 @@ def _open3d(cloud, depth: int, trimmed: bool):
 
 
 def _pymeshlab(cloud, depth: int, trimmed: bool):
-    """PyMeshLab's screened Poisson; trimmed rows are not measured (its density is not exposed here)."""
+    """PyMeshLab's screened Poisson; trimmed rows are not measured (its density is not exposed
+    here)."""
     from recon_cli.backends import pymeshlab_backend
 
     return pymeshlab_backend.poisson(cloud, depth=depth)
