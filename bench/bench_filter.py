@@ -19,7 +19,9 @@ import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -52,6 +54,7 @@ def make_input(path: Path, n: int) -> float:
 
     from recon_cli.geometry import PointCloud
     from recon_cli.io.ply import write_ply
+
     from shared_data import sampled_cloud
 
     c = sampled_cloud("armadillo", n, 0.0025)
@@ -83,7 +86,11 @@ def operations(pts_lo, pts_hi, spacing: float) -> list[tuple[str, list[str], obj
             ["--crop", ",".join(repr(float(x)) for x in box)],
             lambda pc: pc.crop(aabb),
         ),
-        (f"voxel {voxel:.3g} (2 spacings)", ["--voxel", repr(voxel)], lambda pc: pc.voxel_down_sample(voxel)),
+        (
+            f"voxel {voxel:.3g} (2 spacings)",
+            ["--voxel", repr(voxel)],
+            lambda pc: pc.voxel_down_sample(voxel),
+        ),
         (
             "outliers 20,2",
             ["--outliers", "20,2"],
@@ -95,6 +102,22 @@ def operations(pts_lo, pts_hi, spacing: float) -> list[tuple[str, list[str], obj
             lambda pc: pc.remove_radius_outlier(4, radius)[0],
         ),
     ]
+
+
+def _reference(
+    o3d: Any, src: Path, dst: Path, op: Callable, op_times: list[float], kept: list[int]
+) -> Callable[[], None]:
+    """Open3D reads ``src``, runs ``op`` (timed alone into ``op_times``), writes ``dst``."""
+
+    def run() -> None:
+        cloud = o3d.io.read_point_cloud(str(src))
+        t = time.perf_counter()
+        res = op(cloud)
+        op_times.append(time.perf_counter() - t)
+        kept.append(len(res.points))
+        o3d.io.write_point_cloud(str(dst), res)
+
+    return run
 
 
 def rows(quick: bool) -> list[dict]:
@@ -112,15 +135,7 @@ def rows(quick: bool) -> list[dict]:
         for case, args, op in operations(pts.min(axis=0), pts.max(axis=0), spacing):
             op_times: list[float] = []
             kept: list[int] = []
-
-            def reference() -> None:
-                cloud = o3d.io.read_point_cloud(str(src))
-                t = time.perf_counter()
-                res = op(cloud)
-                op_times.append(time.perf_counter() - t)
-                kept.append(len(res.points))
-                o3d.io.write_point_cloud(str(ref_dst), res)
-
+            reference = _reference(o3d, src, ref_dst, op, op_times, kept)
             r = {"stage": "recon filter", "case": f"{case}, {n // 1000}k", "ref": "open3d"}
             try:
                 a = alternating(["filter", str(src), str(dst), *args], reference, rounds)

@@ -429,8 +429,11 @@ class StageSpec:
         return self.takes
 
     def output_kinds(self, given: frozenset[str] | None) -> frozenset[str]:
-        """Kinds of the output for an input of kinds ``given`` (None: not known, so every kept
-        kind is possible and the next stage is checked when it runs)."""
+        """Kinds of the output for an input of kinds ``given``.
+
+        ``given`` None means not known: every kept kind is then possible, and the next stage
+        is checked when it runs.
+        """
         kept = set(self.keeps) if given is None else given & set(self.keeps)
         return frozenset(self.gives) | kept
 

@@ -161,7 +161,7 @@ def manifold_checks(mesh: TriangleMesh, self_intersection: bool = True) -> dict:
 
 def statistical_outlier_indices(points: np.ndarray, k: int, std_ratio: float) -> np.ndarray:
     """Open3D ``remove_statistical_outlier(k, std_ratio)``: the kept indices (int64, ascending)."""
-    o3d = require("open3d")
+    require("open3d")
     pc = to_o3d_cloud(PointCloud(points=points))
     record(
         "open3d.geometry.PointCloud.remove_statistical_outlier",
@@ -174,7 +174,7 @@ def statistical_outlier_indices(points: np.ndarray, k: int, std_ratio: float) ->
 
 def radius_outlier_indices(points: np.ndarray, radius: float, nb_points: int) -> np.ndarray:
     """Open3D ``remove_radius_outlier(nb_points, radius)``: the kept indices (int64, ascending)."""
-    o3d = require("open3d")
+    require("open3d")
     pc = to_o3d_cloud(PointCloud(points=points))
     record(
         "open3d.geometry.PointCloud.remove_radius_outlier",
@@ -186,10 +186,12 @@ def radius_outlier_indices(points: np.ndarray, radius: float, nb_points: int) ->
 
 
 def voxel_down_sample(cloud: PointCloud, voxel_size: float) -> dict:
-    """Open3D ``voxel_down_sample``: its ``points``, ``normals`` (averaged, not normalised)
-    and ``colors`` (floats in [0, 1], averaged) as float64 arrays (None when absent), cells in
-    Open3D's order."""
-    o3d = require("open3d")
+    """Open3D ``voxel_down_sample``: its points, normals and colours as float64 arrays.
+
+    Normals are averaged, not normalised; colours are floats in [0, 1], averaged; an absent
+    attribute is None. The cells come in Open3D's order.
+    """
+    require("open3d")
     pc = to_o3d_cloud(cloud)
     record("open3d.geometry.PointCloud.voxel_down_sample", voxel_size=float(voxel_size))
     out = pc.voxel_down_sample(float(voxel_size))
@@ -201,8 +203,10 @@ def voxel_down_sample(cloud: PointCloud, voxel_size: float) -> dict:
 
 
 def crop_indices(points: np.ndarray, box) -> np.ndarray:
-    """Indices of ``points`` inside the axis-aligned box ``x0,y0,z0,x1,y1,z1`` (Open3D's
-    ``AxisAlignedBoundingBox.get_point_indices_within_bounding_box``), ascending."""
+    """Indices of ``points`` inside the axis-aligned box ``x0,y0,z0,x1,y1,z1``, ascending.
+
+    Open3D's ``AxisAlignedBoundingBox.get_point_indices_within_bounding_box``.
+    """
     o3d = require("open3d")
     b = [float(x) for x in box]
     aabb = o3d.geometry.AxisAlignedBoundingBox(b[:3], b[3:])

@@ -150,7 +150,7 @@ def make_inputs(root: str) -> None:
     write_ply(PointCloud(points=pd[up], normals=nd[up], attributes=codes), path("half_codes.ply"))
     # LAS-like classes and returns: filter's selections and its majority vote per voxel
     cls = np.where(np.arange(len(p)) % 3 == 0, 6, 2).astype(np.uint8)
-    las = {
+    las: dict[str, np.ndarray] = {
         "classification": cls,
         "return_number": np.ones(len(p), np.uint8),
         "number_of_returns": np.ones(len(p), np.uint8),

@@ -105,8 +105,11 @@ class LazyGroup(click.Group):
 
 
 def _is_stage(name: str) -> bool:
-    """Whether command ``name`` is a stage's; a built-in one is known without reading the
-    installed packages' entry points (0.1 CPU s of every stage command's start-up)."""
+    """Whether command ``name`` is a stage's.
+
+    A built-in stage is known without reading the installed packages' entry points, which
+    would cost every stage command's start-up more than the stage itself often takes.
+    """
     from recon_cli.stages import BUILTIN
 
     return name not in COMMANDS and (name in BUILTIN or name in _stages())

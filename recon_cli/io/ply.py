@@ -601,7 +601,7 @@ def serialize_ply(ply: PlyData) -> bytes:
         head.append(f"element {el.name} {el.count}")
         head += [p.header_line() for p in el.properties]
     head.append("end_header")
-    out = ["\n".join(head).encode("ascii") + b"\n"]
+    out: list[bytes | memoryview] = ["\n".join(head).encode("ascii") + b"\n"]
     if ply.format == "ascii":
         for el in ply.elements:
             out.append(_ascii_body(el))
@@ -612,7 +612,7 @@ def serialize_ply(ply: PlyData) -> bytes:
     return b"".join(out)
 
 
-def _binary_body(el: PlyElement, order: str) -> bytes | np.ndarray:
+def _binary_body(el: PlyElement, order: str) -> bytes | memoryview:
     if el.count == 0:
         return b""
     lists_ragged = any(p.is_list and el.data[p.name].dtype == object for p in el.properties)
@@ -635,7 +635,7 @@ def _binary_body(el: PlyElement, order: str) -> bytes | np.ndarray:
                     arr[p.name] = values
             else:
                 arr[p.name] = el.data[p.name]
-        return arr.view(np.uint8).reshape(-1)  # bytes-like: the caller's join is the one copy
+        return arr.view(np.uint8).reshape(-1).data  # the caller's join is the one copy
     chunks = []
     for r in range(el.count):
         for p in el.properties:

@@ -240,9 +240,11 @@ def _points(points: Any) -> np.ndarray:
 
 
 def _rowwise(points: Any, kernel: Any, *args: Any) -> np.ndarray:
-    """``kernel(rows, *args)`` (a bool per row) over ``points`` (n, 3) of any float type and
-    layout, a chunk at a time through one float64 buffer: a binary PLY's points are a strided
-    view, and a contiguous float64 copy of a million of them costs more than the test."""
+    """``kernel(rows, *args)`` (a bool per row) over ``points`` (n, 3) of any float type.
+
+    Rows go a chunk at a time through one float64 buffer: a binary PLY's points are a strided
+    view, and a contiguous float64 copy of a million of them costs more than the test.
+    """
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise InputError(f"points must have shape (n, 3), got {pts.shape}")
@@ -652,15 +654,21 @@ def filter_cloud(
         "outlier_threshold": None,
         "points_out": None,
     }
-    class_attr = find_attribute(cloud, _CLASS_ATTRS)
-    if classes is not None and class_attr is None:
-        raise InputError("--classes needs the LAS attribute 'classification', which it has not")
-    ret_attr = find_attribute(cloud, _RETURN_ATTRS)
-    nret_attr = find_attribute(cloud, _NRETURNS_ATTRS)
-    if returns != "all" and (ret_attr is None or nret_attr is None):
-        raise InputError(
-            "--returns needs the LAS attributes 'return_number' and 'number_of_returns'"
-        )
+    class_codes: np.ndarray | None = None
+    if classes is not None:
+        class_attr = find_attribute(cloud, _CLASS_ATTRS)
+        if class_attr is None:
+            raise InputError("--classes needs the LAS attribute 'classification', which it has not")
+        class_codes = cloud.attributes[class_attr]
+    return_codes: tuple[np.ndarray, np.ndarray] | None = None
+    if returns != "all":
+        ret_attr = find_attribute(cloud, _RETURN_ATTRS)
+        nret_attr = find_attribute(cloud, _NRETURNS_ATTRS)
+        if ret_attr is None or nret_attr is None:
+            raise InputError(
+                "--returns needs the LAS attributes 'return_number' and 'number_of_returns'"
+            )
+        return_codes = (cloud.attributes[ret_attr], cloud.attributes[nret_attr])
 
     sel: np.ndarray | None = None  # kept rows of the input (None: all of them)
 
@@ -686,9 +694,9 @@ def filter_cloud(
     if crop is not None:
         with task(progress, "crop"):
             apply("crop_removed", crop_mask(current(raw), crop), f"--crop {_text(crop)}")
-    if classes is not None:
+    if class_codes is not None:
         with task(progress, "classes"):
-            codes = current(cloud.attributes[class_attr])
+            codes = current(class_codes)
             keep = class_mask(codes, classes)
             if not keep.any():
                 present = ", ".join(str(int(c)) for c in np.unique(codes)[:20])
@@ -697,18 +705,17 @@ def filter_cloud(
                     f"classes present: {present})"
                 )
             apply("classes_removed", keep, f"--classes {_text(classes)}")
-    if returns != "all":
+    if return_codes is not None:
         with task(progress, "returns"):
-            keep = return_mask(
-                current(cloud.attributes[ret_attr]), current(cloud.attributes[nret_attr]), returns
-            )
+            keep = return_mask(current(return_codes[0]), current(return_codes[1]), returns)
             apply("returns_removed", keep, f"--returns {returns}")
     if radius_outliers is not None:
         with task(progress, "radius outliers"):
             keep = radius_outlier_mask(current(raw), *radius_outliers)
             apply("radius_outliers_removed", keep, f"--radius-outliers {_text(radius_outliers)}")
     if outliers is not None:
-        keep, figures = statistical_outlier_mask(current(raw), *outliers, progress=progress)
+        k, std_ratio = outliers
+        keep, figures = statistical_outlier_mask(current(raw), k, std_ratio, progress=progress)
         report["outlier_threshold"] = figures["threshold"]
         apply("outliers_removed", keep, f"--outliers {_text(outliers)}")
     # nothing removed: the same arrays in a new cloud (with its own history)

@@ -50,7 +50,7 @@ def finite_rows(pts):
 
 @njit(cache=True)
 def inside_box(pts, box):
-    """Whether each row of ``pts`` (n, 3) lies in ``box`` (x0, y0, z0, x1, y1, z1), faces included."""
+    """Whether each row of ``pts`` (n, 3) lies in ``box`` (x0, y0, z0, x1, y1, z1), faces in."""
     n = pts.shape[0]
     out = np.empty(n, np.bool_)
     for i in range(n):
@@ -316,9 +316,9 @@ def _count_cell(pts, start, members, nb, k, c, r2, more_than, keep):
 
 @njit(cache=True, parallel=True)
 def radius_keep(pts, size, radius, more_than):
-    """Whether more than ``more_than`` points (the point itself included) lie at a distance
-    strictly below ``radius`` of each point.
+    """Whether more than ``more_than`` points lie strictly closer than ``radius`` to each point.
 
+    The point itself is counted.
     ``size`` >= ``radius`` is the edge of the grid that finds the candidates (the 27 cells
     around a point's own); a point's count stops as soon as it exceeds ``more_than``.
     """
