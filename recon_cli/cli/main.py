@@ -27,9 +27,7 @@ from recon_cli.cli.exits import (  # noqa: F401  (the codes are imported from he
 )
 from recon_cli.errors import ReconError
 
-# numpy asks for transparent huge pages for its large arrays; where the kernel compacts memory to
-# find them (THP defrag "madvise", a long-running machine) a command's first touch of its arrays
-# waits on that compaction, which costs a short command more than the larger pages save
+# numpy's huge pages wait on memory compaction at first touch (bench/calibration.md, Output)
 os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
 
 # the commands that are not stages: name -> (module under recon_cli.cli holding a click command

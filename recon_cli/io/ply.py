@@ -715,9 +715,8 @@ def _ascii_body(el: PlyElement) -> bytes:
 def read_bytes(path: str | os.PathLike) -> bytes | np.ndarray:
     """All bytes of ``path``: a ``(n,) uint8`` array for a file, ``bytes`` for ``-`` (stdin).
 
-    A file is read straight into numpy memory, as ``np.fromfile`` does: numpy asks the
-    kernel for huge pages on big buffers, which makes the read about twice as fast as
-    ``f.read()`` into a ``bytes`` object of the same size (fewer page faults).
+    A file is read straight into numpy memory, as ``np.fromfile`` does: one buffer that the
+    parser views, no ``bytes`` object copied out of it.
     """
     if str(path) == "-":
         return sys.stdin.buffer.read()
