@@ -53,6 +53,10 @@ def normals(
     direction: tuple[float, float, float] | None = None,
     curvature: bool = False,
     neighbours: Literal["auto", "kdtree", "pixels"] = "auto",
+    workers: int | None = None,
+    scheduler: Any = None,
+    partitions: int | None = None,
+    memory_limit: Any = None,
     backend: Literal["native", "open3d"] = "native",
     progress: Progress | bool | None = None,
 ) -> PointCloud:
@@ -75,6 +79,10 @@ def poisson(
     envelope: Any = None,
     grid: Any = None,
     estimate_normals: bool = False,
+    workers: int | None = None,
+    scheduler: Any = None,
+    partitions: int | None = None,
+    memory_limit: Any = None,
     backend: Literal["native", "open3d", "pymeshlab"] = "native",
     progress: Progress | bool | None = None,
 ) -> TriangleMesh:

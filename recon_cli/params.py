@@ -359,6 +359,11 @@ class StageSpec:
     keeps_partial : bool
         The stage catches Ctrl-C itself and returns its best result so far (``fit-sdf``): the
         command then lets the interrupt reach it instead of ending the process at once.
+    from_files : str, optional
+        ``"module:function"`` that runs the command from IN's path, never loading it in the
+        command's process, when the parameters call for it (``poisson --workers``):
+        ``f(input, output, params, *, save_kw, ascii, progress)`` writes OUT and returns the
+        report, or returns None (the command then loads IN and runs the stage).
     """
 
     name: str
@@ -373,6 +378,7 @@ class StageSpec:
     declared: bool = True
     keeps: tuple[str, ...] = ()
     keeps_partial: bool = False
+    from_files: str | None = None
     run: Callable[..., Any] | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:

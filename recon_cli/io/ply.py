@@ -608,6 +608,16 @@ def emit_ply(ply: PlyData, put: Callable[[bytes | memoryview], Any]) -> None:
     A piece may be a view of a buffer that the next piece overwrites: ``put`` copies or
     writes it before returning.
     """
+    put(header_bytes(ply))
+    for el in ply.elements:
+        if ply.format == "ascii":
+            put(_ascii_body(el))
+        else:
+            _binary_body(el, FORMATS[ply.format], put)
+
+
+def header_bytes(ply: PlyData) -> bytes:
+    """The header of ``ply`` (its elements' counts and properties), ``end_header`` included."""
     if ply.format not in FORMATS:
         raise ValueError(f"unknown PLY format {ply.format!r}")
     head = ["ply", f"format {ply.format} 1.0"]
@@ -617,12 +627,7 @@ def emit_ply(ply: PlyData, put: Callable[[bytes | memoryview], Any]) -> None:
         head.append(f"element {el.name} {el.count}")
         head += [p.header_line() for p in el.properties]
     head.append("end_header")
-    put("\n".join(head).encode("ascii") + b"\n")
-    for el in ply.elements:
-        if ply.format == "ascii":
-            put(_ascii_body(el))
-        else:
-            _binary_body(el, FORMATS[ply.format], put)
+    return "\n".join(head).encode("ascii") + b"\n"
 
 
 def _binary_body(el: PlyElement, order: str, put: Callable[[bytes | memoryview], Any]) -> None:
