@@ -53,6 +53,10 @@ def normals(
     direction: tuple[float, float, float] | None = None,
     curvature: bool = False,
     neighbours: Literal["auto", "kdtree", "pixels"] = "auto",
+    workers: int | None = None,
+    scheduler: Any = None,
+    partitions: int | None = None,
+    memory_limit: Any = None,
     backend: Literal["native", "open3d"] = "native",
     progress: Progress | bool | None = None,
 ) -> PointCloud:
@@ -75,6 +79,10 @@ def poisson(
     envelope: Any = None,
     grid: Any = None,
     estimate_normals: bool = False,
+    workers: int | None = None,
+    scheduler: Any = None,
+    partitions: int | None = None,
+    memory_limit: Any = None,
     backend: Literal["native", "open3d", "pymeshlab"] = "native",
     progress: Progress | bool | None = None,
 ) -> TriangleMesh:
@@ -170,6 +178,20 @@ def fit_sdf(
 ) -> Grid:
     """Fit a neural signed distance field to a cloud (needs recon[learned])."""
 
+def filter(
+    cloud: Any,
+    *,
+    normals: np.ndarray | None = None,
+    crop: Sequence[float] | None = None,
+    classes: Any = None,
+    returns: Literal["all", "first", "last", "single", "intermediate"] = "all",
+    radius_outliers: Sequence[float] | None = None,
+    outliers: Sequence[float] | None = None,
+    voxel: float | None = None,
+    progress: Progress | bool | None = None,
+) -> PointCloud:
+    """Drop invalid points, crop, select LAS classes, remove outliers, thin."""
+
 __all__ = [
     "BackendError",
     "Grid",
@@ -186,6 +208,7 @@ __all__ = [
     "__version__",
     "apply_stage",
     "ballpivot",
+    "filter",
     "fit_sdf",
     "geometry_from",
     "load",

@@ -88,7 +88,32 @@ def _dask_log_level(level: int):
 
 
 @contextlib.contextmanager
-def _client(scheduler, workers, threads_per_worker, memory_limit, log_level):
+def open_client(
+    scheduler: str | None = None,
+    workers: Any = None,
+    memory_limit: Any = None,
+    log_level: int = logging.CRITICAL,
+    stealing: bool = True,
+):
+    """A Dask client for one job.
+
+    On the scheduler at ``scheduler``, or on a local cluster of ``workers`` processes (one thread
+    each, ``memory_limit`` each: a size, ``"auto"`` or ``"none"``), the batch's, closed on exit;
+    ``stealing`` False turns the local scheduler's work stealing off (tasks that keep big states
+    stay where they are). Yields ``(client, info)``.
+    """
+    if scheduler is not None and (workers is not None or memory_limit is not None):
+        raise ParameterError(
+            "--workers and --memory-limit size a local cluster; leave them out with --scheduler"
+        )
+    n = None if workers is None else _check_count(workers, "workers")
+    mem = _check_memory_limit(memory_limit)
+    with _client(scheduler, n, 1, mem, log_level, stealing) as got:
+        yield got
+
+
+@contextlib.contextmanager
+def _client(scheduler, workers, threads_per_worker, memory_limit, log_level, stealing=True):
     """A Client on an existing scheduler, or on a LocalCluster closed on exit."""
     try:
         import distributed  # noqa: F401  (first: importing it configures its loggers)
@@ -97,12 +122,14 @@ def _client(scheduler, workers, threads_per_worker, memory_limit, log_level):
             "recon batch needs dask.distributed: pip install 'recon[batch]'"
         ) from None
     with _dask_log_level(log_level):
-        with _client_inner(scheduler, workers, threads_per_worker, memory_limit, log_level) as got:
+        with _client_inner(
+            scheduler, workers, threads_per_worker, memory_limit, log_level, stealing
+        ) as got:
             yield got
 
 
 @contextlib.contextmanager
-def _client_inner(scheduler, workers, threads_per_worker, memory_limit, log_level):
+def _client_inner(scheduler, workers, threads_per_worker, memory_limit, log_level, stealing=True):
     try:
         import dask
         from distributed import Client, LocalCluster
@@ -133,7 +160,11 @@ def _client_inner(scheduler, workers, threads_per_worker, memory_limit, log_leve
     # KilledWorker
     with _sigint_held() as interrupted:
         try:
-            with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
+            # no work stealing when the tasks keep big states: a stolen task copies its state
+            config = {"distributed.scheduler.allowed-failures": 1}
+            if not stealing:
+                config["distributed.scheduler.work-stealing"] = False
+            with dask.config.set(config):
                 cluster = LocalCluster(
                     n_workers=workers,
                     threads_per_worker=threads_per_worker,
@@ -318,19 +349,7 @@ def run_batch(
     t_start = time.perf_counter()
     pipeline_path = os.fspath(pipeline_path)
     out_dir = os.fspath(out_dir)
-    if scheduler is not None and (
-        workers is not None or threads_per_worker is not None or memory_limit is not None
-    ):
-        raise ParameterError(
-            "--workers, --threads-per-worker and --memory-limit size a local cluster; "
-            "leave them out with --scheduler"
-        )
-    threads = (
-        1 if threads_per_worker is None else _check_count(threads_per_worker, "threads per worker")
-    )
-    if workers is not None:
-        workers = _check_count(workers, "workers")
-    mem = _check_memory_limit(memory_limit)
+    workers, threads, mem = _check_cluster(scheduler, workers, threads_per_worker, memory_limit)
     with registered_stages(extra_stages):
         pipe = load_pipeline(pipeline_path)
         # the workers resolve each stage exactly as this process did (a worker may be on another
@@ -343,8 +362,54 @@ def run_batch(
     entries = plan_batch(pipeline_path, inputs, out_dir, force=force)
     os.makedirs(out_dir, exist_ok=True)
     summary_path = os.path.join(out_dir, SUMMARY_NAME)
-    previous = read_previous(summary_path)
+    records, todo = _planned_records(entries, read_previous(summary_path))
+    cluster_info: dict[str, Any] = {"scheduler": None}
+    if todo:
+        cluster_info = _submit_and_collect(
+            pipe,
+            entries,
+            todo,
+            records,
+            scheduler,
+            workers,
+            threads,
+            mem,
+            progress,
+            ascii,
+            stage_map,
+            log_level,
+            summary_path,
+            pipeline_path,
+            out_dir,
+            t_start,
+        )
 
+    summary = _summary(pipeline_path, out_dir, cluster_info, records, t_start)
+    write_bytes(summary_path, report_json(summary).encode("utf-8") + b"\n")
+    return summary
+
+
+def _check_cluster(
+    scheduler: str | None, workers: Any, threads_per_worker: Any, memory_limit: Any
+) -> tuple[int | None, int, Any]:
+    """The cluster options checked: (workers, threads per worker, memory limit)."""
+    if scheduler is not None and (
+        workers is not None or threads_per_worker is not None or memory_limit is not None
+    ):
+        raise ParameterError(
+            "--workers, --threads-per-worker and --memory-limit size a local cluster; "
+            "leave them out with --scheduler"
+        )
+    threads = (
+        1 if threads_per_worker is None else _check_count(threads_per_worker, "threads per worker")
+    )
+    if workers is not None:
+        workers = _check_count(workers, "workers")
+    return workers, threads, _check_memory_limit(memory_limit)
+
+
+def _planned_records(entries: list[dict], previous: dict) -> tuple[list[dict | None], list[int]]:
+    """The records of the inputs that fail or are skipped, and the indices of those to run."""
     records: list[dict | None] = [None] * len(entries)
     todo = []
     for i, e in enumerate(entries):
@@ -371,31 +436,7 @@ def run_batch(
             records[i] = rec
         else:
             todo.append(i)
-
-    cluster_info: dict[str, Any] = {"scheduler": None}
-    if todo:
-        cluster_info = _submit_and_collect(
-            pipe,
-            entries,
-            todo,
-            records,
-            scheduler,
-            workers,
-            threads,
-            mem,
-            progress,
-            ascii,
-            stage_map,
-            log_level,
-            summary_path,
-            pipeline_path,
-            out_dir,
-            t_start,
-        )
-
-    summary = _summary(pipeline_path, out_dir, cluster_info, records, t_start)
-    write_bytes(summary_path, report_json(summary).encode("utf-8") + b"\n")
-    return summary
+    return records, todo
 
 
 def _summary(pipeline_path, out_dir, cluster_info, records, t_start) -> dict:

@@ -75,12 +75,31 @@ def run_stage_command(
     from recon_cli.stages import apply_stage, get_spec
 
     spec = get_spec(stage)
-    spec.check(params, complete=False)  # parameters before reading anything
+    checked = spec.check(params, complete=False)  # parameters before reading anything
     check_output(output)  # and the output path: a wrong one is known now
     progress = make_progress(ctx)  # before reading: a first run's compiling shows from the start
     # Ctrl-C / SIGTERM leave at once, even inside a numba kernel or while numba loads one:
     # nothing is written before save()
     load_kw, save_kw = io_formats(ctx, input, output)
+    if spec.from_files is not None:
+        import importlib
+
+        from recon_cli.errors import naming
+
+        mod, _, fn = spec.from_files.partition(":")
+        with naming(input):
+            report = getattr(importlib.import_module(mod), fn)(
+                input,
+                output,
+                checked,
+                load_kw=load_kw,
+                save_kw=save_kw,
+                ascii=ascii_,
+                progress=progress,
+            )
+        if report is not None:
+            emit_report(ctx, report, json_=json_, data_on_stdout=(output == "-"))
+            return report
     with immediate():
         t0 = time.perf_counter()
         data = load(input, **load_kw)

@@ -349,3 +349,7 @@ def write_las(obj, path: str | os.PathLike, compress: bool | None = None) -> Non
     if compress is None:
         compress = str(path).lower().endswith(".laz")
     write_bytes(path, las_bytes(obj, compress, text.where_of(path)))
+
+
+# public name for the chunked reader (recon_cli.io.chunks)
+laspy_module = _laspy

@@ -112,7 +112,41 @@ SPEC = StageSpec(
             "organized cloud with --knn, else kdtree.",
             choices=NEIGHBOUR_METHODS,
         ),
+        Param(
+            "workers",
+            "int",
+            None,
+            "Estimate on a local Dask cluster of N worker processes, the cloud in slabs with "
+            "halos (orientation joined across slabs); the workers read IN by chunks.",
+            min=1,
+            max=1024,
+        ),
+        Param(
+            "scheduler",
+            "any",
+            None,
+            "Estimate as --workers does on the existing Dask cluster at this address "
+            "(tcp://host:8786); IN and the output folder on a file system its workers share.",
+            metavar="ADDRESS",
+        ),
+        Param(
+            "partitions",
+            "int",
+            None,
+            "Slabs of a --workers/--scheduler run (default: one per worker).",
+            min=1,
+            max=32,
+        ),
+        Param(
+            "memory_limit",
+            "any",
+            None,
+            "Memory per worker process of --workers' local cluster (e.g. 4GiB; 'none': no "
+            "limit; default: the machine's memory shared out).",
+            metavar="SIZE",
+        ),
     ),
+    from_files="recon_cli.stages.normals.distributed:run_from_files",
 )
 
 # an organized cloud's k nearest are taken among about this many times k pixels around a point
@@ -739,6 +773,10 @@ def run_stage(
     curvature: bool,
     neighbours: str,
     backend: str,
+    workers: int | None,
+    scheduler: str | None,
+    partitions: int | None,
+    memory_limit: Any,
     progress: Any = None,
 ) -> StageResult:
     """Stage ``normals``: estimate and orient normals of a cloud (or of a mesh's vertices).
@@ -786,28 +824,98 @@ def run_stage(
         raise ParameterError("--curvature is not available with --backend open3d")
     if n == 0:
         raise InputError("the input has no points")
+    if workers is not None or scheduler is not None:
+        check_distributed_neighbours(neighbours)
+        return _run_distributed(
+            cloud,
+            knn,
+            radius,
+            method,
+            cam,
+            dirn,
+            curvature,
+            backend,
+            workers,
+            scheduler,
+            partitions,
+            memory_limit,
+            progress,
+        )
+    if partitions is not None or memory_limit is not None:
+        raise ParameterError("--partitions and --memory-limit go with --workers or --scheduler")
     use_pixels = _use_pixels(neighbours, cloud.pixels, knn, radius, n)
-    views = None
+    views: tuple | None = None
     if from_sensors:
         views = _sensor_views(
             cloud.sensors, cloud.attributes.get(SCAN_ATTRIBUTE), n, local_origin(pts)
         )
     pts, cam = _local(pts, cam, cloud.points)
-
-    out = (
-        cloud.copy()
-        if isinstance(data, PointCloud)
-        else PointCloud(
-            points=cloud.points,
-            colors=cloud.colors,
-            attributes=dict(cloud.attributes),
-            history=list(cloud.history),
-            point_dtype=cloud.point_dtype,
-            obj_info=list(cloud.obj_info),
-            sensors=list(cloud.sensors),
+    out = _output_cloud(data, cloud)
+    report = _first_report(cloud, n, knn, radius, method, backend, use_pixels, views, camera)
+    if backend == "open3d":
+        out.normals = _open3d_normals(
+            pts, knn, radius, method, views, cam, dirn, ref, report, progress
         )
+        return StageResult(out, report)
+
+    with task(progress, "neighbourhoods"):
+        if use_pixels:
+            order, ps, indptr, indices = _pixel_neighbourhoods(pts, cloud.pixels, knn, radius)
+        else:
+            order, ps, indptr, indices = _neighbourhoods(pts, knn, radius)
+    with task(progress, "estimating normals"):
+        nrm_s, curv_s, deg_s = _estimate_sorted(ps, indptr, indices)
+    report["neighbourhood_size"] = float(indptr[-1] / n)
+    report["degenerate"] = int(deg_s.sum())
+    with task(progress, f"orienting ({method})"):
+        ref_s = None if ref is None else ref[order]
+        omethod = method
+        cview: Any = cam
+        if views is not None:  # each point towards its own sensor, in the sorted order
+            omethod, cview = "sensors", (*views[:3], views[3][order])
+        sign_s, ncomp = _orient_sorted(omethod, ps, nrm_s, indptr, indices, cview, dirn, ref_s)
+    report["components"] = None if ncomp is None else int(ncomp)
+    report["flipped"] = int((sign_s < 0).sum())
+    report["provenance"] = {"neighbours": "pixels" if use_pixels else "kdtree"}
+    out.normals = _unsort(order, nrm_s * sign_s[:, None])
+    if curvature:
+        out.attributes["curvature"] = _unsort(order, curv_s)
+    if report["degenerate"]:
+        report["warning"] = (
+            f"{report['degenerate']} degenerate neighbourhoods (< 3 points, collinear or "
+            "duplicates)"
+        )
+    return StageResult(out, report)
+
+
+def _output_cloud(data: Any, cloud: PointCloud) -> PointCloud:
+    """The output: a copy of the input cloud, or a cloud of a mesh's vertices."""
+    if isinstance(data, PointCloud):
+        return cloud.copy()
+    return PointCloud(
+        points=cloud.points,
+        colors=cloud.colors,
+        attributes=dict(cloud.attributes),
+        history=list(cloud.history),
+        point_dtype=cloud.point_dtype,
+        obj_info=list(cloud.obj_info),
+        sensors=list(cloud.sensors),
     )
-    report: dict[str, Any] = {
+
+
+def _first_report(
+    cloud: PointCloud,
+    n: int,
+    knn: int,
+    radius: float | None,
+    method: str,
+    backend: str,
+    use_pixels: bool,
+    views: Any,
+    camera: Any,
+) -> dict[str, Any]:
+    """The report's keys, the figures the estimate fills in still None."""
+    return {
         "points": n,
         "knn": knn,
         "radius": radius,
@@ -830,54 +938,121 @@ def run_stage(
         else ("sign kept" if method == "keep" else "replaced"),
         "backend": backend,
     }
-    if backend == "open3d":
-        from recon_cli.backends import open3d_backend
 
-        with task(progress, "open3d normals"):
-            nrm = open3d_backend.estimate_normals(
-                PointCloud(points=pts),
-                knn=knn,
-                radius=radius,
-                orient_tangent_plane=(knn or 30) if method == "mst" else None,
-            )
-        if method != "mst":
-            omethod = "sensors" if views is not None else method
-            cview = views if views is not None else cam
-            sign = _orient_direct(omethod, pts, nrm, cview, dirn) if method != "keep" else None
-            if method == "keep":
-                d = np.einsum("ij,ij->i", nrm, np.nan_to_num(ref))
-                sign = np.where(d < 0, -1, 1).astype(np.int8)
-            else:
-                sign = _orient_direct(method, pts, nrm, cam, dirn)
-            report["flipped"] = int((sign < 0).sum())
-            nrm = nrm * sign[:, None]
-        out.normals = nrm
-        return StageResult(out, report)
 
-    with task(progress, "neighbourhoods"):
-        if use_pixels:
-            order, ps, indptr, indices = _pixel_neighbourhoods(pts, cloud.pixels, knn, radius)
-        else:
-            order, ps, indptr, indices = _neighbourhoods(pts, knn, radius)
-    with task(progress, "estimating normals"):
-        nrm_s, curv_s, deg_s = _estimate_sorted(ps, indptr, indices)
-    report["neighbourhood_size"] = float(indptr[-1] / n)
-    report["degenerate"] = int(deg_s.sum())
-    with task(progress, f"orienting ({method})"):
-        ref_s = None if ref is None else ref[order]
-        omethod, cview = method, cam
-        if views is not None:  # each point towards its own sensor, in the sorted order
-            omethod, cview = "sensors", (*views[:3], views[3][order])
-        sign_s, ncomp = _orient_sorted(omethod, ps, nrm_s, indptr, indices, cview, dirn, ref_s)
-    report["components"] = None if ncomp is None else int(ncomp)
-    report["flipped"] = int((sign_s < 0).sum())
-    report["provenance"] = {"neighbours": "pixels" if use_pixels else "kdtree"}
-    out.normals = _unsort(order, nrm_s * sign_s[:, None])
-    if curvature:
-        out.attributes["curvature"] = _unsort(order, curv_s)
-    if report["degenerate"]:
-        report["warning"] = (
-            f"{report['degenerate']} degenerate neighbourhoods (< 3 points, collinear or "
-            "duplicates)"
+def _open3d_normals(
+    pts: np.ndarray,
+    knn: int,
+    radius: float | None,
+    method: str,
+    views: Any,
+    cam: Any,
+    dirn: Any,
+    ref: np.ndarray | None,
+    report: dict[str, Any],
+    progress: Any,
+) -> np.ndarray:
+    """Open3D's normals of ``pts``, oriented as ``method`` asks; ``report["flipped"]`` set."""
+    from recon_cli.backends import open3d_backend
+
+    with task(progress, "open3d normals"):
+        nrm = open3d_backend.estimate_normals(
+            PointCloud(points=pts),
+            knn=knn,
+            radius=radius,
+            orient_tangent_plane=(knn or 30) if method == "mst" else None,
         )
+    if method != "mst":
+        omethod = "sensors" if views is not None else method
+        cview = views if views is not None else cam
+        sign = _orient_direct(omethod, pts, nrm, cview, dirn) if method != "keep" else None
+        if method == "keep":
+            assert ref is not None  # _check_reference gives the input's normals for keep
+            d = np.einsum("ij,ij->i", nrm, np.nan_to_num(ref))
+            sign = np.where(d < 0, -1, 1).astype(np.int8)
+        else:
+            sign = _orient_direct(method, pts, nrm, cam, dirn)
+        report["flipped"] = int((sign < 0).sum())
+        nrm = nrm * sign[:, None]
+    return nrm
+
+
+def _run_distributed(
+    cloud,
+    knn,
+    radius,
+    method,
+    cam,
+    dirn,
+    curvature,
+    backend,
+    workers,
+    scheduler,
+    partitions,
+    memory_limit,
+    progress,
+) -> StageResult:
+    """:func:`run_stage` on a Dask cluster (:mod:`.distributed`), the cloud in memory."""
+    from recon_cli.batch.cluster import open_client
+    from recon_cli.stages.normals.distributed import distributed_normals
+
+    if backend != "native":
+        raise ParameterError("--workers/--scheduler run the native normals: leave out --backend")
+    if scheduler is not None and (workers is not None or memory_limit is not None):
+        raise ParameterError(
+            "--workers and --memory-limit size a local cluster; leave them out with --scheduler"
+        )
+    views = None
+    if method == "camera" and cam is None:  # each point towards its own scanner
+        views = _sensor_views(
+            cloud.sensors, cloud.attributes.get(SCAN_ATTRIBUTE), len(cloud), np.zeros(3)
+        )
+    with open_client(scheduler, workers, memory_limit, stealing=False) as (client, info):
+        nrm, curv, report = distributed_normals(
+            cloud.points,
+            cloud.normals,
+            sensors=views,
+            knn=knn or 0,
+            radius=radius,
+            orient=method,
+            camera=cam,
+            direction=dirn,
+            curvature=curvature,
+            partitions=partitions or max(1, int(info.get("workers") or 1)),
+            client=client,
+            progress=progress,
+        )
+    out = cloud.copy()
+    out.normals = nrm
+    if curvature:
+        out.attributes["curvature"] = curv
+    report["input_normals"] = (
+        "none" if cloud.normals is None else ("sign kept" if method == "keep" else "replaced")
+    )
+    report["backend"] = backend
+    report["viewpoints"] = _viewpoints_report(method, views, cloud.sensors, cam)
+    report["distributed"]["cluster"] = info
     return StageResult(out, report)
+
+
+def check_distributed_neighbours(neighbours: str) -> None:
+    """Refuse ``--neighbours pixels`` in a ``--workers`` / ``--scheduler`` run.
+
+    Such a run finds neighbours with the kd-tree (a slab's pixels are not an image).
+    """
+    if neighbours == "pixels":
+        raise ParameterError(
+            "--neighbours pixels is not available with --workers/--scheduler (kd-tree only)"
+        )
+
+
+# public names of the pieces the distributed normals (.distributed) run per slab
+neighbourhoods = _neighbourhoods
+estimate_sorted = _estimate_sorted
+orient_sorted = _orient_sorted
+check_knn = _check_knn
+check_orient = _check_orient
+check_points = _check_points
+sensor_views = _sensor_views
+GRAPH_K = _GRAPH_K
+FLUX_MIN = _FLUX_MIN

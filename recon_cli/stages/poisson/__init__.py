@@ -131,6 +131,7 @@ SPEC = StageSpec(
     takes_when=lambda p: ("cloud", "mesh") if p["estimate_normals"] else ("oriented",),
     gives=("mesh",),
     backends=BACKENDS,
+    from_files="recon_cli.stages.poisson.distributed:run_from_files",
     params=(
         Param(
             "depth",
@@ -240,6 +241,42 @@ SPEC = StageSpec(
             "bool",
             False,
             "Estimate and orient normals first (as 'recon normals' does).",
+        ),
+        Param(
+            "workers",
+            "int",
+            None,
+            "Reconstruct on a local Dask cluster of N worker processes, the cloud in slabs "
+            "(a coarse solve of the whole cube, the finer levels per slab, one seamless mesh); "
+            "the workers read IN by chunks, no process holds it whole.",
+            min=1,
+            max=1024,
+        ),
+        Param(
+            "scheduler",
+            "any",
+            None,
+            "Reconstruct as --workers does on the existing Dask cluster at this address "
+            "(tcp://host:8786); IN and the output folder must be on a file system its workers "
+            "share.",
+            metavar="ADDRESS",
+        ),
+        Param(
+            "partitions",
+            "int",
+            None,
+            "Slabs of a --workers/--scheduler run (default: one per worker); more slabs, less "
+            "memory per worker.",
+            min=1,
+            max=32,
+        ),
+        Param(
+            "memory_limit",
+            "any",
+            None,
+            "Memory per worker process of --workers' local cluster (e.g. 4GiB; 'none': no "
+            "limit; default: the machine's memory shared out).",
+            metavar="SIZE",
         ),
     ),
 )
@@ -749,6 +786,60 @@ def _drop_bubbles(
     return verts[used], remap[faces].astype(faces.dtype), n_speck, n_island
 
 
+# the native solve's report keys, in the report's order
+REPORT_KEYS = (
+    "vertices",
+    "faces",
+    "depth",
+    "iso_value",
+    "solver_iterations",
+    "residual",
+    "bubbles_removed",
+    "islands_removed",
+    "trimmed_faces",
+    "trimmed_area",
+    "samples",
+    "ignored_points",
+    "tree_depth",
+    "noise",
+    "attributes",
+    "attribute_fallback_vertices",
+)
+
+
+def check_distributed_options(
+    backend: str,
+    degree: int,
+    estimate_normals: bool,
+    scheduler: Any,
+    workers: Any,
+    memory_limit: Any,
+    boundary: str,
+    envelope: Any,
+    grid: Any,
+) -> None:
+    """What a ``--workers`` / ``--scheduler`` run does not take (one line each)."""
+    if backend != "native":
+        raise ParameterError("--workers/--scheduler run the native solver: leave out --backend")
+    if degree != 2:
+        raise ParameterError("a distributed reconstruction uses degree 2: leave out --degree 1")
+    for name, used in (
+        ("--boundary free", boundary == "free"),
+        ("--envelope", envelope not in (None, "")),
+        ("--grid", grid not in (None, "")),
+    ):
+        if used:
+            raise ParameterError(f"{name} is not available with --workers/--scheduler")
+    if estimate_normals:
+        raise ParameterError(
+            "--estimate-normals with --workers/--scheduler: run 'recon normals' first"
+        )
+    if scheduler is not None and (workers is not None or memory_limit is not None):
+        raise ParameterError(
+            "--workers and --memory-limit size a local cluster; leave them out with --scheduler"
+        )
+
+
 @SPEC.runner
 def run_stage(
     data: Any,
@@ -767,6 +858,10 @@ def run_stage(
     grid: Any,
     estimate_normals: bool,
     backend: str,
+    workers: int | None,
+    scheduler: str | None,
+    partitions: int | None,
+    memory_limit: Any,
     progress: Any = None,
 ) -> StageResult:
     """Stage ``poisson``: screened Poisson reconstruction of an oriented cloud.
@@ -805,6 +900,82 @@ def run_stage(
     """
     from recon_cli.stages import StageResult
 
+    distributed = workers is not None or scheduler is not None
+    grid_path, env = _check_run_options(
+        backend,
+        degree,
+        boundary,
+        confidence,
+        density,
+        trim,
+        envelope,
+        grid,
+        estimate_normals,
+        workers,
+        scheduler,
+        partitions,
+        memory_limit,
+    )
+    cloud, history, props, keep_colors = _stage_input(data, attributes, estimate_normals, progress)
+    solve = {
+        "depth": depth,
+        "scale": scale,
+        "point_weight": point_weight,
+        "samples_per_node": samples_per_node,
+        "boundary": boundary,
+        "density": density,
+        "trim": trim,
+        "confidence": confidence,
+    }
+    colors = cloud.colors if keep_colors else None
+    if distributed:
+        mesh, report = _run_distributed(
+            cloud, colors, props, solve, scheduler, workers, partitions, memory_limit, progress
+        )
+    elif backend == "native":
+        mesh, report = _run_native(
+            cloud, colors, props, solve, degree, env, grid_path, history, progress
+        )
+    else:
+        mesh, report = _run_reference(cloud, keep_colors, props, solve, backend, history)
+    mesh.history = history
+    mesh.point_dtype = (
+        cloud.point_dtype
+    )  # double in, double out (float32 in: see geometry.storage_dtype)
+    report["backend"] = backend
+    return StageResult(output=mesh, report=report)
+
+
+def _check_run_options(
+    backend: str,
+    degree: int,
+    boundary: str,
+    confidence: bool,
+    density: bool,
+    trim: float,
+    envelope: Any,
+    grid: Any,
+    estimate_normals: bool,
+    workers: int | None,
+    scheduler: str | None,
+    partitions: int | None,
+    memory_limit: Any,
+) -> tuple[str | None, Any]:
+    """The stage's checks of its options together; returns the grid's path and the envelope."""
+    if workers is not None or scheduler is not None:
+        check_distributed_options(
+            backend,
+            degree,
+            estimate_normals,
+            scheduler,
+            workers,
+            memory_limit,
+            boundary,
+            envelope,
+            grid,
+        )
+    elif partitions is not None or memory_limit is not None:
+        raise ParameterError("--partitions and --memory-limit go with --workers or --scheduler")
     if backend == "pymeshlab" and (density or trim > 0):
         raise ParameterError(
             "the pymeshlab backend gives no densities: --density/--trim need native or open3d"
@@ -833,6 +1004,13 @@ def run_stage(
         from recon_cli.stages.poisson.envelope import load_envelope
 
         env = load_envelope(envelope)
+    return grid_path, env
+
+
+def _stage_input(
+    data: Any, attributes: Any, estimate_normals: bool, progress: Any
+) -> tuple[PointCloud, list[str], dict[str, np.ndarray], bool]:
+    """The oriented cloud, its history, the properties carried and whether colours are."""
     cloud = as_point_cloud(data)
     from recon_cli.stages.poisson.attributes import select
 
@@ -853,137 +1031,167 @@ def run_stage(
         raise InputError(
             "the cloud has no normals: run 'recon normals' first (or pass --estimate-normals)"
         )
+    return cloud, history, props, keep_colors
 
-    if backend == "native":
-        res = screened_poisson(
+
+def _run_distributed(
+    cloud: PointCloud,
+    colors: np.ndarray | None,
+    props: dict[str, np.ndarray],
+    solve: dict[str, Any],
+    scheduler: str | None,
+    workers: int | None,
+    partitions: int | None,
+    memory_limit: Any,
+    progress: Any,
+) -> tuple[TriangleMesh, dict]:
+    """The cloud in slabs on a Dask cluster (:mod:`.distributed`); returns the mesh, report."""
+    from recon_cli.batch.cluster import open_client
+    from recon_cli.stages.poisson.distributed import distributed_poisson
+
+    assert cloud.normals is not None  # _stage_input refuses a cloud without
+    with open_client(scheduler, workers, memory_limit, stealing=False) as (client, info):
+        res = distributed_poisson(
             cloud.points,
             cloud.normals,
-            depth=depth,
-            scale=scale,
-            point_weight=point_weight,
-            samples_per_node=samples_per_node,
-            degree=degree,
-            boundary=boundary,
-            density=density,
-            trim=trim,
-            confidence=confidence,
-            colors=cloud.colors if keep_colors else None,
+            partitions=partitions or max(1, int(info.get("workers") or 1)),
+            **solve,
+            colors=colors,
             properties=props,
-            with_grid=grid_path is not None,
-            envelope=env,
+            client=client,
             progress=progress,
         )
-        mesh, rep = res.mesh, res.report
-        report = {
-            k: rep[k]
-            for k in (
-                "vertices",
-                "faces",
-                "depth",
-                "iso_value",
-                "solver_iterations",
-                "residual",
-                "bubbles_removed",
-                "islands_removed",
-                "trimmed_faces",
-                "trimmed_area",
-            )
-        }
-        report["samples"] = rep["samples"]
-        report["ignored_points"] = rep["ignored_points"]
-        report["tree_depth"] = rep["tree_depth"]
-        report["noise"] = rep["noise"]
-        report["attributes"] = rep["attributes"]
-        report["attribute_fallback_vertices"] = rep["attribute_fallback_vertices"]
-        if env is not None:
-            report["envelope_outside_points"] = rep["envelope_outside_points"]
-            report["envelope_pulled_vertices"] = rep["envelope_pulled_vertices"]
-        if grid_path is not None:
-            if res.grid is None:
-                raise StageFailed("--grid: the surface is empty; no field to write")
-            from recon_cli.io.npz import write_grid
+    rep = res.report
+    report = {k: rep[k] for k in REPORT_KEYS}
+    report["distributed"] = {"cluster": info, **rep["distributed"]}
+    return res.mesh, report
 
-            line = (
-                f"poisson: (iso - chi) / |grad chi| on the finest lattice, depth {depth}, "
-                f"boundary {boundary}, iso {rep['iso_value']:.9g}"
-            )
-            res.grid.history = [*history, line]
-            res.grid.point_dtype = cloud.point_dtype
-            write_grid(res.grid, grid_path)
-            report["grid"] = grid_path
-            report["grid_shape"] = rep["grid_shape"]
-    else:
-        pts, nrm, keep = _check_inputs(cloud.points, cloud.normals)
-        # the references about a local origin (Open3D's Poisson loses digits at UTM offsets)
-        centre = local_origin(pts)
-        clean = PointCloud(
-            points=pts - centre,
-            normals=nrm,
-            colors=None if cloud.colors is None or not keep_colors else cloud.colors[keep],
-            history=history,
+
+def _run_native(
+    cloud: PointCloud,
+    colors: np.ndarray | None,
+    props: dict[str, np.ndarray],
+    solve: dict[str, Any],
+    degree: int,
+    env: Any,
+    grid_path: str | None,
+    history: list[str],
+    progress: Any,
+) -> tuple[TriangleMesh, dict]:
+    """:func:`screened_poisson` on the cloud, the grid written; returns the mesh and report."""
+    assert cloud.normals is not None  # _stage_input refuses a cloud without
+    res = screened_poisson(
+        cloud.points,
+        cloud.normals,
+        **solve,
+        degree=degree,
+        colors=colors,
+        properties=props,
+        with_grid=grid_path is not None,
+        envelope=env,
+        progress=progress,
+    )
+    rep = res.report
+    report = {k: rep[k] for k in REPORT_KEYS}
+    if env is not None:
+        report["envelope_outside_points"] = rep["envelope_outside_points"]
+        report["envelope_pulled_vertices"] = rep["envelope_pulled_vertices"]
+    if grid_path is not None:
+        if res.grid is None:
+            raise StageFailed("--grid: the surface is empty; no field to write")
+        from recon_cli.io.npz import write_grid
+
+        line = (
+            f"poisson: (iso - chi) / |grad chi| on the finest lattice, depth {solve['depth']}, "
+            f"boundary {solve['boundary']}, iso {rep['iso_value']:.9g}"
         )
-        from recon_cli.backends import backend_module
+        res.grid.history = [*history, line]
+        res.grid.point_dtype = cloud.point_dtype
+        write_grid(res.grid, grid_path)
+        report["grid"] = grid_path
+        report["grid_shape"] = rep["grid_shape"]
+    return res.mesh, report
 
-        mod = backend_module(backend)
-        if backend == "open3d":
-            mesh, dens = mod.poisson(clean, depth=depth, scale=scale)
-        else:
-            mesh, dens = (
-                mod.poisson(
-                    clean,
-                    depth=depth,
-                    scale=scale,
-                    samples_per_node=samples_per_node,
-                    point_weight=point_weight,
-                ),
-                None,
-            )
-        mesh.vertices = mesh.vertices + centre
-        trimmed, trimmed_area = 0, 0.0
-        if trim > 0 and len(mesh.faces):
-            from scipy.spatial import cKDTree
 
-            from recon_cli.stages.poisson.trim import trim_by_density
+def _run_reference(
+    cloud: PointCloud,
+    keep_colors: bool,
+    props: dict[str, np.ndarray],
+    solve: dict[str, Any],
+    backend: str,
+    history: list[str],
+) -> tuple[TriangleMesh, dict]:
+    """A reference library's Poisson, then our trim and attributes; returns the mesh, report."""
+    depth, scale, trim = solve["depth"], solve["scale"], solve["trim"]
+    pts, nrm, keep = _check_inputs(cloud.points, cloud.normals)
+    # the references about a local origin (Open3D's Poisson loses digits at UTM offsets)
+    centre = local_origin(pts)
+    clean = PointCloud(
+        points=pts - centre,
+        normals=nrm,
+        colors=None if cloud.colors is None or not keep_colors else cloud.colors[keep],
+        history=history,
+    )
+    from recon_cli.backends import backend_module
 
-            # the density at the samples: Open3D's at the vertex nearest each sample
-            at_samples = dens[cKDTree(mesh.vertices).query(pts, workers=-1)[1]]
-            cut = trim_by_density(mesh, dens, trim * float(np.median(at_samples)))
-            if len(cut.mesh.faces) == 0:
-                raise ParameterError(
-                    f"trim {trim:g} removes the whole surface: use a smaller value"
-                )
-            trimmed = len(mesh.faces) - cut.untouched_faces
-            mesh, dens, trimmed_area = cut.mesh, cut.density, cut.removed_area
-        fallback = 0
-        if props and len(mesh.faces):
-            from recon_cli.stages.poisson.attributes import transfer
+    mod = backend_module(backend)
+    if backend == "open3d":
+        mesh, dens = mod.poisson(clean, depth=depth, scale=scale)
+    else:
+        mesh, dens = (
+            mod.poisson(
+                clean,
+                depth=depth,
+                scale=scale,
+                samples_per_node=solve["samples_per_node"],
+                point_weight=solve["point_weight"],
+            ),
+            None,
+        )
+    mesh.vertices = mesh.vertices + centre
+    trimmed, trimmed_area = 0, 0.0
+    if trim > 0 and len(mesh.faces):
+        from scipy.spatial import cKDTree
 
-            e = mesh.vertices[mesh.faces[:, [0, 1]]]
-            sigma = float(np.median(np.linalg.norm(e[:, 0] - e[:, 1], axis=1)))
-            kept = {k: v[keep] for k, v in props.items()}
-            moved = transfer(pts, nrm, kept, None, mesh.vertices, mesh.faces, sigma)
-            mesh.attributes.update(moved.values)
-            fallback = moved.fallback
-        if density and dens is not None:
-            mesh.attributes["density"] = dens
-        report = {
-            "vertices": len(mesh.vertices),
-            "faces": len(mesh.faces),
-            "depth": depth,
-            "iso_value": None,
-            "solver_iterations": None,
-            "residual": None,
-            "bubbles_removed": None,
-            "islands_removed": None,
-            "trimmed_faces": int(trimmed),
-            "trimmed_area": trimmed_area,
-            "noise": None,
-            "attributes": sorted(props) + (["colors"] if mesh.colors is not None else []),
-            "attribute_fallback_vertices": fallback,
-        }
-    mesh.history = history
-    mesh.point_dtype = (
-        cloud.point_dtype
-    )  # double in, double out (float32 in: see geometry.storage_dtype)
-    report["backend"] = backend
-    return StageResult(output=mesh, report=report)
+        from recon_cli.stages.poisson.trim import trim_by_density
+
+        # the density at the samples: Open3D's at the vertex nearest each sample
+        at_samples = dens[cKDTree(mesh.vertices).query(pts, workers=-1)[1]]
+        cut = trim_by_density(mesh, dens, trim * float(np.median(at_samples)))
+        if len(cut.mesh.faces) == 0:
+            raise ParameterError(f"trim {trim:g} removes the whole surface: use a smaller value")
+        trimmed = len(mesh.faces) - cut.untouched_faces
+        mesh, dens, trimmed_area = cut.mesh, cut.density, cut.removed_area
+    fallback = 0
+    if props and len(mesh.faces):
+        from recon_cli.stages.poisson.attributes import transfer
+
+        e = mesh.vertices[mesh.faces[:, [0, 1]]]
+        sigma = float(np.median(np.linalg.norm(e[:, 0] - e[:, 1], axis=1)))
+        kept = {k: v[keep] for k, v in props.items()}
+        moved = transfer(pts, nrm, kept, None, mesh.vertices, mesh.faces, sigma)
+        mesh.attributes.update(moved.values)
+        fallback = moved.fallback
+    if solve["density"] and dens is not None:
+        mesh.attributes["density"] = dens
+    report = {
+        "vertices": len(mesh.vertices),
+        "faces": len(mesh.faces),
+        "depth": depth,
+        "iso_value": None,
+        "solver_iterations": None,
+        "residual": None,
+        "bubbles_removed": None,
+        "islands_removed": None,
+        "trimmed_faces": int(trimmed),
+        "trimmed_area": trimmed_area,
+        "noise": None,
+        "attributes": sorted(props) + (["colors"] if mesh.colors is not None else []),
+        "attribute_fallback_vertices": fallback,
+    }
+    return mesh, report
+
+
+# public names of the pieces the distributed solve (.distributed, .slab) shares
+check_inputs = _check_inputs
+check_options = _check_options

@@ -436,8 +436,13 @@ def _triangulate(n, lp, lm, cost, split, st, tris):
 
 
 @njit(cache=True)
-def leaf_polygons(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, iso, eps, margin, clamp):
+def leaf_polygons(
+    keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, iso, eps, margin, clamp, xlo, xhi
+):
     """Iso-surface triangles of every leaf of the tree at the leaf's own size.
+
+    The leaves are those whose lower x (finest-lattice units) is in [``xlo``, ``xhi``): a slab's
+    part of the mesh.
 
     ``keys``, ``leaf``, ``nodes``, ``g``, ``coff``, ``goff``: the levels' sorted cell keys, leaf
     flags, the cells' corner nodes and chi at the nodes, concatenated (see above). Each leaf whose
@@ -502,6 +507,8 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, iso, e
             else:
                 k = fkeys[ci - coff[D]]
             cx = (k >> 42) & MASK21
+            if cx * side < xlo or cx * side >= xhi:
+                continue
             cy = (k >> 21) & MASK21
             cz = k & MASK21
             lo = 1e300

@@ -122,15 +122,29 @@ class Transfer:
     values: dict[str, np.ndarray] = field(default_factory=dict)
     colors: np.ndarray | None = None
     fallback: int = 0  # vertices with no agreeing point near: their nearest point's values
+    # (m,) per vertex, the distance of the farthest point its values read (None: no vertex)
+    reach: np.ndarray | None = None
 
 
-def vertex_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Unit area-weighted normals of the faces around each vertex (0 where none)."""
+def vertex_normal_sums(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """The faces' normals (twice their areas long) summed at each vertex."""
     t = verts[faces]
     fn = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
     vn = np.zeros_like(verts)
     for c in range(3):
         np.add.at(vn, faces[:, c], fn)
+    return vn
+
+
+def unit_rows(vn: np.ndarray) -> np.ndarray:
+    """Rows scaled to unit length (0 where zero)."""
+    ln = np.linalg.norm(vn, axis=1, keepdims=True)
+    return np.divide(vn, ln, out=np.zeros_like(vn), where=ln > 0)
+
+
+def vertex_normals(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unit area-weighted normals of the faces around each vertex (0 where none)."""
+    vn = vertex_normal_sums(verts, faces)
     ln = np.linalg.norm(vn, axis=1, keepdims=True)
     return np.divide(vn, ln, out=np.zeros_like(vn), where=ln > 0)
 
@@ -141,8 +155,9 @@ def transfer(
     values: dict[str, np.ndarray],
     colors: np.ndarray | None,
     verts: np.ndarray,
-    faces: np.ndarray,
+    faces: np.ndarray | None,
     cell: float,
+    vertex_unit_normals: np.ndarray | None = None,
 ) -> Transfer:
     """Each vertex's properties from the input points near it on its side (module docstring).
 
@@ -160,6 +175,9 @@ def transfer(
         The surface.
     cell : float
         The Gaussian's sigma (one finest cell of the tree, world units).
+    vertex_unit_normals : (m, 3) float, optional
+        The surface's unit normals at ``verts`` (default: :func:`vertex_normals` of
+        ``faces``; a slab of a distributed run gives them, summed over both slabs at a seam).
 
     Returns
     -------
@@ -175,12 +193,18 @@ def transfer(
         out.colors = None if colors is None else colors[:0].copy()
         return out
     tree = cKDTree(points)
-    vn = vertex_normals(verts, faces)
+    if vertex_unit_normals is not None:
+        vn = vertex_unit_normals
+    elif faces is not None:
+        vn = vertex_normals(verts, faces)
+    else:
+        raise ValueError("transfer needs the faces or the vertices' unit normals")
+    out.reach = np.empty(m)
     res = {k: np.empty(m, v.dtype) for k, v in values.items()}
     col = None if colors is None else np.empty((m, colors.shape[1]), colors.dtype)
     for a in range(0, m, CHUNK):
         b = min(m, a + CHUNK)
-        idx, w, fb = _weights(tree, points, normals, verts[a:b], vn[a:b], cell)
+        idx, w, fb, out.reach[a:b] = _weights(tree, points, normals, verts[a:b], vn[a:b], cell)
         out.fallback += fb
         for k, v in values.items():
             res[k][a:b] = (_majority if is_code(k, v) else _mean)(v, idx, w)
@@ -194,13 +218,18 @@ def transfer(
 
 def _weights(
     tree, points: np.ndarray, normals: np.ndarray, verts: np.ndarray, vn: np.ndarray, cell: float
-) -> tuple[np.ndarray, np.ndarray, int]:
-    """(m, k) neighbour indices and weights (rows sum to 1) and the number of fallbacks."""
+) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
+    """The vertices' neighbours among the points and their weights.
+
+    Returns (m, k) neighbour indices and weights (rows sum to 1), the number of fallbacks and the
+    distance of each row's farthest neighbour read.
+    """
     k = min(NEIGHBOURS, len(points))
     dist, idx = tree.query(verts, k=k, workers=-1)
     dist, idx = dist.reshape(len(verts), k), idx.reshape(len(verts), k)
     w, none = _side_weights(points, normals, verts, vn, dist, idx, cell)
     fallback = 0
+    reach = dist[:, -1].copy()
     if none.any():
         rows = np.flatnonzero(none)
         k2 = min(FALLBACK_NEIGHBOURS, len(points))
@@ -211,13 +240,14 @@ def _weights(
         w2[none2] = 0.0
         w2[none2, 0] = 1.0
         fallback = int(none2.sum())
+        reach[rows] = d2[:, -1]
         # widen the rows: the fallback rows' k2 neighbours, the others' k padded with 0
         wide_i = np.zeros((len(verts), k2), np.int64)
         wide_w = np.zeros((len(verts), k2))
         wide_i[:, :k], wide_w[:, :k] = idx, w
         wide_i[rows], wide_w[rows] = i2, w2
         idx, w = wide_i, wide_w
-    return idx, w, fallback
+    return idx, w, fallback, reach
 
 
 def _side_weights(points, normals, verts, vn, dist, idx, cell):

@@ -739,3 +739,7 @@ def solve(
     iso = float((chi_s * count).sum() / count.sum())
     log.info("poisson: iso-value %.6f", iso)
     return gvals, per_level, total_it, last_res, iso, chi
+
+
+# public name for the distributed solve (.distributed)
+level_parents = _level_parents

@@ -142,14 +142,20 @@ def extract(
 
 
 def extract_leaves(
-    levels: list[Level], gvals: list[np.ndarray], iso: float, origin: np.ndarray, size: float
+    levels: list[Level],
+    gvals: list[np.ndarray],
+    iso: float,
+    origin: np.ndarray,
+    size: float,
+    x_range: tuple[int, int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (world units) and faces of the level set ``chi = iso`` at the leaves' own size.
 
     Closed, edge- and vertex-manifold, consistently oriented (outward), no two vertices at one
     point (module docstring). Consumes ``levels`` and ``gvals`` (emptied, to free memory):
     the coarser levels are concatenated for the kernel, the finest (the largest) is passed
-    as it is.
+    as it is. ``x_range``: only the leaves whose lower x (finest-lattice units) is in
+    [lo, hi) (a slab's part: :mod:`.distributed`); all by default.
     """
     depth = len(levels) - 1
     # the levels but the finest concatenated (each freed once copied); the finest, the
@@ -184,6 +190,7 @@ def extract_leaves(
         1e-9,
         FACE_MARGIN,
         ROOT_CLAMP,
+        *((0, (1 << depth) + 1) if x_range is None else x_range),
     )
     del keys, leaf, nodes, g, fine, fg
     if broken:

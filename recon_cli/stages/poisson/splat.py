@@ -116,6 +116,31 @@ def _eval_density(table: tuple, pos: np.ndarray) -> np.ndarray:
     return S.density_eval(pos, level, *tab, dens)
 
 
+def splat_at_level(
+    rho: np.ndarray, lv: int, samples_per_node: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which samples level ``lv``'s kernel density ``rho`` (at the samples) places.
+
+    Returns them, their fractional splat depth and unit-cube area per point (:func:`make_splats`'
+    rule; level 0 places every sample left).
+    """
+    per_node = rho / B2_PLANE_DENSITY  # samples per node of level lv
+    ok = (per_node >= ESTIMATE_FACTOR * samples_per_node) | (lv == 0)
+    pn = np.maximum(per_node[ok], 1e-12)
+    h = 1.0 / (1 << lv)
+    return ok, lv + 0.5 * np.log2(pn / samples_per_node), h * h / pn
+
+
+def screening_alpha(point_weight: float, mean_area: float, tree_depth: int) -> float:
+    """The screening weight per unit count (:func:`make_splats`).
+
+    ``point_weight`` times the samples' mean area per point (unit cube) times ``2**tree_depth``.
+    """
+    # 0.75 matches Open3D's accuracy at its default weight 4 (bench/calibration.md); each basis
+    # scales it by the samples' measured noise (Splats.screening)
+    return 0.75 * point_weight * mean_area * (1 << tree_depth)
+
+
 def make_splats(
     smp: Samples,
     depth: int,
@@ -147,13 +172,9 @@ def make_splats(
     for lv in range(kd, -1, -1):
         tables[lv] = _density_table(smp, lv)
         rho = _eval_density(tables[lv], spos[active])
-        per_node = rho / B2_PLANE_DENSITY  # samples per node of level lv
-        ok = (per_node >= ESTIMATE_FACTOR * samples_per_node) | (lv == 0)
-        idx = active[ok]
-        pn = np.maximum(per_node[ok], 1e-12)
-        splat[idx] = lv + 0.5 * np.log2(pn / samples_per_node)
-        h = 1.0 / (1 << lv)
-        area_pt[idx] = h * h / pn  # unit-cube area per point
+        ok, depth_ok, area_ok = splat_at_level(rho, lv, samples_per_node)
+        splat[active[ok]] = depth_ok
+        area_pt[active[ok]] = area_ok
         active = active[~ok]
         if not len(active):
             break
@@ -175,9 +196,7 @@ def make_splats(
         tree_depth,
     )
     mean_area = float((area_pt * count).sum() / count.sum())
-    # 0.75 matches Open3D's accuracy at its default weight 4 (bench/calibration.md); each basis
-    # scales it by the samples' measured noise (Splats.screening)
-    alpha = 0.75 * point_weight * mean_area * (1 << tree_depth)
+    alpha = screening_alpha(point_weight, mean_area, tree_depth)
     screen_w = alpha * count
     dens = None
     if keep_density:
@@ -542,6 +561,18 @@ def noise_fraction(
     of the others (0 if none has one).
     Requires ``smp.keys`` and ``smp.normal``.
     """
+    sig = noise_sigma(unit, smp, tree_depth)
+    have = ~np.isnan(sig)
+    sig[~have] = float(np.median(sig[have])) if have.any() else 0.0
+    return clean_fraction(sig, smp.depth, tree_depth)
+
+
+def noise_sigma(unit: np.ndarray, smp: Samples, tree_depth: int) -> np.ndarray:
+    """(s,) each sample's noise ``sigma`` (:func:`noise_fraction`).
+
+    In finest cells of the samples' lattice, NaN where no cell up to :data:`NOISE_MORE_LEVELS`
+    coarser answers.
+    """
     ns = len(smp.count)
     sig = np.full(ns, np.nan)  # in finest cells of the samples' lattice
     dd = smp.depth
@@ -570,7 +601,21 @@ def noise_fraction(
             )
         del pc, pu, pn
         sig[todo] = best
-    have = ~np.isnan(sig)
-    sig[~have] = float(np.median(sig[have])) if have.any() else 0.0
-    rel = sig / (1 << (dd - tree_depth))
+    return sig
+
+
+def clean_fraction(
+    sig: np.ndarray, sample_depth: int, tree_depth: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`noise_fraction`'s result from the noise ``sig``.
+
+    ``sig`` is in finest cells of the samples' lattice (level ``sample_depth``): (s,) clean fraction
+    and (s,) noise in finest cells of the tree.
+    """
+    rel = sig / (1 << (sample_depth - tree_depth))
     return 1.0 / (1.0 + (rel / NOISE_TAU) ** 2), rel
+
+
+# public names of the kernel-density pieces the distributed solve (.slab) runs per slab
+density_table = _density_table
+eval_density = _eval_density

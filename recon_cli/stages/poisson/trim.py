@@ -47,41 +47,23 @@ class Trimmed:
     untouched_faces: int  # input faces kept whole (the others were cut or removed)
 
 
-def trim_by_density(
-    mesh: TriangleMesh,
-    density: np.ndarray,
+def cut_by_density(
+    v: np.ndarray,
+    f: np.ndarray,
+    d: np.ndarray,
     threshold: float,
-    island_ratio: float = ISLAND_AREA_RATIO,
-) -> Trimmed:
-    """Remove the part of ``mesh`` where ``density`` is at most ``threshold``.
+    high: np.ndarray,
+    nh: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The cut of :func:`trim_by_density`, both sides kept.
 
-    ``density`` is per vertex, linear on faces.
-
-    Parameters
-    ----------
-    mesh : TriangleMesh
-        (n, 3) vertices, (m, 3) faces.
-    density : (n,) float
-        Per-vertex density.
-    threshold : float
-        Density at and below which the surface goes.
-    island_ratio : float
-        Kept islands smaller than this fraction of the kept area go; removed islands smaller
-        than it stay (they are holes in a sparse patch, not the closing sheet).
-
-    Returns
-    -------
-    Trimmed
+    Every face the contour ``d = threshold`` crosses is split at the linearly interpolated
+    crossings (one new vertex per crossed edge, appended after ``v``). ``high``: the vertices
+    above the threshold, ``nh`` each face's count of them. Returns the vertices, the faces (the
+    whole high ones, the whole low ones, then the pieces), each face's side (True high), the
+    vertices' densities (the threshold on the new ones) and the edge (ends) each new vertex lies on.
     """
-    v = np.asarray(mesh.vertices, dtype=np.float64)
-    f = np.asarray(mesh.faces, dtype=np.int64)
-    d = np.asarray(density, dtype=np.float64)
     n = len(v)
-    high = d > threshold
-    nh = high[f].sum(axis=1)
-    if len(f) == 0 or nh.min() == 3:
-        return Trimmed(mesh, d, 0.0, threshold, len(f))
-
     # ---- cut vertices: one per edge whose ends are on both sides
     cut = (nh == 1) | (nh == 2)
     fc = f[cut]
@@ -125,6 +107,45 @@ def trim_by_density(
     )
     verts = np.concatenate([v, new_v])
     dens = np.concatenate([d, np.full(len(new_v), threshold)])
+
+    return verts, faces, side, dens, np.stack([e0, e1], axis=1)
+
+
+def trim_by_density(
+    mesh: TriangleMesh,
+    density: np.ndarray,
+    threshold: float,
+    island_ratio: float = ISLAND_AREA_RATIO,
+) -> Trimmed:
+    """Remove the part of ``mesh`` where ``density`` is at most ``threshold``.
+
+    ``density`` is per vertex, linear on faces.
+
+    Parameters
+    ----------
+    mesh : TriangleMesh
+        (n, 3) vertices, (m, 3) faces.
+    density : (n,) float
+        Per-vertex density.
+    threshold : float
+        Density at and below which the surface goes.
+    island_ratio : float
+        Kept islands smaller than this fraction of the kept area go; removed islands smaller
+        than it stay (they are holes in a sparse patch, not the closing sheet).
+
+    Returns
+    -------
+    Trimmed
+    """
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    f = np.asarray(mesh.faces, dtype=np.int64)
+    d = np.asarray(density, dtype=np.float64)
+    high = d > threshold
+    nh = high[f].sum(axis=1)
+    if len(f) == 0 or nh.min() == 3:
+        return Trimmed(mesh, d, 0.0, threshold, len(f))
+
+    verts, faces, side, dens, _ = cut_by_density(v, f, d, threshold, high, nh)
 
     # ---- islands: components of each side (faces joined across edges within the side)
     area = Connectivity(faces, len(verts), verts).face_areas

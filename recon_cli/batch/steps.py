@@ -1,0 +1,235 @@
+"""Jobs split into parts that keep a state between steps: where the parts' steps run.
+
+A job (a distributed Poisson reconstruction, distributed normals) cuts its data into parts
+(slabs), each with a state that lives where the part runs, and moves step by step: every
+step applies one function to every part's state, mutating it, and returns a small message
+per part to the coordinator, which combines them into the global values of the next step.
+
+Two runners with one interface (``run(name, fn, args) -> messages``):
+
+- :class:`LocalRunner`: every part in this process, one after another (tests, the library
+  without a cluster);
+- :class:`DaskRunner`: each part's state a Dask future on a worker, each step a task on it
+  (Dask runs a part's steps where its state is: the states never move). A step's task
+  returns ``(state, message)``; the coordinator gathers the messages only. A worker that dies
+  loses the states it held: Dask recomputes them from their lineage (every step again, from
+  the part's first one, the coordinator's values being part of the tasks), on another
+  worker; a step whose worker dies again (``allowed-failures``) fails the job.
+
+Both advance an optional :class:`Overall` bar over the whole job (each phase its share,
+a part's share as each part finishes: partitions done, and an estimate of the time left
+over every phase) and note per step (phase): the wall time, the slowest part's time and the
+largest part's peak memory (from the messages' ``seconds`` and ``peak_mb``), and the bytes the
+messages and arguments carried (Dask's ``sizeof``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import time
+from collections.abc import Callable
+from typing import Any
+
+
+def note_phase(phases: dict, name: str, msgs: list[dict], wall: float, moved: int = 0) -> None:
+    """Add a step's figures to ``phases[name]`` (steps of one name add up)."""
+    p = phases.setdefault(
+        name,
+        {
+            "seconds": 0.0,
+            "part_seconds_max": 0.0,
+            "cpu_seconds": 0.0,
+            "peak_mb_max": 0.0,
+            "bytes_moved": 0,
+        },
+    )
+    p["seconds"] += wall
+    p["part_seconds_max"] = max(
+        p["part_seconds_max"], max((m.get("seconds", 0.0) for m in msgs), default=0.0)
+    )
+    p["cpu_seconds"] += sum(m.get("cpu_seconds", 0.0) for m in msgs)
+    p["peak_mb_max"] = max(
+        p["peak_mb_max"], max((m.get("peak_mb") or 0.0 for m in msgs), default=0.0)
+    )
+    p["bytes_moved"] += int(moved)
+
+
+class Overall:
+    """One progress bar over a whole job.
+
+    Phase ``name`` is ``weights[name]`` of it (its first run only: a phase run again, such as a
+    median's second round, adds nothing), a part's share added as each part finishes; the
+    coordinator's own steps through :meth:`step`. ``bar`` is a :func:`recon_cli.progress.task` (its
+    total the weights' sum over the phases that will run).
+    """
+
+    def __init__(self, bar: Any, weights: dict[str, float]):
+        self.bar = bar
+        self.weights = dict(weights)
+        self.seen: set[str] = set()
+
+    def claim(self, name: str) -> float:
+        """The weight a phase's run adds (0 after its first run)."""
+        if name in self.seen:
+            return 0.0
+        self.seen.add(name)
+        return float(self.weights.get(name, 0.0))
+
+    def advance(self, amount: float) -> None:
+        """Move the bar by ``amount`` of the coordinator's own steps."""
+        if amount > 0:
+            self.bar.advance(amount)
+
+    @contextlib.contextmanager
+    def step(self, name: str):
+        """A coordinator's step (one long call): the bar moves on an estimate meanwhile."""
+        w = self.claim(name)
+        if w > 0:
+            self.bar.expect(w)
+        yield
+        self.advance(w)
+
+
+def _sizeof(obj: Any) -> int:
+    try:
+        from dask.sizeof import sizeof
+    except ImportError:  # pragma: no cover - dask is an extra
+        return 0
+    return int(sizeof(obj))
+
+
+class LocalRunner:
+    """Every part in this process, one after another."""
+
+    def __init__(
+        self,
+        states: list,
+        progress: Any = None,
+        label: str = "parts",
+        overall: Overall | None = None,
+    ):
+        self.states = list(states)
+        self.phases: dict[str, dict] = {}
+        self.progress = progress
+        self.label = label
+        self.overall = overall
+
+    def run(self, name: str, fn: Callable, args: Callable[[int], tuple]) -> list[dict]:
+        """Step ``name``: ``fn(state, *args(k))`` on every part ``k``; returns their messages."""
+        from recon_cli.progress import task
+
+        t0 = time.perf_counter()
+        out = []
+        share = self.overall.claim(name) / max(len(self.states), 1) if self.overall else 0.0
+        with task(self.progress, f"{self.label}: {name}", total=len(self.states)) as bar:
+            for k, s in enumerate(self.states):
+                out.append(fn(s, *args(k)))
+                bar.advance(1)
+                if share and self.overall is not None:
+                    self.overall.advance(share)
+        note_phase(self.phases, name, out, time.perf_counter() - t0)
+        return out
+
+    def close(self) -> None:
+        """Let go of the parts' states."""
+        self.states = []
+
+
+def _step(state: Any, fn: Callable, args: tuple) -> tuple[Any, dict]:
+    return state, fn(state, *args)
+
+
+def _first(pair: tuple) -> Any:
+    return pair[0]
+
+
+def _second(pair: tuple) -> Any:
+    return pair[1]
+
+
+def _start(x: Any) -> Any:
+    # a copy: the task's argument is not the state a recomputation would start from
+    import copy
+
+    return copy.deepcopy(x)
+
+
+class DaskRunner:
+    """Each part's state on a Dask worker (module docstring)."""
+
+    def __init__(
+        self,
+        client: Any,
+        states: list,
+        progress: Any = None,
+        label: str = "parts",
+        overall: Overall | None = None,
+    ):
+        self.client = client
+        self.phases: dict[str, dict] = {}
+        self.progress = progress
+        self.label = label
+        self.overall = overall
+        self.token = os.urandom(4).hex()
+        self.round = 0
+        workers = sorted(client.scheduler_info().get("workers", {}))
+        self.states = []
+        for k, s in enumerate(states):
+            # spread the parts over the workers; a part's later steps follow its state
+            where = [workers[k % len(workers)]] if workers else None
+            self.states.append(
+                client.submit(
+                    _start,
+                    s,
+                    key=f"{label}-{self.token}-{k}-start",
+                    workers=where,
+                    allow_other_workers=True,
+                    pure=False,
+                )
+            )
+
+    def run(self, name: str, fn: Callable, args: Callable[[int], tuple]) -> list[dict]:
+        """Step ``name``: ``fn(state, *args(k))`` on every part ``k``; returns their messages."""
+        import dask
+        from distributed import as_completed
+
+        from recon_cli.progress import task
+
+        t0 = time.perf_counter()
+        self.round += 1
+        c = self.client
+        pairs, states, msgs_f = [], [], []
+        moved = 0
+        for k, st in enumerate(self.states):
+            a = args(k)
+            moved += _sizeof(a)
+            tag = f"{self.label}-{self.token}-{k}-{self.round}-{name}"
+            # the arguments go in the task (a recomputed part reads them again from its
+            # lineage), however large: Dask's warning of large graphs is not for this
+            with dask.config.set({"distributed.admin.large-graph-warning-threshold": "1TiB"}):
+                p = c.submit(_step, st, fn, a, key=f"{tag}-step", pure=False)
+            pairs.append(p)
+            states.append(c.submit(_first, p, key=f"{tag}-state", pure=False))
+            msgs_f.append(c.submit(_second, p, key=f"{tag}-msg", pure=False))
+        index = {f.key: k for k, f in enumerate(msgs_f)}
+        out: list[Any] = [None] * len(msgs_f)
+        share = self.overall.claim(name) / max(len(msgs_f), 1) if self.overall else 0.0
+        with task(self.progress, f"{self.label}: {name}", total=len(msgs_f)) as bar:
+            for f in as_completed(msgs_f):
+                out[index[f.key]] = f.result()  # raises the step's own error
+                bar.advance(1)
+                if share and self.overall is not None:
+                    self.overall.advance(share)
+        moved += sum(_sizeof(m) for m in out)
+        self.states = states
+        for f in pairs + msgs_f:
+            f.release()
+        note_phase(self.phases, name, out, time.perf_counter() - t0, moved)
+        return out
+
+    def close(self) -> None:
+        """Let go of the parts' states."""
+        for f in self.states:
+            f.release()
+        self.states = []

@@ -1,0 +1,1435 @@
+"""One slab of a distributed Poisson reconstruction: what a worker computes.
+
+:mod:`.distributed` holds the design (read it first) and the coordinator. Each function
+here takes the slab's state (:class:`Slab`, kept in the worker between steps) and returns a
+small message for the coordinator, which sums the messages of all slabs and hands the
+global values to the next step. Every step is a deterministic function of the slab's
+inputs and of those global values, so a slab whose worker died is rebuilt by running its
+steps again (:func:`replay`).
+
+Coordinates are the job's frame (:class:`Job`): the input's axes turned cyclically so that
+the slabs' axis is ``x`` (the lattice keys are x-major: a slab's cells are a run of keys),
+and the unit cube of the single-process solve.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from recon_cli.errors import StageFailed
+from recon_cli.memory import peak_mb, release_free_heap, reset_peak
+from recon_cli.stages.poisson import _bspline as B
+from recon_cli.stages.poisson import _extract as E
+from recon_cli.stages.poisson import _octree as O
+from recon_cli.stages.poisson.bspline import (
+    SCREEN_CLEAN,
+    SCREEN_NOISY,
+    TARGET,
+    ChiField,
+    LevelField,
+    NormalRHS,
+    folded_tables,
+    level_fields,
+)
+from recon_cli.stages.poisson.octree import Level, build_levels, pack_keys, set_corners, unpack_keys
+from recon_cli.stages.poisson.splat import (
+    KERNEL_OFFSET,
+    Samples,
+    Splats,
+    clean_fraction,
+    density_table,
+    eval_density,
+    merge_samples,
+    merge_splats,
+    noise_sigma,
+    splat_at_level,
+    spread_fields,
+)
+
+# seams lie on the planes of this level's lattice: the levels up to full_depth (5 by default)
+# are complete grids, so no leaf of the tree crosses a seam
+PARTITION_DEPTH = 5
+# slabs and their pads are made of whole sub-slabs, the cells of this level along x
+SUB_DEPTH = 8
+# the coordinator solves the levels up to depth - COARSE_OFFSET for the whole cube, at most
+# COARSE_MAX (a 256^3 lattice: its tree stays small whatever the depth)
+COARSE_OFFSET = 3
+COARSE_MAX = 8
+# a slab solves its finer levels over its own cells and this many cells of the first fine
+# level (coarse depth + 1) beyond each seam
+PAD_CELLS = 8
+# a sample's kernel density reads the samples within this many cells of the density's level
+DENSITY_REACH = 3
+
+
+@dataclass(frozen=True)
+class Job:
+    """What every slab of one reconstruction shares."""
+
+    origin: tuple[float, float, float]  # the unit cube's corner, in the job's frame
+    size: float  # the unit cube's side
+    depth: int
+    samples_per_node: float
+    point_weight: float
+    boundary: str
+    full_depth: int
+    cg_tolerance: float
+    coarse_depth: int  # the levels the coordinator solves for the whole cube
+    local_density: int  # kernel-density levels above this one are a slab's own, the rest global
+    density: bool
+    trim: float
+    # --confidence: each point's weight is its normal's length times this (1 / the mean length)
+    weight_scale: float | None = None
+
+
+@dataclass
+class Slab:
+    """A slab's state.
+
+    ``own`` is the x range (unit cube) whose cells and output it owns, ``pad`` the range of points
+    it reads, ``usable`` the range whose samples it splats (their kernel density is exact: all the
+    samples it reads are within ``pad``).
+    """
+
+    job: Job
+    index: int
+    count: int
+    own: tuple[float, float]
+    pad: tuple[float, float]
+    usable: tuple[float, float]
+    # filled by the steps in order: Any, as a step reads only what an earlier step set
+    pts: Any = None  # (n, 3) kept points, job frame
+    own_pt: Any = None
+    colors: np.ndarray | None = None
+    props: dict | None = None  # per-point properties carried onto the vertices (kept rows)
+    unit_nrm: Any = None  # (n, 3) the kept points' unit normals (for props)
+    vn_sum: Any = None  # (nv, 3) the faces' normals summed at each vertex
+    smp: Any = None
+    own_s: Any = None
+    use_s: Any = None
+    splat: Any = None  # (s,) fractional splat depth, NaN until placed
+    area: Any = None
+    tables: dict = dataclasses.field(default_factory=dict)  # kernel-density tables by level
+    sigma: Any = None
+    noise: np.ndarray | None = None  # (s,) noise in finest cells of the tree
+    screen_w: Any = None
+    tree_depth: int = 0
+    fine_levels: list = dataclasses.field(default_factory=list)
+    fine_fields: dict = dataclasses.field(default_factory=dict)
+    normal_rhs: Any = None
+    levels: Any = None
+    node_keys: Any = None
+    gvals: Any = None
+    lfs: Any = None
+    arrays: Any = None
+    chi: Any = None
+    verts: Any = None
+    faces: Any = None
+    seam: dict = dataclasses.field(default_factory=dict)
+    labels: Any = None
+    vdens: np.ndarray | None = None
+    at_samples: Any = None
+    trim: Any = None
+
+    @property
+    def res(self) -> int:
+        """Cells along an axis at the finest level."""
+        return 1 << self.job.depth
+
+    def x_range(self, bounds: tuple[float, float], scale: int) -> tuple[int, int]:
+        """``bounds`` (unit cube) in cells of a lattice of ``scale`` cells along x."""
+        return int(round(bounds[0] * scale)), int(round(bounds[1] * scale))
+
+
+def slab_of(job: Job, index: int, count: int, own, pad, usable) -> Slab:
+    """Slab ``index`` of ``count``, its ranges as :class:`Slab` holds them."""
+    return Slab(job, index, count, tuple(own), tuple(pad), tuple(usable))
+
+
+def timed(fn: Callable) -> Callable:
+    """A step that also reports its wall and CPU seconds and the worker's peak memory."""
+
+    def step(slab: Slab, *args: Any) -> dict:
+        reset_peak()
+        t0, c0 = time.perf_counter(), time.process_time()
+        msg = fn(slab, *args) or {}
+        msg["seconds"] = time.perf_counter() - t0
+        msg["cpu_seconds"] = time.process_time() - c0
+        msg["peak_mb"] = peak_mb()
+        msg["pid"] = os.getpid()
+        return msg
+
+    step.__name__ = fn.__name__
+    step.__qualname__ = fn.__qualname__
+    step.__doc__ = fn.__doc__
+    step.__module__ = fn.__module__
+    return step
+
+
+# ---------------------------------------------------------------------------------------------
+# samples and their depths
+
+
+def _own_samples(slab: Slab) -> Samples:
+    s, m = slab.smp, slab.own_s
+    return Samples(s.keys[m], s.pos[m], None, s.count[m], s.depth)
+
+
+def _splat_stats(slab: Slab) -> dict:
+    """The slab's share of the global splat figures (its own samples)."""
+    own = slab.own_s & ~np.isnan(slab.splat)
+    sp = np.clip(slab.splat[own], 0.0, slab.job.depth)
+    lo = np.floor(sp)
+    top = int((lo + ((sp - lo) > 0) * (lo < slab.job.depth)).max()) if own.any() else 0
+    c = slab.smp.count[own]
+    return {
+        "max_level": top,
+        "area_count": float((slab.area[own] * c).sum()),
+        "count": float(c.sum()),
+        "unplaced": int((np.isnan(slab.splat) & slab.use_s).sum()),
+    }
+
+
+def _place(slab: Slab, table: tuple, level: int) -> None:
+    """Place the usable samples not placed yet whose density at ``level`` suffices."""
+    todo = np.flatnonzero(np.isnan(slab.splat) & slab.use_s)
+    if not len(todo):
+        return
+    rho = eval_density(table, slab.smp.pos[todo])
+    ok, dep, area = splat_at_level(rho, level, slab.job.samples_per_node)
+    slab.splat[todo[ok]] = dep
+    slab.area[todo[ok]] = area
+
+
+def _load(
+    slab: Slab,
+    points: np.ndarray,
+    normals: np.ndarray,
+    colors: np.ndarray | None,
+    props: dict | None = None,
+) -> dict:
+    job = slab.job
+    pts = np.asarray(points, dtype=np.float64)
+    nrm = np.asarray(normals, dtype=np.float64)
+    length = np.linalg.norm(nrm, axis=1)
+    keep = length > 0
+    pts, nrm = pts[keep], nrm[keep] / length[keep, None]
+    weight = None if job.weight_scale is None else length[keep] * job.weight_scale
+    slab.colors = None if colors is None else np.asarray(colors)[keep]
+    slab.props = {k: np.asarray(v)[keep] for k, v in (props or {}).items()}
+    # the attributes' transfer reads the points' normals after the solve
+    slab.unit_nrm = nrm.copy() if (slab.props or slab.colors is not None) else None
+    res = slab.res
+    origin = np.asarray(job.origin)
+    unit = (pts - origin) / job.size
+    xc = np.clip(np.floor(unit[:, 0] * res), 0, res - 1)
+    a, b = slab.x_range(slab.own, res)
+    slab.own_pt = (xc >= a) & (xc < b)
+    slab.pts = pts
+    del xc
+    smp = merge_samples(unit, nrm, job.depth, weight)
+    del nrm, weight
+    slab.smp = smp
+    assert smp.keys is not None  # merge_samples keeps them
+    sx = smp.keys >> 42
+    slab.own_s = (sx >= a) & (sx < b)
+    u0, u1 = slab.x_range(slab.usable, res)
+    slab.use_s = (sx >= u0) & (sx < u1)
+    ns = len(smp.count)
+    slab.splat = np.full(ns, np.nan)
+    slab.area = np.zeros(ns)
+    kd = max(job.depth - KERNEL_OFFSET, 0)
+    for lv in range(kd, job.local_density, -1):
+        if ns:
+            slab.tables[lv] = density_table(smp, lv)
+            _place(slab, slab.tables[lv], lv)
+    msg = _splat_stats(slab)
+    msg.update(points=int(len(pts)), own_points=int(slab.own_pt.sum()), samples=ns)
+    msg["own_samples"] = int(slab.own_s.sum())
+    msg["ignored_points"] = int((~keep).sum())
+    msg["own"] = [float(v) for v in slab.own]
+    return msg
+
+
+@timed
+def load(
+    slab: Slab,
+    points: np.ndarray,
+    normals: np.ndarray,
+    colors: np.ndarray | None,
+    props: dict | None = None,
+) -> dict:
+    """Read the slab's points, merge them per finest cell, place its samples.
+
+    Points own and pad, job frame, finite; the samples placed are those the slab's own density
+    levels place. Returns the splat figures.
+    """
+    return _load(slab, points, normals, colors, props)
+
+
+@timed
+def own_table(slab: Slab, level: int) -> dict:
+    """The kernel-density table of the slab's own samples at ``level``.
+
+    Sorted cell keys and densities; the coordinator adds the slabs' tables into the global one.
+    """
+    if not slab.own_s.any():
+        return {"keys": np.zeros(0, np.int64), "dens": np.zeros(0)}
+    _, (tk, tv, _bits), dens = density_table(_own_samples(slab), level)
+    used = tk >= 0
+    keys, rows = tk[used], tv[used]
+    order = np.argsort(keys)
+    return {"keys": keys[order], "dens": dens[rows[order]]}
+
+
+def global_table(level: int, keys: np.ndarray, dens: np.ndarray) -> tuple:
+    """A density table from sorted keys and summed densities.
+
+    As :func:`.splat.density_table` makes them.
+    """
+    from recon_cli._kernels.hashtable import build_table
+
+    tab = build_table(keys)
+    return level, tab, dens
+
+
+@timed
+def place(slab: Slab, level: int, keys: np.ndarray, dens: np.ndarray) -> dict:
+    """Place the samples left with the global density table at ``level``."""
+    table = global_table(level, keys, dens)
+    slab.tables[level] = table
+    _place(slab, table, level)
+    return _splat_stats(slab)
+
+
+# ---------------------------------------------------------------------------------------------
+# noise and the exact medians
+
+
+def float_bins(values: np.ndarray) -> np.ndarray:
+    """Bin of each non-negative float: the top 16 bits of its IEEE pattern (monotone)."""
+    return (np.ascontiguousarray(values, dtype=np.float64).view(np.int64) >> 48).astype(np.int64)
+
+
+def float_histogram(values: np.ndarray) -> dict:
+    """Sparse histogram of non-negative floats by :func:`float_bins`.
+
+    The first round of an exact distributed median.
+    """
+    b, c = np.unique(float_bins(values), return_counts=True)
+    return {"bins": b, "counts": c, "n": int(len(values))}
+
+
+def values_in(values: np.ndarray, bins: np.ndarray) -> np.ndarray:
+    """The values whose bin is one of ``bins`` (the second round)."""
+    return np.sort(values[np.isin(float_bins(values), bins)])
+
+
+@timed
+def noise(slab: Slab, tree_depth: int) -> dict:
+    """Each sample's noise (:func:`.splat.noise_sigma`).
+
+    Returns the histogram of the own samples' measured values, for the global median that stands in
+    for the others.
+    """
+    slab.tree_depth = tree_depth
+    unit = (slab.pts - np.asarray(slab.job.origin)) / slab.job.size
+    slab.sigma = noise_sigma(unit, slab.smp, tree_depth)
+    own = slab.sigma[slab.own_s]
+    have = own[~np.isnan(own)]
+    return {"hist": float_histogram(have), "missing": int(np.isnan(own).sum())}
+
+
+@timed
+def noise_values(slab: Slab, bins: np.ndarray) -> dict:
+    """The own samples' measured noise values in ``bins`` (a median's second round)."""
+    own = slab.sigma[slab.own_s]
+    return {"values": values_in(own[~np.isnan(own)], bins)}
+
+
+@timed
+def noise_report_values(slab: Slab, bins: np.ndarray) -> dict:
+    """The own samples' reported noise values in ``bins`` (a median's second round)."""
+    assert slab.noise is not None  # called when the report measures the noise
+    return {"values": values_in(slab.noise[slab.own_s], bins)}
+
+
+# ---------------------------------------------------------------------------------------------
+# items, fields, the tree
+
+
+def merge_per_cell_sums(pos: np.ndarray, w: np.ndarray, level: int) -> tuple:
+    """Samples summed per cell of ``level``.
+
+    Sorted keys, summed weight, summed weight times position (the slabs' sums add up to
+    :func:`.bspline._merge_per_cell`'s).
+    """
+    res = 1 << level
+    keys = pack_keys(np.clip(np.floor(pos * res), 0, res - 1))
+    uk, inv = np.unique(keys, return_inverse=True)
+    inv = inv.reshape(-1)
+    sw = np.bincount(inv, weights=w, minlength=len(uk))
+    sp = np.stack(
+        [np.bincount(inv, weights=pos[:, a] * w, minlength=len(uk)) for a in range(3)], axis=1
+    )
+    return uk, sw, sp
+
+
+def merged_positions(sw: np.ndarray, sp: np.ndarray) -> np.ndarray:
+    """Mean positions from summed weights ``sw`` and weighted positions ``sp``."""
+    safe = np.where(sw > 0, sw, 1.0)
+    return sp / safe[:, None]
+
+
+@timed
+def items(slab: Slab, tree_depth: int, alpha: float, fallback: float | None) -> dict:
+    """The splat items, the fields, the slab's tree.
+
+    Returns the slab's share of the coarse levels: its own items' fields there, the cells its finer
+    items occupy, the screening sums of its own samples.
+    """
+    job = slab.job
+    smp = slab.smp
+    dc = min(job.coarse_depth, tree_depth)
+    slab.tree_depth = tree_depth
+    if alpha > 0:
+        sig = slab.sigma
+        sig[np.isnan(sig)] = fallback
+        clean, slab.noise = clean_fraction(sig, job.depth, tree_depth)
+        slab.sigma = None
+    else:
+        clean = None
+    sp = Splats(None, None, None, alpha * smp.count, alpha, tree_depth, clean=clean)
+    slab.screen_w = sp.screening(SCREEN_CLEAN, SCREEN_NOISY)
+    # the splat items of the usable samples (the own ones first), as make_splats makes them
+    splat = np.clip(np.nan_to_num(slab.splat), 0.0, job.depth)
+    s_lo = np.floor(splat).astype(np.int64)
+    s_frac = splat - s_lo
+    s_frac[s_lo == job.depth] = 0.0
+    normal_w = -slab.area[:, None] * smp.normal
+    parts = []
+    for sel in (slab.own_s, slab.use_s & ~slab.own_s):
+        if sel.any():
+            parts.append(
+                merge_splats(
+                    smp.pos[sel], normal_w[sel], smp.count[sel], s_lo[sel], s_frac[sel], False
+                )
+            )
+        else:
+            parts.append((np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)))
+    n_own = len(parts[0][0])
+    pos = np.concatenate([p[0] for p in parts])
+    vec = np.concatenate([p[1] for p in parts])
+    lvl = np.concatenate([p[2] for p in parts])
+    del parts, normal_w
+    own = np.zeros(len(pos), bool)
+    own[:n_own] = True
+    coarse = lvl <= dc
+    fine = ~coarse
+    msg: dict[str, Any] = {}
+    msg["coarse_fields"] = spread_fields(pos[own & coarse], vec[own & coarse], lvl[own & coarse])
+    # the cells (level dc + 1) the slab's own finer items occupy: all the coarse tree needs of them
+    rep = np.unique(
+        pack_keys(np.clip(np.floor(pos[own & fine] * (1 << (dc + 1))), 0, (1 << (dc + 1)) - 1))
+    )
+    msg["coarse_items"] = (pos[own & coarse], lvl[own & coarse])
+    msg["fine_cells"] = rep
+    sums = {}
+    if alpha > 0 and slab.own_s.any():
+        for d in range(1, dc + 1):
+            sums[d] = merge_per_cell_sums(smp.pos[slab.own_s], slab.screen_w[slab.own_s], d)
+    msg["screening"] = sums
+    if slab.noise is not None:
+        msg["noise_hist"] = float_histogram(slab.noise[slab.own_s])
+    # the slab's own finer levels: fields (own + pad, and own alone for the coarse rhs) and tree
+    slab.fine_fields = spread_fields(pos[fine], vec[fine], lvl[fine]) if fine.any() else {}
+    if fine.any() and tree_depth > dc:
+        levels = build_levels(
+            pos[fine],
+            lvl[fine],
+            tree_depth,
+            job.full_depth,
+            job.boundary,
+            corners=False,
+            own_ring=1,
+        )
+        slab.fine_levels = levels[dc + 1 :]
+    else:
+        slab.fine_levels = []
+    del pos, vec, lvl
+    smp.normal = None
+    release_free_heap()
+    return msg
+
+
+def coarse_item_set(msgs: list[dict], dc: int) -> tuple[np.ndarray, np.ndarray]:
+    """The coarse tree's items from the slabs' messages.
+
+    Their own coarse items, and a representative item (the cell's centre, level ``dc + 1``) per cell
+    their finer items occupy.
+    """
+    pos = [m["coarse_items"][0] for m in msgs]
+    lvl = [m["coarse_items"][1] for m in msgs]
+    cells = np.unique(np.concatenate([m["fine_cells"] for m in msgs]))
+    pos.append((unpack_keys(cells) + 0.5) / (1 << (dc + 1)))
+    lvl.append(np.full(len(cells), dc + 1, np.int64))
+    return np.concatenate(pos), np.concatenate(lvl)
+
+
+def build_coarse_levels(pos, lvl, tree_depth: int, job: Job) -> list[Level]:
+    """Levels 0..min(coarse depth, tree depth) of the whole cube's tree (the coordinator's)."""
+    dc = min(job.coarse_depth, tree_depth)
+    top = tree_depth if tree_depth <= dc else dc + 1
+    levels = build_levels(pos, lvl, top, min(job.full_depth, top), job.boundary, False, 1)
+    return levels[: dc + 1]
+
+
+def level_message(levels: list[Level]) -> list[tuple]:
+    """The levels' keys and parents, as a message between processes."""
+    return [(lev.cell_keys, lev.node_keys, lev.cell_parent) for lev in levels]
+
+
+def levels_from_message(msg: list[tuple]) -> list[Level]:
+    """The levels of :func:`level_message`'s message."""
+    out = []
+    for d, (ck, nk, cp) in enumerate(msg):
+        out.append(Level(d, ck, nk, len(nk), None, None, None, cp))
+    return out
+
+
+@timed
+def restrict(slab: Slab, coarse: list[tuple], coarse_fields: dict) -> dict:
+    """Build the slab's whole tree, its coefficient sets and right-hand side.
+
+    The tree holds the global coarse levels and the slab's own finer ones; the right-hand side is
+    the normals' (:class:`.bspline.NormalRHS`, the coarse items' field the coordinator's). Returns
+    the finer levels' part of the right-hand side on the finest coarse level at the cells the slab
+    owns (every item it reaches is within the pad: the slabs' parts add up to the whole cube's).
+    """
+    job = slab.job
+    levels = levels_from_message(coarse)
+    dc = len(levels) - 1
+    if slab.fine_levels:
+        first = slab.fine_levels[0]
+        parent = O.merge_lookup(np.unique(O.halve(first.cell_keys)), levels[-1].cell_keys)
+        if (parent < 0).any():
+            raise StageFailed(
+                f"distributed poisson: slab {slab.index}'s tree is not inside the coarse tree"
+            )
+        first.cell_parent = O.bsearch_many(levels[-1].cell_keys, O.halve(first.cell_keys))
+    levels += slab.fine_levels
+    slab.fine_levels = []
+    slab.levels = levels
+    slab.lfs, slab.arrays = (
+        level_fields(levels, job.boundary) if len(levels) > 1 else ([None], None)
+    )
+    msg: dict[str, Any] = {"cells": [len(lev.cell_keys) for lev in levels]}
+    if len(levels) - 1 > dc and dc >= 1:
+        fields = dict(coarse_fields)
+        fields.update(slab.fine_fields)
+        slab.fine_fields = {}
+        slab.normal_rhs = NormalRHS(fields, slab.lfs)
+        del fields
+        up = slab.normal_rhs.finer[dc]
+        if up is not None:
+            # the children of each parent of E, in blocks of 8 (x offset: bit 0)
+            f = slab.lfs[dc]
+            cx = 2 * (f.q_keys >> 42)[:, None] + (np.arange(8) & 1)[None, :]
+            a, b = slab.x_range(slab.own, 1 << dc)
+            mine = ((cx >= a) & (cx < b)).reshape(-1) & (up != 0)
+            nz = np.flatnonzero(mine)
+            msg["finer"] = (nz, up[nz])
+    release_free_heap()
+    return msg
+
+
+# ---------------------------------------------------------------------------------------------
+# the solve
+
+
+def solve_levels(
+    levels: list[Level],
+    lfs: list,
+    arrays: tuple,
+    normal_rhs: NormalRHS,
+    screening: Callable[[int], tuple[np.ndarray, np.ndarray] | None],
+    first: int,
+    full_depth: int,
+    cg_tolerance: float,
+    on_level: Callable[[int], None] | None = None,
+) -> tuple[list[dict], int, float]:
+    """Levels ``first``.. of the cascadic degree-2 solve (:func:`.bspline.solve`'s loop).
+
+    Each level's correction to the coarser levels' chi, whose coefficients (level ``first - 1``) are
+    set. ``screening(d)`` gives the samples merged per cell of level ``d`` (positions, weights) or
+    None. Returns per-level statistics, iterations and the last residual.
+    """
+    coef_all = arrays[4]
+    q_off = arrays[1]
+    prev = lfs[first - 1] if first > 1 else None
+    stats = []
+    total_it, last_res = 0, 0.0
+    for d in range(1, first):
+        normal_rhs.rhs(d)  # the coarser levels' field, carried to the finer ones
+    for d in range(first, len(levels)):
+        release_free_heap()
+        tl = time.perf_counter()
+        f = lfs[d]
+        n = 1 << d
+        h = 1.0 / n
+        m1, k1 = folded_tables(n, f.s)
+        unknown = np.repeat(f.inp, 8)
+        rhs = normal_rhs.rhs(d)
+        diag = B.stiffness_diag(f.q_keys, f.inp, m1, k1, h)
+        scr = screening(d)
+        if scr is not None and len(scr[0]):
+            scell, sloc = f.locate(scr[0])
+            have = scell >= 0
+            scell, sloc, sw = scell[have], sloc[have], scr[1][have]
+            B.screening_diag_rhs(f.q_keys, f.nb, n, f.s, scell, sloc, sw, TARGET, diag, rhs)
+        else:
+            scell, sloc, sw = np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
+        del scr
+        cmap = np.cumsum(f.inp) - 1
+        cmap[~f.inp] = -1
+        rhs = rhs[unknown]
+        diag = diag[unknown]
+        if prev is not None:
+            G = B.prolong(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s)
+            AG = np.empty(len(rhs))
+            B.level_matvec(
+                f.q_keys,
+                f.nb,
+                f.inp,
+                np.arange(len(f.q_keys)),
+                cmap,
+                m1,
+                k1,
+                h,
+                n,
+                f.s,
+                scell,
+                sloc,
+                sw,
+                G,
+                AG,
+            )
+            rhs -= AG
+            del AG, G
+        exact = d <= full_depth
+        release_free_heap()
+        x, it, rel = B.level_pcg(
+            f.q_keys,
+            f.nb,
+            f.inp,
+            cmap,
+            m1,
+            k1,
+            h,
+            n,
+            f.s,
+            scell,
+            sloc,
+            sw,
+            rhs,
+            diag,
+            1e-7 if exact else cg_tolerance,
+            2000 if exact else 200,
+        )
+        del rhs, diag, scell, sloc, sw, cmap
+        f.coef = coef_all[8 * q_off[d] : 8 * q_off[d + 1]]
+        if prev is not None:
+            B.prolong_into(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s, f.coef)
+        f.coef[unknown] += x
+        del x
+        prev = f
+        total_it += it
+        last_res = rel
+        stats.append(
+            {
+                "depth": d,
+                "nodes": len(unknown),
+                "unknowns": int(unknown.sum()),
+                "iterations": int(it),
+                "residual": float(rel),
+                "seconds": time.perf_counter() - tl,
+            }
+        )
+        if on_level is not None:
+            on_level(d)
+    return stats, total_it, last_res
+
+
+def set_coefficients(lfs: list, arrays: tuple, coefs: list) -> None:
+    """Give levels 1.. their coefficients (views into the concatenated array)."""
+    q_off = arrays[1]
+    for d, c in enumerate(coefs):
+        if d == 0 or c is None:
+            continue
+        f = lfs[d]
+        f.coef = arrays[4][8 * q_off[d] : 8 * q_off[d + 1]]
+        f.coef[:] = c
+
+
+def _band_parents(lf: LevelField, px: int) -> np.ndarray:
+    """Indices of the parents of ``lf`` (level ``lf.depth - 1``) whose x is ``px``."""
+    lo = np.searchsorted(lf.q_keys, np.int64(px) << 42)
+    hi = np.searchsorted(lf.q_keys, np.int64(px + 1) << 42)
+    return np.arange(lo, hi)
+
+
+def band_message(slab: Slab, side: int) -> dict:
+    """The coefficients of the slab's column of parents next to its seam on ``side``.
+
+    ``side`` -1 left, +1 right; at every finer level: the neighbour reads chi there from them.
+    """
+    out = {}
+    x = slab.own[0] if side < 0 else slab.own[1]
+    for d in range(slab.job.coarse_depth + 1, len(slab.levels)):
+        f = slab.lfs[d]
+        px = int(round(x * (1 << (d - 1)))) - (0 if side < 0 else 1)
+        rows = _band_parents(f, px)
+        coef = f.coef.reshape(-1, 8)[rows]
+        out[d] = (f.q_keys[rows], f.inp[rows], coef)
+    return out
+
+
+def apply_band(slab: Slab, side: int, band: dict) -> None:
+    """Take the neighbour's coefficients for its column of parents next to the seam on ``side``.
+
+    The trees must agree there. Written into the field's own array (a state that moved between
+    processes keeps no views into it).
+    """
+    x = slab.own[0] if side < 0 else slab.own[1]
+    coef = slab.chi.coef_all.reshape(-1, 8)
+    q_off = slab.chi.q_off
+    for d in range(slab.job.coarse_depth + 1, len(slab.levels)):
+        f = slab.lfs[d]
+        px = int(round(x * (1 << (d - 1)))) - (1 if side < 0 else 0)
+        rows = _band_parents(f, px)
+        keys, inp, band_coef = band.get(
+            d, (np.zeros(0, np.int64), np.zeros(0, bool), np.zeros((0, 8)))
+        )
+        if not (np.array_equal(f.q_keys[rows], keys) and np.array_equal(f.inp[rows], inp)):
+            raise StageFailed(
+                f"distributed poisson: slabs {slab.index} and {slab.index + side} disagree on "
+                f"the tree at their seam (level {d}): the pad is too small for this input"
+            )
+        coef[q_off[d] + rows] = band_coef
+
+
+@timed
+def solve(slab: Slab, coefs: list) -> dict:
+    """Solve the slab's finer levels on the coordinator's coarse chi.
+
+    Returns the own samples' share of the iso-value, the per-level figures and the bands for the
+    neighbours.
+    """
+    job = slab.job
+    levels, lfs, arrays = slab.levels, slab.lfs, slab.arrays
+    dc = len(coefs) - 1
+    msg: dict[str, Any] = {"levels": []}
+    if arrays is None:  # a tree of one level: nothing to solve
+        raise StageFailed("distributed poisson: the tree has a single level")
+    set_coefficients(lfs, arrays, coefs)
+    smp = slab.smp
+
+    def screening(d):
+        if job.point_weight <= 0 or not len(smp.count):
+            return None
+        _, sw, sp = merge_per_cell_sums(smp.pos, slab.screen_w, d)
+        return merged_positions(sw, sp), sw
+
+    if len(levels) - 1 > dc:
+        normal_rhs, slab.normal_rhs = slab.normal_rhs, None
+        stats, it, rel = solve_levels(
+            levels, lfs, arrays, normal_rhs, screening, dc + 1, job.full_depth, job.cg_tolerance
+        )
+        del normal_rhs
+        msg["levels"] = stats
+        msg["iterations"] = it
+        msg["residual"] = rel
+    # the leaves (cells without children in the next level) and the field
+    for d in range(1, len(levels)):
+        levels[d - 1].leaf = ~O.cell_has_child(levels[d].cell_parent, len(levels[d - 1].cell_keys))
+    levels[-1].leaf = np.ones(len(levels[-1].cell_keys), bool)
+    slab.chi = ChiField([f for f in lfs[1:]], job.boundary, arrays)
+    own = slab.own_s
+    if own.any():
+        chi_s = slab.chi.at(smp.pos[own])
+        msg["iso_sum"] = float((chi_s * smp.count[own]).sum())
+        msg["iso_count"] = float(smp.count[own].sum())
+    else:
+        msg["iso_sum"] = msg["iso_count"] = 0.0
+    msg["band_left"] = band_message(slab, -1) if slab.index > 0 else None
+    msg["band_right"] = band_message(slab, 1) if slab.index < slab.count - 1 else None
+    release_free_heap()
+    return msg
+
+
+# ---------------------------------------------------------------------------------------------
+# the extraction
+
+
+def plane_values(
+    levels: list[Level], gvals: list[np.ndarray], pts: np.ndarray, iso: float, margin: float
+) -> np.ndarray:
+    """The extraction's value at finest-lattice points ``pts`` (m, 3) of a seam plane.
+
+    The value is negated chi, clamped on the cube's faces as :func:`._extract.refine_leaves` clamps,
+    from one leaf whichever slab asks: the leaf holding the finest cell whose lower corner the point
+    is (the one below along an axis where the point is on the cube's far face). Both slabs of a seam
+    read the same leaves and corner values there, so they give the same bits.
+    """
+    top = len(levels) - 1
+    R = 1 << top
+    cap = -iso + margin
+    out = np.full(len(pts), np.nan)
+    cell = np.minimum(pts, R - 1)
+    todo = np.arange(len(pts))
+    for lev, g in zip(levels[::-1], gvals[::-1], strict=True):
+        if not len(todo) or not len(lev.cell_keys):
+            continue
+        sh = top - lev.depth
+        key = pack_keys(cell[todo] >> sh)
+        i = np.minimum(np.searchsorted(lev.cell_keys, key), len(lev.cell_keys) - 1)
+        hit = lev.cell_keys[i] == key  # the finest cell holding the point's cell: a leaf
+        if not hit.any():
+            continue
+        rows = todo[hit]
+        c = i[hit]
+        side = float(1 << sh)
+        f = (pts[rows] - ((cell[rows] >> sh) << sh)) / side
+        fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
+        v = np.zeros(len(rows))
+        assert lev.cell_nodes is not None  # the tree's levels have their corners set
+        for r in range(8):
+            w = (
+                (fx if r & 1 else 1.0 - fx)
+                * (fy if (r >> 1) & 1 else 1.0 - fy)
+                * (fz if (r >> 2) & 1 else 1.0 - fz)
+            )
+            v += w * -g[lev.cell_nodes[c, r & 3] + (r >> 2)]
+        face = np.any((pts[rows] == 0) | (pts[rows] == R), axis=1)
+        v[face] = np.maximum(v[face], cap)
+        out[rows] = v
+        todo = todo[~hit]
+    if len(todo):
+        raise StageFailed("distributed poisson: a seam point lies in no leaf of the tree")
+    return out
+
+
+def _seam_order(lat: np.ndarray, on: np.ndarray) -> np.ndarray:
+    """Indices of the vertices flagged ``on``, sorted by their lattice (y, z) then x."""
+    idx = np.flatnonzero(on)
+    return idx[np.lexsort((lat[idx, 0], lat[idx, 2], lat[idx, 1]))]
+
+
+@timed
+def field(slab: Slab, iso: float, band_left: dict | None, band_right: dict | None) -> dict:
+    """Take the neighbours' bands and set chi at every level's nodes.
+
+    The finer side of a coarse leaf's faces is constrained to it, as the single-process solve does.
+    Returns whether a leaf coarser than the finest the slab owns holds surface (then every slab
+    extracts at the leaves' own size, as :func:`.extract.extract` decides).
+    """
+    from recon_cli.stages.poisson.extract import FACE_MARGIN
+
+    if band_left is not None:
+        apply_band(slab, -1, band_left)
+    if band_right is not None:
+        apply_band(slab, 1, band_right)
+    levels = slab.levels
+    top = len(levels) - 1
+    chi = slab.chi
+    # the extraction reads the tree within two cells of the slab's own range (its leaves,
+    # their neighbours across its seams): every level cut to that (the coarse levels are
+    # the whole cube's, the finer ones reach into the pad)
+    for lev in levels:
+        a, b = slab.x_range(slab.own, 1 << lev.depth)
+        lo = np.searchsorted(lev.cell_keys, np.int64(max(a - 2, 0)) << 42)
+        hi = np.searchsorted(lev.cell_keys, np.int64(b + 2) << 42)
+        lev.cell_keys, lev.leaf = lev.cell_keys[lo:hi].copy(), lev.leaf[lo:hi].copy()
+        lo = np.searchsorted(lev.node_keys, np.int64(max(a - 2, 0)) << 42)
+        hi = np.searchsorted(lev.node_keys, np.int64(b + 3) << 42)
+        lev.node_keys = lev.node_keys[lo:hi].copy()
+        lev.n_nodes = len(lev.node_keys)
+        lev.cell_parent = None
+        set_corners(lev, lev.node_keys)
+    release_free_heap()
+    gvals = [chi.at_nodes(lev, lev.node_keys) for lev in levels]
+    # the extraction interpolates each leaf from its corners: the finer side of a coarse
+    # leaf's faces takes its values (bspline.solve)
+    for d in range(1, len(levels)):
+        up = levels[d - 1]
+        B.constrain_to_coarse_leaves(
+            levels[d].node_keys, gvals[d], up.cell_keys, up.cell_nodes, up.leaf, gvals[d - 1]
+        )
+    chi.drop_neighbours()
+    slab.gvals = gvals
+    masks = _own_leaves(slab)
+    coarse = any(
+        E.straddles(lev.cell_keys, lev.cell_nodes, m, g, lev.depth, top, iso, 1e-9, FACE_MARGIN)
+        for lev, m, g in zip(levels[:-1], masks[:-1], gvals[:-1], strict=True)
+    )
+    release_free_heap()
+    return {"coarse": bool(coarse)}
+
+
+def _own_leaves(slab: Slab) -> list[np.ndarray]:
+    """Per level, the leaves the slab owns (lower x in its range)."""
+    top = len(slab.levels) - 1
+    return _own_leaves_of(slab.levels, *slab.x_range(slab.own, 1 << top))
+
+
+def _finest(slab: Slab, levels: list, gvals: list, iso: float, a: int, b: int) -> tuple:
+    """The finest-lattice extraction of the leaves the slab owns (lattice units).
+
+    The points on its seam planes take :func:`plane_values`.
+    """
+    from recon_cli.stages.mcubes import marching_cubes_sparse
+    from recon_cli.stages.poisson.extract import FACE_MARGIN
+
+    top = len(levels) - 1
+    masks = _own_leaves_of(levels, a, b)
+    none_xyz, none_val = np.zeros((0, 3), np.int64), np.zeros((0, 8))
+    counts = [
+        E.refine_leaves(
+            lev.cell_keys,
+            lev.cell_nodes,
+            m,
+            g,
+            lev.depth,
+            top,
+            iso,
+            1e-9,
+            FACE_MARGIN,
+            none_xyz,
+            none_val,
+        )
+        for lev, m, g in zip(levels, masks, gvals, strict=True)
+    ]
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    cells = np.empty((int(offsets[-1]), 3), np.int64)
+    vals = np.empty((int(offsets[-1]), 8))
+    for d, (lev, m, g) in enumerate(zip(levels, masks, gvals, strict=True)):
+        E.refine_leaves(
+            lev.cell_keys,
+            lev.cell_nodes,
+            m,
+            g,
+            lev.depth,
+            top,
+            iso,
+            1e-9,
+            FACE_MARGIN,
+            cells[offsets[d] : offsets[d + 1]],
+            vals[offsets[d] : offsets[d + 1]],
+        )
+    del masks
+    ckeys = E.corner_keys(cells)
+    order = np.argsort(ckeys)
+    E.unify_corner_values(vals, ckeys, order)
+    del order
+    planes = ([a] if slab.index > 0 else []) + ([b] if slab.index < slab.count - 1 else [])
+    if planes and len(ckeys):
+        on = np.flatnonzero(np.isin(ckeys >> 42, planes))
+        pv = plane_values(levels, gvals, unpack_keys(ckeys[on]), iso, FACE_MARGIN)
+        vals.reshape(-1)[on] = pv
+        del on, pv
+    del ckeys, gvals, levels
+    release_free_heap()
+    lat, faces = marching_cubes_sparse(cells, vals, -iso)
+    return lat, faces
+
+
+def _own_leaves_of(levels: list, a: int, b: int) -> list[np.ndarray]:
+    top = len(levels) - 1
+    out = []
+    for lev in levels:
+        cx = (lev.cell_keys >> 42) << (top - lev.depth)
+        out.append(lev.leaf & (cx >= a) & (cx < b))
+    return out
+
+
+@timed
+def extract(slab: Slab, iso: float, at_leaves: bool) -> dict:
+    """The slab's part of the surface, over the leaves it owns.
+
+    At the leaves' own size (``at_leaves``, :func:`.extract.extract_leaves`), else on the finest
+    lattice (:func:`.extract.extract_finest`) with the points on its seams given the values both
+    slabs of a seam compute alike (:func:`plane_values`); vertices moved to chi's roots. Returns its
+    pieces (faces, boxes) and, per seam, its vertices there and their pieces.
+    """
+    from recon_cli.mesh.topology import Connectivity
+    from recon_cli.stages.poisson.extract import extract_leaves
+
+    job = slab.job
+    levels, gvals, chi = slab.levels, slab.gvals, slab.chi
+    slab.levels = slab.gvals = None
+    top = len(levels) - 1
+    R = 1 << top
+    a, b = slab.x_range(slab.own, R)
+    if at_leaves:
+        lat, faces = extract_leaves(levels, gvals, iso, np.zeros(3), float(R), (a, b))
+        del levels, gvals
+    else:
+        lat, faces = _finest(slab, levels, gvals, iso, a, b)
+    release_free_heap()
+    origin = np.asarray(job.origin)
+    verts = lat * np.repeat(job.size / R, 3) + origin
+    verts = chi.refine_vertices(verts, iso, origin, job.size, top)
+    slab.chi = slab.lfs = slab.arrays = None
+    release_free_heap()
+    # seam vertices first (left seam, by position), then the others, then the right seam's
+    left = lat[:, 0] == a if slab.index > 0 else np.zeros(len(lat), bool)
+    right = lat[:, 0] == b if slab.index < slab.count - 1 else np.zeros(len(lat), bool)
+    li, ri = _seam_order(lat, left), _seam_order(lat, right)
+    mid = np.flatnonzero(~(left | right))
+    perm = np.concatenate([li, mid, ri])
+    inv = np.empty(len(perm), np.int64)
+    inv[perm] = np.arange(len(perm))
+    slab.verts = verts[perm]
+    slab.faces = inv[faces]
+    slab.seam = {"left": len(li), "right": len(ri)}
+    lat = lat[perm]
+    nv = len(perm)
+    del verts, faces, perm, inv
+    msg: dict[str, Any] = {"vertices": nv, "faces": len(slab.faces)}
+    if len(slab.faces):
+        lab = Connectivity(slab.faces, nv).face_components.astype(np.int64)
+    else:
+        lab = np.zeros(0, np.int64)
+    slab.labels = lab
+    n = int(lab.max()) + 1 if len(lab) else 0
+    corner = slab.verts[slab.faces.reshape(-1)]
+    flab = np.repeat(lab, 3)
+    lo = np.full((n, 3), np.inf)
+    hi = np.full((n, 3), -np.inf)
+    for ax in range(3):
+        np.minimum.at(lo[:, ax], flab, corner[:, ax])
+        np.maximum.at(hi[:, ax], flab, corner[:, ax])
+    msg["pieces"] = (np.bincount(lab, minlength=n), lo, hi)
+    vlab = np.full(nv, -1, np.int64)
+    vlab[slab.faces.reshape(-1)] = flab
+    del corner, flab
+    nl, nr = slab.seam["left"], slab.seam["right"]
+    msg["seam_left"] = (lat[:nl, 1:], slab.verts[:nl], vlab[:nl])
+    msg["seam_right"] = (lat[nv - nr :, 1:], slab.verts[nv - nr :], vlab[nv - nr :])
+    return msg
+
+
+@timed
+def island_points(slab: Slab, lo: np.ndarray, hi: np.ndarray) -> dict:
+    """How many of the slab's own points lie in each box (k, 3) ``lo``..``hi``."""
+    pts = slab.pts[slab.own_pt]
+    out = np.zeros(len(lo), np.int64)
+    for k in range(len(lo)):
+        out[k] = np.count_nonzero(np.all((pts >= lo[k]) & (pts <= hi[k]), axis=1))
+    return {"counts": out}
+
+
+def _seam_ranks(slab: Slab) -> tuple[np.ndarray, np.ndarray]:
+    """(nv,) rank of each vertex among the left seam's / right seam's vertices (-1 if none).
+
+    The seam vertices sit first (left) and last (right) in the slab's vertices, in the order both
+    slabs of a seam give them.
+    """
+    nv = len(slab.verts)
+    nl, nr = slab.seam["left"], slab.seam["right"]
+    rl = np.full(nv, -1, np.int64)
+    rr = np.full(nv, -1, np.int64)
+    rl[:nl] = np.arange(nl)
+    rr[nv - nr :] = np.arange(nr)
+    return rl, rr
+
+
+def _links(slab: Slab, faces: np.ndarray, labels: np.ndarray) -> dict:
+    """Per seam, the seam edges (both ends on it) of ``faces`` and the faces' pieces.
+
+    A piece goes on across the seam through its edges there (an edge key: the ends' ranks).
+    """
+    rl, rr = _seam_ranks(slab)
+    out = {}
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    lab = np.tile(labels, 3)
+    for side, rank in (("left", rl), ("right", rr)):
+        ra, rb = rank[e[:, 0]], rank[e[:, 1]]
+        ok = (ra >= 0) & (rb >= 0)
+        key = np.minimum(ra, rb)[ok] * (1 << 31) + np.maximum(ra, rb)[ok]
+        out[side] = (key, lab[ok])
+    return out
+
+
+def _seam_use(slab: Slab, faces: np.ndarray) -> dict:
+    """Per seam, which of its vertices ``faces`` use."""
+    used = np.zeros(len(slab.verts), bool)
+    used[faces.reshape(-1)] = True
+    nv = len(used)
+    nl, nr = slab.seam["left"], slab.seam["right"]
+    return {"left": used[:nl], "right": used[nv - nr :]}
+
+
+def _compact(slab: Slab, keep_faces: np.ndarray, extra: dict | None = None) -> None:
+    """Keep the faces flagged and the vertices they use, seam layout kept.
+
+    The left seam's vertices first, the right seam's last, in their order.
+    """
+    faces = slab.faces[keep_faces]
+    used = np.zeros(len(slab.verts), bool)
+    used[faces.reshape(-1)] = True
+    nv = len(used)
+    nl, nr = slab.seam["left"], slab.seam["right"]
+    # seam vertices stay when either slab of the seam uses them (extra: the global verdict)
+    if extra is not None:
+        used[:nl] |= extra["left"]
+        used[nv - nr :] |= extra["right"]
+    remap = np.cumsum(used) - 1
+    slab.faces = remap[faces]
+    slab.verts = slab.verts[used]
+    if slab.vdens is not None:
+        slab.vdens = slab.vdens[used]
+    slab.seam = {"left": int(used[:nl].sum()), "right": int(used[nv - nr :].sum())}
+
+
+@timed
+def prepare(slab: Slab, drop: np.ndarray, density: tuple | None, at_samples: bool) -> dict:
+    """Drop the pieces the coordinator dropped.
+
+    The density at the vertices (``density``: None, ``(level,)`` the slab's own table, ``(level,
+    keys, dens)`` a global one) and, with ``at_samples``, the histogram of the own samples' density
+    (the trim's median).
+    """
+    job = slab.job
+    keep = ~np.isin(slab.labels, drop) if len(drop) else np.ones(len(slab.faces), bool)
+    slab.labels = None
+    msg: dict[str, Any] = {}
+    if density is not None:
+        if len(density) == 1:
+            table = slab.tables.get(density[0])
+            if table is None:
+                table = density_table(slab.smp, density[0])
+        else:
+            table = global_table(*density)
+        slab.tables = {"out": table}
+        origin = np.asarray(job.origin)
+        v = slab.verts
+        slab.vdens = eval_density(table, (v - origin) / job.size) if len(v) else np.zeros(0)
+        if at_samples:
+            own = slab.smp.pos[slab.own_s]
+            slab.at_samples = eval_density(table, own) if len(own) else np.zeros(0)
+            msg["hist"] = float_histogram(slab.at_samples)
+    _compact(slab, keep)
+    msg["seam_use"] = _seam_use(slab, slab.faces)
+    return msg
+
+
+@timed
+def density_values(slab: Slab, bins: np.ndarray) -> dict:
+    """The density at the own samples in ``bins`` (a median's second round)."""
+    return {"values": values_in(slab.at_samples, bins)}
+
+
+@timed
+def trim_cut(slab: Slab, threshold: float) -> dict:
+    """The trim's cut (:func:`.trim.cut_by_density`) of the slab's faces.
+
+    Returns the areas and the pieces of the low side (small ones are holes the trim keeps).
+    """
+    from recon_cli.mesh.topology import Connectivity
+    from recon_cli.stages.poisson.trim import cut_by_density
+
+    v, f, d = slab.verts, slab.faces, slab.vdens
+    assert d is not None  # the trim runs on the density at the vertices
+    high = d > threshold
+    nh = high[f].sum(axis=1) if len(f) else np.zeros(0, np.int64)
+    nv = len(v)
+    nl, nr = slab.seam["left"], slab.seam["right"]
+    slab.trim = {"whole_high": int((nh == 3).sum()), "whole_low": int((nh == 0).sum())}
+    msg: dict[str, Any] = {"faces": len(f), "cut": bool(len(f) and nh.min() < 3)}
+    if len(f):
+        verts, faces, side, dens, edges = cut_by_density(v, f, d, threshold, high, nh)
+    else:
+        verts, faces, side, dens, edges = v, f, np.zeros(0, bool), d, np.zeros((0, 2), np.int64)
+    # the new vertices on a seam's edges belong to the seam: they join its vertices, in the
+    # order both slabs give them (by position along the plane)
+    sd = np.zeros(len(verts), np.int8)
+    sd[:nl] = -1
+    sd[nv - nr : nv] = 1
+    if len(edges):
+        # a new vertex on an edge of two vertices of one seam is on that seam
+        a, b = sd[edges[:, 0]], sd[edges[:, 1]]
+        sd[nv:] = np.where(a == b, a, 0)
+    order = np.concatenate(
+        [
+            _by_plane_position(verts, np.flatnonzero(sd == -1)),
+            np.flatnonzero(sd == 0),
+            _by_plane_position(verts, np.flatnonzero(sd == 1)),
+        ]
+    )
+    inv = np.empty(len(order), np.int64)
+    inv[order] = np.arange(len(order))
+    slab.verts, slab.vdens, slab.faces = verts[order], dens[order], inv[faces]
+    slab.seam = {"left": int((sd == -1).sum()), "right": int((sd == 1).sum())}
+    area = Connectivity(slab.faces, len(slab.verts), slab.verts).face_areas
+    slab.trim.update(side=side, area=area)
+    msg["area"] = float(area.sum())
+    msg["kept_area"] = float(area[side].sum())
+    msg.update(_part(slab, ~side, area))
+    return msg
+
+
+def _by_plane_position(verts: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    return idx[np.lexsort((verts[idx, 2], verts[idx, 1]))]
+
+
+def _part(slab: Slab, part: np.ndarray, area: np.ndarray) -> dict:
+    """The pieces of the faces flagged ``part``, their areas and seam links.
+
+    Pieces are joined across edges.
+    """
+    from recon_cli.mesh.topology import Connectivity
+
+    idx = np.flatnonzero(part)
+    faces = slab.faces[idx]
+    lab = (
+        Connectivity(faces, len(slab.verts)).face_components.astype(np.int64)
+        if len(idx)
+        else np.zeros(0, np.int64)
+    )
+    slab.trim["part"], slab.trim["labels"] = idx, lab
+    n = int(lab.max()) + 1 if len(lab) else 0
+    return {
+        "areas": np.bincount(lab, weights=area[idx], minlength=n),
+        "links": _links(slab, faces, lab),
+    }
+
+
+@timed
+def trim_keep(slab: Slab, flip: np.ndarray) -> dict:
+    """Keep the holes the coordinator re-admitted (low pieces ``flip``).
+
+    Returns the pieces of what is kept (small ones are islands the trim drops) and the seams'
+    vertices they use per piece.
+    """
+    t = slab.trim
+    keep = t["side"].copy()
+    if len(flip):
+        keep[t["part"][np.isin(t["labels"], flip)]] = True
+    t["keep"] = keep
+    msg = _part(slab, keep, t["area"])
+    idx = slab.trim["part"]
+    faces = slab.faces[idx]
+    lab = slab.trim["labels"]
+    rl, rr = _seam_ranks(slab)
+    fl = faces.reshape(-1)
+    lab3 = np.repeat(lab, 3)
+    msg["seam_pieces"] = {
+        "left": (rl[fl][rl[fl] >= 0], lab3[rl[fl] >= 0]),
+        "right": (rr[fl][rr[fl] >= 0], lab3[rr[fl] >= 0]),
+    }
+    msg["seam_counts"] = dict(slab.seam)
+    return msg
+
+
+@timed
+def trim_drop(slab: Slab, drop: np.ndarray, seam_keep: dict) -> dict:
+    """Drop the kept side's islands; the report's figures of the trim."""
+    t = slab.trim
+    keep = t["keep"]
+    if len(drop):
+        keep[t["part"][np.isin(t["labels"], drop)]] = False
+    wh, wl = t["whole_high"], t["whole_low"]
+    msg = {
+        "removed_area": float(t["area"][~keep].sum()),
+        "untouched": int(wh + keep[wh : wh + wl].sum()),
+    }
+    slab.trim = None
+    _compact(slab, keep, seam_keep)
+    msg["faces"] = len(slab.faces)
+    return msg
+
+
+@timed
+def seam_normals(slab: Slab, seam_keep: dict | None) -> dict:
+    """Keep the seam vertices either slab uses (``seam_keep``, as :func:`export`).
+
+    The faces' normals summed at each vertex (the attributes' side test); returns the right seam's
+    sums: the next slab owns those vertices and adds them to its own faces'.
+    """
+    from recon_cli.stages.poisson.attributes import vertex_normal_sums
+
+    if seam_keep is not None:
+        _compact(slab, np.ones(len(slab.faces), bool), seam_keep)
+    v, f = slab.verts, slab.faces
+    slab.vn_sum = vertex_normal_sums(v, f) if len(f) else np.zeros_like(v)
+    return {"right": slab.vn_sum[len(v) - slab.seam["right"] :]}
+
+
+def _pad_gap(slab: Slab, x: np.ndarray) -> np.ndarray:
+    """Distance (world units) from job-frame x to the nearer end of the slab's points.
+
+    Inf on the side where the cube ends: no point lies beyond.
+    """
+    job = slab.job
+    u = (x - job.origin[0]) / job.size
+    lo = np.inf if slab.pad[0] <= 0.0 else (u - slab.pad[0]) * job.size
+    hi = np.inf if slab.pad[1] >= 1.0 else (slab.pad[1] - u) * job.size
+    return np.minimum(lo, hi)
+
+
+def _attributes(slab: Slab, v: np.ndarray, own: np.ndarray, left_sum) -> tuple[dict, Any, dict]:
+    """The input's properties at the slab's own vertices ``v``.
+
+    By :func:`.attributes.transfer`, the surface's normal at a seam vertex summed over both slabs'
+    faces.
+    """
+    from recon_cli.stages.poisson.attributes import transfer, unit_rows
+
+    vn = slab.vn_sum
+    nl = slab.seam["left"]
+    if left_sum is not None and nl:
+        vn[:nl] += left_sum
+    cell = slab.job.size / (1 << slab.tree_depth)
+    if len(v) and not len(slab.pts):
+        raise StageFailed(
+            f"distributed poisson: slab {slab.index} has surface but no input point within "
+            "its pad to carry attributes from: use fewer --partitions or --attributes none"
+        )
+    moved = transfer(
+        slab.pts, slab.unit_nrm, slab.props or {}, slab.colors, v, None, cell, unit_rows(vn[own])
+    )
+    inexact = 0
+    if moved.reach is not None:
+        inexact = int(np.count_nonzero(moved.reach >= _pad_gap(slab, v[:, 0])))
+    stats = {"fallback": int(moved.fallback), "inexact": inexact}
+    return moved.values, moved.colors, stats
+
+
+@timed
+def export(
+    slab: Slab,
+    seam_keep: dict | None,
+    prefix: str | None = None,
+    left_sum: np.ndarray | None = None,
+) -> dict:
+    """The slab's output: its own vertices and its faces.
+
+    The vertices (the left seam's first, then the others; the right seam's belong to the next slab)
+    carry the input's properties, colours and density; the faces' references to the right seam's
+    vertices are ``-1 - rank``. ``seam_keep``: per seam, the vertices either slab uses (both export
+    the same ones; None when :func:`seam_normals` kept them); ``left_sum``: the previous slab's face
+    normals summed at the left seam's vertices. With ``prefix`` the arrays go to
+    ``prefix.<name>.npy`` (the message names them), else in the message.
+    """
+    job = slab.job
+    if seam_keep is not None:
+        _compact(slab, np.ones(len(slab.faces), bool), seam_keep)
+    faces, verts = slab.faces, slab.verts
+    nv = len(verts)
+    nr = slab.seam["right"]
+    right = np.zeros(nv, bool)
+    right[nv - nr :] = True
+    index = np.cumsum(~right) - 1
+    rank = np.cumsum(right) - 1
+    fl = faces.reshape(-1)
+    out_f = np.where(right[fl], -1 - rank[fl], index[fl]).reshape(-1, 3)
+    v = verts[~right]
+    msg: dict[str, Any] = {"left_seam": slab.seam["left"], "right_seam": nr, "attributes": {}}
+    if slab.props or slab.colors is not None:
+        values, colors, msg["attribute_stats"] = _attributes(slab, v, ~right, left_sum)
+        msg["attributes"] = values
+        if colors is not None:
+            msg["colors"] = colors
+    if job.density:
+        assert slab.vdens is not None  # set by extract with the density asked
+        msg["attributes"]["density"] = slab.vdens[~right]
+    msg["vertices"] = v
+    msg["faces"] = out_f
+    slab.faces = slab.verts = slab.vdens = slab.vn_sum = None
+    slab.props = slab.colors = slab.unit_nrm = None
+    msg["counts"] = (len(v), len(out_f))
+    msg["box"] = (v.min(axis=0), v.max(axis=0)) if len(v) else None
+    if prefix is not None:
+        for name in ("vertices", "faces", "colors"):
+            if name in msg:
+                np.save(f"{prefix}.{name}.npy", msg[name])
+                msg[name] = f"{prefix}.{name}.npy"
+        files = {}
+        for i, (name, arr) in enumerate(msg["attributes"].items()):
+            files[name] = f"{prefix}.a{i:03d}.npy"
+            np.save(files[name], arr)
+        msg["attributes"] = files
+    return msg
+
+
+def state_bytes(obj: Any, depth: int = 0) -> int:
+    """Bytes of the numpy arrays a slab's state holds.
+
+    What Dask's memory accounting sees of it: its own estimate of an object is a few hundred bytes.
+    """
+    if isinstance(obj, np.ndarray):
+        return int(obj.nbytes)
+    if depth > 4 or obj is None or isinstance(obj, (int, float, str, bool)):
+        return 0
+    if isinstance(obj, dict):
+        return sum(state_bytes(v, depth + 1) for v in obj.values())
+    if isinstance(obj, (list, tuple)):
+        return sum(state_bytes(v, depth + 1) for v in obj)
+    if hasattr(obj, "__dict__"):
+        return sum(state_bytes(v, depth + 1) for v in vars(obj).values())
+    return 0
+
+
+try:  # dask is an extra (recon[batch])
+    from dask.sizeof import sizeof as _dask_sizeof
+
+    _dask_sizeof.register(Slab)(state_bytes)
+except ImportError:  # pragma: no cover
+    pass
+
+
+@timed
+def load_files(
+    slab: Slab,
+    parts: list[tuple[str, np.ndarray]],
+    nsub: int,
+    colors: tuple | None = None,
+    names: tuple = (),
+    dtypes: tuple = (),
+) -> dict:
+    """:func:`load` from the chunks' files, the rows of the slab's pad range.
+
+    ``(prefix, offsets)``: each chunk's rows sorted by sub-slab, ``offsets`` (nsub + 1,) where each
+    sub-slab's rows start; ``colors`` (dtype, columns) when the chunks have colours, ``names`` and
+    ``dtypes`` the properties carried (``prefix.a<i>.npy``).
+    """
+    pa, pb = slab.x_range(slab.pad, nsub)
+    pts, nrm, col = [], [], []
+    props: dict[str, list] = {name: [] for name in names}
+    for prefix, off in parts:
+        a, b = int(off[pa]), int(off[pb])
+        if b <= a:
+            continue
+        pts.append(np.load(prefix + ".pts.npy", mmap_mode="r")[a:b])
+        nrm.append(np.load(prefix + ".nrm.npy", mmap_mode="r")[a:b])
+        if colors:
+            col.append(np.load(prefix + ".col.npy", mmap_mode="r")[a:b])
+        for i, name in enumerate(names):
+            props[name].append(np.load(f"{prefix}.a{i:03d}.npy", mmap_mode="r")[a:b])
+    P = np.concatenate(pts) if pts else np.zeros((0, 3))
+    N = np.concatenate(nrm) if nrm else np.zeros((0, 3))
+    C = (np.concatenate(col) if col else np.zeros((0, colors[1]), colors[0])) if colors else None
+    A = {
+        name: np.concatenate(v) if v else np.zeros(0, dtypes[i])
+        for i, (name, v) in enumerate(props.items())
+    }
+    del pts, nrm, col, props
+    return _load(slab, P, N, C, A)

@@ -1,0 +1,139 @@
+"""Distributed normals (recon_cli.stages.normals.distributed): halos give the single-process
+neighbourhoods, orientation joined across slabs, the command reading and writing by chunks."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from recon_cli.errors import ParameterError
+from recon_cli.geometry import PointCloud
+from recon_cli.io.load import load, save
+from recon_cli.stages.normals import estimate_normals, orient_normals
+from recon_cli.stages.normals.distributed import HALO, SUB_SLABS, distributed_normals
+
+from shapes import random_rotation, single_view_scan
+from shared_data import sampled_cloud
+
+
+def _single(points, method="mst", **kw):
+    n, curv, _ = estimate_normals(points, 30)
+    o, _ = orient_normals(points, n, method, **kw)
+    return o, curv
+
+
+@pytest.mark.parametrize("name, parts", [("armadillo", 4), ("mug", 3)])
+def test_slabs_give_the_single_process_normals(name, parts):
+    """Rotated samples 1e6 from the origin in slabs: every normal and curvature is the
+    single-process one (halos make the neighbourhoods exact), oriented alike (the slabs'
+    components joined across seams)."""
+    rng = np.random.default_rng(3)
+    c = sampled_cloud(name, 40_000, 0.001, 1)
+    pts = c.points @ random_rotation(rng).T + 1e6
+    ref, curv = _single(pts)
+    nrm, dcurv, rep = distributed_normals(pts, orient="mst", partitions=parts, curvature=True)
+    dots = np.einsum("ij,ij->i", nrm, ref)
+    assert dots.min() > 1 - 1e-9
+    assert np.allclose(dcurv, curv, atol=1e-12)
+    assert rep["components"] == 1
+    assert sum(rep["distributed"]["slab_points"]) == len(pts)
+
+
+def test_halo_widens_until_neighbourhoods_are_exact():
+    """Sparse points (a few per sub-slab): the first halo cannot hold every point's 30
+    neighbours; it is widened and the normals are the single-process ones."""
+    rng = np.random.default_rng(4)
+    p = rng.normal(size=(3000, 3))
+    p[:, 0] *= 5
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    ref, _ = _single(p)
+    nrm, _, rep = distributed_normals(p, orient="mst", partitions=4)
+    assert rep["distributed"]["halo"] > HALO / SUB_SLABS
+    assert np.einsum("ij,ij->i", nrm, ref).min() > 1 - 1e-9
+
+
+def test_camera_and_keep():
+    rng = np.random.default_rng(5)
+    pts, truth = single_view_scan("torus", 120, rng, direction=(0.3, 0.2, -1.0))
+    cam = -5 * np.array([0.3, 0.2, -1.0])
+    nrm, _, _ = distributed_normals(pts, orient="camera", camera=cam, partitions=3)
+    ref, _ = _single(pts, "camera", camera=cam)
+    assert np.einsum("ij,ij->i", nrm, ref).min() > 1 - 1e-9
+    # keep: the input's signs, whatever they are
+    signs = np.where(rng.random(len(pts)) < 0.5, -1.0, 1.0)[:, None]
+    nrm, _, _ = distributed_normals(pts, truth * signs, orient="keep", partitions=3)
+    assert (np.einsum("ij,ij->i", nrm, truth * signs) > 0).mean() > 0.99
+
+
+def test_camera_towards_each_points_own_scanner():
+    """``--orient camera`` without ``--camera``: each point towards the scanner that took it
+    (the cloud's sensors and its per-point scan index), as the single-process run."""
+    from recon_cli.geometry import SCAN_ATTRIBUTE, Sensor
+    from recon_cli.stages.normals import run_stage, sensor_views
+
+    rng = np.random.default_rng(7)
+    p = rng.normal(size=(6000, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    p = p * np.array([3.0, 1.0, 1.0]) + 1e5
+    which = (p[:, 0] < 1e5).astype(np.int64)
+    sensors = [Sensor(position=(1e5 + 8.0, 1e5, 1e5)), Sensor(position=(1e5 - 8.0, 1e5, 1e5))]
+    cloud = PointCloud(points=p, sensors=sensors, attributes={SCAN_ATTRIBUTE: which})
+    ref = run_stage(cloud, orient="camera").output.normals
+    views = sensor_views(sensors, which, len(p), 0)
+    nrm, _, _ = distributed_normals(p, orient="camera", partitions=3, sensors=views)
+    assert np.einsum("ij,ij->i", nrm, ref).min() > 1 - 1e-9
+    # each towards its own scanner (not the other one: the sides facing away flip)
+    at = np.array([s.position for s in sensors])
+    assert (np.einsum("ij,ij->i", nrm, at[which] - p) >= 0).all()
+    assert (np.einsum("ij,ij->i", nrm, at[1 - which] - p) < 0).mean() > 0.2
+
+
+def test_refused():
+    p = np.random.default_rng(1).normal(size=(100, 3))
+    with pytest.raises(ParameterError, match="partitions must be 1..32"):
+        distributed_normals(p, partitions=33)
+    with pytest.raises(ParameterError, match="keep needs input normals"):
+        distributed_normals(p, orient="keep", partitions=2)
+
+
+@pytest.mark.slow
+def test_command_keeps_every_property_and_row(tmp_path, monkeypatch, capsys):
+    """``recon normals IN OUT --workers 2``: IN read by chunks (never whole by the command),
+    OUT written a chunk at a time: the same rows in the same order with every property of
+    IN, and the single-process normals."""
+    import recon_cli.io.chunks as C
+    import recon_cli.io.load as L
+    from recon_cli.cli.main import main
+
+    c = sampled_cloud("kitten", 12_000, 0.0, 2)
+    rng = np.random.default_rng(6)
+    cloud = PointCloud(
+        points=c.points.astype(np.float32),
+        colors=rng.integers(0, 255, size=(len(c.points), 3), dtype=np.uint8),
+        attributes={"intensity": rng.random(len(c.points)).astype(np.float32)},
+        point_dtype=np.float32,
+    )
+    src, out = tmp_path / "k.ply", tmp_path / "n.ply"
+    save(cloud, str(src))
+    monkeypatch.setattr(C, "CHUNK_ROWS", 5000)
+
+    def refuse(*a, **k):
+        raise AssertionError("the command loaded IN")
+
+    monkeypatch.setattr(L, "load", refuse)
+    with pytest.raises(SystemExit) as exc:
+        main(["normals", str(src), str(out), "--workers", "2", "--json"])
+    captured = capsys.readouterr()
+    assert exc.value.code == 0, captured.err
+    monkeypatch.undo()
+    rep = json.loads(captured.out)
+    assert rep["distributed"]["chunks"] == 3 and rep["points"] == len(cloud.points)
+    got = load(str(out))
+    assert np.array_equal(got.points, cloud.points)
+    assert np.array_equal(got.colors, cloud.colors)
+    assert np.array_equal(got.attributes["intensity"], cloud.attributes["intensity"])
+    ref, _ = _single(cloud.points.astype(np.float64))
+    assert (np.einsum("ij,ij->i", got.normals.astype(np.float64), ref) > 0.999).all()
+    assert got.history[-1].startswith("recon ") and "workers=2" in got.history[-1]

@@ -1,0 +1,432 @@
+"""Distributed Poisson (recon_cli.stages.poisson.distributed): seams, slabs of any density,
+empty slabs, one slab against the single-process solve, killed workers, the command."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import threading
+import time
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from recon_cli.errors import InputError, ParameterError
+from recon_cli.geometry import PointCloud
+from recon_cli.io.load import load, save
+from recon_cli.mesh.topology import report as topology_report
+from recon_cli.stages.poisson import screened_poisson
+from recon_cli.stages.poisson.distributed import distributed_poisson
+
+from shapes import random_rotation, single_view_scan, sphere_cloud
+
+
+def _closed_one_piece(mesh, pieces: int = 1) -> None:
+    rep = topology_report(mesh)
+    assert rep["components"] == pieces
+    assert rep["watertight"] and rep["edge_manifold"] and rep["vertex_manifold"]
+    assert rep["consistently_oriented"]
+    assert rep["duplicate_faces"] == 0 and rep["degenerate_faces"] == 0
+    assert rep["unreferenced_vertices"] == 0
+    # no vertex twice: the two slabs of a seam share theirs
+    assert len(np.unique(mesh.vertices, axis=0)) == len(mesh.vertices)
+    assert rep["volume"] > 0
+
+
+def _radial_error(mesh, centre, radius) -> float:
+    return float(np.abs(np.linalg.norm(mesh.vertices - centre, axis=1) - radius).mean())
+
+
+@pytest.mark.parametrize("seed, n, mode", [(0, 12_000, "leaves"), (1, 40_000, "finest")])
+def test_sphere_cut_by_every_slab_plane_is_one_closed_piece(seed, n, mode):
+    """Four slabs of a rotated, scaled sphere 1e6 from the origin: every seam crosses it, the
+    mesh is one closed manifold piece, no vertex duplicated, the two sides' seam vertices are
+    the same bits, and it is as close to the sphere as the single-process mesh; sparse
+    samples (coarse leaves hold surface: the extraction at the leaves' own size) and dense
+    ones (the finest-lattice extraction), as the single-process solve chooses."""
+    rng = np.random.default_rng(seed)
+    p, nrm0 = sphere_cloud(n, seed=seed)
+    r = random_rotation(rng)
+    scale = 10.0 ** rng.uniform(-2, 2)
+    centre = np.array([1e6, -2e6, 3e5])
+    pts, nrm = p @ r.T * scale + centre, nrm0 @ r.T
+    res = distributed_poisson(pts, nrm, depth=7, partitions=4)
+    _closed_one_piece(res.mesh)
+    dist = res.report["distributed"]
+    assert dist["extraction"] == mode
+    assert dist["seam_max_deviation"] == 0.0
+    assert [s["seam_vertices"] > 0 for s in dist["slabs"]] == [False, True, True, True]
+    single = screened_poisson(pts, nrm, depth=7)
+    assert abs(len(res.mesh.vertices) - len(single.mesh.vertices)) <= 0.001 * len(
+        single.mesh.vertices
+    )
+    e_single = _radial_error(single.mesh, centre, scale)
+    e_dist = _radial_error(res.mesh, centre, scale)
+    assert e_dist <= 1.02 * e_single
+    assert res.mesh.vertices.dtype == np.float64
+
+
+@pytest.mark.parametrize("n", [8000, 40_000])
+def test_one_slab_is_the_single_process_mesh(n):
+    """With one slab, the coarse and fine solves split and the whole pipeline give the
+    single-process solve's mesh, to rounding (the same vertices), in both extractions."""
+    pts, nrm = sphere_cloud(n, seed=3)
+    pts = pts * np.array([1.0, 0.8, 0.7])  # x the longest axis: the same frame
+    res = distributed_poisson(pts, nrm, depth=7, partitions=1)
+    single = screened_poisson(pts, nrm, depth=7)
+    assert len(res.mesh.vertices) == len(single.mesh.vertices)
+    assert len(res.mesh.faces) == len(single.mesh.faces)
+    d, i = cKDTree(single.mesh.vertices).query(res.mesh.vertices)
+    assert d.max() < 1e-12
+    assert len(np.unique(i)) == len(i)
+    assert abs(res.report["iso_value"] - single.report["iso_value"]) < 1e-12
+
+
+def test_slabs_of_very_different_density():
+    """One slab holds 16x the samples per area of the other (the seam through the middle of
+    an ellipsoid, x its longest axis): still one closed piece, and as close to the samples'
+    surface as the single-process mesh."""
+    rng = np.random.default_rng(5)
+    p, n = sphere_cloud(40_000, seed=5)
+    keep = (p[:, 0] > 0) | (rng.random(len(p)) < 1 / 16)
+    axes = np.array([1.3, 1.0, 0.9])
+    p, n = p[keep] * axes, n[keep] / axes
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    res = distributed_poisson(p, n, depth=7, partitions=2, seams=[16])
+    _closed_one_piece(res.mesh)
+    slabs = res.report["distributed"]["slabs"]
+    assert slabs[1]["points"] > 12 * slabs[0]["points"]
+
+    def err(mesh):  # the ellipsoid's algebraic distance, about the distance near the surface
+        return float(np.abs(np.linalg.norm(mesh.vertices / axes, axis=1) - 1).mean())
+
+    single = screened_poisson(p, n, depth=7)
+    assert err(res.mesh) <= 1.02 * err(single.mesh)
+
+
+def test_an_empty_slab():
+    """Two spheres apart along x, the middle slab owning only the empty space between them:
+    it gives no faces, the others two closed spheres."""
+    a, na = sphere_cloud(6000, centre=(-3.0, 0, 0), seed=7)
+    b, nb = sphere_cloud(6000, centre=(3.0, 0, 0), seed=8)
+    pts, nrm = np.vstack([a, b]), np.vstack([na, nb])
+    res = distributed_poisson(pts, nrm, depth=7, partitions=3, seams=[12, 20])
+    slabs = res.report["distributed"]["slabs"]
+    assert slabs[1]["points"] == 0 and slabs[1]["faces"] == 0
+    assert slabs[0]["faces"] > 0 and slabs[2]["faces"] > 0
+    _closed_one_piece(res.mesh, pieces=2)
+    single = screened_poisson(pts, nrm, depth=7)
+    assert abs(len(res.mesh.vertices) - len(single.mesh.vertices)) < 0.01 * len(
+        single.mesh.vertices
+    )
+
+
+def test_colours_and_density_per_vertex():
+    pts, nrm = sphere_cloud(8000, seed=9)
+    colors = (np.clip(pts * 0.5 + 0.5, 0, 1) * 255).astype(np.uint8)
+    res = distributed_poisson(pts, nrm, depth=7, partitions=3, colors=colors, density=True)
+    single = screened_poisson(pts, nrm, depth=7, colors=colors, density=True)
+    m = res.mesh
+    assert m.colors.dtype == np.uint8 and len(m.colors) == len(m.vertices)
+    d, i = cKDTree(single.mesh.vertices).query(m.vertices)
+    assert np.abs(m.colors.astype(int) - single.mesh.colors[i].astype(int)).max() <= 2
+    dens = m.attributes["density"]
+    ref = single.mesh.attributes["density"][i]
+    assert np.allclose(dens, ref, rtol=1e-3)
+
+
+def test_attributes_carried_as_single():
+    """Every property keeps its dtype and comes from the points on the vertex's side, as in the
+    single-process run: codes (a classification by a plane the seams cross) only take codes
+    the points have and match the single-process vertex nearest; measurements (intensity,
+    colours) within a unit of it; no vertex's neighbours reach past its slab's pad."""
+    rng = np.random.default_rng(21)
+    p, n = sphere_cloud(20_000, seed=21)
+    r = random_rotation(rng)
+    pts, nrm = p @ r.T * 3.0 + 1e5, n @ r.T
+    props = {
+        "classification": np.where(p[:, 0] + 0.3 * p[:, 1] > 0.1, 6, 2).astype(np.uint8),
+        "intensity": (1000 + 500 * p[:, 2]).astype(np.uint16),
+        "gps_time": 1e9 + p[:, 1],
+    }
+    colors = (np.clip(p * 0.5 + 0.5, 0, 1) * 255).astype(np.uint8)
+    res = distributed_poisson(
+        pts, nrm, depth=7, partitions=3, properties=props, colors=colors, density=True
+    )
+    single = screened_poisson(pts, nrm, depth=7, properties=props, colors=colors, density=True)
+    m, s = res.mesh, single.mesh
+    assert list(m.attributes) == list(s.attributes) == [*props, "density"]
+    for k, v in props.items():
+        assert m.attributes[k].dtype == v.dtype and len(m.attributes[k]) == len(m.vertices)
+    assert res.report["attributes"] == single.report["attributes"]
+    assert res.report["distributed"]["attribute_inexact_vertices"] == 0
+    _, i = cKDTree(s.vertices).query(m.vertices)
+    cls = m.attributes["classification"]
+    assert set(np.unique(cls)) == {2, 6}
+    assert (cls != s.attributes["classification"][i]).mean() < 0.001
+    di = np.abs(m.attributes["intensity"].astype(int) - s.attributes["intensity"][i].astype(int))
+    assert di.max() <= 2
+    assert np.abs(m.colors.astype(int) - s.colors[i].astype(int)).max() <= 2
+    assert np.abs(m.attributes["gps_time"] - s.attributes["gps_time"][i]).max() < 1e-3
+    _closed_one_piece(m)
+
+
+def test_one_slab_with_confidence_is_the_single_process_mesh():
+    """--confidence weighs each point by its normal's length over the mean of all of them:
+    with one slab the mesh is the single-process one to rounding."""
+    rng = np.random.default_rng(22)
+    pts, nrm = sphere_cloud(12_000, seed=22)
+    pts = pts * np.array([1.0, 0.8, 0.7])
+    nrm = nrm * rng.uniform(0.2, 3.0, size=(len(nrm), 1))
+    res = distributed_poisson(pts, nrm, depth=7, partitions=1, confidence=True)
+    single = screened_poisson(pts, nrm, depth=7, confidence=True)
+    plain = screened_poisson(pts, nrm, depth=7)
+    assert len(res.mesh.vertices) == len(single.mesh.vertices)
+    d, _ = cKDTree(single.mesh.vertices).query(res.mesh.vertices)
+    assert d.max() < 1e-12
+    # and the weights did something
+    d2, _ = cKDTree(plain.mesh.vertices).query(res.mesh.vertices)
+    assert d2.max() > 1e-6
+
+
+def test_trim_of_an_open_scan_as_single():
+    """A single-view scan's closing sheet trimmed over three slabs: the holes and islands the
+    trim decides are joined across seams, the cut vertices on seams shared; the mesh is the
+    single-process one (faces, area removed, boundary loops), manifold, no vertex twice."""
+    rng = np.random.default_rng(0)
+    pts, nrm = single_view_scan("torus", 160, rng, direction=(0.3, 0.2, -1.0))
+    single = screened_poisson(pts, nrm, depth=7, trim=0.2)
+    res = distributed_poisson(pts, nrm, depth=7, partitions=3, trim=0.2, density=True)
+    a, b = topology_report(single.mesh), topology_report(res.mesh)
+    assert abs(b["faces"] - a["faces"]) <= 0.001 * a["faces"]
+    assert abs(res.report["trimmed_area"] - single.report["trimmed_area"]) < 1e-3
+    assert b["boundary_loops"] == a["boundary_loops"] > 0
+    assert b["components"] == a["components"]
+    assert b["edge_manifold"] and b["vertex_manifold"] and b["consistently_oriented"]
+    assert abs(b["area"] - a["area"]) < 1e-3 * a["area"]
+    assert len(np.unique(res.mesh.vertices, axis=0)) == len(res.mesh.vertices)
+    assert len(res.mesh.attributes["density"]) == len(res.mesh.vertices)
+
+
+class _Bars:
+    """A stand-in for recon_cli.progress.Progress recording every task's advances."""
+
+    def __init__(self):
+        self.tasks: dict[str, list] = {}
+
+    def task(self, name, total=None):
+        bars = self
+
+        class T:
+            def __enter__(self):
+                bars.tasks[name] = [total, 0.0, 0]
+                return self
+
+            def __exit__(self, *exc):
+                return None
+
+            def advance(self, amount=1.0):
+                bars.tasks[name][1] += amount
+                bars.tasks[name][2] += 1
+
+            def expect(self, amount):
+                return None
+
+        return T()
+
+
+@pytest.mark.parametrize("kw", [{}, {"trim": 0.2, "colors": True, "point_weight": 0.0}])
+def test_progress_over_the_whole_job_reaches_its_total(kw):
+    """The job's bar is advanced by every phase that runs, a slab at a time, to its total
+    exactly (no phase weighed that does not run, none run unweighed)."""
+    pts, nrm = sphere_cloud(6000, seed=13)
+    if kw.pop("colors", False):
+        kw["colors"] = (np.abs(nrm) * 255).astype(np.uint8)
+    bars = _Bars()
+    distributed_poisson(pts, nrm, depth=7, partitions=3, progress=bars, **kw)
+    total, done, steps = bars.tasks["poisson: the whole job"]
+    assert done == pytest.approx(total, rel=1e-12) and steps > 3 * 10
+    assert bars.tasks["poisson: solve"][:2] == [3, 3]
+
+
+@pytest.mark.parametrize(
+    "kw, msg",
+    [
+        ({"partitions": 0}, "partitions must be 1..32"),
+        ({"partitions": 33}, "partitions must be 1..32"),
+        ({"depth": 5}, "needs depth 6 or more"),
+        ({"full_depth": 4}, "full_depth >= 5"),
+        ({"partitions": 2, "seams": [40]}, "seams must be 1 increasing planes in 1..31"),
+    ],
+)
+def test_refused_options(kw, msg):
+    pts, nrm = sphere_cloud(2000, seed=1)
+    with pytest.raises(ParameterError, match=msg):
+        distributed_poisson(pts, nrm, **{"depth": 7, "partitions": 2, **kw})
+
+
+# ---- on a Dask cluster ----------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    from recon_cli.batch.cluster import open_client
+
+    with open_client(workers=2, memory_limit="none", stealing=False) as (client, info):
+        yield client
+
+
+@pytest.mark.slow
+def test_killed_worker_mid_solve_gives_the_same_mesh(cluster):
+    """A worker SIGKILLed while the slabs solve: its slabs are recomputed on a live worker and
+    the mesh is the one an undisturbed run gives, bit for bit."""
+    from recon_cli.batch import steps
+
+    pts, nrm = sphere_cloud(12_000, seed=11)
+    ref = distributed_poisson(pts, nrm, depth=7, partitions=2, client=cluster)
+    pids = cluster.run(os.getpid)
+    killed: list[int] = []
+    orig = steps.DaskRunner.run
+
+    def run(self, name, fn, args):
+        if name == "solve" and not killed:
+
+            def killer():
+                time.sleep(0.3)
+                pid = sorted(pids.values())[0]
+                os.kill(pid, signal.SIGKILL)
+                killed.append(pid)
+
+            threading.Thread(target=killer, daemon=True).start()
+        return orig(self, name, fn, args)
+
+    steps.DaskRunner.run = run
+    try:
+        res = distributed_poisson(pts, nrm, depth=7, partitions=2, client=cluster)
+    finally:
+        steps.DaskRunner.run = orig
+    assert killed and killed[0] not in cluster.run(os.getpid).values()
+    assert np.array_equal(res.mesh.vertices, ref.mesh.vertices)
+    assert np.array_equal(res.mesh.faces, ref.mesh.faces)
+
+
+@pytest.mark.slow
+def test_laz_tiles_read_by_chunks(cluster, tmp_path, monkeypatch):
+    """A folder of LAZ tiles (a sphere cut in two at 1e5), read by the workers in chunks of a
+    few rows (laspy seeking in the compressed files): the mesh of the in-memory run on the
+    same points, with the LAS classification carried as codes; a tile with colours the
+    others lack is refused and leaves no temporary folder."""
+    import recon_cli.io.chunks as C
+    from recon_cli.io.las import write_las
+    from recon_cli.stages.poisson.distributed import reconstruct_files
+
+    pts, nrm = sphere_cloud(10_000, seed=14)
+    pts = pts * 20.0 + np.array([1e5, 2e5, 50.0])
+    cls = np.where(nrm[:, 2] > 0, 6, 2).astype(np.uint8)
+    for name, sel in (("a.laz", pts[:, 0] < 1e5), ("b.laz", pts[:, 0] >= 1e5)):
+        write_las(
+            PointCloud(points=pts[sel], normals=nrm[sel], attributes={"classification": cls[sel]}),
+            str(tmp_path / name),
+        )
+    monkeypatch.setattr(C, "CHUNK_ROWS", 3000)
+    res = reconstruct_files(
+        str(tmp_path), client=cluster, depth=7, partitions=2, attributes="classification"
+    )
+    back = [load(str(tmp_path / n)) for n in ("a.laz", "b.laz")]
+    p2 = np.vstack([b.points for b in back])
+    n2 = np.vstack([b.normals for b in back])
+    c2 = np.concatenate([b.attributes["classification"] for b in back])
+    ref = distributed_poisson(p2, n2, depth=7, partitions=2, properties={"classification": c2})
+    assert res.report["distributed"]["chunks"] == 4
+    # the same mesh (the normals normalised once here, twice there: the last bits differ)
+    assert np.abs(res.mesh.vertices - ref.mesh.vertices).max() < 1e-9
+    assert np.array_equal(res.mesh.faces, ref.mesh.faces)
+    assert np.array_equal(
+        res.mesh.attributes["classification"], ref.mesh.attributes["classification"]
+    )
+    assert res.mesh.attributes["classification"].dtype == np.uint8
+    _closed_one_piece(res.mesh)
+    # a tile with colours the others have not: refused before anything is written
+    rgb = np.full((100, 3), 40000, np.uint16)
+    write_las(PointCloud(points=pts[:100], normals=nrm[:100], colors=rgb), str(tmp_path / "c.laz"))
+    with pytest.raises(InputError, match="do not all have the same"):
+        reconstruct_files(str(tmp_path), client=cluster, depth=7, temp_dir=str(tmp_path))
+    assert not [f for f in os.listdir(tmp_path) if f.startswith(".recon-")]
+
+
+def _recon(argv: list[str]) -> int:
+    """The real CLI entry point in-process; its exit status."""
+    from recon_cli.cli.main import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    return exc.value.code
+
+
+@pytest.mark.slow
+def test_command_reads_the_file_by_chunks(tmp_path, monkeypatch, capsys):
+    """``recon poisson IN OUT --workers 2``: the command never loads IN (the workers read its
+    chunks, dropping and counting a NaN row as the reader does); the mesh is the in-memory
+    distributed run's, double in, double out, with the input's properties in their types."""
+    import recon_cli.io.chunks as C
+    import recon_cli.io.load as L
+
+    pts, nrm = sphere_cloud(12_000, seed=12)
+    props = {
+        "classification": np.where(pts[:, 2] > 0.2, 6, 2).astype(np.uint8),
+        "intensity": (100 + 50 * pts[:, 0]).astype(np.uint16),
+    }
+    src = tmp_path / "sphere.ply"
+    bad = np.insert(pts, 7000, [np.nan, 0.0, 0.0], axis=0)
+    attrs = {k: np.insert(v, 7000, 0) for k, v in props.items()}
+    save(
+        PointCloud(points=bad, normals=np.insert(nrm, 7000, nrm[0], 0), attributes=attrs), str(src)
+    )
+    monkeypatch.setattr(C, "CHUNK_ROWS", 5000)  # three chunks
+
+    def refuse(*a, **k):
+        raise AssertionError("the command loaded IN")
+
+    monkeypatch.setattr(L, "load", refuse)
+    out = tmp_path / "mesh.ply"
+    code = _recon(["poisson", str(src), str(out), "--workers", "2", "--depth", "7", "--json"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    monkeypatch.undo()
+    rep = json.loads(captured.out)
+    assert rep["distributed"]["chunks"] == 3
+    assert set(rep["distributed"]["phases"]) >= {"load", "solve", "extract", "attributes"}
+    assert rep["read"] == {"kept": len(pts), "invalid_dropped": 1}
+    assert rep["attributes"] == ["classification", "intensity"]
+    mesh = load(str(out))
+    _closed_one_piece(mesh)
+    assert mesh.vertices.dtype == np.float64
+    ref = distributed_poisson(pts, nrm, depth=7, partitions=2, properties=props)
+    assert len(ref.mesh.vertices) == len(mesh.vertices)
+    for k in props:
+        assert mesh.attributes[k].dtype == props[k].dtype
+        assert np.array_equal(mesh.attributes[k], ref.mesh.attributes[k])
+    assert not [f for f in os.listdir(tmp_path) if f.startswith(".recon-poisson-")]
+
+
+@pytest.mark.parametrize(
+    "args, msg",
+    [
+        (["--partitions", "2"], "--partitions and --memory-limit go with --workers"),
+        (["--workers", "2", "--degree", "1"], "uses degree 2"),
+        (["--workers", "2", "--scheduler", "tcp://x:1"], "leave them out with --scheduler"),
+        (["--workers", "2", "--backend", "open3d"], "native solver"),
+        (["--workers", "2", "--boundary", "free"], "--boundary free is not available with"),
+        (["--workers", "2", "--grid", "g.npz"], "--grid is not available with --workers"),
+    ],
+)
+def test_command_refuses(tmp_path, capsys, args, msg):
+    pts, nrm = sphere_cloud(500, seed=1)
+    src = tmp_path / "s.ply"
+    save(PointCloud(points=pts, normals=nrm), str(src))
+    assert _recon(["poisson", str(src), str(tmp_path / "o.ply"), *args]) == 2
+    err = capsys.readouterr().err
+    assert msg in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "o.ply").exists()
