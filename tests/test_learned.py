@@ -402,3 +402,23 @@ def test_defaults_meet_the_eikonal_target(tmp_path):
     near = describe(tmp_path / "f.npz")["eikonal"]["near"]
     assert near == res.report["eikonal_near"]
     assert near["fraction_within_0.1"] >= 0.9 and near["cells"] > 100_000, near
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_a_field_of_one_sign_is_refused(monkeypatch, sign):
+    # a fit with no zero level (thin parts beyond the network) is a failure, not a grid
+    import recon_cli.stages.learned as learned
+    from recon_cli.errors import StageFailed
+
+    made = learned._written_grid
+
+    def one_sign(*args, **kwargs):
+        g = made(*args, **kwargs)
+        g.sdf = (sign * (np.abs(g.sdf) + 0.01)).astype(g.sdf.dtype)
+        return g
+
+    monkeypatch.setattr(learned, "_written_grid", one_sign)
+    p, n = sphere_cloud(2000, 1.0, seed=10)
+    params = {"iterations": 20, "width": 16, "depth": 2, "resolution": 16, "threads": 1}
+    with pytest.raises(StageFailed, match="everywhere on the grid"):
+        apply_stage("fit-sdf", PointCloud(points=p, normals=n), params)

@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-from recon_cli.errors import InputError, ParameterError
+from recon_cli.errors import InputError, ParameterError, StageFailed
 from recon_cli.params import Param, StageSpec
 from recon_cli.stages.learned.meshing import extract_mesh, sample_grid
 from recon_cli.stages.learned.model import (
@@ -402,6 +402,13 @@ def run_stage(
         progress=progress,
     )
     grid = _written_grid(fitted.model, data, resolution, padding, progress)
+    values = np.asarray(grid.sdf)
+    if not (np.nanmin(values) < 0.0 < np.nanmax(values)):
+        # a field of one sign has no surface: the fit failed (thin parts beyond its capacity)
+        raise StageFailed(
+            f"fit-sdf: the fitted field is {'positive' if np.nanmin(values) >= 0 else 'negative'} "
+            "everywhere on the grid (no surface); try more --iterations, --frequencies or --width"
+        )
     report = _report(fitted, data, grid, model_path, mesh_path)
     if model_path is not None:
         save_model(fitted.model, model_path)
