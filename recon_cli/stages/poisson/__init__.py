@@ -48,6 +48,8 @@ threshold differs: SurfaceTrimmer's ``--trim`` is an absolute value of the densi
 PoissonRecon writes (a depth-like, logarithmic value; 5 to 7 is typical, smoothed first),
 Open3D users cut a quantile of the vertex densities; ours is a fraction of the median density
 at the samples, so one value (0.1 to 0.3) serves any scan, depth, unit and tessellation.
+``trim="auto"`` needs no value: it cuts where the surface lies farther from the samples than
+0.7 of their local spacing (:func:`.trim.support_ratio`), so sparse real surface stays.
 
 References
 ----------
@@ -184,13 +186,15 @@ SPEC = StageSpec(
             "trim",
             "float",
             0.0,
-            "Cut away the surface where the samples' density is below T times its median at the samples "
-            "(0.1-0.3 removes an open scan's closing sheet).",
+            "Cut away an open scan's closing sheet: 'auto' keeps the surface within 0.7 local "
+            "sample spacings of the samples (sparse real surface stays); a number T cuts where the "
+            "samples' density is below T times its median at the samples.",
             unit="of the median sample density",
             min=0.0,
             max=1.0,
             max_open=True,
-            metavar="T",
+            words={"auto": "auto"},
+            metavar="auto|T",
         ),
         Param(
             "estimate_normals",
@@ -320,10 +324,12 @@ def screened_poisson(
         Condition on the cube's faces (Dirichlet: ``chi = 0``, the outside).
     density : bool
         Add the per-vertex kernel density of the samples as ``attributes["density"]``.
-    trim : float
-        Cut away the surface where the samples' density is below ``trim`` times its median
-        at the samples (0 <= trim < 1; 0 keeps everything); see the module docstring for how
-        this relates to PoissonRecon's SurfaceTrimmer.
+    trim : float or "auto"
+        ``"auto"``: cut away the surface farther than 0.7 local sample spacings from the
+        samples (:func:`.trim.support_ratio`: the threshold comes from the samples, sparse
+        real surface stays). A number: cut away the surface where the samples' density is
+        below ``trim`` times its median at the samples (0 <= trim < 1; 0 keeps everything);
+        see the module docstring for how this relates to PoissonRecon's SurfaceTrimmer.
     colors : (n, 3) or (n, 4) array or None
         Per-point colours, interpolated onto the output vertices.
     full_depth : int
@@ -351,7 +357,12 @@ def screened_poisson(
     from recon_cli.memory import release_free_heap
     from recon_cli.stages.poisson.extract import extract, refine_roots
     from recon_cli.stages.poisson.octree import build_levels
-    from recon_cli.stages.poisson.splat import make_splats, merge_samples, noise_fraction, sample_density
+    from recon_cli.stages.poisson.splat import (
+        make_splats,
+        merge_samples,
+        noise_fraction,
+        sample_density,
+    )
     from recon_cli.stages.poisson.system import chi_levels, iso_value, solve
 
     timings: dict[str, float] = {}
@@ -370,8 +381,10 @@ def screened_poisson(
 
     # ---- kernel density -> area per point and splat level
     t = time.perf_counter()
+    auto_trim = trim == "auto"
+    density_trim = not auto_trim and trim > 0
     splats = make_splats(
-        smp, depth, samples_per_node, point_weight, density or trim > 0, merge=degree == 1
+        smp, depth, samples_per_node, point_weight, density or density_trim, merge=degree == 1
     )
     tree_depth = splats.tree_depth
     if degree == 2:
@@ -457,10 +470,19 @@ def screened_poisson(
 
     mesh = TriangleMesh(vertices=verts, faces=faces)
     vdens = None
-    if density or trim > 0:
+    if density or density_trim:
         vdens = sample_density(splats, (verts - origin) / size)
     trimmed, trimmed_area = 0, 0.0
-    if trim > 0 and len(faces):
+    if auto_trim and len(faces):
+        from recon_cli.stages.poisson.trim import SUPPORT_RATIO, support_ratio, trim_by_density
+
+        ratio = support_ratio(smp.pos * size + origin, verts)[0]
+        cut = trim_by_density(mesh, -ratio, -SUPPORT_RATIO, carry=vdens)
+        if len(cut.mesh.faces) == 0:
+            raise InputError("trim auto removes the whole surface: no part lies near the samples")
+        trimmed = len(mesh.faces) - cut.untouched_faces
+        mesh, vdens, trimmed_area = cut.mesh, cut.carried, cut.removed_area
+    if density_trim and len(faces):
         from recon_cli.stages.poisson.trim import trim_by_density
 
         at_samples = sample_density(splats, smp.pos)
@@ -622,7 +644,7 @@ def run_stage(
     """
     from recon_cli.stages import StageResult
 
-    if backend == "pymeshlab" and (density or trim > 0):
+    if backend == "pymeshlab" and (density or trim != 0):
         raise ParameterError(
             "the pymeshlab backend gives no densities: --density/--trim need native or open3d"
         )
@@ -706,7 +728,24 @@ def run_stage(
             )
         mesh.vertices = mesh.vertices + centre
         trimmed, trimmed_area = 0, 0.0
-        if trim > 0 and len(mesh.faces):
+        if trim == "auto" and len(mesh.faces):
+            from recon_cli.stages.poisson.trim import (
+                SUPPORT_RATIO,
+                merge_per_cell,
+                support_ratio,
+                trim_by_density,
+            )
+
+            cell = float((pts.max(axis=0) - pts.min(axis=0)).max()) * scale / (1 << depth)
+            ratio = support_ratio(merge_per_cell(pts, cell), mesh.vertices)[0]
+            cut = trim_by_density(mesh, -ratio, -SUPPORT_RATIO, carry=dens)
+            if len(cut.mesh.faces) == 0:
+                raise InputError(
+                    "trim auto removes the whole surface: no part lies near the samples"
+                )
+            trimmed = len(mesh.faces) - cut.untouched_faces
+            mesh, dens, trimmed_area = cut.mesh, cut.carried, cut.removed_area
+        elif trim != "auto" and trim > 0 and len(mesh.faces):
             from scipy.spatial import cKDTree
 
             from recon_cli.stages.poisson.trim import trim_by_density
