@@ -211,3 +211,58 @@ def test_auto_depth_camera_keeps_far_floor_drops_sheet_and_flying_pixels():
     s = sample_surface(m, 100_000, seed=1).points
     assert (cKDTree(p).query(s)[0] > 0.01 * diag).mean() <= 1e-3
     assert topology_report(m)["components"] <= 5
+
+
+@pytest.mark.slow
+def test_auto_keeps_sparse_airborne_ground():
+    # the shared airborne tile's ground class (US feet; 26k returns, sparse under canopy and
+    # beside buildings), normals up: auto keeps >= 99.5 % of the ground points within 1 ft of
+    # the mesh where a density cut (0.2) drops the sparse ground, and the closing sheet goes
+    laspy = pytest.importorskip("laspy")
+    from scipy.spatial import cKDTree
+
+    from recon_cli.geometry import PointCloud
+    from recon_cli.mesh.distance import closest_points
+    from recon_cli.mesh.sampling import sample_surface
+    from recon_cli.stages import normals
+
+    from shared_data import SHARED
+
+    las = laspy.read(SHARED / "autzen_trim.laz")
+    g = np.stack([las.x, las.y, las.z], axis=1)[np.asarray(las.classification) == 2]
+    c = normals.run_stage(PointCloud(points=g), orient="direction", direction=(0, 0, 1)).output
+    res = screened_poisson(c.points, c.normals, depth=9, trim="auto")
+    m = res.mesh
+    _manifold_oriented(m)
+    within = (closest_points(m.vertices, m.faces, g)[0] <= 1.0).mean()
+    assert within >= 0.995, within
+    dens = screened_poisson(c.points, c.normals, depth=9, trim=0.2).mesh
+    assert within > (closest_points(dens.vertices, dens.faces, g)[0] <= 1.0).mean() + 0.01
+    # no part of the sheet under the ground (the closed surface's other side) is left
+    v = m.vertices[m.faces]
+    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    assert (n[:, 2] < 0).sum() < 1e-3 * len(n)
+    far = cKDTree(g).query(sample_surface(m, 100_000, seed=1).points)[0] > 5.0
+    assert far.mean() < 0.2, far.mean()  # the untrimmed surface: 94 %
+
+
+@pytest.mark.parametrize("backend", ["native", "open3d"])
+def test_auto_on_both_backends_keeps_the_density_attribute(backend):
+    # an open half sphere: Poisson closes it with a cap below every sample (z >= 0.3); auto
+    # removes the cap, and the density attribute follows the cut (one value per vertex, the
+    # cut vertices' interpolated between their edge's ends)
+    from recon_cli.geometry import PointCloud
+    from recon_cli.stages.poisson import run_stage
+
+    rng = np.random.default_rng(2)
+    v = rng.normal(size=(20_000, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    keep = v[:, 2] > -0.2
+    c = PointCloud(points=v[keep] + [1.0, -2.0, 0.5], normals=v[keep])
+    res = run_stage(c, depth=6, trim="AUTO", density=True, backend=backend)
+    m = res.output
+    _manifold_oriented(m)
+    assert m.vertices[:, 2].min() > 0.5 - 0.2 - 0.1
+    assert 0.1 < res.report["trimmed_area"] < 0.6 and res.report["trimmed_faces"] > 0
+    dens = m.attributes["density"]
+    assert len(dens) == len(m.vertices) and np.isfinite(dens).all() and (dens > 0).all()
