@@ -23,7 +23,7 @@ They only compute; conventions in :mod:`recon_cli.stages.poisson._octree`, and t
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache directory, threading layer)
 from recon_cli._kernels.arrays import lower_bound
@@ -32,6 +32,9 @@ from recon_cli.stages.poisson._octree import MASK21, bsearch, lattice_key
 # B2''' = sum_k A_k delta(u - T_k)
 _A = (1.0, -3.0, 3.0, -1.0)
 _T = (-1.5, -0.5, 0.5, 1.5)
+# parents (matvec) and points (chi_at) per chunk of a parallel loop
+MATVEC_CHUNK = 512
+POINT_CHUNK = 1024
 
 
 @njit(cache=True, inline="always")
@@ -153,7 +156,7 @@ def _nbr(nb, i, o, tx, ty, tz):
     return 8 * p + ((bx & 1) | ((by & 1) << 1) | ((bz & 1) << 2))
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def stiffness_matvec(q_keys, nb, inp, xmap, omap, m1, k1, h, x, out):
     """out[m] += h * sum over the 125 cells within 2 of m of the stiffness times x, for the
     children m of the parents flagged ``inp``: each parent's 6x6x6 block of cells is gathered
@@ -161,80 +164,85 @@ def stiffness_matvec(q_keys, nb, inp, xmap, omap, m1, k1, h, x, out):
     8 children together. ``x`` holds parent ``i``'s block at ``8 xmap[i]`` (none where
     ``xmap[i]`` < 0, read as 0), ``out`` at ``8 omap[i]``: the identity for vectors on all
     of E, the rank among the flagged parents for the solve's vectors on the unknowns only
-    (the prolonged coarse field is on all of E, its product only needed at the unknowns)."""
-    X = np.zeros((6, 6, 6))
-    zm = np.empty((6, 6, 2))
-    zk = np.empty((6, 6, 2))
-    ym = np.empty((6, 2, 2))
-    yk = np.empty((6, 2, 2))
-    for i in range(len(q_keys)):
-        if not inp[i]:
-            continue
-        # one neighbour block (8 siblings, contiguous) at a time: 27 reads of nb, not 216
-        for t in range(27):
-            p = nb[i, t]
-            if p >= 0:
-                p = xmap[p]
-            ax = 2 * (t % 3)
-            ay = 2 * ((t // 3) % 3)
-            az = 2 * (t // 9)
-            if p < 0:
-                for o in range(8):
-                    X[ax + (o & 1), ay + ((o >> 1) & 1), az + (o >> 2)] = 0.0
-            else:
-                for o in range(8):
-                    X[ax + (o & 1), ay + ((o >> 1) & 1), az + (o >> 2)] = x[8 * p + o]
-        k = q_keys[i]
-        px = 2 * ((k >> 42) & MASK21)
-        py = 2 * ((k >> 21) & MASK21)
-        pz = 2 * (k & MASK21)
-        # z: the two children's rows, for every (x, y) of the block (the table rows read
-        # once per child and the 5 taps written out, with the gather by blocks above: 44 ->
-        # 32 ms of CPU on 1.7M cells, the same sums in the same order)
-        for oz in range(2):
-            cz = pz + oz
-            a0, a1, a2, a3, a4 = m1[cz, 0], m1[cz, 1], m1[cz, 2], m1[cz, 3], m1[cz, 4]
-            b0, b1, b2, b3, b4 = k1[cz, 0], k1[cz, 1], k1[cz, 2], k1[cz, 3], k1[cz, 4]
-            for bx in range(6):
-                for by in range(6):
-                    v0 = X[bx, by, oz]
-                    v1 = X[bx, by, oz + 1]
-                    v2 = X[bx, by, oz + 2]
-                    v3 = X[bx, by, oz + 3]
-                    v4 = X[bx, by, oz + 4]
-                    zm[bx, by, oz] = 0.0 + a0 * v0 + a1 * v1 + a2 * v2 + a3 * v3 + a4 * v4
-                    zk[bx, by, oz] = 0.0 + b0 * v0 + b1 * v1 + b2 * v2 + b3 * v3 + b4 * v4
-        # y
-        for oy in range(2):
-            cy = py + oy
-            a0, a1, a2, a3, a4 = m1[cy, 0], m1[cy, 1], m1[cy, 2], m1[cy, 3], m1[cy, 4]
-            b0, b1, b2, b3, b4 = k1[cy, 0], k1[cy, 1], k1[cy, 2], k1[cy, 3], k1[cy, 4]
-            for bx in range(6):
-                for oz in range(2):
-                    u0 = zm[bx, oy, oz]
-                    u1 = zm[bx, oy + 1, oz]
-                    u2 = zm[bx, oy + 2, oz]
-                    u3 = zm[bx, oy + 3, oz]
-                    u4 = zm[bx, oy + 4, oz]
-                    ym[bx, oy, oz] = 0.0 + a0 * u0 + a1 * u1 + a2 * u2 + a3 * u3 + a4 * u4
-                    yk[bx, oy, oz] = (
-                        0.0
-                        + (b0 * u0 + a0 * zk[bx, oy, oz])
-                        + (b1 * u1 + a1 * zk[bx, oy + 1, oz])
-                        + (b2 * u2 + a2 * zk[bx, oy + 2, oz])
-                        + (b3 * u3 + a3 * zk[bx, oy + 3, oz])
-                        + (b4 * u4 + a4 * zk[bx, oy + 4, oz])
-                    )
-        # x
-        for o in range(8):
-            ox = o & 1
-            oy = (o >> 1) & 1
-            oz = (o >> 2) & 1
-            cx = px + ox
-            y = 0.0
-            for a in range(5):
-                y += k1[cx, a] * ym[ox + a, oy, oz] + m1[cx, a] * yk[ox + a, oy, oz]
-            out[8 * omap[i] + o] += h * y
+    (the prolonged coarse field is on all of E, its product only needed at the unknowns).
+    Parents in chunks over the threads: each writes its own children only, so the sums
+    are the same whatever the threads."""
+    nq = len(q_keys)
+    nchunks = (nq + MATVEC_CHUNK - 1) // MATVEC_CHUNK
+    for ci in prange(nchunks):
+        X = np.zeros((6, 6, 6))
+        zm = np.empty((6, 6, 2))
+        zk = np.empty((6, 6, 2))
+        ym = np.empty((6, 2, 2))
+        yk = np.empty((6, 2, 2))
+        for i in range(ci * MATVEC_CHUNK, min(nq, (ci + 1) * MATVEC_CHUNK)):
+            if not inp[i]:
+                continue
+            # one neighbour block (8 siblings, contiguous) at a time: 27 reads of nb, not 216
+            for t in range(27):
+                p = nb[i, t]
+                if p >= 0:
+                    p = xmap[p]
+                ax = 2 * (t % 3)
+                ay = 2 * ((t // 3) % 3)
+                az = 2 * (t // 9)
+                if p < 0:
+                    for o in range(8):
+                        X[ax + (o & 1), ay + ((o >> 1) & 1), az + (o >> 2)] = 0.0
+                else:
+                    for o in range(8):
+                        X[ax + (o & 1), ay + ((o >> 1) & 1), az + (o >> 2)] = x[8 * p + o]
+            k = q_keys[i]
+            px = 2 * ((k >> 42) & MASK21)
+            py = 2 * ((k >> 21) & MASK21)
+            pz = 2 * (k & MASK21)
+            # z: the two children's rows, for every (x, y) of the block (the table rows read
+            # once per child and the 5 taps written out, with the gather by blocks above: 44 ->
+            # 32 ms of CPU on 1.7M cells, the same sums in the same order)
+            for oz in range(2):
+                cz = pz + oz
+                a0, a1, a2, a3, a4 = m1[cz, 0], m1[cz, 1], m1[cz, 2], m1[cz, 3], m1[cz, 4]
+                b0, b1, b2, b3, b4 = k1[cz, 0], k1[cz, 1], k1[cz, 2], k1[cz, 3], k1[cz, 4]
+                for bx in range(6):
+                    for by in range(6):
+                        v0 = X[bx, by, oz]
+                        v1 = X[bx, by, oz + 1]
+                        v2 = X[bx, by, oz + 2]
+                        v3 = X[bx, by, oz + 3]
+                        v4 = X[bx, by, oz + 4]
+                        zm[bx, by, oz] = 0.0 + a0 * v0 + a1 * v1 + a2 * v2 + a3 * v3 + a4 * v4
+                        zk[bx, by, oz] = 0.0 + b0 * v0 + b1 * v1 + b2 * v2 + b3 * v3 + b4 * v4
+            # y
+            for oy in range(2):
+                cy = py + oy
+                a0, a1, a2, a3, a4 = m1[cy, 0], m1[cy, 1], m1[cy, 2], m1[cy, 3], m1[cy, 4]
+                b0, b1, b2, b3, b4 = k1[cy, 0], k1[cy, 1], k1[cy, 2], k1[cy, 3], k1[cy, 4]
+                for bx in range(6):
+                    for oz in range(2):
+                        u0 = zm[bx, oy, oz]
+                        u1 = zm[bx, oy + 1, oz]
+                        u2 = zm[bx, oy + 2, oz]
+                        u3 = zm[bx, oy + 3, oz]
+                        u4 = zm[bx, oy + 4, oz]
+                        ym[bx, oy, oz] = 0.0 + a0 * u0 + a1 * u1 + a2 * u2 + a3 * u3 + a4 * u4
+                        yk[bx, oy, oz] = (
+                            0.0
+                            + (b0 * u0 + a0 * zk[bx, oy, oz])
+                            + (b1 * u1 + a1 * zk[bx, oy + 1, oz])
+                            + (b2 * u2 + a2 * zk[bx, oy + 2, oz])
+                            + (b3 * u3 + a3 * zk[bx, oy + 3, oz])
+                            + (b4 * u4 + a4 * zk[bx, oy + 4, oz])
+                        )
+            # x
+            for o in range(8):
+                ox = o & 1
+                oy = (o >> 1) & 1
+                oz = (o >> 2) & 1
+                cx = px + ox
+                y = 0.0
+                for a in range(5):
+                    y += k1[cx, a] * ym[ox + a, oy, oz] + m1[cx, a] * yk[ox + a, oy, oz]
+                out[8 * omap[i] + o] += h * y
 
 
 @njit(cache=True)
@@ -632,7 +640,7 @@ def level_pcg(q_keys, nb, inp, cmap, m1, k1, h, n, s, scell, sloc, sw, rhs, diag
     return x, it, rel
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def chi_at(pos, top, q_all, q_off, inp_all, nb_all, coef_all, s):
     """chi at unit-cube positions (m, 3) from every level's coefficients (the levels'
     arrays concatenated, level ``L``'s parents at ``q_off[L]:q_off[L + 1]``, its ``nb`` rows
@@ -641,56 +649,65 @@ def chi_at(pos, top, q_all, q_off, inp_all, nb_all, coef_all, s):
     A level's functions are the coarser levels' plus its corrections, which live on its
     cells and reach the cells next to them: a point takes its value from the finest level
     with a cell of its own within one cell of the point's (every finer level adds nothing
-    there), evaluated from the 27 coefficients around it (all in that level's E).
+    there), evaluated from the 27 coefficients around it (all in that level's E). Points in
+    chunks over the threads.
     """
     m = pos.shape[0]
     out = np.zeros(m)
-    w = np.empty((3, 3))
-    idx = np.empty(27, np.int64)
-    for p in range(m):
-        for lv in range(top, 0, -1):
-            lo = q_off[lv]
-            hi = q_off[lv + 1]
-            if hi == lo:
-                continue
-            n = 1 << lv
-            scale = float(n)
-            c0 = min(max(int(np.floor(pos[p, 0] * scale)), 0), n - 1)
-            c1 = min(max(int(np.floor(pos[p, 1] * scale)), 0), n - 1)
-            c2 = min(max(int(np.floor(pos[p, 2] * scale)), 0), n - 1)
-            key = lattice_key(c0 >> 1, c1 >> 1, c2 >> 1)
-            i = lower_bound(q_all, key, lo, hi)
-            if i >= hi or q_all[i] != key:
-                continue
-            ox = c0 & 1
-            oy = c1 & 1
-            oz = c2 & 1
-            # the 27 cells around, looked up once for both loops below (measured: as fast as
-            # through _nbr on a slice of nb_all, 18-20 ms CPU at 74k points of 1.7M cells)
-            near = False
-            for r in range(27):
-                bx = ox + r % 3 - 1
-                by = oy + (r // 3) % 3 - 1
-                bz = oz + r // 9 - 1
-                q = nb_all[i, ((bx >> 1) + 1) + 3 * ((by >> 1) + 1) + 9 * ((bz >> 1) + 1)]
-                if q < 0:
-                    idx[r] = -1
-                else:
-                    idx[r] = 8 * (lo + q) + ((bx & 1) | ((by & 1) << 1) | ((bz & 1) << 2))
-                    if inp_all[lo + q]:
-                        near = True
-            if not near:
-                continue
-            w[0, 0], w[0, 1], w[0, 2] = _w3(min(max(pos[p, 0] * scale - c0, 0.0), 1.0), c0, n, s)
-            w[1, 0], w[1, 1], w[1, 2] = _w3(min(max(pos[p, 1] * scale - c1, 0.0), 1.0), c1, n, s)
-            w[2, 0], w[2, 1], w[2, 2] = _w3(min(max(pos[p, 2] * scale - c2, 0.0), 1.0), c2, n, s)
-            v = 0.0
-            for r in range(27):
-                j = idx[r]
-                if j >= 0:
-                    v += w[0, r % 3] * w[1, (r // 3) % 3] * w[2, r // 9] * coef_all[j]
-            out[p] = v
-            break
+    nchunks = (m + POINT_CHUNK - 1) // POINT_CHUNK
+    for ci in prange(nchunks):
+        w = np.empty((3, 3))
+        idx = np.empty(27, np.int64)
+        for p in range(ci * POINT_CHUNK, min(m, (ci + 1) * POINT_CHUNK)):
+            for lv in range(top, 0, -1):
+                lo = q_off[lv]
+                hi = q_off[lv + 1]
+                if hi == lo:
+                    continue
+                n = 1 << lv
+                scale = float(n)
+                c0 = min(max(int(np.floor(pos[p, 0] * scale)), 0), n - 1)
+                c1 = min(max(int(np.floor(pos[p, 1] * scale)), 0), n - 1)
+                c2 = min(max(int(np.floor(pos[p, 2] * scale)), 0), n - 1)
+                key = lattice_key(c0 >> 1, c1 >> 1, c2 >> 1)
+                i = lower_bound(q_all, key, lo, hi)
+                if i >= hi or q_all[i] != key:
+                    continue
+                ox = c0 & 1
+                oy = c1 & 1
+                oz = c2 & 1
+                # the 27 cells around, looked up once for both loops below (measured: as fast as
+                # through _nbr on a slice of nb_all, 18-20 ms CPU at 74k points of 1.7M cells)
+                near = False
+                for r in range(27):
+                    bx = ox + r % 3 - 1
+                    by = oy + (r // 3) % 3 - 1
+                    bz = oz + r // 9 - 1
+                    q = nb_all[i, ((bx >> 1) + 1) + 3 * ((by >> 1) + 1) + 9 * ((bz >> 1) + 1)]
+                    if q < 0:
+                        idx[r] = -1
+                    else:
+                        idx[r] = 8 * (lo + q) + ((bx & 1) | ((by & 1) << 1) | ((bz & 1) << 2))
+                        if inp_all[lo + q]:
+                            near = True
+                if not near:
+                    continue
+                w[0, 0], w[0, 1], w[0, 2] = _w3(
+                    min(max(pos[p, 0] * scale - c0, 0.0), 1.0), c0, n, s
+                )
+                w[1, 0], w[1, 1], w[1, 2] = _w3(
+                    min(max(pos[p, 1] * scale - c1, 0.0), 1.0), c1, n, s
+                )
+                w[2, 0], w[2, 1], w[2, 2] = _w3(
+                    min(max(pos[p, 2] * scale - c2, 0.0), 1.0), c2, n, s
+                )
+                v = 0.0
+                for r in range(27):
+                    j = idx[r]
+                    if j >= 0:
+                        v += w[0, r % 3] * w[1, (r // 3) % 3] * w[2, r // 9] * coef_all[j]
+                out[p] = v
+                break
     return out
 
 
@@ -969,7 +986,7 @@ def _block_rhs(X, z3, y3, k, n, s, fv, fd, out, base):
         out[base + o] += v
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def field_rhs(q_keys, nb, flag, n, s, fv, fd, vec, idx, rows, out):
     """out[m] += int grad(B_m) . W for the children m of the parents flagged ``flag``, W the
     field of unit-integral cell-centred quadratic B-splines with coefficients ``vec`` (8q, 3)
@@ -980,158 +997,166 @@ def field_rhs(q_keys, nb, flag, n, s, fv, fd, vec, idx, rows, out):
     ``t`` (:func:`b2_factors`, width 1; ``fd`` per unit length). Each parent's 6 x 6 x 6
     block of the field is gathered once (cells beyond the faces: their mirror's, with sign
     ``s``, ``-s`` for the component along the face's normal) and the separable stencil
-    applied one axis at a time to all 8 children together."""
+    applied one axis at a time to all 8 children together. Parents in chunks over the
+    threads (each writes its own children only)."""
     dense = len(vec) > 0
     sparse = len(idx) > 0
-    X = np.zeros((6, 6, 6, 3))
-    z3 = np.empty((6, 6, 2, 3))
-    y3 = np.empty((6, 2, 2, 3))
-    for i in range(len(q_keys)):
-        if not flag[i]:
-            continue
-        for bz in range(6):
-            for by in range(6):
-                for bx in range(6):
-                    p = nb[i, (bx >> 1) + 3 * (by >> 1) + 9 * (bz >> 1)]
-                    if p >= 0:
-                        m = 8 * p + ((bx & 1) | ((by & 1) << 1) | ((bz & 1) << 2))
-                        v0 = 0.0
-                        v1 = 0.0
-                        v2 = 0.0
-                        if dense:
-                            v0 = vec[m, 0]
-                            v1 = vec[m, 1]
-                            v2 = vec[m, 2]
-                        if sparse:
-                            r = idx[m]
-                            if r >= 0:
-                                if dense:
-                                    v0 += rows[r, 0]
-                                    v1 += rows[r, 1]
-                                    v2 += rows[r, 2]
-                                else:
-                                    v0 = rows[r, 0]
-                                    v1 = rows[r, 1]
-                                    v2 = rows[r, 2]
-                        X[bx, by, bz, 0] = v0
-                        X[bx, by, bz, 1] = v1
-                        X[bx, by, bz, 2] = v2
-                    else:
-                        X[bx, by, bz, 0] = 0.0
-                        X[bx, by, bz, 1] = 0.0
-                        X[bx, by, bz, 2] = 0.0
-        _block_rhs(X, z3, y3, q_keys[i], n, s, fv, fd, out, 8 * i)
+    nq = len(q_keys)
+    nchunks = (nq + MATVEC_CHUNK - 1) // MATVEC_CHUNK
+    for ci in prange(nchunks):
+        X = np.zeros((6, 6, 6, 3))
+        z3 = np.empty((6, 6, 2, 3))
+        y3 = np.empty((6, 2, 2, 3))
+        for i in range(ci * MATVEC_CHUNK, min(nq, (ci + 1) * MATVEC_CHUNK)):
+            if not flag[i]:
+                continue
+            for bz in range(6):
+                for by in range(6):
+                    for bx in range(6):
+                        p = nb[i, (bx >> 1) + 3 * (by >> 1) + 9 * (bz >> 1)]
+                        if p >= 0:
+                            m = 8 * p + ((bx & 1) | ((by & 1) << 1) | ((bz & 1) << 2))
+                            v0 = 0.0
+                            v1 = 0.0
+                            v2 = 0.0
+                            if dense:
+                                v0 = vec[m, 0]
+                                v1 = vec[m, 1]
+                                v2 = vec[m, 2]
+                            if sparse:
+                                r = idx[m]
+                                if r >= 0:
+                                    if dense:
+                                        v0 += rows[r, 0]
+                                        v1 += rows[r, 1]
+                                        v2 += rows[r, 2]
+                                    else:
+                                        v0 = rows[r, 0]
+                                        v1 = rows[r, 1]
+                                        v2 = rows[r, 2]
+                            X[bx, by, bz, 0] = v0
+                            X[bx, by, bz, 1] = v1
+                            X[bx, by, bz, 2] = v2
+                        else:
+                            X[bx, by, bz, 0] = 0.0
+                            X[bx, by, bz, 1] = 0.0
+                            X[bx, by, bz, 2] = 0.0
+            _block_rhs(X, z3, y3, q_keys[i], n, s, fv, fd, out, 8 * i)
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def field_rhs_prolonged(q_keys, nb, flag, n, s, fv, fd, cq_keys, cnb, cvec, idx, rows, out):
     """:func:`field_rhs` for the field ``cvec`` of the coarser level (on its E, folded) refined
     on the fly (:func:`prolong_field`'s mask, per parent: the coarser cells P - 2 .. P + 2
     per axis give the block's cells 2P - 2 .. 2P + 3) plus ``rows[idx]``: for the finest
     level, whose refined field on E (24 B a cell) would be the largest array of the solve.
-    Equal to :func:`field_rhs` of :func:`prolong_field`'s result to rounding."""
+    Equal to :func:`field_rhs` of :func:`prolong_field`'s result to rounding. Parents in
+    chunks over the threads (each writes its own children only)."""
     w = np.array([0.125, 0.375, 0.375, 0.125])
     nc = n >> 1
     sparse = len(idx) > 0
-    C = np.zeros((5, 5, 5, 3))
-    R1 = np.zeros((6, 5, 5, 3))
-    R2 = np.zeros((6, 6, 5, 3))
-    X = np.zeros((6, 6, 6, 3))
-    z3 = np.empty((6, 6, 2, 3))
-    y3 = np.empty((6, 2, 2, 3))
-    for i in range(len(q_keys)):
-        if not flag[i]:
-            continue
-        k = q_keys[i]
-        px = (k >> 42) & MASK21
-        py = (k >> 21) & MASK21
-        pz = k & MASK21
-        C[:] = 0.0
-        j = find_cell(cq_keys, px, py, pz)
-        if j >= 0:
-            jb = j >> 3
-            jo = j & 7
-            for c in range(5):
-                bz = ((jo >> 2) & 1) + c - 2
-                for b in range(5):
-                    by = ((jo >> 1) & 1) + b - 2
+    nq = len(q_keys)
+    nchunks = (nq + MATVEC_CHUNK - 1) // MATVEC_CHUNK
+    for ci in prange(nchunks):
+        C = np.zeros((5, 5, 5, 3))
+        R1 = np.zeros((6, 5, 5, 3))
+        R2 = np.zeros((6, 6, 5, 3))
+        X = np.zeros((6, 6, 6, 3))
+        z3 = np.empty((6, 6, 2, 3))
+        y3 = np.empty((6, 2, 2, 3))
+        for i in range(ci * MATVEC_CHUNK, min(nq, (ci + 1) * MATVEC_CHUNK)):
+            if not flag[i]:
+                continue
+            k = q_keys[i]
+            px = (k >> 42) & MASK21
+            py = (k >> 21) & MASK21
+            pz = k & MASK21
+            C[:] = 0.0
+            j = find_cell(cq_keys, px, py, pz)
+            if j >= 0:
+                jb = j >> 3
+                jo = j & 7
+                for c in range(5):
+                    bz = ((jo >> 2) & 1) + c - 2
+                    for b in range(5):
+                        by = ((jo >> 1) & 1) + b - 2
+                        for a in range(5):
+                            bx = (jo & 1) + a - 2
+                            q = cnb[jb, ((bx >> 1) + 1) + 3 * ((by >> 1) + 1) + 9 * ((bz >> 1) + 1)]
+                            if q >= 0:
+                                m = 8 * q + ((bx & 1) | ((by & 1) << 1) | ((bz & 1) << 2))
+                                C[a, b, c, 0] = cvec[m, 0]
+                                C[a, b, c, 1] = cvec[m, 1]
+                                C[a, b, c, 2] = cvec[m, 2]
+                # coarser cells beyond the faces: their mirrors' (sign s, -s for the component
+                # along the face's normal), axis by axis
+                for ax in range(3):
+                    pc = px if ax == 0 else (py if ax == 1 else pz)
                     for a in range(5):
-                        bx = (jo & 1) + a - 2
-                        q = cnb[jb, ((bx >> 1) + 1) + 3 * ((by >> 1) + 1) + 9 * ((bz >> 1) + 1)]
-                        if q >= 0:
-                            m = 8 * q + ((bx & 1) | ((by & 1) << 1) | ((bz & 1) << 2))
-                            C[a, b, c, 0] = cvec[m, 0]
-                            C[a, b, c, 1] = cvec[m, 1]
-                            C[a, b, c, 2] = cvec[m, 2]
-            # coarser cells beyond the faces: their mirrors' (sign s, -s for the component
-            # along the face's normal), axis by axis
-            for ax in range(3):
-                pc = px if ax == 0 else (py if ax == 1 else pz)
-                for a in range(5):
-                    cc = pc - 2 + a
-                    if cc < 0:
-                        ma = -1 - cc - (pc - 2)
-                    elif cc >= nc:
-                        ma = 2 * nc - 1 - cc - (pc - 2)
-                    else:
+                        cc = pc - 2 + a
+                        if cc < 0:
+                            ma = -1 - cc - (pc - 2)
+                        elif cc >= nc:
+                            ma = 2 * nc - 1 - cc - (pc - 2)
+                        else:
+                            continue
+                        for u in range(5):
+                            for v in range(5):
+                                for comp in range(3):
+                                    sg = -s if comp == ax else s
+                                    if ax == 0:
+                                        C[a, u, v, comp] = sg * C[ma, u, v, comp]
+                                    elif ax == 1:
+                                        C[u, a, v, comp] = sg * C[u, ma, v, comp]
+                                    else:
+                                        C[u, v, a, comp] = sg * C[u, v, ma, comp]
+            # refine, one axis at a time: block cell 2P - 2 + b takes coarser cell P - 2 + a with
+            # weight w[b + 3 - 2a]
+            for b in range(6):
+                for u in range(5):
+                    for v in range(5):
+                        for comp in range(3):
+                            t = 0.0
+                            for a in range(5):
+                                e = b + 3 - 2 * a
+                                if 0 <= e <= 3:
+                                    t += w[e] * C[a, u, v, comp]
+                            R1[b, u, v, comp] = t
+            for b in range(6):
+                for u in range(6):
+                    for v in range(5):
+                        for comp in range(3):
+                            t = 0.0
+                            for a in range(5):
+                                e = b + 3 - 2 * a
+                                if 0 <= e <= 3:
+                                    t += w[e] * R1[u, a, v, comp]
+                            R2[u, b, v, comp] = t
+            for b in range(6):
+                for u in range(6):
+                    for v in range(6):
+                        for comp in range(3):
+                            t = 0.0
+                            for a in range(5):
+                                e = b + 3 - 2 * a
+                                if 0 <= e <= 3:
+                                    t += w[e] * R2[u, v, a, comp]
+                            X[u, v, b, comp] = t
+            if sparse:
+                for t27 in range(27):
+                    p = nb[i, t27]
+                    if p < 0:
                         continue
-                    for u in range(5):
-                        for v in range(5):
-                            for comp in range(3):
-                                sg = -s if comp == ax else s
-                                if ax == 0:
-                                    C[a, u, v, comp] = sg * C[ma, u, v, comp]
-                                elif ax == 1:
-                                    C[u, a, v, comp] = sg * C[u, ma, v, comp]
-                                else:
-                                    C[u, v, a, comp] = sg * C[u, v, ma, comp]
-        # refine, one axis at a time: block cell 2P - 2 + b takes coarser cell P - 2 + a with
-        # weight w[b + 3 - 2a]
-        for b in range(6):
-            for u in range(5):
-                for v in range(5):
-                    for comp in range(3):
-                        t = 0.0
-                        for a in range(5):
-                            e = b + 3 - 2 * a
-                            if 0 <= e <= 3:
-                                t += w[e] * C[a, u, v, comp]
-                        R1[b, u, v, comp] = t
-        for b in range(6):
-            for u in range(6):
-                for v in range(5):
-                    for comp in range(3):
-                        t = 0.0
-                        for a in range(5):
-                            e = b + 3 - 2 * a
-                            if 0 <= e <= 3:
-                                t += w[e] * R1[u, a, v, comp]
-                        R2[u, b, v, comp] = t
-        for b in range(6):
-            for u in range(6):
-                for v in range(6):
-                    for comp in range(3):
-                        t = 0.0
-                        for a in range(5):
-                            e = b + 3 - 2 * a
-                            if 0 <= e <= 3:
-                                t += w[e] * R2[u, v, a, comp]
-                        X[u, v, b, comp] = t
-        if sparse:
-            for t27 in range(27):
-                p = nb[i, t27]
-                if p < 0:
-                    continue
-                ax = 2 * (t27 % 3)
-                ay = 2 * ((t27 // 3) % 3)
-                az = 2 * (t27 // 9)
-                for o in range(8):
-                    r = idx[8 * p + o]
-                    if r >= 0:
-                        X[ax + (o & 1), ay + ((o >> 1) & 1), az + (o >> 2), 0] += rows[r, 0]
-                        X[ax + (o & 1), ay + ((o >> 1) & 1), az + (o >> 2), 1] += rows[r, 1]
-                        X[ax + (o & 1), ay + ((o >> 1) & 1), az + (o >> 2), 2] += rows[r, 2]
-        _block_rhs(X, z3, y3, k, n, s, fv, fd, out, 8 * i)
+                    ax = 2 * (t27 % 3)
+                    ay = 2 * ((t27 // 3) % 3)
+                    az = 2 * (t27 // 9)
+                    for o in range(8):
+                        r = idx[8 * p + o]
+                        if r >= 0:
+                            X[ax + (o & 1), ay + ((o >> 1) & 1), az + (o >> 2), 0] += rows[r, 0]
+                            X[ax + (o & 1), ay + ((o >> 1) & 1), az + (o >> 2), 1] += rows[r, 1]
+                            X[ax + (o & 1), ay + ((o >> 1) & 1), az + (o >> 2), 2] += rows[r, 2]
+            _block_rhs(X, z3, y3, k, n, s, fv, fd, out, 8 * i)
 
 
 @njit(cache=True)
