@@ -18,8 +18,62 @@ import numpy as np
 from recon_cli.errors import InputError
 
 
+class Geometry:
+    """What :class:`PointCloud` and :class:`TriangleMesh` share: conversions to and from Open3D
+    and trimesh (:mod:`recon_cli.backends.interop`) and the report of the stage that made them.
+
+    Attributes
+    ----------
+    report : dict or None
+        The report of the stage whose result this is, when a library function made it
+        (``recon_cli.poisson(...).report``: the keys of ``recon poisson --json``), else None.
+    """
+
+    report: dict[str, Any] | None = None
+
+    def _arrays(self) -> dict[str, Any]:
+        """The arrays the conversions take (``faces`` None for a cloud)."""
+        names = ("points", "faces", "normals", "colors", "attributes", "face_attributes")
+        return {k: getattr(self, k, None) for k in names}
+
+    def to_open3d(self, tensor: bool = False) -> Any:
+        """This object as Open3D geometry (a copy; coordinates and normals in float64).
+
+        Parameters
+        ----------
+        tensor : bool
+            ``open3d.t.geometry`` (every attribute kept, each in its own dtype) instead of
+            the legacy ``open3d.geometry``, which holds points, normals, RGB colours and
+            triangles only (see :mod:`recon_cli.backends.interop`).
+
+        Returns
+        -------
+        open3d.geometry.PointCloud or open3d.geometry.TriangleMesh (or their ``open3d.t`` kinds)
+
+        Raises
+        ------
+        BackendError
+            Open3D is not installed (``pip install 'recon[reference]'``).
+        """
+        from recon_cli.backends import interop
+
+        return interop.to_open3d(**self._arrays(), tensor=tensor)
+
+    def to_trimesh(self) -> Any:
+        """This object as a ``trimesh.Trimesh`` or ``trimesh.PointCloud`` (a copy, float64).
+
+        A mesh keeps its vertex order (``process=False``), vertex normals, colours (RGBA 8-bit)
+        and every vertex and face attribute; a cloud's normals and attributes go to the
+        ``trimesh.PointCloud``'s ``metadata`` (``vertex_normals``, ``vertex_attributes``),
+        where :func:`geometry_from` finds them again.
+        """
+        from recon_cli.backends import interop
+
+        return interop.to_trimesh(**self._arrays())
+
+
 @dataclass
-class PointCloud:
+class PointCloud(Geometry):
     """A set of points with optional normals, colours and per-point scalars.
 
     Parameters
@@ -97,7 +151,7 @@ class PointCloud:
 
 
 @dataclass
-class TriangleMesh:
+class TriangleMesh(Geometry):
     """A triangle mesh with optional per-vertex normals, colours and scalars.
 
     Parameters
@@ -167,6 +221,42 @@ class TriangleMesh:
             point_dtype=self.point_dtype,
             obj_info=list(self.obj_info),
         )
+
+
+def geometry_from(obj: Any) -> PointCloud | TriangleMesh:
+    """recon's :class:`PointCloud` or :class:`TriangleMesh` for an Open3D or trimesh point cloud
+    or triangle mesh (legacy or tensor Open3D geometry); a recon object is returned as it is.
+
+    The arrays are copied; coordinates and normals are float64, colours 8-bit (see
+    :mod:`recon_cli.backends.interop` for what each library holds).
+
+    Raises
+    ------
+    InputError
+        ``obj`` is none of these.
+    """
+    if isinstance(obj, (PointCloud, TriangleMesh)):
+        return obj
+    from recon_cli.backends import interop
+
+    library = interop.library_of(obj)
+    if library is None:
+        raise InputError(
+            f"expected a point cloud or a mesh (recon, Open3D or trimesh), got {type(obj).__name__}"
+        )
+    a = interop.from_open3d(obj) if library == "open3d" else interop.from_trimesh(obj)
+    if a["faces"] is None:
+        return PointCloud(
+            points=a["points"], normals=a["normals"], colors=a["colors"], attributes=a["attributes"]
+        )
+    return TriangleMesh(
+        vertices=a["points"],
+        faces=a["faces"],
+        normals=a["normals"],
+        colors=a["colors"],
+        attributes=a["attributes"],
+        face_attributes=a["face_attributes"],
+    )
 
 
 def as_point_cloud(obj: PointCloud | TriangleMesh) -> PointCloud:

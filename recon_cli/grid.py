@@ -13,8 +13,12 @@ import numpy as np
 from recon_cli.errors import InputError
 
 
+class _Reported:
+    report: dict[str, Any] | None = None
+
+
 @dataclass
-class Grid:
+class Grid(_Reported):
     """Samples of a scalar field on a regular grid.
 
     Parameters
@@ -30,6 +34,12 @@ class Grid:
     point_dtype : np.float32 or np.float64
         Float type of the coordinates of the source the grid was computed from; meshes
         extracted from it are written with it (see :func:`recon_cli.geometry.storage_dtype`).
+
+    Attributes
+    ----------
+    report : dict or None
+        The report of the stage whose result this is, when a library function made it
+        (``recon_cli.sdf(...).report``: the keys of ``recon sdf --json``), else None.
     """
 
     sdf: np.ndarray

@@ -8,8 +8,9 @@ that one declaration come
 - the click options of the stage's command (:func:`recon_cli.cli.options.stage_command`),
 - the checks of a pipeline file before anything runs (:mod:`recon_cli.pipeline`),
 - ``recon run --set STAGE.PARAM=VALUE`` and
-- the README's parameter tables (``python -m recon_cli.params README.md`` rewrites them;
-  a test fails when they disagree).
+- the README's parameter tables (:meth:`StageSpec.markdown_table`; ``python -m
+  recon_cli.tools.readme README.md`` rewrites them, a test fails when they disagree) and
+- the library's stage functions (``recon_cli.poisson(...)``, :mod:`recon_cli.api`).
 
 Values are checked one way everywhere (:meth:`Param.coerce`). Typed values (TOML, Python)
 must have the declared type — ``depth = true`` is an error, not depth 1 — and text (the
@@ -480,42 +481,3 @@ def describe_data(have: frozenset[str] | set[str]) -> str:
             "a point cloud with normals" if "oriented" in have else "a point cloud without normals"
         )
     return "nothing usable"
-
-
-# ---- README tables -----------------------------------------------------------------------------------
-_BLOCK = re.compile(r"(<!-- params: ([a-z0-9_-]+) -->\n)(.*?)(<!-- /params -->)", re.S)
-
-
-def readme_tables(text: str) -> dict[str, str]:
-    """The parameter tables in README ``text``: stage name -> table text (between the markers)."""
-    return {m.group(2): m.group(3).strip() for m in _BLOCK.finditer(text)}
-
-
-def render_readme(text: str) -> str:
-    """README ``text`` with every marked parameter table regenerated from the declarations."""
-    from recon_cli.stages import get_spec
-
-    def sub(m: re.Match) -> str:
-        return m.group(1) + get_spec(m.group(2)).markdown_table() + "\n" + m.group(4)
-
-    return _BLOCK.sub(sub, text)
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m recon_cli.params README.md``: rewrite the README's parameter tables."""
-    import sys
-
-    args = list(sys.argv[1:] if argv is None else argv)
-    path = args[0] if args else "README.md"
-    with open(path, encoding="utf-8") as f:
-        old = f.read()
-    new = render_readme(old)
-    if new != old:
-        with open(path, "w", encoding="utf-8") as f:
-            f.write(new)
-        print(f"{path}: parameter tables updated")
-    return 0
-
-
-if __name__ == "__main__":  # pragma: no cover
-    raise SystemExit(main())

@@ -99,6 +99,50 @@ def test_no_import_cycle_at_module_level():
             visit(m)
 
 
+def test_no_import_cycle_through_function_level_imports():
+    # imports inside functions too: a deferred import hides a cycle from Python, not from readers
+    graph: dict[str, set[str]] = {m: set() for m in MODULES}
+    for mod, path in MODULES.items():
+        for target, names, _ in _imports(path, top_level_only=False):
+            deps = {target} | {f"{target}.{n}" for n in names if f"{target}.{n}" in MODULES}
+            graph[mod] |= {
+                d
+                for d in deps
+                if d in MODULES
+                and d != mod
+                and not d.startswith(mod + ".")
+                and not mod.startswith(d + ".")
+            }
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    cycles = []
+
+    def strong(v: str) -> None:  # Tarjan's strongly connected components
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                strong(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                cycles.append(sorted(comp))
+
+    for m in sorted(graph):
+        if m not in index:
+            strong(m)
+    assert not cycles, f"modules importing each other: {cycles}"
+
+
 def test_library_is_free_of_click_and_kernels_never_import_their_stage():
     for mod, path in MODULES.items():
         for target, names, line in _imports(path, top_level_only=False):

@@ -97,7 +97,7 @@ def test_radius_and_hybrid(rng):
     pts = np.c_[rng.random((4000, 2)), 0.001 * rng.random(4000)]
     knn_n, _, _ = estimate_normals(pts, knn=30)
     hyb_n, _, hyb_deg = estimate_normals(pts, knn=30, radius=0.05)
-    rad_n, _, rad_deg = estimate_normals(pts, knn=None, radius=0.05)
+    rad_n, _, rad_deg = estimate_normals(pts, knn=0, radius=0.05)
     for nrm in (hyb_n, rad_n):
         assert (_abs_cos(nrm, knn_n) > 0.99).mean() > 0.99
     assert not hyb_deg.any() and not rad_deg.any()
@@ -107,7 +107,7 @@ def test_radius_and_hybrid(rng):
     # radius 0.05 over 4000 points on a unit square: about pi * 0.05^2 * 4000 = 31 neighbours
     assert 22 < r2.report["neighbourhood_size"] < 34
     # a radius smaller than the spacing: lonely points are degenerate, still unit normals
-    tiny_n, _, tiny_deg = estimate_normals(pts, knn=None, radius=1e-4)
+    tiny_n, _, tiny_deg = estimate_normals(pts, knn=0, radius=1e-4)
     assert tiny_deg.all()
     np.testing.assert_allclose(np.linalg.norm(tiny_n, axis=1), 1.0)
 
@@ -290,7 +290,7 @@ def test_parameter_errors():
         ({"knn": 2}, "knn must be"),
         ({"knn": "abc"}, "knn must be"),
         ({"radius": -1.0}, "radius must be"),
-        ({"knn": 0}, "give knn, radius"),
+        ({"knn": 0}, "needs --radius"),
         ({"orient": "up"}, "orient must be"),
         ({"orient": "camera"}, "needs --camera"),
         ({"orient": "camera", "camera": "1,2"}, "three"),

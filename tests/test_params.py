@@ -16,8 +16,17 @@ from hypothesis import strategies as st
 from recon_cli import stages
 from recon_cli.errors import InputError, ParameterError
 from recon_cli.geometry import PointCloud
-from recon_cli.params import Param, StageSpec, parse_bool, readme_tables
-from recon_cli.stages import BUILTIN, StageResult, get_spec, register_stage, unregister_stage
+from recon_cli.params import Param, StageSpec, parse_bool
+from recon_cli.stages import (
+    BUILTIN,
+    STAGES,
+    StageResult,
+    get_spec,
+    register_stage,
+    stage_summary,
+    unregister_stage,
+)
+from recon_cli.tools.readme import readme_tables
 from shared_data import ROOT
 
 # ---- Param.coerce: one checker --------------------------------------------------------------------
@@ -114,7 +123,7 @@ def test_bool_parser_never_guesses(s):
 # ---- every built-in stage: declaration, library, command, README ----------------------------------------
 @pytest.mark.parametrize("name", BUILTIN)
 def test_builtin_stage_is_registered_and_derived_from_its_declaration(name):
-    from recon_cli.cli.main import COMMANDS
+    from recon_cli.cli.main import COMMANDS, cli
     from recon_cli.cli.options import stage_command
 
     spec = get_spec(name)
@@ -127,8 +136,10 @@ def test_builtin_stage_is_registered_and_derived_from_its_declaration(name):
         if p.kind is inspect.Parameter.KEYWORD_ONLY and k != "progress"
     }
     assert kw == spec.defaults()
-    # the command: registered, its summary and options from the declaration
-    assert COMMANDS[name][1] == spec.summary
+    # the command: made from the declaration (no module of its own, no summary repeated)
+    assert name not in COMMANDS and stage_summary(name) == spec.summary
+    assert not (ROOT / "recon_cli" / "cli" / f"{name.replace('-', '_')}.py").exists()
+    assert cli.get_command(None, name).name == name
     cmd = stage_command(name)
     opts = {o for p in cmd.params for o in getattr(p, "opts", [])}
     for p in spec.params:
@@ -142,13 +153,66 @@ def test_builtin_stage_is_registered_and_derived_from_its_declaration(name):
     assert res.exit_code == 0 and inspect.cleandoc(spec.description).split()[0] in res.output
 
 
-def test_public_functions_share_the_declared_defaults():
-    from recon_cli.stages import poisson, repair
+def _bad_values(p: Param) -> list:
+    """Values the declaration of ``p`` refuses (one per kind of mistake)."""
+    bad: list = {
+        "int": [1.5, "x"],
+        "float": ["x", float("nan")],
+        "bool": ["maybe"],
+        "choice": ["no-such-choice"],
+        "vector": ["1,2"],
+        "floats": ["a"],
+        "any": [],
+    }[p.type]
+    if p.type in ("int", "float"):
+        if p.min is not None and p.min - 1 not in p.also:
+            bad.append(p.min - 1)
+        if p.max is not None:
+            bad.append(p.max + 1)
+    return bad
 
-    for fn, spec in ((poisson.screened_poisson, poisson.SPEC), (repair.repair, repair.SPEC)):
-        for k, p in inspect.signature(fn).parameters.items():
-            if k in spec.defaults():
-                assert p.default == spec.defaults()[k], (fn.__name__, k)
+
+def _public_functions(spec: StageSpec):
+    mod = sys.modules[spec.run.__module__]
+    for name, fn in vars(mod).items():
+        if (
+            inspect.isfunction(fn)
+            and fn.__module__ == mod.__name__
+            and not name.startswith("_")
+            and name != "run_stage"
+        ):
+            yield fn
+
+
+@pytest.mark.parametrize("name", BUILTIN)
+def test_public_functions_take_defaults_and_checks_from_the_declaration(name):
+    # a keyword of a stage's public function named like a declared parameter defaults to the
+    # declared value and is checked by the declaration (same message as the command line),
+    # before any data is looked at
+    spec = get_spec(name)
+    covered = 0
+    for fn in _public_functions(spec):
+        sig = inspect.signature(fn)
+        required = [
+            k
+            for k, q in sig.parameters.items()
+            if q.default is inspect.Parameter.empty
+            and q.kind not in (inspect.Parameter.VAR_POSITIONAL, inspect.Parameter.VAR_KEYWORD)
+        ]
+        for k, q in sig.parameters.items():
+            if k not in spec.defaults() or q.default is inspect.Parameter.empty:
+                continue
+            p = spec.param(k)
+            assert q.default == p.default, f"{fn.__name__}({k}=...) repeats another default"
+            for bad in _bad_values(p):
+                with pytest.raises(ParameterError) as want:
+                    p.coerce(bad)
+                with pytest.raises(ParameterError) as got:
+                    fn(**{r: None for r in required if r != k}, **{k: bad})
+                assert str(got.value) == str(want.value), (fn.__name__, k, bad)
+                covered += 1
+    # every built-in stage so far has such a function; a new one may have none
+    assert covered or name not in ("normals", "poisson", "ballpivot", "repair", "sdf", "mcubes")
 
 
 def test_readme_parameter_tables_match_the_declarations():
@@ -156,7 +220,7 @@ def test_readme_parameter_tables_match_the_declarations():
     assert set(tables) == set(BUILTIN)
     for name, table in tables.items():
         assert table == get_spec(name).markdown_table(), (
-            f"README table of {name!r} is stale: python -m recon_cli.params README.md"
+            f"README table of {name!r} is stale: python -m recon_cli.tools.readme README.md"
         )
 
 

@@ -4,64 +4,38 @@ from __future__ import annotations
 
 import numpy as np
 
-from recon_cli.backends import record, require
+from recon_cli.backends import interop, record, require
 from recon_cli.geometry import PointCloud, TriangleMesh
 
 
 def to_o3d_cloud(cloud: PointCloud):
-    o3d = require("open3d")
-    pc = o3d.geometry.PointCloud()
-    pc.points = o3d.utility.Vector3dVector(np.asarray(cloud.points, dtype=np.float64))
-    if cloud.normals is not None:
-        pc.normals = o3d.utility.Vector3dVector(np.asarray(cloud.normals, dtype=np.float64))
-    if cloud.colors is not None:
-        pc.colors = o3d.utility.Vector3dVector(_colors01(cloud.colors))
-    return pc
+    """``cloud`` as an Open3D legacy point cloud (points, normals, RGB colours)."""
+    return cloud.to_open3d()
 
 
 def to_o3d_mesh(mesh: TriangleMesh):
-    o3d = require("open3d")
-    m = o3d.geometry.TriangleMesh()
-    m.vertices = o3d.utility.Vector3dVector(np.asarray(mesh.vertices, dtype=np.float64))
-    m.triangles = o3d.utility.Vector3iVector(np.asarray(mesh.faces, dtype=np.int32))
-    if mesh.normals is not None:
-        m.vertex_normals = o3d.utility.Vector3dVector(np.asarray(mesh.normals, dtype=np.float64))
-    return m
+    """``mesh`` as an Open3D legacy triangle mesh (vertices, triangles, vertex normals)."""
+    return TriangleMesh(vertices=mesh.vertices, faces=mesh.faces, normals=mesh.normals).to_open3d()
 
 
 def from_o3d_mesh(m, history: list[str] | None = None) -> TriangleMesh:
-    v = np.asarray(m.vertices, dtype=np.float64)
-    normals = np.asarray(m.vertex_normals, dtype=np.float64) if m.has_vertex_normals() else None
-    colors = None
-    if m.has_vertex_colors():
-        colors = np.clip(np.round(np.asarray(m.vertex_colors) * 255), 0, 255).astype(np.uint8)
+    """An Open3D triangle mesh as recon's, with ``history``."""
+    a = interop.from_open3d(m)
     return TriangleMesh(
-        vertices=v,
-        faces=np.asarray(m.triangles, dtype=np.int64),
-        normals=normals,
-        colors=colors,
+        vertices=a["points"],
+        faces=a["faces"],
+        normals=a["normals"],
+        colors=a["colors"],
         history=list(history or []),
     )
 
 
 def from_o3d_cloud(pc, history: list[str] | None = None) -> PointCloud:
-    normals = np.asarray(pc.normals, dtype=np.float64) if pc.has_normals() else None
-    colors = None
-    if pc.has_colors():
-        colors = np.clip(np.round(np.asarray(pc.colors) * 255), 0, 255).astype(np.uint8)
+    """An Open3D point cloud as recon's, with ``history``."""
+    a = interop.from_open3d(pc)
     return PointCloud(
-        points=np.asarray(pc.points, dtype=np.float64),
-        normals=normals,
-        colors=colors,
-        history=list(history or []),
+        points=a["points"], normals=a["normals"], colors=a["colors"], history=list(history or [])
     )
-
-
-def _colors01(colors: np.ndarray) -> np.ndarray:
-    c = np.asarray(colors)[:, :3]
-    if c.dtype.kind in "ui":
-        return c.astype(np.float64) / float(np.iinfo(c.dtype).max)
-    return c.astype(np.float64)
 
 
 def estimate_normals(

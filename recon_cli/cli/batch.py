@@ -81,7 +81,7 @@ def cmd(
 
     from recon_cli.batch import run_batch
     from recon_cli.cli._run import is_quiet, make_progress, verbosity
-    from recon_cli.cli.main import EXIT_BATCH_SOME_FAILED
+    from recon_cli.cli.exits import EXIT_BATCH_SOME_FAILED
     from recon_cli.stages import report_json
 
     summary = run_batch(

@@ -63,7 +63,7 @@ def cmd(ctx, files, ref, samples, seed, tau, json_, csv_path, heatmap, png, view
     samples (point-to-point where a side is a cloud).
     """
     from recon_cli.errors import ParameterError
-    from recon_cli.eval.metrics import diff_files
+    from recon_cli.eval.diff import diff_files
     from recon_cli.stages import report_json
 
     if json_ and csv_path == "-":

@@ -20,22 +20,21 @@ import sys
 import click
 
 from recon_cli import __version__
+from recon_cli.cli.exits import (  # noqa: F401  (the codes are imported from here too)
+    EXIT_BATCH_SOME_FAILED,
+    EXIT_BROKEN_PIPE,
+    EXIT_INTERRUPTED,
+)
 from recon_cli.errors import ReconError
 
-# subcommand -> module under recon_cli.cli holding a click command named ``cmd``;
-# imported only when run, so ``recon --help`` stays instant
+# the commands that are not stages: name -> (module under recon_cli.cli holding a click command
+# named ``cmd``, summary); imported only when run, so ``recon --help`` stays instant. Every
+# registered stage (recon_cli.stages.STAGES, plugins) is a command too, made from its declaration.
 COMMANDS: dict[str, tuple[str, str]] = {
     "info": (
         "info",
         "Describe a cloud/mesh (any format) or a grid: counts, properties, topology, history.",
     ),
-    "normals": ("normals", "Estimate and orient point normals."),
-    "poisson": ("poisson", "Screened Poisson reconstruction of an oriented cloud."),
-    "ballpivot": ("ballpivot", "Ball-pivoting reconstruction of an oriented cloud."),
-    "repair": ("repair", "Make a mesh manifold, clean and consistently oriented."),
-    "sdf": ("sdf", "Signed distance grid (.npz) of a mesh or oriented cloud."),
-    "fit-sdf": ("fit_sdf", "Fit a neural signed distance field to a cloud (needs recon[learned])."),
-    "mcubes": ("mcubes", "Marching cubes: mesh the zero level set of a grid."),
     "diff": ("diff", "Compare meshes: distances, F-score, topology, pictures."),
     "compare": ("compare", "Run several methods on one input and compare them."),
     "run": ("run", "Run a pipeline file (TOML) on one input."),
@@ -43,14 +42,6 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "convert": ("convert", "Convert between PLY, OBJ, OFF, STL, XYZ/CSV, PCD, LAS/LAZ (E57 in)."),
     "warmup": ("warmup", "Compile every kernel once (run after installing; make install does)."),
 }
-
-# commands run by cli/_run.run_stage_command (which ends the start-up pause itself)
-_STAGE_COMMANDS = frozenset({"normals", "poisson", "ballpivot", "repair", "sdf", "mcubes"})
-
-EXIT_INTERRUPTED = 130
-EXIT_BROKEN_PIPE = 141
-# ``recon batch``: the batch ran to the end but some inputs failed (see DIR/batch.json)
-EXIT_BATCH_SOME_FAILED = 4
 
 
 class _Escape(BaseException):
@@ -62,19 +53,19 @@ class _Escape(BaseException):
 
 
 class LazyGroup(click.Group):
-    """Subcommands imported when used; stages added by plugins (``recon.stages``) become commands too."""
+    """Subcommands imported when used; every registered stage (built-in or from a plugin's
+    ``recon.stages`` entry point) is a command made from its declaration."""
 
     def list_commands(self, ctx: click.Context) -> list[str]:
-        return sorted(set(COMMANDS) | set(_plugin_stages()))
+        return sorted(set(COMMANDS) | set(_stages()))
 
     def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
-        if name not in _STAGE_COMMANDS:
+        if name in COMMANDS:
             from recon_cli.cli import _process
 
             _process.resume()  # a stage command ends the start-up pause when its stage starts (cli/_run.py)
-        if name in COMMANDS:
             cmd = importlib.import_module(f"recon_cli.cli.{COMMANDS[name][0]}").cmd
-        elif name in _plugin_stages():
+        elif name in _stages():
             from recon_cli.cli.options import stage_command
 
             cmd = stage_command(name)
@@ -96,16 +87,19 @@ class LazyGroup(click.Group):
             raise _Escape(exc) from None
 
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
-        rows = [(name, COMMANDS[name][1]) for name in sorted(COMMANDS)]
-        rows += [(name, "(stage from a plugin)") for name in _plugin_stages()]
+        from recon_cli.stages import stage_summary
+
+        rows = [(name, COMMANDS[name][1]) for name in COMMANDS]
+        rows += [(name, stage_summary(name)) for name in _stages()]
         with formatter.section("Commands"):
-            formatter.write_dl(rows)
+            formatter.write_dl(sorted(rows))
 
 
-def _plugin_stages() -> list[str]:
-    from recon_cli.stages import BUILTIN, stage_names
+def _stages() -> list[str]:
+    """Every registered stage that no other command shadows (the registry, without importing it)."""
+    from recon_cli.stages import stage_names
 
-    return [n for n in stage_names() if n not in BUILTIN and n not in COMMANDS]
+    return [n for n in stage_names() if n not in COMMANDS]
 
 
 # ---- global options: before or after the subcommand -------------------------------------------------

@@ -131,7 +131,12 @@ def option_for(p) -> click.Option:
 
 
 def stage_command(stage: str) -> click.Command:
-    """The ``recon STAGE IN OUT [options]`` command, built from the stage's declaration."""
+    """The ``recon STAGE IN OUT [options]`` command, built from the stage's declaration.
+
+    Every registered stage's command is made here (built-in and plugin alike): its options
+    from the parameters, its help from the description. A stage that keeps its best result on
+    Ctrl-C (``keeps_partial``) writes it and the command then exits 130.
+    """
     import inspect
 
     from recon_cli.stages import get_spec
@@ -150,7 +155,15 @@ def stage_command(stage: str) -> click.Command:
             for k in names
             if ctx.get_parameter_source(k) is not click.core.ParameterSource.DEFAULT
         }
-        run_stage_command(ctx, spec.name, input, output, given, ascii_=ascii_, json_=json_)
+        report = run_stage_command(ctx, spec.name, input, output, given, ascii_=ascii_, json_=json_)
+        if spec.keeps_partial and report.get("interrupted"):
+            # the stage caught Ctrl-C and returned its best result, which is written: still 130
+            from recon_cli.cli.exits import EXIT_INTERRUPTED
+
+            what = {"grid": "field", "mesh": "mesh"}.get(spec.gives[0], "result")
+            done = f" ({report['iterations']} iterations)" if "iterations" in report else ""
+            click.echo(f"recon: interrupted: wrote the best {what} so far{done}", err=True)
+            ctx.exit(EXIT_INTERRUPTED)
 
     doc = inspect.cleandoc(spec.description or spec.summary)
     out_arg = click.Argument(

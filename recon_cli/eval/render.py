@@ -155,8 +155,6 @@ def render(
     Rendering
         ``image``, ``depth`` and ``mask`` at ``size``.
     """
-    from recon_cli.eval._render_kernel import rasterize_triangles, splat_points
-
     width, height = (int(v) for v in size)
     ss = int(supersample)
     if width < 1 or height < 1 or ss < 1:
@@ -182,54 +180,17 @@ def render(
     sz = np.ascontiguousarray(-p[:, 2])
     depth = np.full((h, w), np.inf)
     index = np.full((h, w), -1, dtype=np.int64)
-    light = _light(rot)
     img = np.empty((h, w, 3), dtype=np.float64)
     img[:] = np.asarray(BACKGROUND, dtype=np.float64) / 255.0
-
+    screen = (sx, sy, sz)
+    tint = (_light(rot), np.asarray(color, dtype=np.float64), scalars, vmin, vmax)
     if isinstance(obj, TriangleMesh) and len(obj.faces):
-        bary = np.zeros((h, w, 3), dtype=np.float64)
-        rasterize_triangles(sx, sy, sz, obj.faces, depth, index, bary)
-        mask = index >= 0
-        fid = index[mask]
-        fn = _face_normals(obj.vertices, obj.faces)
-        shade = _AMBIENT + (1 - _AMBIENT) * np.abs(fn[fid] @ light)
-        if scalars is None:
-            img[mask] = shade[:, None] * np.asarray(color, dtype=np.float64)
-        else:
-            value = np.einsum("ij,ij->i", bary[mask], scalars[obj.faces[fid]])
-            ramp = colormap(value, vmin, vmax).astype(np.float64) / 255.0
-            img[mask] = ramp * (0.55 + 0.45 * shade[:, None])
+        mask = _draw_faces(obj, screen, tint, depth, index, img)
     else:
         r = (point_radius if point_radius is not None else max(1.0, width / 250.0)) * ss
-        splat_points(sx, sy, sz, float(r), depth, index)
-        mask = index >= 0
-        pid = index[mask]
-        if obj.normals is not None:
-            n = obj.normals[pid]
-            length = np.linalg.norm(n, axis=1)
-            cos = np.abs(n @ light) / np.where(length > 0, length, 1.0)
-            shade = np.where(length > 0, _AMBIENT + (1 - _AMBIENT) * cos, 0.8)
-        else:
-            shade = np.full(len(pid), 0.8)
-        if scalars is None:
-            img[mask] = shade[:, None] * np.asarray(color, dtype=np.float64)
-        else:
-            ramp = colormap(scalars[pid], vmin, vmax).astype(np.float64) / 255.0
-            img[mask] = ramp * (0.55 + 0.45 * shade[:, None])
-
+        mask = _draw_points(obj, screen, tint, float(r), depth, index, img)
     if len(edges):
-        from recon_cli.eval._render_kernel import draw_segments
-
-        code = np.zeros((h, w), dtype=np.int8)
-        for k, (e, _) in enumerate(edges):
-            e = np.ascontiguousarray(e, dtype=np.int64).reshape(-1, 2)
-            if len(e):
-                draw_segments(
-                    sx, sy, sz, e, 0.02 * radius, 0.5 * edge_width * ss, depth, code, k + 1
-                )
-        for k, (_, rgb) in enumerate(edges):
-            img[code == k + 1] = np.asarray(rgb, dtype=np.float64) / 255.0
-
+        _draw_edges(screen, edges, 0.02 * radius, 0.5 * edge_width * ss, depth, img)
     if ss > 1:
         img = img.reshape(height, ss, width, ss, 3).mean(axis=(1, 3))
         cover = mask.reshape(height, ss, width, ss).mean(axis=(1, 3))
@@ -240,6 +201,68 @@ def render(
         depth = np.where(mask, depth, np.inf)
     image = np.clip(np.rint(img * 255.0), 0, 255).astype(np.uint8)
     return Rendering(image=image, depth=depth, mask=mask)
+
+
+def _tinted(shade: np.ndarray, values: np.ndarray | None, tint: tuple) -> np.ndarray:
+    """Pixel colours (k, 3) in [0, 1]: the base colour shaded, or the ramp of ``values``."""
+    _, color, scalars, vmin, vmax = tint
+    if scalars is None:
+        return shade[:, None] * color
+    ramp = colormap(values, vmin, vmax).astype(np.float64) / 255.0
+    return ramp * (0.55 + 0.45 * shade[:, None])
+
+
+def _draw_faces(obj: TriangleMesh, screen: tuple, tint: tuple, depth, index, img) -> np.ndarray:
+    """Rasterize the faces into ``depth``/``index``/``img``; returns the covered pixels."""
+    from recon_cli.eval._render_kernel import rasterize_triangles
+
+    sx, sy, sz = screen
+    light, _, scalars, _, _ = tint
+    bary = np.zeros(depth.shape + (3,), dtype=np.float64)
+    rasterize_triangles(sx, sy, sz, obj.faces, depth, index, bary)
+    mask = index >= 0
+    fid = index[mask]
+    fn = _face_normals(obj.vertices, obj.faces)
+    shade = _AMBIENT + (1 - _AMBIENT) * np.abs(fn[fid] @ light)
+    values = None
+    if scalars is not None:
+        values = np.einsum("ij,ij->i", bary[mask], scalars[obj.faces[fid]])
+    img[mask] = _tinted(shade, values, tint)
+    return mask
+
+
+def _draw_points(obj, screen: tuple, tint: tuple, r: float, depth, index, img) -> np.ndarray:
+    """Splat the points as discs of radius ``r`` pixels; returns the covered pixels."""
+    from recon_cli.eval._render_kernel import splat_points
+
+    sx, sy, sz = screen
+    light, _, scalars, _, _ = tint
+    splat_points(sx, sy, sz, r, depth, index)
+    mask = index >= 0
+    pid = index[mask]
+    if obj.normals is not None:
+        n = obj.normals[pid]
+        length = np.linalg.norm(n, axis=1)
+        cos = np.abs(n @ light) / np.where(length > 0, length, 1.0)
+        shade = np.where(length > 0, _AMBIENT + (1 - _AMBIENT) * cos, 0.8)
+    else:
+        shade = np.full(len(pid), 0.8)
+    img[mask] = _tinted(shade, None if scalars is None else scalars[pid], tint)
+    return mask
+
+
+def _draw_edges(screen: tuple, edges, tolerance: float, half_width: float, depth, img) -> None:
+    """Draw each group of ``edges`` in its flat colour where the surface does not hide it."""
+    from recon_cli.eval._render_kernel import draw_segments
+
+    sx, sy, sz = screen
+    code = np.zeros(depth.shape, dtype=np.int8)
+    for k, (e, _) in enumerate(edges):
+        e = np.ascontiguousarray(e, dtype=np.int64).reshape(-1, 2)
+        if len(e):
+            draw_segments(sx, sy, sz, e, tolerance, half_width, depth, code, k + 1)
+    for k, (_, rgb) in enumerate(edges):
+        img[code == k + 1] = np.asarray(rgb, dtype=np.float64) / 255.0
 
 
 def colormap(values: np.ndarray, vmin: float, vmax: float) -> np.ndarray:

@@ -18,6 +18,7 @@ from __future__ import annotations
 import importlib
 import inspect
 import json
+import sys
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -178,6 +179,73 @@ def get_spec(name: str) -> StageSpec:
         raise ParameterError(f"stage {name!r}: {target} is neither a StageSpec nor a function")
     _LOADED[name] = (target, spec)
     return spec
+
+
+def stage_summary(name: str) -> str:
+    """The summary line of stage ``name``'s declaration, for ``recon --help``.
+
+    A declaration whose module is not imported yet is read from its source (the
+    ``summary`` literal of ``ATTR = StageSpec(...)``), so listing the commands imports
+    neither numpy nor the stages; anything else imports the declaration. A plugin that
+    cannot be loaded is listed as such, not an error of the help screen.
+    """
+    if name in _OBJECTS:
+        return _OBJECTS[name].summary
+    target = STAGES.get(name, "")
+    module, _, attr = target.partition(":")
+    if module not in sys.modules:
+        text = _summary_literal(module, attr)
+        if text is not None:
+            return text
+    try:
+        return get_spec(name).summary
+    except (ParameterError, ImportError):
+        return "(stage from a plugin that cannot be loaded)"
+
+
+def _summary_literal(module: str, attr: str) -> str | None:
+    """The literal ``summary`` of ``attr = StageSpec(...)`` in ``module``'s source, else None."""
+    import ast
+    import importlib.util
+    import io
+    import re
+    import tokenize
+
+    try:
+        found = importlib.util.find_spec(module)
+        if found is None or not found.origin or not found.origin.endswith(".py"):
+            return None
+        with open(found.origin, encoding="utf-8") as f:
+            src = f.read()
+    except (ImportError, OSError, ValueError):
+        return None
+    m = re.search(rf"^{re.escape(attr)}\s*(?::[^=\n]*)?=\s*StageSpec\(", src, re.MULTILINE)
+    if m is None:
+        return None
+    # the call ends at its closing parenthesis: tokens, so that brackets in strings do not count
+    depth, end = 0, None
+    lines = src[m.start() :]
+    try:
+        for tok in tokenize.generate_tokens(io.StringIO(lines).readline):
+            if tok.type == tokenize.OP and tok.string in "([{":
+                depth += 1
+            elif tok.type == tokenize.OP and tok.string in ")]}":
+                depth -= 1
+                if depth == 0:
+                    end = tok.end
+                    break
+        if end is None:
+            return None
+        call_lines = lines.splitlines(keepends=True)[: end[0]]
+        call_lines[-1] = call_lines[-1][: end[1]]
+        call = ast.parse("".join(call_lines)).body[0].value  # type: ignore[attr-defined]
+        node = next((k.value for k in call.keywords if k.arg == "summary"), None)
+        if node is None and len(call.args) > 1:
+            node = call.args[1]
+        value = None if node is None else ast.literal_eval(node)
+    except (SyntaxError, ValueError, tokenize.TokenError, AttributeError, IndexError):
+        return None
+    return value if isinstance(value, str) else None
 
 
 def get_stage(name: str) -> Callable[..., StageResult]:

@@ -36,6 +36,11 @@ exceeds ``r`` is ``exp(-pi lambda r^2) (1 + pi lambda r^2)``: about 81 % for ``r
 holes), 18 % for ``2 s`` and 5e-5 for ``4 s``. On the 100k-point test samples ``(2, 4)``
 leaves fewer boundary edges than ``(1, 2, 4)``; on regular scans (grid-like spacing,
 circumradius ``s / sqrt(2)``) the first ball already closes everything.
+
+References
+----------
+Bernardini, F., Mittleman, J., Rushmeier, H., Silva, C. & Taubin, G. (1999). The ball-pivoting
+algorithm for surface reconstruction. IEEE TVCG 5(4).
 """
 
 from __future__ import annotations
@@ -168,33 +173,21 @@ def auto_radii(points: np.ndarray) -> list[float]:
 
 
 def parse_radii(radii: Any) -> list[float] | None:
-    """``"auto"``/None -> None; ``"r1,r2"`` or a sequence -> list of floats (unchecked)."""
-    if radii is None:
-        return None
-    if isinstance(radii, str):
-        text = radii.strip()
-        if text.lower() == "auto":
-            return None
-        try:
-            return [float(x) for x in text.split(",") if x.strip()]
-        except ValueError:
-            raise ParameterError(
-                f"--radii must be 'auto' or comma-separated numbers, got {radii!r}"
-            ) from None
-    if np.isscalar(radii):
-        return [float(radii)]
-    try:
-        return [float(x) for x in radii]
-    except (TypeError, ValueError):
-        raise ParameterError(f"radii must be 'auto' or numbers, got {radii!r}") from None
+    """``radii`` checked by the declaration: ``"auto"`` -> None, ``"r1,r2"`` or numbers -> a list.
+
+    Raises
+    ------
+    ParameterError
+        Not ``"auto"`` nor one or more positive finite numbers.
+    """
+    checked = SPEC.param("radii").coerce(radii)
+    return None if checked == "auto" else [float(r) for r in checked]
 
 
 def _check_radii(radii: list[float], diagonal: float) -> list[float]:
-    if len(radii) == 0:
-        raise ParameterError("radii: give at least one radius (or 'auto')")
+    """Positive radii (checked by :func:`parse_radii` or derived) checked against the cloud's
+    size, sorted and without repeats."""
     for r in radii:
-        if not np.isfinite(r) or r <= 0:
-            raise ParameterError(f"radius must be a positive number, got {r}")
         if r > MAX_RADIUS_DIAGONALS * diagonal:
             raise ParameterError(
                 f"radius {r:g} is larger than the cloud (bounding-box diagonal {diagonal:g}); "
@@ -290,7 +283,7 @@ def _pivot_passes(
 def ball_pivoting(
     points: np.ndarray,
     normals: np.ndarray,
-    radii: Sequence[float] | str = "auto",
+    radii: Sequence[float] | str = SPEC.param("radii").default,
     *,
     return_info: bool = False,
     progress_cb: Any = None,
@@ -333,11 +326,11 @@ def ball_pivoting(
         A radius that is not positive, larger than the bounding-box diagonal, or so small
         that the search grid would overflow.
     """
+    parsed = parse_radii(radii)
     pts, nrm, keep = _prepare(points, normals)
     # about a local origin: ball centres and cross products far from the world origin lose digits
     pts -= local_origin(pts)  # pts is _prepare's copy
     diagonal = bbox_diagonal(pts)
-    parsed = parse_radii(radii)
     if parsed is None:
         parsed = auto_radii(pts)
     rr = _check_radii(parsed, diagonal)

@@ -156,23 +156,126 @@ class FitResult:
     eikonal_weight: float = 0.0
 
 
-def _int(v: Any, name: str, lo: int, hi: int) -> int:
-    try:
-        x = int(v)
-        if x != float(v):
-            raise ValueError
-    except (TypeError, ValueError):
-        raise ParameterError(f"{name} must be an integer, got {v!r}") from None
-    if not lo <= x <= hi:
-        raise ParameterError(f"{name} must be in {lo}..{hi}, got {x}")
-    return x
+SPEC = StageSpec(
+    name="fit-sdf",
+    keeps_partial=True,
+    summary="Fit a neural signed distance field to a cloud (needs recon[learned]).",
+    description="""Fit a neural signed distance field to a cloud; write it on a grid (.npz, negative inside).
+
+    With normals the loss holds the zero level on the points, the gradient on the normals and
+    |grad s| at 1 (eikonal); without, the zero level and the eikonal term (IGR). `recon mcubes
+    OUT.npz mesh.ply` extracts the surface; `recon info OUT.npz` reports the eikonal statistics.
+    Needs PyTorch (pip install recon[learned]). Ctrl-C stops training and writes the best field
+    so far (exit 130).""",
+    takes=("cloud", "mesh"),
+    gives=("grid",),
+    output_suffix=".npz",
+    params=(
+        Param(
+            "resolution",
+            "int",
+            128,
+            "Grid cells along the longest side of the padded box.",
+            unit="cells",
+            min=8,
+            max=1024,
+        ),
+        Param(
+            "padding",
+            "float",
+            0.05,
+            "Margin around the bounding box.",
+            unit="fraction of the longest side",
+            min=0.0,
+            max=10.0,
+        ),
+        Param(
+            "iterations",
+            "int",
+            2000,
+            "Optimiser steps (the first of --iterations and --max-seconds wins).",
+            unit="steps",
+            min=1,
+        ),
+        Param(
+            "max_seconds",
+            "float",
+            None,
+            "Stop training after this wall time.",
+            unit="seconds",
+            min=0.0,
+            min_open=True,
+        ),
+        Param("width", "int", 64, "Hidden units per layer.", unit="units", min=4, max=4096),
+        Param("depth", "int", 4, "Hidden layers.", unit="layers", min=1, max=32),
+        Param(
+            "frequencies",
+            "int",
+            None,
+            "Octaves of the positional encoding (0: raw coordinates; auto: 4 with "
+            "normals, 2 without).",
+            unit="octaves",
+            min=0,
+            max=16,
+            words={"auto": None},
+        ),
+        Param(
+            "eikonal_weight",
+            "float",
+            None,
+            "Weight of the eikonal loss: E||grad s| - 1| with normals (auto: 3), "
+            "E[(|grad s| - 1)^2] without (auto: 0.1).",
+            min=0.0,
+            words={"auto": None},
+        ),
+        Param(
+            "batch",
+            "int",
+            1024,
+            "Surface points per step (plus 2x as many off-surface samples).",
+            unit="points",
+            min=16,
+        ),
+        Param(
+            "seed",
+            "int",
+            0,
+            "Seed of the weights and the sampling (same seed: same field).",
+            min=0,
+            max=2**32 - 1,
+        ),
+        Param(
+            "field",
+            "choice",
+            "sdf",
+            "sdf: signed distance (IGR); occupancy: logistic inside probability, "
+            "written as 0.5 - p.",
+            choices=FIELDS,
+        ),
+        Param(
+            "threads", "int", None, "CPU threads for training (default: torch's).", min=1, max=1024
+        ),
+        Param(
+            "model",
+            "any",
+            None,
+            "Also write the fitted weights (.npz) to this file.",
+            metavar="FILE",
+        ),
+        Param(
+            "mesh",
+            "any",
+            None,
+            "Also write the zero level set (PLY, vertex normals from the network's "
+            "gradient) to this file.",
+            metavar="FILE",
+        ),
+    ),
+)
 
 
-def _float(
-    v: Any, name: str, lo: float, hi: float = np.inf, allow_none: bool = False
-) -> float | None:
-    if allow_none and (v is None or (isinstance(v, str) and v.lower() in ("", "none"))):
-        return None
+def _float(v: Any, name: str, lo: float, hi: float = np.inf) -> float:
+    """A keyword of :func:`fit_sdf` that is not a stage parameter, checked."""
     try:
         x = float(v)
     except (TypeError, ValueError):
@@ -193,18 +296,18 @@ def fit_sdf(
     points: np.ndarray,
     normals: np.ndarray | None = None,
     *,
-    iterations: int = 2000,
-    max_seconds: float | None = None,
-    width: int = 64,
-    depth: int = 4,
-    frequencies: int | None = None,
-    eikonal_weight: float | None = None,
+    iterations: int = SPEC.param("iterations").default,
+    max_seconds: float | None = SPEC.param("max_seconds").default,
+    width: int = SPEC.param("width").default,
+    depth: int = SPEC.param("depth").default,
+    frequencies: int | None = SPEC.param("frequencies").default,
+    eikonal_weight: float | None = SPEC.param("eikonal_weight").default,
     normal_weight: float = 1.0,
-    batch: int = 1024,
+    batch: int = SPEC.param("batch").default,
     learning_rate: float = 2e-3,
-    field: str = "sdf",
-    seed: int = 0,
-    threads: int | None = None,
+    field: str = SPEC.param("field").default,
+    seed: int = SPEC.param("seed").default,
+    threads: int | None = SPEC.param("threads").default,
     progress=None,
 ) -> FitResult:
     """Fit a neural signed distance (or occupancy) field to a point cloud.
@@ -278,6 +381,27 @@ def fit_sdf(
 
     from recon_cli.progress import task
 
+    v = SPEC.check(
+        dict(
+            iterations=iterations,
+            max_seconds=max_seconds,
+            width=width,
+            depth=depth,
+            frequencies=frequencies,
+            eikonal_weight=eikonal_weight,
+            batch=batch,
+            field=field,
+            seed=seed,
+            threads=threads,
+        ),
+        complete=False,
+    )
+    iterations, max_seconds, width, depth = (
+        v[k] for k in ("iterations", "max_seconds", "width", "depth")
+    )
+    batch, field, seed, threads = v["batch"], v["field"], v["seed"], v["threads"]
+    normal_weight = _float(normal_weight, "normal_weight", 0.0)
+    learning_rate = _float(learning_rate, "learning_rate", 1e-8, 1.0)
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise InputError(f"points must be (n, 3), got shape {pts.shape}")
@@ -294,27 +418,10 @@ def fit_sdf(
         if not (np.isfinite(ln).all() and (ln > 0).all()):
             raise InputError("normals have zero length or NaN")
         nrm = nrm / ln[:, None]
-    iterations = _int(iterations, "iterations", 1, 10_000_000)
-    max_seconds = _float(max_seconds, "max_seconds", 0.0, allow_none=True)
-    width = _int(width, "width", 4, 4096)
-    depth = _int(depth, "depth", 1, 32)
-    if frequencies is None or (
-        isinstance(frequencies, str) and frequencies.lower() in ("", "none", "auto")
-    ):
-        frequencies = 4 if normals is not None else 2
-    frequencies = _int(frequencies, "frequencies", 0, 16)
-    if eikonal_weight is None or (
-        isinstance(eikonal_weight, str) and eikonal_weight.lower() in ("", "none", "auto")
-    ):
-        eikonal_weight = 3.0 if normals is not None else 0.1  # L1 with normals, squared without
-    eikonal_weight = _float(eikonal_weight, "eikonal_weight", 0.0)
-    normal_weight = _float(normal_weight, "normal_weight", 0.0)
-    batch = _int(batch, "batch", 16, 1_000_000)
-    learning_rate = _float(learning_rate, "learning_rate", 1e-8, 1.0)
-    field = _field(field)
-    seed = _int(seed, "seed", 0, 2**32 - 1)
-    if threads is not None:
-        threads = _int(threads, "threads", 1, 1024)
+    frequencies = v["frequencies"] if v["frequencies"] is not None else 4 if nrm is not None else 2
+    eikonal_weight = v["eikonal_weight"]
+    if eikonal_weight is None:
+        eikonal_weight = 3.0 if nrm is not None else 0.1  # L1 with normals, squared without
     if field == "occupancy" and nrm is None:
         raise ParameterError(
             "field occupancy needs a cloud with normals (they tell inside from outside)"
@@ -583,124 +690,6 @@ def load_model(path: str | os.PathLike) -> SdfModel:
     )
 
 
-SPEC = StageSpec(
-    name="fit-sdf",
-    keeps_partial=True,
-    summary="Fit a neural signed distance field to a cloud (needs recon[learned]).",
-    description="""Fit a neural signed distance field to a cloud; write it on a grid (.npz, negative inside).
-
-    With normals the loss holds the zero level on the points, the gradient on the normals and
-    |grad s| at 1 (eikonal); without, the zero level and the eikonal term (IGR). `recon mcubes
-    OUT.npz mesh.ply` extracts the surface; `recon info OUT.npz` reports the eikonal statistics.
-    Needs PyTorch (pip install recon[learned]). Ctrl-C stops training and writes the best field
-    so far (exit 130).""",
-    takes=("cloud", "mesh"),
-    gives=("grid",),
-    output_suffix=".npz",
-    params=(
-        Param(
-            "resolution",
-            "int",
-            128,
-            "Grid cells along the longest side of the padded box.",
-            unit="cells",
-            min=8,
-            max=1024,
-        ),
-        Param(
-            "padding",
-            "float",
-            0.05,
-            "Margin around the bounding box.",
-            unit="fraction of the longest side",
-            min=0.0,
-            max=10.0,
-        ),
-        Param(
-            "iterations",
-            "int",
-            2000,
-            "Optimiser steps (the first of --iterations and --max-seconds wins).",
-            unit="steps",
-            min=1,
-        ),
-        Param(
-            "max_seconds",
-            "float",
-            None,
-            "Stop training after this wall time.",
-            unit="seconds",
-            min=0.0,
-            min_open=True,
-        ),
-        Param("width", "int", 64, "Hidden units per layer.", unit="units", min=4, max=4096),
-        Param("depth", "int", 4, "Hidden layers.", unit="layers", min=1, max=32),
-        Param(
-            "frequencies",
-            "int",
-            None,
-            "Octaves of the positional encoding (0: raw coordinates; auto: 4 with "
-            "normals, 2 without).",
-            unit="octaves",
-            min=0,
-            max=16,
-            words={"auto": None},
-        ),
-        Param(
-            "eikonal_weight",
-            "float",
-            None,
-            "Weight of the eikonal loss: E||grad s| - 1| with normals (auto: 3), "
-            "E[(|grad s| - 1)^2] without (auto: 0.1).",
-            min=0.0,
-            words={"auto": None},
-        ),
-        Param(
-            "batch",
-            "int",
-            1024,
-            "Surface points per step (plus 2x as many off-surface samples).",
-            unit="points",
-            min=16,
-        ),
-        Param(
-            "seed",
-            "int",
-            0,
-            "Seed of the weights and the sampling (same seed: same field).",
-            min=0,
-            max=2**32 - 1,
-        ),
-        Param(
-            "field",
-            "choice",
-            "sdf",
-            "sdf: signed distance (IGR); occupancy: logistic inside probability, "
-            "written as 0.5 - p.",
-            choices=FIELDS,
-        ),
-        Param(
-            "threads", "int", None, "CPU threads for training (default: torch's).", min=1, max=1024
-        ),
-        Param(
-            "model",
-            "any",
-            None,
-            "Also write the fitted weights (.npz) to this file.",
-            metavar="FILE",
-        ),
-        Param(
-            "mesh",
-            "any",
-            None,
-            "Also write the zero level set (PLY, vertex normals from the network's "
-            "gradient) to this file.",
-            metavar="FILE",
-        ),
-    ),
-)
-
-
 @SPEC.runner
 def run_stage(
     data,
@@ -757,9 +746,7 @@ def run_stage(
 
     if not isinstance(data, (PointCloud, TriangleMesh)):
         raise InputError(f"fit-sdf needs a point cloud (or mesh), got {type(data).__name__}")
-    data = float64(data)
-    resolution = _int(resolution, "resolution", 8, 1024)
-    padding = _float(padding, "padding", 0.0, 10.0)
+    data = float64(data)  # parameters and the input's kind: checked by SPEC
     model_path = None if model in (None, "") else os.fspath(model)
     mesh_path = None if mesh in (None, "") else os.fspath(mesh)
     pts = data.points

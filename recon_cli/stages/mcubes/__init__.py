@@ -13,6 +13,15 @@ ambiguous faces resolved by the asymptotic decider, the same from both sides, so
 surface is closed and edge-manifold wherever it does not reach the border of the given
 cells or a NaN cell; triangles counter-clockwise seen from the positive side (outward
 when negative = inside); no zero-area triangles unless ``allow_degenerate``.
+
+References
+----------
+Lorensen, W. & Cline, H. (1987). Marching cubes: a high resolution 3D surface construction
+algorithm. SIGGRAPH.
+Nielson, G. & Hamann, B. (1991). The asymptotic decider: resolving the ambiguity in marching
+cubes. IEEE Visualization.
+Doi, A. & Koide, A. (1991). An efficient method of triangulating equi-valued surfaces by using
+tetrahedral cells. IEICE Transactions E74-D(1) (marching tetrahedra).
 """
 
 from __future__ import annotations
@@ -85,21 +94,21 @@ SPEC = StageSpec(
 )
 
 
-def _check_method(method: str) -> str:
-    return SPEC.param("method").coerce(method)
-
-
-def _check_iso(iso: Any) -> float:
-    return SPEC.param("iso").coerce(iso)
+def _check(iso: Any, method: Any, allow_degenerate: Any) -> tuple[float, str, bool]:
+    """The parameters checked by the declaration (before any data is looked at)."""
+    v = SPEC.check(
+        {"iso": iso, "method": method, "allow_degenerate": allow_degenerate}, complete=False
+    )
+    return v["iso"], v["method"], v["allow_degenerate"]
 
 
 def marching_cubes(
     volume: np.ndarray,
-    iso: float = 0.0,
+    iso: float = SPEC.param("iso").default,
     spacing: float | tuple[float, float, float] = 1.0,
     origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
-    method: str = "mc",
-    allow_degenerate: bool = False,
+    method: str = SPEC.param("method").default,
+    allow_degenerate: bool = SPEC.param("allow_degenerate").default,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Iso-surface of a dense 3-d scalar field.
 
@@ -138,15 +147,14 @@ def marching_cubes(
 def _marching_cubes(volume, iso, spacing, origin, method, allow_degenerate):
     """:func:`marching_cubes` and the number of cells left out (a NaN corner, or +inf and
     -inf corners together), counted in the same pass."""
+    iso, method, allow_degenerate = _check(iso, method, allow_degenerate)
     vol = np.asarray(volume)
     if vol.ndim != 3:
         raise InputError(f"volume must be 3-d, got shape {vol.shape}")
     if vol.dtype.kind not in "fiu":
         raise InputError(f"volume must be numeric, got {vol.dtype}")
-    iso = _check_iso(iso)
     sp = _spacing3(spacing)
     org = _origin3(origin)
-    method = _check_method(method)
     if min(vol.shape) < 2:
         return np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3)), 0
     K = kernels("recon_cli.stages.mcubes._kernel")
@@ -177,11 +185,11 @@ def _marching_cubes(volume, iso, spacing, origin, method, allow_degenerate):
 def marching_cubes_sparse(
     cells: np.ndarray,
     corner_values: np.ndarray,
-    iso: float = 0.0,
+    iso: float = SPEC.param("iso").default,
     origin: tuple[float, float, float] = (0.0, 0.0, 0.0),
     spacing: float | tuple[float, float, float] = 1.0,
-    method: str = "mc",
-    allow_degenerate: bool = False,
+    method: str = SPEC.param("method").default,
+    allow_degenerate: bool = SPEC.param("allow_degenerate").default,
     return_normals: bool = False,
 ):
     """Iso-surface over a set of cells of an unbounded regular lattice.
@@ -220,16 +228,15 @@ def marching_cubes_sparse(
     normals : (k, 3) float64
         Only when ``return_normals``.
     """
+    iso, method, allow_degenerate = _check(iso, method, allow_degenerate)
     cells = np.asarray(cells)
     vals = np.asarray(corner_values, dtype=np.float64)
     if cells.ndim != 2 or cells.shape[1] != 3 or (cells.size and cells.dtype.kind not in "iu"):
         raise InputError(f"cells must be an integer (c, 3) array, got {cells.dtype} {cells.shape}")
     if vals.shape != (len(cells), 8):
         raise InputError(f"corner_values must have shape ({len(cells)}, 8), got {vals.shape}")
-    iso = _check_iso(iso)
     sp = _spacing3(spacing)
     org = _origin3(origin)
-    method = _check_method(method)
     cells = np.ascontiguousarray(cells, dtype=np.int64)
     empty = (np.zeros((0, 3)), np.zeros((0, 3), np.int64))
     if len(cells) == 0:

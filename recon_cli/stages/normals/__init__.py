@@ -20,6 +20,13 @@ neighbourhood agrees on, a flux check (sum of ``(p - c) . n`` weighted by local 
 divergence-theorem volume estimate) flips a component that came out inside-out, and small
 open components (a scan in patches) follow the normals of the nearest points of the large
 or closed ones.
+
+References
+----------
+Hoppe, H., DeRose, T., Duchamp, T., McDonald, J. & Stuetzle, W. (1992). Surface reconstruction
+from unorganized points. SIGGRAPH (PCA normals, orientation over a minimum spanning tree).
+Pauly, M., Gross, M. & Kobbelt, L. (2002). Efficient simplification of point-sampled surfaces.
+IEEE Visualization (surface variation, the ``curvature``).
 """
 
 from __future__ import annotations
@@ -130,49 +137,17 @@ def _check_points(points: Any) -> np.ndarray:
 
 
 def _check_knn(knn: Any, radius: Any) -> tuple[int | None, float | None]:
-    if isinstance(knn, str):
-        knn = None if knn.strip().lower() in ("", "none", "0") else knn
-    if knn is not None:
-        try:
-            kf = float(knn)
-        except (TypeError, ValueError):
-            raise ParameterError(f"knn must be an integer >= 3, got {knn!r}") from None
-        if not kf.is_integer() or kf < 3:
-            raise ParameterError(f"knn must be an integer >= 3, got {knn!r}")
-        knn = int(kf)
-    if isinstance(radius, str):
-        radius = None if radius.strip().lower() in ("", "none") else radius
-    if radius is not None:
-        try:
-            radius = float(radius)
-        except (TypeError, ValueError):
-            raise ParameterError(f"radius must be a positive number, got {radius!r}") from None
-        if not (np.isfinite(radius) and radius > 0):
-            raise ParameterError(f"radius must be a positive number, got {radius!r}")
-    if knn is None and radius is None:
-        raise ParameterError("give knn, radius or both")
-    return knn, radius
+    """The neighbourhood checked by the declaration: ``(knn or None, radius)``."""
+    v = SPEC.check({"knn": knn, "radius": radius}, complete=False)
+    if v["knn"] == 0 and v["radius"] is None:
+        raise ParameterError("--knn 0 (radius only) needs --radius")
+    return v["knn"] or None, v["radius"]
 
 
-def _parse_vector(v: Any, name: str, unit: bool = False) -> np.ndarray | None:
-    if v is None:
-        return None
-    if isinstance(v, str):
-        parts = [s for s in v.replace(" ", ",").split(",") if s]
-    else:
-        parts = list(np.ravel(np.asarray(v, dtype=object)))
-    try:
-        vec = np.array([float(x) for x in parts], dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ParameterError(f"{name} must be three numbers X,Y,Z, got {v!r}") from None
-    if vec.shape != (3,) or not np.isfinite(vec).all():
-        raise ParameterError(f"{name} must be three finite numbers X,Y,Z, got {v!r}")
-    if unit:
-        length = np.linalg.norm(vec)
-        if length == 0:
-            raise ParameterError(f"{name} must not be the zero vector")
-        vec = vec / length
-    return vec
+def _vector(v: Any, name: str) -> np.ndarray | None:
+    """``camera`` / ``direction`` checked by the declaration, as a float64 array (or None)."""
+    checked = SPEC.param(name).coerce(v)
+    return None if checked is None else np.array(checked, dtype=np.float64)
 
 
 # ----------------------------------------------------------------------------- neighbourhoods
@@ -229,16 +204,20 @@ def _estimate_sorted(ps, indptr, indices):
     return nrm, curv, deg
 
 
-def estimate_normals(points: Any, knn: int | None = 30, radius: float | None = None):
+def estimate_normals(
+    points: Any,
+    knn: int = SPEC.param("knn").default,
+    radius: float | None = SPEC.param("radius").default,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Unoriented normals by PCA of each point's neighbourhood.
 
     Parameters
     ----------
     points : (n, 3) array_like of float
         Coordinates (any unit). Rows with NaN or inf are rejected.
-    knn : int or None
+    knn : int
         Neighbourhood size (the point itself included), at least 3. With ``radius`` too: at
-        most ``knn`` neighbours within ``radius`` (hybrid).
+        most ``knn`` neighbours within ``radius`` (hybrid); 0: all within ``radius``.
     radius : float or None
         Neighbourhood radius, in the units of ``points``.
 
@@ -257,10 +236,10 @@ def estimate_normals(points: Any, knn: int | None = 30, radius: float | None = N
     InputError
         ``points`` not of shape (n, 3), or holding NaN/inf.
     ParameterError
-        ``knn`` < 3 or not an integer, ``radius`` <= 0, or neither given.
+        ``knn`` not 0 or at least 3, ``radius`` <= 0, or ``knn`` 0 without a radius.
     """
-    pts = _check_points(points)
     knn, radius = _check_knn(knn, radius)
+    pts = _check_points(points)
     n = len(pts)
     if n == 0:
         return np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=bool)
@@ -428,9 +407,9 @@ def _align_to_anchors(ps, nrm, sign, labels, anchor, follow) -> None:
 def orient_normals(
     points: Any,
     normals: Any,
-    method: str = "mst",
+    method: str = SPEC.param("orient").default,
     *,
-    knn: int = 30,
+    knn: int = SPEC.param("knn").default,
     camera: Any = None,
     direction: Any = None,
     reference: Any = None,
@@ -473,14 +452,17 @@ def orient_normals(
     ParameterError
         Unknown method, missing or bad ``camera``/``direction``/``reference``.
     """
+    k = SPEC.param("knn").coerce(knn)
+    if k == 0:
+        raise ParameterError("orienting needs --knn of at least 3, got 0")
+    method, cam, dirn = _check_orient(method, camera, direction)
     pts = _check_points(points)
     nrm = np.ascontiguousarray(np.asarray(normals, dtype=np.float64))
     if nrm.shape != pts.shape:
         raise InputError(f"normals have shape {nrm.shape}, expected {pts.shape}")
     if not np.isfinite(nrm).all():
         raise InputError("normals hold NaN or infinite values")
-    method, cam, dirn, ref = _check_orient(method, camera, direction, reference, len(pts))
-    k, _ = _check_knn(knn, None)
+    ref = _check_reference(method, reference, len(pts))
     pts, cam = _local(pts, cam, points)
     if method in ("mst", "keep") and len(pts):
         order, ps, indptr, indices = _neighbourhoods(pts, k, None)
@@ -495,12 +477,16 @@ def orient_normals(
     return nrm * sign[:, None], info
 
 
-def _check_orient(method, camera, direction, reference, n):
-    if not isinstance(method, str) or method.lower() not in ORIENT_METHODS:
-        raise ParameterError(f"orient must be one of {', '.join(ORIENT_METHODS)}, got {method!r}")
-    method = method.lower()
-    cam = _parse_vector(camera, "camera")
-    dirn = _parse_vector(direction, "direction", unit=True)
+def _check_orient(method, camera, direction):
+    """``(method, camera, unit direction)`` checked by the declaration, with the options' rules."""
+    method = SPEC.param("orient").coerce(method)
+    cam = _vector(camera, "camera")
+    dirn = _vector(direction, "direction")
+    if dirn is not None:
+        length = np.linalg.norm(dirn)
+        if length == 0:
+            raise ParameterError("--direction must not be the zero vector")
+        dirn = dirn / length
     if method == "camera" and cam is None:
         raise ParameterError("--orient camera needs --camera X,Y,Z")
     if method == "direction" and dirn is None:
@@ -509,14 +495,19 @@ def _check_orient(method, camera, direction, reference, n):
         raise ParameterError("--camera is only used with --orient camera")
     if dirn is not None and method != "direction":
         raise ParameterError("--direction is only used with --orient direction")
-    ref = None
-    if method == "keep":
-        if reference is None:
-            raise InputError("--orient keep needs input normals (the input has none)")
-        ref = np.asarray(reference, dtype=np.float64)
-        if ref.shape != (n, 3):
-            raise InputError(f"reference normals have shape {ref.shape}, expected ({n}, 3)")
-    return method, cam, dirn, ref
+    return method, cam, dirn
+
+
+def _check_reference(method, reference, n):
+    """The normals whose signs ``keep`` follows, (n, 3) float64 (None for other methods)."""
+    if method != "keep":
+        return None
+    if reference is None:
+        raise InputError("--orient keep needs input normals (the input has none)")
+    ref = np.asarray(reference, dtype=np.float64)
+    if ref.shape != (n, 3):
+        raise InputError(f"reference normals have shape {ref.shape}, expected ({n}, 3)")
+    return ref
 
 
 def _orient_direct(method, pts, nrm, cam, dirn) -> np.ndarray:
@@ -585,11 +576,12 @@ def run_stage(
     """
     from recon_cli.stages.normals import _kernel as _normals_kernel  # noqa: F401  (numba compiles before timing starts)
 
-    knn, radius = _check_knn(None if knn == 0 else knn, radius)  # parameters: checked by SPEC
+    knn, radius = _check_knn(knn, radius)  # each value checked by SPEC, the pair here
+    method, cam, dirn = _check_orient(orient, camera, direction)
     cloud = as_point_cloud(data)
     pts = _check_points(cloud.points)
     n = len(pts)
-    method, cam, dirn, ref = _check_orient(orient, camera, direction, cloud.normals, n)
+    ref = _check_reference(method, cloud.normals, n)
     if backend == "open3d" and curvature:
         raise ParameterError("--curvature is not available with --backend open3d")
     if n == 0:

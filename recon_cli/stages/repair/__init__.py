@@ -28,6 +28,12 @@ the same order. Report keys (stable): ``vertices_in``, ``faces_in``, ``vertices_
 ``non_orientable_faces_dropped``, ``holes``, ``holes_filled``, ``holes_skipped``,
 ``fill_faces_added``, ``components_removed``, ``component_faces_removed``, ``vertices_out``,
 ``faces_out``, ``components``, ``boundary_loops``, ``watertight``, ``genus``, ``volume``.
+
+References
+----------
+Guéziec, A., Taubin, G., Lazarus, F. & Horn, B. (2001). Cutting and stitching: converting sets
+of polygons to manifold surfaces. IEEE TVCG 7(2) (non-manifold edges and vertices, step 3-4).
+Liepa, P. (2003). Filling holes in meshes. SGP (minimum-area triangulation of a loop, step 6).
 """
 
 from __future__ import annotations
@@ -514,9 +520,6 @@ def repair(
     report : dict
         Counts of every step (see the module docstring).
     """
-    if not isinstance(mesh, TriangleMesh):
-        raise InputError(f"repair needs a triangle mesh, got {type(mesh).__name__}")
-    mesh = float64(mesh)
     v = SPEC.check(
         dict(
             merge_tolerance=merge_tolerance,
@@ -526,6 +529,9 @@ def repair(
         ),
         complete=False,
     )
+    if not isinstance(mesh, TriangleMesh):
+        raise InputError(f"repair needs a triangle mesh, got {type(mesh).__name__}")
+    mesh = float64(mesh)
     tolerance = v["merge_tolerance"] or None  # 0: exact
     fill, min_comp, largest = v["fill_holes"], v["min_component"], v["keep_largest"]
     f = mesh.faces

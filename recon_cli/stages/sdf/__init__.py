@@ -20,6 +20,16 @@ nearest points. Samples farther than a few point spacings (and two voxels) from 
 point are unknown (NaN), so marching cubes makes no sheet far from data.
 
 The ``.npz`` grid format is described in :mod:`recon_cli.grid`.
+
+References
+----------
+Jacobson, A., Kavan, L. & Sorkine-Hornung, O. (2013). Robust inside-outside segmentation using
+generalized winding numbers. ACM TOG 32(4).
+Barill, G., Dickson, N., Schmidt, R., Levin, D. & Jacobson, A. (2018). Fast winding numbers for
+soups and clouds. ACM TOG 37(4).
+Bærentzen, J. A. & Aanæs, H. (2005). Signed distance computation using the angle weighted
+pseudonormal. IEEE TVCG 11(3).
+Kolluri, R. (2005). Provably good moving least squares. SODA (the cloud's IMLS).
 """
 
 from __future__ import annotations
@@ -105,9 +115,9 @@ SPEC = StageSpec(
 def grid_frame(
     lo: np.ndarray,
     hi: np.ndarray,
-    resolution: int | None = 128,
-    voxel_size: float | None = None,
-    padding: float = 0.05,
+    resolution: int = SPEC.param("resolution").default,
+    voxel_size: float | None = SPEC.param("voxel_size").default,
+    padding: float = SPEC.param("padding").default,
 ) -> tuple[np.ndarray, float, tuple[int, int, int]]:
     """Origin, voxel size and shape of a grid covering the box [lo, hi].
 
@@ -127,7 +137,16 @@ def grid_frame(
     origin : (3,) float64
     voxel_size : float
     shape : (nx, ny, nz)
+
+    Raises
+    ------
+    ParameterError
+        A value outside the declaration's range, or a voxel size too small for the box.
     """
+    v = SPEC.check(
+        {"resolution": resolution, "voxel_size": voxel_size, "padding": padding}, complete=False
+    )
+    resolution, voxel_size, padding = v["resolution"], v["voxel_size"], v["padding"]
     lo = np.asarray(lo, dtype=np.float64)
     hi = np.asarray(hi, dtype=np.float64)
     ext = float((hi - lo).max())
@@ -172,8 +191,8 @@ def mesh_sdf(
     origin: np.ndarray,
     voxel_size: float,
     shape: tuple[int, int, int],
-    sign: str = "winding",
-    band: float | None = None,
+    sign: str = SPEC.param("sign").default,
+    band: float | None = SPEC.param("band").default,
 ) -> tuple[np.ndarray, dict]:
     """Signed distance from every sample of a grid to a triangle mesh.
 
@@ -214,9 +233,13 @@ def mesh_sdf(
     ------
     InputError
         ``sign="pseudonormal"`` on a closed mesh of negative volume (wound inward).
+    ParameterError
+        ``sign`` or ``band`` outside the declaration's choices or range.
     """
     from recon_cli.mesh.distance import build_bvh, distance_grid
 
+    v = SPEC.check({"sign": sign, "band": band}, complete=False)
+    sign, band = v["sign"], v["band"]
     h = float(voxel_size)
     cap = np.inf if band is None else float(band) * h
     bvh = build_bvh(vertices, faces)
@@ -437,7 +460,7 @@ def cloud_sdf(
     origin: np.ndarray,
     voxel_size: float,
     shape: tuple[int, int, int],
-    knn: int = 10,
+    knn: int = SPEC.param("knn").default,
     max_distance: float | None = None,
 ) -> tuple[np.ndarray, dict]:
     """Signed distance of an oriented cloud's implied surface on a grid (IMLS).
@@ -464,6 +487,7 @@ def cloud_sdf(
     """
     from scipy.spatial import cKDTree
 
+    knn = SPEC.param("knn").coerce(knn)
     pts = np.ascontiguousarray(points, dtype=np.float64)
     nrm = np.ascontiguousarray(normals, dtype=np.float64)
     ln = np.linalg.norm(nrm, axis=1)

@@ -1,7 +1,0 @@
-"""``recon normals IN OUT``: its options come from the stage's declaration (``recon_cli.stages.normals.SPEC``)."""
-
-from __future__ import annotations
-
-from recon_cli.cli.options import stage_command
-
-cmd = stage_command("normals")

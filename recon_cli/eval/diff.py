@@ -1,0 +1,129 @@
+"""``recon diff`` on files: compare candidate files with a reference file and write the heatmaps
+and the picture.
+
+The metrics come from :mod:`recon_cli.eval.metrics`, the picture from :mod:`recon_cli.eval.figure`.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from typing import Any
+
+from recon_cli.errors import ParameterError, naming
+from recon_cli.eval.metrics import (
+    check_samples,
+    check_vmax,
+    compare_meshes,
+    heatmap,
+    load_geometry,
+    shared_vmax,
+    vertex_distances,
+)
+
+
+def diff_files(
+    candidates: Sequence[str | os.PathLike],
+    reference: str | os.PathLike,
+    samples: int = 200_000,
+    seed: int = 0,
+    taus: Sequence[float | str] | str | None = None,
+    heatmap_path: str | os.PathLike | None = None,
+    png_path: str | os.PathLike | None = None,
+    views: Sequence[str] | None = None,
+    vmax: float | None = None,
+    unit: str | None = None,
+) -> list[dict[str, Any]]:
+    """:func:`~recon_cli.eval.metrics.compare_meshes` of each candidate file against the reference file, with outputs.
+
+    Parameters
+    ----------
+    candidates : sequence of paths
+        Meshes or clouds (PLY).
+    reference : path
+        The ground truth (PLY mesh, or a cloud: then point-to-point).
+    samples, seed, taus
+        As in :func:`compare_meshes`.
+    heatmap_path : path, optional
+        Write the candidate with per-vertex ``distance`` (to the reference) and colours;
+        with several candidates, ``<stem>_<candidate stem>.ply`` beside it.
+    png_path : path, optional
+        Write a picture (:func:`recon_cli.eval.figure.sheet`): per candidate its shape
+        (boundary and non-manifold edges marked), its accuracy heatmap (its vertices
+        coloured by distance to the reference) and its completeness heatmap (the
+        reference's vertices coloured by distance to it: red where it misses a part), then
+        the reference; one colour scale for all.
+    views : sequence of str, optional
+        Views of the picture (:func:`recon_cli.eval.render.resolve_views`; default the
+        four-azimuth turntable).
+    vmax : float, optional
+        Top of the colour scale of the heatmaps (PLY and PNG); default
+        :func:`~recon_cli.eval.metrics.shared_vmax`.
+    unit : str, optional
+        Unit of the coordinates, written on the picture's colour bar.
+
+    Returns
+    -------
+    list of dict
+        One row per candidate: ``candidate``, ``reference`` (paths) and the keys of
+        :func:`compare_meshes`, plus ``heatmap`` (path or None).
+    """
+    if not candidates:
+        raise ParameterError("no candidate file to compare")
+    samples = check_samples(samples)
+    if png_path is not None:
+        from recon_cli.eval.figure import require_pillow
+        from recon_cli.eval.render import resolve_views
+
+        resolve_views(views)  # unknown view names fail before any work
+        require_pillow()
+    if vmax is not None:
+        vmax = check_vmax(vmax)
+    ref = load_geometry(reference, "reference")
+    cands = [load_geometry(c, "candidate") for c in candidates]
+    rows = []
+    for path, cand in zip(candidates, cands):
+        row = {"candidate": os.fspath(path), "reference": os.fspath(reference)}
+        with naming(f"{os.fspath(path)} vs {os.fspath(reference)}"):
+            row.update(compare_meshes(cand, ref, samples=samples, seed=seed, taus=taus))
+        row["heatmap"] = None
+        rows.append(row)
+    if heatmap_path is None and png_path is None:
+        return rows
+    from recon_cli.io.load import save
+
+    dists = [vertex_distances(c, ref) for c in cands]
+    # what each candidate misses: the reference's vertices to it (one scale for both directions,
+    # so a heatmap PLY is coloured alike with or without --png)
+    missed = [vertex_distances(ref, c) for c in cands]
+    if vmax is None:
+        vmax = shared_vmax(dists + missed, min(rows[0]["tau"]))
+    if heatmap_path is not None:
+        for k, (path, cand, d) in enumerate(zip(candidates, cands, dists)):
+            out = heatmap_path if len(cands) == 1 else _suffixed(heatmap_path, _stem(path), k)
+            save(heatmap(cand, d, vmax=vmax), out)  # in the format its suffix names
+            rows[k]["heatmap"] = os.fspath(out)
+    if png_path is not None:
+        from recon_cli.eval.figure import diff_rows, sheet
+        from recon_cli.eval.render import write_png
+
+        panels = [(_stem(p), c, d, m) for p, c, d, m in zip(candidates, cands, dists, missed)]
+        fig = sheet(
+            diff_rows(panels, (_stem(reference), ref)),
+            views,
+            vmax=vmax,
+            unit=unit,
+            diagonal=rows[0]["reference_diagonal"],
+            title=f"recon diff against {os.path.basename(os.fspath(reference))}",
+        )
+        write_png(fig.image, png_path)
+    return rows
+
+
+def _stem(path: str | os.PathLike) -> str:
+    return os.path.splitext(os.path.basename(os.fspath(path)))[0] or os.fspath(path)
+
+
+def _suffixed(path: str | os.PathLike, stem: str, k: int) -> str:
+    root, ext = os.path.splitext(os.fspath(path))
+    return f"{root}_{k}_{stem}{ext or '.ply'}"
