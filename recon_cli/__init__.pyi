@@ -68,7 +68,7 @@ def poisson(
     degree: int = 2,
     boundary: Literal["neumann", "dirichlet"] = "neumann",
     density: bool = False,
-    trim: float = 0.0,
+    trim: float | Literal["auto"] = 0.0,
     estimate_normals: bool = False,
     backend: Literal["native", "open3d", "pymeshlab"] = "native",
     progress: Progress | bool | None = None,
