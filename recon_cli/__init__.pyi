@@ -52,6 +52,7 @@ def normals(
     camera: tuple[float, float, float] | None = None,
     direction: tuple[float, float, float] | None = None,
     curvature: bool = False,
+    neighbours: Literal["auto", "kdtree", "pixels"] = "auto",
     backend: Literal["native", "open3d"] = "native",
     progress: Progress | bool | None = None,
 ) -> PointCloud:
@@ -66,9 +67,13 @@ def poisson(
     point_weight: float = 4.0,
     samples_per_node: float = 1.5,
     degree: int = 2,
-    boundary: Literal["neumann", "dirichlet"] = "neumann",
+    boundary: Literal["neumann", "dirichlet", "free"] = "neumann",
+    confidence: bool = False,
     density: bool = False,
     trim: float | Literal["auto"] = 0.0,
+    attributes: Any = "all",
+    envelope: Any = None,
+    grid: Any = None,
     estimate_normals: bool = False,
     backend: Literal["native", "open3d", "pymeshlab"] = "native",
     progress: Progress | bool | None = None,
@@ -96,6 +101,27 @@ def repair(
     progress: Progress | bool | None = None,
 ) -> TriangleMesh:
     """Make a mesh manifold, clean and consistently oriented."""
+
+def simplify(
+    mesh: Any,
+    *,
+    faces: int | Literal["none"] | None = None,
+    ratio: float | Literal["none"] | None = None,
+    boundary_weight: float = 1000.0,
+    progress: Progress | bool | None = None,
+) -> TriangleMesh:
+    """Quadric edge-collapse simplification of a mesh (stays manifold)."""
+
+def smooth(
+    mesh: Any,
+    *,
+    iterations: int = 10,
+    step: float = 0.5,
+    pass_band: float = 0.1,
+    fixed_boundary: bool = False,
+    progress: Progress | bool | None = None,
+) -> TriangleMesh:
+    """Taubin lambda|mu smoothing of a mesh (keeps its volume)."""
 
 def sdf(
     mesh: Any,
@@ -172,6 +198,8 @@ __all__ = [
     "repair",
     "save",
     "sdf",
+    "simplify",
+    "smooth",
     "write",
     "write_ply",
 ]

@@ -4,6 +4,12 @@ A :class:`PointCloud` is what scanners give; a :class:`TriangleMesh` is what the
 reconstruction stages return. Both carry ``history`` (provenance lines, written as PLY
 ``comment`` lines) and whatever the source file held that recon does not interpret
 (``attributes`` per vertex, ``extra_elements``), so writing back loses nothing.
+
+What a sensor file says about its points travels with a cloud: the scanner positions
+(:class:`Sensor`, from a PCD ``VIEWPOINT``, E57 scan poses, a LAS file's "up"; the per-point
+attribute ``scan`` says which of several took each point), the pixel of each point of an
+organized cloud (:class:`PixelGrid`) and how many points the reader dropped because a
+coordinate was NaN or infinite (``invalid_dropped``; :func:`drop_invalid`).
 """
 
 from __future__ import annotations
@@ -16,6 +22,142 @@ from typing import Any
 import numpy as np
 
 from recon_cli.errors import InputError
+
+# the per-point attribute naming the sensor (index into ``PointCloud.sensors``) of each point
+SCAN_ATTRIBUTE = "scan"
+
+
+@dataclass(frozen=True)
+class Sensor:
+    """Where a scan was taken from, in the coordinates of the cloud's points.
+
+    Parameters
+    ----------
+    position : (3,) tuple of float or None
+        The scanner's optical centre (PCD ``VIEWPOINT``, an E57 scan's pose translation).
+    orientation : (4,) tuple of float or None
+        Its rotation to the cloud's frame, a unit quaternion ``(w, x, y, z)``, when the file
+        gives one (kept so that it is written back; orientation of normals uses the position).
+    direction : (3,) tuple of float or None
+        For a sensor far away (airborne LiDAR): the unit direction towards it. Exactly one
+        of ``position`` and ``direction`` is set.
+    source : str
+        What gave it, for reports (``PCD VIEWPOINT``, ``E57 scan 2 'north'``, ``LAS``).
+    """
+
+    position: tuple[float, float, float] | None = None
+    orientation: tuple[float, float, float, float] | None = None
+    direction: tuple[float, float, float] | None = None
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "source", " ".join(str(self.source).split()))  # one line
+        if (self.position is None) == (self.direction is None):
+            raise InputError("a sensor has either a position or a direction")
+        for name, k in (("position", 3), ("orientation", 4), ("direction", 3)):
+            v = getattr(self, name)
+            if v is None:
+                continue
+            v = tuple(float(x) for x in np.ravel(v))
+            if len(v) != k or not all(math.isfinite(x) for x in v):
+                raise InputError(f"a sensor's {name} must be {k} finite numbers, got {v}")
+            if name == "direction":
+                length = math.sqrt(sum(x * x for x in v))
+                if length == 0:
+                    raise InputError("a sensor's direction must not be the zero vector")
+                v = tuple(x / length for x in v)
+            object.__setattr__(self, name, v)
+
+    def describe(self) -> str:
+        """One line for reports: the source and the position (or direction)."""
+        if self.position is not None:
+            return f"{self.source} at ({', '.join(f'{x:.9g}' for x in self.position)})"
+        return f"{self.source} towards ({', '.join(f'{x:.9g}' for x in self.direction)})"
+
+    def to_line(self) -> str:
+        """The ``sensor ...`` line that stores it (PLY ``obj_info``), read by :func:`parse_sensor_line`."""
+        parts = ["sensor"]
+        for name in ("position", "orientation", "direction"):
+            v = getattr(self, name)
+            if v is not None:
+                parts += [name, *(repr(x) for x in v)]
+        parts += ["source", self.source]
+        return " ".join(parts).rstrip()
+
+
+def parse_sensor_line(line: str) -> Sensor | None:
+    """The :class:`Sensor` a ``sensor ...`` line (:meth:`Sensor.to_line`) or an older
+    ``pcd_viewpoint x y z qw qx qy qz`` line holds; None for any other line or a malformed one."""
+    words = line.split()
+    if not words:
+        return None
+    try:
+        if words[0] == "pcd_viewpoint" and len(words) == 8:
+            v = [float(x) for x in words[1:]]
+            return Sensor(position=v[:3], orientation=v[3:], source="PCD VIEWPOINT")
+        if words[0] != "sensor":
+            return None
+        kw: dict[str, Any] = {}
+        i = 1
+        while i < len(words):
+            key = words[i]
+            if key == "source":
+                kw["source"] = " ".join(words[i + 1 :])
+                break
+            k = {"position": 3, "orientation": 4, "direction": 3}.get(key)
+            if k is None or key in kw:
+                return None
+            kw[key] = [float(x) for x in words[i + 1 : i + 1 + k]]
+            i += 1 + k
+        return Sensor(**kw)
+    except (ValueError, InputError):
+        return None
+
+
+def split_sensor_lines(lines: list[str]) -> tuple[list[Sensor], list[str]]:
+    """``(sensors, other lines)`` of ``obj_info`` lines (the sensors in their order)."""
+    sensors, rest = [], []
+    for line in lines:
+        s = parse_sensor_line(line)
+        if s is None:
+            rest.append(line)
+        else:
+            sensors.append(s)
+    return sensors, rest
+
+
+@dataclass
+class PixelGrid:
+    """The pixel of each point of an organized cloud (a depth image, a structured scan).
+
+    Parameters
+    ----------
+    shapes : tuple of (height, width)
+        The image(s) the points came from: one for a PCD with ``HEIGHT`` > 1, one per
+        structured scan of an E57 file.
+    pixel : (n,) int64
+        Each point's pixel, ``offset[image] + row * width + col``, the images laid one after
+        another in row-major order (:meth:`offsets`); unique.
+    """
+
+    shapes: tuple[tuple[int, int], ...]
+    pixel: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.shapes = tuple((int(h), int(w)) for h, w in self.shapes)
+        self.pixel = np.ascontiguousarray(self.pixel, dtype=np.int64).reshape(-1)
+
+    def offsets(self) -> np.ndarray:
+        """(k + 1,) int64: where each image starts in the pixel numbering (the last: their total)."""
+        sizes = [h * w for h, w in self.shapes]
+        return np.concatenate([[0], np.cumsum(sizes, dtype=np.int64)]).astype(np.int64)
+
+    def describe(self) -> str:
+        """``640x480`` (width x height), or one per image."""
+        return ", ".join(f"{w}x{h}" for h, w in self.shapes)
+
+    def subset(self, mask: np.ndarray) -> PixelGrid:
+        return PixelGrid(self.shapes, self.pixel[mask])
 
 
 class Geometry:
@@ -100,7 +242,16 @@ class PointCloud(Geometry):
     extra_elements : list
         PLY elements recon does not interpret, kept for writing back.
     obj_info : list of str
-        PLY ``obj_info`` lines.
+        PLY ``obj_info`` lines (sensor lines are parsed into ``sensors``).
+    sensors : list of Sensor
+        The scanner position(s) the file gives (empty: none known). With more than one, the
+        int attribute ``scan`` (:data:`SCAN_ATTRIBUTE`) gives each point's index in this list.
+    pixels : PixelGrid or None
+        The pixel of each point of an organized cloud (None: not organized). Carried by
+        :meth:`subset`; not written as a vertex property.
+    invalid_dropped : int
+        Points the reader dropped because a coordinate was NaN or infinite (a depth image's
+        missing pixels, an E57 scan's invalid returns).
     """
 
     points: np.ndarray
@@ -111,11 +262,19 @@ class PointCloud(Geometry):
     point_dtype: Any = None
     extra_elements: list = field(default_factory=list)
     obj_info: list[str] = field(default_factory=list)
+    sensors: list[Sensor] = field(default_factory=list)
+    pixels: PixelGrid | None = None
+    invalid_dropped: int = 0
 
     def __post_init__(self) -> None:
         self.points = _float_rows(self.points)
         self.point_dtype = _source_dtype(self.point_dtype, self.points)
         _normalise_per_point(self, len(self.points))
+        if self.pixels is not None:
+            _check_len("pixels", self.pixels.pixel, len(self.points))
+        if any(line.startswith(("sensor ", "pcd_viewpoint ")) for line in self.obj_info):
+            found, self.obj_info = split_sensor_lines(self.obj_info)
+            self.sensors = list(self.sensors) + found
 
     @property
     def vertices(self) -> np.ndarray:
@@ -135,10 +294,15 @@ class PointCloud(Geometry):
             point_dtype=self.point_dtype,
             extra_elements=list(self.extra_elements),
             obj_info=list(self.obj_info),
+            sensors=list(self.sensors),
+            pixels=None
+            if self.pixels is None
+            else PixelGrid(self.pixels.shapes, self.pixels.pixel.copy()),
+            invalid_dropped=self.invalid_dropped,
         )
 
     def subset(self, mask: np.ndarray) -> "PointCloud":
-        """The cloud restricted to ``mask`` (boolean or index array)."""
+        """The cloud restricted to ``mask`` (boolean or index array); sensors, pixels kept."""
         return PointCloud(
             points=self.points[mask],
             normals=None if self.normals is None else self.normals[mask],
@@ -147,6 +311,9 @@ class PointCloud(Geometry):
             history=list(self.history),
             point_dtype=self.point_dtype,
             obj_info=list(self.obj_info),
+            sensors=list(self.sensors),
+            pixels=None if self.pixels is None else self.pixels.subset(mask),
+            invalid_dropped=self.invalid_dropped,
         )
 
 
@@ -168,8 +335,8 @@ class TriangleMesh(Geometry):
         Other per-vertex scalars (``density``, ``distance``, unknown properties).
     face_attributes : dict of str to (m,) array
         Per-face scalars (kept from the file; replicated over fan-triangulated polygons).
-    history, point_dtype, extra_elements, obj_info
-        As for :class:`PointCloud`.
+    history, point_dtype, extra_elements, obj_info, invalid_dropped
+        As for :class:`PointCloud` (a mesh keeps sensor lines in ``obj_info`` as they are).
     """
 
     vertices: np.ndarray
@@ -182,6 +349,7 @@ class TriangleMesh(Geometry):
     point_dtype: Any = None
     extra_elements: list = field(default_factory=list)
     obj_info: list[str] = field(default_factory=list)
+    invalid_dropped: int = 0
 
     def __post_init__(self) -> None:
         self.vertices = _float_rows(self.vertices)
@@ -208,10 +376,11 @@ class TriangleMesh(Geometry):
             point_dtype=self.point_dtype,
             extra_elements=list(self.extra_elements),
             obj_info=list(self.obj_info),
+            invalid_dropped=self.invalid_dropped,
         )
 
     def to_point_cloud(self) -> PointCloud:
-        """The vertices as a cloud (normals, colours, attributes and history kept)."""
+        """The vertices as a cloud (normals, colours, attributes, history and sensor lines kept)."""
         return PointCloud(
             points=self.vertices,
             normals=self.normals,
@@ -220,6 +389,7 @@ class TriangleMesh(Geometry):
             history=list(self.history),
             point_dtype=self.point_dtype,
             obj_info=list(self.obj_info),
+            invalid_dropped=self.invalid_dropped,
         )
 
 
@@ -266,6 +436,65 @@ def as_point_cloud(obj: PointCloud | TriangleMesh) -> PointCloud:
     if isinstance(obj, TriangleMesh):
         return obj.to_point_cloud()
     raise TypeError(f"expected a PointCloud or TriangleMesh, got {type(obj).__name__}")
+
+
+def drop_invalid(obj: PointCloud | TriangleMesh, where: str | None = None):
+    """``obj`` without the points (vertices) that have a NaN or infinite coordinate.
+
+    What readers do with invalid points (a depth image's missing pixels, flagged returns):
+    the kept points keep every per-point array, their precision and their pixel; the count
+    is added to ``invalid_dropped`` (reports and ``recon info`` show it). ``obj`` itself
+    when every point is finite.
+
+    Raises
+    ------
+    InputError
+        A mesh face uses an invalid vertex (a mesh is never read with faces cut out of it),
+        or a kept PLY element refers to vertices by index (its indices would go stale).
+    """
+    pts = obj.points
+    ok = np.isfinite(pts).all(axis=1)
+    if ok.all():
+        return obj
+    nbad = int(len(ok) - np.count_nonzero(ok))
+    for el in obj.extra_elements:
+        if any("vertex" in p.name for p in getattr(el, "properties", ())):
+            raise InputError(
+                f"{nbad} vertices have a NaN or infinite coordinate and element {el.name!r} "
+                "refers to vertices by index: they cannot be dropped",
+                where,
+            )
+    if isinstance(obj, TriangleMesh):
+        if len(obj.faces):
+            uses = ~ok[obj.faces]
+            if uses.any():
+                f = int(np.flatnonzero(uses.any(axis=1))[0])
+                v = int(obj.faces[f][uses[f]][0])
+                nf = int(np.count_nonzero(uses.any(axis=1)))
+                raise InputError(
+                    f"face {f} uses vertex {v}, which has a NaN or infinite coordinate "
+                    f"({nf} faces use one of the {nbad} invalid vertices): "
+                    "a mesh is not read with faces dropped",
+                    where,
+                )
+        remap = np.cumsum(ok) - 1
+        out = TriangleMesh(
+            vertices=pts[ok],
+            faces=remap[obj.faces],
+            normals=None if obj.normals is None else obj.normals[ok],
+            colors=None if obj.colors is None else obj.colors[ok],
+            attributes={k: v[ok] for k, v in obj.attributes.items()},
+            face_attributes=dict(obj.face_attributes),
+            history=list(obj.history),
+            point_dtype=obj.point_dtype,
+            extra_elements=list(obj.extra_elements),
+            obj_info=list(obj.obj_info),
+        )
+    else:
+        out = obj.subset(ok)
+        out.extra_elements = list(obj.extra_elements)
+    out.invalid_dropped = obj.invalid_dropped + nbad
+    return out
 
 
 def float64(obj: "PointCloud | TriangleMesh") -> "PointCloud | TriangleMesh":

@@ -3,8 +3,10 @@
 Keys (PLY): ``file``, ``kind`` ("point_cloud" or "mesh"), ``format``, ``vertices``,
 ``faces``, ``elements`` (name -> count), ``properties`` (element -> list of
 "type name"), ``bbox`` ({"min", "max", "diagonal"}), ``has_normals``, ``has_colors``,
-``history`` (provenance lines), and for meshes ``topology`` (see
-:func:`recon_cli.mesh.topology.report`).
+``invalid_dropped`` (points with a NaN or infinite coordinate the reader dropped),
+``organized`` (``"640x480"``: the image(s) an organized cloud came from, else None),
+``sensors`` (the scanner positions the file gives, one line each), ``history``
+(provenance lines), and for meshes ``topology`` (see :func:`recon_cli.mesh.topology.report`).
 Other formats (OBJ, OFF, STL, XYZ, PCD, LAS, E57): the same keys, ``format`` being the
 format's name, plus ``details`` (what the reader reports: STL weld, LAS header, PCD fields...).
 Keys (grid): ``file``, ``kind`` ("grid"), ``shape``, ``origin``, ``voxel_size``,
@@ -138,4 +140,7 @@ def _geometry_keys(geom: Any) -> dict[str, Any]:
         "has_normals": geom.normals is not None,
         "has_colors": geom.colors is not None,
         "attributes": sorted(geom.attributes),
+        "invalid_dropped": int(getattr(geom, "invalid_dropped", 0)),
+        "organized": None if getattr(geom, "pixels", None) is None else geom.pixels.describe(),
+        "sensors": [s.describe() for s in getattr(geom, "sensors", ())],
     }

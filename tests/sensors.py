@@ -13,8 +13,10 @@ within range, as Kinect/RealSense drivers and PCL write them. Sensor effects, ea
   the foreground and the background (the mixed returns at silhouettes),
 - depth quantisation (``disparity_bits``) is not modelled.
 
-:func:`write_organized_pcd` writes such a cloud as a binary PCD with ``WIDTH``/``HEIGHT``,
-NaN pixels, packed ``rgba`` colour and the ``VIEWPOINT`` of the camera, as PCL does.
+:func:`write_organized_pcd` writes such a cloud as a PCD (binary, ASCII or binary_compressed)
+with ``WIDTH``/``HEIGHT``, NaN pixels, packed ``rgba`` colour and the ``VIEWPOINT`` of the
+camera, as PCL does; :func:`exact_image` and :func:`true_normals` give the noise-free points
+and the scene's normals to measure against.
 """
 
 from __future__ import annotations
@@ -173,14 +175,25 @@ def valid_rows(organized: np.ndarray) -> np.ndarray:
 
 # ---- files as PCL writes them ------------------------------------------------------------------
 def write_organized_pcd(
-    path, organized: np.ndarray, camera: DepthCamera | None = None, colors=None
+    path,
+    organized: np.ndarray,
+    camera: DepthCamera | None = None,
+    colors=None,
+    data: str = "binary",
+    dtype: str = "f4",
 ) -> None:
-    """Binary PCD of an organized cloud: ``WIDTH``/``HEIGHT`` of the image, NaN pixels kept,
-    ``rgba`` packed as PCL packs it (a float32 field holding 0xAARRGGBB), ``VIEWPOINT`` of the
-    camera (position and orientation quaternion w x y z)."""
+    """PCD of an organized cloud as PCL writes it: ``WIDTH``/``HEIGHT`` of the image, NaN pixels
+    kept, ``rgba`` packed as PCL packs it (0xAARRGGBB in 4 bytes), ``VIEWPOINT`` of the camera
+    (position and orientation quaternion w x y z).
+
+    ``data``: ``binary`` (PCL's default), ``ascii`` (NaN written ``nan``) or
+    ``binary_compressed`` (column-major, LZF: written as literal runs, which every LZF reader
+    decodes); ``dtype``: ``f4`` (as depth cameras give) or ``f8`` coordinates.
+    """
     h, w, _ = organized.shape
     n = h * w
-    rows = np.zeros(n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgba", "<u4")])
+    ftype = "<" + dtype
+    rows = np.zeros(n, dtype=[("x", ftype), ("y", ftype), ("z", ftype), ("rgba", "<u4")])
     p = organized.reshape(-1, 3)
     rows["x"], rows["y"], rows["z"] = p[:, 0], p[:, 1], p[:, 2]
     if colors is None:
@@ -189,17 +202,62 @@ def write_organized_pcd(
     rows["rgba"] = (255 << 24) | (c[:, 0] << 16) | (c[:, 1] << 8) | c[:, 2]
     view = "0 0 0 1 0 0 0"
     if camera is not None:
-        view = " ".join(f"{x:.9g}" for x in (*camera.eye, *_quaternion(camera.rotation)))
+        view = " ".join(f"{x:.17g}" for x in (*camera.eye, *quaternion(camera.rotation)))
+    size = int(dtype[1])
     header = (
-        "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z rgba\nSIZE 4 4 4 4\n"
-        f"TYPE F F F U\nCOUNT 1 1 1 1\nWIDTH {w}\nHEIGHT {h}\nVIEWPOINT {view}\nPOINTS {n}\nDATA binary\n"
+        "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z rgba\n"
+        f"SIZE {size} {size} {size} 4\nTYPE F F F U\nCOUNT 1 1 1 1\nWIDTH {w}\nHEIGHT {h}\n"
+        f"VIEWPOINT {view}\nPOINTS {n}\nDATA {data}\n"
     )
+    if data == "binary":
+        body = rows.tobytes()
+    elif data == "ascii":
+        fmt = "%.9g" if size == 4 else "%.17g"
+        lines = [
+            f"{fmt % x} {fmt % y} {fmt % z} {int(v)}"
+            for x, y, z, v in zip(rows["x"], rows["y"], rows["z"], rows["rgba"])
+        ]
+        body = ("\n".join(lines) + "\n").encode("ascii")
+    elif data == "binary_compressed":
+        raw = b"".join(np.ascontiguousarray(rows[f]).tobytes() for f in rows.dtype.names)
+        comp = _lzf_literals(raw)
+        body = np.array([len(comp), len(raw)], "<u4").tobytes() + comp
+    else:
+        raise ValueError(f"unknown PCD data {data!r}")
     with open(path, "wb") as f:
         f.write(header.encode("ascii"))
-        f.write(rows.tobytes())
+        f.write(body)
 
 
-def _quaternion(r: np.ndarray) -> tuple[float, float, float, float]:
+def _lzf_literals(raw: bytes) -> bytes:
+    """An LZF stream of literal runs only (a control byte ``len - 1`` < 32 before each run)."""
+    out = bytearray()
+    for i in range(0, len(raw), 32):
+        chunk = raw[i : i + 32]
+        out.append(len(chunk) - 1)
+        out += chunk
+    return bytes(out)
+
+
+def true_normals(sdf, points: np.ndarray, eps: float = 1e-6) -> np.ndarray:
+    """Unit gradients of ``sdf`` at ``points`` (n, 3): the scene's outward normals there."""
+    g = np.zeros_like(points, dtype=np.float64)
+    for a in range(3):
+        d = np.zeros(3)
+        d[a] = eps
+        g[:, a] = (sdf(points + d) - sdf(points - d)) / (2 * eps)
+    return g / np.linalg.norm(g, axis=1, keepdims=True)
+
+
+def exact_image(camera: DepthCamera, sdf) -> np.ndarray:
+    """The noise-free organized cloud of ``sdf`` seen by ``camera`` (NaN where nothing is hit)."""
+    t = camera.cast(sdf)
+    pts = camera.eye + camera.rays() * t[..., None]
+    pts[~np.isfinite(t)] = np.nan
+    return pts
+
+
+def quaternion(r: np.ndarray) -> tuple[float, float, float, float]:
     """(w, x, y, z) of a rotation matrix."""
     w = np.sqrt(max(0.0, 1 + r[0, 0] + r[1, 1] + r[2, 2])) / 2
     x = np.copysign(np.sqrt(max(0.0, 1 + r[0, 0] - r[1, 1] - r[2, 2])) / 2, r[2, 1] - r[1, 2])

@@ -88,6 +88,11 @@ def test_points_only_obj_is_a_cloud_with_colours():
     assert c.colors.dtype == np.uint8 and c.colors.tolist() == [[255, 0, 0], [0, 128, 255]]
 
 
+def test_nonfinite_vertices_dropped_and_counted():
+    cloud, _ = decode_obj(b"v 1 inf 3\nv 0 0 0\nv\t1 -inf 3\nv nan 0 0\nv 4 5 6\n", "c.obj")
+    assert cloud.invalid_dropped == 3 and cloud.points.tolist() == [[0, 0, 0], [4, 5, 6]]
+
+
 @pytest.mark.parametrize(
     "data, message",
     [
@@ -98,11 +103,11 @@ def test_points_only_obj_is_a_cloud_with_colours():
         (b"v 1 2 3\nf 1 1 99999999999\n", "vertex index out of range for 1 vertices"),
         (b"v 1 2 3\nvn 0 0 1\nf 1//1 1//1 1//2\n", "normal index out of range for 1 normals"),
         (b"v 1 2 3\nv 1 2 3\nv 1 2 3\nf 1 2 3/", "line 4: a face corner is not a vertex index"),
-        (b"v 1 inf 3\n", "vertex 0 has a NaN"),
-        (b"v 0 0 0\nv\t1 -inf 3\n", "vertex 1 has a NaN"),
+        (b"v 1 inf 3\nv 0 0 0\nv 1 0 0\nf 1 2 3\n", "face 0 uses vertex 0, which has a NaN"),
+        (b"v 0 0 0\nv\t1 -inf 3\nv 0 1 0\nf 1 3 2\n", "face 0 uses vertex 1, which has a NaN"),
         (b"v 1 2 3\nf 0 1 1\n", "line 2: a face corner is not a vertex index"),
         (b"v 1 2 3\nf 1/a 1 1\n", "line 2: a face corner is not a vertex index"),
-        (b"v nan 0 0\n", "vertex 0 has a NaN"),
+        (b"v nan 0 0\nv 0 1 0\nv 1 0 0\nf 2 3 1 \n", "face 0 uses vertex 0, which has a NaN"),
         (b"v 1 2 3\nv 1 2 3 1 1 1\n", "line 2: this 'v' line and an earlier one differ"),
         (b"v 1 2 3\nvn 1 2\n", "line 2: a 'vn' line must hold 3 numbers"),
         (b"v 1 2 3\nf 1//9 1//9 1//9\n", "normal index out of range"),

@@ -88,7 +88,10 @@ def test_polygons_face_colours_and_counts_on_the_keyword_line():
         (b"OFF\n99999999999 1 0\n0 0 0\n", "truncated"),
         (b"OFF\n-1 0 0\n", "line 2: the counts must be"),
         (b"OFF\n1 0 0\n0 0 z\n", "line 3: 'z' is not a number"),
-        (b"OFF\n1 0 0\n0 0 inf\n", "vertex 0 has a NaN or infinite coordinate"),
+        (
+            b"OFF\n3 1 0\n0 0 inf\n1 0 0\n0 1 0\n3 0 1 2\n",
+            "face 0 uses vertex 0, which has a NaN or infinite coordinate",
+        ),
     ],
 )
 def test_malformed_files_name_the_line(data, message):

@@ -89,9 +89,9 @@ def test_fields_with_counts_padding_and_viewpoint_kept():
         1.5,
         3.5,
     ]
-    assert "pcd_viewpoint 1 2 3 1 0 0 0" in got.obj_info
+    assert [(s.position, s.orientation) for s in got.sensors] == [((1, 2, 3), (1, 0, 0, 0))]
     again = decode_pcd(pcd_bytes(got), "g.pcd")[0]
-    assert again.obj_info == got.obj_info and again.attributes["label"].tolist() == [7, 9]
+    assert again.sensors == got.sensors and again.attributes["label"].tolist() == [7, 9]
 
 
 @settings(max_examples=200, deadline=None)

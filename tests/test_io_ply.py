@@ -719,15 +719,18 @@ def test_big_truncated_file_errors_like_in_memory(tmp_path):
 @pytest.mark.parametrize("ftype", ["f4", "f8"])
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
 @pytest.mark.parametrize("row,col", [(0, "x"), (4_999, "z"), (2_048, "y"), (9_999, "z")])
-def test_first_nonfinite_row_named(order, ftype, bad, row, col, tmp_path):
-    # block boundaries (2048 rows) and the last row; NaN in the normals is not an error
+def test_nonfinite_rows_found_and_dropped(order, ftype, bad, row, col, tmp_path):
+    # block boundaries (2048 rows) and the last row; NaN in the normals is not an invalid point
     n = 10_000
     dt = np.dtype([("tag", "u1")] + [(c, order + ftype) for c in ("x", "y", "z", "nx")])
     rows = np.zeros(n, dt)
+    rows["y"] = np.arange(n)
     rows["nx"][: row + 1] = np.nan
     rows[col][row] = bad
+    dropped = [row]
     if row < n - 1:
-        rows["x"][n - 1] = np.nan  # a later bad row is not the one reported
+        rows["x"][n - 1] = np.nan  # a later bad row too
+        dropped.append(n - 1)
     fmt = "binary_little_endian" if order == "<" else "binary_big_endian"
     name = "float" if ftype == "f4" else "double"
     head = (
@@ -738,9 +741,11 @@ def test_first_nonfinite_row_named(order, ftype, bad, row, col, tmp_path):
     data = head.encode() + rows.tobytes()
     path = tmp_path / "nan.ply"
     path.write_bytes(data)
-    for src in (lambda: read_ply(path), lambda: read_ply("mem.ply", data)):
-        with pytest.raises(InputError, match=f"vertex {row} has a NaN or infinite coordinate"):
-            src()
+    keep = np.setdiff1d(np.arange(n), dropped)
+    for got in (read_ply(path), read_ply("mem.ply", data)):
+        assert got.invalid_dropped == len(dropped) and len(got.points) == n - len(dropped)
+        assert np.array_equal(got.points[:, 1], keep) and got.points.dtype == np.dtype(ftype)
+        assert np.isnan(got.attributes["nx"][:row]).all() and len(got.attributes["nx"]) == len(keep)
 
 
 def _root(a):

@@ -104,7 +104,6 @@ def test_header_delimiter_and_column_detection(data, columns):
         (b"a b\n1 2\n", "rows have 2 columns"),
         (b"x y z w\n1 2 3\n", "the header names 4 columns but the rows have 3"),
         (b"a b c\n1 2 3\n", "has no x, y and z columns"),
-        (b"1 2 nan\n", "point 0 has a NaN"),
     ],
 )
 def test_malformed_files_name_the_line(data, message):

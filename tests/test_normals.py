@@ -292,7 +292,6 @@ def test_parameter_errors():
         ({"radius": -1.0}, "radius must be"),
         ({"knn": 0}, "needs --radius"),
         ({"orient": "up"}, "orient must be"),
-        ({"orient": "camera"}, "needs --camera"),
         ({"orient": "camera", "camera": "1,2"}, "three"),
         ({"orient": "direction", "direction": "0,0,0"}, "zero vector"),
         ({"orient": "mst", "camera": "0,0,1"}, "only used with"),
@@ -303,6 +302,9 @@ def test_parameter_errors():
             run_stage(c, **kwargs)
     with pytest.raises(InputError, match="shape"):
         estimate_normals(np.zeros((5, 2)))
+    # no --camera and no scanner position in the data: the input's problem (exit 2, file named)
+    with pytest.raises(InputError, match="needs --camera X,Y,Z: the input gives no scanner"):
+        run_stage(c, orient="camera")
 
 
 def test_stage_report_history_and_open3d_backend():

@@ -14,8 +14,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from sensors import DepthCamera, depth_image, look_at, tabletop_scene, write_organized_pcd
 from shared_data import shared_path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -37,13 +39,16 @@ class L(event.Listener):
         pass
 event.register("numba:compile", L())
 from recon_cli.cli.main import cli
-d, scan, kitten = sys.argv[1:4]
+d, scan, kitten, depth = sys.argv[1:5]
 runs = [
     ["normals", scan, f"{d}/n.ply", "--orient", "camera", "--camera", "0,0,1"],
+    ["normals", depth, f"{d}/d.ply", "--orient", "camera"],
     ["normals", scan, f"{d}/n2.ply"],
     ["poisson", f"{d}/n.ply", f"{d}/p.ply", "--depth", "6"],
     ["ballpivot", f"{d}/n.ply", f"{d}/b.ply"],
     ["repair", f"{d}/b.ply", f"{d}/r.ply", "--fill-holes", "50"],
+    ["simplify", f"{d}/r.ply", f"{d}/s.ply", "--ratio", "0.5"],
+    ["smooth", f"{d}/s.ply", f"{d}/sm.ply", "--iterations", "3"],
     ["sdf", kitten, f"{d}/k.npz", "--resolution", "24"],
     ["mcubes", f"{d}/k.npz", f"{d}/m.ply"],
     ["info", kitten, f"{d}/k.npz"],
@@ -81,6 +86,12 @@ def test_no_command_compiles_after_warmup(tmp_path):
         "recon_cli/cli/main.py",
     ):
         assert Path(importlib.util.cache_from_source(str(ROOT / module))).is_file(), module
+    # a depth camera's organized cloud: NaN pixels, normals from its pixel grid, its viewpoint
+    rng = np.random.default_rng(0)
+    cam = DepthCamera(
+        eye=np.array([0.3, -2.4, 1.1]), rotation=look_at((0.3, -2.4, 1.1), (0, 0.3, 0.2))
+    )
+    write_organized_pcd(tmp_path / "depth.pcd", depth_image(cam, tabletop_scene(), rng), cam)
     after = subprocess.run(
         [
             sys.executable,
@@ -89,6 +100,7 @@ def test_no_command_compiles_after_warmup(tmp_path):
             str(tmp_path),
             str(ROOT / "sample_data" / "bunny_scan_000.ply"),
             str(shared_path("kitten")),
+            str(tmp_path / "depth.pcd"),
         ],
         env=env,
         capture_output=True,

@@ -155,3 +155,38 @@ def manifold_checks(mesh: TriangleMesh, self_intersection: bool = True) -> dict:
         ),
         "non_manifold_vertices": int(len(np.asarray(m.get_non_manifold_vertices()))),
     }
+
+
+def _local(mesh: TriangleMesh):
+    """``mesh`` about its bounding-box centre as an Open3D mesh, and that centre."""
+    from recon_cli.geometry import local_origin
+
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    centre = local_origin(v)
+    return to_o3d_mesh(TriangleMesh(v - centre, mesh.faces)), centre
+
+
+def simplify_quadric(mesh: TriangleMesh, faces: int) -> TriangleMesh:
+    """Open3D ``simplify_quadric_decimation`` to ``faces`` triangles (about a local origin)."""
+    m, centre = _local(mesh)
+    record("open3d.geometry.TriangleMesh.simplify_quadric_decimation", target=int(faces))
+    out = from_o3d_mesh(m.simplify_quadric_decimation(int(faces)), mesh.history)
+    out.vertices = out.vertices + centre
+    return out
+
+
+def smooth_taubin(mesh: TriangleMesh, iterations: int, lam: float, mu: float) -> TriangleMesh:
+    """Open3D ``filter_smooth_taubin`` (about a local origin)."""
+    m, centre = _local(mesh)
+    record(
+        "open3d.geometry.TriangleMesh.filter_smooth_taubin",
+        number_of_iterations=int(iterations),
+        lambda_filter=lam,
+        mu=mu,
+    )
+    out = from_o3d_mesh(
+        m.filter_smooth_taubin(number_of_iterations=int(iterations), lambda_filter=lam, mu=mu),
+        mesh.history,
+    )
+    out.vertices = out.vertices + centre
+    return out

@@ -195,3 +195,35 @@ def ball_pivoting_radii(
             deletefaces=False,
         )
     return current_mesh(ms, cloud.history)
+
+
+def _local(mesh: TriangleMesh):
+    """A MeshSet of ``mesh`` about its bounding-box centre, and that centre."""
+    from recon_cli.geometry import local_origin
+
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    centre = local_origin(v)
+    return meshset(TriangleMesh(v - centre, mesh.faces)), centre
+
+
+def simplify_quadric(mesh: TriangleMesh, faces: int) -> TriangleMesh:
+    """PyMeshLab ``meshing_decimation_quadric_edge_collapse`` to ``faces`` triangles, with its
+    topology and normal preservation on (the guarantees ``recon simplify`` gives)."""
+    ms, centre = _local(mesh)
+    kwargs = {"targetfacenum": int(faces), "preservetopology": True, "preservenormal": True}
+    record("pymeshlab.meshing_decimation_quadric_edge_collapse", **kwargs)
+    ms.meshing_decimation_quadric_edge_collapse(**kwargs)
+    out = current_mesh(ms, mesh.history)
+    out.vertices = out.vertices + centre
+    return out
+
+
+def smooth_taubin(mesh: TriangleMesh, iterations: int, lam: float, mu: float) -> TriangleMesh:
+    """PyMeshLab ``apply_coord_taubin_smoothing`` (about a local origin)."""
+    ms, centre = _local(mesh)
+    kwargs = {"lambda_": lam, "mu": mu, "stepsmoothnum": int(iterations)}
+    record("pymeshlab.apply_coord_taubin_smoothing", **kwargs)
+    ms.apply_coord_taubin_smoothing(**kwargs)
+    out = current_mesh(ms, mesh.history)
+    out.vertices = out.vertices + centre
+    return out

@@ -65,7 +65,10 @@ def data_stats(obj: Any) -> dict:
     if isinstance(obj, TriangleMesh):
         return {"kind": "mesh", "vertices": int(len(obj.vertices)), "faces": int(len(obj.faces))}
     if isinstance(obj, PointCloud):
-        return {"kind": "cloud", "points": int(len(obj.points)), "normals": obj.normals is not None}
+        out = {"kind": "cloud", "points": int(len(obj.points)), "normals": obj.normals is not None}
+        if obj.invalid_dropped:  # a reader dropped NaN points: never silently
+            out["invalid_dropped"] = int(obj.invalid_dropped)
+        return out
     return {"kind": type(obj).__name__}
 
 

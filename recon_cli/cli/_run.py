@@ -69,7 +69,7 @@ def run_stage_command(
     from recon_cli.errors import naming
     from recon_cli.geometry import TriangleMesh
     from recon_cli.io.atomic import check_output
-    from recon_cli.io.load import load, save
+    from recon_cli.io.load import load, read_report, save
     from recon_cli.stages import apply_stage, get_spec
 
     spec = get_spec(stage)
@@ -100,6 +100,9 @@ def run_stage_command(
     save(result.output, output, ascii=ascii_, **save_kw)
     t3 = time.perf_counter()
     report = dict(result.report)
+    read = read_report(data)  # invalid points dropped, an organized cloud: never silently
+    if read:
+        report["read"] = read
     report["timings"] = {"read": t1 - t0, "stage": t2 - t1, "write": t3 - t2}
     report["output"] = "<stdout>" if output == "-" else output
     emit_report(ctx, report, json_=json_, data_on_stdout=(output == "-"))

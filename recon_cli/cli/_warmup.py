@@ -147,12 +147,31 @@ def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
         # an open scan (half of it): coarse leaves hold surface, so Poisson extracts at the leaves' size
         up = pd[:, 2] > 0
         write_ply(PointCloud(points=pd[up], normals=nd[up]), path("half.ply"))
+        # ... with integer codes (Poisson's --attributes votes on them)
+        codes = {"classification": (pd[up, 0] > 0).astype(np.uint8) + 1}
+        write_ply(
+            PointCloud(points=pd[up], normals=nd[up], attributes=codes), path("half_codes.ply")
+        )
+        # Poisson's envelope: a closed sphere around the clouds
+        write_ply(TriangleMesh(vertices=1.5 * v, faces=f), path("envelope.ply"))
         # repeated and collinear points: degenerate neighbourhoods borrow their normal
         line = np.column_stack([np.linspace(2, 3, 12), np.zeros(12), np.zeros(12)])
         write_ply(
             PointCloud(points=np.vstack([p, np.repeat(p[:1], 40, axis=0), line])),
             path("degenerate.ply"),
         )
+        # an organized depth image (NaN pixels, a VIEWPOINT): normals from its pixel grid
+        hh, ww = 12, 16
+        yy, xx = np.mgrid[0:hh, 0:ww].astype(np.float32)
+        grid = np.stack([xx * 0.1, yy * 0.1, 2.0 + 0.01 * xx * yy], axis=-1).reshape(-1, 3)
+        grid[::7] = np.nan
+        with open(path("organized.pcd"), "wb") as fh:
+            fh.write(
+                b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+                + f"WIDTH {ww}\nHEIGHT {hh}\nVIEWPOINT 0.8 0.6 0 1 0 0 0\n".encode()
+                + f"POINTS {hh * ww}\nDATA binary\n".encode()
+            )
+            fh.write(grid.astype("<f4").tobytes())
         # three triangles on one edge: repair chooses which two stay together
         fin = np.array(
             [[0, 0, 0], [1, 0, 0], [0.5, 1, 0], [0.5, -1, 0], [0.5, 0, 1]], dtype=np.float64
@@ -212,6 +231,14 @@ def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
         )
         steps.append(("normals knn+radius", recon("normals", src, out, "--radius", "0.2")))
     steps.append(("normals keep", recon("normals", c32, out, "--orient", "keep")))
+    organized = path("organized.pcd")
+    steps.append(("normals pixels", recon("normals", organized, out, "--orient", "camera")))
+    steps.append(
+        (
+            "normals pixels radius",
+            recon("normals", organized, out, "--neighbours", "pixels", "--radius", "0.5"),
+        )
+    )
     steps.append(("normals degenerate", recon("normals", path("degenerate.ply"), out)))
     for src in (c32, c64):
         steps += [
@@ -279,6 +306,25 @@ def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
     )
     steps.append(
         (
+            "poisson free boundary, envelope, confidence, grid",
+            recon(
+                "poisson",
+                path("half_codes.ply"),
+                out,
+                "--depth",
+                "6",
+                "--boundary",
+                "free",
+                "--confidence",
+                "--envelope",
+                path("envelope.ply"),
+                "--grid",
+                path("poisson_grid.npz"),
+            ),
+        )
+    )
+    steps.append(
+        (
             "poisson degree 2 unscreened",
             recon("poisson", c32, out, "--depth", "5", "--degree", "2", "--point-weight", "0"),
         )
@@ -326,6 +372,12 @@ def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
         ]
     steps.append(("repair mixed polygons", recon("repair", path("mixed.ply"), out)))
     steps.append(("repair non-manifold edge", recon("repair", path("fin.ply"), out)))
+    steps += [
+        ("simplify", recon("simplify", m32, out, "--ratio", "0.3")),
+        ("simplify open", recon("simplify", path("open.ply"), out, "--faces", "21")),
+        ("smooth", recon("smooth", m64, out)),
+        ("smooth open", recon("smooth", path("open.ply"), out, "--fixed-boundary")),
+    ]
     for grid in (path("mesh.npz"), path("cloud.npz")):
         steps += [
             ("info grid", recon("info", grid)),

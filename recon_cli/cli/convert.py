@@ -22,7 +22,7 @@ def cmd(ctx: click.Context, input: str, output: str, ascii_: bool, big_endian: b
     LAS/LAZ (E57 read only). A PLY written from a PLY keeps every element and property."""
     from recon_cli.cli._run import io_formats
     from recon_cli.io.atomic import write_bytes
-    from recon_cli.io.load import FORMATS, decode, format_of, save
+    from recon_cli.io.load import FORMATS, check_read, decode, format_of, save
     from recon_cli.io.ply import parse_ply, read_bytes, serialize_ply
 
     if ascii_ and big_endian:
@@ -52,4 +52,7 @@ def cmd(ctx: click.Context, input: str, output: str, ascii_: bool, big_endian: b
         from recon_cli.io.load import load
 
         obj = load(input, **load_kw)
+    dropped = getattr(check_read(obj, input), "invalid_dropped", 0)
+    if dropped and not (ctx.find_root().obj or {}).get("quiet"):
+        click.echo(f"{input}: {dropped} points with a NaN or infinite coordinate dropped", err=True)
     save(obj, output, ascii=ascii_, **save_kw)

@@ -62,6 +62,14 @@ def format_info(rep: dict) -> str:
     else:
         lines.append(f"  format         {rep['format']}")
         lines.append(f"  vertices       {rep['vertices']}")
+        if rep.get("invalid_dropped"):
+            lines.append(
+                f"  invalid        {rep['invalid_dropped']} (NaN/inf coordinates, dropped)"
+            )
+        if rep.get("organized"):
+            lines.append(f"  organized      {rep['organized']} (width x height)")
+        for s in rep.get("sensors") or ():
+            lines.append(f"  sensor         {s}")
         if rep["kind"] == "mesh":
             lines.append(f"  faces          {rep['faces']}")
         for el, props in rep["properties"].items():

@@ -73,7 +73,7 @@ def cmd(
         return
     if input is None or output is None:
         raise click.UsageError("missing IN and OUT (or pass --validate)")
-    from recon_cli.io.load import load, save
+    from recon_cli.io.load import load, read_report, save
 
     from recon_cli.cli._signals import immediate
     from recon_cli.errors import naming
@@ -95,4 +95,7 @@ def cmd(
         "seconds": time.perf_counter() - t0,
         "stages": reports,
     }
+    read = read_report(data)  # invalid points dropped, an organized cloud: never silently
+    if read:
+        summary["read"] = read
     emit_report(ctx, summary, json_=json_, data_on_stdout=(output == "-"))

@@ -7,7 +7,10 @@ dimension as a per-point attribute under laspy's name (``intensity``, ``return_n
 ``number_of_returns``, ``classification``, ``gps_time``, ..., and extra-bytes dimensions);
 extra dimensions ``nx ny nz`` (or ``normal_x``...) are the normals. The version, point
 format, scale, offset and the VLRs (coordinate system...) are kept in ``obj_info`` lines
-(``las_*``), so they survive a pass through PLY stages and are written back.
+(``las_*``), so they survive a pass through PLY stages and are written back. LAS says
+nothing of where its sensor was: a cloud read from it has one sensor far above, "up" (+Z,
+as for airborne LiDAR), which ``--orient camera`` uses. LAS stores integer coordinates, so
+no point is ever NaN (a scale and offset that overflow float64 are refused).
 
 Writing uses the kept scale and offset (coordinates from a LAS file come back as the same
 integers), or else the finest power-of-ten scale that both fits the extent in 32-bit
@@ -26,7 +29,7 @@ import os
 import numpy as np
 
 from recon_cli.errors import InputError, ParameterError
-from recon_cli.geometry import PointCloud, bbox_diagonal
+from recon_cli.geometry import PointCloud, Sensor, bbox_diagonal
 from recon_cli.io import text
 
 _NORMAL_NAMES = (
@@ -173,6 +176,7 @@ def decode_las(data, where: str, path=None) -> tuple[PointCloud, dict]:
         attributes=attributes,
         point_dtype=np.float64,
         obj_info=info,
+        sensors=[Sensor(direction=(0.0, 0.0, 1.0), source="LAS up (airborne)")],
     )
     details = {
         "format": "las",
@@ -221,6 +225,12 @@ def las_bytes(obj, compress: bool, where: str = "") -> bytes:
     laspy = _laspy()
     info = _info(obj)
     pts = np.asarray(obj.points, np.float64)
+    bad = ~np.isfinite(pts).all(axis=1)
+    if bad.any():  # LAS coordinates are integers: there is no NaN to write
+        raise ParameterError(
+            f"{where}: LAS cannot store the {int(bad.sum())} points with a NaN or infinite "
+            f"coordinate (first: point {int(np.argmax(bad))})"
+        )
     version = info.get("version", "1.4")
     pf = int(info.get("point_format", 7 if obj.colors is not None else 6))
     if obj.colors is not None and pf in _WITH_RGB:

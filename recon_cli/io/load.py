@@ -221,14 +221,48 @@ def decode(data, path: str | os.PathLike, fmt: Format | None = None) -> tuple[An
 def load(path: str | os.PathLike, format: str | None = None) -> PointCloud | TriangleMesh | Grid:
     """Read ``path`` (``-``: stdin) in the format its suffix (or ``format``) names.
 
+    Points (vertices) with a NaN or infinite coordinate are dropped and counted in the
+    object's ``invalid_dropped`` (:func:`read_report` says so).
+
     Raises
     ------
     InputError
-        Malformed file (the message names the file and the line or byte).
+        Malformed file (the message names the file and the line or byte), or every point
+        of it invalid.
     ParameterError
         Unknown suffix or format, or a missing optional extra.
     """
-    return load_detailed(path, format)[0]
+    return check_read(load_detailed(path, format)[0], path)
+
+
+def check_read(obj: Any, path: str | os.PathLike) -> Any:
+    """``obj``, refused when the reader dropped every one of its points as invalid."""
+    dropped = getattr(obj, "invalid_dropped", 0)
+    if dropped and len(obj.points) == 0:
+        raise InputError(
+            f"all {dropped} points have a NaN or infinite coordinate: nothing to read",
+            "<stdin>" if str(path) == "-" else str(path),
+        )
+    return obj
+
+
+def read_report(obj: Any) -> dict | None:
+    """What reading ``obj`` did that a report must show, or None when there is nothing to say.
+
+    Keys: ``invalid_dropped`` (points with a NaN or infinite coordinate, dropped),
+    ``organized`` (``"640x480"``: the width x height of the image(s) the points came from)
+    and ``kept`` (the points read).
+    """
+    if not isinstance(obj, (PointCloud, TriangleMesh)):
+        return None
+    dropped = int(getattr(obj, "invalid_dropped", 0))
+    pixels = getattr(obj, "pixels", None)
+    if not dropped and pixels is None:
+        return None
+    out: dict[str, Any] = {"kept": len(obj.points), "invalid_dropped": dropped}
+    if pixels is not None:
+        out["organized"] = pixels.describe()
+    return out
 
 
 def save(

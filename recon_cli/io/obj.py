@@ -25,7 +25,7 @@ import os
 import numpy as np
 
 from recon_cli.errors import InputError
-from recon_cli.geometry import PointCloud, TriangleMesh
+from recon_cli.geometry import PointCloud, TriangleMesh, drop_invalid
 from recon_cli.io import text
 
 _MESSAGES = {
@@ -76,8 +76,7 @@ def decode_obj(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
         if bad.any():
             row = int(slow[bad, 1].min()) // 3
             nonfinite = row if nonfinite < 0 else min(nonfinite, row)
-    if nonfinite >= 0:
-        raise InputError(f"vertex {nonfinite} has a NaN or infinite coordinate", where)
+    invalid = nonfinite >= 0  # such vertices are dropped (and counted) once the object is made
     # the kernel's largest indices: negative ones it has resolved or refused already
     if int(counts[K.MAX_V]) >= nv:
         bad = int(np.flatnonzero(corner_v >= nv)[0])
@@ -91,16 +90,16 @@ def decode_obj(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
     cols = text.colours_from_unit(colours) if len(colours) else None
     common = dict(normals=normals, colors=cols, point_dtype=np.float64)
     if nf == 0:
-        return text.apply_float32_mark(PointCloud(points=verts, **common), history), details
+        cloud = text.apply_float32_mark(PointCloud(points=verts, **common), history)
+        return (drop_invalid(cloud, where) if invalid else cloud), details
     if nc == 3 * nf:  # every face has at least 3 corners: all are triangles
         faces = corner_v.reshape(-1, 3)  # triangles already: no fan to build
     else:
         from recon_cli.io._obj_kernel import fan
 
         faces, _ = fan(corner_v, face_len[:nf])
-    return text.apply_float32_mark(
-        TriangleMesh(vertices=verts, faces=faces, **common), history
-    ), details
+    mesh = text.apply_float32_mark(TriangleMesh(vertices=verts, faces=faces, **common), history)
+    return (drop_invalid(mesh, where) if invalid else mesh), details
 
 
 def _estimate(buf: np.ndarray, K) -> tuple[int, int, int, int]:
@@ -196,7 +195,8 @@ def read_obj(path: str | os.PathLike, data=None) -> PointCloud | TriangleMesh:
     Raises
     ------
     InputError
-        A malformed line (named by number), a face index out of range, NaN coordinates.
+        A malformed line (named by number), a face index out of range, a face using a
+        vertex with a NaN or infinite coordinate (such vertices are otherwise dropped).
     """
     from recon_cli.io.ply import read_bytes
 

@@ -15,7 +15,7 @@ import os
 import numpy as np
 
 from recon_cli.errors import InputError
-from recon_cli.geometry import PointCloud, TriangleMesh
+from recon_cli.geometry import PointCloud, TriangleMesh, drop_invalid
 from recon_cli.io import text
 
 _KEYWORDS = {
@@ -71,18 +71,18 @@ def decode_off(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
     width = int(vl[0]) if nv else base
     vtab = values[row_start[1] : row_start[1] + nv * width].reshape(nv, width)
     pts = np.ascontiguousarray(vtab[:, :3])
-    text.check_finite(pts, where)
     normals = np.ascontiguousarray(vtab[:, 3:6]) if has_nrm else None
     colors = _colours(vtab[:, base:]) if has_col else None
     details = {"format": "off", "variant": word.decode(), "declared": [nv, nf]}
     common = dict(normals=normals, colors=colors, point_dtype=np.float64)
     if nf == 0:
-        return text.apply_float32_mark(PointCloud(points=pts, **common), _comments(buf)), details
+        cloud = text.apply_float32_mark(PointCloud(points=pts, **common), _comments(buf))
+        return drop_invalid(cloud, where), details
     faces, face_attrs = _faces(
         values, row_start[1 + nv : 2 + nv + nf], row_line[1 + nv :], nv, where
     )
     mesh = TriangleMesh(vertices=pts, faces=faces, face_attributes=face_attrs, **common)
-    return text.apply_float32_mark(mesh, _comments(buf)), details
+    return drop_invalid(text.apply_float32_mark(mesh, _comments(buf)), where), details
 
 
 def _colours(c: np.ndarray) -> np.ndarray:

@@ -4,8 +4,11 @@ reader and writer.
 Fields ``x y z`` are the points (float32 or float64 as in the file), ``normal_x normal_y
 normal_z`` the normals, ``rgb`` / ``rgba`` (packed 0xAARRGGBB in 4 bytes, type F or U) the
 colours (uint8); every other field is kept as a per-point attribute (a field of COUNT k as
-``name_0`` .. ``name_{k-1}``); ``_`` padding fields are skipped. The ``VIEWPOINT`` line is
-kept in ``obj_info`` and written back. Binary bodies are decoded with numpy structured
+``name_0`` .. ``name_{k-1}``); ``_`` padding fields are skipped. The ``VIEWPOINT`` line
+is the cloud's sensor (position and orientation; written back). Points with a NaN or
+infinite coordinate (a depth camera's missing pixels) are dropped and counted; an
+organized cloud (``HEIGHT`` > 1) keeps each point's pixel
+(:class:`~recon_cli.geometry.PixelGrid`). Binary bodies are decoded with numpy structured
 dtypes; ``binary_compressed`` (column-major, LZF) is decompressed by our own numba kernel
 (:mod:`recon_cli.io._lzf_kernel`) into a buffer of the size the header declares, checked
 against the file first.
@@ -18,7 +21,7 @@ import os
 import numpy as np
 
 from recon_cli.errors import InputError
-from recon_cli.geometry import PointCloud
+from recon_cli.geometry import PixelGrid, PointCloud, Sensor, drop_invalid
 from recon_cli.io import text
 
 _KEYS = (
@@ -235,14 +238,6 @@ def _to_cloud(cols: dict, h: dict, where: str) -> PointCloud:
     xyz_types = {cols[c].dtype for c in ("x", "y", "z")}
     ptype = np.float32 if xyz_types == {np.dtype("<f4")} else np.float64
     pts = np.column_stack([np.asarray(cols[c], dtype=ptype) for c in ("x", "y", "z")])
-    ok = np.isfinite(pts).all(axis=1)
-    if not ok.all():
-        if h["height"] > 1:
-            raise InputError(
-                f"point {int(np.argmin(ok))} has a NaN coordinate (an organized cloud: remove invalid points first)",
-                where,
-            )
-        raise InputError(f"point {int(np.argmin(ok))} has a NaN or infinite coordinate", where)
     used = {"x", "y", "z"}
     normals = None
     if all(c in cols for c in _NORMALS):
@@ -270,17 +265,36 @@ def _to_cloud(cols: dict, h: dict, where: str) -> PointCloud:
                 attributes[f"{name}_{k}"] = np.ascontiguousarray(col[:, k])
         else:
             attributes[name] = np.array(col)
-    info = []
-    if h["viewpoint"]:
-        info.append("pcd_viewpoint " + " ".join(h["viewpoint"]))
-    return PointCloud(
+    sensors = []
+    if h["viewpoint"] is not None:
+        sensors.append(_viewpoint(h["viewpoint"], where))
+    organized = h["height"] > 1
+    cloud = PointCloud(
         points=pts,
         normals=normals,
         colors=colors,
         attributes=attributes,
         point_dtype=ptype,
-        obj_info=info,
+        sensors=sensors,
+        pixels=PixelGrid(((h["height"], h["width"]),), np.arange(len(pts))) if organized else None,
     )
+    return drop_invalid(cloud, where)
+
+
+def _viewpoint(words: list[str], where: str) -> Sensor:
+    """The sensor a ``VIEWPOINT tx ty tz qw qx qy qz`` line gives (PCL's sensor origin and
+    orientation, in the points' frame)."""
+    try:
+        v = [float(x) for x in words]
+    except ValueError:
+        v = []
+    if len(v) != 7 or not np.isfinite(v).all():
+        raise InputError(f"VIEWPOINT must be 7 finite numbers, got {' '.join(words)!r}", where)
+    q = np.array(v[3:])
+    length = float(np.linalg.norm(q))
+    # the position is what orients normals; an orientation that is no rotation is not kept
+    rot = tuple(q / length) if 0.5 < length < 2.0 else None
+    return Sensor(position=v[:3], orientation=rot, source="PCD VIEWPOINT")
 
 
 def _code(dt: np.dtype) -> tuple[str, int]:
@@ -330,9 +344,7 @@ def pcd_bytes(obj, data: str = "binary") -> bytes:
             )
         )
     kinds = [_code(v.dtype) for _, v in cols]
-    view = next(
-        (s for s in obj.obj_info if s.startswith("pcd_viewpoint ")), "pcd_viewpoint 0 0 0 1 0 0 0"
-    )
+    view = _viewpoint_words(obj)
     head = [
         "# .PCD v0.7 - Point Cloud Data file format",
         "VERSION 0.7",
@@ -342,7 +354,7 @@ def pcd_bytes(obj, data: str = "binary") -> bytes:
         "COUNT " + " ".join("1" for _ in cols),
         f"WIDTH {n}",
         "HEIGHT 1",
-        "VIEWPOINT " + view.split(" ", 1)[1],
+        "VIEWPOINT " + view,
         f"POINTS {n}",
         f"DATA {data}",
     ]
@@ -378,6 +390,16 @@ def pcd_bytes(obj, data: str = "binary") -> bytes:
     )
     comp = lzf_compress(raw)
     return out + np.array([len(comp), len(raw)], dtype="<u4").tobytes() + comp.tobytes()
+
+
+def _viewpoint_words(obj) -> str:
+    """The VIEWPOINT of ``obj``: its one sensor position (and orientation), else PCL's default."""
+    sensors = [s for s in getattr(obj, "sensors", []) if s.position is not None]
+    if len(sensors) != 1 or len(getattr(obj, "sensors", [])) != 1:
+        return "0 0 0 1 0 0 0"
+    s = sensors[0]
+    q = s.orientation if s.orientation is not None else (1.0, 0.0, 0.0, 0.0)
+    return " ".join(repr(float(x)) for x in (*s.position, *q))
 
 
 def read_pcd(path: str | os.PathLike, data=None) -> PointCloud:

@@ -23,7 +23,7 @@ import numpy as np
 
 from recon_cli.aot import kernels
 from recon_cli.errors import InputError
-from recon_cli.geometry import PointCloud, TriangleMesh, storage_dtype
+from recon_cli.geometry import PointCloud, TriangleMesh, drop_invalid, storage_dtype
 from recon_cli.io._ply_types import FORMATS, PLY_TYPES, ply_name
 
 MAX_HEADER_BYTES = 1 << 20
@@ -723,12 +723,14 @@ def read_ply(path: str | os.PathLike, data: bytes | None = None) -> PointCloud |
     -------
     PointCloud or TriangleMesh
         A mesh when the file has a ``face`` element with at least one face; polygons are
-        fan-triangulated.
+        fan-triangulated. Vertices with a NaN or infinite coordinate are dropped and
+        counted in ``invalid_dropped``; ``obj_info sensor`` lines are a cloud's sensors.
 
     Raises
     ------
     InputError
-        Malformed or inconsistent file, NaN/inf coordinates, face indices out of range.
+        Malformed or inconsistent file, a face using a NaN/inf vertex, face indices out of
+        range.
     """
     ply = parse_ply(read_bytes(path) if data is None else data, str(path))
     return ply_to_geometry(ply, str(path))
@@ -754,9 +756,8 @@ def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | Trian
         vert.raw = np.array(raw)
     groups = _vertex_groups(props)
     pts = _columns(vert, *groups[0])
-    bad = _first_nonfinite_row(vert, pts)
-    if bad >= 0:
-        raise InputError(f"vertex {bad} has a NaN or infinite coordinate", where)
+    # rows with a NaN or infinite coordinate are dropped (and counted) once the object is made
+    invalid = _first_nonfinite_row(vert, pts) >= 0
     used = set(_VERTEX_XYZ)
     # float32 only when every coordinate column fits in float32 exactly (float, 8- and 16-bit integers):
     # a double column, or int/uint ones, make the source double (kept through every stage)
@@ -791,7 +792,8 @@ def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | Trian
         obj_info=list(ply.obj_info),
     )
     if face is None or face.count == 0:
-        return PointCloud(points=pts, normals=normals, **common)
+        cloud = PointCloud(points=pts, normals=normals, **common)
+        return drop_invalid(cloud, where) if invalid else cloud
     idx_prop = next((p for p in face.properties if p.name in _FACE_INDEX_NAMES and p.is_list), None)
     if idx_prop is None:
         raise InputError("face element has no 'vertex_indices' list property", where)
@@ -804,9 +806,10 @@ def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | Trian
         for p in face.properties
         if p is not idx_prop and not p.is_list
     }
-    return TriangleMesh(
+    mesh = TriangleMesh(
         vertices=pts, faces=faces, normals=normals, face_attributes=face_attrs, **common
     )
+    return drop_invalid(mesh, where) if invalid else mesh
 
 
 # PLY types whose every value float32 holds exactly
@@ -1035,9 +1038,9 @@ def geometry_to_ply(obj: PointCloud | TriangleMesh, ascii: bool = False) -> PlyD
             fdata[name] = values
         elements.append(PlyElement("face", len(obj.faces), fprops, fdata))
     elements += list(obj.extra_elements)
-    return PlyData(
-        format=fmt, comments=list(obj.history), obj_info=list(obj.obj_info), elements=elements
-    )
+    # a cloud's sensors as obj_info lines: read back into sensors (PointCloud)
+    info = list(obj.obj_info) + [s.to_line() for s in getattr(obj, "sensors", ())]
+    return PlyData(format=fmt, comments=list(obj.history), obj_info=info, elements=elements)
 
 
 def _code(dtype: np.dtype) -> str:

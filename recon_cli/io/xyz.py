@@ -15,7 +15,8 @@ Reading:
 * a PTS file's first line, one integer, is the point count and is checked.
 
 Every row must have the same number of columns (the line of the first that does not is
-named). Coordinates are read as float64. Writing puts the history and a ``#`` header
+named). Coordinates are read as float64; rows with a NaN or infinite coordinate are
+dropped before the columns are judged, and counted (``invalid_dropped``). Writing puts the history and a ``#`` header
 line of column names (a plain header line for ``.csv``, comma-separated), then the rows.
 """
 
@@ -168,10 +169,17 @@ def _columns(
         if not all(c in canon for c in "xyz"):
             raise InputError(f"the header {' '.join(names)!r} has no x, y and z columns", where)
     else:
-        canon = _guess(table)
+        canon = ["x", "y", "z"]  # a table without a header starts with them (_guess)
     idx = {c: i for i, c in enumerate(canon)}
-    pts = _block(table, [idx["x"], idx["y"], idx["z"]])
-    text.check_finite(pts, where, "point")
+    xyz = [idx["x"], idx["y"], idx["z"]]
+    ok = np.isfinite(table[:, xyz]).all(axis=1)
+    invalid = int(n - np.count_nonzero(ok))
+    if invalid:  # dropped before the columns are judged (a NaN row is no colour, no integer)
+        table = table[ok]
+    if names is None:
+        canon = _guess(table)
+        idx = {c: i for i, c in enumerate(canon)}
+    pts = _block(table, xyz)
     used = {"x", "y", "z"}
     normals = None
     if all(c in idx for c in ("nx", "ny", "nz")):
@@ -194,7 +202,12 @@ def _columns(
             else col.copy()
         )
     cloud = PointCloud(
-        points=pts, normals=normals, colors=colors, attributes=attributes, point_dtype=np.float64
+        points=pts,
+        normals=normals,
+        colors=colors,
+        attributes=attributes,
+        point_dtype=np.float64,
+        invalid_dropped=invalid,
     )
     return cloud, canon
 
@@ -222,7 +235,7 @@ def _guess(table: np.ndarray) -> list[str]:
         return ["x", "y", "z"]
     if ncol == 4:
         return ["x", "y", "z", "intensity"]
-    if ncol == 6:
+    if ncol == 6 and len(table):
         b = table[:, 3:6]
         if np.all(np.abs(np.linalg.norm(b, axis=1) - 1) < 1e-3):
             return ["x", "y", "z", "nx", "ny", "nz"]

@@ -34,6 +34,8 @@ STAGES: dict[str, str] = {
     "poisson": "recon_cli.stages.poisson:SPEC",
     "ballpivot": "recon_cli.stages.ballpivot:SPEC",
     "repair": "recon_cli.stages.repair:SPEC",
+    "simplify": "recon_cli.stages.simplify:SPEC",
+    "smooth": "recon_cli.stages.smooth:SPEC",
     "sdf": "recon_cli.stages.sdf:SPEC",
     "mcubes": "recon_cli.stages.mcubes:SPEC",
     "fit-sdf": "recon_cli.stages.learned:SPEC",

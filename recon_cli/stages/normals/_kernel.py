@@ -333,3 +333,62 @@ def consensus(pts, normals, sign, indptr, indices, power):
             acc += s * sign[j] * (1.0 - off) ** power
         out[i] = acc
     return out
+
+
+@njit(cache=True, parallel=True)
+def pixel_knn(ps, pix, img_of, offs, heights, widths, img, k, dr, dc, r2max, out, count):
+    """The ``k`` nearest points (3-D distance, at most ``r2max`` squared) among the pixels at
+    row and column offsets ``dr``, ``dc`` from each point's pixel in its image.
+
+    ``ps`` (n, 3) points; ``pix`` (n,) each point's pixel in the concatenated images,
+    ``img_of`` (n,) its image, ``offs``/``heights``/``widths`` the images' first pixel and
+    size, ``img`` (total pixels,) the point at each pixel (-1: none). The offsets go outward
+    from (0, 0), so that the nearest are met first and most farther pixels are rejected by
+    one comparison. Fills ``out`` (n, k) with neighbour indices nearest first (the point
+    itself first) and ``count`` (n,).
+    """
+    n = ps.shape[0]
+    for i in prange(n):
+        g = img_of[i]
+        w = widths[g]
+        h = heights[g]
+        local = pix[i] - offs[g]
+        row = local // w
+        col = local - row * w
+        bd = np.empty(k)
+        bj = np.empty(k, dtype=np.int32)
+        px, py, pz = ps[i, 0], ps[i, 1], ps[i, 2]
+        bd[0] = 0.0
+        bj[0] = i
+        m = 1
+        for t0 in range(len(dr)):
+            rr = row + dr[t0]
+            cc = col + dc[t0]
+            if rr < 0 or rr >= h or cc < 0 or cc >= w:
+                continue
+            j = img[offs[g] + rr * w + cc]
+            if j < 0 or j == i:
+                continue
+            dx = ps[j, 0] - px
+            dy = ps[j, 1] - py
+            dz = ps[j, 2] - pz
+            d2 = dx * dx + dy * dy + dz * dz
+            if d2 > r2max:
+                continue
+            if m == k:
+                if d2 >= bd[k - 1]:
+                    continue
+                t = k - 1
+            else:
+                t = m
+                m += 1
+            # insertion: after every equal distance (the point itself stays first)
+            while t > 0 and bd[t - 1] > d2:
+                bd[t] = bd[t - 1]
+                bj[t] = bj[t - 1]
+                t -= 1
+            bd[t] = d2
+            bj[t] = j
+        count[i] = m
+        for t in range(m):
+            out[i, t] = bj[t]

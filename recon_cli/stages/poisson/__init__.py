@@ -61,24 +61,27 @@ Kazhdan, M., Bolitho, M. & Hoppe, H. (2006). Poisson surface reconstruction. SGP
 
 from __future__ import annotations
 
+import functools
 import logging
+import os
 import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from recon_cli.errors import InputError, ParameterError
+from recon_cli.errors import InputError, ParameterError, StageFailed
 from recon_cli.geometry import PointCloud, TriangleMesh, as_point_cloud, local_origin, oriented_rows
 from recon_cli.params import Param, StageSpec
 from recon_cli.progress import task
 
 if TYPE_CHECKING:
+    from recon_cli.grid import Grid
     from recon_cli.stages import StageResult
 
 log = logging.getLogger("recon")
 
-BOUNDARIES = ("neumann", "dirichlet")
+BOUNDARIES = ("neumann", "dirichlet", "free")
 BACKENDS = ("native", "open3d", "pymeshlab")
 MAX_DEPTH = 14
 # closed pieces of the extraction smaller than this many finest cells on every side are specks
@@ -98,6 +101,9 @@ class PoissonResult:
     mesh : TriangleMesh
         The surface; ``attributes["density"]`` when asked for, ``colors`` when the input
         had colours.
+    grid : Grid or None
+        With ``with_grid``: the solved field on the finest lattice around the surface
+        (:mod:`.field`).
     report : dict
         ``vertices``, ``faces``, ``depth``, ``iso_value``, ``solver_iterations``,
         ``residual`` (relative residual of the finest level), ``bubbles_removed`` (closed
@@ -112,6 +118,7 @@ class PoissonResult:
 
     mesh: TriangleMesh
     report: dict = field(default_factory=dict)
+    grid: Grid | None = None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -173,8 +180,16 @@ SPEC = StageSpec(
             "boundary",
             "choice",
             "neumann",
-            "Condition on the faces of the cube.",
+            "Condition on the faces of the cube: neumann (the surface meets them at right angles), "
+            "dirichlet (outside), free (none, as PoissonRecon's --bType 1: an open surface runs "
+            "on to the faces and is cut there; degree 2).",
             choices=BOUNDARIES,
+        ),
+        Param(
+            "confidence",
+            "bool",
+            False,
+            "Weight each point by its normal's length (as PoissonRecon's --confidence).",
         ),
         Param(
             "density",
@@ -195,6 +210,31 @@ SPEC = StageSpec(
             max_open=True,
             words={"auto": "auto"},
             metavar="auto|T",
+        ),
+        Param(
+            "attributes",
+            "any",
+            "all",
+            "Input point properties carried onto the vertices (intensity, classification, colours, "
+            "any PLY property): all, none, or names separated by commas; from the points near each "
+            "vertex on its side (no bleeding through thin parts), codes by majority.",
+            metavar="all|none|NAME,...",
+        ),
+        Param(
+            "envelope",
+            "any",
+            None,
+            "A closed mesh the surface must lie in (as PoissonRecon's --envelope): chi is 0 "
+            "outside it, so an open scan's closing sheet stays inside it (degree 2).",
+            metavar="MESH",
+        ),
+        Param(
+            "grid",
+            "any",
+            None,
+            "Also write the solved field on the finest lattice to this grid file (.npz): zero on "
+            "the surface, negative inside ('recon mcubes' extracts it).",
+            metavar="OUT.npz",
         ),
         Param(
             "estimate_normals",
@@ -236,6 +276,8 @@ def _check_options(
         ),
         complete=False,
     )
+    if v["boundary"] == "free" and v["degree"] != 2:
+        raise ParameterError("--boundary free needs --degree 2")
     return (
         v["depth"],
         v["scale"],
@@ -248,8 +290,11 @@ def _check_options(
     )
 
 
-def _check_inputs(points: Any, normals: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Finite (n, 3) points and unit normals; returns (points, normals, kept mask)."""
+def _check_inputs(
+    points: Any, normals: Any, lengths: list | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Finite (n, 3) points and unit normals; returns (points, normals, kept mask) (and
+    appends the kept normals' lengths to ``lengths`` when given)."""
     pts, nrm, length = oriented_rows(
         points,
         normals,
@@ -268,6 +313,8 @@ def _check_inputs(points: Any, normals: Any) -> tuple[np.ndarray, np.ndarray, np
         )
     pts = pts[keep]
     nrm = nrm[keep] / length[keep, None]
+    if lengths is not None:
+        lengths.append(length[keep])
     extent = pts.max(axis=0) - pts.min(axis=0)
     if not extent.max() > 0:
         raise InputError("all points coincide: there is no surface to reconstruct")
@@ -287,7 +334,11 @@ def screened_poisson(
     boundary: str = SPEC.param("boundary").default,
     density: bool = SPEC.param("density").default,
     trim: float = SPEC.param("trim").default,
+    confidence: bool = SPEC.param("confidence").default,
     colors: np.ndarray | None = None,
+    properties: dict[str, np.ndarray] | None = None,
+    with_grid: bool = False,
+    envelope: Any = None,
     full_depth: int = _FULL_DEPTH.default,
     cg_tolerance: float = _CG_TOLERANCE.default,
     progress: Any = None,
@@ -320,8 +371,15 @@ def screened_poisson(
         Open3D's, where degree 1 is 0.75-0.98x and 1.35x on a box aligned with the lattice);
         1, trilinear hat functions on the nodes (Open3D's Poisson uses degree 1), about
         0.55-0.7x the time of degree 2.
-    boundary : {"neumann", "dirichlet"}
-        Condition on the cube's faces (Dirichlet: ``chi = 0``, the outside).
+    boundary : {"neumann", "dirichlet", "free"}
+        Condition on the cube's faces: Neumann (``chi``'s normal derivative 0: the surface
+        meets the faces at right angles), Dirichlet (``chi = 0``, the outside) or none
+        (free, PoissonRecon's ``BOUNDARY_FREE``, degree 2 only: the functions of the cells
+        just beyond the faces are added and every integral runs over the cube only, so chi
+        takes whatever value and slope the data ask for at the faces; an open surface runs
+        straight on to them and is cut there, the mesh is open along the faces). Made by
+        solving on a cube twice as large, one level deeper, with the integrals over its
+        middle half only (:data:`.bspline.FREE_DOMAIN`): the same finest cell.
     density : bool
         Add the per-vertex kernel density of the samples as ``attributes["density"]``.
     trim : float or "auto"
@@ -330,8 +388,30 @@ def screened_poisson(
         real surface stays). A number: cut away the surface where the samples' density is
         below ``trim`` times its median at the samples (0 <= trim < 1; 0 keeps everything);
         see the module docstring for how this relates to PoissonRecon's SurfaceTrimmer.
+    confidence : bool
+        Weight each point by its normal's length, as PoissonRecon's ``--confidence``: its
+        position and normal count that much in its finest cell's sample, whose weight (in the
+        kernel density, the area per sample, the screening and the iso-value) is their sum.
+        The weights are divided by their mean, so only their ratios matter (PoissonRecon
+        uses the lengths as they are: their scale moves its splat depths).
     colors : (n, 3) or (n, 4) array or None
-        Per-point colours, interpolated onto the output vertices.
+        Per-point colours, carried onto the output vertices (:mod:`.attributes`).
+    properties : dict of str to (n,) array, optional
+        Per-point properties carried onto the vertices as ``mesh.attributes`` in their
+        dtypes (:func:`.attributes.transfer`: from the points near each vertex on its side;
+        integer codes by majority). A requested ``density`` replaces an input one.
+    with_grid : bool
+        Also return the solved field on a regular grid (``PoissonResult.grid``,
+        :func:`.field.indicator_grid`): the finest lattice's points around the surface,
+        ``(iso - chi) / g`` (zero on the untrimmed surface, negative inside, about the
+        distance near it).
+    envelope : TriangleMesh or .envelope.Envelope or None
+        A closed mesh (world units) the surface must lie in, as PoissonRecon's
+        ``--envelope``: chi is fixed to 0 where a cell's support leaves it, so no part of the
+        surface is outside and an open scan's closing sheet follows it (:mod:`.envelope`;
+        degree 2). The report counts the input points outside it
+        (``envelope_outside_points``, which the surface cannot reach) and the vertices pulled
+        onto it (``envelope_pulled_vertices``).
     full_depth : int
         Levels up to this one are complete grids.
     cg_tolerance : float
@@ -347,15 +427,31 @@ def screened_poisson(
     )
     full_depth = _FULL_DEPTH.coerce(full_depth)
     cg_tolerance = _CG_TOLERANCE.coerce(cg_tolerance)
-    pts, nrm, keep = _check_inputs(points, normals)
+    confidence = SPEC.param("confidence").coerce(confidence)
+    if envelope is not None and degree != 2:
+        raise ParameterError("--envelope needs --degree 2")
+    lengths: list = []
+    pts, nrm, keep = _check_inputs(points, normals, lengths)
+    weight = lengths[0] / float(lengths[0].mean()) if confidence else None
+    del lengths
     if colors is not None:
         colors = np.asarray(colors)
         if len(colors) != len(keep):
             raise InputError(f"colors has {len(colors)} rows, expected {len(keep)}")
         colors = colors[keep]
+    props: dict[str, np.ndarray] = {}
+    for name, values in (properties or {}).items():
+        values = np.asarray(values)
+        if values.ndim != 1 or len(values) != len(keep):
+            raise InputError(
+                f"attribute {name!r} has shape {values.shape}, expected ({len(keep)},)"
+            )
+        props[name] = values[keep]
+    unit_nrm = nrm if (props or colors is not None) else None
 
     from recon_cli.memory import release_free_heap
     from recon_cli.stages.poisson.extract import extract, refine_roots
+    from recon_cli.stages.poisson.free import FREE_DOMAIN, clip_to_cube
     from recon_cli.stages.poisson.octree import build_levels
     from recon_cli.stages.poisson.splat import (
         make_splats,
@@ -363,17 +459,24 @@ def screened_poisson(
         noise_fraction,
         sample_density,
     )
-    from recon_cli.stages.poisson.system import chi_levels, iso_value, solve
+    from recon_cli.stages.poisson.system import chi_at, chi_levels, iso_value, solve
 
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    full_depth = min(full_depth, depth)
 
     # ---- unit cube and samples (points merged per finest cell, as PoissonRecon does)
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     size = float((hi - lo).max()) * scale
     origin = 0.5 * (lo + hi) - 0.5 * size
-    smp = merge_samples((pts - origin) / size, nrm, depth)
+    # ---- free boundary: the cube is the middle half of the solve's, one level deeper
+    user_depth, domain = depth, None
+    if boundary == "free":
+        domain = (origin.copy(), size)
+        origin = origin - 0.5 * size
+        size *= 2.0
+        depth += 1
+    full_depth = min(full_depth, depth)
+    smp = merge_samples((pts - origin) / size, nrm, depth, weight)
     ns = len(smp.count)
     n_pts = len(pts)
     del nrm  # memory: the normals are in the samples now
@@ -388,7 +491,8 @@ def screened_poisson(
     )
     tree_depth = splats.tree_depth
     if degree == 2:
-        tree_depth = max(tree_depth, 1)  # level 0 carries no degree-2 function
+        # level 0 carries no degree-2 function (nor level 1 with the free boundary)
+        tree_depth = max(tree_depth, 1 if domain is None else 2)
     full_depth = min(full_depth, tree_depth)
     res = 1 << tree_depth  # the finest cells of the tree
     timings["density"] = time.perf_counter() - t
@@ -401,18 +505,41 @@ def screened_poisson(
         noise = None
     timings["noise"] = time.perf_counter() - t
 
+    # ---- envelope: cells whose support leaves it are fixed at 0; the tree refined along it
+    env, sample_ok, free_cells, outside_points = None, None, None, 0
+    item_pos, item_level = splats.pos, splats.level
+    if envelope is not None:
+        from recon_cli.stages.poisson.envelope import REFINE_OFFSET, CellClassifier, Envelope
+
+        t = time.perf_counter()
+        env = envelope if isinstance(envelope, Envelope) else Envelope(envelope)
+        outside_points = int(np.count_nonzero(~env.inside(pts)))
+        sample_ok = env.free_cells(origin + size * smp.pos, size / res)
+        if not sample_ok.any():
+            raise InputError(
+                "every point lies outside the envelope or within 2.6 finest cells of its surface"
+            )
+        lv = min(tree_depth, max(full_depth, tree_depth - REFINE_OFFSET))
+        extra = env.surface_items(origin, size, lv)
+        item_pos = np.concatenate([splats.pos, extra])
+        item_level = np.concatenate([splats.level, np.full(len(extra), lv, np.int64)])
+        free_cells = CellClassifier(env, origin, size)
+
+        timings["envelope"] = time.perf_counter() - t
+
     # ---- tree: as deep as the splats, no deeper
     t = time.perf_counter()
     with task(progress, "poisson: tree"):
         levels = build_levels(
-            splats.pos,
-            splats.level,
+            item_pos,
+            item_level,
             tree_depth,
             full_depth,
             boundary,
             corners=degree == 1,
             own_ring=2 if degree == 1 else 1,
         )
+    del item_pos, item_level
     # memory: the splat items made the fields and the tree, the samples' normals and keys the splats
     splats.pos = splats.vec = splats.level = smp.normal = smp.keys = None
     timings["tree"] = time.perf_counter() - t
@@ -431,7 +558,15 @@ def screened_poisson(
         from recon_cli.stages.poisson import bspline
 
         gvals, per_level, total_it, last_res, iso, chi = bspline.solve(
-            levels, smp, splats, boundary, full_depth, cg_tolerance, progress
+            levels,
+            smp,
+            splats,
+            boundary,
+            full_depth,
+            cg_tolerance,
+            progress,
+            free_cells=free_cells,
+            sample_ok=sample_ok,
         )
         timings["solve"] = time.perf_counter() - t
     else:
@@ -450,6 +585,8 @@ def screened_poisson(
         # extraction left 95 MB of freed heap resident, where the roots' tables went on top)
         chi.drop_neighbours()
         release_free_heap()
+        # the grid reads chi as the extraction does: trilinear in each leaf from its corners
+        chi_fn = functools.partial(chi_at, chi_levels(levels, gvals)) if with_grid else None
         verts, faces = extract(levels, gvals, iso, origin, size)
         del levels, gvals
         release_free_heap()
@@ -462,11 +599,29 @@ def screened_poisson(
         verts, faces = extract(levels, gvals, iso, np.zeros(3), float(res))
         del levels, gvals
         refine_roots(verts, chi_lv, iso, tree_depth)
-        del chi_lv
         verts *= size / res
         verts += origin
+        chi_fn = functools.partial(chi_at, chi_lv) if with_grid else None
+        del chi_lv
+    if domain is not None:
+        verts, faces = clip_to_cube(verts, faces, *domain)
     verts, faces, bubbles, islands = _drop_bubbles(verts, faces, size / res, pts)
+    pulled = 0
+    if env is not None:
+        verts, pulled = env.pull_inside(verts)
     timings["extract"] = time.perf_counter() - t
+    # ---- the field on a regular grid (--grid)
+    field_grid = None
+    if with_grid and len(faces):
+        from recon_cli.stages.poisson.field import indicator_grid
+
+        t = time.perf_counter()
+        with task(progress, "poisson: grid"):
+            field_grid = indicator_grid(
+                chi_fn, iso, verts, origin, size, res, FREE_DOMAIN if domain else (0.0, 1.0)
+            )
+        timings["grid"] = time.perf_counter() - t
+    del chi_fn
 
     mesh = TriangleMesh(vertices=verts, faces=faces)
     vdens = None
@@ -491,16 +646,25 @@ def screened_poisson(
             raise ParameterError(f"trim {trim:g} removes the whole surface: use a smaller value")
         trimmed = len(mesh.faces) - cut.untouched_faces
         mesh, vdens, trimmed_area = cut.mesh, cut.density, cut.removed_area
+    # ---- the input's properties on the vertices, from the points on each vertex's side
+    fallback = 0
+    if props or colors is not None:
+        from recon_cli.stages.poisson.attributes import transfer
+
+        t = time.perf_counter()
+        moved = transfer(pts, unit_nrm, props, colors, mesh.vertices, mesh.faces, size / res)
+        mesh.attributes.update(moved.values)
+        mesh.colors, fallback = moved.colors, moved.fallback
+        timings["attributes"] = time.perf_counter() - t
+    del unit_nrm
     if density:
         mesh.attributes["density"] = vdens
-    if colors is not None and len(mesh.vertices):
-        mesh.colors = _interpolate_colors(pts, colors, mesh.vertices, size / res)
     timings["total"] = time.perf_counter() - t0
     report = {
         "vertices": len(mesh.vertices),
         "faces": len(mesh.faces),
-        "depth": depth,
-        "tree_depth": tree_depth,
+        "depth": user_depth,
+        "tree_depth": tree_depth - (depth - user_depth),
         "iso_value": iso,
         "solver_iterations": int(total_it),
         "residual": float(last_res),
@@ -509,13 +673,19 @@ def screened_poisson(
         "trimmed_faces": int(trimmed),
         "trimmed_area": trimmed_area,
         "noise": noise,
+        "attributes": sorted(props) + (["colors"] if colors is not None else []),
+        "attribute_fallback_vertices": fallback,
+        "envelope_outside_points": outside_points if env is not None else None,
+        "envelope_pulled_vertices": pulled if env is not None else None,
         "samples": int(ns),
         "ignored_points": int((~keep).sum()),
         "finest_cell": size / res,
         "levels": per_level,
         "timings": timings,
     }
-    return PoissonResult(mesh, report)
+    if field_grid is not None:
+        report["grid_shape"] = list(field_grid.shape)
+    return PoissonResult(mesh, report, field_grid)
 
 
 def _drop_bubbles(
@@ -582,26 +752,6 @@ def _drop_bubbles(
     return verts[used], remap[faces].astype(faces.dtype), n_speck, n_island
 
 
-def _interpolate_colors(
-    pts: np.ndarray, colors: np.ndarray, verts: np.ndarray, cell: float
-) -> np.ndarray:
-    """Gaussian-weighted mean colour of the nearest input points (sigma = one finest cell)."""
-    from scipy.spatial import cKDTree
-
-    k = min(8, len(pts))
-    dist, idx = cKDTree(pts).query(verts, k=k)
-    dist = dist.reshape(len(verts), k)
-    idx = idx.reshape(len(verts), k)
-    w = np.exp(-0.5 * (dist / cell) ** 2)
-    w[:, 0] = np.maximum(w[:, 0], 1e-300)  # the nearest point always counts
-    w /= w.sum(axis=1, keepdims=True)
-    c = (colors[idx].astype(np.float64) * w[:, :, None]).sum(axis=1)
-    if colors.dtype.kind in "ui":
-        info = np.iinfo(colors.dtype)
-        return np.clip(np.round(c), info.min, info.max).astype(colors.dtype)
-    return c.astype(colors.dtype)
-
-
 @SPEC.runner
 def run_stage(
     data: Any,
@@ -612,8 +762,12 @@ def run_stage(
     samples_per_node: float,
     degree: int,
     boundary: str,
+    confidence: bool,
     density: bool,
     trim: float,
+    attributes: Any,
+    envelope: Any,
+    grid: Any,
     estimate_normals: bool,
     backend: str,
     progress: Any = None,
@@ -624,8 +778,17 @@ def run_stage(
     ----------
     data : PointCloud or TriangleMesh
         Oriented points (a mesh's vertices and vertex normals are used).
-    depth, scale, point_weight, samples_per_node, degree, boundary, density, trim
+    depth, scale, point_weight, samples_per_node, degree, boundary, confidence, density, trim
         See :func:`screened_poisson`.
+    attributes : str or list of str
+        ``all`` (every property of the input and its colours), ``none``, or names
+        separated by commas (``colors`` for the colours): carried onto the vertices
+        (:mod:`.attributes`; with a reference backend, Open3D's colours are its own).
+    envelope : path or None
+        A closed mesh file (any format recon reads) the surface must lie in
+        (:mod:`.envelope`; native only).
+    grid : path or None
+        Also write the solved field here as a grid file (:mod:`.field`; native only).
     estimate_normals : bool
         Estimate and orient normals first with the ``normals`` stage (its defaults), replacing
         any the input has.
@@ -648,7 +811,35 @@ def run_stage(
         raise ParameterError(
             "the pymeshlab backend gives no densities: --density/--trim need native or open3d"
         )
+    # ---- PoissonRecon parity options (free boundary, confidence, grid): the native solver only
+    grid_path = None if grid in (None, "") else os.fspath(grid)
+    if backend != "native":
+        for name, used in (
+            ("--boundary free", boundary == "free"),
+            ("--confidence", confidence),
+            ("--grid", grid_path is not None),
+            ("--envelope", envelope not in (None, "")),
+        ):
+            if used:
+                raise ParameterError(f"{name} needs the native backend")
+    if grid_path is not None:
+        from recon_cli.io.atomic import check_output
+
+        if grid_path == "-":
+            raise ParameterError("--grid needs a file name ('-' is the mesh's standard output)")
+        check_output(grid_path)
+    env = None
+    if envelope not in (None, ""):
+        if degree != 2:
+            raise ParameterError("--envelope needs --degree 2")
+        from recon_cli.stages.poisson.envelope import load_envelope
+
+        env = load_envelope(envelope)
     cloud = as_point_cloud(data)
+    from recon_cli.stages.poisson.attributes import select
+
+    prop_names, keep_colors = select(attributes, list(cloud.attributes), cloud.colors is not None)
+    props = {k: cloud.attributes[k] for k in prop_names}
     history = list(cloud.history)
     if estimate_normals:
         try:
@@ -677,7 +868,11 @@ def run_stage(
             boundary=boundary,
             density=density,
             trim=trim,
-            colors=cloud.colors,
+            confidence=confidence,
+            colors=cloud.colors if keep_colors else None,
+            properties=props,
+            with_grid=grid_path is not None,
+            envelope=env,
             progress=progress,
         )
         mesh, rep = res.mesh, res.report
@@ -700,6 +895,25 @@ def run_stage(
         report["ignored_points"] = rep["ignored_points"]
         report["tree_depth"] = rep["tree_depth"]
         report["noise"] = rep["noise"]
+        report["attributes"] = rep["attributes"]
+        report["attribute_fallback_vertices"] = rep["attribute_fallback_vertices"]
+        if env is not None:
+            report["envelope_outside_points"] = rep["envelope_outside_points"]
+            report["envelope_pulled_vertices"] = rep["envelope_pulled_vertices"]
+        if grid_path is not None:
+            if res.grid is None:
+                raise StageFailed("--grid: the surface is empty; no field to write")
+            from recon_cli.io.npz import write_grid
+
+            line = (
+                f"poisson: (iso - chi) / |grad chi| on the finest lattice, depth {depth}, "
+                f"boundary {boundary}, iso {rep['iso_value']:.9g}"
+            )
+            res.grid.history = [*history, line]
+            res.grid.point_dtype = cloud.point_dtype
+            write_grid(res.grid, grid_path)
+            report["grid"] = grid_path
+            report["grid_shape"] = rep["grid_shape"]
     else:
         pts, nrm, keep = _check_inputs(cloud.points, cloud.normals)
         # the references about a local origin (Open3D's Poisson loses digits at UTM offsets)
@@ -707,7 +921,7 @@ def run_stage(
         clean = PointCloud(
             points=pts - centre,
             normals=nrm,
-            colors=None if cloud.colors is None else cloud.colors[keep],
+            colors=None if cloud.colors is None or not keep_colors else cloud.colors[keep],
             history=history,
         )
         from recon_cli.backends import backend_module
@@ -759,6 +973,16 @@ def run_stage(
                 )
             trimmed = len(mesh.faces) - cut.untouched_faces
             mesh, dens, trimmed_area = cut.mesh, cut.density, cut.removed_area
+        fallback = 0
+        if props and len(mesh.faces):
+            from recon_cli.stages.poisson.attributes import transfer
+
+            e = mesh.vertices[mesh.faces[:, [0, 1]]]
+            sigma = float(np.median(np.linalg.norm(e[:, 0] - e[:, 1], axis=1)))
+            kept = {k: v[keep] for k, v in props.items()}
+            moved = transfer(pts, nrm, kept, None, mesh.vertices, mesh.faces, sigma)
+            mesh.attributes.update(moved.values)
+            fallback = moved.fallback
         if density and dens is not None:
             mesh.attributes["density"] = dens
         report = {
@@ -773,6 +997,8 @@ def run_stage(
             "trimmed_faces": int(trimmed),
             "trimmed_area": trimmed_area,
             "noise": None,
+            "attributes": sorted(props) + (["colors"] if mesh.colors is not None else []),
+            "attribute_fallback_vertices": fallback,
         }
     mesh.history = history
     mesh.point_dtype = (

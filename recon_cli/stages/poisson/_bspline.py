@@ -589,7 +589,9 @@ def level_pcg(q_keys, nb, inp, cmap, m1, k1, h, n, s, scell, sloc, sw, rhs, diag
     ``diag`` and the solution hold the children of the flagged parents, parent ``i``'s at
     ``8 cmap[i]`` (the ring of E, 40 % of its cells at the finest level, carries no unknown:
     vectors on all of E would be zero there). ``rhs`` is overwritten by the residual and
-    ``diag`` by the preconditioner (its inverse, 0 where not positive). Returns (x,
+    ``diag`` by the preconditioner (its inverse, 0 where not positive). Rows whose diagonal is
+    not positive are fixed (the envelope's and the free boundary's cells outside): their
+    search directions and solution stay 0 and their residual does not count. Returns (x,
     iterations, relative residual)."""
     m = len(rhs)
     inv = diag
@@ -605,7 +607,8 @@ def level_pcg(q_keys, nb, inp, cmap, m1, k1, h, n, s, scell, sloc, sw, rhs, diag
     rz = 0.0
     for i in range(m):
         p[i] = r[i] * inv[i]
-        bn += r[i] * r[i]
+        if inv[i] > 0.0:  # rows without a positive diagonal are fixed: x stays 0 there
+            bn += r[i] * r[i]
         rz += r[i] * p[i]
     bn = np.sqrt(bn)
     if bn == 0.0:
@@ -626,7 +629,8 @@ def level_pcg(q_keys, nb, inp, cmap, m1, k1, h, n, s, scell, sloc, sw, rhs, diag
         for i in range(m):
             x[i] += a * p[i]
             r[i] -= a * q[i]
-            rr += r[i] * r[i]
+            if inv[i] > 0.0:
+                rr += r[i] * r[i]
             q[i] = r[i] * inv[i]
             rz_new += r[i] * q[i]
         it += 1
@@ -947,29 +951,31 @@ def _block_rhs(X, z3, y3, k, n, s, fv, fd, out, base):
                 X[u, v, r, 2] = -s * X[u, v, mr, 2]
     # z: value factor for the x and y components, derivative for z
     for oz in range(2):
+        cz = 2 * pz + oz
         for bx in range(6):
             for by in range(6):
                 a0 = 0.0
                 a1 = 0.0
                 a2 = 0.0
                 for c in range(5):
-                    a0 += fv[c] * X[bx, by, oz + c, 0]
-                    a1 += fv[c] * X[bx, by, oz + c, 1]
-                    a2 += fd[c] * X[bx, by, oz + c, 2]
+                    a0 += fv[cz, c] * X[bx, by, oz + c, 0]
+                    a1 += fv[cz, c] * X[bx, by, oz + c, 1]
+                    a2 += fd[cz, c] * X[bx, by, oz + c, 2]
                 z3[bx, by, oz, 0] = a0
                 z3[bx, by, oz, 1] = a1
                 z3[bx, by, oz, 2] = a2
     # y: derivative for the y component
     for oy in range(2):
+        cy = 2 * py + oy
         for bx in range(6):
             for oz in range(2):
                 a0 = 0.0
                 a1 = 0.0
                 a2 = 0.0
                 for c in range(5):
-                    a0 += fv[c] * z3[bx, oy + c, oz, 0]
-                    a1 += fd[c] * z3[bx, oy + c, oz, 1]
-                    a2 += fv[c] * z3[bx, oy + c, oz, 2]
+                    a0 += fv[cy, c] * z3[bx, oy + c, oz, 0]
+                    a1 += fd[cy, c] * z3[bx, oy + c, oz, 1]
+                    a2 += fv[cy, c] * z3[bx, oy + c, oz, 2]
                 y3[bx, oy, oz, 0] = a0
                 y3[bx, oy, oz, 1] = a1
                 y3[bx, oy, oz, 2] = a2
@@ -978,9 +984,10 @@ def _block_rhs(X, z3, y3, k, n, s, fv, fd, out, base):
         ox = o & 1
         oy = (o >> 1) & 1
         oz = (o >> 2) & 1
+        cx = 2 * px + ox
         v = 0.0
         for c in range(5):
-            v += fd[c] * y3[ox + c, oy, oz, 0] + fv[c] * (
+            v += fd[cx, c] * y3[ox + c, oy, oz, 0] + fv[cx, c] * (
                 y3[ox + c, oy, oz, 1] + y3[ox + c, oy, oz, 2]
             )
         out[base + o] += v
@@ -992,9 +999,10 @@ def field_rhs(q_keys, nb, flag, n, s, fv, fd, vec, idx, rows, out):
     field of unit-integral cell-centred quadratic B-splines with coefficients ``vec`` (8q, 3)
     on E (folded, :func:`prolong_field`; or none, shape (0, 3)) plus ``rows[idx[m]]`` (a
     sparse field, :func:`field_rows`; or none, ``idx`` of length 0; a dense copy on E of the
-    finest level's would be the largest array of the solve): a fixed 5 x 5 x 5 stencil, ``fv[t + 2]`` and
-    ``fd[t + 2]`` the value and derivative factors per axis of the field's cell at offset
-    ``t`` (:func:`b2_factors`, width 1; ``fd`` per unit length). Each parent's 6 x 6 x 6
+    finest level's would be the largest array of the solve): a 5 x 5 x 5 stencil, ``fv[c, t + 2]``
+    and ``fd[c, t + 2]`` (n, 5) the value and derivative factors, along an axis, of the field's
+    cell at offset ``t`` from the test function's cell ``c`` (:func:`b2_factors`, width 1, on
+    every row; integrals over the free boundary's domain only; ``fd`` per unit length). Each parent's 6 x 6 x 6
     block of the field is gathered once (cells beyond the faces: their mirror's, with sign
     ``s``, ``-s`` for the component along the face's normal) and the separable stencil
     applied one axis at a time to all 8 children together. Parents in chunks over the

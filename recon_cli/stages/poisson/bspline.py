@@ -40,6 +40,7 @@ Kazhdan, M., Bolitho, M. & Hoppe, H. (2006). Poisson surface reconstruction. SGP
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
 from dataclasses import dataclass
@@ -51,6 +52,7 @@ from recon_cli.memory import release_free_heap
 from recon_cli.stages.poisson import _bspline as B
 from recon_cli.stages.poisson import _octree as O
 from recon_cli.stages.poisson._luts import B2_MASS, B2_STIFFNESS
+from recon_cli.stages.poisson.free import FREE_DOMAIN, domain_tables
 from recon_cli.stages.poisson.octree import Level, dilate, pack_keys, set_corners, unpack_keys
 from recon_cli.stages.poisson.splat import Samples, Splats, fields_as_items
 from recon_cli.progress import task
@@ -95,6 +97,32 @@ def folded_tables(n: int, s: float) -> tuple[np.ndarray, np.ndarray]:
     return m1, k1
 
 
+@functools.lru_cache(maxsize=32)
+def level_tables(n: int, s: float, free: bool) -> tuple[np.ndarray, ...]:
+    """The 1D tables of a level of ``n`` cells: ``m1``, ``k1`` (:func:`folded_tables`, or
+    over :data:`FREE_DOMAIN` only with ``free``) and the right-hand side's ``fv``, ``fd``
+    (n, 5) (:func:`._bspline.field_rhs`; ``fd`` per cell). With ``free``, the level of 2
+    cells, whose domain is not made of whole cells, carries no function (its rows are 0):
+    the finer levels, solved exactly up to the full depth, hold everything it would."""
+    if free:
+        if n < 4:
+            z = np.zeros((n, 5))
+            return z, z, z, z
+        return domain_tables(n, FREE_DOMAIN[0] * n, FREE_DOMAIN[1] * n)
+    m1, k1 = folded_tables(n, s)
+    fv = np.empty(5)
+    fd = np.empty(5)
+    for t in range(-2, 3):
+        fv[t + 2], fd[t + 2] = B.b2_factors(float(t), 1.0)
+    return m1, k1, np.tile(fv, (n, 1)), np.tile(fd, (n, 1))
+
+
+def boundary_sign(boundary: str) -> float:
+    """The reflection's sign at the solve's cube faces: -1 Dirichlet, 1 otherwise (the free
+    boundary's cube faces lie outside its domain)."""
+    return -1.0 if boundary == "dirichlet" else 1.0
+
+
 @dataclass
 class LevelField:
     """chi on one level in the degree-2 basis: coefficients on ``E`` and the lookups.
@@ -133,7 +161,7 @@ def level_field(lev: Level, boundary: str) -> LevelField:
     Q, inp = _level_parents(lev)
     nb = np.empty((len(Q), 27), np.int32)
     B.neighbour_table_into(Q, (1 << (lev.depth - 1)) - 1, nb)
-    return LevelField(lev.depth, 1.0 if boundary == "neumann" else -1.0, Q, inp, nb)
+    return LevelField(lev.depth, boundary_sign(boundary), Q, inp, nb)
 
 
 def level_fields(levels: list[Level], boundary: str) -> tuple[list[LevelField | None], tuple]:
@@ -152,7 +180,7 @@ def level_fields(levels: list[Level], boundary: str) -> tuple[list[LevelField | 
     del parts
     nb_all = neighbour_tables(q_all, q_off)
     coef_all = np.zeros(8 * len(q_all))
-    s = 1.0 if boundary == "neumann" else -1.0
+    s = boundary_sign(boundary)
     out: list[LevelField | None] = [None]
     for lev in levels[1:]:
         lo, hi = q_off[lev.depth], q_off[lev.depth + 1]
@@ -183,7 +211,7 @@ class ChiField:
             # the levels' arrays as :func:`level_fields` made them (the fields are views)
             self.q_all, self.q_off, self.inp_all, self.nb_all, self.coef_all = arrays
             self.top = len(self.q_off) - 2
-            self.s = 1.0 if boundary == "neumann" else -1.0
+            self.s = boundary_sign(boundary)
             return
         top = max((f.depth for f in fields), default=0)
         sizes = np.zeros(top + 2, np.int64)
@@ -191,7 +219,7 @@ class ChiField:
             sizes[f.depth + 1] = len(f.q_keys)
         self.q_off = np.cumsum(sizes)
         self.top = top
-        self.s = 1.0 if boundary == "neumann" else -1.0
+        self.s = boundary_sign(boundary)
         order = sorted(fields, key=lambda f: f.depth)
         self.q_all = np.concatenate([f.q_keys for f in order]) if order else np.zeros(0, np.int64)
         self.inp_all = np.concatenate([f.inp for f in order]) if order else np.zeros(0, bool)
@@ -313,10 +341,12 @@ class NormalRHS:
         self,
         fields: dict[int, tuple[np.ndarray, np.ndarray]],
         level_fields: list[LevelField | None],
+        free: bool = False,
     ):
         # a level's own share is dropped once its right-hand side is made (the dict is
         # copied: the caller's is left whole; drop it there to free the arrays)
         self.fields = dict(fields)
+        self.free = free  # integrals over the free boundary's domain only (level_tables)
         self.lf = list(level_fields)
         depth = len(level_fields) - 1
         self.depth = depth
@@ -354,14 +384,11 @@ class NormalRHS:
             self.finer[lv - 1] = up
             del t, blocks
 
-    @staticmethod
-    def _factors(lv: int) -> tuple[np.ndarray, np.ndarray]:
-        """Value and derivative (per unit length) factors of a field's cell at offset -2..2
-        from a level-``lv`` test function's, per axis."""
-        fv = np.empty(5)
-        fd = np.empty(5)
-        for t in range(-2, 3):
-            fv[t + 2], fd[t + 2] = B.b2_factors(float(t), 1.0)
+    def _factors(self, lv: int) -> tuple[np.ndarray, np.ndarray]:
+        """(n, 5) value and derivative (per unit length) factors of a field's cell at offset
+        -2..2 from a level-``lv`` test function's, per axis (:func:`level_tables`)."""
+        f = self.lf[lv]
+        fv, fd = level_tables(1 << lv, f.s, self.free)[2:]
         return fv, fd * float(1 << lv)
 
     def _own(self, lv: int) -> tuple[np.ndarray, np.ndarray] | None:
@@ -466,6 +493,12 @@ def _merge_per_cell(pos: np.ndarray, w: np.ndarray, level: int) -> tuple[np.ndar
     return mp, sw
 
 
+def cell_keys(q_keys: np.ndarray) -> np.ndarray:
+    """(8q,) lattice keys of the cells of E (the children of ``q_keys``, block order)."""
+    off = np.array([(o & 1) << 42 | ((o >> 1) & 1) << 21 | (o >> 2) & 1 for o in range(8)])
+    return (2 * q_keys[:, None] + off[None, :]).reshape(-1)
+
+
 def solve(
     levels: list[Level],
     smp: Samples,
@@ -474,14 +507,25 @@ def solve(
     full_depth: int,
     cg_tolerance: float,
     progress: Any = None,
+    free_cells: Any = None,
+    sample_ok: np.ndarray | None = None,
 ) -> tuple[list[np.ndarray], list[dict], int, float, float, ChiField]:
     """Solve every level in turn (level 0, a single cell, carries no function); returns chi
     at each level's nodes (for the extraction), per-level statistics, total iterations, the
     finest relative residual, the iso-value (count-weighted mean of chi at the samples) and
-    the field (:class:`ChiField`)."""
+    the field (:class:`ChiField`).
+
+    With ``free_cells`` (``f(level, keys)`` -> bool, the cells' lattice keys:
+    :class:`.envelope.CellClassifier`) the other cells of each level are fixed: their coefficient is 0 in the
+    level's whole chi (the coarser levels' part included) and not solved for; ``sample_ok``
+    (s,) bool then says which samples screen the solve and make the iso-value (the others lie
+    where chi is fixed)."""
     spos, count = smp.pos, smp.count
     alpha = splats.alpha
     screen_w = splats.screening(SCREEN_CLEAN, SCREEN_NOISY)
+    if sample_ok is not None:
+        screen_w = screen_w * sample_ok
+        count = count * sample_ok
     total_it = 0
     last_res = 0.0
     per_level = []
@@ -492,7 +536,7 @@ def solve(
     lfs, arrays = level_fields(levels, boundary)
     coef_all = arrays[4]
     if KERNEL_WIDTH == 1.0:
-        normal_rhs = NormalRHS(splats.rhs_fields, lfs)
+        normal_rhs = NormalRHS(splats.rhs_fields, lfs, free=boundary == "free")
         splats.rhs_fields = None  # NormalRHS drops each level's share once used
     else:  # kernels other than the levels' own B-splines: splat every share at every level
         items = fields_as_items(splats.rhs_fields)
@@ -516,13 +560,25 @@ def solve(
             lfs[d] = None
             n = 1 << d
             h = 1.0 / n
-            m1, k1 = folded_tables(n, f.s)
+            m1, k1 = level_tables(n, f.s, boundary == "free")[:2]
             unknown = np.repeat(f.inp, 8)
             ne = len(unknown)
+            fixed = None if free_cells is None else ~free_cells(d, cell_keys(f.q_keys))
             if KERNEL_WIDTH == 1.0:
                 rhs = normal_rhs.rhs(d)
             else:
                 rhs = B.splat_rhs(*items, d, f.q_keys, f.inp, f.s, KERNEL_WIDTH)
+            if not m1.any():
+                # the free boundary's level 1 carries no function (level_tables): chi is 0 on it
+                f.coef = coef_all[8 * arrays[1][d] : 8 * arrays[1][d + 1]]
+                fields.append(f)
+                prev = f
+                per_level.append(
+                    {"depth": d, "nodes": ne, "unknowns": 0, "iterations": 0, "residual": 0.0}
+                )
+                per_level[-1]["seconds"] = time.perf_counter() - tl
+                tk.advance(1)
+                continue
             diag = B.stiffness_diag(f.q_keys, f.inp, m1, k1, h)
             if alpha > 0:
                 mp, mw = _merge_per_cell(spos, screen_w, d)
@@ -539,11 +595,16 @@ def solve(
             # product on all of E were alive at once, the process's peak
             cmap = np.cumsum(f.inp) - 1
             cmap[~f.inp] = -1
+            if fixed is not None:
+                diag[fixed] = 0.0  # level_pcg leaves the rows without a diagonal at 0
+                rhs[fixed] = 0.0
             rhs = rhs[unknown]
             diag = diag[unknown]
             if prev is not None:
                 # the residual the coarser levels leave: A G at the unknowns, G on all of E
                 G = B.prolong(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s)
+                if fixed is not None:
+                    G[fixed] = 0.0
                 AG = np.empty(len(rhs))
                 B.level_matvec(
                     f.q_keys,
@@ -590,6 +651,8 @@ def solve(
             f.coef = coef_all[8 * arrays[1][d] : 8 * arrays[1][d + 1]]
             if prev is not None:
                 B.prolong_into(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s, f.coef)
+            if fixed is not None:
+                f.coef[fixed] = 0.0
             f.coef[unknown] += x
             del x
             fields.append(f)

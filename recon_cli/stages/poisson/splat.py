@@ -67,20 +67,25 @@ class Splats:
         return self.screen_w * (noisy_scale + (clean_scale - noisy_scale) * self.clean)
 
 
-def merge_samples(unit: np.ndarray, nrm: np.ndarray, depth: int) -> Samples:
+def merge_samples(
+    unit: np.ndarray, nrm: np.ndarray, depth: int, weight: np.ndarray | None = None
+) -> Samples:
     """Merge the points ``unit`` (n, 3) in the unit cube, with unit normals ``nrm``, per cell
-    of level ``depth``."""
+    of level ``depth``; with ``weight`` (n,) each point counts that much (PoissonRecon's
+    ``--confidence``: its position and normal weighted, the sample's count the sum)."""
     res = 1 << depth
     cxyz = np.clip(np.floor(unit * res).astype(np.int64), 0, res - 1)
     skeys, inv = np.unique(pack_keys(cxyz), return_inverse=True)
     inv = inv.reshape(-1)
     ns = len(skeys)
-    count = np.bincount(inv, minlength=ns).astype(np.float64)
+    count = np.bincount(inv, weights=weight, minlength=ns).astype(np.float64)
     spos = np.empty((ns, 3))
     snrm = np.empty((ns, 3))
     for a in range(3):
-        spos[:, a] = np.bincount(inv, weights=unit[:, a], minlength=ns) / count
-        snrm[:, a] = np.bincount(inv, weights=nrm[:, a], minlength=ns)
+        w = unit[:, a] if weight is None else unit[:, a] * weight
+        spos[:, a] = np.bincount(inv, weights=w, minlength=ns) / count
+        w = nrm[:, a] if weight is None else nrm[:, a] * weight
+        snrm[:, a] = np.bincount(inv, weights=w, minlength=ns)
     return Samples(skeys, spos, snrm, count, depth)
 
 
