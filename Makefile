@@ -1,14 +1,17 @@
 # recon — the two commands a new user needs: `make demo` and `make test`.
 VENV    ?= .venv
 PY      := $(VENV)/bin/python
+PIP     := $(PY) -m pip install -q --disable-pip-version-check
 RECON   := $(VENV)/bin/recon
 STAMP   := $(VENV)/.installed
 EXTRAS  := reference,test,batch,render,learned,las,e57
+# the extras recon warmup needs (pillow: recon diff's pictures); the others install meanwhile
+WARM_EXTRAS := render
 SAMPLE  := sample_data/bunny_scan_000.ply
 OUTDIR  := demo_output
 PYTEST_ARGS ?=
 
-.PHONY: all install sysdeps warmup demo test test-fast bench clean
+.PHONY: all install sysdeps warmup demo test test-fast bench lint docs clean
 
 all: test
 
@@ -26,11 +29,24 @@ sysdeps:
 		$$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq gcc libc6-dev >/dev/null; \
 	fi
 
+# recon and what its warm-up needs first; then the other extras install while `recon warmup`
+# compiles (pip waits on downloads and the disk, numba on the cores). What is installed is pinned
+# (-c), so pip cannot change numba or numpy under the warm-up; should the extras need other
+# versions, they are installed after it without the pins, and the warm-up runs again.
 $(STAMP): pyproject.toml
 	@$(MAKE) --no-print-directory sysdeps
 	@[ -x $(PY) ] || python3 -m venv $(VENV)
-	$(PY) -m pip install -q --disable-pip-version-check -e ".[$(EXTRAS)]"
-	$(RECON) warmup
+	$(PIP) -e ".[$(WARM_EXTRAS)]"
+	@$(PY) -m pip freeze --exclude-editable > $(VENV)/pins.txt
+	@$(PY) tools/extras.py $(EXTRAS) > $(VENV)/extras.txt
+	@echo "installing the extras ($(EXTRAS)) while the kernels compile"
+	@$(PIP) -r $(VENV)/extras.txt -c $(VENV)/pins.txt > $(VENV)/pip-extras.log 2>&1 & pip=$$!; \
+	$(RECON) warmup; warm=$$?; \
+	if ! wait $$pip; then \
+		tail -n 5 $(VENV)/pip-extras.log; \
+		echo "the extras need other versions: installing them, then warming up again"; \
+		$(PIP) -e ".[$(EXTRAS)]" && $(RECON) warmup || exit 1; \
+	elif [ $$warm -ne 0 ]; then exit $$warm; fi
 	@touch $(STAMP)
 
 install: $(STAMP)
@@ -54,5 +70,26 @@ test-fast: $(STAMP)
 bench: $(STAMP)
 	$(PY) bench/run_bench.py --out bench/results.md
 
+# ruff (format and lint) and mypy, configured in pyproject.toml; the `lint` extra holds them
+LINT_STAMP := $(VENV)/.lint-installed
+$(LINT_STAMP): pyproject.toml $(STAMP)
+	$(PY) -m pip install -q --disable-pip-version-check -e ".[lint]"
+	@touch $(LINT_STAMP)
+
+lint: $(LINT_STAMP)
+	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/ruff check .
+	$(PY) -m mypy
+
+# Sphinx with warnings as errors and nitpicky cross-references; the `docs` extra holds it
+DOCS_STAMP := $(VENV)/.docs-installed
+$(DOCS_STAMP): pyproject.toml $(STAMP)
+	$(PY) -m pip install -q --disable-pip-version-check -e ".[docs]"
+	@touch $(DOCS_STAMP)
+
+docs: $(DOCS_STAMP)
+	$(PY) -m sphinx -W -n --keep-going -q -b html docs docs/_build/html
+	@echo "docs written to docs/_build/html/index.html"
+
 clean:
-	rm -rf $(VENV) $(OUTDIR) .pytest_cache build *.egg-info
+	rm -rf $(VENV) $(OUTDIR) .pytest_cache .mypy_cache .ruff_cache docs/_build docs/stages build *.egg-info

@@ -11,7 +11,8 @@ import os
 import pickle
 import statistics
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from recon_cli import memory
 
@@ -30,7 +31,7 @@ def _trim_heap() -> None:
 
 
 def measure_once(fn: Callable[[], Any]) -> tuple[float, float, Any]:
-    """Run ``fn`` in a forked child; return (seconds, peak MB above the start, fn's small result)."""
+    """Run ``fn`` in a forked child: (seconds, peak MB above the start, fn's small result)."""
     _trim_heap()
     r, w = os.pipe()
     pid = os.fork()

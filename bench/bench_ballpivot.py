@@ -51,15 +51,15 @@ def rows(quick: bool) -> list[dict]:
         cloud = _cloud(n)
         radii = auto_radii(cloud.points)
 
-        def ours():
+        def ours(cloud=cloud, radii=radii):
             f = ball_pivoting(cloud.points, cloud.normals, radii)
             return len(f), _boundary(f)
 
-        def o3d():
+        def o3d(cloud=cloud, radii=radii):
             m = open3d_backend.ball_pivoting(cloud, radii)
             return len(m.faces), _boundary(m.faces)
 
-        def pml():
+        def pml(cloud=cloud, radii=radii):
             m = pymeshlab_backend.ball_pivoting_radii(cloud, radii)
             return len(m.faces), _boundary(m.faces)
 

@@ -98,7 +98,8 @@ def _cpu_children() -> float:
 
 
 def _wall(args: list[str], env: dict | None = None) -> tuple[float, str]:
-    """Wall time of the process (or its CPU time, user + system, when CPU_TIME is set) and its stdout."""
+    """Wall time of the process (or its CPU time, user + system, when CPU_TIME is set) and its
+    stdout."""
     c0 = _cpu_children()
     t = time.perf_counter()
     r = subprocess.run(args, env=env, capture_output=True, text=True, cwd=ROOT)
@@ -130,13 +131,14 @@ def floor(repeat: int, tmp: Path) -> tuple[float, float]:
 
 
 def numpy_floor(repeat: int) -> float:
-    """Median cost of a process that imports numpy (OpenBLAS single-threaded, as recon's) and exits."""
+    """Median cost of a process that imports numpy (OpenBLAS 1-threaded, as recon's) and exits."""
     code = "import os\nos.environ.setdefault('OPENBLAS_NUM_THREADS', '1')\nimport numpy\n"
     return statistics.median(_wall([sys.executable, "-c", code])[0] for _ in range(repeat))
 
 
 def command(args: list[str], repeat: int, cold: bool) -> dict:
-    """cold (empty cache), first and warm (median) wall times of ``recon -q ARGS --json``, and its report."""
+    """cold (empty cache), first and warm (median) wall times of ``recon -q ARGS --json``, and its
+    report."""
     out: dict = {}
     if cold:
         with tempfile.TemporaryDirectory(prefix="recon-cold-cache-") as cache:
@@ -157,14 +159,15 @@ def command(args: list[str], repeat: int, cold: bool) -> dict:
 
 
 def _inputs(tmp: Path, quick: bool) -> dict[str, str]:
+    from bench_mcubes import metaballs
+
     from recon_cli.geometry import PointCloud
+    from recon_cli.grid import Grid
+    from recon_cli.io.npz import write_grid
     from recon_cli.io.ply import write_ply
     from recon_cli.mesh.sampling import sample_surface
 
-    from bench_mcubes import metaballs
     from shared_data import load_shared, shared_path
-    from recon_cli.grid import Grid
-    from recon_cli.io.npz import write_grid
 
     p = {
         "scan": str(ROOT / "sample_data" / "bunny_scan_000.ply"),
@@ -215,10 +218,11 @@ def _skimage(grid_path: str):
 
 
 def _open3d_bpa(cloud_path: str):
-    """One in-process run of Open3D's ball pivoting on the cloud, with our automatic radii (warmed up once)."""
+    """One in-process run of Open3D's ball pivoting on the cloud, with our automatic radii (warmed
+    up once)."""
     from recon_cli.backends import open3d_backend
-    from recon_cli.stages.ballpivot import auto_radii
     from recon_cli.io.ply import read_ply
+    from recon_cli.stages.ballpivot import auto_radii
 
     c = read_ply(cloud_path)
     rr = auto_radii(np.asarray(c.points, dtype=np.float64))
@@ -347,8 +351,9 @@ def rows(quick: bool) -> list[dict]:
 def _against_reference(
     r: dict, stage: str, case: str, args: list[str], p: dict, fl: float, lean: float, rounds: int
 ) -> dict:
-    """A row of ours as a process against the reference in-process, alternating (:func:`alternating`):
-    the row's figures are CPU or wall seconds as the rest of the table (``RECON_BENCH_CPU``), the note gives both ratios."""
+    """A row of ours as a process against the reference in-process, alternating
+    (:func:`alternating`): the row's figures are CPU or wall seconds as the rest of the table
+    (``RECON_BENCH_CPU``), the note gives both ratios."""
     if stage == "mcubes":
         r["ref"], ref = "skimage marching_cubes", _skimage(p["mb256"])
     else:
@@ -373,14 +378,17 @@ def _against_reference(
         notes.append("ratio = (warm - numba floor - read) / skimage, target <= 0.5")
         npf = numpy_floor(5)
         notes.append(
-            f"a process without numba (ahead-of-time kernels): (warm - python+numpy floor {npf:.3f} - read) / "
-            f"skimage {(r['warm_s'] - npf - a['read_s']) / r['ref_s']:.2f}, whole process / skimage "
+            "a process without numba (ahead-of-time kernels): (warm - python+numpy floor "
+            f"{npf:.3f} - read) / "
+            f"skimage {(r['warm_s'] - npf - a['read_s']) / r['ref_s']:.2f}, whole process / "
+            "skimage "
             f"{r['warm_s'] / r['ref_s']:.2f}"
         )
     else:
         r["ratio"] = r["warm_s"] / r["ref_s"]
         notes.append(
-            f"ratio = ours as a process / Open3D in-process, target <= 1.0: CPU {a['ours_cpu'] / a['ref_cpu']:.2f}, "
+            "ratio = ours as a process / Open3D in-process, target <= 1.0: CPU "
+            f"{a['ours_cpu'] / a['ref_cpu']:.2f}, "
             f"wall {a['ours_wall'] / a['ref_wall']:.2f}"
         )
     r["note"] = "; ".join(notes)

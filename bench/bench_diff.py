@@ -89,7 +89,10 @@ def rows(quick: bool) -> list[dict]:
         o, t = ours["result"], t_ref["result"]
         if not isinstance(o, dict) or not isinstance(t, dict):
             return f"target ≤ 0.5×; {o or t}"
-        return f"target ≤ 0.5×; mean {o['mean']:.4g} vs {t['mean']:.4g}, max {o['max']:.4g} vs {t['max']:.4g}"
+        return (
+            f"target ≤ 0.5×; mean {o['mean']:.4g} vs {t['mean']:.4g}, max {o['max']:.4g} vs "
+            f"{t['max']:.4g}"
+        )
 
     return [
         row(

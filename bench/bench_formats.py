@@ -46,7 +46,8 @@ def _cpu_of(fn):
 
 
 def measure(fn, repeat: int) -> dict:
-    """As ``_util.measure`` (median wall and peak memory over forked runs) plus the median CPU seconds."""
+    """As ``_util.measure`` (median wall and peak memory over forked runs) plus the median CPU
+    seconds."""
     runs = [measure_once(_cpu_of(fn)) for _ in range(repeat)]
     return {
         "seconds": statistics.median(r[0] for r in runs),
@@ -138,6 +139,7 @@ def _grid_mesh(n_side: int):
 def rows(quick: bool) -> list[dict]:
     import laspy
     import open3d as o3d
+    import trimesh
 
     from recon_cli.io.load import load, save
     from recon_cli.io.xyz import xyz_bytes
@@ -149,7 +151,8 @@ def rows(quick: bool) -> list[dict]:
         # LAZ
         laz = os.path.join(d, "tile.laz")
         npts = _tile_laz(laz, 2 if quick else 10)
-        # no warm-up read here: lazrs decompresses on a thread pool, which must not exist before a fork
+        # no warm-up read here: lazrs decompresses on a thread pool, which must not exist before a
+        # fork
         ours = measure(lambda: len(load(laz).points), rep)
         ref = measure(lambda: len(laspy.read(laz).points), rep)
         out.append(
@@ -174,8 +177,8 @@ def rows(quick: bool) -> list[dict]:
 
                 write_pcd(cloud, pcd, data=data)
             load(pcd)
-            ours = measure(lambda: len(load(pcd).points), rep)
-            ref = measure(lambda: len(o3d.io.read_point_cloud(pcd).points), rep)
+            ours = measure(lambda pcd=pcd: len(load(pcd).points), rep)
+            ref = measure(lambda pcd=pcd: len(o3d.io.read_point_cloud(pcd).points), rep)
             out.append(
                 _row(
                     f"read {n // 1000}k-point PCD {data} (xyz, normals, rgb)",
@@ -300,8 +303,10 @@ def obj_rows(mesh, d: str, rep: int) -> tuple[list[dict], list[tuple[str, str]]]
 
     ours, ref = stats(runs_o), stats(runs_p)
     per = (
-        f"per vertex: OBJ {1e9 * ours['seconds'] / nv:.0f} ns vs PLY {1e9 * ref['seconds'] / nv:.0f} ns wall "
-        f"= {ours['seconds'] / ref['seconds']:.2f}×, CPU {1e9 * ours['cpu'] / nv:.0f} vs {1e9 * ref['cpu'] / nv:.0f} ns "
+        f"per vertex: OBJ {1e9 * ours['seconds'] / nv:.0f} ns vs PLY "
+        f"{1e9 * ref['seconds'] / nv:.0f} ns wall "
+        f"= {ours['seconds'] / ref['seconds']:.2f}×, CPU {1e9 * ours['cpu'] / nv:.0f} vs "
+        f"{1e9 * ref['cpu'] / nv:.0f} ns "
         f"= {ours['cpu'] / ref['cpu']:.2f}×; target ≤ 3×; {os.path.getsize(obj) / 1e6:.0f} MB OBJ"
     )
     label = f"read OBJ mesh ({nv // 1000}k vertices, {len(mesh.faces) // 1000}k faces)"
@@ -312,7 +317,7 @@ def obj_rows(mesh, d: str, rep: int) -> tuple[list[dict], list[tuple[str, str]]]
 
 
 def obj_process_row(obj_files, repeat: int) -> dict:
-    """``recon info`` on the OBJ and on the binary PLY of the same mesh as processes, alternately."""
+    """``recon info`` on the OBJ and the binary PLY of the same mesh as processes, alternately."""
     (_, obj), (_, ply) = obj_files
     _process_once(obj)
     _process_once(ply)

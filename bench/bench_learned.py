@@ -43,8 +43,8 @@ def _fit_metrics(cloud, truth, seconds, res, hole=None):
     from scipy.spatial import cKDTree
 
     from recon_cli.geometry import TriangleMesh, bbox_diagonal
-    from recon_cli.stages.learned import extract_mesh, run_stage
     from recon_cli.mesh.sampling import sample_surface
+    from recon_cli.stages.learned import run_stage
 
     r = run_stage(cloud, resolution=res, iterations=10**7, max_seconds=seconds, threads=2)
     grid = r.output
@@ -122,16 +122,20 @@ def rows(quick: bool) -> list[dict]:
         screened_poisson(
             cloud.points[:2000], cloud.normals[:2000], depth=5
         )  # compile outside the timing
-        ref = measure(lambda: _poisson_metrics(cloud, truth), repeat=1)
-        ours = measure(lambda: _fit_metrics(cloud, truth, seconds, res), repeat=1)
+        ref = measure(lambda cloud=cloud, truth=truth: _poisson_metrics(cloud, truth), repeat=1)
+        ours = measure(
+            lambda cloud=cloud, truth=truth: _fit_metrics(cloud, truth, seconds, res), repeat=1
+        )
         o, p = ours["result"], ref["result"]
         if not isinstance(o, dict) or not isinstance(p, dict):
             out.append({"stage": "fit-sdf", "case": f"{name}: FAILED {o!r} / {p!r}"})
             continue
         ok = o["f1"] >= 0.95 and o["chamfer"] <= 2 * p["chamfer"] and o["eik"] >= 0.9
         note = (
-            f"F@1% {o['f1']:.4f} (Poisson {p['f1']:.4f}); Chamfer-L1 {o['chamfer'] / o['diag']:.3g} diag = "
-            f"{o['chamfer'] / p['chamfer']:.2f}x Poisson d8; eikonal within 0.1 on {100 * o['eik']:.1f}% of "
+            f"F@1% {o['f1']:.4f} (Poisson {p['f1']:.4f}); Chamfer-L1 "
+            f"{o['chamfer'] / o['diag']:.3g} diag = "
+            f"{o['chamfer'] / p['chamfer']:.2f}x Poisson d8; eikonal within 0.1 on "
+            f"{100 * o['eik']:.1f}% of "
             f"samples within 5% diag; {o['iterations']} steps in {o['train_s']:.0f}s "
             f"({o['iterations'] / o['train_s']:.1f}/s, load {o['load']:.1f}); "
             f"{o['components']} component(s), genus {o['genus']}; "
@@ -154,15 +158,19 @@ def rows(quick: bool) -> list[dict]:
             radius = float(np.sort(d)[len(d) // 10])
             holed = cloud.subset(d > radius)
             hm = measure(
-                lambda: _fit_metrics(holed, truth, min(seconds, 150.0), res, hole=(c, radius)),
+                lambda holed=holed, truth=truth, c=c, radius=radius: _fit_metrics(
+                    holed, truth, min(seconds, 150.0), res, hole=(c, radius)
+                ),
                 repeat=1,
             )
             h = hm["result"]
             if isinstance(h, dict):
                 note = (
-                    f"hole radius {radius / h['diag']:.3f} diag; Chamfer-L1 on the rest {h['chamfer'] / h['diag']:.3g} "
+                    f"hole radius {radius / h['diag']:.3f} diag; Chamfer-L1 on the rest "
+                    f"{h['chamfer'] / h['diag']:.3g} "
                     f"diag, F@1% {h['f1']:.4f}; cut-away true surface to fitted surface: mean "
-                    f"{h['hole_mean']:.3g}, max {h['hole_max']:.3g} diag; {h['components']} component(s), genus "
+                    f"{h['hole_mean']:.3g}, max {h['hole_max']:.3g} diag; {h['components']} "
+                    "component(s), genus "
                     f"{h['genus']}; {h['iterations']} steps in {h['train_s']:.0f}s"
                 )
             else:

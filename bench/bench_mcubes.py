@@ -33,9 +33,9 @@ def rows(quick: bool) -> list[dict]:
     for n in [128] if quick else [128, 256]:
         f = metaballs(n)
         repeat = 3 if quick else 5
-        ours = measure(lambda: len(marching_cubes(f)[1]), repeat=repeat)
-        ref = measure(lambda: len(sk_mc(f, 0.0)[1]), repeat=repeat)
-        ours_mt = measure(lambda: len(marching_cubes(f, method="mt")[1]), repeat=repeat)
+        ours = measure(lambda f=f: len(marching_cubes(f)[1]), repeat=repeat)
+        ref = measure(lambda f=f: len(sk_mc(f, 0.0)[1]), repeat=repeat)
+        ours_mt = measure(lambda f=f: len(marching_cubes(f, method="mt")[1]), repeat=repeat)
         out.append(
             row(
                 "mcubes",

@@ -77,9 +77,7 @@ def _ours(args: list[str], src: Path, dst: Path):
     from recon_cli.io import read_ply
 
     cmd = [_recon(), "-q", args[0], str(src), str(dst), *args[1:]]
-    proc = subprocess.run(
-        [sys.executable, "-c", _LAUNCHER, *cmd], stdout=subprocess.PIPE, stderr=subprocess.PIPE
-    )
+    proc = subprocess.run([sys.executable, "-c", _LAUNCHER, *cmd], capture_output=True)
     if proc.returncode != 0:
         raise RuntimeError(f"recon {args[0]} failed: {proc.stderr.decode().strip()}")
     dt, kb = proc.stdout.decode().split()
@@ -183,9 +181,9 @@ def _simplify_rows(case: str, mesh, work: Path) -> list[dict]:
 
 def _noisy_sphere(subdivisions: int):
     sys.path.insert(0, str(ROOT / "tests"))
-    from shapes import icosphere
-
     from recon_cli.geometry import TriangleMesh
+
+    from shapes import icosphere
 
     v, f = icosphere(subdivisions)
     rng = np.random.default_rng(0)

@@ -50,9 +50,9 @@ def _o3d(points, knn, orient_k):
 
 def _organized(width: int, height: int):
     """A noisy depth image of the tabletop: (points, PixelGrid, true normals, not-flying mask)."""
-    from sensors import DepthCamera, depth_image, exact_image, look_at, tabletop_scene, true_normals
-
     from recon_cli.geometry import PixelGrid
+
+    from sensors import DepthCamera, depth_image, exact_image, look_at, tabletop_scene, true_normals
 
     eye = (0.0, -2.5, 1.2)
     cam = DepthCamera(
@@ -97,9 +97,9 @@ def rows(quick: bool) -> list[dict]:
     for n in [200_000] if quick else [200_000, 1_000_000]:
         pts = _cloud("armadillo", n, 0.0025).points
         ours = measure(
-            lambda: _ours(pts, 10, "mst") is not None, repeat=1 if n >= 1_000_000 else rep
+            lambda pts=pts: _ours(pts, 10, "mst") is not None, repeat=1 if n >= 1_000_000 else rep
         )
-        ref = measure(lambda: _o3d(pts, 10, 10) is not None, repeat=1)
+        ref = measure(lambda pts=pts: _o3d(pts, 10, 10) is not None, repeat=1)
         out.append(
             row(
                 "normals",
@@ -121,7 +121,7 @@ def rows(quick: bool) -> list[dict]:
 
     ref = measure(lambda: _o3d(pts, 30, None), repeat=rep)
     for pixels in (True, False):
-        ours = measure(lambda: ours_org(pixels), repeat=rep)
+        ours = measure(lambda pixels=pixels: ours_org(pixels), repeat=rep)
         out.append(
             row(
                 "normals",
@@ -130,7 +130,8 @@ def rows(quick: bool) -> list[dict]:
                 ours,
                 "open3d estimate_normals",
                 ref,
-                note=f"angle to truth mean/median: ours {_angle_note(ours['result'], truth, keep)}, "
+                note="angle to truth mean/median: "
+                f"ours {_angle_note(ours['result'], truth, keep)}, "
                 f"open3d {_angle_note(ref['result'], truth, keep)}",
             )
         )
@@ -140,13 +141,13 @@ def rows(quick: bool) -> list[dict]:
         for noise in (0.0, 0.0025):
             c = _cloud(name, n_acc, noise)
             ours = measure(
-                lambda: float(
+                lambda c=c: float(
                     (np.einsum("ij,ij->i", _ours(c.points, 30, "mst"), c.normals) > 0).mean()
                 ),
                 1,
             )
             ref = measure(
-                lambda: float(
+                lambda c=c: float(
                     (np.einsum("ij,ij->i", _o3d(c.points, 30, 30), c.normals) > 0).mean()
                 ),
                 1,
@@ -158,7 +159,9 @@ def rows(quick: bool) -> list[dict]:
                     ours,
                     "open3d tangent plane(30)",
                     ref,
-                    note=f"same-way fraction ours {ours['result']:.5f} vs open3d {ref['result']:.5f}",
+                    note=(
+                        f"same-way fraction ours {ours['result']:.5f} vs open3d {ref['result']:.5f}"
+                    ),
                 )
             )
     return out

@@ -194,9 +194,7 @@ def _ours_process(cloud, depth: int, trimmed, workdir: Path) -> tuple[dict, obje
         cmd += ["--trim", str(OUR_TRIM if trimmed is True else trimmed)]
     # through a small launcher: a child forked from this (large) process reports this
     # process's resident size as its own peak (ru_maxrss counts the pages it had before exec)
-    proc = subprocess.run(
-        [sys.executable, "-c", _LAUNCHER, *cmd], stdout=subprocess.PIPE, stderr=subprocess.PIPE
-    )
+    proc = subprocess.run([sys.executable, "-c", _LAUNCHER, *cmd], capture_output=True)
     if proc.returncode != 0:
         raise RuntimeError(
             f"recon poisson failed ({proc.returncode}): {proc.stderr.decode().strip()}"
@@ -236,7 +234,8 @@ def _open3d(cloud, depth: int, trimmed: bool):
 
 
 def _pymeshlab(cloud, depth: int, trimmed: bool):
-    """PyMeshLab's screened Poisson; trimmed rows are not measured (its density is not exposed here)."""
+    """PyMeshLab's screened Poisson; trimmed rows are not measured (its density is not exposed
+    here)."""
     from recon_cli.backends import pymeshlab_backend
 
     return pymeshlab_backend.poisson(cloud, depth=depth)
@@ -348,10 +347,10 @@ def _office_sdf():
 def _depth_camera(scene: str):
     """(oriented cloud, the scene's sdf) of a 640 x 480 depth image of ``scene``."""
     sys.path.insert(0, str(ROOT / "tests"))
-    from sensors import DepthCamera, depth_image, look_at, tabletop_scene, valid_rows
-
     from recon_cli.geometry import PointCloud
     from recon_cli.stages import normals
+
+    from sensors import DepthCamera, depth_image, look_at, tabletop_scene, valid_rows
 
     if scene == "tabletop":
         sdf, eye, target, seed = tabletop_scene(), (0.2, -2.6, 1.3), (0.0, 0.4, 0.25), 0

@@ -66,10 +66,14 @@ def rows(quick: bool) -> list[dict]:
     b = measure(theirs, rep)
     ok = report(repair(mesh)[0])
     note = (
-        f"faces out {a['result']} vs {b['result']}; ours manifold={ok['edge_manifold'] and ok['vertex_manifold']}"
+        f"faces out {a['result']} vs {b['result']}; ours "
+        f"manifold={ok['edge_manifold'] and ok['vertex_manifold']}"
         f" oriented={ok['consistently_oriented']}; target ≤ 1×"
     )
-    label = f"repair {len(mesh.faces) / 1e6:.2f}M faces (holes, flips, duplicates, fins, split vertices)"
+    label = (
+        f"repair {len(mesh.faces) / 1e6:.2f}M faces (holes, flips, duplicates, fins, split "
+        "vertices)"
+    )
     out = [row("repair", label, a, "pymeshlab clean/repair/re-orient chain", b, note)]
 
     def ours_report():

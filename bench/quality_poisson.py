@@ -53,7 +53,10 @@ def main(argv: list[str]) -> int:
     depths = [int(d) for d in args.depth.split(",")]
     noises = [float(s) for s in args.noise.split(",")]
 
-    head = f"{'mesh':13s} {'noise':>6s} {'d':>2s} {'CD ours':>10s} {'CD o3d':>10s} {'ratio':>6s} {'F ours':>7s} {'F o3d':>7s} {'dF':>7s} {'t ours':>7s} {'t o3d':>7s} ok"
+    head = (
+        f"{'mesh':13s} {'noise':>6s} {'d':>2s} {'CD ours':>10s} {'CD o3d':>10s} {'ratio':>6s} "
+        f"{'F ours':>7s} {'F o3d':>7s} {'dF':>7s} {'t ours':>7s} {'t o3d':>7s} ok"
+    )
     print(head)
     fails = 0
     for name in args.mesh.split(","):
@@ -73,8 +76,10 @@ def main(argv: list[str]) -> int:
                 ok = ch_o <= 1.05 * ch_r and f_o >= f_r - 0.01
                 fails += not ok
                 print(
-                    f"{name:13s} {noise:6.4f} {depth:2d} {ch_o:10.4g} {ch_r:10.4g} {ch_o / ch_r:6.3f} "
-                    f"{f_o:7.4f} {f_r:7.4f} {f_o - f_r:+7.4f} {t1 - t0:7.2f} {t2 - t1:7.2f} {'yes' if ok else 'NO'}",
+                    f"{name:13s} {noise:6.4f} {depth:2d} {ch_o:10.4g} {ch_r:10.4g} "
+                    f"{ch_o / ch_r:6.3f} "
+                    f"{f_o:7.4f} {f_r:7.4f} {f_o - f_r:+7.4f} {t1 - t0:7.2f} {t2 - t1:7.2f} "
+                    f"{'yes' if ok else 'NO'}",
                     flush=True,
                 )
     print(f"{fails} case(s) outside the bound")

@@ -33,7 +33,10 @@ def fmt(v, digits=3) -> str:
     return str(v)
 
 
-HEAD = "| stage | case | ours s | ours MB | reference | ref s | ref MB | time ours/ref | mem ours/ref | note |"
+HEAD = (
+    "| stage | case | ours s | ours MB | reference | ref s | ref MB | time ours/ref | mem ours/ref "
+    "| note |"
+)
 KEYS = (
     "stage",
     "case",
@@ -49,7 +52,8 @@ KEYS = (
 
 
 def table(rows: list[dict], columns: list[tuple[str, str]] | None = None) -> list[str]:
-    """The rows as a markdown table: the usual ours-vs-reference columns, or a module's own ``COLUMNS``."""
+    """The rows as a markdown table: the usual ours-vs-reference columns, or a module's own
+    ``COLUMNS``."""
     head, keys = (
         (HEAD, KEYS)
         if columns is None
@@ -114,11 +118,15 @@ def main() -> int:
         print(text, flush=True)
         sections[m] = text
     lines = [
-        f"# recon benchmark ({platform.machine()}, Python {platform.python_version()}, {os.cpu_count()} cores)",
+        f"# recon benchmark ({platform.machine()}, Python {platform.python_version()}, "
+        f"{os.cpu_count()} cores)",
         "",
-        "Times are medians of repeated runs, each in a forked child; memory is the peak RSS above the start",
-        "of each run. Ours and the reference run back to back in one process: read the ratios. Each section",
-        "says when it was measured (`make bench` runs all; `run_bench.py --only NAME` redoes one section).",
+        "Times are medians of repeated runs, each in a forked child; memory is the peak RSS "
+        "above the start",
+        "of each run. Ours and the reference run back to back in one process: read the ratios. "
+        "Each section",
+        "says when it was measured (`make bench` runs all; `run_bench.py --only NAME` redoes "
+        "one section).",
         "",
     ]
     for m in every:

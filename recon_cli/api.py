@@ -15,7 +15,7 @@ and :class:`~recon_cli.grid.Grid`; an (n, 3) array of points (with ``normals=`` 
 array of normals); a ``(vertices, faces)`` pair; a 3-d array of grid values (unit spacing,
 origin 0); Open3D and trimesh point clouds and meshes (converted by
 :func:`recon_cli.geometry.geometry_from`; Open3D and trimesh are imported only for their own
-objects); a file name (read by :func:`read`).
+objects); a file name (read by :func:`~recon_cli.api.read`).
 """
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ _DATA_NAMES = {"cloud": "cloud", "oriented": "cloud", "mesh": "mesh", "grid": "g
 _OPTION = re.compile(r"--([a-z][a-z0-9]*(?:-[a-z0-9]+)*)")
 
 
-# ---- names -----------------------------------------------------------------------------------------
+# ---- names ---------------------------------------------------------------------------------------
 def function_name(stage: str) -> str:
     """The Python name of stage ``stage``'s function: ``fit-sdf`` -> ``fit_sdf``."""
     return stage.replace("-", "_")
@@ -89,7 +89,7 @@ def function_named(name: str) -> Callable[..., Any] | None:
     return None
 
 
-# ---- the declaration as Python ---------------------------------------------------------------------
+# ---- the declaration as Python -------------------------------------------------------------------
 def annotation_source(p: Param) -> str:
     """The type annotation of parameter ``p``, as source text (``"int"``, ``"float | None"``)."""
     base = {
@@ -116,14 +116,20 @@ def _data_kinds(spec: StageSpec) -> tuple[str, ...]:
 
 
 def data_name(spec: StageSpec) -> str:
-    """The name of the function's first argument: ``cloud``, ``mesh``, ``grid`` (by the first
-    kind the stage takes) or ``data`` (an undeclared stage, or a parameter of that name)."""
+    """The name of the function's first argument.
+
+    ``cloud``, ``mesh``, ``grid`` (by the first kind the stage takes) or ``data`` (an undeclared
+    stage, or a parameter of that name).
+    """
     name = _DATA_NAMES.get(spec.takes[0], "data") if spec.declared and spec.takes else "data"
     return "data" if name in {p.name for p in spec.params} else name
 
 
 def takes_normals(spec: StageSpec) -> bool:
-    """Whether the function has ``normals=`` (it takes point clouds, and no parameter is so named)."""
+    """Whether the function has ``normals=``.
+
+    It takes point clouds, and no parameter is so named.
+    """
     return bool({"cloud", "oriented"} & set(_data_kinds(spec))) and not any(
         p.name == "normals" for p in spec.params
     )
@@ -258,7 +264,11 @@ def docstring(spec: StageSpec, name: str | None = None) -> str:
         "Parameters",
         "----------",
         f"{data} : {', '.join(types)} or path",
-        *_wrap(f"The input: {kinds}. " + "; ".join(forms) + "; a path is read (:func:`read`)."),
+        *_wrap(
+            f"The input: {kinds}. "
+            + "; ".join(forms)
+            + "; a path is read (:func:`~recon_cli.api.read`)."
+        ),
     ]
     if takes_normals(spec):
         out += [
@@ -298,7 +308,7 @@ def docstring(spec: StageSpec, name: str | None = None) -> str:
     return "\n".join(out) + "\n"
 
 
-# ---- inputs ----------------------------------------------------------------------------------------
+# ---- inputs --------------------------------------------------------------------------------------
 def as_input(data: Any, spec: StageSpec, normals: Any = None) -> PointCloud | TriangleMesh | Grid:
     """``data`` as recon's own object for stage ``spec`` (see the module docstring).
 
@@ -368,7 +378,7 @@ def _progress(progress: Any) -> Iterator[Progress | None]:
         raise ParameterError(f"progress must be true, false or a Progress, got {progress!r}")
 
 
-# ---- the functions ---------------------------------------------------------------------------------
+# ---- the functions -------------------------------------------------------------------------------
 _FUNCTIONS: dict[str, tuple[StageSpec, Callable[..., Any]]] = {}
 
 
@@ -422,7 +432,7 @@ def _make(stage: str, spec: StageSpec) -> Callable[..., Any]:
     return run
 
 
-# ---- files -----------------------------------------------------------------------------------------
+# ---- files ---------------------------------------------------------------------------------------
 def read(
     path: str | os.PathLike[str], format: str | None = None
 ) -> PointCloud | TriangleMesh | Grid:

@@ -1,6 +1,6 @@
 """Error types of recon.
 
-The library raises these; only :mod:`recon_cli.cli.main` maps them to exit codes, so
+The library raises these; only ``recon_cli.cli.main`` maps them to exit codes, so
 library code never calls ``sys.exit``.
 """
 
@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import os
-from typing import Iterator
+from collections.abc import Iterator
 
 
 class ReconError(Exception):
@@ -33,8 +33,11 @@ class InputError(ReconError):
 
 
 class OutputError(ReconError):
-    """An output path that cannot be written: missing folder, a directory, read-only or full
-    file system, closed standard output. ``path`` is the output path as given."""
+    """An output path that cannot be written.
+
+    Missing folder, a directory, read-only or full file system, closed standard output. ``path`` is
+    the output path as given.
+    """
 
     exit_code = 2
 
@@ -59,8 +62,10 @@ class StageFailed(ReconError):
 
 @contextlib.contextmanager
 def naming(path: str | os.PathLike | None) -> Iterator[None]:
-    """Put ``path`` in front of the :class:`InputError` and :class:`StageFailed` raised inside
-    that do not name a file yet (a stage checks its data, the caller knows the file).
+    """Put ``path`` in front of the errors raised inside that do not name a file yet.
+
+    Those are the :class:`InputError` and :class:`StageFailed` of a stage that checks its data,
+    where the caller knows the file.
 
     ``-`` is named ``<stdin>``.
     """

@@ -17,13 +17,13 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
 from recon_cli.errors import InputError
 
-# the per-point attribute naming the sensor (index into ``PointCloud.sensors``) of each point
+#: the per-point attribute naming the sensor (index into ``PointCloud.sensors``) of each point
 SCAN_ATTRIBUTE = "scan"
 
 
@@ -72,10 +72,11 @@ class Sensor:
         """One line for reports: the source and the position (or direction)."""
         if self.position is not None:
             return f"{self.source} at ({', '.join(f'{x:.9g}' for x in self.position)})"
+        assert self.direction is not None  # a sensor has a position or a direction
         return f"{self.source} towards ({', '.join(f'{x:.9g}' for x in self.direction)})"
 
     def to_line(self) -> str:
-        """The ``sensor ...`` line that stores it (PLY ``obj_info``), read by :func:`parse_sensor_line`."""
+        """The ``sensor ...`` line that stores it (PLY ``obj_info``; :func:`parse_sensor_line`)."""
         parts = ["sensor"]
         for name in ("position", "orientation", "direction"):
             v = getattr(self, name)
@@ -86,15 +87,22 @@ class Sensor:
 
 
 def parse_sensor_line(line: str) -> Sensor | None:
-    """The :class:`Sensor` a ``sensor ...`` line (:meth:`Sensor.to_line`) or an older
-    ``pcd_viewpoint x y z qw qx qy qz`` line holds; None for any other line or a malformed one."""
+    """The :class:`Sensor` a ``sensor ...`` or ``pcd_viewpoint ...`` line holds, else None.
+
+    ``sensor`` lines are :meth:`Sensor.to_line`'s, ``pcd_viewpoint x y z qw qx qy qz`` the older
+    form; any other line or a malformed one gives None.
+    """
     words = line.split()
     if not words:
         return None
     try:
         if words[0] == "pcd_viewpoint" and len(words) == 8:
             v = [float(x) for x in words[1:]]
-            return Sensor(position=v[:3], orientation=v[3:], source="PCD VIEWPOINT")
+            return Sensor(
+                position=(v[0], v[1], v[2]),
+                orientation=(v[3], v[4], v[5], v[6]),
+                source="PCD VIEWPOINT",
+            )
         if words[0] != "sensor":
             return None
         kw: dict[str, Any] = {}
@@ -148,7 +156,10 @@ class PixelGrid:
         self.pixel = np.ascontiguousarray(self.pixel, dtype=np.int64).reshape(-1)
 
     def offsets(self) -> np.ndarray:
-        """(k + 1,) int64: where each image starts in the pixel numbering (the last: their total)."""
+        """(k + 1,) int64: where each image starts in the pixel numbering (the last.
+
+        Their total).
+        """
         sizes = [h * w for h, w in self.shapes]
         return np.concatenate([[0], np.cumsum(sizes, dtype=np.int64)]).astype(np.int64)
 
@@ -157,12 +168,15 @@ class PixelGrid:
         return ", ".join(f"{w}x{h}" for h, w in self.shapes)
 
     def subset(self, mask: np.ndarray) -> PixelGrid:
+        """The grid of the points kept by ``mask`` (boolean or index array)."""
         return PixelGrid(self.shapes, self.pixel[mask])
 
 
 class Geometry:
-    """What :class:`PointCloud` and :class:`TriangleMesh` share: conversions to and from Open3D
-    and trimesh (:mod:`recon_cli.backends.interop`) and the report of the stage that made them.
+    """What :class:`PointCloud` and :class:`TriangleMesh` share.
+
+    Conversions to and from Open3D and trimesh (:mod:`recon_cli.backends.interop`) and the report of
+    the stage that made them.
 
     Attributes
     ----------
@@ -179,7 +193,7 @@ class Geometry:
         return {k: getattr(self, k, None) for k in names}
 
     def to_open3d(self, tensor: bool = False) -> Any:
-        """This object as Open3D geometry (a copy; coordinates and normals in float64).
+        """The object as Open3D geometry (a copy; coordinates and normals in float64).
 
         Parameters
         ----------
@@ -202,7 +216,7 @@ class Geometry:
         return interop.to_open3d(**self._arrays(), tensor=tensor)
 
     def to_trimesh(self) -> Any:
-        """This object as a ``trimesh.Trimesh`` or ``trimesh.PointCloud`` (a copy, float64).
+        """The object as a ``trimesh.Trimesh`` or ``trimesh.PointCloud`` (a copy, float64).
 
         A mesh keeps its vertex order (``process=False``), vertex normals, colours (RGBA 8-bit)
         and every vertex and face attribute; a cloud's normals and attributes go to the
@@ -284,7 +298,8 @@ class PointCloud(Geometry):
     def __len__(self) -> int:
         return len(self.points)
 
-    def copy(self) -> "PointCloud":
+    def copy(self) -> PointCloud:
+        """A copy with every array copied (the history and file metadata carried over)."""
         return PointCloud(
             points=self.points.copy(),
             normals=None if self.normals is None else self.normals.copy(),
@@ -301,7 +316,7 @@ class PointCloud(Geometry):
             invalid_dropped=self.invalid_dropped,
         )
 
-    def subset(self, mask: np.ndarray) -> "PointCloud":
+    def subset(self, mask: np.ndarray) -> PointCloud:
         """The cloud restricted to ``mask`` (boolean or index array); sensors, pixels kept."""
         return PointCloud(
             points=self.points[mask],
@@ -364,7 +379,8 @@ class TriangleMesh(Geometry):
         """Alias of ``vertices`` so code taking points accepts a mesh."""
         return self.vertices
 
-    def copy(self) -> "TriangleMesh":
+    def copy(self) -> TriangleMesh:
+        """A copy with every array copied (the history and file metadata carried over)."""
         return TriangleMesh(
             vertices=self.vertices.copy(),
             faces=self.faces.copy(),
@@ -394,8 +410,9 @@ class TriangleMesh(Geometry):
 
 
 def geometry_from(obj: Any) -> PointCloud | TriangleMesh:
-    """recon's :class:`PointCloud` or :class:`TriangleMesh` for an Open3D or trimesh point cloud
-    or triangle mesh (legacy or tensor Open3D geometry); a recon object is returned as it is.
+    """Recon's :class:`PointCloud` or :class:`TriangleMesh` for an Open3D or trimesh object.
+
+    Open3D geometry may be legacy or tensor; a recon object is returned as it is.
 
     The arrays are copied; coordinates and normals are float64, colours 8-bit (see
     :mod:`recon_cli.backends.interop` for what each library holds).
@@ -478,7 +495,7 @@ def drop_invalid(obj: PointCloud | TriangleMesh, where: str | None = None):
                     where,
                 )
         remap = np.cumsum(ok) - 1
-        out = TriangleMesh(
+        out: PointCloud | TriangleMesh = TriangleMesh(
             vertices=pts[ok],
             faces=remap[obj.faces],
             normals=None if obj.normals is None else obj.normals[ok],
@@ -497,7 +514,10 @@ def drop_invalid(obj: PointCloud | TriangleMesh, where: str | None = None):
     return out
 
 
-def float64(obj: "PointCloud | TriangleMesh") -> "PointCloud | TriangleMesh":
+_Geometry = TypeVar("_Geometry", bound="PointCloud | TriangleMesh")
+
+
+def float64(obj: _Geometry) -> _Geometry:
     """``obj`` with C-contiguous float64 coordinates and normals, ready to compute with.
 
     ``obj`` itself when they already are; otherwise a shallow copy holding converted copies
@@ -522,7 +542,7 @@ def float64(obj: "PointCloud | TriangleMesh") -> "PointCloud | TriangleMesh":
 
 
 def local_origin(points: np.ndarray) -> np.ndarray:
-    """A local origin for computing near ``points`` ((n, 3)): the centre of their bounding box, (3,) float64.
+    """A local origin for computing near ``points`` ((n, 3)): their bounding box's centre, (3,).
 
     Stages subtract it (in float64) before anything that loses precision far from the
     origin (float32 arrays, squared norms, cross products, a unit cube) and add it back to
@@ -536,8 +556,8 @@ def local_origin(points: np.ndarray) -> np.ndarray:
     return 0.5 * (lo + hi)
 
 
-def storage_dtype(obj: "PointCloud | TriangleMesh") -> type:
-    """The float type ``obj``'s coordinates (and normals) are written with: the rule of the data model.
+def storage_dtype(obj: PointCloud | TriangleMesh) -> type:
+    """The float type ``obj``'s coordinates (and normals) are written with, by the data model.
 
     ``np.float64`` when the source is double (``obj.point_dtype``); otherwise ``np.float32``
     unless the coordinates are float64 values that float32 would round by more than
@@ -603,7 +623,7 @@ def bbox_diagonal(points: np.ndarray) -> float:
 def oriented_rows(
     points: Any, normals: Any, missing: str
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Points and normals of an oriented cloud as contiguous float64 (n, 3) arrays, with the normals' lengths.
+    """Points and normals of an oriented cloud as contiguous float64 (n, 3), and normal lengths.
 
     The shared entry check of the stages that need normals; each decides what to do with
     non-finite rows and zero normals (``length`` is NaN or inf where a normal is not finite).
@@ -632,7 +652,7 @@ def oriented_rows(
 
 
 def _float_rows(a: Any) -> np.ndarray:
-    """``a`` as (n, 3) rows: float32 and float64 arrays kept as they are (views stay views), anything else as float64."""
+    """``a`` as (n, 3) rows: float32 and float64 kept as they are (views stay), others float64."""
     arr = np.asarray(a)
     if arr.dtype not in (np.float32, np.float64):
         arr = arr.astype(np.float64)
@@ -648,7 +668,7 @@ def _source_dtype(point_dtype: Any, coords: np.ndarray) -> type:
     return np.float64 if np.dtype(point_dtype) == np.float64 else np.float32
 
 
-def _normalise_per_point(obj: "PointCloud | TriangleMesh", n: int) -> None:
+def _normalise_per_point(obj: PointCloud | TriangleMesh, n: int) -> None:
     """Put the optional per-point arrays of ``obj`` in shape and check they have ``n`` rows."""
     if obj.normals is not None:
         obj.normals = _float_rows(obj.normals)

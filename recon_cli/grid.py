@@ -66,6 +66,7 @@ class Grid(_Reported):
 
     @property
     def shape(self) -> tuple[int, int, int]:
+        """The number of samples along x, y and z."""
         return tuple(self.sdf.shape)  # type: ignore[return-value]
 
     def positions(self, index: np.ndarray) -> np.ndarray:

@@ -26,7 +26,10 @@ from recon_cli.io.ply import parse_ply, ply_to_geometry, read_bytes
 
 
 def describe(path: str | os.PathLike, format: str | None = None) -> dict[str, Any]:
-    """Describe the file at ``path`` (``-``: stdin) in the format its suffix (or ``format``) names."""
+    """Describe the file at ``path`` (``-``: stdin).
+
+    It is read in the format its suffix (or ``format``) names.
+    """
     from recon_cli.io.load import decode, format_of, load_detailed
 
     name = "<stdin>" if str(path) == "-" else str(path)
@@ -66,7 +69,7 @@ def describe(path: str | os.PathLike, format: str | None = None) -> dict[str, An
 
 
 def describe_geometry(geom, name: str, fmt: str, details: dict) -> dict[str, Any]:
-    """Describe a cloud or mesh read from a non-PLY file (same keys as for PLY, plus ``details``)."""
+    """Describe a cloud or mesh read from a non-PLY file: the keys of PLY's, and ``details``."""
     pts = geom.points
     mesh = isinstance(geom, TriangleMesh)
     vprops = [f"{np.dtype(pts.dtype).name} x y z"]
@@ -98,7 +101,7 @@ def describe_geometry(geom, name: str, fmt: str, details: dict) -> dict[str, Any
         try:
             from recon_cli.mesh.topology import report as topology_report
         except ModuleNotFoundError:
-            topology_report = None
+            topology_report = None  # type: ignore[assignment]  # a build without the mesh package
         if topology_report is not None:
             out["topology"] = topology_report(geom)
     return out
@@ -122,14 +125,17 @@ def describe_grid(grid, name: str) -> dict[str, Any]:
     try:
         from recon_cli.stages.sdf import eikonal_check
     except ModuleNotFoundError:
-        eikonal_check = None
+        eikonal_check = None  # type: ignore[assignment]  # a build without the sdf stage
     if eikonal_check is not None:
         out["eikonal"] = eikonal_check(grid)
     return out
 
 
 def _geometry_keys(geom: Any) -> dict[str, Any]:
-    """The keys every cloud or mesh description shares: bounding box, normals, colours, attributes."""
+    """The keys every cloud or mesh description shares.
+
+    Bounding box, normals, colours, attributes.
+    """
     pts = geom.points
     return {
         "bbox": {

@@ -1,4 +1,4 @@
-"""This process's memory: resident high-water mark, and giving freed heap back.
+"""The process's memory: resident high-water mark, and giving freed heap back.
 
 One place for what the batch runner, ``recon compare``, the Poisson solver and the
 benchmarks measure. Linux figures come from ``/proc/self/status``; elsewhere the peak is
@@ -30,7 +30,7 @@ def rss_mb() -> float | None:
 
 
 def peak_mb() -> float | None:
-    """Resident high-water mark in MiB: since the last :func:`reset_peak`, or the process's lifetime."""
+    """Resident high-water mark in MiB since the last :func:`reset_peak` or the process's start."""
     kb = status_kb("VmHWM")
     if kb is not None:
         return kb / 1024.0
@@ -75,9 +75,11 @@ def release_free_heap() -> None:
 
 
 def available_bytes() -> int | None:
-    """Memory a new allocation can still get, in bytes: ``MemAvailable`` of
-    ``/proc/meminfo``, lowered to the room left under a cgroup (v2) limit; None where
-    unknown (not Linux)."""
+    """Memory a new allocation can still get, in bytes.
+
+    ``MemAvailable`` of ``/proc/meminfo``, lowered to the room left under a cgroup (v2) limit; None
+    where unknown (not Linux).
+    """
     avail = None
     try:
         with open("/proc/meminfo") as f:

@@ -5,7 +5,7 @@ default, range or choices, unit and help, and the kinds of data it takes and giv
 that one declaration come
 
 - the library's keyword defaults and checks (:meth:`StageSpec.runner` wraps ``run_stage``),
-- the click options of the stage's command (:func:`recon_cli.cli.options.stage_command`),
+- the click options of the stage's command (``recon_cli.cli.options.stage_command``),
 - the checks of a pipeline file before anything runs (:mod:`recon_cli.pipeline`),
 - ``recon run --set STAGE.PARAM=VALUE`` and
 - the README's parameter tables (:meth:`StageSpec.markdown_table`; ``python -m
@@ -26,8 +26,9 @@ import functools
 import inspect
 import math
 import re
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any
 
 from recon_cli.errors import ParameterError
 
@@ -62,14 +63,17 @@ def describe_kinds(kinds: Sequence[str]) -> str:
     return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " or " + names[-1]
 
 
-# ---- text forms ------------------------------------------------------------------------------------
+# ---- text forms ----------------------------------------------------------------------------------
 _TRUE = ("true", "yes", "on", "1")
 _FALSE = ("false", "no", "off", "0")
 _INT = re.compile(r"[+-]?\d+")
 
 
 def parse_bool(text: str) -> bool:
-    """The one boolean parser: true/yes/on/1 and false/no/off/0 (any case); anything else is an error."""
+    """The one boolean parser: true/yes/on/1 and false/no/off/0 (any case).
+
+    Anything else is an error.
+    """
     s = text.strip().lower()
     if s in _TRUE:
         return True
@@ -97,7 +101,7 @@ def _fmt(v: Any) -> str:
     return str(v)
 
 
-# ---- one parameter ---------------------------------------------------------------------------------
+# ---- one parameter -------------------------------------------------------------------------------
 TYPES = ("int", "float", "bool", "choice", "vector", "floats", "any")
 
 
@@ -161,6 +165,7 @@ class Param:
 
     @property
     def dashed(self) -> str:
+        """The name with dashes: ``point-weight``."""
         return self.name.replace("_", "-")
 
     # -- description
@@ -176,6 +181,7 @@ class Param:
         return f"{extra}{lo or ''}x{hi or ''}"
 
     def default_text(self) -> str:
+        """The default as the help and the tables write it ("not set" or the word for None)."""
         if self.default is None:
             word = next((w for w, v in self.words.items() if v is None), None)
             return word or "not set"
@@ -299,7 +305,7 @@ class Param:
         return ParameterError(f"{self.option} must be {expected}{words}, got {got}")
 
 
-# ---- one stage -------------------------------------------------------------------------------------
+# ---- one stage -----------------------------------------------------------------------------------
 @dataclass
 class StageSpec:
     """The declaration of a stage: what it takes, gives, and every parameter.
@@ -328,8 +334,8 @@ class StageSpec:
     declared : bool
         False for a bare function registered as a stage (its kinds are unknown).
     keeps_partial : bool
-        The stage catches Ctrl-C itself and returns its best result so far (``fit-sdf``): the command
-        then lets the interrupt reach it instead of ending the process at once.
+        The stage catches Ctrl-C itself and returns its best result so far (``fit-sdf``): the
+        command then lets the interrupt reach it instead of ending the process at once.
     """
 
     name: str
@@ -373,17 +379,19 @@ class StageSpec:
         if key not in self._by_name:
             known = ", ".join(p.dashed for p in self.params) or "none"
             raise ParameterError(
-                f"stage {self.name!r} has no parameter {name.replace('_', '-')!r} (parameters: {known})"
+                f"stage {self.name!r} has no parameter {name.replace('_', '-')!r} "
+                f"(parameters: {known})"
             )
         return self._by_name[key]
 
     def defaults(self) -> dict[str, Any]:
+        """Every parameter's default, by name."""
         return {p.name: p.default for p in self.params}
 
     def check(
         self, values: Mapping[str, Any], text_ok: bool = True, complete: bool = True
     ) -> dict[str, Any]:
-        """``values`` checked (unknown names, types, ranges) and, with ``complete``, the defaults added."""
+        """``values`` checked (names, types, ranges) and, with ``complete``, the defaults added."""
         out = self.defaults() if complete else {}
         for k, v in values.items():
             p = self.param(k)
@@ -391,12 +399,13 @@ class StageSpec:
         return out
 
     def input_kinds(self, values: Mapping[str, Any] | None = None) -> tuple[str, ...]:
+        """The kinds of input the stage takes with these parameter ``values``."""
         if self.takes_when is not None:
             return tuple(self.takes_when({**self.defaults(), **dict(values or {})}))
         return self.takes
 
     def check_input(self, data: Any, values: Mapping[str, Any] | None = None) -> None:
-        """Raise :class:`~recon_cli.errors.InputError` when ``data`` is not a kind this stage takes."""
+        """Raise :class:`~recon_cli.errors.InputError` unless this stage takes ``data``'s kind."""
         from recon_cli.errors import InputError
 
         want = self.input_kinds(values)
@@ -428,7 +437,8 @@ class StageSpec:
         ]
         if sorted(own) != sorted(declared):
             raise TypeError(
-                f"{fn.__qualname__}: keywords {own} differ from the declaration of {self.name!r}: {declared}"
+                f"{fn.__qualname__}: keywords {own} differ from the declaration of "
+                f"{self.name!r}: {declared}"
             )
 
         @functools.wraps(fn)
@@ -452,26 +462,51 @@ class StageSpec:
         return run
 
     # -- documentation
-    def markdown_table(self) -> str:
-        """The README's parameter table of this stage."""
-        rows = [
-            "| option | type | default | allowed | unit | meaning |",
-            "|---|---|---|---|---|---|",
-        ]
+    #: the columns of :meth:`table_rows`
+    TABLE_COLUMNS = ("option", "type", "default", "allowed", "unit", "meaning")
+
+    def table_rows(self, code: Callable[[str], str] = str) -> list[tuple[str, ...]]:
+        """The parameter table of this stage: a row of :data:`TABLE_COLUMNS` per parameter.
+
+        Parameters
+        ----------
+        code : callable
+            Marks up a literal (an option, a value, a word), e.g. as inline code.
+
+        Returns
+        -------
+        list of tuple of str
+            Option, type, default, allowed values ("any" when unrestricted), unit ("–" when
+            none) and meaning (the help, then the values with a meaning of their own).
+        """
+        rows: list[tuple[str, ...]] = []
         for p in self.params:
             allowed = f"{p.option} / --no-{p.dashed}" if p.type == "bool" else p.range_text()
-            extra = [f"`{_fmt(k)}`: {v}" for k, v in p.special.items()]
-            extra += [f"`{w}`" for w in p.words if p.words[w] is not None or p.default is not None]
+            extra = [f"{code(_fmt(k))}: {v}" for k, v in p.special.items()]
+            extra += [code(w) for w in p.words if p.words[w] is not None or p.default is not None]
             meaning = p.help + ("" if not extra else " (" + "; ".join(extra) + ")")
             rows.append(
-                f"| `{p.option}` | {p.type} | `{p.default_text()}` | {allowed.replace('|', '/') or 'any'} | "
-                f"{p.unit or '–'} | {meaning.replace('|', '/')} |"
+                (
+                    code(p.option),
+                    p.type,
+                    code(p.default_text()),
+                    allowed or "any",
+                    p.unit or "–",
+                    meaning,
+                )
             )
-        return "\n".join(rows)
+        return rows
+
+    def markdown_table(self) -> str:
+        """The README's parameter table of this stage (:meth:`table_rows` in Markdown)."""
+        lines = ["| " + " | ".join(self.TABLE_COLUMNS) + " |", "|---|---|---|---|---|---|"]
+        for row in self.table_rows(code=lambda s: f"`{s}`"):
+            lines.append("| " + " | ".join(cell.replace("|", "/") for cell in row) + " |")
+        return "\n".join(lines)
 
 
 def describe_data(have: frozenset[str] | set[str]) -> str:
-    """What data of these kinds is, in words (``{"cloud", "oriented"}`` -> a point cloud with normals)."""
+    """What data of these kinds is, in words: ``{"cloud", "oriented"}`` -> a cloud with normals."""
     if "grid" in have:
         return "a grid"
     if "mesh" in have:

@@ -83,7 +83,8 @@ def parse_pipeline(text: str, path: str = "<pipeline>", check: bool = True) -> P
     if unknown_top:
         key = unknown_top[0]
         raise ParameterError(
-            f"{path}:{_line_of_key(text, key, 0, None)}: unknown top-level key {key!r} (expected [[stage]] tables)"
+            f"{path}:{_line_of_key(text, key, 0, None)}: unknown top-level key {key!r} "
+            "(expected [[stage]] tables)"
         )
     stages = doc.get("stage", [])
     if not isinstance(stages, list) or not stages or not all(isinstance(s, dict) for s in stages):
@@ -105,7 +106,8 @@ def parse_pipeline(text: str, path: str = "<pipeline>", check: bool = True) -> P
             norm = key.replace("-", "_")
             if norm in params:
                 raise ParameterError(
-                    f"{path}:{_line_of_key(text, key, start, end)}: parameter {key!r} is given twice"
+                    f"{path}:{_line_of_key(text, key, start, end)}: "
+                    f"parameter {key!r} is given twice"
                 )
             params[norm] = value
             plines[norm] = _line_of_key(text, key, start, end)
@@ -127,7 +129,7 @@ def _line_of_key(text: str, key: str, start: int, end: int | None) -> int:
 
 
 def check_pipeline(pipe: Pipeline, input_kinds: frozenset[str] | None = None) -> None:
-    """Check every stage, parameter name, value, and that each stage takes what the one before gives.
+    """Check every stage, parameter and value, and that each stage takes what the last gives.
 
     Values are replaced by their checked, typed form. ``input_kinds`` (from
     :func:`recon_cli.params.kinds_of`) also checks the first stage against the input.
@@ -172,7 +174,8 @@ def check_pipeline(pipe: Pipeline, input_kinds: frozenset[str] | None = None) ->
             want = spec.input_kinds(step.params)
             if not given & set(want):
                 raise ParameterError(
-                    f"{where}: stage {i} ({step.name}) needs {describe_kinds(want)}, but {source} gives "
+                    f"{where}: stage {i} ({step.name}) needs {describe_kinds(want)}, "
+                    f"but {source} gives "
                     f"{describe_data(given)}"
                 )
         given = frozenset(spec.gives) if spec.declared else None

@@ -39,12 +39,14 @@ from typing import IO, Any
 COMPILING = "compiling kernels, first run after install"
 
 # enabled Progress objects made before numba was loaded: they listen from numba_loaded() on
-_WAITING: "weakref.WeakSet[Progress]" = weakref.WeakSet()
+_WAITING: weakref.WeakSet[Progress] = weakref.WeakSet()
 
 
 def numba_loaded() -> None:
-    """Called by :mod:`recon_cli._kernels.numba_setup` once numba is imported: the enabled
-    :class:`Progress` objects made before start listening to its compiler."""
+    """Called by ``recon_cli._kernels.numba_setup`` once numba is imported.
+
+    The enabled :class:`Progress` objects made before start listening to its compiler.
+    """
     for p in list(_WAITING):
         _WAITING.discard(p)
         if p.enabled and p._listener is None:
@@ -79,7 +81,7 @@ class Progress:
             else:
                 _WAITING.add(self)
 
-    def task(self, name: str, total: float | None = None) -> "_Task":
+    def task(self, name: str, total: float | None = None) -> _Task:
         """A context manager drawing one bar (or a spinner when ``total`` is None)."""
         if not self.enabled:
             return _Silent()  # type: ignore[return-value]
@@ -183,7 +185,7 @@ class _Task:
         self._ticker: threading.Thread | None = None
         self._stop = threading.Event()
 
-    def __enter__(self) -> "_Task":
+    def __enter__(self) -> _Task:
         import time
 
         bars = self.p._acquire()
@@ -217,12 +219,14 @@ class _Task:
             bars.update(self._id, completed=done)
 
     def expect(self, amount: float) -> None:
-        """The next ``amount`` units of work run now, in one call that reports nothing (a
-        kernel): until the next :meth:`advance` (or :meth:`update`) the bar moves on at the
-        rate of the work done so far, stopping short of the step's end (never past it, nor
-        backwards). Before any work is done there is no rate: the bar waits (the spinner and
-        the elapsed time still move). Moves need the call to release the GIL (``nogil``
-        kernels); otherwise the bar catches up when it returns."""
+        """The next ``amount`` units of work run now, in one call that reports nothing (a kernel).
+
+        Until the next :meth:`advance` (or :meth:`update`) the bar moves on at the rate of the work
+        done so far, stopping short of the step's end (never past it, nor backwards). Before any
+        work is done there is no rate: the bar waits (the spinner and the elapsed time still move).
+        Moves need the call to release the GIL (``nogil`` kernels); otherwise the bar catches up
+        when it returns.
+        """
         import time
 
         self._end_step()
@@ -259,7 +263,7 @@ def task(progress: Progress | None, name: str, total: float | None = None):
 
 
 class _Silent:
-    def __enter__(self) -> "_Silent":
+    def __enter__(self) -> _Silent:
         return self
 
     def __exit__(self, *exc) -> None:

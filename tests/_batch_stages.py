@@ -52,7 +52,7 @@ def centre(data, *, fail_above: int = 0, die_below: int = 0, progress=None) -> S
 
 
 def sleep(data, *, seconds: float = 0.0, marker_dir: str = "", progress=None) -> StageResult:
-    """Sleep; first drop ``marker_dir/<vertices>-<pid>`` so a test can find (and kill) this process."""
+    """Sleep; first drop ``marker_dir/<vertices>-<pid>`` so a test can find (and kill) us."""
     if marker_dir:
         path = os.path.join(marker_dir, f"{len(data.vertices)}-{os.getpid()}")
         with open(path, "w") as f:

@@ -75,7 +75,7 @@ def split_vertices(m: TriangleMesh, rng, frac: float = 0.02) -> TriangleMesh:
 
 
 def two_cones(n: int = 16) -> TriangleMesh:
-    """Two closed cones (double cones with caps' apexes) joined at one shared tip vertex, outward."""
+    """Two closed cones (double cones with caps' apexes) joined at one shared tip, outward."""
     t = np.linspace(0, 2 * np.pi, n, endpoint=False)
     ring = np.stack([np.cos(t), np.sin(t), np.zeros(n)], 1)
     v = np.concatenate(

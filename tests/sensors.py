@@ -138,7 +138,8 @@ def depth_image(
     noise: float = 1.0,
     flying: float = 0.5,
 ) -> np.ndarray:
-    """An organized cloud of ``sdf`` seen by ``camera``: (height, width, 3), NaN where nothing is hit.
+    """An organized cloud of ``sdf`` seen by ``camera``: (height, width, 3), NaN where nothing is
+    hit.
 
     Parameters
     ----------
@@ -215,7 +216,7 @@ def write_organized_pcd(
         fmt = "%.9g" if size == 4 else "%.17g"
         lines = [
             f"{fmt % x} {fmt % y} {fmt % z} {int(v)}"
-            for x, y, z, v in zip(rows["x"], rows["y"], rows["z"], rows["rgba"])
+            for x, y, z, v in zip(rows["x"], rows["y"], rows["z"], rows["rgba"], strict=True)
         ]
         body = ("\n".join(lines) + "\n").encode("ascii")
     elif data == "binary_compressed":

@@ -254,7 +254,8 @@ def sliver_splits(v, f, rng, fraction: float = 0.3, eps: float = 1e-9):
 
 
 def cut_sphere(rng, subdivisions: int = 4, cap_height: float = 0.35):
-    """A sphere and a copy with a cap cut away, randomly rotated, scaled and moved (offsets up to 1e6).
+    """A sphere and a copy with a cap cut away, randomly rotated, scaled and moved (offsets up to
+    1e6).
 
     Returns
     -------
@@ -282,7 +283,7 @@ def cut_sphere(rng, subdivisions: int = 4, cap_height: float = 0.35):
 
 # ---- generated oriented point clouds (surfaces given by exact signed distances) ----------
 def _project(sdf, p, iters=4, h=1e-6):
-    """Move ``p`` onto the zero set of ``sdf`` along its gradient; returns (points, unit normals)."""
+    """Move ``p`` onto the zero set of ``sdf`` along its gradient: (points, unit normals)."""
     for _ in range(iters):
         g = np.stack([(sdf(p + h * e) - sdf(p - h * e)) / (2 * h) for e in np.eye(3)], axis=1)
         g /= np.linalg.norm(g, axis=1, keepdims=True)
@@ -406,8 +407,9 @@ def mesh_family(seed, dtype=np.float64):
 
 
 def cloud_family(seed, n=500):
-    """Points on a rotated, scaled, offset (up to 1e6) ellipsoid with unit normals, uint8 colours and
-    attributes ``intensity`` (int64) and ``curvature`` (float64): a :class:`recon_cli.geometry.PointCloud`."""
+    """Points on a rotated, scaled, offset (up to 1e6) ellipsoid with unit normals, uint8 colours
+    and attributes ``intensity`` (int64) and ``curvature`` (float64): a
+    :class:`recon_cli.geometry.PointCloud`."""
     from recon_cli.geometry import PointCloud
 
     rng = np.random.default_rng(seed)

@@ -1,4 +1,5 @@
-"""Shared test data: the real meshes and scans in ../shared/data, and sampled clouds with true normals.
+"""Shared test data: the real meshes and scans in ../shared/data, and sampled clouds with true
+normals.
 
 Import from here (``from shared_data import load_shared``); conftest.py only holds fixtures.
 """
@@ -24,7 +25,7 @@ def shared_path(name: str) -> Path:
     return p
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _load(name: str):
     from recon_cli.io import read_ply
 
@@ -36,7 +37,7 @@ def load_shared(name: str):
     return _load(name).copy()
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _sample(name: str, n: int, noise: float, seed: int):
     from recon_cli.mesh.sampling import sample_surface
 
@@ -44,5 +45,5 @@ def _sample(name: str, n: int, noise: float, seed: int):
 
 
 def sampled_cloud(name: str, n: int = 100_000, noise: float = 0.0, seed: int = 0):
-    """Area-uniform samples of a shared mesh with true normals (``noise`` as fraction of diagonal)."""
+    """Area-uniform samples of a shared mesh with true normals (``noise``: fraction of diagonal)."""
     return _sample(name, n, noise, seed).copy()

@@ -1,4 +1,5 @@
-"""recon_cli.aot: ahead-of-time kernels give the JIT kernels' results, and are used only when current.
+"""recon_cli.aot: ahead-of-time kernels give the JIT kernels' results, and are used only when
+current.
 
 One build (``numba.pycc``, ~40 CPU s) into a temporary cache for the whole module, from the
 kernels this process compiled (loaded) by running the commands JIT, as ``recon warmup`` does.
@@ -18,6 +19,7 @@ import numpy as np
 import pytest
 
 from recon_cli import aot
+
 from shapes import FAR_OFFSETS, SHAPES, random_rotation, shape_cloud, single_view_scan
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -162,7 +164,7 @@ def test_ballpivot_aot_and_jit_give_identical_meshes(use_build):
     assert not isinstance(aot.kernels(BP), types.ModuleType) and aot.fallbacks() == set()
     use_build()  # JIT from here
     assert isinstance(aot.kernels(BP), types.ModuleType)
-    for (name, p, n), a in zip(cases, aot_out):
+    for (name, p, n), a in zip(cases, aot_out, strict=True):
         j = ball_pivoting(p, n)
         assert len(a) > 0, name
         assert np.array_equal(a, j), name
@@ -194,9 +196,9 @@ def test_mcubes_aot_and_jit_give_identical_meshes(use_build):
             assert not isinstance(aot.kernels(MC), types.ModuleType) and aot.fallbacks() == set()
         use_build()  # JIT for the second round
     for method in ("mc", "mt"):
-        for (name, *_), a, j in zip(grids, runs["aot", method], runs["jit", method]):
+        for (name, *_), a, j in zip(grids, runs["aot", method], runs["jit", method], strict=True):
             assert len(a[1]) > 0, name
-            for x, y in zip(a, j):
+            for x, y in zip(a, j, strict=True):
                 assert np.array_equal(x, y), (name, method)
 
 
@@ -215,7 +217,7 @@ def test_arguments_without_a_variant_run_the_jit_kernel(use_build):
     fortran = aot.signature_key((np.asfortranarray(pts), lo, cell, dims))
     assert aot.fallbacks() == {(BP, "build_grid", fortran), (BP, "build_grid", "keywords")}
     for x in (a, f, kw):
-        for u, v in zip(x, j):
+        for u, v in zip(x, j, strict=True):
             assert np.array_equal(u, v)
 
 

@@ -38,7 +38,7 @@ def _alternatives(annotation) -> set:
     return {annotation}
 
 
-# ---- made from the declaration --------------------------------------------------------------------
+# ---- made from the declaration -------------------------------------------------------------------
 @pytest.mark.parametrize("stage", BUILTIN)
 def test_signature_and_help_are_the_declaration(stage):
     spec = get_spec(stage)
@@ -131,7 +131,7 @@ def test_importing_recon_cli_and_calling_a_stage_on_arrays_imports_no_other_libr
     assert r.returncode == 0 and r.stdout.strip() == "[]", r.stdout + r.stderr
 
 
-# ---- bad arguments -----------------------------------------------------------------------------------
+# ---- bad arguments -------------------------------------------------------------------------------
 @pytest.mark.parametrize("stage", BUILTIN)
 def test_bad_arguments_say_what_the_command_line_says(stage, tmp_path):
     from recon_cli.cli.main import cli
@@ -189,7 +189,7 @@ def test_progress_draws_on_the_given_progress(capsys):
     assert capsys.readouterr().err == ""
 
 
-# ---- a session, as in trimesh's README ----------------------------------------------------------------
+# ---- a session, as in trimesh's README -----------------------------------------------------------
 def test_the_readme_session_runs(tmp_path, monkeypatch):
     # the README's "Python" block, as written: read a scan, normals, poisson, repair, trimesh
     import re

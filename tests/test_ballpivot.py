@@ -13,12 +13,12 @@ import pytest
 from scipy.spatial import cKDTree
 
 from recon_cli.backends import open3d_backend, pymeshlab_backend
-from recon_cli.stages.ballpivot import auto_radii, ball_pivoting, nn_spacing, run_stage
 from recon_cli.errors import InputError, ParameterError, StageFailed
 from recon_cli.geometry import PointCloud, TriangleMesh, bbox_diagonal
 from recon_cli.mesh import topology
 from recon_cli.mesh.sampling import face_normals, sample_surface
 from recon_cli.stages import apply_stage
+from recon_cli.stages.ballpivot import auto_radii, ball_pivoting, nn_spacing, run_stage
 
 from shared_data import ALL_MESHES, load_shared, sampled_cloud
 
@@ -61,7 +61,8 @@ def assert_clean_topology(mesh: TriangleMesh) -> dict:
     assert rep["degenerate_faces"] == 0
     assert rep["consistently_oriented"]
     assert edge_face_counts(mesh.faces).max() <= 2
-    # Open3D's own predicates (not manifold_checks: its is_watertight tests self-intersection, slowly)
+    # Open3D's own predicates (not manifold_checks: its is_watertight tests self-intersection,
+    # slowly)
     m = open3d_backend.to_o3d_mesh(mesh)
     assert m.is_edge_manifold(allow_boundary_edges=True) and m.is_vertex_manifold()
     assert len(m.get_non_manifold_edges(allow_boundary_edges=True)) == 0
@@ -81,7 +82,7 @@ def flat_grid(nx: int = 30, ny: int = 20, h: float = 0.1) -> tuple[np.ndarray, n
 
 
 # ---------------------------------------------------------------- shared meshes, 100k samples
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _both(name: str):
     cloud = sampled_cloud(name, 100_000)
     radii = auto_radii(cloud.points)

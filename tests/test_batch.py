@@ -1,4 +1,5 @@
-"""recon batch: input expansion, skip rules, the per-input task, and real batches on a 2-worker LocalCluster.
+"""recon batch: input expansion, skip rules, the per-input task, and real batches on a 2-worker
+LocalCluster.
 
 The batch pipelines use test-only stages from ``tests/_batch_stages.py`` (registered in the
 workers through ``run_batch(extra_stages=...)``, in this process through monkeypatch), on
@@ -170,8 +171,8 @@ def test_run_batch_rejects_bad_options_before_starting(tmp_path, test_stages):
 
 
 def test_temporaries_of_a_dead_write_are_removed(tmp_path):
-    """What atomic_open leaves when its process is killed mid-write (.<name>.<random>.tmp) is cleaned up
-    for the batch's own outputs only."""
+    """What atomic_open leaves when its process is killed mid-write (.<name>.<random>.tmp) is
+    cleaned up for the batch's own outputs only."""
     import tempfile
 
     for name in ("scan.ply", "scan.npz", "other.ply"):
@@ -183,7 +184,8 @@ def test_temporaries_of_a_dead_write_are_removed(tmp_path):
     assert left[-1] == "scan.ply" and len(left) == 2 and left[0].startswith(".other.ply.")
 
 
-# ----------------------------------------------------------------------------- the task, in this process
+# ----------------------------------------------------------------------------- the task, in this
+# process
 
 
 def test_process_one_ok_failed_and_grid(tmp_path, test_stages):
@@ -246,7 +248,8 @@ def test_process_one_interrupted_write_leaves_nothing(tmp_path, test_stages, mon
     monkeypatch.setattr(atomic.os, "fsync", broken_fsync)
     rec = batch.process_one(pipe, str(shared_path("mug")), str(tmp_path / "mug"))
     assert rec["status"] == "failed" and "No space left" in rec["error"]
-    # a full disk is the output's problem, reported in one line naming the path (not a bug with a traceback)
+    # a full disk is the output's problem, reported in one line naming the path (not a bug with a
+    # traceback)
     assert rec["error_type"] == "OutputError" and "traceback" not in rec
     assert str(tmp_path / "mug.ply") in rec["error"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p.toml"]  # no output, no temporary
@@ -257,15 +260,16 @@ def test_process_one_interrupted_write_leaves_nothing(tmp_path, test_stages, mon
 
 @pytest.mark.slow
 def test_batch_survives_a_killed_worker_then_rerun_skips_everything(tmp_path, test_stages, capsys):
-    """A worker killed while running an input: that input is rerun on a live worker, every input ends ok,
-    no partial output; a rerun does nothing and takes seconds."""
+    """A worker killed while running an input: that input is rerun on a live worker, every input
+    ends ok, no partial output; a rerun does nothing and takes seconds."""
     from recon_cli.pipeline import load_pipeline
 
     markers = tmp_path / "markers"
     markers.mkdir()
     pipe = _pipeline(
         tmp_path / "p.toml",
-        f'[[stage]]\nname = "t_centre"\n\n[[stage]]\nname = "t_sleep"\nseconds = 1.5\nmarker_dir = "{markers}"\n',
+        '[[stage]]\nname = "t_centre"\n\n[[stage]]\nname = "t_sleep"\nseconds = 1.5\n'
+        f'marker_dir = "{markers}"\n',
     )
     names = ["kitten", "mug", "stereo_fragment"]
     inputs = [str(shared_path(n)) for n in names]
@@ -361,8 +365,9 @@ def test_batch_survives_a_killed_worker_then_rerun_skips_everything(tmp_path, te
 
 @pytest.fixture(scope="module")
 def cluster():
-    """A 2-worker, 1-thread-each LocalCluster (worker processes), set up as `recon batch` sets up its own
-    (an input whose worker dies is rerun once), shared by the tests that pass --scheduler."""
+    """A 2-worker, 1-thread-each LocalCluster (worker processes), set up as `recon batch` sets up
+    its own (an input whose worker dies is rerun once), shared by the tests that pass --scheduler.
+    """
     import logging
 
     import dask
@@ -383,7 +388,8 @@ def cluster():
 
 @pytest.mark.slow
 def test_batch_real_normals_on_an_existing_cluster(tmp_path, cluster):
-    """The real `normals` stage on the real scans through --scheduler: the same files as `recon run` alone."""
+    """The real `normals` stage on the real scans through --scheduler: the same files as `recon run`
+    alone."""
     from recon_cli.stages import get_stage
 
     get_stage("normals")  # built
@@ -403,7 +409,7 @@ def test_batch_real_normals_on_an_existing_cluster(tmp_path, cluster):
         and summary["cluster"]["workers"] == 2
     )
     assert summary["counts"] == {"ok": 2, "failed": 0, "skipped": 0}
-    for src, r in zip(scans, summary["inputs"]):
+    for src, r in zip(scans, summary["inputs"], strict=True):
         name = Path(src).stem
         alone = tmp_path / f"alone_{name}.ply"
         assert _recon(["-q", "run", pipe, src, str(alone)]) == 0
@@ -420,9 +426,9 @@ def test_batch_real_normals_on_an_existing_cluster(tmp_path, cluster):
 
 @pytest.mark.slow
 def test_batch_mixed_inputs_on_two_workers(tmp_path, test_stages, capsys, cluster):
-    """`recon batch` on a 2-worker LocalCluster: good inputs give the same files as `recon run` on each
-    alone; a stage failure, a corrupt file, a missing file and an input whose worker always dies are
-    reported with one-line errors; exit status 4."""
+    """`recon batch` on a 2-worker LocalCluster: good inputs give the same files as `recon run` on
+    each alone; a stage failure, a corrupt file, a missing file and an input whose worker always
+    dies are reported with one-line errors; exit status 4."""
     from recon_cli.cli.main import EXIT_BATCH_SOME_FAILED
     from recon_cli.io import read_ply
     from recon_cli.io.ply import write_ply
@@ -547,8 +553,10 @@ def _sigint_blocked(native_id: int) -> bool:
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self/task/*/status")
 def test_sigint_is_held_while_a_cluster_starts():
-    """A Ctrl-C while the local cluster starts is recorded, not raised mid-start; threads started meanwhile
-    (Dask's event loop, which starts the workers) keep SIGINT blocked; afterwards all is as before."""
+    """A Ctrl-C while the local cluster starts is recorded, not raised mid-start; threads started
+    meanwhile (Dask's event loop, which starts the workers) keep SIGINT blocked; afterwards all is
+    as before.
+    """
     # the test runner may have been started with SIGINT ignored (nohup, CI): act as a terminal does
     outer = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
@@ -590,9 +598,9 @@ def _outputs(folder: Path) -> list[str]:
 @pytest.mark.slow
 @pytest.mark.parametrize("target", ["group", "main"])
 def test_ctrl_c_stops_cleanly_and_a_rerun_resumes(tmp_path, target):
-    """SIGINT once the first output exists, to the whole process group (Ctrl-C on a terminal) or to the
-    recon process alone: exit 130, no partial output, every process of the local cluster gone, finished
-    inputs kept; a rerun (after the Ctrl-C) skips those and does the rest."""
+    """SIGINT once the first output exists, to the whole process group (Ctrl-C on a terminal) or to
+    the recon process alone: exit 130, no partial output, every process of the local cluster gone,
+    finished inputs kept; a rerun (after the Ctrl-C) skips those and does the rest."""
     import subprocess
 
     import psutil
@@ -654,7 +662,8 @@ def test_ctrl_c_stops_cleanly_and_a_rerun_resumes(tmp_path, target):
     # the cluster went with it: no worker (or other) process of the batch outlives it
     _, alive = psutil.wait_procs(family, timeout=10)
     assert alive == [], [(p.pid, p.name()) for p in alive]
-    # finished inputs are whole files; nothing partial, the unfinished ones are recorded as interrupted
+    # finished inputs are whole files; nothing partial, the unfinished ones are recorded as
+    # interrupted
     done = _outputs(out)
     assert 1 <= len(done) < len(names)
     assert _leftover_temporaries(out) == []

@@ -1,4 +1,5 @@
-"""The command line: exit codes, one-line errors, stdin/stdout, atomic output, info, run, startup cost."""
+"""The command line: exit codes, one-line errors, stdin/stdout, atomic output, info, run, startup
+cost."""
 
 from __future__ import annotations
 
@@ -26,7 +27,10 @@ def recon(*args, input: bytes | None = None, cwd=None) -> subprocess.CompletedPr
 
 
 def test_help_is_instant_and_imports_no_numpy():
-    code = "import sys, recon_cli.cli.main as m; m.cli.main(['--help'], standalone_mode=False); print('numpy' in sys.modules)"
+    code = (
+        "import sys, recon_cli.cli.main as m; m.cli.main(['--help'], standalone_mode=False); "
+        "print('numpy' in sys.modules)"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip().splitlines()[-1] == "False"
     # every stage is listed with its declaration's summary, read without importing the stage
@@ -83,7 +87,8 @@ def test_info_reads_stdin_and_several_files():
         (b"", "empty file"),
         (b"hello, not a ply\n", "not a PLY file"),
         (
-            b"ply\nformat binary_little_endian 1.0\nelement vertex 1000000000\nproperty double x\nproperty double y\nproperty double z\nend_header\n\0\0",
+            b"ply\nformat binary_little_endian 1.0\nelement vertex 1000000000\n"
+            b"property double x\nproperty double y\nproperty double z\nend_header\n\0\0",
             "truncated",
         ),
     ],
@@ -162,7 +167,10 @@ def test_pipeline_parameter_errors_name_the_line(monkeypatch):
     from recon_cli.pipeline import parse_pipeline
 
     monkeypatch.setitem(stages.STAGES, "scale", "test_cli:_scale_stage")
-    text = '[[stage]]\nname = "scale"\nfactor = 2.0\n\n[[stage]]\nname = "scale"\nfactor = 3\nfactr = 1\n'
+    text = (
+        '[[stage]]\nname = "scale"\nfactor = 2.0\n\n[[stage]]\nname = "scale"\nfactor = 3\n'
+        "factr = 1\n"
+    )
     with pytest.raises(
         ParameterError, match=r"p.toml:8: stage 2 \(scale\) has no parameter 'factr'"
     ):
@@ -187,7 +195,8 @@ def _scale_stage(data, *, factor=1.0, progress=None):
 
 
 def test_pipeline_files_shipped_parse():
-    # every shipped pipeline is fully checked: stages, parameter types and ranges, kinds of data between stages
+    # every shipped pipeline is fully checked: stages, parameter types and ranges, kinds of data
+    # between stages
     from recon_cli.pipeline import load_pipeline
 
     files = sorted((ROOT / "pipelines").glob("*.toml"))

@@ -1,4 +1,5 @@
-"""Output paths of every kind: written right, or one line naming the path (exit 2) and nothing touched.
+"""Output paths of every kind: written right, or one line naming the path (exit 2) and nothing
+touched.
 
 The matrix: a new regular file, an existing one (replaced on success keeping its mode, kept
 on failure), a directory, a missing folder, a trailing slash, an empty path, an immutable

@@ -1,4 +1,5 @@
-"""SIGINT and SIGTERM end ``recon`` with 130 / 143, one line on stderr, no traceback, no temporary file.
+"""SIGINT and SIGTERM end ``recon`` with 130 / 143, one line on stderr, no traceback, no temporary
+file.
 
 Deterministic points of a run, each in its own child process (started together, so the
 test costs about one process start): inside a numba kernel that computes for a minute
@@ -30,7 +31,8 @@ from recon_cli.io.ply import read_ply, write_ply
 
 MESSAGE = {signal.SIGINT: "recon: interrupted\n", signal.SIGTERM: "recon: terminated\n"}
 
-# the child: patch one point of a `recon normals` run to announce itself (a marker file) and hang there
+# the child: patch one point of a `recon normals` run to announce itself (a marker file) and hang
+# there
 CHILD = textwrap.dedent(
     """
     import os, sys, time
@@ -168,7 +170,7 @@ def test_signals_at_fixed_points(cloud, tmp_path):
 
 
 def test_poisson_signalled_at_spread_times(cloud, tmp_path):
-    """Whatever point of a real run the signal meets: 128+signal and one line, or a finished output."""
+    """Whatever point of a run the signal meets: 128+signal and one line, or a finished output."""
     delays = [
         (0.0, signal.SIGINT),
         (0.5, signal.SIGTERM),
@@ -200,7 +202,9 @@ def test_poisson_signalled_at_spread_times(cloud, tmp_path):
         # delays count from the moment recon catches SIGTERM (its handlers are in place; a signal
         # during the interpreter's own start-up, before recon runs, is Python's business)
         starts = [_handlers_installed(proc) for *_, proc in runs]
-        for (delay, sig, folder, out, proc), t0 in sorted(zip(runs, starts), key=lambda r: r[0][0]):
+        for (delay, sig, folder, out, proc), t0 in sorted(
+            zip(runs, starts, strict=True), key=lambda r: r[0][0]
+        ):
             time.sleep(max(0.0, t0 + delay - time.monotonic()))
             if proc.poll() is None:
                 proc.send_signal(sig)

@@ -18,8 +18,8 @@ from recon_cli.eval.render import colormap
 from recon_cli.geometry import PointCloud, TriangleMesh
 from recon_cli.io import read_ply, write_ply
 
-from shapes import cut_sphere
 from picture_checks import ink
+from shapes import cut_sphere
 
 
 def run(capsys, *args) -> tuple[int, str, str]:
@@ -167,7 +167,8 @@ def test_heatmap_and_png(capsys, files, tmp_path):
         > h.colors[np.argmin(h.attributes["distance"])][0]
     )
     img = np.asarray(Image.open(png).convert("RGB"))
-    # rows: the candidate's shape, accuracy, completeness, the reference; one column per view; a colour bar
+    # rows: the candidate's shape, accuracy, completeness, the reference; one column per view; a
+    # colour bar
     box = layout(4, 2, 240, title=True, colorbar=True, legend=True)
     assert img.shape == (box["size"][3], box["size"][2], 3)
     for name in [
@@ -444,7 +445,8 @@ def test_compare_methods_statuses_metrics_and_reports(tmp_path, monkeypatch):
     assert (
         html.count("<tr class=") == 4 and "<script>" in html and "http" not in html
     )  # offline: nothing fetched
-    # pictures: the per-method sheet (turntable: 4 columns; shape, accuracy, completeness, reference) and the overview
+    # pictures: the per-method sheet (turntable: 4 columns; shape, accuracy, completeness,
+    # reference) and the overview
     from PIL import Image
 
     img = np.asarray(Image.open(out / "fakescale_factor_1.01.png").convert("RGB"))
@@ -503,7 +505,8 @@ def test_compare_cli_runs_a_real_stage_in_a_child(tmp_path, capsys):
     # ball pivoting interpolates exact samples: accurate to well under 1 % of the diagonal
     assert r["metrics"]["accuracy"] < 1e-3 * r["metrics"]["reference_diagonal"]
     assert (out / "report.md").exists() and (out / "ballpivot.png").exists()
-    # the automatic radii are reported as what it ran with, and the peak memory and process time are there
+    # the automatic radii are reported as what it ran with, and the peak memory and process time are
+    # there
     radii = r["stage_report"]["radii"]
     assert r["params_resolved"]["radii"] == radii and len(radii) >= 1 and r["params"] == {}
     assert r["process_seconds"] >= r["seconds"]

@@ -1,4 +1,4 @@
-"""recon_cli.eval.figure: labelled sheets and plots, checked by pixels in the boxes of their parts."""
+"""recon_cli.eval.figure: labelled sheets and plots, checked by pixels in their parts' boxes."""
 
 from __future__ import annotations
 
@@ -101,7 +101,8 @@ def test_completeness_heatmap_is_red_where_the_candidate_misses_a_part(seed):
         x0, y0, x1, y1 = box[name]
         return fig.image[(y0 + y1) // 2, (x0 + x1) // 2]
 
-    # looking at the missing cap: the completeness tile is red there, the candidate is not there at all
+    # looking at the missing cap: the completeness tile is red there, the candidate is not there at
+    # all
     assert is_red(centre("tile 2 0")), centre("tile 2 0")
     acc_tile = centre("tile 1 0")
     assert not is_red(acc_tile)

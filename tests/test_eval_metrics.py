@@ -138,7 +138,8 @@ def test_concentric_spheres_chamfer_is_radius_difference():
         assert r[key] == pytest.approx(0.1, rel=0.01), key
     assert r["chamfer_l2"] == pytest.approx(0.01, rel=0.02)
     assert r["hausdorff"] == pytest.approx(0.1, rel=0.01)
-    # every distance is near 0.1: both thresholds (0.5 % and 1 % of the diagonal ~ 0.011, 0.022) reject all
+    # every distance is near 0.1: both thresholds (0.5 % and 1 % of the diagonal ~ 0.011, 0.022)
+    # reject all
     assert r["fscore"] == [0.0, 0.0]
     # parallel faces, except near edges where the nearest face is a neighbour (~3 degrees apart)
     assert 0.9999 < r["normal_consistency"] < 1.0
@@ -190,7 +191,8 @@ def test_flipped_orientation_shows_in_oriented_normal_consistency():
 
 
 def test_fscore_counts_with_strict_threshold_and_percentages():
-    # every distance is 2t: rejected at tau = t, accepted at 3t (given as a percentage of the diagonal)
+    # every distance is 2t: rejected at tau = t, accepted at 3t (given as a percentage of the
+    # diagonal)
     t = 0.01
     a = plate(0.0, n=2)
     r = compare_meshes(a, plate(2 * t, n=2), samples=1000, taus=f"{t},{100 * 3 * t / np.sqrt(2)}%")
@@ -304,7 +306,8 @@ def _jittered(name: str, scale: float, seed: int = 0) -> TriangleMesh:
 
 @pytest.mark.parametrize("name", ["armadillo", "bunny_zipper", "kitten", "mug"])
 def test_hausdorff_matches_pymeshlab_on_shared_meshes(name):
-    """Same samples on both sides: max, mean and RMS agree to 1e-3 (measured: ~1e-7; issue bound 1 %)."""
+    """Same samples on both sides: max, mean and RMS agree to 1e-3 (measured: ~1e-7; issue bound 1
+    %)."""
     ref = load_shared(name)
     cand = _jittered(name, 0.002)
     n = 20_000

@@ -10,10 +10,10 @@ from recon_cli.errors import ParameterError
 from recon_cli.eval.render import (
     BACKGROUND,
     BASE_COLOR,
-    VIEWS,
     BOUNDARY_COLOR,
     NON_MANIFOLD_COLOR,
     TURNTABLE,
+    VIEWS,
     camera,
     colormap,
     defect_edges,
@@ -90,7 +90,8 @@ def test_depth_order_of_overlapping_objects_does_not_depend_on_drawing_order():
     red, blue = colormap(np.array([1.0, 0.0]), 0.0, 1.0).astype(int)
     assert a.depth[overlap] == pytest.approx(-0.3)
     assert a.depth[only_far] == pytest.approx(0.3)
-    # heat colours are shaded (0.55 + 0.45 * Lambert), so compare the hue: red dominates over the overlap
+    # heat colours are shaded (0.55 + 0.45 * Lambert), so compare the hue: red dominates over the
+    # overlap
     assert int(a.image[overlap][0]) > int(a.image[overlap][2]) and red[0] > red[2]
     assert int(a.image[only_far][2]) > int(a.image[only_far][0]) and blue[2] > blue[0]
 

@@ -99,11 +99,12 @@ def test_table_heads_carry_units_and_directions():
 def test_parameter_lines_resolved_and_library_calls():
     lines = parameter_lines(_row())
     assert lines[0].startswith(
-        "stage parameters (the backend passes only those in its library call): depth=7, scale=1.1, radius=none"
+        "stage parameters (the backend passes only those in its library call): depth=7, "
+        "scale=1.1, radius=none"
     )
-    assert (
-        lines[1]
-        == "library call: open3d.x.poisson(depth=7, linear_fit=False), the library's defaults for the rest"
+    assert lines[1] == (
+        "library call: open3d.x.poisson(depth=7, linear_fit=False), the library's defaults for "
+        "the rest"
     )
     assert lines[2] == "stage reported: faces 100, iso-value none"
     assert parameter_lines(_row(status="failed")) == []

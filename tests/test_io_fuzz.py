@@ -158,7 +158,8 @@ def _read(path) -> tuple[object | None, str | None]:
 
 
 def _check(path, label: str, must_fail: bool) -> bool:
-    """Read ``path``: a valid object or a one-line InputError naming it. Returns whether it was read."""
+    """Read ``path``: a valid object or a one-line InputError naming it. Returns whether it was
+    read."""
     obj, msg = _read(path)
     if msg is not None:
         assert "\n" not in msg, f"{label}: message on several lines: {msg!r}"

@@ -71,7 +71,7 @@ def test_lying_header_is_rejected_before_allocating(tmp_path, fmt, element, coun
     size = path.stat().st_size
     assert size < 400
     for reader in (read_ply, load):
-        err, peak = _peak_while(lambda: reader(path))
+        err, peak = _peak_while(lambda reader=reader: reader(path))
         msg = str(err)
         assert msg.startswith(f"{path}: truncated: header declares {count} {element!r} rows"), msg
         assert "\n" not in msg
@@ -80,7 +80,8 @@ def test_lying_header_is_rejected_before_allocating(tmp_path, fmt, element, coun
 
 
 def test_the_same_file_with_honest_counts_reads(tmp_path):
-    """The lying files differ from a valid one only in the count (the test files are not broken otherwise)."""
+    """The lying files differ from a valid one only in the count (the test files are not broken
+    otherwise)."""
     from recon_cli.io.ply import read_ply
 
     for fmt in FORMATS:
@@ -89,7 +90,8 @@ def test_the_same_file_with_honest_counts_reads(tmp_path):
 
 
 def test_batch_task_and_cli_report_the_lying_file(tmp_path, capsys):
-    """The batch task records it as failed (InputError, one line) without allocating; ``recon info`` exits 2."""
+    """The batch task records it as failed (InputError, one line) without allocating; ``recon info``
+    exits 2."""
     from recon_cli import batch
     from recon_cli.cli.main import main
     from recon_cli.pipeline import load_pipeline

@@ -133,9 +133,9 @@ def test_truncated_and_garbage_are_one_line_input_errors():
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-# LAS only: lazrs (the LAZ decoder under laspy) can abort the whole process on some corrupted LAZ chunks (seen
-# here: "Fatal Python error: Aborted" inside lazrs' read_n_points), which no Python code can catch; the README says
-# so. Truncated and garbage LAZ files are tested above.
+# LAS only: lazrs (the LAZ decoder under laspy) can abort the whole process on some corrupted LAZ
+# chunks (seen here: "Fatal Python error: Aborted" inside lazrs' read_n_points), which no Python
+# code can catch; the README says so. Truncated and garbage LAZ files are tested above.
 @given(
     cut=st.floats(0, 1),
     junk=st.binary(min_size=1, max_size=16),
@@ -178,7 +178,8 @@ def test_header_counts_beyond_the_file_refused_before_reading(tmp_path, at, fiel
 
 
 def _normals_then_poisson(cloud):
-    """``recon normals IN - | recon poisson - OUT.ply`` in process: each stage's output through PLY bytes."""
+    """``recon normals IN - | recon poisson - OUT.ply`` in process: each stage's output through PLY
+    bytes."""
     from recon_cli.io.ply import parse_ply, ply_bytes, ply_to_geometry
     from recon_cli.stages import apply_stage
 
@@ -214,6 +215,7 @@ def test_airborne_tile_at_utm_like_coordinates_meshes_like_the_same_tile_at_the_
     assert len(far_mesh.faces) == len(near_mesh.faces)
     assert far_mesh.vertices.dtype == np.float64  # double through normals -> PLY -> poisson -> PLY
     diff = np.abs(far_mesh.vertices - shift - near_mesh.vertices.astype(np.float64)).max(axis=1)
-    # the same surface: almost every vertex equal to 1e-6 ft; the solve's rounding differs with the offset, which
-    # moves a few crossings by millimetres (measured max 0.0066 ft; float32 output rounded to 1/16 ft)
+    # the same surface: almost every vertex equal to 1e-6 ft; the solve's rounding differs with the
+    # offset, which moves a few crossings by millimetres (measured max 0.0066 ft; float32 output
+    # rounded to 1/16 ft)
     assert np.quantile(diff, 0.99) < 1e-4 and diff.max() < 0.02

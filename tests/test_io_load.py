@@ -80,7 +80,7 @@ def test_registry_suffixes_case_and_unknown(tmp_path):
     with pytest.raises(ParameterError) as exc:
         format_of("scan.foo")
     assert ".ply" in str(exc.value) and ".laz" in str(exc.value)
-    for name, fmt in FORMATS.items():
+    for fmt in FORMATS.values():
         assert format_of(f"f{fmt.suffixes[0]}") is fmt
 
 

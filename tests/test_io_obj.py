@@ -1,4 +1,4 @@
-"""OBJ: files written by trimesh read right, ours read back identically (by us and trimesh), fuzz."""
+"""OBJ: trimesh's files read right, ours read back identically (by us and trimesh), fuzz."""
 
 from __future__ import annotations
 
@@ -40,7 +40,8 @@ def test_our_obj_reads_back_identically_here_and_in_trimesh(seed, dtype):
     m.history = ["made by a test", "second line"]
     data = obj_bytes(m)
     got = decode_obj(data, "o.obj")[0]
-    # float64 written with 17 digits comes back bit for bit; float32 with 9 digits rounds back to itself
+    # float64 written with 17 digits comes back bit for bit; float32 with 9 digits rounds back to
+    # itself
     assert np.array_equal(got.vertices.astype(dtype), m.vertices)
     assert np.array_equal(got.faces, m.faces)
     assert got.history == m.history
@@ -166,9 +167,9 @@ def _obj_text(m, rng) -> list[str]:
     """OBJ lines of ``m`` written as other tools do: ``%r`` numbers, every corner form, some
     negative (relative) indices; with normals, one ``vn`` per vertex and ``vt`` lines."""
     nv = len(m.vertices)
-    lines = ["v %r %r %r" % tuple(p) for p in m.vertices.tolist()]
+    lines = ["v {!r} {!r} {!r}".format(*p) for p in m.vertices.tolist()]
     if m.normals is not None:
-        lines += ["vn %r %r %r" % tuple(p) for p in m.normals.tolist()] + ["vt 0.5 0.5"]
+        lines += ["vn {!r} {!r} {!r}".format(*p) for p in m.normals.tolist()] + ["vt 0.5 0.5"]
     for tri in (m.faces + 1).tolist():
         form = int(rng.integers(2)) + (2 if m.normals is not None else 0)
         corners = []
@@ -237,7 +238,7 @@ def test_arrays_sized_from_a_sample_grow_when_it_misses(normals_late, no_estimat
     if normals_late:  # vn lines only after the faces: the corner normal array is made mid-way
         normals, m.normals = m.normals, None
         lines = _obj_text(m, np.random.default_rng(0)) + [
-            "vn %r %r %r" % tuple(p) for p in normals.tolist()
+            "vn {!r} {!r} {!r}".format(*p) for p in normals.tolist()
         ]
     else:
         lines = _obj_text(m, np.random.default_rng(0))
@@ -260,7 +261,10 @@ def test_arrays_sized_from_a_sample_grow_when_it_misses(normals_late, no_estimat
 
 def test_a_polygon_after_triangles_is_fanned_in_place():
     # face lengths are kept only from the first polygon on: the triangles before it stay triangles
-    data = b"v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 2 2 2\nf 1 2 3\nf 1 3 4\nf 5 1 2 3 4\nf 2 3 4\nf 1 2 5 4\n"
+    data = (
+        b"v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 2 2 2\nf 1 2 3\nf 1 3 4\nf 5 1 2 3 4\nf 2 3 4\n"
+        b"f 1 2 5 4\n"
+    )
     m = decode_obj(data, "p.obj")[0]
     assert m.faces.tolist() == [
         [0, 1, 2],

@@ -1,4 +1,4 @@
-"""OFF: files written by trimesh read right, ours read back identically (by us and trimesh), fuzz."""
+"""OFF: trimesh's files read right, ours read back identically (by us and trimesh), fuzz."""
 
 from __future__ import annotations
 
@@ -53,7 +53,10 @@ def test_our_off_reads_back_identically_here_and_in_trimesh(seed, dtype):
 
 
 def test_polygons_face_colours_and_counts_on_the_keyword_line():
-    data = b"OFF 5 2 0\n# a comment\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n0 0 1\n4 0 1 2 3 255 0 0\n3 0 1 4 0 255 0\n"
+    data = (
+        b"OFF 5 2 0\n# a comment\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n0 0 1\n4 0 1 2 3 255 0 0\n"
+        b"3 0 1 4 0 255 0\n"
+    )
     m = decode_off(data, "p.off")[0]
     assert m.faces.tolist() == [[0, 1, 2], [0, 2, 3], [0, 1, 4]]
     assert (

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from test_io_xyz import o3d_cloud
 
 from recon_cli.errors import InputError
 from recon_cli.geometry import PointCloud
@@ -14,7 +15,6 @@ from recon_cli.io._lzf_kernel import lzf_compress, lzf_decompress
 from recon_cli.io.pcd import decode_pcd, pcd_bytes
 
 from shapes import cloud_family
-from test_io_xyz import o3d_cloud
 
 o3d = pytest.importorskip("open3d")
 DATA = ["ascii", "binary", "binary_compressed"]
@@ -52,7 +52,9 @@ def test_our_pcd_reads_back_identically_here_and_in_open3d(seed, data, dtype, tm
     assert np.array_equal(got.colors, c.colors) and np.array_equal(got.normals, c.normals)
     assert all(np.array_equal(got.attributes[k], v) for k, v in c.attributes.items())
     if dtype == np.float64 and data != "ascii":
-        return  # Open3D 0.20's PCD reader returns zeros for binary F 8 fields (PCL reads them): not comparable
+        # Open3D 0.20's PCD reader returns zeros for binary F 8 fields (PCL reads them): not
+        # comparable
+        return
     path = tmp_path / "o.pcd"
     path.write_bytes(raw)
     ref = o3d.io.read_point_cloud(str(path))
@@ -67,9 +69,10 @@ def test_our_pcd_reads_back_identically_here_and_in_open3d(seed, data, dtype, tm
 
 def test_fields_with_counts_padding_and_viewpoint_kept():
     head = (
-        "VERSION .7\nFIELDS x y z _ label hist\nSIZE 4 4 4 1 2 4\nTYPE F F F U U F\nCOUNT 1 1 1 1 1 2\n"
-        "WIDTH 2\nHEIGHT 1\nVIEWPOINT 1 2 3 1 0 0 0\nPOINTS 2\nDATA binary\n"
-    ).encode()
+        b"VERSION .7\nFIELDS x y z _ label hist\nSIZE 4 4 4 1 2 4\nTYPE F F F U U F\n"
+        b"COUNT 1 1 1 1 1 2\n"
+        b"WIDTH 2\nHEIGHT 1\nVIEWPOINT 1 2 3 1 0 0 0\nPOINTS 2\nDATA binary\n"
+    )
     rows = np.zeros(
         2,
         dtype=[
@@ -122,7 +125,8 @@ def test_lzf_decoder_never_overruns(data, size):
     "head, message",
     [
         (
-            "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 100\nHEIGHT 1\nPOINTS 100\nDATA binary\n",
+            "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 100\nHEIGHT 1\n"
+            "POINTS 100\nDATA binary\n",
             "truncated: POINTS 100 need 1200 bytes",
         ),
         (
@@ -164,7 +168,10 @@ def test_malformed_files_are_one_line_errors(head, message):
 
 
 def test_compressed_sizes_checked_before_allocation():
-    head = b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH 300000000\nPOINTS 300000000\nDATA binary_compressed\n"
+    head = (
+        b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH 300000000\nPOINTS 300000000\n"
+        b"DATA binary_compressed\n"
+    )
     with pytest.raises(InputError, match="truncated: 10 compressed bytes declared"):
         decode_pcd(head + np.array([10, 3_600_000_000], "<u4").tobytes(), "big.pcd")
     with pytest.raises(InputError, match="uncompressed size 12 is not POINTS"):

@@ -145,7 +145,8 @@ def test_every_type_name_and_alias(alias, fmt):
     values = np.array([0, 1, 2, 100, 7], dtype=np.float64)
     for tname in alias:
         header = (
-            f"ply\nformat {fmt} 1.0\nelement vertex 5\nproperty float x\nproperty float y\nproperty float z\n"
+            f"ply\nformat {fmt} 1.0\nelement vertex 5\nproperty float x\nproperty float y\n"
+            "property float z\n"
             f"property {tname} q\nend_header\n"
         )
         order = {"binary_little_endian": "<", "binary_big_endian": ">"}.get(fmt)
@@ -363,7 +364,10 @@ def test_our_files_open_in_open3d_and_pymeshlab(ascii, tmp_path):
 
 # ------------------------------------------------------------------ bad files
 
-GOOD_HEADER = "ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
+GOOD_HEADER = (
+    "ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+    "property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
+)
 GOOD_BODY = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], "<f4").tobytes() + struct.pack(
     "<Biii", 3, 0, 1, 2
 )
@@ -430,29 +434,36 @@ BAD_FILES = {
         "no 'vertex' element",
     ),
     "missing z": (
-        b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nend_header\n1 2\n",
+        b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
+        b"end_header\n1 2\n",
         "'z'",
     ),
     "ascii text in numbers": (
-        b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 two 3\n",
+        b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
+        b"property float z\nend_header\n1 two 3\n",
         "not a number",
     ),
     "ascii truncated": (
-        b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n",
+        b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+        b"property float z\nend_header\n1 2 3\n",
         "truncated",
     ),
     "ascii lying count": (
-        b"ply\nformat ascii 1.0\nelement vertex 99999999999\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n",
+        b"ply\nformat ascii 1.0\nelement vertex 99999999999\nproperty float x\n"
+        b"property float y\nproperty float z\nend_header\n1 2 3\n",
         "truncated",
     ),
     "two-vertex face": (
-        b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n2 0 1\n",
+        b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+        b"property float z\nelement face 1\nproperty list uchar int vertex_indices\n"
+        b"end_header\n0 0 0\n1 0 0\n0 1 0\n2 0 1\n",
         "fewer than 3",
     ),
     "bad version": (GOOD_HEADER.replace("1.0", "2.0").encode() + GOOD_BODY, "version"),
     "binary header": (b"ply\nformat ascii 1.0\ncomment \xff\xfe\nend_header\n", "not ASCII"),
     "int property with fraction": (
-        b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nproperty int q\nend_header\n1 2 3 4.5\n",
+        b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
+        b"property float z\nproperty int q\nend_header\n1 2 3 4.5\n",
         "non-integer",
     ),
 }
@@ -555,7 +566,8 @@ def test_fuzz_random_bytes(data):
     for prefix in (
         b"",
         b"ply\nformat ascii 1.0\n",
-        b"ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n",
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty float x\n"
+        b"property float y\nproperty float z\n",
     ):
         try:
             read_ply("r.ply", prefix + data)
@@ -798,7 +810,7 @@ def test_coordinate_types_map_to_float32_or_float64(xyz, want):
     t = np.dtype({"double": "<f8", "int": "<i4", "short": "<i2", "float": "<f4"}[xyz])
     vals = np.arange(12).reshape(4, 3).astype(t)
     head = (
-        f"ply\nformat binary_little_endian 1.0\nelement vertex 4\n"
+        "ply\nformat binary_little_endian 1.0\nelement vertex 4\n"
         + "".join(f"property {xyz} {c}\n" for c in "xyz")
         + "end_header\n"
     )

@@ -12,6 +12,13 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+
+from recon_cli.errors import InputError, ParameterError
+from recon_cli.geometry import PointCloud, Sensor, TriangleMesh
+from recon_cli.io.load import load, load_detailed, save
+from recon_cli.io.pcd import decode_pcd
+from recon_cli.io.xyz import decode_xyz
+
 from sensors import (
     DepthCamera,
     depth_image,
@@ -22,12 +29,6 @@ from sensors import (
 )
 from shapes import cloud_family, random_rotation
 
-from recon_cli.errors import InputError, ParameterError
-from recon_cli.geometry import PointCloud, Sensor, TriangleMesh
-from recon_cli.io.load import load, load_detailed, save
-from recon_cli.io.pcd import decode_pcd
-from recon_cli.io.xyz import decode_xyz
-
 RECON = [sys.executable, "-m", "recon_cli.cli.main"]
 
 
@@ -36,7 +37,7 @@ def recon(*args):
 
 
 def with_nan_rows(cloud: PointCloud, rng, frac=0.2) -> tuple[PointCloud, np.ndarray]:
-    """``cloud`` with NaN/inf in one coordinate of about ``frac`` of its rows, and the mask of them."""
+    """``cloud`` with NaN/inf in one coordinate of about ``frac`` of its rows, and their mask."""
     c = cloud.copy()
     bad = rng.random(len(c.points)) < frac
     bad[0] = True  # the first row too (a reader's first-row special cases)
@@ -131,7 +132,9 @@ def test_text_and_pcd_ascii_parsers_drop_exactly_the_nonfinite_rows(rows, sep):
         got, _ = decode_xyz((head + text).encode(), "t.xyz")
         assert got.invalid_dropped == int((~ok).sum())
         assert np.array_equal(got.points, vals[ok])
-        assert got.attributes["label"].tolist() == [r[3] for r, k in zip(rows, ok) if k]
+        assert got.attributes["label"].tolist() == [
+            r[3] for r, k in zip(rows, ok, strict=True) if k
+        ]
     pcd = (
         "VERSION 0.7\nFIELDS x y z label\nSIZE 8 8 8 4\nTYPE F F F U\nCOUNT 1 1 1 1\n"
         f"WIDTH {len(rows)}\nHEIGHT 1\nPOINTS {len(rows)}\nDATA ascii\n" + text.replace(",", " ")
@@ -139,7 +142,7 @@ def test_text_and_pcd_ascii_parsers_drop_exactly_the_nonfinite_rows(rows, sep):
     got, _ = decode_pcd(pcd.encode(), "t.pcd")
     assert got.invalid_dropped == int((~ok).sum()) and got.pixels is None
     assert np.array_equal(got.points, vals[ok])
-    assert got.attributes["label"].tolist() == [r[3] for r, k in zip(rows, ok) if k]
+    assert got.attributes["label"].tolist() == [r[3] for r, k in zip(rows, ok, strict=True) if k]
 
 
 def _camera(rng, w=64, h=48, offset=0.0):

@@ -90,7 +90,8 @@ def test_negative_zero_welds_with_zero_and_attribute_kept():
     "data, message",
     [
         (
-            b"solid x\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 1 0 0\nendloop\nendfacet\nendsolid\n",
+            b"solid x\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 1 0 0\nendloop\n"
+            b"endfacet\nendsolid\n",
             "line 6: a facet must have exactly 3 vertices",
         ),
         (

@@ -52,7 +52,7 @@ def _read_all(tokens: list[str], delim: str = " ") -> np.ndarray:
 def _assert_identical(tokens: list[str]) -> None:
     got = _read_all(tokens)
     assert len(got) == len(tokens)
-    for tok, v in zip(tokens, got.tolist()):
+    for tok, v in zip(tokens, got.tolist(), strict=True):
         ref = float(tok)
         if math.isnan(ref):
             assert math.isnan(v)
@@ -98,7 +98,8 @@ def test_every_printed_double_reads_as_python_float_reads_it(xs):
 
 
 def _halfway(b: int) -> tuple[str, str]:
-    """The exact decimal half way between the double of bits ``b`` and the next one, in two spellings."""
+    """The exact decimal half way between the double of bits ``b`` and the next one, in two
+    spellings."""
     x = _from_bits(b)
     y = math.nextafter(x, math.inf)
     with localcontext() as ctx:

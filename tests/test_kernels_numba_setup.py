@@ -125,7 +125,8 @@ def test_numpy_submodules_numba_would_load_stay_lazy_until_used():
         "print(sorted(m for m in sys.modules if m.startswith(('numpy.f2py.', 'numpy.testing.'))))\n"
         "np.testing.assert_allclose(np.ma.masked_array([1.0, 2.0], mask=[0, 1]).sum(), 1.0)\n"
         "from numpy.f2py import crackfortran\n"
-        "print(sorted(m for m in sys.modules if m.startswith(('numpy.testing.', 'numpy.f2py.')))[:2])\n"
+        "print(sorted(m for m in sys.modules if m.startswith(('numpy.testing.', "
+        "'numpy.f2py.')))[:2])\n"
     )
     before, after = _run(code, {}).splitlines()
     assert before == "[]"
@@ -164,13 +165,16 @@ LEAN = (
     "print('arraymath' if 'numba.np.arraymath' in sys.modules else 'lean')\n"
     "rng = np.random.default_rng(0)\n"
     "p = np.c_[rng.random(200), rng.random(200), np.zeros(200)]\n"
-    "nbr = np.argsort(((p[:, None] - p[None]) ** 2).sum(-1), axis=1)[:, :8].astype(np.int64).ravel()\n"
-    "nrm = pca_normals(p, np.arange(0, 8 * 200 + 1, 8), nbr, 1e-12)[0]\n"  # a parallel kernel after a lean load
+    "nbr = np.argsort(((p[:, None] - p[None]) ** 2).sum(-1), axis=1)[:, "
+    ":8].astype(np.int64).ravel()\n"
+    # a parallel kernel after a lean load
+    "nrm = pca_normals(p, np.arange(0, 8 * 200 + 1, 8), nbr, 1e-12)[0]\n"
     "print(np.abs(np.abs(nrm[:, 2]) - 1).max() < 1e-9)\n"
     "@numba.njit\n"
     "def det(a):\n"
     "    return np.linalg.det(a) + np.sum(a) + len(str(3))\n"
-    "print(round(det(np.eye(3) * 2.0), 6))\n"  # compiling afterwards: the full context (LAPACK, unicode)
+    # compiling afterwards: the full context (LAPACK, unicode)
+    "print(round(det(np.eye(3) * 2.0), 6))\n"
 )
 
 
@@ -195,7 +199,8 @@ STAGES_WITHOUT_ARRAYMATH = (
     "x = np.linspace(-1, 1, 20)\n"
     "sdf = np.sqrt(x[:, None, None] ** 2 + x[None, :, None] ** 2 + x[None, None, :] ** 2) - 0.7\n"
     "apply_stage('mcubes', Grid(sdf=sdf, origin=np.zeros(3), voxel_size=0.1), {})\n"
-    "print(len(mesh.faces) > 0, 'numba.np.arraymath' in sys.modules, 'scipy.linalg' in sys.modules)\n"
+    "print(len(mesh.faces) > 0, 'numba.np.arraymath' in sys.modules, 'scipy.linalg' in "
+    "sys.modules)\n"
 )
 
 

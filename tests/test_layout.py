@@ -25,7 +25,8 @@ MODULES = _modules()
 
 
 def _imports(path: Path, top_level_only: bool):
-    """(module imported, names imported, line) for every ``import``/``from`` of recon_cli in ``path``."""
+    """(module imported, names imported, line) for every ``import``/``from`` of recon_cli in
+    ``path``."""
     tree = ast.parse(path.read_text(encoding="utf-8"))
     nodes = tree.body if top_level_only else list(ast.walk(tree))
     for node in nodes:
@@ -86,7 +87,8 @@ def test_no_import_cycle_at_module_level():
             if state.get(d) == 1:
                 cycle = stack[stack.index(d) :] + [d]
                 if not all(
-                    b.startswith(a + ".") or a.startswith(b + ".") for a, b in zip(cycle, cycle[1:])
+                    b.startswith(a + ".") or a.startswith(b + ".")
+                    for a, b in zip(cycle, cycle[1:], strict=False)
                 ):
                     raise AssertionError("import cycle: " + " -> ".join(cycle))
             elif d not in state:
@@ -145,7 +147,7 @@ def test_no_import_cycle_through_function_level_imports():
 
 def test_library_is_free_of_click_and_kernels_never_import_their_stage():
     for mod, path in MODULES.items():
-        for target, names, line in _imports(path, top_level_only=False):
+        for target, _names, line in _imports(path, top_level_only=False):
             if not mod.startswith("recon_cli.cli"):
                 assert target != "click" and not target.startswith("recon_cli.cli"), (
                     f"{path}:{line}"

@@ -23,6 +23,7 @@ from recon_cli.geometry import PointCloud, TriangleMesh  # noqa: E402
 from recon_cli.grid import Grid  # noqa: E402
 from recon_cli.io import read_ply, write_ply  # noqa: E402
 from recon_cli.io.npz import read_grid  # noqa: E402
+from recon_cli.stages import apply_stage  # noqa: E402
 from recon_cli.stages.learned import (  # noqa: E402
     extract_mesh,
     fit_sdf,
@@ -32,7 +33,6 @@ from recon_cli.stages.learned import (  # noqa: E402
     save_model,
 )
 from recon_cli.stages.sdf import grid_frame  # noqa: E402
-from recon_cli.stages import apply_stage  # noqa: E402
 
 from shapes import sphere_cloud, torus_cloud, torus_distance  # noqa: E402
 
@@ -146,6 +146,7 @@ def test_short_fits_do_not_fold(shape, iterations):
     """A fit stopped early is still one closed surface of the input's genus: no spurious
     sheets or bubbles in the empty space (SIREN's off-surface term keeps zero levels away)."""
     from recon_cli.mesh.topology import report
+
     from shapes import shape_cloud
 
     rng = np.random.default_rng(12)

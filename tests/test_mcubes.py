@@ -86,7 +86,7 @@ def _cube_symmetries():
     for perm in itertools.permutations(range(3)):
         for flips in range(8):
 
-            def img(c):
+            def img(c, perm=perm, flips=flips):
                 p = [(c >> a) & 1 for a in range(3)]
                 q = [p[perm[a]] ^ ((flips >> a) & 1) for a in range(3)]
                 return q[0] | (q[1] << 1) | (q[2] << 2)
@@ -242,10 +242,11 @@ def test_sparse_equals_dense_and_subset_is_closed():
         cells, vals, origin=(-1, -1, -1), spacing=h, return_normals=True
     )
     assert len(vs) == len(v) and len(fs) == len(f)
+
     # same triangles up to vertex numbering
-    key = lambda vv, ff: np.sort(
-        np.round(vv[ff].reshape(len(ff), -1) * 1e9).astype(np.int64), axis=0
-    )  # noqa: E731
+    def key(vv, ff):
+        return np.sort(np.round(vv[ff].reshape(len(ff), -1) * 1e9).astype(np.int64), axis=0)
+
     assert np.array_equal(key(v, f), key(vs, fs))
     assert np.einsum("ij,ij->i", ns, vs / np.linalg.norm(vs, axis=1, keepdims=True)).min() > 0.99
     # only the cells that straddle the surface, shuffled: still closed and the same surface
@@ -440,7 +441,8 @@ def test_run_stage_and_cli(tmp_path):
 
 
 def test_stored_tables_are_the_derivation():
-    """_lut_data.npz (read by the stage) is exactly what _luts derives; regenerate with `python -m recon_cli.stages.mcubes._luts`."""
+    """_lut_data.npz (read by the stage) is exactly what _luts derives; regenerate with `python -m
+    recon_cli.stages.mcubes._luts`."""
     from recon_cli.stages.mcubes import _lut_data as D
 
     derived = L.build_tables()
@@ -466,7 +468,8 @@ def test_the_stage_derives_no_table():
         "    assert len(marching_cubes(g, method=method)[1])\n"
         "assert 'recon_cli.stages.mcubes._luts' not in sys.modules\n"
         "import recon_cli.stages.mcubes._luts as L\n"
-        "assert L.build_tables.cache_info().currsize == 0\n"  # importing the derivation builds nothing either
+        # importing the derivation builds nothing either
+        "assert L.build_tables.cache_info().currsize == 0\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
 
@@ -516,13 +519,13 @@ def test_sdf_of_closed_mesh_meshes_to_one_piece(idx, reverse):
     rotated, rescaled; and wound inward) is one closed, manifold, outward piece whose
     vertices all lie within half a voxel of the input: a sign error inside (a bubble)
     adds a piece away from the surface."""
-    import shapes as S
-
     from recon_cli.geometry import TriangleMesh
     from recon_cli.mesh.distance import closest_points
     from recon_cli.mesh.topology import Connectivity
-    from recon_cli.stages.sdf import signed_volume
     from recon_cli.stages import apply_stage
+    from recon_cli.stages.sdf import signed_volume
+
+    import shapes as S
 
     name, v, f, res = _closed_meshes_for_pieces()[idx]
     rng = np.random.default_rng(idx)

@@ -27,10 +27,11 @@ import mesh_damage as D
 from shared_data import ALL_MESHES, CLOSED_MESHES, load_shared, shared_path
 
 REPORT_KEYS = [
-    "vertices", "edges", "faces", "components", "boundary_edges", "boundary_loops", "non_manifold_edges",
-    "non_manifold_vertices", "duplicate_faces", "degenerate_faces", "unreferenced_vertices", "consistently_oriented",
-    "orientable", "edge_manifold", "vertex_manifold", "watertight", "euler_characteristic", "genus", "component_genus",
-    "area", "volume",
+    "vertices", "edges", "faces", "components", "boundary_edges", "boundary_loops",
+    "non_manifold_edges", "non_manifold_vertices", "duplicate_faces", "degenerate_faces",
+    "unreferenced_vertices", "consistently_oriented", "orientable", "edge_manifold",
+    "vertex_manifold", "watertight", "euler_characteristic", "genus", "component_genus", "area",
+    "volume",
 ]  # fmt: skip
 
 TETRA = np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]])
@@ -53,7 +54,8 @@ def damaged(kind: str, name: str = "kitten") -> TriangleMesh:
 
 
 def _pinched(m: TriangleMesh) -> TriangleMesh:
-    """``m`` and a translated copy touching it at one shared vertex (a real mesh pinched at a point)."""
+    """``m`` and a translated copy touching it at one shared vertex (a real mesh pinched at a
+    point)."""
     v0, n = m.vertices, len(m.vertices)
     rm, lm = int(np.argmax(v0[:, 0])), int(np.argmin(v0[:, 0]))
     f1 = m.faces + n
@@ -174,7 +176,7 @@ def test_boundary_loops_follow_half_edges():
     directed = {tuple(e) for e in c.half_edges[c.edge_half_edges[c.edge_ptr[c.boundary_edges]]]}
     for lp in loops:
         assert len(set(lp.tolist())) == len(lp)  # a manifold boundary visits each vertex once
-        for a, b in zip(lp, np.roll(lp, -1)):
+        for a, b in zip(lp, np.roll(lp, -1), strict=True):
             assert (a, b) in directed
     assert [len(x) for x in boundary_loops(mesh.faces)] == [len(x) for x in loops]
 
@@ -309,7 +311,11 @@ def test_report_never_crashes_and_is_consistent(soup):
     # every half-edge that is not a self-loop lies on exactly one edge
     assert int(c.edge_face_count.sum()) == int((c.half_edges[:, 0] != c.half_edges[:, 1]).sum())
     # components only share vertices, each shared one counted once per extra component
-    pairs = {(int(comp), int(vv)) for comp, row in zip(c.face_components, mesh.faces) for vv in row}
+    pairs = {
+        (int(comp), int(vv))
+        for comp, row in zip(c.face_components, mesh.faces, strict=True)
+        for vv in row
+    }
     shared = len(pairs) - len({vv for _, vv in pairs})
     assert rep["euler_characteristic"] == int(c.component_euler.sum()) - shared
     assert rep["edge_manifold"] == (rep["non_manifold_edges"] == 0)

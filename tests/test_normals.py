@@ -12,8 +12,8 @@ from recon_cli.backends import open3d_backend
 from recon_cli.errors import InputError, ParameterError
 from recon_cli.geometry import PointCloud
 from recon_cli.mesh.sampling import face_normals
-from recon_cli.stages.normals import estimate_normals, orient_normals, run_stage
 from recon_cli.stages import apply_stage
+from recon_cli.stages.normals import estimate_normals, orient_normals, run_stage
 
 from shared_data import ALL_MESHES, CLOSED_MESHES, load_shared, sampled_cloud
 
@@ -57,7 +57,8 @@ def test_unoriented_accuracy_vs_open3d(name):
 
 
 def test_pca_matches_dense_eigh(rng):
-    # closed-form 3x3 eigenvectors against LAPACK on the same neighbourhoods, far from the origin too
+    # closed-form 3x3 eigenvectors against LAPACK on the same neighbourhoods, far from the origin
+    # too
     pts = rng.normal(size=(3000, 3)) * [1.0, 1.0, 0.05]
     for offset in (0.0, 1e5):
         p = pts + offset

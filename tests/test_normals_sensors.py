@@ -10,6 +10,12 @@ import sys
 
 import numpy as np
 import pytest
+
+from recon_cli.errors import InputError
+from recon_cli.geometry import PixelGrid, PointCloud, Sensor
+from recon_cli.io.load import load, save
+from recon_cli.stages.normals import estimate_normals, orient_normals, run_stage
+
 from sensors import (
     DepthCamera,
     depth_image,
@@ -20,11 +26,6 @@ from sensors import (
     write_organized_pcd,
 )
 from shapes import random_rotation
-
-from recon_cli.errors import InputError
-from recon_cli.geometry import PixelGrid, PointCloud, Sensor
-from recon_cli.io.load import load, save
-from recon_cli.stages.normals import estimate_normals, orient_normals, run_stage
 
 RECON = [sys.executable, "-m", "recon_cli.cli.main"]
 
@@ -47,7 +48,10 @@ def _organized_case(seed, offset=0.0, w=96, h=72):
     rng = np.random.default_rng(seed)
     off = np.array([offset, 0.5 * offset, -0.25 * offset])
     scene = tabletop_scene()
-    shifted = lambda p: scene(p - off)
+
+    def shifted(p):
+        return scene(p - off)
+
     cam = _view(rng, off, w, h)
     org = depth_image(cam, shifted, rng)
     exact = exact_image(cam, shifted).reshape(-1, 3)
@@ -91,7 +95,8 @@ def test_pixel_neighbourhoods_as_accurate_as_the_kdtree():
     assert abs(a_pix.mean() - a_tree.mean()) < 0.02 * a_tree.mean()
     assert abs(np.median(a_pix) - np.median(a_tree)) < 0.02 * np.median(a_tree)
     assert (np.abs(np.einsum("ij,ij->i", pix, tree)) > 1 - 1e-9).mean() > 0.98
-    # a radius, or a cloud without pixels: the kd-tree; pixels asked of an unorganized cloud: refused
+    # a radius, or a cloud without pixels: the kd-tree; pixels asked of an unorganized cloud:
+    # refused
     cloud = PointCloud(pts, pixels=grid)
     assert run_stage(cloud, radius=0.05, orient="none").report["neighbours"] == "kdtree"
     assert run_stage(cloud, orient="none", neighbours="kdtree").report["neighbours"] == "kdtree"

@@ -1,4 +1,5 @@
-"""Stage declarations (recon_cli.params, recon_cli.stages): one declaration, everything derived from it."""
+"""Stage declarations (recon_cli.params, recon_cli.stages): one declaration, everything derived from
+it."""
 
 from __future__ import annotations
 
@@ -19,7 +20,6 @@ from recon_cli.geometry import PointCloud
 from recon_cli.params import Param, StageSpec, parse_bool
 from recon_cli.stages import (
     BUILTIN,
-    STAGES,
     StageResult,
     get_spec,
     register_stage,
@@ -27,9 +27,10 @@ from recon_cli.stages import (
     unregister_stage,
 )
 from recon_cli.tools.readme import readme_tables
+
 from shared_data import ROOT
 
-# ---- Param.coerce: one checker --------------------------------------------------------------------
+# ---- Param.coerce: one checker -------------------------------------------------------------------
 
 
 def test_bool_words_are_exactly_the_documented_ones():
@@ -120,7 +121,7 @@ def test_bool_parser_never_guesses(s):
             p.coerce(s)
 
 
-# ---- every built-in stage: declaration, library, command, README ----------------------------------------
+# ---- every built-in stage: declaration, library, command, README ---------------------------------
 @pytest.mark.parametrize("name", BUILTIN)
 def test_builtin_stage_is_registered_and_derived_from_its_declaration(name):
     from recon_cli.cli.main import COMMANDS, cli
@@ -247,7 +248,7 @@ def test_library_call_checks_values_and_input_kind():
         run_stage(PointCloud(pts))
 
 
-# ---- a toy stage through the public registration API -------------------------------------------------
+# ---- a toy stage through the public registration API ---------------------------------------------
 TOY = StageSpec(
     "toy-scale",
     "Scale a cloud (toy).",
@@ -313,7 +314,7 @@ def test_entry_points_group_registers_stages(monkeypatch):
     np.testing.assert_allclose(res.output.points, 4.0)
 
 
-# ---- global options after the subcommand -----------------------------------------------------------------
+# ---- global options after the subcommand ---------------------------------------------------------
 def test_global_options_before_and_after_the_subcommand(tmp_path):
     from recon_cli.cli.main import cli
     from recon_cli.io import write_ply
@@ -359,13 +360,14 @@ def test_validate_answers_fast_in_a_fresh_process(tmp_path):
         timeout=120,
     )
     assert r.returncode == 2 and not out.exists()
-    assert (
-        r.stderr.strip()
-        == f"recon: error: {pipe}:7: stage 2 (poisson): --depth must be an integer with 1 <= x <= 14, got -3"
+    assert r.stderr.strip() == (
+        f"recon: error: {pipe}:7: stage 2 (poisson): --depth must be an integer with 1 <= x <= "
+        "14, got -3"
     )
     # checking a pipeline loads the declarations, never a kernel (so nothing compiles)
     code = (
-        "import sys; from recon_cli.pipeline import load_pipeline; load_pipeline(sys.argv[1], ['2.depth=9']); "
+        "import sys; from recon_cli.pipeline import load_pipeline; load_pipeline(sys.argv[1], "
+        "['2.depth=9']); "
         "print(sorted(m for m in sys.modules if m == 'numba' or m.endswith('_kernel')))"
     )
     r = subprocess.run(

@@ -46,7 +46,8 @@ def _pipe(text: str, overrides=()):
         ),
         (
             '[[stage]]\nname = "normals"\n\n[[stage]]\nname = "mcubes"\n',
-            r"p.toml:4: stage 2 \(mcubes\) needs a grid \(.npz\), but stage 1 \(normals\) gives a point cloud with normals",
+            r"p.toml:4: stage 2 \(mcubes\) needs a grid \(.npz\), but stage 1 \(normals\) "
+            r"gives a point cloud with normals",
         ),
         (
             '[[stage]]\nname = "sdf"\n\n[[stage]]\nname = "repair"\n',
@@ -78,7 +79,8 @@ def test_pipeline_errors_name_file_and_line(text, message):
 
 def test_values_are_typed_and_mean_the_same_as_on_the_command_line():
     pipe = _pipe(
-        '[[stage]]\nname = "normals"\nknn = 0\nradius = 1\ncamera = "0,0,1"\n\n[[stage]]\nname = "ballpivot"\nradii = [0.5, 1]\n'
+        '[[stage]]\nname = "normals"\nknn = 0\nradius = 1\ncamera = "0,0,1"\n\n[[stage]]\n'
+        'name = "ballpivot"\nradii = [0.5, 1]\n'
     )
     assert pipe.steps[0].params == {
         "knn": 0,
@@ -91,7 +93,10 @@ def test_values_are_typed_and_mean_the_same_as_on_the_command_line():
 
 
 def test_set_overrides_by_name_and_index():
-    text = '[[stage]]\nname = "normals"\n\n[[stage]]\nname = "poisson"\ndepth = 7\n\n[[stage]]\nname = "repair"\n'
+    text = (
+        '[[stage]]\nname = "normals"\n\n[[stage]]\nname = "poisson"\ndepth = 7\n\n[[stage]]\n'
+        'name = "repair"\n'
+    )
     pipe = _pipe(text, ["poisson.depth=9", "3.fill-holes=20", "1.curvature=yes"])
     assert pipe.steps[1].params["depth"] == 9 and pipe.steps[2].params["fill_holes"] == 20
     assert pipe.steps[0].params["curvature"] is True
@@ -123,8 +128,8 @@ def test_estimate_normals_changes_what_poisson_takes():
 
 
 def test_run_checks_before_touching_the_output(tmp_path, monkeypatch):
-    from recon_cli.stages import normals
     from recon_cli.cli.main import cli
+    from recon_cli.stages import normals
 
     called = []
     monkeypatch.setattr(normals.SPEC, "run", lambda *a, **k: called.append(1))

@@ -30,13 +30,13 @@ def _chamfer_f(a: np.ndarray, b: np.ndarray, tau: float) -> tuple[float, float]:
     return 0.5 * (da.mean() + db.mean()), (2 * p * r / (p + r) if p + r > 0 else 0.0)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _ours(name: str, noise: float, depth: int):
     c = sampled_cloud(name, 100_000, noise=noise)
     return screened_poisson(c.points, c.normals, depth=depth)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _open3d(name: str, noise: float, depth: int):
     c = sampled_cloud(name, 100_000, noise=noise)
     return isolated(open3d_backend.poisson, c, depth=depth)[
@@ -44,7 +44,7 @@ def _open3d(name: str, noise: float, depth: int):
     ]  # its own process: see tests/reference.py
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _truth_samples(name: str) -> np.ndarray:
     return sample_surface(load_shared(name), N_EVAL, seed=1).points
 

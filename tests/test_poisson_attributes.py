@@ -9,7 +9,6 @@ from click.testing import CliRunner
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import cKDTree
-from shapes import _project, random_rotation, rounded_box_sdf, shape_cloud
 
 from recon_cli.cli.main import cli
 from recon_cli.errors import ParameterError
@@ -23,6 +22,8 @@ from recon_cli.stages.poisson.attributes import (
     select,
     vertex_normals,
 )
+
+from shapes import _project, random_rotation, rounded_box_sdf, shape_cloud
 
 
 def test_mean_and_majority_keep_dtypes_and_values():
@@ -91,7 +92,10 @@ def test_select_all_none_and_unknown():
 
 def _plate(rng, half_thickness):
     """A rounded plate under a random rotation and an offset of 1e6, red on top, blue below."""
-    sdf = lambda q: rounded_box_sdf(q, half=(1.0, 0.8, half_thickness), radius=0.8 * half_thickness)
+
+    def sdf(q):
+        return rounded_box_sdf(q, half=(1.0, 0.8, half_thickness), radius=0.8 * half_thickness)
+
     p = rng.uniform(-1.05, 1.05, (300_000, 3))
     p[:, 2] *= 2 * half_thickness
     p = p[np.abs(sdf(p)) < 0.02]

@@ -12,7 +12,13 @@ from recon_cli.errors import ParameterError
 from recon_cli.mesh.topology import report as topology_report
 from recon_cli.stages.poisson import _bspline as B
 from recon_cli.stages.poisson import screened_poisson
-from recon_cli.stages.poisson.bspline import KERNEL_WIDTH, ChiField, NormalRHS, folded_tables, level_field
+from recon_cli.stages.poisson.bspline import (
+    KERNEL_WIDTH,
+    ChiField,
+    NormalRHS,
+    folded_tables,
+    level_field,
+)
 from recon_cli.stages.poisson.octree import build_levels, pack_keys, unpack_keys
 from recon_cli.stages.poisson.splat import fields_as_items, make_splats, merge_samples
 

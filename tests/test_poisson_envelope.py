@@ -8,8 +8,6 @@ import functools
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from shapes import FAR_OFFSETS, icosphere, random_rotation, shape_cloud, single_view_scan
-from shared_data import load_shared
 
 from recon_cli.cli.main import cli
 from recon_cli.errors import InputError, ParameterError
@@ -18,6 +16,9 @@ from recon_cli.io import read_ply, write_ply
 from recon_cli.stages.poisson import screened_poisson
 from recon_cli.stages.poisson.envelope import CellClassifier, Envelope
 from recon_cli.stages.poisson.octree import pack_keys
+
+from shapes import FAR_OFFSETS, icosphere, random_rotation, shape_cloud, single_view_scan
+from shared_data import load_shared
 
 
 def _sphere_around(p: np.ndarray, factor: float) -> TriangleMesh:

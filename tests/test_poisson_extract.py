@@ -95,7 +95,7 @@ def _leaf_corner_values(levels, gvals):
     """(k,) finest-lattice keys and values of every leaf's corners, over all levels."""
     depth = len(levels) - 1
     keys, vals = [], []
-    for lev, g in zip(levels, gvals):
+    for lev, g in zip(levels, gvals, strict=True):
         c = np.nonzero(lev.leaf)[0]
         xyz = unpack_keys(lev.cell_keys[c]) << (depth - lev.depth)
         for q in range(8):

@@ -6,7 +6,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from shapes import shape_cloud, single_view_scan
 
 from recon_cli.cli.main import cli
 from recon_cli.geometry import PointCloud, TriangleMesh
@@ -16,6 +15,8 @@ from recon_cli.mesh.distance import closest_points
 from recon_cli.mesh.sampling import sample_surface
 from recon_cli.stages.mcubes import marching_cubes
 from recon_cli.stages.poisson import screened_poisson
+
+from shapes import shape_cloud, single_view_scan
 
 
 def _chamfer_cells(a: TriangleMesh, b: TriangleMesh, cell: float) -> float:

@@ -7,7 +7,6 @@ import functools
 
 import numpy as np
 import pytest
-from shapes import FAR_OFFSETS, random_rotation, shape_cloud, single_view_scan
 
 from recon_cli.errors import ParameterError
 from recon_cli.mesh.topology import Connectivity
@@ -16,6 +15,8 @@ from recon_cli.stages.poisson._bspline import b2_factors
 from recon_cli.stages.poisson._luts import B2_MASS, B2_STIFFNESS
 from recon_cli.stages.poisson.bspline import level_tables
 from recon_cli.stages.poisson.free import domain_tables
+
+from shapes import FAR_OFFSETS, random_rotation, shape_cloud, single_view_scan
 
 
 def test_domain_tables_whole_line_are_the_unrestricted_tables():

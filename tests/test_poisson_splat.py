@@ -7,15 +7,20 @@ import numpy as np
 import pytest
 from numba import njit
 
+from recon_cli._kernels.arrays import lower_bound
 from recon_cli.backends import open3d_backend
 from recon_cli.geometry import PointCloud
 from recon_cli.mesh.sampling import sample_surface
 from recon_cli.stages.poisson import _extract as E
 from recon_cli.stages.poisson import screened_poisson
-from recon_cli._kernels.arrays import lower_bound
 from recon_cli.stages.poisson._octree import MASK21, lattice_key
 from recon_cli.stages.poisson._splat import hat_b2_deriv, hat_b2_value
-from recon_cli.stages.poisson.splat import fields_as_items, merge_samples, noise_fraction, spread_fields
+from recon_cli.stages.poisson.splat import (
+    fields_as_items,
+    merge_samples,
+    noise_fraction,
+    spread_fields,
+)
 
 from reference import isolated
 from shapes import SHAPES, shape_cloud

@@ -21,6 +21,7 @@ from recon_cli.io.load import load, save
 from recon_cli.io.ply import ply_bytes, read_ply, write_ply
 from recon_cli.stages import apply_stage
 from recon_cli.tolerances import tol
+
 from shapes import FAR_OFFSETS, icosphere, sphere_cloud
 
 FAR = [k for k in FAR_OFFSETS if k != "origin"]
@@ -79,7 +80,8 @@ def test_poisson_far_from_origin_as_at_origin(where, tmp_path):
     e0 = _radius_errors(ref.vertices, np.zeros(3), 10.0)
     e = _radius_errors(out.vertices, _offset(where), 10.0)
     assert len(out.faces) == len(ref.faces)
-    # at the origin: median ~0.5 %, max ~1.5 % of the radius at depth 6 (float32 at y = 5.1e6 rounds by 0.25)
+    # at the origin: median ~0.5 %, max ~1.5 % of the radius at depth 6 (float32 at y = 5.1e6 rounds
+    # by 0.25)
     assert np.median(e) <= 1.05 * np.median(e0) + 1e-6
     assert e.max() <= 1.05 * e0.max() + 1e-6
     back = _assert_double(out, tmp_path)
@@ -104,7 +106,7 @@ def test_ballpivot_far_from_origin_as_at_origin(where, tmp_path):
 
 
 def _damaged_icosphere(centre):
-    """An icosphere (r = 10) with duplicated vertices, 32 faces flipped and 2 faces removed (holes)."""
+    """An icosphere (r = 10), vertices duplicated, 32 faces flipped and 2 faces removed (holes)."""
     v, f = icosphere(3, radius=10.0, centre=centre)
     f = f.copy()
     f[::40] = f[::40, ::-1]
@@ -198,7 +200,8 @@ def test_convert_keeps_doubles(ascii_, tmp_path):
 
 
 def test_utm_normals_then_poisson_on_the_command_line_as_at_origin(tmp_path):
-    """The issue's case: a double cloud at UTM-like coordinates, `recon normals | recon poisson --depth 7`."""
+    """The issue's case: a double cloud at UTM-like coordinates, `recon normals | recon poisson
+    --depth 7`."""
     env = dict(os.environ)
     errors = {}
     for where in ("origin", "utm"):
@@ -268,7 +271,8 @@ def test_float32_source_far_away_is_written_double_with_a_note(where, tmp_path):
     res = apply_stage("normals", cloud)
     assert "precision" not in res.report
     assert read_ply(_file_of(res.output, tmp_path)).point_dtype == np.float32
-    # new coordinates (Poisson's vertices) would be rounded by ~0.03-0.25: written as double, said so
+    # new coordinates (Poisson's vertices) would be rounded by ~0.03-0.25: written as double, said
+    # so
     res = apply_stage("poisson", cloud, {"depth": 5})
     mesh = res.output
     assert mesh.point_dtype == np.float32 and storage_dtype(mesh) == np.float64
@@ -283,7 +287,8 @@ def test_float32_source_far_away_is_written_double_with_a_note(where, tmp_path):
 
 
 def test_float32_values_in_a_float64_array_stay_float32(tmp_path):
-    """Float64 arrays holding float32 values (a stage that converted and kept them) lose nothing as float32."""
+    """Float64 arrays holding float32 values (a stage that converted and kept them) lose nothing as
+    float32."""
     p = (
         sphere_cloud(100, radius=10.0, centre=FAR_OFFSETS["utm"])[0]
         .astype(np.float32)
@@ -326,7 +331,7 @@ def test_grid_point_dtype_defaults_and_checks(tmp_path):
 def test_ply_source_type(types, double, tmp_path):
     """A file's coordinates are a float32 source only when float32 holds every column exactly."""
     header = "ply\nformat ascii 1.0\nelement vertex 2\n" + "".join(
-        f"property {t} {c}\n" for t, c in zip(types, "xyz")
+        f"property {t} {c}\n" for t, c in zip(types, "xyz", strict=True)
     )
     path = tmp_path / "t.ply"
     big = types[0] in ("double", "int", "uint")

@@ -1,4 +1,5 @@
-"""``recon repair``: manifold, oriented, volume kept, holes filled; checked with Open3D, trimesh, PyMeshLab."""
+"""``recon repair``: manifold, oriented, volume kept, holes filled; checked with Open3D, trimesh,
+PyMeshLab."""
 
 from __future__ import annotations
 
@@ -13,8 +14,8 @@ from recon_cli.errors import InputError, ParameterError
 from recon_cli.geometry import TriangleMesh, bbox_diagonal
 from recon_cli.mesh.sampling import sample_surface
 from recon_cli.mesh.topology import boundary_loops, report
-from recon_cli.stages.repair import repair, run_stage
 from recon_cli.stages import apply_stage
+from recon_cli.stages.repair import repair, run_stage
 
 import mesh_damage as D
 from shared_data import CLOSED_MESHES, load_shared, sampled_cloud, shared_path
@@ -353,11 +354,12 @@ def test_attributes_follow_vertices():
 
 REPAIR_KEYS = [
     "vertices_in", "faces_in", "vertices_merged", "merge_distance", "degenerate_faces_removed",
-    "duplicate_faces_removed", "unreferenced_vertices_removed", "non_manifold_edges", "non_manifold_faces_dropped",
-    "non_manifold_faces_detached", "non_manifold_vertices_split", "vertices_added", "non_orientable_edges_cut",
-    "non_orientable_faces_dropped", "faces_flipped", "components_reversed", "holes", "holes_filled",
-    "holes_skipped", "fill_faces_added", "components_removed", "component_faces_removed", "vertices_out", "faces_out",
-    "components", "boundary_loops", "watertight", "genus", "volume",
+    "duplicate_faces_removed", "unreferenced_vertices_removed", "non_manifold_edges",
+    "non_manifold_faces_dropped", "non_manifold_faces_detached", "non_manifold_vertices_split",
+    "vertices_added", "non_orientable_edges_cut", "non_orientable_faces_dropped", "faces_flipped",
+    "components_reversed", "holes", "holes_filled", "holes_skipped", "fill_faces_added",
+    "components_removed", "component_faces_removed", "vertices_out", "faces_out", "components",
+    "boundary_loops", "watertight", "genus", "volume",
 ]  # fmt: skip
 
 

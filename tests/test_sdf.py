@@ -9,10 +9,10 @@ import pytest
 from recon_cli.errors import InputError, ParameterError
 from recon_cli.geometry import PointCloud, TriangleMesh
 from recon_cli.grid import Grid
-from recon_cli.stages.mcubes import marching_cubes
 from recon_cli.mesh.distance import closest_points
-from recon_cli.stages.sdf import eikonal_check, grid_frame, grid_points, mesh_sdf
 from recon_cli.stages import apply_stage
+from recon_cli.stages.mcubes import marching_cubes
+from recon_cli.stages.sdf import eikonal_check, grid_frame, grid_points, mesh_sdf
 
 from shapes import box_distance, box_mesh
 from shared_data import ALL_MESHES, CLOSED_MESHES, load_shared, sampled_cloud
@@ -285,8 +285,9 @@ def test_open3d_backend_agrees_with_native_and_is_meshes_only():
 @pytest.mark.parametrize("name", CLOSED_MESHES)
 def test_closed_mesh_signs_by_classes_agree_with_pseudonormals(name):
     """On a closed mesh ``sign="winding"`` evaluates one winding number per side class
-    (``sign_method`` "classes"): at most 2 % of the samples at 64^3 (the mug: 1.1 %, its thin walls leave single samples), and on these
-    clean outward meshes the same grid as the pseudonormal sign."""
+    (``sign_method`` "classes"): at most 2 % of the samples at 64^3 (the mug: 1.1 %, its thin walls
+    leave single samples), and on these clean outward meshes the same grid as the pseudonormal sign.
+    """
     m = load_shared(name)
     origin, h, shape = grid_frame(m.vertices.min(0), m.vertices.max(0), 64)
     sdf, info = mesh_sdf(m.vertices, m.faces, origin, h, shape, sign="winding")

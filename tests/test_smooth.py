@@ -9,6 +9,7 @@ import sys
 
 import numpy as np
 import pytest
+from test_simplify import boundary_segments, terrain, to_segments
 
 from recon_cli.backends import pymeshlab_backend
 from recon_cli.errors import InputError, ParameterError
@@ -20,7 +21,6 @@ from recon_cli.stages.smooth import neighbours, smooth, taubin_mu
 
 import shapes as S
 from shared_data import load_shared
-from test_simplify import boundary_segments, terrain, to_segments
 
 
 def noisy_sphere(subdivisions: int = 5, noise: float = 0.005, seed: int = 0):

@@ -77,7 +77,8 @@ def test_no_command_compiles_after_warmup(tmp_path):
     assert (
         report["bytecode"] is True
     )  # every module's .pyc written: no command compiles Python source
-    # the ballpivot/mcubes kernels compiled ahead of time (a C compiler is on every machine make install runs on)
+    # the ballpivot/mcubes kernels compiled ahead of time (a C compiler is on every machine make
+    # install runs on)
     assert report["aot_built"] is True and report["aot_reason"] is None, report["aot_reason"]
     assert report["aot_dir"].startswith(str(tmp_path / "cache" / "aot"))
     for module in (
@@ -109,3 +110,87 @@ def test_no_command_compiles_after_warmup(tmp_path):
     )
     assert after.returncode == 0, after.stderr
     assert json.loads(after.stdout.strip().splitlines()[-1]) == []
+
+
+KMOD = """
+from numba import njit
+
+
+@njit(cache=True)
+def f(x):
+    return x + 1
+"""
+
+RACE = r"""
+import os, sys, time
+root, lock_dir, me, other, arg = sys.argv[1:6]
+sys.path.insert(0, root)
+from numba.core import event
+from recon_cli.cli._warmup import serialize_kernel_compiles
+
+serialize_kernel_compiles(lock_dir)
+compiled = []
+
+
+class Slow(event.Listener):
+    def on_start(self, ev):
+        compiled.append(str(ev.data["args"]))
+        time.sleep(1.5)  # long enough for the other process to ask for the kernel meanwhile
+
+    def on_end(self, ev):
+        pass
+
+
+event.register("numba:compile", Slow())
+import kmod
+
+open(os.path.join(root, me), "w").close()
+while not os.path.exists(os.path.join(root, other)):  # both call the kernel at once
+    time.sleep(0.005)
+kmod.f(eval(arg))
+print(len(compiled))
+"""
+
+
+def _race(tmp_path, args: tuple[str, str]) -> list[int]:
+    (tmp_path / "kmod.py").write_text(KMOD)
+    (tmp_path / "locks").mkdir(exist_ok=True)
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"))
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", RACE, str(tmp_path), str(tmp_path / "locks"), me, other, a],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=ROOT,
+        )
+        for me, other, a in (("a", "b", args[0]), ("b", "a", args[1]))
+    ]
+    outs = [p.communicate(timeout=300) for p in procs]
+    assert all(p.returncode == 0 for p in procs), [e for _, e in outs]
+    return [int(o.split()[-1]) for o, _ in outs]
+
+
+def test_workers_needing_one_kernel_at_once_compile_it_once(tmp_path):
+    # the second waits for the first's compile, then loads it from the cache
+    assert sorted(_race(tmp_path, ("1", "2"))) == [0, 1]
+
+
+def test_workers_compiling_two_variants_at_once_keep_both_in_the_cache(tmp_path):
+    assert _race(tmp_path, ("1", "2.5")) == [1, 1]
+    # a third process finds both in the kernel's cache index: it compiles nothing
+    after = (
+        "import sys; sys.path.insert(0, sys.argv[1])\n"
+        "import kmod\n"
+        "kmod.f(1); kmod.f(2.5)\n"
+        "print(sum(kmod.f.stats.cache_misses.values()), len(kmod.f.signatures))\n"
+    )
+    r = subprocess.run(
+        [sys.executable, "-c", after, str(tmp_path)],
+        env=dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache")),
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    assert r.stdout.split() == ["0", "2"]

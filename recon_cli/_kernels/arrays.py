@@ -1,6 +1,9 @@
-"""Arrays that grow inside numba kernels (amortised doubling is the caller's choice of ``cap``),
-a borrowed view of an array for hot loops that pass it to inlined helpers, and a
-binary search (no numpy function: see :func:`lower_bound`)."""
+"""Numba helpers on arrays: growable arrays, borrowed views, a binary search.
+
+Arrays grow inside kernels (amortised doubling is the caller's choice of ``cap``); a borrowed
+view of an array serves hot loops that pass it to inlined helpers; the binary search is no numpy
+function (see :func:`lower_bound`).
+"""
 
 from __future__ import annotations
 
@@ -59,7 +62,8 @@ def borrowed(typingctx, arr):
 
 @njit(cache=True, inline="always")
 def lower_bound(a, x, lo, hi):
-    """First index ``i`` in ``[lo, hi)`` of sorted 1-d ``a`` with ``a[i] >= x`` (``hi`` if none):
+    """First index ``i`` in ``[lo, hi)`` of sorted 1-d ``a`` with ``a[i] >= x`` (``hi`` if none).
+
     ``lo + np.searchsorted(a[lo:hi], x)``.
 
     Written out because numba's ``np.searchsorted`` lives in ``numba.np.arraymath``: a kernel

@@ -1,6 +1,9 @@
-"""Bit-level numba intrinsics: the high half of a 64x64-bit product, leading and trailing
-zeros, a float64 from its bit pattern, and eight bytes of a uint8 array as one little-endian
-uint64 (each one machine instruction where the CPU has it)."""
+"""Bit-level numba intrinsics.
+
+The high half of a 64x64-bit product, leading and trailing zeros, a float64 from its bit pattern,
+and eight bytes of a uint8 array as one little-endian uint64 (each one machine instruction where the
+CPU has it).
+"""
 
 from __future__ import annotations
 
@@ -58,10 +61,10 @@ def ctz64(typingctx, a):
 
 @intrinsic
 def load_u64le(typingctx, arr, i):
-    """The bytes ``arr[i:i + 8]`` of a contiguous 1-d uint8 array as one uint64, the first
-    byte lowest (an unaligned load: SWAR code reads eight characters at once).
+    """The bytes ``arr[i:i + 8]`` of a contiguous 1-d uint8 array as one little-endian uint64.
 
-    The caller guarantees ``0 <= i`` and ``i + 8 <= len(arr)``: nothing is checked.
+    An unaligned load: SWAR code reads eight characters at once. The caller guarantees ``0 <= i``
+    and ``i + 8 <= len(arr)``: nothing is checked.
     """
     if not (
         isinstance(arr, types.Array)

@@ -10,9 +10,12 @@ import os
 
 
 def kernel_sources_fingerprint(root: str | None = None) -> str:
-    """16 hex digits naming the state of the modules that can hold kernels under ``root``
-    (default: the recon_cli package): private ``_*.py`` modules and everything in ``_kernels/``
-    (path, size and modification time; a stat per file, about a millisecond)."""
+    """16 hex digits naming the state of the modules that can hold kernels under ``root``.
+
+    ``root`` defaults to the recon_cli package. The modules are the private ``_*.py`` modules and
+    everything in ``_kernels/`` (path, size and modification time; a stat per file, about a
+    millisecond).
+    """
     import hashlib
 
     root = root or os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -33,8 +36,11 @@ def kernel_sources_fingerprint(root: str | None = None) -> str:
 
 
 def cache_dir() -> str:
-    """The directory of recon's numba cache: ``$NUMBA_CACHE_DIR`` when set, else
-    ``$XDG_CACHE_HOME/recon/numba/<fingerprint>`` (``~/.cache/recon/numba/<fingerprint>``)."""
+    """The directory of recon's numba cache.
+
+    ``$NUMBA_CACHE_DIR`` when set, else ``$XDG_CACHE_HOME/recon/numba/<fingerprint>``
+    (``~/.cache/recon/numba/<fingerprint>``).
+    """
     explicit = os.environ.get("NUMBA_CACHE_DIR")
     if explicit:
         return explicit

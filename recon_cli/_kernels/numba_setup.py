@@ -34,9 +34,9 @@ from __future__ import annotations
 
 import os
 import sys
+from typing import Any
 
 from recon_cli._kernels.cache import cache_dir, kernel_sources_fingerprint  # noqa: F401  (re-exported)
-
 
 # numpy submodules recon never uses that numba's start-up loads anyway: numba checks for
 # BLAS by importing scipy.linalg, whose array-API layer star-imports numpy (numpy 2 loads its
@@ -75,7 +75,9 @@ if "numba" in sys.modules:  # imported before recon (by the user or a library): 
 
 import numba  # noqa: E402  (after NUMBA_CACHE_DIR is set)
 
-numba.config.CACHE_DIR = CACHE_DIR
+# numba.config's settings are made at run time: untyped for mypy
+_config: Any = numba.config
+_config.CACHE_DIR = CACHE_DIR
 
 if "NUMBA_THREADING_LAYER" not in os.environ and "NUMBA_THREADING_LAYER_PRIORITY" not in os.environ:
     # the priority must name all three; TBB last is only reached when neither other layer loads.
@@ -84,7 +86,7 @@ if "NUMBA_THREADING_LAYER" not in os.environ and "NUMBA_THREADING_LAYER_PRIORITY
     # imported before recon) and would reset an attribute set here to TBB first (a
     # NumbaWarning on stderr, an error under pytest's strict warnings)
     os.environ["NUMBA_THREADING_LAYER_PRIORITY"] = "omp workqueue tbb"
-    numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
+    _config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
 
 
 # Loading a cached kernel needs numba's runtime (NRT) only; numba refreshes its whole
@@ -113,9 +115,9 @@ def _lean_cache_loads() -> None:
             finally:
                 del target_context.refresh
 
-    load_overload.recon_lean = True
+    load_overload.recon_lean = True  # type: ignore[attr-defined]  # marks the patch as ours
     load_overload.__doc__ = full.__doc__
-    Cache.load_overload = load_overload
+    Cache.load_overload = load_overload  # type: ignore[method-assign]  # the patch itself
 
 
 if os.environ.get("RECON_NUMBA_FULL_REFRESH") != "1":

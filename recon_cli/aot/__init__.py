@@ -29,7 +29,8 @@ import importlib.machinery
 import importlib.util
 import os
 import sys
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -75,7 +76,10 @@ def _cpu_id() -> str:
 
 
 def _package_stamp(name: str) -> str:
-    """Path, size and modification time of an installed package's version files (without importing it)."""
+    """Path, size and modification time of an installed package's version files.
+
+    The package is not imported.
+    """
     spec = importlib.util.find_spec(name)
     if spec is None or not spec.origin:
         return f"{name}: absent"
@@ -92,8 +96,11 @@ def _package_stamp(name: str) -> str:
 
 
 def fingerprint() -> str:
-    """16 hex digits naming everything a build depends on: the kernel sources, numba and
-    llvmlite (their installed files), numpy's version, Python's, and the CPU."""
+    """16 hex digits naming everything a build depends on.
+
+    The kernel sources, numba and llvmlite (their installed files), numpy's version, Python's, and
+    the CPU.
+    """
     import hashlib
 
     h = hashlib.blake2b(digest_size=8)
@@ -112,8 +119,11 @@ def fingerprint() -> str:
 
 
 def build_dir() -> str:
-    """Where the build for this state lives: ``<numba cache directory>/aot/<fingerprint>``
-    (computed once per process, ~5 ms; :func:`reset` forgets it)."""
+    """Where the build for this state lives.
+
+    ``<numba cache directory>/aot/<fingerprint>`` (computed once per process, ~5 ms; :func:`reset`
+    forgets it).
+    """
     if _state["dir"] is None:
         _state["dir"] = os.path.join(cache_dir(), "aot", fingerprint())
     return _state["dir"]
@@ -137,7 +147,10 @@ def manifest() -> dict:
 
 
 def reset() -> None:
-    """Forget the manifest and the namespaces handed out (after a build, or to switch AOT off in a test)."""
+    """Forget the manifest and the namespaces handed out.
+
+    Called after a build, or to switch ahead-of-time kernels off in a test.
+    """
     _state["manifest"] = None
     _state["dir"] = None
     _state["namespaces"].clear()
@@ -145,14 +158,18 @@ def reset() -> None:
 
 
 def fallbacks() -> set[tuple[str, str, str | None]]:
-    """(module, kernel, signature key) of the calls of built modules' kernels that ran JIT (no variant
-    for their argument types) since the last :func:`reset`."""
+    """The calls of built modules' kernels that ran JIT since the last :func:`reset`.
+
+    Each is (module, kernel, signature key): the build had no variant for those argument types.
+    """
     return set(_state["fallbacks"])
 
 
 def type_key(x: Any) -> str | None:
-    """Numba's type of ``x`` as a string (as :func:`recon_cli.aot.build.numba_type_key`
-    writes it), or None for a value no ahead-of-time variant takes."""
+    """Numba's type of ``x`` as a string, or None for a value no ahead-of-time variant takes.
+
+    The string is the one :func:`recon_cli.aot.build.numba_type_key` writes.
+    """
     t = type(x)
     if t is np.ndarray:
         dt = x.dtype
@@ -188,7 +205,10 @@ def signature_key(args: tuple) -> str | None:
 
 
 class _Kernels:
-    """A kernel module's public kernels (functions only), compiled ahead of time, JIT for anything else."""
+    """A kernel module's public kernels: compiled ahead of time, JIT for any other argument types.
+
+    Functions only: constants of the kernel module are not carried.
+    """
 
     def __init__(self, name: str, ext: Any, table: dict[str, dict[str, str]]):
         self.__name__ = name
@@ -235,8 +255,10 @@ def _load_extension(name: str, path: str) -> Any:
 
 
 def kernels(name: str) -> Any:
-    """The kernels of module ``name`` (e.g. ``"recon_cli.stages.ballpivot._kernel"``): its ahead-of-time
-    build when there is one, else the module itself (numba JIT, from the cache)."""
+    """The kernels of module ``name`` (e.g. ``"recon_cli.stages.ballpivot._kernel"``).
+
+    Its ahead-of-time build when there is one, else the module itself (numba JIT, from the cache).
+    """
     ns = _state["namespaces"].get(name)
     if ns is None:
         entry = manifest().get("modules", {}).get(name)

@@ -2,10 +2,12 @@
 
 Called by ``recon warmup`` after the warm-up has compiled (or loaded) every kernel for the
 types recon uses: each public ``@njit`` kernel of :data:`~recon_cli.aot.MODULES`
-is exported once per signature its dispatcher holds, from its own Python function (the
-single source), into one extension module per kernel module, compiled for this CPU. Needs a
-C compiler (pycc compiles numba's small C runtime into each module); without one, or when
-pycc fails, the report says why and the kernels keep running JIT.
+is exported once per signature the warm-up gave it (:func:`signatures`, gathered from its
+worker processes), from its own Python function (the single source), into one extension
+module per kernel module, compiled for this CPU; the extensions are built in parallel
+(:func:`compile_extension`, one job each). Needs a C compiler (pycc compiles numba's small
+C runtime into each module); without one, or when pycc fails, the report says why and the
+kernels keep running JIT.
 """
 
 from __future__ import annotations
@@ -18,15 +20,18 @@ import shutil
 import tempfile
 import time
 import warnings
-from typing import Any, Callable, Iterator
+from collections.abc import Callable, Iterator
+from typing import Any
 
 from recon_cli import aot
-from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache directory, before numba)
+from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache dir, before numba)
 
 
 def numba_type_key(t: Any) -> str | None:
-    """The key :func:`recon_cli.aot.type_key` computes for a value of numba type ``t``
-    (None for a type no ahead-of-time variant takes: records, lists, literals, omitted args...)."""
+    """The :func:`recon_cli.aot.type_key` of a value of numba type ``t``.
+
+    None for a type no ahead-of-time variant takes: records, lists, literals, omitted arguments.
+    """
     from numba.core import types
     from numba.np.numpy_support import as_dtype
 
@@ -35,7 +40,8 @@ def numba_type_key(t: Any) -> str | None:
     if isinstance(t, types.Array):
         if not isinstance(t.dtype, (types.Boolean, types.Integer, types.Float, types.Complex)):
             return None
-        return f"{as_dtype(t.dtype).str}:{t.ndim}{t.layout}{'' if t.mutable else 'r'}{'' if t.aligned else 'u'}"
+        flags = ("" if t.mutable else "r") + ("" if t.aligned else "u")
+        return f"{as_dtype(t.dtype).str}:{t.ndim}{t.layout}{flags}"
     if isinstance(t, types.Boolean):
         return "bool"
     if isinstance(t, (types.Integer, types.Float, types.Complex)):
@@ -48,41 +54,74 @@ def numba_type_key(t: Any) -> str | None:
     return None
 
 
-def exports(
-    module_name: str,
-) -> tuple[list[tuple[str, Any, Any]], dict[str, dict[str, str]], list[str]]:
-    """What to export from ``module_name``: (export name, signature, function) triples, the
-    manifest's table ``{kernel: {signature key: export name}}``, and the kernels left to JIT (why)."""
+def signatures(module_name: str) -> dict[str, list[tuple[Any, Any]]]:
+    """The ``(argument types, return type)`` of every variant of ``module_name``'s kernels.
+
+    Those its public kernels hold in this process (compiled or loaded from the cache): what a
+    warm-up worker hands back so that another process can build them (numba types pickle).
+    """
     from numba.core.registry import CPUDispatcher
 
     mod = importlib.import_module(module_name)
+    out: dict[str, list[tuple[Any, Any]]] = {}
+    for name, obj in sorted(vars(mod).items()):
+        if (
+            isinstance(obj, CPUDispatcher)
+            and obj.py_func.__module__ == module_name
+            and not name.startswith("_")
+            and obj.overloads
+        ):
+            out[name] = [
+                # CompileResult's fields are set at run time (numba's own typing lacks them)
+                (tuple(args), cres.signature.return_type)  # type: ignore[attr-defined]
+                for args, cres in obj.overloads.items()
+            ]
+    return out
+
+
+def exports(
+    module_name: str, sigs: dict[str, list[tuple[Any, Any]]] | None = None
+) -> tuple[list[tuple[str, Any, Any]], dict[str, dict[str, str]], list[str]]:
+    """What to export from ``module_name``.
+
+    (export name, signature, function) triples, the manifest's table ``{kernel: {signature key:
+    export name}}``, and the kernels left to JIT (why).
+
+    ``sigs`` (as :func:`signatures` gives them, from any process) names the variants; by
+    default those the kernels hold in this process.
+
+    """
+    from numba.core.registry import CPUDispatcher
+
+    mod = importlib.import_module(module_name)
+    if sigs is None:
+        sigs = signatures(module_name)
     entries: list[tuple[str, Any, Any]] = []
     table: dict[str, dict[str, str]] = {}
     skipped: list[str] = []
-    for name, obj in sorted(vars(mod).items()):
-        if (
-            not isinstance(obj, CPUDispatcher)
-            or obj.py_func.__module__ != module_name
-            or name.startswith("_")
-        ):
+    for name, variants in sorted(sigs.items()):
+        obj = getattr(mod, name, None)
+        if not isinstance(obj, CPUDispatcher):
+            skipped.append(f"{name} (not a kernel of the module)")
             continue
         if obj.targetoptions.get("parallel"):
             skipped.append(f"{name} (parallel)")
             continue
-        for i, (args, cres) in enumerate(sorted(obj.overloads.items(), key=lambda kv: str(kv[0]))):
+        unique = {tuple(args): ret for args, ret in variants}
+        for i, (args, ret) in enumerate(sorted(unique.items(), key=lambda kv: str(kv[0]))):
             key = "|".join(k or "?" for k in (numba_type_key(a) for a in args))
             if "?" in key.split("|") or "?" in key:
                 skipped.append(f"{name}{tuple(str(a) for a in args)} (argument types)")
                 continue
             export = f"{name}__{i}"
-            entries.append((export, cres.signature, obj.py_func))
+            entries.append((export, ret(*args), obj.py_func))
             table.setdefault(name, {})[key] = export
     return entries, table, skipped
 
 
 @contextlib.contextmanager
 def _quiet_pycc() -> Iterator[None]:
-    """pycc's pending-deprecation warning, for the length of the build only."""
+    """Pycc's pending-deprecation warning, for the length of the build only."""
     from numba.core.errors import NumbaPendingDeprecationWarning
 
     with warnings.catch_warnings():
@@ -108,17 +147,82 @@ def _extension_name(module_name: str) -> str:
     return "recon_aot_" + module_name.replace(".", "_")
 
 
+def compile_extension(
+    name: str, work: str, sigs: dict[str, list[tuple[Any, Any]]] | None = None
+) -> dict:
+    """Build the extension of kernel module ``name`` into the folder ``work``.
+
+    One job of :func:`build`, possibly in another process. Returns ``{"module", "entry"}`` (its
+    manifest entry, None when nothing was exported), ``"skipped"`` and ``"failure"`` (None, or
+    why pycc failed).
+    """
+    out: dict[str, Any] = {"module": name, "entry": None, "skipped": [], "failure": None}
+    entries, table, skipped = exports(name, sigs)
+    out["skipped"] = [f"{name}.{s}" for s in skipped]
+    if not entries:
+        return out
+    ext = _extension_name(name)
+    try:
+        with _quiet_pycc():
+            from numba.pycc import CC
+
+            cc = CC(ext, source_module=importlib.import_module(name))
+            cc.output_dir = work
+            cc.target_cpu = "host"
+            for export, sig, fn in entries:
+                cc.export(export, sig)(fn)
+            cc.compile()
+    except Exception as exc:  # noqa: BLE001  (this module stays JIT; the report says why)
+        out["failure"] = f"{name}: {_first_line(exc)}"
+        return out
+    out["entry"] = {"extension": ext, "file": cc.output_file, "functions": table}
+    return out
+
+
+def compile_library(lib: str, source: str, work: str) -> dict:
+    """Compile the C ``source`` into ``work``/lib<lib>.so: ``{"library", "file", "failure"}``."""
+    out: dict[str, Any] = {"library": lib, "file": None, "failure": None}
+    try:
+        with _quiet_pycc():
+            from numba.pycc.platform import Toolchain
+
+        tc = Toolchain()
+        src = os.path.join(work, f"{lib}.c")
+        with open(src, "w", encoding="utf-8") as fh:
+            fh.write(source)
+        objs = tc.compile_objects([src], os.path.join(work, f"obj-{lib}"))
+        tc.link_shared(os.path.join(work, f"lib{lib}.so"), objs)
+        out["file"] = f"lib{lib}.so"
+    except Exception as exc:  # noqa: BLE001
+        out["failure"] = f"{lib}: {_first_line(exc)}"
+    return out
+
+
+def _first_line(exc: BaseException) -> str:
+    return f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
+
+
 def build(
     modules: tuple[str, ...] = aot.MODULES,
     c_libraries: dict[str, str] | None = None,
     log: Callable[[str], None] | None = None,
     force: bool = False,
+    sigs: dict[str, dict[str, list[tuple[Any, Any]]]] | None = None,
+    submit: Callable[..., Any] | None = None,
+    done: Callable[[], None] | None = None,
 ) -> dict:
-    """Build the extensions of ``modules`` (and the C ``c_libraries``, name -> source) into
-    :func:`~recon_cli.aot.build_dir`.
+    """Build the extensions of ``modules`` into :func:`~recon_cli.aot.build_dir`.
+
+    The C ``c_libraries`` (name -> source) are built there too.
+
+    ``sigs`` gives each module's variants (``{module: signatures(module)}``, gathered from the
+    warm-up's workers); by default those its kernels hold in this process. With ``submit``
+    (an executor's ``submit``) each extension and library is a job of its own, run there (in
+    parallel); ``done`` is called as each job ends.
 
     Returns ``{"built": bool, "dir", "modules", "skipped", "seconds", "reason"}``: ``reason``
     says why nothing was built (no compiler, pycc failed) or that the build was up to date.
+
     """
     t0 = time.perf_counter()
     target = aot.build_dir()
@@ -148,9 +252,6 @@ def build(
     if problem:
         out["reason"] = problem
         return out
-    with _quiet_pycc():
-        from numba.pycc import CC
-        from numba.pycc.platform import Toolchain
 
     parent = os.path.dirname(target)
     os.makedirs(parent, exist_ok=True)
@@ -160,56 +261,33 @@ def build(
         "modules": {},
         "libraries": {},
     }
+    # the slowest first: a module's pycc build is seconds, the C library a fraction of one
+    jobs: list[tuple[Callable[..., dict], tuple]] = [
+        (compile_extension, (name, work, None if sigs is None else sigs.get(name, {})))
+        for name in modules
+    ]
+    jobs += [(compile_library, (lib, source, work)) for lib, source in (c_libraries or {}).items()]
     failures = []
     try:
-        for name in modules:
-            entries, table, skipped = exports(name)
-            out["skipped"] += [f"{name}.{s}" for s in skipped]
-            if not entries:
-                continue
-            ext = _extension_name(name)
-            try:
-                with _quiet_pycc():
-                    cc = CC(ext, source_module=importlib.import_module(name))
-                    cc.output_dir = work
-                    cc.target_cpu = "host"
-                    for export, sig, fn in entries:
-                        cc.export(export, sig)(fn)
-                    cc.compile()
-            except Exception as exc:  # noqa: BLE001  (this module stays JIT; the report says why)
-                failures.append(
-                    f"{name}: {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
-                )
-                continue
-            manifest["modules"][name] = {
-                "extension": ext,
-                "file": cc.output_file,
-                "functions": table,
-            }
-            out["modules"].append(name)
-        for lib, source in (c_libraries or {}).items():
-            try:
-                tc = Toolchain()
-                src = os.path.join(work, f"{lib}.c")
-                with open(src, "w", encoding="utf-8") as fh:
-                    fh.write(source)
-                objs = tc.compile_objects([src], os.path.join(work, "obj"))
-                file = f"lib{lib}.so"
-                tc.link_shared(os.path.join(work, file), objs)
-                manifest["libraries"][lib] = file
-            except Exception as exc:  # noqa: BLE001
-                failures.append(
-                    f"{lib}: {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
-                )
-        shutil.rmtree(os.path.join(work, "obj"), ignore_errors=True)
+        for result in _run_jobs(jobs, submit, done):
+            if result.get("failure"):
+                failures.append(result["failure"])
+            if "module" in result:
+                out["skipped"] += result["skipped"]
+                if result["entry"] is not None:
+                    manifest["modules"][result["module"]] = result["entry"]
+            elif result.get("file"):
+                manifest["libraries"][result["library"]] = result["file"]
+        out["modules"] = [name for name in modules if name in manifest["modules"]]
         for leaf in os.listdir(work):
-            if leaf.endswith(".c"):
-                os.remove(os.path.join(work, leaf))
+            path = os.path.join(work, leaf)
+            if leaf.startswith("obj-"):
+                shutil.rmtree(path, ignore_errors=True)
+            elif leaf.endswith(".c"):
+                os.remove(path)
         with open(os.path.join(work, aot.MANIFEST), "w", encoding="utf-8") as fh:
             json.dump(manifest, fh, indent=1, sort_keys=True)
-        if os.path.exists(
-            target
-        ):  # a stale or partial build of this very state (or --force): ours replaces it
+        if os.path.exists(target):  # a stale or partial build of this very state (or --force)
             shutil.rmtree(target, ignore_errors=True)
         os.replace(work, target)
     finally:
@@ -225,3 +303,39 @@ def build(
                 log(f"ahead-of-time build: {f}")
     out["seconds"] = time.perf_counter() - t0
     return out
+
+
+def _run_jobs(
+    jobs: list[tuple[Callable[..., dict], tuple]],
+    submit: Callable[..., Any] | None,
+    done: Callable[[], None] | None,
+) -> Iterator[dict]:
+    """Each job's result, in turn here or through ``submit`` as they end.
+
+    A job that died (e.g. with its worker process) gives a failure.
+    """
+    if submit is None:
+        for fn, args in jobs:
+            result = fn(*args)
+            if done is not None:
+                done()
+            yield result
+        return
+    from concurrent.futures import as_completed
+
+    futures = {}
+    for fn, args in jobs:
+        try:
+            futures[submit(fn, *args)] = args[0]
+        except Exception as exc:  # noqa: BLE001  (the executor is gone, e.g. a worker died)
+            if done is not None:
+                done()
+            yield {"failure": f"{args[0]}: {_first_line(exc)}"}
+    for future in as_completed(futures):
+        try:
+            result = future.result()
+        except Exception as exc:  # noqa: BLE001  (a worker that died: this job stays undone)
+            result = {"failure": f"{futures[future]}: {_first_line(exc)}"}
+        if done is not None:
+            done()
+        yield result

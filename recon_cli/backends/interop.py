@@ -1,5 +1,6 @@
-"""Conversions between recon's arrays and Open3D or trimesh geometry (``to_open3d()``,
-``to_trimesh()``, and what the library functions accept).
+"""Conversions between recon's arrays and Open3D or trimesh geometry.
+
+They serve ``to_open3d()``, ``to_trimesh()`` and what the library functions accept.
 
 Arrays in, arrays out: this module knows neither :mod:`recon_cli.geometry` nor the stages
 (geometry calls it), and imports Open3D or trimesh only when converting to or from one of
@@ -31,7 +32,10 @@ FIELDS = ("points", "faces", "normals", "colors", "attributes", "face_attributes
 
 
 def library_of(obj: Any) -> str | None:
-    """``"open3d"`` or ``"trimesh"`` when ``obj`` is one of their objects, else None (imports nothing)."""
+    """``"open3d"`` or ``"trimesh"`` when ``obj`` is one of their objects, else None.
+
+    Imports nothing.
+    """
     top = type(obj).__module__.split(".")[0]
     return top if top in ("open3d", "trimesh") else None
 

@@ -95,6 +95,7 @@ def poisson(
 
 
 def ball_pivoting(cloud: PointCloud, radii: list[float]) -> TriangleMesh:
+    """Open3D ``create_from_point_cloud_ball_pivoting`` with the ball ``radii``."""
     o3d = require("open3d")
     pc = to_o3d_cloud(cloud)
     record(
@@ -120,6 +121,7 @@ def signed_distance(mesh: TriangleMesh, query: np.ndarray) -> np.ndarray:
 
 
 def unsigned_distance(mesh: TriangleMesh, query: np.ndarray) -> np.ndarray:
+    """Open3D ``RaycastingScene.compute_distance`` at ``query`` ((k, 3))."""
     o3d = require("open3d")
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from recon_cli.backends import record, require
@@ -28,6 +30,7 @@ def meshset(obj: PointCloud | TriangleMesh):
 
 
 def current_mesh(ms, history: list[str] | None = None) -> TriangleMesh:
+    """The current mesh of MeshSet ``ms`` as a :class:`~recon_cli.geometry.TriangleMesh`."""
     m = ms.current_mesh()
     return TriangleMesh(
         vertices=np.asarray(m.vertex_matrix(), dtype=np.float64),
@@ -38,8 +41,9 @@ def current_mesh(ms, history: list[str] | None = None) -> TriangleMesh:
 
 
 def estimate_normals(cloud: PointCloud, knn: int = 10, viewpoint=None) -> np.ndarray:
+    """PyMeshLab ``compute_normal_for_point_clouds``: (n, 3) normals of ``cloud``."""
     ms = meshset(PointCloud(points=cloud.points))
-    kwargs = {"k": knn}
+    kwargs: dict[str, Any] = {"k": knn}
     if viewpoint is not None:
         kwargs["viewpos"] = np.asarray(viewpoint, dtype=np.float64)
     record(
@@ -58,6 +62,7 @@ def poisson(
     samples_per_node: float = 1.5,
     point_weight: float = 4.0,
 ) -> TriangleMesh:
+    """PyMeshLab ``generate_surface_reconstruction_screened_poisson`` of an oriented ``cloud``."""
     ms = meshset(cloud)
     record(
         "pymeshlab.generate_surface_reconstruction_screened_poisson",
@@ -100,6 +105,7 @@ def ball_pivoting(
 
 
 def topological_measures(mesh: TriangleMesh) -> dict:
+    """PyMeshLab ``get_topological_measures`` of ``mesh``."""
     ms = meshset(mesh)
     return dict(ms.get_topological_measures())
 
@@ -154,12 +160,17 @@ def hausdorff_points(points: np.ndarray, target: TriangleMesh) -> dict:
 
 
 def repair(mesh: TriangleMesh, fill_holes: int = 0) -> TriangleMesh:
-    """PyMeshLab's cleaning chain matching ``recon repair``'s steps: merge duplicate vertices,
-    remove null and duplicate faces and unreferenced vertices, repair non-manifold edges
-    (remove faces) and vertices (split), re-orient coherently, optionally close holes."""
+    """PyMeshLab's cleaning chain matching ``recon repair``'s steps.
+
+    Merge duplicate vertices, remove null and duplicate faces and unreferenced vertices, repair
+    non-manifold edges (remove faces) and vertices (split), re-orient coherently, optionally close
+    holes.
+    """
     record(
-        "pymeshlab cleaning chain: meshing_remove_duplicate_vertices, _null_faces, _duplicate_faces, _unreferenced_vertices, "
-        "meshing_repair_non_manifold_edges(method='Remove Faces'), _vertices, meshing_re_orient_faces_coherently, meshing_close_holes",
+        "pymeshlab cleaning chain: meshing_remove_duplicate_vertices, _null_faces, "
+        "_duplicate_faces, _unreferenced_vertices, "
+        "meshing_repair_non_manifold_edges(method='Remove Faces'), _vertices, "
+        "meshing_re_orient_faces_coherently, meshing_close_holes",
         maxholesize=int(fill_holes) if fill_holes else None,
     )
     ms = meshset(TriangleMesh(vertices=mesh.vertices, faces=mesh.faces))
@@ -182,7 +193,8 @@ def ball_pivoting_radii(
     ml = require("pymeshlab")
     ms = meshset(cloud)
     record(
-        "pymeshlab.generate_surface_reconstruction_ball_pivoting (once per radius, deletefaces=False)",
+        "pymeshlab.generate_surface_reconstruction_ball_pivoting "
+        "(once per radius, deletefaces=False)",
         ballradius=[float(r) for r in radii],
         clustering=clustering,
         creasethr=creasethr,
@@ -207,8 +219,10 @@ def _local(mesh: TriangleMesh):
 
 
 def simplify_quadric(mesh: TriangleMesh, faces: int) -> TriangleMesh:
-    """PyMeshLab ``meshing_decimation_quadric_edge_collapse`` to ``faces`` triangles, with its
-    topology and normal preservation on (the guarantees ``recon simplify`` gives)."""
+    """PyMeshLab ``meshing_decimation_quadric_edge_collapse`` to ``faces`` triangles.
+
+    Its topology and normal preservation are on (the guarantees ``recon simplify`` gives).
+    """
     ms, centre = _local(mesh)
     kwargs = {"targetfacenum": int(faces), "preservetopology": True, "preservenormal": True}
     record("pymeshlab.meshing_decimation_quadric_edge_collapse", **kwargs)

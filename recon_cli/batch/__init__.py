@@ -10,17 +10,16 @@ ends in a grid) atomically, and returns a small record; the data never passes th
 the scheduler, so the inputs and the output folder must be on a filesystem the workers
 share with the caller.
 
-Failures stay per input: an error in one input's task gives it status ``failed`` with a
-one-line message, and the others go on. A worker process that dies while running an
-input (killed, out of memory) has that input rescheduled once on a live worker, and when
-it dies again the input is reported ``failed`` with ``error_type`` ``"KilledWorker"``
-(the local cluster's scheduler runs with ``distributed.scheduler.allowed-failures=1``;
-an existing cluster keeps its own setting, 3 by default). No more inputs are in flight
-than the cluster has threads, so a dying worker only takes down, and makes suspect, the
-inputs it was running, never inputs waiting in its queue; an input that had finished but
-whose record was still held by the dying worker is recomputed, not failed. Dask's ``retries=1`` is also
-set on every task, for errors escaping the task function (which catches recon's own
-errors itself, since rerunning a deterministic failure gains nothing).
+Failures stay per input: an error in one input's task gives it status ``failed`` with a one-line
+message, and the others go on. A worker process that dies while running an input (killed, out of
+memory) has that input rescheduled once on a live worker, and when it dies again the input is
+reported ``failed`` with ``error_type`` ``"KilledWorker"`` (the local cluster's scheduler runs with
+``distributed.scheduler.allowed-failures=1``; an existing cluster keeps its own setting, 3 by
+default). No more inputs are in flight than the cluster has threads, so a dying worker only takes
+down, and makes suspect, the inputs it was running, never inputs waiting in its queue; an input that
+had finished but whose record was still held by the dying worker is recomputed, not failed. Dask's
+``retries=1`` is also set on every task, for errors escaping the task function (which catches
+recon's own errors itself, since rerunning a deterministic failure gains nothing).
 
 An interruption (Ctrl-C: KeyboardInterrupt in the calling thread) cancels the running
 tasks, records the unfinished inputs as ``interrupted`` in the summary, closes the local

@@ -9,8 +9,9 @@ import os
 import signal
 import threading
 import time
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 from recon_cli.batch.plan import (
     OUTPUT_SUFFIXES,
@@ -76,7 +77,7 @@ def dask_setup(worker: Any) -> None:
 
 @contextlib.contextmanager
 def _dask_log_level(level: int):
-    """Dask's loggers in this process at ``level`` (they propagate to the root logger) for the block."""
+    """Dask's loggers in this process at ``level`` for the block (they propagate to the root)."""
     logger = logging.getLogger("distributed")
     old = logger.level
     logger.setLevel(level)
@@ -125,9 +126,11 @@ def _client_inner(scheduler, workers, threads_per_worker, memory_limit, log_leve
 
     if workers is None:
         workers = max(1, CPU_COUNT // threads_per_worker)
-    # numba's thread pool per worker process = its Dask threads, so workers do not oversubscribe the cores
+    # numba's thread pool per worker process = its Dask threads, so workers do not oversubscribe the
+    # cores
     env = {"NUMBA_NUM_THREADS": str(threads_per_worker)}
-    # allowed-failures=1: an input whose worker dies is rescheduled once, then fails with KilledWorker
+    # allowed-failures=1: an input whose worker dies is rescheduled once, then fails with
+    # KilledWorker
     with _sigint_held() as interrupted:
         try:
             with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
@@ -137,7 +140,8 @@ def _client_inner(scheduler, workers, threads_per_worker, memory_limit, log_leve
                     processes=True,
                     memory_limit=memory_limit,
                     dashboard_address=None,
-                    # no dashboard; its HTTP server (health, metrics) on a free port, not 8787 (maybe taken)
+                    # no dashboard; its HTTP server (health, metrics) on a free port, not 8787
+                    # (maybe taken)
                     scheduler_kwargs={"dashboard_address": ":0"},
                     silence_logs=log_level,
                     env=env,
@@ -156,8 +160,10 @@ def _client_inner(scheduler, workers, threads_per_worker, memory_limit, log_leve
 
 
 def _sigint_catchable() -> bool:
-    """Whether to take Ctrl-C with our own handler: only the main thread can, and a SIGINT
-    the parent left ignored (``nohup ... &``) stays ignored."""
+    """Whether to take Ctrl-C with our own handler.
+
+    Only the main thread can, and a SIGINT the parent left ignored (``nohup ... &``) stays ignored.
+    """
     return (
         threading.current_thread() is threading.main_thread()
         and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN
@@ -228,7 +234,8 @@ def _failed_from_future(entry: dict, exc: BaseException | None, status: str) -> 
             exc.allowed_failures + 1, f"{exc.allowed_failures + 1} times"
         )
         rec.update(
-            error=f"{entry['input']}: the worker process running it died {deaths} (killed or out of memory)",
+            error=f"{entry['input']}: the worker process running it died {deaths} "
+            "(killed or out of memory)",
             error_type="KilledWorker",
         )
     elif exc is not None:
@@ -326,7 +333,8 @@ def run_batch(
     mem = _check_memory_limit(memory_limit)
     with registered_stages(extra_stages):
         pipe = load_pipeline(pipeline_path)
-        # the workers resolve each stage exactly as this process did (a worker may be on another machine)
+        # the workers resolve each stage exactly as this process did (a worker may be on another
+        # machine)
         from recon_cli.stages import STAGES
 
         stage_map = {step.name: STAGES[step.name] for step in pipe.steps}
@@ -543,7 +551,8 @@ def _collect(
                     exc = fut.exception() if fut.status == "error" else None
                     rec = _failed_from_future(entries[i], exc, fut.status)
                 records[i] = rec
-                fut.release()  # the scheduler forgets the result: a later worker death cannot recompute it
+                # the scheduler forgets the result: a later worker death cannot recompute it
+                fut.release()
                 bar.advance(1)
                 fill()
     except BaseException:

@@ -1,12 +1,15 @@
-"""Which inputs a batch runs: expanding files, folders and globs, output names, what is up to date."""
+"""Which inputs a batch runs.
+
+Expanding files, folders and globs, output names, what is up to date.
+"""
 
 from __future__ import annotations
 
 import glob
 import json
 import os
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Iterable
 
 from recon_cli.errors import InputError, ParameterError
 
@@ -92,7 +95,7 @@ def existing_output(base: str) -> str | None:
 
 
 def is_up_to_date(output: str | None, input_path: str, pipeline_path: str) -> bool:
-    """True when ``output`` exists and is strictly newer than both the input and the pipeline file."""
+    """True when ``output`` exists and is strictly newer than the input and the pipeline file."""
     if output is None:
         return False
     try:
@@ -110,9 +113,10 @@ def plan_batch(
     out_dir: str | os.PathLike,
     force: bool = False,
 ) -> list[dict]:
-    """One entry per input: ``{"input", "base", "action", ...}`` with ``action`` one of
-    ``"run"``, ``"skip"`` (up to date, see :func:`is_up_to_date`) or ``"fail"`` (``error``
-    says why: a missing file, an empty folder or pattern).
+    """One entry per input: ``{"input", "base", "action", ...}``.
+
+    ``action`` is one of ``"run"``, ``"skip"`` (up to date, see :func:`is_up_to_date`) or
+    ``"fail"`` (``error`` says why: a missing file, an empty folder or pattern).
 
     Raises
     ------
@@ -127,8 +131,10 @@ def plan_batch(
     if not expanded:
         raise InputError("no inputs given")
     if all(problem is not None for _, problem in expanded):
-        # nothing to run at all (a missing or empty folder, a pattern matching nothing): bad input, not a batch
+        # nothing to run at all (a missing or empty folder, a pattern matching nothing): bad input,
+        # not a batch
         path, problem = expanded[0]
+        assert problem is not None  # every input has one
         more = f" (and {len(expanded) - 1} more inputs, none usable)" if len(expanded) > 1 else ""
         raise InputError(problem + more, path)
     entries = []
@@ -149,7 +155,8 @@ def plan_batch(
         key = base
         if key in by_base:
             raise ParameterError(
-                f"inputs {by_base[key]!r} and {path!r} would both write {base}.ply/.npz (rename one or run them apart)"
+                f"inputs {by_base[key]!r} and {path!r} would both write {base}.ply/.npz "
+                "(rename one or run them apart)"
             )
         by_base[key] = path
         for suffix in OUTPUT_SUFFIXES:
@@ -166,6 +173,7 @@ def plan_batch(
 
 
 def read_previous(summary_path: str) -> dict[str, dict]:
+    """The records of an earlier run's summary file by input (empty when there is none)."""
     try:
         with open(summary_path, encoding="utf-8") as f:
             doc = json.load(f)

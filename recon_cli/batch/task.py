@@ -1,4 +1,7 @@
-"""One input of a batch, as a worker runs it: read, run the pipeline, write, and a small record back."""
+"""One input of a batch, as a worker runs it.
+
+Read, run the pipeline, write, and a small record back.
+"""
 
 from __future__ import annotations
 
@@ -73,6 +76,7 @@ def data_stats(obj: Any) -> dict:
 
 
 def error_line(exc: BaseException) -> str:
+    """The first line of ``exc``'s message (its type's name when it has none)."""
     text = str(exc).strip()
     return text.splitlines()[0] if text else type(exc).__name__
 

@@ -39,9 +39,11 @@ def is_quiet(ctx: click.Context) -> bool:
 
 
 def io_formats(ctx: click.Context, input: str, output: str) -> tuple[dict, dict]:
-    """``load`` and ``save`` keyword arguments from ``--format``, ``--input-format``,
-    ``--output-format`` and ``--points-only`` (``--format`` applies to an end whose name
-    does not tell: ``-`` or no suffix)."""
+    """``load`` and ``save`` keyword arguments from the format options and ``--points-only``.
+
+    The options are ``--format``, ``--input-format`` and ``--output-format``; ``--format``
+    applies to an end whose name does not tell (``-`` or no suffix).
+    """
     import os
 
     meta = ctx.meta
@@ -64,7 +66,7 @@ def run_stage_command(
     ascii_: bool = False,
     json_: bool = False,
 ) -> dict:
-    """Load IN, run ``stage`` with ``params``, write OUT atomically, print the report (and return it)."""
+    """Load IN, run ``stage`` with ``params``, write OUT atomically, print and return the report."""
     from recon_cli.cli._signals import immediate
     from recon_cli.errors import naming
     from recon_cli.geometry import TriangleMesh
@@ -87,12 +89,14 @@ def run_stage_command(
             from recon_cli.io.text import warn
 
             warn(
-                f"{input}: a mesh: normals are estimated at its {len(data.vertices)} vertices and the vertices only are written (faces dropped)"
+                f"{input}: a mesh: normals are estimated at its {len(data.vertices)} vertices "
+                "and the vertices only are written (faces dropped)"
             )
     from recon_cli.cli import _process
 
     _process.resume()  # start-up ends here: imports, numba's first load, the input
-    # a stage that keeps its best result on Ctrl-C (fit-sdf) gets the Python-level handler while it runs
+    # a stage that keeps its best result on Ctrl-C (fit-sdf) gets the Python-level handler while it
+    # runs
     with contextlib.nullcontext() if spec.keeps_partial else immediate():
         with naming(input):
             result = apply_stage(stage, data, params, progress=progress)

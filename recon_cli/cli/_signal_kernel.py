@@ -12,9 +12,9 @@ anonymous temporary files (see :mod:`recon_cli.io.atomic`).
 from __future__ import annotations
 
 import numpy as np
+from numba import cfunc, types  # noqa: E402
 
 from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache directory, lean cache loads)
-from numba import cfunc, types  # noqa: E402
 
 _write = types.ExternalFunction("write", types.intp(types.intc, types.intp, types.uintp))
 _exit = types.ExternalFunction("_exit", types.void(types.intc))

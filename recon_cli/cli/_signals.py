@@ -1,4 +1,4 @@
-"""Signals of the ``recon`` process: SIGINT and SIGTERM end it with 130 / 143, one line, no traceback.
+"""Signals of ``recon``: SIGINT and SIGTERM end it with 130 / 143, one line, no traceback.
 
 Two layers:
 
@@ -20,11 +20,12 @@ import os
 import signal
 import sys
 import threading
-from typing import Iterator
+from collections.abc import Iterator
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
-# the handler of immediate(), as recon_cli.cli._signal_kernel.handler: async-signal-safe write and _exit
+# the handler of immediate(), as recon_cli.cli._signal_kernel.handler: async-signal-safe write and
+# _exit
 HANDLER_C = r"""
 #include <signal.h>
 #include <unistd.h>
@@ -88,8 +89,11 @@ def _exit_now(signum: int) -> None:
 
 
 def _ours() -> list[int]:
-    """The signals this process may take over: main thread only, and not those ignored
-    (a background job of a non-interactive shell ignores SIGINT, and must keep doing so)."""
+    """The signals this process may take over.
+
+    Main thread only, and not those ignored (a background job of a non-interactive shell ignores
+    SIGINT, and must keep doing so).
+    """
     if threading.current_thread() is not threading.main_thread():
         return []
     return [s for s in SIGNALS if signal.getsignal(s) is not signal.SIG_IGN]
@@ -97,7 +101,10 @@ def _ours() -> list[int]:
 
 @contextlib.contextmanager
 def handlers() -> Iterator[None]:
-    """Raise :class:`Interrupted` on SIGINT and SIGTERM while inside; restore the previous handlers after."""
+    """Raise :class:`Interrupted` on SIGINT and SIGTERM while inside.
+
+    Restore the previous handlers after.
+    """
     _state.update(signum=None, done=threading.Event())
     old = {s: signal.signal(s, _raise) for s in _ours()}
     old_hook = sys.unraisablehook
@@ -150,7 +157,7 @@ def immediate() -> Iterator[None]:
 
 
 def _handler_address() -> int:
-    """The machine-code handler: :data:`HANDLER_C` as built by ``recon warmup``, else the numba cfunc."""
+    """The machine-code handler: :data:`HANDLER_C` built by ``recon warmup``, else numba's cfunc."""
     import ctypes
 
     from recon_cli import aot
@@ -159,7 +166,9 @@ def _handler_address() -> int:
         lib = aot.native_library("signal_handler")
         _state["native"] = lib if lib is not None and hasattr(lib, "recon_exit_at_once") else False
     if _state["native"]:
-        return int(ctypes.cast(_state["native"].recon_exit_at_once, ctypes.c_void_p).value)
+        address = ctypes.cast(_state["native"].recon_exit_at_once, ctypes.c_void_p).value
+        assert address is not None  # a loaded symbol
+        return int(address)
     from recon_cli.cli._signal_kernel import handler
 
     return int(handler.address)

@@ -1,16 +1,32 @@
 """Compile every numba kernel once, for the types recon uses, into the per-user cache.
 
 ``recon warmup`` (run by ``make install``; a ``pip install`` user runs it once) calls
-:func:`warmup`. It lives with the command line because it drives the commands: it makes tiny inputs (a sphere cloud, a sphere mesh, their grids) in a
-temporary folder and runs every command on them with each option that reaches a different
-kernel, reading and writing the PLY encodings the readers specialise on (float32/float64,
-little/big-endian, ASCII, colours, mixed polygons). Kernels whose argument types depend on
-a file's property types rather than on a command (the PLY field gatherers) are called
-for each type by :func:`recon_cli.io.ply.compile_ply_kernels`. Afterwards no command compiles: they load the compiled code from
-the cache (:mod:`recon_cli._kernels.numba_setup` says where), which takes milliseconds.
+:func:`warmup`. It lives with the command line because it drives the commands: it makes
+tiny inputs (a sphere cloud, a sphere mesh, their grids) in a temporary folder
+(:func:`make_inputs`) and runs every command on them with each option that reaches a
+different kernel, reading and writing the PLY encodings the readers specialise on
+(float32/float64, little/big-endian, ASCII, colours, mixed polygons). Kernels whose
+argument types depend on a file's property types rather than on a command (the PLY field
+gatherers) are called for each type by :func:`recon_cli.io.ply.compile_ply_kernels`.
+Afterwards no command compiles: they load the compiled code from the cache
+(:mod:`recon_cli._kernels.numba_setup` says where), which takes milliseconds.
 
-:func:`uncompiled_kernels` lists the kernels that were never compiled in this process, so
-a test can check that the warm-up reaches all of them.
+The steps are grouped in phases (:data:`PHASES`, one function each, declared with
+:func:`phase`), which run in worker processes, one per core (numba compiles in one thread
+per process), the costliest first; a phase's steps run in order in one process. Workers
+that need the same kernel at once do not both compile it: the first compiles it under a
+lock of that kernel and the other then loads it from the cache
+(:func:`serialize_kernel_compiles`; this also keeps two processes from writing one
+kernel's cache index at once). Then the ahead-of-time extensions
+(:mod:`recon_cli.aot.build`) are built in the same workers, one job per module, from the
+signatures the workers' kernels hold.
+
+A step is one line in a phase: ``recon("filter", f.c32, f.out(), "--radius", "0.2")`` runs
+that command (its name in the report is the command line), or ``("name", function)`` for
+what no command reaches.
+
+:func:`uncompiled_kernels` lists the kernels that were never compiled, so a test can check
+that the warm-up reaches all of them.
 """
 
 from __future__ import annotations
@@ -19,15 +35,22 @@ import contextlib
 import io
 import os
 import re
+import sys
 import tempfile
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+Step = tuple[str, Callable[[], Any]]
+# how long a worker waits for another's compile of the same kernel before compiling it too
+LOCK_WAIT_S = 900.0
+
 
 def kernel_modules() -> list[str]:
-    """Names of recon's modules that define numba kernels (found by their source text, without importing)."""
+    """Names of recon's modules that define numba kernels (by their source text, not imported)."""
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[1]  # the recon_cli package
@@ -40,7 +63,7 @@ def kernel_modules() -> list[str]:
 
 
 def _sphere_cloud(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """``n`` points on the unit sphere (Fibonacci spiral, slightly jittered) and their outward normals."""
+    """``n`` points on the unit sphere (a jittered Fibonacci spiral) and their outward normals."""
     i = np.arange(n) + 0.5
     z = 1.0 - 2.0 * i / n
     r = np.sqrt(1.0 - z * z)
@@ -66,13 +89,431 @@ def _sphere_mesh(n: int) -> tuple[np.ndarray, np.ndarray]:
 
 def _library_only(mesh_path: str) -> None:
     """Kernels that only the library API reaches (no command)."""
+    from recon_cli.geometry import TriangleMesh
     from recon_cli.io.ply import read_ply
     from recon_cli.mesh.topology import Connectivity
     from recon_cli.mesh.winding import winding_number
 
     mesh = read_ply(mesh_path)
+    assert isinstance(mesh, TriangleMesh)  # the warm-up's own mesh file
     winding_number(mesh.vertices, mesh.faces, np.zeros((2, 3)), method="exact")
-    Connectivity(mesh.faces).vertex_faces
+    _ = Connectivity(mesh.faces).vertex_faces  # the property runs its kernel
+
+
+def make_inputs(root: str) -> None:
+    """Write the warm-up's input files into ``root`` (names as :class:`Files` gives them)."""
+    from recon_cli.geometry import PointCloud, TriangleMesh
+    from recon_cli.io.ply import write_ply
+
+    def path(name: str) -> str:
+        return os.path.join(root, name)
+
+    p, nrm = _sphere_cloud(600)
+    rgb = (np.abs(nrm) * 255).astype(np.uint8)
+    v, f = _sphere_mesh(300)
+    for dtype in (np.float32, np.float64):
+        tag = np.dtype(dtype).name
+        write_ply(PointCloud(points=p.astype(dtype), point_dtype=dtype), path(f"bare_{tag}.ply"))
+        write_ply(
+            PointCloud(
+                points=p.astype(dtype), normals=nrm.astype(dtype), colors=rgb, point_dtype=dtype
+            ),
+            path(f"cloud_{tag}.ply"),
+        )
+        write_ply(
+            TriangleMesh(vertices=v.astype(dtype), faces=f, point_dtype=dtype),
+            path(f"mesh_{tag}.ply"),
+        )
+    # an open mesh with a stray component: repair and the topology report have work to do
+    keep = f[np.asarray(v)[f].mean(axis=1)[:, 2] < 0.7]
+    far = np.array([[5.0, 5.0, 5.0], [5.1, 5.0, 5.0], [5.0, 5.1, 5.0]])
+    write_ply(
+        TriangleMesh(
+            vertices=np.vstack([v, far]),
+            faces=np.vstack([keep, [[len(v), len(v) + 1, len(v) + 2]]]),
+        ),
+        path("open.ply"),
+    )
+    # dense enough that Poisson's adaptive tree goes past its complete levels
+    pd, nd = _sphere_cloud(20_000, seed=1)
+    write_ply(
+        PointCloud(
+            points=pd.astype(np.float32), normals=nd.astype(np.float32), point_dtype=np.float32
+        ),
+        path("dense.ply"),
+    )
+    # an open scan (half of it): coarse leaves hold surface, so Poisson extracts at the leaves' size
+    up = pd[:, 2] > 0
+    write_ply(PointCloud(points=pd[up], normals=nd[up]), path("half.ply"))
+    # ... with integer codes (Poisson's --attributes votes on them)
+    codes = {"classification": (pd[up, 0] > 0).astype(np.uint8) + 1}
+    write_ply(PointCloud(points=pd[up], normals=nd[up], attributes=codes), path("half_codes.ply"))
+    # Poisson's envelope: a closed sphere around the clouds
+    write_ply(TriangleMesh(vertices=1.5 * v, faces=f), path("envelope.ply"))
+    # an organized depth image (NaN pixels, a VIEWPOINT): normals from its pixel grid
+    hh, ww = 12, 16
+    yy, xx = np.mgrid[0:hh, 0:ww].astype(np.float32)
+    grid = np.stack([xx * 0.1, yy * 0.1, 2.0 + 0.01 * xx * yy], axis=-1).reshape(-1, 3)
+    grid[::7] = np.nan
+    with open(path("organized.pcd"), "wb") as fh:
+        fh.write(
+            b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+            + f"WIDTH {ww}\nHEIGHT {hh}\nVIEWPOINT 0.8 0.6 0 1 0 0 0\n".encode()
+            + f"POINTS {hh * ww}\nDATA binary\n".encode()
+        )
+        fh.write(grid.astype("<f4").tobytes())
+    # repeated and collinear points: degenerate neighbourhoods borrow their normal
+    line = np.column_stack([np.linspace(2, 3, 12), np.zeros(12), np.zeros(12)])
+    write_ply(
+        PointCloud(points=np.vstack([p, np.repeat(p[:1], 40, axis=0), line])),
+        path("degenerate.ply"),
+    )
+    # three triangles on one edge: repair chooses which two stay together
+    fin = np.array([[0, 0, 0], [1, 0, 0], [0.5, 1, 0], [0.5, -1, 0], [0.5, 0, 1]], dtype=np.float64)
+    write_ply(
+        TriangleMesh(vertices=fin, faces=np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4]])),
+        path("fin.ply"),
+    )
+    # a mixed-polygon mesh (a quad among triangles): the general list reader
+    with open(path("mixed.ply"), "wb") as fh:
+        fh.write(
+            b"ply\nformat binary_little_endian 1.0\nelement vertex 4\nproperty float x\n"
+            b"property float y\nproperty float z\nelement face 2\n"
+            b"property list uchar int vertex_indices\nend_header\n"
+        )
+        fh.write(np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], "<f4").tobytes())
+        fh.write(
+            bytes([4])
+            + np.array([0, 1, 2, 3], "<i4").tobytes()
+            + bytes([3])
+            + np.array([0, 2, 3], "<i4").tobytes()
+        )
+
+
+@dataclass(frozen=True)
+class Files:
+    """The inputs :func:`make_inputs` wrote into ``root``, and a phase's own folder.
+
+    What a phase's steps write goes to its own folder (:meth:`out`), so that phases running at
+    once never share a file.
+    """
+
+    root: str
+    own: str
+
+    def __getattr__(self, name: str) -> str:
+        leaf = _INPUTS.get(name)
+        if leaf is None:
+            raise AttributeError(name)
+        return os.path.join(self.root, leaf)
+
+    def out(self, name: str = "out.ply") -> str:
+        """A path in the phase's own folder."""
+        return os.path.join(self.own, name)
+
+
+# Files' attributes: the input files by short name
+_INPUTS = {
+    "c32": "cloud_float32.ply",  # points, normals and colours
+    "c64": "cloud_float64.ply",
+    "bare32": "bare_float32.ply",  # points only
+    "bare64": "bare_float64.ply",
+    "m32": "mesh_float32.ply",  # a closed sphere
+    "m64": "mesh_float64.ply",
+    "open": "open.ply",
+    "dense": "dense.ply",
+    "half": "half.ply",
+    "half_codes": "half_codes.ply",  # the open scan with a classification property
+    "envelope": "envelope.ply",  # a closed sphere around the clouds
+    "organized": "organized.pcd",  # a depth image: NaN pixels, a VIEWPOINT
+    "degenerate": "degenerate.ply",
+    "fin": "fin.ply",
+    "mixed": "mixed.ply",
+}
+
+
+def recon(*args: str) -> Step:
+    """A step running ``recon ARGS`` in this process, quiet, its reports dropped.
+
+    It is named by its command line (paths by their file names).
+    """
+
+    def run() -> Any:
+        from recon_cli.cli.main import cli
+
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+            return cli.main(args=["-q", *args], prog_name="recon", standalone_mode=False)
+
+    name = " ".join(os.path.basename(a) if os.sep in a else a for a in args)
+    return f"recon {name}", run
+
+
+@dataclass(frozen=True)
+class Phase:
+    name: str
+    weight: float  # its share of the warm-up's compile time: the costliest are started first
+    steps: Callable[[Files], list[Step]]
+
+
+PHASES: dict[str, Phase] = {}
+
+
+def phase(weight: float) -> Callable[[Callable[[Files], list[Step]]], Callable]:
+    """Declare a phase: a function of the :class:`Files` returning its steps.
+
+    The steps run in order in one worker. ``weight`` orders the phases (the costliest first); any
+    rough figure will do.
+    """
+
+    def declare(fn: Callable[[Files], list[Step]]) -> Callable[[Files], list[Step]]:
+        name = fn.__name__.lstrip("_")
+        PHASES[name] = Phase(name, weight, fn)
+        return fn
+
+    return declare
+
+
+@phase(weight=9)
+def _ply(f: Files) -> list[Step]:
+    from recon_cli.io.ply import compile_ply_kernels
+
+    steps: list[Step] = [("ply field types", compile_ply_kernels)]
+    for src in (f.c32, f.c64, f.mixed):
+        steps += [
+            recon("convert", src, f.out("be.ply"), "--big-endian"),
+            recon("info", f.out("be.ply")),
+            recon("convert", src, f.out("ascii.ply"), "--ascii"),
+            recon("info", f.out("ascii.ply")),
+        ]
+    return steps
+
+
+@phase(weight=3)
+def _normals(f: Files) -> list[Step]:
+    steps = []
+    for src in (f.bare32, f.bare64):
+        steps += [
+            recon("normals", src, f.out(), "--orient", "mst"),
+            recon("normals", src, f.out(), "--orient", "camera", "--camera", "0,0,5"),
+            recon("normals", src, f.out(), "--orient", "direction", "--direction", "0,0,1"),
+            recon("normals", src, f.out(), "--orient", "none"),
+            recon("normals", src, f.out(), "--knn", "0", "--radius", "0.2", "--curvature"),
+            recon("normals", src, f.out(), "--radius", "0.2"),
+        ]
+    return steps + [
+        recon("normals", f.c32, f.out(), "--orient", "keep"),
+        recon("normals", f.degenerate, f.out()),
+        recon("normals", f.organized, f.out(), "--orient", "camera"),
+        recon("normals", f.organized, f.out(), "--neighbours", "pixels", "--radius", "0.5"),
+    ]
+
+
+@phase(weight=50)
+def _poisson(f: Files) -> list[Step]:
+    """Degree 2, the default basis."""
+    steps = []
+    for src in (f.c32, f.c64):
+        steps += [
+            recon("poisson", src, f.out(), "--depth", "5"),
+            recon(
+                "poisson",
+                src,
+                f.out(),
+                "--depth",
+                "5",
+                "--density",
+                "--trim",
+                "0.1",
+                "--boundary",
+                "dirichlet",
+            ),
+        ]
+    return steps + [
+        recon("poisson", f.c32, f.out(), "--depth", "7", "--degree", "2"),  # adaptive levels
+        recon("poisson", f.dense, f.out(), "--depth", "7", "--degree", "2"),  # past the full depth
+        recon("poisson", f.c32, f.out(), "--depth", "5", "--degree", "2", "--point-weight", "0"),
+        recon("poisson", f.bare32, f.out(), "--depth", "5", "--estimate-normals"),
+    ]
+
+
+@phase(weight=10)
+def _poisson_features(f: Files) -> list[Step]:
+    """Free boundary, envelope, confidence, the grid and attribute votes."""
+    return [
+        recon(
+            "poisson",
+            f.half_codes,
+            f.out(),
+            "--depth",
+            "6",
+            "--boundary",
+            "free",
+            "--confidence",
+            "--envelope",
+            f.envelope,
+            "--grid",
+            f.out("poisson_grid.npz"),
+        )
+    ]
+
+
+@phase(weight=25)
+def _poisson_leaves(f: Files) -> list[Step]:
+    """An open scan: coarse leaves hold surface, so Poisson extracts at the leaves' size."""
+    return [recon("poisson", f.half, f.out(), "--depth", "7")]
+
+
+@phase(weight=12)
+def _poisson_degree1(f: Files) -> list[Step]:
+    steps = []
+    for src in (f.c32, f.c64):
+        steps += [
+            recon("poisson", src, f.out(), "--depth", "5", "--degree", "1"),
+            recon(
+                "poisson",
+                src,
+                f.out(),
+                "--depth",
+                "5",
+                "--degree",
+                "1",
+                "--density",
+                "--trim",
+                "0.1",
+                "--boundary",
+                "dirichlet",
+            ),
+        ]
+    return steps + [
+        recon("poisson", f.c32, f.out(), "--depth", "7", "--degree", "1"),
+        recon("poisson", f.dense, f.out(), "--depth", "7", "--degree", "1"),
+    ]
+
+
+@phase(weight=20)
+def _ballpivot(f: Files) -> list[Step]:
+    return [recon("ballpivot", src, f.out()) for src in (f.c32, f.c64)]
+
+
+@phase(weight=30)
+def _sdf_mcubes(f: Files) -> list[Step]:
+    """Grids from meshes and clouds, and marching cubes on them."""
+    grids = {"mesh": f.out("mesh.npz"), "cloud": f.out("cloud.npz")}
+    steps = [recon("sdf", src, grids["cloud"], "--resolution", "16") for src in (f.c32, f.c64)]
+    for src in (f.m32, f.m64, f.open):
+        steps += [
+            recon("sdf", src, grids["mesh"], "--resolution", "16"),
+            recon(
+                "sdf",
+                src,
+                grids["mesh"],
+                "--resolution",
+                "16",
+                "--sign",
+                "pseudonormal",
+                "--band",
+                "2",
+            ),
+        ]
+    for grid in grids.values():
+        steps += [
+            recon("info", grid),
+            recon("mcubes", grid, f.out()),
+            recon("mcubes", grid, f.out(), "--method", "mt", "--allow-degenerate"),
+        ]
+    return steps
+
+
+@phase(weight=15)
+def _mesh_tools(f: Files) -> list[Step]:
+    return [
+        recon("simplify", f.m32, f.out(), "--ratio", "0.3"),
+        recon("simplify", f.open, f.out(), "--faces", "21"),
+        recon("smooth", f.m64, f.out()),
+        recon("smooth", f.open, f.out(), "--fixed-boundary"),
+    ]
+
+
+@phase(weight=6)
+def _repair(f: Files) -> list[Step]:
+    steps = []
+    for src in (f.m32, f.m64, f.open):
+        steps += [
+            recon("info", src),
+            recon("repair", src, f.out()),
+            recon(
+                "repair",
+                src,
+                f.out(),
+                "--merge-tolerance",
+                "1e-6",
+                "--fill-holes",
+                "100",
+                "--min-component",
+                "0.1",
+                "--keep-largest",
+            ),
+        ]
+    return steps + [recon("repair", f.mixed, f.out()), recon("repair", f.fin, f.out())]
+
+
+@phase(weight=45)
+def _obj(f: Files) -> list[Step]:
+    steps = []
+    for src in (f.c32, f.c64, f.m32, f.m64):
+        dst = f.out(os.path.basename(src)[:-4] + ".obj")
+        steps += [recon("convert", src, dst), recon("info", dst)]
+    return steps
+
+
+@phase(weight=16)
+def _formats(f: Files) -> list[Step]:
+    """Every other file format, both ways, from float32 and float64 sources."""
+    steps = []
+    for src, suffixes in (
+        (f.c32, ("xyz", "csv", "pcd")),
+        (f.c64, ("xyz", "csv", "pcd")),
+        (f.m32, ("off", "stl")),
+        (f.m64, ("off", "stl")),
+    ):
+        for suffix in suffixes:
+            dst = f.out(f"{os.path.basename(src)[:-4]}.{suffix}")
+            steps += [recon("convert", src, dst), recon("info", dst)]
+    for src in (f.c32, f.c64):
+        for mode in ("ascii", "binary", "binary_compressed"):
+            dst = f.out(f"{os.path.basename(src)[:-4]}_{mode}.pcd")
+            steps += [(f"write pcd {mode}", _pcd(src, dst, mode)), recon("info", dst)]
+    return steps + [
+        recon("convert", f.m32, f.out("ascii.stl"), "--ascii"),
+        recon("info", f.out("ascii.stl")),
+    ]
+
+
+@phase(weight=6)
+def _diff(f: Files) -> list[Step]:
+    views = ["--view", "iso", "--view", "top"]
+    return [
+        recon(
+            "diff",
+            f.m32,
+            f.open,
+            "--samples",
+            "2000",
+            "--heatmap",
+            f.out("heat.ply"),
+            "--png",
+            f.out("diff.png"),
+            *views,
+        ),
+        recon("diff", "--ref", f.m64, f.c32, f.m32, "--samples", "2000"),
+        recon("diff", f.c32, f.m32, "--samples", "2000", "--png", f.out("cloud.png")),
+    ]
+
+
+@phase(weight=1)
+def _library(f: Files) -> list[Step]:
+    """Kernels that only the library API reaches (no command)."""
+    return [("library only", lambda: _library_only(f.m64))]
 
 
 def _pcd(src: str, dst: str, mode: str) -> Callable[[], Any]:
@@ -85,400 +526,56 @@ def _pcd(src: str, dst: str, mode: str) -> Callable[[], Any]:
     return run
 
 
-def _steps(tmp: str) -> list[tuple[str, Callable[[], Any]]]:
-    from recon_cli.geometry import PointCloud, TriangleMesh
-    from recon_cli.io.ply import compile_ply_kernels, write_ply
+def warmup(
+    progress: Any = None, log: Callable[[str], None] | None = None, jobs: int | None = None
+) -> dict:
+    """Run every kernel once on tiny inputs, then build the ahead-of-time kernels.
 
-    def path(name: str) -> str:
-        return os.path.join(tmp, name)
-
-    def recon(*args: str) -> Callable[[], Any]:
-        def run() -> Any:
-            from recon_cli.cli.main import cli
-
-            # the commands' reports (info and diff print theirs on stdout) are not wanted here
-            with (
-                contextlib.redirect_stdout(io.StringIO()),
-                contextlib.redirect_stderr(io.StringIO()),
-            ):
-                return cli.main(args=["-q", *args], prog_name="recon", standalone_mode=False)
-
-        return run
-
-    def inputs() -> None:
-        p, nrm = _sphere_cloud(600)
-        rgb = (np.abs(nrm) * 255).astype(np.uint8)
-        for dtype in (np.float32, np.float64):
-            tag = np.dtype(dtype).name
-            write_ply(
-                PointCloud(points=p.astype(dtype), point_dtype=dtype), path(f"bare_{tag}.ply")
-            )
-            write_ply(
-                PointCloud(
-                    points=p.astype(dtype), normals=nrm.astype(dtype), colors=rgb, point_dtype=dtype
-                ),
-                path(f"cloud_{tag}.ply"),
-            )
-        v, f = _sphere_mesh(300)
-        for dtype in (np.float32, np.float64):
-            tag = np.dtype(dtype).name
-            write_ply(
-                TriangleMesh(vertices=v.astype(dtype), faces=f, point_dtype=dtype),
-                path(f"mesh_{tag}.ply"),
-            )
-        # an open mesh with a stray component: repair and the topology report have work to do
-        keep = f[np.asarray(v)[f].mean(axis=1)[:, 2] < 0.7]
-        far = np.array([[5.0, 5.0, 5.0], [5.1, 5.0, 5.0], [5.0, 5.1, 5.0]])
-        write_ply(
-            TriangleMesh(
-                vertices=np.vstack([v, far]),
-                faces=np.vstack([keep, [[len(v), len(v) + 1, len(v) + 2]]]),
-            ),
-            path("open.ply"),
-        )
-        # dense enough that Poisson's adaptive tree goes past its complete levels
-        pd, nd = _sphere_cloud(20_000, seed=1)
-        write_ply(
-            PointCloud(
-                points=pd.astype(np.float32), normals=nd.astype(np.float32), point_dtype=np.float32
-            ),
-            path("dense.ply"),
-        )
-        # an open scan (half of it): coarse leaves hold surface, so Poisson extracts at the leaves' size
-        up = pd[:, 2] > 0
-        write_ply(PointCloud(points=pd[up], normals=nd[up]), path("half.ply"))
-        # ... with integer codes (Poisson's --attributes votes on them)
-        codes = {"classification": (pd[up, 0] > 0).astype(np.uint8) + 1}
-        write_ply(
-            PointCloud(points=pd[up], normals=nd[up], attributes=codes), path("half_codes.ply")
-        )
-        # Poisson's envelope: a closed sphere around the clouds
-        write_ply(TriangleMesh(vertices=1.5 * v, faces=f), path("envelope.ply"))
-        # repeated and collinear points: degenerate neighbourhoods borrow their normal
-        line = np.column_stack([np.linspace(2, 3, 12), np.zeros(12), np.zeros(12)])
-        write_ply(
-            PointCloud(points=np.vstack([p, np.repeat(p[:1], 40, axis=0), line])),
-            path("degenerate.ply"),
-        )
-        # an organized depth image (NaN pixels, a VIEWPOINT): normals from its pixel grid
-        hh, ww = 12, 16
-        yy, xx = np.mgrid[0:hh, 0:ww].astype(np.float32)
-        grid = np.stack([xx * 0.1, yy * 0.1, 2.0 + 0.01 * xx * yy], axis=-1).reshape(-1, 3)
-        grid[::7] = np.nan
-        with open(path("organized.pcd"), "wb") as fh:
-            fh.write(
-                b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
-                + f"WIDTH {ww}\nHEIGHT {hh}\nVIEWPOINT 0.8 0.6 0 1 0 0 0\n".encode()
-                + f"POINTS {hh * ww}\nDATA binary\n".encode()
-            )
-            fh.write(grid.astype("<f4").tobytes())
-        # three triangles on one edge: repair chooses which two stay together
-        fin = np.array(
-            [[0, 0, 0], [1, 0, 0], [0.5, 1, 0], [0.5, -1, 0], [0.5, 0, 1]], dtype=np.float64
-        )
-        write_ply(
-            TriangleMesh(vertices=fin, faces=np.array([[0, 1, 2], [1, 0, 3], [0, 1, 4]])),
-            path("fin.ply"),
-        )
-        # a mixed-polygon mesh (a quad among triangles): the general list reader
-        with open(path("mixed.ply"), "wb") as fh:
-            fh.write(
-                b"ply\nformat binary_little_endian 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
-                b"property float z\nelement face 2\nproperty list uchar int vertex_indices\nend_header\n"
-            )
-            fh.write(np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], "<f4").tobytes())
-            fh.write(
-                bytes([4])
-                + np.array([0, 1, 2, 3], "<i4").tobytes()
-                + bytes([3])
-                + np.array([0, 2, 3], "<i4").tobytes()
-            )
-
-    c32, c64, m32, m64 = (
-        path("cloud_float32.ply"),
-        path("cloud_float64.ply"),
-        path("mesh_float32.ply"),
-        path("mesh_float64.ply"),
-    )
-    out = path("out.ply")
-    steps: list[tuple[str, Callable[[], Any]]] = [
-        ("inputs", inputs),
-        ("ply field types", compile_ply_kernels),
-    ]
-    for src in (c32, c64, path("mixed.ply")):
-        steps += [
-            (
-                f"convert {os.path.basename(src)}",
-                recon("convert", src, path("be.ply"), "--big-endian"),
-            ),
-            ("read big-endian", recon("info", path("be.ply"))),
-            ("convert ascii", recon("convert", src, path("ascii.ply"), "--ascii")),
-            ("read ascii", recon("info", path("ascii.ply"))),
-        ]
-    for src in (path("bare_float32.ply"), path("bare_float64.ply")):
-        for orient in (
-            ["--orient", "mst"],
-            ["--orient", "camera", "--camera", "0,0,5"],
-            ["--orient", "direction", "--direction", "0,0,1"],
-            ["--orient", "none"],
-        ):
-            steps.append((f"normals {orient[1]}", recon("normals", src, out, *orient)))
-        steps.append(
-            (
-                "normals radius",
-                recon("normals", src, out, "--knn", "0", "--radius", "0.2", "--curvature"),
-            )
-        )
-        steps.append(("normals knn+radius", recon("normals", src, out, "--radius", "0.2")))
-    steps.append(("normals keep", recon("normals", c32, out, "--orient", "keep")))
-    organized = path("organized.pcd")
-    steps.append(("normals pixels", recon("normals", organized, out, "--orient", "camera")))
-    steps.append(
-        (
-            "normals pixels radius",
-            recon("normals", organized, out, "--neighbours", "pixels", "--radius", "0.5"),
-        )
-    )
-    steps.append(("normals degenerate", recon("normals", path("degenerate.ply"), out)))
-    for src in (c32, c64):
-        steps += [
-            ("poisson", recon("poisson", src, out, "--depth", "5")),
-            (
-                "poisson density",
-                recon(
-                    "poisson",
-                    src,
-                    out,
-                    "--depth",
-                    "5",
-                    "--density",
-                    "--trim",
-                    "0.1",
-                    "--boundary",
-                    "dirichlet",
-                ),
-            ),
-            ("poisson degree 1", recon("poisson", src, out, "--depth", "5", "--degree", "1")),
-            (
-                "poisson degree 1 density",
-                recon(
-                    "poisson",
-                    src,
-                    out,
-                    "--depth",
-                    "5",
-                    "--degree",
-                    "1",
-                    "--density",
-                    "--trim",
-                    "0.1",
-                    "--boundary",
-                    "dirichlet",
-                ),
-            ),
-            ("ballpivot", recon("ballpivot", src, out)),
-            ("sdf cloud", recon("sdf", src, path("cloud.npz"), "--resolution", "16")),
-        ]
-    for deg in ("1", "2"):
-        steps.append(
-            (
-                f"poisson adaptive levels, degree {deg}",
-                recon("poisson", c32, out, "--depth", "7", "--degree", deg),
-            )
-        )
-        steps.append(
-            (
-                f"poisson levels past the full depth, degree {deg}",
-                recon("poisson", path("dense.ply"), out, "--depth", "7", "--degree", deg),
-            )
-        )
-    steps.append(
-        (
-            "poisson open scan (leaf extraction)",
-            recon("poisson", path("half.ply"), out, "--depth", "7"),
-        )
-    )
-    steps.append(
-        (
-            "poisson degree 2",
-            recon("poisson", path("dense.ply"), out, "--depth", "7", "--degree", "2"),
-        )
-    )
-    steps.append(
-        (
-            "poisson free boundary, envelope, confidence, grid",
-            recon(
-                "poisson",
-                path("half_codes.ply"),
-                out,
-                "--depth",
-                "6",
-                "--boundary",
-                "free",
-                "--confidence",
-                "--envelope",
-                path("envelope.ply"),
-                "--grid",
-                path("poisson_grid.npz"),
-            ),
-        )
-    )
-    steps.append(
-        (
-            "poisson degree 2 unscreened",
-            recon("poisson", c32, out, "--depth", "5", "--degree", "2", "--point-weight", "0"),
-        )
-    )
-    steps.append(
-        (
-            "poisson estimate-normals",
-            recon("poisson", path("bare_float32.ply"), out, "--depth", "5", "--estimate-normals"),
-        )
-    )
-    for src in (m32, m64, path("open.ply")):
-        steps += [
-            ("info mesh", recon("info", src)),
-            ("repair", recon("repair", src, out)),
-            (
-                "repair all",
-                recon(
-                    "repair",
-                    src,
-                    out,
-                    "--merge-tolerance",
-                    "1e-6",
-                    "--fill-holes",
-                    "100",
-                    "--min-component",
-                    "0.1",
-                    "--keep-largest",
-                ),
-            ),
-            ("sdf winding", recon("sdf", src, path("mesh.npz"), "--resolution", "16")),
-            (
-                "sdf pseudonormal",
-                recon(
-                    "sdf",
-                    src,
-                    path("mesh.npz"),
-                    "--resolution",
-                    "16",
-                    "--sign",
-                    "pseudonormal",
-                    "--band",
-                    "2",
-                ),
-            ),
-        ]
-    steps.append(("repair mixed polygons", recon("repair", path("mixed.ply"), out)))
-    steps.append(("repair non-manifold edge", recon("repair", path("fin.ply"), out)))
-    steps += [
-        ("simplify", recon("simplify", m32, out, "--ratio", "0.3")),
-        ("simplify open", recon("simplify", path("open.ply"), out, "--faces", "21")),
-        ("smooth", recon("smooth", m64, out)),
-        ("smooth open", recon("smooth", path("open.ply"), out, "--fixed-boundary")),
-    ]
-    for grid in (path("mesh.npz"), path("cloud.npz")):
-        steps += [
-            ("info grid", recon("info", grid)),
-            ("mcubes", recon("mcubes", grid, out)),
-            ("mcubes mt", recon("mcubes", grid, out, "--method", "mt", "--allow-degenerate")),
-        ]
-    # every other file format, both ways, from float32 and float64 sources (their parsers are kernels too)
-    for src, kind in ((c32, "cloud"), (c64, "cloud"), (m32, "mesh"), (m64, "mesh")):
-        tag = os.path.basename(src)[:-4]
-        suffixes = ("obj", "off", "stl") if kind == "mesh" else ("xyz", "csv", "pcd", "obj")
-        for suffix in suffixes:
-            dst = path(f"{tag}.{suffix}")
-            steps += [
-                (f"write {suffix}", recon("convert", src, dst)),
-                (f"read {suffix}", recon("info", dst)),
-            ]
-    for src in (c32, c64):
-        tag = os.path.basename(src)[:-4]
-        for mode in ("ascii", "binary", "binary_compressed"):
-            dst = path(f"{tag}_{mode}.pcd")
-            steps += [
-                (f"write pcd {mode}", _pcd(src, dst, mode)),
-                (f"read pcd {mode}", recon("info", dst)),
-            ]
-        dst = path(f"{tag}.stl")
-        steps += [
-            ("write stl ascii", recon("convert", m32, dst, "--ascii")),
-            ("read stl ascii", recon("info", dst)),
-        ]
-    steps += [
-        (
-            "diff",
-            recon(
-                "diff",
-                m32,
-                path("open.ply"),
-                "--samples",
-                "2000",
-                "--heatmap",
-                path("heat.ply"),
-                "--png",
-                path("diff.png"),
-                "--view",
-                "iso",
-                "--view",
-                "top",
-            ),
-        ),
-        ("diff ref", recon("diff", "--ref", m64, c32, m32, "--samples", "2000")),
-        (
-            "diff cloud picture",
-            recon("diff", c32, m32, "--samples", "2000", "--png", path("cloud.png")),
-        ),
-        ("library only", lambda: _library_only(m64)),
-    ]
-    return steps
-
-
-def warmup(progress: Any = None, log: Callable[[str], None] | None = None) -> dict:
-    """Run every kernel once on tiny inputs so that numba compiles (or loads) each of them.
+    Numba compiles (or loads) each kernel as its step runs.
 
     Parameters
     ----------
     progress : Progress or None
-        Shows one bar over the steps (and numba's "compiling kernels" line).
+        Shows one bar over the steps and the ahead-of-time jobs.
     log : callable or None
         Called with one line per step that failed (a step's failure does not stop the others).
+    jobs : int or None
+        Worker processes (default: the cores this process may use); 1 runs everything here.
 
     Returns
     -------
     dict
-        ``steps`` (count), ``failed`` (list of step names), ``seconds``, ``cache_dir``,
-        ``uncompiled`` (kernels never compiled, see :func:`uncompiled_kernels`) and
-        ``bytecode`` (every module's ``.pyc`` written, see :func:`compile_bytecode`).
+        ``steps`` (count), ``failed`` (list of step names), ``seconds``, ``jobs``, ``phases``
+        (``{"seconds", "cpu"}`` of each: wall and CPU), ``cache_dir``, ``uncompiled``
+        (kernels never compiled, see :func:`uncompiled_kernels`), ``bytecode`` (every
+        module's ``.pyc`` written, see :func:`compile_bytecode`) and the ahead-of-time
+        build's ``aot_*``.
+
     """
-    from recon_cli import aot
     from recon_cli._kernels.numba_setup import CACHE_DIR
     from recon_cli.progress import task
 
     t0 = time.perf_counter()
-    failed = []
-    bytecode = compile_bytecode()
-    with tempfile.TemporaryDirectory(prefix="recon-warmup-") as tmp, _jit_only():
-        steps = _steps(tmp)
-        with task(progress, "warming up kernels", len(steps)) as t:
-            for name, fn in steps:
-                try:
-                    fn()
-                except Exception as exc:  # noqa: BLE001  (report and go on: the other kernels still compile)
-                    failed.append(name)
-                    if log is not None:
-                        log(f"warm-up step {name!r} failed: {type(exc).__name__}: {exc}")
-                t.advance(1)
-    ahead = build_ahead_of_time(progress, log)
+    jobs = max(1, jobs or usable_cores())
+    with tempfile.TemporaryDirectory(prefix="recon-warmup-") as tmp:
+        make_inputs(tmp)
+        order = sorted(PHASES.values(), key=lambda ph: -ph.weight)
+        counts = {ph.name: len(ph.steps(Files(tmp, tmp))) for ph in order}
+        total = sum(counts.values()) + len(_aot_modules()) + 1
+        with task(progress, "warming up kernels", total) as t:
+            run = _run_here if jobs == 1 else _run_in_workers
+            result = run(tmp, order, jobs, t.advance, _failure_log(log), log)
+            ahead = result.pop("ahead")
+    failed = [name for name, _ in result["failed"]]
     return {
-        "steps": len(steps),
+        "steps": sum(counts.values()),
         "failed": failed,
         "seconds": time.perf_counter() - t0,
+        "jobs": jobs,
+        "phases": result["phases"],
         "cache_dir": CACHE_DIR,
-        "uncompiled": uncompiled_kernels(),
-        "bytecode": bytecode,
+        "uncompiled": result["uncompiled"],
+        "bytecode": result["bytecode"],
         "aot_built": ahead["built"],
         "aot_dir": ahead["dir"] if ahead["built"] else None,
         "aot_modules": ahead["modules"],
@@ -486,10 +583,253 @@ def warmup(progress: Any = None, log: Callable[[str], None] | None = None) -> di
     }
 
 
+def usable_cores() -> int:
+    """The cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def _failure_log(log: Callable[[str], None] | None) -> Callable[[tuple[str, str]], None]:
+    def failed(step: tuple[str, str]) -> None:
+        if log is not None:
+            log(f"warm-up step {step[0]!r} failed: {step[1]}")
+
+    return failed
+
+
+def _aot_modules() -> tuple[str, ...]:
+    from recon_cli import aot
+
+    return aot.MODULES
+
+
+def run_phase(name: str, root: str, tick: Callable[[int], Any] | None = None) -> dict:
+    """Run phase ``name``'s steps in order; a step's failure is noted and the others run.
+
+    Returns ``{"phase", "failed": [(step, message)], "seconds", "sigs"}``, ``sigs`` the variants
+    the ahead-of-time modules' kernels hold in this process so far.
+    """
+    from recon_cli.aot.build import signatures
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    own = os.path.join(root, "phase-" + name)
+    os.makedirs(own, exist_ok=True)
+    failed = []
+    for step, fn in PHASES[name].steps(Files(root, own)):
+        try:
+            fn()
+        except Exception as exc:  # noqa: BLE001  (report, go on: the other kernels still compile)
+            failed.append((step, f"{type(exc).__name__}: {exc}"))
+        if tick is not None:
+            tick(1)
+    sigs = {m: signatures(m) for m in _aot_modules() if m in sys.modules}
+    return {
+        "phase": name,
+        "failed": failed,
+        "seconds": round(time.perf_counter() - t0, 2),
+        "cpu": round(time.process_time() - c0, 2),
+        "sigs": sigs,
+    }
+
+
+def _run_here(
+    root: str,
+    order: list[Phase],
+    jobs: int,
+    tick: Callable[[int], Any],
+    failed_step: Callable[[tuple[str, str]], None],
+    log: Callable[[str], None] | None = None,
+) -> dict:
+    """Every phase in this process, then the ahead-of-time build from its kernels."""
+    phases, failed = {}, []
+    bytecode = compile_bytecode()
+    with _jit_only():
+        for ph in order:
+            r = run_phase(ph.name, root, tick)
+            phases[ph.name] = {"seconds": r["seconds"], "cpu": r["cpu"]}
+            failed += r["failed"]
+            for step in r["failed"]:
+                failed_step(step)
+    ahead = build_ahead_of_time(log=log, done=lambda: tick(1))
+    tick(len(_aot_modules()) + 1 - ahead.get("jobs", 0))
+    return {
+        "phases": phases,
+        "failed": failed,
+        "bytecode": bytecode,
+        "ahead": ahead,
+        "uncompiled": uncompiled_kernels(),
+    }
+
+
+# set in each worker process by _worker_init: where it reports finished steps
+_worker: dict[str, Any] = {}
+
+
+def _worker_init(queue: Any, lock_dir: str) -> None:
+    os.environ["RECON_AOT"] = "0"  # the steps run the numba kernels themselves, as _jit_only
+    _worker["queue"] = queue
+    serialize_kernel_compiles(lock_dir)
+
+
+def _worker_phase(name: str, root: str) -> dict:
+    return run_phase(name, root, tick=_worker["queue"].put)
+
+
+def _run_in_workers(
+    root: str,
+    order: list[Phase],
+    jobs: int,
+    tick: Callable[[int], Any],
+    failed_step: Callable[[tuple[str, str]], None],
+    log: Callable[[str], None] | None = None,
+) -> dict:
+    """The phases in ``jobs`` worker processes, then the ahead-of-time jobs in the same workers.
+
+    The costliest phases start first, each on the next free worker.
+    """
+    import multiprocessing
+    import queue as queue_mod
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
+    ctx = multiprocessing.get_context("spawn")  # no fork of a process that loaded LLVM
+    q = ctx.Queue()
+    lock_dir = os.path.join(root, "locks")
+    os.makedirs(lock_dir)
+    phases: dict[str, dict] = {}
+    failed: list[tuple[str, str]] = []
+    sigs: dict[str, dict[str, list]] = {}
+
+    def drain() -> None:
+        while True:
+            try:
+                tick(q.get_nowait())
+            except queue_mod.Empty:
+                return
+
+    workers = min(jobs, len(order))
+    with (
+        ProcessPoolExecutor(
+            workers, mp_context=ctx, initializer=_worker_init, initargs=(q, lock_dir)
+        ) as pool,
+        _stopping_workers(pool),
+    ):
+        pending = {pool.submit(_worker_phase, ph.name, root): ph.name for ph in order}
+        bytecode = compile_bytecode()  # here, while the workers start
+        while pending:
+            done, _ = wait(pending, timeout=0.2, return_when=FIRST_COMPLETED)
+            drain()
+            for fut in done:
+                name = pending.pop(fut)
+                try:
+                    r = fut.result()
+                except Exception as exc:  # noqa: BLE001  (a worker died: its phase's steps failed)
+                    r = {
+                        "seconds": 0.0,
+                        "cpu": 0.0,
+                        "failed": [(f"phase {name}", f"{type(exc).__name__}: {exc}")],
+                        "sigs": {},
+                    }
+                phases[name] = {"seconds": r["seconds"], "cpu": r["cpu"]}
+                failed += r["failed"]
+                for step in r["failed"]:
+                    failed_step(step)
+                for module, kernels_ in r["sigs"].items():
+                    for kernel, variants in kernels_.items():
+                        sigs.setdefault(module, {}).setdefault(kernel, []).extend(variants)
+        # the cache is complete now: a worker checks it while the others build
+        try:
+            uncompiled = pool.submit(uncompiled_kernels)
+        except RuntimeError:  # the pool is broken (a worker died): checked here below
+            uncompiled = None
+        ahead = build_ahead_of_time(log=log, sigs=sigs, submit=pool.submit, done=lambda: tick(1))
+        drain()
+        try:
+            unreached = uncompiled.result() if uncompiled is not None else uncompiled_kernels()
+        except RuntimeError:
+            unreached = uncompiled_kernels()
+    tick(len(_aot_modules()) + 1 - ahead.get("jobs", 0))
+    return {
+        "phases": phases,
+        "failed": failed,
+        "bytecode": bytecode,
+        "ahead": ahead,
+        "uncompiled": unreached,
+    }
+
+
+@contextlib.contextmanager
+def _stopping_workers(pool: Any):
+    """On an interruption, drop the queued phases and end the workers at once.
+
+    Ctrl-C, or SIGTERM as recon's handlers raise it: the workers are not left to finish their
+    compiles.
+    """
+    import multiprocessing
+
+    try:
+        yield
+    except BaseException:
+        pool.shutdown(wait=False, cancel_futures=True)
+        for proc in multiprocessing.active_children():
+            proc.terminate()
+        raise
+
+
+def serialize_kernel_compiles(lock_dir: str) -> None:
+    """Compile or load each cached kernel under a file lock of that kernel in ``lock_dir``.
+
+    The lock is shared by the warm-up's workers: a worker that needs a kernel another one is
+    compiling waits, then loads it from the cache, instead of compiling it too (and no two
+    processes rewrite one kernel's cache index at once, where one's variant could be lost). A
+    kernel's callees take their own locks; a lock not had within :data:`LOCK_WAIT_S` is done
+    without.
+    """
+    import fcntl
+    import hashlib
+
+    from numba.core import sigutils
+    from numba.core.dispatcher import Dispatcher
+
+    full = Dispatcher.compile
+    if getattr(full, "recon_serialized", False):
+        return
+    held: set[str] = set()
+
+    def compile(self, sig):
+        index = getattr(getattr(self._cache, "_cache_file", None), "_index_path", None)
+        if index is None or index in held:
+            return full(self, sig)
+        if tuple(sigutils.normalize_signature(sig)[0]) in self.overloads:
+            return full(self, sig)
+        name = hashlib.blake2b(index.encode(), digest_size=8).hexdigest()
+        with open(os.path.join(lock_dir, name), "w") as fh:
+            deadline = time.monotonic() + LOCK_WAIT_S
+            while True:
+                try:
+                    fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    break
+                except BlockingIOError:
+                    if time.monotonic() > deadline:
+                        break
+                    time.sleep(0.02)
+            held.add(index)
+            try:
+                return full(self, sig)
+            finally:
+                held.discard(index)  # the lock goes with the file's closing
+
+    compile.recon_serialized = True  # type: ignore[attr-defined]
+    Dispatcher.compile = compile  # type: ignore[method-assign]  # numba's, wrapped for the run
+
+
 @contextlib.contextmanager
 def _jit_only():
-    """The warm-up's steps run the numba kernels themselves (an ahead-of-time build would
-    leave them uncompiled, and the build exports the signatures they compiled)."""
+    """Make the warm-up's steps run the numba kernels, not an ahead-of-time build.
+
+    A build would leave the kernels uncompiled, and it exports the signatures they compiled.
+    """
     from recon_cli import aot
 
     before = os.environ.get("RECON_AOT")
@@ -505,35 +845,65 @@ def _jit_only():
         aot.reset()
 
 
-def build_ahead_of_time(progress: Any = None, log: Callable[[str], None] | None = None) -> dict:
-    """Build the ahead-of-time kernels and the signal handler (:mod:`recon_cli.aot.build`)
-    from the kernels compiled in this process; one line through ``log`` saying what came of it."""
+def build_ahead_of_time(
+    progress: Any = None,
+    log: Callable[[str], None] | None = None,
+    sigs: dict | None = None,
+    submit: Callable[..., Any] | None = None,
+    done: Callable[[], None] | None = None,
+) -> dict:
+    """Build the ahead-of-time kernels and the signal handler (:mod:`recon_cli.aot.build`).
+
+    From the variants ``sigs`` (default: those the kernels hold in this process), the jobs through
+    ``submit`` when given; one line through ``log`` saying what came of it. ``jobs`` in the
+    result: how many jobs ran (each called ``done``).
+    """
     from recon_cli.aot.build import build
     from recon_cli.cli._signals import HANDLER_C
     from recon_cli.progress import task
 
+    ran = [0]
+
+    def job_done() -> None:
+        ran[0] += 1
+        if done is not None:
+            done()
+
     with task(progress, "compiling kernels ahead of time", 1) as t:
-        out = build(c_libraries={"signal_handler": HANDLER_C}, log=log)
+        out = build(
+            c_libraries={"signal_handler": HANDLER_C},
+            log=log,
+            sigs=sigs,
+            submit=submit,
+            done=job_done,
+        )
         t.advance(1)
-    if log is not None:
-        if out["built"]:
-            log(
-                f"ahead-of-time kernels: {out['reason'] or 'built'} ({', '.join(out['modules'])}) in {out['dir']}"
-            )
-        else:
-            log(
-                f"ahead-of-time kernels not built ({out['reason']}): ball pivoting and marching cubes run JIT, "
-                "with numba's start-up in each command"
-            )
+    out["jobs"] = ran[0]
+    _log_ahead(out, log)
     return out
 
 
+def _log_ahead(out: dict, log: Callable[[str], None] | None) -> None:
+    """One line saying what came of the ahead-of-time build."""
+    if log is not None:
+        if out["built"]:
+            modules = ", ".join(out["modules"])
+            log(f"ahead-of-time kernels: {out['reason'] or 'built'} ({modules}) in {out['dir']}")
+        else:
+            log(
+                f"ahead-of-time kernels not built ({out['reason']}): ball pivoting and marching "
+                "cubes run JIT, with numba's start-up in each command"
+            )
+
+
 def compile_bytecode() -> bool:
-    """Write the ``.pyc`` of every module of the package (``compileall``), so no command
-    compiles Python source either: an editable install (``make install``) or an environment
-    with ``PYTHONDONTWRITEBYTECODE`` set would otherwise compile every recon module it
-    imports in every process (~45 ms of CPU for a stage command). False when some file
-    could not be written (a read-only install: pip wrote its ``.pyc`` files already)."""
+    """Write the ``.pyc`` of every module of the package (``compileall``).
+
+    So no command compiles Python source either: an editable install (``make install``) or an
+    environment with ``PYTHONDONTWRITEBYTECODE`` set would otherwise compile every recon module it
+    imports in every process. False when some file could not be written (a read-only install:
+    pip wrote its ``.pyc`` files already).
+    """
     import compileall
     from pathlib import Path
 

@@ -33,14 +33,15 @@ from recon_cli.cli import options
     "--memory-limit",
     default=None,
     metavar="SIZE",
-    help="Memory limit per worker, e.g. 4GiB; 'auto' shares the machine's memory out, 'none' = no limit "
-    " [default: auto]",
+    help="Memory limit per worker, e.g. 4GiB; 'auto' shares the machine's memory out, "
+    "'none' = no limit [default: auto]",
 )
 @click.option(
     "--scheduler",
     default=None,
     metavar="ADDRESS",
-    help="Use the Dask cluster whose scheduler is at ADDRESS (tcp://host:8786) instead of a local one.",
+    help="Use the Dask cluster whose scheduler is at ADDRESS (tcp://host:8786) instead of a "
+    "local one.",
 )
 @click.option(
     "--force",
@@ -95,7 +96,8 @@ def cmd(
         force=force,
         progress=make_progress(ctx),
         ascii=ascii_,
-        # Dask's own messages: none by default (failures are in the report), warnings with -v, all with -vv
+        # Dask's own messages: none by default (failures are in the report), warnings with -v, all
+        # with -vv
         log_level={0: logging.CRITICAL, 1: logging.WARNING}.get(verbosity(ctx), logging.INFO),
     )
     if json_:
@@ -120,7 +122,8 @@ def format_summary(summary: dict) -> str:
             mem = r.get("peak_memory_mb")
             mem_text = f", {mem:.0f} MB" if isinstance(mem, (int, float)) else ""
             lines.append(
-                f"{status:<8} {r['input']} -> {r['output']} ({what}; {r['seconds']:.2f} s{mem_text})"
+                f"{status:<8} {r['input']} -> {r['output']} ({what}; {r['seconds']:.2f} "
+                f"s{mem_text})"
             )
         elif status == "skipped":
             lines.append(f"{status:<8} {r['input']} (up to date: {r['output']})")

@@ -14,7 +14,10 @@ from recon_cli.cli import options
     "methods",
     multiple=True,
     required=True,
-    help="Methods, comma-separated or repeated: [BACKEND:]STAGE[:NAME=VALUE...], e.g. poisson:depth=8,ballpivot,open3d:poisson.",
+    help=(
+        "Methods, comma-separated or repeated: [BACKEND:]STAGE[:NAME=VALUE...], e.g. "
+        "poisson:depth=8,ballpivot,open3d:poisson."
+    ),
 )
 @click.option(
     "--ref",
@@ -49,7 +52,10 @@ from recon_cli.cli import options
 )
 @click.pass_context
 def cmd(ctx, input, methods, ref, out_dir, samples, seed, tau, views, vmax, unit, json_):
-    """Run several methods on IN, time each, diff each against --ref; write DIR/report.md, report.html, results.json."""
+    """Run several methods on IN, time each, diff each against --ref.
+
+    Write DIR/report.md, report.html, results.json.
+    """
     from recon_cli.cli._run import is_quiet, make_progress
     from recon_cli.eval.compare import compare_methods, parse_methods
     from recon_cli.eval.report import result_table
@@ -73,15 +79,16 @@ def cmd(ctx, input, methods, ref, out_dir, samples, seed, tau, views, vmax, unit
         return
     head, body = result_table(result)
     widths = [max(len(c[i]) for c in [head, *body]) for i in range(len(head))]
-    click.echo("  ".join(h.ljust(w) for h, w in zip(head, widths)))
+    click.echo("  ".join(h.ljust(w) for h, w in zip(head, widths, strict=True)))
     for cells in body:
-        click.echo("  ".join(c.ljust(w) for c, w in zip(cells, widths)))
+        click.echo("  ".join(c.ljust(w) for c, w in zip(cells, widths, strict=True)))
     if not is_quiet(ctx):
         for r in result["methods"]:
             if r["error"]:
                 click.echo(f"recon: {r['method']}: {r['status']}: {r['error']}", err=True)
         click.echo(
-            f"report: {result['files']['markdown']}, {result['files']['html']}, {result['files']['results']}",
+            f"report: {result['files']['markdown']}, {result['files']['html']}, "
+            f"{result['files']['results']}",
             err=True,
         )
         if result["plot"]:

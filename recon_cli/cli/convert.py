@@ -18,8 +18,11 @@ from recon_cli.cli import options
 @options.points_only_opt
 @click.pass_context
 def cmd(ctx: click.Context, input: str, output: str, ascii_: bool, big_endian: bool) -> None:
-    """Convert between formats, chosen by suffix: PLY, OBJ, OFF, STL, XYZ/TXT/CSV/PTS, PCD,
-    LAS/LAZ (E57 read only). A PLY written from a PLY keeps every element and property."""
+    """Convert between formats, chosen by suffix.
+
+    PLY, OBJ, OFF, STL, XYZ/TXT/CSV/PTS, PCD, LAS/LAZ (E57 read only). A PLY written from a PLY
+    keeps every element and property.
+    """
     from recon_cli.cli._run import io_formats
     from recon_cli.io.atomic import write_bytes
     from recon_cli.io.load import FORMATS, check_read, decode, format_of, save
@@ -34,11 +37,7 @@ def cmd(ctx: click.Context, input: str, output: str, ascii_: bool, big_endian: b
         raise click.UsageError(f"--big-endian is for PLY output, not {fout.name.upper()}")
     if fin is None or fin.name not in ("las", "e57") or input == "-":
         data = read_bytes(input)
-        if (
-            fout.name == "ply"
-            and (fin is None or fin.name == "ply")
-            and bytes(memoryview(data)[:3]) == b"ply"
-        ):
+        if fout.name == "ply" and (fin is None or fin.name == "ply") and bytes(data[:3]) == b"ply":
             ply = parse_ply(data, input)
             ply.format = (
                 "ascii"

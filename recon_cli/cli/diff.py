@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import click
 
 from recon_cli.cli import options
@@ -29,7 +32,10 @@ from recon_cli.cli import options
     "--tau",
     default="0.5%,1%",
     show_default=True,
-    help="F-score thresholds: absolute distances, or percentages of the reference's bounding-box diagonal.",
+    help=(
+        "F-score thresholds: absolute distances, or percentages of the reference's bounding-box "
+        "diagonal."
+    ),
 )
 @click.option(
     "--json",
@@ -51,7 +57,10 @@ from recon_cli.cli import options
 @click.option(
     "--png",
     type=click.Path(dir_okay=False),
-    help="Write a picture: each candidate's shape, accuracy and completeness heatmaps on one colour scale, and the reference.",
+    help=(
+        "Write a picture: each candidate's shape, accuracy and completeness heatmaps on one colour "
+        "scale, and the reference."
+    ),
 )
 @options.picture_opts
 @click.pass_context
@@ -71,7 +80,8 @@ def cmd(ctx, files, ref, samples, seed, tau, json_, csv_path, heatmap, png, view
     if ref is None:
         if len(files) != 2:
             raise ParameterError(
-                f"give two files (candidate, reference), or --ref GT with the candidates; got {len(files)}"
+                "give two files (candidate, reference), or --ref GT with the candidates; got "
+                f"{len(files)}"
             )
         candidates, reference = [files[0]], files[1]
     else:
@@ -103,9 +113,9 @@ def cmd(ctx, files, ref, samples, seed, tau, json_, csv_path, heatmap, png, view
         click.echo(format_table(rows))
 
 
-def csv_columns(rows: list[dict]) -> list[tuple[str, object]]:
+def csv_columns(rows: list[dict]) -> list[tuple[str, Callable[..., Any]]]:
     """(column name, getter) pairs of the flat CSV view of diff rows."""
-    cols: list[tuple[str, object]] = [
+    cols: list[tuple[str, Callable[..., Any]]] = [
         ("candidate", lambda r: r["candidate"]),
         ("reference", lambda r: r["reference"]),
         ("mode", lambda r: r["mode"]),
@@ -195,7 +205,8 @@ def format_table(rows: list[dict]) -> str:
     fmt = "  ".join(f"{{:<{w}}}" if i == 0 else f"{{:>{w}}}" for i, w in enumerate(widths))
     r0 = rows[0]
     lines.append(
-        f"reference {r0['reference']} (bbox diagonal {_g(r0['reference_diagonal'])}); {r0['mode']}; "
+        f"reference {r0['reference']} (bbox diagonal {_g(r0['reference_diagonal'])}); "
+        f"{r0['mode']}; "
         f"{r0['samples']['candidate']} / {r0['samples']['reference']} samples, seed {r0['seed']}"
     )
     lines.append(fmt.format(*head))

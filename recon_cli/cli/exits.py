@@ -1,5 +1,7 @@
-"""The exit codes that are not an error's own (``ReconError.exit_code``), for the commands and
-:mod:`recon_cli.cli.main`."""
+"""The exit codes that are not an error's own (``ReconError.exit_code``).
+
+For the commands and ``recon_cli.cli.main``.
+"""
 
 from __future__ import annotations
 

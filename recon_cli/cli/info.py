@@ -15,8 +15,9 @@ from recon_cli.cli import options
 @options.format_opt
 @click.pass_context
 def cmd(ctx: click.Context, files: tuple[str, ...], json_: bool) -> None:
-    """Describe clouds/meshes (PLY, OBJ, OFF, STL, XYZ, PCD, LAS/LAZ, E57) and grids: counts,
-    properties, bbox, topology, history.
+    """Describe clouds/meshes (PLY, OBJ, OFF, STL, XYZ, PCD, LAS/LAZ, E57) and grids.
+
+    Counts, properties, bbox, topology, history.
 
     With --json: a JSON list with one object per FILE (also for a single file).
     """
@@ -43,6 +44,7 @@ def cmd(ctx: click.Context, files: tuple[str, ...], json_: bool) -> None:
 
 
 def format_info(rep: dict) -> str:
+    """``recon info``'s report as the text it prints."""
     lines = [f"{rep['file']}: {rep['kind'].replace('_', ' ')}"]
     if rep["kind"] == "grid":
         lines.append(f"  shape          {' x '.join(map(str, rep['shape']))}")
@@ -55,7 +57,8 @@ def format_info(rep: dict) -> str:
         e = rep.get("eikonal")
         if e and e["cells"]:
             lines.append(
-                f"  eikonal |grad| mean {e['mean']:.4f}, within 1±0.1: {e['fraction_within_0.1'] * 100:.1f}% of {e['cells']} cells"
+                f"  eikonal |grad| mean {e['mean']:.4f}, within 1±0.1: "
+                f"{e['fraction_within_0.1'] * 100:.1f}% of {e['cells']} cells"
             )
         elif e is not None:
             lines.append("  eikonal        no interior cell with 6 known neighbours")
@@ -80,7 +83,8 @@ def format_info(rep: dict) -> str:
             lines.append(f"  bbox diagonal  {rep['bbox']['diagonal']:.6g}")
         for k, v in (rep.get("details") or {}).items():
             lines.append(
-                f"  {k.replace('_', ' '):<14} {', '.join(map(str, v)) if isinstance(v, list) else v}"
+                f"  {k.replace('_', ' '):<14} "
+                f"{', '.join(map(str, v)) if isinstance(v, list) else v}"
             )
         topo = rep.get("topology")
         if topo:

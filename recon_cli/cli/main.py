@@ -1,11 +1,11 @@
 """Entry point: the ``recon`` group, lazy subcommands, and the one place errors become exit codes.
 
-Exit codes: 0 success; 1 a stage failed on valid input; 2 bad input or parameters
-(click's usage errors too); 3 a reference backend is missing or failed; 4 a batch in
-which some inputs failed (``EXIT_BATCH_SOME_FAILED``: ``recon batch`` returns it); 130 interrupted (SIGINT, Ctrl-C),
-143 terminated (SIGTERM); 141 standard output closed by its reader (a broken pipe: quiet, as
-``head`` users expect). Output path errors (missing folder, full or read-only file system)
-are exit 2 like bad input.
+Exit codes: 0 success; 1 a stage failed on valid input; 2 bad input or parameters (click's usage
+errors too); 3 a reference backend is missing or failed; 4 a batch in which some inputs failed
+(``EXIT_BATCH_SOME_FAILED``: ``recon batch`` returns it); 130 interrupted (SIGINT, Ctrl-C), 143
+terminated (SIGTERM); 141 standard output closed by its reader (a broken pipe: quiet, as ``head``
+users expect). Output path errors (missing folder, full or read-only file system) are exit 2 like
+bad input.
 """
 
 from __future__ import annotations
@@ -53,17 +53,23 @@ class _Escape(BaseException):
 
 
 class LazyGroup(click.Group):
-    """Subcommands imported when used; every registered stage (built-in or from a plugin's
-    ``recon.stages`` entry point) is a command made from its declaration."""
+    """Subcommands imported when used.
+
+    Every registered stage (built-in or from a plugin's ``recon.stages`` entry point) is a command
+    made from its declaration.
+    """
 
     def list_commands(self, ctx: click.Context) -> list[str]:
+        """The commands that are not stages, and every registered stage."""
         return sorted(set(COMMANDS) | set(_stages()))
 
     def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
+        """The command ``name``, imported (or made from its stage's declaration) on first use."""
         if name in COMMANDS:
             from recon_cli.cli import _process
 
-            _process.resume()  # a stage command ends the start-up pause when its stage starts (cli/_run.py)
+            # a stage command ends the start-up pause when its stage starts (cli/_run.py)
+            _process.resume()
             cmd = importlib.import_module(f"recon_cli.cli.{COMMANDS[name][0]}").cmd
         elif name in _stages():
             from recon_cli.cli.options import stage_command
@@ -74,6 +80,7 @@ class LazyGroup(click.Group):
         return with_global_options(cmd)
 
     def invoke(self, ctx: click.Context):
+        """Run the command; recon's errors become one line and their exit code."""
         try:
             return super().invoke(ctx)
         except (KeyboardInterrupt, BrokenPipeError) as exc:
@@ -81,12 +88,14 @@ class LazyGroup(click.Group):
             raise _Escape(exc) from None
 
     def make_context(self, *args, **kwargs) -> click.Context:
+        """Click's context; a usage error is one line and exit 2, as recon's own errors."""
         try:
             return super().make_context(*args, **kwargs)
         except KeyboardInterrupt as exc:  # Ctrl-C while the arguments are parsed
             raise _Escape(exc) from None
 
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        """The command list of ``recon --help``, summaries read without importing the stages."""
         from recon_cli.stages import stage_summary
 
         rows = [(name, COMMANDS[name][1]) for name in COMMANDS]
@@ -102,7 +111,7 @@ def _stages() -> list[str]:
     return [n for n in stage_names() if n not in COMMANDS]
 
 
-# ---- global options: before or after the subcommand -------------------------------------------------
+# ---- global options: before or after the subcommand ----------------------------------------------
 def _set_quiet(ctx: click.Context, param: click.Parameter, value: bool) -> None:
     if value:
         _configure(ctx.find_root(), quiet=True)
@@ -134,7 +143,7 @@ def _configure(root: click.Context, quiet: bool | None = None, verbose: int | No
 
 
 def with_global_options(cmd: click.Command) -> click.Command:
-    """Add ``-q`` and ``-v`` to a subcommand, so they work after it too (``recon ballpivot IN OUT -q``)."""
+    """Add ``-q`` and ``-v`` to a subcommand, so they work after it too: ``recon info IN -q``."""
     have = {o for p in cmd.params for o in getattr(p, "opts", [])}
     for p in cmd.params:
         if p.name == "json_":  # `recon --json info x.ply` = `recon info x.ply --json`
@@ -191,7 +200,8 @@ def main(argv: list[str] | None = None) -> None:
 
     process = argv is None  # the process's own command line (`recon ...`), not a caller in Python
     if process:
-        _process.start()  # before numpy loads: see _process (start-up and exit: ~0.4 s of a numba process)
+        # before numpy loads: see _process (start-up and exit: ~0.4 s of a numba process)
+        _process.start()
     try:
         with _signals.handlers():
             code = _main(argv)
@@ -217,7 +227,8 @@ def _main(argv: list[str] | None) -> int:
     except KeyboardInterrupt as exc:
         return _interrupted(getattr(exc, "signum", signal.SIGINT))
     except SystemError as exc:
-        # Ctrl-C seen while a numba kernel returned: "CPUDispatcher(...) returned a result with an exception set"
+        # Ctrl-C seen while a numba kernel returned: "CPUDispatcher(...) returned a result with an
+        # exception set"
         cause = _interrupt_cause(exc)
         if cause is None:
             raise
@@ -254,11 +265,12 @@ def _interrupted(signum: int) -> int:
 def _interrupt_cause(exc: BaseException) -> BaseException | None:
     """The KeyboardInterrupt in the cause/context chain of ``exc``, if any."""
     seen = set()
-    while exc is not None and id(exc) not in seen:
-        if isinstance(exc, KeyboardInterrupt):
-            return exc
-        seen.add(id(exc))
-        exc = exc.__cause__ or exc.__context__
+    link: BaseException | None = exc
+    while link is not None and id(link) not in seen:
+        if isinstance(link, KeyboardInterrupt):
+            return link
+        seen.add(id(link))
+        link = link.__cause__ or link.__context__
     return None
 
 

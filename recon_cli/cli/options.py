@@ -26,7 +26,7 @@ def backend_opt(*choices: str):
 
 
 def _to_meta(ctx: click.Context, param: click.Parameter, value):
-    """Keep a file-format option in ``ctx.meta`` (read by ``_run.io_formats``), not as an argument."""
+    """Keep a file-format option in ``ctx.meta`` (for ``_run.io_formats``), not as an argument."""
     if value is not None:
         ctx.meta[f"recon.{param.name}"] = value
     return value
@@ -35,7 +35,8 @@ def _to_meta(ctx: click.Context, param: click.Parameter, value):
 _FORMAT_OPTIONS = (
     (
         ("--format", "format"),
-        "Format of '-' and of names without a suffix (ply, obj, off, stl, xyz, csv, pcd, las, laz, e57).",
+        "Format of '-' and of names without a suffix (ply, obj, off, stl, xyz, csv, pcd, las, "
+        "laz, e57).",
     ),
     (("--input-format", "input_format"), "Format of IN, whatever its name (e.g. IN is '-')."),
     (("--output-format", "output_format"), "Format of OUT, whatever its name."),
@@ -46,8 +47,10 @@ _POINTS_ONLY_HELP = (
 
 
 def format_params() -> list[click.Option]:
-    """``--format``, ``--input-format``, ``--output-format`` and ``--points-only`` as click
-    options; their values go to ``ctx.meta`` (read by ``_run.io_formats``), not to the callback."""
+    """``--format``, ``--input-format``, ``--output-format`` and ``--points-only`` as click options.
+
+    Their values go to ``ctx.meta`` (read by ``_run.io_formats``), not to the callback.
+    """
     opts = [
         click.Option(
             list(decls), metavar="FMT", default=None, expose_value=False, callback=_to_meta, help=h
@@ -98,7 +101,7 @@ def stage_io(f):
     return f
 
 
-# ---- options generated from a stage's declaration ---------------------------------------------------
+# ---- options generated from a stage's declaration ------------------------------------------------
 def option_for(p) -> click.Option:
     """The click option of a declared :class:`~recon_cli.params.Param`.
 
@@ -186,7 +189,10 @@ def stage_command(stage: str) -> click.Command:
 
 
 def picture_opts(f):
-    """``--view``, ``--vmax`` and ``--unit``: how ``recon diff --png`` and ``recon compare`` draw."""
+    """``--view``, ``--vmax`` and ``--unit``.
+
+    How ``recon diff --png`` and ``recon compare`` draw.
+    """
     for deco in reversed(
         (
             click.option(
@@ -195,16 +201,25 @@ def picture_opts(f):
                 multiple=True,
                 default=("turntable",),
                 show_default=True,
-                help="View of the pictures (repeatable): turntable (4 azimuths), front, back, left, right, top, bottom, iso, or AZ,EL in degrees.",
+                help=(
+                    "View of the pictures (repeatable): turntable (4 azimuths), front, back, left, "
+                    "right, top, bottom, iso, or AZ,EL in degrees."
+                ),
             ),
             click.option(
                 "--vmax",
                 type=float,
-                help="Distance at the top of the heatmaps' colour scale [default: 99th percentile, at least the smallest tau].",
+                help=(
+                    "Distance at the top of the heatmaps' colour scale [default: 99th percentile, "
+                    "at least the smallest tau]."
+                ),
             ),
             click.option(
                 "--unit",
-                help="Unit of the coordinates, written on the colour bar and in reports (e.g. mm) [default: model units].",
+                help=(
+                    "Unit of the coordinates, written on the colour bar and in reports (e.g. mm) "
+                    "[default: model units]."
+                ),
             ),
         )
     ):

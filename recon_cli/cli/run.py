@@ -18,8 +18,8 @@ from recon_cli.cli import options
     "overrides",
     multiple=True,
     metavar="STAGE.PARAM=VALUE",
-    help="Override a parameter without editing the file (repeatable): poisson.depth=9, or 2.depth=9 for "
-    "the second stage.",
+    help="Override a parameter without editing the file (repeatable): poisson.depth=9, "
+    "or 2.depth=9 for the second stage.",
 )
 @click.option(
     "--validate",
@@ -73,11 +73,10 @@ def cmd(
         return
     if input is None or output is None:
         raise click.UsageError("missing IN and OUT (or pass --validate)")
-    from recon_cli.io.load import load, read_report, save
-
     from recon_cli.cli._signals import immediate
     from recon_cli.errors import naming
     from recon_cli.io.atomic import check_output
+    from recon_cli.io.load import load, read_report, save
 
     check_output(output)
     t0 = time.perf_counter()

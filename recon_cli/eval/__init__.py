@@ -1,0 +1,1 @@
+"""Evaluation: metrics between shapes, ``recon diff``, ``recon compare``, pictures."""

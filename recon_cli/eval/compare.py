@@ -2,15 +2,14 @@
 
 A method is written ``[BACKEND:]STAGE[:NAME=VALUE[:NAME=VALUE...]]``: ``poisson:depth=8``,
 ``ballpivot``, ``open3d:poisson``, ``pymeshlab:poisson:depth=9``. A comma separates methods
-(``poisson:depth=8,ballpivot``); a ``NAME=VALUE`` token after a comma continues the previous
-method (``poisson:depth=8,scale=1.2``); inside a value, ``;`` stands for a comma
+(``poisson:depth=8,ballpivot``); a ``NAME=VALUE`` token after a comma continues the previous method
+(``poisson:depth=8,scale=1.2``); inside a value, ``;`` stands for a comma
 (``ballpivot:radii=0.01;0.02``). Every method runs through :func:`recon_cli.stages.apply_stage`
-(``BACKEND`` becomes its ``backend`` parameter), each in a fresh child process so that its
-wall time and peak memory are its own and a crash stays its own. A stage that cannot be
-loaded (a plugin whose module is missing) is reported ``unavailable``; a method that raises is reported ``failed``
-with its message; the others go on. A stage that yields a grid (``sdf`` of
-a cloud, ``fit-sdf``: ``fit-sdf:iterations=500``) is meshed by marching cubes at level 0
-inside its measured time.
+(``BACKEND`` becomes its ``backend`` parameter), each in a fresh child process so that its wall time
+and peak memory are its own and a crash stays its own. A stage that cannot be loaded (a plugin whose
+module is missing) is reported ``unavailable``; a method that raises is reported ``failed`` with its
+message; the others go on. A stage that yields a grid (``sdf`` of a cloud, ``fit-sdf``:
+``fit-sdf:iterations=500``) is meshed by marching cubes at level 0 inside its measured time.
 
 Outputs in ``DIR``: ``<method>.ply`` (each result), ``<method>.png`` (turntable of its shape,
 accuracy and completeness heatmaps, and the reference), ``overview.png`` (all methods on one
@@ -25,8 +24,9 @@ import os
 import re
 import time
 import traceback
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any
 
 from recon_cli.errors import InputError, ParameterError, ReconError
 
@@ -46,15 +46,18 @@ class Method:
 
     @property
     def label(self) -> str:
+        """``backend:stage:param=value:...``, as the command line writes a method."""
         parts = ([self.backend] if self.backend else []) + [self.stage]
         parts += [f"{k.replace('_', '-')}={v}" for k, v in self.params.items()]
         return ":".join(parts)
 
     @property
     def slug(self) -> str:
+        """The label made safe for a file name."""
         return re.sub(r"[^A-Za-z0-9.]+", "_", self.label).strip("_")
 
     def stage_params(self) -> dict[str, Any]:
+        """The parameters the stage is called with (the backend among them)."""
         p = dict(self.params)
         if self.backend:
             p["backend"] = self.backend
@@ -243,7 +246,8 @@ def _plan(methods, samples, views, vmax) -> tuple[list[Method], dict[str, bool],
     for m in methods:
         if m.stage not in STAGES:
             raise ParameterError(
-                f"unknown stage {m.stage!r} in method {m.label!r} (stages: {', '.join(sorted(STAGES))})"
+                f"unknown stage {m.stage!r} in method {m.label!r} "
+                f"(stages: {', '.join(sorted(STAGES))})"
             )
         try:
             get_stage(m.stage)
@@ -255,7 +259,8 @@ def _plan(methods, samples, views, vmax) -> tuple[list[Method], dict[str, bool],
         for k in m.stage_params():
             if k not in known:
                 raise ParameterError(
-                    f"method {m.label!r}: stage {m.stage!r} has no parameter {k!r} (parameters: {', '.join(sorted(known))})"
+                    f"method {m.label!r}: stage {m.stage!r} has no parameter {k!r} "
+                    f"(parameters: {', '.join(sorted(known))})"
                 )
     return methods, available, samples, vmax
 
@@ -263,7 +268,10 @@ def _plan(methods, samples, views, vmax) -> tuple[list[Method], dict[str, bool],
 def _run_methods(
     input_path, methods, available, out_dir, isolate, progress
 ) -> tuple[list[dict], dict[str, Any]]:
-    """Run each method (a child process each unless ``isolate`` is False): rows and outputs by label."""
+    """Run each method (a child process each unless ``isolate`` is False).
+
+    Rows and outputs by label.
+    """
     from recon_cli.eval.metrics import load_geometry
 
     rows: list[dict[str, Any]] = []
@@ -330,7 +338,10 @@ def _run_methods(
 
 
 def _measure(rows, outputs, reference, samples, seed, taus) -> None:
-    """Fill each successful row's ``metrics`` against ``reference`` (a failure to compare fails the row)."""
+    """Fill each successful row's ``metrics`` against ``reference``.
+
+    A failure to compare fails the row.
+    """
     from recon_cli.eval.metrics import compare_meshes
 
     if reference is None:
@@ -347,10 +358,10 @@ def _measure(rows, outputs, reference, samples, seed, taus) -> None:
 
 
 def _draw(rows, outputs, reference, reference_path, out_dir, views, vmax, unit) -> dict[str, Any]:
-    """Write ``<method>.png`` per method (every view), ``overview.png`` (all methods side by side,
-    the first view) and ``quality_vs_time.png``.
+    """Write ``<method>.png``, ``overview.png`` and ``quality_vs_time.png``.
 
-    One colour scale for every heatmap: ``vmax`` or the shared default of every accuracy
+    A sheet per method shows every view; the overview has all methods side by side in the first
+    view. One colour scale for every heatmap: ``vmax`` or the shared default of every accuracy
     and completeness array. Returns ``overview``, ``plot`` (paths or None) and ``vmax``.
     """
     from recon_cli.eval.figure import diff_rows, overview, sheet
@@ -405,7 +416,7 @@ def _draw(rows, outputs, reference, reference_path, out_dir, views, vmax, unit) 
 
 
 def quality_plot(rows: Sequence[dict], unit: str | None = None) -> Any:
-    """Chamfer-L1 and F-score (at the first tau) against stage time, one point per method, side by side.
+    """Chamfer-L1 and F-score (at the first tau) against stage time, one point per method.
 
     Returns
     -------
@@ -500,8 +511,10 @@ def _run_here(input_path: str | os.PathLike, m: Method, out_path: str) -> dict[s
 
 
 def _surface(result):
-    """A method whose stage yields a grid (``sdf``, ``fit-sdf``) is meshed at its zero level by
-    our marching cubes, inside the method's measured time and memory."""
+    """The method's surface: a grid (``sdf``, ``fit-sdf``) meshed at its zero level.
+
+    Our marching cubes runs inside the method's measured time and memory.
+    """
     from recon_cli.grid import Grid
     from recon_cli.stages import apply_stage
 
@@ -587,9 +600,12 @@ def _child(conn, input_path: str, stage: str, params: dict, out_path: str) -> No
 
 
 def _ran_with(stage: str, params: dict, result: Any, calls: Sequence[dict]) -> dict[str, Any]:
-    """What a stage ran with: its defaults, the given values and what it resolved (its report's
-    ``provenance``, e.g. automatic radii), its report, and the reference-library calls it made
-    (:data:`recon_cli.backends.CALLS`), JSON-safe."""
+    """What a stage ran with, JSON-safe.
+
+    Its defaults, the given values and what it resolved (its report's ``provenance``, e.g.
+    automatic radii), its report, and the reference-library calls it made
+    (:data:`recon_cli.backends.CALLS`).
+    """
     import json
 
     from recon_cli.stages import get_spec, report_json

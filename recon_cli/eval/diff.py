@@ -1,5 +1,6 @@
-"""``recon diff`` on files: compare candidate files with a reference file and write the heatmaps
-and the picture.
+"""``recon diff`` on files: candidate files against a reference file.
+
+It writes the heatmaps and the picture.
 
 The metrics come from :mod:`recon_cli.eval.metrics`, the picture from :mod:`recon_cli.eval.figure`.
 """
@@ -34,7 +35,9 @@ def diff_files(
     vmax: float | None = None,
     unit: str | None = None,
 ) -> list[dict[str, Any]]:
-    """:func:`~recon_cli.eval.metrics.compare_meshes` of each candidate file against the reference file, with outputs.
+    """:func:`~recon_cli.eval.metrics.compare_meshes` of each candidate file against the reference.
+
+    The heatmaps and the picture are written too when their paths are given.
 
     Parameters
     ----------
@@ -81,9 +84,9 @@ def diff_files(
         vmax = check_vmax(vmax)
     ref = load_geometry(reference, "reference")
     cands = [load_geometry(c, "candidate") for c in candidates]
-    rows = []
-    for path, cand in zip(candidates, cands):
-        row = {"candidate": os.fspath(path), "reference": os.fspath(reference)}
+    rows: list[dict[str, Any]] = []
+    for path, cand in zip(candidates, cands, strict=True):
+        row: dict[str, Any] = {"candidate": os.fspath(path), "reference": os.fspath(reference)}
         with naming(f"{os.fspath(path)} vs {os.fspath(reference)}"):
             row.update(compare_meshes(cand, ref, samples=samples, seed=seed, taus=taus))
         row["heatmap"] = None
@@ -99,7 +102,7 @@ def diff_files(
     if vmax is None:
         vmax = shared_vmax(dists + missed, min(rows[0]["tau"]))
     if heatmap_path is not None:
-        for k, (path, cand, d) in enumerate(zip(candidates, cands, dists)):
+        for k, (path, cand, d) in enumerate(zip(candidates, cands, dists, strict=True)):
             out = heatmap_path if len(cands) == 1 else _suffixed(heatmap_path, _stem(path), k)
             save(heatmap(cand, d, vmax=vmax), out)  # in the format its suffix names
             rows[k]["heatmap"] = os.fspath(out)
@@ -107,7 +110,9 @@ def diff_files(
         from recon_cli.eval.figure import diff_rows, sheet
         from recon_cli.eval.render import write_png
 
-        panels = [(_stem(p), c, d, m) for p, c, d, m in zip(candidates, cands, dists, missed)]
+        panels = [
+            (_stem(p), c, d, m) for p, c, d, m in zip(candidates, cands, dists, missed, strict=True)
+        ]
         fig = sheet(
             diff_rows(panels, (_stem(reference), ref)),
             views,

@@ -1,10 +1,13 @@
-"""Pictures a person can read: panels of rendered meshes laid out with labels, a colour bar
-with title and unit, and a quality-versus-time scatter plot.
+"""Pictures a person can read.
 
-The meshes are drawn by our own rasteriser (:mod:`recon_cli.eval.render`); text, lines and
-discs are set with Pillow (``ImageFont.load_default(size=...)``: the scalable font Pillow
-ships, no system font needed; it has no "≥", "—" or arrows, so pictures write ">=" and "·"). Every function here returns a :class:`Figure`: the image and
-the named boxes where its parts were put, so that tests (and callers) can find them.
+Panels of rendered meshes laid out with labels, a colour bar with title and unit, and a
+quality-versus-time scatter plot.
+
+The meshes are drawn by our own rasteriser (:mod:`recon_cli.eval.render`); text, lines and discs are
+set with Pillow (``ImageFont.load_default(size=...)``: the scalable font Pillow ships, no system
+font needed; it has no "≥", "—" or arrows, so pictures write ">=" and "·"). Every function here
+returns a :class:`Figure`: the image and the named boxes where its parts were put, so that tests
+(and callers) can find them.
 
 Layout of :func:`sheet` (one column per view, one row per surface and colouring)::
 
@@ -19,8 +22,8 @@ Layout of :func:`sheet` (one column per view, one row per surface and colouring)
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import numpy as np
 
@@ -107,9 +110,11 @@ def sheet(
 
     if not rows:
         raise ParameterError("nothing to draw")
-    views = resolve_views(views)
-    cells = [[Cell(row.obj, angles, row.scalars, row.edges) for _, angles in views] for row in rows]
-    return grid(cells, [row.label for row in rows], [label for label, _ in views], **kwargs)
+    resolved = resolve_views(views)
+    cells = [
+        [Cell(row.obj, angles, row.scalars, row.edges) for _, angles in resolved] for row in rows
+    ]
+    return grid(cells, [row.label for row in rows], [label for label, _ in resolved], **kwargs)
 
 
 @dataclass
@@ -217,6 +222,7 @@ def grid(
             img[y0 - 1 : y1 + 1, [x0 - 1, x1]] = 225  # a light frame around each tile
             img[[y0 - 1, y1], x0 - 1 : x1 + 1] = 225
     if heat:
+        assert vmax is not None  # set with the heatmaps above
         texts += _colorbar(img, box, float(vmax), largest, unit, diagonal, bar_title)
     if has_edges:
         texts += _legend(img, box["legend"])
@@ -319,12 +325,12 @@ def scatter_plot(
     dr = ImageDraw.Draw(im)
     small, label = _font(FONT_SMALL), _font(FONT_LABEL)
     xt = _ticks(x_lo, x_hi, log_x)
-    for t, text in zip(xt, _tick_labels([10**t for t in xt] if log_x else xt)):
+    for t, text in zip(xt, _tick_labels([10**t for t in xt] if log_x else xt), strict=True):
         x = sx(10**t if log_x else t)
         dr.line([(x, top), (x, bottom)], fill=(232, 232, 232))
         dr.text((x, bottom + 6), text, font=small, fill=TEXT_COLOR, anchor="ma")
     yt = _ticks(y_lo, y_hi, False)
-    for t, text in zip(yt, _tick_labels(yt)):
+    for t, text in zip(yt, _tick_labels(yt), strict=True):
         y = sy(t)
         dr.line([(left, y), (right, y)], fill=(232, 232, 232))
         dr.text((left - 6, y), text, font=small, fill=TEXT_COLOR, anchor="rm")
@@ -342,12 +348,12 @@ def scatter_plot(
     box["y label"] = (8, top, 30, bottom)
     colors = _point_colors(len(good))
     placed: list[tuple[float, float, float, float]] = []
-    for k, ((lab, x, y), c) in enumerate(zip(good, colors)):
+    for k, ((_lab, x, y), c) in enumerate(zip(good, colors, strict=True)):
         px, py = sx(x), sy(y)
         dr.ellipse([px - 6, py - 6, px + 6, py + 6], fill=c, outline=TEXT_COLOR)
         box[f"point {k}"] = (int(px - 6), int(py - 6), int(px + 7), int(py + 7))
         placed.append((px - 7, py - 7, px + 7, py + 7))
-    for k, ((lab, x, y), c) in enumerate(zip(good, colors)):
+    for k, ((lab, x, y), _c) in enumerate(zip(good, colors, strict=True)):
         px, py = sx(x), sy(y)
         lab = _fit(lab, small, (right - left) * 0.6)
         # the first of these places (right, left, above, below ...) that overlaps no disc or label
@@ -408,7 +414,7 @@ def require_pillow():
     return PIL
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _font(size: int):
     """Pillow's own scalable font at ``size`` pixels (Pillow >= 10.1 with FreeType)."""
     return require_pillow().ImageFont.load_default(size=size)
@@ -530,7 +536,10 @@ def _overlap(a, b) -> bool:
 
 
 def _padded(lo: float, hi: float, floor0: bool) -> tuple[float, float]:
-    """Axis range around [lo, hi]: from 0 when ``floor0`` (and lo >= 0), else 10 % of the span below."""
+    """Axis range around [lo, hi].
+
+    From 0 when ``floor0`` (and lo >= 0), else 10 % of the span below.
+    """
     span = hi - lo
     if not span > 0:
         span = abs(hi) * 0.1 or 1.0
@@ -572,11 +581,14 @@ def diff_rows(
     ],
     reference: tuple[str, TriangleMesh | PointCloud] | None,
 ) -> list[Row]:
-    """The rows of a comparison sheet: each candidate's shape, accuracy and completeness, then the reference.
+    """The rows of a comparison sheet.
+
+    Each candidate's shape, accuracy and completeness, then the reference.
 
     Parameters
     ----------
-    candidates : sequence of (name, surface, accuracy distances or None, completeness distances or None)
+    candidates : sequence of (name, surface, accuracy distances or None, completeness distances or
+    None)
         ``accuracy`` (n_candidate_vertices,): each candidate vertex's distance to the
         reference; ``completeness`` (n_reference_vertices,): each reference vertex's
         distance to the candidate (large where the candidate misses a part).
@@ -596,7 +608,8 @@ def diff_rows(
         if comp is not None and reference is not None:
             rows.append(
                 Row(
-                    f"{name} · completeness: the reference coloured by distance to it (red: missed)",
+                    f"{name} · completeness: the reference coloured by distance to it "
+                    "(red: missed)",
                     reference[1],
                     comp,
                 )
@@ -636,13 +649,14 @@ def overview(
     if not candidates:
         raise ParameterError("nothing to draw")
     label, angles = resolve_views(None if view is None else [view])[0]
-    has_ref = reference is not None
-    cols = [name for name, *_ in candidates] + ([f"{reference[0]} (reference)"] if has_ref else [])
-    blank = [None] if has_ref else []
-    cells = [
-        [Cell(obj, angles, edges=True) for _, obj, _, _ in candidates]
-        + ([Cell(reference[1], angles, edges=True)] if has_ref else [])
-    ]
+    ref_name, ref_obj = reference if reference is not None else ("", None)
+    has_ref = ref_obj is not None
+    cols = [name for name, *_ in candidates] + ([f"{ref_name} (reference)"] if has_ref else [])
+    blank: list[Cell | None] = [None] if has_ref else []
+    shapes: list[Cell | None] = [Cell(obj, angles, edges=True) for _, obj, _, _ in candidates]
+    if ref_obj is not None:
+        shapes.append(Cell(ref_obj, angles, edges=True))
+    cells = [shapes]
     labels = [f"shape, from {label}"]
     if has_ref and any(a is not None for _, _, a, _ in candidates):
         cells.append(
@@ -651,7 +665,11 @@ def overview(
         labels.append("accuracy: each surface coloured by distance to the reference")
     if has_ref and any(m is not None for *_, m in candidates):
         cells.append(
-            [None if m is None else Cell(reference[1], angles, m) for *_, m in candidates] + blank
+            [
+                None if m is None or ref_obj is None else Cell(ref_obj, angles, m)
+                for *_, m in candidates
+            ]
+            + blank
         )
         labels.append("completeness: the reference coloured by distance to each (red: missed)")
     return grid(cells, labels, cols, **kwargs)

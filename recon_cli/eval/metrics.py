@@ -8,7 +8,8 @@ the nearest triangle for a mesh, the nearest point for a cloud):
 * ``accuracy``      = mean over ``c`` in ``C`` of ``d(c, reference)``;
 * ``completeness``  = mean over ``r`` in ``R`` of ``d(r, candidate)``;
 * ``chamfer_l1``    = (accuracy + completeness) / 2;
-* ``chamfer_l2``    = (mean ``d(c, reference)**2`` + mean ``d(r, candidate)**2``) / 2 (squared units);
+* ``chamfer_l2``    = (mean ``d(c, reference)**2`` + mean ``d(r, candidate)**2``) / 2 (squared
+  units);
 * ``hausdorff``     = max of the two directional maxima; ``hausdorff_p95`` / ``_p99`` = max of the
   two directional 95th / 99th percentiles;
 * ``precision(τ)``  = fraction of ``C`` with ``d < τ``; ``recall(τ)`` = fraction of ``R`` with
@@ -23,7 +24,8 @@ from __future__ import annotations
 
 import math
 import os
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any, TypeGuard
 
 import numpy as np
 
@@ -114,7 +116,9 @@ def compare_meshes(
     comp_stats = _stats(d_comp)
     precision = [float(np.mean(d_acc < t)) for t in tau_abs]
     recall = [float(np.mean(d_comp < t)) for t in tau_abs]
-    fscore = [2 * p * r / (p + r) if p + r > 0 else 0.0 for p, r in zip(precision, recall)]
+    fscore = [
+        2 * p * r / (p + r) if p + r > 0 else 0.0 for p, r in zip(precision, recall, strict=True)
+    ]
     nc, nc_oriented = _normal_consistency([(cand_nrm, n_acc), (ref_nrm, n_comp)])
     if nc is None:
         warnings.append("normal consistency not computed: a point cloud side has no normals")
@@ -178,7 +182,7 @@ def point_distances(query: np.ndarray, target: TriangleMesh | PointCloud) -> np.
 def vertex_distances(
     candidate: TriangleMesh | PointCloud, reference: TriangleMesh | PointCloud
 ) -> np.ndarray:
-    """Distance from each vertex (point) of ``candidate`` to ``reference``, shape (n,), for heatmaps."""
+    """Distance from each vertex (point) of ``candidate`` to ``reference``: (n,), for heatmaps."""
     _check_input(candidate, "candidate")
     return point_distances(candidate.points, reference)
 
@@ -300,6 +304,7 @@ def load_geometry(path: str | os.PathLike, role: str | None = None) -> TriangleM
 
 
 def check_samples(samples: Any) -> int:
+    """``samples`` as a positive integer, or a :class:`~recon_cli.errors.ParameterError`."""
     try:
         n = int(samples)
     except (TypeError, ValueError):
@@ -320,11 +325,11 @@ def _check_input(obj: Any, name: str) -> None:
         f = obj.faces
         if f.min() < 0 or f.max() >= len(obj.vertices):
             raise InputError(f"{name} has face indices outside its {len(obj.vertices)} vertices")
-        if not _area(obj) > 0:
+        if not (_area(obj) or 0.0) > 0:
             raise InputError(f"{name} has faces but zero surface area")
 
 
-def _is_surface(obj: TriangleMesh | PointCloud) -> bool:
+def _is_surface(obj: TriangleMesh | PointCloud) -> TypeGuard[TriangleMesh]:
     return isinstance(obj, TriangleMesh) and len(obj.faces) > 0
 
 

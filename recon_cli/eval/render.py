@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import io
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
@@ -208,6 +208,7 @@ def _tinted(shade: np.ndarray, values: np.ndarray | None, tint: tuple) -> np.nda
     _, color, scalars, vmin, vmax = tint
     if scalars is None:
         return shade[:, None] * color
+    assert values is not None, "values come with scalars"
     ramp = colormap(values, vmin, vmax).astype(np.float64) / 255.0
     return ramp * (0.55 + 0.45 * shade[:, None])
 
@@ -306,7 +307,8 @@ def resolve_views(
     ----------
     views : sequence of str or (azimuth, elevation), or str, optional
         Names of :data:`VIEWS`, ``"turntable"`` (the four azimuths of :data:`TURNTABLE`),
-        ``"AZ,EL"`` or (azimuth, elevation) in degrees; a str is one view. Default :data:`DEFAULT_VIEWS`.
+        ``"AZ,EL"`` or (azimuth, elevation) in degrees; a str is one view. Default
+        :data:`DEFAULT_VIEWS`.
 
     Returns
     -------
@@ -326,7 +328,7 @@ def resolve_views(
     for v in views:
         if isinstance(v, str) and "," in v:  # "AZ,EL" in degrees, as on the command line
             try:
-                v = tuple(float(x) for x in v.split(","))
+                v = tuple(float(x) for x in v.split(","))  # type: ignore[assignment]  # 2 checked below
             except ValueError:
                 raise ParameterError(f"view {v!r} is not AZIMUTH,ELEVATION in degrees") from None
             if len(v) != 2 or not all(np.isfinite(v)):

@@ -1,5 +1,7 @@
-"""The reports of ``recon compare``: results table, ``report.md``, ``report.html``, and what
-a reader needs to trust the figures (versions, date, machine, input provenance).
+"""The reports of ``recon compare``.
+
+Results table, ``report.md``, ``report.html``, and what a reader needs to trust the figures
+(versions, date, machine, input provenance).
 
 Every column states its unit and which way is better (↑ higher, ↓ lower); every method
 lists the parameters it actually ran with (the stage's defaults, the values given, and what
@@ -15,7 +17,8 @@ import html
 import os
 import platform
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 from recon_cli.geometry import PointCloud, TriangleMesh
 
@@ -94,12 +97,13 @@ def file_provenance(
         "modified": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(st.st_mtime)),
     }
     if obj is not None:
-        is_mesh = isinstance(obj, TriangleMesh) and len(obj.faces) > 0
+        faces = obj.faces if isinstance(obj, TriangleMesh) else ()
+        is_mesh = len(faces) > 0
         out.update(
             {
                 "kind": "mesh" if is_mesh else "cloud",
                 "points": int(len(obj.points)),
-                "faces": int(len(obj.faces)) if is_mesh else 0,
+                "faces": int(len(faces)),
                 "normals": obj.normals is not None,
                 "history": [str(x) for x in getattr(obj, "history", [])],
             }
@@ -137,7 +141,7 @@ def result_table(result: dict, unit: str | None = None) -> tuple[list[str], list
     """
     unit = unit or result.get("unit") or "model units"
     rows = result["methods"]
-    taus = next((r["metrics"]["tau_relative"] for r in rows if r["metrics"]), [])
+    taus: list[float] = next((r["metrics"]["tau_relative"] for r in rows if r["metrics"]), [])
     head = ["method", "status"]
     for title, kind, better, _, _ in COLUMNS:
         u = unit if kind == "length" else kind
@@ -167,9 +171,12 @@ def result_table(result: dict, unit: str | None = None) -> tuple[list[str], list
 
 
 def parameter_lines(row: dict) -> list[str]:
-    """What a method ran with, as lines: its stage parameters (resolved), the reference-library
-    calls it made (exactly what was passed: a reference backend uses only some of the stage's
-    parameters), then what its stage reported. Empty when it did not run."""
+    """What a method ran with, as lines.
+
+    Its stage parameters (resolved), the reference-library calls it made (exactly what was passed: a
+    reference backend uses only some of the stage's parameters), then what its stage reported. Empty
+    when it did not run.
+    """
     out = []
     params = row.get("params_resolved")
     calls = row.get("library_calls") or []
@@ -245,7 +252,10 @@ document.querySelectorAll('table.sortable th').forEach(function (th) {
     var asc = th.dataset.dir !== 'asc';
     th.closest('tr').querySelectorAll('th').forEach(function (h) { delete h.dataset.dir; });
     th.dataset.dir = asc ? 'asc' : 'desc';
-    function key(r) { var c = r.cells[col], v = c.dataset.v; return v === undefined ? c.textContent : parseFloat(v); }
+    function key(r) {
+      var c = r.cells[col], v = c.dataset.v;
+      return v === undefined ? c.textContent : parseFloat(v);
+    }
     rows.sort(function (a, b) {
       var x = key(a), y = key(b), nx = typeof x === 'number', ny = typeof y === 'number';
       if (nx !== ny) return nx ? -1 : 1;  /* numbers first, then text (— last) */
@@ -259,7 +269,7 @@ document.querySelectorAll('table.sortable th').forEach(function (th) {
 
 
 def html_page(result: dict, out_dir: str) -> str:
-    """``report.html``: the same content as :func:`markdown`, offline, tables sortable by a click."""
+    """``report.html``: the content of :func:`markdown`, offline, tables sortable by a click."""
     e = html.escape
     rel = lambda p: os.path.relpath(p, out_dir)  # noqa: E731
     head, body = result_table(result)
@@ -267,10 +277,13 @@ def html_page(result: dict, out_dir: str) -> str:
         "<!DOCTYPE html>",
         "<html lang='en'><head><meta charset='utf-8'>",
         f"<title>recon compare: {e(result['input'])}</title>",
-        "<style>body{font-family:sans-serif;margin:2em;color:#222}table{border-collapse:collapse;margin:1em 0}"
-        "td,th{border:1px solid #bbb;padding:4px 8px;text-align:right}td:first-child,th:first-child{text-align:left}"
-        "th{background:#f2f2f2;cursor:pointer;user-select:none}th[data-dir=asc]::after{content:' ▲'}"
-        "th[data-dir=desc]::after{content:' ▼'}tr.failed,tr.unavailable{color:#999}img{max-width:100%}"
+        "<style>body{font-family:sans-serif;margin:2em;color:#222}"
+        "table{border-collapse:collapse;margin:1em 0}"
+        "td,th{border:1px solid #bbb;padding:4px 8px;text-align:right}"
+        "td:first-child,th:first-child{text-align:left}"
+        "th{background:#f2f2f2;cursor:pointer;user-select:none}"
+        "th[data-dir=asc]::after{content:' ▲'}th[data-dir=desc]::after{content:' ▼'}"
+        "tr.failed,tr.unavailable{color:#999}img{max-width:100%}"
         "code{background:#f4f4f4;padding:1px 3px}.note{color:#555}</style>",
         "</head><body>",
         f"<h1>recon compare: {e(result['input'])}</h1>",
@@ -279,7 +292,7 @@ def html_page(result: dict, out_dir: str) -> str:
         + "".join(f"<th>{e(c)}</th>" for c in head)
         + "</tr></thead><tbody>",
     ]
-    for r, cells in zip(result["methods"], body):
+    for r, cells in zip(result["methods"], body, strict=True):
         tds = []
         for c in cells:
             try:
@@ -299,25 +312,29 @@ def html_page(result: dict, out_dir: str) -> str:
         h.append("</ul>")
     h.append("<h2>Parameters each method ran with</h2>")
     h.append(
-        "<table class='sortable'><thead><tr><th>method</th><th>backend</th><th>parameters</th></tr></thead><tbody>"
+        "<table class='sortable'><thead><tr><th>method</th><th>backend</th>"
+        "<th>parameters</th></tr></thead><tbody>"
     )
     for r in result["methods"]:
         lines = parameter_lines(r)
+        ran = "<br>".join(e(x) for x in lines) if lines else "not run"
         h.append(
             f"<tr><td><code>{e(r['method'])}</code></td><td>{e(r['backend'])}</td>"
-            f"<td style='text-align:left'>{'<br>'.join(e(x) for x in lines) if lines else 'not run'}</td></tr>"
+            f"<td style='text-align:left'>{ran}</td></tr>"
         )
     h.append("</tbody></table>")
     if result.get("plot"):
         h.append(
-            f"<h2>Quality against time</h2><img src='{e(rel(result['plot']))}' alt='quality against time'>"
+            "<h2>Quality against time</h2>"
+            f"<img src='{e(rel(result['plot']))}' alt='quality against time'>"
         )
     if result["overview"]:
         h.append(f"<h2>All methods</h2><img src='{e(rel(result['overview']))}' alt='overview'>")
     for r in result["methods"]:
         if r["picture"]:
             h.append(
-                f"<h2>{e(r['method'])}</h2><img src='{e(rel(r['picture']))}' alt='{e(r['method'])}'>"
+                f"<h2>{e(r['method'])}</h2>"
+                f"<img src='{e(rel(r['picture']))}' alt='{e(r['method'])}'>"
             )
     h.append(
         "<h2>Inputs</h2><ul>"
@@ -342,7 +359,8 @@ def _setting_lines(result: dict) -> list[str]:
     lines = [
         f"Reference: {ref or '(none: timings and topology only)'}"
         + (f"; its bounding-box diagonal is {diag:.4g} {unit}" if diag else ""),
-        f"Distances in {unit}; {result['samples']} area-uniform samples per side, seed {result['seed']}.",
+        f"Distances in {unit}; {result['samples']} area-uniform samples per side, "
+        f"seed {result['seed']}.",
     ]
     if env:
         load = mach.get("load_average")
@@ -353,7 +371,8 @@ def _setting_lines(result: dict) -> list[str]:
             f"Machine: {mach.get('cpu') or 'unknown CPU'}, {mach.get('cores')} cores, "
             f"{mach.get('memory_gb')} GB memory, {mach.get('system')}"
             + (
-                f"; load average {load[0]} at the start (times are from a shared machine when it is above 0)"
+                f"; load average {load[0]} at the start "
+                "(times are from a shared machine when it is above 0)"
                 if load
                 else ""
             )
@@ -364,9 +383,10 @@ def _setting_lines(result: dict) -> list[str]:
 
 def _legend_line(result: dict) -> str:
     return (
-        "↓ lower is better, ↑ higher is better. Stage time: wall time of the stage itself; process time: "
-        "the method's whole child process (start-up, reading the input, the stage, writing the output), what a "
-        "user waits for; peak memory: resident high-water mark of the process above its level before the stage. "
+        "↓ lower is better, ↑ higher is better. Stage time: wall time of the stage itself; "
+        "process time: the method's whole child process (start-up, reading the input, the stage, "
+        "writing the output), what a user waits for; peak memory: resident high-water mark of the "
+        "process above its level before the stage. "
         "F-score thresholds are % of the reference's bounding-box diagonal."
     )
 
@@ -390,7 +410,8 @@ def _input_lines(result: dict) -> list[str]:
             else "; no recorded history"
         )
         out.append(
-            f"{role}: {p['path']} ({p['bytes']} bytes, sha256 {p['sha256'][:16]}…, modified {p['modified']}{what}){hist}"
+            f"{role}: {p['path']} ({p['bytes']} bytes, sha256 {p['sha256'][:16]}…, "
+            f"modified {p['modified']}{what}){hist}"
         )
     return out
 

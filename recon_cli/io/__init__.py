@@ -1,6 +1,8 @@
-"""File input and output: PLY, OBJ, OFF, STL, XYZ/CSV, PCD (our own readers/writers), LAS/LAZ
-(laspy), E57 (pye57, read only), SDF grids (.npz), atomic writes; :mod:`recon_cli.io.load` picks
-the format by suffix."""
+"""File input and output; :mod:`recon_cli.io.load` picks the format by suffix.
+
+PLY, OBJ, OFF, STL, XYZ/CSV, PCD (our own readers and writers), LAS/LAZ (laspy), E57 (pye57,
+read only), SDF grids (.npz), atomic writes.
+"""
 
 from recon_cli.io.atomic import atomic_open, write_bytes
 from recon_cli.io.ply import (

@@ -1,6 +1,8 @@
-"""Kernel of the OBJ reader: one walk over the lines into arrays that grow by doubling
-(sized first from a sample of the file, :func:`line_kinds`). Compute only:
-:mod:`recon_cli.io.obj` validates and raises."""
+"""Kernel of the OBJ reader: one walk over the lines into arrays that grow by doubling.
+
+The arrays are sized first from a sample of the file (:func:`line_kinds`). Compute only:
+:mod:`recon_cli.io.obj` validates and raises.
+"""
 
 from __future__ import annotations
 
@@ -36,9 +38,11 @@ NV, NVN, NF, NCORNER, NSLOW, COLOURS, NOCOLOURS, HAS_VN, MAX_V, MAX_VN, NONFINIT
 
 @njit(cache=True, inline="always")
 def _corner(buf, p, n):
-    """The face corner at ``p`` (``v``, ``v/vt``, ``v/vt/vn`` or ``v//vn``): ``(v, vn, ok,
-    stop)`` with the indices as written (``vn`` 0 when absent); not ok when it is not one of
-    these forms or an index is 0 (the texture index is read and dropped)."""
+    """The face corner at ``p`` (``v``, ``v/vt``, ``v/vt/vn`` or ``v//vn``).
+
+    ``(v, vn, ok, stop)`` with the indices as written (``vn`` 0 when absent); not ok when it is not
+    one of these forms or an index is 0 (the texture index is read and dropped).
+    """
     vi, ok, q = scan_int(buf, p, n)
     ok = ok and vi != 0
     nn = 0
@@ -57,17 +61,16 @@ def _corner(buf, p, n):
 def _walk(buf, i, st, verts, colours, vnorms, corner_v, corner_n, face_len, slow):
     """Parse lines from byte ``i`` until the end or until an array is full.
 
-    One pass over the bytes: each number is scanned where it starts, and the byte after it
-    must be white space or a newline. The common lines, ``v x y z`` and ``f a b c`` (each
-    corner any of the four forms) with one space between fields, go through a short path
-    that reads the fields in order; any other line (and any such line the short path does not
-    take whole) through the general one. ``st`` holds the counts (NV, NVN, NF, NCORNER,
-    NSLOW, COLOURS, NOCOLOURS), the largest vertex and normal index named by a corner (MAX_V,
-    MAX_VN, 0-based, -1 when none) and the first vertex with a NaN or infinite coordinate
-    (NONFINITE, -1 when none; numbers left to the slow path are not looked at), updated in
-    place; ``face_len`` is written only once POLYGONS is set (a face of more than 3 corners
-    seen, or expected by the caller). Returns ``(code, byte)``: 0 at the end, -1 at the start of a line that needs more
-    room, else an error code and the offending byte.
+    One pass over the bytes: each number is scanned where it starts, and the byte after it must be
+    white space or a newline. The common lines, ``v x y z`` and ``f a b c`` (each corner any of the
+    four forms) with one space between fields, go through a short path that reads the fields in
+    order; any other line (and any such line the short path does not take whole) through the general
+    one. ``st`` holds the counts (NV, NVN, NF, NCORNER, NSLOW, COLOURS, NOCOLOURS), the largest
+    vertex and normal index named by a corner (MAX_V, MAX_VN, 0-based, -1 when none) and the first
+    vertex with a NaN or infinite coordinate (NONFINITE, -1 when none; numbers left to the slow path
+    are not looked at), updated in place; ``face_len`` is written only once POLYGONS is set (a face
+    of more than 3 corners seen, or expected by the caller). Returns ``(code, byte)``: 0 at the end,
+    -1 at the start of a line that needs more room, else an error code and the offending byte.
     """
     buf = borrowed(buf)  # no reference counting around the inlined number scanners
     n = len(buf)
@@ -97,51 +100,51 @@ def _walk(buf, i, st, verts, colours, vnorms, corner_v, corner_n, face_len, slow
         c0 = buf[j]
         c1 = buf[j + 1] if j + 1 < n else 10
         if c1 == 32 and c0 == 118 and ncol == 0 and nv < cap_v:  # short path: v x y z
-            x, s0, q = scan_float(buf, j + 2, n)
-            if s0 == 1 and q < n and buf[q] == 32:
-                y, s1, q = scan_float(buf, q + 1, n)
-                if s1 == 1 and q < n and buf[q] == 32:
-                    z, s2, q = scan_float(buf, q + 1, n)
-                    if s2 == 1 and (q >= n or buf[q] == 10):
-                        verts[nv, 0] = x
-                        verts[nv, 1] = y
-                        verts[nv, 2] = z
-                        if nonfinite < 0 and not (
-                            abs(x) < np.inf and abs(y) < np.inf and abs(z) < np.inf
-                        ):
-                            nonfinite = nv
-                        nv += 1
-                        nplain += 1
-                        i = q + 1
-                        continue
+            # the three numbers by one loop: one inlined copy of scan_float, not three
+            # (each copy costs the compile seconds; written into the row before it counts)
+            q = j + 1
+            k = 0
+            finite = True
+            while k < 3:
+                val, s0, q = scan_float(buf, q + 1, n)
+                if s0 != 1 or not ((q < n and buf[q] == 32) if k < 2 else (q >= n or buf[q] == 10)):
+                    break
+                verts[nv, k] = val
+                finite = finite and abs(val) < np.inf
+                k += 1
+            if k == 3:
+                if nonfinite < 0 and not finite:
+                    nonfinite = nv
+                nv += 1
+                nplain += 1
+                i = q + 1
+                continue
         if c1 == 32 and c0 == 102 and nf < cap_f and nc + 3 <= cap_c:  # short path: a triangle
-            a, an, ok0, q = _corner(buf, j + 2, n)
-            if ok0 and a > 0 and an >= 0 and q < n and buf[q] == 32:
-                b, bn, ok1, q = _corner(buf, q + 1, n)
-                if ok1 and b > 0 and bn >= 0 and q < n and buf[q] == 32:
-                    c, cn, ok2, q = _corner(buf, q + 1, n)
-                    if (
-                        ok2
-                        and c > 0
-                        and cn >= 0
-                        and (q >= n or buf[q] == 10)
-                        and (has_vn or an + bn + cn == 0)
-                    ):
-                        corner_v[nc] = a - 1
-                        corner_v[nc + 1] = b - 1
-                        corner_v[nc + 2] = c - 1
-                        max_v = max(max_v, a - 1, b - 1, c - 1)
-                        if has_vn:
-                            corner_n[nc] = an - 1
-                            corner_n[nc + 1] = bn - 1
-                            corner_n[nc + 2] = cn - 1
-                            max_n = max(max_n, an - 1, bn - 1, cn - 1)
-                        if keep_len:
-                            face_len[nf] = 3
-                        nf += 1
-                        nc += 3
-                        i = q + 1
-                        continue
+            # the three corners by one loop, as the numbers above
+            q = j + 1
+            k = 0
+            named = 0  # corners that name a normal
+            while k < 3:
+                a, an, ok0, q = _corner(buf, q + 1, n)
+                if not (ok0 and a > 0 and an >= 0):
+                    break
+                if not ((q < n and buf[q] == 32) if k < 2 else (q >= n or buf[q] == 10)):
+                    break
+                corner_v[nc + k] = a - 1
+                if has_vn:
+                    corner_n[nc + k] = an - 1
+                named += an
+                k += 1
+            if k == 3 and (has_vn or named == 0):
+                max_v = max(max_v, corner_v[nc], corner_v[nc + 1], corner_v[nc + 2])
+                if has_vn:
+                    max_n = max(max_n, corner_n[nc], corner_n[nc + 1], corner_n[nc + 2])
+                if keep_len:
+                    face_len[nf] = 3
+                nf += 1
+                nc += 3
+                i = q + 1
+                continue
         if c0 == 118 and (
             is_blank(c1) or (c1 == 110 and (j + 2 >= n or is_blank(buf[j + 2])))
         ):  # v, vn
@@ -295,9 +298,12 @@ def _grown(a, need):
 
 @njit(cache=True)
 def line_kinds(buf, starts, width):
-    """``(v, vn, f, corners)``: how many ``v``, ``vn`` and ``f`` lines start in the windows
-    ``buf[s:s + width]`` (``s`` in ``starts``), and how many corners (fields) their ``f``
-    lines have: a sample from which the caller sizes the arrays (they grow when it falls short)."""
+    """``(v, vn, f, corners)`` counted in sample windows of ``buf``.
+
+    How many ``v``, ``vn`` and ``f`` lines start in the windows ``buf[s:s + width]`` (``s`` in
+    ``starts``), and how many corners (fields) their ``f`` lines have: a sample from which the
+    caller sizes the arrays (they grow when it falls short).
+    """
     n = len(buf)
     nv = 0
     nvn = 0
@@ -328,8 +334,9 @@ def line_kinds(buf, starts, width):
 
 @njit(cache=True)
 def obj_walk(buf, verts, colours, vnorms, corner_v, corner_n, face_len, slow):
-    """Walk an OBJ file held in ``buf`` (uint8) once, into the given arrays (sized by the
-    caller from :func:`line_kinds`), which grow when they are too small. ``corner_n`` empty:
+    """Walk an OBJ file held in ``buf`` (uint8) once, into the given arrays.
+
+    The caller sizes them from :func:`line_kinds`; they grow when too small. ``corner_n`` empty:
     the caller expects no ``vn`` line; it is made (normals -1 so far) at the first.
 
     Returns ``(error, byte offset, counts, verts, colours, vnorms, corner_v, corner_n,
@@ -350,7 +357,7 @@ def obj_walk(buf, verts, colours, vnorms, corner_v, corner_n, face_len, slow):
     st[MAX_V] = -1
     st[MAX_VN] = -1
     st[NONFINITE] = -1
-    i = 0
+    i = np.int64(0)  # not a literal 0: _walk (slow to compile) gets one variant, not two
     while True:
         code, at = _walk(buf, i, st, verts, colours, vnorms, corner_v, corner_n, face_len, slow)
         if code != -1:
@@ -383,7 +390,10 @@ def obj_walk(buf, verts, colours, vnorms, corner_v, corner_n, face_len, slow):
 
 @njit(cache=True)
 def fan(corner_v, face_len):
-    """Fan-triangulate polygons given as runs of ``corner_v``: ((m, 3) int64, source face of each)."""
+    """Fan-triangulate polygons given as runs of ``corner_v``.
+
+    ((m, 3) int64, source face of each).
+    """
     m = 0
     for f in range(len(face_len)):
         m += face_len[f] - 2

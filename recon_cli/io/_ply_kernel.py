@@ -49,7 +49,7 @@ def _read_uint(raw, pos, size, big, signed):
 
 @njit(cache=True)
 def scan_list_rows(raw, offset, count, layout, big):
-    """Walk ``count`` rows from ``offset``; layout rows are (is_list, count size, item size, signed).
+    """Walk ``count`` rows from ``offset``; layout rows: (is_list, count size, item size, signed).
 
     Returns (starts (count, nprop), lens (count, nprop), end offset, error code:
     0 ok, 1 truncated, 2 negative length).
@@ -80,7 +80,7 @@ def scan_list_rows(raw, offset, count, layout, big):
 
 @njit(cache=True, nogil=True)
 def gather_fields(flat, stride, offsets, size, big, out):
-    """Read field values out of fixed-size rows into ``out`` ((n, k) unsigned ints of ``size`` bytes).
+    """Read field values out of fixed-size rows into ``out``: (n, k) unsigned, ``size`` bytes.
 
     ``flat`` is the rows' bytes (uint8); field j of row i starts at ``i * stride + offsets[j]``.
     Each value is assembled arithmetically from its bytes in the file's order (``big``),
@@ -119,7 +119,7 @@ def gather_fields(flat, stride, offsets, size, big, out):
 
 @njit(cache=True, nogil=True)
 def gather_floats(flat, stride, offsets, size, big, out):
-    """Read float fields (``size`` 4 or 8 bytes) out of fixed-size rows straight into float64 ``out`` (n, k).
+    """Read float fields (``size`` 4 or 8 bytes) of fixed-size rows into float64 ``out`` (n, k).
 
     For float columns that cannot be viewed in place (big-endian files, fields not adjacent,
     mixed float types); each value is decoded by :func:`_load_float`. Rows are unaligned in
@@ -183,7 +183,7 @@ def _load_bits64(flat, o, big):
 
 @njit(cache=True, inline="always")
 def _load_float(flat, o, size, big):
-    """The float (``size`` 4 or 8 bytes, byte order ``big``) at byte ``o`` (unsigned) of ``flat``, as float64."""
+    """The float (``size`` 4 or 8 bytes, order ``big``) at byte ``o`` of ``flat``, as float64."""
     if size == 4:
         return np.float64(_f32_from_bits(_load_bits32(flat, o, big)))
     return _f64_from_bits(_load_bits64(flat, o, big))
@@ -191,8 +191,10 @@ def _load_float(flat, o, size, big):
 
 @njit(cache=True, inline="always")
 def _is_nonfinite(flat, o, size, big):
-    """Whether the float (``size`` 4 or 8 bytes) at byte ``o`` of ``flat`` is NaN or infinite:
-    its exponent bits are all ones (tested on the integer, no float conversion)."""
+    """Whether the float (``size`` 4 or 8 bytes) at byte ``o`` of ``flat`` is NaN or infinite.
+
+    Its exponent bits are all ones (tested on the integer, no float conversion).
+    """
     if size == 4:
         return (_load_bits32(flat, o, big) & np.uint32(0x7F800000)) == np.uint32(0x7F800000)
     e = np.uint64(0x7FF0000000000000)
@@ -201,8 +203,10 @@ def _is_nonfinite(flat, o, size, big):
 
 @njit(cache=True, nogil=True)
 def first_nonfinite_row(flat, stride, first, k, size, big):
-    """Index of the first row whose ``k`` floats (``size`` 4 or 8 bytes, from byte ``first``
-    of each ``stride``-byte row of ``flat``) hold a NaN or infinity; -1 when none does.
+    """Index of the first row whose ``k`` floats hold a NaN or infinity; -1 when none does.
+
+    The floats have ``size`` 4 or 8 bytes, from byte ``first`` of each ``stride``-byte row of
+    ``flat``.
 
     Rows are unaligned in general, hence the byte loads. Blocks of rows are tested without
     a branch per row (1.5x faster); a block that has a bad value is scanned again for it.
@@ -228,8 +232,10 @@ def first_nonfinite_row(flat, stride, first, k, size, big):
 
 @njit(cache=True, nogil=True)
 def ascii_line_tokens(body):
-    """Number of whitespace-separated tokens on each line of ``body`` (uint8), as ``bytes.split``
-    counts them; lines end at ``\\n``, ``\\r\\n`` or a lone ``\\r``. One int64 per line."""
+    r"""Number of whitespace-separated tokens on each line of ``body`` (uint8), one int64 a line.
+
+    Counted as ``bytes.split`` counts them; lines end at ``\n``, ``\r\n`` or a lone ``\r``.
+    """
     n = body.shape[0]
     lines = 1
     for i in range(n):

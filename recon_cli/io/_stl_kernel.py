@@ -8,15 +8,16 @@ from numba import njit
 from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (the per-user cache, before the first @njit)
 from recon_cli.io._text_kernel import parse_float, skip_blank, token_end
 
-
 _MULT = np.uint64(11400714819323198485)
 
 
 @njit(cache=True)
 def weld_exact(bits):
-    """Merge rows of ``bits`` ((n, 3) uint32 or uint64: the coordinates' bit patterns) that are
-    equal. Returns ``(unique row of each input row, index of the first input row of each
-    unique row)``, unique rows numbered in order of first appearance."""
+    """Merge the equal rows of ``bits``, the coordinates' bit patterns ((n, 3) uint32 or uint64).
+
+    Returns ``(unique row of each input row, index of
+    the first input row of each unique row)``, unique rows numbered in order of first appearance.
+    """
     n = bits.shape[0]
     cap = 16
     while cap < 2 * n + 16:
@@ -71,8 +72,10 @@ def _word(buf, s, e, w):
 
 @njit(cache=True)
 def ascii_walk(buf, corners, slow, fill):
-    """Walk an ASCII STL body. With ``fill`` false, count; else fill ``corners`` ((3 m, 3)
-    float64, NaN where slow) and ``slow`` ((k, 3): flat index, byte start, byte end).
+    """Walk an ASCII STL body.
+
+    With ``fill`` false, count; else fill ``corners`` ((3 m, 3) float64, NaN where slow) and
+    ``slow`` ((k, 3): flat index, byte start, byte end).
 
     Returns ``(facets, slow count, error, byte)``; error 1 = unexpected word, 2 = a number is
     malformed, 3 = a facet without three vertices, 4 = the file ends inside a facet.

@@ -1,5 +1,6 @@
-"""Numba kernels shared by the text readers (OBJ, OFF, STL ascii, XYZ, PCD ascii): one byte
-scanner and exact number parsing.
+"""Numba kernels shared by the text readers (OBJ, OFF, STL ascii, XYZ, PCD ascii).
+
+One byte scanner and exact number parsing.
 
 Compute only: the readers validate and raise.
 
@@ -133,8 +134,11 @@ def line_end(buf, i, e):
 
 @njit(cache=True)
 def eisel_lemire(w, q):
-    """``(bits, ok)``: the bit pattern of the double nearest to ``w * 10**q`` (``w`` a non-zero
-    uint64), ok False in the rare case where the 128-bit product cannot decide (slow path)."""
+    """``(bits, ok)``: the bit pattern of the double nearest to ``w * 10**q``.
+
+    ``w`` is a non-zero uint64; ok is False in the rare case where the 128-bit product cannot
+    decide (slow path).
+    """
     if q < SMALLEST_POWER:
         return _U0, True  # below half the smallest subnormal even for w = 2**64 - 1
     if q > LARGEST_POWER:
@@ -208,8 +212,10 @@ def _special(buf, i, e, neg):
 
 @njit(cache=True)
 def _significant_digits(buf, s, e):
-    """How many digits of the mantissa ``buf[s:e]`` (digits and at most one point) follow its
-    leading zeros."""
+    """How many digits of the mantissa ``buf[s:e]`` follow its leading zeros.
+
+    The mantissa is digits and at most one point.
+    """
     n = 0
     lead = True
     for i in range(s, e):
@@ -222,8 +228,11 @@ def _significant_digits(buf, s, e):
 
 @njit(cache=True)
 def _mantissa_long(buf, i, e):
-    """The mantissa at ``i`` digit by digit: ``(w, q, dropped, ndig, stop)`` with the first 19
-    significant digits in ``w``, value ``w * 10**q`` (``dropped``: a non-zero digit was not kept)."""
+    """The mantissa at ``i`` digit by digit.
+
+    ``(w, q, dropped, ndig, stop)`` with the first 19 significant digits in ``w``, value ``w *
+    10**q`` (``dropped``: a non-zero digit was not kept).
+    """
     w = _U0
     nd = 0  # significant digits in w (leading zeros are not)
     q = 0
@@ -265,8 +274,9 @@ def _mantissa_long(buf, i, e):
 
 @njit(cache=True, inline="always")
 def _digits8(buf, i, e):
-    """``(value, count)`` of the run of decimal digits at ``i``, at most 8 of them (a count of
-    8: more may follow), reading no further than ``e``.
+    """``(value, count)`` of the run of decimal digits at ``i``, at most 8 of them.
+
+    A count of 8: more may follow. Reads no further than ``e``.
 
     SWAR when the 8 bytes ``buf[i:i + 8]`` lie before ``e``: they are loaded as one integer,
     each byte XOR ``'0'`` (a digit becomes 0..9), the first non-digit found from the high bit
@@ -299,9 +309,11 @@ def _digits8(buf, i, e):
 
 @njit(cache=True, inline="always")
 def scan_float(buf, i, e):
-    """The decimal number starting at byte ``i`` (reading no further than ``e``):
-    ``(value, status, stop)`` with ``stop`` the byte after it; see the module docstring.
-    The caller checks that ``buf[stop]`` may follow a number."""
+    """The decimal number starting at byte ``i`` (reading no further than ``e``).
+
+    ``(value, status, stop)`` with ``stop`` the byte after it; see the module docstring. The caller
+    checks that ``buf[stop]`` may follow a number.
+    """
     neg = False
     if i < e:
         c = buf[i]
@@ -389,7 +401,10 @@ def parse_float(buf, s, e):
 
 @njit(cache=True, inline="always")
 def scan_int(buf, i, e):
-    """The decimal integer (optional sign, 1 to 18 digits) starting at ``i``: ``(value, ok, stop)``."""
+    """The decimal integer (optional sign, 1 to 18 digits) starting at ``i``.
+
+    ``(value, ok, stop)``.
+    """
     neg = False
     if i < e and (buf[i] == 45 or buf[i] == 43):
         neg = buf[i] == 45
@@ -417,11 +432,14 @@ _NV, _NR, _NS, _NCOL, _LINE = range(5)
 
 @njit(cache=True)
 def _rows_walk(buf, i, end, delim, comment, fixed, values, row_start, row_line, slow, st):
-    """Rows from byte ``i`` until the end or until an array is full (its arrays are fixed
-    here, so the loop keeps their addresses in registers). ``st`` holds the counts, updated.
+    """Rows from byte ``i`` until the end or until an array is full.
+
+    The arrays are fixed here, so the loop keeps their addresses in registers. ``st`` holds the
+    counts, updated.
     Returns ``(code, where, bad_count)``: code 0 at the end, -1, -2, -3 when ``values``,
     ``slow`` or the row arrays are full (``where``: the start of the row to parse again), 1 or
-    2 as :func:`parse_rows`'s errors."""
+    2 as :func:`parse_rows`'s errors.
+    """
     buf = borrowed(buf)  # no reference counting around the inlined number scanner
     nv = st[_NV]
     nr = st[_NR]

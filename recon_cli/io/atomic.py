@@ -33,7 +33,8 @@ import re
 import stat
 import sys
 import tempfile
-from typing import IO, Iterator
+from collections.abc import Iterator
+from typing import IO
 
 from recon_cli.errors import OutputError
 
@@ -170,7 +171,7 @@ def _open_special(path: str) -> Iterator[IO[bytes]]:
 def _open_replacing(
     path: str, final: str, folder: str, st: os.stat_result | None
 ) -> Iterator[IO[bytes]]:
-    """Write a regular file to an unnamed (else hidden) temporary file, then give it ``final``'s name."""
+    """Write a regular file to an unnamed (else hidden) temporary file, then name it ``final``."""
     named = None  # the temporary file's name while it has one
     try:
         try:
@@ -211,8 +212,11 @@ def _open_replacing(
 
 
 def _link_anonymous(fd: int, final: str, folder: str) -> str | None:
-    """Give the ``O_TMPFILE`` file ``fd`` a name: ``final`` itself when it does not exist (nothing
-    else ever appears), else a hidden temporary name returned for the caller to rename."""
+    """Give the ``O_TMPFILE`` file ``fd`` a name.
+
+    ``final`` itself when it does not exist (nothing else ever appears), else a hidden temporary
+    name returned for the caller to rename.
+    """
     dir_fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
     try:
         source = f"/proc/self/fd/{fd}"
@@ -277,8 +281,11 @@ def write_bytes(path: str | os.PathLike, data: bytes) -> None:
 
 
 def _write_all(f: IO[bytes], data: bytes) -> None:
-    """``f.write`` until every byte is out: to a pipe whose reader left, a buffered write can
-    return a short count with no error (the next write then raises BrokenPipeError)."""
+    """``f.write`` until every byte is out.
+
+    To a pipe whose reader left, a buffered write can return a short count with no error (the next
+    write then raises BrokenPipeError).
+    """
     view = memoryview(data).cast("B")
     while len(view):
         n = f.write(view)

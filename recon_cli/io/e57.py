@@ -39,14 +39,15 @@ def decode_e57(data, where: str, path=None) -> tuple[PointCloud, dict]:
     if path is None:
         fd, tmp = tempfile.mkstemp(suffix=".e57")
         with os.fdopen(fd, "wb") as f:
-            f.write(memoryview(text.as_uint8(data)))
+            f.write(text.as_uint8(data).data)
         path = tmp
     try:
         try:
             e = pye57.E57(str(path))
         except Exception as exc:  # libE57Format raises its own exception types
             raise InputError(
-                f"not a readable E57 file ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})",
+                "not a readable E57 file "
+                f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})",
                 where,
             ) from None
         try:
@@ -55,7 +56,8 @@ def decode_e57(data, where: str, path=None) -> tuple[PointCloud, dict]:
             raise InputError(exc.message, where) from None
         except Exception as exc:
             raise InputError(
-                f"E57 scan could not be read ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})",
+                "E57 scan could not be read "
+                f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})",
                 where,
             ) from None
         finally:
@@ -107,8 +109,11 @@ def decode_e57(data, where: str, path=None) -> tuple[PointCloud, dict]:
 
 
 def _read_scan(e, k: int) -> dict:
-    """One scan: points in the file's frame, its sensor, attributes, its pixel grid (or None),
-    and how many points its ``cartesianInvalidState`` (or spherical) flags as invalid."""
+    """One scan: points in the file's frame, its sensor, attributes, pixel grid, invalid count.
+
+    The pixel grid may be None; the count is of the points its ``cartesianInvalidState`` (or
+    spherical) flags as invalid.
+    """
     header = e.get_header(k)
     fields = set(header.point_fields)
     has_i = "intensity" in fields
@@ -155,8 +160,10 @@ def _scan_name(header) -> str:
 
 
 def _scan_grid(header, rows: np.ndarray, cols: np.ndarray):
-    """``((height, width), pixel)`` of a structured scan, or None when it is not a grid (one
-    row or column, or two returns in one pixel)."""
+    """``((height, width), pixel)`` of a structured scan, or None when it is not a grid.
+
+    Not a grid: one row or column, or two returns in one pixel.
+    """
     from pye57 import libe57
 
     try:
@@ -176,6 +183,7 @@ def _scan_grid(header, rows: np.ndarray, cols: np.ndarray):
 
 
 def read_e57(path: str | os.PathLike, data=None) -> PointCloud:
+    """Every scan of the E57 file ``path`` in the file's frame, as one float64 cloud."""
     from recon_cli.io.ply import read_bytes
 
     if data is None and str(path) != "-":

@@ -1,5 +1,4 @@
-"""LAS and LAZ (1.2 - 1.4) through laspy with the lazrs backend (the optional extra
-``recon[las]``).
+"""LAS and LAZ (1.2 - 1.4) through laspy with the lazrs backend (the optional extra ``recon[las]``).
 
 Reading gives float64 coordinates ``X * scale + offset`` (LAS stores integers: float32 at
 UTM coordinates would round to decimetres), the colours (uint16, as stored) and every other
@@ -55,10 +54,12 @@ _LAZ_MAX_RATIO = 200
 
 
 def _check_counts(head: bytes, size: int, where: str) -> None:
-    """Refuse a header whose counts cannot fit in a file of ``size`` bytes, before laspy reads
-    it: a corrupted count of VLRs or points made laspy build millions of records or allocate
-    gigabytes (a fuzzed file took one test worker to 22 GB). ``head``: the file's first
-    375 bytes (the largest public header, LAS 1.4). Anything else is left to laspy."""
+    """Refuse a header whose counts cannot fit in a file of ``size`` bytes, before laspy reads it.
+
+    A corrupted count of VLRs or points made laspy build millions of records or allocate gigabytes
+    (a fuzzed file took one test worker to 22 GB). ``head``: the file's first 375 bytes (the largest
+    public header, LAS 1.4). Anything else is left to laspy.
+    """
     if len(head) < 227 or head[:4] != b"LASF":
         return
     header_size = int.from_bytes(head[94:96], "little")
@@ -77,19 +78,22 @@ def _check_counts(head: bytes, size: int, where: str) -> None:
             )
     if not header_size <= to_points <= size:
         raise InputError(
-            f"header puts the points at byte {to_points}, outside the file ({size} bytes) or inside the header",
+            f"header puts the points at byte {to_points}, outside the file ({size} bytes) or "
+            "inside the header",
             where,
         )
     if n_vlr * 54 > to_points - header_size:
         raise InputError(
-            f"header declares {n_vlr} VLRs, more than the {to_points - header_size} bytes before the points hold",
+            f"header declares {n_vlr} VLRs, more than the {to_points - header_size} bytes "
+            "before the points hold",
             where,
         )
     room = size - to_points
     compressed = bool(fmt & 0xC0)
     if count * record > (_LAZ_MAX_RATIO if compressed else 1) * room:
         raise InputError(
-            f"header declares {count} points of {record} bytes, more than the file's {room} bytes of points can hold",
+            f"header declares {count} points of {record} bytes, more than the file's {room} "
+            "bytes of points can hold",
             where,
         )
 
@@ -107,7 +111,7 @@ def decode_las(data, where: str, path=None) -> tuple[PointCloud, dict]:
         _check_counts(head, size, where)
         source = path
     else:
-        raw = bytes(memoryview(text.as_uint8(data)))
+        raw = bytes(text.as_uint8(data).data)
         _check_counts(raw[:375], len(raw), where)
         source = io.BytesIO(raw)
     try:
@@ -129,7 +133,8 @@ def decode_las(data, where: str, path=None) -> tuple[PointCloud, dict]:
             pts[:, i] += h.offsets[i]
     if not np.isfinite(pts).all():
         raise InputError(
-            f"scale {list(map(float, h.scales))} and offset {list(map(float, h.offsets))} give coordinates "
+            f"scale {list(map(float, h.scales))} and offset {list(map(float, h.offsets))} give "
+            "coordinates "
             "beyond float64",
             where,
         )
@@ -264,14 +269,16 @@ def las_bytes(obj, compress: bool, where: str = "") -> bytes:
     ints = np.rint((pts - offset) / scale)
     if len(pts) and (np.abs(ints).max() > 2**31 - 1):
         raise ParameterError(
-            f"{where}: coordinates do not fit LAS integers with scale {scale[0]:g} and offset {offset.tolist()}"
+            f"{where}: coordinates do not fit LAS integers with scale {scale[0]:g} and offset "
+            f"{offset.tolist()}"
         )
     ints = ints.astype(np.int32)
     las.X, las.Y, las.Z = ints[:, 0], ints[:, 1], ints[:, 2]
     err = float(np.max(np.abs(ints * scale + offset - pts))) if len(pts) else 0.0
     if err > 1e-3 * float(scale.min()):
         text.warn(
-            f"{where}: LAS stores coordinates as integers of scale {scale.min():g}: rounded by up to {err:.3g} "
+            f"{where}: LAS stores coordinates as integers of scale {scale.min():g}: rounded by "
+            f"up to {err:.3g} "
             f"({err / max(bbox_diagonal(pts), 1e-300):.2g} of the bounding-box diagonal)"
         )
     if obj.colors is not None:

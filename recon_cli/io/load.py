@@ -24,8 +24,11 @@ from recon_cli.io.ply import read_bytes, read_ply, write_ply
 
 @dataclass(frozen=True)
 class Format:
-    """One file format: ``holds`` is ``mesh`` (meshes and clouds), ``points`` (clouds only),
-    ``triangles`` (meshes only) or ``grid``."""
+    """One file format and what it holds.
+
+    ``holds`` is ``mesh`` (meshes and clouds), ``points`` (clouds only), ``triangles`` (meshes
+    only) or ``grid``.
+    """
 
     name: str
     suffixes: tuple[str, ...]
@@ -36,10 +39,12 @@ class Format:
     kept: str
 
     def decoder(self):
+        """The format module's ``decode_<module>`` function (imported on first use)."""
         mod = importlib.import_module(f"recon_cli.io.{self.module}")
         return getattr(mod, f"decode_{self.module}")
 
 
+#: format name -> its suffixes, what it holds and how it is read and written
 FORMATS: dict[str, Format] = {
     f.name: f
     for f in (
@@ -77,7 +82,8 @@ FORMATS: dict[str, Format] = {
             "stl",
             True,
             None,
-            "triangles, corners welded exactly (tolerance 0); binary float32 / ASCII float64; attribute word",
+            "triangles, corners welded exactly (tolerance 0); binary float32 / ASCII float64; "
+            "attribute word",
         ),
         Format(
             "xyz",
@@ -95,7 +101,8 @@ FORMATS: dict[str, Format] = {
             "pcd",
             True,
             None,
-            "every field (x y z float32/float64, normals, rgb/rgba, the rest as attributes); viewpoint",
+            "every field (x y z float32/float64, normals, rgb/rgba, the rest as attributes); "
+            "viewpoint",
         ),
         Format(
             "las",
@@ -104,7 +111,8 @@ FORMATS: dict[str, Format] = {
             "las",
             True,
             "las",
-            "float64 coordinates (scale/offset kept), colours, every dimension as an attribute, VLRs",
+            "float64 coordinates (scale/offset kept), colours, every dimension as an "
+            "attribute, VLRs",
         ),
         Format(
             "e57",
@@ -272,8 +280,9 @@ def save(
     format: str | None = None,
     points_only: bool = False,
 ) -> None:
-    """Write a stage output atomically in the format the suffix of ``path`` (or ``format``)
-    names; ``-`` and names without a suffix get PLY (grids ``.npz``).
+    """Write a stage output atomically in the format the suffix of ``path`` (or ``format``) names.
+
+    ``-`` and names without a suffix get PLY (grids ``.npz``).
 
     A mesh written to a format that holds points only is refused unless ``points_only``
     (then its vertices are written and a warning says the faces were dropped); a cloud is
@@ -296,18 +305,21 @@ def save(
     if fmt.holds == "points" and isinstance(obj, TriangleMesh):
         if not points_only:
             raise ParameterError(
-                f"{where}: {fmt.name.upper()} holds points only; the mesh's {len(obj.faces)} faces would be dropped "
+                f"{where}: {fmt.name.upper()} holds points only; the mesh's {len(obj.faces)} "
+                "faces would be dropped "
                 "(pass --points-only to write its vertices)"
             )
         from recon_cli.io.text import warn
 
         warn(
-            f"{where}: {fmt.name.upper()} holds points only: wrote the {len(obj.vertices)} vertices, dropped {len(obj.faces)} faces"
+            f"{where}: {fmt.name.upper()} holds points only: wrote the {len(obj.vertices)} "
+            f"vertices, dropped {len(obj.faces)} faces"
         )
         obj = obj.to_point_cloud()
     if fmt.holds == "triangles" and not isinstance(obj, TriangleMesh):
         raise ParameterError(
-            f"{where}: {fmt.name.upper()} holds triangles; a point cloud cannot be written as {fmt.name.upper()}"
+            f"{where}: {fmt.name.upper()} holds triangles; a point cloud cannot be written as "
+            f"{fmt.name.upper()}"
         )
     if fmt.name == "ply":
         write_ply(obj, path, ascii=ascii)

@@ -29,12 +29,13 @@ from recon_cli.io.atomic import write_bytes
 from recon_cli.io.ply import read_bytes
 
 
-def is_npz(data: bytes) -> bool:
+def is_npz(data: bytes | np.ndarray) -> bool:
     """True when ``data`` starts like a zip archive (``.npz``)."""
-    return bytes(memoryview(data)[:4]) == b"PK\x03\x04"
+    return bytes(data[:4]) == b"PK\x03\x04"
 
 
 def grid_bytes(grid: Grid) -> bytes:
+    """``grid`` as the bytes of its ``.npz`` file."""
     buf = io.BytesIO()
     np.savez(
         buf,
@@ -47,7 +48,7 @@ def grid_bytes(grid: Grid) -> bytes:
     return buf.getvalue()
 
 
-def read_grid(path: str | os.PathLike, data: bytes | None = None) -> Grid:
+def read_grid(path: str | os.PathLike, data: bytes | np.ndarray | None = None) -> Grid:
     """Read a grid ``.npz`` (``-``: standard input).
 
     Every array's header is checked before its data is read: ``sdf`` a 3-d float array
@@ -79,12 +80,15 @@ def read_grid(path: str | os.PathLike, data: bytes | None = None) -> Grid:
     buf = read_bytes(path) if data is None else data
     if not is_npz(buf):
         raise InputError("not a grid .npz file", where)
-    return _read_grid(io.BytesIO(buf), where, None)
+    return _read_grid(io.BytesIO(buf if isinstance(buf, bytes) else buf.data), where, None)
 
 
 def _read_grid(source, where: str, fh) -> Grid:
-    """The grid in the zip archive ``source`` (a binary file object); ``fh``: the same object
-    when it is a real file whose stored ``sdf`` member can be read into the array directly."""
+    """The grid in the zip archive ``source`` (a binary file object).
+
+    ``fh``: the same object when it is a real file whose stored ``sdf`` member can be read into the
+    array directly.
+    """
     from recon_cli.grid import allocation_problem
 
     try:
@@ -148,8 +152,10 @@ def _read_grid(source, where: str, fh) -> Grid:
 
 
 def _read_stored(fh, info: zipfile.ZipInfo, where: str) -> np.ndarray:
-    """The array of the uncompressed ``.npy`` member ``info`` of the zip file ``fh``, read
-    into its own (aligned, writable) memory with ``readinto``; CRC checked."""
+    """The array of the uncompressed ``.npy`` member ``info`` of the zip file ``fh``.
+
+    It is read into its own (aligned, writable) memory with ``readinto``; CRC checked.
+    """
     import struct
     import zlib
 
@@ -170,7 +176,7 @@ def _read_stored(fh, info: zipfile.ZipInfo, where: str) -> np.ndarray:
     fh.seek(start)
     crc = zlib.crc32(fh.read(head_len))
     arr = np.empty(shape, dtype=dtype, order="F" if fortran else "C")
-    raw = memoryview(arr.reshape(-1, order="A")).cast("B") if arr.size else memoryview(b"")
+    raw = arr.reshape(-1, order="A").data.cast("B") if arr.size else memoryview(b"")
     got = 0
     while got < raw.nbytes:
         k = fh.readinto(raw[got:])

@@ -21,6 +21,7 @@ checks (no further pass over the arrays).
 from __future__ import annotations
 
 import os
+from typing import Any
 
 import numpy as np
 
@@ -88,7 +89,7 @@ def decode_obj(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
     details: dict = {"format": "obj", "v": nv, "vn": nvn, "f": nf}
     normals = _vertex_normals(verts, vnorms, corner_v, corner_n, nf, where, details)
     cols = text.colours_from_unit(colours) if len(colours) else None
-    common = dict(normals=normals, colors=cols, point_dtype=np.float64)
+    common: dict[str, Any] = dict(normals=normals, colors=cols, point_dtype=np.float64)
     if nf == 0:
         cloud = text.apply_float32_mark(PointCloud(points=verts, **common), history)
         return (drop_invalid(cloud, where) if invalid else cloud), details
@@ -103,9 +104,11 @@ def decode_obj(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
 
 
 def _estimate(buf: np.ndarray, K) -> tuple[int, int, int, int]:
-    """Room for the ``v``, ``vn``, ``f`` lines and face corners: counted in a small file,
-    estimated from 32 windows of 32 KiB spread over a large one (10 % spare; the kernel's
-    arrays grow when a count falls short)."""
+    """Room for the ``v``, ``vn``, ``f`` lines and face corners.
+
+    Counted in a small file, estimated from 32 windows of 32 KiB spread over a large one (10 %
+    spare; the kernel's arrays grow when a count falls short).
+    """
     n = len(buf)
     width = 1 << 15
     if n <= 64 * width:
@@ -115,7 +118,8 @@ def _estimate(buf: np.ndarray, K) -> tuple[int, int, int, int]:
         counts = K.line_kinds(buf, np.linspace(0, n - width, 32).astype(np.int64), width)
         scale, spare = 1.1 * n / (32 * width), 1024
     # no vn line seen: none expected (no normal arrays: the kernel makes them at the first)
-    return tuple(int(c * scale) + spare if c or k != 1 else 0 for k, c in enumerate(counts))
+    v, vn, f, corners = (int(c * scale) + spare if c or k != 1 else 0 for k, c in enumerate(counts))
+    return v, vn, f, corners
 
 
 def _raise(buf: np.ndarray, err: int, at: int, where: str):
@@ -168,8 +172,11 @@ def _leading_comments(buf: np.ndarray) -> list[str]:
 
 
 def obj_bytes(obj: PointCloud | TriangleMesh) -> bytes:
-    """The OBJ encoding of ``obj``: history as ``#`` lines, ``v`` (with ``r g b`` in 0..1 when
-    the object has colours), ``vn`` in vertex order and ``f a//a b//b c//c`` (1-based)."""
+    """The OBJ encoding of ``obj``.
+
+    History as ``#`` lines, ``v`` (with ``r g b`` in 0..1 when the object has colours), ``vn`` in
+    vertex order and ``f a//a b//b c//c`` (1-based).
+    """
     pts = obj.points
     fmt = text.float_format(obj.point_dtype)
     parts = [text.mark_lines(obj).encode("utf-8")]

@@ -11,6 +11,7 @@ is sized from the declared counts, and the counts are then checked against the r
 from __future__ import annotations
 
 import os
+from typing import Any
 
 import numpy as np
 
@@ -50,12 +51,14 @@ def decode_off(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
     rows = len(lens) - 1
     if nv + nf > rows:
         raise InputError(
-            f"truncated: the header declares {nv} vertices and {nf} faces but the file has {rows} rows",
+            f"truncated: the header declares {nv} vertices and {nf} faces but the file has "
+            f"{rows} rows",
             where,
         )
     if nv + nf < rows:
         raise InputError(
-            f"line {int(row_line[1 + nv + nf])}: more rows than the {nv} vertices and {nf} faces declared",
+            f"line {int(row_line[1 + nv + nf])}: more rows than the {nv} vertices and {nf} "
+            "faces declared",
             where,
         )
     base = 3 + (3 if has_nrm else 0)
@@ -65,7 +68,8 @@ def decode_off(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
     if wrong.any():
         bad = int(np.flatnonzero(wrong)[0])
         raise InputError(
-            f"line {int(row_line[1 + bad])}: a {word.decode()} vertex row holds {' or '.join(map(str, allowed))} numbers, not {int(vl[bad])}",
+            f"line {int(row_line[1 + bad])}: a {word.decode()} vertex row holds "
+            f"{' or '.join(map(str, allowed))} numbers, not {int(vl[bad])}",
             where,
         )
     width = int(vl[0]) if nv else base
@@ -74,7 +78,7 @@ def decode_off(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
     normals = np.ascontiguousarray(vtab[:, 3:6]) if has_nrm else None
     colors = _colours(vtab[:, base:]) if has_col else None
     details = {"format": "off", "variant": word.decode(), "declared": [nv, nf]}
-    common = dict(normals=normals, colors=colors, point_dtype=np.float64)
+    common: dict[str, Any] = dict(normals=normals, colors=colors, point_dtype=np.float64)
     if nf == 0:
         cloud = text.apply_float32_mark(PointCloud(points=pts, **common), _comments(buf))
         return drop_invalid(cloud, where), details
@@ -108,7 +112,8 @@ def _faces(values, starts, lines, nv, where):
     if np.any((extra != 0) & (extra != 3) & (extra != 4)):
         bad = int(np.flatnonzero((extra != 0) & (extra != 3) & (extra != 4))[0])
         raise InputError(
-            f"line {int(lines[bad])}: a face row holds k indices and optionally 3 or 4 colour values",
+            f"line {int(lines[bad])}: a face row holds k indices and optionally 3 or 4 colour "
+            "values",
             where,
         )
     idx_pos = np.repeat(first + 1, k) + (np.arange(int(k.sum())) - np.repeat(np.cumsum(k) - k, k))
@@ -121,7 +126,8 @@ def _faces(values, starts, lines, nv, where):
         )
         bad = int(np.searchsorted(np.cumsum(k), bad_corner, side="right"))
         raise InputError(
-            f"line {int(lines[bad])}: vertex index {corners[bad_corner]:g} out of range for {nv} vertices",
+            f"line {int(lines[bad])}: vertex index {corners[bad_corner]:g} out of range for "
+            f"{nv} vertices",
             where,
         )
     faces, src = fan(corners.astype(np.int64), k)
@@ -149,8 +155,10 @@ def _comments(buf: np.ndarray) -> list[str]:
 
 
 def off_bytes(obj: PointCloud | TriangleMesh) -> bytes:
-    """The OFF encoding of ``obj`` (COFF / NOFF / CNOFF when it has colours / normals); the
-    history as ``#`` lines after the keyword."""
+    """The OFF encoding of ``obj`` (COFF / NOFF / CNOFF when it has colours / normals).
+
+    The history as ``#`` lines after the keyword.
+    """
     pts = obj.points
     fmt = text.float_format(obj.point_dtype)
     word = (

@@ -1,5 +1,6 @@
-"""PCD (Point Cloud Library), ``DATA ascii``, ``binary`` and ``binary_compressed``: our own
-reader and writer.
+"""PCD (Point Cloud Library), ``DATA ascii``, ``binary`` and ``binary_compressed``.
+
+Our own reader and writer.
 
 Fields ``x y z`` are the points (float32 or float64 as in the file), ``normal_x normal_y
 normal_z`` the normals, ``rgb`` / ``rgba`` (packed 0xAARRGGBB in 4 bytes, type F or U) the
@@ -95,7 +96,7 @@ def parse_header(buf: np.ndarray, where: str) -> tuple[dict, int]:
         raise InputError("negative POINTS or a COUNT below 1", where)
     if width * height != npts:
         raise InputError(f"WIDTH {width} x HEIGHT {height} is not POINTS {npts}", where)
-    dtypes = [_dtype(t, s, where, lines["TYPE"]) for t, s in zip(head["TYPE"], sizes)]
+    dtypes = [_dtype(t, s, where, lines["TYPE"]) for t, s in zip(head["TYPE"], sizes, strict=True)]
     if len(set(names)) != len(names):
         raise InputError(f"line {lines['FIELDS']}: a field name is repeated", where)
     for c in ("x", "y", "z"):
@@ -120,7 +121,7 @@ def parse_header(buf: np.ndarray, where: str) -> tuple[dict, int]:
 
 def _row_dtype(h: dict) -> np.dtype:
     fields = []
-    for i, (name, dt, c) in enumerate(zip(h["names"], h["dtypes"], h["counts"])):
+    for i, (name, dt, c) in enumerate(zip(h["names"], h["dtypes"], h["counts"], strict=True)):
         fname = name if name != "_" else f"_pad{i}"
         fields.append((fname, dt, (c,)) if c > 1 else (fname, dt))
     return np.dtype(fields)
@@ -138,11 +139,12 @@ def decode_pcd(data, where: str) -> tuple[PointCloud, dict]:
     if h["data"] == "binary":
         if n > remaining // max(rowdt.itemsize, 1):
             raise InputError(
-                f"truncated: POINTS {n} need {n * rowdt.itemsize} bytes after the header (byte {off}), the file has {remaining}",
+                f"truncated: POINTS {n} need {n * rowdt.itemsize} bytes after the header (byte "
+                f"{off}), the file has {remaining}",
                 where,
             )
         rows = np.frombuffer(buf, dtype=rowdt, count=n, offset=off)
-        cols = {name: rows[name] for name in rowdt.names}
+        cols = {name: rows[name] for name in rowdt.names or ()}
     elif h["data"] == "binary_compressed":
         cols = _decompress(buf, off, h, rowdt, where)
     else:
@@ -154,7 +156,7 @@ def decode_pcd(data, where: str) -> tuple[PointCloud, dict]:
         "version": h["version"],
         "fields": [
             f"{n_}:{dt.kind.upper()}{dt.itemsize}x{c}"
-            for n_, dt, c in zip(h["names"], h["dtypes"], h["counts"])
+            for n_, dt, c in zip(h["names"], h["dtypes"], h["counts"], strict=True)
         ],
         "width": h["width"],
         "height": h["height"],
@@ -176,7 +178,8 @@ def _decompress(buf, off, h, rowdt, where) -> dict:
         )
     if csize > len(buf) - off - 8:
         raise InputError(
-            f"truncated: {csize} compressed bytes declared at byte {off}, {len(buf) - off - 8} remain",
+            f"truncated: {csize} compressed bytes declared at byte {off}, {len(buf) - off - 8} "
+            "remain",
             where,
         )
     out = np.empty(usize, np.uint8)
@@ -207,18 +210,20 @@ def _ascii(buf, off, h, rowdt, where) -> dict:
     if n and np.any(lens != width):
         bad = int(np.flatnonzero(lens != width)[0])
         raise InputError(
-            f"line {first_line + int(row_line[bad])}: {int(lens[bad])} values, the fields need {width}",
+            f"line {first_line + int(row_line[bad])}: {int(lens[bad])} values, the fields need "
+            f"{width}",
             where,
         )
     table = values.reshape(n, width)
     cols = {}
     j = 0
-    for name, dt, c in zip(h["names"], h["dtypes"], h["counts"]):
+    for name, dt, c in zip(h["names"], h["dtypes"], h["counts"], strict=True):
         fname = name if name != "_" else f"_pad{j}"
         block = table[:, j : j + c]
         if dt.kind in "iu":
             info = np.iinfo(dt)
-            # a packed rgb written as a float value (old PCL) is an integer type here only when the file says so
+            # a packed rgb written as a float value (old PCL) is an integer type here only when the
+            # file says so
             if np.any(block != np.round(block)) or (
                 block.size and (block.min() < info.min or block.max() > info.max)
             ):
@@ -282,8 +287,10 @@ def _to_cloud(cols: dict, h: dict, where: str) -> PointCloud:
 
 
 def _viewpoint(words: list[str], where: str) -> Sensor:
-    """The sensor a ``VIEWPOINT tx ty tz qw qx qy qz`` line gives (PCL's sensor origin and
-    orientation, in the points' frame)."""
+    """The sensor a ``VIEWPOINT tx ty tz qw qx qy qz`` line gives.
+
+    That is PCL's sensor origin and orientation, in the points' frame.
+    """
     try:
         v = [float(x) for x in words]
     except ValueError:
@@ -294,7 +301,7 @@ def _viewpoint(words: list[str], where: str) -> Sensor:
     length = float(np.linalg.norm(q))
     # the position is what orients normals; an orientation that is no rotation is not kept
     rot = tuple(q / length) if 0.5 < length < 2.0 else None
-    return Sensor(position=v[:3], orientation=rot, source="PCD VIEWPOINT")
+    return Sensor(position=(v[0], v[1], v[2]), orientation=rot, source="PCD VIEWPOINT")
 
 
 def _code(dt: np.dtype) -> tuple[str, int]:
@@ -311,8 +318,10 @@ def _code(dt: np.dtype) -> tuple[str, int]:
 
 
 def pcd_bytes(obj, data: str = "binary") -> bytes:
-    """The PCD encoding of a cloud (a mesh's vertices): ``data`` is ``ascii``, ``binary`` or
-    ``binary_compressed``."""
+    """The PCD encoding of a cloud (a mesh's vertices).
+
+    ``data`` is ``ascii``, ``binary`` or ``binary_compressed``.
+    """
     pts = obj.points
     n = len(pts)
     ptype = np.dtype(np.float64 if np.dtype(obj.point_dtype) == np.float64 else np.float32)
@@ -362,7 +371,7 @@ def pcd_bytes(obj, data: str = "binary") -> bytes:
     if data == "ascii":
         fmts = []
         table = []
-        for (name, v), (t, s) in zip(cols, kinds):
+        for (_name, v), (t, s) in zip(cols, kinds, strict=True):
             fmts.append(("%.9g" if s == 4 else "%.17g") if t == "F" else "%d")
             table.append(v.astype(np.float64))
         return out + text.format_rows(

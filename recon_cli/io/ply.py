@@ -18,6 +18,7 @@ import os
 import stat
 import sys
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -46,9 +47,11 @@ class PlyProperty:
 
     @property
     def is_list(self) -> bool:
+        """Whether the property is a list (has a count type)."""
         return self.count_dtype is not None
 
     def header_line(self) -> str:
+        """The property's line of a PLY header."""
         if self.is_list:
             return (
                 f"property list {ply_name(np.dtype(self.count_dtype))} "
@@ -86,6 +89,7 @@ class PlyData:
     nbytes: int = 0  # size of the file the elements were decoded from (0: built in memory)
 
     def element(self, name: str) -> PlyElement | None:
+        """The element ``name`` (None when the file has none)."""
         for e in self.elements:
             if e.name == name:
                 return e
@@ -99,7 +103,13 @@ def _describe(path: str | None) -> str:
     return "<stdin>" if path in (None, "-") else str(path)
 
 
-def parse_header(buf: bytes, path: str | None = None) -> tuple[PlyData, int]:
+def _memory(buf: bytes | np.ndarray) -> memoryview:
+    """A memoryview of a file's bytes, or of the uint8 array that holds them (see read_bytes)."""
+    # numpy's stubs declare the buffer protocol from Python 3.12 on only
+    return buf.data if isinstance(buf, np.ndarray) else memoryview(buf)
+
+
+def parse_header(buf: bytes | np.ndarray, path: str | None = None) -> tuple[PlyData, int]:
     """Parse the header of ``buf``; return the (empty) :class:`PlyData` and the body offset."""
     where = _describe(path)
     if len(buf) == 0:
@@ -107,7 +117,7 @@ def parse_header(buf: bytes, path: str | None = None) -> tuple[PlyData, int]:
     total = len(buf)
     if not isinstance(buf, bytes):
         # a numpy buffer (see read_bytes): the header is text, parse a bytes copy of its start
-        buf = bytes(memoryview(buf)[: MAX_HEADER_BYTES + 1024])
+        buf = bytes(_memory(buf)[: MAX_HEADER_BYTES + 1024])
     if not (buf.startswith(b"ply\n") or buf.startswith(b"ply\r\n") or buf.startswith(b"ply\r")):
         raise InputError("not a PLY file (missing 'ply' magic line)", where)
     end = _find_end_header(buf)
@@ -188,7 +198,8 @@ def parse_header(buf: bytes, path: str | None = None) -> tuple[PlyData, int]:
                 prop = PlyProperty(words[2], PLY_TYPES[words[1]])
             if any(p.name == prop.name for p in current.properties):
                 raise InputError(
-                    f"header line {lineno}: property {prop.name!r} declared twice in {current.name!r}",
+                    f"header line {lineno}: property {prop.name!r} declared twice in "
+                    f"{current.name!r}",
                     where,
                 )
             current.properties.append(prop)
@@ -224,7 +235,7 @@ def _find_end_header(buf: bytes) -> tuple[int, int] | None:
         pos = i + 1
 
 
-def parse_ply(buf: bytes, path: str | None = None) -> PlyData:
+def parse_ply(buf: bytes | np.ndarray, path: str | None = None) -> PlyData:
     """Decode a whole PLY file held in ``buf``.
 
     Raises
@@ -242,9 +253,11 @@ def parse_ply(buf: bytes, path: str | None = None) -> PlyData:
     return ply
 
 
-def _parse_binary(ply: PlyData, buf: bytes, offset: int, order: str, where: str) -> None:
-    mv = memoryview(buf)
-    for idx, el in enumerate(ply.elements):
+def _parse_binary(
+    ply: PlyData, buf: bytes | np.ndarray, offset: int, order: str, where: str
+) -> None:
+    mv = _memory(buf)
+    for el in ply.elements:
         remaining = len(buf) - offset
         fixed = sum(
             np.dtype(p.count_dtype if p.is_list else p.dtype).itemsize for p in el.properties
@@ -273,7 +286,7 @@ def _parse_binary(ply: PlyData, buf: bytes, offset: int, order: str, where: str)
 
 
 def _parse_binary_lists(
-    el: PlyElement, buf: bytes, mv: memoryview, offset: int, order: str, where: str
+    el: PlyElement, buf: bytes | np.ndarray, mv: memoryview, offset: int, order: str, where: str
 ) -> int:
     """Decode an element holding list properties; returns the new offset."""
     if el.count == 0:
@@ -284,10 +297,10 @@ def _parse_binary_lists(
         return offset
     # fast path: read the first row's list lengths and assume every row has the same
     ks = _first_row_counts(el, buf, offset, order, where)
-    fields = []
+    fields: list[tuple[Any, ...]] = []
     for p in el.properties:
         if p.is_list:
-            fields.append((p.name + "\0n", order + p.count_dtype))
+            fields.append((p.name + "\0n", f"{order}{p.count_dtype}"))
             if ks[p.name] > 0:
                 fields.append((p.name, order + p.dtype, (ks[p.name],)))
         else:
@@ -296,7 +309,7 @@ def _parse_binary_lists(
     if offset + dt.itemsize * el.count <= len(buf):
         arr = np.frombuffer(mv, dtype=dt, count=el.count, offset=offset)
         if all(np.all(arr[p.name + "\0n"] == ks[p.name]) for p in el.properties if p.is_list):
-            data = {}
+            data: dict[str, np.ndarray] = {}
             for p in el.properties:
                 if p.is_list:
                     k = ks[p.name]
@@ -313,13 +326,13 @@ def _parse_binary_lists(
 
 
 def _first_row_counts(
-    el: PlyElement, buf: bytes, offset: int, order: str, where: str
+    el: PlyElement, buf: bytes | np.ndarray, offset: int, order: str, where: str
 ) -> dict[str, int]:
     ks: dict[str, int] = {}
     pos = offset
     for p in el.properties:
         if p.is_list:
-            cdt = np.dtype(order + p.count_dtype)
+            cdt = np.dtype(f"{order}{p.count_dtype}")
             if pos + cdt.itemsize > len(buf):
                 raise InputError(f"truncated in element {el.name!r}", where)
             k = int(np.frombuffer(buf, cdt, 1, pos)[0])
@@ -339,7 +352,7 @@ def _first_row_counts(
 
 
 def _parse_binary_lists_general(
-    el: PlyElement, buf: bytes, offset: int, order: str, where: str
+    el: PlyElement, buf: bytes | np.ndarray, offset: int, order: str, where: str
 ) -> int:
     """Rows of differing list lengths: one pass over the rows to find their offsets.
 
@@ -358,7 +371,8 @@ def _parse_binary_lists_general(
     lay = np.asarray(layout, dtype=np.int64)
     raw = np.frombuffer(buf, dtype=np.uint8)
     big = order == ">"
-    # starts[row, prop] = byte offset of the property (of its count for a list); lens[row, prop] = list length
+    # starts[row, prop] = byte offset of the property (of its count for a list); lens[row, prop] =
+    # list length
     starts, lens, end, err = scan_list_rows(raw, offset, el.count, lay, big)
     if err == 1:
         raise InputError(f"truncated in element {el.name!r}", where)
@@ -390,7 +404,7 @@ def _parse_binary_lists_general(
     return int(end)
 
 
-def _parse_ascii(ply: PlyData, buf: bytes, offset: int, where: str) -> None:
+def _parse_ascii(ply: PlyData, buf: bytes | np.ndarray, offset: int, where: str) -> None:
     """Decode an ASCII body: one element row per line, every line checked for its number of values.
 
     A row with a value too many or too few would shift every later value (a silently wrong
@@ -400,9 +414,9 @@ def _parse_ascii(ply: PlyData, buf: bytes, offset: int, where: str) -> None:
     K = kernels("recon_cli.io._ply_kernel")
     ascii_line_tokens = K.ascii_line_tokens
 
-    body = bytes(memoryview(buf)[offset:])
+    body = bytes(_memory(buf)[offset:])
     tokens = body.split()
-    head = bytes(memoryview(buf)[:offset])
+    head = bytes(_memory(buf)[:offset])
     # file line number of the body's first line
     first = head.count(b"\n") + head.count(b"\r") - head.count(b"\r\n") + 1
     per_line = ascii_line_tokens(np.frombuffer(body, dtype=np.uint8))
@@ -427,7 +441,8 @@ def _parse_ascii(ply: PlyData, buf: bytes, offset: int, where: str) -> None:
             if bad.size:
                 i = int(bad[0])
                 raise InputError(
-                    f"line {int(el_lines[i])}: {el.name!r} row {i} has {int(el_counts[i])} values, expected {nprop}",
+                    f"line {int(el_lines[i])}: {el.name!r} row {i} has {int(el_counts[i])} "
+                    f"values, expected {nprop}",
                     where,
                 )
             block = tokens[pos : pos + el.count * nprop]
@@ -499,7 +514,8 @@ def _parse_ascii_lists(
             for p in props
         }
         return pos
-    # fast path (faces): one list, first, then scalars; every line of one length with matching counts
+    # fast path (faces): one list, first, then scalars; every line of one length with matching
+    # counts
     if props[0].is_list and not any(p.is_list for p in props[1:]) and np.all(counts == counts[0]):
         width = int(counts[0])
         k = width - len(props)  # items per list
@@ -507,7 +523,7 @@ def _parse_ascii_lists(
         table = _ascii_values(block, where, el.name).reshape(el.count, width)
         if k >= 0 and np.all(table[:, 0] == k):
             vals = _cast(table[:, 1 : 1 + k].reshape(-1), props[0].dtype, where, el.name)
-            data = {props[0].name: vals.reshape(el.count, k)}
+            data: dict[str, np.ndarray] = {props[0].name: vals.reshape(el.count, k)}
             for j, p in enumerate(props[1:]):
                 data[p.name] = _cast(table[:, 1 + k + j], p.dtype, where, el.name)
             el.data = data
@@ -527,12 +543,14 @@ def _parse_ascii_lists(
                     k = int(tokens[pos])
                 except ValueError:
                     raise InputError(
-                        f"line {int(lines[i])}: bad list length {tokens[pos][:20].decode('ascii', 'replace')!r}",
+                        f"line {int(lines[i])}: bad list length "
+                        f"{tokens[pos][:20].decode('ascii', 'replace')!r}",
                         where,
                     ) from None
                 if k < 0 or pos + 1 + k > end:
                     raise InputError(
-                        f"line {int(lines[i])}: list length {k} but the line holds {end - pos - 1} more values",
+                        f"line {int(lines[i])}: list length {k} but the line holds "
+                        f"{end - pos - 1} more values",
                         where,
                     )
                 cols[p.name].append(tokens[pos + 1 : pos + 1 + k])
@@ -542,7 +560,8 @@ def _parse_ascii_lists(
                 pos += 1
         if pos != end:
             raise InputError(
-                f"line {int(lines[i])}: {el.name!r} row {i} has {end - pos} values more than its properties",
+                f"line {int(lines[i])}: {el.name!r} row {i} has {end - pos} values more than "
+                "its properties",
                 where,
             )
     data = {}
@@ -598,11 +617,11 @@ def _binary_body(el: PlyElement, order: str) -> bytes:
         return b""
     lists_ragged = any(p.is_list and el.data[p.name].dtype == object for p in el.properties)
     if not lists_ragged:
-        fields = []
+        fields: list[tuple[Any, ...]] = []
         for p in el.properties:
             if p.is_list:
                 k = el.data[p.name].shape[1]
-                fields.append((p.name + "\0n", order + p.count_dtype))
+                fields.append((p.name + "\0n", f"{order}{p.count_dtype}"))
                 if k:
                     fields.append((p.name, order + p.dtype, (k,)))
             else:
@@ -623,7 +642,7 @@ def _binary_body(el: PlyElement, order: str) -> bytes:
             v = el.data[p.name][r]
             if p.is_list:
                 v = np.asarray(v)
-                chunks.append(np.array(len(v), dtype=order + p.count_dtype).tobytes())
+                chunks.append(np.array(len(v), dtype=f"{order}{p.count_dtype}").tobytes())
                 chunks.append(v.astype(order + p.dtype).tobytes())
             else:
                 chunks.append(np.array(v, dtype=order + p.dtype).tobytes())
@@ -675,7 +694,7 @@ def _ascii_body(el: PlyElement) -> bytes:
 
 
 def read_bytes(path: str | os.PathLike) -> bytes | np.ndarray:
-    """All bytes of ``path``: a ``(n,) uint8`` array for a file, ``bytes`` for ``-`` (standard input).
+    """All bytes of ``path``: a ``(n,) uint8`` array for a file, ``bytes`` for ``-`` (stdin).
 
     A file is read straight into numpy memory, as ``np.fromfile`` does: numpy asks the
     kernel for huge pages on big buffers, which makes the read about twice as fast as
@@ -692,9 +711,9 @@ def read_bytes(path: str | os.PathLike) -> bytes | np.ndarray:
                 return f.read()
             size = st.st_size
             buf = np.empty(size, dtype=np.uint8)
-            got = f.readinto(buf)
+            got = f.readinto(buf.data)
             while got < size:  # short reads (pipes, network file systems)
-                k = f.readinto(memoryview(buf)[got:])
+                k = f.readinto(buf.data[got:])
                 if not k:
                     break
                 got += k
@@ -709,7 +728,9 @@ def read_bytes(path: str | os.PathLike) -> bytes | np.ndarray:
         raise InputError("permission denied", str(path)) from None
 
 
-def read_ply(path: str | os.PathLike, data: bytes | None = None) -> PointCloud | TriangleMesh:
+def read_ply(
+    path: str | os.PathLike, data: bytes | np.ndarray | None = None
+) -> PointCloud | TriangleMesh:
     """Read a PLY file as a point cloud (no faces) or a triangle mesh.
 
     Parameters
@@ -759,8 +780,9 @@ def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | Trian
     # rows with a NaN or infinite coordinate are dropped (and counted) once the object is made
     invalid = _first_nonfinite_row(vert, pts) >= 0
     used = set(_VERTEX_XYZ)
-    # float32 only when every coordinate column fits in float32 exactly (float, 8- and 16-bit integers):
-    # a double column, or int/uint ones, make the source double (kept through every stage)
+    # float32 only when every coordinate column fits in float32 exactly (float, 8- and 16-bit
+    # integers): a double column, or int/uint ones, make the source double (kept through every
+    # stage)
     point_dtype = (
         np.float32 if all(props[c].dtype in _FLOAT32_EXACT for c in _VERTEX_XYZ) else np.float64
     )
@@ -783,7 +805,7 @@ def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | Trian
         if e.name not in ("vertex", "face")
     ]
     face = ply.element("face")
-    common = dict(
+    common: dict[str, Any] = dict(
         colors=colors,
         attributes=attributes,
         history=list(ply.comments),
@@ -845,13 +867,20 @@ def _columns(el: PlyElement, names: tuple[str, ...], dtype) -> np.ndarray:
     the element's rows (``el.raw``): nothing is copied, so a binary cloud is read in about
     the time its bytes take to arrive. Other layouts are gathered into a new array.
     """
-    view = _rows_view(el.raw, names, dtype) if el.raw is not None and el.count else None
+    raw = el.raw
+    view = _rows_view(raw, names, dtype) if raw is not None and el.count else None
     if view is not None:
         return view
-    plan = _gather_plan(el.raw.dtype, names, dtype) if el.raw is not None else None
-    if plan is not None and plan[0] != "mixed" and el.count and el.raw.flags.c_contiguous:
+    plan = _gather_plan(raw.dtype, names, dtype) if raw is not None else None
+    if (
+        raw is not None
+        and plan is not None
+        and plan[0] != "mixed"
+        and el.count
+        and raw.flags.c_contiguous
+    ):
         out = np.empty((el.count, len(names)), dtype=plan[5])
-        _gather_apply(plan, el.raw.view(np.uint8).reshape(-1), el.raw.dtype.itemsize, out)
+        _gather_apply(plan, raw.view(np.uint8).reshape(-1), raw.dtype.itemsize, out)
         if plan[0] == "int":
             out = out.view(plan[6]).astype(plan[7], copy=False)
     else:
@@ -881,9 +910,12 @@ def _rows_view(raw: np.ndarray, names: tuple[str, ...], dtype) -> np.ndarray | N
 
 
 def _adjacent_fields(rowtype: np.dtype, names: tuple[str, ...]) -> tuple[np.dtype, int] | None:
-    """(type, byte offset of the first) when the named fields of ``rowtype`` are adjacent, in
-    order, of one type; None otherwise."""
+    """(type, byte offset of the first) of the named fields of ``rowtype``, or None.
+
+    None unless they are adjacent, in order, and of one type.
+    """
     fields = rowtype.fields
+    assert fields is not None  # a structured dtype
     ftype, first = fields[names[0]][:2]
     for k, c in enumerate(names):
         if fields[c][:2] != (ftype, first + k * ftype.itemsize):
@@ -892,8 +924,9 @@ def _adjacent_fields(rowtype: np.dtype, names: tuple[str, ...]) -> tuple[np.dtyp
 
 
 def _first_nonfinite_row(el: PlyElement, pts: np.ndarray) -> int:
-    """Index of the first row of ``pts`` (the x, y, z columns of ``el``) with a NaN or infinite
-    value, -1 when all are finite.
+    """Index of the first row of ``pts`` with a NaN or infinite value, -1 when all are finite.
+
+    ``pts`` are the x, y, z columns of ``el``.
 
     When x, y, z are adjacent floats of one type in the rows of ``el.raw``, the check reads
     those bytes in one numba pass, in either byte order (numpy's isfinite over an unaligned
@@ -908,7 +941,7 @@ def _first_nonfinite_row(el: PlyElement, pts: np.ndarray) -> int:
         if raw is not None and len(raw) and raw.flags.c_contiguous
         else None
     )
-    if run is not None and run[0].kind == "f":
+    if raw is not None and run is not None and run[0].kind == "f":
         ftype, first = run
         big = ftype.byteorder == ">" or (ftype.byteorder == "=" and sys.byteorder == "big")
         flat = raw.view(np.uint8).reshape(-1)
@@ -928,6 +961,7 @@ def _gather_plan(rowtype: np.dtype, names: tuple[str, ...], dtype) -> tuple:
     and cast). Fields of differing types go through ``mixed`` (numpy, field by field).
     """
     fields = rowtype.fields
+    assert fields is not None  # a structured dtype
     types = {fields[c][0] for c in names}
     offsets = np.array([fields[c][1] for c in names], dtype=np.int64)
     if len(types) != 1:

@@ -24,7 +24,10 @@ from recon_cli.io import text
 
 _ROW = np.dtype([("normal", "<f4", (3,)), ("v", "<f4", (3, 3)), ("attribute", "<u2")])
 _ASCII_ERRORS = {
-    1: "unexpected word (expected solid / facet normal / outer loop / vertex / endloop / endfacet / endsolid)",
+    1: (
+        "unexpected word (expected solid / facet normal / outer loop / vertex / endloop / endfacet "
+        "/ endsolid)"
+    ),
     2: "is not a number",
     3: "a facet must have exactly 3 vertices",
     4: "the file ends inside a facet (truncated?)",
@@ -55,7 +58,8 @@ def decode_stl(data, where: str) -> tuple[TriangleMesh, dict]:
         )
     count = int(buf[80:84].view("<u4")[0])
     raise InputError(
-        f"binary STL header declares {count} triangles ({84 + 50 * count} bytes) but the file has {len(buf)} bytes",
+        f"binary STL header declares {count} triangles ({84 + 50 * count} bytes) but the file "
+        f"has {len(buf)} bytes",
         where,
     )
 
@@ -186,7 +190,9 @@ def write_stl(obj: TriangleMesh, path: str | os.PathLike, ascii: bool = False) -
         err = float32_rounding(obj)
         if err > 0:
             text.warn(
-                f"{text.where_of(path)}: binary STL stores float32: coordinates rounded by up to {err:.3g} "
-                f"({err / max(bbox_diagonal(obj.vertices), 1e-300):.2g} of the bounding-box diagonal; --ascii keeps them)"
+                f"{text.where_of(path)}: binary STL stores float32: coordinates rounded by up "
+                f"to {err:.3g} "
+                f"({err / max(bbox_diagonal(obj.vertices), 1e-300):.2g} of the bounding-box "
+                "diagonal; --ascii keeps them)"
             )
     write_bytes(path, stl_bytes(obj, ascii=ascii))

@@ -1,5 +1,7 @@
-"""Helpers shared by the text formats (OBJ, OFF, XYZ, PCD ascii): rows of numbers, error
-positions, colour and number formatting."""
+"""Helpers shared by the text formats (OBJ, OFF, XYZ, PCD ascii).
+
+Rows of numbers, error positions, colour and number formatting.
+"""
 
 from __future__ import annotations
 
@@ -39,14 +41,17 @@ def token_at(buf: np.ndarray, offset: int) -> str:
 
 
 def bad_number(buf: np.ndarray, offset: int, where: str) -> InputError:
+    """The error for the token at byte ``offset``: not a number, or a value missing."""
     tok = token_at(buf, offset)
     what = f"{tok!r} is not a number" if tok else "a value is missing"
     return InputError(f"line {line_at(buf, offset)}: {what}", where)
 
 
 def slow_values(buf: np.ndarray, spans: np.ndarray) -> np.ndarray:
-    """The values of the tokens ``buf[s:e]`` for the rows of ``spans`` ((k, 2)) by Python's ``float``
-    (the few numbers the kernel's exact fast paths leave undecided)."""
+    """The values of the tokens ``buf[s:e]`` for the rows of ``spans`` ((k, 2)) by ``float``.
+
+    These are the few numbers the kernel's exact fast paths leave undecided.
+    """
     raw = buf.tobytes() if len(spans) > 64 else None
     out = np.empty(len(spans), np.float64)
     for r, (s, e) in enumerate(np.asarray(spans, dtype=np.int64).tolist()):
@@ -104,10 +109,12 @@ def read_table(
     comment: int = 35,
     cap: int = 0,
 ):
-    """The rows of numbers in ``buf[start:end]`` as an ``(n, k)`` float64 table: every row must
-    have the first row's ``k`` fields (else :class:`InputError` naming the line). ``cap`` is a
-    guess of the number of values (0: from the size); the table is a view of an array that may
-    be somewhat larger. Blank lines and ``comment`` lines are skipped as in :func:`read_rows`.
+    """The rows of numbers in ``buf[start:end]`` as an ``(n, k)`` float64 table.
+
+    Every row must have the first row's ``k`` fields (else :class:`InputError` naming the line).
+    ``cap`` is a guess of the number of values (0: from the size); the table is a view of an array
+    that may be somewhat larger. Blank lines and ``comment`` lines are skipped as in
+    :func:`read_rows`.
     """
     values, _, _, nrows, ncol = _run_rows(
         buf, start, end, where, delim, comment, cap or (end - start) // 8, True
@@ -116,14 +123,17 @@ def read_table(
 
 
 def check_finite(points: np.ndarray, where: str, what: str = "vertex") -> None:
+    """Raise an :class:`~recon_cli.errors.InputError` naming the first non-finite row."""
     ok = np.isfinite(points).all(axis=1)
     if not ok.all():
         raise InputError(f"{what} {int(np.argmin(ok))} has a NaN or infinite coordinate", where)
 
 
 def colours_from_unit(c: np.ndarray) -> np.ndarray:
-    """Colours given as floats: uint8 when every value is k/255 (as our writers put uint8
-    colours), otherwise the floats as they are."""
+    """Colours given as floats: uint8 when every value is k/255, otherwise the floats as given.
+
+    Our writers put uint8 colours as k/255.
+    """
     if c.size and c.min() >= 0 and c.max() <= 1:
         q = np.rint(c * 255)
         if np.all(np.abs(q / 255 - c) <= 1e-6):
@@ -151,7 +161,10 @@ def float32_marked(history: list[str]) -> tuple[bool, list[str]]:
 
 
 def apply_float32_mark(obj, history: list[str]):
-    """``obj`` with float32 coordinates and normals when ``history`` holds the mark; sets its history."""
+    """``obj`` with float32 coordinates and normals when ``history`` holds the mark.
+
+    Sets its history.
+    """
     marked, rest = float32_marked(history)
     obj.history = rest
     if marked:

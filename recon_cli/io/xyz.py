@@ -14,9 +14,9 @@ Reading:
   otherwise ``x y z`` and attributes ``column_3``, ``column_4``...;
 * a PTS file's first line, one integer, is the point count and is checked.
 
-Every row must have the same number of columns (the line of the first that does not is
-named). Coordinates are read as float64; rows with a NaN or infinite coordinate are
-dropped before the columns are judged, and counted (``invalid_dropped``). Writing puts the history and a ``#`` header
+Every row must have the same number of columns (the line of the first that does not is named).
+Coordinates are read as float64; rows with a NaN or infinite coordinate are dropped before the
+columns are judged, and counted (``invalid_dropped``). Writing puts the history and a ``#`` header
 line of column names (a plain header line for ``.csv``, comma-separated), then the rows.
 """
 
@@ -60,7 +60,7 @@ _NUMBER = re.compile(
 
 def _lines_head(buf: np.ndarray, limit: int = 64):
     """(line bytes, byte offset of the next line) for the first non-blank lines."""
-    out = []
+    out: list[tuple[bytes, int, int]] = []
     pos = 0
     n = len(buf)
     while pos < n and len(out) < limit:
@@ -213,8 +213,11 @@ def _columns(
 
 
 def _block(table: np.ndarray, cols: list[int]) -> np.ndarray:
-    """Columns ``cols`` of ``table``: a view when they are adjacent and in order (the whole table
-    when that is all it holds), else a copy."""
+    """Columns ``cols`` of ``table``.
+
+    A view when they are adjacent and in order (the whole table when that is all it holds), else a
+    copy.
+    """
     if cols == list(range(cols[0], cols[0] + len(cols))):
         return table if table.shape[1] == len(cols) else table[:, cols[0] : cols[0] + len(cols)]
     return np.ascontiguousarray(table[:, cols])
@@ -252,8 +255,11 @@ def _guess(table: np.ndarray) -> list[str]:
 
 
 def xyz_bytes(obj, csv: bool = False) -> bytes:
-    """The text encoding of a cloud (a mesh's vertices): space-separated with a ``#`` header
-    line, or comma-separated with a plain header line when ``csv``."""
+    """The text encoding of a cloud (a mesh's vertices).
+
+    Space-separated with a ``#`` header line, or comma-separated with a plain header line when
+    ``csv``.
+    """
     pts = obj.points
     fmt = text.float_format(obj.point_dtype)
     names = ["x", "y", "z"]

@@ -1,0 +1,1 @@
+"""Triangle-mesh machinery shared by the stages: topology, distances, winding numbers, sampling."""

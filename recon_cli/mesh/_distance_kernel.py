@@ -22,8 +22,10 @@ FACE, VERT_A, VERT_B, VERT_C, EDGE_AB, EDGE_AC, EDGE_BC = 0, 1, 2, 3, 4, 5, 6
 
 @njit(cache=True)
 def _select(order, cent, ax, lo, hi, k):
-    """Reorder ``order[lo:hi]`` so that position k holds the k-th smallest ``cent[., ax]``,
-    smaller keys before it and larger after (Hoare partition, median-of-three pivot)."""
+    """Reorder ``order[lo:hi]`` so that position k holds the k-th smallest ``cent[., ax]``.
+
+    Smaller keys before it and larger after (Hoare partition, median-of-three pivot).
+    """
     hi -= 1
     while hi > lo:
         m = (lo + hi) // 2
@@ -438,12 +440,12 @@ def query_grid(
 ):
     """Unsigned distance at every sample of a regular grid, line by line along the last axis.
 
-    The distance is 1-Lipschitz, so the previous sample's distance + h bounds the search
-    for the next one (most of the tree is pruned at once). ``band`` caps the search:
-    samples farther than it get ``band``. With ``use_pn`` the sign of each sample comes
-    from the angle-weighted pseudonormal of the closest feature (face, edge, vertex).
-    Returns (dist (nx, ny, nz) float64, sign (nx, ny, nz) int8: -1 inside, 1 outside,
-    0 not known). Call it under a dynamic schedule (:func:`recon_cli.mesh.distance.dynamic_schedule`).
+    The distance is 1-Lipschitz, so the previous sample's distance + h bounds the search for the
+    next one (most of the tree is pruned at once). ``band`` caps the search: samples farther than it
+    get ``band``. With ``use_pn`` the sign of each sample comes from the angle-weighted pseudonormal
+    of the closest feature (face, edge, vertex). Returns (dist (nx, ny, nz) float64, sign (nx, ny,
+    nz) int8: -1 inside, 1 outside, 0 not known). Call it under a dynamic schedule
+    (:func:`recon_cli.mesh.distance.dynamic_schedule`).
     """
     nx, ny, nz = shape[0], shape[1], shape[2]
     dist = np.empty((nx, ny, nz), np.float64)
@@ -471,8 +473,9 @@ def query_grid(
             )
             if t < 0 and ub < band:  # bound too tight (rounding): search again unbounded
                 b2 = band * band if band < np.inf else np.inf
+                no_seed = np.int64(-1)  # not a literal -1: numba would compile _nearest twice
                 t, dd, f = _nearest(
-                    p, tri, sph, box, left, right, start, end, b2, stack, dstack, q, cb, -1
+                    p, tri, sph, box, left, right, start, end, b2, stack, dstack, q, cb, no_seed
                 )
             if t < 0:
                 dist[i, j, k] = band
@@ -508,8 +511,11 @@ def triangle_cross(tri, t):
 
 @njit(cache=True)
 def bounding_spheres(tri):
-    """Bounding disk of each triangle: (m, 8) = centroid xyz, radius (to the farthest
-    corner), unit normal xyz (zero for a degenerate triangle: the disk is then a ball), 0."""
+    """Bounding disk of each triangle.
+
+    (m, 8) = centroid xyz, radius (to the farthest corner), unit normal xyz (zero for a degenerate
+    triangle: the disk is then a ball), 0.
+    """
     m = tri.shape[0]
     out = np.zeros((m, 8), np.float64)
     for t in range(m):

@@ -1,4 +1,7 @@
-"""Numba kernels of :mod:`recon_cli.mesh.topology`: the loops that do not vectorise. They only compute."""
+"""Numba kernels of :mod:`recon_cli.mesh.topology`: the loops that do not vectorise.
+
+They only compute.
+"""
 
 from __future__ import annotations
 

@@ -18,7 +18,9 @@ from recon_cli.errors import InputError, ParameterError
 
 @dataclass
 class TriangleBVH:
-    """A BVH over triangles: median splits along the longest axis (:mod:`recon_cli.mesh._distance_kernel`).
+    """A BVH over triangles: median splits along the longest axis.
+
+    The kernels are :mod:`recon_cli.mesh._distance_kernel`'s.
 
     Attributes
     ----------
@@ -55,11 +57,13 @@ class TriangleBVH:
 
 @contextmanager
 def dynamic_schedule(chunk: int = 16):
-    """Run the numba ``prange`` loops launched inside in chunks of ``chunk`` iterations
-    handed out on demand. Grid lines through thin walls cost far more than lines in empty
-    space, and the default static split leaves one core idle while the other (slowed by
-    the load or by its share of the walls) finishes. Set from Python: the setting inside
-    a kernel would make it uncacheable."""
+    """Run the numba ``prange`` loops launched inside in chunks of ``chunk`` iterations.
+
+    The chunks are handed out on demand. Grid lines through thin walls cost far more than lines in
+    empty space, and the default static split leaves one core idle while the other (slowed by the
+    load or by its share of the walls) finishes. Set from Python: the setting inside a kernel would
+    make it uncacheable.
+    """
     import numba
 
     old = numba.set_parallel_chunksize(int(chunk))
@@ -70,6 +74,10 @@ def dynamic_schedule(chunk: int = 16):
 
 
 def check_mesh(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
+    """``(vertices, faces)`` as float64 (n, 3) and integer (m, 3) arrays.
+
+    Raises :class:`~recon_cli.errors.InputError` for any other shape or type.
+    """
     v = np.ascontiguousarray(vertices, dtype=np.float64)
     f = np.asarray(faces)
     if v.ndim != 2 or v.shape[1] != 3:

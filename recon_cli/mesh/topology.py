@@ -31,7 +31,7 @@ from recon_cli.aot import kernels
 from recon_cli.errors import InputError
 from recon_cli.tolerances import tol
 
-# at most this many per-component genera are listed in the report (largest components first)
+#: at most this many per-component genera are listed in the report (largest components first)
 MAX_LISTED_COMPONENTS = 64
 
 
@@ -58,7 +58,7 @@ def _check_faces(faces: Any, n_vertices: int | None = None) -> tuple[np.ndarray,
     return f, int(n_vertices)
 
 
-def index_dtype(*counts: int) -> type:
+def index_dtype(*counts: int) -> type[np.int32] | type[np.int64]:
     """int32 when every index below ``max(counts)`` fits in it, else int64 (halves the memory)."""
     return np.int32 if max(counts, default=0) < 2**31 - 1 else np.int64
 
@@ -125,7 +125,8 @@ class Connectivity:
     half-edge keys; grouping, fans, components and orientation are numba loops (union-find,
     breadth-first walk) that allocate nothing larger than their outputs. Index arrays use
     :func:`index_dtype` (int32 below 2^31 half-edges and vertices, else int64): a 1M-face
-    mesh's connectivity holds about 30 MB.
+    mesh's connectivity holds about 30 MB. The attributes are arrays computed on first use;
+    "int" in their types is :func:`index_dtype`.
 
     Parameters
     ----------
@@ -136,8 +137,8 @@ class Connectivity:
     vertices : (n, 3) float, optional
         Coordinates; needed for ``area``, ``volume``, ``face_areas`` and the degenerate test.
 
-    Attributes (all arrays, computed on first use; "int" is :func:`index_dtype`)
-    -----------------------------------------------------------------------------
+    Attributes
+    ----------
     half_edges : (3m, 2) int64
         Directed edges, see :func:`faces_to_edges` (built on request only; the structure
         itself reads the half-edge ``h``'s ends as ``faces.ravel()[h]`` and
@@ -183,6 +184,7 @@ class Connectivity:
     # ---- edges -------------------------------------------------------------------------
     @cached_property
     def half_edges(self) -> np.ndarray:
+        """(3m, 2) int64: the half-edges (a, b) of each face, in corner order."""
         return self.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2).astype(np.int64, copy=False)
 
     @cached_property
@@ -206,6 +208,7 @@ class Connectivity:
 
     @cached_property
     def edges(self) -> np.ndarray:
+        """(e, 2) int64: each undirected edge once, its smaller vertex first."""
         h = self.edge_half_edges[self.edge_ptr[:-1]]
         a = self._flat[h]
         b = self._flat[next_half_edge(h)]
@@ -216,30 +219,37 @@ class Connectivity:
 
     @property
     def half_edge_edge(self) -> np.ndarray:
+        """(3m,): the edge of each half-edge."""
         return self._edge_groups[0]
 
     @property
     def edge_ptr(self) -> np.ndarray:
+        """(e + 1,): CSR offsets of each edge's half-edges in :attr:`edge_half_edges`."""
         return self._edge_groups[1]
 
     @property
     def edge_half_edges(self) -> np.ndarray:
+        """(3m,): the half-edges grouped by edge (see :attr:`edge_ptr`)."""
         return self._edge_groups[2]
 
     @property
     def n_edges(self) -> int:
+        """The number of undirected edges."""
         return len(self.edge_ptr) - 1
 
     @cached_property
     def edge_face_count(self) -> np.ndarray:
+        """(e,): the number of faces at each edge."""
         return np.diff(self.edge_ptr)
 
     @cached_property
     def boundary_edges(self) -> np.ndarray:
+        """Indices of the edges with one face."""
         return np.flatnonzero(self.edge_face_count == 1)
 
     @cached_property
     def non_manifold_edges(self) -> np.ndarray:
+        """Indices of the edges with more than two faces."""
         return np.flatnonzero(self.edge_face_count > 2)
 
     @cached_property
@@ -254,15 +264,18 @@ class Connectivity:
 
     @property
     def face_adjacency(self) -> np.ndarray:
+        """(k, 2): the two faces of each manifold edge."""
         a, b, _ = self._manifold_pairs
         return np.stack([a // 3, b // 3], axis=1)
 
     @property
     def face_adjacency_edge(self) -> np.ndarray:
+        """(k,): the manifold edge of each row of :attr:`face_adjacency`."""
         return self._manifold_pairs[2]
 
     @cached_property
     def face_adjacency_same(self) -> np.ndarray:
+        """(k,) bool: the two faces run the shared edge the same way (inconsistent winding)."""
         a, b, _ = self._manifold_pairs
         return self._flat[a] == self._flat[b]
 
@@ -278,10 +291,12 @@ class Connectivity:
 
     @property
     def vertex_ptr(self) -> np.ndarray:
+        """(n + 1,): CSR offsets of each vertex's faces in :attr:`vertex_faces`."""
         return self._vertex_csr[0]
 
     @property
     def vertex_faces(self) -> np.ndarray:
+        """(3m,): the faces at each vertex, grouped by vertex (see :attr:`vertex_ptr`)."""
         return self._vertex_csr[1]
 
     @cached_property
@@ -294,7 +309,7 @@ class Connectivity:
     def corner_fans(
         self, link_a: np.ndarray | None = None, link_b: np.ndarray | None = None
     ) -> np.ndarray:
-        """Fan label of each corner (3m,) int, joining corners of the faces across the given half-edge pairs.
+        """Fan label of each corner, (3m,) int: corners joined across the given half-edge pairs.
 
         By default every pair of consecutive half-edges of an edge is joined (all faces of
         a non-manifold edge touch each other). Corners of one vertex with different labels
@@ -323,6 +338,7 @@ class Connectivity:
 
     @cached_property
     def non_manifold_vertices(self) -> np.ndarray:
+        """Indices of the vertices whose faces form more than one fan."""
         return np.flatnonzero(self.vertex_fan_count > 1)
 
     # ---- faces -------------------------------------------------------------------------
@@ -338,6 +354,7 @@ class Connectivity:
 
     @property
     def n_components(self) -> int:
+        """The number of connected components (across manifold edges)."""
         return int(self.face_components.max()) + 1 if self.n_faces else 0
 
     @cached_property
@@ -369,6 +386,7 @@ class Connectivity:
 
     @cached_property
     def face_areas(self) -> np.ndarray:
+        """(m,) float64 area of each face; needs the vertex coordinates."""
         if self.vertices is None:
             raise InputError("face areas need vertex coordinates")
         v = self.vertices
@@ -387,7 +405,10 @@ class Connectivity:
 
     @cached_property
     def degenerate_faces(self) -> np.ndarray:
-        """Faces repeating a vertex index or (with coordinates) of area below ``tol.area * diag**2``."""
+        """Faces repeating a vertex index or, given coordinates, of area below tolerance.
+
+        The area tolerance is ``tol.area * diag**2``.
+        """
         f = self.faces
         bad = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
         if self.vertices is not None and len(f):
@@ -418,7 +439,8 @@ class Connectivity:
         component : (m,) int
             Component (across manifold edges only) in order of first face.
         conflict_edges : (k,) int64
-            Manifold edges whose two faces still disagree (non-orientable cycles); empty if orientable.
+            Manifold edges whose two faces still disagree (non-orientable cycles); empty if
+            orientable.
         """
         return self._orientation
 
@@ -472,7 +494,10 @@ class Connectivity:
 
     @cached_property
     def component_closed_manifold(self) -> np.ndarray:
-        """(c,) bool: component has no boundary or non-manifold edge, no non-manifold vertex, and is orientable."""
+        """(c,) bool: the component is a closed orientable manifold.
+
+        It has no boundary or non-manifold edge and no non-manifold vertex.
+        """
         c = self.n_components
         comp = self.face_components
         bad = np.zeros(c, dtype=bool)
@@ -492,9 +517,13 @@ class Connectivity:
 
     @cached_property
     def component_genus(self) -> list[int | None]:
+        """The genus of each component; None where it is not a closed orientable manifold."""
         chi = self.component_euler
         ok = self.component_closed_manifold
-        return [int((2 - x) // 2) if good else None for x, good in zip(chi.tolist(), ok.tolist())]
+        return [
+            int((2 - x) // 2) if good else None
+            for x, good in zip(chi.tolist(), ok.tolist(), strict=True)
+        ]
 
     def signed_volume(self, per_component: bool = False):
         """Signed volume (divergence theorem); meaningful for closed, oriented parts."""
@@ -598,7 +627,7 @@ def report(mesh: Any) -> dict[str, Any]:
         "vertex_manifold": bool(vertex_manifold),
         "watertight": bool(watertight),
         "euler_characteristic": int(n_ref - c.n_edges + c.n_faces),
-        "genus": int(sum(genus_list)) if closed_manifold else None,
+        "genus": int(sum(g or 0 for g in genus_list)) if closed_manifold else None,
         "component_genus": genus_list[:MAX_LISTED_COMPONENTS],
         "area": float(c.face_areas.sum()),
         "volume": c.signed_volume() if closed_oriented else None,

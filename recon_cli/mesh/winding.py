@@ -31,6 +31,10 @@ class WindingTree:
         )
 
     def __call__(self, points: np.ndarray, beta: float = 2.0) -> np.ndarray:
+        """Generalised winding number at each of ``points`` ((k, 3)).
+
+        ``beta`` sets the far-field accuracy.
+        """
         from recon_cli.mesh import _winding_kernel as K
 
         b = self.bvh

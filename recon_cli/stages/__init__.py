@@ -19,8 +19,9 @@ import importlib
 import inspect
 import json
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 from recon_cli import __version__
 from recon_cli.errors import ParameterError
@@ -28,7 +29,7 @@ from recon_cli.params import KINDS, Param, StageSpec
 
 ENTRY_POINT_GROUP = "recon.stages"
 
-# stage name -> "module:attribute" (a StageSpec, or a bare stage function)
+#: stage name -> ``"module:attribute"`` (a StageSpec, or a bare stage function)
 STAGES: dict[str, str] = {
     "normals": "recon_cli.stages.normals:SPEC",
     "poisson": "recon_cli.stages.poisson:SPEC",
@@ -75,7 +76,7 @@ def register_stage(spec: StageSpec | str, name: str | None = None) -> None:
     Parameters
     ----------
     spec : StageSpec or str
-        The declaration (its ``run`` set by :meth:`StageSpec.runner`), or its
+        The declaration (its ``run`` set by :meth:`~recon_cli.params.StageSpec.runner`), or its
         ``"module:attribute"`` target (what an entry point names).
     name : str, optional
         Registered name (default: the spec's own).
@@ -362,8 +363,8 @@ def apply_stage(
     return result
 
 
-def report_json(report: dict) -> str:
-    """``report`` as JSON (numpy scalars converted)."""
+def report_json(report: dict | list[dict]) -> str:
+    """``report`` (or a list of them) as JSON, numpy scalars converted."""
     return json.dumps(report, default=_jsonable, indent=2, sort_keys=False)
 
 

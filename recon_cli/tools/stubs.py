@@ -59,8 +59,10 @@ def _literal(v: object) -> str:
 
 
 def _imports(names: list[str]) -> str:
-    """``from module import name as name`` for the lazy names that are not :mod:`recon_cli.api`'s
-    (those are written out as functions)."""
+    """``from module import name as name`` for the lazy names that are not :mod:`recon_cli.api`'s.
+
+    Those are written out as functions.
+    """
     import recon_cli
 
     rows = []

@@ -45,7 +45,8 @@ algorithm for surface reconstruction. IEEE TVCG 5(4).
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -185,8 +186,10 @@ def parse_radii(radii: Any) -> list[float] | None:
 
 
 def _check_radii(radii: list[float], diagonal: float) -> list[float]:
-    """Positive radii (checked by :func:`parse_radii` or derived) checked against the cloud's
-    size, sorted and without repeats."""
+    """Positive radii checked against the cloud's size, sorted and without repeats.
+
+    The radii were checked by :func:`parse_radii` or derived.
+    """
     for r in radii:
         if r > MAX_RADIUS_DIAGONALS * diagonal:
             raise ParameterError(
@@ -207,7 +210,8 @@ def _prepare(points: Any, normals: Any) -> tuple[np.ndarray, np.ndarray, np.ndar
     keep = np.flatnonzero(usable)
     if len(keep) < 3:
         raise InputError(
-            f"ball pivoting needs at least 3 points with finite coordinates and non-zero normals, got {len(keep)}"
+            "ball pivoting needs at least 3 points with finite coordinates and non-zero normals, "
+            f"got {len(keep)}"
         )
     return (
         np.ascontiguousarray(pts[keep]),
@@ -228,7 +232,7 @@ def _grid_dims(rr: list[float], extent: np.ndarray, diagonal: float) -> np.ndarr
 
 
 def _spatial_order(pts: np.ndarray, lo: np.ndarray, r0: float, dims0: np.ndarray, diagonal: float):
-    """Indices of the distinct points in the cell order of the first grid, and the number of repeats left out.
+    """Indices of the distinct points in the first grid's cell order, and the repeats left out.
 
     Neighbours then sit close in memory; a point within ``tol.merge`` of the diagonal of an
     earlier one is a repeat.
@@ -253,7 +257,9 @@ def _pivot_passes(
     dims: np.ndarray,
     progress_cb: Any,
 ) -> tuple[np.ndarray, np.ndarray, int]:
-    """Run the kernel once per radius, then cut pinched fans and refill: (faces, stats, pinch faces removed).
+    """Run the kernel once per radius, then cut pinched fans and refill.
+
+    Returns (faces, stats, pinch faces removed).
 
     Each radius continues from the previous triangles (its front may still glue the pinches
     of the earlier passes); after the last radius, pinched fans are cut and the largest ball
@@ -427,7 +433,8 @@ def run_stage(
                 ref = pymeshlab_backend.ball_pivoting_radii(sub, rr)
             if len(ref.vertices) != len(pts):
                 raise StageFailed(
-                    f"{backend} ball pivoting changed the vertex count ({len(pts)} -> {len(ref.vertices)})"
+                    f"{backend} ball pivoting changed the vertex count "
+                    f"({len(pts)} -> {len(ref.vertices)})"
                 )
             faces = keep[np.asarray(ref.faces, dtype=np.int64)]
             info = {"skipped_points": int(len(cloud.points) - len(keep))}

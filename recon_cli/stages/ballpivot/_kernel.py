@@ -1,4 +1,6 @@
-"""Numba kernels of ball pivoting (compute only; validation lives in :mod:`recon_cli.stages.ballpivot`).
+"""Numba kernels of ball pivoting: compute only, the stage validates.
+
+Validation lives in :mod:`recon_cli.stages.ballpivot`.
 
 State is held in flat arrays:
 
@@ -106,8 +108,9 @@ def _cell_of(x, lo, cell, dim):
 
 @njit(cache=True)
 def nearest_positive(ukeys, ustart, spts, lo, cell, dims, queries, max_rings):
-    """Distance from each query to the nearest grid point at a positive distance (inf if none
-    within ``max_rings`` rings of cells).
+    """Distance from each query to the nearest grid point at a positive distance.
+
+    Inf where there is none within ``max_rings`` rings of cells.
 
     Shells of cells at growing Chebyshev distance r around the query's cell are scanned
     until the best distance found is at most ``r * cell``: the cells within r of the query's
@@ -261,7 +264,10 @@ def _rehash(ea, eb, ne, n, bits):
 
 @njit(cache=True)
 def _grow_edges(ea, eb, eo, es, ec, ne, n, bits):
-    """The edge arrays at twice their capacity, the hash one bit larger: (ea, eb, eo, es, ec, hkeys, hvals, bits)."""
+    """The edge arrays at twice their capacity, the hash one bit larger.
+
+    (ea, eb, eo, es, ec, hkeys, hvals, bits).
+    """
     cap = 2 * ea.shape[0]
     ea = grow1(ea, cap)
     eb = grow1(eb, cap)
@@ -271,7 +277,10 @@ def _grow_edges(ea, eb, eo, es, ec, ne, n, bits):
 
 @njit(cache=True)
 def _grow_stack(queue, qh, qt):
-    """The ring ``queue`` (items ``qh .. qt-1`` mod its size) at twice its size, unwrapped: (queue, 0, qt - qh)."""
+    """The ring ``queue`` (items ``qh .. qt-1`` mod its size) at twice its size, unwrapped.
+
+    (queue, 0, qt - qh).
+    """
     qcap = queue.shape[0]
     nq = np.empty(2 * qcap, np.int64)
     for t in range(qt - qh):
@@ -281,7 +290,10 @@ def _grow_stack(queue, qh, qt):
 
 @njit(cache=True)
 def _put_face(faces, nf, used, u0, u1, u2):
-    """Write face (u0, u1, u2) at row ``nf`` (room reserved) and mark its corners used; returns ``nf + 1``."""
+    """Write face (u0, u1, u2) at row ``nf`` (room reserved) and mark its corners used.
+
+    Returns ``nf + 1``.
+    """
     faces[nf, 0] = u0
     faces[nf, 1] = u1
     faces[nf, 2] = u2
@@ -301,7 +313,10 @@ def _edge_id(hkeys, hvals, bits, n, u, v):
 
 @njit(cache=True, inline="always")
 def _new_front_edge(ea, eb, eo, es, ec, hkeys, hvals, bits, bcount, n, e, u0, u1, u2, cx, cy, cz):
-    """Make edge ``e`` = u0 -> u1 of face (u0, u1, u2), with ball centre c, a front edge (room reserved)."""
+    """Make edge ``e`` = u0 -> u1 of face (u0, u1, u2), ball centre c, a front edge.
+
+    Room for it is reserved.
+    """
     key = min(u0, u1) * n + max(u0, u1)
     s = probe(hkeys, bits, key)
     hkeys[s] = key

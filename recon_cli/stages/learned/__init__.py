@@ -7,8 +7,7 @@ surface makes it a distance (IGR, Gropp et al. 2020; with normals its L1 form on
 spread over the band of 5 % of the diagonal around the surface); SIREN's
 off-surface term exp(-100 |s|) on the samples away from the points (Sitzmann et al. 2020)
 keeps spurious zero levels out of the empty space, which a few CPU minutes of IGR alone
-leave (armadillo, 90 s: 7 components, 11 % of the vertices > 1 % of the diagonal from any
-point; with the term: one watertight component). Without
+leave (figures in ``bench/calibration.md``). Without
 normals it is IGR's zero-level + eikonal form, oriented by the geometric (sphere)
 initialisation. ``field="occupancy"`` fits a logistic output instead (Occupancy Networks,
 Mescheder et al. 2019) to inside/outside labels taken from the normals of the nearest points.
@@ -45,13 +44,13 @@ import io
 import json
 import logging
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from dataclasses import field as dataclass_field
 from typing import Any
 
 import numpy as np
 
 from recon_cli.errors import BackendError, InputError, ParameterError
-
 from recon_cli.params import Param, StageSpec
 
 FIELDS = ("sdf", "occupancy")
@@ -98,15 +97,18 @@ class SdfModel:
     center: np.ndarray
     scale: float
     field: str
-    config: dict = field(default_factory=dict)
+    config: dict = dataclass_field(default_factory=dict)
 
     def _q(self, x: np.ndarray) -> np.ndarray:
         x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
         return ((x - self.center) / self.scale).astype(np.float32)
 
     def values(self, points: np.ndarray) -> np.ndarray:
-        """Field at (k, 3) world points: signed distance (world units, negative inside) for
-        ``sdf``, ``0.5 - p(inside)`` for ``occupancy`` (negative inside, zero at p = 1/2)."""
+        """Field at (k, 3) world points.
+
+        Signed distance (world units, negative inside) for ``sdf``, ``0.5 - p(inside)`` for
+        ``occupancy`` (negative inside, zero at p = 1/2).
+        """
         raw = _torch().values(self.net, self._q(points))
         return self._to_field(raw)
 
@@ -160,13 +162,13 @@ SPEC = StageSpec(
     name="fit-sdf",
     keeps_partial=True,
     summary="Fit a neural signed distance field to a cloud (needs recon[learned]).",
-    description="""Fit a neural signed distance field to a cloud; write it on a grid (.npz, negative inside).
+    description="""Fit a neural signed distance field to a cloud; write it on a grid (.npz).
 
-    With normals the loss holds the zero level on the points, the gradient on the normals and
-    |grad s| at 1 (eikonal); without, the zero level and the eikonal term (IGR). `recon mcubes
-    OUT.npz mesh.ply` extracts the surface; `recon info OUT.npz` reports the eikonal statistics.
-    Needs PyTorch (pip install recon[learned]). Ctrl-C stops training and writes the best field
-    so far (exit 130).""",
+    The grid is negative inside. With normals the loss holds the zero level on the points, the
+    gradient on the normals and the gradient's norm at 1 (eikonal); without, the zero level and
+    the eikonal term (IGR). `recon mcubes OUT.npz mesh.ply` extracts the surface; `recon info
+    OUT.npz` reports the eikonal statistics. Needs PyTorch (pip install recon[learned]). Ctrl-C
+    stops training and writes the best field so far (exit 130).""",
     takes=("cloud", "mesh"),
     gives=("grid",),
     output_suffix=".npz",
@@ -223,8 +225,8 @@ SPEC = StageSpec(
             "eikonal_weight",
             "float",
             None,
-            "Weight of the eikonal loss: E||grad s| - 1| with normals (auto: 3), "
-            "E[(|grad s| - 1)^2] without (auto: 0.1).",
+            "Weight of the eikonal loss: the mean of abs(norm(grad s) - 1) with normals "
+            "(auto: 3), of (norm(grad s) - 1)^2 without (auto: 0.1).",
             min=0.0,
             words={"auto": None},
         ),
@@ -327,24 +329,16 @@ def fit_sdf(
         Hidden units per layer and hidden layers of the MLP.
     frequencies : int or None
         Octaves of the Fourier features (0: the raw coordinates only). None: 4 with normals,
-        2 without. High octaves make ||grad s|| ripple off the surface (armadillo, 2000 steps,
-        the band samples and L1 eikonal below: within 0.1 of 1 on 90 % of the grid samples
-        near the surface with 4, 88 % with 5; with weight 10 (squared) 84 % with 4, 72 % with 6
-        and 3 pieces); IGR's form fits high octaves as noise (a torus, 900 steps, had its zero
-        level 0.96 % of the major radius off with 2, 1.2 % with 0, 43 pieces with 6).
+        2 without: high octaves make the gradient's norm ripple off the surface, and IGR's
+        form fits them as noise (figures in ``bench/calibration.md``).
     eikonal_weight : float or None
         Weight of the eikonal term (``sdf`` only). With normals it is the L1 form
         E| ||grad s|| - 1 |, on the samples near the points, uniform ones, and as many spread
         over the band of 5 % of the diagonal around the surface (the field's useful part,
         where ``recon info`` judges it); None: 3.0. Without normals it is IGR's squared form
         E(||grad s|| - 1)^2 with IGR's 0.1: nothing but the zero level holds the slope, and
-        3.0 slows the fit (sphere, 250 steps: the zero level 12 % of the radius off with
-        3.0, 1.4 % with 0.1). Measured on armadillo (100k points, 2000 steps, grid samples
-        within 5 % of the diagonal, share with | ||grad s|| - 1 | <= 0.1; Chamfer-L1 of the
-        diagonal): squared 3.0 without band samples 54 %, 2.0e-3; squared 3.0 with them 58 %;
-        squared 10 84 %, 2.5e-3; squared 30 93 %, 4.0e-3; L1 3.0 90 %, 2.9e-3; L1 10 94 %,
-        6.5e-3. The squared penalty barely pulls deviations under 0.1; the L1 one pulls
-        every sample to 1 alike.
+        3.0 slows the fit. The squared penalty barely pulls deviations under 0.1; the L1 one
+        pulls every sample to 1 alike (figures in ``bench/calibration.md``).
     normal_weight : float
         Weight of E||grad s(p) - n_p|| (``sdf`` with normals only).
     batch : int
@@ -441,6 +435,7 @@ def fit_sdf(
     sigma = np.maximum(sigma, 1e-4)
     labels_fn = None
     if field == "occupancy":
+        assert nrm is not None  # checked above
         nq = nrm.astype(np.float32)
 
         def labels_fn(x: np.ndarray) -> np.ndarray:
@@ -524,7 +519,8 @@ def sample_grid(
     """
     from scipy.ndimage import map_coordinates
 
-    shape = tuple(int(s) for s in shape)
+    nx, ny, nz = (int(s) for s in shape)
+    shape = (nx, ny, nz)
     origin = np.asarray(origin, dtype=np.float64)
     h = float(voxel_size)
     axes = [origin[a] + h * np.arange(shape[a]) for a in range(3)]
@@ -741,8 +737,8 @@ def run_stage(
     """
     from recon_cli.geometry import PointCloud, TriangleMesh, bbox_diagonal, float64
     from recon_cli.grid import Grid
-    from recon_cli.stages.sdf import eikonal_check, grid_frame
     from recon_cli.stages import StageResult
+    from recon_cli.stages.sdf import eikonal_check, grid_frame
 
     if not isinstance(data, (PointCloud, TriangleMesh)):
         raise InputError(f"fit-sdf needs a point cloud (or mesh), got {type(data).__name__}")

@@ -1,4 +1,4 @@
-"""PyTorch compute for :mod:`recon_cli.stages.learned`: the network, its training loop, batched queries.
+"""PyTorch compute for :mod:`recon_cli.stages.learned`: network, training loop, batched queries.
 
 Compute only: the stage (:mod:`recon_cli.stages.learned`) validates every input and turns the
 results into grids and meshes. Imported only when a field is fitted or queried, so that
@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any
 
 import numpy as np
 import torch
@@ -26,6 +27,8 @@ class FieldNet(nn.Module):
     Yariv et al. 2020): the weights of the encoded features start at zero and the layers are
     set so that s(x) ~= |x| - radius, a signed distance to a sphere, before any training.
     """
+
+    bands: torch.Tensor  # a registered buffer: 2^k pi per octave
 
     def __init__(
         self, width: int, depth: int, frequencies: int, radius: float, beta: float = 100.0
@@ -134,7 +137,7 @@ def train(
     before the first step) the best parameters so far are restored and the outcome says
     ``interrupted``.
     """
-    st = {
+    st: dict[str, Any] = {
         "it": 0,
         "ema": None,
         "best": math.inf,

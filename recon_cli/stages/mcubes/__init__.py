@@ -1,7 +1,7 @@
 """Marching cubes (and marching tetrahedra): the iso-surface of a sampled scalar field.
 
-Two entry points share one set of tables (derived in :mod:`recon_cli.stages.mcubes._luts`, stored and read
-by :mod:`recon_cli.stages.mcubes._lut_data`) and kernels
+Two entry points share one set of tables (derived in :mod:`recon_cli.stages.mcubes._luts`, stored
+and read by :mod:`recon_cli.stages.mcubes._lut_data`) and kernels
 (:mod:`recon_cli.stages.mcubes._kernel`):
 
 * :func:`marching_cubes` on a dense volume (a :class:`~recon_cli.grid.Grid`'s ``sdf``);
@@ -69,10 +69,11 @@ def _origin3(origin: Any) -> np.ndarray:
 SPEC = StageSpec(
     name="mcubes",
     summary="Marching cubes: mesh the zero level set of a grid.",
-    description="""Mesh the ISO level set of a grid (.npz from `recon sdf`); vertex normals from the field.
+    description="""Mesh the ISO level set of a grid (.npz from `recon sdf`).
 
-    The mesh is closed and manifold wherever the level set stays inside the grid and away
-    from unknown (NaN) cells; unknown cells are left out.""",
+    Vertex normals come from the field's gradient. The mesh is closed and manifold wherever the
+    level set stays inside the grid and away from unknown (NaN) cells; unknown cells are left
+    out.""",
     takes=("grid",),
     gives=("mesh", "oriented"),
     params=(
@@ -145,8 +146,10 @@ def marching_cubes(
 
 
 def _marching_cubes(volume, iso, spacing, origin, method, allow_degenerate):
-    """:func:`marching_cubes` and the number of cells left out (a NaN corner, or +inf and
-    -inf corners together), counted in the same pass."""
+    """:func:`marching_cubes` and the number of cells left out, counted in the same pass.
+
+    A cell is left out for a NaN corner, or +inf and -inf corners together.
+    """
     iso, method, allow_degenerate = _check(iso, method, allow_degenerate)
     vol = np.asarray(volume)
     if vol.ndim != 3:
@@ -362,7 +365,10 @@ def run_stage(
         elif finite.size == 0:
             why = "every sample is unknown (NaN)"
         elif finite.min() >= iso or finite.max() <= iso:
-            why = f"no sample is on the other side of iso {iso:g} (values {finite.min():.6g} .. {finite.max():.6g})"
+            why = (
+                f"no sample is on the other side of iso {iso:g} "
+                f"(values {finite.min():.6g} .. {finite.max():.6g})"
+            )
         else:
             why = "every cell the level set crosses has an unknown (NaN) corner"
         raise InputError(f"nothing to mesh: {why}")
@@ -382,8 +388,11 @@ def run_stage(
 
 
 def boundary_edge_count(faces: np.ndarray, n_vertices: int | None = None) -> int:
-    """Number of edges used by exactly one face of ``faces`` ((m, 3) int; vertex count ``n_vertices``,
-    default ``faces.max() + 1``), counted by a linear numba pass."""
+    """Number of edges used by exactly one face of ``faces`` ((m, 3) int).
+
+    The vertex count is ``n_vertices``, default ``faces.max() + 1``; counted by a linear numba
+    pass.
+    """
     faces = np.ascontiguousarray(faces, dtype=np.int64)
     if len(faces) == 0:
         return 0

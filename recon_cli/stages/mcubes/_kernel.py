@@ -300,7 +300,8 @@ def dense_extract(
                 for c in range(8):
                     v[c] = vol[i + (c & 1), j + ((c >> 1) & 1), k + ((c >> 2) & 1)]
                 if np.isnan((v[0] + v[1] + v[2] + v[3]) + (v[4] + v[5] + v[6] + v[7])):
-                    continue  # NaN compares false: a cell with a NaN corner is left out (counted above)
+                    # NaN compares false: a cell with a NaN corner is left out (counted above)
+                    continue
                 row = case
                 if use_faces:
                     row = case * 64 + _face_bits(v, case, iso, ambiguous, face_corners)

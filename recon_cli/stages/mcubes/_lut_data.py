@@ -1,4 +1,4 @@
-"""The marching-cubes and marching-tetrahedra tables, as stored in ``_lut_data.npz`` beside this module.
+"""The marching-cubes and marching-tetrahedra tables as stored in ``_lut_data.npz`` beside this.
 
 They are derived by :mod:`recon_cli.stages.mcubes._luts` (which documents each table and its
 conventions) and stored, so a command reads ~30 kB instead of deriving them (~0.4 s);

@@ -205,9 +205,9 @@ def _edge_faces(e: int) -> set[int]:
 _EDGE_FACES = [_edge_faces(e) for e in range(12)]
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _chord_ok(a: int, b: int) -> bool:
-    """May a triangle edge inside a loop join crossings on cube edges ``a`` and ``b``?
+    """Whether a triangle edge inside a loop may join crossings on cube edges ``a`` and ``b``.
 
     Two crossings on one face are also both in the neighbour across that face, which
     might join them too (an edge with four triangles). Only the cell below the face (the
@@ -220,7 +220,7 @@ def _triangulate(loop: list[int]) -> list[tuple[int, int, int]] | None:
     """Shortest-chord triangulation of a loop using allowed chords only (None if none)."""
     n = len(loop)
     if n == 3:
-        return [tuple(loop)]
+        return [(loop[0], loop[1], loop[2])]
     mids = [_mid(e) for e in loop]
     inf = float("inf")
     cost = [[0.0] * n for _ in range(n)]  # cost of the side (i, k); polygon sides are free
@@ -365,7 +365,7 @@ TABLES_FILE = "_lut_data.npz"
 _DERIVED = ("MC_START", "MC_TRIS", "MC_AMBIGUOUS", "MC_CENTRE", "MT_START", "MT_TRIS")
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def build_tables() -> dict[str, np.ndarray]:
     """Every table the kernels use, derived here: the names of the module docstring's ``Tables``."""
     mc_start, mc_tris, mc_amb, mc_centre = _build_mc()
@@ -393,12 +393,16 @@ def __getattr__(name: str):
 
 
 def write_tables(path: str | None = None) -> str:
-    """Store :func:`build_tables` as ``_lut_data.npz`` beside this module (or at ``path``); returns the path."""
+    """Store :func:`build_tables` as ``_lut_data.npz`` beside this module (or at ``path``).
+
+    Returns the path.
+    """
     import os
 
     path = path or os.path.join(os.path.dirname(os.path.abspath(__file__)), TABLES_FILE)
     with open(path, "wb") as fh:
-        np.savez_compressed(fh, **build_tables())
+        # numpy's stub types **kwds as its keyword allow_pickle
+        np.savez_compressed(fh, **build_tables())  # type: ignore[arg-type]
     return path
 
 

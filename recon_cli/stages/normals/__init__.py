@@ -117,7 +117,8 @@ SPEC = StageSpec(
 
 # an organized cloud's k nearest are taken among about this many times k pixels around a point
 _PIXEL_WINDOW = 6.0
-# the MST graph uses at most this many nearest neighbours of each point (more adds time, not accuracy)
+# the MST graph uses at most this many nearest neighbours of each point (more adds time, not
+# accuracy)
 _GRAPH_K = 12
 # weight of the out-of-tangent-plane penalty on MST edges
 _BETA = 2.0
@@ -143,7 +144,8 @@ def _check_points(points: Any) -> np.ndarray:
     bad = ~np.isfinite(pts).all(axis=1)
     if bad.any():
         raise InputError(
-            f"points have {int(bad.sum())} rows with NaN or infinite coordinates (first: row {int(np.argmax(bad))}); "
+            f"points have {int(bad.sum())} rows with NaN or infinite coordinates (first: row "
+            f"{int(np.argmax(bad))}); "
             "remove them first"
         )
     return np.ascontiguousarray(pts)
@@ -209,9 +211,11 @@ def _neighbourhoods(pts: np.ndarray, knn: int | None, radius: float | None):
 
 
 def _pixel_neighbourhoods(pts: np.ndarray, pixels: Any, knn: int, radius: float | None):
-    """Neighbourhoods of an organized cloud from its pixel grid: the ``knn`` nearest points
-    (within ``radius`` when given) among the pixels of a window around each point's pixel,
-    about ``_PIXEL_WINDOW`` times ``knn`` pixels in all (PCL's organized neighbour search).
+    """Neighbourhoods of an organized cloud from its pixel grid.
+
+    The ``knn`` nearest points (within ``radius`` when given) among the pixels of a window around
+    each point's pixel, about ``_PIXEL_WINDOW`` times ``knn`` pixels in all (PCL's organized
+    neighbour search).
 
     Same returns as :func:`_neighbourhoods`; ``order`` sorts the points by pixel (row-major,
     image by image), a spatially coherent order.
@@ -320,7 +324,7 @@ def estimate_normals(
     Holz, Holzer, Rusu & Behnke, "Real-time plane segmentation using RGB-D cameras", RoboCup
     2011 (neighbourhoods of an organized cloud from its image, as PCL's organized search).
     """
-    knn, radius = _check_knn(knn, radius)
+    knn, radius = _check_knn(knn, radius)  # type: ignore[assignment]  # knn 0 becomes None
     pts = _check_points(points)
     n = len(pts)
     if pixels is not None:
@@ -339,9 +343,12 @@ def estimate_normals(
 def _local(
     pts: np.ndarray, cam: np.ndarray | None, source: Any
 ) -> tuple[np.ndarray, np.ndarray | None]:
-    """``pts`` and the viewpoint ``cam`` about the points' local origin (far from the world
-    origin the kd-tree, centroids and flux sums keep their digits); in place when ``pts``
-    is a converted copy of ``source``."""
+    """``pts`` and the viewpoint ``cam`` about the points' local origin.
+
+    Far from the world origin the kd-tree, centroids and flux sums keep their digits. In place
+    when ``pts``
+    is a converted copy of ``source``.
+    """
     centre = local_origin(pts)
     if np.may_share_memory(pts, source):
         pts = pts - centre
@@ -470,8 +477,10 @@ def _seed_signs(nrm: np.ndarray, rel: np.ndarray) -> np.ndarray:
 
 
 def _align_to_anchors(ps, nrm, sign, labels, anchor, follow) -> None:
-    """Flip each ``follow`` component whose normals mostly disagree with those of the
-    nearest anchor points (in place on ``sign``)."""
+    """Flip each ``follow`` component whose normals mostly disagree with the nearest anchors'.
+
+    In place on ``sign``.
+    """
     from scipy.spatial import cKDTree
 
     amask = anchor[labels]
@@ -571,7 +580,7 @@ def orient_normals(
         ref_s = None if ref is None else ref[order]
         sign_s, ncomp = _orient_sorted(method, ps, nrm[order], indptr, indices, None, None, ref_s)
         sign = _unsort(order, sign_s)
-        info = {"components": int(ncomp)}
+        info: dict[str, Any] = {"components": int(ncomp)}
     else:
         sign = _orient_direct(method, pts, nrm, cam, dirn)
         info = {"components": None}
@@ -580,8 +589,10 @@ def orient_normals(
 
 
 def _check_orient(method, camera, direction):
-    """``(method, camera, unit direction)`` checked by the declaration, with the options' rules
-    (``--orient camera`` without ``--camera`` faces the data's sensors: :func:`_sensor_views`)."""
+    """``(method, camera, unit direction)`` checked by the declaration and the options' rules.
+
+    ``--orient camera`` without ``--camera`` faces the data's sensors (:func:`_sensor_views`).
+    """
     method = SPEC.param("orient").coerce(method)
     cam = _vector(camera, "camera")
     dirn = _vector(direction, "direction")
@@ -612,8 +623,11 @@ def _check_reference(method, reference, n):
 
 
 def _sensor_views(sensors: list, scan: Any, n: int, centre: np.ndarray) -> tuple:
-    """``(positions, directions, is_direction, which)``: the sensors about ``centre`` ((k, 3)
-    each; a position for a scanner, a direction for one far away) and each point's sensor."""
+    """``(positions, directions, is_direction, which)``.
+
+    The sensors about ``centre`` ((k, 3) each; a position for a scanner, a direction for one far
+    away) and each point's sensor.
+    """
     k = len(sensors)
     if k == 0:
         raise InputError(
@@ -697,18 +711,20 @@ def _use_pixels(neighbours: str, pixels: Any, knn: int | None, radius: float | N
 
 
 def _viewpoints_report(method, views, sensors, camera) -> list[str] | None:
-    """What ``--orient camera`` oriented towards: the ``--camera`` given, or each sensor used
-    (with its point count when there are several)."""
+    """What ``--orient camera`` oriented towards.
+
+    The ``--camera`` given, or each sensor used (with its point count when there are several).
+    """
     if method != "camera":
         return None
     if views is None:
-        return [
-            "--camera (" + ", ".join(f"{float(x):.9g}" for x in _vector(camera, "camera")) + ")"
-        ]
+        cam = _vector(camera, "camera")
+        assert cam is not None  # --orient camera without sensors needs --camera (checked)
+        return ["--camera (" + ", ".join(f"{float(x):.9g}" for x in cam) + ")"]
     counts = np.bincount(views[3], minlength=len(sensors))
     if len(sensors) == 1:
         return [sensors[0].describe()]
-    return [f"{s.describe()}: {int(c)} points" for s, c in zip(sensors, counts)]
+    return [f"{s.describe()}: {int(c)} points" for s, c in zip(sensors, counts, strict=True)]
 
 
 @SPEC.runner
@@ -746,7 +762,8 @@ def run_stage(
         (:func:`estimate_normals`); ``auto``: that for an organized cloud with ``knn`` and
         no ``radius``, else the kd-tree.
     backend : {"native", "open3d"}
-        ``open3d``: Open3D's estimate_normals (+ orient_normals_consistent_tangent_plane(knn) for ``mst``).
+        ``open3d``: Open3D's estimate_normals (+ orient_normals_consistent_tangent_plane(knn) for
+        ``mst``).
 
     Returns
     -------
@@ -757,7 +774,8 @@ def run_stage(
     """
     from recon_cli.stages.normals import _kernel as _normals_kernel  # noqa: F401  (numba compiles before timing starts)
 
-    knn, radius = _check_knn(knn, radius)  # each value checked by SPEC, the pair here
+    # each value checked by SPEC, the pair here; knn 0 becomes None (radius only)
+    knn, radius = _check_knn(knn, radius)  # type: ignore[assignment]
     method, cam, dirn = _check_orient(orient, camera, direction)
     cloud = as_point_cloud(data)
     pts = _check_points(cloud.points)
@@ -797,7 +815,7 @@ def run_stage(
         if backend == "open3d"
         else (
             f"pixels ({2 * _pixel_radius(knn) + 1}x{2 * _pixel_radius(knn) + 1} window "
-            f"in {cloud.pixels.describe()})"
+            f"in {cloud.pixels.describe() if cloud.pixels is not None else ''})"
             if use_pixels
             else "kdtree"
         ),
@@ -829,6 +847,8 @@ def run_stage(
             if method == "keep":
                 d = np.einsum("ij,ij->i", nrm, np.nan_to_num(ref))
                 sign = np.where(d < 0, -1, 1).astype(np.int8)
+            else:
+                sign = _orient_direct(method, pts, nrm, cam, dirn)
             report["flipped"] = int((sign < 0).sum())
             nrm = nrm * sign[:, None]
         out.normals = nrm
@@ -857,6 +877,7 @@ def run_stage(
         out.attributes["curvature"] = _unsort(order, curv_s)
     if report["degenerate"]:
         report["warning"] = (
-            f"{report['degenerate']} degenerate neighbourhoods (< 3 points, collinear or duplicates)"
+            f"{report['degenerate']} degenerate neighbourhoods (< 3 points, collinear or "
+            "duplicates)"
         )
     return StageResult(out, report)

@@ -71,9 +71,11 @@ def pca_normals(pts, indptr, indices, collinear):
 
 @njit(cache=True)
 def _smallest_eigvec(a00, a01, a02, a11, a12, a22):
-    """Unit eigenvector of the smallest eigenvalue of a symmetric PSD 3x3 matrix, and the
-    eigenvalues ascending. Closed form (trigonometric eigenvalues, cross products of the
-    rows of A - l0 I); a zero matrix gives (0, 0, 1)."""
+    """Unit eigenvector of a symmetric PSD 3x3 matrix's smallest eigenvalue, and the eigenvalues.
+
+    The eigenvalues come ascending. Closed form (trigonometric eigenvalues, cross products of the
+    rows of A - l0 I); a zero matrix gives (0, 0, 1).
+    """
     m = max(abs(a00), abs(a01), abs(a02), abs(a11), abs(a12), abs(a22))
     if m == 0.0:
         return 0.0, 0.0, 1.0, 0.0, 0.0, 0.0
@@ -161,7 +163,8 @@ def _smallest_eigvec(a00, a01, a02, a11, a12, a22):
 def borrow_from_neighbours(pts, normals, degenerate, indptr, indices):
     """A degenerate point takes the normal of its nearest non-degenerate neighbour (if any).
 
-    Returns the new normals and the mask of points that found none (keep their own)."""
+    Returns the new normals and the mask of points that found none (keep their own).
+    """
     n = pts.shape[0]
     out = normals.copy()
     alone = np.zeros(n, dtype=np.bool_)
@@ -239,9 +242,12 @@ def graph_edges(indptr, indices, kmax):
 
 @njit(cache=True, inline="always")
 def _relation(pts, normals, i, j):
-    """(s, t): s = n_i . n_j (positive when consistently oriented, Hoppe), t = mean |n . e|
-    over both ends, e the unit edge (how far the edge leaves the tangent planes: large
-    for edges that jump across a thin part)."""
+    """(s, t) of an edge: its orientation agreement and how far it leaves the tangent planes.
+
+    s = n_i . n_j (positive when consistently oriented, Hoppe), t = mean abs(n . e) over both
+    ends, e the unit edge (how far the edge leaves the tangent planes: large
+    for edges that jump across a thin part).
+    """
     ex = pts[j, 0] - pts[i, 0]
     ey = pts[j, 1] - pts[i, 1]
     ez = pts[j, 2] - pts[i, 2]
@@ -272,8 +278,11 @@ def edge_weights(pts, normals, eptr, dst, beta, eps):
 
 @njit(cache=True)
 def propagate_signs(pts, normals, order, pred, root, seed_sign):
-    """Signs (+1/-1) per point from a traversal: ``order`` is a BFS order from the virtual
-    node ``root``, ``pred`` the predecessors; children of ``root`` take ``seed_sign``."""
+    """Signs (+1/-1) per point from a traversal.
+
+    ``order`` is a BFS order from the virtual node ``root``, ``pred`` the predecessors; children of
+    ``root`` take ``seed_sign``.
+    """
     n = pts.shape[0]
     sign = np.ones(n, dtype=np.int8)
     for k in range(order.shape[0]):
@@ -291,8 +300,10 @@ def propagate_signs(pts, normals, order, pred, root, seed_sign):
 
 @njit(cache=True)
 def vote_flips(pts, normals, sign, eptr, dst):
-    """Per point, the confidence-weighted vote of its graph neighbours on its sign
-    (each undirected edge counts at both ends): negative means most neighbours say flip."""
+    """Per point, the confidence-weighted vote of its graph neighbours on its sign.
+
+    Each undirected edge counts at both ends; negative means most neighbours say flip.
+    """
     n = eptr.shape[0] - 1
     vote = np.zeros(n)
     for i in range(n):
@@ -319,8 +330,11 @@ def degree(eptr, dst):
 
 @njit(cache=True, parallel=True)
 def consensus(pts, normals, sign, indptr, indices, power):
-    """Per point, n_i . (sum over its neighbourhood of (1 - t_ij)^power s_j n_j): the side
-    its oriented neighbours agree on (t_ij as in :func:`_relation`; the point itself left out)."""
+    """Per point, n_i . (sum over its neighbourhood of (1 - t_ij)^power s_j n_j).
+
+    The side its oriented neighbours agree on (t_ij as in :func:`_relation`; the point itself left
+    out).
+    """
     n = indptr.shape[0] - 1
     out = np.zeros(n)
     for i in prange(n):
@@ -337,8 +351,10 @@ def consensus(pts, normals, sign, indptr, indices, power):
 
 @njit(cache=True, parallel=True)
 def pixel_knn(ps, pix, img_of, offs, heights, widths, img, k, dr, dc, r2max, out, count):
-    """The ``k`` nearest points (3-D distance, at most ``r2max`` squared) among the pixels at
-    row and column offsets ``dr``, ``dc`` from each point's pixel in its image.
+    """The ``k`` nearest points among nearby pixels of each point's pixel in its image.
+
+    Nearest by 3-D distance, at most ``r2max`` squared, among the pixels at row and column
+    offsets ``dr``, ``dc``.
 
     ``ps`` (n, 3) points; ``pix`` (n,) each point's pixel in the concatenated images,
     ``img_of`` (n,) its image, ``offs``/``heights``/``widths`` the images' first pixel and

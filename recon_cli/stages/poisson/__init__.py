@@ -9,35 +9,34 @@ minimises
     int |grad chi - W|^2  +  alpha * sum_p w_p (chi(p) - 1/2)^2,
 
 discretised on an adaptive multilevel grid (an octree level by level), in one of two bases
-(``degree``): quadratic B-splines centred on the cells, support 3 cells per axis (degree 2,
-the default, as PoissonRecon's ``--degree 2``; :mod:`.bspline`), or trilinear (Q1) hat
-functions on the nodes (degree 1, as Open3D's Poisson). Each sample is splatted at the depth its local density supports
-(``samples_per_node`` samples per node, as PoissonRecon defines it, at most ``depth``), and
-level ``d`` holds the cells of the ``2**d`` lattice within two cells of a splat of level
-``d`` or finer (every cell up to ``full_depth``), complete in siblings: the tree stops where
-the samples stop, so memory and time follow the data, and a depth beyond what the samples
-support costs nothing (:mod:`.splat`, :mod:`.octree`). ``chi`` is the sum
-of the levels' functions; it is solved cascadically, coarse to fine, each level by
-Jacobi-preconditioned conjugate gradients on the residual left by the coarser ones (as
-PoissonRecon does); level ``d`` is screened with weight ``alpha * 2**(d - tree depth)``, as
-PoissonRecon scales a node's point weight by ``2**`` its depth; each sample's weight is scaled
-by how noisy its neighbourhood is (the points' scatter about the surface, measured before the
-solve: :func:`.splat.noise_fraction`), so noise is smoothed and clean detail kept. The surface is the level set of ``chi`` at the weighted mean of its
-values at the samples, extracted over the leaves of the tree at each leaf's own size
-(Kazhdan, Klein, Dalal & Hoppe 2007): ``chi`` is trilinear in a leaf and continuous across
-leaves, so its roots on the *minimal edges* (leaf edges no smaller leaf splits) are exact,
-each shared by all the leaves around it; every face between leaves pairs the roots on its
-boundary once, for both sides, so neighbouring leaves of different sizes agree and there
-are no cracks; each leaf's segments close into polygons, triangulated without a diagonal any
-other polygon could use. The surface is closed, manifold, welded, and its size follows the
-tree, not the depth asked for (:mod:`.extract`). Each vertex is then moved along its edge:
-with degree 1 to the root of a quadratic fit of ``chi`` along the edge's line, with the
-edge's own length as the step (PoissonRecon's non-linear fit: the piecewise-linear ``chi``
-stands for a smooth indicator); with degree 2
-the leaves' corners take ``chi``'s exact values (nodes on the faces of coarser leaves take
-those leaves' values, so neighbours agree) and each vertex goes to ``chi``'s root. Closed
-specks under two finest cells across (noise leaves chi across the iso-value around single
-lattice points) are dropped and counted; the largest piece always stays.
+(``degree``): quadratic B-splines centred on the cells, support 3 cells per axis (degree 2, the
+default, as PoissonRecon's ``--degree 2``; :mod:`.bspline`), or trilinear (Q1) hat functions on the
+nodes (degree 1, as Open3D's Poisson). Each sample is splatted at the depth its local density
+supports (``samples_per_node`` samples per node, as PoissonRecon defines it, at most ``depth``), and
+level ``d`` holds the cells of the ``2**d`` lattice within two cells of a splat of level ``d`` or
+finer (every cell up to ``full_depth``), complete in siblings: the tree stops where the samples
+stop, so memory and time follow the data, and a depth beyond what the samples support costs nothing
+(:mod:`.splat`, :mod:`.octree`). ``chi`` is the sum of the levels' functions; it is solved
+cascadically, coarse to fine, each level by Jacobi-preconditioned conjugate gradients on the
+residual left by the coarser ones (as PoissonRecon does); level ``d`` is screened with weight
+``alpha * 2**(d - tree depth)``, as PoissonRecon scales a node's point weight by ``2**`` its depth;
+each sample's weight is scaled by how noisy its neighbourhood is (the points' scatter about the
+surface, measured before the solve: :func:`.splat.noise_fraction`), so noise is smoothed and clean
+detail kept. The surface is the level set of ``chi`` at the weighted mean of its values at the
+samples, extracted over the leaves of the tree at each leaf's own size (Kazhdan, Klein, Dalal &
+Hoppe 2007): ``chi`` is trilinear in a leaf and continuous across leaves, so its roots on the
+*minimal edges* (leaf edges no smaller leaf splits) are exact, each shared by all the leaves around
+it; every face between leaves pairs the roots on its boundary once, for both sides, so neighbouring
+leaves of different sizes agree and there are no cracks; each leaf's segments close into polygons,
+triangulated without a diagonal any other polygon could use. The surface is closed, manifold,
+welded, and its size follows the tree, not the depth asked for (:mod:`.extract`). Each vertex is
+then moved along its edge: with degree 1 to the root of a quadratic fit of ``chi`` along the edge's
+line, with the edge's own length as the step (PoissonRecon's non-linear fit: the piecewise-linear
+``chi`` stands for a smooth indicator); with degree 2 the leaves' corners take ``chi``'s exact
+values (nodes on the faces of coarser leaves take those leaves' values, so neighbours agree) and
+each vertex goes to ``chi``'s root. Closed specks under two finest cells across (noise leaves chi
+across the iso-value around single lattice points) are dropped and counted; the largest piece always
+stays.
 
 ``trim`` removes the surface where the samples' kernel density is low (the closing sheet
 Poisson puts over the open side of a scan), as PoissonRecon's SurfaceTrimmer does: the mesh
@@ -105,15 +104,14 @@ class PoissonResult:
         With ``with_grid``: the solved field on the finest lattice around the surface
         (:mod:`.field`).
     report : dict
-        ``vertices``, ``faces``, ``depth``, ``iso_value``, ``solver_iterations``,
-        ``residual`` (relative residual of the finest level), ``bubbles_removed`` (closed
-        specks under two finest cells across, dropped: :func:`_drop_bubbles`),
-        ``islands_removed`` (closed pieces around fewer than ten input points, dropped),
-        ``trimmed_faces`` (faces cut or removed by ``trim``), ``trimmed_area`` (fraction of the area removed),
-        ``noise`` (the samples' median noise in finest cells of the tree, :func:`.splat.noise_fraction`;
-        None without screening) and details
-        (``tree_depth``: the deepest level the samples support, ``samples``, ``nodes`` per
-        level, ``timings``).
+        ``vertices``, ``faces``, ``depth``, ``iso_value``, ``solver_iterations``, ``residual``
+        (relative residual of the finest level), ``bubbles_removed`` (closed specks under two finest
+        cells across, dropped: :func:`_drop_bubbles`), ``islands_removed`` (closed pieces around
+        fewer than ten input points, dropped), ``trimmed_faces`` (faces cut or removed by ``trim``),
+        ``trimmed_area`` (fraction of the area removed), ``noise`` (the samples' median noise in
+        finest cells of the tree, :func:`.splat.noise_fraction`; None without screening) and details
+        (``tree_depth``: the deepest level the samples support, ``samples``, ``nodes`` per level,
+        ``timings``).
     """
 
     mesh: TriangleMesh
@@ -140,7 +138,8 @@ SPEC = StageSpec(
             "depth",
             "int",
             8,
-            "Deepest octree level allowed (finest cell = reconstruction cube / 2^depth); the tree stops where the samples do.",
+            "Deepest octree level allowed (finest cell = reconstruction cube / 2^depth); the "
+            "tree stops where the samples do.",
             min=1,
             max=MAX_DEPTH,
         ),
@@ -163,7 +162,8 @@ SPEC = StageSpec(
             "samples_per_node",
             "float",
             1.5,
-            "Samples per node at a sample's depth (as PoissonRecon): sparser samples are splatted coarser.",
+            "Samples per node at a sample's depth (as PoissonRecon): sparser samples are "
+            "splatted coarser.",
             unit="samples",
             min=0.0,
             min_open=True,
@@ -172,7 +172,9 @@ SPEC = StageSpec(
             "degree",
             "int",
             2,
-            "B-spline degree of the basis: 2 quadratic (as PoissonRecon's --degree 2; more accurate on smooth surfaces), 1 trilinear (as Open3D's Poisson; about 0.6x the time).",
+            "B-spline degree of the basis: 2 quadratic (as PoissonRecon's --degree 2; more "
+            "accurate on smooth surfaces), 1 trilinear (as Open3D's Poisson; about 0.6x the "
+            "time).",
             min=1,
             max=2,
         ),
@@ -293,8 +295,11 @@ def _check_options(
 def _check_inputs(
     points: Any, normals: Any, lengths: list | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Finite (n, 3) points and unit normals; returns (points, normals, kept mask) (and
-    appends the kept normals' lengths to ``lengths`` when given)."""
+    """Finite (n, 3) points and unit normals.
+
+    Returns (points, normals, kept mask) (and appends the kept normals' lengths to ``lengths`` when
+    given).
+    """
     pts, nrm, length = oriented_rows(
         points,
         normals,
@@ -499,8 +504,9 @@ def screened_poisson(
     # ---- the samples' noise: noisy neighbourhoods are screened less (Splats.screening)
     t = time.perf_counter()
     if point_weight > 0:
-        splats.clean, noise = noise_fraction((pts - origin) / size, smp, tree_depth)
-        noise = float(np.median(noise))
+        splats.clean, sample_noise = noise_fraction((pts - origin) / size, smp, tree_depth)
+        noise: float | None = float(np.median(sample_noise))
+        del sample_noise
     else:
         noise = None
     timings["noise"] = time.perf_counter() - t
@@ -529,6 +535,7 @@ def screened_poisson(
 
     # ---- tree: as deep as the splats, no deeper
     t = time.perf_counter()
+    assert item_pos is not None and item_level is not None  # the items, before the solve
     with task(progress, "poisson: tree"):
         levels = build_levels(
             item_pos,
@@ -549,7 +556,7 @@ def screened_poisson(
         ns,
         depth,
         tree_depth,
-        [len(lv.node_keys) for lv in levels],
+        [len(lv.node_keys) for lv in levels],  # type: ignore[arg-type]  # set with the tree
     )
 
     # ---- cascadic solve
@@ -595,7 +602,8 @@ def screened_poisson(
         del chi
     else:
         chi_lv = chi_levels(levels, gvals)
-        # in finest-lattice units, then each vertex to the root of chi's quadratic fit along its edge
+        # in finest-lattice units, then each vertex to the root of chi's quadratic fit along its
+        # edge
         verts, faces = extract(levels, gvals, iso, np.zeros(3), float(res))
         del levels, gvals
         refine_roots(verts, chi_lv, iso, tree_depth)
@@ -616,6 +624,7 @@ def screened_poisson(
         from recon_cli.stages.poisson.field import indicator_grid
 
         t = time.perf_counter()
+        assert chi_fn is not None  # made with_grid
         with task(progress, "poisson: grid"):
             field_grid = indicator_grid(
                 chi_fn, iso, verts, origin, size, res, FREE_DOMAIN if domain else (0.0, 1.0)
@@ -640,6 +649,7 @@ def screened_poisson(
     if density_trim and len(faces):
         from recon_cli.stages.poisson.trim import trim_by_density
 
+        assert vdens is not None  # made above whenever trim > 0
         at_samples = sample_density(splats, smp.pos)
         cut = trim_by_density(mesh, vdens, trim * float(np.median(at_samples)))
         if len(cut.mesh.faces) == 0:
@@ -652,15 +662,17 @@ def screened_poisson(
         from recon_cli.stages.poisson.attributes import transfer
 
         t = time.perf_counter()
+        assert unit_nrm is not None  # kept when there are properties to carry
         moved = transfer(pts, unit_nrm, props, colors, mesh.vertices, mesh.faces, size / res)
         mesh.attributes.update(moved.values)
         mesh.colors, fallback = moved.colors, moved.fallback
         timings["attributes"] = time.perf_counter() - t
     del unit_nrm
     if density:
+        assert vdens is not None  # made above whenever density is asked for
         mesh.attributes["density"] = vdens
     timings["total"] = time.perf_counter() - t0
-    report = {
+    report: dict[str, Any] = {
         "vertices": len(mesh.vertices),
         "faces": len(mesh.faces),
         "depth": user_depth,
@@ -691,8 +703,9 @@ def screened_poisson(
 def _drop_bubbles(
     verts: np.ndarray, faces: np.ndarray, cell: float, points: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, int, int]:
-    """Drop the closed pieces that are noise, never the largest; returns the vertices and
-    faces left and how many specks and islands went.
+    """Drop the closed pieces that are noise, never the largest.
+
+    Returns the vertices and faces left and how many specks and islands went.
 
     - **Specks:** pieces smaller than :data:`BUBBLE_CELLS` finest cells on every side.
       Noisy, sparse samples leave chi slightly across the iso-value around single lattice
@@ -802,8 +815,9 @@ def run_stage(
     -------
     StageResult
         ``output`` a TriangleMesh; ``report`` with ``vertices``, ``faces``, ``depth``,
-        ``iso_value``, ``solver_iterations``, ``residual``, ``bubbles_removed``, ``islands_removed``, ``trimmed_faces``,
-        ``trimmed_area``, ``backend`` (the solver keys are None for the reference backends).
+        ``iso_value``, ``solver_iterations``, ``residual``, ``bubbles_removed``,
+        ``islands_removed``, ``trimmed_faces``, ``trimmed_area``, ``backend`` (the solver keys are
+        None for the reference backends).
     """
     from recon_cli.stages import StageResult
 

@@ -9,8 +9,10 @@ from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache
 
 @njit(cache=True)
 def weighted_mode(vals, w, out):
-    """out[r] = the value of row ``r`` of ``vals`` (m, k) int64 with the largest summed weight
-    ``w`` (m, k) (ties: the smallest value)."""
+    """out[r] = the value of row ``r`` of ``vals`` (m, k) int64 with the largest summed weight.
+
+    The weights are ``w`` (m, k); ties go to the smallest value.
+    """
     m, k = vals.shape
     for r in range(m):
         best_v = vals[r, 0]

@@ -1,6 +1,7 @@
-"""Numba kernels of the degree-2 B-spline system: functions centred on cells, stiffness and
-screening operators, prolongation from the coarser level, Jacobi-preconditioned conjugate
-gradients, evaluation.
+"""Numba kernels of the degree-2 B-spline system.
+
+Functions centred on cells, stiffness and screening operators, prolongation from the coarser level,
+Jacobi-preconditioned conjugate gradients, evaluation.
 
 They only compute; conventions in :mod:`recon_cli.stages.poisson._octree`, and these:
 
@@ -76,8 +77,10 @@ def b2_int2(x):
 
 @njit(cache=True)
 def b2_int3(x):
-    """Third antiderivative of the centred quadratic B-spline (0 below -1.5, x^2/2 + 1/8
-    above 1.5)."""
+    """Third antiderivative of the centred quadratic B-spline.
+
+    0 below -1.5, x^2/2 + 1/8 above 1.5.
+    """
     if x <= -1.5:
         return 0.0
     if x >= 1.5:
@@ -87,7 +90,7 @@ def b2_int3(x):
 
 @njit(cache=True)
 def b2_factors(v, rho):
-    """int B2(w) K(w - v) dw and int B2'(w) K(w - v) dw for the kernel K = B2(./rho)/rho.
+    """Int B2(w) K(w - v) dw and int B2'(w) K(w - v) dw for the kernel K = B2(./rho)/rho.
 
     The derivatives go onto the narrower of the two (three integrations by parts against
     its third derivative, a sum of deltas), so no term is much larger than the result.
@@ -110,8 +113,10 @@ def b2_factors(v, rho):
 
 @njit(cache=True)
 def neighbour_table_into(keys, top, out):
-    """Into ``out`` (k, 27) int32 (a slice of the levels' table): index in sorted ``keys`` of
-    each key's neighbours (-1 absent or outside [0, ``top``]).
+    """Index in sorted ``keys`` of each key's 27 neighbours, into ``out`` (k, 27) int32.
+
+    ``out`` is a slice of the levels' table; -1 where a neighbour is absent or outside
+    [0, ``top``].
 
     A neighbour's key is the key plus a constant (its offset, packed), so the 27 queries of
     all keys, taken in the keys' order, are 27 sorted sequences: one cursor per offset walks
@@ -145,8 +150,10 @@ def neighbour_table_into(keys, top, out):
 
 @njit(cache=True, inline="always")
 def _nbr(nb, i, o, tx, ty, tz):
-    """Index in E of the neighbour at offset (tx, ty, tz) in [-2, 2]^3 of child ``o`` of
-    parent ``i`` (-1 outside the cube)."""
+    """Index in E of the neighbour at offset (tx, ty, tz) in [-2, 2]^3 of a parent's child.
+
+    The child is ``o`` of parent ``i``; -1 outside the cube.
+    """
     bx = (o & 1) + tx
     by = ((o >> 1) & 1) + ty
     bz = ((o >> 2) & 1) + tz
@@ -158,15 +165,17 @@ def _nbr(nb, i, o, tx, ty, tz):
 
 @njit(cache=True, parallel=True)
 def stiffness_matvec(q_keys, nb, inp, xmap, omap, m1, k1, h, x, out):
-    """out[m] += h * sum over the 125 cells within 2 of m of the stiffness times x, for the
-    children m of the parents flagged ``inp``: each parent's 6x6x6 block of cells is gathered
-    once and the separable stencil (K M M + M K M + M M K) applied one axis at a time to all
-    8 children together. ``x`` holds parent ``i``'s block at ``8 xmap[i]`` (none where
-    ``xmap[i]`` < 0, read as 0), ``out`` at ``8 omap[i]``: the identity for vectors on all
-    of E, the rank among the flagged parents for the solve's vectors on the unknowns only
-    (the prolonged coarse field is on all of E, its product only needed at the unknowns).
-    Parents in chunks over the threads: each writes its own children only, so the sums
-    are the same whatever the threads."""
+    """out[m] += h * the stiffness times x over the 125 cells within 2 of m, by parent blocks.
+
+    For the children m of the parents flagged ``inp``: each parent's 6x6x6 block of cells is
+    gathered once and the separable stencil (K M M + M K M + M M K) applied one axis at a time to
+    all 8 children together. ``x`` holds parent ``i``'s block at ``8 xmap[i]`` (none where
+    ``xmap[i]`` < 0, read as 0), ``out`` at ``8 omap[i]``: the identity for vectors on all of E, the
+    rank among the flagged parents for the solve's vectors on the unknowns only (the prolonged
+    coarse field is on all of E, its product only needed at the unknowns).
+    Parents in chunks over the threads: each writes its own children only, so the sums are the
+    same whatever the threads.
+    """
     nq = len(q_keys)
     nchunks = (nq + MATVEC_CHUNK - 1) // MATVEC_CHUNK
     for ci in prange(nchunks):
@@ -269,9 +278,11 @@ def stiffness_diag(q_keys, inp, m1, k1, h):
 
 @njit(cache=True, inline="always")
 def _w3(t, c, n, s):
-    """Values of the functions of cells c - 1, c, c + 1 (folded) at local coordinate ``t``
-    in cell ``c``, as three scalars (a helper taking no arrays: one that takes arrays,
-    called per sample in the hot loops, cost several times the arithmetic)."""
+    """Values of the functions of cells c - 1, c, c + 1 (folded) at ``t`` in cell ``c``.
+
+    ``t`` is the local coordinate; three scalars are returned (a helper taking no arrays: one that
+    takes arrays, called per sample in the hot loops, cost several times the arithmetic).
+    """
     w0 = 0.5 * (1.0 - t) * (1.0 - t)
     w1 = 0.75 - (t - 0.5) * (t - 0.5)
     w2 = 0.5 * t * t
@@ -286,12 +297,13 @@ def _w3(t, c, n, s):
 
 @njit(cache=True)
 def screening_matvec(q_keys, nb, xmap, omap, n, s, scell, sloc, sw, x, out):
-    """out += sum_p w_p B_i(p) sum_j B_j(p) x_j over the samples (cell, local coordinates);
+    """Out += sum_p w_p B_i(p) sum_j B_j(p) x_j over the samples (cell, local coordinates).
+
     ``x`` laid out by ``xmap``, ``out`` by ``omap`` (:func:`stiffness_matvec`).
 
     The 27 cells around a sample and their weights are written out here (and in
     :func:`screening_diag_rhs`): through a helper taking the arrays (``_gather27``, inlined)
-    the matvec took 15 ms of CPU on 74k samples (1.7M cells) against 9 ms written out.
+    the matvec was 1.7x slower (``bench/calibration.md``).
     """
     wx = np.empty(3)
     wy = np.empty(3)
@@ -340,7 +352,7 @@ def screening_matvec(q_keys, nb, xmap, omap, n, s, scell, sloc, sw, x, out):
 
 @njit(cache=True)
 def screening_diag_rhs(q_keys, nb, n, s, scell, sloc, sw, target, diag, rhs):
-    """diag += sum_p w_p B_i(p)^2 and rhs += sum_p w_p target B_i(p), in place."""
+    """Diag += sum_p w_p B_i(p)^2 and rhs += sum_p w_p target B_i(p), in place."""
     wx = np.empty(3)
     wy = np.empty(3)
     wz = np.empty(3)
@@ -380,8 +392,10 @@ def find_cell(q_keys, x, y, z):
 
 @njit(cache=True)
 def locate(pos, level, q_keys, inp):
-    """Index in E of the cell (of a flagged parent) holding each position, -1 if none, and
-    the local coordinates in [0, 1]."""
+    """Index in E of the cell holding each position, -1 if none, and local coordinates.
+
+    Only cells of flagged parents count; local coordinates are in [0, 1].
+    """
     n = pos.shape[0]
     scale = float(1 << level)
     top = (1 << level) - 1
@@ -403,9 +417,12 @@ def locate(pos, level, q_keys, inp):
 
 @njit(cache=True)
 def prolong(q_keys, coarse_q_keys, coarse_nb, coarse, n_coarse, s):
-    """Coefficients on E (the children of ``q_keys``) of the coarser level's function
-    (coefficients ``coarse`` on the coarser E, the children of ``coarse_q_keys``):
-    refinement mask (1, 3, 3, 1)/4 per axis, the coarse index folded at the cube's faces."""
+    """Coefficients on E (the children of ``q_keys``) of the coarser level's function.
+
+    The coarser function has coefficients ``coarse`` on the coarser E (the children of
+    ``coarse_q_keys``):
+    refinement mask (1, 3, 3, 1)/4 per axis, the coarse index folded at the cube's faces.
+    """
     out = np.empty(8 * len(q_keys))
     prolong_into(q_keys, coarse_q_keys, coarse_nb, coarse, n_coarse, s, out)
     return out
@@ -454,8 +471,11 @@ def prolong_into(q_keys, coarse_q_keys, coarse_nb, coarse, n_coarse, s, out):
 
 @njit(cache=True, inline="always")
 def _mask(bit, p, n_coarse, s, off, w):
-    """The two coarse cells (offsets from the parent) a fine cell of parity ``bit`` takes
-    from, and their weights 3/4 and 1/4 (the far one folded onto the parent at a face)."""
+    """The two coarse cells a fine cell of parity ``bit`` takes from, and their weights.
+
+    Cells are offsets from the parent, weights 3/4 and 1/4 (the far one folded onto the parent
+    at a face).
+    """
     off[0] = 0
     w[0] = 0.75
     d = 1 if bit else -1
@@ -469,11 +489,13 @@ def _mask(bit, p, n_coarse, s, off, w):
 
 @njit(cache=True)
 def splat_rhs(pos, normal_w, splat_level, level, q_keys, inp, s, width):
-    """b_i = int grad(B_i) . W at the unknown cells, W the normals splatted with quadratic
-    B-splines of their splat level's width (as the degree-1 solver did before
-    :class:`recon_cli.stages.poisson.splat.NormalField`): per item and axis, the 1D factors of the cells in reach
-    (images folded), then the flagged parents in the box, walking their sorted keys, and
-    their children in it."""
+    """b_i = int grad(B_i) . W at the unknown cells, W the normals splatted with B-splines.
+
+    The quadratic B-splines have their splat level's width (as the degree-1 solver did before
+    :class:`recon_cli.stages.poisson.splat.NormalField`): per item and axis, the 1D factors of the
+    cells in reach (images folded), then the flagged parents in the box, walking their sorted keys,
+    and their children in it.
+    """
     n_keys = len(q_keys)
     b = np.zeros(8 * n_keys)
     if n_keys == 0:
@@ -562,8 +584,10 @@ def splat_rhs(pos, normal_w, splat_level, level, q_keys, inp, s, width):
 
 @njit(cache=True, inline="always")
 def gallop(keys, key, lo, hi):
-    """First index in [lo, hi) of sorted ``keys`` whose key is >= ``key``, searching from
-    ``lo`` with doubling steps (the next row is usually near)."""
+    """First index in [lo, hi) of sorted ``keys`` whose key is >= ``key``.
+
+    Searches from ``lo`` with doubling steps (the next row is usually near).
+    """
     step = 1
     end = lo
     while end < hi and keys[end] < key:
@@ -575,8 +599,11 @@ def gallop(keys, key, lo, hi):
 
 @njit(cache=True)
 def level_matvec(q_keys, nb, inp, xmap, omap, m1, k1, h, n, s, scell, sloc, sw, x, out):
-    """out = A x (stiffness and screening) at the unknowns; elsewhere whatever A gives;
-    ``x`` laid out by ``xmap``, ``out`` by ``omap`` (:func:`stiffness_matvec`)."""
+    """Out = A x (stiffness and screening) at the unknowns.
+
+    Elsewhere whatever A gives; ``x`` laid out by ``xmap``, ``out`` by ``omap``
+    (:func:`stiffness_matvec`).
+    """
     out[:] = 0.0
     stiffness_matvec(q_keys, nb, inp, xmap, omap, m1, k1, h, x, out)
     if len(sw):
@@ -585,14 +612,15 @@ def level_matvec(q_keys, nb, inp, xmap, omap, m1, k1, h, n, s, scell, sloc, sw, 
 
 @njit(cache=True)
 def level_pcg(q_keys, nb, inp, cmap, m1, k1, h, n, s, scell, sloc, sw, rhs, diag, tol, max_iter):
-    """Jacobi-preconditioned conjugate gradients on the unknown cells only: ``rhs``,
-    ``diag`` and the solution hold the children of the flagged parents, parent ``i``'s at
-    ``8 cmap[i]`` (the ring of E, 40 % of its cells at the finest level, carries no unknown:
-    vectors on all of E would be zero there). ``rhs`` is overwritten by the residual and
-    ``diag`` by the preconditioner (its inverse, 0 where not positive). Rows whose diagonal is
-    not positive are fixed (the envelope's and the free boundary's cells outside): their
-    search directions and solution stay 0 and their residual does not count. Returns (x,
-    iterations, relative residual)."""
+    """Jacobi-preconditioned conjugate gradients on the unknown cells only.
+
+    ``rhs``, ``diag`` and the solution hold the children of the flagged parents, parent ``i``'s at
+    ``8 cmap[i]`` (the ring of E, 40 % of its cells at the finest level, carries no unknown: vectors
+    on all of E would be zero there). ``rhs`` is overwritten by the residual and ``diag`` by the
+    preconditioner (its inverse, 0 where not positive). Rows whose diagonal is not positive are
+    fixed (the envelope's and the free boundary's cells outside): their search directions and
+    solution stay 0 and their residual does not count. Returns (x, iterations, relative residual).
+    """
     m = len(rhs)
     inv = diag
     for i in range(m):
@@ -646,9 +674,10 @@ def level_pcg(q_keys, nb, inp, cmap, m1, k1, h, n, s, scell, sloc, sw, rhs, diag
 
 @njit(cache=True, parallel=True)
 def chi_at(pos, top, q_all, q_off, inp_all, nb_all, coef_all, s):
-    """chi at unit-cube positions (m, 3) from every level's coefficients (the levels'
-    arrays concatenated, level ``L``'s parents at ``q_off[L]:q_off[L + 1]``, its ``nb`` rows
-    there with indices local to the level, its coefficients at ``8 q_off[L]``).
+    """Chi at unit-cube positions (m, 3) from every level's coefficients.
+
+    The levels' arrays are concatenated: level ``L``'s parents at ``q_off[L]:q_off[L + 1]``, its
+    ``nb`` rows there with indices local to the level, its coefficients at ``8 q_off[L]``).
 
     A level's functions are the coarser levels' plus its corrections, which live on its
     cells and reach the cells next to them: a point takes its value from the finest level
@@ -680,8 +709,8 @@ def chi_at(pos, top, q_all, q_off, inp_all, nb_all, coef_all, s):
                 ox = c0 & 1
                 oy = c1 & 1
                 oz = c2 & 1
-                # the 27 cells around, looked up once for both loops below (measured: as fast as
-                # through _nbr on a slice of nb_all, 18-20 ms CPU at 74k points of 1.7M cells)
+                # the 27 cells around, looked up once for both loops below (as fast as through
+                # _nbr on a slice of nb_all: bench/calibration.md)
                 near = False
                 for r in range(27):
                     bx = ox + r % 3 - 1
@@ -717,11 +746,13 @@ def chi_at(pos, top, q_all, q_off, inp_all, nb_all, coef_all, s):
 
 @njit(cache=True)
 def edge_roots(lat, iso, v0, vm, v1, clamp):
-    """Position along each lattice edge where the quadratic through (0, ``v0``),
-    (1/2, ``vm``), (1, ``v1``) crosses ``iso`` (the edge's root nearest the linear
-    estimate ``lat``, a fraction in [0, 1]), kept ``clamp`` away from the ends as marching
-    cubes keeps its own (a vertex at a lattice point would leave degenerate faces); ``lat``
-    itself where the end values do not straddle ``iso``."""
+    """Position along each lattice edge where the quadratic through its samples crosses ``iso``.
+
+    The quadratic goes through (0, ``v0``), (1/2, ``vm``), (1, ``v1``) (the edge's root nearest the
+    linear estimate ``lat``, a fraction in [0, 1]), kept ``clamp`` away from the ends as marching
+    cubes keeps its own (a vertex at a lattice point would leave degenerate faces); ``lat`` itself
+    where the end values do not straddle ``iso``.
+    """
     n = len(lat)
     out = lat.copy()
     for i in range(n):
@@ -758,12 +789,15 @@ def edge_roots(lat, iso, v0, vm, v1, clamp):
 
 @njit(cache=True)
 def constrain_to_coarse_leaves(node_keys, g, coarse_keys, coarse_nodes, coarse_leaf, g_coarse):
-    """Nodes of a level on the faces or edges of the coarser level's leaves take the leaves'
-    trilinear interpolation, in place (as hanging nodes do): the extraction interpolates a
+    """Give a level's nodes on the coarser level's leaves' faces or edges the leaves' values.
+
+    The values are the leaves' trilinear interpolation, in place (as hanging nodes do): the
+    extraction interpolates a
     leaf trilinearly from its corners, so the finer side of a face must see the same values
     there or the surface cracks along it. Cells of a level touch leaves of the next coarser
     level only, so one level up suffices (coarse to fine, the coarse values already
-    constrained)."""
+    constrained).
+    """
     cand = np.empty((3, 2), np.int64)
     nc = np.empty(3, np.int64)
     for j in range(len(node_keys)):
@@ -812,8 +846,10 @@ def constrain_to_coarse_leaves(node_keys, g, coarse_keys, coarse_nodes, coarse_l
 
 @njit(cache=True)
 def field_rows(q_keys, keys):
-    """(8q,) int32: for each cell of E, the row of ``keys`` (the sorted cells of a field of
-    the level) at that cell, -1 if none; and how many of ``keys`` are not in E."""
+    """(8q,) int32: each cell of E's row of ``keys``, -1 if none; and how many are not in E.
+
+    ``keys`` are the sorted cells of a field of the level.
+    """
     out = np.full(8 * len(q_keys), -1, np.int32)
     missing = 0
     for r in range(len(keys)):
@@ -839,12 +875,15 @@ def add_rows(out, idx, rows):
 
 @njit(cache=True)
 def prolong_field(q_keys, coarse_q_keys, coarse_nb, coarse, n_coarse, s):
-    """A field of unit-integral cell-centred quadratic B-splines (coefficients ``coarse``
-    (8qc, 3) on the coarser E) written exactly on E (the children of ``q_keys``): mask
+    """A field of unit-integral cell-centred quadratic B-splines written exactly on a finer E.
+
+    The field has coefficients ``coarse`` (8qc, 3) on the coarser E; E is the children of
+    ``q_keys``; mask
     (1, 3, 3, 1) / 8 per axis. The field is kept folded (its images beyond the cube's faces
     added onto the cells they mirror): a coarse cell beyond a face is its mirror cell with
     sign ``s``, and ``-s`` for the component along the face's normal (a reflection turns
-    that component over), as the test functions' gradients are reflected (:func:`fold`)."""
+    that component over), as the test functions' gradients are reflected (:func:`fold`).
+    """
     out = np.zeros((8 * len(q_keys), 3))
     loc = np.zeros((27, 3))
     for i in range(len(q_keys)):
@@ -907,10 +946,12 @@ def prolong_field(q_keys, coarse_q_keys, coarse_nb, coarse, n_coarse, s):
 
 @njit(cache=True)
 def _block_rhs(X, z3, y3, k, n, s, fv, fd, out, base):
-    """The stencil of :func:`field_rhs` on one parent's 6 x 6 x 6 block ``X`` of the field
-    (cells 2P - 2 .. 2P + 3 per axis, P the parent's cell ``k``), the cells beyond the
-    faces folded first: out[base + o] += for its 8 children. (A call per parent, thousands
-    of operations each: not the per-element helper call that costs in the hot loops.)"""
+    """The stencil of :func:`field_rhs` on one parent's 6 x 6 x 6 block ``X`` of the field.
+
+    The block holds cells 2P - 2 .. 2P + 3 per axis (P the parent's cell ``k``), the cells beyond
+    the faces folded first: out[base + o] += for its 8 children. (A call per parent, thousands of
+    operations each: not the per-element helper call that costs in the hot loops.)
+    """
     px = (k >> 42) & MASK21
     py = (k >> 21) & MASK21
     pz = k & MASK21
@@ -995,18 +1036,20 @@ def _block_rhs(X, z3, y3, k, n, s, fv, fd, out, base):
 
 @njit(cache=True, parallel=True)
 def field_rhs(q_keys, nb, flag, n, s, fv, fd, vec, idx, rows, out):
-    """out[m] += int grad(B_m) . W for the children m of the parents flagged ``flag``, W the
-    field of unit-integral cell-centred quadratic B-splines with coefficients ``vec`` (8q, 3)
-    on E (folded, :func:`prolong_field`; or none, shape (0, 3)) plus ``rows[idx[m]]`` (a
-    sparse field, :func:`field_rows`; or none, ``idx`` of length 0; a dense copy on E of the
-    finest level's would be the largest array of the solve): a 5 x 5 x 5 stencil, ``fv[c, t + 2]``
-    and ``fd[c, t + 2]`` (n, 5) the value and derivative factors, along an axis, of the field's
-    cell at offset ``t`` from the test function's cell ``c`` (:func:`b2_factors`, width 1, on
-    every row; integrals over the free boundary's domain only; ``fd`` per unit length). Each parent's 6 x 6 x 6
-    block of the field is gathered once (cells beyond the faces: their mirror's, with sign
-    ``s``, ``-s`` for the component along the face's normal) and the separable stencil
-    applied one axis at a time to all 8 children together. Parents in chunks over the
-    threads (each writes its own children only)."""
+    """out[m] += int grad(B_m) . W for the children m of the parents flagged ``flag``.
+
+    W is the field of unit-integral cell-centred quadratic B-splines with coefficients ``vec`` (8q,
+    3) on E (folded, :func:`prolong_field`; or none, shape (0, 3)) plus ``rows[idx[m]]`` (a sparse
+    field, :func:`field_rows`; or none, ``idx`` of length 0; a dense copy on E of the finest level's
+    would be the largest array of the solve): a 5 x 5 x 5 stencil, ``fv[c, t + 2]`` and ``fd[c, t +
+    2]`` (n, 5) the value and derivative factors, along an axis, of the field's cell at offset ``t``
+    from the test function's cell ``c`` (:func:`b2_factors`, width 1, on every row; integrals over
+    the free boundary's domain only; ``fd`` per unit length). Each parent's 6 x 6 x 6 block of the
+    field is gathered once (cells beyond the faces: their mirror's, with sign ``s``, ``-s`` for the
+    component along the face's normal) and the separable stencil applied one axis at a time to all 8
+    children together.
+    Parents in chunks over the threads (each writes its own children only).
+    """
     dense = len(vec) > 0
     sparse = len(idx) > 0
     nq = len(q_keys)
@@ -1054,12 +1097,14 @@ def field_rhs(q_keys, nb, flag, n, s, fv, fd, vec, idx, rows, out):
 
 @njit(cache=True, parallel=True)
 def field_rhs_prolonged(q_keys, nb, flag, n, s, fv, fd, cq_keys, cnb, cvec, idx, rows, out):
-    """:func:`field_rhs` for the field ``cvec`` of the coarser level (on its E, folded) refined
-    on the fly (:func:`prolong_field`'s mask, per parent: the coarser cells P - 2 .. P + 2
-    per axis give the block's cells 2P - 2 .. 2P + 3) plus ``rows[idx]``: for the finest
-    level, whose refined field on E (24 B a cell) would be the largest array of the solve.
-    Equal to :func:`field_rhs` of :func:`prolong_field`'s result to rounding. Parents in
-    chunks over the threads (each writes its own children only)."""
+    """:func:`field_rhs` for the coarser level's field ``cvec``, refined on the fly.
+
+    ``cvec`` lives on the coarser E, folded; it is refined (:func:`prolong_field`'s mask, per
+    parent: the coarser cells P - 2 .. P + 2 per axis give the block's cells 2P - 2 .. 2P + 3) plus
+    ``rows[idx]``: for the finest level, whose refined field on E (24 B a cell) would be the largest
+    array of the solve. Equal to :func:`field_rhs` of :func:`prolong_field`'s result to rounding.
+    Parents in chunks over the threads (each writes its own children only).
+    """
     w = np.array([0.125, 0.375, 0.375, 0.125])
     nc = n >> 1
     sparse = len(idx) > 0
@@ -1169,8 +1214,10 @@ def field_rhs_prolonged(q_keys, nb, flag, n, s, fv, fd, cq_keys, cnb, cvec, idx,
 
 @njit(cache=True)
 def finer_blocks(q_keys, fine_q_keys):
-    """(8q,) int64: for each cell of E, the index in the finer level's parent keys
-    ``fine_q_keys`` of the block of its children (-1 if they are not in the finer E)."""
+    """(8q,) int64: for each cell of E, the index of its children's block in the finer level.
+
+    The index is into ``fine_q_keys``, -1 when the children are not in the finer E.
+    """
     out = np.full(8 * len(q_keys), -1, np.int64)
     for j in range(len(fine_q_keys)):
         k = fine_q_keys[j]
@@ -1182,11 +1229,13 @@ def finer_blocks(q_keys, fine_q_keys):
 
 @njit(cache=True)
 def restrict_rhs(q_keys, nb, flag, blocks, fine, n, s):
-    """Integrals against this level's (folded) functions from those against the next finer
-    level's, ``fine`` (8qf,) on the finer E: a function of cell ``c`` is the finer ones of
-    cells 2c - 1 .. 2c + 2 per axis with weights (1, 3, 3, 1) / 4 (a finer cell beyond a face
-    is its mirror with sign ``s``); at the children of the parents flagged ``flag``, 0
-    elsewhere. ``blocks`` is :func:`finer_blocks`; finer cells not in the finer E count as 0."""
+    """Integrals against this level's (folded) functions from those against the finer level's.
+
+    The finer level's are ``fine`` (8qf,) on the finer E: a function of cell ``c`` is the finer ones
+    of cells 2c - 1 .. 2c + 2 per axis with weights (1, 3, 3, 1) / 4 (a finer cell beyond a face is
+    its mirror with sign ``s``); at the children of the parents flagged ``flag``, 0 elsewhere.
+    ``blocks`` is :func:`finer_blocks`; finer cells not in the finer E count as 0.
+    """
     out = np.zeros(8 * len(q_keys))
     X = np.zeros((6, 6, 6))
     zr = np.empty((6, 6, 2))

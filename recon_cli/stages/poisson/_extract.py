@@ -1,7 +1,8 @@
-"""Numba kernels of the extraction: the level set over the leaves of the tree at their own
-size (:func:`leaf_polygons`, Kazhdan, Klein, Dalal & Hoppe 2007; see :mod:`.extract`), and
-the finest-lattice variant (leaves refined where they straddle the iso-value, one value per
-lattice point).
+"""Numba kernels of the extraction.
+
+The level set over the leaves of the tree at their own size (:func:`leaf_polygons`, Kazhdan, Klein,
+Dalal & Hoppe 2007; see :mod:`.extract`), and the finest-lattice variant (leaves refined where they
+straddle the iso-value, one value per lattice point).
 
 They only compute; conventions in :mod:`recon_cli.stages.poisson._octree`.
 """
@@ -139,7 +140,7 @@ def refine_leaves(
 
 @njit(cache=True)
 def corner_keys(cells):
-    """(8c,) keys of the corners of lattice cells (c, 3), corner ``q`` of cell ``i`` at ``8 i + q``."""
+    """(8c,) keys of the corners of lattice cells (c, 3), corner ``q`` of cell ``i`` at 8 i + q."""
     n = cells.shape[0]
     out = np.empty(8 * n, np.int64)
     for i in range(n):
@@ -183,26 +184,25 @@ def unify_corner_values(vals, keys, order):
 # chi at corner q of cell c of level l is ``fg[fnodes[c - coff[D], q & 3] + (q >> 2)]`` at the
 # finest level, ``g[goff[l] + nodes[c, q & 3] + (q >> 2)]`` above it: written out where it is
 # read, not as a helper taking the five arrays (inlined by numba, such a helper kept their
-# reference counting in the loops: 1.98 s -> 1.32 s for the kernel on 100k noisy kitten
-# samples at depth 9, the same output).
+# reference counting in the loops: 1.5x slower, see bench/calibration.md).
 # ``_state`` gives -1 for a cell that is not in the tree, its index for a leaf and -2 - index
 # for a cell with children. Points are in finest-lattice units (``R = 2**depth``). A minimal
 # edge is keyed by its lower end and axis (:func:`edge_key`).
 
 
 @njit(cache=True, inline="always")
-def _state(keys, leaf, coff, fkeys, D, l, x, y, z):
-    n = np.int64(1) << l
+def _state(keys, leaf, coff, fkeys, D, lev, x, y, z):
+    n = np.int64(1) << lev
     if x < 0 or y < 0 or z < 0 or x >= n or y >= n or z >= n:
         return -1
     key = lattice_key(x, y, z)
-    if l == D:
+    if lev == D:
         i = lower_bound(fkeys, key, 0, len(fkeys))
         if i == len(fkeys) or fkeys[i] != key:
             return -1
         return coff[D] + i  # the finest cells are all leaves
-    i = lower_bound(keys, key, coff[l], coff[l + 1])
-    if i == coff[l + 1] or keys[i] != key:
+    i = lower_bound(keys, key, coff[lev], coff[lev + 1])
+    if i == coff[lev + 1] or keys[i] != key:
         return -1
     return i if leaf[i] else -2 - i
 
@@ -246,12 +246,14 @@ def _minimal_edges(
     buf_v,
     m,
 ):
-    """Append the minimal edges of the level-``l0`` lattice edge from ``e0`` (3,) along ``axis``
-    to the buffers, in increasing order: an edge is split when one of the 4 cells of its level
-    around it has children. Values come from a leaf of the edge's level that holds it (every
-    leaf with a corner at a point gives the same value: finer corrections vanish there and
-    the prolongation copies coincident nodes exactly). ``hint``: index of a leaf of level
-    ``l0`` holding the edge, lower corner ``hxyz`` (3,), or -1. Returns the new count."""
+    """Append the minimal edges of a level-``l0`` lattice edge to the buffers, in order.
+
+    The edge starts at ``e0`` (3,) along ``axis``; an edge is split when one of the 4 cells of its
+    level around it has children. Values come from a leaf of the edge's level that holds it (every
+    leaf with a corner at a point gives the same value: finer corrections vanish there and the
+    prolongation copies coincident nodes exactly). ``hint``: index of a leaf of level ``l0`` holding
+    the edge, lower corner ``hxyz`` (3,), or -1. Returns the new count.
+    """
     b = (axis + 1) % 3
     c = (axis + 2) % 3
     stack[0, 0] = l0
@@ -261,18 +263,18 @@ def _minimal_edges(
     top = 1
     while top > 0:
         top -= 1
-        l = stack[top, 0]
+        lev = stack[top, 0]
         x = stack[top, 1]
         y = stack[top, 2]
         z = stack[top, 3]
         split = False
         found = -1
         fq = 0
-        use_hint = hint >= 0 and l == l0
+        use_hint = hint >= 0 and lev == l0
         if use_hint:
             found = hint
             fq = (x - hxyz[0]) | ((y - hxyz[1]) << 1) | ((z - hxyz[2]) << 2)
-            if l == D:
+            if lev == D:
                 top_done = True  # the finest cells have no children: nothing to look up
             else:
                 top_done = False
@@ -289,7 +291,7 @@ def _minimal_edges(
                 cell[c] -= dc
                 if use_hint and cell[0] == hxyz[0] and cell[1] == hxyz[1] and cell[2] == hxyz[2]:
                     continue
-                s = _state(keys, leaf, coff, fkeys, D, l, cell[0], cell[1], cell[2])
+                s = _state(keys, leaf, coff, fkeys, D, lev, cell[0], cell[1], cell[2])
                 if s <= -2:
                     split = True
                 elif s >= 0 and found < 0:
@@ -297,29 +299,29 @@ def _minimal_edges(
                     fq = (db << b) | (dc << c)
         if split:
             # upper half pushed first: the lower one comes out first
-            stack[top, 0] = l + 1
+            stack[top, 0] = lev + 1
             stack[top, 1] = 2 * x
             stack[top, 2] = 2 * y
             stack[top, 3] = 2 * z
             stack[top, 1 + axis] += 1
-            stack[top + 1, 0] = l + 1
+            stack[top + 1, 0] = lev + 1
             stack[top + 1, 1] = 2 * x
             stack[top + 1, 2] = 2 * y
             stack[top + 1, 3] = 2 * z
             top += 2
             continue
-        sh = D - l
+        sh = D - lev
         px = x << sh
         py = y << sh
         pz = z << sh
         ln = np.int64(1) << sh
         q1 = fq | (1 << axis)
-        if l == D:
+        if lev == D:
             v0 = fg[fnodes[found - coff[D], fq & 3] + (fq >> 2)]
             v1 = fg[fnodes[found - coff[D], q1 & 3] + (q1 >> 2)]
         else:
-            v0 = g[goff[l] + nodes[found, fq & 3] + (fq >> 2)]
-            v1 = g[goff[l] + nodes[found, q1 & 3] + (q1 >> 2)]
+            v0 = g[goff[lev] + nodes[found, fq & 3] + (fq >> 2)]
+            v1 = g[goff[lev] + nodes[found, q1 & 3] + (q1 >> 2)]
         v0 = _clamp(v0, px, py, pz, R, cap)
         if axis == 0:
             v1 = _clamp(v1, px + ln, py, pz, R, cap)
@@ -377,11 +379,13 @@ MAX_DP = 12  # loops up to this size get a minimal-area triangulation, larger on
 
 @njit(cache=True, inline="always")
 def _triangulate(n, lp, lm, cost, split, st, tris):
-    """Minimal-area triangulation of the loop ``lp`` (n, 3) whose diagonals join only roots on
-    no common face of the leaf (``lm``: bit masks of the leaf's faces each root lies on; two
-    roots on one face may be joined by the leaf across it too, so such a diagonal could be
-    used twice). Writes (n - 2, 3) loop indices into ``tris`` and returns True, or returns
-    False when no such triangulation exists."""
+    """Minimal-area triangulation of the loop ``lp`` (n, 3) with allowed diagonals only.
+
+    A diagonal may join only roots on no common face of the leaf (``lm``: bit masks of the leaf's
+    faces each root lies on; two roots on one face may be joined by the leaf across it too, so such
+    a diagonal could be used twice). Writes (n - 2, 3) loop indices into ``tris`` and returns True,
+    or returns False when no such triangulation exists.
+    """
     inf = 1e300
     for i in range(n):
         for j in range(n):
@@ -435,12 +439,12 @@ def _triangulate(n, lp, lm, cost, split, st, tris):
 def leaf_polygons(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, iso, eps, margin, clamp):
     """Iso-surface triangles of every leaf of the tree at the leaf's own size.
 
-    ``keys``, ``leaf``, ``nodes``, ``g``, ``coff``, ``goff``: the levels' sorted cell keys,
-    leaf flags, the cells' corner nodes and chi at the nodes, concatenated (see above). Each leaf whose corner range
-    reaches ``iso`` (within ``eps``) gathers the iso-segments of the minimal faces covering
-    its boundary (:func:`_face_segments`), chains them into loops (each root is the end of
-    one segment and the start of another) and triangulates each loop. Points on the cube's
-    faces count as outside (chi clamped to ``iso - margin``).
+    ``keys``, ``leaf``, ``nodes``, ``g``, ``coff``, ``goff``: the levels' sorted cell keys, leaf
+    flags, the cells' corner nodes and chi at the nodes, concatenated (see above). Each leaf whose
+    corner range reaches ``iso`` (within ``eps``) gathers the iso-segments of the minimal faces
+    covering its boundary (:func:`_face_segments`), chains them into loops (each root is the end of
+    one segment and the start of another) and triangulates each loop. Points on the cube's faces
+    count as outside (chi clamped to ``iso - margin``).
 
     Returns ``tri`` (t, 3) int64 vertex indices, ``vpos`` (v, 3) the vertices (finest-lattice
     units): one per minimal edge crossing the level set, shared by every leaf around it (welded
@@ -487,11 +491,11 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, iso, e
     rkey = np.empty(64, np.int64)
     rup = np.empty(64, np.bool_)
     rpos = np.empty((64, 3))
-    for l in range(D + 1):
-        side = np.int64(1) << (D - l)
-        end = coff[l + 1] if l < D else coff[D] + len(fkeys)
-        for ci in range(coff[l], end):
-            if l < D:
+    for lev in range(D + 1):
+        side = np.int64(1) << (D - lev)
+        end = coff[lev + 1] if lev < D else coff[D] + len(fkeys)
+        for ci in range(coff[lev], end):
+            if lev < D:
                 if not leaf[ci]:
                     continue
                 k = keys[ci]
@@ -505,8 +509,8 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, iso, e
             for q in range(8):
                 v = (
                     fg[fnodes[ci - coff[D], q & 3] + (q >> 2)]
-                    if l == D
-                    else g[goff[l] + nodes[ci, q & 3] + (q >> 2)]
+                    if lev == D
+                    else g[goff[lev] + nodes[ci, q & 3] + (q >> 2)]
                 )
                 raw[q] = v
                 clv[q] = _clamp(
@@ -535,7 +539,7 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, iso, e
                 cc = cx if c == 0 else (cy if c == 1 else cz)
                 for s in range(2):
                     w = ca + s
-                    if w == 0 or w == (np.int64(1) << l):
+                    if w == 0 or w == (np.int64(1) << lev):
                         continue  # on the cube's faces: outside
                     # the face's range (chi bilinear on it; clamped points only lower it)
                     flo = 1e300
@@ -547,7 +551,7 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, iso, e
                     if flo > iso + eps or fhi < iso - eps:
                         continue
                     # minimal faces: the leaves' faces on the far side where it is finer
-                    qstack[0, 0] = l
+                    qstack[0, 0] = lev
                     qstack[0, 1] = cb
                     qstack[0, 2] = cc
                     top = 1
@@ -556,9 +560,9 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, iso, e
                         ll = qstack[top, 0]
                         u = qstack[top, 1]
                         vv = qstack[top, 2]
-                        wl = w << (ll - l)
+                        wl = w << (ll - lev)
                         na = wl if s == 1 else wl - 1
-                        if ll == D and ll == l:
+                        if ll == D and ll == lev:
                             st = -1  # a finest leaf: the far side is no finer (and no lookup)
                         elif a == 0:
                             st = _state(keys, leaf, coff, fkeys, D, ll, na, u, vv)
@@ -594,15 +598,15 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, iso, e
                         m = 0
                         for sd in range(4):
                             e0[a] = wl
-                            # sd 0: from (u, vv) along +b; 1: from (u+1, vv) along +c; 2: (u, vv+1) along b
-                            # (walked backwards); 3: (u, vv) along c (backwards)
+                            # sd 0: from (u, vv) along +b; 1: from (u+1, vv) along +c; 2: (u, vv+1)
+                            # along b (walked backwards); 3: (u, vv) along c (backwards)
                             e0[b] = u + (1 if sd == 1 else 0)
                             e0[c] = vv + (1 if sd == 2 else 0)
                             ax = b if sd % 2 == 0 else c
                             starts[sd] = m
                             if ll == D:
-                                # a finest edge: never split, its values are the hint leaf's corners (what
-                                # _minimal_edges does, without the call)
+                                # a finest edge: never split, its values are the hint leaf's corners
+                                # (what _minimal_edges does, without the call)
                                 fq = (
                                     (e0[0] - hxyz[0])
                                     | ((e0[1] - hxyz[1]) << 1)
@@ -703,7 +707,8 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, iso, e
                             seg_pos = _grow2(seg_pos, ns + nroots)
                         for i in range(nroots):
                             j = (i + 1) % nroots
-                            # down -> next up joins an outside arc (centre inside); up -> next down an inside arc
+                            # down -> next up joins an outside arc (centre inside); up -> next down
+                            # an inside arc
                             if centre_in and not rup[i] and rup[j]:
                                 fr, to = i, j
                             elif (not centre_in) and rup[i] and not rup[j]:
@@ -837,9 +842,11 @@ def leaf_polygons(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, iso, e
 
 @njit(cache=True)
 def straddles(cell_keys, cell_nodes, is_leaf, g, level, depth, iso, eps, margin):
-    """Whether a leaf of ``level`` has a corner range (chi clamped to ``iso - margin`` at points
-    on the cube's faces: the range is [clamped minimum, raw maximum]) reaching ``iso``
-    within ``eps``: the test of :func:`leaf_polygons`, stopping at the first such leaf."""
+    """Whether a leaf of ``level`` has a corner range reaching ``iso`` within ``eps``.
+
+    Chi is clamped to ``iso - margin`` at points on the cube's faces: the range is [clamped
+    minimum, raw maximum]. The test of :func:`leaf_polygons`, stopping at the first such leaf.
+    """
     side = np.int64(1) << (depth - level)
     R = np.int64(1) << depth
     cap = iso - margin
@@ -873,12 +880,14 @@ def straddles(cell_keys, cell_nodes, is_leaf, g, level, depth, iso, eps, margin)
 
 @njit(cache=True)
 def fit_roots(fm, f0, f1, f2, iso, clamp):
-    """Per edge, the root of the quadratic through the ends' values whose slopes at the ends
-    are in the ratio of chi's central differences there (values ``fm``, ``f0``, ``f1``, ``f2``
-    at lattice steps -1, 0, 1, 2), as a fraction of the edge in [clamp, 1 - clamp]: the
-    cubic Hermite interpolant with its end slopes scaled so that their mean is the secant's
-    (its cubic term then vanishes), as PoissonRecon's non-linear fit; the root nearest the
-    linear one when there are two; -1 where the ends do not straddle ``iso``."""
+    """Per edge, the root of a quadratic fit of chi through the ends' values, or -1.
+
+    The quadratic's slopes at the ends are in the ratio of chi's central differences there (values
+    ``fm``, ``f0``, ``f1``, ``f2`` at lattice steps -1, 0, 1, 2), as a fraction of the edge in
+    [clamp, 1 - clamp]: the cubic Hermite interpolant with its end slopes scaled so that their mean
+    is the secant's (its cubic term then vanishes), as PoissonRecon's non-linear fit; the root
+    nearest the linear one when there are two; -1 where the ends do not straddle ``iso``.
+    """
     n = len(f0)
     out = np.full(n, -1.0)
     for i in range(n):

@@ -10,7 +10,7 @@ _STIFF_1D = np.array([[1.0, -1.0], [-1.0, 1.0]])
 
 
 def _element_stiffness() -> np.ndarray:
-    """int grad(phi_a) . grad(phi_b) over the unit cube, corners ordered bit i = axis i."""
+    """Int grad(phi_a) . grad(phi_b) over the unit cube, corners ordered bit i = axis i."""
     ke = np.zeros((8, 8))
     for a in range(8):
         for b in range(8):
@@ -33,7 +33,8 @@ UNIT_STIFFNESS = _element_stiffness()
 # because every corner has the same diagonal entry, bit for bit
 if not np.all(np.diag(UNIT_STIFFNESS) == UNIT_STIFFNESS[0, 0]):
     raise RuntimeError(
-        "element stiffness: corner diagonal entries differ; the solver's diagonal table needs them equal"
+        "element stiffness: corner diagonal entries differ; the solver's diagonal table needs "
+        "them equal"
     )
 
 # mean over plane offsets of sum_k B2(t - k)^2: a plane of sigma samples per unit area gives a

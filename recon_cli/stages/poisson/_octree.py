@@ -68,8 +68,10 @@ def rekey(keys, axis, inverse):
 
 @njit(cache=True)
 def _dilate_minor_pass(keys, lo, hi, limit, out):
-    """One pass of :func:`dilate_minor`: writes the keys into ``out`` unless it is empty;
-    returns how many there are."""
+    """One pass of :func:`dilate_minor`.
+
+    Writes the keys into ``out`` unless it is empty; returns how many there are.
+    """
     write = len(out) > 0
     m = 0
     last = -1
@@ -91,10 +93,12 @@ def _dilate_minor_pass(keys, lo, hi, limit, out):
 
 @njit(cache=True)
 def dilate_minor(keys, lo, hi, limit):
-    """Sorted unique keys of ``key + t`` for t in [lo, hi] along the minor coordinate (kept in
-    [0, limit]); ``keys`` sorted. Dilation stays inside each column: one pass counts, a
+    """Sorted unique keys of ``key + t`` for t in [lo, hi] along the minor coordinate.
+
+    Kept in [0, limit]; ``keys`` sorted. Dilation stays inside each column: one pass counts, a
     second writes an array of the exact size (an array for every key's ``hi - lo + 1``
-    neighbours, cut afterwards, held up to 5x the output while it ran)."""
+    neighbours, cut afterwards, held up to 5x the output while it ran).
+    """
     m = _dilate_minor_pass(keys, lo, hi, limit, np.empty(0, np.int64))
     out = np.empty(m, np.int64)
     _dilate_minor_pass(keys, lo, hi, limit, out)
@@ -103,8 +107,10 @@ def dilate_minor(keys, lo, hi, limit):
 
 @njit(cache=True, inline="always")
 def _merge_into(queries, offset, keys, out):
-    """out[i] = index of ``queries[i] + offset`` in sorted unique ``keys`` (-1 if absent);
-    queries non-decreasing, so one linear merge."""
+    """out[i] = index of ``queries[i] + offset`` in sorted unique ``keys`` (-1 if absent).
+
+    Queries non-decreasing, so one linear merge.
+    """
     j = 0
     n = len(keys)
     for i in range(len(queries)):
@@ -130,9 +136,11 @@ def corner(cell_nodes, c, q):
 
 @njit(cache=True)
 def corner_nodes(cell_keys, node_keys):
-    """(c, 4) int32 index in sorted ``node_keys`` of corners 0..3 of each of the sorted
-    ``cell_keys`` (-1 if absent): a constant offset keeps the queries sorted, so each
-    corner is one linear merge."""
+    """(c, 4) int32 index in sorted ``node_keys`` of corners 0..3 of each of ``cell_keys``.
+
+    ``cell_keys`` are sorted; -1 where absent. A constant offset keeps the queries sorted, so each
+    corner is one linear merge.
+    """
     out = np.empty((len(cell_keys), 4), np.int32)
     for q in range(4):
         _merge_into(cell_keys, ((q & 1) << 42) | (((q >> 1) & 1) << 21), node_keys, out[:, q])
@@ -153,9 +161,12 @@ def node_cell_count(cell_nodes, n_nodes):
 
 @njit(cache=True)
 def unknown_nodes(node_keys, cnt, top, dirichlet):
-    """Nodes whose hat function is solved for: every cell of its support present (Neumann:
-    those inside the cube, the faces of [0, ``top``]^3 cutting the support); Dirichlet: only
-    interior nodes with all 8 cells. ``cnt``: incident cells per node."""
+    """Nodes whose hat function is solved for.
+
+    Every cell of its support present (Neumann: those inside the cube, the faces of [0, ``top``]^3
+    cutting the support); Dirichlet: only interior nodes with all 8 cells. ``cnt``: incident cells
+    per node.
+    """
     n = len(node_keys)
     out = np.empty(n, np.bool_)
     for j in range(n):
@@ -201,8 +212,10 @@ def halve(keys):
 
 @njit(cache=True)
 def double(keys):
-    """Keys with every coordinate doubled (a cell's lower corner on the next finer lattice);
-    order preserved."""
+    """Keys with every coordinate doubled (a cell's lower corner on the next finer lattice).
+
+    Order preserved.
+    """
     out = np.empty(len(keys), np.int64)
     for i in range(len(keys)):
         k = keys[i]
@@ -222,7 +235,10 @@ def cell_has_child(child_parent, n_cells):
 
 @njit(cache=True, inline="always")
 def _run_end(keys, start, stop, shift):
-    """End of the run of ``keys[start:stop]`` sharing the coordinate at bit ``shift`` with ``keys[start]``."""
+    """End of the run of ``keys[start:stop]`` sharing the coordinate at bit ``shift``.
+
+    The coordinate is ``keys[start]``'s.
+    """
     v = (keys[start] >> shift) & MASK21
     end = start
     while end < stop and ((keys[end] >> shift) & MASK21) == v:
@@ -232,8 +248,9 @@ def _run_end(keys, start, stop, shift):
 
 @njit(cache=True)
 def children_sorted(parent_keys, parent_index):
-    """Sorted keys of the 8 children of each of the sorted ``parent_keys``, and each child's
-    ``parent_index`` (int32) entry.
+    """Sorted keys of the 8 children of each of the sorted ``parent_keys``, and their parents.
+
+    The parents are each child's ``parent_index`` (int32) entry.
 
     Keys order by (x, y, z); the children of the parents of one x-run, x-plane by x-plane,
     and within it of one y-run, y-row by y-row, come out in order with no sort.

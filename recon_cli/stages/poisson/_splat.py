@@ -1,6 +1,8 @@
-"""Numba kernels of the splats: the normals shared among cell-centred quadratic B-splines and
-the right-hand side of that field (refinement, stencil, restriction), and the samples'
-kernel density (counts splatted with quadratic B-splines centred on cells).
+"""Numba kernels of the splats.
+
+The normals shared among cell-centred quadratic B-splines and the right-hand side of that field
+(refinement, stencil, restriction), and the samples' kernel density (counts splatted with quadratic
+B-splines centred on cells).
 
 They only compute; conventions in :mod:`recon_cli.stages.poisson._octree`; hash tables are
 :mod:`recon_cli._kernels.hashtable`'s (lookups return ``-1`` for a missing key).
@@ -52,14 +54,14 @@ def _b2_int2(x):
 
 @njit(cache=True)
 def hat_b2_value(v, rho):
-    """int hat(z) B2_rho(z - v) dz: a level's hat function against a kernel of width rho."""
+    """Int hat(z) B2_rho(z - v) dz: a level's hat function against a kernel of width rho."""
     # rho * int2(t / rho) is the second antiderivative of B2_rho
     return rho * (_b2_int2((v + 1.0) / rho) - 2.0 * _b2_int2(v / rho) + _b2_int2((v - 1.0) / rho))
 
 
 @njit(cache=True)
 def hat_b2_deriv(v, rho):
-    """int hat'(z) B2_rho(z - v) dz (v = sample minus node, in level cells)."""
+    """Int hat'(z) B2_rho(z - v) dz (v = sample minus node, in level cells)."""
     return -_b2_int1((-1.0 - v) / rho) + 2.0 * _b2_int1(-v / rho) - _b2_int1((1.0 - v) / rho)
 
 
@@ -75,9 +77,12 @@ def _b2w(t, k):
 
 @njit(cache=True)
 def spread_splat(pos, vec, level, ctk, ctv, cbits, n_cells):
-    """Each item's row of ``vec`` (n, k) shared among the 27 cells around it with the quadratic
-    B-spline weights at its position: (n_cells, k) summed per cell of the table. The normals'
-    splat (PoissonRecon's, k = 3) and the samples' kernel density (counts, k = 1)."""
+    """Each item's row of ``vec`` (n, k) shared among the 27 cells around it, summed per cell.
+
+    The weights are the quadratic B-spline's at its position: (n_cells, k) summed per cell of
+    the table. The normals'
+    splat (PoissonRecon's, k = 3) and the samples' kernel density (counts, k = 1).
+    """
     k = vec.shape[1]
     out = np.zeros((n_cells, k))
     scale = float(1 << level)
@@ -103,8 +108,10 @@ def spread_splat(pos, vec, level, ctk, ctv, cbits, n_cells):
 
 @njit(cache=True, inline="always")
 def _gallop(keys, key, lo, n):
-    """lower_bound of ``key`` in ``keys[lo:n]``, searching forward from ``lo`` (cheap when the
-    answer is near it)."""
+    """The lower_bound of ``key`` in ``keys[lo:n]``, searching forward from ``lo``.
+
+    Cheap when the answer is near it.
+    """
     step = 1
     while lo + step < n and keys[lo + step] < key:
         lo += step
@@ -114,12 +121,14 @@ def _gallop(keys, key, lo, n):
 
 @njit(cache=True)
 def refine_field(pkeys, pvec, rel, off):
-    """A field of unit-integral quadratic B-splines centred on the cells of one level (sorted
-    keys ``pkeys``, coefficients ``pvec`` (m, 3)) written exactly on the next finer level's
-    cells: each coarse B-spline is (1, 3, 3, 1) / 8 per axis of the finer ones at cells
+    """A field of quadratic B-splines on one level's cells written exactly on the finer level's.
+
+    The B-splines have unit integral, sorted keys ``pkeys`` and coefficients ``pvec`` (m, 3).
+    Each coarse B-spline is (1, 3, 3, 1) / 8 per axis of the finer ones at cells
     2p - 1 .. 2p + 2. Keys hold each coordinate plus ``off`` (1: the cells just beyond the
     cube's faces, where B-splines reaching into it sit, have keys). Only the finer cells in
-    ``rel`` (sorted keys) are kept; they are found column by column, searching forward."""
+    ``rel`` (sorted keys) are kept; they are found column by column, searching forward.
+    """
     out = np.zeros((len(rel), 3))
     n = len(rel)
     if n == 0:
@@ -162,8 +171,10 @@ def refine_field(pkeys, pvec, rel, off):
 
 @njit(cache=True)
 def compact_nonzero(keys, vec):
-    """Move the rows of ``vec`` (m, 3) with a component other than 0, and their ``keys``
-    (m,), to the front, in order, in place; returns how many there are."""
+    """Move the non-zero rows of ``vec`` (m, 3) and their ``keys`` (m,) to the front.
+
+    In order, in place; returns how many there are.
+    """
     m = 0
     for i in range(len(keys)):
         if vec[i, 0] != 0.0 or vec[i, 1] != 0.0 or vec[i, 2] != 0.0:
@@ -178,12 +189,14 @@ def compact_nonzero(keys, vec):
 
 @njit(cache=True)
 def stencil_rhs(ckeys, cvec, level, node_keys, n_nodes, off):
-    """b_i = int grad(B_i) . W at a level's nodes for a field of unit-integral quadratic
-    B-splines centred on the same level's cells (keys ``ckeys`` sorted, coefficients
-    ``cvec`` (m, 3), coordinates plus ``off`` in the keys): a fixed 4 x 4 x 4 stencil per cell
-    (nodes c - 1 .. c + 2 per axis).
-    Nodes are found in the sorted ``node_keys`` column by column, searching forward from the
-    previous cell's position in the same column."""
+    """b_i = int grad(B_i) . W at a level's nodes for a field of B-splines on its cells.
+
+    The field's unit-integral quadratic B-splines are centred on the same level's cells (keys
+    ``ckeys`` sorted, coefficients ``cvec`` (m, 3), coordinates plus ``off`` in the keys): a fixed 4
+    x 4 x 4 stencil per cell (nodes c - 1 .. c + 2 per axis). Nodes are found in the sorted
+    ``node_keys`` column by column, searching forward from the previous cell's position in the same
+    column.
+    """
     b = np.zeros(n_nodes)
     stencil_rhs_into(ckeys, cvec, level, node_keys, off, b)
     return b
@@ -191,8 +204,10 @@ def stencil_rhs(ckeys, cvec, level, node_keys, n_nodes, off):
 
 @njit(cache=True)
 def stencil_rhs_into(ckeys, cvec, level, node_keys, off, b):
-    """:func:`stencil_rhs` added to ``b`` (n_nodes,): the cells may come in consecutive
-    parts, each node then sums its cells' terms in the same order."""
+    """:func:`stencil_rhs` added to ``b`` (n_nodes,).
+
+    The cells may come in consecutive parts, each node then sums its cells' terms in the same order.
+    """
     n = len(node_keys)
     if n == 0:
         return
@@ -241,10 +256,12 @@ def stencil_rhs_into(ckeys, cvec, level, node_keys, off, b):
 
 @njit(cache=True)
 def restrict_nodes(fine_keys, fine_vals, coarse_keys):
-    """Integrals against a level's hat functions from those against the next finer level's:
-    a coarse hat is the fine hats at nodes 2i - 1, 2i, 2i + 1 per axis with weights 1/2, 1,
-    1/2, so ``out_i = sum_j r_ij fine_vals_j`` (fine nodes absent from ``fine_keys`` count as
-    0). Both key arrays sorted; fine nodes found column by column, searching forward."""
+    """Integrals against a level's hat functions from those against the next finer level's.
+
+    A coarse hat is the fine hats at nodes 2i - 1, 2i, 2i + 1 per axis with weights 1/2, 1, 1/2, so
+    ``out_i = sum_j r_ij fine_vals_j`` (fine nodes absent from ``fine_keys`` count as 0). Both key
+    arrays sorted; fine nodes found column by column, searching forward.
+    """
     out = np.zeros(len(coarse_keys))
     n = len(fine_keys)
     if n == 0:
@@ -310,11 +327,13 @@ def density_eval(pos, level, ctk, ctv, cbits, dens):
 
 @njit(cache=True)
 def height_fit_moments(unit, inv, cen, frame, res, m):
-    """The normal equations of a quadratic height field per cell: each point ``unit[i]`` (unit
-    cube) of cell ``inv[i]`` in that cell's frame (rows: two tangents and the normal, origin
-    ``cen``, lengths in cells of ``res``), ``w = a + b u + c v + d u^2 + e u v + f v^2``.
-    Returns (m, 6, 6) sums of the monomials' products, (m, 6) their products with ``w`` and
-    (m,) the sums of ``w^2``."""
+    """The normal equations of a quadratic height field per cell.
+
+    Each point ``unit[i]`` (unit cube) of cell ``inv[i]`` in that cell's frame (rows: two tangents
+    and the normal, origin ``cen``, lengths in cells of ``res``), ``w = a + b u + c v + d u^2 + e u
+    v + f v^2``. Returns (m, 6, 6) sums of the monomials' products, (m, 6) their products with ``w``
+    and (m,) the sums of ``w^2``.
+    """
     A = np.zeros((m, 6, 6))
     b = np.zeros((m, 6))
     ww = np.zeros(m)

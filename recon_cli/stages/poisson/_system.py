@@ -1,5 +1,7 @@
-"""Numba kernels of one level's linear system: trilinear stiffness and screening operators,
-prolongation from the coarser level, Jacobi-preconditioned conjugate gradients.
+"""Numba kernels of one level's linear system.
+
+Trilinear stiffness and screening operators, prolongation from the coarser level,
+Jacobi-preconditioned conjugate gradients.
 
 They only compute; conventions in :mod:`recon_cli.stages.poisson._octree`.
 """
@@ -50,8 +52,9 @@ def prolong(cell_nodes, cell_keys, cell_parent, parent_nodes, coarse, n_nodes):
 
 @njit(cache=True)
 def stiffness_matvec(cell_nodes, ke, cell_screen, x, out):
-    """out += sum over cells of the element matrix ``ke`` (8x8) applied to the corner values,
-    plus the cell's own (8x8) screening matrix when ``cell_screen`` (c, 8, 8) is not empty.
+    """Out += sum over cells of the element matrix ``ke`` (8x8) applied to the corner values.
+
+    Plus the cell's own (8x8) screening matrix when ``cell_screen`` (c, 8, 8) is not empty.
 
     ``ke`` is the trilinear (Q1) stiffness of a cube: ``ke[a, a]`` on the diagonal, 0 between
     corners sharing an edge and one value ``f`` for every other pair, so
@@ -80,8 +83,10 @@ def stiffness_matvec(cell_nodes, ke, cell_screen, x, out):
 
 @njit(cache=True)
 def cell_screening(cell, loc, weight, n_cells):
-    """Per cell, the screening matrix sum_p w_p B_a(p) B_b(p) of the samples in it (c, 8, 8):
-    applying it costs per cell, not per sample, where samples outnumber cells."""
+    """Per cell, the screening matrix sum_p w_p B_a(p) B_b(p) of the samples in it (c, 8, 8).
+
+    Applying it costs per cell, not per sample, where samples outnumber cells.
+    """
     out = np.zeros((n_cells, 8, 8))
     wr = np.empty(8)
     for i in range(len(cell)):
@@ -97,10 +102,12 @@ def cell_screening(cell, loc, weight, n_cells):
 
 @njit(cache=True)
 def stiffness_diag_table(ke):
-    """Diagonal of the stiffness matrix at a node with k (0..8) incident cells, summed cell
-    by cell as an assembly would. Every corner has the same ``ke[a, a]`` (the cube's
+    """Diagonal of the stiffness matrix at a node with k (0..8) incident cells.
+
+    Summed cell by cell as an assembly would. Every corner has the same ``ke[a, a]`` (the cube's
     symmetry), so the diagonal is a function of k alone: the solver looks it up instead of
-    keeping an (n,) vector."""
+    keeping an (n,) vector.
+    """
     out = np.zeros(9)
     for k in range(1, 9):
         out[k] = out[k - 1] + ke[0, 0]
@@ -153,7 +160,7 @@ def eval_at_samples(cell, loc, cell_nodes, x):
 
 @njit(cache=True)
 def screening_matvec(cell, loc, cell_nodes, weight, x, out):
-    """out += sum_p weight_p B_i(p) sum_j B_j(p) x_j."""
+    """Out += sum_p weight_p B_i(p) sum_j B_j(p) x_j."""
     for i in range(len(cell)):
         c = cell[i]
         v = 0.0
@@ -167,8 +174,9 @@ def screening_matvec(cell, loc, cell_nodes, weight, x, out):
 
 @njit(cache=True)
 def screening_diag_rhs(cell, loc, cell_nodes, weight, target, rhs):
-    """Diagonal of the screening operator, and rhs += its right-hand side sum_p w_p t B_i(p)
-    in place.
+    """Diagonal of the screening operator, and rhs += its right-hand side, in place.
+
+    The right-hand side is sum_p w_p t B_i(p).
 
     The diagonal is returned sparse, (sorted nodes, values) over the nodes the samples
     touch: at the finest level they are few. Each node's share is summed apart first, then
@@ -212,7 +220,7 @@ def screening_diag_rhs(cell, loc, cell_nodes, weight, target, rhs):
 
 @njit(cache=True)
 def level_matvec(cell_nodes, ke, cell_screen, scell, sloc, sw, x, out):
-    """out = A x: stiffness, per-cell screening matrices if any, per-sample screening if any."""
+    """Out = A x: stiffness, per-cell screening matrices if any, per-sample screening if any."""
     out[:] = 0.0
     stiffness_matvec(cell_nodes, ke, cell_screen, x, out)
     if len(sw):
@@ -221,7 +229,7 @@ def level_matvec(cell_nodes, ke, cell_screen, scell, sloc, sw, x, out):
 
 @njit(cache=True)
 def _residual_update(x, r, p, q, a, ncell, stiff, inv_stiff, sd_nodes, sd_vals, unknown):
-    """x += a p, r -= a q, q = the preconditioned residual; returns (r.r, r.z).
+    """X += a p, r -= a q, q = the preconditioned residual; returns (r.r, r.z).
 
     The inverse diagonal is rebuilt on the fly: the table ``inv_stiff`` (1 / ``stiff``) off
     the nodes of the sparse screening diagonal, 1 / (stiffness + screening) on them, 0 off

@@ -1,5 +1,7 @@
-"""Every per-point property of the input carried onto the surface's vertices (``--attributes``,
-PoissonRecon's ``--colors`` and ``--data``), without bleeding across nearby surfaces.
+"""Every per-point property of the input carried onto the surface's vertices.
+
+This is ``--attributes`` (PoissonRecon's ``--colors`` and ``--data``), without bleeding across
+nearby surfaces.
 
 Each vertex takes its values from the input points near it *on its own side*: among its
 :data:`NEIGHBOURS` nearest points, those whose normal agrees with the surface's normal at the
@@ -77,8 +79,10 @@ def is_code(name: str, values: np.ndarray) -> bool:
 
 
 def select(spec, names: list[str], has_colors: bool) -> tuple[list[str], bool]:
-    """The properties ``--attributes`` asks for: ``all`` (every one, the default), ``none``,
-    or names separated by commas (``colors`` for the colours); returns (names, colours).
+    """The properties ``--attributes`` asks for.
+
+    ``all`` (every one, the default), ``none``, or names separated by commas (``colors`` for the
+    colours); returns (names, colours).
 
     Raises
     ------
@@ -181,6 +185,7 @@ def transfer(
         for k, v in values.items():
             res[k][a:b] = (_majority if is_code(k, v) else _mean)(v, idx, w)
         if colors is not None:
+            assert col is not None  # made with the colours
             for c in range(colors.shape[1]):
                 col[a:b, c] = _mean(colors[:, c], idx, w)
     out.values, out.colors = res, col
@@ -216,8 +221,10 @@ def _weights(
 
 
 def _side_weights(points, normals, verts, vn, dist, idx, cell):
-    """Gaussian weights of the neighbours on the vertex's side, rows normalised; and the rows
-    with no such neighbour."""
+    """Gaussian weights of the neighbours on the vertex's side, rows normalised.
+
+    And the rows with no such neighbour.
+    """
     agree = np.einsum("mkj,mj->mk", normals[idx], vn) > 0.0
     w = np.exp(-0.5 * (dist / cell) ** 2) * agree
     # the nearest agreeing point always counts (far from the samples every weight underflows)
@@ -240,8 +247,10 @@ def _mean(v: np.ndarray, idx: np.ndarray, w: np.ndarray) -> np.ndarray:
 
 
 def _majority(v: np.ndarray, idx: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """The value with the largest summed weight per row (ties: the smallest): each row's
-    values sorted, equal ones summed, the first largest sum taken."""
+    """The value with the largest summed weight per row (ties.
+
+    The smallest): each row's values sorted, equal ones summed, the first largest sum taken.
+    """
     vals = v[idx]
     out = vals[:, 0].copy()
     # rows whose neighbours all agree (most, away from class borders) need no vote
@@ -252,8 +261,10 @@ def _majority(v: np.ndarray, idx: np.ndarray, w: np.ndarray) -> np.ndarray:
 
 
 def _vote(vals: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """:func:`_majority` on rows of values (m, k) and weights (codes as int64 in the kernel:
-    one compiled signature for every dtype)."""
+    """:func:`_majority` on rows of values (m, k) and weights (codes as int64 in the kernel.
+
+    One compiled signature for every dtype).
+    """
     from recon_cli.stages.poisson._attributes import weighted_mode
 
     out = np.empty(len(vals), np.int64)

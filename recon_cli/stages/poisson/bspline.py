@@ -1,25 +1,26 @@
-"""The degree-2 B-spline system (the stage's default basis, as PoissonRecon's ``--degree 2``; Open3D uses degree 1): the
-cascadic solve, the iso-value, and chi at the levels' nodes for the extraction.
+"""The degree-2 B-spline system: the stage's default basis, as PoissonRecon's ``--degree 2``.
 
-At level ``d`` every cell of the tree carries the tensor-product quadratic B-spline centred
-on it (support 3 cells per axis), reflected at the cube's faces (even for Neumann, odd for
-Dirichlet, so ``chi = 0`` there). A function of level ``d - 1`` is exactly a combination
-of level-``d`` functions (refinement mask ``(1, 3, 3, 1) / 4`` per axis), so, as for the
-trilinear basis, each level holds the whole ``chi`` of the coarser levels (prolonged) plus
-its own correction, solved by Jacobi-PCG on the residual they leave. The coefficients live
-on ``E``: the level's cells and a ring of two cells around them (the children of the
-parents within one of a parent of the level's cells, in blocks of siblings), enough for the prolongation to be
-exact on the stencil (5 cells per axis) of every cell of the level: the set grows by a
-parent ring per level, and the levels' parents are within one of the tree's parents, so
-the coarser ``E`` always holds what the prolongation reads.
+Open3D uses degree 1. This module holds the cascadic solve, the iso-value, and chi at the levels'
+nodes for the extraction.
 
-The right-hand side is that of the normals' field of :func:`.splat.spread_fields` (each
-sample's share at its level(s) unmerged: merging per cell moves the items of a curved
-surface inwards, a bias this basis resolves), its B-splines :data:`KERNEL_WIDTH` cells of
-the splat level wide; for a width of 1 (the levels' own B-splines) it is made in time
-linear in the cells by :class:`NormalRHS` (refinement, a fixed stencil, restriction). The screening at level
-``d`` uses the samples merged per cell of that level (summed weights, weighted mean
-position), as PoissonRecon merges its interpolation points per node.
+At level ``d`` every cell of the tree carries the tensor-product quadratic B-spline centred on it
+(support 3 cells per axis), reflected at the cube's faces (even for Neumann, odd for Dirichlet, so
+``chi = 0`` there). A function of level ``d - 1`` is exactly a combination of level-``d`` functions
+(refinement mask ``(1, 3, 3, 1) / 4`` per axis), so, as for the trilinear basis, each level holds
+the whole ``chi`` of the coarser levels (prolonged) plus its own correction, solved by Jacobi-PCG on
+the residual they leave. The coefficients live on ``E``: the level's cells and a ring of two cells
+around them (the children of the parents within one of a parent of the level's cells, in blocks of
+siblings), enough for the prolongation to be exact on the stencil (5 cells per axis) of every cell
+of the level: the set grows by a parent ring per level, and the levels' parents are within one of
+the tree's parents, so the coarser ``E`` always holds what the prolongation reads.
+
+The right-hand side is that of the normals' field of :func:`.splat.spread_fields` (each sample's
+share at its level(s) unmerged: merging per cell moves the items of a curved surface inwards, a bias
+this basis resolves), its B-splines :data:`KERNEL_WIDTH` cells of the splat level wide; for a width
+of 1 (the levels' own B-splines) it is made in time linear in the cells by :class:`NormalRHS`
+(refinement, a fixed stencil, restriction). The screening at level ``d`` uses the samples merged per
+cell of that level (summed weights, weighted mean position), as PoissonRecon merges its
+interpolation points per node.
 
 The rest of the stage reads chi through one function, :meth:`ChiField.at` (chi at any
 point of the cube: from the finest level whose cells are within one cell of the point, all
@@ -49,39 +50,34 @@ from typing import Any
 import numpy as np
 
 from recon_cli.memory import release_free_heap
+from recon_cli.progress import task
 from recon_cli.stages.poisson import _bspline as B
 from recon_cli.stages.poisson import _octree as O
 from recon_cli.stages.poisson._luts import B2_MASS, B2_STIFFNESS
 from recon_cli.stages.poisson.free import FREE_DOMAIN, domain_tables
 from recon_cli.stages.poisson.octree import Level, dilate, pack_keys, set_corners, unpack_keys
 from recon_cli.stages.poisson.splat import Samples, Splats, fields_as_items
-from recon_cli.progress import task
 
 log = logging.getLogger("recon")
 
 TARGET = 0.5
-# the normals' kernel is this many times the splat level's cell wide (a quadratic B-spline);
-# wider smooths more: on smooth shapes it is more accurate (exact-distance Chamfer / Open3D's,
-# 100k clean samples, depth 8: sphere 0.34 at 2 against 1.01 at 1, torus 0.76 against
-# 1.69), on detailed ones less (armadillo 1.69 against 1.09, kitten 1.38 against 1.23), so
-# one cell, never worse than degree 1 where measured
+# the normals' kernel is this many times the splat level's cell wide (a quadratic B-spline):
+# wider is better on smooth shapes and worse on detailed ones (bench/calibration.md)
 KERNEL_WIDTH = 1.0
 # the screening weight relative to make_splats' where the samples are clean and where they are
 # noisy (Splats.screening, splat.noise_fraction): the quadratic B-splines are smaller at a sample
 # (at most 0.42 against a hat's 1) and smoother, so clean samples want a stronger pull than
-# degree 1's, noisy ones a weaker; measured (exact-distance Chamfer / Open3D's, 100k samples of
-# a sphere, torus, rounded box, the kitten, armadillo and mug, clean and with noise of 0.25 % of
-# the diagonal): one weight for both cannot serve (clean kitten / armadillo at depth 8 want 5x,
-# 0.91x / 0.95x Open3D's, and are 1.00x / 1.07x at 2x; the noisy ones 1.05x / 1.03x at 2x and
-# 0.77x / 0.85x at 0.5x); with 5 and 0.5 every row at depths 8 and 9 is 0.44-1.00x
+# degree 1's, noisy ones a weaker (bench/calibration.md)
 SCREEN_CLEAN = 5.0
 SCREEN_NOISY = 0.5
 
 
 def folded_tables(n: int, s: float) -> tuple[np.ndarray, np.ndarray]:
-    """(n, 5) mass and stiffness between cell ``i`` and ``i + t`` (column ``t + 2``) of the
-    reflected basis on ``n`` cells: the sum over the images of cell ``i + t`` (``j + 2kn``
-    with sign 1, ``-1 - j + 2kn`` with sign ``s``) within 2 of ``i``."""
+    """(n, 5) mass and stiffness between cells ``i`` and ``i + t`` of the reflected basis.
+
+    Column ``t + 2`` holds offset ``t``, on ``n`` cells: the sum over the images of cell ``i + t``
+    (``j + 2kn`` with sign 1, ``-1 - j + 2kn`` with sign ``s``) within 2 of ``i``.
+    """
     m1 = np.zeros((n, 5))
     k1 = np.zeros((n, 5))
     i = np.arange(n)
@@ -99,11 +95,14 @@ def folded_tables(n: int, s: float) -> tuple[np.ndarray, np.ndarray]:
 
 @functools.lru_cache(maxsize=32)
 def level_tables(n: int, s: float, free: bool) -> tuple[np.ndarray, ...]:
-    """The 1D tables of a level of ``n`` cells: ``m1``, ``k1`` (:func:`folded_tables`, or
-    over :data:`FREE_DOMAIN` only with ``free``) and the right-hand side's ``fv``, ``fd``
-    (n, 5) (:func:`._bspline.field_rhs`; ``fd`` per cell). With ``free``, the level of 2
-    cells, whose domain is not made of whole cells, carries no function (its rows are 0):
-    the finer levels, solved exactly up to the full depth, hold everything it would."""
+    """The 1D tables of a level of ``n`` cells.
+
+    ``m1``, ``k1`` (:func:`folded_tables`, or over :data:`FREE_DOMAIN` only with ``free``) and the
+    right-hand side's ``fv``, ``fd`` (n, 5) (:func:`._bspline.field_rhs`; ``fd`` per cell). With
+    ``free``, the level of 2 cells, whose domain is not made of whole cells, carries no function
+    (its rows are 0): the finer levels, solved exactly up to the full depth, hold everything it
+    would.
+    """
     if free:
         if n < 4:
             z = np.zeros((n, 5))
@@ -118,8 +117,10 @@ def level_tables(n: int, s: float, free: bool) -> tuple[np.ndarray, ...]:
 
 
 def boundary_sign(boundary: str) -> float:
-    """The reflection's sign at the solve's cube faces: -1 Dirichlet, 1 otherwise (the free
-    boundary's cube faces lie outside its domain)."""
+    """The reflection's sign at the solve's cube faces.
+
+    -1 Dirichlet, 1 otherwise (the free boundary's cube faces lie outside its domain).
+    """
     return -1.0 if boundary == "dirichlet" else 1.0
 
 
@@ -139,8 +140,10 @@ class LevelField:
     coef: np.ndarray | None = None  # (8q,)
 
     def locate(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Cell index in E (-1 when not a cell of the level) and local coordinates of unit-cube
-        positions (m, 3)."""
+        """Cell index in E and local coordinates of unit-cube positions (m, 3).
+
+        The index is -1 when the position is not in a cell of the level.
+        """
         return B.locate(pos, self.depth, self.q_keys, self.inp)
 
 
@@ -165,14 +168,16 @@ def level_field(lev: Level, boundary: str) -> LevelField:
 
 
 def level_fields(levels: list[Level], boundary: str) -> tuple[list[LevelField | None], tuple]:
-    """Every level's E (:func:`level_field`; None for level 0) as views of arrays holding all
-    the levels (parents, flags, neighbour tables, coefficients: :class:`ChiField`'s layout,
-    filled level by level, so the field is made without a copy); and those arrays
-    ``(q_all, q_off, inp_all, nb_all, coef_all)``."""
+    """Every level's E (:func:`level_field`; None for level 0), and the arrays holding them.
+
+    The levels' E are views of arrays holding all the levels (parents, flags, neighbour tables,
+    coefficients: :class:`ChiField`'s layout, filled level by level, so the field is made without a
+    copy); and those arrays ``(q_all, q_off, inp_all, nb_all, coef_all)``.
+    """
     parts = [_level_parents(lev) for lev in levels[1:]]
     top = len(levels) - 1
     sizes = np.zeros(top + 2, np.int64)
-    for lev, (Q, _) in zip(levels[1:], parts):
+    for lev, (Q, _) in zip(levels[1:], parts, strict=True):
         sizes[lev.depth + 1] = len(Q)
     q_off = np.cumsum(sizes)
     q_all = np.concatenate([Q for Q, _ in parts]) if parts else np.zeros(0, np.int64)
@@ -189,8 +194,10 @@ def level_fields(levels: list[Level], boundary: str) -> tuple[list[LevelField | 
 
 
 def neighbour_tables(q_all: np.ndarray, q_off: np.ndarray) -> np.ndarray:
-    """(q, 27) int32: every level's neighbour table (:func:`._bspline.neighbour_table_into`)
-    for the levels' parents concatenated (level ``L`` at ``q_off[L]:q_off[L + 1]``)."""
+    """(q, 27) int32: every level's neighbour table, the levels' parents concatenated.
+
+    Made by :func:`._bspline.neighbour_table_into`; level ``L`` is at ``q_off[L]:q_off[L + 1]``.
+    """
     nb = np.empty((len(q_all), 27), np.int32)
     for lv in range(1, len(q_off) - 1):
         lo, hi = q_off[lv], q_off[lv + 1]
@@ -199,8 +206,9 @@ def neighbour_tables(q_all: np.ndarray, q_off: np.ndarray) -> np.ndarray:
 
 
 class ChiField:
-    """chi of the degree-2 solve, everywhere in the cube: every level's coefficients and
-    lookups, concatenated (level ``L`` at ``q_off[L]:q_off[L + 1]``).
+    """chi of the degree-2 solve, everywhere in the cube.
+
+    Every level's coefficients and lookups, concatenated (level ``L`` at ``q_off[L]:q_off[L + 1]``).
 
     :meth:`at` is the one way the rest of the stage reads chi (the iso-value at the
     samples, the leaves' corners for the extraction, the roots along the edges).
@@ -229,7 +237,7 @@ class ChiField:
         self.coef_all = np.concatenate([f.coef for f in order]) if order else np.zeros(0)
 
     def at(self, pos: np.ndarray) -> np.ndarray:
-        """chi at unit-cube positions (m, 3) (:func:`._bspline.chi_at`)."""
+        """Chi at unit-cube positions (m, 3) (:func:`._bspline.chi_at`)."""
         return B.chi_at(
             np.ascontiguousarray(pos, dtype=np.float64),
             self.top,
@@ -242,10 +250,12 @@ class ChiField:
         )
 
     def drop_neighbours(self) -> None:
-        """Free the levels' neighbour tables (27 int32 a parent, the field's largest arrays:
-        1.7x its coefficients) while chi is not read; :meth:`at` makes them again (in time
-        linear in the parents: 0.1 s at depth 9) when next called. The extraction runs
-        between the leaves' corner values and the vertices' roots without them."""
+        """Free the levels' neighbour tables while chi is not read.
+
+        They are 27 int32 a parent, the field's largest arrays (1.7x its coefficients); :meth:`at`
+        makes them again (in time linear in the parents: 0.1 s at depth 9) when next called. The
+        extraction runs between the leaves' corner values and the vertices' roots without them.
+        """
         self.nb_all = None
 
     def _neighbours(self) -> np.ndarray:
@@ -254,9 +264,11 @@ class ChiField:
         return self.nb_all
 
     def at_nodes(self, lev: Level, node_keys: np.ndarray) -> np.ndarray:
-        """chi at the nodes ``node_keys`` of ``lev``: the leaves' corners for the extraction
-        (their positions made a chunk at a time: at once they were the largest arrays after
-        the solve)."""
+        """Chi at the nodes ``node_keys`` of ``lev``.
+
+        The leaves' corners for the extraction (their positions made a chunk at a time: at once they
+        were the largest arrays after the solve).
+        """
         out = np.empty(len(node_keys))
         step = 1 << 16
         for a in range(0, len(node_keys), step):
@@ -268,12 +280,15 @@ class ChiField:
     def refine_vertices(
         self, verts: np.ndarray, iso: float, origin: np.ndarray, size: float, depth: int
     ) -> np.ndarray:
-        """Move each vertex, which marching cubes put on an edge of the ``2**depth`` lattice
-        by linear interpolation, to where chi crosses ``iso`` along that edge: chi is one
+        """Move each vertex to where chi crosses ``iso`` along its lattice edge.
+
+        Marching cubes put the vertex on an edge of the ``2**depth`` lattice by linear
+        interpolation; chi is one
         quadratic along a finest edge (it lies in one cell of every level), so its values at
         the two ends and the middle give the root exactly. Vertices stay on their edges, so
         the mesh's connectivity is unchanged. Vertices not on an edge (marching cubes' cell
-        centres of ambiguous cases) stay where they are."""
+        centres of ambiguous cases) stay where they are.
+        """
         verts = verts.copy()
         # a chunk at a time: on all 2M vertices of a depth-10 mesh at once the temporaries
         # (three points per vertex, their lattice coordinates) were the process's peak
@@ -316,10 +331,11 @@ _NO_ROWS = np.zeros(0, np.int32)
 
 
 class NormalRHS:
-    """The right-hand side ``b_i = int grad(B_i) . W`` level by level, coarse to fine, for the
-    field ``W`` of :func:`.splat.spread_fields` (a sum of unit-integral cell-centred quadratic
-    B-splines over the splat levels), in time linear in the cells: the degree-2 counterpart
-    of :class:`.splat.NormalField`.
+    """The right-hand side ``b_i = int grad(B_i) . W`` level by level, coarse to fine.
+
+    ``W`` is the field of :func:`.splat.spread_fields` (a sum of unit-integral cell-centred
+    quadratic B-splines over the splat levels), in time linear in the cells: the degree-2
+    counterpart of :class:`.splat.NormalField`.
 
     - Level ``d``'s own share of ``W`` and the coarser levels' (written exactly on level
       ``d``'s E by B-spline refinement, :func:`._bspline.prolong_field`, carried from level
@@ -355,6 +371,7 @@ class NormalRHS:
         up = None
         for lv in range(depth, 1, -1):
             f = level_fields[lv]
+            assert f is not None  # levels 1.. have a field
             own = self._own(lv)
             t = None
             if own is not None:
@@ -379,25 +396,35 @@ class NormalRHS:
                 up = None
                 continue
             c = level_fields[lv - 1]
+            assert c is not None  # lv - 1 >= 1
             blocks = B.finer_blocks(c.q_keys, f.q_keys)
             up = B.restrict_rhs(c.q_keys, c.nb, c.inp, blocks, t, 1 << (lv - 1), c.s)
             self.finer[lv - 1] = up
             del t, blocks
 
     def _factors(self, lv: int) -> tuple[np.ndarray, np.ndarray]:
-        """(n, 5) value and derivative (per unit length) factors of a field's cell at offset
-        -2..2 from a level-``lv`` test function's, per axis (:func:`level_tables`)."""
+        """(n, 5) value and derivative factors of a field's cell at offset -2..2, per axis.
+
+        Relative to a level-``lv`` test function's cell, derivatives per unit length
+        (:func:`level_tables`).
+        """
         f = self.lf[lv]
+        assert f is not None  # a level's field lives until the next finer one is done
         fv, fd = level_tables(1 << lv, f.s, self.free)[2:]
         return fv, fd * float(1 << lv)
 
     def _own(self, lv: int) -> tuple[np.ndarray, np.ndarray] | None:
-        """Level ``lv``'s own share of the field: the row of each cell of its E (-1 none) and
-        the rows (:func:`._bspline.field_rows`); None if it has none."""
+        """Level ``lv``'s own share of the field.
+
+        The row of each cell of its E (-1 none) and the rows (:func:`._bspline.field_rows`); None if
+        it has none.
+        """
         own = self.fields.get(lv)
         if own is None or not len(own[0]):
             return None
-        idx, missing = B.field_rows(self.lf[lv].q_keys, own[0])
+        lf = self.lf[lv]
+        assert lf is not None  # a level's field lives until the next finer one is done
+        idx, missing = B.field_rows(lf.q_keys, own[0])
         if missing:
             raise RuntimeError(
                 f"poisson: {missing} cells of level {lv}'s normal field lie outside its E"
@@ -405,9 +432,12 @@ class NormalRHS:
         return idx, own[1]
 
     def rhs(self, d: int) -> np.ndarray:
-        """(8q,) right-hand side on level ``d``'s E (0 but at the children of the flagged
-        parents); call once per level, 1 to the finest, in order."""
+        """(8q,) right-hand side on level ``d``'s E (0 but at the children of the flagged parents).
+
+        Call once per level, 1 to the finest, in order.
+        """
         f = self.lf[d]
+        assert f is not None  # levels 1.., in order
         carry, self.carry = self.carry, None
         if d == 1:
             root = self.fields.get(0)
@@ -423,6 +453,7 @@ class NormalRHS:
                 carry = vec
         else:
             p = self.lf[d - 1]
+            assert p is not None  # freed only after level d
             if carry is not None and d < self.depth:
                 carry = B.prolong_field(f.q_keys, p.q_keys, p.nb, carry, 1 << (d - 1), f.s)
         own = self._own(d)
@@ -443,6 +474,7 @@ class NormalRHS:
             # the finest level: the coarser field refined and its own share read where they
             # are (no copy of either on E)
             p = self.lf[d - 1]
+            assert p is not None  # freed only after level d
             B.field_rhs_prolonged(
                 f.q_keys,
                 f.nb,
@@ -472,8 +504,9 @@ class NormalRHS:
             )
         self.lf[d - 1] = None
         del carry, own
-        if self.finer[d] is not None:
-            b += self.finer[d]
+        finer = self.finer[d]
+        if finer is not None:
+            b += finer
             self.finer[d] = None
         return b
 
@@ -510,16 +543,18 @@ def solve(
     free_cells: Any = None,
     sample_ok: np.ndarray | None = None,
 ) -> tuple[list[np.ndarray], list[dict], int, float, float, ChiField]:
-    """Solve every level in turn (level 0, a single cell, carries no function); returns chi
-    at each level's nodes (for the extraction), per-level statistics, total iterations, the
-    finest relative residual, the iso-value (count-weighted mean of chi at the samples) and
-    the field (:class:`ChiField`).
+    """Solve every level in turn (level 0, a single cell, carries no function).
+
+    Returns chi at each level's nodes (for the extraction), per-level statistics, total iterations,
+    the finest relative residual, the iso-value (count-weighted mean of chi at the samples) and the
+    field (:class:`ChiField`).
 
     With ``free_cells`` (``f(level, keys)`` -> bool, the cells' lattice keys:
-    :class:`.envelope.CellClassifier`) the other cells of each level are fixed: their coefficient is 0 in the
-    level's whole chi (the coarser levels' part included) and not solved for; ``sample_ok``
-    (s,) bool then says which samples screen the solve and make the iso-value (the others lie
-    where chi is fixed)."""
+    :class:`.envelope.CellClassifier`) the other cells of each level are fixed: their coefficient is
+    0 in the level's whole chi (the coarser levels' part included) and not solved for; ``sample_ok``
+    (s,) bool then says which samples screen the solve and make the iso-value (the others lie where
+    chi is fixed).
+    """
     spos, count = smp.pos, smp.count
     alpha = splats.alpha
     screen_w = splats.screening(SCREEN_CLEAN, SCREEN_NOISY)
@@ -535,17 +570,21 @@ def solve(
     # every level's E first: the finer levels' right-hand sides are restricted from the finest up
     lfs, arrays = level_fields(levels, boundary)
     coef_all = arrays[4]
+    rhs_fields = splats.rhs_fields
+    assert rhs_fields is not None  # made by make_splats, consumed here once
     if KERNEL_WIDTH == 1.0:
-        normal_rhs = NormalRHS(splats.rhs_fields, lfs, free=boundary == "free")
+        normal_rhs = NormalRHS(rhs_fields, lfs, free=boundary == "free")
         splats.rhs_fields = None  # NormalRHS drops each level's share once used
+        del rhs_fields
     else:  # kernels other than the levels' own B-splines: splat every share at every level
-        items = fields_as_items(splats.rhs_fields)
+        items = fields_as_items(rhs_fields)
     with task(progress, "poisson: solve", total=len(levels)) as tk:
         for lev in levels:
             release_free_heap()
             tl = time.perf_counter()
             d = lev.depth
             lev.face_nodes = O.face_nodes(lev.node_keys, 1 << d)
+            assert lev.node_keys is not None  # dropped only after the solve
             node_keys.append(lev.node_keys)
             lev.node_keys = lev.unknown = lev.ncell = None
             if d > 0:
@@ -557,6 +596,7 @@ def solve(
                 tk.advance(1)
                 continue
             f = lfs[d]
+            assert f is not None  # levels 1.. have a field
             lfs[d] = None
             n = 1 << d
             h = 1.0 / n
@@ -670,7 +710,8 @@ def solve(
                 }
             )
             log.info(
-                "poisson: level %2d  cells %9d  unknowns %9d  cg iterations %4d  residual %.2e  %.2f s",
+                "poisson: level %2d  cells %9d  unknowns %9d  cg iterations %4d  residual %.2e "
+                " %.2f s",
                 d,
                 ne,
                 int(unknown.sum()),
@@ -685,7 +726,7 @@ def solve(
     chi = ChiField(fields, boundary, arrays)
     del arrays, coef_all
     del fields, prev
-    gvals = [chi.at_nodes(lev, keys) for lev, keys in zip(levels, node_keys)]
+    gvals = [chi.at_nodes(lev, keys) for lev, keys in zip(levels, node_keys, strict=True)]
     # the extraction interpolates each leaf trilinearly from its corners: the finer side of
     # a leaf's faces takes those values (chi's own everywhere else)
     for d in range(1, len(levels)):

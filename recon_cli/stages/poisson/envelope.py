@@ -1,5 +1,6 @@
-"""A constraint envelope (``--envelope MESH``, as PoissonRecon's ``--envelope``): a closed mesh
-known to contain the surface; the space outside it is empty.
+"""A constraint envelope (``--envelope MESH``, as PoissonRecon's ``--envelope``).
+
+A closed mesh known to contain the surface; the space outside it is empty.
 
 PoissonRecon marks the tree's nodes outside the envelope and solves with Dirichlet
 constraints there (their coefficients fixed to 0: chi is the outside's value). Here, at every
@@ -98,8 +99,10 @@ class Envelope:
         return closest_points(self.vertices, self.faces, pts, bvh=self.bvh, upper=upper)[0]
 
     def free_cells(self, centres: np.ndarray, h: float) -> np.ndarray:
-        """(m,) bool: the cells of side ``h`` (world) centred at ``centres`` whose B-spline's
-        support lies inside the envelope (the others are fixed to 0)."""
+        """(m,) bool: the cells whose B-spline's support lies inside the envelope.
+
+        The cells have side ``h`` (world) and centres ``centres``; the others are fixed to 0.
+        """
         r = SUPPORT_RADIUS * h
         far = np.isinf(self.distance(centres, upper=r))
         out = np.zeros(len(centres), bool)
@@ -108,9 +111,11 @@ class Envelope:
         return out
 
     def surface_items(self, origin: np.ndarray, size: float, level: int) -> np.ndarray:
-        """Points on the envelope's surface (unit-cube coordinates of the solve's cube
-        ``origin + [0, size]^3``), about :data:`REFINE_SPACING` cells of ``level`` apart:
-        the tree is refined along them."""
+        """Points on the envelope's surface, about :data:`REFINE_SPACING` cells of ``level`` apart.
+
+        In unit-cube coordinates of the solve's cube ``origin + [0, size]^3``:
+        the tree is refined along them.
+        """
         v = (self.vertices - origin) / size
         t = v[self.faces]
         h = 1.0 / (1 << level)
@@ -144,10 +149,12 @@ class Envelope:
 
 
 class CellClassifier:
-    """Which cells of each level are free (:meth:`Envelope.free_cells`), level after level,
-    coarse to fine, for the solve's cube ``origin + [0, size]^3``: a cell whose parent's
+    """Which cells of each level are free (:meth:`Envelope.free_cells`), coarse to fine.
+
+    For the solve's cube ``origin + [0, size]^3``: a cell whose parent's
     support ball was wholly inside (or outside) inherits that (its ball lies in its
-    parent's), so only the children of the cells near the envelope's surface are measured."""
+    parent's), so only the children of the cells near the envelope's surface are measured.
+    """
 
     NEAR, INSIDE_FAR, OUTSIDE_FAR = 0, 1, 2
 

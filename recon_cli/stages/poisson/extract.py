@@ -83,7 +83,7 @@ def extract_finest(
             none_xyz,
             none_val,
         )
-        for lev, g in zip(levels, gvals)
+        for lev, g in zip(levels, gvals, strict=True)
     ]
     offsets = np.concatenate([[0], np.cumsum(counts)])
     cells = np.empty((int(offsets[-1]), 3), np.int64)
@@ -134,7 +134,7 @@ def extract(
         E.straddles(
             lev.cell_keys, lev.cell_nodes, lev.leaf, g, lev.depth, depth, iso, 1e-9, FACE_MARGIN
         )
-        for lev, g in zip(levels[:-1], gvals[:-1])
+        for lev, g in zip(levels[:-1], gvals[:-1], strict=True)
     )
     if coarse:
         return extract_leaves(levels, gvals, iso, origin, size)
@@ -188,7 +188,8 @@ def extract_leaves(
     del keys, leaf, nodes, g, fine, fg
     if broken:
         raise StageFailed(
-            f"poisson extraction: {broken} iso-segment chains did not close (please report this input)"
+            f"poisson extraction: {broken} iso-segment chains did not close (please report "
+            "this input)"
         )
     vpos *= size / (1 << depth)
     vpos += origin
@@ -196,9 +197,11 @@ def extract_leaves(
 
 
 def _edge_steps(verts: np.ndarray, axis: np.ndarray, chi: list, depth: int) -> np.ndarray:
-    """Length (finest-lattice units) of the minimal edge each vertex lies on: the size of the
-    finest leaf around the edge, found as the finest level holding one of the four cells
-    that meet along it (the finest cell holding a point is a leaf)."""
+    """Length (finest-lattice units) of the minimal edge each vertex lies on.
+
+    The size of the finest leaf around the edge, found as the finest level holding one of the four
+    cells that meet along it (the finest cell holding a point is a leaf).
+    """
     res = 1 << depth
     n = len(verts)
     step = np.zeros(n, np.int64)
@@ -223,21 +226,21 @@ def _edge_steps(verts: np.ndarray, axis: np.ndarray, chi: list, depth: int) -> n
 
 
 def refine_roots(verts: np.ndarray, chi: list, iso: float, depth: int) -> int:
-    """Move each vertex (finest-lattice units, in place) to the root of a quadratic fit of chi
-    along its lattice edge; returns how many were moved.
+    """Move each vertex to the root of a quadratic fit of chi along its lattice edge.
+
+    In finest-lattice units, in place; returns how many were moved.
 
     ``chi`` is :func:`recon_cli.stages.poisson.system.chi_levels`'s list. chi is trilinear in the
-    leaves, so the extracted vertices are the roots of a piecewise linear function; the
-    indicator it stands for is smooth. As PoissonRecon's non-linear fit (the default in it and
-    in Open3D), the root is taken on the quadratic through the edge's end values whose end
-    slopes are in the ratio of chi's slopes there (central differences one lattice step beyond
-    the ends: :func:`._extract.fit_roots`). The edge is the vertex's minimal edge, at the size
-    of the finest leaf around it (:func:`_edge_steps`), and the central differences are one
-    edge length beyond its ends (with the finest step on a coarse leaf's edge, the fit made
-    the kitten at depth 9 worse than the linear roots). A sphere, 100k samples, depth 7: mean
-    radial error 1.7e-4 -> 7.4e-5 of the radius (Open3D 8.5e-5, 1.7e-4 with its linear fit).
-    A vertex stays within its edge (so the topology is unchanged); vertices whose four values
-    would reach the cube's faces (clamped in the extraction) stay where they are.
+    leaves, so the extracted vertices are the roots of a piecewise linear function; the indicator it
+    stands for is smooth. As PoissonRecon's non-linear fit (the default in it and in Open3D), the
+    root is taken on the quadratic through the edge's end values whose end slopes are in the ratio
+    of chi's slopes there (central differences one lattice step beyond the ends:
+    :func:`._extract.fit_roots`). The edge is the vertex's minimal edge, at the size of the finest
+    leaf around it (:func:`_edge_steps`), and the central differences are one edge length beyond its
+    ends (the finest step on a coarse leaf's edge fitted worse than the linear roots; figures in
+    ``bench/calibration.md``). A vertex stays within its edge (so the topology is unchanged);
+    vertices whose four values would reach the cube's faces (clamped in the extraction) stay where
+    they are.
     """
     # in chunks: each vertex's fit is its own, and the fit's temporaries (four lattice points
     # per vertex, their cells and local coordinates at every level) are ~0.5 kB a vertex

@@ -1,7 +1,8 @@
-"""The solved indicator on a regular grid (``--grid``, as PoissonRecon's ``--grid``): recon's
-own grid file (:class:`recon_cli.grid.Grid`), a field whose zero level is the surface the
-stage extracts and which is negative inside, so ``recon mcubes`` gives the same surface
-and ``recon info`` describes it.
+"""The solved indicator on a regular grid (``--grid``, as PoissonRecon's ``--grid``).
+
+Recon's own grid file (:class:`recon_cli.grid.Grid`), a field whose zero level is the surface the
+stage extracts and which is negative inside, so ``recon mcubes`` gives the same surface and ``recon
+info`` describes it.
 
 The grid's samples are the points of the tree's finest lattice (the corners of its finest
 cells, where the extraction reads chi) within two finest cells of the surface's bounding
@@ -45,14 +46,17 @@ def grid_shape(
     res: int,
     domain: tuple[float, float] = (0.0, 1.0),
 ) -> tuple[np.ndarray, tuple[int, int, int]]:
-    """The first lattice index (3,) and the shape of the grid around ``verts`` (world
-    units): the lattice of ``res`` cells over the cube ``origin + [0, size]^3``, clamped to
-    ``domain`` (unit-cube bounds)."""
+    """The first lattice index (3,) and the shape of the grid around ``verts`` (world units).
+
+    The lattice of ``res`` cells over the cube ``origin + [0, size]^3``, clamped to ``domain``
+    (unit-cube bounds).
+    """
     u = (verts - origin) / size * res
     lo_d, hi_d = round(domain[0] * res), round(domain[1] * res)
     i0 = np.clip(np.floor(u.min(axis=0)).astype(np.int64) - MARGIN, lo_d, hi_d)
     i1 = np.clip(np.ceil(u.max(axis=0)).astype(np.int64) + MARGIN, lo_d, hi_d)
-    return i0, tuple(int(x) for x in (i1 - i0 + 1))
+    nx, ny, nz = (int(x) for x in (i1 - i0 + 1))
+    return i0, (nx, ny, nz)
 
 
 def gradient_scale(
@@ -62,8 +66,11 @@ def gradient_scale(
     size: float,
     res: int,
 ) -> float:
-    """Median ``|grad chi|`` (per world unit) at (up to :data:`GRADIENT_VERTICES` of) the
-    vertices, by central differences a quarter of a finest cell wide."""
+    """Median norm of chi's gradient (per world unit) at the vertices, by central differences.
+
+    At up to :data:`GRADIENT_VERTICES` vertices; the differences are a quarter of a finest cell
+    wide.
+    """
     if len(verts) > GRADIENT_VERTICES:
         pick = np.random.default_rng(0).choice(len(verts), GRADIENT_VERTICES, replace=False)
         verts = verts[np.sort(pick)]
@@ -140,7 +147,7 @@ def indicator_grid(
         for a in range(3):
             for idx, on in ((0, i0[a] == 0), (shape[a] - 1, i0[a] + shape[a] - 1 == res)):
                 if on:
-                    sl = [slice(None)] * 3
+                    sl: list[slice | int] = [slice(None)] * 3
                     sl[a] = idx
                     np.maximum(sdf[tuple(sl)], floor, out=sdf[tuple(sl)])
     h = size / res

@@ -1,5 +1,6 @@
-"""The free boundary (PoissonRecon's ``--bType 1``, ``BOUNDARY_FREE``): no condition on the
-reconstruction cube's faces.
+"""The free boundary (PoissonRecon's ``--bType 1``, ``BOUNDARY_FREE``).
+
+No condition on the reconstruction cube's faces.
 
 The Neumann and Dirichlet bases reflect each level's B-splines at the cube's faces (chi's
 normal derivative, or chi, is 0 there), so an open surface bends to meet the faces at right
@@ -36,11 +37,13 @@ _GAUSS_W = np.array([5.0, 8.0, 5.0]) / 18.0
 
 
 def domain_tables(n: int, lo: float, hi: float) -> tuple[np.ndarray, ...]:
-    """(n, 5) tables ``m1``, ``k1``, ``fv``, ``fd`` of the (unreflected) functions of cells
-    ``0..n-1`` integrated over ``[lo, hi]`` (cell units) only: between cell ``i`` and cell
+    """(n, 5) tables ``m1``, ``k1``, ``fv``, ``fd`` integrated over ``[lo, hi]`` only.
+
+    The (unreflected) functions of cells ``0..n-1``, in cell units: between cell ``i`` and cell
     ``i + t`` (column ``t + 2``) the mass, the stiffness, the value factor (the mass) and
     the derivative factor ``int B_i' B_{i+t}`` (per cell, not per unit length). Rows of the
-    cells whose support misses the interval are 0 (no equation: fixed in the solve)."""
+    cells whose support misses the interval are 0 (no equation: fixed in the solve).
+    """
     m1 = np.zeros((n, 5))
     k1 = np.zeros((n, 5))
     fd = np.zeros((n, 5))
@@ -74,9 +77,12 @@ def domain_tables(n: int, lo: float, hi: float) -> tuple[np.ndarray, ...]:
 def clip_to_cube(
     verts: np.ndarray, faces: np.ndarray, origin: np.ndarray, size: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The faces inside the cube ``origin + [0, size]^3`` (the free boundary's domain) and
-    their vertices: the extraction's leaves are cells of levels whose lattice the cube's
-    faces follow, so every triangle lies in a leaf on one side; its centroid says which."""
+    """The faces inside the cube ``origin + [0, size]^3`` and their vertices.
+
+    The cube is the free boundary's domain. The extraction's leaves are cells of levels whose
+    lattice the cube's faces follow, so every triangle lies in a leaf on one side; its centroid says
+    which.
+    """
     if not len(faces):
         return verts, faces
     cen = verts[faces].mean(axis=1)

@@ -65,30 +65,30 @@ def build_levels(
     corners: bool = True,
     own_ring: int = 2,
 ) -> list[Level]:
-    """Levels 0..``depth``: complete up to ``full_depth``; below it, at level ``d``, the
-    cells within :data:`RING` of a cell holding a splat item of level ``d`` or finer
-    (``item_pos`` (k, 3) unit-cube positions, ``item_level`` (k,)), completed in siblings:
-    the tree stops where the samples stop.
+    """Levels 0..``depth``: complete up to ``full_depth``.
+
+    Below it, at level ``d``, the cells within :data:`RING` of a cell holding a splat item of level
+    ``d`` or finer (``item_pos`` (k, 3) unit-cube positions, ``item_level`` (k,)), completed in
+    siblings: the tree stops where the samples stop.
 
     With ``own_ring`` 1 (the degree-2 solve), a level keeps the ring of 2 only around its
     cells over finer items, and around the cells holding its own items only the ring of 1
     the items' field reaches (their quadratic B-splines' 27 cells): as in PoissonRecon,
     whose finest nodes are those its splats make, their neighbours only made at the coarser
-    depths (the B-splines' overlap around nodes with children). On 1M samples of the
-    armadillo at depth 10 the finest level's unknowns fall from 11.7M to 7.5M (process
-    peak 1617 -> 1394 MiB, Chamfer unchanged: 1.544e-5 -> 1.540e-5 of the diagonal); on
-    100k at depth 9, 470k -> 401k faces, 6.5 -> 5.3 s (Chamfer 1.124e-4 -> 1.146e-4,
-    Open3D's 1.255e-4).
+    depths (the B-splines' overlap around nodes with children). It takes a third of the
+    finest unknowns and a seventh of the peak memory off at the same accuracy
+    (``bench/calibration.md``).
 
     Each level's nodes, its cells' corner nodes and which nodes are unknowns under
     ``boundary`` (the corners and unknowns only if ``corners``: the degree-2 solve needs
     neither, and makes the corners after it with :func:`set_corners`, the largest arrays of
-    the levels kept out of its peak)."""
+    the levels kept out of its peak).
+    """
     if own_ring not in (1, 2):
         raise ValueError(f"own_ring must be 1 or 2, got {own_ring}")
     levels: list[Level] = []
-    occ = [None] * (depth + 1)
-    near = [None] * (depth + 1)
+    occ: list[np.ndarray | None] = [None] * (depth + 1)
+    near: list[np.ndarray | None] = [None] * (depth + 1)
     occ_keys = np.zeros(0, np.int64)
     for d in range(depth, full_depth, -1):
         sel = item_level == d
@@ -118,8 +118,9 @@ def build_levels(
             for axis in range(3):
                 keys = dilate(keys, axis, -1, 1, top >> 1)  # valid for RING == 2 only
             # (the last dilation, along z, leaves the keys sorted and unique)
-            if near[d] is not None:
-                keys = np.union1d(keys, near[d])
+            near_d = near[d]
+            if near_d is not None:
+                keys = np.union1d(keys, near_d)
             par_idx = K.merge_lookup(keys, levels[-1].cell_keys)
             # the nodes of the children of parent p are 2p + {0, 1, 2}^3
             nodes = K.double(keys)
@@ -155,8 +156,11 @@ def set_corners(lev: Level, node_keys: np.ndarray) -> None:
 
 
 def _ring1_parents(cells: np.ndarray, top: int) -> np.ndarray:
-    """Sorted unique parents (level above, coordinates 0..``top``) of the cells within 1 of
-    ``cells``: per axis the parent and, on the side the cell touches, its neighbour."""
+    """Sorted unique parents of the cells within 1 of ``cells``.
+
+    The parents are on the level above, coordinates 0..``top``: per axis the parent and, on the side
+    the cell touches, its neighbour.
+    """
     xyz = unpack_keys(cells)
     par = xyz >> 1
     side = np.where((xyz & 1) == 1, 1, -1)

@@ -1,5 +1,8 @@
-"""The samples and their splats: points merged per finest cell, the kernel density of the
-samples (area per sample, splat level), the normals' splat items."""
+"""The samples and their splats.
+
+Points merged per finest cell, the kernel density of the samples (area per sample, splat level), the
+normals' splat items.
+"""
 
 from __future__ import annotations
 
@@ -58,10 +61,12 @@ class Splats:
     clean: np.ndarray | None = None
 
     def screening(self, clean_scale: float, noisy_scale: float) -> np.ndarray:
-        """(s,) screening weight per sample: ``screen_w`` times ``clean_scale`` where the
-        samples are clean, ``noisy_scale`` where they are noisy (:func:`noise_fraction`), in
-        between as their measured noise says; each basis has its pair (the system's and the
-        B-splines' solve)."""
+        """(s,) screening weight per sample.
+
+        ``screen_w`` times ``clean_scale`` where the samples are clean, ``noisy_scale`` where they
+        are noisy (:func:`noise_fraction`), in between as their measured noise says; each basis has
+        its pair (the system's and the B-splines' solve).
+        """
         if self.clean is None:
             return self.screen_w * clean_scale
         return self.screen_w * (noisy_scale + (clean_scale - noisy_scale) * self.clean)
@@ -70,9 +75,11 @@ class Splats:
 def merge_samples(
     unit: np.ndarray, nrm: np.ndarray, depth: int, weight: np.ndarray | None = None
 ) -> Samples:
-    """Merge the points ``unit`` (n, 3) in the unit cube, with unit normals ``nrm``, per cell
-    of level ``depth``; with ``weight`` (n,) each point counts that much (PoissonRecon's
-    ``--confidence``: its position and normal weighted, the sample's count the sum)."""
+    """Merge the points ``unit`` (n, 3), unit normals ``nrm``, per cell of level ``depth``.
+
+    The points are in the unit cube. With ``weight`` (n,) each point counts that much
+    (PoissonRecon's ``--confidence``: its position and normal weighted, the sample's count the sum).
+    """
     res = 1 << depth
     cxyz = np.clip(np.floor(unit * res).astype(np.int64), 0, res - 1)
     skeys, inv = np.unique(pack_keys(cxyz), return_inverse=True)
@@ -90,10 +97,13 @@ def merge_samples(
 
 
 def _density_table(smp: Samples, level: int) -> tuple:
-    """The samples' kernel density at ``level``: (level, hash table of the cells within one
-    of a sample's cell, density per cell); counts splatted with quadratic B-splines centred
-    on cells (the only cells they reach)."""
+    """The samples' kernel density at ``level``.
+
+    (level, hash table of the cells within one of a sample's cell, density per cell); counts
+    splatted with quadratic B-splines centred on cells (the only cells they reach).
+    """
     shift = smp.depth - level
+    assert smp.keys is not None  # kept until the density is made
     keys = np.unique(pack_keys(unpack_keys(smp.keys) >> shift))
     for axis in range(3):
         keys = dilate(keys, axis, -1, 1, (1 << level) - 1)
@@ -114,21 +124,20 @@ def make_splats(
     keep_density: bool,
     merge: bool = True,
 ) -> Splats:
-    """The level each sample is splatted at, the area it stands for, the splat items and the
-    screening weights.
+    """The level each sample is splatted at, its area, the splat items and screening weights.
 
-    A sample's depth is where its local density reaches ``samples_per_node`` samples per
-    node, as PoissonRecon defines it: its kernel density is estimated at level
-    ``depth - KERNEL_OFFSET`` (PoissonRecon's kernel depth) and, while it is below
-    ``ESTIMATE_FACTOR * samples_per_node``, at coarser levels; from the finest level ``l``
-    where it is reached, the depth is ``l + log4(samples per node / samples_per_node)`` (on a surface a
-    level finer holds a quarter of the samples per node), at most ``depth``. So the tree
-    follows the data: where the samples are sparse they are splatted coarse and no finer
-    node is made. A fractional depth is split between the two levels around it. The area
-    is the node area at ``l`` over the samples per node there; the screening weight is
-    ``point_weight`` times the mean area times ``2**`` (the finest splat level).
+    A sample's depth is where its local density reaches ``samples_per_node`` samples per node, as
+    PoissonRecon defines it: its kernel density is estimated at level ``depth - KERNEL_OFFSET``
+    (PoissonRecon's kernel depth) and, while it is below ``ESTIMATE_FACTOR * samples_per_node``, at
+    coarser levels; from the finest level ``l`` where it is reached, the depth is ``l + log4(samples
+    per node / samples_per_node)`` (on a surface a level finer holds a quarter of the samples per
+    node), at most ``depth``. So the tree follows the data: where the samples are sparse they are
+    splatted coarse and no finer node is made. A fractional depth is split between the two levels
+    around it. The area is the node area at ``l`` over the samples per node there; the screening
+    weight is ``point_weight`` times the mean area times ``2**`` (the finest splat level).
     """
     spos, snrm, count = smp.pos, smp.normal, smp.count
+    assert snrm is not None  # the samples' normals, until the splats are made
     ns = len(count)
     kd = max(depth - KERNEL_OFFSET, 0)
     splat = np.zeros(ns)
@@ -166,13 +175,8 @@ def make_splats(
         tree_depth,
     )
     mean_area = float((area_pt * count).sum() / count.sum())
-    # calibrated against Open3D (PoissonRecon's code) at its default weight 4: exact-distance
-    # Chamfer of 100k samples, clean and with noise of 0.25 % of the diagonal, depths 8 and 9
-    # (level d screened with alpha * 2**(d - tree_depth), system.solve): at 0.75 the kitten,
-    # armadillo, sphere, torus and mug are at 0.76-1.03x Open3D's (a rounded box, clean, 1.45x);
-    # a stronger weight helps clean samples and costs noisy ones more (1.5x it: clean
-    # 0.75-0.97x, noisy 1.06-1.15x), so each basis scales it by the samples' measured noise
-    # (Splats.screening, noise_fraction; system.SCREEN_CLEAN, bspline.SCREEN_CLEAN)
+    # 0.75 matches Open3D's accuracy at its default weight 4 (bench/calibration.md); each basis
+    # scales it by the samples' measured noise (Splats.screening)
     alpha = 0.75 * point_weight * mean_area * (1 << tree_depth)
     screen_w = alpha * count
     dens = None
@@ -195,22 +199,23 @@ def make_splats(
 
 def sample_density(splats: Splats, pos: np.ndarray) -> np.ndarray:
     """The samples' kernel density at ``pos`` (m, 3) unit-cube positions."""
+    assert splats.density is not None  # made with the splats
     return _eval_density(splats.density, pos)
 
 
 def spread_fields(
     pos: np.ndarray, vec: np.ndarray, lvl: np.ndarray
 ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    """The items' vectors shared among the 27 cells of their level around them with the
-    quadratic B-spline weights at their positions, summed per cell: per level, (sorted cell
-    keys (m,), vectors (m, 3)).
+    """The items' vectors shared among the 27 cells of their level around them, per cell.
+
+    The weights are the quadratic B-spline's at their positions: per level, (sorted cell keys
+    (m,), vectors (m, 3)).
 
     This is PoissonRecon's normal splat (its vector field is a sum of B-splines centred on the
     cells, with the samples' normals distributed over them). Each sample's share of the field
     then is a smoothed B-spline (the B-spline weights convolved with the B-spline) rather than
     one B-spline centred on it; the field's noise from random sample positions is about 1.6x
-    smaller (a sphere, 100k samples, depth 7: the root's mean error 2.8e-4 -> 1.7e-4 of the
-    radius, Open3D's linear fit 1.7e-4). Shares beyond the cube's faces are dropped.
+    smaller (``bench/calibration.md``). Shares beyond the cube's faces are dropped.
     """
     out = {}
     for lv in np.unique(lvl):
@@ -229,8 +234,10 @@ def spread_fields(
 def fields_as_items(
     fields: dict[int, tuple[np.ndarray, np.ndarray]],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`spread_fields`'s fields as splat items: (cell centres (m, 3) in the unit cube,
-    vectors (m, 3), levels (m,))."""
+    """:func:`spread_fields`'s fields as splat items.
+
+    (cell centres (m, 3) in the unit cube, vectors (m, 3), levels (m,)).
+    """
     if not fields:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
     return (
@@ -247,8 +254,9 @@ RHS_SLAB_CELLS = 1 << 17
 
 
 class NormalField:
-    """The right-hand side ``b_i = int grad(B_i) . W`` level by level, coarse to fine, for the
-    field ``W`` of :func:`spread_fields` (a sum of cell-centred quadratic B-splines over the
+    """The right-hand side ``b_i = int grad(B_i) . W`` level by level, coarse to fine.
+
+    ``W`` is the field of :func:`spread_fields` (a sum of cell-centred quadratic B-splines over the
     splat levels), exactly, in time linear in the cells.
 
     - Level ``d``'s own share of ``W`` and the coarser levels' (written exactly on level
@@ -259,8 +267,8 @@ class NormalField:
       from the finest level up when the field is made.
 
     So a coarse field costs per cell of the finer levels near it and a fine field per node of
-    the coarser levels, not per node each item reaches (kitten, 100k samples, depth 9: 0.9 s
-    where splatting every spread item at every level took 7 s). The carried field is kept on
+    the coarser levels, not per node each item reaches (about 8x faster than splatting every
+    spread item at every level; see ``bench/calibration.md``). The carried field is kept on
     the tree's cells and two cells around them, including the cells just beyond the cube's
     faces (all a node of the tree, or of the next level through the refinement, sees); the
     finer levels' integrals on the tree's nodes (all a finer field reaches: the tree holds two
@@ -296,15 +304,17 @@ class NormalField:
     def rhs(
         self, d: int, cell_keys: np.ndarray, node_keys: np.ndarray, unknown: np.ndarray
     ) -> np.ndarray:
-        """(n_nodes,) right-hand side at level ``d``'s nodes (0 where not ``unknown``); call
-        once per level, coarse to fine."""
+        """(n_nodes,) right-hand side at level ``d``'s nodes (0 where not ``unknown``).
+
+        Call once per level, coarse to fine.
+        """
         own = self.fields.pop(d, None)
         if own is not None:
             # keys of the carried field hold each coordinate plus 1: the cells just beyond the
             # cube's faces carry B-splines that reach into it
             own = (own[0] + _ONES, own[1])
         carry, self.carry = self.carry, None
-        if carry is not None and not (carry[0] == d - 1 and sum(len(k) for k, _ in carry[1])):
+        if carry is not None and not (carry[0] == d - 1 and sum(len(k) for k, _ in carry[1]) > 0):
             carry = None
         b = np.zeros(len(node_keys))
         parts = []
@@ -322,7 +332,7 @@ class NormalField:
                 ]
             )
         )
-        for x0, x1 in zip(bounds[:-1], bounds[1:]):
+        for x0, x1 in zip(bounds[:-1], bounds[1:], strict=True):
             keys, vec = self._slab(d, int(x0), int(x1), cell_keys, own, carry)
             if d < self.depth:  # carried to the next level: exact-size copies, slab by slab
                 parts.append((keys.copy(), vec.copy()))
@@ -332,8 +342,9 @@ class NormalField:
         if parts:
             self.carry = (d, parts)
         del parts
-        if self.finer[d] is not None:
-            b += self.finer[d]
+        finer = self.finer[d]
+        if finer is not None:
+            b += finer
             self.finer[d] = None
         b[~unknown] = 0.0
         return b
@@ -342,9 +353,11 @@ class NormalField:
     def _slab(
         d: int, x0: int, x1: int, cell_keys: np.ndarray, own: tuple | None, carry: tuple | None
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Level ``d``'s field on the cells within two of its cells whose x (plus 1, as the
-        carried field's keys and ``own``'s hold it) is in [x0, x1): (sorted keys, vectors), the cells the
-        field reaches only (views of arrays of the slab's size)."""
+        """Level ``d``'s field on the cells within two of its cells whose x is in [x0, x1).
+
+        x plus 1, as the carried field's keys and ``own``'s hold it: (sorted keys, vectors), the
+        cells the field reaches only (views of arrays of the slab's size).
+        """
         src = cell_keys[
             np.searchsorted(cell_keys, max(x0 - 3, 0) << 42) : np.searchsorted(
                 cell_keys, max(x1 + 1, 0) << 42
@@ -393,10 +406,12 @@ class NormalField:
 
 
 def merge_splats(pos, vec, count, s_lo, s_frac, merge=True):
-    """Per level, the samples' shares merged per cell: (count-weighted mean position, summed
-    vector, level); with ``merge`` False each sample's share is an item of its own (merging
-    moves the items of a curved surface to the inside by about its curvature times the
-    squared cell size / 12, a bias the degree-2 basis resolves)."""
+    """Per level, the samples' shares merged per cell.
+
+    (count-weighted mean position, summed vector, level); with ``merge`` False each sample's share
+    is an item of its own (merging moves the items of a curved surface to the inside by about its
+    curvature times the squared cell size / 12, a bias the degree-2 basis resolves).
+    """
     parts = [(s_lo, 1.0 - s_frac), (s_lo + 1, s_frac)]
     out_p, out_v, out_l = [], [], []
     for lvl_arr, w in parts:
@@ -453,11 +468,13 @@ def _cell_noise(
     shift: int,
     off: int,
 ) -> np.ndarray:
-    """The noise of each sample's cell (NaN where it cannot be measured): ``c`` (k, 3) the
-    points' finest-lattice coordinates, ``unit`` their positions, ``pn`` their samples' summed
-    normals, ``sk`` (m, 3) and ``snrm`` the samples' finest coordinates and summed normals, both
-    lattices of level ``depth`` (the noise is in its cells); cells are ``2**shift`` finest cells
-    wide, their lattice moved by ``off`` finest cells."""
+    """The noise of each sample's cell (NaN where it cannot be measured).
+
+    ``c`` (k, 3) the points' finest-lattice coordinates, ``unit`` their positions, ``pn`` their
+    samples' summed normals, ``sk`` (m, 3) and ``snrm`` the samples' finest coordinates and summed
+    normals, both lattices of level ``depth`` (the noise is in its cells); cells are ``2**shift``
+    finest cells wide, their lattice moved by ``off`` finest cells.
+    """
     keys = pack_keys((c + off) >> shift)
     uk, inv = np.unique(keys, return_inverse=True)
     inv = inv.reshape(-1)
@@ -481,7 +498,7 @@ def _cell_noise(
     )
     cs = np.full(m, np.nan)
     if ok.any():
-        cen = np.stack(
+        cen: np.ndarray = np.stack(
             [np.bincount(inv, weights=unit[:, a], minlength=m) for a in range(3)], axis=1
         )
         cen /= np.maximum(cnt, 1.0)[:, None]
@@ -506,8 +523,10 @@ def _cell_noise(
 def noise_fraction(
     unit: np.ndarray, smp: Samples, tree_depth: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """How clean each sample's neighbourhood is: (s,) ``1 / (1 + (sigma / (NOISE_TAU h))**2)``
-    (1 clean, towards 0 noisy) and (s,) ``sigma / h``, ``h`` the tree's finest cell.
+    """How clean each sample's neighbourhood is.
+
+    (s,) ``1 / (1 + (sigma / (NOISE_TAU h))**2)`` (1 clean, towards 0 noisy) and (s,) ``sigma / h``,
+    ``h`` the tree's finest cell.
 
     ``sigma`` is the RMS residual of the raw points ``unit`` (n, 3) (unit cube) about a
     quadratic height field fitted, by least squares, over the sample's cell of level
@@ -527,6 +546,7 @@ def noise_fraction(
     sig = np.full(ns, np.nan)  # in finest cells of the samples' lattice
     dd = smp.depth
     c = np.clip(np.floor(unit * (1 << dd)), 0, (1 << dd) - 1).astype(np.int64)
+    assert smp.keys is not None and smp.normal is not None  # required, as said above
     sk = unpack_keys(smp.keys)
     sidx = np.searchsorted(smp.keys, pack_keys(c))  # each point's sample
     top = max(tree_depth - NOISE_LEVEL_OFFSET, 0)

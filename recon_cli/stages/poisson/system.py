@@ -1,5 +1,8 @@
-"""The cascadic solve: level by level, coarse to fine, each level's correction to the
-coarser levels' indicator function by Jacobi-preconditioned conjugate gradients."""
+"""The cascadic solve: level by level, coarse to fine, by preconditioned conjugate gradients.
+
+Each level's correction to the coarser levels' indicator function is solved with Jacobi
+preconditioning.
+"""
 
 from __future__ import annotations
 
@@ -10,23 +13,19 @@ from typing import Any
 import numpy as np
 
 from recon_cli.memory import release_free_heap
+from recon_cli.progress import task
 from recon_cli.stages.poisson import _octree as O
 from recon_cli.stages.poisson import _system as Y
 from recon_cli.stages.poisson._luts import UNIT_STIFFNESS
 from recon_cli.stages.poisson.octree import Level
 from recon_cli.stages.poisson.splat import NormalField, Samples, Splats
-from recon_cli.progress import task
 
 log = logging.getLogger("recon")
 
 # the screening pulls chi towards this value at the samples
 TARGET = 0.5
 # the screening weight where the samples are clean and where they are noisy, relative to
-# make_splats' (Splats.screening); measured with exact-distance Chamfer against Open3D's, 100k
-# samples of a sphere, torus, rounded box, the kitten, armadillo and mug, depths 8 and 9: noisy
-# samples (0.25 % of the diagonal) at half the weight 0.80-0.89x Open3D's (0.99-1.03x at the
-# full weight); clean ones at 1.3x 0.75-0.98x (the lattice-aligned box 1.34-1.36x; at 1x the
-# armadillo was 1.07x, at 2x the torus 1.01x and the box 1.23x)
+# make_splats' (Splats.screening): the best accuracy against Open3D's (bench/calibration.md)
 SCREEN_CLEAN = 1.3
 SCREEN_NOISY = 0.5
 
@@ -39,8 +38,10 @@ def solve(
     cg_tolerance: float,
     progress: Any = None,
 ) -> tuple[list[np.ndarray], list[dict], int, float]:
-    """Solve every level in turn; returns chi per level (at its nodes, the coarser levels'
-    part included), per-level statistics, total iterations and the finest relative residual.
+    """Solve every level in turn.
+
+    Returns chi per level (at its nodes, the coarser levels' part included), per-level statistics,
+    total iterations and the finest relative residual.
 
     Each level's arrays go as soon as no later step needs them (sets ``face_nodes`` and
     ``leaf`` of every level, drops the rest; ``splats.rhs_fields`` is consumed, set to
@@ -56,7 +57,11 @@ def solve(
     gvals: list[np.ndarray] = []
     per_level = []
     work = solve_work(levels, full_depth)
-    field = NormalField(splats.rhs_fields, [lev.node_keys for lev in levels])
+    assert splats.rhs_fields is not None  # made by make_splats, consumed here once
+    node_keys = [lev.node_keys for lev in levels]
+    assert all(k is not None for k in node_keys)  # set with the tree
+    field = NormalField(splats.rhs_fields, node_keys)  # type: ignore[arg-type]  # checked above
+    del node_keys
     splats.rhs_fields = None  # the field drops each level's share once used
     with task(progress, "poisson: solve", total=sum(work)) as tk:
         for lev in levels:
@@ -67,6 +72,7 @@ def solve(
             nn = lev.n_nodes
             ke = UNIT_STIFFNESS / (1 << d)
             # (n,) vectors are updated in place
+            assert lev.node_keys is not None and lev.unknown is not None  # until this level ends
             rhs = field.rhs(d, lev.cell_keys, lev.node_keys, lev.unknown)
             # past the right-hand side only the nodes on the cube's faces are needed (for the
             # extraction's clamp), not the node keys
@@ -155,7 +161,8 @@ def solve(
                 }
             )
             log.info(
-                "poisson: level %2d  nodes %9d  unknowns %9d  cg iterations %4d  residual %.2e  %.2f s",
+                "poisson: level %2d  nodes %9d  unknowns %9d  cg iterations %4d  residual %.2e "
+                " %.2f s",
                 d,
                 nn,
                 n_unknown,
@@ -174,7 +181,7 @@ def solve_work(levels: list[Level], full_depth: int) -> list[float]:
 
     Set-up and each CG iteration cost about the same per node; an exact level (depth <=
     ``full_depth``, tolerance 1e-7) takes about ``4.5 * 2**depth`` iterations, a finer one
-    about 10 (measured on the shared scans: 9..144 iterations); each level also costs a fixed
+    about 10 (see ``bench/calibration.md``); each level also costs a fixed
     amount (kernel calls, freeing the heap) worth ~30k nodes.
     """
     out = []
@@ -187,11 +194,13 @@ def solve_work(levels: list[Level], full_depth: int) -> list[float]:
 def chi_at(
     levels: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]], pos: np.ndarray
 ) -> np.ndarray:
-    """chi at unit-cube positions ``pos`` (n, 3), each evaluated in the finest cell of the
-    tree that holds it (chi is trilinear there and continuous across cells).
+    """Chi at unit-cube positions ``pos`` (n, 3), each in the finest cell of the tree holding it.
+
+    Chi is trilinear in a cell and continuous across cells.
 
     ``levels`` holds (depth, cell_keys, cell_nodes, chi at the level's nodes) per level,
-    coarse to fine (:func:`chi_levels`)."""
+    coarse to fine (:func:`chi_levels`).
+    """
     out = np.full(len(pos), np.nan)
     todo = np.arange(len(pos))
     for depth, cell_keys, cell_nodes, g in levels[::-1]:
@@ -208,7 +217,11 @@ def chi_levels(
     levels: list[Level], gvals: list[np.ndarray]
 ) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]:
     """What :func:`chi_at` needs of the solved levels (references, no copies)."""
-    return [(lev.depth, lev.cell_keys, lev.cell_nodes, g) for lev, g in zip(levels, gvals)]
+    out = []
+    for lev, g in zip(levels, gvals, strict=True):
+        assert lev.cell_nodes is not None  # set with the tree
+        out.append((lev.depth, lev.cell_keys, lev.cell_nodes, g))
+    return out
 
 
 def iso_value(levels: list[Level], gvals: list[np.ndarray], smp: Samples) -> float:

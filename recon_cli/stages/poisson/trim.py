@@ -37,8 +37,8 @@ from recon_cli.geometry import TriangleMesh
 from recon_cli.mesh.topology import Connectivity
 from recon_cli.tolerances import tol
 
-# islands (high pieces in the sheet, low holes in the surface) below this fraction of the
-# kept area are dropped / filled (SurfaceTrimmer's --aRatio default, which it takes of the whole area)
+# islands (high pieces in the sheet, low holes in the surface) below this fraction of the kept area
+# are dropped / filled (SurfaceTrimmer's --aRatio default, which it takes of the whole area)
 ISLAND_AREA_RATIO = 1e-3
 # --trim auto: the local spacing of a sample is its distance to its SUPPORT_K-th nearest
 # sample ...
@@ -71,7 +71,9 @@ def trim_by_density(
     island_ratio: float = ISLAND_AREA_RATIO,
     carry: np.ndarray | None = None,
 ) -> Trimmed:
-    """Remove the part of ``mesh`` where ``density`` (per vertex, linear on faces) is at most ``threshold``.
+    """Remove the part of ``mesh`` where ``density`` is at most ``threshold``.
+
+    ``density`` is per vertex, linear on faces.
 
     Parameters
     ----------
@@ -113,7 +115,7 @@ def trim_by_density(
     t = np.clip((threshold - d[e0]) / (d[e1] - d[e0]), tol.contour, 1.0 - tol.contour)
     new_v = v[e0] + t[:, None] * (v[e1] - v[e0])
     # the cut vertex of each half-edge of the cut faces (-1 when it does not cross)
-    hv = np.full(len(a), -1, np.int64)
+    hv: np.ndarray = np.full(len(a), -1, np.int64)
     hv[cross] = n + inv
     hv = hv.reshape(-1, 3)  # hv[:, k]: the cut on edge (corner k -> corner k+1)
 

@@ -44,12 +44,11 @@ import numpy as np
 
 from recon_cli.errors import InputError, ParameterError
 from recon_cli.geometry import TriangleMesh, bbox_diagonal, float64, local_origin
-from recon_cli.params import Param, StageSpec
 from recon_cli.mesh.topology import CHUNK, Connectivity, index_dtype, stable_argsort
+from recon_cli.params import Param, StageSpec
 from recon_cli.progress import task
 from recon_cli.stages import StageResult
 from recon_cli.tolerances import tol
-
 
 # ---- the declaration -------------------------------------------------------------------------
 SPEC = StageSpec(
@@ -110,8 +109,8 @@ class _State:
     def __init__(self, mesh: TriangleMesh):
         self.vertices = mesh.vertices
         self.faces = mesh.faces
-        self.vsrc = None  # None: identity (nothing changed yet)
-        self.fsrc = None
+        self.vsrc: np.ndarray | None = None  # None: identity (nothing changed yet)
+        self.fsrc: np.ndarray | None = None
         # room for the vertices and faces that steps 4 and 6 may add
         self.it = index_dtype(
             4 * len(mesh.vertices) + 3 * len(mesh.faces) + 3, 3 * len(mesh.faces) + 3
@@ -124,7 +123,8 @@ class _State:
     @faces.setter
     def faces(self, f: np.ndarray) -> None:
         self._faces = f
-        self._conn = None  # connectivity is rebuilt only after the faces changed
+        # the connectivity is rebuilt only after the faces changed
+        self._conn: Connectivity | None = None
 
     def _vs(self):
         return np.arange(len(self.vertices), dtype=self.it) if self.vsrc is None else self.vsrc
@@ -157,7 +157,7 @@ class _State:
         used[self.faces.ravel()] = True
         n_drop = int(len(used) - used.sum())
         if n_drop:
-            new = np.cumsum(used, dtype=self.it)
+            new: np.ndarray = np.cumsum(used, dtype=self.it)
             new -= 1
             self.faces = new[self.faces]
             self.vsrc = self._vs()[used]
@@ -221,7 +221,10 @@ def _merge_vertices(st: _State, tolerance: float | None) -> tuple[int, float]:
 def _split_fans(
     st: _State, conn: Connectivity, link_a: np.ndarray, link_b: np.ndarray
 ) -> tuple[int, int]:
-    """Give every fan but one of each vertex its own vertex; returns (vertices split, vertices added)."""
+    """Give every fan but one of each vertex its own vertex.
+
+    Returns (vertices split, vertices added).
+    """
     labels = conn.corner_fans(link_a, link_b)
     if len(labels) == 0:
         return 0, 0
@@ -378,7 +381,8 @@ def _orient(st: _State, normals: np.ndarray | None, rep: dict) -> None:
     # per-face terms in chunks, (chunk, 3) float64 temporaries instead of (m, 3) ones: six
     # times the signed volume of the face's tetrahedron, and the area (or the agreement
     # with the vertex normals), both sign-flipped with the face
-    vol = agree = None
+    vol: np.ndarray | None = None
+    agree: np.ndarray | None = None
     for kind in ("volume", "side"):
         term = np.empty(m, dtype=np.float64)
         for s in range(0, m, CHUNK):
@@ -388,7 +392,7 @@ def _orient(st: _State, normals: np.ndarray | None, rep: dict) -> None:
             if kind == "volume":
                 p0 -= centre[comp[s : s + CHUNK]]
                 term[s : s + len(fk)] = np.einsum("ij,ij->i", p0, cross)
-            elif normals is not None:
+            elif normals is not None and vs is not None:
                 term[s : s + len(fk)] = np.einsum("ij,ij->i", normals[vs[fk]].sum(axis=1), cross)
             else:
                 term[s : s + len(fk)] = 0.5 * np.linalg.norm(cross, axis=1)
@@ -399,6 +403,7 @@ def _orient(st: _State, normals: np.ndarray | None, rep: dict) -> None:
             agree = np.bincount(comp, weights=term, minlength=n_comp)
         del term
     del vs
+    assert vol is not None and agree is not None  # both kinds ran
     reverse = np.where(open_comp, agree < 0, vol < 0)
     flip = flip ^ reverse[comp]  # not in place: the connectivity's cached array
     rep["faces_flipped"] = int(flip.sum())

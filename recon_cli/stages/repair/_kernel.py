@@ -1,4 +1,7 @@
-"""Numba kernels of :mod:`recon_cli.stages.repair`. They only compute; validation lives in repair.py."""
+"""Numba kernels of :mod:`recon_cli.stages.repair`.
+
+They only compute; validation lives in repair.py.
+"""
 
 from __future__ import annotations
 

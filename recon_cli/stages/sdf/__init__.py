@@ -35,6 +35,7 @@ Kolluri, R. (2005). Provably good moving least squares. SODA (the cloud's IMLS).
 from __future__ import annotations
 
 import copy
+from typing import Any
 
 import numpy as np
 
@@ -52,7 +53,7 @@ BYTES_PER_SAMPLE = {"mesh": 24, "cloud": 56, "open3d": 48}
 SPEC = StageSpec(
     name="sdf",
     summary="Signed distance grid (.npz) of a mesh or oriented cloud.",
-    description="""Signed distance grid (.npz, negative inside) of a mesh or an oriented point cloud.
+    description="""Signed distance grid (.npz, negative inside) of a mesh or an oriented cloud.
 
     Clouds need normals; samples far from every point are unknown (NaN) and `recon mcubes`
     leaves them out.""",
@@ -161,7 +162,8 @@ def grid_frame(
         raise ParameterError(
             f"voxel size {h:.6g} is too small for a box of {float(size.max()):.6g}"
         )
-    shape = tuple(int(s) + 1 for s in cells)
+    nx, ny, nz = (int(s) + 1 for s in cells)
+    shape = (nx, ny, nz)
     # centre the data in the (slightly larger) sampled box
     org = org - 0.5 * ((np.array(shape) - 1) * h - size)
     return org, h, shape
@@ -174,8 +176,10 @@ def grid_points(
     mask: np.ndarray | None = None,
     flat: np.ndarray | None = None,
 ) -> np.ndarray:
-    """World coordinates ((k, 3)) of all samples, of those where ``mask``, or of the
-    samples at C-order indices ``flat``."""
+    """World coordinates ((k, 3)) of samples: all, those where ``mask``, or those at ``flat``.
+
+    ``flat`` holds C-order indices.
+    """
     if flat is not None:
         idx = np.stack(np.unravel_index(np.asarray(flat, dtype=np.int64), shape), axis=1)
     elif mask is None:
@@ -270,7 +274,7 @@ def closed_mesh_inside(
     dist: np.ndarray,
     bvh=None,
 ) -> tuple[np.ndarray, dict]:
-    """Sign the distances of a closed mesh's grid exactly: negative where the winding number is not 0.
+    """Sign a closed mesh's grid distances exactly: negative where the winding number is not 0.
 
     The winding number of a closed mesh (:func:`is_boundary_free`) is an integer,
     constant on each connected piece of space off the surface. Two 6-neighbour samples
@@ -342,12 +346,14 @@ def closed_mesh_inside(
 
 
 class _GridWinding:
-    """|winding number| at masked grid samples; the tree is built on first use and the
-    evaluations are counted."""
+    """Absolute winding number at masked grid samples.
+
+    The tree is built on first use and the evaluations are counted.
+    """
 
     def __init__(self, vertices, faces, origin, h, shape, bvh):
         self.args = (vertices, faces, bvh)
-        self.frame = (origin, h, shape)
+        self.frame: tuple[np.ndarray, float, tuple[int, int, int]] = (origin, h, shape)
         self.tree = None
         self.evaluations = 0
 
@@ -386,15 +392,19 @@ def _open_winding_sdf(vertices, faces, origin, h, shape, dist, bvh) -> tuple[np.
 
 
 def _far_regions(dist, inside, far, winding: _GridWinding, method: str) -> tuple[np.ndarray, dict]:
-    """Sign the connected regions of ``far`` samples (two neighbouring samples farther than
-    one voxel from the mesh cannot have the surface between them, so such a region has one
-    side): a coarse subset of each region is evaluated; a region whose subset disagrees
-    (open through a hole) is evaluated everywhere. Negates ``dist`` in place inside."""
+    """Sign the connected regions of ``far`` samples.
+
+    Two neighbouring samples farther than one voxel from the mesh cannot have the surface between
+    them, so such a region has one side: a coarse subset of each region is evaluated; a region whose
+    subset disagrees (open through a hole) is evaluated everywhere. Negates ``dist`` in place
+    inside.
+    """
     from scipy import ndimage
 
     shape = dist.shape
     labels, n = ndimage.label(far) if far.any() else (None, 0)
     if n:
+        assert labels is not None  # labelled whenever there are regions
         # a coarse lattice of samples per region; a region the lattice misses (thin or
         # small) gets its first few samples, found inside its bounding box
         pick_mask = np.zeros(shape, dtype=bool)
@@ -431,10 +441,12 @@ def _far_regions(dist, inside, far, winding: _GridWinding, method: str) -> tuple
 
 
 def is_boundary_free(faces: np.ndarray) -> bool:
-    """True when every directed edge a->b of ``faces`` is matched by as many b->a: the
-    triangles form a closed surface (a cycle), whose winding number is an integer off the
+    """True when every directed edge a->b of ``faces`` is matched by as many b->a.
+
+    The triangles form a closed surface (a cycle), whose winding number is an integer off the
     surface. Holds for watertight, consistently oriented meshes, also non-manifold or
-    self-intersecting ones; a face flipped against its neighbours breaks it."""
+    self-intersecting ones; a face flipped against its neighbours breaks it.
+    """
     f = np.asarray(faces, dtype=np.int64)
     if len(f) == 0:
         return False
@@ -598,7 +610,7 @@ def run_stage(
     backend: str,
     progress=None,
 ):
-    """Stage ``sdf``: a mesh or an oriented cloud -> a signed distance :class:`~recon_cli.grid.Grid`.
+    """Stage ``sdf``: a mesh or an oriented cloud -> signed distance :class:`~recon_cli.grid.Grid`.
 
     Parameters
     ----------
@@ -682,7 +694,7 @@ def run_stage(
                 np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), axis=-1
             ).reshape(-1, 3)
             sdf = open3d_backend.signed_distance(local, (origin - centre) + ijk * h).reshape(shape)
-            info = {}
+            info: dict[str, Any] = {}
             sign = "open3d"
         elif is_mesh:
             sdf, info = mesh_sdf(

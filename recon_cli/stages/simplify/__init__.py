@@ -224,10 +224,12 @@ class Decimator:
         self.log_t = np.empty(n, dtype=np.float64)
 
     def result(self) -> dict[str, np.ndarray]:
-        """The state in the input's numbering: ``valive``, ``moved`` (n,) bool, ``positions``
-        (n, 3) (in the input's units), ``falive`` (m,) bool, ``faces`` (m, 3) (input
-        vertex indices), and the collapses in order: ``log_u`` (kept), ``log_v`` (merged
-        into it), ``log_t`` (where along u -> v the new vertex projects)."""
+        """The state in the input's numbering.
+
+        ``valive``, ``moved`` (n,) bool, ``positions`` (n, 3) (in the input's units), ``falive``
+        (m,) bool, ``faces`` (m, 3) (input vertex indices), and the collapses in order: ``log_u``
+        (kept), ``log_v`` (merged into it), ``log_t`` (where along u -> v the new vertex projects).
+        """
         inv, order = self.inv, self.order
         finv = np.empty(len(self.forder), dtype=np.int64)
         finv[self.forder] = np.arange(len(self.forder))
@@ -245,10 +247,12 @@ class Decimator:
 
     @property
     def n_faces(self) -> int:
+        """The faces left."""
         return int(self.meta[self.K.M_FACES])
 
     @property
     def stuck(self) -> bool:
+        """Whether no edge can collapse any more (the target is out of reach)."""
         return bool(self.meta[self.K.M_STUCK])
 
     def run(self, target: int, stop_at: int) -> None:
@@ -390,8 +394,10 @@ def simplify(
 
 
 def _output(mesh: TriangleMesh, d: Decimator, normal_dtype=None) -> TriangleMesh:
-    """The surviving vertices and faces, with the input's data carried through the collapses
-    (normals in ``normal_dtype``, default their own)."""
+    """The surviving vertices and faces, with the input's data carried through the collapses.
+
+    Normals are in ``normal_dtype``, default their own.
+    """
     n = len(mesh.vertices)
     r = d.result()
     keep_v, falive = r["valive"], r["falive"]

@@ -41,7 +41,7 @@ QUALITY = 0.3
 
 @njit(cache=True)
 def vertex_faces(faces, n):
-    """Vertex -> faces lists: ``vstart`` (n,), ``vcount`` (n,), ``refs`` (6 m,) of which 3 m used."""
+    """Vertex -> faces lists: ``vstart`` (n,), ``vcount`` (n,), ``refs`` (6 m,), 3 m of it used."""
     m = faces.shape[0]
     vcount = np.zeros(n, np.int64)
     for f in range(m):
@@ -385,8 +385,10 @@ def _update(hk, hpos, meta, e, key):
 
 @njit(cache=True)
 def vertex_edges(faces, n, vstart, vcount, refs):
-    """The unique edges ``ea < eb`` (E,) and vertex -> edges lists (``estart``, ``ecount``,
-    ``erefs`` of size 2 x 2E, half used)."""
+    """The unique edges ``ea < eb`` (E,) and vertex -> edges lists.
+
+    The lists are ``estart``, ``ecount`` and ``erefs`` of size 2 x 2E, half used.
+    """
     mark = np.full(n, -1, np.int64)
     ecount = np.zeros(n, np.int64)
     n_edges = 0

@@ -216,12 +216,16 @@ def smooth(
         "max_displacement": float(disp[moves].max() / diag) if moves.any() else 0.0,
         "volume_in": vol_in,
         "volume_out": vol_out,
-        "volume_change": (vol_out - vol_in) / abs(vol_in) if closed and vol_in else None,
+        "volume_change": (
+            (vol_out - vol_in) / abs(vol_in) if vol_in and vol_out is not None else None
+        ),
     }
     out = TriangleMesh(
         vertices=verts,
         faces=f,
-        normals=None if mesh.normals is None else _vertex_normals(verts, f, source_normals),
+        normals=None
+        if mesh.normals is None
+        else _vertex_normals(verts, f, mesh.normals if source_normals is None else source_normals),
         colors=mesh.colors,
         attributes=dict(mesh.attributes),
         face_attributes=dict(mesh.face_attributes),
