@@ -20,11 +20,11 @@ Inputs:
 - real-like depth-camera clouds (issue 29): 640 x 480 depth images of a tabletop (251k valid
   points) and (not ``--quick``) an office (270k) ray-cast by ``tests/sensors.py`` (Kinect-like
   noise, flying pixels), normals by our ``normals`` stage towards the camera, depth 9,
-  untrimmed (time); the tabletop also trimmed: ours ``--trim auto``, Open3D's 5 % quantile and,
-  where ``$RECON_POISSONRECON`` holds the built ``PoissonRecon`` and ``SurfaceTrimmer``, those
-  (``--trim 7``) as processes, with the issue's figures in the note: input points within 0.5 %
-  of the diagonal of the mesh, mesh area farther than 1 % from every point, pieces, and the
-  mean distance of the mesh to the true scene;
+  untrimmed (time); the tabletop also trimmed: ours ``--trim auto``, Open3D's 5 % quantile
+  and, where ``$POISSONRECON_BIN`` (or the reference build) holds ``PoissonRecon`` and
+  ``SurfaceTrimmer``, those (``--trim 7``) as processes, with the issue's figures in the note:
+  input points within 0.5 % of the diagonal of the mesh, mesh area farther than 1 % from every
+  point, pieces, and the mean distance of the mesh to the true scene;
 - 1M samples of the armadillo at depth 9 and 10 (time and memory), and (not ``--quick``)
   5M samples at depth 11, ours only (target: within 12 GiB).
 
@@ -315,6 +315,7 @@ def _rows_for(
 # tests/sensors.py (Kinect-like noise growing with the squared distance, flying pixels at the
 # depth edges, NaN misses dropped), normals by our normals stage oriented towards the camera
 
+POISSONRECON_DEFAULT = "/work/ref/PoissonRecon/Bin/Linux/PoissonRecon"
 SURFACE_TRIMMER = 7  # PoissonRecon's SurfaceTrimmer --trim in the trimmed rows (issue 29's)
 
 
@@ -365,13 +366,16 @@ def _depth_camera(scene: str):
 
 
 def _poissonrecon_dir() -> Path | None:
-    """Where PoissonRecon and SurfaceTrimmer (``make poissonrecon surfacetrimmer`` of
-    mkazhdan/PoissonRecon) are: ``$RECON_POISSONRECON``; None when not there."""
+    """The folder of the built ``PoissonRecon`` and ``SurfaceTrimmer``, None when not built.
+
+    ``$POISSONRECON_BIN`` names the PoissonRecon executable (default: the reference build's),
+    SurfaceTrimmer lies beside it (``make poissonrecon surfacetrimmer`` of mkazhdan/PoissonRecon).
+    """
     import os
 
-    d = os.environ.get("RECON_POISSONRECON")
-    if d and (Path(d) / "PoissonRecon").exists() and (Path(d) / "SurfaceTrimmer").exists():
-        return Path(d)
+    exe = Path(os.environ.get("POISSONRECON_BIN", POISSONRECON_DEFAULT))
+    if exe.exists() and (exe.parent / "SurfaceTrimmer").exists():
+        return exe.parent
     return None
 
 
@@ -460,7 +464,7 @@ def _depth_camera_rows(scene: str, depth: int, work: Path, trimmed: bool) -> lis
         )
     if bindir is None:
         out.append(
-            {"case": label, "method": "PoissonRecon", "note": "not run: no $RECON_POISSONRECON"}
+            {"case": label, "method": "PoissonRecon", "note": "not built: no $POISSONRECON_BIN"}
         )
     ours, ref = meshes.get("recon (process)"), meshes.get("open3d")
     if ours and ref:
