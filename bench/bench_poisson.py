@@ -542,7 +542,7 @@ def rows(quick: bool, only: list[str] | None = None) -> list[dict]:
         for scene in ("tabletop",) if quick else ("tabletop", "office"):
             if want(f"depth camera {scene}"):
                 out += _depth_camera_rows(scene, 9, work, trimmed=False)
-        if want("depth camera tabletop") and want("trimmed"):
+        if want("depth camera tabletop, trimmed"):
             out += _depth_camera_rows("tabletop", 9, work, trimmed=True)
         noisy = _samples("kitten", 100_000, NOISE)
         noisy.normals = None
