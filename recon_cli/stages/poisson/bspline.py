@@ -44,6 +44,7 @@ from __future__ import annotations
 import functools
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -556,7 +557,6 @@ def solve(
     chi is fixed).
     """
     spos, count = smp.pos, smp.count
-    alpha = splats.alpha
     screen_w = splats.screening(SCREEN_CLEAN, SCREEN_NOISY)
     if sample_ok is not None:
         screen_w = screen_w * sample_ok
@@ -565,7 +565,7 @@ def solve(
     last_res = 0.0
     per_level = []
     fields: list[LevelField] = []
-    node_keys = []
+    node_keys: list[np.ndarray] = []
     prev: LevelField | None = None
     # every level's E first: the finer levels' right-hand sides are restricted from the finest up
     lfs, arrays = level_fields(levels, boundary)
@@ -582,160 +582,248 @@ def solve(
         for lev in levels:
             release_free_heap()
             tl = time.perf_counter()
+            _prepare_level(levels, lev, node_keys)
             d = lev.depth
-            lev.face_nodes = O.face_nodes(lev.node_keys, 1 << d)
-            assert lev.node_keys is not None  # dropped only after the solve
-            node_keys.append(lev.node_keys)
-            lev.node_keys = lev.unknown = lev.ncell = None
-            if d > 0:
-                levels[d - 1].leaf = ~O.cell_has_child(
-                    lev.cell_parent, len(levels[d - 1].cell_keys)
-                )
-                lev.cell_parent = None
             if d == 0:
                 tk.advance(1)
                 continue
             f = lfs[d]
             assert f is not None  # levels 1.. have a field
             lfs[d] = None
-            n = 1 << d
-            h = 1.0 / n
-            m1, k1 = level_tables(n, f.s, boundary == "free")[:2]
-            unknown = np.repeat(f.inp, 8)
-            ne = len(unknown)
-            fixed = None if free_cells is None else ~free_cells(d, cell_keys(f.q_keys))
             if KERNEL_WIDTH == 1.0:
-                rhs = normal_rhs.rhs(d)
+                make_rhs = functools.partial(normal_rhs.rhs, d)
             else:
-                rhs = B.splat_rhs(*items, d, f.q_keys, f.inp, f.s, KERNEL_WIDTH)
-            if not m1.any():
-                # the free boundary's level 1 carries no function (level_tables): chi is 0 on it
-                f.coef = coef_all[8 * arrays[1][d] : 8 * arrays[1][d + 1]]
-                fields.append(f)
-                prev = f
-                per_level.append(
-                    {"depth": d, "nodes": ne, "unknowns": 0, "iterations": 0, "residual": 0.0}
+                make_rhs = functools.partial(
+                    B.splat_rhs, *items, d, f.q_keys, f.inp, f.s, KERNEL_WIDTH
                 )
-                per_level[-1]["seconds"] = time.perf_counter() - tl
-                tk.advance(1)
-                continue
-            diag = B.stiffness_diag(f.q_keys, f.inp, m1, k1, h)
-            if alpha > 0:
-                mp, mw = _merge_per_cell(spos, screen_w, d)
-                scell, sloc = f.locate(mp)
-                have = scell >= 0
-                scell, sloc, sw = scell[have], sloc[have], mw[have]
-                del mp, mw, have
-                B.screening_diag_rhs(f.q_keys, f.nb, n, f.s, scell, sloc, sw, TARGET, diag, rhs)
-            else:
-                scell, sloc, sw = np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
-            # the solve's vectors on the unknowns only (the children of the flagged parents),
-            # made before the coarser levels' field is prolonged: at the finest level of 1M
-            # samples at depth 10 the right-hand side, the diagonal, the prolonged field and its
-            # product on all of E were alive at once, the process's peak
-            cmap = np.cumsum(f.inp) - 1
-            cmap[~f.inp] = -1
-            if fixed is not None:
-                diag[fixed] = 0.0  # level_pcg leaves the rows without a diagonal at 0
-                rhs[fixed] = 0.0
-            rhs = rhs[unknown]
-            diag = diag[unknown]
-            if prev is not None:
-                # the residual the coarser levels leave: A G at the unknowns, G on all of E
-                G = B.prolong(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s)
-                if fixed is not None:
-                    G[fixed] = 0.0
-                AG = np.empty(len(rhs))
-                B.level_matvec(
-                    f.q_keys,
-                    f.nb,
-                    f.inp,
-                    np.arange(len(f.q_keys)),
-                    cmap,
-                    m1,
-                    k1,
-                    h,
-                    n,
-                    f.s,
-                    scell,
-                    sloc,
-                    sw,
-                    G,
-                    AG,
-                )
-                rhs -= AG
-                del AG, G
-            exact = d <= full_depth
-            release_free_heap()
-            x, it, rel = B.level_pcg(
-                f.q_keys,
-                f.nb,
-                f.inp,
-                cmap,
-                m1,
-                k1,
-                h,
-                n,
-                f.s,
-                scell,
-                sloc,
-                sw,
-                rhs,
-                diag,
-                1e-7 if exact else cg_tolerance,
-                2000 if exact else 200,
+            fixed = None if free_cells is None else ~free_cells(d, cell_keys(f.q_keys))
+            stats, solved = _solve_level(
+                f,
+                prev,
+                make_rhs,
+                fixed,
+                coef_all[8 * arrays[1][d] : 8 * arrays[1][d + 1]],
+                spos,
+                screen_w,
+                splats.alpha,
+                boundary,
+                1e-7 if d <= full_depth else cg_tolerance,
+                2000 if d <= full_depth else 200,
             )
-            del rhs, diag, scell, sloc, sw, cmap
-            # the level's chi: the coarser field prolonged again (cheaper than keeping it on all
-            # of E through the conjugate gradients) plus the correction
-            f.coef = coef_all[8 * arrays[1][d] : 8 * arrays[1][d + 1]]
-            if prev is not None:
-                B.prolong_into(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s, f.coef)
-            if fixed is not None:
-                f.coef[fixed] = 0.0
-            f.coef[unknown] += x
-            del x
+            del make_rhs, fixed
             fields.append(f)
             prev = f
-            total_it += it
-            last_res = rel
-            per_level.append(
-                {
-                    "depth": d,
-                    "nodes": ne,
-                    "unknowns": int(unknown.sum()),
-                    "iterations": it,
-                    "residual": rel,
-                    "seconds": time.perf_counter() - tl,
-                }
-            )
-            log.info(
-                "poisson: level %2d  cells %9d  unknowns %9d  cg iterations %4d  residual %.2e "
-                " %.2f s",
-                d,
-                ne,
-                int(unknown.sum()),
-                it,
-                rel,
-                time.perf_counter() - tl,
-            )
+            stats["seconds"] = time.perf_counter() - tl
+            per_level.append(stats)
+            if solved:
+                total_it += stats["iterations"]
+                last_res = stats["residual"]
+                log.info(
+                    "poisson: level %2d  cells %9d  unknowns %9d  cg iterations %4d  residual "
+                    "%.2e  %.2f s",
+                    d,
+                    stats["nodes"],
+                    stats["unknowns"],
+                    stats["iterations"],
+                    stats["residual"],
+                    time.perf_counter() - tl,
+                )
             tk.advance(1)
+    del prev
+    chi, gvals = _level_values(levels, node_keys, fields, boundary, arrays)
+    del arrays, coef_all, fields
+    chi_s = chi.at(spos)
+    iso = float((chi_s * count).sum() / count.sum())
+    log.info("poisson: iso-value %.6f", iso)
+    return gvals, per_level, total_it, last_res, iso, chi
+
+
+def _prepare_level(levels: list[Level], lev: Level, node_keys: list[np.ndarray]) -> None:
+    """The tree's bookkeeping before level ``lev``'s solve.
+
+    Its face nodes are made, its node keys moved to ``node_keys`` (the corners need them after the
+    solve) and the coarser level's leaves flagged.
+    """
+    d = lev.depth
+    lev.face_nodes = O.face_nodes(lev.node_keys, 1 << d)
+    assert lev.node_keys is not None  # dropped only after the solve
+    node_keys.append(lev.node_keys)
+    lev.node_keys = lev.unknown = lev.ncell = None
+    if d > 0:
+        levels[d - 1].leaf = ~O.cell_has_child(lev.cell_parent, len(levels[d - 1].cell_keys))
+        lev.cell_parent = None
+
+
+def _solve_level(
+    f: LevelField,
+    prev: LevelField | None,
+    make_rhs: Callable[[], np.ndarray],
+    fixed: np.ndarray | None,
+    coef: np.ndarray,
+    spos: np.ndarray,
+    screen_w: np.ndarray,
+    alpha: float,
+    boundary: str,
+    tolerance: float,
+    max_iter: int,
+) -> tuple[dict, bool]:
+    """Solve one level's correction to the coarser levels' field ``prev``; set ``f.coef``.
+
+    ``make_rhs()`` gives the level's right-hand side (8q,) on E (made here, so that only the
+    unknowns' part outlives the screening), ``fixed`` (8q,) bool the cells
+    whose coefficient is 0 (or None), ``coef`` (8q,) the view of the solve's coefficients that
+    becomes ``f.coef``: the level's whole chi, the coarser field prolonged plus the correction.
+    Returns the level's statistics (depth, nodes, unknowns, iterations, residual) and whether
+    it was solved (the free boundary's level 1 carries no function).
+    """
+    d = f.depth
+    n = 1 << d
+    h = 1.0 / n
+    m1, k1 = level_tables(n, f.s, boundary == "free")[:2]
+    unknown = np.repeat(f.inp, 8)
+    ne = len(unknown)
+    if not m1.any():
+        # the free boundary's level 1 carries no function (level_tables): chi is 0 on it
+        f.coef = coef
+        return {"depth": d, "nodes": ne, "unknowns": 0, "iterations": 0, "residual": 0.0}, False
+    rhs = make_rhs()
+    diag = B.stiffness_diag(f.q_keys, f.inp, m1, k1, h)
+    scell, sloc, sw = _screening_samples(f, spos, screen_w, alpha, diag, rhs)
+    # the solve's vectors on the unknowns only (the children of the flagged parents), made before
+    # the coarser levels' field is prolonged: on the finest level of a large solve the right-hand
+    # side, the diagonal, the prolonged field and its product on all of E were alive at once
+    cmap = np.cumsum(f.inp) - 1
+    cmap[~f.inp] = -1
+    if fixed is not None:
+        diag[fixed] = 0.0  # level_pcg leaves the rows without a diagonal at 0
+        rhs[fixed] = 0.0
+    rhs = rhs[unknown]
+    diag = diag[unknown]
+    if prev is not None:
+        _subtract_coarse(f, prev, cmap, m1, k1, scell, sloc, sw, fixed, rhs)
+    release_free_heap()
+    x, it, rel = B.level_pcg(
+        f.q_keys,
+        f.nb,
+        f.inp,
+        cmap,
+        m1,
+        k1,
+        h,
+        n,
+        f.s,
+        scell,
+        sloc,
+        sw,
+        rhs,
+        diag,
+        tolerance,
+        max_iter,
+    )
+    del rhs, diag, scell, sloc, sw, cmap
+    # the level's chi: the coarser field prolonged again (cheaper than keeping it on all of E
+    # through the conjugate gradients) plus the correction
+    f.coef = coef
+    if prev is not None:
+        B.prolong_into(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s, f.coef)
+    if fixed is not None:
+        f.coef[fixed] = 0.0
+    f.coef[unknown] += x
+    stats = {
+        "depth": d,
+        "nodes": ne,
+        "unknowns": int(unknown.sum()),
+        "iterations": it,
+        "residual": rel,
+    }
+    return stats, True
+
+
+def _screening_samples(
+    f: LevelField,
+    spos: np.ndarray,
+    screen_w: np.ndarray,
+    alpha: float,
+    diag: np.ndarray,
+    rhs: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The level's screening samples (cell, position in it, weight), their terms added.
+
+    The samples are merged per cell of the level; their screening is added to ``diag`` and
+    ``rhs`` (8q,) in place. None (empty arrays) when ``alpha`` is 0.
+    """
+    if alpha <= 0:
+        return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
+    mp, mw = _merge_per_cell(spos, screen_w, f.depth)
+    scell, sloc = f.locate(mp)
+    have = scell >= 0
+    scell, sloc, sw = scell[have], sloc[have], mw[have]
+    del mp, mw, have
+    B.screening_diag_rhs(f.q_keys, f.nb, 1 << f.depth, f.s, scell, sloc, sw, TARGET, diag, rhs)
+    return scell, sloc, sw
+
+
+def _subtract_coarse(
+    f: LevelField,
+    prev: LevelField,
+    cmap: np.ndarray,
+    m1: np.ndarray,
+    k1: np.ndarray,
+    scell: np.ndarray,
+    sloc: np.ndarray,
+    sw: np.ndarray,
+    fixed: np.ndarray | None,
+    rhs: np.ndarray,
+) -> None:
+    """``rhs -= A G`` at the unknowns: the residual the coarser levels' field ``G`` leaves.
+
+    ``G`` is ``prev``'s field prolonged onto all of the level's E (0 at the ``fixed`` cells).
+    """
+    n = 1 << f.depth
+    G = B.prolong(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s)
+    if fixed is not None:
+        G[fixed] = 0.0
+    AG = np.empty(len(rhs))
+    B.level_matvec(
+        f.q_keys,
+        f.nb,
+        f.inp,
+        np.arange(len(f.q_keys)),
+        cmap,
+        m1,
+        k1,
+        1.0 / n,
+        n,
+        f.s,
+        scell,
+        sloc,
+        sw,
+        G,
+        AG,
+    )
+    rhs -= AG
+
+
+def _level_values(
+    levels: list[Level],
+    node_keys: list[np.ndarray],
+    fields: list[LevelField],
+    boundary: str,
+    arrays: tuple,
+) -> tuple[ChiField, list[np.ndarray]]:
+    """The solved field and chi at each level's nodes, as the extraction reads them.
+
+    The extraction interpolates each leaf trilinearly from its corners: the finer side of a
+    leaf's faces takes those values (chi's own everywhere else).
+    """
     levels[-1].leaf = np.ones(len(levels[-1].cell_keys), bool)
     for lev, keys in zip(levels, node_keys, strict=True):
         set_corners(lev, keys)
     chi = ChiField(fields, boundary, arrays)
-    del arrays, coef_all
-    del fields, prev
     gvals = [chi.at_nodes(lev, keys) for lev, keys in zip(levels, node_keys, strict=True)]
-    # the extraction interpolates each leaf trilinearly from its corners: the finer side of
-    # a leaf's faces takes those values (chi's own everywhere else)
     for d in range(1, len(levels)):
         up = levels[d - 1]
         B.constrain_to_coarse_leaves(
             node_keys[d], gvals[d], up.cell_keys, up.cell_nodes, up.leaf, gvals[d - 1]
         )
-    del node_keys
-    chi_s = chi.at(spos)
-    iso = float((chi_s * count).sum() / count.sum())
-    log.info("poisson: iso-value %.6f", iso)
-    return gvals, per_level, total_it, last_res, iso, chi
+    return chi, gvals
