@@ -41,6 +41,7 @@ untrimmed scans the fit (input points to the output), no F-score.
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import tempfile
@@ -51,7 +52,7 @@ import numpy as np
 from _util import measure
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED = ROOT.parent / "shared" / "data"
+SHARED = Path(os.environ.get("RECON_SHARED_DATA", ROOT.parent / "shared" / "data"))
 TAU = 0.005  # F-score threshold, fraction of the diagonal
 N_EVAL = 100_000
 NOISE = 0.0025
@@ -371,8 +372,6 @@ def _poissonrecon_dir() -> Path | None:
     ``$POISSONRECON_BIN`` names the PoissonRecon executable (default: the reference build's),
     SurfaceTrimmer lies beside it (``make poissonrecon surfacetrimmer`` of mkazhdan/PoissonRecon).
     """
-    import os
-
     exe = Path(os.environ.get("POISSONRECON_BIN", POISSONRECON_DEFAULT))
     if exe.exists() and (exe.parent / "SurfaceTrimmer").exists():
         return exe.parent
