@@ -53,6 +53,9 @@ import numpy as np
 from recon_cli.memory import release_free_heap
 from recon_cli.progress import task
 from recon_cli.stages.poisson import _bspline as B
+from recon_cli.stages.poisson import _bspline_eval as BE
+from recon_cli.stages.poisson import _bspline_operator as BO
+from recon_cli.stages.poisson import _bspline_rhs as BR
 from recon_cli.stages.poisson import _octree as O
 from recon_cli.stages.poisson._luts import B2_MASS, B2_STIFFNESS
 from recon_cli.stages.poisson.free import FREE_DOMAIN, domain_tables
@@ -99,7 +102,7 @@ def level_tables(n: int, s: float, free: bool) -> tuple[np.ndarray, ...]:
     """The 1D tables of a level of ``n`` cells.
 
     ``m1``, ``k1`` (:func:`folded_tables`, or over :data:`FREE_DOMAIN` only with ``free``) and the
-    right-hand side's ``fv``, ``fd`` (n, 5) (:func:`._bspline.field_rhs`; ``fd`` per cell). With
+    right-hand side's ``fv``, ``fd`` (n, 5) (:func:`._bspline_rhs.field_rhs`; ``fd`` per cell). With
     ``free``, the level of 2 cells, whose domain is not made of whole cells, carries no function
     (its rows are 0): the finer levels, solved exactly up to the full depth, hold everything it
     would.
@@ -238,8 +241,8 @@ class ChiField:
         self.coef_all = np.concatenate([f.coef for f in order]) if order else np.zeros(0)
 
     def at(self, pos: np.ndarray) -> np.ndarray:
-        """Chi at unit-cube positions (m, 3) (:func:`._bspline.chi_at`)."""
-        return B.chi_at(
+        """Chi at unit-cube positions (m, 3) (:func:`._bspline_eval.chi_at`)."""
+        return BE.chi_at(
             np.ascontiguousarray(pos, dtype=np.float64),
             self.top,
             self.q_all,
@@ -321,7 +324,7 @@ class ChiField:
             q[rows, axis] += t
             pts[k] = q / res
         v0, vm, v1 = (self.at(pts[k]) for k in range(3))
-        t = B.edge_roots(lat, iso, v0, vm, v1, DEGENERATE_CLAMP)
+        t = BE.edge_roots(lat, iso, v0, vm, v1, DEGENERATE_CLAMP)
         out = lo
         out[rows, axis] += t
         verts[keep_idx] = out / res * size + origin
@@ -339,17 +342,17 @@ class NormalRHS:
     counterpart of :class:`.splat.NormalField`.
 
     - Level ``d``'s own share of ``W`` and the coarser levels' (written exactly on level
-      ``d``'s E by B-spline refinement, :func:`._bspline.prolong_field`, carried from level
-      to level) give a fixed 5 x 5 x 5 stencil per cell (:func:`._bspline.field_rhs`).
+      ``d``'s E by B-spline refinement, :func:`._bspline_rhs.prolong_field`, carried from level
+      to level) give a fixed 5 x 5 x 5 stencil per cell (:func:`._bspline_rhs.field_rhs`).
     - The finer levels' shares are their stencils at their own level (on the whole E: a
       share reaches three cells beyond its items), taken to coarser cells by the quadratic
       B-splines' restriction (a coarse B-spline is the finer ones with weights
-      (1, 3, 3, 1) / 4 per axis, :func:`._bspline.restrict_rhs`), computed once from the
+      (1, 3, 3, 1) / 4 per axis, :func:`._bspline_rhs.restrict_rhs`), computed once from the
       finest level up when the field is made.
 
     The field is kept folded at the cube's faces (its images beyond them added onto the
     cells they mirror) and the test functions are reflected: this is, to rounding, what
-    splatting every share at every level with its kernel (:func:`._bspline.splat_rhs`)
+    splatting every share at every level with its kernel (:func:`._bspline_rhs.splat_rhs`)
     gives, faces included (tested). Only for :data:`KERNEL_WIDTH` 1, where the kernels are
     the level's own B-splines.
     """
@@ -378,7 +381,7 @@ class NormalRHS:
             if own is not None:
                 t = np.zeros(8 * len(f.q_keys))
                 fv, fd = self._factors(lv)
-                B.field_rhs(
+                BR.field_rhs(
                     f.q_keys,
                     f.nb,
                     np.ones(len(f.q_keys), bool),
@@ -398,8 +401,8 @@ class NormalRHS:
                 continue
             c = level_fields[lv - 1]
             assert c is not None  # lv - 1 >= 1
-            blocks = B.finer_blocks(c.q_keys, f.q_keys)
-            up = B.restrict_rhs(c.q_keys, c.nb, c.inp, blocks, t, 1 << (lv - 1), c.s)
+            blocks = BR.finer_blocks(c.q_keys, f.q_keys)
+            up = BR.restrict_rhs(c.q_keys, c.nb, c.inp, blocks, t, 1 << (lv - 1), c.s)
             self.finer[lv - 1] = up
             del t, blocks
 
@@ -417,15 +420,15 @@ class NormalRHS:
     def _own(self, lv: int) -> tuple[np.ndarray, np.ndarray] | None:
         """Level ``lv``'s own share of the field.
 
-        The row of each cell of its E (-1 none) and the rows (:func:`._bspline.field_rows`); None if
-        it has none.
+        The row of each cell of its E (-1 none) and the rows (:func:`._bspline_rhs.field_rows`);
+        None if it has none.
         """
         own = self.fields.get(lv)
         if own is None or not len(own[0]):
             return None
         lf = self.lf[lv]
         assert lf is not None  # a level's field lives until the next finer one is done
-        idx, missing = B.field_rows(lf.q_keys, own[0])
+        idx, missing = BR.field_rows(lf.q_keys, own[0])
         if missing:
             raise RuntimeError(
                 f"poisson: {missing} cells of level {lv}'s normal field lie outside its E"
@@ -456,7 +459,7 @@ class NormalRHS:
             p = self.lf[d - 1]
             assert p is not None  # freed only after level d
             if carry is not None and d < self.depth:
-                carry = B.prolong_field(f.q_keys, p.q_keys, p.nb, carry, 1 << (d - 1), f.s)
+                carry = BR.prolong_field(f.q_keys, p.q_keys, p.nb, carry, 1 << (d - 1), f.s)
         own = self._own(d)
         self.fields.pop(d, None)
         if d == 1:
@@ -468,15 +471,15 @@ class NormalRHS:
             if carry is None:
                 carry = np.zeros((8 * len(f.q_keys), 3))
             if own is not None:
-                B.add_rows(carry, *own)
-            B.field_rhs(f.q_keys, f.nb, f.inp, 1 << d, f.s, fv, fd, carry, _NO_ROWS, _NO_FIELD, b)
+                BR.add_rows(carry, *own)
+            BR.field_rhs(f.q_keys, f.nb, f.inp, 1 << d, f.s, fv, fd, carry, _NO_ROWS, _NO_FIELD, b)
             self.carry = carry
         elif carry is not None and d > 1:
             # the finest level: the coarser field refined and its own share read where they
             # are (no copy of either on E)
             p = self.lf[d - 1]
             assert p is not None  # freed only after level d
-            B.field_rhs_prolonged(
+            BR.field_rhs_prolonged(
                 f.q_keys,
                 f.nb,
                 f.inp,
@@ -491,7 +494,7 @@ class NormalRHS:
                 b,
             )
         elif carry is not None or own is not None:
-            B.field_rhs(
+            BR.field_rhs(
                 f.q_keys,
                 f.nb,
                 f.inp,
@@ -594,7 +597,7 @@ def solve(
                 make_rhs = functools.partial(normal_rhs.rhs, d)
             else:
                 make_rhs = functools.partial(
-                    B.splat_rhs, *items, d, f.q_keys, f.inp, f.s, KERNEL_WIDTH
+                    BR.splat_rhs, *items, d, f.q_keys, f.inp, f.s, KERNEL_WIDTH
                 )
             fixed = None if free_cells is None else ~free_cells(d, cell_keys(f.q_keys))
             stats, solved = _solve_level(
@@ -687,7 +690,7 @@ def _solve_level(
         f.coef = coef
         return {"depth": d, "nodes": ne, "unknowns": 0, "iterations": 0, "residual": 0.0}, False
     rhs = make_rhs()
-    diag = B.stiffness_diag(f.q_keys, f.inp, m1, k1, h)
+    diag = BO.stiffness_diag(f.q_keys, f.inp, m1, k1, h)
     scell, sloc, sw = _screening_samples(f, spos, screen_w, alpha, diag, rhs)
     # the solve's vectors on the unknowns only (the children of the flagged parents), made before
     # the coarser levels' field is prolonged: on the finest level of a large solve the right-hand
@@ -702,7 +705,7 @@ def _solve_level(
     if prev is not None:
         _subtract_coarse(f, prev, cmap, m1, k1, scell, sloc, sw, fixed, rhs)
     release_free_heap()
-    x, it, rel = B.level_pcg(
+    x, it, rel = BO.level_pcg(
         f.q_keys,
         f.nb,
         f.inp,
@@ -759,7 +762,7 @@ def _screening_samples(
     have = scell >= 0
     scell, sloc, sw = scell[have], sloc[have], mw[have]
     del mp, mw, have
-    B.screening_diag_rhs(f.q_keys, f.nb, 1 << f.depth, f.s, scell, sloc, sw, TARGET, diag, rhs)
+    BO.screening_diag_rhs(f.q_keys, f.nb, 1 << f.depth, f.s, scell, sloc, sw, TARGET, diag, rhs)
     return scell, sloc, sw
 
 
@@ -784,7 +787,7 @@ def _subtract_coarse(
     if fixed is not None:
         G[fixed] = 0.0
     AG = np.empty(len(rhs))
-    B.level_matvec(
+    BO.level_matvec(
         f.q_keys,
         f.nb,
         f.inp,
@@ -823,7 +826,7 @@ def _level_values(
     gvals = [chi.at_nodes(lev, keys) for lev, keys in zip(levels, node_keys, strict=True)]
     for d in range(1, len(levels)):
         up = levels[d - 1]
-        B.constrain_to_coarse_leaves(
+        BE.constrain_to_coarse_leaves(
             node_keys[d], gvals[d], up.cell_keys, up.cell_nodes, up.leaf, gvals[d - 1]
         )
     return chi, gvals
