@@ -12,7 +12,10 @@ from __future__ import annotations
 import importlib.metadata
 import sys
 
-from pip._vendor.packaging.requirements import Requirement
+try:
+    from packaging.requirements import Requirement
+except ImportError:  # a bare venv: pip's copy (importing pip turns setuptools' distutils shim off)
+    from pip._vendor.packaging.requirements import Requirement
 
 
 def extra_requirements(extras: list[str], requires: list[str] | None = None) -> list[str]:
