@@ -17,6 +17,14 @@ Inputs:
 - smooth closed shapes, 100k samples: the kitten and the armadillo (true normals, clean and
   with noise of 0.25 % of the diagonal, depth 8 and 9), an analytic torus (clean and noisy),
   the mug (a thin shell) and the noisy kitten with normals estimated by our ``normals``;
+- real-like depth-camera clouds (issue 29): 640 x 480 depth images of a tabletop (251k valid
+  points) and (not ``--quick``) an office (270k) ray-cast by ``tests/sensors.py`` (Kinect-like
+  noise, flying pixels), normals by our ``normals`` stage towards the camera, depth 9,
+  untrimmed (time); the tabletop also trimmed: ours ``--trim auto``, Open3D's 5 % quantile
+  and, where ``$POISSONRECON_BIN`` (or the reference build) holds ``PoissonRecon`` and
+  ``SurfaceTrimmer``, those (``--trim 7``) as processes, with the issue's figures in the note:
+  input points within 0.5 % of the diagonal of the mesh, mesh area farther than 1 % from every
+  point, pieces, and the mean distance of the mesh to the true scene;
 - 1M samples of the armadillo at depth 9 and 10 (time and memory), and (not ``--quick``)
   5M samples at depth 11, ours only (target: within 12 GiB).
 
@@ -33,6 +41,7 @@ untrimmed scans the fit (input points to the output), no F-score.
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import tempfile
@@ -43,7 +52,7 @@ import numpy as np
 from _util import measure
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED = ROOT.parent / "shared" / "data"
+SHARED = Path(os.environ.get("RECON_SHARED_DATA", ROOT.parent / "shared" / "data"))
 TAU = 0.005  # F-score threshold, fraction of the diagonal
 N_EVAL = 100_000
 NOISE = 0.0025
@@ -173,8 +182,9 @@ OUR_TRIM = 0.2  # --trim of the trimmed rows (a fraction of the median density a
 REF_TRIM = 0.05  # Open3D's vertex-density quantile in the same rows
 
 
-def _ours_process(cloud, depth: int, trimmed: bool, workdir: Path) -> tuple[dict, object]:
-    """``recon poisson`` as a process: wall seconds and peak RSS (MB) of the process, the mesh."""
+def _ours_process(cloud, depth: int, trimmed, workdir: Path) -> tuple[dict, object]:
+    """``recon poisson`` as a process: wall seconds and peak RSS (MB) of the process, the mesh
+    (``trimmed``: False, True for ``--trim OUR_TRIM``, or the ``--trim`` value itself)."""
     from recon_cli.io import read_ply, write_ply
 
     src, dst = workdir / "in.ply", workdir / "out.ply"
@@ -182,7 +192,7 @@ def _ours_process(cloud, depth: int, trimmed: bool, workdir: Path) -> tuple[dict
     recon = Path(sys.executable).with_name("recon")
     cmd = [str(recon), "-q", "poisson", str(src), str(dst), "--depth", str(depth)]
     if trimmed:
-        cmd += ["--trim", str(OUR_TRIM)]
+        cmd += ["--trim", str(OUR_TRIM if trimmed is True else trimmed)]
     # through a small launcher: a child forked from this (large) process reports this
     # process's resident size as its own peak (ru_maxrss counts the pages it had before exec)
     proc = subprocess.run([sys.executable, "-c", _LAUNCHER, *cmd], capture_output=True)
@@ -301,6 +311,167 @@ def _rows_for(
     return out
 
 
+# ---------------------------------------------------------------------------------------------
+# real-like depth-camera clouds (issue 29): 640 x 480 organized depth images ray-cast by
+# tests/sensors.py (Kinect-like noise growing with the squared distance, flying pixels at the
+# depth edges, NaN misses dropped), normals by our normals stage oriented towards the camera
+
+POISSONRECON_DEFAULT = "/work/ref/PoissonRecon/Bin/Linux/PoissonRecon"
+SURFACE_TRIMMER = 7  # PoissonRecon's SurfaceTrimmer --trim in the trimmed rows (issue 29's)
+
+
+def _office_sdf():
+    """An office seen from inside: a 6 x 6 x 2.8 m room, two desks, a monitor, a cabinet, a
+    shelf, a person, a ball and a ring (metres)."""
+    sys.path.insert(0, str(ROOT / "tests"))
+    from sensors import box_sdf, union
+    from shapes import rounded_box_sdf, sphere_sdf, torus_sdf
+
+    def person(p):
+        head = sphere_sdf(p - (0.3, 3.2, 1.6), 0.12)
+        body = rounded_box_sdf(p - (0.3, 3.2, 0.75), half=(0.2, 0.12, 0.75), radius=0.1)
+        return np.minimum(head, body)
+
+    return union(
+        lambda p: -box_sdf(p, (-3.0, -1.0, 0.0), (3.0, 5.0, 2.8)),
+        lambda p: box_sdf(p, (-2.4, 2.0, 0.72), (-0.6, 2.8, 0.76)),
+        lambda p: box_sdf(p, (-2.3, 2.1, 0.0), (-2.2, 2.7, 0.72)),
+        lambda p: box_sdf(p, (-0.9, 2.1, 0.0), (-0.6, 2.7, 0.72)),
+        lambda p: box_sdf(p, (-1.8, 2.55, 0.76), (-1.2, 2.6, 1.15)),
+        lambda p: rounded_box_sdf(p - (1.6, 1.4, 0.37), half=(0.8, 0.4, 0.37), radius=0.03),
+        person,
+        lambda p: sphere_sdf(p - (1.8, 1.4, 0.9), 0.15),
+        lambda p: torus_sdf(p - (-1.5, 2.3, 0.82), 0.12, 0.05),
+        lambda p: box_sdf(p, (2.4, 3.0, 0.0), (2.95, 4.5, 2.0)),
+    )
+
+
+def _depth_camera(scene: str):
+    """(oriented cloud, the scene's sdf) of a 640 x 480 depth image of ``scene``."""
+    sys.path.insert(0, str(ROOT / "tests"))
+    from recon_cli.geometry import PointCloud
+    from recon_cli.stages import normals
+
+    from sensors import DepthCamera, depth_image, look_at, tabletop_scene, valid_rows
+
+    if scene == "tabletop":
+        sdf, eye, target, seed = tabletop_scene(), (0.2, -2.6, 1.3), (0.0, 0.4, 0.25), 0
+    else:
+        sdf, eye, target, seed = _office_sdf(), (-0.5, -0.6, 1.5), (0.3, 4.0, 0.6), 1
+    cam = DepthCamera(
+        eye=np.array(eye), rotation=look_at(eye, target), width=640, height=480, max_range=6.0
+    )
+    p = valid_rows(depth_image(cam, sdf, np.random.default_rng(seed)))
+    cloud = PointCloud(points=p, point_dtype=np.float64)
+    return normals.run_stage(cloud, orient="camera", camera=tuple(eye)).output, sdf
+
+
+def _poissonrecon_dir() -> Path | None:
+    """The folder of the built ``PoissonRecon`` and ``SurfaceTrimmer``, None when not built.
+
+    ``$POISSONRECON_BIN`` names the PoissonRecon executable (default: the reference build's),
+    SurfaceTrimmer lies beside it (``make poissonrecon surfacetrimmer`` of mkazhdan/PoissonRecon).
+    """
+    exe = Path(os.environ.get("POISSONRECON_BIN", POISSONRECON_DEFAULT))
+    if exe.exists() and (exe.parent / "SurfaceTrimmer").exists():
+        return exe.parent
+    return None
+
+
+def _poissonrecon_process(cloud, depth: int, workdir: Path, bindir: Path):
+    """PoissonRecon --density then SurfaceTrimmer as processes (their defaults otherwise):
+    wall seconds and peak RSS of PoissonRecon, the trimmed mesh (in the input's frame)."""
+    from recon_cli.io import read_ply
+
+    pts = np.asarray(cloud.points, np.float64)
+    centre = 0.5 * (pts.min(0) + pts.max(0))  # float32 PLY: about the centre
+    names = ("x", "y", "z", "nx", "ny", "nz")
+    rows_ = np.zeros(len(pts), dtype=[(k, "<f4") for k in names])
+    for a in range(3):
+        rows_[names[a]] = pts[:, a] - centre[a]
+        rows_[names[a + 3]] = cloud.normals[:, a]
+    src, out, cut = workdir / "pr_in.ply", workdir / "pr_out.ply", workdir / "pr_trim.ply"
+    header = f"ply\nformat binary_little_endian 1.0\nelement vertex {len(pts)}\n"
+    header += "".join(f"property float {k}\n" for k in names) + "end_header\n"
+    src.write_bytes(header.encode() + rows_.tobytes())
+    cmd = [str(bindir / "PoissonRecon"), "--in", str(src), "--out", str(out)]
+    cmd += ["--depth", str(depth), "--density"]
+    proc = subprocess.run([sys.executable, "-c", _LAUNCHER, *cmd], capture_output=True, check=False)
+    if proc.returncode != 0:
+        raise RuntimeError(f"PoissonRecon failed: {proc.stderr.decode().strip()[-200:]}")
+    dt, maxrss_kb = proc.stdout.decode().split()
+    trim = [str(bindir / "SurfaceTrimmer"), "--in", str(out), "--out", str(cut)]
+    subprocess.run(trim + ["--trim", str(SURFACE_TRIMMER)], check=True, capture_output=True)
+    mesh = read_ply(cut)
+    mesh.vertices = np.asarray(mesh.vertices, np.float64) + centre
+    return {"seconds": float(dt), "peak_mb": int(maxrss_kb) / 1024.0}, mesh
+
+
+def _trim_figures(mesh, pts: np.ndarray, sdf) -> str:
+    """Issue 29's figures of a trimmed surface: input points within 0.5 % of the diagonal of
+    it, its area farther than 1 % from every input point, pieces, and its mean distance to
+    the true scene (area-weighted, a fraction of the diagonal)."""
+    from scipy.spatial import cKDTree
+
+    from recon_cli.mesh.topology import Connectivity
+
+    if len(mesh.faces) == 0:
+        return "empty"
+    diag = float(np.linalg.norm(pts.max(0) - pts.min(0)))
+    near = float((_to_mesh(mesh, pts) <= 0.005 * diag).mean())
+    s = _surface_samples(mesh, N_EVAL, seed=3)
+    far = float((cKDTree(pts).query(s, workers=-1)[0] > 0.01 * diag).mean())
+    pieces = int(Connectivity(np.asarray(mesh.faces), len(mesh.vertices)).face_components.max())
+    truth = float(np.abs(sdf(s)).mean()) / diag
+    return f"near {near:.4f} · far {far:.4%} · pieces {pieces + 1} · truth {truth:.2e}"
+
+
+def _depth_camera_rows(scene: str, depth: int, work: Path, trimmed: bool) -> list[dict]:
+    """Untrimmed: ours (process) and Open3D, time and fit. Trimmed: ours ``--trim auto``,
+    Open3D's 5 % vertex-density quantile and (when found) PoissonRecon + SurfaceTrimmer
+    ``--trim 7``, with :func:`_trim_figures` in the note."""
+    cloud, sdf = _depth_camera(scene)
+    label = f"depth camera {scene} 640x480 ({len(cloud.points) // 1000}k), d{depth}"
+    if not trimmed:
+        return _rows_for(label, cloud, depth, None, "fit", work, pymeshlab=False)
+    label += f", trimmed (ours auto, o3d {REF_TRIM:.0%} quantile, SurfaceTrimmer {SURFACE_TRIMMER})"
+    out, meshes = [], {}
+    runs = [("recon (process)", lambda: _ours_process(cloud, depth, "auto", work))]
+    runs.append(("open3d", lambda: _reference(_open3d, cloud, depth, True)))
+    bindir = _poissonrecon_dir()
+    if bindir is not None:
+        runs.append(
+            ("PoissonRecon (process)", lambda: _poissonrecon_process(cloud, depth, work, bindir))
+        )
+    for name, run in runs:
+        try:
+            m, mesh = run()
+        except Exception as exc:  # one failing method must not hide the others
+            out.append({"case": label, "method": name, "note": f"FAILED: {exc}"})
+            continue
+        meshes[name] = m
+        out.append(
+            {
+                "case": label,
+                "method": name,
+                "faces": len(mesh.faces),
+                "topology": _topology(mesh),
+                "seconds": m["seconds"],
+                "mb": m["peak_mb"],
+                "note": _trim_figures(mesh, np.asarray(cloud.points), sdf),
+            }
+        )
+    if bindir is None:
+        out.append(
+            {"case": label, "method": "PoissonRecon", "note": "not built: no $POISSONRECON_BIN"}
+        )
+    ours, ref = meshes.get("recon (process)"), meshes.get("open3d")
+    if ours and ref:
+        out[0]["time_ratio"] = ours["seconds"] / ref["seconds"]
+        out[0]["mem_ratio"] = ours["peak_mb"] / ref["peak_mb"]
+    return out
+
+
 def rows(quick: bool, only: list[str] | None = None) -> list[dict]:
     """The rows; ``only``: just the cases whose label contains one of these strings."""
     from recon_cli.io import read_ply
@@ -367,6 +538,11 @@ def rows(quick: bool, only: list[str] | None = None) -> list[dict]:
                 out += _rows_for(
                     label, _samples(name, 100_000, noise), depth, _mesh(name), "chamfer", work
                 )
+        for scene in ("tabletop",) if quick else ("tabletop", "office"):
+            if want(f"depth camera {scene}"):
+                out += _depth_camera_rows(scene, 9, work, trimmed=False)
+        if want("depth camera tabletop, trimmed"):
+            out += _depth_camera_rows("tabletop", 9, work, trimmed=True)
         noisy = _samples("kitten", 100_000, NOISE)
         noisy.normals = None
         if want("kitten 100k noisy, our normals, d9"):

@@ -74,7 +74,7 @@ def poisson(
     boundary: Literal["neumann", "dirichlet", "free"] = "neumann",
     confidence: bool = False,
     density: bool = False,
-    trim: float = 0.0,
+    trim: float | Literal["auto"] = 0.0,
     attributes: Any = "all",
     envelope: Any = None,
     grid: Any = None,

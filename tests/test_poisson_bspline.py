@@ -11,6 +11,7 @@ import pytest
 from recon_cli.errors import ParameterError
 from recon_cli.mesh.topology import report as topology_report
 from recon_cli.stages.poisson import _bspline as B
+from recon_cli.stages.poisson import _bspline_rhs as BR
 from recon_cli.stages.poisson import screened_poisson
 from recon_cli.stages.poisson.bspline import (
     KERNEL_WIDTH,
@@ -295,7 +296,7 @@ def test_normal_rhs_equals_the_direct_splat_at_every_level(rng, boundary, case):
     for d in range(1, len(levels)):
         f = lfs[d]
         new = fast.rhs(d)
-        old = B.splat_rhs(*items, d, f.q_keys, f.inp, f.s, KERNEL_WIDTH)
+        old = BR.splat_rhs(*items, d, f.q_keys, f.inp, f.s, KERNEL_WIDTH)
         assert new.shape == old.shape
         if not len(old):
             continue

@@ -9,7 +9,12 @@ from recon_cli.geometry import TriangleMesh
 from recon_cli.mesh.topology import Connectivity
 from recon_cli.mesh.topology import report as topology_report
 from recon_cli.stages.poisson import screened_poisson
-from recon_cli.stages.poisson.trim import trim_by_density
+from recon_cli.stages.poisson.trim import (
+    SPACING_CAP,
+    SUPPORT_RATIO,
+    support_ratio,
+    trim_by_density,
+)
 from recon_cli.tolerances import tol
 
 from shapes import SHAPES, icosphere, random_rotation, single_view_scan
@@ -106,3 +111,158 @@ def test_single_view_scans_lose_the_sheet_keep_the_scan(name, seed):
 
     covered = cKDTree(local).query(pts)[0] < 2 * cell
     assert covered.mean() > 0.97, covered.mean()  # the scanned surface stays
+
+
+# ---- --trim auto: the surface within 0.7 local sample spacings of the samples (support_ratio)
+def _lattice(n: int, h: float) -> np.ndarray:
+    g = np.arange(n) * h
+    x, y = np.meshgrid(g, g, indexing="ij")
+    return np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1)
+
+
+@pytest.mark.parametrize("h", [0.01, 3.0])
+def test_support_ratio_on_a_lattice_is_exact(h):
+    # a square lattice of step h: every inner sample's 8th neighbour is at sqrt(2) h, so its
+    # spacing is sqrt(2) h; a point t above a sample has the ratio t / (sqrt(2) h), a cell's
+    # centre (the farthest point of the sampled plane) 1/2: kept, as the whole plane is
+    rng = np.random.default_rng(1)
+    s = _lattice(41, h) @ random_rotation(rng).T + rng.uniform(-1e6, 1e6, 3)
+    row, col = np.divmod(np.arange(41 * 41), 41)
+    inner = (row >= 2) & (row <= 38) & (col >= 2) & (col <= 38)  # no neighbour on the border
+    t = rng.uniform(0, 2 * h, 200)
+    rot_n = s[1] - s[0]
+    nrm = np.cross(s[41] - s[0], rot_n)
+    nrm /= np.linalg.norm(nrm)
+    pick = rng.choice(np.flatnonzero(inner), 200)
+    ratio, spacing = support_ratio(s, s[pick] + t[:, None] * nrm)
+    assert np.allclose(spacing[inner], np.sqrt(2) * h, rtol=1e-9)
+    assert np.allclose(ratio, t / (np.sqrt(2) * h), rtol=1e-9)
+    centre = (s[pick] + s[pick + 1] + s[pick + 41] + s[pick + 42]) / 4
+    assert np.allclose(support_ratio(s, centre)[0], 0.5, rtol=1e-9)
+    assert SUPPORT_RATIO > 0.5
+
+
+def test_support_ratio_caps_the_spacing_of_strays():
+    # strays far from a dense lattice (flying pixels) get at most SPACING_CAP times the median
+    # spacing: a vertex half-way to a stray 20 steps off the plane is cut
+    s = _lattice(30, 1.0)
+    strays = np.array([[10.0, 10.0, 20.0], [12.0, 15.0, 25.0], [20.0, 5.0, 30.0]])
+    ratio, spacing = support_ratio(np.vstack([s, strays]), strays + [0.0, 0.0, -5.0])
+    assert spacing.max() <= SPACING_CAP * np.median(spacing) + 1e-12
+    assert (ratio > SUPPORT_RATIO).all()
+
+
+@pytest.mark.parametrize("name", sorted(SHAPES))
+def test_auto_single_view_scans_lose_the_sheet_keep_the_scan(name):
+    # as above with --trim auto: the sheet goes without a threshold to choose, the scan stays
+    # whole (every sample within 2 cells of the mesh) and at least as much of it as with 0.3
+    rng = np.random.default_rng(3)
+    pts, nrm = single_view_scan(name, 90, rng)
+    rot = random_rotation(rng)
+    off = rng.uniform(-1e3, 1e3, 3)
+    sdf, _ = SHAPES[name]
+    res = screened_poisson(pts @ rot.T + off, nrm @ rot.T, depth=7, trim="auto")
+    m = res.mesh
+    _manifold_oriented(m)
+    assert topology_report(m)["components"] == 1
+    assert 0.5 < res.report["trimmed_area"] < 0.95
+    cell = res.report["finest_cell"]
+    local = (m.vertices - off) @ rot
+    dist = np.abs(sdf(local))
+    assert np.quantile(dist, 0.99) < 2 * cell and dist.max() < 3 * cell, (dist.max(), cell)
+    from recon_cli.mesh.distance import closest_points
+
+    d_auto = closest_points(local, m.faces, pts)[0]
+    assert d_auto.max() < 2 * cell, d_auto.max() / cell
+    d03 = screened_poisson(pts, nrm, depth=7, trim=0.3).mesh
+    assert (d_auto < 0.5 * cell).mean() >= (
+        closest_points(d03.vertices, d03.faces, pts)[0] < 0.5 * cell
+    ).mean() - 1e-3
+
+
+@pytest.mark.slow
+def test_auto_depth_camera_keeps_far_floor_drops_sheet_and_flying_pixels():
+    # a 320 x 240 depth image of a tabletop (Kinect-like noise, flying pixels at the depth
+    # edges, NaN misses): the floor's density falls with distance squared, yet it stays whole;
+    # the closing sheet and the shadows' bridges over flying pixels go
+    from recon_cli.geometry import PointCloud
+    from recon_cli.mesh.distance import closest_points
+    from recon_cli.mesh.sampling import sample_surface
+    from recon_cli.stages import normals
+
+    from sensors import DepthCamera, depth_image, look_at, tabletop_scene, valid_rows
+
+    eye = np.array([0.0, -2.2, 0.9])
+    cam = DepthCamera(eye=eye, rotation=look_at(eye, (0.0, 0.6, 0.1)), width=320, height=240)
+    p = valid_rows(depth_image(cam, tabletop_scene(), np.random.default_rng(0)))
+    c = normals.run_stage(PointCloud(points=p), orient="camera", camera=tuple(eye)).output
+    full = screened_poisson(c.points, c.normals, depth=8)
+    res = screened_poisson(c.points, c.normals, depth=8, trim="auto")
+    m = res.mesh
+    _manifold_oriented(m)
+    diag = float(np.linalg.norm(p.max(0) - p.min(0)))
+    near = closest_points(m.vertices, m.faces, p)[0] <= 0.005 * diag
+    near_full = closest_points(full.mesh.vertices, full.mesh.faces, p)[0] <= 0.005 * diag
+    assert near.mean() >= near_full.mean() - 0.003, (near.mean(), near_full.mean())
+    floor = np.abs(p[:, 2]) < 0.01  # the far floor, sparsest of all, is kept to its end
+    assert near[floor & (p[:, 1] > 1.2)].mean() >= near_full[floor & (p[:, 1] > 1.2)].mean() - 0.01
+    from scipy.spatial import cKDTree
+
+    s = sample_surface(m, 100_000, seed=1).points
+    assert (cKDTree(p).query(s)[0] > 0.01 * diag).mean() <= 1e-3
+    assert topology_report(m)["components"] <= 5
+
+
+@pytest.mark.slow
+def test_auto_keeps_sparse_airborne_ground():
+    # the shared airborne tile's ground class (US feet; 26k returns, sparse under canopy and
+    # beside buildings), normals up: auto keeps >= 99.5 % of the ground points within 1 ft of
+    # the mesh where a density cut (0.2) drops the sparse ground, and the closing sheet goes
+    laspy = pytest.importorskip("laspy")
+    from scipy.spatial import cKDTree
+
+    from recon_cli.geometry import PointCloud
+    from recon_cli.mesh.distance import closest_points
+    from recon_cli.mesh.sampling import sample_surface
+    from recon_cli.stages import normals
+
+    from shared_data import SHARED
+
+    las = laspy.read(SHARED / "autzen_trim.laz")
+    g = np.stack([las.x, las.y, las.z], axis=1)[np.asarray(las.classification) == 2]
+    c = normals.run_stage(PointCloud(points=g), orient="direction", direction=(0, 0, 1)).output
+    res = screened_poisson(c.points, c.normals, depth=9, trim="auto")
+    m = res.mesh
+    _manifold_oriented(m)
+    within = (closest_points(m.vertices, m.faces, g)[0] <= 1.0).mean()
+    assert within >= 0.995, within
+    dens = screened_poisson(c.points, c.normals, depth=9, trim=0.2).mesh
+    assert within > (closest_points(dens.vertices, dens.faces, g)[0] <= 1.0).mean() + 0.01
+    # no part of the sheet under the ground (the closed surface's other side) is left
+    v = m.vertices[m.faces]
+    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    assert (n[:, 2] < 0).sum() < 1e-3 * len(n)
+    far = cKDTree(g).query(sample_surface(m, 100_000, seed=1).points)[0] > 5.0
+    assert far.mean() < 0.2, far.mean()  # the untrimmed surface: 94 %
+
+
+@pytest.mark.parametrize("backend", ["native", "open3d"])
+def test_auto_on_both_backends_keeps_the_density_attribute(backend):
+    # an open half sphere: Poisson closes it with a cap below every sample (z >= 0.3); auto
+    # removes the cap, and the density attribute follows the cut (one value per vertex, the
+    # cut vertices' interpolated between their edge's ends)
+    from recon_cli.geometry import PointCloud
+    from recon_cli.stages.poisson import run_stage
+
+    rng = np.random.default_rng(2)
+    v = rng.normal(size=(20_000, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    keep = v[:, 2] > -0.2
+    c = PointCloud(points=v[keep] + [1.0, -2.0, 0.5], normals=v[keep])
+    res = run_stage(c, depth=6, trim="AUTO", density=True, backend=backend)
+    m = res.output
+    _manifold_oriented(m)
+    assert m.vertices[:, 2].min() > 0.5 - 0.2 - 0.1
+    assert 0.1 < res.report["trimmed_area"] < 0.6 and res.report["trimmed_faces"] > 0
+    dens = m.attributes["density"]
+    assert len(dens) == len(m.vertices) and np.isfinite(dens).all() and (dens > 0).all()

@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 UNUSED: set[str] = {
     # degree 2's direct splat of the normals: the solve uses it only for a KERNEL_WIDTH other
     # than 1 (bspline.NormalRHS otherwise); the reference of NormalRHS's test
-    "recon_cli.stages.poisson._bspline.splat_rhs",
+    "recon_cli.stages.poisson._bspline_rhs.splat_rhs",
 }
 
 AFTER = r"""

@@ -47,6 +47,8 @@ threshold differs: SurfaceTrimmer's ``--trim`` is an absolute value of the densi
 PoissonRecon writes (a depth-like, logarithmic value; 5 to 7 is typical, smoothed first),
 Open3D users cut a quantile of the vertex densities; ours is a fraction of the median density
 at the samples, so one value (0.1 to 0.3) serves any scan, depth, unit and tessellation.
+``trim="auto"`` needs no value: it cuts where the surface lies farther from the samples than
+0.7 of their local spacing (:func:`.trim.support_ratio`), so sparse real surface stays.
 
 References
 ----------
@@ -58,10 +60,8 @@ Kazhdan, M., Bolitho, M. & Hoppe, H. (2006). Poisson surface reconstruction. SGP
 
 from __future__ import annotations
 
-import functools
 import logging
 import os
-import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -202,14 +202,15 @@ SPEC = StageSpec(
             "trim",
             "float",
             0.0,
-            "Cut away the surface where the samples' density is below T times its median at "
-            "the samples "
-            "(0.1-0.3 removes an open scan's closing sheet).",
+            "Cut away an open scan's closing sheet: 'auto' keeps the surface within 0.7 local "
+            "sample spacings of the samples (sparse real surface stays); a number T cuts where the "
+            "samples' density is below T times its median at the samples.",
             unit="of the median sample density",
             min=0.0,
             max=1.0,
             max_open=True,
-            metavar="T",
+            words={"auto": "auto"},
+            metavar="auto|T",
         ),
         Param(
             "attributes",
@@ -421,10 +422,12 @@ def screened_poisson(
         middle half only (:data:`.bspline.FREE_DOMAIN`): the same finest cell.
     density : bool
         Add the per-vertex kernel density of the samples as ``attributes["density"]``.
-    trim : float
-        Cut away the surface where the samples' density is below ``trim`` times its median
-        at the samples (0 <= trim < 1; 0 keeps everything); see the module docstring for how
-        this relates to PoissonRecon's SurfaceTrimmer.
+    trim : float or "auto"
+        ``"auto"``: cut away the surface farther than 0.7 local sample spacings from the
+        samples (:func:`.trim.support_ratio`: the threshold comes from the samples, sparse
+        real surface stays). A number: cut away the surface where the samples' density is
+        below ``trim`` times its median at the samples (0 <= trim < 1; 0 keeps everything);
+        see the module docstring for how this relates to PoissonRecon's SurfaceTrimmer.
     confidence : bool
         Weight each point by its normal's length, as PoissonRecon's ``--confidence``: its
         position and normal count that much in its finest cell's sample, whose weight (in the
@@ -486,8 +489,7 @@ def screened_poisson(
         props[name] = values[keep]
     unit_nrm = nrm if (props or colors is not None) else None
 
-    from recon_cli.memory import release_free_heap
-    from recon_cli.stages.poisson.extract import extract, refine_roots
+    from recon_cli.stages.poisson.basis import basis_for
     from recon_cli.stages.poisson.free import FREE_DOMAIN, clip_to_cube
     from recon_cli.stages.poisson.octree import build_levels
     from recon_cli.stages.poisson.splat import (
@@ -496,50 +498,52 @@ def screened_poisson(
         noise_fraction,
         sample_density,
     )
-    from recon_cli.stages.poisson.system import chi_at, chi_levels, iso_value, solve
+    from recon_cli.stages.poisson.timing import Timings
 
-    timings: dict[str, float] = {}
-    t0 = time.perf_counter()
+    basis = basis_for(degree)
+    clock = Timings()
 
-    # ---- unit cube and samples (points merged per finest cell, as PoissonRecon does)
-    lo, hi = pts.min(axis=0), pts.max(axis=0)
-    size = float((hi - lo).max()) * scale
-    origin = 0.5 * (lo + hi) - 0.5 * size
-    # ---- free boundary: the cube is the middle half of the solve's, one level deeper
-    user_depth, domain = depth, None
-    if boundary == "free":
-        domain = (origin.copy(), size)
-        origin = origin - 0.5 * size
-        size *= 2.0
-        depth += 1
-    full_depth = min(full_depth, depth)
-    smp = merge_samples((pts - origin) / size, nrm, depth, weight)
-    ns = len(smp.count)
-    n_pts = len(pts)
-    del nrm  # memory: the normals are in the samples now
-    timings["samples"] = time.perf_counter() - t0
+    with clock.phase("samples"):
+        # ---- unit cube and samples (points merged per finest cell, as PoissonRecon does)
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        size = float((hi - lo).max()) * scale
+        origin = 0.5 * (lo + hi) - 0.5 * size
+        # ---- free boundary: the cube is the middle half of the solve's, one level deeper
+        user_depth, domain = depth, None
+        if boundary == "free":
+            domain = (origin.copy(), size)
+            origin = origin - 0.5 * size
+            size *= 2.0
+            depth += 1
+        full_depth = min(full_depth, depth)
+        smp = merge_samples((pts - origin) / size, nrm, depth, weight)
+        ns = len(smp.count)
+        n_pts = len(pts)
+        del nrm  # memory: the normals are in the samples now
 
     # ---- kernel density -> area per point and splat level
-    t = time.perf_counter()
-    splats = make_splats(
-        smp, depth, samples_per_node, point_weight, density or trim > 0, merge=degree == 1
-    )
-    tree_depth = splats.tree_depth
-    if degree == 2:
-        # level 0 carries no degree-2 function (nor level 1 with the free boundary)
-        tree_depth = max(tree_depth, 1 if domain is None else 2)
-    full_depth = min(full_depth, tree_depth)
-    res = 1 << tree_depth  # the finest cells of the tree
-    timings["density"] = time.perf_counter() - t
+    auto_trim = trim == "auto"
+    density_trim = not auto_trim and trim > 0
+    with clock.phase("density"):
+        splats = make_splats(
+            smp,
+            depth,
+            samples_per_node,
+            point_weight,
+            density or density_trim,
+            merge=basis.merge_splats,
+        )
+        tree_depth = basis.tree_depth(splats.tree_depth, domain is not None)
+        full_depth = min(full_depth, tree_depth)
+        res = 1 << tree_depth  # the finest cells of the tree
     # ---- the samples' noise: noisy neighbourhoods are screened less (Splats.screening)
-    t = time.perf_counter()
-    if point_weight > 0:
-        splats.clean, sample_noise = noise_fraction((pts - origin) / size, smp, tree_depth)
-        noise: float | None = float(np.median(sample_noise))
-        del sample_noise
-    else:
-        noise = None
-    timings["noise"] = time.perf_counter() - t
+    with clock.phase("noise"):
+        if point_weight > 0:
+            splats.clean, sample_noise = noise_fraction((pts - origin) / size, smp, tree_depth)
+            noise: float | None = float(np.median(sample_noise))
+            del sample_noise
+        else:
+            noise = None
 
     # ---- envelope: cells whose support leaves it are fixed at 0; the tree refined along it
     env, sample_ok, free_cells, outside_points = None, None, None, 0
@@ -547,39 +551,38 @@ def screened_poisson(
     if envelope is not None:
         from recon_cli.stages.poisson.envelope import REFINE_OFFSET, CellClassifier, Envelope
 
-        t = time.perf_counter()
-        env = envelope if isinstance(envelope, Envelope) else Envelope(envelope)
-        outside_points = int(np.count_nonzero(~env.inside(pts)))
-        sample_ok = env.free_cells(origin + size * smp.pos, size / res)
-        if not sample_ok.any():
-            raise InputError(
-                "every point lies outside the envelope or within 2.6 finest cells of its surface"
-            )
-        lv = min(tree_depth, max(full_depth, tree_depth - REFINE_OFFSET))
-        extra = env.surface_items(origin, size, lv)
-        item_pos = np.concatenate([splats.pos, extra])
-        item_level = np.concatenate([splats.level, np.full(len(extra), lv, np.int64)])
-        free_cells = CellClassifier(env, origin, size)
-
-        timings["envelope"] = time.perf_counter() - t
+        with clock.phase("envelope"):
+            env = envelope if isinstance(envelope, Envelope) else Envelope(envelope)
+            outside_points = int(np.count_nonzero(~env.inside(pts)))
+            sample_ok = env.free_cells(origin + size * smp.pos, size / res)
+            if not sample_ok.any():
+                raise InputError(
+                    "every point lies outside the envelope or within 2.6 finest cells of its "
+                    "surface"
+                )
+            lv = min(tree_depth, max(full_depth, tree_depth - REFINE_OFFSET))
+            extra = env.surface_items(origin, size, lv)
+            item_pos = np.concatenate([splats.pos, extra])
+            item_level = np.concatenate([splats.level, np.full(len(extra), lv, np.int64)])
+            free_cells = CellClassifier(env, origin, size)
 
     # ---- tree: as deep as the splats, no deeper
-    t = time.perf_counter()
-    assert item_pos is not None and item_level is not None  # the items, before the solve
-    with task(progress, "poisson: tree"):
-        levels = build_levels(
-            item_pos,
-            item_level,
-            tree_depth,
-            full_depth,
-            boundary,
-            corners=degree == 1,
-            own_ring=2 if degree == 1 else 1,
-        )
-    del item_pos, item_level
-    # memory: the splat items made the fields and the tree, the samples' normals and keys the splats
-    splats.pos = splats.vec = splats.level = smp.normal = smp.keys = None
-    timings["tree"] = time.perf_counter() - t
+    with clock.phase("tree"):
+        assert item_pos is not None and item_level is not None  # the items, before the solve
+        with task(progress, "poisson: tree"):
+            levels = build_levels(
+                item_pos,
+                item_level,
+                tree_depth,
+                full_depth,
+                boundary,
+                corners=basis.corners,
+                own_ring=basis.own_ring,
+            )
+        del item_pos, item_level
+        # memory: the splat items made the fields and the tree, the samples' normals and keys
+        # the splats
+        splats.pos = splats.vec = splats.level = smp.normal = smp.keys = None
     log.info(
         "poisson: %d points, %d samples, depth %d (tree %d), nodes per level %s",
         n_pts,
@@ -589,12 +592,9 @@ def screened_poisson(
         [len(lv.node_keys) for lv in levels],  # type: ignore[arg-type]  # set with the tree
     )
 
-    # ---- cascadic solve
-    t = time.perf_counter()
-    if degree == 2:
-        from recon_cli.stages.poisson import bspline
-
-        gvals, per_level, total_it, last_res, iso, chi = bspline.solve(
+    # ---- cascadic solve and the iso-value
+    with clock.phase("solve"):
+        sol = basis.solve(
             levels,
             smp,
             splats,
@@ -602,72 +602,49 @@ def screened_poisson(
             full_depth,
             cg_tolerance,
             progress,
-            free_cells=free_cells,
-            sample_ok=sample_ok,
+            free_cells,
+            sample_ok,
         )
-        timings["solve"] = time.perf_counter() - t
-    else:
-        gvals, per_level, total_it, last_res = solve(
-            levels, smp, splats, full_depth, cg_tolerance, progress
-        )
-        timings["solve"] = time.perf_counter() - t
-        # ---- iso-value: weighted mean of chi at the samples
-        iso = iso_value(levels, gvals, smp)
+    del levels
+    iso = sol.iso
 
     # ---- extraction
-    t = time.perf_counter()
-    if degree == 2:
-        # memory: chi is not read again until the vertices' roots, and the heap the solve
-        # and then the extraction freed is given back (on 100k samples at depth 9 the
-        # extraction left 95 MB of freed heap resident, where the roots' tables went on top)
-        chi.drop_neighbours()
-        release_free_heap()
-        # the grid reads chi as the extraction does: trilinear in each leaf from its corners
-        chi_fn = functools.partial(chi_at, chi_levels(levels, gvals)) if with_grid else None
-        verts, faces = extract(levels, gvals, iso, origin, size)
-        del levels, gvals
-        release_free_heap()
-        # chi is not trilinear between the lattice's points: each vertex to chi's root on its edge
-        verts = chi.refine_vertices(verts, iso, origin, size, tree_depth)
-        del chi
-    else:
-        chi_lv = chi_levels(levels, gvals)
-        # in finest-lattice units, then each vertex to the root of chi's quadratic fit along its
-        # edge
-        verts, faces = extract(levels, gvals, iso, np.zeros(3), float(res))
-        del levels, gvals
-        refine_roots(verts, chi_lv, iso, tree_depth)
-        verts *= size / res
-        verts += origin
-        chi_fn = functools.partial(chi_at, chi_lv) if with_grid else None
-        del chi_lv
-    if domain is not None:
-        verts, faces = clip_to_cube(verts, faces, *domain)
-    verts, faces, bubbles, islands = _drop_bubbles(verts, faces, size / res, pts)
-    pulled = 0
-    if env is not None:
-        verts, pulled = env.pull_inside(verts)
-    timings["extract"] = time.perf_counter() - t
+    with clock.phase("extract"):
+        verts, faces, chi_fn = basis.extract(sol, origin, size, tree_depth, with_grid)
+        if domain is not None:
+            verts, faces = clip_to_cube(verts, faces, *domain)
+        verts, faces, bubbles, islands = _drop_bubbles(verts, faces, size / res, pts)
+        pulled = 0
+        if env is not None:
+            verts, pulled = env.pull_inside(verts)
     # ---- the field on a regular grid (--grid)
     field_grid = None
     if with_grid and len(faces):
         from recon_cli.stages.poisson.field import indicator_grid
 
-        t = time.perf_counter()
-        assert chi_fn is not None  # made with_grid
-        with task(progress, "poisson: grid"):
-            field_grid = indicator_grid(
-                chi_fn, iso, verts, origin, size, res, FREE_DOMAIN if domain else (0.0, 1.0)
-            )
-        timings["grid"] = time.perf_counter() - t
+        with clock.phase("grid"):
+            assert chi_fn is not None  # made with_grid
+            with task(progress, "poisson: grid"):
+                field_grid = indicator_grid(
+                    chi_fn, iso, verts, origin, size, res, FREE_DOMAIN if domain else (0.0, 1.0)
+                )
     del chi_fn
 
     mesh = TriangleMesh(vertices=verts, faces=faces)
     vdens = None
-    if density or trim > 0:
+    if density or density_trim:
         vdens = sample_density(splats, (verts - origin) / size)
     trimmed, trimmed_area = 0, 0.0
-    if trim > 0 and len(faces):
+    if auto_trim and len(faces):
+        from recon_cli.stages.poisson.trim import SUPPORT_RATIO, support_ratio, trim_by_density
+
+        ratio = support_ratio(smp.pos * size + origin, verts)[0]
+        cut = trim_by_density(mesh, -ratio, -SUPPORT_RATIO, carry=vdens)
+        if len(cut.mesh.faces) == 0:
+            raise InputError("trim auto removes the whole surface: no part lies near the samples")
+        trimmed = len(mesh.faces) - cut.untouched_faces
+        mesh, vdens, trimmed_area = cut.mesh, cut.carried, cut.removed_area
+    if density_trim and len(faces):
         from recon_cli.stages.poisson.trim import trim_by_density
 
         assert vdens is not None  # made above whenever trim > 0
@@ -682,25 +659,24 @@ def screened_poisson(
     if props or colors is not None:
         from recon_cli.stages.poisson.attributes import transfer
 
-        t = time.perf_counter()
-        assert unit_nrm is not None  # kept when there are properties to carry
-        moved = transfer(pts, unit_nrm, props, colors, mesh.vertices, mesh.faces, size / res)
-        mesh.attributes.update(moved.values)
-        mesh.colors, fallback = moved.colors, moved.fallback
-        timings["attributes"] = time.perf_counter() - t
+        with clock.phase("attributes"):
+            assert unit_nrm is not None  # kept when there are properties to carry
+            moved = transfer(pts, unit_nrm, props, colors, mesh.vertices, mesh.faces, size / res)
+            mesh.attributes.update(moved.values)
+            mesh.colors, fallback = moved.colors, moved.fallback
     del unit_nrm
     if density:
         assert vdens is not None  # made above whenever density is asked for
         mesh.attributes["density"] = vdens
-    timings["total"] = time.perf_counter() - t0
+    timings = clock.total()
     report: dict[str, Any] = {
         "vertices": len(mesh.vertices),
         "faces": len(mesh.faces),
         "depth": user_depth,
         "tree_depth": tree_depth - (depth - user_depth),
         "iso_value": iso,
-        "solver_iterations": int(total_it),
-        "residual": float(last_res),
+        "solver_iterations": int(sol.iterations),
+        "residual": float(sol.residual),
         "bubbles_removed": bubbles,
         "islands_removed": islands,
         "trimmed_faces": int(trimmed),
@@ -713,7 +689,7 @@ def screened_poisson(
         "samples": int(ns),
         "ignored_points": int((~keep).sum()),
         "finest_cell": size / res,
-        "levels": per_level,
+        "levels": sol.per_level,
         "timings": timings,
     }
     if field_grid is not None:
@@ -952,7 +928,7 @@ def _check_run_options(
     boundary: str,
     confidence: bool,
     density: bool,
-    trim: float,
+    trim: float | str,
     envelope: Any,
     grid: Any,
     estimate_normals: bool,
@@ -963,6 +939,10 @@ def _check_run_options(
 ) -> tuple[str | None, Any]:
     """The stage's checks of its options together; returns the grid's path and the envelope."""
     if workers is not None or scheduler is not None:
+        if trim == "auto":
+            raise ParameterError(
+                "--trim auto is not distributed yet: give --trim T with --workers/--scheduler"
+            )
         check_distributed_options(
             backend,
             degree,
@@ -976,7 +956,7 @@ def _check_run_options(
         )
     elif partitions is not None or memory_limit is not None:
         raise ParameterError("--partitions and --memory-limit go with --workers or --scheduler")
-    if backend == "pymeshlab" and (density or trim > 0):
+    if backend == "pymeshlab" and (density or trim != 0):
         raise ParameterError(
             "the pymeshlab backend gives no densities: --density/--trim need native or open3d"
         )
@@ -1150,7 +1130,22 @@ def _run_reference(
         )
     mesh.vertices = mesh.vertices + centre
     trimmed, trimmed_area = 0, 0.0
-    if trim > 0 and len(mesh.faces):
+    if trim == "auto" and len(mesh.faces):
+        from recon_cli.stages.poisson.trim import (
+            SUPPORT_RATIO,
+            merge_per_cell,
+            support_ratio,
+            trim_by_density,
+        )
+
+        cell = float((pts.max(axis=0) - pts.min(axis=0)).max()) * scale / (1 << depth)
+        ratio = support_ratio(merge_per_cell(pts, cell), mesh.vertices)[0]
+        cut = trim_by_density(mesh, -ratio, -SUPPORT_RATIO, carry=dens)
+        if len(cut.mesh.faces) == 0:
+            raise InputError("trim auto removes the whole surface: no part lies near the samples")
+        trimmed = len(mesh.faces) - cut.untouched_faces
+        mesh, dens, trimmed_area = cut.mesh, cut.carried, cut.removed_area
+    elif trim != "auto" and trim > 0 and len(mesh.faces):
         from scipy.spatial import cKDTree
 
         from recon_cli.stages.poisson.trim import trim_by_density

@@ -9,6 +9,8 @@ They only compute; conventions in :mod:`recon_cli.stages.poisson._octree`.
 
 from __future__ import annotations
 
+from collections import namedtuple
+
 import numpy as np
 from numba import njit
 
@@ -220,40 +222,25 @@ def edge_key(x, y, z, axis, R):
     return ((np.int64(x) * (R + 1) + y) * (R + 1) + z) * 4 + axis
 
 
+# what _minimal_edges reads of the tree (the levels' arrays and the lattice's size) ...
+TreeView = namedtuple("TreeView", "keys leaf nodes g coff goff fkeys fnodes fg D R cap")
+# ... and the scratch it writes: its stack, a cell, and the edges found (start, length, values)
+EdgeScratch = namedtuple("EdgeScratch", "stack cell buf_p buf_len buf_v")
+
+
 @njit(cache=True)
-def _minimal_edges(
-    keys,
-    leaf,
-    nodes,
-    g,
-    coff,
-    goff,
-    fkeys,
-    fnodes,
-    fg,
-    D,
-    R,
-    cap,
-    l0,
-    e0,
-    axis,
-    hint,
-    hxyz,
-    stack,
-    cell,
-    buf_p,
-    buf_len,
-    buf_v,
-    m,
-):
+def _minimal_edges(tree, scratch, l0, e0, axis, hint, hxyz, m):
     """Append the minimal edges of a level-``l0`` lattice edge to the buffers, in order.
 
     The edge starts at ``e0`` (3,) along ``axis``; an edge is split when one of the 4 cells of its
     level around it has children. Values come from a leaf of the edge's level that holds it (every
     leaf with a corner at a point gives the same value: finer corrections vanish there and the
     prolongation copies coincident nodes exactly). ``hint``: index of a leaf of level ``l0`` holding
-    the edge, lower corner ``hxyz`` (3,), or -1. Returns the new count.
+    the edge, lower corner ``hxyz`` (3,), or -1. ``tree`` is a :data:`TreeView`, ``scratch`` an
+    :data:`EdgeScratch` whose buffers hold ``m`` edges. Returns the new count.
     """
+    keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, R, cap = tree
+    stack, cell, buf_p, buf_len, buf_v = scratch
     b = (axis + 1) % 3
     c = (axis + 2) % 3
     stack[0, 0] = l0
@@ -435,6 +422,8 @@ def _triangulate(n, lp, lm, cost, split, st, tris):
     return True
 
 
+# one kernel, not helpers: its growing buffers (tri, vpos, the hash table, the segments) are
+# reallocated inside the leaf loop, which helpers would have to hand back as tuples each call
 @njit(cache=True)
 def leaf_polygons(
     keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, iso, eps, margin, clamp, xlo, xhi
@@ -496,6 +485,8 @@ def leaf_polygons(
     rkey = np.empty(64, np.int64)
     rup = np.empty(64, np.bool_)
     rpos = np.empty((64, 3))
+    tree = TreeView(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, R, cap)
+    scratch = EdgeScratch(stack, cell, ebuf_p, ebuf_len, ebuf_v)
     for lev in range(D + 1):
         side = np.int64(1) << (D - lev)
         end = coff[lev + 1] if lev < D else coff[D] + len(fkeys)
@@ -640,31 +631,7 @@ def leaf_polygons(
                                 ebuf_v[m, 1] = v1
                                 m += 1
                             else:
-                                m = _minimal_edges(
-                                    keys,
-                                    leaf,
-                                    nodes,
-                                    g,
-                                    coff,
-                                    goff,
-                                    fkeys,
-                                    fnodes,
-                                    fg,
-                                    D,
-                                    R,
-                                    cap,
-                                    ll,
-                                    e0,
-                                    ax,
-                                    hint,
-                                    hxyz,
-                                    stack,
-                                    cell,
-                                    ebuf_p,
-                                    ebuf_len,
-                                    ebuf_v,
-                                    m,
-                                )
+                                m = _minimal_edges(tree, scratch, ll, e0, ax, hint, hxyz, m)
                         starts[4] = m
                         # walk the loop: edges of sides 2, 3 backwards
                         corner_sum = 0.0

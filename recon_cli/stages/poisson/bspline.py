@@ -44,6 +44,7 @@ from __future__ import annotations
 import functools
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -52,6 +53,9 @@ import numpy as np
 from recon_cli.memory import release_free_heap
 from recon_cli.progress import task
 from recon_cli.stages.poisson import _bspline as B
+from recon_cli.stages.poisson import _bspline_eval as BE
+from recon_cli.stages.poisson import _bspline_operator as BO
+from recon_cli.stages.poisson import _bspline_rhs as BR
 from recon_cli.stages.poisson import _octree as O
 from recon_cli.stages.poisson._luts import B2_MASS, B2_STIFFNESS
 from recon_cli.stages.poisson.free import FREE_DOMAIN, domain_tables
@@ -98,7 +102,7 @@ def level_tables(n: int, s: float, free: bool) -> tuple[np.ndarray, ...]:
     """The 1D tables of a level of ``n`` cells.
 
     ``m1``, ``k1`` (:func:`folded_tables`, or over :data:`FREE_DOMAIN` only with ``free``) and the
-    right-hand side's ``fv``, ``fd`` (n, 5) (:func:`._bspline.field_rhs`; ``fd`` per cell). With
+    right-hand side's ``fv``, ``fd`` (n, 5) (:func:`._bspline_rhs.field_rhs`; ``fd`` per cell). With
     ``free``, the level of 2 cells, whose domain is not made of whole cells, carries no function
     (its rows are 0): the finer levels, solved exactly up to the full depth, hold everything it
     would.
@@ -237,8 +241,8 @@ class ChiField:
         self.coef_all = np.concatenate([f.coef for f in order]) if order else np.zeros(0)
 
     def at(self, pos: np.ndarray) -> np.ndarray:
-        """Chi at unit-cube positions (m, 3) (:func:`._bspline.chi_at`)."""
-        return B.chi_at(
+        """Chi at unit-cube positions (m, 3) (:func:`._bspline_eval.chi_at`)."""
+        return BE.chi_at(
             np.ascontiguousarray(pos, dtype=np.float64),
             self.top,
             self.q_all,
@@ -320,7 +324,7 @@ class ChiField:
             q[rows, axis] += t
             pts[k] = q / res
         v0, vm, v1 = (self.at(pts[k]) for k in range(3))
-        t = B.edge_roots(lat, iso, v0, vm, v1, DEGENERATE_CLAMP)
+        t = BE.edge_roots(lat, iso, v0, vm, v1, DEGENERATE_CLAMP)
         out = lo
         out[rows, axis] += t
         verts[keep_idx] = out / res * size + origin
@@ -338,17 +342,17 @@ class NormalRHS:
     counterpart of :class:`.splat.NormalField`.
 
     - Level ``d``'s own share of ``W`` and the coarser levels' (written exactly on level
-      ``d``'s E by B-spline refinement, :func:`._bspline.prolong_field`, carried from level
-      to level) give a fixed 5 x 5 x 5 stencil per cell (:func:`._bspline.field_rhs`).
+      ``d``'s E by B-spline refinement, :func:`._bspline_rhs.prolong_field`, carried from level
+      to level) give a fixed 5 x 5 x 5 stencil per cell (:func:`._bspline_rhs.field_rhs`).
     - The finer levels' shares are their stencils at their own level (on the whole E: a
       share reaches three cells beyond its items), taken to coarser cells by the quadratic
       B-splines' restriction (a coarse B-spline is the finer ones with weights
-      (1, 3, 3, 1) / 4 per axis, :func:`._bspline.restrict_rhs`), computed once from the
+      (1, 3, 3, 1) / 4 per axis, :func:`._bspline_rhs.restrict_rhs`), computed once from the
       finest level up when the field is made.
 
     The field is kept folded at the cube's faces (its images beyond them added onto the
     cells they mirror) and the test functions are reflected: this is, to rounding, what
-    splatting every share at every level with its kernel (:func:`._bspline.splat_rhs`)
+    splatting every share at every level with its kernel (:func:`._bspline_rhs.splat_rhs`)
     gives, faces included (tested). Only for :data:`KERNEL_WIDTH` 1, where the kernels are
     the level's own B-splines.
     """
@@ -377,7 +381,7 @@ class NormalRHS:
             if own is not None:
                 t = np.zeros(8 * len(f.q_keys))
                 fv, fd = self._factors(lv)
-                B.field_rhs(
+                BR.field_rhs(
                     f.q_keys,
                     f.nb,
                     np.ones(len(f.q_keys), bool),
@@ -397,8 +401,8 @@ class NormalRHS:
                 continue
             c = level_fields[lv - 1]
             assert c is not None  # lv - 1 >= 1
-            blocks = B.finer_blocks(c.q_keys, f.q_keys)
-            up = B.restrict_rhs(c.q_keys, c.nb, c.inp, blocks, t, 1 << (lv - 1), c.s)
+            blocks = BR.finer_blocks(c.q_keys, f.q_keys)
+            up = BR.restrict_rhs(c.q_keys, c.nb, c.inp, blocks, t, 1 << (lv - 1), c.s)
             self.finer[lv - 1] = up
             del t, blocks
 
@@ -416,15 +420,15 @@ class NormalRHS:
     def _own(self, lv: int) -> tuple[np.ndarray, np.ndarray] | None:
         """Level ``lv``'s own share of the field.
 
-        The row of each cell of its E (-1 none) and the rows (:func:`._bspline.field_rows`); None if
-        it has none.
+        The row of each cell of its E (-1 none) and the rows (:func:`._bspline_rhs.field_rows`);
+        None if it has none.
         """
         own = self.fields.get(lv)
         if own is None or not len(own[0]):
             return None
         lf = self.lf[lv]
         assert lf is not None  # a level's field lives until the next finer one is done
-        idx, missing = B.field_rows(lf.q_keys, own[0])
+        idx, missing = BR.field_rows(lf.q_keys, own[0])
         if missing:
             raise RuntimeError(
                 f"poisson: {missing} cells of level {lv}'s normal field lie outside its E"
@@ -455,7 +459,7 @@ class NormalRHS:
             p = self.lf[d - 1]
             assert p is not None  # freed only after level d
             if carry is not None and d < self.depth:
-                carry = B.prolong_field(f.q_keys, p.q_keys, p.nb, carry, 1 << (d - 1), f.s)
+                carry = BR.prolong_field(f.q_keys, p.q_keys, p.nb, carry, 1 << (d - 1), f.s)
         own = self._own(d)
         self.fields.pop(d, None)
         if d == 1:
@@ -467,15 +471,15 @@ class NormalRHS:
             if carry is None:
                 carry = np.zeros((8 * len(f.q_keys), 3))
             if own is not None:
-                B.add_rows(carry, *own)
-            B.field_rhs(f.q_keys, f.nb, f.inp, 1 << d, f.s, fv, fd, carry, _NO_ROWS, _NO_FIELD, b)
+                BR.add_rows(carry, *own)
+            BR.field_rhs(f.q_keys, f.nb, f.inp, 1 << d, f.s, fv, fd, carry, _NO_ROWS, _NO_FIELD, b)
             self.carry = carry
         elif carry is not None and d > 1:
             # the finest level: the coarser field refined and its own share read where they
             # are (no copy of either on E)
             p = self.lf[d - 1]
             assert p is not None  # freed only after level d
-            B.field_rhs_prolonged(
+            BR.field_rhs_prolonged(
                 f.q_keys,
                 f.nb,
                 f.inp,
@@ -490,7 +494,7 @@ class NormalRHS:
                 b,
             )
         elif carry is not None or own is not None:
-            B.field_rhs(
+            BR.field_rhs(
                 f.q_keys,
                 f.nb,
                 f.inp,
@@ -556,7 +560,6 @@ def solve(
     chi is fixed).
     """
     spos, count = smp.pos, smp.count
-    alpha = splats.alpha
     screen_w = splats.screening(SCREEN_CLEAN, SCREEN_NOISY)
     if sample_ok is not None:
         screen_w = screen_w * sample_ok
@@ -565,7 +568,7 @@ def solve(
     last_res = 0.0
     per_level = []
     fields: list[LevelField] = []
-    node_keys = []
+    node_keys: list[np.ndarray] = []
     prev: LevelField | None = None
     # every level's E first: the finer levels' right-hand sides are restricted from the finest up
     lfs, arrays = level_fields(levels, boundary)
@@ -582,159 +585,56 @@ def solve(
         for lev in levels:
             release_free_heap()
             tl = time.perf_counter()
+            _prepare_level(levels, lev, node_keys)
             d = lev.depth
-            lev.face_nodes = O.face_nodes(lev.node_keys, 1 << d)
-            assert lev.node_keys is not None  # dropped only after the solve
-            node_keys.append(lev.node_keys)
-            lev.node_keys = lev.unknown = lev.ncell = None
-            if d > 0:
-                levels[d - 1].leaf = ~O.cell_has_child(
-                    lev.cell_parent, len(levels[d - 1].cell_keys)
-                )
-                lev.cell_parent = None
             if d == 0:
                 tk.advance(1)
                 continue
             f = lfs[d]
             assert f is not None  # levels 1.. have a field
             lfs[d] = None
-            n = 1 << d
-            h = 1.0 / n
-            m1, k1 = level_tables(n, f.s, boundary == "free")[:2]
-            unknown = np.repeat(f.inp, 8)
-            ne = len(unknown)
-            fixed = None if free_cells is None else ~free_cells(d, cell_keys(f.q_keys))
             if KERNEL_WIDTH == 1.0:
-                rhs = normal_rhs.rhs(d)
+                make_rhs = functools.partial(normal_rhs.rhs, d)
             else:
-                rhs = B.splat_rhs(*items, d, f.q_keys, f.inp, f.s, KERNEL_WIDTH)
-            if not m1.any():
-                # the free boundary's level 1 carries no function (level_tables): chi is 0 on it
-                f.coef = coef_all[8 * arrays[1][d] : 8 * arrays[1][d + 1]]
-                fields.append(f)
-                prev = f
-                per_level.append(
-                    {"depth": d, "nodes": ne, "unknowns": 0, "iterations": 0, "residual": 0.0}
+                make_rhs = functools.partial(
+                    BR.splat_rhs, *items, d, f.q_keys, f.inp, f.s, KERNEL_WIDTH
                 )
-                per_level[-1]["seconds"] = time.perf_counter() - tl
-                tk.advance(1)
-                continue
-            diag = B.stiffness_diag(f.q_keys, f.inp, m1, k1, h)
-            if alpha > 0:
-                mp, mw = _merge_per_cell(spos, screen_w, d)
-                scell, sloc = f.locate(mp)
-                have = scell >= 0
-                scell, sloc, sw = scell[have], sloc[have], mw[have]
-                del mp, mw, have
-                B.screening_diag_rhs(f.q_keys, f.nb, n, f.s, scell, sloc, sw, TARGET, diag, rhs)
-            else:
-                scell, sloc, sw = np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
-            # the solve's vectors on the unknowns only (the children of the flagged parents),
-            # made before the coarser levels' field is prolonged: at the finest level of 1M
-            # samples at depth 10 the right-hand side, the diagonal, the prolonged field and its
-            # product on all of E were alive at once, the process's peak
-            cmap = np.cumsum(f.inp) - 1
-            cmap[~f.inp] = -1
-            if fixed is not None:
-                diag[fixed] = 0.0  # level_pcg leaves the rows without a diagonal at 0
-                rhs[fixed] = 0.0
-            rhs = rhs[unknown]
-            diag = diag[unknown]
-            if prev is not None:
-                # the residual the coarser levels leave: A G at the unknowns, G on all of E
-                G = B.prolong(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s)
-                if fixed is not None:
-                    G[fixed] = 0.0
-                AG = np.empty(len(rhs))
-                B.level_matvec(
-                    f.q_keys,
-                    f.nb,
-                    f.inp,
-                    np.arange(len(f.q_keys)),
-                    cmap,
-                    m1,
-                    k1,
-                    h,
-                    n,
-                    f.s,
-                    scell,
-                    sloc,
-                    sw,
-                    G,
-                    AG,
-                )
-                rhs -= AG
-                del AG, G
-            exact = d <= full_depth
-            release_free_heap()
-            x, it, rel = B.level_pcg(
-                f.q_keys,
-                f.nb,
-                f.inp,
-                cmap,
-                m1,
-                k1,
-                h,
-                n,
-                f.s,
-                scell,
-                sloc,
-                sw,
-                rhs,
-                diag,
-                1e-7 if exact else cg_tolerance,
-                2000 if exact else 200,
+            fixed = None if free_cells is None else ~free_cells(d, cell_keys(f.q_keys))
+            stats, solved = _solve_level(
+                f,
+                prev,
+                make_rhs,
+                fixed,
+                coef_all[8 * arrays[1][d] : 8 * arrays[1][d + 1]],
+                spos,
+                screen_w,
+                splats.alpha,
+                boundary,
+                1e-7 if d <= full_depth else cg_tolerance,
+                2000 if d <= full_depth else 200,
             )
-            del rhs, diag, scell, sloc, sw, cmap
-            # the level's chi: the coarser field prolonged again (cheaper than keeping it on all
-            # of E through the conjugate gradients) plus the correction
-            f.coef = coef_all[8 * arrays[1][d] : 8 * arrays[1][d + 1]]
-            if prev is not None:
-                B.prolong_into(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s, f.coef)
-            if fixed is not None:
-                f.coef[fixed] = 0.0
-            f.coef[unknown] += x
-            del x
+            del make_rhs, fixed
             fields.append(f)
             prev = f
-            total_it += it
-            last_res = rel
-            per_level.append(
-                {
-                    "depth": d,
-                    "nodes": ne,
-                    "unknowns": int(unknown.sum()),
-                    "iterations": it,
-                    "residual": rel,
-                    "seconds": time.perf_counter() - tl,
-                }
-            )
-            log.info(
-                "poisson: level %2d  cells %9d  unknowns %9d  cg iterations %4d  residual %.2e "
-                " %.2f s",
-                d,
-                ne,
-                int(unknown.sum()),
-                it,
-                rel,
-                time.perf_counter() - tl,
-            )
+            stats["seconds"] = time.perf_counter() - tl
+            per_level.append(stats)
+            if solved:
+                total_it += stats["iterations"]
+                last_res = stats["residual"]
+                log.info(
+                    "poisson: level %2d  cells %9d  unknowns %9d  cg iterations %4d  residual "
+                    "%.2e  %.2f s",
+                    d,
+                    stats["nodes"],
+                    stats["unknowns"],
+                    stats["iterations"],
+                    stats["residual"],
+                    time.perf_counter() - tl,
+                )
             tk.advance(1)
-    levels[-1].leaf = np.ones(len(levels[-1].cell_keys), bool)
-    for lev, keys in zip(levels, node_keys, strict=True):
-        set_corners(lev, keys)
-    chi = ChiField(fields, boundary, arrays)
-    del arrays, coef_all
-    del fields, prev
-    gvals = [chi.at_nodes(lev, keys) for lev, keys in zip(levels, node_keys, strict=True)]
-    # the extraction interpolates each leaf trilinearly from its corners: the finer side of
-    # a leaf's faces takes those values (chi's own everywhere else)
-    for d in range(1, len(levels)):
-        up = levels[d - 1]
-        B.constrain_to_coarse_leaves(
-            node_keys[d], gvals[d], up.cell_keys, up.cell_nodes, up.leaf, gvals[d - 1]
-        )
-    del node_keys
+    del prev
+    chi, gvals = _level_values(levels, node_keys, fields, boundary, arrays)
+    del arrays, coef_all, fields
     chi_s = chi.at(spos)
     iso = float((chi_s * count).sum() / count.sum())
     log.info("poisson: iso-value %.6f", iso)
@@ -743,3 +643,194 @@ def solve(
 
 # public name for the distributed solve (.distributed)
 level_parents = _level_parents
+
+
+def _prepare_level(levels: list[Level], lev: Level, node_keys: list[np.ndarray]) -> None:
+    """The tree's bookkeeping before level ``lev``'s solve.
+
+    Its face nodes are made, its node keys moved to ``node_keys`` (the corners need them after the
+    solve) and the coarser level's leaves flagged.
+    """
+    d = lev.depth
+    lev.face_nodes = O.face_nodes(lev.node_keys, 1 << d)
+    assert lev.node_keys is not None  # dropped only after the solve
+    node_keys.append(lev.node_keys)
+    lev.node_keys = lev.unknown = lev.ncell = None
+    if d > 0:
+        levels[d - 1].leaf = ~O.cell_has_child(lev.cell_parent, len(levels[d - 1].cell_keys))
+        lev.cell_parent = None
+
+
+def _solve_level(
+    f: LevelField,
+    prev: LevelField | None,
+    make_rhs: Callable[[], np.ndarray],
+    fixed: np.ndarray | None,
+    coef: np.ndarray,
+    spos: np.ndarray,
+    screen_w: np.ndarray,
+    alpha: float,
+    boundary: str,
+    tolerance: float,
+    max_iter: int,
+) -> tuple[dict, bool]:
+    """Solve one level's correction to the coarser levels' field ``prev``; set ``f.coef``.
+
+    ``make_rhs()`` gives the level's right-hand side (8q,) on E (made here, so that only the
+    unknowns' part outlives the screening), ``fixed`` (8q,) bool the cells
+    whose coefficient is 0 (or None), ``coef`` (8q,) the view of the solve's coefficients that
+    becomes ``f.coef``: the level's whole chi, the coarser field prolonged plus the correction.
+    Returns the level's statistics (depth, nodes, unknowns, iterations, residual) and whether
+    it was solved (the free boundary's level 1 carries no function).
+    """
+    d = f.depth
+    n = 1 << d
+    h = 1.0 / n
+    m1, k1 = level_tables(n, f.s, boundary == "free")[:2]
+    unknown = np.repeat(f.inp, 8)
+    ne = len(unknown)
+    if not m1.any():
+        # the free boundary's level 1 carries no function (level_tables): chi is 0 on it
+        f.coef = coef
+        return {"depth": d, "nodes": ne, "unknowns": 0, "iterations": 0, "residual": 0.0}, False
+    rhs = make_rhs()
+    diag = BO.stiffness_diag(f.q_keys, f.inp, m1, k1, h)
+    scell, sloc, sw = _screening_samples(f, spos, screen_w, alpha, diag, rhs)
+    # the solve's vectors on the unknowns only (the children of the flagged parents), made before
+    # the coarser levels' field is prolonged: on the finest level of a large solve the right-hand
+    # side, the diagonal, the prolonged field and its product on all of E were alive at once
+    cmap = np.cumsum(f.inp) - 1
+    cmap[~f.inp] = -1
+    if fixed is not None:
+        diag[fixed] = 0.0  # level_pcg leaves the rows without a diagonal at 0
+        rhs[fixed] = 0.0
+    rhs = rhs[unknown]
+    diag = diag[unknown]
+    if prev is not None:
+        _subtract_coarse(f, prev, cmap, m1, k1, scell, sloc, sw, fixed, rhs)
+    release_free_heap()
+    x, it, rel = BO.level_pcg(
+        f.q_keys,
+        f.nb,
+        f.inp,
+        cmap,
+        m1,
+        k1,
+        h,
+        n,
+        f.s,
+        scell,
+        sloc,
+        sw,
+        rhs,
+        diag,
+        tolerance,
+        max_iter,
+    )
+    del rhs, diag, scell, sloc, sw, cmap
+    # the level's chi: the coarser field prolonged again (cheaper than keeping it on all of E
+    # through the conjugate gradients) plus the correction
+    f.coef = coef
+    if prev is not None:
+        B.prolong_into(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s, f.coef)
+    if fixed is not None:
+        f.coef[fixed] = 0.0
+    f.coef[unknown] += x
+    stats = {
+        "depth": d,
+        "nodes": ne,
+        "unknowns": int(unknown.sum()),
+        "iterations": it,
+        "residual": rel,
+    }
+    return stats, True
+
+
+def _screening_samples(
+    f: LevelField,
+    spos: np.ndarray,
+    screen_w: np.ndarray,
+    alpha: float,
+    diag: np.ndarray,
+    rhs: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The level's screening samples (cell, position in it, weight), their terms added.
+
+    The samples are merged per cell of the level; their screening is added to ``diag`` and
+    ``rhs`` (8q,) in place. None (empty arrays) when ``alpha`` is 0.
+    """
+    if alpha <= 0:
+        return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
+    mp, mw = _merge_per_cell(spos, screen_w, f.depth)
+    scell, sloc = f.locate(mp)
+    have = scell >= 0
+    scell, sloc, sw = scell[have], sloc[have], mw[have]
+    del mp, mw, have
+    BO.screening_diag_rhs(f.q_keys, f.nb, 1 << f.depth, f.s, scell, sloc, sw, TARGET, diag, rhs)
+    return scell, sloc, sw
+
+
+def _subtract_coarse(
+    f: LevelField,
+    prev: LevelField,
+    cmap: np.ndarray,
+    m1: np.ndarray,
+    k1: np.ndarray,
+    scell: np.ndarray,
+    sloc: np.ndarray,
+    sw: np.ndarray,
+    fixed: np.ndarray | None,
+    rhs: np.ndarray,
+) -> None:
+    """``rhs -= A G`` at the unknowns: the residual the coarser levels' field ``G`` leaves.
+
+    ``G`` is ``prev``'s field prolonged onto all of the level's E (0 at the ``fixed`` cells).
+    """
+    n = 1 << f.depth
+    G = B.prolong(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s)
+    if fixed is not None:
+        G[fixed] = 0.0
+    AG = np.empty(len(rhs))
+    BO.level_matvec(
+        f.q_keys,
+        f.nb,
+        f.inp,
+        np.arange(len(f.q_keys)),
+        cmap,
+        m1,
+        k1,
+        1.0 / n,
+        n,
+        f.s,
+        scell,
+        sloc,
+        sw,
+        G,
+        AG,
+    )
+    rhs -= AG
+
+
+def _level_values(
+    levels: list[Level],
+    node_keys: list[np.ndarray],
+    fields: list[LevelField],
+    boundary: str,
+    arrays: tuple,
+) -> tuple[ChiField, list[np.ndarray]]:
+    """The solved field and chi at each level's nodes, as the extraction reads them.
+
+    The extraction interpolates each leaf trilinearly from its corners: the finer side of a
+    leaf's faces takes those values (chi's own everywhere else).
+    """
+    levels[-1].leaf = np.ones(len(levels[-1].cell_keys), bool)
+    for lev, keys in zip(levels, node_keys, strict=True):
+        set_corners(lev, keys)
+    chi = ChiField(fields, boundary, arrays)
+    gvals = [chi.at_nodes(lev, keys) for lev, keys in zip(levels, node_keys, strict=True)]
+    for d in range(1, len(levels)):
+        up = levels[d - 1]
+        BE.constrain_to_coarse_leaves(
+            node_keys[d], gvals[d], up.cell_keys, up.cell_nodes, up.leaf, gvals[d - 1]
+        )
+    return chi, gvals

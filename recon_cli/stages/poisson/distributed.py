@@ -309,15 +309,15 @@ def solve_coarse(
     nrhs = NormalRHS(fields, lfs)
     if finer is not None:
         # the finer levels' part, restricted onto the coarser levels as NormalRHS restricts
-        from recon_cli.stages.poisson import _bspline as B
+        from recon_cli.stages.poisson import _bspline_rhs as BR
 
         nrhs.finer[dc] = finer if nrhs.finer[dc] is None else nrhs.finer[dc] + finer
         up = finer
         for lv in range(dc, 1, -1):
             c, f = lfs[lv - 1], lfs[lv]
             assert c is not None and f is not None  # levels 1.. have their fields
-            blocks = B.finer_blocks(c.q_keys, f.q_keys)
-            up = B.restrict_rhs(c.q_keys, c.nb, c.inp, blocks, up, 1 << (lv - 1), c.s)
+            blocks = BR.finer_blocks(c.q_keys, f.q_keys)
+            up = BR.restrict_rhs(c.q_keys, c.nb, c.inp, blocks, up, 1 << (lv - 1), c.s)
             nrhs.finer[lv - 1] = up if nrhs.finer[lv - 1] is None else nrhs.finer[lv - 1] + up
 
     def scr(d):

@@ -26,6 +26,8 @@ import numpy as np
 from recon_cli.errors import StageFailed
 from recon_cli.memory import peak_mb, release_free_heap, reset_peak
 from recon_cli.stages.poisson import _bspline as B
+from recon_cli.stages.poisson import _bspline_eval as BE
+from recon_cli.stages.poisson import _bspline_operator as BO
 from recon_cli.stages.poisson import _extract as E
 from recon_cli.stages.poisson import _octree as O
 from recon_cli.stages.poisson.bspline import (
@@ -587,13 +589,13 @@ def solve_levels(
         m1, k1 = folded_tables(n, f.s)
         unknown = np.repeat(f.inp, 8)
         rhs = normal_rhs.rhs(d)
-        diag = B.stiffness_diag(f.q_keys, f.inp, m1, k1, h)
+        diag = BO.stiffness_diag(f.q_keys, f.inp, m1, k1, h)
         scr = screening(d)
         if scr is not None and len(scr[0]):
             scell, sloc = f.locate(scr[0])
             have = scell >= 0
             scell, sloc, sw = scell[have], sloc[have], scr[1][have]
-            B.screening_diag_rhs(f.q_keys, f.nb, n, f.s, scell, sloc, sw, TARGET, diag, rhs)
+            BO.screening_diag_rhs(f.q_keys, f.nb, n, f.s, scell, sloc, sw, TARGET, diag, rhs)
         else:
             scell, sloc, sw = np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
         del scr
@@ -604,7 +606,7 @@ def solve_levels(
         if prev is not None:
             G = B.prolong(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s)
             AG = np.empty(len(rhs))
-            B.level_matvec(
+            BO.level_matvec(
                 f.q_keys,
                 f.nb,
                 f.inp,
@@ -625,7 +627,7 @@ def solve_levels(
             del AG, G
         exact = d <= full_depth
         release_free_heap()
-        x, it, rel = B.level_pcg(
+        x, it, rel = BO.level_pcg(
             f.q_keys,
             f.nb,
             f.inp,
@@ -869,7 +871,7 @@ def field(slab: Slab, iso: float, band_left: dict | None, band_right: dict | Non
     # leaf's faces takes its values (bspline.solve)
     for d in range(1, len(levels)):
         up = levels[d - 1]
-        B.constrain_to_coarse_leaves(
+        BE.constrain_to_coarse_leaves(
             levels[d].node_keys, gvals[d], up.cell_keys, up.cell_nodes, up.leaf, gvals[d - 1]
         )
     chi.drop_neighbours()

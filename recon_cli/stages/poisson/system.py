@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -69,7 +70,6 @@ def solve(
             release_free_heap()
             tl = time.perf_counter()
             d = lev.depth
-            nn = lev.n_nodes
             ke = UNIT_STIFFNESS / (1 << d)
             # (n,) vectors are updated in place
             assert lev.node_keys is not None and lev.unknown is not None  # until this level ends
@@ -78,74 +78,30 @@ def solve(
             # extraction's clamp), not the node keys
             lev.face_nodes = O.face_nodes(lev.node_keys, 1 << d)
             lev.node_keys = None
-            scell, sloc = Y.sample_cells(spos, d, lev.cell_keys)
-            # the tree is adaptive: only the samples inside this level's cells screen it; the
-            # weight halves with each coarser level (PoissonRecon scales a node's point weight
-            # by 2**its depth): coarse levels, which the finer ones only correct, are not
-            # pulled to the samples harder than the finest (measured below, make_splats)
-            lw = screen_w * (2.0 ** (d - depth))
-            have = scell >= 0
-            if not have.all():
-                scell, sloc, lw = scell[have], sloc[have], lw[have]
-            del have
-            # the diagonal, for the preconditioner: a table by incident-cell count (lev.ncell)
-            # plus the sparse screening part, not an (n,) vector
-            if alpha > 0:
-                sd_nodes, sd_vals = Y.screening_diag_rhs(
-                    scell, sloc, lev.cell_nodes, lw, TARGET, rhs
-                )
-            else:
-                sd_nodes, sd_vals = np.zeros(0, np.int64), np.zeros(0)
-            sw = lw if alpha > 0 else np.zeros(0)
-            cscr = np.zeros((0, 8, 8))
-            if alpha > 0 and 4 * len(lev.cell_keys) <= len(sw) and len(lev.cell_keys) <= 1 << 19:
-                # coarse levels: samples outnumber cells, so sum each cell's samples into its
-                # own 8x8 screening matrix once (exact) and let a CG step cost O(cells);
-                # (c, 8, 8) floats, so only up to 2**19 cells (256 MB)
-                cscr = Y.cell_screening(scell, sloc, sw, len(lev.cell_keys))
-                sw = np.zeros(0)
+            scr = _level_screening(lev, spos, screen_w * (2.0 ** (d - depth)), alpha, rhs)
             par = levels[d - 1] if d > 0 else None
             if par is not None:
-                # the coarser levels' chi at this level's nodes; prolonged again after the
-                # solve rather than kept: one (n,) vector fewer during the conjugate gradients
-                G = Y.prolong(
-                    lev.cell_nodes, lev.cell_keys, lev.cell_parent, par.cell_nodes, gvals[-1], nn
-                )
-                AG = np.empty(nn)
-                Y.level_matvec(lev.cell_nodes, ke, cscr, scell, sloc, sw, G, AG)
-                del G
-                rhs -= AG
-                del AG
+                _subtract_coarse(lev, par, gvals[-1], ke, scr, rhs)
             exact = d <= full_depth
             release_free_heap()  # the set-up's temporaries: not resident while the solver runs
             x, it, rel = Y.level_pcg(
                 lev.cell_nodes,
                 ke,
-                cscr,
-                scell,
-                sloc,
-                sw,
+                scr.cscr,
+                scr.scell,
+                scr.sloc,
+                scr.sw,
                 rhs,
                 lev.ncell,
-                sd_nodes,
-                sd_vals,
+                scr.sd_nodes,
+                scr.sd_vals,
                 lev.unknown,
                 1e-7 if exact else cg_tolerance,
                 2000 if exact else 200,
             )
-            del rhs, sd_nodes, sd_vals, scell, sloc, cscr, lw
-            if par is not None:
-                G = Y.prolong(
-                    lev.cell_nodes, lev.cell_keys, lev.cell_parent, par.cell_nodes, gvals[-1], nn
-                )
-                # the coarser level's leaves are its cells without children here
-                par.leaf = ~O.cell_has_child(lev.cell_parent, len(par.cell_keys))
-                lev.cell_parent = None
-            else:
-                G = np.zeros(nn)
-            G += x
+            del rhs, scr
+            gvals.append(_level_chi(lev, par, gvals[-1] if gvals else None, x))
             del x
-            gvals.append(G)
             total_it += it
             last_res = rel
             n_unknown = int(lev.unknown.sum())
@@ -153,7 +109,7 @@ def solve(
             per_level.append(
                 {
                     "depth": d,
-                    "nodes": nn,
+                    "nodes": lev.n_nodes,
                     "unknowns": n_unknown,
                     "iterations": it,
                     "residual": rel,
@@ -164,16 +120,92 @@ def solve(
                 "poisson: level %2d  nodes %9d  unknowns %9d  cg iterations %4d  residual %.2e "
                 " %.2f s",
                 d,
-                nn,
+                lev.n_nodes,
                 n_unknown,
                 it,
                 rel,
                 time.perf_counter() - tl,
             )
             tk.advance(work[d])
-    del G, par
     levels[-1].leaf = np.ones(len(levels[-1].cell_keys), bool)
     return gvals, per_level, total_it, last_res
+
+
+@dataclass
+class _Screening:
+    """A level's screening samples and the solver's views of them (:func:`_level_screening`)."""
+
+    scell: np.ndarray  # (m,) the samples' cells
+    sloc: np.ndarray  # (m, 3) their positions in the cells
+    sw: np.ndarray  # (m,) their weights, or none when summed into ``cscr``
+    sd_nodes: np.ndarray  # the diagonal's screening part: nodes ...
+    sd_vals: np.ndarray  # ... and values
+    cscr: np.ndarray  # (c, 8, 8) each cell's screening matrix, or none
+
+
+def _level_screening(
+    lev: Level, spos: np.ndarray, lw: np.ndarray, alpha: float, rhs: np.ndarray
+) -> _Screening:
+    """The samples screening level ``lev`` (weights ``lw``), their part of ``rhs`` added.
+
+    The tree is adaptive: only the samples inside this level's cells screen it; the weight
+    halves with each coarser level (PoissonRecon scales a node's point weight by 2**its depth):
+    coarse levels, which the finer ones only correct, are not pulled to the samples harder than
+    the finest (measured below, make_splats).
+    """
+    scell, sloc = Y.sample_cells(spos, lev.depth, lev.cell_keys)
+    have = scell >= 0
+    if not have.all():
+        scell, sloc, lw = scell[have], sloc[have], lw[have]
+    del have
+    # the diagonal, for the preconditioner: a table by incident-cell count (lev.ncell) plus the
+    # sparse screening part, not an (n,) vector
+    if alpha > 0:
+        sd_nodes, sd_vals = Y.screening_diag_rhs(scell, sloc, lev.cell_nodes, lw, TARGET, rhs)
+    else:
+        sd_nodes, sd_vals = np.zeros(0, np.int64), np.zeros(0)
+    sw = lw if alpha > 0 else np.zeros(0)
+    cscr = np.zeros((0, 8, 8))
+    if alpha > 0 and 4 * len(lev.cell_keys) <= len(sw) and len(lev.cell_keys) <= 1 << 19:
+        # coarse levels: samples outnumber cells, so sum each cell's samples into its own 8x8
+        # screening matrix once (exact) and let a CG step cost O(cells); (c, 8, 8) floats, so
+        # only up to 2**19 cells (256 MB)
+        cscr = Y.cell_screening(scell, sloc, sw, len(lev.cell_keys))
+        sw = np.zeros(0)
+    return _Screening(scell, sloc, sw, sd_nodes, sd_vals, cscr)
+
+
+def _subtract_coarse(
+    lev: Level, par: Level, gpar: np.ndarray, ke: np.ndarray, scr: _Screening, rhs: np.ndarray
+) -> None:
+    """``rhs -= A G``: the residual the coarser levels' chi (``gpar`` on ``par``) leaves.
+
+    ``G`` is that chi at this level's nodes; it is prolonged again after the solve rather than
+    kept: one (n,) vector fewer during the conjugate gradients.
+    """
+    G = Y.prolong(lev.cell_nodes, lev.cell_keys, lev.cell_parent, par.cell_nodes, gpar, lev.n_nodes)
+    AG = np.empty(lev.n_nodes)
+    Y.level_matvec(lev.cell_nodes, ke, scr.cscr, scr.scell, scr.sloc, scr.sw, G, AG)
+    del G
+    rhs -= AG
+
+
+def _level_chi(lev: Level, par: Level | None, gpar: np.ndarray | None, x: np.ndarray) -> np.ndarray:
+    """Chi at the level's nodes: the coarser levels' prolonged plus the correction ``x``.
+
+    Also flags the coarser level's leaves (its cells without children here).
+    """
+    if par is not None:
+        assert gpar is not None  # the coarser level was solved first
+        G = Y.prolong(
+            lev.cell_nodes, lev.cell_keys, lev.cell_parent, par.cell_nodes, gpar, lev.n_nodes
+        )
+        par.leaf = ~O.cell_has_child(lev.cell_parent, len(par.cell_keys))
+        lev.cell_parent = None
+    else:
+        G = np.zeros(lev.n_nodes)
+    G += x
+    return G
 
 
 def solve_work(levels: list[Level], full_depth: int) -> list[float]:

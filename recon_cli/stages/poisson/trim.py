@@ -10,6 +10,9 @@ fraction of the median density at the samples, so the same value serves any scan
 and tessellation (a vertex quantile, Open3D's documented recipe, depends on how many
 vertices the sheet happens to have).
 
+:func:`support_ratio` gives the value cut by ``--trim auto``: how far each vertex lies from
+the samples relative to their local spacing (see its docstring for the rule).
+
 On a closed, edge- and vertex-manifold input the output is edge- and vertex-manifold by
 construction: every face around a kept vertex keeps a piece containing it, and each cut
 vertex lies inside an edge shared by two faces whose kept pieces meet along it.
@@ -19,6 +22,9 @@ References
 Kazhdan, M. & Hoppe, H. (2013). Screened Poisson surface reconstruction. ACM TOG 32(3)
 (the SurfaceTrimmer of its code: trim at a density value, split along the iso-contour,
 area ratio for islands).
+Amenta, N., Choi, S. & Kolluri, R. (2001). The power crust. Solid Modeling (a surface is
+supported where it lies within a fraction of the local feature size of the samples: the
+sampling condition behind :func:`support_ratio`).
 """
 
 from __future__ import annotations
@@ -34,6 +40,16 @@ from recon_cli.tolerances import tol
 # islands (high pieces in the sheet, low holes in the surface) below this fraction of the kept area
 # are dropped / filled (SurfaceTrimmer's --aRatio default, which it takes of the whole area)
 ISLAND_AREA_RATIO = 1e-3
+# --trim auto: the local spacing of a sample is its distance to its SUPPORT_K-th nearest
+# sample ...
+SUPPORT_K = 8
+# ... and the surface is kept within this many local spacings of the nearest sample (a lattice's
+# gaps are within 0.5, a grazing view's 3:1 lattice's within 0.53, and a random sampling's
+# farther parts are small holes the island rule fills) ...
+SUPPORT_RATIO = 0.7
+# ... a spacing counting as at most this many times the samples' median spacing (sparse
+# strays, such as a depth camera's flying pixels, keep no wide sheet around them)
+SPACING_CAP = 2.0
 
 
 @dataclass
@@ -45,6 +61,7 @@ class Trimmed:
     removed_area: float  # fraction of the input's area removed
     threshold: float
     untouched_faces: int  # input faces kept whole (the others were cut or removed)
+    carried: np.ndarray | None = None  # (n,) ``carry`` at the output vertices, if given
 
 
 def cut_by_density(
@@ -116,6 +133,7 @@ def trim_by_density(
     density: np.ndarray,
     threshold: float,
     island_ratio: float = ISLAND_AREA_RATIO,
+    carry: np.ndarray | None = None,
 ) -> Trimmed:
     """Remove the part of ``mesh`` where ``density`` is at most ``threshold``.
 
@@ -132,6 +150,9 @@ def trim_by_density(
     island_ratio : float
         Kept islands smaller than this fraction of the kept area go; removed islands smaller
         than it stay (they are holes in a sparse patch, not the closing sheet).
+    carry : (n,) float, optional
+        Another per-vertex value (a density attribute) taken to the output vertices,
+        interpolated at the cut vertices as the positions are.
 
     Returns
     -------
@@ -143,9 +164,15 @@ def trim_by_density(
     high = d > threshold
     nh = high[f].sum(axis=1)
     if len(f) == 0 or nh.min() == 3:
-        return Trimmed(mesh, d, 0.0, threshold, len(f))
+        return Trimmed(mesh, d, 0.0, threshold, len(f), carry)
 
-    verts, faces, side, dens, _ = cut_by_density(v, f, d, threshold, high, nh)
+    verts, faces, side, dens, edges = cut_by_density(v, f, d, threshold, high, nh)
+    if carry is not None:
+        # the cut vertices' parameter along their edges, as cut_by_density places them
+        e0, e1 = edges[:, 0], edges[:, 1]
+        t = np.clip((threshold - d[e0]) / (d[e1] - d[e0]), tol.contour, 1.0 - tol.contour)
+        carry = np.asarray(carry, dtype=np.float64)
+        carry = np.concatenate([carry, carry[e0] + t * (carry[e1] - carry[e0])])
 
     # ---- islands: components of each side (faces joined across edges within the side)
     area = Connectivity(faces, len(verts), verts).face_areas
@@ -170,4 +197,82 @@ def trim_by_density(
     untouched = int(
         (nh == 3).sum() + keep[int((nh == 3).sum()) : int((nh == 3).sum() + (nh == 0).sum())].sum()
     )
-    return Trimmed(out, dens[used], removed, threshold, untouched)
+    return Trimmed(
+        out, dens[used], removed, threshold, untouched, None if carry is None else carry[used]
+    )
+
+
+def merge_per_cell(points: np.ndarray, cell: float) -> np.ndarray:
+    """(s, 3) the mean of the ``points`` (n, 3) in each cell of a lattice of side ``cell``."""
+    points = np.asarray(points, dtype=np.float64)
+    lo = points.min(axis=0)
+    ijk = np.floor((points - lo) / cell).astype(np.int64)
+    _, inv, cnt = np.unique(ijk, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.reshape(-1)
+    out = np.empty((len(cnt), 3))
+    for a in range(3):
+        out[:, a] = np.bincount(inv, weights=points[:, a], minlength=len(cnt)) / cnt
+    return out
+
+
+def support_ratio(
+    samples: np.ndarray, verts: np.ndarray, k: int = SUPPORT_K
+) -> tuple[np.ndarray, np.ndarray]:
+    """How far each vertex lies from the samples, in local sample spacings (``--trim auto``).
+
+    The closing sheet of an open scan lies far from every sample *relative to the local
+    sample spacing*; a real surface, however sparsely sampled (a depth image's far floor,
+    ground under canopy), lies within a fraction of the spacing of its samples. So the rule
+    needs no density threshold:
+
+    - each sample's spacing ``s`` is its distance to its ``k``-th nearest sample, made
+      robust as the median of that distance over the sample and its ``k`` neighbours (an
+      outlier among dense samples takes their spacing, not its own large gap), and capped
+      at :data:`SPACING_CAP` times the median spacing of all samples (strays far sparser
+      than the cloud, like a depth camera's flying pixels in an occlusion shadow, support
+      no wide sheet around them);
+    - a vertex's value is ``d / s``, ``d`` its distance to its nearest sample and ``s``
+      that sample's spacing; the surface is cut where this is :data:`SUPPORT_RATIO`.
+
+    Every point of a surface sampled on a square lattice has a sample within half the 8th
+    neighbour's distance (``sqrt(2)`` lattice steps; on a 3:1 lattice, a grazing view's,
+    within 0.53 of it), and a random sampling leaves about ``exp(-k c**2)`` of its area
+    farther than ``c`` times the ``k``-th neighbour's distance from every sample (small
+    holes, which the trim's island rule fills), so a cut at 0.7 spacings keeps every sampled
+    region, sparse ones included, and the sheet only within 0.7 spacings of the scan's
+    edge. Density cuts (SurfaceTrimmer's value, Open3D's quantile, a fraction of
+    the median density) cut sparse real regions along with the sheet, their density being
+    as low.
+
+    Parameters
+    ----------
+    samples : (s, 3) float
+        The samples, merged per finest cell of the tree (so the spacing is never below the
+        cell the surface is resolved at).
+    verts : (n, 3) float
+        Mesh vertices, same units.
+    k : int
+        Neighbour rank defining the spacing (>= 1, < s).
+
+    Returns
+    -------
+    ratio : (n,) float
+        Distance over local spacing per vertex (cut at :data:`SUPPORT_RATIO`).
+    spacing : (s,) float
+        The samples' local spacing.
+
+    References
+    ----------
+    Amenta, N., Choi, S. & Kolluri, R. (2001). The power crust. Solid Modeling.
+    """
+    from scipy.spatial import cKDTree
+
+    samples = np.asarray(samples, dtype=np.float64)
+    tree = cKDTree(samples)
+    k = min(k, len(samples) - 1)
+    dist, idx = tree.query(samples, k=k + 1, workers=-1)
+    rk = dist[:, k]
+    spacing = np.median(rk[idx], axis=1)
+    spacing = np.clip(spacing, np.finfo(float).tiny, SPACING_CAP * float(np.median(spacing)))
+    d, j = tree.query(np.asarray(verts, dtype=np.float64), workers=-1)
+    return d / spacing[j], spacing
