@@ -178,6 +178,20 @@ def fit_sdf(
 ) -> Grid:
     """Fit a neural signed distance field to a cloud (needs recon[learned])."""
 
+def filter(
+    cloud: Any,
+    *,
+    normals: np.ndarray | None = None,
+    crop: Sequence[float] | None = None,
+    classes: Any = None,
+    returns: Literal["all", "first", "last", "single", "intermediate"] = "all",
+    radius_outliers: Sequence[float] | None = None,
+    outliers: Sequence[float] | None = None,
+    voxel: float | None = None,
+    progress: Progress | bool | None = None,
+) -> PointCloud:
+    """Drop invalid points, crop, select LAS classes, remove outliers, thin."""
+
 __all__ = [
     "BackendError",
     "Grid",
@@ -194,6 +208,7 @@ __all__ = [
     "__version__",
     "apply_stage",
     "ballpivot",
+    "filter",
     "fit_sdf",
     "geometry_from",
     "load",

@@ -10,7 +10,8 @@ Keys (PLY): ``file``, ``kind`` ("point_cloud" or "mesh"), ``format``, ``vertices
 Other formats (OBJ, OFF, STL, XYZ, PCD, LAS, E57): the same keys, ``format`` being the
 format's name, plus ``details`` (what the reader reports: STL weld, LAS header, PCD fields...).
 Keys (grid): ``file``, ``kind`` ("grid"), ``shape``, ``origin``, ``voxel_size``,
-``unknown_cells``, ``range``, ``eikonal``, ``history``.
+``unknown_cells``, ``range``, ``eikonal`` (with ``near``: the figures near the zero level,
+``recon_cli.stages.sdf.eikonal_check``), ``history``.
 """
 
 from __future__ import annotations

@@ -134,6 +134,13 @@ class Param:
         Shown in ``--help`` (``X,Y,Z``).
     also : tuple
         Values allowed outside the range (``knn``: ``0`` = radius only, else ``>= 3``).
+    validate : callable, optional
+        Run on the value once its type is checked (not on None): returns it, maybe converted,
+        or raises ValueError with the expected values (``six numbers ... with x0 <= x1``), so
+        a rule between the numbers of one value is checked wherever the type is.
+    allowed : str
+        The allowed values in words, for ``--help`` and the README, where a range cannot
+        say them (a ``validate`` rule: ``x0 <= x1, y0 <= y1, z0 <= z1``).
     """
 
     name: str
@@ -150,6 +157,8 @@ class Param:
     special: Mapping[Any, str] = field(default_factory=dict)
     metavar: str | None = None
     also: tuple = ()
+    validate: Callable[[Any], Any] | None = field(default=None, compare=False, repr=False)
+    allowed: str = ""
 
     def __post_init__(self) -> None:
         if self.type not in TYPES:
@@ -173,6 +182,8 @@ class Param:
         """``"0 <= x <= 1"``-like text of the allowed values ("" when unrestricted)."""
         if self.type == "choice":
             return " | ".join(self.choices)
+        if self.allowed:
+            return self.allowed
         lo = None if self.min is None else f"{_fmt(self.min)} {'<' if self.min_open else '<='} "
         hi = None if self.max is None else f" {'<' if self.max_open else '<='} {_fmt(self.max)}"
         if lo is None and hi is None:
@@ -204,6 +215,15 @@ class Param:
         ParameterError
             One line naming the option, the expected values and what was given.
         """
+        v = self._coerce(value, text_ok)
+        if v is None or self.validate is None or v in self.words.values():
+            return v
+        try:
+            return self.validate(v)
+        except ValueError as exc:
+            raise self._error(str(exc), value) from None
+
+    def _coerce(self, value: Any, text_ok: bool) -> Any:
         if isinstance(value, str) and value.strip().lower() in self.words:
             return self.words[value.strip().lower()]
         if value is None:
@@ -333,6 +353,9 @@ class StageSpec:
         What OUT is, for ``--help`` (``.ply``, ``.npz``).
     declared : bool
         False for a bare function registered as a stage (its kinds are unknown).
+    keeps : tuple of str
+        Kinds the output has when the input has them (``filter`` keeps normals: an oriented
+        cloud in, an oriented cloud out); pipelines check the next stage with them.
     keeps_partial : bool
         The stage catches Ctrl-C itself and returns its best result so far (``fit-sdf``): the
         command then lets the interrupt reach it instead of ending the process at once.
@@ -353,12 +376,13 @@ class StageSpec:
     takes_when: Callable[[dict], tuple[str, ...]] | None = None
     output_suffix: str = ".ply"
     declared: bool = True
+    keeps: tuple[str, ...] = ()
     keeps_partial: bool = False
     from_files: str | None = None
     run: Callable[..., Any] | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
-        for k in (*self.takes, *self.gives):
+        for k in (*self.takes, *self.gives, *self.keeps):
             if k not in KINDS:
                 raise ValueError(f"stage {self.name!r}: unknown kind {k!r}")
         if len(self.backends) > 1 and "backend" not in {p.name for p in self.params}:
@@ -409,6 +433,15 @@ class StageSpec:
         if self.takes_when is not None:
             return tuple(self.takes_when({**self.defaults(), **dict(values or {})}))
         return self.takes
+
+    def output_kinds(self, given: frozenset[str] | None) -> frozenset[str]:
+        """Kinds of the output for an input of kinds ``given``.
+
+        ``given`` None means not known: every kept kind is then possible, and the next stage
+        is checked when it runs.
+        """
+        kept = set(self.keeps) if given is None else given & set(self.keeps)
+        return frozenset(self.gives) | kept
 
     def check_input(self, data: Any, values: Mapping[str, Any] | None = None) -> None:
         """Raise :class:`~recon_cli.errors.InputError` unless this stage takes ``data``'s kind."""

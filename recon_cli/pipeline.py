@@ -178,7 +178,7 @@ def check_pipeline(pipe: Pipeline, input_kinds: frozenset[str] | None = None) ->
                     f"but {source} gives "
                     f"{describe_data(given)}"
                 )
-        given = frozenset(spec.gives) if spec.declared else None
+        given = spec.output_kinds(given) if spec.declared else None
         source = f"stage {i} ({step.name})"
 
 

@@ -96,6 +96,9 @@ def _build(d: Path) -> tuple[dict, Path, dict[str, Path]]:
             _recon("ballpivot", str(files[name]), str(d / "bp.ply"))
         _recon("mcubes", str(files["grid"]), str(d / "mc.ply"))
         _recon("mcubes", str(files["grid"]), str(d / "mc.ply"), "--method", "mt")
+        for name in ("cloud_float32", "cloud_float64"):
+            _recon("filter", str(files[name]), str(d / "f.ply"), "--voxel", "0.05")
+            _recon("filter", str(files[name]), str(d / "f.ply"), "--outliers", "10,2")
         compile_ply_kernels()
         mp.delenv("RECON_AOT")
         mp.setenv(
@@ -268,9 +271,11 @@ RUN_COMMAND = (
 )
 
 
-@pytest.mark.parametrize("command", ["ballpivot", "mcubes"])
+@pytest.mark.parametrize(
+    "command,args", [("ballpivot", ()), ("mcubes", ()), ("filter", ("--voxel", "0.05"))]
+)
 def test_the_command_as_a_process_never_loads_numba_and_writes_the_jit_result(
-    build, tmp_path, command
+    build, tmp_path, command, args
 ):
     report, cache, files = build
     src = str(files["grid"] if command == "mcubes" else files["cloud_float32"])
@@ -284,7 +289,7 @@ def test_the_command_as_a_process_never_loads_numba_and_writes_the_jit_result(
             env["RECON_AOT"] = "0"
         outs[mode] = tmp_path / f"{mode}.ply"
         r = subprocess.run(
-            [sys.executable, "-c", RUN_COMMAND, "-q", command, src, str(outs[mode])],
+            [sys.executable, "-c", RUN_COMMAND, "-q", command, src, str(outs[mode]), *args],
             env=env,
             capture_output=True,
             text=True,

@@ -205,6 +205,44 @@ def test_eikonal_check_exact_sphere():
     assert eikonal_check(g2)["mean"] == pytest.approx(0.3, abs=0.01)
 
 
+@pytest.mark.parametrize("name", ["rounded_box", "thin_plate", "plate_with_hole", "torus"])
+def test_eikonal_check_near_exact_distance(name):
+    """Exact distances, rotated, scaled and 1e6 off: near the zero level, but at the kinks of
+    the medial axis, the figure is the exact field's (>= 97 %); slope 0.8 scores nothing."""
+    from shapes import SHAPES, random_rotation
+
+    rng = np.random.default_rng(len(name))
+    fn, lim = SHAPES[name]
+    rot, scale, offset = random_rotation(rng), rng.uniform(0.5, 20), np.full(3, 1e6)
+    origin, h, shape = grid_frame(offset - scale * lim * 1.05, offset + scale * lim * 1.05, 72)
+    world = grid_points(origin, h, shape)
+    s = (scale * fn((world - offset) @ rot / scale)).reshape(shape)
+    e = eikonal_check(Grid(sdf=s.astype(np.float32), origin=origin, voxel_size=h))
+    near = e["near"]
+    assert near["fraction_within_0.1"] >= 0.97 and near["cells"] > 10_000, e
+    # the medial axis of the box-like shapes comes within the band; the torus's does not
+    assert (near["kinks"] > 0) == (name != "torus") and near["kinks"] < 0.2 * near["cells"]
+    # the band: 5 % of the zero level's box diagonal, within the grid's spacing
+    idx = np.argwhere(s < 0)
+    diag = h * float(np.linalg.norm(idx.max(0) - idx.min(0)))
+    assert near["distance"] == pytest.approx(0.05 * diag, abs=0.05 * 2 * np.sqrt(3) * h)
+    slow = eikonal_check(Grid(sdf=0.8 * s, origin=origin, voxel_size=h))["near"]
+    assert slow["fraction_within_0.1"] == 0 and slow["cells"] > 10_000
+
+
+def test_eikonal_check_near_without_zero_level():
+    x = np.linspace(0, 1, 20)
+    s = np.broadcast_to(x[:, None, None] + 0.5, (20, 20, 20)).copy()
+    e = eikonal_check(Grid(sdf=s, origin=(0, 0, 0), voxel_size=x[1]))
+    assert e["fraction_within_0.1"] == 1.0
+    assert e["near"]["distance"] is None and e["near"]["cells"] == 0
+    from recon_cli.cli.info import format_info
+    from recon_cli.info import describe_grid
+
+    text = format_info(describe_grid(Grid(sdf=s, origin=(0, 0, 0), voxel_size=x[1]), "g.npz"))
+    assert "within 1±0.1: 100.0%" in text and "no zero level to measure near" in text
+
+
 def test_eikonal_check_slabs(monkeypatch):
     """The slab-by-slab evaluation gives the same statistics whatever the slab size,
     with NaN (unknown) samples and a band cap present."""
@@ -225,6 +263,10 @@ def test_eikonal_check_slabs(monkeypatch):
         assert e["cells"] == whole["cells"] and e["median"] == whole["median"]
         assert e["mean"] == pytest.approx(whole["mean"], rel=1e-12)
         assert e["fraction_within_0.1"] == whole["fraction_within_0.1"]
+        assert e["near"]["cells"] == whole["near"]["cells"] > 100
+        assert e["near"]["distance"] == whole["near"]["distance"]
+        assert e["near"]["kinks"] == whole["near"]["kinks"]
+        assert e["near"]["fraction_within_0.1"] == whole["near"]["fraction_within_0.1"]
 
 
 def test_validation_and_cli(tmp_path):

@@ -44,6 +44,8 @@ runs = [
     ["normals", scan, f"{d}/n.ply", "--orient", "camera", "--camera", "0,0,1"],
     ["normals", depth, f"{d}/d.ply", "--orient", "camera"],
     ["normals", scan, f"{d}/n2.ply"],
+    ["filter", scan, f"{d}/f.ply", "--radius-outliers", "0.004,4", "--outliers", "20,2",
+     "--voxel", "0.002"],
     ["poisson", f"{d}/n.ply", f"{d}/p.ply", "--depth", "6"],
     ["ballpivot", f"{d}/n.ply", f"{d}/b.ply"],
     ["repair", f"{d}/b.ply", f"{d}/r.ply", "--fill-holes", "50"],

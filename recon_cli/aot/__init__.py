@@ -37,12 +37,13 @@ import numpy as np
 from recon_cli._kernels.cache import cache_dir, kernel_sources_fingerprint
 
 # the kernel modules built ahead of time: every kernel the ballpivot and mcubes commands run
-# (reading and writing PLY, the stages, the mesh topology of their reports)
+# (reading and writing PLY, the stages, the mesh topology of their reports), filter's serial ones
 MODULES = (
     "recon_cli.io._ply_kernel",
     "recon_cli.stages.ballpivot._kernel",
     "recon_cli.mesh._topology_kernel",
     "recon_cli.stages.mcubes._kernel",
+    "recon_cli.stages.filter._kernel",
 )
 MANIFEST = "manifest.json"
 # the layout of a build (manifest, signature keys): part of the fingerprint, so a loader

@@ -159,6 +159,64 @@ def manifold_checks(mesh: TriangleMesh, self_intersection: bool = True) -> dict:
     }
 
 
+def statistical_outlier_indices(points: np.ndarray, k: int, std_ratio: float) -> np.ndarray:
+    """Open3D ``remove_statistical_outlier(k, std_ratio)``: the kept indices (int64, ascending)."""
+    require("open3d")
+    pc = to_o3d_cloud(PointCloud(points=points))
+    record(
+        "open3d.geometry.PointCloud.remove_statistical_outlier",
+        nb_neighbors=int(k),
+        std_ratio=float(std_ratio),
+    )
+    _, kept = pc.remove_statistical_outlier(int(k), float(std_ratio))
+    return np.asarray(kept, dtype=np.int64)
+
+
+def radius_outlier_indices(points: np.ndarray, radius: float, nb_points: int) -> np.ndarray:
+    """Open3D ``remove_radius_outlier(nb_points, radius)``: the kept indices (int64, ascending)."""
+    require("open3d")
+    pc = to_o3d_cloud(PointCloud(points=points))
+    record(
+        "open3d.geometry.PointCloud.remove_radius_outlier",
+        nb_points=int(nb_points),
+        radius=float(radius),
+    )
+    _, kept = pc.remove_radius_outlier(int(nb_points), float(radius))
+    return np.asarray(kept, dtype=np.int64)
+
+
+def voxel_down_sample(cloud: PointCloud, voxel_size: float) -> dict:
+    """Open3D ``voxel_down_sample``: its points, normals and colours as float64 arrays.
+
+    Normals are averaged, not normalised; colours are floats in [0, 1], averaged; an absent
+    attribute is None. The cells come in Open3D's order.
+    """
+    require("open3d")
+    pc = to_o3d_cloud(cloud)
+    record("open3d.geometry.PointCloud.voxel_down_sample", voxel_size=float(voxel_size))
+    out = pc.voxel_down_sample(float(voxel_size))
+    return {
+        "points": np.asarray(out.points, dtype=np.float64),
+        "normals": np.asarray(out.normals, dtype=np.float64) if out.has_normals() else None,
+        "colors": np.asarray(out.colors, dtype=np.float64) if out.has_colors() else None,
+    }
+
+
+def crop_indices(points: np.ndarray, box) -> np.ndarray:
+    """Indices of ``points`` inside the axis-aligned box ``x0,y0,z0,x1,y1,z1``, ascending.
+
+    Open3D's ``AxisAlignedBoundingBox.get_point_indices_within_bounding_box``.
+    """
+    o3d = require("open3d")
+    b = [float(x) for x in box]
+    aabb = o3d.geometry.AxisAlignedBoundingBox(b[:3], b[3:])
+    record("open3d.geometry.AxisAlignedBoundingBox.get_point_indices_within_bounding_box", box=b)
+    kept = aabb.get_point_indices_within_bounding_box(
+        o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64))
+    )
+    return np.sort(np.asarray(kept, dtype=np.int64))
+
+
 def _local(mesh: TriangleMesh):
     """``mesh`` about its bounding-box centre as an Open3D mesh, and that centre."""
     from recon_cli.geometry import local_origin

@@ -148,6 +148,15 @@ def make_inputs(root: str) -> None:
     # ... with integer codes (Poisson's --attributes votes on them)
     codes = {"classification": (pd[up, 0] > 0).astype(np.uint8) + 1}
     write_ply(PointCloud(points=pd[up], normals=nd[up], attributes=codes), path("half_codes.ply"))
+    # LAS-like classes and returns: filter's selections and its majority vote per voxel
+    cls = np.where(np.arange(len(p)) % 3 == 0, 6, 2).astype(np.uint8)
+    las: dict[str, np.ndarray] = {
+        "classification": cls,
+        "return_number": np.ones(len(p), np.uint8),
+        "number_of_returns": np.ones(len(p), np.uint8),
+        "intensity": np.arange(len(p), dtype=np.uint16),
+    }
+    write_ply(PointCloud(points=p, normals=nrm, colors=rgb, attributes=las), path("classified.ply"))
     # Poisson's envelope: a closed sphere around the clouds
     write_ply(TriangleMesh(vertices=1.5 * v, faces=f), path("envelope.ply"))
     # an organized depth image (NaN pixels, a VIEWPOINT): normals from its pixel grid
@@ -224,6 +233,7 @@ _INPUTS = {
     "dense": "dense.ply",
     "half": "half.ply",
     "half_codes": "half_codes.ply",  # the open scan with a classification property
+    "classified": "classified.ply",  # LAS classes and returns, an intensity
     "envelope": "envelope.ply",  # a closed sphere around the clouds
     "organized": "organized.pcd",  # a depth image: NaN pixels, a VIEWPOINT
     "degenerate": "degenerate.ply",
@@ -305,6 +315,16 @@ def _normals(f: Files) -> list[Step]:
         recon("normals", f.degenerate, f.out()),
         recon("normals", f.organized, f.out(), "--orient", "camera"),
         recon("normals", f.organized, f.out(), "--neighbours", "pixels", "--radius", "0.5"),
+    ]
+
+
+@phase(weight=4)
+def _filter(f: Files) -> list[Step]:
+    every = ["--crop", "-2,-2,-2,2,2,2", "--classes", "ground,building", "--returns", "last"]
+    every += ["--radius-outliers", "0.3,2", "--outliers", "10,2", "--voxel", "0.2"]
+    return [recon("filter", f.classified, f.out(), *every)] + [
+        recon("filter", src, f.out(), "--outliers", "10,2", "--voxel", "0.2")
+        for src in (f.c32, f.c64)
     ]
 
 

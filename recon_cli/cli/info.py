@@ -62,6 +62,16 @@ def format_info(rep: dict) -> str:
             )
         elif e is not None:
             lines.append("  eikonal        no interior cell with 6 known neighbours")
+        near = (e or {}).get("near")
+        if near and near["cells"]:
+            lines.append(
+                f"  eikonal near   |s| <= {near['distance']:.6g} ({near['of_diagonal']:.0%} of the "
+                f"zero level's box diagonal), within 1±0.1: "
+                f"{near['fraction_within_0.1'] * 100:.1f}% of {near['cells']} cells "
+                f"({near['kinks']} at kinks left out)"
+            )
+        elif near and near["distance"] is None:
+            lines.append("  eikonal near   no sign change: no zero level to measure near")
     else:
         lines.append(f"  format         {rep['format']}")
         lines.append(f"  vertices       {rep['vertices']}")

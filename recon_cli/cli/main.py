@@ -27,6 +27,9 @@ from recon_cli.cli.exits import (  # noqa: F401  (the codes are imported from he
 )
 from recon_cli.errors import ReconError
 
+# numpy's huge pages wait on memory compaction at first touch (bench/calibration.md, Output)
+os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
+
 # the commands that are not stages: name -> (module under recon_cli.cli holding a click command
 # named ``cmd``, summary); imported only when run, so ``recon --help`` stays instant. Every
 # registered stage (recon_cli.stages.STAGES, plugins) is a command too, made from its declaration.
@@ -71,7 +74,7 @@ class LazyGroup(click.Group):
             # a stage command ends the start-up pause when its stage starts (cli/_run.py)
             _process.resume()
             cmd = importlib.import_module(f"recon_cli.cli.{COMMANDS[name][0]}").cmd
-        elif name in _stages():
+        elif _is_stage(name):
             from recon_cli.cli.options import stage_command
 
             cmd = stage_command(name)
@@ -102,6 +105,17 @@ class LazyGroup(click.Group):
         rows += [(name, stage_summary(name)) for name in _stages()]
         with formatter.section("Commands"):
             formatter.write_dl(sorted(rows))
+
+
+def _is_stage(name: str) -> bool:
+    """Whether command ``name`` is a stage's.
+
+    A built-in stage is known without reading the installed packages' entry points, which
+    would cost every stage command's start-up more than the stage itself often takes.
+    """
+    from recon_cli.stages import BUILTIN
+
+    return name not in COMMANDS and (name in BUILTIN or name in _stages())
 
 
 def _stages() -> list[str]:

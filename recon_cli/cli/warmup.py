@@ -25,9 +25,10 @@ def cmd(ctx, jobs, json_):
     The cache is $NUMBA_CACHE_DIR if set, else
     $XDG_CACHE_HOME/recon/numba/<fingerprint of the kernel sources> (~/.cache/recon/numba/...).
 
-    It then compiles the kernels of `recon ballpivot` and `recon mcubes` ahead of time (numba.pycc,
-    needs a C compiler) into <cache>/aot/<fingerprint>, so those commands never import numba; the
-    report says whether that build was made, and why not. RECON_AOT=0 switches it off.
+    It then compiles the kernels of `recon ballpivot`, `recon mcubes` and the serial ones of
+    `recon filter` ahead of time (numba.pycc, needs a C compiler) into <cache>/aot/<fingerprint>,
+    so those commands never import numba; the report says whether that build was made, and why
+    not. RECON_AOT=0 switches it off.
     """
     from recon_cli.cli._run import emit_report, make_progress
     from recon_cli.cli._warmup import warmup

@@ -24,6 +24,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -356,35 +357,9 @@ def scatter_plot(
     for k, ((lab, x, y), _c) in enumerate(zip(good, colors, strict=True)):
         px, py = sx(x), sy(y)
         lab = _fit(lab, small, (right - left) * 0.6)
-        # the first of these places (right, left, above, below ...) that overlaps no disc or label
-        tries = [
-            ("lm", px + 10, py),
-            ("rm", px - 10, py),
-            ("mb", px, py - 9),
-            ("mt", px, py + 9),
-            ("lb", px + 8, py - 7),
-            ("rt", px - 8, py + 7),
-            ("lt", px + 8, py + 7),
-            ("rb", px - 8, py - 7),
-        ]
-        best = None
-        for anchor, tx, ty in tries:
-            bb = dr.textbbox((tx, ty), lab, font=small, anchor=anchor)
-            inside = (
-                bb[0] >= left + 2
-                and bb[2] <= right - 2
-                and bb[1] >= top + 2
-                and bb[3] <= bottom - 2
-            )
-            if inside and not any(_overlap(bb, o) for o in placed):
-                best = (anchor, tx, ty, bb)
-                break
-            if best is None and inside:
-                best = (anchor, tx, ty, bb)
-        if best is None:
-            anchor, tx, ty = tries[0]
-            best = (anchor, tx, ty, dr.textbbox((tx, ty), lab, font=small, anchor=anchor))
-        anchor, tx, ty, bb = best
+        anchor, tx, ty, bb = _place_label(
+            dr, lab, (px, py), small, (left, top, right, bottom), placed
+        )
         dr.text((tx, ty), lab, font=small, fill=TEXT_COLOR, anchor=anchor)
         placed.append(bb)
         box[f"point label {k}"] = (int(bb[0]), int(bb[1]), int(bb[2]) + 1, int(bb[3]) + 1)
@@ -398,6 +373,47 @@ def scatter_plot(
         )
         box["missing"] = (left, h - 20, w - MARGIN, h)
     return Figure(np.asarray(im, dtype=np.uint8).copy(), box)
+
+
+def _place_label(
+    dr: Any,
+    lab: str,
+    at: tuple[float, float],
+    font: Any,
+    plot: tuple[float, float, float, float],
+    placed: list[Any],
+) -> tuple[str, float, float, Any]:
+    """(anchor, x, y, bounding box) of a point's label: the first place tried that overlaps nothing.
+
+    The places are right, left, above, below and the four corners of the disc at ``at``; the
+    first inside the plot when every place overlaps something, the right one when none is inside.
+    """
+    left, top, right, bottom = plot
+    px, py = at
+    tries = [
+        ("lm", px + 10, py),
+        ("rm", px - 10, py),
+        ("mb", px, py - 9),
+        ("mt", px, py + 9),
+        ("lb", px + 8, py - 7),
+        ("rt", px - 8, py + 7),
+        ("lt", px + 8, py + 7),
+        ("rb", px - 8, py - 7),
+    ]
+    best = None
+    for anchor, tx, ty in tries:
+        bb = dr.textbbox((tx, ty), lab, font=font, anchor=anchor)
+        inside = (
+            bb[0] >= left + 2 and bb[2] <= right - 2 and bb[1] >= top + 2 and bb[3] <= bottom - 2
+        )
+        if inside and not any(_overlap(bb, o) for o in placed):
+            return anchor, tx, ty, bb
+        if best is None and inside:
+            best = (anchor, tx, ty, bb)
+    if best is None:
+        anchor, tx, ty = tries[0]
+        best = (anchor, tx, ty, dr.textbbox((tx, ty), lab, font=font, anchor=anchor))
+    return best
 
 
 # --------------------------------------------------------------------------- internals

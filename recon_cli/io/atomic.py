@@ -33,7 +33,7 @@ import re
 import stat
 import sys
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import IO
 
 from recon_cli.errors import OutputError
@@ -280,7 +280,19 @@ def write_bytes(path: str | os.PathLike, data: bytes) -> None:
         _write_all(f, data)
 
 
-def _write_all(f: IO[bytes], data: bytes) -> None:
+def write_pieces(
+    path: str | os.PathLike, produce: Callable[[Callable[[bytes | memoryview], None]], None]
+) -> None:
+    """Write what ``produce(put)`` puts, piece by piece, as :func:`atomic_open` does.
+
+    Each piece is written before ``put`` returns, so ``produce`` may reuse its buffer. A
+    regular file appears whole or not at all, whatever ``produce`` raises.
+    """
+    with atomic_open(path) as f:
+        produce(lambda data: _write_all(f, data))
+
+
+def _write_all(f: IO[bytes], data: bytes | memoryview) -> None:
     """``f.write`` until every byte is out.
 
     To a pipe whose reader left, a buffered write can return a short count with no error (the next

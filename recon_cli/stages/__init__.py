@@ -40,6 +40,7 @@ STAGES: dict[str, str] = {
     "sdf": "recon_cli.stages.sdf:SPEC",
     "mcubes": "recon_cli.stages.mcubes:SPEC",
     "fit-sdf": "recon_cli.stages.learned:SPEC",
+    "filter": "recon_cli.stages.filter:SPEC",
 }
 BUILTIN = tuple(STAGES)
 

@@ -222,6 +222,62 @@ def _row_classes(vol, iso):
     return cls
 
 
+@njit(cache=True, inline="always")
+def _nan_cells(r00, r10, r01, r11, nz):
+    """Count the cells of a row left out: the sum of their 8 corners is NaN.
+
+    That is a NaN corner, or +inf and -inf together: no crossing can be placed.
+    """
+    count = 0
+    low = _sum4(r00[0], r10[0], r01[0], r11[0])
+    for k in range(nz - 1):
+        up = _sum4(r00[k + 1], r10[k + 1], r01[k + 1], r11[k + 1])
+        if np.isnan(low + up):
+            count += 1
+        low = up
+    return count
+
+
+@njit(cache=True, inline="always")
+def _centre_vertex(v, loop, edges, iso, clamp, i, j, k, verts, grads, cid, p, g):
+    """Write vertex ``cid``: the mean of the loop's crossings in cell (i, j, k).
+
+    Its gradient is the cell's trilinear interpolant's there.
+    """
+    _centre_point(v, loop, edges, iso, clamp, p)
+    verts[cid, 0] = i + p[0]
+    verts[cid, 1] = j + p[1]
+    verts[cid, 2] = k + p[2]
+    _trilinear_grad(v, p, g)
+    for ax in range(3):
+        grads[cid, ax] = g[ax]
+
+
+@njit(cache=True, inline="always")
+def _edge_vertex(vol, v, ends, iso, clamp, i, j, k, verts, grads, nv, ga, gb):
+    """Write vertex ``nv``: the crossing on the edge between corners ``ends`` of a cell.
+
+    The cell is (i, j, k); the gradient is interpolated between the corners' central
+    differences.
+    """
+    ca = ends[0]
+    cb = ends[1]
+    tt = _lerp_t(v[ca], v[cb], iso, clamp)
+    ai = i + (ca & 1)
+    aj = j + ((ca >> 1) & 1)
+    ak = k + ((ca >> 2) & 1)
+    bi = i + (cb & 1)
+    bj = j + ((cb >> 1) & 1)
+    bk = k + ((cb >> 2) & 1)
+    verts[nv, 0] = ai + tt * (bi - ai)
+    verts[nv, 1] = aj + tt * (bj - aj)
+    verts[nv, 2] = ak + tt * (bk - ak)
+    _point_grad(vol, ai, aj, ak, ga)
+    _point_grad(vol, bi, bj, bk, gb)
+    for ax in range(3):
+        grads[nv, ax] = ga[ax] + tt * (gb[ax] - ga[ax])
+
+
 @njit(cache=True)
 def dense_extract(
     vol,
@@ -284,12 +340,7 @@ def dense_extract(
             if c00 == ROW_NAN or c10 == ROW_NAN or c01 == ROW_NAN or c11 == ROW_NAN:
                 # count the cells left out below: the sum of the 8 corners is NaN (a NaN
                 # corner, or +inf and -inf together: no crossing can be placed)
-                low = _sum4(r00[0], r10[0], r01[0], r11[0])
-                for k in range(nz - 1):
-                    up = _sum4(r00[k + 1], r10[k + 1], r01[k + 1], r11[k + 1])
-                    if np.isnan(low + up):
-                        skipped += 1
-                    low = up
+                skipped += _nan_cells(r00, r10, r01, r11, nz)
             lower = _face_code(r00[0], r10[0], r01[0], r11[0], iso)
             for k in range(nz - 1):
                 upper = _face_code(r00[k + 1], r10[k + 1], r01[k + 1], r11[k + 1], iso)
@@ -321,13 +372,9 @@ def dense_extract(
                     # a vertex of this cell alone: mean of its loop's crossings
                     cid = nv
                     nv += 1
-                    _centre_point(v, centre[row], edges, iso, clamp, p)
-                    verts[cid, 0] = i + p[0]
-                    verts[cid, 1] = j + p[1]
-                    verts[cid, 2] = k + p[2]
-                    _trilinear_grad(v, p, g)
-                    for ax in range(3):
-                        grads[cid, ax] = g[ax]
+                    _centre_vertex(
+                        v, centre[row], edges, iso, clamp, i, j, k, verts, grads, cid, p, g
+                    )
                 for t in range(s0, s1):
                     for q in range(3):
                         e = tris[t, q]
@@ -345,22 +392,9 @@ def dense_extract(
                                 cap_v *= 2
                                 verts = _grow2(verts, cap_v)
                                 grads = _grow2(grads, cap_v)
-                            ca = edges[e, 0]
-                            cb = edges[e, 1]
-                            tt = _lerp_t(v[ca], v[cb], iso, clamp)
-                            ai = i + (ca & 1)
-                            aj = j + ((ca >> 1) & 1)
-                            ak = k + ((ca >> 2) & 1)
-                            bi = i + (cb & 1)
-                            bj = j + ((cb >> 1) & 1)
-                            bk = k + ((cb >> 2) & 1)
-                            verts[nv, 0] = ai + tt * (bi - ai)
-                            verts[nv, 1] = aj + tt * (bj - aj)
-                            verts[nv, 2] = ak + tt * (bk - ak)
-                            _point_grad(vol, ai, aj, ak, ga)
-                            _point_grad(vol, bi, bj, bk, gb)
-                            for ax in range(3):
-                                grads[nv, ax] = ga[ax] + tt * (gb[ax] - ga[ax])
+                            _edge_vertex(
+                                vol, v, edges[e], iso, clamp, i, j, k, verts, grads, nv, ga, gb
+                            )
                             vid = nv
                             vmap[pl, jj, kk, ty] = vid
                             nv += 1

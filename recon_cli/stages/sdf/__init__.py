@@ -44,6 +44,11 @@ from recon_cli.params import Param, StageSpec
 
 _SIGNS = ("winding", "pseudonormal")
 _SLAB_CELLS = 500_000  # eikonal_check works on slabs of about this many samples
+#: eikonal_check's ``near`` band: |s| up to this fraction of the zero level's box diagonal
+NEAR_BAND = 0.05
+#: eikonal_check's ``near`` figures leave out kinks: a slope changing by more than this
+#: across a sample (|s(i+1) - 2 s(i) + s(i-1)| / h on some axis)
+KINK = 0.5
 # peak bytes per grid sample (estimates, for refusing a grid up front): mesh = float64
 # distances + int32 side classes + the float32 grid + the eikonal check's float32 norms;
 # cloud = float64 field + sample coordinates and nearest distances (float64 x 4) + float32
@@ -533,43 +538,56 @@ def eikonal_check(grid) -> dict:
     """How close a grid is to a distance field: statistics of ‖∇s‖ (central differences).
 
     Over interior samples whose 6 neighbours are known and not at the band's cap value
-    (for a ``--band`` grid: the samples inside the band). Works slab by slab along the
-    first axis, so its temporaries stay small next to the grid (a 256^3 grid is checked
+    (for a ``--band`` grid: the samples inside the band). ``near`` gives the share and
+    the mean over the samples of the region where ‖∇s‖ = 1 is meaningful: near the zero
+    level, |s| <= :data:`NEAR_BAND` times the diagonal of the zero level's bounding box
+    (the samples next to a sign change), where a distance field is used, and not at a kink,
+    where the slope changes by more than :data:`KINK` from one side of the sample to the
+    other on some axis: there the stencil straddles the medial axis (or a crease) and
+    central differences are no gradient, even of an exact distance. Such samples are
+    counted as ``kinks``; a smooth field, a fitted one, has few. Works slab by slab along
+    the first axis, so its temporaries stay small next to the grid (a 256^3 grid is checked
     in about 20 MB besides 4 bytes per sample for the gradient norms kept for the median).
 
     Returns
     -------
     dict
         ``mean``, ``median`` of ‖∇s‖, ``fraction_within_0.1`` (share with
-        |‖∇s‖ − 1| ≤ 0.1) and ``cells`` (number of samples used).
+        |‖∇s‖ − 1| ≤ 0.1), ``cells`` (number of samples used) and ``near``:
+        ``of_diagonal`` (:data:`NEAR_BAND`), ``distance`` (the band's half-width, world
+        units; None without a sign change), ``mean``, ``fraction_within_0.1`` and ``cells``
+        over the samples within it but kinks, ``kinks`` (the samples within it left out).
     """
+    near_empty = {
+        "of_diagonal": NEAR_BAND,
+        "distance": None,
+        "mean": None,
+        "fraction_within_0.1": None,
+        "cells": 0,
+        "kinks": 0,
+    }
     empty = {"mean": None, "median": None, "fraction_within_0.1": None, "cells": 0}
     s = np.asarray(grid.sdf)
     h = float(grid.voxel_size)
     nx = s.shape[0]
     if min(s.shape) < 3:
-        return empty
+        return {**empty, "near": near_empty}
     step = max(1, _SLAB_CELLS // (s.shape[1] * s.shape[2]))
-    # the band's cap: the largest finite |s|
-    top = 0.0
-    for i0 in range(0, nx, step):
-        blk = np.abs(s[i0 : i0 + step].astype(np.float64))
-        blk = blk[np.isfinite(blk)]
-        if blk.size:
-            top = max(top, float(blk.max()))
+    top, span = _cap_and_zero_span(s, step)
     lim = top * (1 - 1e-6)
+    dist = None if span is None else NEAR_BAND * h * float(np.linalg.norm(span))
     c = (slice(1, -1),) * 3
     # gradient norms of the used samples (float32: only the median needs them all);
-    # the mean and the share within 0.1 are summed per slab in float64
+    # the means and the shares within 0.1 are summed per slab in float64
     g = np.empty((nx - 2) * (s.shape[1] - 2) * (s.shape[2] - 2), np.float32)
-    n = 0
-    total = 0.0
-    within = 0
+    n = near_n = near_kinks = within = near_within = 0
+    total = near_total = 0.0
     for i0 in range(1, nx - 1, step):
         blk = s[i0 - 1 : min(nx, i0 + step + 1)].astype(np.float64)
         usable = np.abs(blk) < lim  # False at NaN
         ok = usable[c].copy()
         g2 = np.zeros(ok.shape)
+        bend = np.zeros(ok.shape)  # the largest change of slope across the stencil
         for ax in range(3):
             lo = [slice(1, -1)] * 3
             hi = [slice(1, -1)] * 3
@@ -578,23 +596,82 @@ def eikonal_check(grid) -> dict:
             ok &= usable[tuple(lo)] & usable[tuple(hi)]
             diff = np.where(ok, blk[tuple(hi)] - blk[tuple(lo)], 0.0) / (2 * h)
             g2 += diff * diff
+            turn = np.where(ok, blk[tuple(hi)] - 2 * blk[c] + blk[tuple(lo)], 0.0) / h
+            np.maximum(bend, np.abs(turn), out=bend)
         norm = np.sqrt(g2[ok])
+        good = np.abs(norm - 1) <= 0.1
         total += float(norm.sum())
-        within += int(np.count_nonzero(np.abs(norm - 1) <= 0.1))
+        within += int(np.count_nonzero(good))
         g[n : n + len(norm)] = norm
         n += len(norm)
+        if dist is not None:
+            close = np.abs(blk[c][ok]) <= dist
+            kink = bend[ok] > KINK
+            near_kinks += int(np.count_nonzero(close & kink))
+            close &= ~kink
+            near_total += float(norm[close].sum())
+            near_within += int(np.count_nonzero(good & close))
+            near_n += int(np.count_nonzero(close))
     if n == 0:
-        return empty
+        return {**empty, "near": near_empty}
     g = g[:n]
     half = n // 2
     g.partition(half if n % 2 else [half - 1, half])  # in place: no copy of the norms
     median = float(g[half]) if n % 2 else 0.5 * (float(g[half - 1]) + float(g[half]))
+    near = {**near_empty, "distance": dist, "kinks": near_kinks}
+    if near_n:
+        near.update(
+            {
+                "mean": near_total / near_n,
+                "fraction_within_0.1": near_within / near_n,
+                "cells": near_n,
+            }
+        )
     return {
         "mean": total / n,
         "median": median,
         "fraction_within_0.1": within / n,
         "cells": int(n),
+        "near": near,
     }
+
+
+def _cap_and_zero_span(s: np.ndarray, step: int) -> tuple[float, np.ndarray | None]:
+    """The band's cap (the largest finite |s|) and the zero level's extent in samples.
+
+    The extent is the size of the bounding box of the samples next to a sign change
+    (both finite), per axis; None when the grid has no sign change.
+    """
+    nx = s.shape[0]
+    top = 0.0
+    lo = np.full(3, np.iinfo(np.int64).max)
+    hi = np.full(3, -1)
+    for i0 in range(0, nx, step):
+        blk = s[i0 : min(nx, i0 + step + 1)]  # one row over: axis-0 pairs
+        a = np.abs(blk[: min(step, nx - i0)])
+        a = a[np.isfinite(a)]
+        if a.size:
+            top = max(top, float(a.max()))
+        fin = np.isfinite(blk)
+        neg = blk < 0
+        edge = np.zeros(blk.shape, dtype=bool)
+        for ax in range(3):
+            a0 = [slice(None)] * 3
+            a1 = [slice(None)] * 3
+            a0[ax] = slice(0, -1)
+            a1[ax] = slice(1, None)
+            cross = fin[tuple(a0)] & fin[tuple(a1)] & (neg[tuple(a0)] != neg[tuple(a1)])
+            edge[tuple(a0)] |= cross
+            edge[tuple(a1)] |= cross
+        idx = np.nonzero(edge)
+        if len(idx[0]):
+            first = np.array([int(ix.min()) for ix in idx]) + (i0, 0, 0)
+            last = np.array([int(ix.max()) for ix in idx]) + (i0, 0, 0)
+            lo = np.minimum(lo, first)
+            hi = np.maximum(hi, last)
+    if hi[0] < 0:
+        return top, None
+    return top, (hi - lo).astype(np.float64)
 
 
 @SPEC.runner
@@ -649,14 +726,53 @@ def run_stage(
         No points, non-finite coordinates, a cloud without normals, ``sign="pseudonormal"``
         on a closed mesh wound inward.
     """
-    from recon_cli.geometry import TriangleMesh, float64, local_origin
-    from recon_cli.grid import Grid, allocation_problem
-    from recon_cli.progress import task
+    from recon_cli.geometry import float64
+    from recon_cli.grid import Grid
     from recon_cli.stages import StageResult
 
     # parameters and the input's kind: checked by SPEC
     data = float64(data)
-    voxel, band_v = voxel_size, band
+    is_mesh, pts = _source_points(data, backend)
+    origin, h, shape = _checked_frame(pts, resolution, voxel_size, padding, backend, is_mesh)
+    sdf, info, sign = _signed_distances(
+        data, is_mesh, pts, origin, h, shape, sign, band, knn, backend, progress
+    )
+    grid = Grid(
+        sdf=sdf.astype(np.float32),
+        origin=origin,
+        voxel_size=h,
+        history=list(data.history),
+        point_dtype=data.point_dtype,
+    )
+    del sdf  # the float64 field: free it before the report's passes over the grid
+    known = int(np.count_nonzero(np.isfinite(grid.sdf)))
+    report = {
+        "source": "mesh" if is_mesh else "cloud",
+        "shape": list(shape),
+        "voxel_size": h,
+        "origin": origin.tolist(),
+        "sign": sign if is_mesh else "normals",
+        "backend": backend,
+        "band": band,
+        "inside_samples": int(np.count_nonzero(grid.sdf < 0)),  # NaN < 0 is False
+        "unknown_samples": int(grid.sdf.size - known),
+        **info,
+        "eikonal": eikonal_check(grid),
+        "provenance": {
+            "voxel_size": round(h, 12),
+            **({"sign": "open3d"} if backend == "open3d" else {}),
+        },
+    }
+    return StageResult(output=grid, report=report)
+
+
+def _source_points(data, backend: str) -> tuple[bool, np.ndarray]:
+    """Whether the input is meshed, and the points that bound the grid.
+
+    A mesh's points are its used vertices; refuses what the stage cannot take.
+    """
+    from recon_cli.geometry import TriangleMesh
+
     is_mesh = isinstance(data, TriangleMesh) and len(data.faces) > 0
     if backend == "open3d" and not is_mesh:
         raise ParameterError(
@@ -669,14 +785,33 @@ def run_stage(
         raise InputError("input has non-finite coordinates")
     if not is_mesh and data.normals is None:
         raise InputError("point cloud has no normals (run 'recon normals' first)")
-    origin, h, shape = grid_frame(pts.min(axis=0), pts.max(axis=0), resolution, voxel, padding)
-    # refuse what cannot be had before allocating: the peak bytes per sample of each path
+    return is_mesh, pts
+
+
+def _checked_frame(pts, resolution, voxel_size, padding, backend: str, is_mesh: bool):
+    """The grid's origin, voxel size and shape, checked against the memory available.
+
+    A grid whose memory cannot be had is refused before allocating (the peak bytes per
+    sample of each path).
+    """
+    from recon_cli.grid import allocation_problem
+
+    origin, h, shape = grid_frame(pts.min(axis=0), pts.max(axis=0), resolution, voxel_size, padding)
     per_sample = BYTES_PER_SAMPLE[
         "open3d" if backend == "open3d" else "mesh" if is_mesh else "cloud"
     ]
     problem = allocation_problem(shape, per_sample)
     if problem:
         raise ParameterError(f"{problem}: raise --voxel-size or lower --resolution")
+    return origin, h, shape
+
+
+def _signed_distances(
+    data, is_mesh, pts, origin, h, shape, sign, band, knn, backend, progress
+) -> tuple[np.ndarray, dict, str]:
+    """The signed distances (float64), the path's report keys and the sign method used."""
+    from recon_cli.geometry import local_origin
+    from recon_cli.progress import task
 
     # distances are computed about a local origin (far from the world origin squared norms and
     # cross products lose digits, Open3D computes in float32); the grid keeps the world origin
@@ -698,36 +833,9 @@ def run_stage(
             sign = "open3d"
         elif is_mesh:
             sdf, info = mesh_sdf(
-                local.vertices, data.faces, origin - centre, h, shape, sign=sign, band=band_v
+                local.vertices, data.faces, origin - centre, h, shape, sign=sign, band=band
             )
         else:
             sdf, info = cloud_sdf(local.points, data.normals, origin - centre, h, shape, knn=knn)
         t.advance(1)
-    del local
-    grid = Grid(
-        sdf=sdf.astype(np.float32),
-        origin=origin,
-        voxel_size=h,
-        history=list(data.history),
-        point_dtype=data.point_dtype,
-    )
-    del sdf  # the float64 field: free it before the report's passes over the grid
-    known = int(np.count_nonzero(np.isfinite(grid.sdf)))
-    report = {
-        "source": "mesh" if is_mesh else "cloud",
-        "shape": list(shape),
-        "voxel_size": h,
-        "origin": origin.tolist(),
-        "sign": sign if is_mesh else "normals",
-        "backend": backend,
-        "band": band_v,
-        "inside_samples": int(np.count_nonzero(grid.sdf < 0)),  # NaN < 0 is False
-        "unknown_samples": int(grid.sdf.size - known),
-        **info,
-        "eikonal": eikonal_check(grid),
-        "provenance": {
-            "voxel_size": round(h, 12),
-            **({"sign": "open3d"} if backend == "open3d" else {}),
-        },
-    }
-    return StageResult(output=grid, report=report)
+    return sdf, info, sign

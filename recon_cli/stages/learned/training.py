@@ -1,0 +1,184 @@
+"""Training of :mod:`recon_cli.stages.learned` (inputs already checked).
+
+The cloud in network coordinates, the sampling spread, the loss settings and the
+optimisation with its progress.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from recon_cli.stages.learned.model import OCC_GAIN, RADIUS, SdfModel, compute
+
+EXTENT = 0.8  # the cloud's longest half-side maps to this in the network's coordinates
+BAND = 0.05  # band samples for the eikonal term reach this fraction of the diagonal
+SPREAD_NEIGHBOURS = 50  # IGR's per-point sampling spread: distance to this neighbour
+
+
+@dataclass
+class FitResult:
+    """What :func:`recon_cli.stages.learned.fit_sdf` returns.
+
+    Attributes
+    ----------
+    model : SdfModel
+    iterations : int
+        Optimiser steps taken.
+    seconds : float
+        Training wall time.
+    interrupted : bool
+        Training stopped by Ctrl-C; ``model`` holds the best parameters seen.
+    loss : float
+        Best smoothed training loss.
+    history : list of (int, float)
+        (iteration, smoothed loss) every 10 steps.
+    eikonal_weight : float
+        The weight used (the default depends on the normals).
+    """
+
+    model: SdfModel
+    iterations: int
+    seconds: float
+    interrupted: bool
+    loss: float
+    history: list
+    eikonal_weight: float = 0.0
+
+
+@dataclass
+class Settings:
+    """The checked options of one fit (defaults resolved)."""
+
+    iterations: int
+    max_seconds: float | None
+    width: int
+    depth: int
+    frequencies: int
+    eikonal_weight: float
+    normal_weight: float
+    batch: int
+    learning_rate: float
+    field: str
+    seed: int
+
+
+def network_frame(pts: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+    """Centre, scale (world units per network unit) and the points in network coordinates.
+
+    The points are float32, the bounding box's centre at 0, its longest half-side at
+    :data:`EXTENT`.
+    """
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    center = 0.5 * (lo + hi)
+    half = 0.5 * float((hi - lo).max())
+    scale = (half if half > 0 else 1.0) / EXTENT
+    return center, scale, ((pts - center) / scale).astype(np.float32)
+
+
+def sampling_spread(tree, q: np.ndarray) -> np.ndarray:
+    """IGR's per-point spread of the near samples: distance to the k-th neighbour, float32."""
+    k = min(SPREAD_NEIGHBOURS, len(q) - 1)
+    sigma = tree.query(q, k=k + 1)[0][:, -1].astype(np.float32)
+    return np.maximum(sigma, 1e-4)
+
+
+def occupancy_labels(tree, q: np.ndarray, normals: np.ndarray):
+    """The labeller of training samples for ``occupancy``.
+
+    A sample is inside (1) when its offsets to the 8 nearest points point against their
+    normals.
+    """
+    nq = normals.astype(np.float32)
+
+    def labels_fn(x: np.ndarray) -> np.ndarray:
+        _, j = tree.query(x, k=8)
+        d = np.einsum("ijk,ijk->ij", x[:, None, :] - q[j], nq[j])
+        return (d.mean(axis=1) < 0).astype(np.float32)
+
+    return labels_fn
+
+
+def train_config(T, s: Settings, q: np.ndarray, with_normals: bool):
+    """The loss and schedule of one fit (see :func:`recon_cli.stages.learned.fit_sdf`)."""
+    return T.TrainConfig(
+        iterations=s.iterations,
+        max_seconds=s.max_seconds,
+        batch=s.batch,
+        lr=s.learning_rate,
+        eikonal_weight=s.eikonal_weight,
+        normal_weight=s.normal_weight,
+        field=s.field,
+        seed=s.seed,
+        occupancy_gain=OCC_GAIN,
+        # with normals: eikonal samples spread over the band of 5 % of the diagonal around the
+        # surface (where the field is used and `recon info` judges it) and the L1 penalty
+        band=BAND * float(np.linalg.norm(q.max(axis=0) - q.min(axis=0))),
+        band_share=1.0 if with_normals else 0.0,
+        eikonal_l1=with_normals,
+    )
+
+
+def _optimise(T, net, q, nrm, sigma, labels_fn, cfg, s: Settings, progress):
+    """Run the optimiser with a progress bar showing the smoothed loss."""
+    from recon_cli.progress import task
+
+    total = float(s.iterations) if s.max_seconds is None else None
+    with task(progress, "fitting sdf", total) as t:
+        name = getattr(t, "name", None)
+
+        def on_step(it: int, loss: float, elapsed: float) -> None:
+            if it == 1:
+                logging.getLogger("recon").info("fit-sdf: step 1 done (%.2f s)", elapsed)
+            if name is not None:
+                t.name = f"fitting {s.field} loss {loss:.4f}"
+            if s.max_seconds is None:
+                t.update(it)
+            else:
+                t.update(elapsed)
+
+        if s.max_seconds is not None and hasattr(t, "total"):
+            t.total = s.max_seconds
+        nrm32 = None if nrm is None else nrm.astype(np.float32)
+        return T.train(net, q, nrm32, sigma, labels_fn, cfg, on_step)
+
+
+def fit(
+    pts: np.ndarray, nrm: np.ndarray | None, s: Settings, threads: int | None, progress
+) -> FitResult:
+    """Fit the field to checked float64 points and unit normals (or None)."""
+    from scipy.spatial import cKDTree
+
+    T = compute()
+    T.set_threads(threads)
+    center, scale, q = network_frame(pts)
+    tree = cKDTree(q)
+    sigma = sampling_spread(tree, q)
+    labels_fn = None
+    if s.field == "occupancy":
+        assert nrm is not None  # checked by fit_sdf
+        labels_fn = occupancy_labels(tree, q, nrm)
+    net = T.build(s.width, s.depth, s.frequencies, RADIUS, s.seed)
+    cfg = train_config(T, s, q, nrm is not None)
+    logging.getLogger("recon").info(
+        "fit-sdf: training %s (%d points, %s normals, width %d, depth %d)",
+        s.field,
+        len(pts),
+        "with" if nrm is not None else "without",
+        s.width,
+        s.depth,
+    )
+    out = _optimise(T, net, q, nrm, sigma, labels_fn, cfg, s, progress)
+    config = {"width": s.width, "depth": s.depth, "frequencies": s.frequencies}
+    model = SdfModel(net=net, center=center, scale=scale, field=s.field, config=config)
+    return FitResult(
+        model,
+        out.iterations,
+        out.seconds,
+        out.interrupted,
+        out.best_loss,
+        out.history,
+        s.eikonal_weight,
+    )
