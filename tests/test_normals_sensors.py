@@ -112,8 +112,11 @@ def _sphere_scan(eye, n, rng):
     return d[seen][:n]
 
 
-def test_e57_scans_each_oriented_towards_their_own_scanner(tmp_path):
+@pytest.mark.parametrize("backend", ["native", "open3d"])
+def test_e57_scans_each_oriented_towards_their_own_scanner(tmp_path, backend):
     pye57 = pytest.importorskip("pye57")
+    if backend == "open3d":
+        pytest.importorskip("open3d")
     from scipy.spatial.transform import Rotation
 
     rng = np.random.default_rng(7)
@@ -134,7 +137,7 @@ def test_e57_scans_each_oriented_towards_their_own_scanner(tmp_path):
         )
     e.close()
     cloud = load(tmp_path / "s.e57")
-    res = run_stage(cloud, knn=15, orient="camera")
+    res = run_stage(cloud, knn=15, orient="camera", backend=backend)
     nrm, scan = res.output.normals, cloud.attributes["scan"]
     centre = np.array([1e5, 2e5, 0])
     outward = (cloud.points - centre) / np.linalg.norm(cloud.points - centre, axis=1, keepdims=True)

@@ -963,13 +963,12 @@ def _open3d_normals(
             orient_tangent_plane=(knn or 30) if method == "mst" else None,
         )
     if method != "mst":
-        omethod = "sensors" if views is not None else method
-        cview = views if views is not None else cam
-        sign = _orient_direct(omethod, pts, nrm, cview, dirn) if method != "keep" else None
         if method == "keep":
             assert ref is not None  # _check_reference gives the input's normals for keep
             d = np.einsum("ij,ij->i", nrm, np.nan_to_num(ref))
             sign = np.where(d < 0, -1, 1).astype(np.int8)
+        elif views is not None:  # each point towards its own scanner
+            sign = _orient_direct("sensors", pts, nrm, views, dirn)
         else:
             sign = _orient_direct(method, pts, nrm, cam, dirn)
         report["flipped"] = int((sign < 0).sum())
