@@ -474,23 +474,11 @@ def screened_poisson(
     pts, nrm, keep = _check_inputs(points, normals, lengths)
     weight = lengths[0] / float(lengths[0].mean()) if confidence else None
     del lengths
-    if colors is not None:
-        colors = np.asarray(colors)
-        if len(colors) != len(keep):
-            raise InputError(f"colors has {len(colors)} rows, expected {len(keep)}")
-        colors = colors[keep]
-    props: dict[str, np.ndarray] = {}
-    for name, values in (properties or {}).items():
-        values = np.asarray(values)
-        if values.ndim != 1 or len(values) != len(keep):
-            raise InputError(
-                f"attribute {name!r} has shape {values.shape}, expected ({len(keep)},)"
-            )
-        props[name] = values[keep]
+    colors, props = _kept_attributes(keep, colors, properties)
     unit_nrm = nrm if (props or colors is not None) else None
 
     from recon_cli.stages.poisson.basis import basis_for
-    from recon_cli.stages.poisson.free import FREE_DOMAIN, clip_to_cube
+    from recon_cli.stages.poisson.free import clip_to_cube
     from recon_cli.stages.poisson.octree import build_levels
     from recon_cli.stages.poisson.splat import (
         make_splats,
@@ -505,16 +493,8 @@ def screened_poisson(
 
     with clock.phase("samples"):
         # ---- unit cube and samples (points merged per finest cell, as PoissonRecon does)
-        lo, hi = pts.min(axis=0), pts.max(axis=0)
-        size = float((hi - lo).max()) * scale
-        origin = 0.5 * (lo + hi) - 0.5 * size
-        # ---- free boundary: the cube is the middle half of the solve's, one level deeper
-        user_depth, domain = depth, None
-        if boundary == "free":
-            domain = (origin.copy(), size)
-            origin = origin - 0.5 * size
-            size *= 2.0
-            depth += 1
+        user_depth = depth
+        origin, size, depth, domain = _solve_cube(pts, scale, boundary, depth)
         full_depth = min(full_depth, depth)
         smp = merge_samples((pts - origin) / size, nrm, depth, weight)
         ns = len(smp.count)
@@ -549,22 +529,10 @@ def screened_poisson(
     env, sample_ok, free_cells, outside_points = None, None, None, 0
     item_pos, item_level = splats.pos, splats.level
     if envelope is not None:
-        from recon_cli.stages.poisson.envelope import REFINE_OFFSET, CellClassifier, Envelope
-
         with clock.phase("envelope"):
-            env = envelope if isinstance(envelope, Envelope) else Envelope(envelope)
-            outside_points = int(np.count_nonzero(~env.inside(pts)))
-            sample_ok = env.free_cells(origin + size * smp.pos, size / res)
-            if not sample_ok.any():
-                raise InputError(
-                    "every point lies outside the envelope or within 2.6 finest cells of its "
-                    "surface"
-                )
-            lv = min(tree_depth, max(full_depth, tree_depth - REFINE_OFFSET))
-            extra = env.surface_items(origin, size, lv)
-            item_pos = np.concatenate([splats.pos, extra])
-            item_level = np.concatenate([splats.level, np.full(len(extra), lv, np.int64)])
-            free_cells = CellClassifier(env, origin, size)
+            env, sample_ok, free_cells, outside_points, item_pos, item_level = _envelope_setup(
+                envelope, pts, smp, splats, origin, size, tree_depth, full_depth
+            )
 
     # ---- tree: as deep as the splats, no deeper
     with clock.phase("tree"):
@@ -620,50 +588,20 @@ def screened_poisson(
     # ---- the field on a regular grid (--grid)
     field_grid = None
     if with_grid and len(faces):
-        from recon_cli.stages.poisson.field import indicator_grid
-
         with clock.phase("grid"):
-            assert chi_fn is not None  # made with_grid
-            with task(progress, "poisson: grid"):
-                field_grid = indicator_grid(
-                    chi_fn, iso, verts, origin, size, res, FREE_DOMAIN if domain else (0.0, 1.0)
-                )
+            field_grid = _field_grid(chi_fn, iso, verts, origin, size, res, domain, progress)
     del chi_fn
 
     mesh = TriangleMesh(vertices=verts, faces=faces)
     vdens = None
     if density or density_trim:
         vdens = sample_density(splats, (verts - origin) / size)
-    trimmed, trimmed_area = 0, 0.0
-    if auto_trim and len(faces):
-        from recon_cli.stages.poisson.trim import SUPPORT_RATIO, support_ratio, trim_by_density
-
-        ratio = support_ratio(smp.pos * size + origin, verts)[0]
-        cut = trim_by_density(mesh, -ratio, -SUPPORT_RATIO, carry=vdens)
-        if len(cut.mesh.faces) == 0:
-            raise InputError("trim auto removes the whole surface: no part lies near the samples")
-        trimmed = len(mesh.faces) - cut.untouched_faces
-        mesh, vdens, trimmed_area = cut.mesh, cut.carried, cut.removed_area
-    if density_trim and len(faces):
-        from recon_cli.stages.poisson.trim import trim_by_density
-
-        assert vdens is not None  # made above whenever trim > 0
-        at_samples = sample_density(splats, smp.pos)
-        cut = trim_by_density(mesh, vdens, trim * float(np.median(at_samples)))
-        if len(cut.mesh.faces) == 0:
-            raise ParameterError(f"trim {trim:g} removes the whole surface: use a smaller value")
-        trimmed = len(mesh.faces) - cut.untouched_faces
-        mesh, vdens, trimmed_area = cut.mesh, cut.density, cut.removed_area
+    mesh, vdens, trimmed, trimmed_area = _trimmed(mesh, vdens, trim, smp, splats, origin, size)
     # ---- the input's properties on the vertices, from the points on each vertex's side
     fallback = 0
     if props or colors is not None:
-        from recon_cli.stages.poisson.attributes import transfer
-
         with clock.phase("attributes"):
-            assert unit_nrm is not None  # kept when there are properties to carry
-            moved = transfer(pts, unit_nrm, props, colors, mesh.vertices, mesh.faces, size / res)
-            mesh.attributes.update(moved.values)
-            mesh.colors, fallback = moved.colors, moved.fallback
+            fallback = _carry_attributes(mesh, pts, unit_nrm, props, colors, size / res)
     del unit_nrm
     if density:
         assert vdens is not None  # made above whenever density is asked for
@@ -695,6 +633,148 @@ def screened_poisson(
     if field_grid is not None:
         report["grid_shape"] = list(field_grid.shape)
     return PoissonResult(mesh, report, field_grid)
+
+
+def _solve_cube(
+    pts: np.ndarray, scale: float, boundary: str, depth: int
+) -> tuple[np.ndarray, float, int, tuple[np.ndarray, float] | None]:
+    """The solve's cube around ``pts`` (n, 3): (origin, side, depth, the free boundary's domain).
+
+    With the free boundary the points' cube is the middle half of the solve's, one level
+    deeper; the domain is then the points' cube (origin, side), else None.
+    """
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    size = float((hi - lo).max()) * scale
+    origin = 0.5 * (lo + hi) - 0.5 * size
+    if boundary != "free":
+        return origin, size, depth, None
+    return origin - 0.5 * size, 2.0 * size, depth + 1, (origin.copy(), size)
+
+
+def _field_grid(
+    chi_fn: Any,
+    iso: float,
+    verts: np.ndarray,
+    origin: np.ndarray,
+    size: float,
+    res: int,
+    domain: tuple[np.ndarray, float] | None,
+    progress: Any,
+) -> Any:
+    """The solved field on the finest lattice around the surface (``--grid``, :mod:`.field`)."""
+    from recon_cli.stages.poisson.field import indicator_grid
+    from recon_cli.stages.poisson.free import FREE_DOMAIN
+
+    assert chi_fn is not None  # made with_grid
+    with task(progress, "poisson: grid"):
+        return indicator_grid(
+            chi_fn, iso, verts, origin, size, res, FREE_DOMAIN if domain else (0.0, 1.0)
+        )
+
+
+def _carry_attributes(
+    mesh: TriangleMesh,
+    pts: np.ndarray,
+    unit_nrm: np.ndarray | None,
+    props: dict[str, np.ndarray],
+    colors: np.ndarray | None,
+    cell: float,
+) -> int:
+    """Put the points' properties and colours on ``mesh``'s vertices (:mod:`.attributes`).
+
+    Returns the count of vertices that fell back to the nearest point (no point on their side).
+    """
+    from recon_cli.stages.poisson.attributes import transfer
+
+    assert unit_nrm is not None  # kept when there are properties to carry
+    moved = transfer(pts, unit_nrm, props, colors, mesh.vertices, mesh.faces, cell)
+    mesh.attributes.update(moved.values)
+    mesh.colors = moved.colors
+    return int(moved.fallback)
+
+
+def _kept_attributes(
+    keep: np.ndarray, colors: Any, properties: dict[str, np.ndarray] | None
+) -> tuple[np.ndarray | None, dict[str, np.ndarray]]:
+    """The colours (n, k) and properties (n,) of the points ``keep`` (N,) bool keeps, checked."""
+    if colors is not None:
+        colors = np.asarray(colors)
+        if len(colors) != len(keep):
+            raise InputError(f"colors has {len(colors)} rows, expected {len(keep)}")
+        colors = colors[keep]
+    props: dict[str, np.ndarray] = {}
+    for name, values in (properties or {}).items():
+        values = np.asarray(values)
+        if values.ndim != 1 or len(values) != len(keep):
+            raise InputError(
+                f"attribute {name!r} has shape {values.shape}, expected ({len(keep)},)"
+            )
+        props[name] = values[keep]
+    return colors, props
+
+
+def _envelope_setup(
+    envelope: Any,
+    pts: np.ndarray,
+    smp: Any,
+    splats: Any,
+    origin: np.ndarray,
+    size: float,
+    tree_depth: int,
+    full_depth: int,
+) -> tuple[Any, np.ndarray, Any, int, np.ndarray, np.ndarray]:
+    """The envelope's part of the set-up, the tree refined along its surface.
+
+    Returns the envelope, the samples it leaves free, the cell classifier, the count of points
+    outside it, and the tree's items (positions, levels).
+    """
+    from recon_cli.stages.poisson.envelope import REFINE_OFFSET, CellClassifier, Envelope
+
+    env = envelope if isinstance(envelope, Envelope) else Envelope(envelope)
+    outside_points = int(np.count_nonzero(~env.inside(pts)))
+    sample_ok = env.free_cells(origin + size * smp.pos, size / (1 << tree_depth))
+    if not sample_ok.any():
+        raise InputError(
+            "every point lies outside the envelope or within 2.6 finest cells of its surface"
+        )
+    lv = min(tree_depth, max(full_depth, tree_depth - REFINE_OFFSET))
+    extra = env.surface_items(origin, size, lv)
+    item_pos = np.concatenate([splats.pos, extra])
+    item_level = np.concatenate([splats.level, np.full(len(extra), lv, np.int64)])
+    return env, sample_ok, CellClassifier(env, origin, size), outside_points, item_pos, item_level
+
+
+def _trimmed(
+    mesh: TriangleMesh,
+    vdens: np.ndarray | None,
+    trim: float | str,
+    smp: Any,
+    splats: Any,
+    origin: np.ndarray,
+    size: float,
+) -> tuple[TriangleMesh, np.ndarray | None, int, float]:
+    """``mesh`` trimmed as ``trim`` asks: (mesh, vertex densities, faces cut, area removed).
+
+    ``"auto"`` cuts by :func:`.trim.support_ratio` from the samples, a value ``T > 0`` at ``T``
+    times the median density at the samples (``vdens`` (n,) the vertices' densities then).
+    """
+    from recon_cli.stages.poisson.splat import sample_density
+    from recon_cli.stages.poisson.trim import SUPPORT_RATIO, support_ratio, trim_by_density
+
+    if not len(mesh.faces) or trim == 0:
+        return mesh, vdens, 0, 0.0
+    if trim == "auto":
+        ratio = support_ratio(smp.pos * size + origin, mesh.vertices)[0]
+        cut = trim_by_density(mesh, -ratio, -SUPPORT_RATIO, carry=vdens)
+        if len(cut.mesh.faces) == 0:
+            raise InputError("trim auto removes the whole surface: no part lies near the samples")
+        return cut.mesh, cut.carried, len(mesh.faces) - cut.untouched_faces, cut.removed_area
+    assert vdens is not None  # made whenever trim > 0
+    at_samples = sample_density(splats, smp.pos)
+    cut = trim_by_density(mesh, vdens, float(trim) * float(np.median(at_samples)))
+    if len(cut.mesh.faces) == 0:
+        raise ParameterError(f"trim {trim:g} removes the whole surface: use a smaller value")
+    return cut.mesh, cut.density, len(mesh.faces) - cut.untouched_faces, cut.removed_area
 
 
 def _drop_bubbles(
