@@ -57,6 +57,7 @@ def _corner(buf, p, n):
     return vi, nn, ok, q
 
 
+# one kernel: one byte cursor and the counts run through both the short and the general path
 @njit(cache=True)
 def _walk(buf, i, st, verts, colours, vnorms, corner_v, corner_n, face_len, slow):
     """Parse lines from byte ``i`` until the end or until an array is full.

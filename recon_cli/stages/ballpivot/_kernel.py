@@ -506,6 +506,7 @@ def _seed_triangle(pts, nrm, rho, grid, used, s, nbr):
 
 
 # ---------------------------------------------------------------- main loop
+# one kernel: the front, the grid's used flags and the faces change together in the pivot loop
 @njit(cache=True)
 def ball_pivot(pts, nrm, rho, lo, dims, faces0):
     """One radius of Bernardini et al. 1999, continuing from the triangles ``faces0``.

@@ -527,6 +527,8 @@ def _normal_change(pos, a, b, c, which, x, y, z, min_cos, nx, ny, nz):
     return quality
 
 
+# one kernel: the heap, the edge lists and the collapse log change together in its loop, and
+# helpers would take and hand back thirty arrays a call
 @njit(cache=True)
 def collapse(
     pos,
