@@ -388,26 +388,9 @@ def reconstruct(
 
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
-    msgs = loaded
     # ---- the samples' splat depths: the slabs' own density levels, then the global ones
     tables: dict[int, tuple] = {}
-    level = job.local_density
-    while sum(m["unplaced"] for m in msgs) and level >= 0:
-        keys, dens = _sum_tables(runner.run("density", S.own_table, lambda k, lv=level: (lv,)))
-        tables[level] = (keys, dens)
-        msgs = runner.run("place", S.place, lambda k, lv=level, ks=keys, ds=dens: (lv, ks, ds))
-        level -= 1
-    if sum(m["unplaced"] for m in msgs):
-        raise StageFailed("distributed poisson: samples left without a splat depth")
-    tree_depth = max(max(m["max_level"] for m in msgs), 1)
-    if tree_depth < S.PARTITION_DEPTH:
-        raise ParameterError(
-            f"the samples support a tree of depth {tree_depth} only: too sparse for a "
-            f"distributed reconstruction (it needs {S.PARTITION_DEPTH}); run without workers"
-        )
-    count = sum(m["count"] for m in msgs)
-    mean_area = sum(m["area_count"] for m in msgs) / count
-    alpha = screening_alpha(job.point_weight, mean_area, tree_depth)
+    tree_depth, alpha = _splat_depths(runner, job, loaded, tables)
     timings["samples"] = time.perf_counter() - t0
     # ---- noise: the median of the measured values stands in for the others
     t = time.perf_counter()
@@ -420,30 +403,10 @@ def reconstruct(
     timings["noise"] = time.perf_counter() - t
     # ---- items, fields, the slabs' trees; the coarse levels' data
     t = time.perf_counter()
-    im = runner.run("items", S.items, lambda k: (tree_depth, alpha, fallback))
-    noise_med = None
-    if alpha > 0:
-        noise_med = exact_median(
-            runner, "noise", S.noise_report_values, [m["noise_hist"] for m in im], "noise"
-        )
     dc = min(job.coarse_depth, tree_depth)
-    coarse_fields = _sum_fields([m["coarse_fields"] for m in im])
-    screening = _sum_screening([m["screening"] for m in im]) if alpha > 0 else {}
-    cpos, clvl = S.coarse_item_set(im, dc)
-    del im
-    with _coordinator_step(runner, "coarse tree"):
-        coarse = S.build_coarse_levels(cpos, clvl, tree_depth, job)
-    del cpos, clvl
-    rm = runner.run("restrict", S.restrict, lambda k: (S.level_message(coarse), coarse_fields))
-    finer = None
-    parts = [m["finer"] for m in rm if "finer" in m]
-    if parts:
-        from recon_cli.stages.poisson.bspline import level_parents
-
-        n8 = 8 * len(level_parents(coarse[dc])[0])
-        finer = np.zeros(n8)
-        for idx, val in parts:
-            np.add.at(finer, idx, val)
+    coarse, coarse_fields, screening, finer, noise_med = _coarse_tree(
+        runner, job, tree_depth, dc, alpha, fallback
+    )
     timings["tree"] = time.perf_counter() - t
     # ---- the coarse solve, then the slabs' finer levels
     t = time.perf_counter()
@@ -477,15 +440,7 @@ def reconstruct(
     timings["extract"] = time.perf_counter() - t
     # ---- each slab's output
     t = time.perf_counter()
-    dens_spec = None
-    if job.density or job.trim > 0:
-        ko = max(tree_depth - KERNEL_OFFSET, 0)
-        if ko > job.local_density:
-            dens_spec = (ko,)
-        else:
-            if ko not in tables:
-                tables[ko] = _sum_tables(runner.run("density", S.own_table, lambda k: (ko,)))
-            dens_spec = (ko, *tables[ko])
+    dens_spec = _density_spec(runner, job, tree_depth, tables)
     pm = runner.run("prepare", S.prepare, lambda k: (drop[k], dens_spec, job.trim > 0))
     seam_keep: list[dict | None] = list(_seams_used([m["seam_use"] for m in pm]))
     timings["finish"] = time.perf_counter() - t
@@ -549,6 +504,80 @@ def reconstruct(
         },
     }
     return {"parts": fm, "report": report, "phases": getattr(runner, "phases", {})}
+
+
+def _splat_depths(runner, job: S.Job, loaded: list[dict], tables: dict[int, tuple]) -> tuple:
+    """The samples' splat depths over the slabs: (the tree's depth, the screening weight alpha).
+
+    Each slab places its samples at its own density levels, then at the global ones, coarser
+    level by level; ``tables`` gets each level's summed density table.
+    """
+    msgs = loaded
+    level = job.local_density
+    while sum(m["unplaced"] for m in msgs) and level >= 0:
+        keys, dens = _sum_tables(runner.run("density", S.own_table, lambda k, lv=level: (lv,)))
+        tables[level] = (keys, dens)
+        msgs = runner.run("place", S.place, lambda k, lv=level, ks=keys, ds=dens: (lv, ks, ds))
+        level -= 1
+    if sum(m["unplaced"] for m in msgs):
+        raise StageFailed("distributed poisson: samples left without a splat depth")
+    tree_depth = max(max(m["max_level"] for m in msgs), 1)
+    if tree_depth < S.PARTITION_DEPTH:
+        raise ParameterError(
+            f"the samples support a tree of depth {tree_depth} only: too sparse for a "
+            f"distributed reconstruction (it needs {S.PARTITION_DEPTH}); run without workers"
+        )
+    count = sum(m["count"] for m in msgs)
+    mean_area = sum(m["area_count"] for m in msgs) / count
+    return tree_depth, screening_alpha(job.point_weight, mean_area, tree_depth)
+
+
+def _coarse_tree(
+    runner, job: S.Job, tree_depth: int, dc: int, alpha: float, fallback: float
+) -> tuple:
+    """The slabs' items and trees, and the coarse levels' data on the coordinator.
+
+    Returns the coarse levels (to ``dc``), their summed fields and screening, the finer items'
+    right-hand side restricted to level ``dc`` (or None) and the noise median (None unscreened).
+    """
+    im = runner.run("items", S.items, lambda k: (tree_depth, alpha, fallback))
+    noise_med = None
+    if alpha > 0:
+        noise_med = exact_median(
+            runner, "noise", S.noise_report_values, [m["noise_hist"] for m in im], "noise"
+        )
+    coarse_fields = _sum_fields([m["coarse_fields"] for m in im])
+    screening = _sum_screening([m["screening"] for m in im]) if alpha > 0 else {}
+    cpos, clvl = S.coarse_item_set(im, dc)
+    del im
+    with _coordinator_step(runner, "coarse tree"):
+        coarse = S.build_coarse_levels(cpos, clvl, tree_depth, job)
+    del cpos, clvl
+    rm = runner.run("restrict", S.restrict, lambda k: (S.level_message(coarse), coarse_fields))
+    finer = None
+    parts = [m["finer"] for m in rm if "finer" in m]
+    if parts:
+        from recon_cli.stages.poisson.bspline import level_parents
+
+        finer = np.zeros(8 * len(level_parents(coarse[dc])[0]))
+        for idx, val in parts:
+            np.add.at(finer, idx, val)
+    return coarse, coarse_fields, screening, finer, noise_med
+
+
+def _density_spec(runner, job: S.Job, tree_depth: int, tables: dict[int, tuple]) -> tuple | None:
+    """What the slabs need for the vertices' densities (``--density``, ``--trim``), else None.
+
+    The kernel's level alone when the slabs hold it, else with its summed table.
+    """
+    if not (job.density or job.trim > 0):
+        return None
+    ko = max(tree_depth - KERNEL_OFFSET, 0)
+    if ko > job.local_density:
+        return (ko,)
+    if ko not in tables:
+        tables[ko] = _sum_tables(runner.run("density", S.own_table, lambda k: (ko,)))
+    return (ko, *tables[ko])
 
 
 def _seams_used(uses: list[dict]) -> list[dict]:
