@@ -1054,35 +1054,10 @@ def reconstruct_files(
     _check_distributed(depth, params["full_depth"], parts)
     t0 = time.perf_counter()
     chunks = plan_chunks(inputs)
-    with _task(progress, "poisson: reading the chunks' boxes", len(chunks)) as bar:
-        futs = [client.submit(scan_chunk, c, pure=False) for c in chunks]
-        index = {f.key: i for i, f in enumerate(futs)}
-        scans: list[dict] = [{}] * len(futs)
-        for f in _as_done(client, futs):
-            scans[index[f.key]] = f.result()  # in the chunks' order: the first one's header
-            bar.advance(1)
-        del futs
+    scans = _scan_chunks(client, chunks, progress)
     scan_phase: dict = {}
     note_phase(scan_phase, "scan", scans, time.perf_counter() - t0)
-    kept = sum(s["kept"] for s in scans)
-    rows = sum(s["rows"] for s in scans)
-    if kept == 0:
-        raise InputError("every normal has zero length: run 'recon normals' to estimate them")
-    if kept < 4:
-        raise InputError(f"poisson needs at least 4 points with non-zero normals, got {kept}")
-    colors = {s["colors"] for s in scans}
-    if len(colors) > 1:
-        raise InputError(
-            "the tiles do not all have the same colours (some have none, or other types)"
-        )
-    if len({s["attributes"] for s in scans}) > 1:
-        raise InputError("the tiles do not all have the same properties (names and types)")
-    from recon_cli.stages.poisson.attributes import select
-
-    have = dict(scans[0]["attributes"])
-    names, keep_colors = select(attributes, list(have), colors != {None})
-    dtypes = tuple(have[k] for k in names)
-    color_type = next(iter(colors)) if keep_colors else None
+    kept, rows, names, keep_colors, dtypes, color_type = _checked_scans(scans, attributes)
     if SPEC.param("confidence").coerce(confidence):
         params["weight_scale"] = kept / sum(s["length_sum"] for s in scans)
     lo = np.min([s["lo"] for s in scans if "lo" in s], axis=0)
@@ -1171,6 +1146,46 @@ def reconstruct_files(
     if mesh is None:
         return Streamed(rep)
     return PoissonResult(mesh, rep)
+
+
+def _scan_chunks(client: Any, chunks: list, progress: Any) -> list[dict]:
+    """Each chunk's box, counts and header read on the workers, in the chunks' order."""
+    with _task(progress, "poisson: reading the chunks' boxes", len(chunks)) as bar:
+        futs = [client.submit(scan_chunk, c, pure=False) for c in chunks]
+        index = {f.key: i for i, f in enumerate(futs)}
+        scans: list[dict] = [{}] * len(futs)
+        for f in _as_done(client, futs):
+            scans[index[f.key]] = f.result()  # in the chunks' order: the first one's header
+            bar.advance(1)
+    return scans
+
+
+def _checked_scans(scans: list[dict], attributes: Any) -> tuple:
+    """The chunks' scans, checked to agree.
+
+    Returns the points kept, the rows, the property names, whether colours are kept, the
+    properties' types and the colours' type (or None).
+    """
+    from recon_cli.stages.poisson.attributes import select
+
+    kept = sum(s["kept"] for s in scans)
+    rows = sum(s["rows"] for s in scans)
+    if kept == 0:
+        raise InputError("every normal has zero length: run 'recon normals' to estimate them")
+    if kept < 4:
+        raise InputError(f"poisson needs at least 4 points with non-zero normals, got {kept}")
+    colors = {s["colors"] for s in scans}
+    if len(colors) > 1:
+        raise InputError(
+            "the tiles do not all have the same colours (some have none, or other types)"
+        )
+    if len({s["attributes"] for s in scans}) > 1:
+        raise InputError("the tiles do not all have the same properties (names and types)")
+    have = dict(scans[0]["attributes"])
+    names, keep_colors = select(attributes, list(have), colors != {None})
+    dtypes = tuple(have[k] for k in names)
+    color_type = next(iter(colors)) if keep_colors else None
+    return kept, rows, names, keep_colors, dtypes, color_type
 
 
 def _task(progress, name, total):
