@@ -1269,4 +1269,5 @@ def _run_reference(
 
 # public names of the pieces the distributed solve (.distributed, .slab) shares
 check_inputs = _check_inputs
+kept_attributes = _kept_attributes
 check_options = _check_options

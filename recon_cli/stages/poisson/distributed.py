@@ -799,7 +799,13 @@ def distributed_poisson(
     :func:`.screened_poisson`'s (``confidence``, ``colors``, ``properties`` as there), whose report
     has a ``distributed`` part.
     """
-    from recon_cli.stages.poisson import SPEC, PoissonResult, check_inputs, check_options
+    from recon_cli.stages.poisson import (
+        SPEC,
+        PoissonResult,
+        check_inputs,
+        check_options,
+        kept_attributes,
+    )
 
     depth, scale, point_weight, samples_per_node, _, boundary, density, trim = check_options(
         depth, scale, point_weight, samples_per_node, 2, boundary, density, trim
@@ -821,19 +827,7 @@ def distributed_poisson(
         params["weight_scale"] = 1.0 / float(lengths[0].mean())
         nrm = nrm * lengths[0][:, None]  # a slab weighs each point by its normal's length
     del lengths
-    if colors is not None:
-        colors = np.asarray(colors)
-        if len(colors) != len(keep):
-            raise InputError(f"colors has {len(colors)} rows, expected {len(keep)}")
-        colors = colors[keep]
-    props: dict[str, np.ndarray] = {}
-    for name, values in (properties or {}).items():
-        values = np.asarray(values)
-        if values.ndim != 1 or len(values) != len(keep):
-            raise InputError(
-                f"attribute {name!r} has shape {values.shape}, expected ({len(keep)},)"
-            )
-        props[name] = values[keep]
+    colors, props = kept_attributes(keep, colors, properties)
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     origin, size, perm = frame_of(lo, hi, scale)
     job = make_job(origin, size, perm, depth, params)
