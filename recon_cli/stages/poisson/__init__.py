@@ -479,13 +479,7 @@ def screened_poisson(
 
     from recon_cli.stages.poisson.basis import basis_for
     from recon_cli.stages.poisson.free import clip_to_cube
-    from recon_cli.stages.poisson.octree import build_levels
-    from recon_cli.stages.poisson.splat import (
-        make_splats,
-        merge_samples,
-        noise_fraction,
-        sample_density,
-    )
+    from recon_cli.stages.poisson.splat import make_splats, merge_samples, sample_density
     from recon_cli.stages.poisson.timing import Timings
 
     basis = basis_for(degree)
@@ -518,12 +512,7 @@ def screened_poisson(
         res = 1 << tree_depth  # the finest cells of the tree
     # ---- the samples' noise: noisy neighbourhoods are screened less (Splats.screening)
     with clock.phase("noise"):
-        if point_weight > 0:
-            splats.clean, sample_noise = noise_fraction((pts - origin) / size, smp, tree_depth)
-            noise: float | None = float(np.median(sample_noise))
-            del sample_noise
-        else:
-            noise = None
+        noise = _screening_noise(pts, origin, size, smp, splats, tree_depth, point_weight)
 
     # ---- envelope: cells whose support leaves it are fixed at 0; the tree refined along it
     env, sample_ok, free_cells, outside_points = None, None, None, 0
@@ -538,15 +527,7 @@ def screened_poisson(
     with clock.phase("tree"):
         assert item_pos is not None and item_level is not None  # the items, before the solve
         with task(progress, "poisson: tree"):
-            levels = build_levels(
-                item_pos,
-                item_level,
-                tree_depth,
-                full_depth,
-                boundary,
-                corners=basis.corners,
-                own_ring=basis.own_ring,
-            )
+            levels = basis.build_tree(item_pos, item_level, tree_depth, full_depth, boundary)
         del item_pos, item_level
         # memory: the splat items made the fields and the tree, the samples' normals and keys
         # the splats
@@ -633,6 +614,27 @@ def screened_poisson(
     if field_grid is not None:
         report["grid_shape"] = list(field_grid.shape)
     return PoissonResult(mesh, report, field_grid)
+
+
+def _screening_noise(
+    pts: np.ndarray,
+    origin: np.ndarray,
+    size: float,
+    smp: Any,
+    splats: Any,
+    tree_depth: int,
+    point_weight: float,
+) -> float | None:
+    """The samples' median noise, their clean fractions set on ``splats`` (None unscreened).
+
+    Noisy neighbourhoods are screened less (:meth:`.splat.Splats.screening`).
+    """
+    from recon_cli.stages.poisson.splat import noise_fraction
+
+    if point_weight <= 0:
+        return None
+    splats.clean, sample_noise = noise_fraction((pts - origin) / size, smp, tree_depth)
+    return float(np.median(sample_noise))
 
 
 def _solve_cube(

@@ -77,6 +77,27 @@ class Basis:
         """The tree's depth given the splats' deepest level ``tree_depth`` (``free`` boundary)."""
         return tree_depth
 
+    def build_tree(
+        self,
+        item_pos: np.ndarray,
+        item_level: np.ndarray,
+        tree_depth: int,
+        full_depth: int,
+        boundary: str,
+    ) -> list[Level]:
+        """The tree over the splat items (positions (m, 3) in the unit cube, levels (m,))."""
+        from recon_cli.stages.poisson.octree import build_levels
+
+        return build_levels(
+            item_pos,
+            item_level,
+            tree_depth,
+            full_depth,
+            boundary,
+            corners=self.corners,
+            own_ring=self.own_ring,
+        )
+
     def solve(
         self,
         levels: list[Level],
