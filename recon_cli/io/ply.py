@@ -623,6 +623,11 @@ def emit_ply(ply: PlyData, put: Callable[[bytes | memoryview], Any]) -> None:
     writes it before returning.
     """
     put(header_bytes(ply))
+    emit_body(ply, put)
+
+
+def emit_body(ply: PlyData, put: Callable[[bytes | memoryview], Any]) -> None:
+    """Encode ``ply``'s elements without the header, piece by piece (as :func:`emit_ply`)."""
     for el in ply.elements:
         if ply.format == "ascii":
             put(_ascii_body(el))

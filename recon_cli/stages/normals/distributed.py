@@ -778,7 +778,7 @@ def _write(chunks, first, nrm, curv, perm, output, save_kw, ascii, prov, method,
         )
         return
     from recon_cli.io.atomic import atomic_open
-    from recon_cli.io.ply import geometry_to_ply, header_bytes, serialize_ply
+    from recon_cli.io.ply import emit_body, geometry_to_ply
 
     with atomic_open(output) as f:
         for i, c in enumerate(chunks):
@@ -794,8 +794,7 @@ def _write(chunks, first, nrm, curv, perm, output, save_kw, ascii, prov, method,
                 fields = [(p.name, p.dtype) for p in ply.elements[0].properties]
             elif [(p.name, p.dtype) for p in ply.elements[0].properties] != fields:
                 raise InputError("the tiles do not all have the same properties", c.path)
-            body = serialize_ply(ply)
-            f.write(body[len(header_bytes(ply)) :])
+            emit_body(ply, f.write)  # the header is the first chunk's, with every row
 
 
 class PlyHead:
