@@ -581,6 +581,10 @@ def solve(
         del rhs_fields
     else:  # kernels other than the levels' own B-splines: splat every share at every level
         items = fields_as_items(rhs_fields)
+
+    def merged(d: int) -> tuple[np.ndarray, np.ndarray] | None:
+        return _merge_per_cell(spos, screen_w, d) if splats.alpha > 0 else None
+
     with task(progress, "poisson: solve", total=len(levels)) as tk:
         for lev in levels:
             release_free_heap()
@@ -600,15 +604,13 @@ def solve(
                     BR.splat_rhs, *items, d, f.q_keys, f.inp, f.s, KERNEL_WIDTH
                 )
             fixed = None if free_cells is None else ~free_cells(d, cell_keys(f.q_keys))
-            stats, solved = _solve_level(
+            stats, solved = solve_level(
                 f,
                 prev,
                 make_rhs,
                 fixed,
                 coef_all[8 * arrays[1][d] : 8 * arrays[1][d + 1]],
-                spos,
-                screen_w,
-                splats.alpha,
+                merged,
                 boundary,
                 1e-7 if d <= full_depth else cg_tolerance,
                 2000 if d <= full_depth else 200,
@@ -661,15 +663,13 @@ def _prepare_level(levels: list[Level], lev: Level, node_keys: list[np.ndarray])
         lev.cell_parent = None
 
 
-def _solve_level(
+def solve_level(
     f: LevelField,
     prev: LevelField | None,
     make_rhs: Callable[[], np.ndarray],
     fixed: np.ndarray | None,
     coef: np.ndarray,
-    spos: np.ndarray,
-    screen_w: np.ndarray,
-    alpha: float,
+    merged: Callable[[int], tuple[np.ndarray, np.ndarray] | None],
     boundary: str,
     tolerance: float,
     max_iter: int,
@@ -680,6 +680,9 @@ def _solve_level(
     unknowns' part outlives the screening), ``fixed`` (8q,) bool the cells
     whose coefficient is 0 (or None), ``coef`` (8q,) the view of the solve's coefficients that
     becomes ``f.coef``: the level's whole chi, the coarser field prolonged plus the correction.
+    ``merged(d)`` gives the screening samples merged per cell of level ``d`` (weighted mean
+    positions, summed weights) or None without screening: the single-process solve merges its
+    samples, a slab of the distributed one (:mod:`.slab`) its own and its pad's.
     Returns the level's statistics (depth, nodes, unknowns, iterations, residual) and whether
     it was solved (the free boundary's level 1 carries no function).
     """
@@ -695,7 +698,7 @@ def _solve_level(
         return {"depth": d, "nodes": ne, "unknowns": 0, "iterations": 0, "residual": 0.0}, False
     rhs = make_rhs()
     diag = BO.stiffness_diag(f.q_keys, f.inp, m1, k1, h)
-    scell, sloc, sw = _screening_samples(f, spos, screen_w, alpha, diag, rhs)
+    scell, sloc, sw = _screening_samples(f, merged(d), diag, rhs)
     # the solve's vectors on the unknowns only (the children of the flagged parents), made before
     # the coarser levels' field is prolonged: on the finest level of a large solve the right-hand
     # side, the diagonal, the prolonged field and its product on all of E were alive at once
@@ -748,20 +751,19 @@ def _solve_level(
 
 def _screening_samples(
     f: LevelField,
-    spos: np.ndarray,
-    screen_w: np.ndarray,
-    alpha: float,
+    merged: tuple[np.ndarray, np.ndarray] | None,
     diag: np.ndarray,
     rhs: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The level's screening samples (cell, position in it, weight), their terms added.
 
-    The samples are merged per cell of the level; their screening is added to ``diag`` and
-    ``rhs`` (8q,) in place. None (empty arrays) when ``alpha`` is 0.
+    ``merged``: the samples merged per cell of the level (positions, weights); their screening
+    is added to ``diag`` and ``rhs`` (8q,) in place. None (empty arrays) without screening.
     """
-    if alpha <= 0:
+    if merged is None or not len(merged[0]):
         return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
-    mp, mw = _merge_per_cell(spos, screen_w, f.depth)
+    mp, mw = merged
+    del merged
     scell, sloc = f.locate(mp)
     have = scell >= 0
     scell, sloc, sw = scell[have], sloc[have], mw[have]

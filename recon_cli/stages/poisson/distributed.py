@@ -324,7 +324,7 @@ def solve_coarse(
         return screening.get(d)
 
     stats, it, rel = S.solve_levels(
-        levels, lfs, arrays, nrhs, scr, 1, job.full_depth, job.cg_tolerance
+        levels, lfs, arrays, nrhs, scr, 1, job.full_depth, job.cg_tolerance, job.boundary
     )
     coefs: list[np.ndarray | None] = [None]
     for d in range(1, dc + 1):

@@ -15,6 +15,7 @@ and the unit cube of the single-process solve.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import time
 from collections.abc import Callable
@@ -25,20 +26,17 @@ import numpy as np
 
 from recon_cli.errors import StageFailed
 from recon_cli.memory import peak_mb, release_free_heap, reset_peak
-from recon_cli.stages.poisson import _bspline as B
 from recon_cli.stages.poisson import _bspline_eval as BE
-from recon_cli.stages.poisson import _bspline_operator as BO
 from recon_cli.stages.poisson import _extract as E
 from recon_cli.stages.poisson import _octree as O
 from recon_cli.stages.poisson.bspline import (
     SCREEN_CLEAN,
     SCREEN_NOISY,
-    TARGET,
     ChiField,
     LevelField,
     NormalRHS,
-    folded_tables,
     level_fields,
+    solve_level,
 )
 from recon_cli.stages.poisson.octree import Level, build_levels, pack_keys, set_corners, unpack_keys
 from recon_cli.stages.poisson.splat import (
@@ -565,13 +563,15 @@ def solve_levels(
     first: int,
     full_depth: int,
     cg_tolerance: float,
+    boundary: str,
     on_level: Callable[[int], None] | None = None,
 ) -> tuple[list[dict], int, float]:
     """Levels ``first``.. of the cascadic degree-2 solve (:func:`.bspline.solve`'s loop).
 
     Each level's correction to the coarser levels' chi, whose coefficients (level ``first - 1``) are
-    set. ``screening(d)`` gives the samples merged per cell of level ``d`` (positions, weights) or
-    None. Returns per-level statistics, iterations and the last residual.
+    set, by :func:`.bspline.solve_level`. ``screening(d)`` gives the samples merged per cell of
+    level ``d`` (positions, weights) or None. Returns per-level statistics, iterations and the last
+    residual.
     """
     coef_all = arrays[4]
     q_off = arrays[1]
@@ -584,86 +584,24 @@ def solve_levels(
         release_free_heap()
         tl = time.perf_counter()
         f = lfs[d]
-        n = 1 << d
-        h = 1.0 / n
-        m1, k1 = folded_tables(n, f.s)
-        unknown = np.repeat(f.inp, 8)
-        rhs = normal_rhs.rhs(d)
-        diag = BO.stiffness_diag(f.q_keys, f.inp, m1, k1, h)
-        scr = screening(d)
-        if scr is not None and len(scr[0]):
-            scell, sloc = f.locate(scr[0])
-            have = scell >= 0
-            scell, sloc, sw = scell[have], sloc[have], scr[1][have]
-            BO.screening_diag_rhs(f.q_keys, f.nb, n, f.s, scell, sloc, sw, TARGET, diag, rhs)
-        else:
-            scell, sloc, sw = np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
-        del scr
-        cmap = np.cumsum(f.inp) - 1
-        cmap[~f.inp] = -1
-        rhs = rhs[unknown]
-        diag = diag[unknown]
-        if prev is not None:
-            G = B.prolong(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s)
-            AG = np.empty(len(rhs))
-            BO.level_matvec(
-                f.q_keys,
-                f.nb,
-                f.inp,
-                np.arange(len(f.q_keys)),
-                cmap,
-                m1,
-                k1,
-                h,
-                n,
-                f.s,
-                scell,
-                sloc,
-                sw,
-                G,
-                AG,
-            )
-            rhs -= AG
-            del AG, G
-        exact = d <= full_depth
-        release_free_heap()
-        x, it, rel = BO.level_pcg(
-            f.q_keys,
-            f.nb,
-            f.inp,
-            cmap,
-            m1,
-            k1,
-            h,
-            n,
-            f.s,
-            scell,
-            sloc,
-            sw,
-            rhs,
-            diag,
-            1e-7 if exact else cg_tolerance,
-            2000 if exact else 200,
+        st, _ = solve_level(
+            f,
+            prev,
+            functools.partial(normal_rhs.rhs, d),
+            None,
+            coef_all[8 * q_off[d] : 8 * q_off[d + 1]],
+            screening,
+            boundary,
+            1e-7 if d <= full_depth else cg_tolerance,
+            2000 if d <= full_depth else 200,
         )
-        del rhs, diag, scell, sloc, sw, cmap
-        f.coef = coef_all[8 * q_off[d] : 8 * q_off[d + 1]]
-        if prev is not None:
-            B.prolong_into(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s, f.coef)
-        f.coef[unknown] += x
-        del x
         prev = f
-        total_it += it
-        last_res = rel
-        stats.append(
-            {
-                "depth": d,
-                "nodes": len(unknown),
-                "unknowns": int(unknown.sum()),
-                "iterations": int(it),
-                "residual": float(rel),
-                "seconds": time.perf_counter() - tl,
-            }
-        )
+        total_it += st["iterations"]
+        last_res = st["residual"]
+        st["iterations"] = int(st["iterations"])
+        st["residual"] = float(st["residual"])
+        st["seconds"] = time.perf_counter() - tl
+        stats.append(st)
         if on_level is not None:
             on_level(d)
     return stats, total_it, last_res
@@ -752,7 +690,15 @@ def solve(slab: Slab, coefs: list) -> dict:
     if len(levels) - 1 > dc:
         normal_rhs, slab.normal_rhs = slab.normal_rhs, None
         stats, it, rel = solve_levels(
-            levels, lfs, arrays, normal_rhs, screening, dc + 1, job.full_depth, job.cg_tolerance
+            levels,
+            lfs,
+            arrays,
+            normal_rhs,
+            screening,
+            dc + 1,
+            job.full_depth,
+            job.cg_tolerance,
+            job.boundary,
         )
         del normal_rhs
         msg["levels"] = stats
