@@ -164,6 +164,9 @@ def _client_inner(scheduler, workers, threads_per_worker, memory_limit, log_leve
             config = {"distributed.scheduler.allowed-failures": 1}
             if not stealing:
                 config["distributed.scheduler.work-stealing"] = False
+                # a worker whose live state fills it would pause for good (its memory never
+                # drops while the job waits on it): over the limit it is restarted instead
+                config["distributed.worker.memory.pause"] = False
             with dask.config.set(config):
                 cluster = LocalCluster(
                     n_workers=workers,

@@ -33,7 +33,6 @@ from recon_cli.stages.poisson.bspline import (
     SCREEN_CLEAN,
     SCREEN_NOISY,
     ChiField,
-    LevelField,
     NormalRHS,
     level_fields,
     solve_level,
@@ -618,10 +617,10 @@ def set_coefficients(lfs: list, arrays: tuple, coefs: list) -> None:
         f.coef[:] = c
 
 
-def _band_parents(lf: LevelField, px: int) -> np.ndarray:
-    """Indices of the parents of ``lf`` (level ``lf.depth - 1``) whose x is ``px``."""
-    lo = np.searchsorted(lf.q_keys, np.int64(px) << 42)
-    hi = np.searchsorted(lf.q_keys, np.int64(px + 1) << 42)
+def _band_parents(q_keys: np.ndarray, px: int) -> np.ndarray:
+    """Indices of the sorted parent keys ``q_keys`` whose x is ``px``."""
+    lo = np.searchsorted(q_keys, np.int64(px) << 42)
+    hi = np.searchsorted(q_keys, np.int64(px + 1) << 42)
     return np.arange(lo, hi)
 
 
@@ -635,7 +634,7 @@ def band_message(slab: Slab, side: int) -> dict:
     for d in range(slab.job.coarse_depth + 1, len(slab.levels)):
         f = slab.lfs[d]
         px = int(round(x * (1 << (d - 1)))) - (0 if side < 0 else 1)
-        rows = _band_parents(f, px)
+        rows = _band_parents(f.q_keys, px)
         coef = f.coef.reshape(-1, 8)[rows]
         out[d] = (f.q_keys[rows], f.inp[rows], coef)
     return out
@@ -648,16 +647,18 @@ def apply_band(slab: Slab, side: int, band: dict) -> None:
     processes keeps no views into it).
     """
     x = slab.own[0] if side < 0 else slab.own[1]
-    coef = slab.chi.coef_all.reshape(-1, 8)
-    q_off = slab.chi.q_off
+    chi = slab.chi
+    coef = chi.coef_all.reshape(-1, 8)
+    q_off = chi.q_off
     for d in range(slab.job.coarse_depth + 1, len(slab.levels)):
-        f = slab.lfs[d]
+        q_keys = chi.q_all[q_off[d] : q_off[d + 1]]
+        q_inp = chi.inp_all[q_off[d] : q_off[d + 1]]
         px = int(round(x * (1 << (d - 1)))) - (1 if side < 0 else 0)
-        rows = _band_parents(f, px)
+        rows = _band_parents(q_keys, px)
         keys, inp, band_coef = band.get(
             d, (np.zeros(0, np.int64), np.zeros(0, bool), np.zeros((0, 8)))
         )
-        if not (np.array_equal(f.q_keys[rows], keys) and np.array_equal(f.inp[rows], inp)):
+        if not (np.array_equal(q_keys[rows], keys) and np.array_equal(q_inp[rows], inp)):
             raise StageFailed(
                 f"distributed poisson: slabs {slab.index} and {slab.index + side} disagree on "
                 f"the tree at their seam (level {d}): the pad is too small for this input"
@@ -718,6 +719,9 @@ def solve(slab: Slab, coefs: list) -> dict:
         msg["iso_sum"] = msg["iso_count"] = 0.0
     msg["band_left"] = band_message(slab, -1) if slab.index > 0 else None
     msg["band_right"] = band_message(slab, 1) if slab.index < slab.count - 1 else None
+    # chi holds the levels' arrays: the fields' views of them (their neighbour tables above
+    # all, which the field step drops while the extraction runs) go
+    slab.lfs = slab.arrays = None
     release_free_heap()
     return msg
 
@@ -1318,28 +1322,43 @@ def export(
     return msg
 
 
-def state_bytes(obj: Any, depth: int = 0) -> int:
-    """Bytes of the numpy arrays a slab's state holds.
+def state_bytes(obj: Any, depth: int = 0, seen: set | None = None) -> int:
+    """Bytes of the numpy arrays a slab's state holds, each buffer once.
 
     What Dask's memory accounting sees of it: its own estimate of an object is a few hundred bytes.
+    A view counts its base array, once however many views of it the state holds (the levels'
+    fields are views of the solve's arrays): counted per view, the state of a depth-11 slab
+    looked several times its size, and Dask spilled it.
     """
+    if seen is None:
+        seen = set()
     if isinstance(obj, np.ndarray):
-        return int(obj.nbytes)
+        base = obj
+        while isinstance(base.base, np.ndarray):
+            base = base.base
+        if id(base) in seen:
+            return 0
+        seen.add(id(base))
+        return int(base.nbytes)
     if depth > 4 or obj is None or isinstance(obj, (int, float, str, bool)):
         return 0
     if isinstance(obj, dict):
-        return sum(state_bytes(v, depth + 1) for v in obj.values())
+        return sum(state_bytes(v, depth + 1, seen) for v in obj.values())
     if isinstance(obj, (list, tuple)):
-        return sum(state_bytes(v, depth + 1) for v in obj)
+        return sum(state_bytes(v, depth + 1, seen) for v in obj)
     if hasattr(obj, "__dict__"):
-        return sum(state_bytes(v, depth + 1) for v in vars(obj).values())
+        return sum(state_bytes(v, depth + 1, seen) for v in vars(obj).values())
     return 0
+
+
+def _dask_size(slab: Slab) -> int:
+    return state_bytes(slab)
 
 
 try:  # dask is an extra (recon[batch])
     from dask.sizeof import sizeof as _dask_sizeof
 
-    _dask_sizeof.register(Slab)(state_bytes)
+    _dask_sizeof.register(Slab)(_dask_size)
 except ImportError:  # pragma: no cover
     pass
 
