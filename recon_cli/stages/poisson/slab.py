@@ -14,6 +14,7 @@ and the unit cube of the single-process solve.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 import os
@@ -33,7 +34,9 @@ from recon_cli.stages.poisson.bspline import (
     SCREEN_CLEAN,
     SCREEN_NOISY,
     ChiField,
+    LevelField,
     NormalRHS,
+    boundary_sign,
     level_fields,
     solve_level,
 )
@@ -136,6 +139,33 @@ class Slab:
     vdens: np.ndarray | None = None
     at_samples: Any = None
     trim: Any = None
+
+    def __getstate__(self) -> dict:
+        # a pickled view is a copy: the levels' fields (views of ``arrays``, shared with the
+        # right-hand side) are made again from the arrays when the state is read back
+        state = dict(self.__dict__)
+        lfs, arrays, nrhs = state["lfs"], state["arrays"], state["normal_rhs"]
+        if lfs is not None and arrays is not None and all(f is None or f.coef is None for f in lfs):
+            state["lfs"] = ("views", len(lfs))
+            if nrhs is not None and all(a is b for a, b in zip(nrhs.lf, lfs, strict=True)):
+                nrhs = copy.copy(nrhs)
+                nrhs.lf = None
+                state["normal_rhs"] = nrhs
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        lfs = state["lfs"]
+        if isinstance(lfs, tuple):
+            q_all, q_off, inp_all, nb_all, _ = state["arrays"]
+            s = boundary_sign(state["job"].boundary)
+            fields: list = [None]
+            for d in range(1, lfs[1]):
+                lo, hi = q_off[d], q_off[d + 1]
+                fields.append(LevelField(d, s, q_all[lo:hi], inp_all[lo:hi], nb_all[lo:hi]))
+            state["lfs"] = fields
+            if state["normal_rhs"] is not None and state["normal_rhs"].lf is None:
+                state["normal_rhs"].lf = list(fields)
+        self.__dict__.update(state)
 
     @property
     def res(self) -> int:
