@@ -430,3 +430,56 @@ def test_command_refuses(tmp_path, capsys, args, msg):
     err = capsys.readouterr().err
     assert msg in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "o.ply").exists()
+
+
+_INTERACTIVE = (
+    "import signal, sys\n"
+    # as from an interactive shell: a runner started in the background may pass SIGINT down
+    # ignored, and then Python never turns it into KeyboardInterrupt
+    "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
+    "from recon_cli.cli.main import main\n"
+    "main(sys.argv[1:])\n"
+)
+
+
+@pytest.mark.slow
+def test_ctrl_c_mid_job_leaves_nothing(tmp_path):
+    """Ctrl-C (the process group's SIGINT) once the workers have sorted the chunks: exit 130, one
+    line, no output, no temporary folder, no worker process left."""
+    import subprocess
+    import sys
+
+    import psutil
+
+    from recon_cli.cli.main import EXIT_INTERRUPTED
+
+    pts, nrm = sphere_cloud(40_000, seed=3)
+    src = tmp_path / "sphere.ply"
+    save(PointCloud(points=pts, normals=nrm), str(src))
+    out = tmp_path / "mesh.ply"
+    argv = [sys.executable, "-c", _INTERACTIVE, "poisson", str(src), str(out)]
+    argv += ["--workers", "2", "--depth", "9"]
+    proc = subprocess.Popen(
+        argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True
+    )
+    try:
+        deadline = time.monotonic() + 120
+        # the chunk sorted into the job's temporary folder: the cluster is at work
+        while not list(tmp_path.glob(".recon-poisson-*/*.pts.npy")):
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, "no sorted chunk after 120 s"
+            time.sleep(0.02)
+        family = psutil.Process(proc.pid).children(recursive=True)
+        assert len(family) >= 2  # at least the two worker processes
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    err = err.decode()
+    assert proc.returncode == EXIT_INTERRUPTED == 130, err
+    assert err.strip() == "recon: interrupted", err
+    _, alive = psutil.wait_procs(family, timeout=10)
+    assert alive == [], [(p.pid, p.name()) for p in alive]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sphere.ply"]
