@@ -106,6 +106,42 @@ def test_slabs_of_very_different_density():
     assert err(res.mesh) <= 1.02 * err(single.mesh)
 
 
+def test_states_pickled_between_steps_give_the_same_mesh(monkeypatch):
+    """Every slab state pickled and read back after every step (as Dask spills or moves it):
+    the same mesh to the bit, and a pickled state is its size (the fields' views of the solve's
+    arrays are not copied)."""
+    import pickle
+
+    from recon_cli.batch import steps
+    from recon_cli.stages.poisson import distributed as D
+    from recon_cli.stages.poisson import slab as S
+
+    pts, nrm = sphere_cloud(6000, seed=9)
+    plain = distributed_poisson(pts, nrm, depth=7, partitions=3).mesh
+    sizes = []
+
+    class Pickling(steps.LocalRunner):
+        def run(self, name, fn, args):
+            out = super().run(name, fn, args)
+            blobs = [pickle.dumps(s, protocol=5) for s in self.states]
+            if name == "restrict":
+                sizes.extend(
+                    (len(b), S.state_bytes(s)) for b, s in zip(blobs, self.states, strict=True)
+                )
+            self.states = [pickle.loads(b) for b in blobs]
+            return out
+
+    monkeypatch.setattr(
+        D, "make_runner", lambda c, slabs, p=None, o=None: Pickling(slabs, p, "x", o)
+    )
+    moved = distributed_poisson(pts, nrm, depth=7, partitions=3).mesh
+    assert np.array_equal(moved.vertices, plain.vertices)
+    assert np.array_equal(moved.faces, plain.faces)
+    assert len(sizes) == 3
+    for blob, state in sizes:
+        assert state < blob < state + (1 << 20)
+
+
 def test_an_empty_slab():
     """Two spheres apart along x, the middle slab owning only the empty space between them:
     it gives no faces, the others two closed spheres."""
