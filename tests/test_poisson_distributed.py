@@ -349,6 +349,46 @@ def test_killed_worker_mid_solve_gives_the_same_mesh(cluster):
 
 
 @pytest.mark.slow
+def test_more_slabs_than_workers_spill_their_states(cluster, tmp_path, monkeypatch):
+    """Three slabs on two workers, every state written to its file between steps, a worker
+    SIGKILLed while the slabs solve: the in-process run's mesh, bit for bit, and no file left."""
+    from recon_cli.batch import steps
+    from recon_cli.stages.poisson import distributed as D
+
+    pts, nrm = sphere_cloud(12_000, seed=14)
+    ref = distributed_poisson(pts, nrm, depth=7, partitions=3)
+    pids = cluster.run(os.getpid)
+    seen: list[int] = []
+    killed: list[int] = []
+
+    class Spilling(steps.DaskRunner):
+        def run(self, name, fn, args):
+            if name == "solve" and not killed:
+
+                def killer():
+                    time.sleep(0.3)
+                    pid = sorted(pids.values())[0]
+                    os.kill(pid, signal.SIGKILL)
+                    killed.append(pid)
+
+                threading.Thread(target=killer, daemon=True).start()
+            out = super().run(name, fn, args)
+            seen.append(len(os.listdir(tmp_path)))
+            return out
+
+    def runner(client, slabs, progress=None, overall=None):
+        return Spilling(client, slabs, progress, "poisson", overall, str(tmp_path), 0)
+
+    monkeypatch.setattr(D, "make_runner", runner)
+    res = distributed_poisson(pts, nrm, depth=7, partitions=3, client=cluster)
+    assert killed and killed[0] not in cluster.run(os.getpid).values()
+    assert seen[-1] == 6  # this round's files and the last one's, per slab
+    assert np.array_equal(res.mesh.vertices, ref.mesh.vertices)
+    assert np.array_equal(res.mesh.faces, ref.mesh.faces)
+    assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.slow
 def test_laz_tiles_read_by_chunks(cluster, tmp_path, monkeypatch):
     """A folder of LAZ tiles (a sphere cut in two at 1e5), read by the workers in chunks of a
     few rows (laspy seeking in the compressed files): the mesh of the in-memory run on the

@@ -10,7 +10,9 @@ Two runners with one interface (``run(name, fn, args) -> messages``):
 - :class:`LocalRunner`: every part in this process, one after another (tests, the library
   without a cluster);
 - :class:`DaskRunner`: each part's state a Dask future on a worker, each step a task on it
-  (Dask runs a part's steps where its state is: the states never move). A step's task
+  (Dask runs a part's steps where its state is: the states never move). With a spill folder
+  (more parts than workers), a large state is written to a file after each step and read
+  back by the next, so a worker holds only the part it runs. A step's task
   returns ``(state, message)``; the coordinator gathers the messages only. A worker that dies
   loses the states it held: Dask recomputes them from their lineage (every step again, from
   the part's first one, the coordinator's values being part of the tasks), on another
@@ -136,8 +138,31 @@ class LocalRunner:
         self.states = []
 
 
-def _step(state: Any, fn: Callable, args: tuple) -> tuple[Any, dict]:
-    return state, fn(state, *args)
+# a state at least this large is written to its file between steps when the runner spills
+SPILL_BYTES = 64 << 20
+
+
+class Spilled:
+    """A part's state written to ``path`` (pickled) between two steps."""
+
+    def __init__(self, path: str):
+        self.path = path
+
+
+def _step(state: Any, fn: Callable, args: tuple, spill: tuple | None = None) -> tuple[Any, dict]:
+    import pickle
+
+    if isinstance(state, Spilled):
+        with open(state.path, "rb") as f:
+            state = pickle.load(f)
+    msg = fn(state, *args)
+    if spill is not None and _sizeof(state) >= spill[1]:
+        path = spill[0]
+        with open(path + ".tmp", "wb") as f:
+            pickle.dump(state, f, protocol=5)
+        os.replace(path + ".tmp", path)
+        state = Spilled(path)
+    return state, msg
 
 
 def _first(pair: tuple) -> Any:
@@ -165,8 +190,14 @@ class DaskRunner:
         progress: Any = None,
         label: str = "parts",
         overall: Overall | None = None,
+        spill_dir: str | None = None,
+        spill_bytes: int = SPILL_BYTES,
     ):
         self.client = client
+        # with more parts than workers, a worker would hold all its parts' states: each large
+        # state goes to a file in spill_dir (shared by the workers) between its steps instead
+        self.spill_dir = spill_dir
+        self.spill_bytes = spill_bytes
         self.phases: dict[str, dict] = {}
         self.progress = progress
         self.label = label
@@ -207,8 +238,10 @@ class DaskRunner:
             tag = f"{self.label}-{self.token}-{k}-{self.round}-{name}"
             # the arguments go in the task (a recomputed part reads them again from its
             # lineage), however large: Dask's warning of large graphs is not for this
+            path = self._spill_path(k, self.round)
+            spill = None if path is None else (path, self.spill_bytes)
             with dask.config.set({"distributed.admin.large-graph-warning-threshold": "1TiB"}):
-                p = c.submit(_step, st, fn, a, key=f"{tag}-step", pure=False)
+                p = c.submit(_step, st, fn, a, spill, key=f"{tag}-step", pure=False)
             pairs.append(p)
             states.append(c.submit(_first, p, key=f"{tag}-state", pure=False))
             msgs_f.append(c.submit(_second, p, key=f"{tag}-msg", pure=False))
@@ -225,11 +258,31 @@ class DaskRunner:
         self.states = states
         for f in pairs + msgs_f:
             f.release()
+        # up to two rounds back: no state kept refers to those files (a lost state is
+        # recomputed from the parts' first step, which writes its files again)
+        self._unspill(self.round - 2)
         note_phase(self.phases, name, out, time.perf_counter() - t0, moved)
         return out
 
+    def _spill_path(self, k: int, rnd: int) -> str | None:
+        if self.spill_dir is None:
+            return None
+        return os.path.join(self.spill_dir, f"{self.label}-{self.token}-{k}-{rnd}.state")
+
+    def _unspill(self, last: int) -> None:
+        """Remove the states' files of rounds up to ``last``."""
+        if self.spill_dir is None:
+            return
+        head = f"{self.label}-{self.token}-"
+        for name in os.listdir(self.spill_dir):
+            if name.startswith(head) and name.endswith(".state"):
+                if int(name[: -len(".state")].rsplit("-", 1)[1]) <= last:
+                    with contextlib.suppress(OSError):
+                        os.unlink(os.path.join(self.spill_dir, name))
+
     def close(self) -> None:
-        """Let go of the parts' states."""
+        """Let go of the parts' states (and their files)."""
+        self._unspill(self.round)
         for f in self.states:
             f.release()
         self.states = []

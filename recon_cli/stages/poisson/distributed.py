@@ -1099,7 +1099,11 @@ def reconstruct_files(
             files = [(os.path.join(tmp, f"c{i:05d}"), b["offsets"]) for i, b in enumerate(buckets)]
             read_s = time.perf_counter() - t0
             slabs = [S.slab_of(job, k, parts, *plan[k]) for k in range(parts)]
-            runner = DaskRunner(client, slabs, progress, "poisson", overall)
+            # more slabs than workers: a worker keeps only the slab it runs in memory
+            spill = os.path.join(tmp, "states") if parts > nworkers else None
+            if spill is not None:
+                os.mkdir(spill)
+            runner = DaskRunner(client, slabs, progress, "poisson", overall, spill)
             runner.phases.update(scan_phase)
             runner.phases.update(sort_phase)
             loaded = runner.run(
