@@ -74,7 +74,9 @@ cloud nor the mesh.
 **Workers.** Every slab step is a deterministic function of the slab's inputs and the global
 values before it; a slab whose worker dies is rebuilt by running its steps again on
 another worker (:class:`recon_cli.batch.steps.DaskRunner`), the global values being the
-coordinator's.
+coordinator's. With more slabs than workers, a slab's state goes to a file in the job's
+temporary folder between its steps (the runner's spill folder), so a worker holds only the
+slab it runs: more slabs, less memory a worker.
 
 **Progress and report.** One bar over the whole job (:class:`recon_cli.batch.steps.Overall`:
 each phase its measured share, advanced as each slab finishes it, with the time left);
