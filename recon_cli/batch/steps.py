@@ -152,7 +152,8 @@ class Spilled:
 def _step(state: Any, fn: Callable, args: tuple, spill: tuple | None = None) -> tuple[Any, dict]:
     import pickle
 
-    if isinstance(state, Spilled):
+    live = not isinstance(state, Spilled)
+    if not live:
         with open(state.path, "rb") as f:
             state = pickle.load(f)
     msg = fn(state, *args)
@@ -161,6 +162,10 @@ def _step(state: Any, fn: Callable, args: tuple, spill: tuple | None = None) -> 
         with open(path + ".tmp", "wb") as f:
             pickle.dump(state, f, protocol=5)
         os.replace(path + ".tmp", path)
+        if live and hasattr(state, "__dict__"):
+            # the previous round's key holds this object (mutated by the step) until the round
+            # ends: its contents go now (a lost state is recomputed from the first step)
+            vars(state).clear()
         state = Spilled(path)
     return state, msg
 
