@@ -478,7 +478,6 @@ def screened_poisson(
     unit_nrm = nrm if (props or colors is not None) else None
 
     from recon_cli.stages.poisson.basis import basis_for
-    from recon_cli.stages.poisson.free import clip_to_cube
     from recon_cli.stages.poisson.splat import make_splats, merge_samples, sample_density
     from recon_cli.stages.poisson.timing import Timings
 
@@ -532,13 +531,14 @@ def screened_poisson(
         # memory: the splat items made the fields and the tree, the samples' normals and keys
         # the splats
         splats.pos = splats.vec = splats.level = smp.normal = smp.keys = None
+    nodes = [len(lv.node_keys) for lv in levels]  # type: ignore[arg-type]  # set with the tree
     log.info(
         "poisson: %d points, %d samples, depth %d (tree %d), nodes per level %s",
         n_pts,
         ns,
         depth,
         tree_depth,
-        [len(lv.node_keys) for lv in levels],  # type: ignore[arg-type]  # set with the tree
+        nodes,
     )
 
     # ---- cascadic solve and the iso-value
@@ -557,15 +557,11 @@ def screened_poisson(
     del levels
     iso = sol.iso
 
-    # ---- extraction
+    # ---- extraction, clipped to the cube, bubbles and islands dropped, pulled into the envelope
     with clock.phase("extract"):
-        verts, faces, chi_fn = basis.extract(sol, origin, size, tree_depth, with_grid)
-        if domain is not None:
-            verts, faces = clip_to_cube(verts, faces, *domain)
-        verts, faces, bubbles, islands = _drop_bubbles(verts, faces, size / res, pts)
-        pulled = 0
-        if env is not None:
-            verts, pulled = env.pull_inside(verts)
+        verts, faces, chi_fn, bubbles, islands, pulled = _extract_surface(
+            basis, sol, origin, size, tree_depth, with_grid, domain, pts, env
+        )
     # ---- the field on a regular grid (--grid)
     field_grid = None
     if with_grid and len(faces):
@@ -587,13 +583,72 @@ def screened_poisson(
     if density:
         assert vdens is not None  # made above whenever density is asked for
         mesh.attributes["density"] = vdens
-    timings = clock.total()
-    report: dict[str, Any] = {
+    report = _report(
+        mesh,
+        sol,
+        clock.total(),
+        depth=user_depth,
+        tree_depth=tree_depth - (depth - user_depth),
+        samples=ns,
+        ignored=int((~keep).sum()),
+        finest_cell=size / res,
+        noise=noise,
+        removed=(bubbles, islands, trimmed, trimmed_area),
+        fallback=fallback,
+        attributes=sorted(props) + (["colors"] if colors is not None else []),
+        envelope=(outside_points, pulled) if env is not None else None,
+    )
+    if field_grid is not None:
+        report["grid_shape"] = list(field_grid.shape)
+    return PoissonResult(mesh, report, field_grid)
+
+
+def _extract_surface(basis, sol, origin, size, tree_depth, with_grid, domain, pts, env):
+    """The iso-surface of a solve in the input's frame.
+
+    Returns ``(verts, faces, chi_fn, bubbles, islands, pulled)``: clipped to the cube (free
+    boundary), closed bubbles and islands without samples dropped, pulled into the envelope.
+    """
+    from recon_cli.stages.poisson.free import clip_to_cube
+
+    verts, faces, chi_fn = basis.extract(sol, origin, size, tree_depth, with_grid)
+    if domain is not None:
+        verts, faces = clip_to_cube(verts, faces, *domain)
+    verts, faces, bubbles, islands = _drop_bubbles(verts, faces, size / (1 << tree_depth), pts)
+    pulled = 0
+    if env is not None:
+        verts, pulled = env.pull_inside(verts)
+    return verts, faces, chi_fn, bubbles, islands, pulled
+
+
+def _report(
+    mesh: TriangleMesh,
+    sol: Any,
+    timings: dict,
+    *,
+    depth: int,
+    tree_depth: int,
+    samples: int,
+    ignored: int,
+    finest_cell: float,
+    noise: Any,
+    removed: tuple,
+    fallback: int,
+    attributes: list[str],
+    envelope: tuple[int, int] | None,
+) -> dict[str, Any]:
+    """The report of :func:`screened_poisson` (its keys are listed in its Returns section).
+
+    ``removed`` is (bubbles, islands, trimmed faces, trimmed area); ``envelope`` is (points
+    outside, vertices pulled), or None without one.
+    """
+    bubbles, islands, trimmed, trimmed_area = removed
+    return {
         "vertices": len(mesh.vertices),
         "faces": len(mesh.faces),
-        "depth": user_depth,
-        "tree_depth": tree_depth - (depth - user_depth),
-        "iso_value": iso,
+        "depth": depth,
+        "tree_depth": tree_depth,
+        "iso_value": sol.iso,
         "solver_iterations": int(sol.iterations),
         "residual": float(sol.residual),
         "bubbles_removed": bubbles,
@@ -601,19 +656,16 @@ def screened_poisson(
         "trimmed_faces": int(trimmed),
         "trimmed_area": trimmed_area,
         "noise": noise,
-        "attributes": sorted(props) + (["colors"] if colors is not None else []),
+        "attributes": attributes,
         "attribute_fallback_vertices": fallback,
-        "envelope_outside_points": outside_points if env is not None else None,
-        "envelope_pulled_vertices": pulled if env is not None else None,
-        "samples": int(ns),
-        "ignored_points": int((~keep).sum()),
-        "finest_cell": size / res,
+        "envelope_outside_points": None if envelope is None else envelope[0],
+        "envelope_pulled_vertices": None if envelope is None else envelope[1],
+        "samples": int(samples),
+        "ignored_points": ignored,
+        "finest_cell": finest_cell,
         "levels": sol.per_level,
         "timings": timings,
     }
-    if field_grid is not None:
-        report["grid_shape"] = list(field_grid.shape)
-    return PoissonResult(mesh, report, field_grid)
 
 
 def _screening_noise(
