@@ -558,13 +558,13 @@ def solve(
     the finest relative residual, the iso-value (count-weighted mean of chi at the samples) and the
     field (:class:`ChiField`).
 
-    With ``free_cells`` (``f(level, keys)`` -> bool, the cells' lattice keys:
-    :class:`.envelope.CellClassifier`) the other cells of each level are fixed: their coefficient is
-    0 in the level's whole chi (the coarser levels' part included) and not solved for; ``sample_ok``
-    (s,) bool then says which samples screen the solve and make the iso-value (the others lie where
-    chi is fixed). With ``clip`` (``clip(iso)`` -> ``f(pos, chi) -> chi``,
-    :class:`.envelope.FieldClip`) every value read after the iso-value (the nodes' values, the
-    returned field) is clipped.
+    With ``free_cells`` (``f(level, keys)`` -> bool, the cells' lattice keys: Dirichlet constraints
+    inside the cube, as PoissonRecon's envelope) the other cells of each level are fixed: their
+    coefficient is 0 in the level's whole chi (the coarser levels' part included) and not solved
+    for. ``sample_ok`` (s,) bool says which samples screen the solve and make the iso-value (the
+    others lie where chi is fixed, or outside the envelope). With ``clip`` (``clip(iso)`` ->
+    ``f(pos, chi) -> chi``, :class:`.envelope.FieldClip`) every value read after the iso-value
+    (the nodes' values, the returned field) is clipped.
     """
     spos, count = smp.pos, smp.count
     screen_w = splats.screening(SCREEN_CLEAN, SCREEN_NOISY)
