@@ -87,10 +87,6 @@ class TrainConfig:
     )
     band_share: float = 0.0  # band samples per surface point
     eikonal_l1: bool = False  # E| |grad s| - 1 | instead of E(|grad s| - 1)^2
-    # the eikonal weight grows linearly to eikonal_late_factor times itself from this
-    # fraction of the training on (the geometry settles first, then the slope is tightened)
-    eikonal_late_start: float = 1.0
-    eikonal_late_factor: float = 1.0
 
 
 @dataclass
@@ -213,13 +209,6 @@ def _loop(
                 loss = loss + cfg.normal_weight * (gp - nrm[idx]).norm(dim=1).mean()
                 eik = 0.5 * eik + 0.5 * _eikonal(gp, cfg.eikonal_l1)
             loss = loss + cfg.eikonal_weight * eik
-            late = min(
-                1.0,
-                max(0.0, frac - cfg.eikonal_late_start)
-                / (1.0 - min(cfg.eikonal_late_start, 1.0 - 1e-9)),
-            )
-            # the late extra weight is left out of the loss that picks the best state (it grows)
-            extra = cfg.eikonal_weight * (cfg.eikonal_late_factor - 1.0) * late * eik
             if cfg.offsurface_weight and nrm is not None:
                 # SIREN's off-surface term: no zero level away from the points (with normals
                 # only: without them nothing holds the slope and it fights the zero level)
@@ -229,9 +218,8 @@ def _loop(
             lab = torch.from_numpy(labels_fn(off.numpy()))
             logit = -cfg.occupancy_gain * net(off)
             loss = nn.functional.binary_cross_entropy_with_logits(logit, lab) + net(p).abs().mean()
-            extra = 0.0
         opt.zero_grad(set_to_none=True)
-        (loss + extra).backward()
+        loss.backward()
         opt.step()
         st["it"] = it = it + 1
         last = float(loss.detach())

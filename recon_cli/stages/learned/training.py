@@ -16,11 +16,6 @@ from recon_cli.stages.learned.model import OCC_GAIN, RADIUS, SdfModel, compute
 EXTENT = 0.8  # the cloud's longest half-side maps to this in the network's coordinates
 BAND = 0.05  # band samples for the eikonal term reach this fraction of the diagonal
 SPREAD_NEIGHBOURS = 50  # IGR's per-point sampling spread: distance to this neighbour
-# with normals the eikonal weight ramps up to LATE_FACTOR times itself over the training's last
-# part, from LATE_START on (the shape settles at the base weight; thin walls then keep their
-# slope instead of being smoothed over)
-EIKONAL_LATE_START = 1.0
-EIKONAL_LATE_FACTOR = 1.0
 
 
 @dataclass
@@ -123,8 +118,6 @@ def train_config(T, s: Settings, q: np.ndarray, with_normals: bool):
         band=BAND * float(np.linalg.norm(q.max(axis=0) - q.min(axis=0))),
         band_share=1.0 if with_normals else 0.0,
         eikonal_l1=with_normals,
-        eikonal_late_start=EIKONAL_LATE_START if with_normals else 1.0,
-        eikonal_late_factor=EIKONAL_LATE_FACTOR if with_normals else 1.0,
     )
 
 
