@@ -208,3 +208,29 @@ def test_confidence_weights_the_points(rng):
         for k, r in (("plain", plain), ("confidence", conf))
     }
     assert err["confidence"] < 0.5 * err["plain"], err
+
+
+def test_grid_with_an_envelope_is_the_surface(rng):
+    # --grid reads the clipped field too: its zero level (marching cubes) is the mesh, the
+    # closing sheet included, and it is negative only inside the envelope
+    from recon_cli.mesh.distance import closest_points
+    from recon_cli.mesh.sampling import sample_surface
+    from recon_cli.stages.mcubes import marching_cubes
+
+    p, n = single_view_scan("torus", 70, rng, direction=rng.normal(size=3))
+    p = p * 3.0 + 2e5
+    env = _sphere_around(p, 1.1)
+    r = screened_poisson(p, n, depth=6, envelope=env, with_grid=True)
+    g, cell = r.grid, r.report["finest_cell"]
+    v, f, _ = marching_cubes(g.sdf, 0.0, spacing=g.voxel_size, origin=g.origin)
+    a, b = TriangleMesh(v, f), r.mesh
+    sa = sample_surface(a, 20_000, seed=1).points
+    sb = sample_surface(b, 20_000, seed=2).points
+    ch = 0.5 * (
+        closest_points(b.vertices, b.faces, sa)[0].mean()
+        + closest_points(a.vertices, a.faces, sb)[0].mean()
+    )
+    assert ch < 0.5 * cell, ch / cell
+    idx = np.argwhere(g.sdf < 0)
+    centres = g.origin + idx * g.voxel_size
+    assert Envelope(env).inside(centres).all()
