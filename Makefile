@@ -4,6 +4,7 @@ PY      := $(VENV)/bin/python
 PIP     := $(PY) -m pip install -q --disable-pip-version-check
 RECON   := $(VENV)/bin/recon
 STAMP   := $(VENV)/.installed
+CORE    := $(VENV)/.core
 EXTRAS  := reference,test,batch,render,learned,las,e57
 # the extras recon warmup needs (pillow: recon diff's pictures); the others install meanwhile
 WARM_EXTRAS := render
@@ -29,13 +30,19 @@ sysdeps:
 		$$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq gcc libc6-dev >/dev/null; \
 	fi
 
-# recon and what its warm-up needs first; then the other extras install while `recon warmup`
-# compiles (pip waits on downloads and the disk, numba on the cores). What is installed is pinned
-# (-c), so pip cannot change numba or numpy under the warm-up; should the extras need other
-# versions, they are installed after it without the pins, and the warm-up runs again.
-$(STAMP): pyproject.toml
-	@$(MAKE) --no-print-directory sysdeps
+# recon alone (numpy, scipy, numba, click, rich): all the demo needs.
+$(CORE): pyproject.toml
 	@[ -x $(PY) ] || python3 -m venv $(VENV)
+	$(PIP) -e .
+	@touch $(CORE)
+
+# Everything else: the extras the warm-up needs first; then the other extras install while
+# `recon warmup` compiles (pip waits on downloads and the disk, numba on the cores). What is
+# installed is pinned (-c), so pip cannot change numba or numpy under the warm-up; should the
+# extras need other versions, they are installed after it without the pins, and the warm-up runs
+# again.
+$(STAMP): $(CORE)
+	@$(MAKE) --no-print-directory sysdeps
 	$(PIP) -e ".[$(WARM_EXTRAS)]"
 	@$(PY) -m pip freeze --exclude-editable > $(VENV)/pins.txt
 	@$(PY) tools/extras.py $(EXTRAS) > $(VENV)/extras.txt
@@ -55,8 +62,11 @@ install: $(STAMP)
 warmup: $(STAMP)
 	$(RECON) warmup
 
-demo: $(STAMP)
+# The demo needs recon alone, and compiles only its own kernels as it runs (about a minute of one
+# core, once); `make install` adds every extra and compiles every command's kernels.
+demo: $(CORE)
 	@mkdir -p $(OUTDIR)
+	@[ -f $(STAMP) ] || echo "first run: numba compiles the demo's kernels (once; \`make install\` compiles every command's)"
 	$(RECON) run pipelines/demo.toml $(SAMPLE) $(OUTDIR)/bunny_scan_000_poisson.ply
 	@echo "result written to $(OUTDIR)/bunny_scan_000_poisson.ply"
 	$(RECON) info $(OUTDIR)/bunny_scan_000_poisson.ply

@@ -10,6 +10,7 @@ import signal
 import threading
 import time
 from collections.abc import Iterable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -363,28 +364,24 @@ def run_batch(
     os.makedirs(out_dir, exist_ok=True)
     summary_path = os.path.join(out_dir, SUMMARY_NAME)
     records, todo = _planned_records(entries, read_previous(summary_path))
+    job = _Job(
+        pipe=pipe,
+        entries=entries,
+        todo=todo,
+        records=records,
+        stage_map=stage_map,
+        ascii=ascii,
+        progress=progress,
+        summary_path=summary_path,
+        pipeline_path=pipeline_path,
+        out_dir=out_dir,
+        t_start=t_start,
+    )
     cluster_info: dict[str, Any] = {"scheduler": None}
     if todo:
-        cluster_info = _submit_and_collect(
-            pipe,
-            entries,
-            todo,
-            records,
-            scheduler,
-            workers,
-            threads,
-            mem,
-            progress,
-            ascii,
-            stage_map,
-            log_level,
-            summary_path,
-            pipeline_path,
-            out_dir,
-            t_start,
-        )
+        cluster_info = _submit_and_collect(job, scheduler, workers, threads, mem, log_level)
 
-    summary = _summary(pipeline_path, out_dir, cluster_info, records, t_start)
+    summary = job.summary(cluster_info)
     write_bytes(summary_path, report_json(summary).encode("utf-8") + b"\n")
     return summary
 
@@ -454,25 +451,31 @@ def _summary(pipeline_path, out_dir, cluster_info, records, t_start) -> dict:
     }
 
 
+@dataclass
+class _Job:
+    """One batch run's state, shared by the submit / collect loop and the summary."""
+
+    pipe: Any
+    entries: list[dict]
+    todo: list[int]
+    records: list[dict | None]
+    stage_map: dict
+    ascii: bool
+    progress: Any
+    summary_path: str
+    pipeline_path: str
+    out_dir: str
+    t_start: float
+
+    def summary(self, cluster_info: dict) -> dict:
+        """The batch summary as it stands (``batch.json``'s content)."""
+        return _summary(self.pipeline_path, self.out_dir, cluster_info, self.records, self.t_start)
+
+
 def _submit_and_collect(
-    pipe,
-    entries,
-    todo,
-    records,
-    scheduler,
-    workers,
-    threads,
-    mem,
-    progress,
-    ascii,
-    stage_map,
-    log_level,
-    summary_path,
-    pipeline_path,
-    out_dir,
-    t_start,
+    job: _Job, scheduler: str | None, workers: int | None, threads: int, mem: Any, log_level: int
 ) -> dict:
-    """Submit one task per input in ``todo`` and fill ``records`` as they finish.
+    """Submit one task per input in ``job.todo`` and fill ``job.records`` as they finish.
 
     At most as many inputs are in flight as the cluster has threads: Dask places each
     task, but none waits in a worker's queue behind another, so a worker that dies takes
@@ -480,43 +483,15 @@ def _submit_and_collect(
     """
     try:
         with _client(scheduler, workers, threads, mem, log_level) as (client, info):
-            _collect(
-                client,
-                info,
-                pipe,
-                entries,
-                todo,
-                records,
-                progress,
-                ascii,
-                stage_map,
-                summary_path,
-                pipeline_path,
-                out_dir,
-                t_start,
-            )
+            _collect(client, info, job)
     finally:
         # after the cluster is closed (its workers are gone): what a write cut short left behind
-        for i in todo:
-            _remove_temporaries(entries[i]["base"])
+        for i in job.todo:
+            _remove_temporaries(job.entries[i]["base"])
     return info
 
 
-def _collect(
-    client,
-    info,
-    pipe,
-    entries,
-    todo,
-    records,
-    progress,
-    ascii,
-    stage_map,
-    summary_path,
-    pipeline_path,
-    out_dir,
-    t_start,
-) -> None:
+def _collect(client, info: dict, job: _Job) -> None:
     """The submit / collect loop of :func:`_submit_and_collect` on a connected ``client``.
 
     On an interruption (Ctrl-C) the unfinished inputs are recorded ``interrupted``, their
@@ -529,7 +504,8 @@ def _collect(
     from recon_cli.progress import task
     from recon_cli.stages import report_json
 
-    pending = list(todo)
+    entries, records = job.entries, job.records
+    pending = list(job.todo)
     in_flight: dict[Any, int] = {}
     done = as_completed()
 
@@ -543,11 +519,11 @@ def _collect(
             e = entries[i]
             fut = client.submit(
                 process_one,
-                pipe,
+                job.pipe,
                 os.path.abspath(e["input"]),
                 e["base"],
-                stage_map,
-                ascii,
+                job.stage_map,
+                job.ascii,
                 key=f"recon-batch-{Path(e['input']).name}-{os.urandom(6).hex()}",
                 pure=False,
                 retries=1,
@@ -576,7 +552,7 @@ def _collect(
                 time.sleep(0.05)
 
     try:
-        with task(progress, f"batch ({len(todo)} inputs)", total=len(todo)) as bar:
+        with task(job.progress, f"batch ({len(job.todo)} inputs)", total=len(job.todo)) as bar:
             fill()
             for fut in finished():
                 if fut.status == "lost":
@@ -598,7 +574,7 @@ def _collect(
                 fill()
     except BaseException:
         # interrupted: record what is unfinished, keep the summary of what is done, re-raise
-        for i in todo:
+        for i in job.todo:
             if records[i] is None:
                 records[i] = {
                     "input": entries[i]["input"],
@@ -607,9 +583,9 @@ def _collect(
                 }
         with contextlib.suppress(Exception):
             client.cancel(list(in_flight))
-        summary = _summary(pipeline_path, out_dir, info, records, t_start)
+        summary = job.summary(info)
         with contextlib.suppress(OSError):
-            write_bytes(summary_path, report_json(summary).encode("utf-8") + b"\n")
+            write_bytes(job.summary_path, report_json(summary).encode("utf-8") + b"\n")
         raise
     finally:
         if old_handler is not None:

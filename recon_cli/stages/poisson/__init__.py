@@ -225,8 +225,9 @@ SPEC = StageSpec(
             "envelope",
             "any",
             None,
-            "A closed mesh the surface must lie in (as PoissonRecon's --envelope): chi is 0 "
-            "outside it, so an open scan's closing sheet stays inside it (degree 2).",
+            "A closed mesh the surface must lie in (as PoissonRecon's --envelope): nothing "
+            "outside it, and the space inside it that no point sees is solid, so an open scan's "
+            "closing sheet follows it (degree 2).",
             metavar="MESH",
         ),
         Param(
@@ -447,11 +448,12 @@ def screened_poisson(
         distance near it).
     envelope : TriangleMesh or .envelope.Envelope or None
         A closed mesh (world units) the surface must lie in, as PoissonRecon's
-        ``--envelope``: chi is fixed to 0 where a cell's support leaves it, so no part of the
-        surface is outside and an open scan's closing sheet follows it (:mod:`.envelope`;
-        degree 2). The report counts the input points outside it
-        (``envelope_outside_points``, which the surface cannot reach) and the vertices pulled
-        onto it (``envelope_pulled_vertices``).
+        ``--envelope``: chi is clipped by it after the solve, so no part of the surface is
+        outside, and the space inside it that no sample sees (along the normals) is solid, so
+        an open scan's closing sheet follows it (:mod:`.envelope`; degree 2; the solve's cube
+        grows to hold it, the finest cell kept). The report counts the input points outside
+        it (``envelope_outside_points``, which the surface cannot reach) and the vertices
+        moved inside it (``envelope_pulled_vertices``).
     full_depth : int
         Levels up to this one are complete grids.
     cg_tolerance : float
@@ -478,7 +480,6 @@ def screened_poisson(
     unit_nrm = nrm if (props or colors is not None) else None
 
     from recon_cli.stages.poisson.basis import basis_for
-    from recon_cli.stages.poisson.free import clip_to_cube
     from recon_cli.stages.poisson.splat import make_splats, merge_samples, sample_density
     from recon_cli.stages.poisson.timing import Timings
 
@@ -489,6 +490,8 @@ def screened_poisson(
         # ---- unit cube and samples (points merged per finest cell, as PoissonRecon does)
         user_depth = depth
         origin, size, depth, domain = _solve_cube(pts, scale, boundary, depth)
+        if envelope is not None and domain is None:
+            origin, size, depth = _envelope_cube(envelope, origin, size, depth)
         full_depth = min(full_depth, depth)
         smp = merge_samples((pts - origin) / size, nrm, depth, weight)
         ns = len(smp.count)
@@ -514,12 +517,12 @@ def screened_poisson(
     with clock.phase("noise"):
         noise = _screening_noise(pts, origin, size, smp, splats, tree_depth, point_weight)
 
-    # ---- envelope: cells whose support leaves it are fixed at 0; the tree refined along it
-    env, sample_ok, free_cells, outside_points = None, None, None, 0
+    # ---- envelope: chi clipped by it after the solve; the tree refined along it
+    env, sample_ok, clip, outside_points = None, None, None, 0
     item_pos, item_level = splats.pos, splats.level
     if envelope is not None:
         with clock.phase("envelope"):
-            env, sample_ok, free_cells, outside_points, item_pos, item_level = _envelope_setup(
+            env, sample_ok, clip, outside_points, item_pos, item_level = _envelope_setup(
                 envelope, pts, smp, splats, origin, size, tree_depth, full_depth
             )
 
@@ -532,13 +535,14 @@ def screened_poisson(
         # memory: the splat items made the fields and the tree, the samples' normals and keys
         # the splats
         splats.pos = splats.vec = splats.level = smp.normal = smp.keys = None
+    nodes = [len(lv.node_keys) for lv in levels]  # type: ignore[arg-type]  # set with the tree
     log.info(
         "poisson: %d points, %d samples, depth %d (tree %d), nodes per level %s",
         n_pts,
         ns,
         depth,
         tree_depth,
-        [len(lv.node_keys) for lv in levels],  # type: ignore[arg-type]  # set with the tree
+        nodes,
     )
 
     # ---- cascadic solve and the iso-value
@@ -551,21 +555,18 @@ def screened_poisson(
             full_depth,
             cg_tolerance,
             progress,
-            free_cells,
+            None,
             sample_ok,
+            clip,
         )
     del levels
     iso = sol.iso
 
-    # ---- extraction
+    # ---- extraction, clipped to the cube, bubbles and islands dropped, pulled into the envelope
     with clock.phase("extract"):
-        verts, faces, chi_fn = basis.extract(sol, origin, size, tree_depth, with_grid)
-        if domain is not None:
-            verts, faces = clip_to_cube(verts, faces, *domain)
-        verts, faces, bubbles, islands = _drop_bubbles(verts, faces, size / res, pts)
-        pulled = 0
-        if env is not None:
-            verts, pulled = env.pull_inside(verts)
+        verts, faces, chi_fn, bubbles, islands, pulled = _extract_surface(
+            basis, sol, origin, size, tree_depth, with_grid, domain, pts, env
+        )
     # ---- the field on a regular grid (--grid)
     field_grid = None
     if with_grid and len(faces):
@@ -587,13 +588,72 @@ def screened_poisson(
     if density:
         assert vdens is not None  # made above whenever density is asked for
         mesh.attributes["density"] = vdens
-    timings = clock.total()
-    report: dict[str, Any] = {
+    report = _report(
+        mesh,
+        sol,
+        clock.total(),
+        depth=user_depth,
+        tree_depth=tree_depth - (depth - user_depth),
+        samples=ns,
+        ignored=int((~keep).sum()),
+        finest_cell=size / res,
+        noise=noise,
+        removed=(bubbles, islands, trimmed, trimmed_area),
+        fallback=fallback,
+        attributes=sorted(props) + (["colors"] if colors is not None else []),
+        envelope=(outside_points, pulled) if env is not None else None,
+    )
+    if field_grid is not None:
+        report["grid_shape"] = list(field_grid.shape)
+    return PoissonResult(mesh, report, field_grid)
+
+
+def _extract_surface(basis, sol, origin, size, tree_depth, with_grid, domain, pts, env):
+    """The iso-surface of a solve in the input's frame.
+
+    Returns ``(verts, faces, chi_fn, bubbles, islands, pulled)``: clipped to the cube (free
+    boundary), closed bubbles and islands without samples dropped, pulled into the envelope.
+    """
+    from recon_cli.stages.poisson.free import clip_to_cube
+
+    verts, faces, chi_fn = basis.extract(sol, origin, size, tree_depth, with_grid)
+    if domain is not None:
+        verts, faces = clip_to_cube(verts, faces, *domain)
+    verts, faces, bubbles, islands = _drop_bubbles(verts, faces, size / (1 << tree_depth), pts)
+    pulled = 0
+    if env is not None:
+        verts, pulled = env.pull_inside(verts, size / (1 << tree_depth))
+    return verts, faces, chi_fn, bubbles, islands, pulled
+
+
+def _report(
+    mesh: TriangleMesh,
+    sol: Any,
+    timings: dict,
+    *,
+    depth: int,
+    tree_depth: int,
+    samples: int,
+    ignored: int,
+    finest_cell: float,
+    noise: Any,
+    removed: tuple,
+    fallback: int,
+    attributes: list[str],
+    envelope: tuple[int, int] | None,
+) -> dict[str, Any]:
+    """The report of :func:`screened_poisson` (its keys are listed in its Returns section).
+
+    ``removed`` is (bubbles, islands, trimmed faces, trimmed area); ``envelope`` is (points
+    outside, vertices pulled), or None without one.
+    """
+    bubbles, islands, trimmed, trimmed_area = removed
+    return {
         "vertices": len(mesh.vertices),
         "faces": len(mesh.faces),
-        "depth": user_depth,
-        "tree_depth": tree_depth - (depth - user_depth),
-        "iso_value": iso,
+        "depth": depth,
+        "tree_depth": tree_depth,
+        "iso_value": sol.iso,
         "solver_iterations": int(sol.iterations),
         "residual": float(sol.residual),
         "bubbles_removed": bubbles,
@@ -601,19 +661,16 @@ def screened_poisson(
         "trimmed_faces": int(trimmed),
         "trimmed_area": trimmed_area,
         "noise": noise,
-        "attributes": sorted(props) + (["colors"] if colors is not None else []),
+        "attributes": attributes,
         "attribute_fallback_vertices": fallback,
-        "envelope_outside_points": outside_points if env is not None else None,
-        "envelope_pulled_vertices": pulled if env is not None else None,
-        "samples": int(ns),
-        "ignored_points": int((~keep).sum()),
-        "finest_cell": size / res,
+        "envelope_outside_points": None if envelope is None else envelope[0],
+        "envelope_pulled_vertices": None if envelope is None else envelope[1],
+        "samples": int(samples),
+        "ignored_points": ignored,
+        "finest_cell": finest_cell,
         "levels": sol.per_level,
         "timings": timings,
     }
-    if field_grid is not None:
-        report["grid_shape"] = list(field_grid.shape)
-    return PoissonResult(mesh, report, field_grid)
 
 
 def _screening_noise(
@@ -715,6 +772,16 @@ def _kept_attributes(
     return colors, props
 
 
+def _envelope_cube(
+    envelope: Any, origin: np.ndarray, size: float, depth: int
+) -> tuple[np.ndarray, float, int]:
+    """The solve's cube grown to hold the envelope, the finest lattice kept (:mod:`.envelope`)."""
+    from recon_cli.stages.poisson.envelope import covering_cube
+
+    v = envelope.vertices[np.unique(envelope.faces)]
+    return covering_cube(v, origin, size, depth, MAX_DEPTH + 2)
+
+
 def _envelope_setup(
     envelope: Any,
     pts: np.ndarray,
@@ -727,23 +794,34 @@ def _envelope_setup(
 ) -> tuple[Any, np.ndarray, Any, int, np.ndarray, np.ndarray]:
     """The envelope's part of the set-up, the tree refined along its surface.
 
-    Returns the envelope, the samples it leaves free, the cell classifier, the count of points
-    outside it, and the tree's items (positions, levels).
+    Returns the envelope, the samples inside it, the field's clip (``clip(iso)``), the count of
+    points outside it, and the tree's items (positions, levels).
     """
-    from recon_cli.stages.poisson.envelope import REFINE_OFFSET, CellClassifier, Envelope
+    import functools
+
+    from recon_cli.stages.poisson.envelope import (
+        CARVE_MAX_LEVEL,
+        CARVE_OFFSET,
+        REFINE_OFFSET,
+        Carving,
+        Envelope,
+        FieldClip,
+    )
 
     env = envelope if isinstance(envelope, Envelope) else Envelope(envelope)
     outside_points = int(np.count_nonzero(~env.inside(pts)))
-    sample_ok = env.free_cells(origin + size * smp.pos, size / (1 << tree_depth))
+    sample_ok = env.inside(origin + size * smp.pos)
     if not sample_ok.any():
-        raise InputError(
-            "every point lies outside the envelope or within 2.6 finest cells of its surface"
-        )
+        raise InputError("every point lies outside the envelope")
+    carve_level = max(1, min(CARVE_MAX_LEVEL, tree_depth - CARVE_OFFSET))
+    carving = Carving(smp.pos[sample_ok], smp.normal[sample_ok], carve_level)
+    clip = functools.partial(FieldClip, env, carving, origin, size, size / (1 << tree_depth))
     lv = min(tree_depth, max(full_depth, tree_depth - REFINE_OFFSET))
-    extra = env.surface_items(origin, size, lv)
+    # the tree refined along the envelope and along the carving's sheet
+    extra = np.concatenate([env.surface_items(origin, size, lv), carving.boundary_items()])
     item_pos = np.concatenate([splats.pos, extra])
     item_level = np.concatenate([splats.level, np.full(len(extra), lv, np.int64)])
-    return env, sample_ok, CellClassifier(env, origin, size), outside_points, item_pos, item_level
+    return env, sample_ok, clip, outside_points, item_pos, item_level
 
 
 def _trimmed(

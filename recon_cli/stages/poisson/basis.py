@@ -109,8 +109,14 @@ class Basis:
         progress: Any,
         free_cells: Any,
         sample_ok: np.ndarray | None,
+        clip: Any = None,
     ) -> Solution:
-        """Solve every level, coarse to fine, and find the iso-value."""
+        """Solve every level, coarse to fine, and find the iso-value.
+
+        ``free_cells`` and ``sample_ok`` as :func:`.bspline.solve`'s; ``clip(iso)`` gives the
+        clip of the field read after the solve (an envelope's, :class:`.envelope.FieldClip`;
+        degree 2 only).
+        """
         raise NotImplementedError
 
     def extract(
@@ -144,6 +150,7 @@ class Trilinear(Basis):
         progress,
         free_cells,
         sample_ok,
+        clip=None,
     ):
         """Solve every level, coarse to fine; the iso-value: chi's mean at the samples."""
         from recon_cli.stages.poisson.system import iso_value, solve
@@ -190,6 +197,7 @@ class Quadratic(Basis):
         progress,
         free_cells,
         sample_ok,
+        clip=None,
     ):
         """Solve every level, coarse to fine (:func:`.bspline.solve`)."""
         from recon_cli.stages.poisson import bspline
@@ -204,6 +212,7 @@ class Quadratic(Basis):
             progress,
             free_cells=free_cells,
             sample_ok=sample_ok,
+            clip=clip,
         )
         return Solution(levels, gvals, per_level, total_it, last_res, iso, chi)
 

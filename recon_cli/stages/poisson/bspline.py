@@ -226,6 +226,8 @@ class ChiField:
     """
 
     def __init__(self, fields: list[LevelField], boundary: str, arrays: tuple | None = None):
+        # ``f(pos, chi) -> chi`` applied to every value read (an envelope's, .envelope.FieldClip)
+        self.clip: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
         if arrays is not None:
             # the levels' arrays as :func:`level_fields` made them (the fields are views)
             self.q_all, self.q_off, self.inp_all, self.nb_all, self.coef_all = arrays
@@ -248,9 +250,10 @@ class ChiField:
         self.coef_all = np.concatenate([f.coef for f in order]) if order else np.zeros(0)
 
     def at(self, pos: np.ndarray) -> np.ndarray:
-        """Chi at unit-cube positions (m, 3) (:func:`._bspline_eval.chi_at`)."""
-        return BE.chi_at(
-            np.ascontiguousarray(pos, dtype=np.float64),
+        """Chi at unit-cube positions (m, 3) (:func:`._bspline_eval.chi_at`), clipped."""
+        pos = np.ascontiguousarray(pos, dtype=np.float64)
+        chi = BE.chi_at(
+            pos,
             self.top,
             self.q_all,
             self.q_off,
@@ -259,6 +262,7 @@ class ChiField:
             self.coef_all,
             self.s,
         )
+        return chi if self.clip is None else self.clip(pos, chi)
 
     def drop_neighbours(self) -> None:
         """Free the levels' neighbour tables while chi is not read.
@@ -553,6 +557,7 @@ def solve(
     progress: Any = None,
     free_cells: Any = None,
     sample_ok: np.ndarray | None = None,
+    clip: Any = None,
 ) -> tuple[list[np.ndarray], list[dict], int, float, float, ChiField]:
     """Solve every level in turn (level 0, a single cell, carries no function).
 
@@ -560,11 +565,13 @@ def solve(
     the finest relative residual, the iso-value (count-weighted mean of chi at the samples) and the
     field (:class:`ChiField`).
 
-    With ``free_cells`` (``f(level, keys)`` -> bool, the cells' lattice keys:
-    :class:`.envelope.CellClassifier`) the other cells of each level are fixed: their coefficient is
-    0 in the level's whole chi (the coarser levels' part included) and not solved for; ``sample_ok``
-    (s,) bool then says which samples screen the solve and make the iso-value (the others lie where
-    chi is fixed).
+    With ``free_cells`` (``f(level, keys)`` -> bool, the cells' lattice keys: Dirichlet constraints
+    inside the cube, as PoissonRecon's envelope) the other cells of each level are fixed: their
+    coefficient is 0 in the level's whole chi (the coarser levels' part included) and not solved
+    for. ``sample_ok`` (s,) bool says which samples screen the solve and make the iso-value (the
+    others lie where chi is fixed, or outside the envelope). With ``clip`` (``clip(iso)`` ->
+    ``f(pos, chi) -> chi``, :class:`.envelope.FieldClip`) every value read after the iso-value
+    (the nodes' values, the returned field) is clipped.
     """
     spos, count = smp.pos, smp.count
     screen_w = splats.screening(SCREEN_CLEAN, SCREEN_NOISY)
@@ -640,10 +647,8 @@ def solve(
                 )
             tk.advance(1)
     del prev
-    chi, gvals = _level_values(levels, node_keys, fields, boundary, arrays)
+    chi, gvals, iso = _level_values(levels, node_keys, fields, boundary, arrays, spos, count, clip)
     del arrays, coef_all, fields
-    chi_s = chi.at(spos)
-    iso = float((chi_s * count).sum() / count.sum())
     log.info("poisson: iso-value %.6f", iso)
     return gvals, per_level, total_it, last_res, iso, chi
 
@@ -824,20 +829,27 @@ def _level_values(
     fields: list[LevelField],
     boundary: str,
     arrays: tuple,
-) -> tuple[ChiField, list[np.ndarray]]:
-    """The solved field and chi at each level's nodes, as the extraction reads them.
+    spos: np.ndarray,
+    count: np.ndarray,
+    clip: Any = None,
+) -> tuple[ChiField, list[np.ndarray], float]:
+    """The solved field, chi at each level's nodes as the extraction reads them, the iso-value.
 
     The extraction interpolates each leaf trilinearly from its corners: the finer side of a
-    leaf's faces takes those values (chi's own everywhere else).
+    leaf's faces takes those values (chi's own everywhere else). The iso-value is the
+    ``count``-weighted mean of chi at the samples ``spos``; ``clip(iso)`` then clips the field.
     """
     levels[-1].leaf = np.ones(len(levels[-1].cell_keys), bool)
     for lev, keys in zip(levels, node_keys, strict=True):
         set_corners(lev, keys)
     chi = ChiField(fields, boundary, arrays)
+    iso = float((chi.at(spos) * count).sum() / count.sum())
+    if clip is not None:
+        chi.clip = clip(iso)
     gvals = [chi.at_nodes(lev, keys) for lev, keys in zip(levels, node_keys, strict=True)]
     for d in range(1, len(levels)):
         up = levels[d - 1]
         BE.constrain_to_coarse_leaves(
             node_keys[d], gvals[d], up.cell_keys, up.cell_nodes, up.leaf, gvals[d - 1]
         )
-    return chi, gvals
+    return chi, gvals, iso

@@ -2,26 +2,35 @@
 
 A closed mesh known to contain the surface; the space outside it is empty.
 
-PoissonRecon marks the tree's nodes outside the envelope and solves with Dirichlet
-constraints there (their coefficients fixed to 0: chi is the outside's value). Here, at every
-level of the cascade, a cell is *fixed* (its coefficient 0 in the level's whole chi, not an
-unknown of its solve) unless the support of its B-spline (the 3 x 3 x 3 cells around it)
-lies inside the envelope: its centre inside (generalised winding number above 1/2, so either
-orientation) and farther from the envelope's surface than the support's half diagonal. At a
-point outside the envelope every function that reaches it is fixed, so chi is exactly 0
-there and the surface (chi at the iso-value, about 1/2) stays inside; the closing sheet of
-an open scan, which Neumann's faces or Dirichlet's cube would place, follows the envelope
-instead, a support's half diagonal (2.6 cells) inside it at the level of the tree there. The
-tree is refined along the envelope to :data:`REFINE_OFFSET` levels above its finest, so that
-sheet is made of cells that small. Samples outside the envelope, or too close to it, cannot
-be reached (counted in the report). As a last guard, the vertices the extraction places
-outside (a coarse leaf's interpolated root on an edge crossing the envelope) are pulled to
-the envelope's surface and counted.
+PoissonRecon fixes the coefficients of the tree's nodes outside the envelope to 0 (Dirichlet
+constraints) and solves. With no data between an open scan and the envelope, chi then falls
+smoothly from the scan's inside value to 0 at the envelope and the iso-surface closes the scan
+halfway, far inside the envelope. Here the envelope decides what the data do not:
+
+- The solve's cube is doubled until it holds the envelope (:func:`covering_cube`, one level
+  deeper each time: the finest lattice, so the scan's cells, stay where they were).
+- Chi is solved as without an envelope, then clipped wherever it is read after the solve
+  (the leaves' corners, the vertices' roots, ``--grid``, so mesh and grid agree) by
+  :class:`FieldClip`: space no sample sees (:class:`Carving`: rays from the samples along
+  their normals cross free space) is solid away from the samples, and
+  ``iso + min(chi - iso, (s - offset) / slope)``, ``s`` the signed distance to the envelope,
+  puts everything outside it (and within :data:`SHEET_OFFSET` finest cells of it) outside. So
+  an open scan's closing sheet runs on the envelope behind the scan, and from the scan's
+  silhouette to the envelope along the free space seen in front of it; the scan's own
+  neighbourhood (:data:`DATA_NEAR`) keeps chi as solved.
+- The tree is refined along the envelope and the carving's sheet to :data:`REFINE_OFFSET`
+  levels above its finest, so that the sheet is made of cells that small.
+
+Samples outside the envelope neither screen nor make the iso-value (counted in the report). As
+a last guard, vertices the extraction places outside (a root on a leaf edge that crosses the
+envelope) are moved inside it and counted.
 
 References
 ----------
 Kazhdan, M. & Hoppe, H. (2013). Screened Poisson surface reconstruction. ACM TOG 32(3).
 Kazhdan, M. PoissonRecon 18 (``--envelope``: Dirichlet constraints outside the envelope).
+Barill, G. et al. (2018). Fast winding numbers for soups and clouds. ACM TOG 37(4)
+(the inside test).
 """
 
 from __future__ import annotations
@@ -31,8 +40,25 @@ import numpy as np
 from recon_cli.errors import InputError
 from recon_cli.geometry import TriangleMesh
 
-# the support of a cell's quadratic B-spline: 3 cells a side, its half diagonal in cells
-SUPPORT_RADIUS = 1.5 * np.sqrt(3.0)
+# the closing sheet lies this many finest cells inside the envelope (its vertices stay inside)
+SHEET_OFFSET = 0.5
+# beyond the sheet the clipped chi falls by 1 over this many finest cells (about chi's own rate)
+CLIP_CELLS = 2.0
+# the carving grid (free space in front of the samples) is this many levels above the finest,
+# and no finer than CARVE_MAX_LEVEL (128^3 cells)
+CARVE_OFFSET = 1
+CARVE_MAX_LEVEL = 7
+# the carved mask's smoothing (Gaussian sigma, carving cells): one stray ray does not carve
+CARVE_SIGMA = 1.0
+# within DATA_NEAR carving cells of a sample chi alone decides (the scan part is kept); the
+# carving's say ramps in up to DATA_FAR
+DATA_NEAR, DATA_FAR = 2.0, 3.0
+# the cells where the smoothed solid mask is within this of 1/2 hold the carving's sheet
+BOUNDARY_BAND = 0.25
+# near the samples the solid term drops by this much: below chi - iso wherever chi is (>= -1)
+NEAR_DROP = 2.0
+# the solve's cube holds the envelope with this many finest cells to spare
+COVER_MARGIN = 4.0
 # the tree is refined along the envelope down to this many levels above its finest
 REFINE_OFFSET = 2
 # points per envelope triangle side at the refinement level (its items cover the surface)
@@ -98,18 +124,6 @@ class Envelope:
 
         return closest_points(self.vertices, self.faces, pts, bvh=self.bvh, upper=upper)[0]
 
-    def free_cells(self, centres: np.ndarray, h: float) -> np.ndarray:
-        """(m,) bool: the cells whose B-spline's support lies inside the envelope.
-
-        The cells have side ``h`` (world) and centres ``centres``; the others are fixed to 0.
-        """
-        r = SUPPORT_RADIUS * h
-        far = np.isinf(self.distance(centres, upper=r))
-        out = np.zeros(len(centres), bool)
-        idx = np.flatnonzero(far)
-        out[idx] = self.inside(centres[idx])
-        return out
-
     def surface_items(self, origin: np.ndarray, size: float, level: int) -> np.ndarray:
         """Points on the envelope's surface, about :data:`REFINE_SPACING` cells of ``level`` apart.
 
@@ -136,57 +150,156 @@ class Envelope:
         p = np.concatenate(out)
         return p[np.all((p >= 0.0) & (p < 1.0), axis=1)]
 
-    def pull_inside(self, verts: np.ndarray) -> tuple[np.ndarray, int]:
-        """The vertices outside the envelope moved to their closest point on it; and how many."""
-        out = ~self.inside(verts)
-        n = int(out.sum())
-        if n:
+    def pull_inside(self, verts: np.ndarray, cell: float = 0.0) -> tuple[np.ndarray, int]:
+        """The vertices outside the envelope moved to the sheet's depth inside it.
+
+        :data:`SHEET_OFFSET` times ``cell`` (the finest cell) past their closest point on the
+        envelope. Returns the vertices and how many moved.
+        """
+        depth = SHEET_OFFSET * cell
+        out = np.flatnonzero(~self.inside(verts))
+        if len(out):
             from recon_cli.mesh.distance import closest_points
 
             verts = verts.copy()
-            verts[out] = closest_points(self.vertices, self.faces, verts[out], bvh=self.bvh)[2]
-        return verts, n
+            cp = closest_points(self.vertices, self.faces, verts[out], bvh=self.bvh)[2]
+            step = cp - verts[out]
+            length = np.linalg.norm(step, axis=1)[:, None]
+            verts[out] = cp + depth * step / np.where(length > 0, length, 1.0)
+        return verts, len(out)
 
 
-class CellClassifier:
-    """Which cells of each level are free (:meth:`Envelope.free_cells`), coarse to fine.
+def covering_cube(
+    vertices: np.ndarray, origin: np.ndarray, size: float, depth: int, max_depth: int
+) -> tuple[np.ndarray, float, int]:
+    """The solve's cube doubled about its centre until it holds ``vertices`` (the envelope).
 
-    For the solve's cube ``origin + [0, size]^3``: a cell whose parent's
-    support ball was wholly inside (or outside) inherits that (its ball lies in its
-    parent's), so only the children of the cells near the envelope's surface are measured.
+    Each doubling adds a level, so the finest lattice is the same (the scan's cells do not
+    move); at most up to ``max_depth``. Returns (origin, size, depth).
+    """
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    while depth < max_depth:
+        margin = COVER_MARGIN * size / (1 << depth)
+        if np.all(lo - margin >= origin) and np.all(hi + margin <= origin + size):
+            break
+        origin, size, depth = origin - 0.5 * size, 2.0 * size, depth + 1
+    return origin, size, depth
+
+
+class Carving:
+    """Free space seen in front of the samples, on a grid over the solve's unit cube.
+
+    A ray from every sample along its normal (outward: toward whatever saw it) crosses free
+    space up to the cube's faces; the cells no ray crosses are unobserved, taken as solid
+    (the envelope bounds them). The solid mask is smoothed (:data:`CARVE_SIGMA`) and read
+    trilinearly: :meth:`solid` is its value minus 1/2 (positive: solid), and :meth:`near`
+    says how much the samples' own field should decide instead (1 within :data:`DATA_NEAR`
+    cells of a sample, 0 beyond :data:`DATA_FAR`).
+
+    Parameters
+    ----------
+    pos, normal : (s, 3) float
+        The samples in unit-cube coordinates and their normals (any length).
+    level : int
+        The grid's level (``2**level`` cells a side).
     """
 
-    NEAR, INSIDE_FAR, OUTSIDE_FAR = 0, 1, 2
+    def __init__(self, pos: np.ndarray, normal: np.ndarray, level: int):
+        from scipy import ndimage
 
-    def __init__(self, env: Envelope, origin: np.ndarray, size: float):
-        self.env, self.origin, self.size = env, origin, size
-        self.prev: tuple[int, np.ndarray, np.ndarray] | None = None
+        r = 1 << level
+        self.r = r
+        nrm = normal / np.maximum(np.linalg.norm(normal, axis=1), 1e-300)[:, None]
+        free = np.zeros(r**3, bool)
+        step = 0.5 / r  # half a cell: a ray skips no cell it crosses
+        chunk = max(1, (1 << 22) // (2 * r))
+        for a in range(0, len(pos), chunk):
+            p, n = pos[a : a + chunk], nrm[a : a + chunk]
+            for k in range(1, int(np.ceil(np.sqrt(3.0) / step)) + 1):
+                q = p + (k * step) * n
+                ok = np.all((q >= 0.0) & (q < 1.0), axis=1)
+                if not ok.any():
+                    break
+                c = (q[ok] * r).astype(np.int64)
+                free[(c[:, 0] * r + c[:, 1]) * r + c[:, 2]] = True
+        solid = ndimage.gaussian_filter((~free).reshape(r, r, r).astype(np.float32), CARVE_SIGMA)
+        self.solid_grid = solid - np.float32(0.5)
+        occ = np.ones((r, r, r), bool)
+        c = np.clip((pos * r).astype(np.int64), 0, r - 1)
+        occ[c[:, 0], c[:, 1], c[:, 2]] = False
+        self.dist_grid = ndimage.distance_transform_edt(occ).astype(np.float32)
 
-    def __call__(self, level: int, keys: np.ndarray) -> np.ndarray:
-        """(m,) bool: the cells (lattice keys of ``level``) whose support is inside."""
-        from recon_cli.stages.poisson.octree import pack_keys, unpack_keys
+    def boundary_items(self) -> np.ndarray:
+        """Unit-cube centres of the cells where the solid mask changes, away from the samples.
 
-        xyz = unpack_keys(keys)
-        code = np.full(len(keys), -1, np.int8)
-        if self.prev is not None and self.prev[0] == level - 1 and len(self.prev[1]):
-            pk, pc = self.prev[1], self.prev[2]
-            par = pack_keys(xyz >> 1)
-            at = np.minimum(np.searchsorted(pk, par), len(pk) - 1)
-            hit = (pk[at] == par) & (pc[at] != self.NEAR)
-            code[hit] = pc[at[hit]]
-        todo = np.flatnonzero(code < 0)
-        if len(todo):
-            h = self.size / (1 << level)
-            centres = self.origin + (xyz[todo] + 0.5) * h
-            far = np.isinf(self.env.distance(centres, upper=SUPPORT_RADIUS * h))
-            sub = np.full(len(todo), self.NEAR, np.int8)
-            fi = np.flatnonzero(far)
-            inside = self.env.inside(centres[fi])
-            sub[fi] = np.where(inside, self.INSIDE_FAR, self.OUTSIDE_FAR)
-            code[todo] = sub
-        order = np.argsort(keys, kind="stable")
-        self.prev = (level, keys[order], code[order])
-        return code == self.INSIDE_FAR
+        The closing sheet runs there (the tree is refined along them, as along the envelope).
+        """
+        r = self.r
+        edge = (np.abs(self.solid_grid) < BOUNDARY_BAND) & (self.dist_grid > DATA_NEAR)
+        return (np.argwhere(edge) + 0.5) / r
+
+    def _read(self, grid: np.ndarray, pos: np.ndarray) -> np.ndarray:
+        from scipy import ndimage
+
+        return ndimage.map_coordinates(grid, (pos * self.r - 0.5).T, order=1, mode="nearest")
+
+    def solid(self, pos: np.ndarray) -> np.ndarray:
+        """(m,) the smoothed solid mask minus 1/2 at unit-cube positions (m, 3)."""
+        return self._read(self.solid_grid, pos).astype(np.float64)
+
+    def near(self, pos: np.ndarray) -> np.ndarray:
+        """(m,) 1 near the samples, 0 far from them, a linear ramp between."""
+        d = self._read(self.dist_grid, pos).astype(np.float64)
+        return np.clip((DATA_FAR - d) / (DATA_FAR - DATA_NEAR), 0.0, 1.0)
+
+
+class FieldClip:
+    """Chi clipped by the envelope: ``iso + min(chi - iso, (s - offset) / slope)``.
+
+    ``s`` is the signed distance to the envelope's surface (positive inside, world units),
+    ``offset`` :data:`SHEET_OFFSET` and ``slope`` :data:`CLIP_CELLS` finest cells. Outside the
+    envelope (and within ``offset`` of it) the clipped chi is below the iso-value, so no part
+    of the surface is there; inside, where chi says inside (above the iso-value), it stays
+    inside up to the envelope, whose surface closes it. Only points above the iso-value are
+    measured (the clip cannot raise chi). :meth:`__call__` takes unit-cube positions of the
+    solve's cube ``origin + [0, size]^3``, as :class:`.bspline.ChiField` reads chi.
+    """
+
+    def __init__(
+        self,
+        env: Envelope,
+        carving: Carving | None,
+        origin: np.ndarray,
+        size: float,
+        cell: float,
+        iso: float,
+    ):
+        self.env, self.carving, self.origin, self.size, self.iso = env, carving, origin, size, iso
+        self.offset, self.slope = SHEET_OFFSET * cell, CLIP_CELLS * cell
+
+    def __call__(self, pos: np.ndarray, chi: np.ndarray) -> np.ndarray:
+        """(m,) chi at unit-cube positions ``pos`` (m, 3), clipped."""
+        out = chi
+        if self.carving is not None:
+            # unobserved space is solid: max(chi - iso, solid), the samples' field near them
+            solid = self.carving.solid(pos) - NEAR_DROP * self.carving.near(pos)
+            out = np.maximum(chi, self.iso + solid)
+        idx = np.flatnonzero(out > self.iso)
+        if not len(idx):
+            return out
+        out = out.copy()
+        w = self.origin + self.size * pos[idx]
+        above = out[idx] - self.iso
+        # beyond this distance inside, the clip leaves chi as it is
+        reach = self.offset + self.slope * float(above.max())
+        d = self.env.distance(w, upper=reach)
+        inside = self.env.inside(w)
+        far_out = np.flatnonzero(np.isinf(d) & ~inside)
+        if len(far_out):  # outside, far: the exact distance keeps the field linear there
+            d[far_out] = self.env.distance(w[far_out])
+        s = np.where(inside, d, -d)
+        out[idx] = self.iso + np.minimum(above, (s - self.offset) / self.slope)
+        return out
 
 
 def load_envelope(path) -> Envelope:
