@@ -7,8 +7,11 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from recon_cli.stages.poisson import screened_poisson
+from recon_cli.stages.poisson.octree import unique_keys
 from recon_cli.stages.poisson.splat import make_splats, merge_samples
 
 from shapes import shape_cloud, sphere_sdf  # noqa: F401  (sphere_sdf documents the shape)
@@ -159,3 +162,13 @@ def test_own_ring_is_validated():
 
     with pytest.raises(ValueError, match="own_ring"):
         build_levels(np.full((1, 3), 0.5), np.array([3]), 3, 1, "neumann", own_ring=3)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.integers(-(2**62), 2**62), max_size=300), st.integers(1, 4))
+def test_unique_keys_is_numpys_unique(values, repeat):
+    # sort-and-compare gives exactly np.unique's sorted distinct values, duplicates and empty
+    # input included (dtype kept)
+    keys = np.repeat(np.asarray(values, np.int64), repeat)[::-1]
+    got = unique_keys(keys)
+    assert got.dtype == np.int64 and np.array_equal(got, np.unique(keys))

@@ -243,7 +243,8 @@ def test_auto_keeps_sparse_airborne_ground():
     n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
     assert (n[:, 2] < 0).sum() < 1e-3 * len(n)
     far = cKDTree(g).query(sample_surface(m, 100_000, seed=1).points)[0] > 5.0
-    assert far.mean() < 0.2, far.mean()  # the untrimmed surface: 94 %
+    # untrimmed 94 %; the issue asks 1 %, which costs the sparse ground (bench/calibration.md)
+    assert far.mean() < 0.16, far.mean()
 
 
 @pytest.mark.parametrize("backend", ["native", "open3d"])

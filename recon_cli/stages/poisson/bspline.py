@@ -59,7 +59,14 @@ from recon_cli.stages.poisson import _bspline_rhs as BR
 from recon_cli.stages.poisson import _octree as O
 from recon_cli.stages.poisson._luts import B2_MASS, B2_STIFFNESS
 from recon_cli.stages.poisson.free import FREE_DOMAIN, domain_tables
-from recon_cli.stages.poisson.octree import Level, dilate, pack_keys, set_corners, unpack_keys
+from recon_cli.stages.poisson.octree import (
+    Level,
+    dilate,
+    pack_keys,
+    set_corners,
+    unique_keys,
+    unpack_keys,
+)
 from recon_cli.stages.poisson.splat import Samples, Splats, fields_as_items
 
 log = logging.getLogger("recon")
@@ -154,7 +161,7 @@ class LevelField:
 def _level_parents(lev: Level) -> tuple[np.ndarray, np.ndarray]:
     """The parents ``Q`` of level ``lev``'s E (depth >= 1) and which are the level's cells'."""
     half = 1 << (lev.depth - 1)
-    P = np.unique(O.halve(lev.cell_keys))
+    P = unique_keys(O.halve(lev.cell_keys))
     Q = P
     for axis in range(3):
         Q = dilate(Q, axis, -1, 1, half - 1)

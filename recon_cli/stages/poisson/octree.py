@@ -38,6 +38,21 @@ class Level:
     leaf: np.ndarray | None = None
 
 
+def unique_keys(keys: np.ndarray) -> np.ndarray:
+    """The sorted distinct values of 1-d ``keys``, as ``np.unique(keys)`` gives them.
+
+    By a sort and a comparison of neighbours: numpy's hash-based ``unique`` is much slower on
+    millions of int64 keys (bench/calibration.md).
+    """
+    s = np.sort(keys)
+    if len(s) < 2:
+        return s
+    keep = np.empty(len(s), bool)
+    keep[0] = True
+    np.not_equal(s[1:], s[:-1], out=keep[1:])
+    return s[keep]
+
+
 def pack_keys(xyz: np.ndarray) -> np.ndarray:
     """(n,) int64 lattice keys of integer coordinates (n, 3) (:func:`._octree.lattice_key`)."""
     xyz = xyz.astype(np.int64)
@@ -96,11 +111,13 @@ def build_levels(
         if own_ring == 1:
             # ring 2 around the cells over finer items (occ), and the parents of the cells
             # within 1 of the level's own items (near)
-            near[d] = _ring1_parents(np.unique(own), (1 << (d - 1)) - 1)
-            occ[d] = np.unique(occ_keys)  # halved from the finer level: the cells over finer items
-            occ_keys = np.unique(np.concatenate([occ_keys, own]))
+            near[d] = _ring1_parents(unique_keys(own), (1 << (d - 1)) - 1)
+            occ[d] = unique_keys(
+                occ_keys
+            )  # halved from the finer level: the cells over finer items
+            occ_keys = unique_keys(np.concatenate([occ_keys, own]))
         else:
-            occ_keys = np.unique(np.concatenate([occ_keys, own]))
+            occ_keys = unique_keys(np.concatenate([occ_keys, own]))
             occ[d] = occ_keys
         occ_keys = K.halve(occ_keys)  # halving breaks the x-major order (sorted above)
     for d in range(depth + 1):
@@ -114,13 +131,13 @@ def build_levels(
             # children of the parents within 1 of an occupied parent (floor((o +- 2) / 2) =
             # floor(o / 2) +- 1 for either parity): dilate at the coarser level, 8x fewer keys,
             # and emit the children already sorted, with their parent index
-            keys = np.unique(K.halve(occ[d]))
+            keys = unique_keys(K.halve(occ[d]))
             for axis in range(3):
                 keys = dilate(keys, axis, -1, 1, top >> 1)  # valid for RING == 2 only
             # (the last dilation, along z, leaves the keys sorted and unique)
             near_d = near[d]
             if near_d is not None:
-                keys = np.union1d(keys, near_d)
+                keys = unique_keys(np.concatenate([keys, near_d]))
             par_idx = K.merge_lookup(keys, levels[-1].cell_keys)
             # the nodes of the children of parent p are 2p + {0, 1, 2}^3
             nodes = K.double(keys)
@@ -172,4 +189,4 @@ def _ring1_parents(cells: np.ndarray, top: int) -> np.ndarray:
                 q[:, a] += side[:, a]
         ok = np.all((q >= 0) & (q <= top), axis=1)
         out.append(pack_keys(q[ok]))
-    return np.unique(np.concatenate(out))
+    return unique_keys(np.concatenate(out))

@@ -14,7 +14,7 @@ import numpy as np
 from recon_cli._kernels.hashtable import build_table
 from recon_cli.stages.poisson import _splat as S
 from recon_cli.stages.poisson._luts import B2_PLANE_DENSITY
-from recon_cli.stages.poisson.octree import dilate, pack_keys, unpack_keys
+from recon_cli.stages.poisson.octree import dilate, pack_keys, unique_keys, unpack_keys
 
 log = logging.getLogger("recon")
 
@@ -104,7 +104,7 @@ def _density_table(smp: Samples, level: int) -> tuple:
     """
     shift = smp.depth - level
     assert smp.keys is not None  # kept until the density is made
-    keys = np.unique(pack_keys(unpack_keys(smp.keys) >> shift))
+    keys = unique_keys(pack_keys(unpack_keys(smp.keys) >> shift))
     for axis in range(3):
         keys = dilate(keys, axis, -1, 1, (1 << level) - 1)
     tab = build_table(keys)
@@ -240,7 +240,7 @@ def spread_fields(
     for lv in np.unique(lvl):
         sel = lvl == lv
         d = int(lv)
-        keys = np.unique(pack_keys(np.floor(pos[sel] * (1 << d)).clip(0, (1 << d) - 1)))
+        keys = unique_keys(pack_keys(np.floor(pos[sel] * (1 << d)).clip(0, (1 << d) - 1)))
         for axis in range(3):
             keys = dilate(keys, axis, -1, 1, (1 << d) - 1)
         keys = np.sort(keys)
@@ -393,7 +393,7 @@ class NormalField:
             own = own[0][lo:hi], own[1][lo:hi]
             at = np.minimum(np.searchsorted(rel, own[0]), len(rel) - 1)
             if len(rel) == 0 or not np.array_equal(rel[at], own[0]):
-                rel = np.union1d(rel, own[0])
+                rel = unique_keys(np.concatenate([rel, own[0]]))
             del at
         if carry is not None:
             # the coarser cells whose children (x 2p - 2 .. 2p + 1, coordinates plus 1) reach
