@@ -314,6 +314,18 @@ def cluster():
         yield client
 
 
+def _kill_a_worker_soon(pids: dict, killed: list[int]) -> None:
+    """SIGKILL the first worker 0.3 s from now, from a thread (a step is then under way)."""
+
+    def killer():
+        time.sleep(0.3)
+        pid = sorted(pids.values())[0]
+        os.kill(pid, signal.SIGKILL)
+        killed.append(pid)
+
+    threading.Thread(target=killer, daemon=True).start()
+
+
 @pytest.mark.slow
 def test_killed_worker_mid_solve_gives_the_same_mesh(cluster):
     """A worker SIGKILLed while the slabs solve: its slabs are recomputed on a live worker and
@@ -328,14 +340,7 @@ def test_killed_worker_mid_solve_gives_the_same_mesh(cluster):
 
     def run(self, name, fn, args):
         if name == "solve" and not killed:
-
-            def killer():
-                time.sleep(0.3)
-                pid = sorted(pids.values())[0]
-                os.kill(pid, signal.SIGKILL)
-                killed.append(pid)
-
-            threading.Thread(target=killer, daemon=True).start()
+            _kill_a_worker_soon(pids, killed)
         return orig(self, name, fn, args)
 
     steps.DaskRunner.run = run
@@ -364,14 +369,7 @@ def test_more_slabs_than_workers_spill_their_states(cluster, tmp_path, monkeypat
     class Spilling(steps.DaskRunner):
         def run(self, name, fn, args):
             if name == "solve" and not killed:
-
-                def killer():
-                    time.sleep(0.3)
-                    pid = sorted(pids.values())[0]
-                    os.kill(pid, signal.SIGKILL)
-                    killed.append(pid)
-
-                threading.Thread(target=killer, daemon=True).start()
+                _kill_a_worker_soon(pids, killed)
             out = super().run(name, fn, args)
             seen.append(len(os.listdir(tmp_path)))
             return out
