@@ -7,8 +7,6 @@ import logging
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
 from recon_cli.backends import open3d_backend
@@ -334,25 +332,3 @@ def test_cli_poisson(tmp_path):
     r = CliRunner().invoke(cli, ["poisson", str(bare), str(out)])
     assert isinstance(r.exception, InputError) and r.exception.exit_code == 2
     assert "recon normals" in str(r.exception)
-
-
-@given(
-    seed=st.integers(0, 2**31 - 1),
-    n=st.integers(0, 300),
-    k=st.integers(0, 12),
-    offset=st.sampled_from([0.0, 1e6]),
-)
-@settings(max_examples=60, deadline=None)
-def test_points_in_boxes_counts_as_a_brute_force(seed, n, k, offset):
-    # the islands' count (_drop_bubbles): closed boxes, points on a face counted, x ties kept
-    from recon_cli.stages.poisson import _points_in_boxes
-
-    rng = np.random.default_rng(seed)
-    pts = np.round(rng.uniform(0, 4, (n, 3)) * 4) / 4 + offset  # on a lattice: many ties
-    a = np.round(rng.uniform(0, 4, (k, 3)) * 4) / 4 + offset
-    b = a + np.round(rng.uniform(0, 2, (k, 3)) * 4) / 4
-    want = [
-        np.count_nonzero(np.all((pts >= lo) & (pts <= hi), axis=1))
-        for lo, hi in zip(a, b, strict=True)
-    ]
-    assert _points_in_boxes(pts, a, b).tolist() == want

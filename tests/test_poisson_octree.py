@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from recon_cli.stages.poisson import screened_poisson
-from recon_cli.stages.poisson.octree import unique_keys
+from recon_cli.stages.poisson.octree import points_in_boxes, unique_keys
 from recon_cli.stages.poisson.splat import make_splats, merge_samples
 
 from shapes import shape_cloud, sphere_sdf  # noqa: F401  (sphere_sdf documents the shape)
@@ -172,3 +172,23 @@ def test_unique_keys_is_numpys_unique(values, repeat):
     keys = np.repeat(np.asarray(values, np.int64), repeat)[::-1]
     got = unique_keys(keys)
     assert got.dtype == np.int64 and np.array_equal(got, np.unique(keys))
+
+
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    n=st.integers(0, 300),
+    k=st.integers(0, 12),
+    offset=st.sampled_from([0.0, 1e6]),
+)
+@settings(max_examples=60, deadline=None)
+def test_points_in_boxes_counts_as_a_brute_force(seed, n, k, offset):
+    # the islands' count (_drop_bubbles): closed boxes, points on a face counted, x ties kept
+    rng = np.random.default_rng(seed)
+    pts = np.round(rng.uniform(0, 4, (n, 3)) * 4) / 4 + offset  # on a lattice: many ties
+    a = np.round(rng.uniform(0, 4, (k, 3)) * 4) / 4 + offset
+    b = a + np.round(rng.uniform(0, 2, (k, 3)) * 4) / 4
+    want = [
+        np.count_nonzero(np.all((pts >= lo) & (pts <= hi), axis=1))
+        for lo, hi in zip(a, b, strict=True)
+    ]
+    assert points_in_boxes(pts, a, b).tolist() == want

@@ -883,6 +883,7 @@ def _drop_bubbles(
     if not len(faces):
         return verts, faces, 0, 0
     from recon_cli.mesh.topology import Connectivity
+    from recon_cli.stages.poisson.octree import points_in_boxes
 
     lab = Connectivity(faces, len(verts)).face_components
     n = int(lab.max()) + 1
@@ -902,7 +903,7 @@ def _drop_bubbles(
     island = np.zeros(n, bool)
     pad = BUBBLE_CELLS * cell
     cand = np.flatnonzero(~speck)[1:]
-    island[cand] = _points_in_boxes(points, lo[cand] - pad, hi[cand] + pad) < ISLAND_POINTS
+    island[cand] = points_in_boxes(points, lo[cand] - pad, hi[cand] + pad) < ISLAND_POINTS
     gone = speck | island
     if not gone.any():
         return verts, faces, 0, 0
@@ -919,25 +920,6 @@ def _drop_bubbles(
         ISLAND_POINTS,
     )
     return verts[used], remap[faces].astype(faces.dtype), n_speck, n_island
-
-
-def _points_in_boxes(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """How many of ``points`` (n, 3) lie in each closed box ``lo``-``hi`` (k, 3): (k,) int.
-
-    Through the points sorted along x, so a box tests only those in its x-range (thousands of
-    small pieces of a noisy cloud of millions of points would otherwise cost k * n).
-    """
-    if not len(lo):
-        return np.zeros(0, np.int64)
-    order = np.argsort(points[:, 0], kind="stable")
-    xs = points[order, 0]
-    start = np.searchsorted(xs, lo[:, 0], side="left")
-    stop = np.searchsorted(xs, hi[:, 0], side="right")
-    out = np.zeros(len(lo), np.int64)
-    for k in range(len(lo)):
-        yz = points[order[start[k] : stop[k]], 1:]
-        out[k] = np.count_nonzero(np.all((yz >= lo[k, 1:]) & (yz <= hi[k, 1:]), axis=1))
-    return out
 
 
 # the native solve's report keys, in the report's order

@@ -1011,11 +1011,9 @@ def extract(slab: Slab, iso: float, at_leaves: bool) -> dict:
 @timed
 def island_points(slab: Slab, lo: np.ndarray, hi: np.ndarray) -> dict:
     """How many of the slab's own points lie in each box (k, 3) ``lo``..``hi``."""
-    pts = slab.pts[slab.own_pt]
-    out = np.zeros(len(lo), np.int64)
-    for k in range(len(lo)):
-        out[k] = np.count_nonzero(np.all((pts >= lo[k]) & (pts <= hi[k]), axis=1))
-    return {"counts": out}
+    from recon_cli.stages.poisson.octree import points_in_boxes
+
+    return {"counts": points_in_boxes(slab.pts[slab.own_pt], lo, hi)}
 
 
 def _seam_ranks(slab: Slab) -> tuple[np.ndarray, np.ndarray]:
