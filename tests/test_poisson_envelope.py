@@ -159,6 +159,13 @@ def test_refused_envelopes(tmp_path, rng):
         assert not out.exists()
     with pytest.raises(ParameterError, match="degree 2"):
         screened_poisson(p, n, depth=5, degree=1, envelope=TriangleMesh(vertices=v, faces=f))
+    # from Python too, checked before the solve's cube is sized on it
+    for bad, match in (
+        (PointCloud(points=v), "got a point cloud"),
+        (TriangleMesh(vertices=v, faces=f[:-1]), "must be a closed mesh"),
+    ):
+        with pytest.raises(InputError, match=match):
+            screened_poisson(p, n, depth=5, envelope=bad)
     r = CliRunner().invoke(
         cli,
         [

@@ -470,8 +470,10 @@ def screened_poisson(
     full_depth = _FULL_DEPTH.coerce(full_depth)
     cg_tolerance = _CG_TOLERANCE.coerce(cg_tolerance)
     confidence = SPEC.param("confidence").coerce(confidence)
-    if envelope is not None and degree != 2:
-        raise ParameterError("--envelope needs --degree 2")
+    if envelope is not None:
+        if degree != 2:
+            raise ParameterError("--envelope needs --degree 2")
+        envelope = _checked_envelope(envelope)
     lengths: list = []
     pts, nrm, keep = _check_inputs(points, normals, lengths)
     weight = lengths[0] / float(lengths[0].mean()) if confidence else None
@@ -555,7 +557,6 @@ def screened_poisson(
             full_depth,
             cg_tolerance,
             progress,
-            None,
             sample_ok,
             clip,
         )
@@ -772,10 +773,17 @@ def _kept_attributes(
     return colors, props
 
 
+def _checked_envelope(envelope: Any) -> Any:
+    """``envelope`` as an :class:`.envelope.Envelope` (a closed mesh, checked)."""
+    from recon_cli.stages.poisson.envelope import Envelope
+
+    return envelope if isinstance(envelope, Envelope) else Envelope(envelope)
+
+
 def _envelope_cube(
     envelope: Any, origin: np.ndarray, size: float, depth: int
 ) -> tuple[np.ndarray, float, int]:
-    """The solve's cube grown to hold the envelope, the finest lattice kept (:mod:`.envelope`)."""
+    """The solve's cube grown to hold the checked envelope, the finest lattice kept."""
     from recon_cli.stages.poisson.envelope import covering_cube
 
     v = envelope.vertices[np.unique(envelope.faces)]
@@ -804,11 +812,10 @@ def _envelope_setup(
         CARVE_OFFSET,
         REFINE_OFFSET,
         Carving,
-        Envelope,
         FieldClip,
     )
 
-    env = envelope if isinstance(envelope, Envelope) else Envelope(envelope)
+    env = envelope  # checked by _checked_envelope
     outside_points = int(np.count_nonzero(~env.inside(pts)))
     sample_ok = env.inside(origin + size * smp.pos)
     if not sample_ok.any():
