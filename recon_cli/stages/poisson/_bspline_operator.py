@@ -236,7 +236,7 @@ def level_pcg(q_keys, nb, inp, cmap, m1, k1, h, n, s, scell, sloc, sw, rhs, diag
     ``8 cmap[i]`` (the ring of E, 40 % of its cells at the finest level, carries no unknown: vectors
     on all of E would be zero there). ``rhs`` is overwritten by the residual and ``diag`` by the
     preconditioner (its inverse, 0 where not positive). Rows whose diagonal is not positive are
-    fixed (the envelope's and the free boundary's cells outside): their search directions and
+    fixed (the free boundary's cells outside): their search directions and
     solution stay 0 and their residual does not count. Returns (x, iterations, relative residual).
     """
     m = len(rhs)

@@ -107,13 +107,12 @@ class Basis:
         full_depth: int,
         cg_tolerance: float,
         progress: Any,
-        free_cells: Any,
         sample_ok: np.ndarray | None,
         clip: Any = None,
     ) -> Solution:
         """Solve every level, coarse to fine, and find the iso-value.
 
-        ``free_cells`` and ``sample_ok`` as :func:`.bspline.solve`'s; ``clip(iso)`` gives the
+        ``sample_ok`` as :func:`.bspline.solve`'s; ``clip(iso)`` gives the
         clip of the field read after the solve (an envelope's, :class:`.envelope.FieldClip`;
         degree 2 only).
         """
@@ -148,7 +147,6 @@ class Trilinear(Basis):
         full_depth,
         cg_tolerance,
         progress,
-        free_cells,
         sample_ok,
         clip=None,
     ):
@@ -195,7 +193,6 @@ class Quadratic(Basis):
         full_depth,
         cg_tolerance,
         progress,
-        free_cells,
         sample_ok,
         clip=None,
     ):
@@ -210,7 +207,6 @@ class Quadratic(Basis):
             full_depth,
             cg_tolerance,
             progress,
-            free_cells=free_cells,
             sample_ok=sample_ok,
             clip=clip,
         )

@@ -541,12 +541,6 @@ def _merge_per_cell(pos: np.ndarray, w: np.ndarray, level: int) -> tuple[np.ndar
     return mp, sw
 
 
-def cell_keys(q_keys: np.ndarray) -> np.ndarray:
-    """(8q,) lattice keys of the cells of E (the children of ``q_keys``, block order)."""
-    off = np.array([(o & 1) << 42 | ((o >> 1) & 1) << 21 | (o >> 2) & 1 for o in range(8)])
-    return (2 * q_keys[:, None] + off[None, :]).reshape(-1)
-
-
 def solve(
     levels: list[Level],
     smp: Samples,
@@ -555,7 +549,6 @@ def solve(
     full_depth: int,
     cg_tolerance: float,
     progress: Any = None,
-    free_cells: Any = None,
     sample_ok: np.ndarray | None = None,
     clip: Any = None,
 ) -> tuple[list[np.ndarray], list[dict], int, float, float, ChiField]:
@@ -565,11 +558,8 @@ def solve(
     the finest relative residual, the iso-value (count-weighted mean of chi at the samples) and the
     field (:class:`ChiField`).
 
-    With ``free_cells`` (``f(level, keys)`` -> bool, the cells' lattice keys: Dirichlet constraints
-    inside the cube, as PoissonRecon's envelope) the other cells of each level are fixed: their
-    coefficient is 0 in the level's whole chi (the coarser levels' part included) and not solved
-    for. ``sample_ok`` (s,) bool says which samples screen the solve and make the iso-value (the
-    others lie where chi is fixed, or outside the envelope). With ``clip`` (``clip(iso)`` ->
+    ``sample_ok`` (s,) bool says which samples screen the solve and make the iso-value (the
+    others lie outside the envelope). With ``clip`` (``clip(iso)`` ->
     ``f(pos, chi) -> chi``, :class:`.envelope.FieldClip`) every value read after the iso-value
     (the nodes' values, the returned field) is clipped.
     """
@@ -617,19 +607,17 @@ def solve(
                 make_rhs = functools.partial(
                     BR.splat_rhs, *items, d, f.q_keys, f.inp, f.s, KERNEL_WIDTH
                 )
-            fixed = None if free_cells is None else ~free_cells(d, cell_keys(f.q_keys))
             stats, solved = solve_level(
                 f,
                 prev,
                 make_rhs,
-                fixed,
                 coef_all[8 * arrays[1][d] : 8 * arrays[1][d + 1]],
                 merged,
                 boundary,
                 1e-7 if d <= full_depth else cg_tolerance,
                 2000 if d <= full_depth else 200,
             )
-            del make_rhs, fixed
+            del make_rhs
             fields.append(f)
             prev = f
             stats["seconds"] = time.perf_counter() - tl
@@ -679,7 +667,6 @@ def solve_level(
     f: LevelField,
     prev: LevelField | None,
     make_rhs: Callable[[], np.ndarray],
-    fixed: np.ndarray | None,
     coef: np.ndarray,
     merged: Callable[[int], tuple[np.ndarray, np.ndarray] | None],
     boundary: str,
@@ -689,8 +676,7 @@ def solve_level(
     """Solve one level's correction to the coarser levels' field ``prev``; set ``f.coef``.
 
     ``make_rhs()`` gives the level's right-hand side (8q,) on E (made here, so that only the
-    unknowns' part outlives the screening), ``fixed`` (8q,) bool the cells
-    whose coefficient is 0 (or None), ``coef`` (8q,) the view of the solve's coefficients that
+    unknowns' part outlives the screening), ``coef`` (8q,) the view of the solve's coefficients that
     becomes ``f.coef``: the level's whole chi, the coarser field prolonged plus the correction.
     ``merged(d)`` gives the screening samples merged per cell of level ``d`` (weighted mean
     positions, summed weights) or None without screening: the single-process solve merges its
@@ -716,13 +702,10 @@ def solve_level(
     # side, the diagonal, the prolonged field and its product on all of E were alive at once
     cmap = np.cumsum(f.inp) - 1
     cmap[~f.inp] = -1
-    if fixed is not None:
-        diag[fixed] = 0.0  # level_pcg leaves the rows without a diagonal at 0
-        rhs[fixed] = 0.0
     rhs = rhs[unknown]
     diag = diag[unknown]
     if prev is not None:
-        _subtract_coarse(f, prev, cmap, m1, k1, scell, sloc, sw, fixed, rhs)
+        _subtract_coarse(f, prev, cmap, m1, k1, scell, sloc, sw, rhs)
     release_free_heap()
     x, it, rel = BO.level_pcg(
         f.q_keys,
@@ -748,8 +731,6 @@ def solve_level(
     f.coef = coef
     if prev is not None:
         B.prolong_into(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s, f.coef)
-    if fixed is not None:
-        f.coef[fixed] = 0.0
     f.coef[unknown] += x
     stats = {
         "depth": d,
@@ -793,17 +774,14 @@ def _subtract_coarse(
     scell: np.ndarray,
     sloc: np.ndarray,
     sw: np.ndarray,
-    fixed: np.ndarray | None,
     rhs: np.ndarray,
 ) -> None:
     """``rhs -= A G`` at the unknowns: the residual the coarser levels' field ``G`` leaves.
 
-    ``G`` is ``prev``'s field prolonged onto all of the level's E (0 at the ``fixed`` cells).
+    ``G`` is ``prev``'s field prolonged onto all of the level's E.
     """
     n = 1 << f.depth
     G = B.prolong(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s)
-    if fixed is not None:
-        G[fixed] = 0.0
     AG = np.empty(len(rhs))
     BO.level_matvec(
         f.q_keys,

@@ -131,9 +131,8 @@ def build_levels(
             # ring 2 around the cells over finer items (occ), and the parents of the cells
             # within 1 of the level's own items (near)
             near[d] = _ring1_parents(unique_keys(own), (1 << (d - 1)) - 1)
-            occ[d] = unique_keys(
-                occ_keys
-            )  # halved from the finer level: the cells over finer items
+            # halved from the finer level: the cells over finer items
+            occ[d] = unique_keys(occ_keys)
             occ_keys = unique_keys(np.concatenate([occ_keys, own]))
         else:
             occ_keys = unique_keys(np.concatenate([occ_keys, own]))

@@ -617,7 +617,6 @@ def solve_levels(
             f,
             prev,
             functools.partial(normal_rhs.rhs, d),
-            None,
             coef_all[8 * q_off[d] : 8 * q_off[d + 1]],
             screening,
             boundary,
