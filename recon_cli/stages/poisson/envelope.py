@@ -268,7 +268,7 @@ class FieldClip:
     def __init__(
         self,
         env: Envelope,
-        carving: Carving | None,
+        carving: Carving,
         origin: np.ndarray,
         size: float,
         cell: float,
@@ -279,15 +279,12 @@ class FieldClip:
 
     def __call__(self, pos: np.ndarray, chi: np.ndarray) -> np.ndarray:
         """(m,) chi at unit-cube positions ``pos`` (m, 3), clipped."""
-        out = chi
-        if self.carving is not None:
-            # unobserved space is solid: max(chi - iso, solid), the samples' field near them
-            solid = self.carving.solid(pos) - NEAR_DROP * self.carving.near(pos)
-            out = np.maximum(chi, self.iso + solid)
+        # unobserved space is solid: max(chi - iso, solid), the samples' field near them
+        solid = self.carving.solid(pos) - NEAR_DROP * self.carving.near(pos)
+        out = np.maximum(chi, self.iso + solid)
         idx = np.flatnonzero(out > self.iso)
         if not len(idx):
             return out
-        out = out.copy()
         w = self.origin + self.size * pos[idx]
         above = out[idx] - self.iso
         # beyond this distance inside, the clip leaves chi as it is
