@@ -195,13 +195,19 @@ def level_fields(levels: list[Level], boundary: str) -> tuple[list[LevelField | 
     inp_all = np.concatenate([inp for _, inp in parts]) if parts else np.zeros(0, bool)
     del parts
     nb_all = neighbour_tables(q_all, q_off)
-    coef_all = np.zeros(8 * len(q_all))
+    arrays = (q_all, q_off, inp_all, nb_all, np.zeros(8 * len(q_all)))
+    return field_views(arrays, boundary, top), arrays
+
+
+def field_views(arrays: tuple, boundary: str, top: int) -> list[LevelField | None]:
+    """Levels 1..``top``'s E as views of the arrays :func:`level_fields` made (None: level 0)."""
+    q_all, q_off, inp_all, nb_all, _ = arrays
     s = boundary_sign(boundary)
     out: list[LevelField | None] = [None]
-    for lev in levels[1:]:
-        lo, hi = q_off[lev.depth], q_off[lev.depth + 1]
-        out.append(LevelField(lev.depth, s, q_all[lo:hi], inp_all[lo:hi], nb_all[lo:hi]))
-    return out, (q_all, q_off, inp_all, nb_all, coef_all)
+    for d in range(1, top + 1):
+        lo, hi = q_off[d], q_off[d + 1]
+        out.append(LevelField(d, s, q_all[lo:hi], inp_all[lo:hi], nb_all[lo:hi]))
+    return out
 
 
 def neighbour_tables(q_all: np.ndarray, q_off: np.ndarray) -> np.ndarray:

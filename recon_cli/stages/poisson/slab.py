@@ -34,9 +34,8 @@ from recon_cli.stages.poisson.bspline import (
     SCREEN_CLEAN,
     SCREEN_NOISY,
     ChiField,
-    LevelField,
     NormalRHS,
-    boundary_sign,
+    field_views,
     level_fields,
     solve_level,
 )
@@ -156,12 +155,7 @@ class Slab:
     def __setstate__(self, state: dict) -> None:
         lfs = state["lfs"]
         if isinstance(lfs, tuple):
-            q_all, q_off, inp_all, nb_all, _ = state["arrays"]
-            s = boundary_sign(state["job"].boundary)
-            fields: list = [None]
-            for d in range(1, lfs[1]):
-                lo, hi = q_off[d], q_off[d + 1]
-                fields.append(LevelField(d, s, q_all[lo:hi], inp_all[lo:hi], nb_all[lo:hi]))
+            fields = field_views(state["arrays"], state["job"].boundary, lfs[1] - 1)
             state["lfs"] = fields
             if state["normal_rhs"] is not None and state["normal_rhs"].lf is None:
                 state["normal_rhs"].lf = list(fields)
