@@ -34,6 +34,7 @@ from recon_cli.errors import InputError, ParameterError  # noqa: E402
 from recon_cli.progress import Progress  # noqa: E402
 
 from _batch_stages import EXTRA_STAGES  # noqa: E402
+from interrupt import RUN_RECON, SIGINT_AS_A_TERMINAL, interrupt_when  # noqa: E402
 
 
 @pytest.fixture
@@ -532,16 +533,12 @@ def test_batch_mixed_inputs_on_two_workers(tmp_path, test_stages, capsys, cluste
 # `recon batch` as a user runs it, with the test stages registered first (the workers get them
 # from each task's stage targets; spawned workers inherit sys.path, so they import _batch_stages)
 _RUNNER = (
-    "import signal, sys\n"
-    # as from an interactive shell: a runner started in the background (nohup, CI) may pass
-    # SIGINT down ignored, and then Python never turns it into KeyboardInterrupt
-    "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
-    f"sys.path.insert(0, {TESTS!r})\n"
-    "from _batch_stages import EXTRA_STAGES\n"
-    "from recon_cli import stages\n"
-    "stages.STAGES.update(EXTRA_STAGES)\n"
-    "from recon_cli.cli.main import main\n"
-    "main(sys.argv[1:])\n"
+    SIGINT_AS_A_TERMINAL
+    + f"sys.path.insert(0, {TESTS!r})\n"
+    + "from _batch_stages import EXTRA_STAGES\n"
+    + "from recon_cli import stages\n"
+    + "stages.STAGES.update(EXTRA_STAGES)\n"
+    + RUN_RECON
 )
 
 
@@ -632,35 +629,16 @@ def test_ctrl_c_stops_cleanly_and_a_rerun_resumes(tmp_path, target):
         "--workers",
         "2",
     ]
-    proc = subprocess.Popen(
-        argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True
+    run = interrupt_when(
+        argv, lambda: out.is_dir() and _outputs(out), "no output", group=target == "group"
     )
-    try:
-        deadline = time.monotonic() + 120
-        while not (out.is_dir() and _outputs(out)):
-            assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < deadline, "no output after 120 s"
-            time.sleep(0.02)
-        family = psutil.Process(proc.pid).children(recursive=True)
-        assert len(family) >= 2  # at least the two worker processes
-        if target == "group":
-            os.killpg(proc.pid, signal.SIGINT)
-        else:
-            proc.send_signal(signal.SIGINT)
-        t0 = time.monotonic()
-        _, err = proc.communicate(timeout=60)
-        stop_s = time.monotonic() - t0
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-    err = err.decode()
-    assert proc.returncode == EXIT_INTERRUPTED == 130, err
-    assert err.rstrip().splitlines()[-1] == "recon: interrupted", err
-    assert "Traceback" not in err, err
-    assert stop_s < 20, stop_s
+    assert len(run.family) >= 2  # at least the two worker processes
+    assert run.returncode == EXIT_INTERRUPTED == 130, run.err
+    assert run.err.rstrip().splitlines()[-1] == "recon: interrupted", run.err
+    assert "Traceback" not in run.err, run.err
+    assert run.seconds < 20, run.seconds
     # the cluster went with it: no worker (or other) process of the batch outlives it
-    _, alive = psutil.wait_procs(family, timeout=10)
+    _, alive = psutil.wait_procs(run.family, timeout=10)
     assert alive == [], [(p.pid, p.name()) for p in alive]
     # finished inputs are whole files; nothing partial, the unfinished ones are recorded as
     # interrupted

@@ -20,6 +20,7 @@ from recon_cli.mesh.topology import report as topology_report
 from recon_cli.stages.poisson import screened_poisson
 from recon_cli.stages.poisson.distributed import distributed_poisson
 
+from interrupt import RUN_RECON, SIGINT_AS_A_TERMINAL, interrupt_when
 from shapes import random_rotation, single_view_scan, sphere_cloud
 
 
@@ -506,21 +507,10 @@ def test_command_refuses(tmp_path, capsys, args, msg):
     assert not (tmp_path / "o.ply").exists()
 
 
-_INTERACTIVE = (
-    "import signal, sys\n"
-    # as from an interactive shell: a runner started in the background may pass SIGINT down
-    # ignored, and then Python never turns it into KeyboardInterrupt
-    "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
-    "from recon_cli.cli.main import main\n"
-    "main(sys.argv[1:])\n"
-)
-
-
 @pytest.mark.slow
 def test_ctrl_c_mid_job_leaves_nothing(tmp_path):
     """Ctrl-C (the process group's SIGINT) once the workers have sorted the chunks: exit 130, one
     line, no output, no temporary folder, no worker process left."""
-    import subprocess
     import sys
 
     import psutil
@@ -531,29 +521,15 @@ def test_ctrl_c_mid_job_leaves_nothing(tmp_path):
     src = tmp_path / "sphere.ply"
     save(PointCloud(points=pts, normals=nrm), str(src))
     out = tmp_path / "mesh.ply"
-    argv = [sys.executable, "-c", _INTERACTIVE, "poisson", str(src), str(out)]
+    argv = [sys.executable, "-c", SIGINT_AS_A_TERMINAL + RUN_RECON, "poisson", str(src), str(out)]
     argv += ["--workers", "2", "--depth", "9"]
-    proc = subprocess.Popen(
-        argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True
+    # once a chunk is sorted into the job's temporary folder: the cluster is at work
+    run = interrupt_when(
+        argv, lambda: list(tmp_path.glob(".recon-poisson-*/*.pts.npy")), "no sorted chunk"
     )
-    try:
-        deadline = time.monotonic() + 120
-        # the chunk sorted into the job's temporary folder: the cluster is at work
-        while not list(tmp_path.glob(".recon-poisson-*/*.pts.npy")):
-            assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < deadline, "no sorted chunk after 120 s"
-            time.sleep(0.02)
-        family = psutil.Process(proc.pid).children(recursive=True)
-        assert len(family) >= 2  # at least the two worker processes
-        os.killpg(proc.pid, signal.SIGINT)
-        _, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-    err = err.decode()
-    assert proc.returncode == EXIT_INTERRUPTED == 130, err
-    assert err.strip() == "recon: interrupted", err
-    _, alive = psutil.wait_procs(family, timeout=10)
+    assert len(run.family) >= 2  # at least the two worker processes
+    assert run.returncode == EXIT_INTERRUPTED == 130, run.err
+    assert run.err.strip() == "recon: interrupted", run.err
+    _, alive = psutil.wait_procs(run.family, timeout=10)
     assert alive == [], [(p.pid, p.name()) for p in alive]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["sphere.ply"]
