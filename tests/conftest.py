@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import json
+import os
+import time
+
 import numpy as np
 import pytest
 
@@ -9,3 +13,41 @@ import pytest
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)
+
+
+# RECON_TEST_COMPILES=FILE: each test's numba compiles (kernels, seconds) appended to FILE as
+# JSON lines, to find what a warmed install still compiles (a diagnostic, not a check).
+_COMPILES = os.environ.get("RECON_TEST_COMPILES")
+_seen: list[tuple[str, float]] = []
+
+
+def pytest_configure(config):
+    if not _COMPILES:
+        return
+    from numba.core import event
+
+    class _Listener(event.Listener):
+        starts: list[float] = []
+
+        def on_start(self, ev):
+            self.starts.append(time.perf_counter())
+
+        def on_end(self, ev):
+            took = time.perf_counter() - self.starts.pop()
+            _seen.append(
+                (ev.data["dispatcher"].py_func.__qualname__, took if not self.starts else 0)
+            )
+
+    event.register("numba:compile", _Listener())
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    _seen.clear()
+    yield
+    if _COMPILES and _seen:
+        top = [name for name, _ in _seen if "<locals>" not in name]
+        took = round(sum(t for _, t in _seen), 2)
+        line = {"test": item.nodeid, "n": len(_seen), "s": took, "kernels": top[:20]}
+        with open(_COMPILES, "a") as f:
+            f.write(json.dumps(line) + "\n")

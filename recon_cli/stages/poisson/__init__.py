@@ -482,85 +482,37 @@ def screened_poisson(
     unit_nrm = nrm if (props or colors is not None) else None
 
     from recon_cli.stages.poisson.basis import basis_for
-    from recon_cli.stages.poisson.splat import make_splats, merge_samples, sample_density
+    from recon_cli.stages.poisson.splat import sample_density
     from recon_cli.stages.poisson.timing import Timings
 
     basis = basis_for(degree)
     clock = Timings()
 
-    with clock.phase("samples"):
-        # ---- unit cube and samples (points merged per finest cell, as PoissonRecon does)
-        user_depth = depth
-        origin, size, depth, domain = _solve_cube(pts, scale, boundary, depth)
-        if envelope is not None and domain is None:
-            origin, size, depth = _envelope_cube(envelope, origin, size, depth)
-        full_depth = min(full_depth, depth)
-        smp = merge_samples((pts - origin) / size, nrm, depth, weight)
-        ns = len(smp.count)
-        n_pts = len(pts)
-        del nrm  # memory: the normals are in the samples now
-
-    # ---- kernel density -> area per point and splat level
-    auto_trim = trim == "auto"
-    density_trim = not auto_trim and trim > 0
-    with clock.phase("density"):
-        splats = make_splats(
-            smp,
-            depth,
-            samples_per_node,
-            point_weight,
-            density or density_trim,
-            merge=basis.merge_splats,
-        )
-        tree_depth = basis.tree_depth(splats.tree_depth, domain is not None)
-        full_depth = min(full_depth, tree_depth)
-        res = 1 << tree_depth  # the finest cells of the tree
-    # ---- the samples' noise: noisy neighbourhoods are screened less (Splats.screening)
-    with clock.phase("noise"):
-        noise = _screening_noise(pts, origin, size, smp, splats, tree_depth, point_weight)
-
-    # ---- envelope: chi clipped by it after the solve; the tree refined along it
-    env, sample_ok, clip, outside_points = None, None, None, 0
-    item_pos, item_level = splats.pos, splats.level
-    if envelope is not None:
-        with clock.phase("envelope"):
-            env, sample_ok, clip, outside_points, item_pos, item_level = _envelope_setup(
-                envelope, pts, smp, splats, origin, size, tree_depth, full_depth
-            )
-
-    # ---- tree: as deep as the splats, no deeper
-    with clock.phase("tree"):
-        assert item_pos is not None and item_level is not None  # the items, before the solve
-        with task(progress, "poisson: tree"):
-            levels = basis.build_tree(item_pos, item_level, tree_depth, full_depth, boundary)
-        del item_pos, item_level
-        # memory: the splat items made the fields and the tree, the samples' normals and keys
-        # the splats
-        splats.pos = splats.vec = splats.level = smp.normal = smp.keys = None
-    nodes = [len(lv.node_keys) for lv in levels]  # type: ignore[arg-type]  # set with the tree
-    log.info(
-        "poisson: %d points, %d samples, depth %d (tree %d), nodes per level %s",
-        n_pts,
-        ns,
-        depth,
-        tree_depth,
-        nodes,
-    )
+    need_density = density or (trim != "auto" and trim > 0)
+    setup = _prepare(
+        pts, nrm, weight, envelope, basis, clock, progress,
+        depth=depth, scale=scale, boundary=boundary, full_depth=full_depth,
+        samples_per_node=samples_per_node, point_weight=point_weight, density=need_density,
+    )  # fmt: skip
+    del nrm  # memory: the normals are in the samples now
+    origin, size, tree_depth, domain = setup.origin, setup.size, setup.tree_depth, setup.domain
+    smp, splats, env = setup.smp, setup.splats, setup.env
+    res = 1 << tree_depth  # the finest cells of the tree
 
     # ---- cascadic solve and the iso-value
     with clock.phase("solve"):
         sol = basis.solve(
-            levels,
+            setup.levels,
             smp,
             splats,
             boundary,
-            full_depth,
+            setup.full_depth,
             cg_tolerance,
             progress,
-            sample_ok,
-            clip,
+            setup.sample_ok,
+            setup.clip,
         )
-    del levels
+    setup.levels = []
     iso = sol.iso
 
     # ---- extraction, clipped to the cube, bubbles and islands dropped, pulled into the envelope
@@ -577,7 +529,7 @@ def screened_poisson(
 
     mesh = TriangleMesh(vertices=verts, faces=faces)
     vdens = None
-    if density or density_trim:
+    if need_density:
         vdens = sample_density(splats, (verts - origin) / size)
     mesh, vdens, trimmed, trimmed_area = _trimmed(mesh, vdens, trim, smp, splats, origin, size)
     # ---- the input's properties on the vertices, from the points on each vertex's side
@@ -593,16 +545,16 @@ def screened_poisson(
         mesh,
         sol,
         clock.total(),
-        depth=user_depth,
-        tree_depth=tree_depth - (depth - user_depth),
-        samples=ns,
+        depth=depth,
+        tree_depth=tree_depth - (setup.depth - depth),
+        samples=len(smp.count),
         ignored=int((~keep).sum()),
         finest_cell=size / res,
-        noise=noise,
+        noise=setup.noise,
         removed=(bubbles, islands, trimmed, trimmed_area),
         fallback=fallback,
         attributes=sorted(props) + (["colors"] if colors is not None else []),
-        envelope=(outside_points, pulled) if env is not None else None,
+        envelope=(setup.outside_points, pulled) if env is not None else None,
     )
     if field_grid is not None:
         report["grid_shape"] = list(field_grid.shape)
@@ -625,6 +577,97 @@ def _extract_surface(basis, sol, origin, size, tree_depth, with_grid, domain, pt
     if env is not None:
         verts, pulled = env.pull_inside(verts, size / (1 << tree_depth))
     return verts, faces, chi_fn, bubbles, islands, pulled
+
+
+@dataclass
+class _Setup:
+    """What :func:`screened_poisson` solves: made by :func:`_prepare`.
+
+    The solve's cube (``origin``, ``size``: the unit cube's frame; ``depth`` the finest level
+    allowed, deeper than asked when the cube grew for an envelope), the tree's depth and its
+    complete levels, the free boundary's domain, the merged samples and their splats, the
+    samples' median noise, the envelope's state, and the tree's levels (emptied after the solve).
+    """
+
+    origin: np.ndarray
+    size: float
+    depth: int
+    tree_depth: int
+    full_depth: int
+    domain: tuple | None
+    smp: Any
+    splats: Any
+    levels: list
+    noise: float | None
+    env: Any = None
+    sample_ok: Any = None
+    clip: Any = None
+    outside_points: int = 0
+
+
+def _prepare(
+    pts: np.ndarray,
+    nrm: np.ndarray,
+    weight: np.ndarray | None,
+    envelope: Any,
+    basis: Any,
+    clock: Any,
+    progress: Any,
+    *,
+    depth: int,
+    scale: float,
+    boundary: str,
+    full_depth: int,
+    samples_per_node: float,
+    point_weight: float,
+    density: bool,
+) -> _Setup:
+    """The unit cube, the samples, their splats and noise, the envelope and the tree.
+
+    Points are merged per finest cell, as PoissonRecon does; the tree goes as deep as the splats,
+    no deeper. ``density``: the splats keep what the vertices' density needs.
+    """
+    from recon_cli.stages.poisson.splat import make_splats, merge_samples
+
+    with clock.phase("samples"):
+        origin, size, depth, domain = _solve_cube(pts, scale, boundary, depth)
+        if envelope is not None and domain is None:
+            origin, size, depth = _envelope_cube(envelope, origin, size, depth)
+        full_depth = min(full_depth, depth)
+        smp = merge_samples((pts - origin) / size, nrm, depth, weight)
+    with clock.phase("density"):  # kernel density -> area per point and splat level
+        splats = make_splats(
+            smp, depth, samples_per_node, point_weight, density, merge=basis.merge_splats
+        )
+        tree_depth = basis.tree_depth(splats.tree_depth, domain is not None)
+        full_depth = min(full_depth, tree_depth)
+    with clock.phase("noise"):  # noisy neighbourhoods are screened less (Splats.screening)
+        noise = _screening_noise(pts, origin, size, smp, splats, tree_depth, point_weight)
+    setup = _Setup(origin, size, depth, tree_depth, full_depth, domain, smp, splats, [], noise)
+    item_pos, item_level = splats.pos, splats.level
+    if envelope is not None:  # chi clipped by it after the solve; the tree refined along it
+        with clock.phase("envelope"):
+            env, setup.sample_ok, setup.clip, setup.outside_points, item_pos, item_level = (
+                _envelope_setup(envelope, pts, smp, splats, origin, size, tree_depth, full_depth)
+            )
+            setup.env = env
+    with clock.phase("tree"):
+        assert item_pos is not None and item_level is not None  # the items, before the solve
+        with task(progress, "poisson: tree"):
+            setup.levels = basis.build_tree(item_pos, item_level, tree_depth, full_depth, boundary)
+        # memory: the splat items made the fields and the tree, the samples' normals and keys
+        # the splats
+        del item_pos, item_level
+        splats.pos = splats.vec = splats.level = smp.normal = smp.keys = None
+    log.info(
+        "poisson: %d points, %d samples, depth %d (tree %d), nodes per level %s",
+        len(pts),
+        len(smp.count),
+        depth,
+        tree_depth,
+        [len(lv.node_keys) for lv in setup.levels],
+    )
+    return setup
 
 
 def _report(

@@ -422,8 +422,368 @@ def _triangulate(n, lp, lm, cost, split, st, tris):
     return True
 
 
-# one kernel, not helpers: its growing buffers (tri, vpos, the hash table, the segments) are
-# reallocated inside the leaf loop, which helpers would have to hand back as tuples each call
+# the per-leaf scratch of leaf_polygons (fixed sizes): the minimal-face stack, the corner values
+# (raw and clamped), the leaf's bounds, a minimal face's hint corner and edge start, and where
+# each of its four sides' edges start in the edge buffer
+FaceWork = namedtuple("FaceWork", "qstack raw clv lo3 hi3 hxyz e0 starts")
+# the level set: the iso-value, the straddle tolerance, the roots' distance from edge ends
+Level = namedtuple("Level", "iso eps clamp")
+# growing buffers: a face's roots (edge key, whether the walk enters the inside, position), a
+# leaf's segments (root keys from/to, end points) and one loop (root keys, positions, the leaf
+# faces each root lies on, vertex ids, the segments visited)
+Roots = namedtuple("Roots", "key up pos")
+Segments = namedtuple("Segments", "key pos")
+Loop = namedtuple("Loop", "key pos mask vid visited")
+# the mesh so far: triangles, vertices and the roots' hash table (edge key -> vertex); the
+# counts (triangles, vertices, roots, hash bits) live in an int64 (4,) array beside it
+Out = namedtuple("Out", "tri vpos tk tv")
+# the minimal-area triangulation's tables (MAX_DP loops)
+Triangulation = namedtuple("Triangulation", "cost split stack tris")
+
+
+@njit(cache=True)
+def _leaf_range(tree, ci, lev, cx, cy, cz, side, work):
+    """The corner values of a leaf into ``work.raw`` and ``work.clv`` (clamped); (min clv, max)."""
+    keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, R, cap = tree
+    lo = 1e300
+    hi = -1e300
+    for q in range(8):
+        v = (
+            fg[fnodes[ci - coff[D], q & 3] + (q >> 2)]
+            if lev == D
+            else g[goff[lev] + nodes[ci, q & 3] + (q >> 2)]
+        )
+        work.raw[q] = v
+        work.clv[q] = _clamp(
+            v,
+            (cx + (q & 1)) * side,
+            (cy + ((q >> 1) & 1)) * side,
+            (cz + (q >> 2)) * side,
+            R,
+            cap,
+        )
+        lo = min(lo, work.clv[q])
+        hi = max(hi, v)
+    return lo, hi
+
+
+@njit(cache=True)
+def _face_edges(tree, scratch, work, ll, a, wl, u, vv, hint):
+    """The minimal edges around the level-``ll`` face at ``wl`` on axis ``a``, corner (u, vv).
+
+    Its boundary counter-clockwise about +a: side 0 from (u, vv) along +b, 1 from (u+1, vv) along
+    +c, 2 from (u, vv+1) along +b and 3 from (u, vv) along +c (the caller walks 2 and 3
+    backwards). The edges go to ``scratch``'s buffers, each side's first index to
+    ``work.starts`` (and the end to ``starts[4]``). ``hint``: the leaf holding the face, lower
+    corner ``work.hxyz``.
+    """
+    keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, R, cap = tree
+    ebuf_p, ebuf_len, ebuf_v = scratch.buf_p, scratch.buf_len, scratch.buf_v
+    e0, hxyz, starts = work.e0, work.hxyz, work.starts
+    b = (a + 1) % 3
+    c = (a + 2) % 3
+    m = 0
+    for sd in range(4):
+        e0[a] = wl
+        e0[b] = u + (1 if sd == 1 else 0)
+        e0[c] = vv + (1 if sd == 2 else 0)
+        ax = b if sd % 2 == 0 else c
+        starts[sd] = m
+        if ll == D:
+            # a finest edge: never split, its values are the hint leaf's corners (what
+            # _minimal_edges does, without the call)
+            fq = (e0[0] - hxyz[0]) | ((e0[1] - hxyz[1]) << 1) | ((e0[2] - hxyz[2]) << 2)
+            hf = hint - coff[D]  # a finest leaf
+            v0 = _clamp(fg[fnodes[hf, fq & 3] + (fq >> 2)], e0[0], e0[1], e0[2], R, cap)
+            qq = fq | (1 << ax)
+            v1 = _clamp(
+                fg[fnodes[hf, qq & 3] + (qq >> 2)],
+                e0[0] + (qq & 1) - (fq & 1),
+                e0[1] + ((qq >> 1) & 1) - ((fq >> 1) & 1),
+                e0[2] + (qq >> 2) - (fq >> 2),
+                R,
+                cap,
+            )
+            ebuf_p[m, 0] = e0[0]
+            ebuf_p[m, 1] = e0[1]
+            ebuf_p[m, 2] = e0[2]
+            ebuf_len[m] = 1
+            ebuf_v[m, 0] = v0
+            ebuf_v[m, 1] = v1
+            m += 1
+        else:
+            m = _minimal_edges(tree, scratch, ll, e0, ax, hint, hxyz, m)
+    starts[4] = m
+
+
+@njit(cache=True)
+def _face_roots(scratch, work, lim, R, a, roots):
+    """The roots on the edges :func:`_face_edges` found, in walk order.
+
+    Returns ``(n, centre_in, roots)``: their number, whether chi at the face's centre (bilinear
+    on it) is inside, and the buffers (grown when needed) holding each root's edge key, whether
+    the walk enters the inside there, and its position (linear interpolation, kept
+    ``lim.clamp`` of the edge away from its ends: no two roots at one point).
+    """
+    ebuf_p, ebuf_len, ebuf_v = scratch.buf_p, scratch.buf_len, scratch.buf_v
+    starts = work.starts
+    iso = lim.iso
+    b = (a + 1) % 3
+    c = (a + 2) % 3
+    corner_sum = 0.0
+    nroots = 0
+    for sd in range(4):
+        elo = starts[sd]
+        ehi = starts[sd + 1]
+        first = elo if sd < 2 else ehi - 1
+        corner_sum += ebuf_v[first, 0] if sd < 2 else ebuf_v[first, 1]
+        for i in range(elo, ehi):
+            if (ebuf_v[i, 0] > iso) != (ebuf_v[i, 1] > iso):
+                nroots += 1
+    if nroots == 0:
+        return 0, False, roots
+    centre_in = corner_sum * 0.25 > iso
+    if roots.key.shape[0] < nroots:
+        roots = Roots(
+            np.empty(2 * nroots, np.int64),
+            np.empty(2 * nroots, np.bool_),
+            np.empty((2 * nroots, 3)),
+        )
+    kr = 0
+    for sd in range(4):
+        elo = starts[sd]
+        ehi = starts[sd + 1]
+        ax = b if sd % 2 == 0 else c
+        for jj in range(ehi - elo):
+            i = elo + jj if sd < 2 else ehi - 1 - jj
+            va = ebuf_v[i, 0]
+            vb = ebuf_v[i, 1]
+            if (va > iso) == (vb > iso):
+                continue
+            roots.key[kr] = edge_key(ebuf_p[i, 0], ebuf_p[i, 1], ebuf_p[i, 2], ax, R)
+            # walked from its start (sides 0, 1) or its end (sides 2, 3)
+            roots.up[kr] = (vb > iso) if sd < 2 else (va > iso)
+            t = (iso - va) / (vb - va)
+            t = min(max(t, lim.clamp), 1.0 - lim.clamp)
+            roots.pos[kr, 0] = ebuf_p[i, 0]
+            roots.pos[kr, 1] = ebuf_p[i, 1]
+            roots.pos[kr, 2] = ebuf_p[i, 2]
+            roots.pos[kr, ax] += t * ebuf_len[i]
+            kr += 1
+    return nroots, centre_in, roots
+
+
+@njit(cache=True)
+def _pair_roots(roots, nroots, centre_in, s, segs, ns):
+    """Append a face's iso-segments to ``segs`` (``ns`` held); returns ``(ns, segs)``.
+
+    Consecutive roots are paired without crossings by the centre's side: inside, the inside
+    arcs are joined. Each segment runs from the root where the walk leaves the inside to the one
+    where it enters, reversed when the leaf lies above the face (``s`` 1).
+    """
+    if ns + nroots > segs.key.shape[0]:
+        segs = Segments(_grow2(segs.key, ns + nroots), _grow2(segs.pos, ns + nroots))
+    rup = roots.up
+    for i in range(nroots):
+        j = (i + 1) % nroots
+        # down -> next up joins an outside arc (centre inside); up -> next down an inside arc
+        if centre_in and not rup[i] and rup[j]:
+            fr, to = i, j
+        elif (not centre_in) and rup[i] and not rup[j]:
+            fr, to = j, i
+        else:
+            continue
+        if s == 1:
+            fr, to = to, fr
+        segs.key[ns, 0] = roots.key[fr]
+        segs.key[ns, 1] = roots.key[to]
+        for q in range(3):
+            segs.pos[ns, q] = roots.pos[fr, q]
+            segs.pos[ns, 3 + q] = roots.pos[to, q]
+        ns += 1
+    return ns, segs
+
+
+@njit(cache=True)
+def _leaf_segments(tree, scratch, work, lim, ci, lev, cell, roots, segs):
+    """The iso-segments of the minimal faces covering a leaf's boundary (:func:`leaf_polygons`).
+
+    ``cell``: the leaf's (x, y, z) at its level; its corner values are in ``work`` and its bounds
+    in ``work.lo3`` / ``hi3``. Returns ``(ns, roots, segs)``: the segments' count and the
+    buffers, grown when needed.
+    """
+    keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, R, cap = tree
+    qstack, hxyz = work.qstack, work.hxyz
+    cx, cy, cz = cell
+    ns = 0
+    for a in range(3):
+        b = (a + 1) % 3
+        c = (a + 2) % 3
+        ca = cell[a]
+        for s in range(2):
+            w = ca + s
+            if w == 0 or w == (np.int64(1) << lev):
+                continue  # on the cube's faces: outside
+            # the face's range (chi bilinear on it; clamped points only lower it)
+            flo = 1e300
+            fhi = -1e300
+            for q in range(8):
+                if ((q >> a) & 1) == s:
+                    flo = min(flo, work.clv[q])
+                    fhi = max(fhi, work.raw[q])
+            if flo > lim.iso + lim.eps or fhi < lim.iso - lim.eps:
+                continue
+            # minimal faces: the leaves' faces on the far side where it is finer
+            qstack[0, 0] = lev
+            qstack[0, 1] = cell[b]
+            qstack[0, 2] = cell[c]
+            top = 1
+            while top > 0:
+                top -= 1
+                ll, u, vv = qstack[top, 0], qstack[top, 1], qstack[top, 2]
+                wl = w << (ll - lev)
+                na = wl if s == 1 else wl - 1
+                if ll == D and ll == lev:
+                    st = -1  # a finest leaf: the far side is no finer (and no lookup)
+                elif a == 0:
+                    st = _state(keys, leaf, coff, fkeys, D, ll, na, u, vv)
+                elif a == 1:
+                    st = _state(keys, leaf, coff, fkeys, D, ll, vv, na, u)
+                else:
+                    st = _state(keys, leaf, coff, fkeys, D, ll, u, vv, na)
+                if st <= -2:
+                    for o in range(4):
+                        qstack[top, 0] = ll + 1
+                        qstack[top, 1] = 2 * u + (o & 1)
+                        qstack[top, 2] = 2 * vv + (o >> 1)
+                        top += 1
+                    continue
+                # the leaf whose face this is: the far one when it is a leaf of this level,
+                # else this one (then the face is the whole of its own)
+                if st >= 0:
+                    hint = st
+                    hxyz[a] = na
+                    hxyz[b] = u
+                    hxyz[c] = vv
+                else:
+                    hint = ci
+                    hxyz[0] = cx
+                    hxyz[1] = cy
+                    hxyz[2] = cz
+                _face_edges(tree, scratch, work, ll, a, wl, u, vv, hint)
+                nroots, centre_in, roots = _face_roots(scratch, work, lim, R, a, roots)
+                if nroots:
+                    ns, segs = _pair_roots(roots, nroots, centre_in, s, segs, ns)
+    return ns, roots, segs
+
+
+@njit(cache=True)
+def _chain_loop(segs, ns, i0, order, sfrom, loop, work, R):
+    """Chain the segments from ``i0`` into a loop; its roots go to ``loop``.
+
+    Each root ends one segment and starts the next. Returns ``(n, ok)``: the loop's length and
+    whether it closed. ``order`` / ``sfrom``: the segments sorted by their first root (unused for
+    16 or fewer: then a linear search). A root's mask has bit 2q (2q + 1) when its edge lies on
+    the leaf's lower (upper) face across axis q.
+    """
+    small = ns <= 16
+    n = 0
+    cur = i0
+    while True:
+        loop.visited[cur] = True
+        rk = segs.key[cur, 0]
+        loop.key[n] = rk
+        loop.pos[n, 0] = segs.pos[cur, 0]
+        loop.pos[n, 1] = segs.pos[cur, 1]
+        loop.pos[n, 2] = segs.pos[cur, 2]
+        ax = rk & 3
+        rest = rk >> 2
+        pz = rest % (R + 1)
+        rest //= R + 1
+        py = rest % (R + 1)
+        px = rest // (R + 1)
+        mk = 0
+        for q in range(3):
+            pq = px if q == 0 else (py if q == 1 else pz)
+            if q != ax:
+                if pq == work.lo3[q]:
+                    mk |= 1 << (2 * q)
+                if pq == work.hi3[q]:
+                    mk |= 1 << (2 * q + 1)
+        loop.mask[n] = mk
+        n += 1
+        nxt = -1
+        if small:
+            for i in range(ns):
+                if segs.key[i, 0] == segs.key[cur, 1]:
+                    nxt = i
+                    break
+        else:
+            idx = lower_bound(sfrom, segs.key[cur, 1], 0, ns)
+            if idx < ns and sfrom[idx] == segs.key[cur, 1]:
+                nxt = order[idx]
+        if nxt < 0:
+            return n, False
+        cur = nxt
+        if cur == i0:
+            return n, True
+        if loop.visited[cur]:
+            return n, False
+
+
+@njit(cache=True)
+def _emit_loop(out, counts, loop, n, tr):
+    """Weld a loop's roots and triangulate it; returns ``out``, grown when needed.
+
+    One vertex per minimal edge, whichever leaf meets it first; a minimal-area triangulation,
+    or a fan about a new vertex at the loop's centroid (its edges are its own).
+    """
+    tri, vpos, tk, tv = out
+    nt, nv, nroot, bits = counts[0], counts[1], counts[2], counts[3]
+    lp, lid = loop.pos, loop.vid
+    if nt + n > tri.shape[0]:
+        tri = _grow2(tri, nt + n)
+    if nv + n + 1 > vpos.shape[0]:
+        vpos = _grow2(vpos, nv + n + 1)
+    if 2 * (nroot + n) > tk.shape[0]:
+        tk, tv, bits = _rehash(tk, tv, bits)
+    for i in range(n):
+        sl = probe(tk, bits, loop.key[i])
+        if tk[sl] == -1:
+            tk[sl] = loop.key[i]
+            tv[sl] = nv
+            vpos[nv, 0] = lp[i, 0]
+            vpos[nv, 1] = lp[i, 1]
+            vpos[nv, 2] = lp[i, 2]
+            nv += 1
+            nroot += 1
+        lid[i] = tv[sl]
+    if n == 3:
+        tri[nt, 0] = lid[0]
+        tri[nt, 1] = lid[1]
+        tri[nt, 2] = lid[2]
+        nt += 1
+    elif n <= MAX_DP and _triangulate(n, lp, loop.mask, tr.cost, tr.split, tr.stack, tr.tris):
+        for t in range(n - 2):
+            for q in range(3):
+                tri[nt, q] = lid[tr.tris[t, q]]
+            nt += 1
+    else:
+        for q in range(3):
+            sm = 0.0
+            for i in range(n):
+                sm += lp[i, q]
+            vpos[nv, q] = sm / n
+        for i in range(n):
+            tri[nt, 0] = nv
+            tri[nt, 1] = lid[i]
+            tri[nt, 2] = lid[(i + 1) % n]
+            nt += 1
+        nv += 1
+    counts[0], counts[1], counts[2], counts[3] = nt, nv, nroot, bits
+    return Out(tri, vpos, tk, tv)
+
+
 @njit(cache=True)
 def leaf_polygons(
     keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, iso, eps, margin, clamp, xlo, xhi
@@ -436,9 +796,9 @@ def leaf_polygons(
     ``keys``, ``leaf``, ``nodes``, ``g``, ``coff``, ``goff``: the levels' sorted cell keys, leaf
     flags, the cells' corner nodes and chi at the nodes, concatenated (see above). Each leaf whose
     corner range reaches ``iso`` (within ``eps``) gathers the iso-segments of the minimal faces
-    covering its boundary (:func:`_face_segments`), chains them into loops (each root is the end of
-    one segment and the start of another) and triangulates each loop. Points on the cube's faces
-    count as outside (chi clamped to ``iso - margin``).
+    covering its boundary (:func:`_leaf_segments`), chains them into loops (:func:`_chain_loop`)
+    and triangulates each loop (:func:`_emit_loop`). Points on the cube's faces count as outside
+    (chi clamped to ``iso - margin``).
 
     Returns ``tri`` (t, 3) int64 vertex indices, ``vpos`` (v, 3) the vertices (finest-lattice
     units): one per minimal edge crossing the level set, shared by every leaf around it (welded
@@ -446,47 +806,52 @@ def leaf_polygons(
     chains that did not close into a loop (0 unless something is wrong).
     """
     R = np.int64(1) << D
-    cap = iso - margin
-    tri = np.empty((1024, 3), np.int64)
-    nt = 0
-    vpos = np.empty((1024, 3))
-    nv = 0
-    bits = 12
-    tk = np.full(1 << bits, -1, np.int64)  # hash table: root key -> vertex
-    tv = np.empty(1 << bits, np.int64)
-    nroot = 0
-    broken = 0
-    stack = np.empty((2 * (D + 3), 4), np.int64)
-    qstack = np.empty((4 * (D + 3), 3), np.int64)
-    ebuf_p = np.empty((4 * R + 8, 3), np.int64)
-    ebuf_len = np.empty(4 * R + 8, np.int64)
-    ebuf_v = np.empty((4 * R + 8, 2))
-    seg_key = np.empty((64, 2), np.int64)
-    seg_pos = np.empty((64, 6))
-    visited = np.zeros(64, np.bool_)
-    lk = np.empty(64, np.int64)
-    lp = np.empty((64, 3))
-    lm = np.empty(64, np.int64)
-    lid = np.empty(64, np.int64)
-    cost = np.empty((MAX_DP, MAX_DP))
-    split = np.empty((MAX_DP, MAX_DP), np.int64)
-    ltri = np.empty((MAX_DP, 3), np.int64)
-    tst = np.empty((MAX_DP, 2), np.int64)
+    tree = TreeView(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, R, iso - margin)
+    lim = Level(iso, eps, clamp)
+    ne = 4 * R + 8
+    scratch = EdgeScratch(
+        np.empty((2 * (D + 3), 4), np.int64),
+        np.empty(3, np.int64),
+        np.empty((ne, 3), np.int64),
+        np.empty(ne, np.int64),
+        np.empty((ne, 2)),
+    )
+    i3 = np.empty(3, np.int64)
+    work = FaceWork(
+        np.empty((4 * (D + 3), 3), np.int64),
+        np.empty(8),
+        np.empty(8),
+        i3.copy(),
+        i3.copy(),
+        i3.copy(),
+        i3.copy(),
+        np.empty(5, np.int64),
+    )
+    roots = Roots(np.empty(64, np.int64), np.empty(64, np.bool_), np.empty((64, 3)))
+    segs = Segments(np.empty((64, 2), np.int64), np.empty((64, 6)))
+    loop = Loop(
+        np.empty(64, np.int64),
+        np.empty((64, 3)),
+        np.empty(64, np.int64),
+        np.empty(64, np.int64),
+        np.zeros(64, np.bool_),
+    )
+    out = Out(
+        np.empty((1024, 3), np.int64),
+        np.empty((1024, 3)),
+        np.full(1 << 12, -1, np.int64),
+        np.empty(1 << 12, np.int64),
+    )
+    counts = np.array([0, 0, 0, 12], np.int64)
+    tr = Triangulation(
+        np.empty((MAX_DP, MAX_DP)),
+        np.empty((MAX_DP, MAX_DP), np.int64),
+        np.empty((MAX_DP, 2), np.int64),
+        np.empty((MAX_DP, 3), np.int64),
+    )
     order = np.empty(0, np.int64)
     sfrom = np.empty(0, np.int64)
-    raw = np.empty(8)
-    clv = np.empty(8)
-    lo3 = np.empty(3, np.int64)
-    hi3 = np.empty(3, np.int64)
-    hxyz = np.empty(3, np.int64)
-    cell = np.empty(3, np.int64)
-    e0 = np.empty(3, np.int64)
-    starts = np.empty(5, np.int64)
-    rkey = np.empty(64, np.int64)
-    rup = np.empty(64, np.bool_)
-    rpos = np.empty((64, 3))
-    tree = TreeView(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, R, cap)
-    scratch = EdgeScratch(stack, cell, ebuf_p, ebuf_len, ebuf_v)
+    broken = 0
     for lev in range(D + 1):
         side = np.int64(1) << (D - lev)
         end = coff[lev + 1] if lev < D else coff[D] + len(fkeys)
@@ -502,265 +867,36 @@ def leaf_polygons(
                 continue
             cy = (k >> 21) & MASK21
             cz = k & MASK21
-            lo = 1e300
-            hi = -1e300
-            for q in range(8):
-                v = (
-                    fg[fnodes[ci - coff[D], q & 3] + (q >> 2)]
-                    if lev == D
-                    else g[goff[lev] + nodes[ci, q & 3] + (q >> 2)]
-                )
-                raw[q] = v
-                clv[q] = _clamp(
-                    v,
-                    (cx + (q & 1)) * side,
-                    (cy + ((q >> 1) & 1)) * side,
-                    (cz + (q >> 2)) * side,
-                    R,
-                    cap,
-                )
-                lo = min(lo, clv[q])
-                hi = max(hi, v)
+            lo, hi = _leaf_range(tree, ci, lev, cx, cy, cz, side, work)
             if lo > iso + eps or hi < iso - eps:
                 continue
-            lo3[0] = cx * side
-            lo3[1] = cy * side
-            lo3[2] = cz * side
+            work.lo3[0] = cx * side
+            work.lo3[1] = cy * side
+            work.lo3[2] = cz * side
             for q in range(3):
-                hi3[q] = lo3[q] + side
-            ns = 0
-            for a in range(3):
-                b = (a + 1) % 3
-                c = (a + 2) % 3
-                ca = cx if a == 0 else (cy if a == 1 else cz)
-                cb = cx if b == 0 else (cy if b == 1 else cz)
-                cc = cx if c == 0 else (cy if c == 1 else cz)
-                for s in range(2):
-                    w = ca + s
-                    if w == 0 or w == (np.int64(1) << lev):
-                        continue  # on the cube's faces: outside
-                    # the face's range (chi bilinear on it; clamped points only lower it)
-                    flo = 1e300
-                    fhi = -1e300
-                    for q in range(8):
-                        if ((q >> a) & 1) == s:
-                            flo = min(flo, clv[q])
-                            fhi = max(fhi, raw[q])
-                    if flo > iso + eps or fhi < iso - eps:
-                        continue
-                    # minimal faces: the leaves' faces on the far side where it is finer
-                    qstack[0, 0] = lev
-                    qstack[0, 1] = cb
-                    qstack[0, 2] = cc
-                    top = 1
-                    while top > 0:
-                        top -= 1
-                        ll = qstack[top, 0]
-                        u = qstack[top, 1]
-                        vv = qstack[top, 2]
-                        wl = w << (ll - lev)
-                        na = wl if s == 1 else wl - 1
-                        if ll == D and ll == lev:
-                            st = -1  # a finest leaf: the far side is no finer (and no lookup)
-                        elif a == 0:
-                            st = _state(keys, leaf, coff, fkeys, D, ll, na, u, vv)
-                        elif a == 1:
-                            st = _state(keys, leaf, coff, fkeys, D, ll, vv, na, u)
-                        else:
-                            st = _state(keys, leaf, coff, fkeys, D, ll, u, vv, na)
-                        if st <= -2:
-                            for o in range(4):
-                                qstack[top, 0] = ll + 1
-                                qstack[top, 1] = 2 * u + (o & 1)
-                                qstack[top, 2] = 2 * vv + (o >> 1)
-                                top += 1
-                            continue
-                        # a leaf whose face this is: the far one when it is a leaf of this
-                        # level, else this one (then the face is the whole of its own)
-                        if st >= 0:
-                            hint = st
-                            hxyz[a] = na
-                            hxyz[b] = u
-                            hxyz[c] = vv
-                        else:
-                            hint = ci
-                            hxyz[0] = cx
-                            hxyz[1] = cy
-                            hxyz[2] = cz
-                        # the iso-segments of this minimal face: its boundary walked counter-
-                        # clockwise about +a (sides 2, 3 backwards), split into minimal edges;
-                        # each segment directed from the root where the walk leaves chi > iso
-                        # to the one where it enters (reversed when the leaf lies above the
-                        # face); roots paired without crossings by the value at the face's
-                        # centre (chi bilinear on it): inside, the inside arcs are joined
-                        m = 0
-                        for sd in range(4):
-                            e0[a] = wl
-                            # sd 0: from (u, vv) along +b; 1: from (u+1, vv) along +c; 2: (u, vv+1)
-                            # along b (walked backwards); 3: (u, vv) along c (backwards)
-                            e0[b] = u + (1 if sd == 1 else 0)
-                            e0[c] = vv + (1 if sd == 2 else 0)
-                            ax = b if sd % 2 == 0 else c
-                            starts[sd] = m
-                            if ll == D:
-                                # a finest edge: never split, its values are the hint leaf's corners
-                                # (what _minimal_edges does, without the call)
-                                fq = (
-                                    (e0[0] - hxyz[0])
-                                    | ((e0[1] - hxyz[1]) << 1)
-                                    | ((e0[2] - hxyz[2]) << 2)
-                                )
-                                hf = hint - coff[D]  # a finest leaf
-                                v0 = _clamp(
-                                    fg[fnodes[hf, fq & 3] + (fq >> 2)], e0[0], e0[1], e0[2], R, cap
-                                )
-                                qq = fq | (1 << ax)
-                                v1 = _clamp(
-                                    fg[fnodes[hf, qq & 3] + (qq >> 2)],
-                                    e0[0] + (qq & 1) - (fq & 1),
-                                    e0[1] + ((qq >> 1) & 1) - ((fq >> 1) & 1),
-                                    e0[2] + (qq >> 2) - (fq >> 2),
-                                    R,
-                                    cap,
-                                )
-                                ebuf_p[m, 0] = e0[0]
-                                ebuf_p[m, 1] = e0[1]
-                                ebuf_p[m, 2] = e0[2]
-                                ebuf_len[m] = 1
-                                ebuf_v[m, 0] = v0
-                                ebuf_v[m, 1] = v1
-                                m += 1
-                            else:
-                                m = _minimal_edges(tree, scratch, ll, e0, ax, hint, hxyz, m)
-                        starts[4] = m
-                        # walk the loop: edges of sides 2, 3 backwards
-                        corner_sum = 0.0
-                        nroots = 0
-                        # first pass: count roots, centre value
-                        for sd in range(4):
-                            elo = starts[sd]
-                            ehi = starts[sd + 1]
-                            first = elo if sd < 2 else ehi - 1
-                            corner_sum += ebuf_v[first, 0] if sd < 2 else ebuf_v[first, 1]
-                            for i in range(elo, ehi):
-                                if (ebuf_v[i, 0] > iso) != (ebuf_v[i, 1] > iso):
-                                    nroots += 1
-                        if nroots == 0:
-                            continue
-                        centre_in = corner_sum * 0.25 > iso
-                        if rkey.shape[0] < nroots:
-                            rkey = np.empty(2 * nroots, np.int64)
-                            rup = np.empty(2 * nroots, np.bool_)
-                            rpos = np.empty((2 * nroots, 3))
-                        kr = 0
-                        for sd in range(4):
-                            elo = starts[sd]
-                            ehi = starts[sd + 1]
-                            ax = b if sd % 2 == 0 else c
-                            for jj in range(ehi - elo):
-                                i = elo + jj if sd < 2 else ehi - 1 - jj
-                                va = ebuf_v[i, 0]
-                                vb = ebuf_v[i, 1]
-                                if (va > iso) == (vb > iso):
-                                    continue
-                                rkey[kr] = edge_key(ebuf_p[i, 0], ebuf_p[i, 1], ebuf_p[i, 2], ax, R)
-                                # walked from its start (sides 0, 1) or its end (sides 2, 3)
-                                inside_after = (vb > iso) if sd < 2 else (va > iso)
-                                rup[kr] = inside_after
-                                # the root: linear interpolation, kept ``clamp`` of the edge
-                                # away from its ends (no two roots at one point)
-                                t = (iso - va) / (vb - va)
-                                t = min(max(t, clamp), 1.0 - clamp)
-                                rpos[kr, 0] = ebuf_p[i, 0]
-                                rpos[kr, 1] = ebuf_p[i, 1]
-                                rpos[kr, 2] = ebuf_p[i, 2]
-                                rpos[kr, ax] += t * ebuf_len[i]
-                                kr += 1
-                        if ns + nroots > seg_key.shape[0]:
-                            seg_key = _grow2(seg_key, ns + nroots)
-                            seg_pos = _grow2(seg_pos, ns + nroots)
-                        for i in range(nroots):
-                            j = (i + 1) % nroots
-                            # down -> next up joins an outside arc (centre inside); up -> next down
-                            # an inside arc
-                            if centre_in and not rup[i] and rup[j]:
-                                fr, to = i, j
-                            elif (not centre_in) and rup[i] and not rup[j]:
-                                fr, to = j, i
-                            else:
-                                continue
-                            if s == 1:
-                                fr, to = to, fr
-                            seg_key[ns, 0] = rkey[fr]
-                            seg_key[ns, 1] = rkey[to]
-                            for q in range(3):
-                                seg_pos[ns, q] = rpos[fr, q]
-                                seg_pos[ns, 3 + q] = rpos[to, q]
-                            ns += 1
+                work.hi3[q] = work.lo3[q] + side
+            ns, roots, segs = _leaf_segments(
+                tree, scratch, work, lim, ci, lev, (cx, cy, cz), roots, segs
+            )
             if ns == 0:
                 continue
-            # chain the segments into loops
-            if visited.shape[0] < ns:
-                visited = np.zeros(seg_key.shape[0], np.bool_)
-                lk = np.empty(seg_key.shape[0], np.int64)
-                lp = np.empty((seg_key.shape[0], 3))
-                lm = np.empty(seg_key.shape[0], np.int64)
-                lid = np.empty(seg_key.shape[0], np.int64)
-            small = ns <= 16
-            if not small:
-                order = np.argsort(seg_key[:ns, 0])
-                sfrom = seg_key[:ns, 0][order]
-            for i in range(ns):
-                visited[i] = False
+            if loop.visited.shape[0] < ns:
+                sz = segs.key.shape[0]
+                loop = Loop(
+                    np.empty(sz, np.int64),
+                    np.empty((sz, 3)),
+                    np.empty(sz, np.int64),
+                    np.empty(sz, np.int64),
+                    np.zeros(sz, np.bool_),
+                )
+            if ns > 16:
+                order = np.argsort(segs.key[:ns, 0])
+                sfrom = segs.key[:ns, 0][order]
+            loop.visited[:ns] = False
             for i0 in range(ns):
-                if visited[i0]:
+                if loop.visited[i0]:
                     continue
-                n = 0
-                cur = i0
-                ok = True
-                while True:
-                    visited[cur] = True
-                    rk = seg_key[cur, 0]
-                    lk[n] = rk
-                    lp[n, 0] = seg_pos[cur, 0]
-                    lp[n, 1] = seg_pos[cur, 1]
-                    lp[n, 2] = seg_pos[cur, 2]
-                    # the leaf's faces the root's edge lies on
-                    ax = rk & 3
-                    rest = rk >> 2
-                    pz = rest % (R + 1)
-                    rest //= R + 1
-                    py = rest % (R + 1)
-                    px = rest // (R + 1)
-                    mk = 0
-                    for q in range(3):
-                        pq = px if q == 0 else (py if q == 1 else pz)
-                        if q != ax:
-                            if pq == lo3[q]:
-                                mk |= 1 << (2 * q)
-                            if pq == hi3[q]:
-                                mk |= 1 << (2 * q + 1)
-                    lm[n] = mk
-                    n += 1
-                    nxt = -1
-                    if small:
-                        for i in range(ns):
-                            if seg_key[i, 0] == seg_key[cur, 1]:
-                                nxt = i
-                                break
-                    else:
-                        idx = lower_bound(sfrom, seg_key[cur, 1], 0, ns)
-                        if idx < ns and sfrom[idx] == seg_key[cur, 1]:
-                            nxt = order[idx]
-                    if nxt < 0:
-                        ok = False
-                        break
-                    cur = nxt
-                    if cur == i0:
-                        break
-                    if visited[cur]:
-                        ok = False
-                        break
+                n, ok = _chain_loop(segs, ns, i0, order, sfrom, loop, work, R)
                 if ok and n == 2:
                     # two roots on one edge of the leaf joined on both its faces there (chi
                     # clamped at the cube's faces is not linear along such an edge): a loop of
@@ -769,49 +905,8 @@ def leaf_polygons(
                 if not ok or n < 3:
                     broken += 1
                     continue
-                # the loop's vertices: a root is welded through its edge key (one vertex
-                # per minimal edge, whichever leaf meets it first)
-                if nt + n > tri.shape[0]:
-                    tri = _grow2(tri, nt + n)
-                if nv + n + 1 > vpos.shape[0]:
-                    vpos = _grow2(vpos, nv + n + 1)
-                if 2 * (nroot + n) > tk.shape[0]:
-                    tk, tv, bits = _rehash(tk, tv, bits)
-                for i in range(n):
-                    sl = probe(tk, bits, lk[i])
-                    if tk[sl] == -1:
-                        tk[sl] = lk[i]
-                        tv[sl] = nv
-                        vpos[nv, 0] = lp[i, 0]
-                        vpos[nv, 1] = lp[i, 1]
-                        vpos[nv, 2] = lp[i, 2]
-                        nv += 1
-                        nroot += 1
-                    lid[i] = tv[sl]
-                if n == 3:
-                    tri[nt, 0] = lid[0]
-                    tri[nt, 1] = lid[1]
-                    tri[nt, 2] = lid[2]
-                    nt += 1
-                elif n <= MAX_DP and _triangulate(n, lp, lm, cost, split, tst, ltri):
-                    for t in range(n - 2):
-                        for q in range(3):
-                            tri[nt, q] = lid[ltri[t, q]]
-                        nt += 1
-                else:
-                    # a fan about a new vertex at the loop's centroid: its edges are its own
-                    for q in range(3):
-                        sm = 0.0
-                        for i in range(n):
-                            sm += lp[i, q]
-                        vpos[nv, q] = sm / n
-                    for i in range(n):
-                        tri[nt, 0] = nv
-                        tri[nt, 1] = lid[i]
-                        tri[nt, 2] = lid[(i + 1) % n]
-                        nt += 1
-                    nv += 1
-    return tri[:nt], vpos[:nv], broken
+                out = _emit_loop(out, counts, loop, n, tr)
+    return out.tri[: counts[0]], out.vpos[: counts[1]], broken
 
 
 @njit(cache=True)
