@@ -130,6 +130,8 @@ def test_command_keeps_every_property_and_row(tmp_path, monkeypatch, capsys):
     monkeypatch.undo()
     rep = json.loads(captured.out)
     assert rep["distributed"]["chunks"] == 3 and rep["points"] == len(cloud.points)
+    assert rep["stage"] == "normals" and rep["backend"] == "native" and "read" not in rep
+    assert set(rep["timings"]) >= {"stage", "write"} and rep["distributed"]["cluster"]["workers"]
     got = load(str(out))
     assert np.array_equal(got.points, cloud.points)
     assert np.array_equal(got.colors, cloud.colors)

@@ -633,32 +633,11 @@ def run_from_files(
     from recon_cli.batch.cluster import open_client
     from recon_cli.io.chunks import plan_chunks
     from recon_cli.stages import provenance_line
-    from recon_cli.stages.normals import (
-        SPEC,
-        check_distributed_neighbours,
-        check_knn,
-        check_orient,
-        sensor_views,
-    )
+    from recon_cli.stages.normals import SPEC
 
     if params.get("workers") is None and params.get("scheduler") is None:
         return None
-    v = SPEC.check(params, complete=True)
-    check_distributed_neighbours(v["neighbours"])
-    if v["backend"] != "native":
-        raise ParameterError("--workers/--scheduler run the native normals: leave out --backend")
-    if v["scheduler"] is not None and (v["workers"] is not None or v["memory_limit"] is not None):
-        raise ParameterError(
-            "--workers and --memory-limit size a local cluster; leave them out with --scheduler"
-        )
-    if input == "-":
-        raise ParameterError("--workers/--scheduler read IN by chunks: give a file, not '-'")
-    if load_kw.get("format"):
-        raise ParameterError(
-            "--workers/--scheduler read IN by its suffix: leave out --input-format"
-        )
-    knn, radius = check_knn(v["knn"], v["radius"])
-    method, cam, dirn = check_orient(v["orient"], v["camera"], v["direction"])
+    v, knn, radius, (method, cam, dirn) = _checked(params, input, load_kw)
     t0 = time.perf_counter()
     chunks = plan_chunks(input)
     folder = os.path.dirname(os.path.abspath(output)) if output != "-" else None
@@ -668,19 +647,7 @@ def run_from_files(
             client,
             info,
         ):
-            scans = client.gather([client.submit(scan_rows, c, pure=False) for c in chunks])
-            n_rows = sum(s["rows"] for s in scans)
-            if n_rows == 0:
-                raise InputError("the input has no points")
-            if method == "keep" and not all(s["normals"] for s in scans):
-                raise ParameterError("--orient keep needs input normals")
-            sensors = None
-            if method == "camera" and cam is None:  # each point towards its own scanner
-                if len({s["sensors"] for s in scans}) > 1:
-                    raise InputError("the tiles do not all give the same scanner positions")
-                sensors = list(scans[0]["sensors"])
-                # the sensors' positions and directions (no point: their checks come per chunk)
-                views = sensor_views(sensors, np.zeros(0, np.int64), 0, np.zeros(3))
+            scans, n_rows, sensors, views = _scan(client, chunks, method, cam)
             lo = np.min([s["lo"] for s in scans if "lo" in s], axis=0)
             hi = np.max([s["hi"] for s in scans if "lo" in s], axis=0)
             frame = _frame(lo, hi)
@@ -722,6 +689,66 @@ def run_from_files(
         t2 = time.perf_counter()
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+    _finish_report(report, scans, chunks, info, method, cam, sensors, (t1 - t0, t2 - t1))
+    report["output"] = "<stdout>" if output == "-" else output
+    return report
+
+
+def _checked(params: dict, input: str, load_kw: dict) -> tuple[dict, Any, Any, tuple]:
+    """The options of a distributed run, checked.
+
+    Returns (values, knn, radius, (orientation method, camera, direction)).
+    """
+    from recon_cli.stages.normals import (
+        SPEC,
+        check_distributed_neighbours,
+        check_knn,
+        check_orient,
+    )
+
+    v = SPEC.check(params, complete=True)
+    check_distributed_neighbours(v["neighbours"])
+    if v["backend"] != "native":
+        raise ParameterError("--workers/--scheduler run the native normals: leave out --backend")
+    if v["scheduler"] is not None and (v["workers"] is not None or v["memory_limit"] is not None):
+        raise ParameterError(
+            "--workers and --memory-limit size a local cluster; leave them out with --scheduler"
+        )
+    if input == "-":
+        raise ParameterError("--workers/--scheduler read IN by chunks: give a file, not '-'")
+    if load_kw.get("format"):
+        raise ParameterError(
+            "--workers/--scheduler read IN by its suffix: leave out --input-format"
+        )
+    knn, radius = check_knn(v["knn"], v["radius"])
+    return v, knn, radius, check_orient(v["orient"], v["camera"], v["direction"])
+
+
+def _scan(client: Any, chunks: list, method: str, cam: Any) -> tuple[list, int, Any, Any]:
+    """Each chunk's rows, bounds and scanner positions: (scans, rows, sensors, their views).
+
+    ``sensors`` is None unless each point is oriented towards its own scanner.
+    """
+    from recon_cli.stages.normals import sensor_views
+
+    scans = client.gather([client.submit(scan_rows, c, pure=False) for c in chunks])
+    n_rows = sum(s["rows"] for s in scans)
+    if n_rows == 0:
+        raise InputError("the input has no points")
+    if method == "keep" and not all(s["normals"] for s in scans):
+        raise ParameterError("--orient keep needs input normals")
+    sensors = views = None
+    if method == "camera" and cam is None:  # each point towards its own scanner
+        if len({s["sensors"] for s in scans}) > 1:
+            raise InputError("the tiles do not all give the same scanner positions")
+        sensors = list(scans[0]["sensors"])
+        # the sensors' positions and directions (no point: their checks come per chunk)
+        views = sensor_views(sensors, np.zeros(0, np.int64), 0, np.zeros(3))
+    return scans, n_rows, sensors, views
+
+
+def _finish_report(report, scans, chunks, info, method, cam, sensors, seconds) -> None:
+    """The command's report: viewpoints, the readers' drops, the cluster, the timings."""
     report["backend"] = "native"
     if method == "camera":
         report["viewpoints"] = (
@@ -731,13 +758,11 @@ def run_from_files(
         )
     dropped = sum(s["invalid_dropped"] for s in scans)
     if dropped:  # as the command's report of a reader's drops
-        report["read"] = {"kept": n_rows, "invalid_dropped": dropped}
+        report["read"] = {"kept": sum(s["rows"] for s in scans), "invalid_dropped": dropped}
     report["distributed"]["cluster"] = info
     report["distributed"]["chunks"] = len(chunks)
-    report["timings"] = {"stage": t1 - t0, "write": t2 - t1}
+    report["timings"] = {"stage": seconds[0], "write": seconds[1]}
     report["stage"] = "normals"
-    report["output"] = "<stdout>" if output == "-" else output
-    return report
 
 
 def _write(chunks, first, nrm, curv, perm, output, save_kw, ascii, prov, method, report) -> None:
