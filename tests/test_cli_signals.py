@@ -6,7 +6,7 @@ test costs about one process start): inside a numba kernel that computes for a m
 (the machine-code handler must end it at once), in the middle of writing a regular file
 (through ``O_TMPFILE`` and through the named temporary file used where that is missing),
 in a ``__del__`` where Python drops the raised interrupt as "unraisable" (the hook must end
-the process at once), and in code that swallows the interrupt (the deadline must end the
+the process at once, importing nothing: the signal may come in the middle of an import), and in code that swallows the interrupt (the deadline must end the
 process anyway).
 Then real ``recon poisson`` runs signalled at spread times: whatever it was doing, the
 answer is 130/143 and one line, or exit 0 with the whole output when it had finished.
@@ -85,6 +85,24 @@ CHILD = textwrap.dedent(
                 Slow()
 
         atomic._write_all = _write_all
+    elif point == "unraisable-importing":
+        import builtins
+        import recon_cli.io.load as load_mod
+
+        class Slow:
+            def __del__(self):
+                time.sleep(120)
+
+        def refuse(*args, **kwargs):
+            raise ImportError("signalled in the middle of an import")
+
+        def load(path, **kwargs):
+            announce()
+            builtins.__import__ = refuse  # the exit path must import nothing
+            while True:
+                Slow()
+
+        load_mod.load = load
     elif point == "swallowed":
         import recon_cli.io.load as load_mod
 
@@ -131,6 +149,7 @@ def test_signals_at_fixed_points(cloud, tmp_path):
         ("write", signal.SIGINT),
         ("write-named", signal.SIGTERM),
         ("unraisable", signal.SIGINT),
+        ("unraisable-importing", signal.SIGTERM),
         ("swallowed", signal.SIGINT),
     ]
     runs = []

@@ -79,9 +79,11 @@ def _deadline(signum: int, done: threading.Event) -> None:
 
 def _exit_now(signum: int) -> None:
     """Remove the output's temporary file, say why, and end the process with 128 + signum."""
-    from recon_cli.io.atomic import remove_temporaries
-
-    remove_temporaries()
+    # no import here: the signal may have come in the middle of one (a partly initialized module);
+    # if the atomic writer was never imported, there is no temporary file to remove
+    atomic = sys.modules.get("recon_cli.io.atomic")
+    if atomic is not None:
+        atomic.remove_temporaries()
     msg = b"recon: interrupted\n" if signum == signal.SIGINT else b"recon: terminated\n"
     with contextlib.suppress(OSError):
         os.write(2, msg)
