@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
+import tempfile
 import time
 
 import numpy as np
@@ -22,6 +24,8 @@ _seen: list[tuple[str, float]] = []
 
 
 def pytest_configure(config):
+    if not hasattr(config, "workerinput"):
+        _snapshot_warm_cache()
     if not _COMPILES:
         return
     from numba.core import event
@@ -51,3 +55,25 @@ def pytest_runtest_protocol(item, nextitem):
         line = {"test": item.nodeid, "n": len(_seen), "s": took, "kernels": top[:20]}
         with open(_COMPILES, "a") as f:
             f.write(json.dumps(line) + "\n")
+
+
+# test_warmup's copy of the numba cache as `make install` left it, taken before any test compiles
+# into it: warming that copy up again costs what an edit made stale, not a whole warm-up from
+# empty (which a clean clone's install has just done).
+WARM_CACHE = "RECON_TEST_WARM_CACHE"
+
+
+def _snapshot_warm_cache() -> None:
+    from recon_cli._kernels.numba_setup import CACHE_DIR
+
+    if WARM_CACHE in os.environ or not os.path.isdir(CACHE_DIR):
+        return
+    copy = os.path.join(tempfile.mkdtemp(prefix="recon-test-cache-"), "cache")
+    shutil.copytree(CACHE_DIR, copy, ignore=shutil.ignore_patterns("*.lock", "*.tmp*"))
+    os.environ[WARM_CACHE] = copy  # the xdist workers start after this and inherit it
+
+
+def pytest_unconfigure(config):
+    copy = os.environ.get(WARM_CACHE)
+    if copy and not hasattr(config, "workerinput") and "recon-test-cache-" in copy:
+        shutil.rmtree(os.path.dirname(copy), ignore_errors=True)

@@ -1,15 +1,14 @@
 """SIGINT and SIGTERM end ``recon`` with 130 / 143, one line on stderr, no traceback, no temporary
 file.
 
-Deterministic points of a run, each in its own child process (started together, so the
-test costs about one process start): inside a numba kernel that computes for a minute
-(the machine-code handler must end it at once), in the middle of writing a regular file
-(through ``O_TMPFILE`` and through the named temporary file used where that is missing),
-in a ``__del__`` where Python drops the raised interrupt as "unraisable" (the hook must end
-the process at once, importing nothing: the signal may come in the middle of an import), and in code that swallows the interrupt (the deadline must end the
-process anyway).
-Then real ``recon poisson`` runs signalled at spread times: whatever it was doing, the
-answer is 130/143 and one line, or exit 0 with the whole output when it had finished.
+Deterministic points of a run, each in its own child process (started together, so the test costs
+about one process start): inside a numba kernel that computes for a minute (the machine-code handler
+must end it at once), in the middle of writing a regular file (through ``O_TMPFILE`` and through the
+named temporary file used where that is missing), in a ``__del__`` where Python drops the raised
+interrupt as "unraisable" (the hook must end the process at once, importing nothing: the signal may
+come in the middle of an import), and in code that swallows the interrupt (the deadline must end the
+process anyway). Then real ``recon poisson`` runs signalled at spread times: whatever it was doing,
+the answer is 130/143 and one line, or exit 0 with the whole output when it had finished.
 """
 
 from __future__ import annotations
