@@ -13,6 +13,7 @@ from recon_cli.errors import InputError
 from recon_cli.geometry import PointCloud, TriangleMesh
 from recon_cli.io._text_kernel import parse_float
 from recon_cli.io.obj import decode_obj, obj_bytes, read_obj, write_obj
+from recon_cli.io.text import as_uint8
 
 from shapes import mesh_family
 
@@ -149,7 +150,7 @@ def test_fuzz_truncated_or_corrupted_obj_is_data_or_input_error(seed, cut, junk,
 )
 def test_number_parser_is_correctly_rounded(x, fmt):
     tok = (fmt % x).encode()
-    buf = np.frombuffer(tok, np.uint8)
+    buf = as_uint8(tok)
     v, status = parse_float(buf, 0, len(buf))
     assert status in (1, 2)
     if status == 1:  # the fast path must give exactly Python's (correctly rounded) value

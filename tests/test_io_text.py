@@ -41,7 +41,7 @@ def _bits(x: float) -> int:
 
 def _read_all(tokens: list[str], delim: str = " ") -> np.ndarray:
     """The tokens through the row reader (fast paths and the slow path for the undecided)."""
-    data = np.frombuffer(delim.join(tokens).encode(), np.uint8)
+    data = text.as_uint8(delim.join(tokens).encode())
     values, row_start, _ = text.read_rows(
         data, 0, len(data), "t.txt", delim=ord(delim) if delim != " " else 0
     )
@@ -91,7 +91,7 @@ def test_every_printed_double_reads_as_python_float_reads_it(xs):
         tokens.append(repr(x) if fmt == "%r" else fmt % x)
     _assert_identical(tokens)
     for tok in tokens:  # up to 19 significant digits the kernel decides alone (no slow path)
-        buf = np.frombuffer(tok.encode(), np.uint8)
+        buf = text.as_uint8(tok.encode())
         v, status = parse_float(buf, 0, len(buf))
         if _significant_digits(tok) <= 19:
             assert status == 1 and _bits(v) == _bits(float(tok)), tok
@@ -179,7 +179,7 @@ EDGE = [
 @pytest.mark.parametrize("tok", EDGE)
 def test_edge_cases_read_as_python_float(tok):
     _assert_identical([tok])
-    buf = np.frombuffer(tok.encode(), np.uint8)
+    buf = text.as_uint8(tok.encode())
     _, status = parse_float(buf, 0, len(buf))
     assert status in (1, 2)
 
@@ -217,11 +217,11 @@ BAD = [
 
 @pytest.mark.parametrize("tok", BAD)
 def test_malformed_tokens_are_refused(tok):
-    buf = np.frombuffer(tok.encode(), np.uint8)
+    buf = text.as_uint8(tok.encode())
     assert parse_float(buf, 0, len(buf))[1] == 0
     if tok.strip(" ,") and tok != "1,5":
         with pytest.raises(InputError, match=r"^t\.txt: line 2: "):
-            data = np.frombuffer(("1 2 3\n1 " + tok + " 3\n").encode(), np.uint8)
+            data = text.as_uint8(("1 2 3\n1 " + tok + " 3\n").encode())
             text.read_rows(data, 0, len(data), "t.txt")
 
 
@@ -242,7 +242,7 @@ def test_malformed_tokens_are_refused(tok):
     ],
 )
 def test_integers(tok, ok):
-    buf = np.frombuffer(tok.encode(), np.uint8)
+    buf = text.as_uint8(tok.encode())
     v, good, stop = scan_int(buf, 0, len(buf))
     assert (good and stop == len(buf)) == ok and (not ok or v == int(tok))
 
@@ -255,21 +255,21 @@ def test_integers(tok, ok):
 def test_tables_do_not_depend_on_the_first_capacity(rows, wide):
     body = "".join(" ".join(repr(v) for v in r) + "\n" for r in rows)
     body = "# a comment\n\n" + body + " ".join(["1"] * 3) + "\n"
-    buf = np.frombuffer(body.encode(), np.uint8)
+    buf = text.as_uint8(body.encode())
     want = np.array([[float(repr(v)) for v in r] for r in rows] + [[1.0] * 3])
     for cap in (1, 16, 10_000):
         got = text.read_table(buf, 0, len(buf), "t.xyz", cap=cap)
         assert got.shape == want.shape and np.array_equal(got.view(np.uint64), want.view(np.uint64))
     # a row wider than any first capacity, through the variable-width reader
     line = " ".join(["2.5"] * (wide + 1)) + "\n"
-    data = np.frombuffer((line + "1 2\n").encode(), np.uint8)
+    data = text.as_uint8((line + "1 2\n").encode())
     values, row_start, row_line = text.read_rows(data, 0, len(data), "t.txt")
     assert row_start.tolist() == [0, wide + 1, wide + 3] and row_line.tolist() == [1, 2]
     assert np.all(values[: wide + 1] == 2.5) and values[-2:].tolist() == [1.0, 2.0]
 
 
 def test_a_row_with_other_column_count_names_its_line():
-    data = np.frombuffer(b"1 2 3\n\n# c\n4 5 6\n7 8\n", np.uint8)
+    data = text.as_uint8(b"1 2 3\n\n# c\n4 5 6\n7 8\n")
     with pytest.raises(InputError, match=r"^t\.xyz: line 5: 2 columns, the first row has 3$"):
         text.read_table(data, 0, len(data), "t.xyz")
 
@@ -286,7 +286,7 @@ def test_digit_runs_stop_at_every_other_byte_with_more_bytes_after(run):
         if run == 0 and b in (43, 45):  # a sign: the digits after it are the number
             continue
         # 16 digits after the stop byte: the 8-byte loads see them, the scanners must not take them
-        buf = np.frombuffer(digits.encode() + bytes([b]) + b"1234567890123456", np.uint8)
+        buf = text.as_uint8(digits.encode() + bytes([b]) + b"1234567890123456")
         v, ok, stop = scan_int(buf, 0, len(buf))
         assert stop == run and ok == (1 <= run <= 18), (run, b)
         if ok:
@@ -301,7 +301,7 @@ def test_digit_runs_stop_at_every_other_byte_with_more_bytes_after(run):
 
 @pytest.mark.parametrize("end", range(0, 21))
 def test_scanners_read_no_byte_at_or_after_the_end_they_are_given(end):
-    buf = np.frombuffer(b"12345678901234567890123.5e7 9", np.uint8)
+    buf = text.as_uint8(b"12345678901234567890123.5e7 9")
     v, ok, stop = scan_int(buf, 0, end)
     assert stop == end and ok == (1 <= end <= 18) and (not ok or v == int(buf[:end].tobytes()))
     value, status, stop = scan_float(buf, 0, end)
@@ -335,6 +335,6 @@ def test_tokens_followed_by_more_fields_read_as_python_float(tok):
     assert (math.isnan(got[0]) and math.isnan(ref)) or _bits(got[0]) == _bits(ref), tok
     assert got[1:].tolist() == [1.0, 22.0, 333.0, 4444.0, 55555.0, -0.25]
     if _significant_digits(tok) <= 19 and not math.isnan(ref):  # decided without the slow path
-        buf = np.frombuffer((tok + " 1234567890").encode(), np.uint8)
+        buf = text.as_uint8((tok + " 1234567890").encode())
         v, status, stop = scan_float(buf, 0, len(buf))
         assert status == 1 and stop == len(tok) and _bits(v) == _bits(ref), tok

@@ -30,7 +30,7 @@ UNUSED: set[str] = {
 }
 
 AFTER = r"""
-import sys, json
+import io, sys, json
 from numba.core import event
 compiled = []
 class L(event.Listener):
@@ -59,6 +59,20 @@ runs = [
 ]
 for args in runs:
     cli.main(args=["-q", *args], prog_name="recon", standalone_mode=False)
+# the same files from stdin (bytes, not a file read into numpy memory): nothing more to compile
+piped = [depth]
+for src, ext in ((scan, "obj"), (scan, "xyz"), (kitten, "off"), (kitten, "stl"), (kitten, "obj")):
+    piped.append(f"{d}/piped_{len(piped)}.{ext}")
+    cli.main(args=["-q", "convert", src, piped[-1]], prog_name="recon", standalone_mode=False)
+for path in piped + [scan]:
+    with open(path, "rb") as f:
+        sys.stdin = io.TextIOWrapper(f)
+        cli.main(args=["-q", "info", "-"], prog_name="recon", standalone_mode=False)
+with open(scan, "rb") as f:
+    sys.stdin = io.TextIOWrapper(f)
+    cli.main(
+        args=["-q", "normals", "-", f"{d}/piped.ply"], prog_name="recon", standalone_mode=False
+    )
 print(json.dumps(compiled))
 """
 

@@ -28,6 +28,7 @@ from recon_cli.aot import kernels
 from recon_cli.errors import InputError
 from recon_cli.geometry import PointCloud, TriangleMesh, drop_invalid, storage_dtype
 from recon_cli.io._ply_types import FORMATS, PLY_TYPES, ply_name
+from recon_cli.io.text import as_uint8
 
 MAX_HEADER_BYTES = 1 << 20
 
@@ -245,6 +246,7 @@ def parse_ply(buf: bytes | np.ndarray, path: str | None = None) -> PlyData:
     InputError
         On any malformed, truncated or inconsistent content (the message names ``path``).
     """
+    buf = as_uint8(buf)  # writable: the element arrays are views of it
     ply, offset = parse_header(buf, path)
     ply.nbytes = len(buf)
     where = _describe(path)
@@ -722,21 +724,23 @@ def _ascii_body(el: PlyElement) -> bytes:
 # --------------------------------------------------------------------------- data model
 
 
-def read_bytes(path: str | os.PathLike) -> bytes | np.ndarray:
-    """All bytes of ``path``: a ``(n,) uint8`` array for a file, ``bytes`` for ``-`` (stdin).
+def read_bytes(path: str | os.PathLike) -> np.ndarray:
+    """All bytes of ``path`` (``-``: stdin) as a writable ``(n,) uint8`` array.
 
     A file is read straight into numpy memory, as ``np.fromfile`` does: one buffer that the
-    parser views, no ``bytes`` object copied out of it.
+    parser views, no ``bytes`` object copied out of it. Writable whatever the source (see
+    :func:`recon_cli.io.text.as_uint8`): the arrays parsed out of it are views that the stages'
+    kernels take.
     """
     if str(path) == "-":
-        return sys.stdin.buffer.read()
+        return as_uint8(sys.stdin.buffer.read())
     try:
         with open(path, "rb", buffering=0) as f:
             st = os.fstat(f.fileno())
             if not stat.S_ISREG(
                 st.st_mode
             ):  # a pipe or device (e.g. <(cat scan.ply)): size unknown
-                return f.read()
+                return as_uint8(f.read())
             size = st.st_size
             buf = np.empty(size, dtype=np.uint8)
             got = f.readinto(buf.data)

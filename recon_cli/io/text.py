@@ -20,10 +20,18 @@ def where_of(path) -> str:
 
 
 def as_uint8(data) -> np.ndarray:
-    """The bytes of a file as a ``(n,) uint8`` array (no copy)."""
+    """The bytes of a file as a writable ``(n,) uint8`` array.
+
+    No copy of a writable buffer (a file read by :func:`recon_cli.io.ply.read_bytes`); read-only
+    data (``bytes``) is copied once, so the kernels see one array type whatever the bytes came
+    from and what ``recon warmup`` compiled serves stdin and a library caller's ``bytes`` too (a
+    read-only array is another numba signature: minutes of compiling for a copy of milliseconds).
+    """
     if isinstance(data, np.ndarray):
-        return data.view(np.uint8).reshape(-1)
-    return np.frombuffer(data, dtype=np.uint8)
+        buf = data.view(np.uint8).reshape(-1)
+    else:
+        buf = np.frombuffer(data, dtype=np.uint8)
+    return buf if buf.flags.writeable else buf.copy()
 
 
 def line_at(buf: np.ndarray, offset: int) -> int:
