@@ -584,7 +584,10 @@ def test_command_reports_the_slab_count_and_why(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(D, "SLAB_BYTES_PER_POINT", 3 * D.SLAB_MEMORY_SHARE * mem / len(pts))
     argv = ["poisson", str(src), str(tmp_path / "m.ply"), "--workers", "2", "--depth", "7"]
     argv += ["--memory-limit", "2GiB", "--json", "-q"]
-    for extra, count, why in (([], 4, "2 per worker: a slab (~"), (["--partitions", "3"], 3, "given")):
+    for extra, count, why in (
+        ([], 4, "2 per worker: a slab (~"),
+        (["--partitions", "3"], 3, "given"),
+    ):
         code = _recon(argv + extra)
         captured = capsys.readouterr()
         assert code == 0, captured.err
