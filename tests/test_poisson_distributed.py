@@ -133,7 +133,7 @@ def test_states_pickled_between_steps_give_the_same_mesh(monkeypatch):
             return out
 
     monkeypatch.setattr(
-        D, "make_runner", lambda c, slabs, p=None, o=None: Pickling(slabs, p, "x", o)
+        D, "make_runner", lambda c, slabs, p=None, o=None, spill=None: Pickling(slabs, p, "x", o)
     )
     moved = distributed_poisson(pts, nrm, depth=7, partitions=3).mesh
     assert np.array_equal(moved.vertices, plain.vertices)
