@@ -1145,7 +1145,8 @@ def reconstruct_files(
     :class:`.PoissonResult`; with ``output`` (a binary PLY path) the mesh is streamed there from the
     slabs' files instead (``history`` its comments, after the input's) and the result's mesh is
     None. ``attributes``: the input's properties carried onto the vertices
-    (:func:`.attributes.select`).
+    (:func:`.attributes.select`). ``partitions`` None: as many slabs as the workers' memory
+    needs (:func:`slab_count`, once the chunks' points are counted).
     """
     import shutil
     import tempfile
