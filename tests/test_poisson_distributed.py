@@ -133,7 +133,7 @@ def test_states_pickled_between_steps_give_the_same_mesh(monkeypatch):
             return out
 
     monkeypatch.setattr(
-        D, "make_runner", lambda c, slabs, p=None, o=None: Pickling(slabs, p, "x", o)
+        D, "make_runner", lambda c, slabs, p=None, o=None, spill=None: Pickling(slabs, p, "x", o)
     )
     moved = distributed_poisson(pts, nrm, depth=7, partitions=3).mesh
     assert np.array_equal(moved.vertices, plain.vertices)
@@ -304,6 +304,88 @@ def test_refused_options(kw, msg):
         distributed_poisson(pts, nrm, **{"depth": 7, "partitions": 2, **kw})
 
 
+# ---- the slab count -----------------------------------------------------------------------
+
+
+def test_default_partitions_from_the_workers_memory():
+    """One slab per worker when a slab fits the worker's share; a cloud four times too big takes
+    four per worker; a count rounded up to whole rounds of the workers, capped at 32; no limit:
+    one per worker."""
+    from recon_cli.stages.poisson.distributed import (
+        SLAB_BYTES_PER_POINT,
+        SLAB_MEMORY_SHARE,
+        default_partitions,
+    )
+
+    mem = 8 * 2**30
+    per_slab = SLAB_MEMORY_SHARE * mem / SLAB_BYTES_PER_POINT  # the points one slab may hold
+    fits = int(4 * per_slab)
+    assert default_partitions(fits, 4, mem) == 4
+    assert default_partitions(fits + 1, 4, mem) == 8
+    assert default_partitions(4 * fits, 4, mem) == 16
+    assert default_partitions(5 * int(per_slab), 3, mem) == 6
+    assert default_partitions(10, 4, mem) == 4
+    assert default_partitions(0, 1, mem) == 1
+    assert default_partitions(100 * fits, 4, mem) == 32
+    assert default_partitions(int(31 * per_slab), 3, mem) == 32  # 11 rounds of 3: 33
+    assert default_partitions(10**9, 4, None) == 4
+    assert default_partitions(10**9, 4, 0) == 4
+    assert default_partitions(10, 40, mem) == 32
+    with pytest.raises(ParameterError, match="workers must be >= 1"):
+        default_partitions(10, 0, mem)
+
+
+class _Client:
+    """A client stand-in: the scheduler's view of ``workers`` workers of ``memory`` bytes."""
+
+    def __init__(self, limits):
+        self.limits = limits
+
+    def scheduler_info(self):
+        return {"workers": {f"w{i}": {"memory_limit": m} for i, m in enumerate(self.limits)}}
+
+
+def test_slab_count_says_how_many_and_why(caplog):
+    from recon_cli.stages.poisson.distributed import (
+        SLAB_BYTES_PER_POINT,
+        SLAB_MEMORY_SHARE,
+        slab_count,
+    )
+
+    mem = 2**30
+    per_slab = int(SLAB_MEMORY_SHARE * mem / SLAB_BYTES_PER_POINT)
+    # the smallest worker's limit decides; a worker without one does not
+    n, rep = slab_count(None, 3 * per_slab, _Client([mem, 2 * mem, 0]))
+    assert n == 3 and rep["count"] == 3 and rep["memory_per_worker"] == mem
+    assert rep["why"].startswith("one per worker: a slab (~")
+    assert f"fits {SLAB_MEMORY_SHARE:.0%} of a worker's 1 GiB" in rep["why"]
+    n, rep = slab_count(None, 2 * 3 * per_slab, _Client([mem, 2 * mem, 0]))
+    assert n == 6 and rep["why"].startswith("2 per worker")
+    n, rep = slab_count(5, 2 * 3 * per_slab, _Client([mem] * 3))
+    assert n == 5 and rep["why"] == "given (--partitions)"
+    n, rep = slab_count(None, 10**9, _Client([0, None]))
+    assert n == 2 and rep["why"] == "one per worker: the workers have no memory limit"
+    assert rep["memory_per_worker"] is None
+    with caplog.at_level("WARNING", logger="recon"):
+        n, rep = slab_count(None, 64 * per_slab, _Client([mem]))
+    assert n == 32 and rep["why"].startswith("capped at 32 (the seams are level-5 planes)")
+    assert "may not fit" in rep["why"] and "may not fit" in caplog.text
+    assert slab_count(None, 10**9, None)[0] == 1  # no cluster: this process, one slab
+
+
+def test_no_partitions_in_memory_is_one_slab_here():
+    """Without a cluster and ``partitions=None``, this process runs one slab: the
+    single-process mesh, and the report says so."""
+    pts, nrm = sphere_cloud(8000, seed=3)
+    res = distributed_poisson(pts, nrm, depth=7, partitions=None)
+    ref = distributed_poisson(pts, nrm, depth=7, partitions=1)
+    assert res.report["distributed"]["partitions"]["count"] == 1
+    assert len(res.report["distributed"]["slabs"]) == 1
+    assert np.array_equal(res.mesh.vertices, ref.mesh.vertices)
+    with pytest.raises(ParameterError, match="partitions must be 1..32"):
+        distributed_poisson(pts, nrm, depth=7, partitions=0)
+
+
 # ---- on a Dask cluster ----------------------------------------------------------------------
 
 
@@ -375,7 +457,8 @@ def test_more_slabs_than_workers_spill_their_states(cluster, tmp_path, monkeypat
             seen.append(len(os.listdir(tmp_path)))
             return out
 
-    def runner(client, slabs, progress=None, overall=None):
+    def runner(client, slabs, progress=None, overall=None, spill_dir=None):
+        assert spill_dir is not None  # three slabs, two workers: the run spills by itself
         return Spilling(client, slabs, progress, "poisson", overall, str(tmp_path), 0)
 
     monkeypatch.setattr(D, "make_runner", runner)
@@ -472,6 +555,7 @@ def test_command_reads_the_file_by_chunks(tmp_path, monkeypatch, capsys):
     monkeypatch.undo()
     rep = json.loads(captured.out)
     assert rep["distributed"]["chunks"] == 3
+    assert rep["distributed"]["partitions"]["count"] == 2 == len(rep["distributed"]["slabs"])
     assert set(rep["distributed"]["phases"]) >= {"load", "solve", "extract", "attributes"}
     assert rep["read"] == {"kept": len(pts), "invalid_dropped": 1}
     assert rep["attributes"] == ["classification", "intensity"]
@@ -484,6 +568,34 @@ def test_command_reads_the_file_by_chunks(tmp_path, monkeypatch, capsys):
         assert mesh.attributes[k].dtype == props[k].dtype
         assert np.array_equal(mesh.attributes[k], ref.mesh.attributes[k])
     assert not [f for f in os.listdir(tmp_path) if f.startswith(".recon-poisson-")]
+
+
+@pytest.mark.slow
+def test_command_reports_the_slab_count_and_why(tmp_path, monkeypatch, capsys):
+    """``--workers 2 --memory-limit 2GiB`` without ``--partitions``, on a cloud whose slab
+    (at a patched bytes per point) fits a worker's share three times over: four slabs, two per
+    worker, and ``--json`` says so; with ``--partitions 3``, three, given."""
+    from recon_cli.stages.poisson import distributed as D
+
+    pts, nrm = sphere_cloud(6000, seed=15)
+    src = tmp_path / "sphere.ply"
+    save(PointCloud(points=pts, normals=nrm), str(src))
+    mem = 2 * 2**30
+    monkeypatch.setattr(D, "SLAB_BYTES_PER_POINT", 3 * D.SLAB_MEMORY_SHARE * mem / len(pts))
+    argv = ["poisson", str(src), str(tmp_path / "m.ply"), "--workers", "2", "--depth", "7"]
+    argv += ["--memory-limit", "2GiB", "--json", "-q"]
+    for extra, count, why in (
+        ([], 4, "2 per worker: a slab (~"),
+        (["--partitions", "3"], 3, "given"),
+    ):
+        code = _recon(argv + extra)
+        captured = capsys.readouterr()
+        assert code == 0, captured.err
+        rep = json.loads(captured.out)["distributed"]
+        assert rep["partitions"]["count"] == count == len(rep["slabs"])
+        assert rep["partitions"]["why"].startswith(why)
+        assert rep["partitions"]["memory_per_worker"] == mem
+        assert rep["partitions"]["points"] == len(pts)
 
 
 @pytest.mark.parametrize(

@@ -267,8 +267,9 @@ SPEC = StageSpec(
             "partitions",
             "int",
             None,
-            "Slabs of a --workers/--scheduler run (default: one per worker); more slabs, less "
-            "memory per worker.",
+            "Slabs of a --workers/--scheduler run; more slabs, less memory per worker (default: "
+            "the fewest, a multiple of the workers, whose one slab fits a share of a worker's "
+            "memory limit; one per worker without a limit; the report says why).",
             min=1,
             max=32,
         ),
@@ -1244,7 +1245,7 @@ def _run_distributed(
         res = distributed_poisson(
             cloud.points,
             cloud.normals,
-            partitions=partitions or max(1, int(info.get("workers") or 1)),
+            partitions=partitions,
             **solve,
             colors=colors,
             properties=props,

@@ -76,7 +76,9 @@ values before it; a slab whose worker dies is rebuilt by running its steps again
 another worker (:class:`recon_cli.batch.steps.DaskRunner`), the global values being the
 coordinator's. With more slabs than workers, a slab's state goes to a file in the job's
 temporary folder between its steps (the runner's spill folder), so a worker holds only the
-slab it runs: more slabs, less memory a worker.
+slab it runs: more slabs, less memory a worker. Unless told, a run takes the fewest slabs, a
+multiple of the workers, whose one slab fits a share of a worker's memory limit
+(:func:`default_partitions`); the report's ``distributed.partitions`` says how many and why.
 
 **Progress and report.** One bar over the whole job (:class:`recon_cli.batch.steps.Overall`:
 each phase its measured share, advanced as each slab finishes it, with the time left);
@@ -179,6 +181,97 @@ def plan_slabs(
 def sub_slab(x_unit: np.ndarray, nsub: int) -> np.ndarray:
     """(n,) the sub-slab (of ``nsub`` along x) of each unit-cube x."""
     return np.clip(np.floor(x_unit * nsub), 0, nsub - 1).astype(np.int64)
+
+
+# a slab's worker's peak memory per point of the slab's own, its pads' points included
+# (bench/calibration.md, "distributed poisson: a slab's memory")
+SLAB_BYTES_PER_POINT = 4096
+# the share of a worker's memory limit one slab may take: the rest is the worker's own (imports,
+# compiled kernels, Dask's buffers) and the pads' growth with many slabs
+SLAB_MEMORY_SHARE = 0.4
+
+
+def default_partitions(npoints: int, workers: int, memory_per_worker: float | None) -> int:
+    """The slab count of a run whose ``--partitions`` is not given.
+
+    Parameters
+    ----------
+    npoints : int
+        Points of the cloud (those with a usable normal).
+    workers : int
+        Worker processes of the cluster (>= 1).
+    memory_per_worker : float or None
+        A worker's memory limit in bytes; None or 0 for no limit.
+
+    Returns
+    -------
+    int
+        The fewest slabs such that one slab, at :data:`SLAB_BYTES_PER_POINT` bytes per point of
+        its share of ``npoints``, fits :data:`SLAB_MEMORY_SHARE` of ``memory_per_worker``,
+        rounded up to a multiple of ``workers`` (every worker runs as many), at least
+        ``workers``; at most 32 (the seams are level-5 planes), even when a slab does not fit
+        then. Without a limit, one slab per worker.
+    """
+    if int(workers) < 1:
+        raise ParameterError(f"workers must be >= 1, got {workers}")
+    if int(npoints) < 0:
+        raise ParameterError(f"npoints must be >= 0, got {npoints}")
+    workers = int(workers)
+    cap = 1 << S.PARTITION_DEPTH
+    if not memory_per_worker or memory_per_worker <= 0:
+        return min(workers, cap)
+    need = math.ceil(npoints * SLAB_BYTES_PER_POINT / (SLAB_MEMORY_SHARE * memory_per_worker))
+    rounds = max(1, math.ceil(need / workers))
+    return min(rounds * workers, cap)
+
+
+def worker_memory(client: Any) -> tuple[int, int | None]:
+    """The cluster's worker count and the smallest worker memory limit in bytes (None: no limit)."""
+    workers = client.scheduler_info().get("workers", {})
+    limits = [w.get("memory_limit") for w in workers.values()]
+    limited = [float(m) for m in limits if m]
+    return max(1, len(workers)), (int(min(limited)) if limited else None)
+
+
+def _size(nbytes: float) -> str:
+    return f"{nbytes / 2**30:.3g} GiB" if nbytes >= 2**30 else f"{nbytes / 2**20:.3g} MiB"
+
+
+def slab_count(partitions: int | None, npoints: int, client: Any) -> tuple[int, dict]:
+    """The slabs of a run and the report's ``distributed.partitions`` (how many, and why).
+
+    ``partitions`` given: that many; else :func:`default_partitions` from the ``client``'s
+    workers and their memory (no client: this process, one slab).
+    """
+    nworkers, memory = worker_memory(client) if client is not None else (1, None)
+    entry: dict[str, Any] = {
+        "count": 0,
+        "why": "",
+        "workers": nworkers,
+        "memory_per_worker": memory,
+        "points": int(npoints),
+    }
+    if partitions is not None:
+        entry.update(count=int(partitions), why="given (--partitions)")
+        return int(partitions), entry
+    parts = default_partitions(npoints, nworkers, memory)
+    slab_bytes = npoints / parts * SLAB_BYTES_PER_POINT
+    entry.update(count=parts, slab_bytes_estimate=int(slab_bytes))
+    fits = memory is None or slab_bytes <= SLAB_MEMORY_SHARE * memory
+    if fits and parts % nworkers == 0:
+        head = "one per worker" if parts == nworkers else f"{parts // nworkers} per worker"
+    else:
+        head = f"capped at {parts} (the seams are level-{S.PARTITION_DEPTH} planes)"
+    if memory is None:
+        why = f"{head}: the workers have no memory limit"
+    else:
+        share = f"{SLAB_MEMORY_SHARE:.0%} of a worker's {_size(memory)}"
+        verb = "fits" if fits else "may not fit"
+        why = f"{head}: a slab (~{_size(slab_bytes)}) {verb} {share}"
+    if not fits:
+        log.warning("poisson: %d slabs, %s", parts, why)
+    entry["why"] = why
+    return parts, entry
 
 
 def coarse_depth_for(depth: int) -> int:
@@ -497,6 +590,7 @@ def reconstruct(
                 {
                     "own": lm["own"],
                     "points": lm["own_points"],
+                    "points_read": lm["points"],  # with its pads'
                     "samples": lm["own_samples"],
                     "faces": e["faces"],
                     "seam_vertices": len(e["seam_left"][0]),
@@ -777,7 +871,7 @@ def distributed_poisson(
     points: np.ndarray,
     normals: np.ndarray,
     *,
-    partitions: int = 2,
+    partitions: int | None = 2,
     depth: int = 8,
     scale: float = 1.1,
     point_weight: float = 4.0,
@@ -792,15 +886,22 @@ def distributed_poisson(
     cg_tolerance: float = 1e-3,
     client: Any = None,
     seams: list[int] | None = None,
+    temp_dir: str | None = None,
     progress: Any = None,
 ):
     """Screened Poisson reconstruction in ``partitions`` slabs, the cloud given in memory.
 
     See the module docstring. On the Dask ``client``'s cluster, or else all in this process
-    (:class:`recon_cli.batch.steps.LocalRunner`). Returns a :class:`.PoissonResult` like
-    :func:`.screened_poisson`'s (``confidence``, ``colors``, ``properties`` as there), whose report
-    has a ``distributed`` part.
+    (:class:`recon_cli.batch.steps.LocalRunner`). ``partitions`` None: as many as the workers'
+    memory needs (:func:`slab_count`). With more slabs than workers, the slabs' states wait in a
+    temporary folder in ``temp_dir`` (default: the system's; the workers must share it) between
+    their steps. Returns a :class:`.PoissonResult` like :func:`.screened_poisson`'s
+    (``confidence``, ``colors``, ``properties`` as there), whose report has a ``distributed``
+    part (``partitions``: how many slabs and why).
     """
+    import shutil
+    import tempfile
+
     from recon_cli.stages.poisson import (
         SPEC,
         PoissonResult,
@@ -821,10 +922,12 @@ def distributed_poisson(
         density=density,
         trim=trim,
     )
-    _check_distributed(depth, params["full_depth"], partitions)
+    _check_distributed(depth, params["full_depth"], 1 if partitions is None else partitions)
     t0 = time.perf_counter()
     lengths: list = []
     pts, nrm, keep = check_inputs(points, normals, lengths)
+    partitions, slab_choice = slab_count(partitions, len(pts), client)
+    _check_distributed(depth, params["full_depth"], partitions)
     if SPEC.param("confidence").coerce(confidence):
         params["weight_scale"] = 1.0 / float(lengths[0].mean())
         nrm = nrm * lengths[0][:, None]  # a slab weighs each point by its normal's length
@@ -852,28 +955,46 @@ def distributed_poisson(
             {name: v[sel] for name, v in props.items()},
         )
 
-    with _task(progress, "poisson: the whole job", sum(weights.values())) as bar:
-        runner = make_runner(client, slabs, progress, Overall(bar, weights))
-        try:
-            loaded = runner.run("load", S.load, load_args)
-            out = reconstruct(runner, job, loaded, progress, carry=carry)
-        finally:
-            runner.close()
+    # more slabs than workers: a worker keeps only the slab it runs in memory
+    spill = None
+    if client is not None and partitions > slab_choice["workers"]:
+        spill = tempfile.mkdtemp(prefix=".recon-poisson-", dir=temp_dir)
+    try:
+        with _task(progress, "poisson: the whole job", sum(weights.values())) as bar:
+            runner = make_runner(client, slabs, progress, Overall(bar, weights), spill)
+            try:
+                loaded = runner.run("load", S.load, load_args)
+                out = reconstruct(runner, job, loaded, progress, carry=carry)
+            finally:
+                runner.close()
+    finally:
+        if spill is not None:
+            shutil.rmtree(spill, ignore_errors=True)
     mesh = assemble(out, job, perm, colors is not None)
     rep = out["report"]
+    rep["distributed"]["partitions"] = slab_choice
     rep["ignored_points"] = int((~keep).sum())
     rep["attributes"] = sorted(props) + (["colors"] if colors is not None else [])
     rep["timings"]["total"] = time.perf_counter() - t0
     return PoissonResult(mesh, rep)
 
 
-def make_runner(client: Any, slabs: list, progress: Any = None, overall: Any = None):
-    """The slabs' runner: on the Dask ``client``'s cluster, or in this process without one."""
+def make_runner(
+    client: Any,
+    slabs: list,
+    progress: Any = None,
+    overall: Any = None,
+    spill_dir: str | None = None,
+):
+    """The slabs' runner: on the Dask ``client``'s cluster, or in this process without one.
+
+    ``spill_dir``: where a cluster's slab states wait between their steps (None: on the workers).
+    """
     from recon_cli.batch.steps import DaskRunner, LocalRunner
 
     if client is None:
         return LocalRunner(slabs, progress, "poisson", overall)
-    return DaskRunner(client, slabs, progress, "poisson", overall)
+    return DaskRunner(client, slabs, progress, "poisson", overall, spill_dir)
 
 
 def _check_distributed(depth: int, full_depth: int, partitions: int) -> None:
@@ -1024,7 +1145,8 @@ def reconstruct_files(
     :class:`.PoissonResult`; with ``output`` (a binary PLY path) the mesh is streamed there from the
     slabs' files instead (``history`` its comments, after the input's) and the result's mesh is
     None. ``attributes``: the input's properties carried onto the vertices
-    (:func:`.attributes.select`).
+    (:func:`.attributes.select`). ``partitions`` None: as many slabs as the workers' memory
+    needs (:func:`slab_count`, once the chunks' points are counted).
     """
     import shutil
     import tempfile
@@ -1036,8 +1158,6 @@ def reconstruct_files(
     depth, scale, point_weight, samples_per_node, _, boundary, density, trim = check_options(
         depth, scale, point_weight, samples_per_node, 2, boundary, density, trim
     )
-    nworkers = max(1, len(client.scheduler_info().get("workers", {})))
-    parts = int(partitions) if partitions else nworkers
     params: dict[str, Any] = {
         "samples_per_node": samples_per_node,
         "point_weight": point_weight,
@@ -1047,13 +1167,16 @@ def reconstruct_files(
         "density": density,
         "trim": trim,
     }
-    _check_distributed(depth, params["full_depth"], parts)
+    # the depths now, a default slab count once the points are counted
+    _check_distributed(depth, params["full_depth"], 1 if partitions is None else partitions)
     t0 = time.perf_counter()
     chunks = plan_chunks(inputs)
     scans = _scan_chunks(client, chunks, progress)
     scan_phase: dict = {}
     note_phase(scan_phase, "scan", scans, time.perf_counter() - t0)
     kept, rows, names, keep_colors, dtypes, color_type = _checked_scans(scans, attributes)
+    parts, slab_choice = slab_count(partitions, kept, client)
+    nworkers = slab_choice["workers"]
     if SPEC.param("confidence").coerce(confidence):
         params["weight_scale"] = kept / sum(s["length_sum"] for s in scans)
     lo = np.min([s["lo"] for s in scans if "lo" in s], axis=0)
@@ -1143,6 +1266,7 @@ def reconstruct_files(
     rep["timings"]["read"] = read_s
     rep["timings"]["total"] = time.perf_counter() - t0
     rep["distributed"]["chunks"] = len(chunks)
+    rep["distributed"]["partitions"] = slab_choice
     if mesh is None:
         return Streamed(rep)
     return PoissonResult(mesh, rep)
