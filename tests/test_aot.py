@@ -108,6 +108,11 @@ def _build(d: Path) -> tuple[dict, Path, dict[str, Path]]:
         report = (
             build_ahead_of_time()
         )  # what recon warmup builds: the kernels and the signal handler
+    # numba re-reads its environment at each compile, so the build's NUMBA_CACHE_DIR would stay
+    # numba's for the kernels this worker imports next (they would compile into the build's folder)
+    from numba.core import config as numba_config
+
+    numba_config.reload_config()
     (d / "report.json").write_text(json.dumps([report, {k: str(v) for k, v in files.items()}]))
     return report, cache, files
 
