@@ -508,6 +508,7 @@ def drop_invalid(obj: PointCloud | TriangleMesh, where: str | None = None):
         vertices, normals, colors, *values = take_rows(
             [pts, obj.normals, obj.colors, *obj.attributes.values()], ok
         )
+        assert vertices is not None  # a mesh always has vertices
         out: PointCloud | TriangleMesh = TriangleMesh(
             vertices=vertices,
             faces=remap[obj.faces],
@@ -548,20 +549,22 @@ def take_rows(columns: list[np.ndarray | None], rows: Any) -> list[np.ndarray | 
     Returns
     -------
     list of (k, ...) arrays or None
-        In the order of ``columns``; each owns its data or is a view of records no other
-        result of another call shares.
+        In the order of ``columns``; new arrays (the views of gathered records share only
+        those records, which nothing else holds).
 
     Raises
     ------
     InputError
         Columns of different lengths, a mask of another length, an index out of range.
     """
-    present = [c for c in columns if c is not None]
-    if not present:
-        return [None] * len(columns)
-    n = len(present[0])
-    if any(c.ndim == 0 or len(c) != n for c in present):
-        raise InputError(f"per-point arrays of different lengths ({[len(c) for c in present]})")
+    arrays = {i: c for i, c in enumerate(columns) if c is not None}
+    out: list[np.ndarray | None] = [None] * len(columns)
+    if not arrays:
+        return out
+    n = len(next(iter(arrays.values())))
+    if any(c.ndim == 0 or len(c) != n for c in arrays.values()):
+        lengths = [len(c) if c.ndim else None for c in arrays.values()]
+        raise InputError(f"per-point arrays of different lengths ({lengths})")
     idx = np.asarray(rows)
     if idx.dtype == bool:
         if idx.shape != (n,):
@@ -572,35 +575,31 @@ def take_rows(columns: list[np.ndarray | None], rows: Any) -> list[np.ndarray | 
     idx = idx.astype(np.intp, copy=False).reshape(-1)
     if idx.size and (int(idx.min()) < -n or int(idx.max()) >= n):
         raise InputError(f"row index out of range for {n} rows")
-    out: list[np.ndarray | None] = [None] * len(columns)
-    for group, as_records in _record_groups(columns, n):
+    for group, as_records in _record_groups(arrays, n):
         if not as_records or idx.size == 0:
             for i in group:
-                out[i] = columns[i][idx]  # type: ignore[index]
+                out[i] = arrays[i][idx]
             continue
-        cols = [columns[i] for i in group]
-        starts = [c.__array_interface__["data"][0] for c in cols]  # type: ignore[union-attr]
-        first = min(starts)
-        span = max(s - first + _row_bytes(c) for s, c in zip(starts, cols, strict=True))  # type: ignore[arg-type]
-        stride = cols[0].strides[0]  # type: ignore[union-attr]
-        # the group's bytes as one record per row, read-only; the columns keep the memory alive
-        records = np.asarray(
-            _Buffer({
-                "data": (first, True),
-                "shape": (n,),
-                "strides": (stride,),
-                "typestr": f"|V{span}",
-                "version": 3,
-            })
-        )
-        kept = records.take(idx)
-        for i, s, c in zip(group, starts, cols, strict=True):
+        starts = {i: arrays[i].__array_interface__["data"][0] for i in group}
+        first = min(starts.values())
+        span = max(starts[i] - first + _row_bytes(arrays[i]) for i in group)
+        # the group's bytes as one record per row, read-only; ``arrays`` keeps the memory alive
+        interface = {
+            "data": (first, True),
+            "shape": (n,),
+            "strides": (arrays[group[0]].strides[0],),
+            "typestr": f"|V{span}",
+            "version": 3,
+        }
+        kept = np.asarray(_Buffer(interface)).take(idx)
+        for i in group:
+            c = arrays[i]
             out[i] = np.ndarray(
-                (len(idx), *c.shape[1:]),  # type: ignore[union-attr]
-                dtype=c.dtype,  # type: ignore[union-attr]
+                (len(idx), *c.shape[1:]),
+                dtype=c.dtype,
                 buffer=kept,
-                offset=s - first,
-                strides=(span, *c.strides[1:]),  # type: ignore[union-attr]
+                offset=starts[i] - first,
+                strides=(span, *c.strides[1:]),
             )
     return out
 
@@ -617,26 +616,24 @@ def _row_bytes(a: np.ndarray) -> int:
     return a.itemsize + sum((k - 1) * s for k, s in zip(a.shape[1:], a.strides[1:], strict=True))
 
 
-def _record_groups(columns: list[np.ndarray | None], n: int) -> list[tuple[list[int], bool]]:
-    """The indices of ``columns`` grouped by record, and whether to gather each as records.
+def _record_groups(arrays: dict[int, np.ndarray], n: int) -> list[tuple[list[int], bool]]:
+    """The keys of ``arrays`` grouped by record, and whether to gather each group as records.
 
-    Columns group when they have the same row stride, their rows lie within one stride of
+    Arrays group when they have the same row stride, their rows lie within one stride of
     the group's first byte and their memory overlaps (so one allocation holds them and the
-    bytes between them). A column gathered as records holds plain values (no Python
-    objects) with positive strides; any other is indexed alone, as is a lone 1-D column.
+    bytes between them). An array gathered as records holds plain values (no Python
+    objects) with positive strides; any other is indexed alone, as is a lone 1-D array.
     """
     groups: list[list[int]] = []
-    spans: list[tuple[int, int, int]] = []  # stride, first byte, end of a row, per group
-    for i, c in enumerate(columns):
-        if c is None:
-            continue
+    spans: list[tuple[int, int, int]] = []  # row stride (0: index alone), first byte, row end
+    for i, c in arrays.items():
         stride = c.strides[0]
         plain = (
             n > 1
+            and c.size > 0
             and not c.dtype.hasobject
             and stride > 0
             and all(s > 0 for s in c.strides[1:])
-            and c.size > 0
             and _row_bytes(c) <= stride
         )
         if not plain:
@@ -649,7 +646,7 @@ def _record_groups(columns: list[np.ndarray | None], n: int) -> list[tuple[list[
             if (
                 gs == stride
                 and max(hi, end) - min(lo, start) <= stride
-                and np.may_share_memory(columns[groups[g][0]], c)
+                and np.may_share_memory(arrays[groups[g][0]], c)
             ):
                 groups[g].append(i)
                 spans[g] = (gs, min(lo, start), max(hi, end))
@@ -658,7 +655,7 @@ def _record_groups(columns: list[np.ndarray | None], n: int) -> list[tuple[list[
             groups.append([i])
             spans.append((stride, start, end))
     return [
-        (g, sp[0] > 0 and (len(g) > 1 or columns[g[0]].ndim > 1))  # type: ignore[union-attr]
+        (g, sp[0] > 0 and (len(g) > 1 or arrays[g[0]].ndim > 1))
         for g, sp in zip(groups, spans, strict=True)
     ]
 

@@ -1,4 +1,4 @@
-"""The data model's sensor pieces: Sensor and its stored line, PixelGrid, drop_invalid; take_rows."""
+"""The data model: Sensor and its stored line, PixelGrid, drop_invalid, take_rows."""
 
 from __future__ import annotations
 
@@ -126,10 +126,20 @@ def test_drop_invalid_on_meshes_refuses_a_face_using_a_bad_vertex():
 # ---- take_rows: records gathered in one copy, equal to each column's fancy index ----------------
 _RECORD = np.dtype(
     [
-        ("x", "<f8"), ("y", "<f8"), ("z", "<f8"),
-        ("nx", ">f4"), ("ny", ">f4"), ("nz", ">f4"),
-        ("red", "u1"), ("green", "u1"), ("blue", "u1"),
-        ("intensity", "<u2"), ("flag", "?"), ("label", "<i8"), ("gap", "<f2"), ("t", "<f8"),
+        ("x", "<f8"),
+        ("y", "<f8"),
+        ("z", "<f8"),
+        ("nx", ">f4"),
+        ("ny", ">f4"),
+        ("nz", ">f4"),
+        ("red", "u1"),
+        ("green", "u1"),
+        ("blue", "u1"),
+        ("intensity", "<u2"),
+        ("flag", "?"),
+        ("label", "<i8"),
+        ("gap", "<f2"),
+        ("t", "<f8"),
     ],
     align=False,
 )
@@ -190,7 +200,7 @@ def test_take_rows_equals_each_columns_fancy_index(n, seed, how):
             # bytes equal: NaN payloads, -0.0 and byte order kept
             assert np.ascontiguousarray(g).tobytes() == np.ascontiguousarray(want).tobytes()
     got = take_rows(interleaved, rows)
-    if len(got[0]) > 1:  # the interleaved columns came from one copy of the records
+    if n > 1 and len(got[0]):  # the interleaved columns came from one copy of the records
         assert all(not np.may_share_memory(g, rec) for g in got)
         assert np.may_share_memory(got[0], got[6])  # one record array holds them
         got[0][...] = 0  # the results are writeable, and each column only its own bytes

@@ -318,9 +318,7 @@ def box_codes(points: Any, box: Any = None) -> np.ndarray:
         ``box`` not six numbers, or a minimum above its maximum.
     """
     lo_hi = _NO_BOX if box is None else SPEC.param("crop").coerce(box)
-    return _rowwise(
-        points, _kernels().box_codes, np.array(lo_hi, dtype=np.float64), dtype=np.uint8
-    )
+    return _rowwise(points, _kernels().box_codes, np.array(lo_hi, dtype=np.float64), dtype=np.uint8)
 
 
 def find_attribute(cloud: PointCloud, names: tuple[str, ...]) -> str | None:
@@ -730,8 +728,8 @@ def filter_cloud(
             sel = rows if sel is None else sel[rows]
 
     with task(progress, "invalid points" if crop is None else "invalid points, crop"):
-        codes = box_codes(raw, crop)
-        count = np.bincount(codes, minlength=3)
+        fate = box_codes(raw, crop)
+        count = np.bincount(fate, minlength=3)
         report["invalid_removed"] = int(count[_INVALID])
         if count[_INVALID] == n:
             raise InputError(f"every point (of {n}) has a NaN or infinite coordinate")
@@ -740,7 +738,7 @@ def filter_cloud(
             if count[_KEPT] == 0:
                 raise InputError(f"--crop {_text(crop)} leaves no point (of {n - count[_INVALID]})")
         if count[_KEPT] < n:
-            sel = np.flatnonzero(codes == _KEPT)
+            sel = np.flatnonzero(fate == _KEPT)
     if class_codes is not None:
         with task(progress, "classes"):
             codes = current(class_codes)
