@@ -247,14 +247,20 @@ def _points(points: Any) -> np.ndarray:
 def _rowwise(points: Any, kernel: Any, *args: Any, dtype: Any = bool) -> np.ndarray:
     """``kernel(rows, *args)`` (a ``dtype`` value per row) over ``points`` (n, 3) of any float type.
 
-    Rows go a chunk at a time through one float64 buffer: a binary PLY's points are a strided
-    view, and a contiguous float64 copy of a million of them costs more than the test.
+    Native float32 and float64 rows, contiguous or a binary PLY's strided view of its records,
+    are read in place (the layouts the warm-up compiles); any other rows go a chunk at a time
+    through one float64 buffer, as a contiguous float64 copy of a million costs more than the
+    test.
     """
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise InputError(f"points must have shape (n, 3), got {pts.shape}")
     n = len(pts)
-    if pts.dtype == np.float64 and pts.flags.c_contiguous and pts.flags.writeable:
+    if (
+        pts.dtype in (np.float32, np.float64)
+        and pts.flags.writeable
+        and (pts.flags.c_contiguous or (pts.strides[0] > 0 and pts.strides[1] == pts.itemsize))
+    ):
         return kernel(pts, *args)
     out = np.empty(n, dtype=dtype)
     buf = np.empty((min(n, _ROWS), 3))
