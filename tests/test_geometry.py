@@ -202,7 +202,7 @@ def test_take_rows_equals_each_columns_fancy_index(n, seed, how):
     got = take_rows(interleaved, rows)
     if n > 1 and len(got[0]):  # the interleaved columns came from one copy of the records
         assert all(not np.may_share_memory(g, rec) for g in got)
-        assert np.may_share_memory(got[0], got[6])  # one record array holds them
+        assert got[0].base is got[6].base is not None  # one record array holds them
         got[0][...] = 0  # the results are writeable, and each column only its own bytes
         assert np.array_equal(got[2], interleaved[2][rows])
 
