@@ -317,12 +317,21 @@ class PointCloud(Geometry):
         )
 
     def subset(self, mask: np.ndarray) -> PointCloud:
-        """The cloud restricted to ``mask`` (boolean or index array); sensors, pixels kept."""
+        """The cloud restricted to ``mask`` (boolean or index array); sensors, pixels kept.
+
+        The per-point arrays are gathered by :func:`take_rows` (those of one record, as a
+        binary PLY's, in one copy).
+        """
+        names = list(self.attributes)
+        points, normals, colors, *values = take_rows(
+            [self.points, self.normals, self.colors, *self.attributes.values()], mask
+        )
+        assert points is not None  # a cloud always has points
         return PointCloud(
-            points=self.points[mask],
-            normals=None if self.normals is None else self.normals[mask],
-            colors=None if self.colors is None else self.colors[mask],
-            attributes={k: v[mask] for k, v in self.attributes.items()},
+            points=points,
+            normals=normals,
+            colors=colors,
+            attributes=dict(zip(names, values, strict=True)),  # type: ignore[arg-type]
             history=list(self.history),
             point_dtype=self.point_dtype,
             obj_info=list(self.obj_info),
@@ -495,12 +504,17 @@ def drop_invalid(obj: PointCloud | TriangleMesh, where: str | None = None):
                     where,
                 )
         remap = np.cumsum(ok) - 1
+        names = list(obj.attributes)
+        vertices, normals, colors, *values = take_rows(
+            [pts, obj.normals, obj.colors, *obj.attributes.values()], ok
+        )
+        assert vertices is not None  # a mesh always has vertices
         out: PointCloud | TriangleMesh = TriangleMesh(
-            vertices=pts[ok],
+            vertices=vertices,
             faces=remap[obj.faces],
-            normals=None if obj.normals is None else obj.normals[ok],
-            colors=None if obj.colors is None else obj.colors[ok],
-            attributes={k: v[ok] for k, v in obj.attributes.items()},
+            normals=normals,
+            colors=colors,
+            attributes=dict(zip(names, values, strict=True)),  # type: ignore[arg-type]
             face_attributes=dict(obj.face_attributes),
             history=list(obj.history),
             point_dtype=obj.point_dtype,
@@ -512,6 +526,138 @@ def drop_invalid(obj: PointCloud | TriangleMesh, where: str | None = None):
         out.extra_elements = list(obj.extra_elements)
     out.invalid_dropped = obj.invalid_dropped + nbad
     return out
+
+
+def take_rows(columns: list[np.ndarray | None], rows: Any) -> list[np.ndarray | None]:
+    """The rows ``rows`` of each per-point array of ``columns``, columns of one record copied once.
+
+    ``[c[rows] for c in columns]`` (None stays None), values and dtypes exactly, but faster
+    for the columns of a binary file's records (a PLY's ``x y z nx ny nz red green blue``
+    are strided views into one record array): columns whose rows lie in one record of a
+    shared buffer are gathered as whole records in one copy (a fancy index of each strided
+    column costs several times that), and come back as views into the new records, laid out
+    as in the source. Other columns are indexed one by one.
+
+    Parameters
+    ----------
+    columns : list of (n, ...) arrays or None
+        Per-point arrays of ``n`` rows each.
+    rows : (n,) bool or (k,) int array_like
+        A mask of the rows to keep, or their indices (any order, repeats allowed, negative
+        from the end).
+
+    Returns
+    -------
+    list of (k, ...) arrays or None
+        In the order of ``columns``; new arrays (the views of gathered records share only
+        those records, which nothing else holds).
+
+    Raises
+    ------
+    InputError
+        Columns of different lengths, a mask of another length, an index out of range.
+    """
+    arrays = {i: c for i, c in enumerate(columns) if c is not None}
+    out: list[np.ndarray | None] = [None] * len(columns)
+    if not arrays:
+        return out
+    n = len(next(iter(arrays.values())))
+    if any(c.ndim == 0 or len(c) != n for c in arrays.values()):
+        lengths = [len(c) if c.ndim else None for c in arrays.values()]
+        raise InputError(f"per-point arrays of different lengths ({lengths})")
+    idx = np.asarray(rows)
+    if idx.dtype == bool:
+        if idx.shape != (n,):
+            raise InputError(f"a row mask of shape {idx.shape} for {n} rows")
+        idx = np.flatnonzero(idx)
+    elif idx.dtype.kind not in "iu" and idx.size:
+        raise InputError(f"row indices must be integers or a boolean mask, got {idx.dtype}")
+    idx = idx.astype(np.intp, copy=False).reshape(-1)
+    if idx.size and (int(idx.min()) < -n or int(idx.max()) >= n):
+        raise InputError(f"row index out of range for {n} rows")
+    for group, as_records in _record_groups(arrays, n):
+        if not as_records or idx.size == 0:
+            for i in group:
+                out[i] = arrays[i][idx]
+            continue
+        starts = {i: arrays[i].__array_interface__["data"][0] for i in group}
+        first = min(starts.values())
+        span = max(starts[i] - first + _row_bytes(arrays[i]) for i in group)
+        # the group's bytes as one record per row, read-only; ``arrays`` keeps the memory alive
+        interface = {
+            "data": (first, True),
+            "shape": (n,),
+            "strides": (arrays[group[0]].strides[0],),
+            "typestr": f"|V{span}",
+            "version": 3,
+        }
+        kept = np.asarray(_Buffer(interface)).take(idx)
+        for i in group:
+            c = arrays[i]
+            out[i] = np.ndarray(
+                (len(idx), *c.shape[1:]),
+                dtype=c.dtype,
+                buffer=kept,
+                offset=starts[i] - first,
+                strides=(span, *c.strides[1:]),
+            )
+    return out
+
+
+class _Buffer:
+    """An object numpy reads as an array through ``__array_interface__`` (no copy)."""
+
+    def __init__(self, interface: dict[str, Any]):
+        self.__array_interface__ = interface
+
+
+def _row_bytes(a: np.ndarray) -> int:
+    """The bytes one row of ``a`` spans (its inner strides positive)."""
+    return a.itemsize + sum((k - 1) * s for k, s in zip(a.shape[1:], a.strides[1:], strict=True))
+
+
+def _record_groups(arrays: dict[int, np.ndarray], n: int) -> list[tuple[list[int], bool]]:
+    """The keys of ``arrays`` grouped by record, and whether to gather each group as records.
+
+    Arrays group when they have the same row stride, their rows lie within one stride of
+    the group's first byte and their memory overlaps (so one allocation holds them and the
+    bytes between them). An array gathered as records holds plain values (no Python
+    objects) with positive strides; any other is indexed alone, as is a lone 1-D array.
+    """
+    groups: list[list[int]] = []
+    spans: list[tuple[int, int, int]] = []  # row stride (0: index alone), first byte, row end
+    for i, c in arrays.items():
+        stride = c.strides[0]
+        plain = (
+            n > 1
+            and c.size > 0
+            and not c.dtype.hasobject
+            and stride > 0
+            and all(s > 0 for s in c.strides[1:])
+            and _row_bytes(c) <= stride
+        )
+        if not plain:
+            groups.append([i])
+            spans.append((0, 0, 0))
+            continue
+        start = c.__array_interface__["data"][0]
+        end = start + _row_bytes(c)
+        for g, (gs, lo, hi) in enumerate(spans):
+            if (
+                gs == stride
+                and max(hi, end) - min(lo, start) <= stride
+                and np.may_share_memory(arrays[groups[g][0]], c)
+            ):
+                groups[g].append(i)
+                spans[g] = (gs, min(lo, start), max(hi, end))
+                break
+        else:
+            groups.append([i])
+            spans.append((stride, start, end))
+    return [
+        (g, sp[0] > 0 and (len(g) > 1 or arrays[g[0]].ndim > 1))
+        for g, sp in zip(groups, spans, strict=True)
+    ]
 
 
 _Geometry = TypeVar("_Geometry", bound="PointCloud | TriangleMesh")

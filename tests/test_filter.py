@@ -21,6 +21,7 @@ from recon_cli.stages import apply_stage
 from recon_cli.stages.filter import (
     CLASS_NAMES,
     SPEC,
+    box_codes,
     class_mask,
     crop_mask,
     filter_cloud,
@@ -197,6 +198,57 @@ def test_crop_keeps_points_on_the_faces_as_open3d(rng):
     for bad in ((1, 0, 0, 0, 1, 1), (0, 0, 0, 1, 1), "0,0,0,1,1,1,1"):
         with pytest.raises(ParameterError, match="--crop must be six numbers"):
             crop_mask(pts, bad)
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    dtype=st.sampled_from([np.float64, np.float32, ">f8"]),
+    layout=st.sampled_from(["contiguous", "record", "readonly"]),
+    n=st.integers(1, 3 * (1 << 14) + 5),
+)
+def test_box_codes_equal_the_numpy_expression(seed, dtype, layout, n):
+    rng = np.random.default_rng(seed)
+    g = np.arange(-2, 3, dtype=float)
+    faces = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
+    pts = rng.uniform(-3, 3, (n, 3))
+    pts[: min(n, len(faces))] = faces[: min(n, len(faces))]  # on the faces, edges and corners
+    for bad in (np.nan, np.inf, -np.inf):
+        rows = rng.random(n) < 0.05
+        pts[rows, rng.integers(0, 3)] = bad
+    pts = pts.astype(dtype)
+    if layout == "record":  # a binary PLY's strided view
+        rec = np.zeros(n, [("xyz", pts.dtype, (3,)), ("c", "u1", (3,))])
+        rec["xyz"] = pts
+        pts = rec["xyz"]
+    elif layout == "readonly":
+        pts.flags.writeable = False
+    box = (-1.0, 0.0, -2.0, 1.0, 2.0, 0.5)
+    p = pts.astype(np.float64)
+    finite = np.isfinite(p).all(axis=1)
+    inside = np.all((p >= box[:3]) & (p <= box[3:]), axis=1)
+    want = np.where(~finite, 1, np.where(inside, 0, 2))
+    got = box_codes(pts, box)
+    assert got.dtype == np.uint8
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(box_codes(pts), np.where(finite, 0, 1))  # no box: finite only
+    np.testing.assert_array_equal(crop_mask(pts, box), want == 0)
+
+
+def test_invalid_points_and_crop_counted_from_one_pass():
+    g = np.arange(-2, 3, dtype=float)
+    pts = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)  # 125 points
+    pts[[0, 7, 62]] = [[np.nan, 0, 0], [0, np.inf, 0], [0, 0, -np.inf]]  # 62 was (0, 0, 0)
+    box = (-1.0, -1.0, -1.0, 1.0, 1.0, 1.0)  # 27 grid points on or inside it
+    out, rep = filter_cloud(PointCloud(points=pts), crop=box)
+    assert rep["invalid_removed"] == 3 and rep["crop_removed"] == 125 - 3 - 26
+    assert rep["points_out"] == len(out.points) == 26  # (0, 0, -inf) was the 27th
+    _, rep = filter_cloud(PointCloud(points=pts))
+    assert rep["invalid_removed"] == 3 and rep["crop_removed"] is None
+    with pytest.raises(InputError, match=r"--crop 5,5,5,6,6,6 leaves no point \(of 122\)"):
+        filter_cloud(PointCloud(points=pts), crop=(5.0, 5, 5, 6, 6, 6))
+    with pytest.raises(InputError, match="every point"):
+        filter_cloud(PointCloud(points=np.full((4, 3), np.nan)), crop=box)
 
 
 def _autzen():

@@ -1,4 +1,4 @@
-"""The data model's sensor pieces: Sensor and its stored line, PixelGrid, drop_invalid."""
+"""The data model: Sensor and its stored line, PixelGrid, drop_invalid, take_rows."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ from recon_cli.geometry import (
     drop_invalid,
     parse_sensor_line,
     split_sensor_lines,
+    take_rows,
 )
 
 finite = st.floats(-1e7, 1e7, allow_nan=False, allow_infinity=False)
@@ -120,3 +121,128 @@ def test_drop_invalid_on_meshes_refuses_a_face_using_a_bad_vertex():
     ]
     with pytest.raises(InputError, match=r"^m\.ply: face 1 uses vertex 3, which has a NaN"):
         drop_invalid(TriangleMesh(v, [[0, 1, 2], [1, 3, 2], [3, 4, 0]]), "m.ply")
+
+
+# ---- take_rows: records gathered in one copy, equal to each column's fancy index ----------------
+_RECORD = np.dtype(
+    [
+        ("x", "<f8"),
+        ("y", "<f8"),
+        ("z", "<f8"),
+        ("nx", ">f4"),
+        ("ny", ">f4"),
+        ("nz", ">f4"),
+        ("red", "u1"),
+        ("green", "u1"),
+        ("blue", "u1"),
+        ("intensity", "<u2"),
+        ("flag", "?"),
+        ("label", "<i8"),
+        ("gap", "<f2"),
+        ("t", "<f8"),
+    ],
+    align=False,
+)
+
+
+def _interleaved(n: int, rng: np.random.Generator) -> tuple[np.ndarray, list[np.ndarray]]:
+    """A packed record array as a binary PLY's body, and its columns as the reader views them."""
+    rec = np.zeros(n, _RECORD)
+    for name in _RECORD.names:
+        kind = _RECORD[name].kind
+        if kind == "f":
+            rec[name] = rng.normal(size=n) * 1e3
+        elif kind == "b":
+            rec[name] = rng.random(n) < 0.5
+        else:
+            rec[name] = rng.integers(0, np.iinfo(_RECORD[name]).max, n, dtype=np.int64)
+    rec["x"][::5] = np.nan  # NaN payloads and signs travel as bytes
+    rec["t"][::7] = -0.0
+    stride = rec.strides[0]
+
+    def cols3(first: str) -> np.ndarray:
+        a = rec[first]
+        return np.lib.stride_tricks.as_strided(a, (n, 3), (stride, a.itemsize))
+
+    cols = [cols3("x"), cols3("nx"), cols3("red")]
+    cols += [rec[k] for k in ("intensity", "flag", "label", "t")]
+    return rec, cols
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    n=st.integers(0, 300),
+    seed=st.integers(0, 2**32 - 1),
+    how=st.sampled_from(["mask", "sorted", "any", "negative", "empty"]),
+)
+def test_take_rows_equals_each_columns_fancy_index(n, seed, how):
+    rng = np.random.default_rng(seed)
+    rec, interleaved = _interleaved(n, rng)
+    separate = [np.array(c) for c in interleaved]  # the same values, each its own array
+    separate[1] = np.asfortranarray(separate[1])
+    mixed = [interleaved[0], None, separate[2], interleaved[3], interleaved[4][::1]]
+    rows = {
+        "mask": rng.random(n) < 0.4,
+        "sorted": np.flatnonzero(rng.random(n) < 0.6),
+        "any": rng.integers(0, max(n, 1), 2 * n) if n else np.zeros(0, np.int64),
+        "negative": -rng.integers(1, n + 1, n) if n else np.zeros(0, np.int64),
+        "empty": np.zeros(0, np.int64) if n % 2 else np.zeros(n, bool),
+    }[how]
+    for cols in (interleaved, separate, mixed):
+        got = take_rows(cols, rows)
+        assert len(got) == len(cols)
+        for g, c in zip(got, cols, strict=True):
+            if c is None:
+                assert g is None
+                continue
+            want = c[rows]
+            assert g.dtype == want.dtype and g.shape == want.shape
+            # bytes equal: NaN payloads, -0.0 and byte order kept
+            assert np.ascontiguousarray(g).tobytes() == np.ascontiguousarray(want).tobytes()
+    got = take_rows(interleaved, rows)
+    if n > 1 and len(got[0]):  # the interleaved columns came from one copy of the records
+        assert all(not np.may_share_memory(g, rec) for g in got)
+        assert got[0].base is got[6].base is not None  # one record array holds them
+        got[0][...] = 0  # the results are writeable, and each column only its own bytes
+        assert np.array_equal(got[2], interleaved[2][rows])
+
+
+def test_take_rows_refuses_mismatched_rows_and_columns():
+    a, b = np.zeros((5, 3)), np.zeros(4)
+    with pytest.raises(InputError, match="different lengths"):
+        take_rows([a, b], [0])
+    with pytest.raises(InputError, match="mask of shape"):
+        take_rows([a], np.ones(4, bool))
+    with pytest.raises(InputError, match="out of range"):
+        take_rows([a], [5])
+    with pytest.raises(InputError, match="integers"):
+        take_rows([a], [0.5])
+    assert take_rows([None, None], [0]) == [None, None]
+
+
+def test_subset_and_drop_invalid_gather_every_column_of_a_read_ply(tmp_path, rng):
+    from recon_cli.io.ply import read_ply, write_ply
+
+    n = 2000
+    cloud = PointCloud(
+        points=rng.normal(size=(n, 3)),
+        normals=rng.normal(size=(n, 3)).astype(np.float32),
+        colors=rng.integers(0, 256, (n, 3)).astype(np.uint8),
+        attributes={"intensity": rng.integers(0, 60000, n).astype(np.uint16)},
+    )
+    write_ply(cloud, tmp_path / "c.ply")
+    read = read_ply(tmp_path / "c.ply")
+    assert not read.points.flags.c_contiguous  # views into the file's records
+    keep = rng.random(n) < 0.3
+    sub = read.subset(keep)
+    for name in ("points", "normals", "colors"):
+        want = getattr(read, name)[keep]
+        got = getattr(sub, name)
+        assert got.dtype == want.dtype and np.array_equal(got, want)
+    assert np.array_equal(sub.attributes["intensity"], read.attributes["intensity"][keep])
+    bad = read.copy()
+    bad.points[~keep] = np.nan
+    clean = drop_invalid(bad)
+    assert clean.invalid_dropped == n - keep.sum()
+    assert np.array_equal(clean.points, read.points[keep])
+    assert np.array_equal(clean.colors, read.colors[keep])

@@ -833,3 +833,50 @@ def test_mesh_vertex_views_do_not_hold_the_face_bytes(tmp_path):
     mesh = read_ply(path)
     assert memoryview(_root(mesh.vertices)).nbytes == len(v) * 12 < os.path.getsize(path) / 2
     assert np.array_equal(mesh.vertices, v)
+
+
+@pytest.mark.parametrize("big_endian", [False, True])
+def test_records_kept_as_they_are_write_the_same_bytes(tmp_path, rng, monkeypatch, big_endian):
+    """A read, subset cloud whose rows already are the file's records is written unencoded."""
+    import recon_cli.io.ply as ply_mod
+    from recon_cli.cli.main import cli
+
+    n = 3000
+    cloud = PointCloud(
+        points=rng.normal(size=(n, 3)) * 1e3,
+        normals=rng.normal(size=(n, 3)),
+        colors=rng.integers(0, 256, (n, 3)).astype(np.uint8),
+    )
+    src = tmp_path / "c.ply"
+    write_ply(cloud, src)
+    if big_endian:
+        cli.main(
+            ["-q", "convert", str(src), str(tmp_path / "be.ply"), "--big-endian"],
+            "recon",
+            standalone_mode=False,
+        )
+        src = tmp_path / "be.ply"
+    keep = rng.random(n) < 0.4
+    sub = read_ply(src).subset(keep)
+    calls = []
+    fast = ply_mod._records_as_they_are
+    monkeypatch.setattr(
+        ply_mod, "_records_as_they_are", lambda el, dt: calls.append(fast(el, dt)) or calls[-1]
+    )
+    write_ply(sub, tmp_path / "fast.ply")
+    assert calls and (calls[0] is None) == big_endian  # written little-endian: re-encoded
+    monkeypatch.setattr(ply_mod, "_records_as_they_are", lambda el, dt: None)
+    write_ply(sub, tmp_path / "slow.ply")
+    assert (tmp_path / "fast.ply").read_bytes() == (tmp_path / "slow.ply").read_bytes()
+    back = read_ply(tmp_path / "fast.ply")
+    np.testing.assert_array_equal(back.points, cloud.points[keep])
+    np.testing.assert_array_equal(back.colors, cloud.colors[keep])
+    # columns of another layout (a computed normal in its own array) are encoded as before
+    sub.normals = np.ascontiguousarray(sub.normals)
+    calls.clear()
+    monkeypatch.setattr(
+        ply_mod, "_records_as_they_are", lambda el, dt: calls.append(fast(el, dt)) or calls[-1]
+    )
+    write_ply(sub, tmp_path / "mixed.ply")
+    assert calls == [None]
+    np.testing.assert_array_equal(read_ply(tmp_path / "mixed.ply").normals, cloud.normals[keep])

@@ -322,10 +322,18 @@ def _normals(f: Files) -> list[Step]:
 def _filter(f: Files) -> list[Step]:
     every = ["--crop", "-2,-2,-2,2,2,2", "--classes", "ground,building", "--returns", "last"]
     every += ["--radius-outliers", "0.3,2", "--outliers", "10,2", "--voxel", "0.2"]
-    return [recon("filter", f.classified, f.out(), *every)] + [
-        recon("filter", src, f.out(), "--outliers", "10,2", "--voxel", "0.2")
-        for src in (f.c32, f.c64)
-    ]
+    # box_codes reads the points in place: records (c32, c64) and contiguous rows (bare32, bare64)
+    return (
+        [recon("filter", f.classified, f.out(), *every)]
+        + [
+            recon("filter", src, f.out(), "--outliers", "10,2", "--voxel", "0.2")
+            for src in (f.c32, f.c64)
+        ]
+        + [
+            recon("filter", src, f.out(), "--crop", "-2,-2,-2,2,2,2")
+            for src in (f.bare32, f.bare64)
+        ]
+    )
 
 
 @phase(weight=50)

@@ -652,6 +652,10 @@ def _binary_body(el: PlyElement, order: str, put: Callable[[bytes | memoryview],
             else:
                 fields.append((p.name, order + p.dtype))
         dtype = np.dtype(fields)
+        body = _records_as_they_are(el, dtype)
+        if body is not None:  # the rows already are the file's records (a filtered PLY's)
+            put(body)
+            return
         # records made a block at a time in one buffer that stays in cache, each block put
         # out at once: no copy of the whole body, no page faults of a body-sized array
         block = np.empty(min(el.count, max(1, _BLOCK_BYTES // dtype.itemsize)), dtype=dtype)
@@ -678,6 +682,41 @@ def _binary_body(el: PlyElement, order: str, put: Callable[[bytes | memoryview],
             else:
                 chunks.append(np.array(v, dtype=order + p.dtype).tobytes())
     put(b"".join(chunks))
+
+
+class _Interface:
+    """An object numpy reads as an array through ``__array_interface__`` (no copy)."""
+
+    def __init__(self, interface: dict[str, Any]):
+        self.__array_interface__ = interface
+
+
+def _records_as_they_are(el: PlyElement, dtype: np.dtype) -> memoryview | None:
+    """The element's body as it lies in memory, when its columns are the records of ``dtype``.
+
+    That is, when every property is a 1-D view, of the property's exact type and byte order,
+    at its offset in consecutive records of ``dtype.itemsize`` bytes of one buffer (the
+    columns of a PLY read and subset as records, :func:`recon_cli.geometry.take_rows`);
+    None otherwise. The body is then written without encoding it again.
+    """
+    if el.count < 2 or any(p.is_list for p in el.properties):
+        return None
+    cols = [el.data[p.name] for p in el.properties]
+    if not all(isinstance(c, np.ndarray) and c.ndim == 1 and len(c) == el.count for c in cols):
+        return None
+    first = cols[0].__array_interface__["data"][0]
+    for p, c in zip(el.properties, cols, strict=True):
+        field_dtype, offset = dtype.fields[p.name][:2]  # type: ignore[index]
+        if (
+            c.dtype != field_dtype  # byte order included
+            or c.strides[0] != dtype.itemsize
+            or c.__array_interface__["data"][0] - first != offset
+            or not np.may_share_memory(cols[0], c)
+        ):
+            return None
+    size = el.count * dtype.itemsize
+    interface = {"data": (first, True), "shape": (size,), "typestr": "|u1", "version": 3}
+    return np.asarray(_Interface(interface)).data
 
 
 def _fmt(code: str) -> str:

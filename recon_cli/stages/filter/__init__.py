@@ -50,6 +50,7 @@ arXiv:1801.09847, 2018 (the rules followed); ASPRS, "LAS specification 1.4 R15",
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any
 
 import numpy as np
@@ -98,6 +99,10 @@ _NRETURNS_ATTRS = ("number_of_returns", "scalar_number_of_returns")
 
 # rows per chunk of the row-wise tests (a float64 buffer that stays in cache)
 _ROWS = 1 << 14
+# the kernel box_codes' codes of a row: kept, a NaN or infinite coordinate, outside the box
+_KEPT, _INVALID, _OUTSIDE = 0, 1, 2
+# the box of no crop: every finite point is inside
+_NO_BOX = (-math.inf, -math.inf, -math.inf, math.inf, math.inf, math.inf)
 # kNN rows per query (bounds the distance matrix held at once)
 _CHUNK = 200_000
 # at most this many cells along an axis (Open3D's limit: its cell indices are C ints)
@@ -239,19 +244,25 @@ def _points(points: Any) -> np.ndarray:
     return pts if pts.flags.writeable else pts.copy()  # the kernels' compiled variants write
 
 
-def _rowwise(points: Any, kernel: Any, *args: Any) -> np.ndarray:
-    """``kernel(rows, *args)`` (a bool per row) over ``points`` (n, 3) of any float type.
+def _rowwise(points: Any, kernel: Any, *args: Any, dtype: Any = bool) -> np.ndarray:
+    """``kernel(rows, *args)`` (a ``dtype`` value per row) over ``points`` (n, 3) of any float type.
 
-    Rows go a chunk at a time through one float64 buffer: a binary PLY's points are a strided
-    view, and a contiguous float64 copy of a million of them costs more than the test.
+    Native float32 and float64 rows, contiguous or a binary PLY's strided view of its records,
+    are read in place (the layouts the warm-up compiles); any other rows go a chunk at a time
+    through one float64 buffer, as a contiguous float64 copy of a million costs more than the
+    test.
     """
     pts = np.asarray(points)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise InputError(f"points must have shape (n, 3), got {pts.shape}")
     n = len(pts)
-    if pts.dtype == np.float64 and pts.flags.c_contiguous and pts.flags.writeable:
+    if (
+        pts.dtype in (np.float32, np.float64)
+        and pts.flags.writeable
+        and (pts.flags.c_contiguous or (pts.strides[0] > 0 and pts.strides[1] == pts.itemsize))
+    ):
         return kernel(pts, *args)
-    out = np.empty(n, dtype=bool)
+    out = np.empty(n, dtype=dtype)
     buf = np.empty((min(n, _ROWS), 3))
     for a in range(0, n, _ROWS):
         rows = buf[: min(_ROWS, n - a)]
@@ -271,6 +282,8 @@ def _finite(points: Any) -> np.ndarray:
 def crop_mask(points: Any, box: Any) -> np.ndarray:
     """Which points lie inside an axis-aligned box, its faces included (Open3D's ``crop``).
 
+    A point with a NaN or infinite coordinate is not inside.
+
     Parameters
     ----------
     points : (n, 3) array_like of float
@@ -287,7 +300,31 @@ def crop_mask(points: Any, box: Any) -> np.ndarray:
         Not six numbers, or a minimum above its maximum.
     """
     lo_hi = SPEC.param("crop").coerce(box)
-    return _rowwise(points, _kernels().inside_box, np.array(lo_hi, dtype=np.float64))
+    return box_codes(points, lo_hi) == _KEPT
+
+
+def box_codes(points: Any, box: Any = None) -> np.ndarray:
+    """Each point's fate under the invalid-point rule and a crop, in one pass over the points.
+
+    Parameters
+    ----------
+    points : (n, 3) array_like of float
+    box : six numbers ``x0, y0, z0, x1, y1, z1``, or None
+        Minimum and maximum corners, in the units of ``points`` (faces inside); None: no crop.
+
+    Returns
+    -------
+    (n,) uint8
+        0: kept (finite, inside the box); 1: a NaN or infinite coordinate; 2: finite, outside
+        the box.
+
+    Raises
+    ------
+    ParameterError
+        ``box`` not six numbers, or a minimum above its maximum.
+    """
+    lo_hi = _NO_BOX if box is None else SPEC.param("crop").coerce(box)
+    return _rowwise(points, _kernels().box_codes, np.array(lo_hi, dtype=np.float64), dtype=np.uint8)
 
 
 def find_attribute(cloud: PointCloud, names: tuple[str, ...]) -> str | None:
@@ -531,10 +568,19 @@ def voxel_downsample(cloud: PointCloud, size: float) -> PointCloud:
         rows = np.ascontiguousarray(values, dtype=np.float64).reshape(len(cell), -1)
         return K.cell_means(cell, count, rows, skip_nan_rows)
 
-    out = cloud.subset(first)  # every field the cloud carries, from each cell's first point
-    if getattr(out, "pixels", None) is not None:
-        out.pixels = None  # a centroid is no pixel of the image
-    out.points = centroid
+    # the cloud's metadata; every per-point array is merged below (a centroid is no pixel)
+    out = dataclasses.replace(
+        cloud,
+        points=centroid,
+        normals=None,
+        colors=None,
+        attributes={},
+        history=list(cloud.history),
+        extra_elements=[],
+        obj_info=list(cloud.obj_info),
+        sensors=list(cloud.sensors),
+        pixels=None,
+    )
     if cloud.normals is not None:
         avg = mean(cloud.normals, skip_nan_rows=True)  # Open3D leaves NaN normals out
         length = np.sqrt(np.einsum("ij,ij->i", avg, avg))[:, None]
@@ -549,7 +595,8 @@ def voxel_downsample(cloud: PointCloud, size: float) -> PointCloud:
         elif v.dtype.kind in "iub":
             modes = K.cell_modes(cell, count, np.ascontiguousarray(v, dtype=np.int64))
             out.attributes[name] = modes.astype(v.dtype)
-        # any other kind (strings, records) stays the first point's
+        else:  # any other kind (strings, records): the first point's
+            out.attributes[name] = v[first]
     return out
 
 
@@ -686,14 +733,18 @@ def filter_cloud(
             rows = np.flatnonzero(keep)
             sel = rows if sel is None else sel[rows]
 
-    with task(progress, "invalid points"):
-        finite = _rowwise(raw, _kernels().finite_rows)
-        if not finite.any():
+    with task(progress, "invalid points" if crop is None else "invalid points, crop"):
+        fate = box_codes(raw, crop)
+        count = np.bincount(fate, minlength=3)
+        report["invalid_removed"] = int(count[_INVALID])
+        if count[_INVALID] == n:
             raise InputError(f"every point (of {n}) has a NaN or infinite coordinate")
-        apply("invalid_removed", finite, "")
-    if crop is not None:
-        with task(progress, "crop"):
-            apply("crop_removed", crop_mask(current(raw), crop), f"--crop {_text(crop)}")
+        if crop is not None:
+            report["crop_removed"] = int(count[_OUTSIDE])
+            if count[_KEPT] == 0:
+                raise InputError(f"--crop {_text(crop)} leaves no point (of {n - count[_INVALID]})")
+        if count[_KEPT] < n:
+            sel = np.flatnonzero(fate == _KEPT)
     if class_codes is not None:
         with task(progress, "classes"):
             codes = current(class_codes)

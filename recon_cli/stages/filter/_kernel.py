@@ -48,23 +48,39 @@ def finite_rows(pts):
     return out
 
 
+# box_codes' codes
+KEPT = 0
+INVALID = 1
+OUTSIDE = 2
+
+
 @njit(cache=True)
-def inside_box(pts, box):
-    """Whether each row of ``pts`` (n, 3) lies in ``box`` (x0, y0, z0, x1, y1, z1), faces in."""
+def box_codes(pts, box):
+    """A code per row of ``pts`` (n, 3): 0 kept, 1 a NaN or infinite coordinate, 2 outside.
+
+    ``box`` (x0, y0, z0, x1, y1, z1): a finite row is inside when each coordinate lies
+    between the two bounds, faces included (an infinite box keeps every finite row). One pass
+    for the invalid points and the crop.
+    """
     n = pts.shape[0]
-    out = np.empty(n, np.bool_)
+    out = np.empty(n, np.uint8)
     for i in range(n):
         x = pts[i, 0]
         y = pts[i, 1]
         z = pts[i, 2]
-        out[i] = (
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+            out[i] = INVALID
+        elif (
             x >= box[0]
             and x <= box[3]
             and y >= box[1]
             and y <= box[4]
             and z >= box[2]
             and z <= box[5]
-        )
+        ):
+            out[i] = KEPT
+        else:
+            out[i] = OUTSIDE
     return out
 
 
