@@ -379,7 +379,11 @@ class NormalRHS:
         fields: dict[int, tuple[np.ndarray, np.ndarray]],
         level_fields: list[LevelField | None],
         free: bool = False,
+        finer: np.ndarray | None = None,
     ):
+        # ``finer``: the shares of levels beyond these, restricted onto the finest of them (the
+        # distributed solve's coarse levels); added where the single solve adds them, so both
+        # round alike
         # a level's own share is dropped once its right-hand side is made (the dict is
         # copied: the caller's is left whole; drop it there to free the arrays)
         self.fields = dict(fields)
@@ -389,7 +393,8 @@ class NormalRHS:
         self.depth = depth
         self.carry: np.ndarray | None = None  # the field on the previous level's E, (8q, 3)
         self.finer: list[np.ndarray | None] = [None] * (depth + 1)
-        up = None
+        self.finer[depth] = finer
+        up = finer
         for lv in range(depth, 1, -1):
             f = level_fields[lv]
             assert f is not None  # levels 1.. have a field
@@ -796,7 +801,9 @@ def _sibling_block_inverses(
         BO.screening_blocks(f.q_keys, f.nb, cmap, n, f.s, scell, sloc, sw, blocks)
     singular = BO.factor_blocks(blocks)
     if singular:
-        log.debug("poisson: level %d  %d sibling blocks not positive definite: Jacobi", f.depth, singular)
+        log.debug(
+            "poisson: level %d  %d sibling blocks not positive definite: Jacobi", f.depth, singular
+        )
     return blocks
 
 
