@@ -144,8 +144,8 @@ def screening_matvec(q_keys, nb, xmap, omap, n, s, scell, sloc, sw, x, out):
     ``x`` laid out by ``xmap``, ``out`` by ``omap`` (:func:`stiffness_matvec`).
 
     The 27 cells around a sample and their weights are written out here (and in
-    :func:`screening_rhs`, :func:`screening_blocks`): through a helper taking the arrays (``_gather27``, inlined)
-    the matvec was 1.7x slower (``bench/calibration.md``).
+    :func:`screening_rhs`, :func:`screening_blocks`): through a helper taking the arrays
+    (``_gather27``, inlined) the matvec was 1.7x slower (``bench/calibration.md``).
     """
     wx = np.empty(3)
     wy = np.empty(3)
@@ -350,7 +350,7 @@ def factor_blocks(blocks):
 
 @njit(cache=True, inline="always")
 def _apply_block(inv, b, r, z):
-    """z = inv[b] r on block ``b``'s 8 rows; returns their r.z."""
+    """Block ``b``'s 8 rows of z = inv r; returns their r.z."""
     rz = 0.0
     for o in range(8):
         v = 0.0
@@ -364,7 +364,7 @@ def _apply_block(inv, b, r, z):
 
 @njit(cache=True)
 def apply_blocks(inv, r, z):
-    """z = the block-diagonal ``inv`` (b, 8, 8) times r (8b,); returns r.z."""
+    """Set z to the block-diagonal ``inv`` (b, 8, 8) times r (8b,); returns r.z."""
     rz = 0.0
     for b in range(len(inv)):
         rz += _apply_block(inv, b, r, z)

@@ -8,11 +8,12 @@ At level ``d`` every cell of the tree carries the tensor-product quadratic B-spl
 ``chi = 0`` there). A function of level ``d - 1`` is exactly a combination of level-``d`` functions
 (refinement mask ``(1, 3, 3, 1) / 4`` per axis), so, as for the trilinear basis, each level holds
 the whole ``chi`` of the coarser levels (prolonged) plus its own correction, solved on the residual
-they leave by conjugate gradients preconditioned by the inverse of each block of 8 siblings. The coefficients live on ``E``: the level's cells and a ring of two cells
-around them (the children of the parents within one of a parent of the level's cells, in blocks of
-siblings), enough for the prolongation to be exact on the stencil (5 cells per axis) of every cell
-of the level: the set grows by a parent ring per level, and the levels' parents are within one of
-the tree's parents, so the coarser ``E`` always holds what the prolongation reads.
+they leave by conjugate gradients preconditioned by the inverse of each block of 8 siblings. The
+coefficients live on ``E``: the level's cells and a ring of two cells around them (the children of
+the parents within one of a parent of the level's cells, in blocks of siblings), enough for the
+prolongation to be exact on the stencil (5 cells per axis) of every cell of the level: the set grows
+by a parent ring per level, and the levels' parents are within one of the tree's parents, so the
+coarser ``E`` always holds what the prolongation reads.
 
 The right-hand side is that of the normals' field of :func:`.splat.spread_fields` (each sample's
 share at its level(s) unmerged: merging per cell moves the items of a curved surface inwards, a bias
