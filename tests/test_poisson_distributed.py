@@ -498,9 +498,11 @@ def test_laz_tiles_read_by_chunks(cluster, tmp_path, monkeypatch):
     c2 = np.concatenate([b.attributes["classification"] for b in back])
     ref = distributed_poisson(p2, n2, depth=7, partitions=2, properties={"classification": c2})
     assert res.report["distributed"]["chunks"] == 4
-    # the same mesh (the normals normalised once here, twice there: the last bits differ)
+    # the same mesh: a slab's points come in another row order from the tiles than from memory,
+    # so its sums round differently (the last bits); a quad whose two diagonals tie to those bits
+    # may be split the other way, nothing else
     assert np.abs(res.mesh.vertices - ref.mesh.vertices).max() < 1e-9
-    assert np.array_equal(res.mesh.faces, ref.mesh.faces)
+    assert _flipped_quads(res.mesh.faces, ref.mesh.faces) <= 2
     assert np.array_equal(
         res.mesh.attributes["classification"], ref.mesh.attributes["classification"]
     )
@@ -512,6 +514,21 @@ def test_laz_tiles_read_by_chunks(cluster, tmp_path, monkeypatch):
     with pytest.raises(InputError, match="do not all have the same"):
         reconstruct_files(str(tmp_path), client=cluster, depth=7, temp_dir=str(tmp_path))
     assert not [f for f in os.listdir(tmp_path) if f.startswith(".recon-")]
+
+
+def _flipped_quads(a: np.ndarray, b: np.ndarray) -> int:
+    """How many quads ``a`` splits along the other diagonal than ``b``; fails on any other change.
+
+    Faces in the same order; a quad's two triangles are consecutive rows (as extraction emits them).
+    """
+    assert a.shape == b.shape
+    rows = np.flatnonzero((a != b).any(axis=1))
+    assert len(rows) % 2 == 0 and np.all(rows[1::2] == rows[::2] + 1), rows
+    for i in rows[::2]:
+        quad = set(a[i]) | set(a[i + 1])
+        assert len(quad) == 4 and quad == set(b[i]) | set(b[i + 1]), (i, a[i : i + 2], b[i : i + 2])
+        assert set(a[i]) != set(b[i]) and set(a[i]) != set(b[i + 1])  # the other diagonal
+    return len(rows) // 2
 
 
 def _recon(argv: list[str]) -> int:

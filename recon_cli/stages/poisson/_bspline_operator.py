@@ -107,26 +107,34 @@ def stiffness_matvec(q_keys, nb, inp, xmap, omap, m1, k1, h, x, out):
                 out[8 * omap[i] + o] += h * y
 
 
-@njit(cache=True)
-def stiffness_diag(q_keys, inp, m1, k1, h):
-    out = np.zeros(8 * len(q_keys))
-    for i in range(len(q_keys)):
+@njit(cache=True, parallel=True)
+def stiffness_blocks(q_keys, inp, cmap, m1, k1, h, out):
+    """out[cmap[i], o, o2] = the stiffness between children o and o2 of each flagged parent i.
+
+    Row ``o`` is child ``o``'s row of the operator (:func:`stiffness_matvec`): its tables' column
+    at the offset of child ``o2``. Each parent writes its own block only.
+    """
+    for i in prange(len(q_keys)):
         if not inp[i]:
             continue
+        b = cmap[i]
         k = q_keys[i]
-        px = (k >> 42) & MASK21
-        py = (k >> 21) & MASK21
-        pz = k & MASK21
+        px = 2 * ((k >> 42) & MASK21)
+        py = 2 * ((k >> 21) & MASK21)
+        pz = 2 * (k & MASK21)
         for o in range(8):
-            cx = 2 * px + (o & 1)
-            cy = 2 * py + ((o >> 1) & 1)
-            cz = 2 * pz + ((o >> 2) & 1)
-            out[8 * i + o] = h * (
-                k1[cx, 2] * m1[cy, 2] * m1[cz, 2]
-                + m1[cx, 2] * k1[cy, 2] * m1[cz, 2]
-                + m1[cx, 2] * m1[cy, 2] * k1[cz, 2]
-            )
-    return out
+            cx = px + (o & 1)
+            cy = py + ((o >> 1) & 1)
+            cz = pz + ((o >> 2) & 1)
+            for o2 in range(8):
+                tx = 2 + (o2 & 1) - (o & 1)
+                ty = 2 + ((o2 >> 1) & 1) - ((o >> 1) & 1)
+                tz = 2 + ((o2 >> 2) & 1) - ((o >> 2) & 1)
+                out[b, o, o2] = h * (
+                    k1[cx, tx] * m1[cy, ty] * m1[cz, tz]
+                    + m1[cx, tx] * k1[cy, ty] * m1[cz, tz]
+                    + m1[cx, tx] * m1[cy, ty] * k1[cz, tz]
+                )
 
 
 @njit(cache=True)
@@ -136,8 +144,8 @@ def screening_matvec(q_keys, nb, xmap, omap, n, s, scell, sloc, sw, x, out):
     ``x`` laid out by ``xmap``, ``out`` by ``omap`` (:func:`stiffness_matvec`).
 
     The 27 cells around a sample and their weights are written out here (and in
-    :func:`screening_diag_rhs`): through a helper taking the arrays (``_gather27``, inlined)
-    the matvec was 1.7x slower (``bench/calibration.md``).
+    :func:`screening_rhs`, :func:`screening_blocks`): through a helper taking the arrays
+    (``_gather27``, inlined) the matvec was 1.7x slower (``bench/calibration.md``).
     """
     wx = np.empty(3)
     wy = np.empty(3)
@@ -185,8 +193,8 @@ def screening_matvec(q_keys, nb, xmap, omap, n, s, scell, sloc, sw, x, out):
 
 
 @njit(cache=True)
-def screening_diag_rhs(q_keys, nb, n, s, scell, sloc, sw, target, diag, rhs):
-    """Diag += sum_p w_p B_i(p)^2 and rhs += sum_p w_p target B_i(p), in place."""
+def screening_rhs(q_keys, nb, n, s, scell, sloc, sw, target, rhs):
+    """Rhs += sum_p w_p target B_i(p), in place."""
     wx = np.empty(3)
     wy = np.empty(3)
     wz = np.empty(3)
@@ -210,9 +218,157 @@ def screening_diag_rhs(q_keys, nb, n, s, scell, sloc, sw, target, diag, rhs):
                     q = nb[i, ((bx >> 1) + 1) + 3 * ((by >> 1) + 1) + 9 * ((bz >> 1) + 1)]
                     if q >= 0:
                         j = 8 * q + ((bx & 1) | ((by & 1) << 1) | ((bz & 1) << 2))
-                        w = wx[a] * wy[b] * wz[c]
-                        diag[j] += sw[p] * w * w
-                        rhs[j] += sw[p] * target * w
+                        rhs[j] += sw[p] * target * (wx[a] * wy[b] * wz[c])
+
+
+@njit(cache=True)
+def screening_blocks(q_keys, nb, cmap, n, s, scell, sloc, sw, out):
+    """out[cmap[q], r, r2] += sum_p w_p B_r(p) B_r2(p) for siblings r, r2 of each flagged parent q.
+
+    A sample touches 3 cells per axis, of two parents: the pairs within one parent are 5 of the 9
+    per axis, 125 of the 729. Samples in order, so each entry sums in the same order whatever the
+    caller.
+    """
+    wx = np.empty(3)
+    wy = np.empty(3)
+    wz = np.empty(3)
+    for p in range(len(scell)):
+        m = scell[p]
+        i = m >> 3
+        o = m & 7
+        k = q_keys[i]
+        ox = o & 1
+        oy = (o >> 1) & 1
+        oz = (o >> 2) & 1
+        wx[0], wx[1], wx[2] = w3(sloc[p, 0], 2 * ((k >> 42) & MASK21) + ox, n, s)
+        wy[0], wy[1], wy[2] = w3(sloc[p, 1], 2 * ((k >> 21) & MASK21) + oy, n, s)
+        wz[0], wz[1], wz[2] = w3(sloc[p, 2], 2 * (k & MASK21) + oz, n, s)
+        swp = sw[p]
+        for c in range(3):
+            bz = oz + c - 1
+            for c2 in range(3):
+                bz2 = oz + c2 - 1
+                if bz2 >> 1 != bz >> 1:
+                    continue
+                for b in range(3):
+                    by = oy + b - 1
+                    for b2 in range(3):
+                        by2 = oy + b2 - 1
+                        if by2 >> 1 != by >> 1:
+                            continue
+                        for a in range(3):
+                            bx = ox + a - 1
+                            q = nb[i, ((bx >> 1) + 1) + 3 * ((by >> 1) + 1) + 9 * ((bz >> 1) + 1)]
+                            if q < 0 or cmap[q] < 0:
+                                continue
+                            w = wx[a] * wy[b] * wz[c]
+                            r = (bx & 1) | ((by & 1) << 1) | ((bz & 1) << 2)
+                            for a2 in range(3):
+                                bx2 = ox + a2 - 1
+                                if bx2 >> 1 != bx >> 1:
+                                    continue
+                                r2 = (bx2 & 1) | ((by2 & 1) << 1) | ((bz2 & 1) << 2)
+                                out[cmap[q], r, r2] += swp * w * (wx[a2] * wy[b2] * wz[c2])
+
+
+# a Cholesky pivot at most this fraction of its diagonal entry: the block is singular to rounding
+PIVOT_FLOOR = 1e-10
+
+
+@njit(cache=True, inline="always")
+def _invert_block(A, idx, L, Li):
+    """A (8, 8) := the inverse of its rows and columns with a positive diagonal, 0 elsewhere.
+
+    By Cholesky on the lower triangle; returns 1 and leaves the diagonal's inverse alone when a
+    pivot is not above ``PIVOT_FLOOR`` of its diagonal (the block is not numerically positive
+    definite: the pure Neumann level 1 without screening, one block holding the constant).
+    """
+    na = 0
+    for o in range(8):
+        if A[o, o] > 0.0:
+            idx[na] = o
+            na += 1
+    ok = True
+    for j in range(na):
+        d = A[idx[j], idx[j]]
+        for t in range(j):
+            d -= L[j, t] * L[j, t]
+        if not d > PIVOT_FLOOR * A[idx[j], idx[j]]:
+            ok = False
+            break
+        L[j, j] = np.sqrt(d)
+        for i in range(j + 1, na):
+            v = A[idx[i], idx[j]]
+            for t in range(j):
+                v -= L[i, t] * L[j, t]
+            L[i, j] = v / L[j, j]
+    if not ok:
+        for o in range(8):
+            d = A[o, o]
+            for o2 in range(8):
+                A[o, o2] = 0.0
+            if d > 0.0:
+                A[o, o] = 1.0 / d
+        return 1
+    # L^-1 column by column, then A^-1 = L^-T L^-1
+    for j in range(na):
+        Li[j, j] = 1.0 / L[j, j]
+        for i in range(j + 1, na):
+            v = 0.0
+            for t in range(j, i):
+                v -= L[i, t] * Li[t, j]
+            Li[i, j] = v / L[i, i]
+    A[:, :] = 0.0
+    for i in range(na):
+        for j in range(i + 1):
+            v = 0.0
+            for t in range(i, na):
+                v += Li[t, i] * Li[t, j]
+            A[idx[i], idx[j]] = v
+            A[idx[j], idx[i]] = v
+    return 0
+
+
+@njit(cache=True, parallel=True)
+def factor_blocks(blocks):
+    """Each (8, 8) block of ``blocks`` (b, 8, 8) replaced by its inverse, in place.
+
+    Rows and columns whose diagonal is not positive get 0 (:func:`_invert_block`). Returns the
+    number of blocks left with their diagonal's inverse (not positive definite).
+    """
+    nb = len(blocks)
+    nchunks = (nb + MATVEC_CHUNK - 1) // MATVEC_CHUNK
+    nd = 0
+    for ci in prange(nchunks):
+        idx = np.empty(8, np.int64)
+        L = np.zeros((8, 8))
+        Li = np.zeros((8, 8))
+        for b in range(ci * MATVEC_CHUNK, min(nb, (ci + 1) * MATVEC_CHUNK)):
+            nd += _invert_block(blocks[b], idx, L, Li)
+    return nd
+
+
+@njit(cache=True, inline="always")
+def _apply_block(inv, b, r, z):
+    """Block ``b``'s 8 rows of z = inv r; returns their r.z."""
+    rz = 0.0
+    for o in range(8):
+        v = 0.0
+        for o2 in range(8):
+            v += inv[b, o, o2] * r[8 * b + o2]
+        z[8 * b + o] = v
+    for o in range(8):
+        rz += r[8 * b + o] * z[8 * b + o]
+    return rz
+
+
+@njit(cache=True)
+def apply_blocks(inv, r, z):
+    """Set z to the block-diagonal ``inv`` (b, 8, 8) times r (8b,); returns r.z."""
+    rz = 0.0
+    for b in range(len(inv)):
+        rz += _apply_block(inv, b, r, z)
+    return rz
 
 
 @njit(cache=True)
@@ -229,33 +385,43 @@ def level_matvec(q_keys, nb, inp, xmap, omap, m1, k1, h, n, s, scell, sloc, sw, 
 
 
 @njit(cache=True)
-def level_pcg(q_keys, nb, inp, cmap, m1, k1, h, n, s, scell, sloc, sw, rhs, diag, tol, max_iter):
-    """Jacobi-preconditioned conjugate gradients on the unknown cells only.
+def _cg_update(x, r, p, q, a, inv):
+    """X += a p, r -= a q, q = the preconditioned residual, block by block; returns (r.r, r.z).
 
-    ``rhs``, ``diag`` and the solution hold the children of the flagged parents, parent ``i``'s at
+    ``r.r`` over the rows not fixed (a positive diagonal in ``inv``). With ``a`` = 0 and ``p``,
+    ``q`` zero, x and r stay as they are and ``q`` receives the preconditioned residual (the
+    start). Each block's ``q`` is read before its preconditioned residual overwrites it.
+    """
+    rr = 0.0
+    rz = 0.0
+    for b in range(len(inv)):
+        for o in range(8):
+            i = 8 * b + o
+            x[i] += a * p[i]
+            r[i] -= a * q[i]
+            if inv[b, o, o] > 0.0:  # rows without a positive diagonal are fixed
+                rr += r[i] * r[i]
+        rz += _apply_block(inv, b, r, q)
+    return rr, rz
+
+
+@njit(cache=True)
+def level_pcg(q_keys, nb, inp, cmap, m1, k1, h, n, s, scell, sloc, sw, rhs, inv, tol, max_iter):
+    """Block-Jacobi-preconditioned conjugate gradients on the unknown cells only.
+
+    ``rhs`` and the solution hold the children of the flagged parents, parent ``i``'s at
     ``8 cmap[i]`` (the ring of E, 40 % of its cells at the finest level, carries no unknown: vectors
-    on all of E would be zero there). ``rhs`` is overwritten by the residual and ``diag`` by the
-    preconditioner (its inverse, 0 where not positive). Rows whose diagonal is not positive are
-    fixed (the free boundary's cells outside): their search directions and
-    solution stay 0 and their residual does not count. Returns (x, iterations, relative residual).
+    on all of E would be zero there); ``inv`` (u, 8, 8) the inverse of each flagged parent's block
+    of siblings (:func:`factor_blocks`), 0 on the rows and columns that are fixed (no positive
+    diagonal: the free boundary's cells outside), whose search directions and solution stay 0 and
+    whose residual does not count. ``rhs`` is overwritten by the residual.
+    Returns (x, iterations, relative residual).
     """
     m = len(rhs)
-    inv = diag
-    for i in range(m):
-        if diag[i] > 0.0:
-            inv[i] = 1.0 / diag[i]
-        else:
-            inv[i] = 0.0
     x = np.zeros(m)
     r = rhs
-    p = np.empty(m)
-    bn = 0.0
-    rz = 0.0
-    for i in range(m):
-        p[i] = r[i] * inv[i]
-        if inv[i] > 0.0:  # rows without a positive diagonal are fixed: x stays 0 there
-            bn += r[i] * r[i]
-        rz += r[i] * p[i]
+    p = np.zeros(m)
+    bn, rz = _cg_update(x, r, x, p, 0.0, inv)
     bn = np.sqrt(bn)
     if bn == 0.0:
         return x, 0, 0.0
@@ -270,15 +436,7 @@ def level_pcg(q_keys, nb, inp, cmap, m1, k1, h, n, s, scell, sloc, sw, rhs, diag
         if pq <= 0.0:
             break
         a = rz / pq
-        rr = 0.0
-        rz_new = 0.0
-        for i in range(m):
-            x[i] += a * p[i]
-            r[i] -= a * q[i]
-            if inv[i] > 0.0:
-                rr += r[i] * r[i]
-            q[i] = r[i] * inv[i]
-            rz_new += r[i] * q[i]
+        rr, rz_new = _cg_update(x, r, p, q, a, inv)
         it += 1
         rel = np.sqrt(rr) / bn
         if rel < tol:

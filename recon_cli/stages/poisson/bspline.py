@@ -7,12 +7,13 @@ At level ``d`` every cell of the tree carries the tensor-product quadratic B-spl
 (support 3 cells per axis), reflected at the cube's faces (even for Neumann, odd for Dirichlet, so
 ``chi = 0`` there). A function of level ``d - 1`` is exactly a combination of level-``d`` functions
 (refinement mask ``(1, 3, 3, 1) / 4`` per axis), so, as for the trilinear basis, each level holds
-the whole ``chi`` of the coarser levels (prolonged) plus its own correction, solved by Jacobi-PCG on
-the residual they leave. The coefficients live on ``E``: the level's cells and a ring of two cells
-around them (the children of the parents within one of a parent of the level's cells, in blocks of
-siblings), enough for the prolongation to be exact on the stencil (5 cells per axis) of every cell
-of the level: the set grows by a parent ring per level, and the levels' parents are within one of
-the tree's parents, so the coarser ``E`` always holds what the prolongation reads.
+the whole ``chi`` of the coarser levels (prolonged) plus its own correction, solved on the residual
+they leave by conjugate gradients preconditioned by the inverse of each block of 8 siblings. The
+coefficients live on ``E``: the level's cells and a ring of two cells around them (the children of
+the parents within one of a parent of the level's cells, in blocks of siblings), enough for the
+prolongation to be exact on the stencil (5 cells per axis) of every cell of the level: the set grows
+by a parent ring per level, and the levels' parents are within one of the tree's parents, so the
+coarser ``E`` always holds what the prolongation reads.
 
 The right-hand side is that of the normals' field of :func:`.splat.spread_fields` (each sample's
 share at its level(s) unmerged: merging per cell moves the items of a curved surface inwards, a bias
@@ -379,7 +380,11 @@ class NormalRHS:
         fields: dict[int, tuple[np.ndarray, np.ndarray]],
         level_fields: list[LevelField | None],
         free: bool = False,
+        finer: np.ndarray | None = None,
     ):
+        # ``finer``: the shares of levels beyond these, restricted onto the finest of them (the
+        # distributed solve's coarse levels); added where the single solve adds them, so both
+        # round alike
         # a level's own share is dropped once its right-hand side is made (the dict is
         # copied: the caller's is left whole; drop it there to free the arrays)
         self.fields = dict(fields)
@@ -389,7 +394,8 @@ class NormalRHS:
         self.depth = depth
         self.carry: np.ndarray | None = None  # the field on the previous level's E, (8q, 3)
         self.finer: list[np.ndarray | None] = [None] * (depth + 1)
-        up = None
+        self.finer[depth] = finer
+        up = finer
         for lv in range(depth, 1, -1):
             f = level_fields[lv]
             assert f is not None  # levels 1.. have a field
@@ -701,18 +707,18 @@ def solve_level(
         f.coef = coef
         return {"depth": d, "nodes": ne, "unknowns": 0, "iterations": 0, "residual": 0.0}, False
     rhs = make_rhs()
-    diag = BO.stiffness_diag(f.q_keys, f.inp, m1, k1, h)
-    scell, sloc, sw = _screening_samples(f, merged(d), diag, rhs)
+    scell, sloc, sw = _screening_samples(f, merged(d), rhs)
     # the solve's vectors on the unknowns only (the children of the flagged parents), made before
     # the coarser levels' field is prolonged: on the finest level of a large solve the right-hand
-    # side, the diagonal, the prolonged field and its product on all of E were alive at once
+    # side, the prolonged field and its product on all of E were alive at once
     cmap = np.cumsum(f.inp) - 1
     cmap[~f.inp] = -1
     rhs = rhs[unknown]
-    diag = diag[unknown]
     if prev is not None:
         _subtract_coarse(f, prev, cmap, m1, k1, scell, sloc, sw, rhs)
     release_free_heap()
+    # made after the prolonged field is gone: 64 doubles a parent, the largest of the solve's arrays
+    inv = _sibling_block_inverses(f, cmap, m1, k1, scell, sloc, sw)
     x, it, rel = BO.level_pcg(
         f.q_keys,
         f.nb,
@@ -727,11 +733,11 @@ def solve_level(
         sloc,
         sw,
         rhs,
-        diag,
+        inv,
         tolerance,
         max_iter,
     )
-    del rhs, diag, scell, sloc, sw, cmap
+    del rhs, inv, scell, sloc, sw, cmap
     # the level's chi: the coarser field prolonged again (cheaper than keeping it on all of E
     # through the conjugate gradients) plus the correction
     f.coef = coef
@@ -751,13 +757,12 @@ def solve_level(
 def _screening_samples(
     f: LevelField,
     merged: tuple[np.ndarray, np.ndarray] | None,
-    diag: np.ndarray,
     rhs: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The level's screening samples (cell, position in it, weight), their terms added.
+    """The level's screening samples (cell, position in it, weight), their term added to ``rhs``.
 
     ``merged``: the samples merged per cell of the level (positions, weights); their screening
-    is added to ``diag`` and ``rhs`` (8q,) in place. None (empty arrays) without screening.
+    is added to ``rhs`` (8q,) in place. None (empty arrays) without screening.
     """
     if merged is None or not len(merged[0]):
         return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
@@ -767,8 +772,40 @@ def _screening_samples(
     have = scell >= 0
     scell, sloc, sw = scell[have], sloc[have], mw[have]
     del mp, mw, have
-    BO.screening_diag_rhs(f.q_keys, f.nb, 1 << f.depth, f.s, scell, sloc, sw, TARGET, diag, rhs)
+    BO.screening_rhs(f.q_keys, f.nb, 1 << f.depth, f.s, scell, sloc, sw, TARGET, rhs)
     return scell, sloc, sw
+
+
+def _sibling_block_inverses(
+    f: LevelField,
+    cmap: np.ndarray,
+    m1: np.ndarray,
+    k1: np.ndarray,
+    scell: np.ndarray,
+    sloc: np.ndarray,
+    sw: np.ndarray,
+) -> np.ndarray:
+    """The conjugate gradients' block-Jacobi preconditioner: (u, 8, 8), u flagged parents.
+
+    For flagged parent ``i`` (at ``cmap[i]``), the inverse of the operator (stiffness and
+    screening) between its 8 children; 0 on the rows and columns of children with no positive
+    diagonal (fixed: the free boundary's cells outside its domain). In double precision: the
+    single-process and distributed solves go through here with the same arrays in the same order
+    and must give the same mesh to rounding, which float32 factors broke. A block that is not
+    positive definite (the pure Neumann level 1 without screening, the whole operator with the
+    constant in its kernel) gets its diagonal's inverse, plain Jacobi, and a debug line.
+    """
+    n = 1 << f.depth
+    blocks = np.empty((int(np.count_nonzero(f.inp)), 8, 8))
+    BO.stiffness_blocks(f.q_keys, f.inp, cmap, m1, k1, 1.0 / n, blocks)
+    if len(sw):
+        BO.screening_blocks(f.q_keys, f.nb, cmap, n, f.s, scell, sloc, sw, blocks)
+    singular = BO.factor_blocks(blocks)
+    if singular:
+        log.debug(
+            "poisson: level %d  %d sibling blocks not positive definite: Jacobi", f.depth, singular
+        )
+    return blocks
 
 
 def _subtract_coarse(

@@ -401,19 +401,9 @@ def solve_coarse(
 
     dc = len(levels) - 1
     lfs, arrays = level_fields(levels, job.boundary)
-    nrhs = NormalRHS(fields, lfs)
-    if finer is not None:
-        # the finer levels' part, restricted onto the coarser levels as NormalRHS restricts
-        from recon_cli.stages.poisson import _bspline_rhs as BR
-
-        nrhs.finer[dc] = finer if nrhs.finer[dc] is None else nrhs.finer[dc] + finer
-        up = finer
-        for lv in range(dc, 1, -1):
-            c, f = lfs[lv - 1], lfs[lv]
-            assert c is not None and f is not None  # levels 1.. have their fields
-            blocks = BR.finer_blocks(c.q_keys, f.q_keys)
-            up = BR.restrict_rhs(c.q_keys, c.nb, c.inp, blocks, up, 1 << (lv - 1), c.s)
-            nrhs.finer[lv - 1] = up if nrhs.finer[lv - 1] is None else nrhs.finer[lv - 1] + up
+    # the finer levels' part enters the restriction where the single solve's does (a sum
+    # restricted, not two restrictions summed: the same rounding)
+    nrhs = NormalRHS(fields, lfs, finer=finer)
 
     def scr(d):
         return screening.get(d)
@@ -925,13 +915,15 @@ def distributed_poisson(
     _check_distributed(depth, params["full_depth"], 1 if partitions is None else partitions)
     t0 = time.perf_counter()
     lengths: list = []
-    pts, nrm, keep = check_inputs(points, normals, lengths)
+    pts, _, keep = check_inputs(points, normals, lengths)
     partitions, slab_choice = slab_count(partitions, len(pts), client)
     _check_distributed(depth, params["full_depth"], partitions)
     if SPEC.param("confidence").coerce(confidence):
         params["weight_scale"] = 1.0 / float(lengths[0].mean())
-        nrm = nrm * lengths[0][:, None]  # a slab weighs each point by its normal's length
     del lengths
+    # the slabs get the normals as given (a slab weighs each point by its normal's length, and
+    # normalises them as the check did: normalising twice moved them by an ulp)
+    nrm = np.ascontiguousarray(normals, dtype=np.float64)[keep]
     colors, props = kept_attributes(keep, colors, properties)
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     origin, size, perm = frame_of(lo, hi, scale)

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from recon_cli.errors import StageFailed
+from recon_cli.geometry import oriented_rows
 from recon_cli.memory import peak_mb, release_free_heap, reset_peak
 from recon_cli.stages.poisson import _bspline_eval as BE
 from recon_cli.stages.poisson import _extract as E
@@ -239,9 +240,9 @@ def _load(
     props: dict | None = None,
 ) -> dict:
     job = slab.job
-    pts = np.asarray(points, dtype=np.float64)
-    nrm = np.asarray(normals, dtype=np.float64)
-    length = np.linalg.norm(nrm, axis=1)
+    # the single-process check's normalisation (the same length to the bit): both solves must
+    # give the same mesh to rounding
+    pts, nrm, length = oriented_rows(points, normals, "a slab's points have no normals")
     keep = length > 0
     pts, nrm = pts[keep], nrm[keep] / length[keep, None]
     weight = None if job.weight_scale is None else length[keep] * job.weight_scale
