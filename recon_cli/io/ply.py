@@ -768,7 +768,7 @@ def read_bytes(path: str | os.PathLike) -> np.ndarray:
 
     A file is read straight into numpy memory, as ``np.fromfile`` does: one buffer that the
     parser views, no ``bytes`` object copied out of it. Writable whatever the source (see
-    :func:`recon_cli.io.text.as_uint8`): the arrays parsed out of it are views that the stages'
+    ``text.as_uint8``): the arrays parsed out of it are views that the stages'
     kernels take.
     """
     if str(path) == "-":
