@@ -60,6 +60,17 @@ def _recon(*args: str) -> None:
     cli.main(args=["-q", *args], prog_name="recon", standalone_mode=False)
 
 
+@pytest.fixture(autouse=True)
+def _numba_config_restored():
+    """numba re-reads its environment at each compile: a test that compiled with the build's
+    NUMBA_CACHE_DIR would leave it numba's for every kernel module the worker imports next (they
+    would compile into the build's folder instead of loading the install's cache)."""
+    yield
+    from numba.core import config as numba_config
+
+    numba_config.reload_config()  # after monkeypatch put the environment back (set up before it)
+
+
 @pytest.fixture(scope="module")
 def build(tmp_path_factory):
     """(build report, the cache directory holding it, the inputs): the commands ran JIT here first.
@@ -108,11 +119,6 @@ def _build(d: Path) -> tuple[dict, Path, dict[str, Path]]:
         report = (
             build_ahead_of_time()
         )  # what recon warmup builds: the kernels and the signal handler
-    # numba re-reads its environment at each compile, so the build's NUMBA_CACHE_DIR would stay
-    # numba's for the kernels this worker imports next (they would compile into the build's folder)
-    from numba.core import config as numba_config
-
-    numba_config.reload_config()
     (d / "report.json").write_text(json.dumps([report, {k: str(v) for k, v in files.items()}]))
     return report, cache, files
 
