@@ -71,11 +71,13 @@ demo: $(CORE)
 	@echo "result written to $(OUTDIR)/bunny_scan_000_poisson.ply"
 	$(RECON) info $(OUTDIR)/bunny_scan_000_poisson.ply
 
+# worksteal: each worker starts on a contiguous half (a file's cached meshes stay on one worker)
+# and takes the other's queue when idle (no worker waits out the other's long tests)
 test: $(STAMP)
-	$(PY) -m pytest -n 2 $(PYTEST_ARGS)
+	$(PY) -m pytest -n 2 --dist worksteal $(PYTEST_ARGS)
 
 test-fast: $(STAMP)
-	$(PY) -m pytest -n 2 -m "not slow" $(PYTEST_ARGS)
+	$(PY) -m pytest -n 2 --dist worksteal -m "not slow" $(PYTEST_ARGS)
 
 bench: $(STAMP)
 	$(PY) bench/run_bench.py --out bench/results.md

@@ -157,7 +157,7 @@ def test_threading_layer_survives_numba_rereading_its_environment(tmp_path):
     assert first == "omp" and layer in ("omp", "workqueue")
 
 
-LEAN = (
+LEAN_LOADS = (
     "import sys, numpy as np, numba\n"
     "from recon_cli._kernels.arrays import grow1\n"
     "from recon_cli.stages.normals._kernel import pca_normals\n"
@@ -170,7 +170,9 @@ LEAN = (
     # a parallel kernel after a lean load
     "nrm = pca_normals(p, np.arange(0, 8 * 200 + 1, 8), nbr, 1e-12)[0]\n"
     "print(np.abs(np.abs(nrm[:, 2]) - 1).max() < 1e-9)\n"
-    "@numba.njit\n"
+)
+LEAN = (
+    LEAN_LOADS + "@numba.njit\n"
     "def det(a):\n"
     "    return np.linalg.det(a) + np.sum(a) + len(str(3))\n"
     # compiling afterwards: the full context (LAPACK, unicode)
@@ -182,7 +184,7 @@ LEAN = (
 def test_cached_kernels_load_without_numba_registries_and_compiling_still_works(full):
     """A cached kernel loads with numba's runtime only (no typing/lowering registries, no
     scipy.linalg: ~0.2 CPU s per process); kernels compiled afterwards see the whole context."""
-    _run(LEAN, {})  # cache what LEAN calls (compiled the first time if the cache is cold)
+    _run(LEAN_LOADS, {})  # cache what LEAN loads (compiled the first time if the cache is cold)
     out = _run(LEAN, {"RECON_NUMBA_FULL_REFRESH": "1"} if full else {}).split()
     assert out == ["arraymath" if full else "lean", "True", "15.0"]
 

@@ -230,40 +230,6 @@ def test_degree2_rounded_box_as_accurate_as_open3d():
     assert ours <= ref, (ours, ref)
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("name", ["kitten", "armadillo"])
-def test_degree2_cross_check_open3d_and_pymeshlab_within_one_cell(name):
-    """As tests/test_poisson.py's for degree 1: Open3D at depth 8 on 100k points, PyMeshLab at
-    depth 7 on 50k; our surface within half a finest cell of theirs (Chamfer)."""
-    from scipy.spatial import cKDTree
-
-    from recon_cli.backends import open3d_backend, pymeshlab_backend
-    from recon_cli.mesh.sampling import sample_surface
-
-    from reference import isolated
-    from shared_data import sampled_cloud
-
-    def chamfer(a, b):
-        return 0.5 * (cKDTree(b).query(a)[0].mean() + cKDTree(a).query(b)[0].mean())
-
-    def samples(mesh):
-        return sample_surface(mesh, 100_000, seed=2).points
-
-    c = sampled_cloud(name, 100_000)
-    ours = screened_poisson(c.points, c.normals, depth=8, degree=2)
-    cell = ours.report["finest_cell"]
-    assert (
-        chamfer(samples(ours.mesh), samples(isolated(open3d_backend.poisson, c, depth=8)[0]))
-        < 0.5 * cell
-    )
-    c = sampled_cloud(name, 50_000)
-    ours7 = screened_poisson(c.points, c.normals, depth=7, degree=2)
-    cell7 = ours7.report["finest_cell"]
-    assert (
-        chamfer(samples(ours7.mesh), samples(pymeshlab_backend.poisson(c, depth=7))) < 0.5 * cell7
-    )
-
-
 # (shape, points, depth, full depth, samples per node, margin): dense fields at the finest
 # levels; sparse ones at levels 0..2 (level 0's single cell refined onto level 1 included);
 # a shape touching the cube's faces (fields folded at every face) at mixed levels
