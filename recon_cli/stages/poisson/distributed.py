@@ -526,7 +526,14 @@ def reconstruct(
     # ---- each slab's output
     t = time.perf_counter()
     dens_spec = _density_spec(runner, job, tree_depth, tables)
-    pm = runner.run("prepare", S.prepare, lambda k: (drop[k], dens_spec, job.trim > 0))
+    usable = [m["usable"] for m in loaded]
+
+    def dens_part(k):
+        if dens_spec is None or len(dens_spec) == 1:
+            return dens_spec
+        return (dens_spec[0], *table_part(*dens_spec[1:], dens_spec[0], usable[k]))
+
+    pm = runner.run("prepare", S.prepare, lambda k: (drop[k], dens_part(k), job.trim > 0))
     seam_keep: list[dict | None] = list(_seams_used([m["seam_use"] for m in pm]))
     timings["finish"] = time.perf_counter() - t
     trimmed, trimmed_area = 0, 0.0
@@ -599,11 +606,16 @@ def _splat_depths(runner, job: S.Job, loaded: list[dict], tables: dict[int, tupl
     level by level; ``tables`` gets each level's summed density table.
     """
     msgs = loaded
+    usable = [m["usable"] for m in loaded]
     level = job.local_density
     while sum(m["unplaced"] for m in msgs) and level >= 0:
         keys, dens = _sum_tables(runner.run("density", S.own_table, lambda k, lv=level: (lv,)))
         tables[level] = (keys, dens)
-        msgs = runner.run("place", S.place, lambda k, lv=level, ks=keys, ds=dens: (lv, ks, ds))
+        msgs = runner.run(
+            "place",
+            S.place,
+            lambda k, lv=level, ks=keys, ds=dens: (lv, *table_part(ks, ds, lv, usable[k])),
+        )
         level -= 1
     if sum(m["unplaced"] for m in msgs):
         raise StageFailed("distributed poisson: samples left without a splat depth")
@@ -649,6 +661,21 @@ def _coarse_tree(
         for idx, val in parts:
             np.add.at(finer, idx, val)
     return coarse, coarse_fields, screening, finer, noise_med
+
+
+def table_part(keys: np.ndarray, dens: np.ndarray, level: int, usable) -> tuple:
+    """The cells of a summed density table (sorted ``keys``, ``dens``) a slab reads.
+
+    Those within one cell of level ``level`` of its ``usable`` x range (unit cube): every sample
+    it places and every vertex it owns is in that range, and a density reads the cells around
+    its own (:func:`.splat.eval_density`). A slab holds its part, not the whole cube's table.
+    """
+    n = 1 << level
+    a = max(math.floor(usable[0] * n) - 1, 0)
+    b = min(math.ceil(usable[1] * n) + 1, n)
+    lo = np.searchsorted(keys, np.int64(a) << 42)
+    hi = np.searchsorted(keys, np.int64(b) << 42)
+    return keys[lo:hi], dens[lo:hi]
 
 
 def _density_spec(runner, job: S.Job, tree_depth: int, tables: dict[int, tuple]) -> tuple | None:

@@ -40,7 +40,14 @@ from recon_cli.stages.poisson.bspline import (
     level_fields,
     solve_level,
 )
-from recon_cli.stages.poisson.octree import Level, build_levels, pack_keys, set_corners, unpack_keys
+from recon_cli.stages.poisson.octree import (
+    Level,
+    build_levels,
+    dilate,
+    pack_keys,
+    set_corners,
+    unpack_keys,
+)
 from recon_cli.stages.poisson.splat import (
     KERNEL_OFFSET,
     Samples,
@@ -279,6 +286,7 @@ def _load(
     msg["own_samples"] = int(slab.own_s.sum())
     msg["ignored_points"] = int((~keep).sum())
     msg["own"] = [float(v) for v in slab.own]
+    msg["usable"] = [float(v) for v in slab.usable]
     return msg
 
 
@@ -423,6 +431,7 @@ def items(slab: Slab, tree_depth: int, alpha: float, fallback: float | None) -> 
     smp = slab.smp
     dc = min(job.coarse_depth, tree_depth)
     slab.tree_depth = tree_depth
+    _drop_placement(slab, tree_depth)
     if alpha > 0:
         sig = slab.sigma
         sig[np.isnan(sig)] = fallback
@@ -485,12 +494,31 @@ def items(slab: Slab, tree_depth: int, alpha: float, fallback: float | None) -> 
             own_ring=1,
         )
         slab.fine_levels = levels[dc + 1 :]
+        for lev in slab.fine_levels:  # made again from the cells it extracts (field)
+            lev.node_keys, lev.n_nodes = None, 0
     else:
         slab.fine_levels = []
     del pos, vec, lvl
+    # read by no later step (the state every later step holds)
     smp.normal = None
+    slab.splat = slab.area = slab.use_s = None
     release_free_heap()
     return msg
+
+
+def _drop_placement(slab: Slab, tree_depth: int) -> None:
+    """Free what only the samples' placement and their noise read, before the items are made.
+
+    The density tables but the output's (``--density``, ``--trim``), and the pad's points unless
+    the slab carries attributes (the islands count its own points only).
+    """
+    job = slab.job
+    ko = max(tree_depth - KERNEL_OFFSET, 0)
+    keep = (job.density or job.trim > 0) and ko in slab.tables
+    slab.tables = {ko: slab.tables[ko]} if keep else {}
+    if not slab.props and slab.colors is None and slab.own_pt is not None:
+        slab.pts = slab.pts[slab.own_pt]
+        slab.own_pt = None
 
 
 def coarse_item_set(msgs: list[dict], dc: int) -> tuple[np.ndarray, np.ndarray]:
@@ -516,16 +544,31 @@ def build_coarse_levels(pos, lvl, tree_depth: int, job: Job) -> list[Level]:
 
 
 def level_message(levels: list[Level]) -> list[tuple]:
-    """The levels' keys and parents, as a message between processes."""
-    return [(lev.cell_keys, lev.node_keys, lev.cell_parent) for lev in levels]
+    """The levels' cell keys and parents, as a message between processes.
+
+    The nodes are not sent: a slab makes those it reads from the cells (:func:`corner_keys`).
+    """
+    return [(lev.cell_keys, lev.cell_parent) for lev in levels]
 
 
 def levels_from_message(msg: list[tuple]) -> list[Level]:
-    """The levels of :func:`level_message`'s message."""
+    """The levels of :func:`level_message`'s message (without their nodes)."""
     out = []
-    for d, (ck, nk, cp) in enumerate(msg):
-        out.append(Level(d, ck, nk, len(nk), None, None, None, cp))
+    for d, (ck, cp) in enumerate(msg):
+        out.append(Level(d, ck, None, 0, None, None, None, cp))
     return out
+
+
+def corner_keys(cell_keys: np.ndarray, depth: int) -> np.ndarray:
+    """Sorted keys of the corners of the cells ``cell_keys`` (level ``depth``).
+
+    The nodes :func:`.octree.build_levels` makes for a level, of these cells only: a slab keeps
+    no nodes between its steps and makes those of the cells it extracts.
+    """
+    nodes = cell_keys
+    for axis in range(3):
+        nodes = dilate(nodes, axis, 0, 1, 1 << depth)
+    return nodes
 
 
 @timed
@@ -538,6 +581,7 @@ def restrict(slab: Slab, coarse: list[tuple], coarse_fields: dict) -> dict:
     owns (every item it reaches is within the pad: the slabs' parts add up to the whole cube's).
     """
     job = slab.job
+    slab.noise = None  # its medians are taken
     levels = levels_from_message(coarse)
     dc = len(levels) - 1
     if slab.fine_levels:
@@ -559,7 +603,8 @@ def restrict(slab: Slab, coarse: list[tuple], coarse_fields: dict) -> dict:
         fields = dict(coarse_fields)
         fields.update(slab.fine_fields)
         slab.fine_fields = {}
-        slab.normal_rhs = NormalRHS(fields, slab.lfs)
+        # the coarse levels' right-hand sides are the coordinator's: only their field is carried
+        slab.normal_rhs = NormalRHS(fields, slab.lfs, lowest=dc)
         del fields
         up = slab.normal_rhs.finer[dc]
         if up is not None:
@@ -833,9 +878,8 @@ def field(slab: Slab, iso: float, band_left: dict | None, band_right: dict | Non
         lo = np.searchsorted(lev.cell_keys, np.int64(max(a - 2, 0)) << 42)
         hi = np.searchsorted(lev.cell_keys, np.int64(b + 2) << 42)
         lev.cell_keys, lev.leaf = lev.cell_keys[lo:hi].copy(), lev.leaf[lo:hi].copy()
-        lo = np.searchsorted(lev.node_keys, np.int64(max(a - 2, 0)) << 42)
-        hi = np.searchsorted(lev.node_keys, np.int64(b + 3) << 42)
-        lev.node_keys = lev.node_keys[lo:hi].copy()
+        # the corners of those cells: chi at any other node is read by no cell kept
+        lev.node_keys = corner_keys(lev.cell_keys, lev.depth)
         lev.n_nodes = len(lev.node_keys)
         lev.cell_parent = None
         set_corners(lev, lev.node_keys)
@@ -1007,7 +1051,8 @@ def island_points(slab: Slab, lo: np.ndarray, hi: np.ndarray) -> dict:
     """How many of the slab's own points lie in each box (k, 3) ``lo``..``hi``."""
     from recon_cli.stages.poisson.octree import points_in_boxes
 
-    return {"counts": points_in_boxes(slab.pts[slab.own_pt], lo, hi)}
+    own = slab.pts if slab.own_pt is None else slab.pts[slab.own_pt]
+    return {"counts": points_in_boxes(own, lo, hi)}
 
 
 def _seam_ranks(slab: Slab) -> tuple[np.ndarray, np.ndarray]:
