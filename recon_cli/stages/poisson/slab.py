@@ -599,6 +599,8 @@ def restrict(slab: Slab, coarse: list[tuple], coarse_fields: dict) -> dict:
         level_fields(levels, job.boundary) if len(levels) > 1 else ([None], None)
     )
     msg: dict[str, Any] = {"cells": [len(lev.cell_keys) for lev in levels]}
+    for lev in levels[dc + 1 :]:  # made again from the fields after the solve (_fine_cells)
+        lev.cell_keys, lev.cell_parent = np.zeros(0, np.int64), None
     if len(levels) - 1 > dc and dc >= 1:
         fields = dict(coarse_fields)
         fields.update(slab.fine_fields)
@@ -735,6 +737,21 @@ def apply_band(slab: Slab, side: int, band: dict) -> None:
         coef[q_off[d] + rows] = band_coef
 
 
+def _fine_cells(levels: list[Level], lfs: list, dc: int) -> None:
+    """The cells of the levels finer than ``dc`` again, and their parents, from their fields.
+
+    A level's cells are the 8 children of each of its field's flagged parents (the tree is
+    complete in siblings: :func:`.bspline.level_parents`), the same keys in the same order: the
+    slab keeps them out of its solve's peak.
+    """
+    for d in range(dc + 1, len(levels)):
+        lev = levels[d]
+        f = lfs[d]
+        parents = f.q_keys[f.inp]
+        index = O.merge_lookup(parents, levels[d - 1].cell_keys)
+        lev.cell_keys, lev.cell_parent = O.children_sorted(parents, index)
+
+
 @timed
 def solve(slab: Slab, coefs: list) -> dict:
     """Solve the slab's finer levels on the coordinator's coarse chi.
@@ -774,6 +791,7 @@ def solve(slab: Slab, coefs: list) -> dict:
         msg["levels"] = stats
         msg["iterations"] = it
         msg["residual"] = rel
+    _fine_cells(levels, lfs, dc)
     # the leaves (cells without children in the next level) and the field
     for d in range(1, len(levels)):
         levels[d - 1].leaf = ~O.cell_has_child(levels[d].cell_parent, len(levels[d - 1].cell_keys))
