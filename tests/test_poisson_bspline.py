@@ -406,7 +406,9 @@ def test_packed_blocks_in_place_keep_every_entry(rng):
         blocks = g + g.transpose(0, 2, 1)
         flat = blocks.reshape(-1).copy()
         BO.pack_blocks(flat, nb)
-        np.testing.assert_array_equal(_unpacked(flat[: BO.PACKED * nb].reshape(nb, BO.PACKED)), blocks)
+        np.testing.assert_array_equal(
+            _unpacked(flat[: BO.PACKED * nb].reshape(nb, BO.PACKED)), blocks
+        )
 
 
 @pytest.mark.parametrize("boundary", ["neumann", "free"])

@@ -69,6 +69,25 @@ def test_sphere_cut_by_every_slab_plane_is_one_closed_piece(seed, n, mode):
     assert res.mesh.vertices.dtype == np.float64
 
 
+def test_sphere_cut_by_level6_seams_is_one_closed_piece():
+    """More slabs than level-5 planes (40): seams on level-6 planes, level 6 made complete so no
+    leaf crosses one; every seam crosses the sphere and the mesh is still one closed manifold
+    piece with no vertex twice, the seams' vertices the same bits on both sides, about as close to
+    the sphere as the single-process mesh."""
+    rng = np.random.default_rng(5)
+    p, nrm0 = sphere_cloud(40_000, seed=5)
+    r = random_rotation(rng)
+    pts, nrm = p @ r.T * 3.0 + 7.0, nrm0 @ r.T
+    res = distributed_poisson(pts, nrm, depth=7, partitions=40)
+    _closed_one_piece(res.mesh)
+    dist = res.report["distributed"]
+    assert len(dist["slabs"]) == 40 and dist["seam_max_deviation"] == 0.0
+    assert all(s["seam_vertices"] > 0 for s in dist["slabs"][1:])
+    single = screened_poisson(pts, nrm, depth=7)
+    centre = np.full(3, 7.0)
+    assert _radial_error(res.mesh, centre, 3.0) <= 1.02 * _radial_error(single.mesh, centre, 3.0)
+
+
 @pytest.mark.parametrize("n", [8000, 40_000])
 def test_one_slab_is_the_single_process_mesh(n):
     """With one slab, the coarse and fine solves split and the whole pipeline give the
@@ -291,8 +310,8 @@ def test_progress_over_the_whole_job_reaches_its_total(kw):
 @pytest.mark.parametrize(
     "kw, msg",
     [
-        ({"partitions": 0}, "partitions must be 1..32"),
-        ({"partitions": 33}, "partitions must be 1..32"),
+        ({"partitions": 0}, "partitions must be 1..64"),
+        ({"partitions": 65}, "partitions must be 1..64"),
         ({"depth": 5}, "needs depth 6 or more"),
         ({"full_depth": 4}, "full_depth >= 5"),
         ({"partitions": 2, "seams": [40]}, "seams must be 1 increasing planes in 1..31"),
@@ -309,8 +328,8 @@ def test_refused_options(kw, msg):
 
 def test_default_partitions_from_the_workers_memory():
     """One slab per worker when a slab fits the worker's share; a cloud four times too big takes
-    four per worker; a count rounded up to whole rounds of the workers, capped at 32; no limit:
-    one per worker."""
+    four per worker; a count rounded up to whole rounds of the workers, capped at 64 (beyond 32,
+    seams on level-6 planes); no limit: one per worker."""
     from recon_cli.stages.poisson.distributed import (
         SLAB_BYTES_PER_POINT,
         SLAB_MEMORY_SHARE,
@@ -326,11 +345,12 @@ def test_default_partitions_from_the_workers_memory():
     assert default_partitions(5 * int(per_slab), 3, mem) == 6
     assert default_partitions(10, 4, mem) == 4
     assert default_partitions(0, 1, mem) == 1
-    assert default_partitions(100 * fits, 4, mem) == 32
-    assert default_partitions(int(31 * per_slab), 3, mem) == 32  # 11 rounds of 3: 33
+    assert default_partitions(100 * fits, 4, mem) == 64
+    assert default_partitions(int(31 * per_slab), 3, mem) == 33  # 11 rounds of 3
+    assert default_partitions(int(63 * per_slab), 5, mem) == 64  # 13 rounds of 5: 65
     assert default_partitions(10**9, 4, None) == 4
     assert default_partitions(10**9, 4, 0) == 4
-    assert default_partitions(10, 40, mem) == 32
+    assert default_partitions(10, 80, mem) == 64
     with pytest.raises(ParameterError, match="workers must be >= 1"):
         default_partitions(10, 0, mem)
 
@@ -367,8 +387,8 @@ def test_slab_count_says_how_many_and_why(caplog):
     assert n == 2 and rep["why"] == "one per worker: the workers have no memory limit"
     assert rep["memory_per_worker"] is None
     with caplog.at_level("WARNING", logger="recon"):
-        n, rep = slab_count(None, 64 * per_slab, _Client([mem]))
-    assert n == 32 and rep["why"].startswith("capped at 32 (the seams are level-5 planes)")
+        n, rep = slab_count(None, 128 * per_slab, _Client([mem]))
+    assert n == 64 and rep["why"].startswith("capped at 64 (the seams are level-6 planes)")
     assert "may not fit" in rep["why"] and "may not fit" in caplog.text
     assert slab_count(None, 10**9, None)[0] == 1  # no cluster: this process, one slab
 
@@ -382,8 +402,10 @@ def test_no_partitions_in_memory_is_one_slab_here():
     assert res.report["distributed"]["partitions"]["count"] == 1
     assert len(res.report["distributed"]["slabs"]) == 1
     assert np.array_equal(res.mesh.vertices, ref.mesh.vertices)
-    with pytest.raises(ParameterError, match="partitions must be 1..32"):
+    with pytest.raises(ParameterError, match="partitions must be 1..64"):
         distributed_poisson(pts, nrm, depth=7, partitions=0)
+    with pytest.raises(ParameterError, match="needs depth 7 or more"):
+        distributed_poisson(pts, nrm, depth=6, partitions=33)
 
 
 # ---- on a Dask cluster ----------------------------------------------------------------------

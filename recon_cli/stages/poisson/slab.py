@@ -65,6 +65,10 @@ from recon_cli.stages.poisson.splat import (
 # seams lie on the planes of this level's lattice: the levels up to full_depth (5 by default)
 # are complete grids, so no leaf of the tree crosses a seam
 PARTITION_DEPTH = 5
+# more slabs than its planes allow (a worker's memory needs them): seams on this level's planes,
+# the levels up to it made complete (full_depth raised), so that still no leaf crosses a seam
+FINE_PARTITION_DEPTH = 6
+MAX_PARTITIONS = 1 << FINE_PARTITION_DEPTH
 # slabs and their pads are made of whole sub-slabs, the cells of this level along x
 SUB_DEPTH = 8
 # the coordinator solves the levels up to depth - COARSE_OFFSET for the whole cube, at most
@@ -96,6 +100,16 @@ class Job:
     trim: float
     # --confidence: each point's weight is its normal's length times this (1 / the mean length)
     weight_scale: float | None = None
+    seam_depth: int = PARTITION_DEPTH  # the level whose planes the seams lie on
+
+
+def seam_depth(partitions: int) -> int:
+    """The level whose lattice planes hold the seams of ``partitions`` slabs.
+
+    :data:`PARTITION_DEPTH` up to its 32 slabs, else :data:`FINE_PARTITION_DEPTH` (the levels
+    up to it must then be complete grids: the run's ``full_depth`` is raised to it).
+    """
+    return PARTITION_DEPTH if partitions <= (1 << PARTITION_DEPTH) else FINE_PARTITION_DEPTH
 
 
 @dataclass
