@@ -323,6 +323,34 @@ def test_refused_options(kw, msg):
         distributed_poisson(pts, nrm, **{"depth": 7, "partitions": 2, **kw})
 
 
+def test_a_slab_reads_its_part_of_a_global_density_table():
+    """The cells of a summed density table the coordinator sends a slab (table_part): the
+    density at every point of its usable x range the whole table's, to the bit; the part a
+    fraction of the whole."""
+    from recon_cli.stages.poisson import slab as S
+    from recon_cli.stages.poisson.distributed import table_part
+    from recon_cli.stages.poisson.splat import merge_samples
+
+    rng = np.random.default_rng(2)
+    pts, nrm = sphere_cloud(20_000, seed=2)
+    unit = (pts - pts.min(axis=0)) / (1.01 * np.ptp(pts, axis=0).max()) + 0.002
+    smp = merge_samples(unit, nrm, 9)
+    slab = S.slab_of(None, 0, 1, (0.0, 1.0), (0.0, 1.0), (0.0, 1.0))  # type: ignore[arg-type]
+    slab.smp, slab.own_s = smp, np.ones(len(smp.count), bool)
+    for level in (4, 6):
+        msg = S.own_table(slab, level)  # the whole cube's table: the slab owns everything
+        keys, dens = msg["keys"], msg["dens"]
+        for usable in ((0.0, 0.3), (0.41, 0.58), (0.8, 1.0)):
+            k, d = table_part(keys, dens, level, usable)
+            assert 0 < len(k) < len(keys)
+            q = rng.uniform(0, 1, size=(3000, 3))
+            q[:, 0] = rng.uniform(*usable, size=len(q))
+            q = np.concatenate([q, [[usable[0], 0.5, 0.5], [np.nextafter(usable[1], 0), 0.5, 0.5]]])
+            got = S.eval_density(S.global_table(level, k, d), q)
+            want = S.eval_density(S.global_table(level, keys, dens), q)
+            assert np.array_equal(got, want)
+
+
 # ---- the slab count -----------------------------------------------------------------------
 
 
