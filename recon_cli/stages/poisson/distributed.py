@@ -10,8 +10,9 @@ its longest axis into slabs whose seams are planes of the level-5 lattice
 (:data:`.slab.PARTITION_DEPTH`; the slabs' axis becomes ``x`` by a cyclic turn of the axes,
 so a slab's cells are a run of the x-major lattice keys). Levels up to ``full_depth`` (5)
 are complete grids, so no leaf of the tree crosses a seam. Seams are chosen to balance the
-slabs' points. More than 32 slabs (up to 64, when the workers' memory needs them) put the seams
-on level-6 planes and make level 6 complete (``full_depth`` raised to 6: the same rule). A slab reads its own points and those within a pad beyond each seam (whole
+slabs' points. More than 32 slabs (up to 64, when the workers' memory needs them) put the
+seams on level-6 planes and make level 6 complete (``full_depth`` raised to 6: the same rule).
+A slab reads its own points and those within a pad beyond each seam (whole
 sub-slabs of level 8): ``PAD_CELLS`` cells of the first level the slabs solve, plus the reach
 of the kernel density, so that every sample it splats has exactly the single-process splat.
 The coordinator never holds the cloud: from a file each worker reads the rows of its
@@ -25,7 +26,7 @@ median that stands in where no fit answers (exact, by a histogram of the values'
 patterns and a second round for the values in the median's bins), the iso-value (the
 samples' mean chi). Each slab places its samples at their splat depths from these.
 
-**Coarse solve.** Levels up to ``coarse_depth = depth - 3`` (between 5 and 8) are solved by
+**Coarse solve.** Levels up to ``coarse_depth = depth - 3`` (between 5 and 9) are solved by
 the coordinator for the whole cube, as the single-process solve does: its tree is built from the
 slabs' own coarse items and, for the finer ones, the cells of level ``coarse_depth + 1``
 they occupy (all the coarse levels depend on); the right-hand side is the coarse items'

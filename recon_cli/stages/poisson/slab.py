@@ -72,9 +72,11 @@ MAX_PARTITIONS = 1 << FINE_PARTITION_DEPTH
 # slabs and their pads are made of whole sub-slabs, the cells of this level along x
 SUB_DEPTH = 8
 # the coordinator solves the levels up to depth - COARSE_OFFSET for the whole cube, at most
-# COARSE_MAX (a 256^3 lattice: its tree stays small whatever the depth)
+# COARSE_MAX (a 512^3 lattice: its tree stays small whatever the depth; at depth 12 the pads,
+# PAD_CELLS of the first fine level, are then as wide in finest cells as at depth 11, half of
+# what level 9 gave: a thin slab reads half as many of its neighbours' points)
 COARSE_OFFSET = 3
-COARSE_MAX = 8
+COARSE_MAX = 9
 # a slab solves its finer levels over its own cells and this many cells of the first fine
 # level (coarse depth + 1) beyond each seam
 PAD_CELLS = 8
