@@ -19,6 +19,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("RECON_SHARED_DATA", ROOT.parent / "shared" / "data"))
 MIB = 2**20
@@ -83,6 +85,10 @@ def main(n: int, depth: int, slabs: int, watch: int = 1) -> list[dict]:
     )
     wall = time.perf_counter() - t0
     sl = res.report["distributed"]["slabs"][watch]
+    from recon_cli.mesh.topology import report as topology
+
+    topo = topology(res.mesh)
+    dup = len(res.mesh.vertices) - len(np.unique(res.mesh.vertices, axis=0))
     worst = sorted(rows, key=lambda r: -(r["state_before"] + r["rise"]))[:4]
     print(
         json.dumps(
@@ -94,6 +100,11 @@ def main(n: int, depth: int, slabs: int, watch: int = 1) -> list[dict]:
                 "own_points": sl["points"],
                 "read_points": sl["points_read"],
                 "largest": [(r["step"], r["state_before"] + r["rise"]) for r in worst],
+                "closed_manifold": bool(
+                    topo["watertight"] and topo["edge_manifold"] and topo["vertex_manifold"]
+                ),
+                "pieces": topo["components"],
+                "duplicate_vertices": int(dup),
                 "wall_s": round(wall),
                 "load": f"{load0:.1f}-{os.getloadavg()[0]:.1f}",
             }

@@ -130,7 +130,7 @@ class Slab:
     pad: tuple[float, float]
     usable: tuple[float, float]
     # filled by the steps in order: Any, as a step reads only what an earlier step set
-    pts: Any = None  # (n, 3) kept points, job frame
+    pts: Any = None  # (n, 3) kept points, job frame (the own ones only after items, no attributes)
     own_pt: Any = None
     colors: np.ndarray | None = None
     props: dict | None = None  # per-point properties carried onto the vertices (kept rows)
