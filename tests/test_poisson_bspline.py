@@ -326,9 +326,19 @@ def test_block_preconditioner_solves_each_block_as_numpy(rng):
     blocks[-1] = proj @ (g @ g.T + np.eye(8)) @ proj
     original = blocks.copy()
     assert BO.factor_blocks(blocks) == 1
+    # symmetric to the bit: the solve keeps the lower triangles, the products in the same order
+    np.testing.assert_array_equal(blocks, blocks.transpose(0, 2, 1))
+    inv = _packed(blocks)
+    np.testing.assert_array_equal(_unpacked(inv), blocks)
     r = rng.normal(size=8 * nb)
     z = np.full(8 * nb, np.nan)
-    rz = BO.apply_blocks(blocks, r, z)
+    rz = BO.apply_blocks(inv, r, z)
+    for b in (0, 1, nb - 1):
+        for o in range(8):
+            v = 0.0
+            for o2 in range(8):
+                v += blocks[b, o, o2] * r[8 * b + o2]
+            assert z[8 * b + o] == v
     for b in range(nb - 1):
         act = ~fixed[b]
         rb, zb = r[8 * b : 8 * b + 8], z[8 * b : 8 * b + 8]
@@ -339,6 +349,32 @@ def test_block_preconditioner_solves_each_block_as_numpy(rng):
     np.testing.assert_array_equal(blocks[-1], np.diag(1.0 / d))
     np.testing.assert_allclose(z[-8:], r[-8:] / d, rtol=1e-15)
     assert rz == pytest.approx(float(r @ z), rel=1e-12)
+
+
+def _packed(blocks: np.ndarray) -> np.ndarray:
+    """(b, 8, 8) symmetric blocks as the solve keeps them (b, 36), by pack_blocks in place."""
+    flat = blocks.reshape(-1).copy()
+    BO.pack_blocks(flat, len(blocks))
+    return flat[: BO.PACKED * len(blocks)].reshape(len(blocks), BO.PACKED).copy()
+
+
+def _unpacked(inv: np.ndarray) -> np.ndarray:
+    o, o2 = np.meshgrid(np.arange(8), np.arange(8), indexing="ij")
+    hi, lo = np.maximum(o, o2), np.minimum(o, o2)
+    return inv[:, hi * (hi + 1) // 2 + lo]
+
+
+def test_packed_blocks_in_place_keep_every_entry(rng):
+    """pack_blocks packs each block's lower triangle into the start of the same buffer, block by
+    block (the first blocks' packed entries overlap their own rows): every entry read back."""
+    for nb in (0, 1, 2, 5):
+        g = rng.normal(size=(nb, 8, 8))
+        blocks = g + g.transpose(0, 2, 1)
+        flat = blocks.reshape(-1).copy()
+        BO.pack_blocks(flat, nb)
+        np.testing.assert_array_equal(
+            _unpacked(flat[: BO.PACKED * nb].reshape(nb, BO.PACKED)), blocks
+        )
 
 
 @pytest.mark.parametrize("boundary", ["neumann", "free"])
@@ -371,7 +407,7 @@ def test_block_jacobi_level_solves_the_same_system_as_jacobi(monkeypatch, rng, b
             BO.level_matvec(*system[:4], cmap, *system[4:], e, out)
             return float(np.sqrt(e @ out))
 
-        blocks = np.empty(inv.shape)
+        blocks = np.empty((len(inv), 8, 8))
         BO.stiffness_blocks(q_keys, inp, cmap, m1, k1, h, blocks)
         if len(sw):
             BO.screening_blocks(q_keys, nb, cmap, n, s, scell, sloc, sw, blocks)
@@ -388,10 +424,13 @@ def test_block_jacobi_level_solves_the_same_system_as_jacobi(monkeypatch, rng, b
             act = np.diag(blocks[b]) > 0
             want = np.zeros((8, 8))
             want[np.ix_(act, act)] = np.linalg.inv(blocks[b][np.ix_(act, act)])
-            np.testing.assert_allclose(inv[b], want, rtol=1e-9, atol=1e-12 * np.abs(want).max())
+            np.testing.assert_allclose(
+                _unpacked(inv[b : b + 1])[0], want, rtol=1e-9, atol=1e-12 * np.abs(want).max()
+            )
         d = np.einsum("bii->bi", blocks)
-        jacobi = np.zeros(inv.shape)
+        jacobi = np.zeros((len(inv), 8, 8))
         jacobi[:, np.arange(8), np.arange(8)] = np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 0.0)
+        jacobi = _packed(jacobi)
         exact, _, res = pcg(*system, rhs.copy(), inv, 1e-11, 20_000)
         assert res < 1e-11
         xj, itj, rj = pcg(*system, rhs.copy(), jacobi, 1e-11, 20_000)

@@ -69,6 +69,25 @@ def test_sphere_cut_by_every_slab_plane_is_one_closed_piece(seed, n, mode):
     assert res.mesh.vertices.dtype == np.float64
 
 
+def test_sphere_cut_by_level6_seams_is_one_closed_piece():
+    """More slabs than level-5 planes (40): seams on level-6 planes, level 6 made complete so no
+    leaf crosses one; every seam crosses the sphere and the mesh is still one closed manifold
+    piece with no vertex twice, the seams' vertices the same bits on both sides, about as close to
+    the sphere as the single-process mesh."""
+    rng = np.random.default_rng(5)
+    p, nrm0 = sphere_cloud(40_000, seed=5)
+    r = random_rotation(rng)
+    pts, nrm = p @ r.T * 3.0 + 7.0, nrm0 @ r.T
+    res = distributed_poisson(pts, nrm, depth=7, partitions=40)
+    _closed_one_piece(res.mesh)
+    dist = res.report["distributed"]
+    assert len(dist["slabs"]) == 40 and dist["seam_max_deviation"] == 0.0
+    assert all(s["seam_vertices"] > 0 for s in dist["slabs"][1:])
+    single = screened_poisson(pts, nrm, depth=7)
+    centre = np.full(3, 7.0)
+    assert _radial_error(res.mesh, centre, 3.0) <= 1.02 * _radial_error(single.mesh, centre, 3.0)
+
+
 @pytest.mark.parametrize("n", [8000, 40_000])
 def test_one_slab_is_the_single_process_mesh(n):
     """With one slab, the coarse and fine solves split and the whole pipeline give the
@@ -291,8 +310,8 @@ def test_progress_over_the_whole_job_reaches_its_total(kw):
 @pytest.mark.parametrize(
     "kw, msg",
     [
-        ({"partitions": 0}, "partitions must be 1..32"),
-        ({"partitions": 33}, "partitions must be 1..32"),
+        ({"partitions": 0}, "partitions must be 1..64"),
+        ({"partitions": 65}, "partitions must be 1..64"),
         ({"depth": 5}, "needs depth 6 or more"),
         ({"full_depth": 4}, "full_depth >= 5"),
         ({"partitions": 2, "seams": [40]}, "seams must be 1 increasing planes in 1..31"),
@@ -304,13 +323,41 @@ def test_refused_options(kw, msg):
         distributed_poisson(pts, nrm, **{"depth": 7, "partitions": 2, **kw})
 
 
+def test_a_slab_reads_its_part_of_a_global_density_table():
+    """The cells of a summed density table the coordinator sends a slab (table_part): the
+    density at every point of its usable x range the whole table's, to the bit; the part a
+    fraction of the whole."""
+    from recon_cli.stages.poisson import slab as S
+    from recon_cli.stages.poisson.distributed import table_part
+    from recon_cli.stages.poisson.splat import merge_samples
+
+    rng = np.random.default_rng(2)
+    pts, nrm = sphere_cloud(20_000, seed=2)
+    unit = (pts - pts.min(axis=0)) / (1.01 * np.ptp(pts, axis=0).max()) + 0.002
+    smp = merge_samples(unit, nrm, 9)
+    slab = S.slab_of(None, 0, 1, (0.0, 1.0), (0.0, 1.0), (0.0, 1.0))  # type: ignore[arg-type]
+    slab.smp, slab.own_s = smp, np.ones(len(smp.count), bool)
+    for level in (4, 6):
+        msg = S.own_table(slab, level)  # the whole cube's table: the slab owns everything
+        keys, dens = msg["keys"], msg["dens"]
+        for usable in ((0.0, 0.3), (0.41, 0.58), (0.8, 1.0)):
+            k, d = table_part(keys, dens, level, usable)
+            assert 0 < len(k) < len(keys)
+            q = rng.uniform(0, 1, size=(3000, 3))
+            q[:, 0] = rng.uniform(*usable, size=len(q))
+            q = np.concatenate([q, [[usable[0], 0.5, 0.5], [np.nextafter(usable[1], 0), 0.5, 0.5]]])
+            got = S.eval_density(S.global_table(level, k, d), q)
+            want = S.eval_density(S.global_table(level, keys, dens), q)
+            assert np.array_equal(got, want)
+
+
 # ---- the slab count -----------------------------------------------------------------------
 
 
 def test_default_partitions_from_the_workers_memory():
     """One slab per worker when a slab fits the worker's share; a cloud four times too big takes
-    four per worker; a count rounded up to whole rounds of the workers, capped at 32; no limit:
-    one per worker."""
+    four per worker; a count rounded up to whole rounds of the workers, capped at 64 (beyond 32,
+    seams on level-6 planes); no limit: one per worker."""
     from recon_cli.stages.poisson.distributed import (
         SLAB_BYTES_PER_POINT,
         SLAB_MEMORY_SHARE,
@@ -326,11 +373,12 @@ def test_default_partitions_from_the_workers_memory():
     assert default_partitions(5 * int(per_slab), 3, mem) == 6
     assert default_partitions(10, 4, mem) == 4
     assert default_partitions(0, 1, mem) == 1
-    assert default_partitions(100 * fits, 4, mem) == 32
-    assert default_partitions(int(31 * per_slab), 3, mem) == 32  # 11 rounds of 3: 33
+    assert default_partitions(100 * fits, 4, mem) == 64
+    assert default_partitions(int(31 * per_slab), 3, mem) == 33  # 11 rounds of 3
+    assert default_partitions(int(63 * per_slab), 5, mem) == 64  # 13 rounds of 5: 65
     assert default_partitions(10**9, 4, None) == 4
     assert default_partitions(10**9, 4, 0) == 4
-    assert default_partitions(10, 40, mem) == 32
+    assert default_partitions(10, 80, mem) == 64
     with pytest.raises(ParameterError, match="workers must be >= 1"):
         default_partitions(10, 0, mem)
 
@@ -367,8 +415,8 @@ def test_slab_count_says_how_many_and_why(caplog):
     assert n == 2 and rep["why"] == "one per worker: the workers have no memory limit"
     assert rep["memory_per_worker"] is None
     with caplog.at_level("WARNING", logger="recon"):
-        n, rep = slab_count(None, 64 * per_slab, _Client([mem]))
-    assert n == 32 and rep["why"].startswith("capped at 32 (the seams are level-5 planes)")
+        n, rep = slab_count(None, 128 * per_slab, _Client([mem]))
+    assert n == 64 and rep["why"].startswith("capped at 64 (the seams are level-6 planes)")
     assert "may not fit" in rep["why"] and "may not fit" in caplog.text
     assert slab_count(None, 10**9, None)[0] == 1  # no cluster: this process, one slab
 
@@ -382,8 +430,10 @@ def test_no_partitions_in_memory_is_one_slab_here():
     assert res.report["distributed"]["partitions"]["count"] == 1
     assert len(res.report["distributed"]["slabs"]) == 1
     assert np.array_equal(res.mesh.vertices, ref.mesh.vertices)
-    with pytest.raises(ParameterError, match="partitions must be 1..32"):
+    with pytest.raises(ParameterError, match="partitions must be 1..64"):
         distributed_poisson(pts, nrm, depth=7, partitions=0)
+    with pytest.raises(ParameterError, match="needs depth 7 or more"):
+        distributed_poisson(pts, nrm, depth=6, partitions=33)
 
 
 # ---- on a Dask cluster ----------------------------------------------------------------------

@@ -271,7 +271,7 @@ SPEC = StageSpec(
             "the fewest, a multiple of the workers, whose one slab fits a share of a worker's "
             "memory limit; one per worker without a limit; the report says why).",
             min=1,
-            max=32,
+            max=64,
         ),
         Param(
             "memory_limit",

@@ -348,14 +348,47 @@ def factor_blocks(blocks):
     return nd
 
 
+# a symmetric (8, 8) block packed: its lower triangle, row by row (entry (o, o2), o2 <= o, at
+# o (o + 1) / 2 + o2)
+PACKED = 36
+
+
+@njit(cache=True)
+def pack_blocks(flat, nb):
+    """The first ``nb`` (8, 8) blocks of ``flat`` (64 nb,) packed into its first 36 nb entries.
+
+    In place, block by block (a block's packed entries end before the next block's start); the
+    blocks must be symmetric (:func:`factor_blocks`' inverses are, to the bit).
+    """
+    tmp = np.empty(PACKED)
+    for b in range(nb):
+        k = 0
+        for o in range(8):
+            for o2 in range(o + 1):
+                tmp[k] = flat[64 * b + 8 * o + o2]
+                k += 1
+        for k in range(PACKED):
+            flat[PACKED * b + k] = tmp[k]
+
+
+@njit(cache=True, inline="always")
+def _packed(o, o2):
+    """Index of entry (o, o2) of a packed symmetric block."""
+    hi = max(o, o2)
+    return hi * (hi + 1) // 2 + min(o, o2)
+
+
 @njit(cache=True, inline="always")
 def _apply_block(inv, b, r, z):
-    """Block ``b``'s 8 rows of z = inv r; returns their r.z."""
+    """Block ``b``'s 8 rows of z = inv r (``inv`` packed: :func:`pack_blocks`); returns their r.z.
+
+    The products summed in the order of the whole block's rows: the same bits as unpacked.
+    """
     rz = 0.0
     for o in range(8):
         v = 0.0
         for o2 in range(8):
-            v += inv[b, o, o2] * r[8 * b + o2]
+            v += inv[b, _packed(o, o2)] * r[8 * b + o2]
         z[8 * b + o] = v
     for o in range(8):
         rz += r[8 * b + o] * z[8 * b + o]
@@ -364,7 +397,7 @@ def _apply_block(inv, b, r, z):
 
 @njit(cache=True)
 def apply_blocks(inv, r, z):
-    """Set z to the block-diagonal ``inv`` (b, 8, 8) times r (8b,); returns r.z."""
+    """Set z to the block-diagonal ``inv`` (b, 36: packed) times r (8b,); returns r.z."""
     rz = 0.0
     for b in range(len(inv)):
         rz += _apply_block(inv, b, r, z)
@@ -399,7 +432,7 @@ def _cg_update(x, r, p, q, a, inv):
             i = 8 * b + o
             x[i] += a * p[i]
             r[i] -= a * q[i]
-            if inv[b, o, o] > 0.0:  # rows without a positive diagonal are fixed
+            if inv[b, _packed(o, o)] > 0.0:  # rows without a positive diagonal are fixed
                 rr += r[i] * r[i]
         rz += _apply_block(inv, b, r, q)
     return rr, rz
@@ -411,10 +444,11 @@ def level_pcg(q_keys, nb, inp, cmap, m1, k1, h, n, s, scell, sloc, sw, rhs, inv,
 
     ``rhs`` and the solution hold the children of the flagged parents, parent ``i``'s at
     ``8 cmap[i]`` (the ring of E, 40 % of its cells at the finest level, carries no unknown: vectors
-    on all of E would be zero there); ``inv`` (u, 8, 8) the inverse of each flagged parent's block
+    on all of E would be zero there); ``inv`` the inverse of each flagged parent's block
     of siblings (:func:`factor_blocks`), 0 on the rows and columns that are fixed (no positive
     diagonal: the free boundary's cells outside), whose search directions and solution stay 0 and
-    whose residual does not count. ``rhs`` is overwritten by the residual.
+    whose residual does not count; packed (u, 36) (:func:`pack_blocks`). ``rhs`` is overwritten by
+    the residual.
     Returns (x, iterations, relative residual).
     """
     m = len(rhs)

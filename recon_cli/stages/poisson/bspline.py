@@ -381,10 +381,12 @@ class NormalRHS:
         level_fields: list[LevelField | None],
         free: bool = False,
         finer: np.ndarray | None = None,
+        lowest: int = 1,
     ):
         # ``finer``: the shares of levels beyond these, restricted onto the finest of them (the
         # distributed solve's coarse levels); added where the single solve adds them, so both
-        # round alike
+        # round alike. ``lowest``: the finer shares are restricted down to this level only (a
+        # slab sends its level's and solves none coarser)
         # a level's own share is dropped once its right-hand side is made (the dict is
         # copied: the caller's is left whole; drop it there to free the arrays)
         self.fields = dict(fields)
@@ -396,7 +398,7 @@ class NormalRHS:
         self.finer: list[np.ndarray | None] = [None] * (depth + 1)
         self.finer[depth] = finer
         up = finer
-        for lv in range(depth, 1, -1):
+        for lv in range(depth, max(lowest, 1), -1):
             f = level_fields[lv]
             assert f is not None  # levels 1.. have a field
             own = self._own(lv)
@@ -785,7 +787,7 @@ def _sibling_block_inverses(
     sloc: np.ndarray,
     sw: np.ndarray,
 ) -> np.ndarray:
-    """The conjugate gradients' block-Jacobi preconditioner: (u, 8, 8), u flagged parents.
+    """The conjugate gradients' block-Jacobi preconditioner: (u, 36), u flagged parents.
 
     For flagged parent ``i`` (at ``cmap[i]``), the inverse of the operator (stiffness and
     screening) between its 8 children; 0 on the rows and columns of children with no positive
@@ -794,9 +796,14 @@ def _sibling_block_inverses(
     and must give the same mesh to rounding, which float32 factors broke. A block that is not
     positive definite (the pure Neumann level 1 without screening, the whole operator with the
     constant in its kernel) gets its diagonal's inverse, plain Jacobi, and a debug line.
+    The inverses are symmetric to the bit: kept packed (their lower triangles,
+    :func:`._bspline_operator.pack_blocks`, 288 bytes a parent, not 512), the conjugate
+    gradients' largest array at the finest level.
     """
     n = 1 << f.depth
-    blocks = np.empty((int(np.count_nonzero(f.inp)), 8, 8))
+    u = int(np.count_nonzero(f.inp))
+    flat = np.empty(64 * u)
+    blocks = flat.reshape(u, 8, 8)
     BO.stiffness_blocks(f.q_keys, f.inp, cmap, m1, k1, 1.0 / n, blocks)
     if len(sw):
         BO.screening_blocks(f.q_keys, f.nb, cmap, n, f.s, scell, sloc, sw, blocks)
@@ -805,7 +812,11 @@ def _sibling_block_inverses(
         log.debug(
             "poisson: level %d  %d sibling blocks not positive definite: Jacobi", f.depth, singular
         )
-    return blocks
+    del blocks
+    BO.pack_blocks(flat, u)
+    # the buffer shrunk in place (realloc): the tail goes back before the solve's vectors come
+    flat.resize(BO.PACKED * u, refcheck=False)
+    return flat.reshape(u, BO.PACKED)
 
 
 def _subtract_coarse(

@@ -10,7 +10,9 @@ its longest axis into slabs whose seams are planes of the level-5 lattice
 (:data:`.slab.PARTITION_DEPTH`; the slabs' axis becomes ``x`` by a cyclic turn of the axes,
 so a slab's cells are a run of the x-major lattice keys). Levels up to ``full_depth`` (5)
 are complete grids, so no leaf of the tree crosses a seam. Seams are chosen to balance the
-slabs' points. A slab reads its own points and those within a pad beyond each seam (whole
+slabs' points. More than 32 slabs (up to 64, when the workers' memory needs them) put the
+seams on level-6 planes and make level 6 complete (``full_depth`` raised to 6: the same rule).
+A slab reads its own points and those within a pad beyond each seam (whole
 sub-slabs of level 8): ``PAD_CELLS`` cells of the first level the slabs solve, plus the reach
 of the kernel density, so that every sample it splats has exactly the single-process splat.
 The coordinator never holds the cloud: from a file each worker reads the rows of its
@@ -24,7 +26,7 @@ median that stands in where no fit answers (exact, by a histogram of the values'
 patterns and a second round for the values in the median's bins), the iso-value (the
 samples' mean chi). Each slab places its samples at their splat depths from these.
 
-**Coarse solve.** Levels up to ``coarse_depth = depth - 3`` (between 5 and 8) are solved by
+**Coarse solve.** Levels up to ``coarse_depth = depth - 3`` (between 5 and 9) are solved by
 the coordinator for the whole cube, as the single-process solve does: its tree is built from the
 slabs' own coarse items and, for the finer ones, the cells of level ``coarse_depth + 1``
 they occupy (all the coarse levels depend on); the right-hand side is the coarse items'
@@ -129,12 +131,12 @@ log = logging.getLogger("recon")
 def choose_seams(counts: np.ndarray, parts: int) -> list[int]:
     """Seam positions that balance ``counts`` over ``parts`` slabs.
 
-    In level-``PARTITION_DEPTH`` slabs, strictly increasing, 1..31; ``counts`` are the points per
-    level-5 slab.
+    In slabs of the seams' level, strictly increasing, 1..len(counts) - 1; ``counts`` are the
+    points per slab of that level (32 of level 5, or 64 of level 6).
     """
     n = len(counts)
     if parts > n:
-        raise ParameterError(f"at most {n} partitions (the seams are level-5 planes), got {parts}")
+        raise ParameterError(f"at most {n} partitions (the seams' planes), got {parts}")
     cum = np.concatenate([[0], np.cumsum(counts)])
     total = cum[-1]
     seams: list[int] = []
@@ -152,10 +154,11 @@ def plan_slabs(
 ) -> list[tuple]:
     """Per slab: own, pad (points read) and usable (samples splatted) x ranges (unit cube).
 
-    ``seams``: the seams' level-5 planes (1..31, increasing), else balanced by the counts.
+    ``seams``: the seams' planes of level ``job.seam_depth`` (1..31 for level 5, increasing),
+    else balanced by the counts.
     """
     nsub = len(sub_counts)
-    per = nsub >> S.PARTITION_DEPTH
+    per = nsub >> job.seam_depth
     counts = sub_counts.reshape(-1, per).sum(axis=1)
     if seams is None:
         seams = choose_seams(counts, parts)
@@ -165,7 +168,7 @@ def plan_slabs(
         or (seams and not (1 <= seams[0] and seams[-1] < len(counts)))
     ):
         raise ParameterError(f"seams must be {parts - 1} increasing planes in 1..{len(counts) - 1}")
-    seams = [0] + [int(s) for s in seams] + [1 << S.PARTITION_DEPTH]
+    seams = [0] + [int(s) for s in seams] + [1 << job.seam_depth]
     first_fine = job.coarse_depth + 1
     pad_items = math.ceil(S.PAD_CELLS * nsub / (1 << first_fine))
     reach = math.ceil(S.DENSITY_REACH * nsub / (1 << (job.local_density + 1)))
@@ -184,7 +187,7 @@ def sub_slab(x_unit: np.ndarray, nsub: int) -> np.ndarray:
 
 
 # a slab's worker's peak memory per point of the slab's own, its pads' points included
-# (bench/calibration.md, "distributed poisson: a slab's memory")
+# (bench/calibration.md, SLAB_BYTES_PER_POINT: 4103 at depth 11 in 4 slabs on 2 workers)
 SLAB_BYTES_PER_POINT = 4096
 # the share of a worker's memory limit one slab may take: the rest is the worker's own (imports,
 # compiled kernels, Dask's buffers) and the pads' growth with many slabs
@@ -209,15 +212,16 @@ def default_partitions(npoints: int, workers: int, memory_per_worker: float | No
         The fewest slabs such that one slab, at :data:`SLAB_BYTES_PER_POINT` bytes per point of
         its share of ``npoints``, fits :data:`SLAB_MEMORY_SHARE` of ``memory_per_worker``,
         rounded up to a multiple of ``workers`` (every worker runs as many), at least
-        ``workers``; at most 32 (the seams are level-5 planes), even when a slab does not fit
-        then. Without a limit, one slab per worker.
+        ``workers``; at most :data:`.slab.MAX_PARTITIONS` (64: beyond 32 the seams lie on
+        level-6 planes, :func:`.slab.seam_depth`), even when a slab does not fit then. Without a
+        limit, one slab per worker.
     """
     if int(workers) < 1:
         raise ParameterError(f"workers must be >= 1, got {workers}")
     if int(npoints) < 0:
         raise ParameterError(f"npoints must be >= 0, got {npoints}")
     workers = int(workers)
-    cap = 1 << S.PARTITION_DEPTH
+    cap = S.MAX_PARTITIONS
     if not memory_per_worker or memory_per_worker <= 0:
         return min(workers, cap)
     need = math.ceil(npoints * SLAB_BYTES_PER_POINT / (SLAB_MEMORY_SHARE * memory_per_worker))
@@ -261,7 +265,7 @@ def slab_count(partitions: int | None, npoints: int, client: Any) -> tuple[int, 
     if fits and parts % nworkers == 0:
         head = "one per worker" if parts == nworkers else f"{parts // nworkers} per worker"
     else:
-        head = f"capped at {parts} (the seams are level-{S.PARTITION_DEPTH} planes)"
+        head = f"capped at {parts} (the seams are level-{S.FINE_PARTITION_DEPTH} planes)"
     if memory is None:
         why = f"{head}: the workers have no memory limit"
     else:
@@ -274,13 +278,13 @@ def slab_count(partitions: int | None, npoints: int, client: Any) -> tuple[int, 
     return parts, entry
 
 
-def coarse_depth_for(depth: int) -> int:
+def coarse_depth_for(depth: int, seam_depth: int = S.PARTITION_DEPTH) -> int:
     """The levels the coordinator solves.
 
-    ``depth - COARSE_OFFSET``, at least the partition depth, at most :data:`.slab.COARSE_MAX` (the
+    ``depth - COARSE_OFFSET``, at least the seams' level, at most :data:`.slab.COARSE_MAX` (the
     coarse tree stays small at any depth; the slabs solve the rest).
     """
-    return min(depth, max(S.PARTITION_DEPTH, min(depth - S.COARSE_OFFSET, S.COARSE_MAX)))
+    return min(depth, max(seam_depth, min(depth - S.COARSE_OFFSET, S.COARSE_MAX)))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -437,7 +441,8 @@ def frame_of(lo: np.ndarray, hi: np.ndarray, scale: float) -> tuple[np.ndarray, 
 
 def make_job(origin, size, perm, depth, p: dict) -> S.Job:
     """The job every slab shares: the cube in the turned axes, the depths, the parameters."""
-    dc = coarse_depth_for(depth)
+    sd = p.get("seam_depth", S.PARTITION_DEPTH)
+    dc = coarse_depth_for(depth, sd)
     o = np.asarray(origin, dtype=np.float64)[list(perm)]
     return S.Job(
         origin=(float(o[0]), float(o[1]), float(o[2])),
@@ -453,6 +458,7 @@ def make_job(origin, size, perm, depth, p: dict) -> S.Job:
         density=p["density"],
         trim=p["trim"],
         weight_scale=p.get("weight_scale"),
+        seam_depth=sd,
     )
 
 
@@ -526,7 +532,14 @@ def reconstruct(
     # ---- each slab's output
     t = time.perf_counter()
     dens_spec = _density_spec(runner, job, tree_depth, tables)
-    pm = runner.run("prepare", S.prepare, lambda k: (drop[k], dens_spec, job.trim > 0))
+    usable = [m["usable"] for m in loaded]
+
+    def dens_part(k):
+        if dens_spec is None or len(dens_spec) == 1:
+            return dens_spec
+        return (dens_spec[0], *table_part(*dens_spec[1:], dens_spec[0], usable[k]))
+
+    pm = runner.run("prepare", S.prepare, lambda k: (drop[k], dens_part(k), job.trim > 0))
     seam_keep: list[dict | None] = list(_seams_used([m["seam_use"] for m in pm]))
     timings["finish"] = time.perf_counter() - t
     trimmed, trimmed_area = 0, 0.0
@@ -599,19 +612,24 @@ def _splat_depths(runner, job: S.Job, loaded: list[dict], tables: dict[int, tupl
     level by level; ``tables`` gets each level's summed density table.
     """
     msgs = loaded
+    usable = [m["usable"] for m in loaded]
     level = job.local_density
     while sum(m["unplaced"] for m in msgs) and level >= 0:
         keys, dens = _sum_tables(runner.run("density", S.own_table, lambda k, lv=level: (lv,)))
         tables[level] = (keys, dens)
-        msgs = runner.run("place", S.place, lambda k, lv=level, ks=keys, ds=dens: (lv, ks, ds))
+        msgs = runner.run(
+            "place",
+            S.place,
+            lambda k, lv=level, ks=keys, ds=dens: (lv, *table_part(ks, ds, lv, usable[k])),
+        )
         level -= 1
     if sum(m["unplaced"] for m in msgs):
         raise StageFailed("distributed poisson: samples left without a splat depth")
     tree_depth = max(max(m["max_level"] for m in msgs), 1)
-    if tree_depth < S.PARTITION_DEPTH:
+    if tree_depth < job.seam_depth:
         raise ParameterError(
             f"the samples support a tree of depth {tree_depth} only: too sparse for a "
-            f"distributed reconstruction (it needs {S.PARTITION_DEPTH}); run without workers"
+            f"distributed reconstruction (it needs {job.seam_depth}); run without workers"
         )
     count = sum(m["count"] for m in msgs)
     mean_area = sum(m["area_count"] for m in msgs) / count
@@ -649,6 +667,21 @@ def _coarse_tree(
         for idx, val in parts:
             np.add.at(finer, idx, val)
     return coarse, coarse_fields, screening, finer, noise_med
+
+
+def table_part(keys: np.ndarray, dens: np.ndarray, level: int, usable) -> tuple:
+    """The cells of a summed density table (sorted ``keys``, ``dens``) a slab reads.
+
+    Those within one cell of level ``level`` of its ``usable`` x range (unit cube): every sample
+    it places and every vertex it owns is in that range, and a density reads the cells around
+    its own (:func:`.splat.eval_density`). A slab holds its part, not the whole cube's table.
+    """
+    n = 1 << level
+    a = max(math.floor(usable[0] * n) - 1, 0)
+    b = min(math.ceil(usable[1] * n) + 1, n)
+    lo = np.searchsorted(keys, np.int64(a) << 42)
+    hi = np.searchsorted(keys, np.int64(b) << 42)
+    return keys[lo:hi], dens[lo:hi]
 
 
 def _density_spec(runner, job: S.Job, tree_depth: int, tables: dict[int, tuple]) -> tuple | None:
@@ -917,7 +950,7 @@ def distributed_poisson(
     lengths: list = []
     pts, _, keep = check_inputs(points, normals, lengths)
     partitions, slab_choice = slab_count(partitions, len(pts), client)
-    _check_distributed(depth, params["full_depth"], partitions)
+    _seam_params(params, depth, partitions)
     if SPEC.param("confidence").coerce(confidence):
         params["weight_scale"] = 1.0 / float(lengths[0].mean())
     del lengths
@@ -990,20 +1023,34 @@ def make_runner(
 
 
 def _check_distributed(depth: int, full_depth: int, partitions: int) -> None:
-    if partitions < 1 or partitions > (1 << S.PARTITION_DEPTH):
+    if partitions < 1 or partitions > S.MAX_PARTITIONS:
         raise ParameterError(
-            f"partitions must be 1..{1 << S.PARTITION_DEPTH} (the seams are level-"
-            f"{S.PARTITION_DEPTH} planes), got {partitions}"
+            f"partitions must be 1..{S.MAX_PARTITIONS} (the seams are level-"
+            f"{S.FINE_PARTITION_DEPTH} planes), got {partitions}"
         )
-    if depth < S.PARTITION_DEPTH + 1:
+    sd = S.seam_depth(partitions)
+    if depth < sd + 1:
         raise ParameterError(
-            f"a distributed reconstruction needs depth {S.PARTITION_DEPTH + 1} or more, got {depth}"
+            f"a distributed reconstruction in {partitions} slabs needs depth {sd + 1} or more "
+            f"(its seams are level-{sd} planes), got {depth}"
         )
     if full_depth < S.PARTITION_DEPTH:
         raise ParameterError(
             f"a distributed reconstruction needs full_depth >= {S.PARTITION_DEPTH} "
             f"(no leaf may cross a seam), got {full_depth}"
         )
+
+
+def _seam_params(params: dict, depth: int, partitions: int) -> None:
+    """Check a run of ``partitions`` slabs; set its seams' level, raising ``full_depth`` to it.
+
+    Beyond 32 slabs the seams are level-6 planes: level 6 made complete, no leaf crosses one
+    (a fuller tree than the single-process solve's there: chi moves within the solve's tolerance).
+    """
+    _check_distributed(depth, params["full_depth"], partitions)
+    sd = S.seam_depth(partitions)
+    params["seam_depth"] = sd
+    params["full_depth"] = max(params["full_depth"], sd)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1168,6 +1215,7 @@ def reconstruct_files(
     note_phase(scan_phase, "scan", scans, time.perf_counter() - t0)
     kept, rows, names, keep_colors, dtypes, color_type = _checked_scans(scans, attributes)
     parts, slab_choice = slab_count(partitions, kept, client)
+    _seam_params(params, depth, parts)
     nworkers = slab_choice["workers"]
     if SPEC.param("confidence").coerce(confidence):
         params["weight_scale"] = kept / sum(s["length_sum"] for s in scans)

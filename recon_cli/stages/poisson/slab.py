@@ -40,7 +40,14 @@ from recon_cli.stages.poisson.bspline import (
     level_fields,
     solve_level,
 )
-from recon_cli.stages.poisson.octree import Level, build_levels, pack_keys, set_corners, unpack_keys
+from recon_cli.stages.poisson.octree import (
+    Level,
+    build_levels,
+    dilate,
+    pack_keys,
+    set_corners,
+    unpack_keys,
+)
 from recon_cli.stages.poisson.splat import (
     KERNEL_OFFSET,
     Samples,
@@ -58,12 +65,18 @@ from recon_cli.stages.poisson.splat import (
 # seams lie on the planes of this level's lattice: the levels up to full_depth (5 by default)
 # are complete grids, so no leaf of the tree crosses a seam
 PARTITION_DEPTH = 5
+# more slabs than its planes allow (a worker's memory needs them): seams on this level's planes,
+# the levels up to it made complete (full_depth raised), so that still no leaf crosses a seam
+FINE_PARTITION_DEPTH = 6
+MAX_PARTITIONS = 1 << FINE_PARTITION_DEPTH
 # slabs and their pads are made of whole sub-slabs, the cells of this level along x
 SUB_DEPTH = 8
 # the coordinator solves the levels up to depth - COARSE_OFFSET for the whole cube, at most
-# COARSE_MAX (a 256^3 lattice: its tree stays small whatever the depth)
+# COARSE_MAX (a 512^3 lattice: its tree stays small whatever the depth; at depth 12 the pads,
+# PAD_CELLS of the first fine level, are then as wide in finest cells as at depth 11, half of
+# what level 9 gave: a thin slab reads half as many of its neighbours' points)
 COARSE_OFFSET = 3
-COARSE_MAX = 8
+COARSE_MAX = 9
 # a slab solves its finer levels over its own cells and this many cells of the first fine
 # level (coarse depth + 1) beyond each seam
 PAD_CELLS = 8
@@ -89,6 +102,16 @@ class Job:
     trim: float
     # --confidence: each point's weight is its normal's length times this (1 / the mean length)
     weight_scale: float | None = None
+    seam_depth: int = PARTITION_DEPTH  # the level whose planes the seams lie on
+
+
+def seam_depth(partitions: int) -> int:
+    """The level whose lattice planes hold the seams of ``partitions`` slabs.
+
+    :data:`PARTITION_DEPTH` up to its 32 slabs, else :data:`FINE_PARTITION_DEPTH` (the levels
+    up to it must then be complete grids: the run's ``full_depth`` is raised to it).
+    """
+    return PARTITION_DEPTH if partitions <= (1 << PARTITION_DEPTH) else FINE_PARTITION_DEPTH
 
 
 @dataclass
@@ -107,7 +130,7 @@ class Slab:
     pad: tuple[float, float]
     usable: tuple[float, float]
     # filled by the steps in order: Any, as a step reads only what an earlier step set
-    pts: Any = None  # (n, 3) kept points, job frame
+    pts: Any = None  # (n, 3) kept points, job frame (the own ones only after items, no attributes)
     own_pt: Any = None
     colors: np.ndarray | None = None
     props: dict | None = None  # per-point properties carried onto the vertices (kept rows)
@@ -279,6 +302,7 @@ def _load(
     msg["own_samples"] = int(slab.own_s.sum())
     msg["ignored_points"] = int((~keep).sum())
     msg["own"] = [float(v) for v in slab.own]
+    msg["usable"] = [float(v) for v in slab.usable]
     return msg
 
 
@@ -423,6 +447,7 @@ def items(slab: Slab, tree_depth: int, alpha: float, fallback: float | None) -> 
     smp = slab.smp
     dc = min(job.coarse_depth, tree_depth)
     slab.tree_depth = tree_depth
+    _drop_placement(slab, tree_depth)
     if alpha > 0:
         sig = slab.sigma
         sig[np.isnan(sig)] = fallback
@@ -485,12 +510,31 @@ def items(slab: Slab, tree_depth: int, alpha: float, fallback: float | None) -> 
             own_ring=1,
         )
         slab.fine_levels = levels[dc + 1 :]
+        for lev in slab.fine_levels:  # made again from the cells it extracts (field)
+            lev.node_keys, lev.n_nodes = None, 0
     else:
         slab.fine_levels = []
     del pos, vec, lvl
+    # read by no later step (the state every later step holds)
     smp.normal = None
+    slab.splat = slab.area = slab.use_s = None
     release_free_heap()
     return msg
+
+
+def _drop_placement(slab: Slab, tree_depth: int) -> None:
+    """Free what only the samples' placement and their noise read, before the items are made.
+
+    The density tables but the output's (``--density``, ``--trim``), and the pad's points unless
+    the slab carries attributes (the islands count its own points only).
+    """
+    job = slab.job
+    ko = max(tree_depth - KERNEL_OFFSET, 0)
+    keep = (job.density or job.trim > 0) and ko in slab.tables
+    slab.tables = {ko: slab.tables[ko]} if keep else {}
+    if not slab.props and slab.colors is None and slab.own_pt is not None:
+        slab.pts = slab.pts[slab.own_pt]
+        slab.own_pt = None
 
 
 def coarse_item_set(msgs: list[dict], dc: int) -> tuple[np.ndarray, np.ndarray]:
@@ -516,16 +560,31 @@ def build_coarse_levels(pos, lvl, tree_depth: int, job: Job) -> list[Level]:
 
 
 def level_message(levels: list[Level]) -> list[tuple]:
-    """The levels' keys and parents, as a message between processes."""
-    return [(lev.cell_keys, lev.node_keys, lev.cell_parent) for lev in levels]
+    """The levels' cell keys and parents, as a message between processes.
+
+    The nodes are not sent: a slab makes those it reads from the cells (:func:`corner_keys`).
+    """
+    return [(lev.cell_keys, lev.cell_parent) for lev in levels]
 
 
 def levels_from_message(msg: list[tuple]) -> list[Level]:
-    """The levels of :func:`level_message`'s message."""
+    """The levels of :func:`level_message`'s message (without their nodes)."""
     out = []
-    for d, (ck, nk, cp) in enumerate(msg):
-        out.append(Level(d, ck, nk, len(nk), None, None, None, cp))
+    for d, (ck, cp) in enumerate(msg):
+        out.append(Level(d, ck, None, 0, None, None, None, cp))
     return out
+
+
+def corner_keys(cell_keys: np.ndarray, depth: int) -> np.ndarray:
+    """Sorted keys of the corners of the cells ``cell_keys`` (level ``depth``).
+
+    The nodes :func:`.octree.build_levels` makes for a level, of these cells only: a slab keeps
+    no nodes between its steps and makes those of the cells it extracts.
+    """
+    nodes = cell_keys
+    for axis in range(3):
+        nodes = dilate(nodes, axis, 0, 1, 1 << depth)
+    return nodes
 
 
 @timed
@@ -538,6 +597,7 @@ def restrict(slab: Slab, coarse: list[tuple], coarse_fields: dict) -> dict:
     owns (every item it reaches is within the pad: the slabs' parts add up to the whole cube's).
     """
     job = slab.job
+    slab.noise = None  # its medians are taken
     levels = levels_from_message(coarse)
     dc = len(levels) - 1
     if slab.fine_levels:
@@ -555,11 +615,14 @@ def restrict(slab: Slab, coarse: list[tuple], coarse_fields: dict) -> dict:
         level_fields(levels, job.boundary) if len(levels) > 1 else ([None], None)
     )
     msg: dict[str, Any] = {"cells": [len(lev.cell_keys) for lev in levels]}
+    for lev in levels[dc + 1 :]:  # made again from the fields after the solve (_fine_cells)
+        lev.cell_keys, lev.cell_parent = np.zeros(0, np.int64), None
     if len(levels) - 1 > dc and dc >= 1:
         fields = dict(coarse_fields)
         fields.update(slab.fine_fields)
         slab.fine_fields = {}
-        slab.normal_rhs = NormalRHS(fields, slab.lfs)
+        # the coarse levels' right-hand sides are the coordinator's: only their field is carried
+        slab.normal_rhs = NormalRHS(fields, slab.lfs, lowest=dc)
         del fields
         up = slab.normal_rhs.finer[dc]
         if up is not None:
@@ -690,6 +753,21 @@ def apply_band(slab: Slab, side: int, band: dict) -> None:
         coef[q_off[d] + rows] = band_coef
 
 
+def _fine_cells(levels: list[Level], lfs: list, dc: int) -> None:
+    """The cells of the levels finer than ``dc`` again, and their parents, from their fields.
+
+    A level's cells are the 8 children of each of its field's flagged parents (the tree is
+    complete in siblings: :func:`.bspline.level_parents`), the same keys in the same order: the
+    slab keeps them out of its solve's peak.
+    """
+    for d in range(dc + 1, len(levels)):
+        lev = levels[d]
+        f = lfs[d]
+        parents = f.q_keys[f.inp]
+        index = O.merge_lookup(parents, levels[d - 1].cell_keys)
+        lev.cell_keys, lev.cell_parent = O.children_sorted(parents, index)
+
+
 @timed
 def solve(slab: Slab, coefs: list) -> dict:
     """Solve the slab's finer levels on the coordinator's coarse chi.
@@ -729,6 +807,7 @@ def solve(slab: Slab, coefs: list) -> dict:
         msg["levels"] = stats
         msg["iterations"] = it
         msg["residual"] = rel
+    _fine_cells(levels, lfs, dc)
     # the leaves (cells without children in the next level) and the field
     for d in range(1, len(levels)):
         levels[d - 1].leaf = ~O.cell_has_child(levels[d].cell_parent, len(levels[d - 1].cell_keys))
@@ -833,9 +912,8 @@ def field(slab: Slab, iso: float, band_left: dict | None, band_right: dict | Non
         lo = np.searchsorted(lev.cell_keys, np.int64(max(a - 2, 0)) << 42)
         hi = np.searchsorted(lev.cell_keys, np.int64(b + 2) << 42)
         lev.cell_keys, lev.leaf = lev.cell_keys[lo:hi].copy(), lev.leaf[lo:hi].copy()
-        lo = np.searchsorted(lev.node_keys, np.int64(max(a - 2, 0)) << 42)
-        hi = np.searchsorted(lev.node_keys, np.int64(b + 3) << 42)
-        lev.node_keys = lev.node_keys[lo:hi].copy()
+        # the corners of those cells: chi at any other node is read by no cell kept
+        lev.node_keys = corner_keys(lev.cell_keys, lev.depth)
         lev.n_nodes = len(lev.node_keys)
         lev.cell_parent = None
         set_corners(lev, lev.node_keys)
@@ -1007,7 +1085,8 @@ def island_points(slab: Slab, lo: np.ndarray, hi: np.ndarray) -> dict:
     """How many of the slab's own points lie in each box (k, 3) ``lo``..``hi``."""
     from recon_cli.stages.poisson.octree import points_in_boxes
 
-    return {"counts": points_in_boxes(slab.pts[slab.own_pt], lo, hi)}
+    own = slab.pts if slab.own_pt is None else slab.pts[slab.own_pt]
+    return {"counts": points_in_boxes(own, lo, hi)}
 
 
 def _seam_ranks(slab: Slab) -> tuple[np.ndarray, np.ndarray]:
