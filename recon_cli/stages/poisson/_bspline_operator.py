@@ -32,9 +32,7 @@ def stiffness_matvec(q_keys, nb, inp, xmap, omap, m1, k1, h, x, out):
     nq = len(q_keys)
     nchunks = (nq + MATVEC_CHUNK - 1) // MATVEC_CHUNK
     for ci in prange(nchunks):
-        # flat blocks, z slowest and x fastest: the z and y passes run along contiguous rows,
-        # which the compiler vectorises (each entry the same sum in the same order as the
-        # (x, y, z) arrays before: bench/calibration.md, 2026-12-04)
+        # flat (z, y, x) blocks: the z and y passes run along contiguous rows, which vectorise
         X = np.zeros(216)  # (z, y, x) of the 6 x 6 x 6 cells
         zm = np.empty(72)  # (oz, y, x)
         zk = np.empty(72)
