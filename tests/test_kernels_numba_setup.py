@@ -212,3 +212,36 @@ def test_ballpivot_and_mcubes_kernels_load_without_numba_arraymath():
     code = STAGES_WITHOUT_ARRAYMATH % str(Path(__file__).resolve().parent)
     _run(code, {})  # cache the kernels (compiled the first time if the cache is cold)
     assert _run(code, {}).split() == ["True", "False", "False"]
+
+
+SPIN = (
+    "import os, numpy as np, numba\n"
+    "from recon_cli._kernels import numba_setup\n"
+    "@numba.njit(parallel=True)\n"
+    "def f(a):\n"
+    "    for i in numba.prange(len(a)):\n"
+    "        a[i] += 1.0\n"
+    "f(np.zeros(10))\n"
+    "print(os.environ.get('GOMP_SPINCOUNT'), os.environ.get('OMP_WAIT_POLICY'))\n"
+)
+
+
+@pytest.mark.parametrize(
+    "env, expected",
+    [
+        ({}, "10000 None"),  # ours
+        ({"GOMP_SPINCOUNT": "123"}, "123 None"),  # the user's wins
+        ({"OMP_WAIT_POLICY": "active"}, "None active"),  # the user chose how OpenMP waits
+    ],
+)
+def test_idle_openmp_threads_spin_briefly_unless_the_user_says(tmp_path, env, expected):
+    full = {
+        k: v
+        for k, v in os.environ.items()
+        if k not in ("NUMBA_CACHE_DIR", "XDG_CACHE_HOME", "GOMP_SPINCOUNT", "OMP_WAIT_POLICY")
+    }
+    full.update(env, XDG_CACHE_HOME=str(tmp_path))
+    out = subprocess.run(
+        [sys.executable, "-c", SPIN], env=full, check=True, capture_output=True, text=True
+    ).stdout
+    assert out.strip() == expected

@@ -28,6 +28,17 @@ default, numba tries TBB first; Open3D ships an older libtbb, and when open3d wa
 first numba finds that one and warns that TBB is disabled. OpenMP (then the workqueue)
 is what numba would end up using anyway, so ask for it directly. An explicit
 ``NUMBA_THREADING_LAYER`` in the environment still wins.
+
+Idle OpenMP threads
+-------------------
+GNU OpenMP's threads spin (300,000 rounds by default) at the end of every parallel loop before
+they sleep. recon's solvers alternate parallel loops with serial work (the Poisson
+conjugate gradients: hundreds of parallel matrix products per level, a serial update between
+them), so on a busy machine the spinning worker takes the core the main thread is waiting
+for (``bench/calibration.md``, 2026-12-04: the same mesh, byte for byte, in clearly less time).
+``GOMP_SPINCOUNT`` is set to :data:`GOMP_SPINCOUNT` unless the environment already
+says how OpenMP waits (``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT``: the user's wins). Read by libgomp
+when numba loads its OpenMP layer (the first parallel launch), so set here, before any kernel.
 """
 
 from __future__ import annotations
@@ -87,6 +98,12 @@ if "NUMBA_THREADING_LAYER" not in os.environ and "NUMBA_THREADING_LAYER_PRIORITY
     # NumbaWarning on stderr, an error under pytest's strict warnings)
     os.environ["NUMBA_THREADING_LAYER_PRIORITY"] = "omp workqueue tbb"
     _config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
+
+# spin rounds of an idle OpenMP thread before it sleeps (module docstring: Idle OpenMP threads):
+# a thirtieth of libgomp's default, so a launch right after the last one still finds it awake
+GOMP_SPINCOUNT = "10000"
+if "OMP_WAIT_POLICY" not in os.environ and "GOMP_SPINCOUNT" not in os.environ:
+    os.environ["GOMP_SPINCOUNT"] = GOMP_SPINCOUNT
 
 
 # Loading a cached kernel needs numba's runtime (NRT) only; numba refreshes its whole

@@ -131,7 +131,7 @@ SPEC = StageSpec(
     takes_when=lambda p: ("cloud", "mesh") if p["estimate_normals"] else ("oriented",),
     gives=("mesh",),
     backends=BACKENDS,
-    from_files="recon_cli.stages.poisson.distributed:run_from_files",
+    from_files="recon_cli.stages.poisson:run_from_files",
     params=(
         Param(
             "depth",
@@ -992,6 +992,20 @@ REPORT_KEYS = (
     "attributes",
     "attribute_fallback_vertices",
 )
+
+
+def run_from_files(input: str, output: str, params: dict, **kw: Any) -> dict | None:
+    """The stage's ``from_files``: the distributed run with ``--workers`` or ``--scheduler``.
+
+    :func:`.distributed.run_from_files` then; else None (the command loads IN and runs the stage).
+
+    A single-process run never imports the distributed solve (nor, through it, Dask).
+    """
+    if params.get("workers") is None and params.get("scheduler") is None:
+        return None
+    from recon_cli.stages.poisson.distributed import run_from_files as run
+
+    return run(input, output, params, **kw)
 
 
 def check_distributed_options(

@@ -32,11 +32,12 @@ def stiffness_matvec(q_keys, nb, inp, xmap, omap, m1, k1, h, x, out):
     nq = len(q_keys)
     nchunks = (nq + MATVEC_CHUNK - 1) // MATVEC_CHUNK
     for ci in prange(nchunks):
-        X = np.zeros((6, 6, 6))
-        zm = np.empty((6, 6, 2))
-        zk = np.empty((6, 6, 2))
-        ym = np.empty((6, 2, 2))
-        yk = np.empty((6, 2, 2))
+        # flat (z, y, x) blocks: the z and y passes run along contiguous rows, which vectorise
+        X = np.zeros(216)  # (z, y, x) of the 6 x 6 x 6 cells
+        zm = np.empty(72)  # (oz, y, x)
+        zk = np.empty(72)
+        ym = np.empty(24)  # (oy, oz, x)
+        yk = np.empty(24)
         for i in range(ci * MATVEC_CHUNK, min(nq, (ci + 1) * MATVEC_CHUNK)):
             if not inp[i]:
                 continue
@@ -45,15 +46,13 @@ def stiffness_matvec(q_keys, nb, inp, xmap, omap, m1, k1, h, x, out):
                 p = nb[i, t]
                 if p >= 0:
                     p = xmap[p]
-                ax = 2 * (t % 3)
-                ay = 2 * ((t // 3) % 3)
-                az = 2 * (t // 9)
+                base = 2 * (t % 3) + 12 * ((t // 3) % 3) + 72 * (t // 9)
                 if p < 0:
                     for o in range(8):
-                        X[ax + (o & 1), ay + ((o >> 1) & 1), az + (o >> 2)] = 0.0
+                        X[base + (o & 1) + 6 * ((o >> 1) & 1) + 36 * (o >> 2)] = 0.0
                 else:
                     for o in range(8):
-                        X[ax + (o & 1), ay + ((o >> 1) & 1), az + (o >> 2)] = x[8 * p + o]
+                        X[base + (o & 1) + 6 * ((o >> 1) & 1) + 36 * (o >> 2)] = x[8 * p + o]
             k = q_keys[i]
             px = 2 * ((k >> 42) & MASK21)
             py = 2 * ((k >> 21) & MASK21)
@@ -65,35 +64,37 @@ def stiffness_matvec(q_keys, nb, inp, xmap, omap, m1, k1, h, x, out):
                 cz = pz + oz
                 a0, a1, a2, a3, a4 = m1[cz, 0], m1[cz, 1], m1[cz, 2], m1[cz, 3], m1[cz, 4]
                 b0, b1, b2, b3, b4 = k1[cz, 0], k1[cz, 1], k1[cz, 2], k1[cz, 3], k1[cz, 4]
-                for bx in range(6):
-                    for by in range(6):
-                        v0 = X[bx, by, oz]
-                        v1 = X[bx, by, oz + 1]
-                        v2 = X[bx, by, oz + 2]
-                        v3 = X[bx, by, oz + 3]
-                        v4 = X[bx, by, oz + 4]
-                        zm[bx, by, oz] = 0.0 + a0 * v0 + a1 * v1 + a2 * v2 + a3 * v3 + a4 * v4
-                        zk[bx, by, oz] = 0.0 + b0 * v0 + b1 * v1 + b2 * v2 + b3 * v3 + b4 * v4
+                s0 = 36 * oz
+                for j in range(36):
+                    v0 = X[s0 + j]
+                    v1 = X[s0 + 36 + j]
+                    v2 = X[s0 + 72 + j]
+                    v3 = X[s0 + 108 + j]
+                    v4 = X[s0 + 144 + j]
+                    zm[s0 + j] = 0.0 + a0 * v0 + a1 * v1 + a2 * v2 + a3 * v3 + a4 * v4
+                    zk[s0 + j] = 0.0 + b0 * v0 + b1 * v1 + b2 * v2 + b3 * v3 + b4 * v4
             # y
             for oy in range(2):
                 cy = py + oy
                 a0, a1, a2, a3, a4 = m1[cy, 0], m1[cy, 1], m1[cy, 2], m1[cy, 3], m1[cy, 4]
                 b0, b1, b2, b3, b4 = k1[cy, 0], k1[cy, 1], k1[cy, 2], k1[cy, 3], k1[cy, 4]
-                for bx in range(6):
-                    for oz in range(2):
-                        u0 = zm[bx, oy, oz]
-                        u1 = zm[bx, oy + 1, oz]
-                        u2 = zm[bx, oy + 2, oz]
-                        u3 = zm[bx, oy + 3, oz]
-                        u4 = zm[bx, oy + 4, oz]
-                        ym[bx, oy, oz] = 0.0 + a0 * u0 + a1 * u1 + a2 * u2 + a3 * u3 + a4 * u4
-                        yk[bx, oy, oz] = (
+                for oz in range(2):
+                    s0 = 36 * oz + 6 * oy
+                    d0 = 12 * oy + 6 * oz
+                    for bx in range(6):
+                        u0 = zm[s0 + bx]
+                        u1 = zm[s0 + 6 + bx]
+                        u2 = zm[s0 + 12 + bx]
+                        u3 = zm[s0 + 18 + bx]
+                        u4 = zm[s0 + 24 + bx]
+                        ym[d0 + bx] = 0.0 + a0 * u0 + a1 * u1 + a2 * u2 + a3 * u3 + a4 * u4
+                        yk[d0 + bx] = (
                             0.0
-                            + (b0 * u0 + a0 * zk[bx, oy, oz])
-                            + (b1 * u1 + a1 * zk[bx, oy + 1, oz])
-                            + (b2 * u2 + a2 * zk[bx, oy + 2, oz])
-                            + (b3 * u3 + a3 * zk[bx, oy + 3, oz])
-                            + (b4 * u4 + a4 * zk[bx, oy + 4, oz])
+                            + (b0 * u0 + a0 * zk[s0 + bx])
+                            + (b1 * u1 + a1 * zk[s0 + 6 + bx])
+                            + (b2 * u2 + a2 * zk[s0 + 12 + bx])
+                            + (b3 * u3 + a3 * zk[s0 + 18 + bx])
+                            + (b4 * u4 + a4 * zk[s0 + 24 + bx])
                         )
             # x
             for o in range(8):
@@ -101,9 +102,10 @@ def stiffness_matvec(q_keys, nb, inp, xmap, omap, m1, k1, h, x, out):
                 oy = (o >> 1) & 1
                 oz = (o >> 2) & 1
                 cx = px + ox
+                r = 12 * oy + 6 * oz + ox
                 y = 0.0
                 for a in range(5):
-                    y += k1[cx, a] * ym[ox + a, oy, oz] + m1[cx, a] * yk[ox + a, oy, oz]
+                    y += k1[cx, a] * ym[r + a] + m1[cx, a] * yk[r + a]
                 out[8 * omap[i] + o] += h * y
 
 
