@@ -55,7 +55,7 @@ from recon_cli.stages.learned.model import (
     load_model,
     save_model,
 )
-from recon_cli.stages.learned.training import FitResult, Settings, fit
+from recon_cli.stages.learned.training import DISTANCE_WEIGHT, FitResult, Settings, fit
 
 __all__ = [
     "FIELDS",
@@ -231,6 +231,7 @@ def fit_sdf(
     frequencies: int | None = SPEC.param("frequencies").default,
     eikonal_weight: float | None = SPEC.param("eikonal_weight").default,
     normal_weight: float = 1.0,
+    distance_weight: float | None = None,
     batch: int = SPEC.param("batch").default,
     learning_rate: float = 2e-3,
     field: str = SPEC.param("field").default,
@@ -313,6 +314,9 @@ def fit_sdf(
         complete=False,
     )
     normal_weight = _float(normal_weight, "normal_weight", 0.0)
+    if distance_weight is None:
+        distance_weight = DISTANCE_WEIGHT if normals is not None and v["field"] == "sdf" else 0.0
+    distance_weight = _float(distance_weight, "distance_weight", 0.0)
     learning_rate = _float(learning_rate, "learning_rate", 1e-8, 1.0)
     pts, nrm = _checked_points(points, normals)
     if v["frequencies"] is None:
@@ -323,8 +327,17 @@ def fit_sdf(
         raise ParameterError(
             "field occupancy needs a cloud with normals (they tell inside from outside)"
         )
+    if distance_weight > 0 and (nrm is None or v["field"] != "sdf"):
+        raise ParameterError(
+            "distance_weight needs field sdf and a cloud with normals (they sign the distance)"
+        )
     threads = v.pop("threads")
-    settings = Settings(normal_weight=normal_weight, learning_rate=learning_rate, **v)
+    settings = Settings(
+        normal_weight=normal_weight,
+        distance_weight=distance_weight,
+        learning_rate=learning_rate,
+        **v,
+    )
     return fit(pts, nrm, settings, threads, progress)
 
 
@@ -454,6 +467,7 @@ def _report(fitted: FitResult, data, grid, model_path, mesh_path) -> dict:
             "mesh": mesh_path,
             "iterations_done": fitted.iterations,
             "eikonal_weight": fitted.eikonal_weight,
+            "distance_weight": fitted.distance_weight,
             "frequencies": fitted.model.config["frequencies"],
         },
     }
