@@ -7,7 +7,10 @@ surface makes it a distance (IGR, Gropp et al. 2020; with normals its L1 form on
 spread over the band of 5 % of the diagonal around the surface); SIREN's
 off-surface term exp(-100 |s|) on the samples away from the points (Sitzmann et al. 2020)
 keeps spurious zero levels out of the empty space, which a few CPU minutes of IGR alone
-leave (figures in ``bench/calibration.md``). Without
+leave; and with normals the value on the band samples is held at the distance to the nearest
+point, signed by its normal and clamped beyond the band (DeepSDF's clamped L1), so that the
+field rises at the true slope in thin walls and enclosed air, where the eikonal term alone
+lets it sag (figures in ``bench/calibration.md``). Without
 normals it is IGR's zero-level + eikonal form, oriented by the geometric (sphere)
 initialisation. ``field="occupancy"`` fits a logistic output instead (Occupancy Networks,
 Mescheder et al. 2019) to inside/outside labels taken from the normals of the nearest points.
@@ -78,10 +81,11 @@ SPEC = StageSpec(
     description="""Fit a neural signed distance field to a cloud; write it on a grid (.npz).
 
     The grid is negative inside. With normals the loss holds the zero level on the points, the
-    gradient on the normals and the gradient's norm at 1 (eikonal); without, the zero level and
-    the eikonal term (IGR). `recon mcubes OUT.npz mesh.ply` extracts the surface; `recon info
-    OUT.npz` reports the eikonal statistics. Needs PyTorch (pip install recon[learned]). Ctrl-C
-    stops training and writes the best field so far (exit 130).""",
+    gradient on the normals, the gradient's norm at 1 (eikonal) and the value near the surface
+    at the signed distance to the points; without, the zero level and the eikonal term (IGR).
+    `recon mcubes OUT.npz mesh.ply` extracts the surface; `recon info OUT.npz` reports the
+    eikonal statistics. Needs PyTorch (pip install recon[learned]). Ctrl-C stops training and
+    writes the best field so far (exit 130).""",
     takes=("cloud", "mesh"),
     gives=("grid",),
     output_suffix=".npz",
@@ -268,11 +272,20 @@ def fit_sdf(
         pulls every sample to 1 alike (figures in ``bench/calibration.md``).
     normal_weight : float
         Weight of E||grad s(p) - n_p|| (``sdf`` with normals only).
+    distance_weight : float or None
+        Weight of E|clamp(s(q)) - clamp(d(q))| on the band samples q (``sdf`` with normals
+        only): d(q) is the distance from q to its nearest point p, negative when q lies
+        behind p's normal, left out where q is closer to p than p's 8th neighbour (the
+        distance to the points is not the surface's there) or off p's normal line by more
+        than 60 degrees (beside an edge: the side is ambiguous); both clamped to twice the
+        band's width (DeepSDF). It makes the field rise at the true slope inside thin walls
+        and in enclosed air (a cup), where the eikonal term lets it sag and a larger
+        eikonal weight fills the cavity instead. None: 1.0 with normals, 0 otherwise.
     batch : int
         Surface points per step; as many near-surface samples, half as many wider ones
         (sigma 0.1 of the network box), half as many uniform in the box and, with normals,
-        as many band samples (eikonal term only; offsets N(0, (u b)^2), u uniform in [0, 1],
-        b 5 % of the diagonal).
+        as many band samples (eikonal and distance terms only; offsets N(0, (u b)^2), u
+        uniform in [0, 1], b 5 % of the diagonal).
     learning_rate : float
         Adam's initial step (cosine decay to 2 % of it).
     field : {"sdf", "occupancy"}
@@ -294,7 +307,8 @@ def fit_sdf(
     InputError
         Too few points, NaN/inf coordinates, normals of the wrong shape.
     ParameterError
-        A parameter out of range; ``occupancy`` without normals.
+        A parameter out of range; ``occupancy`` without normals; ``distance_weight`` > 0
+        without normals or with ``occupancy``.
     BackendError
         PyTorch is not installed (``pip install recon[learned]``).
     """
