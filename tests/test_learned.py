@@ -183,7 +183,7 @@ def test_interrupt_restores_best_and_says_so(monkeypatch):
             if it == 55:
                 raise KeyboardInterrupt
 
-        return real(*args[:-1], stop)
+        return real(*args[:-1], stop, **kwargs)
 
     monkeypatch.setattr(_torch_net, "train", stopping)
     fit = fit_sdf(p, n, iterations=1000, width=32, depth=2, threads=1)

@@ -174,7 +174,7 @@ def _optimise(T, net, q, nrm, sigma, labels_fn, distance_fn, cfg, s: Settings, p
         if s.max_seconds is not None and hasattr(t, "total"):
             t.total = s.max_seconds
         nrm32 = None if nrm is None else nrm.astype(np.float32)
-        return T.train(net, q, nrm32, sigma, labels_fn, cfg, on_step, distance_fn)
+        return T.train(net, q, nrm32, sigma, labels_fn, cfg, on_step, distance_fn=distance_fn)
 
 
 def fit(
