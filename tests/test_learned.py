@@ -451,6 +451,11 @@ def test_distance_targets_signed_by_the_nearest_normal():
     t, keep = fn(np.array([[0, 0, 3.4], [0.1, 0, 2.7], [1.5, 0, 3.05], [0, 0, 1.001]], np.float32))
     assert keep.tolist() == [True, True, False, False]  # beside the patch's edge; on a point
     assert t[:2] == pytest.approx([0.4, -0.3], abs=1e-4)
+    # the search stops at reach: no target beyond it, both sides of the sphere
+    fn = distance_targets(tree, q, nrm, gap, reach=0.5)
+    t, keep = fn(np.array([[0, 0, -1.3], [0, 0, -1.7], [0, 0.6, 0], [0, 0.4, 0]], np.float32))
+    assert keep.tolist() == [True, False, True, False]
+    assert t[[0, 2]] == pytest.approx([0.3, -0.4], abs=0.02)
 
 
 def test_distance_weight_needs_normals_and_sdf():

@@ -7,8 +7,9 @@ surface makes it a distance (IGR, Gropp et al. 2020; with normals its L1 form on
 spread over the band of 5 % of the diagonal around the surface); SIREN's
 off-surface term exp(-100 |s|) on the samples away from the points (Sitzmann et al. 2020)
 keeps spurious zero levels out of the empty space, which a few CPU minutes of IGR alone
-leave; and with normals the value on the band samples is held at the distance to the nearest
-point, signed by its normal and clamped beyond the band (DeepSDF's clamped L1), so that the
+leave; and with normals the value on the samples away from the points is held at the distance
+to the nearest point, signed by its normal and clamped beyond the band (DeepSDF's clamped L1),
+so that the
 field rises at the true slope in thin walls and enclosed air, where the eikonal term alone
 lets it sag (figures in ``bench/calibration.md``). Without
 normals it is IGR's zero-level + eikonal form, oriented by the geometric (sphere)
@@ -273,18 +274,19 @@ def fit_sdf(
     normal_weight : float
         Weight of E||grad s(p) - n_p|| (``sdf`` with normals only).
     distance_weight : float or None
-        Weight of E|clamp(s(q)) - clamp(d(q))| on the band samples q (``sdf`` with normals
-        only): d(q) is the distance from q to its nearest point p, negative when q lies
-        behind p's normal, left out where q is closer to p than p's 8th neighbour (the
-        distance to the points is not the surface's there) or off p's normal line by more
-        than 60 degrees (beside an edge: the side is ambiguous); both clamped to twice the
-        band's width (DeepSDF). It makes the field rise at the true slope inside thin walls
+        Weight of E|clamp(s(q)) - clamp(d(q))| on the wider, uniform and band samples q
+        (``sdf`` with normals only): d(q) is the distance from q to its nearest point p
+        (approximate: at most 10 % over), negative when q lies behind p's normal, left out
+        where q is closer to p than p's 8th neighbour (the distance to the points is not the
+        surface's there), off p's normal line by more than 60 degrees (beside an edge: the
+        side is ambiguous) or farther from the points than the clamp; both clamped to twice
+        the band's width (DeepSDF). It makes the field rise at the true slope inside thin walls
         and in enclosed air (a cup), where the eikonal term lets it sag and a larger
         eikonal weight fills the cavity instead. None: 1.0 with normals, 0 otherwise.
     batch : int
         Surface points per step; as many near-surface samples, half as many wider ones
         (sigma 0.1 of the network box), half as many uniform in the box and, with normals,
-        as many band samples (eikonal and distance terms only; offsets N(0, (u b)^2), u
+        as many band samples (eikonal and distance terms only: offsets N(0, (u b)^2), u
         uniform in [0, 1], b 5 % of the diagonal).
     learning_rate : float
         Adam's initial step (cosine decay to 2 % of it).

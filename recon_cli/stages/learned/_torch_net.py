@@ -87,7 +87,7 @@ class TrainConfig:
     )
     band_share: float = 0.0  # band samples per surface point
     eikonal_l1: bool = False  # E| |grad s| - 1 | instead of E(|grad s| - 1)^2
-    distance_weight: float = 0.0  # E|s(q) - d(q)| on the band samples
+    distance_weight: float = 0.0  # E|s(q) - d(q)| on the wide, uniform and band samples
     distance_clamp: float = math.inf  # s and d clamped to [-clamp, clamp] (DeepSDF)
 
 
@@ -135,7 +135,7 @@ def train(
     sdf: L1 zero level on the points + ``normal_weight`` * ||grad s(p) - n_p|| (with normals)
     + ``eikonal_weight`` * (||grad s|| - 1)^2 (``eikonal_l1``: | ||grad s|| - 1 |) on points near
     and away from the surface (IGR) and on ``band_share`` * batch band samples
-    + ``distance_weight`` * |clamp(s(q)) - clamp(d(q))| on the band samples q that
+    + ``distance_weight`` * |clamp(s(q)) - clamp(d(q))| on the wide, uniform and band samples q that
     ``distance_fn`` gives a signed distance d for ((k, 3) float32 -> d (k,) float32, kept (k,)
     bool), both clamped to [-``distance_clamp``, ``distance_clamp``].
     occupancy: binary cross-entropy of p(inside) = sigmoid(-gain * s) on labelled samples
@@ -211,8 +211,9 @@ def _loop(
             off = torch.cat([near, wide, unif, band])
         else:
             off = torch.cat([near, wide, unif])
-        # the band samples: distances there cost a tree query each, the far ones the most
-        d0 = b + 2 * (b // 2)
+        # the wide, uniform and band samples (the near ones are mostly within the points'
+        # spacing, where the distance to the points is not the surface's)
+        d0 = b
         use_dist = (
             cfg.field == "sdf" and cfg.distance_weight > 0 and distance_fn is not None and nb > 0
         )

@@ -19,6 +19,7 @@ SPREAD_NEIGHBOURS = 50  # IGR's per-point sampling spread: distance to this neig
 DISTANCE_WEIGHT = 1.0  # the distance term's weight with normals
 DISTANCE_CLAMP = 2.0  # the distance term's clamp, in band widths (the band's edge is reached)
 GAP_NEIGHBOURS = 8  # no distance target closer to a point than its 8th neighbour
+DISTANCE_EPS = 0.1  # the targets' nearest point may be up to 10 % farther than the nearest
 
 
 @dataclass
@@ -108,21 +109,28 @@ def occupancy_labels(tree, q: np.ndarray, normals: np.ndarray):
     return labels_fn
 
 
-def distance_targets(tree, q: np.ndarray, normals: np.ndarray, gap: np.ndarray):
+def distance_targets(
+    tree, q: np.ndarray, normals: np.ndarray, gap: np.ndarray, reach: float = np.inf
+):
     """The signed distance of training samples where the cloud tells it.
 
     d(x) = |x - p| signed by the side of p's normal, p the nearest point; kept where x is
     off the points by at least the spacing ``gap`` of p (closer, the distance to the points
-    is not the surface's) and within 60 degrees of p's normal line (beyond, the side is
-    ambiguous: x lies beside an edge or a gap).
+    is not the surface's), within 60 degrees of p's normal line (beyond, the side is
+    ambiguous: x lies beside an edge or a gap) and within ``reach`` of the points (the
+    clamped term needs no farther target; the tree's search stops there). p is the nearest
+    point up to a factor 1 + ``DISTANCE_EPS`` in distance (an approximate search).
     """
     nq = normals.astype(np.float32)
+    last = len(q) - 1
 
     def distance_fn(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        d, j = tree.query(x, k=1)
-        d = d.astype(np.float32)
+        d, j = tree.query(x, k=1, eps=DISTANCE_EPS, distance_upper_bound=reach)
+        found = j <= last  # none within reach: index len(q), distance inf
+        j = np.minimum(j, last)
+        d = np.where(found, d, 0.0).astype(np.float32)
         side = np.einsum("ij,ij->i", x - q[j], nq[j])
-        keep = (d >= gap[j]) & (np.abs(side) >= 0.5 * d)
+        keep = found & (d >= gap[j]) & (np.abs(side) >= 0.5 * d)
         return np.where(side < 0, -d, d).astype(np.float32), keep
 
     return distance_fn
@@ -146,7 +154,7 @@ def train_config(T, s: Settings, q: np.ndarray, with_normals: bool):
         band=band,
         band_share=1.0 if with_normals else 0.0,
         eikonal_l1=with_normals,
-        # with normals: the value on the band samples held at the distance to the points,
+        # with normals: the value off the points held at the distance to the points,
         # clamped beyond the band so that it does not fill thin cavities from far away
         distance_weight=s.distance_weight if with_normals else 0.0,
         distance_clamp=DISTANCE_CLAMP * band,
@@ -192,13 +200,13 @@ def fit(
     if s.field == "occupancy":
         assert nrm is not None  # checked by fit_sdf
         labels_fn = occupancy_labels(tree, q, nrm)
+    net = T.build(s.width, s.depth, s.frequencies, RADIUS, s.seed)
+    cfg = train_config(T, s, q, nrm is not None)
     distance_fn = None
     if s.field == "sdf" and nrm is not None and s.distance_weight > 0:
         k = min(GAP_NEIGHBOURS, len(q) - 1)
         gap = tree.query(q, k=k + 1)[0][:, -1].astype(np.float32)
-        distance_fn = distance_targets(tree, q, nrm, gap)
-    net = T.build(s.width, s.depth, s.frequencies, RADIUS, s.seed)
-    cfg = train_config(T, s, q, nrm is not None)
+        distance_fn = distance_targets(tree, q, nrm, gap, cfg.distance_clamp)
     logging.getLogger("recon").info(
         "fit-sdf: training %s (%d points, %s normals, width %d, depth %d)",
         s.field,
