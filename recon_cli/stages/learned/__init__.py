@@ -9,11 +9,10 @@ off-surface term exp(-100 |s|) on the samples away from the points (Sitzmann et 
 keeps spurious zero levels out of the empty space, which a few CPU minutes of IGR alone
 leave; and with normals the value on the samples away from the points is held at the distance
 to the nearest point, signed by its normal and clamped beyond the band (DeepSDF's clamped L1),
-so that the
-field rises at the true slope in thin walls and enclosed air, where the eikonal term alone
-lets it sag (figures in ``bench/calibration.md``). Without
-normals it is IGR's zero-level + eikonal form, oriented by the geometric (sphere)
-initialisation. ``field="occupancy"`` fits a logistic output instead (Occupancy Networks,
+so that the field rises at the true slope in thin walls and enclosed air, where the eikonal
+term alone lets it sag (figures in ``bench/calibration.md``). Without normals it is IGR's
+zero-level + eikonal form, oriented by the geometric (sphere) initialisation.
+``field="occupancy"`` fits a logistic output instead (Occupancy Networks,
 Mescheder et al. 2019) to inside/outside labels taken from the normals of the nearest points.
 
 The field is sampled on a grid (:class:`recon_cli.grid.Grid`, negative inside): evaluated
