@@ -183,7 +183,7 @@ def test_interrupt_restores_best_and_says_so(monkeypatch):
             if it == 55:
                 raise KeyboardInterrupt
 
-        return real(*args[:-1], stop)
+        return real(*args[:-1], stop, **kwargs)
 
     monkeypatch.setattr(_torch_net, "train", stopping)
     fit = fit_sdf(p, n, iterations=1000, width=32, depth=2, threads=1)
@@ -422,3 +422,52 @@ def test_a_field_of_one_sign_is_refused(monkeypatch, sign):
     params = {"iterations": 20, "width": 16, "depth": 2, "resolution": 16, "threads": 1}
     with pytest.raises(StageFailed, match="everywhere on the grid"):
         apply_stage("fit-sdf", PointCloud(points=p, normals=n), params)
+
+
+def test_distance_targets_signed_by_the_nearest_normal():
+    """The band samples' distance targets: |x - p| signed by p's normal, none near the points
+    (closer than p's spacing) or beside an edge (the side ambiguous)."""
+    from scipy.spatial import cKDTree
+
+    from recon_cli.stages.learned.training import distance_targets
+
+    # a sphere of radius 1 (outward normals) and a square patch of z = 3 facing +z
+    p, n = sphere_cloud(20_000, 1.0, seed=4)
+    g = np.linspace(-0.5, 0.5, 101)
+    patch = np.stack([*np.meshgrid(g, g), np.full((101, 101), 3.0)], -1).reshape(-1, 3)
+    q = np.concatenate([p, patch]).astype(np.float32)
+    nrm = np.concatenate([n, np.tile([0.0, 0.0, 1.0], (len(patch), 1))])
+    tree = cKDTree(q)
+    gap = tree.query(q, k=9)[0][:, -1].astype(np.float32)
+    fn = distance_targets(tree, q, nrm, gap)
+    rng = np.random.default_rng(6)
+    d = rng.normal(size=(500, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    r = np.concatenate([rng.uniform(0.2, 0.9, 250), rng.uniform(1.1, 1.8, 250)])
+    x = (d * r[:, None]).astype(np.float32)
+    t, keep = fn(x)
+    assert t.dtype == np.float32 and keep.dtype == bool and keep.all()
+    assert np.abs(t - (r - 1.0)).max() < 0.02  # the sphere's samples are ~0.03 apart
+    t, keep = fn(np.array([[0, 0, 3.4], [0.1, 0, 2.7], [1.5, 0, 3.05], [0, 0, 1.001]], np.float32))
+    assert keep.tolist() == [True, True, False, False]  # beside the patch's edge; on a point
+    assert t[:2] == pytest.approx([0.4, -0.3], abs=1e-4)
+    # the search stops at reach: no target beyond it, both sides of the sphere
+    fn = distance_targets(tree, q, nrm, gap, reach=0.5)
+    t, keep = fn(np.array([[0, 0, -1.3], [0, 0, -1.7], [0, 0.6, 0], [0, 0.4, 0]], np.float32))
+    assert keep.tolist() == [True, False, True, False]
+    assert t[[0, 2]] == pytest.approx([0.3, -0.4], abs=0.02)
+
+
+def test_distance_weight_needs_normals_and_sdf():
+    p, n = sphere_cloud(500, 1.0, seed=2)
+    kw = {"iterations": 2, "width": 8, "depth": 1, "threads": 1}
+    assert fit_sdf(p, n, **kw).distance_weight == 1.0
+    assert fit_sdf(p, None, **kw).distance_weight == 0.0
+    assert fit_sdf(p, n, field="occupancy", **kw).distance_weight == 0.0
+    assert fit_sdf(p, n, distance_weight=0.0, **kw).distance_weight == 0.0
+    for bad in [{"normals": None}, {"field": "occupancy"}]:
+        args = dict({"normals": n}, **bad)
+        with pytest.raises(ParameterError, match="distance_weight needs"):
+            fit_sdf(p, args.pop("normals"), distance_weight=1.0, **args, **kw)
+    with pytest.raises(ParameterError, match="distance_weight"):
+        fit_sdf(p, n, distance_weight=-1.0, **kw)

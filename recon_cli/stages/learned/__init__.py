@@ -7,9 +7,12 @@ surface makes it a distance (IGR, Gropp et al. 2020; with normals its L1 form on
 spread over the band of 5 % of the diagonal around the surface); SIREN's
 off-surface term exp(-100 |s|) on the samples away from the points (Sitzmann et al. 2020)
 keeps spurious zero levels out of the empty space, which a few CPU minutes of IGR alone
-leave (figures in ``bench/calibration.md``). Without
-normals it is IGR's zero-level + eikonal form, oriented by the geometric (sphere)
-initialisation. ``field="occupancy"`` fits a logistic output instead (Occupancy Networks,
+leave; and with normals the value on the samples away from the points is held at the distance
+to the nearest point, signed by its normal and clamped beyond the band (DeepSDF's clamped L1),
+so that the field rises at the true slope in thin walls and enclosed air, where the eikonal
+term alone lets it sag (figures in ``bench/calibration.md``). Without normals it is IGR's
+zero-level + eikonal form, oriented by the geometric (sphere) initialisation.
+``field="occupancy"`` fits a logistic output instead (Occupancy Networks,
 Mescheder et al. 2019) to inside/outside labels taken from the normals of the nearest points.
 
 The field is sampled on a grid (:class:`recon_cli.grid.Grid`, negative inside): evaluated
@@ -55,7 +58,7 @@ from recon_cli.stages.learned.model import (
     load_model,
     save_model,
 )
-from recon_cli.stages.learned.training import FitResult, Settings, fit
+from recon_cli.stages.learned.training import DISTANCE_WEIGHT, FitResult, Settings, fit
 
 __all__ = [
     "FIELDS",
@@ -78,10 +81,11 @@ SPEC = StageSpec(
     description="""Fit a neural signed distance field to a cloud; write it on a grid (.npz).
 
     The grid is negative inside. With normals the loss holds the zero level on the points, the
-    gradient on the normals and the gradient's norm at 1 (eikonal); without, the zero level and
-    the eikonal term (IGR). `recon mcubes OUT.npz mesh.ply` extracts the surface; `recon info
-    OUT.npz` reports the eikonal statistics. Needs PyTorch (pip install recon[learned]). Ctrl-C
-    stops training and writes the best field so far (exit 130).""",
+    gradient on the normals, the gradient's norm at 1 (eikonal) and the value near the surface
+    at the signed distance to the points; without, the zero level and the eikonal term (IGR).
+    `recon mcubes OUT.npz mesh.ply` extracts the surface; `recon info OUT.npz` reports the
+    eikonal statistics. Needs PyTorch (pip install recon[learned]). Ctrl-C stops training and
+    writes the best field so far (exit 130).""",
     takes=("cloud", "mesh"),
     gives=("grid",),
     output_suffix=".npz",
@@ -231,6 +235,7 @@ def fit_sdf(
     frequencies: int | None = SPEC.param("frequencies").default,
     eikonal_weight: float | None = SPEC.param("eikonal_weight").default,
     normal_weight: float = 1.0,
+    distance_weight: float | None = None,
     batch: int = SPEC.param("batch").default,
     learning_rate: float = 2e-3,
     field: str = SPEC.param("field").default,
@@ -267,11 +272,21 @@ def fit_sdf(
         pulls every sample to 1 alike (figures in ``bench/calibration.md``).
     normal_weight : float
         Weight of E||grad s(p) - n_p|| (``sdf`` with normals only).
+    distance_weight : float or None
+        Weight of E|clamp(s(q)) - clamp(d(q))| on the wider, uniform and band samples q
+        (``sdf`` with normals only): d(q) is the distance from q to its nearest point p
+        (approximate: at most 10 % over), negative when q lies behind p's normal, left out
+        where q is closer to p than p's 8th neighbour (the distance to the points is not the
+        surface's there), off p's normal line by more than 60 degrees (beside an edge: the
+        side is ambiguous) or farther from the points than the clamp; both clamped to twice
+        the band's width (DeepSDF). It makes the field rise at the true slope inside thin walls
+        and in enclosed air (a cup), where the eikonal term lets it sag and a larger
+        eikonal weight fills the cavity instead. None: 1.0 with normals, 0 otherwise.
     batch : int
         Surface points per step; as many near-surface samples, half as many wider ones
         (sigma 0.1 of the network box), half as many uniform in the box and, with normals,
-        as many band samples (eikonal term only; offsets N(0, (u b)^2), u uniform in [0, 1],
-        b 5 % of the diagonal).
+        as many band samples (eikonal and distance terms only: offsets N(0, (u b)^2), u
+        uniform in [0, 1], b 5 % of the diagonal).
     learning_rate : float
         Adam's initial step (cosine decay to 2 % of it).
     field : {"sdf", "occupancy"}
@@ -293,7 +308,8 @@ def fit_sdf(
     InputError
         Too few points, NaN/inf coordinates, normals of the wrong shape.
     ParameterError
-        A parameter out of range; ``occupancy`` without normals.
+        A parameter out of range; ``occupancy`` without normals; ``distance_weight`` > 0
+        without normals or with ``occupancy``.
     BackendError
         PyTorch is not installed (``pip install recon[learned]``).
     """
@@ -313,6 +329,9 @@ def fit_sdf(
         complete=False,
     )
     normal_weight = _float(normal_weight, "normal_weight", 0.0)
+    if distance_weight is None:
+        distance_weight = DISTANCE_WEIGHT if normals is not None and v["field"] == "sdf" else 0.0
+    distance_weight = _float(distance_weight, "distance_weight", 0.0)
     learning_rate = _float(learning_rate, "learning_rate", 1e-8, 1.0)
     pts, nrm = _checked_points(points, normals)
     if v["frequencies"] is None:
@@ -323,8 +342,17 @@ def fit_sdf(
         raise ParameterError(
             "field occupancy needs a cloud with normals (they tell inside from outside)"
         )
+    if distance_weight > 0 and (nrm is None or v["field"] != "sdf"):
+        raise ParameterError(
+            "distance_weight needs field sdf and a cloud with normals (they sign the distance)"
+        )
     threads = v.pop("threads")
-    settings = Settings(normal_weight=normal_weight, learning_rate=learning_rate, **v)
+    settings = Settings(
+        normal_weight=normal_weight,
+        distance_weight=distance_weight,
+        learning_rate=learning_rate,
+        **v,
+    )
     return fit(pts, nrm, settings, threads, progress)
 
 
@@ -454,6 +482,7 @@ def _report(fitted: FitResult, data, grid, model_path, mesh_path) -> dict:
             "mesh": mesh_path,
             "iterations_done": fitted.iterations,
             "eikonal_weight": fitted.eikonal_weight,
+            "distance_weight": fitted.distance_weight,
             "frequencies": fitted.model.config["frequencies"],
         },
     }

@@ -87,6 +87,8 @@ class TrainConfig:
     )
     band_share: float = 0.0  # band samples per surface point
     eikonal_l1: bool = False  # E| |grad s| - 1 | instead of E(|grad s| - 1)^2
+    distance_weight: float = 0.0  # E|s(q) - d(q)| on the wide, uniform and band samples
+    distance_clamp: float = math.inf  # s and d clamped to [-clamp, clamp] (DeepSDF)
 
 
 @dataclass
@@ -126,12 +128,16 @@ def train(
     labels_fn: Callable[[np.ndarray], np.ndarray] | None,
     cfg: TrainConfig,
     on_step: Callable[[int, float, float], None] | None = None,
+    distance_fn: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> TrainOutcome:
     """Fit ``net`` to ``points`` (normalised coordinates, (n, 3) float32).
 
     sdf: L1 zero level on the points + ``normal_weight`` * ||grad s(p) - n_p|| (with normals)
     + ``eikonal_weight`` * (||grad s|| - 1)^2 (``eikonal_l1``: | ||grad s|| - 1 |) on points near
-    and away from the surface (IGR) and on ``band_share`` * batch band samples.
+    and away from the surface (IGR) and on ``band_share`` * batch band samples
+    + ``distance_weight`` * |clamp(s(q)) - clamp(d(q))| on the wide, uniform and band samples q that
+    ``distance_fn`` gives a signed distance d for ((k, 3) float32 -> d (k,) float32, kept (k,)
+    bool), both clamped to [-``distance_clamp``, ``distance_clamp``].
     occupancy: binary cross-entropy of p(inside) = sigmoid(-gain * s) on labelled samples
     (``labels_fn``: 1 inside) + |s| on the points. On KeyboardInterrupt (at any time, also
     before the first step) the best parameters so far are restored and the outcome says
@@ -148,7 +154,7 @@ def train(
     t0 = time.perf_counter()
     interrupted = False
     try:
-        _loop(net, points, normals, sigma, labels_fn, cfg, on_step, st, t0)
+        _loop(net, points, normals, sigma, labels_fn, distance_fn, cfg, on_step, st, t0)
     except KeyboardInterrupt:
         interrupted = True
     ema = st["ema"]
@@ -162,7 +168,16 @@ def train(
 
 
 def _loop(
-    net, points, normals, sigma, labels_fn, cfg: TrainConfig, on_step, st: dict, t0: float
+    net,
+    points,
+    normals,
+    sigma,
+    labels_fn,
+    distance_fn,
+    cfg: TrainConfig,
+    on_step,
+    st: dict,
+    t0: float,
 ) -> None:
     gen = torch.Generator().manual_seed(cfg.seed)
     pts = torch.from_numpy(points)
@@ -196,6 +211,15 @@ def _loop(
             off = torch.cat([near, wide, unif, band])
         else:
             off = torch.cat([near, wide, unif])
+        # the wide, uniform and band samples (the near ones are mostly within the points'
+        # spacing, where the distance to the points is not the surface's)
+        d0 = b
+        use_dist = (
+            cfg.field == "sdf" and cfg.distance_weight > 0 and distance_fn is not None and nb > 0
+        )
+        if use_dist:
+            d_np, keep_np = distance_fn(off[d0:].numpy())
+            dist_t, keep_t = torch.from_numpy(d_np), torch.from_numpy(keep_np)
         if cfg.field == "sdf":
             p.requires_grad_(True)
             off.requires_grad_(True)
@@ -214,6 +238,10 @@ def _loop(
                 # only: without them nothing holds the slope and it fights the zero level)
                 far = so[b : 2 * b]
                 loss = loss + cfg.offsurface_weight * torch.exp(-100.0 * far.abs()).mean()
+            if use_dist and bool(keep_t.any()):
+                c = cfg.distance_clamp
+                dev = (so[d0:].clamp(-c, c) - dist_t.clamp(-c, c)).abs()[keep_t]
+                loss = loss + cfg.distance_weight * dev.sum() / len(keep_t)
         else:
             lab = torch.from_numpy(labels_fn(off.numpy()))
             logit = -cfg.occupancy_gain * net(off)

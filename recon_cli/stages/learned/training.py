@@ -16,6 +16,10 @@ from recon_cli.stages.learned.model import OCC_GAIN, RADIUS, SdfModel, compute
 EXTENT = 0.8  # the cloud's longest half-side maps to this in the network's coordinates
 BAND = 0.05  # band samples for the eikonal term reach this fraction of the diagonal
 SPREAD_NEIGHBOURS = 50  # IGR's per-point sampling spread: distance to this neighbour
+DISTANCE_WEIGHT = 1.0  # the distance term's weight with normals
+DISTANCE_CLAMP = 2.0  # the distance term's clamp, in band widths (the band's edge is reached)
+GAP_NEIGHBOURS = 8  # no distance target closer to a point than its 8th neighbour
+DISTANCE_EPS = 0.1  # the targets' nearest point may be up to 10 % farther than the nearest
 
 
 @dataclass
@@ -37,6 +41,8 @@ class FitResult:
         (iteration, smoothed loss) every 10 steps.
     eikonal_weight : float
         The weight used (the default depends on the normals).
+    distance_weight : float
+        The distance term's weight used (the default depends on the normals).
     """
 
     model: SdfModel
@@ -46,6 +52,7 @@ class FitResult:
     loss: float
     history: list
     eikonal_weight: float = 0.0
+    distance_weight: float = 0.0
 
 
 @dataclass
@@ -59,6 +66,7 @@ class Settings:
     frequencies: int
     eikonal_weight: float
     normal_weight: float
+    distance_weight: float
     batch: int
     learning_rate: float
     field: str
@@ -101,8 +109,36 @@ def occupancy_labels(tree, q: np.ndarray, normals: np.ndarray):
     return labels_fn
 
 
+def distance_targets(
+    tree, q: np.ndarray, normals: np.ndarray, gap: np.ndarray, reach: float = np.inf
+):
+    """The signed distance of training samples where the cloud tells it.
+
+    d(x) = |x - p| signed by the side of p's normal, p the nearest point; kept where x is
+    off the points by at least the spacing ``gap`` of p (closer, the distance to the points
+    is not the surface's), within 60 degrees of p's normal line (beyond, the side is
+    ambiguous: x lies beside an edge or a gap) and within ``reach`` of the points (the
+    clamped term needs no farther target; the tree's search stops there). p is the nearest
+    point up to a factor 1 + ``DISTANCE_EPS`` in distance (an approximate search).
+    """
+    nq = normals.astype(np.float32)
+    last = len(q) - 1
+
+    def distance_fn(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        d, j = tree.query(x, k=1, eps=DISTANCE_EPS, distance_upper_bound=reach)
+        found = j <= last  # none within reach: index len(q), distance inf
+        j = np.minimum(j, last)
+        d = np.where(found, d, 0.0).astype(np.float32)
+        side = np.einsum("ij,ij->i", x - q[j], nq[j])
+        keep = found & (d >= gap[j]) & (np.abs(side) >= 0.5 * d)
+        return np.where(side < 0, -d, d).astype(np.float32), keep
+
+    return distance_fn
+
+
 def train_config(T, s: Settings, q: np.ndarray, with_normals: bool):
     """The loss and schedule of one fit (see :func:`recon_cli.stages.learned.fit_sdf`)."""
+    band = BAND * float(np.linalg.norm(q.max(axis=0) - q.min(axis=0)))
     return T.TrainConfig(
         iterations=s.iterations,
         max_seconds=s.max_seconds,
@@ -115,13 +151,17 @@ def train_config(T, s: Settings, q: np.ndarray, with_normals: bool):
         occupancy_gain=OCC_GAIN,
         # with normals: eikonal samples spread over the band of 5 % of the diagonal around the
         # surface (where the field is used and `recon info` judges it) and the L1 penalty
-        band=BAND * float(np.linalg.norm(q.max(axis=0) - q.min(axis=0))),
+        band=band,
         band_share=1.0 if with_normals else 0.0,
         eikonal_l1=with_normals,
+        # with normals: the value off the points held at the distance to the points,
+        # clamped beyond the band so that it does not fill thin cavities from far away
+        distance_weight=s.distance_weight if with_normals else 0.0,
+        distance_clamp=DISTANCE_CLAMP * band,
     )
 
 
-def _optimise(T, net, q, nrm, sigma, labels_fn, cfg, s: Settings, progress):
+def _optimise(T, net, q, nrm, sigma, labels_fn, distance_fn, cfg, s: Settings, progress):
     """Run the optimiser with a progress bar showing the smoothed loss."""
     from recon_cli.progress import task
 
@@ -142,7 +182,7 @@ def _optimise(T, net, q, nrm, sigma, labels_fn, cfg, s: Settings, progress):
         if s.max_seconds is not None and hasattr(t, "total"):
             t.total = s.max_seconds
         nrm32 = None if nrm is None else nrm.astype(np.float32)
-        return T.train(net, q, nrm32, sigma, labels_fn, cfg, on_step)
+        return T.train(net, q, nrm32, sigma, labels_fn, cfg, on_step, distance_fn=distance_fn)
 
 
 def fit(
@@ -162,6 +202,11 @@ def fit(
         labels_fn = occupancy_labels(tree, q, nrm)
     net = T.build(s.width, s.depth, s.frequencies, RADIUS, s.seed)
     cfg = train_config(T, s, q, nrm is not None)
+    distance_fn = None
+    if s.field == "sdf" and nrm is not None and s.distance_weight > 0:
+        k = min(GAP_NEIGHBOURS, len(q) - 1)
+        gap = tree.query(q, k=k + 1)[0][:, -1].astype(np.float32)
+        distance_fn = distance_targets(tree, q, nrm, gap, cfg.distance_clamp)
     logging.getLogger("recon").info(
         "fit-sdf: training %s (%d points, %s normals, width %d, depth %d)",
         s.field,
@@ -170,7 +215,7 @@ def fit(
         s.width,
         s.depth,
     )
-    out = _optimise(T, net, q, nrm, sigma, labels_fn, cfg, s, progress)
+    out = _optimise(T, net, q, nrm, sigma, labels_fn, distance_fn, cfg, s, progress)
     config = {"width": s.width, "depth": s.depth, "frequencies": s.frequencies}
     model = SdfModel(net=net, center=center, scale=scale, field=s.field, config=config)
     return FitResult(
@@ -181,4 +226,5 @@ def fit(
         out.best_loss,
         out.history,
         s.eikonal_weight,
+        s.distance_weight,
     )
