@@ -457,7 +457,7 @@ def make_job(origin, size, perm, depth, p: dict) -> S.Job:
         local_density=dc,
         density=p["density"],
         trim=p["trim"],
-        weight_scale=p.get("weight_scale"),
+        weight_mean=p.get("weight_mean"),
         seam_depth=sd,
     )
 
@@ -952,7 +952,7 @@ def distributed_poisson(
     partitions, slab_choice = slab_count(partitions, len(pts), client)
     _seam_params(params, depth, partitions)
     if SPEC.param("confidence").coerce(confidence):
-        params["weight_scale"] = 1.0 / float(lengths[0].mean())
+        params["weight_mean"] = float(lengths[0].mean())
     del lengths
     # the slabs get the normals as given (a slab weighs each point by its normal's length, and
     # normalises them as the check did: normalising twice moved them by an ulp)
@@ -1218,7 +1218,7 @@ def reconstruct_files(
     _seam_params(params, depth, parts)
     nworkers = slab_choice["workers"]
     if SPEC.param("confidence").coerce(confidence):
-        params["weight_scale"] = kept / sum(s["length_sum"] for s in scans)
+        params["weight_mean"] = sum(s["length_sum"] for s in scans) / kept
     lo = np.min([s["lo"] for s in scans if "lo" in s], axis=0)
     hi = np.max([s["hi"] for s in scans if "lo" in s], axis=0)
     if not (hi - lo).max() > 0:

@@ -100,8 +100,9 @@ class Job:
     local_density: int  # kernel-density levels above this one are a slab's own, the rest global
     density: bool
     trim: float
-    # --confidence: each point's weight is its normal's length times this (1 / the mean length)
-    weight_scale: float | None = None
+    # --confidence: each point's weight is its normal's length over this (the mean length), divided
+    # as the single process divides (a product by its reciprocal differs by an ulp)
+    weight_mean: float | None = None
     seam_depth: int = PARTITION_DEPTH  # the level whose planes the seams lie on
 
 
@@ -268,7 +269,7 @@ def _load(
     pts, nrm, length = oriented_rows(points, normals, "a slab's points have no normals")
     keep = length > 0
     pts, nrm = pts[keep], nrm[keep] / length[keep, None]
-    weight = None if job.weight_scale is None else length[keep] * job.weight_scale
+    weight = None if job.weight_mean is None else length[keep] / job.weight_mean
     slab.colors = None if colors is None else np.asarray(colors)[keep]
     slab.props = {k: np.asarray(v)[keep] for k, v in (props or {}).items()}
     # the attributes' transfer reads the points' normals after the solve
