@@ -90,6 +90,18 @@ def dilate(keys: np.ndarray, axis: int, lo: int, hi: int, limit: int) -> np.ndar
     return K.rekey(K.dilate_minor(k, lo, hi, limit), axis, True)
 
 
+def corner_keys(cell_keys: np.ndarray, depth: int) -> np.ndarray:
+    """Sorted unique keys of the corners of the cells ``cell_keys`` (level ``depth``).
+
+    The nodes of a level whose cells these are (:func:`build_levels` makes them so for the
+    complete levels; a slab makes those of the cells it keeps).
+    """
+    nodes = cell_keys
+    for axis in range(3):
+        nodes = dilate(nodes, axis, 0, 1, 1 << depth)
+    return nodes
+
+
 def build_levels(
     item_pos: np.ndarray,
     item_level: np.ndarray,
@@ -164,9 +176,7 @@ def build_levels(
             for axis in range(3):
                 nodes = dilate(nodes, axis, 0, 2, top + 1)
         if d <= full_depth:
-            nodes = keys
-            for axis in range(3):
-                nodes = dilate(nodes, axis, 0, 1, top + 1)
+            nodes = corner_keys(keys, d)
         # sorted queries (a constant offset keeps the order): linear merges, no hashing;
         # int32 and 4 corners of 8: a quarter of (c, 8) int64, the largest array
         cell_nodes = ncell = unknown = None

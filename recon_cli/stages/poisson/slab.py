@@ -43,7 +43,7 @@ from recon_cli.stages.poisson.bspline import (
 from recon_cli.stages.poisson.octree import (
     Level,
     build_levels,
-    dilate,
+    corner_keys,
     pack_keys,
     set_corners,
     unpack_keys,
@@ -574,18 +574,6 @@ def levels_from_message(msg: list[tuple]) -> list[Level]:
     for d, (ck, cp) in enumerate(msg):
         out.append(Level(d, ck, None, 0, None, None, None, cp))
     return out
-
-
-def corner_keys(cell_keys: np.ndarray, depth: int) -> np.ndarray:
-    """Sorted keys of the corners of the cells ``cell_keys`` (level ``depth``).
-
-    The nodes :func:`.octree.build_levels` makes for a level, of these cells only: a slab keeps
-    no nodes between its steps and makes those of the cells it extracts.
-    """
-    nodes = cell_keys
-    for axis in range(3):
-        nodes = dilate(nodes, axis, 0, 1, 1 << depth)
-    return nodes
 
 
 @timed
