@@ -367,3 +367,31 @@ def test_rotation_and_translation_equivariance(rng):
     b = run_stage(PointCloud(moved), knn=20).output.normals
     # same lines, and the same orientation, up to rounding of the far-away coordinates
     assert (np.einsum("ij,ij->i", a @ rot.T, b) > 1 - 1e-6).mean() > 0.999
+
+
+def test_open_pieces_follow_the_anchor_with_a_bounded_vote(rng, monkeypatch):
+    """Two flat open pieces seeded opposite ways: the smaller (9000 points) turns to agree with
+    the largest, voting with at most ``_ALIGN_SAMPLES`` of its points (a nearest-anchor query
+    from far away is slow: all 9000 took seconds per 10^5 in a slab)."""
+    import scipy.spatial
+
+    import recon_cli.stages.normals as mod
+
+    a = np.column_stack([rng.uniform(0, 1, 12_000), rng.uniform(0, 1, 12_000), np.zeros(12_000)])
+    b = np.column_stack([rng.uniform(1.3, 2, 9000), rng.uniform(0, 1, 9000), np.zeros(9000)])
+    real = mod._seed_signs
+    monkeypatch.setattr(mod, "_seed_signs", lambda n, r: real(n, r) * np.resize([1, -1], len(n)))
+    queried = []
+
+    class Tree(scipy.spatial.cKDTree):
+        def query(self, x, *args, **kw):
+            queried.append(len(x))
+            return super().query(x, *args, **kw)
+
+    monkeypatch.setattr(scipy.spatial, "cKDTree", Tree)
+    nrm = np.tile([0.0, 0.0, 1.0], (21_000, 1))
+    out, info = mod.orient_normals(np.vstack([a, b]), nrm, "mst", knn=20)
+    assert info["components"] == 2
+    z = np.sign(out[:, 2])
+    assert (z == z[0]).all()
+    assert queried[-1] == 3000  # every third point of the 9000: at most _ALIGN_SAMPLES (4096)

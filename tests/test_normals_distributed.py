@@ -4,6 +4,7 @@ neighbourhoods, orientation joined across slabs, the command reading and writing
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -139,3 +140,65 @@ def test_command_keeps_every_property_and_row(tmp_path, monkeypatch, capsys):
     ref, _ = _single(cloud.points.astype(np.float64))
     assert (np.einsum("ij,ij->i", got.normals.astype(np.float64), ref) > 0.999).all()
     assert got.history[-1].startswith("recon ") and "workers=2" in got.history[-1]
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    from recon_cli.batch.cluster import open_client
+
+    with open_client(workers=2, memory_limit="none", stealing=False) as (client, _info):
+        yield client
+
+
+@pytest.mark.slow
+def test_more_slabs_than_workers_spill_their_states(cluster, tmp_path, monkeypatch):
+    """Three slabs on two workers: every state written to its file between steps (a worker
+    holds only the slab it runs), the in-process slabs' normals exactly, no file left."""
+    from recon_cli.batch import steps
+    from recon_cli.stages.normals import distributed as D
+
+    c = sampled_cloud("armadillo", 30_000, 0.001, 1)
+    ref, _, _ = distributed_normals(c.points, orient="mst", partitions=3)
+    seen: list[int] = []
+
+    class Spilling(steps.DaskRunner):
+        def run(self, name, fn, args):
+            out = super().run(name, fn, args)
+            seen.append(len(os.listdir(tmp_path)))
+            return out
+
+    def runner(client, slabs, progress=None, overall=None, spill_dir=None):
+        assert spill_dir is not None  # three slabs, two workers: the run spills by itself
+        return Spilling(client, slabs, progress, "normals", overall, str(tmp_path), 0)
+
+    monkeypatch.setattr(D, "make_runner", runner)
+    nrm, _, rep = distributed_normals(c.points, orient="mst", partitions=3, client=cluster)
+    assert seen[1] == 6  # after the neighbourhoods: this round's files and the last one's
+    assert np.array_equal(nrm, ref)
+    assert rep["components"] == 1
+    assert os.listdir(tmp_path) == []
+
+
+def test_slab_count_from_the_workers_memory():
+    """Without --partitions, the fewest slabs (whole rounds of the workers) whose one slab's
+    neighbourhoods and graph fit a share of a worker's memory: more neighbours, more slabs;
+    at most 32."""
+    from recon_cli.stages.normals.distributed import MAX_SLABS, slab_bytes_per_point
+    from recon_cli.stages.poisson.distributed import SLAB_MEMORY_SHARE, slab_count
+
+    class Client:
+        def scheduler_info(self):
+            return {"workers": {"a": {"memory_limit": 2**32}, "b": {"memory_limit": 2**32}}}
+
+    per_slab = SLAB_MEMORY_SHARE * 2**32 / slab_bytes_per_point(30)
+    n, rep = slab_count(None, int(2 * per_slab), Client(), slab_bytes_per_point(30), 32, "normals")
+    assert n == 2 and rep["why"].startswith("one per worker")
+    n, _ = slab_count(
+        None, int(2 * per_slab) + 1, Client(), slab_bytes_per_point(30), 32, "normals"
+    )
+    assert n == 4
+    assert slab_bytes_per_point(60) > slab_bytes_per_point(30) == slab_bytes_per_point(None)
+    n, _ = slab_count(None, int(2 * per_slab), Client(), slab_bytes_per_point(60), 32, "normals")
+    assert n == 4
+    n, rep = slab_count(None, 10**10, Client(), slab_bytes_per_point(30), MAX_SLABS, "normals")
+    assert n == 32 and rep["why"].startswith("capped at 32 (the most slabs)")

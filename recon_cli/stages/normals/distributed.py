@@ -24,6 +24,11 @@ sort its rows per sub-slab, each slab reads its own points and a halo beyond eac
   adjacency). A group that comes out clearly inside-out by its flux (the divergence
   theorem's volume estimate, summed over the slabs about the group's centroid) is flipped,
   as the single-process flux check flips a component.
+- **Memory.** Without ``--partitions`` a run takes the fewest slabs (whole rounds of the
+  workers) whose one slab fits a share of a worker's memory limit, at
+  :func:`slab_bytes_per_point` (a slab's kd-tree neighbourhoods and orientation graph); with
+  more slabs than workers each slab's state waits in a file between its steps, so a worker
+  holds only the slab it runs (as the Poisson slabs).
 - **Output.** Each slab writes its own points' normals by input row; the coordinator
   writes the output file a chunk of the input at a time (every property of the input kept,
   in its order), so it never holds the cloud either.
@@ -56,6 +61,18 @@ SUB_SLABS = 256
 HALO = 2
 # slabs at most (one seam per plane of a 32-cell lattice, as the Poisson slabs)
 MAX_SLABS = 32
+# a slab's worker's peak per point of its own, halo included, above the idle worker: a fixed
+# part and a part per neighbour of the kNN (bench/calibration.md, "normals slabs")
+SLAB_BYTES_FIXED = 300
+SLAB_BYTES_PER_NEIGHBOUR = 8
+
+
+def slab_bytes_per_point(knn: int | None) -> float:
+    """A normals slab's peak memory per point of its own (bytes), for a kNN of ``knn``.
+
+    A radius neighbourhood (``knn`` None) is counted as 30 neighbours.
+    """
+    return SLAB_BYTES_FIXED + SLAB_BYTES_PER_NEIGHBOUR * (30 if knn is None else int(knn))
 
 
 @dataclass
@@ -238,6 +255,19 @@ def nwrite(slab: NSlab, flips: np.ndarray, prefix: str, curvature: bool) -> dict
     return {"flipped": flipped}
 
 
+def _register_sizeof() -> None:
+    # Dask's own estimate of a dataclass is a few hundred bytes: the spill needs the arrays'
+    try:  # dask is an extra (recon[batch])
+        from dask.sizeof import sizeof
+
+        from recon_cli.stages.poisson.slab import state_bytes
+    except ImportError:  # pragma: no cover
+        return
+    sizeof.register(NSlab)(state_bytes)
+
+
+_register_sizeof()
+
 nload = _timed(nload)
 nestimate = _timed(nestimate)
 norient = _timed(norient)
@@ -393,8 +423,17 @@ def _core(client, files, counts, frame, n_rows: int, p: dict, tmp: str, progress
 PHASE_WEIGHTS = {"load": 10.0, "neighbourhoods": 45.0, "orient": 30.0, "flux": 5.0, "write": 10.0}
 
 
+def make_runner(
+    client: Any, slabs: list, progress: Any, overall: Any, spill_dir: str | None = None
+) -> Any:
+    """The runner of the slabs' steps on ``client`` (``spill_dir``: states between steps)."""
+    from recon_cli.batch.steps import DaskRunner
+
+    return DaskRunner(client, slabs, progress, "normals", overall, spill_dir)
+
+
 def _core_steps(client, files, counts, frame, n_rows, p, tmp, progress, overall) -> tuple:
-    from recon_cli.batch.steps import DaskRunner, LocalRunner
+    from recon_cli.batch.steps import LocalRunner
     from recon_cli.stages.normals import FLUX_MIN
 
     origin, size, perm = frame
@@ -417,10 +456,15 @@ def _core_steps(client, files, counts, frame, n_rows, p, tmp, progress, overall)
     for _attempt in range(4):
         plan = _plan(counts, parts, halo)
         slabs = [NSlab(k, parts, plan[k][0], plan[k][1], origin, size) for k in range(parts)]
+        # more slabs than workers: a worker keeps only the slab it runs in memory
+        spill = None
+        if client is not None and parts > p["workers"]:
+            spill = os.path.join(tmp, f"states{_attempt}")
+            os.makedirs(spill, exist_ok=True)
         runner = (
             LocalRunner(slabs, progress, "normals", overall)
             if client is None
-            else DaskRunner(client, slabs, progress, "normals", overall)
+            else make_runner(client, slabs, progress, overall, spill)
         )
         try:
             lm = runner.run(
@@ -504,6 +548,18 @@ def _gather(prefixes: list[str], n_rows: int, curvature: bool, tmp: str):
     return nrm, curv
 
 
+def _slab_count(partitions: int | None, npoints: int, client: Any, knn: int | None) -> tuple:
+    from recon_cli.stages.poisson.distributed import slab_count
+
+    return slab_count(partitions, npoints, client, slab_bytes_per_point(knn), MAX_SLABS, "normals")
+
+
+def _workers(client: Any) -> int:
+    from recon_cli.stages.poisson.distributed import worker_memory
+
+    return worker_memory(client)[0]
+
+
 def _frame(lo, hi, perm_axis_longest=True):
     size = float((hi - lo).max()) * 1.01 or 1.0
     origin = 0.5 * (lo + hi) - 0.5 * size
@@ -522,14 +578,17 @@ def distributed_normals(
     camera=None,
     direction=None,
     curvature: bool = False,
-    partitions: int = 2,
+    partitions: int | None = 2,
     sensors: tuple | None = None,
     client: Any = None,
     progress: Any = None,
 ) -> tuple[np.ndarray, np.ndarray | None, dict]:
     """Normals of a cloud given in memory, in ``partitions`` slabs (module docstring).
 
-    On the Dask ``client``'s cluster, or else all in this process. ``sensors``: for ``orient=
+    On the Dask ``client``'s cluster, or else all in this process. ``partitions`` None: the
+    fewest slabs whose one slab fits a share of a worker's memory limit
+    (:func:`slab_bytes_per_point`, :func:`.poisson.distributed.slab_count`; one per worker
+    without a limit, one without a client). ``sensors``: for ``orient=
     "camera"`` without ``camera``, ``(positions, directions, is_direction, which)`` as
     :func:`.sensor_views` gives them (about the origin: world coordinates). Returns the oriented
     normals, the curvature (or None) and the report.
@@ -546,10 +605,11 @@ def distributed_normals(
     pts = check_points(points)
     if method == "keep" and normals is None:
         raise ParameterError("--orient keep needs input normals")
-    if not 1 <= int(partitions) <= MAX_SLABS:
+    if partitions is not None and not 1 <= int(partitions) <= MAX_SLABS:
         raise ParameterError(f"partitions must be 1..{MAX_SLABS}, got {partitions}")
     if len(pts) == 0:
         raise InputError("the input has no points")
+    parts, why = _slab_count(partitions, len(pts), client, knn)
     p = dict(
         knn=knn,
         radius=radius,
@@ -557,7 +617,8 @@ def distributed_normals(
         camera=cam,
         direction=dirn,
         curvature=bool(curvature),
-        partitions=int(partitions),
+        partitions=parts,
+        workers=parts if client is None else _workers(client),
         sensors=None if sensors is None else tuple(sensors[:3]),
     )
     if method == "camera" and cam is None and sensors is None:
@@ -582,6 +643,7 @@ def distributed_normals(
             tmp,
             progress,
         )
+        report["distributed"]["partitions"] = why
         nrm, curv = _gather(prefixes, len(pts), p["curvature"], tmp)
         nrm_out = np.array(nrm)
         inv = np.argsort(frame[2])
@@ -676,12 +738,15 @@ def run_from_files(
                 camera=cam,
                 direction=dirn,
                 curvature=v["curvature"],
-                partitions=v["partitions"] or max(1, int(info.get("workers") or 1)),
+                partitions=0,
+                workers=_workers(client),
                 sensors=None if sensors is None else views[:3],
             )
-            if not 1 <= p["partitions"] <= MAX_SLABS:
-                raise ParameterError(f"--partitions must be 1..{MAX_SLABS}, got {p['partitions']}")
+            if v["partitions"] is not None and not 1 <= v["partitions"] <= MAX_SLABS:
+                raise ParameterError(f"--partitions must be 1..{MAX_SLABS}, got {v['partitions']}")
+            p["partitions"], why = _slab_count(v["partitions"], n_rows, client, knn)
             prefixes, report = _core(client, files, counts, frame, n_rows, p, tmp, progress)
+            report["distributed"]["partitions"] = why
         t1 = time.perf_counter()
         nrm, curv = _gather(prefixes, n_rows, p["curvature"], tmp)
         prov = provenance_line("normals", {**SPEC.defaults(), **params})

@@ -194,7 +194,13 @@ SLAB_BYTES_PER_POINT = 4096
 SLAB_MEMORY_SHARE = 0.4
 
 
-def default_partitions(npoints: int, workers: int, memory_per_worker: float | None) -> int:
+def default_partitions(
+    npoints: int,
+    workers: int,
+    memory_per_worker: float | None,
+    bytes_per_point: float = SLAB_BYTES_PER_POINT,
+    cap: int = S.MAX_PARTITIONS,
+) -> int:
     """The slab count of a run whose ``--partitions`` is not given.
 
     Parameters
@@ -205,26 +211,28 @@ def default_partitions(npoints: int, workers: int, memory_per_worker: float | No
         Worker processes of the cluster (>= 1).
     memory_per_worker : float or None
         A worker's memory limit in bytes; None or 0 for no limit.
+    bytes_per_point : float
+        A slab's peak per point of its own (the Poisson slabs': :data:`SLAB_BYTES_PER_POINT`).
+    cap : int
+        The most slabs (the Poisson slabs': :data:`.slab.MAX_PARTITIONS`, 64: beyond 32 the seams
+        lie on level-6 planes, :func:`.slab.seam_depth`).
 
     Returns
     -------
     int
-        The fewest slabs such that one slab, at :data:`SLAB_BYTES_PER_POINT` bytes per point of
-        its share of ``npoints``, fits :data:`SLAB_MEMORY_SHARE` of ``memory_per_worker``,
-        rounded up to a multiple of ``workers`` (every worker runs as many), at least
-        ``workers``; at most :data:`.slab.MAX_PARTITIONS` (64: beyond 32 the seams lie on
-        level-6 planes, :func:`.slab.seam_depth`), even when a slab does not fit then. Without a
-        limit, one slab per worker.
+        The fewest slabs such that one slab, at ``bytes_per_point`` bytes per point of its share
+        of ``npoints``, fits :data:`SLAB_MEMORY_SHARE` of ``memory_per_worker``, rounded up to a
+        multiple of ``workers`` (every worker runs as many), at least ``workers``; at most
+        ``cap``, even when a slab does not fit then. Without a limit, one slab per worker.
     """
     if int(workers) < 1:
         raise ParameterError(f"workers must be >= 1, got {workers}")
     if int(npoints) < 0:
         raise ParameterError(f"npoints must be >= 0, got {npoints}")
     workers = int(workers)
-    cap = S.MAX_PARTITIONS
     if not memory_per_worker or memory_per_worker <= 0:
         return min(workers, cap)
-    need = math.ceil(npoints * SLAB_BYTES_PER_POINT / (SLAB_MEMORY_SHARE * memory_per_worker))
+    need = math.ceil(npoints * bytes_per_point / (SLAB_MEMORY_SHARE * memory_per_worker))
     rounds = max(1, math.ceil(need / workers))
     return min(rounds * workers, cap)
 
@@ -241,11 +249,19 @@ def _size(nbytes: float) -> str:
     return f"{nbytes / 2**30:.3g} GiB" if nbytes >= 2**30 else f"{nbytes / 2**20:.3g} MiB"
 
 
-def slab_count(partitions: int | None, npoints: int, client: Any) -> tuple[int, dict]:
+def slab_count(
+    partitions: int | None,
+    npoints: int,
+    client: Any,
+    bytes_per_point: float = SLAB_BYTES_PER_POINT,
+    cap: int = S.MAX_PARTITIONS,
+    stage: str = "poisson",
+) -> tuple[int, dict]:
     """The slabs of a run and the report's ``distributed.partitions`` (how many, and why).
 
     ``partitions`` given: that many; else :func:`default_partitions` from the ``client``'s
-    workers and their memory (no client: this process, one slab).
+    workers and their memory (no client: this process, one slab), with ``bytes_per_point`` and
+    ``cap`` (``stage``'s slabs: the warning names it).
     """
     nworkers, memory = worker_memory(client) if client is not None else (1, None)
     entry: dict[str, Any] = {
@@ -258,14 +274,16 @@ def slab_count(partitions: int | None, npoints: int, client: Any) -> tuple[int, 
     if partitions is not None:
         entry.update(count=int(partitions), why="given (--partitions)")
         return int(partitions), entry
-    parts = default_partitions(npoints, nworkers, memory)
-    slab_bytes = npoints / parts * SLAB_BYTES_PER_POINT
+    parts = default_partitions(npoints, nworkers, memory, bytes_per_point, cap)
+    slab_bytes = npoints / parts * bytes_per_point
     entry.update(count=parts, slab_bytes_estimate=int(slab_bytes))
     fits = memory is None or slab_bytes <= SLAB_MEMORY_SHARE * memory
     if fits and parts % nworkers == 0:
         head = "one per worker" if parts == nworkers else f"{parts // nworkers} per worker"
-    else:
+    elif cap == S.MAX_PARTITIONS and stage == "poisson":
         head = f"capped at {parts} (the seams are level-{S.FINE_PARTITION_DEPTH} planes)"
+    else:
+        head = f"capped at {parts} (the most slabs)"
     if memory is None:
         why = f"{head}: the workers have no memory limit"
     else:
@@ -273,7 +291,7 @@ def slab_count(partitions: int | None, npoints: int, client: Any) -> tuple[int, 
         verb = "fits" if fits else "may not fit"
         why = f"{head}: a slab (~{_size(slab_bytes)}) {verb} {share}"
     if not fits:
-        log.warning("poisson: %d slabs, %s", parts, why)
+        log.warning("%s: %d slabs, %s", stage, parts, why)
     entry["why"] = why
     return parts, entry
 
