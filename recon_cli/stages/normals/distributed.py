@@ -63,7 +63,7 @@ HALO = 2
 MAX_SLABS = 32
 # a slab's worker's peak per point of its own, halo included, above the idle worker: a fixed
 # part and a part per neighbour of the kNN (bench/calibration.md, "normals slabs")
-SLAB_BYTES_FIXED = 300
+SLAB_BYTES_FIXED = 480
 SLAB_BYTES_PER_NEIGHBOUR = 8
 
 
