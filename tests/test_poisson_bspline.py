@@ -445,3 +445,37 @@ def test_block_jacobi_level_solves_the_same_system_as_jacobi(monkeypatch, rng, b
         # moves by up to 3x either way between the two, both within the tolerance)
         assert energy(xb - exact) <= 1.5 * energy(xj - exact) + 1e-14 * energy(exact)
     assert fewer >= len(seen) - 1
+
+
+def test_screening_product_in_bands_is_the_one_walk(rng, monkeypatch):
+    # the CG's screening product runs in bands of parents over the threads, each band walking
+    # the samples that reach it in order: every row must sum as the one walk does, to the bit
+    import numba
+
+    seen = []
+
+    def spy(*args):
+        seen.append(args)
+        return level_pcg(*args)
+
+    level_pcg = BO.level_pcg
+    monkeypatch.setattr(BO, "level_pcg", spy)
+    p, n = sphere_cloud(60_000, seed=1)
+    screened_poisson(p, n, depth=7)
+    q_keys, nb, _inp, cmap, _m1, _k1, _h, nn, s, scell, sloc, sw = seen[-1][:12]
+    assert len(scell) >= BO.SCREEN_MIN_SAMPLES
+    x = rng.normal(size=8 * int(cmap.max() + 1))
+    one = np.zeros_like(x)
+    BO.screening_matvec(q_keys, nb, cmap, cmap, nn, s, scell, sloc, sw, x, one)
+    before = numba.get_num_threads()
+    try:
+        for bands, threads in [(BO.SCREEN_BANDS, 1), (BO.SCREEN_BANDS, 2), (3, 2), (1, 2)]:
+            numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+            cut = BO.screening_bands(q_keys, scell, bands)
+            assert len(cut) == bands  # the samples come in their parents' x order
+            got = np.zeros_like(x)
+            BO.screening_matvec_bands(q_keys, nb, cmap, cmap, nn, s, scell, sloc, sw, x, got, cut)
+            assert np.array_equal(got, one), (bands, threads)
+    finally:
+        numba.set_num_threads(before)
+    assert np.abs(one).max() > 0
