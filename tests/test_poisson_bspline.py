@@ -479,3 +479,33 @@ def test_screening_product_in_bands_is_the_one_walk(rng, monkeypatch):
     finally:
         numba.set_num_threads(before)
     assert np.abs(one).max() > 0
+
+
+def test_level_cg_is_the_same_for_any_thread_count(monkeypatch):
+    # the CG's products run over the threads with every sum kept in one order: one thread
+    # and two give the same iterate to the bit
+    import numba
+
+    seen = []
+
+    def spy(*args):
+        seen.append([a.copy() if isinstance(a, np.ndarray) else a for a in args])
+        return level_pcg(*args)
+
+    level_pcg = BO.level_pcg
+    monkeypatch.setattr(BO, "level_pcg", spy)
+    p, n = sphere_cloud(60_000, seed=2)
+    screened_poisson(p, n, depth=7)
+    args = seen[-1]
+    before = numba.get_num_threads()
+    out = []
+    try:
+        for threads in (1, 2):
+            numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+            run = [a.copy() if isinstance(a, np.ndarray) else a for a in args]
+            out.append(BO.level_pcg(*run))
+    finally:
+        numba.set_num_threads(before)
+    assert out[0][1] == out[1][1] > 1  # iterations
+    assert np.array_equal(out[0][0], out[1][0])
+    assert out[0][2] == out[1][2]
