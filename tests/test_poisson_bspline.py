@@ -447,7 +447,7 @@ def test_block_jacobi_level_solves_the_same_system_as_jacobi(monkeypatch, rng, b
     assert fewer >= len(seen) - 1
 
 
-def test_screening_product_in_bands_is_the_one_walk(rng, monkeypatch):
+def test_screening_product_and_blocks_in_bands_are_the_one_walk(rng, monkeypatch):
     # the CG's screening product runs in bands of parents over the threads, each band walking
     # the samples that reach it in order: every row must sum as the one walk does, to the bit
     import numba
@@ -469,16 +469,22 @@ def test_screening_product_in_bands_is_the_one_walk(rng, monkeypatch):
     BO.screening_matvec(q_keys, nb, cmap, cmap, nn, s, scell, sloc, sw, x, one)
     before = numba.get_num_threads()
     try:
-        for bands, threads in [(BO.SCREEN_BANDS, 1), (BO.SCREEN_BANDS, 2), (3, 2), (1, 2)]:
+        for bands, threads in [(1, 1), (BO.SCREEN_BANDS, 1), (BO.SCREEN_BANDS, 2), (3, 2)]:
             numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
             cut = BO.screening_bands(q_keys, scell, bands)
             assert len(cut) == bands  # the samples come in their parents' x order
             got = np.zeros_like(x)
             BO.screening_matvec_bands(q_keys, nb, cmap, cmap, nn, s, scell, sloc, sw, x, got, cut)
             assert np.array_equal(got, one), (bands, threads)
+            # the sibling blocks of the preconditioner alike
+            blocks = np.zeros((len(x) // 8, 8, 8))
+            BO.screening_blocks_bands(q_keys, nb, cmap, nn, s, scell, sloc, sw, blocks, cut)
+            if bands == 1:
+                one_blocks = blocks
+            assert np.array_equal(blocks, one_blocks), (bands, threads)
     finally:
         numba.set_num_threads(before)
-    assert np.abs(one).max() > 0
+    assert np.abs(one).max() > 0 and np.abs(one_blocks).max() > 0
 
 
 def test_level_cg_is_the_same_for_any_thread_count(monkeypatch):

@@ -290,12 +290,30 @@ def screening_blocks(q_keys, nb, cmap, n, s, scell, sloc, sw, out):
 
     A sample touches 3 cells per axis, of two parents: the pairs within one parent are 5 of the 9
     per axis, 125 of the 729. Samples in order, so each entry sums in the same order whatever the
-    caller.
+    caller; in bands of parents over the threads (:func:`screening_bands`), each writing its
+    parents' blocks only, from the samples in order: the same sums.
     """
+    bands = screening_bands(q_keys, scell, SCREEN_BANDS if len(scell) >= SCREEN_MIN_SAMPLES else 1)
+    screening_blocks_bands(q_keys, nb, cmap, n, s, scell, sloc, sw, out, bands)
+
+
+@njit(cache=True, parallel=True)
+def screening_blocks_bands(q_keys, nb, cmap, n, s, scell, sloc, sw, out, bands):
+    """:func:`screening_blocks` in the given ``bands`` (:func:`screening_bands`), a thread each."""
+    for b in prange(len(bands)):
+        _screening_blocks_band(
+            q_keys, nb, cmap, n, s, scell, sloc, sw, out,
+            bands[b, 0], bands[b, 1], bands[b, 2], bands[b, 3],
+        )  # fmt: skip
+
+
+@njit(cache=True, inline="always")
+def _screening_blocks_band(q_keys, nb, cmap, n, s, scell, sloc, sw, out, p0, p1, q0, q1):
+    """:func:`screening_blocks` from samples ``p0`` to ``p1 - 1`` into parents [q0, q1)'s blocks."""
     wx = np.empty(3)
     wy = np.empty(3)
     wz = np.empty(3)
-    for p in range(len(scell)):
+    for p in range(p0, p1):
         m = scell[p]
         i = m >> 3
         o = m & 7
@@ -322,7 +340,7 @@ def screening_blocks(q_keys, nb, cmap, n, s, scell, sloc, sw, out):
                         for a in range(3):
                             bx = ox + a - 1
                             q = nb[i, ((bx >> 1) + 1) + 3 * ((by >> 1) + 1) + 9 * ((bz >> 1) + 1)]
-                            if q < 0 or cmap[q] < 0:
+                            if q < q0 or q >= q1 or cmap[q] < 0:
                                 continue
                             w = wx[a] * wy[b] * wz[c]
                             r = (bx & 1) | ((by & 1) << 1) | ((bz & 1) << 2)
