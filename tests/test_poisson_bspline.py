@@ -445,3 +445,73 @@ def test_block_jacobi_level_solves_the_same_system_as_jacobi(monkeypatch, rng, b
         # moves by up to 3x either way between the two, both within the tolerance)
         assert energy(xb - exact) <= 1.5 * energy(xj - exact) + 1e-14 * energy(exact)
     assert fewer >= len(seen) - 1
+
+
+def test_screening_product_and_blocks_in_bands_are_the_one_walk(rng, monkeypatch):
+    # the CG's screening product runs in bands of parents over the threads, each band walking
+    # the samples that reach it in order: every row must sum as the one walk does, to the bit
+    import numba
+
+    seen = []
+
+    def spy(*args):
+        seen.append(args)
+        return level_pcg(*args)
+
+    level_pcg = BO.level_pcg
+    monkeypatch.setattr(BO, "level_pcg", spy)
+    p, n = sphere_cloud(60_000, seed=1)
+    screened_poisson(p, n, depth=7)
+    q_keys, nb, _inp, cmap, _m1, _k1, _h, nn, s, scell, sloc, sw = seen[-1][:12]
+    assert len(scell) >= BO.SCREEN_MIN_SAMPLES
+    x = rng.normal(size=8 * int(cmap.max() + 1))
+    one = np.zeros_like(x)
+    BO.screening_matvec(q_keys, nb, cmap, cmap, nn, s, scell, sloc, sw, x, one)
+    before = numba.get_num_threads()
+    try:
+        for bands, threads in [(1, 1), (BO.SCREEN_BANDS, 1), (BO.SCREEN_BANDS, 2), (3, 2)]:
+            numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+            cut = BO.screening_bands(q_keys, scell, bands)
+            assert len(cut) == bands  # the samples come in their parents' x order
+            got = np.zeros_like(x)
+            BO.screening_matvec_bands(q_keys, nb, cmap, cmap, nn, s, scell, sloc, sw, x, got, cut)
+            assert np.array_equal(got, one), (bands, threads)
+            # the sibling blocks of the preconditioner alike
+            blocks = np.zeros((len(x) // 8, 8, 8))
+            BO.screening_blocks_bands(q_keys, nb, cmap, nn, s, scell, sloc, sw, blocks, cut)
+            if bands == 1:
+                one_blocks = blocks
+            assert np.array_equal(blocks, one_blocks), (bands, threads)
+    finally:
+        numba.set_num_threads(before)
+    assert np.abs(one).max() > 0 and np.abs(one_blocks).max() > 0
+
+
+def test_level_cg_is_the_same_for_any_thread_count(monkeypatch):
+    # the CG's products run over the threads with every sum kept in one order: one thread
+    # and two give the same iterate to the bit
+    import numba
+
+    seen = []
+
+    def spy(*args):
+        seen.append([a.copy() if isinstance(a, np.ndarray) else a for a in args])
+        return level_pcg(*args)
+
+    level_pcg = BO.level_pcg
+    monkeypatch.setattr(BO, "level_pcg", spy)
+    p, n = sphere_cloud(60_000, seed=2)
+    screened_poisson(p, n, depth=7)
+    args = seen[-1]
+    before = numba.get_num_threads()
+    out = []
+    try:
+        for threads in (1, 2):
+            numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+            run = [a.copy() if isinstance(a, np.ndarray) else a for a in args]
+            out.append(BO.level_pcg(*run))
+    finally:
+        numba.set_num_threads(before)
+    assert out[0][1] == out[1][1] > 1  # iterations
+    assert np.array_equal(out[0][0], out[1][0])
+    assert out[0][2] == out[1][2]

@@ -289,3 +289,26 @@ def test_real_stereo_fragment_closed_and_manifold(method):
     )
     assert len(np.unique(mesh.vertices, axis=0)) == len(mesh.vertices)
     assert rep["components"] == 1
+
+
+def test_leaf_chunks_and_threads_give_one_mesh(rng, monkeypatch):
+    # leaf_polygons runs over chunks of cells in threads, welded in chunk order: the mesh must be
+    # the one chunk's (the serial walk over all leaves) to the bit, for any chunks and threads
+    import numba
+
+    p, n = shape_cloud("torus", 20_000, rng, rotate=False)
+    keep = (p[:, 0] > 0) | (rng.random(len(p)) < 1 / 16)  # coarse leaves hold surface
+    monkeypatch.setattr(extract_mod, "extract", extract_mod.extract_leaves)
+    meshes = []
+    before = numba.get_num_threads()
+    try:
+        for chunk, threads in [(1 << 40, 1), (1 << 10, 1), (1 << 10, 2), (1 << 12, 2)]:
+            monkeypatch.setattr(extract_mod, "LEAF_CHUNK", chunk)
+            numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+            meshes.append(screened_poisson(p[keep], n[keep], depth=8).mesh)
+    finally:
+        numba.set_num_threads(before)
+    assert len(meshes[0].faces) > 1000
+    for m in meshes[1:]:
+        assert np.array_equal(m.faces, meshes[0].faces)
+        assert np.array_equal(m.vertices, meshes[0].vertices)

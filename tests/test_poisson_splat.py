@@ -47,6 +47,51 @@ def test_spread_keeps_each_levels_total_and_sits_on_cell_centres(rng):
     np.testing.assert_allclose((one[0] * one[1][:, :1]).sum(axis=0), pos[0] * vec[0, 0], rtol=1e-9)
 
 
+def test_spread_bands_and_threads_give_the_one_walks_sums(rng, monkeypatch):
+    # spread splats bands of cells in threads, each walking all items in order: every cell
+    # must hold the serial walk's sum to the bit, whatever the bands and threads
+    import numba
+
+    import recon_cli.stages.poisson.splat as splat_mod
+    from recon_cli._kernels.hashtable import build_table
+    from recon_cli.stages.poisson.octree import dilate, pack_keys, unique_keys
+
+    pos = rng.uniform(0.0, 1.0, size=(20_000, 3)) ** 2  # dense near the origin: uneven bands
+    pos[:10] = [0.0, 1.0, 0.5]  # on the cube's faces
+    vec = rng.normal(size=(len(pos), 3))
+    d = 6
+    keys = unique_keys(pack_keys(np.floor(pos * (1 << d)).clip(0, (1 << d) - 1)))
+    for axis in range(3):
+        keys = dilate(keys, axis, -1, 1, (1 << d) - 1)
+    table = build_table(keys)
+    # the sums, by hand (numba's rounding may differ in the last bit)
+    ref = np.zeros((len(keys), 3))
+    index = {int(k): i for i, k in enumerate(keys)}
+    for p in range(len(pos)):
+        u = pos[p] * (1 << d)
+        c = np.floor(u).astype(np.int64)
+        t = u - c
+        w = [[0.5 * (1 - x) ** 2, 0.75 - (x - 0.5) ** 2, 0.5 * x * x] for x in t]
+        for kx in range(3):
+            for ky in range(3):
+                for kz in range(3):
+                    j = index.get(int(lattice_key(c[0] + kx - 1, c[1] + ky - 1, c[2] + kz - 1)))
+                    if j is not None and min(c[0] + kx, c[1] + ky, c[2] + kz) >= 1:
+                        ref[j] += w[0][kx] * w[1][ky] * w[2][kz] * vec[p]
+    before = numba.get_num_threads()
+    got = []
+    try:
+        for bands, threads in [(1, 1), (16, 1), (16, 2), (5, 2)]:
+            monkeypatch.setattr(splat_mod, "SPLAT_BANDS", bands)
+            numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+            got.append(splat_mod.spread(pos, vec, d, table, len(keys)))
+    finally:
+        numba.set_num_threads(before)
+    np.testing.assert_allclose(got[0], ref, rtol=1e-12, atol=1e-15)
+    for g in got[1:]:  # one band and one thread: the serial walk
+        assert np.array_equal(g, got[0])
+
+
 def test_fit_roots_keeps_linear_roots_and_refuses_no_crossing():
     f0 = np.array([1.0, 0.2, 3.0, -1.0])
     f1 = np.array([-1.0, -0.6, 4.0, 1.0])

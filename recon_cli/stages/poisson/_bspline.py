@@ -26,7 +26,7 @@ They only compute; conventions in :mod:`recon_cli.stages.poisson._octree`, and t
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache directory, threading layer)
 from recon_cli._kernels.arrays import lower_bound
@@ -38,6 +38,8 @@ _T = (-1.5, -0.5, 0.5, 1.5)
 # parents (matvec) and points (chi_at) per chunk of a parallel loop
 MATVEC_CHUNK = 512
 POINT_CHUNK = 1024
+# rows a thread takes at a time in the gathers over a level's cells (neighbour tables, prolongation)
+ROW_CHUNK = 1 << 13
 
 
 @njit(cache=True, inline="always")
@@ -113,7 +115,7 @@ def b2_factors(v, rho):
     return val, der
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def neighbour_table_into(keys, top, out):
     """Index in sorted ``keys`` of each key's 27 neighbours, into ``out`` (k, 27) int32.
 
@@ -122,32 +124,43 @@ def neighbour_table_into(keys, top, out):
 
     A neighbour's key is the key plus a constant (its offset, packed), so the 27 queries of
     all keys, taken in the keys' order, are 27 sorted sequences: one cursor per offset walks
-    ``keys`` once (linear merges; a binary search per query cost ~3x more at depth 9).
+    ``keys`` once (linear merges; a binary search per query cost ~3x more at depth 9). Rows in
+    chunks over the threads, each chunk's cursors found by one binary search.
     """
     n = len(keys)
-    cur = np.zeros(27, np.int64)
     offs = np.empty(27, np.int64)
     for t in range(27):
         offs[t] = ((t % 3 - 1) << 42) + (((t // 3) % 3 - 1) << 21) + (t // 9 - 1)
-    for i in range(n):
-        k = keys[i]
-        x = (k >> 42) & MASK21
-        y = (k >> 21) & MASK21
-        z = k & MASK21
+    for ch in prange((n + ROW_CHUNK - 1) // ROW_CHUNK):
+        i0 = ch * ROW_CHUNK
+        cur = np.empty(27, np.int64)
         for t in range(27):
-            X = x + t % 3 - 1
-            Y = y + (t // 3) % 3 - 1
-            Z = z + t // 9 - 1
-            if X < 0 or Y < 0 or Z < 0 or X > top or Y > top or Z > top:
-                out[i, t] = -1
-                continue
-            q = k + offs[t]
-            j = cur[t]
-            while j < n and keys[j] < q:
-                j += 1
-            cur[t] = j
-            out[i, t] = j if j < n and keys[j] == q else -1
+            cur[t] = lower_bound(keys, keys[i0] + offs[t], 0, n)
+        for i in range(i0, min(n, i0 + ROW_CHUNK)):
+            _neighbour_row(keys, top, out, offs, cur, i, n)
     return out
+
+
+@njit(cache=True, inline="always")
+def _neighbour_row(keys, top, out, offs, cur, i, n):
+    """Row ``i`` of :func:`neighbour_table_into`, its 27 cursors ``cur`` moved on."""
+    k = keys[i]
+    x = (k >> 42) & MASK21
+    y = (k >> 21) & MASK21
+    z = k & MASK21
+    for t in range(27):
+        X = x + t % 3 - 1
+        Y = y + (t // 3) % 3 - 1
+        Z = z + t // 9 - 1
+        if X < 0 or Y < 0 or Z < 0 or X > top or Y > top or Z > top:
+            out[i, t] = -1
+            continue
+        q = k + offs[t]
+        j = cur[t]
+        while j < n and keys[j] < q:
+            j += 1
+        cur[t] = j
+        out[i, t] = j if j < n and keys[j] == q else -1
 
 
 @njit(cache=True, inline="always")
@@ -231,44 +244,46 @@ def prolong(q_keys, coarse_q_keys, coarse_nb, coarse, n_coarse, s):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def prolong_into(q_keys, coarse_q_keys, coarse_nb, coarse, n_coarse, s, out):
-    """:func:`prolong` into ``out`` (8q,) (every entry written)."""
-    loc = np.zeros(27)
-    ox_ = np.empty(2, np.int64)
-    oy_ = np.empty(2, np.int64)
-    oz_ = np.empty(2, np.int64)
-    wx_ = np.empty(2)
-    wy_ = np.empty(2)
-    wz_ = np.empty(2)
-    for i in range(len(q_keys)):
-        k = q_keys[i]
-        px = (k >> 42) & MASK21
-        py = (k >> 21) & MASK21
-        pz = k & MASK21
-        # the parent cell in the coarser E and its neighbours there
-        j = find_cell(coarse_q_keys, px, py, pz)
-        for t in range(27):
-            loc[t] = 0.0
-            if j >= 0:
-                jj = nbr_cell(coarse_nb, j >> 3, j & 7, t % 3 - 1, (t // 3) % 3 - 1, t // 9 - 1)
-                if jj >= 0:
-                    loc[t] = coarse[jj]
-        for o in range(8):
-            _mask(o & 1, px, n_coarse, s, ox_, wx_)
-            _mask((o >> 1) & 1, py, n_coarse, s, oy_, wy_)
-            _mask((o >> 2) & 1, pz, n_coarse, s, oz_, wz_)
-            v = 0.0
-            for a in range(2):
-                for b in range(2):
-                    for c in range(2):
-                        v += (
-                            wx_[a]
-                            * wy_[b]
-                            * wz_[c]
-                            * loc[(ox_[a] + 1) + 3 * (oy_[b] + 1) + 9 * (oz_[c] + 1)]
-                        )
-            out[8 * i + o] = v
+    """:func:`prolong` into ``out`` (8q,), every entry written; parents in chunks over threads."""
+    m = len(q_keys)
+    for ch in prange((m + ROW_CHUNK - 1) // ROW_CHUNK):
+        loc = np.zeros(27)
+        ox_ = np.empty(2, np.int64)
+        oy_ = np.empty(2, np.int64)
+        oz_ = np.empty(2, np.int64)
+        wx_ = np.empty(2)
+        wy_ = np.empty(2)
+        wz_ = np.empty(2)
+        for i in range(ch * ROW_CHUNK, min(m, (ch + 1) * ROW_CHUNK)):
+            k = q_keys[i]
+            px = (k >> 42) & MASK21
+            py = (k >> 21) & MASK21
+            pz = k & MASK21
+            # the parent cell in the coarser E and its neighbours there
+            j = find_cell(coarse_q_keys, px, py, pz)
+            for t in range(27):
+                loc[t] = 0.0
+                if j >= 0:
+                    jj = nbr_cell(coarse_nb, j >> 3, j & 7, t % 3 - 1, (t // 3) % 3 - 1, t // 9 - 1)
+                    if jj >= 0:
+                        loc[t] = coarse[jj]
+            for o in range(8):
+                _mask(o & 1, px, n_coarse, s, ox_, wx_)
+                _mask((o >> 1) & 1, py, n_coarse, s, oy_, wy_)
+                _mask((o >> 2) & 1, pz, n_coarse, s, oz_, wz_)
+                v = 0.0
+                for a in range(2):
+                    for b in range(2):
+                        for c in range(2):
+                            v += (
+                                wx_[a]
+                                * wy_[b]
+                                * wz_[c]
+                                * loc[(ox_[a] + 1) + 3 * (oy_[b] + 1) + 9 * (oz_[c] + 1)]
+                            )
+                out[8 * i + o] = v
     return out
 
 

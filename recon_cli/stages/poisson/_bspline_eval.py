@@ -12,6 +12,7 @@ from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache
 from recon_cli._kernels.arrays import lower_bound
 from recon_cli.stages.poisson._bspline import (
     POINT_CHUNK,
+    ROW_CHUNK,
     w3,
 )
 from recon_cli.stages.poisson._octree import MASK21, bsearch, lattice_key
@@ -126,7 +127,7 @@ def edge_roots(lat, iso, v0, vm, v1, clamp):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def constrain_to_coarse_leaves(node_keys, g, coarse_keys, coarse_nodes, coarse_leaf, g_coarse):
     """Give a level's nodes on the coarser level's leaves' faces or edges the leaves' values.
 
@@ -135,49 +136,51 @@ def constrain_to_coarse_leaves(node_keys, g, coarse_keys, coarse_nodes, coarse_l
     leaf trilinearly from its corners, so the finer side of a face must see the same values
     there or the surface cracks along it. Cells of a level touch leaves of the next coarser
     level only, so one level up suffices (coarse to fine, the coarse values already
-    constrained).
+    constrained). Nodes in chunks over the threads.
     """
-    cand = np.empty((3, 2), np.int64)
-    nc = np.empty(3, np.int64)
-    for j in range(len(node_keys)):
-        k = node_keys[j]
-        x = (k >> 42) & MASK21
-        y = (k >> 21) & MASK21
-        z = k & MASK21
-        if (x & 1) == 0 and (y & 1) == 0 and (z & 1) == 0:
-            continue  # a corner of the coarser lattice: chi's own value on both sides
-        for a in range(3):
-            v = x if a == 0 else (y if a == 1 else z)
-            if v & 1:
-                cand[a, 0] = (v - 1) >> 1
-                nc[a] = 1
-            else:
-                cand[a, 0] = (v >> 1) - 1
-                cand[a, 1] = v >> 1
-                nc[a] = 2
-        done = False
-        for ia in range(nc[0]):
-            for ib in range(nc[1]):
-                for ic in range(nc[2]):
-                    cx = cand[0, ia]
-                    cy = cand[1, ib]
-                    cz = cand[2, ic]
-                    if cx < 0 or cy < 0 or cz < 0 or done:
-                        continue
-                    c = bsearch(coarse_keys, lattice_key(cx, cy, cz))
-                    if c < 0 or not coarse_leaf[c]:
-                        continue
-                    fx = 0.5 * (x - 2 * cx)
-                    fy = 0.5 * (y - 2 * cy)
-                    fz = 0.5 * (z - 2 * cz)
-                    v = 0.0
-                    for r in range(8):
-                        w = (
-                            (fx if r & 1 else 1.0 - fx)
-                            * (fy if (r >> 1) & 1 else 1.0 - fy)
-                            * (fz if (r >> 2) & 1 else 1.0 - fz)
-                        )
-                        if w != 0.0:
-                            v += w * g_coarse[coarse_nodes[c, r & 3] + (r >> 2)]
-                    g[j] = v
-                    done = True
+    m = len(node_keys)
+    for ch in prange((m + ROW_CHUNK - 1) // ROW_CHUNK):
+        cand = np.empty((3, 2), np.int64)
+        nc = np.empty(3, np.int64)
+        for j in range(ch * ROW_CHUNK, min(m, (ch + 1) * ROW_CHUNK)):
+            k = node_keys[j]
+            x = (k >> 42) & MASK21
+            y = (k >> 21) & MASK21
+            z = k & MASK21
+            if (x & 1) == 0 and (y & 1) == 0 and (z & 1) == 0:
+                continue  # a corner of the coarser lattice: chi's own value on both sides
+            for a in range(3):
+                v = x if a == 0 else (y if a == 1 else z)
+                if v & 1:
+                    cand[a, 0] = (v - 1) >> 1
+                    nc[a] = 1
+                else:
+                    cand[a, 0] = (v >> 1) - 1
+                    cand[a, 1] = v >> 1
+                    nc[a] = 2
+            done = False
+            for ia in range(nc[0]):
+                for ib in range(nc[1]):
+                    for ic in range(nc[2]):
+                        cx = cand[0, ia]
+                        cy = cand[1, ib]
+                        cz = cand[2, ic]
+                        if cx < 0 or cy < 0 or cz < 0 or done:
+                            continue
+                        c = bsearch(coarse_keys, lattice_key(cx, cy, cz))
+                        if c < 0 or not coarse_leaf[c]:
+                            continue
+                        fx = 0.5 * (x - 2 * cx)
+                        fy = 0.5 * (y - 2 * cy)
+                        fz = 0.5 * (z - 2 * cz)
+                        v = 0.0
+                        for r in range(8):
+                            w = (
+                                (fx if r & 1 else 1.0 - fx)
+                                * (fy if (r >> 1) & 1 else 1.0 - fy)
+                                * (fz if (r >> 2) & 1 else 1.0 - fz)
+                            )
+                            if w != 0.0:
+                                v += w * g_coarse[coarse_nodes[c, r & 3] + (r >> 2)]
+                        g[j] = v
+                        done = True

@@ -9,11 +9,18 @@ import numpy as np
 from numba import njit, prange
 
 from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache directory, threading layer)
+from recon_cli._kernels.arrays import lower_bound
 from recon_cli.stages.poisson._bspline import (
     MATVEC_CHUNK,
     w3,
 )
 from recon_cli.stages.poisson._octree import MASK21
+
+# bands of parents the CG's screening product runs in over the threads (fixed: the same bits
+# for any thread count, and for any bands too)
+SCREEN_BANDS = 8
+# below this many samples the product runs in one walk (a parallel loop costs more than it saves)
+SCREEN_MIN_SAMPLES = 1 << 14
 
 
 @njit(cache=True, parallel=True)
@@ -149,12 +156,66 @@ def screening_matvec(q_keys, nb, xmap, omap, n, s, scell, sloc, sw, x, out):
     :func:`screening_rhs`, :func:`screening_blocks`): through a helper taking the arrays
     (``_gather27``, inlined) the matvec was 1.7x slower (``bench/calibration.md``).
     """
+    _screening_band(
+        q_keys, nb, xmap, omap, n, s, scell, sloc, sw, x, out, 0, len(scell), 0, len(q_keys)
+    )
+
+
+@njit(cache=True, parallel=True)
+def screening_matvec_bands(q_keys, nb, xmap, omap, n, s, scell, sloc, sw, x, out, bands):
+    """:func:`screening_matvec` over the threads, a band of parents each, the same bits.
+
+    ``bands`` (b, 4) from :func:`screening_bands`: band ``b`` writes the rows of the parents
+    ``bands[b, 2]`` to ``bands[b, 3] - 1`` only, from the samples ``bands[b, 0]`` to
+    ``bands[b, 1] - 1`` (all those that reach them), in order: every row sums as in one walk.
+    """
+    for b in prange(len(bands)):
+        _screening_band(
+            q_keys, nb, xmap, omap, n, s, scell, sloc, sw, x, out,
+            bands[b, 0], bands[b, 1], bands[b, 2], bands[b, 3],
+        )  # fmt: skip
+
+
+@njit(cache=True)
+def screening_bands(q_keys, scell, nbands):
+    """Bands of parents for :func:`screening_matvec_bands`: samples from, to, parents from, to.
+
+    (b, 4); ``nbands`` bands of equal parent counts; a band's samples are those whose parent's
+    x is within one of the band's parents' (the samples in order of their parent's x, as they
+    come sorted by cell key). One band of everything when they are not in that order.
+    """
+    m = len(q_keys)
+    ns = len(scell)
+    px = np.empty(ns, np.int64)
+    ok = nbands > 1 and m >= nbands
+    for p in range(ns):
+        px[p] = (q_keys[scell[p] >> 3] >> 42) & MASK21
+        if p > 0 and px[p] < px[p - 1]:
+            ok = False
+    if not ok:
+        out = np.empty((1, 4), np.int64)
+        out[0, 0], out[0, 1], out[0, 2], out[0, 3] = 0, ns, 0, m
+        return out
+    out = np.empty((nbands, 4), np.int64)
+    for b in range(nbands):
+        q0 = b * m // nbands
+        q1 = (b + 1) * m // nbands
+        out[b, 0] = lower_bound(px, ((q_keys[q0] >> 42) & MASK21) - 1, 0, ns)
+        out[b, 1] = lower_bound(px, ((q_keys[q1 - 1] >> 42) & MASK21) + 2, 0, ns)
+        out[b, 2] = q0
+        out[b, 3] = q1
+    return out
+
+
+@njit(cache=True, inline="always")
+def _screening_band(q_keys, nb, xmap, omap, n, s, scell, sloc, sw, x, out, p0, p1, q0, q1):
+    """:func:`screening_matvec` from samples ``p0`` to ``p1 - 1`` into parents [q0, q1)'s rows."""
     wx = np.empty(3)
     wy = np.empty(3)
     wz = np.empty(3)
     idx = np.empty(27, np.int64)
     wr = np.empty(27)
-    for p in range(len(scell)):
+    for p in range(p0, p1):
         m = scell[p]
         i = m >> 3
         o = m & 7
@@ -184,7 +245,7 @@ def screening_matvec(q_keys, nb, xmap, omap, n, s, scell, sloc, sw, x, out):
                         if qx >= 0:
                             v += w * x[8 * qx + c8]
                         qo = omap[q]
-                        if qo >= 0:
+                        if qo >= 0 and q0 <= q < q1:
                             idx[r] = 8 * qo + c8
                     r += 1
         v *= sw[p]
@@ -229,12 +290,30 @@ def screening_blocks(q_keys, nb, cmap, n, s, scell, sloc, sw, out):
 
     A sample touches 3 cells per axis, of two parents: the pairs within one parent are 5 of the 9
     per axis, 125 of the 729. Samples in order, so each entry sums in the same order whatever the
-    caller.
+    caller; in bands of parents over the threads (:func:`screening_bands`), each writing its
+    parents' blocks only, from the samples in order: the same sums.
     """
+    bands = screening_bands(q_keys, scell, SCREEN_BANDS if len(scell) >= SCREEN_MIN_SAMPLES else 1)
+    screening_blocks_bands(q_keys, nb, cmap, n, s, scell, sloc, sw, out, bands)
+
+
+@njit(cache=True, parallel=True)
+def screening_blocks_bands(q_keys, nb, cmap, n, s, scell, sloc, sw, out, bands):
+    """:func:`screening_blocks` in the given ``bands`` (:func:`screening_bands`), a thread each."""
+    for b in prange(len(bands)):
+        _screening_blocks_band(
+            q_keys, nb, cmap, n, s, scell, sloc, sw, out,
+            bands[b, 0], bands[b, 1], bands[b, 2], bands[b, 3],
+        )  # fmt: skip
+
+
+@njit(cache=True, inline="always")
+def _screening_blocks_band(q_keys, nb, cmap, n, s, scell, sloc, sw, out, p0, p1, q0, q1):
+    """:func:`screening_blocks` from samples ``p0`` to ``p1 - 1`` into parents [q0, q1)'s blocks."""
     wx = np.empty(3)
     wy = np.empty(3)
     wz = np.empty(3)
-    for p in range(len(scell)):
+    for p in range(p0, p1):
         m = scell[p]
         i = m >> 3
         o = m & 7
@@ -261,7 +340,7 @@ def screening_blocks(q_keys, nb, cmap, n, s, scell, sloc, sw, out):
                         for a in range(3):
                             bx = ox + a - 1
                             q = nb[i, ((bx >> 1) + 1) + 3 * ((by >> 1) + 1) + 9 * ((bz >> 1) + 1)]
-                            if q < 0 or cmap[q] < 0:
+                            if q < q0 or q >= q1 or cmap[q] < 0:
                                 continue
                             w = wx[a] * wy[b] * wz[c]
                             r = (bx & 1) | ((by & 1) << 1) | ((bz & 1) << 2)
@@ -464,8 +543,14 @@ def level_pcg(q_keys, nb, inp, cmap, m1, k1, h, n, s, scell, sloc, sw, rhs, inv,
     q = np.empty(m)
     it = 0
     rel = 1.0
+    bands = screening_bands(q_keys, scell, SCREEN_BANDS if len(scell) >= SCREEN_MIN_SAMPLES else 1)
     while it < max_iter:
-        level_matvec(q_keys, nb, inp, cmap, cmap, m1, k1, h, n, s, scell, sloc, sw, p, q)
+        q[:] = 0.0
+        stiffness_matvec(q_keys, nb, inp, cmap, cmap, m1, k1, h, p, q)
+        if len(bands) > 1:
+            screening_matvec_bands(q_keys, nb, cmap, cmap, n, s, scell, sloc, sw, p, q, bands)
+        elif len(sw):
+            screening_matvec(q_keys, nb, cmap, cmap, n, s, scell, sloc, sw, p, q)
         pq = 0.0
         for i in range(m):
             pq += p[i] * q[i]

@@ -16,7 +16,7 @@ from numba import njit
 
 from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache directory, threading layer)
 from recon_cli._kernels.arrays import lower_bound
-from recon_cli._kernels.hashtable import probe
+from recon_cli._kernels.hashtable import probe, table_bits
 from recon_cli.stages.poisson._octree import MASK21, lattice_key
 
 
@@ -334,6 +334,13 @@ def _grow2(a, n):
 
 
 @njit(cache=True)
+def _grow1(a, n):
+    out = np.empty(max(n, 2 * a.shape[0]), a.dtype)
+    out[: a.shape[0]] = a
+    return out
+
+
+@njit(cache=True)
 def _rehash(tk, tv, bits):
     """The hash table (``tk`` keys, ``tv`` values, capacity ``1 << bits``) at twice the capacity."""
     nb = bits + 1
@@ -434,9 +441,10 @@ Level = namedtuple("Level", "iso eps clamp")
 Roots = namedtuple("Roots", "key up pos")
 Segments = namedtuple("Segments", "key pos")
 Loop = namedtuple("Loop", "key pos mask vid visited")
-# the mesh so far: triangles, vertices and the roots' hash table (edge key -> vertex); the
-# counts (triangles, vertices, roots, hash bits) live in an int64 (4,) array beside it
-Out = namedtuple("Out", "tri vpos tk tv")
+# the mesh so far: triangles, vertices, each vertex's edge key (-1: a fan centre) and the roots'
+# hash table (edge key -> vertex); the counts (triangles, vertices, roots, hash bits) live in
+# an int64 (4,) array beside it
+Out = namedtuple("Out", "tri vpos vkey tk tv")
 # the minimal-area triangulation's tables (MAX_DP loops)
 Triangulation = namedtuple("Triangulation", "cost split stack tris")
 
@@ -738,13 +746,14 @@ def _emit_loop(out, counts, loop, n, tr):
     One vertex per minimal edge, whichever leaf meets it first; a minimal-area triangulation,
     or a fan about a new vertex at the loop's centroid (its edges are its own).
     """
-    tri, vpos, tk, tv = out
+    tri, vpos, vkey, tk, tv = out
     nt, nv, nroot, bits = counts[0], counts[1], counts[2], counts[3]
     lp, lid = loop.pos, loop.vid
     if nt + n > tri.shape[0]:
         tri = _grow2(tri, nt + n)
     if nv + n + 1 > vpos.shape[0]:
         vpos = _grow2(vpos, nv + n + 1)
+        vkey = _grow1(vkey, nv + n + 1)
     if 2 * (nroot + n) > tk.shape[0]:
         tk, tv, bits = _rehash(tk, tv, bits)
     for i in range(n):
@@ -755,6 +764,7 @@ def _emit_loop(out, counts, loop, n, tr):
             vpos[nv, 0] = lp[i, 0]
             vpos[nv, 1] = lp[i, 1]
             vpos[nv, 2] = lp[i, 2]
+            vkey[nv] = loop.key[i]
             nv += 1
             nroot += 1
         lid[i] = tv[sl]
@@ -774,6 +784,7 @@ def _emit_loop(out, counts, loop, n, tr):
             for i in range(n):
                 sm += lp[i, q]
             vpos[nv, q] = sm / n
+        vkey[nv] = -1
         for i in range(n):
             tri[nt, 0] = nv
             tri[nt, 1] = lid[i]
@@ -781,17 +792,35 @@ def _emit_loop(out, counts, loop, n, tr):
             nt += 1
         nv += 1
     counts[0], counts[1], counts[2], counts[3] = nt, nv, nroot, bits
-    return Out(tri, vpos, tk, tv)
+    return Out(tri, vpos, vkey, tk, tv)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)  # chunks of cells run in threads of their own (.extract)
 def leaf_polygons(
-    keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, iso, eps, margin, clamp, xlo, xhi
+    keys,
+    leaf,
+    nodes,
+    g,
+    coff,
+    goff,
+    fkeys,
+    fnodes,
+    fg,
+    D,
+    iso,
+    eps,
+    margin,
+    clamp,
+    xlo,
+    xhi,
+    c0,
+    c1,
 ):
-    """Iso-surface triangles of every leaf of the tree at the leaf's own size.
+    """Iso-surface triangles of the leaves numbered ``c0`` to ``c1 - 1`` at the leaf's own size.
 
-    The leaves are those whose lower x (finest-lattice units) is in [``xlo``, ``xhi``): a slab's
-    part of the mesh.
+    The leaves are those cells in [``c0``, ``c1``) (the levels' numbering below) whose lower x
+    (finest-lattice units) is in [``xlo``, ``xhi``): a slab's part of the mesh. A chunk's
+    vertices are its own; :func:`weld_chunks` joins the chunks' meshes.
 
     ``keys``, ``leaf``, ``nodes``, ``g``, ``coff``, ``goff``: the levels' sorted cell keys, leaf
     flags, the cells' corner nodes and chi at the nodes, concatenated (see above). Each leaf whose
@@ -802,8 +831,9 @@ def leaf_polygons(
 
     Returns ``tri`` (t, 3) int64 vertex indices, ``vpos`` (v, 3) the vertices (finest-lattice
     units): one per minimal edge crossing the level set, shared by every leaf around it (welded
-    through a hash table of edge keys), and the fan centres; and the number of segment
-    chains that did not close into a loop (0 unless something is wrong).
+    through a hash table of edge keys), and the fan centres; ``vkey`` (v,) each vertex's edge
+    key (-1 for a fan centre); and the number of segment chains that did not close into a loop
+    (0 unless something is wrong).
     """
     R = np.int64(1) << D
     tree = TreeView(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, R, iso - margin)
@@ -839,6 +869,7 @@ def leaf_polygons(
     out = Out(
         np.empty((1024, 3), np.int64),
         np.empty((1024, 3)),
+        np.empty(1024, np.int64),
         np.full(1 << 12, -1, np.int64),
         np.empty(1 << 12, np.int64),
     )
@@ -854,8 +885,8 @@ def leaf_polygons(
     broken = 0
     for lev in range(D + 1):
         side = np.int64(1) << (D - lev)
-        end = coff[lev + 1] if lev < D else coff[D] + len(fkeys)
-        for ci in range(coff[lev], end):
+        end = min(c1, coff[lev + 1] if lev < D else coff[D] + len(fkeys))
+        for ci in range(max(c0, coff[lev]), end):
             if lev < D:
                 if not leaf[ci]:
                     continue
@@ -906,7 +937,48 @@ def leaf_polygons(
                     broken += 1
                     continue
                 out = _emit_loop(out, counts, loop, n, tr)
-    return out.tri[: counts[0]], out.vpos[: counts[1]], broken
+    return out.tri[: counts[0]], out.vpos[: counts[1]], out.vkey[: counts[1]], broken
+
+
+@njit(cache=True)
+def weld_chunks(vkey, voff, tri, toff):
+    """One mesh from the chunks' meshes of :func:`leaf_polygons`, concatenated in chunk order.
+
+    Chunk ``c``'s vertices are ``vkey[voff[c]:voff[c + 1]]`` (edge keys, -1 a fan centre), its
+    triangles ``tri[toff[c]:toff[c + 1]]`` (indices local to the chunk). Vertices with one edge
+    key become one, numbered in order of first appearance, so the mesh is the one a single
+    chunk of every leaf gives, whatever the chunks. Returns the triangles (global indices) and,
+    per global vertex, the index of its first appearance in ``vkey``.
+    """
+    n = vkey.shape[0]
+    bits = table_bits(n)
+    tk = np.full(np.int64(1) << bits, -1, np.int64)
+    tv = np.empty(np.int64(1) << bits, np.int64)
+    gid = np.empty(n, np.int64)
+    first = np.empty(n, np.int64)
+    nv = 0
+    for i in range(n):
+        k = vkey[i]
+        if k == -1:
+            gid[i] = nv
+            first[nv] = i
+            nv += 1
+            continue
+        s = probe(tk, bits, k)
+        if tk[s] == -1:
+            tk[s] = k
+            tv[s] = nv
+            gid[i] = nv
+            first[nv] = i
+            nv += 1
+        else:
+            gid[i] = tv[s]
+    out = np.empty_like(tri)
+    for c in range(toff.shape[0] - 1):
+        for t in range(toff[c], toff[c + 1]):
+            for q in range(3):
+                out[t, q] = gid[voff[c] + tri[t, q]]
+    return out, first[:nv]
 
 
 @njit(cache=True)

@@ -11,7 +11,7 @@ They only compute; conventions in :mod:`recon_cli.stages.poisson._octree`; hash 
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache directory, threading layer)
 from recon_cli._kernels.arrays import lower_bound
@@ -75,25 +75,45 @@ def _b2w(t, k):
     return 0.5 * t * t
 
 
-@njit(cache=True)
-def spread_splat(pos, vec, level, ctk, ctv, cbits, n_cells):
+@njit(cache=True, parallel=True)
+def spread_splat(pos, vec, level, ctk, ctv, cbits, n_cells, xcuts):
     """Each item's row of ``vec`` (n, k) shared among the 27 cells around it, summed per cell.
 
     The weights are the quadratic B-spline's at its position: (n_cells, k) summed per cell of
     the table. The normals'
     splat (PoissonRecon's, k = 3) and the samples' kernel density (counts, k = 1).
+
+    The cells in bands of x, band ``b`` from ``xcuts[b]`` to ``xcuts[b + 1] - 1`` (increasing,
+    covering every cell), over the threads: each band walks all items in order and adds their
+    shares in its cells only, so every cell sums its shares in the items' order, as one walk
+    over all cells does, whatever the bands and threads.
     """
     k = vec.shape[1]
     out = np.zeros((n_cells, k))
     scale = float(1 << level)
+    for b in prange(len(xcuts) - 1):
+        _spread_band(pos, vec, scale, ctk, ctv, cbits, xcuts[b], xcuts[b + 1], out)
+    return out
+
+
+@njit(cache=True, inline="always")
+def _spread_band(pos, vec, scale, ctk, ctv, cbits, x0, x1, out):
+    """:func:`spread_splat`'s shares in the cells with x in [``x0``, ``x1``)."""
+    k = vec.shape[1]
     c = np.empty(3, np.int64)
     t = np.empty(3)
     for p in range(pos.shape[0]):
+        u = pos[p, 0] * scale
+        cx = int(np.floor(u))
+        if cx + 1 < x0 or cx - 1 >= x1:
+            continue
         for a in range(3):
             u = pos[p, a] * scale
             c[a] = int(np.floor(u))
             t[a] = u - c[a]
         for kx in range(-1, 2):
+            if c[0] + kx < x0 or c[0] + kx >= x1:
+                continue
             for ky in range(-1, 2):
                 for kz in range(-1, 2):
                     if min(c[0] + kx, c[1] + ky, c[2] + kz) < 0:
@@ -103,7 +123,6 @@ def spread_splat(pos, vec, level, ctk, ctv, cbits, n_cells):
                         w = _b2w(t[0], kx) * _b2w(t[1], ky) * _b2w(t[2], kz)
                         for q in range(k):
                             out[j, q] += w * vec[p, q]
-    return out
 
 
 @njit(cache=True, inline="always")

@@ -49,6 +49,9 @@ FACE_MARGIN = 1e-3
 ROOT_CLAMP = 1e-3
 # vertices refined at a time by refine_roots (its temporaries are ~0.5 kB a vertex)
 ROOT_CHUNK = 1 << 16
+# cells a chunk of leaf_polygons (fixed, so the chunks do not depend on the thread count; the
+# weld makes the mesh independent of them anyway): many more chunks than threads balance them
+LEAF_CHUNK = 1 << 16
 
 
 def extract_finest(
@@ -175,7 +178,7 @@ def extract_leaves(
         nodes[coff[d] : coff[d + 1]] = lev.cell_nodes
         g[goff[d] : goff[d + 1]] = gvals.pop()
         del lev
-    tri, vpos, broken = E.leaf_polygons(
+    args = (
         keys,
         leaf,
         nodes,
@@ -192,7 +195,8 @@ def extract_leaves(
         ROOT_CLAMP,
         *((0, (1 << depth) + 1) if x_range is None else x_range),
     )
-    del keys, leaf, nodes, g, fine, fg
+    tri, vpos, broken = _leaf_polygons(args, int(coff[-1]) + len(fine.cell_keys))
+    del args, keys, leaf, nodes, g, fine, fg
     if broken:
         raise StageFailed(
             f"poisson extraction: {broken} iso-segment chains did not close (please report "
@@ -201,6 +205,33 @@ def extract_leaves(
     vpos *= size / (1 << depth)
     vpos += origin
     return vpos, tri
+
+
+def _leaf_polygons(args: tuple, n_cells: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """The leaves' triangles, vertices and broken chains, chunk by chunk in threads.
+
+    :func:`._extract.leaf_polygons` over chunks of :data:`LEAF_CHUNK` cells in numba's thread
+    count of threads, welded in chunk order: the mesh of one chunk of all cells, for any count.
+    """
+    import numba
+
+    bounds = [(a, min(a + LEAF_CHUNK, n_cells)) for a in range(0, max(n_cells, 1), LEAF_CHUNK)]
+    threads = min(numba.get_num_threads(), len(bounds))
+    if threads == 1:
+        parts = [E.leaf_polygons(*args, a, b) for a, b in bounds]
+    else:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(threads) as pool:  # the kernel releases the GIL
+            parts = list(pool.map(lambda ab: E.leaf_polygons(*args, *ab), bounds))
+    if len(parts) == 1:
+        return parts[0][0], parts[0][1], parts[0][3]
+    voff = np.cumsum([0] + [len(p[2]) for p in parts], dtype=np.int64)
+    toff = np.cumsum([0] + [len(p[0]) for p in parts], dtype=np.int64)
+    vkey = np.concatenate([p[2] for p in parts])
+    tri, first = E.weld_chunks(vkey, voff, np.concatenate([p[0] for p in parts]), toff)
+    vpos = np.concatenate([p[1] for p in parts])[first]
+    return tri, vpos, sum(p[3] for p in parts)
 
 
 def _edge_steps(verts: np.ndarray, axis: np.ndarray, chi: list, depth: int) -> np.ndarray:

@@ -20,6 +20,8 @@ log = logging.getLogger("recon")
 
 # the kernel-density level is this much coarser than the finest (PoissonRecon's kernelDepth)
 KERNEL_OFFSET = 2
+# bands of cells splatted in parallel by spread (many more than threads: balance)
+SPLAT_BANDS = 16
 # a sample's depth is extrapolated from the finest level where its density is at least this
 # many times samples-per-node (one level coarser than where it reaches samples-per-node): at
 # the first level that merely reaches it, the estimate is noisy and biased up (the samples
@@ -108,7 +110,23 @@ def _density_table(smp: Samples, level: int) -> tuple:
     for axis in range(3):
         keys = dilate(keys, axis, -1, 1, (1 << level) - 1)
     tab = build_table(keys)
-    return level, tab, S.spread_splat(smp.pos, smp.count[:, None], level, *tab, len(keys))[:, 0]
+    return level, tab, spread(smp.pos, smp.count[:, None], level, tab, len(keys))[:, 0]
+
+
+def spread(pos: np.ndarray, vec: np.ndarray, level: int, table: tuple, n_cells: int) -> np.ndarray:
+    """The items' rows of ``vec`` (n, k) shared among the 27 cells of ``level`` around them.
+
+    ``pos`` (n, 3) unit-cube positions, ``table`` the cells' hash table
+    (:func:`recon_cli._kernels.hashtable.build_table` of their keys, ``n_cells`` of them).
+    Returns (n_cells, k) the sums per cell (quadratic B-spline weights), summed in the items'
+    order in every cell: the cells in :data:`SPLAT_BANDS` bands of x holding equal shares of
+    the items, a band a thread (:func:`._splat.spread_splat`), the same sums for any count.
+    """
+    n = 1 << level
+    cx = np.floor(pos[:, 0] * n) if len(pos) else np.zeros(1)
+    inner = np.quantile(cx, np.linspace(0.0, 1.0, SPLAT_BANDS + 1)[1:-1], method="lower")
+    xcuts = np.unique(np.concatenate([[-1], inner.astype(np.int64), [n + 1]]))
+    return S.spread_splat(pos, vec, level, *table, n_cells, xcuts)
 
 
 def _eval_density(table: tuple, pos: np.ndarray) -> np.ndarray:
@@ -244,7 +262,7 @@ def spread_fields(
         for axis in range(3):
             keys = dilate(keys, axis, -1, 1, (1 << d) - 1)
         keys = np.sort(keys)
-        v = S.spread_splat(pos[sel], vec[sel], d, *build_table(keys), len(keys))
+        v = spread(pos[sel], vec[sel], d, build_table(keys), len(keys))
         hit = np.any(v != 0.0, axis=1)
         out[d] = (keys[hit], v[hit])
     return out
