@@ -12,7 +12,9 @@ Two runners with one interface (``run(name, fn, args) -> messages``):
 - :class:`DaskRunner`: each part's state a Dask future on a worker, each step a task on it
   (Dask runs a part's steps where its state is: the states never move). With a spill folder
   (more parts than workers), a large state is written to a file after each step and read
-  back by the next, so a worker holds only the part it runs. A step's task
+  back by the next, so a worker holds only the part it runs; the file a step read goes as
+  soon as the step has written its own, so the folder holds one file per part (a step that
+  only reads its state, :func:`reads_only`, keeps the file it read). A step's task
   returns ``(state, message)``; the coordinator gathers the messages only. A worker that dies
   loses the states it held: Dask recomputes them from their lineage (every step again, from
   the part's first one, the coordinator's values being part of the tasks), on another
@@ -142,6 +144,12 @@ class LocalRunner:
 SPILL_BYTES = 64 << 20
 
 
+def reads_only(fn: Callable) -> Callable:
+    """Mark a step that does not change its state: a spilled state is not written again."""
+    fn.reads_only = True  # type: ignore[attr-defined]
+    return fn
+
+
 class Spilled:
     """A part's state written to ``path`` (pickled) between two steps."""
 
@@ -153,10 +161,14 @@ def _step(state: Any, fn: Callable, args: tuple, spill: tuple | None = None) -> 
     import pickle
 
     live = not isinstance(state, Spilled)
+    spilled = state
     if not live:
         with open(state.path, "rb") as f:
             state = pickle.load(f)
     msg = fn(state, *args)
+    if getattr(fn, "reads_only", False):
+        # the state is as it was: its file (or the live object) stays the state
+        return spilled, msg
     if spill is not None and _sizeof(state) >= spill[1]:
         path = spill[0]
         with open(path + ".tmp", "wb") as f:
@@ -209,6 +221,8 @@ class DaskRunner:
         self.overall = overall
         self.token = os.urandom(4).hex()
         self.round = 0
+        # per part, the round whose file holds its state (None: the state is not in a file)
+        self.files: list[int | None] = [None] * len(states)
         workers = sorted(client.scheduler_info().get("workers", {}))
         self.states = []
         for k, s in enumerate(states):
@@ -250,12 +264,22 @@ class DaskRunner:
             pairs.append(p)
             states.append(c.submit(_first, p, key=f"{tag}-state", pure=False))
             msgs_f.append(c.submit(_second, p, key=f"{tag}-msg", pure=False))
+        st = None  # the last part's previous state: released below with the others
         index = {f.key: k for k, f in enumerate(msgs_f)}
         out: list[Any] = [None] * len(msgs_f)
         share = self.overall.claim(name) / max(len(msgs_f), 1) if self.overall else 0.0
+        writes = not getattr(fn, "reads_only", False)
         with task(self.progress, f"{self.label}: {name}", total=len(msgs_f)) as bar:
             for f in as_completed(msgs_f):
-                out[index[f.key]] = f.result()  # raises the step's own error
+                k = index[f.key]
+                out[k] = f.result()  # raises the step's own error
+                # the part's previous state is released now, not when the round ends, and
+                # its file goes: with every part spilled, the folder holds one round, not three
+                # (a state lost later is recomputed from the part's first step, which writes
+                # its files again)
+                self.states[k] = states[k]
+                if writes:
+                    self._replaced(k)
                 bar.advance(1)
                 if share and self.overall is not None:
                     self.overall.advance(share)
@@ -263,11 +287,23 @@ class DaskRunner:
         self.states = states
         for f in pairs + msgs_f:
             f.release()
-        # up to two rounds back: no state kept refers to those files (a lost state is
-        # recomputed from the parts' first step, which writes its files again)
+        # leftovers (the files of a recomputed part's earlier steps) up to two rounds back
         self._unspill(self.round - 2)
         note_phase(self.phases, name, out, time.perf_counter() - t0, moved)
         return out
+
+    def _replaced(self, k: int) -> None:
+        """Part ``k``'s step of this round is done: the file it read is no longer its state."""
+        if self.spill_dir is None:
+            return
+        old = self.files[k]
+        path = self._spill_path(k, self.round)
+        self.files[k] = self.round if path is not None and os.path.exists(path) else None
+        if old is not None and old != self.files[k]:
+            old_path = self._spill_path(k, old)
+            if old_path is not None:
+                with contextlib.suppress(OSError):
+                    os.unlink(old_path)
 
     def _spill_path(self, k: int, rnd: int) -> str | None:
         if self.spill_dir is None:
@@ -281,12 +317,14 @@ class DaskRunner:
         head = f"{self.label}-{self.token}-"
         for name in os.listdir(self.spill_dir):
             if name.startswith(head) and name.endswith(".state"):
-                if int(name[: -len(".state")].rsplit("-", 1)[1]) <= last:
+                k, rnd = (int(x) for x in name[len(head) : -len(".state")].rsplit("-", 1))
+                if rnd <= last and not (k < len(self.files) and self.files[k] == rnd):
                     with contextlib.suppress(OSError):
                         os.unlink(os.path.join(self.spill_dir, name))
 
     def close(self) -> None:
         """Let go of the parts' states (and their files)."""
+        self.files = []
         self._unspill(self.round)
         for f in self.states:
             f.release()
