@@ -14,7 +14,9 @@ Two runners with one interface (``run(name, fn, args) -> messages``):
   (more parts than workers), a large state is written to a file after each step and read
   back by the next, so a worker holds only the part it runs; the file a step read goes as
   soon as the step has written its own, so the folder holds one file per part (a step that
-  only reads its state, :func:`reads_only`, keeps the file it read). A step's task
+  only reads its state, :func:`reads_only`, keeps the file it read). An argument that every
+  part's task of a step shares (the coarse levels, their coefficients) then goes to a file
+  once, the tasks carrying its path (:class:`Shared`). A step's task
   returns ``(state, message)``; the coordinator gathers the messages only. A worker that dies
   loses the states it held: Dask recomputes them from their lineage (every step again, from
   the part's first one, the coordinator's values being part of the tasks), on another
@@ -150,6 +152,13 @@ def reads_only(fn: Callable) -> Callable:
     return fn
 
 
+# with a spill folder, an argument all parts of a step share, this large or more, is written
+# there once and each task reads it when it runs: Dask pickles a task's arguments into the
+# task, so the coordinator held 48 copies of the coarse levels (8.5 GiB at 20M points, depth
+# 12) and each worker those of the tasks queued on it (past its 4 GiB limit)
+SHARED_BYTES = 16 << 20
+
+
 class Spilled:
     """A part's state written to ``path`` (pickled) between two steps."""
 
@@ -157,9 +166,26 @@ class Spilled:
         self.path = path
 
 
+class Shared:
+    """An argument every part's task of a step shares, written to ``path`` (pickled) once."""
+
+    def __init__(self, path: str):
+        self.path = path
+
+
+def _resolve(arg: Any) -> Any:
+    import pickle
+
+    if isinstance(arg, Shared):
+        with open(arg.path, "rb") as f:
+            return pickle.load(f)
+    return arg
+
+
 def _step(state: Any, fn: Callable, args: tuple, spill: tuple | None = None) -> tuple[Any, dict]:
     import pickle
 
+    args = tuple(_resolve(a) for a in args)
     live = not isinstance(state, Spilled)
     spilled = state
     if not live:
@@ -209,12 +235,14 @@ class DaskRunner:
         overall: Overall | None = None,
         spill_dir: str | None = None,
         spill_bytes: int = SPILL_BYTES,
+        shared_bytes: int = SHARED_BYTES,
     ):
         self.client = client
         # with more parts than workers, a worker would hold all its parts' states: each large
         # state goes to a file in spill_dir (shared by the workers) between its steps instead
         self.spill_dir = spill_dir
         self.spill_bytes = spill_bytes
+        self.shared_bytes = shared_bytes
         self.phases: dict[str, dict] = {}
         self.progress = progress
         self.label = label
@@ -251,9 +279,11 @@ class DaskRunner:
         c = self.client
         pairs, states, msgs_f = [], [], []
         moved = 0
+        given = [args(k) for k in range(len(self.states))]
+        moved += sum(_sizeof(a) for a in given)
+        given = self._share(given)
         for k, st in enumerate(self.states):
-            a = args(k)
-            moved += _sizeof(a)
+            a = given[k]
             tag = f"{self.label}-{self.token}-{k}-{self.round}-{name}"
             # the arguments go in the task (a recomputed part reads them again from its
             # lineage), however large: Dask's warning of large graphs is not for this
@@ -292,6 +322,31 @@ class DaskRunner:
         note_phase(self.phases, name, out, time.perf_counter() - t0, moved)
         return out
 
+    def _share(self, given: list[tuple]) -> list[tuple]:
+        """The parts' arguments, each large one they all share replaced by its :class:`Shared`.
+
+        Only with a spill folder (the files are removed by :meth:`close`: a part recomputed from
+        its lineage reads them again).
+        """
+        import pickle
+
+        if self.spill_dir is None or len(given) < 2:
+            return given
+        out = [list(a) for a in given]
+        for i, x in enumerate(given[0]):
+            if not all(len(a) > i and a[i] is x for a in given):
+                continue
+            if _sizeof(x) < self.shared_bytes:
+                continue
+            path = os.path.join(self.spill_dir, f"{self.label}-{self.token}-{self.round}-{i}.arg")
+            with open(path + ".tmp", "wb") as f:
+                pickle.dump(x, f, protocol=5)
+            os.replace(path + ".tmp", path)
+            ref = Shared(path)
+            for a in out:
+                a[i] = ref
+        return [tuple(a) for a in out]
+
     def _replaced(self, k: int) -> None:
         """Part ``k``'s step of this round is done: the file it read is no longer its state."""
         if self.spill_dir is None:
@@ -326,6 +381,12 @@ class DaskRunner:
         """Let go of the parts' states (and their files)."""
         self.files = []
         self._unspill(self.round)
+        if self.spill_dir is not None:
+            head = f"{self.label}-{self.token}-"
+            for name in os.listdir(self.spill_dir):
+                if name.startswith(head) and name.endswith(".arg"):
+                    with contextlib.suppress(OSError):
+                        os.unlink(os.path.join(self.spill_dir, name))
         for f in self.states:
             f.release()
         self.states = []
