@@ -2,11 +2,13 @@
 
 Noisy armadillo samples (0.25 % of the diagonal) in a binary PLY. Ours is the command as a
 process (cluster start, the workers reading the file by chunks, the write: what a user
-waits for); its memory column is the largest process's peak: the coordinator's
-(``RUSAGE_CHILDREN`` of a launcher) or a worker's (the report's per-phase peaks: each step
-resets its worker's high-water mark, so the kernel's figure for a worker at its exit is
-its last step's only). The reference is the single-process :func:`screened_poisson`
-in-process (forked child, peak above its start, as every section measures). The note
+waits for); its memory column is the largest process's peak: the launcher's
+``RUSAGE_CHILDREN`` (the coordinator's peak, or a worker's last step's: the coordinator reaps
+its workers, and each step resets its worker's high-water mark) or a worker's (the report's
+per-phase peaks). The first is not the coordinator's alone: sample ``/proc/<pid>/status`` for
+that (the 6.58 GiB "coordinator" of a 4M-point depth-11 run was most likely a worker). The
+reference is the single-process :func:`screened_poisson` in-process (forked child, peak
+above its start, as every section measures). The note
 gives the Chamfer distance to the armadillo of both meshes (exact point-to-triangle, 200k
 samples each way) as a ratio, the mesh's topology (closed, manifold, pieces, duplicated
 vertices) and where the slabs' time and memory went (the report's phases).
@@ -122,7 +124,8 @@ def _case(folder: str, n: int, depth: int) -> dict:
         else float("nan")
     )
     note = (
-        f"Chamfer {cr:.3f}x single; {_topology(mesh)}; coordinator {peak:.0f} MB, "
+        f"Chamfer {cr:.3f}x single; {_topology(mesh)}; at exit (coordinator or a worker's "
+        f"last step) {peak:.0f} MB, "
         f"largest worker {worker_peak:.0f} MB; "
         f"slowest slab per phase: {spent}"
     )

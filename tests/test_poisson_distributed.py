@@ -487,8 +487,9 @@ def test_killed_worker_mid_solve_gives_the_same_mesh(cluster):
 
 @pytest.mark.slow
 def test_more_slabs_than_workers_spill_their_states(cluster, tmp_path, monkeypatch):
-    """Three slabs on two workers, every state written to its file between steps, a worker
-    SIGKILLed while the slabs solve: the in-process run's mesh, bit for bit, and no file left."""
+    """Three slabs on two workers, every state written to its file between steps and every
+    shared argument to its own, a worker SIGKILLed while the slabs solve: the in-process run's
+    mesh, bit for bit, and no file left."""
     from recon_cli.batch import steps
     from recon_cli.stages.poisson import distributed as D
 
@@ -503,19 +504,99 @@ def test_more_slabs_than_workers_spill_their_states(cluster, tmp_path, monkeypat
             if name == "solve" and not killed:
                 _kill_a_worker_soon(pids, killed)
             out = super().run(name, fn, args)
-            seen.append(len(os.listdir(tmp_path)))
+            seen.append(sum(f.endswith(".state") for f in os.listdir(tmp_path)))
             return out
 
     def runner(client, slabs, progress=None, overall=None, spill_dir=None):
         assert spill_dir is not None  # three slabs, two workers: the run spills by itself
-        return Spilling(client, slabs, progress, "poisson", overall, str(tmp_path), 0)
+        # every state to its file, every argument the slabs share to one
+        return Spilling(client, slabs, progress, "poisson", overall, str(tmp_path), 0, 0)
 
     monkeypatch.setattr(D, "make_runner", runner)
     res = distributed_poisson(pts, nrm, depth=7, partitions=3, client=cluster)
     assert killed and killed[0] not in cluster.run(os.getpid).values()
-    assert seen[-1] == 6  # this round's files and the last one's, per slab
+    assert seen[-1] == 3  # one file per slab: the file a step read goes once it wrote its own
     assert np.array_equal(res.mesh.vertices, ref.mesh.vertices)
     assert np.array_equal(res.mesh.faces, ref.mesh.faces)
+    assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.slow
+def test_spilled_parts_keep_one_file_each(cluster, tmp_path):
+    """Three parts on two workers, every state spilled: after each step the folder holds one
+    file per part (the file a step read goes once it wrote its own: a 20M-point run's 48 slab
+    states are tens of GB a round), a step that only reads its state writes none and removes
+    none, and the states come back right."""
+    from types import SimpleNamespace
+
+    from recon_cli.batch import steps
+
+    def add(state, x):
+        state.v = state.v + x
+        return {"v": state.v}
+
+    @steps.reads_only
+    def look(state):
+        return {"v": state.v}
+
+    runner = steps.DaskRunner(
+        cluster, [SimpleNamespace(v=k) for k in range(3)], spill_dir=str(tmp_path), spill_bytes=0
+    )
+    seen = []
+    try:
+        for step in (add, add, look, add):
+            out = runner.run("x", step, (lambda k: (10,)) if step is add else (lambda k: ()))
+            seen.append(sorted(os.listdir(tmp_path)))
+    finally:
+        runner.close()
+    assert [m["v"] for m in out] == [30, 31, 32]
+    assert [len(s) for s in seen] == [3, 3, 3, 3]
+    assert seen[2] == seen[1] and seen[3] != seen[2]
+    assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.slow
+def test_an_argument_all_parts_share_is_written_once(cluster, tmp_path, monkeypatch):
+    """With a spill folder, a large argument every part's task shares goes to one file, the
+    tasks carrying its path (Dask would pickle it into each of them: 48 copies of the coarse
+    levels held the coordinator at 8.5 GiB and queued tasks took workers past their limit);
+    each task reads the value, a per-part argument stays in its task, and close() removes
+    the file."""
+    from types import SimpleNamespace
+
+    from recon_cli.batch import steps
+
+    big = np.arange(1000, dtype=np.float64)
+
+    def use(state, shared, own):
+        state.v = float(shared.sum()) + own
+        return {"v": state.v}
+
+    sent = []
+    submit = cluster.submit
+
+    def spy(fn, *a, **kw):
+        if fn is steps._step:
+            sent.append(a[2])
+        return submit(fn, *a, **kw)
+
+    monkeypatch.setattr(cluster, "submit", spy)
+    runner = steps.DaskRunner(
+        cluster,
+        [SimpleNamespace(v=0.0) for _ in range(3)],
+        spill_dir=str(tmp_path),
+        spill_bytes=0,
+        shared_bytes=1000,
+    )
+    try:
+        out = runner.run("x", use, lambda k: (big, float(k)))
+        files = sorted(os.listdir(tmp_path))
+    finally:
+        runner.close()
+    assert [m["v"] for m in out] == [499500.0, 499501.0, 499502.0]
+    assert len(sent) == 3 and all(isinstance(a[0], steps.Shared) for a in sent)
+    assert [a[1] for a in sent] == [0.0, 1.0, 2.0]
+    assert sum(f.endswith(".arg") for f in files) == 1
     assert os.listdir(tmp_path) == []
 
 

@@ -12,7 +12,11 @@ Two runners with one interface (``run(name, fn, args) -> messages``):
 - :class:`DaskRunner`: each part's state a Dask future on a worker, each step a task on it
   (Dask runs a part's steps where its state is: the states never move). With a spill folder
   (more parts than workers), a large state is written to a file after each step and read
-  back by the next, so a worker holds only the part it runs. A step's task
+  back by the next, so a worker holds only the part it runs; the file a step read goes as
+  soon as the step has written its own, so the folder holds one file per part (a step that
+  only reads its state, :func:`reads_only`, keeps the file it read). An argument that every
+  part's task of a step shares (the coarse levels, their coefficients) then goes to a file
+  once, the tasks carrying its path (:class:`Shared`). A step's task
   returns ``(state, message)``; the coordinator gathers the messages only. A worker that dies
   loses the states it held: Dask recomputes them from their lineage (every step again, from
   the part's first one, the coordinator's values being part of the tasks), on another
@@ -142,6 +146,19 @@ class LocalRunner:
 SPILL_BYTES = 64 << 20
 
 
+def reads_only(fn: Callable) -> Callable:
+    """Mark a step that does not change its state: a spilled state is not written again."""
+    fn.reads_only = True  # type: ignore[attr-defined]
+    return fn
+
+
+# with a spill folder, an argument all parts of a step share, this large or more, is written
+# there once and each task reads it when it runs: Dask pickles a task's arguments into the
+# task, so the coordinator held 48 copies of the coarse levels (8.5 GiB at 20M points, depth
+# 12) and each worker those of the tasks queued on it (past its 4 GiB limit)
+SHARED_BYTES = 16 << 20
+
+
 class Spilled:
     """A part's state written to ``path`` (pickled) between two steps."""
 
@@ -149,14 +166,35 @@ class Spilled:
         self.path = path
 
 
+class Shared:
+    """An argument every part's task of a step shares, written to ``path`` (pickled) once."""
+
+    def __init__(self, path: str):
+        self.path = path
+
+
+def _resolve(arg: Any) -> Any:
+    import pickle
+
+    if isinstance(arg, Shared):
+        with open(arg.path, "rb") as f:
+            return pickle.load(f)
+    return arg
+
+
 def _step(state: Any, fn: Callable, args: tuple, spill: tuple | None = None) -> tuple[Any, dict]:
     import pickle
 
+    args = tuple(_resolve(a) for a in args)
     live = not isinstance(state, Spilled)
+    spilled = state
     if not live:
         with open(state.path, "rb") as f:
             state = pickle.load(f)
     msg = fn(state, *args)
+    if getattr(fn, "reads_only", False):
+        # the state is as it was: its file (or the live object) stays the state
+        return spilled, msg
     if spill is not None and _sizeof(state) >= spill[1]:
         path = spill[0]
         with open(path + ".tmp", "wb") as f:
@@ -197,18 +235,22 @@ class DaskRunner:
         overall: Overall | None = None,
         spill_dir: str | None = None,
         spill_bytes: int = SPILL_BYTES,
+        shared_bytes: int = SHARED_BYTES,
     ):
         self.client = client
         # with more parts than workers, a worker would hold all its parts' states: each large
         # state goes to a file in spill_dir (shared by the workers) between its steps instead
         self.spill_dir = spill_dir
         self.spill_bytes = spill_bytes
+        self.shared_bytes = shared_bytes
         self.phases: dict[str, dict] = {}
         self.progress = progress
         self.label = label
         self.overall = overall
         self.token = os.urandom(4).hex()
         self.round = 0
+        # per part, the round whose file holds its state (None: the state is not in a file)
+        self.files: list[int | None] = [None] * len(states)
         workers = sorted(client.scheduler_info().get("workers", {}))
         self.states = []
         for k, s in enumerate(states):
@@ -237,9 +279,11 @@ class DaskRunner:
         c = self.client
         pairs, states, msgs_f = [], [], []
         moved = 0
+        given = [args(k) for k in range(len(self.states))]
+        moved += sum(_sizeof(a) for a in given)
+        given = self._share(given)
         for k, st in enumerate(self.states):
-            a = args(k)
-            moved += _sizeof(a)
+            a = given[k]
             tag = f"{self.label}-{self.token}-{k}-{self.round}-{name}"
             # the arguments go in the task (a recomputed part reads them again from its
             # lineage), however large: Dask's warning of large graphs is not for this
@@ -250,12 +294,22 @@ class DaskRunner:
             pairs.append(p)
             states.append(c.submit(_first, p, key=f"{tag}-state", pure=False))
             msgs_f.append(c.submit(_second, p, key=f"{tag}-msg", pure=False))
+        st = None  # the last part's previous state: released below with the others
         index = {f.key: k for k, f in enumerate(msgs_f)}
         out: list[Any] = [None] * len(msgs_f)
         share = self.overall.claim(name) / max(len(msgs_f), 1) if self.overall else 0.0
+        writes = not getattr(fn, "reads_only", False)
         with task(self.progress, f"{self.label}: {name}", total=len(msgs_f)) as bar:
             for f in as_completed(msgs_f):
-                out[index[f.key]] = f.result()  # raises the step's own error
+                k = index[f.key]
+                out[k] = f.result()  # raises the step's own error
+                # the part's previous state is released now, not when the round ends, and
+                # its file goes: with every part spilled, the folder holds one round, not three
+                # (a state lost later is recomputed from the part's first step, which writes
+                # its files again)
+                self.states[k] = states[k]
+                if writes:
+                    self._replaced(k)
                 bar.advance(1)
                 if share and self.overall is not None:
                     self.overall.advance(share)
@@ -263,11 +317,48 @@ class DaskRunner:
         self.states = states
         for f in pairs + msgs_f:
             f.release()
-        # up to two rounds back: no state kept refers to those files (a lost state is
-        # recomputed from the parts' first step, which writes its files again)
+        # leftovers (the files of a recomputed part's earlier steps) up to two rounds back
         self._unspill(self.round - 2)
         note_phase(self.phases, name, out, time.perf_counter() - t0, moved)
         return out
+
+    def _share(self, given: list[tuple]) -> list[tuple]:
+        """The parts' arguments, each large one they all share replaced by its :class:`Shared`.
+
+        Only with a spill folder (the files are removed by :meth:`close`: a part recomputed from
+        its lineage reads them again).
+        """
+        import pickle
+
+        if self.spill_dir is None or len(given) < 2:
+            return given
+        out = [list(a) for a in given]
+        for i, x in enumerate(given[0]):
+            if not all(len(a) > i and a[i] is x for a in given):
+                continue
+            if _sizeof(x) < self.shared_bytes:
+                continue
+            path = os.path.join(self.spill_dir, f"{self.label}-{self.token}-{self.round}-{i}.arg")
+            with open(path + ".tmp", "wb") as f:
+                pickle.dump(x, f, protocol=5)
+            os.replace(path + ".tmp", path)
+            ref = Shared(path)
+            for a in out:
+                a[i] = ref
+        return [tuple(a) for a in out]
+
+    def _replaced(self, k: int) -> None:
+        """Part ``k``'s step of this round is done: the file it read is no longer its state."""
+        if self.spill_dir is None:
+            return
+        old = self.files[k]
+        path = self._spill_path(k, self.round)
+        self.files[k] = self.round if path is not None and os.path.exists(path) else None
+        if old is not None and old != self.files[k]:
+            old_path = self._spill_path(k, old)
+            if old_path is not None:
+                with contextlib.suppress(OSError):
+                    os.unlink(old_path)
 
     def _spill_path(self, k: int, rnd: int) -> str | None:
         if self.spill_dir is None:
@@ -281,13 +372,21 @@ class DaskRunner:
         head = f"{self.label}-{self.token}-"
         for name in os.listdir(self.spill_dir):
             if name.startswith(head) and name.endswith(".state"):
-                if int(name[: -len(".state")].rsplit("-", 1)[1]) <= last:
+                k, rnd = (int(x) for x in name[len(head) : -len(".state")].rsplit("-", 1))
+                if rnd <= last and not (k < len(self.files) and self.files[k] == rnd):
                     with contextlib.suppress(OSError):
                         os.unlink(os.path.join(self.spill_dir, name))
 
     def close(self) -> None:
         """Let go of the parts' states (and their files)."""
+        self.files = []
         self._unspill(self.round)
+        if self.spill_dir is not None:
+            head = f"{self.label}-{self.token}-"
+            for name in os.listdir(self.spill_dir):
+                if name.startswith(head) and name.endswith(".arg"):
+                    with contextlib.suppress(OSError):
+                        os.unlink(os.path.join(self.spill_dir, name))
         for f in self.states:
             f.release()
         self.states = []

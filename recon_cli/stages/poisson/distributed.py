@@ -675,7 +675,9 @@ def _coarse_tree(
     with _coordinator_step(runner, "coarse tree"):
         coarse = S.build_coarse_levels(cpos, clvl, tree_depth, job)
     del cpos, clvl
-    rm = runner.run("restrict", S.restrict, lambda k: (S.level_message(coarse), coarse_fields))
+    # one message for every slab (the runner writes a large argument all slabs share once)
+    cmsg = S.level_message(coarse)
+    rm = runner.run("restrict", S.restrict, lambda k: (cmsg, coarse_fields))
     finer = None
     parts = [m["finer"] for m in rm if "finer" in m]
     if parts:

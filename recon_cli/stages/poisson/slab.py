@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from recon_cli.batch.steps import reads_only
 from recon_cli.errors import StageFailed
 from recon_cli.geometry import oriented_rows
 from recon_cli.memory import peak_mb, release_free_heap, reset_peak
@@ -323,6 +324,7 @@ def load(
     return _load(slab, points, normals, colors, props)
 
 
+@reads_only
 @timed
 def own_table(slab: Slab, level: int) -> dict:
     """The kernel-density table of the slab's own samples at ``level``.
@@ -396,6 +398,7 @@ def noise(slab: Slab, tree_depth: int) -> dict:
     return {"hist": float_histogram(have), "missing": int(np.isnan(own).sum())}
 
 
+@reads_only
 @timed
 def noise_values(slab: Slab, bins: np.ndarray) -> dict:
     """The own samples' measured noise values in ``bins`` (a median's second round)."""
@@ -403,6 +406,7 @@ def noise_values(slab: Slab, bins: np.ndarray) -> dict:
     return {"values": values_in(own[~np.isnan(own)], bins)}
 
 
+@reads_only
 @timed
 def noise_report_values(slab: Slab, bins: np.ndarray) -> dict:
     """The own samples' reported noise values in ``bins`` (a median's second round)."""
@@ -1069,6 +1073,7 @@ def extract(slab: Slab, iso: float, at_leaves: bool) -> dict:
     return msg
 
 
+@reads_only
 @timed
 def island_points(slab: Slab, lo: np.ndarray, hi: np.ndarray) -> dict:
     """How many of the slab's own points lie in each box (k, 3) ``lo``..``hi``."""
@@ -1173,6 +1178,7 @@ def prepare(slab: Slab, drop: np.ndarray, density: tuple | None, at_samples: boo
     return msg
 
 
+@reads_only
 @timed
 def density_values(slab: Slab, bins: np.ndarray) -> dict:
     """The density at the own samples in ``bins`` (a median's second round)."""
