@@ -17,6 +17,7 @@ from recon_cli.stages.normals.distributed import HALO, SUB_SLABS, distributed_no
 
 from shapes import random_rotation, single_view_scan
 from shared_data import sampled_cloud
+from spilling import spilling_runner
 
 
 def _single(points, method="mst", **kw):
@@ -154,26 +155,14 @@ def cluster():
 def test_more_slabs_than_workers_spill_their_states(cluster, tmp_path, monkeypatch):
     """Three slabs on two workers: every state written to its file between steps (a worker
     holds only the slab it runs), the in-process slabs' normals exactly, no file left."""
-    from recon_cli.batch import steps
     from recon_cli.stages.normals import distributed as D
 
     c = sampled_cloud("armadillo", 30_000, 0.001, 1)
     ref, _, _ = distributed_normals(c.points, orient="mst", partitions=3)
-    seen: list[int] = []
-
-    class Spilling(steps.DaskRunner):
-        def run(self, name, fn, args):
-            out = super().run(name, fn, args)
-            seen.append(len(os.listdir(tmp_path)))
-            return out
-
-    def runner(client, slabs, progress=None, overall=None, spill_dir=None):
-        assert spill_dir is not None  # three slabs, two workers: the run spills by itself
-        return Spilling(client, slabs, progress, "normals", overall, str(tmp_path), 0)
-
+    runner, seen = spilling_runner(tmp_path, "normals")
     monkeypatch.setattr(D, "make_runner", runner)
     nrm, _, rep = distributed_normals(c.points, orient="mst", partitions=3, client=cluster)
-    assert seen[1] == 6  # after the neighbourhoods: this round's files and the last one's
+    assert seen[1] == 3  # after the neighbourhoods: one file per slab
     assert np.array_equal(nrm, ref)
     assert rep["components"] == 1
     assert os.listdir(tmp_path) == []

@@ -22,6 +22,7 @@ from recon_cli.stages.poisson.distributed import distributed_poisson
 
 from interrupt import RUN_RECON, SIGINT_AS_A_TERMINAL, interrupt_when
 from shapes import random_rotation, single_view_scan, sphere_cloud
+from spilling import spilling_runner
 
 
 def _closed_one_piece(mesh, pieces: int = 1) -> None:
@@ -490,28 +491,18 @@ def test_more_slabs_than_workers_spill_their_states(cluster, tmp_path, monkeypat
     """Three slabs on two workers, every state written to its file between steps and every
     shared argument to its own, a worker SIGKILLed while the slabs solve: the in-process run's
     mesh, bit for bit, and no file left."""
-    from recon_cli.batch import steps
     from recon_cli.stages.poisson import distributed as D
 
     pts, nrm = sphere_cloud(12_000, seed=14)
     ref = distributed_poisson(pts, nrm, depth=7, partitions=3)
     pids = cluster.run(os.getpid)
-    seen: list[int] = []
     killed: list[int] = []
 
-    class Spilling(steps.DaskRunner):
-        def run(self, name, fn, args):
-            if name == "solve" and not killed:
-                _kill_a_worker_soon(pids, killed)
-            out = super().run(name, fn, args)
-            seen.append(sum(f.endswith(".state") for f in os.listdir(tmp_path)))
-            return out
+    def kill_in_solve(name):
+        if name == "solve" and not killed:
+            _kill_a_worker_soon(pids, killed)
 
-    def runner(client, slabs, progress=None, overall=None, spill_dir=None):
-        assert spill_dir is not None  # three slabs, two workers: the run spills by itself
-        # every state to its file, every argument the slabs share to one
-        return Spilling(client, slabs, progress, "poisson", overall, str(tmp_path), 0, 0)
-
+    runner, seen = spilling_runner(tmp_path, "poisson", kill_in_solve)
     monkeypatch.setattr(D, "make_runner", runner)
     res = distributed_poisson(pts, nrm, depth=7, partitions=3, client=cluster)
     assert killed and killed[0] not in cluster.run(os.getpid).values()
