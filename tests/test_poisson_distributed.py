@@ -502,11 +502,10 @@ def test_more_slabs_than_workers_spill_their_states(cluster, tmp_path, monkeypat
         if name == "solve" and not killed:
             _kill_a_worker_soon(pids, killed)
 
-    runner, seen = spilling_runner(tmp_path, "poisson", kill_in_solve)
+    runner, _ = spilling_runner(tmp_path, "poisson", kill_in_solve)
     monkeypatch.setattr(D, "make_runner", runner)
     res = distributed_poisson(pts, nrm, depth=7, partitions=3, client=cluster)
     assert killed and killed[0] not in cluster.run(os.getpid).values()
-    assert seen[-1] == 3  # one file per slab: the file a step read goes once it wrote its own
     assert np.array_equal(res.mesh.vertices, ref.mesh.vertices)
     assert np.array_equal(res.mesh.faces, ref.mesh.faces)
     assert os.listdir(tmp_path) == []

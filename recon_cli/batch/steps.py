@@ -317,8 +317,9 @@ class DaskRunner:
         self.states = states
         for f in pairs + msgs_f:
             f.release()
-        # leftovers (the files of a recomputed part's earlier steps) up to two rounds back
-        self._unspill(self.round - 2)
+        # the files a recomputed part's earlier steps wrote again stay until close(): a part
+        # lost to a dead worker is recomputed at once, in the background, reading each file its
+        # previous step wrote (removing them here raced with it: FileNotFoundError in a test)
         note_phase(self.phases, name, out, time.perf_counter() - t0, moved)
         return out
 

@@ -198,7 +198,7 @@ def default_partitions(
     npoints: int,
     workers: int,
     memory_per_worker: float | None,
-    bytes_per_point: float = SLAB_BYTES_PER_POINT,
+    bytes_per_point: float | None = None,
     cap: int = S.MAX_PARTITIONS,
 ) -> int:
     """The slab count of a run whose ``--partitions`` is not given.
@@ -211,8 +211,8 @@ def default_partitions(
         Worker processes of the cluster (>= 1).
     memory_per_worker : float or None
         A worker's memory limit in bytes; None or 0 for no limit.
-    bytes_per_point : float
-        A slab's peak per point of its own (the Poisson slabs': :data:`SLAB_BYTES_PER_POINT`).
+    bytes_per_point : float, optional
+        A slab's peak per point of its own (None: the Poisson slabs', :data:`SLAB_BYTES_PER_POINT`).
     cap : int
         The most slabs (the Poisson slabs': :data:`.slab.MAX_PARTITIONS`, 64: beyond 32 the seams
         lie on level-6 planes, :func:`.slab.seam_depth`).
@@ -230,6 +230,8 @@ def default_partitions(
     if int(npoints) < 0:
         raise ParameterError(f"npoints must be >= 0, got {npoints}")
     workers = int(workers)
+    if bytes_per_point is None:
+        bytes_per_point = SLAB_BYTES_PER_POINT
     if not memory_per_worker or memory_per_worker <= 0:
         return min(workers, cap)
     need = math.ceil(npoints * bytes_per_point / (SLAB_MEMORY_SHARE * memory_per_worker))
@@ -253,7 +255,7 @@ def slab_count(
     partitions: int | None,
     npoints: int,
     client: Any,
-    bytes_per_point: float = SLAB_BYTES_PER_POINT,
+    bytes_per_point: float | None = None,
     cap: int = S.MAX_PARTITIONS,
     stage: str = "poisson",
 ) -> tuple[int, dict]:
@@ -274,6 +276,8 @@ def slab_count(
     if partitions is not None:
         entry.update(count=int(partitions), why="given (--partitions)")
         return int(partitions), entry
+    if bytes_per_point is None:
+        bytes_per_point = SLAB_BYTES_PER_POINT
     parts = default_partitions(npoints, nworkers, memory, bytes_per_point, cap)
     slab_bytes = npoints / parts * bytes_per_point
     entry.update(count=parts, slab_bytes_estimate=int(slab_bytes))
