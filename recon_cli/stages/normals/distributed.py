@@ -554,12 +554,6 @@ def _slab_count(partitions: int | None, npoints: int, client: Any, knn: int | No
     return slab_count(partitions, npoints, client, slab_bytes_per_point(knn), MAX_SLABS, "normals")
 
 
-def _workers(client: Any) -> int:
-    from recon_cli.stages.poisson.distributed import worker_memory
-
-    return worker_memory(client)[0]
-
-
 def _frame(lo, hi, perm_axis_longest=True):
     size = float((hi - lo).max()) * 1.01 or 1.0
     origin = 0.5 * (lo + hi) - 0.5 * size
@@ -618,7 +612,7 @@ def distributed_normals(
         direction=dirn,
         curvature=bool(curvature),
         partitions=parts,
-        workers=parts if client is None else _workers(client),
+        workers=why["workers"],
         sensors=None if sensors is None else tuple(sensors[:3]),
     )
     if method == "camera" and cam is None and sensors is None:
@@ -731,6 +725,9 @@ def run_from_files(
             buckets = client.gather(futs)
             counts = np.sum([b["counts"] for b in buckets], axis=0)
             files = [(os.path.join(tmp, f"c{i:05d}"), b["offsets"]) for i, b in enumerate(buckets)]
+            if v["partitions"] is not None and not 1 <= v["partitions"] <= MAX_SLABS:
+                raise ParameterError(f"--partitions must be 1..{MAX_SLABS}, got {v['partitions']}")
+            parts, why = _slab_count(v["partitions"], n_rows, client, knn)
             p = dict(
                 knn=knn,
                 radius=radius,
@@ -738,13 +735,10 @@ def run_from_files(
                 camera=cam,
                 direction=dirn,
                 curvature=v["curvature"],
-                partitions=0,
-                workers=_workers(client),
+                partitions=parts,
+                workers=why["workers"],
                 sensors=None if sensors is None else views[:3],
             )
-            if v["partitions"] is not None and not 1 <= v["partitions"] <= MAX_SLABS:
-                raise ParameterError(f"--partitions must be 1..{MAX_SLABS}, got {v['partitions']}")
-            p["partitions"], why = _slab_count(v["partitions"], n_rows, client, knn)
             prefixes, report = _core(client, files, counts, frame, n_rows, p, tmp, progress)
             report["distributed"]["partitions"] = why
         t1 = time.perf_counter()
