@@ -293,8 +293,7 @@ def screening_blocks(q_keys, nb, cmap, n, s, scell, sloc, sw, out):
     caller; in bands of parents over the threads (:func:`screening_bands`), each writing its
     parents' blocks only, from the samples in order: the same sums.
     """
-    bands = screening_bands(q_keys, scell, SCREEN_BANDS if len(scell) >= SCREEN_MIN_SAMPLES else 1)
-    screening_blocks_bands(q_keys, nb, cmap, n, s, scell, sloc, sw, out, bands)
+    screening_blocks_bands(q_keys, nb, cmap, n, s, scell, sloc, sw, out, level_bands(q_keys, scell))
 
 
 @njit(cache=True, parallel=True)
@@ -492,9 +491,27 @@ def level_matvec(q_keys, nb, inp, xmap, omap, m1, k1, h, n, s, scell, sloc, sw, 
     Elsewhere whatever A gives; ``x`` laid out by ``xmap``, ``out`` by ``omap``
     (:func:`stiffness_matvec`).
     """
+    bands = level_bands(q_keys, scell)
+    _level_product(q_keys, nb, inp, xmap, omap, m1, k1, h, n, s, scell, sloc, sw, bands, x, out)
+
+
+@njit(cache=True)
+def level_bands(q_keys, scell):
+    """The screening's bands of parents for a level (:func:`screening_bands`).
+
+    One band below :data:`SCREEN_MIN_SAMPLES` samples, where a thread each costs more than it saves.
+    """
+    return screening_bands(q_keys, scell, SCREEN_BANDS if len(scell) >= SCREEN_MIN_SAMPLES else 1)
+
+
+@njit(cache=True, inline="always")
+def _level_product(q_keys, nb, inp, xmap, omap, m1, k1, h, n, s, scell, sloc, sw, bands, x, out):
+    """Out = A x (:func:`level_matvec`), the screening in ``bands`` (:func:`level_bands`)."""
     out[:] = 0.0
     stiffness_matvec(q_keys, nb, inp, xmap, omap, m1, k1, h, x, out)
-    if len(sw):
+    if len(bands) > 1:
+        screening_matvec_bands(q_keys, nb, xmap, omap, n, s, scell, sloc, sw, x, out, bands)
+    elif len(sw):
         screening_matvec(q_keys, nb, xmap, omap, n, s, scell, sloc, sw, x, out)
 
 
@@ -543,14 +560,9 @@ def level_pcg(q_keys, nb, inp, cmap, m1, k1, h, n, s, scell, sloc, sw, rhs, inv,
     q = np.empty(m)
     it = 0
     rel = 1.0
-    bands = screening_bands(q_keys, scell, SCREEN_BANDS if len(scell) >= SCREEN_MIN_SAMPLES else 1)
+    bands = level_bands(q_keys, scell)
     while it < max_iter:
-        q[:] = 0.0
-        stiffness_matvec(q_keys, nb, inp, cmap, cmap, m1, k1, h, p, q)
-        if len(bands) > 1:
-            screening_matvec_bands(q_keys, nb, cmap, cmap, n, s, scell, sloc, sw, p, q, bands)
-        elif len(sw):
-            screening_matvec(q_keys, nb, cmap, cmap, n, s, scell, sloc, sw, p, q)
+        _level_product(q_keys, nb, inp, cmap, cmap, m1, k1, h, n, s, scell, sloc, sw, bands, p, q)
         pq = 0.0
         for i in range(m):
             pq += p[i] * q[i]
