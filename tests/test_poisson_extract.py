@@ -12,12 +12,13 @@ import pytest
 import recon_cli.stages.poisson.extract as extract_mod
 from recon_cli.geometry import TriangleMesh
 from recon_cli.mesh.sampling import sample_surface
+from recon_cli.mesh.topology import Connectivity
 from recon_cli.mesh.topology import report as topology_report
 from recon_cli.stages.poisson import screened_poisson
 from recon_cli.stages.poisson.octree import unpack_keys
 
 from reference import isolated
-from shapes import SHAPES, shape_cloud, single_view_scan, sphere_sdf, torus_sdf
+from shapes import SHAPES, random_rotation, shape_cloud, single_view_scan, sphere_sdf, torus_sdf
 
 
 def _assert_closed_manifold_one_piece(mesh: TriangleMesh) -> None:
@@ -223,14 +224,38 @@ def test_islands_need_ten_points_specks_always_go(rng, offset):
     for k in (ISLAND_POINTS - 1, ISLAND_POINTS):
         near = np.array([2.0, 0.0, 0.0]) + 0.1 * rng.uniform(-1, 1, size=(k, 3))
         pts = np.vstack([main, near, far]) + offset
-        v, f, specks, islands = _drop_bubbles(verts, faces, cell, pts)
+        v, f, specks, islands = _drop_bubbles(verts, faces, cell, pts, None)
         assert specks == 1
         assert islands == (1 if k < ISLAND_POINTS else 0)
         assert len(f) == len(parts[0][1]) + (0 if islands else len(parts[1][1]))
         assert np.array_equal(v[f], verts[faces[: len(f)]])  # what stays is untouched
     # no points at all: only the largest piece is left
-    v, f, specks, islands = _drop_bubbles(verts, faces, cell, np.zeros((0, 3)) + offset)
+    v, f, specks, islands = _drop_bubbles(verts, faces, cell, np.zeros((0, 3)) + offset, None)
     assert (specks, islands) == (1, 1) and len(f) == len(parts[0][1])
+
+
+@pytest.mark.parametrize("scale, offset", [(1.0, 0.0), (250.0, 1e6)])
+def test_noise_blobs_are_specks_and_a_real_part_stays(rng, monkeypatch, scale, offset):
+    # a depth finer than the noise (sigma ~2.7 finest cells) leaves closed blobs in the band
+    # the samples scatter over; a second sphere, 16 sigma across and as noisy, is a real part
+    import recon_cli.stages.poisson as P
+
+    p, n = shape_cloud("sphere", 60_000, rng, scale=scale, offset=offset)
+    q, m = shape_cloud("sphere", 15_000, rng, scale=0.5 * scale, offset=offset)
+    q += 3.0 * scale * random_rotation(rng)[0]
+    pts = np.vstack([p, q])
+    pts += rng.normal(scale=0.06 * scale, size=pts.shape)
+    nrm = np.vstack([n, m])
+    r = screened_poisson(pts, nrm, depth=8)
+    topo = topology_report(r.mesh)
+    assert r.report["noise"] > 2.0
+    assert topo["components"] == 2 and topo["watertight"] and topo["vertex_manifold"]
+    lab = Connectivity(r.mesh.faces, len(r.mesh.vertices)).face_components
+    small = r.mesh.vertices[np.unique(r.mesh.faces[lab == 1])]
+    assert np.linalg.norm(small.mean(axis=0) - q.mean(axis=0)) < 0.1 * scale
+    # without the noise's share of the rule, blobs stay
+    monkeypatch.setattr(P, "SPECK_SIGMAS", 0.0)
+    assert topology_report(screened_poisson(pts, nrm, depth=8).mesh)["components"] > 10
 
 
 def test_faces_barely_change_past_the_density(rng):

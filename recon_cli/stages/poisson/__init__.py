@@ -87,6 +87,21 @@ BUBBLE_CELLS = 2
 # a closed piece (not the largest) with fewer input points than this within BUBBLE_CELLS finest
 # cells of its box is an island around a few outliers, not a surface the data shows (_drop_bubbles)
 ISLAND_POINTS = 10
+# closed pieces smaller than this many times the samples' median noise on every side are specks
+# too: the samples scatter over a band about 8 sigma wide, and a piece that fits in it cannot be
+# told from the noise (noisy clouds at a depth finer than their noise: bench/calibration.md)
+SPECK_SIGMAS = 8.0
+
+
+def speck_cells(noise: float | None) -> float:
+    """The size, in finest cells, under which a closed piece is a speck (:func:`_drop_bubbles`).
+
+    :data:`BUBBLE_CELLS`, or :data:`SPECK_SIGMAS` times the samples' median ``noise`` (finest
+    cells; None: not measured) when that is larger.
+    """
+    if noise is None or not np.isfinite(noise):
+        return float(BUBBLE_CELLS)
+    return max(float(BUBBLE_CELLS), SPECK_SIGMAS * float(noise))
 
 
 @dataclass
@@ -104,8 +119,9 @@ class PoissonResult:
     report : dict
         ``vertices``, ``faces``, ``depth``, ``iso_value``, ``solver_iterations``, ``residual``
         (relative residual of the finest level), ``bubbles_removed`` (closed specks under two finest
-        cells across, dropped: :func:`_drop_bubbles`), ``islands_removed`` (closed pieces around
-        fewer than ten input points, dropped), ``trimmed_faces`` (faces cut or removed by ``trim``),
+        cells or eight times the noise across, dropped: :func:`_drop_bubbles`),
+        ``islands_removed`` (closed pieces around fewer than ten input points, dropped),
+        ``trimmed_faces`` (faces cut or removed by ``trim``),
         ``trimmed_area`` (fraction of the area removed), ``noise`` (the samples' median noise in
         finest cells of the tree, :func:`.splat.noise_fraction`; None without screening) and details
         (``tree_depth``: the deepest level the samples support, ``samples``, ``nodes`` per level,
@@ -519,7 +535,7 @@ def screened_poisson(
     # ---- extraction, clipped to the cube, bubbles and islands dropped, pulled into the envelope
     with clock.phase("extract"):
         verts, faces, chi_fn, bubbles, islands, pulled = _extract_surface(
-            basis, sol, origin, size, tree_depth, with_grid, domain, pts, env
+            basis, sol, origin, size, tree_depth, with_grid, domain, pts, env, setup.noise
         )
     # ---- the field on a regular grid (--grid)
     field_grid = None
@@ -562,7 +578,7 @@ def screened_poisson(
     return PoissonResult(mesh, report, field_grid)
 
 
-def _extract_surface(basis, sol, origin, size, tree_depth, with_grid, domain, pts, env):
+def _extract_surface(basis, sol, origin, size, tree_depth, with_grid, domain, pts, env, noise):
     """The iso-surface of a solve in the input's frame.
 
     Returns ``(verts, faces, chi_fn, bubbles, islands, pulled)``: clipped to the cube (free
@@ -573,7 +589,9 @@ def _extract_surface(basis, sol, origin, size, tree_depth, with_grid, domain, pt
     verts, faces, chi_fn = basis.extract(sol, origin, size, tree_depth, with_grid)
     if domain is not None:
         verts, faces = clip_to_cube(verts, faces, *domain)
-    verts, faces, bubbles, islands = _drop_bubbles(verts, faces, size / (1 << tree_depth), pts)
+    verts, faces, bubbles, islands = _drop_bubbles(
+        verts, faces, size / (1 << tree_depth), pts, noise
+    )
     pulled = 0
     if env is not None:
         verts, pulled = env.pull_inside(verts, size / (1 << tree_depth))
@@ -909,18 +927,21 @@ def _trimmed(
 
 
 def _drop_bubbles(
-    verts: np.ndarray, faces: np.ndarray, cell: float, points: np.ndarray
+    verts: np.ndarray, faces: np.ndarray, cell: float, points: np.ndarray, noise: float | None
 ) -> tuple[np.ndarray, np.ndarray, int, int]:
     """Drop the closed pieces that are noise, never the largest.
 
     Returns the vertices and faces left and how many specks and islands went.
 
-    - **Specks:** pieces smaller than :data:`BUBBLE_CELLS` finest cells on every side.
+    - **Specks:** pieces smaller than :func:`speck_cells` finest cells on every side.
       Noisy, sparse samples leave chi slightly across the iso-value around single lattice
       points off the surface: closed specks of 8-16 triangles, one or two cells across (on
       the shared stereo fragment at depth 9: 53 of them, 0.8-1.2 cells, beside one surface
       of 128 cells). A piece that small cannot stand for a real feature at this depth (the
-      lattice samples chi once per cell).
+      lattice samples chi once per cell). Where the samples' median ``noise`` (finest cells)
+      is larger, a depth finer than the noise leaves blobs inside the band the samples
+      scatter over, up to several times the noise across; a piece under
+      :data:`SPECK_SIGMAS` times the noise fits in that band and is taken for one.
     - **Islands:** larger pieces with fewer than :data:`ISLAND_POINTS` of the input
       ``points`` within :data:`BUBBLE_CELLS` cells of their bounding box. A few outliers
       away from the surface splat a dipole that Poisson closes into a blob (on the stereo
@@ -949,7 +970,7 @@ def _drop_bubbles(
     for a in range(3):
         np.maximum.at(hi[:, a], flab, corner[:, a])
         np.minimum.at(lo[:, a], flab, corner[:, a])
-    speck = (hi - lo).max(axis=1) < BUBBLE_CELLS * cell
+    speck = (hi - lo).max(axis=1) < speck_cells(noise) * cell
     speck[0] = False
     island = np.zeros(n, bool)
     pad = BUBBLE_CELLS * cell
@@ -964,9 +985,9 @@ def _drop_bubbles(
     remap = np.cumsum(used) - 1
     n_speck, n_island = int(speck.sum()), int(island.sum())
     log.info(
-        "poisson: %d pieces under %d cells across and %d around fewer than %d points dropped",
+        "poisson: %d pieces under %.3g cells across and %d around fewer than %d points dropped",
         n_speck,
-        BUBBLE_CELLS,
+        speck_cells(noise),
         n_island,
         ISLAND_POINTS,
     )

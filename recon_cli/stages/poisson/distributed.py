@@ -497,7 +497,7 @@ def reconstruct(
     Returns the mesh's parts per slab (in ``out_dir``'s files when given) and the report (module
     docstring); ``carry``: the slabs carry the input's properties or colours onto their vertices.
     """
-    from recon_cli.stages.poisson import BUBBLE_CELLS, ISLAND_POINTS
+    from recon_cli.stages.poisson import BUBBLE_CELLS, ISLAND_POINTS, speck_cells
 
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
@@ -549,7 +549,9 @@ def reconstruct(
     at_leaves = any(m["coarse"] for m in fm)
     em = runner.run("extract", S.extract, lambda k: (iso, at_leaves))
     cell = job.size / (1 << tree_depth)
-    drop, specks, islands, seam_dev = _merge_pieces(runner, em, cell, BUBBLE_CELLS, ISLAND_POINTS)
+    drop, specks, islands, seam_dev = _merge_pieces(
+        runner, em, cell, speck_cells(noise_med), BUBBLE_CELLS, ISLAND_POINTS
+    )
     timings["extract"] = time.perf_counter() - t
     # ---- each slab's output
     t = time.perf_counter()
@@ -812,11 +814,14 @@ def _trim(
     return [None] * n, faces_before - untouched, removed / total if total > 0 else 0.0
 
 
-def _merge_pieces(runner, em: list[dict], cell: float, bubble_cells: int, island_points: int):
+def _merge_pieces(
+    runner, em: list[dict], cell: float, speck: float, bubble_cells: int, island_points: int
+):
     """Join the slabs' pieces across the seams, decide the specks and islands.
 
-    Pieces join through their seam vertices; the specks and islands follow :func:`._drop_bubbles`'
-    rules on the joined pieces. Returns per slab the local labels to drop, the counts, and the
+    Pieces join through their seam vertices; the specks (under ``speck`` cells across:
+    :func:`.speck_cells` of the noise median) and islands follow :func:`._drop_bubbles`' rules
+    on the joined pieces. Returns per slab the local labels to drop, the counts, and the
     largest distance between the two slabs' positions of a seam vertex (0: the same bits).
     """
     from scipy.sparse import coo_matrix
@@ -858,27 +863,27 @@ def _merge_pieces(runner, em: list[dict], cell: float, bubble_cells: int, island
             np.minimum.at(lo[:, ax], gid, plo[:, ax])
             np.maximum.at(hi[:, ax], gid, phi[:, ax])
     largest = int(np.argmax(faces))
-    speck = (hi - lo).max(axis=1) < bubble_cells * cell
-    speck[largest] = False
+    specks = (hi - lo).max(axis=1) < speck * cell
+    specks[largest] = False
     island = np.zeros(ncomp, bool)
-    cand = np.flatnonzero(~speck)
+    cand = np.flatnonzero(~specks)
     cand = cand[cand != largest]
     if len(cand):
         pad = bubble_cells * cell
         im = runner.run("islands", S.island_points, lambda k: (lo[cand] - pad, hi[cand] + pad))
         pts = np.sum([m["counts"] for m in im], axis=0)
         island[cand] = pts < island_points
-    gone = speck | island
+    gone = specks | island
     drop = [np.flatnonzero(gone[comp[off[k] : off[k + 1]]]) for k in range(n)]
     if gone.any():
         log.info(
-            "poisson: %d pieces under %d cells across and %d around fewer than %d points dropped",
-            int(speck.sum()),
-            bubble_cells,
+            "poisson: %d pieces under %.3g cells across and %d around fewer than %d points dropped",
+            int(specks.sum()),
+            speck,
             int(island.sum()),
             island_points,
         )
-    return drop, int(speck.sum()), int(island.sum()), dev
+    return drop, int(specks.sum()), int(island.sum()), dev
 
 
 def assemble(out: dict, job: S.Job, perm: tuple, colors: bool):
