@@ -65,7 +65,14 @@ def describe(path: str | os.PathLike, format: str | None = None) -> dict[str, An
     if isinstance(geom, TriangleMesh):
         from recon_cli.mesh.topology import report as topology_report
 
-        out["topology"] = topology_report(geom)
+        # the report's own copy of the coordinates (it takes float64 rows): the file's bytes,
+        # which the vertex rows view, and the parsed face lists are freed before the topology
+        # needs its memory (a 145M-face mesh's file is 3.9 GB)
+        mesh = TriangleMesh(
+            vertices=np.ascontiguousarray(geom.vertices, dtype=np.float64), faces=geom.faces
+        )
+        del geom, pts, ply, data
+        out["topology"] = topology_report(mesh)
     return out
 
 
