@@ -276,65 +276,85 @@ def _bucket_ptr_inplace_shift(ptr, n):
 
 
 @njit(cache=True)
+def _bucket_width(n_keys, n_items):
+    # keys per bucket: one when there are no more keys than items, else enough that there are
+    # at most ``n_items + 1`` buckets (a mesh with far more vertices than corners)
+    return max(1, (n_keys + n_items) // (n_items + 1))
+
+
+@njit(cache=True)
 def group_half_edges(flat, n_vertices, index_proto):
     """Edge groups of the half-edges of ``flat`` (the faces' corners), sorted by ``(lo, hi)``.
 
     The same groups as sorting the keys ``lo * n + hi`` stably, without a key per half-edge:
     a counting sort by the smaller end, then each bucket (the edges of one vertex, a few
     half-edges) sorted stably by the larger end. Self-loop half-edges belong to no edge.
+    With more vertices than half-edges a bucket spans several vertices (``O(3m)`` memory).
 
     Returns ``(edge_ptr (E + 1,), edge_half_edges (H,))`` in the dtype of ``index_proto``:
     the half-edges of edge ``e`` are ``edge_half_edges[edge_ptr[e]:edge_ptr[e + 1]]``, in
-    increasing order. Temporaries: ``n_vertices + 1`` indices and one bucket.
+    increasing order. Temporaries: one index per bucket and the largest bucket's keys.
     """
     nh = flat.shape[0]
-    n = n_vertices
-    ptr = np.zeros(n + 1, index_proto.dtype)
+    q = _bucket_width(n_vertices, nh)
+    nb = (n_vertices + q - 1) // q
+    ptr = np.zeros(nb + 1, index_proto.dtype)
     for h in range(nh):
         a = flat[h]
         b = _other_end(flat, h)
         if a != b:
-            ptr[min(a, b) + 1] += 1
+            ptr[min(a, b) // q + 1] += 1
     max_bucket = 0
-    for v in range(n):
+    for v in range(nb):
         max_bucket = max(max_bucket, ptr[v + 1])
         ptr[v + 1] += ptr[v]
-    n_valid = ptr[n]
+    n_valid = ptr[nb]
     he = np.empty(n_valid, index_proto.dtype)
     for h in range(nh):
         a = flat[h]
         b = _other_end(flat, h)
         if a != b:
-            lo = min(a, b)
-            he[ptr[lo]] = h
-            ptr[lo] += 1
-    _bucket_ptr_inplace_shift(ptr, n)
+            k = min(a, b) // q
+            he[ptr[k]] = h
+            ptr[k] += 1
+    _bucket_ptr_inplace_shift(ptr, nb)
     keys = np.empty(max(max_bucket, 1), np.int64)
     n_edges = 0
-    for v in range(n):
+    for v in range(nb):
         s = ptr[v]
         e = ptr[v + 1]
-        for j in range(s, e):
-            h = he[j]
-            keys[j - s] = max(flat[h], _other_end(flat, h))
         if e - s > 1:
+            # stable by the larger end, then (buckets of several vertices) by the smaller
+            for j in range(s, e):
+                h = he[j]
+                keys[j - s] = max(flat[h], _other_end(flat, h))
             _stable_sort_bucket(he, s, e, keys)
+            if q > 1:
+                for j in range(s, e):
+                    h = he[j]
+                    keys[j - s] = min(flat[h], _other_end(flat, h))
+                _stable_sort_bucket(he, s, e, keys)
         for j in range(s, e):
-            if j == s or keys[j - s] != keys[j - s - 1]:
+            if j == s or not _same_edge(flat, he[j], he[j - 1]):
                 n_edges += 1
     edge_ptr = np.empty(n_edges + 1, index_proto.dtype)
     k = 0
-    prev = np.int64(-1)
-    for v in range(n):
+    for v in range(nb):
         for j in range(ptr[v], ptr[v + 1]):
-            h = he[j]
-            hi = np.int64(max(flat[h], _other_end(flat, h)))
-            if j == ptr[v] or hi != prev:
+            if j == ptr[v] or not _same_edge(flat, he[j], he[j - 1]):
                 edge_ptr[k] = j
                 k += 1
-            prev = hi
     edge_ptr[n_edges] = n_valid
     return edge_ptr, he
+
+
+@njit(cache=True)
+def _same_edge(flat, h, g):
+    a = flat[h]
+    b = _other_end(flat, h)
+    c = flat[g]
+    d = _other_end(flat, g)
+    return min(a, b) == min(c, d) and max(a, b) == max(c, d)
 
 
 @njit(cache=True)
@@ -366,6 +386,16 @@ def edges_with_count(edge_ptr, lo, hi):
 
 
 @njit(cache=True)
+def _sorted_triple(faces, f):
+    a = np.int64(faces[f, 0])
+    b = np.int64(faces[f, 1])
+    c = np.int64(faces[f, 2])
+    lo = min(a, b, c)
+    hi = max(a, b, c)
+    return lo, a + b + c - lo - hi, hi
+
+
+@njit(cache=True)
 def duplicate_face_flags(faces, n_vertices, index_proto):
     """(m,) bool: the face's sorted vertex triple equals that of an earlier face.
 
@@ -373,46 +403,36 @@ def duplicate_face_flags(faces, n_vertices, index_proto):
     by the other two: the same verdicts as one stable sort of the sorted triples.
     """
     m = faces.shape[0]
-    n = n_vertices
-    ptr = np.zeros(n + 1, index_proto.dtype)
+    q = _bucket_width(n_vertices, m)
+    nb = (n_vertices + q - 1) // q
+    ptr = np.zeros(nb + 1, index_proto.dtype)
     for f in range(m):
-        ptr[min(faces[f, 0], faces[f, 1], faces[f, 2]) + 1] += 1
+        ptr[_sorted_triple(faces, f)[0] // q + 1] += 1
     max_bucket = 0
-    for v in range(n):
+    for v in range(nb):
         max_bucket = max(max_bucket, ptr[v + 1])
         ptr[v + 1] += ptr[v]
     order = np.empty(m, index_proto.dtype)
     for f in range(m):
-        lo = min(faces[f, 0], faces[f, 1], faces[f, 2])
-        order[ptr[lo]] = f
-        ptr[lo] += 1
-    _bucket_ptr_inplace_shift(ptr, n)
+        k = _sorted_triple(faces, f)[0] // q
+        order[ptr[k]] = f
+        ptr[k] += 1
+    _bucket_ptr_inplace_shift(ptr, nb)
     dup = np.zeros(m, np.bool_)
     keys = np.empty(max(max_bucket, 1), np.int64)
-    for v in range(n):
+    for v in range(nb):
         s = ptr[v]
         e = ptr[v + 1]
         if e - s < 2:
             continue
-        # stable by the largest, then by the middle vertex: sorted by (middle, largest)
-        for j in range(s, e):
-            f = order[j]
-            keys[j - s] = max(faces[f, 0], faces[f, 1], faces[f, 2])
-        _stable_sort_bucket(order, s, e, keys)
-        for j in range(s, e):
-            f = order[j]
-            a = faces[f, 0]
-            b = faces[f, 1]
-            c = faces[f, 2]
-            keys[j - s] = a + b + c - min(a, b, c) - max(a, b, c)
-        _stable_sort_bucket(order, s, e, keys)
+        # stable passes from the last key to the first: sorted by the triple, then by index
+        for i in range(2, -1 if q > 1 else 0, -1):
+            for j in range(s, e):
+                keys[j - s] = _sorted_triple(faces, order[j])[i]
+            _stable_sort_bucket(order, s, e, keys)
         for j in range(s + 1, e):
-            f = order[j]
-            g = order[j - 1]
-            if keys[j - s] == keys[j - s - 1] and max(faces[f, 0], faces[f, 1], faces[f, 2]) == max(
-                faces[g, 0], faces[g, 1], faces[g, 2]
-            ):
-                dup[f] = True
+            if _sorted_triple(faces, order[j]) == _sorted_triple(faces, order[j - 1]):
+                dup[order[j]] = True
     return dup
 
 
