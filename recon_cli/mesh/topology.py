@@ -593,7 +593,7 @@ def report(mesh: Any) -> dict[str, Any]:
     genus_list = c.component_genus
     closed_manifold = c.n_faces > 0 and all(g is not None for g in genus_list)
     closed_oriented = watertight and edge_manifold and vertex_manifold and oriented
-    return {
+    out = {
         "vertices": int(len(vertices)),
         "edges": int(c.n_edges),
         "faces": int(c.n_faces),
@@ -603,7 +603,7 @@ def report(mesh: Any) -> dict[str, Any]:
         "non_manifold_edges": int(len(c.non_manifold_edges)),
         "non_manifold_vertices": int(len(c.non_manifold_vertices)),
         "duplicate_faces": int(len(c.duplicate_faces)),
-        "degenerate_faces": int(len(c.degenerate_faces)),
+        "degenerate_faces": 0,  # the geometric figures come below
         "unreferenced_vertices": int(len(vertices) - n_ref),
         "consistently_oriented": bool(oriented),
         "orientable": bool(c.is_orientable),
@@ -613,6 +613,14 @@ def report(mesh: Any) -> dict[str, Any]:
         "euler_characteristic": int(n_ref - c.n_edges + c.n_faces),
         "genus": int(sum(g or 0 for g in genus_list)) if closed_manifold else None,
         "component_genus": genus_list[:MAX_LISTED_COMPONENTS],
-        "area": float(c.face_areas.sum()),
-        "volume": c.signed_volume() if closed_oriented else None,
+        "area": 0.0,
+        "volume": None,
     }
+    # the geometric figures need no adjacency: free it first (the report's peak is the
+    # adjacency and the corner fans; the areas would add to it)
+    del c
+    g = Connectivity(mesh.faces, len(vertices), vertices)
+    out["degenerate_faces"] = int(len(g.degenerate_faces))
+    out["area"] = float(g.face_areas.sum())
+    out["volume"] = g.signed_volume() if closed_oriented else None
+    return out
