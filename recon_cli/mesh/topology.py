@@ -196,8 +196,8 @@ class Connectivity:
         K = kernels("recon_cli.mesh._topology_kernel")
         group_half_edges = K.group_half_edges
 
-        # bucketed by the smaller vertex: no int64 key or argsort per half-edge (a 145M-face
-        # mesh's sort of packed keys needed about 14 GB)
+        # bucketed by the smaller vertex: no int64 key or argsort per half-edge (those were
+        # most of report()'s memory, see bench/calibration.md)
         return group_half_edges(self._flat, self.n_vertices, np.zeros(0, self._it))
 
     @cached_property
