@@ -65,7 +65,14 @@ def describe(path: str | os.PathLike, format: str | None = None) -> dict[str, An
     if isinstance(geom, TriangleMesh):
         from recon_cli.mesh.topology import report as topology_report
 
-        out["topology"] = topology_report(geom)
+        # only what the report reads (float64 rows: no copy when the file's are doubles): the
+        # file's bytes, the parsed face lists and the attributes go before the topology needs
+        # its memory
+        mesh = TriangleMesh(
+            vertices=np.ascontiguousarray(geom.vertices, dtype=np.float64), faces=geom.faces
+        )
+        del geom, pts, ply, data
+        out["topology"] = topology_report(mesh)
     return out
 
 

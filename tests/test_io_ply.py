@@ -835,6 +835,32 @@ def test_mesh_vertex_views_do_not_hold_the_face_bytes(tmp_path):
     assert np.array_equal(mesh.vertices, v)
 
 
+def test_mesh_columns_do_not_hold_the_file_when_rows_are_most_of_it(tmp_path):
+    # Poisson's output: double xyz and an int per vertex, 28 bytes a row against 26 of faces
+    # per vertex; the rows are not copied, so the columns are (the file's bytes are freed)
+    n = 500
+    rows = np.zeros(n, [("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("face", "<i4")])
+    rows["x"], rows["y"], rows["face"] = np.arange(n), np.arange(n) % 7, np.arange(n) % 3
+    tris = np.zeros(2 * n, [("k", "u1"), ("v", "<i4", (3,))])
+    tris["k"] = 3
+    tris["v"] = (np.arange(2 * n)[:, None] + np.arange(3)) % n
+    head = (
+        f"ply\nformat binary_little_endian 1.0\nelement vertex {n}\n"
+        + "".join(f"property double {c}\n" for c in "xyz")
+        + f"property int face\nelement face {2 * n}\nproperty list uchar int vertex_indices\n"
+        + "end_header\n"
+    )
+    path = tmp_path / "m.ply"
+    path.write_bytes(head.encode() + rows.tobytes() + tris.tobytes())
+    assert 2 * rows.nbytes > os.path.getsize(path)
+    mesh = read_ply(path)
+    assert memoryview(_root(mesh.vertices)).nbytes == n * 24
+    assert memoryview(_root(mesh.attributes["face"])).nbytes == n * 4
+    assert mesh.vertices.flags.c_contiguous and mesh.vertices.dtype == np.float64
+    assert np.array_equal(mesh.vertices, np.column_stack([rows[c] for c in "xyz"]))
+    assert np.array_equal(mesh.faces, tris["v"]) and mesh.face_attributes == {}
+
+
 @pytest.mark.parametrize("big_endian", [False, True])
 def test_records_kept_as_they_are_write_the_same_bytes(tmp_path, rng, monkeypatch, big_endian):
     """A read, subset cloud whose rows already are the file's records is written unencoded."""

@@ -403,3 +403,66 @@ def test_vertex_faces_csr():
     for v in range(len(mesh.vertices)):
         got = c.vertex_faces[c.vertex_ptr[v] : c.vertex_ptr[v + 1]]
         assert got.tolist() == np.flatnonzero((mesh.faces == v).any(axis=1)).tolist()
+
+
+def _reference_groups(faces: np.ndarray, n: int):
+    """Edge groups and duplicate faces by one stable sort of int64 keys (the old way)."""
+    flat = faces.reshape(-1)
+    a, b = flat, faces[:, [1, 2, 0]].reshape(-1)
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    keep = np.flatnonzero(a != b)
+    key = lo[keep] * n + hi[keep]
+    order = np.argsort(key, kind="stable")
+    he = keep[order]
+    starts = np.flatnonzero(np.r_[True, key[order][1:] != key[order][:-1]]) if len(he) else []
+    ptr = np.r_[starts, len(he)]
+    s = np.sort(faces, axis=1)
+    first = np.unique(s, axis=0, return_index=True)[1]
+    dup = np.setdiff1d(np.arange(len(faces)), first)
+    return ptr, he, dup
+
+
+@pytest.mark.parametrize("spread", [1, 1000])
+def test_bucketed_edges_and_duplicates_match_one_sort(spread):
+    """Bucketing by the smaller vertex gives the groups of a stable sort of ``lo * n + hi``.
+
+    A 3000-face fan (a bucket beyond the insertion sort), repeated-index faces, duplicates
+    in both windings, a 30-face non-manifold edge; ``spread`` 1000 declares far more vertices
+    than corners (buckets of several vertices).
+    """
+    rng = np.random.default_rng(3)
+    k = 3000
+    ff = [[0, 1 + i, 1 + (i + 1) % k] for i in range(k)]
+    ff += [[k + 1, 1 + i, 1 + (i + 1) % k] for i in range(0, k, 2)]
+    ff += [[0, 1, 1], [1, 1, 0], [5, 5, 5], [5, 5, 5], [0, 2, 1], [2, 1, 0], [0, 1, 2]]
+    ff += [[1, 2, k + 3 + j] for j in range(30)]
+    ff += rng.integers(0, 60, size=(400, 3)).tolist()
+    faces = np.array(ff)[rng.permutation(len(ff))] * spread
+    n = int(faces.max()) + 1
+    c = Connectivity(faces, n)
+    ptr, he, dup = _reference_groups(faces, n)
+    assert np.array_equal(c.edge_ptr, ptr) and np.array_equal(c.edge_half_edges, he)
+    assert np.array_equal(c.duplicate_faces, dup)
+    assert len(dup) >= 4 and len(c.non_manifold_edges) >= 1
+
+
+def test_report_memory_per_face_is_bounded():
+    """report() allocates about 35 bytes a face at its peak (numba's arrays are traced too).
+
+    With a sort of int64 half-edge keys and sorted copies of the faces it took 83 bytes a face
+    on this mesh, and 145M faces did not fit in 24 GiB.
+    """
+    import tracemalloc
+
+    from shapes import torus
+
+    v, f = torus(nu=400, nv=300)
+    report(TriangleMesh(vertices=TETRA_V, faces=TETRA))  # compiled before measuring
+    tracemalloc.start()
+    try:
+        rep = report(TriangleMesh(vertices=v, faces=f))
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert rep["genus"] == 1 and rep["faces"] == len(f) == 240_000
+    assert peak < 48 * len(f), peak / len(f)

@@ -842,10 +842,16 @@ def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | Trian
             raise InputError(f"vertex property {c!r} is a list", where)
     d = vert.data
     raw = vert.raw
+    face = ply.element("face")
+    pinned = False
     if raw is not None and vert.count and (not raw.flags.writeable or 2 * raw.nbytes < ply.nbytes):
         # the columns below are views of these rows: copy them when they are read-only
         # bytes, or a small part of the file (the views must not pin a mesh's face bytes)
         vert.raw = np.array(raw)
+    elif raw is not None and vert.count and face is not None and face.count:
+        # a mesh whose rows are most of its file: its columns are copied below instead (the
+        # faces are converted copies, so nothing else keeps the file's bytes)
+        pinned = True
     groups = _vertex_groups(props)
     pts = _columns(vert, *groups[0])
     # rows with a NaN or infinite coordinate are dropped (and counted) once the object is made
@@ -864,6 +870,10 @@ def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | Trian
         else:
             colors = _columns(vert, names, dtype)
         used |= set(names)
+    if pinned:
+        pts = np.array(pts)
+        normals = None if normals is None else np.array(normals)
+        colors = None if colors is None else np.array(colors)
     attributes = {
         p.name: np.array(d[p.name], dtype=np.dtype(p.dtype))
         for p in vert.properties
@@ -875,7 +885,6 @@ def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | Trian
         for e in ply.elements
         if e.name not in ("vertex", "face")
     ]
-    face = ply.element("face")
     common: dict[str, Any] = dict(
         colors=colors,
         attributes=attributes,
@@ -895,7 +904,7 @@ def ply_to_geometry(ply: PlyData, path: str | None = None) -> PointCloud | Trian
         bad = faces.max() if faces.max() >= len(pts) else faces.min()
         raise InputError(f"face index {int(bad)} out of range for {len(pts)} vertices", where)
     face_attrs = {
-        p.name: face.data[p.name][src]
+        p.name: np.array(face.data[p.name]) if src is None else face.data[p.name][src]
         for p in face.properties
         if p is not idx_prop and not p.is_list
     }
@@ -1085,8 +1094,11 @@ def _indices(values: np.ndarray, where: str) -> np.ndarray:
     return values.astype(np.int64)
 
 
-def _triangulate(lists: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]:
-    """Fan-triangulate polygons; returns (faces (m, 3) int64, source polygon of each face)."""
+def _triangulate(lists: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """Fan-triangulate polygons; returns (faces (m, 3) int64, source polygon of each face).
+
+    The source is None when every polygon is a triangle (face ``i`` is polygon ``i``).
+    """
     if lists.dtype != object:
         k = lists.shape[1]
         n = lists.shape[0]
@@ -1094,7 +1106,7 @@ def _triangulate(lists: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]
             raise InputError(f"faces with {k} vertices (fewer than 3)", where)
         poly = _indices(lists, where)
         if k == 3:
-            return poly, np.arange(n)
+            return poly, None  # no index per face: 8 bytes a face at the reader's peak
         fan = [np.column_stack([poly[:, 0], poly[:, j], poly[:, j + 1]]) for j in range(1, k - 1)]
         faces = np.stack(fan, axis=1).reshape(-1, 3)
         return faces, np.repeat(np.arange(n), k - 2)

@@ -5,6 +5,8 @@ They only compute.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
 
@@ -90,78 +92,6 @@ def trace_boundary_loops(src, dst, n_vertices):
 
 
 # ---- edge grouping -------------------------------------------------------------------------
-@njit(cache=True)
-def half_edge_keys(faces, n_vertices, pack):
-    """Undirected key ``lo * n + hi`` of every half-edge; with ``pack``, ``key * 3m + h``.
-
-    Self-loop half-edges (repeated-index faces) get key ``n * n`` so they sort last. With
-    ``pack`` the caller checks that ``(n * n + 1) * 3m`` fits in int64. One pass, no temporaries.
-    """
-    m = faces.shape[0]
-    nh = 3 * m
-    out = np.empty(nh, np.int64)
-    sentinel = np.int64(n_vertices) * n_vertices
-    for f in range(m):
-        for k in range(3):
-            a = np.int64(faces[f, k])
-            b = np.int64(faces[f, (k + 1) % 3])
-            h = 3 * f + k
-            if a == b:
-                key = sentinel
-            elif a < b:
-                key = a * n_vertices + b
-            else:
-                key = b * n_vertices + a
-            out[h] = key * nh + h if pack else key
-    return out
-
-
-@njit(cache=True)
-def group_sorted_keys(sorted_keys, order, n_half_edges, sentinel, index_proto):
-    """Edge groups from sorted half-edge keys.
-
-    ``sorted_keys`` are either packed keys (``order`` empty: key ``// n_half_edges``, index
-    ``% n_half_edges``) or plain keys with ``order`` the sorting permutation. Keys equal to
-    ``sentinel`` (self-loops) end the valid range.
-
-    Returns ``(he_edge, ptr, he_sorted)`` in the dtype of ``index_proto``: edge of each
-    half-edge (-1 for self-loops), CSR offsets of the edges (E + 1) and the half-edges
-    sorted by edge (then by index).
-    """
-    packed = order.shape[0] == 0
-    nh = n_half_edges
-    n = sorted_keys.shape[0]
-    he_edge = np.full(nh, -1, index_proto.dtype)
-    he_sorted = np.empty(n, index_proto.dtype)
-    n_valid = 0
-    n_edges = 0
-    prev = np.int64(-1)
-    for i in range(n):
-        if packed:
-            key = sorted_keys[i] // nh
-            h = sorted_keys[i] % nh
-        else:
-            key = sorted_keys[i]
-            h = order[i]
-        if key == sentinel:
-            break
-        if key != prev:
-            n_edges += 1
-            prev = key
-        he_sorted[i] = h
-        he_edge[h] = n_edges - 1
-        n_valid += 1
-    ptr = np.empty(n_edges + 1, index_proto.dtype)
-    e = -1
-    for i in range(n_valid):
-        h = he_sorted[i]
-        if he_edge[h] != e:
-            e = he_edge[h]
-            ptr[e] = i
-    ptr[n_edges] = n_valid
-    return he_edge, ptr, he_sorted[:n_valid]
-
-
 @njit(cache=True)
 def counting_sort(keys, n_keys, index_proto):
     """Stable counting sort of keys in ``0..n_keys-1``: ``(ptr (n_keys+1,) int64, order)``."""
@@ -305,3 +235,303 @@ def orient_faces(flat, he_edge, edge_ptr, edge_half_edges):
                     conflict[e] = True
         n_comp += 1
     return flip, comp, conflict
+
+
+# ---- bounded-memory grouping (bucket by smallest vertex, then sort each small bucket) -------
+@njit(cache=True)
+def _other_end(flat, h):
+    return flat[h + 1] if h % 3 != 2 else flat[h - 2]
+
+
+@njit(cache=True)
+def _stable_sort_bucket(items, s, e, keys):
+    """Sort ``items[s:e]`` by ``keys`` (parallel to that slice), stably, in place."""
+    k = e - s
+    if k <= 24:
+        for i in range(s + 1, e):
+            it = items[i]
+            key = keys[i - s]
+            j = i - 1
+            while j >= s and keys[j - s] > key:
+                items[j + 1] = items[j]
+                keys[j + 1 - s] = keys[j - s]
+                j -= 1
+            items[j + 1] = it
+            keys[j + 1 - s] = key
+        return
+    order = np.argsort(keys[:k], kind="mergesort")
+    tmp = items[s:e].copy()
+    tk = keys[:k].copy()
+    for i in range(k):
+        items[s + i] = tmp[order[i]]
+        keys[i] = tk[order[i]]
+
+
+@njit(cache=True)
+def _bucket_ptr_inplace_shift(ptr, n):
+    # after a scatter that used ptr[v] as the cursor of bucket v, ptr[v] is the end of v
+    for v in range(n, 0, -1):
+        ptr[v] = ptr[v - 1]
+    ptr[0] = 0
+
+
+@njit(cache=True)
+def _bucket_width(n_keys, n_items):
+    # keys per bucket: one when there are no more keys than items, else enough that there are
+    # at most ``n_items + 1`` buckets (a mesh with far more vertices than corners)
+    return max(1, (n_keys + n_items) // (n_items + 1))
+
+
+@njit(cache=True)
+def group_half_edges(flat, n_vertices, index_proto):
+    """Edge groups of the half-edges of ``flat`` (the faces' corners), sorted by ``(lo, hi)``.
+
+    The same groups as sorting the keys ``lo * n + hi`` stably, without a key per half-edge:
+    a counting sort by the smaller end, then each bucket (the edges of one vertex, a few
+    half-edges) sorted stably by the larger end. Self-loop half-edges belong to no edge.
+    With more vertices than half-edges a bucket spans several vertices (``O(3m)`` memory).
+
+    Returns ``(edge_ptr (E + 1,), edge_half_edges (H,))`` in the dtype of ``index_proto``:
+    the half-edges of edge ``e`` are ``edge_half_edges[edge_ptr[e]:edge_ptr[e + 1]]``, in
+    increasing order. Temporaries: one index per bucket and the largest bucket's keys.
+    """
+    nh = flat.shape[0]
+    q = _bucket_width(n_vertices, nh)
+    nb = (n_vertices + q - 1) // q
+    ptr = np.zeros(nb + 1, index_proto.dtype)
+    for h in range(nh):
+        a = flat[h]
+        b = _other_end(flat, h)
+        if a != b:
+            ptr[min(a, b) // q + 1] += 1
+    max_bucket = 0
+    for v in range(nb):
+        max_bucket = max(max_bucket, ptr[v + 1])
+        ptr[v + 1] += ptr[v]
+    n_valid = ptr[nb]
+    he = np.empty(n_valid, index_proto.dtype)
+    for h in range(nh):
+        a = flat[h]
+        b = _other_end(flat, h)
+        if a != b:
+            k = min(a, b) // q
+            he[ptr[k]] = h
+            ptr[k] += 1
+    _bucket_ptr_inplace_shift(ptr, nb)
+    keys = np.empty(max(max_bucket, 1), np.int64)
+    n_edges = 0
+    for v in range(nb):
+        s = ptr[v]
+        e = ptr[v + 1]
+        if e - s > 1:
+            # stable by the larger end, then (buckets of several vertices) by the smaller
+            for j in range(s, e):
+                h = he[j]
+                keys[j - s] = max(flat[h], _other_end(flat, h))
+            _stable_sort_bucket(he, s, e, keys)
+            if q > 1:
+                for j in range(s, e):
+                    h = he[j]
+                    keys[j - s] = min(flat[h], _other_end(flat, h))
+                _stable_sort_bucket(he, s, e, keys)
+        for j in range(s, e):
+            if j == s or not _same_edge(flat, he[j], he[j - 1]):
+                n_edges += 1
+    edge_ptr = np.empty(n_edges + 1, index_proto.dtype)
+    k = 0
+    for v in range(nb):
+        for j in range(ptr[v], ptr[v + 1]):
+            if j == ptr[v] or not _same_edge(flat, he[j], he[j - 1]):
+                edge_ptr[k] = j
+                k += 1
+    edge_ptr[n_edges] = n_valid
+    return edge_ptr, he
+
+
+@njit(cache=True)
+def _same_edge(flat, h, g):
+    a = flat[h]
+    b = _other_end(flat, h)
+    c = flat[g]
+    d = _other_end(flat, g)
+    return min(a, b) == min(c, d) and max(a, b) == max(c, d)
+
+
+@njit(cache=True)
+def edge_of_half_edges(edge_ptr, edge_half_edges, n_half_edges):
+    """(n_half_edges,) edge of each half-edge, -1 for those in no edge (self-loops)."""
+    out = np.full(n_half_edges, -1, edge_half_edges.dtype)
+    for e in range(edge_ptr.shape[0] - 1):
+        for j in range(edge_ptr[e], edge_ptr[e + 1]):
+            out[edge_half_edges[j]] = e
+    return out
+
+
+@njit(cache=True)
+def edges_with_count(edge_ptr, lo, hi):
+    """int64 indices of the edges with ``lo <= count <= hi`` half-edges, increasing."""
+    n = 0
+    for e in range(edge_ptr.shape[0] - 1):
+        c = edge_ptr[e + 1] - edge_ptr[e]
+        if lo <= c <= hi:
+            n += 1
+    out = np.empty(n, np.int64)
+    n = 0
+    for e in range(edge_ptr.shape[0] - 1):
+        c = edge_ptr[e + 1] - edge_ptr[e]
+        if lo <= c <= hi:
+            out[n] = e
+            n += 1
+    return out
+
+
+@njit(cache=True)
+def _sorted_triple(faces, f):
+    a = np.int64(faces[f, 0])
+    b = np.int64(faces[f, 1])
+    c = np.int64(faces[f, 2])
+    lo = min(a, b, c)
+    hi = max(a, b, c)
+    return lo, a + b + c - lo - hi, hi
+
+
+@njit(cache=True)
+def duplicate_face_flags(faces, n_vertices, index_proto):
+    """(m,) bool: the face's sorted vertex triple equals that of an earlier face.
+
+    Faces are bucketed by their smallest vertex (counting sort), each bucket sorted stably
+    by the other two: the same verdicts as one stable sort of the sorted triples.
+    """
+    m = faces.shape[0]
+    q = _bucket_width(n_vertices, m)
+    nb = (n_vertices + q - 1) // q
+    ptr = np.zeros(nb + 1, index_proto.dtype)
+    for f in range(m):
+        ptr[_sorted_triple(faces, f)[0] // q + 1] += 1
+    max_bucket = 0
+    for v in range(nb):
+        max_bucket = max(max_bucket, ptr[v + 1])
+        ptr[v + 1] += ptr[v]
+    order = np.empty(m, index_proto.dtype)
+    for f in range(m):
+        k = _sorted_triple(faces, f)[0] // q
+        order[ptr[k]] = f
+        ptr[k] += 1
+    _bucket_ptr_inplace_shift(ptr, nb)
+    dup = np.zeros(m, np.bool_)
+    keys = np.empty(max(max_bucket, 1), np.int64)
+    for v in range(nb):
+        s = ptr[v]
+        e = ptr[v + 1]
+        if e - s < 2:
+            continue
+        # stable passes from the last key to the first: sorted by the triple, then by index
+        for i in range(2, -1 if q > 1 else 0, -1):
+            for j in range(s, e):
+                keys[j - s] = _sorted_triple(faces, order[j])[i]
+            _stable_sort_bucket(order, s, e, keys)
+        for j in range(s + 1, e):
+            if _sorted_triple(faces, order[j]) == _sorted_triple(faces, order[j - 1]):
+                dup[order[j]] = True
+    return dup
+
+
+@njit(cache=True)
+def fans_per_vertex(labels, flat, n_vertices):
+    """(n,) int64 number of fans at each vertex, from corner fan labels numbered by first corner."""
+    out = np.zeros(n_vertices, np.int64)
+    nxt = 0
+    for c in range(labels.shape[0]):
+        if labels[c] == nxt:  # the first corner of fan ``nxt``
+            out[flat[c]] += 1
+            nxt += 1
+    return out
+
+
+@njit(cache=True)
+def component_counts(comp, n_comp, flat, edge_ptr, edge_half_edges, n_vertices):
+    """``(vertices, edges, faces)`` of each component, (c,) int64 each.
+
+    A vertex counts once in every component with a face at it: most vertices have all their
+    faces in one component, so only the corners of the others are listed and deduplicated.
+    """
+    fc = np.zeros(n_comp, np.int64)
+    for f in range(comp.shape[0]):
+        fc[comp[f]] += 1
+    ec = np.zeros(n_comp, np.int64)
+    for e in range(edge_ptr.shape[0] - 1):
+        ec[comp[edge_half_edges[edge_ptr[e]] // 3]] += 1
+    vc = np.zeros(n_comp, np.int64)
+    first = np.full(n_vertices, -1, comp.dtype)
+    n_extra = 0
+    for c in range(flat.shape[0]):
+        v = flat[c]
+        k = comp[c // 3]
+        if first[v] < 0:
+            first[v] = k
+            vc[k] += 1
+        elif first[v] != k:
+            n_extra += 1
+    if n_extra:
+        extra = np.empty(n_extra, np.int64)
+        i = 0
+        for c in range(flat.shape[0]):
+            v = flat[c]
+            k = comp[c // 3]
+            if first[v] != k:
+                extra[i] = np.int64(k) * n_vertices + v
+                i += 1
+        extra.sort()
+        for i in range(n_extra):
+            if i == 0 or extra[i] != extra[i - 1]:
+                vc[extra[i] // n_vertices] += 1
+    return vc, ec, fc
+
+
+@njit(cache=True)
+def component_defects(comp, n_comp, flat, edge_ptr, edge_half_edges, conflict_edges, fan_count):
+    """(c,) bool: the component has a defect.
+
+    A boundary or non-manifold edge, a non-manifold vertex, an orientation conflict or a
+    repeated-index face.
+    """
+    bad = np.zeros(n_comp, np.bool_)
+    for e in range(edge_ptr.shape[0] - 1):
+        if edge_ptr[e + 1] - edge_ptr[e] != 2:
+            bad[comp[edge_half_edges[edge_ptr[e]] // 3]] = True
+    for i in range(conflict_edges.shape[0]):
+        bad[comp[edge_half_edges[edge_ptr[conflict_edges[i]]] // 3]] = True
+    for c in range(flat.shape[0]):
+        if fan_count[flat[c]] > 1:
+            bad[comp[c // 3]] = True
+    for f in range(flat.shape[0] // 3):
+        a = flat[3 * f]
+        b = flat[3 * f + 1]
+        c = flat[3 * f + 2]
+        if a == b or b == c or a == c:
+            bad[comp[f]] = True
+    return bad
+
+
+@njit(cache=True)
+def referenced_bbox(vertices, referenced):
+    """``(lo, hi, count)``: bounds of the referenced vertices with three finite coordinates."""
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    count = 0
+    for i in range(vertices.shape[0]):
+        if not referenced[i]:
+            continue
+        x = vertices[i, 0]
+        y = vertices[i, 1]
+        z = vertices[i, 2]
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+            continue
+        count += 1
+        lo[0] = min(lo[0], x)
+        lo[1] = min(lo[1], y)
+        lo[2] = min(lo[2], z)
+        hi[0] = max(hi[0], x)
+        hi[1] = max(hi[1], y)
+        hi[2] = max(hi[2], z)
+    return lo, hi, count

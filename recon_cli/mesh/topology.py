@@ -3,8 +3,9 @@
 Adjacency is kept as arrays, never as objects. The faces' directed edges are the
 half-edges: half-edge ``h = 3 f + k`` runs from ``faces[f, k]`` to ``faces[f, (k + 1) % 3]``
 and starts at corner ``h`` (corner ``3 f + k`` is vertex ``faces[f, k]`` seen from face
-``f``). Sorting the undirected keys of the half-edges groups the twins: an edge used by one
-half-edge is a boundary edge, by two a manifold edge, by more a non-manifold edge.
+``f``). Grouping the half-edges by their undirected ends ``(lo, hi)`` gives the twins: an
+edge used by one half-edge is a boundary edge, by two a manifold edge, by more a
+non-manifold edge.
 Half-edges of repeated-index faces that start and end at one vertex belong to no edge.
 
 Definitions used throughout (they match Open3D / PyMeshLab / trimesh where those agree):
@@ -121,11 +122,14 @@ CHUNK = 1 << 14
 class Connectivity:
     """Edges, adjacency, fans and components of a triangle mesh, built from its faces.
 
-    Everything is computed lazily (cached on first use). Edges come from one sort of packed
-    half-edge keys; grouping, fans, components and orientation are numba loops (union-find,
-    breadth-first walk) that allocate nothing larger than their outputs. Index arrays use
-    :func:`index_dtype` (int32 below 2^31 half-edges and vertices, else int64): a 1M-face
-    mesh's connectivity holds about 30 MB. The attributes are arrays computed on first use;
+    Everything is computed lazily (cached on first use). Edges come from a counting sort of
+    the half-edges by their smaller vertex, each vertex's few then sorted by the larger;
+    grouping, fans, components and orientation are numba loops (union-find, breadth-first
+    walk) that allocate nothing larger than their outputs. Index arrays use
+    :func:`index_dtype` (int32 below 2^31 half-edges and vertices, else int64): the edges are
+    two index arrays of about 3m and 1.5m entries (:attr:`half_edge_edge`, 3m more, is built
+    on request), and no step holds a key or a copy per half-edge (the memory bound is a
+    test). The attributes are arrays computed on first use;
     "int" in their types is :func:`index_dtype`.
 
     Parameters
@@ -188,23 +192,13 @@ class Connectivity:
         return self.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2).astype(np.int64, copy=False)
 
     @cached_property
-    def _edge_groups(self):
+    def _edge_groups(self) -> tuple[np.ndarray, np.ndarray]:
         K = kernels("recon_cli.mesh._topology_kernel")
-        group_sorted_keys, half_edge_keys = K.group_sorted_keys, K.half_edge_keys
+        group_half_edges = K.group_half_edges
 
-        nh = 3 * self.n_faces
-        nv = max(self.n_vertices, 1)
-        proto = np.zeros(0, self._it)
-        sentinel = nv * nv
-        if (sentinel + 1) * max(nh, 1) < 2**62:
-            # the half-edge index packed into the key: a plain in-place sort is a stable argsort
-            keys = half_edge_keys(self.faces, nv, True)
-            keys.sort()
-            return group_sorted_keys(keys, np.zeros(0, np.int64), nh, sentinel, proto)
-        keys = half_edge_keys(self.faces, nv, False)
-        order = np.argsort(keys, kind="stable")
-        keys = keys[order]
-        return group_sorted_keys(keys, order, nh, sentinel, proto)
+        # bucketed by the smaller vertex: no int64 key or argsort per half-edge (those were
+        # most of report()'s memory, see bench/calibration.md)
+        return group_half_edges(self._flat, self.n_vertices, np.zeros(0, self._it))
 
     @cached_property
     def edges(self) -> np.ndarray:
@@ -217,20 +211,23 @@ class Connectivity:
         np.maximum(a, b, out=out[:, 1])
         return out
 
-    @property
+    @cached_property
     def half_edge_edge(self) -> np.ndarray:
         """(3m,): the edge of each half-edge."""
-        return self._edge_groups[0]
+        K = kernels("recon_cli.mesh._topology_kernel")
+        edge_of_half_edges = K.edge_of_half_edges
+
+        return edge_of_half_edges(self.edge_ptr, self.edge_half_edges, 3 * self.n_faces)
 
     @property
     def edge_ptr(self) -> np.ndarray:
         """(e + 1,): CSR offsets of each edge's half-edges in :attr:`edge_half_edges`."""
-        return self._edge_groups[1]
+        return self._edge_groups[0]
 
     @property
     def edge_half_edges(self) -> np.ndarray:
         """(3m,): the half-edges grouped by edge (see :attr:`edge_ptr`)."""
-        return self._edge_groups[2]
+        return self._edge_groups[1]
 
     @property
     def n_edges(self) -> int:
@@ -245,12 +242,14 @@ class Connectivity:
     @cached_property
     def boundary_edges(self) -> np.ndarray:
         """Indices of the edges with one face."""
-        return np.flatnonzero(self.edge_face_count == 1)
+        K = kernels("recon_cli.mesh._topology_kernel")
+        return K.edges_with_count(self.edge_ptr, 1, 1)
 
     @cached_property
     def non_manifold_edges(self) -> np.ndarray:
         """Indices of the edges with more than two faces."""
-        return np.flatnonzero(self.edge_face_count > 2)
+        K = kernels("recon_cli.mesh._topology_kernel")
+        return K.edges_with_count(self.edge_ptr, 3, 3 * self.n_faces)
 
     @cached_property
     def _manifold_pairs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -329,12 +328,8 @@ class Connectivity:
     @cached_property
     def vertex_fan_count(self) -> np.ndarray:
         """(n,) int64: number of fans around each vertex (0 if unreferenced)."""
-        labels = self.corner_fans()
-        if len(labels) == 0:
-            return np.zeros(self.n_vertices, dtype=np.int64)
-        fan_vertex = np.zeros(int(labels.max()) + 1, dtype=self._it)
-        fan_vertex[labels] = self._flat
-        return np.bincount(fan_vertex, minlength=self.n_vertices)
+        K = kernels("recon_cli.mesh._topology_kernel")
+        return K.fans_per_vertex(self.corner_fans(), self._flat, self.n_vertices)
 
     @cached_property
     def non_manifold_vertices(self) -> np.ndarray:
@@ -360,29 +355,10 @@ class Connectivity:
     @cached_property
     def duplicate_faces(self) -> np.ndarray:
         """Indices of faces whose vertex set equals that of an earlier face (either winding)."""
-        s = np.sort(self.faces, axis=1)
-        n = max(self.n_vertices, 1)
-        if n**3 < 2**62:
-            # one exact int64 key per vertex set
-            key = s[:, 0].astype(np.int64)
-            key *= n
-            key += s[:, 1]
-            key *= n
-            key += s[:, 2]
-            del s
-            order = stable_argsort(key, n**3)
-            key = key[order]
-            dup = np.zeros(len(key), dtype=bool)
-            if len(key) > 1:
-                np.equal(key[1:], key[:-1], out=dup[1:])
-        else:
-            order = np.lexsort((s[:, 2], s[:, 1], s[:, 0]))
-            ss = s[order]
-            dup = np.zeros(len(s), dtype=bool)
-            if len(s) > 1:
-                dup[1:] = np.all(ss[1:] == ss[:-1], axis=1)
-        # within a group the stable sort keeps the first face first, so later ones are duplicates
-        return np.sort(order[dup])
+        K = kernels("recon_cli.mesh._topology_kernel")
+        # faces bucketed by their smallest vertex: no sorted copy of the faces, no global sort
+        dup = K.duplicate_face_flags(self.faces, self.n_vertices, np.zeros(0, self._it))
+        return np.flatnonzero(dup)
 
     @cached_property
     def face_areas(self) -> np.ndarray:
@@ -412,10 +388,10 @@ class Connectivity:
         f = self.faces
         bad = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
         if self.vertices is not None and len(f):
-            used = self.vertices[self.referenced]
-            used = used[np.isfinite(used).all(axis=1)]
-            diag = float(np.linalg.norm(used.max(axis=0) - used.min(axis=0))) if len(used) else 0.0
-            del used
+            K = kernels("recon_cli.mesh._topology_kernel")
+            # the bounds without a copy of the used vertices (min and max are exact in any order)
+            lo, hi, count = K.referenced_bbox(self.vertices, self.referenced)
+            diag = float(np.linalg.norm(hi - lo)) if count else 0.0
             bad |= self.face_areas <= tol.area * diag * diag
         return np.flatnonzero(bad)
 
@@ -428,6 +404,14 @@ class Connectivity:
             self._flat, self.half_edge_edge, self.edge_ptr, self.edge_half_edges
         )
         return flip, comp, np.flatnonzero(conflict)
+
+    @cached_property
+    def _conflict_edges(self) -> np.ndarray:
+        # consistently oriented: every manifold edge already runs both ways, so the walk would
+        # flip nothing and find no conflict (it needs :attr:`half_edge_edge`, 4 bytes a corner)
+        if self.is_consistently_oriented:
+            return np.zeros(0, dtype=np.int64)
+        return self._orientation[2]
 
     def orientation(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Breadth-first orientation across manifold edges, each component rooted at its first face.
@@ -447,7 +431,7 @@ class Connectivity:
     @property
     def is_orientable(self) -> bool:
         """Faces can be flipped so that every manifold edge is used in opposite directions."""
-        return len(self._orientation[2]) == 0
+        return len(self._conflict_edges) == 0
 
     @cached_property
     def is_consistently_oriented(self) -> bool:
@@ -478,18 +462,17 @@ class Connectivity:
     def component_euler(self) -> np.ndarray:
         """(c,) int64 ``V - E + F`` of each component."""
         c = self.n_components
-        comp = self.face_components
         if c == 0:
             return np.zeros(0, dtype=np.int64)
-        fc = np.bincount(comp, minlength=c)
-        e_first = self.edge_half_edges[self.edge_ptr[:-1]]
-        ec = np.bincount(comp[e_first // 3], minlength=c)
-        n = max(self.n_vertices, 1)
-        key = np.repeat(comp.astype(np.int64), 3)
-        key *= n
-        key += self._flat
-        key.sort()
-        vc = np.bincount(key[np.r_[True, key[1:] != key[:-1]]] // n, minlength=c)
+        K = kernels("recon_cli.mesh._topology_kernel")
+        vc, ec, fc = K.component_counts(
+            self.face_components,
+            c,
+            self._flat,
+            self.edge_ptr,
+            self.edge_half_edges,
+            self.n_vertices,
+        )
         return vc - ec + fc
 
     @cached_property
@@ -498,21 +481,16 @@ class Connectivity:
 
         It has no boundary or non-manifold edge and no non-manifold vertex.
         """
-        c = self.n_components
-        comp = self.face_components
-        bad = np.zeros(c, dtype=bool)
-        e_first = self.edge_half_edges[self.edge_ptr[:-1]]
-        bad_edges = self.edge_face_count != 2
-        bad[comp[e_first[bad_edges] // 3]] = True
-        nmv = self.vertex_fan_count > 1
-        bad[comp[np.flatnonzero(nmv[self.faces].any(axis=1))]] = True
-        conflict_edges = self._orientation[2]
-        bad[comp[e_first[conflict_edges] // 3]] = True
-        degenerate = self.faces[:, 0] == self.faces[:, 1]
-        degenerate |= (self.faces[:, 1] == self.faces[:, 2]) | (
-            self.faces[:, 0] == self.faces[:, 2]
+        K = kernels("recon_cli.mesh._topology_kernel")
+        bad = K.component_defects(
+            self.face_components,
+            self.n_components,
+            self._flat,
+            self.edge_ptr,
+            self.edge_half_edges,
+            self._conflict_edges,
+            self.vertex_fan_count,
         )
-        bad[comp[degenerate]] = True
         return ~bad
 
     @cached_property
@@ -532,7 +510,12 @@ class Connectivity:
         v = self.vertices
         six = np.empty(self.n_faces, dtype=np.float64)
         # centre first: the sum of large, nearly cancelling terms loses digits far from the origin
-        centre = v[self.referenced].mean(axis=0) if self.n_faces else np.zeros(3)
+        if not self.n_faces:
+            centre = np.zeros(3)
+        elif self.referenced.all():
+            centre = v.mean(axis=0)  # the same sum as below, without a copy of every vertex
+        else:
+            centre = v[self.referenced].mean(axis=0)
         with np.errstate(invalid="ignore", over="ignore"):
             for s in range(0, self.n_faces, CHUNK):
                 f = self.faces[s : s + CHUNK]
@@ -570,7 +553,7 @@ def is_vertex_manifold(faces: Any) -> bool:
 def is_watertight(faces: Any) -> bool:
     """Every edge is shared by exactly two faces (and there is at least one face)."""
     c = Connectivity(faces)
-    return c.n_faces > 0 and bool(np.all(c.edge_face_count == 2))
+    return c.n_faces > 0 and len(c.boundary_edges) == 0 and len(c.non_manifold_edges) == 0
 
 
 def is_consistently_oriented(faces: Any) -> bool:
@@ -604,12 +587,13 @@ def report(mesh: Any) -> dict[str, Any]:
     n_ref = int(c.referenced.sum())
     edge_manifold = len(c.non_manifold_edges) == 0
     vertex_manifold = len(c.non_manifold_vertices) == 0
-    watertight = c.n_faces > 0 and bool(np.all(c.edge_face_count == 2))
+    # every edge has a face: two each is no boundary and no non-manifold edge
+    watertight = c.n_faces > 0 and len(c.boundary_edges) == 0 and edge_manifold
     oriented = c.is_consistently_oriented
     genus_list = c.component_genus
     closed_manifold = c.n_faces > 0 and all(g is not None for g in genus_list)
     closed_oriented = watertight and edge_manifold and vertex_manifold and oriented
-    return {
+    out = {
         "vertices": int(len(vertices)),
         "edges": int(c.n_edges),
         "faces": int(c.n_faces),
@@ -619,7 +603,7 @@ def report(mesh: Any) -> dict[str, Any]:
         "non_manifold_edges": int(len(c.non_manifold_edges)),
         "non_manifold_vertices": int(len(c.non_manifold_vertices)),
         "duplicate_faces": int(len(c.duplicate_faces)),
-        "degenerate_faces": int(len(c.degenerate_faces)),
+        "degenerate_faces": 0,  # the geometric figures come below
         "unreferenced_vertices": int(len(vertices) - n_ref),
         "consistently_oriented": bool(oriented),
         "orientable": bool(c.is_orientable),
@@ -629,6 +613,14 @@ def report(mesh: Any) -> dict[str, Any]:
         "euler_characteristic": int(n_ref - c.n_edges + c.n_faces),
         "genus": int(sum(g or 0 for g in genus_list)) if closed_manifold else None,
         "component_genus": genus_list[:MAX_LISTED_COMPONENTS],
-        "area": float(c.face_areas.sum()),
-        "volume": c.signed_volume() if closed_oriented else None,
+        "area": 0.0,
+        "volume": None,
     }
+    # the geometric figures need no adjacency: free it first (the report's peak is the
+    # adjacency and the corner fans; the areas would add to it)
+    del c
+    g = Connectivity(mesh.faces, len(vertices), vertices)
+    out["degenerate_faces"] = int(len(g.degenerate_faces))
+    out["area"] = float(g.face_areas.sum())
+    out["volume"] = g.signed_volume() if closed_oriented else None
+    return out
