@@ -14,8 +14,8 @@ from recon_cli.cli.main import cli
 from recon_cli.errors import ParameterError
 from recon_cli.geometry import PointCloud
 from recon_cli.io import read_ply, write_ply
-from recon_cli.stages.poisson import run_stage, screened_poisson
 from recon_cli.stages.poisson import attributes as attributes_module
+from recon_cli.stages.poisson import run_stage, screened_poisson
 from recon_cli.stages.poisson.attributes import (
     _Grid,
     _majority,
@@ -277,7 +277,9 @@ def test_transfer_is_the_k_d_tree_transfer_bit_for_bit(n, seed):
         assert got.values[name].dtype == v.dtype
         np.testing.assert_array_equal(got.values[name], v, err_msg=name)
     rgb = ("red", "green", "blue")  # measurements: the mean, as the colours
-    cols = _kd_tree_transfer(points, normals, dict(zip(rgb, colors.T)), verts, vn, cell)[0]
+    cols = _kd_tree_transfer(
+        points, normals, dict(zip(rgb, colors.T, strict=True)), verts, vn, cell
+    )[0]
     np.testing.assert_array_equal(got.colors, np.stack([cols[c] for c in rgb], 1))
     assert got.fallback == fallback > 0
     np.testing.assert_array_equal(got.reach, reach)
