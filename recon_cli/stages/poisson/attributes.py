@@ -261,8 +261,7 @@ class _Grid:
         dist = np.empty((m, k))
         idx = np.empty((m, k), np.int64)
         far = np.empty(m, np.bool_)
-        # the vertices by cell (clipped to one cell past the points' each side): a cell's look
-        # the grid up once
+        # the vertices sorted by cell (one past the grid at most): a cell's share their look-ups
         qcell = np.floor((verts - self.lo) / self.h)
         np.clip(qcell, -1, self.dims, out=qcell)
         qcell = qcell.astype(np.int64)
