@@ -31,6 +31,7 @@ Kazhdan, M. PoissonRecon issue #312 (colour bleeding through thin parts).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -251,7 +252,7 @@ class _Grid:
         self.slack = 1e-9 * self.h + 16 * np.finfo(np.float64).eps * (
             float(np.abs(self.lo).max()) + span
         )
-        self._tree = None
+        self._tree: Any = None
 
     def query(self, verts: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """(m, k) distances and indices of each vertex's ``k`` nearest points, nearest first."""
