@@ -42,7 +42,7 @@ NEIGHBOURS = 16
 FALLBACK_NEIGHBOURS = 64
 # vertices per block of the transfer (the neighbours' tables: ~40 bytes a neighbour)
 CHUNK = 1 << 16
-# points per occupied cell of the nearest-point search's grid
+# points per occupied cell of the nearest-point search's grid (flat 4-32: bench/calibration.md)
 GRID_POINTS = 8
 # shells of cells read around a vertex before a k-d tree finds its nearest points
 GRID_SHELLS = 4
