@@ -14,12 +14,16 @@ from recon_cli.cli.main import cli
 from recon_cli.errors import ParameterError
 from recon_cli.geometry import PointCloud
 from recon_cli.io import read_ply, write_ply
+from recon_cli.stages.poisson import attributes as attributes_module
 from recon_cli.stages.poisson import run_stage, screened_poisson
 from recon_cli.stages.poisson.attributes import (
+    _Grid,
     _majority,
     _mean,
     is_code,
     select,
+    transfer,
+    vertex_normal_sums,
     vertex_normals,
 )
 
@@ -192,3 +196,123 @@ def test_lidar_tile_has_intensity_classification_and_colour(tmp_path):
         np.unique(src.attributes["classification"])
     )
     assert (mesh.attributes["classification"] == 2).mean() > 0.1
+
+
+def _kd_tree_transfer(points, normals, values, verts, vn, cell):
+    """The transfer as it was made with a k-d tree (every vertex's 16 nearest points, a block's
+    rows widened to the 64 of its fallback rows): the reference the grid must match bit for bit.
+    """
+    tree = cKDTree(points)
+    n = len(points)
+
+    def side(d, i, nv):
+        agree = np.einsum("mkj,mj->mk", normals[i], nv) > 0.0
+        w = np.exp(-0.5 * (d / cell) ** 2) * agree
+        first = np.argmax(agree, axis=1)
+        rows = np.arange(len(nv))
+        has = agree[rows, first]
+        w[rows[has], first[has]] = np.maximum(w[rows[has], first[has]], 1e-300)
+        s = w.sum(axis=1)
+        w[has] /= s[has, None]
+        return w, ~has
+
+    k, k2 = min(16, n), min(64, n)
+    d, i = (a.reshape(len(verts), k) for a in tree.query(verts, k=k))
+    w, none = side(d, i, vn)
+    reach = d[:, -1].copy()
+    fallback = 0
+    if none.any():
+        rows = np.flatnonzero(none)
+        d2, i2 = (a.reshape(len(rows), k2) for a in tree.query(verts[rows], k=k2))
+        w2, none2 = side(d2, i2, vn[rows])
+        w2[none2] = 0.0
+        w2[none2, 0] = 1.0
+        fallback = int(none2.sum())
+        reach[rows] = d2[:, -1]
+        wide_i, wide_w = np.zeros((len(verts), k2), np.int64), np.zeros((len(verts), k2))
+        wide_i[:, :k], wide_w[:, :k] = i, w
+        wide_i[rows], wide_w[rows] = i2, w2
+        i, w = wide_i, wide_w
+    out = {name: (_majority if is_code(name, v) else _mean)(v, i, w) for name, v in values.items()}
+    return out, fallback, reach
+
+
+@pytest.mark.parametrize("n", [5, 40, 3000])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_transfer_is_the_k_d_tree_transfer_bit_for_bit(n, seed):
+    """The grid search finds the k-d tree's neighbours, in its order, at its distances: every
+    attribute, the fallback count and the reach are the same bits, for a sheet of points 1e6 from
+    the origin with vertices on it, off it, flipped (no agreeing point: the 64), outside the
+    points' box and far from every point (past the grid's shells: the k-d tree), and for fewer
+    points than 16 and 64."""
+    rng = np.random.default_rng(seed)
+    rot = random_rotation(rng)
+    uv = rng.random((n, 2)) * [3.0, 2.0]
+    flat = np.c_[uv, 0.02 * rng.standard_normal(n)]
+    centre = np.array([1e6, -2e5, 3e5])
+    points = flat @ rot.T + centre
+    up = np.tile([0.0, 0.0, 1.0], (n, 1)) + 0.3 * rng.standard_normal((n, 3))
+    normals = up @ rot.T
+    m = 4000
+    vflat = np.c_[rng.random((m, 2)) * [3.4, 2.4] - 0.2, 0.05 * rng.standard_normal(m)]
+    vflat[:200, 2] += rng.uniform(0.5, 40.0, 200)  # off the sheet, some far past the shells
+    vflat[200:260] -= [10.0, 0.0, 0.0]  # outside the points' box
+    verts = vflat @ rot.T + centre
+    vn = np.tile([0.0, 0.0, 1.0], (m, 1))
+    vn[::7] *= -1.0  # the other side: their fallback
+    vn = (vn + 0.2 * rng.standard_normal((m, 3))) @ rot.T
+    vn /= np.linalg.norm(vn, axis=1, keepdims=True)
+    values = {
+        "classification": rng.integers(0, 4, n).astype(np.uint8),
+        "intensity": rng.integers(0, 60000, n).astype(np.uint16),
+        "gps_time": rng.random(n) * 1e5,
+        "height": rng.random(n).astype(np.float32),
+        "flag": rng.random(n) < 0.5,
+    }
+    colors = rng.integers(0, 65535, (n, 3)).astype(np.uint16)
+    cell = 0.05
+    got = transfer(points, normals, values, colors, verts, None, cell, vn)
+    want, fallback, reach = _kd_tree_transfer(points, normals, values, verts, vn, cell)
+    for name, v in want.items():
+        assert got.values[name].dtype == v.dtype
+        np.testing.assert_array_equal(got.values[name], v, err_msg=name)
+    rgb = ("red", "green", "blue")  # measurements: the mean, as the colours
+    cols = _kd_tree_transfer(
+        points, normals, dict(zip(rgb, colors.T, strict=True)), verts, vn, cell
+    )[0]
+    np.testing.assert_array_equal(got.colors, np.stack([cols[c] for c in rgb], 1))
+    assert got.fallback == fallback > 0
+    np.testing.assert_array_equal(got.reach, reach)
+
+
+def test_grid_search_reads_past_its_shells_and_is_exact():
+    """Clustered points (dense blobs, lone points between them) and queries at every distance:
+    the grid's neighbours are the k-d tree's, the same bits, also for the queries past its shells
+    (answered by the k-d tree) and those outside the points' box."""
+    rng = np.random.default_rng(7)
+    blobs = rng.normal(size=(6, 3)) * 50.0
+    pts = np.concatenate(
+        [b + rng.normal(scale=0.5, size=(2000, 3)) for b in blobs] + [rng.uniform(-80, 80, (50, 3))]
+    )
+    grid = _Grid(pts)
+    q = np.concatenate([pts[::37] + 0.01, rng.uniform(-200, 200, (3000, 3))])
+    tree = cKDTree(pts)
+    for k in (1, 16, 64):
+        d, i = grid.query(q, k)
+        d0, i0 = tree.query(q, k=k)
+        np.testing.assert_array_equal(d, d0.reshape(len(q), k))
+        np.testing.assert_array_equal(i, i0.reshape(len(q), k))
+    assert grid._tree is not None  # some queries were past the shells
+
+
+def test_vertex_normal_sums_are_np_add_at_bits():
+    rng = np.random.default_rng(3)
+    v = rng.normal(size=(500, 3)) * 1e3 + 1e5
+    f = rng.integers(0, 500, (3000, 3))
+    t = v[f]
+    fn = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    want = np.zeros_like(v)
+    for c in range(3):
+        np.add.at(want, f[:, c], fn)
+    np.testing.assert_array_equal(vertex_normal_sums(v, f), want)
+    assert attributes_module.FALLBACK_NEIGHBOURS == 64 and attributes_module.NEIGHBOURS == 16

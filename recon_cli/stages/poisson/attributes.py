@@ -31,6 +31,7 @@ Kazhdan, M. PoissonRecon issue #312 (colour bleeding through thin parts).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -41,6 +42,10 @@ NEIGHBOURS = 16
 FALLBACK_NEIGHBOURS = 64
 # vertices per block of the transfer (the neighbours' tables: ~40 bytes a neighbour)
 CHUNK = 1 << 16
+# points per occupied cell of the nearest-point search's grid (flat 4-32: bench/calibration.md)
+GRID_POINTS = 8
+# shells of cells read around a vertex before a k-d tree finds its nearest points
+GRID_SHELLS = 4
 # integer properties that are measurements (averaged), by lower-case name; the others are codes
 MEASURES = frozenset(
     {
@@ -128,11 +133,12 @@ class Transfer:
 
 def vertex_normal_sums(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """The faces' normals (twice their areas long) summed at each vertex."""
-    t = verts[faces]
-    fn = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-    vn = np.zeros_like(verts)
-    for c in range(3):
-        np.add.at(vn, faces[:, c], fn)
+    from recon_cli.stages.poisson._attributes import face_normal_sums
+
+    vn = np.zeros(verts.shape)
+    face_normal_sums(
+        np.ascontiguousarray(verts, np.float64), np.ascontiguousarray(faces, np.int64), vn
+    )
     return vn
 
 
@@ -184,82 +190,189 @@ def transfer(
     Transfer
         Per-vertex arrays in the properties' dtypes.
     """
-    from scipy.spatial import cKDTree
-
     out = Transfer()
     m = len(verts)
     if m == 0 or (not values and colors is None):
         out.values = {k: v[:0].copy() for k, v in values.items()}
         out.colors = None if colors is None else colors[:0].copy()
         return out
-    tree = cKDTree(points)
     if vertex_unit_normals is not None:
         vn = vertex_unit_normals
     elif faces is not None:
         vn = vertex_normals(verts, faces)
     else:
         raise ValueError("transfer needs the faces or the vertices' unit normals")
+    grid = _Grid(np.asarray(points, np.float64))
+    normals = np.ascontiguousarray(normals, np.float64)
+    vn = np.ascontiguousarray(vn, np.float64)
+    verts = np.ascontiguousarray(verts, np.float64)
     out.reach = np.empty(m)
     res = {k: np.empty(m, v.dtype) for k, v in values.items()}
     col = None if colors is None else np.empty((m, colors.shape[1]), colors.dtype)
     for a in range(0, m, CHUNK):
         b = min(m, a + CHUNK)
-        idx, w, fb, out.reach[a:b] = _weights(tree, points, normals, verts[a:b], vn[a:b], cell)
-        out.fallback += fb
+        nb = _weights(grid, normals, verts[a:b], vn[a:b], cell)
+        out.fallback += nb.fallback
+        out.reach[a:b] = nb.reach
         for k, v in values.items():
-            res[k][a:b] = (_majority if is_code(k, v) else _mean)(v, idx, w)
+            res[k][a:b] = nb.apply(_majority if is_code(k, v) else _mean, v)
         if colors is not None:
             assert col is not None  # made with the colours
             for c in range(colors.shape[1]):
-                col[a:b, c] = _mean(colors[:, c], idx, w)
+                col[a:b, c] = nb.apply(_mean, colors[:, c])
     out.values, out.colors = res, col
     return out
 
 
-def _weights(
-    tree, points: np.ndarray, normals: np.ndarray, verts: np.ndarray, vn: np.ndarray, cell: float
-) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
-    """The vertices' neighbours among the points and their weights.
+class _Grid:
+    """The points sorted into cubic cells, for :func:`._attributes.grid_knn`.
 
-    Returns (m, k) neighbour indices and weights (rows sum to 1), the number of fallbacks and the
-    distance of each row's farthest neighbour read.
+    A k-d tree of the points (made when first needed) answers for the vertices far from them.
     """
-    k = min(NEIGHBOURS, len(points))
-    dist, idx = tree.query(verts, k=k, workers=-1)
-    dist, idx = dist.reshape(len(verts), k), idx.reshape(len(verts), k)
-    w, none = _side_weights(points, normals, verts, vn, dist, idx, cell)
-    fallback = 0
+
+    def __init__(self, points: np.ndarray) -> None:
+        from recon_cli._kernels.hashtable import build_table
+
+        self.points = points
+        n = len(points)
+        self.lo = points.min(axis=0)
+        extent = points.max(axis=0) - self.lo
+        span = float(extent.max())
+        self.h = _grid_side(points, self.lo, span)
+        self.dims = (extent // self.h).astype(np.int64) + 1
+        key = _cell_keys(points, self.lo, self.h, self.dims)
+        order = np.argsort(key)  # the order within a cell is of no matter: ties go by index
+        key = key[order]
+        first = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+        self.starts = np.append(first, n).astype(np.int64)
+        self.tk, self.tv, self.bits = build_table(key[first])
+        self.spts = np.take(points, order, axis=0)
+        self.sidx = order.astype(np.int64)
+        # a point's cell is rounded: the search's bound is this much short
+        self.slack = 1e-9 * self.h + 16 * np.finfo(np.float64).eps * (
+            float(np.abs(self.lo).max()) + span
+        )
+        self._tree: Any = None
+
+    def query(self, verts: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """(m, k) distances and indices of each vertex's ``k`` nearest points, nearest first."""
+        from recon_cli.stages.poisson._attributes import grid_knn
+
+        m = len(verts)
+        dist = np.empty((m, k))
+        idx = np.empty((m, k), np.int64)
+        far = np.empty(m, np.bool_)
+        # the vertices sorted by cell (one past the grid at most): a cell's share their look-ups
+        qcell = np.floor((verts - self.lo) / self.h)
+        np.clip(qcell, -1, self.dims, out=qcell)
+        qcell = qcell.astype(np.int64)
+        dq = self.dims + 2
+        key = ((qcell[:, 0] + 1) * dq[1] + qcell[:, 1] + 1) * dq[2] + qcell[:, 2] + 1
+        order = np.argsort(key)
+        key = key[order]
+        groups = np.flatnonzero(np.r_[True, key[1:] != key[:-1], True]).astype(np.int64)
+        grid_knn(
+            self.spts, self.sidx, self.starts, self.tk, self.tv, self.bits, self.lo, self.h,
+            self.dims, self.slack, verts, qcell, order, groups, k, GRID_SHELLS, dist, idx, far,
+        )  # fmt: skip
+        if far.any():
+            if self._tree is None:
+                from scipy.spatial import cKDTree
+
+                self._tree = cKDTree(self.points)
+            rows = np.flatnonzero(far)
+            d, i = self._tree.query(verts[rows], k=k, workers=-1)
+            dist[rows], idx[rows] = d.reshape(len(rows), k), i.reshape(len(rows), k)
+        return dist, idx
+
+
+def _cell_keys(points: np.ndarray, lo: np.ndarray, h: float, dims: np.ndarray) -> np.ndarray:
+    """Each point's grid cell as one int64, ``(x * dims[1] + y) * dims[2] + z``."""
+    c = np.floor((points - lo) / h).astype(np.int64)
+    np.clip(c, 0, dims - 1, out=c)
+    return (c[:, 0] * dims[1] + c[:, 1]) * dims[2] + c[:, 2]
+
+
+def _grid_side(points: np.ndarray, lo: np.ndarray, span: float) -> float:
+    """A cell side giving about :data:`GRID_POINTS` points per occupied cell.
+
+    Estimated on a subsample of a surface's points: every s-th point in cells sqrt(s) times
+    wider holds as many per cell.
+    """
+    if not span > 0.0:
+        return 1.0
+    n = len(points)
+    least = span / (1 << 20)  # keys fit an int64
+    step = max(1, n // 65536)
+    sub = points[::step]
+    h = max(least, span * np.sqrt(GRID_POINTS / n))
+    for _ in range(3):
+        hs = h * np.sqrt(step)
+        dims = ((sub.max(axis=0) - lo) // hs).astype(np.int64) + 1
+        per_cell = len(sub) / len(np.unique(_cell_keys(sub, lo, hs, dims)))
+        h = max(least, h * float(np.clip(np.sqrt(GRID_POINTS / per_cell), 0.25, 4.0)))
+    return h
+
+
+@dataclass
+class _Neighbours:
+    """A block of vertices' neighbours and weights (rows sum to 1).
+
+    ``rows``: the vertices none of whose :data:`NEIGHBOURS` agrees; theirs are ``idx2``,
+    ``w2`` among :data:`FALLBACK_NEIGHBOURS`.
+    """
+
+    idx: np.ndarray
+    w: np.ndarray
+    rows: np.ndarray
+    idx2: np.ndarray
+    w2: np.ndarray
+    fallback: int
+    reach: np.ndarray  # the distance of each row's farthest neighbour read
+
+    def apply(self, f, v: np.ndarray) -> np.ndarray:
+        """``f(v, idx, w)`` per row, the fallback rows' from their wider neighbourhood."""
+        out = f(v, self.idx, self.w)
+        if len(self.rows):
+            out[self.rows] = f(v, self.idx2, self.w2)
+        return out
+
+
+def _weights(grid: _Grid, normals: np.ndarray, verts: np.ndarray, vn: np.ndarray, cell: float):
+    """The vertices' neighbours among the points and their weights (:class:`_Neighbours`)."""
+    n = len(grid.points)
+    k = min(NEIGHBOURS, n)
+    dist, idx = grid.query(verts, k)
+    w, none = _side_weights(normals, vn, dist, idx, cell)
     reach = dist[:, -1].copy()
-    if none.any():
-        rows = np.flatnonzero(none)
-        k2 = min(FALLBACK_NEIGHBOURS, len(points))
-        d2, i2 = tree.query(verts[rows], k=k2, workers=-1)
-        d2, i2 = d2.reshape(len(rows), k2), i2.reshape(len(rows), k2)
-        w2, none2 = _side_weights(points, normals, verts[rows], vn[rows], d2, i2, cell)
+    rows = np.flatnonzero(none)
+    k2 = min(FALLBACK_NEIGHBOURS, n)
+    i2, w2 = np.zeros((0, k2), np.int64), np.zeros((0, k2))
+    fallback = 0
+    if len(rows):
+        d2, i2 = grid.query(verts[rows], k2)
+        w2, none2 = _side_weights(normals, vn[rows], d2, i2, cell)
         # the nearest point alone where no point agrees (the surface's far sheets)
         w2[none2] = 0.0
         w2[none2, 0] = 1.0
         fallback = int(none2.sum())
         reach[rows] = d2[:, -1]
-        # widen the rows: the fallback rows' k2 neighbours, the others' k padded with 0
-        wide_i = np.zeros((len(verts), k2), np.int64)
-        wide_w = np.zeros((len(verts), k2))
-        wide_i[:, :k], wide_w[:, :k] = idx, w
-        wide_i[rows], wide_w[rows] = i2, w2
-        idx, w = wide_i, wide_w
-    return idx, w, fallback, reach
+    return _Neighbours(idx, w, rows, i2, w2, fallback, reach)
 
 
-def _side_weights(points, normals, verts, vn, dist, idx, cell):
+def _side_weights(normals, vn, dist, idx, cell):
     """Gaussian weights of the neighbours on the vertex's side, rows normalised.
 
     And the rows with no such neighbour.
     """
-    agree = np.einsum("mkj,mj->mk", normals[idx], vn) > 0.0
+    from recon_cli.stages.poisson._attributes import agreeing
+
+    agree = np.empty(idx.shape, np.bool_)
+    agreeing(normals, idx, vn, agree)
     w = np.exp(-0.5 * (dist / cell) ** 2) * agree
     # the nearest agreeing point always counts (far from the samples every weight underflows)
     first = np.argmax(agree, axis=1)
-    rows = np.arange(len(verts))
+    rows = np.arange(len(vn))
     has = agree[rows, first]
     w[rows[has], first[has]] = np.maximum(w[rows[has], first[has]], 1e-300)
     s = w.sum(axis=1)
