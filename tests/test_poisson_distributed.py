@@ -21,7 +21,7 @@ from recon_cli.stages.poisson import screened_poisson
 from recon_cli.stages.poisson.distributed import distributed_poisson
 
 from interrupt import RUN_RECON, SIGINT_AS_A_TERMINAL, interrupt_when
-from shapes import random_rotation, single_view_scan, sphere_cloud
+from shapes import random_rotation, shape_cloud, single_view_scan, sphere_cloud
 from spilling import spilling_runner
 
 
@@ -125,6 +125,25 @@ def test_slabs_of_very_different_density():
 
     single = screened_poisson(p, n, depth=7)
     assert err(res.mesh) <= 1.02 * err(single.mesh)
+
+
+def test_noise_blobs_are_specks_across_slabs(monkeypatch):
+    """A depth finer than the noise (about 2 finest cells): the slabs' merge drops the blobs
+    by the global noise median, as the single process does; a real second sphere stays."""
+    import recon_cli.stages.poisson as P
+
+    rng = np.random.default_rng(11)
+    p, n = shape_cloud("sphere", 60_000, rng)
+    q, m = shape_cloud("sphere", 15_000, rng, scale=0.5)
+    q += 3.0 * random_rotation(rng)[0]
+    pts = np.vstack([p, q]) + rng.normal(scale=0.09, size=(75_000, 3))
+    nrm = np.vstack([n, m])
+    res = distributed_poisson(pts, nrm, depth=8, partitions=3)
+    _closed_one_piece(res.mesh, pieces=2)
+    assert res.report["noise"] > 1.5 and res.report["bubbles_removed"] > 50
+    monkeypatch.setattr(P, "SPECK_SIGMAS", 0.0)
+    blobs = distributed_poisson(pts, nrm, depth=8, partitions=3)
+    assert topology_report(blobs.mesh)["components"] > 10
 
 
 def test_states_pickled_between_steps_give_the_same_mesh(monkeypatch):
