@@ -426,14 +426,18 @@ PHASE_WEIGHTS = {"load": 10.0, "neighbourhoods": 45.0, "orient": 30.0, "flux": 5
 def make_runner(
     client: Any, slabs: list, progress: Any, overall: Any, spill_dir: str | None = None
 ) -> Any:
-    """The runner of the slabs' steps on ``client`` (``spill_dir``: states between steps)."""
-    from recon_cli.batch.steps import DaskRunner
+    """The runner of the slabs' steps on ``client``, or in this process without one.
 
+    ``spill_dir``: where a cluster's slab states wait between their steps (None: on the workers).
+    """
+    from recon_cli.batch.steps import DaskRunner, LocalRunner
+
+    if client is None:
+        return LocalRunner(slabs, progress, "normals", overall)
     return DaskRunner(client, slabs, progress, "normals", overall, spill_dir)
 
 
 def _core_steps(client, files, counts, frame, n_rows, p, tmp, progress, overall) -> tuple:
-    from recon_cli.batch.steps import LocalRunner
     from recon_cli.stages.normals import FLUX_MIN
 
     origin, size, perm = frame
@@ -461,11 +465,7 @@ def _core_steps(client, files, counts, frame, n_rows, p, tmp, progress, overall)
         if client is not None and parts > p["workers"]:
             spill = os.path.join(tmp, f"states{_attempt}")
             os.makedirs(spill, exist_ok=True)
-        runner = (
-            LocalRunner(slabs, progress, "normals", overall)
-            if client is None
-            else make_runner(client, slabs, progress, overall, spill)
-        )
+        runner = make_runner(client, slabs, progress, overall, spill)
         try:
             lm = runner.run(
                 "load", nload, lambda k: (files, nsub, method == "keep", sensors is not None)
