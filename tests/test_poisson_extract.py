@@ -224,14 +224,54 @@ def test_islands_need_ten_points_specks_always_go(rng, offset):
     for k in (ISLAND_POINTS - 1, ISLAND_POINTS):
         near = np.array([2.0, 0.0, 0.0]) + 0.1 * rng.uniform(-1, 1, size=(k, 3))
         pts = np.vstack([main, near, far]) + offset
-        v, f, specks, islands = _drop_bubbles(verts, faces, cell, pts, None)
+        v, f, specks, islands, folds = _drop_bubbles(verts, faces, cell, pts, None)
         assert specks == 1
-        assert islands == (1 if k < ISLAND_POINTS else 0)
+        assert islands == (1 if k < ISLAND_POINTS else 0) and folds == 0
         assert len(f) == len(parts[0][1]) + (0 if islands else len(parts[1][1]))
         assert np.array_equal(v[f], verts[faces[: len(f)]])  # what stays is untouched
     # no points at all: only the largest piece is left
-    v, f, specks, islands = _drop_bubbles(verts, faces, cell, np.zeros((0, 3)) + offset, None)
-    assert (specks, islands) == (1, 1) and len(f) == len(parts[0][1])
+    v, f, specks, islands, folds = _drop_bubbles(
+        verts, faces, cell, np.zeros((0, 3)) + offset, None
+    )
+    assert (specks, islands, folds) == (1, 1, 0) and len(f) == len(parts[0][1])
+
+
+@pytest.mark.parametrize("offset", [0.0, 1e6])
+def test_folds_go_a_thin_shell_and_a_part_out_of_the_band_stay(rng, offset):
+    # the folds' rule of _drop_bubbles on built pieces, noise 4 cells (sigma 0.04): a flat blob
+    # 0.5 across (over the specks' 8 sigma, under the folds' 16) lying within 0.11 of a unit
+    # sphere goes; the same blob 0.3 out stays; so does a concentric sphere 0.1 inside (a thin
+    # shell's inner wall, too long to be a fold); a blob on a second sphere (not the largest,
+    # too long itself) goes too; all turned at random
+    from recon_cli.stages.poisson import _drop_bubbles
+
+    from shapes import icosphere
+
+    cell, noise = 0.01, 4.0
+    rot = random_rotation(rng)
+
+    def blob(centre):
+        v, f = icosphere(2)
+        return v * [0.25, 0.25, 0.05] + centre, f
+
+    parts = [
+        icosphere(5),
+        icosphere(4, radius=0.9),
+        icosphere(4, radius=0.5, centre=(3.0, 0.0, 0.0)),
+        blob((0.0, 0.0, 1.06)),  # a fold of the largest's band
+        blob((0.0, 0.0, -1.3)),  # out of the band
+        blob((3.0, 0.0, 0.56)),  # a fold of the second sphere's band
+    ]
+    verts = np.vstack([v for v, _ in parts]) @ rot.T + offset
+    starts = np.cumsum([0] + [len(v) for v, _ in parts])
+    faces = np.vstack([f + s for (_, f), s in zip(parts, starts[:-1], strict=True)])
+    v, f, specks, islands, folds = _drop_bubbles(verts, faces, cell, verts, noise)
+    assert (specks, islands, folds) == (0, 0, 2)
+    fs = np.cumsum([0] + [len(f) for _, f in parts])
+    stay = np.concatenate([np.arange(fs[k], fs[k + 1]) for k in (0, 1, 2, 4)])
+    assert np.array_equal(v[f], verts[faces[stay]])  # what stays is untouched
+    # the noise not measured: no fold
+    assert _drop_bubbles(verts, faces, cell, verts, None)[2:] == (0, 0, 0)
 
 
 @pytest.mark.parametrize("scale, offset", [(1.0, 0.0), (250.0, 1e6)])
@@ -253,8 +293,13 @@ def test_noise_blobs_are_specks_and_a_real_part_stays(rng, monkeypatch, scale, o
     lab = Connectivity(r.mesh.faces, len(r.mesh.vertices)).face_components
     small = r.mesh.vertices[np.unique(r.mesh.faces[lab == 1])]
     assert np.linalg.norm(small.mean(axis=0) - q.mean(axis=0)) < 0.1 * scale
-    # without the noise's share of the rule, blobs stay
+    # without the noise's share of the specks' rule, the folds' rule alone drops the blobs
+    # bigger than two cells (all lie in the band around one of the spheres); without both, they
+    # stay
     monkeypatch.setattr(P, "SPECK_SIGMAS", 0.0)
+    r = screened_poisson(pts, nrm, depth=8)
+    assert r.report["folds_removed"] > 2 and topology_report(r.mesh)["components"] == 2
+    monkeypatch.setattr(P, "FOLD_SIGMAS", 0.0)
     assert topology_report(screened_poisson(pts, nrm, depth=8).mesh)["components"] > 10
 
 

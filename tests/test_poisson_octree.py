@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from recon_cli.stages.poisson import screened_poisson
-from recon_cli.stages.poisson.octree import points_in_boxes, unique_keys
+from recon_cli.stages.poisson.octree import indices_in_boxes, points_in_boxes, unique_keys
 from recon_cli.stages.poisson.splat import make_splats, merge_samples
 
 from shapes import shape_cloud, sphere_sdf  # noqa: F401  (sphere_sdf documents the shape)
@@ -192,3 +192,22 @@ def test_points_in_boxes_counts_as_a_brute_force(seed, n, k, offset):
         for lo, hi in zip(a, b, strict=True)
     ]
     assert points_in_boxes(pts, a, b).tolist() == want
+
+
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    n=st.integers(0, 300),
+    k=st.integers(0, 12),
+    offset=st.sampled_from([0.0, 1e6]),
+)
+@settings(max_examples=60, deadline=None)
+def test_indices_in_boxes_as_a_brute_force(seed, n, k, offset):
+    # the folds' targets (_drop_bubbles): points in any closed box, each once, sorted
+    rng = np.random.default_rng(seed)
+    pts = np.round(rng.uniform(0, 4, (n, 3)) * 4) / 4 + offset
+    a = np.round(rng.uniform(0, 4, (k, 3)) * 4) / 4 + offset
+    b = a + np.round(rng.uniform(0, 2, (k, 3)) * 4) / 4
+    inside = np.zeros(n, bool)
+    for lo, hi in zip(a, b, strict=True):
+        inside |= np.all((pts >= lo) & (pts <= hi), axis=1)
+    assert indices_in_boxes(pts, a, b).tolist() == np.flatnonzero(inside).tolist()

@@ -91,6 +91,12 @@ ISLAND_POINTS = 10
 # too: the samples scatter over a band about 8 sigma wide, and a piece that fits in it cannot be
 # told from the noise (noisy clouds at a depth finer than their noise: bench/calibration.md)
 SPECK_SIGMAS = 8.0
+# a closed piece (not the largest) under FOLD_SPAN_SIGMAS noise medians across whose every vertex
+# lies within FOLD_SIGMAS of a piece that stays whatever (the largest, or one longer than that)
+# is a fold of the noise band around it, not a part
+# (the 4M noisy armadillo at depth 11: one such blob, 9.9 sigma across, 3.3 sigma out at most)
+FOLD_SIGMAS = 4.5
+FOLD_SPAN_SIGMAS = 16.0
 
 
 def speck_cells(noise: float | None) -> float:
@@ -102,6 +108,17 @@ def speck_cells(noise: float | None) -> float:
     if noise is None or not np.isfinite(noise):
         return float(BUBBLE_CELLS)
     return max(float(BUBBLE_CELLS), SPECK_SIGMAS * float(noise))
+
+
+def fold_cells(noise: float | None) -> tuple[float, float] | None:
+    """The folds' sizes in finest cells: (largest span, farthest reach), None without ``noise``.
+
+    :data:`FOLD_SPAN_SIGMAS` and :data:`FOLD_SIGMAS` times the samples' median noise (finest
+    cells), as :func:`_drop_bubbles` and the slabs' merge use them.
+    """
+    if noise is None or not np.isfinite(noise) or noise <= 0:
+        return None
+    return FOLD_SPAN_SIGMAS * float(noise), FOLD_SIGMAS * float(noise)
 
 
 @dataclass
@@ -121,6 +138,7 @@ class PoissonResult:
         (relative residual of the finest level), ``bubbles_removed`` (closed specks under two finest
         cells or eight times the noise across, dropped: :func:`_drop_bubbles`),
         ``islands_removed`` (closed pieces around fewer than ten input points, dropped),
+        ``folds_removed`` (closed pieces inside the noise band around the largest, dropped),
         ``trimmed_faces`` (faces cut or removed by ``trim``),
         ``trimmed_area`` (fraction of the area removed), ``noise`` (the samples' median noise in
         finest cells of the tree, :func:`.splat.noise_fraction`; None without screening) and details
@@ -534,7 +552,7 @@ def screened_poisson(
 
     # ---- extraction, clipped to the cube, bubbles and islands dropped, pulled into the envelope
     with clock.phase("extract"):
-        verts, faces, chi_fn, bubbles, islands, pulled = _extract_surface(
+        verts, faces, chi_fn, dropped, pulled = _extract_surface(
             basis, sol, origin, size, tree_depth, with_grid, domain, pts, env, setup.noise
         )
     # ---- the field on a regular grid (--grid)
@@ -568,7 +586,7 @@ def screened_poisson(
         ignored=int((~keep).sum()),
         finest_cell=size / res,
         noise=setup.noise,
-        removed=(bubbles, islands, trimmed, trimmed_area),
+        removed=(*dropped, trimmed, trimmed_area),
         fallback=fallback,
         attributes=sorted(props) + (["colors"] if colors is not None else []),
         envelope=(setup.outside_points, pulled) if env is not None else None,
@@ -581,21 +599,19 @@ def screened_poisson(
 def _extract_surface(basis, sol, origin, size, tree_depth, with_grid, domain, pts, env, noise):
     """The iso-surface of a solve in the input's frame.
 
-    Returns ``(verts, faces, chi_fn, bubbles, islands, pulled)``: clipped to the cube (free
-    boundary), closed bubbles and islands without samples dropped, pulled into the envelope.
+    Returns ``(verts, faces, chi_fn, (bubbles, islands, folds), pulled)``: clipped to the cube
+    (free boundary), the closed pieces that are noise dropped, pulled into the envelope.
     """
     from recon_cli.stages.poisson.free import clip_to_cube
 
     verts, faces, chi_fn = basis.extract(sol, origin, size, tree_depth, with_grid)
     if domain is not None:
         verts, faces = clip_to_cube(verts, faces, *domain)
-    verts, faces, bubbles, islands = _drop_bubbles(
-        verts, faces, size / (1 << tree_depth), pts, noise
-    )
+    verts, faces, *dropped = _drop_bubbles(verts, faces, size / (1 << tree_depth), pts, noise)
     pulled = 0
     if env is not None:
         verts, pulled = env.pull_inside(verts, size / (1 << tree_depth))
-    return verts, faces, chi_fn, bubbles, islands, pulled
+    return verts, faces, chi_fn, tuple(dropped), pulled
 
 
 @dataclass
@@ -707,10 +723,10 @@ def _report(
 ) -> dict[str, Any]:
     """The report of :func:`screened_poisson` (its keys are listed in its Returns section).
 
-    ``removed`` is (bubbles, islands, trimmed faces, trimmed area); ``envelope`` is (points
-    outside, vertices pulled), or None without one.
+    ``removed`` is (bubbles, islands, folds, trimmed faces, trimmed area); ``envelope`` is
+    (points outside, vertices pulled), or None without one.
     """
-    bubbles, islands, trimmed, trimmed_area = removed
+    bubbles, islands, folds, trimmed, trimmed_area = removed
     return {
         "vertices": len(mesh.vertices),
         "faces": len(mesh.faces),
@@ -721,6 +737,7 @@ def _report(
         "residual": float(sol.residual),
         "bubbles_removed": bubbles,
         "islands_removed": islands,
+        "folds_removed": folds,
         "trimmed_faces": int(trimmed),
         "trimmed_area": trimmed_area,
         "noise": noise,
@@ -928,10 +945,10 @@ def _trimmed(
 
 def _drop_bubbles(
     verts: np.ndarray, faces: np.ndarray, cell: float, points: np.ndarray, noise: float | None
-) -> tuple[np.ndarray, np.ndarray, int, int]:
+) -> tuple[np.ndarray, np.ndarray, int, int, int]:
     """Drop the closed pieces that are noise, never the largest.
 
-    Returns the vertices and faces left and how many specks and islands went.
+    Returns the vertices and faces left and how many specks, islands and folds went.
 
     - **Specks:** pieces smaller than :func:`speck_cells` finest cells on every side.
       Noisy, sparse samples leave chi slightly across the iso-value around single lattice
@@ -947,51 +964,84 @@ def _drop_bubbles(
       away from the surface splat a dipole that Poisson closes into a blob (on the stereo
       fragment: 82 triangles, 3.6 cells across, around 5 stray points); a real part,
       however small, carries the samples it was made from.
+    - **Folds:** pieces under :data:`FOLD_SPAN_SIGMAS` times the noise across whose every
+      vertex lies within :data:`FOLD_SIGMAS` times the noise of the vertices of the pieces
+      that stay whatever (the largest and those longer than that: :func:`fold_cells`). Such a
+      piece lies wholly inside the band that piece's own samples scatter over: the data
+      cannot tell it from a fold of that band. A real part farther out, or longer (the inner
+      wall of a thin shell), stays.
 
     Every piece of the extraction is closed, so what is left is too. ``verts``, ``points``
-    and ``cell`` are in the same units (the report counts ``bubbles_removed`` and
-    ``islands_removed``).
+    and ``cell`` are in the same units (the report counts ``bubbles_removed``,
+    ``islands_removed`` and ``folds_removed``).
     """
     if not len(faces):
-        return verts, faces, 0, 0
+        return verts, faces, 0, 0, 0
     from recon_cli.mesh.topology import Connectivity
     from recon_cli.stages.poisson.octree import points_in_boxes
+    from recon_cli.stages.poisson.pieces import piece_boxes
 
     lab = Connectivity(faces, len(verts)).face_components
     n = int(lab.max()) + 1
     if n == 1:
-        return verts, faces, 0, 0
+        return verts, faces, 0, 0, 0
     # boxes of the pieces but the largest (piece 0, which always stays): few faces
     rest = lab != 0
-    corner = verts[faces[rest].reshape(-1)]
-    flab = np.repeat(lab[rest], 3)
-    hi = np.full((n, 3), -np.inf)
-    lo = np.full((n, 3), np.inf)
-    for a in range(3):
-        np.maximum.at(hi[:, a], flab, corner[:, a])
-        np.minimum.at(lo[:, a], flab, corner[:, a])
-    speck = (hi - lo).max(axis=1) < speck_cells(noise) * cell
+    _, lo, hi = piece_boxes(verts, faces[rest], lab[rest], n)
+    span = (hi - lo).max(axis=1)
+    speck = span < speck_cells(noise) * cell
     speck[0] = False
     island = np.zeros(n, bool)
     pad = BUBBLE_CELLS * cell
     cand = np.flatnonzero(~speck)[1:]
     island[cand] = points_in_boxes(points, lo[cand] - pad, hi[cand] + pad) < ISLAND_POINTS
-    gone = speck | island
+    fold = np.zeros(n, bool)
+    sizes = fold_cells(noise)
+    if sizes is not None:
+        small = ~(speck | island) & (span < sizes[0] * cell)
+        small[0] = False
+        anchor = ~(speck | island | small)
+        cand = np.flatnonzero(small)
+        if len(cand):
+            fold[cand] = _folds(
+                verts, faces, lab, cand, anchor, lo[cand], hi[cand], sizes[1] * cell
+            )
+    gone = speck | island | fold
     if not gone.any():
-        return verts, faces, 0, 0
+        return verts, faces, 0, 0, 0
     faces = faces[~gone[lab]]
     used = np.zeros(len(verts), bool)
     used[faces.reshape(-1)] = True
     remap = np.cumsum(used) - 1
-    n_speck, n_island = int(speck.sum()), int(island.sum())
+    n_speck, n_island, n_fold = int(speck.sum()), int(island.sum()), int(fold.sum())
     log.info(
-        "poisson: %d pieces under %.3g cells across and %d around fewer than %d points dropped",
+        "poisson: %d pieces under %.3g cells across, %d around fewer than %d points and %d folds "
+        "of the noise band dropped",
         n_speck,
         speck_cells(noise),
         n_island,
         ISLAND_POINTS,
+        n_fold,
     )
-    return verts[used], remap[faces].astype(faces.dtype), n_speck, n_island
+    return verts[used], remap[faces].astype(faces.dtype), n_speck, n_island, n_fold
+
+
+def _folds(verts, faces, lab, cand, anchor, lo, hi, reach) -> np.ndarray:
+    """(k,) bool: the pieces ``cand`` (boxes ``lo``, ``hi``) all within ``reach`` of an anchor.
+
+    ``anchor`` (n,) bool: the pieces that stay whatever (the largest, and those too long to be a
+    fold).
+    """
+    from recon_cli.stages.poisson.octree import indices_in_boxes
+    from recon_cli.stages.poisson.pieces import piece_reach, vertex_labels
+
+    vlab = vertex_labels(faces, lab, len(verts))
+    which = np.full(int(lab.max()) + 1, -1, np.int64)
+    which[cand] = np.arange(len(cand))
+    mine = np.flatnonzero(which[vlab] >= 0)
+    near = indices_in_boxes(verts, lo - reach, hi + reach)
+    near = near[(vlab[near] >= 0) & anchor[np.maximum(vlab[near], 0)]]
+    return piece_reach(verts[mine], which[vlab[mine]], len(cand), verts[near]) <= reach
 
 
 # the native solve's report keys, in the report's order
@@ -1004,6 +1054,7 @@ REPORT_KEYS = (
     "residual",
     "bubbles_removed",
     "islands_removed",
+    "folds_removed",
     "trimmed_faces",
     "trimmed_area",
     "samples",
@@ -1117,8 +1168,8 @@ def run_stage(
     StageResult
         ``output`` a TriangleMesh; ``report`` with ``vertices``, ``faces``, ``depth``,
         ``iso_value``, ``solver_iterations``, ``residual``, ``bubbles_removed``,
-        ``islands_removed``, ``trimmed_faces``, ``trimmed_area``, ``backend`` (the solver keys are
-        None for the reference backends).
+        ``islands_removed``, ``folds_removed``, ``trimmed_faces``, ``trimmed_area``, ``backend``
+        (the solver keys are None for the reference backends).
     """
     from recon_cli.stages import StageResult
 
@@ -1424,6 +1475,7 @@ def _run_reference(
         "residual": None,
         "bubbles_removed": None,
         "islands_removed": None,
+        "folds_removed": None,
         "trimmed_faces": int(trimmed),
         "trimmed_area": trimmed_area,
         "noise": None,

@@ -497,7 +497,7 @@ def reconstruct(
     Returns the mesh's parts per slab (in ``out_dir``'s files when given) and the report (module
     docstring); ``carry``: the slabs carry the input's properties or colours onto their vertices.
     """
-    from recon_cli.stages.poisson import BUBBLE_CELLS, ISLAND_POINTS, speck_cells
+    from recon_cli.stages.poisson import fold_cells, speck_cells
 
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
@@ -549,8 +549,8 @@ def reconstruct(
     at_leaves = any(m["coarse"] for m in fm)
     em = runner.run("extract", S.extract, lambda k: (iso, at_leaves))
     cell = job.size / (1 << tree_depth)
-    drop, specks, islands, seam_dev = _merge_pieces(
-        runner, em, cell, speck_cells(noise_med), BUBBLE_CELLS, ISLAND_POINTS
+    drop, (specks, islands, folds), seam_dev = _merge_pieces(
+        runner, em, cell, speck_cells(noise_med), fold_cells(noise_med)
     )
     timings["extract"] = time.perf_counter() - t
     # ---- each slab's output
@@ -599,6 +599,7 @@ def reconstruct(
         "residual": float(residual),
         "bubbles_removed": specks,
         "islands_removed": islands,
+        "folds_removed": folds,
         "trimmed_faces": int(trimmed),
         "trimmed_area": float(trimmed_area),
         "noise": noise_med,
@@ -815,17 +816,22 @@ def _trim(
 
 
 def _merge_pieces(
-    runner, em: list[dict], cell: float, speck: float, bubble_cells: int, island_points: int
-):
-    """Join the slabs' pieces across the seams, decide the specks and islands.
+    runner, em: list[dict], cell: float, speck: float, fold: tuple[float, float] | None
+) -> tuple[list[np.ndarray], tuple[int, int, int], float]:
+    """Join the slabs' pieces across the seams, decide the specks, islands and folds.
 
     Pieces join through their seam vertices; the specks (under ``speck`` cells across:
-    :func:`.speck_cells` of the noise median) and islands follow :func:`._drop_bubbles`' rules
-    on the joined pieces. Returns per slab the local labels to drop, the counts, and the
-    largest distance between the two slabs' positions of a seam vertex (0: the same bits).
+    :func:`.speck_cells` of the noise median), islands and folds (``fold``: :func:`.fold_cells`
+    of it) follow :func:`._drop_bubbles`' rules on the joined pieces, the folds measured on the
+    vertices the slabs send from within their reach. Returns per slab the local labels to drop,
+    the counts of specks, islands and folds, and the largest distance between the two slabs'
+    positions of a seam vertex (0: the same bits).
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
+
+    from recon_cli.stages.poisson import BUBBLE_CELLS, ISLAND_POINTS
+    from recon_cli.stages.poisson.pieces import piece_reach
 
     n = len(em)
     sizes = [len(m["pieces"][0]) for m in em]
@@ -847,7 +853,7 @@ def _merge_pieces(
         rows.append(llab[ok] + off[k - 1])
         cols.append(rlab[ok] + off[k])
     if total == 0:
-        return [np.zeros(0, np.int64)] * n, 0, 0, dev
+        return [np.zeros(0, np.int64)] * n, (0, 0, 0), dev
     r = np.concatenate(rows) if rows else np.zeros(0, np.int64)
     c = np.concatenate(cols) if cols else np.zeros(0, np.int64)
     g = coo_matrix((np.ones(len(r)), (r, c)), shape=(total, total))
@@ -863,27 +869,55 @@ def _merge_pieces(
             np.minimum.at(lo[:, ax], gid, plo[:, ax])
             np.maximum.at(hi[:, ax], gid, phi[:, ax])
     largest = int(np.argmax(faces))
-    specks = (hi - lo).max(axis=1) < speck * cell
+    span = (hi - lo).max(axis=1)
+    specks = span < speck * cell
     specks[largest] = False
     island = np.zeros(ncomp, bool)
     cand = np.flatnonzero(~specks)
     cand = cand[cand != largest]
     if len(cand):
-        pad = bubble_cells * cell
+        pad = BUBBLE_CELLS * cell
         im = runner.run("islands", S.island_points, lambda k: (lo[cand] - pad, hi[cand] + pad))
         pts = np.sum([m["counts"] for m in im], axis=0)
-        island[cand] = pts < island_points
-    gone = specks | island
+        island[cand] = pts < ISLAND_POINTS
+    folds = np.zeros(ncomp, bool)
+    small = np.zeros(ncomp, bool)
+    if fold is not None:
+        small = ~(specks | island) & (span < fold[0] * cell)
+    small[largest] = False
+    anchor = ~(specks | island | small)
+    cand = np.flatnonzero(small)
+    if len(cand):
+        assert fold is not None  # no candidate without it
+        reach = fold[1] * cell
+        which = np.full(ncomp, -1, np.int64)
+        which[cand] = np.arange(len(cand))
+        a, b = lo[cand] - reach, hi[cand] + reach
+        local = [comp[off[k] : off[k + 1]] for k in range(n)]
+        fm = runner.run(
+            "folds", S.fold_vertices, lambda k: (which[local[k]], anchor[local[k]], a, b)
+        )
+        far = piece_reach(
+            np.concatenate([m["points"] for m in fm]),
+            np.concatenate([m["ids"] for m in fm]),
+            len(cand),
+            np.concatenate([m["targets"] for m in fm]),
+        )
+        folds[cand] = far <= reach
+    gone = specks | island | folds
     drop = [np.flatnonzero(gone[comp[off[k] : off[k + 1]]]) for k in range(n)]
+    counts = (int(specks.sum()), int(island.sum()), int(folds.sum()))
     if gone.any():
         log.info(
-            "poisson: %d pieces under %.3g cells across and %d around fewer than %d points dropped",
-            int(specks.sum()),
+            "poisson: %d pieces under %.3g cells across, %d around fewer than %d points and %d "
+            "folds of the noise band dropped",
+            counts[0],
             speck,
-            int(island.sum()),
-            island_points,
+            counts[1],
+            ISLAND_POINTS,
+            counts[2],
         )
-    return drop, int(specks.sum()), int(island.sum()), dev
+    return drop, counts, dev
 
 
 def assemble(out: dict, job: S.Job, perm: tuple, colors: bool):

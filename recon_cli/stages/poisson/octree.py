@@ -53,6 +53,13 @@ def unique_keys(keys: np.ndarray) -> np.ndarray:
     return s[keep]
 
 
+def _x_runs(points: np.ndarray, lo: np.ndarray, hi: np.ndarray):
+    """``points``' order along x and each box's run in it: a box tests only its x-range."""
+    order = np.argsort(points[:, 0], kind="stable")
+    xs = points[order, 0]
+    return order, np.searchsorted(xs, lo[:, 0], side="left"), np.searchsorted(xs, hi[:, 0], "right")
+
+
 def points_in_boxes(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """How many of ``points`` (n, 3) lie in each closed box ``lo``-``hi`` (k, 3): (k,) int.
 
@@ -61,15 +68,29 @@ def points_in_boxes(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.nd
     """
     if not len(lo):
         return np.zeros(0, np.int64)
-    order = np.argsort(points[:, 0], kind="stable")
-    xs = points[order, 0]
-    start = np.searchsorted(xs, lo[:, 0], side="left")
-    stop = np.searchsorted(xs, hi[:, 0], side="right")
+    order, start, stop = _x_runs(points, lo, hi)
     out = np.zeros(len(lo), np.int64)
     for k in range(len(lo)):
         yz = points[order[start[k] : stop[k]], 1:]
         out[k] = np.count_nonzero(np.all((yz >= lo[k, 1:]) & (yz <= hi[k, 1:]), axis=1))
     return out
+
+
+def indices_in_boxes(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Sorted indices of the ``points`` (n, 3) in any of the closed boxes ``lo``-``hi`` (k, 3).
+
+    Only the points in the boxes' common bounding box are sorted (:func:`points_in_boxes`).
+    """
+    if not len(lo) or not len(points):
+        return np.zeros(0, np.int64)
+    near = np.flatnonzero(np.all((points >= lo.min(axis=0)) & (points <= hi.max(axis=0)), axis=1))
+    sub = points[near]
+    order, start, stop = _x_runs(sub, lo, hi)
+    hit = np.zeros(len(sub), bool)
+    for k in range(len(lo)):
+        run = order[start[k] : stop[k]]
+        hit[run[np.all((sub[run, 1:] >= lo[k, 1:]) & (sub[run, 1:] <= hi[k, 1:]), axis=1)]] = True
+    return near[hit]
 
 
 def pack_keys(xyz: np.ndarray) -> np.ndarray:

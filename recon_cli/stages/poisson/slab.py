@@ -1017,6 +1017,7 @@ def extract(slab: Slab, iso: float, at_leaves: bool) -> dict:
     """
     from recon_cli.mesh.topology import Connectivity
     from recon_cli.stages.poisson.extract import extract_leaves
+    from recon_cli.stages.poisson.pieces import piece_boxes, vertex_labels
 
     job = slab.job
     levels, gvals, chi = slab.levels, slab.gvals, slab.chi
@@ -1056,17 +1057,8 @@ def extract(slab: Slab, iso: float, at_leaves: bool) -> dict:
         lab = np.zeros(0, np.int64)
     slab.labels = lab
     n = int(lab.max()) + 1 if len(lab) else 0
-    corner = slab.verts[slab.faces.reshape(-1)]
-    flab = np.repeat(lab, 3)
-    lo = np.full((n, 3), np.inf)
-    hi = np.full((n, 3), -np.inf)
-    for ax in range(3):
-        np.minimum.at(lo[:, ax], flab, corner[:, ax])
-        np.maximum.at(hi[:, ax], flab, corner[:, ax])
-    msg["pieces"] = (np.bincount(lab, minlength=n), lo, hi)
-    vlab = np.full(nv, -1, np.int64)
-    vlab[slab.faces.reshape(-1)] = flab
-    del corner, flab
+    msg["pieces"] = piece_boxes(slab.verts, slab.faces, lab, n)
+    vlab = vertex_labels(slab.faces, lab, nv)
     nl, nr = slab.seam["left"], slab.seam["right"]
     msg["seam_left"] = (lat[:nl, 1:], slab.verts[:nl], vlab[:nl])
     msg["seam_right"] = (lat[nv - nr :, 1:], slab.verts[nv - nr :], vlab[nv - nr :])
@@ -1081,6 +1073,32 @@ def island_points(slab: Slab, lo: np.ndarray, hi: np.ndarray) -> dict:
 
     own = slab.pts if slab.own_pt is None else slab.pts[slab.own_pt]
     return {"counts": points_in_boxes(own, lo, hi)}
+
+
+@reads_only
+@timed
+def fold_vertices(
+    slab: Slab, which: np.ndarray, anchor: np.ndarray, lo: np.ndarray, hi: np.ndarray
+) -> dict:
+    """The vertices that decide the folds (:func:`.distributed._merge_pieces`).
+
+    ``which`` (p,) the candidate each of the slab's pieces belongs to (-1: none), ``anchor`` (p,)
+    bool its pieces that stay whatever, ``lo``/``hi`` (k, 3) the candidates' boxes grown by the
+    reach. Returns the candidates' vertices (``points``, ``ids``) and the anchors' vertices in
+    those boxes (``targets``).
+    """
+    from recon_cli.stages.poisson.octree import indices_in_boxes
+    from recon_cli.stages.poisson.pieces import vertex_labels
+
+    vlab = vertex_labels(slab.faces, slab.labels, len(slab.verts))
+    used = vlab >= 0
+    ids = np.full(len(vlab), -1, np.int64)
+    ids[used] = which[vlab[used]]
+    mine = np.flatnonzero(ids >= 0)
+    near = indices_in_boxes(slab.verts, lo, hi)
+    near = near[used[near]]
+    near = near[anchor[vlab[near]]]
+    return {"points": slab.verts[mine], "ids": ids[mine], "targets": slab.verts[near]}
 
 
 def _seam_ranks(slab: Slab) -> tuple[np.ndarray, np.ndarray]:
