@@ -466,3 +466,20 @@ def test_report_memory_per_face_is_bounded():
         tracemalloc.stop()
     assert rep["genus"] == 1 and rep["faces"] == len(f) == 240_000
     assert peak < 48 * len(f), peak / len(f)
+
+
+def test_forget_drops_the_arrays_and_the_answers_stay():
+    # report() frees the adjacency this way before the areas: the same object answers again
+    from shapes import torus
+
+    v, f = torus(nu=20, nv=12)
+    c = Connectivity(f, len(v), v)
+    before = (c.n_edges, c.n_components, c.component_genus, float(c.face_areas.sum()))
+    assert "_edge_groups" in c.__dict__
+    c.forget()
+    assert not any(
+        isinstance(x, np.ndarray)
+        for x in c.__dict__.values()
+        if x is not c.faces and x is not c.vertices
+    )
+    assert (c.n_edges, c.n_components, c.component_genus, float(c.face_areas.sum())) == before

@@ -538,21 +538,24 @@ def test_more_slabs_than_workers_spill_their_states(cluster, tmp_path, monkeypat
 
 @pytest.mark.slow
 def test_spilled_parts_keep_one_file_each(cluster, tmp_path):
-    """Three parts on two workers, every state spilled: after each step the folder holds one
-    file per part (the file a step read goes once it wrote its own: a 20M-point run's 48 slab
-    states are tens of GB a round), a step that only reads its state writes none and removes
-    none, and the states come back right."""
+    """Three parts on two workers, every state spilled: after each step the folder holds at
+    most one file per part (the file a step read goes once it wrote its own: a 20M-point run's
+    48 slab states are tens of GB a round); each worker keeps the last part it ran in memory
+    and runs it first next time, so only the worker with two parts writes, one state a step;
+    a step that only reads its state writes none and removes none; the states come back
+    right."""
+    import time
     from types import SimpleNamespace
 
     from recon_cli.batch import steps
 
     def add(state, x):
         state.v = state.v + x
-        return {"v": state.v}
+        return {"v": state.v, "at": time.monotonic(), "pid": os.getpid()}
 
     @steps.reads_only
     def look(state):
-        return {"v": state.v}
+        return {"v": state.v, "at": time.monotonic(), "pid": os.getpid()}
 
     runner = steps.DaskRunner(
         cluster, [SimpleNamespace(v=k) for k in range(3)], spill_dir=str(tmp_path), spill_bytes=0
@@ -560,12 +563,22 @@ def test_spilled_parts_keep_one_file_each(cluster, tmp_path):
     seen = []
     try:
         for step in (add, add, look, add):
+            live = set(runner.live)
             out = runner.run("x", step, (lambda k: (10,)) if step is add else (lambda k: ()))
             seen.append(sorted(os.listdir(tmp_path)))
+            # on the worker with two parts, the one it kept in memory ran first
+            pids = [m["pid"] for m in out]
+            a, b = [k for k in range(3) if pids.count(pids[k]) == 2]
+            if len({a, b} & live) == 1:
+                first = a if a in live else b
+                assert out[first]["at"] < out[a + b - first]["at"]
     finally:
         runner.close()
     assert [m["v"] for m in out] == [30, 31, 32]
-    assert [len(s) for s in seen] == [3, 3, 3, 3]
+    assert [len(s) for s in seen] == [1, 1, 1, 1]
+    # parts 0 and 2 share a worker: 0 is written, then 2 (0 ran first, from memory), then
+    # after the look, 0 again
+    assert [s[0].rsplit("-", 2)[1] for s in seen] == ["0", "2", "2", "0"]
     assert seen[2] == seen[1] and seen[3] != seen[2]
     assert os.listdir(tmp_path) == []
 

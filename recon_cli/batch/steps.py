@@ -13,8 +13,10 @@ Two runners with one interface (``run(name, fn, args) -> messages``):
   (Dask runs a part's steps where its state is: the states never move). With a spill folder
   (more parts than workers), a large state is written to a file after each step and read
   back by the next, so a worker holds only the part it runs; the file a step read goes as
-  soon as the step has written its own, so the folder holds one file per part (a step that
-  only reads its state, :func:`reads_only`, keeps the file it read). An argument that every
+  soon as the step has written its own, so the folder holds at most one file per part (a step
+  that only reads its state, :func:`reads_only`, keeps the file it read). Each worker keeps
+  the last part it ran in memory and runs it first at the next step (a snake order): with two
+  parts a worker, half the writes and reads. An argument that every
   part's task of a step shares (the coarse levels, their coefficients) then goes to a file
   once, the tasks carrying its path (:class:`Shared`). A step's task
   returns ``(state, message)``; the coordinator gathers the messages only. A worker that dies
@@ -251,6 +253,8 @@ class DaskRunner:
         self.round = 0
         # per part, the round whose file holds its state (None: the state is not in a file)
         self.files: list[int | None] = [None] * len(states)
+        # the parts whose state a worker kept in memory after the last step that wrote them
+        self.live = set(range(len(states)))
         workers = sorted(client.scheduler_info().get("workers", {}))
         self.states = []
         for k, s in enumerate(states):
@@ -282,23 +286,44 @@ class DaskRunner:
         given = [args(k) for k in range(len(self.states))]
         moved += sum(_sizeof(a) for a in given)
         given = self._share(given)
-        for k, st in enumerate(self.states):
+        writes = not getattr(fn, "reads_only", False)
+        order, keep = self._plan(writes)
+        submitted: dict[int, tuple] = {}
+        for pos, k in enumerate(order):
             a = given[k]
             tag = f"{self.label}-{self.token}-{k}-{self.round}-{name}"
             # the arguments go in the task (a recomputed part reads them again from its
             # lineage), however large: Dask's warning of large graphs is not for this
             path = self._spill_path(k, self.round)
-            spill = None if path is None else (path, self.spill_bytes)
+            spill = None if path is None or k in keep else (path, self.spill_bytes)
             with dask.config.set({"distributed.admin.large-graph-warning-threshold": "1TiB"}):
-                p = c.submit(_step, st, fn, a, spill, key=f"{tag}-step", pure=False)
-            pairs.append(p)
-            states.append(c.submit(_first, p, key=f"{tag}-state", pure=False))
-            msgs_f.append(c.submit(_second, p, key=f"{tag}-msg", pure=False))
-        st = None  # the last part's previous state: released below with the others
+                p = c.submit(
+                    _step,
+                    self.states[k],
+                    fn,
+                    a,
+                    spill,
+                    key=f"{tag}-step",
+                    pure=False,
+                    priority=len(order) - pos,
+                )
+            # the message goes as soon as its step is done, before the worker's next step
+            top = len(order) + 1
+            submitted[k] = (
+                p,
+                c.submit(_first, p, key=f"{tag}-state", pure=False, priority=top),
+                c.submit(_second, p, key=f"{tag}-msg", pure=False, priority=top),
+            )
+        for k in range(len(self.states)):
+            pairs.append(submitted[k][0])
+            states.append(submitted[k][1])
+            msgs_f.append(submitted[k][2])
+        submitted = {}
+        if writes:
+            self.live = keep
         index = {f.key: k for k, f in enumerate(msgs_f)}
         out: list[Any] = [None] * len(msgs_f)
         share = self.overall.claim(name) / max(len(msgs_f), 1) if self.overall else 0.0
-        writes = not getattr(fn, "reads_only", False)
         with task(self.progress, f"{self.label}: {name}", total=len(msgs_f)) as bar:
             for f in as_completed(msgs_f):
                 k = index[f.key]
@@ -322,6 +347,30 @@ class DaskRunner:
         # previous step wrote (removing them here raced with it: FileNotFoundError in a test)
         note_phase(self.phases, name, out, time.perf_counter() - t0, moved)
         return out
+
+    def _plan(self, writes: bool) -> tuple[list[int], set[int]]:
+        """The step's order of the parts and those whose new state stays in memory.
+
+        Each worker runs first the part whose state it kept in memory and keeps the last one it
+        runs (a step that only reads keeps the same ones): half the states' writes and reads of
+        a folder with two parts a worker, while a worker still holds one state at a time.
+        """
+        n = len(self.states)
+        order = sorted(range(n), key=lambda k: (k not in self.live, k))
+        if self.spill_dir is None:
+            return order, set(range(n))
+        if not writes:
+            return order, self.live
+        from distributed import wait
+
+        wait(self.states)  # the first steps' states may still be on their way to their workers
+        holders = self.client.who_has(self.states)
+        last: dict[Any, int] = {}
+        for k in order:
+            # where the part's state is now (Dask may have recomputed it elsewhere)
+            where = holders.get(self.states[k].key) or ()
+            last[tuple(sorted(where))[:1]] = k
+        return order, set(last.values())
 
     def _share(self, given: list[tuple]) -> list[tuple]:
         """The parts' arguments, each large one they all share replaced by its :class:`Shared`.

@@ -180,6 +180,12 @@ class Connectivity:
         )
         self._it = index_dtype(3 * len(f) + 3, n + 1)
 
+    def forget(self) -> None:
+        """Drop every array computed so far (edges, adjacency, fans...): recomputed on next use."""
+        for name, attr in type(self).__dict__.items():
+            if isinstance(attr, cached_property):
+                self.__dict__.pop(name, None)
+
     @property
     def _flat(self) -> np.ndarray:
         # corner c = 3 f + k is vertex _flat[c]; half-edge h starts at corner h
@@ -618,9 +624,8 @@ def report(mesh: Any) -> dict[str, Any]:
     }
     # the geometric figures need no adjacency: free it first (the report's peak is the
     # adjacency and the corner fans; the areas would add to it)
-    del c
-    g = Connectivity(mesh.faces, len(vertices), vertices)
-    out["degenerate_faces"] = int(len(g.degenerate_faces))
-    out["area"] = float(g.face_areas.sum())
-    out["volume"] = g.signed_volume() if closed_oriented else None
+    c.forget()
+    out["degenerate_faces"] = int(len(c.degenerate_faces))
+    out["area"] = float(c.face_areas.sum())
+    out["volume"] = c.signed_volume() if closed_oriented else None
     return out

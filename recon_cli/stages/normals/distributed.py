@@ -551,7 +551,8 @@ def _gather(prefixes: list[str], n_rows: int, curvature: bool, tmp: str):
 def _slab_count(partitions: int | None, npoints: int, client: Any, knn: int | None) -> tuple:
     from recon_cli.stages.poisson.distributed import slab_count
 
-    return slab_count(partitions, npoints, client, slab_bytes_per_point(knn), MAX_SLABS, "normals")
+    bpp = slab_bytes_per_point(knn)
+    return slab_count(partitions, npoints, client, bpp, MAX_SLABS, "normals", "the most slabs")
 
 
 def _frame(lo, hi, perm_axis_longest=True):
@@ -595,12 +596,11 @@ def distributed_normals(
 
     knn, radius = check_knn(knn, radius)
     method, cam, dirn = check_orient(orient, camera, direction)
-    SPEC.check({"curvature": curvature}, complete=False)
+    # the declaration checks --partitions' range (1..MAX_SLABS) for the command too
+    SPEC.check({"curvature": curvature, "partitions": partitions}, complete=False)
     pts = check_points(points)
     if method == "keep" and normals is None:
         raise ParameterError("--orient keep needs input normals")
-    if partitions is not None and not 1 <= int(partitions) <= MAX_SLABS:
-        raise ParameterError(f"partitions must be 1..{MAX_SLABS}, got {partitions}")
     if len(pts) == 0:
         raise InputError("the input has no points")
     parts, why = _slab_count(partitions, len(pts), client, knn)
@@ -725,8 +725,6 @@ def run_from_files(
             buckets = client.gather(futs)
             counts = np.sum([b["counts"] for b in buckets], axis=0)
             files = [(os.path.join(tmp, f"c{i:05d}"), b["offsets"]) for i, b in enumerate(buckets)]
-            if v["partitions"] is not None and not 1 <= v["partitions"] <= MAX_SLABS:
-                raise ParameterError(f"--partitions must be 1..{MAX_SLABS}, got {v['partitions']}")
             parts, why = _slab_count(v["partitions"], n_rows, client, knn)
             p = dict(
                 knn=knn,

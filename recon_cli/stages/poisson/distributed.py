@@ -258,12 +258,13 @@ def slab_count(
     bytes_per_point: float | None = None,
     cap: int = S.MAX_PARTITIONS,
     stage: str = "poisson",
+    cap_reason: str = f"the seams are level-{S.FINE_PARTITION_DEPTH} planes",
 ) -> tuple[int, dict]:
     """The slabs of a run and the report's ``distributed.partitions`` (how many, and why).
 
     ``partitions`` given: that many; else :func:`default_partitions` from the ``client``'s
     workers and their memory (no client: this process, one slab), with ``bytes_per_point`` and
-    ``cap`` (``stage``'s slabs: the warning names it).
+    ``cap`` (why there is one: ``cap_reason``; ``stage``'s slabs: the warning names it).
     """
     nworkers, memory = worker_memory(client) if client is not None else (1, None)
     entry: dict[str, Any] = {
@@ -284,10 +285,8 @@ def slab_count(
     fits = memory is None or slab_bytes <= SLAB_MEMORY_SHARE * memory
     if fits and parts % nworkers == 0:
         head = "one per worker" if parts == nworkers else f"{parts // nworkers} per worker"
-    elif cap == S.MAX_PARTITIONS and stage == "poisson":
-        head = f"capped at {parts} (the seams are level-{S.FINE_PARTITION_DEPTH} planes)"
     else:
-        head = f"capped at {parts} (the most slabs)"
+        head = f"capped at {parts} ({cap_reason})"
     if memory is None:
         why = f"{head}: the workers have no memory limit"
     else:
