@@ -93,8 +93,7 @@ ISLAND_POINTS = 10
 SPECK_SIGMAS = 8.0
 # a closed piece (not the largest) under FOLD_SPAN_SIGMAS noise medians across whose every vertex
 # lies within FOLD_SIGMAS of a piece that stays whatever (the largest, or one longer than that)
-# is a fold of the noise band around it, not a part
-# (the 4M noisy armadillo at depth 11: one such blob, 9.9 sigma across, 3.3 sigma out at most)
+# is a fold of the noise band around it, not a part (bench/calibration.md)
 FOLD_SIGMAS = 4.5
 FOLD_SPAN_SIGMAS = 16.0
 
@@ -1038,7 +1037,7 @@ def _folds(verts, faces, lab, cand, anchor, lo, hi, reach) -> np.ndarray:
     vlab = vertex_labels(faces, lab, len(verts))
     which = np.full(int(lab.max()) + 1, -1, np.int64)
     which[cand] = np.arange(len(cand))
-    mine = np.flatnonzero(which[vlab] >= 0)
+    mine = np.flatnonzero((vlab >= 0) & (which[np.maximum(vlab, 0)] >= 0))
     near = indices_in_boxes(verts, lo - reach, hi + reach)
     near = near[(vlab[near] >= 0) & anchor[np.maximum(vlab[near], 0)]]
     return piece_reach(verts[mine], which[vlab[mine]], len(cand), verts[near]) <= reach

@@ -1,7 +1,7 @@
 """The closed pieces of an extraction: their boxes and how far they reach from the largest.
 
-What :func:`recon_cli.stages.poisson._drop_bubbles` and the slabs' merge
-(:func:`.distributed.merge_pieces`) decide with.
+What the single process's extraction and the slabs' merge (:mod:`.distributed`) decide the
+noise's pieces with (specks, islands, folds).
 """
 
 from __future__ import annotations
