@@ -30,8 +30,8 @@ def spilling_runner(
             seen.append(sum(f.endswith(".state") for f in os.listdir(folder)))
             return out
 
-    def runner(client, slabs, progress=None, overall=None, spill_dir=None):
+    def runner(client, slabs, progress=None, overall=None, spill_dir=None, loads=None):
         assert spill_dir is not None  # more slabs than workers: the run spills by itself
-        return Spilling(client, slabs, progress, label, overall, str(folder), 0, 0)
+        return Spilling(client, slabs, progress, label, overall, str(folder), 0, 0, loads=loads)
 
     return runner, seen

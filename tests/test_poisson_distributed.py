@@ -178,7 +178,9 @@ def test_states_pickled_between_steps_give_the_same_mesh(monkeypatch):
             return out
 
     monkeypatch.setattr(
-        D, "make_runner", lambda c, slabs, p=None, o=None, spill=None: Pickling(slabs, p, "x", o)
+        D,
+        "make_runner",
+        lambda c, slabs, p=None, o=None, spill=None, **kw: Pickling(slabs, p, "x", o),
     )
     moved = distributed_poisson(pts, nrm, depth=7, partitions=3).mesh
     assert np.array_equal(moved.vertices, plain.vertices)
@@ -537,6 +539,43 @@ def test_more_slabs_than_workers_spill_their_states(cluster, tmp_path, monkeypat
 
 
 @pytest.mark.slow
+def test_parts_spread_by_their_loads(cluster):
+    """With the parts' loads, the heaviest go first, each to the least loaded worker: loads
+    5, 4, 3, 1 on two workers pair the parts (0, 3) and (1, 2), 6 and 7 (in turn: 8 and 5);
+    a slab's load is the points it reads, its pads included."""
+    from types import SimpleNamespace
+
+    from recon_cli.batch import steps
+    from recon_cli.stages.poisson.distributed import make_job, plan_slabs, slab_loads
+
+    def where(state):
+        return {"pid": os.getpid()}
+
+    runner = steps.DaskRunner(
+        cluster, [SimpleNamespace() for _ in range(4)], loads=[5.0, 4.0, 3.0, 1.0]
+    )
+    try:
+        pid = [m["pid"] for m in runner.run("x", where, lambda k: ())]
+    finally:
+        runner.close()
+    assert pid[0] == pid[3] != pid[1] == pid[2]
+    params = dict(
+        samples_per_node=1.5,
+        point_weight=4.0,
+        boundary="neumann",
+        full_depth=5,
+        cg_tolerance=1e-3,
+        density=False,
+        trim=0.0,
+    )
+    job = make_job(np.zeros(3), 1.0, (0, 1, 2), 9, params)
+    counts = np.random.default_rng(3).integers(0, 100, 1 << 7)
+    plan = plan_slabs(job, counts, 3)
+    for (_, (pa, pb), _), work in zip(plan, slab_loads(plan, counts), strict=True):
+        assert work == counts[round(pa * len(counts)) : round(pb * len(counts))].sum()
+    assert sum(slab_loads(plan, counts)) > counts.sum()  # the pads are read twice
+
+
 def test_spilled_parts_keep_one_file_each(cluster, tmp_path):
     """Three parts on two workers, every state spilled: after each step the folder holds at
     most one file per part (the file a step read goes once it wrote its own: a 20M-point run's

@@ -16,7 +16,8 @@ Two runners with one interface (``run(name, fn, args) -> messages``):
   soon as the step has written its own, so the folder holds at most one file per part (a step
   that only reads its state, :func:`reads_only`, keeps the file it read). Each worker keeps
   the last part it ran in memory and runs it first at the next step (a snake order): with two
-  parts a worker, half the writes and reads. An argument that every
+  parts a worker, half the writes and reads. Given each part's load, the parts are spread
+  heaviest first, each to the least loaded worker. An argument that every
   part's task of a step shares (the coarse levels, their coefficients) then goes to a file
   once, the tasks carrying its path (:class:`Shared`). A step's task
   returns ``(state, message)``; the coordinator gathers the messages only. A worker that dies
@@ -210,6 +211,25 @@ def _step(state: Any, fn: Callable, args: tuple, spill: tuple | None = None) -> 
     return state, msg
 
 
+def _spread(n: int, workers: list, loads: list[float] | None) -> list:
+    """The worker of each of ``n`` parts.
+
+    In turn; with ``loads``, the heaviest first, each to the least loaded worker (the
+    longest-processing-time rule: a step's wall is its busiest worker's).
+    """
+    if not workers:
+        return [None] * n
+    if loads is None:
+        return [workers[k % len(workers)] for k in range(n)]
+    total = dict.fromkeys(workers, 0.0)
+    out: list = [None] * n
+    for k in sorted(range(n), key=lambda k: (-loads[k], k)):
+        w = min(workers, key=lambda w: (total[w], w))
+        out[k] = w
+        total[w] += loads[k]
+    return out
+
+
 def _first(pair: tuple) -> Any:
     return pair[0]
 
@@ -238,6 +258,7 @@ class DaskRunner:
         spill_dir: str | None = None,
         spill_bytes: int = SPILL_BYTES,
         shared_bytes: int = SHARED_BYTES,
+        loads: list[float] | None = None,
     ):
         self.client = client
         # with more parts than workers, a worker would hold all its parts' states: each large
@@ -256,10 +277,11 @@ class DaskRunner:
         # the parts whose state a worker kept in memory after the last step that wrote them
         self.live = set(range(len(states)))
         workers = sorted(client.scheduler_info().get("workers", {}))
+        placed = _spread(len(states), workers, loads)
         self.states = []
         for k, s in enumerate(states):
             # spread the parts over the workers; a part's later steps follow its state
-            where = [workers[k % len(workers)]] if workers else None
+            where = [placed[k]] if workers else None
             self.states.append(
                 client.submit(
                     _start,

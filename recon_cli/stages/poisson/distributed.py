@@ -181,6 +181,13 @@ def plan_slabs(
     return out
 
 
+def slab_loads(plan: list[tuple], sub_counts: np.ndarray) -> list[float]:
+    """The points each slab of ``plan`` (:func:`plan_slabs`) reads: its work, to spread them."""
+    nsub = len(sub_counts)
+    cum = np.concatenate([[0], np.cumsum(sub_counts)])
+    return [float(cum[round(p[1][1] * nsub)] - cum[round(p[1][0] * nsub)]) for p in plan]
+
+
 def sub_slab(x_unit: np.ndarray, nsub: int) -> np.ndarray:
     """(n,) the sub-slab (of ``nsub`` along x) of each unit-cube x."""
     return np.clip(np.floor(x_unit * nsub), 0, nsub - 1).astype(np.int64)
@@ -1027,7 +1034,8 @@ def distributed_poisson(
     nrm = nrm[:, list(perm)]
     nsub = 1 << min(S.SUB_DEPTH, depth)
     sub = sub_slab((pts[:, 0] - job.origin[0]) / size, nsub)
-    plan = plan_slabs(job, np.bincount(sub, minlength=nsub), partitions, seams)
+    sub_counts = np.bincount(sub, minlength=nsub)
+    plan = plan_slabs(job, sub_counts, partitions, seams)
     slabs = [S.slab_of(job, k, partitions, *plan[k]) for k in range(partitions)]
     carry = bool(props) or colors is not None
     weights = job_weights(False, point_weight > 0, trim > 0, carry, False)
@@ -1048,7 +1056,14 @@ def distributed_poisson(
         spill = tempfile.mkdtemp(prefix=".recon-poisson-", dir=temp_dir)
     try:
         with _task(progress, "poisson: the whole job", sum(weights.values())) as bar:
-            runner = make_runner(client, slabs, progress, Overall(bar, weights), spill)
+            runner = make_runner(
+                client,
+                slabs,
+                progress,
+                Overall(bar, weights),
+                spill,
+                loads=slab_loads(plan, sub_counts),
+            )
             try:
                 loaded = runner.run("load", S.load, load_args)
                 out = reconstruct(runner, job, loaded, progress, carry=carry)
@@ -1072,16 +1087,18 @@ def make_runner(
     progress: Any = None,
     overall: Any = None,
     spill_dir: str | None = None,
+    loads: list[float] | None = None,
 ):
     """The slabs' runner: on the Dask ``client``'s cluster, or in this process without one.
 
-    ``spill_dir``: where a cluster's slab states wait between their steps (None: on the workers).
+    ``spill_dir``: where a cluster's slab states wait between their steps (None: on the workers);
+    ``loads``: each slab's points read (:func:`slab_loads`), to spread them over the workers.
     """
     from recon_cli.batch.steps import DaskRunner, LocalRunner
 
     if client is None:
         return LocalRunner(slabs, progress, "poisson", overall)
-    return DaskRunner(client, slabs, progress, "poisson", overall, spill_dir)
+    return DaskRunner(client, slabs, progress, "poisson", overall, spill_dir, loads=loads)
 
 
 def _check_distributed(depth: int, full_depth: int, partitions: int) -> None:
@@ -1330,7 +1347,9 @@ def reconstruct_files(
             spill = os.path.join(tmp, "states") if parts > nworkers else None
             if spill is not None:
                 os.mkdir(spill)
-            runner = DaskRunner(client, slabs, progress, "poisson", overall, spill)
+            runner = DaskRunner(
+                client, slabs, progress, "poisson", overall, spill, loads=slab_loads(plan, counts)
+            )
             runner.phases.update(scan_phase)
             runner.phases.update(sort_phase)
             loaded = runner.run(
