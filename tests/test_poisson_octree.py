@@ -192,3 +192,33 @@ def test_points_in_boxes_as_a_brute_force(seed, n, k, offset):
     assert points_in_boxes(pts, a, b).tolist() == [int(m.sum()) for m in inside]
     anywhere = np.any(inside, axis=0) if k else np.zeros(n, bool)
     assert indices_in_boxes(pts, a, b).tolist() == np.flatnonzero(anywhere).tolist()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_finer_cells_give_the_levels_the_finer_items_give(seed):
+    # the distributed coarse tree: the level-dc cells holding finer items stand for them, and
+    # levels 0..dc are those the finer items (here at dc + 1 and dc + 2) would give, bit for
+    # bit, without building the finer levels (the coordinator's largest arrays)
+    from recon_cli.stages.poisson.octree import build_levels, pack_keys
+
+    rng = np.random.default_rng(seed)
+    dc, full = 6, 3
+    p = rng.normal(size=(20_000, 3))
+    p = 0.5 + 0.4 * p / np.linalg.norm(p, axis=1)[:, None]  # a sphere's samples
+    lvl = rng.integers(full + 1, dc + 3, len(p))
+    coarse = lvl <= dc
+    whole = build_levels(p, lvl, dc + 2, full, "neumann", False, 1)[: dc + 1]
+    cells = pack_keys(np.floor(p[~coarse] * (1 << dc)))
+    finer = np.unique(cells)
+    part = build_levels(p[coarse], lvl[coarse], dc, full, "neumann", False, 1, finer)
+    assert len(part) == dc + 1
+    for a, b in zip(whole, part, strict=True):
+        assert np.array_equal(a.cell_keys, b.cell_keys)
+        assert np.array_equal(a.node_keys, b.node_keys)
+        assert (a.cell_parent is None) == (b.cell_parent is None)
+        if a.cell_parent is not None:
+            assert np.array_equal(a.cell_parent, b.cell_parent)
+    assert len(whole[dc].cell_keys) > len(whole[dc - 1].cell_keys) > 0
+    # without the finer cells the tree stops where the coarse items stop
+    less = build_levels(p[coarse], lvl[coarse], dc, full, "neumann", False, 1)
+    assert len(less[dc].cell_keys) < len(whole[dc].cell_keys)

@@ -683,11 +683,11 @@ def _coarse_tree(
         )
     coarse_fields = _sum_fields([m["coarse_fields"] for m in im])
     screening = _sum_screening([m["screening"] for m in im]) if alpha > 0 else {}
-    cpos, clvl = S.coarse_item_set(im, dc)
+    cpos, clvl, finer_cells = S.coarse_item_set(im, dc)
     del im
     with _coordinator_step(runner, "coarse tree"):
-        coarse = S.build_coarse_levels(cpos, clvl, tree_depth, job)
-    del cpos, clvl
+        coarse = S.build_coarse_levels(cpos, clvl, finer_cells, tree_depth, job)
+    del cpos, clvl, finer_cells
     # one message for every slab (the runner writes a large argument all slabs share once)
     cmsg = S.level_message(coarse)
     rm = runner.run("restrict", S.restrict, lambda k: (cmsg, coarse_fields))

@@ -131,6 +131,7 @@ def build_levels(
     boundary: str,
     corners: bool = True,
     own_ring: int = 2,
+    finer: np.ndarray | None = None,
 ) -> list[Level]:
     """Levels 0..``depth``: complete up to ``full_depth``.
 
@@ -150,13 +151,17 @@ def build_levels(
     ``boundary`` (the corners and unknowns only if ``corners``: the degree-2 solve needs
     neither, and makes the corners after it with :func:`set_corners`, the largest arrays of
     the levels kept out of its peak).
+
+    ``finer``: sorted unique keys of the level-``depth`` cells holding items finer than
+    ``depth`` (a tree whose finer levels are built elsewhere: the distributed coarse tree). The
+    levels are those the items themselves would give, without building the finer ones.
     """
     if own_ring not in (1, 2):
         raise ValueError(f"own_ring must be 1 or 2, got {own_ring}")
     levels: list[Level] = []
     occ: list[np.ndarray | None] = [None] * (depth + 1)
     near: list[np.ndarray | None] = [None] * (depth + 1)
-    occ_keys = np.zeros(0, np.int64)
+    occ_keys = np.zeros(0, np.int64) if finer is None else np.asarray(finer, np.int64)
     for d in range(depth, full_depth, -1):
         sel = item_level == d
         own = pack_keys(np.floor(item_pos[sel] * (1 << d)).clip(0, (1 << d) - 1))

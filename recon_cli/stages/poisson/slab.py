@@ -47,6 +47,7 @@ from recon_cli.stages.poisson.octree import (
     corner_keys,
     pack_keys,
     set_corners,
+    unique_keys,
     unpack_keys,
 )
 from recon_cli.stages.poisson.splat import (
@@ -542,26 +543,29 @@ def _drop_placement(slab: Slab, tree_depth: int) -> None:
         slab.own_pt = None
 
 
-def coarse_item_set(msgs: list[dict], dc: int) -> tuple[np.ndarray, np.ndarray]:
+def coarse_item_set(msgs: list[dict], dc: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The coarse tree's items from the slabs' messages.
 
-    Their own coarse items, and a representative item (the cell's centre, level ``dc + 1``) per cell
-    their finer items occupy.
+    Their own coarse items (positions, levels), and the level-``dc`` cells their finer items
+    occupy (sorted unique keys: :func:`build_coarse_levels`' ``finer``).
     """
-    pos = [m["coarse_items"][0] for m in msgs]
-    lvl = [m["coarse_items"][1] for m in msgs]
-    cells = np.unique(np.concatenate([m["fine_cells"] for m in msgs]))
-    pos.append((unpack_keys(cells) + 0.5) / (1 << (dc + 1)))
-    lvl.append(np.full(len(cells), dc + 1, np.int64))
-    return np.concatenate(pos), np.concatenate(lvl)
+    pos = np.concatenate([m["coarse_items"][0] for m in msgs])
+    lvl = np.concatenate([m["coarse_items"][1] for m in msgs])
+    cells = np.concatenate([m["fine_cells"] for m in msgs])
+    return pos, lvl, unique_keys(pack_keys(unpack_keys(cells) >> 1))
 
 
-def build_coarse_levels(pos, lvl, tree_depth: int, job: Job) -> list[Level]:
-    """Levels 0..min(coarse depth, tree depth) of the whole cube's tree (the coordinator's)."""
+def build_coarse_levels(pos, lvl, finer, tree_depth: int, job: Job) -> list[Level]:
+    """Levels 0..min(coarse depth, tree depth) of the whole cube's tree (the coordinator's).
+
+    ``finer``: the level-``dc`` cells holding finer items (:func:`coarse_item_set`); the levels
+    are those the finer items would give, without their own (four times the cells of the
+    coarsest's).
+    """
     dc = min(job.coarse_depth, tree_depth)
-    top = tree_depth if tree_depth <= dc else dc + 1
-    levels = build_levels(pos, lvl, top, min(job.full_depth, top), job.boundary, False, 1)
-    return levels[: dc + 1]
+    if tree_depth <= dc:
+        finer = None  # no finer item
+    return build_levels(pos, lvl, dc, min(job.full_depth, dc), job.boundary, False, 1, finer)
 
 
 def level_message(levels: list[Level]) -> list[tuple]:
