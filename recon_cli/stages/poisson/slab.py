@@ -559,8 +559,7 @@ def build_coarse_levels(pos, lvl, finer, tree_depth: int, job: Job) -> list[Leve
     """Levels 0..min(coarse depth, tree depth) of the whole cube's tree (the coordinator's).
 
     ``finer``: the level-``dc`` cells holding finer items (:func:`coarse_item_set`); the levels
-    are those the finer items would give, without their own (four times the cells of the
-    coarsest's).
+    are those the finer items would give, without building level ``dc + 1`` of the whole cube.
     """
     dc = min(job.coarse_depth, tree_depth)
     if tree_depth <= dc:
