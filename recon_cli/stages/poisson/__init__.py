@@ -978,7 +978,12 @@ def _drop_bubbles(
         return verts, faces, 0, 0, 0
     from recon_cli.mesh.topology import Connectivity
     from recon_cli.stages.poisson.octree import points_in_boxes
-    from recon_cli.stages.poisson.pieces import piece_boxes
+    from recon_cli.stages.poisson.pieces import (
+        noise_pieces,
+        piece_boxes,
+        piece_reach,
+        reach_vertices,
+    )
 
     lab = Connectivity(faces, len(verts)).face_components
     n = int(lab.max()) + 1
@@ -987,24 +992,21 @@ def _drop_bubbles(
     # boxes of the pieces but the largest (piece 0, which always stays): few faces
     rest = lab != 0
     _, lo, hi = piece_boxes(verts, faces[rest], lab[rest], n)
-    span = (hi - lo).max(axis=1)
-    speck = span < speck_cells(noise) * cell
-    speck[0] = False
-    island = np.zeros(n, bool)
-    pad = BUBBLE_CELLS * cell
-    cand = np.flatnonzero(~speck)[1:]
-    island[cand] = points_in_boxes(points, lo[cand] - pad, hi[cand] + pad) < ISLAND_POINTS
-    fold = np.zeros(n, bool)
-    sizes = fold_cells(noise)
-    if sizes is not None:
-        small = ~(speck | island) & (span < sizes[0] * cell)
-        small[0] = False
-        anchor = ~(speck | island | small)
-        cand = np.flatnonzero(small)
-        if len(cand):
-            fold[cand] = _folds(
-                verts, faces, lab, cand, anchor, lo[cand], hi[cand], sizes[1] * cell
-            )
+
+    def farthest(which, anchor, a, b):
+        m = reach_vertices(verts, faces, lab, which, anchor, a, b)
+        return piece_reach(m["points"], m["ids"], len(a), m["targets"])
+
+    speck, island, fold = noise_pieces(
+        lo,
+        hi,
+        0,
+        cell,
+        speck_cells(noise),
+        fold_cells(noise),
+        lambda a, b: points_in_boxes(points, a, b),
+        farthest,
+    )
     gone = speck | island | fold
     if not gone.any():
         return verts, faces, 0, 0, 0
@@ -1012,35 +1014,8 @@ def _drop_bubbles(
     used = np.zeros(len(verts), bool)
     used[faces.reshape(-1)] = True
     remap = np.cumsum(used) - 1
-    n_speck, n_island, n_fold = int(speck.sum()), int(island.sum()), int(fold.sum())
-    log.info(
-        "poisson: %d pieces under %.3g cells across, %d around fewer than %d points and %d folds "
-        "of the noise band dropped",
-        n_speck,
-        speck_cells(noise),
-        n_island,
-        ISLAND_POINTS,
-        n_fold,
-    )
-    return verts[used], remap[faces].astype(faces.dtype), n_speck, n_island, n_fold
-
-
-def _folds(verts, faces, lab, cand, anchor, lo, hi, reach) -> np.ndarray:
-    """(k,) bool: the pieces ``cand`` (boxes ``lo``, ``hi``) all within ``reach`` of an anchor.
-
-    ``anchor`` (n,) bool: the pieces that stay whatever (the largest, and those too long to be a
-    fold).
-    """
-    from recon_cli.stages.poisson.octree import indices_in_boxes
-    from recon_cli.stages.poisson.pieces import piece_reach, vertex_labels
-
-    vlab = vertex_labels(faces, lab, len(verts))
-    which = np.full(int(lab.max()) + 1, -1, np.int64)
-    which[cand] = np.arange(len(cand))
-    mine = np.flatnonzero((vlab >= 0) & (which[np.maximum(vlab, 0)] >= 0))
-    near = indices_in_boxes(verts, lo - reach, hi + reach)
-    near = near[(vlab[near] >= 0) & anchor[np.maximum(vlab[near], 0)]]
-    return piece_reach(verts[mine], which[vlab[mine]], len(cand), verts[near]) <= reach
+    counts = int(speck.sum()), int(island.sum()), int(fold.sum())
+    return verts[used], remap[faces].astype(faces.dtype), *counts
 
 
 # the native solve's report keys, in the report's order

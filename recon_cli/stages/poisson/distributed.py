@@ -828,16 +828,16 @@ def _merge_pieces(
 
     Pieces join through their seam vertices; the specks (under ``speck`` cells across:
     :func:`.speck_cells` of the noise median), islands and folds (``fold``: :func:`.fold_cells`
-    of it) follow :func:`._drop_bubbles`' rules on the joined pieces, the folds measured on the
-    vertices the slabs send from within their reach. Returns per slab the local labels to drop,
+    of it) are decided on the joined pieces by :func:`.pieces.noise_pieces`, as in one process,
+    the islands' points counted and the folds' vertices sent by the slabs. Returns per slab the
+    local labels to drop,
     the counts of specks, islands and folds, and the largest distance between the two slabs'
     positions of a seam vertex (0: the same bits).
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    from recon_cli.stages.poisson import BUBBLE_CELLS, ISLAND_POINTS
-    from recon_cli.stages.poisson.pieces import piece_reach
+    from recon_cli.stages.poisson.pieces import noise_pieces, piece_reach
 
     n = len(em)
     sizes = [len(m["pieces"][0]) for m in em]
@@ -875,54 +875,29 @@ def _merge_pieces(
             np.minimum.at(lo[:, ax], gid, plo[:, ax])
             np.maximum.at(hi[:, ax], gid, phi[:, ax])
     largest = int(np.argmax(faces))
-    span = (hi - lo).max(axis=1)
-    specks = span < speck * cell
-    specks[largest] = False
-    island = np.zeros(ncomp, bool)
-    cand = np.flatnonzero(~specks)
-    cand = cand[cand != largest]
-    if len(cand):
-        pad = BUBBLE_CELLS * cell
-        im = runner.run("islands", S.island_points, lambda k: (lo[cand] - pad, hi[cand] + pad))
-        pts = np.sum([m["counts"] for m in im], axis=0)
-        island[cand] = pts < ISLAND_POINTS
-    folds = np.zeros(ncomp, bool)
-    small = np.zeros(ncomp, bool)
-    if fold is not None:
-        small = ~(specks | island) & (span < fold[0] * cell)
-    small[largest] = False
-    anchor = ~(specks | island | small)
-    cand = np.flatnonzero(small)
-    if len(cand):
-        assert fold is not None  # no candidate without it
-        reach = fold[1] * cell
-        which = np.full(ncomp, -1, np.int64)
-        which[cand] = np.arange(len(cand))
-        a, b = lo[cand] - reach, hi[cand] + reach
-        local = [comp[off[k] : off[k + 1]] for k in range(n)]
+    local = [comp[off[k] : off[k + 1]] for k in range(n)]
+
+    def count_points(a, b):
+        im = runner.run("islands", S.island_points, lambda k: (a, b))
+        return np.sum([m["counts"] for m in im], axis=0)
+
+    def farthest(which, anchor, a, b):
         fm = runner.run(
             "folds", S.fold_vertices, lambda k: (which[local[k]], anchor[local[k]], a, b)
         )
-        far = piece_reach(
+        return piece_reach(
             np.concatenate([m["points"] for m in fm]),
             np.concatenate([m["ids"] for m in fm]),
-            len(cand),
+            len(a),
             np.concatenate([m["targets"] for m in fm]),
         )
-        folds[cand] = far <= reach
-    gone = specks | island | folds
-    drop = [np.flatnonzero(gone[comp[off[k] : off[k + 1]]]) for k in range(n)]
-    counts = (int(specks.sum()), int(island.sum()), int(folds.sum()))
-    if gone.any():
-        log.info(
-            "poisson: %d pieces under %.3g cells across, %d around fewer than %d points and %d "
-            "folds of the noise band dropped",
-            counts[0],
-            speck,
-            counts[1],
-            ISLAND_POINTS,
-            counts[2],
-        )
+
+    specks, islands, folds = noise_pieces(
+        lo, hi, largest, cell, speck, fold, count_points, farthest
+    )
+    gone = specks | islands | folds
+    drop = [np.flatnonzero(gone[local[k]]) for k in range(n)]
+    counts = (int(specks.sum()), int(islands.sum()), int(folds.sum()))
     return drop, counts, dev
 
 

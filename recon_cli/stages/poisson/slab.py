@@ -1083,25 +1083,10 @@ def island_points(slab: Slab, lo: np.ndarray, hi: np.ndarray) -> dict:
 def fold_vertices(
     slab: Slab, which: np.ndarray, anchor: np.ndarray, lo: np.ndarray, hi: np.ndarray
 ) -> dict:
-    """The vertices that decide the folds (:func:`.distributed._merge_pieces`).
+    """The vertices that decide the folds: :func:`.pieces.reach_vertices` of the slab's mesh."""
+    from recon_cli.stages.poisson.pieces import reach_vertices
 
-    ``which`` (p,) the candidate each of the slab's pieces belongs to (-1: none), ``anchor`` (p,)
-    bool its pieces that stay whatever, ``lo``/``hi`` (k, 3) the candidates' boxes grown by the
-    reach. Returns the candidates' vertices (``points``, ``ids``) and the anchors' vertices in
-    those boxes (``targets``).
-    """
-    from recon_cli.stages.poisson.octree import indices_in_boxes
-    from recon_cli.stages.poisson.pieces import vertex_labels
-
-    vlab = vertex_labels(slab.faces, slab.labels, len(slab.verts))
-    used = vlab >= 0
-    ids = np.full(len(vlab), -1, np.int64)
-    ids[used] = which[vlab[used]]
-    mine = np.flatnonzero(ids >= 0)
-    near = indices_in_boxes(slab.verts, lo, hi)
-    near = near[used[near]]
-    near = near[anchor[vlab[near]]]
-    return {"points": slab.verts[mine], "ids": ids[mine], "targets": slab.verts[near]}
+    return reach_vertices(slab.verts, slab.faces, slab.labels, which, anchor, lo, hi)
 
 
 def _seam_ranks(slab: Slab) -> tuple[np.ndarray, np.ndarray]:
