@@ -12,17 +12,23 @@ SAMPLE  := sample_data/bunny_scan_000.ply
 OUTDIR  := demo_output
 PYTEST_ARGS ?=
 
-.PHONY: all install sysdeps warmup demo test test-fast bench lint docs clean
+.PHONY: all install sysdeps viewer warmup demo test test-fast bench lint docs clean
 
 all: test
 
 # Open3D links against libusb-1.0 at import; install it when missing (machines run as root).
+# The tests of `recon view` open its pages in Debian's chromium (headless, driven by Playwright).
 # recon warmup compiles the ballpivot/mcubes kernels ahead of time with a C compiler: gcc when none is found.
 sysdeps:
 	@if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
 		echo "installing libusb-1.0-0 (needed by open3d)"; \
 		SUDO=""; [ "$$(id -u)" -eq 0 ] || SUDO="sudo"; \
 		$$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq libusb-1.0-0 >/dev/null; \
+	fi
+	@if ! command -v chromium >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1; then \
+		echo "installing chromium (the tests of recon view's pages drive it headless)"; \
+		SUDO=""; [ "$$(id -u)" -eq 0 ] || SUDO="sudo"; \
+		$$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq chromium >/dev/null; \
 	fi
 	@if ! command -v cc >/dev/null 2>&1 && ! command -v gcc >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1; then \
 		echo "installing gcc (recon warmup compiles kernels ahead of time)"; \
@@ -56,7 +62,20 @@ $(STAMP): $(CORE)
 	elif [ $$warm -ne 0 ]; then exit $$warm; fi
 	@touch $(STAMP)
 
-install: $(STAMP)
+# three.js for `recon view`'s pages: the versions pinned in tools/viewer/package-lock.json, bundled
+# by esbuild into one script that every page inlines (package data; git ignores it)
+VIEWER_JS  := recon_cli/eval/viewer/three.min.js
+VIEWER_NPM := tools/viewer
+$(VIEWER_JS): $(VIEWER_NPM)/package.json $(VIEWER_NPM)/package-lock.json $(VIEWER_NPM)/three-entry.js
+	npm ci --prefix $(VIEWER_NPM) --no-audit --no-fund --loglevel=error
+	$(VIEWER_NPM)/node_modules/.bin/esbuild $(VIEWER_NPM)/three-entry.js --bundle --minify \
+		--format=iife --global-name=RECON3 --target=es2020 --log-level=warning \
+		--banner:js="/*! three.js $$(node -p 'require("./$(VIEWER_NPM)/node_modules/three/package.json").version') (npm), bundled by esbuild for recon view */" \
+		--outfile=$@.tmp && mv $@.tmp $@
+
+viewer: $(VIEWER_JS)
+
+install: $(STAMP) $(VIEWER_JS)
 
 # compile every numba kernel into the per-user cache (make install does it once; again after editing a kernel)
 warmup: $(STAMP)
@@ -73,13 +92,13 @@ demo: $(CORE)
 
 # worksteal: each worker starts on a contiguous half (a file's cached meshes stay on one worker)
 # and takes the other's queue when idle (no worker waits out the other's long tests)
-test: $(STAMP)
+test: sysdeps $(STAMP) $(VIEWER_JS)
 	$(PY) -m pytest -n 2 --dist worksteal $(PYTEST_ARGS)
 
-test-fast: $(STAMP)
+test-fast: sysdeps $(STAMP) $(VIEWER_JS)
 	$(PY) -m pytest -n 2 --dist worksteal -m "not slow" $(PYTEST_ARGS)
 
-bench: $(STAMP)
+bench: sysdeps $(STAMP) $(VIEWER_JS)
 	$(PY) bench/run_bench.py --out bench/results.md
 
 # ruff (format and lint) and mypy, configured in pyproject.toml; the `lint` extra holds them
@@ -104,4 +123,4 @@ docs: $(DOCS_STAMP)
 	@echo "docs written to docs/_build/html/index.html"
 
 clean:
-	rm -rf $(VENV) $(OUTDIR) .pytest_cache .mypy_cache .ruff_cache docs/_build docs/stages build *.egg-info
+	rm -rf $(VENV) $(OUTDIR) $(VIEWER_JS) $(VIEWER_NPM)/node_modules .pytest_cache .mypy_cache .ruff_cache docs/_build docs/stages build *.egg-info

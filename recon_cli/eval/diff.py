@@ -11,6 +11,8 @@ import os
 from collections.abc import Sequence
 from typing import Any
 
+import numpy as np
+
 from recon_cli.errors import ParameterError, naming
 from recon_cli.eval.metrics import (
     check_samples,
@@ -21,6 +23,7 @@ from recon_cli.eval.metrics import (
     shared_vmax,
     vertex_distances,
 )
+from recon_cli.geometry import PointCloud, TriangleMesh
 
 
 def diff_files(
@@ -95,12 +98,7 @@ def diff_files(
         return rows
     from recon_cli.io.load import save
 
-    dists = [vertex_distances(c, ref) for c in cands]
-    # what each candidate misses: the reference's vertices to it (one scale for both directions,
-    # so a heatmap PLY is coloured alike with or without --png)
-    missed = [vertex_distances(ref, c) for c in cands]
-    if vmax is None:
-        vmax = shared_vmax(dists + missed, min(rows[0]["tau"]))
+    dists, missed, vmax = heatmap_distances(cands, ref, min(rows[0]["tau"]), vmax)
     if heatmap_path is not None:
         for k, (path, cand, d) in enumerate(zip(candidates, cands, dists, strict=True)):
             out = heatmap_path if len(cands) == 1 else _suffixed(heatmap_path, _stem(path), k)
@@ -123,6 +121,39 @@ def diff_files(
         )
         write_png(fig.image, png_path)
     return rows
+
+
+def heatmap_distances(
+    candidates: Sequence[TriangleMesh | PointCloud],
+    reference: TriangleMesh | PointCloud,
+    tau: float,
+    vmax: float | None = None,
+) -> tuple[list[np.ndarray], list[np.ndarray], float]:
+    """The distances ``recon diff``'s heatmaps show, and the top of their shared colour scale.
+
+    Parameters
+    ----------
+    candidates : sequence of TriangleMesh or PointCloud
+    reference : TriangleMesh or PointCloud
+    tau : float
+        The smallest F-score threshold (absolute): the scale reaches at least it.
+    vmax : float, optional
+        The top of the scale, when given (else :func:`~recon_cli.eval.metrics.shared_vmax`).
+
+    Returns
+    -------
+    accuracy : list of (n_candidate_vertices,) float64
+        Each candidate's vertices' distances to the reference.
+    completeness : list of (n_reference_vertices,) float64
+        The reference's vertices' distances to each candidate (large where it misses a part).
+    vmax : float
+        One scale for both directions, so a heatmap is coloured alike wherever it is shown.
+    """
+    dists = [vertex_distances(c, reference) for c in candidates]
+    missed = [vertex_distances(reference, c) for c in candidates]
+    if vmax is None:
+        vmax = shared_vmax(dists + missed, tau)
+    return dists, missed, float(vmax)
 
 
 def _stem(path: str | os.PathLike) -> str:

@@ -476,10 +476,6 @@ def _colorbar(img, box, vmax, largest, unit, diagonal, bar_title) -> list[tuple]
     img[y0 - 1, x0 - 1 : x1 + 1] = img[y1, x0 - 1 : x1 + 1] = 0
     img[y0 - 1 : y1 + 1, x0 - 1] = img[y0 - 1 : y1 + 1, x1] = 0
     _, _, rx, _ = box["colorbar top"]
-
-    def pct(v):
-        return f" ({100 * v / diagonal:.3g}%)" if diagonal else ""
-
     x0t, y0t, x1t, y1t = box["colorbar title"]
     texts = [
         ((x0t, y0t, x1t, y0t + LABEL_H), bar_title, FONT_LABEL, TEXT_COLOR),
@@ -490,22 +486,50 @@ def _colorbar(img, box, vmax, largest, unit, diagonal, bar_title) -> list[tuple]
             TEXT_COLOR,
         ),
     ]
-    for frac in (1.0, 0.75, 0.5, 0.25, 0.0):
+    ticks, note = colorbar_labels(vmax, largest, diagonal)
+    for frac, label in ticks:
         y = y0 + int(round((1.0 - frac) * (n - 1)))
         img[y, x1 : x1 + 6] = 0
-        v = frac * vmax
-        label = (f">= {_num(v)}" if frac == 1.0 else _num(v)) + pct(v)
         texts.append(((x1 + 10, y - 10, rx, y + 10), label, FONT_SMALL, TEXT_COLOR))
-    clipped = "higher values: the top colour" if largest > vmax else "no value above the top"
-    texts.append(
-        (
-            box["colorbar max"],
-            f"max {_num(largest)}{pct(largest)}\n{clipped}",
-            FONT_SMALL,
-            TEXT_COLOR,
-        )
-    )
+    texts.append((box["colorbar max"], note, FONT_SMALL, TEXT_COLOR))
     return texts
+
+
+#: where the colour bar's ticks stand, as fractions of its top value, top first
+COLORBAR_TICKS = (1.0, 0.75, 0.5, 0.25, 0.0)
+
+
+def colorbar_labels(
+    vmax: float, largest: float, diagonal: float | None = None
+) -> tuple[list[tuple[float, str]], str]:
+    """The labels of a distance colour bar, as ``recon diff --png`` writes them.
+
+    Parameters
+    ----------
+    vmax : float
+        Distance at the top of the scale (drawn in the top colour and above).
+    largest : float
+        The largest distance shown.
+    diagonal : float, optional
+        The reference's bounding-box diagonal: labels then also give % of it.
+
+    Returns
+    -------
+    ticks : list of (fraction, str)
+        One label per :data:`COLORBAR_TICKS` fraction of ``vmax``, top (``">= vmax"``) first.
+    note : str
+        Two lines under the bar: the largest distance, and whether any value lies above the top.
+    """
+
+    def pct(v: float) -> str:
+        return f" ({100 * v / diagonal:.3g}%)" if diagonal else ""
+
+    ticks = [
+        (frac, (f">= {_num(frac * vmax)}" if frac == 1.0 else _num(frac * vmax)) + pct(frac * vmax))
+        for frac in COLORBAR_TICKS
+    ]
+    clipped = "higher values: the top colour" if largest > vmax else "no value above the top"
+    return ticks, f"max {_num(largest)}{pct(largest)}\n{clipped}"
 
 
 def _legend(img, legend_box) -> list[tuple]:
