@@ -275,10 +275,29 @@ def test_diff_page_shows_recon_diffs_scale_and_numbers(tmp_path, browser):
         opened.page.check("input[data-layer='1']")
         opened.page.uncheck("input[data-layer='0']")
         after = opened.canvas()
-        assert (
-            iou(silhouette(after), render(load_shared("kitten"), "front", size=CANVAS).mask) > 0.98
-        )
+        frame = (np.asarray(report["frame"]["center"]), report["frame"]["radius"])
+        ours = render(load_shared("kitten"), "front", size=CANVAS, frame=frame).mask
+        assert iou(silhouette(after), ours) > 0.98
         assert opened.console_errors() == []
+    finally:
+        opened.close()
+
+
+def test_cloud_against_mesh_diff_page_draws_heat_points(shapes, browser, tmp_path):
+    d, objs = shapes
+    report = view_files(d / "cloud.ply", tmp_path / "c.html", d / "kitten.ply", samples=5000)
+    assert report["kind"] == "cloud" and report["diff"]["mode_accuracy"] == "point-to-surface"
+    opened = open_page(browser, tmp_path / "c.html", SIZE)
+    try:
+        assert opened.console_errors() == []
+        shot = opened.canvas()
+        # framed with the reference, as recon diff --png frames both
+        frame = (np.asarray(report["frame"]["center"]), report["frame"]["radius"])
+        ours = render(objs["cloud"], "iso", size=CANVAS, frame=frame).mask
+        assert iou(silhouette(shot), ours) > 0.98
+        # a sampled cloud lies on the kitten: all of it near the bottom (blue) of the scale
+        inside = shot[silhouette(shot)].astype(int)
+        assert (inside[:, 2] > inside[:, 0]).mean() > 0.95
     finally:
         opened.close()
 

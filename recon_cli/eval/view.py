@@ -5,11 +5,11 @@ The page holds everything it needs: three.js (bundled at install from the npm pa
 (float32 coordinates relative to the frame's centre, which stays float64 here; uint16 or uint32
 face indices; uint8 colours). It opens with no network.
 
-Its first view is the camera of :func:`recon_cli.eval.render.render` for the same object and
-view: orthographic, y up, the frame's sphere (:func:`~recon_cli.eval.render.frame_of`) over 92 %
+Its first view is the camera of ``recon_cli.eval.render.render`` for the same object and
+view: orthographic, y up, the frame's sphere (``recon_cli.eval.render.frame_of``) over 92 %
 of the canvas's smaller side, so the page and our rasteriser draw the same silhouette. With a
 reference (``recon view A --diff B``) the candidate is coloured by its distance to the reference
-on ``recon diff``'s colour scale (:func:`recon_cli.eval.diff.heatmap_distances`), the colour bar
+on ``recon diff``'s colour scale (``recon_cli.eval.diff.heatmap_distances``), the colour bar
 carries ``recon diff --png``'s labels and the panel its numbers.
 """
 
@@ -56,7 +56,7 @@ class Layer:
     visible : bool
         Shown when the page opens.
     heat : bool
-        ``colors`` are a heatmap: shaded as :func:`recon_cli.eval.render.render` shades
+        ``colors`` are a heatmap: shaded as ``recon_cli.eval.render.render`` shades
         heatmaps (more of the colour kept).
     """
 
@@ -146,12 +146,12 @@ def html_page(
     title : str
         The page's title and heading (plain text).
     view : str or (azimuth, elevation)
-        The first view (:data:`recon_cli.eval.render.VIEWS` or angles in degrees), as
-        :func:`recon_cli.eval.render.render` sees it.
+        The first view (``recon_cli.eval.render.VIEWS`` or angles in degrees), as
+        ``recon_cli.eval.render.render`` sees it.
     panel : str
         HTML put in the side panel under the counts (the diff's numbers and colour bar).
     frame : (center (3,), radius), optional
-        The world sphere of the first view (default: :func:`~recon_cli.eval.render.frame_of`
+        The world sphere of the first view (default: ``recon_cli.eval.render.frame_of``
         of every layer).
 
     Returns
@@ -209,7 +209,7 @@ def diff_panel(row: dict[str, Any], vmax: float, largest: float, unit: str | Non
     Parameters
     ----------
     row : dict
-        :func:`recon_cli.eval.metrics.compare_meshes`'s result.
+        ``recon_cli.eval.metrics.compare_meshes``'s result.
     vmax, largest : float
         The top of the colour scale and the largest distance shown.
     unit : str, optional
@@ -289,7 +289,7 @@ def make_page(
     view : str or (azimuth, elevation)
         The first view (see :func:`html_page`).
     samples, seed, taus
-        As in :func:`recon_cli.eval.metrics.compare_meshes` (with ``reference`` only).
+        As in ``recon_cli.eval.metrics.compare_meshes`` (with ``reference`` only).
     vmax : float, optional
         The top of the colour scale (default: ``recon diff``'s).
     unit : str, optional
@@ -305,10 +305,10 @@ def make_page(
         The HTML page.
     report : dict
         ``kind`` ("mesh" or "cloud"), ``vertices``, ``faces``, ``bytes`` (of the page),
-        ``view`` (azimuth, elevation), ``up``, ``frame`` (``center``, ``radius``), ``three`` (version
-        of three.js), ``diff`` (the :func:`~recon_cli.eval.metrics.compare_meshes` row, None
-        without a reference) and ``scale`` (``vmax``, ``largest``, ``labels``: the colour bar's
-        texts top first, then the note; None without a reference).
+        ``view`` (azimuth, elevation), ``up``, ``frame`` (``center``, ``radius``), ``three``
+        (version of three.js), ``diff`` (the ``recon_cli.eval.metrics.compare_meshes`` row,
+        None without a reference) and ``scale`` (``vmax``, ``largest``, ``labels``: the colour
+        bar's texts top first, then the note; None without a reference).
     """
     from recon_cli.eval.render import frame_of, resolve_views
 

@@ -1,8 +1,9 @@
 // recon view: the page's own script, over RECON3 (the three.js bundle inlined before it).
 // The first view is recon's rasteriser's camera (recon_cli/eval/render.py): orthographic, y up,
 // the frame's sphere over 92 % of the canvas's smaller side, flat two-sided Lambert shading under
-// a headlight. Tests wait on window.reconReady; window.reconFirstFrameMs is the time of the first
-// frame since the navigation started.
+// a headlight. Tests wait on window.reconReady (or window.reconError); window.reconFirstFrameMs is
+// the time of the first frame since the navigation started, window.reconTimes the script's start,
+// the geometry decoded and the first animation frame after the first frame.
 window.addEventListener("error", (e) => {
   window.reconError = String(e.message);
 });
