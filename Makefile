@@ -17,13 +17,19 @@ PYTEST_ARGS ?=
 all: test
 
 # Open3D links against libusb-1.0 at import; install it when missing (machines run as root).
-# The tests of `recon view` open its pages in Debian's chromium (headless, driven by Playwright).
+# `make viewer` needs npm; the tests of `recon view` open its pages in Debian's chromium (headless,
+# driven by Playwright).
 # recon warmup compiles the ballpivot/mcubes kernels ahead of time with a C compiler: gcc when none is found.
 sysdeps:
 	@if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
 		echo "installing libusb-1.0-0 (needed by open3d)"; \
 		SUDO=""; [ "$$(id -u)" -eq 0 ] || SUDO="sudo"; \
 		$$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq libusb-1.0-0 >/dev/null; \
+	fi
+	@if ! command -v npm >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1; then \
+		echo "installing npm (make viewer bundles three.js for recon view's pages)"; \
+		SUDO=""; [ "$$(id -u)" -eq 0 ] || SUDO="sudo"; \
+		$$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq nodejs npm >/dev/null; \
 	fi
 	@if ! command -v chromium >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1; then \
 		echo "installing chromium (the tests of recon view's pages drive it headless)"; \
@@ -67,6 +73,7 @@ $(STAMP): $(CORE)
 VIEWER_JS  := recon_cli/eval/viewer/three.min.js
 VIEWER_NPM := tools/viewer
 $(VIEWER_JS): $(VIEWER_NPM)/package.json $(VIEWER_NPM)/package-lock.json $(VIEWER_NPM)/three-entry.js
+	@$(MAKE) --no-print-directory sysdeps
 	npm ci --prefix $(VIEWER_NPM) --no-audit --no-fund --loglevel=error
 	$(VIEWER_NPM)/node_modules/.bin/esbuild $(VIEWER_NPM)/three-entry.js --bundle --minify \
 		--format=iife --global-name=RECON3 --target=es2020 --log-level=warning \

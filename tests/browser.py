@@ -79,12 +79,17 @@ class Opened:
         self.page.close()  # type: ignore[attr-defined]
 
 
-def open_page(context, path: str | Path, size: tuple[int, int] = (760, 480)) -> Opened:
+def open_page(
+    context, path: str | Path, size: tuple[int, int] = (760, 480), init: str | None = None
+) -> Opened:
     """Open the page file ``path`` in a new tab of ``size`` (CSS pixels); wait for its first frame.
 
-    Every request the page makes other than the file itself is recorded and refused.
+    Every request the page makes other than the file itself is recorded and refused. ``init``:
+    a script run in the tab before the page's own.
     """
     page = context.new_page()
+    if init is not None:
+        page.add_init_script(init)
     page.set_viewport_size({"width": size[0], "height": size[1]})
     opened = Opened(page)
     page.on("console", lambda m: opened.console.append((m.type, m.text)))

@@ -212,6 +212,19 @@ def test_page_draws_our_rasteriser_silhouette(shapes, browser, name):
         opened.close()
 
 
+def test_page_decodes_without_native_base64(shapes, browser):
+    """Browsers without Uint8Array.fromBase64 (it is recent) take the page's atob path."""
+    d, objs = shapes
+    opened = open_page(browser, d / "torus.html", SIZE, init="delete Uint8Array.fromBase64;")
+    try:
+        assert opened.value("typeof Uint8Array.fromBase64") == "undefined"
+        assert opened.console_errors() == []
+        ours = render(objs["torus"], "iso", size=CANVAS).mask
+        assert iou(silhouette(opened.canvas()), ours) >= 0.98
+    finally:
+        opened.close()
+
+
 def test_first_frame_of_a_200k_face_mesh_is_quick(tmp_path, browser):
     v, f = torus(1.0, 0.3, 500, 200)
     write_ply(TriangleMesh(v, f), tmp_path / "t.ply")
