@@ -380,7 +380,7 @@ def view_files(
     if "title" not in kwargs:
         name = os.path.basename(where)
         kwargs["title"] = name if diff is None else f"{name} against {os.path.basename(diff)}"
-    with naming(path):
+    with naming(where if diff is None else f"{where} vs {os.fspath(diff)}"):
         doc, report = make_page(obj, reference, **kwargs)
     write_bytes(out, doc)
     where_out = "<stdout>" if str(out) == "-" else os.fspath(out)
