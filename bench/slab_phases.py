@@ -40,7 +40,7 @@ def breakdown(slab) -> dict[str, float]:
 
 
 def main(n: int, depth: int, slabs: int, watch: int = 1) -> list[dict]:
-    from recon_cli.batch.steps import LocalRunner
+    from recon_cli.slabs.runners import LocalRunner
     from recon_cli.io.ply import read_ply
     from recon_cli.memory import release_free_heap, rss_mb
     from recon_cli.mesh.sampling import sample_surface

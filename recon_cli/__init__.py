@@ -5,7 +5,9 @@ The library is free of click and never exits the process; the command line lives
 for numpy. Every registered stage is a function here, made from its declaration
 (:mod:`recon_cli.api`): ``recon_cli.normals(cloud, knn=30)``, ``recon_cli.poisson(...)``,
 ``recon_cli.fit_sdf(...)``; ``recon_cli.read(path)`` and ``recon_cli.write(obj, path)`` read
-and write every format. ``__init__.pyi`` types them (``python -m recon_cli.tools.stubs``).
+and write every format; ``with recon_cli.run_on(workers=2, memory="6GB"):`` says where the stages
+in the block run (:mod:`recon_cli.execution`). ``__init__.pyi`` types them (``python -m
+recon_cli.tools.stubs``).
 """
 
 from __future__ import annotations
@@ -34,6 +36,8 @@ _LAZY = {
     "register_stage": "recon_cli.stages",
     "StageSpec": "recon_cli.params",
     "Param": "recon_cli.params",
+    "Execution": "recon_cli.execution",
+    "run_on": "recon_cli.execution",
 }
 
 

@@ -15,6 +15,8 @@ from recon_cli.errors import OutputError as OutputError
 from recon_cli.errors import ParameterError as ParameterError
 from recon_cli.errors import ReconError as ReconError
 from recon_cli.errors import StageFailed as StageFailed
+from recon_cli.execution import Execution as Execution
+from recon_cli.execution import run_on as run_on
 from recon_cli.geometry import PointCloud as PointCloud
 from recon_cli.geometry import TriangleMesh as TriangleMesh
 from recon_cli.geometry import geometry_from as geometry_from
@@ -53,10 +55,6 @@ def normals(
     direction: tuple[float, float, float] | None = None,
     curvature: bool = False,
     neighbours: Literal["auto", "kdtree", "pixels"] = "auto",
-    workers: int | None = None,
-    scheduler: Any = None,
-    partitions: int | None = None,
-    memory_limit: Any = None,
     backend: Literal["native", "open3d"] = "native",
     progress: Progress | bool | None = None,
 ) -> PointCloud:
@@ -79,10 +77,6 @@ def poisson(
     envelope: Any = None,
     grid: Any = None,
     estimate_normals: bool = False,
-    workers: int | None = None,
-    scheduler: Any = None,
-    partitions: int | None = None,
-    memory_limit: Any = None,
     backend: Literal["native", "open3d", "pymeshlab"] = "native",
     progress: Progress | bool | None = None,
 ) -> TriangleMesh:
@@ -194,6 +188,7 @@ def filter(
 
 __all__ = [
     "BackendError",
+    "Execution",
     "Grid",
     "InputError",
     "OutputError",
@@ -219,6 +214,7 @@ __all__ = [
     "read_ply",
     "register_stage",
     "repair",
+    "run_on",
     "save",
     "sdf",
     "simplify",

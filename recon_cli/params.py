@@ -364,6 +364,11 @@ class StageSpec:
         command's process, when the parameters call for it (``poisson --workers``):
         ``f(input, output, params, *, save_kw, ascii, progress)`` writes OUT and returns the
         report, or returns None (the command then loads IN and runs the stage).
+    execution : tuple of str
+        The options of :class:`recon_cli.execution.Execution` the stage honours (``workers``,
+        ``scheduler``, ``partitions``, ``memory``, ``temp_dir``): its command takes them
+        (declared once in :data:`recon_cli.execution.PARAMS`) and runs the stage in
+        :func:`recon_cli.execution.run_on` them.
     """
 
     name: str
@@ -379,6 +384,7 @@ class StageSpec:
     keeps: tuple[str, ...] = ()
     keeps_partial: bool = False
     from_files: str | None = None
+    execution: tuple[str, ...] = ()
     run: Callable[..., Any] | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:

@@ -32,13 +32,17 @@ class Interrupted:
 
 
 def interrupt_when(
-    argv: list[str], ready: Callable[[], Any], what: str, group: bool = True
+    argv: list[str],
+    ready: Callable[[], Any],
+    what: str,
+    group: bool = True,
+    signum: int = signal.SIGINT,
 ) -> Interrupted:
-    """Run ``argv`` in its own session, SIGINT it once ``ready()`` holds (within 120 s).
+    """Run ``argv`` in its own session, signal it once ``ready()`` holds (within 120 s).
 
-    The signal goes to its process group (Ctrl-C on a terminal) or, ``group`` False, to the
-    process alone. A run that does not end within 60 s after it is killed (the test fails).
-    ``what`` names the awaited state in the failure message.
+    The signal (``signum``, SIGINT by default) goes to its process group (Ctrl-C on a
+    terminal) or, ``group`` False, to the process alone. A run that does not end within 60 s
+    after it is killed (the test fails). ``what`` names the awaited state in the failure message.
     """
     import psutil
 
@@ -53,9 +57,9 @@ def interrupt_when(
             time.sleep(0.02)
         family = psutil.Process(proc.pid).children(recursive=True)
         if group:
-            os.killpg(proc.pid, signal.SIGINT)
+            os.killpg(proc.pid, signum)
         else:
-            proc.send_signal(signal.SIGINT)
+            proc.send_signal(signum)
         t0 = time.monotonic()
         _, err = proc.communicate(timeout=60)
         seconds = time.monotonic() - t0

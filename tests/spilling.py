@@ -13,12 +13,12 @@ def spilling_runner(
 ) -> tuple[Callable[..., Any], list[int]]:
     """A ``make_runner`` stand-in and the list it fills.
 
-    The runner is a :class:`recon_cli.batch.steps.DaskRunner` writing every state and every
+    The runner is a :class:`recon_cli.slabs.runners.DaskRunner` writing every state and every
     argument the parts share to ``folder`` (thresholds 0); it asserts that the stage asked for a
     spill folder. After each step the list gets the count of state files in ``folder``;
     ``before(name)`` runs before step ``name``.
     """
-    from recon_cli.batch import steps
+    from recon_cli.slabs import runners as steps
 
     seen: list[int] = []
 

@@ -94,20 +94,24 @@ def test_camera_towards_each_points_own_scanner():
 
 def test_refused():
     p = np.random.default_rng(1).normal(size=(100, 3))
-    with pytest.raises(ParameterError, match="partitions must be an integer with 1 <= x <= 32"):
+    with pytest.raises(ParameterError, match="--partitions must be 1..32 for normals, got 33"):
         distributed_normals(p, partitions=33)
     with pytest.raises(ParameterError, match="keep needs input normals"):
         distributed_normals(p, orient="keep", partitions=2)
 
 
 @pytest.mark.slow
-def test_command_keeps_every_property_and_row(tmp_path, monkeypatch, capsys):
-    """``recon normals IN OUT --workers 2``: IN read by chunks (never whole by the command),
-    OUT written a chunk at a time: the same rows in the same order with every property of
-    IN, and the single-process normals."""
+@pytest.mark.parametrize("where", [["--workers", "2"], ["--memory", "1GiB"]])
+def test_command_keeps_every_property_and_row(tmp_path, monkeypatch, capsys, where):
+    """``recon normals IN OUT --workers 2``, or in this process with a memory too small for IN
+    in one piece (at a patched bytes per point: 3 slabs): IN read by chunks (never whole by the
+    command), OUT written a chunk at a time: the same rows in the same order with every
+    property of IN, and the single-process normals."""
     import recon_cli.io.chunks as C
     import recon_cli.io.load as L
     from recon_cli.cli.main import main
+    from recon_cli.slabs.plan import SLAB_MEMORY_SHARE
+    from recon_cli.stages.normals import distributed as D
 
     c = sampled_cloud("kitten", 12_000, 0.0, 2)
     rng = np.random.default_rng(6)
@@ -125,22 +129,30 @@ def test_command_keeps_every_property_and_row(tmp_path, monkeypatch, capsys):
         raise AssertionError("the command loaded IN")
 
     monkeypatch.setattr(L, "load", refuse)
+    bpp = 2.5 * SLAB_MEMORY_SHARE * 2**30 / len(cloud.points)
+    monkeypatch.setattr(D, "slab_bytes_per_point", lambda knn: bpp)
     with pytest.raises(SystemExit) as exc:
-        main(["normals", str(src), str(out), "--workers", "2", "--json"])
+        main(["normals", str(src), str(out), *where, "--json"])
     captured = capsys.readouterr()
     assert exc.value.code == 0, captured.err
     monkeypatch.undo()
     rep = json.loads(captured.out)
     assert rep["distributed"]["chunks"] == 3 and rep["points"] == len(cloud.points)
     assert rep["stage"] == "normals" and rep["backend"] == "native" and "read" not in rep
-    assert set(rep["timings"]) >= {"stage", "write"} and rep["distributed"]["cluster"]["workers"]
+    assert set(rep["timings"]) >= {"stage", "write"}
+    if where[0] == "--workers":
+        assert rep["distributed"]["cluster"]["workers"] == 2
+    else:
+        assert rep["distributed"]["partitions"]["count"] == 3 == rep["distributed"]["slabs"]
+        assert rep["distributed"]["partitions"]["why"].startswith("3 slabs in this process")
+    assert [f for f in os.listdir(tmp_path) if f.startswith(".recon")] == []
     got = load(str(out))
     assert np.array_equal(got.points, cloud.points)
     assert np.array_equal(got.colors, cloud.colors)
     assert np.array_equal(got.attributes["intensity"], cloud.attributes["intensity"])
     ref, _ = _single(cloud.points.astype(np.float64))
     assert (np.einsum("ij,ij->i", got.normals.astype(np.float64), ref) > 0.999).all()
-    assert got.history[-1].startswith("recon ") and "workers=2" in got.history[-1]
+    assert got.history[-1].startswith("recon ") and " normals " in got.history[-1]
 
 
 @pytest.fixture(scope="module")
@@ -173,23 +185,22 @@ def test_more_slabs_than_workers_spill_their_states(cluster, tmp_path, monkeypat
 def test_slab_count_from_the_workers_memory():
     """Without --partitions, the fewest slabs (whole rounds of the workers) whose one slab's
     neighbourhoods and graph fit a share of a worker's memory: more neighbours, more slabs;
-    at most 32."""
-    from recon_cli.stages.normals.distributed import MAX_SLABS, _slab_count, slab_bytes_per_point
-    from recon_cli.stages.poisson.distributed import SLAB_MEMORY_SHARE, slab_count
+    at most 32, and a cloud too large for 32 is refused with the memory it needs."""
+    from recon_cli.slabs.plan import SLAB_MEMORY_SHARE
+    from recon_cli.stages.normals.distributed import MAX_SLABS, slab_bytes_per_point, slab_count
 
     class Client:
         def scheduler_info(self):
             return {"workers": {"a": {"memory_limit": 2**32}, "b": {"memory_limit": 2**32}}}
 
     per_slab = SLAB_MEMORY_SHARE * 2**32 / slab_bytes_per_point(30)
-    n, rep = slab_count(None, int(2 * per_slab), Client(), slab_bytes_per_point(30), 32, "normals")
+    n, rep = slab_count(None, int(2 * per_slab), Client(), 30)
     assert n == 2 and rep["why"].startswith("one per worker")
-    n, _ = slab_count(
-        None, int(2 * per_slab) + 1, Client(), slab_bytes_per_point(30), 32, "normals"
-    )
-    assert n == 4
+    assert slab_count(None, int(2 * per_slab) + 1, Client(), 30)[0] == 4
     assert slab_bytes_per_point(60) > slab_bytes_per_point(30) == slab_bytes_per_point(None)
-    n, _ = slab_count(None, int(2 * per_slab), Client(), slab_bytes_per_point(60), 32, "normals")
-    assert n == 4
-    n, rep = _slab_count(None, 10**10, Client(), 30)
-    assert n == MAX_SLABS and rep["why"].startswith(f"capped at {MAX_SLABS} (the most slabs)")
+    assert slab_count(None, int(2 * per_slab), Client(), 60)[0] == 4
+    assert slab_count(None, int(MAX_SLABS * per_slab), Client(), 30)[0] == MAX_SLABS
+    with pytest.raises(ParameterError, match=r"normals: .* need at least \d+ MiB"):
+        slab_count(None, 10**10, Client(), 30)
+    # in this process: its budget
+    assert slab_count(None, int(3 * per_slab), None, 30, 2**32)[0] == 3

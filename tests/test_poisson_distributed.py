@@ -158,7 +158,7 @@ def test_states_pickled_between_steps_give_the_same_mesh(monkeypatch):
     arrays are not copied)."""
     import pickle
 
-    from recon_cli.batch import steps
+    from recon_cli.slabs import runners as steps
     from recon_cli.stages.poisson import distributed as D
     from recon_cli.stages.poisson import slab as S
 
@@ -381,73 +381,6 @@ def test_a_slab_reads_its_part_of_a_global_density_table():
 # ---- the slab count -----------------------------------------------------------------------
 
 
-def test_default_partitions_from_the_workers_memory():
-    """One slab per worker when a slab fits the worker's share; a cloud four times too big takes
-    four per worker; a count rounded up to whole rounds of the workers, capped at 64 (beyond 32,
-    seams on level-6 planes); no limit: one per worker."""
-    from recon_cli.stages.poisson.distributed import (
-        SLAB_BYTES_PER_POINT,
-        SLAB_MEMORY_SHARE,
-        default_partitions,
-    )
-
-    mem = 8 * 2**30
-    per_slab = SLAB_MEMORY_SHARE * mem / SLAB_BYTES_PER_POINT  # the points one slab may hold
-    fits = int(4 * per_slab)
-    assert default_partitions(fits, 4, mem) == 4
-    assert default_partitions(fits + 1, 4, mem) == 8
-    assert default_partitions(4 * fits, 4, mem) == 16
-    assert default_partitions(5 * int(per_slab), 3, mem) == 6
-    assert default_partitions(10, 4, mem) == 4
-    assert default_partitions(0, 1, mem) == 1
-    assert default_partitions(100 * fits, 4, mem) == 64
-    assert default_partitions(int(31 * per_slab), 3, mem) == 33  # 11 rounds of 3
-    assert default_partitions(int(63 * per_slab), 5, mem) == 64  # 13 rounds of 5: 65
-    assert default_partitions(10**9, 4, None) == 4
-    assert default_partitions(10**9, 4, 0) == 4
-    assert default_partitions(10, 80, mem) == 64
-    with pytest.raises(ParameterError, match="workers must be >= 1"):
-        default_partitions(10, 0, mem)
-
-
-class _Client:
-    """A client stand-in: the scheduler's view of ``workers`` workers of ``memory`` bytes."""
-
-    def __init__(self, limits):
-        self.limits = limits
-
-    def scheduler_info(self):
-        return {"workers": {f"w{i}": {"memory_limit": m} for i, m in enumerate(self.limits)}}
-
-
-def test_slab_count_says_how_many_and_why(caplog):
-    from recon_cli.stages.poisson.distributed import (
-        SLAB_BYTES_PER_POINT,
-        SLAB_MEMORY_SHARE,
-        slab_count,
-    )
-
-    mem = 2**30
-    per_slab = int(SLAB_MEMORY_SHARE * mem / SLAB_BYTES_PER_POINT)
-    # the smallest worker's limit decides; a worker without one does not
-    n, rep = slab_count(None, 3 * per_slab, _Client([mem, 2 * mem, 0]))
-    assert n == 3 and rep["count"] == 3 and rep["memory_per_worker"] == mem
-    assert rep["why"].startswith("one per worker: a slab (~")
-    assert f"fits {SLAB_MEMORY_SHARE:.0%} of a worker's 1 GiB" in rep["why"]
-    n, rep = slab_count(None, 2 * 3 * per_slab, _Client([mem, 2 * mem, 0]))
-    assert n == 6 and rep["why"].startswith("2 per worker")
-    n, rep = slab_count(5, 2 * 3 * per_slab, _Client([mem] * 3))
-    assert n == 5 and rep["why"] == "given (--partitions)"
-    n, rep = slab_count(None, 10**9, _Client([0, None]))
-    assert n == 2 and rep["why"] == "one per worker: the workers have no memory limit"
-    assert rep["memory_per_worker"] is None
-    with caplog.at_level("WARNING", logger="recon"):
-        n, rep = slab_count(None, 128 * per_slab, _Client([mem]))
-    assert n == 64 and rep["why"].startswith("capped at 64 (the seams are level-6 planes)")
-    assert "may not fit" in rep["why"] and "may not fit" in caplog.text
-    assert slab_count(None, 10**9, None)[0] == 1  # no cluster: this process, one slab
-
-
 def test_no_partitions_in_memory_is_one_slab_here():
     """Without a cluster and ``partitions=None``, this process runs one slab: the
     single-process mesh, and the report says so."""
@@ -490,7 +423,7 @@ def _kill_a_worker_soon(pids: dict, killed: list[int]) -> None:
 def test_killed_worker_mid_solve_gives_the_same_mesh(cluster):
     """A worker SIGKILLed while the slabs solve: its slabs are recomputed on a live worker and
     the mesh is the one an undisturbed run gives, bit for bit."""
-    from recon_cli.batch import steps
+    from recon_cli.slabs import runners as steps
 
     pts, nrm = sphere_cloud(12_000, seed=11)
     ref = distributed_poisson(pts, nrm, depth=7, partitions=2, client=cluster)
@@ -545,7 +478,7 @@ def test_parts_spread_by_their_loads(cluster):
     a slab's load is the points it reads, its pads included."""
     from types import SimpleNamespace
 
-    from recon_cli.batch import steps
+    from recon_cli.slabs import runners as steps
     from recon_cli.stages.poisson.distributed import make_job, plan_slabs, slab_loads
 
     def where(state):
@@ -586,7 +519,7 @@ def test_spilled_parts_keep_one_file_each(cluster, tmp_path):
     import time
     from types import SimpleNamespace
 
-    from recon_cli.batch import steps
+    from recon_cli.slabs import runners as steps
 
     def add(state, x):
         state.v = state.v + x
@@ -631,7 +564,7 @@ def test_an_argument_all_parts_share_is_written_once(cluster, tmp_path, monkeypa
     the file."""
     from types import SimpleNamespace
 
-    from recon_cli.batch import steps
+    from recon_cli.slabs import runners as steps
 
     big = np.arange(1000, dtype=np.float64)
 
@@ -786,18 +719,19 @@ def test_command_reads_the_file_by_chunks(tmp_path, monkeypatch, capsys):
 
 @pytest.mark.slow
 def test_command_reports_the_slab_count_and_why(tmp_path, monkeypatch, capsys):
-    """``--workers 2 --memory-limit 2GiB`` without ``--partitions``, on a cloud whose slab
-    (at a patched bytes per point) fits a worker's share three times over: four slabs, two per
-    worker, and ``--json`` says so; with ``--partitions 3``, three, given."""
+    """``--workers 2 --memory 5GiB`` (2 GiB a worker) without ``--partitions``, on a cloud
+    whose slab (at a patched bytes per point) fits a worker's share three times over: four
+    slabs, two per worker, and ``--json`` says so; with ``--partitions 3``, three, given."""
+    from recon_cli.slabs.plan import SLAB_MEMORY_SHARE
     from recon_cli.stages.poisson import distributed as D
 
     pts, nrm = sphere_cloud(6000, seed=15)
     src = tmp_path / "sphere.ply"
     save(PointCloud(points=pts, normals=nrm), str(src))
     mem = 2 * 2**30
-    monkeypatch.setattr(D, "SLAB_BYTES_PER_POINT", 3 * D.SLAB_MEMORY_SHARE * mem / len(pts))
+    monkeypatch.setattr(D, "SLAB_BYTES_PER_POINT", 3 * SLAB_MEMORY_SHARE * mem / len(pts))
     argv = ["poisson", str(src), str(tmp_path / "m.ply"), "--workers", "2", "--depth", "7"]
-    argv += ["--memory-limit", "2GiB", "--json", "-q"]
+    argv += ["--memory", "5GiB", "--json", "-q"]
     for extra, count, why in (
         ([], 4, "2 per worker: a slab (~"),
         (["--partitions", "3"], 3, "given"),
@@ -815,9 +749,12 @@ def test_command_reports_the_slab_count_and_why(tmp_path, monkeypatch, capsys):
 @pytest.mark.parametrize(
     "args, msg",
     [
-        (["--partitions", "2"], "--partitions and --memory-limit go with --workers"),
+        (["--partitions", "2", "--grid", "g.npz"], "--grid is not available in slabs"),
+        (["--partitions", "2", "--trim", "auto"], "--trim auto is not available in slabs"),
+        (["--memory", "10MB"], "--memory must be a size of at least 256 MiB"),
+        (["--temp-dir", "/nonexistent/x"], "--temp-dir /nonexistent/x: no such folder"),
         (["--workers", "2", "--degree", "1"], "uses degree 2"),
-        (["--workers", "2", "--scheduler", "tcp://x:1"], "leave them out with --scheduler"),
+        (["--workers", "2", "--scheduler", "tcp://x:1"], "give one of them"),
         (["--workers", "2", "--backend", "open3d"], "native solver"),
         (["--workers", "2", "--boundary", "free"], "--boundary free is not available with"),
         (["--workers", "2", "--grid", "g.npz"], "--grid is not available with --workers"),
@@ -858,4 +795,175 @@ def test_ctrl_c_mid_job_leaves_nothing(tmp_path):
     assert run.err.strip() == "recon: interrupted", run.err
     _, alive = psutil.wait_procs(run.family, timeout=10)
     assert alive == [], [(p.pid, p.name()) for p in alive]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sphere.ply"]
+
+
+# ---- in slabs in this process (out of core) -------------------------------------------------
+
+
+def _refuse_loading(monkeypatch):
+    import recon_cli.io.load as L
+
+    def refuse(*a, **k):
+        raise AssertionError("the command loaded IN")
+
+    monkeypatch.setattr(L, "load", refuse)
+
+
+@pytest.mark.slow
+def test_out_of_core_command_reads_the_file_by_chunks_in_this_process(
+    tmp_path, monkeypatch, capsys
+):
+    """``recon poisson IN OUT --memory 1GiB`` on a cloud too large for that in one piece (at
+    a patched bytes per point): this process runs 3 slabs from IN's chunks, never loading IN;
+    the mesh is the in-memory run's in 3 slabs, closed and one piece; the spill folder beside OUT
+    is gone; the report says how many slabs and why."""
+    import recon_cli.io.chunks as C
+    from recon_cli.slabs.plan import SLAB_MEMORY_SHARE
+    from recon_cli.stages.poisson import distributed as D
+
+    pts, nrm = sphere_cloud(9000, seed=21)
+    src = tmp_path / "sphere.ply"
+    save(PointCloud(points=pts, normals=nrm), str(src))
+    monkeypatch.setattr(C, "CHUNK_ROWS", 4000)  # three chunks
+    mem = 2**30
+    monkeypatch.setattr(D, "SLAB_BYTES_PER_POINT", 2.5 * SLAB_MEMORY_SHARE * mem / len(pts))
+    _refuse_loading(monkeypatch)
+    out = tmp_path / "mesh.ply"
+    code = _recon(["poisson", str(src), str(out), "--depth", "7", "--memory", "1GiB", "--json"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    monkeypatch.undo()
+    rep = json.loads(captured.out)["distributed"]
+    assert rep["chunks"] == 3 and rep["cluster"]["workers"] == 0
+    assert rep["partitions"]["count"] == 3 == len(rep["slabs"])
+    assert rep["partitions"]["why"].startswith("3 slabs in this process: a slab (~")
+    assert "of this process's 1 GiB" in rep["partitions"]["why"]
+    mesh = load(str(out))
+    _closed_one_piece(mesh)
+    ref = distributed_poisson(pts, nrm, depth=7, partitions=3).mesh
+    assert len(ref.vertices) == len(mesh.vertices) and len(ref.faces) == len(mesh.faces)
+    assert np.allclose(np.sort(ref.vertices, axis=0), np.sort(mesh.vertices, axis=0), atol=1e-12)
+    assert sorted(os.listdir(tmp_path)) == ["mesh.ply", "sphere.ply"]
+
+
+def test_spilled_states_give_the_same_mesh(tmp_path, monkeypatch):
+    """In this process with every state written to its file between steps (out of core), the
+    mesh is the in-memory slabs' to the bit; the states went to the folder given, which is
+    empty after the run."""
+    from recon_cli.slabs import runners
+
+    pts, nrm = sphere_cloud(6000, seed=22)
+    ref = distributed_poisson(pts, nrm, depth=7, partitions=3)
+    monkeypatch.setattr(runners, "SPILL_BYTES", 0)
+    got = distributed_poisson(pts, nrm, depth=7, partitions=3, temp_dir=str(tmp_path))
+    assert np.array_equal(got.mesh.vertices, ref.mesh.vertices)
+    assert np.array_equal(got.mesh.faces, ref.mesh.faces)
+    phases = got.report["distributed"]["phases"]
+    # two of the three states a step are written (the last one run stays in memory)
+    assert phases["solve"]["bytes_moved"] > 0 and phases["extract"]["bytes_moved"] > 0
+    assert ref.report["distributed"]["phases"]["solve"]["bytes_moved"] == 0
+    assert os.listdir(tmp_path) == []
+
+
+def test_run_on_memory_puts_the_library_call_in_slabs(monkeypatch):
+    """``recon_cli.poisson`` in ``run_on(memory=...)``: the cloud needs more than the memory in
+    one piece, so the stage runs in slabs in this process (the report says so) and the mesh is
+    the slabs' run; without the limit, the single-process solve."""
+    import recon_cli
+    from recon_cli.slabs.plan import SLAB_MEMORY_SHARE
+    from recon_cli.stages.poisson import distributed as D
+
+    pts, nrm = sphere_cloud(6000, seed=23)
+    cloud = PointCloud(points=pts, normals=nrm)
+    monkeypatch.setattr(D, "SLAB_BYTES_PER_POINT", 1.5 * SLAB_MEMORY_SHARE * 2**30 / len(pts))
+    with recon_cli.run_on(memory="1GiB"):
+        mesh = recon_cli.poisson(cloud, depth=7)
+    ref = distributed_poisson(pts, nrm, depth=7, partitions=2).mesh
+    assert np.array_equal(np.sort(mesh.vertices, axis=0), np.sort(ref.vertices, axis=0))
+    single = recon_cli.poisson(cloud, depth=7)
+    assert len(single.vertices) == len(screened_poisson(pts, nrm, depth=7).mesh.vertices)
+
+
+def test_a_memory_too_small_for_the_most_slabs_is_refused_up_front(tmp_path, monkeypatch, capsys):
+    """One line with the least memory that would do, exit 2, nothing written, IN not read."""
+    from recon_cli.stages.poisson import distributed as D
+
+    pts, nrm = sphere_cloud(3000, seed=24)
+    src = tmp_path / "s.ply"
+    save(PointCloud(points=pts, normals=nrm), str(src))
+    monkeypatch.setattr(D, "SLAB_BYTES_PER_POINT", 10**9)
+    _refuse_loading(monkeypatch)
+    out = tmp_path / "o.ply"
+    assert _recon(["poisson", str(src), str(out), "--memory", "2GB", "-q"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert "poisson: 3000 points need at least" in err and "this process's limit is 1.86 GiB" in err
+    assert sorted(os.listdir(tmp_path)) == ["s.ply"]
+
+
+def _tmpfs(path, size: str):
+    import subprocess
+
+    path.mkdir()
+    done = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)], capture_output=True
+    )
+    if done.returncode != 0:  # pragma: no cover - a machine that does not let us mount
+        pytest.skip(f"cannot mount a small file system here: {done.stderr.decode().strip()}")
+
+
+@pytest.mark.slow
+def test_a_full_disk_while_spilling_is_one_line_and_keeps_the_old_output(tmp_path):
+    """The spill folder on a 1 MiB file system: exit 1, one line naming the folder, the output
+    that was there before left as it was, nothing left in the folder (a real process, a real
+    full file system)."""
+    import subprocess
+    import sys
+
+    pts, nrm = sphere_cloud(20_000, seed=25)
+    src = tmp_path / "s.ply"
+    save(PointCloud(points=pts, normals=nrm), str(src))
+    out = tmp_path / "o.ply"
+    out.write_bytes(b"the old output")
+    small = tmp_path / "small"
+    _tmpfs(small, "1m")
+    try:
+        argv = [sys.executable, "-c", "import sys\n" + RUN_RECON, "-q", "poisson", str(src)]
+        argv.append(str(out))
+        argv += ["--depth", "7", "--partitions", "3", "--temp-dir", str(small)]
+        run = subprocess.run(argv, capture_output=True, text=True, timeout=600)
+        assert run.returncode == 1, run.stderr
+        err = run.stderr.strip()
+        assert err == f"recon: error: {small}: no space left on device for the run's spill files"
+        assert out.read_bytes() == b"the old output"
+        assert os.listdir(small) == []
+    finally:
+        subprocess.run(["umount", str(small)], check=False)
+
+
+@pytest.mark.slow
+def test_sigterm_mid_out_of_core_run_leaves_nothing(tmp_path):
+    """SIGTERM once the chunks are sorted into the spill folder beside OUT: exit 143, one line,
+    no output, no folder (a real process)."""
+    import sys
+
+    pts, nrm = sphere_cloud(60_000, seed=26)
+    src = tmp_path / "sphere.ply"
+    save(PointCloud(points=pts, normals=nrm), str(src))
+    out = tmp_path / "mesh.ply"
+    argv = [sys.executable, "-c", "import sys\n" + RUN_RECON, "poisson", str(src), str(out)]
+    argv += ["--partitions", "4", "--depth", "9"]
+    run = interrupt_when(
+        argv,
+        lambda: (
+            list(tmp_path.glob(".recon-poisson-*/states/*.state"))
+            or list(tmp_path.glob(".recon-poisson-*/c00000.pts.npy"))
+        ),
+        "no spill file",
+        group=False,
+        signum=signal.SIGTERM,
+    )
+    assert run.returncode == 143, run.err
+    assert run.err.strip() == "recon: terminated", run.err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["sphere.ply"]

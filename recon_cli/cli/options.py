@@ -133,6 +133,27 @@ def option_for(p) -> click.Option:
     return click.Option([p.option, p.name], type=str, default=None, metavar=metavar, help=help_text)
 
 
+def execution_opts(f):
+    """The options of :class:`recon_cli.execution.Execution` (``recon run``'s)."""
+    from recon_cli.execution import PARAMS
+
+    for p in reversed(PARAMS):
+        f.__click_params__ = [*getattr(f, "__click_params__", []), option_for(p)]
+    return f
+
+
+def execution_values(given: dict, output: str | None) -> dict:
+    """The execution options given, the spill folder's parent defaulting to OUT's folder."""
+    from recon_cli.execution import Execution
+
+    where = {k: v for k, v in given.items() if v is not None}
+    if "temp_dir" not in where and given:  # spill files on the disk the output goes to
+        parent = Execution().spill_parent(output)
+        if parent is not None:
+            where["temp_dir"] = parent
+    return where
+
+
 def stage_command(stage: str) -> click.Command:
     """The ``recon STAGE IN OUT [options]`` command, built from the stage's declaration.
 
@@ -142,23 +163,30 @@ def stage_command(stage: str) -> click.Command:
     """
     import inspect
 
+    from recon_cli.execution import PARAMS as EXECUTION_PARAMS
     from recon_cli.stages import get_spec
 
     spec = get_spec(stage)
     names = [p.name for p in spec.params]
+    how = [p for p in EXECUTION_PARAMS if p.name in spec.execution]
 
     @click.pass_context
     def callback(
         ctx: click.Context, input: str, output: str, ascii_: bool, json_: bool, **values
     ) -> None:
         from recon_cli.cli._run import run_stage_command
+        from recon_cli.execution import run_on
 
         given = {
             k: values[k]
             for k in names
             if ctx.get_parameter_source(k) is not click.core.ParameterSource.DEFAULT
         }
-        report = run_stage_command(ctx, spec.name, input, output, given, ascii_=ascii_, json_=json_)
+        where = execution_values({p.name: values[p.name] for p in how}, output)
+        with run_on(**where):
+            report = run_stage_command(
+                ctx, spec.name, input, output, given, ascii_=ascii_, json_=json_
+            )
         if spec.keeps_partial and report.get("interrupted"):
             # the stage caught Ctrl-C and returned its best result, which is written: still 130
             from recon_cli.cli.exits import EXIT_INTERRUPTED
@@ -182,6 +210,7 @@ def stage_command(stage: str) -> click.Command:
         click.Option(["--json", "json_"], is_flag=True, help=JSON_HELP),
     ]
     params += [option_for(p) for p in spec.params]
+    params += [option_for(p) for p in how]
     params += format_params()
     return click.Command(
         spec.name, callback=callback, params=params, help=doc, short_help=spec.summary

@@ -32,6 +32,7 @@ from recon_cli.cli import options
 @options.input_format_opt
 @options.output_format_opt
 @options.points_only_opt
+@options.execution_opts
 @click.pass_context
 def cmd(
     ctx: click.Context,
@@ -42,12 +43,14 @@ def cmd(
     validate: bool,
     ascii_: bool,
     json_: bool,
+    **how: str | None,
 ) -> None:
     """Run the stages listed in PIPELINE.toml on IN and write OUT.
 
     The whole pipeline is checked before anything runs: unknown stages or parameters,
     values of the wrong type or out of range, and stages that do not fit together (each
     error names the file and line); then IN is read and checked against the first stage.
+    The execution options (--workers, --memory, ...) apply to every stage that honours them.
     """
     from recon_cli.cli._run import emit_report, io_formats, make_progress
     from recon_cli.errors import ParameterError
@@ -75,13 +78,14 @@ def cmd(
         raise click.UsageError("missing IN and OUT (or pass --validate)")
     from recon_cli.cli._signals import immediate
     from recon_cli.errors import naming
+    from recon_cli.execution import run_on
     from recon_cli.io.atomic import check_output
     from recon_cli.io.load import load, read_report, save
 
     check_output(output)
     t0 = time.perf_counter()
     load_kw, save_kw = io_formats(ctx, input, output)
-    with immediate():
+    with run_on(**options.execution_values(how, output)), immediate():
         data = load(input, **load_kw)
         with naming(input):
             check_input(pipe, data, input)

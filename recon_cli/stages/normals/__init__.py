@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from recon_cli.errors import InputError, ParameterError
+from recon_cli.execution import current
 from recon_cli.geometry import SCAN_ATTRIBUTE, PointCloud, as_point_cloud, local_origin
 from recon_cli.params import Param, StageSpec
 from recon_cli.progress import task
@@ -112,43 +113,9 @@ SPEC = StageSpec(
             "organized cloud with --knn, else kdtree.",
             choices=NEIGHBOUR_METHODS,
         ),
-        Param(
-            "workers",
-            "int",
-            None,
-            "Estimate on a local Dask cluster of N worker processes, the cloud in slabs with "
-            "halos (orientation joined across slabs); the workers read IN by chunks.",
-            min=1,
-            max=1024,
-        ),
-        Param(
-            "scheduler",
-            "any",
-            None,
-            "Estimate as --workers does on the existing Dask cluster at this address "
-            "(tcp://host:8786); IN and the output folder on a file system its workers share.",
-            metavar="ADDRESS",
-        ),
-        Param(
-            "partitions",
-            "int",
-            None,
-            "Slabs of a --workers/--scheduler run; more slabs, less memory per worker "
-            "(default: the fewest, a multiple of the workers, whose one slab fits a share of a "
-            "worker's memory limit; one per worker without a limit; the report says why).",
-            min=1,
-            max=32,
-        ),
-        Param(
-            "memory_limit",
-            "any",
-            None,
-            "Memory per worker process of --workers' local cluster (e.g. 4GiB; 'none': no "
-            "limit; default: the machine's memory shared out).",
-            metavar="SIZE",
-        ),
     ),
     from_files="recon_cli.stages.normals.distributed:run_from_files",
+    execution=("workers", "scheduler", "partitions", "memory", "temp_dir"),
 )
 
 # an organized cloud's k nearest are taken among about this many times k pixels around a point
@@ -787,13 +754,13 @@ def run_stage(
     curvature: bool,
     neighbours: str,
     backend: str,
-    workers: int | None,
-    scheduler: str | None,
-    partitions: int | None,
-    memory_limit: Any,
     progress: Any = None,
 ) -> StageResult:
     """Stage ``normals``: estimate and orient normals of a cloud (or of a mesh's vertices).
+
+    Where it runs is the :func:`recon_cli.execution.current` execution's: in slabs on its Dask
+    cluster, in slabs in this process when the cloud needs more than its memory in one piece,
+    else in one piece.
 
     Parameters
     ----------
@@ -838,25 +805,17 @@ def run_stage(
         raise ParameterError("--curvature is not available with --backend open3d")
     if n == 0:
         raise InputError("the input has no points")
-    if workers is not None or scheduler is not None:
+    ex = current()
+    slabs = None
+    if not ex.distributed and backend == "native":
+        from recon_cli.stages.normals.distributed import slab_count
+
+        slabs = ex.partitions or slab_count(None, n, None, knn, ex.budget())[0]
+    if ex.distributed or (slabs or 1) > 1:
         check_distributed_neighbours(neighbours)
         return _run_distributed(
-            cloud,
-            knn,
-            radius,
-            method,
-            cam,
-            dirn,
-            curvature,
-            backend,
-            workers,
-            scheduler,
-            partitions,
-            memory_limit,
-            progress,
+            cloud, knn, radius, method, cam, dirn, curvature, backend, ex, slabs, progress
         )
-    if partitions is not None or memory_limit is not None:
-        raise ParameterError("--partitions and --memory-limit go with --workers or --scheduler")
     use_pixels = _use_pixels(neighbours, cloud.pixels, knn, radius, n)
     views: tuple | None = None
     if from_sensors:
@@ -991,36 +950,30 @@ def _open3d_normals(
 
 
 def _run_distributed(
-    cloud,
-    knn,
-    radius,
-    method,
-    cam,
-    dirn,
-    curvature,
-    backend,
-    workers,
-    scheduler,
-    partitions,
-    memory_limit,
-    progress,
+    cloud, knn, radius, method, cam, dirn, curvature, backend, ex, slabs, progress
 ) -> StageResult:
-    """:func:`run_stage` on a Dask cluster (:mod:`.distributed`), the cloud in memory."""
-    from recon_cli.batch.cluster import open_client
+    """:func:`run_stage` in slabs (:mod:`.distributed`), the cloud in memory.
+
+    On ``ex``'s Dask cluster, or in this process in ``slabs`` slabs.
+    """
+    import contextlib
+
     from recon_cli.stages.normals.distributed import distributed_normals
 
     if backend != "native":
         raise ParameterError("--workers/--scheduler run the native normals: leave out --backend")
-    if scheduler is not None and (workers is not None or memory_limit is not None):
-        raise ParameterError(
-            "--workers and --memory-limit size a local cluster; leave them out with --scheduler"
-        )
+    if ex.distributed:
+        from recon_cli.batch.cluster import open_client
+
+        opened: Any = open_client(ex.scheduler, ex.workers, ex.worker_memory(), stealing=False)
+    else:
+        opened = contextlib.nullcontext((None, {"workers": 0, "memory": ex.budget()}))
     views = None
     if method == "camera" and cam is None:  # each point towards its own scanner
         views = _sensor_views(
             cloud.sensors, cloud.attributes.get(SCAN_ATTRIBUTE), len(cloud), np.zeros(3)
         )
-    with open_client(scheduler, workers, memory_limit, stealing=False) as (client, info):
+    with opened as (client, info):
         nrm, curv, report = distributed_normals(
             cloud.points,
             cloud.normals,
@@ -1031,8 +984,9 @@ def _run_distributed(
             camera=cam,
             direction=dirn,
             curvature=curvature,
-            partitions=partitions,
+            partitions=slabs if slabs is not None else ex.partitions,
             client=client,
+            temp_dir=ex.spill_parent(),
             progress=progress,
         )
     out = cloud.copy()
@@ -1049,14 +1003,12 @@ def _run_distributed(
 
 
 def check_distributed_neighbours(neighbours: str) -> None:
-    """Refuse ``--neighbours pixels`` in a ``--workers`` / ``--scheduler`` run.
+    """Refuse ``--neighbours pixels`` in a run in slabs.
 
     Such a run finds neighbours with the kd-tree (a slab's pixels are not an image).
     """
     if neighbours == "pixels":
-        raise ParameterError(
-            "--neighbours pixels is not available with --workers/--scheduler (kd-tree only)"
-        )
+        raise ParameterError("--neighbours pixels is not available in slabs (kd-tree only)")
 
 
 # public names of the pieces the distributed normals (.distributed) run per slab

@@ -54,6 +54,8 @@ from typing import Any
 import numpy as np
 
 from recon_cli.errors import InputError, ParameterError
+from recon_cli.slabs.runners import map_tasks
+from recon_cli.slabs.spill import spill_folder
 
 # the slabs' axis is cut into this many sub-slabs; halos are whole sub-slabs
 SUB_SLABS = 256
@@ -103,7 +105,7 @@ class NSlab:
 
 
 def _timed(fn):
-    from recon_cli.stages.poisson.slab import timed
+    from recon_cli.slabs.runners import timed
 
     return timed(fn)
 
@@ -260,7 +262,7 @@ def _register_sizeof() -> None:
     try:  # dask is an extra (recon[batch])
         from dask.sizeof import sizeof
 
-        from recon_cli.stages.poisson.slab import state_bytes
+        from recon_cli.slabs.runners import state_bytes
     except ImportError:  # pragma: no cover
         return
     sizeof.register(NSlab)(state_bytes)
@@ -321,7 +323,7 @@ def bucket_rows(
 
 
 def _plan(counts: np.ndarray, parts: int, halo: int) -> list[tuple]:
-    from recon_cli.stages.poisson.distributed import choose_seams
+    from recon_cli.slabs.plan import choose_seams
 
     nsub = len(counts)
     per = nsub // MAX_SLABS
@@ -409,8 +411,8 @@ def _core(client, files, counts, frame, n_rows: int, p: dict, tmp: str, progress
     ``files``: per chunk its file prefix and sub-slab offsets. Returns each slab's output file
     prefix and the report's figures.
     """
-    from recon_cli.batch.steps import Overall
     from recon_cli.progress import task
+    from recon_cli.slabs.runners import Overall
 
     weights = {k: w for k, w in PHASE_WEIGHTS.items() if k != "flux" or p["orient"] == "mst"}
     with task(progress, "normals: the whole job", sum(weights.values())) as bar:
@@ -428,12 +430,12 @@ def make_runner(
 ) -> Any:
     """The runner of the slabs' steps on ``client``, or in this process without one.
 
-    ``spill_dir``: where a cluster's slab states wait between their steps (None: on the workers).
+    ``spill_dir``: where the slabs' states wait between their steps (None: in memory).
     """
-    from recon_cli.batch.steps import DaskRunner, LocalRunner
+    from recon_cli.slabs.runners import DaskRunner, LocalRunner
 
     if client is None:
-        return LocalRunner(slabs, progress, "normals", overall)
+        return LocalRunner(slabs, progress, "normals", overall, spill_dir)
     return DaskRunner(client, slabs, progress, "normals", overall, spill_dir)
 
 
@@ -462,7 +464,7 @@ def _core_steps(client, files, counts, frame, n_rows, p, tmp, progress, overall)
         slabs = [NSlab(k, parts, plan[k][0], plan[k][1], origin, size) for k in range(parts)]
         # more slabs than workers: a worker keeps only the slab it runs in memory
         spill = None
-        if client is not None and parts > p["workers"]:
+        if parts > max(p["workers"], 1):
             spill = os.path.join(tmp, f"states{_attempt}")
             os.makedirs(spill, exist_ok=True)
         runner = make_runner(client, slabs, progress, overall, spill)
@@ -548,11 +550,20 @@ def _gather(prefixes: list[str], n_rows: int, curvature: bool, tmp: str):
     return nrm, curv
 
 
-def _slab_count(partitions: int | None, npoints: int, client: Any, knn: int | None) -> tuple:
-    from recon_cli.stages.poisson.distributed import slab_count
+def slab_count(
+    partitions: int | None,
+    npoints: int,
+    client: Any,
+    knn: int | None,
+    budget: int | None = None,
+) -> tuple:
+    """The normals' slabs of a run and why (:func:`recon_cli.slabs.plan.slab_count`)."""
+    from recon_cli.slabs import plan
 
     bpp = slab_bytes_per_point(knn)
-    return slab_count(partitions, npoints, client, bpp, MAX_SLABS, "normals", "the most slabs")
+    return plan.slab_count(
+        partitions, npoints, client, bpp, MAX_SLABS, "normals", "the most slabs", budget
+    )
 
 
 def _frame(lo, hi, perm_axis_longest=True):
@@ -576,34 +587,34 @@ def distributed_normals(
     partitions: int | None = 2,
     sensors: tuple | None = None,
     client: Any = None,
+    budget: int | None = None,
+    temp_dir: str | None = None,
     progress: Any = None,
 ) -> tuple[np.ndarray, np.ndarray | None, dict]:
     """Normals of a cloud given in memory, in ``partitions`` slabs (module docstring).
 
     On the Dask ``client``'s cluster, or else all in this process. ``partitions`` None: the
-    fewest slabs whose one slab fits a share of a worker's memory limit
-    (:func:`slab_bytes_per_point`, :func:`.poisson.distributed.slab_count`; one per worker
-    without a limit, one without a client). ``sensors``: for ``orient=
+    fewest slabs whose one slab fits a share of a worker's memory limit, or without a client of
+    this process's ``budget`` of bytes (:func:`slab_count`; one per worker without a limit).
+    The slabs' files go in a folder in ``temp_dir`` (None: the system's). ``sensors``: for ``orient=
     "camera"`` without ``camera``, ``(positions, directions, is_direction, which)`` as
     :func:`.sensor_views` gives them (about the origin: world coordinates). Returns the oriented
     normals, the curvature (or None) and the report.
     """
-    import shutil
-    import tempfile
-
     from recon_cli.geometry import PointCloud
     from recon_cli.stages.normals import SPEC, check_knn, check_orient, check_points
 
     knn, radius = check_knn(knn, radius)
     method, cam, dirn = check_orient(orient, camera, direction)
-    # the declaration checks --partitions' range (1..MAX_SLABS) for the command too
-    SPEC.check({"curvature": curvature, "partitions": partitions}, complete=False)
+    SPEC.check({"curvature": curvature}, complete=False)
+    if partitions is not None and not 1 <= int(partitions) <= MAX_SLABS:
+        raise ParameterError(f"--partitions must be 1..{MAX_SLABS} for normals, got {partitions}")
     pts = check_points(points)
     if method == "keep" and normals is None:
         raise ParameterError("--orient keep needs input normals")
     if len(pts) == 0:
         raise InputError("the input has no points")
-    parts, why = _slab_count(partitions, len(pts), client, knn)
+    parts, why = slab_count(partitions, len(pts), client, knn, budget)
     p = dict(
         knn=knn,
         radius=radius,
@@ -618,8 +629,7 @@ def distributed_normals(
     if method == "camera" and cam is None and sensors is None:
         raise ParameterError("--orient camera needs --camera X,Y,Z (or the data's sensors)")
     frame = _frame(pts.min(axis=0), pts.max(axis=0))
-    tmp = tempfile.mkdtemp(prefix=".recon-normals-")
-    try:
+    with spill_folder(temp_dir, "normals") as tmp:
         cloud = PointCloud(
             points=pts, normals=None if normals is None else np.asarray(normals, float)
         )
@@ -644,8 +654,6 @@ def distributed_normals(
         nrm_out = nrm_out[:, inv]
         curv_out = None if curv is None else np.array(curv)
         del nrm, curv
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     return nrm_out, curv_out, report
 
 
@@ -678,74 +686,88 @@ def run_from_files(
     ascii: bool = False,
     progress: Any = None,
 ) -> dict | None:
-    """``recon normals IN OUT --workers N`` / ``--scheduler ADDRESS`` (the stage's ``from_files``).
+    """``recon normals IN OUT`` in slabs from IN's chunks (the stage's ``from_files``).
 
-    None without those options; else the normals from IN by chunks on the cluster, OUT written a
-    chunk of IN at a time (binary PLY; other formats assembled here), and the report.
+    On the execution's cluster (``--workers``, ``--scheduler``), or in this process when IN is too
+    large for the memory in one piece (:func:`recon_cli.execution.current`); None otherwise (the
+    command loads IN). OUT is written a chunk of IN at a time (binary PLY; other formats
+    assembled here); returns the report.
     """
-    import shutil
-    import tempfile
+    import contextlib
 
     from recon_cli.batch.cluster import open_client
+    from recon_cli.execution import current
     from recon_cli.io.chunks import plan_chunks
     from recon_cli.stages import provenance_line
     from recon_cli.stages.normals import SPEC
 
-    if params.get("workers") is None and params.get("scheduler") is None:
-        return None
+    ex = current()
+    chunks = None
+    if not ex.distributed:
+        if input == "-" or load_kw.get("format") or params.get("backend", "native") != "native":
+            return None
+        chunks = plan_chunks(input)
+        if any(c.kind == "whole" for c in chunks):
+            return None  # rows not known before reading: loaded whole
+        knn0 = SPEC.check(params, complete=True)["knn"] or None
+        rows = sum(c.stop - c.start for c in chunks)
+        if (ex.partitions or slab_count(None, rows, None, knn0, ex.budget())[0]) == 1:
+            return None
     v, knn, radius, (method, cam, dirn) = _checked(params, input, load_kw)
     t0 = time.perf_counter()
-    chunks = plan_chunks(input)
-    folder = os.path.dirname(os.path.abspath(output)) if output != "-" else None
-    tmp = tempfile.mkdtemp(prefix=".recon-normals-", dir=folder)
-    try:
-        with open_client(v["scheduler"], v["workers"], v["memory_limit"], stealing=False) as (
+    chunks = chunks or plan_chunks(input)
+    if ex.distributed:
+        opened: Any = open_client(ex.scheduler, ex.workers, ex.worker_memory(), stealing=False)
+    else:
+        opened = contextlib.nullcontext((None, {"workers": 0, "memory": ex.budget()}))
+    with spill_folder(ex.spill_parent(output), "normals") as tmp, opened as (client, info):
+        scans, n_rows, sensors, views = _scan(client, chunks, method, cam)
+        lo = np.min([s["lo"] for s in scans if "lo" in s], axis=0)
+        hi = np.max([s["hi"] for s in scans if "lo" in s], axis=0)
+        frame = _frame(lo, hi)
+        first = np.concatenate([[0], np.cumsum([s["rows"] for s in scans])]).astype(np.int64)
+        keep_ref, nscan = method == "keep", len(sensors or ())
+        buckets = map_tasks(
             client,
-            info,
-        ):
-            scans, n_rows, sensors, views = _scan(client, chunks, method, cam)
-            lo = np.min([s["lo"] for s in scans if "lo" in s], axis=0)
-            hi = np.max([s["hi"] for s in scans if "lo" in s], axis=0)
-            frame = _frame(lo, hi)
-            first = np.concatenate([[0], np.cumsum([s["rows"] for s in scans])]).astype(np.int64)
-            futs = [
-                client.submit(
-                    bucket_rows,
+            bucket_rows,
+            [
+                (
                     c,
                     int(first[i]),
                     frame,
                     SUB_SLABS,
                     os.path.join(tmp, f"c{i:05d}"),
-                    method == "keep",
-                    len(sensors or ()),
-                    pure=False,
+                    keep_ref,
+                    nscan,
                 )
                 for i, c in enumerate(chunks)
-            ]
-            buckets = client.gather(futs)
-            counts = np.sum([b["counts"] for b in buckets], axis=0)
-            files = [(os.path.join(tmp, f"c{i:05d}"), b["offsets"]) for i, b in enumerate(buckets)]
-            parts, why = _slab_count(v["partitions"], n_rows, client, knn)
-            p = dict(
-                knn=knn,
-                radius=radius,
-                orient=method,
-                camera=cam,
-                direction=dirn,
-                curvature=v["curvature"],
-                partitions=parts,
-                workers=why["workers"],
-                sensors=None if sensors is None else views[:3],
-            )
-            prefixes, report = _core(client, files, counts, frame, n_rows, p, tmp, progress)
-            report["distributed"]["partitions"] = why
+            ],
+            progress,
+            "normals: sorting the chunks into slabs",
+        )
+        counts = np.sum([b["counts"] for b in buckets], axis=0)
+        files = [(os.path.join(tmp, f"c{i:05d}"), b["offsets"]) for i, b in enumerate(buckets)]
+        parts, why = slab_count(
+            ex.partitions, n_rows, client, knn, ex.budget() if client is None else None
+        )
+        p = dict(
+            knn=knn,
+            radius=radius,
+            orient=method,
+            camera=cam,
+            direction=dirn,
+            curvature=v["curvature"],
+            partitions=parts,
+            workers=why["workers"],
+            sensors=None if sensors is None else views[:3],
+        )
+        prefixes, report = _core(client, files, counts, frame, n_rows, p, tmp, progress)
+        report["distributed"]["partitions"] = why
         t1 = time.perf_counter()
         nrm, curv = _gather(prefixes, n_rows, p["curvature"], tmp)
         prov = provenance_line("normals", {**SPEC.defaults(), **params})
         _write(chunks, first, nrm, curv, frame[2], output, save_kw, ascii, prov, method, report)
         t2 = time.perf_counter()
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     _finish_report(report, scans, chunks, info, method, cam, sensors, (t1 - t0, t2 - t1))
     report["output"] = "<stdout>" if output == "-" else output
     return report
@@ -767,10 +789,6 @@ def _checked(params: dict, input: str, load_kw: dict) -> tuple[dict, Any, Any, t
     check_distributed_neighbours(v["neighbours"])
     if v["backend"] != "native":
         raise ParameterError("--workers/--scheduler run the native normals: leave out --backend")
-    if v["scheduler"] is not None and (v["workers"] is not None or v["memory_limit"] is not None):
-        raise ParameterError(
-            "--workers and --memory-limit size a local cluster; leave them out with --scheduler"
-        )
     if input == "-":
         raise ParameterError("--workers/--scheduler read IN by chunks: give a file, not '-'")
     if load_kw.get("format"):
@@ -788,7 +806,7 @@ def _scan(client: Any, chunks: list, method: str, cam: Any) -> tuple[list, int, 
     """
     from recon_cli.stages.normals import sensor_views
 
-    scans = client.gather([client.submit(scan_rows, c, pure=False) for c in chunks])
+    scans = map_tasks(client, scan_rows, [(c,) for c in chunks])
     n_rows = sum(s["rows"] for s in scans)
     if n_rows == 0:
         raise InputError("the input has no points")

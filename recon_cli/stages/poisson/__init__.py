@@ -68,6 +68,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from recon_cli.errors import InputError, ParameterError, StageFailed
+from recon_cli.execution import current
 from recon_cli.geometry import PointCloud, TriangleMesh, as_point_cloud, local_origin, oriented_rows
 from recon_cli.params import Param, StageSpec
 from recon_cli.progress import task
@@ -165,6 +166,7 @@ SPEC = StageSpec(
     gives=("mesh",),
     backends=BACKENDS,
     from_files="recon_cli.stages.poisson:run_from_files",
+    execution=("workers", "scheduler", "partitions", "memory", "temp_dir"),
     params=(
         Param(
             "depth",
@@ -276,43 +278,6 @@ SPEC = StageSpec(
             "bool",
             False,
             "Estimate and orient normals first (as 'recon normals' does).",
-        ),
-        Param(
-            "workers",
-            "int",
-            None,
-            "Reconstruct on a local Dask cluster of N worker processes, the cloud in slabs "
-            "(a coarse solve of the whole cube, the finer levels per slab, one seamless mesh); "
-            "the workers read IN by chunks, no process holds it whole.",
-            min=1,
-            max=1024,
-        ),
-        Param(
-            "scheduler",
-            "any",
-            None,
-            "Reconstruct as --workers does on the existing Dask cluster at this address "
-            "(tcp://host:8786); IN and the output folder must be on a file system its workers "
-            "share.",
-            metavar="ADDRESS",
-        ),
-        Param(
-            "partitions",
-            "int",
-            None,
-            "Slabs of a --workers/--scheduler run; more slabs, less memory per worker (default: "
-            "the fewest, a multiple of the workers, whose one slab fits a share of a worker's "
-            "memory limit; one per worker without a limit; the report says why).",
-            min=1,
-            max=64,
-        ),
-        Param(
-            "memory_limit",
-            "any",
-            None,
-            "Memory per worker process of --workers' local cluster (e.g. 4GiB; 'none': no "
-            "limit; default: the machine's memory shared out).",
-            metavar="SIZE",
         ),
     ),
 )
@@ -1041,50 +1006,76 @@ REPORT_KEYS = (
 
 
 def run_from_files(input: str, output: str, params: dict, **kw: Any) -> dict | None:
-    """The stage's ``from_files``: the distributed run with ``--workers`` or ``--scheduler``.
+    """The stage's ``from_files``: a run in slabs from IN's chunks, never holding the cloud.
 
-    :func:`.distributed.run_from_files` then; else None (the command loads IN and runs the stage).
-
-    A single-process run never imports the distributed solve (nor, through it, Dask).
+    On a cluster (``--workers``, ``--scheduler``), or in this process when IN is too large for
+    the memory in one piece (:func:`local_slabs`): :func:`.distributed.run_from_files` then.
+    Else None (the command loads IN and runs the stage). A single-process run never imports the
+    distributed solve (nor, through it, Dask).
     """
-    if params.get("workers") is None and params.get("scheduler") is None:
-        return None
+    ex = current()
+    if not ex.distributed:
+        if input == "-" or kw.get("load_kw", {}).get("format"):
+            return None
+        from recon_cli.io.chunks import plan_chunks
+
+        chunks = plan_chunks(input)
+        if any(c.kind == "whole" for c in chunks):
+            return None  # rows not known before reading: loaded whole, the solve in slabs
+        if local_slabs(sum(c.stop - c.start for c in chunks), ex) == 1:
+            return None
     from recon_cli.stages.poisson.distributed import run_from_files as run
 
     return run(input, output, params, **kw)
 
 
-def check_distributed_options(
+def local_slabs(npoints: int, ex: Any) -> int:
+    """The slabs of a run in this process: 1 when the memory holds the whole solve.
+
+    ``ex``: the :class:`recon_cli.execution.Execution` (its ``partitions`` or its memory budget).
+    Refuses a memory too small for the most slabs (one line with the least that would do).
+    """
+    if ex.partitions is not None:
+        return int(ex.partitions)
+    from recon_cli.stages.poisson.distributed import slab_count
+
+    return slab_count(None, npoints, None, ex.budget())[0]
+
+
+def check_slab_options(
     backend: str,
     degree: int,
     estimate_normals: bool,
-    scheduler: Any,
-    workers: Any,
-    memory_limit: Any,
     boundary: str,
     envelope: Any,
     grid: Any,
+    trim: Any,
+    where: str,
 ) -> None:
-    """What a ``--workers`` / ``--scheduler`` run does not take (one line each)."""
+    """What a run in slabs does not take (one line each); ``where`` says why it is in slabs."""
     if backend != "native":
-        raise ParameterError("--workers/--scheduler run the native solver: leave out --backend")
+        raise ParameterError(f"{where} runs the native solver: leave out --backend")
     if degree != 2:
-        raise ParameterError("a distributed reconstruction uses degree 2: leave out --degree 1")
+        raise ParameterError(f"{where} uses degree 2: leave out --degree 1")
     for name, used in (
         ("--boundary free", boundary == "free"),
         ("--envelope", envelope not in (None, "")),
         ("--grid", grid not in (None, "")),
+        ("--trim auto", trim == "auto"),
     ):
         if used:
-            raise ParameterError(f"{name} is not available with --workers/--scheduler")
+            raise ParameterError(f"{name} is not available {where}")
     if estimate_normals:
-        raise ParameterError(
-            "--estimate-normals with --workers/--scheduler: run 'recon normals' first"
-        )
-    if scheduler is not None and (workers is not None or memory_limit is not None):
-        raise ParameterError(
-            "--workers and --memory-limit size a local cluster; leave them out with --scheduler"
-        )
+        raise ParameterError(f"--estimate-normals {where}: run 'recon normals' first")
+
+
+def slab_reason(ex: Any) -> str:
+    """Why a run is in slabs, for messages."""
+    if ex.distributed:
+        return "with --workers/--scheduler"
+    if ex.partitions is not None:
+        return "in slabs (--partitions)"
+    return "in slabs (the cloud does not fit the memory in one piece)"
 
 
 @SPEC.runner
@@ -1105,13 +1096,13 @@ def run_stage(
     grid: Any,
     estimate_normals: bool,
     backend: str,
-    workers: int | None,
-    scheduler: str | None,
-    partitions: int | None,
-    memory_limit: Any,
     progress: Any = None,
 ) -> StageResult:
     """Stage ``poisson``: screened Poisson reconstruction of an oriented cloud.
+
+    Where it runs is the :func:`recon_cli.execution.current` execution's: in slabs on its Dask
+    cluster, in slabs in this process (their states spilled to files) when the cloud needs more
+    than its memory in one piece, else the single-process solve.
 
     Parameters
     ----------
@@ -1147,21 +1138,9 @@ def run_stage(
     """
     from recon_cli.stages import StageResult
 
-    distributed = workers is not None or scheduler is not None
+    ex = current()
     grid_path, env = _check_run_options(
-        backend,
-        degree,
-        boundary,
-        confidence,
-        density,
-        trim,
-        envelope,
-        grid,
-        estimate_normals,
-        workers,
-        scheduler,
-        partitions,
-        memory_limit,
+        backend, degree, boundary, confidence, density, trim, envelope, grid
     )
     cloud, history, props, keep_colors = _stage_input(data, attributes, estimate_normals, progress)
     solve = {
@@ -1175,10 +1154,20 @@ def run_stage(
         "confidence": confidence,
     }
     colors = cloud.colors if keep_colors else None
-    if distributed:
-        mesh, report = _run_distributed(
-            cloud, colors, props, solve, scheduler, workers, partitions, memory_limit, progress
+    slabs = None if ex.distributed or backend != "native" else local_slabs(len(cloud.points), ex)
+    if ex.distributed or (slabs or 1) > 1:
+        # the cloud is in memory: its normals were estimated above unless the run is on a cluster
+        check_slab_options(
+            backend,
+            degree,
+            estimate_normals and ex.distributed,
+            boundary,
+            envelope,
+            grid,
+            trim,
+            slab_reason(ex),
         )
+        mesh, report = _run_distributed(cloud, colors, props, solve, ex, slabs, progress)
     elif backend == "native":
         mesh, report = _run_native(
             cloud, colors, props, solve, degree, env, grid_path, history, progress
@@ -1202,31 +1191,8 @@ def _check_run_options(
     trim: float | str,
     envelope: Any,
     grid: Any,
-    estimate_normals: bool,
-    workers: int | None,
-    scheduler: str | None,
-    partitions: int | None,
-    memory_limit: Any,
 ) -> tuple[str | None, Any]:
     """The stage's checks of its options together; returns the grid's path and the envelope."""
-    if workers is not None or scheduler is not None:
-        if trim == "auto":
-            raise ParameterError(
-                "--trim auto is not distributed yet: give --trim T with --workers/--scheduler"
-            )
-        check_distributed_options(
-            backend,
-            degree,
-            estimate_normals,
-            scheduler,
-            workers,
-            memory_limit,
-            boundary,
-            envelope,
-            grid,
-        )
-    elif partitions is not None or memory_limit is not None:
-        raise ParameterError("--partitions and --memory-limit go with --workers or --scheduler")
     if backend == "pymeshlab" and (density or trim != 0):
         raise ParameterError(
             "the pymeshlab backend gives no densities: --density/--trim need native or open3d"
@@ -1290,26 +1256,36 @@ def _run_distributed(
     colors: np.ndarray | None,
     props: dict[str, np.ndarray],
     solve: dict[str, Any],
-    scheduler: str | None,
-    workers: int | None,
-    partitions: int | None,
-    memory_limit: Any,
+    ex: Any,
+    slabs: int | None,
     progress: Any,
 ) -> tuple[TriangleMesh, dict]:
-    """The cloud in slabs on a Dask cluster (:mod:`.distributed`); returns the mesh, report."""
-    from recon_cli.batch.cluster import open_client
+    """The cloud in slabs (:mod:`.distributed`): on ``ex``'s Dask cluster, or in this process.
+
+    ``slabs``: their number in this process (None on a cluster: its workers' memory decides,
+    or ``ex.partitions``). Returns the mesh and the report.
+    """
+    import contextlib
+
     from recon_cli.stages.poisson.distributed import distributed_poisson
 
     assert cloud.normals is not None  # _stage_input refuses a cloud without
-    with open_client(scheduler, workers, memory_limit, stealing=False) as (client, info):
+    if ex.distributed:
+        from recon_cli.batch.cluster import open_client
+
+        opened: Any = open_client(ex.scheduler, ex.workers, ex.worker_memory(), stealing=False)
+    else:
+        opened = contextlib.nullcontext((None, {"workers": 0, "memory": ex.budget()}))
+    with opened as (client, info):
         res = distributed_poisson(
             cloud.points,
             cloud.normals,
-            partitions=partitions,
+            partitions=slabs if slabs is not None else ex.partitions,
             **solve,
             colors=colors,
             properties=props,
             client=client,
+            temp_dir=ex.spill_parent(),
             progress=progress,
         )
     rep = res.report

@@ -75,14 +75,14 @@ cloud nor the mesh.
 
 **Workers.** Every slab step is a deterministic function of the slab's inputs and the global
 values before it; a slab whose worker dies is rebuilt by running its steps again on
-another worker (:class:`recon_cli.batch.steps.DaskRunner`), the global values being the
+another worker (:class:`recon_cli.slabs.runners.DaskRunner`), the global values being the
 coordinator's. With more slabs than workers, a slab's state goes to a file in the job's
 temporary folder between its steps (the runner's spill folder), so a worker holds only the
 slab it runs: more slabs, less memory a worker. Unless told, a run takes the fewest slabs, a
 multiple of the workers, whose one slab fits a share of a worker's memory limit
 (:func:`default_partitions`); the report's ``distributed.partitions`` says how many and why.
 
-**Progress and report.** One bar over the whole job (:class:`recon_cli.batch.steps.Overall`:
+**Progress and report.** One bar over the whole job (:class:`recon_cli.slabs.runners.Overall`:
 each phase its measured share, advanced as each slab finishes it, with the time left);
 the report's ``distributed.phases`` gives per phase the wall seconds, the slowest slab's
 seconds, the CPU seconds, the largest worker's peak memory and the bytes moved between the
@@ -103,6 +103,7 @@ Kazhdan, M. & Hoppe, H. (2013). Screened Poisson surface reconstruction. ACM TOG
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
@@ -113,8 +114,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from recon_cli.batch.steps import Overall
 from recon_cli.errors import InputError, ParameterError, StageFailed
+from recon_cli.slabs import plan
+from recon_cli.slabs.plan import choose_seams, sub_slab
+from recon_cli.slabs.runners import Overall, map_tasks
+from recon_cli.slabs.spill import spill_folder
 from recon_cli.stages.poisson import slab as S
 from recon_cli.stages.poisson.splat import KERNEL_OFFSET, screening_alpha
 
@@ -126,27 +130,6 @@ log = logging.getLogger("recon")
 
 # ---------------------------------------------------------------------------------------------
 # the plan
-
-
-def choose_seams(counts: np.ndarray, parts: int) -> list[int]:
-    """Seam positions that balance ``counts`` over ``parts`` slabs.
-
-    In slabs of the seams' level, strictly increasing, 1..len(counts) - 1; ``counts`` are the
-    points per slab of that level (32 of level 5, or 64 of level 6).
-    """
-    n = len(counts)
-    if parts > n:
-        raise ParameterError(f"at most {n} partitions (the seams' planes), got {parts}")
-    cum = np.concatenate([[0], np.cumsum(counts)])
-    total = cum[-1]
-    seams: list[int] = []
-    for k in range(1, parts):
-        target = total * k / parts
-        b = int(np.argmin(np.abs(cum[1:n] - target))) + 1
-        lo = (seams[-1] + 1) if seams else 1
-        hi = n - (parts - k)
-        seams.append(min(max(b, lo), hi))
-    return seams
 
 
 def plan_slabs(
@@ -188,122 +171,25 @@ def slab_loads(plan: list[tuple], sub_counts: np.ndarray) -> list[float]:
     return [float(cum[round(p[1][1] * nsub)] - cum[round(p[1][0] * nsub)]) for p in plan]
 
 
-def sub_slab(x_unit: np.ndarray, nsub: int) -> np.ndarray:
-    """(n,) the sub-slab (of ``nsub`` along x) of each unit-cube x."""
-    return np.clip(np.floor(x_unit * nsub), 0, nsub - 1).astype(np.int64)
-
-
-# a slab's worker's peak memory per point of the slab's own, its pads' points included
+# a slab's peak memory per point of its own, its pads' points included
 # (bench/calibration.md, SLAB_BYTES_PER_POINT: 4103 at depth 11 in 4 slabs on 2 workers)
 SLAB_BYTES_PER_POINT = 4096
-# the share of a worker's memory limit one slab may take: the rest is the worker's own (imports,
-# compiled kernels, Dask's buffers) and the pads' growth with many slabs
-SLAB_MEMORY_SHARE = 0.4
-
-
-def default_partitions(
-    npoints: int,
-    workers: int,
-    memory_per_worker: float | None,
-    bytes_per_point: float | None = None,
-    cap: int = S.MAX_PARTITIONS,
-) -> int:
-    """The slab count of a run whose ``--partitions`` is not given.
-
-    Parameters
-    ----------
-    npoints : int
-        Points of the cloud (those with a usable normal).
-    workers : int
-        Worker processes of the cluster (>= 1).
-    memory_per_worker : float or None
-        A worker's memory limit in bytes; None or 0 for no limit.
-    bytes_per_point : float, optional
-        A slab's peak per point of its own (None: the Poisson slabs', :data:`SLAB_BYTES_PER_POINT`).
-    cap : int
-        The most slabs (the Poisson slabs': :data:`.slab.MAX_PARTITIONS`, 64: beyond 32 the seams
-        lie on level-6 planes, :func:`.slab.seam_depth`).
-
-    Returns
-    -------
-    int
-        The fewest slabs such that one slab, at ``bytes_per_point`` bytes per point of its share
-        of ``npoints``, fits :data:`SLAB_MEMORY_SHARE` of ``memory_per_worker``, rounded up to a
-        multiple of ``workers`` (every worker runs as many), at least ``workers``; at most
-        ``cap``, even when a slab does not fit then. Without a limit, one slab per worker.
-    """
-    if int(workers) < 1:
-        raise ParameterError(f"workers must be >= 1, got {workers}")
-    if int(npoints) < 0:
-        raise ParameterError(f"npoints must be >= 0, got {npoints}")
-    workers = int(workers)
-    if bytes_per_point is None:
-        bytes_per_point = SLAB_BYTES_PER_POINT
-    if not memory_per_worker or memory_per_worker <= 0:
-        return min(workers, cap)
-    need = math.ceil(npoints * bytes_per_point / (SLAB_MEMORY_SHARE * memory_per_worker))
-    rounds = max(1, math.ceil(need / workers))
-    return min(rounds * workers, cap)
-
-
-def worker_memory(client: Any) -> tuple[int, int | None]:
-    """The cluster's worker count and the smallest worker memory limit in bytes (None: no limit)."""
-    workers = client.scheduler_info().get("workers", {})
-    limits = [w.get("memory_limit") for w in workers.values()]
-    limited = [float(m) for m in limits if m]
-    return max(1, len(workers)), (int(min(limited)) if limited else None)
-
-
-def _size(nbytes: float) -> str:
-    return f"{nbytes / 2**30:.3g} GiB" if nbytes >= 2**30 else f"{nbytes / 2**20:.3g} MiB"
 
 
 def slab_count(
-    partitions: int | None,
-    npoints: int,
-    client: Any,
-    bytes_per_point: float | None = None,
-    cap: int = S.MAX_PARTITIONS,
-    stage: str = "poisson",
-    cap_reason: str = f"the seams are level-{S.FINE_PARTITION_DEPTH} planes",
+    partitions: int | None, npoints: int, client: Any, budget: int | None = None
 ) -> tuple[int, dict]:
-    """The slabs of a run and the report's ``distributed.partitions`` (how many, and why).
-
-    ``partitions`` given: that many; else :func:`default_partitions` from the ``client``'s
-    workers and their memory (no client: this process, one slab), with ``bytes_per_point`` and
-    ``cap`` (why there is one: ``cap_reason``; ``stage``'s slabs: the warning names it).
-    """
-    nworkers, memory = worker_memory(client) if client is not None else (1, None)
-    entry: dict[str, Any] = {
-        "count": 0,
-        "why": "",
-        "workers": nworkers,
-        "memory_per_worker": memory,
-        "points": int(npoints),
-    }
-    if partitions is not None:
-        entry.update(count=int(partitions), why="given (--partitions)")
-        return int(partitions), entry
-    if bytes_per_point is None:
-        bytes_per_point = SLAB_BYTES_PER_POINT
-    parts = default_partitions(npoints, nworkers, memory, bytes_per_point, cap)
-    slab_bytes = npoints / parts * bytes_per_point
-    entry.update(count=parts, slab_bytes_estimate=int(slab_bytes))
-    fits = memory is None or slab_bytes <= SLAB_MEMORY_SHARE * memory
-    if fits and parts % nworkers == 0:
-        head = "one per worker" if parts == nworkers else f"{parts // nworkers} per worker"
-    else:
-        head = f"capped at {parts} ({cap_reason})"
-    if memory is None:
-        why = f"{head}: the workers have no memory limit"
-    else:
-        share = f"{SLAB_MEMORY_SHARE:.0%} of a worker's {_size(memory)}"
-        verb = "fits" if fits else "may not fit"
-        why = f"{head}: a slab (~{_size(slab_bytes)}) {verb} {share}"
-    if not fits:
-        log.warning("%s: %d slabs, %s", stage, parts, why)
-    entry["why"] = why
-    return parts, entry
+    """The Poisson slabs of a run and why (:func:`recon_cli.slabs.plan.slab_count`)."""
+    return plan.slab_count(
+        partitions,
+        npoints,
+        client,
+        SLAB_BYTES_PER_POINT,
+        S.MAX_PARTITIONS,
+        "poisson",
+        f"the seams are level-{S.FINE_PARTITION_DEPTH} planes",
+        budget,
+    )
 
 
 def coarse_depth_for(depth: int, seam_depth: int = S.PARTITION_DEPTH) -> int:
@@ -954,21 +840,20 @@ def distributed_poisson(
     client: Any = None,
     seams: list[int] | None = None,
     temp_dir: str | None = None,
+    budget: int | None = None,
     progress: Any = None,
 ):
     """Screened Poisson reconstruction in ``partitions`` slabs, the cloud given in memory.
 
     See the module docstring. On the Dask ``client``'s cluster, or else all in this process
-    (:class:`recon_cli.batch.steps.LocalRunner`). ``partitions`` None: as many as the workers'
-    memory needs (:func:`slab_count`). With more slabs than workers, the slabs' states wait in a
+    (:class:`recon_cli.slabs.runners.LocalRunner`). ``partitions`` None: as many as the workers'
+    memory needs, or without a cluster this process's ``budget`` of bytes (:func:`slab_count`).
+    With more slabs than workers (than one, in this process), the slabs' states wait in a
     temporary folder in ``temp_dir`` (default: the system's; the workers must share it) between
     their steps. Returns a :class:`.PoissonResult` like :func:`.screened_poisson`'s
     (``confidence``, ``colors``, ``properties`` as there), whose report has a ``distributed``
     part (``partitions``: how many slabs and why).
     """
-    import shutil
-    import tempfile
-
     from recon_cli.stages.poisson import (
         SPEC,
         PoissonResult,
@@ -993,7 +878,7 @@ def distributed_poisson(
     t0 = time.perf_counter()
     lengths: list = []
     pts, _, keep = check_inputs(points, normals, lengths)
-    partitions, slab_choice = slab_count(partitions, len(pts), client)
+    partitions, slab_choice = slab_count(partitions, len(pts), client, budget)
     _seam_params(params, depth, partitions)
     if SPEC.param("confidence").coerce(confidence):
         params["weight_mean"] = float(lengths[0].mean())
@@ -1025,11 +910,9 @@ def distributed_poisson(
             {name: v[sel] for name, v in props.items()},
         )
 
-    # more slabs than workers: a worker keeps only the slab it runs in memory
-    spill = None
-    if client is not None and partitions > slab_choice["workers"]:
-        spill = tempfile.mkdtemp(prefix=".recon-poisson-", dir=temp_dir)
-    try:
+    # more slabs than workers: a worker (this process) keeps only the slab it runs in memory
+    spilling = partitions > max(slab_choice["workers"], 1)
+    with spill_folder(temp_dir, "poisson") if spilling else contextlib.nullcontext() as spill:
         with _task(progress, "poisson: the whole job", sum(weights.values())) as bar:
             runner = make_runner(
                 client,
@@ -1044,9 +927,6 @@ def distributed_poisson(
                 out = reconstruct(runner, job, loaded, progress, carry=carry)
             finally:
                 runner.close()
-    finally:
-        if spill is not None:
-            shutil.rmtree(spill, ignore_errors=True)
     mesh = assemble(out, job, perm, colors is not None)
     rep = out["report"]
     rep["distributed"]["partitions"] = slab_choice
@@ -1066,13 +946,13 @@ def make_runner(
 ):
     """The slabs' runner: on the Dask ``client``'s cluster, or in this process without one.
 
-    ``spill_dir``: where a cluster's slab states wait between their steps (None: on the workers);
+    ``spill_dir``: where the slabs' states wait between their steps (None: in memory);
     ``loads``: each slab's points read (:func:`slab_loads`), to spread them over the workers.
     """
-    from recon_cli.batch.steps import DaskRunner, LocalRunner
+    from recon_cli.slabs.runners import DaskRunner, LocalRunner
 
     if client is None:
-        return LocalRunner(slabs, progress, "poisson", overall)
+        return LocalRunner(slabs, progress, "poisson", overall, spill_dir)
     return DaskRunner(client, slabs, progress, "poisson", overall, spill_dir, loads=loads)
 
 
@@ -1228,6 +1108,7 @@ def reconstruct_files(
     temp_dir: str | None = None,
     output: str | None = None,
     history: list[str] | None = None,
+    budget: int | None = None,
     progress: Any = None,
 ) -> PoissonResult | Streamed:
     """:func:`distributed_poisson` from files that no process reads whole.
@@ -1239,13 +1120,11 @@ def reconstruct_files(
     slabs' files instead (``history`` its comments, after the input's) and the result's mesh is
     None. ``attributes``: the input's properties carried onto the vertices
     (:func:`.attributes.select`). ``partitions`` None: as many slabs as the workers' memory
-    needs (:func:`slab_count`, once the chunks' points are counted).
+    needs, or without a ``client`` this process's ``budget`` of bytes (:func:`slab_count`, once
+    the chunks' points are counted).
     """
-    import shutil
-    import tempfile
-
-    from recon_cli.batch.steps import DaskRunner, note_phase
     from recon_cli.io.chunks import plan_chunks
+    from recon_cli.slabs.runners import note_phase
     from recon_cli.stages.poisson import SPEC, PoissonResult, check_options
 
     depth, scale, point_weight, samples_per_node, _, boundary, density, trim = check_options(
@@ -1268,7 +1147,7 @@ def reconstruct_files(
     scan_phase: dict = {}
     note_phase(scan_phase, "scan", scans, time.perf_counter() - t0)
     kept, rows, names, keep_colors, dtypes, color_type = _checked_scans(scans, attributes)
-    parts, slab_choice = slab_count(partitions, kept, client)
+    parts, slab_choice = slab_count(partitions, kept, client, budget)
     _seam_params(params, depth, parts)
     nworkers = slab_choice["workers"]
     if SPEC.param("confidence").coerce(confidence):
@@ -1282,35 +1161,24 @@ def reconstruct_files(
     nsub = 1 << min(S.SUB_DEPTH, depth)
     carry = bool(names) or color_type is not None
     weights = job_weights(True, point_weight > 0, trim > 0, carry, output is not None)
-    tmp = tempfile.mkdtemp(prefix=".recon-poisson-", dir=temp_dir)
     runner = None
-    try:
+    with spill_folder(temp_dir, "poisson") as tmp:
         with _task(progress, "poisson: the whole job", sum(weights.values())) as job_bar:
             overall = Overall(job_bar, weights)
             share = overall.claim("sort") / len(chunks)
             t = time.perf_counter()
-            with _task(progress, "poisson: sorting the chunks into slabs", len(chunks)) as bar:
-                futs = [
-                    client.submit(
-                        bucket_chunk,
-                        c,
-                        job.origin,
-                        size,
-                        perm,
-                        nsub,
-                        os.path.join(tmp, f"c{i:05d}"),
-                        keep_colors,
-                        tuple(names),
-                        pure=False,
-                    )
+            frame = (job.origin, size, perm, nsub)
+            buckets = map_tasks(
+                client,
+                bucket_chunk,
+                [
+                    (c, *frame, os.path.join(tmp, f"c{i:05d}"), keep_colors, tuple(names))
                     for i, c in enumerate(chunks)
-                ]
-                buckets = []
-                for f in futs:
-                    buckets.append(f.result())
-                    bar.advance(1)
-                    overall.advance(share)
-            del futs
+                ],
+                progress,
+                "poisson: sorting the chunks into slabs",
+                lambda: overall.advance(share),
+            )
             sort_phase: dict = {}
             note_phase(sort_phase, "sort", buckets, time.perf_counter() - t)
             counts = np.sum([b["counts"] for b in buckets], axis=0)
@@ -1318,38 +1186,30 @@ def reconstruct_files(
             files = [(os.path.join(tmp, f"c{i:05d}"), b["offsets"]) for i, b in enumerate(buckets)]
             read_s = time.perf_counter() - t0
             slabs = [S.slab_of(job, k, parts, *plan[k]) for k in range(parts)]
-            # more slabs than workers: a worker keeps only the slab it runs in memory
-            spill = os.path.join(tmp, "states") if parts > nworkers else None
+            # more slabs than workers: a worker (this process) keeps only the slab it runs
+            spill = os.path.join(tmp, "states") if parts > max(nworkers, 1) else None
             if spill is not None:
                 os.mkdir(spill)
-            runner = DaskRunner(
-                client, slabs, progress, "poisson", overall, spill, loads=slab_loads(plan, counts)
+            runner = make_runner(
+                client, slabs, progress, overall, spill, loads=slab_loads(plan, counts)
             )
-            runner.phases.update(scan_phase)
-            runner.phases.update(sort_phase)
-            loaded = runner.run(
-                "load", S.load_files, lambda k: (files, nsub, color_type, tuple(names), dtypes)
-            )
-            out = reconstruct(
-                runner, job, loaded, progress, tmp if output is not None else None, carry=carry
-            )
+            try:
+                runner.phases.update(scan_phase)
+                runner.phases.update(sort_phase)
+                loaded = runner.run(
+                    "load", S.load_files, lambda k: (files, nsub, color_type, tuple(names), dtypes)
+                )
+                out = reconstruct(
+                    runner, job, loaded, progress, tmp if output is not None else None, carry=carry
+                )
+            finally:
+                runner.close()
             point_types = {s["point_dtype"] for s in scans}
             point_dtype = np.float64 if np.dtype("<f8").str in point_types else np.float32
             hist = (list(scans[0]["history"]) if scans else []) + list(history or [])
             if output is not None:
-                t = time.perf_counter()
-                with overall.step("write"):
-                    write_parts_ply(output, out["parts"], perm, point_dtype, color_type, hist)
-                out["report"]["timings"]["write"] = time.perf_counter() - t
-                mesh = None
-                rep = out["report"]
-                rep["vertices"] = sum(p["counts"][0] for p in out["parts"])
-                rep["faces"] = sum(p["counts"][1] for p in out["parts"])
-                rep["distributed"]["phases"] = out.get("phases", {})
-    finally:
-        if runner is not None:
-            runner.close()
-        shutil.rmtree(tmp, ignore_errors=True)
+                _write_streamed(out, output, overall, perm, point_dtype, color_type, hist)
+    mesh = None
     if output is None:
         mesh = assemble(out, job, perm, color_type is not None)
         mesh.point_dtype = point_dtype
@@ -1368,16 +1228,23 @@ def reconstruct_files(
     return PoissonResult(mesh, rep)
 
 
+def _write_streamed(out: dict, output: str, overall, perm, point_dtype, color_type, hist) -> None:
+    """Write the slabs' parts to ``output`` (a binary PLY), the figures into the report."""
+    t = time.perf_counter()
+    with overall.step("write"):
+        write_parts_ply(output, out["parts"], perm, point_dtype, color_type, hist)
+    rep = out["report"]
+    rep["timings"]["write"] = time.perf_counter() - t
+    rep["vertices"] = sum(p["counts"][0] for p in out["parts"])
+    rep["faces"] = sum(p["counts"][1] for p in out["parts"])
+    rep["distributed"]["phases"] = out.get("phases", {})
+
+
 def _scan_chunks(client: Any, chunks: list, progress: Any) -> list[dict]:
-    """Each chunk's box, counts and header read on the workers, in the chunks' order."""
-    with _task(progress, "poisson: reading the chunks' boxes", len(chunks)) as bar:
-        futs = [client.submit(scan_chunk, c, pure=False) for c in chunks]
-        index = {f.key: i for i, f in enumerate(futs)}
-        scans: list[dict] = [{}] * len(futs)
-        for f in _as_done(client, futs):
-            scans[index[f.key]] = f.result()  # in the chunks' order: the first one's header
-            bar.advance(1)
-    return scans
+    """Each chunk's box, counts and header (read on the workers), in the chunks' order."""
+    return map_tasks(
+        client, scan_chunk, [(c,) for c in chunks], progress, "poisson: reading the chunks' boxes"
+    )
 
 
 def _checked_scans(scans: list[dict], attributes: Any) -> tuple:
@@ -1414,12 +1281,6 @@ def _task(progress, name, total):
     return task(progress, name, total=total)
 
 
-def _as_done(client, futs):
-    from distributed import as_completed
-
-    return as_completed(futs)
-
-
 def run_from_files(
     input: str,
     output: str,
@@ -1430,39 +1291,45 @@ def run_from_files(
     ascii: bool = False,
     progress: Any = None,
 ) -> dict | None:
-    """``recon poisson IN OUT --workers N`` / ``--scheduler ADDRESS``.
+    """``recon poisson IN OUT`` in slabs from IN's chunks, on a cluster or in this process.
 
-    The stage's ``from_files`` (:class:`recon_cli.params.StageSpec`). Returns None without those
-    options (the command then runs the stage as usual); else reconstructs from IN by chunks on the
-    cluster (:func:`reconstruct_files`), writes OUT and returns the report.
+    The stage's ``from_files`` (:class:`recon_cli.params.StageSpec`) once
+    :func:`recon_cli.stages.poisson.run_from_files` has decided the run goes in slabs: on the
+    execution's cluster (``--workers``, ``--scheduler``), or in this process, the slabs' states
+    spilled to a folder beside OUT (:func:`recon_cli.execution.current`). Writes OUT and returns
+    the report.
     """
-    from recon_cli.batch.cluster import open_client
-    from recon_cli.io.load import save
-    from recon_cli.stages.poisson import REPORT_KEYS, SPEC, check_distributed_options
+    import contextlib
 
-    if params.get("workers") is None and params.get("scheduler") is None:
-        return None
+    from recon_cli.batch.cluster import open_client
+    from recon_cli.execution import current
+    from recon_cli.io.load import save
+    from recon_cli.stages.poisson import (
+        REPORT_KEYS,
+        SPEC,
+        check_slab_options,
+        slab_reason,
+    )
+
+    ex = current()
     v = SPEC.check(params, complete=True)
-    check_distributed_options(
+    where = slab_reason(ex)
+    check_slab_options(
         v["backend"],
         v["degree"],
         v["estimate_normals"],
-        v["scheduler"],
-        v["workers"],
-        v["memory_limit"],
         v["boundary"],
         v["envelope"],
         v["grid"],
+        v["trim"],
+        where,
     )
     if input == "-":
-        raise ParameterError("--workers/--scheduler read IN by chunks: give a file, not '-'")
+        raise ParameterError(f"a run {where} reads IN by chunks: give a file, not '-'")
     if load_kw.get("format"):
-        raise ParameterError(
-            "--workers/--scheduler read IN by its suffix: leave out --input-format"
-        )
+        raise ParameterError(f"a run {where} reads IN by its suffix: leave out --input-format")
     from recon_cli.stages import provenance_line
 
-    folder = os.path.dirname(os.path.abspath(output)) if output != "-" else None
     # a binary PLY file is streamed from the slabs' parts; anything else is assembled here
     fmt = save_kw.get("format")
     stream = (
@@ -1477,14 +1344,16 @@ def run_from_files(
         check_output(output)
     prov = provenance_line("poisson", {**SPEC.defaults(), **params})
     t0 = time.perf_counter()
-    with open_client(v["scheduler"], v["workers"], v["memory_limit"], stealing=False) as (
-        client,
-        info,
-    ):
+    if ex.distributed:
+        opened: Any = open_client(ex.scheduler, ex.workers, ex.worker_memory(), stealing=False)
+    else:
+        opened = contextlib.nullcontext((None, {"workers": 0, "memory": ex.budget()}))
+    with opened as (client, info):
         res = reconstruct_files(
             input,
             client=client,
-            partitions=v["partitions"],
+            partitions=ex.partitions,
+            budget=None if client is not None else ex.budget(),
             depth=v["depth"],
             scale=v["scale"],
             point_weight=v["point_weight"],
@@ -1494,7 +1363,7 @@ def run_from_files(
             trim=v["trim"],
             confidence=v["confidence"],
             attributes=v["attributes"],
-            temp_dir=folder,
+            temp_dir=ex.spill_parent(output),
             output=output if stream else None,
             history=[prov],
             progress=progress,

@@ -17,7 +17,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import functools
-import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -25,10 +24,10 @@ from typing import Any
 
 import numpy as np
 
-from recon_cli.batch.steps import reads_only
 from recon_cli.errors import StageFailed
 from recon_cli.geometry import oriented_rows
-from recon_cli.memory import peak_mb, release_free_heap, reset_peak
+from recon_cli.memory import release_free_heap
+from recon_cli.slabs.runners import reads_only, state_bytes, timed
 from recon_cli.stages.poisson import _bspline_eval as BE
 from recon_cli.stages.poisson import _extract as E
 from recon_cli.stages.poisson import _octree as O
@@ -201,26 +200,6 @@ class Slab:
 def slab_of(job: Job, index: int, count: int, own, pad, usable) -> Slab:
     """Slab ``index`` of ``count``, its ranges as :class:`Slab` holds them."""
     return Slab(job, index, count, tuple(own), tuple(pad), tuple(usable))
-
-
-def timed(fn: Callable) -> Callable:
-    """A step that also reports its wall and CPU seconds and the worker's peak memory."""
-
-    def step(slab: Slab, *args: Any) -> dict:
-        reset_peak()
-        t0, c0 = time.perf_counter(), time.process_time()
-        msg = fn(slab, *args) or {}
-        msg["seconds"] = time.perf_counter() - t0
-        msg["cpu_seconds"] = time.process_time() - c0
-        msg["peak_mb"] = peak_mb()
-        msg["pid"] = os.getpid()
-        return msg
-
-    step.__name__ = fn.__name__
-    step.__qualname__ = fn.__qualname__
-    step.__doc__ = fn.__doc__
-    step.__module__ = fn.__module__
-    return step
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1422,35 +1401,6 @@ def export(
             np.save(files[name], arr)
         msg["attributes"] = files
     return msg
-
-
-def state_bytes(obj: Any, depth: int = 0, seen: set | None = None) -> int:
-    """Bytes of the numpy arrays a slab's state holds, each buffer once.
-
-    What Dask's memory accounting sees of it: its own estimate of an object is a few hundred bytes.
-    A view counts its base array, once however many views of it the state holds (the levels'
-    fields are views of the solve's arrays): counted per view, the state of a depth-11 slab
-    looked several times its size, and Dask spilled it.
-    """
-    if seen is None:
-        seen = set()
-    if isinstance(obj, np.ndarray):
-        base = obj
-        while isinstance(base.base, np.ndarray):
-            base = base.base
-        if id(base) in seen:
-            return 0
-        seen.add(id(base))
-        return int(base.nbytes)
-    if depth > 4 or obj is None or isinstance(obj, (int, float, str, bool)):
-        return 0
-    if isinstance(obj, dict):
-        return sum(state_bytes(v, depth + 1, seen) for v in obj.values())
-    if isinstance(obj, (list, tuple)):
-        return sum(state_bytes(v, depth + 1, seen) for v in obj)
-    if hasattr(obj, "__dict__"):
-        return sum(state_bytes(v, depth + 1, seen) for v in vars(obj).values())
-    return 0
 
 
 def _dask_size(slab: Slab) -> int:

@@ -104,12 +104,74 @@ def _sizeof(obj: Any) -> int:
     try:
         from dask.sizeof import sizeof
     except ImportError:  # pragma: no cover - dask is an extra
-        return 0
+        return state_bytes(obj)
     return int(sizeof(obj))
 
 
+def state_bytes(obj: Any, depth: int = 0, seen: set | None = None) -> int:
+    """Bytes of the numpy arrays a part's state holds, each buffer once.
+
+    What Dask's memory accounting sees of it: its own estimate of an object is a few hundred
+    bytes. A view counts its base array, once however many views of it the state holds.
+    """
+    import numpy as np
+
+    if seen is None:
+        seen = set()
+    if isinstance(obj, np.ndarray):
+        base = obj
+        while isinstance(base.base, np.ndarray):
+            base = base.base
+        if id(base) in seen:
+            return 0
+        seen.add(id(base))
+        return int(base.nbytes)
+    if depth > 4 or obj is None or isinstance(obj, (int, float, str, bool)):
+        return 0
+    if isinstance(obj, dict):
+        return sum(state_bytes(v, depth + 1, seen) for v in obj.values())
+    if isinstance(obj, (list, tuple)):
+        return sum(state_bytes(v, depth + 1, seen) for v in obj)
+    if hasattr(obj, "__dict__"):
+        return sum(state_bytes(v, depth + 1, seen) for v in vars(obj).values())
+    return 0
+
+
+# a step's own peak memory is measured from its start (the high-water mark reset) in a worker
+# process; in the coordinating process the mark stays the whole run's (what the user sees)
+_OWN_PEAK = {"reset": True}
+
+
+def timed(fn: Callable) -> Callable:
+    """A step that also reports its wall and CPU seconds and the process's peak memory."""
+    from recon_cli.memory import peak_mb, reset_peak
+
+    def step(state: Any, *args: Any) -> dict:
+        if _OWN_PEAK["reset"]:
+            reset_peak()
+        t0, c0 = time.perf_counter(), time.process_time()
+        msg = fn(state, *args) or {}
+        msg["seconds"] = time.perf_counter() - t0
+        msg["cpu_seconds"] = time.process_time() - c0
+        msg["peak_mb"] = peak_mb()
+        msg["pid"] = os.getpid()
+        return msg
+
+    step.__name__ = fn.__name__
+    step.__qualname__ = fn.__qualname__
+    step.__doc__ = fn.__doc__
+    step.__module__ = fn.__module__
+    return step
+
+
 class LocalRunner:
-    """Every part in this process, one after another."""
+    """Every part in this process, one after another.
+
+    With ``spill_dir``, a part's state of at least ``spill_bytes`` goes to a file there after
+    each step and is read back by its next step, so the process holds one part's state at a time
+    (out of core); the parts run in a snake order (the last part of a step first at the next
+    one), so the state in memory is the one that runs next.
+    """
 
     def __init__(
         self,
@@ -117,32 +179,101 @@ class LocalRunner:
         progress: Any = None,
         label: str = "parts",
         overall: Overall | None = None,
+        spill_dir: str | None = None,
+        spill_bytes: int | None = None,
     ):
-        self.states = list(states)
+        self.states: list[Any] = list(states)
         self.phases: dict[str, dict] = {}
         self.progress = progress
         self.label = label
         self.overall = overall
+        self.spill_dir = spill_dir
+        self.spill_bytes = SPILL_BYTES if spill_bytes is None else int(spill_bytes)
+        self.round = 0
+        self.spilled_bytes = 0
 
     def run(self, name: str, fn: Callable, args: Callable[[int], tuple]) -> list[dict]:
         """Step ``name``: ``fn(state, *args(k))`` on every part ``k``; returns their messages."""
         from recon_cli.progress import task
 
         t0 = time.perf_counter()
-        out = []
-        share = self.overall.claim(name) / max(len(self.states), 1) if self.overall else 0.0
-        with task(self.progress, f"{self.label}: {name}", total=len(self.states)) as bar:
-            for k, s in enumerate(self.states):
-                out.append(fn(s, *args(k)))
-                bar.advance(1)
-                if share and self.overall is not None:
-                    self.overall.advance(share)
-        note_phase(self.phases, name, out, time.perf_counter() - t0)
+        self.round += 1
+        n = len(self.states)
+        out: list[Any] = [None] * n
+        spilled = self.spilled_bytes
+        order = list(range(n)) if self.round % 2 else list(range(n - 1, -1, -1))
+        share = self.overall.claim(name) / max(n, 1) if self.overall else 0.0
+        writes = not getattr(fn, "reads_only", False)
+        old = _OWN_PEAK["reset"]
+        _OWN_PEAK["reset"] = False
+        try:
+            with task(self.progress, f"{self.label}: {name}", total=n) as bar:
+                for pos, k in enumerate(order):
+                    spill = None
+                    if self.spill_dir is not None and writes and pos < n - 1:
+                        spill = (self._path(k), self.spill_bytes)
+                    before = self.states[k]
+                    self.states[k], out[k] = _step(before, fn, args(k), spill)
+                    now = self.states[k]
+                    if isinstance(now, Spilled) and spill is not None:
+                        self.spilled_bytes += os.path.getsize(now.path)
+                    elif isinstance(before, Spilled) and not isinstance(now, Spilled):
+                        os.unlink(before.path)  # the state is in memory again
+                    bar.advance(1)
+                    if share and self.overall is not None:
+                        self.overall.advance(share)
+        finally:
+            _OWN_PEAK["reset"] = old
+        # the bytes a step moves here are those its states wrote to their files
+        note_phase(self.phases, name, out, time.perf_counter() - t0, self.spilled_bytes - spilled)
         return out
 
+    def _path(self, k: int) -> str:
+        assert self.spill_dir is not None
+        return os.path.join(self.spill_dir, f"{self.label}-{k}.state")
+
     def close(self) -> None:
-        """Let go of the parts' states."""
+        """Let go of the parts' states (and their files)."""
+        for s in self.states:
+            if isinstance(s, Spilled):
+                with contextlib.suppress(OSError):
+                    os.unlink(s.path)
         self.states = []
+
+
+def map_tasks(
+    client: Any,
+    fn: Callable,
+    items: list[tuple],
+    progress: Any = None,
+    label: str = "tasks",
+    done: Callable[[], None] | None = None,
+) -> list[Any]:
+    """``fn(*item)`` for each item, on the ``client``'s cluster or in this process, in order.
+
+    Tasks that keep no state (a chunk's scan or sort). ``done()`` is called as each one ends.
+    """
+    from recon_cli.progress import task
+
+    out: list[Any] = [None] * len(items)
+    with task(progress, label, total=len(items)) as bar:
+        if client is None:
+            for i, item in enumerate(items):
+                out[i] = fn(*item)
+                bar.advance(1)
+                if done is not None:
+                    done()
+            return out
+        from distributed import as_completed
+
+        futs = [client.submit(fn, *item, pure=False) for item in items]
+        index = {f.key: i for i, f in enumerate(futs)}
+        for f in as_completed(futs):
+            out[index[f.key]] = f.result()
+            bar.advance(1)
+            if done is not None:
+                done()
+    return out
 
 
 # a state at least this large is written to its file between steps when the runner spills
