@@ -54,6 +54,90 @@ ROOT_CHUNK = 1 << 16
 LEAF_CHUNK = 1 << 16
 
 
+def finest_cells(
+    levels: list[Level],
+    gvals: list[np.ndarray],
+    iso: float,
+    masks: list[np.ndarray] | None = None,
+    consume: bool = False,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The finest-lattice cells of the leaves that straddle ``iso``, one value per lattice point.
+
+    Parameters
+    ----------
+    levels, gvals : list
+        The tree's levels and chi at each level's nodes.
+    iso : float
+        The iso-value.
+    masks : list of (c_d,) bool, optional
+        Per level, the leaves to refine (default: every leaf; a slab's own leaves).
+    consume : bool
+        Empty ``levels`` and ``gvals`` (finest first, each freed once written: they hold most of
+        the memory).
+
+    Returns
+    -------
+    cells : (c, 3) int64
+        Finest-lattice cells, level by level.
+    vals : (c, 8) float
+        Chi at their corners, the same at a lattice point whichever leaf computed it (they agree
+        up to rounding); the cube's faces at ``iso - FACE_MARGIN``.
+    ckeys : (8c,) int64
+        The corners' packed lattice keys.
+    """
+    depth = len(levels) - 1
+    if masks is None:
+        masks = [lev.leaf for lev in levels]
+    # only leaves whose corner range reaches the iso-value can hold surface: count their
+    # finest cells first, then write them straight into arrays of the exact size (per-level
+    # parts and their concatenation would hold the cells twice)
+    none_xyz, none_val = np.zeros((0, 3), np.int64), np.zeros((0, 8))
+    counts = [
+        E.refine_leaves(
+            lev.cell_keys,
+            lev.cell_nodes,
+            m,
+            g,
+            lev.depth,
+            depth,
+            iso,
+            1e-9,
+            FACE_MARGIN,
+            none_xyz,
+            none_val,
+        )
+        for lev, m, g in zip(levels, masks, gvals, strict=True)
+    ]
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    cells = np.empty((int(offsets[-1]), 3), np.int64)
+    vals = np.empty((int(offsets[-1]), 8))
+    for d in range(depth, -1, -1):
+        lev = levels[d]
+        E.refine_leaves(
+            lev.cell_keys,
+            lev.cell_nodes,
+            masks[d],
+            gvals[d],
+            d,
+            depth,
+            iso,
+            1e-9,
+            FACE_MARGIN,
+            cells[offsets[d] : offsets[d + 1]],
+            vals[offsets[d] : offsets[d + 1]],
+        )
+        if consume:
+            levels.pop()
+            gvals.pop()
+            masks.pop()
+    del lev, masks
+    ckeys = E.corner_keys(cells)
+    # one unstable argsort and a linear pass: np.unique's stable sort and inverse cost 4x more
+    order = np.argsort(ckeys)
+    E.unify_corner_values(vals, ckeys, order)
+    return cells, vals, ckeys
+
+
 def extract_finest(
     levels: list[Level], gvals: list[np.ndarray], iso: float, origin: np.ndarray, size: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -65,55 +149,9 @@ def extract_finest(
     finest first, to free memory). The cube's faces count as outside (chi clamped to
     ``iso - FACE_MARGIN`` there), so a surface running into them is closed.
     """
-    depth = len(levels) - 1
-    res = 1 << depth
-
-    # only leaves whose corner range reaches the iso-value can hold surface: count their
-    # finest cells first, then write them straight into arrays of the exact size (per-level
-    # parts and their concatenation would hold the cells twice)
-    none_xyz, none_val = np.zeros((0, 3), np.int64), np.zeros((0, 8))
-    counts = [
-        E.refine_leaves(
-            lev.cell_keys,
-            lev.cell_nodes,
-            lev.leaf,
-            g,
-            lev.depth,
-            depth,
-            iso,
-            1e-9,
-            FACE_MARGIN,
-            none_xyz,
-            none_val,
-        )
-        for lev, g in zip(levels, gvals, strict=True)
-    ]
-    offsets = np.concatenate([[0], np.cumsum(counts)])
-    cells = np.empty((int(offsets[-1]), 3), np.int64)
-    vals = np.empty((int(offsets[-1]), 8))
-    # finest first, freeing each level once written: it holds most of the memory
-    for d in range(depth, -1, -1):
-        lev = levels.pop()
-        E.refine_leaves(
-            lev.cell_keys,
-            lev.cell_nodes,
-            lev.leaf,
-            gvals.pop(),
-            d,
-            depth,
-            iso,
-            1e-9,
-            FACE_MARGIN,
-            cells[offsets[d] : offsets[d + 1]],
-            vals[offsets[d] : offsets[d + 1]],
-        )
-    del levels, gvals, lev
-    # one value per lattice point whichever leaf computed it (they agree up to rounding)
-    ckeys = E.corner_keys(cells)
-    # one unstable argsort and a linear pass: np.unique's stable sort and inverse cost 4x more
-    order = np.argsort(ckeys)
-    E.unify_corner_values(vals, ckeys, order)
-    del ckeys, order
+    res = 1 << (len(levels) - 1)
+    cells, vals, ckeys = finest_cells(levels, gvals, iso, consume=True)
+    del ckeys
     verts, faces = marching_cubes_sparse(
         cells, vals, -iso, origin=tuple(origin), spacing=size / res
     )

@@ -924,49 +924,9 @@ def _finest(slab: Slab, levels: list, gvals: list, iso: float, a: int, b: int) -
     The points on its seam planes take :func:`plane_values`.
     """
     from recon_cli.stages.mcubes import marching_cubes_sparse
-    from recon_cli.stages.poisson.extract import FACE_MARGIN
+    from recon_cli.stages.poisson.extract import FACE_MARGIN, finest_cells
 
-    top = len(levels) - 1
-    masks = _own_leaves_of(levels, a, b)
-    none_xyz, none_val = np.zeros((0, 3), np.int64), np.zeros((0, 8))
-    counts = [
-        E.refine_leaves(
-            lev.cell_keys,
-            lev.cell_nodes,
-            m,
-            g,
-            lev.depth,
-            top,
-            iso,
-            1e-9,
-            FACE_MARGIN,
-            none_xyz,
-            none_val,
-        )
-        for lev, m, g in zip(levels, masks, gvals, strict=True)
-    ]
-    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    cells = np.empty((int(offsets[-1]), 3), np.int64)
-    vals = np.empty((int(offsets[-1]), 8))
-    for d, (lev, m, g) in enumerate(zip(levels, masks, gvals, strict=True)):
-        E.refine_leaves(
-            lev.cell_keys,
-            lev.cell_nodes,
-            m,
-            g,
-            lev.depth,
-            top,
-            iso,
-            1e-9,
-            FACE_MARGIN,
-            cells[offsets[d] : offsets[d + 1]],
-            vals[offsets[d] : offsets[d + 1]],
-        )
-    del masks
-    ckeys = E.corner_keys(cells)
-    order = np.argsort(ckeys)
-    E.unify_corner_values(vals, ckeys, order)
-    del order
+    cells, vals, ckeys = finest_cells(levels, gvals, iso, masks=_own_leaves_of(levels, a, b))
     planes = ([a] if slab.index > 0 else []) + ([b] if slab.index < slab.count - 1 else [])
     if planes and len(ckeys):
         on = np.flatnonzero(np.isin(ckeys >> 42, planes))
