@@ -364,6 +364,19 @@ def _poisson(f: Files) -> list[Step]:
     ]
 
 
+@phase(weight=15)
+def _slabs(f: Files) -> list[Step]:
+    """Poisson and normals in slabs in this process (out of core), from files by chunks."""
+    return [
+        recon("poisson", f.dense, f.out(), "--depth", "7", "--partitions", "2", "--density",
+              "--trim", "0.1"),
+        recon("poisson", f.half_codes, f.out(), "--depth", "7", "--partitions", "3"),
+        recon("normals", f.bare32, f.out(), "--partitions", "2"),
+        recon("normals", f.bare64, f.out(), "--partitions", "2", "--orient", "camera",
+              "--camera", "0,0,5"),
+    ]  # fmt: skip
+
+
 @phase(weight=10)
 def _poisson_features(f: Files) -> list[Step]:
     """Free boundary, envelope, confidence, the grid and attribute votes."""

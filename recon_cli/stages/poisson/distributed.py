@@ -545,8 +545,9 @@ def _splat_depths(runner, job: S.Job, loaded: list[dict], tables: dict[int, tupl
     tree_depth = max(max(m["max_level"] for m in msgs), 1)
     if tree_depth < job.seam_depth:
         raise ParameterError(
-            f"the samples support a tree of depth {tree_depth} only: too sparse for a "
-            f"distributed reconstruction (it needs {job.seam_depth}); run without workers"
+            f"the samples support a tree of depth {tree_depth} only: too sparse to cut into "
+            f"slabs (that needs {job.seam_depth}); run in one piece (without --workers, "
+            "--scheduler or --partitions)"
         )
     count = sum(m["count"] for m in msgs)
     mean_area = sum(m["area_count"] for m in msgs) / count
