@@ -409,7 +409,7 @@ def reconstruct(
     # ---- items, fields, the slabs' trees; the coarse levels' data
     t = time.perf_counter()
     dc = min(job.coarse_depth, tree_depth)
-    coarse, coarse_fields, screening, finer, noise_med = _coarse_tree(
+    coarse, cmsg, coarse_fields, screening, finer, noise_med = _coarse_tree(
         runner, job, tree_depth, dc, alpha, fallback
     )
     timings["tree"] = time.perf_counter() - t
@@ -420,7 +420,7 @@ def reconstruct(
     del finer, screening
     timings["coarse_solve"] = time.perf_counter() - t
     t = time.perf_counter()
-    sm = runner.run("solve", S.solve, lambda k: (coefs,))
+    sm = runner.run("solve", S.solve, lambda k: (coefs, cmsg, coarse_fields))
     iso = sum(m["iso_sum"] for m in sm) / sum(m["iso_count"] for m in sm)
     timings["solve"] = time.perf_counter() - t
     # ---- extraction, each slab with its neighbours' bands
@@ -586,7 +586,7 @@ def _coarse_tree(
         finer = np.zeros(8 * len(level_parents(coarse[dc])[0]))
         for idx, val in parts:
             np.add.at(finer, idx, val)
-    return coarse, coarse_fields, screening, finer, noise_med
+    return coarse, cmsg, coarse_fields, screening, finer, noise_med
 
 
 def table_part(keys: np.ndarray, dens: np.ndarray, level: int, usable) -> tuple:

@@ -562,52 +562,66 @@ def levels_from_message(msg: list[tuple]) -> list[Level]:
     return out
 
 
-@timed
-def restrict(slab: Slab, coarse: list[tuple], coarse_fields: dict) -> dict:
-    """Build the slab's whole tree, its coefficient sets and right-hand side.
+def _system(slab: Slab, coarse: list[tuple], coarse_fields: dict, keep: bool) -> tuple:
+    """The slab's whole tree, its levels' fields and right-hand side, and the finer part's message.
 
     The tree holds the global coarse levels and the slab's own finer ones; the right-hand side is
-    the normals' (:class:`.bspline.NormalRHS`, the coarse items' field the coordinator's). Returns
-    the finer levels' part of the right-hand side on the finest coarse level at the cells the slab
-    owns (every item it reaches is within the pad: the slabs' parts add up to the whole cube's).
+    the normals' (:class:`.bspline.NormalRHS`, the coarse items' field the coordinator's). The
+    message: the finer levels' part of the right-hand side on the finest coarse level at the
+    cells the slab owns (every item it reaches is within the pad: the slabs' parts add up to the
+    whole cube's). ``keep``: the system becomes the slab's (its fine levels and fields are used
+    up: the finer levels' cells go, made again from the fields after the solve, and the
+    coarse levels' nodes); else they are left as they were.
+
+    Returns ``(levels, fields, arrays, normal_rhs, message)``.
     """
     job = slab.job
-    slab.noise = None  # its medians are taken
     levels = levels_from_message(coarse)
     dc = len(levels) - 1
-    if slab.fine_levels:
-        first = slab.fine_levels[0]
-        parent = O.merge_lookup(np.unique(O.halve(first.cell_keys)), levels[-1].cell_keys)
+    fine = slab.fine_levels
+    if fine:
+        parent = O.merge_lookup(np.unique(O.halve(fine[0].cell_keys)), levels[-1].cell_keys)
         if (parent < 0).any():
             raise StageFailed(
                 f"distributed poisson: slab {slab.index}'s tree is not inside the coarse tree"
             )
-        first.cell_parent = O.bsearch_many(levels[-1].cell_keys, O.halve(first.cell_keys))
-    levels += slab.fine_levels
-    slab.fine_levels = []
-    slab.levels = levels
-    slab.lfs, slab.arrays = (
-        level_fields(levels, job.boundary) if len(levels) > 1 else ([None], None)
-    )
+        fine[0].cell_parent = O.bsearch_many(levels[-1].cell_keys, O.halve(fine[0].cell_keys))
+    levels += fine
+    lfs, arrays = level_fields(levels, job.boundary) if len(levels) > 1 else ([None], None)
     msg: dict[str, Any] = {"cells": [len(lev.cell_keys) for lev in levels]}
-    for lev in levels[dc + 1 :]:  # made again from the fields after the solve (_fine_cells)
-        lev.cell_keys, lev.cell_parent = np.zeros(0, np.int64), None
+    fields = dict(coarse_fields)
+    fields.update(slab.fine_fields)
+    if keep:
+        slab.fine_levels, slab.fine_fields = [], {}
+        for lev in levels[dc + 1 :]:  # made again from the fields after the solve (_fine_cells)
+            lev.cell_keys, lev.cell_parent = np.zeros(0, np.int64), None
+    normal_rhs = None
     if len(levels) - 1 > dc and dc >= 1:
-        fields = dict(coarse_fields)
-        fields.update(slab.fine_fields)
-        slab.fine_fields = {}
         # the coarse levels' right-hand sides are the coordinator's: only their field is carried
-        slab.normal_rhs = NormalRHS(fields, slab.lfs, lowest=dc)
-        del fields
-        up = slab.normal_rhs.finer[dc]
-        if up is not None:
+        normal_rhs = NormalRHS(fields, lfs, lowest=dc)
+        up = normal_rhs.finer[dc]
+        if up is not None and not keep:
             # the children of each parent of E, in blocks of 8 (x offset: bit 0)
-            f = slab.lfs[dc]
+            f = lfs[dc]
             cx = 2 * (f.q_keys >> 42)[:, None] + (np.arange(8) & 1)[None, :]
             a, b = slab.x_range(slab.own, 1 << dc)
             mine = ((cx >= a) & (cx < b)).reshape(-1) & (up != 0)
             nz = np.flatnonzero(mine)
             msg["finer"] = (nz, up[nz])
+    del fields
+    return levels, lfs, arrays, normal_rhs, msg
+
+
+@reads_only
+@timed
+def restrict(slab: Slab, coarse: list[tuple], coarse_fields: dict) -> dict:
+    """The finer levels' part of the right-hand side on the finest coarse level (the message).
+
+    Made from the slab's whole system (:func:`_system`), which the step then lets go: the solve
+    makes it again. Between the two steps (the coordinator's coarse solve) the slab's state is
+    its items' and tree, a third of its system's, in memory or in a spill file.
+    """
+    msg = _system(slab, coarse, coarse_fields, keep=False)[-1]
     release_free_heap()
     return msg
 
@@ -744,14 +758,18 @@ def _fine_cells(levels: list[Level], lfs: list, dc: int) -> None:
 
 
 @timed
-def solve(slab: Slab, coefs: list) -> dict:
+def solve(slab: Slab, coefs: list, coarse: list[tuple], coarse_fields: dict) -> dict:
     """Solve the slab's finer levels on the coordinator's coarse chi.
 
-    Returns the own samples' share of the iso-value, the per-level figures and the bands for the
-    neighbours.
+    The slab's system is made from its items and the coarse levels (:func:`_system`). Returns the
+    own samples' share of the iso-value, the per-level figures and the bands for the neighbours.
     """
     job = slab.job
-    levels, lfs, arrays = slab.levels, slab.lfs, slab.arrays
+    slab.noise = None  # its medians are taken
+    levels, lfs, arrays, nrhs, _ = _system(slab, coarse, coarse_fields, keep=True)
+    slab.levels, slab.lfs, slab.arrays, slab.normal_rhs = levels, lfs, arrays, nrhs
+    del nrhs
+    release_free_heap()
     dc = len(coefs) - 1
     msg: dict[str, Any] = {"levels": []}
     if arrays is None:  # a tree of one level: nothing to solve
@@ -797,9 +815,11 @@ def solve(slab: Slab, coefs: list) -> dict:
         msg["iso_sum"] = msg["iso_count"] = 0.0
     msg["band_left"] = band_message(slab, -1) if slab.index > 0 else None
     msg["band_right"] = band_message(slab, 1) if slab.index < slab.count - 1 else None
-    # chi holds the levels' arrays: the fields' views of them (their neighbour tables above
-    # all, which the field step drops while the extraction runs) go
+    # chi holds the levels' arrays: the fields' views of them go, and the neighbour tables (27
+    # a parent, more than the coefficients) until the field step makes them again: the state
+    # between the two steps, in memory or spilled, is 40 % of what it was
     slab.lfs = slab.arrays = None
+    slab.chi.drop_neighbours()
     release_free_heap()
     return msg
 
