@@ -89,7 +89,16 @@ def main() -> int:
         help="bench module names (e.g. ply normals); the other sections of --out are kept",
     )
     ap.add_argument("--quick", action="store_true", help="smaller inputs, fewer repeats")
+    ap.add_argument(
+        "--no-check",
+        action="store_true",
+        help="do not fail on rows more than 10 %% slower than recorded in --out",
+    )
     args = ap.parse_args()
+    from regressions import regressions
+
+    recorded = old_sections(Path(args.out))
+    slower: list[str] = []
     every = sorted(p.stem for p in HERE.glob("bench_*.py"))
     mods = [m for m in every if m.removeprefix("bench_") in args.only] if args.only else every
     sections = old_sections(Path(args.out)) if args.only else {}
@@ -116,6 +125,8 @@ def main() -> int:
             + "\n"
         )
         print(text, flush=True)
+        if not args.quick and m in recorded:
+            slower += [f"{m}: {line}" for line in regressions(recorded[m], text)]
         sections[m] = text
     lines = [
         f"# recon benchmark ({platform.machine()}, Python {platform.python_version()}, "
@@ -133,6 +144,9 @@ def main() -> int:
         if m in sections:
             lines.append(sections[m].rstrip("\n") + "\n")
     Path(args.out).write_text("\n".join(lines))
+    if slower and not args.no_check:
+        print("rows more than 10 % slower than recorded:", *slower, sep="\n  ", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -40,10 +40,10 @@ def breakdown(slab) -> dict[str, float]:
 
 
 def main(n: int, depth: int, slabs: int, watch: int = 1) -> list[dict]:
-    from recon_cli.slabs.runners import LocalRunner
     from recon_cli.io.ply import read_ply
     from recon_cli.memory import release_free_heap, rss_mb
     from recon_cli.mesh.sampling import sample_surface
+    from recon_cli.slabs.runners import LocalRunner
     from recon_cli.stages.poisson import distributed as D
     from recon_cli.stages.poisson.slab import state_bytes
 
