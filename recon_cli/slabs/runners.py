@@ -258,11 +258,15 @@ def map_tasks(
     out: list[Any] = [None] * len(items)
     with task(progress, label, total=len(items)) as bar:
         if client is None:
-            for i, item in enumerate(items):
-                out[i] = fn(*item)
-                bar.advance(1)
-                if done is not None:
-                    done()
+            old, _OWN_PEAK["reset"] = _OWN_PEAK["reset"], False  # the process's mark is the run's
+            try:
+                for i, item in enumerate(items):
+                    out[i] = fn(*item)
+                    bar.advance(1)
+                    if done is not None:
+                        done()
+            finally:
+                _OWN_PEAK["reset"] = old
             return out
         from distributed import as_completed
 
