@@ -577,7 +577,9 @@ def _coarse_tree(
     del cpos, clvl, finer_cells
     # one message for every slab (the runner writes a large argument all slabs share once)
     cmsg = S.level_message(coarse)
-    rm = runner.run("restrict", S.restrict, lambda k: (cmsg, coarse_fields))
+    # states spilled between steps: the system is made again by the solve, not written
+    step = S.restrict_message if getattr(runner, "spill_dir", None) else S.restrict
+    rm = runner.run("restrict", step, lambda k: (cmsg, coarse_fields))
     finer = None
     parts = [m["finer"] for m in rm if "finer" in m]
     if parts:

@@ -600,7 +600,7 @@ def _system(slab: Slab, coarse: list[tuple], coarse_fields: dict, keep: bool) ->
         # the coarse levels' right-hand sides are the coordinator's: only their field is carried
         normal_rhs = NormalRHS(fields, lfs, lowest=dc)
         up = normal_rhs.finer[dc]
-        if up is not None and not keep:
+        if up is not None:
             # the children of each parent of E, in blocks of 8 (x offset: bit 0)
             f = lfs[dc]
             cx = 2 * (f.q_keys >> 42)[:, None] + (np.arange(8) & 1)[None, :]
@@ -612,14 +612,26 @@ def _system(slab: Slab, coarse: list[tuple], coarse_fields: dict, keep: bool) ->
     return levels, lfs, arrays, normal_rhs, msg
 
 
-@reads_only
 @timed
 def restrict(slab: Slab, coarse: list[tuple], coarse_fields: dict) -> dict:
-    """The finer levels' part of the right-hand side on the finest coarse level (the message).
+    """Make the slab's whole system (:func:`_system`); return its message.
 
-    Made from the slab's whole system (:func:`_system`), which the step then lets go: the solve
-    makes it again. Between the two steps (the coordinator's coarse solve) the slab's state is
-    its items' and tree, a third of its system's, in memory or in a spill file.
+    The message: the finer levels' part of the right-hand side on the finest coarse level.
+    """
+    slab.levels, slab.lfs, slab.arrays, slab.normal_rhs, msg = _system(
+        slab, coarse, coarse_fields, keep=True
+    )
+    release_free_heap()
+    return msg
+
+
+@reads_only
+@timed
+def restrict_message(slab: Slab, coarse: list[tuple], coarse_fields: dict) -> dict:
+    """:func:`restrict`'s message, the system let go: the solve makes it again.
+
+    For states that wait in spill files between steps: the slab's state over the coordinator's
+    coarse solve is then its items' and tree, a third of its system's, and is not written again.
     """
     msg = _system(slab, coarse, coarse_fields, keep=False)[-1]
     release_free_heap()
@@ -761,15 +773,18 @@ def _fine_cells(levels: list[Level], lfs: list, dc: int) -> None:
 def solve(slab: Slab, coefs: list, coarse: list[tuple], coarse_fields: dict) -> dict:
     """Solve the slab's finer levels on the coordinator's coarse chi.
 
-    The slab's system is made from its items and the coarse levels (:func:`_system`). Returns the
-    own samples' share of the iso-value, the per-level figures and the bands for the neighbours.
+    The slab's system is :func:`restrict`'s, or made again from its items and the coarse levels
+    after :func:`restrict_message`. Returns the own samples' share of the iso-value, the per-level
+    figures and the bands for the neighbours.
     """
     job = slab.job
     slab.noise = None  # its medians are taken
-    levels, lfs, arrays, nrhs, _ = _system(slab, coarse, coarse_fields, keep=True)
-    slab.levels, slab.lfs, slab.arrays, slab.normal_rhs = levels, lfs, arrays, nrhs
-    del nrhs
-    release_free_heap()
+    if slab.levels is None:  # restrict_message let the system go
+        slab.levels, slab.lfs, slab.arrays, slab.normal_rhs, _ = _system(
+            slab, coarse, coarse_fields, keep=True
+        )
+        release_free_heap()
+    levels, lfs, arrays = slab.levels, slab.lfs, slab.arrays
     dc = len(coefs) - 1
     msg: dict[str, Any] = {"levels": []}
     if arrays is None:  # a tree of one level: nothing to solve
