@@ -512,10 +512,10 @@ def _formats(f: Files) -> list[Step]:
     """Every other file format, both ways, from float32 and float64 sources."""
     steps = []
     for src, suffixes in (
-        (f.c32, ("xyz", "csv", "pcd")),
-        (f.c64, ("xyz", "csv", "pcd")),
-        (f.m32, ("off", "stl")),
-        (f.m64, ("off", "stl")),
+        (f.c32, ("xyz", "csv", "pcd", "glb")),
+        (f.c64, ("xyz", "csv", "pcd", "glb")),
+        (f.m32, ("off", "stl", "glb", "gltf")),
+        (f.m64, ("off", "stl", "glb", "gltf")),
     ):
         for suffix in suffixes:
             dst = f.out(f"{os.path.basename(src)[:-4]}.{suffix}")
