@@ -5,7 +5,7 @@ PIP     := $(PY) -m pip install -q --disable-pip-version-check
 RECON   := $(VENV)/bin/recon
 STAMP   := $(VENV)/.installed
 CORE    := $(VENV)/.core
-EXTRAS  := reference,test,batch,render,learned,las,e57
+EXTRAS  := reference,test,batch,render,learned,las,e57,tiles
 # the extras recon warmup needs (pillow: recon diff's pictures); the others install meanwhile
 WARM_EXTRAS := render
 SAMPLE  := sample_data/bunny_scan_000.ply

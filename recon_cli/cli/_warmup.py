@@ -472,6 +472,7 @@ def _mesh_tools(f: Files) -> list[Step]:
         recon("simplify", f.open, f.out(), "--faces", "21"),
         recon("smooth", f.m64, f.out()),
         recon("smooth", f.open, f.out(), "--fixed-boundary"),
+        recon("tiles", f.m64, f.out("tiles"), "--tile-faces", "64"),  # simplify, distances, GLB
     ]
 
 

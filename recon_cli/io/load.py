@@ -301,6 +301,13 @@ def save(
     refused by STL.
     """
     where = "<stdout>" if str(path) == "-" else str(path)
+    from recon_cli.io.tiles import Tileset
+
+    if isinstance(obj, Tileset):
+        if format:
+            raise ParameterError(f"{where}: a tileset is a folder of GLB tiles: no --format")
+        obj.write(path)
+        return
     fmt = format_of(path, format)
     if isinstance(obj, Grid):
         if fmt is not None and fmt.name != "npz":
@@ -376,6 +383,13 @@ def save(
         )
     else:  # pragma: no cover - every writing format is listed above
         raise ParameterError(f"no writer for {fmt.name}")
+
+
+def check_destination(path: str | os.PathLike, kinds: tuple[str, ...] = ()) -> None:
+    """Refuse an output path before any work: a new folder for a tileset, else a file path."""
+    from recon_cli.io.atomic import check_new_folder, check_output
+
+    (check_new_folder if "tileset" in kinds else check_output)(path)
 
 
 def _kind(obj: Any) -> str:
