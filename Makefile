@@ -32,7 +32,7 @@ sysdeps:
 		$$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq nodejs npm >/dev/null; \
 	fi
 	@if ! command -v chromium >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1; then \
-		echo "installing chromium (the tests of recon view's pages drive it headless)"; \
+		echo "installing chromium (the tests of recon view's pages and of 3D Tiles drive it headless)"; \
 		SUDO=""; [ "$$(id -u)" -eq 0 ] || SUDO="sudo"; \
 		$$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq chromium >/dev/null; \
 	fi
@@ -82,8 +82,9 @@ $(VIEWER_JS): $(VIEWER_NPM)/package.json $(VIEWER_NPM)/package-lock.json $(VIEWE
 
 viewer: $(VIEWER_JS)
 
-# the checkers the tests run on the glTF files recon writes (the Khronos glTF-Validator), pinned by
-# tools/gltf/package-lock.json into tools/gltf/node_modules (not committed)
+# the checkers the tests run on the glTF and 3D Tiles files recon writes (the Khronos glTF-Validator;
+# three.js and 3d-tiles-renderer, loaded in chromium), pinned by tools/gltf/package-lock.json into
+# tools/gltf/node_modules (not committed)
 JS_STAMP := tools/gltf/node_modules/.installed
 $(JS_STAMP): tools/gltf/package.json tools/gltf/package-lock.json
 	@$(MAKE) --no-print-directory sysdeps

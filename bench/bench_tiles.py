@@ -5,7 +5,9 @@ state-plane-like coordinates (6.4e5, 8.5e5) with hills and 5 cm noise, so that t
 simplification of the coarser levels has real work. Both commands run as processes on the
 same PLY file, alternately: ``recon tiles m.ply OUT`` (default ``--tile-faces``) and ``recon
 convert m.ply m.glb``. The note gives the tiles command's read / stage / write seconds from its
-``--json`` report and the CPU seconds of both.
+``--json`` report and the CPU seconds of both. A second row loads the tileset in headless
+chromium through 3d-tiles-renderer (``tests/tiles_checks.load_in_browser``: every tile fetched,
+parsed and drawn) and gives its wall time, the tiles loaded and the errors.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import numpy as np
 from _util import row
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
 RECON = [sys.executable, "-m", "recon_cli.cli.main"]
 
 
@@ -71,6 +74,11 @@ def rows(quick: bool) -> list[dict]:
             tiles_runs.append((wall, cpu))
             reports.append(json.loads(text))
             glb_runs.append(_process(["convert", src, glb])[:2])
+        from tiles_checks import load_in_browser
+
+        t0 = time.perf_counter()
+        page = load_in_browser(Path(out))
+        browser = {"seconds": time.perf_counter() - t0, "peak_mb": float("nan")}
     ours = {"seconds": statistics.median(w for w, _ in tiles_runs), "peak_mb": float("nan")}
     ref = {"seconds": statistics.median(w for w, _ in glb_runs), "peak_mb": float("nan")}
     t = reports[-1]["timings"]
@@ -82,4 +90,11 @@ def rows(quick: bool) -> list[dict]:
         "target ≤ 2×"
     )
     label = f"{len(mesh.faces) // 1000}k-face terrain, processes"
-    return [row("tiles", label, ours, "recon convert to one GLB", ref, note)]
+    loaded = (
+        f"{page['models']} of {reports[-1]['tiles']} tiles loaded, {page['drawn']} drawn, "
+        f"{len(page['errors'])} errors (done: {page['done']}); SwiftShader WebGL"
+    )
+    return [
+        row("tiles", label, ours, "recon convert to one GLB", ref, note),
+        row("tiles", f"{label}: load in chromium (3d-tiles-renderer)", browser, note=loaded),
+    ]

@@ -21,7 +21,7 @@ from recon_cli.stages.tiles import tiles
 from gltf_checks import validate
 from shapes import mesh_family
 from shared_data import SHARED
-from tiles_checks import Z_UP, box_bounds, check_tileset, tile_vertices
+from tiles_checks import Z_UP, box_bounds, check_tileset, load_in_browser, tile_vertices
 
 RECON = [sys.executable, "-m", "recon_cli.cli.main"]
 
@@ -83,6 +83,15 @@ def test_lidar_tileset_lands_in_place_on_the_globe(autzen_dir):
     d, _ = cKDTree(ecef).query(placed)
     assert d.max() < 1e-3
     assert len(np.unique(np.round(placed, 2), axis=0)) == len(m.vertices)  # every vertex, once
+
+
+def test_tileset_loads_in_a_browser_through_3d_tiles_renderer(autzen_dir):
+    folder, rep = autzen_dir
+    got = load_in_browser(folder)
+    assert got["done"] and got["errors"] == [], got
+    # every tile fetched and parsed, the leaves drawn, the terrain in view
+    assert got["models"] == got["stats"]["loaded"] == rep["tiles"] and got["stats"]["failed"] == 0
+    assert got["drawn"] == rep["leaves"] and got["pixels"] > 0.05 * 400 * 300
 
 
 def test_terrain_is_a_quadtree_and_errors_bound_the_full_mesh(autzen_dir):

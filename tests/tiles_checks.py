@@ -75,3 +75,81 @@ def check_tileset(folder: Path) -> dict:
         for child in tile.get("children", []):
             stack.append((child, depth + 1, tile))
     return {"doc": doc, "tiles": found, "contents": contents}
+
+
+def chromium() -> str:
+    """The headless browser the load check runs (the test fails without one)."""
+    import shutil
+
+    import pytest
+
+    for name in ("chromium", "chromium-browser", "google-chrome"):
+        path = shutil.which(name)
+        if path:
+            return path
+    pytest.fail("loading tilesets needs chromium: make sysdeps (apt-get install chromium)")
+
+
+def load_in_browser(folder: Path, budget_s: float = 600.0) -> dict:
+    """Load the tileset in ``folder`` with 3d-tiles-renderer in headless chromium.
+
+    ``tools/gltf/load_tiles.html`` refines everywhere (error target 0), so that every tile is
+    loaded, draws the tiles (WebGL by SwiftShader) and reports ``done``, ``errors`` (page
+    errors and the renderer's load errors), ``models`` (tile contents loaded), ``drawn``
+    (meshes shown), ``pixels`` (covered, of 400 x 300) and the renderer's ``stats``.
+    """
+    import functools
+    import http.server
+    import re
+    import subprocess
+    import tempfile
+    import threading
+
+    from gltf_checks import TOOLS, node_tool  # noqa: F401  (node_tool fails when not installed)
+
+    if not (TOOLS / "node_modules" / "3d-tiles-renderer").is_dir():
+        import pytest
+
+        pytest.fail("3d-tiles-renderer is not installed: run `make js`")
+    browser = chromium()
+    with tempfile.TemporaryDirectory() as site:
+        root = Path(site)
+        (root / "node_modules").symlink_to(TOOLS / "node_modules")
+        (root / "tileset").symlink_to(Path(folder).resolve())
+        (root / "load_tiles.html").symlink_to(TOOLS / "load_tiles.html")
+
+        class Quiet(http.server.SimpleHTTPRequestHandler):
+            def log_message(self, *args):
+                pass
+
+        handler = functools.partial(Quiet, directory=site)
+        server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+        thread = threading.Thread(target=server.serve_forever, daemon=True)
+        thread.start()
+        try:
+            url = (
+                f"http://127.0.0.1:{server.server_address[1]}/load_tiles.html"
+                "?tileset=/tileset/tileset.json"
+            )
+            r = subprocess.run(
+                [
+                    browser,
+                    "--headless=new",
+                    "--no-sandbox",
+                    "--disable-dev-shm-usage",
+                    "--use-angle=swiftshader",
+                    "--enable-unsafe-swiftshader",
+                    f"--virtual-time-budget={int(budget_s * 1000)}",
+                    "--dump-dom",
+                    url,
+                ],
+                capture_output=True,
+                text=True,
+                timeout=budget_s + 120,
+            )
+        finally:
+            server.shutdown()
+            server.server_close()
+    found = re.search(r'<pre id="result">([^<]*)</pre>', r.stdout)
+    assert found, f"no result in the page (exit {r.returncode}): {r.stderr[-500:]}"
+    return json.loads(found.group(1))

@@ -20,8 +20,9 @@ the globe, and geometric errors are metres (as 3D Tiles defines them). Otherwise
 is in the mesh's own coordinates and units, with no transform.
 
 Each tile is a GLB (:mod:`recon_cli.io.gltf`): float32 offsets from its box's centre, turned
-y-up as 3D Tiles' glTF content is; normals and colours are kept, vertex attributes only with
-``attributes``. The output is a new folder holding ``tileset.json`` and ``tiles/*.glb``,
+y-up as 3D Tiles' glTF content is; normals and colours are kept (16-bit colours holding 8-bit
+values, as many LAS files do, as 8-bit, so that they show as meant), vertex attributes only
+with ``attributes``. The output is a new folder holding ``tileset.json`` and ``tiles/*.glb``,
 written whole or not at all (:class:`recon_cli.io.tiles.Tileset`).
 
 Report keys (stable): ``tiles``, ``leaves``, ``levels``, ``faces_in``, ``faces_written``,
@@ -38,6 +39,7 @@ SIGGRAPH (the levels of detail, through ``recon simplify``).
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
@@ -270,6 +272,19 @@ def _frame(
     return moved, transform, frame
 
 
+def _shown_colors(mesh: TriangleMesh) -> TriangleMesh:
+    """``mesh`` with 16-bit colours that hold 8-bit values (max <= 255) as 8-bit.
+
+    LAS colours are 16-bit, but many files store 8-bit values in them: written as they are,
+    glTF's normalised colours would show them near black.
+    """
+    c = mesh.colors
+    if c is not None and c.dtype == np.uint16 and len(c) and int(c.max()) <= 255:
+        mesh = copy.copy(mesh)
+        mesh.colors = c.astype(np.uint8)
+    return mesh
+
+
 def tiles(
     mesh: TriangleMesh,
     tile_faces: int | str = SPEC.param("tile_faces").default,
@@ -314,9 +329,6 @@ def tiles(
     OGC 22-025r4, 3D Tiles Specification 1.1 (2023). M. Garland and P. S. Heckbert, "Surface
     simplification using quadric error metrics", SIGGRAPH 1997 (the coarser levels).
     """
-    from recon_cli import __version__
-    from recon_cli.io.tiles import Tileset
-
     v = SPEC.check(dict(tile_faces=tile_faces, crs=crs, attributes=attributes), complete=True)
     if not isinstance(mesh, TriangleMesh):
         raise InputError(f"tiles needs a triangle mesh, got {type(mesh).__name__}")
@@ -328,7 +340,7 @@ def tiles(
         mesh = _compact(mesh, True)  # vertices no face uses are not written
     if not np.isfinite(mesh.vertices).all():
         raise InputError("the mesh has a vertex with a NaN or infinite coordinate")
-    local, transform, frame = _frame(mesh, v["crs"], obj_info)
+    local, transform, frame = _frame(_shown_colors(mesh), v["crs"], obj_info)
     lv, lf = local.vertices, local.faces
     centroids = (lv[lf[:, 0]] + lv[lf[:, 1]] + lv[lf[:, 2]]) / 3.0
     root = _build(
@@ -352,32 +364,13 @@ def tiles(
             assert t.mesh is not None
             t.lo = np.minimum.reduce([t.mesh.vertices.min(axis=0), *(c.lo for c in t.children)])
             t.hi = np.maximum.reduce([t.mesh.vertices.max(axis=0), *(c.hi for c in t.children)])
-    uris = {t.key: f"tiles/{t.key}.glb" for t in all_tiles}
-    body = _json(root, uris, root=True)
-    if transform is not None:
-        body["transform"] = [float(x) for x in transform.T.reshape(-1)]  # column-major
-    extent = float(np.linalg.norm(root.hi - root.lo))
-    doc = {
-        "asset": {"version": "1.1", "generator": f"recon {__version__}"},
-        "geometricError": max(extent, root.error),
-        "root": body,
-    }
-    if frame["crs"] is not None:
-        doc["asset"]["extras"] = {"recon": {"frame": frame}}
-    tileset = Tileset(
-        document=doc,
-        tiles={
-            uris[t.key]: (t.mesh, 0.5 * (t.mesh.vertices.min(0) + t.mesh.vertices.max(0)))
-            for t in all_tiles
-        },  # type: ignore[union-attr]  # every tile has content
-        history=history,
-    )
+    tileset = _tileset(root, all_tiles, transform, frame, history)
     report = {
         "tiles": len(all_tiles),
         "leaves": len(all_tiles) - len(inner),
         "levels": 1 + max(t.key.count("-") for t in all_tiles),
         "faces_in": int(len(mesh.faces)),
-        "faces_written": int(sum(len(t.mesh.faces) for t in all_tiles)),  # type: ignore[union-attr]
+        "faces_written": int(sum(len(m.faces) for m, _ in tileset.tiles.values())),
         "geometric_error": root.error,
         "units": "mesh units" if transform is None else "metres",
         "crs": frame["crs"],
@@ -385,6 +378,30 @@ def tiles(
         "latitude": frame["latitude"],
     }
     return tileset, report
+
+
+def _tileset(root: _Tile, all_tiles: list[_Tile], transform, frame: dict, history: list[str]):
+    """The :class:`~recon_cli.io.tiles.Tileset` of the built tree (every tile has content)."""
+    from recon_cli import __version__
+    from recon_cli.io.tiles import Tileset
+
+    uris = {t.key: f"tiles/{t.key}.glb" for t in all_tiles}
+    body = _json(root, uris, root=True)
+    if transform is not None:
+        body["transform"] = [float(x) for x in transform.T.reshape(-1)]  # column-major
+    doc: dict[str, Any] = {
+        "asset": {"version": "1.1", "generator": f"recon {__version__}"},
+        "geometricError": max(float(np.linalg.norm(root.hi - root.lo)), root.error),
+        "root": body,
+    }
+    if frame["crs"] is not None:
+        doc["asset"]["extras"] = {"recon": {"frame": frame}}
+    contents = {}
+    for t in all_tiles:
+        assert t.mesh is not None
+        v = t.mesh.vertices
+        contents[uris[t.key]] = (t.mesh, 0.5 * (v.min(axis=0) + v.max(axis=0)))
+    return Tileset(document=doc, tiles=contents, history=history)
 
 
 @SPEC.runner
