@@ -1,6 +1,6 @@
 """3D Tiles 1.1 tilesets: ``tileset.json`` and its glTF (GLB) tiles, written into a new folder.
 
-A :class:`Tileset` is what ``recon tiles`` gives (:mod:`recon_cli.stages.tiles` builds it): the
+A :class:`Tileset` is what ``recon tiles`` gives (``recon_cli.stages.tiles`` builds it): the
 tileset JSON object (every tile's bounding volume, geometric error and content URI) and the
 mesh of each tile's content in the tileset's frame (the root's; its ``transform`` places that
 frame on the globe). :meth:`Tileset.write` encodes each mesh as GLB (float32 offsets from the
