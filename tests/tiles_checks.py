@@ -77,41 +77,28 @@ def check_tileset(folder: Path) -> dict:
     return {"doc": doc, "tiles": found, "contents": contents}
 
 
-def chromium() -> str:
-    """The headless browser the load check runs (the test fails without one)."""
-    import shutil
-
-    import pytest
-
-    for name in ("chromium", "chromium-browser", "google-chrome"):
-        path = shutil.which(name)
-        if path:
-            return path
-    pytest.fail("loading tilesets needs chromium: make sysdeps (apt-get install chromium)")
-
-
 def load_in_browser(folder: Path, budget_s: float = 600.0) -> dict:
     """Load the tileset in ``folder`` with 3d-tiles-renderer in headless chromium.
 
-    ``tools/gltf/load_tiles.html`` refines everywhere (error target 0), so that every tile is
-    loaded, draws the tiles (WebGL by SwiftShader) and reports ``done``, ``errors`` (page
-    errors and the renderer's load errors), ``models`` (tile contents loaded), ``drawn``
-    (meshes shown), ``pixels`` (covered, of 400 x 300) and the renderer's ``stats``.
+    ``tools/gltf/load_tiles.html``, served over HTTP with the tileset and the npm packages,
+    refines everywhere (error target 0), so that every tile is loaded, draws the tiles (WebGL
+    by SwiftShader) and reports ``done``, ``errors`` (page errors and the renderer's load
+    errors; console errors are added here), ``models`` (tile contents loaded), ``drawn``
+    (meshes shown), ``pixels`` (covered, of 400 x 300) and the renderer's ``stats``. Chromium
+    is Debian's, driven by Playwright (tests/browser.py).
     """
     import functools
     import http.server
-    import re
-    import subprocess
     import tempfile
     import threading
 
-    from gltf_checks import TOOLS, node_tool  # noqa: F401  (node_tool fails when not installed)
+    import pytest
+
+    from browser import chromium
+    from gltf_checks import TOOLS
 
     if not (TOOLS / "node_modules" / "3d-tiles-renderer").is_dir():
-        import pytest
-
         pytest.fail("3d-tiles-renderer is not installed: run `make js`")
-    browser = chromium()
     with tempfile.TemporaryDirectory() as site:
         root = Path(site)
         (root / "node_modules").symlink_to(TOOLS / "node_modules")
@@ -122,34 +109,26 @@ def load_in_browser(folder: Path, budget_s: float = 600.0) -> dict:
             def log_message(self, *args):
                 pass
 
-        handler = functools.partial(Quiet, directory=site)
-        server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
-        thread = threading.Thread(target=server.serve_forever, daemon=True)
-        thread.start()
+        server = http.server.ThreadingHTTPServer(
+            ("127.0.0.1", 0), functools.partial(Quiet, directory=site)
+        )
+        threading.Thread(target=server.serve_forever, daemon=True).start()
+        port = server.server_address[1]
+        console: list[str] = []
         try:
-            url = (
-                f"http://127.0.0.1:{server.server_address[1]}/load_tiles.html"
-                "?tileset=/tileset/tileset.json"
-            )
-            r = subprocess.run(
-                [
-                    browser,
-                    "--headless=new",
-                    "--no-sandbox",
-                    "--disable-dev-shm-usage",
-                    "--use-angle=swiftshader",
-                    "--enable-unsafe-swiftshader",
-                    f"--virtual-time-budget={int(budget_s * 1000)}",
-                    "--dump-dom",
-                    url,
-                ],
-                capture_output=True,
-                text=True,
-                timeout=budget_s + 120,
-            )
+            with chromium() as context:
+                page = context.new_page()
+                page.on("console", lambda m: console.append(m.text) if m.type == "error" else None)
+                page.on("pageerror", lambda e: console.append(str(e)))
+                page.goto(f"http://127.0.0.1:{port}/load_tiles.html?tileset=/tileset/tileset.json")
+                page.wait_for_function(
+                    "JSON.parse(document.getElementById('result').textContent).done === true",
+                    timeout=budget_s * 1000,
+                    polling=500,
+                )
+                result = json.loads(page.locator("#result").text_content())
         finally:
             server.shutdown()
             server.server_close()
-    found = re.search(r'<pre id="result">([^<]*)</pre>', r.stdout)
-    assert found, f"no result in the page (exit {r.returncode}): {r.stderr[-500:]}"
-    return json.loads(found.group(1))
+    result["errors"] = result["errors"] + [c for c in console if c not in result["errors"]]
+    return result
