@@ -5,14 +5,14 @@ PIP     := $(PY) -m pip install -q --disable-pip-version-check
 RECON   := $(VENV)/bin/recon
 STAMP   := $(VENV)/.installed
 CORE    := $(VENV)/.core
-EXTRAS  := reference,test,batch,render,learned,las,e57
+EXTRAS  := reference,test,batch,render,learned,las,e57,tiles
 # the extras recon warmup needs (pillow: recon diff's pictures); the others install meanwhile
 WARM_EXTRAS := render
 SAMPLE  := sample_data/bunny_scan_000.ply
 OUTDIR  := demo_output
 PYTEST_ARGS ?=
 
-.PHONY: all install sysdeps viewer warmup demo test test-fast bench lint docs clean
+.PHONY: all install sysdeps viewer warmup demo test test-fast bench lint docs clean js
 
 all: test
 
@@ -32,7 +32,7 @@ sysdeps:
 		$$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq nodejs npm >/dev/null; \
 	fi
 	@if ! command -v chromium >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1; then \
-		echo "installing chromium (the tests of recon view's pages drive it headless)"; \
+		echo "installing chromium (the tests of recon view's pages and of 3D Tiles drive it headless)"; \
 		SUDO=""; [ "$$(id -u)" -eq 0 ] || SUDO="sudo"; \
 		$$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq chromium >/dev/null; \
 	fi
@@ -82,7 +82,18 @@ $(VIEWER_JS): $(VIEWER_NPM)/package.json $(VIEWER_NPM)/package-lock.json $(VIEWE
 
 viewer: $(VIEWER_JS)
 
-install: $(STAMP) $(VIEWER_JS)
+# the checkers the tests run on the glTF and 3D Tiles files recon writes (the Khronos glTF-Validator;
+# three.js and 3d-tiles-renderer, loaded in chromium), pinned by tools/gltf/package-lock.json into
+# tools/gltf/node_modules (not committed)
+JS_STAMP := tools/gltf/node_modules/.installed
+$(JS_STAMP): tools/gltf/package.json tools/gltf/package-lock.json
+	@$(MAKE) --no-print-directory sysdeps
+	npm ci --prefix tools/gltf --no-audit --no-fund --loglevel=error
+	@touch $(JS_STAMP)
+
+js: $(JS_STAMP)
+
+install: $(STAMP) $(VIEWER_JS) $(JS_STAMP)
 
 # compile every numba kernel into the per-user cache (make install does it once; again after editing a kernel)
 warmup: $(STAMP)
@@ -99,13 +110,13 @@ demo: $(CORE)
 
 # worksteal: each worker starts on a contiguous half (a file's cached meshes stay on one worker)
 # and takes the other's queue when idle (no worker waits out the other's long tests)
-test: sysdeps $(STAMP) $(VIEWER_JS)
+test: sysdeps $(STAMP) $(VIEWER_JS) $(JS_STAMP)
 	$(PY) -m pytest -n 2 --dist worksteal $(PYTEST_ARGS)
 
-test-fast: sysdeps $(STAMP) $(VIEWER_JS)
+test-fast: sysdeps $(STAMP) $(VIEWER_JS) $(JS_STAMP)
 	$(PY) -m pytest -n 2 --dist worksteal -m "not slow" $(PYTEST_ARGS)
 
-bench: sysdeps $(STAMP) $(VIEWER_JS)
+bench: sysdeps $(STAMP) $(VIEWER_JS) $(JS_STAMP)
 	$(PY) bench/run_bench.py --out bench/results.md
 
 # ruff (format and lint) and mypy, configured in pyproject.toml; the `lint` extra holds them

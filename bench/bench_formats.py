@@ -10,7 +10,10 @@
   (the library we judged against writing our own); ``recon info`` on both as processes;
 * STL binary: ours (with the exact weld) vs ``trimesh.load`` (which also merges vertices);
 * ``recon info FILE`` as a process for each of our files (what a user waits for: start-up,
-  imports, the cached kernels' load and the read).
+  imports, the cached kernels' load and the read);
+* GLB (5M faces; ``--quick``: 320k): write and read vs our binary PLY writer and reader on the same
+  mesh, float32 and float64 at state-plane offsets with normals and colours, the two measured
+  alternately (target: write <= 1.2x PLY), and the write vs trimesh's GLB export.
 
 Each in-process figure is the median wall time of runs in forked children (``_util.measure``);
 the note adds the median CPU seconds (user + system) of the same runs and their ratio, which
@@ -271,6 +274,58 @@ def rows(quick: bool) -> list[dict]:
                 }
             )
         out.append(obj_process_row(obj_files, 2 if quick else 3))
+        out += gltf_rows(d, quick, rep)
+    return out
+
+
+def _alternately(a, b, rep: int) -> tuple[dict, dict]:
+    """``measure`` of ``a`` and ``b``, their runs interleaved (both see the same machine load)."""
+    ra, rb = [], []
+    for _ in range(rep):
+        ra.append(measure_once(_cpu_of(a)))
+        rb.append(measure_once(_cpu_of(b)))
+
+    def stats(runs):
+        return {
+            "seconds": statistics.median(r[0] for r in runs),
+            "peak_mb": statistics.median(r[1] for r in runs),
+            "cpu": statistics.median(r[2] for r in runs),
+        }
+
+    return stats(ra), stats(rb)
+
+
+def gltf_rows(d: str, quick: bool, rep: int) -> list[dict]:
+    """GLB write and read vs our binary PLY on the same mesh; the write vs trimesh's export."""
+    import trimesh
+
+    from recon_cli.geometry import TriangleMesh
+    from recon_cli.io.load import load, save
+
+    m32 = _grid_mesh(400 if quick else 1582)
+    rng = np.random.default_rng(2)
+    nrm = rng.normal(size=m32.vertices.shape)
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    m64 = TriangleMesh(
+        vertices=m32.vertices.astype(np.float64) * 1000 + [6.36e5, 8.49e5, 400.0],
+        faces=m32.faces,
+        normals=nrm,
+        colors=rng.integers(0, 256, (len(nrm), 3)).astype(np.uint8),
+    )
+    out = []
+    glb, ply, other = (os.path.join(d, name) for name in ("m.glb", "m.ply", "t.glb"))
+    for tag, mesh in (("float32", m32), ("float64 at 1e6, normals, colours", m64)):
+        save(mesh, glb)  # kernels compiled or loaded outside the timed runs
+        save(mesh, ply)
+        label = f"{len(mesh.faces) // 1000}k faces, {tag}"
+        ours, ref = _alternately(lambda m=mesh: save(m, glb), lambda m=mesh: save(m, ply), rep)
+        out.append(_row(f"write GLB, {label}", ours, "our binary PLY writer", ref, "target ≤ 1.2×"))
+        ours, ref = _alternately(lambda: len(load(glb).faces), lambda: len(load(ply).faces), rep)
+        out.append(_row(f"read GLB, {label}", ours, "our binary PLY reader", ref, ""))
+        tm = trimesh.Trimesh(mesh.vertices, mesh.faces, vertex_normals=mesh.normals, process=False)
+        ref = measure(lambda tm=tm: tm.export(other), rep)
+        ours = measure(lambda m=mesh: save(m, glb), rep)
+        out.append(_row(f"write GLB, {label}", ours, "trimesh export (float32 positions)", ref, ""))
     return out
 
 

@@ -25,6 +25,7 @@ _LAZY = {
     "TriangleMesh": "recon_cli.geometry",
     "geometry_from": "recon_cli.geometry",
     "Grid": "recon_cli.grid",
+    "Tileset": "recon_cli.io.tiles",
     "Progress": "recon_cli.progress",
     "read": "recon_cli.api",
     "write": "recon_cli.api",

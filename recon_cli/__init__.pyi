@@ -25,6 +25,7 @@ from recon_cli.io.load import load as load
 from recon_cli.io.load import save as save
 from recon_cli.io.ply import read_ply as read_ply
 from recon_cli.io.ply import write_ply as write_ply
+from recon_cli.io.tiles import Tileset as Tileset
 from recon_cli.params import Param as Param
 from recon_cli.params import StageSpec as StageSpec
 from recon_cli.progress import Progress as Progress
@@ -186,6 +187,16 @@ def filter(
 ) -> PointCloud:
     """Drop invalid points, crop, select LAS classes, remove outliers, thin."""
 
+def tiles(
+    mesh: Any,
+    *,
+    tile_faces: int = 65536,
+    crs: Any = None,
+    attributes: bool = False,
+    progress: Progress | bool | None = None,
+) -> Tileset:
+    """A 3D Tiles 1.1 tileset of a mesh: GLB tiles in a tree, coarser levels simplified."""
+
 __all__ = [
     "BackendError",
     "Execution",
@@ -199,6 +210,7 @@ __all__ = [
     "ReconError",
     "StageFailed",
     "StageSpec",
+    "Tileset",
     "TriangleMesh",
     "__version__",
     "apply_stage",
@@ -219,6 +231,7 @@ __all__ = [
     "sdf",
     "simplify",
     "smooth",
+    "tiles",
     "write",
     "write_ply",
 ]

@@ -36,6 +36,7 @@ import numpy as np
 from recon_cli.errors import InputError, ParameterError
 from recon_cli.geometry import PointCloud, TriangleMesh, geometry_from
 from recon_cli.grid import Grid
+from recon_cli.io.tiles import Tileset
 from recon_cli.params import Param, StageSpec, describe_kinds
 from recon_cli.progress import Progress
 from recon_cli.stages import apply_stage, get_spec, stage_names
@@ -50,9 +51,16 @@ _NAMESPACE = {
     "PointCloud": PointCloud,
     "TriangleMesh": TriangleMesh,
     "Grid": Grid,
+    "Tileset": Tileset,
     "Progress": Progress,
 }
-_RETURNS = {"cloud": "PointCloud", "oriented": "PointCloud", "mesh": "TriangleMesh", "grid": "Grid"}
+_RETURNS = {
+    "cloud": "PointCloud",
+    "oriented": "PointCloud",
+    "mesh": "TriangleMesh",
+    "grid": "Grid",
+    "tileset": "Tileset",
+}
 _DATA_NAMES = {"cloud": "cloud", "oriented": "cloud", "mesh": "mesh", "grid": "grid"}
 _OPTION = re.compile(r"--([a-z][a-z0-9]*(?:-[a-z0-9]+)*)")
 
@@ -288,7 +296,11 @@ def docstring(spec: StageSpec, name: str | None = None) -> str:
         result,
         *_wrap(
             f"The result ({describe_kinds(spec.gives)})"
-            + (", with ``.to_open3d()`` and ``.to_trimesh()``" if result != "Grid" else "")
+            + (
+                ", with ``.to_open3d()`` and ``.to_trimesh()``"
+                if result not in ("Grid", "Tileset")
+                else ""
+            )
             + f"; ``report`` holds the stage's report (the keys of ``recon {spec.name} --json``)"
             " and ``history`` ends with this call's provenance line."
         ),

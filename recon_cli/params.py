@@ -40,6 +40,7 @@ KINDS: dict[str, str] = {
     "oriented": "points with normals",
     "mesh": "a triangle mesh",
     "grid": "a grid (.npz)",
+    "tileset": "a 3D Tiles tileset (a folder)",
 }
 
 
@@ -47,9 +48,12 @@ def kinds_of(obj: Any) -> frozenset[str]:
     """The kinds of a loaded object: ``{"cloud", "oriented"}`` for a cloud with normals, etc."""
     from recon_cli.geometry import PointCloud, TriangleMesh
     from recon_cli.grid import Grid
+    from recon_cli.io.tiles import Tileset
 
     if isinstance(obj, Grid):
         return frozenset({"grid"})
+    if isinstance(obj, Tileset):
+        return frozenset({"tileset"})
     if isinstance(obj, TriangleMesh):
         return frozenset({"mesh", "oriented"} if obj.normals is not None else {"mesh"})
     if isinstance(obj, PointCloud):
@@ -554,6 +558,8 @@ def describe_data(have: frozenset[str] | set[str]) -> str:
     """What data of these kinds is, in words: ``{"cloud", "oriented"}`` -> a cloud with normals."""
     if "grid" in have:
         return "a grid"
+    if "tileset" in have:
+        return "a 3D Tiles tileset (a folder: no stage takes it)"
     if "mesh" in have:
         return "a triangle mesh"
     if "cloud" in have:

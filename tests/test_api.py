@@ -21,6 +21,7 @@ from recon_cli.api import function_name
 from recon_cli.errors import InputError, ParameterError
 from recon_cli.geometry import PointCloud, TriangleMesh
 from recon_cli.grid import Grid
+from recon_cli.io.tiles import Tileset
 from recon_cli.params import Param, StageSpec
 from recon_cli.stages import BUILTIN, StageResult, get_spec, register_stage, unregister_stage
 from recon_cli.tools import stubs
@@ -63,7 +64,8 @@ def test_signature_and_help_are_the_declaration(stage):
             assert typing.get_args(literal) == p.choices
         assert (type(None) in alts) == (p.default is None and p.type != "any"), q.name
     ret = sig.return_annotation
-    assert ret is {"mesh": TriangleMesh, "grid": Grid}.get(spec.gives[0], PointCloud)
+    returns = {"mesh": TriangleMesh, "grid": Grid, "tileset": Tileset}
+    assert ret is returns.get(spec.gives[0], PointCloud)
     # help() shows every parameter with its type, default and unit
     text = pydoc.render_doc(fn, renderer=pydoc.plaintext)
     for p in spec.params:

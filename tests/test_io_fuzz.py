@@ -17,7 +17,6 @@ before is untouched and no temporary file is left.
 
 from __future__ import annotations
 
-import os
 import re
 import struct
 
@@ -27,6 +26,8 @@ import pytest
 from recon_cli.errors import InputError
 from recon_cli.geometry import TriangleMesh
 from recon_cli.io.load import load
+
+from fuzz_checks import convert_broken_files
 
 # ----------------------------------------------------------------------------- base files
 
@@ -378,15 +379,6 @@ def test_nan_face_index_refused_without_warning(tmp_path):
 # ----------------------------------------------------------------------------- through the CLI
 
 
-def _cli(args, capfd) -> tuple[int, str, str]:
-    from recon_cli.cli.main import main
-
-    with pytest.raises(SystemExit) as ex:
-        main(["-q", *map(str, args)])
-    out, err = capfd.readouterr()
-    return ex.value.code, out, err
-
-
 def test_cli_on_broken_files_one_line_and_output_untouched(tmp_path, capfd):
     rng = np.random.default_rng(3)
     cases = []
@@ -401,25 +393,5 @@ def test_cli_on_broken_files_one_line_and_output_untouched(tmp_path, capfd):
             cases += [
                 (f"{name} {label}", d) for label, d, _ in _ascii_token_mutations(data, rng)[::7]
             ]
-    src = tmp_path / "in.ply"
-    out = tmp_path / "out.ply"
-    sentinel = b"the output that was there before\n"
-    codes = {0: 0, 2: 0}
-    for label, data in cases:
-        src.write_bytes(data)
-        out.write_bytes(sentinel)
-        code, stdout, err = _cli(["convert", src, out], capfd)
-        assert code in (0, 2), f"{label}: exit {code}: {err}"
-        codes[code] += 1
-        if code == 2:
-            assert err.count("\n") == 1 and err.startswith(f"recon: error: {src}: "), (
-                f"{label}: {err!r}"
-            )
-            assert out.read_bytes() == sentinel, f"{label}: output replaced on error"
-        else:
-            assert err == "", f"{label}: {err!r}"
-            assert out.read_bytes() != sentinel
-        assert sorted(os.listdir(tmp_path)) == ["in.ply", "out.ply"], (
-            f"{label}: left {os.listdir(tmp_path)}"
-        )
+    codes = convert_broken_files([(label, "in.ply", d) for label, d in cases], tmp_path, capfd)
     assert codes[2] > 0.5 * len(cases)

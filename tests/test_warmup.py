@@ -59,6 +59,10 @@ runs = [
     ["mcubes", f"{d}/k.npz", f"{d}/m.ply"],
     ["info", kitten, f"{d}/k.npz"],
     ["diff", kitten, f"{d}/m.ply", "--samples", "5000"],
+    ["convert", f"{d}/n.ply", f"{d}/n.glb"],
+    ["smooth", f"{d}/s.ply", f"{d}/sm.glb", "--iterations", "1"],
+    ["convert", f"{d}/sm.glb", f"{d}/sm.gltf"],
+    ["info", f"{d}/sm.gltf"],
 ]
 for args in runs:
     cli.main(args=["-q", *args], prog_name="recon", standalone_mode=False)

@@ -6,6 +6,7 @@ import contextlib
 import glob
 import logging
 import os
+import shutil
 import signal
 import threading
 import time
@@ -256,6 +257,8 @@ def _remove_temporaries(base: str) -> None:
         for tmp in glob.glob(
             os.path.join(glob.escape(folder), glob.escape("." + name + suffix) + ".*.tmp")
         ):
+            if os.path.isdir(tmp):  # a tileset's folder being written
+                shutil.rmtree(tmp, ignore_errors=True)
             with contextlib.suppress(OSError):
                 os.unlink(tmp)
 

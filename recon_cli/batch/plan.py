@@ -15,8 +15,9 @@ from recon_cli.errors import InputError, ParameterError
 
 # file suffixes taken from a folder given as an input
 INPUT_SUFFIXES = (".ply", ".npz")
-# suffixes an output can have (a grid is written as .npz, anything else as PLY)
-OUTPUT_SUFFIXES = (".ply", ".npz")
+# suffixes an output can have (a grid is written as .npz, a 3D Tiles tileset as a .tiles
+# folder, anything else as PLY)
+OUTPUT_SUFFIXES = (".ply", ".npz", ".tiles")
 SUMMARY_NAME = "batch.json"
 
 STATUS_OK = "ok"
@@ -155,7 +156,7 @@ def plan_batch(
         key = base
         if key in by_base:
             raise ParameterError(
-                f"inputs {by_base[key]!r} and {path!r} would both write {base}.ply/.npz "
+                f"inputs {by_base[key]!r} and {path!r} would both write {base}.ply/.npz/.tiles "
                 "(rename one or run them apart)"
             )
         by_base[key] = path

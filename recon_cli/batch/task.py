@@ -59,12 +59,15 @@ def registered_stages(extra_stages: dict[str, str] | None):
 
 
 def data_stats(obj: Any) -> dict:
-    """Counts describing a cloud, mesh or grid."""
+    """Counts describing a cloud, mesh, grid or tileset."""
     from recon_cli.geometry import PointCloud, TriangleMesh
     from recon_cli.grid import Grid
+    from recon_cli.io.tiles import Tileset
 
     if isinstance(obj, Grid):
         return {"kind": "grid", "grid_shape": list(obj.shape), "voxel_size": float(obj.voxel_size)}
+    if isinstance(obj, Tileset):
+        return {"kind": "tileset", "tiles": len(obj)}
     if isinstance(obj, TriangleMesh):
         return {"kind": "mesh", "vertices": int(len(obj.vertices)), "faces": int(len(obj.faces))}
     if isinstance(obj, PointCloud):
@@ -111,6 +114,7 @@ def process_one(
     from recon_cli import memory
     from recon_cli.grid import Grid
     from recon_cli.io.load import load, save
+    from recon_cli.io.tiles import Tileset
     from recon_cli.pipeline import run_pipeline
 
     scope = "task" if memory.reset_peak() else "process"
@@ -128,7 +132,9 @@ def process_one(
         del data
         t2 = time.perf_counter()
         timings["pipeline"] = t2 - t1
-        path = base + (".npz" if isinstance(out, Grid) else ".ply")
+        path = base + (
+            ".npz" if isinstance(out, Grid) else ".tiles" if isinstance(out, Tileset) else ".ply"
+        )
         save(out, path, ascii=ascii)
         timings["write"] = time.perf_counter() - t2
         rec.update(status=STATUS_OK, output=path, stages=reports, output_stats=data_stats(out))

@@ -70,13 +70,12 @@ def run_stage_command(
     from recon_cli.cli._signals import immediate
     from recon_cli.errors import naming
     from recon_cli.geometry import TriangleMesh
-    from recon_cli.io.atomic import check_output
-    from recon_cli.io.load import load, read_report, save
+    from recon_cli.io.load import check_destination, load, read_report, save
     from recon_cli.stages import apply_stage, get_spec
 
     spec = get_spec(stage)
     checked = spec.check(params, complete=False)  # parameters before reading anything
-    check_output(output)  # and the output path: a wrong one is known now
+    check_destination(output, spec.gives)  # and the output path: a wrong one is known now
     progress = make_progress(ctx)  # before reading: a first run's compiling shows from the start
     # Ctrl-C / SIGTERM leave at once, even inside a numba kernel or while numba loads one:
     # nothing is written before save()

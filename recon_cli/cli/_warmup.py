@@ -472,6 +472,7 @@ def _mesh_tools(f: Files) -> list[Step]:
         recon("simplify", f.open, f.out(), "--faces", "21"),
         recon("smooth", f.m64, f.out()),
         recon("smooth", f.open, f.out(), "--fixed-boundary"),
+        recon("tiles", f.m64, f.out("tiles"), "--tile-faces", "64"),  # simplify, distances, GLB
     ]
 
 
@@ -512,10 +513,10 @@ def _formats(f: Files) -> list[Step]:
     """Every other file format, both ways, from float32 and float64 sources."""
     steps = []
     for src, suffixes in (
-        (f.c32, ("xyz", "csv", "pcd")),
-        (f.c64, ("xyz", "csv", "pcd")),
-        (f.m32, ("off", "stl")),
-        (f.m64, ("off", "stl")),
+        (f.c32, ("xyz", "csv", "pcd", "glb")),
+        (f.c64, ("xyz", "csv", "pcd", "glb")),
+        (f.m32, ("off", "stl", "glb", "gltf")),
+        (f.m64, ("off", "stl", "glb", "gltf")),
     ):
         for suffix in suffixes:
             dst = f.out(f"{os.path.basename(src)[:-4]}.{suffix}")

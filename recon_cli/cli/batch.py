@@ -117,7 +117,7 @@ def format_summary(summary: dict) -> str:
             what = ", ".join(
                 f"{k} {v}"
                 for k, v in stats.items()
-                if k in ("points", "vertices", "faces", "grid_shape")
+                if k in ("points", "vertices", "faces", "grid_shape", "tiles")
             )
             mem = r.get("peak_memory_mb")
             mem_text = f", {mem:.0f} MB" if isinstance(mem, (int, float)) else ""

@@ -20,7 +20,7 @@ from recon_cli.cli import options
 def cmd(ctx: click.Context, input: str, output: str, ascii_: bool, big_endian: bool) -> None:
     """Convert between formats, chosen by suffix.
 
-    PLY, OBJ, OFF, STL, XYZ/TXT/CSV/PTS, PCD, LAS/LAZ (E57 read only). A PLY written from a PLY
+    PLY, OBJ, OFF, STL, XYZ/TXT/CSV/PTS, PCD, LAS/LAZ, GLB/glTF (E57 read only). A PLY from a PLY
     keeps every element and property.
     """
     from recon_cli.cli._run import io_formats

@@ -42,7 +42,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "compare": ("compare", "Run several methods on one input and compare them."),
     "run": ("run", "Run a pipeline file (TOML) on one input."),
     "batch": ("batch", "Run a pipeline file on many inputs (Dask)."),
-    "convert": ("convert", "Convert between PLY, OBJ, OFF, STL, XYZ/CSV, PCD, LAS/LAZ (E57 in)."),
+    "convert": (
+        "convert",
+        "Convert between PLY, OBJ, OFF, STL, XYZ/CSV, PCD, LAS/LAZ, glTF/GLB (E57 in).",
+    ),
     "view": ("view", "Write one HTML page showing a mesh or cloud in 3-D (WebGL, no network)."),
     "warmup": ("warmup", "Compile every kernel once (run after installing; make install does)."),
 }

@@ -79,10 +79,10 @@ def cmd(
     from recon_cli.cli._signals import immediate
     from recon_cli.errors import naming
     from recon_cli.execution import run_on
-    from recon_cli.io.atomic import check_output
-    from recon_cli.io.load import load, read_report, save
+    from recon_cli.io.load import check_destination, load, read_report, save
+    from recon_cli.stages import get_spec
 
-    check_output(output)
+    check_destination(output, get_spec(pipe.steps[-1].name).gives if pipe.steps else ())
     t0 = time.perf_counter()
     load_kw, save_kw = io_formats(ctx, input, output)
     with run_on(**options.execution_values(how, output)), immediate():

@@ -30,6 +30,7 @@ import contextlib
 import errno
 import os
 import re
+import shutil
 import stat
 import sys
 import tempfile
@@ -50,14 +51,19 @@ _NO_TMPFILE = {errno.EOPNOTSUPP, errno.EISDIR, errno.EINVAL, errno.ENOENT}
 # names of the temporary files being written (only where O_TMPFILE is missing): removed on
 # any error here, and by remove_temporaries() when a signal ends the process
 _NAMED: set[str] = set()
+# temporary folders of new folders being written (new_folder), removed the same ways
+_FOLDERS: set[str] = set()
 
 
 def remove_temporaries() -> None:
-    """Remove the named temporary files of writes in progress (for a process that must end now)."""
+    """Remove the temporary files and folders of writes in progress (the process must end now)."""
     for name in list(_NAMED):
         with contextlib.suppress(OSError):
             os.unlink(name)
         _NAMED.discard(name)
+    for folder in list(_FOLDERS):
+        shutil.rmtree(folder, ignore_errors=True)
+        _FOLDERS.discard(folder)
 
 
 def _reason(exc: OSError) -> str:
@@ -304,3 +310,57 @@ def _write_all(f: IO[bytes], data: bytes | memoryview) -> None:
         if not n:
             raise OSError(errno.EIO, "the output accepts no more data")
         view = view[n:]
+
+
+def check_new_folder(path: str | os.PathLike) -> None:
+    """Refuse a path a new folder cannot be written at, before any work is done.
+
+    Raises
+    ------
+    OutputError
+        Standard output, an existing path (never replaced or merged into) or a missing parent.
+    """
+    if str(path) in ("-", ""):
+        raise OutputError(
+            "a folder is written here: give a path that does not exist yet", str(path)
+        )
+    path = os.fspath(path)
+    if os.path.lexists(path):
+        raise OutputError("exists: give a path that does not exist yet (nothing is replaced)", path)
+    parent = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(parent):
+        raise OutputError("output folder does not exist", path)
+
+
+@contextlib.contextmanager
+def new_folder(path: str | os.PathLike) -> Iterator[str]:
+    """A hidden temporary folder beside ``path``, renamed to ``path`` when the block ends.
+
+    The folder appears whole or not at all: on any error, or an interruption, the temporary
+    folder is removed and ``path`` is not created.
+
+    Raises
+    ------
+    OutputError
+        As :func:`check_new_folder`, the file system's refusal, or ``path`` created meanwhile.
+    """
+    check_new_folder(path)
+    final = os.path.abspath(os.fspath(path))
+    try:
+        tmp = tempfile.mkdtemp(
+            prefix="." + os.path.basename(final) + ".", suffix=".tmp", dir=os.path.dirname(final)
+        )
+    except OSError as exc:
+        raise OutputError(_reason(exc), os.fspath(path)) from None
+    _FOLDERS.add(tmp)
+    try:
+        yield tmp
+        if os.path.lexists(final):
+            raise OutputError("was created meanwhile: nothing is replaced", os.fspath(path))
+        os.rename(tmp, final)
+    except OSError as exc:
+        raise OutputError(_reason(exc), os.fspath(path)) from None
+    finally:
+        if os.path.isdir(tmp):
+            shutil.rmtree(tmp, ignore_errors=True)
+        _FOLDERS.discard(tmp)

@@ -215,6 +215,43 @@ def _info(obj) -> dict:
     return out
 
 
+# GeoTIFF keys of a GeoKeyDirectory VLR that name an EPSG coordinate system
+_PROJECTED_KEY, _GEOGRAPHIC_KEY = 3072, 2048
+
+
+def coordinate_system(obj_info: list[str]) -> str | None:
+    """The coordinate system the LAS VLRs kept in ``obj_info`` lines give, or None.
+
+    The OGC WKT record (``LASF_Projection`` 2112) as its text, else the EPSG code of a
+    GeoKeyDirectory record (34735: ``ProjectedCSTypeGeoKey``, else ``GeographicTypeGeoKey``)
+    as ``"EPSG:<code>"``. Malformed records are passed over.
+    """
+    records = {}
+    for line in obj_info:
+        key, _, rest = line.partition(" ")
+        words = rest.split(" ")
+        if key != "las_vlr" or len(words) != 4:
+            continue
+        try:
+            user = base64.b64decode(words[0]).decode("latin-1").rstrip("\0")
+            records[(user, int(words[1]))] = base64.b64decode(words[3])
+        except ValueError:  # binascii.Error is a ValueError
+            continue
+    wkt = records.get(("LASF_Projection", 2112))
+    if wkt:
+        text_ = wkt.split(b"\0", 1)[0].decode("latin-1").strip()
+        if text_:
+            return text_
+    keys = records.get(("LASF_Projection", 34735))
+    if keys and len(keys) >= 8 and len(keys) % 8 == 0:
+        shorts = np.frombuffer(keys, "<u2").reshape(-1, 4)
+        found = {int(k): int(v) for k, loc, _, v in shorts[1:] if loc == 0}
+        for geokey in (_PROJECTED_KEY, _GEOGRAPHIC_KEY):
+            if 0 < found.get(geokey, 0) < 32767:  # 32767: user-defined, not a code
+                return f"EPSG:{found[geokey]}"
+    return None
+
+
 def _grid(pts: np.ndarray, info: dict) -> tuple[np.ndarray, np.ndarray]:
     if "scale" in info and "offset" in info:
         return np.array(info["scale"].split(), float), np.array(info["offset"].split(), float)

@@ -123,6 +123,16 @@ FORMATS: dict[str, Format] = {
             "e57",
             "all scans in the file frame (float64), intensity, colours (read only)",
         ),
+        Format(
+            "gltf",
+            (".glb", ".gltf"),
+            "mesh",
+            "gltf",
+            True,
+            None,
+            "positions (float32 + a float64 node translation), normals, COLOR_0, indices, "
+            "other attributes as _NAME, history; every triangle primitive of the scene",
+        ),
         Format("npz", (".npz",), "grid", "npz", True, None, "SDF grids (recon sdf / mcubes)"),
     )
 }
@@ -177,6 +187,8 @@ def sniff(data) -> Format:
         return FORMATS["las"]
     if head.startswith(b"ASTM-E57"):
         return FORMATS["e57"]
+    if head.startswith(b"glTF") or start.startswith(b"{"):
+        return FORMATS["gltf"]
     if start.startswith((b"# .PCD", b"VERSION", b"FIELDS")):
         return FORMATS["pcd"]
     word = start.split(None, 1)[0] if start.strip() else b""
@@ -289,6 +301,13 @@ def save(
     refused by STL.
     """
     where = "<stdout>" if str(path) == "-" else str(path)
+    from recon_cli.io.tiles import Tileset
+
+    if isinstance(obj, Tileset):
+        if format:
+            raise ParameterError(f"{where}: a tileset is a folder of GLB tiles: no --format")
+        obj.write(path)
+        return
     fmt = format_of(path, format)
     if isinstance(obj, Grid):
         if fmt is not None and fmt.name != "npz":
@@ -347,6 +366,12 @@ def save(
         from recon_cli.io.pcd import write_pcd
 
         write_pcd(obj, path, data="ascii" if ascii else "binary")
+    elif fmt.name == "gltf":
+        from recon_cli.io.gltf import write_gltf
+
+        given = (format or "").lower().lstrip(".")
+        binary = given == "glb" if given else not str(path).lower().endswith(".gltf")
+        write_gltf(obj, path, binary=binary)
     elif fmt.name == "las":
         from recon_cli.io.las import write_las
 
@@ -358,6 +383,13 @@ def save(
         )
     else:  # pragma: no cover - every writing format is listed above
         raise ParameterError(f"no writer for {fmt.name}")
+
+
+def check_destination(path: str | os.PathLike, kinds: tuple[str, ...] = ()) -> None:
+    """Refuse an output path before any work: a new folder for a tileset, else a file path."""
+    from recon_cli.io.atomic import check_new_folder, check_output
+
+    (check_new_folder if "tileset" in kinds else check_output)(path)
 
 
 def _kind(obj: Any) -> str:

@@ -41,6 +41,7 @@ STAGES: dict[str, str] = {
     "mcubes": "recon_cli.stages.mcubes:SPEC",
     "fit-sdf": "recon_cli.stages.learned:SPEC",
     "filter": "recon_cli.stages.filter:SPEC",
+    "tiles": "recon_cli.stages.tiles:SPEC",
 }
 BUILTIN = tuple(STAGES)
 

@@ -1175,6 +1175,7 @@ def run_stage(
     else:
         mesh, report = _run_reference(cloud, keep_colors, props, solve, backend, history)
     mesh.history = history
+    mesh.obj_info = list(cloud.obj_info)  # a LAS file's header and coordinate system
     mesh.point_dtype = (
         cloud.point_dtype
     )  # double in, double out (float32 in: see geometry.storage_dtype)
