@@ -87,7 +87,7 @@ def finest_cells(
     """
     depth = len(levels) - 1
     if masks is None:
-        masks = [lev.leaf for lev in levels]
+        masks = [np.asarray(lev.leaf) for lev in levels]
     # only leaves whose corner range reaches the iso-value can hold surface: count their
     # finest cells first, then write them straight into arrays of the exact size (per-level
     # parts and their concatenation would hold the cells twice)

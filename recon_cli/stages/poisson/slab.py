@@ -587,7 +587,10 @@ def _system(slab: Slab, coarse: list[tuple], coarse_fields: dict, keep: bool) ->
             )
         fine[0].cell_parent = O.bsearch_many(levels[-1].cell_keys, O.halve(fine[0].cell_keys))
     levels += fine
-    lfs, arrays = level_fields(levels, job.boundary) if len(levels) > 1 else ([None], None)
+    lfs: list = [None]
+    arrays = None
+    if len(levels) > 1:
+        lfs, arrays = level_fields(levels, job.boundary)
     msg: dict[str, Any] = {"cells": [len(lev.cell_keys) for lev in levels]}
     fields = dict(coarse_fields)
     fields.update(slab.fine_fields)
@@ -603,6 +606,7 @@ def _system(slab: Slab, coarse: list[tuple], coarse_fields: dict, keep: bool) ->
         if up is not None:
             # the children of each parent of E, in blocks of 8 (x offset: bit 0)
             f = lfs[dc]
+            assert f is not None  # dc >= 1 has a field
             cx = 2 * (f.q_keys >> 42)[:, None] + (np.arange(8) & 1)[None, :]
             a, b = slab.x_range(slab.own, 1 << dc)
             mine = ((cx >= a) & (cx < b)).reshape(-1) & (up != 0)
