@@ -160,7 +160,6 @@ def test_states_pickled_between_steps_give_the_same_mesh(monkeypatch):
 
     from recon_cli.slabs import runners as steps
     from recon_cli.stages.poisson import distributed as D
-    from recon_cli.stages.poisson import slab as S
 
     pts, nrm = sphere_cloud(6000, seed=9)
     plain = distributed_poisson(pts, nrm, depth=7, partitions=3).mesh
@@ -172,7 +171,7 @@ def test_states_pickled_between_steps_give_the_same_mesh(monkeypatch):
             blobs = [pickle.dumps(s, protocol=5) for s in self.states]
             if name == "restrict":
                 sizes.extend(
-                    (len(b), S.state_bytes(s)) for b, s in zip(blobs, self.states, strict=True)
+                    (len(b), steps.state_bytes(s)) for b, s in zip(blobs, self.states, strict=True)
                 )
             self.states = [pickle.loads(b) for b in blobs]
             return out

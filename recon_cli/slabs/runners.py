@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import sys
 import time
 from collections.abc import Callable
 from typing import Any
@@ -101,10 +102,10 @@ class Overall:
 
 
 def _sizeof(obj: Any) -> int:
-    try:
-        from dask.sizeof import sizeof
-    except ImportError:  # pragma: no cover - dask is an extra
+    if "dask" not in sys.modules:  # a run in one process does not import Dask for this
         return state_bytes(obj)
+    from dask.sizeof import sizeof
+
     return int(sizeof(obj))
 
 
@@ -380,6 +381,22 @@ def _start(x: Any) -> Any:
     return copy.deepcopy(x)
 
 
+def register_dask_sizes(*kinds: type) -> None:
+    """Tell Dask the sizes of states of these types: their arrays' bytes (:func:`state_bytes`).
+
+    Dask's own estimate of an object is a few hundred bytes; its spill and memory limits need the
+    arrays'. Does nothing unless Dask is already imported, so a run in one process never imports
+    it: a worker process has imported Dask before it unpickles a step (which imports the state's
+    module, whose import calls this), and :class:`DaskRunner` registers its states in the client.
+    """
+    if "dask" not in sys.modules:
+        return
+    from dask.sizeof import sizeof
+
+    for kind in kinds:
+        sizeof.register(kind)(state_bytes)
+
+
 class DaskRunner:
     """Each part's state on a Dask worker (module docstring)."""
 
@@ -396,6 +413,9 @@ class DaskRunner:
         loads: list[float] | None = None,
     ):
         self.client = client
+        import dask  # noqa: F401  (registration needs it imported)
+
+        register_dask_sizes(*{type(s) for s in states if type(s).__module__ != "builtins"})
         # with more parts than workers, a worker would hold all its parts' states: each large
         # state goes to a file in spill_dir (shared by the workers) between its steps instead
         self.spill_dir = spill_dir

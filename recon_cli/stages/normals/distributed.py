@@ -54,7 +54,7 @@ from typing import Any
 import numpy as np
 
 from recon_cli.errors import InputError, ParameterError
-from recon_cli.slabs.runners import map_tasks
+from recon_cli.slabs.runners import map_tasks, register_dask_sizes
 from recon_cli.slabs.spill import spill_folder
 
 # the slabs' axis is cut into this many sub-slabs; halos are whole sub-slabs
@@ -257,18 +257,7 @@ def nwrite(slab: NSlab, flips: np.ndarray, prefix: str, curvature: bool) -> dict
     return {"flipped": flipped}
 
 
-def _register_sizeof() -> None:
-    # Dask's own estimate of a dataclass is a few hundred bytes: the spill needs the arrays'
-    try:  # dask is an extra (recon[batch])
-        from dask.sizeof import sizeof
-
-        from recon_cli.slabs.runners import state_bytes
-    except ImportError:  # pragma: no cover
-        return
-    sizeof.register(NSlab)(state_bytes)
-
-
-_register_sizeof()
+register_dask_sizes(NSlab)
 
 nload = _timed(nload)
 nestimate = _timed(nestimate)

@@ -27,7 +27,7 @@ import numpy as np
 from recon_cli.errors import StageFailed
 from recon_cli.geometry import oriented_rows
 from recon_cli.memory import release_free_heap
-from recon_cli.slabs.runners import reads_only, state_bytes, timed
+from recon_cli.slabs.runners import reads_only, register_dask_sizes, timed
 from recon_cli.stages.poisson import _bspline_eval as BE
 from recon_cli.stages.poisson import _extract as E
 from recon_cli.stages.poisson import _octree as O
@@ -1402,16 +1402,7 @@ def export(
     return msg
 
 
-def _dask_size(slab: Slab) -> int:
-    return state_bytes(slab)
-
-
-try:  # dask is an extra (recon[batch])
-    from dask.sizeof import sizeof as _dask_sizeof
-
-    _dask_sizeof.register(Slab)(_dask_size)
-except ImportError:  # pragma: no cover
-    pass
+register_dask_sizes(Slab)
 
 
 @timed
