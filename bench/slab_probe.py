@@ -41,6 +41,7 @@ def main(n: int, depth: int, slabs: int, watch: int = 1) -> None:
     from recon_cli.mesh.sampling import sample_surface
     from recon_cli.stages.poisson import distributed as D
     from recon_cli.stages.poisson import slab as S
+    from recon_cli.stages.poisson import slab_surface as M
 
     cloud = sample_surface(read_ply(SHARED / "armadillo.ply"), n, seed=0, noise=0.0025)
     current = {"slab": -1}
@@ -63,11 +64,13 @@ def main(n: int, depth: int, slabs: int, watch: int = 1) -> None:
         return call
 
     for name in CALLS:
-        if hasattr(S, name):
-            setattr(S, name, probe(name, getattr(S, name)))
+        for mod in (S, M):
+            if hasattr(mod, name):
+                setattr(mod, name, probe(name, getattr(mod, name)))
     # the steps set which slab runs
     for name in ("load", "noise", "items", "restrict", "solve", "field", "extract"):
-        fn = getattr(S, name)
+        mod = M if name in ("field", "extract") else S
+        fn = getattr(mod, name)
         real_timed_steps[name] = fn
 
         def step(slab, *a, _fn=fn):
@@ -75,7 +78,7 @@ def main(n: int, depth: int, slabs: int, watch: int = 1) -> None:
             return _fn(slab, *a)
 
         step.__name__ = fn.__name__
-        setattr(S, name, step)
+        setattr(mod, name, step)
     load0 = os.getloadavg()[0]
     D.distributed_poisson(cloud.points, cloud.normals, depth=depth, partitions=slabs)
     print(json.dumps({"load": f"{load0:.1f}-{os.getloadavg()[0]:.1f}"}))

@@ -607,7 +607,7 @@ def test_laz_tiles_read_by_chunks(cluster, tmp_path, monkeypatch):
     others lack is refused and leaves no temporary folder."""
     import recon_cli.io.chunks as C
     from recon_cli.io.las import write_las
-    from recon_cli.stages.poisson.distributed import reconstruct_files
+    from recon_cli.stages.poisson.files import reconstruct_files
 
     pts, nrm = sphere_cloud(10_000, seed=14)
     pts = pts * 20.0 + np.array([1e5, 2e5, 50.0])

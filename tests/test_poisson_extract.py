@@ -199,11 +199,12 @@ def test_noise_specks_dropped_small_parts_kept(rng):
 
 @pytest.mark.parametrize("offset", [0.0, 1e6])
 def test_islands_need_ten_points_specks_always_go(rng, offset):
-    # the rule of _drop_bubbles on built pieces: beside a unit sphere, a speck (under two cells
+    # the rule of drop_bubbles on built pieces: beside a unit sphere, a speck (under two cells
     # across) goes whatever points it has; a sphere 10 cells across goes with 9 input points
     # within two cells of its box (an island around outliers) and stays with 10; points farther
     # away do not count; the largest piece always stays
-    from recon_cli.stages.poisson import ISLAND_POINTS, _drop_bubbles
+    from recon_cli.stages.poisson import ISLAND_POINTS
+    from recon_cli.stages.poisson.steps import drop_bubbles
 
     from shapes import icosphere
 
@@ -224,26 +225,24 @@ def test_islands_need_ten_points_specks_always_go(rng, offset):
     for k in (ISLAND_POINTS - 1, ISLAND_POINTS):
         near = np.array([2.0, 0.0, 0.0]) + 0.1 * rng.uniform(-1, 1, size=(k, 3))
         pts = np.vstack([main, near, far]) + offset
-        v, f, specks, islands, folds = _drop_bubbles(verts, faces, cell, pts, None)
+        v, f, specks, islands, folds = drop_bubbles(verts, faces, cell, pts, None)
         assert specks == 1
         assert islands == (1 if k < ISLAND_POINTS else 0) and folds == 0
         assert len(f) == len(parts[0][1]) + (0 if islands else len(parts[1][1]))
         assert np.array_equal(v[f], verts[faces[: len(f)]])  # what stays is untouched
     # no points at all: only the largest piece is left
-    v, f, specks, islands, folds = _drop_bubbles(
-        verts, faces, cell, np.zeros((0, 3)) + offset, None
-    )
+    v, f, specks, islands, folds = drop_bubbles(verts, faces, cell, np.zeros((0, 3)) + offset, None)
     assert (specks, islands, folds) == (1, 1, 0) and len(f) == len(parts[0][1])
 
 
 @pytest.mark.parametrize("offset", [0.0, 1e6])
 def test_folds_go_a_thin_shell_and_a_part_out_of_the_band_stay(rng, offset):
-    # the folds' rule of _drop_bubbles on built pieces, noise 4 cells (sigma 0.04): a flat blob
+    # the folds' rule of drop_bubbles on built pieces, noise 4 cells (sigma 0.04): a flat blob
     # 0.5 across (over the specks' 8 sigma, under the folds' 16) lying within 0.11 of a unit
     # sphere goes; the same blob 0.3 out stays; so does a concentric sphere 0.1 inside (a thin
     # shell's inner wall, too long to be a fold); a blob on a second sphere (not the largest,
     # too long itself) goes too; all turned at random
-    from recon_cli.stages.poisson import _drop_bubbles
+    from recon_cli.stages.poisson.steps import drop_bubbles
 
     from shapes import icosphere
 
@@ -266,13 +265,13 @@ def test_folds_go_a_thin_shell_and_a_part_out_of_the_band_stay(rng, offset):
     verts = np.vstack([v for v, _ in parts] + [[[9.0, 9.0, 9.0]]]) @ rot.T + offset
     starts = np.cumsum([0] + [len(v) for v, _ in parts])
     faces = np.vstack([f + s for (_, f), s in zip(parts, starts[:-1], strict=True)])
-    v, f, specks, islands, folds = _drop_bubbles(verts, faces, cell, verts[:-1], noise)
+    v, f, specks, islands, folds = drop_bubbles(verts, faces, cell, verts[:-1], noise)
     assert (specks, islands, folds) == (0, 0, 2)
     fs = np.cumsum([0] + [len(f) for _, f in parts])
     stay = np.concatenate([np.arange(fs[k], fs[k + 1]) for k in (0, 1, 2, 4)])
     assert np.array_equal(v[f], verts[faces[stay]])  # what stays is untouched
     # the noise not measured: no fold
-    assert _drop_bubbles(verts, faces, cell, verts[:-1], None)[2:] == (0, 0, 0)
+    assert drop_bubbles(verts, faces, cell, verts[:-1], None)[2:] == (0, 0, 0)
 
 
 @pytest.mark.parametrize("scale, offset", [(1.0, 0.0), (250.0, 1e6)])

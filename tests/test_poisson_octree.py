@@ -182,7 +182,7 @@ def test_unique_keys_is_numpys_unique(values, repeat):
 )
 @settings(max_examples=60, deadline=None)
 def test_points_in_boxes_as_a_brute_force(seed, n, k, offset):
-    # the islands' count and the folds' targets (_drop_bubbles): closed boxes, points on a
+    # the islands' count and the folds' targets (drop_bubbles): closed boxes, points on a
     # face counted, x ties kept; the indices in any box each once, sorted
     rng = np.random.default_rng(seed)
     pts = np.round(rng.uniform(0, 4, (n, 3)) * 4) / 4 + offset  # on a lattice: many ties

@@ -125,7 +125,7 @@ def noise_pieces(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Which closed pieces are specks, islands and folds: (n,) bool each, never ``largest``.
 
-    The rules of :func:`recon_cli.stages.poisson._drop_bubbles`, for the single process and the
+    The rules of :func:`recon_cli.stages.poisson.steps.drop_bubbles`, for the single process and the
     slabs' merge alike, on the pieces' boxes ``lo``/``hi`` (n, 3) (the largest's need not be
     set), ``cell`` the finest cell, ``speck`` (:func:`.speck_cells`) and ``fold``
     (:func:`.fold_cells`) in cells. The two measures come from the caller: ``count_points(lo,
