@@ -190,6 +190,19 @@ class Execution:
             return None
         return int(self.memory * 0.8) // self.workers
 
+    def cluster(self) -> contextlib.AbstractContextManager:
+        """``with ex.cluster() as (client, info)``: the Dask cluster the work runs on.
+
+        A local cluster of ``workers`` processes (closed at the end) or a client of
+        ``scheduler``'s; in this process ``client`` is None. ``info`` has ``workers`` and
+        ``memory`` (per worker, bytes; this process's budget without a cluster).
+        """
+        if not self.distributed:
+            return contextlib.nullcontext((None, {"workers": 0, "memory": self.budget()}))
+        from recon_cli.batch.cluster import open_client
+
+        return open_client(self.scheduler, self.workers, self.worker_memory(), stealing=False)
+
     def spill_parent(self, output: str | None = None) -> str | None:
         """The folder the run's spill folder goes in (None: the system's temporary folder).
 

@@ -956,18 +956,11 @@ def _run_distributed(
 
     On ``ex``'s Dask cluster, or in this process in ``slabs`` slabs.
     """
-    import contextlib
-
     from recon_cli.stages.normals.distributed import distributed_normals
 
     if backend != "native":
         raise ParameterError("--workers/--scheduler run the native normals: leave out --backend")
-    if ex.distributed:
-        from recon_cli.batch.cluster import open_client
-
-        opened: Any = open_client(ex.scheduler, ex.workers, ex.worker_memory(), stealing=False)
-    else:
-        opened = contextlib.nullcontext((None, {"workers": 0, "memory": ex.budget()}))
+    opened = ex.cluster()
     views = None
     if method == "camera" and cam is None:  # each point towards its own scanner
         views = _sensor_views(

@@ -682,9 +682,6 @@ def run_from_files(
     command loads IN). OUT is written a chunk of IN at a time (binary PLY; other formats
     assembled here); returns the report.
     """
-    import contextlib
-
-    from recon_cli.batch.cluster import open_client
     from recon_cli.execution import current
     from recon_cli.io.chunks import plan_chunks
     from recon_cli.stages import provenance_line
@@ -705,10 +702,7 @@ def run_from_files(
     v, knn, radius, (method, cam, dirn) = _checked(params, input, load_kw)
     t0 = time.perf_counter()
     chunks = chunks or plan_chunks(input)
-    if ex.distributed:
-        opened: Any = open_client(ex.scheduler, ex.workers, ex.worker_memory(), stealing=False)
-    else:
-        opened = contextlib.nullcontext((None, {"workers": 0, "memory": ex.budget()}))
+    opened = ex.cluster()
     with spill_folder(ex.spill_parent(output), "normals") as tmp, opened as (client, info):
         scans, n_rows, sensors, views = _scan(client, chunks, method, cam)
         lo = np.min([s["lo"] for s in scans if "lo" in s], axis=0)

@@ -377,9 +377,6 @@ def run_from_files(
     spilled to a folder beside OUT (:func:`recon_cli.execution.current`). Writes OUT and returns
     the report.
     """
-    import contextlib
-
-    from recon_cli.batch.cluster import open_client
     from recon_cli.execution import current
     from recon_cli.io.load import save
     from recon_cli.stages.poisson import SPEC
@@ -418,10 +415,7 @@ def run_from_files(
         check_output(output)
     prov = provenance_line("poisson", {**SPEC.defaults(), **params})
     t0 = time.perf_counter()
-    if ex.distributed:
-        opened: Any = open_client(ex.scheduler, ex.workers, ex.worker_memory(), stealing=False)
-    else:
-        opened = contextlib.nullcontext((None, {"workers": 0, "memory": ex.budget()}))
+    opened = ex.cluster()
     with opened as (client, info):
         res = reconstruct_files(
             input,

@@ -311,17 +311,10 @@ def _run_distributed(
     ``slabs``: their number in this process (None on a cluster: its workers' memory decides,
     or ``ex.partitions``). Returns the mesh and the report.
     """
-    import contextlib
-
     from recon_cli.stages.poisson.distributed import distributed_poisson
 
     assert cloud.normals is not None  # _stage_input refuses a cloud without
-    if ex.distributed:
-        from recon_cli.batch.cluster import open_client
-
-        opened: Any = open_client(ex.scheduler, ex.workers, ex.worker_memory(), stealing=False)
-    else:
-        opened = contextlib.nullcontext((None, {"workers": 0, "memory": ex.budget()}))
+    opened = ex.cluster()
     with opened as (client, info):
         res = distributed_poisson(
             cloud.points,
