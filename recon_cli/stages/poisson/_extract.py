@@ -1,8 +1,8 @@
 """Numba kernels of the extraction.
 
 The level set over the leaves of the tree at their own size (:func:`leaf_polygons`, Kazhdan, Klein,
-Dalal & Hoppe 2007; see :mod:`.extract`), and the finest-lattice variant (leaves refined where they
-straddle the iso-value, one value per lattice point).
+Dalal & Hoppe 2007; see :mod:`.extract`) and the roots on edges; the finest-lattice variant is
+in :mod:`._extract_finest`.
 
 They only compute; conventions in :mod:`recon_cli.stages.poisson._octree`.
 """
@@ -18,162 +18,6 @@ from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache
 from recon_cli._kernels.arrays import lower_bound
 from recon_cli._kernels.hashtable import probe, table_bits
 from recon_cli.stages.poisson._octree import MASK21, lattice_key
-
-
-@njit(cache=True, inline="always")
-def _on_face(x, y, z, res):
-    return x == 0 or y == 0 or z == 0 or x == res or y == res or z == res
-
-
-@njit(cache=True)
-def refine_leaves(
-    cell_keys, cell_nodes, is_leaf, g, level, depth, iso, eps, margin, out_xyz, out_val
-):
-    """Finest-lattice cells (and their corner values) inside leaves that straddle ``iso``.
-
-    A leaf at ``level`` holds a trilinear function (its 8 corner values of ``g``); a leaf
-    whose value range reaches ``iso`` within ``eps`` is split into octants, evaluated
-    exactly, down to ``depth``, keeping only octants whose range reaches it too. Values are
-    negated (marching cubes puts values below its iso-value inside, chi is 1 inside).
-    On the faces of the cube the value is clamped to at most ``iso - margin`` (outside), so
-    a surface running into them is closed there; the clamp is applied to lattice points,
-    whichever leaf evaluates them, so leaves of different levels agree (clamping the nodes
-    of each level would not: a finer level's nodes are prolonged from unclamped values).
-    Writes the cells' lattice coordinates into ``out_xyz`` (k, 3) and corner values into
-    ``out_val`` (k, 8) and returns k; with empty outputs it only counts, so the caller can
-    allocate the exact size (growing buffers would hold up to twice the cells).
-    """
-    count_only = out_xyz.shape[0] == 0
-    m = 0
-    steps = depth - level
-    side = 1 << steps
-    stack_xyz = np.empty((8 * (steps + 1) + 8, 3), np.int64)
-    stack_lvl = np.empty(8 * (steps + 1) + 8, np.int64)
-    vals = np.empty(8)
-    leaf_vals = np.empty(8)
-    niso = -iso
-    cap = niso + margin  # the clamp, negated
-    res = np.int64(1) << depth
-    for c in range(cell_nodes.shape[0]):
-        if not is_leaf[c]:
-            continue
-        for q in range(4):
-            j = cell_nodes[c, q]
-            leaf_vals[q] = -g[j]
-            leaf_vals[q + 4] = -g[j + 1]
-        k = cell_keys[c]
-        lx = (k >> 42) & MASK21
-        ly = (k >> 21) & MASK21
-        lz = k & MASK21
-        # the clamp only raises values: the low end is the corners' raw minimum (a trilinear
-        # function's range is its corners'), the high end may be a clamped corner
-        lo = 1e300
-        hi = -1e300
-        for q in range(8):
-            v = leaf_vals[q]
-            lo = min(lo, v)
-            if _on_face(
-                (lx + (q & 1)) * side,
-                (ly + ((q >> 1) & 1)) * side,
-                (lz + ((q >> 2) & 1)) * side,
-                res,
-            ):
-                v = max(v, cap)
-            hi = max(hi, v)
-        if lo > niso + eps or hi < niso - eps:
-            continue
-        # sub-cells addressed in finest units relative to the leaf's lower corner
-        stack_xyz[0, 0] = 0
-        stack_xyz[0, 1] = 0
-        stack_xyz[0, 2] = 0
-        stack_lvl[0] = 0
-        top = 1
-        while top > 0:
-            top -= 1
-            sx = stack_xyz[top, 0]
-            sy = stack_xyz[top, 1]
-            sz = stack_xyz[top, 2]
-            sl = stack_lvl[top]
-            size = side >> sl
-            lo = 1e300
-            hi = -1e300
-            for q in range(8):
-                fx = (sx + (q & 1) * size) / side
-                fy = (sy + ((q >> 1) & 1) * size) / side
-                fz = (sz + ((q >> 2) & 1) * size) / side
-                v = 0.0
-                for r in range(8):
-                    w = (
-                        (fx if r & 1 else 1.0 - fx)
-                        * (fy if (r >> 1) & 1 else 1.0 - fy)
-                        * (fz if (r >> 2) & 1 else 1.0 - fz)
-                    )
-                    v += w * leaf_vals[r]
-                lo = min(lo, v)
-                if _on_face(
-                    lx * side + sx + (q & 1) * size,
-                    ly * side + sy + ((q >> 1) & 1) * size,
-                    lz * side + sz + ((q >> 2) & 1) * size,
-                    res,
-                ):
-                    v = max(v, cap)
-                vals[q] = v
-                hi = max(hi, v)
-            if lo > niso + eps or hi < niso - eps:
-                continue
-            if sl == steps:
-                if not count_only:
-                    out_xyz[m, 0] = lx * side + sx
-                    out_xyz[m, 1] = ly * side + sy
-                    out_xyz[m, 2] = lz * side + sz
-                    for q in range(8):
-                        out_val[m, q] = vals[q]
-                m += 1
-                continue
-            half = size >> 1
-            for o in range(8):
-                stack_xyz[top, 0] = sx + (o & 1) * half
-                stack_xyz[top, 1] = sy + ((o >> 1) & 1) * half
-                stack_xyz[top, 2] = sz + ((o >> 2) & 1) * half
-                stack_lvl[top] = sl + 1
-                top += 1
-    return m
-
-
-@njit(cache=True)
-def corner_keys(cells):
-    """(8c,) keys of the corners of lattice cells (c, 3), corner ``q`` of cell ``i`` at 8 i + q."""
-    n = cells.shape[0]
-    out = np.empty(8 * n, np.int64)
-    for i in range(n):
-        k = lattice_key(cells[i, 0], cells[i, 1], cells[i, 2])
-        for q in range(8):
-            out[8 * i + q] = k + (((q & 1) << 42) | (((q >> 1) & 1) << 21) | ((q >> 2) & 1))
-    return out
-
-
-@njit(cache=True)
-def unify_corner_values(vals, keys, order):
-    """Give every lattice point one value, whichever cell computed it, in place.
-
-    ``vals`` (c, 8) corner values of finest-lattice cells, ``keys`` the (8c,) lattice keys
-    of the corners (flat corner index ``8 * cell + corner``) and ``order`` their argsort
-    (read through it: no sorted copy). Each run of equal keys takes the value of its first
-    member.
-    """
-    n = len(order)
-    i = 0
-    while i < n:
-        f = order[i]
-        k = keys[f]
-        v = vals[f >> 3, f & 7]
-        j = i + 1
-        while j < n and keys[order[j]] == k:
-            g = order[j]
-            vals[g >> 3, g & 7] = v
-            j += 1
-        i = j
-
 
 # ---------------------------------------------------------------------------------------------
 # extraction at the leaves' own resolution (Kazhdan, Klein, Dalal & Hoppe 2007)
@@ -210,7 +54,7 @@ def _state(keys, leaf, coff, fkeys, D, lev, x, y, z):
 
 
 @njit(cache=True, inline="always")
-def _clamp(v, x, y, z, R, cap):
+def clamp_faces(v, x, y, z, R, cap):
     if x == 0 or y == 0 or z == 0 or x == R or y == R or z == R:
         return min(v, cap)
     return v
@@ -309,13 +153,13 @@ def _minimal_edges(tree, scratch, l0, e0, axis, hint, hxyz, m):
         else:
             v0 = g[goff[lev] + nodes[found, fq & 3] + (fq >> 2)]
             v1 = g[goff[lev] + nodes[found, q1 & 3] + (q1 >> 2)]
-        v0 = _clamp(v0, px, py, pz, R, cap)
+        v0 = clamp_faces(v0, px, py, pz, R, cap)
         if axis == 0:
-            v1 = _clamp(v1, px + ln, py, pz, R, cap)
+            v1 = clamp_faces(v1, px + ln, py, pz, R, cap)
         elif axis == 1:
-            v1 = _clamp(v1, px, py + ln, pz, R, cap)
+            v1 = clamp_faces(v1, px, py + ln, pz, R, cap)
         else:
-            v1 = _clamp(v1, px, py, pz + ln, R, cap)
+            v1 = clamp_faces(v1, px, py, pz + ln, R, cap)
         buf_p[m, 0] = px
         buf_p[m, 1] = py
         buf_p[m, 2] = pz
@@ -462,7 +306,7 @@ def _leaf_range(tree, ci, lev, cx, cy, cz, side, work):
             else g[goff[lev] + nodes[ci, q & 3] + (q >> 2)]
         )
         work.raw[q] = v
-        work.clv[q] = _clamp(
+        work.clv[q] = clamp_faces(
             v,
             (cx + (q & 1)) * side,
             (cy + ((q >> 1) & 1)) * side,
@@ -502,9 +346,9 @@ def _face_edges(tree, scratch, work, ll, a, wl, u, vv, hint):
             # _minimal_edges does, without the call)
             fq = (e0[0] - hxyz[0]) | ((e0[1] - hxyz[1]) << 1) | ((e0[2] - hxyz[2]) << 2)
             hf = hint - coff[D]  # a finest leaf
-            v0 = _clamp(fg[fnodes[hf, fq & 3] + (fq >> 2)], e0[0], e0[1], e0[2], R, cap)
+            v0 = clamp_faces(fg[fnodes[hf, fq & 3] + (fq >> 2)], e0[0], e0[1], e0[2], R, cap)
             qq = fq | (1 << ax)
-            v1 = _clamp(
+            v1 = clamp_faces(
                 fg[fnodes[hf, qq & 3] + (qq >> 2)],
                 e0[0] + (qq & 1) - (fq & 1),
                 e0[1] + ((qq >> 1) & 1) - ((fq >> 1) & 1),
@@ -979,44 +823,6 @@ def weld_chunks(vkey, voff, tri, toff):
             for q in range(3):
                 out[t, q] = gid[voff[c] + tri[t, q]]
     return out, first[:nv]
-
-
-@njit(cache=True)
-def straddles(cell_keys, cell_nodes, is_leaf, g, level, depth, iso, eps, margin):
-    """Whether a leaf of ``level`` has a corner range reaching ``iso`` within ``eps``.
-
-    Chi is clamped to ``iso - margin`` at points on the cube's faces: the range is [clamped
-    minimum, raw maximum]. The test of :func:`leaf_polygons`, stopping at the first such leaf.
-    """
-    side = np.int64(1) << (depth - level)
-    R = np.int64(1) << depth
-    cap = iso - margin
-    for c in range(cell_nodes.shape[0]):
-        if not is_leaf[c]:
-            continue
-        k = cell_keys[c]
-        cx = (k >> 42) & MASK21
-        cy = (k >> 21) & MASK21
-        cz = k & MASK21
-        lo = 1e300
-        hi = -1e300
-        for q in range(8):
-            v = g[cell_nodes[c, q & 3] + (q >> 2)]
-            hi = max(hi, v)
-            lo = min(
-                lo,
-                _clamp(
-                    v,
-                    (cx + (q & 1)) * side,
-                    (cy + ((q >> 1) & 1)) * side,
-                    (cz + (q >> 2)) * side,
-                    R,
-                    cap,
-                ),
-            )
-        if not (lo > iso + eps or hi < iso - eps):
-            return True
-    return False
 
 
 @njit(cache=True)

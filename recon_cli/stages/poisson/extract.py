@@ -39,6 +39,7 @@ import numpy as np
 from recon_cli.errors import StageFailed
 from recon_cli.stages.mcubes import marching_cubes_sparse
 from recon_cli.stages.poisson import _extract as E
+from recon_cli.stages.poisson import _extract_finest as EF
 from recon_cli.stages.poisson import _system as Y
 from recon_cli.stages.poisson.octree import Level
 from recon_cli.stages.poisson.system import chi_at
@@ -93,7 +94,7 @@ def finest_cells(
     # parts and their concatenation would hold the cells twice)
     none_xyz, none_val = np.zeros((0, 3), np.int64), np.zeros((0, 8))
     counts = [
-        E.refine_leaves(
+        EF.refine_leaves(
             lev.cell_keys,
             lev.cell_nodes,
             m,
@@ -113,7 +114,7 @@ def finest_cells(
     vals = np.empty((int(offsets[-1]), 8))
     for d in range(depth, -1, -1):
         lev = levels[d]
-        E.refine_leaves(
+        EF.refine_leaves(
             lev.cell_keys,
             lev.cell_nodes,
             masks[d],
@@ -131,10 +132,10 @@ def finest_cells(
             gvals.pop()
             masks.pop()
     del lev, masks
-    ckeys = E.corner_keys(cells)
+    ckeys = EF.corner_keys(cells)
     # one unstable argsort and a linear pass: np.unique's stable sort and inverse cost 4x more
     order = np.argsort(ckeys)
-    E.unify_corner_values(vals, ckeys, order)
+    EF.unify_corner_values(vals, ckeys, order)
     return cells, vals, ckeys
 
 
@@ -172,7 +173,7 @@ def extract(
     """
     depth = len(levels) - 1
     coarse = any(
-        E.straddles(
+        EF.straddles(
             lev.cell_keys, lev.cell_nodes, lev.leaf, g, lev.depth, depth, iso, 1e-9, FACE_MARGIN
         )
         for lev, g in zip(levels[:-1], gvals[:-1], strict=True)

@@ -19,7 +19,7 @@ from recon_cli.errors import StageFailed
 from recon_cli.memory import release_free_heap
 from recon_cli.slabs.runners import reads_only, timed
 from recon_cli.stages.poisson import _bspline_eval as BE
-from recon_cli.stages.poisson import _extract as E
+from recon_cli.stages.poisson import _extract_finest as EF
 from recon_cli.stages.poisson.octree import (
     Level,
     corner_keys,
@@ -398,7 +398,7 @@ def plane_values(
 ) -> np.ndarray:
     """The extraction's value at finest-lattice points ``pts`` (m, 3) of a seam plane.
 
-    The value is negated chi, clamped on the cube's faces as :func:`._extract.refine_leaves` clamps,
+    The value is negated chi, clamped on the cube's faces as :func:`._extract_finest.refine_leaves` clamps,
     from one leaf whichever slab asks: the leaf holding the finest cell whose lower corner the point
     is (the one below along an axis where the point is on the cube's far face). Both slabs of a seam
     read the same leaves and corner values there, so they give the same bits.
@@ -490,7 +490,7 @@ def field(slab: Slab, iso: float, band_left: dict | None, band_right: dict | Non
     slab.gvals = gvals
     masks = _own_leaves(slab)
     coarse = any(
-        E.straddles(lev.cell_keys, lev.cell_nodes, m, g, lev.depth, top, iso, 1e-9, FACE_MARGIN)
+        EF.straddles(lev.cell_keys, lev.cell_nodes, m, g, lev.depth, top, iso, 1e-9, FACE_MARGIN)
         for lev, m, g in zip(levels[:-1], masks[:-1], gvals[:-1], strict=True)
     )
     release_free_heap()
