@@ -174,7 +174,8 @@ def _bad_values(p: Param) -> list:
 
 
 def _public_functions(spec: StageSpec):
-    mod = sys.modules[spec.run.__module__]
+    # the stage's package (its runner may live in a module of it: poisson's stage.py)
+    mod = sys.modules[".".join(spec.run.__module__.split(".")[:3])]
     for name, fn in vars(mod).items():
         if (
             inspect.isfunction(fn)
