@@ -505,5 +505,26 @@ def checked_envelope(envelope: Any) -> Any:
     return envelope if isinstance(envelope, Envelope) else Envelope(envelope)
 
 
+# the native solve's report keys, in the report's order
+REPORT_KEYS = (
+    "vertices",
+    "faces",
+    "depth",
+    "iso_value",
+    "solver_iterations",
+    "residual",
+    "bubbles_removed",
+    "islands_removed",
+    "folds_removed",
+    "trimmed_faces",
+    "trimmed_area",
+    "samples",
+    "ignored_points",
+    "tree_depth",
+    "noise",
+    "attributes",
+    "attribute_fallback_vertices",
+)
+
 # the stage's runner (CLI, pipelines) registers itself on SPEC; it needs SPEC defined first
 from recon_cli.stages.poisson.stage import run_stage  # noqa: E402, F401

@@ -746,3 +746,39 @@ def job_task(progress: Any, name: str, total: float) -> Any:
     from recon_cli.progress import task
 
     return task(progress, name, total=total)
+
+
+def check_slab_options(
+    backend: str,
+    degree: int,
+    estimate_normals: bool,
+    boundary: str,
+    envelope: Any,
+    grid: Any,
+    trim: Any,
+    where: str,
+) -> None:
+    """What a run in slabs does not take (one line each); ``where`` says why it is in slabs."""
+    if backend != "native":
+        raise ParameterError(f"{where} runs the native solver: leave out --backend")
+    if degree != 2:
+        raise ParameterError(f"{where} uses degree 2: leave out --degree 1")
+    for name, used in (
+        ("--boundary free", boundary == "free"),
+        ("--envelope", envelope not in (None, "")),
+        ("--grid", grid not in (None, "")),
+        ("--trim auto", trim == "auto"),
+    ):
+        if used:
+            raise ParameterError(f"{name} is not available {where}")
+    if estimate_normals:
+        raise ParameterError(f"--estimate-normals {where}: run 'recon normals' first")
+
+
+def slab_reason(ex: Any) -> str:
+    """Why a run is in slabs, for messages."""
+    if ex.distributed:
+        return "with --workers/--scheduler"
+    if ex.partitions is not None:
+        return "in slabs (--partitions)"
+    return "in slabs (the cloud does not fit the memory in one piece)"

@@ -379,13 +379,12 @@ def run_from_files(
     """
     from recon_cli.execution import current
     from recon_cli.io.load import save
-    from recon_cli.stages.poisson import SPEC
-    from recon_cli.stages.poisson.stage import REPORT_KEYS, check_slab_options, slab_reason
+    from recon_cli.stages.poisson import REPORT_KEYS, SPEC
 
     ex = current()
     v = SPEC.check(params, complete=True)
-    where = slab_reason(ex)
-    check_slab_options(
+    where = D.slab_reason(ex)
+    D.check_slab_options(
         v["backend"],
         v["degree"],
         v["estimate_normals"],

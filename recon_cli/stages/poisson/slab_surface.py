@@ -398,10 +398,11 @@ def plane_values(
 ) -> np.ndarray:
     """The extraction's value at finest-lattice points ``pts`` (m, 3) of a seam plane.
 
-    The value is negated chi, clamped on the cube's faces as :func:`._extract_finest.refine_leaves` clamps,
-    from one leaf whichever slab asks: the leaf holding the finest cell whose lower corner the point
-    is (the one below along an axis where the point is on the cube's far face). Both slabs of a seam
-    read the same leaves and corner values there, so they give the same bits.
+    The value is negated chi, clamped on the cube's faces as
+    :func:`._extract_finest.refine_leaves` clamps, from one leaf whichever slab asks: the leaf
+    holding the finest cell whose lower corner the point is (the one below along an axis where
+    the point is on the cube's far face). Both slabs of a seam read the same leaves and corner
+    values there, so they give the same bits.
     """
     top = len(levels) - 1
     R = 1 << top

@@ -18,6 +18,7 @@ from recon_cli.errors import InputError, ParameterError, StageFailed
 from recon_cli.execution import current
 from recon_cli.geometry import PointCloud, TriangleMesh, as_point_cloud, local_origin
 from recon_cli.stages.poisson import (
+    REPORT_KEYS,
     SPEC,
     check_inputs,
     screened_poisson,
@@ -27,27 +28,6 @@ if TYPE_CHECKING:
     from recon_cli.stages import StageResult
 
 log = logging.getLogger("recon")
-
-# the native solve's report keys, in the report's order
-REPORT_KEYS = (
-    "vertices",
-    "faces",
-    "depth",
-    "iso_value",
-    "solver_iterations",
-    "residual",
-    "bubbles_removed",
-    "islands_removed",
-    "folds_removed",
-    "trimmed_faces",
-    "trimmed_area",
-    "samples",
-    "ignored_points",
-    "tree_depth",
-    "noise",
-    "attributes",
-    "attribute_fallback_vertices",
-)
 
 
 def run_from_files(input: str, output: str, params: dict, **kw: Any) -> dict | None:
@@ -85,42 +65,6 @@ def local_slabs(npoints: int, ex: Any) -> int:
     from recon_cli.stages.poisson.distributed import slab_count
 
     return slab_count(None, npoints, None, ex.budget())[0]
-
-
-def check_slab_options(
-    backend: str,
-    degree: int,
-    estimate_normals: bool,
-    boundary: str,
-    envelope: Any,
-    grid: Any,
-    trim: Any,
-    where: str,
-) -> None:
-    """What a run in slabs does not take (one line each); ``where`` says why it is in slabs."""
-    if backend != "native":
-        raise ParameterError(f"{where} runs the native solver: leave out --backend")
-    if degree != 2:
-        raise ParameterError(f"{where} uses degree 2: leave out --degree 1")
-    for name, used in (
-        ("--boundary free", boundary == "free"),
-        ("--envelope", envelope not in (None, "")),
-        ("--grid", grid not in (None, "")),
-        ("--trim auto", trim == "auto"),
-    ):
-        if used:
-            raise ParameterError(f"{name} is not available {where}")
-    if estimate_normals:
-        raise ParameterError(f"--estimate-normals {where}: run 'recon normals' first")
-
-
-def slab_reason(ex: Any) -> str:
-    """Why a run is in slabs, for messages."""
-    if ex.distributed:
-        return "with --workers/--scheduler"
-    if ex.partitions is not None:
-        return "in slabs (--partitions)"
-    return "in slabs (the cloud does not fit the memory in one piece)"
 
 
 @SPEC.runner
@@ -201,8 +145,10 @@ def run_stage(
     colors = cloud.colors if keep_colors else None
     slabs = None if ex.distributed or backend != "native" else local_slabs(len(cloud.points), ex)
     if ex.distributed or (slabs or 1) > 1:
+        from recon_cli.stages.poisson import distributed as D
+
         # the cloud is in memory: its normals were estimated above unless the run is on a cluster
-        check_slab_options(
+        D.check_slab_options(
             backend,
             degree,
             estimate_normals and ex.distributed,
@@ -210,7 +156,7 @@ def run_stage(
             envelope,
             grid,
             trim,
-            slab_reason(ex),
+            D.slab_reason(ex),
         )
         mesh, report = _run_distributed(cloud, colors, props, solve, ex, slabs, progress)
     elif backend == "native":
