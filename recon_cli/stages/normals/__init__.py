@@ -250,7 +250,7 @@ def _pixel_neighbourhoods(pts: np.ndarray, pixels: Any, knn: int, radius: float 
     out = np.empty((n, k), dtype=np.int32)
     count = np.empty(n, dtype=np.int64)
     r2 = np.inf if radius is None else radius * radius
-    K.pixel_knn(ps, pix_s, img_of, offs, heights, widths, img, k, dr, dc, r2, out, count)
+    K.pixel_knn(ps, pix_s, img_of, (offs, heights, widths, img), k, dr, dc, r2, out, count)
     indptr = np.zeros(n + 1, dtype=np.int64)
     np.cumsum(count, out=indptr[1:])
     if indptr[-1] == n * k:
