@@ -1,7 +1,8 @@
 """Sphinx configuration of recon's documentation (``make docs``).
 
-The stage pages are written from the stage declarations at the start of every build
-(:mod:`recon_cli.tools.docs`), so their parameter tables are never copied by hand.
+The stage pages and the command-line reference are written from the stage declarations and
+the commands at the start of every build (:mod:`recon_cli.tools.docs`), so their parameter
+tables and ``--help`` texts are never copied by hand.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
 sys.path.insert(0, ROOT)
 
 from recon_cli import __version__  # noqa: E402  (after the repository is on the path)
-from recon_cli.tools.docs import write_pages  # noqa: E402
+from recon_cli.tools.docs import write_pages, write_reference  # noqa: E402
 
 project = "recon"
 author = "the recon developers"
@@ -63,10 +64,11 @@ nitpick_ignore_regex = [
 ]
 
 
-def _stage_pages(app) -> None:
+def _generated_pages(app) -> None:
     write_pages(os.path.join(app.srcdir, "stages"))
+    write_reference(os.path.join(app.srcdir, "cli"))
 
 
 def setup(app):
-    """Write the stage pages before Sphinx reads the sources."""
-    app.connect("builder-inited", _stage_pages)
+    """Write the stage pages and the command-line reference before Sphinx reads the sources."""
+    app.connect("builder-inited", _generated_pages)
