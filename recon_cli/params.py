@@ -8,8 +8,8 @@ that one declaration come
 - the click options of the stage's command (``recon_cli.cli.options.stage_command``),
 - the checks of a pipeline file before anything runs (:mod:`recon_cli.pipeline`),
 - ``recon run --set STAGE.PARAM=VALUE`` and
-- the README's parameter tables (:meth:`StageSpec.markdown_table`; ``python -m
-  recon_cli.tools.readme README.md`` rewrites them, a test fails when they disagree) and
+- the parameter tables of the user guide's stage pages (:meth:`StageSpec.table_rows`, written
+  by ``recon_cli.tools.docs`` at every build of the documentation) and
 - the library's stage functions (``recon_cli.poisson(...)``, :mod:`recon_cli.api`).
 
 Values are checked one way everywhere (:meth:`Param.coerce`). Typed values (TOML, Python)
@@ -122,7 +122,7 @@ class Param:
     default
         Value when not given; ``None`` means "not set" (the stage decides, e.g. automatic).
     help : str
-        One sentence for ``--help`` and the README.
+        One sentence for ``--help`` and the stage's page.
     unit : str
         What the number is measured in ("input units", "fraction of the diagonal", "voxels", ...).
     min, max : float, optional
@@ -143,7 +143,7 @@ class Param:
         or raises ValueError with the expected values (``six numbers ... with x0 <= x1``), so
         a rule between the numbers of one value is checked wherever the type is.
     allowed : str
-        The allowed values in words, for ``--help`` and the README, where a range cannot
+        The allowed values in words, for ``--help`` and the stage's page, where a range cannot
         say them (a ``validate`` rule: ``x0 <= x1, y0 <= y1, z0 <= z1``).
     """
 
@@ -558,13 +558,6 @@ class StageSpec:
                 )
             )
         return rows
-
-    def markdown_table(self) -> str:
-        """The README's parameter table of this stage (:meth:`table_rows` in Markdown)."""
-        lines = ["| " + " | ".join(self.TABLE_COLUMNS) + " |", "|---|---|---|---|---|---|"]
-        for row in self.table_rows(code=lambda s: f"`{s}`"):
-            lines.append("| " + " | ".join(cell.replace("|", "/") for cell in row) + " |")
-        return "\n".join(lines)
 
 
 def describe_data(have: frozenset[str] | set[str]) -> str:

@@ -113,3 +113,18 @@ def test_pages_follow_the_registry(tmp_path):
     assert docs.write_pages(out) == [os.path.join(out, "index.rst")]
     assert not os.path.exists(page)
     assert sorted(os.listdir(out)) == sorted(["index.rst", *(f"{n}.rst" for n in stage_names())])
+
+
+@pytest.mark.parametrize("name", stage_names())
+def test_every_stage_page_includes_its_guide(name, tmp_path):
+    """Each built-in stage's package holds a guide.md, which its page includes by its path."""
+    guide = docs.guide_path(name)
+    assert guide is not None and os.path.basename(guide) == docs.GUIDE
+    with open(guide, encoding="utf-8") as f:
+        assert len(f.read().split()) > 30  # a guide, not a stub
+    page = docs.stage_page(name, str(tmp_path))
+    include = [line for line in page.splitlines() if line.startswith(".. include:: ")]
+    assert len(include) == 1
+    target = os.path.join(tmp_path, include[0].removeprefix(".. include:: "))
+    assert os.path.samefile(target, guide)
+    assert docs.guide_path("no-such-stage") is None
