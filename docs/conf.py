@@ -14,7 +14,8 @@ ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
 sys.path.insert(0, ROOT)
 
 from recon_cli import __version__  # noqa: E402  (after the repository is on the path)
-from recon_cli.tools.docs import write_pages, write_reference  # noqa: E402
+from recon_cli.cli.reference import write_reference  # noqa: E402
+from recon_cli.tools.docs import write_pages  # noqa: E402
 
 project = "recon"
 author = "the recon developers"

@@ -7,9 +7,8 @@ from docutils.core import publish_doctree
 from docutils.nodes import literal_block, section
 
 from recon_cli.cli.main import cli
-from recon_cli.cli.reference import WIDTH, command_names, reference_page
+from recon_cli.cli.reference import WIDTH, command_names, reference_page, write_reference
 from recon_cli.stages import stage_names
-from recon_cli.tools import docs
 
 QUIET = {"report_level": 5, "halt_level": 5}
 
@@ -44,5 +43,5 @@ def test_every_command_has_its_help_on_the_page():
 
 def test_reference_is_written_once(tmp_path):
     out = str(tmp_path / "cli")
-    assert docs.write_reference(out) == [str(tmp_path / "cli" / "index.rst")]
-    assert docs.write_reference(out) == []  # unchanged: the file keeps its time
+    assert write_reference(out) == [str(tmp_path / "cli" / "index.rst")]
+    assert write_reference(out) == []  # unchanged: the file keeps its time

@@ -7,6 +7,8 @@ declarations, the other commands from their modules) and never copied by hand.
 
 from __future__ import annotations
 
+import os
+
 import click
 
 WIDTH = 100  # the help's line width on the page
@@ -76,6 +78,15 @@ def reference_page() -> str:
             "",
         ]
     return "\n".join(out)
+
+
+def write_reference(directory: str) -> list[str]:
+    """Write :func:`reference_page` to ``directory/index.rst``; the files changed."""
+    from recon_cli.tools.docs import write_changed
+
+    os.makedirs(directory, exist_ok=True)
+    path = write_changed(directory, "index.rst", reference_page())
+    return [path] if path else []
 
 
 def _indented(text: str) -> list[str]:

@@ -131,7 +131,7 @@ def index_page(names: Sequence[str]) -> str:
     return "\n".join(out) + "\n"
 
 
-def _write_changed(directory: str, file: str, text: str) -> str | None:
+def write_changed(directory: str, file: str, text: str) -> str | None:
     """Write ``text`` to ``directory/file`` unless it holds it already; its path if written."""
     path = os.path.join(directory, file)
     old = None
@@ -145,15 +145,6 @@ def _write_changed(directory: str, file: str, text: str) -> str | None:
     return path
 
 
-def write_reference(directory: str) -> list[str]:
-    """Write the command-line reference (:mod:`recon_cli.cli.reference`) as ``index.rst``."""
-    from recon_cli.cli.reference import reference_page
-
-    os.makedirs(directory, exist_ok=True)
-    path = _write_changed(directory, "index.rst", reference_page())
-    return [path] if path else []
-
-
 def write_pages(directory: str) -> list[str]:
     """Write every stage's page and the index into ``directory``; the files changed."""
     from recon_cli.stages import stage_names
@@ -162,7 +153,7 @@ def write_pages(directory: str) -> list[str]:
     names = list(stage_names())
     pages = {f"{name}.rst": stage_page(name, directory) for name in names}
     pages["index.rst"] = index_page(names)
-    changed = [p for file, text in pages.items() if (p := _write_changed(directory, file, text))]
+    changed = [p for file, text in pages.items() if (p := write_changed(directory, file, text))]
     for file in os.listdir(directory):
         if file.endswith(".rst") and file not in pages:  # a stage no longer registered
             os.remove(os.path.join(directory, file))

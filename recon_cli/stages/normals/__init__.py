@@ -128,8 +128,8 @@ _EPS = 1e-9
 _FLUX_MIN = 0.02
 # normalised flux above which a component counts as closed (a sphere gives 1, a flat patch 0)
 _CLOSED_FLUX = 0.3
-# a following component votes with at most this many of its points (evenly through its sorted
-# order): a nearest-anchor query from far away costs ~0.1 ms, 27 s for 270k points of a slab
+# a following component votes with at most this many of its points, evenly through its sorted
+# order: a nearest-anchor query from far away is slow (bench/calibration.md, _ALIGN_SAMPLES)
 _ALIGN_SAMPLES = 4096
 # neighbour-vote passes after propagation
 _VOTE_PASSES = 2
