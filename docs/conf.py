@@ -15,7 +15,7 @@ sys.path.insert(0, ROOT)
 
 from recon_cli import __version__  # noqa: E402  (after the repository is on the path)
 from recon_cli.cli.reference import write_reference  # noqa: E402
-from recon_cli.tools.docs import write_pages  # noqa: E402
+from recon_cli.tools.docs import bench_summary, write_changed, write_pages  # noqa: E402
 
 project = "recon"
 author = "the recon developers"
@@ -29,7 +29,7 @@ extensions = [
     "myst_parser",
 ]
 source_suffix = {".rst": "restructuredtext", ".md": "markdown"}
-exclude_patterns = ["_build"]
+exclude_patterns = ["_build", "_generated"]  # _generated: included by other pages
 root_doc = "index"
 # options are written --like-this: no en dashes, no curly quotes in commands
 smartquotes = False
@@ -68,6 +68,10 @@ nitpick_ignore_regex = [
 def _generated_pages(app) -> None:
     write_pages(os.path.join(app.srcdir, "stages"))
     write_reference(os.path.join(app.srcdir, "cli"))
+    with open(os.path.join(ROOT, "bench", "results.md"), encoding="utf-8") as f:
+        summary = bench_summary(f.read())
+    os.makedirs(os.path.join(app.srcdir, "_generated"), exist_ok=True)
+    write_changed(os.path.join(app.srcdir, "_generated"), "bench-summary.md", summary)
 
 
 def setup(app):

@@ -160,6 +160,45 @@ def write_pages(directory: str) -> list[str]:
     return changed
 
 
+def _cells(line: str) -> list[str]:
+    return [c.strip() for c in line.strip().strip("|").split("|")]
+
+
+def _is_ratio(column: str) -> bool:
+    return "ours/" in column or column == "ratio"
+
+
+def bench_summary(results: str) -> str:
+    """The ratios of ``bench/results.md`` (Markdown ``results``): one table per bench section.
+
+    Each table keeps a row's first two cells (what and on what), its reference and its ratio
+    columns (``time ours/ref``, ``s ours/o3d``, ...), for the rows with a measured ratio.
+    """
+    out: list[str] = []
+    section, header, keep, head, titled = "", None, [], [], ""
+    for line in [*results.splitlines(), ""]:
+        if line.startswith("## "):
+            section, header = line[3:].strip(), None
+        elif not line.startswith("|"):
+            header = None
+        elif header is None:
+            header = _cells(line)
+            keep = [0, 1, *(j for j, c in enumerate(header) if c in ("reference", "method"))]
+            keep = sorted(set(keep)) + [j for j, c in enumerate(header) if _is_ratio(c)]
+            if not any(_is_ratio(header[j]) for j in keep):
+                keep = []
+            title = [f"**{section}**", ""] if titled != section else []
+            head = ["", *title, "| " + " | ".join(header[j] for j in keep) + " |"]
+            head.append("|" + "---|" * len(keep))
+        elif keep and not set(line) <= set("|-: "):
+            row = _cells(line)
+            ratios = [row[j] for j in keep if _is_ratio(header[j])]
+            if any(r.replace(".", "", 1).isdigit() for r in ratios):
+                out += head + ["| " + " | ".join(row[j] for j in keep) + " |"]
+                head, titled = [], section  # the table's head once, above its first row
+    return "\n".join(out).strip() + "\n"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Write the stage pages into the directory named in ``argv`` (default ``docs/stages``)."""
     args = list(sys.argv[1:] if argv is None else argv)
