@@ -6,7 +6,7 @@ import numpy as np
 from numba import njit
 
 from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (the per-user cache, before the first @njit)
-from recon_cli.io._text_kernel import parse_float, skip_blank, token_end
+from recon_cli.io._text_kernel import line_end, parse_float, skip_blank, token_end
 
 _MULT = np.uint64(11400714819323198485)
 
@@ -76,14 +76,6 @@ def _next_word(buf, e, n, w):
     j = skip_blank(buf, e, n)
     k = token_end(buf, j, n)
     return _word(buf, j, k, w), j, k
-
-
-@njit(cache=True)
-def _rest_of_line(buf, e, n):
-    """The end of the line holding byte ``e`` (a solid's name is the rest of its line)."""
-    while e < n and buf[e] != 10:
-        e += 1
-    return e
 
 
 @njit(cache=True)
@@ -161,13 +153,13 @@ def ascii_walk(buf, corners, slow, fill):
         e = token_end(buf, i, n)
         if state == 0:
             err, at, state = (0, 0, 1) if _word(buf, i, e, _SOLID) else (1, i, 0)
-            e = _rest_of_line(buf, e, n)
+            e = line_end(buf, e, n)
         elif state == 1 and _word(buf, i, e, _FACET):
             err, at, e = _facet_normal(buf, e, n)
             state = 2
             nvert = 0
         elif state == 1 and _word(buf, i, e, _ENDSOLID):
-            e = _rest_of_line(buf, e, n)
+            e = line_end(buf, e, n)
             state = 0
         elif state == 2 and _word(buf, i, e, _OUTER):
             ok, at, e = _next_word(buf, e, n, _LOOP)

@@ -370,30 +370,26 @@ def _nearest(p, bvh, best2, scratch, seed):
 
 
 @njit(cache=True, inline="always")
+def _push(node, d, best2, stack, dstack, top):
+    """Push ``node`` at squared distance ``d`` when it is closer than the bound; the new top."""
+    if d < best2:
+        stack[top] = node
+        dstack[top] = d
+        top += 1
+    return top
+
+
+@njit(cache=True, inline="always")
 def _push_children(p, box, a, b, best2, stack, dstack, top):
     """Push children ``a`` and ``b`` closer than the bound, the nearer on top; the new top."""
     da = _box_d2(p[0], p[1], p[2], box, a)
     db = _box_d2(p[0], p[1], p[2], box, b)
     # nearer child on top of the stack, visited first
     if da <= db:
-        if db < best2:
-            stack[top] = b
-            dstack[top] = db
-            top += 1
-        if da < best2:
-            stack[top] = a
-            dstack[top] = da
-            top += 1
-    else:
-        if da < best2:
-            stack[top] = a
-            dstack[top] = da
-            top += 1
-        if db < best2:
-            stack[top] = b
-            dstack[top] = db
-            top += 1
-    return top
+        top = _push(b, db, best2, stack, dstack, top)
+        return _push(a, da, best2, stack, dstack, top)
+    top = _push(a, da, best2, stack, dstack, top)
+    return _push(b, db, best2, stack, dstack, top)
 
 
 @njit(cache=True, parallel=True)
