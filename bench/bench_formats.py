@@ -292,36 +292,22 @@ def _xyz_rows(d: str, cloud, n: int, rep: int, files: list) -> list[dict]:
     p.points = o3d.utility.Vector3dVector(cloud.points.astype(np.float64) * 1000 + [5e5, 5e6, 100])
     o3d.io.write_point_cloud(xyz, p)
     load(xyz)
-    ours = measure(lambda: len(load(xyz).points), rep)
-    ref = measure(lambda: len(o3d.io.read_point_cloud(xyz).points), rep)
-    out.append(
-        _row(
-            f"read {n // 1000}k-point XYZ written by Open3D (%.10f, UTM-like)",
-            ours,
-            "open3d.io.read_point_cloud",
-            ref,
-            "target ≤ 1×",
-        )
-    )
-    files.append(("XYZ %.10f", xyz))
     xyz17 = os.path.join(d, "c.xyz")
     rng = np.random.default_rng(1)
     plain = type(cloud)(
         points=rng.normal(size=(n, 3)) * 1000 + [5e5, 5e6, 100], point_dtype=np.float64
     )
     Path(xyz17).write_bytes(xyz_bytes(plain))
-    ours = measure(lambda: len(load(xyz17).points), rep)
-    ref = measure(lambda: len(o3d.io.read_point_cloud(xyz17).points), rep)
-    out.append(
-        _row(
-            f"read {n // 1000}k-point XYZ of doubles (%.17g)",
-            ours,
-            "open3d.io.read_point_cloud",
-            ref,
-            "target ≤ 1×",
-        )
+    cases = (
+        (xyz, "written by Open3D (%.10f, UTM-like)", "XYZ %.10f"),
+        (xyz17, "of doubles (%.17g)", "XYZ %.17g"),
     )
-    files.append(("XYZ %.17g", xyz17))
+    for path, what, name in cases:
+        ours = measure(lambda path=path: len(load(path).points), rep)
+        ref = measure(lambda path=path: len(o3d.io.read_point_cloud(path).points), rep)
+        case = f"read {n // 1000}k-point XYZ {what}"
+        out.append(_row(case, ours, "open3d.io.read_point_cloud", ref, "target ≤ 1×"))
+        files.append((name, path))
     return out
 
 
