@@ -141,4 +141,4 @@ docs: $(DOCS_STAMP)
 	@echo "docs written to docs/_build/html/index.html"
 
 clean:
-	rm -rf $(VENV) $(OUTDIR) $(VIEWER_JS) $(VIEWER_NPM)/node_modules .pytest_cache .mypy_cache .ruff_cache docs/_build docs/stages build *.egg-info
+	rm -rf $(VENV) $(OUTDIR) $(VIEWER_JS) $(VIEWER_NPM)/node_modules .pytest_cache .mypy_cache .ruff_cache docs/_build docs/stages docs/cli docs/_generated build *.egg-info

@@ -140,122 +140,18 @@ def _grid_mesh(n_side: int):
 
 
 def rows(quick: bool) -> list[dict]:
-    import laspy
-    import open3d as o3d
-    import trimesh
-
-    from recon_cli.io.load import load, save
-    from recon_cli.io.xyz import xyz_bytes
-
     rep = 3 if quick else 5
     n = 200_000 if quick else 1_000_000
-    out = []
+    out: list[dict] = []
     with tempfile.TemporaryDirectory() as d:
-        # LAZ
-        laz = os.path.join(d, "tile.laz")
-        npts = _tile_laz(laz, 2 if quick else 10)
-        # no warm-up read here: lazrs decompresses on a thread pool, which must not exist before a
-        # fork
-        ours = measure(lambda: len(load(laz).points), rep)
-        ref = measure(lambda: len(laspy.read(laz).points), rep)
-        out.append(
-            _row(
-                f"read {npts // 1000}k-point LAZ (Autzen, format 3)",
-                ours,
-                "laspy.read",
-                ref,
-                "target ≤ 1.2×",
-            )
-        )
-        files = [("LAZ", laz)]
-
-        cloud = _cloud(n)
-        # PCD binary and compressed
-        for data in ("binary", "binary_compressed"):
-            pcd = os.path.join(d, f"{data}.pcd")
-            if data == "binary":
-                save(cloud, pcd)
-            else:
-                from recon_cli.io.pcd import write_pcd
-
-                write_pcd(cloud, pcd, data=data)
-            load(pcd)
-            ours = measure(lambda pcd=pcd: len(load(pcd).points), rep)
-            ref = measure(lambda pcd=pcd: len(o3d.io.read_point_cloud(pcd).points), rep)
-            out.append(
-                _row(
-                    f"read {n // 1000}k-point PCD {data} (xyz, normals, rgb)",
-                    ours,
-                    "open3d.io.read_point_cloud",
-                    ref,
-                    "target ≤ 1×",
-                )
-            )
-            files.append((f"PCD {data}", pcd))
-
-        # XYZ text (x y z: the columns Open3D's reader takes): as Open3D writes it (%.10f), and ours
-        # from double data (%.17g: mostly beyond the exact fast path, numpy converts those)
-        xyz = os.path.join(d, "o3d.xyz")
-        p = o3d.geometry.PointCloud()
-        p.points = o3d.utility.Vector3dVector(
-            cloud.points.astype(np.float64) * 1000 + [5e5, 5e6, 100]
-        )
-        o3d.io.write_point_cloud(xyz, p)
-        load(xyz)
-        ours = measure(lambda: len(load(xyz).points), rep)
-        ref = measure(lambda: len(o3d.io.read_point_cloud(xyz).points), rep)
-        out.append(
-            _row(
-                f"read {n // 1000}k-point XYZ written by Open3D (%.10f, UTM-like)",
-                ours,
-                "open3d.io.read_point_cloud",
-                ref,
-                "target ≤ 1×",
-            )
-        )
-        files.append(("XYZ %.10f", xyz))
-        xyz17 = os.path.join(d, "c.xyz")
-        rng = np.random.default_rng(1)
-        plain = type(cloud)(
-            points=rng.normal(size=(n, 3)) * 1000 + [5e5, 5e6, 100], point_dtype=np.float64
-        )
-        Path(xyz17).write_bytes(xyz_bytes(plain))
-        ours = measure(lambda: len(load(xyz17).points), rep)
-        ref = measure(lambda: len(o3d.io.read_point_cloud(xyz17).points), rep)
-        out.append(
-            _row(
-                f"read {n // 1000}k-point XYZ of doubles (%.17g)",
-                ours,
-                "open3d.io.read_point_cloud",
-                ref,
-                "target ≤ 1×",
-            )
-        )
-        files.append(("XYZ %.17g", xyz17))
-
+        files: list[tuple[str, str]] = []
+        out += _cloud_rows(d, quick, n, rep, files)
         # OBJ vs our binary PLY of the same mesh (per vertex: the same vertices), and vs trimesh
         mesh = _grid_mesh(400 if quick else 1000)
         obj_out, obj_files = obj_rows(mesh, d, rep)
         out += obj_out
         files += obj_files
-
-        # STL binary (welded)
-        stl = os.path.join(d, "m.stl")
-        save(mesh, stl)
-        load(stl)
-        ours = measure(lambda: len(load(stl).vertices), rep)
-        tm = measure(lambda: len(trimesh.load(stl).vertices), rep)
-        out.append(
-            _row(
-                f"read binary STL ({len(mesh.faces) // 1000}k triangles), welded",
-                ours,
-                "trimesh.load (merges vertices)",
-                tm,
-                "",
-            )
-        )
-        files.append(("STL binary", stl))
-
+        out.append(_stl_row(mesh, d, rep, files))
         # what the user waits for: `recon info FILE` as a process
         for name, path in files:
             p = _process(path, 2 if quick else 3)
@@ -327,6 +223,113 @@ def gltf_rows(d: str, quick: bool, rep: int) -> list[dict]:
         ours = measure(lambda m=mesh: save(m, glb), rep)
         out.append(_row(f"write GLB, {label}", ours, "trimesh export (float32 positions)", ref, ""))
     return out
+
+
+def _cloud_rows(d: str, quick: bool, n: int, rep: int, files: list) -> list[dict]:
+    """Point clouds read: LAZ vs laspy, PCD and XYZ vs Open3D (their files added to ``files``)."""
+    import laspy
+    import open3d as o3d
+
+    from recon_cli.io.load import load, save
+
+    out = []
+    laz = os.path.join(d, "tile.laz")
+    npts = _tile_laz(laz, 2 if quick else 10)
+    # no warm-up read here: lazrs decompresses on a thread pool, which must not exist before a
+    # fork
+    ours = measure(lambda: len(load(laz).points), rep)
+    ref = measure(lambda: len(laspy.read(laz).points), rep)
+    out.append(
+        _row(
+            f"read {npts // 1000}k-point LAZ (Autzen, format 3)",
+            ours,
+            "laspy.read",
+            ref,
+            "target ≤ 1.2×",
+        )
+    )
+    files.append(("LAZ", laz))
+
+    cloud = _cloud(n)
+    # PCD binary and compressed
+    for data in ("binary", "binary_compressed"):
+        pcd = os.path.join(d, f"{data}.pcd")
+        if data == "binary":
+            save(cloud, pcd)
+        else:
+            from recon_cli.io.pcd import write_pcd
+
+            write_pcd(cloud, pcd, data=data)
+        load(pcd)
+        ours = measure(lambda pcd=pcd: len(load(pcd).points), rep)
+        ref = measure(lambda pcd=pcd: len(o3d.io.read_point_cloud(pcd).points), rep)
+        out.append(
+            _row(
+                f"read {n // 1000}k-point PCD {data} (xyz, normals, rgb)",
+                ours,
+                "open3d.io.read_point_cloud",
+                ref,
+                "target ≤ 1×",
+            )
+        )
+        files.append((f"PCD {data}", pcd))
+    out += _xyz_rows(d, cloud, n, rep, files)
+    return out
+
+
+def _xyz_rows(d: str, cloud, n: int, rep: int, files: list) -> list[dict]:
+    """XYZ text read vs Open3D: as Open3D writes it, and ours from doubles."""
+    import open3d as o3d
+
+    from recon_cli.io.load import load
+    from recon_cli.io.xyz import xyz_bytes
+
+    out = []
+    # XYZ text (x y z: the columns Open3D's reader takes): as Open3D writes it (%.10f), and ours
+    # from double data (%.17g: mostly beyond the exact fast path, numpy converts those)
+    xyz = os.path.join(d, "o3d.xyz")
+    p = o3d.geometry.PointCloud()
+    p.points = o3d.utility.Vector3dVector(cloud.points.astype(np.float64) * 1000 + [5e5, 5e6, 100])
+    o3d.io.write_point_cloud(xyz, p)
+    load(xyz)
+    xyz17 = os.path.join(d, "c.xyz")
+    rng = np.random.default_rng(1)
+    plain = type(cloud)(
+        points=rng.normal(size=(n, 3)) * 1000 + [5e5, 5e6, 100], point_dtype=np.float64
+    )
+    Path(xyz17).write_bytes(xyz_bytes(plain))
+    cases = (
+        (xyz, "written by Open3D (%.10f, UTM-like)", "XYZ %.10f"),
+        (xyz17, "of doubles (%.17g)", "XYZ %.17g"),
+    )
+    for path, what, name in cases:
+        ours = measure(lambda path=path: len(load(path).points), rep)
+        ref = measure(lambda path=path: len(o3d.io.read_point_cloud(path).points), rep)
+        case = f"read {n // 1000}k-point XYZ {what}"
+        out.append(_row(case, ours, "open3d.io.read_point_cloud", ref, "target ≤ 1×"))
+        files.append((name, path))
+    return out
+
+
+def _stl_row(mesh, d: str, rep: int, files: list) -> dict:
+    """Binary STL read (welded) vs trimesh."""
+    import trimesh
+
+    from recon_cli.io.load import load, save
+
+    stl = os.path.join(d, "m.stl")
+    save(mesh, stl)
+    load(stl)
+    ours = measure(lambda: len(load(stl).vertices), rep)
+    tm = measure(lambda: len(trimesh.load(stl).vertices), rep)
+    files.append(("STL binary", stl))
+    return _row(
+        f"read binary STL ({len(mesh.faces) // 1000}k triangles), welded",
+        ours,
+        "trimesh.load (merges vertices)",
+        tm,
+        "",
+    )
 
 
 def obj_rows(mesh, d: str, rep: int) -> tuple[list[dict], list[tuple[str, str]]]:

@@ -474,7 +474,6 @@ def _depth_camera_rows(scene: str, depth: int, work: Path, trimmed: bool) -> lis
 
 def rows(quick: bool, only: list[str] | None = None) -> list[dict]:
     """The rows; ``only``: just the cases whose label contains one of these strings."""
-    from recon_cli.io import read_ply
 
     def want(case: str) -> bool:
         return not only or any(o in case for o in only)
@@ -489,55 +488,8 @@ def rows(quick: bool, only: list[str] | None = None) -> list[dict]:
     out: list[dict] = []
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
-        bunny_truth = _mesh("bunny_zipper")
-        scan = _with_our_normals(read_ply(SHARED / "bunny_scan_000.ply"))
-        stereo = _with_our_normals(read_ply(SHARED / "stereo_fragment.ply"))
-        for depth in (9,) if quick else (9, 10):
-            if want(f"bunny scan raw, d{depth}"):
-                out += _rows_for(f"bunny scan raw, d{depth}", scan, depth, None, "fit", work)
-            if want(f"stereo fragment, d{depth}"):
-                out += _rows_for(f"stereo fragment, d{depth}", stereo, depth, None, "fit", work)
-        for depth in (8, 9):
-            if not want(f"bunny scan, d{depth}, trimmed"):
-                continue
-            out += _rows_for(
-                f"bunny scan, d{depth}, trimmed (ours {OUR_TRIM}, o3d {REF_TRIM:.0%} quantile)",
-                scan,
-                depth,
-                bunny_truth,
-                "accuracy",
-                work,
-                trimmed=True,
-            )
-
-        smooth = (
-            [("kitten", 0.0, 8), ("kitten", NOISE, 9)]
-            if quick
-            else [
-                ("kitten", 0.0, 8),
-                ("kitten", 0.0, 9),
-                ("kitten", NOISE, 8),
-                ("kitten", NOISE, 9),
-                ("armadillo", 0.0, 8),
-                ("armadillo", 0.0, 9),
-                ("armadillo", NOISE, 9),
-                ("torus", 0.0, 8),
-                ("torus", NOISE, 9),
-                ("mug", 0.0, 9),
-            ]
-        )
-        for name, noise, depth in smooth:
-            label = f"{name} 100k{' noisy' if noise else ''}, d{depth}"
-            if not want(label):
-                continue
-            if name == "torus":
-                out += _rows_for(
-                    label, _torus(100_000, noise), depth, _torus_truth(), "torus", work
-                )
-            else:
-                out += _rows_for(
-                    label, _samples(name, 100_000, noise), depth, _mesh(name), "chamfer", work
-                )
+        out += _scan_rows(quick, want, work)
+        out += _smooth_rows(quick, want, work)
         for scene in ("tabletop",) if quick else ("tabletop", "office"):
             if want(f"depth camera {scene}"):
                 out += _depth_camera_rows(scene, 9, work, trimmed=False)
@@ -554,36 +506,103 @@ def rows(quick: bool, only: list[str] | None = None) -> list[dict]:
                 "chamfer",
                 work,
             )
+        if not quick:
+            out += _large_rows(want, work)
+    return out
 
-        if not quick and any(want(f"armadillo 1M, d{depth}") for depth in (9, 10)):
-            big = _samples("armadillo", 1_000_000)
-            for depth in (9, 10):
-                if not want(f"armadillo 1M, d{depth}"):
-                    continue
-                out += _rows_for(
-                    f"armadillo 1M, d{depth}",
-                    big,
-                    depth,
-                    _mesh("armadillo"),
-                    "chamfer",
-                    work,
-                    pymeshlab=depth < 10,
-                )
-            del big
-        if not quick and want("armadillo 5M, d11"):
-            huge = _samples("armadillo", 5_000_000)
-            m, mesh = _ours_process(huge, 11, False, work)
-            out.append(
-                {
-                    "case": "armadillo 5M, d11",
-                    "method": "recon (process)",
-                    "faces": len(mesh.faces),
-                    "topology": _topology(mesh),
-                    "seconds": m["seconds"],
-                    "mb": m["peak_mb"],
-                    "note": "ours only; target within 12 GiB",
-                }
+
+def _scan_rows(quick: bool, want, work: Path) -> list[dict]:
+    """The raw bunny scan and stereo fragment, and the bunny scan trimmed."""
+    from recon_cli.io import read_ply
+
+    out: list[dict] = []
+    bunny_truth = _mesh("bunny_zipper")
+    scan = _with_our_normals(read_ply(SHARED / "bunny_scan_000.ply"))
+    stereo = _with_our_normals(read_ply(SHARED / "stereo_fragment.ply"))
+    for depth in (9,) if quick else (9, 10):
+        if want(f"bunny scan raw, d{depth}"):
+            out += _rows_for(f"bunny scan raw, d{depth}", scan, depth, None, "fit", work)
+        if want(f"stereo fragment, d{depth}"):
+            out += _rows_for(f"stereo fragment, d{depth}", stereo, depth, None, "fit", work)
+    for depth in (8, 9):
+        if not want(f"bunny scan, d{depth}, trimmed"):
+            continue
+        out += _rows_for(
+            f"bunny scan, d{depth}, trimmed (ours {OUR_TRIM}, o3d {REF_TRIM:.0%} quantile)",
+            scan,
+            depth,
+            bunny_truth,
+            "accuracy",
+            work,
+            trimmed=True,
+        )
+    return out
+
+
+def _smooth_rows(quick: bool, want, work: Path) -> list[dict]:
+    """100k samples of smooth shapes (kitten, armadillo, torus, mug), clean and noisy."""
+    smooth = (
+        [("kitten", 0.0, 8), ("kitten", NOISE, 9)]
+        if quick
+        else [
+            ("kitten", 0.0, 8),
+            ("kitten", 0.0, 9),
+            ("kitten", NOISE, 8),
+            ("kitten", NOISE, 9),
+            ("armadillo", 0.0, 8),
+            ("armadillo", 0.0, 9),
+            ("armadillo", NOISE, 9),
+            ("torus", 0.0, 8),
+            ("torus", NOISE, 9),
+            ("mug", 0.0, 9),
+        ]
+    )
+    out: list[dict] = []
+    for name, noise, depth in smooth:
+        label = f"{name} 100k{' noisy' if noise else ''}, d{depth}"
+        if not want(label):
+            continue
+        if name == "torus":
+            out += _rows_for(label, _torus(100_000, noise), depth, _torus_truth(), "torus", work)
+        else:
+            out += _rows_for(
+                label, _samples(name, 100_000, noise), depth, _mesh(name), "chamfer", work
             )
+    return out
+
+
+def _large_rows(want, work: Path) -> list[dict]:
+    """1M and 5M samples of the armadillo (the full run only)."""
+    out: list[dict] = []
+    if any(want(f"armadillo 1M, d{depth}") for depth in (9, 10)):
+        big = _samples("armadillo", 1_000_000)
+        for depth in (9, 10):
+            if not want(f"armadillo 1M, d{depth}"):
+                continue
+            out += _rows_for(
+                f"armadillo 1M, d{depth}",
+                big,
+                depth,
+                _mesh("armadillo"),
+                "chamfer",
+                work,
+                pymeshlab=depth < 10,
+            )
+        del big
+    if want("armadillo 5M, d11"):
+        huge = _samples("armadillo", 5_000_000)
+        m, mesh = _ours_process(huge, 11, False, work)
+        out.append(
+            {
+                "case": "armadillo 5M, d11",
+                "method": "recon (process)",
+                "faces": len(mesh.faces),
+                "topology": _topology(mesh),
+                "seconds": m["seconds"],
+                "mb": m["peak_mb"],
+                "note": "ours only; target within 12 GiB",
+            }
+        )
     return out
 
 

@@ -1,7 +1,8 @@
 """Sphinx configuration of recon's documentation (``make docs``).
 
-The stage pages are written from the stage declarations at the start of every build
-(:mod:`recon_cli.tools.docs`), so their parameter tables are never copied by hand.
+The stage pages and the command-line reference are written from the stage declarations and
+the commands at the start of every build (:mod:`recon_cli.tools.docs`), so their parameter
+tables and ``--help`` texts are never copied by hand.
 """
 
 from __future__ import annotations
@@ -13,7 +14,8 @@ ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
 sys.path.insert(0, ROOT)
 
 from recon_cli import __version__  # noqa: E402  (after the repository is on the path)
-from recon_cli.tools.docs import write_pages  # noqa: E402
+from recon_cli.cli.reference import write_reference  # noqa: E402
+from recon_cli.tools.docs import bench_summary, write_changed, write_pages  # noqa: E402
 
 project = "recon"
 author = "the recon developers"
@@ -27,7 +29,7 @@ extensions = [
     "myst_parser",
 ]
 source_suffix = {".rst": "restructuredtext", ".md": "markdown"}
-exclude_patterns = ["_build"]
+exclude_patterns = ["_build", "_generated"]  # _generated: included by other pages
 root_doc = "index"
 # options are written --like-this: no en dashes, no curly quotes in commands
 smartquotes = False
@@ -63,10 +65,15 @@ nitpick_ignore_regex = [
 ]
 
 
-def _stage_pages(app) -> None:
+def _generated_pages(app) -> None:
     write_pages(os.path.join(app.srcdir, "stages"))
+    write_reference(os.path.join(app.srcdir, "cli"))
+    with open(os.path.join(ROOT, "bench", "results.md"), encoding="utf-8") as f:
+        summary = bench_summary(f.read())
+    os.makedirs(os.path.join(app.srcdir, "_generated"), exist_ok=True)
+    write_changed(os.path.join(app.srcdir, "_generated"), "bench-summary.md", summary)
 
 
 def setup(app):
-    """Write the stage pages before Sphinx reads the sources."""
-    app.connect("builder-inited", _stage_pages)
+    """Write the stage pages and the command-line reference before Sphinx reads the sources."""
+    app.connect("builder-inited", _generated_pages)

@@ -8,8 +8,8 @@ that one declaration come
 - the click options of the stage's command (``recon_cli.cli.options.stage_command``),
 - the checks of a pipeline file before anything runs (:mod:`recon_cli.pipeline`),
 - ``recon run --set STAGE.PARAM=VALUE`` and
-- the README's parameter tables (:meth:`StageSpec.markdown_table`; ``python -m
-  recon_cli.tools.readme README.md`` rewrites them, a test fails when they disagree) and
+- the parameter tables of the user guide's stage pages (:meth:`StageSpec.table_rows`, written
+  by ``recon_cli.tools.docs`` at every build of the documentation) and
 - the library's stage functions (``recon_cli.poisson(...)``, :mod:`recon_cli.api`).
 
 Values are checked one way everywhere (:meth:`Param.coerce`). Typed values (TOML, Python)
@@ -122,7 +122,7 @@ class Param:
     default
         Value when not given; ``None`` means "not set" (the stage decides, e.g. automatic).
     help : str
-        One sentence for ``--help`` and the README.
+        One sentence for ``--help`` and the stage's page.
     unit : str
         What the number is measured in ("input units", "fraction of the diagonal", "voxels", ...).
     min, max : float, optional
@@ -143,7 +143,7 @@ class Param:
         or raises ValueError with the expected values (``six numbers ... with x0 <= x1``), so
         a rule between the numbers of one value is checked wherever the type is.
     allowed : str
-        The allowed values in words, for ``--help`` and the README, where a range cannot
+        The allowed values in words, for ``--help`` and the stage's page, where a range cannot
         say them (a ``validate`` rule: ``x0 <= x1, y0 <= y1, z0 <= z1``).
     """
 
@@ -228,49 +228,62 @@ class Param:
             raise self._error(str(exc), value) from None
 
     def _coerce(self, value: Any, text_ok: bool) -> Any:
+        """``value`` as the declared type: a word, None, or by type (range checked)."""
         if isinstance(value, str) and value.strip().lower() in self.words:
             return self.words[value.strip().lower()]
         if value is None:
-            if self.default is None or None in self.words.values():
-                return None
-            word = {"int": "an integer", "float": "a number", "bool": "true or false"}.get(
-                self.type, "a value"
-            )
-            raise self._error(self._expect(word) if self.type in ("int", "float") else word, value)
+            return self._missing(value)
         t = self.type
         if t == "any":
             return value
         if t == "bool":
-            if isinstance(value, bool) or (
-                type(value).__module__ == "numpy" and "bool" in type(value).__name__
-            ):
-                return bool(value)
-            if isinstance(value, str) and text_ok:
-                try:
-                    return parse_bool(value)
-                except ValueError:
-                    pass
-            raise self._error("true or false", value, typed=not text_ok)
+            return self._as_bool(value, text_ok)
         if t == "choice":
             if isinstance(value, str) and value.strip().lower() in self.choices:
                 return value.strip().lower()
             raise self._error("one of " + ", ".join(self.choices), value)
         if t == "int":
-            if isinstance(value, str) and text_ok and _INT.fullmatch(value.strip()):
-                v: Any = int(value.strip())
-            elif (
-                _is_number(value)
-                and not isinstance(value, float)
-                and "float" not in type(value).__name__
-            ):
-                v = int(value)
-            else:
-                raise self._error(self._expect("an integer"), value, typed=not text_ok)
-            return self._in_range(v, value, "an integer")
+            return self._in_range(self._as_int(value, text_ok), value, "an integer")
         if t == "float":
             v = self._number(value, text_ok)
             return self._in_range(v, value, "a number")
-        # vector / floats: a list or its comma-separated text
+        return self._as_numbers(value)
+
+    def _missing(self, value: None) -> None:
+        """None where the parameter may be unset; else the error saying what it takes."""
+        if self.default is None or None in self.words.values():
+            return None
+        word = {"int": "an integer", "float": "a number", "bool": "true or false"}.get(
+            self.type, "a value"
+        )
+        raise self._error(self._expect(word) if self.type in ("int", "float") else word, value)
+
+    def _as_bool(self, value: Any, text_ok: bool) -> bool:
+        if isinstance(value, bool) or (
+            type(value).__module__ == "numpy" and "bool" in type(value).__name__
+        ):
+            return bool(value)
+        if isinstance(value, str) and text_ok:
+            try:
+                return parse_bool(value)
+            except ValueError:
+                pass
+        raise self._error("true or false", value, typed=not text_ok)
+
+    def _as_int(self, value: Any, text_ok: bool) -> int:
+        if isinstance(value, str) and text_ok and _INT.fullmatch(value.strip()):
+            return int(value.strip())
+        if (
+            _is_number(value)
+            and not isinstance(value, float)
+            and "float" not in type(value).__name__
+        ):
+            return int(value)
+        raise self._error(self._expect("an integer"), value, typed=not text_ok)
+
+    def _as_numbers(self, value: Any) -> tuple[float, ...]:
+        """A vector or floats parameter: a list or its comma-separated text."""
+        t = self.type
         if isinstance(value, str):
             parts = [p for p in re.split(r"[,\s]+", value.strip()) if p]
         elif isinstance(value, (list, tuple)) or type(value).__name__ == "ndarray":
@@ -545,13 +558,6 @@ class StageSpec:
                 )
             )
         return rows
-
-    def markdown_table(self) -> str:
-        """The README's parameter table of this stage (:meth:`table_rows` in Markdown)."""
-        lines = ["| " + " | ".join(self.TABLE_COLUMNS) + " |", "|---|---|---|---|---|---|"]
-        for row in self.table_rows(code=lambda s: f"`{s}`"):
-            lines.append("| " + " | ".join(cell.replace("|", "/") for cell in row) + " |")
-        return "\n".join(lines)
 
 
 def describe_data(have: frozenset[str] | set[str]) -> str:

@@ -192,17 +192,17 @@ def test_progress_draws_on_the_given_progress(capsys):
 
 
 # ---- a session, as in trimesh's README -----------------------------------------------------------
-def test_the_readme_session_runs(tmp_path, monkeypatch):
-    # the README's "Python" block, as written: read a scan, normals, poisson, repair, trimesh
+def test_the_guide_session_runs(tmp_path, monkeypatch):
+    # the user guide's Python session, as written: read a scan, normals, poisson, repair, trimesh
     import re
 
-    readme = (ROOT / "README.md").read_text(encoding="utf-8")
-    section = readme[readme.index("## Python") :]
+    guide = (ROOT / "docs" / "getting-started.md").read_text(encoding="utf-8")
+    section = guide[guide.index("## A Python session") :]
     code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
     (tmp_path / "sample_data").symlink_to(ROOT / "sample_data")
     monkeypatch.chdir(tmp_path)
     ns: dict = {}
-    exec(compile(code, "README.md", "exec"), ns)
+    exec(compile(code, "getting-started.md", "exec"), ns)
     cloud, mesh, tm = ns["cloud"], ns["mesh"], ns["tm"]
     assert isinstance(cloud, PointCloud) and cloud.normals is None
     assert ns["oriented"].normals.shape == cloud.points.shape

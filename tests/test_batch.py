@@ -8,6 +8,7 @@ the real files of ../shared/data.
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import os
@@ -263,8 +264,6 @@ def test_process_one_interrupted_write_leaves_nothing(tmp_path, test_stages, mon
 def test_batch_survives_a_killed_worker_then_rerun_skips_everything(tmp_path, test_stages, capsys):
     """A worker killed while running an input: that input is rerun on a live worker, every input
     ends ok, no partial output; a rerun does nothing and takes seconds."""
-    from recon_cli.pipeline import load_pipeline
-
     markers = tmp_path / "markers"
     markers.mkdir()
     pipe = _pipeline(
@@ -275,23 +274,8 @@ def test_batch_survives_a_killed_worker_then_rerun_skips_everything(tmp_path, te
     names = ["kitten", "mug", "stereo_fragment"]
     inputs = [str(shared_path(n)) for n in names]
     out = tmp_path / "out"
-    killed: list[int] = []
-    stop = threading.Event()
-
-    def killer():
-        while not stop.is_set():
-            found = sorted(markers.iterdir())
-            if found:
-                pid = int(found[0].name.split("-")[1])
-                os.kill(pid, signal.SIGKILL)  # a worker process in the middle of a task
-                killed.append(pid)
-                return
-            time.sleep(0.02)
-
-    th = threading.Thread(target=killer, daemon=True)
-    th.start()
     bar = io.StringIO()
-    try:
+    with _killing_the_first_marked_worker(markers) as killed:
         summary = batch.run_batch(
             pipe,
             inputs,
@@ -301,9 +285,6 @@ def test_batch_survives_a_killed_worker_then_rerun_skips_everything(tmp_path, te
             extra_stages=EXTRA_STAGES,
             progress=Progress(stream=bar, enabled=True),
         )
-    finally:
-        stop.set()
-        th.join(5)
     assert len(killed) == 1
     drawn = bar.getvalue()
     final = drawn.rstrip().split("\r")[
@@ -332,7 +313,39 @@ def test_batch_survives_a_killed_worker_then_rerun_skips_everything(tmp_path, te
     assert killed[0] not in {r["worker"]["pid"] for r in summary["inputs"]}
     assert sorted(p.name for p in out.iterdir()) == ["batch.json"] + [f"{n}.ply" for n in names]
     assert _leftover_temporaries(out) == []
-    # outputs equal a run of the same pipeline in this process
+    _assert_outputs_equal_a_run_here(tmp_path, out, names)
+    _assert_rerun_skips_everything(pipe, inputs, out, names, markers, capsys)
+
+
+@contextlib.contextmanager
+def _killing_the_first_marked_worker(markers):
+    """Kill (SIGKILL) the worker of the first marker file that appears; the pids killed."""
+    killed: list[int] = []
+    stop = threading.Event()
+
+    def killer():
+        while not stop.is_set():
+            found = sorted(markers.iterdir())
+            if found:
+                pid = int(found[0].name.split("-")[1])
+                os.kill(pid, signal.SIGKILL)  # a worker process in the middle of a task
+                killed.append(pid)
+                return
+            time.sleep(0.02)
+
+    th = threading.Thread(target=killer, daemon=True)
+    th.start()
+    try:
+        yield killed
+    finally:
+        stop.set()
+        th.join(5)
+
+
+def _assert_outputs_equal_a_run_here(tmp_path, out, names):
+    """The batch's outputs equal a run of the same pipeline in this process."""
+    from recon_cli.pipeline import load_pipeline
+
     quiet = load_pipeline(
         _pipeline(
             tmp_path / "q.toml", '[[stage]]\nname = "t_centre"\n\n[[stage]]\nname = "t_sleep"\n'
@@ -346,6 +359,9 @@ def test_batch_survives_a_killed_worker_then_rerun_skips_everything(tmp_path, te
         # provenance lines differ only in the t_sleep parameters
         assert got.split(b"end_header")[1] == want.split(b"end_header")[1]
 
+
+def _assert_rerun_skips_everything(pipe, inputs, out, names, markers, capsys):
+    """A rerun of a finished batch skips every input, in seconds, and starts no cluster."""
     before = {n: (out / f"{n}.ply").stat().st_mtime_ns for n in names}
     capsys.readouterr()
     t0 = time.perf_counter()

@@ -135,7 +135,7 @@ def test_truncated_and_garbage_are_one_line_input_errors():
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 # LAS only: lazrs (the LAZ decoder under laspy) can abort the whole process on some corrupted LAZ
 # chunks (seen here: "Fatal Python error: Aborted" inside lazrs' read_n_points), which no Python
-# code can catch; the README says so. Truncated and garbage LAZ files are tested above.
+# code can catch; docs/formats.md says so. Truncated and garbage LAZ files are tested above.
 @given(
     cut=st.floats(0, 1),
     junk=st.binary(min_size=1, max_size=16),

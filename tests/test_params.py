@@ -26,7 +26,6 @@ from recon_cli.stages import (
     stage_summary,
     unregister_stage,
 )
-from recon_cli.tools.readme import readme_tables
 
 from shared_data import ROOT
 
@@ -121,7 +120,7 @@ def test_bool_parser_never_guesses(s):
             p.coerce(s)
 
 
-# ---- every built-in stage: declaration, library, command, README ---------------------------------
+# ---- every built-in stage: declaration, library, command, docs -----------------------------------
 @pytest.mark.parametrize("name", BUILTIN)
 def test_builtin_stage_is_registered_and_derived_from_its_declaration(name):
     from recon_cli.cli.main import COMMANDS, cli
@@ -217,13 +216,21 @@ def test_public_functions_take_defaults_and_checks_from_the_declaration(name):
     assert covered or name not in ("normals", "poisson", "ballpivot", "repair", "sdf", "mcubes")
 
 
-def test_readme_parameter_tables_match_the_declarations():
-    tables = readme_tables((ROOT / "README.md").read_text(encoding="utf-8"))
-    assert set(tables) == set(BUILTIN)
-    for name, table in tables.items():
-        assert table == get_spec(name).markdown_table(), (
-            f"README table of {name!r} is stale: python -m recon_cli.tools.readme README.md"
-        )
+def test_documentation_parameter_tables_match_the_declarations():
+    # the tables live on the stage pages of the user guide, written from the declarations by
+    # recon_cli.tools.docs at every build (tests/test_tools_docs.py reads them cell by cell)
+    from recon_cli.tools import docs
+
+    for name in BUILTIN:
+        spec = get_spec(name)
+        page = docs.stage_page(name)
+        assert page.count(docs.param_table(spec)) == 1, name
+        options = [
+            line.split("``")[1] for line in page.splitlines() if line.startswith("   * - ``")
+        ]
+        assert options == [p.option for p in spec.params], name
+    # no hand copy left in the README
+    assert "| option | type | default" not in (ROOT / "README.md").read_text(encoding="utf-8")
 
 
 def test_runner_refuses_a_function_that_differs_from_its_declaration():

@@ -233,60 +233,68 @@ def direct_rhs(pos, normal_w, splat_level, splat_frac, level, node_keys, unknown
     for p in range(pos.shape[0]):
         for part in range(2):
             frac = splat_frac[p]
-            if part == 0:
-                wpart = 1.0 - frac
-                s = splat_level[p]
-            else:
-                wpart = frac
-                s = splat_level[p] + 1
+            wpart = 1.0 - frac if part == 0 else frac
             if wpart <= 0.0:
                 continue
-            rho = 2.0 ** (level - s)
-            reach = 1.0 + 1.5 * rho
-            empty = False
-            for a in range(3):
-                u = pos[p, a] * scale
-                lo[a] = max(int(np.ceil(u - reach)), 0)
-                hi[a] = min(int(np.floor(u + reach)), top)
-                if hi[a] < lo[a]:
-                    empty = True
-                for t in range(hi[a] - lo[a] + 1):
-                    done[a, t] = False
-            if empty:
+            rho = 2.0 ** (level - (splat_level[p] + part))
+            if _box(pos[p], scale, 1.0 + 1.5 * rho, top, lo, hi, done):
                 continue
-            nx = normal_w[p, 0] * wpart
-            ny = normal_w[p, 1] * wpart
-            nz = normal_w[p, 2] * wpart
-            for x in range(lo[0], hi[0] + 1):
-                kend = lattice_key(x, hi[1], hi[2])
-                j = lower_bound(node_keys, lattice_key(x, lo[1], lo[2]), 0, n_keys)
-                while j < n_keys and node_keys[j] <= kend:
-                    k = node_keys[j]
-                    y = (k >> 21) & MASK21
-                    z = k & MASK21
-                    if z < lo[2]:
-                        j = lower_bound(node_keys, lattice_key(x, y, lo[2]), j, n_keys)
-                        continue
-                    if z > hi[2]:
-                        j = lower_bound(node_keys, lattice_key(x, y + 1, lo[2]), j, n_keys)
-                        continue
-                    if unknown[j]:
-                        # the 1D factors, computed once per item and coordinate on first use
-                        tx = x - lo[0]
-                        ty = y - lo[1]
-                        tz = z - lo[2]
-                        if not done[0, tx]:
-                            _factors(pos[p, 0] * scale - x, rho, scale, vx, dx, done, 0, tx)
-                        if not done[1, ty]:
-                            _factors(pos[p, 1] * scale - y, rho, scale, vx, dx, done, 1, ty)
-                        if not done[2, tz]:
-                            _factors(pos[p, 2] * scale - z, rho, scale, vx, dx, done, 2, tz)
-                        fxy = vx[0, tx] * vx[1, ty]
-                        gx = dx[0, tx] * vx[1, ty]
-                        gy = vx[0, tx] * dx[1, ty]
-                        b[j] += nx * gx * vx[2, tz] + ny * gy * vx[2, tz] + nz * fxy * dx[2, tz]
-                    j += 1
+            w = normal_w[p] * wpart
+            _splat_box(b, pos[p], w, rho, scale, lo, hi, node_keys, unknown, vx, dx, done)
     return b
+
+
+@njit
+def _box(u, scale, reach, top, lo, hi, done):
+    """The lattice box ``lo..hi`` an item at ``u`` reaches (its factors not yet computed).
+
+    True when it is empty.
+    """
+    empty = False
+    for a in range(3):
+        v = u[a] * scale
+        lo[a] = max(int(np.ceil(v - reach)), 0)
+        hi[a] = min(int(np.floor(v + reach)), top)
+        if hi[a] < lo[a]:
+            empty = True
+        for t in range(hi[a] - lo[a] + 1):
+            done[a, t] = False
+    return empty
+
+
+@njit
+def _splat_box(b, u, w, rho, scale, lo, hi, node_keys, unknown, vx, dx, done):
+    """Add the item at ``u`` with vector ``w`` to ``b`` at the unknown nodes in its box."""
+    n_keys = len(node_keys)
+    for x in range(lo[0], hi[0] + 1):
+        kend = lattice_key(x, hi[1], hi[2])
+        j = lower_bound(node_keys, lattice_key(x, lo[1], lo[2]), 0, n_keys)
+        while j < n_keys and node_keys[j] <= kend:
+            k = node_keys[j]
+            y = (k >> 21) & MASK21
+            z = k & MASK21
+            if z < lo[2]:
+                j = lower_bound(node_keys, lattice_key(x, y, lo[2]), j, n_keys)
+                continue
+            if z > hi[2]:
+                j = lower_bound(node_keys, lattice_key(x, y + 1, lo[2]), j, n_keys)
+                continue
+            if unknown[j]:
+                # the 1D factors, computed once per item and coordinate on first use
+                tx = x - lo[0]
+                ty = y - lo[1]
+                tz = z - lo[2]
+                if not done[0, tx]:
+                    _factors(u[0] * scale - x, rho, scale, vx, dx, done, 0, tx)
+                if not done[1, ty]:
+                    _factors(u[1] * scale - y, rho, scale, vx, dx, done, 1, ty)
+                if not done[2, tz]:
+                    _factors(u[2] * scale - z, rho, scale, vx, dx, done, 2, tz)
+                fxy = vx[0, tx] * vx[1, ty]
+                gx = dx[0, tx] * vx[1, ty]
+                gy = vx[0, tx] * dx[1, ty]
+                b[j] += w[0] * gx * vx[2, tz] + w[1] * gy * vx[2, tz] + w[2] * fxy * dx[2, tz]
+            j += 1
 
 
 @njit(inline="always")

@@ -3,7 +3,7 @@
 Each stage runs on the same generated shape at the origin and moved by an offset; the output
 must be double (in memory and once written), keep the input's coordinates where it keeps
 them, and be as accurate as at the origin (radius errors, normals, distances, vertices).
-The data model's rule for float32 sources (README, "Data model") is checked at the end.
+The data model's rule for float32 sources (docs/formats.md, "Data model") is checked at the end.
 """
 
 from __future__ import annotations

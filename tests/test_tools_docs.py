@@ -113,3 +113,52 @@ def test_pages_follow_the_registry(tmp_path):
     assert docs.write_pages(out) == [os.path.join(out, "index.rst")]
     assert not os.path.exists(page)
     assert sorted(os.listdir(out)) == sorted(["index.rst", *(f"{n}.rst" for n in stage_names())])
+
+
+@pytest.mark.parametrize("name", stage_names())
+def test_every_stage_page_includes_its_guide(name, tmp_path):
+    """Each built-in stage's package holds a guide.md, which its page includes by its path."""
+    guide = docs.guide_path(name)
+    assert guide is not None and os.path.basename(guide) == docs.GUIDE
+    with open(guide, encoding="utf-8") as f:
+        assert len(f.read().split()) > 30  # a guide, not a stub
+    page = docs.stage_page(name, str(tmp_path))
+    include = [line for line in page.splitlines() if line.startswith(".. include:: ")]
+    assert len(include) == 1
+    target = os.path.join(tmp_path, include[0].removeprefix(".. include:: "))
+    assert os.path.samefile(target, guide)
+    assert docs.guide_path("no-such-stage") is None
+
+
+def test_bench_summary_keeps_every_measured_ratio():
+    results = """# recon benchmark
+
+## bench_x (2026-12-01 10:00, 5 s)
+
+| stage | case | ours s | reference | ref s | time ours/ref | note |
+|---|---|---|---|---|---|---|
+| x | small | 1.0 | lib | 2.0 | 0.5 | fine |
+| x | huge | 9.0 |  | — | — | no reference |
+
+| case | method | s | s ours/o3d |
+|---|---|---|---|
+| cube | recon | 3 | 1.5 |
+| cube | open3d | 2 |  |
+
+## bench_y (2026-12-01 11:00, 5 s)
+
+| stage | case | ours s |
+|---|---|---|
+| y | only ours | 4.0 |
+"""
+    assert docs.bench_summary(results).splitlines() == [
+        "**bench_x (2026-12-01 10:00, 5 s)**",
+        "",
+        "| stage | case | reference | time ours/ref |",
+        "|---|---|---|---|",
+        "| x | small | lib | 0.5 |",
+        "",
+        "| case | method | s ours/o3d |",
+        "|---|---|---|",
+        "| cube | recon | 1.5 |",
+    ]

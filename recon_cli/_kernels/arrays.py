@@ -65,11 +65,8 @@ def lower_bound(a, x, lo, hi):
     """First index ``i`` in ``[lo, hi)`` of sorted 1-d ``a`` with ``a[i] >= x`` (``hi`` if none).
 
     ``lo + np.searchsorted(a[lo:hi], x)``.
-
-    Written out because numba's ``np.searchsorted`` lives in ``numba.np.arraymath``: a kernel
-    calling it makes every process that loads the kernel import that module (and scipy.linalg,
-    numba's BLAS check), ~0.2 CPU s.
     """
+    # written out: numba's np.searchsorted would import numba.np.arraymath (and scipy.linalg)
     while lo < hi:
         mid = (lo + hi) >> 1
         if a[mid] < x:

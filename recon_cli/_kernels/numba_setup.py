@@ -1,44 +1,18 @@
 """Numba settings for every recon kernel: the compile cache's directory and the threading layer.
 
 Every module that defines a numba kernel imports this module *before* ``numba`` (a test
-checks it), because numba fixes where a ``@njit(cache=True)`` function keeps its cache when
-the function is decorated.
+checks it): numba fixes where a ``@njit(cache=True)`` function keeps its cache when the
+function is decorated. On import it sets, unless the environment already says otherwise:
 
-Cache directory
----------------
-Compiled kernels are cached in one per-user directory, so that a command compiles nothing
-after ``recon warmup`` (run by ``make install``) even when the package directory is
-read-only (a system-wide or container install): ``$NUMBA_CACHE_DIR`` when set (numba's own
-variable, honoured as is), else ``$XDG_CACHE_HOME/recon/numba/<fingerprint>``, else
-``~/.cache/recon/numba/<fingerprint>``. The variable is also exported, so worker processes
-(Dask, the test-suite's subprocesses) share the cache.
+- ``NUMBA_CACHE_DIR``: ``$XDG_CACHE_HOME/recon/numba/<fingerprint>`` (else
+  ``~/.cache/recon/numba/<fingerprint>``), the fingerprint naming the state of every kernel
+  source (:func:`kernel_sources_fingerprint`); exported, so worker processes share it;
+- ``NUMBA_THREADING_LAYER``: OpenMP (numba would try Open3D's older TBB first);
+- ``GOMP_SPINCOUNT``: :data:`GOMP_SPINCOUNT`, unless ``OMP_WAIT_POLICY`` or
+  ``GOMP_SPINCOUNT`` is set.
 
-Numba keys each entry by the kernel's own source file (path and modification time) only: a
-kernel that calls a function of another module keeps its old machine code when only that
-module changes (an upgrade, a ``git pull``) — silently wrong results. The fingerprint (of
-the path, size and modification time of every module that can hold kernels: the private
-``_*.py`` modules and ``_kernels/``) puts the cache of each state of the sources in a
-directory of its own, so any change to any kernel source compiles everything afresh. With
-an explicit ``$NUMBA_CACHE_DIR`` that invalidation is the user's (numba's own behaviour).
-
-Threading layer
----------------
-The threading layer is chosen once per process, at the first parallel launch. Left to its
-default, numba tries TBB first; Open3D ships an older libtbb, and when open3d was imported
-first numba finds that one and warns that TBB is disabled. OpenMP (then the workqueue)
-is what numba would end up using anyway, so ask for it directly. An explicit
-``NUMBA_THREADING_LAYER`` in the environment still wins.
-
-Idle OpenMP threads
--------------------
-GNU OpenMP's threads spin (300,000 rounds by default) at the end of every parallel loop before
-they sleep. recon's solvers alternate parallel loops with serial work (the Poisson
-conjugate gradients: hundreds of parallel matrix products per level, a serial update between
-them), so on a busy machine the spinning worker takes the core the main thread is waiting
-for (``bench/calibration.md``, 2026-12-04: the same mesh, byte for byte, in clearly less time).
-``GOMP_SPINCOUNT`` is set to :data:`GOMP_SPINCOUNT` unless the environment already
-says how OpenMP waits (``OMP_WAIT_POLICY`` or ``GOMP_SPINCOUNT``: the user's wins). Read by libgomp
-when numba loads its OpenMP layer (the first parallel launch), so set here, before any kernel.
+Why each (stale machine code across modules, TBB's warning, spinning OpenMP threads on a busy
+machine): ``docs/design/process.md``.
 """
 
 from __future__ import annotations

@@ -1,10 +1,8 @@
 """Ahead-of-time compiled kernels: a command that runs them never imports numba.
 
-Numba's import and its first cached load cost a ``recon`` process ~0.4 CPU s before any
-work (more than the whole ball pivoting of a 40k-point scan). ``recon warmup`` therefore
-also compiles the kernel modules of the commands where that cost dominates
-(:data:`MODULES`: the PLY reader/writer, ball pivoting, mesh topology, marching cubes) into
-Python extension modules with ``numba.pycc`` (:mod:`recon_cli.aot.build`), from
+``recon warmup`` also compiles the kernel modules of the commands whose work is smaller than
+numba's start-up (:data:`MODULES`: the PLY reader/writer, ball pivoting, mesh topology,
+marching cubes) into Python extension modules with ``numba.pycc`` (:mod:`recon_cli.aot.build`), from
 the same ``@njit`` functions, for the argument types the warm-up compiled them for. A stage
 asks for its kernels through :func:`kernels` instead of importing its ``_kernel`` module:
 
@@ -20,6 +18,7 @@ asks for its kernels through :func:`kernels` instead of importing its ``_kernel`
 Parallel kernels (``parallel=True``) are never built ahead of time (pycc has no threading
 layer): they always run JIT. A build whose fingerprint differs (any kernel source edited,
 another numba/numpy/Python, another CPU) sits in another directory and is never loaded.
+Why (numba's import costs more than some whole commands): ``docs/design/process.md``.
 """
 
 from __future__ import annotations

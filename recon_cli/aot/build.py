@@ -252,7 +252,6 @@ def build(
     if problem:
         out["reason"] = problem
         return out
-
     parent = os.path.dirname(target)
     os.makedirs(parent, exist_ok=True)
     work = tempfile.mkdtemp(prefix=".build-", dir=parent)
@@ -261,35 +260,9 @@ def build(
         "modules": {},
         "libraries": {},
     }
-    # the slowest first: a module's pycc build is seconds, the C library a fraction of one
-    jobs: list[tuple[Callable[..., dict], tuple]] = [
-        (compile_extension, (name, work, None if sigs is None else sigs.get(name, {})))
-        for name in modules
-    ]
-    jobs += [(compile_library, (lib, source, work)) for lib, source in (c_libraries or {}).items()]
-    failures = []
     try:
-        for result in _run_jobs(jobs, submit, done):
-            if result.get("failure"):
-                failures.append(result["failure"])
-            if "module" in result:
-                out["skipped"] += result["skipped"]
-                if result["entry"] is not None:
-                    manifest["modules"][result["module"]] = result["entry"]
-            elif result.get("file"):
-                manifest["libraries"][result["library"]] = result["file"]
-        out["modules"] = [name for name in modules if name in manifest["modules"]]
-        for leaf in os.listdir(work):
-            path = os.path.join(work, leaf)
-            if leaf.startswith("obj-"):
-                shutil.rmtree(path, ignore_errors=True)
-            elif leaf.endswith(".c"):
-                os.remove(path)
-        with open(os.path.join(work, aot.MANIFEST), "w", encoding="utf-8") as fh:
-            json.dump(manifest, fh, indent=1, sort_keys=True)
-        if os.path.exists(target):  # a stale or partial build of this very state (or --force)
-            shutil.rmtree(target, ignore_errors=True)
-        os.replace(work, target)
+        failures = _compile_all(modules, c_libraries, sigs, work, submit, done, manifest, out)
+        _install(work, manifest, target)
     finally:
         if os.path.exists(work):
             shutil.rmtree(work, ignore_errors=True)
@@ -303,6 +276,55 @@ def build(
                 log(f"ahead-of-time build: {f}")
     out["seconds"] = time.perf_counter() - t0
     return out
+
+
+def _compile_all(
+    modules: tuple[str, ...],
+    c_libraries: dict[str, str] | None,
+    sigs: dict[str, dict[str, list[tuple[Any, Any]]]] | None,
+    work: str,
+    submit: Callable[..., Any] | None,
+    done: Callable[[], None] | None,
+    manifest: dict,
+    out: dict,
+) -> list[str]:
+    """Compile every extension and C library into ``work``; the failures.
+
+    The built ones are entered in ``manifest``; ``out``'s ``modules`` and ``skipped`` are filled in.
+    """
+    # the slowest first: a module's pycc build is seconds, the C library a fraction of one
+    jobs: list[tuple[Callable[..., dict], tuple]] = [
+        (compile_extension, (name, work, None if sigs is None else sigs.get(name, {})))
+        for name in modules
+    ]
+    jobs += [(compile_library, (lib, source, work)) for lib, source in (c_libraries or {}).items()]
+    failures = []
+    for result in _run_jobs(jobs, submit, done):
+        if result.get("failure"):
+            failures.append(result["failure"])
+        if "module" in result:
+            out["skipped"] += result["skipped"]
+            if result["entry"] is not None:
+                manifest["modules"][result["module"]] = result["entry"]
+        elif result.get("file"):
+            manifest["libraries"][result["library"]] = result["file"]
+    out["modules"] = [name for name in modules if name in manifest["modules"]]
+    return failures
+
+
+def _install(work: str, manifest: dict, target: str) -> None:
+    """Clear ``work`` of the compilers' leftovers, write its manifest, rename it ``target``."""
+    for leaf in os.listdir(work):
+        path = os.path.join(work, leaf)
+        if leaf.startswith("obj-"):
+            shutil.rmtree(path, ignore_errors=True)
+        elif leaf.endswith(".c"):
+            os.remove(path)
+    with open(os.path.join(work, aot.MANIFEST), "w", encoding="utf-8") as fh:
+        json.dump(manifest, fh, indent=1, sort_keys=True)
+    if os.path.exists(target):  # a stale or partial build of this very state (or --force)
+        shutil.rmtree(target, ignore_errors=True)
+    os.replace(work, target)
 
 
 def _run_jobs(

@@ -506,93 +506,109 @@ def _collect(client, info: dict, job: _Job) -> None:
     """
     from distributed import as_completed
 
-    from recon_cli.io.atomic import write_bytes
     from recon_cli.progress import task
-    from recon_cli.stages import report_json
 
-    entries, records = job.entries, job.records
-    pending = list(job.todo)
-    in_flight: dict[Any, int] = {}
-    done = as_completed()
-
-    def capacity() -> int:
-        return max(1, sum(client.nthreads().values()))
-
-    def fill() -> None:
-        room = capacity() - len(in_flight)
-        while pending and room > 0:
-            i = pending.pop(0)
-            e = entries[i]
-            fut = client.submit(
-                process_one,
-                job.pipe,
-                os.path.abspath(e["input"]),
-                e["base"],
-                job.stage_map,
-                job.ascii,
-                key=f"recon-batch-{Path(e['input']).name}-{os.urandom(6).hex()}",
-                pure=False,
-                retries=1,
-            )
-            in_flight[fut] = i
-            done.add(fut)
-            room -= 1
-
+    flight = _InFlight(client, job, as_completed())
     # Ctrl-C only sets a flag, and this loop raises KeyboardInterrupt where it waits: raised
     # inside one of Dask's blocking calls, it races Dask's own clean-up (a NameError
     # traceback from distributed.utils.sync's cancel callback)
-    stop: list[bool] = []
     old_handler = None
     if _sigint_catchable():
-        old_handler = signal.signal(signal.SIGINT, lambda signum, frame: stop.append(True))
-
-    def finished():
-        while True:
-            if stop:
-                raise KeyboardInterrupt
-            if done.has_ready():
-                yield from done.next_batch(block=False)
-            elif done.is_empty():
-                return
-            else:
-                time.sleep(0.05)
-
+        old_handler = signal.signal(signal.SIGINT, lambda signum, frame: flight.stop.append(True))
     try:
         with task(job.progress, f"batch ({len(job.todo)} inputs)", total=len(job.todo)) as bar:
-            fill()
-            for fut in finished():
+            flight.fill()
+            for fut in flight.finished():
                 if fut.status == "lost":
                     # it finished, but the worker holding its record died before this loop read it
                     # (another input's worker death): the scheduler recomputes it, so wait again
-                    done.add(fut)
+                    flight.done.add(fut)
                     continue
-                i = in_flight.pop(fut)
-                if fut.status == "finished":
-                    rec = fut.result()
-                    rec["input"] = entries[i]["input"]
-                else:
-                    exc = fut.exception() if fut.status == "error" else None
-                    rec = _failed_from_future(entries[i], exc, fut.status)
-                records[i] = rec
-                # the scheduler forgets the result: a later worker death cannot recompute it
-                fut.release()
+                flight.record(fut)
                 bar.advance(1)
-                fill()
+                flight.fill()
     except BaseException:
         # interrupted: record what is unfinished, keep the summary of what is done, re-raise
-        for i in job.todo:
-            if records[i] is None:
-                records[i] = {
-                    "input": entries[i]["input"],
-                    "status": STATUS_INTERRUPTED,
-                    "output": None,
-                }
-        with contextlib.suppress(Exception):
-            client.cancel(list(in_flight))
-        summary = job.summary(info)
-        with contextlib.suppress(OSError):
-            write_bytes(job.summary_path, report_json(summary).encode("utf-8") + b"\n")
+        flight.interrupted(info)
         raise
     finally:
         if old_handler is not None:
             signal.signal(signal.SIGINT, old_handler)
+
+
+class _InFlight:
+    """The inputs of a batch submitted to ``client`` and not yet recorded (:func:`_collect`)."""
+
+    def __init__(self, client, job: _Job, done) -> None:
+        self.client = client
+        self.job = job
+        self.done = done  # distributed.as_completed over the submitted futures
+        self.pending = list(job.todo)
+        self.futures: dict[Any, int] = {}  # future -> input index
+        self.stop: list[bool] = []  # set by the Ctrl-C handler
+
+    def fill(self) -> None:
+        """Submit inputs until as many are in flight as the cluster has threads."""
+        room = max(1, sum(self.client.nthreads().values())) - len(self.futures)
+        while self.pending and room > 0:
+            i = self.pending.pop(0)
+            e = self.job.entries[i]
+            fut = self.client.submit(
+                process_one,
+                self.job.pipe,
+                os.path.abspath(e["input"]),
+                e["base"],
+                self.job.stage_map,
+                self.job.ascii,
+                key=f"recon-batch-{Path(e['input']).name}-{os.urandom(6).hex()}",
+                pure=False,
+                retries=1,
+            )
+            self.futures[fut] = i
+            self.done.add(fut)
+            room -= 1
+
+    def finished(self):
+        """The futures as they end; KeyboardInterrupt once Ctrl-C was pressed."""
+        while True:
+            if self.stop:
+                raise KeyboardInterrupt
+            if self.done.has_ready():
+                yield from self.done.next_batch(block=False)
+            elif self.done.is_empty():
+                return
+            else:
+                time.sleep(0.05)
+
+    def record(self, fut) -> None:
+        """The record of the input of the ended future ``fut``."""
+        i = self.futures.pop(fut)
+        entry = self.job.entries[i]
+        if fut.status == "finished":
+            rec = fut.result()
+            rec["input"] = entry["input"]
+        else:
+            exc = fut.exception() if fut.status == "error" else None
+            rec = _failed_from_future(entry, exc, fut.status)
+        self.job.records[i] = rec
+        # the scheduler forgets the result: a later worker death cannot recompute it
+        fut.release()
+
+    def interrupted(self, info: dict) -> None:
+        """Record the unfinished inputs, cancel their futures, write the summary so far."""
+        from recon_cli.io.atomic import write_bytes
+        from recon_cli.stages import report_json
+
+        job = self.job
+        for i in job.todo:
+            if job.records[i] is None:
+                job.records[i] = {
+                    "input": job.entries[i]["input"],
+                    "status": STATUS_INTERRUPTED,
+                    "output": None,
+                }
+        with contextlib.suppress(Exception):
+            self.client.cancel(list(self.futures))
+        summary = job.summary(info)
+        with contextlib.suppress(OSError):
+            write_bytes(job.summary_path, report_json(summary).encode("utf-8") + b"\n")

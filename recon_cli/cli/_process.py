@@ -1,12 +1,7 @@
-"""What a ``recon`` process spends around the command itself: start-up and exit.
+"""What a ``recon`` process does around the command itself: start-up and exit.
 
-Measured on the shared 2-core machine (``perf stat`` task-clock and elapsed, a process that
-imports numba and calls one cached kernel, numba's floor, ~1.0 CPU s): Python's exit collects
-the garbage of every object numba's start-up made (its typing registries, LLVM wrappers) in
-several full passes, ~0.3 CPU s; OpenBLAS (numpy's and scipy's, which numba loads to look for
-BLAS) starts a worker thread per core that spins on load and is joined at exit, ~0.2 s of wall
-time; the cyclic collector runs dozens of times while numba's modules import, ~0.06 s.
-None of it is work the user asked for:
+Three steps; what each saves (numba's garbage at exit, OpenBLAS's threads, the collector
+during imports), as measured, is in ``docs/design/process.md``:
 
 * :func:`start` (first thing of :func:`recon_cli.cli.main.main`, before numpy is imported):
   OpenBLAS single-threaded unless the user said otherwise (recon computes with numba's own

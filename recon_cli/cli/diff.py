@@ -64,7 +64,7 @@ from recon_cli.cli import options
 )
 @options.picture_opts
 @click.pass_context
-def cmd(ctx, files, ref, samples, seed, tau, json_, csv_path, heatmap, png, views, vmax, unit):
+def cmd(ctx, files, ref, samples, seed, tau, json_, csv_path, heatmap, png, **picture):
     """Compare meshes or clouds.
 
     Two files: A (candidate) against B (reference). With --ref GT: each FILE against GT,
@@ -94,9 +94,7 @@ def cmd(ctx, files, ref, samples, seed, tau, json_, csv_path, heatmap, png, view
         taus=tau,
         heatmap_path=heatmap,
         png_path=png,
-        views=views,
-        vmax=vmax,
-        unit=unit,
+        **picture,  # views, vmax, unit (options.picture_opts)
     )
     quiet = bool((ctx.find_root().obj or {}).get("quiet"))
     if not quiet:

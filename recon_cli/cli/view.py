@@ -58,7 +58,7 @@ import click
 @click.option("--unit", help="With --diff: unit of the coordinates, shown on the colour bar.")
 @click.option("--json", "json_", is_flag=True, help="Print the report as JSON on stdout.")
 @click.pass_context
-def cmd(ctx, path, out, reference, view, up, title, samples, seed, tau, vmax, unit, json_):
+def cmd(ctx, path, out, reference, view, up, title, json_, **diff):
     """Write one HTML page showing a mesh or cloud in 3-D (WebGL; opens with no network).
 
     Drag to rotate, right-drag to pan, wheel to zoom. The first view is the one recon
@@ -72,8 +72,8 @@ def cmd(ctx, path, out, reference, view, up, title, samples, seed, tau, vmax, un
 
     if json_ and str(out) == "-":
         raise ParameterError("--json and -o - would both write to stdout; give -o a file")
-    diff_only = {"--samples": samples, "--seed": seed, "--tau": tau, "--vmax": vmax, "--unit": unit}
-    given = [name for name, value in diff_only.items() if value is not None]
+    # --samples, --seed, --tau, --vmax, --unit
+    given = [f"--{name}" for name, value in diff.items() if value is not None]
     if reference is None and given:
         raise ParameterError(f"{', '.join(given)} need --diff REFERENCE")
     kwargs = {"view": view, "up": up}
@@ -81,11 +81,11 @@ def cmd(ctx, path, out, reference, view, up, title, samples, seed, tau, vmax, un
         kwargs["title"] = title
     if reference is not None:
         kwargs.update(
-            samples=200_000 if samples is None else samples,
-            seed=0 if seed is None else seed,
-            taus=tau,
-            vmax=vmax,
-            unit=unit,
+            samples=200_000 if diff["samples"] is None else diff["samples"],
+            seed=0 if diff["seed"] is None else diff["seed"],
+            taus=diff["tau"],
+            vmax=diff["vmax"],
+            unit=diff["unit"],
         )
     report = view_files(path, out, reference, **kwargs)
     if json_:

@@ -6,7 +6,7 @@ import numpy as np
 from numba import njit
 
 from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (the per-user cache, before the first @njit)
-from recon_cli.io._text_kernel import parse_float, skip_blank, token_end
+from recon_cli.io._text_kernel import line_end, parse_float, skip_blank, token_end
 
 _MULT = np.uint64(11400714819323198485)
 
@@ -71,11 +71,68 @@ def _word(buf, s, e, w):
 
 
 @njit(cache=True)
+def _next_word(buf, e, n, w):
+    """Whether the token after byte ``e`` is the word ``w``: ``(ok, its start, its end)``."""
+    j = skip_blank(buf, e, n)
+    k = token_end(buf, j, n)
+    return _word(buf, j, k, w), j, k
+
+
+@njit(cache=True)
+def _facet_normal(buf, e, n):
+    """Check ``normal nx ny nz`` after ``facet`` (the normal is recomputed, not kept).
+
+    ``(error, byte, end)``: error 1 = not ``normal``, 2 = a malformed number.
+    """
+    ok, j, e = _next_word(buf, e, n, _NORMAL)
+    if not ok:
+        return 1, j, e
+    for _ in range(3):
+        j = skip_blank(buf, e, n)
+        k = token_end(buf, j, n)
+        _v, st = parse_float(buf, j, k)
+        if st == 0:
+            return 2, j, e
+        e = k
+    return 0, 0, e
+
+
+@njit(cache=True, inline="always")
+def _vertex(buf, e, n, corners, slow, nc, ns, fill):
+    """Read ``x y z`` after ``vertex`` into ``corners[nc]`` (with ``fill``).
+
+    Numbers the fast parser leaves are NaN, recorded in ``slow[ns:]``. ``(error, byte, end, ns)``:
+    error 2 = a malformed number.
+    """
+    for c in range(3):
+        j = skip_blank(buf, e, n)
+        k = token_end(buf, j, n)
+        v, st = parse_float(buf, j, k)
+        if st == 0:
+            return 2, j, e, ns
+        if fill:
+            if st == 2:
+                slow[ns, 0] = nc * 3 + c
+                slow[ns, 1] = j
+                slow[ns, 2] = k
+                v = np.nan
+            corners[nc, c] = v
+        if st == 2:
+            ns += 1
+        e = k
+    return 0, 0, e, ns
+
+
+@njit(cache=True)
 def ascii_walk(buf, corners, slow, fill):
     """Walk an ASCII STL body.
 
     With ``fill`` false, count; else fill ``corners`` ((3 m, 3) float64, NaN where slow) and
     ``slow`` ((k, 3): flat index, byte start, byte end).
+
+    The grammar's states: outside a solid (``solid NAME``), in a solid (``facet normal``,
+    :func:`_facet_normal`, or ``endsolid``), in a facet (``outer loop``) and in its loop
+    (``vertex``, :func:`_vertex`, or ``endloop endfacet``).
 
     Returns ``(facets, slow count, error, byte)``; error 1 = unexpected word, 2 = a number is
     malformed, 3 = a facet without three vertices, 4 = the file ends inside a facet.
@@ -87,83 +144,44 @@ def ascii_walk(buf, corners, slow, fill):
     nvert = 0  # vertices of the current facet
     nc = 0
     ns = 0
+    err = 0
+    at = 0
     while True:
         i = skip_blank(buf, i, n)
         if i >= n:
             break
         e = token_end(buf, i, n)
         if state == 0:
-            if not _word(buf, i, e, _SOLID):
-                return nfacet, ns, 1, i
-            # the solid's name: the rest of the line
-            while e < n and buf[e] != 10:
-                e += 1
-            state = 1
-        elif state == 1:
-            if _word(buf, i, e, _FACET):
-                j = skip_blank(buf, e, n)
-                k = token_end(buf, j, n)
-                if not _word(buf, j, k, _NORMAL):
-                    return nfacet, ns, 1, j
-                e = k
-                for _ in range(3):
-                    j = skip_blank(buf, e, n)
-                    k = token_end(buf, j, n)
-                    _v, st = parse_float(buf, j, k)
-                    if st == 0:
-                        return nfacet, ns, 2, j
-                    e = k
-                state = 2
-                nvert = 0
-            elif _word(buf, i, e, _ENDSOLID):
-                while e < n and buf[e] != 10:
-                    e += 1
-                state = 0
-            else:
-                return nfacet, ns, 1, i
-        elif state == 2:
-            if not _word(buf, i, e, _OUTER):
-                return nfacet, ns, 1, i
-            j = skip_blank(buf, e, n)
-            k = token_end(buf, j, n)
-            if not _word(buf, j, k, _LOOP):
-                return nfacet, ns, 1, j
-            e = k
+            err, at, state = (0, 0, 1) if _word(buf, i, e, _SOLID) else (1, i, 0)
+            e = line_end(buf, e, n)
+        elif state == 1 and _word(buf, i, e, _FACET):
+            err, at, e = _facet_normal(buf, e, n)
+            state = 2
+            nvert = 0
+        elif state == 1 and _word(buf, i, e, _ENDSOLID):
+            e = line_end(buf, e, n)
+            state = 0
+        elif state == 2 and _word(buf, i, e, _OUTER):
+            ok, at, e = _next_word(buf, e, n, _LOOP)
+            err = 0 if ok else 1
             state = 3
+        elif state == 3 and _word(buf, i, e, _VERTEX):
+            if nvert == 3:
+                return nfacet, ns, 3, i
+            err, at, e, ns = _vertex(buf, e, n, corners, slow, nc, ns, fill)
+            nc += 1
+            nvert += 1
+        elif state == 3 and _word(buf, i, e, _ENDLOOP):
+            if nvert != 3:
+                return nfacet, ns, 3, i
+            ok, at, e = _next_word(buf, e, n, _ENDFACET)
+            err = 0 if ok else 1
+            nfacet += 1 if ok else 0
+            state = 1
         else:
-            if _word(buf, i, e, _VERTEX):
-                if nvert == 3:
-                    return nfacet, ns, 3, i
-                for c in range(3):
-                    j = skip_blank(buf, e, n)
-                    k = token_end(buf, j, n)
-                    v, st = parse_float(buf, j, k)
-                    if st == 0:
-                        return nfacet, ns, 2, j
-                    if fill:
-                        if st == 2:
-                            slow[ns, 0] = nc * 3 + c
-                            slow[ns, 1] = j
-                            slow[ns, 2] = k
-                            v = np.nan
-                        corners[nc, c] = v
-                    if st == 2:
-                        ns += 1
-                    e = k
-                nc += 1
-                nvert += 1
-            elif _word(buf, i, e, _ENDLOOP):
-                if nvert != 3:
-                    return nfacet, ns, 3, i
-                j = skip_blank(buf, e, n)
-                k = token_end(buf, j, n)
-                if not _word(buf, j, k, _ENDFACET):
-                    return nfacet, ns, 1, j
-                e = k
-                nfacet += 1
-                state = 1
-            else:
-                return nfacet, ns, 1, i
+            return nfacet, ns, 1, i
+        if err:
+            return nfacet, ns, err, at
         i = e
     if state >= 2:
         return nfacet, ns, 4, n

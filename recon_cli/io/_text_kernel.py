@@ -308,27 +308,31 @@ def _digits8(buf, i, e):
 
 
 @njit(cache=True, inline="always")
-def scan_float(buf, i, e):
-    """The decimal number starting at byte ``i`` (reading no further than ``e``).
-
-    ``(value, status, stop)`` with ``stop`` the byte after it; see the module docstring. The caller
-    checks that ``buf[stop]`` may follow a number.
-    """
-    neg = False
+def _sign(buf, i, e):
+    """``(negative, i)``: an optional ``-`` or ``+`` at ``i`` and the byte after it."""
     if i < e:
         c = buf[i]
         if c == 45:  # -
-            neg = True
-            i += 1
-        elif c == 43:  # +
-            i += 1
+            return True, i + 1
+        if c == 43:  # +
+            return False, i + 1
+    return False, i
+
+
+@njit(cache=True, inline="always")
+def _mantissa(buf, i, e):
+    """``(w, q, dropped, ndig, stop)``: the digits at ``i`` with an optional point and fraction.
+
+    The value is ``w * 10**q``; ``ndig`` counts every digit read, ``dropped`` says a non-zero
+    digit beyond the 19th significant one was not kept (:func:`_mantissa_long`).
+    """
     p0 = i
-    # the mantissa, written out here and inlined into the callers (a call per number costs
-    # more than the digits), eight digits at a time (_digits8). Leading zeros add nothing to
-    # w, so w is exact while at most 19 digits follow them (the usual case; w may wrap
-    # beyond, unused then); longer mantissas are read again, digit by digit, by
-    # _mantissa_long. The loops have their test in the loop condition: numba compiles the
-    # equivalent `while True: ... break` form to slower code.
+    # written out and inlined into the callers (a call per number costs more than the digits),
+    # eight digits at a time (_digits8). Leading zeros add nothing to w, so w is exact while at
+    # most 19 digits follow them (the usual case; w may wrap beyond, unused then); longer
+    # mantissas are read again, digit by digit, by _mantissa_long. The loops have their test in
+    # the loop condition: numba compiles the equivalent `while True: ... break` form to slower
+    # code.
     w, k = _digits8(buf, i, e)
     i += k
     while k == 8:
@@ -347,47 +351,82 @@ def scan_float(buf, i, e):
             i += k
         q = f0 - i
         ndig += i - f0
-    dropped = False
     if ndig > 19 and _significant_digits(buf, p0, i) > 19:
-        w, q, dropped, ndig, i = _mantissa_long(buf, p0, e)
-    if ndig == 0:
-        return _special(buf, p0, e, neg)
-    if i < e and (buf[i] == 101 or buf[i] == 69):  # e E
-        j = i + 1
-        eneg = False
-        if j < e and (buf[j] == 45 or buf[j] == 43):
-            eneg = buf[j] == 45
-            j += 1
-        if j >= e or buf[j] < 48 or buf[j] > 57:
-            return 0.0, 0, j  # an exponent needs a digit
-        x = 0
-        while j < e:
-            c = buf[j]
-            if c < 48 or c > 57:
-                break
-            if x < _EXP_CAP:
-                x = x * 10 + (c - 48)
-            j += 1
-        q += -x if eneg else x
-        i = j
-    if w == _U0:
-        return (-0.0 if neg else 0.0), 1, i
+        return _mantissa_long(buf, p0, e)
+    return w, q, False, ndig, i
+
+
+@njit(cache=True, inline="always")
+def _exponent(buf, i, e):
+    """``(x, ok, stop)``: the exponent ``(e|E) [+-] digits`` at ``i`` (x 0 when there is none).
+
+    Not ok when the marker has no digit; digits beyond ``_EXP_CAP`` only saturate.
+    """
+    if not (i < e and (buf[i] == 101 or buf[i] == 69)):  # e E
+        return 0, True, i
+    j = i + 1
+    eneg = False
+    if j < e and (buf[j] == 45 or buf[j] == 43):
+        eneg = buf[j] == 45
+        j += 1
+    if j >= e or buf[j] < 48 or buf[j] > 57:
+        return 0, False, j  # an exponent needs a digit
+    x = 0
+    while j < e:
+        c = buf[j]
+        if c < 48 or c > 57:
+            break
+        if x < _EXP_CAP:
+            x = x * 10 + (c - 48)
+        j += 1
+    return (-x if eneg else x), True, j
+
+
+@njit(cache=True, inline="always")
+def _rounded(w, q, dropped, neg):
+    """``(value, status)``: the double nearest to ``±w * 10**q`` (``w`` non-zero).
+
+    Clinger's one exact operation when it applies, else Eisel-Lemire; status 2 when neither can
+    decide (the slow path).
+    """
     if not dropped and w <= _TWO53 and -22 <= q <= 22:  # Clinger: one exact operation
         v = np.float64(w)
         if q >= 0:
             v = v * POW10[q]
         else:
             v = v / POW10[-q]
-        return (-v if neg else v), 1, i
+        return (-v if neg else v), 1
     bits, ok = eisel_lemire(w, q)
     if ok and dropped:  # the value lies in [w, w + 1) * 10**q: both ends must round alike
         bits2, ok2 = eisel_lemire(w + _U1, q)
         ok = ok2 and bits2 == bits
     if not ok:
-        return np.nan, 2, i
+        return np.nan, 2
     if neg:
         bits |= _SIGN
-    return f64_from_bits(bits), 1, i
+    return f64_from_bits(bits), 1
+
+
+@njit(cache=True, inline="always")
+def scan_float(buf, i, e):
+    """The decimal number starting at byte ``i`` (reading no further than ``e``).
+
+    ``(value, status, stop)`` with ``stop`` the byte after it; see the module docstring. The caller
+    checks that ``buf[stop]`` may follow a number. The steps: sign, mantissa, exponent, rounding.
+    """
+    neg, i = _sign(buf, i, e)
+    p0 = i
+    w, q, dropped, ndig, i = _mantissa(buf, i, e)
+    if ndig == 0:
+        return _special(buf, p0, e, neg)
+    x, ok, i = _exponent(buf, i, e)
+    if not ok:
+        return 0.0, 0, i
+    q += x
+    if w == _U0:
+        return (-0.0 if neg else 0.0), 1, i
+    v, status = _rounded(w, q, dropped, neg)
+    return v, status, i
 
 
 @njit(cache=True)
@@ -430,12 +469,51 @@ def scan_int(buf, i, e):
 _NV, _NR, _NS, _NCOL, _LINE = range(5)
 
 
+@njit(cache=True, inline="always")
+def _row(buf, j, end, delim, values, nv, slow, ns):
+    """Read the fields of the row starting at byte ``j`` into ``values[nv:]``.
+
+    Tokens left to the slow path are recorded in ``slow[ns:]``. Returns ``(code, where, nv,
+    ns, stop)``: code 0 with ``stop`` at the row's newline (or ``end``), -1 / -2 when
+    ``values`` / ``slow`` is full, 1 at byte ``where`` when a field is not a number (or empty).
+    """
+    cap_v = values.shape[0]
+    cap_s = slow.shape[0]
+    while True:
+        v, fs, q = scan_float(buf, j, end)
+        if fs == 0:
+            return 1, j, nv, ns, j
+        if q < end:
+            c = buf[q]
+            if not (is_blank(c) or (delim != 0 and c == delim)):
+                return 1, j, nv, ns, j
+        if nv == cap_v:
+            return -1, 0, nv, ns, j
+        if fs == 2:
+            if ns == cap_s:
+                return -2, 0, nv, ns, j
+            slow[ns, 0] = nv
+            slow[ns, 1] = j
+            slow[ns, 2] = q
+            ns += 1
+        values[nv] = v
+        nv += 1
+        j = skip_space(buf, q, end)
+        if j >= end or buf[j] == 10:
+            return 0, 0, nv, ns, j
+        if delim != 0 and buf[j] == delim:
+            j = skip_space(buf, j + 1, end)
+            if j >= end or buf[j] == 10:  # a trailing delimiter: an empty last field
+                return 1, j, nv, ns, j
+
+
 @njit(cache=True)
 def _rows_walk(buf, i, end, delim, comment, fixed, values, row_start, row_line, slow, st):
     """Rows from byte ``i`` until the end or until an array is full.
 
-    The arrays are fixed here, so the loop keeps their addresses in registers. ``st`` holds the
-    counts, updated.
+    Blank and comment lines are counted and skipped, each row read by :func:`_row`. The arrays
+    are fixed here, so the loop keeps their addresses in registers. ``st`` holds the counts,
+    updated.
     Returns ``(code, where, bad_count)``: code 0 at the end, -1, -2, -3 when ``values``,
     ``slow`` or the row arrays are full (``where``: the start of the row to parse again), 1 or
     2 as :func:`parse_rows`'s errors.
@@ -449,19 +527,13 @@ def _rows_walk(buf, i, end, delim, comment, fixed, values, row_start, row_line, 
     code = 0
     where = 0
     bad = 0
-    cap_v = values.shape[0]
-    cap_s = slow.shape[0]
     while i < end:
         j = skip_space(buf, i, end)
         if j >= end:
             break
         c = buf[j]
-        if c == 10:
-            line += 1
-            i = j + 1
-            continue
-        if comment != 0 and c == comment:
-            i = line_end(buf, j, end) + 1
+        if c == 10 or (comment != 0 and c == comment):
+            i = (j if c == 10 else line_end(buf, j, end)) + 1
             line += 1
             continue
         if not fixed:
@@ -472,53 +544,15 @@ def _rows_walk(buf, i, end, delim, comment, fixed, values, row_start, row_line, 
             row_start[nr] = nv
             row_line[nr] = line
         r0 = j
-        nv0 = nv
-        ns0 = ns
-        full = False
-        while True:
-            v, fs, q = scan_float(buf, j, end)
-            if fs == 0:
-                code = 1
-                where = j
-                break
-            if q < end:
-                c = buf[q]
-                if not (is_blank(c) or (delim != 0 and c == delim)):
-                    code = 1
-                    where = j
-                    break
-            if nv == cap_v:
-                full = True
-                code = -1
-                break
-            if fs == 2:
-                if ns == cap_s:
-                    full = True
-                    code = -2
-                    break
-                slow[ns, 0] = nv
-                slow[ns, 1] = j
-                slow[ns, 2] = q
-                ns += 1
-            values[nv] = v
-            nv += 1
-            j = skip_space(buf, q, end)
-            if j >= end or buf[j] == 10:
-                break
-            if delim != 0 and buf[j] == delim:
-                j = skip_space(buf, j + 1, end)
-                if j >= end or buf[j] == 10:  # a trailing delimiter: an empty last field
-                    code = 1
-                    where = j
-                    break
-        if full:
-            nv = nv0
-            ns = ns0
+        code, where, nv1, ns1, j = _row(buf, j, end, delim, values, nv, slow, ns)
+        if code < 0:  # full: the row is parsed again once the array has grown
             where = i
             break
         if code != 0:
+            nv, ns = nv1, ns1
             break
-        k = nv - nv0
+        k = nv1 - nv
+        nv, ns = nv1, ns1
         if ncol < 0:
             ncol = k
         elif fixed and k != ncol:

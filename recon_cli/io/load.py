@@ -315,6 +315,12 @@ def save(
         write_grid(obj, path)
         return
     fmt = fmt or FORMATS["ply"]
+    obj = _fit_for(obj, fmt, where, points_only)
+    _write_as(fmt.name, obj, path, ascii, (format or "").lower().lstrip("."))
+
+
+def _fit_for(obj: Any, fmt: Any, where: str, points_only: bool) -> Any:
+    """``obj`` as ``fmt`` can hold it (a mesh's vertices with ``points_only``), or refused."""
     if fmt.holds == "grid":
         raise ParameterError(
             f"{where}: .npz holds grids; a {_kind(obj)} is written as PLY, OBJ, ... ({supported()})"
@@ -340,49 +346,44 @@ def save(
             f"{where}: {fmt.name.upper()} holds triangles; a point cloud cannot be written as "
             f"{fmt.name.upper()}"
         )
-    if fmt.name == "ply":
+    return obj
+
+
+def _write_as(name: str, obj: Any, path: str | os.PathLike, ascii: bool, given: str) -> None:
+    """Write ``obj`` with format ``name``'s writer (``given``: the --format asked for, or "")."""
+    if name == "ply":
         write_ply(obj, path, ascii=ascii)
-    elif fmt.name == "obj":
+    elif name == "obj":
         from recon_cli.io.obj import write_obj
 
         write_obj(obj, path)
-    elif fmt.name == "off":
+    elif name == "off":
         from recon_cli.io.off import write_off
 
         write_off(obj, path)
-    elif fmt.name == "stl":
+    elif name == "stl":
         from recon_cli.io.stl import write_stl
 
         write_stl(obj, path, ascii=ascii)
-    elif fmt.name == "xyz":
+    elif name == "xyz":
         from recon_cli.io.xyz import write_xyz
 
-        write_xyz(
-            obj,
-            path,
-            csv=str(path).lower().endswith(".csv") or (format or "").lower().lstrip(".") == "csv",
-        )
-    elif fmt.name == "pcd":
+        write_xyz(obj, path, csv=str(path).lower().endswith(".csv") or given == "csv")
+    elif name == "pcd":
         from recon_cli.io.pcd import write_pcd
 
         write_pcd(obj, path, data="ascii" if ascii else "binary")
-    elif fmt.name == "gltf":
+    elif name == "gltf":
         from recon_cli.io.gltf import write_gltf
 
-        given = (format or "").lower().lstrip(".")
         binary = given == "glb" if given else not str(path).lower().endswith(".gltf")
         write_gltf(obj, path, binary=binary)
-    elif fmt.name == "las":
+    elif name == "las":
         from recon_cli.io.las import write_las
 
-        write_las(
-            obj,
-            path,
-            compress=str(path).lower().endswith(".laz")
-            or (format or "").lower().lstrip(".") == "laz",
-        )
+        write_las(obj, path, compress=str(path).lower().endswith(".laz") or given == "laz")
     else:  # pragma: no cover - every writing format is listed above
-        raise ParameterError(f"no writer for {fmt.name}")
+        raise ParameterError(f"no writer for {name}")
 
 
 def check_destination(path: str | os.PathLike, kinds: tuple[str, ...] = ()) -> None:

@@ -50,6 +50,12 @@ def _dtype(t: str, size: int, where: str, lineno: int) -> np.dtype:
 
 def parse_header(buf: np.ndarray, where: str) -> tuple[dict, int]:
     """The header fields and the byte offset of the body."""
+    head, lines, pos = _header_lines(buf, where)
+    return _header_fields(head, lines, where), pos
+
+
+def _header_lines(buf: np.ndarray, where: str) -> tuple[dict, dict, int]:
+    """Each header keyword's words and line number, up to the DATA line; the body's offset."""
     pos = 0
     head: dict = {}
     lines: dict = {}
@@ -72,6 +78,11 @@ def parse_header(buf: np.ndarray, where: str) -> tuple[dict, int]:
             break
     else:
         raise InputError(f"no DATA line in the first {MAX_HEADER_LINES} header lines", where)
+    return head, lines, pos
+
+
+def _header_fields(head: dict, lines: dict, where: str) -> dict:
+    """The fields, their types and counts, the point count and layout a header declares."""
     for key in ("FIELDS", "SIZE", "TYPE", "POINTS", "DATA"):
         if key not in head:
             raise InputError(f"header has no {key} line", where)
@@ -116,7 +127,7 @@ def parse_header(buf: np.ndarray, where: str) -> tuple[dict, int]:
         "viewpoint": head.get("VIEWPOINT"),
         "version": (head.get("VERSION") or ["?"])[0],
         "header_lines": lines["DATA"],
-    }, pos
+    }
 
 
 def _row_dtype(h: dict) -> np.dtype:

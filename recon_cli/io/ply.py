@@ -19,7 +19,6 @@ import os
 import stat
 import sys
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -27,8 +26,37 @@ import numpy as np
 from recon_cli.aot import kernels
 from recon_cli.errors import InputError
 from recon_cli.geometry import PointCloud, TriangleMesh, drop_invalid, storage_dtype
-from recon_cli.io._ply_types import FORMATS, PLY_TYPES, ply_name
+from recon_cli.io._ply_decode import memory_of, parse_ascii_body, parse_binary_body
+from recon_cli.io._ply_types import (
+    FORMATS,
+    PLY_TYPES,
+    PlyData,
+    PlyElement,
+    PlyProperty,
+    ply_name,
+)
 from recon_cli.io.text import as_uint8
+
+# the classes of a decoded file live with the type names (the body decoder uses them too)
+__all__ = [
+    "MAX_HEADER_BYTES",
+    "PlyData",
+    "PlyElement",
+    "PlyProperty",
+    "compile_ply_kernels",
+    "emit_body",
+    "emit_ply",
+    "geometry_to_ply",
+    "header_bytes",
+    "parse_header",
+    "parse_ply",
+    "ply_bytes",
+    "ply_to_geometry",
+    "read_bytes",
+    "read_ply",
+    "serialize_ply",
+    "write_ply",
+]
 
 MAX_HEADER_BYTES = 1 << 20
 
@@ -40,65 +68,6 @@ _VERTEX_COLOR_DIFFUSE = ("diffuse_red", "diffuse_green", "diffuse_blue", "diffus
 _FACE_INDEX_NAMES = ("vertex_indices", "vertex_index")
 
 
-@dataclass
-class PlyProperty:
-    """One property of an element: a scalar, or a list with a count type."""
-
-    name: str
-    dtype: str  # numpy type code without byte order, e.g. "f4"
-    count_dtype: str | None = None  # set for list properties
-
-    @property
-    def is_list(self) -> bool:
-        """Whether the property is a list (has a count type)."""
-        return self.count_dtype is not None
-
-    def header_line(self) -> str:
-        """The property's line of a PLY header."""
-        if self.is_list:
-            return (
-                f"property list {ply_name(np.dtype(self.count_dtype))} "
-                f"{ply_name(np.dtype(self.dtype))} {self.name}"
-            )
-        return f"property {ply_name(np.dtype(self.dtype))} {self.name}"
-
-
-@dataclass
-class PlyElement:
-    """An element of a PLY file and its data.
-
-    ``data`` maps each property name to an array: ``(count,)`` for a scalar property;
-    for a list property ``(count, k)`` when every row has ``k`` items, otherwise an
-    object array of ``count`` 1-d arrays.
-    """
-
-    name: str
-    count: int
-    properties: list[PlyProperty] = field(default_factory=list)
-    data: dict[str, np.ndarray] = field(default_factory=dict)
-    raw: np.ndarray | None = field(
-        default=None, repr=False
-    )  # structured rows, when decoded as such
-
-
-@dataclass
-class PlyData:
-    """A whole PLY file: format, comments, ``obj_info`` lines and elements in order."""
-
-    format: str = "binary_little_endian"
-    comments: list[str] = field(default_factory=list)
-    obj_info: list[str] = field(default_factory=list)
-    elements: list[PlyElement] = field(default_factory=list)
-    nbytes: int = 0  # size of the file the elements were decoded from (0: built in memory)
-
-    def element(self, name: str) -> PlyElement | None:
-        """The element ``name`` (None when the file has none)."""
-        for e in self.elements:
-            if e.name == name:
-                return e
-        return None
-
-
 # --------------------------------------------------------------------------- reading
 
 
@@ -106,21 +75,45 @@ def _describe(path: str | None) -> str:
     return "<stdin>" if path in (None, "-") else str(path)
 
 
-def _memory(buf: bytes | np.ndarray) -> memoryview:
-    """A memoryview of a file's bytes, or of the uint8 array that holds them (see read_bytes)."""
-    # numpy's stubs declare the buffer protocol from Python 3.12 on only
-    return buf.data if isinstance(buf, np.ndarray) else memoryview(buf)
-
-
 def parse_header(buf: bytes | np.ndarray, path: str | None = None) -> tuple[PlyData, int]:
     """Parse the header of ``buf``; return the (empty) :class:`PlyData` and the body offset."""
     where = _describe(path)
+    lines, body_start = _header_lines(buf, where)
+    ply = PlyData(format="")
+    current: PlyElement | None = None
+    for lineno, raw in enumerate(lines[1:], start=2):
+        line = raw.strip()
+        if not line:
+            continue
+        key, _, rest = line.partition(" ")
+        at = f"header line {lineno}"
+        if key == "format":
+            _format_line(ply, line, at, where)
+        elif key == "comment":
+            ply.comments.append(rest.strip() if rest else "")
+        elif key == "obj_info":
+            ply.obj_info.append(rest.strip() if rest else "")
+        elif key == "element":
+            current = _element_line(ply, line, at, where)
+        elif key == "property":
+            if current is None:
+                raise InputError(f"{at}: property before any element", where)
+            _property_line(current, line, at, where)
+        else:
+            raise InputError(f"{at}: unknown keyword {key!r}", where)
+    if not ply.format:
+        raise InputError("header has no 'format' line", where)
+    return ply, body_start
+
+
+def _header_lines(buf: bytes | np.ndarray, where: str) -> tuple[list[str], int]:
+    """The header's lines (the magic line first) and the offset of the body."""
     if len(buf) == 0:
         raise InputError("empty file", where)
     total = len(buf)
     if not isinstance(buf, bytes):
         # a numpy buffer (see read_bytes): the header is text, parse a bytes copy of its start
-        buf = bytes(_memory(buf)[: MAX_HEADER_BYTES + 1024])
+        buf = bytes(memory_of(buf)[: MAX_HEADER_BYTES + 1024])
     if not (buf.startswith(b"ply\n") or buf.startswith(b"ply\r\n") or buf.startswith(b"ply\r")):
         raise InputError("not a PLY file (missing 'ply' magic line)", where)
     end = _find_end_header(buf)
@@ -133,84 +126,61 @@ def parse_header(buf: bytes | np.ndarray, path: str | None = None) -> tuple[PlyD
         text = buf[:head_end].decode("ascii")
     except UnicodeDecodeError:
         raise InputError("header is not ASCII text", where) from None
-    lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
-    ply = PlyData(format="")
-    current: PlyElement | None = None
-    names: set[str] = set()
-    for lineno, raw in enumerate(lines[1:], start=2):
-        line = raw.strip()
-        if not line:
-            continue
-        key, _, rest = line.partition(" ")
-        words = line.split()
-        if key == "format":
-            if len(words) != 3 or words[1] not in FORMATS:
-                raise InputError(f"header line {lineno}: unknown format {line!r}", where)
-            if words[2] not in ("1.0", "1"):
-                raise InputError(
-                    f"header line {lineno}: unsupported PLY version {words[2]!r}", where
-                )
-            if ply.format:
-                raise InputError(f"header line {lineno}: second 'format' line", where)
-            ply.format = words[1]
-        elif key == "comment":
-            ply.comments.append(rest.strip() if rest else "")
-        elif key == "obj_info":
-            ply.obj_info.append(rest.strip() if rest else "")
-        elif key == "element":
-            if len(words) != 3:
-                raise InputError(f"header line {lineno}: malformed element line {line!r}", where)
-            try:
-                count = int(words[2])
-            except ValueError:
-                raise InputError(
-                    f"header line {lineno}: element count {words[2]!r} is not an integer", where
-                ) from None
-            if count < 0:
-                raise InputError(f"header line {lineno}: negative element count {count}", where)
-            if words[1] in names:
-                raise InputError(
-                    f"header line {lineno}: element {words[1]!r} declared twice", where
-                )
-            names.add(words[1])
-            current = PlyElement(words[1], count)
-            ply.elements.append(current)
-        elif key == "property":
-            if current is None:
-                raise InputError(f"header line {lineno}: property before any element", where)
-            if len(words) >= 2 and words[1] == "list":
-                if len(words) != 5:
-                    raise InputError(
-                        f"header line {lineno}: malformed list property {line!r}", where
-                    )
-                ctype, itype, name = words[2], words[3], words[4]
-                for t in (ctype, itype):
-                    if t not in PLY_TYPES:
-                        raise InputError(f"header line {lineno}: unknown type name {t!r}", where)
-                if PLY_TYPES[ctype][0] == "f":
-                    raise InputError(
-                        f"header line {lineno}: list count type {ctype!r} is not an integer type",
-                        where,
-                    )
-                prop = PlyProperty(name, PLY_TYPES[itype], PLY_TYPES[ctype])
-            else:
-                if len(words) != 3:
-                    raise InputError(f"header line {lineno}: malformed property {line!r}", where)
-                if words[1] not in PLY_TYPES:
-                    raise InputError(f"header line {lineno}: unknown type name {words[1]!r}", where)
-                prop = PlyProperty(words[2], PLY_TYPES[words[1]])
-            if any(p.name == prop.name for p in current.properties):
-                raise InputError(
-                    f"header line {lineno}: property {prop.name!r} declared twice in "
-                    f"{current.name!r}",
-                    where,
-                )
-            current.properties.append(prop)
-        else:
-            raise InputError(f"header line {lineno}: unknown keyword {key!r}", where)
-    if not ply.format:
-        raise InputError("header has no 'format' line", where)
-    return ply, body_start
+    return text.replace("\r\n", "\n").replace("\r", "\n").split("\n"), body_start
+
+
+def _format_line(ply: PlyData, line: str, at: str, where: str) -> None:
+    """``format <ascii|binary_little_endian|binary_big_endian> 1.0``: set ``ply.format``."""
+    words = line.split()
+    if len(words) != 3 or words[1] not in FORMATS:
+        raise InputError(f"{at}: unknown format {line!r}", where)
+    if words[2] not in ("1.0", "1"):
+        raise InputError(f"{at}: unsupported PLY version {words[2]!r}", where)
+    if ply.format:
+        raise InputError(f"{at}: second 'format' line", where)
+    ply.format = words[1]
+
+
+def _element_line(ply: PlyData, line: str, at: str, where: str) -> PlyElement:
+    """``element <name> <count>``: a new element of ``ply``, returned."""
+    words = line.split()
+    if len(words) != 3:
+        raise InputError(f"{at}: malformed element line {line!r}", where)
+    try:
+        count = int(words[2])
+    except ValueError:
+        raise InputError(f"{at}: element count {words[2]!r} is not an integer", where) from None
+    if count < 0:
+        raise InputError(f"{at}: negative element count {count}", where)
+    if ply.element(words[1]) is not None:
+        raise InputError(f"{at}: element {words[1]!r} declared twice", where)
+    element = PlyElement(words[1], count)
+    ply.elements.append(element)
+    return element
+
+
+def _property_line(element: PlyElement, line: str, at: str, where: str) -> None:
+    """``property <type> <name>`` or ``property list <count type> <type> <name>`` of ``element``."""
+    words = line.split()
+    if len(words) >= 2 and words[1] == "list":
+        if len(words) != 5:
+            raise InputError(f"{at}: malformed list property {line!r}", where)
+        ctype, itype, name = words[2], words[3], words[4]
+        for t in (ctype, itype):
+            if t not in PLY_TYPES:
+                raise InputError(f"{at}: unknown type name {t!r}", where)
+        if PLY_TYPES[ctype][0] == "f":
+            raise InputError(f"{at}: list count type {ctype!r} is not an integer type", where)
+        prop = PlyProperty(name, PLY_TYPES[itype], PLY_TYPES[ctype])
+    else:
+        if len(words) != 3:
+            raise InputError(f"{at}: malformed property {line!r}", where)
+        if words[1] not in PLY_TYPES:
+            raise InputError(f"{at}: unknown type name {words[1]!r}", where)
+        prop = PlyProperty(words[2], PLY_TYPES[words[1]])
+    if any(p.name == prop.name for p in element.properties):
+        raise InputError(f"{at}: property {prop.name!r} declared twice in {element.name!r}", where)
+    element.properties.append(prop)
 
 
 def _find_end_header(buf: bytes) -> tuple[int, int] | None:
@@ -251,344 +221,10 @@ def parse_ply(buf: bytes | np.ndarray, path: str | None = None) -> PlyData:
     ply.nbytes = len(buf)
     where = _describe(path)
     if ply.format == "ascii":
-        _parse_ascii(ply, buf, offset, where)
+        parse_ascii_body(ply, buf, offset, where)
     else:
-        _parse_binary(ply, buf, offset, FORMATS[ply.format], where)
+        parse_binary_body(ply, buf, offset, FORMATS[ply.format], where)
     return ply
-
-
-def _parse_binary(
-    ply: PlyData, buf: bytes | np.ndarray, offset: int, order: str, where: str
-) -> None:
-    mv = _memory(buf)
-    for el in ply.elements:
-        remaining = len(buf) - offset
-        fixed = sum(
-            np.dtype(p.count_dtype if p.is_list else p.dtype).itemsize for p in el.properties
-        )
-        # every row needs at least its scalars and list counts: check before allocating
-        if el.count and (fixed == 0 or el.count > remaining // max(fixed, 1)):
-            if fixed == 0:
-                raise InputError(
-                    f"element {el.name!r} has no properties but {el.count} rows", where
-                )
-            raise InputError(
-                f"truncated: header declares {el.count} {el.name!r} rows "
-                f"(at least {el.count * fixed} bytes) but only {remaining} bytes remain",
-                where,
-            )
-        if not any(p.is_list for p in el.properties):
-            dt = np.dtype([(p.name, order + p.dtype) for p in el.properties])
-            arr = np.frombuffer(mv, dtype=dt, count=el.count, offset=offset)
-            # views into the file's bytes; consumers copy what they keep (one pass, not two)
-            el.data = {p.name: arr[p.name] for p in el.properties}
-            el.raw = arr
-            offset += dt.itemsize * el.count
-            continue
-        offset = _parse_binary_lists(el, buf, mv, offset, order, where)
-    # extra bytes after the last element are tolerated (some writers pad), never read
-
-
-def _parse_binary_lists(
-    el: PlyElement, buf: bytes | np.ndarray, mv: memoryview, offset: int, order: str, where: str
-) -> int:
-    """Decode an element holding list properties; returns the new offset."""
-    if el.count == 0:
-        el.data = {
-            p.name: (np.zeros((0, 0), p.dtype) if p.is_list else np.zeros(0, p.dtype))
-            for p in el.properties
-        }
-        return offset
-    # fast path: read the first row's list lengths and assume every row has the same
-    ks = _first_row_counts(el, buf, offset, order, where)
-    fields: list[tuple[Any, ...]] = []
-    for p in el.properties:
-        if p.is_list:
-            fields.append((p.name + "\0n", f"{order}{p.count_dtype}"))
-            if ks[p.name] > 0:
-                fields.append((p.name, order + p.dtype, (ks[p.name],)))
-        else:
-            fields.append((p.name, order + p.dtype))
-    dt = np.dtype(fields)
-    if offset + dt.itemsize * el.count <= len(buf):
-        arr = np.frombuffer(mv, dtype=dt, count=el.count, offset=offset)
-        if all(np.all(arr[p.name + "\0n"] == ks[p.name]) for p in el.properties if p.is_list):
-            data: dict[str, np.ndarray] = {}
-            for p in el.properties:
-                if p.is_list:
-                    k = ks[p.name]
-                    data[p.name] = (
-                        arr[p.name].astype(np.dtype(p.dtype)).reshape(el.count, k)
-                        if k > 0
-                        else np.zeros((el.count, 0), np.dtype(p.dtype))
-                    )
-                else:
-                    data[p.name] = arr[p.name].astype(np.dtype(p.dtype))
-            el.data = data
-            return offset + dt.itemsize * el.count
-    return _parse_binary_lists_general(el, buf, offset, order, where)
-
-
-def _first_row_counts(
-    el: PlyElement, buf: bytes | np.ndarray, offset: int, order: str, where: str
-) -> dict[str, int]:
-    ks: dict[str, int] = {}
-    pos = offset
-    for p in el.properties:
-        if p.is_list:
-            cdt = np.dtype(f"{order}{p.count_dtype}")
-            if pos + cdt.itemsize > len(buf):
-                raise InputError(f"truncated in element {el.name!r}", where)
-            k = int(np.frombuffer(buf, cdt, 1, pos)[0])
-            if k < 0:
-                raise InputError(f"negative list length {k} in element {el.name!r}", where)
-            if pos + cdt.itemsize + k * np.dtype(p.dtype).itemsize > len(buf):
-                raise InputError(
-                    f"truncated: the first {el.name!r} row's {p.name!r} list has length {k}, "
-                    f"longer than the {len(buf) - pos} bytes left",
-                    where,
-                )
-            ks[p.name] = k
-            pos += cdt.itemsize + k * np.dtype(p.dtype).itemsize
-        else:
-            pos += np.dtype(p.dtype).itemsize
-    return ks
-
-
-def _parse_binary_lists_general(
-    el: PlyElement, buf: bytes | np.ndarray, offset: int, order: str, where: str
-) -> int:
-    """Rows of differing list lengths: one pass over the rows to find their offsets.
-
-    Only lists with mixed lengths (e.g. a mesh of triangles and quads) come here.
-    """
-    K = kernels("recon_cli.io._ply_kernel")
-    scan_list_rows = K.scan_list_rows
-
-    layout = []  # per property: (is_list, count size, item size, count signed)
-    for p in el.properties:
-        if p.is_list:
-            c = np.dtype(p.count_dtype)
-            layout.append((1, c.itemsize, np.dtype(p.dtype).itemsize, 1 if c.kind == "i" else 0))
-        else:
-            layout.append((0, 0, np.dtype(p.dtype).itemsize, 0))
-    lay = np.asarray(layout, dtype=np.int64)
-    raw = np.frombuffer(buf, dtype=np.uint8)
-    big = order == ">"
-    # starts[row, prop] = byte offset of the property (of its count for a list); lens[row, prop] =
-    # list length
-    starts, lens, end, err = scan_list_rows(raw, offset, el.count, lay, big)
-    if err == 1:
-        raise InputError(f"truncated in element {el.name!r}", where)
-    if err == 2:
-        raise InputError(f"negative list length in element {el.name!r}", where)
-    data: dict[str, np.ndarray] = {}
-    for j, p in enumerate(el.properties):
-        if p.is_list:
-            item = np.dtype(order + p.dtype)
-            cs = np.dtype(p.count_dtype).itemsize
-            k = lens[:, j]
-            # gather every item: position of item i of row r is starts[r]+cs+i*itemsize
-            total = int(k.sum())
-            row_of = np.repeat(np.arange(el.count), k)
-            first = np.cumsum(k) - k
-            within = np.arange(total) - np.repeat(first, k)
-            pos = starts[row_of, j] + cs + within * item.itemsize
-            idx = pos[:, None] + np.arange(item.itemsize)[None, :]
-            items = raw[idx].copy().view(item).reshape(-1).astype(np.dtype(p.dtype))
-            out = np.empty(el.count, dtype=object)
-            for r, piece in enumerate(np.split(items, np.cumsum(k)[:-1])):
-                out[r] = piece
-            data[p.name] = out
-        else:
-            item = np.dtype(order + p.dtype)
-            idx = starts[:, j][:, None] + np.arange(item.itemsize)[None, :]
-            data[p.name] = raw[idx].copy().view(item).reshape(-1).astype(np.dtype(p.dtype))
-    el.data = data
-    return int(end)
-
-
-def _parse_ascii(ply: PlyData, buf: bytes | np.ndarray, offset: int, where: str) -> None:
-    """Decode an ASCII body: one element row per line, every line checked for its number of values.
-
-    A row with a value too many or too few would shift every later value (a silently wrong
-    cloud), so each line must hold exactly its row's values; blank lines are skipped, and
-    lines after the last element are an error.
-    """
-    K = kernels("recon_cli.io._ply_kernel")
-    ascii_line_tokens = K.ascii_line_tokens
-
-    body = bytes(_memory(buf)[offset:])
-    tokens = body.split()
-    head = bytes(_memory(buf)[:offset])
-    # file line number of the body's first line
-    first = head.count(b"\n") + head.count(b"\r") - head.count(b"\r\n") + 1
-    per_line = ascii_line_tokens(np.frombuffer(body, dtype=np.uint8))
-    lines = np.flatnonzero(per_line)  # the lines that hold values, in order
-    counts = per_line[lines]
-    row = 0  # index into lines
-    pos = 0  # index into tokens
-    for el in ply.elements:
-        nprop = len(el.properties)
-        if el.count and nprop == 0:
-            raise InputError(f"element {el.name!r} has no properties but {el.count} rows", where)
-        if el.count > len(lines) - row:
-            raise InputError(
-                f"truncated: header declares {el.count} {el.name!r} rows but only "
-                f"{len(lines) - row} lines of values remain",
-                where,
-            )
-        el_lines = lines[row : row + el.count] + first
-        el_counts = counts[row : row + el.count]
-        if not any(p.is_list for p in el.properties):
-            bad = np.flatnonzero(el_counts != nprop)
-            if bad.size:
-                i = int(bad[0])
-                raise InputError(
-                    f"line {int(el_lines[i])}: {el.name!r} row {i} has {int(el_counts[i])} "
-                    f"values, expected {nprop}",
-                    where,
-                )
-            block = tokens[pos : pos + el.count * nprop]
-            pos += el.count * nprop
-            table = _ascii_values(block, where, el.name).reshape(el.count, nprop)
-            el.data = {
-                p.name: _cast(table[:, j], p.dtype, where, el.name)
-                for j, p in enumerate(el.properties)
-            }
-        else:
-            pos = _parse_ascii_lists(el, tokens, pos, el_counts, el_lines, where)
-        row += el.count
-    if row < len(lines):
-        raise InputError(
-            f"line {int(lines[row] + first)}: values after the last element "
-            f"({len(lines) - row} more lines than the header declares)",
-            where,
-        )
-
-
-def _ascii_values(block: list[bytes], where: str, name: str) -> np.ndarray:
-    if not block:
-        return np.zeros(0, dtype=np.float64)
-    try:
-        with np.errstate(over="ignore", invalid="ignore"):
-            return np.array(block).astype(np.float64)
-    except ValueError:
-        bad = next((t for t in block if not _is_number(t)), block[0])
-        raise InputError(
-            f"element {name!r}: {bad[:40].decode('ascii', 'replace')!r} is not a number", where
-        ) from None
-
-
-def _is_number(tok: bytes) -> bool:
-    try:
-        float(tok)
-    except ValueError:
-        return False
-    return True
-
-
-def _cast(values: np.ndarray, code: str, where: str, name: str) -> np.ndarray:
-    """``values`` (float64) in the property's type; a value the type cannot hold is an error."""
-    dt = np.dtype(code)
-    if dt.kind in "iu":
-        finite = np.isfinite(values)
-        if not finite.all() or np.any(values != np.round(values)):
-            raise InputError(f"element {name!r}: non-integer value for an integer property", where)
-        info = np.iinfo(dt)
-        if values.size and (values.min() < info.min or values.max() > info.max):
-            raise InputError(f"element {name!r}: value out of range for {ply_name(dt)}", where)
-    elif dt.itemsize < 8 and values.size:
-        big = np.abs(values[np.isfinite(values)])
-        if big.size and big.max() > np.finfo(dt).max:
-            raise InputError(
-                f"element {name!r}: value {big.max():g} out of range for {ply_name(dt)}", where
-            )
-    return values.astype(dt)
-
-
-def _parse_ascii_lists(
-    el: PlyElement, tokens: list[bytes], pos: int, counts: np.ndarray, lines: np.ndarray, where: str
-) -> int:
-    """Rows holding lists; ``counts[i]`` values on file line ``lines[i]`` make row i."""
-    props = el.properties
-    if el.count == 0:
-        el.data = {
-            p.name: (np.zeros((0, 0), p.dtype) if p.is_list else np.zeros(0, p.dtype))
-            for p in props
-        }
-        return pos
-    # fast path (faces): one list, first, then scalars; every line of one length with matching
-    # counts
-    if props[0].is_list and not any(p.is_list for p in props[1:]) and np.all(counts == counts[0]):
-        width = int(counts[0])
-        k = width - len(props)  # items per list
-        block = tokens[pos : pos + el.count * width]
-        table = _ascii_values(block, where, el.name).reshape(el.count, width)
-        if k >= 0 and np.all(table[:, 0] == k):
-            vals = _cast(table[:, 1 : 1 + k].reshape(-1), props[0].dtype, where, el.name)
-            data: dict[str, np.ndarray] = {props[0].name: vals.reshape(el.count, k)}
-            for j, p in enumerate(props[1:]):
-                data[p.name] = _cast(table[:, 1 + k + j], p.dtype, where, el.name)
-            el.data = data
-            return pos + el.count * width
-    # rows one by one (ASCII is not the fast format)
-    cols: dict[str, list] = {p.name: [] for p in props}
-    for i in range(el.count):
-        end = pos + int(counts[i])
-        for p in props:
-            if pos >= end:
-                raise InputError(
-                    f"line {int(lines[i])}: {el.name!r} row {i} ends before its {p.name!r} value",
-                    where,
-                )
-            if p.is_list:
-                try:
-                    k = int(tokens[pos])
-                except ValueError:
-                    raise InputError(
-                        f"line {int(lines[i])}: bad list length "
-                        f"{tokens[pos][:20].decode('ascii', 'replace')!r}",
-                        where,
-                    ) from None
-                if k < 0 or pos + 1 + k > end:
-                    raise InputError(
-                        f"line {int(lines[i])}: list length {k} but the line holds "
-                        f"{end - pos - 1} more values",
-                        where,
-                    )
-                cols[p.name].append(tokens[pos + 1 : pos + 1 + k])
-                pos += 1 + k
-            else:
-                cols[p.name].append(tokens[pos])
-                pos += 1
-        if pos != end:
-            raise InputError(
-                f"line {int(lines[i])}: {el.name!r} row {i} has {end - pos} values more than "
-                "its properties",
-                where,
-            )
-    data = {}
-    for p in props:
-        if p.is_list:
-            rows = cols[p.name]
-            lengths = {len(r) for r in rows}
-            if len(lengths) <= 1:
-                k = lengths.pop() if lengths else 0
-                flat = [t for r in rows for t in r]
-                vals = _cast(_ascii_values(flat, where, el.name), p.dtype, where, el.name)
-                data[p.name] = vals.reshape(len(rows), k)
-            else:
-                out = np.empty(len(rows), dtype=object)
-                for i, r in enumerate(rows):
-                    out[i] = _cast(_ascii_values(r, where, el.name), p.dtype, where, el.name)
-                data[p.name] = out
-        else:
-            data[p.name] = _cast(
-                _ascii_values(cols[p.name], where, el.name), p.dtype, where, el.name
-            )
-    el.data = data
-    return pos
 
 
 # --------------------------------------------------------------------------- writing
@@ -640,37 +276,46 @@ def emit_body(ply: PlyData, put: Callable[[bytes | memoryview], Any]) -> None:
 def _binary_body(el: PlyElement, order: str, put: Callable[[bytes | memoryview], Any]) -> None:
     if el.count == 0:
         return
-    lists_ragged = any(p.is_list and el.data[p.name].dtype == object for p in el.properties)
-    if not lists_ragged:
-        fields: list[tuple[Any, ...]] = []
-        for p in el.properties:
-            if p.is_list:
-                k = el.data[p.name].shape[1]
-                fields.append((p.name + "\0n", f"{order}{p.count_dtype}"))
-                if k:
-                    fields.append((p.name, order + p.dtype, (k,)))
-            else:
-                fields.append((p.name, order + p.dtype))
-        dtype = np.dtype(fields)
-        body = _records_as_they_are(el, dtype)
-        if body is not None:  # the rows already are the file's records (a filtered PLY's)
-            put(body)
-            return
-        # records made a block at a time in one buffer that stays in cache, each block put
-        # out at once: no copy of the whole body, no page faults of a body-sized array
-        block = np.empty(min(el.count, max(1, _BLOCK_BYTES // dtype.itemsize)), dtype=dtype)
-        for a in range(0, el.count, len(block)):
-            rows = block[: min(len(block), el.count - a)]
-            for p in el.properties:
-                values = el.data[p.name][a : a + len(rows)]
-                if p.is_list:
-                    rows[p.name + "\0n"] = values.shape[1]
-                    if values.shape[1]:
-                        rows[p.name] = values
-                else:
-                    rows[p.name] = values
-            put(rows.view(np.uint8).reshape(-1).data)
+    if any(p.is_list and el.data[p.name].dtype == object for p in el.properties):
+        put(_ragged_records(el, order))
         return
+    dtype = _record_dtype(el, order)
+    body = _records_as_they_are(el, dtype)
+    if body is not None:  # the rows already are the file's records (a filtered PLY's)
+        put(body)
+        return
+    # records made a block at a time in one buffer that stays in cache, each block put
+    # out at once: no copy of the whole body, no page faults of a body-sized array
+    block = np.empty(min(el.count, max(1, _BLOCK_BYTES // dtype.itemsize)), dtype=dtype)
+    for a in range(0, el.count, len(block)):
+        rows = block[: min(len(block), el.count - a)]
+        for p in el.properties:
+            values = el.data[p.name][a : a + len(rows)]
+            if p.is_list:
+                rows[p.name + "\0n"] = values.shape[1]
+                if values.shape[1]:
+                    rows[p.name] = values
+            else:
+                rows[p.name] = values
+        put(rows.view(np.uint8).reshape(-1).data)
+
+
+def _record_dtype(el: PlyElement, order: str) -> np.dtype:
+    """The structured type of ``el``'s binary records (its lists all of one length)."""
+    fields: list[tuple[Any, ...]] = []
+    for p in el.properties:
+        if p.is_list:
+            k = el.data[p.name].shape[1]
+            fields.append((p.name + "\0n", f"{order}{p.count_dtype}"))
+            if k:
+                fields.append((p.name, order + p.dtype, (k,)))
+        else:
+            fields.append((p.name, order + p.dtype))
+    return np.dtype(fields)
+
+
+def _ragged_records(el: PlyElement, order: str) -> bytes:
+    """``el``'s binary records row by row (lists of differing lengths)."""
     chunks = []
     for r in range(el.count):
         for p in el.properties:
@@ -681,7 +326,7 @@ def _binary_body(el: PlyElement, order: str, put: Callable[[bytes | memoryview],
                 chunks.append(v.astype(order + p.dtype).tobytes())
             else:
                 chunks.append(np.array(v, dtype=order + p.dtype).tobytes())
-    put(b"".join(chunks))
+    return b"".join(chunks)
 
 
 class _Interface:

@@ -12,6 +12,7 @@ import numpy as np
 from numba import njit, prange
 
 from recon_cli._kernels import numba_setup as _numba_setup  # noqa: F401  (cache directory, threading layer)
+from recon_cli._kernels.arrays import borrowed
 
 LEAF_SIZE = 8  # with the cheap disk reject per triangle, 8 beats 4 (fewer node visits)
 STACK = 128  # depth bound: log2(n / LEAF_SIZE) + a few, far below this for any real mesh
@@ -300,14 +301,20 @@ def closest_on_triangle(px, py, pz, tri, t, out):
 
 
 @njit(cache=True)
-def _nearest(p, tri, sph, box, left, right, start, end, best2, stack, dstack, q, cbest, seed):
+def _nearest(p, bvh, best2, scratch, seed):
     """Nearest triangle to ``p`` closer than sqrt(best2): (index or -1, d2, feature).
 
-    ``seed`` (a triangle index or -1), typically the answer for a nearby point, is tried
-    first: its distance is a tight bound that prunes most of the tree. Each pushed node
-    carries its box distance (``dstack``), so a pop re-checks it against the bound
-    without touching the box again.
+    ``bvh`` is ``(tri, sph, box, left, right, start, end)``, ``scratch`` ``(stack, dstack, q,
+    cbest)`` (the closest point is left in ``cbest``). ``seed`` (a triangle index or -1),
+    typically the answer for a nearby point, is tried first: its distance is a tight bound
+    that prunes most of the tree. Each pushed node carries its box distance (``dstack``), so
+    a pop re-checks it against the bound without touching the box again.
     """
+    # borrowed: no reference counting around the inlined helpers in the loop
+    tri, sph, box = borrowed(bvh[0]), borrowed(bvh[1]), borrowed(bvh[2])
+    left, right, start, end = bvh[3], bvh[4], bvh[5], bvh[6]
+    stack, dstack = borrowed(scratch[0]), borrowed(scratch[1])
+    q, cbest = borrowed(scratch[2]), borrowed(scratch[3])
     best = -1
     feat = -1
     if seed >= 0:
@@ -330,57 +337,59 @@ def _nearest(p, tri, sph, box, left, right, start, end, best2, stack, dstack, q,
         if dstack[top] >= best2:  # the bound shrank since the push
             continue
         a = left[node]
-        if a < 0:
-            for t in range(start[node], end[node]):
-                # cheap reject by the triangle's bounding disk (sph: centre xyz, radius,
-                # unit normal xyz): |p - q|^2 = plane^2 + |proj(p) - q|^2 >= plane^2 +
-                # max(0, |proj(p) - c| - r)^2 for every q of the triangle. Unlike a ball
-                # bound it rejects the coplanar neighbours of the nearest triangle, which
-                # far samples otherwise test by the dozen.
-                s0 = p[0] - sph[t, 0]
-                s1 = p[1] - sph[t, 1]
-                s2 = p[2] - sph[t, 2]
-                pl = s0 * sph[t, 4] + s1 * sph[t, 5] + s2 * sph[t, 6]
-                lb = pl * pl
-                if lb >= best2:
-                    continue
-                l2 = s0 * s0 + s1 * s1 + s2 * s2 - lb
-                r = sph[t, 3]
-                if l2 > r * r:
-                    lat = np.sqrt(l2) - r
-                    if lb + lat * lat >= best2:
-                        continue
-                code = closest_on_triangle(p[0], p[1], p[2], tri, t, q)
-                d2 = (p[0] - q[0]) ** 2 + (p[1] - q[1]) ** 2 + (p[2] - q[2]) ** 2
-                if d2 < best2 and t != seed:
-                    best2 = d2
-                    best = t
-                    feat = code
-                    cbest[0], cbest[1], cbest[2] = q[0], q[1], q[2]
+        if a >= 0:
+            top = _push_children(p, box, a, right[node], best2, stack, dstack, top)
             continue
-        b = right[node]
-        da = _box_d2(p[0], p[1], p[2], box, a)
-        db = _box_d2(p[0], p[1], p[2], box, b)
-        # nearer child on top of the stack, visited first
-        if da <= db:
-            if db < best2:
-                stack[top] = b
-                dstack[top] = db
-                top += 1
-            if da < best2:
-                stack[top] = a
-                dstack[top] = da
-                top += 1
-        else:
-            if da < best2:
-                stack[top] = a
-                dstack[top] = da
-                top += 1
-            if db < best2:
-                stack[top] = b
-                dstack[top] = db
-                top += 1
+        for t in range(start[node], end[node]):
+            # cheap reject by the triangle's bounding disk (sph: centre xyz, radius,
+            # unit normal xyz): |p - q|^2 = plane^2 + |proj(p) - q|^2 >= plane^2 +
+            # max(0, |proj(p) - c| - r)^2 for every q of the triangle. Unlike a ball
+            # bound it rejects the coplanar neighbours of the nearest triangle, which
+            # far samples otherwise test by the dozen.
+            s0 = p[0] - sph[t, 0]
+            s1 = p[1] - sph[t, 1]
+            s2 = p[2] - sph[t, 2]
+            pl = s0 * sph[t, 4] + s1 * sph[t, 5] + s2 * sph[t, 6]
+            lb = pl * pl
+            if lb >= best2:
+                continue
+            l2 = s0 * s0 + s1 * s1 + s2 * s2 - lb
+            r = sph[t, 3]
+            if l2 > r * r:
+                lat = np.sqrt(l2) - r
+                if lb + lat * lat >= best2:
+                    continue
+            code = closest_on_triangle(p[0], p[1], p[2], tri, t, q)
+            d2 = (p[0] - q[0]) ** 2 + (p[1] - q[1]) ** 2 + (p[2] - q[2]) ** 2
+            if d2 < best2 and t != seed:
+                best2 = d2
+                best = t
+                feat = code
+                cbest[0], cbest[1], cbest[2] = q[0], q[1], q[2]
     return best, best2, feat
+
+
+@njit(cache=True, inline="always")
+def _push(node, d, best2, stack, dstack, top):
+    """Push ``node`` at squared distance ``d`` when it is closer than the bound; the new top."""
+    if d < best2:
+        stack[top] = node
+        dstack[top] = d
+        top += 1
+    return top
+
+
+@njit(cache=True, inline="always")
+def _push_children(p, box, a, b, best2, stack, dstack, top):
+    """Push children ``a`` and ``b`` closer than the bound, the nearer on top; the new top."""
+    da = _box_d2(p[0], p[1], p[2], box, a)
+    db = _box_d2(p[0], p[1], p[2], box, b)
+    # nearer child on top of the stack, visited first
+    if da <= db:
+        top = _push(b, db, best2, stack, dstack, top)
+        return _push(a, da, best2, stack, dstack, top)
+    top = _push(a, da, best2, stack, dstack, top)
+    return _push(b, db, best2, stack, dstack, top)
 
 
 @njit(cache=True, parallel=True)
@@ -390,6 +399,7 @@ def query_points(points, tri, sph, box, left, right, start, end, upper):
     ``upper`` (k,) bounds the search radius (inf = unbounded); a point with no triangle
     within it gets index -1. Returns (d2, sorted triangle index, closest (k, 3), feature).
     """
+    bvh = (tri, sph, box, left, right, start, end)
     k = points.shape[0]
     d2 = np.empty(k, np.float64)
     idx = np.empty(k, np.int64)
@@ -398,103 +408,110 @@ def query_points(points, tri, sph, box, left, right, start, end, upper):
     chunk = 256
     nchunks = (k + chunk - 1) // chunk
     for ci in prange(nchunks):
-        stack = np.empty(STACK, np.int64)
-        dstack = np.empty(STACK, np.float64)
-        q = np.empty(3, np.float64)
-        cb = np.empty(3, np.float64)
-        seed = -1
-        for s in range(ci * chunk, min(k, (ci + 1) * chunk)):
-            u = upper[s]
-            b2 = u * u if u < np.inf else np.inf
-            t, dd, f = _nearest(
-                points[s], tri, sph, box, left, right, start, end, b2, stack, dstack, q, cb, seed
-            )
-            if t >= 0:
-                seed = t
-            idx[s] = t
-            d2[s] = dd
-            feat[s] = f
-            closest[s, 0], closest[s, 1], closest[s, 2] = cb[0], cb[1], cb[2]
-            if t < 0:
-                closest[s, 0], closest[s, 1], closest[s, 2] = np.nan, np.nan, np.nan
+        out = (d2, idx, closest, feat)
+        _query_chunk(points, bvh, upper, ci * chunk, min(k, (ci + 1) * chunk), out)
     return d2, idx, closest, feat
 
 
+# the loops over queries are functions of their own, called once per chunk or line of the
+# parallel loop: numba's parfor passes over a loop body holding the search cost seconds of compile
+@njit(cache=True)
+def _query_chunk(points, bvh, upper, lo, hi, out):
+    """:func:`query_points` for the points ``lo..hi``, into ``out`` = (d2, idx, closest, feat)."""
+    d2, idx, closest, feat = out
+    stack = np.empty(STACK, np.int64)
+    dstack = np.empty(STACK, np.float64)
+    q = np.empty(3, np.float64)
+    cb = np.empty(3, np.float64)
+    seed = -1
+    for s in range(lo, hi):
+        u = upper[s]
+        b2 = u * u if u < np.inf else np.inf
+        t, dd, f = _nearest(points[s], bvh, b2, (stack, dstack, q, cb), seed)
+        if t >= 0:
+            seed = t
+        idx[s] = t
+        d2[s] = dd
+        feat[s] = f
+        closest[s, 0], closest[s, 1], closest[s, 2] = cb[0], cb[1], cb[2]
+        if t < 0:
+            closest[s, 0], closest[s, 1], closest[s, 2] = np.nan, np.nan, np.nan
+
+
 @njit(cache=True, parallel=True)
-def query_grid(
-    origin,
-    h,
-    shape,
-    tri,
-    sph,
-    box,
-    left,
-    right,
-    start,
-    end,
-    band,
-    pn_face,
-    pn_edge,
-    pn_vert,
-    use_pn,
-):
+def query_grid(origin, h, shape, bvh, band, pn, use_pn):
     """Unsigned distance at every sample of a regular grid, line by line along the last axis.
 
-    The distance is 1-Lipschitz, so the previous sample's distance + h bounds the search for the
-    next one (most of the tree is pruned at once). ``band`` caps the search: samples farther than it
-    get ``band``. With ``use_pn`` the sign of each sample comes from the angle-weighted pseudonormal
-    of the closest feature (face, edge, vertex). Returns (dist (nx, ny, nz) float64, sign (nx, ny,
-    nz) int8: -1 inside, 1 outside, 0 not known). Call it under a dynamic schedule
+    ``bvh`` is the tree's ``(tri, sph, box, left, right, start, end)``, ``pn`` the
+    pseudonormals ``(face, edge, vertex)`` of its triangles. The distance is 1-Lipschitz, so the
+    previous sample's distance + h bounds the search for the next one (most of the tree is pruned
+    at once). ``band`` caps the search: samples farther than it get ``band``. With ``use_pn`` the
+    sign of each sample comes from the angle-weighted pseudonormal of the closest feature (face,
+    edge, vertex). Returns (dist (nx, ny, nz) float64, sign (nx, ny, nz) int8: -1 inside, 1
+    outside, 0 not known). Call it under a dynamic schedule
     (:func:`recon_cli.mesh.distance.dynamic_schedule`).
     """
     nx, ny, nz = shape[0], shape[1], shape[2]
     dist = np.empty((nx, ny, nz), np.float64)
     sign = np.zeros((nx, ny, nz), np.int8)
     for line in prange(nx * ny):
-        i = line // ny
-        j = line % ny
-        stack = np.empty(STACK, np.int64)
-        dstack = np.empty(STACK, np.float64)
-        q = np.empty(3, np.float64)
-        cb = np.empty(3, np.float64)
-        p = np.empty(3, np.float64)
-        p[0] = origin[0] + i * h
-        p[1] = origin[1] + j * h
-        prev = np.inf
-        seed = -1
-        for k in range(nz):
-            p[2] = origin[2] + k * h
-            ub = band
-            if prev < np.inf:
-                ub = min(band, (prev + h) * (1.0 + 1e-9) + 1e-300)
-            b2 = ub * ub if ub < np.inf else np.inf
-            t, dd, f = _nearest(
-                p, tri, sph, box, left, right, start, end, b2, stack, dstack, q, cb, seed
-            )
-            if t < 0 and ub < band:  # bound too tight (rounding): search again unbounded
-                b2 = band * band if band < np.inf else np.inf
-                no_seed = np.int64(-1)  # not a literal -1: numba would compile _nearest twice
-                t, dd, f = _nearest(
-                    p, tri, sph, box, left, right, start, end, b2, stack, dstack, q, cb, no_seed
-                )
-            if t < 0:
-                dist[i, j, k] = band
-                prev = np.inf
-                seed = -1
-                continue
-            seed = t
-            dist[i, j, k] = np.sqrt(dd)
-            prev = dist[i, j, k]
-            if use_pn:
-                if f == FACE:
-                    n0, n1, n2 = pn_face[t, 0], pn_face[t, 1], pn_face[t, 2]
-                elif f <= VERT_C:
-                    n0, n1, n2 = pn_vert[t, f - 1, 0], pn_vert[t, f - 1, 1], pn_vert[t, f - 1, 2]
-                else:
-                    n0, n1, n2 = pn_edge[t, f - 4, 0], pn_edge[t, f - 4, 1], pn_edge[t, f - 4, 2]
-                dot = (p[0] - cb[0]) * n0 + (p[1] - cb[1]) * n1 + (p[2] - cb[2]) * n2
-                sign[i, j, k] = -1 if dot < 0.0 else 1
+        grid = (origin, h, line // ny, line % ny)
+        _grid_line(grid, bvh, band, pn, use_pn, dist, sign)
     return dist, sign
+
+
+@njit(cache=True)
+def _grid_line(grid, bvh, band, pn, use_pn, dist, sign):
+    """:func:`query_grid` along line (i, j) of ``grid`` = (origin, h, i, j)."""
+    origin, h, i, j = grid
+    stack = np.empty(STACK, np.int64)
+    dstack = np.empty(STACK, np.float64)
+    q = np.empty(3, np.float64)
+    cb = np.empty(3, np.float64)
+    p = np.empty(3, np.float64)
+    p[0] = origin[0] + i * h
+    p[1] = origin[1] + j * h
+    prev = np.inf
+    seed = -1
+    for k in range(dist.shape[2]):
+        p[2] = origin[2] + k * h
+        ub = band
+        if prev < np.inf:
+            ub = min(band, (prev + h) * (1.0 + 1e-9) + 1e-300)
+        b2 = ub * ub if ub < np.inf else np.inf
+        first = seed
+        while True:
+            t, dd, f = _nearest(p, bvh, b2, (stack, dstack, q, cb), first)
+            if t >= 0 or ub >= band:
+                break
+            # bound too tight (rounding): search again unbounded
+            ub = band
+            b2 = band * band if band < np.inf else np.inf
+            first = -1
+        if t < 0:
+            dist[i, j, k] = band
+            prev = np.inf
+            seed = -1
+            continue
+        seed = t
+        dist[i, j, k] = np.sqrt(dd)
+        prev = dist[i, j, k]
+        if use_pn:
+            sign[i, j, k] = _pseudonormal_side(p, cb, pn, t, f)
+
+
+@njit(cache=True, inline="always")
+def _pseudonormal_side(p, c, pn, t, f):
+    """-1 when ``p`` lies behind feature ``f`` of triangle ``t`` (closest point ``c``), else 1."""
+    pn_face, pn_edge, pn_vert = pn
+    if f == FACE:
+        n0, n1, n2 = pn_face[t, 0], pn_face[t, 1], pn_face[t, 2]
+    elif f <= VERT_C:
+        n0, n1, n2 = pn_vert[t, f - 1, 0], pn_vert[t, f - 1, 1], pn_vert[t, f - 1, 2]
+    else:
+        n0, n1, n2 = pn_edge[t, f - 4, 0], pn_edge[t, f - 4, 1], pn_edge[t, f - 4, 2]
+    dot = (p[0] - c[0]) * n0 + (p[1] - c[1]) * n1 + (p[2] - c[2]) * n2
+    return -1 if dot < 0.0 else 1
 
 
 @njit(cache=True, inline="always")

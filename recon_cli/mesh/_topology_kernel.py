@@ -28,20 +28,7 @@ def trace_boundary_loops(src, dst, n_vertices):
     from an end and count as one loop each.
     """
     k = src.shape[0]
-    deg = np.zeros(n_vertices + 1, np.int64)
-    for i in range(k):
-        deg[src[i] + 1] += 1
-        deg[dst[i] + 1] += 1
-    ptr = deg  # running sum in place (np.cumsum would load numba.np.arraymath with the kernel)
-    for v in range(n_vertices):
-        ptr[v + 1] += ptr[v]
-    fill = ptr[:-1].copy()
-    inc = np.empty(2 * k, np.int64)
-    for i in range(k):
-        inc[fill[src[i]]] = i
-        fill[src[i]] += 1
-        inc[fill[dst[i]]] = i
-        fill[dst[i]] += 1
+    ptr, inc = _incidence(src, dst, n_vertices)
     used = np.zeros(k, np.bool_)
     order = np.empty(k, np.int64)
     verts = np.empty(k, np.int64)
@@ -73,22 +60,47 @@ def trace_boundary_loops(src, dst, n_vertices):
             w = dst[e] if src[e] == v else src[e]
             if w == first:
                 break
-            # next edge at w: prefer one leaving w in half-edge direction
-            nxt = -1
-            for j in range(ptr[w], ptr[w + 1]):
-                c = inc[j]
-                if not used[c]:
-                    if src[c] == w:
-                        nxt = c
-                        break
-                    if nxt < 0:
-                        nxt = c
-            if nxt < 0:
+            e = _next_boundary_edge(ptr, inc, src, used, w)
+            if e < 0:
                 break
-            e = nxt
             v = w
     starts[n_loops] = pos
     return order, verts, starts[: n_loops + 1]
+
+
+@njit(cache=True)
+def _incidence(src, dst, n_vertices):
+    """The edges at each vertex: ``inc[ptr[v]:ptr[v + 1]]``, in edge order."""
+    k = src.shape[0]
+    deg = np.zeros(n_vertices + 1, np.int64)
+    for i in range(k):
+        deg[src[i] + 1] += 1
+        deg[dst[i] + 1] += 1
+    ptr = deg  # running sum in place (np.cumsum would load numba.np.arraymath with the kernel)
+    for v in range(n_vertices):
+        ptr[v + 1] += ptr[v]
+    fill = ptr[:-1].copy()
+    inc = np.empty(2 * k, np.int64)
+    for i in range(k):
+        inc[fill[src[i]]] = i
+        fill[src[i]] += 1
+        inc[fill[dst[i]]] = i
+        fill[dst[i]] += 1
+    return ptr, inc
+
+
+@njit(cache=True)
+def _next_boundary_edge(ptr, inc, src, used, w):
+    """The next unused edge at ``w``, preferring one leaving ``w`` in half-edge direction; -1."""
+    nxt = -1
+    for j in range(ptr[w], ptr[w + 1]):
+        c = inc[j]
+        if not used[c]:
+            if src[c] == w:
+                return c
+            if nxt < 0:
+                nxt = c
+    return nxt
 
 
 # ---- edge grouping -------------------------------------------------------------------------
@@ -298,26 +310,8 @@ def group_half_edges(flat, n_vertices, index_proto):
     nh = flat.shape[0]
     q = _bucket_width(n_vertices, nh)
     nb = (n_vertices + q - 1) // q
-    ptr = np.zeros(nb + 1, index_proto.dtype)
-    for h in range(nh):
-        a = flat[h]
-        b = _other_end(flat, h)
-        if a != b:
-            ptr[min(a, b) // q + 1] += 1
-    max_bucket = 0
-    for v in range(nb):
-        max_bucket = max(max_bucket, ptr[v + 1])
-        ptr[v + 1] += ptr[v]
-    n_valid = ptr[nb]
-    he = np.empty(n_valid, index_proto.dtype)
-    for h in range(nh):
-        a = flat[h]
-        b = _other_end(flat, h)
-        if a != b:
-            k = min(a, b) // q
-            he[ptr[k]] = h
-            ptr[k] += 1
-    _bucket_ptr_inplace_shift(ptr, nb)
+    ptr, he, max_bucket = _bucket_half_edges(flat, q, nb, index_proto)
+    n_valid = he.shape[0]
     keys = np.empty(max(max_bucket, 1), np.int64)
     n_edges = 0
     for v in range(nb):
@@ -346,6 +340,35 @@ def group_half_edges(flat, n_vertices, index_proto):
                 k += 1
     edge_ptr[n_edges] = n_valid
     return edge_ptr, he
+
+
+@njit(cache=True)
+def _bucket_half_edges(flat, q, nb, index_proto):
+    """The half-edges (self-loops left out) counting-sorted into buckets by smaller end // ``q``.
+
+    Returns ``(ptr (nb + 1,), he, largest bucket)``: bucket ``b`` is ``he[ptr[b]:ptr[b + 1]]``.
+    """
+    nh = flat.shape[0]
+    ptr = np.zeros(nb + 1, index_proto.dtype)
+    for h in range(nh):
+        a = flat[h]
+        b = _other_end(flat, h)
+        if a != b:
+            ptr[min(a, b) // q + 1] += 1
+    max_bucket = 0
+    for v in range(nb):
+        max_bucket = max(max_bucket, ptr[v + 1])
+        ptr[v + 1] += ptr[v]
+    he = np.empty(ptr[nb], index_proto.dtype)
+    for h in range(nh):
+        a = flat[h]
+        b = _other_end(flat, h)
+        if a != b:
+            k = min(a, b) // q
+            he[ptr[k]] = h
+            ptr[k] += 1
+    _bucket_ptr_inplace_shift(ptr, nb)
+    return ptr, he, max_bucket
 
 
 @njit(cache=True)

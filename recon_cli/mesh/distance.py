@@ -294,6 +294,6 @@ def distance_grid(
         fn, en, vn = np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3, 3))
     with dynamic_schedule(16):
         dist, sign = K.query_grid(
-            org, float(voxel_size), shp, *bvh.arrays(), float(band), fn, en, vn, bool(pseudonormal)
+            org, float(voxel_size), shp, bvh.arrays(), float(band), (fn, en, vn), bool(pseudonormal)
         )
     return dist, (sign if pseudonormal else None)

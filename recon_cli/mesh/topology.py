@@ -203,7 +203,7 @@ class Connectivity:
         group_half_edges = K.group_half_edges
 
         # bucketed by the smaller vertex: no int64 key or argsort per half-edge (those were
-        # most of report()'s memory, see bench/calibration.md)
+        # most of report()'s memory, see docs/design/topology.md)
         return group_half_edges(self._flat, self.n_vertices, np.zeros(0, self._it))
 
     @cached_property

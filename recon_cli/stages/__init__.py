@@ -359,7 +359,7 @@ def apply_stage(
 
     note = precision_note(
         result.output
-    )  # float32 source, double output: say so (README, data model)
+    )  # float32 source, double output: say so (docs/formats.md, data model)
     if note:
         result.report["precision"] = note
     return result

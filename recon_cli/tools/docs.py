@@ -1,11 +1,12 @@
 """``python -m recon_cli.tools.docs DIR``: write the documentation's page of every stage.
 
 One reStructuredText page per registered stage (``DIR/<stage>.rst``) and their index
-(``DIR/index.rst``): the stage's summary and description, what it takes and gives, its
-parameter table (:meth:`recon_cli.params.StageSpec.table_rows`, the rows the README's tables
-come from) and its library function. The Sphinx build runs this at its start
-(``docs/conf.py``), so no table is ever copied by hand; a test reads the tables back and
-compares them with the declarations.
+(``DIR/index.rst``): the stage's summary and description, what it takes and gives, its guide
+(the ``guide.md`` beside the module holding its declaration, when there is one: what it does in
+detail, its report's keys), its parameter table (:meth:`recon_cli.params.StageSpec.table_rows`)
+and its library function. The Sphinx build runs this at its start (``docs/conf.py``), so no
+table is ever copied by hand; a test reads the tables back and compares them with the
+declarations.
 """
 
 from __future__ import annotations
@@ -47,8 +48,32 @@ def param_table(spec: StageSpec) -> str:
     return "\n".join(lines)
 
 
-def stage_page(name: str) -> str:
-    """The page of stage ``name``: what it does, its parameter table and its function."""
+GUIDE = "guide.md"
+
+
+def guide_path(name: str) -> str | None:
+    """The guide of stage ``name``: ``guide.md`` beside the module of its declaration, or None."""
+    import importlib.util
+
+    from recon_cli.stages import STAGES
+
+    where = STAGES.get(name, "")
+    module = where.partition(":")[0]
+    if not module or module.startswith("<"):  # registered in this process: no file
+        return None
+    spec = importlib.util.find_spec(module)
+    if spec is None or not spec.origin:
+        return None
+    path = os.path.join(os.path.dirname(spec.origin), GUIDE)
+    return path if os.path.exists(path) else None
+
+
+def stage_page(name: str, directory: str | None = None) -> str:
+    """The page of stage ``name``: what it does, its guide, its parameter table and its function.
+
+    ``directory`` is where the page goes (the guide is included by its path from there); None
+    leaves the guide out.
+    """
     from recon_cli.api import function_name
     from recon_cli.stages import get_spec
 
@@ -66,6 +91,12 @@ def stage_page(name: str) -> str:
         f':Pipeline: a ``[[stage]]`` table with ``name = "{name}"``',
         f":Python: :func:`recon_cli.{fn}`",
         "",
+    ]
+    guide = guide_path(name) if directory is not None else None
+    if guide is not None:
+        rel = os.path.relpath(guide, directory).replace(os.sep, "/")
+        out += [f".. include:: {rel}", "   :parser: myst_parser.sphinx_", ""]
+    out += [
         "Parameters",
         "----------",
         "",
@@ -100,29 +131,72 @@ def index_page(names: Sequence[str]) -> str:
     return "\n".join(out) + "\n"
 
 
+def write_changed(directory: str, file: str, text: str) -> str | None:
+    """Write ``text`` to ``directory/file`` unless it holds it already; its path if written."""
+    path = os.path.join(directory, file)
+    old = None
+    if os.path.exists(path):
+        with open(path, encoding="utf-8") as f:
+            old = f.read()
+    if old == text:  # unchanged files keep their time: Sphinx rebuilds only what changed
+        return None
+    with open(path, "w", encoding="utf-8") as f:
+        f.write(text)
+    return path
+
+
 def write_pages(directory: str) -> list[str]:
     """Write every stage's page and the index into ``directory``; the files changed."""
     from recon_cli.stages import stage_names
 
     os.makedirs(directory, exist_ok=True)
     names = list(stage_names())
-    pages = {f"{name}.rst": stage_page(name) for name in names}
+    pages = {f"{name}.rst": stage_page(name, directory) for name in names}
     pages["index.rst"] = index_page(names)
-    changed = []
-    for file, text in pages.items():
-        path = os.path.join(directory, file)
-        old = None
-        if os.path.exists(path):
-            with open(path, encoding="utf-8") as f:
-                old = f.read()
-        if old != text:  # unchanged files keep their time: Sphinx rebuilds only what changed
-            with open(path, "w", encoding="utf-8") as f:
-                f.write(text)
-            changed.append(path)
+    changed = [p for file, text in pages.items() if (p := write_changed(directory, file, text))]
     for file in os.listdir(directory):
         if file.endswith(".rst") and file not in pages:  # a stage no longer registered
             os.remove(os.path.join(directory, file))
     return changed
+
+
+def _cells(line: str) -> list[str]:
+    return [c.strip() for c in line.strip().strip("|").split("|")]
+
+
+def _is_ratio(column: str) -> bool:
+    return "ours/" in column or column == "ratio"
+
+
+def bench_summary(results: str) -> str:
+    """The ratios of ``bench/results.md`` (Markdown ``results``): one table per bench section.
+
+    Each table keeps a row's first two cells (what and on what), its reference and its ratio
+    columns (``time ours/ref``, ``s ours/o3d``, ...), for the rows with a measured ratio.
+    """
+    out: list[str] = []
+    section, header, keep, head, titled = "", None, [], [], ""
+    for line in [*results.splitlines(), ""]:
+        if line.startswith("## "):
+            section, header = line[3:].strip(), None
+        elif not line.startswith("|"):
+            header = None
+        elif header is None:
+            header = _cells(line)
+            keep = [0, 1, *(j for j, c in enumerate(header) if c in ("reference", "method"))]
+            keep = sorted(set(keep)) + [j for j, c in enumerate(header) if _is_ratio(c)]
+            if not any(_is_ratio(header[j]) for j in keep):
+                keep = []
+            title = [f"**{section}**", ""] if titled != section else []
+            head = ["", *title, "| " + " | ".join(header[j] for j in keep) + " |"]
+            head.append("|" + "---|" * len(keep))
+        elif keep and not set(line) <= set("|-: "):
+            row = _cells(line)
+            ratios = [row[j] for j in keep if _is_ratio(header[j])]
+            if any(r.replace(".", "", 1).isdigit() for r in ratios):
+                out += head + ["| " + " | ".join(row[j] for j in keep) + " |"]
+                head, titled = [], section  # the table's head once, above its first row
+    return "\n".join(out).strip() + "\n"
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -27,15 +27,8 @@ Automatic radii (``radii="auto"``)
 Let ``s`` be the median distance from a point to its nearest other point, over the points
 with a positive such distance (exact duplicates ignored), measured on up to 200 000 points
 evenly strided through the input (queried against a k-d tree of all points). The median is
-robust to outliers and to clustered duplicates. The radii are ``2 s`` and ``4 s``.
-
-Why these multiples: for a Poisson-like (random) sampling of density ``lambda`` per unit
-area, ``s ~ 0.5 / sqrt(lambda)`` and the fraction of Delaunay triangles whose circumradius
-exceeds ``r`` is ``exp(-pi lambda r^2) (1 + pi lambda r^2)``: about 81 % for ``r = s``
-(a ball of radius ``s`` mostly fails and only seeds many small patches whose joins leave
-holes), 18 % for ``2 s`` and 5e-5 for ``4 s``. On the 100k-point test samples ``(2, 4)``
-leaves fewer boundary edges than ``(1, 2, 4)``; on regular scans (grid-like spacing,
-circumradius ``s / sqrt(2)``) the first ball already closes everything.
+robust to outliers and to clustered duplicates. The radii are ``2 s`` and ``4 s`` (why these
+multiples: the ballpivot page of the user guide).
 
 References
 ----------

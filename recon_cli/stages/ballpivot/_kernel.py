@@ -312,24 +312,28 @@ def _edge_id(hkeys, hvals, bits, n, u, v):
 
 
 @njit(cache=True, inline="always")
-def _new_front_edge(ea, eb, eo, es, ec, hkeys, hvals, bits, bcount, n, e, u0, u1, u2, cx, cy, cz):
-    """Make edge ``e`` = u0 -> u1 of face (u0, u1, u2), ball centre c, a front edge.
+def _push_front_edge(edges, ne, queue, qt, u0, u1, u2, cx, cy, cz):
+    """Make edge ``ne`` = u0 -> u1 of face (u0, u1, u2), ball centre c, and push it on the front.
 
-    Room for it is reserved.
+    ``edges`` is the edge state ``(ea, eb, eo, es, ec, hkeys, hvals, bits, bcount, n)``; room
+    for the edge and the stack item is reserved. Returns ``(ne + 1, qt + 1)``.
     """
+    ea, eb, eo, es, ec, hkeys, hvals, bits, bcount, n = edges
     key = min(u0, u1) * n + max(u0, u1)
     s = probe(hkeys, bits, key)
     hkeys[s] = key
-    hvals[s] = e
-    ea[e] = u0
-    eb[e] = u1
-    eo[e] = u2
-    ec[e, 0] = cx
-    ec[e, 1] = cy
-    ec[e, 2] = cz
-    es[e] = FRONT
+    hvals[s] = ne
+    ea[ne] = u0
+    eb[ne] = u1
+    eo[ne] = u2
+    ec[ne, 0] = cx
+    ec[ne, 1] = cy
+    ec[ne, 2] = cz
+    es[ne] = FRONT
     bcount[u0] += 1
     bcount[u1] += 1
+    queue[qt & (queue.shape[0] - 1)] = ne
+    return ne + 1, qt + 1
 
 
 # ---------------------------------------------------------------- phases
@@ -506,7 +510,6 @@ def _seed_triangle(pts, nrm, rho, grid, used, s, nbr):
 
 
 # ---------------------------------------------------------------- main loop
-# one kernel: the front, the grid's used flags and the faces change together in the pivot loop
 @njit(cache=True)
 def ball_pivot(pts, nrm, rho, lo, dims, faces0):
     """One radius of Bernardini et al. 1999, continuing from the triangles ``faces0``.
@@ -514,7 +517,8 @@ def ball_pivot(pts, nrm, rho, lo, dims, faces0):
     The front state is rebuilt from ``faces0``: edges with one face are boundary edges; those
     whose face carries an empty ball of radius ``rho`` are put back on the front and pivoted
     first. Each step then pivots the newest front edge; when the front is empty, the next
-    seed triangle is searched among the unused points (in grid order).
+    seed triangle is searched among the unused points (in grid order, :func:`_next_seed`). A
+    pivot (:func:`_pivot_front_edge`) makes a face, joins a used vertex or glues onto an edge.
 
     Parameters
     ----------
@@ -569,77 +573,89 @@ def ball_pivot(pts, nrm, rho, lo, dims, faces0):
             ea, eb, eo, es, ec, hkeys, hvals, bits = _grow_edges(ea, eb, eo, es, ec, ne, n, bits)
         if qt - qh + 3 > queue.shape[0]:
             queue, qh, qt = _grow_stack(queue, qh, qt)
-        qmask = queue.shape[0] - 1
-
-        if qh == qt:
-            # ---------------------------------------- the front is empty: next seed triangle
-            found = False
-            while s_iter < n and not found:
-                s = sidx[s_iter]
-                s_iter += 1
-                if not used[s]:
-                    found, a, b, cx, cy, cz = _seed_triangle(pts, nrm, rho, grid, used, s, nbr)
+        edges = (ea, eb, eo, es, ec, hkeys, hvals, bits, bcount, n)
+        if qh == qt:  # the front is empty: the next seed triangle
+            found, s, a, b, cx, cy, cz, s_iter = _next_seed(pts, nrm, rho, grid, used, s_iter, nbr)
             if not found:
                 break
             nf = _put_face(faces, nf, used, s, a, b)
             stats[0] += 1
-            for side in range(3):
-                u0, u1, u2 = (s, a, b) if side == 0 else ((a, b, s) if side == 1 else (b, s, a))
-                _new_front_edge(
-                    ea, eb, eo, es, ec, hkeys, hvals, bits, bcount, n, ne, u0, u1, u2, cx, cy, cz
-                )
-                queue[qt & qmask] = ne
-                qt += 1
-                ne += 1
+            ne, qt = _push_front_edge(edges, ne, queue, qt, s, a, b, cx, cy, cz)
+            ne, qt = _push_front_edge(edges, ne, queue, qt, a, b, s, cx, cy, cz)
+            ne, qt = _push_front_edge(edges, ne, queue, qt, b, s, a, cx, cy, cz)
             continue
-
-        # -------------------------------------------- pivot the newest front edge
         qt -= 1
-        e = queue[qt & qmask]
-        if es[e] != FRONT:
-            continue
-        a = ea[e]
-        b = eb[e]
-        k, cx, cy, cz = _pivot(pts, nrm, rho, grid, buf, a, b, eo[e], ec[e, 0], ec[e, 1], ec[e, 2])
-        if k < 0:
-            es[e] = BOUNDARY
-            continue
-        if used[k] and bcount[k] == 0:
-            es[e] = BOUNDARY
-            stats[3] += 1
-            continue
-        # new face (b, a, k): edges b->a (e), a->k, k->b
-        e1 = _edge_id(hkeys, hvals, bits, n, a, k)
-        if e1 >= 0 and (es[e1] == INNER or ea[e1] == a):
-            es[e] = BOUNDARY
-            stats[3] += 1
-            continue
-        e2 = _edge_id(hkeys, hvals, bits, n, k, b)
-        if e2 >= 0 and (es[e2] == INNER or ea[e2] == k):
-            es[e] = BOUNDARY
-            stats[3] += 1
-            continue
-        if used[k] and e1 < 0 and e2 < 0:
-            stats[1] += 1
-        nf = _put_face(faces, nf, used, b, a, k)
-        es[e] = INNER
-        bcount[a] -= 1
-        bcount[b] -= 1
-        for side in range(2):
-            ex, u0, u1, u2 = (e1, a, k, b) if side == 0 else (e2, k, b, a)
-            if ex >= 0:  # glue: the edge gets its second face
-                es[ex] = INNER
-                bcount[u0] -= 1
-                bcount[u1] -= 1
-                stats[2] += 1
-            else:
-                _new_front_edge(
-                    ea, eb, eo, es, ec, hkeys, hvals, bits, bcount, n, ne, u0, u1, u2, cx, cy, cz
-                )
-                queue[qt & qmask] = ne
-                qt += 1
-                ne += 1
+        e = queue[qt & (queue.shape[0] - 1)]
+        if es[e] == FRONT:  # the newest front edge
+            ball = (pts, nrm, rho, grid, buf)
+            nf, ne, qt = _pivot_front_edge(ball, edges, used, faces, nf, ne, e, queue, qt, stats)
     return faces[:nf].copy(), stats
+
+
+@njit(cache=True)
+def _next_seed(pts, nrm, rho, grid, used, s_iter, nbr):
+    """The next seed triangle, from the unused points in grid order from ``s_iter`` on.
+
+    Returns ``(found, s, a, b, cx, cy, cz, s_iter)``: the triangle (s, a, b), its ball's
+    centre and where the search goes on.
+    """
+    sidx = grid[2]
+    n = sidx.shape[0]
+    while s_iter < n:
+        s = sidx[s_iter]
+        s_iter += 1
+        if not used[s]:
+            found, a, b, cx, cy, cz = _seed_triangle(pts, nrm, rho, grid, used, s, nbr)
+            if found:
+                return True, s, a, b, cx, cy, cz, s_iter
+    return False, -1, -1, -1, 0.0, 0.0, 0.0, s_iter
+
+
+@njit(cache=True)
+def _pivot_front_edge(ball, edges, used, faces, nf, ne, e, queue, qt, stats):
+    """Pivot the ball around front edge ``e`` = a -> b; the face it finds joins the mesh.
+
+    ``ball`` is ``(pts, nrm, rho, grid, buf)``, ``edges`` the edge state. The edge becomes a
+    boundary edge when the ball touches no point, or a point that is interior or whose new
+    edges would not be manifold (a rejected pivot); else face (b, a, k) is made: each of its
+    two new edges glues onto an existing one (which gets its second face) or goes on the front.
+    Returns ``(nf, ne, qt)``.
+    """
+    pts, nrm, rho, grid, buf = ball
+    ea, eb, eo, es, ec, hkeys, hvals, bits, bcount, n = edges
+    a = ea[e]
+    b = eb[e]
+    k, cx, cy, cz = _pivot(pts, nrm, rho, grid, buf, a, b, eo[e], ec[e, 0], ec[e, 1], ec[e, 2])
+    if k < 0:
+        es[e] = BOUNDARY
+        return nf, ne, qt
+    # new face (b, a, k): edges b->a (e), a->k, k->b
+    e1 = _edge_id(hkeys, hvals, bits, n, a, k)
+    e2 = _edge_id(hkeys, hvals, bits, n, k, b)
+    if (
+        (used[k] and bcount[k] == 0)
+        or (e1 >= 0 and (es[e1] == INNER or ea[e1] == a))
+        or (e2 >= 0 and (es[e2] == INNER or ea[e2] == k))
+    ):
+        es[e] = BOUNDARY
+        stats[3] += 1
+        return nf, ne, qt
+    if used[k] and e1 < 0 and e2 < 0:
+        stats[1] += 1
+    nf = _put_face(faces, nf, used, b, a, k)
+    es[e] = INNER
+    bcount[a] -= 1
+    bcount[b] -= 1
+    for side in range(2):
+        ex, u0, u1, u2 = (e1, a, k, b) if side == 0 else (e2, k, b, a)
+        if ex >= 0:  # glue: the edge gets its second face
+            es[ex] = INNER
+            bcount[u0] -= 1
+            bcount[u1] -= 1
+            stats[2] += 1
+        else:
+            ne, qt = _push_front_edge(edges, ne, queue, qt, u0, u1, u2, cx, cy, cz)
+    return nf, ne, qt
 
 
 # ---------------------------------------------------------------- pinched fans
@@ -681,47 +697,65 @@ def resolve_pinches(faces, n):
         changed = False
         nxt = np.zeros(n, np.bool_)
         for v in range(n):
-            if not todo[v]:
-                continue
-            d = deg[v + 1] - deg[v]
-            if d < 2:
+            if not todo[v] or deg[v + 1] - deg[v] < 2:
                 continue
             loc = vf[deg[v] : deg[v + 1]]
-            w1 = np.empty(d, np.int64)
-            w2 = np.empty(d, np.int64)
-            for t in range(d):
-                f = loc[t]
-                for c in range(3):
-                    if faces[f, c] == v:
-                        w1[t] = faces[f, (c + 1) % 3]
-                        w2[t] = faces[f, (c + 2) % 3]
-            parent = np.arange(d)
-            for t in range(d):
-                for q in range(t + 1, d):
-                    if w1[t] == w1[q] or w1[t] == w2[q] or w2[t] == w1[q] or w2[t] == w2[q]:
-                        ra = find(parent, t)
-                        rb = find(parent, q)
-                        if ra != rb:
-                            parent[ra] = rb
-            size = np.zeros(d, np.int64)
-            for t in range(d):
-                size[find(parent, t)] += 1
-            big = 0  # the largest fan (np.argmax would load numba.np.arraymath with the kernel)
-            for t in range(1, d):
-                if size[t] > size[big]:
-                    big = t
-            if size[big] == d:
+            parent, big, single = _fans(faces, loc, v)
+            if single:
                 continue
-            for t in range(d):
-                if find(parent, t) != big:
-                    f = loc[t]
-                    if alive[f]:
-                        alive[f] = False
-                        removed += 1
-                        changed = True
-                        for c in range(3):
-                            nxt[faces[f, c]] = True
+            k = _drop_other_fans(faces, loc, parent, big, alive, nxt)
+            removed += k
+            changed = changed or k > 0
         if not changed:
             break
         todo = nxt
     return alive, removed
+
+
+@njit(cache=True)
+def _fans(faces, loc, v):
+    """The fans of vertex ``v``'s faces ``loc``: faces sharing an edge at ``v`` are one fan.
+
+    Returns ``(parent, big, single)``: union-find parents over ``loc``, the root of the largest
+    fan, and whether there is only that one.
+    """
+    d = loc.shape[0]
+    w1 = np.empty(d, np.int64)
+    w2 = np.empty(d, np.int64)
+    for t in range(d):
+        f = loc[t]
+        for c in range(3):
+            if faces[f, c] == v:
+                w1[t] = faces[f, (c + 1) % 3]
+                w2[t] = faces[f, (c + 2) % 3]
+    parent = np.arange(d)
+    for t in range(d):
+        for q in range(t + 1, d):
+            if w1[t] == w1[q] or w1[t] == w2[q] or w2[t] == w1[q] or w2[t] == w2[q]:
+                ra = find(parent, t)
+                rb = find(parent, q)
+                if ra != rb:
+                    parent[ra] = rb
+    size = np.zeros(d, np.int64)
+    for t in range(d):
+        size[find(parent, t)] += 1
+    big = 0  # the largest fan (np.argmax would load numba.np.arraymath with the kernel)
+    for t in range(1, d):
+        if size[t] > size[big]:
+            big = t
+    return parent, big, size[big] == d
+
+
+@njit(cache=True)
+def _drop_other_fans(faces, loc, parent, big, alive, nxt):
+    """Remove the faces of ``loc`` outside fan ``big``; their corners go to ``nxt``. The count."""
+    removed = 0
+    for t in range(loc.shape[0]):
+        if find(parent, t) != big:
+            f = loc[t]
+            if alive[f]:
+                alive[f] = False
+                removed += 1
+                for c in range(3):
+                    nxt[faces[f, c]] = True
+    return removed

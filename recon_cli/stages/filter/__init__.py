@@ -689,18 +689,60 @@ def filter_cloud(
     n = len(raw)
     if n == 0:
         raise InputError("the input has no points")
-    report: dict[str, Any] = {
-        "points_in": n,
-        "invalid_removed": 0,
-        "crop_removed": None,
-        "classes_removed": None,
-        "returns_removed": None,
-        "radius_outliers_removed": None,
-        "outliers_removed": None,
-        "voxel_merged": None,
-        "outlier_threshold": None,
-        "points_out": None,
-    }
+    class_codes, return_codes = _las_codes(cloud, classes, returns)
+    kept = _Kept(n)
+    with task(progress, "invalid points" if crop is None else "invalid points, crop"):
+        kept.valid_in_box(raw, crop)
+    if class_codes is not None:
+        with task(progress, "classes"):
+            kept.classes(class_codes, classes)
+    if return_codes is not None:
+        with task(progress, "returns"):
+            keep = return_mask(
+                kept.current(return_codes[0]), kept.current(return_codes[1]), returns
+            )
+            kept.apply("returns_removed", keep, f"--returns {returns}")
+    if radius_outliers is not None:
+        with task(progress, "radius outliers"):
+            keep = radius_outlier_mask(kept.current(raw), *radius_outliers)
+            kept.apply(
+                "radius_outliers_removed", keep, f"--radius-outliers {_text(radius_outliers)}"
+            )
+    if outliers is not None:
+        k, std_ratio = outliers
+        keep, figures = statistical_outlier_mask(kept.current(raw), k, std_ratio, progress=progress)
+        kept.report["outlier_threshold"] = figures["threshold"]
+        kept.apply("outliers_removed", keep, f"--outliers {_text(outliers)}")
+    # nothing removed: the same arrays in a new cloud (with its own history)
+    out = (
+        dataclasses.replace(cloud, history=list(cloud.history))
+        if kept.rows is None
+        else cloud.subset(kept.rows)
+    )
+    if voxel is not None:
+        with task(progress, "voxel thinning"):
+            thinned = voxel_downsample(out, voxel)
+            kept.report["voxel_merged"] = len(out) - len(thinned)
+            out = thinned
+    # PLY elements that are not per point travel; one indexing the points would go stale
+    linked = [e.name for e in cloud.extra_elements if _indexes_points(e)]
+    if linked and len(out) < n:
+        raise InputError(
+            f"element {linked[0]!r} refers to the points by index: filter cannot drop points "
+            "from under it"
+        )
+    out.extra_elements = list(cloud.extra_elements)
+    kept.report["points_out"] = len(out)
+    return out, kept.report
+
+
+def _las_codes(
+    cloud: PointCloud, classes: Any, returns: str
+) -> tuple[np.ndarray | None, tuple[np.ndarray, np.ndarray] | None]:
+    """The LAS attributes ``--classes`` and ``--returns`` read (None: not asked for).
+
+    The class codes, and the return numbers with the numbers of returns.
+    """
     class_codes: np.ndarray | None = None
     if classes is not None:
         class_attr = find_attribute(cloud, _CLASS_ATTRS)
@@ -716,80 +758,69 @@ def filter_cloud(
                 "--returns needs the LAS attributes 'return_number' and 'number_of_returns'"
             )
         return_codes = (cloud.attributes[ret_attr], cloud.attributes[nret_attr])
+    return class_codes, return_codes
 
-    sel: np.ndarray | None = None  # kept rows of the input (None: all of them)
 
-    def current(a: np.ndarray) -> np.ndarray:
-        return a if sel is None else a[sel]
+class _Kept:
+    """The rows of the input the steps kept so far, and the report of what each removed."""
 
-    def apply(key: str, keep: np.ndarray, what: str) -> None:
-        nonlocal sel
+    def __init__(self, n: int) -> None:
+        self.n = n
+        self.rows: np.ndarray | None = None  # None: all of them
+        self.report: dict[str, Any] = {
+            "points_in": n,
+            "invalid_removed": 0,
+            "crop_removed": None,
+            "classes_removed": None,
+            "returns_removed": None,
+            "radius_outliers_removed": None,
+            "outliers_removed": None,
+            "voxel_merged": None,
+            "outlier_threshold": None,
+            "points_out": None,
+        }
+
+    def current(self, a: np.ndarray) -> np.ndarray:
+        """The kept rows of the per-point array ``a``."""
+        return a if self.rows is None else a[self.rows]
+
+    def apply(self, key: str, keep: np.ndarray, what: str) -> None:
+        """Keep the rows ``keep`` of the kept ones; ``report[key]`` counts the others."""
         before = len(keep)
         kept = int(np.count_nonzero(keep))
-        report[key] = before - kept
+        self.report[key] = before - kept
         if kept == 0:
             raise InputError(f"{what} leaves no point (of {before})")
         if kept < before:
             rows = np.flatnonzero(keep)
-            sel = rows if sel is None else sel[rows]
+            self.rows = rows if self.rows is None else self.rows[rows]
 
-    with task(progress, "invalid points" if crop is None else "invalid points, crop"):
+    def valid_in_box(self, raw: np.ndarray, crop: Any) -> None:
+        """The first step: drop invalid points and, with ``crop``, those outside the box."""
+        n = self.n
         fate = box_codes(raw, crop)
         count = np.bincount(fate, minlength=3)
-        report["invalid_removed"] = int(count[_INVALID])
+        self.report["invalid_removed"] = int(count[_INVALID])
         if count[_INVALID] == n:
             raise InputError(f"every point (of {n}) has a NaN or infinite coordinate")
         if crop is not None:
-            report["crop_removed"] = int(count[_OUTSIDE])
+            self.report["crop_removed"] = int(count[_OUTSIDE])
             if count[_KEPT] == 0:
                 raise InputError(f"--crop {_text(crop)} leaves no point (of {n - count[_INVALID]})")
         if count[_KEPT] < n:
-            sel = np.flatnonzero(fate == _KEPT)
-    if class_codes is not None:
-        with task(progress, "classes"):
-            codes = current(class_codes)
-            keep = class_mask(codes, classes)
-            if not keep.any():
-                present = ", ".join(str(int(c)) for c in np.unique(codes)[:20])
-                raise InputError(
-                    f"--classes {_text(classes)} leaves no point (of {len(keep)}; "
-                    f"classes present: {present})"
-                )
-            apply("classes_removed", keep, f"--classes {_text(classes)}")
-    if return_codes is not None:
-        with task(progress, "returns"):
-            keep = return_mask(current(return_codes[0]), current(return_codes[1]), returns)
-            apply("returns_removed", keep, f"--returns {returns}")
-    if radius_outliers is not None:
-        with task(progress, "radius outliers"):
-            keep = radius_outlier_mask(current(raw), *radius_outliers)
-            apply("radius_outliers_removed", keep, f"--radius-outliers {_text(radius_outliers)}")
-    if outliers is not None:
-        k, std_ratio = outliers
-        keep, figures = statistical_outlier_mask(current(raw), k, std_ratio, progress=progress)
-        report["outlier_threshold"] = figures["threshold"]
-        apply("outliers_removed", keep, f"--outliers {_text(outliers)}")
-    # nothing removed: the same arrays in a new cloud (with its own history)
-    out = (
-        dataclasses.replace(cloud, history=list(cloud.history))
-        if sel is None
-        else cloud.subset(sel)
-    )
-    if voxel is not None:
-        with task(progress, "voxel thinning"):
-            thinned = voxel_downsample(out, voxel)
-            report["voxel_merged"] = len(out) - len(thinned)
-            out = thinned
-    # PLY elements that are not per point travel; one indexing the points would go stale
-    linked = [e.name for e in cloud.extra_elements if _indexes_points(e)]
-    if linked and len(out) < n:
-        raise InputError(
-            f"element {linked[0]!r} refers to the points by index: filter cannot drop points "
-            "from under it"
-        )
-    out.extra_elements = list(cloud.extra_elements)
-    report["points_out"] = len(out)
-    return out, report
+            self.rows = np.flatnonzero(fate == _KEPT)
+
+    def classes(self, class_codes: np.ndarray, classes: Any) -> None:
+        """Keep the points of the LAS ``classes``; the error lists the classes present."""
+        codes = self.current(class_codes)
+        keep = class_mask(codes, classes)
+        if not keep.any():
+            present = ", ".join(str(int(c)) for c in np.unique(codes)[:20])
+            raise InputError(
+                f"--classes {_text(classes)} leaves no point (of {len(keep)}; "
+                f"classes present: {present})"
+            )
+        self.apply("classes_removed", keep, f"--classes {_text(classes)}")
 
 
 def _indexes_points(element: Any) -> bool:

@@ -239,11 +239,12 @@ def _nan_cells(r00, r10, r01, r11, nz):
 
 
 @njit(cache=True, inline="always")
-def _centre_vertex(v, loop, edges, iso, clamp, i, j, k, verts, grads, cid, p, g):
-    """Write vertex ``cid``: the mean of the loop's crossings in cell (i, j, k).
+def _centre_vertex(v, loop, edges, iso, clamp, cell, verts, grads, cid, p, g):
+    """Write vertex ``cid``: the mean of the loop's crossings in cell ``cell`` = (i, j, k).
 
     Its gradient is the cell's trilinear interpolant's there.
     """
+    i, j, k = cell
     _centre_point(v, loop, edges, iso, clamp, p)
     verts[cid, 0] = i + p[0]
     verts[cid, 1] = j + p[1]
@@ -254,12 +255,13 @@ def _centre_vertex(v, loop, edges, iso, clamp, i, j, k, verts, grads, cid, p, g)
 
 
 @njit(cache=True, inline="always")
-def _edge_vertex(vol, v, ends, iso, clamp, i, j, k, verts, grads, nv, ga, gb):
+def _edge_vertex(vol, v, ends, iso, clamp, cell, verts, grads, nv, ga, gb):
     """Write vertex ``nv``: the crossing on the edge between corners ``ends`` of a cell.
 
-    The cell is (i, j, k); the gradient is interpolated between the corners' central
-    differences.
+    The cell is ``cell`` = (i, j, k); the gradient is interpolated between the corners'
+    central differences.
     """
+    i, j, k = cell
     ca = ends[0]
     cb = ends[1]
     tt = _lerp_t(v[ca], v[cb], iso, clamp)
@@ -301,29 +303,33 @@ def dense_extract(
     edge: a map of the two lattice planes of the current slab (by parity of the plane)
     holds the vertex id of every edge keyed by its lower corner. An entry of plane P is
     only valid when made since slab P - 1 started, which saves clearing the map for every
-    slab. Rows of cells with no crossing are skipped whole (see :func:`_row_classes`).
+    slab. Rows of cells with no crossing are skipped whole (see :func:`_row_classes`); the
+    others are walked by :func:`_extract_row`.
     """
     nx, ny, nz = vol.shape
     rows = _row_classes(vol, iso)
+    tables = (start, tris, edges, edge_key, ambiguous, use_faces, face_corners, centre, centre_id)
     skipped = 0
     vmap = np.full((2, ny, nz, N_TYPES), -1, np.int64)
     lo_valid = 0  # first vertex id valid in plane i
     hi_valid = 0  # first vertex id valid in plane i + 1
-    cap_v = 1024
-    cap_f = 2048
-    verts = np.empty((cap_v, 3), np.float64)
-    grads = np.empty((cap_v, 3), np.float64)
-    faces = np.empty((cap_f, 3), np.int64)
-    nv = 0
-    nf = 0
-    v = np.empty(8, np.float64)
-    ga = np.empty(3, np.float64)
-    gb = np.empty(3, np.float64)
-    p = np.empty(3, np.float64)
-    g = np.empty(3, np.float64)
+    mesh = (
+        np.empty((1024, 3), np.float64),  # vertices
+        np.empty((1024, 3), np.float64),  # their gradients
+        np.empty((2048, 3), np.int64),  # faces
+        0,  # vertices made
+        0,  # faces made
+    )
+    scratch = (
+        np.empty(8, np.float64),
+        np.empty(3, np.float64),
+        np.empty(3, np.float64),
+        np.empty(3, np.float64),
+        np.empty(3, np.float64),
+    )
     for i in range(nx - 1):
         lo_valid = hi_valid
-        hi_valid = nv
+        hi_valid = mesh[3]
         for j in range(ny - 1):
             c00 = rows[i, j]
             c10 = rows[i + 1, j]
@@ -331,76 +337,106 @@ def dense_extract(
             c11 = rows[i + 1, j + 1]
             if c00 == c10 and c00 == c01 and c00 == c11 and c00 <= ROW_BELOW:
                 continue  # all four rows on one side, no NaN: no cell of this row crosses
-            # slide along k: the upper face's four corner bits become the next cell's lower
-            # face, so each cell reads four new values (three times faster on empty space)
-            r00 = vol[i, j]
-            r10 = vol[i + 1, j]
-            r01 = vol[i, j + 1]
-            r11 = vol[i + 1, j + 1]
             if c00 == ROW_NAN or c10 == ROW_NAN or c01 == ROW_NAN or c11 == ROW_NAN:
                 # count the cells left out below: the sum of the 8 corners is NaN (a NaN
                 # corner, or +inf and -inf together: no crossing can be placed)
-                skipped += _nan_cells(r00, r10, r01, r11, nz)
-            lower = _face_code(r00[0], r10[0], r01[0], r11[0], iso)
-            for k in range(nz - 1):
-                upper = _face_code(r00[k + 1], r10[k + 1], r01[k + 1], r11[k + 1], iso)
-                case = lower | (upper << 4)
-                lower = upper
-                if case == 0 or case == 255:  # all outside or all inside
-                    continue
-                for c in range(8):
-                    v[c] = vol[i + (c & 1), j + ((c >> 1) & 1), k + ((c >> 2) & 1)]
-                if np.isnan((v[0] + v[1] + v[2] + v[3]) + (v[4] + v[5] + v[6] + v[7])):
-                    # NaN compares false: a cell with a NaN corner is left out (counted above)
-                    continue
-                row = case
-                if use_faces:
-                    row = case * 64 + _face_bits(v, case, iso, ambiguous, face_corners)
-                s0 = start[row]
-                s1 = start[row + 1]
-                if s0 == s1:
-                    continue
-                if nf + (s1 - s0) > cap_f:
-                    cap_f = 2 * cap_f + (s1 - s0)
-                    faces = _grow2(faces, cap_f)
-                if nv + 13 > cap_v:
-                    cap_v *= 2
-                    verts = _grow2(verts, cap_v)
-                    grads = _grow2(grads, cap_v)
-                cid = -1
-                if centre[row, 0] >= 0:
-                    # a vertex of this cell alone: mean of its loop's crossings
-                    cid = nv
-                    nv += 1
-                    _centre_vertex(
-                        v, centre[row], edges, iso, clamp, i, j, k, verts, grads, cid, p, g
-                    )
-                for t in range(s0, s1):
-                    for q in range(3):
-                        e = tris[t, q]
-                        if e == centre_id:
-                            faces[nf, q] = cid
-                            continue
-                        dx = edge_key[e, 0]
-                        jj = j + edge_key[e, 1]
-                        kk = k + edge_key[e, 2]
-                        ty = edge_key[e, 3]
-                        pl = (i + dx) & 1
-                        vid = vmap[pl, jj, kk, ty]
-                        if vid < (hi_valid if dx else lo_valid):
-                            if nv == cap_v:
-                                cap_v *= 2
-                                verts = _grow2(verts, cap_v)
-                                grads = _grow2(grads, cap_v)
-                            _edge_vertex(
-                                vol, v, edges[e], iso, clamp, i, j, k, verts, grads, nv, ga, gb
-                            )
-                            vid = nv
-                            vmap[pl, jj, kk, ty] = vid
-                            nv += 1
-                        faces[nf, q] = vid
-                    nf += 1
+                skipped += _nan_cells(
+                    vol[i, j], vol[i + 1, j], vol[i, j + 1], vol[i + 1, j + 1], nz
+                )
+            mesh = _extract_row(
+                vol, iso, clamp, i, j, tables, vmap, (lo_valid, hi_valid), mesh, scratch
+            )
+    verts, grads, faces, nv, nf = mesh
     return verts[:nv].copy(), grads[:nv].copy(), faces[:nf].copy(), skipped
+
+
+@njit(cache=True, inline="always")
+def _extract_row(vol, iso, clamp, i, j, tables, vmap, valid, mesh, scratch):
+    """The triangles of the row of cells (i, j, 0..nz-2), added to ``mesh``.
+
+    ``mesh`` is ``(verts, grads, faces, nv, nf)``, returned with the arrays grown as needed;
+    ``valid`` the first vertex ids valid in ``vmap``'s planes i and i + 1.
+    """
+    nz = vol.shape[2]
+    start = tables[0]
+    use_faces, ambiguous, face_corners = tables[5], tables[4], tables[6]
+    v = scratch[0]
+    # slide along k: the upper face's four corner bits become the next cell's lower
+    # face, so each cell reads four new values (three times faster on empty space)
+    r00 = vol[i, j]
+    r10 = vol[i + 1, j]
+    r01 = vol[i, j + 1]
+    r11 = vol[i + 1, j + 1]
+    lower = _face_code(r00[0], r10[0], r01[0], r11[0], iso)
+    for k in range(nz - 1):
+        upper = _face_code(r00[k + 1], r10[k + 1], r01[k + 1], r11[k + 1], iso)
+        case = lower | (upper << 4)
+        lower = upper
+        if case == 0 or case == 255:  # all outside or all inside
+            continue
+        for c in range(8):
+            v[c] = vol[i + (c & 1), j + ((c >> 1) & 1), k + ((c >> 2) & 1)]
+        if np.isnan((v[0] + v[1] + v[2] + v[3]) + (v[4] + v[5] + v[6] + v[7])):
+            # NaN compares false: a cell with a NaN corner is left out (counted by the caller)
+            continue
+        row = case
+        if use_faces:
+            row = case * 64 + _face_bits(v, case, iso, ambiguous, face_corners)
+        if start[row] != start[row + 1]:
+            mesh = _cell_triangles(
+                vol, iso, clamp, (i, j, k), row, tables, vmap, valid, mesh, scratch
+            )
+    return mesh
+
+
+@njit(cache=True, inline="always")
+def _cell_triangles(vol, iso, clamp, cell, row, tables, vmap, valid, mesh, scratch):
+    """Add the triangles of table row ``row`` in cell ``cell`` = (i, j, k) to ``mesh``.
+
+    A crossing's vertex is taken from ``vmap`` when an earlier cell made it, else made
+    (:func:`_edge_vertex`); a cell's centre vertex (:func:`_centre_vertex`) is its own.
+    """
+    start, tris, edges, edge_key, _amb, _uf, _fc, centre, centre_id = tables
+    verts, grads, faces, nv, nf = mesh
+    v, ga, gb, p, g = scratch
+    i, j, k = cell
+    lo_valid, hi_valid = valid
+    s0 = start[row]
+    s1 = start[row + 1]
+    if nf + (s1 - s0) > faces.shape[0]:
+        faces = _grow2(faces, 2 * faces.shape[0] + (s1 - s0))
+    if nv + 13 > verts.shape[0]:
+        verts = _grow2(verts, 2 * verts.shape[0])
+        grads = _grow2(grads, verts.shape[0])
+    cid = -1
+    if centre[row, 0] >= 0:
+        # a vertex of this cell alone: mean of its loop's crossings
+        cid = nv
+        nv += 1
+        _centre_vertex(v, centre[row], edges, iso, clamp, cell, verts, grads, cid, p, g)
+    for t in range(s0, s1):
+        for q in range(3):
+            e = tris[t, q]
+            if e == centre_id:
+                faces[nf, q] = cid
+                continue
+            dx = edge_key[e, 0]
+            jj = j + edge_key[e, 1]
+            kk = k + edge_key[e, 2]
+            ty = edge_key[e, 3]
+            pl = (i + dx) & 1
+            vid = vmap[pl, jj, kk, ty]
+            if vid < (hi_valid if dx else lo_valid):
+                if nv == verts.shape[0]:
+                    verts = _grow2(verts, 2 * verts.shape[0])
+                    grads = _grow2(grads, verts.shape[0])
+                _edge_vertex(vol, v, edges[e], iso, clamp, cell, verts, grads, nv, ga, gb)
+                vid = nv
+                vmap[pl, jj, kk, ty] = vid
+                nv += 1
+            faces[nf, q] = vid
+        nf += 1
+    return verts, grads, faces, nv, nf
 
 
 @njit(cache=True)

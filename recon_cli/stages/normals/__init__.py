@@ -31,7 +31,6 @@ IEEE Visualization (surface variation, the ``curvature``).
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
@@ -42,10 +41,10 @@ from recon_cli.geometry import SCAN_ATTRIBUTE, PointCloud, as_point_cloud, local
 from recon_cli.params import Param, StageSpec
 from recon_cli.progress import task
 from recon_cli.stages import StageResult
+from recon_cli.stages.normals._neighbours import neighbourhoods as _neighbourhoods
+from recon_cli.stages.normals._neighbours import pixel_neighbourhoods as _pixel_neighbourhoods
+from recon_cli.stages.normals._neighbours import pixel_radius as _pixel_radius
 from recon_cli.tolerances import tol
-
-# rows per kNN query (bounds the temporary memory)
-_CHUNK = 200_000
 
 ORIENT_METHODS = ("mst", "camera", "direction", "keep", "none")
 NEIGHBOUR_METHODS = ("auto", "kdtree", "pixels")
@@ -118,8 +117,6 @@ SPEC = StageSpec(
     execution=("workers", "scheduler", "partitions", "memory", "temp_dir"),
 )
 
-# an organized cloud's k nearest are taken among about this many times k pixels around a point
-_PIXEL_WINDOW = 6.0
 # the MST graph uses at most this many nearest neighbours of each point (more adds time, not
 # accuracy)
 _GRAPH_K = 12
@@ -131,8 +128,8 @@ _EPS = 1e-9
 _FLUX_MIN = 0.02
 # normalised flux above which a component counts as closed (a sphere gives 1, a flat patch 0)
 _CLOSED_FLUX = 0.3
-# a following component votes with at most this many of its points (evenly through its sorted
-# order): a nearest-anchor query from far away costs ~0.1 ms, 27 s for 270k points of a slab
+# a following component votes with at most this many of its points, evenly through its sorted
+# order: a nearest-anchor query from far away is slow (bench/calibration.md, _ALIGN_SAMPLES)
 _ALIGN_SAMPLES = 4096
 # neighbour-vote passes after propagation
 _VOTE_PASSES = 2
@@ -174,90 +171,6 @@ def _vector(v: Any, name: str) -> np.ndarray | None:
 # ----------------------------------------------------------------------------- neighbourhoods
 
 
-def _neighbourhoods(pts: np.ndarray, knn: int | None, radius: float | None):
-    """Neighbourhoods in a spatially coherent order.
-
-    Returns (order, ps, indptr, indices): ``ps = pts[order]`` and CSR neighbour lists
-    indexing ``ps``; kNN and hybrid rows are sorted by distance (the point itself first
-    unless it has duplicates).
-    """
-    from scipy.spatial import cKDTree
-
-    n = len(pts)
-    tree = cKDTree(pts)
-    # the tree's leaf order is spatially coherent: querying and computing in it is cache friendly
-    order = np.asarray(tree.indices, dtype=np.int64)
-    ps = np.ascontiguousarray(pts[order])
-    inv = np.empty(n + 1, dtype=np.int32)
-    inv[order] = np.arange(n, dtype=np.int32)
-    inv[n] = n  # cKDTree's "missing" marker
-    if knn is not None:
-        k = min(knn, n)
-        # query in chunks: cKDTree's float64 distances and int64 indices would triple the memory
-        idx = np.empty((n, k), dtype=np.int32)
-        bound = np.inf if radius is None else radius
-        for a in range(0, n, _CHUNK):
-            _, got = tree.query(ps[a : a + _CHUNK], k, distance_upper_bound=bound, workers=-1)
-            idx[a : a + _CHUNK] = inv[np.asarray(got).reshape(-1, k)]
-        if radius is None:
-            return order, ps, np.arange(0, n * k + 1, k, dtype=np.int64), idx.ravel()
-        valid = idx < n
-        indptr = np.zeros(n + 1, dtype=np.int64)
-        np.cumsum(valid.sum(axis=1), out=indptr[1:])
-        return order, ps, indptr, idx[valid]
-    lists = tree.query_ball_point(ps, radius, workers=-1)
-    counts = np.fromiter((len(x) for x in lists), dtype=np.int64, count=n)
-    indptr = np.zeros(n + 1, dtype=np.int64)
-    np.cumsum(counts, out=indptr[1:])
-    flat = inv[np.fromiter((j for x in lists for j in x), dtype=np.int64, count=int(indptr[-1]))]
-    # rows nearest first, like the kNN rows (the orientation graph takes the first few)
-    row = np.repeat(np.arange(n), counts)
-    d2 = np.einsum("ij,ij->i", ps[flat] - ps[row], ps[flat] - ps[row])
-    return order, ps, indptr, flat[np.lexsort((d2, row))]
-
-
-def _pixel_neighbourhoods(pts: np.ndarray, pixels: Any, knn: int, radius: float | None):
-    """Neighbourhoods of an organized cloud from its pixel grid.
-
-    The ``knn`` nearest points (within ``radius`` when given) among the pixels of a window around
-    each point's pixel, about ``_PIXEL_WINDOW`` times ``knn`` pixels in all (PCL's organized
-    neighbour search).
-
-    Same returns as :func:`_neighbourhoods`; ``order`` sorts the points by pixel (row-major,
-    image by image), a spatially coherent order.
-    """
-    from recon_cli.stages.normals import _kernel as K
-
-    n = len(pts)
-    pix = pixels.pixel
-    order = np.argsort(pix, kind="stable")
-    ps = np.ascontiguousarray(pts[order])
-    pix_s = np.ascontiguousarray(pix[order])
-    if n > 1 and (pix_s[1:] == pix_s[:-1]).any():
-        raise InputError("two points have the same pixel")
-    offs = pixels.offsets()
-    heights = np.array([h for h, _ in pixels.shapes], dtype=np.int64)
-    widths = np.array([w for _, w in pixels.shapes], dtype=np.int64)
-    img_of = (np.searchsorted(offs, pix_s, side="right") - 1).astype(np.int32)
-    img = np.full(int(offs[-1]), -1, dtype=np.int32)
-    img[pix_s] = np.arange(n, dtype=np.int32)
-    k = min(knn, n)
-    r = _pixel_radius(k)
-    # the window's offsets, nearest pixels first
-    dr, dc = np.mgrid[-r : r + 1, -r : r + 1].reshape(2, -1).astype(np.int64)
-    ring = np.argsort(dr * dr + dc * dc, kind="stable")[1:]
-    dr, dc = np.ascontiguousarray(dr[ring]), np.ascontiguousarray(dc[ring])
-    out = np.empty((n, k), dtype=np.int32)
-    count = np.empty(n, dtype=np.int64)
-    r2 = np.inf if radius is None else radius * radius
-    K.pixel_knn(ps, pix_s, img_of, offs, heights, widths, img, k, dr, dc, r2, out, count)
-    indptr = np.zeros(n + 1, dtype=np.int64)
-    np.cumsum(count, out=indptr[1:])
-    if indptr[-1] == n * k:
-        return order, ps, indptr, out.ravel()
-    return order, ps, indptr, out[np.arange(k)[None, :] < count[:, None]]
-
-
 def _check_pixels(pixels: Any, n: int, knn: int | None) -> None:
     from recon_cli.geometry import PixelGrid
 
@@ -270,11 +183,6 @@ def _check_pixels(pixels: Any, n: int, knn: int | None) -> None:
         raise InputError(f"{len(pix)} pixels for {n} points")
     if n and (pix.min() < 0 or pix.max() >= pixels.offsets()[-1]):
         raise InputError("a point's pixel is outside its image")
-
-
-def _pixel_radius(k: int) -> int:
-    """Half-width in pixels of the window the ``k`` nearest are taken from."""
-    return max(1, math.ceil((math.sqrt(_PIXEL_WINDOW * k) - 1) / 2))
 
 
 def _estimate_sorted(ps, indptr, indices):
@@ -376,8 +284,45 @@ def _orient_mst_sorted(ps, nrm, indptr, indices, seed_mask=None, seed_sign=None)
     """Signs (+1/-1 int8) orienting ``nrm`` consistently, and the number of components.
 
     ``seed_mask``/``seed_sign``: points whose sign is known (``keep``); components with no
-    known point are seeded outward and checked by flux.
+    known point are seeded outward and checked by flux. The steps: the spanning forest and its
+    traversal (:func:`_propagate`), the neighbour vote and consensus (:func:`_smooth_signs`),
+    the flux check (:func:`_flux_check`).
     """
+    from recon_cli.stages.normals import _kernel as K
+
+    eptr, dst = K.graph_edges(indptr, indices, _GRAPH_K)
+    sign, comps = _propagate(ps, nrm, eptr, dst, seed_mask, seed_sign)
+    sign = _smooth_signs(ps, nrm, sign, (eptr, dst, indptr, indices), seed_mask)
+    if comps.free.any():
+        _flux_check(ps, nrm, sign, indptr, indices, comps)
+    return sign, comps.count
+
+
+class _Components:
+    """The connected components of the orientation graph and their outward seeds."""
+
+    def __init__(self, ps: np.ndarray, nrm: np.ndarray, count: int, labels: np.ndarray) -> None:
+        self.count = count
+        self.labels = labels
+        n = len(ps)
+        # outward seed per component: farthest point from the component's centroid
+        self.size = np.bincount(labels, minlength=count).astype(np.float64)
+        cen = (
+            np.stack([np.bincount(labels, ps[:, d], minlength=count) for d in range(3)], axis=1)
+            / self.size[:, None]
+        )
+        self.rel = ps - cen[labels]
+        self.d2 = np.einsum("ij,ij->i", self.rel, self.rel)
+        by = np.lexsort((-self.d2, labels))  # per label, farthest first
+        first = np.ones(n, dtype=bool)
+        first[1:] = labels[by[1:]] != labels[by[:-1]]
+        self.seeds = by[first]
+        self.seed_signs = _seed_signs(nrm[self.seeds], self.rel[self.seeds])
+        self.free = np.ones(count, dtype=bool)  # no point of known sign
+
+
+def _propagate(ps, nrm, eptr, dst, seed_mask, seed_sign) -> tuple[np.ndarray, _Components]:
+    """Signs from a traversal of the minimum spanning forest, from the seeds; the components."""
     from scipy import sparse
     from scipy.sparse.csgraph import (
         breadth_first_order,
@@ -388,43 +333,38 @@ def _orient_mst_sorted(ps, nrm, indptr, indices, seed_mask=None, seed_sign=None)
     from recon_cli.stages.normals import _kernel as K
 
     n = len(ps)
-    eptr, dst = K.graph_edges(indptr, indices, _GRAPH_K)
     w = K.edge_weights(ps, nrm, eptr, dst, _BETA, _EPS)
     g = sparse.csr_matrix((w, dst, eptr), shape=(n, n))
     ncomp, labels = connected_components(g, directed=True, connection="weak")
     tree = minimum_spanning_tree(g).tocoo()
-
-    # outward seed per component: farthest point from the component's centroid
-    cnt = np.bincount(labels, minlength=ncomp).astype(np.float64)
-    cen = (
-        np.stack([np.bincount(labels, ps[:, d], minlength=ncomp) for d in range(3)], axis=1)
-        / cnt[:, None]
-    )
-    rel = ps - cen[labels]
-    d2 = np.einsum("ij,ij->i", rel, rel)
-    by = np.lexsort((-d2, labels))  # per label, farthest first
-    first = np.ones(n, dtype=bool)
-    first[1:] = labels[by[1:]] != labels[by[:-1]]
-    seeds = by[first]
-    sign0 = _seed_signs(nrm[seeds], rel[seeds])
-    free = np.ones(ncomp, dtype=bool)
+    comps = _Components(ps, nrm, ncomp, labels)
+    seeds = comps.seeds
     seed_sign_all = np.zeros(n, dtype=np.int8)
     if seed_mask is not None and seed_mask.any():
-        free[np.unique(labels[seed_mask])] = False
+        comps.free[np.unique(labels[seed_mask])] = False
         seed_sign_all[seed_mask] = seed_sign[seed_mask]
-        root_nodes = np.concatenate([np.flatnonzero(seed_mask), seeds[free[labels[seeds]]]])
+        root_nodes = np.concatenate([np.flatnonzero(seed_mask), seeds[comps.free[labels[seeds]]]])
     else:
         root_nodes = seeds
-    keep = free[labels[seeds]]
-    seed_sign_all[seeds[keep]] = sign0[keep]
+    keep = comps.free[labels[seeds]]
+    seed_sign_all[seeds[keep]] = comps.seed_signs[keep]
 
     # forest + a virtual root joined to every seed: one traversal covers all components
     rows = np.concatenate([tree.row, tree.col, np.full(len(root_nodes), n)])
     cols = np.concatenate([tree.col, tree.row, root_nodes])
     adj = sparse.csr_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(n + 1, n + 1))
     order, pred = breadth_first_order(adj, n, directed=True, return_predecessors=True)
-    sign = K.propagate_signs(ps, nrm, order, pred, n, seed_sign_all)
+    return K.propagate_signs(ps, nrm, order, pred, n, seed_sign_all), comps
 
+
+def _smooth_signs(ps, nrm, sign, graph, seed_mask) -> np.ndarray:
+    """The neighbour vote, then the neighbourhood consensus; known seeds keep their signs.
+
+    ``graph`` is ``(eptr, dst, indptr, indices)``: the orientation graph and the neighbourhoods.
+    """
+    from recon_cli.stages.normals import _kernel as K
+
+    eptr, dst, indptr, indices = graph
     # isolated disagreements (noise at sharp or thin places): follow a clear neighbour majority
     deg = K.degree(eptr, dst)
     for _ in range(_VOTE_PASSES):
@@ -446,29 +386,34 @@ def _orient_mst_sorted(ps, nrm, indptr, indices, seed_mask=None, seed_sign=None)
         if (new == sign).all():
             break
         sign = new
+    return sign
 
-    # global check per free component: outward flux (divergence theorem volume estimate)
-    if free.any():
-        # local area ~ squared distance to the farthest neighbour
-        far_pt = ps[indices[np.maximum(indptr[1:] - 1, 0)]]
-        far = np.einsum("ij,ij->i", ps - far_pt, ps - far_pt)
-        flux_i = np.einsum("ij,ij->i", rel, nrm) * sign * far
-        flux = np.bincount(labels, flux_i, minlength=ncomp)
-        scale = np.bincount(labels, np.sqrt(d2) * far, minlength=ncomp)
-        inside_out = free & (flux < -_FLUX_MIN * scale)
-        if inside_out.any():
-            sign[inside_out[labels]] = -sign[inside_out[labels]]
-            flux[inside_out] = -flux[inside_out]
-        # small open pieces (a scan broken into patches) have no inside: follow the normals
-        # of the nearest points of the anchors (the largest component and every closed one)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            closedness = np.where(scale > 0, flux / scale, 0.0)
-        anchor = (np.abs(closedness) >= _CLOSED_FLUX) | ~free
-        anchor[np.argmax(cnt)] = True
-        follow = ~anchor
-        if follow.any():
-            _align_to_anchors(ps, nrm, sign, labels, anchor, follow)
-    return sign, ncomp
+
+def _flux_check(ps, nrm, sign, indptr, indices, comps: _Components) -> None:
+    """Turn inside-out free components outward; small open ones follow the anchors (in place).
+
+    The outward flux is the divergence theorem's volume estimate.
+    """
+    labels, ncomp, free = comps.labels, comps.count, comps.free
+    # local area ~ squared distance to the farthest neighbour
+    far_pt = ps[indices[np.maximum(indptr[1:] - 1, 0)]]
+    far = np.einsum("ij,ij->i", ps - far_pt, ps - far_pt)
+    flux_i = np.einsum("ij,ij->i", comps.rel, nrm) * sign * far
+    flux = np.bincount(labels, flux_i, minlength=ncomp)
+    scale = np.bincount(labels, np.sqrt(comps.d2) * far, minlength=ncomp)
+    inside_out = free & (flux < -_FLUX_MIN * scale)
+    if inside_out.any():
+        sign[inside_out[labels]] = -sign[inside_out[labels]]
+        flux[inside_out] = -flux[inside_out]
+    # small open pieces (a scan broken into patches) have no inside: follow the normals
+    # of the nearest points of the anchors (the largest component and every closed one)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        closedness = np.where(scale > 0, flux / scale, 0.0)
+    anchor = (np.abs(closedness) >= _CLOSED_FLUX) | ~free
+    anchor[np.argmax(comps.size)] = True
+    follow = ~anchor
+    if follow.any():
+        _align_to_anchors(ps, nrm, sign, labels, anchor, follow)
 
 
 def _seed_signs(nrm: np.ndarray, rel: np.ndarray) -> np.ndarray:

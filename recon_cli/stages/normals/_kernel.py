@@ -73,8 +73,9 @@ def pca_normals(pts, indptr, indices, collinear):
 def _smallest_eigvec(a00, a01, a02, a11, a12, a22):
     """Unit eigenvector of a symmetric PSD 3x3 matrix's smallest eigenvalue, and the eigenvalues.
 
-    The eigenvalues come ascending. Closed form (trigonometric eigenvalues, cross products of the
-    rows of A - l0 I); a zero matrix gives (0, 0, 1).
+    The eigenvalues come ascending. Closed form (trigonometric eigenvalues,
+    :func:`_eigenvalues`; cross products of the rows of A - l0 I, :func:`_null_vector`); a
+    zero matrix gives (0, 0, 1).
     """
     m = max(abs(a00), abs(a01), abs(a02), abs(a11), abs(a12), abs(a22))
     if m == 0.0:
@@ -86,6 +87,21 @@ def _smallest_eigvec(a00, a01, a02, a11, a12, a22):
     a11 /= m
     a12 /= m
     a22 /= m
+    q, l0, l1, l2, distinct = _eigenvalues(a00, a01, a02, a11, a12, a22)
+    if not distinct:
+        # a multiple of the identity: every direction is an eigenvector
+        return 0.0, 0.0, 1.0, q * m, q * m, q * m
+    # rows of A - l0 I; the eigenvector is orthogonal to all of them
+    nx, ny, nz = _null_vector(a00 - l0, a01, a02, a11 - l0, a12, a22 - l0)
+    return nx, ny, nz, max(l0, 0.0) * m, max(l1, 0.0) * m, l2 * m
+
+
+@njit(cache=True, inline="always")
+def _eigenvalues(a00, a01, a02, a11, a12, a22):
+    """``(q, l0, l1, l2, distinct)``: the mean and ascending eigenvalues of a symmetric 3x3 matrix.
+
+    Trigonometric closed form; not ``distinct`` for a multiple of the identity (q times it).
+    """
     q = (a00 + a11 + a22) / 3.0
     p1 = a01 * a01 + a02 * a02 + a12 * a12
     b00 = a00 - q
@@ -93,8 +109,7 @@ def _smallest_eigvec(a00, a01, a02, a11, a12, a22):
     b22 = a22 - q
     p2 = b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * p1
     if p2 <= 1e-30:
-        # a multiple of the identity: every direction is an eigenvector
-        return 0.0, 0.0, 1.0, q * m, q * m, q * m
+        return q, q, q, q, False
     p = math.sqrt(p2 / 6.0)
     det = (
         b00 * (b11 * b22 - a12 * a12)
@@ -107,10 +122,17 @@ def _smallest_eigvec(a00, a01, a02, a11, a12, a22):
     l2 = q + 2.0 * p * math.cos(phi)
     l0 = q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0)
     l1 = 3.0 * q - l2 - l0
-    # rows of A - l0 I; the eigenvector is orthogonal to all of them
-    r0x, r0y, r0z = a00 - l0, a01, a02
-    r1x, r1y, r1z = a01, a11 - l0, a12
-    r2x, r2y, r2z = a02, a12, a22 - l0
+    return q, l0, l1, l2, True
+
+
+@njit(cache=True, inline="always")
+def _null_vector(r0x, r0y, r0z, r1y, r1z, r2z):
+    """A unit vector orthogonal to the rows of the symmetric matrix with these entries.
+
+    The largest cross product of two rows; for a matrix of rank one (a double smallest
+    eigenvalue: a line), any unit vector orthogonal to its largest row.
+    """
+    r1x, r2x, r2y = r0y, r0z, r1z
     c0x = r0y * r1z - r0z * r1y
     c0y = r0z * r1x - r0x * r1z
     c0z = r0x * r1y - r0y * r1x
@@ -123,18 +145,16 @@ def _smallest_eigvec(a00, a01, a02, a11, a12, a22):
     d0 = c0x * c0x + c0y * c0y + c0z * c0z
     d1 = c1x * c1x + c1y * c1y + c1z * c1z
     d2 = c2x * c2x + c2y * c2y + c2z * c2z
-    l0 = max(l0, 0.0)
-    l1 = max(l1, 0.0)
     dmax = max(d0, d1, d2)
     if dmax > 1e-24:
         if d0 == dmax:
             s = 1.0 / math.sqrt(d0)
-            return c0x * s, c0y * s, c0z * s, l0 * m, l1 * m, l2 * m
+            return c0x * s, c0y * s, c0z * s
         if d1 == dmax:
             s = 1.0 / math.sqrt(d1)
-            return c1x * s, c1y * s, c1z * s, l0 * m, l1 * m, l2 * m
+            return c1x * s, c1y * s, c1z * s
         s = 1.0 / math.sqrt(d2)
-        return c2x * s, c2y * s, c2z * s, l0 * m, l1 * m, l2 * m
+        return c2x * s, c2y * s, c2z * s
     # double smallest eigenvalue (a line): any unit vector orthogonal to the largest row
     n0 = r0x * r0x + r0y * r0y + r0z * r0z
     n1 = r1x * r1x + r1y * r1y + r1z * r1z
@@ -155,8 +175,8 @@ def _smallest_eigvec(a00, a01, a02, a11, a12, a22):
         vx, vy, vz = -uy, ux, 0.0
     s = math.sqrt(vx * vx + vy * vy + vz * vz)
     if s == 0.0:
-        return 0.0, 0.0, 1.0, l0 * m, l1 * m, l2 * m
-    return vx / s, vy / s, vz / s, l0 * m, l1 * m, l2 * m
+        return 0.0, 0.0, 1.0
+    return vx / s, vy / s, vz / s
 
 
 @njit(cache=True, parallel=True)
@@ -350,19 +370,20 @@ def consensus(pts, normals, sign, indptr, indices, power):
 
 
 @njit(cache=True, parallel=True)
-def pixel_knn(ps, pix, img_of, offs, heights, widths, img, k, dr, dc, r2max, out, count):
+def pixel_knn(ps, pix, img_of, images, k, dr, dc, r2max, out, count):
     """The ``k`` nearest points among nearby pixels of each point's pixel in its image.
 
     Nearest by 3-D distance, at most ``r2max`` squared, among the pixels at row and column
     offsets ``dr``, ``dc``.
 
     ``ps`` (n, 3) points; ``pix`` (n,) each point's pixel in the concatenated images,
-    ``img_of`` (n,) its image, ``offs``/``heights``/``widths`` the images' first pixel and
-    size, ``img`` (total pixels,) the point at each pixel (-1: none). The offsets go outward
-    from (0, 0), so that the nearest are met first and most farther pixels are rejected by
-    one comparison. Fills ``out`` (n, k) with neighbour indices nearest first (the point
-    itself first) and ``count`` (n,).
+    ``img_of`` (n,) its image; ``images`` is ``(offs, heights, widths, img)``: the images' first
+    pixel and size, and ``img`` (total pixels,) the point at each pixel (-1: none). The
+    offsets go outward from (0, 0), so that the nearest are met first and most farther pixels
+    are rejected by one comparison. Fills ``out`` (n, k) with neighbour indices nearest first
+    (the point itself first) and ``count`` (n,).
     """
+    offs, heights, widths, img = images
     n = ps.shape[0]
     for i in prange(n):
         g = img_of[i]

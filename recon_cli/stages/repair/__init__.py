@@ -330,6 +330,34 @@ def _non_manifold(st: _State, rep: dict) -> None:
 
 def _orient(st: _State, normals: np.ndarray | None, rep: dict) -> None:
     """Step 5."""
+    flip, comp, conn = _consistent_winding(st, rep)
+    m = len(st.faces)
+    if m == 0:
+        rep["faces_flipped"] = 0
+        rep["components_reversed"] = 0
+        return
+    n_comp = int(comp.max()) + 1
+    # closed components: outward by signed volume (centred per component for accuracy)
+    open_comp = np.zeros(n_comp, dtype=bool)
+    open_comp[comp[conn.edge_half_edges[conn.edge_ptr[conn.boundary_edges]] // 3]] = True
+    del conn
+    vol, agree = _component_sides(st, normals, comp, flip, n_comp)
+    reverse = np.where(open_comp, agree < 0, vol < 0)
+    flip = flip ^ reverse[comp]  # not in place: the connectivity's cached array
+    rep["faces_flipped"] = int(flip.sum())
+    rep["components_reversed"] = int(reverse.sum())
+    if flip.any():
+        st.drop_conn()  # stale once the faces flip: free it before copying them
+        f = st.faces.copy()
+        f[flip] = f[flip][:, [0, 2, 1]]
+        st.faces = f
+
+
+def _consistent_winding(st: _State, rep: dict) -> tuple[np.ndarray, np.ndarray, Any]:
+    """Make the windings consistent: cut, then drop, the faces along conflicting edges.
+
+    Returns the faces to flip for a consistent winding, their components and the connectivity.
+    """
     cut = dropped = 0
     for rnd in range(len(st.faces) + 2):
         conn = st.conn()
@@ -357,18 +385,19 @@ def _orient(st: _State, normals: np.ndarray | None, rep: dict) -> None:
         _split_fans(st, conn, a, b)
     rep["non_orientable_edges_cut"] = cut
     rep["non_orientable_faces_dropped"] = dropped
+    return flip, comp, conn
+
+
+def _component_sides(
+    st: _State, normals: np.ndarray | None, comp: np.ndarray, flip: np.ndarray, n_comp: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per component: its signed volume, and its agreement with the vertex normals (or area).
+
+    With the faces flipped as ``flip`` says.
+    """
     m = len(st.faces)
-    if m == 0:
-        rep["faces_flipped"] = 0
-        rep["components_reversed"] = 0
-        return
-    n_comp = int(comp.max()) + 1
     f = st.faces
     v = st.vertices
-    # closed components: outward by signed volume (centred per component for accuracy)
-    open_comp = np.zeros(n_comp, dtype=bool)
-    open_comp[comp[conn.edge_half_edges[conn.edge_ptr[conn.boundary_edges]] // 3]] = True
-    del conn
     # signed volume about a point of each component (its mean first corner): fewer lost digits
     centre = np.zeros((n_comp, 3))
     for k in range(3):
@@ -381,8 +410,7 @@ def _orient(st: _State, normals: np.ndarray | None, rep: dict) -> None:
     # per-face terms in chunks, (chunk, 3) float64 temporaries instead of (m, 3) ones: six
     # times the signed volume of the face's tetrahedron, and the area (or the agreement
     # with the vertex normals), both sign-flipped with the face
-    vol: np.ndarray | None = None
-    agree: np.ndarray | None = None
+    sums = []
     for kind in ("volume", "side"):
         term = np.empty(m, dtype=np.float64)
         for s in range(0, m, CHUNK):
@@ -397,22 +425,9 @@ def _orient(st: _State, normals: np.ndarray | None, rep: dict) -> None:
             else:
                 term[s : s + len(fk)] = 0.5 * np.linalg.norm(cross, axis=1)
         term[flip] *= -1.0
-        if kind == "volume":
-            vol = np.bincount(comp, weights=term, minlength=n_comp)
-        else:
-            agree = np.bincount(comp, weights=term, minlength=n_comp)
+        sums.append(np.bincount(comp, weights=term, minlength=n_comp))
         del term
-    del vs
-    assert vol is not None and agree is not None  # both kinds ran
-    reverse = np.where(open_comp, agree < 0, vol < 0)
-    flip = flip ^ reverse[comp]  # not in place: the connectivity's cached array
-    rep["faces_flipped"] = int(flip.sum())
-    rep["components_reversed"] = int(reverse.sum())
-    if flip.any():
-        st.drop_conn()  # stale once the faces flip: free it before copying them
-        f = st.faces.copy()
-        f[flip] = f[flip][:, [0, 2, 1]]
-        st.faces = f
+    return sums[0], sums[1]
 
 
 def _fill_holes(st: _State, max_edges: int, rep: dict) -> None:

@@ -78,6 +78,9 @@ SPEC = StageSpec(
     ),
 )
 
+# recon warmup's runs of this stage: an input of its Files, then options (one per kernel path)
+WARMUP = (("m64",), ("open", "--fixed-boundary"))
+
 
 def taubin_mu(step: float, pass_band: float) -> float:
     """Taubin's inflating factor ``mu`` for ``lambda = step`` and ``k_PB = pass_band``."""
