@@ -10,17 +10,18 @@ decoded (laspy's ``CopcReader.query``); the points inside the box (faces include
 kept by their float64 coordinates, computed as the LAS reader computes them: the cloud is the
 whole file's cloud cropped (the same points, in the same order, the same bits), restricted to
 the levels asked. A window with no point is an error, never an empty cloud. Read without a
-hint, the file is read whole by the LAS reader. Either way the cloud is what
-``recon_cli.io.las`` gives (attributes, scale, offset, VLRs and EVLRs such as the WKT
-coordinate system; COPC's own records left out).
+hint, every node is decoded the same way. Either way the cloud is what the LAS reader
+(``recon_cli.io.las``) gives: attributes, scale, offset, VLRs and EVLRs such as the WKT
+coordinate system, COPC's and LASzip's own records left out.
 
 Before laspy reads anything, the header is checked against the file's size (as for LAS) and
 the whole hierarchy is walked and checked: every page inside the file and reached once, every
 key inside its level's grid and its parent present, every node's chunk inside the point data
 and apart from the others, and the nodes' counts adding up to the header's. laspy walks the
 hierarchy as it finds it: a page that does not hold its own key, or points back at itself,
-would make it loop forever. :func:`summary` describes a file from its header and hierarchy
-without decoding a point (``recon info``).
+would make it loop forever. The chunks to decode are checked too: each one's own point count
+and layer sizes (lazrs allocates every layer by its declared size). :func:`summary` describes
+a file from its header and hierarchy without decoding a point (``recon info``).
 
 References
 ----------
@@ -44,7 +45,6 @@ from recon_cli.io.las import (
     check_counts,
     cloud_from_points,
     coordinates,
-    decode_las,
     first_line,
     laspy_module,
 )
@@ -315,21 +315,20 @@ def decode_copc(
     InputError
         A file that is not valid COPC, or a box and levels that hold no point.
     """
+    hint = hint if hint is not None and (hint.box is not None or hint.wants_levels) else None
     f, size = _open(data, path, where)
     with f:
         tree = read_octree(f, size, where)
-        if hint is None or (hint.box is None and not hint.wants_levels):
-            f.close()
-            cloud, details = decode_las(data, where, path=path)
-        else:
-            cloud, details = _window(f, tree, hint, where)
-    if hint is not None and hint.wants_levels:
+        cloud, details = _read(f, tree, hint or ReadHint(), where)
+    if hint is None:
+        del details["window"]
+    elif hint.wants_levels:
         cloud.obj_info.append(f"{LEVELS_KEY} {hint.levels_mark()}")
     details.update(format="copc", compressed=True, **octree_details(tree))
     return cloud, details
 
 
-def _window(f: Any, tree: Octree, hint: ReadHint, where: str) -> tuple[Any, dict]:
+def _read(f: Any, tree: Octree, hint: ReadHint, where: str) -> tuple[Any, dict]:
     """The points of the box and levels of ``hint``: only the nodes they need decoded."""
     laspy = laspy_module()
     try:
@@ -338,31 +337,37 @@ def _window(f: Any, tree: Octree, hint: ReadHint, where: str) -> tuple[Any, dict
     except Exception as exc:  # laspy's own errors
         raise InputError(f"not a readable COPC file ({first_line(exc)})", where) from None
     scales, offsets = np.asarray(header.scales), np.asarray(header.offsets)
-    box = np.array(hint.box if hint.box is not None else (-np.inf,) * 3 + (np.inf,) * 3)
-    lo, hi = box[:3], box[3:]
-    # the query is padded by a grid step (a writer may round a point into the next node) and
-    # kept inside the cube and the int32 grid (laspy rounds its box to integer coordinates)
-    pad = scales + 1e-9 * tree.halfsize
-    grid = np.abs(scales) * (2.0**31 - 2.0**20)
-    qlo = np.fmax(np.fmax(lo - pad, tree.center - tree.halfsize - pad), offsets - grid)
-    qhi = np.fmin(np.fmin(hi + pad, tree.center + tree.halfsize + pad), offsets + grid)
     last = hint.last_level(tree.spacing)
-    chosen = tree.select(qlo, qhi, last) if (qlo <= qhi).all() else np.zeros(len(tree.nodes), bool)
-    decoded = int(tree.nodes["point_count"][chosen].astype(np.int64).sum())
-    records = None
-    if decoded:
+    chosen = np.ones(len(tree.nodes), bool) if last is None else tree.nodes["level"] <= last
+    bounds = None
+    if hint.box is not None:
+        lo, hi = np.asarray(hint.box[:3], float), np.asarray(hint.box[3:], float)
+        # the query is padded by a grid step (a writer may round a point into the next node)
+        # and kept inside the cube and the int32 grid (laspy rounds its box to integers)
+        pad = np.abs(scales) + 1e-9 * tree.halfsize
+        grid = np.abs(scales) * (2.0**31 - 2.0**20)
+        qlo = np.fmax(np.fmax(lo - pad, tree.center - tree.halfsize - pad), offsets - grid)
+        qhi = np.fmin(np.fmin(hi + pad, tree.center + tree.halfsize + pad), offsets + grid)
+        chosen &= tree.select(qlo, qhi, last) if (qlo <= qhi).all() else False
+        bounds = laspy.copc.Bounds(qlo, qhi)
+    decoded = int(tree.nodes["point_count"][chosen].sum(dtype=np.int64))
+    _check_chunks(f, tree.nodes[chosen], header, where)
+    records = laspy.ScaleAwarePointRecord.zeros(0, header=header)
+    if chosen.any():
         try:
             f.seek(0)
             reader = laspy.CopcReader(f, close_fd=False)
             records = reader.query(
-                bounds=laspy.copc.Bounds(qlo, qhi),
-                level=range(0, (last if last is not None else _MAX_LEVEL) + 1),
+                bounds=bounds, level=None if last is None else range(0, last + 1)
             )
+            if bounds is None and len(records) != decoded:  # laspy walked other nodes
+                raise ValueError(f"{len(records)} points read of the {decoded} asked for")
         except Exception as exc:  # laspy's and lazrs' errors
             raise InputError(f"not a readable COPC file ({first_line(exc)})", where) from None
-        xyz = coordinates(records.array, scales, offsets)
-        records = records[((xyz >= lo) & (xyz <= hi)).all(axis=1)]
-    if records is None or len(records) == 0:
+        if bounds is not None:
+            xyz = coordinates(records.array, scales, offsets)
+            records = records[((xyz >= lo) & (xyz <= hi)).all(axis=1)]
+    if len(records) == 0 and (hint.box is not None or hint.wants_levels):
         raise InputError(
             f"{hint.asked or 'the window'}: no point of the file there (of {tree.point_count}; "
             f"its points span {_span(header)})",
@@ -371,13 +376,67 @@ def _window(f: Any, tree: Octree, hint: ReadHint, where: str) -> tuple[Any, dict
     cloud, details = cloud_from_points(records, header, where)
     details["window"] = {
         "box": None if hint.box is None else [float(v) for v in hint.box],
-        "levels": [0, int(tree.nodes["level"][chosen].max())],
+        "levels": [0, int(tree.nodes["level"][chosen].max())] if chosen.any() else None,
         "nodes_read": int(chosen.sum()),
         "nodes": len(tree.nodes),
         "points_decoded": decoded,
         "points_in_file": tree.point_count,
     }
     return cloud, details
+
+
+# layers of each LASzip 1.4 item (type: layers; Byte14, type 14, has one per byte): Point14,
+# RGB14, RGBNIR14, Wavepacket14
+_LAYERS = {10: 9, 11: 1, 12: 2, 13: 1}
+
+
+def _chunk_head(header: Any, where: str) -> tuple[int, int] | None:
+    """The size of a chunk's raw first point and its count of layers, from the LASzip record.
+
+    None when the items are not LASzip 1.4's layered ones (then lazrs alone checks the chunks).
+    """
+    zips = [v for v in header.vlrs if v.user_id == "laszip encoded" and v.record_id == 22204]
+    if not zips:
+        raise _refuse("it has no LASzip record (how its chunks are compressed)", where)
+    data = bytes(getattr(zips[0], "record_data", b""))
+    count = int.from_bytes(data[32:34], "little")
+    if len(data) < 34 + 6 * count:
+        raise _refuse("its LASzip record is cut short", where)
+    size = layers = 0
+    for i in range(count):
+        kind, item = struct.unpack_from("<2H", data, 34 + 6 * i)
+        if kind != 14 and kind not in _LAYERS:
+            return None
+        size += item
+        layers += item if kind == 14 else _LAYERS[kind]
+    return size, layers
+
+
+def _check_chunks(f: Any, nodes: np.ndarray, header: Any, where: str) -> None:
+    """Each chunk's own point count and layer sizes (read before lazrs sizes buffers by them).
+
+    A chunk starts with its first point raw, its point count and the size of each layer; lazrs
+    allocates each layer by its size (a corrupted one took a 1 MB file to 3.5 GB).
+    """
+    layout = _chunk_head(header, where)
+    if layout is None:
+        return
+    raw, layers = layout
+    need = raw + 4 + 4 * layers
+    for e in nodes:
+        size = int(e["byte_size"])
+        f.seek(int(e["offset"]))
+        head = f.read(need)
+        count = int.from_bytes(head[raw : raw + 4], "little") if len(head) == need else -1
+        data = int(np.frombuffer(head[raw + 4 :], "<u4").sum(dtype=np.int64)) if count >= 0 else 0
+        if size < need or count != e["point_count"] or data > size - need:
+            key = tuple(int(e[c]) for c in _KEY)
+            raise _refuse(
+                f"node {key}'s chunk ({size} bytes at byte {int(e['offset'])}) declares "
+                f"{count} points and {data} bytes of layers, its entry {int(e['point_count'])} "
+                "points",
+                where,
+            )
 
 
 def _span(header: Any) -> str:
@@ -401,6 +460,8 @@ def octree_details(tree: Octree) -> dict:
 def summary(path: str, where: str) -> dict:
     """What a COPC file holds, from its header and hierarchy only (no point decoded).
 
+    Every node's chunk is checked as a read would check it (its first bytes).
+
     Returns
     -------
     dict
@@ -420,6 +481,7 @@ def summary(path: str, where: str) -> dict:
             header = laspy.LasHeader.read_from(f, read_evlrs=True)
         except Exception as exc:  # laspy's own errors
             raise InputError(f"not a readable COPC file ({first_line(exc)})", where) from None
+        _check_chunks(f, tree.nodes, header, where)  # their first bytes only: no point decoded
     out = describe_header(header, where)
     out["details"].update(format="copc", compressed=True, **octree_details(tree))
     out["points"] = tree.point_count
