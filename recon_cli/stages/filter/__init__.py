@@ -674,7 +674,7 @@ def read_hint(params: dict[str, Any]) -> ReadHint | None:
     """
     crop, level, resolution = params.get("crop"), params.get("level"), params.get("resolution")
     _one_level_rule(level, resolution)
-    given = [(n, v) for n, v in (("crop", crop), ("level", level), ("resolution", resolution))]
+    given = (("crop", crop), ("level", level), ("resolution", resolution))
     asked = " ".join(f"--{n} {_text(v)}" for n, v in given if v is not None)
     if not asked:
         return None
@@ -752,7 +752,7 @@ def filter_cloud(
     ------
     InputError
         No points; an operation that leaves no point; ``classes``/``returns`` without the
-        LAS attributes they read.
+        LAS attributes they read; ``level``/``resolution`` for a cloud not read with them.
     ParameterError
         A parameter out of its range (see :data:`SPEC`), or both ``level`` and ``resolution``.
     """
