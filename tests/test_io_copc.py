@@ -419,6 +419,8 @@ def _corruptions(data: bytes, tree) -> list[tuple[str, bytes, str]]:
         ),
         ("an orphan node", _set(data, own, "<4i", *orphan), ""),
         ("half size 0", _set(data, INFO_AT + 24, "<d", 0.0), "not finite and positive"),
+        ("y scale 0", _set(data, 139, "<d", 0.0), "scale positive"),
+        ("x offset NaN", _set(data, 155, "<d", math.nan), "not finite"),
         ("spacing NaN", _set(data, INFO_AT + 32, "<d", math.nan), "not finite and positive"),
         ("centre infinite", _set(data, INFO_AT, "<d", math.inf), "not finite and positive"),
         ("a chunk's count", _set(data, chunk + 36, "<I", 1 + first["point_count"]), "declares"),
@@ -475,6 +477,14 @@ def _page_ranges(data):
             (int(e["offset"]), int(e["size"])) for e in _entries(data, off, n) if e["count"] == -1
         ]
     return out
+
+
+def test_evlrs_read_from_a_corrupted_start_are_data_not_a_traceback(terrain):
+    # the start of the EVLRs moved: laspy reads records whose text is not text (found by the fuzz)
+    bad = terrain["data"][:234] + b"\0\0\1" + terrain["data"][237:]
+    cloud, _ = decode_copc(bad, "f.copc.laz")
+    assert np.array_equal(cloud.points, terrain["whole"].points)
+    assert any(line.startswith("las_evlr ") for line in cloud.obj_info)
 
 
 def test_cli_refuses_corrupted_files_in_one_line_and_writes_nothing(autzen, tmp_path, capfd):

@@ -168,6 +168,13 @@ def read_octree(f: Any, size: int, where: str) -> Octree:
             f"{spacing!r} are not finite and positive",
             where,
         )
+    scales, offsets = struct.unpack_from("<3d", head, 131), struct.unpack_from("<3d", head, 155)
+    if not all(0 < v < np.inf for v in scales) or not np.isfinite(offsets).all():
+        raise _refuse(
+            f"its scale {list(scales)} and offset {list(offsets)} are not finite (and the scale "
+            "positive)",
+            where,
+        )
     to_points = int.from_bytes(head[96:100], "little")
     fmt = head[104] & 0x3F
     if fmt not in (6, 7, 8):

@@ -279,12 +279,22 @@ def _kept_records(header) -> list[tuple[str, Any]]:
 def _vlr_line(v) -> str:
     return " ".join(
         (
-            base64.b64encode(v.user_id.encode("latin-1")).decode(),
+            base64.b64encode(_raw_text(v.user_id)).decode(),
             str(int(v.record_id)),
-            base64.b64encode((v.description or "").encode("latin-1")).decode(),
+            base64.b64encode(_raw_text(v.description)).decode(),
             base64.b64encode(_vlr_bytes(v)).decode(),
         )
     )
+
+
+def _raw_text(value) -> bytes:
+    """A VLR's user id or description as bytes (laspy gives bytes when they are not text)."""
+    if isinstance(value, bytes):
+        return value
+    try:
+        return (value or "").encode("latin-1")
+    except UnicodeEncodeError:  # laspy decoded it as UTF-8
+        return value.encode("utf-8")
 
 
 def crs_name(header) -> str | None:
