@@ -30,6 +30,7 @@ from recon_cli.io.las import decode_las
 from recon_cli.io.load import format_of, load, load_detailed
 
 from copc_files import autzen_records, synthetic_records, write_copc
+from fuzz_checks import convert_broken_files
 from shared_data import SHARED
 
 laspy = pytest.importorskip("laspy")
@@ -545,6 +546,21 @@ def test_fuzz_corrupted_copc_is_data_or_one_line(terrain, draw_data, hint):
 @given(draw_data=st.data(), hint=_HINTS)
 def test_fuzz_long_corrupted_copc_is_data_or_one_line(terrain, draw_data, hint):
     _fuzz(terrain, draw_data, hint)
+
+
+def test_cli_on_randomly_broken_files_one_line_and_output_untouched(terrain, tmp_path, capfd):
+    # as the PLY and glTF fuzzes check the command: seeded cuts and junk in each part of the file
+    data = terrain["data"]
+    root, _ = _root_page(data)
+    rng = np.random.default_rng(5)
+    cases = []
+    for a, b in [(0, 375), (375, 700), (700, root), (root, len(data))]:
+        for at in rng.integers(a, b, 1):
+            junk = rng.bytes(int(rng.integers(1, 9)))
+            cases.append((f"cut {at}", "t.copc.laz", data[:at]))
+            cases.append((f"junk at {at}", "t.copc.laz", data[:at] + junk + data[at + len(junk) :]))
+    codes = convert_broken_files(cases, tmp_path, capfd)
+    assert codes[2] >= len(cases) // 2  # the cuts at least are refused
 
 
 def test_window_of_bytes_equals_window_of_file(autzen):
