@@ -226,7 +226,11 @@ def test_header_and_crs_kept_through_a_window_written_as_laz(autzen, tmp_path):
     box = (*pts.min(axis=0), *(pts.min(axis=0) + 0.3 * np.ptp(pts, axis=0)))
     got = load(autzen["path"], hint=ReadHint(box=box))
     assert got.obj_info == whole.obj_info  # version, format, scale, offset, the WKT EVLR
+    from recon_cli.io.las import coordinate_system
     from recon_cli.io.load import save
+
+    assert not any(line.startswith("las_vlr ") for line in got.obj_info)
+    assert coordinate_system(got.obj_info) == autzen["wkt"]  # what tiles georeferences by
 
     save(got, tmp_path / "w.laz")
     back = laspy.read(tmp_path / "w.laz")

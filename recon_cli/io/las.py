@@ -339,17 +339,17 @@ _PROJECTED_KEY, _GEOGRAPHIC_KEY = 3072, 2048
 
 
 def coordinate_system(obj_info: list[str]) -> str | None:
-    """The coordinate system the LAS VLRs kept in ``obj_info`` lines give, or None.
+    """The coordinate system the LAS VLRs and EVLRs kept in ``obj_info`` lines give, or None.
 
-    The OGC WKT record (``LASF_Projection`` 2112) as its text, else the EPSG code of a
-    GeoKeyDirectory record (34735: ``ProjectedCSTypeGeoKey``, else ``GeographicTypeGeoKey``)
-    as ``"EPSG:<code>"``. Malformed records are passed over.
+    The OGC WKT record (``LASF_Projection`` 2112, a VLR or an EVLR as COPC files hold it) as its
+    text, else the EPSG code of a GeoKeyDirectory record (34735: ``ProjectedCSTypeGeoKey``, else
+    ``GeographicTypeGeoKey``) as ``"EPSG:<code>"``. Malformed records are passed over.
     """
     records = {}
     for line in obj_info:
         key, _, rest = line.partition(" ")
         words = rest.split(" ")
-        if key != "las_vlr" or len(words) != 4:
+        if key not in ("las_vlr", "las_evlr") or len(words) != 4:
             continue
         try:
             user = base64.b64decode(words[0]).decode("latin-1").rstrip("\0")
