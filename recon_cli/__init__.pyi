@@ -178,6 +178,8 @@ def filter(
     *,
     normals: np.ndarray | None = None,
     crop: Sequence[float] | None = None,
+    level: int | None = None,
+    resolution: float | None = None,
     classes: Any = None,
     returns: Literal["all", "first", "last", "single", "intermediate"] = "all",
     radius_outliers: Sequence[float] | None = None,

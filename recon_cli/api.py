@@ -39,7 +39,7 @@ from recon_cli.grid import Grid
 from recon_cli.io.tiles import Tileset
 from recon_cli.params import Param, StageSpec, describe_kinds
 from recon_cli.progress import Progress
-from recon_cli.stages import apply_stage, get_spec, stage_names
+from recon_cli.stages import apply_stage, get_spec, read_hint, stage_names
 
 # names the annotations' source text uses (runtime and the generated stub alike)
 _NAMESPACE = {
@@ -321,8 +321,13 @@ def docstring(spec: StageSpec, name: str | None = None) -> str:
 
 
 # ---- inputs --------------------------------------------------------------------------------------
-def as_input(data: Any, spec: StageSpec, normals: Any = None) -> PointCloud | TriangleMesh | Grid:
+def as_input(
+    data: Any, spec: StageSpec, normals: Any = None, hint: Any = None
+) -> PointCloud | TriangleMesh | Grid:
     """``data`` as recon's own object for stage ``spec`` (see the module docstring).
+
+    ``hint``: for a file name, what the stage keeps of the file (a
+    :class:`~recon_cli.io.hint.ReadHint`: a COPC file then decodes only that).
 
     Raises
     ------
@@ -330,7 +335,9 @@ def as_input(data: Any, spec: StageSpec, normals: Any = None) -> PointCloud | Tr
         Nothing recon can read as a cloud, a mesh or a grid.
     """
     if isinstance(data, (str, os.PathLike)):
-        obj: Any = read(data)
+        from recon_cli.io.load import load
+
+        obj: Any = read(data) if hint is None else load(data, hint=hint)
     elif isinstance(data, (PointCloud, TriangleMesh, Grid)):
         obj = data
     elif type(data).__module__.split(".")[0] in ("open3d", "trimesh"):
@@ -429,7 +436,9 @@ def _make(stage: str, spec: StageSpec) -> Callable[..., Any]:
         data = args[0] if args else kwargs.pop(first)
         extra = {k: kwargs.pop(k) for k in own if k in kwargs}
         spec.check(kwargs, complete=False)  # parameters before any data
-        obj = as_input(data, spec, extra.get("normals"))
+        # a file name: read only what the stage keeps of it (filter's crop of a COPC file)
+        hint = read_hint(stage, kwargs) if isinstance(data, (str, os.PathLike)) else None
+        obj = as_input(data, spec, extra.get("normals"), hint=hint)
         with _progress(extra.get("progress")) as progress:
             result = apply_stage(stage, obj, kwargs, progress=progress)
         out = result.output

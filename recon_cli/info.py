@@ -9,6 +9,9 @@ Keys (PLY): ``file``, ``kind`` ("point_cloud" or "mesh"), ``format``, ``vertices
 (provenance lines), and for meshes ``topology`` (see :func:`recon_cli.mesh.topology.report`).
 Other formats (OBJ, OFF, STL, XYZ, PCD, LAS, E57): the same keys, ``format`` being the
 format's name, plus ``details`` (what the reader reports: STL weld, LAS header, PCD fields...).
+A COPC file (``.copc.laz``, or a LAS/LAZ name holding one) is described from its header and
+hierarchy without decoding a point: ``bbox`` is the header's, ``details`` has the octree's
+levels (:func:`describe_copc`).
 Keys (grid): ``file``, ``kind`` ("grid"), ``shape``, ``origin``, ``voxel_size``,
 ``unknown_cells``, ``range``, ``eikonal`` (with ``near``: the figures near the zero level,
 ``recon_cli.stages.sdf.eikonal_check``), ``history``.
@@ -35,6 +38,11 @@ def describe(path: str | os.PathLike, format: str | None = None) -> dict[str, An
 
     name = "<stdin>" if str(path) == "-" else str(path)
     fmt = format_of(path, format)
+    if fmt is not None and fmt.name in ("las", "copc") and str(path) != "-" and format is None:
+        from recon_cli.io.copc import is_copc_file
+
+        if fmt.name == "copc" or is_copc_file(path):
+            return describe_copc(path, name)
     if fmt is not None and fmt.name in ("las", "e57") and str(path) != "-":
         geom, details, fmt = load_detailed(path, format)
         return describe_geometry(geom, name, fmt.name, details)
@@ -113,6 +121,37 @@ def describe_geometry(geom, name: str, fmt: str, details: dict) -> dict[str, Any
         if topology_report is not None:
             out["topology"] = topology_report(geom)
     return out
+
+
+def describe_copc(path: str | os.PathLike, name: str) -> dict[str, Any]:
+    """Describe a COPC file from its header and hierarchy, decoding no point.
+
+    The keys of :func:`describe_geometry` (``bbox`` the header's bounds), and in ``details``
+    the octree's: ``octree_center``, ``octree_halfsize``, ``octree_spacing``,
+    ``octree_nodes``, ``nodes_per_level`` and ``points_per_level``.
+    """
+    from recon_cli.io.copc import summary
+
+    s = summary(str(path), name)
+    corners = np.array([s["mins"], s["maxs"]])
+    return {
+        "file": name,
+        "kind": "point_cloud",
+        "format": "copc",
+        "vertices": s["points"],
+        "faces": 0,
+        "elements": {"vertex": s["points"]},
+        "properties": {"vertex": s["dimensions"]},
+        "bbox": {"min": s["mins"], "max": s["maxs"], "diagonal": bbox_diagonal(corners)},
+        "has_normals": s["normals"],
+        "has_colors": s["colors"],
+        "attributes": s["attributes"],
+        "invalid_dropped": 0,
+        "organized": None,
+        "sensors": s["sensors"],
+        "history": [],
+        "details": {k: v for k, v in s["details"].items() if k != "format"},
+    }
 
 
 def describe_grid(grid, name: str) -> dict[str, Any]:

@@ -386,6 +386,11 @@ class StageSpec:
         ``scheduler``, ``partitions``, ``memory``, ``temp_dir``): its command takes them
         (declared once in :data:`recon_cli.execution.PARAMS`) and runs the stage in
         :func:`recon_cli.execution.run_on` them.
+    read_hint : str, optional
+        ``"module:function"`` giving, from the checked parameters, the part of its input
+        file the stage keeps (``f(params) -> ReadHint | None``, :mod:`recon_cli.io.hint`):
+        the command, a pipeline that starts with the stage and the library function given a
+        file name read only that where the format can (``filter --crop`` of a COPC file).
     """
 
     name: str
@@ -402,6 +407,7 @@ class StageSpec:
     keeps_partial: bool = False
     from_files: str | None = None
     execution: tuple[str, ...] = ()
+    read_hint: str | None = None
     run: Callable[..., Any] | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:

@@ -38,7 +38,7 @@ else:  # pragma: no cover
 
 from recon_cli.errors import InputError, ParameterError
 from recon_cli.params import describe_data, describe_kinds
-from recon_cli.stages import StageResult, apply_stage, get_spec
+from recon_cli.stages import StageResult, apply_stage, get_spec, read_hint
 
 
 @dataclass
@@ -170,6 +170,7 @@ def check_pipeline(pipe: Pipeline, input_kinds: frozenset[str] | None = None) ->
             step.param_lines[p.name] = line
             if key in step.text_params:
                 step.text_params[p.name] = step.text_params.pop(key)
+        _check_read_hint(pipe, i, step)
         if spec.declared and given is not None:
             want = spec.input_kinds(step.params)
             if not given & set(want):
@@ -180,6 +181,24 @@ def check_pipeline(pipe: Pipeline, input_kinds: frozenset[str] | None = None) ->
                 )
         given = spec.output_kinds(given) if spec.declared else None
         source = f"stage {i} ({step.name})"
+
+
+def _check_read_hint(pipe: Pipeline, i: int, step: PipelineStep) -> None:
+    """The read options of step ``i`` agree, and only the first stage chooses octree levels."""
+    try:
+        hint = read_hint(step.name, step.params)
+    except ParameterError as exc:
+        raise ParameterError(f"{pipe.path}:{step.line}: stage {i} ({step.name}): {exc}") from None
+    if i > 1 and hint is not None and hint.wants_levels:
+        raise ParameterError(
+            f"{pipe.path}:{step.line}: stage {i} ({step.name}): --level and --resolution choose "
+            "the octree levels of a COPC file as it is read: only the first stage reads it"
+        )
+
+
+def input_hint(pipe: Pipeline) -> Any:
+    """What the pipeline's first stage keeps of IN (a ReadHint for the loader), or None."""
+    return read_hint(pipe.steps[0].name, pipe.steps[0].params) if pipe.steps else None
 
 
 def apply_overrides(pipe: Pipeline, overrides: list[str] | tuple[str, ...]) -> None:

@@ -70,11 +70,12 @@ def run_stage_command(
     from recon_cli.cli._signals import immediate
     from recon_cli.errors import naming
     from recon_cli.geometry import TriangleMesh
-    from recon_cli.io.load import check_destination, load, read_report, save
-    from recon_cli.stages import apply_stage, get_spec
+    from recon_cli.io.load import check_destination, check_read, load_detailed, read_report, save
+    from recon_cli.stages import apply_stage, get_spec, read_hint
 
     spec = get_spec(stage)
     checked = spec.check(params, complete=False)  # parameters before reading anything
+    hint = read_hint(stage, checked)  # what the stage keeps of IN: a COPC file reads only that
     check_destination(output, spec.gives)  # and the output path: a wrong one is known now
     progress = make_progress(ctx)  # before reading: a first run's compiling shows from the start
     # Ctrl-C / SIGTERM leave at once, even inside a numba kernel or while numba loads one:
@@ -101,7 +102,8 @@ def run_stage_command(
             return report
     with immediate():
         t0 = time.perf_counter()
-        data = load(input, **load_kw)
+        data, details, _ = load_detailed(input, hint=hint, **load_kw)
+        check_read(data, input)
         t1 = time.perf_counter()
         if stage == "normals" and isinstance(data, TriangleMesh):
             from recon_cli.io.text import warn
@@ -122,7 +124,7 @@ def run_stage_command(
     save(result.output, output, ascii=ascii_, **save_kw)
     t3 = time.perf_counter()
     report = dict(result.report)
-    read = read_report(data)  # invalid points dropped, an organized cloud: never silently
+    read = read_report(data, details)  # invalid points dropped, a COPC window: never silently
     if read:
         report["read"] = read
     report["timings"] = {"read": t1 - t0, "stage": t2 - t1, "write": t3 - t2}
@@ -171,4 +173,6 @@ def _fmt(v: Any) -> str:
         return f"{v:.6g}"
     if isinstance(v, (list, tuple)):
         return ", ".join(_fmt(x) for x in v)
+    if isinstance(v, dict):  # a sub-report (a COPC read's window): its keys on one line
+        return "; ".join(f"{k} {_fmt(x)}" for k, x in v.items())
     return str(v)

@@ -20,8 +20,8 @@ from recon_cli.cli import options
 def cmd(ctx: click.Context, input: str, output: str, ascii_: bool, big_endian: bool) -> None:
     """Convert between formats, chosen by suffix.
 
-    PLY, OBJ, OFF, STL, XYZ/TXT/CSV/PTS, PCD, LAS/LAZ, GLB/glTF (E57 read only). A PLY from a PLY
-    keeps every element and property.
+    PLY, OBJ, OFF, STL, XYZ/TXT/CSV/PTS, PCD, LAS/LAZ, GLB/glTF (COPC, E57 read only). A PLY from
+    a PLY keeps every element and property.
     """
     from recon_cli.cli._run import io_formats
     from recon_cli.io.atomic import write_bytes
@@ -35,7 +35,7 @@ def cmd(ctx: click.Context, input: str, output: str, ascii_: bool, big_endian: b
     fout = format_of(output, save_kw["format"]) or FORMATS["ply"]
     if big_endian and fout.name != "ply":
         raise click.UsageError(f"--big-endian is for PLY output, not {fout.name.upper()}")
-    if fin is None or fin.name not in ("las", "e57") or input == "-":
+    if fin is None or fin.name not in ("las", "e57", "copc") or input == "-":
         data = read_bytes(input)
         if fout.name == "ply" and (fin is None or fin.name == "ply") and bytes(data[:3]) == b"ply":
             ply = parse_ply(data, input)

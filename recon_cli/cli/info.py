@@ -15,7 +15,7 @@ from recon_cli.cli import options
 @options.format_opt
 @click.pass_context
 def cmd(ctx: click.Context, files: tuple[str, ...], json_: bool) -> None:
-    """Describe clouds/meshes (PLY, OBJ, OFF, STL, XYZ, PCD, LAS/LAZ, E57) and grids.
+    """Describe clouds/meshes (PLY, OBJ, OFF, STL, XYZ, PCD, LAS/LAZ, COPC, E57) and grids.
 
     Counts, properties, bbox, topology, history.
 

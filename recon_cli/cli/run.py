@@ -54,9 +54,10 @@ def cmd(
     """
     from recon_cli.cli._run import emit_report, io_formats, make_progress
     from recon_cli.errors import ParameterError
-    from recon_cli.pipeline import check_input, load_pipeline, run_pipeline
+    from recon_cli.pipeline import check_input, input_hint, load_pipeline, run_pipeline
 
     pipe = load_pipeline(pipeline, overrides)
+    hint = input_hint(pipe)  # a first filter's --crop / --level: a COPC file read in part
     if validate:
         if output is not None:
             raise ParameterError(
@@ -70,7 +71,7 @@ def cmd(
         if input is not None:
             from recon_cli.io.load import load
 
-            check_input(pipe, load(input), input)
+            check_input(pipe, load(input, hint=hint), input)
             summary["input"] = input
         emit_report(ctx, summary, json_=json_)
         return
@@ -79,14 +80,15 @@ def cmd(
     from recon_cli.cli._signals import immediate
     from recon_cli.errors import naming
     from recon_cli.execution import run_on
-    from recon_cli.io.load import check_destination, load, read_report, save
+    from recon_cli.io.load import check_destination, check_read, load_detailed, read_report, save
     from recon_cli.stages import get_spec
 
     check_destination(output, get_spec(pipe.steps[-1].name).gives if pipe.steps else ())
     t0 = time.perf_counter()
     load_kw, save_kw = io_formats(ctx, input, output)
     with run_on(**options.execution_values(how, output)), immediate():
-        data = load(input, **load_kw)
+        data, details, _ = load_detailed(input, hint=hint, **load_kw)
+        check_read(data, input)
         with naming(input):
             check_input(pipe, data, input)
             out, reports = run_pipeline(pipe, data, progress=make_progress(ctx))
@@ -98,7 +100,7 @@ def cmd(
         "seconds": time.perf_counter() - t0,
         "stages": reports,
     }
-    read = read_report(data)  # invalid points dropped, an organized cloud: never silently
+    read = read_report(data, details)  # invalid points dropped, a COPC window: never silently
     if read:
         summary["read"] = read
     emit_report(ctx, summary, json_=json_, data_on_stdout=(output == "-"))

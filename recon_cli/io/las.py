@@ -5,8 +5,10 @@ UTM coordinates would round to decimetres), the colours (uint16, as stored) and 
 dimension as a per-point attribute under laspy's name (``intensity``, ``return_number``,
 ``number_of_returns``, ``classification``, ``gps_time``, ..., and extra-bytes dimensions);
 extra dimensions ``nx ny nz`` (or ``normal_x``...) are the normals. The version, point
-format, scale, offset and the VLRs (coordinate system...) are kept in ``obj_info`` lines
-(``las_*``), so they survive a pass through PLY stages and are written back. LAS says
+format, scale, offset, the VLRs and EVLRs (coordinate system...) are kept in ``obj_info``
+lines (``las_*``), so they survive a pass through PLY stages and are written back (a WKT
+sets LAS 1.4's WKT bit); the records of the file's layout (COPC's octree pages, LASzip's
+compression) are not kept, as they would describe another file wrongly. LAS says
 nothing of where its sensor was: a cloud read from it has one sensor far above, "up" (+Z,
 as for airborne LiDAR), which ``--orient camera`` uses. LAS stores integer coordinates, so
 no point is ever NaN (a scale and offset that overflow float64 are refused).
@@ -24,6 +26,8 @@ from __future__ import annotations
 import base64
 import io
 import os
+import re
+from typing import Any
 
 import numpy as np
 
@@ -38,6 +42,8 @@ _NORMAL_NAMES = (
 )
 _WITH_RGB = {0: 2, 1: 3, 4: 5, 6: 7, 9: 10}
 _RGB = ("red", "green", "blue")
+# the user ids of VLRs that describe a file's layout, not its data
+_LAYOUT_USERS = ("copc", "laszip encoded")
 
 
 def _laspy():
@@ -53,7 +59,7 @@ def _laspy():
 _LAZ_MAX_RATIO = 200
 
 
-def _check_counts(head: bytes, size: int, where: str) -> None:
+def check_counts(head: bytes, size: int, where: str) -> None:
     """Refuse a header whose counts cannot fit in a file of ``size`` bytes, before laspy reads it.
 
     A corrupted count of VLRs or points made laspy build millions of records or allocate gigabytes
@@ -108,29 +114,55 @@ def decode_las(data, where: str, path=None) -> tuple[PointCloud, dict]:
             size = os.path.getsize(path)
         except FileNotFoundError:
             raise InputError("no such file", where) from None
-        _check_counts(head, size, where)
+        check_counts(head, size, where)
         source = path
     else:
         raw = bytes(text.as_uint8(data).data)
-        _check_counts(raw[:375], len(raw), where)
+        check_counts(raw[:375], len(raw), where)
         source = io.BytesIO(raw)
     try:
         las = laspy.read(source)
     except FileNotFoundError:
         raise InputError("no such file", where) from None
     except Exception as exc:  # laspy raises LaspyException, ValueError, lazrs errors...
-        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise InputError(f"not a readable LAS/LAZ file ({msg})", where) from None
-    h = las.header
-    n = len(las.points)
-    if n != h.point_count:
-        raise InputError(f"header declares {h.point_count} points, the file holds {n}", where)
-    pts = np.empty((n, 3), np.float64)
-    raw = las.points.array
-    with np.errstate(over="ignore", invalid="ignore"):
-        for i, c in enumerate("XYZ"):
-            np.multiply(raw[c], h.scales[i], out=pts[:, i])
-            pts[:, i] += h.offsets[i]
+        raise InputError(f"not a readable LAS/LAZ file ({first_line(exc)})", where) from None
+    if len(las.points) != las.header.point_count:
+        raise InputError(
+            f"header declares {las.header.point_count} points, the file holds {len(las.points)}",
+            where,
+        )
+    return cloud_from_points(las.points, las.header, where)
+
+
+def first_line(exc: BaseException) -> str:
+    """The first line of a library's error message (its type's name when it has none)."""
+    return str(exc).splitlines()[0] if str(exc).strip() else type(exc).__name__
+
+
+def cloud_from_points(points, header, where: str) -> tuple[PointCloud, dict]:
+    """A cloud (and ``recon info``'s details) from laspy point records and their file's header.
+
+    Parameters
+    ----------
+    points : laspy.PackedPointRecord
+        The records (n of them), in the point format of ``header``.
+    header : laspy.LasHeader
+        Scales, offsets, version, point format, VLRs and EVLRs of the file.
+    where : str
+        The file's name, for messages.
+
+    Returns
+    -------
+    cloud : PointCloud
+        Coordinates ``X * scale + offset`` in float64, colours, normals (extra dimensions
+        ``nx ny nz``...), every other dimension as an attribute; the header in ``obj_info``.
+    details : dict
+        ``format``, ``version``, ``point_format``, ``compressed``, ``scale``, ``offset``,
+        ``vlrs``, ``crs``, ``software``.
+    """
+    h = header
+    raw = points.array
+    pts = coordinates(raw, h.scales, h.offsets)
     if not np.isfinite(pts).all():
         raise InputError(
             f"scale {list(map(float, h.scales))} and offset {list(map(float, h.offsets))} give "
@@ -138,42 +170,17 @@ def decode_las(data, where: str, path=None) -> tuple[PointCloud, dict]:
             "beyond float64",
             where,
         )
-    names = list(las.point_format.dimension_names)
-    colors = None
-    if all(c in names for c in _RGB):
-        colors = np.column_stack([raw[c] for c in _RGB])
-    extra = {d.name for d in las.point_format.extra_dimensions}
-    normals = None
-    for trio in _NORMAL_NAMES:
-        if all(c in extra for c in trio):
-            normals = np.column_stack([np.asarray(las[c]) for c in trio])
-            break
-    skip = {
-        "X",
-        "Y",
-        "Z",
-        *(_RGB if colors is not None else ()),
-        *(trio if normals is not None else ()),
-    }
-    attributes = {name: np.array(las[name]) for name in names if name not in skip}
+    rgb, trio, others = _dimensions(points.point_format)
+    colors = np.column_stack([raw[c] for c in _RGB]) if rgb else None
+    normals = np.column_stack([np.asarray(points[c]) for c in trio]) if trio else None
+    attributes = {name: np.array(points[name]) for name in others}
     info = [
         f"las_version {h.version}",
         f"las_point_format {h.point_format.id}",
         "las_scale " + " ".join(repr(float(s)) for s in h.scales),
         "las_offset " + " ".join(repr(float(o)) for o in h.offsets),
     ]
-    for v in h.vlrs:
-        info.append(
-            "las_vlr "
-            + " ".join(
-                (
-                    base64.b64encode(v.user_id.encode("latin-1")).decode(),
-                    str(int(v.record_id)),
-                    base64.b64encode((v.description or "").encode("latin-1")).decode(),
-                    base64.b64encode(_vlr_bytes(v)).decode(),
-                )
-            )
-        )
+    info += [f"{key} " + _vlr_line(v) for key, v in _kept_records(h)]
     cloud = PointCloud(
         points=pts,
         normals=normals,
@@ -181,20 +188,132 @@ def decode_las(data, where: str, path=None) -> tuple[PointCloud, dict]:
         attributes=attributes,
         point_dtype=np.float64,
         obj_info=info,
-        sensors=[Sensor(direction=(0.0, 0.0, 1.0), source="LAS up (airborne)")],
+        sensors=las_sensors(),
     )
-    details = {
+    return cloud, _details(h, where)
+
+
+def las_sensors() -> list[Sensor]:
+    """The sensor a LAS cloud has: one far above, "up" (+Z, airborne LiDAR)."""
+    return [Sensor(direction=(0.0, 0.0, 1.0), source="LAS up (airborne)")]
+
+
+def coordinates(raw: np.ndarray, scales, offsets) -> np.ndarray:
+    """The float64 coordinates ``X * scale + offset`` (n, 3) of LAS point records ``raw``."""
+    pts = np.empty((len(raw), 3), np.float64)
+    with np.errstate(over="ignore", invalid="ignore"):
+        for i, c in enumerate("XYZ"):
+            np.multiply(raw[c], scales[i], out=pts[:, i])
+            pts[:, i] += offsets[i]
+    return pts
+
+
+def _details(h, where: str) -> dict:
+    return {
         "format": "las",
         "version": str(h.version),
         "point_format": int(h.point_format.id),
-        "compressed": bool(getattr(las.header, "are_points_compressed", False))
+        "compressed": bool(getattr(h, "are_points_compressed", False))
         or str(where).lower().endswith(".laz"),
         "scale": [float(s) for s in h.scales],
         "offset": [float(o) for o in h.offsets],
-        "vlrs": [f"{v.user_id}/{v.record_id}" for v in h.vlrs],
+        "vlrs": [f"{v.user_id}/{v.record_id}" for _, v in _kept_records(h)],
+        "crs": crs_name(h),
         "software": h.generating_software,
     }
-    return cloud, details
+
+
+def describe_header(header, where: str) -> dict:
+    """What a LAS file holds by its header alone: what its points would read as, and details.
+
+    Returns
+    -------
+    dict
+        ``mins``, ``maxs`` (the header's bounds), ``dimensions`` (``"dtype name"`` of the
+        coordinates, colours, normals and each attribute as :func:`cloud_from_points` gives
+        them), ``colors``, ``normals`` (bool), ``attributes`` (names), ``sensors`` (as
+        :meth:`Sensor.describe` words them) and ``details``.
+    """
+    colors, trio, others = _dimensions(header.point_format)
+    sample = laspy_module().ScaleAwarePointRecord.zeros(1, header=header)
+    attributes = {n: np.array(sample[n]).dtype.name for n in others}
+    dims = ["float64 x y z"]
+    if trio:
+        dims.append(f"{np.array(sample[trio[0]]).dtype.name} normals")
+    if colors:
+        dims.append("uint16 colours x3")
+    dims += [f"{t} {n}" for n, t in attributes.items()]
+    return {
+        "mins": [float(v) for v in header.mins],
+        "maxs": [float(v) for v in header.maxs],
+        "dimensions": dims,
+        "colors": colors,
+        "normals": bool(trio),
+        "attributes": sorted(attributes),
+        "sensors": [s.describe() for s in las_sensors()],
+        "details": _details(header, where),
+    }
+
+
+def _dimensions(fmt) -> tuple[bool, tuple[str, ...], list[str]]:
+    """A point format's colours (RGB or not), normals (their three names or ()) and the rest."""
+    names = list(fmt.dimension_names)
+    rgb = all(c in names for c in _RGB)
+    extra = {d.name for d in fmt.extra_dimensions}
+    trio = next((t for t in _NORMAL_NAMES if all(c in extra for c in t)), ())
+    skip = {"X", "Y", "Z", *(_RGB if rgb else ()), *trio}
+    return rgb, trio, [n for n in names if n not in skip]
+
+
+def _kept_records(header) -> list[tuple[str, Any]]:
+    """The header's VLRs and EVLRs that describe the data, with their ``obj_info`` key.
+
+    Those of the file's layout are left out: COPC's (the octree's pages and chunks) and LASzip's
+    (the compression), which would describe another file wrongly.
+    """
+    out = [("las_vlr", v) for v in header.vlrs]
+    out += [("las_evlr", v) for v in (header.evlrs or ())]
+    return [(key, v) for key, v in out if v.user_id not in _LAYOUT_USERS]
+
+
+def _vlr_line(v) -> str:
+    return " ".join(
+        (
+            base64.b64encode(_raw_text(v.user_id)).decode(),
+            str(int(v.record_id)),
+            base64.b64encode(_raw_text(v.description)).decode(),
+            base64.b64encode(_vlr_bytes(v)).decode(),
+        )
+    )
+
+
+def _raw_text(value) -> bytes:
+    """A VLR's user id or description as bytes (laspy gives bytes when they are not text)."""
+    if isinstance(value, bytes):
+        return value
+    try:
+        return (value or "").encode("latin-1")
+    except UnicodeEncodeError:  # laspy decoded it as UTF-8
+        return value.encode("utf-8")
+
+
+def crs_name(header) -> str | None:
+    """The coordinate system a LAS header names: its WKT's name and EPSG code, or None."""
+    for v in [*header.vlrs, *(header.evlrs or ())]:
+        if v.user_id == "LASF_Projection" and v.record_id == 2112:
+            wkt = _vlr_bytes(v).decode("latin-1").strip("\0 ")
+            name = re.search(r'^\w+\[\s*"([^"]*)"', wkt)
+            # the root's own code (one bracket deep), not a unit's or a datum's
+            code = [
+                m.group(1)
+                for m in re.finditer(r'(?:AUTHORITY|ID)\[\s*"EPSG"\s*,\s*"?(\d+)', wkt)
+                if wkt.count("[", 0, m.start()) - wkt.count("]", 0, m.start()) == 1
+            ]
+            label = name.group(1) if name else "WKT"
+            return f"{label} (EPSG:{code[0]})" if code else label
+    if any(v.user_id == "LASF_Projection" and v.record_id == 34735 for v in header.vlrs):
+        return "GeoTIFF keys"
+    return None
 
 
 def _vlr_bytes(v) -> bytes:
@@ -205,11 +324,11 @@ def _vlr_bytes(v) -> bytes:
 
 
 def _info(obj) -> dict:
-    out: dict = {"vlrs": []}
+    out: dict = {"vlrs": [], "evlrs": []}
     for line in obj.obj_info:
         key, _, rest = line.partition(" ")
-        if key == "las_vlr":
-            out["vlrs"].append(rest.split(" "))
+        if key in ("las_vlr", "las_evlr"):
+            out[key[4:] + "s"].append(rest.split(" "))
         elif key.startswith("las_"):
             out[key[4:]] = rest
     return out
@@ -220,17 +339,17 @@ _PROJECTED_KEY, _GEOGRAPHIC_KEY = 3072, 2048
 
 
 def coordinate_system(obj_info: list[str]) -> str | None:
-    """The coordinate system the LAS VLRs kept in ``obj_info`` lines give, or None.
+    """The coordinate system the LAS VLRs and EVLRs kept in ``obj_info`` lines give, or None.
 
-    The OGC WKT record (``LASF_Projection`` 2112) as its text, else the EPSG code of a
-    GeoKeyDirectory record (34735: ``ProjectedCSTypeGeoKey``, else ``GeographicTypeGeoKey``)
-    as ``"EPSG:<code>"``. Malformed records are passed over.
+    The OGC WKT record (``LASF_Projection`` 2112, a VLR or an EVLR as COPC files hold it) as its
+    text, else the EPSG code of a GeoKeyDirectory record (34735: ``ProjectedCSTypeGeoKey``, else
+    ``GeographicTypeGeoKey``) as ``"EPSG:<code>"``. Malformed records are passed over.
     """
     records = {}
     for line in obj_info:
         key, _, rest = line.partition(" ")
         words = rest.split(" ")
-        if key != "las_vlr" or len(words) != 4:
+        if key not in ("las_vlr", "las_evlr") or len(words) != 4:
             continue
         try:
             user = base64.b64decode(words[0]).decode("latin-1").rstrip("\0")
@@ -293,15 +412,14 @@ def las_bytes(obj, compress: bool, where: str = "") -> bytes:
         header.add_extra_dims(
             [laspy.ExtraBytesParams(name=name, type=_extra_type(v.dtype)) for name, v in extras]
         )
-    for user, rec, desc, payload in info["vlrs"]:
-        header.vlrs.append(
-            laspy.VLR(
-                user_id=base64.b64decode(user).decode("latin-1"),
-                record_id=int(rec),
-                description=base64.b64decode(desc).decode("latin-1"),
-                record_data=base64.b64decode(payload),
-            )
-        )
+    vlrs = [_vlr(laspy, *fields) for fields in info["vlrs"]]
+    evlrs = [_vlr(laspy, *fields) for fields in info["evlrs"]]
+    header.vlrs.extend(vlrs)
+    if evlrs:
+        header.evlrs = laspy.vlrs.vlrlist.VLRList(evlrs)
+    wkt = any(v.user_id == "LASF_Projection" and v.record_id == 2112 for v in vlrs + evlrs)
+    if wkt and header.version.minor >= 4:
+        header.global_encoding.wkt = True  # LAS 1.4: the coordinate system is this WKT
     las = laspy.LasData(header)
     ints = np.rint((pts - offset) / scale)
     if len(pts) and (np.abs(ints).max() > 2**31 - 1):
@@ -339,6 +457,16 @@ def las_bytes(obj, compress: bool, where: str = "") -> bytes:
     kw = {"laz_backend": laspy.LazBackend.Lazrs} if compress else {}
     las.write(buf, do_compress=compress, **kw)
     return buf.getvalue()
+
+
+def _vlr(laspy, user: str, rec: str, desc: str, payload: str):
+    """A VLR from the four base64 fields of an ``obj_info`` line."""
+    return laspy.VLR(
+        user_id=base64.b64decode(user).decode("latin-1"),
+        record_id=int(rec),
+        description=base64.b64decode(desc).decode("latin-1"),
+        record_data=base64.b64decode(payload),
+    )
 
 
 def _extra_type(dt: np.dtype) -> str:

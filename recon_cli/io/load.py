@@ -2,7 +2,8 @@
 
 The format registry: :data:`FORMATS` maps a format name to its suffixes, what it holds and
 the module that reads (and writes) it. A file's format is chosen by its suffix
-(case-insensitive); a name without a suffix, and ``-`` (standard input), are read by
+(case-insensitive; the longest, so ``.copc.laz`` is COPC), a LAS/LAZ name holding a COPC
+file being read as COPC; a name without a suffix, and ``-`` (standard input), are read by
 content (PLY and grid ``.npz`` as before, and every format with a signature), and written
 as PLY (a grid as ``.npz``) unless a format is given. An unknown suffix is an error that
 lists the supported ones.
@@ -18,6 +19,7 @@ from typing import Any
 from recon_cli.errors import InputError, ParameterError
 from recon_cli.geometry import PointCloud, TriangleMesh
 from recon_cli.grid import Grid
+from recon_cli.io.hint import ReadHint
 from recon_cli.io.npz import is_npz, read_grid, write_grid
 from recon_cli.io.ply import read_bytes, read_ply, write_ply
 
@@ -115,6 +117,16 @@ FORMATS: dict[str, Format] = {
             "attribute, VLRs",
         ),
         Format(
+            "copc",
+            (".copc.laz",),
+            "points",
+            "copc",
+            False,
+            "las",
+            "as LAS/LAZ; a box and octree levels (filter --crop --level --resolution) decode "
+            "only the nodes they need",
+        ),
+        Format(
             "e57",
             (".e57",),
             "points",
@@ -137,6 +149,8 @@ FORMATS: dict[str, Format] = {
     )
 }
 _BY_SUFFIX = {s: f for f in FORMATS.values() for s in f.suffixes}
+# suffixes of two parts (".copc.laz"), matched before the last part alone
+_LONG_SUFFIXES = sorted((s for s in _BY_SUFFIX if s.count(".") > 1), key=len, reverse=True)
 
 
 def supported() -> str:
@@ -161,6 +175,10 @@ def format_of(path: str | os.PathLike, given: str | None = None) -> Format | Non
     p = str(path)
     if p == "-":
         return None
+    name = os.path.basename(p).lower()
+    for long in _LONG_SUFFIXES:
+        if name.endswith(long) and len(name) > len(long):
+            return _BY_SUFFIX[long]
     ext = os.path.splitext(p)[1].lower()
     if not ext:
         return None
@@ -204,45 +222,83 @@ def sniff(data) -> Format:
     return FORMATS["ply"]
 
 
-def load_detailed(path: str | os.PathLike, format: str | None = None) -> tuple[Any, dict, Format]:
+def load_detailed(
+    path: str | os.PathLike, format: str | None = None, hint: ReadHint | None = None
+) -> tuple[Any, dict, Format]:
     """Read ``path`` (``-``: stdin): ``(object, details for recon info, format)``.
 
     ``details`` is empty for PLY and grids (:mod:`recon_cli.info` describes those itself).
+    ``hint``: what the stage that reads the file keeps (:class:`~recon_cli.io.hint.ReadHint`);
+    a COPC file decodes only that, other files are read whole (octree levels are refused for
+    them, before anything is read). A LAS/LAZ name holding a COPC file is read as COPC unless
+    ``format`` says LAS.
     """
     where = "<stdin>" if str(path) == "-" else str(path)
     fmt = format_of(path, format)
-    if fmt is not None and fmt.name in ("las", "e57") and str(path) != "-":
+    if fmt is not None and fmt.name == "las" and format is None and str(path) != "-":
+        from recon_cli.io.copc import is_copc_file
+
+        fmt = FORMATS["copc"] if is_copc_file(path) else fmt
+    if fmt is not None and str(path) != "-":
+        _check_hint(fmt, hint, where)
+    if fmt is not None and fmt.name in ("las", "e57", "copc") and str(path) != "-":
         # laspy and pye57 read the file themselves (no second copy of its bytes)
         if not os.path.isfile(path):
             if os.path.isdir(path):
                 raise InputError("is a directory, not a file", where)
             raise InputError("no such file", where)
-        obj, details = fmt.decoder()(None, where, path=str(path))
+        kw = {"hint": hint} if fmt.name == "copc" else {}
+        obj, details = fmt.decoder()(None, where, path=str(path), **kw)
         return obj, details, fmt
     if fmt is not None and fmt.name == "ply" and str(path) != "-" and os.path.isfile(path):
         return read_ply(path), {}, fmt
     if fmt is not None and fmt.name == "npz" and str(path) != "-" and os.path.isfile(path):
         return read_grid(path), {}, fmt  # reads the stored sdf straight into its array
-    return decode(read_bytes(path), path, fmt)
+    return decode(read_bytes(path), path, fmt, hint=hint)
 
 
-def decode(data, path: str | os.PathLike, fmt: Format | None = None) -> tuple[Any, dict, Format]:
-    """Decode the bytes of a file named ``path`` in ``fmt`` (None: by content)."""
+def _check_hint(fmt: Format, hint: ReadHint | None, where: str) -> None:
+    """Refuse octree levels for a format that has none, before reading anything."""
+    if hint is not None and hint.wants_levels and fmt.name != "copc":
+        raise ParameterError(
+            f"{where}: {hint.asked or 'octree levels'} chooses the octree levels of a COPC file "
+            f"(.copc.laz); this is {fmt.name.upper()}"
+        )
+
+
+def decode(
+    data, path: str | os.PathLike, fmt: Format | None = None, hint: ReadHint | None = None
+) -> tuple[Any, dict, Format]:
+    """Decode the bytes of a file named ``path`` in ``fmt`` (None: by content).
+
+    ``hint``: as :func:`load_detailed` takes it (LAS bytes that are COPC are read as COPC).
+    """
     if fmt is None:
         fmt = sniff(data)
+    where = "<stdin>" if str(path) == "-" else str(path)
+    if fmt.name == "las" and hint is not None:
+        from recon_cli.io.copc import HEAD_BYTES, is_copc
+        from recon_cli.io.text import as_uint8
+
+        fmt = FORMATS["copc"] if is_copc(bytes(as_uint8(data)[:HEAD_BYTES])) else fmt
+    _check_hint(fmt, hint, where)
     if fmt.name == "npz":
         return read_grid(path, data), {}, fmt
     if fmt.name == "ply":
         return read_ply(path, data), {}, fmt
-    obj, details = fmt.decoder()(data, "<stdin>" if str(path) == "-" else str(path))
+    kw = {"hint": hint} if fmt.name == "copc" else {}
+    obj, details = fmt.decoder()(data, where, **kw)
     return obj, details, fmt
 
 
-def load(path: str | os.PathLike, format: str | None = None) -> PointCloud | TriangleMesh | Grid:
+def load(
+    path: str | os.PathLike, format: str | None = None, hint: ReadHint | None = None
+) -> PointCloud | TriangleMesh | Grid:
     """Read ``path`` (``-``: stdin) in the format its suffix (or ``format``) names.
 
     Points (vertices) with a NaN or infinite coordinate are dropped and counted in the
-    object's ``invalid_dropped`` (:func:`read_report` says so).
+    object's ``invalid_dropped`` (:func:`read_report` says so). ``hint``: what the stage that
+    reads the file keeps (:func:`load_detailed`).
 
     Raises
     ------
@@ -252,7 +308,7 @@ def load(path: str | os.PathLike, format: str | None = None) -> PointCloud | Tri
     ParameterError
         Unknown suffix or format, or a missing optional extra.
     """
-    return check_read(load_detailed(path, format)[0], path)
+    return check_read(load_detailed(path, format, hint)[0], path)
 
 
 def check_read(obj: Any, path: str | os.PathLike) -> Any:
@@ -266,22 +322,26 @@ def check_read(obj: Any, path: str | os.PathLike) -> Any:
     return obj
 
 
-def read_report(obj: Any) -> dict | None:
+def read_report(obj: Any, details: dict | None = None) -> dict | None:
     """What reading ``obj`` did that a report must show, or None when there is nothing to say.
 
     Keys: ``invalid_dropped`` (points with a NaN or infinite coordinate, dropped),
-    ``organized`` (``"640x480"``: the width x height of the image(s) the points came from)
-    and ``kept`` (the points read).
+    ``organized`` (``"640x480"``: the width x height of the image(s) the points came from),
+    ``window`` (a COPC file read in part: the reader's ``details["window"]``) and ``kept``
+    (the points read).
     """
     if not isinstance(obj, (PointCloud, TriangleMesh)):
         return None
     dropped = int(getattr(obj, "invalid_dropped", 0))
     pixels = getattr(obj, "pixels", None)
-    if not dropped and pixels is None:
+    window = (details or {}).get("window")
+    if not dropped and pixels is None and window is None:
         return None
     out: dict[str, Any] = {"kept": len(obj.points), "invalid_dropped": dropped}
     if pixels is not None:
         out["organized"] = pixels.describe()
+    if window is not None:
+        out["window"] = window
     return out
 
 

@@ -330,6 +330,26 @@ def provenance_line(name: str, params: dict[str, Any]) -> str:
     return " ".join(["recon", __version__, name, *parts]).replace("\n", " ")
 
 
+def read_hint(name: str, params: dict[str, Any] | None = None) -> Any:
+    """The part of its input file stage ``name`` keeps with ``params`` (a ReadHint), or None.
+
+    From the stage's ``read_hint`` (:class:`~recon_cli.params.StageSpec`); the parameters are
+    checked first.
+
+    Raises
+    ------
+    ParameterError
+        Unknown stage or parameter, a value of the wrong type or out of range, or parameters
+        that exclude each other.
+    """
+    spec = get_spec(name)
+    if spec.read_hint is None:
+        return None
+    checked = spec.check({k.replace("-", "_"): v for k, v in (params or {}).items()})
+    mod, _, fn = spec.read_hint.partition(":")
+    return getattr(importlib.import_module(mod), fn)(checked)
+
+
 def apply_stage(
     name: str, data: Any, params: dict[str, Any] | None = None, progress: Any = None
 ) -> StageResult:

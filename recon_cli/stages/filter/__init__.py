@@ -3,6 +3,11 @@
 The operations run in a fixed order, each on what the one before kept, and the report
 counts the points each removed:
 
+0. **levels** ``--level N`` or ``--resolution R`` (a COPC file only, as it is read): the
+   octree levels 0 to N, or down to the first whose point spacing is at most R (a coarser
+   cloud over the whole area). With them or ``--crop``, a COPC file (``.copc.laz``) decodes
+   only the octree nodes the box and levels need (:mod:`recon_cli.io.copc`): the same points
+   as reading it whole and cropping;
 1. **invalid**: points with a NaN or infinite coordinate (always; normals may be NaN). The
    readers drop them already (``recon filter``'s report shows that count under ``read``):
    this step is for arrays given from Python;
@@ -57,6 +62,7 @@ import numpy as np
 
 from recon_cli.errors import InputError, ParameterError
 from recon_cli.geometry import PointCloud
+from recon_cli.io.hint import ReadHint, levels_mark, levels_read
 from recon_cli.params import Param, StageSpec
 from recon_cli.progress import task
 from recon_cli.stages import StageResult
@@ -112,6 +118,11 @@ _CELL_MARGIN = 1.0 + 1e-9
 
 
 # ---- parameter rules -----------------------------------------------------------------------------
+def _one_level_rule(level: Any, resolution: Any) -> None:
+    if level is not None and resolution is not None:
+        raise ParameterError("--level and --resolution exclude each other: give one")
+
+
 def _crop_box(v: tuple) -> tuple:
     if len(v) != 6 or any(v[i] > v[i + 3] for i in range(3)):
         raise ValueError("six numbers x0,y0,z0,x1,y1,z1 with x0 <= x1, y0 <= y1, z0 <= z1")
@@ -165,20 +176,43 @@ SPEC = StageSpec(
 
     Operations in this order, each counted in the report: invalid points (NaN/inf, always),
     --crop, --classes, --returns, --radius-outliers, --outliers, --voxel. Kept points keep
-    every attribute; outlier rules and voxel cells are Open3D's.""",
+    every attribute; outlier rules and voxel cells are Open3D's. A COPC file (.copc.laz) is
+    read in part: only the octree nodes that --crop and --level/--resolution need.""",
     takes=("cloud",),
     gives=("cloud",),
     keeps=("oriented",),
+    read_hint="recon_cli.stages.filter:read_hint",
     params=(
         Param(
             "crop",
             "floats",
             None,
-            "Keep the points inside this box (faces included).",
+            "Keep the points inside this box (faces included); a COPC input decodes only the "
+            "octree nodes that meet it.",
             unit="input units",
             metavar="X0,Y0,Z0,X1,Y1,Z1",
             allowed="x0 <= x1, y0 <= y1, z0 <= z1",
             validate=_crop_box,
+        ),
+        Param(
+            "level",
+            "int",
+            None,
+            "COPC input only: read the octree levels 0 to N (level 0: the root's points; a "
+            "coarser cloud over the whole area).",
+            min=0,
+            max=30,
+            metavar="N",
+        ),
+        Param(
+            "resolution",
+            "float",
+            None,
+            "COPC input only: read the octree levels down to the first whose point spacing is "
+            "at most this.",
+            unit="input units",
+            min=0,
+            min_open=True,
         ),
         Param(
             "classes",
@@ -620,10 +654,60 @@ def _averaged(mean: np.ndarray, dtype: np.dtype) -> np.ndarray:
 
 
 # ---- the stage -----------------------------------------------------------------------------------
+def read_hint(params: dict[str, Any]) -> ReadHint | None:
+    """The part of its input file ``filter`` keeps: the ``crop`` box and the octree levels.
+
+    Parameters
+    ----------
+    params : dict
+        The stage's checked parameters (``crop``, ``level``, ``resolution`` read).
+
+    Returns
+    -------
+    ReadHint or None
+        None when none of the three is given (the whole file is kept).
+
+    Raises
+    ------
+    ParameterError
+        Both ``level`` and ``resolution``.
+    """
+    crop, level, resolution = params.get("crop"), params.get("level"), params.get("resolution")
+    _one_level_rule(level, resolution)
+    given = (("crop", crop), ("level", level), ("resolution", resolution))
+    asked = " ".join(f"--{n} {_text(v)}" for n, v in given if v is not None)
+    if not asked:
+        return None
+    box = None if crop is None else tuple(float(v) for v in crop)
+    return ReadHint(box=box, level=level, resolution=resolution, asked=asked)
+
+
+def _check_levels(cloud: PointCloud, level: int | None, resolution: float | None) -> None:
+    """Refuse levels the cloud was not read with (the reader chooses them; a cloud has none)."""
+    _one_level_rule(level, resolution)
+    want = levels_mark(level, resolution)
+    if want is None:
+        return
+    have = levels_read(cloud.obj_info)
+    if have is None:
+        raise InputError(
+            f"--{want} chooses the octree levels of a COPC file as it is read (recon filter "
+            "IN.copc.laz, a pipeline's first stage, recon_cli.filter('IN.copc.laz')): this "
+            "cloud was not read so"
+        )
+    if have != want:
+        raise InputError(
+            f"--{want}: this cloud holds the levels read for --{have}; read its COPC file "
+            f"again with --{want}"
+        )
+
+
 def filter_cloud(
     cloud: PointCloud,
     *,
     crop: Any = None,
+    level: int | None = None,
+    resolution: float | None = None,
     classes: Any = None,
     returns: str = "all",
     radius_outliers: Any = None,
@@ -639,6 +723,9 @@ def filter_cloud(
         Coordinates (n, 3) float32 or float64, any attributes.
     crop : six numbers or None
         Box ``x0, y0, z0, x1, y1, z1`` (input units); points on its faces are kept.
+    level, resolution : int, float or None
+        The octree levels a COPC file was read with (:func:`read_hint`): the cloud must have
+        been read so (its ``copc_read`` line), as a cloud holds no octree to choose from.
     classes : codes or names, or None
         LAS classes to keep (:func:`class_mask`); needs the attribute ``classification``.
     returns : {"all", "first", "last", "single", "intermediate"}
@@ -665,13 +752,15 @@ def filter_cloud(
     ------
     InputError
         No points; an operation that leaves no point; ``classes``/``returns`` without the
-        LAS attributes they read.
+        LAS attributes they read; ``level``/``resolution`` for a cloud not read with them.
     ParameterError
-        A parameter out of its range (see :data:`SPEC`).
+        A parameter out of its range (see :data:`SPEC`), or both ``level`` and ``resolution``.
     """
     values = SPEC.check(
         {
             "crop": crop,
+            "level": level,
+            "resolution": resolution,
             "classes": classes,
             "returns": returns,
             "radius_outliers": radius_outliers,
@@ -689,6 +778,7 @@ def filter_cloud(
     n = len(raw)
     if n == 0:
         raise InputError("the input has no points")
+    _check_levels(cloud, values["level"], values["resolution"])
     class_codes, return_codes = _las_codes(cloud, classes, returns)
     kept = _Kept(n)
     with task(progress, "invalid points" if crop is None else "invalid points, crop"):
@@ -838,6 +928,8 @@ def run_stage(
     data: Any,
     *,
     crop: tuple | None,
+    level: int | None,
+    resolution: float | None,
     classes: tuple | None,
     returns: str,
     radius_outliers: tuple | None,
@@ -851,7 +943,7 @@ def run_stage(
     ----------
     data : PointCloud
         The input (a mesh is refused: dropping vertices would cut its faces).
-    crop, classes, returns, radius_outliers, outliers, voxel
+    crop, level, resolution, classes, returns, radius_outliers, outliers, voxel
         See :func:`filter_cloud`.
 
     Returns
@@ -862,6 +954,8 @@ def run_stage(
     out, report = filter_cloud(
         data,
         crop=crop,
+        level=level,
+        resolution=resolution,
         classes=classes,
         returns=returns,
         radius_outliers=radius_outliers,
