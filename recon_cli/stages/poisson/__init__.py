@@ -48,7 +48,8 @@ PoissonRecon writes (a depth-like, logarithmic value; 5 to 7 is typical, smoothe
 Open3D users cut a quantile of the vertex densities; ours is a fraction of the median density
 at the samples, so one value (0.1 to 0.3) serves any scan, depth, unit and tessellation.
 ``trim="auto"`` needs no value: it cuts where the surface lies farther from the samples than
-0.7 of their local spacing (:func:`.trim.support_ratio`), so sparse real surface stays.
+their local spacing (:func:`.trim.support_ratio`), so sparse real surface stays, and keeps
+every island a sample lies nearest to (:func:`.trim.trim_auto`).
 
 References
 ----------
@@ -237,8 +238,8 @@ SPEC = StageSpec(
             "trim",
             "float",
             0.0,
-            "Cut away an open scan's closing sheet: 'auto' keeps the surface within 0.7 local "
-            "sample spacings of the samples (sparse real surface stays); a number T cuts where the "
+            "Cut away an open scan's closing sheet: 'auto' keeps the surface within one local "
+            "sample spacing of the samples (sparse real surface stays); a number T cuts where the "
             "samples' density is below T times its median at the samples.",
             unit="of the median sample density",
             min=0.0,
@@ -423,7 +424,7 @@ def screened_poisson(
     density : bool
         Add the per-vertex kernel density of the samples as ``attributes["density"]``.
     trim : float or "auto"
-        ``"auto"``: cut away the surface farther than 0.7 local sample spacings from the
+        ``"auto"``: cut away the surface farther than one local sample spacing from the
         samples (:func:`.trim.support_ratio`: the threshold comes from the samples, sparse
         real surface stays). A number: cut away the surface where the samples' density is
         below ``trim`` times its median at the samples (0 <= trim < 1; 0 keeps everything);
@@ -889,13 +890,12 @@ def _trimmed(
     times the median density at the samples (``vdens`` (n,) the vertices' densities then).
     """
     from recon_cli.stages.poisson.splat import sample_density
-    from recon_cli.stages.poisson.trim import SUPPORT_RATIO, support_ratio, trim_by_density
+    from recon_cli.stages.poisson.trim import trim_auto, trim_by_density
 
     if not len(mesh.faces) or trim == 0:
         return mesh, vdens, 0, 0.0
     if trim == "auto":
-        ratio = support_ratio(smp.pos * size + origin, mesh.vertices)[0]
-        cut = trim_by_density(mesh, -ratio, -SUPPORT_RATIO, carry=vdens)
+        cut = trim_auto(mesh, smp.pos * size + origin, carry=vdens)
         if len(cut.mesh.faces) == 0:
             raise InputError("trim auto removes the whole surface: no part lies near the samples")
         return cut.mesh, cut.carried, len(mesh.faces) - cut.untouched_faces, cut.removed_area
@@ -1379,16 +1379,10 @@ def _run_reference(
     mesh.vertices = mesh.vertices + centre
     trimmed, trimmed_area = 0, 0.0
     if trim == "auto" and len(mesh.faces):
-        from recon_cli.stages.poisson.trim import (
-            SUPPORT_RATIO,
-            merge_per_cell,
-            support_ratio,
-            trim_by_density,
-        )
+        from recon_cli.stages.poisson.trim import merge_per_cell, trim_auto
 
         cell = float((pts.max(axis=0) - pts.min(axis=0)).max()) * scale / (1 << depth)
-        ratio = support_ratio(merge_per_cell(pts, cell), mesh.vertices)[0]
-        cut = trim_by_density(mesh, -ratio, -SUPPORT_RATIO, carry=dens)
+        cut = trim_auto(mesh, merge_per_cell(pts, cell), carry=dens)
         if len(cut.mesh.faces) == 0:
             raise InputError("trim auto removes the whole surface: no part lies near the samples")
         trimmed = len(mesh.faces) - cut.untouched_faces

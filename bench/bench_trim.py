@@ -1,0 +1,191 @@
+"""``--trim auto`` on cluttered depth-camera scenes against SurfaceTrimmer (issue 45).
+
+The scenes are ``tests/sensors.py``'s :data:`CLUTTERED` family (an office, a hall of people, a
+corridor; seeds 0-2, ``--quick`` seed 0): 640 x 480 Kinect v1 images (objects at 0.5-8 m, walls
+and floors at grazing angles, noise growing with the squared depth and correlated over the
+matching window, disparity steps, flying pixels at depth edges, the projector's shadows,
+fading at grazing angles, dropped blobs, windows returning nothing), written as PCL writes a
+grabber's frames: an organized binary PCD in the camera's frame, NaN pixels kept.
+
+Each scene, as a user runs it (processes): ``recon normals IN.pcd N.ply --orient camera``, then
+``recon poisson N.ply OUT.ply --depth 9 --trim auto`` (timed) and the same untrimmed; on
+``N.ply``'s points and normals PoissonRecon ``--depth 9 --density`` then SurfaceTrimmer
+``--trim 7`` (built from source: ``$POISSONRECON_BIN``, :func:`bench_poisson.poissonrecon_dir`),
+and Open3D's Poisson at depth 9 (in process, time only: issue 45's part 2).
+
+Figures (issue 45's): ``near``, the input points within 0.5 % of the diagonal of the mesh (exact
+point-to-triangle distances); ``far``, the mesh area farther than 1 % of the diagonal from every
+input point (200k area samples); pieces. The target: ours ``near`` >= SurfaceTrimmer's - 0.002,
+``far`` <= 0.1 %. The untrimmed row shows what the fit itself keeps (the trim can only lose).
+
+The airborne row: the shared tile's ground class (``filter --classes ground``, normals up,
+``poisson --depth 9 --trim auto``): ground points within 1 ft of the mesh (target >= 99.5 %)
+and the mesh area farther than 10 ft from every ground point (target <= 1 %).
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+from bench_poisson import (
+    LAUNCHER,
+    SHARED,
+    open3d_poisson,
+    poissonrecon_dir,
+    poissonrecon_process,
+    reference,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+DEPTH = 9
+N_AREA = 200_000
+
+COLUMNS = [
+    ("case", "case"),
+    ("method", "method"),
+    ("faces", "faces"),
+    ("pieces", "pieces"),
+    ("near", "near (pts within 0.5 % diag)"),
+    ("far", "far (area > 1 % diag)"),
+    ("seconds", "s"),
+    ("mb", "MB"),
+    ("time_ratio", "s ours/o3d"),
+    ("note", "note"),
+]
+
+
+def _recon(*args: str) -> list[str]:
+    return [str(Path(sys.executable).with_name("recon")), "-q", *args]
+
+
+def _timed(cmd: list[str]) -> dict:
+    """Run ``cmd`` through the launcher: wall seconds and peak RSS (MB) of the process."""
+    proc = subprocess.run([sys.executable, "-c", LAUNCHER, *cmd], capture_output=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{cmd[2:4]} failed: {proc.stderr.decode().strip()[-300:]}")
+    dt, maxrss_kb = proc.stdout.decode().split()
+    return {"seconds": float(dt), "peak_mb": int(maxrss_kb) / 1024.0}
+
+
+def figures(mesh, pts: np.ndarray) -> dict:
+    """Issue 45's figures of ``mesh`` against the input points ``pts`` (n, 3)."""
+    from scipy.spatial import cKDTree
+
+    from recon_cli.mesh.distance import closest_points
+    from recon_cli.mesh.sampling import sample_surface
+    from recon_cli.mesh.topology import Connectivity
+
+    v, f = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces)
+    diag = float(np.linalg.norm(pts.max(0) - pts.min(0)))
+    near = float((closest_points(v, f, pts)[0] <= 0.005 * diag).mean())
+    s = sample_surface(mesh, N_AREA, seed=3).points
+    far = float((cKDTree(pts).query(s, workers=-1)[0] > 0.01 * diag).mean())
+    pieces = int(Connectivity(f, len(v)).face_components.max()) + 1
+    return {"faces": len(f), "near": near, "far": far, "pieces": pieces}
+
+
+def scene_pcd(kind: str, seed: int, path: Path, width: int = 640, height: int = 480) -> None:
+    """A cluttered scene's depth image as an organized PCD in the camera's frame."""
+    sys.path.insert(0, str(ROOT / "tests"))
+    from sensors import CLUTTERED, look_at, write_organized_pcd
+
+    scene = CLUTTERED[kind](seed)
+    img = scene.image(width, height, seed)
+    write_organized_pcd(path, (img - scene.eye) @ look_at(scene.eye, scene.target))
+
+
+def _scene_rows(kind: str, seed: int, work: Path, bindir: Path | None) -> list[dict]:
+    from recon_cli.io import read_ply
+
+    case = f"{kind} {seed}, 640x480, d{DEPTH}"
+    pcd, nply = work / "scene.pcd", work / "scene_n.ply"
+    scene_pcd(kind, seed, pcd)
+    subprocess.run(_recon("normals", str(pcd), str(nply), "--orient", "camera"), check=True)
+    cloud = read_ply(nply)
+    pts = np.asarray(cloud.points, np.float64)
+    case += f" ({len(pts) // 1000}k)"
+    out: list[dict] = []
+    o3d = reference(open3d_poisson, cloud, DEPTH, False)[0]
+    for method, trim in (
+        ("recon --trim auto (process)", ["--trim", "auto"]),
+        ("recon (process)", []),
+    ):
+        dst = work / "ours.ply"
+        m = _timed(_recon("poisson", str(nply), str(dst), "--depth", str(DEPTH), *trim))
+        r = {"case": case, "method": method, "seconds": m["seconds"], "mb": m["peak_mb"]}
+        r.update(figures(read_ply(dst), pts), time_ratio=m["seconds"] / o3d["seconds"])
+        out.append(r)
+    out.append({"case": case, "method": "open3d (untrimmed)", "seconds": o3d["seconds"]})
+    out[-1]["mb"] = o3d["peak_mb"]
+    if bindir is None:
+        out.append({"case": case, "method": "SurfaceTrimmer", "note": "not built"})
+        return out
+    m, mesh = poissonrecon_process(cloud, DEPTH, work, bindir)
+    r = {"case": case, "method": "PoissonRecon + SurfaceTrimmer 7", "seconds": m["seconds"]}
+    r.update(figures(mesh, pts), mb=m["peak_mb"])
+    out.append(r)
+    gap = out[0]["near"] - (r["near"] - 0.002)
+    out[0]["note"] = f"near vs target {gap:+.4f}; far target <= 0.001"
+    return out
+
+
+def _ground_row(work: Path) -> dict:
+    """The shared tile's ground through filter, normals (up) and poisson --trim auto."""
+    from scipy.spatial import cKDTree
+
+    from recon_cli.io.load import load
+    from recon_cli.mesh.distance import closest_points
+    from recon_cli.mesh.sampling import sample_surface
+
+    g, gn, mesh = work / "ground.ply", work / "ground_n.ply", work / "ground_mesh.ply"
+    src = SHARED / "autzen_trim.laz"
+    subprocess.run(_recon("filter", str(src), str(g), "--classes", "ground"), check=True)
+    subprocess.run(
+        _recon("normals", str(g), str(gn), "--orient", "direction", "--direction", "0,0,1"),
+        check=True,
+    )
+    m = _timed(_recon("poisson", str(gn), str(mesh), "--depth", str(DEPTH), "--trim", "auto"))
+    pts = np.asarray(load(g).points, np.float64)
+    out = load(mesh)
+    within = float((closest_points(out.vertices, out.faces, pts)[0] <= 1.0).mean())
+    s = sample_surface(out, N_AREA, seed=1).points
+    far = float((cKDTree(pts).query(s, workers=-1)[0] > 10.0).mean())
+    return {
+        "case": f"autzen ground ({len(pts) // 1000}k, US ft), d{DEPTH}",
+        "method": "recon --trim auto (process)",
+        "faces": len(out.faces),
+        "seconds": m["seconds"],
+        "mb": m["peak_mb"],
+        "note": f"within 1 ft {within:.4f} (>= 0.995); area > 10 ft {far:.4f} (<= 0.01)",
+    }
+
+
+def rows(quick: bool, only: list[str] | None = None) -> list[dict]:
+    """The rows; ``only``: just the cases whose label contains one of these strings."""
+    subprocess.run(_recon("warmup"), check=False, capture_output=True)
+    bindir = poissonrecon_dir()
+    out: list[dict] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        for seed in (0,) if quick else (0, 1, 2):
+            for kind in ("office", "people", "corridor"):
+                if only and not any(o in f"{kind} {seed}" for o in only):
+                    continue
+                try:
+                    out += _scene_rows(kind, seed, work, bindir)
+                except Exception as exc:  # one failing scene must not hide the others
+                    out.append({"case": f"{kind} {seed}", "note": f"FAILED: {exc}"})
+        if not only or any("ground" in o for o in only):
+            out.append(_ground_row(work))
+    return out
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, str(ROOT))
+    only = sys.argv[sys.argv.index("--only") + 1].split(";") if "--only" in sys.argv else None
+    for r in rows("--quick" in sys.argv, only):
+        print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()}, flush=True)
