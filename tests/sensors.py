@@ -514,22 +514,29 @@ class DepthCamera:
 
     def cast(self, sdf, steps: int = 300, eps: float = 1e-6) -> np.ndarray:
         """(height, width) distance along each ray to the first hit (inf for a miss)."""
-        d = self.rays().reshape(-1, 3)
-        o = np.asarray(self.eye, float)
-        t = np.zeros(len(d))
-        live = np.ones(len(d), bool)
-        hit = np.zeros(len(d), bool)
-        for _ in range(steps):
-            idx = np.flatnonzero(live)
-            if len(idx) == 0:
-                break
-            f = sdf(o + t[idx, None] * d[idx])
-            close = f < eps
-            hit[idx[close]] = True
-            t[idx] += np.where(close, 0.0, np.maximum(f, 0.0))
-            live[idx[close | (t[idx] > self.max_range)]] = False
+        t, hit = sphere_trace(sdf, self.eye, self.rays().reshape(-1, 3), self.max_range, steps, eps)
         t[~hit | (t > self.max_range) | (t < self.min_range)] = np.inf
         return t.reshape(self.height, self.width)
+
+
+def sphere_trace(sdf, o, d: np.ndarray, t_max, steps: int, eps: float):
+    """March from ``o`` ((3,) or (n, 3)) along unit ``d`` (n, 3) up to ``t_max`` (scalar or (n,)):
+    (n,) distances reached and (n,) whether the ray came within ``eps`` of the scene."""
+    o = np.asarray(o, float)
+    t_max = np.broadcast_to(np.asarray(t_max, float), (len(d),))
+    t = np.zeros(len(d))
+    live = np.ones(len(d), bool)
+    hit = np.zeros(len(d), bool)
+    for _ in range(steps):
+        idx = np.flatnonzero(live)
+        if len(idx) == 0:
+            break
+        f = sdf((o if o.ndim == 1 else o[idx]) + t[idx, None] * d[idx])
+        close = f < eps
+        hit[idx[close]] = True
+        t[idx] += np.where(close, 0.0, np.maximum(f, 0.0))
+        live[idx[close | (t[idx] > t_max[idx])]] = False
+    return t, hit
 
 
 def depth_image(
@@ -668,19 +675,8 @@ def _shadowed(
     # start a little off the surface, towards the light (the normal's side facing it)
     side = np.sign(np.einsum("ij,ij->i", nrm, d))
     o = p + 2e-3 * side[:, None] * nrm
-    t = np.zeros(len(p))
-    live = np.ones(len(p), bool)
-    blocked = np.zeros(len(p), bool)
-    for _ in range(steps):
-        idx = np.flatnonzero(live)
-        if len(idx) == 0:
-            break
-        f = sdf(o[idx] + t[idx, None] * d[idx])
-        close = f < 1e-5
-        blocked[idx[close]] = True
-        t[idx] += np.maximum(f, 0.0)
-        live[idx[close | (t[idx] >= length[idx])]] = False
-    return blocked
+    t, hit = sphere_trace(sdf, o, d, length, steps, 1e-5)
+    return hit & (t < length)
 
 
 def valid_rows(organized: np.ndarray) -> np.ndarray:
