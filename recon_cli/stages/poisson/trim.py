@@ -195,11 +195,13 @@ def trim_by_density(
         comp_area = np.bincount(lab, weights=area[part])
         small = comp_area < island_ratio * kept_area
         if want and mass is not None:
-            small &= _component_mass(lab, faces[part], len(verts), mass) <= 0
+            small &= ~_holding(lab, faces[part], mass)
         keep[part[small[lab]]] = not want
 
     out_f = faces[keep]
-    used = np.unique(out_f)
+    referenced = np.zeros(len(verts), bool)
+    referenced[out_f] = True
+    used = np.flatnonzero(referenced)  # np.unique's answer without its sort
     remap = np.full(len(verts), -1, np.int64)
     remap[used] = np.arange(len(used))
     out = TriangleMesh(vertices=verts[used], faces=remap[out_f], history=list(mesh.history))
@@ -212,16 +214,14 @@ def trim_by_density(
     )
 
 
-def _component_mass(lab: np.ndarray, faces: np.ndarray, n: int, mass: np.ndarray) -> np.ndarray:
-    """(c,) the ``mass`` of each face component ``lab`` (f,) of ``faces`` (f, 3).
+def _holding(lab: np.ndarray, faces: np.ndarray, mass: np.ndarray) -> np.ndarray:
+    """(c,) True for the face components ``lab`` (f,) of ``faces`` (f, 3) with mass at a corner.
 
-    ``mass`` is per input vertex (cut vertices, numbered from ``len(mass)``, hold none); a
-    vertex counts once per component.
+    ``mass`` is per input vertex; cut vertices, numbered from ``len(mass)``, hold none.
     """
-    pair = np.unique(lab[:, None].astype(np.int64) * n + faces)
-    comp, vert = np.divmod(pair, n)
-    own = vert < len(mass)
-    return np.bincount(comp[own], weights=mass[vert[own]], minlength=int(lab.max()) + 1)
+    held = np.concatenate([np.asarray(mass, dtype=np.float64) > 0, np.zeros(1, bool)])
+    corners = held[np.minimum(faces, len(mass))].any(axis=1)
+    return np.bincount(lab, weights=corners, minlength=int(lab.max()) + 1) > 0
 
 
 def nearest_counts(samples: np.ndarray, verts: np.ndarray) -> np.ndarray:
