@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from shapes import rounded_box_sdf, sphere_sdf, torus_sdf
+from shapes import random_rotation, rounded_box_sdf, sphere_sdf, torus_sdf
 
 
 # ---- scenes: signed distance functions (n, 3) -> (n,) ----------------------------------------
@@ -457,6 +457,16 @@ def corridor_scene(seed: int) -> Scene:
 
 
 CLUTTERED = {"office": office_scene, "people": people_scene, "corridor": corridor_scene}
+
+
+def cluttered_cloud(kind: str, seed: int, width: int = 160, height: int = 120):
+    """A :data:`CLUTTERED` scene's image as valid points (n, 3), rotated and moved by up to 1e6
+    (seeded by ``seed``), and the camera's place (3,) in that frame."""
+    scene = CLUTTERED[kind](seed)
+    p = valid_rows(scene.image(width, height, seed))
+    rng = np.random.default_rng(seed)
+    rot, off = random_rotation(rng), rng.uniform(-1e6, 1e6, 3)
+    return p @ rot.T + off, scene.eye @ rot.T + off
 
 
 # ---- the camera ------------------------------------------------------------------------------

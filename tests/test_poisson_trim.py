@@ -303,11 +303,11 @@ def test_auto_on_both_backends_keeps_the_density_attribute(backend):
 
 
 # ---- issue 45: cluttered depth-camera scenes (tests/sensors.py's CLUTTERED family)
-# measured at 160 x 120, depth 8, rotated and moved by up to 1e6 (seeds 0-3 of each kind):
-# the trim loses at most 0.05 points of the input points within 0.5 % of the diagonal of the
-# untrimmed surface (the previous rule lost 0.13-3.0), keeps 94.8-99.0 % of them in all, and
-# leaves no mesh farther than 2.2 % of the diagonal from every input point (a 160-pixel
-# image's spacing is 4x a 640-pixel one's: issue 45's 1 % at 640 pixels)
+# 160 x 120, depth 8, rotated and moved by up to 1e6 (seeds 0-3 of each kind, bench/calibration.md,
+# `python bench/bench_trim.py --small`): the trim loses at most 0.05 points of the input points
+# within 0.5 % of the diagonal of the untrimmed surface (the previous rule lost 0.13-3.0), keeps
+# 94.8-99.0 % of them, and no mesh lies over 2.16 % of the diagonal from every input point
+# (SurfaceTrimmer 7: 1.85 %; a 160-pixel image's spacing is 4x a 640-pixel one's)
 @pytest.mark.parametrize(
     ("kind", "seed", "kept"), [("office", 0, 0.945), ("people", 1, 0.985), ("corridor", 0, 0.98)]
 )
@@ -319,17 +319,12 @@ def test_auto_cluttered_scene_keeps_what_the_sensor_saw(kind, seed, kept):
     from recon_cli.mesh.sampling import sample_surface
     from recon_cli.stages import normals
 
-    from sensors import CLUTTERED, valid_rows
+    from sensors import cluttered_cloud
 
-    scene = CLUTTERED[kind](seed)
-    p = valid_rows(scene.image(160, 120, seed))
-    seen = np.linalg.norm(p - scene.eye, axis=1)
+    p, eye = cluttered_cloud(kind, seed)
+    seen = np.linalg.norm(p - eye, axis=1)
     assert seen.min() < 2.5 and seen.max() > 7.0  # near objects and far walls
-    rng = np.random.default_rng(seed)
-    rot, off = random_rotation(rng), rng.uniform(-1e6, 1e6, 3)
-    p = p @ rot.T + off
-    eye = tuple(scene.eye @ rot.T + off)
-    c = normals.run_stage(PointCloud(points=p), orient="camera", camera=eye).output
+    c = normals.run_stage(PointCloud(points=p), orient="camera", camera=tuple(eye)).output
     full = screened_poisson(c.points, c.normals, depth=8).mesh
     res = screened_poisson(c.points, c.normals, depth=8, trim="auto")
     m = res.mesh
@@ -340,4 +335,4 @@ def test_auto_cluttered_scene_keeps_what_the_sensor_saw(kind, seed, kept):
     near_full = (closest_points(full.vertices, full.faces, p)[0] <= 0.005 * diag).mean()
     assert near >= near_full - 0.001 and near >= kept, (near, near_full)
     gap = cKDTree(p).query(sample_surface(m, 50_000, seed=1).points)[0] / diag
-    assert gap.max() < 0.03 and (gap > 0.02).mean() <= 1e-3, (gap.max(), (gap > 0.02).mean())
+    assert gap.max() < 0.025 and (gap > 0.02).mean() <= 1e-3, (gap.max(), (gap > 0.02).mean())
