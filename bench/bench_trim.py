@@ -215,6 +215,9 @@ def rows(quick: bool, only: list[str] | None = None) -> list[dict]:
                     out.append({"case": f"{kind} {seed}", "note": f"FAILED: {exc}"})
         if not only or any("ground" in o for o in only):
             out.append(_ground_row(work))
+    for r in out:  # the table's 3 significant digits hide the target's 0.002
+        if "near" in r:
+            r["near"], r["far"] = f"{r['near']:.4f}", f"{r['far']:.3%}"
     return out
 
 
