@@ -195,7 +195,7 @@ def _ours_process(cloud, depth: int, trimmed, workdir: Path) -> tuple[dict, obje
         cmd += ["--trim", str(OUR_TRIM if trimmed is True else trimmed)]
     # through a small launcher: a child forked from this (large) process reports this
     # process's resident size as its own peak (ru_maxrss counts the pages it had before exec)
-    proc = subprocess.run([sys.executable, "-c", _LAUNCHER, *cmd], capture_output=True)
+    proc = subprocess.run([sys.executable, "-c", LAUNCHER, *cmd], capture_output=True)
     if proc.returncode != 0:
         raise RuntimeError(
             f"recon poisson failed ({proc.returncode}): {proc.stderr.decode().strip()}"
@@ -205,7 +205,7 @@ def _ours_process(cloud, depth: int, trimmed, workdir: Path) -> tuple[dict, obje
 
 
 # runs a command, prints its wall seconds and peak RSS (KiB), exits with its status
-_LAUNCHER = """
+LAUNCHER = """
 import os, subprocess, sys, time
 t0 = time.perf_counter()
 p = subprocess.Popen(sys.argv[1:], stdout=subprocess.DEVNULL)
@@ -227,7 +227,7 @@ def _trim_quantile(mesh, dens: np.ndarray, q: float):
     return TriangleMesh(vertices=mesh.vertices[used], faces=remap[faces])
 
 
-def _open3d(cloud, depth: int, trimmed: bool):
+def open3d_poisson(cloud, depth: int, trimmed: bool):
     from recon_cli.backends import open3d_backend
 
     mesh, dens = open3d_backend.poisson(cloud, depth=depth, threads=-1)  # its default: all cores
@@ -242,7 +242,7 @@ def _pymeshlab(cloud, depth: int, trimmed: bool):
     return pymeshlab_backend.poisson(cloud, depth=depth)
 
 
-def _reference(fn, cloud, depth: int, trimmed: bool) -> tuple[dict, object]:
+def reference(fn, cloud, depth: int, trimmed: bool) -> tuple[dict, object]:
     """A reference in a forked child: time, memory, and the mesh (vertices and faces) sent back."""
     from recon_cli.geometry import TriangleMesh
 
@@ -270,7 +270,7 @@ def _rows_for(
     out = []
     results = {}
     pymeshlab = pymeshlab and not trimmed and not NO_PYMESHLAB
-    runners = [("recon (process)", None), ("open3d", _open3d)] + (
+    runners = [("recon (process)", None), ("open3d", open3d_poisson)] + (
         [("pymeshlab", _pymeshlab)] if pymeshlab else []
     )
     for name, fn in runners:
@@ -278,7 +278,7 @@ def _rows_for(
             m, mesh = (
                 _ours_process(cloud, depth, trimmed, workdir)
                 if fn is None
-                else _reference(fn, cloud, depth, trimmed)
+                else reference(fn, cloud, depth, trimmed)
             )
         except Exception as exc:  # one failing method must not hide the others
             out.append({"case": case, "method": name, "note": f"FAILED: {exc}"})
@@ -366,7 +366,7 @@ def _depth_camera(scene: str):
     return normals.run_stage(cloud, orient="camera", camera=tuple(eye)).output, sdf
 
 
-def _poissonrecon_dir() -> Path | None:
+def poissonrecon_dir() -> Path | None:
     """The folder of the built ``PoissonRecon`` and ``SurfaceTrimmer``, None when not built.
 
     ``$POISSONRECON_BIN`` names the PoissonRecon executable (default: the reference build's),
@@ -378,7 +378,7 @@ def _poissonrecon_dir() -> Path | None:
     return None
 
 
-def _poissonrecon_process(cloud, depth: int, workdir: Path, bindir: Path):
+def poissonrecon_process(cloud, depth: int, workdir: Path, bindir: Path):
     """PoissonRecon --density then SurfaceTrimmer as processes (their defaults otherwise):
     wall seconds and peak RSS of PoissonRecon, the trimmed mesh (in the input's frame)."""
     from recon_cli.io import read_ply
@@ -396,7 +396,7 @@ def _poissonrecon_process(cloud, depth: int, workdir: Path, bindir: Path):
     src.write_bytes(header.encode() + rows_.tobytes())
     cmd = [str(bindir / "PoissonRecon"), "--in", str(src), "--out", str(out)]
     cmd += ["--depth", str(depth), "--density"]
-    proc = subprocess.run([sys.executable, "-c", _LAUNCHER, *cmd], capture_output=True, check=False)
+    proc = subprocess.run([sys.executable, "-c", LAUNCHER, *cmd], capture_output=True, check=False)
     if proc.returncode != 0:
         raise RuntimeError(f"PoissonRecon failed: {proc.stderr.decode().strip()[-200:]}")
     dt, maxrss_kb = proc.stdout.decode().split()
@@ -437,11 +437,11 @@ def _depth_camera_rows(scene: str, depth: int, work: Path, trimmed: bool) -> lis
     label += f", trimmed (ours auto, o3d {REF_TRIM:.0%} quantile, SurfaceTrimmer {SURFACE_TRIMMER})"
     out, meshes = [], {}
     runs = [("recon (process)", lambda: _ours_process(cloud, depth, "auto", work))]
-    runs.append(("open3d", lambda: _reference(_open3d, cloud, depth, True)))
-    bindir = _poissonrecon_dir()
+    runs.append(("open3d", lambda: reference(open3d_poisson, cloud, depth, True)))
+    bindir = poissonrecon_dir()
     if bindir is not None:
         runs.append(
-            ("PoissonRecon (process)", lambda: _poissonrecon_process(cloud, depth, work, bindir))
+            ("PoissonRecon (process)", lambda: poissonrecon_process(cloud, depth, work, bindir))
         )
     for name, run in runs:
         try:

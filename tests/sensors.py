@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from shapes import rounded_box_sdf, sphere_sdf, torus_sdf
+from shapes import random_rotation, rounded_box_sdf, sphere_sdf, torus_sdf
 
 
 # ---- scenes: signed distance functions (n, 3) -> (n,) ----------------------------------------
@@ -60,6 +60,415 @@ def tabletop_scene():
     return union(floor, wall, ball, ring, block)
 
 
+# ---- cluttered rooms (issue 45): furniture and people as parts with bounding boxes -----------
+@dataclass
+class Part:
+    """A solid's signed distance (or a lower bound of it outside) and a box holding the solid."""
+
+    sdf: object
+    lo: np.ndarray
+    hi: np.ndarray
+
+
+def bounded_union(parts: list[Part], *unbounded):
+    """The union of ``parts`` and ``unbounded`` solids; a part is evaluated only where its box is
+    nearer than the nearest solid so far (exact: its distance is at least its box's)."""
+    lo = np.array([q.lo for q in parts])
+    hi = np.array([q.hi for q in parts])
+
+    def sdf(p):
+        best = np.full(len(p), np.inf)
+        for fn in unbounded:
+            best = np.minimum(best, fn(p))
+        for j, part in enumerate(parts):
+            gap = np.maximum(lo[j] - p, p - hi[j])
+            np.maximum(gap, 0.0, out=gap)
+            idx = np.flatnonzero(np.einsum("ij,ij->i", gap, gap) < best**2)
+            if len(idx):
+                best[idx] = np.minimum(best[idx], part.sdf(p[idx]))
+        return best
+
+    return sdf
+
+
+def capsule_sdf(p, a, b, r):
+    """A segment ``a``-``b`` thickened by ``r``."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    ab = b - a
+    t = np.clip((p - a) @ ab / (ab @ ab), 0.0, 1.0)
+    return np.linalg.norm(p - a - t[:, None] * ab, axis=1) - r
+
+
+def cylinder_sdf(p, x, y, z0, z1, r):
+    """A vertical cylinder of radius ``r`` around (x, y), from height ``z0`` to ``z1``."""
+    q = np.stack(
+        [np.hypot(p[:, 0] - x, p[:, 1] - y) - r, np.maximum(z0 - p[:, 2], p[:, 2] - z1)], 1
+    )
+    return np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(axis=1), 0)
+
+
+# local solids: (sdf, box lo, box hi) in a piece of furniture's frame (z up, origin on the floor)
+def _box(lo, hi):
+    return (lambda p: box_sdf(p, lo, hi)), np.asarray(lo, float), np.asarray(hi, float)
+
+
+def _capsule(a, b, r):
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    return (lambda p: capsule_sdf(p, a, b, r)), np.minimum(a, b) - r, np.maximum(a, b) + r
+
+
+def _ball(c, r):
+    c = np.asarray(c, float)
+    return (lambda p: np.linalg.norm(p - c, axis=1) - r), c - r, c + r
+
+
+def _cyl(x, y, z0, z1, r):
+    return (
+        (lambda p: cylinder_sdf(p, x, y, z0, z1, r)),
+        np.array([x - r, y - r, z0]),
+        np.array([x + r, y + r, z1]),
+    )
+
+
+def _rbox(c, half, radius):
+    c, half = np.asarray(c, float), np.asarray(half, float)
+    return (lambda p: rounded_box_sdf(p - c, half=half, radius=radius)), c - half, c + half
+
+
+def _placed(items, at, yaw: float) -> list[Part]:
+    """Local solids turned by ``yaw`` (radians, about z) and moved to ``at``: one part (a
+    union of its own, so that the scene's union skips the whole piece far from it)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # local -> world
+    at = np.asarray(at, float)
+    local = bounded_union([Part(*it) for it in items])
+    lo = np.min([it[1] for it in items], axis=0)
+    hi = np.max([it[2] for it in items], axis=0)
+    corners = np.array(
+        [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+    )
+    w = corners @ rot.T + at
+    return [Part(lambda p: local((p - at) @ rot), w.min(0), w.max(0))]
+
+
+def _desk(rng, w, d):
+    h = rng.uniform(0.70, 0.76)
+    leg = rng.uniform(0.015, 0.025)  # thin round legs
+    items = [_box((-w / 2, -d / 2, h - 0.03), (w / 2, d / 2, h))]
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            items.append(_cyl(sx * (w / 2 - 0.05), sy * (d / 2 - 0.05), 0.0, h - 0.03, leg))
+    # a monitor (a panel 2-3 cm thick on a thin stand), a keyboard, a mug, books
+    mw, mh, mt = rng.uniform(0.45, 0.6), rng.uniform(0.28, 0.36), rng.uniform(0.02, 0.03)
+    my = d / 2 - 0.15
+    items += [
+        _box((-mw / 2, my - mt, h + 0.12), (mw / 2, my, h + 0.12 + mh)),
+        _cyl(0.0, my + 0.03, h, h + 0.14, 0.015),
+        _box((-0.12, my - 0.05, h), (0.12, my + 0.1, h + 0.012)),
+        _box((-0.22, -0.05, h), (0.22, 0.1, h + 0.02)),
+        _cyl(w / 2 - 0.2, 0.0, h, h + 0.1, 0.04),
+    ]
+    for _ in range(rng.integers(0, 4)):
+        x = rng.uniform(-w / 2 + 0.1, -0.3)
+        bw, bd, bh = rng.uniform(0.15, 0.3), rng.uniform(0.1, 0.25), rng.uniform(0.02, 0.06)
+        items.append(_box((x, -bd / 2, h), (x + bw, bd / 2, h + bh)))
+    return items
+
+
+def _chair(rng):
+    seat = rng.uniform(0.42, 0.48)
+    if rng.random() < 0.5:  # four thin legs
+        r = rng.uniform(0.01, 0.018)
+        items = [_cyl(sx * 0.2, sy * 0.2, 0.0, seat - 0.04, r) for sx in (-1, 1) for sy in (-1, 1)]
+        items += [_box((-0.23, -0.23, seat - 0.04), (0.23, 0.23, seat))]
+        items += [_box((-0.22, 0.2, seat), (0.22, 0.225, seat + rng.uniform(0.35, 0.45)))]
+        return items
+    # an office chair: five spokes, a pole, a padded seat and back
+    items = [_cyl(0.0, 0.0, 0.06, seat - 0.05, 0.025)]
+    for k in range(5):
+        a = 2 * np.pi * k / 5 + rng.uniform(0, 1)
+        items.append(_capsule((0.0, 0.0, 0.07), (0.3 * np.cos(a), 0.3 * np.sin(a), 0.05), 0.02))
+    items += [
+        _rbox((0.0, 0.0, seat - 0.03), (0.24, 0.24, 0.05), 0.03),
+        _capsule((0.0, 0.24, seat), (0.0, 0.26, seat + 0.2), 0.02),
+        _rbox((0.0, 0.27, seat + 0.4), (0.23, 0.04, 0.22), 0.03),
+    ]
+    return items
+
+
+def _shelf(rng, w):
+    d, h = rng.uniform(0.28, 0.4), rng.uniform(1.6, 2.1)
+    t = 0.02
+    items = [
+        _box((-w / 2, -d / 2, 0.0), (-w / 2 + t, d / 2, h)),
+        _box((w / 2 - t, -d / 2, 0.0), (w / 2, d / 2, h)),
+        _box((-w / 2, d / 2 - 0.01, 0.0), (w / 2, d / 2, h)),
+    ]
+    levels = np.linspace(0.05, h - t, rng.integers(4, 6))
+    for k, z in enumerate(levels):
+        items.append(_box((-w / 2, -d / 2, z), (w / 2, d / 2, z + t)))
+        if k == len(levels) - 1:
+            break
+        x = -w / 2 + t
+        while x < w / 2 - 0.12 and rng.random() < 0.9:  # books, upright, some gaps
+            bt = rng.uniform(0.02, 0.07)
+            bh = min(rng.uniform(0.15, 0.3), levels[k + 1] - z - 0.03)
+            if rng.random() < 0.8:
+                items.append(_box((x, -d / 2 + 0.03, z + t), (x + bt, d / 2 - 0.02, z + t + bh)))
+            x += bt + rng.uniform(0.0, 0.03)
+    return items
+
+
+def _person(rng, sitting: bool = False):
+    """Standing (or sitting) at the origin, facing -y: limbs 4-7 cm thick."""
+    hip = 0.5 if sitting else rng.uniform(0.85, 0.95)
+    top = hip + rng.uniform(0.55, 0.65)
+    items = [_rbox((0.0, 0.0, (hip + top) / 2), (0.19, 0.11, (top - hip) / 2 + 0.04), 0.08)]
+    items += [_capsule((0.0, 0.0, top), (0.0, 0.0, top + 0.08), 0.05)]
+    items += [_ball((0.0, rng.uniform(-0.02, 0.02), top + 0.2), rng.uniform(0.1, 0.12))]
+    for sx in (-1, 1):
+        h = (sx * 0.1, 0.0, hip)
+        if sitting:
+            knee = (sx * 0.12, -0.45, hip + 0.02)
+            items += [_capsule(h, knee, 0.07), _capsule(knee, (sx * 0.13, -0.5, 0.06), 0.055)]
+        else:
+            step = rng.uniform(-0.25, 0.25) * sx
+            items += [_capsule(h, (sx * 0.12, step, 0.07), 0.065)]
+        sh = np.array([sx * 0.25, 0.0, top - 0.05])
+        pose = rng.integers(4)
+        if pose == 0:  # down
+            elbow, hand = sh + (sx * 0.03, 0.02, -0.28), sh + (sx * 0.04, -0.05, -0.55)
+        elif pose == 1:  # out to the side
+            elbow, hand = sh + (sx * 0.28, 0.0, -0.05), sh + (sx * 0.55, -0.05, -0.02)
+        elif pose == 2:  # forward (pointing, holding)
+            elbow, hand = sh + (0.0, -0.2, -0.2), sh + (-sx * 0.05, -0.45, -0.15)
+        else:  # on the hip
+            elbow, hand = sh + (sx * 0.18, 0.05, -0.22), sh + (sx * 0.02, 0.0, -0.4)
+        items += [_capsule(sh, elbow, 0.045), _capsule(elbow, hand, 0.038)]
+    return items
+
+
+def _lamp(rng):
+    h = rng.uniform(1.4, 1.7)
+    return [
+        _cyl(0.0, 0.0, 0.0, 0.02, 0.15),
+        _cyl(0.0, 0.0, 0.02, h, 0.012),
+        _ball((0.0, 0.0, h + 0.1), 0.15),
+    ]
+
+
+def _plant(rng):
+    items = [_cyl(0.0, 0.0, 0.0, 0.3, 0.15)]
+    for _ in range(rng.integers(4, 8)):
+        tip = np.array([rng.uniform(-0.35, 0.35), rng.uniform(-0.35, 0.35), rng.uniform(0.6, 1.1)])
+        items += [_capsule((0.0, 0.0, 0.3), tip, 0.008), _ball(tip, rng.uniform(0.05, 0.1))]
+    return items
+
+
+@dataclass
+class Scene:
+    """A cluttered scene: its sdf, the camera's place and target, surfaces returning nothing."""
+
+    sdf: object
+    eye: np.ndarray
+    target: np.ndarray
+    absorb: object = None
+
+    def camera(self, width: int = 640, height: int = 480) -> DepthCamera:
+        """A Kinect v1 at the scene's viewpoint (57 degrees, returns from 0.5 to 8 m)."""
+        return DepthCamera(
+            eye=self.eye,
+            rotation=look_at(self.eye, self.target),
+            width=width,
+            height=height,
+            max_range=8.0,
+            min_range=0.5,
+        )
+
+    def image(self, width: int, height: int, seed: int, **effects) -> np.ndarray:
+        """The organized cloud (height, width, 3) of a Kinect v1 with every effect of
+        :class:`SensorEffects` (``effects`` overrides its fields), noise seeded by ``seed``."""
+        fx = SensorEffects(absorb=self.absorb, **effects)
+        rng = np.random.default_rng(seed)
+        return depth_image(self.camera(width, height), self.sdf, rng, effects=fx)
+
+
+class _Floor:
+    """Free spots on a room's floor (discs that do not overlap)."""
+
+    def __init__(self, rng, lo, hi):
+        self.rng, self.lo, self.hi, self.taken = (
+            rng,
+            np.asarray(lo, float),
+            np.asarray(hi, float),
+            [],
+        )
+
+    def spot(self, radius: float, lo=None, hi=None, tries: int = 60):
+        lo = self.lo + radius if lo is None else np.asarray(lo, float)
+        hi = self.hi - radius if hi is None else np.asarray(hi, float)
+        for _ in range(tries):
+            c = self.rng.uniform(lo, hi)
+            if all(np.hypot(*(c - q)) > radius + r for q, r in self.taken):
+                self.taken.append((c, radius))
+                return np.array([c[0], c[1], 0.0])
+        return None
+
+
+def _room(lo, hi, recesses=()):
+    """The inside of a box (walls, floor, ceiling) with box-shaped recesses (doors, alcoves)."""
+    boxes = [(np.asarray(lo, float), np.asarray(hi, float)), *recesses]
+    return lambda p: -np.min(np.stack([box_sdf(p, a, b) for a, b in boxes]), axis=0)
+
+
+def office_scene(seed: int) -> Scene:
+    """A cluttered office: desks with monitors, chairs, shelves of books, cabinets, a lamp, a
+    plant, boxes, people; walls and floor out to 5-8 m, a window returning nothing."""
+    rng = np.random.default_rng(seed)
+    W, D, H = rng.uniform(4.5, 7.0), rng.uniform(6.0, 8.0), rng.uniform(2.6, 3.0)
+    lo, hi = np.array([-W / 2, 0.0]), np.array([W / 2, D])
+    floor = _Floor(rng, lo, hi)
+    floor.taken.append((np.array([0.0, 0.3]), 0.5))  # the camera's spot
+    parts: list[Part] = []
+    for _ in range(rng.integers(2, 5)):
+        w, d = rng.uniform(1.2, 1.8), rng.uniform(0.6, 0.8)
+        at = floor.spot(0.55 * np.hypot(w, d) + 0.4)
+        if at is None:
+            continue
+        yaw = rng.choice([0.0, np.pi / 2, np.pi, -np.pi / 2]) + rng.uniform(-0.2, 0.2)
+        parts += _placed(_desk(rng, w, d), at, yaw)
+        chair = at + np.array([np.sin(yaw), -np.cos(yaw), 0.0]) * (d / 2 + 0.15)
+        parts += _placed(_chair(rng), chair, yaw + rng.uniform(-0.5, 0.5))
+    for x in rng.uniform(-W / 2 + 0.7, W / 2 - 0.7, rng.integers(2, 4)):  # shelves on the walls
+        side = rng.integers(3)
+        w = rng.uniform(0.8, 1.2)
+        if side == 0:  # the back wall
+            parts += _placed(_shelf(rng, w), (x, D - 0.2, 0.0), np.pi)
+        else:
+            y = rng.uniform(1.5, D - 1.0)
+            sx = -1 if side == 1 else 1
+            parts += _placed(_shelf(rng, w), (sx * (W / 2 - 0.2), y, 0.0), -sx * np.pi / 2)
+    items = [("cabinet", 0.5), ("person", 0.4), ("person", 0.4), ("lamp", 0.2), ("plant", 0.4)]
+    items += [("box", 0.35)] * int(rng.integers(2, 5)) + [("chair", 0.35), ("ball", 0.2)]
+    for kind, radius in items:
+        at = floor.spot(radius)
+        if at is None:
+            continue
+        yaw = rng.uniform(-np.pi, np.pi)
+        if kind == "cabinet":
+            half = (rng.uniform(0.3, 0.5), rng.uniform(0.2, 0.3), rng.uniform(0.35, 0.65))
+            parts += _placed([_rbox((0.0, 0.0, half[2]), half, 0.02)], at, yaw)
+        elif kind == "person":
+            parts += _placed(_person(rng, sitting=rng.random() < 0.3), at, yaw)
+        elif kind == "box":
+            half = rng.uniform(0.12, 0.3, 3)
+            parts += _placed(
+                [_box((-half[0], -half[1], 0.0), (half[0], half[1], 2 * half[2]))], at, yaw
+            )
+        elif kind == "ball":
+            r = rng.uniform(0.1, 0.2)
+            parts += _placed([_ball((0.0, 0.0, r), r)], at, 0.0)
+        else:
+            parts += _placed({"lamp": _lamp, "plant": _plant, "chair": _chair}[kind](rng), at, yaw)
+    # a near object (0.5-1 m from the camera)
+    near = np.array([rng.uniform(-0.4, 0.4), rng.uniform(0.9, 1.3), 0.0])
+    parts += _placed(_chair(rng), near, rng.uniform(-np.pi, np.pi))
+    door = (np.array([W / 2 - 0.01, 2.0, 0.0]), np.array([W / 2 + 0.25, 2.9, 2.05]))
+    sdf = bounded_union(parts, _room((-W / 2, 0.0, 0.0), (W / 2, D, H), [door]))
+    wx = rng.uniform(-W / 2 + 1.0, W / 2 - 2.0)
+
+    def window(p):
+        return (p[:, 1] > D - 0.02) & (abs(p[:, 0] - wx - 0.6) < 0.6) & (abs(p[:, 2] - 1.6) < 0.6)
+
+    eye = np.array([rng.uniform(-W / 4, W / 4), rng.uniform(0.15, 0.4), rng.uniform(1.0, 1.7)])
+    target = np.array(
+        [rng.uniform(-W / 3, W / 3), D * rng.uniform(0.6, 0.9), rng.uniform(0.3, 0.9)]
+    )
+    return Scene(sdf, eye, target, window)
+
+
+def people_scene(seed: int) -> Scene:
+    """A hall with 3-6 people (standing, sitting, arms out) at 1-7 m, a table and chairs."""
+    rng = np.random.default_rng(seed)
+    W, D, H = rng.uniform(6.0, 9.0), rng.uniform(6.5, 8.5), rng.uniform(2.8, 3.5)
+    floor = _Floor(rng, (-W / 2, 0.0), (W / 2, D))
+    floor.taken.append((np.array([0.0, 0.3]), 0.6))
+    parts: list[Part] = []
+    at = floor.spot(1.2, lo=(-W / 4, 3.0), hi=(W / 4, 6.0))
+    if at is not None:
+        w, d = rng.uniform(1.4, 2.0), rng.uniform(0.8, 1.0)
+        items = _desk(rng, w, d)[:5]  # a bare table
+        parts += _placed(items, at, rng.uniform(-0.3, 0.3))
+    for _ in range(rng.integers(3, 7)):
+        dist = rng.uniform(1.0, 7.0)
+        c = floor.spot(
+            0.45,
+            lo=(-min(W / 2 - 0.5, 0.5 * dist + 0.5), dist),
+            hi=(min(W / 2 - 0.5, 0.5 * dist + 0.5), dist + 0.3),
+        )
+        if c is None:
+            continue
+        sitting = rng.random() < 0.3
+        yaw = rng.uniform(-np.pi, np.pi)
+        if sitting:
+            parts += _placed(_chair(rng), c + [0.0, 0.0, 0.0], yaw)
+        parts += _placed(_person(rng, sitting), c, yaw)
+    for _ in range(rng.integers(2, 5)):
+        c = floor.spot(0.35)
+        if c is not None:
+            parts += _placed(_chair(rng), c, rng.uniform(-np.pi, np.pi))
+    sdf = bounded_union(parts, _room((-W / 2, 0.0, 0.0), (W / 2, D, H)))
+    eye = np.array([rng.uniform(-0.5, 0.5), 0.3, rng.uniform(1.1, 1.6)])
+    target = np.array([rng.uniform(-0.5, 0.5), 4.0, rng.uniform(0.6, 1.1)])
+    return Scene(sdf, eye, target)
+
+
+def corridor_scene(seed: int) -> Scene:
+    """A corridor longer than the sensor's range seen from beside one wall (both walls and the
+    floor at grazing angles), door recesses, cabinets, a bin, people walking."""
+    rng = np.random.default_rng(seed)
+    W, H, L = rng.uniform(2.0, 2.8), rng.uniform(2.4, 2.9), 14.0
+    recesses = []
+    for y in np.arange(rng.uniform(1.5, 3.0), L - 1.0, rng.uniform(2.5, 4.0)):
+        sx = rng.choice([-1, 1])
+        x0, x1 = sorted((sx * W / 2, sx * (W / 2 + 0.2)))
+        recesses.append((np.array([x0, y, 0.0]), np.array([x1, y + 0.9, 2.05])))
+    floor = _Floor(rng, (-W / 2, 0.0), (W / 2, L))
+    floor.taken.append((np.array([0.0, 0.3]), 0.5))
+    parts: list[Part] = []
+    for y in rng.uniform(2.0, 9.0, rng.integers(1, 3)):
+        sx = rng.choice([-1, 1])
+        half = (0.4, 0.2, rng.uniform(0.4, 0.9))
+        parts += _placed(
+            [_rbox((0.0, 0.0, half[2]), half, 0.02)], (sx * (W / 2 - 0.21), y, 0.0), 0.0
+        )
+    c = floor.spot(0.2)
+    if c is not None:
+        parts += _placed([_cyl(0.0, 0.0, 0.0, 0.6, 0.17)], c, 0.0)
+    for _ in range(rng.integers(1, 4)):
+        c = floor.spot(0.45, lo=(-W / 2 + 0.5, 1.5), hi=(W / 2 - 0.5, 8.0))
+        if c is not None:
+            parts += _placed(_person(rng), c, rng.choice([0.0, np.pi]) + rng.uniform(-0.3, 0.3))
+    sdf = bounded_union(parts, _room((-W / 2, 0.0, 0.0), (W / 2, L, H), recesses))
+    sx = rng.choice([-1, 1])
+    eye = np.array([sx * (W / 2 - rng.uniform(0.35, 0.7)), 0.2, rng.uniform(1.1, 1.7)])
+    target = np.array([-sx * rng.uniform(0.0, 0.5), 6.0, rng.uniform(0.4, 1.0)])
+    return Scene(sdf, eye, target)
+
+
+CLUTTERED = {"office": office_scene, "people": people_scene, "corridor": corridor_scene}
+
+
+def cluttered_cloud(kind: str, seed: int, width: int = 160, height: int = 120):
+    """A :data:`CLUTTERED` scene's image as valid points (n, 3), rotated and moved by up to 1e6
+    (seeded by ``seed``), and the camera's place (3,) in that frame."""
+    scene = CLUTTERED[kind](seed)
+    p = valid_rows(scene.image(width, height, seed))
+    rng = np.random.default_rng(seed)
+    rot, off = random_rotation(rng), rng.uniform(-1e6, 1e6, 3)
+    return p @ rot.T + off, scene.eye @ rot.T + off
+
+
 # ---- the camera ------------------------------------------------------------------------------
 def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     """Camera-to-world rotation (columns: right, down, forward), as an optical frame."""
@@ -88,6 +497,8 @@ class DepthCamera:
         Horizontal field of view, degrees (Kinect v1: 57).
     max_range : float
         Rays hitting nothing closer than this give NaN pixels.
+    min_range : float
+        Hits closer than this give NaN pixels (Kinect v1: about 0.5 m).
     """
 
     eye: np.ndarray
@@ -96,6 +507,7 @@ class DepthCamera:
     height: int = 120
     fov: float = 57.0
     max_range: float = 6.0
+    min_range: float = 0.0
 
     @property
     def focal(self) -> float:
@@ -112,22 +524,29 @@ class DepthCamera:
 
     def cast(self, sdf, steps: int = 300, eps: float = 1e-6) -> np.ndarray:
         """(height, width) distance along each ray to the first hit (inf for a miss)."""
-        d = self.rays().reshape(-1, 3)
-        o = np.asarray(self.eye, float)
-        t = np.zeros(len(d))
-        live = np.ones(len(d), bool)
-        hit = np.zeros(len(d), bool)
-        for _ in range(steps):
-            idx = np.flatnonzero(live)
-            if len(idx) == 0:
-                break
-            f = sdf(o + t[idx, None] * d[idx])
-            close = f < eps
-            hit[idx[close]] = True
-            t[idx] += np.where(close, 0.0, np.maximum(f, 0.0))
-            live[idx[close | (t[idx] > self.max_range)]] = False
-        t[~hit | (t > self.max_range)] = np.inf
+        t, hit = sphere_trace(sdf, self.eye, self.rays().reshape(-1, 3), self.max_range, steps, eps)
+        t[~hit | (t > self.max_range) | (t < self.min_range)] = np.inf
         return t.reshape(self.height, self.width)
+
+
+def sphere_trace(sdf, o, d: np.ndarray, t_max, steps: int, eps: float):
+    """March from ``o`` ((3,) or (n, 3)) along unit ``d`` (n, 3) up to ``t_max`` (scalar or (n,)):
+    (n,) distances reached and (n,) whether the ray came within ``eps`` of the scene."""
+    o = np.asarray(o, float)
+    t_max = np.broadcast_to(np.asarray(t_max, float), (len(d),))
+    t = np.zeros(len(d))
+    live = np.ones(len(d), bool)
+    hit = np.zeros(len(d), bool)
+    for _ in range(steps):
+        idx = np.flatnonzero(live)
+        if len(idx) == 0:
+            break
+        f = sdf((o if o.ndim == 1 else o[idx]) + t[idx, None] * d[idx])
+        close = f < eps
+        hit[idx[close]] = True
+        t[idx] += np.where(close, 0.0, np.maximum(f, 0.0))
+        live[idx[close | (t[idx] > t_max[idx])]] = False
+    return t, hit
 
 
 def depth_image(
@@ -137,6 +556,7 @@ def depth_image(
     *,
     noise: float = 1.0,
     flying: float = 0.5,
+    effects: SensorEffects | None = None,
 ) -> np.ndarray:
     """An organized cloud of ``sdf`` seen by ``camera``: (height, width, 3), NaN where nothing is
     hit.
@@ -148,8 +568,12 @@ def depth_image(
     flying : float
         Fraction of the pixels at a depth edge (a neighbour more than 5 % farther) that
         become flying pixels, their depth drawn uniformly between the two surfaces.
+    effects : SensorEffects, optional
+        The other effects of a real sensor (holes, correlated noise, quantisation); None: none.
     """
     t = camera.cast(sdf)
+    if effects is not None:
+        t = effects.holes(camera, sdf, t, rng)
     z = t.copy()
     if flying > 0:
         finite = np.isfinite(t)
@@ -162,10 +586,107 @@ def depth_image(
         z[pick] = near[pick] + rng.random(int(pick.sum())) * (nb[pick] - near[pick])
     if noise > 0:
         sigma = noise * (0.0012 + 0.0019 * (np.where(np.isfinite(z), z, 0.4) - 0.4) ** 2)
-        z = z + rng.normal(size=z.shape) * sigma
+        if effects is None:
+            z = z + rng.normal(size=z.shape) * sigma
+        else:
+            z = effects.noisy(z, sigma, rng)
     pts = camera.eye + camera.rays() * z[..., None]
     pts[~np.isfinite(z)] = np.nan
     return pts
+
+
+@dataclass
+class SensorEffects:
+    """What a real structured-light camera (Kinect v1) does beyond white depth noise.
+
+    Parameters
+    ----------
+    shadow : float
+        Baseline (metres) of the projector, to the camera's right: pixels whose surface the
+        projector does not light are NaN (the bands beside every foreground edge); 0: none.
+    grazing : float
+        Incidence angle (degrees) from which returns fade: a pixel seen at angle ``a`` is NaN
+        with probability ``(a - grazing) / (90 - grazing)``.
+    blobs : float
+        Fraction of the image lost in random blobs (dark, glossy or sunlit patches).
+    absorb : callable, optional
+        ``(n, 3) points -> (n,) bool``: surfaces that return nothing (windows, screens).
+    correlation : float
+        Pixels over which the depth noise is correlated (the sensor's matching window); 0:
+        white noise.
+    disparity : float
+        Disparity quantum in 1/metres (Kinect v1 at 640 pixels: 1/8 pixel over
+        focal x baseline = 0.125 / (580 x 0.075) = 0.0029): depths come in steps of
+        ``disparity z**2``; 0: continuous.
+    """
+
+    shadow: float = 0.075
+    grazing: float = 75.0
+    blobs: float = 0.02
+    absorb: object = None
+    correlation: float = 1.5
+    disparity: float = 0.0029
+
+    def holes(self, camera: DepthCamera, sdf, t: np.ndarray, rng) -> np.ndarray:
+        """``t`` (height, width) with the pixels the sensor loses set to inf."""
+        t = t.copy()
+        rays = camera.rays()
+        hit = np.isfinite(t)
+        p = camera.eye + rays[hit] * t[hit][:, None]
+        lost = np.zeros(len(p), bool)
+        if self.absorb is not None:
+            lost |= np.asarray(self.absorb(p), bool)
+        nrm = true_normals(sdf, p)
+        cos = np.abs(np.einsum("ij,ij->i", nrm, rays[hit]))
+        angle = np.degrees(np.arccos(np.clip(cos, 0.0, 1.0)))
+        fade = np.clip((angle - self.grazing) / (90.0 - self.grazing), 0.0, 1.0)
+        lost |= rng.random(len(p)) < fade
+        if self.shadow > 0:
+            lost |= _shadowed(sdf, p, nrm, camera.eye + self.shadow * camera.rotation[:, 0])
+        t.reshape(-1)[np.flatnonzero(hit.reshape(-1))[lost]] = np.inf
+        if self.blobs > 0:
+            field = _smooth_field(t.shape, 0.04 * t.shape[1], rng)
+            t[field > np.quantile(field, 1.0 - self.blobs)] = np.inf
+        return t
+
+    def noisy(self, z: np.ndarray, sigma: np.ndarray, rng) -> np.ndarray:
+        """``z`` with noise of standard deviation ``sigma`` (correlated), then quantised."""
+        e = (
+            rng.normal(size=z.shape)
+            if self.correlation <= 0
+            else _smooth_field(z.shape, self.correlation, rng)
+        )
+        if self.disparity > 0:
+            # the quantisation's own error (uniform, a step wide) is part of the measured sigma
+            step = self.disparity * np.where(np.isfinite(z), z, 0.0) ** 2
+            sigma = np.sqrt(np.maximum(sigma**2 - step**2 / 12, 0.0))
+        z = z + e * sigma
+        if self.disparity > 0:
+            with np.errstate(divide="ignore"):
+                z = 1.0 / (np.round(1.0 / (z * self.disparity)) * self.disparity)
+        return z
+
+
+def _smooth_field(shape, width: float, rng) -> np.ndarray:
+    """Gaussian noise smoothed over ``width`` pixels, unit standard deviation."""
+    from scipy.ndimage import gaussian_filter
+
+    f = gaussian_filter(rng.normal(size=shape), width, mode="wrap")
+    return f / f.std()
+
+
+def _shadowed(
+    sdf, p: np.ndarray, nrm: np.ndarray, light: np.ndarray, steps: int = 200
+) -> np.ndarray:
+    """(n,) True where the segment from ``p`` (off its surface) to ``light`` hits the scene."""
+    d = light - p
+    length = np.linalg.norm(d, axis=1)
+    d /= length[:, None]
+    # start a little off the surface, towards the light (the normal's side facing it)
+    side = np.sign(np.einsum("ij,ij->i", nrm, d))
+    o = p + 2e-3 * side[:, None] * nrm
+    t, hit = sphere_trace(sdf, o, d, length, steps, 1e-5)
+    return hit & (t < length)
 
 
 def valid_rows(organized: np.ndarray) -> np.ndarray:

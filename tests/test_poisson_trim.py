@@ -12,6 +12,7 @@ from recon_cli.stages.poisson import screened_poisson
 from recon_cli.stages.poisson.trim import (
     SPACING_CAP,
     SUPPORT_RATIO,
+    nearest_counts,
     support_ratio,
     trim_by_density,
 )
@@ -79,6 +80,26 @@ def test_small_islands_filled_and_dropped():
     del x
 
 
+def test_small_islands_holding_data_stay():
+    # two small high bumps in the removed part: the one a sample lies nearest to stays (data,
+    # however small), the other goes; mass on removed vertices or on none changes nothing
+    s = TriangleMesh(*icosphere(6))
+    d = s.vertices[:, 2].copy()
+    held = np.linalg.norm(s.vertices - [1.0, 0.0, 0.0], axis=1) < 0.03
+    empty = np.linalg.norm(s.vertices - [-1.0, 0.0, 0.0], axis=1) < 0.03
+    d[held | empty] = 1.0
+    samples = np.array([[1.01, 0.0, 0.0], [0.0, 0.0, 1.01], [0.0, 0.0, -1.01]])
+    mass = nearest_counts(samples, s.vertices)
+    assert mass.sum() == 3 and mass[held].sum() == 1 and mass[empty].sum() == 0
+    m = trim_by_density(s, d, 0.2, mass=mass).mesh
+    rep = _manifold_oriented(m)
+    assert rep["components"] == 2 and rep["boundary_loops"] == 2
+    assert (m.vertices[:, 0] > 0.99).any() and not (m.vertices[:, 0] < -0.99).any()
+    # no mass anywhere: as without it
+    m0 = trim_by_density(s, d, 0.2, mass=np.zeros(len(d))).mesh
+    assert topology_report(m0)["components"] == 1 and not (m0.vertices[:, 0] > 0.99).any()
+
+
 def test_nothing_to_trim_returns_the_mesh():
     s = TriangleMesh(*icosphere(2))
     out = trim_by_density(s, np.ones(len(s.vertices)), 0.5)
@@ -113,7 +134,7 @@ def test_single_view_scans_lose_the_sheet_keep_the_scan(name, seed):
     assert covered.mean() > 0.97, covered.mean()  # the scanned surface stays
 
 
-# ---- --trim auto: the surface within 0.7 local sample spacings of the samples (support_ratio)
+# ---- --trim auto: the surface within one local sample spacing of the samples (support_ratio)
 def _lattice(n: int, h: float) -> np.ndarray:
     g = np.arange(n) * h
     x, y = np.meshgrid(g, g, indexing="ij")
@@ -169,7 +190,9 @@ def test_auto_single_view_scans_lose_the_sheet_keep_the_scan(name):
     cell = res.report["finest_cell"]
     local = (m.vertices - off) @ rot
     dist = np.abs(sdf(local))
-    assert np.quantile(dist, 0.99) < 2 * cell and dist.max() < 3 * cell, (dist.max(), cell)
+    # the sheet is kept one spacing past the scan's edge, where it leaves the shape (thin
+    # plate: 99 % within 2.01 cells, all within 2.36)
+    assert np.quantile(dist, 0.99) < 2.5 * cell and dist.max() < 3 * cell, (dist.max(), cell)
     from recon_cli.mesh.distance import closest_points
 
     d_auto = closest_points(local, m.faces, pts)[0]
@@ -181,10 +204,13 @@ def test_auto_single_view_scans_lose_the_sheet_keep_the_scan(name):
 
 
 @pytest.mark.slow
-def test_auto_depth_camera_keeps_far_floor_drops_sheet_and_flying_pixels():
+def test_auto_depth_camera_keeps_far_floor_drops_sheet():
     # a 320 x 240 depth image of a tabletop (Kinect-like noise, flying pixels at the depth
     # edges, NaN misses): the floor's density falls with distance squared, yet it stays whole;
-    # the closing sheet and the shadows' bridges over flying pixels go
+    # the closing sheet goes; what stays beside the scene are small islands about flying
+    # pixels, each holding samples (the sensor saw them)
+    from scipy.spatial import cKDTree
+
     from recon_cli.geometry import PointCloud
     from recon_cli.mesh.distance import closest_points
     from recon_cli.mesh.sampling import sample_surface
@@ -203,14 +229,19 @@ def test_auto_depth_camera_keeps_far_floor_drops_sheet_and_flying_pixels():
     diag = float(np.linalg.norm(p.max(0) - p.min(0)))
     near = closest_points(m.vertices, m.faces, p)[0] <= 0.005 * diag
     near_full = closest_points(full.mesh.vertices, full.mesh.faces, p)[0] <= 0.005 * diag
-    assert near.mean() >= near_full.mean() - 0.003, (near.mean(), near_full.mean())
+    assert near.mean() >= near_full.mean() - 0.001, (near.mean(), near_full.mean())
     floor = np.abs(p[:, 2]) < 0.01  # the far floor, sparsest of all, is kept to its end
     assert near[floor & (p[:, 1] > 1.2)].mean() >= near_full[floor & (p[:, 1] > 1.2)].mean() - 0.01
-    from scipy.spatial import cKDTree
-
     s = sample_surface(m, 100_000, seed=1).points
     assert (cKDTree(p).query(s)[0] > 0.01 * diag).mean() <= 1e-3
-    assert topology_report(m)["components"] <= 5
+    # 15 pieces: the scene in 3 (the room with the box, the ball, the ring), 12 islands of
+    # 0.4 % of the area in all, each within 2.7 finest cells of an input point
+    con = Connectivity(m.faces, len(m.vertices), m.vertices)
+    area = np.bincount(con.face_components, weights=con.face_areas)
+    assert np.sort(area)[:-3].sum() < 0.01 * area.sum()
+    gap = np.full(len(area), np.inf)
+    np.minimum.at(gap, con.face_components, cKDTree(p).query(m.vertices)[0][m.faces].min(axis=1))
+    assert gap.max() < 4 * res.report["finest_cell"], gap.max() / res.report["finest_cell"]
 
 
 @pytest.mark.slow
@@ -242,9 +273,11 @@ def test_auto_keeps_sparse_airborne_ground():
     v = m.vertices[m.faces]
     n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
     assert (n[:, 2] < 0).sum() < 1e-3 * len(n)
-    far = cKDTree(g).query(sample_surface(m, 100_000, seed=1).points)[0] > 5.0
-    # untrimmed 94 %; the issue asks 1 %, which costs the sparse ground (bench/calibration.md)
-    assert far.mean() < 0.16, far.mean()
+    gap = cKDTree(g).query(sample_surface(m, 100_000, seed=1).points)[0]
+    # under buildings and canopy the ground model interpolates (what users want of it): 15.9 %
+    # of the area lies over 5 ft from every ground point (untrimmed 94 %), 0.65 % over 10 ft
+    # (issue 45 asks <= 1 %; bench/calibration.md)
+    assert (gap > 5.0).mean() < 0.17 and (gap > 10.0).mean() <= 0.01, np.quantile(gap, 0.99)
 
 
 @pytest.mark.parametrize("backend", ["native", "open3d"])
@@ -267,3 +300,39 @@ def test_auto_on_both_backends_keeps_the_density_attribute(backend):
     assert 0.1 < res.report["trimmed_area"] < 0.6 and res.report["trimmed_faces"] > 0
     dens = m.attributes["density"]
     assert len(dens) == len(m.vertices) and np.isfinite(dens).all() and (dens > 0).all()
+
+
+# ---- issue 45: cluttered depth-camera scenes (tests/sensors.py's CLUTTERED family)
+# 160 x 120, depth 8, rotated and moved by up to 1e6 (seeds 0-3 of each kind, bench/calibration.md,
+# `python bench/bench_trim.py --small`): the trim loses at most 0.05 points of the input points
+# within 0.5 % of the diagonal of the untrimmed surface (the previous rule lost 0.13-3.0), keeps
+# 94.8-99.0 % of them, and no mesh lies over 2.16 % of the diagonal from every input point
+# (SurfaceTrimmer 7: 1.85 %; a 160-pixel image's spacing is 4x a 640-pixel one's)
+@pytest.mark.parametrize(
+    ("kind", "seed", "kept"), [("office", 0, 0.945), ("people", 1, 0.985), ("corridor", 0, 0.98)]
+)
+def test_auto_cluttered_scene_keeps_what_the_sensor_saw(kind, seed, kept):
+    from scipy.spatial import cKDTree
+
+    from recon_cli.geometry import PointCloud
+    from recon_cli.mesh.distance import closest_points
+    from recon_cli.mesh.sampling import sample_surface
+    from recon_cli.stages import normals
+
+    from sensors import cluttered_cloud
+
+    p, eye = cluttered_cloud(kind, seed)
+    seen = np.linalg.norm(p - eye, axis=1)
+    assert seen.min() < 2.5 and seen.max() > 7.0  # near objects and far walls
+    c = normals.run_stage(PointCloud(points=p), orient="camera", camera=tuple(eye)).output
+    full = screened_poisson(c.points, c.normals, depth=8).mesh
+    res = screened_poisson(c.points, c.normals, depth=8, trim="auto")
+    m = res.mesh
+    _manifold_oriented(m)
+    assert 0.75 < res.report["trimmed_area"] < 0.95
+    diag = float(np.linalg.norm(p.max(0) - p.min(0)))
+    near = (closest_points(m.vertices, m.faces, p)[0] <= 0.005 * diag).mean()
+    near_full = (closest_points(full.vertices, full.faces, p)[0] <= 0.005 * diag).mean()
+    assert near >= near_full - 0.001 and near >= kept, (near, near_full)
+    gap = cKDTree(p).query(sample_surface(m, 50_000, seed=1).points)[0] / diag
+    assert gap.max() < 0.025 and (gap > 0.02).mean() <= 1e-3, (gap.max(), (gap > 0.02).mean())

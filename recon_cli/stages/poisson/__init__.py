@@ -48,7 +48,8 @@ PoissonRecon writes (a depth-like, logarithmic value; 5 to 7 is typical, smoothe
 Open3D users cut a quantile of the vertex densities; ours is a fraction of the median density
 at the samples, so one value (0.1 to 0.3) serves any scan, depth, unit and tessellation.
 ``trim="auto"`` needs no value: it cuts where the surface lies farther from the samples than
-0.7 of their local spacing (:func:`.trim.support_ratio`), so sparse real surface stays.
+their local spacing (:func:`.trim.support_ratio`), so sparse real surface stays, and keeps
+every island a sample lies nearest to (:func:`.trim.trim_auto`).
 
 References
 ----------
@@ -230,8 +231,8 @@ SPEC: StageSpec = StageSpec(
             "trim",
             "float",
             0.0,
-            "Cut away an open scan's closing sheet: 'auto' keeps the surface within 0.7 local "
-            "sample spacings of the samples (sparse real surface stays); a number T cuts where the "
+            "Cut away an open scan's closing sheet: 'auto' keeps the surface within one local "
+            "sample spacing of the samples (sparse real surface stays); a number T cuts where the "
             "samples' density is below T times its median at the samples.",
             unit="of the median sample density",
             min=0.0,
@@ -414,7 +415,7 @@ def screened_poisson(
     density : bool
         Add the per-vertex kernel density of the samples as ``attributes["density"]``.
     trim : float or "auto"
-        ``"auto"``: cut away the surface farther than 0.7 local sample spacings from the
+        ``"auto"``: cut away the surface farther than one local sample spacing from the
         samples (:func:`.trim.support_ratio`: the threshold comes from the samples, sparse
         real surface stays). A number: cut away the surface where the samples' density is
         below ``trim`` times its median at the samples (0 <= trim < 1; 0 keeps everything);

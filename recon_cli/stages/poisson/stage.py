@@ -363,16 +363,10 @@ def _run_reference(
     mesh.vertices = mesh.vertices + centre
     trimmed, trimmed_area = 0, 0.0
     if trim == "auto" and len(mesh.faces):
-        from recon_cli.stages.poisson.trim import (
-            SUPPORT_RATIO,
-            merge_per_cell,
-            support_ratio,
-            trim_by_density,
-        )
+        from recon_cli.stages.poisson.trim import merge_per_cell, trim_auto
 
         cell = float((pts.max(axis=0) - pts.min(axis=0)).max()) * scale / (1 << depth)
-        ratio = support_ratio(merge_per_cell(pts, cell), mesh.vertices)[0]
-        cut = trim_by_density(mesh, -ratio, -SUPPORT_RATIO, carry=dens)
+        cut = trim_auto(mesh, merge_per_cell(pts, cell), carry=dens)
         if len(cut.mesh.faces) == 0:
             raise InputError("trim auto removes the whole surface: no part lies near the samples")
         trimmed = len(mesh.faces) - cut.untouched_faces

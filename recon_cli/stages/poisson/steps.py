@@ -461,13 +461,12 @@ def trimmed(
     times the median density at the samples (``vdens`` (n,) the vertices' densities then).
     """
     from recon_cli.stages.poisson.splat import sample_density
-    from recon_cli.stages.poisson.trim import SUPPORT_RATIO, support_ratio, trim_by_density
+    from recon_cli.stages.poisson.trim import trim_auto, trim_by_density
 
     if not len(mesh.faces) or trim == 0:
         return mesh, vdens, 0, 0.0
     if trim == "auto":
-        ratio = support_ratio(smp.pos * size + origin, mesh.vertices)[0]
-        cut = trim_by_density(mesh, -ratio, -SUPPORT_RATIO, carry=vdens)
+        cut = trim_auto(mesh, smp.pos * size + origin, carry=vdens)
         if len(cut.mesh.faces) == 0:
             raise InputError("trim auto removes the whole surface: no part lies near the samples")
         return cut.mesh, cut.carried, len(mesh.faces) - cut.untouched_faces, cut.removed_area

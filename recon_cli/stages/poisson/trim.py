@@ -5,13 +5,15 @@ kernel density at the surface tells the two apart. :func:`trim_by_density` cuts 
 along the contour ``density = threshold`` (every triangle the contour crosses is split at
 the linearly interpolated crossings, as PoissonRecon's SurfaceTrimmer does), keeps the high
 side, keeps small low islands inside it (so a sparse patch on the scanned surface does
-not become a hole) and drops small high islands (outliers in the sheet). The threshold is a
+not become a hole) and drops small high islands (outliers in the sheet), unless told they
+hold data (``mass``). The threshold is a
 fraction of the median density at the samples, so the same value serves any scan, depth
 and tessellation (a vertex quantile, Open3D's documented recipe, depends on how many
 vertices the sheet happens to have).
 
 :func:`support_ratio` gives the value cut by ``--trim auto``: how far each vertex lies from
-the samples relative to their local spacing (see its docstring for the rule).
+the samples relative to their local spacing (see its docstring for the rule);
+:func:`trim_auto` makes that cut, keeping every island a sample lies nearest to.
 
 On a closed, edge- and vertex-manifold input the output is edge- and vertex-manifold by
 construction: every face around a kept vertex keeps a piece containing it, and each cut
@@ -44,12 +46,13 @@ ISLAND_AREA_RATIO = 1e-3
 # sample ...
 SUPPORT_K = 8
 # ... and the surface is kept within this many local spacings of the nearest sample (a lattice's
-# gaps are within 0.5, a grazing view's 3:1 lattice's within 0.53, and a random sampling's
-# farther parts are small holes the island rule fills) ...
-SUPPORT_RATIO = 0.7
+# gaps are within 0.5; a depth camera's noise and disparity steps put the surface between
+# layers of samples, up to about one spacing from them: bench/calibration.md) ...
+SUPPORT_RATIO = 1.0
 # ... a spacing counting as at most this many times the samples' median spacing (sparse
-# strays, such as a depth camera's flying pixels, keep no wide sheet around them)
-SPACING_CAP = 2.0
+# strays, such as a depth camera's flying pixels, keep no wide sheet around them; the kept
+# band around sparse ground stays within SUPPORT_RATIO * SPACING_CAP median spacings)
+SPACING_CAP = 1.4
 
 
 @dataclass
@@ -134,6 +137,7 @@ def trim_by_density(
     threshold: float,
     island_ratio: float = ISLAND_AREA_RATIO,
     carry: np.ndarray | None = None,
+    mass: np.ndarray | None = None,
 ) -> Trimmed:
     """Remove the part of ``mesh`` where ``density`` is at most ``threshold``.
 
@@ -153,6 +157,10 @@ def trim_by_density(
     carry : (n,) float, optional
         Another per-vertex value (a density attribute) taken to the output vertices,
         interpolated at the cut vertices as the positions are.
+    mass : (n,) float, optional
+        The data each vertex stands for (:func:`nearest_counts`: the samples nearest it). A
+        small kept island holding any stays (scanned surface, however small: a near object,
+        a fragment between noisy samples); without ``mass`` every small kept island goes.
 
     Returns
     -------
@@ -186,10 +194,14 @@ def trim_by_density(
         lab = Connectivity(faces[part], len(verts)).face_components
         comp_area = np.bincount(lab, weights=area[part])
         small = comp_area < island_ratio * kept_area
+        if want and mass is not None:
+            small &= ~_holding(lab, faces[part], mass)
         keep[part[small[lab]]] = not want
 
     out_f = faces[keep]
-    used = np.unique(out_f)
+    referenced = np.zeros(len(verts), bool)
+    referenced[out_f] = True
+    used = np.flatnonzero(referenced)  # np.unique's answer without its sort
     remap = np.full(len(verts), -1, np.int64)
     remap[used] = np.arange(len(used))
     out = TriangleMesh(vertices=verts[used], faces=remap[out_f], history=list(mesh.history))
@@ -200,6 +212,51 @@ def trim_by_density(
     return Trimmed(
         out, dens[used], removed, threshold, untouched, None if carry is None else carry[used]
     )
+
+
+def _holding(lab: np.ndarray, faces: np.ndarray, mass: np.ndarray) -> np.ndarray:
+    """(c,) True for the face components ``lab`` (f,) of ``faces`` (f, 3) with mass at a corner.
+
+    ``mass`` is per input vertex; cut vertices, numbered from ``len(mass)``, hold none.
+    """
+    held = np.concatenate([np.asarray(mass, dtype=np.float64) > 0, np.zeros(1, bool)])
+    corners = held[np.minimum(faces, len(mass))].any(axis=1)
+    return np.bincount(lab, weights=corners, minlength=int(lab.max()) + 1) > 0
+
+
+def nearest_counts(samples: np.ndarray, verts: np.ndarray) -> np.ndarray:
+    """(n,) how many of the ``samples`` (s, 3) lie nearest each of the ``verts`` (n, 3)."""
+    from scipy.spatial import cKDTree
+
+    j = cKDTree(np.asarray(verts, dtype=np.float64)).query(
+        np.asarray(samples, dtype=np.float64), workers=-1
+    )[1]
+    return np.bincount(j, minlength=len(verts)).astype(np.float64)
+
+
+def trim_auto(mesh: TriangleMesh, samples: np.ndarray, carry: np.ndarray | None = None) -> Trimmed:
+    """``--trim auto``: cut ``mesh`` where :func:`support_ratio` is :data:`SUPPORT_RATIO`.
+
+    Holes below :data:`ISLAND_AREA_RATIO` of the kept area are kept; of the small kept
+    islands only those no sample lies nearest to go (pieces of the sheet).
+
+    Parameters
+    ----------
+    mesh : TriangleMesh
+        (n, 3) vertices, (m, 3) faces.
+    samples : (s, 3) float
+        The samples, merged per finest cell of the tree (:func:`support_ratio`).
+    carry : (n,) float, optional
+        A per-vertex value taken to the output vertices (:func:`trim_by_density`).
+
+    Returns
+    -------
+    Trimmed
+        Its ``density`` is minus the support ratio at the output vertices.
+    """
+    ratio = support_ratio(samples, mesh.vertices)[0]
+    mass = nearest_counts(samples, mesh.vertices)
+    return trim_by_density(mesh, -ratio, -SUPPORT_RATIO, carry=carry, mass=mass)
 
 
 def merge_per_cell(points: np.ndarray, cell: float) -> np.ndarray:
@@ -238,11 +295,13 @@ def support_ratio(
     neighbour's distance (``sqrt(2)`` lattice steps; on a 3:1 lattice, a grazing view's,
     within 0.53 of it), and a random sampling leaves about ``exp(-k c**2)`` of its area
     farther than ``c`` times the ``k``-th neighbour's distance from every sample (small
-    holes, which the trim's island rule fills), so a cut at 0.7 spacings keeps every sampled
-    region, sparse ones included, and the sheet only within 0.7 spacings of the scan's
-    edge. Density cuts (SurfaceTrimmer's value, Open3D's quantile, a fraction of
-    the median density) cut sparse real regions along with the sheet, their density being
-    as low.
+    holes, which the trim's island rule fills). A depth camera's samples are noisier: its
+    noise and disparity steps spread them over layers a few cells apart, and the smooth
+    surface passes between the layers, up to about one spacing from the nearest sample. A
+    cut at one spacing keeps every sampled region, sparse and noisy ones included, and the
+    sheet only within one spacing of the scan's edge. Density cuts (SurfaceTrimmer's value,
+    Open3D's quantile, a fraction of the median density) cut sparse real regions along with
+    the sheet, their density being as low.
 
     Parameters
     ----------
