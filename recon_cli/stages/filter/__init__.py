@@ -731,10 +731,8 @@ def filter_cloud(
     returns : {"all", "first", "last", "single", "intermediate"}
         LAS returns to keep (:func:`return_mask`); needs ``return_number`` and
         ``number_of_returns`` unless "all".
-    radius_outliers : (R, N) or None
-        :func:`radius_outlier_mask`.
-    outliers : (K, STD) or None
-        :func:`statistical_outlier_mask`.
+    radius_outliers, outliers : (R, N), (K, STD) or None
+        :func:`radius_outlier_mask`, :func:`statistical_outlier_mask`.
     voxel : float or None
         :func:`voxel_downsample` cell edge (input units).
 
@@ -769,11 +767,8 @@ def filter_cloud(
         }
     )
     crop, classes, returns = values["crop"], values["classes"], values["returns"]
-    radius_outliers, outliers, voxel = (
-        values["radius_outliers"],
-        values["outliers"],
-        values["voxel"],
-    )
+    radius_outliers, outliers = values["radius_outliers"], values["outliers"]
+    voxel = values["voxel"]
     raw = cloud.points
     n = len(raw)
     if n == 0:
