@@ -9,7 +9,13 @@ Simplification (ours; Open3D ``simplify_quadric_decimation``; PyMeshLab
 the guarantees ours gives) to 10 % of the faces (an even count: a closed mesh has one):
 
 - a 1.07M-face Poisson mesh made by ``recon poisson`` of 1M area-uniform samples of the
-  armadillo at depth 9 (quick: 200k samples at depth 8);
+  armadillo at depth 9 (quick: 200k samples at depth 8); ours also with a cold numba cache
+  (``NUMBA_CACHE_DIR`` empty: every kernel of the command compiled first, as after an
+  upgrade without ``recon warmup``);
+- the armadillo split twice (1-to-4 midpoint splits, 800k faces) with its vertices moved by
+  0.2 % of the diagonal (``bench_diff``'s noisy mesh; quick: split once);
+- the bunny scan (``bunny_zipper``: open, 5 holes) split twice: 1.11M faces of a real scan
+  (quick: split once);
 - the shared meshes (kitten, armadillo, bunny, mug).
 
 Column ``CD``: exact point-to-triangle Chamfer (mean of both directions, 200k samples on each
@@ -71,13 +77,15 @@ def _recon() -> str:
     return str(Path(sys.executable).with_name("recon"))
 
 
-def _ours(args: list[str], src: Path, dst: Path):
+def _ours(args: list[str], src: Path, dst: Path, env: dict | None = None):
     """``recon ARGS SRC DST`` as a process (through a launcher: a child forked from this big
     process would report this one's resident size as its peak): time, memory, the output."""
     from recon_cli.io import read_ply
 
     cmd = [_recon(), "-q", args[0], str(src), str(dst), *args[1:]]
-    proc = subprocess.run([sys.executable, "-c", _LAUNCHER, *cmd], capture_output=True)
+    proc = subprocess.run(
+        [sys.executable, "-c", _LAUNCHER, *cmd], capture_output=True, env=env or os.environ.copy()
+    )
     if proc.returncode != 0:
         raise RuntimeError(f"recon {args[0]} failed: {proc.stderr.decode().strip()}")
     dt, kb = proc.stdout.decode().split()
@@ -142,7 +150,8 @@ def _ratios(rows: list[dict], key: str) -> None:
             ours["quality_ratio"] = abs(ours[key] / ref[key]) if ref.get(key) else float("nan")
 
 
-def _simplify_rows(case: str, mesh, work: Path) -> list[dict]:
+def _simplify_rows(case: str, mesh, work: Path, cold: bool = False) -> list[dict]:
+    """Ours (warm cache; also cold when ``cold``), Open3D and PyMeshLab to 10 % of the faces."""
     from recon_cli.backends import open3d_backend, pymeshlab_backend
     from recon_cli.io import write_ply
 
@@ -150,10 +159,15 @@ def _simplify_rows(case: str, mesh, work: Path) -> list[dict]:
     src, dst = work / "in.ply", work / "out.ply"
     write_ply(mesh, src)
     out = []
-    for name in ("recon (process)", "open3d", "pymeshlab"):
+    methods = ("recon (process)", "open3d", "pymeshlab") + (("recon (cold cache)",) if cold else ())
+    for name in methods:
         try:
             if name == "recon (process)":
                 m, res = _ours(["simplify", "--faces", str(target)], src, dst)
+            elif name == "recon (cold cache)":
+                with tempfile.TemporaryDirectory() as cache:
+                    env = dict(os.environ, NUMBA_CACHE_DIR=cache)
+                    m, res = _ours(["simplify", "--faces", str(target)], src, dst, env)
             elif name == "open3d":
                 m, res = _reference(open3d_backend.simplify_quadric, mesh, target)
             else:
@@ -176,7 +190,21 @@ def _simplify_rows(case: str, mesh, work: Path) -> list[dict]:
             }
         )
     _ratios(out, "cd")
+    if cold and "seconds" in out[-1] and "seconds" in out[1]:
+        out[-1]["note"] = f"s cold/open3d {out[-1]['seconds'] / out[1]['seconds']:.2f}x"
     return out
+
+
+def _split(mesh, levels: int):
+    """``mesh`` with each triangle split 1-to-4 ``levels`` times (the same surface)."""
+    from bench_diff import subdivide
+
+    from recon_cli.geometry import TriangleMesh
+
+    v, f = np.asarray(mesh.vertices, np.float64), mesh.faces
+    for _ in range(levels):
+        v, f = subdivide(v, f)
+    return TriangleMesh(v, f)
 
 
 def _noisy_sphere(subdivisions: int):
@@ -261,7 +289,17 @@ def rows(quick: bool) -> list[dict]:
         n, depth = (200_000, 8) if quick else (1_000_000, 9)
         big = _poisson_mesh(n, depth, work)
         label = f"Poisson armadillo {len(big.faces) / 1e6:.2f}M faces"
-        out += _simplify_rows(f"{label} -> 10 %", big, work)
+        out += _simplify_rows(f"{label} -> 10 %", big, work, cold=True)
+        levels = 1 if quick else 2
+        arma = _split(read_ply(SHARED / "armadillo.ply"), levels)
+        rng = np.random.default_rng(1)
+        diag = np.linalg.norm(arma.vertices.max(0) - arma.vertices.min(0))
+        arma.vertices = arma.vertices + rng.normal(scale=0.002 * diag, size=arma.vertices.shape)
+        case = f"armadillo split ×{levels} + 0.2 % noise, {len(arma.faces) // 1000}k faces"
+        out += _simplify_rows(f"{case} -> 10 %", arma, work)
+        bunny = _split(read_ply(SHARED / "bunny_zipper.ply"), levels)
+        case = f"bunny scan split ×{levels}, {len(bunny.faces) / 1e6:.2f}M faces"
+        out += _simplify_rows(f"{case} -> 10 %", bunny, work)
         for name in ("kitten", "mug") if quick else ("kitten", "armadillo", "bunny_zipper", "mug"):
             mesh = read_ply(SHARED / f"{name}.ply")
             out += _simplify_rows(f"{name} {len(mesh.faces) // 1000}k faces -> 10 %", mesh, work)
