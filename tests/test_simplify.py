@@ -317,7 +317,7 @@ def test_as_accurate_as_open3d_and_pymeshlab(name):
     o3 = open3d_backend.simplify_quadric(m, target)
     ml = pymeshlab_backend.simplify_quadric(m, target)
     ours, theirs, meshlab = chamfer(m, out)[0], chamfer(m, o3)[0], chamfer(m, ml)[0]
-    assert ours <= 1.02 * theirs, (ours, theirs)
+    assert ours <= theirs, (ours, theirs)  # issue 45: Chamfer <= Open3D's (0.65x, 0.995x)
     assert ours <= 1.02 * meshlab, (ours, meshlab)
 
 
