@@ -18,7 +18,7 @@ from _util import measure, measure_once, row
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
-def _subdivide(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def subdivide(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Midpoint 1-to-4 split of every triangle."""
     e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
     uniq, inv = np.unique(e, axis=0, return_inverse=True)
@@ -44,7 +44,7 @@ def meshes(levels: int):
     m = read_ply(SHARED / "armadillo.ply")
     v, f = m.vertices, m.faces
     for _ in range(levels):
-        v, f = _subdivide(v, f)
+        v, f = subdivide(v, f)
     ref = TriangleMesh(v, f)
     diag = np.linalg.norm(v.max(0) - v.min(0))
     cand = TriangleMesh(v + np.random.default_rng(1).normal(scale=0.002 * diag, size=v.shape), f)

@@ -9,7 +9,13 @@ Simplification (ours; Open3D ``simplify_quadric_decimation``; PyMeshLab
 the guarantees ours gives) to 10 % of the faces (an even count: a closed mesh has one):
 
 - a 1.07M-face Poisson mesh made by ``recon poisson`` of 1M area-uniform samples of the
-  armadillo at depth 9 (quick: 200k samples at depth 8);
+  armadillo at depth 9 (quick: 200k samples at depth 8); ours also with a cold numba cache
+  (``NUMBA_CACHE_DIR`` empty: every kernel of the command compiled first, as after an
+  upgrade without ``recon warmup``);
+- the armadillo split twice (1-to-4 midpoint splits, 800k faces) with its vertices moved by
+  0.2 % of the diagonal (``bench_diff``'s noisy mesh; quick: split once);
+- the bunny scan (``bunny_zipper``: open, 5 holes) split twice: 1.11M faces of a real scan
+  (quick: split once);
 - the shared meshes (kitten, armadillo, bunny, mug).
 
 Column ``CD``: exact point-to-triangle Chamfer (mean of both directions, 200k samples on each
@@ -71,13 +77,15 @@ def _recon() -> str:
     return str(Path(sys.executable).with_name("recon"))
 
 
-def _ours(args: list[str], src: Path, dst: Path):
+def _ours(args: list[str], src: Path, dst: Path, env: dict | None = None):
     """``recon ARGS SRC DST`` as a process (through a launcher: a child forked from this big
     process would report this one's resident size as its peak): time, memory, the output."""
     from recon_cli.io import read_ply
 
     cmd = [_recon(), "-q", args[0], str(src), str(dst), *args[1:]]
-    proc = subprocess.run([sys.executable, "-c", _LAUNCHER, *cmd], capture_output=True)
+    proc = subprocess.run(
+        [sys.executable, "-c", _LAUNCHER, *cmd], capture_output=True, env=env or os.environ.copy()
+    )
     if proc.returncode != 0:
         raise RuntimeError(f"recon {args[0]} failed: {proc.stderr.decode().strip()}")
     dt, kb = proc.stdout.decode().split()
@@ -142,41 +150,80 @@ def _ratios(rows: list[dict], key: str) -> None:
             ours["quality_ratio"] = abs(ours[key] / ref[key]) if ref.get(key) else float("nan")
 
 
-def _simplify_rows(case: str, mesh, work: Path) -> list[dict]:
+def _simplify_run(name: str, mesh, target: int, src: Path, dst: Path):
+    """One run of a simplification method: (time and memory, the mesh it made)."""
     from recon_cli.backends import open3d_backend, pymeshlab_backend
+
+    args = ["simplify", "--faces", str(target)]
+    if name == "recon (process)":
+        return _ours(args, src, dst)
+    if name == "recon (cold cache)":
+        with tempfile.TemporaryDirectory() as cache:
+            return _ours(args, src, dst, dict(os.environ, NUMBA_CACHE_DIR=cache))
+    if name == "open3d":
+        return _reference(open3d_backend.simplify_quadric, mesh, target)
+    return _reference(pymeshlab_backend.simplify_quadric, mesh, target)
+
+
+def _simplify_rows(case: str, mesh, work: Path, cold: bool = False, repeat: int = 1) -> list[dict]:
+    """Ours (warm cache; also cold when ``cold``), Open3D and PyMeshLab to 10 % of the faces.
+
+    Ours and Open3D run ``repeat`` times, alternating (the median time is kept: one run on a
+    busy machine can wait minutes for a core).
+    """
     from recon_cli.io import write_ply
 
     target = 2 * (len(mesh.faces) // 20)
     src, dst = work / "in.ply", work / "out.ply"
     write_ply(mesh, src)
     out = []
-    for name in ("recon (process)", "open3d", "pymeshlab"):
-        try:
-            if name == "recon (process)":
-                m, res = _ours(["simplify", "--faces", str(target)], src, dst)
-            elif name == "open3d":
-                m, res = _reference(open3d_backend.simplify_quadric, mesh, target)
-            else:
-                m, res = _reference(pymeshlab_backend.simplify_quadric, mesh, target)
-        except Exception as exc:  # one failing method must not hide the others
-            out.append({"case": case, "method": name, "note": f"FAILED: {exc}"})
-            continue
-        cd, h = _chamfer(mesh, res)
-        out.append(
-            {
-                "case": case,
-                "method": name,
-                "faces": len(res.faces),
-                "topology": _topology(res),
-                "seconds": m["seconds"],
-                "mb": m["peak_mb"],
-                "cd": cd,
-                "h": h,
-                "note": "",
-            }
-        )
+    methods = ("recon (process)", "open3d", "pymeshlab") + (("recon (cold cache)",) if cold else ())
+    times: dict[str, list[float]] = {name: [] for name in methods}
+    for r in range(repeat):
+        for name in methods[:2] if r else methods:
+            try:
+                m, res = _simplify_run(name, mesh, target, src, dst)
+            except Exception as exc:  # one failing method must not hide the others
+                out.append({"case": case, "method": name, "note": f"FAILED: {exc}"})
+                continue
+            times[name].append(m["seconds"])
+            if r:
+                continue
+            cd, h = _chamfer(mesh, res)
+            out.append(
+                {
+                    "case": case,
+                    "method": name,
+                    "faces": len(res.faces),
+                    "topology": _topology(res),
+                    "seconds": m["seconds"],
+                    "mb": m["peak_mb"],
+                    "cd": cd,
+                    "h": h,
+                    "note": "",
+                }
+            )
+    for row in out:
+        if times.get(row["method"]):
+            row["seconds"] = float(np.median(times[row["method"]]))
+            if len(times[row["method"]]) > 1:
+                row["note"] = "runs " + ", ".join(f"{t:.1f}" for t in times[row["method"]]) + " s"
     _ratios(out, "cd")
+    if cold and "seconds" in out[-1] and "seconds" in out[1]:
+        out[-1]["note"] = f"s cold/open3d {out[-1]['seconds'] / out[1]['seconds']:.2f}x"
     return out
+
+
+def _split(mesh, levels: int):
+    """``mesh`` with each triangle split 1-to-4 ``levels`` times (the same surface)."""
+    from bench_diff import subdivide
+
+    from recon_cli.geometry import TriangleMesh
+
+    v, f = np.asarray(mesh.vertices, np.float64), mesh.faces
+    for _ in range(levels):
+        v, f = subdivide(v, f)
+    return TriangleMesh(v, f)
 
 
 def _noisy_sphere(subdivisions: int):
@@ -261,7 +308,17 @@ def rows(quick: bool) -> list[dict]:
         n, depth = (200_000, 8) if quick else (1_000_000, 9)
         big = _poisson_mesh(n, depth, work)
         label = f"Poisson armadillo {len(big.faces) / 1e6:.2f}M faces"
-        out += _simplify_rows(f"{label} -> 10 %", big, work)
+        out += _simplify_rows(f"{label} -> 10 %", big, work, cold=True, repeat=3)
+        levels = 1 if quick else 2
+        arma = _split(read_ply(SHARED / "armadillo.ply"), levels)
+        rng = np.random.default_rng(1)
+        diag = np.linalg.norm(arma.vertices.max(0) - arma.vertices.min(0))
+        arma.vertices = arma.vertices + rng.normal(scale=0.002 * diag, size=arma.vertices.shape)
+        case = f"armadillo split ×{levels} + 0.2 % noise, {len(arma.faces) // 1000}k faces"
+        out += _simplify_rows(f"{case} -> 10 %", arma, work, repeat=3)
+        bunny = _split(read_ply(SHARED / "bunny_zipper.ply"), levels)
+        case = f"bunny scan split ×{levels}, {len(bunny.faces) / 1e6:.2f}M faces"
+        out += _simplify_rows(f"{case} -> 10 %", bunny, work, repeat=3)
         for name in ("kitten", "mug") if quick else ("kitten", "armadillo", "bunny_zipper", "mug"):
             mesh = read_ply(SHARED / f"{name}.ply")
             out += _simplify_rows(f"{name} {len(mesh.faces) // 1000}k faces -> 10 %", mesh, work)

@@ -317,7 +317,7 @@ def test_as_accurate_as_open3d_and_pymeshlab(name):
     o3 = open3d_backend.simplify_quadric(m, target)
     ml = pymeshlab_backend.simplify_quadric(m, target)
     ours, theirs, meshlab = chamfer(m, out)[0], chamfer(m, o3)[0], chamfer(m, ml)[0]
-    assert ours <= 1.02 * theirs, (ours, theirs)
+    assert ours <= theirs, (ours, theirs)  # issue 45: Chamfer <= Open3D's (0.65x, 0.995x)
     assert ours <= 1.02 * meshlab, (ours, meshlab)
 
 
@@ -397,6 +397,52 @@ def test_command_writes_the_simplified_mesh(tmp_path):
     assert r.returncode == 0, r.stderr.decode()
     out = read_ply(dst)
     assert len(out.faces) == 320 and "faces_out" in r.stderr.decode()
+
+
+@pytest.mark.parametrize("room", [1.02, 4.0])
+def test_compacting_the_adjacency_lists_changes_nothing(room):
+    # the vertex -> faces and vertex -> edges lists grow at their end with every collapse and
+    # are compacted when full: tight (compacted every few collapses) or roomy (never), the
+    # same collapses happen in the same order
+    _, m = family(1)
+    logs = []
+    for factor in (None, room):
+        d = Decimator(m.vertices, m.faces, 1000.0)
+        if factor is not None:
+            for name, slot in (("refs", d.K.M_REFS), ("erefs", d.K.M_EREFS)):
+                used = int(d.meta[slot])
+                grown = np.zeros(max(int(factor * used), used + 64), dtype=np.int64)
+                grown[:used] = getattr(d, name)[:used]
+                setattr(d, name, grown)
+        d.run(len(m.faces) // 20, len(m.faces) // 20)
+        r = d.result()
+        logs.append((r["log_u"], r["log_v"], r["positions"][r["valive"]], r["faces"][r["falive"]]))
+    assert len(logs[0][0]) == len(m.faces) * 19 // 40
+    for a, b in zip(logs[0], logs[1], strict=True):
+        assert np.array_equal(a, b)
+
+
+def test_same_bytes_for_any_thread_count_and_run(tmp_path):
+    rng = np.random.default_rng(4)
+    v, f = S.torus(nu=120, nv=60)
+    v = v + rng.normal(scale=1e-3, size=v.shape)
+    m = TriangleMesh(v, f, colors=rng.integers(0, 255, (len(v), 3)).astype(np.uint8))
+    src = tmp_path / "in.ply"
+    write_ply(m, src)
+    outs = []
+    for threads in ("1", "2", "4"):
+        dst = tmp_path / f"out{threads}.ply"
+        env = dict(os.environ, NUMBA_NUM_THREADS=threads)
+        cmd = [sys.executable, "-m", "recon_cli.cli.main", "-q", "simplify", src, dst]
+        r = subprocess.run([*cmd, "--ratio", "0.1"], capture_output=True, timeout=300, env=env)
+        assert r.returncode == 0, r.stderr.decode()
+        outs.append(dst.read_bytes())
+    for _ in range(2):  # and in this process, twice
+        again = tmp_path / "again.ply"
+        write_ply(apply_stage("simplify", read_ply(src), {"ratio": 0.1}).output, again)
+        outs.append(again.read_bytes())
+    assert len(read_ply(tmp_path / "out1.ply").faces) == round(0.1 * len(f))
+    assert all(o == outs[0] for o in outs[1:])
 
 
 def depth_mesh(seed: int) -> TriangleMesh:

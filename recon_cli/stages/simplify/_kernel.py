@@ -411,7 +411,8 @@ def vertex_edges(faces, n, vstart, vcount, refs):
     fill = estart.copy()
     ea = np.empty(n_edges, np.int64)
     eb = np.empty(n_edges, np.int64)
-    mark[:] = -1
+    for u in range(n):
+        mark[u] = -1
     e = 0
     for u in range(n):
         for i in range(vstart[u], vstart[u] + vcount[u]):
@@ -431,8 +432,12 @@ def vertex_edges(faces, n, vstart, vcount, refs):
 
 
 @njit(cache=True)
-def _compact(alive, valive, start, count, refs, meta, slot):
-    """Drop dead items and the lists of dead vertices from ``refs`` (in place)."""
+def _compact(alive, valive, start, count, refs):
+    """Drop dead items and the lists of dead vertices from ``refs`` (in place); its used length.
+
+    Loops, not slices: a slice assignment compiles numba's broadcasting and its error
+    messages (seconds of a cold start).
+    """
     tmp = np.empty(refs.shape[0], np.int64)
     j = 0
     for x in range(start.shape[0]):
@@ -447,8 +452,9 @@ def _compact(alive, valive, start, count, refs, meta, slot):
                 j += 1
         start[x] = s0
         count[x] = j - s0
-    refs[:j] = tmp[:j]
-    meta[slot] = j
+    for i in range(j):
+        refs[i] = tmp[i]
+    return j
 
 
 @njit(cache=True)
@@ -456,9 +462,9 @@ def build_heap(pos, Q, locked, ea, eb, ealive, epen, hk, hpos, meta):
     """Every current edge between unlocked vertices in the heap, with its cost."""
     out = np.empty(4)
     h = 0
-    hpos[:] = -1
-    epen[:] = False
     for e in range(ea.shape[0]):
+        hpos[e] = -1
+        epen[e] = False
         if ealive[e] and not (locked[ea[e]] or locked[eb[e]]):
             hk[h] = _key(_placement(Q, pos, ea[e], eb[e], out), e)
             h += 1
@@ -714,7 +720,7 @@ def collapse(
         meta[M_FACES] -= k
         need = ku + kv - 2 * k
         if meta[M_REFS] + need > refs.shape[0]:
-            _compact(falive, valive, vstart, vcount, refs, meta, M_REFS)
+            meta[M_REFS] = _compact(falive, valive, vstart, vcount, refs)
         start = meta[M_REFS]
         r = start
         for side in range(2):
@@ -751,7 +757,7 @@ def collapse(
             need += 1
         need += ecount[u]
         if meta[M_EREFS] + need > erefs.shape[0]:
-            _compact(ealive, valive, estart, ecount, erefs, meta, M_EREFS)
+            meta[M_EREFS] = _compact(ealive, valive, estart, ecount, erefs)
         start = meta[M_EREFS]
         r = start
         for side in range(2):
