@@ -177,6 +177,24 @@ def test_header_counts_beyond_the_file_refused_before_reading(tmp_path, at, fiel
     assert str(exc.value).startswith(str(f) + ": ") and "\n" not in str(exc.value)
 
 
+def test_an_unparsable_coordinate_record_is_read_with_nothing_on_stderr(tmp_path, capfd):
+    """laspy logs a WKT record it cannot decode (and fewer points than declared, which the reader
+    refuses in its own line); the record is kept as bytes and nothing reaches stderr."""
+    from recon_cli.cli.main import main
+
+    h = laspy.LasHeader(point_format=3, version="1.2")
+    h.vlrs.append(laspy.VLR("LASF_Projection", 2112, "not WKT", b"\xff\x00garbage"))
+    las = laspy.LasData(h)
+    las.X = las.Y = las.Z = np.arange(10)
+    src = tmp_path / "a.las"
+    las.write(str(src))
+    capfd.readouterr()
+    with pytest.raises(SystemExit) as ex:
+        main(["-q", "convert", str(src), str(tmp_path / "a.ply")])
+    assert ex.value.code == 0 and capfd.readouterr().err == ""
+    assert "las_vlr" in " ".join(decode_las(None, str(src), path=str(src))[0].obj_info)
+
+
 def _normals_then_poisson(cloud):
     """``recon normals IN - | recon poisson - OUT.ply`` in process: each stage's output through PLY
     bytes."""

@@ -22,8 +22,11 @@ are written as extra-bytes dimensions.
 from __future__ import annotations
 
 import base64
+import contextlib
 import io
+import logging
 import os
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -46,6 +49,22 @@ def _laspy():
     except ModuleNotFoundError:
         raise ParameterError("LAS/LAZ needs laspy with lazrs: pip install 'recon[las]'") from None
     return laspy
+
+
+@contextlib.contextmanager
+def _laspy_silent() -> Iterator[None]:
+    """The block without laspy's log records.
+
+    What laspy logs of a file (a VLR it cannot parse, fewer points than declared) the reader
+    either accepts or refuses in its own one line.
+    """
+    logger = logging.getLogger("laspy")
+    level = logger.level
+    logger.setLevel(logging.CRITICAL + 1)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
 
 
 # a LAZ chunk holds at least a byte for this many bytes of point records (LAZ compresses real
@@ -115,7 +134,8 @@ def decode_las(data, where: str, path=None) -> tuple[PointCloud, dict]:
         _check_counts(raw[:375], len(raw), where)
         source = io.BytesIO(raw)
     try:
-        las = laspy.read(source)
+        with _laspy_silent():
+            las = laspy.read(source)
     except FileNotFoundError:
         raise InputError("no such file", where) from None
     except Exception as exc:  # laspy raises LaspyException, ValueError, lazrs errors...
