@@ -28,7 +28,7 @@ from recon_cli.aot import kernels
 from recon_cli.errors import InputError
 from recon_cli.geometry import PointCloud, TriangleMesh, drop_invalid, storage_dtype
 from recon_cli.io._ply_types import FORMATS, PLY_TYPES, ply_name
-from recon_cli.io.text import as_uint8
+from recon_cli.io.text import as_uint8, one_line
 
 MAX_HEADER_BYTES = 1 << 20
 
@@ -602,8 +602,8 @@ def header_bytes(ply: PlyData) -> bytes:
     if ply.format not in FORMATS:
         raise ValueError(f"unknown PLY format {ply.format!r}")
     head = ["ply", f"format {ply.format} 1.0"]
-    head += [f"comment {c}" for c in ply.comments]
-    head += [f"obj_info {c}" for c in ply.obj_info]
+    head += [f"comment {one_line(c)}" for c in ply.comments]
+    head += [f"obj_info {one_line(c)}" for c in ply.obj_info]
     for el in ply.elements:
         head.append(f"element {el.name} {el.count}")
         head += [p.header_line() for p in el.properties]

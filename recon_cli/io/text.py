@@ -187,10 +187,24 @@ def apply_float32_mark(obj, history: list[str]):
     return obj
 
 
+def one_line(line: str) -> str:
+    """``line`` as printable ASCII on one line: any other character as its Python escape.
+
+    History lines come from files (an STL's name, a PLY comment, a glTF string) and go into
+    headers and comment lines, where a newline would end the line and a byte above 127 is not
+    ASCII.
+    """
+    if line.isascii() and line.isprintable():
+        return line
+    return "".join(
+        c if " " <= c <= "~" else c.encode("unicode_escape").decode("ascii") for c in line
+    )
+
+
 def mark_lines(obj, prefix: str = "# ") -> str:
     """The float32 mark line (when ``obj`` is float32) and the history, as comment lines."""
     lines = [FLOAT32_MARK] if np.dtype(obj.point_dtype) == np.float32 else []
-    return "".join(f"{prefix}{h}\n" for h in lines + list(obj.history))
+    return "".join(f"{prefix}{one_line(h)}\n" for h in lines + list(obj.history))
 
 
 def float_format(dtype) -> str:
