@@ -160,6 +160,15 @@ def test_lzf_decoder_never_overruns(data, size):
             "unsupported field type F3",
         ),
         ("FIELDS x y z\nSIZE 4 4 4\n", "truncated header"),
+        (  # found by the fuzz (tests/test_io_readers_fuzz.py): numpy's ValueError, a traceback
+            "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 2147483648 1 1\nWIDTH 1\nPOINTS 1\n"
+            "DATA ascii\n1 2 3\n",
+            "line 5: a point of 8589934600 bytes (SIZE x COUNT) is longer than the file",
+        ),
+        (
+            "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH -1\nHEIGHT -2\nPOINTS 2\nDATA ascii\n",
+            "a negative POINTS, WIDTH or HEIGHT",
+        ),
     ],
 )
 def test_malformed_files_are_one_line_errors(head, message):

@@ -92,11 +92,18 @@ def parse_header(buf: np.ndarray, where: str) -> tuple[dict, int]:
         raise InputError(
             "a SIZE, COUNT, WIDTH, HEIGHT or POINTS value is not an integer", where
         ) from None
-    if npts < 0 or any(c < 1 for c in counts):
-        raise InputError("negative POINTS or a COUNT below 1", where)
+    if npts < 0 or width < 0 or height < 0 or any(c < 1 for c in counts):
+        raise InputError("a negative POINTS, WIDTH or HEIGHT, or a COUNT below 1", where)
     if width * height != npts:
         raise InputError(f"WIDTH {width} x HEIGHT {height} is not POINTS {npts}", where)
     dtypes = [_dtype(t, s, where, lines["TYPE"]) for t, s in zip(head["TYPE"], sizes, strict=True)]
+    row = sum(dt.itemsize * c for dt, c in zip(dtypes, counts, strict=True))
+    if row > len(buf):
+        raise InputError(
+            f"line {lines.get('COUNT', lines['SIZE'])}: a point of {row} bytes (SIZE x COUNT) is "
+            f"longer than the file ({len(buf)} bytes)",
+            where,
+        )
     if len(set(names)) != len(names):
         raise InputError(f"line {lines['FIELDS']}: a field name is repeated", where)
     for c in ("x", "y", "z"):
