@@ -3,7 +3,8 @@
 Reading gives float64 coordinates ``X * scale + offset`` (LAS stores integers: float32 at
 UTM coordinates would round to decimetres), the colours (uint16, as stored) and every other
 dimension as a per-point attribute under laspy's name (``intensity``, ``return_number``,
-``number_of_returns``, ``classification``, ``gps_time``, ..., and extra-bytes dimensions);
+``number_of_returns``, ``classification``, ``gps_time``, ..., and extra-bytes dimensions, one
+of k values a point as ``name_0`` .. ``name_{k-1}``);
 extra dimensions ``nx ny nz`` (or ``normal_x``...) are the normals. The version, point
 format, scale, offset and the VLRs (coordinate system...) are kept in ``obj_info`` lines
 (``las_*``), so they survive a pass through PLY stages and are written back. LAS says
@@ -135,7 +136,9 @@ def decode_las(data, where: str, path=None) -> tuple[PointCloud, dict]:
         source = io.BytesIO(raw)
     try:
         with _laspy_silent():
-            las = laspy.read(source)
+            # lazrs' one-thread decoder: the parallel one sizes its buffers by the laszip record's
+            # chunk size, and a corrupted one aborted the process (a failed allocation)
+            las = laspy.read(source, laz_backend=laspy.LazBackend.Lazrs)
     except FileNotFoundError:
         raise InputError("no such file", where) from None
     except Exception as exc:  # laspy raises LaspyException, ValueError, lazrs errors...
@@ -166,7 +169,7 @@ def decode_las(data, where: str, path=None) -> tuple[PointCloud, dict]:
     normals = None
     for trio in _NORMAL_NAMES:
         if all(c in extra for c in trio):
-            normals = np.column_stack([np.asarray(las[c]) for c in trio])
+            normals = text.quiet_nans(np.column_stack([np.asarray(las[c]) for c in trio]))
             break
     skip = {
         "X",
@@ -175,7 +178,16 @@ def decode_las(data, where: str, path=None) -> tuple[PointCloud, dict]:
         *(_RGB if colors is not None else ()),
         *(trio if normals is not None else ()),
     }
-    attributes = {name: np.array(las[name]) for name in names if name not in skip}
+    attributes = {}
+    for name in names:
+        if name in skip:
+            continue
+        values = text.quiet_nans(np.array(las[name]))
+        if values.ndim == 1:
+            attributes[name] = values
+        else:  # an extra dimension of k values a point: name_0 .. name_{k-1}, as PCD's COUNT
+            for k in range(values.shape[1]):
+                attributes[f"{name}_{k}"] = np.ascontiguousarray(values[:, k])
     info = [
         f"las_version {h.version}",
         f"las_point_format {h.point_format.id}",
@@ -187,9 +199,9 @@ def decode_las(data, where: str, path=None) -> tuple[PointCloud, dict]:
             "las_vlr "
             + " ".join(
                 (
-                    base64.b64encode(v.user_id.encode("latin-1")).decode(),
+                    base64.b64encode(_latin1(v.user_id)).decode(),
                     str(int(v.record_id)),
-                    base64.b64encode((v.description or "").encode("latin-1")).decode(),
+                    base64.b64encode(_latin1(v.description)).decode(),
                     base64.b64encode(_vlr_bytes(v)).decode(),
                 )
             )
@@ -211,10 +223,22 @@ def decode_las(data, where: str, path=None) -> tuple[PointCloud, dict]:
         or str(where).lower().endswith(".laz"),
         "scale": [float(s) for s in h.scales],
         "offset": [float(o) for o in h.offsets],
-        "vlrs": [f"{v.user_id}/{v.record_id}" for v in h.vlrs],
+        "vlrs": [f"{_latin1(v.user_id).decode('latin-1')}/{v.record_id}" for v in h.vlrs],
         "software": h.generating_software,
     }
     return cloud, details
+
+
+def _latin1(words: str | bytes | None) -> bytes:
+    # laspy gives a VLR's user id or description as bytes when they do not decode as text
+    if isinstance(words, bytes | bytearray):
+        return bytes(words)
+    return (words or "").encode("latin-1", "replace")
+
+
+def _ascii(words: bytes) -> str:
+    # laspy writes a VLR's user id and description as ASCII: any other byte is written as "?"
+    return words.decode("ascii", "replace").replace("\ufffd", "?")
 
 
 def _vlr_bytes(v) -> bytes:
@@ -316,9 +340,9 @@ def las_bytes(obj, compress: bool, where: str = "") -> bytes:
     for user, rec, desc, payload in info["vlrs"]:
         header.vlrs.append(
             laspy.VLR(
-                user_id=base64.b64decode(user).decode("latin-1"),
+                user_id=_ascii(base64.b64decode(user)),
                 record_id=int(rec),
-                description=base64.b64decode(desc).decode("latin-1"),
+                description=_ascii(base64.b64decode(desc)),
                 record_data=base64.b64decode(payload),
             )
         )
