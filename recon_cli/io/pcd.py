@@ -247,6 +247,8 @@ def _ascii(buf, off, h, rowdt, where) -> dict:
 
 
 def _to_cloud(cols: dict, h: dict, where: str) -> PointCloud:
+    # a packed rgb's float bits are the colour, NaN or not
+    cols = {k: c if k in ("rgb", "rgba") else text.quiet_nans(c) for k, c in cols.items()}
     xyz_types = {cols[c].dtype for c in ("x", "y", "z")}
     ptype = np.float32 if xyz_types == {np.dtype("<f4")} else np.float64
     pts = np.column_stack([np.asarray(cols[c], dtype=ptype) for c in ("x", "y", "z")])

@@ -137,6 +137,29 @@ def check_finite(points: np.ndarray, where: str, what: str = "vertex") -> None:
         raise InputError(f"{what} {int(np.argmin(ok))} has a NaN or infinite coordinate", where)
 
 
+# the quiet bit of a NaN (the mantissa's highest) by float size in bytes
+_QUIET_BIT = {2: 1 << 9, 4: 1 << 22, 8: 1 << 51}
+
+
+def quiet_nans(values: np.ndarray) -> np.ndarray:
+    """``values``, or a copy with its signalling NaNs made quiet when it holds any.
+
+    Floats read as raw bytes may hold signalling NaNs, which raise numpy's "invalid value"
+    warning when cast or computed with; other dtypes are returned as they are.
+    """
+    quiet = _QUIET_BIT.get(values.dtype.itemsize)
+    if values.dtype.kind != "f" or quiet is None:
+        return values
+    nan = np.isnan(values)  # isnan does not signal
+    if not nan.any():
+        return values
+    loud = nan & ((values.view(f"u{values.dtype.itemsize}") & quiet) == 0)
+    if loud.any():
+        values = values.copy()
+        values[loud] = np.nan
+    return values
+
+
 def colours_from_unit(c: np.ndarray) -> np.ndarray:
     """Colours given as floats: uint8 when every value is k/255, otherwise the floats as given.
 
