@@ -169,6 +169,11 @@ def test_lzf_decoder_never_overruns(data, size):
             "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH -1\nHEIGHT -2\nPOINTS 2\nDATA ascii\n",
             "a negative POINTS, WIDTH or HEIGHT",
         ),
+        (  # the fuzz: a byte 0x80 in a field name made the PLY and PCD writers' tracebacks
+            "FIELDS x y z n\x80\nSIZE 4 4 4 4\nTYPE F F F F\nWIDTH 1\nPOINTS 1\nDATA ascii\n"
+            "1 2 3 4\n",
+            "line 2: field name 'n\\xc2\\x80' is not printable ASCII",
+        ),
     ],
 )
 def test_malformed_files_are_one_line_errors(head, message):

@@ -65,7 +65,7 @@ def parse_header(buf: np.ndarray, where: str) -> tuple[dict, int]:
         if key not in _KEYS:
             if lineno == 1:
                 raise InputError("not a PCD file (no VERSION/FIELDS header)", where)
-            raise InputError(f"line {lineno}: unknown header keyword {key!r}", where)
+            raise InputError(f"line {lineno}: unknown header keyword {ascii(key)}", where)
         head[key] = rest.split()
         lines[key] = lineno
         if key == "DATA":
@@ -106,6 +106,11 @@ def parse_header(buf: np.ndarray, where: str) -> tuple[dict, int]:
         )
     if len(set(names)) != len(names):
         raise InputError(f"line {lines['FIELDS']}: a field name is repeated", where)
+    for name in names:  # they become PLY and PCD header words, which are ASCII
+        if not (name.isascii() and name.isprintable()):
+            raise InputError(
+                f"line {lines['FIELDS']}: field name {ascii(name)} is not printable ASCII", where
+            )
     for c in ("x", "y", "z"):
         if c not in names:
             raise InputError(f"no {c!r} field", where)
