@@ -319,6 +319,26 @@ def test_a_corrupted_laszip_chunk_size_does_not_abort_the_process(tmp_path):
     assert run.stderr.count("\n") == (run.returncode == 2), run.stderr
 
 
+def test_a_zero_scale_is_refused_and_a_bad_kept_grid_is_not_written(tmp_path):
+    """A header whose x scale is 0 (the readers' fuzz: read, then written back as LAS, a divide
+    by zero) is refused in one line; a cloud whose ``las_scale`` line has a 0 gets a grid of its
+    own when written."""
+    import struct
+
+    _, data = _laspy_file(0, 0, "1.2", False, n=20)
+    raw = bytearray(data)
+    struct.pack_into("<d", raw, 131, 0.0)
+    with pytest.raises(InputError, match=r"^a\.las: header's x scale 0\.0: a scale must not be 0$"):
+        decode_las(bytes(raw), "a.las")
+    cloud, _ = decode_las(data, "a.las")
+    cloud.obj_info = [
+        x if not x.startswith("las_scale ") else "las_scale 0 0.001 1e-4" for x in cloud.obj_info
+    ]
+    back, details = decode_las(las_bytes(cloud, False, "b.las"), "b.las")
+    assert all(s > 0 for s in details["scale"])
+    np.testing.assert_allclose(back.points, cloud.points, rtol=0, atol=max(details["scale"]))
+
+
 def _normals_then_poisson(cloud):
     """``recon normals IN - | recon poisson - OUT.ply`` in process: each stage's output through PLY
     bytes."""

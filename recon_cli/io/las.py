@@ -148,6 +148,9 @@ def decode_las(data, where: str, path=None) -> tuple[PointCloud, dict]:
     n = len(las.points)
     if n != h.point_count:
         raise InputError(f"header declares {h.point_count} points, the file holds {n}", where)
+    bad = [f"{c} scale {float(s)!r}" for c, s in zip("xyz", h.scales, strict=True) if not s]
+    if bad:  # every coordinate would be the offset, and the grid cannot be written back
+        raise InputError(f"header's {', '.join(bad)}: a scale must not be 0", where)
     pts = np.empty((n, 3), np.float64)
     raw = las.points.array
     with np.errstate(over="ignore", invalid="ignore"):
@@ -298,7 +301,10 @@ def coordinate_system(obj_info: list[str]) -> str | None:
 
 def _grid(pts: np.ndarray, info: dict) -> tuple[np.ndarray, np.ndarray]:
     if "scale" in info and "offset" in info:
-        return np.array(info["scale"].split(), float), np.array(info["offset"].split(), float)
+        scale = np.array(info["scale"].split(), float)
+        offset = np.array(info["offset"].split(), float)
+        if len(scale) == len(offset) == 3 and np.isfinite([*scale, *offset]).all() and scale.all():
+            return scale, offset
     lo = pts.min(axis=0) if len(pts) else np.zeros(3)
     hi = pts.max(axis=0) if len(pts) else np.zeros(3)
     extent = max(float(np.max(hi - lo)), 1e-300)
