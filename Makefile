@@ -12,7 +12,7 @@ SAMPLE  := sample_data/bunny_scan_000.ply
 OUTDIR  := demo_output
 PYTEST_ARGS ?=
 
-.PHONY: all install sysdeps viewer warmup demo test test-fast bench lint docs clean js
+.PHONY: all install sysdeps viewer warmup demo test test-fast fuzz bench lint docs clean js
 
 all: test
 
@@ -114,7 +114,12 @@ test: sysdeps $(STAMP) $(VIEWER_JS) $(JS_STAMP)
 	$(PY) -m pytest -n 2 --dist worksteal $(PYTEST_ARGS)
 
 test-fast: sysdeps $(STAMP) $(VIEWER_JS) $(JS_STAMP)
-	$(PY) -m pytest -n 2 --dist worksteal -m "not slow" $(PYTEST_ARGS)
+	$(PY) -m pytest -n 2 --dist worksteal -m "not slow and not fuzz" $(PYTEST_ARGS)
+
+# the long fuzzing runs (tests marked fuzz: hundreds of generated files per reader, every option
+# of the stages), left out of make test
+fuzz: sysdeps $(STAMP) $(VIEWER_JS) $(JS_STAMP)
+	$(PY) -m pytest -n 2 --dist worksteal -m fuzz $(PYTEST_ARGS)
 
 bench: sysdeps $(STAMP) $(VIEWER_JS) $(JS_STAMP)
 	$(PY) bench/run_bench.py --out bench/results.md
