@@ -339,6 +339,39 @@ def test_a_zero_scale_is_refused_and_a_bad_kept_grid_is_not_written(tmp_path):
     np.testing.assert_allclose(back.points, cloud.points, rtol=0, atol=max(details["scale"]))
 
 
+@pytest.mark.parametrize("suffix, code", [(".ply", 2), (".pcd", 2), (".las", 0)])
+def test_an_extra_dimension_named_with_a_space_is_refused_by_header_formats(
+    tmp_path, capfd, suffix, code
+):
+    """An extra dimension ``a c`` was written as the PLY property ``a c``, a file no reader takes
+    (exit 0 then); PLY and PCD refuse it in one line naming the output, LAS writes it."""
+    from recon_cli.cli.main import main
+
+    h = laspy.LasHeader(point_format=0, version="1.2")
+    h.add_extra_dims([laspy.ExtraBytesParams(name="abc", type="f4")])
+    las = laspy.LasData(h)
+    las.X = las.Y = las.Z = np.arange(5)
+    buf = io.BytesIO()
+    las.write(buf)
+    src = tmp_path / "a.las"
+    src.write_bytes(buf.getvalue().replace(b"abc\0", b"a c\0"))
+    out = tmp_path / ("out" + suffix)
+    capfd.readouterr()
+    with pytest.raises(SystemExit) as ex:
+        main(["-q", "convert", str(src), str(out)])
+    err = capfd.readouterr().err
+    assert ex.value.code == code, err
+    if code:
+        fmt = suffix[1:].upper()
+        assert err == (
+            f"recon: error: {out}: attribute 'a c' cannot be a {fmt} field name (one word of "
+            "printable ASCII); write another format\n"
+        )
+        assert not out.exists()
+    else:
+        assert "a c" in decode_las(None, str(out), path=str(out))[0].attributes
+
+
 def _normals_then_poisson(cloud):
     """``recon normals IN - | recon poisson - OUT.ply`` in process: each stage's output through PLY
     bytes."""

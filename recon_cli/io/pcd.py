@@ -436,4 +436,5 @@ def write_pcd(obj, path: str | os.PathLike, data: str = "binary") -> None:
     """Write ``obj`` as PCD atomically (``-``: standard output)."""
     from recon_cli.io.atomic import write_bytes
 
+    text.check_header_words(obj.attributes, "PCD", text.where_of(path))
     write_bytes(path, pcd_bytes(obj, data=data))

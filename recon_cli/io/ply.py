@@ -28,7 +28,7 @@ from recon_cli.aot import kernels
 from recon_cli.errors import InputError
 from recon_cli.geometry import PointCloud, TriangleMesh, drop_invalid, storage_dtype
 from recon_cli.io._ply_types import FORMATS, PLY_TYPES, ply_name
-from recon_cli.io.text import as_uint8, one_line
+from recon_cli.io.text import as_uint8, check_header_words, one_line, where_of
 
 MAX_HEADER_BYTES = 1 << 20
 
@@ -1178,6 +1178,8 @@ def write_ply(obj: PointCloud | TriangleMesh, path: str | os.PathLike, ascii: bo
     """
     from recon_cli.io.atomic import write_pieces
 
+    names = [*obj.attributes, *getattr(obj, "face_attributes", ())]
+    check_header_words(names, "PLY", where_of(path))
     ply = geometry_to_ply(obj, ascii=ascii)
     write_pieces(path, lambda put: emit_ply(ply, put))
 

@@ -9,7 +9,7 @@ import logging
 
 import numpy as np
 
-from recon_cli.errors import InputError
+from recon_cli.errors import InputError, ParameterError
 
 log = logging.getLogger("recon")
 
@@ -158,6 +158,20 @@ def quiet_nans(values: np.ndarray) -> np.ndarray:
         values = values.copy()
         values[loud] = np.nan
     return values
+
+
+def check_header_words(names, fmt: str, where: str) -> None:
+    """Refuse an attribute name that cannot be a word of a ``fmt`` header (PLY, PCD).
+
+    Such a header is ASCII words: a name with a space or another character would write a file
+    no reader takes. Raises :class:`~recon_cli.errors.ParameterError` naming ``where``.
+    """
+    for name in names:
+        if not (name and name.isascii() and name.isprintable() and " " not in name):
+            raise ParameterError(
+                f"{where}: attribute {ascii(name)} cannot be a {fmt} field name (one word of "
+                "printable ASCII); write another format"
+            )
 
 
 def colours_from_unit(c: np.ndarray) -> np.ndarray:
