@@ -372,6 +372,21 @@ def test_an_extra_dimension_named_with_a_space_is_refused_by_header_formats(
         assert "a c" in decode_las(None, str(out), path=str(out))[0].attributes
 
 
+def test_an_extra_dimension_without_a_name_is_refused_in_one_line():
+    """An Extra Bytes record whose name's first byte is 0 (the readers' fuzz): laspy lists a
+    dimension ``''`` it cannot give the values of (a ValueError traceback); refused in one line."""
+    h = laspy.LasHeader(point_format=0, version="1.2")
+    h.add_extra_dims([laspy.ExtraBytesParams(name="abc", type="f4")])
+    las = laspy.LasData(h)
+    las.X = las.Y = las.Z = np.arange(5)
+    buf = io.BytesIO()
+    las.write(buf)
+    bad = buf.getvalue().replace(b"abc\0", b"\0bc\0")
+    with pytest.raises(InputError) as exc:
+        decode_las(bad, "a.las")
+    assert str(exc.value) == "a.las: an extra-bytes dimension's name is empty or repeated: ''"
+
+
 def _normals_then_poisson(cloud):
     """``recon normals IN - | recon poisson - OUT.ply`` in process: each stage's output through PLY
     bytes."""

@@ -185,6 +185,10 @@ def decode_las(data, where: str, path=None) -> tuple[PointCloud, dict]:
     for name in names:
         if name in skip:
             continue
+        if not name or names.count(name) > 1:  # laspy lists them but cannot give their values
+            raise InputError(
+                f"an extra-bytes dimension's name is empty or repeated: {ascii(name)}", where
+            )
         values = text.quiet_nans(np.array(las[name]))
         if values.ndim == 1:
             attributes[name] = values
