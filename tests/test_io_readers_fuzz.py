@@ -78,7 +78,7 @@ def broken(draw, data: bytes, head: int | None = None, allow_body: bool = True) 
     """``data`` maybe broken: (label, bytes). ``head``: the length of a text header, whose
     words may be replaced; ``allow_body`` False keeps the bytes after ``head`` intact."""
     kinds = ["none", "cut"]
-    if allow_body or head:
+    if data and (allow_body or head):  # an empty file has no byte to overwrite
         kinds += ["overwrite", "insert"]
     if head:
         kinds += ["word", "word", "line"]

@@ -43,7 +43,12 @@ def decode_off(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
     if len(lens) == 0 or lens[0] < 2:
         raise InputError("line 1-2: missing the counts 'vertices faces edges'", where)
     counts = values[row_start[0] : row_start[0] + min(3, int(lens[0]))]
-    if np.any(counts < 0) or np.any(counts != np.round(counts)) or lens[0] > 3:
+    if (
+        not np.isfinite(counts).all()
+        or np.any(counts < 0)
+        or np.any(counts != np.round(counts))
+        or lens[0] > 3
+    ):
         raise InputError(
             f"line {int(row_line[0])}: the counts must be 2 or 3 non-negative integers", where
         )
