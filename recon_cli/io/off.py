@@ -112,6 +112,13 @@ def _faces(values, starts, lines, nv, where):
             f"line {int(lines[bad])}: a face must start with its number of corners (3 or more)",
             where,
         )
+    if np.any(k > lens - 1):  # before the cast: a count past int64 would not survive it
+        bad = int(np.flatnonzero(k > lens - 1)[0])
+        raise InputError(
+            f"line {int(lines[bad])}: a face of {k[bad]:.0f} corners has {int(lens[bad]) - 1} "
+            "values after its count",
+            where,
+        )
     k = k.astype(np.int64)
     extra = lens - 1 - k
     if np.any((extra != 0) & (extra != 3) & (extra != 4)):
