@@ -339,28 +339,49 @@ def test_a_zero_scale_is_refused_and_a_bad_kept_grid_is_not_written(tmp_path):
     np.testing.assert_allclose(back.points, cloud.points, rtol=0, atol=max(details["scale"]))
 
 
-@pytest.mark.parametrize("suffix, code", [(".ply", 2), (".pcd", 2), (".las", 0)])
-def test_an_extra_dimension_named_with_a_space_is_refused_by_header_formats(
-    tmp_path, capfd, suffix, code
-):
-    """An extra dimension ``a c`` was written as the PLY property ``a c``, a file no reader takes
-    (exit 0 then); PLY and PCD refuse it in one line naming the output, LAS writes it."""
-    from recon_cli.cli.main import main
-
+def _las_extra_named(name: bytes) -> bytes:
+    """A LAS of 5 points with one float extra dimension, its name's bytes ``name``."""
     h = laspy.LasHeader(point_format=0, version="1.2")
     h.add_extra_dims([laspy.ExtraBytesParams(name="abc", type="f4")])
     las = laspy.LasData(h)
     las.X = las.Y = las.Z = np.arange(5)
     buf = io.BytesIO()
     las.write(buf)
+    return buf.getvalue().replace(b"abc\0", name.ljust(4, b"\0"))
+
+
+def _convert_extra_named(tmp_path, capfd, name: bytes, suffix: str):
+    """``recon convert`` of a LAS whose one extra dimension is named ``name``: (exit, stderr,
+    OUT)."""
+    from recon_cli.cli.main import main
+
     src = tmp_path / "a.las"
-    src.write_bytes(buf.getvalue().replace(b"abc\0", b"a c\0"))
+    src.write_bytes(_las_extra_named(name))
     out = tmp_path / ("out" + suffix)
     capfd.readouterr()
     with pytest.raises(SystemExit) as ex:
         main(["-q", "convert", str(src), str(out)])
-    err = capfd.readouterr().err
-    assert ex.value.code == code, err
+    return ex.value.code, capfd.readouterr().err, out
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".pcd"])
+def test_an_extra_dimension_named_x_is_refused_by_header_formats(tmp_path, capfd, suffix):
+    """An extra dimension named ``x`` (make fuzz): the PLY writer built a record with ``x`` twice
+    (numpy's ValueError, a traceback); PLY and PCD refuse it in one line naming the output."""
+    code, err, out = _convert_extra_named(tmp_path, capfd, b"x", suffix)
+    assert code == 2 and err.count("\n") == 1, err
+    assert err.startswith(f"recon: error: {out}: attribute 'x' has the name of a "), err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("suffix, code", [(".ply", 2), (".pcd", 2), (".las", 0)])
+def test_an_extra_dimension_named_with_a_space_is_refused_by_header_formats(
+    tmp_path, capfd, suffix, code
+):
+    """An extra dimension ``a c`` was written as the PLY property ``a c``, a file no reader takes
+    (exit 0 then); PLY and PCD refuse it in one line naming the output, LAS writes it."""
+    got, err, out = _convert_extra_named(tmp_path, capfd, b"a c", suffix)
+    assert got == code, err
     if code:
         fmt = suffix[1:].upper()
         assert err == (
@@ -375,15 +396,8 @@ def test_an_extra_dimension_named_with_a_space_is_refused_by_header_formats(
 def test_an_extra_dimension_without_a_name_is_refused_in_one_line():
     """An Extra Bytes record whose name's first byte is 0 (the readers' fuzz): laspy lists a
     dimension ``''`` it cannot give the values of (a ValueError traceback); refused in one line."""
-    h = laspy.LasHeader(point_format=0, version="1.2")
-    h.add_extra_dims([laspy.ExtraBytesParams(name="abc", type="f4")])
-    las = laspy.LasData(h)
-    las.X = las.Y = las.Z = np.arange(5)
-    buf = io.BytesIO()
-    las.write(buf)
-    bad = buf.getvalue().replace(b"abc\0", b"\0bc\0")
     with pytest.raises(InputError) as exc:
-        decode_las(bad, "a.las")
+        decode_las(_las_extra_named(b"\0bc"), "a.las")
     assert str(exc.value) == "a.las: an extra-bytes dimension's name is empty or repeated: ''"
 
 

@@ -436,5 +436,6 @@ def write_pcd(obj, path: str | os.PathLike, data: str = "binary") -> None:
     """Write ``obj`` as PCD atomically (``-``: standard output)."""
     from recon_cli.io.atomic import write_bytes
 
-    text.check_header_words(obj.attributes, "PCD", text.where_of(path))
+    taken = ["x", "y", "z", "rgb", "rgba", *(_NORMALS if obj.normals is not None else ())]
+    text.check_header_words(obj.attributes, "PCD", text.where_of(path), taken)
     write_bytes(path, pcd_bytes(obj, data=data))

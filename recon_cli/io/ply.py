@@ -1178,8 +1178,12 @@ def write_ply(obj: PointCloud | TriangleMesh, path: str | os.PathLike, ascii: bo
     """
     from recon_cli.io.atomic import write_pieces
 
-    names = [*obj.attributes, *getattr(obj, "face_attributes", ())]
-    check_header_words(names, "PLY", where_of(path))
+    taken = [*_VERTEX_XYZ, *(_VERTEX_NORMAL if obj.normals is not None else ())]
+    taken += _VERTEX_COLOR[: obj.colors.shape[1]] if obj.colors is not None else ()
+    check_header_words(obj.attributes, "PLY", where_of(path), taken)
+    check_header_words(
+        getattr(obj, "face_attributes", ()), "PLY", where_of(path), ["vertex_indices"]
+    )
     ply = geometry_to_ply(obj, ascii=ascii)
     write_pieces(path, lambda put: emit_ply(ply, put))
 

@@ -160,13 +160,20 @@ def quiet_nans(values: np.ndarray) -> np.ndarray:
     return values
 
 
-def check_header_words(names, fmt: str, where: str) -> None:
+def check_header_words(names, fmt: str, where: str, taken=()) -> None:
     """Refuse an attribute name that cannot be a word of a ``fmt`` header (PLY, PCD).
 
     Such a header is ASCII words: a name with a space or another character would write a file
-    no reader takes. Raises :class:`~recon_cli.errors.ParameterError` naming ``where``.
+    no reader takes, and one of the ``taken`` names (the coordinates', normals', colours' the
+    writer puts in) a field twice. Raises :class:`~recon_cli.errors.ParameterError` naming
+    ``where``.
     """
     for name in names:
+        if name in taken:
+            raise ParameterError(
+                f"{where}: attribute {ascii(name)} has the name of a {fmt} field written for the "
+                "coordinates, normals or colours; write another format"
+            )
         if not (name and name.isascii() and name.isprintable() and " " not in name):
             raise ParameterError(
                 f"{where}: attribute {ascii(name)} cannot be a {fmt} field name (one word of "
