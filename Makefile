@@ -116,8 +116,8 @@ test: sysdeps $(STAMP) $(VIEWER_JS) $(JS_STAMP)
 test-fast: sysdeps $(STAMP) $(VIEWER_JS) $(JS_STAMP)
 	$(PY) -m pytest -n 2 --dist worksteal -m "not slow and not fuzz" $(PYTEST_ARGS)
 
-# the long fuzzing runs (tests marked fuzz: thousands of corrupted files per reader), left out of
-# make test
+# the long fuzzing runs (tests marked fuzz: hundreds of generated files per reader, every option
+# of the stages), left out of make test
 fuzz: sysdeps $(STAMP) $(VIEWER_JS) $(JS_STAMP)
 	$(PY) -m pytest -n 2 --dist worksteal -m fuzz $(PYTEST_ARGS)
 

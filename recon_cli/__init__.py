@@ -18,6 +18,7 @@ _LAZY = {
     "ReconError": "recon_cli.errors",
     "InputError": "recon_cli.errors",
     "OutputError": "recon_cli.errors",
+    "NoSpace": "recon_cli.errors",
     "ParameterError": "recon_cli.errors",
     "BackendError": "recon_cli.errors",
     "StageFailed": "recon_cli.errors",

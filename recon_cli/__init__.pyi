@@ -11,6 +11,7 @@ import numpy as np
 
 from recon_cli.errors import BackendError as BackendError
 from recon_cli.errors import InputError as InputError
+from recon_cli.errors import NoSpace as NoSpace
 from recon_cli.errors import OutputError as OutputError
 from recon_cli.errors import ParameterError as ParameterError
 from recon_cli.errors import ReconError as ReconError
@@ -204,6 +205,7 @@ __all__ = [
     "Execution",
     "Grid",
     "InputError",
+    "NoSpace",
     "OutputError",
     "Param",
     "ParameterError",

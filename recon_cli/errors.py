@@ -35,11 +35,21 @@ class InputError(ReconError):
 class OutputError(ReconError):
     """An output path that cannot be written.
 
-    Missing folder, a directory, read-only or full file system, closed standard output. ``path`` is
-    the output path as given.
+    Missing folder, a directory, read-only file system, closed standard output (a full one:
+    :class:`NoSpace`). ``path`` is the output path as given.
     """
 
     exit_code = 2
+
+
+class NoSpace(OutputError):
+    """A write that failed for want of room: a full file system or an exhausted quota.
+
+    Exit 1, as a run that failed on valid input (the spill folder's full disk is the same
+    exit): nothing was wrong with what the user gave. ``path`` is the output path as given.
+    """
+
+    exit_code = 1
 
 
 class ParameterError(ReconError):

@@ -23,12 +23,14 @@ RUN_RECON = "from recon_cli.cli.main import main\nmain(sys.argv[1:])\n"
 @dataclass
 class Interrupted:
     """What an interrupted run left: its exit code, its stderr, the processes it had started
-    when the signal went (``psutil.Process``) and the seconds from the signal to its exit."""
+    when the signal went (``psutil.Process``), the seconds from the signal to its exit and its
+    process id."""
 
     returncode: int
     err: str
     family: list[Any]
     seconds: float
+    pid: int = 0
 
 
 def interrupt_when(
@@ -67,4 +69,4 @@ def interrupt_when(
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
-    return Interrupted(proc.returncode, err.decode(), family, seconds)
+    return Interrupted(proc.returncode, err.decode(), family, seconds, proc.pid)

@@ -1,5 +1,5 @@
-"""Output paths of every kind: written right, or one line naming the path (exit 2) and nothing
-touched.
+"""Output paths of every kind: written right, or one line naming the path (exit 2; a full file
+system exit 1) and nothing touched.
 
 The matrix: a new regular file, an existing one (replaced on success keeping its mode, kept
 on failure), a directory, a missing folder, a trailing slash, an empty path, an immutable
@@ -157,13 +157,13 @@ def test_full_file_system_ply_and_npz(src, tmp_path, capfd):
     with _tmpfs(tmp_path / "full", "size=64k") as mnt:
         (mnt / "out.ply").write_bytes(b"keep")
         code, _, err = _cli(["convert", src, mnt / "out.ply"], capfd)
-        assert code == 2 and "No space left on device" in err
+        assert code == 1 and "No space left on device" in err
         _one_error_line(err, mnt / "out.ply")
         assert (mnt / "out.ply").read_bytes() == b"keep"
         assert os.listdir(mnt) == ["out.ply"]
         # a grid of 40**3 float32 samples (256 kB)
         code, _, err = _cli(["sdf", mesh, mnt / "g.npz", "--resolution", "40"], capfd)
-        assert code == 2 and "No space left on device" in err
+        assert code == 1 and "No space left on device" in err
         _one_error_line(err, mnt / "g.npz")
         assert os.listdir(mnt) == ["out.ply"]
 

@@ -177,6 +177,230 @@ def test_header_counts_beyond_the_file_refused_before_reading(tmp_path, at, fiel
     assert str(exc.value).startswith(str(f) + ": ") and "\n" not in str(exc.value)
 
 
+def test_an_unparsable_coordinate_record_is_read_with_nothing_on_stderr(tmp_path, capfd):
+    """laspy logs a WKT record it cannot decode (and fewer points than declared, which the reader
+    refuses in its own line); the record is kept as bytes and nothing reaches stderr."""
+    from recon_cli.cli.main import main
+
+    h = laspy.LasHeader(point_format=3, version="1.2")
+    h.vlrs.append(laspy.VLR("LASF_Projection", 2112, "not WKT", b"\xff\x00garbage"))
+    las = laspy.LasData(h)
+    las.X = las.Y = las.Z = np.arange(10)
+    src = tmp_path / "a.las"
+    las.write(str(src))
+    capfd.readouterr()
+    with pytest.raises(SystemExit) as ex:
+        main(["-q", "convert", str(src), str(tmp_path / "a.ply")])
+    assert ex.value.code == 0 and capfd.readouterr().err == ""
+    assert "las_vlr" in " ".join(decode_las(None, str(src), path=str(src))[0].obj_info)
+
+
+def test_an_extra_dimension_of_three_values_is_three_attributes_through_ply(tmp_path, capfd):
+    """An extra-bytes dimension of 3 floats a point (found by the readers' fuzz: convert to PLY
+    ended in a numpy traceback) is the attributes ``f_0 f_1 f_2``, one column each."""
+    from recon_cli.cli.main import main
+    from recon_cli.io.load import load
+
+    h = laspy.LasHeader(point_format=0, version="1.4")
+    h.add_extra_dims([laspy.ExtraBytesParams(name="f", type="3f4")])
+    las = laspy.LasData(h)
+    las.X = las.Y = las.Z = np.arange(7)
+    las.f = np.arange(21, dtype=np.float32).reshape(7, 3)
+    src = tmp_path / "a.las"
+    las.write(str(src))
+    cloud, _ = decode_las(None, str(src), path=str(src))
+    for k in range(3):
+        assert cloud.attributes[f"f_{k}"].shape == (7,)
+        np.testing.assert_array_equal(cloud.attributes[f"f_{k}"], np.arange(7) * 3 + k)
+    capfd.readouterr()
+    with pytest.raises(SystemExit) as ex:
+        main(["-q", "convert", str(src), str(tmp_path / "a.ply")])
+    assert ex.value.code == 0 and capfd.readouterr().err == ""
+    got = load(str(tmp_path / "a.ply"))
+    np.testing.assert_array_equal(got.attributes["f_2"], np.arange(7) * 3 + 2)
+
+
+def test_a_record_description_that_is_no_text_is_kept_as_its_bytes(tmp_path):
+    """A VLR description laspy cannot decode comes as bytes (found by the readers' fuzz: an
+    AttributeError); it is kept byte for byte in the ``las_vlr`` line."""
+    import base64
+
+    h = laspy.LasHeader(point_format=3, version="1.2")
+    h.vlrs.append(laspy.VLR("LASF_Projection", 2112, "describe", b"GEOGCS[]\0"))
+    las = laspy.LasData(h)
+    las.X = las.Y = las.Z = np.arange(5)
+    buf = io.BytesIO()
+    las.write(buf)
+    raw = bytearray(buf.getvalue())
+    at = raw.index(b"describe")
+    raw[at + 3] = 0x99  # not UTF-8
+    cloud, details = decode_las(bytes(raw), "a.las")
+    line = next(x for x in cloud.obj_info if x.startswith("las_vlr "))
+    desc = base64.b64decode(line.split(" ")[3])
+    assert desc.rstrip(b"\0") == b"des\x99ribe"
+    assert details["vlrs"] == ["LASF_Projection/2112"]
+    back, _ = decode_las(las_bytes(cloud, False, "b.las"), "b.las")  # LAS writes ASCII there
+    line = next(x for x in back.obj_info if x.startswith("las_vlr "))
+    assert base64.b64decode(line.split(" ")[3]).rstrip(b"\0") == b"des?ribe"
+    assert base64.b64decode(line.split(" ")[4]) == b"GEOGCS[]\0"
+
+
+def test_signalling_nan_normals_are_written_to_ply_without_a_warning(tmp_path, capfd):
+    """Normals in float32 extra bytes that hold signalling NaNs (a point format byte set to 0 by
+    the readers' fuzz made laspy read colours as them) next to float64 coordinates: numpy's
+    cast warning became a traceback. They are read as quiet NaNs; convert ends in exit 0."""
+    from recon_cli.cli.main import main
+
+    h = laspy.LasHeader(point_format=0, version="1.2")
+    h.add_extra_dims([laspy.ExtraBytesParams(name=c, type="f4") for c in ("nx", "ny", "nz")])
+    las = laspy.LasData(h)
+    las.X = las.Y = las.Z = np.arange(4)
+    las.nx = las.ny = las.nz = np.zeros(4, np.float32)
+    buf = io.BytesIO()
+    las.write(buf)  # then the normals' bytes set (laspy's writer warns on NaN)
+    raw = bytearray(buf.getvalue())
+    loud = np.array([0x7FA00000, 0x3F800000, 0xFFC00001, 0x7F800001], np.uint32).view("<f4")
+    start = int.from_bytes(raw[96:100], "little")
+    for i, v in enumerate(loud):
+        raw[start + 32 * i + 20 : start + 32 * i + 32] = v.tobytes() * 3
+    src = tmp_path / "a.las"
+    src.write_bytes(bytes(raw))
+    cloud, _ = decode_las(None, str(src), path=str(src))
+    bits = cloud.normals.view(np.uint32)
+    assert (bits[[0, 3]] & (1 << 22)).all() and np.isnan(cloud.normals[[0, 2, 3]]).all()
+    assert cloud.normals[1, 0] == 1.0
+    capfd.readouterr()
+    with pytest.raises(SystemExit) as ex:
+        main(["-q", "convert", str(src), str(tmp_path / "a.ply")])
+    assert ex.value.code == 0 and capfd.readouterr().err == ""
+
+
+def test_a_corrupted_laszip_chunk_size_does_not_abort_the_process(tmp_path):
+    """A LAZ whose laszip record gives a chunk of 755 million points (the readers' fuzz) made
+    lazrs' parallel decoder abort the process on a 51 GB allocation; it is read (the points are
+    whole) or refused in one line. In a child process, as an abort would end this one."""
+    import struct
+    import subprocess
+    import sys
+
+    h = laspy.LasHeader(point_format=3, version="1.4")
+    las = laspy.LasData(h)
+    las.X = las.Y = las.Z = np.arange(32)
+    buf = io.BytesIO()
+    las.write(buf, do_compress=True)
+    raw = bytearray(buf.getvalue())
+    at = raw.index(b"laszip encoded") - 2 + 54 + 12  # the record's chunk size
+    assert struct.unpack_from("<I", raw, at)[0] == 50000
+    struct.pack_into("<I", raw, at, 755024720)
+    src = tmp_path / "a.laz"
+    src.write_bytes(bytes(raw))
+
+    def cap_memory():  # were the fix undone, the child fails at once instead of filling memory
+        import resource
+
+        resource.setrlimit(resource.RLIMIT_AS, (8 << 30, 8 << 30))
+
+    run = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "recon_cli.cli.main",
+            "-q",
+            "convert",
+            str(src),
+            str(tmp_path / "a.ply"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        preexec_fn=cap_memory,
+    )
+    assert run.returncode in (0, 2), run.stderr
+    assert run.stderr.count("\n") == (run.returncode == 2), run.stderr
+
+
+def test_a_zero_scale_is_refused_and_a_bad_kept_grid_is_not_written(tmp_path):
+    """A header whose x scale is 0 (the readers' fuzz: read, then written back as LAS, a divide
+    by zero) is refused in one line; a cloud whose ``las_scale`` line has a 0 gets a grid of its
+    own when written."""
+    import struct
+
+    _, data = _laspy_file(0, 0, "1.2", False, n=20)
+    raw = bytearray(data)
+    struct.pack_into("<d", raw, 131, 0.0)
+    with pytest.raises(InputError, match=r"^a\.las: header's x scale 0\.0: a scale must not be 0$"):
+        decode_las(bytes(raw), "a.las")
+    cloud, _ = decode_las(data, "a.las")
+    cloud.obj_info = [
+        x if not x.startswith("las_scale ") else "las_scale 0 0.001 1e-4" for x in cloud.obj_info
+    ]
+    back, details = decode_las(las_bytes(cloud, False, "b.las"), "b.las")
+    assert all(s > 0 for s in details["scale"])
+    np.testing.assert_allclose(back.points, cloud.points, rtol=0, atol=max(details["scale"]))
+
+
+def _las_extra_named(name: bytes) -> bytes:
+    """A LAS of 5 points with one float extra dimension, its name's bytes ``name``."""
+    h = laspy.LasHeader(point_format=0, version="1.2")
+    h.add_extra_dims([laspy.ExtraBytesParams(name="abc", type="f4")])
+    las = laspy.LasData(h)
+    las.X = las.Y = las.Z = np.arange(5)
+    buf = io.BytesIO()
+    las.write(buf)
+    return buf.getvalue().replace(b"abc\0", name.ljust(4, b"\0"))
+
+
+def _convert_extra_named(tmp_path, capfd, name: bytes, suffix: str):
+    """``recon convert`` of a LAS whose one extra dimension is named ``name``: (exit, stderr,
+    OUT)."""
+    from recon_cli.cli.main import main
+
+    src = tmp_path / "a.las"
+    src.write_bytes(_las_extra_named(name))
+    out = tmp_path / ("out" + suffix)
+    capfd.readouterr()
+    with pytest.raises(SystemExit) as ex:
+        main(["-q", "convert", str(src), str(out)])
+    return ex.value.code, capfd.readouterr().err, out
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".pcd"])
+def test_an_extra_dimension_named_x_is_refused_by_header_formats(tmp_path, capfd, suffix):
+    """An extra dimension named ``x`` (make fuzz): the PLY writer built a record with ``x`` twice
+    (numpy's ValueError, a traceback); PLY and PCD refuse it in one line naming the output."""
+    code, err, out = _convert_extra_named(tmp_path, capfd, b"x", suffix)
+    assert code == 2 and err.count("\n") == 1, err
+    assert err.startswith(f"recon: error: {out}: attribute 'x' has the name of a "), err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("suffix, code", [(".ply", 2), (".pcd", 2), (".las", 0)])
+def test_an_extra_dimension_named_with_a_space_is_refused_by_header_formats(
+    tmp_path, capfd, suffix, code
+):
+    """An extra dimension ``a c`` was written as the PLY property ``a c``, a file no reader takes
+    (exit 0 then); PLY and PCD refuse it in one line naming the output, LAS writes it."""
+    got, err, out = _convert_extra_named(tmp_path, capfd, b"a c", suffix)
+    assert got == code, err
+    if code:
+        fmt = suffix[1:].upper()
+        assert err == (
+            f"recon: error: {out}: attribute 'a c' cannot be a {fmt} field name (one word of "
+            "printable ASCII); write another format\n"
+        )
+        assert not out.exists()
+    else:
+        assert "a c" in decode_las(None, str(out), path=str(out))[0].attributes
+
+
+def test_an_extra_dimension_without_a_name_is_refused_in_one_line():
+    """An Extra Bytes record whose name's first byte is 0 (the readers' fuzz): laspy lists a
+    dimension ``''`` it cannot give the values of (a ValueError traceback); refused in one line."""
+    with pytest.raises(InputError) as exc:
+        decode_las(_las_extra_named(b"\0bc"), "a.las")
+    assert str(exc.value) == "a.las: an extra-bytes dimension's name is empty or repeated: ''"
+
+
 def _normals_then_poisson(cloud):
     """``recon normals IN - | recon poisson - OUT.ply`` in process: each stage's output through PLY
     bytes."""

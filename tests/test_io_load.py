@@ -217,3 +217,23 @@ def test_normals_on_a_mesh_says_it_writes_the_vertices(tmp_path):
     save(mesh_family(4), tmp_path / "m.off")
     r = recon("normals", "--knn", "8", tmp_path / "m.off", tmp_path / "n.ply")
     assert r.returncode == 0 and "vertices only are written" in r.stderr.decode()
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".obj", ".off", ".xyz", ".stl", ".pcd", ".las"])
+def test_history_of_any_characters_is_written_on_one_line(suffix, tmp_path):
+    """A history line read from a file (an STL's name in latin-1, a glTF string with a newline)
+    is written by every writer as one line of printable ASCII (other characters escaped), and the
+    file reads back."""
+    v = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    f = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+    obj = TriangleMesh(vertices=v, faces=f) if suffix in (".ply", ".obj", ".off", ".stl") else None
+    obj = obj or PointCloud(points=v)
+    obj.history = ["name \x80\xe9 ü", "two\nlines\r\x00end"]
+    path = tmp_path / f"h{suffix}"
+    save(obj, str(path))
+    back = load(str(path))
+    got = np.unique(np.asarray(back.points, dtype=float), axis=0)
+    assert np.array_equal(got, np.unique(v, axis=0))
+    written = [h for h in back.history if "name" in h or "two" in h]
+    if suffix in (".ply", ".obj", ".off", ".xyz"):
+        assert written == ["name \\x80\\xe9 \\xfc", "two\\nlines\\r\\x00end"]

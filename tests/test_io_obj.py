@@ -277,3 +277,18 @@ def test_a_polygon_after_triangles_is_fanned_in_place():
         [0, 1, 4],
         [0, 4, 3],
     ]
+
+
+def test_a_refused_file_says_one_line_not_a_warning_before_it(tmp_path, capfd):
+    """Normals that are not kept and no finite vertex (the readers' fuzz): the warning about the
+    normals came before the refusal, two lines; the refusal is the only one."""
+    from recon_cli.cli.main import main
+
+    src = tmp_path / "a.obj"
+    src.write_bytes(b"v 0.0 0.0 nan\nvn 0.0 0.0 1.0\nvn 0.0 0.0 1.0\n")
+    capfd.readouterr()
+    with pytest.raises(SystemExit) as ex:
+        main(["-q", "convert", str(src), str(tmp_path / "a.ply")])
+    err = capfd.readouterr().err
+    assert ex.value.code == 2 and err.count("\n") == 1, err
+    assert err.startswith(f"recon: error: {src}: all 1 points have a NaN"), err

@@ -120,3 +120,20 @@ def test_fuzz_truncated_or_corrupted_off_is_data_or_input_error(seed, cut, junk,
         assert np.isfinite(obj.points).all()
         if isinstance(obj, TriangleMesh) and len(obj.faces):
             assert obj.faces.min() >= 0 and obj.faces.max() < len(obj.points)
+
+
+def test_an_infinite_count_is_refused_in_one_line():
+    """``OFF 1e400 0 0`` (the readers' fuzz): int(inf) raised OverflowError, a traceback."""
+    with pytest.raises(InputError) as exc:
+        decode_off(b"OFF 1e400 0 0\n0 0 0\n", "a.off")
+    assert str(exc.value) == "a.off: line 1: the counts must be 2 or 3 non-negative integers"
+
+
+def test_a_face_count_past_int64_is_refused_in_one_line():
+    """A face row ``18446744073709551616`` (the readers' fuzz): numpy's cast warning, a
+    traceback under -W error."""
+    with pytest.raises(InputError) as exc:
+        decode_off(b"OFF 0 1 0\n18446744073709551616\n", "a.off")
+    assert str(exc.value) == (
+        "a.off: line 2: a face of 18446744073709551616 corners has 0 values after its count"
+    )

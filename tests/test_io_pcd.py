@@ -160,6 +160,20 @@ def test_lzf_decoder_never_overruns(data, size):
             "unsupported field type F3",
         ),
         ("FIELDS x y z\nSIZE 4 4 4\n", "truncated header"),
+        (  # found by the fuzz (tests/test_io_readers_fuzz.py): numpy's ValueError, a traceback
+            "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 2147483648 1 1\nWIDTH 1\nPOINTS 1\n"
+            "DATA ascii\n1 2 3\n",
+            "line 5: a point of 8589934600 bytes (SIZE x COUNT) is longer than the file",
+        ),
+        (
+            "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH -1\nHEIGHT -2\nPOINTS 2\nDATA ascii\n",
+            "a negative POINTS, WIDTH or HEIGHT",
+        ),
+        (  # the fuzz: a byte 0x80 in a field name made the PLY and PCD writers' tracebacks
+            "FIELDS x y z n\x80\nSIZE 4 4 4 4\nTYPE F F F F\nWIDTH 1\nPOINTS 1\nDATA ascii\n"
+            "1 2 3 4\n",
+            "line 2: field name 'n\\xc2\\x80' is not printable ASCII",
+        ),
     ],
 )
 def test_malformed_files_are_one_line_errors(head, message):
@@ -198,3 +212,26 @@ def test_fuzz_truncated_or_corrupted_pcd_is_data_or_input_error(seed, cut, junk,
             assert str(exc).startswith("f.pcd: ") and "\n" not in str(exc)
             continue
         assert isinstance(obj, PointCloud) and np.isfinite(obj.points).all()
+
+
+def test_signalling_nan_normals_beside_double_coordinates_convert_without_a_warning(
+    tmp_path, capfd
+):
+    """Float32 normals holding signalling NaNs beside float64 coordinates (the readers' fuzz): the
+    cast to the output's doubles raised numpy's warning; they are read as quiet NaNs."""
+    from recon_cli.cli.main import main
+
+    head = (
+        "VERSION 0.7\nFIELDS x y z normal_x normal_y normal_z\nSIZE 8 8 8 4 4 4\n"
+        "TYPE F F F F F F\nCOUNT 1 1 1 1 1 1\nWIDTH 2\nHEIGHT 1\nPOINTS 2\nDATA binary\n"
+    )
+    loud = np.array([0x7FA00000, 0x3F800000, 0], np.uint32).view("<f4").tobytes()
+    body = b"".join(np.arange(3, dtype="<f8").tobytes() + loud for _ in range(2))
+    src = tmp_path / "a.pcd"
+    src.write_bytes(head.encode() + body)
+    cloud, _ = decode_pcd(src.read_bytes(), str(src))
+    assert np.isnan(cloud.normals[:, 0]).all() and (cloud.normals[:, 1] == 1).all()
+    capfd.readouterr()
+    with pytest.raises(SystemExit) as ex:
+        main(["-q", "convert", str(src), str(tmp_path / "a.ply")])
+    assert ex.value.code == 0 and capfd.readouterr().err == ""

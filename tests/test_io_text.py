@@ -338,3 +338,28 @@ def test_tokens_followed_by_more_fields_read_as_python_float(tok):
         buf = text.as_uint8((tok + " 1234567890").encode())
         v, status, stop = scan_float(buf, 0, len(buf))
         assert status == 1 and stop == len(tok) and _bits(v) == _bits(ref), tok
+
+
+# 32-bit words, many of them the NaNs of float32 or the high halves of float64 NaNs
+_WORDS = st.one_of(
+    st.integers(0, 2**32 - 1),
+    st.integers(0x7F800001, 0x7FFFFFFF),
+    st.integers(0xFF800001, 0xFFFFFFFF),
+    st.integers(0x7FF00000, 0x7FFFFFFF),
+)
+
+
+@given(st.lists(_WORDS, max_size=20), st.sampled_from(["<f4", "<f8"]))
+def test_quiet_nans_makes_every_nan_quiet_and_keeps_every_other_value(words, dtype):
+    raw = np.array(words, np.uint32)
+    if dtype == "<f8":  # the words as the high halves: NaNs of both kinds and other values
+        raw = (raw.astype(np.uint64) << np.uint64(32)) | np.uint64(1)
+    values = raw.view(dtype)
+    kept = values.copy()
+    got = text.quiet_nans(values)
+    assert np.array_equal(values.view(raw.dtype), raw)  # never in place
+    nan = np.isnan(kept)
+    assert np.array_equal(got[~nan].view(raw.dtype), kept[~nan].view(raw.dtype))
+    assert np.isnan(got[nan]).all()
+    with np.errstate(invalid="raise"):  # a signalling NaN would raise here
+        got + 0.0

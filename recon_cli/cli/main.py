@@ -4,8 +4,8 @@ Exit codes: 0 success; 1 a stage failed on valid input; 2 bad input or parameter
 errors too); 3 a reference backend is missing or failed; 4 a batch in which some inputs failed
 (``EXIT_BATCH_SOME_FAILED``: ``recon batch`` returns it); 130 interrupted (SIGINT, Ctrl-C), 143
 terminated (SIGTERM); 141 standard output closed by its reader (a broken pipe: quiet, as ``head``
-users expect). Output path errors (missing folder, full or read-only file system) are exit 2 like
-bad input.
+users expect). Output path errors (missing folder, read-only file system) are exit 2 like bad
+input; a full file system (writing OUT or the spill files) is exit 1, as a run that failed.
 """
 
 from __future__ import annotations

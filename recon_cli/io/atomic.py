@@ -20,8 +20,9 @@ a symbolic link
     itself is kept.
 
 Every failure (missing folder, a directory, a read-only or full file system, an immutable
-file) is an :class:`~recon_cli.errors.OutputError` naming the path and the system's reason;
-the target is then untouched and no temporary file remains.
+file) is an :class:`~recon_cli.errors.OutputError` naming the path and the system's reason
+(a full one a :class:`~recon_cli.errors.NoSpace`, exit 1); the target is then untouched and
+no temporary file remains.
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ import tempfile
 from collections.abc import Callable, Iterator
 from typing import IO
 
-from recon_cli.errors import OutputError
+from recon_cli.errors import NoSpace, OutputError
 
 # paths that name an already open file descriptor
 _FD_PATH = re.compile(r"^/(?:dev/fd|proc/self/fd)/(\d+)$")
@@ -68,6 +69,13 @@ def remove_temporaries() -> None:
 
 def _reason(exc: OSError) -> str:
     return exc.strerror or str(exc)
+
+
+def _failed(exc: OSError, path: str) -> OutputError:
+    """The error of a write to ``path`` that failed with ``exc``: no room is :class:`NoSpace`."""
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return NoSpace(_reason(exc), path)
+    return OutputError(_reason(exc), path)
 
 
 def _fd_of(path: str) -> int | None:
@@ -106,7 +114,7 @@ def atomic_open(path: str | os.PathLike) -> Iterator[IO[bytes]]:
     except FileNotFoundError:
         st = None
     except OSError as exc:
-        raise OutputError(_reason(exc), path) from None
+        raise _failed(exc, path) from None
     if st is not None and stat.S_ISDIR(st.st_mode):
         raise OutputError("is a directory", path)
     if st is not None and not stat.S_ISREG(st.st_mode):
@@ -134,7 +142,7 @@ def _open_stdout() -> Iterator[IO[bytes]]:
     except BrokenPipeError:
         raise
     except OSError as exc:
-        raise OutputError(_reason(exc), "<stdout>") from None
+        raise _failed(exc, "<stdout>") from None
 
 
 @contextlib.contextmanager
@@ -154,7 +162,7 @@ def _open_fd(path: str, fd: int) -> Iterator[IO[bytes]]:
     except BrokenPipeError:
         raise
     except OSError as exc:
-        raise OutputError(_reason(exc), path) from None
+        raise _failed(exc, path) from None
 
 
 @contextlib.contextmanager
@@ -163,14 +171,14 @@ def _open_special(path: str) -> Iterator[IO[bytes]]:
     try:
         fd = os.open(path, os.O_WRONLY | os.O_CLOEXEC)
     except OSError as exc:
-        raise OutputError(_reason(exc), path) from None
+        raise _failed(exc, path) from None
     try:
         with open(fd, "wb") as f:
             yield f
     except BrokenPipeError:
         raise
     except OSError as exc:
-        raise OutputError(_reason(exc), path) from None
+        raise _failed(exc, path) from None
 
 
 @contextlib.contextmanager
@@ -209,7 +217,7 @@ def _open_replacing(
     except OSError as exc:
         if isinstance(exc, BrokenPipeError):
             raise
-        raise OutputError(_reason(exc), path) from None
+        raise _failed(exc, path) from None
     finally:
         if named is not None:
             with contextlib.suppress(OSError):
@@ -351,7 +359,7 @@ def new_folder(path: str | os.PathLike) -> Iterator[str]:
             prefix="." + os.path.basename(final) + ".", suffix=".tmp", dir=os.path.dirname(final)
         )
     except OSError as exc:
-        raise OutputError(_reason(exc), os.fspath(path)) from None
+        raise _failed(exc, os.fspath(path)) from None
     _FOLDERS.add(tmp)
     try:
         yield tmp
@@ -359,7 +367,7 @@ def new_folder(path: str | os.PathLike) -> Iterator[str]:
             raise OutputError("was created meanwhile: nothing is replaced", os.fspath(path))
         os.rename(tmp, final)
     except OSError as exc:
-        raise OutputError(_reason(exc), os.fspath(path)) from None
+        raise _failed(exc, os.fspath(path)) from None
     finally:
         if os.path.isdir(tmp):
             shutil.rmtree(tmp, ignore_errors=True)

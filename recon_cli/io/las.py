@@ -3,7 +3,8 @@
 Reading gives float64 coordinates ``X * scale + offset`` (LAS stores integers: float32 at
 UTM coordinates would round to decimetres), the colours (uint16, as stored) and every other
 dimension as a per-point attribute under laspy's name (``intensity``, ``return_number``,
-``number_of_returns``, ``classification``, ``gps_time``, ..., and extra-bytes dimensions);
+``number_of_returns``, ``classification``, ``gps_time``, ..., and extra-bytes dimensions, one
+of k values a point as ``name_0`` .. ``name_{k-1}``);
 extra dimensions ``nx ny nz`` (or ``normal_x``...) are the normals. The version, point
 format, scale, offset, the VLRs and EVLRs (coordinate system...) are kept in ``obj_info``
 lines (``las_*``), so they survive a pass through PLY stages and are written back (a WKT
@@ -24,9 +25,12 @@ are written as extra-bytes dimensions.
 from __future__ import annotations
 
 import base64
+import contextlib
 import io
+import logging
 import os
 import re
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -52,6 +56,22 @@ def _laspy():
     except ModuleNotFoundError:
         raise ParameterError("LAS/LAZ needs laspy with lazrs: pip install 'recon[las]'") from None
     return laspy
+
+
+@contextlib.contextmanager
+def _laspy_silent() -> Iterator[None]:
+    """The block without laspy's log records.
+
+    What laspy logs of a file (a VLR it cannot parse, fewer points than declared) the reader
+    either accepts or refuses in its own one line.
+    """
+    logger = logging.getLogger("laspy")
+    level = logger.level
+    logger.setLevel(logging.CRITICAL + 1)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
 
 
 # a LAZ chunk holds at least a byte for this many bytes of point records (LAZ compresses real
@@ -121,7 +141,10 @@ def decode_las(data, where: str, path=None) -> tuple[PointCloud, dict]:
         check_counts(raw[:375], len(raw), where)
         source = io.BytesIO(raw)
     try:
-        las = laspy.read(source)
+        with _laspy_silent():
+            # lazrs' one-thread decoder: the parallel one sizes its buffers by the laszip record's
+            # chunk size, and a corrupted one aborted the process (a failed allocation)
+            las = laspy.read(source, laz_backend=laspy.LazBackend.Lazrs)
     except FileNotFoundError:
         raise InputError("no such file", where) from None
     except Exception as exc:  # laspy raises LaspyException, ValueError, lazrs errors...
@@ -161,6 +184,9 @@ def cloud_from_points(points, header, where: str) -> tuple[PointCloud, dict]:
         ``vlrs``, ``crs``, ``software``.
     """
     h = header
+    bad = [f"{c} scale {float(v)!r}" for c, v in zip("xyz", h.scales, strict=True) if not v]
+    if bad:  # every coordinate would be the offset, and the grid cannot be written back
+        raise InputError(f"header's {', '.join(bad)}: a scale must not be 0", where)
     raw = points.array
     pts = coordinates(raw, h.scales, h.offsets)
     if not np.isfinite(pts).all():
@@ -172,8 +198,10 @@ def cloud_from_points(points, header, where: str) -> tuple[PointCloud, dict]:
         )
     rgb, trio, others = _dimensions(points.point_format)
     colors = np.column_stack([raw[c] for c in _RGB]) if rgb else None
-    normals = np.column_stack([np.asarray(points[c]) for c in trio]) if trio else None
-    attributes = {name: np.array(points[name]) for name in others}
+    normals = None
+    if trio:
+        normals = text.quiet_nans(np.column_stack([np.asarray(points[c]) for c in trio]))
+    attributes = _attribute_columns(points, others, where)
     info = [
         f"las_version {h.version}",
         f"las_point_format {h.point_format.id}",
@@ -217,7 +245,9 @@ def _details(h, where: str) -> dict:
         or str(where).lower().endswith(".laz"),
         "scale": [float(s) for s in h.scales],
         "offset": [float(o) for o in h.offsets],
-        "vlrs": [f"{v.user_id}/{v.record_id}" for _, v in _kept_records(h)],
+        "vlrs": [
+            f"{_raw_text(v.user_id).decode('latin-1')}/{v.record_id}" for _, v in _kept_records(h)
+        ],
         "crs": crs_name(h),
         "software": h.generating_software,
     }
@@ -263,6 +293,23 @@ def _dimensions(fmt) -> tuple[bool, tuple[str, ...], list[str]]:
     trio = next((t for t in _NORMAL_NAMES if all(c in extra for c in t)), ())
     skip = {"X", "Y", "Z", *(_RGB if rgb else ()), *trio}
     return rgb, trio, [n for n in names if n not in skip]
+
+
+def _attribute_columns(points, names: list[str], where: str) -> dict[str, np.ndarray]:
+    """The attributes of dimensions ``names``; one of k values a point as ``name_0`` .. ``_k-1``."""
+    attributes = {}
+    for name in names:
+        if not name or names.count(name) > 1:  # laspy lists them but cannot give their values
+            raise InputError(
+                f"an extra-bytes dimension's name is empty or repeated: {ascii(name)}", where
+            )
+        values = text.quiet_nans(np.array(points[name]))
+        if values.ndim == 1:
+            attributes[name] = values
+        else:  # as PCD's COUNT
+            for k in range(values.shape[1]):
+                attributes[f"{name}_{k}"] = np.ascontiguousarray(values[:, k])
+    return attributes
 
 
 def _kept_records(header) -> list[tuple[str, Any]]:
@@ -314,6 +361,11 @@ def crs_name(header) -> str | None:
     if any(v.user_id == "LASF_Projection" and v.record_id == 34735 for v in header.vlrs):
         return "GeoTIFF keys"
     return None
+
+
+def _ascii(words: bytes) -> str:
+    # laspy writes a VLR's user id and description as ASCII: any other byte is written as "?"
+    return words.decode("ascii", "replace").replace("\ufffd", "?")
 
 
 def _vlr_bytes(v) -> bytes:
@@ -373,7 +425,10 @@ def coordinate_system(obj_info: list[str]) -> str | None:
 
 def _grid(pts: np.ndarray, info: dict) -> tuple[np.ndarray, np.ndarray]:
     if "scale" in info and "offset" in info:
-        return np.array(info["scale"].split(), float), np.array(info["offset"].split(), float)
+        scale = np.array(info["scale"].split(), float)
+        offset = np.array(info["offset"].split(), float)
+        if len(scale) == len(offset) == 3 and np.isfinite([*scale, *offset]).all() and scale.all():
+            return scale, offset
     lo = pts.min(axis=0) if len(pts) else np.zeros(3)
     hi = pts.max(axis=0) if len(pts) else np.zeros(3)
     extent = max(float(np.max(hi - lo)), 1e-300)
@@ -462,9 +517,9 @@ def las_bytes(obj, compress: bool, where: str = "") -> bytes:
 def _vlr(laspy, user: str, rec: str, desc: str, payload: str):
     """A VLR from the four base64 fields of an ``obj_info`` line."""
     return laspy.VLR(
-        user_id=base64.b64decode(user).decode("latin-1"),
+        user_id=_ascii(base64.b64decode(user)),
         record_id=int(rec),
-        description=base64.b64decode(desc).decode("latin-1"),
+        description=_ascii(base64.b64decode(desc)),
         record_data=base64.b64decode(payload),
     )
 

@@ -28,24 +28,41 @@ from recon_cli.grid import Grid
 from recon_cli.io.atomic import write_bytes
 from recon_cli.io.ply import read_bytes
 
+# the date of every member of a grid file (zip's earliest): no clock in the bytes
+_ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)
+
 
 def is_npz(data: bytes | np.ndarray) -> bool:
     """True when ``data`` starts like a zip archive (``.npz``)."""
     return bytes(data[:4]) == b"PK\x03\x04"
 
 
+def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
+    """The bytes of ``numpy.savez(**arrays)``, but the same arrays give the same bytes.
+
+    numpy dates each member with the clock; here every member is dated 1980-01-01 (zip's
+    earliest date), so two runs' files are equal.
+    """
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
+        for name, arr in arrays.items():
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=_ZIP_EPOCH)
+            with zf.open(info, "w", force_zip64=True) as f:
+                np.lib.format.write_array(f, np.asanyarray(arr), allow_pickle=False)
+    return buf.getvalue()
+
+
 def grid_bytes(grid: Grid) -> bytes:
     """``grid`` as the bytes of its ``.npz`` file."""
-    buf = io.BytesIO()
-    np.savez(
-        buf,
-        sdf=grid.sdf.astype(np.float32),
-        origin=grid.origin,
-        voxel_size=np.float64(grid.voxel_size),
-        provenance=np.array("\n".join(grid.history)),
-        point_dtype=np.array(np.dtype(grid.point_dtype).name),
+    return npz_bytes(
+        {
+            "sdf": grid.sdf.astype(np.float32),
+            "origin": np.asarray(grid.origin),
+            "voxel_size": np.float64(grid.voxel_size),
+            "provenance": np.array("\n".join(grid.history)),
+            "point_dtype": np.array(np.dtype(grid.point_dtype).name),
+        }
     )
-    return buf.getvalue()
 
 
 def read_grid(path: str | os.PathLike, data: bytes | np.ndarray | None = None) -> Grid:

@@ -87,12 +87,13 @@ def decode_obj(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
         raise InputError(f"face corner {bad}: normal index out of range for {nvn} normals", where)
     history = _leading_comments(buf)
     details: dict = {"format": "obj", "v": nv, "vn": nvn, "f": nf}
-    normals = _vertex_normals(verts, vnorms, corner_v, corner_n, nf, where, details)
+    notes: list[str] = []  # warned once the object is made: a refused file says one line
+    normals = _vertex_normals(verts, vnorms, corner_v, corner_n, nf, where, details, notes)
     cols = text.colours_from_unit(colours) if len(colours) else None
     common: dict[str, Any] = dict(normals=normals, colors=cols, point_dtype=np.float64)
     if nf == 0:
         cloud = text.apply_float32_mark(PointCloud(points=verts, **common), history)
-        return (drop_invalid(cloud, where) if invalid else cloud), details
+        return _warned((drop_invalid(cloud, where) if invalid else cloud), notes), details
     if nc == 3 * nf:  # every face has at least 3 corners: all are triangles
         faces = corner_v.reshape(-1, 3)  # triangles already: no fan to build
     else:
@@ -100,7 +101,15 @@ def decode_obj(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
 
         faces, _ = fan(corner_v, face_len[:nf])
     mesh = text.apply_float32_mark(TriangleMesh(vertices=verts, faces=faces, **common), history)
-    return (drop_invalid(mesh, where) if invalid else mesh), details
+    return _warned((drop_invalid(mesh, where) if invalid else mesh), notes), details
+
+
+def _warned(obj, notes: list[str]):
+    # none when every vertex was dropped: load.check_read refuses the file in one line then
+    if len(obj.points) or not getattr(obj, "invalid_dropped", 0):
+        for note in notes:
+            text.warn(note)
+    return obj
 
 
 def _estimate(buf: np.ndarray, K) -> tuple[int, int, int, int]:
@@ -128,20 +137,22 @@ def _raise(buf: np.ndarray, err: int, at: int, where: str):
     raise InputError(f"line {text.line_at(buf, at)}: {_MESSAGES[err]}", where)
 
 
-def _vertex_normals(verts, vnorms, corner_v, corner_n, nf, where, details) -> np.ndarray | None:
+def _vertex_normals(
+    verts, vnorms, corner_v, corner_n, nf, where, details, notes: list[str]
+) -> np.ndarray | None:
     nv, nvn = len(verts), len(vnorms)
     if nvn == 0:
         return None
     if nf == 0 or (nvn == nv and np.array_equal(corner_n, corner_v)):
         if nvn == nv:
             return vnorms
-        text.warn(
+        notes.append(
             f"{where}: {nvn} normals for {nv} vertices and no faces naming them: normals not kept"
         )
         details["normals_dropped"] = True
         return None
     if corner_n.min() < 0:
-        text.warn(f"{where}: some face corners have no normal: normals not kept")
+        notes.append(f"{where}: some face corners have no normal: normals not kept")
         details["normals_dropped"] = True
         return None
     # one normal per vertex when every corner of the vertex gives the same vector
@@ -150,7 +161,7 @@ def _vertex_normals(verts, vnorms, corner_v, corner_n, nf, where, details) -> np
     same = np.all(vnorms[owner[corner_v]] == vnorms[corner_n])
     if same and np.all(owner >= 0):
         return vnorms[owner]
-    text.warn(
+    notes.append(
         f"{where}: normals differ between the corners of a vertex (split normals): normals not kept"
     )
     details["normals_dropped"] = True

@@ -43,7 +43,12 @@ def decode_off(data, where: str) -> tuple[PointCloud | TriangleMesh, dict]:
     if len(lens) == 0 or lens[0] < 2:
         raise InputError("line 1-2: missing the counts 'vertices faces edges'", where)
     counts = values[row_start[0] : row_start[0] + min(3, int(lens[0]))]
-    if np.any(counts < 0) or np.any(counts != np.round(counts)) or lens[0] > 3:
+    if (
+        not np.isfinite(counts).all()
+        or np.any(counts < 0)
+        or np.any(counts != np.round(counts))
+        or lens[0] > 3
+    ):
         raise InputError(
             f"line {int(row_line[0])}: the counts must be 2 or 3 non-negative integers", where
         )
@@ -105,6 +110,13 @@ def _faces(values, starts, lines, nv, where):
         bad = int(np.flatnonzero((k != np.round(k)) | (k < 3))[0])
         raise InputError(
             f"line {int(lines[bad])}: a face must start with its number of corners (3 or more)",
+            where,
+        )
+    if np.any(k > lens - 1):  # before the cast: a count past int64 would not survive it
+        bad = int(np.flatnonzero(k > lens - 1)[0])
+        raise InputError(
+            f"line {int(lines[bad])}: a face of {k[bad]:.0f} corners has {int(lens[bad]) - 1} "
+            "values after its count",
             where,
         )
     k = k.astype(np.int64)

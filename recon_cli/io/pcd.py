@@ -51,7 +51,7 @@ def _dtype(t: str, size: int, where: str, lineno: int) -> np.dtype:
 def parse_header(buf: np.ndarray, where: str) -> tuple[dict, int]:
     """The header fields and the byte offset of the body."""
     head, lines, pos = _header_lines(buf, where)
-    return _header_fields(head, lines, where), pos
+    return _header_fields(head, lines, where, len(buf)), pos
 
 
 def _header_lines(buf: np.ndarray, where: str) -> tuple[dict, dict, int]:
@@ -71,7 +71,7 @@ def _header_lines(buf: np.ndarray, where: str) -> tuple[dict, dict, int]:
         if key not in _KEYS:
             if lineno == 1:
                 raise InputError("not a PCD file (no VERSION/FIELDS header)", where)
-            raise InputError(f"line {lineno}: unknown header keyword {key!r}", where)
+            raise InputError(f"line {lineno}: unknown header keyword {ascii(key)}", where)
         head[key] = rest.split()
         lines[key] = lineno
         if key == "DATA":
@@ -81,8 +81,11 @@ def _header_lines(buf: np.ndarray, where: str) -> tuple[dict, dict, int]:
     return head, lines, pos
 
 
-def _header_fields(head: dict, lines: dict, where: str) -> dict:
-    """The fields, their types and counts, the point count and layout a header declares."""
+def _header_fields(head: dict, lines: dict, where: str, file_bytes: int) -> dict:
+    """The fields, their types and counts, the point count and layout a header declares.
+
+    ``file_bytes``: the file's length (a point longer than that is refused).
+    """
     for key in ("FIELDS", "SIZE", "TYPE", "POINTS", "DATA"):
         if key not in head:
             raise InputError(f"header has no {key} line", where)
@@ -103,13 +106,25 @@ def _header_fields(head: dict, lines: dict, where: str) -> dict:
         raise InputError(
             "a SIZE, COUNT, WIDTH, HEIGHT or POINTS value is not an integer", where
         ) from None
-    if npts < 0 or any(c < 1 for c in counts):
-        raise InputError("negative POINTS or a COUNT below 1", where)
+    if npts < 0 or width < 0 or height < 0 or any(c < 1 for c in counts):
+        raise InputError("a negative POINTS, WIDTH or HEIGHT, or a COUNT below 1", where)
     if width * height != npts:
         raise InputError(f"WIDTH {width} x HEIGHT {height} is not POINTS {npts}", where)
     dtypes = [_dtype(t, s, where, lines["TYPE"]) for t, s in zip(head["TYPE"], sizes, strict=True)]
+    row = sum(dt.itemsize * c for dt, c in zip(dtypes, counts, strict=True))
+    if row > file_bytes:
+        raise InputError(
+            f"line {lines.get('COUNT', lines['SIZE'])}: a point of {row} bytes (SIZE x COUNT) is "
+            f"longer than the file ({file_bytes} bytes)",
+            where,
+        )
     if len(set(names)) != len(names):
         raise InputError(f"line {lines['FIELDS']}: a field name is repeated", where)
+    for name in names:  # they become PLY and PCD header words, which are ASCII
+        if not (name.isascii() and name.isprintable()):
+            raise InputError(
+                f"line {lines['FIELDS']}: field name {ascii(name)} is not printable ASCII", where
+            )
     for c in ("x", "y", "z"):
         if c not in names:
             raise InputError(f"no {c!r} field", where)
@@ -251,6 +266,8 @@ def _ascii(buf, off, h, rowdt, where) -> dict:
 
 
 def _to_cloud(cols: dict, h: dict, where: str) -> PointCloud:
+    # a packed rgb's float bits are the colour, NaN or not
+    cols = {k: c if k in ("rgb", "rgba") else text.quiet_nans(c) for k, c in cols.items()}
     xyz_types = {cols[c].dtype for c in ("x", "y", "z")}
     ptype = np.float32 if xyz_types == {np.dtype("<f4")} else np.float64
     pts = np.column_stack([np.asarray(cols[c], dtype=ptype) for c in ("x", "y", "z")])
@@ -433,4 +450,6 @@ def write_pcd(obj, path: str | os.PathLike, data: str = "binary") -> None:
     """Write ``obj`` as PCD atomically (``-``: standard output)."""
     from recon_cli.io.atomic import write_bytes
 
+    taken = ["x", "y", "z", "rgb", "rgba", *(_NORMALS if obj.normals is not None else ())]
+    text.check_header_words(obj.attributes, "PCD", text.where_of(path), taken)
     write_bytes(path, pcd_bytes(obj, data=data))

@@ -35,7 +35,7 @@ from recon_cli.io._ply_types import (
     PlyProperty,
     ply_name,
 )
-from recon_cli.io.text import as_uint8
+from recon_cli.io.text import as_uint8, check_header_words, one_line, where_of
 
 # the classes of a decoded file live with the type names (the body decoder uses them too)
 __all__ = [
@@ -238,8 +238,8 @@ def header_bytes(ply: PlyData) -> bytes:
     if ply.format not in FORMATS:
         raise ValueError(f"unknown PLY format {ply.format!r}")
     head = ["ply", f"format {ply.format} 1.0"]
-    head += [f"comment {c}" for c in ply.comments]
-    head += [f"obj_info {c}" for c in ply.obj_info]
+    head += [f"comment {one_line(c)}" for c in ply.comments]
+    head += [f"obj_info {one_line(c)}" for c in ply.obj_info]
     for el in ply.elements:
         head.append(f"element {el.name} {el.count}")
         head += [p.header_line() for p in el.properties]
@@ -823,6 +823,12 @@ def write_ply(obj: PointCloud | TriangleMesh, path: str | os.PathLike, ascii: bo
     """
     from recon_cli.io.atomic import write_pieces
 
+    taken = [*_VERTEX_XYZ, *(_VERTEX_NORMAL if obj.normals is not None else ())]
+    taken += _VERTEX_COLOR[: obj.colors.shape[1]] if obj.colors is not None else ()
+    check_header_words(obj.attributes, "PLY", where_of(path), taken)
+    check_header_words(
+        getattr(obj, "face_attributes", ()), "PLY", where_of(path), ["vertex_indices"]
+    )
     ply = geometry_to_ply(obj, ascii=ascii)
     write_pieces(path, lambda put: emit_ply(ply, put))
 

@@ -141,7 +141,7 @@ def stl_bytes(obj: TriangleMesh, ascii: bool = False) -> bytes:
     n = np.cross(t64[:, 1] - t64[:, 0], t64[:, 2] - t64[:, 0])
     ln = np.linalg.norm(n, axis=1, keepdims=True)
     n = np.divide(n, ln, out=np.zeros_like(n), where=ln > 0)
-    head = "; ".join(obj.history)[:79]
+    head = text.one_line("; ".join(obj.history))[:79]
     if ascii:
         fmt = text.float_format(obj.point_dtype)
         body = text.format_rows(
@@ -150,18 +150,13 @@ def stl_bytes(obj: TriangleMesh, ascii: bool = False) -> bytes:
             + " endloop\nendfacet\n",
             np.column_stack([n, t64.reshape(len(t64), 9)]),
         )
-        name = head.replace("\n", " ")
-        return (
-            f"solid {name}\n".encode("latin-1", "replace")
-            + body
-            + f"endsolid {name}\n".encode("latin-1", "replace")
-        )
+        return f"solid {head}\n".encode() + body + f"endsolid {head}\n".encode()
     rows = np.zeros(len(tri), dtype=_ROW)
     rows["normal"] = n
     rows["v"] = tri
     if "attribute" in obj.face_attributes:
         rows["attribute"] = obj.face_attributes["attribute"]
-    header = head.encode("latin-1", "replace").ljust(80, b" ")
+    header = head.encode().ljust(80, b" ")
     if header[:5].lower() == b"solid":  # a binary file must not look like an ASCII one
         header = b"binary " + header[:73]
     return header + np.uint32(len(tri)).tobytes() + rows.tobytes()

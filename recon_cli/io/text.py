@@ -9,7 +9,7 @@ import logging
 
 import numpy as np
 
-from recon_cli.errors import InputError
+from recon_cli.errors import InputError, ParameterError
 
 log = logging.getLogger("recon")
 
@@ -137,6 +137,50 @@ def check_finite(points: np.ndarray, where: str, what: str = "vertex") -> None:
         raise InputError(f"{what} {int(np.argmin(ok))} has a NaN or infinite coordinate", where)
 
 
+# the quiet bit of a NaN (the mantissa's highest) by float size in bytes
+_QUIET_BIT = {2: 1 << 9, 4: 1 << 22, 8: 1 << 51}
+
+
+def quiet_nans(values: np.ndarray) -> np.ndarray:
+    """``values``, or a copy with its signalling NaNs made quiet when it holds any.
+
+    Floats read as raw bytes may hold signalling NaNs, which raise numpy's "invalid value"
+    warning when cast or computed with; other dtypes are returned as they are.
+    """
+    quiet = _QUIET_BIT.get(values.dtype.itemsize)
+    if values.dtype.kind != "f" or quiet is None:
+        return values
+    nan = np.isnan(values)  # isnan does not signal
+    if not nan.any():
+        return values
+    loud = nan & ((values.view(f"u{values.dtype.itemsize}") & quiet) == 0)
+    if loud.any():
+        values = values.copy()
+        values[loud] = np.nan
+    return values
+
+
+def check_header_words(names, fmt: str, where: str, taken=()) -> None:
+    """Refuse an attribute name that cannot be a word of a ``fmt`` header (PLY, PCD).
+
+    Such a header is ASCII words: a name with a space or another character would write a file
+    no reader takes, and one of the ``taken`` names (the coordinates', normals', colours' the
+    writer puts in) a field twice. Raises :class:`~recon_cli.errors.ParameterError` naming
+    ``where``.
+    """
+    for name in names:
+        if name in taken:
+            raise ParameterError(
+                f"{where}: attribute {ascii(name)} has the name of a {fmt} field written for the "
+                "coordinates, normals or colours; write another format"
+            )
+        if not (name and name.isascii() and name.isprintable() and " " not in name):
+            raise ParameterError(
+                f"{where}: attribute {ascii(name)} cannot be a {fmt} field name (one word of "
+                "printable ASCII); write another format"
+            )
+
+
 def colours_from_unit(c: np.ndarray) -> np.ndarray:
     """Colours given as floats: uint8 when every value is k/255, otherwise the floats as given.
 
@@ -187,10 +231,24 @@ def apply_float32_mark(obj, history: list[str]):
     return obj
 
 
+def one_line(line: str) -> str:
+    """``line`` as printable ASCII on one line: any other character as its Python escape.
+
+    History lines come from files (an STL's name, a PLY comment, a glTF string) and go into
+    headers and comment lines, where a newline would end the line and a byte above 127 is not
+    ASCII.
+    """
+    if line.isascii() and line.isprintable():
+        return line
+    return "".join(
+        c if " " <= c <= "~" else c.encode("unicode_escape").decode("ascii") for c in line
+    )
+
+
 def mark_lines(obj, prefix: str = "# ") -> str:
     """The float32 mark line (when ``obj`` is float32) and the history, as comment lines."""
     lines = [FLOAT32_MARK] if np.dtype(obj.point_dtype) == np.float32 else []
-    return "".join(f"{prefix}{h}\n" for h in lines + list(obj.history))
+    return "".join(f"{prefix}{one_line(h)}\n" for h in lines + list(obj.history))
 
 
 def float_format(dtype) -> str:

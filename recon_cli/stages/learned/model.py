@@ -102,6 +102,7 @@ class SdfModel:
 def save_model(model: SdfModel, path: str | os.PathLike) -> None:
     """Write the fitted weights and the coordinate map as ``.npz`` (atomically; no pickle)."""
     from recon_cli.io.atomic import write_bytes
+    from recon_cli.io.npz import npz_bytes
 
     arrays = {f"param:{k}": v for k, v in compute().state_arrays(model.net).items()}
     meta = {
@@ -111,9 +112,7 @@ def save_model(model: SdfModel, path: str | os.PathLike) -> None:
         "center": list(map(float, model.center)),
         **model.config,
     }
-    buf = io.BytesIO()
-    np.savez(buf, meta=np.array(json.dumps(meta)), **arrays)
-    write_bytes(path, buf.getvalue())
+    write_bytes(path, npz_bytes({"meta": np.array(json.dumps(meta)), **arrays}))
 
 
 def load_model(path: str | os.PathLike) -> SdfModel:
