@@ -28,8 +28,8 @@ from recon_cli.errors import StageFailed
 
 log = logging.getLogger("recon")
 
-# the file in a spill folder that its run holds locked
 OWNER = "owner.lock"
+"""The file in a spill folder its run holds locked while it lives."""
 
 
 def _python_handlers() -> None:
