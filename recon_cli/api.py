@@ -218,7 +218,12 @@ def _wrap(text: str) -> list[str]:
 
 def _module_references(spec: StageSpec) -> list[str]:
     """The References section of the module that declares the stage (its lines), or []."""
-    module = sys.modules.get(getattr(spec.run, "__module__", "") or "")
+    name = getattr(spec.run, "__module__", "") or ""
+    module = sys.modules.get(name)
+    # the runner may live in a module of the stage's package (poisson's stage.py): the package
+    parent = sys.modules.get(name.rpartition(".")[0])
+    if module is not None and getattr(parent, "SPEC", None) is spec:
+        module = parent
     doc = inspect.getdoc(module) if module is not None else None
     if not doc:
         return []

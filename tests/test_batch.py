@@ -252,7 +252,7 @@ def test_process_one_interrupted_write_leaves_nothing(tmp_path, test_stages, mon
     assert rec["status"] == "failed" and "No space left" in rec["error"]
     # a full disk is the output's problem, reported in one line naming the path (not a bug with a
     # traceback)
-    assert rec["error_type"] == "OutputError" and "traceback" not in rec
+    assert rec["error_type"] == "NoSpace" and "traceback" not in rec  # an OutputError, exit 1
     assert str(tmp_path / "mug.ply") in rec["error"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p.toml"]  # no output, no temporary
 

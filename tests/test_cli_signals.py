@@ -101,7 +101,7 @@ CHILD = textwrap.dedent(
             while True:
                 Slow()
 
-        load_mod.load = load
+        load_mod.load = load_mod.load_detailed = load  # the commands read through load_detailed
     elif point == "swallowed":
         import recon_cli.io.load as load_mod
 
@@ -113,7 +113,7 @@ CHILD = textwrap.dedent(
                 pass  # as when the raise is lost inside a C callback
             time.sleep(120)
 
-        load_mod.load = load
+        load_mod.load = load_mod.load_detailed = load  # the commands read through load_detailed
     from recon_cli.cli.main import main
 
     main(["-q", "normals", "--knn", "8", src, out])
