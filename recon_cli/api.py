@@ -26,7 +26,6 @@ import functools
 import inspect
 import os
 import re
-import sys
 import textwrap
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any, Literal
@@ -39,7 +38,7 @@ from recon_cli.grid import Grid
 from recon_cli.io.tiles import Tileset
 from recon_cli.params import Param, StageSpec, describe_kinds
 from recon_cli.progress import Progress
-from recon_cli.stages import apply_stage, get_spec, read_hint, stage_names
+from recon_cli.stages import apply_stage, declaring_module, get_spec, read_hint, stage_names
 
 # names the annotations' source text uses (runtime and the generated stub alike)
 _NAMESPACE = {
@@ -218,12 +217,7 @@ def _wrap(text: str) -> list[str]:
 
 def _module_references(spec: StageSpec) -> list[str]:
     """The References section of the module that declares the stage (its lines), or []."""
-    name = getattr(spec.run, "__module__", "") or ""
-    module = sys.modules.get(name)
-    # the runner may live in a module of the stage's package (poisson's stage.py): the package
-    parent = sys.modules.get(name.rpartition(".")[0])
-    if module is not None and getattr(parent, "SPEC", None) is spec:
-        module = parent
+    module = declaring_module(spec)
     doc = inspect.getdoc(module) if module is not None else None
     if not doc:
         return []

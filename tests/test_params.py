@@ -21,6 +21,7 @@ from recon_cli.params import Param, StageSpec, parse_bool
 from recon_cli.stages import (
     BUILTIN,
     StageResult,
+    declaring_module,
     get_spec,
     register_stage,
     stage_summary,
@@ -173,8 +174,7 @@ def _bad_values(p: Param) -> list:
 
 
 def _public_functions(spec: StageSpec):
-    # the stage's package (its runner may live in a module of it: poisson's stage.py)
-    mod = sys.modules[".".join(spec.run.__module__.split(".")[:3])]
+    mod = declaring_module(spec)  # its runner may live in another module (poisson's stage.py)
     for name, fn in vars(mod).items():
         if (
             inspect.isfunction(fn)

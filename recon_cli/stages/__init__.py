@@ -144,6 +144,18 @@ def stage_names() -> list[str]:
 
 
 # ---- lookup -------------------------------------------------------------------------------------
+def declaring_module(spec: StageSpec) -> Any:
+    """The module that declares ``spec``: its registry target's, else its runner's (or None).
+
+    A stage's runner may live in another module of its package (poisson's ``stage.py``); its
+    docstring's References and its public functions are the declaring module's.
+    """
+    module = STAGES.get(spec.name, "").partition(":")[0]
+    if not module or module.startswith("<"):  # registered in this process as an object
+        module = getattr(spec.run, "__module__", "") or ""
+    return sys.modules.get(module) if module else None
+
+
 def get_spec(name: str) -> StageSpec:
     """The declaration of stage ``name``.
 
