@@ -290,7 +290,7 @@ def reconstruct(
     surface = _surface(runner, job, solved, timings)
     t = time.perf_counter()
     parts, trimmed = _output(runner, job, loaded, tables, solved, surface, out_dir, carry, timings)
-    timings["finish"] += time.perf_counter() - t
+    timings["finish"] = time.perf_counter() - t - timings.get("trim", 0.0)  # trim apart
     report = _report(job, loaded, solved, surface, parts, trimmed, timings)
     return {"parts": parts, "report": report, "phases": getattr(runner, "phases", {})}
 
@@ -367,7 +367,7 @@ def _surface(runner, job: S.Job, solved: _Solved, timings: dict) -> dict:
     t = time.perf_counter()
     bands, solved.bands = solved.bands, []  # released as the slabs get theirs
     fm = runner.run("field", M.field, lambda k: (solved.iso, *bands[k]))
-    bands = []  # noqa: F841 (the closure above held them)
+    bands = []  # the closure above held them
     # as the single-process extraction decides: at the leaves' own size when a coarse leaf
     # holds surface, else on the finest lattice (the same surface, faster)
     at_leaves = any(m["coarse"] for m in fm)
@@ -406,12 +406,10 @@ def _output(
     pm = runner.run("prepare", M.prepare, lambda k: (drop[k], dens_part(k), job.trim > 0))
     seam_keep: list[dict | None] = list(seams_used([m["seam_use"] for m in pm]))
     trimmed, trimmed_area = 0, 0.0
-    timings["finish"] = 0.0
     if job.trim > 0:
         t = time.perf_counter()
         seam_keep, trimmed, trimmed_area = trim_across(runner, job.trim, pm, seam_keep)
         timings["trim"] = time.perf_counter() - t
-        timings["finish"] -= timings["trim"]  # counted apart
     del pm
     left = [None] * len(seam_keep)
     if carry:
