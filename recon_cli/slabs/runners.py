@@ -413,8 +413,6 @@ class DaskRunner:
         loads: list[float] | None = None,
     ):
         self.client = client
-        import dask  # noqa: F401  (registration needs it imported)
-
         register_dask_sizes(*{type(s) for s in states if type(s).__module__ != "builtins"})
         # with more parts than workers, a worker would hold all its parts' states: each large
         # state goes to a file in spill_dir (shared by the workers) between its steps instead

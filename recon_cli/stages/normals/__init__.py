@@ -905,13 +905,12 @@ def _run_distributed(
 
     if backend != "native":
         raise ParameterError("--workers/--scheduler run the native normals: leave out --backend")
-    opened = ex.cluster()
     views = None
     if method == "camera" and cam is None:  # each point towards its own scanner
         views = _sensor_views(
             cloud.sensors, cloud.attributes.get(SCAN_ATTRIBUTE), len(cloud), np.zeros(3)
         )
-    with opened as (client, info):
+    with ex.cluster() as (client, info):
         nrm, curv, report = distributed_normals(
             cloud.points,
             cloud.normals,

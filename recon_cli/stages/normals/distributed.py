@@ -702,8 +702,7 @@ def run_from_files(
     v, knn, radius, (method, cam, dirn) = _checked(params, input, load_kw)
     t0 = time.perf_counter()
     chunks = chunks or plan_chunks(input)
-    opened = ex.cluster()
-    with spill_folder(ex.spill_parent(output), "normals") as tmp, opened as (client, info):
+    with spill_folder(ex.spill_parent(output), "normals") as tmp, ex.cluster() as (client, info):
         scans, n_rows, sensors, views = _scan(client, chunks, method, cam)
         lo = np.min([s["lo"] for s in scans if "lo" in s], axis=0)
         hi = np.max([s["hi"] for s in scans if "lo" in s], axis=0)

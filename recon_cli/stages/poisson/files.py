@@ -414,8 +414,7 @@ def run_from_files(
         check_output(output)
     prov = provenance_line("poisson", {**SPEC.defaults(), **params})
     t0 = time.perf_counter()
-    opened = ex.cluster()
-    with opened as (client, info):
+    with ex.cluster() as (client, info):
         res = reconstruct_files(
             input,
             client=client,

@@ -260,8 +260,7 @@ def _run_distributed(
     from recon_cli.stages.poisson.distributed import distributed_poisson
 
     assert cloud.normals is not None  # _stage_input refuses a cloud without
-    opened = ex.cluster()
-    with opened as (client, info):
+    with ex.cluster() as (client, info):
         res = distributed_poisson(
             cloud.points,
             cloud.normals,
