@@ -292,6 +292,54 @@ def test_trim_of_an_open_scan_as_single():
     assert len(res.mesh.attributes["density"]) == len(res.mesh.vertices)
 
 
+def _same_trim(single, res, cell: float, hausdorff_cells: float) -> None:
+    """``res`` (slabs) trimmed as ``single`` (one process): faces, pieces, holes, area."""
+    from recon_cli.mesh.distance import closest_points
+
+    a, b = topology_report(single.mesh), topology_report(res.mesh)
+    assert abs(b["faces"] - a["faces"]) <= 0.001 * a["faces"]
+    assert abs(res.report["trimmed_area"] - single.report["trimmed_area"]) < 1e-3
+    assert b["boundary_loops"] == a["boundary_loops"] > 0
+    assert b["components"] == a["components"]
+    assert b["edge_manifold"] and b["vertex_manifold"] and b["consistently_oriented"]
+    assert abs(b["area"] - a["area"]) < 1e-3 * a["area"]
+    assert len(np.unique(res.mesh.vertices, axis=0)) == len(res.mesh.vertices)
+    ma, mb = single.mesh, res.mesh
+    dab = closest_points(mb.vertices, mb.faces, ma.vertices)[0].max()
+    dba = closest_points(ma.vertices, ma.faces, mb.vertices)[0].max()
+    assert max(dab, dba) <= hausdorff_cells * cell, max(dab, dba) / cell
+
+
+def test_trim_auto_of_an_open_scan_as_single():
+    """``--trim auto`` over three slabs: the samples' spacing capped at the global median, the
+    vertices' support ratio, holes and islands joined across seams; the mesh is the single
+    process's (within a finest cell where the cut crosses a seam's neighbourhood)."""
+    rng = np.random.default_rng(0)
+    pts, nrm = single_view_scan("torus", 160, rng, direction=(0.3, 0.2, -1.0))
+    single = screened_poisson(pts, nrm, depth=7, trim="auto")
+    res = distributed_poisson(pts, nrm, depth=7, partitions=3, trim="auto", density=True)
+    _same_trim(single, res, res.report["finest_cell"], 0.5)
+    assert res.report["distributed"]["trim_inexact_samples"] == 0
+    assert len(res.mesh.attributes["density"]) == len(res.mesh.vertices)
+
+
+@pytest.mark.slow
+def test_trim_auto_of_a_cluttered_scene_as_single():
+    """A cluttered depth-camera office (near objects, far walls, flying pixels), turned and 1e6
+    away, trimmed by ``--trim auto`` in slabs: the single process's pieces, holes and area."""
+    from recon_cli.stages import normals
+
+    from sensors import cluttered_cloud
+
+    p, eye = cluttered_cloud("office", 0)
+    c = normals.run_stage(PointCloud(points=p), orient="camera", camera=tuple(eye)).output
+    single = screened_poisson(c.points, c.normals, depth=8, trim="auto")
+    res = distributed_poisson(c.points, c.normals, depth=8, partitions=3, trim="auto")
+    # the cut runs where the support ratio crosses 1, along edges whose ends moved by at most
+    # half a cell near a seam: the cut point moves by up to about a cell
+    _same_trim(single, res, res.report["finest_cell"], 1.25)
+
+
 class _Bars:
     """A stand-in for recon_cli.progress.Progress recording every task's advances."""
 
@@ -749,7 +797,6 @@ def test_command_reports_the_slab_count_and_why(tmp_path, monkeypatch, capsys):
     "args, msg",
     [
         (["--partitions", "2", "--grid", "g.npz"], "--grid is not available in slabs"),
-        (["--partitions", "2", "--trim", "auto"], "--trim auto is not available in slabs"),
         (["--memory", "10MB"], "--memory must be a size of at least 256 MiB"),
         (["--temp-dir", "/nonexistent/x"], "--temp-dir /nonexistent/x: no such folder"),
         (["--workers", "2", "--degree", "1"], "uses degree 2"),
@@ -844,6 +891,29 @@ def test_out_of_core_command_reads_the_file_by_chunks_in_this_process(
     assert len(ref.vertices) == len(mesh.vertices) and len(ref.faces) == len(mesh.faces)
     assert np.allclose(np.sort(ref.vertices, axis=0), np.sort(mesh.vertices, axis=0), atol=1e-12)
     assert sorted(os.listdir(tmp_path)) == ["mesh.ply", "sphere.ply"]
+
+
+def test_command_trims_auto_in_slabs_from_the_file(tmp_path, monkeypatch, capsys):
+    """``recon poisson IN OUT --partitions 3 --trim auto``: the slabs read IN by chunks and trim
+    as the in-memory run in 3 slabs does."""
+    rng = np.random.default_rng(0)
+    pts, nrm = single_view_scan("torus", 120, rng, direction=(0.3, 0.2, -1.0))
+    src = tmp_path / "scan.ply"
+    save(PointCloud(points=pts, normals=nrm), str(src))
+    _refuse_loading(monkeypatch)
+    out = tmp_path / "mesh.ply"
+    args = ["poisson", str(src), str(out), "--depth", "6", "--partitions", "3", "--trim", "auto"]
+    code = _recon([*args, "--json"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    monkeypatch.undo()
+    rep = json.loads(captured.out)
+    assert rep["trimmed_area"] > 0.5 and len(rep["distributed"]["slabs"]) == 3
+    mesh = load(str(out))
+    ref = distributed_poisson(pts, nrm, depth=6, partitions=3, trim="auto")
+    assert len(ref.mesh.faces) == len(mesh.faces) > 0
+    assert np.allclose(np.sort(ref.mesh.vertices, axis=0), np.sort(mesh.vertices, axis=0))
+    assert topology_report(mesh)["boundary_loops"] > 0
 
 
 def test_spilled_states_give_the_same_mesh(tmp_path, monkeypatch):

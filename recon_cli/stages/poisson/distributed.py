@@ -38,7 +38,13 @@ from recon_cli.slabs.spill import spill_folder
 from recon_cli.stages.poisson import slab as S
 from recon_cli.stages.poisson import slab_surface as M
 from recon_cli.stages.poisson.splat import KERNEL_OFFSET, screening_alpha
-from recon_cli.stages.poisson.stitch import assemble, merge_pieces, seams_used, trim_across
+from recon_cli.stages.poisson.stitch import (
+    assemble,
+    merge_pieces,
+    seams_used,
+    trim_across,
+    trim_auto_across,
+)
 
 if TYPE_CHECKING:
     pass
@@ -265,9 +271,10 @@ def make_job(origin, size, perm, depth, p: dict) -> S.Job:
         coarse_depth=dc,
         local_density=dc,
         density=p["density"],
-        trim=p["trim"],
+        trim=0.0 if p["trim"] == "auto" else p["trim"],
         weight_mean=p.get("weight_mean"),
         seam_depth=sd,
+        trim_auto=p["trim"] == "auto",
     )
 
 
@@ -389,10 +396,11 @@ def _surface(runner, job: S.Job, solved: _Solved, timings: dict) -> dict:
 
 def _output(
     runner, job, loaded, tables, solved: _Solved, surface: dict, out_dir, carry, timings
-) -> tuple[list[dict], tuple[int, float]]:
+) -> tuple[list[dict], tuple[int, float, int]]:
     """Each slab's part: density, trimming across seams, seam normals, its files or arrays.
 
-    Returns the parts' messages and (faces trimmed, area trimmed).
+    Returns the parts' messages and (faces trimmed, area trimmed, the samples of ``--trim auto``
+    whose spacing may read past their pad).
     """
     dens_spec = _density_spec(runner, job, solved.tree_depth, tables)
     usable = [m["usable"] for m in loaded]
@@ -405,10 +413,13 @@ def _output(
     drop = surface["drop"]
     pm = runner.run("prepare", M.prepare, lambda k: (drop[k], dens_part(k), job.trim > 0))
     seam_keep: list[dict | None] = list(seams_used([m["seam_use"] for m in pm]))
-    trimmed, trimmed_area = 0, 0.0
+    trimmed, trimmed_area, inexact = 0, 0.0, 0
+    t = time.perf_counter()
     if job.trim > 0:
-        t = time.perf_counter()
         seam_keep, trimmed, trimmed_area = trim_across(runner, job.trim, pm, seam_keep)
+    elif job.trim_auto:
+        seam_keep, trimmed, trimmed_area, inexact = trim_auto_across(runner, seam_keep)
+    if job.trim > 0 or job.trim_auto:
         timings["trim"] = time.perf_counter() - t
     del pm
     left = [None] * len(seam_keep)
@@ -427,7 +438,7 @@ def _output(
             left[k],
         ),
     )
-    return fm, (trimmed, trimmed_area)
+    return fm, (trimmed, trimmed_area, inexact)
 
 
 def _report(job, loaded, solved: _Solved, surface: dict, parts, trimmed, timings) -> dict:
@@ -457,6 +468,8 @@ def _report(job, loaded, solved: _Solved, surface: dict, parts, trimmed, timings
             "seam_max_deviation": surface["seam_deviation"],
             # vertices whose attribute neighbours may lie past their slab's pad
             "attribute_inexact_vertices": sum(a["inexact"] for a in astats if a),
+            # --trim auto: own samples whose spacing may read samples past their slab's pad
+            "trim_inexact_samples": int(trimmed[2]),
             "slabs": [
                 {
                     "own": lm["own"],
@@ -582,7 +595,7 @@ def distributed_poisson(
     samples_per_node: float = 1.5,
     boundary: str = "neumann",
     density: bool = False,
-    trim: float = 0.0,
+    trim: float | str = 0.0,
     confidence: bool = False,
     colors: np.ndarray | None = None,
     properties: dict[str, np.ndarray] | None = None,
@@ -649,7 +662,7 @@ def distributed_poisson(
     plan = plan_slabs(job, sub_counts, partitions, seams)
     slabs = [S.slab_of(job, k, partitions, *plan[k]) for k in range(partitions)]
     carry = bool(props) or colors is not None
-    weights = job_weights(False, point_weight > 0, trim > 0, carry, False)
+    weights = job_weights(False, point_weight > 0, trim != 0, carry, False)
 
     def load_args(k):
         pa, pb = (int(round(v * nsub)) for v in plan[k][1])
@@ -765,7 +778,6 @@ def check_slab_options(
         ("--boundary free", boundary == "free"),
         ("--envelope", envelope not in (None, "")),
         ("--grid", grid not in (None, "")),
-        ("--trim auto", trim == "auto"),
     ):
         if used:
             raise ParameterError(f"{name} is not available {where}")

@@ -190,7 +190,7 @@ def reconstruct_files(
     job = D.make_job(origin, size, perm, depth, params)
     nsub = 1 << min(S.SUB_DEPTH, depth)
     carry = bool(names) or color_type is not None
-    weights = D.job_weights(True, point_weight > 0, trim > 0, carry, output is not None)
+    weights = D.job_weights(True, point_weight > 0, trim != 0, carry, output is not None)
     runner = None
     with spill_folder(temp_dir, "poisson") as tmp:
         with D.job_task(progress, "poisson: the whole job", sum(weights.values())) as job_bar:

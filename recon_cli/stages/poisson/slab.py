@@ -96,11 +96,12 @@ class Job:
     coarse_depth: int  # the levels the coordinator solves for the whole cube
     local_density: int  # kernel-density levels above this one are a slab's own, the rest global
     density: bool
-    trim: float
+    trim: float  # T > 0: cut at T times the samples' median density
     # --confidence: each point's weight is its normal's length over this (the mean length), divided
     # as the single process divides (a product by its reciprocal differs by an ulp)
     weight_mean: float | None = None
     seam_depth: int = PARTITION_DEPTH  # the level whose planes the seams lie on
+    trim_auto: bool = False  # --trim auto (trim is then 0)
 
 
 def seam_depth(partitions: int) -> int:
@@ -160,6 +161,11 @@ class Slab:
     vdens: np.ndarray | None = None
     at_samples: Any = None
     trim: Any = None
+    # --trim auto: the samples' local spacing, then the vertices' value cut and the own samples
+    # nearest each vertex
+    spacing: Any = None
+    support: np.ndarray | None = None
+    mass: np.ndarray | None = None
 
     def __getstate__(self) -> dict:
         # a pickled view is a copy: the levels' fields (views of ``arrays``, shared with the

@@ -160,17 +160,82 @@ def density_values(slab: Slab, bins: np.ndarray) -> dict:
     return {"values": values_in(slab.at_samples, bins)}
 
 
+def _unit_gap(slab: Slab, u: np.ndarray) -> np.ndarray:
+    """Distance (unit cube) from unit-cube x ``u`` to the nearer end of the slab's points."""
+    lo = np.inf if slab.pad[0] <= 0.0 else u - slab.pad[0]
+    hi = np.inf if slab.pad[1] >= 1.0 else slab.pad[1] - u
+    return np.minimum(lo, hi)
+
+
+@timed
+def auto_spacing(slab: Slab) -> dict:
+    """``--trim auto``'s first round: the samples' local spacing (:func:`.trim.local_spacing`).
+
+    Over the slab's samples and its pads'. Returns the histogram of the own samples' spacing (the
+    cap's global median) and how many own samples looked past the pad (``inexact``).
+    """
+    from scipy.spatial import cKDTree
+
+    from recon_cli.stages.poisson.trim import local_spacing
+
+    pos = slab.smp.pos
+    if len(pos) < 2:
+        slab.spacing = np.full(len(pos), np.inf)
+        slab.at_samples = slab.spacing[slab.own_s]
+        return {"hist": float_histogram(slab.at_samples), "inexact": 0}
+    slab.spacing, reach = local_spacing(cKDTree(pos))
+    own = slab.own_s
+    slab.at_samples = slab.spacing[own]
+    inexact = int(np.count_nonzero(reach[own] >= _unit_gap(slab, pos[own, 0])))
+    return {"hist": float_histogram(slab.at_samples), "inexact": inexact}
+
+
+@timed
+def auto_values(slab: Slab, median: float) -> dict:
+    """``--trim auto``'s value at the vertices and the own samples nearest each.
+
+    ``median``: the samples' median spacing over all slabs (the cap); the value is minus the
+    support ratio (:func:`.trim.spacing_ratio`), cut at minus :data:`.trim.SUPPORT_RATIO`.
+    """
+    from scipy.spatial import cKDTree
+
+    from recon_cli.stages.poisson.trim import capped_spacing, nearest_counts, spacing_ratio
+
+    job = slab.job
+    pos = slab.smp.pos
+    v = (slab.verts - np.asarray(job.origin)) / job.size
+    slab.at_samples = None
+    if not len(v):
+        slab.support, slab.mass, slab.spacing = np.zeros(0), np.zeros(0), None
+        return {}
+    if not len(pos):
+        raise StageFailed(
+            f"distributed poisson: slab {slab.index} has surface but no sample within its pad "
+            "to trim by: use fewer --partitions"
+        )
+    spacing = capped_spacing(slab.spacing, median)
+    slab.spacing = None
+    slab.support = -spacing_ratio(cKDTree(pos), spacing, v)
+    own = pos[slab.own_s]
+    slab.mass = nearest_counts(own, v) if len(own) else np.zeros(len(v))
+    return {}
+
+
 @timed
 def trim_cut(slab: Slab, threshold: float) -> dict:
     """The trim's cut (:func:`.trim.cut_by_density`) of the slab's faces.
 
-    Returns the areas and the pieces of the low side (small ones are holes the trim keeps).
+    By the density at the vertices, or by ``--trim auto``'s value (:func:`auto_values`), the
+    density then carried. Returns the areas and the pieces of the low side (small ones are holes
+    the trim keeps).
     """
     from recon_cli.mesh.topology import Connectivity
-    from recon_cli.stages.poisson.trim import cut_by_density
+    from recon_cli.stages.poisson.trim import carried_at_cut, cut_by_density
 
-    v, f, d = slab.verts, slab.faces, slab.vdens
-    assert d is not None  # the trim runs on the density at the vertices
+    auto = slab.support is not None
+    v, f = slab.verts, slab.faces
+    d = slab.support if auto else slab.vdens
+    assert d is not None  # the trim runs on the density at the vertices, or auto's value
     high = d > threshold
     nh = high[f].sum(axis=1) if len(f) else np.zeros(0, np.int64)
     nv = len(v)
@@ -181,6 +246,14 @@ def trim_cut(slab: Slab, threshold: float) -> dict:
         verts, faces, side, dens, edges = cut_by_density(v, f, d, threshold, high, nh)
     else:
         verts, faces, side, dens, edges = v, f, np.zeros(0, bool), d, np.zeros((0, 2), np.int64)
+    held: np.ndarray | None = None
+    carried: np.ndarray | None = dens
+    if auto:
+        # the cut vertices stand for no sample; the density goes along as the positions do
+        assert slab.mass is not None  # set with the support by auto_values
+        held = np.concatenate([slab.mass > 0, np.zeros(len(verts) - nv, bool)])
+        carried = None if slab.vdens is None else carried_at_cut(slab.vdens, d, edges, threshold)
+        slab.support = slab.mass = None
     # the new vertices on a seam's edges belong to the seam: they join its vertices, in the
     # order both slabs give them (by position along the plane)
     sd = np.zeros(len(verts), np.int8)
@@ -199,10 +272,11 @@ def trim_cut(slab: Slab, threshold: float) -> dict:
     )
     inv = np.empty(len(order), np.int64)
     inv[order] = np.arange(len(order))
-    slab.verts, slab.vdens, slab.faces = verts[order], dens[order], inv[faces]
+    slab.verts, slab.faces = verts[order], inv[faces]
+    slab.vdens = None if carried is None else carried[order]
     slab.seam = {"left": int((sd == -1).sum()), "right": int((sd == 1).sum())}
     area = Connectivity(slab.faces, len(slab.verts), slab.verts).face_areas
-    slab.trim.update(side=side, area=area)
+    slab.trim.update(side=side, area=area, held=None if held is None else held[order])
     msg["area"] = float(area.sum())
     msg["kept_area"] = float(area[side].sum())
     msg.update(_part(slab, ~side, area))
@@ -229,10 +303,15 @@ def _part(slab: Slab, part: np.ndarray, area: np.ndarray) -> dict:
     )
     slab.trim["part"], slab.trim["labels"] = idx, lab
     n = int(lab.max()) + 1 if len(lab) else 0
-    return {
+    msg = {
         "areas": np.bincount(lab, weights=area[idx], minlength=n),
         "links": _links(slab, faces, lab),
     }
+    held = slab.trim.get("held")
+    if held is not None:
+        # a piece some sample lies nearest to (--trim auto keeps such islands)
+        msg["held"] = np.bincount(lab, weights=held[faces].any(axis=1), minlength=n) > 0
+    return msg
 
 
 @timed

@@ -59,17 +59,52 @@ def _join(parts: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def trim_across(
     runner, trim: float, pm: list[dict], seam_keep: list[dict | None]
 ) -> tuple[list[dict | None], int, float]:
-    """The trim over the slabs.
+    """The trim over the slabs at ``trim`` times the samples' median density.
 
     :func:`.trim.trim_by_density`'s steps, its islands and holes joined across seams; returns the
     seam vertices kept, the trimmed faces and the fraction of the area removed.
     """
-    from recon_cli.stages.poisson.trim import ISLAND_AREA_RATIO
-
     med = S.exact_median(runner, "density", M.density_values, [m["hist"] for m in pm], "trim")
     if med is None:  # no sample to measure: nothing is below the threshold
         return seam_keep, 0, 0.0
-    threshold = trim * float(med)
+    return _cut_across(
+        runner,
+        trim * float(med),
+        seam_keep,
+        ParameterError(f"trim {trim:g} removes the whole surface: use a smaller value"),
+    )
+
+
+def trim_auto_across(
+    runner, seam_keep: list[dict | None]
+) -> tuple[list[dict | None], int, float, int]:
+    """``--trim auto`` over the slabs (:func:`.trim.trim_auto`'s steps).
+
+    The samples' spacing capped at the global median's multiple, the vertices' support ratio, the
+    cut, the holes kept and the islands no sample lies nearest to dropped, joined across seams.
+    Returns :func:`trim_across`'s figures and the own samples whose spacing looked past the pad.
+    """
+    from recon_cli.errors import InputError
+    from recon_cli.stages.poisson.trim import SUPPORT_RATIO
+
+    sm = runner.run("trim", M.auto_spacing, lambda k: ())
+    inexact = sum(m["inexact"] for m in sm)
+    med = S.exact_median(runner, "spacing", M.density_values, [m["hist"] for m in sm], "trim")
+    runner.run("trim", M.auto_values, lambda k: (np.inf if med is None else float(med),))
+    err = InputError("trim auto removes the whole surface: no part lies near the samples")
+    return (*_cut_across(runner, -SUPPORT_RATIO, seam_keep, err), inexact)
+
+
+def _cut_across(
+    runner, threshold: float, seam_keep: list[dict | None], empty: Exception
+) -> tuple[list[dict | None], int, float]:
+    """Cut every slab's faces at ``threshold``, decide holes and islands on joined pieces.
+
+    Small low pieces are holes (kept), small kept ones islands (dropped unless a sample lies
+    nearest to them, when the slabs say so); ``empty`` is raised when nothing is left.
+    """
+    from recon_cli.stages.poisson.trim import ISLAND_AREA_RATIO
+
     cm = runner.run("trim", M.trim_cut, lambda k: (threshold,))
     faces_before = sum(m["faces"] for m in cm)
     n = len(cm)
@@ -83,9 +118,13 @@ def trim_across(
     small = areas < ISLAND_AREA_RATIO * kept_area
     flip = [np.flatnonzero(small[comp[off[k] : off[k + 1]]]) for k in range(n)]
     km = runner.run("trim", M.trim_keep, lambda k: (flip[k],))
-    # small kept pieces are islands in the closing sheet: dropped
+    # small kept pieces are islands in the closing sheet: dropped, unless they hold samples
     comp, off, areas = _join(km)
     small = areas < ISLAND_AREA_RATIO * kept_area
+    if "held" in km[0]:
+        held = np.zeros(len(areas), bool)
+        held[comp[np.concatenate([m["held"] for m in km])]] = True
+        small &= ~held
     drop = [np.flatnonzero(small[comp[off[k] : off[k + 1]]]) for k in range(n)]
     use = []
     for k, m in enumerate(km):
@@ -101,7 +140,7 @@ def trim_across(
     removed = sum(m["removed_area"] for m in dm)
     untouched = sum(m["untouched"] for m in dm)
     if sum(m["faces"] for m in dm) == 0:
-        raise ParameterError(f"trim {trim:g} removes the whole surface: use a smaller value")
+        raise empty
     return [None] * n, faces_before - untouched, removed / total if total > 0 else 0.0
 
 

@@ -32,6 +32,7 @@ sampling condition behind :func:`support_ratio`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -176,11 +177,7 @@ def trim_by_density(
 
     verts, faces, side, dens, edges = cut_by_density(v, f, d, threshold, high, nh)
     if carry is not None:
-        # the cut vertices' parameter along their edges, as cut_by_density places them
-        e0, e1 = edges[:, 0], edges[:, 1]
-        t = np.clip((threshold - d[e0]) / (d[e1] - d[e0]), tol.contour, 1.0 - tol.contour)
-        carry = np.asarray(carry, dtype=np.float64)
-        carry = np.concatenate([carry, carry[e0] + t * (carry[e1] - carry[e0])])
+        carry = carried_at_cut(carry, d, edges, threshold)
 
     # ---- islands: components of each side (faces joined across edges within the side)
     area = Connectivity(faces, len(verts), verts).face_areas
@@ -328,10 +325,56 @@ def support_ratio(
 
     samples = np.asarray(samples, dtype=np.float64)
     tree = cKDTree(samples)
-    k = min(k, len(samples) - 1)
-    dist, idx = tree.query(samples, k=k + 1, workers=-1)
+    spacing = local_spacing(tree, k)[0]
+    spacing = capped_spacing(spacing, float(np.median(spacing)))
+    return spacing_ratio(tree, spacing, verts), spacing
+
+
+def local_spacing(tree: Any, k: int = SUPPORT_K) -> tuple[np.ndarray, np.ndarray]:
+    """Each sample's robust local spacing (:func:`support_ratio`), before the cap.
+
+    Parameters
+    ----------
+    tree : scipy.spatial.cKDTree
+        Over the (s, 3) samples.
+    k : int
+        Neighbour rank defining the spacing.
+
+    Returns
+    -------
+    spacing : (s,) float
+        The median over the sample and its ``k`` nearest of their distance to their ``k``-th.
+    reach : (s,) float
+        How far from each sample that figure looked: its ``k``-th neighbour's distance plus the
+        largest of its neighbours' (samples within it decide the spacing).
+    """
+    k = min(k, tree.n - 1)
+    dist, idx = tree.query(tree.data, k=k + 1, workers=-1)
     rk = dist[:, k]
-    spacing = np.median(rk[idx], axis=1)
-    spacing = np.clip(spacing, np.finfo(float).tiny, SPACING_CAP * float(np.median(spacing)))
+    return np.median(rk[idx], axis=1), rk + rk[idx].max(axis=1)
+
+
+def capped_spacing(spacing: np.ndarray, median: float) -> np.ndarray:
+    """``spacing`` (s,) kept within ``[tiny, SPACING_CAP * median]`` (``median``: of all)."""
+    return np.clip(spacing, np.finfo(float).tiny, SPACING_CAP * median)
+
+
+def spacing_ratio(tree: Any, spacing: np.ndarray, verts: np.ndarray) -> np.ndarray:
+    """(n,) each vertex's distance to its nearest sample over that sample's ``spacing``."""
     d, j = tree.query(np.asarray(verts, dtype=np.float64), workers=-1)
-    return d / spacing[j], spacing
+    return d / spacing[j]
+
+
+def carried_at_cut(
+    carry: np.ndarray, density: np.ndarray, edges: np.ndarray, threshold: float
+) -> np.ndarray:
+    """``carry`` (n,) at the vertices :func:`cut_by_density` made, after the old ones.
+
+    ``edges`` (c, 2) are the cut vertices' edges: each takes ``carry`` where ``density`` (n,)
+    crosses ``threshold`` along its edge, as its position was placed.
+    """
+    e0, e1 = edges[:, 0], edges[:, 1]
+    d = density
+    t = np.clip((threshold - d[e0]) / (d[e1] - d[e0]), tol.contour, 1.0 - tol.contour)
+    carry = np.asarray(carry, dtype=np.float64)
+    return np.concatenate([carry, carry[e0] + t * (carry[e1] - carry[e0])])
