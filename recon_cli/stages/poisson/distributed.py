@@ -255,7 +255,16 @@ def frame_of(lo: np.ndarray, hi: np.ndarray, scale: float) -> tuple[np.ndarray, 
 
 
 def make_job(origin, size, perm, depth, p: dict) -> S.Job:
-    """The job every slab shares: the cube in the turned axes, the depths, the parameters."""
+    """The job every slab shares: the cube in the turned axes, the depths, the parameters.
+
+    With the free boundary the solve's cube is twice the points' one around it, one level deeper
+    (:func:`.steps.solve_cube`).
+    """
+    from recon_cli.stages.poisson.free import FREE_DOMAIN
+
+    domain = None
+    if p["boundary"] == "free":
+        origin, size, depth, domain = origin - 0.5 * size, 2.0 * size, depth + 1, FREE_DOMAIN
     sd = p.get("seam_depth", S.PARTITION_DEPTH)
     dc = coarse_depth_for(depth, sd)
     o = np.asarray(origin, dtype=np.float64)[list(perm)]
@@ -275,6 +284,7 @@ def make_job(origin, size, perm, depth, p: dict) -> S.Job:
         weight_mean=p.get("weight_mean"),
         seam_depth=sd,
         trim_auto=p["trim"] == "auto",
+        domain=domain,
     )
 
 
@@ -445,9 +455,10 @@ def _report(job, loaded, solved: _Solved, surface: dict, parts, trimmed, timings
     """The run's report (keys as the single process's, plus ``distributed``)."""
     astats = [m.pop("attribute_stats", None) for m in parts]
     specks, islands, folds = surface["dropped"]
+    free = int(job.domain is not None)  # the free boundary's solve is one level deeper
     return {
-        "depth": job.depth,
-        "tree_depth": solved.tree_depth,
+        "depth": job.depth - free,
+        "tree_depth": solved.tree_depth - free,
         "iso_value": solved.iso,
         "solver_iterations": int(solved.iterations),
         "residual": float(solved.residual),
@@ -656,8 +667,8 @@ def distributed_poisson(
     job = make_job(origin, size, perm, depth, params)
     pts = pts[:, list(perm)]
     nrm = nrm[:, list(perm)]
-    nsub = 1 << min(S.SUB_DEPTH, depth)
-    sub = sub_slab((pts[:, 0] - job.origin[0]) / size, nsub)
+    nsub = 1 << min(S.SUB_DEPTH, job.depth)
+    sub = sub_slab((pts[:, 0] - job.origin[0]) / job.size, nsub)
     sub_counts = np.bincount(sub, minlength=nsub)
     plan = plan_slabs(job, sub_counts, partitions, seams)
     slabs = [S.slab_of(job, k, partitions, *plan[k]) for k in range(partitions)]
@@ -775,7 +786,6 @@ def check_slab_options(
     if degree != 2:
         raise ParameterError(f"{where} uses degree 2: leave out --degree 1")
     for name, used in (
-        ("--boundary free", boundary == "free"),
         ("--envelope", envelope not in (None, "")),
         ("--grid", grid not in (None, "")),
     ):

@@ -188,7 +188,7 @@ def reconstruct_files(
         raise InputError("all points coincide: there is no surface to reconstruct")
     origin, size, perm = D.frame_of(lo, hi, scale)
     job = D.make_job(origin, size, perm, depth, params)
-    nsub = 1 << min(S.SUB_DEPTH, depth)
+    nsub = 1 << min(S.SUB_DEPTH, job.depth)
     carry = bool(names) or color_type is not None
     weights = D.job_weights(True, point_weight > 0, trim != 0, carry, output is not None)
     runner = None

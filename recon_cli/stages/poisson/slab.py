@@ -102,6 +102,9 @@ class Job:
     weight_mean: float | None = None
     seam_depth: int = PARTITION_DEPTH  # the level whose planes the seams lie on
     trim_auto: bool = False  # --trim auto (trim is then 0)
+    # --boundary free: the reconstruction cube's bounds (unit cube, every axis) inside the solve's
+    # cube, twice as large and one level deeper (:mod:`.free`); the mesh is clipped to it
+    domain: tuple[float, float] | None = None
 
 
 def seam_depth(partitions: int) -> int:

@@ -613,6 +613,24 @@ def _own_leaves_of(levels: list, a: int, b: int) -> list[np.ndarray]:
     return out
 
 
+def _clip_to_domain(
+    lat: np.ndarray, faces: np.ndarray, domain: tuple[float, float], res: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The faces inside the free boundary's cube and their vertices (:func:`.free.clip_to_cube`).
+
+    ``lat`` (v, 3) the vertices in finest cells of the solve's cube (``res`` a side). A face lies
+    in one leaf, whose lattice the domain's faces follow: its centroid says on which side. A seam
+    vertex is used on both sides of its seam or on neither (the cells around its edge are
+    inside on both sides or on neither): the two slabs keep the same seam vertices.
+    """
+    from recon_cli.stages.poisson.free import clip_to_cube
+
+    if not len(faces):
+        return lat, faces
+    lo, hi = domain[0] * res, domain[1] * res
+    return clip_to_cube(lat, faces, np.full(3, lo), hi - lo)
+
+
 @timed
 def extract(slab: Slab, iso: float, at_leaves: bool) -> dict:
     """The slab's part of the surface, over the leaves it owns.
@@ -637,6 +655,8 @@ def extract(slab: Slab, iso: float, at_leaves: bool) -> dict:
         del levels, gvals
     else:
         lat, faces = _finest(slab, levels, gvals, iso, a, b)
+    if job.domain is not None:
+        lat, faces = _clip_to_domain(lat, faces, job.domain, R)
     release_free_heap()
     origin = np.asarray(job.origin)
     verts = lat * np.repeat(job.size / R, 3) + origin
