@@ -357,6 +357,27 @@ def _open_along_the_domain(mesh, report) -> None:
 
 
 @pytest.mark.parametrize("parts", [1, 2, 4])
+def test_grid_as_single(parts):
+    """``--grid`` in slabs: the one-process grid (same lattice, values within 0.02 finest cell),
+    whose zero level is the slabs' own mesh; on a cloud whose longest axis is not x (the
+    slabs' axes are turned and the grid turned back)."""
+    from recon_cli.mesh.distance import closest_points
+    from recon_cli.stages.mcubes import marching_cubes
+
+    pts, nrm = shape_cloud("torus", 30_000, np.random.default_rng(4), offset=1e5)
+    pts, nrm = pts[:, [2, 0, 1]], nrm[:, [2, 0, 1]]
+    ref = screened_poisson(pts, nrm, depth=7, with_grid=True).grid
+    res = distributed_poisson(pts, nrm, depth=7, partitions=parts, with_grid=True)
+    g = res.grid
+    assert g.sdf.shape == ref.sdf.shape and res.report["grid_shape"] == list(g.sdf.shape)
+    assert g.voxel_size == ref.voxel_size and np.allclose(g.origin, ref.origin, rtol=1e-15)
+    assert np.abs(g.sdf - ref.sdf).max() < 0.02 * g.voxel_size
+    v, f, _ = marching_cubes(g.sdf, 0.0, spacing=g.voxel_size, origin=g.origin)
+    d = closest_points(res.mesh.vertices, res.mesh.faces, v)[0] / g.voxel_size
+    assert d.mean() < 0.05 and d.max() < 0.5, (d.mean(), d.max())
+
+
+@pytest.mark.parametrize("parts", [1, 2, 4])
 def test_free_boundary_terrain_as_single(parts):
     """A tilted plane over the whole footprint at UTM-like offsets, ``boundary="free"`` in 1, 2
     and 4 slabs: the single process's surface (flat to the domain's faces, open only there),
@@ -863,13 +884,14 @@ def test_command_reports_the_slab_count_and_why(tmp_path, monkeypatch, capsys):
 @pytest.mark.parametrize(
     "args, msg",
     [
-        (["--partitions", "2", "--grid", "g.npz"], "--grid is not available in slabs"),
+        (["--partitions", "2", "--envelope", "e.ply"], "--envelope is not available in slabs"),
+        (["--partitions", "2", "--grid", "-"], "--grid needs a file name"),
         (["--memory", "10MB"], "--memory must be a size of at least 256 MiB"),
         (["--temp-dir", "/nonexistent/x"], "--temp-dir /nonexistent/x: no such folder"),
         (["--workers", "2", "--degree", "1"], "uses degree 2"),
         (["--workers", "2", "--scheduler", "tcp://x:1"], "give one of them"),
         (["--workers", "2", "--backend", "open3d"], "native solver"),
-        (["--workers", "2", "--grid", "g.npz"], "--grid is not available with --workers"),
+        (["--workers", "2", "--envelope", "e.ply"], "--envelope is not available with --workers"),
     ],
 )
 def test_command_refuses(tmp_path, capsys, args, msg):
@@ -980,6 +1002,30 @@ def test_command_trims_auto_in_slabs_from_the_file(tmp_path, monkeypatch, capsys
     assert len(ref.mesh.faces) == len(mesh.faces) > 0
     assert np.allclose(np.sort(ref.mesh.vertices, axis=0), np.sort(mesh.vertices, axis=0))
     assert topology_report(mesh)["boundary_loops"] > 0
+
+
+def test_command_writes_the_grid_in_slabs_from_the_file(tmp_path, monkeypatch, capsys):
+    """``recon poisson IN OUT --partitions 2 --grid G``: the slabs read IN by chunks and G is
+    the in-memory slabs' grid, its history ending with how it was made."""
+    from recon_cli.io.npz import read_grid
+
+    pts, nrm = shape_cloud("torus", 20_000, np.random.default_rng(5), offset=1e6)
+    src = tmp_path / "torus.ply"
+    save(PointCloud(points=pts, normals=nrm), str(src))
+    _refuse_loading(monkeypatch)
+    out, grid = tmp_path / "mesh.ply", tmp_path / "field.npz"
+    args = ["poisson", str(src), str(out), "--depth", "6", "--partitions", "2"]
+    code = _recon([*args, "--grid", str(grid), "--json"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    monkeypatch.undo()
+    rep = json.loads(captured.out)
+    g = read_grid(str(grid))
+    assert rep["grid"] == str(grid) and rep["grid_shape"] == list(g.sdf.shape)
+    assert g.point_dtype == np.float64 and g.history[-1].startswith("poisson: (iso - chi)")
+    ref = distributed_poisson(pts, nrm, depth=6, partitions=2, with_grid=True).grid
+    assert g.sdf.shape == ref.sdf.shape and np.allclose(g.origin, ref.origin, rtol=1e-15)
+    assert np.abs(g.sdf - ref.sdf).max() < 1e-3 * g.voxel_size
 
 
 def test_spilled_states_give_the_same_mesh(tmp_path, monkeypatch):

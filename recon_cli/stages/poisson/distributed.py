@@ -149,12 +149,15 @@ PHASE_WEIGHTS = {
     "attributes": 8.0,
     "export": 2.0,
     "write": 4.0,
+    "grid": 4.0,
 }
 
 
-def job_weights(from_files: bool, noise: bool, trim: bool, carry: bool, write: bool) -> dict:
+def job_weights(
+    from_files: bool, noise: bool, trim: bool, carry: bool, write: bool, grid: bool = False
+) -> dict:
     """The phases a run goes through and their weights (:data:`PHASE_WEIGHTS`)."""
-    skip = set()
+    skip = set() if grid else {"grid"}
     if not from_files:
         skip.add("sort")
     if not noise:
@@ -285,6 +288,7 @@ def make_job(origin, size, perm, depth, p: dict) -> S.Job:
         seam_depth=sd,
         trim_auto=p["trim"] == "auto",
         domain=domain,
+        grid=bool(p.get("grid")),
     )
 
 
@@ -309,7 +313,59 @@ def reconstruct(
     parts, trimmed = _output(runner, job, loaded, tables, solved, surface, out_dir, carry, timings)
     timings["finish"] = time.perf_counter() - t - timings.get("trim", 0.0)  # trim apart
     report = _report(job, loaded, solved, surface, parts, trimmed, timings)
-    return {"parts": parts, "report": report, "phases": getattr(runner, "phases", {})}
+    out = {"parts": parts, "report": report, "phases": getattr(runner, "phases", {})}
+    if surface.get("grid") is not None:
+        out["grid"] = surface["grid"]
+    return out
+
+
+def _field_grid(runner, job: S.Job, solved: _Solved, extracted: list[dict]) -> tuple | None:
+    """The solved field around the surface (``--grid``, :mod:`.field`), in the job's frame.
+
+    Its box from the slabs' kept vertices, its scale from about :data:`.field.GRADIENT_VERTICES`
+    of them (each slab its share), its planes from the slabs that own them. Returns (the grid,
+    its first lattice point (3,), the lattice's cells a side), or None when the surface is empty.
+    """
+    # by its full name: the package's ``field`` is dataclasses' (PoissonResult's)
+    import recon_cli.stages.poisson.field as F
+
+    nv = [m["vertices"] for m in extracted]
+    takes = [math.ceil(F.GRADIENT_VERTICES * n / max(sum(nv), 1)) for n in nv]
+    sm = runner.run("grid", M.grid_scale, lambda k: (takes[k],))
+    boxes = [m["box"] for m in sm if m["box"] is not None]
+    if not boxes:
+        return None
+    corners = np.array(
+        [np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)]
+    )
+    res = 1 << solved.tree_depth
+    origin = np.asarray(job.origin)
+    i0, shape = F.grid_shape(corners, origin, job.size, res, job.domain or (0.0, 1.0))
+    F.check_allocation(shape)
+    g = F.scale_of(np.concatenate([m["norms"] for m in sm]))
+    del sm
+    sdf = np.empty(shape, np.float32)
+    for m in runner.run("grid", M.grid_block, lambda k: (i0, shape, g, solved.iso)):
+        sdf[m["x0"] : m["x0"] + len(m["block"])] = m["block"]
+    if job.domain is None:
+        F.close_cube_faces(sdf, i0, res, g)
+    return sdf, i0, res
+
+
+def grid_in_input_axes(out: dict, job: S.Job, perm) -> Any:
+    """The :class:`~recon_cli.grid.Grid` of :func:`reconstruct`'s ``out``, axes turned back.
+
+    None without one; else its shape goes in the report (``grid_shape``).
+    """
+    from recon_cli.stages.poisson.field import grid_of
+
+    if out.get("grid") is None:
+        return None
+    sdf, i0, res = out["grid"]
+    inv = np.argsort(perm)
+    sdf = np.ascontiguousarray(sdf.transpose(inv))
+    out["report"]["grid_shape"] = list(sdf.shape)
+    return grid_of(sdf, np.asarray(i0)[inv], np.asarray(job.origin)[inv], job.size, res)
 
 
 @dataclass
@@ -422,6 +478,8 @@ def _output(
 
     drop = surface["drop"]
     pm = runner.run("prepare", M.prepare, lambda k: (drop[k], dens_part(k), job.trim > 0))
+    if job.grid:
+        surface["grid"] = _field_grid(runner, job, solved, surface["extracted"])
     seam_keep: list[dict | None] = list(seams_used([m["seam_use"] for m in pm]))
     trimmed, trimmed_area, inexact = 0, 0.0, 0
     t = time.perf_counter()
@@ -610,6 +668,7 @@ def distributed_poisson(
     confidence: bool = False,
     colors: np.ndarray | None = None,
     properties: dict[str, np.ndarray] | None = None,
+    with_grid: bool = False,
     full_depth: int = 5,
     cg_tolerance: float = 1e-3,
     client: Any = None,
@@ -626,8 +685,8 @@ def distributed_poisson(
     With more slabs than workers (than one, in this process), the slabs' states wait in a
     temporary folder in ``temp_dir`` (default: the system's; the workers must share it) between
     their steps. Returns a :class:`.PoissonResult` like :func:`.screened_poisson`'s
-    (``confidence``, ``colors``, ``properties`` as there), whose report has a ``distributed``
-    part (``partitions``: how many slabs and why).
+    (``confidence``, ``colors``, ``properties``, ``with_grid`` as there), whose report has a
+    ``distributed`` part (``partitions``: how many slabs and why).
     """
     from recon_cli.stages.poisson import (
         SPEC,
@@ -648,6 +707,7 @@ def distributed_poisson(
         cg_tolerance=float(cg_tolerance),
         density=density,
         trim=trim,
+        grid=with_grid,
     )
     check_distributed(depth, params["full_depth"], 1 if partitions is None else partitions)
     t0 = time.perf_counter()
@@ -673,7 +733,7 @@ def distributed_poisson(
     plan = plan_slabs(job, sub_counts, partitions, seams)
     slabs = [S.slab_of(job, k, partitions, *plan[k]) for k in range(partitions)]
     carry = bool(props) or colors is not None
-    weights = job_weights(False, point_weight > 0, trim != 0, carry, False)
+    weights = job_weights(False, point_weight > 0, trim != 0, carry, False, with_grid)
 
     def load_args(k):
         pa, pb = (int(round(v * nsub)) for v in plan[k][1])
@@ -708,7 +768,7 @@ def distributed_poisson(
     rep["ignored_points"] = int((~keep).sum())
     rep["attributes"] = sorted(props) + (["colors"] if colors is not None else [])
     rep["timings"]["total"] = time.perf_counter() - t0
-    return PoissonResult(mesh, rep)
+    return PoissonResult(mesh, rep, grid_in_input_axes(out, job, perm))
 
 
 def make_runner(
@@ -771,26 +831,15 @@ def job_task(progress: Any, name: str, total: float) -> Any:
 
 
 def check_slab_options(
-    backend: str,
-    degree: int,
-    estimate_normals: bool,
-    boundary: str,
-    envelope: Any,
-    grid: Any,
-    trim: Any,
-    where: str,
+    backend: str, degree: int, estimate_normals: bool, envelope: Any, where: str
 ) -> None:
     """What a run in slabs does not take (one line each); ``where`` says why it is in slabs."""
     if backend != "native":
         raise ParameterError(f"{where} runs the native solver: leave out --backend")
     if degree != 2:
         raise ParameterError(f"{where} uses degree 2: leave out --degree 1")
-    for name, used in (
-        ("--envelope", envelope not in (None, "")),
-        ("--grid", grid not in (None, "")),
-    ):
-        if used:
-            raise ParameterError(f"{name} is not available {where}")
+    if envelope not in (None, ""):
+        raise ParameterError(f"--envelope is not available {where}")
     if estimate_normals:
         raise ParameterError(f"--estimate-normals {where}: run 'recon normals' first")
 

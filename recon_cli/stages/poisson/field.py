@@ -28,7 +28,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from recon_cli.errors import ParameterError
+from recon_cli.errors import ParameterError, StageFailed
 from recon_cli.grid import Grid, allocation_problem
 
 # lattice points of margin around the surface's bounding box
@@ -59,21 +59,17 @@ def grid_shape(
     return i0, (nx, ny, nz)
 
 
-def gradient_scale(
+def gradient_norms(
     chi_at: Callable[[np.ndarray], np.ndarray],
     verts: np.ndarray,
     origin: np.ndarray,
     size: float,
     res: int,
-) -> float:
-    """Median norm of chi's gradient (per world unit) at the vertices, by central differences.
+) -> np.ndarray:
+    """Norms (v,) of chi's gradient (per world unit) at ``verts`` (v, 3), by central differences.
 
-    At up to :data:`GRADIENT_VERTICES` vertices; the differences are a quarter of a finest cell
-    wide.
+    The differences are a quarter of a finest cell wide.
     """
-    if len(verts) > GRADIENT_VERTICES:
-        pick = np.random.default_rng(0).choice(len(verts), GRADIENT_VERTICES, replace=False)
-        verts = verts[np.sort(pick)]
     u = (verts - origin) / size
     step = 0.25 / res
     g = np.empty((len(u), 3))
@@ -81,10 +77,78 @@ def gradient_scale(
         e = np.zeros(3)
         e[a] = step
         g[:, a] = (chi_at(u + e) - chi_at(u - e)) / (2.0 * step)
-    scale = float(np.median(np.linalg.norm(g, axis=1))) / size
+    return np.linalg.norm(g, axis=1) / size
+
+
+def scale_of(norms: np.ndarray) -> float:
+    """The grid's scale ``g``: the median of the gradient's norms at the surface."""
+    scale = float(np.median(norms)) if len(norms) else float("nan")
     if not (np.isfinite(scale) and scale > 0):
         raise ParameterError("--grid: chi is flat at the surface; no field to write")
     return scale
+
+
+def gradient_scale(
+    chi_at: Callable[[np.ndarray], np.ndarray],
+    verts: np.ndarray,
+    origin: np.ndarray,
+    size: float,
+    res: int,
+) -> float:
+    """Median norm of chi's gradient (per world unit) at up to :data:`GRADIENT_VERTICES` vertices.
+
+    A random subset of that many when there are more.
+    """
+    if len(verts) > GRADIENT_VERTICES:
+        pick = np.random.default_rng(0).choice(len(verts), GRADIENT_VERTICES, replace=False)
+        verts = verts[np.sort(pick)]
+    return scale_of(gradient_norms(chi_at, verts, origin, size, res))
+
+
+def field_block(
+    chi_at: Callable[[np.ndarray], np.ndarray],
+    iso: float,
+    g: float,
+    i0: np.ndarray,
+    shape: tuple[int, int, int],
+    res: int,
+    xs: range,
+) -> np.ndarray:
+    """The grid's planes ``xs`` (indices into its first axis): ``(iso - chi) / g``, float32.
+
+    Returns (len(xs), ny, nz); ``i0`` and ``shape`` as :func:`grid_shape` gives them.
+    """
+    ny, nz = shape[1], shape[2]
+    out = np.empty((len(xs), ny, nz), np.float32)
+    jy, jz = np.meshgrid(np.arange(ny), np.arange(nz), indexing="ij")
+    plane = np.stack([jy.reshape(-1), jz.reshape(-1)], axis=1).astype(np.float64)
+    step = max(1, CHUNK // max(ny * nz, 1))
+    for x0 in range(0, len(xs), step):
+        cols = np.arange(xs.start + x0, min(xs.stop, xs.start + x0 + step))
+        pos = np.empty((len(cols), ny * nz, 3))
+        pos[:, :, 0] = (cols + i0[0])[:, None]
+        pos[:, :, 1] = plane[None, :, 0] + i0[1]
+        pos[:, :, 2] = plane[None, :, 1] + i0[2]
+        vals = chi_at(pos.reshape(-1, 3) / res)
+        out[x0 : x0 + len(cols)] = ((iso - vals) / g).reshape(len(cols), ny, nz)
+    return out
+
+
+def close_cube_faces(sdf: np.ndarray, i0: np.ndarray, res: int, g: float) -> None:
+    """Lift the grid's planes on the cube's faces to outside, as the extraction clamps them.
+
+    A surface running into the cube's faces then closes there. ``sdf`` is changed in place.
+    """
+    from recon_cli.stages.poisson.extract import FACE_MARGIN
+
+    floor = np.float32(FACE_MARGIN / g)
+    shape = sdf.shape
+    for a in range(3):
+        for idx, on in ((0, i0[a] == 0), (shape[a] - 1, i0[a] + shape[a] - 1 == res)):
+            if on:
+                sl: list[slice | int] = [slice(None)] * 3
+                sl[a] = idx
+                np.maximum(sdf[tuple(sl)], floor, out=sdf[tuple(sl)])
 
 
 def indicator_grid(
@@ -122,34 +186,31 @@ def indicator_grid(
         chi is flat at the surface.
     """
     i0, shape = grid_shape(verts, origin, size, res, domain)
+    check_allocation(shape)
+    g = gradient_scale(chi_at, verts, origin, size, res)
+    sdf = field_block(chi_at, iso, g, i0, shape, res, range(shape[0]))
+    if domain == (0.0, 1.0):
+        close_cube_faces(sdf, i0, res, g)
+    return grid_of(sdf, i0, origin, size, res, history, point_dtype)
+
+
+def check_allocation(shape: tuple[int, int, int]) -> None:
+    """Refuse a grid that would not fit in memory (with the evaluation's temporaries)."""
     why = allocation_problem(shape, 4 + 8)
     if why:
         raise ParameterError(f"--grid: {why}; use a smaller --depth")
-    g = gradient_scale(chi_at, verts, origin, size, res)
-    sdf = np.empty(shape, np.float32)
-    ny, nz = shape[1], shape[2]
-    jy, jz = np.meshgrid(np.arange(ny), np.arange(nz), indexing="ij")
-    plane = np.stack([jy.reshape(-1), jz.reshape(-1)], axis=1).astype(np.float64)
-    step = max(1, CHUNK // (ny * nz))
-    for x0 in range(0, shape[0], step):
-        xs = np.arange(x0, min(shape[0], x0 + step))
-        pos = np.empty((len(xs), ny * nz, 3))
-        pos[:, :, 0] = (xs + i0[0])[:, None]
-        pos[:, :, 1] = plane[None, :, 0] + i0[1]
-        pos[:, :, 2] = plane[None, :, 1] + i0[2]
-        vals = chi_at(pos.reshape(-1, 3) / res)
-        sdf[x0 : x0 + len(xs)] = ((iso - vals) / g).reshape(len(xs), ny, nz)
-    if domain == (0.0, 1.0):
-        # the cube's faces are outside, as in the extraction: a surface running into them closes
-        from recon_cli.stages.poisson.extract import FACE_MARGIN
 
-        floor = np.float32(FACE_MARGIN / g)
-        for a in range(3):
-            for idx, on in ((0, i0[a] == 0), (shape[a] - 1, i0[a] + shape[a] - 1 == res)):
-                if on:
-                    sl: list[slice | int] = [slice(None)] * 3
-                    sl[a] = idx
-                    np.maximum(sdf[tuple(sl)], floor, out=sdf[tuple(sl)])
+
+def grid_of(
+    sdf: np.ndarray,
+    i0: np.ndarray,
+    origin: np.ndarray,
+    size: float,
+    res: int,
+    history: list[str] | None = None,
+    point_dtype=np.float64,
+) -> Grid:
+    """The :class:`~recon_cli.grid.Grid` of ``sdf`` whose first point is lattice point ``i0``."""
     h = size / res
     return Grid(
         sdf=sdf,
@@ -158,3 +219,24 @@ def indicator_grid(
         history=list(history or []),
         point_dtype=point_dtype,
     )
+
+
+def write_solved_grid(grid: Grid | None, path: str, depth: int, boundary: str, iso: float) -> dict:
+    """Write ``grid`` to ``path``, its history ending with how it was made; the report's entries.
+
+    Raises
+    ------
+    StageFailed
+        No grid: the surface is empty.
+    """
+    from recon_cli.io.npz import write_grid
+
+    if grid is None:
+        raise StageFailed("--grid: the surface is empty; no field to write")
+    line = (
+        f"poisson: (iso - chi) / |grad chi| on the finest lattice, depth {depth}, "
+        f"boundary {boundary}, iso {iso:.9g}"
+    )
+    grid.history = [*grid.history, line]
+    write_grid(grid, path)
+    return {"grid": path, "grid_shape": list(grid.sdf.shape)}

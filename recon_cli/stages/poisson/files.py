@@ -126,6 +126,7 @@ class Streamed:
 
     report: dict
     mesh: None = None
+    grid: Any = None
 
 
 def reconstruct_files(
@@ -142,6 +143,7 @@ def reconstruct_files(
     trim: float = 0.0,
     confidence: bool = False,
     attributes: Any = "all",
+    with_grid: bool = False,
     full_depth: int = 5,
     cg_tolerance: float = 1e-3,
     temp_dir: str | None = None,
@@ -158,7 +160,8 @@ def reconstruct_files(
     :class:`.PoissonResult`; with ``output`` (a binary PLY path) the mesh is streamed there from the
     slabs' files instead (``history`` its comments, after the input's) and the result's mesh is
     None. ``attributes``: the input's properties carried onto the vertices
-    (:func:`.attributes.select`). ``partitions`` None: as many slabs as the workers' memory
+    (:func:`.attributes.select`). ``with_grid``: the result's grid as
+    :func:`.screened_poisson`'s. ``partitions`` None: as many slabs as the workers' memory
     needs, or without a ``client`` this process's ``budget`` of bytes (:func:`slab_count`, once
     the chunks' points are counted).
     """
@@ -171,6 +174,7 @@ def reconstruct_files(
         cg_tolerance, partitions,
     )  # fmt: skip
     point_weight, trim = params["point_weight"], params["trim"]
+    params["grid"] = with_grid
     t0 = time.perf_counter()
     chunks = plan_chunks(inputs)
     scans = _scan_chunks(client, chunks, progress)
@@ -190,7 +194,7 @@ def reconstruct_files(
     job = D.make_job(origin, size, perm, depth, params)
     nsub = 1 << min(S.SUB_DEPTH, job.depth)
     carry = bool(names) or color_type is not None
-    weights = D.job_weights(True, point_weight > 0, trim != 0, carry, output is not None)
+    weights = D.job_weights(True, point_weight > 0, trim != 0, carry, output is not None, with_grid)
     runner = None
     with spill_folder(temp_dir, "poisson") as tmp:
         with D.job_task(progress, "poisson: the whole job", sum(weights.values())) as job_bar:
@@ -243,9 +247,12 @@ def reconstruct_files(
     rep["attributes"] = sorted(names) + (["colors"] if color_type is not None else [])
     rep["timings"].update(read=read_s, total=time.perf_counter() - t0)
     rep["distributed"].update(chunks=len(chunks), partitions=slab_choice)
+    grid = D.grid_in_input_axes(out, job, perm)
+    if grid is not None:
+        grid.point_dtype, grid.history = point_dtype, list(hist)
     if mesh is None:
-        return Streamed(rep)
-    return PoissonResult(mesh, rep)
+        return Streamed(rep, grid=grid)
+    return PoissonResult(mesh, rep, grid)
 
 
 def _job_params(
@@ -384,16 +391,14 @@ def run_from_files(
     ex = current()
     v = SPEC.check(params, complete=True)
     where = D.slab_reason(ex)
-    D.check_slab_options(
-        v["backend"],
-        v["degree"],
-        v["estimate_normals"],
-        v["boundary"],
-        v["envelope"],
-        v["grid"],
-        v["trim"],
-        where,
-    )
+    D.check_slab_options(v["backend"], v["degree"], v["estimate_normals"], v["envelope"], where)
+    grid_path = None if v["grid"] in (None, "") else os.fspath(v["grid"])
+    if grid_path is not None:
+        from recon_cli.io.atomic import check_output
+
+        if grid_path == "-":
+            raise ParameterError("--grid needs a file name ('-' is the mesh's standard output)")
+        check_output(grid_path)
     if input == "-":
         raise ParameterError(f"a run {where} reads IN by chunks: give a file, not '-'")
     if load_kw.get("format"):
@@ -429,6 +434,7 @@ def run_from_files(
             trim=v["trim"],
             confidence=v["confidence"],
             attributes=v["attributes"],
+            with_grid=grid_path is not None,
             temp_dir=ex.spill_parent(output),
             output=output if stream else None,
             history=[prov],
@@ -441,6 +447,12 @@ def run_from_files(
     t2 = time.perf_counter()
     rep = res.report
     report = {k: rep[k] for k in REPORT_KEYS}
+    if grid_path is not None:
+        from recon_cli.stages.poisson.field import write_solved_grid
+
+        report.update(
+            write_solved_grid(res.grid, grid_path, v["depth"], v["boundary"], rep["iso_value"])
+        )
     if rep.get("invalid_dropped"):  # as the command's report of a reader's drops
         report["read"] = {
             "kept": rep["points_read"],

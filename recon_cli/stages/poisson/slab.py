@@ -102,6 +102,7 @@ class Job:
     weight_mean: float | None = None
     seam_depth: int = PARTITION_DEPTH  # the level whose planes the seams lie on
     trim_auto: bool = False  # --trim auto (trim is then 0)
+    grid: bool = False  # --grid: the field on the finest lattice around the surface
     # --boundary free: the reconstruction cube's bounds (unit cube, every axis) inside the solve's
     # cube, twice as large and one level deeper (:mod:`.free`); the mesh is clipped to it
     domain: tuple[float, float] | None = None
@@ -169,6 +170,8 @@ class Slab:
     spacing: Any = None
     support: np.ndarray | None = None
     mass: np.ndarray | None = None
+    # --grid: what chi_at reads (:func:`.system.chi_levels`), kept from the extraction
+    grid_levels: Any = None
 
     def __getstate__(self) -> dict:
         # a pickled view is a copy: the levels' fields (views of ``arrays``, shared with the

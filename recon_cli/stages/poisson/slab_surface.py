@@ -647,6 +647,10 @@ def extract(slab: Slab, iso: float, at_leaves: bool) -> dict:
     job = slab.job
     levels, gvals, chi = slab.levels, slab.gvals, slab.chi
     slab.levels = slab.gvals = None
+    if job.grid:  # the grid reads chi as the extraction does: trilinear in each leaf
+        from recon_cli.stages.poisson.system import chi_levels
+
+        slab.grid_levels = chi_levels(levels, gvals)
     top = len(levels) - 1
     R = 1 << top
     a, b = slab.x_range(slab.own, R)
@@ -690,3 +694,53 @@ def extract(slab: Slab, iso: float, at_leaves: bool) -> dict:
     msg["seam_left"] = (lat[:nl, 1:], slab.verts[:nl], vlab[:nl])
     msg["seam_right"] = (lat[nv - nr :, 1:], slab.verts[nv - nr :], vlab[nv - nr :])
     return msg
+
+
+def _grid_chi(slab: Slab) -> tuple[Any, int]:
+    """Chi at unit-cube positions from the slab's kept levels, and the finest lattice's cells."""
+    import functools
+
+    from recon_cli.stages.poisson.system import chi_at
+
+    return functools.partial(chi_at, slab.grid_levels), 1 << (len(slab.grid_levels) - 1)
+
+
+@reads_only
+@timed
+def grid_scale(slab: Slab, take: int) -> dict:
+    """The slab's part of the grid's extent and scale (``--grid``, :mod:`.field`).
+
+    The box (job frame) of the vertices it keeps, and chi's gradient norms at ``take`` of its
+    own vertices (the right seam's are the next slab's) spread evenly along them.
+    """
+    from recon_cli.stages.poisson.field import gradient_norms
+
+    v = slab.verts
+    if not len(v):
+        return {"box": None, "norms": np.zeros(0)}
+    own = v[: len(v) - slab.seam["right"]]
+    if take < len(own):
+        own = own[np.unique(np.linspace(0, len(own) - 1, take).round().astype(np.int64))]
+    chi, res = _grid_chi(slab)
+    norms = gradient_norms(chi, own, np.asarray(slab.job.origin), slab.job.size, res)
+    return {"box": (v.min(axis=0), v.max(axis=0)), "norms": norms}
+
+
+@timed
+def grid_block(
+    slab: Slab, i0: np.ndarray, shape: tuple[int, int, int], g: float, iso: float
+) -> dict:
+    """The grid's planes in the slab's own x range (the last slab's takes the cube's far face).
+
+    Returns their first index along the grid's first axis and the planes
+    (:func:`.field.field_block`).
+    """
+    from recon_cli.stages.poisson.field import field_block
+
+    chi, res = _grid_chi(slab)
+    a, b = slab.x_range(slab.own, res)
+    b += int(slab.index == slab.count - 1)
+    lo, hi = max(a - int(i0[0]), 0), min(b - int(i0[0]), shape[0])
+    block = field_block(chi, iso, g, i0, shape, res, range(lo, max(lo, hi)))
+    slab.grid_levels = None
+    return {"x0": lo, "block": block}

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from recon_cli.errors import InputError, ParameterError, StageFailed
+from recon_cli.errors import InputError, ParameterError
 from recon_cli.execution import current
 from recon_cli.geometry import PointCloud, TriangleMesh, as_point_cloud, local_origin
 from recon_cli.stages.poisson import (
@@ -149,16 +149,11 @@ def run_stage(
 
         # the cloud is in memory: its normals were estimated above unless the run is on a cluster
         D.check_slab_options(
-            backend,
-            degree,
-            estimate_normals and ex.distributed,
-            boundary,
-            envelope,
-            grid,
-            trim,
-            D.slab_reason(ex),
+            backend, degree, estimate_normals and ex.distributed, envelope, D.slab_reason(ex)
         )
-        mesh, report = _run_distributed(cloud, colors, props, solve, ex, slabs, progress)
+        mesh, report = _run_distributed(
+            cloud, colors, props, solve, ex, slabs, grid_path, history, progress
+        )
     elif backend == "native":
         mesh, report = _run_native(
             cloud, colors, props, solve, degree, env, grid_path, history, progress
@@ -250,12 +245,14 @@ def _run_distributed(
     solve: dict[str, Any],
     ex: Any,
     slabs: int | None,
+    grid_path: str | None,
+    history: list[str],
     progress: Any,
 ) -> tuple[TriangleMesh, dict]:
     """The cloud in slabs (:mod:`.distributed`): on ``ex``'s Dask cluster, or in this process.
 
     ``slabs``: their number in this process (None on a cluster: its workers' memory decides,
-    or ``ex.partitions``). Returns the mesh and the report.
+    or ``ex.partitions``). Returns the mesh and the report; the grid written to ``grid_path``.
     """
     from recon_cli.stages.poisson.distributed import distributed_poisson
 
@@ -268,6 +265,7 @@ def _run_distributed(
             **solve,
             colors=colors,
             properties=props,
+            with_grid=grid_path is not None,
             client=client,
             temp_dir=ex.spill_parent(),
             progress=progress,
@@ -275,6 +273,8 @@ def _run_distributed(
     rep = res.report
     report = {k: rep[k] for k in REPORT_KEYS}
     report["distributed"] = {"cluster": info, **rep["distributed"]}
+    if grid_path is not None:
+        report.update(_write_grid(res, grid_path, solve, history, cloud.point_dtype))
     return res.mesh, report
 
 
@@ -308,20 +308,18 @@ def _run_native(
         report["envelope_outside_points"] = rep["envelope_outside_points"]
         report["envelope_pulled_vertices"] = rep["envelope_pulled_vertices"]
     if grid_path is not None:
-        if res.grid is None:
-            raise StageFailed("--grid: the surface is empty; no field to write")
-        from recon_cli.io.npz import write_grid
-
-        line = (
-            f"poisson: (iso - chi) / |grad chi| on the finest lattice, depth {solve['depth']}, "
-            f"boundary {solve['boundary']}, iso {rep['iso_value']:.9g}"
-        )
-        res.grid.history = [*history, line]
-        res.grid.point_dtype = cloud.point_dtype
-        write_grid(res.grid, grid_path)
-        report["grid"] = grid_path
-        report["grid_shape"] = rep["grid_shape"]
+        report.update(_write_grid(res, grid_path, solve, history, cloud.point_dtype))
     return res.mesh, report
+
+
+def _write_grid(res: Any, path: str, solve: dict, history: list[str], point_dtype) -> dict:
+    """Write the result's grid (:func:`.field.write_solved_grid`); the report's entries."""
+    from recon_cli.stages.poisson.field import write_solved_grid
+
+    if res.grid is not None:
+        res.grid.history, res.grid.point_dtype = list(history), point_dtype
+    iso = res.report["iso_value"]
+    return write_solved_grid(res.grid, path, solve["depth"], solve["boundary"], iso)
 
 
 def _run_reference(
