@@ -140,7 +140,7 @@ def reconstruct_files(
     samples_per_node: float = 1.5,
     boundary: str = "neumann",
     density: bool = False,
-    trim: float = 0.0,
+    trim: float | str = 0.0,
     confidence: bool = False,
     attributes: Any = "all",
     with_grid: bool = False,
