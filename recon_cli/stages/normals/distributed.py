@@ -54,6 +54,7 @@ from typing import Any
 import numpy as np
 
 from recon_cli.errors import InputError, ParameterError
+from recon_cli.execution import current
 from recon_cli.slabs.runners import map_tasks, register_dask_sizes
 from recon_cli.slabs.spill import spill_folder
 
@@ -573,52 +574,54 @@ def distributed_normals(
     camera=None,
     direction=None,
     curvature: bool = False,
-    partitions: int | None = 2,
     sensors: tuple | None = None,
-    client: Any = None,
-    budget: int | None = None,
-    temp_dir: str | None = None,
     progress: Any = None,
 ) -> tuple[np.ndarray, np.ndarray | None, dict]:
-    """Normals of a cloud given in memory, in ``partitions`` slabs (module docstring).
+    """Normals of a cloud given in memory, in slabs (module docstring).
 
-    On the Dask ``client``'s cluster, or else all in this process. ``partitions`` None: the
-    fewest slabs whose one slab fits a share of a worker's memory limit, or without a client of
-    this process's ``budget`` of bytes (:func:`slab_count`; one per worker without a limit).
-    The slabs' files go in a folder in ``temp_dir`` (None: the system's). ``sensors``: for ``orient=
-    "camera"`` without ``camera``, ``(positions, directions, is_direction, which)`` as
-    :func:`.sensor_views` gives them (about the origin: world coordinates). Returns the oriented
-    normals, the curvature (or None) and the report.
+    Where it runs is the :func:`recon_cli.execution.current` execution's (:func:`recon_cli.run_on`):
+    on its Dask cluster, or else all in this process; in its ``partitions`` slabs, or else the
+    fewest whose one slab fits a share of a worker's memory limit, or without a cluster of its
+    memory budget (:func:`slab_count`); the slabs' files in a folder in its temporary folder
+    (default: the system's). ``sensors``: for ``orient="camera"`` without ``camera``,
+    ``(positions, directions, is_direction, which)`` as :func:`.sensor_views` gives them (about
+    the origin: world coordinates). Returns the oriented normals, the curvature (or None) and
+    the report.
     """
     from recon_cli.geometry import PointCloud
     from recon_cli.stages.normals import SPEC, check_knn, check_orient, check_points
 
+    ex = current()
     knn, radius = check_knn(knn, radius)
     method, cam, dirn = check_orient(orient, camera, direction)
     SPEC.check({"curvature": curvature}, complete=False)
-    if partitions is not None and not 1 <= int(partitions) <= MAX_SLABS:
-        raise ParameterError(f"--partitions must be 1..{MAX_SLABS} for normals, got {partitions}")
+    if ex.partitions is not None and not 1 <= int(ex.partitions) <= MAX_SLABS:
+        raise ParameterError(
+            f"--partitions must be 1..{MAX_SLABS} for normals, got {ex.partitions}"
+        )
     pts = check_points(points)
     if method == "keep" and normals is None:
         raise ParameterError("--orient keep needs input normals")
     if len(pts) == 0:
         raise InputError("the input has no points")
-    parts, why = slab_count(partitions, len(pts), client, knn, budget)
-    p = dict(
-        knn=knn,
-        radius=radius,
-        orient=method,
-        camera=cam,
-        direction=dirn,
-        curvature=bool(curvature),
-        partitions=parts,
-        workers=why["workers"],
-        sensors=None if sensors is None else tuple(sensors[:3]),
-    )
     if method == "camera" and cam is None and sensors is None:
         raise ParameterError("--orient camera needs --camera X,Y,Z (or the data's sensors)")
     frame = _frame(pts.min(axis=0), pts.max(axis=0))
-    with spill_folder(temp_dir, "normals") as tmp:
+    with spill_folder(ex.spill_parent(), "normals") as tmp, ex.cluster() as (client, info):
+        parts, why = slab_count(
+            ex.partitions, len(pts), client, knn, ex.budget() if client is None else None
+        )
+        p = dict(
+            knn=knn,
+            radius=radius,
+            orient=method,
+            camera=cam,
+            direction=dirn,
+            curvature=bool(curvature),
+            partitions=parts,
+            workers=why["workers"],
+            sensors=None if sensors is None else tuple(sensors[:3]),
+        )
         cloud = PointCloud(
             points=pts, normals=None if normals is None else np.asarray(normals, float)
         )
@@ -637,6 +640,7 @@ def distributed_normals(
             progress,
         )
         report["distributed"]["partitions"] = why
+        report["distributed"]["cluster"] = info
         nrm, curv = _gather(prefixes, len(pts), p["curvature"], tmp)
         nrm_out = np.array(nrm)
         inv = np.argsort(frame[2])
@@ -682,7 +686,6 @@ def run_from_files(
     command loads IN). OUT is written a chunk of IN at a time (binary PLY; other formats
     assembled here); returns the report.
     """
-    from recon_cli.execution import current
     from recon_cli.io.chunks import plan_chunks
     from recon_cli.stages import provenance_line
     from recon_cli.stages.normals import SPEC
