@@ -636,30 +636,53 @@ def collapse(
     to remove and ``has_boundary`` is False (collapses remove 2). ``mark`` (n,) int64: the
     stamps of :func:`_edge_faces`.
     """
-    pos, Q = surf.pos, surf.Q
-    ea, eb, epen, hk, hpos = edges.ea, edges.eb, edges.epen, edges.hk, edges.hpos
+    pos, faces, falive, valive, Q, fn, boundary, locked, moved = surf
+    vstart, vcount, refs = fans
+    ea, eb, ealive, epen, estart, ecount, erefs, hk, hpos = edges
+    log_u, log_v, log_t = log
     out = np.empty(4)
     opp = np.empty(2, np.int64)
     shared = np.empty(2, np.int64)
     while meta[M_FACES] > stop_at:
-        edge = _pop_cheapest(surf, edges, meta, target, max_passes, has_boundary)
-        if edge < 0:
+        if meta[M_FACES] == target + 1 and not has_boundary:
+            # only a boundary edge's collapse removes a single face
+            meta[M_BUDGET] += 1
+            meta[M_STUCK] = 1
             return
+        if meta[M_HEAP] == 0 and not _new_pass(
+            pos, Q, locked, ea, eb, ealive, epen, hk, hpos, meta, max_passes
+        ):
+            meta[M_STUCK] = 1
+            return
+        # pop the cheapest edge
+        edge = hk[0] & LOW
+        _remove(hk, hpos, meta, edge)
         u = ea[edge]
         v = eb[edge]
-        k, ku = _edge_faces(surf, fans, mark, meta, u, v, shared, opp)
+        k, ku = _edge_faces(faces, falive, vstart, vcount, refs, mark, meta, u, v, shared, opp)
         if k == 0 or k > 2:
             continue
         if meta[M_FACES] - k < target:
             meta[M_BUDGET] += 1
             continue
-        kv = _link_condition(surf, fans, mark, meta[M_MARK], u, v, k, ku, shared, opp)
-        if kv < 0:
+        kv = -1
+        if not (k == 2 and boundary[u] and boundary[v]):
+            kv = _link_condition(faces, falive, vstart, vcount, refs, mark, meta, u, v, k, ku, opp)
+        if (
+            kv < 0
+            or (
+                k == 2
+                and _closes_tetrahedron(faces, falive, vstart, vcount, refs, u, v, shared, opp)
+            )
+            or _bares_corner(falive, vstart, vcount, refs, k, opp)
+        ):
             meta[M_LINK] += 1
             continue
         cost = _placement(Q, pos, u, v, out)
         # the faces that stay: none may flip, turn too far or degenerate
-        worst = _worst_quality(surf, fans, u, v, k, shared, out, min_cos)
+        worst = _worst_quality(
+            pos, faces, falive, fn, vstart, vcount, refs, u, v, shared, out, min_cos
+        )
         if worst < 0.0:
             meta[M_GEOM] += 1
             continue
@@ -670,62 +693,50 @@ def collapse(
             cost *= QUALITY / max(worst, 1e-3)
             _update(hk, hpos, meta, edge, _key(cost, edge))
             continue
-        _merge_faces(surf, fans, meta, u, v, k, ku + kv - 2 * k, shared)
-        _merge_edges(surf, edges, meta, u, v, edge, k, opp)
-        _merge_vertex(surf, fans, edges, log, meta, u, v, out)
-        _recost(surf, edges, meta, u, out)
-
-
-@njit(cache=True, inline="always")
-def _pop_cheapest(surf, edges, meta, target, max_passes, has_boundary):
-    """The cheapest edge, out of the heap (a new pass when it is empty); -1: stop (stuck).
-
-    A pass builds the heap from every edge and resets the pass's counters.
-    """
-    if meta[M_FACES] == target + 1 and not has_boundary:
-        # only a boundary edge's collapse removes a single face
-        meta[M_BUDGET] += 1
-        meta[M_STUCK] = 1
-        return -1
-    if meta[M_HEAP] == 0:
-        if meta[M_PASSES] > 0 and (meta[M_PASS_DONE] == 0 or meta[M_PASSES] >= max_passes):
-            meta[M_STUCK] = 1
-            return -1
-        build_heap(
-            surf.pos,
-            surf.Q,
-            surf.locked,
-            edges.ea,
-            edges.eb,
-            edges.ealive,
-            edges.epen,
-            edges.hk,
-            edges.hpos,
-            meta,
+        # collapse v into u: faces, edges, the vertex
+        _merge_faces(
+            faces, falive, valive, vstart, vcount, refs, meta, u, v, k, ku + kv - 2 * k, shared
         )
-        meta[M_PASSES] += 1
-        meta[M_PASS_DONE] = 0
-        meta[M_LINK] = 0
-        meta[M_GEOM] = 0
-        meta[M_BUDGET] = 0
-        if meta[M_HEAP] == 0:
-            meta[M_STUCK] = 1
-            return -1
-    hk, hpos = edges.hk, edges.hpos
-    edge = hk[0] & LOW
-    _remove(hk, hpos, meta, edge)
-    return edge
+        ealive[edge] = False
+        need = _move_edges(ea, eb, ealive, estart, ecount, erefs, hk, hpos, meta, u, v, opp)
+        meta[M_EREFS] = _join_lists(
+            ealive, valive, estart, ecount, erefs, meta[M_EREFS], u, v, need + ecount[u]
+        )
+        valive[v] = False
+        vcount[v] = 0
+        ecount[v] = 0
+        _merge_vertex(pos, Q, boundary, moved, u, v, out)
+        _log_collapse(log_u, log_v, log_t, meta, u, v, out[3])
+        # u's edges costed again
+        first = estart[u]
+        _recost(pos, Q, locked, ea, eb, epen, erefs[first : first + ecount[u]], hk, hpos, meta, out)
 
 
 @njit(cache=True, inline="always")
-def _edge_faces(surf, fans, mark, meta, u, v, shared, opp):
+def _new_pass(pos, Q, locked, ea, eb, ealive, epen, hk, hpos, meta, max_passes):
+    """Start a pass: the heap built again from every edge, the pass's counters reset.
+
+    False when the pass would be in vain (the last one collapsed nothing, or ``max_passes``
+    ran) or the heap is empty: no edge can go.
+    """
+    if meta[M_PASSES] > 0 and (meta[M_PASS_DONE] == 0 or meta[M_PASSES] >= max_passes):
+        return False
+    build_heap(pos, Q, locked, ea, eb, ealive, epen, hk, hpos, meta)
+    meta[M_PASSES] += 1
+    meta[M_PASS_DONE] = 0
+    meta[M_LINK] = 0
+    meta[M_GEOM] = 0
+    meta[M_BUDGET] = 0
+    return meta[M_HEAP] > 0
+
+
+@njit(cache=True, inline="always")
+def _edge_faces(faces, falive, vstart, vcount, refs, mark, meta, u, v, shared, opp):
     """The faces on edge (u, v): their count ``k`` and u's alive faces ``ku``.
 
-    The first two go in ``shared`` and their third corners in ``opp``; u's neighbours get a
-    new stamp in ``mark`` (``meta[M_MARK]``).
+    The first two go in ``shared`` and their third corners in ``opp`` (-1 in both past the
+    edge's faces); u's neighbours get a new stamp in ``mark`` (``meta[M_MARK]``).
     """
-    faces, falive = surf.faces, surf.falive
-    vstart, vcount, refs = fans.vstart, fans.vcount, fans.refs
     meta[M_MARK] += 1
     s = meta[M_MARK]
     k = 0
@@ -744,21 +755,20 @@ def _edge_faces(surf, fans, mark, meta, u, v, shared, opp):
         mark[a] = s
         mark[b] = s
         mark[c] = s
+    for j in range(k, 2):
+        shared[j] = -1
+        opp[j] = -1
     return k, ku
 
 
 @njit(cache=True, inline="always")
-def _link_condition(surf, fans, mark, s, u, v, k, ku, shared, opp):
-    """The count of v's alive faces when the collapse of (u, v) keeps the mesh manifold, else -1.
+def _link_condition(faces, falive, vstart, vcount, refs, mark, meta, u, v, k, ku, opp):
+    """The count of v's alive faces when the link condition holds for (u, v), else -1.
 
-    The link condition (v's other neighbours are not u's, ``mark`` stamped ``s``, but for the
-    third corners ``opp``; an interior edge does not join two boundary vertices); the edge's
-    faces are not the whole component; it closes no tetrahedron and bares no third corner.
+    v's other neighbours are not u's (``mark`` stamped ``meta[M_MARK]``) but for the third
+    corners ``opp`` of the edge's ``k`` faces, and those are not the whole component.
     """
-    faces, falive, boundary = surf.faces, surf.falive, surf.boundary
-    vstart, vcount, refs = fans.vstart, fans.vcount, fans.refs
-    if k == 2 and boundary[u] and boundary[v]:
-        return -1
+    s = meta[M_MARK]
     bad = False
     kv = 0
     for i in range(vstart[v], vstart[v] + vcount[v]):
@@ -770,25 +780,19 @@ def _link_condition(surf, fans, mark, s, u, v, k, ku, shared, opp):
             w = faces[f, j]
             if w == u or w == v or mark[w] != s:
                 continue
-            if w != opp[0] and (k == 1 or w != opp[1]):
+            if w != opp[0] and w != opp[1]:
                 bad = True
     if bad or ku + kv - 2 * k == 0:
         return -1  # (or the edge's faces are the whole component)
-    if k == 2 and _closes_tetrahedron(surf, fans, u, v, shared, opp):
-        return -1
-    if _bares_corner(surf, fans, k, opp):
-        return -1
     return kv
 
 
 @njit(cache=True, inline="always")
-def _closes_tetrahedron(surf, fans, u, v, shared, opp):
+def _closes_tetrahedron(faces, falive, vstart, vcount, refs, u, v, shared, opp):
     """Whether a face of u and a face of v hold both third corners.
 
     The two would become one face twice.
     """
-    faces, falive = surf.faces, surf.falive
-    vstart, vcount, refs = fans.vstart, fans.vcount, fans.refs
     both = 0
     for side in range(2):
         w = u if side == 0 else v
@@ -805,10 +809,8 @@ def _closes_tetrahedron(surf, fans, u, v, shared, opp):
 
 
 @njit(cache=True, inline="always")
-def _bares_corner(surf, fans, k, opp):
+def _bares_corner(falive, vstart, vcount, refs, k, opp):
     """Whether a third corner's only face is on the edge (it would be left without faces)."""
-    falive = surf.falive
-    vstart, vcount, refs = fans.vstart, fans.vcount, fans.refs
     for j in range(k):
         o = opp[j]
         alive = 0
@@ -821,20 +823,18 @@ def _bares_corner(surf, fans, k, opp):
 
 
 @njit(cache=True, inline="always")
-def _worst_quality(surf, fans, u, v, k, shared, out, min_cos):
+def _worst_quality(pos, faces, falive, fn, vstart, vcount, refs, u, v, shared, out, min_cos):
     """The worst quality of the faces that stay around u and v, u moved to ``out[:3]``.
 
     -1 when one of them flips, turns too far or degenerates (:func:`_normal_change`).
     """
-    pos, faces, falive, fn = surf.pos, surf.faces, surf.falive, surf.fn
-    vstart, vcount, refs = fans.vstart, fans.vcount, fans.refs
     x, y, z = out[0], out[1], out[2]
     worst = 1.0
     for side in range(2):
         w = u if side == 0 else v
         for i in range(vstart[w], vstart[w] + vcount[w]):
             f = refs[i]
-            if not falive[f] or f == shared[0] or (k == 2 and f == shared[1]):
+            if not falive[f] or f == shared[0] or f == shared[1]:
                 continue
             a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
             which = 0 if a == w else (1 if b == w else 2)
@@ -846,48 +846,33 @@ def _worst_quality(surf, fans, u, v, k, shared, out, min_cos):
 
 
 @njit(cache=True, inline="always")
-def _merge_faces(surf, fans, meta, u, v, k, need, shared):
+def _merge_faces(faces, falive, valive, vstart, vcount, refs, meta, u, v, k, need, shared):
     """The edge's ``k`` faces go; v's others turn to u; u's list holds them all (``need``)."""
-    faces, falive = surf.faces, surf.falive
-    vstart, vcount, refs = fans.vstart, fans.vcount, fans.refs
     for j in range(k):
         falive[shared[j]] = False
     meta[M_FACES] -= k
-    if meta[M_REFS] + need > refs.shape[0]:
-        meta[M_REFS] = _compact(falive, surf.valive, vstart, vcount, refs)
-    start = meta[M_REFS]
-    r = start
-    for side in range(2):
-        w = u if side == 0 else v
-        for i in range(vstart[w], vstart[w] + vcount[w]):
-            f = refs[i]
-            if not falive[f]:
-                continue
-            if side == 1:
-                for j in range(3):
-                    if faces[f, j] == v:
-                        faces[f, j] = u
-            refs[r] = f
-            r += 1
-    vstart[u] = start
-    vcount[u] = r - start
-    meta[M_REFS] = r
+    for i in range(vstart[v], vstart[v] + vcount[v]):
+        f = refs[i]
+        if falive[f]:
+            for j in range(3):
+                if faces[f, j] == v:
+                    faces[f, j] = u
+    meta[M_REFS] = _join_lists(falive, valive, vstart, vcount, refs, meta[M_REFS], u, v, need)
 
 
 @njit(cache=True, inline="always")
-def _merge_edges(surf, edges, meta, u, v, edge, k, opp):
-    """(u, v) goes, v's edges to the third corners duplicate u's, the others move to u."""
-    ea, eb, ealive = edges.ea, edges.eb, edges.ealive
-    estart, ecount, erefs = edges.estart, edges.ecount, edges.erefs
-    hk, hpos = edges.hk, edges.hpos
-    ealive[edge] = False
-    need = 0
+def _move_edges(ea, eb, ealive, estart, ecount, erefs, hk, hpos, meta, u, v, opp):
+    """Drop v's edges to the third corners (they duplicate u's), move the others to u.
+
+    Returns how many moved.
+    """
+    moved = 0
     for i in range(estart[v], estart[v] + ecount[v]):
         g = erefs[i]
         if not ealive[g]:
             continue
         w = ea[g] if eb[g] == v else eb[g]
-        if w == opp[0] or (k == 2 and w == opp[1]):
+        if w == opp[0] or w == opp[1]:
             ealive[g] = False
             _remove(hk, hpos, meta, g)
             continue
@@ -895,60 +880,60 @@ def _merge_edges(surf, edges, meta, u, v, edge, k, opp):
             ea[g] = u
         else:
             eb[g] = u
-        need += 1
-    need += ecount[u]
-    if meta[M_EREFS] + need > erefs.shape[0]:
-        meta[M_EREFS] = _compact(ealive, surf.valive, estart, ecount, erefs)
-    start = meta[M_EREFS]
-    r = start
-    for side in range(2):
-        w = u if side == 0 else v
-        for i in range(estart[w], estart[w] + ecount[w]):
-            g = erefs[i]
-            if ealive[g]:
-                erefs[r] = g
-                r += 1
-    estart[u] = start
-    ecount[u] = r - start
-    meta[M_EREFS] = r
+        moved += 1
+    return moved
 
 
 @njit(cache=True, inline="always")
-def _merge_vertex(surf, fans, edges, log, meta, u, v, out):
-    """Merge v into u: u moves to ``out[:3]`` with the sum of the quadrics; log the collapse."""
-    pos, Q, boundary = surf.pos, surf.Q, surf.boundary
-    surf.valive[v] = False
-    fans.vcount[v] = 0
-    edges.ecount[v] = 0
+def _join_lists(alive, valive, start, count, refs, used, u, v, need):
+    """Make u's list its alive items then v's, appended at the end of ``refs``.
+
+    ``used`` is the used length of ``refs``; when ``need`` more items would not fit, the lists
+    are compacted first (:func:`_compact`). Returns the new used length. (The meta slot is
+    not passed: a literal slot would compile a specialisation for each.)
+    """
+    if used + need > refs.shape[0]:
+        used = _compact(alive, valive, start, count, refs)
+    r = used
+    for side in range(2):
+        w = u if side == 0 else v
+        for i in range(start[w], start[w] + count[w]):
+            x = refs[i]
+            if alive[x]:
+                refs[r] = x
+                r += 1
+    start[u] = used
+    count[u] = r - used
+    return r
+
+
+@njit(cache=True, inline="always")
+def _merge_vertex(pos, Q, boundary, moved, u, v, out):
+    """Move u to ``out[:3]`` with the sum of u's and v's quadrics (v merged into it)."""
     pos[u, 0] = out[0]
     pos[u, 1] = out[1]
     pos[u, 2] = out[2]
     for j in range(10):
         Q[u, j] += Q[v, j]
     boundary[u] = boundary[u] or boundary[v]
-    surf.moved[u] = True
+    moved[u] = True
+
+
+@njit(cache=True, inline="always")
+def _log_collapse(log_u, log_v, log_t, meta, u, v, t):
+    """Log the collapse of v into u (``t`` along u -> v); one more this pass."""
     n_log = meta[M_LOG]
-    log.u[n_log] = u
-    log.v[n_log] = v
-    log.t[n_log] = out[3]
+    log_u[n_log] = u
+    log_v[n_log] = v
+    log_t[n_log] = t
     meta[M_LOG] = n_log + 1
     meta[M_PASS_DONE] += 1
 
 
 @njit(cache=True, inline="always")
-def _recost(surf, edges, meta, u, out):
-    """Cost u's edges again (and lift their penalty)."""
-    pos, Q, locked = surf.pos, surf.Q, surf.locked
-    ea, eb, epen, erefs, hk, hpos = (
-        edges.ea,
-        edges.eb,
-        edges.epen,
-        edges.erefs,
-        edges.hk,
-        edges.hpos,
-    )
-    for i in range(edges.estart[u], edges.estart[u] + edges.ecount[u]):
-        g = erefs[i]
+def _recost(pos, Q, locked, ea, eb, epen, around, hk, hpos, meta, out):
+    """Cost the edges ``around`` (a vertex's list) again and lift their penalty."""
+    for g in around:
         if not locked[ea[g]] and not locked[eb[g]]:
             epen[g] = False
             _update(hk, hpos, meta, g, _key(_placement(Q, pos, ea[g], eb[g], out), g))
