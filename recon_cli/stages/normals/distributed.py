@@ -556,6 +556,40 @@ def slab_count(
     )
 
 
+def _steps_params(
+    ex: Any,
+    client: Any,
+    npoints: int,
+    neighbourhood: tuple,
+    orientation: tuple,
+    curvature: bool,
+    sensors: tuple | None,
+) -> tuple[dict, dict]:
+    """The slabs' steps' parameters and the report's entry on their count.
+
+    The count is the execution's ``partitions``, else as many as the cluster's workers' memory
+    (or, in this process, the execution's budget) needs (:func:`slab_count`).
+    ``neighbourhood``: (knn, radius); ``orientation``: (method, camera, direction);
+    ``sensors``: the sensors' positions, directions and is-direction flags, or None.
+    """
+    knn, radius = neighbourhood
+    method, cam, dirn = orientation
+    budget = ex.budget() if client is None else None
+    parts, why = slab_count(ex.partitions, npoints, client, knn, budget)
+    p = dict(
+        knn=knn,
+        radius=radius,
+        orient=method,
+        camera=cam,
+        direction=dirn,
+        curvature=bool(curvature),
+        partitions=parts,
+        workers=why["workers"],
+        sensors=sensors,
+    )
+    return p, why
+
+
 def _frame(lo, hi, perm_axis_longest=True):
     size = float((hi - lo).max()) * 1.01 or 1.0
     origin = 0.5 * (lo + hi) - 0.5 * size
@@ -608,19 +642,14 @@ def distributed_normals(
         raise ParameterError("--orient camera needs --camera X,Y,Z (or the data's sensors)")
     frame = _frame(pts.min(axis=0), pts.max(axis=0))
     with spill_folder(ex.spill_parent(), "normals") as tmp, ex.cluster() as (client, info):
-        parts, why = slab_count(
-            ex.partitions, len(pts), client, knn, ex.budget() if client is None else None
-        )
-        p = dict(
-            knn=knn,
-            radius=radius,
-            orient=method,
-            camera=cam,
-            direction=dirn,
-            curvature=bool(curvature),
-            partitions=parts,
-            workers=why["workers"],
-            sensors=None if sensors is None else tuple(sensors[:3]),
+        p, why = _steps_params(
+            ex,
+            client,
+            len(pts),
+            (knn, radius),
+            (method, cam, dirn),
+            curvature,
+            None if sensors is None else tuple(sensors[:3]),
         )
         cloud = PointCloud(
             points=pts, normals=None if normals is None else np.asarray(normals, float)
@@ -732,19 +761,14 @@ def run_from_files(
         )
         counts = np.sum([b["counts"] for b in buckets], axis=0)
         files = [(os.path.join(tmp, f"c{i:05d}"), b["offsets"]) for i, b in enumerate(buckets)]
-        parts, why = slab_count(
-            ex.partitions, n_rows, client, knn, ex.budget() if client is None else None
-        )
-        p = dict(
-            knn=knn,
-            radius=radius,
-            orient=method,
-            camera=cam,
-            direction=dirn,
-            curvature=v["curvature"],
-            partitions=parts,
-            workers=why["workers"],
-            sensors=None if sensors is None else views[:3],
+        p, why = _steps_params(
+            ex,
+            client,
+            n_rows,
+            (knn, radius),
+            (method, cam, dirn),
+            v["curvature"],
+            None if sensors is None else views[:3],
         )
         prefixes, report = _core(client, files, counts, frame, n_rows, p, tmp, progress)
         report["distributed"]["partitions"] = why
