@@ -65,7 +65,7 @@ HALO = 2
 # slabs at most (one seam per plane of a 32-cell lattice, as the Poisson slabs)
 MAX_SLABS = 32
 # a slab's worker's peak per point of its own, halo included, above the idle worker: a fixed
-# part and a part per neighbour of the kNN (bench/calibration.md, "normals slabs")
+# part and a part per neighbour of the kNN (bench/calibration.md, SLAB_BYTES_FIXED)
 SLAB_BYTES_FIXED = 480
 SLAB_BYTES_PER_NEIGHBOUR = 8
 
