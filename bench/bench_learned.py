@@ -5,7 +5,7 @@ with true normals (seed 0), at most 5 minutes of training: F-score at 1 % of the
 >= 0.95 against the true mesh, Chamfer-L1 <= 2x Poisson depth 8's, and |‖∇s‖ − 1| <= 0.1
 on >= 90 % of the grid samples within 5 % of the diagonal from the surface (central differences
 on the written grid: ``recon info``'s near figure, the kinks of the medial axis left out;
-``bench/calibration.md`` has the exact distance's figures, the metric's ceiling). A 10 % hole
+``docs/design/fit-sdf.md`` has the exact distance's figures, the metric's ceiling). A 10 % hole
 (the samples nearest to one random surface point, 10 % of them, cut away): Chamfer on the
 rest and the distance from the cut-away part of the true surface to the fitted surface.
 

@@ -494,7 +494,8 @@ class StageSpec:
         The returned function takes every parameter as an optional keyword with the
         declared default, checks the given ones (:meth:`check`) and the input's kind, and
         calls ``fn`` with all of them. ``fn`` declares no defaults of its own; its keyword
-        names must be exactly the declared ones (checked here).
+        names must be exactly the declared ones, or some of them and ``**rest`` that takes the
+        others (a stage that hands a group of them on to a library function; checked here).
         """
         sig = inspect.signature(fn)
         declared = [p.name for p in self.params]
@@ -503,7 +504,9 @@ class StageSpec:
             for k, p in sig.parameters.items()
             if p.kind is inspect.Parameter.KEYWORD_ONLY and k != "progress"
         ]
-        if sorted(own) != sorted(declared):
+        rest = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in sig.parameters.values())
+        named_ok = set(own) <= set(declared) if rest else sorted(own) == sorted(declared)
+        if not named_ok:
             raise TypeError(
                 f"{fn.__qualname__}: keywords {own} differ from the declaration of "
                 f"{self.name!r}: {declared}"

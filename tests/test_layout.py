@@ -175,15 +175,19 @@ MAX_MODULE_LINES = 1000
 SIZE_RULES = {"C901", "PLR0912", "PLR0913", "PLR0915"}
 
 
-def _size_exempt() -> list[str]:
-    """The patterns of pyproject's temporary block: files that ignore the size rules."""
+def _per_file_ignores() -> dict[str, list[str]]:
+    """pyproject's ``[tool.ruff.lint.per-file-ignores]``: pattern -> the rules it skips."""
     try:
         import tomllib
     except ImportError:  # Python 3.10
         import tomli as tomllib
     with open(ROOT / "pyproject.toml", "rb") as f:
-        ignores = tomllib.load(f)["tool"]["ruff"]["lint"]["per-file-ignores"]
-    return [pattern for pattern, rules in ignores.items() if SIZE_RULES & set(rules)]
+        return tomllib.load(f)["tool"]["ruff"]["lint"]["per-file-ignores"]
+
+
+def _size_exempt() -> list[str]:
+    """The patterns of pyproject's temporary block: files that ignore the size rules."""
+    return [pattern for pattern, rules in _per_file_ignores().items() if SIZE_RULES & set(rules)]
 
 
 def _our_python_files() -> list[Path]:
@@ -218,7 +222,20 @@ def test_functions_and_modules_stay_short():
     assert not long, "split along the algorithm's steps:\n" + "\n".join(long)
 
 
+# the one temporary exemption (issues 44/45): the Poisson engine, rewritten on its own branch
+TEMPORARY_EXEMPT = {"recon_cli/stages/poisson/**"}
+
+
 def test_size_exemptions_are_the_temporary_block_only():
-    # tests, benchmarks and tools meet the limits with no exemption; the library's are temporary
-    for pattern in _size_exempt():
-        assert pattern.startswith("recon_cli/"), f"{pattern}: only library files being rewritten"
+    # the library, tests, benchmarks and tools meet the limits with no exemption but Poisson's
+    assert set(_size_exempt()) <= TEMPORARY_EXEMPT, _size_exempt()
+
+
+def test_per_file_ignores_are_docstring_rules_outside_the_library():
+    # no file of our own code skips a lint rule, but the docstring rules (D) in the tests,
+    # benchmarks and the documentation's configuration, and Poisson's temporary block
+    for pattern, rules in _per_file_ignores().items():
+        if pattern in TEMPORARY_EXEMPT:
+            continue
+        assert not pattern.startswith("recon_cli/"), pattern
+        assert set(rules) == {"D"}, (pattern, rules)

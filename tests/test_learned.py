@@ -207,6 +207,24 @@ def test_bad_parameters(kw, err):
         fit_sdf(p, n, **kw)
 
 
+def test_fit_options_are_the_declarations():
+    """fit_sdf's options named like the stage's parameters are checked by the declaration (the
+    command line's message) before any data is looked at; a keyword it has not is refused."""
+    from recon_cli.stages.learned import FIT_PARAMS, SPEC
+
+    assert set(SPEC.defaults()) - set(FIT_PARAMS) == {"resolution", "padding", "model", "mesh"}
+    for k in FIT_PARAMS:
+        with pytest.raises(ParameterError) as want:
+            SPEC.param(k).coerce("nonsense")
+        with pytest.raises(ParameterError) as got:
+            fit_sdf(None, **{k: "nonsense"})
+        assert str(got.value) == str(want.value)
+    with pytest.raises(ParameterError, match="learning_rate must be in"):
+        fit_sdf(None, learning_rate=2.0)
+    with pytest.raises(TypeError, match="unexpected keyword argument 'resolution'"):
+        fit_sdf(None, resolution=32)
+
+
 def test_bad_points():
     p, n = sphere_cloud(100, 1.0)
     p[3, 1] = np.nan

@@ -9,6 +9,7 @@ import os
 import numpy as np
 import pytest
 
+from recon_cli import run_on
 from recon_cli.errors import ParameterError
 from recon_cli.geometry import PointCloud
 from recon_cli.io.load import load, save
@@ -35,7 +36,8 @@ def test_slabs_give_the_single_process_normals(name, parts):
     c = sampled_cloud(name, 40_000, 0.001, 1)
     pts = c.points @ random_rotation(rng).T + 1e6
     ref, curv = _single(pts)
-    nrm, dcurv, rep = distributed_normals(pts, orient="mst", partitions=parts, curvature=True)
+    with run_on(partitions=parts):
+        nrm, dcurv, rep = distributed_normals(pts, orient="mst", curvature=True)
     dots = np.einsum("ij,ij->i", nrm, ref)
     assert dots.min() > 1 - 1e-9
     assert np.allclose(dcurv, curv, atol=1e-12)
@@ -51,7 +53,8 @@ def test_halo_widens_until_neighbourhoods_are_exact():
     p[:, 0] *= 5
     p /= np.linalg.norm(p, axis=1, keepdims=True)
     ref, _ = _single(p)
-    nrm, _, rep = distributed_normals(p, orient="mst", partitions=4)
+    with run_on(partitions=4):
+        nrm, _, rep = distributed_normals(p, orient="mst")
     assert rep["distributed"]["halo"] > HALO / SUB_SLABS
     assert np.einsum("ij,ij->i", nrm, ref).min() > 1 - 1e-9
 
@@ -60,12 +63,14 @@ def test_camera_and_keep():
     rng = np.random.default_rng(5)
     pts, truth = single_view_scan("torus", 120, rng, direction=(0.3, 0.2, -1.0))
     cam = -5 * np.array([0.3, 0.2, -1.0])
-    nrm, _, _ = distributed_normals(pts, orient="camera", camera=cam, partitions=3)
+    with run_on(partitions=3):
+        nrm, _, _ = distributed_normals(pts, orient="camera", camera=cam)
     ref, _ = _single(pts, "camera", camera=cam)
     assert np.einsum("ij,ij->i", nrm, ref).min() > 1 - 1e-9
     # keep: the input's signs, whatever they are
     signs = np.where(rng.random(len(pts)) < 0.5, -1.0, 1.0)[:, None]
-    nrm, _, _ = distributed_normals(pts, truth * signs, orient="keep", partitions=3)
+    with run_on(partitions=3):
+        nrm, _, _ = distributed_normals(pts, truth * signs, orient="keep")
     assert (np.einsum("ij,ij->i", nrm, truth * signs) > 0).mean() > 0.99
 
 
@@ -84,7 +89,8 @@ def test_camera_towards_each_points_own_scanner():
     cloud = PointCloud(points=p, sensors=sensors, attributes={SCAN_ATTRIBUTE: which})
     ref = run_stage(cloud, orient="camera").output.normals
     views = sensor_views(sensors, which, len(p), 0)
-    nrm, _, _ = distributed_normals(p, orient="camera", partitions=3, sensors=views)
+    with run_on(partitions=3):
+        nrm, _, _ = distributed_normals(p, orient="camera", sensors=views)
     assert np.einsum("ij,ij->i", nrm, ref).min() > 1 - 1e-9
     # each towards its own scanner (not the other one: the sides facing away flip)
     at = np.array([s.position for s in sensors])
@@ -94,10 +100,11 @@ def test_camera_towards_each_points_own_scanner():
 
 def test_refused():
     p = np.random.default_rng(1).normal(size=(100, 3))
-    with pytest.raises(ParameterError, match="--partitions must be 1..32 for normals, got 33"):
-        distributed_normals(p, partitions=33)
-    with pytest.raises(ParameterError, match="keep needs input normals"):
-        distributed_normals(p, orient="keep", partitions=2)
+    refused = "--partitions must be 1..32 for normals, got 33"
+    with run_on(partitions=33), pytest.raises(ParameterError, match=refused):
+        distributed_normals(p)
+    with run_on(partitions=2), pytest.raises(ParameterError, match="keep needs input normals"):
+        distributed_normals(p, orient="keep")
 
 
 @pytest.mark.slow
@@ -171,10 +178,12 @@ def test_more_slabs_than_workers_spill_their_states(cluster, tmp_path, monkeypat
     from recon_cli.stages.normals import distributed as D
 
     c = sampled_cloud("armadillo", 30_000, 0.001, 1)
-    ref, _, _ = distributed_normals(c.points, orient="mst", partitions=3)
+    with run_on(partitions=3):
+        ref, _, _ = distributed_normals(c.points, orient="mst")
     runner, seen = spilling_runner(tmp_path, "normals")
     monkeypatch.setattr(D, "make_runner", runner)
-    nrm, _, rep = distributed_normals(c.points, orient="mst", partitions=3, client=cluster)
+    with run_on(scheduler=cluster.scheduler.address, partitions=3):
+        nrm, _, rep = distributed_normals(c.points, orient="mst")
     # after the neighbourhoods: the worker with two slabs wrote the one it ran first
     assert seen[1] == 1
     assert np.array_equal(nrm, ref)

@@ -243,6 +243,32 @@ def test_runner_refuses_a_function_that_differs_from_its_declaration():
         def run_stage(data, *, a, b, progress=None):  # b is not declared
             return StageResult(data)
 
+    with pytest.raises(TypeError, match="differ"):
+
+        @spec.runner
+        def run_stage_rest(data, *, b, progress=None, **rest):  # b is not declared
+            return StageResult(data)
+
+
+def test_runner_hands_the_undeclared_keywords_to_rest():
+    # a stage may name some of its parameters and hand the others on together (fit-sdf's fit)
+    spec = StageSpec(
+        "toy3",
+        "t",
+        takes=("cloud",),
+        gives=("cloud",),
+        params=(Param("a", "int", 1, "a"), Param("b", "int", 2, "b"), Param("c", "int", 3, "c")),
+    )
+
+    @spec.runner
+    def run_stage(data, *, a, progress=None, **rest):
+        return StageResult(data, {"a": a, **rest})
+
+    cloud = PointCloud(np.zeros((3, 3)))
+    assert run_stage(cloud, c=5).report == {"a": 1, "b": 2, "c": 5}
+    with pytest.raises(ParameterError, match="--b must be an integer"):
+        run_stage(cloud, b=1.5)
+
 
 def test_library_call_checks_values_and_input_kind():
     from recon_cli.stages.poisson import run_stage

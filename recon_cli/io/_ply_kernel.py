@@ -209,7 +209,7 @@ def first_nonfinite_row(flat, stride, first, k, size, big):
     ``flat``.
 
     Rows are unaligned in general, hence the byte loads. Blocks of rows are tested without
-    a branch per row (1.5x faster); a block that has a bad value is scanned again for it.
+    a branch per row; a block that has a bad value is scanned again for it.
     """
     n = flat.shape[0] // stride
     ustride = np.uint64(stride)

@@ -224,24 +224,26 @@ def _checked_points(points: Any, normals: Any) -> tuple[np.ndarray, np.ndarray |
     return pts, nrm / ln[:, None]
 
 
+#: the stage's declared parameters that are :func:`fit_sdf`'s options (the others: the grid's
+#: and the extra outputs')
+FIT_PARAMS = (
+    "iterations",
+    "max_seconds",
+    "width",
+    "depth",
+    "frequencies",
+    "eikonal_weight",
+    "batch",
+    "field",
+    "seed",
+    "threads",
+)
+#: :func:`fit_sdf`'s options the stage does not declare, and their defaults
+TUNING = {"normal_weight": 1.0, "distance_weight": None, "learning_rate": 2e-3}
+
+
 def fit_sdf(
-    points: np.ndarray,
-    normals: np.ndarray | None = None,
-    *,
-    iterations: int = SPEC.param("iterations").default,
-    max_seconds: float | None = SPEC.param("max_seconds").default,
-    width: int = SPEC.param("width").default,
-    depth: int = SPEC.param("depth").default,
-    frequencies: int | None = SPEC.param("frequencies").default,
-    eikonal_weight: float | None = SPEC.param("eikonal_weight").default,
-    normal_weight: float = 1.0,
-    distance_weight: float | None = None,
-    batch: int = SPEC.param("batch").default,
-    learning_rate: float = 2e-3,
-    field: str = SPEC.param("field").default,
-    seed: int = SPEC.param("seed").default,
-    threads: int | None = SPEC.param("threads").default,
-    progress=None,
+    points: np.ndarray, normals: np.ndarray | None = None, *, progress=None, **options: Any
 ) -> FitResult:
     """Fit a neural signed distance (or occupancy) field to a point cloud.
 
@@ -251,6 +253,15 @@ def fit_sdf(
         The cloud, world units (n >= 10, finite).
     normals : (n, 3) float or None
         Unit outward normals; with them the loss has the normal term.
+    progress : Progress or None
+        A bar with the current (smoothed) loss.
+    **options
+        The fit's options (Other Parameters), by keyword: those the stage declares
+        (:data:`FIT_PARAMS`) default to the declaration's values and are checked by it; the
+        others (:data:`TUNING`) are the library's only.
+
+    Other Parameters
+    ----------------
     iterations : int
         Optimiser steps (the cosine learning-rate schedule spans them).
     max_seconds : float or None
@@ -296,8 +307,6 @@ def fit_sdf(
         same field.
     threads : int or None
         CPU threads for torch (None: torch's default).
-    progress : Progress or None
-        A bar with the current (smoothed) loss.
 
     Returns
     -------
@@ -313,20 +322,12 @@ def fit_sdf(
     BackendError
         PyTorch is not installed (``pip install recon[learned]``).
     """
-    v = SPEC.check(
-        {
-            "iterations": iterations,
-            "max_seconds": max_seconds,
-            "width": width,
-            "depth": depth,
-            "frequencies": frequencies,
-            "eikonal_weight": eikonal_weight,
-            "batch": batch,
-            "field": field,
-            "seed": seed,
-            "threads": threads,
-        },
-        complete=False,
+    unknown = sorted(set(options) - set(FIT_PARAMS) - set(TUNING))
+    if unknown:
+        raise TypeError(f"fit_sdf() got an unexpected keyword argument {unknown[0]!r}")
+    v = SPEC.check({k: options.get(k, SPEC.param(k).default) for k in FIT_PARAMS}, complete=False)
+    normal_weight, distance_weight, learning_rate = (
+        options.get(k, default) for k, default in TUNING.items()
     )
     normal_weight = _float(normal_weight, "normal_weight", 0.0)
     if distance_weight is None:
@@ -362,19 +363,10 @@ def run_stage(
     *,
     resolution: int,
     padding: float,
-    iterations: int,
-    max_seconds: float | None,
-    width: int,
-    depth: int,
-    frequencies: int | None,
-    eikonal_weight: float | None,
-    batch: int,
-    seed: int,
-    field: str,
-    threads: int | None,
     model: str | None,
     mesh: str | None,
     progress=None,
+    **fit: Any,
 ):
     """Stage ``fit-sdf``: a cloud (or a mesh's vertices) -> the fitted field on a grid.
 
@@ -386,13 +378,15 @@ def run_stage(
         Cells along the longest side of the padded bounding box (as ``recon sdf``).
     padding : float
         Margin, fraction of the box's longest side.
-    iterations, max_seconds, width, depth, frequencies, eikonal_weight, batch, seed, field, threads
-        As in :func:`fit_sdf`.
     model : path or None
         Also write the fitted weights here (:func:`save_model`).
     mesh : path or None
         Also write the zero level set here (marching cubes on the grid, vertex normals
         from the network's gradient), as PLY.
+    **fit
+        The declared parameters of the fit (:data:`FIT_PARAMS`: iterations, max_seconds,
+        width, depth, frequencies, eikonal_weight, batch, seed, field, threads), as in
+        :func:`fit_sdf`.
 
     Returns
     -------
@@ -414,21 +408,7 @@ def run_stage(
     data = float64(data)  # parameters and the input's kind: checked by SPEC
     model_path = None if model in (None, "") else os.fspath(model)
     mesh_path = None if mesh in (None, "") else os.fspath(mesh)
-    fitted = fit_sdf(
-        data.points,
-        data.normals,
-        iterations=iterations,
-        max_seconds=max_seconds,
-        width=width,
-        depth=depth,
-        frequencies=frequencies,
-        eikonal_weight=eikonal_weight,
-        batch=batch,
-        field=field,
-        seed=seed,
-        threads=threads,
-        progress=progress,
-    )
+    fitted = fit_sdf(data.points, data.normals, progress=progress, **fit)
     grid = _written_grid(fitted.model, data, resolution, padding, progress)
     values = np.asarray(grid.sdf)
     if not (np.nanmin(values) < 0.0 < np.nanmax(values)):

@@ -183,65 +183,16 @@ def _loop(
     pts = torch.from_numpy(points)
     nrm = torch.from_numpy(normals) if normals is not None else None
     sig = torch.from_numpy(sigma)
-    n = len(pts)
-    b = cfg.batch
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
     while st["it"] < cfg.iterations:
         it = st["it"]
         elapsed = time.perf_counter() - t0
         if cfg.max_seconds is not None and elapsed >= cfg.max_seconds:
             break
-        frac = it / cfg.iterations
-        if cfg.max_seconds is not None:
-            frac = max(frac, elapsed / cfg.max_seconds)
-        lr = cfg.lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(1.0, frac))))
-        for g in opt.param_groups:
-            g["lr"] = lr
-        idx = torch.randint(0, n, (b,), generator=gen)
-        p = pts[idx]
-        near = p + torch.randn(b, 3, generator=gen) * sig[idx, None]
-        wide = p[: b // 2] + torch.randn(b // 2, 3, generator=gen) * 0.1
-        unif = torch.rand(b // 2, 3, generator=gen) * 2.0 - 1.0
-        nb = int(b * cfg.band_share)
-        if nb:
-            bi = torch.randint(0, n, (nb,), generator=gen)
-            band = pts[bi] + torch.randn(nb, 3, generator=gen) * (
-                cfg.band * torch.rand(nb, 1, generator=gen)
-            )
-            off = torch.cat([near, wide, unif, band])
-        else:
-            off = torch.cat([near, wide, unif])
-        # the wide, uniform and band samples (the near ones are mostly within the points'
-        # spacing, where the distance to the points is not the surface's)
-        d0 = b
-        use_dist = (
-            cfg.field == "sdf" and cfg.distance_weight > 0 and distance_fn is not None and nb > 0
-        )
-        if use_dist:
-            d_np, keep_np = distance_fn(off[d0:].numpy())
-            dist_t, keep_t = torch.from_numpy(d_np), torch.from_numpy(keep_np)
+        _schedule(opt, cfg, it, elapsed)
+        idx, p, off, nb = _samples(pts, sig, cfg, gen)
         if cfg.field == "sdf":
-            p.requires_grad_(True)
-            off.requires_grad_(True)
-            sp = net(p)
-            so = net(off)
-            go = _grad(so, off, True)
-            loss = cfg.surface_weight * sp.abs().mean()
-            eik = _eikonal(go, cfg.eikonal_l1)
-            if nrm is not None:
-                gp = _grad(sp, p, True)
-                loss = loss + cfg.normal_weight * (gp - nrm[idx]).norm(dim=1).mean()
-                eik = 0.5 * eik + 0.5 * _eikonal(gp, cfg.eikonal_l1)
-            loss = loss + cfg.eikonal_weight * eik
-            if cfg.offsurface_weight and nrm is not None:
-                # SIREN's off-surface term: no zero level away from the points (with normals
-                # only: without them nothing holds the slope and it fights the zero level)
-                far = so[b : 2 * b]
-                loss = loss + cfg.offsurface_weight * torch.exp(-100.0 * far.abs()).mean()
-            if use_dist and bool(keep_t.any()):
-                c = cfg.distance_clamp
-                dev = (so[d0:].clamp(-c, c) - dist_t.clamp(-c, c)).abs()[keep_t]
-                loss = loss + cfg.distance_weight * dev.sum() / len(keep_t)
+            loss = _sdf_loss(net, p, off, None if nrm is None else nrm[idx], nb, cfg, distance_fn)
         else:
             lab = torch.from_numpy(labels_fn(off.numpy()))
             logit = -cfg.occupancy_gain * net(off)
@@ -249,18 +200,92 @@ def _loop(
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-        st["it"] = it = it + 1
-        last = float(loss.detach())
-        st["last"] = last
-        ema = last if st["ema"] is None else 0.95 * st["ema"] + 0.05 * last
-        st["ema"] = ema
-        if it % 10 == 0 or it == cfg.iterations:
-            st["history"].append((it, ema))
-            if ema < st["best"]:
-                st["best"] = ema
-                st["best_state"] = {k: v.detach().clone() for k, v in net.state_dict().items()}
+        _record(net, st, float(loss.detach()), cfg.iterations)
         if on_step is not None:
-            on_step(it, ema, time.perf_counter() - t0)
+            on_step(st["it"], st["ema"], time.perf_counter() - t0)
+
+
+def _schedule(opt, cfg: TrainConfig, it: int, elapsed: float) -> None:
+    """The step's learning rate: a cosine decay to 2 % over the iterations (or the time)."""
+    frac = it / cfg.iterations
+    if cfg.max_seconds is not None:
+        frac = max(frac, elapsed / cfg.max_seconds)
+    lr = cfg.lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(1.0, frac))))
+    for g in opt.param_groups:
+        g["lr"] = lr
+
+
+def _samples(pts, sig, cfg: TrainConfig, gen) -> tuple:
+    """The step's samples: ``(idx, p, off, nb)``.
+
+    ``batch`` surface points ``p`` (rows ``idx``) and the samples off them ``off``: as many
+    near (each point's spread), half as many wider, half as many uniform in the box, and ``nb``
+    band samples.
+    """
+    n = len(pts)
+    b = cfg.batch
+    idx = torch.randint(0, n, (b,), generator=gen)
+    p = pts[idx]
+    near = p + torch.randn(b, 3, generator=gen) * sig[idx, None]
+    wide = p[: b // 2] + torch.randn(b // 2, 3, generator=gen) * 0.1
+    unif = torch.rand(b // 2, 3, generator=gen) * 2.0 - 1.0
+    nb = int(b * cfg.band_share)
+    if nb:
+        bi = torch.randint(0, n, (nb,), generator=gen)
+        band = pts[bi] + torch.randn(nb, 3, generator=gen) * (
+            cfg.band * torch.rand(nb, 1, generator=gen)
+        )
+        off = torch.cat([near, wide, unif, band])
+    else:
+        off = torch.cat([near, wide, unif])
+    return idx, p, off, nb
+
+
+def _sdf_loss(net, p, off, nrm, nb: int, cfg: TrainConfig, distance_fn) -> torch.Tensor:
+    """The sdf field's loss on a step's samples (:func:`train`); ``nrm``: the points' normals."""
+    b = cfg.batch
+    # the wide, uniform and band samples (the near ones are mostly within the points'
+    # spacing, where the distance to the points is not the surface's)
+    d0 = b
+    use_dist = cfg.distance_weight > 0 and distance_fn is not None and nb > 0
+    if use_dist:
+        d_np, keep_np = distance_fn(off[d0:].numpy())
+        dist_t, keep_t = torch.from_numpy(d_np), torch.from_numpy(keep_np)
+    p.requires_grad_(True)
+    off.requires_grad_(True)
+    sp = net(p)
+    so = net(off)
+    go = _grad(so, off, True)
+    loss = cfg.surface_weight * sp.abs().mean()
+    eik = _eikonal(go, cfg.eikonal_l1)
+    if nrm is not None:
+        gp = _grad(sp, p, True)
+        loss = loss + cfg.normal_weight * (gp - nrm).norm(dim=1).mean()
+        eik = 0.5 * eik + 0.5 * _eikonal(gp, cfg.eikonal_l1)
+    loss = loss + cfg.eikonal_weight * eik
+    if cfg.offsurface_weight and nrm is not None:
+        # SIREN's off-surface term: no zero level away from the points (with normals
+        # only: without them nothing holds the slope and it fights the zero level)
+        far = so[b : 2 * b]
+        loss = loss + cfg.offsurface_weight * torch.exp(-100.0 * far.abs()).mean()
+    if use_dist and bool(keep_t.any()):
+        c = cfg.distance_clamp
+        dev = (so[d0:].clamp(-c, c) - dist_t.clamp(-c, c)).abs()[keep_t]
+        loss = loss + cfg.distance_weight * dev.sum() / len(keep_t)
+    return loss
+
+
+def _record(net, st: dict, last: float, iterations: int) -> None:
+    """Count the step; the smoothed loss, its history and the best parameters so far."""
+    st["it"] = it = st["it"] + 1
+    st["last"] = last
+    ema = last if st["ema"] is None else 0.95 * st["ema"] + 0.05 * last
+    st["ema"] = ema
+    if it % 10 == 0 or it == iterations:
+        st["history"].append((it, ema))
+        if ema < st["best"]:
+            st["best"] = ema
+            st["best_state"] = {k: v.detach().clone() for k, v in net.state_dict().items()}
 
 
 def values(net: FieldNet, x: np.ndarray, chunk: int = _CHUNK) -> np.ndarray:

@@ -758,9 +758,7 @@ def run_stage(
         slabs = ex.partitions or slab_count(None, n, None, knn, ex.budget())[0]
     if ex.distributed or (slabs or 1) > 1:
         check_distributed_neighbours(neighbours)
-        return _run_distributed(
-            cloud, knn, radius, method, cam, dirn, curvature, backend, ex, slabs, progress
-        )
+        return _run_distributed(cloud, knn, radius, method, cam, dirn, curvature, backend, progress)
     use_pixels = _use_pixels(neighbours, cloud.pixels, knn, radius, n)
     views: tuple | None = None
     if from_sensors:
@@ -895,11 +893,11 @@ def _open3d_normals(
 
 
 def _run_distributed(
-    cloud, knn, radius, method, cam, dirn, curvature, backend, ex, slabs, progress
+    cloud, knn, radius, method, cam, dirn, curvature, backend, progress
 ) -> StageResult:
     """:func:`run_stage` in slabs (:mod:`.distributed`), the cloud in memory.
 
-    On ``ex``'s Dask cluster, or in this process in ``slabs`` slabs.
+    On the execution's Dask cluster, or in this process in as many slabs as its memory needs.
     """
     from recon_cli.stages.normals.distributed import distributed_normals
 
@@ -910,22 +908,18 @@ def _run_distributed(
         views = _sensor_views(
             cloud.sensors, cloud.attributes.get(SCAN_ATTRIBUTE), len(cloud), np.zeros(3)
         )
-    with ex.cluster() as (client, info):
-        nrm, curv, report = distributed_normals(
-            cloud.points,
-            cloud.normals,
-            sensors=views,
-            knn=knn or 0,
-            radius=radius,
-            orient=method,
-            camera=cam,
-            direction=dirn,
-            curvature=curvature,
-            partitions=slabs if slabs is not None else ex.partitions,
-            client=client,
-            temp_dir=ex.spill_parent(),
-            progress=progress,
-        )
+    nrm, curv, report = distributed_normals(
+        cloud.points,
+        cloud.normals,
+        sensors=views,
+        knn=knn or 0,
+        radius=radius,
+        orient=method,
+        camera=cam,
+        direction=dirn,
+        curvature=curvature,
+        progress=progress,
+    )
     out = cloud.copy()
     out.normals = nrm
     if curvature:
@@ -935,7 +929,6 @@ def _run_distributed(
     )
     report["backend"] = backend
     report["viewpoints"] = _viewpoints_report(method, views, cloud.sensors, cam)
-    report["distributed"]["cluster"] = info
     return StageResult(out, report)
 
 

@@ -54,6 +54,7 @@ from typing import Any
 import numpy as np
 
 from recon_cli.errors import InputError, ParameterError
+from recon_cli.execution import current
 from recon_cli.slabs.runners import map_tasks, register_dask_sizes
 from recon_cli.slabs.spill import spill_folder
 
@@ -64,7 +65,7 @@ HALO = 2
 # slabs at most (one seam per plane of a 32-cell lattice, as the Poisson slabs)
 MAX_SLABS = 32
 # a slab's worker's peak per point of its own, halo included, above the idle worker: a fixed
-# part and a part per neighbour of the kNN (bench/calibration.md, "normals slabs")
+# part and a part per neighbour of the kNN (bench/calibration.md, SLAB_BYTES_FIXED)
 SLAB_BYTES_FIXED = 480
 SLAB_BYTES_PER_NEIGHBOUR = 8
 
@@ -555,6 +556,40 @@ def slab_count(
     )
 
 
+def _steps_params(
+    ex: Any,
+    client: Any,
+    npoints: int,
+    neighbourhood: tuple,
+    orientation: tuple,
+    curvature: bool,
+    sensors: tuple | None,
+) -> tuple[dict, dict]:
+    """The slabs' steps' parameters and the report's entry on their count.
+
+    The count is the execution's ``partitions``, else as many as the cluster's workers' memory
+    (or, in this process, the execution's budget) needs (:func:`slab_count`).
+    ``neighbourhood``: (knn, radius); ``orientation``: (method, camera, direction);
+    ``sensors``: the sensors' positions, directions and is-direction flags, or None.
+    """
+    knn, radius = neighbourhood
+    method, cam, dirn = orientation
+    budget = ex.budget() if client is None else None
+    parts, why = slab_count(ex.partitions, npoints, client, knn, budget)
+    p = dict(
+        knn=knn,
+        radius=radius,
+        orient=method,
+        camera=cam,
+        direction=dirn,
+        curvature=bool(curvature),
+        partitions=parts,
+        workers=why["workers"],
+        sensors=sensors,
+    )
+    return p, why
+
+
 def _frame(lo, hi, perm_axis_longest=True):
     size = float((hi - lo).max()) * 1.01 or 1.0
     origin = 0.5 * (lo + hi) - 0.5 * size
@@ -573,52 +608,49 @@ def distributed_normals(
     camera=None,
     direction=None,
     curvature: bool = False,
-    partitions: int | None = 2,
     sensors: tuple | None = None,
-    client: Any = None,
-    budget: int | None = None,
-    temp_dir: str | None = None,
     progress: Any = None,
 ) -> tuple[np.ndarray, np.ndarray | None, dict]:
-    """Normals of a cloud given in memory, in ``partitions`` slabs (module docstring).
+    """Normals of a cloud given in memory, in slabs (module docstring).
 
-    On the Dask ``client``'s cluster, or else all in this process. ``partitions`` None: the
-    fewest slabs whose one slab fits a share of a worker's memory limit, or without a client of
-    this process's ``budget`` of bytes (:func:`slab_count`; one per worker without a limit).
-    The slabs' files go in a folder in ``temp_dir`` (None: the system's). ``sensors``: for ``orient=
-    "camera"`` without ``camera``, ``(positions, directions, is_direction, which)`` as
-    :func:`.sensor_views` gives them (about the origin: world coordinates). Returns the oriented
-    normals, the curvature (or None) and the report.
+    Where it runs is the :func:`recon_cli.execution.current` execution's (:func:`recon_cli.run_on`):
+    on its Dask cluster, or else all in this process; in its ``partitions`` slabs, or else the
+    fewest whose one slab fits a share of a worker's memory limit, or without a cluster of its
+    memory budget (:func:`slab_count`); the slabs' files in a folder in its temporary folder
+    (default: the system's). ``sensors``: for ``orient="camera"`` without ``camera``,
+    ``(positions, directions, is_direction, which)`` as :func:`.sensor_views` gives them (about
+    the origin: world coordinates). Returns the oriented normals, the curvature (or None) and
+    the report.
     """
     from recon_cli.geometry import PointCloud
     from recon_cli.stages.normals import SPEC, check_knn, check_orient, check_points
 
+    ex = current()
     knn, radius = check_knn(knn, radius)
     method, cam, dirn = check_orient(orient, camera, direction)
     SPEC.check({"curvature": curvature}, complete=False)
-    if partitions is not None and not 1 <= int(partitions) <= MAX_SLABS:
-        raise ParameterError(f"--partitions must be 1..{MAX_SLABS} for normals, got {partitions}")
+    if ex.partitions is not None and not 1 <= int(ex.partitions) <= MAX_SLABS:
+        raise ParameterError(
+            f"--partitions must be 1..{MAX_SLABS} for normals, got {ex.partitions}"
+        )
     pts = check_points(points)
     if method == "keep" and normals is None:
         raise ParameterError("--orient keep needs input normals")
     if len(pts) == 0:
         raise InputError("the input has no points")
-    parts, why = slab_count(partitions, len(pts), client, knn, budget)
-    p = dict(
-        knn=knn,
-        radius=radius,
-        orient=method,
-        camera=cam,
-        direction=dirn,
-        curvature=bool(curvature),
-        partitions=parts,
-        workers=why["workers"],
-        sensors=None if sensors is None else tuple(sensors[:3]),
-    )
     if method == "camera" and cam is None and sensors is None:
         raise ParameterError("--orient camera needs --camera X,Y,Z (or the data's sensors)")
     frame = _frame(pts.min(axis=0), pts.max(axis=0))
-    with spill_folder(temp_dir, "normals") as tmp:
+    with spill_folder(ex.spill_parent(), "normals") as tmp, ex.cluster() as (client, info):
+        p, why = _steps_params(
+            ex,
+            client,
+            len(pts),
+            (knn, radius),
+            (method, cam, dirn),
+            curvature,
+            None if sensors is None else tuple(sensors[:3]),
+        )
         cloud = PointCloud(
             points=pts, normals=None if normals is None else np.asarray(normals, float)
         )
@@ -637,6 +669,7 @@ def distributed_normals(
             progress,
         )
         report["distributed"]["partitions"] = why
+        report["distributed"]["cluster"] = info
         nrm, curv = _gather(prefixes, len(pts), p["curvature"], tmp)
         nrm_out = np.array(nrm)
         inv = np.argsort(frame[2])
@@ -682,7 +715,6 @@ def run_from_files(
     command loads IN). OUT is written a chunk of IN at a time (binary PLY; other formats
     assembled here); returns the report.
     """
-    from recon_cli.execution import current
     from recon_cli.io.chunks import plan_chunks
     from recon_cli.stages import provenance_line
     from recon_cli.stages.normals import SPEC
@@ -729,19 +761,14 @@ def run_from_files(
         )
         counts = np.sum([b["counts"] for b in buckets], axis=0)
         files = [(os.path.join(tmp, f"c{i:05d}"), b["offsets"]) for i, b in enumerate(buckets)]
-        parts, why = slab_count(
-            ex.partitions, n_rows, client, knn, ex.budget() if client is None else None
-        )
-        p = dict(
-            knn=knn,
-            radius=radius,
-            orient=method,
-            camera=cam,
-            direction=dirn,
-            curvature=v["curvature"],
-            partitions=parts,
-            workers=why["workers"],
-            sensors=None if sensors is None else views[:3],
+        p, why = _steps_params(
+            ex,
+            client,
+            n_rows,
+            (knn, radius),
+            (method, cam, dirn),
+            v["curvature"],
+            None if sensors is None else views[:3],
         )
         prefixes, report = _core(client, files, counts, frame, n_rows, p, tmp, progress)
         report["distributed"]["partitions"] = why

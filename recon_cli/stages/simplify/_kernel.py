@@ -9,6 +9,8 @@ are skipped and the array is compacted when full) and an indexed heap of the edg
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit
 
@@ -84,60 +86,88 @@ def classify(faces, n, vstart, vcount, refs):
     parent = np.empty(maxdeg, np.int64)
     nm_edges = 0
     nm_vertices = 0
+    _lock_repeated_corners(faces, locked)
+    for u in range(n):
+        if vcount[u] == 0:
+            continue
+        if _fans(faces, vstart, vcount, refs, u, cnt, first, parent) > 1:
+            locked[u] = True
+            nm_vertices += 1
+        nm_edges += _edges_of_fans(faces, vstart, vcount, refs, u, cnt, first, boundary, locked)
+    return boundary, locked, nm_edges, nm_vertices
+
+
+@njit(cache=True)
+def _lock_repeated_corners(faces, locked):
+    """Lock the corners of every face that repeats an index."""
     for f in range(faces.shape[0]):
         a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
         if a == b or b == c or a == c:
             locked[a] = True
             locked[b] = True
             locked[c] = True
-    for u in range(n):
-        s = vstart[u]
-        k = vcount[u]
-        if k == 0:
-            continue
-        for i in range(k):
-            parent[i] = i
-        for i in range(k):
-            f = refs[s + i]
-            for j in range(3):
-                w = faces[f, j]
-                if w == u:
-                    continue
-                cnt[w] += 1
-                if first[w] < 0:
-                    first[w] = i
-                else:  # the faces i and first[w] share the edge (u, w)
-                    a = i
-                    while parent[a] != a:
-                        a = parent[a]
-                    b = first[w]
-                    while parent[b] != b:
-                        b = parent[b]
-                    if a != b:
-                        parent[max(a, b)] = min(a, b)
-        fans = 0
-        for i in range(k):
-            if parent[i] == i:
-                fans += 1
-        if fans > 1:
-            locked[u] = True
-            nm_vertices += 1
-        for i in range(k):
-            f = refs[s + i]
-            for j in range(3):
-                w = faces[f, j]
-                if w == u or first[w] < 0:
-                    continue
-                if cnt[w] == 1:
-                    boundary[u] = True
-                elif cnt[w] > 2:
-                    locked[u] = True
-                    locked[w] = True
-                    if u < w:
-                        nm_edges += 1
-                cnt[w] = 0
-                first[w] = -1
-    return boundary, locked, nm_edges, nm_vertices
+
+
+@njit(cache=True)
+def _fans(faces, vstart, vcount, refs, u, cnt, first, parent):
+    """The fans of faces around ``u``: its faces joined by the edges they share (union-find).
+
+    Counts in ``cnt[w]`` the faces of ``u`` on the edge (u, w) and keeps in ``first[w]`` the
+    first of them (for :func:`_edges_of_fans`, which resets both).
+    """
+    s = vstart[u]
+    k = vcount[u]
+    for i in range(k):
+        parent[i] = i
+    for i in range(k):
+        f = refs[s + i]
+        for j in range(3):
+            w = faces[f, j]
+            if w == u:
+                continue
+            cnt[w] += 1
+            if first[w] < 0:
+                first[w] = i
+            else:  # the faces i and first[w] share the edge (u, w)
+                a = i
+                while parent[a] != a:
+                    a = parent[a]
+                b = first[w]
+                while parent[b] != b:
+                    b = parent[b]
+                if a != b:
+                    parent[max(a, b)] = min(a, b)
+    fans = 0
+    for i in range(k):
+        if parent[i] == i:
+            fans += 1
+    return fans
+
+
+@njit(cache=True)
+def _edges_of_fans(faces, vstart, vcount, refs, u, cnt, first, boundary, locked):
+    """Mark ``u`` boundary (an edge of one face) or locked (an edge of more than two).
+
+    Reads and resets the counts :func:`_fans` left; returns the non-manifold edges (u, w > u).
+    """
+    s = vstart[u]
+    nm_edges = 0
+    for i in range(vcount[u]):
+        f = refs[s + i]
+        for j in range(3):
+            w = faces[f, j]
+            if w == u or first[w] < 0:
+                continue
+            if cnt[w] == 1:
+                boundary[u] = True
+            elif cnt[w] > 2:
+                locked[u] = True
+                locked[w] = True
+                if u < w:
+                    nm_edges += 1
+            cnt[w] = 0
+            first[w] = -1
+    return nm_edges
 
 
 @njit(cache=True)
@@ -533,41 +563,62 @@ def _normal_change(pos, a, b, c, which, x, y, z, min_cos, nx, ny, nz):
     return quality
 
 
-# one kernel: the heap, the edge lists and the collapse log change together in its loop, and
-# helpers would take and hand back thirty arrays a call
+class Surface(NamedTuple):
+    """The mesh being simplified, as :func:`collapse` rewrites it in place.
+
+    ``pos`` (n, 3), ``faces`` (m, 3), ``falive`` (m,), ``valive`` (n,), quadrics ``Q``
+    (n, 10), the input faces' unit normals ``fn`` (m, 3), ``boundary``, ``locked`` and
+    ``moved`` (n,) bool.
+    """
+
+    pos: np.ndarray
+    faces: np.ndarray
+    falive: np.ndarray
+    valive: np.ndarray
+    Q: np.ndarray
+    fn: np.ndarray
+    boundary: np.ndarray
+    locked: np.ndarray
+    moved: np.ndarray
+
+
+class Fans(NamedTuple):
+    """Vertex -> faces lists (:func:`vertex_faces`): ``vstart``, ``vcount`` (n,), ``refs``."""
+
+    vstart: np.ndarray
+    vcount: np.ndarray
+    refs: np.ndarray
+
+
+class Edges(NamedTuple):
+    """The edges (:func:`vertex_edges`), their vertex -> edges lists and their heap.
+
+    ``ea``, ``eb``, ``ealive``, ``epen`` (E,) (penalised once for a poor triangle);
+    ``estart``, ``ecount`` (n,), ``erefs``; the heap's keys ``hk`` and positions ``hpos`` (E,).
+    """
+
+    ea: np.ndarray
+    eb: np.ndarray
+    ealive: np.ndarray
+    epen: np.ndarray
+    estart: np.ndarray
+    ecount: np.ndarray
+    erefs: np.ndarray
+    hk: np.ndarray
+    hpos: np.ndarray
+
+
+class Log(NamedTuple):
+    """The collapses in order: ``u`` kept, ``v`` merged into it, ``t`` along u -> v (n,)."""
+
+    u: np.ndarray
+    v: np.ndarray
+    t: np.ndarray
+
+
 @njit(cache=True)
 def collapse(
-    pos,
-    faces,
-    falive,
-    valive,
-    Q,
-    fn,
-    boundary,
-    locked,
-    vstart,
-    vcount,
-    refs,
-    ea,
-    eb,
-    ealive,
-    epen,
-    estart,
-    ecount,
-    erefs,
-    hk,
-    hpos,
-    mark,
-    moved,
-    meta,
-    log_u,
-    log_v,
-    log_t,
-    target,
-    stop_at,
-    min_cos,
-    max_passes,
-    has_boundary,
+    surf, fans, edges, log, mark, meta, target, stop_at, min_cos, max_passes, has_boundary
 ):
     """Collapse edges, cheapest first, until ``stop_at`` faces remain (or none can go).
 
@@ -582,8 +633,13 @@ def collapse(
     leaves the heap until one of its ends changes; when the heap runs empty it is built
     again from every edge (a rejected collapse may be possible now). ``meta[M_STUCK]`` is
     set when a whole pass collapsed nothing or ``max_passes`` ran, or when one face is left
-    to remove and ``has_boundary`` is False (collapses remove 2).
+    to remove and ``has_boundary`` is False (collapses remove 2). ``mark`` (n,) int64: the
+    stamps of :func:`_edge_faces`.
     """
+    pos, faces, falive, valive, Q, fn, boundary, locked, moved = surf
+    vstart, vcount, refs = fans
+    ea, eb, ealive, epen, estart, ecount, erefs, hk, hpos = edges
+    log_u, log_v, log_t = log
     out = np.empty(4)
     opp = np.empty(2, np.int64)
     shared = np.empty(2, np.int64)
@@ -593,118 +649,41 @@ def collapse(
             meta[M_BUDGET] += 1
             meta[M_STUCK] = 1
             return
-        if meta[M_HEAP] == 0:
-            if meta[M_PASSES] > 0 and (meta[M_PASS_DONE] == 0 or meta[M_PASSES] >= max_passes):
-                meta[M_STUCK] = 1
-                return
-            build_heap(pos, Q, locked, ea, eb, ealive, epen, hk, hpos, meta)
-            meta[M_PASSES] += 1
-            meta[M_PASS_DONE] = 0
-            meta[M_LINK] = 0
-            meta[M_GEOM] = 0
-            meta[M_BUDGET] = 0
-            if meta[M_HEAP] == 0:
-                meta[M_STUCK] = 1
-                return
+        if meta[M_HEAP] == 0 and not _new_pass(
+            pos, Q, locked, ea, eb, ealive, epen, hk, hpos, meta, max_passes
+        ):
+            meta[M_STUCK] = 1
+            return
         # pop the cheapest edge
         edge = hk[0] & LOW
         _remove(hk, hpos, meta, edge)
         u = ea[edge]
         v = eb[edge]
-        # u's neighbours marked; the faces on the edge and their third corners
-        meta[M_MARK] += 1
-        s = meta[M_MARK]
-        k = 0
-        ku = 0
-        for i in range(vstart[u], vstart[u] + vcount[u]):
-            f = refs[i]
-            if not falive[f]:
-                continue
-            ku += 1
-            a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
-            if a == v or b == v or c == v:
-                if k < 2:
-                    shared[k] = f
-                    opp[k] = a + b + c - u - v
-                k += 1
-            mark[a] = s
-            mark[b] = s
-            mark[c] = s
+        k, ku = _edge_faces(faces, falive, vstart, vcount, refs, mark, meta, u, v, shared, opp)
         if k == 0 or k > 2:
             continue
         if meta[M_FACES] - k < target:
             meta[M_BUDGET] += 1
             continue
-        if k == 2 and boundary[u] and boundary[v]:
-            meta[M_LINK] += 1
-            continue
-        # link condition: v's other neighbours must not be u's, but for the third corners
-        bad = False
-        kv = 0
-        for i in range(vstart[v], vstart[v] + vcount[v]):
-            f = refs[i]
-            if not falive[f]:
-                continue
-            kv += 1
-            for j in range(3):
-                w = faces[f, j]
-                if w == u or w == v or mark[w] != s:
-                    continue
-                if w != opp[0] and (k == 1 or w != opp[1]):
-                    bad = True
-        if not bad and ku + kv - 2 * k == 0:
-            bad = True  # the edge's faces are the whole component
-        if not bad and k == 2:
-            # a tetrahedron: a face of u and a face of v hold both third corners (the two
-            # would become one face twice)
-            both = 0
-            for side in range(2):
-                w = u if side == 0 else v
-                for i in range(vstart[w], vstart[w] + vcount[w]):
-                    f = refs[i]
-                    if falive[f] and f != shared[0] and f != shared[1]:
-                        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
-                        if (a == opp[0] or b == opp[0] or c == opp[0]) and (
-                            a == opp[1] or b == opp[1] or c == opp[1]
-                        ):
-                            both += 1
-                            break
-            bad = both == 2
-        if not bad:
-            # a third corner whose only face is on the edge would be left without faces
-            for j in range(k):
-                o = opp[j]
-                alive = 0
-                for i in range(vstart[o], vstart[o] + vcount[o]):
-                    if falive[refs[i]]:
-                        alive += 1
-                if alive <= 1:
-                    bad = True
-        if bad:
+        kv = -1
+        if not (k == 2 and boundary[u] and boundary[v]):
+            kv = _link_condition(faces, falive, vstart, vcount, refs, mark, meta, u, v, k, ku, opp)
+        if (
+            kv < 0
+            or (
+                k == 2
+                and _closes_tetrahedron(faces, falive, vstart, vcount, refs, u, v, shared, opp)
+            )
+            or _bares_corner(falive, vstart, vcount, refs, k, opp)
+        ):
             meta[M_LINK] += 1
             continue
         cost = _placement(Q, pos, u, v, out)
-        x, y, z = out[0], out[1], out[2]
         # the faces that stay: none may flip, turn too far or degenerate
-        worst = 1.0
-        for side in range(2):
-            w = u if side == 0 else v
-            for i in range(vstart[w], vstart[w] + vcount[w]):
-                f = refs[i]
-                if not falive[f] or f == shared[0] or (k == 2 and f == shared[1]):
-                    continue
-                a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
-                which = 0 if a == w else (1 if b == w else 2)
-                q = _normal_change(
-                    pos, a, b, c, which, x, y, z, min_cos, fn[f, 0], fn[f, 1], fn[f, 2]
-                )
-                if q < 0.0:
-                    bad = True
-                    break
-                worst = min(worst, q)
-            if bad:
-                break
-        if bad:
+        worst = _worst_quality(
+            pos, faces, falive, fn, vstart, vcount, refs, u, v, shared, out, min_cos
+        )
+        if worst < 0.0:
             meta[M_GEOM] += 1
             continue
         if worst < QUALITY and not epen[edge]:
@@ -714,84 +693,250 @@ def collapse(
             cost *= QUALITY / max(worst, 1e-3)
             _update(hk, hpos, meta, edge, _key(cost, edge))
             continue
-        # collapse v into u: faces
-        for j in range(k):
-            falive[shared[j]] = False
-        meta[M_FACES] -= k
-        need = ku + kv - 2 * k
-        if meta[M_REFS] + need > refs.shape[0]:
-            meta[M_REFS] = _compact(falive, valive, vstart, vcount, refs)
-        start = meta[M_REFS]
-        r = start
-        for side in range(2):
-            w = u if side == 0 else v
-            for i in range(vstart[w], vstart[w] + vcount[w]):
-                f = refs[i]
-                if not falive[f]:
-                    continue
-                if side == 1:
-                    for j in range(3):
-                        if faces[f, j] == v:
-                            faces[f, j] = u
-                refs[r] = f
-                r += 1
-        vstart[u] = start
-        vcount[u] = r - start
-        meta[M_REFS] = r
-        # edges: (u, v) goes, v's edges to the third corners duplicate u's, the others move to u
+        # collapse v into u: faces, edges, the vertex
+        _merge_faces(
+            faces, falive, valive, vstart, vcount, refs, meta, u, v, k, ku + kv - 2 * k, shared
+        )
         ealive[edge] = False
-        need = 0
-        for i in range(estart[v], estart[v] + ecount[v]):
-            g = erefs[i]
-            if not ealive[g]:
-                continue
-            w = ea[g] if eb[g] == v else eb[g]
-            if w == opp[0] or (k == 2 and w == opp[1]):
-                ealive[g] = False
-                _remove(hk, hpos, meta, g)
-                continue
-            if ea[g] == v:
-                ea[g] = u
-            else:
-                eb[g] = u
-            need += 1
-        need += ecount[u]
-        if meta[M_EREFS] + need > erefs.shape[0]:
-            meta[M_EREFS] = _compact(ealive, valive, estart, ecount, erefs)
-        start = meta[M_EREFS]
-        r = start
-        for side in range(2):
-            w = u if side == 0 else v
-            for i in range(estart[w], estart[w] + ecount[w]):
-                g = erefs[i]
-                if ealive[g]:
-                    erefs[r] = g
-                    r += 1
-        estart[u] = start
-        ecount[u] = r - start
-        meta[M_EREFS] = r
+        need = _move_edges(ea, eb, ealive, estart, ecount, erefs, hk, hpos, meta, u, v, opp)
+        meta[M_EREFS] = _join_lists(
+            ealive, valive, estart, ecount, erefs, meta[M_EREFS], u, v, need + ecount[u]
+        )
         valive[v] = False
         vcount[v] = 0
         ecount[v] = 0
-        pos[u, 0] = x
-        pos[u, 1] = y
-        pos[u, 2] = z
-        for j in range(10):
-            Q[u, j] += Q[v, j]
-        boundary[u] = boundary[u] or boundary[v]
-        moved[u] = True
-        n_log = meta[M_LOG]
-        log_u[n_log] = u
-        log_v[n_log] = v
-        log_t[n_log] = out[3]
-        meta[M_LOG] = n_log + 1
-        meta[M_PASS_DONE] += 1
+        _merge_vertex(pos, Q, boundary, moved, u, v, out)
+        _log_collapse(log_u, log_v, log_t, meta, u, v, out[3])
         # u's edges costed again
-        for i in range(estart[u], estart[u] + ecount[u]):
-            g = erefs[i]
-            if not locked[ea[g]] and not locked[eb[g]]:
-                epen[g] = False
-                _update(hk, hpos, meta, g, _key(_placement(Q, pos, ea[g], eb[g], out), g))
+        first = estart[u]
+        _recost(pos, Q, locked, ea, eb, epen, erefs[first : first + ecount[u]], hk, hpos, meta, out)
+
+
+@njit(cache=True, inline="always")
+def _new_pass(pos, Q, locked, ea, eb, ealive, epen, hk, hpos, meta, max_passes):
+    """Start a pass: the heap built again from every edge, the pass's counters reset.
+
+    False when the pass would be in vain (the last one collapsed nothing, or ``max_passes``
+    ran) or the heap is empty: no edge can go.
+    """
+    if meta[M_PASSES] > 0 and (meta[M_PASS_DONE] == 0 or meta[M_PASSES] >= max_passes):
+        return False
+    build_heap(pos, Q, locked, ea, eb, ealive, epen, hk, hpos, meta)
+    meta[M_PASSES] += 1
+    meta[M_PASS_DONE] = 0
+    meta[M_LINK] = 0
+    meta[M_GEOM] = 0
+    meta[M_BUDGET] = 0
+    return meta[M_HEAP] > 0
+
+
+@njit(cache=True, inline="always")
+def _edge_faces(faces, falive, vstart, vcount, refs, mark, meta, u, v, shared, opp):
+    """The faces on edge (u, v): their count ``k`` and u's alive faces ``ku``.
+
+    The first two go in ``shared`` and their third corners in ``opp`` (-1 in both past the
+    edge's faces); u's neighbours get a new stamp in ``mark`` (``meta[M_MARK]``).
+    """
+    meta[M_MARK] += 1
+    s = meta[M_MARK]
+    k = 0
+    ku = 0
+    for i in range(vstart[u], vstart[u] + vcount[u]):
+        f = refs[i]
+        if not falive[f]:
+            continue
+        ku += 1
+        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+        if a == v or b == v or c == v:
+            if k < 2:
+                shared[k] = f
+                opp[k] = a + b + c - u - v
+            k += 1
+        mark[a] = s
+        mark[b] = s
+        mark[c] = s
+    for j in range(k, 2):
+        shared[j] = -1
+        opp[j] = -1
+    return k, ku
+
+
+@njit(cache=True, inline="always")
+def _link_condition(faces, falive, vstart, vcount, refs, mark, meta, u, v, k, ku, opp):
+    """The count of v's alive faces when the link condition holds for (u, v), else -1.
+
+    v's other neighbours are not u's (``mark`` stamped ``meta[M_MARK]``) but for the third
+    corners ``opp`` of the edge's ``k`` faces, and those are not the whole component.
+    """
+    s = meta[M_MARK]
+    bad = False
+    kv = 0
+    for i in range(vstart[v], vstart[v] + vcount[v]):
+        f = refs[i]
+        if not falive[f]:
+            continue
+        kv += 1
+        for j in range(3):
+            w = faces[f, j]
+            if w == u or w == v or mark[w] != s:
+                continue
+            if w != opp[0] and w != opp[1]:
+                bad = True
+    if bad or ku + kv - 2 * k == 0:
+        return -1  # (or the edge's faces are the whole component)
+    return kv
+
+
+@njit(cache=True, inline="always")
+def _closes_tetrahedron(faces, falive, vstart, vcount, refs, u, v, shared, opp):
+    """Whether a face of u and a face of v hold both third corners.
+
+    The two would become one face twice.
+    """
+    both = 0
+    for side in range(2):
+        w = u if side == 0 else v
+        for i in range(vstart[w], vstart[w] + vcount[w]):
+            f = refs[i]
+            if falive[f] and f != shared[0] and f != shared[1]:
+                a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+                if (a == opp[0] or b == opp[0] or c == opp[0]) and (
+                    a == opp[1] or b == opp[1] or c == opp[1]
+                ):
+                    both += 1
+                    break
+    return both == 2
+
+
+@njit(cache=True, inline="always")
+def _bares_corner(falive, vstart, vcount, refs, k, opp):
+    """Whether a third corner's only face is on the edge (it would be left without faces)."""
+    for j in range(k):
+        o = opp[j]
+        alive = 0
+        for i in range(vstart[o], vstart[o] + vcount[o]):
+            if falive[refs[i]]:
+                alive += 1
+        if alive <= 1:
+            return True
+    return False
+
+
+@njit(cache=True, inline="always")
+def _worst_quality(pos, faces, falive, fn, vstart, vcount, refs, u, v, shared, out, min_cos):
+    """The worst quality of the faces that stay around u and v, u moved to ``out[:3]``.
+
+    -1 when one of them flips, turns too far or degenerates (:func:`_normal_change`).
+    """
+    x, y, z = out[0], out[1], out[2]
+    worst = 1.0
+    for side in range(2):
+        w = u if side == 0 else v
+        for i in range(vstart[w], vstart[w] + vcount[w]):
+            f = refs[i]
+            if not falive[f] or f == shared[0] or f == shared[1]:
+                continue
+            a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+            which = 0 if a == w else (1 if b == w else 2)
+            q = _normal_change(pos, a, b, c, which, x, y, z, min_cos, fn[f, 0], fn[f, 1], fn[f, 2])
+            if q < 0.0:
+                return -1.0
+            worst = min(worst, q)
+    return worst
+
+
+@njit(cache=True, inline="always")
+def _merge_faces(faces, falive, valive, vstart, vcount, refs, meta, u, v, k, need, shared):
+    """The edge's ``k`` faces go; v's others turn to u; u's list holds them all (``need``)."""
+    for j in range(k):
+        falive[shared[j]] = False
+    meta[M_FACES] -= k
+    for i in range(vstart[v], vstart[v] + vcount[v]):
+        f = refs[i]
+        if falive[f]:
+            for j in range(3):
+                if faces[f, j] == v:
+                    faces[f, j] = u
+    meta[M_REFS] = _join_lists(falive, valive, vstart, vcount, refs, meta[M_REFS], u, v, need)
+
+
+@njit(cache=True, inline="always")
+def _move_edges(ea, eb, ealive, estart, ecount, erefs, hk, hpos, meta, u, v, opp):
+    """Drop v's edges to the third corners (they duplicate u's), move the others to u.
+
+    Returns how many moved.
+    """
+    moved = 0
+    for i in range(estart[v], estart[v] + ecount[v]):
+        g = erefs[i]
+        if not ealive[g]:
+            continue
+        w = ea[g] if eb[g] == v else eb[g]
+        if w == opp[0] or w == opp[1]:
+            ealive[g] = False
+            _remove(hk, hpos, meta, g)
+            continue
+        if ea[g] == v:
+            ea[g] = u
+        else:
+            eb[g] = u
+        moved += 1
+    return moved
+
+
+@njit(cache=True, inline="always")
+def _join_lists(alive, valive, start, count, refs, used, u, v, need):
+    """Make u's list its alive items then v's, appended at the end of ``refs``.
+
+    ``used`` is the used length of ``refs``; when ``need`` more items would not fit, the lists
+    are compacted first (:func:`_compact`). Returns the new used length. (The meta slot is
+    not passed: a literal slot would compile a specialisation for each.)
+    """
+    if used + need > refs.shape[0]:
+        used = _compact(alive, valive, start, count, refs)
+    r = used
+    for side in range(2):
+        w = u if side == 0 else v
+        for i in range(start[w], start[w] + count[w]):
+            x = refs[i]
+            if alive[x]:
+                refs[r] = x
+                r += 1
+    start[u] = used
+    count[u] = r - used
+    return r
+
+
+@njit(cache=True, inline="always")
+def _merge_vertex(pos, Q, boundary, moved, u, v, out):
+    """Move u to ``out[:3]`` with the sum of u's and v's quadrics (v merged into it)."""
+    pos[u, 0] = out[0]
+    pos[u, 1] = out[1]
+    pos[u, 2] = out[2]
+    for j in range(10):
+        Q[u, j] += Q[v, j]
+    boundary[u] = boundary[u] or boundary[v]
+    moved[u] = True
+
+
+@njit(cache=True, inline="always")
+def _log_collapse(log_u, log_v, log_t, meta, u, v, t):
+    """Log the collapse of v into u (``t`` along u -> v); one more this pass."""
+    n_log = meta[M_LOG]
+    log_u[n_log] = u
+    log_v[n_log] = v
+    log_t[n_log] = t
+    meta[M_LOG] = n_log + 1
+    meta[M_PASS_DONE] += 1
+
+
+@njit(cache=True, inline="always")
+def _recost(pos, Q, locked, ea, eb, epen, around, hk, hpos, meta, out):
+    """Cost the edges ``around`` (a vertex's list) again and lift their penalty."""
+    for g in around:
+        if not locked[ea[g]] and not locked[eb[g]]:
+            epen[g] = False
+            _update(hk, hpos, meta, g, _key(_placement(Q, pos, ea[g], eb[g], out), g))
 
 
 @njit(cache=True)
