@@ -56,7 +56,7 @@ def chi_at(pos, top, q_all, q_off, inp_all, nb_all, coef_all, s):
                 oy = c1 & 1
                 oz = c2 & 1
                 # the 27 cells around, looked up once for both loops below (as fast as through
-                # nbr_cell on a slice of nb_all: bench/calibration.md)
+                # nbr_cell on a slice of nb_all: docs/design/poisson.md)
                 near = False
                 for r in range(27):
                     bx = ox + r % 3 - 1

@@ -154,7 +154,7 @@ def screening_matvec(q_keys, nb, xmap, omap, n, s, scell, sloc, sw, x, out):
 
     The 27 cells around a sample and their weights are written out here (and in
     :func:`screening_rhs`, :func:`screening_blocks`): through a helper taking the arrays
-    (``_gather27``, inlined) the matvec was 1.7x slower (``bench/calibration.md``).
+    (``_gather27``, inlined) the matvec was 1.7x slower (``docs/design/poisson.md``).
     """
     _screening_band(
         q_keys, nb, xmap, omap, n, s, scell, sloc, sw, x, out, 0, len(scell), 0, len(q_keys)

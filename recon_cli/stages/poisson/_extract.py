@@ -30,7 +30,7 @@ from recon_cli.stages.poisson._octree import MASK21, lattice_key
 # chi at corner q of cell c of level l is ``fg[fnodes[c - coff[D], q & 3] + (q >> 2)]`` at the
 # finest level, ``g[goff[l] + nodes[c, q & 3] + (q >> 2)]`` above it: written out where it is
 # read, not as a helper taking the five arrays (inlined by numba, such a helper kept their
-# reference counting in the loops: 1.5x slower, see bench/calibration.md).
+# reference counting in the loops: 1.5x slower, see docs/design/poisson.md).
 # ``_state`` gives -1 for a cell that is not in the tree, its index for a leaf and -2 - index
 # for a cell with children. Points are in finest-lattice units (``R = 2**depth``). A minimal
 # edge is keyed by its lower end and axis (:func:`edge_key`).

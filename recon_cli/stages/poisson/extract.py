@@ -315,7 +315,7 @@ def refine_roots(verts: np.ndarray, chi: list, iso: float, depth: int) -> int:
     :func:`._extract.fit_roots`). The edge is the vertex's minimal edge, at the size of the finest
     leaf around it (:func:`_edge_steps`), and the central differences are one edge length beyond its
     ends (the finest step on a coarse leaf's edge fitted worse than the linear roots; figures in
-    ``bench/calibration.md``). A vertex stays within its edge (so the topology is unchanged);
+    ``docs/design/poisson.md``). A vertex stays within its edge (so the topology is unchanged);
     vertices whose four values would reach the cube's faces (clamped in the extraction) stay where
     they are.
     """

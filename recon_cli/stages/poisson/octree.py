@@ -42,7 +42,7 @@ def unique_keys(keys: np.ndarray) -> np.ndarray:
     """The sorted distinct values of 1-d ``keys``, as ``np.unique(keys)`` gives them.
 
     By a sort and a comparison of neighbours: numpy's hash-based ``unique`` is much slower on
-    millions of int64 keys (bench/calibration.md).
+    millions of int64 keys (docs/design/poisson.md).
     """
     s = np.sort(keys)
     if len(s) < 2:

@@ -252,7 +252,7 @@ def spread_fields(
     cells, with the samples' normals distributed over them). Each sample's share of the field
     then is a smoothed B-spline (the B-spline weights convolved with the B-spline) rather than
     one B-spline centred on it; the field's noise from random sample positions is about 1.6x
-    smaller (``bench/calibration.md``). Shares beyond the cube's faces are dropped.
+    smaller (``docs/design/poisson.md``). Shares beyond the cube's faces are dropped.
     """
     out = {}
     for lv in np.unique(lvl):
@@ -305,7 +305,7 @@ class NormalField:
 
     So a coarse field costs per cell of the finer levels near it and a fine field per node of
     the coarser levels, not per node each item reaches (about 8x faster than splatting every
-    spread item at every level; see ``bench/calibration.md``). The carried field is kept on
+    spread item at every level; see ``docs/design/poisson.md``). The carried field is kept on
     the tree's cells and two cells around them, including the cells just beyond the cube's
     faces (all a node of the tree, or of the next level through the refinement, sees); the
     finer levels' integrals on the tree's nodes (all a finer field reaches: the tree holds two
