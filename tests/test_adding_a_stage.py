@@ -50,6 +50,7 @@ SPEC = StageSpec(
 )
 
 WARMUP = (("c64", "--dz", "0.5"),)
+AOT = True
 
 
 @SPEC.runner
@@ -121,3 +122,7 @@ def test_a_stage_is_its_package_and_its_registry_line(toy_stage):
     assert [name for name, _ in steps(Files(str(toy_stage), str(toy_stage)))] == [
         "recon toy-shift cloud_float64.ply out.ply --dz 0.5"
     ]
+    # AOT = True: the warm-up builds its kernel module ahead of time
+    from recon_cli.aot.build import modules_to_build
+
+    assert "toy_shift_pkg._kernel" in modules_to_build()

@@ -12,6 +12,7 @@ import time
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
+from slab_checks import closed_pieces
 
 from recon_cli.errors import InputError, ParameterError
 from recon_cli.geometry import PointCloud
@@ -23,18 +24,6 @@ from recon_cli.stages.poisson.distributed import distributed_poisson
 from interrupt import RUN_RECON, SIGINT_AS_A_TERMINAL, interrupt_when
 from shapes import random_rotation, shape_cloud, single_view_scan, sphere_cloud
 from spilling import spilling_runner
-
-
-def _closed_one_piece(mesh, pieces: int = 1) -> None:
-    rep = topology_report(mesh)
-    assert rep["components"] == pieces
-    assert rep["watertight"] and rep["edge_manifold"] and rep["vertex_manifold"]
-    assert rep["consistently_oriented"]
-    assert rep["duplicate_faces"] == 0 and rep["degenerate_faces"] == 0
-    assert rep["unreferenced_vertices"] == 0
-    # no vertex twice: the two slabs of a seam share theirs
-    assert len(np.unique(mesh.vertices, axis=0)) == len(mesh.vertices)
-    assert rep["volume"] > 0
 
 
 def _radial_error(mesh, centre, radius) -> float:
@@ -55,7 +44,7 @@ def test_sphere_cut_by_every_slab_plane_is_one_closed_piece(seed, n, mode):
     centre = np.array([1e6, -2e6, 3e5])
     pts, nrm = p @ r.T * scale + centre, nrm0 @ r.T
     res = distributed_poisson(pts, nrm, depth=7, partitions=4)
-    _closed_one_piece(res.mesh)
+    closed_pieces(res.mesh)
     dist = res.report["distributed"]
     assert dist["extraction"] == mode
     assert dist["seam_max_deviation"] == 0.0
@@ -80,7 +69,7 @@ def test_sphere_cut_by_level6_seams_is_one_closed_piece():
     r = random_rotation(rng)
     pts, nrm = p @ r.T * 3.0 + 7.0, nrm0 @ r.T
     res = distributed_poisson(pts, nrm, depth=7, partitions=40)
-    _closed_one_piece(res.mesh)
+    closed_pieces(res.mesh)
     dist = res.report["distributed"]
     assert len(dist["slabs"]) == 40 and dist["seam_max_deviation"] == 0.0
     assert all(s["seam_vertices"] > 0 for s in dist["slabs"][1:])
@@ -116,7 +105,7 @@ def test_slabs_of_very_different_density():
     p, n = p[keep] * axes, n[keep] / axes
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     res = distributed_poisson(p, n, depth=7, partitions=2, seams=[16])
-    _closed_one_piece(res.mesh)
+    closed_pieces(res.mesh)
     slabs = res.report["distributed"]["slabs"]
     assert slabs[1]["points"] > 12 * slabs[0]["points"]
 
@@ -139,13 +128,13 @@ def test_noise_blobs_are_specks_across_slabs(monkeypatch):
     pts = np.vstack([p, q]) + rng.normal(scale=0.09, size=(75_000, 3))
     nrm = np.vstack([n, m])
     res = distributed_poisson(pts, nrm, depth=8, partitions=3)
-    _closed_one_piece(res.mesh, pieces=2)
+    closed_pieces(res.mesh, pieces=2)
     assert res.report["noise"] > 1.5 and res.report["bubbles_removed"] > 50
     # the folds' rule alone, measured on the vertices the slabs send, drops the larger blobs;
     # without both rules they stay
     monkeypatch.setattr(P, "SPECK_SIGMAS", 0.0)
     folds = distributed_poisson(pts, nrm, depth=8, partitions=3)
-    _closed_one_piece(folds.mesh, pieces=2)
+    closed_pieces(folds.mesh, pieces=2)
     assert folds.report["folds_removed"] > 20
     monkeypatch.setattr(P, "FOLD_SIGMAS", 0.0)
     blobs = distributed_poisson(pts, nrm, depth=8, partitions=3)
@@ -199,226 +188,11 @@ def test_an_empty_slab():
     slabs = res.report["distributed"]["slabs"]
     assert slabs[1]["points"] == 0 and slabs[1]["faces"] == 0
     assert slabs[0]["faces"] > 0 and slabs[2]["faces"] > 0
-    _closed_one_piece(res.mesh, pieces=2)
+    closed_pieces(res.mesh, pieces=2)
     single = screened_poisson(pts, nrm, depth=7)
     assert abs(len(res.mesh.vertices) - len(single.mesh.vertices)) < 0.01 * len(
         single.mesh.vertices
     )
-
-
-def test_colours_and_density_per_vertex():
-    pts, nrm = sphere_cloud(8000, seed=9)
-    colors = (np.clip(pts * 0.5 + 0.5, 0, 1) * 255).astype(np.uint8)
-    res = distributed_poisson(pts, nrm, depth=7, partitions=3, colors=colors, density=True)
-    single = screened_poisson(pts, nrm, depth=7, colors=colors, density=True)
-    m = res.mesh
-    assert m.colors.dtype == np.uint8 and len(m.colors) == len(m.vertices)
-    d, i = cKDTree(single.mesh.vertices).query(m.vertices)
-    assert np.abs(m.colors.astype(int) - single.mesh.colors[i].astype(int)).max() <= 2
-    dens = m.attributes["density"]
-    ref = single.mesh.attributes["density"][i]
-    assert np.allclose(dens, ref, rtol=1e-3)
-
-
-def test_attributes_carried_as_single():
-    """Every property keeps its dtype and comes from the points on the vertex's side, as in the
-    single-process run: codes (a classification by a plane the seams cross) only take codes
-    the points have and match the single-process vertex nearest; measurements (intensity,
-    colours) within a unit of it; no vertex's neighbours reach past its slab's pad."""
-    rng = np.random.default_rng(21)
-    p, n = sphere_cloud(20_000, seed=21)
-    r = random_rotation(rng)
-    pts, nrm = p @ r.T * 3.0 + 1e5, n @ r.T
-    props = {
-        "classification": np.where(p[:, 0] + 0.3 * p[:, 1] > 0.1, 6, 2).astype(np.uint8),
-        "intensity": (1000 + 500 * p[:, 2]).astype(np.uint16),
-        "gps_time": 1e9 + p[:, 1],
-    }
-    colors = (np.clip(p * 0.5 + 0.5, 0, 1) * 255).astype(np.uint8)
-    res = distributed_poisson(
-        pts, nrm, depth=7, partitions=3, properties=props, colors=colors, density=True
-    )
-    single = screened_poisson(pts, nrm, depth=7, properties=props, colors=colors, density=True)
-    m, s = res.mesh, single.mesh
-    assert list(m.attributes) == list(s.attributes) == [*props, "density"]
-    for k, v in props.items():
-        assert m.attributes[k].dtype == v.dtype and len(m.attributes[k]) == len(m.vertices)
-    assert res.report["attributes"] == single.report["attributes"]
-    assert res.report["distributed"]["attribute_inexact_vertices"] == 0
-    _, i = cKDTree(s.vertices).query(m.vertices)
-    cls = m.attributes["classification"]
-    assert set(np.unique(cls)) == {2, 6}
-    assert (cls != s.attributes["classification"][i]).mean() < 0.001
-    di = np.abs(m.attributes["intensity"].astype(int) - s.attributes["intensity"][i].astype(int))
-    assert di.max() <= 2
-    assert np.abs(m.colors.astype(int) - s.colors[i].astype(int)).max() <= 2
-    assert np.abs(m.attributes["gps_time"] - s.attributes["gps_time"][i]).max() < 1e-3
-    _closed_one_piece(m)
-
-
-def test_one_slab_with_confidence_is_the_single_process_mesh():
-    """--confidence weighs each point by its normal's length over the mean of all of them:
-    with one slab the mesh is the single-process one, to the bit."""
-    rng = np.random.default_rng(22)
-    pts, nrm = sphere_cloud(12_000, seed=22)
-    pts = pts * np.array([1.0, 0.8, 0.7])
-    nrm = nrm * rng.uniform(0.2, 3.0, size=(len(nrm), 1))
-    res = distributed_poisson(pts, nrm, depth=7, partitions=1, confidence=True)
-    single = screened_poisson(pts, nrm, depth=7, confidence=True)
-    plain = screened_poisson(pts, nrm, depth=7)
-    assert np.array_equal(res.mesh.vertices, single.mesh.vertices)
-    assert np.array_equal(res.mesh.faces, single.mesh.faces)
-    # and the weights did something
-    d2, _ = cKDTree(plain.mesh.vertices).query(res.mesh.vertices)
-    assert d2.max() > 1e-6
-
-
-def test_trim_of_an_open_scan_as_single():
-    """A single-view scan's closing sheet trimmed over three slabs: the holes and islands the
-    trim decides are joined across seams, the cut vertices on seams shared; the mesh is the
-    single-process one (faces, area removed, boundary loops), manifold, no vertex twice."""
-    rng = np.random.default_rng(0)
-    pts, nrm = single_view_scan("torus", 160, rng, direction=(0.3, 0.2, -1.0))
-    single = screened_poisson(pts, nrm, depth=7, trim=0.2)
-    res = distributed_poisson(pts, nrm, depth=7, partitions=3, trim=0.2, density=True)
-    _same_trim(single, res, res.report["finest_cell"], 0.5)
-    assert len(res.mesh.attributes["density"]) == len(res.mesh.vertices)
-
-
-def _same_trim(single, res, cell: float, hausdorff_cells: float) -> None:
-    """``res`` (slabs) trimmed as ``single`` (one process): faces, pieces, holes, area."""
-    from recon_cli.mesh.distance import closest_points
-
-    a, b = topology_report(single.mesh), topology_report(res.mesh)
-    assert abs(b["faces"] - a["faces"]) <= 0.001 * a["faces"]
-    assert abs(res.report["trimmed_area"] - single.report["trimmed_area"]) < 1e-3
-    assert b["boundary_loops"] == a["boundary_loops"] > 0
-    assert b["components"] == a["components"]
-    assert b["edge_manifold"] and b["vertex_manifold"] and b["consistently_oriented"]
-    assert abs(b["area"] - a["area"]) < 1e-3 * a["area"]
-    assert len(np.unique(res.mesh.vertices, axis=0)) == len(res.mesh.vertices)
-    ma, mb = single.mesh, res.mesh
-    dab = closest_points(mb.vertices, mb.faces, ma.vertices)[0].max()
-    dba = closest_points(ma.vertices, ma.faces, mb.vertices)[0].max()
-    assert max(dab, dba) <= hausdorff_cells * cell, max(dab, dba) / cell
-
-
-def test_trim_auto_of_an_open_scan_as_single():
-    """``--trim auto`` over three slabs: the samples' spacing capped at the global median, the
-    vertices' support ratio, holes and islands joined across seams; the mesh is the single
-    process's (within a finest cell where the cut crosses a seam's neighbourhood)."""
-    rng = np.random.default_rng(0)
-    pts, nrm = single_view_scan("torus", 160, rng, direction=(0.3, 0.2, -1.0))
-    single = screened_poisson(pts, nrm, depth=7, trim="auto")
-    res = distributed_poisson(pts, nrm, depth=7, partitions=3, trim="auto", density=True)
-    _same_trim(single, res, res.report["finest_cell"], 0.5)
-    assert res.report["distributed"]["trim_inexact_samples"] == 0
-    assert len(res.mesh.attributes["density"]) == len(res.mesh.vertices)
-
-
-@pytest.mark.slow
-def test_trim_auto_of_a_cluttered_scene_as_single():
-    """A cluttered depth-camera office (near objects, far walls, flying pixels), turned and 1e6
-    away, trimmed by ``--trim auto`` in slabs: the single process's pieces, holes and area."""
-    from recon_cli.stages import normals
-
-    from sensors import cluttered_cloud
-
-    p, eye = cluttered_cloud("office", 0)
-    c = normals.run_stage(PointCloud(points=p), orient="camera", camera=tuple(eye)).output
-    single = screened_poisson(c.points, c.normals, depth=8, trim="auto")
-    res = distributed_poisson(c.points, c.normals, depth=8, partitions=3, trim="auto")
-    # the cut runs where the support ratio crosses 1, along edges whose ends moved by at most
-    # half a cell near a seam: the cut point moves by up to about a cell
-    _same_trim(single, res, res.report["finest_cell"], 1.25)
-
-
-def _open_along_the_domain(mesh, report) -> None:
-    """Every boundary vertex of a free-boundary mesh lies on a face of its domain (the points'
-    cube, the solve's middle half)."""
-    from recon_cli.mesh.topology import Connectivity
-
-    c = Connectivity(mesh.faces, len(mesh.vertices))
-    bv = mesh.vertices[np.unique(c.edges[c.boundary_edges])]
-    assert len(bv)
-    lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
-    on = np.zeros(len(bv), bool)
-    for a in range(3):
-        on |= np.isclose(bv[:, a], lo[a], rtol=0, atol=1e-9 * report["finest_cell"] * 1e6)
-        on |= np.isclose(bv[:, a], hi[a], rtol=0, atol=1e-9 * report["finest_cell"] * 1e6)
-    assert on.all()
-
-
-@pytest.mark.parametrize("parts", [1, 2, 4])
-def test_grid_as_single(parts):
-    """``--grid`` in slabs: the one-process grid (same lattice, values within 0.02 finest cell),
-    whose zero level is the slabs' own mesh; on a cloud whose longest axis is not x (the
-    slabs' axes are turned and the grid turned back)."""
-    from recon_cli.mesh.distance import closest_points
-    from recon_cli.stages.mcubes import marching_cubes
-
-    pts, nrm = shape_cloud("torus", 30_000, np.random.default_rng(4), offset=1e5)
-    pts, nrm = pts[:, [2, 0, 1]], nrm[:, [2, 0, 1]]
-    ref = screened_poisson(pts, nrm, depth=7, with_grid=True).grid
-    res = distributed_poisson(pts, nrm, depth=7, partitions=parts, with_grid=True)
-    g = res.grid
-    assert g.sdf.shape == ref.sdf.shape and res.report["grid_shape"] == list(g.sdf.shape)
-    assert g.voxel_size == ref.voxel_size and np.allclose(g.origin, ref.origin, rtol=1e-15)
-    assert np.abs(g.sdf - ref.sdf).max() < 0.02 * g.voxel_size
-    v, f, _ = marching_cubes(g.sdf, 0.0, spacing=g.voxel_size, origin=g.origin)
-    d = closest_points(res.mesh.vertices, res.mesh.faces, v)[0] / g.voxel_size
-    assert d.mean() < 0.05 and d.max() < 0.5, (d.mean(), d.max())
-
-
-@pytest.mark.parametrize("parts", [1, 2, 4])
-def test_free_boundary_terrain_as_single(parts):
-    """A tilted plane over the whole footprint at UTM-like offsets, ``boundary="free"`` in 1, 2
-    and 4 slabs: the single process's surface (flat to the domain's faces, open only there),
-    within a hundredth of a finest cell."""
-    from recon_cli.mesh.distance import closest_points
-
-    from shapes import FAR_OFFSETS
-
-    rng = np.random.default_rng(7)
-    m = 20_000
-    xy = rng.uniform(-1, 1, (m, 2))
-    g = np.array([0.3, -0.2])
-    p = np.column_stack([xy, xy @ g]) + np.asarray(FAR_OFFSETS["utm"])
-    nrm = np.tile(np.array([-g[0], -g[1], 1.0]) / np.sqrt(1 + g @ g), (m, 1))
-    single = screened_poisson(p, nrm, depth=7, boundary="free")
-    res = distributed_poisson(p, nrm, depth=7, partitions=parts, boundary="free")
-    assert len(res.mesh.faces) == len(single.mesh.faces)
-    cell = res.report["finest_cell"]
-    assert cell == single.report["finest_cell"]
-    assert res.report["depth"] == 7 == res.report["tree_depth"]
-    d = closest_points(single.mesh.vertices, single.mesh.faces, res.mesh.vertices)[0]
-    assert d.max() < 0.05 * cell, d.max() / cell
-    assert topology_report(res.mesh)["boundary_loops"] == 1
-    assert len(np.unique(res.mesh.vertices, axis=0)) == len(res.mesh.vertices)
-
-
-def test_free_boundary_open_scan_as_single():
-    """A single-view scan, turned and 1e6 away, ``boundary="free"`` in 3 slabs: open only along
-    the domain's faces, the single process's pieces and loops, the same surface near the data;
-    the unsupported sheet (chi flat there) within half a cell."""
-    from recon_cli.mesh.distance import closest_points
-
-    rng = np.random.default_rng(1)
-    p, n = single_view_scan("torus", 120, rng, direction=rng.normal(size=3))
-    rot = random_rotation(rng)
-    p, n = p @ rot.T + 1e6, n @ rot.T
-    single = screened_poisson(p, n, depth=7, boundary="free")
-    res = distributed_poisson(p, n, depth=7, partitions=3, boundary="free")
-    a, b = topology_report(single.mesh), topology_report(res.mesh)
-    assert abs(b["faces"] - a["faces"]) <= 0.001 * a["faces"]
-    assert (b["components"], b["boundary_loops"]) == (a["components"], a["boundary_loops"])
-    assert b["edge_manifold"] and b["vertex_manifold"] and b["consistently_oriented"]
-    assert len(np.unique(res.mesh.vertices, axis=0)) == len(res.mesh.vertices)
-    _open_along_the_domain(res.mesh, res.report)
-    cell = res.report["finest_cell"]
-    d = closest_points(single.mesh.vertices, single.mesh.faces, res.mesh.vertices)[0] / cell
-    near = cKDTree(p).query(res.mesh.vertices)[0] < 2 * cell
-    assert d[near].max() < 0.01 and d.max() < 0.5, (d[near].max(), d.max())
 
 
 class _Bars:
@@ -765,7 +539,7 @@ def test_laz_tiles_read_by_chunks(cluster, tmp_path, monkeypatch):
         res.mesh.attributes["classification"], ref.mesh.attributes["classification"]
     )
     assert res.mesh.attributes["classification"].dtype == np.uint8
-    _closed_one_piece(res.mesh)
+    closed_pieces(res.mesh)
     # a tile with colours the others have not: refused before anything is written
     rgb = np.full((100, 3), 40000, np.uint16)
     write_las(PointCloud(points=pts[:100], normals=nrm[:100], colors=rgb), str(tmp_path / "c.laz"))
@@ -835,7 +609,7 @@ def test_command_reads_the_file_by_chunks(tmp_path, monkeypatch, capsys):
     assert rep["read"] == {"kept": len(pts), "invalid_dropped": 1}
     assert rep["attributes"] == ["classification", "intensity"]
     mesh = load(str(out))
-    _closed_one_piece(mesh)
+    closed_pieces(mesh)
     assert mesh.vertices.dtype == np.float64
     ref = distributed_poisson(pts, nrm, depth=7, partitions=2, properties=props)
     assert len(ref.mesh.vertices) == len(mesh.vertices)
@@ -967,7 +741,7 @@ def test_out_of_core_command_reads_the_file_by_chunks_in_this_process(
     assert rep["partitions"]["why"].startswith("3 slabs in this process: a slab (~")
     assert "of this process's 1 GiB" in rep["partitions"]["why"]
     mesh = load(str(out))
-    _closed_one_piece(mesh)
+    closed_pieces(mesh)
     ref = distributed_poisson(pts, nrm, depth=7, partitions=3).mesh
     assert len(ref.vertices) == len(mesh.vertices) and len(ref.faces) == len(mesh.faces)
     assert np.allclose(np.sort(ref.vertices, axis=0), np.sort(mesh.vertices, axis=0), atol=1e-12)
@@ -1162,7 +936,7 @@ def test_the_mesh_does_not_depend_on_how_the_work_was_cut():
     cell = runs[1].report["finest_cell"]
     faces = len(runs[1].mesh.faces)
     for k, res in runs.items():
-        _closed_one_piece(res.mesh)
+        closed_pieces(res.mesh)
         assert abs(len(res.mesh.faces) - faces) <= 0.005 * faces, k
         assert len(res.report["distributed"]["slabs"]) == k
     for a in runs:

@@ -1,8 +1,9 @@
 """Ahead-of-time compiled kernels: a command that runs them never imports numba.
 
 ``recon warmup`` also compiles the kernel modules of the commands whose work is smaller than
-numba's start-up (:data:`MODULES`: the PLY reader/writer, ball pivoting, mesh topology,
-marching cubes) into Python extension modules with ``numba.pycc`` (:mod:`recon_cli.aot.build`), from
+numba's start-up (:func:`.build.modules_to_build`: the PLY reader/writer, mesh topology,
+and the ``_kernel`` of every stage whose package sets ``AOT = True``: ball pivoting, marching
+cubes, filter) into Python extension modules with ``numba.pycc`` (:mod:`recon_cli.aot.build`), from
 the same ``@njit`` functions, for the argument types the warm-up compiled them for. A stage
 asks for its kernels through :func:`kernels` instead of importing its ``_kernel`` module:
 
@@ -35,15 +36,14 @@ import numpy as np
 
 from recon_cli._kernels.cache import cache_dir, kernel_sources_fingerprint
 
-# the kernel modules built ahead of time: every kernel the ballpivot and mcubes commands run
-# (reading and writing PLY, the stages, the mesh topology of their reports), filter's serial ones
+# the kernel modules built ahead of time besides the stages' (build.modules_to_build): reading
+# and writing PLY, the mesh topology of the reports
 MODULES = (
     "recon_cli.io._ply_kernel",
-    "recon_cli.stages.ballpivot._kernel",
     "recon_cli.mesh._topology_kernel",
-    "recon_cli.stages.mcubes._kernel",
-    "recon_cli.stages.filter._kernel",
 )
+
+
 MANIFEST = "manifest.json"
 # the layout of a build (manifest, signature keys): part of the fingerprint, so a loader
 # never reads a build made by another version of this module

@@ -1,7 +1,7 @@
 """Build the ahead-of-time kernels (:mod:`recon_cli.aot`) with ``numba.pycc``.
 
 Called by ``recon warmup`` after the warm-up has compiled (or loaded) every kernel for the
-types recon uses: each public ``@njit`` kernel of :data:`~recon_cli.aot.MODULES`
+types recon uses: each public ``@njit`` kernel of :func:`modules_to_build`
 is exported once per signature the warm-up gave it (:func:`signatures`, gathered from its
 worker processes), from its own Python function (the single source), into one extension
 module per kernel module, compiled for this CPU; the extensions are built in parallel
@@ -202,8 +202,27 @@ def _first_line(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
 
 
+def modules_to_build() -> tuple[str, ...]:
+    """The kernel modules to build: :data:`~recon_cli.aot.MODULES`, then the stages' ones.
+
+    The ``_kernel`` of each stage whose package sets ``AOT = True`` (its command's work is
+    smaller than numba's start-up), in registry order.
+    """
+    import importlib
+
+    from recon_cli.stages import STAGES
+
+    out = list(aot.MODULES)
+    for where in list(STAGES.values()):
+        module = where.partition(":")[0] if isinstance(where, str) else ""
+        if module and not module.startswith("<"):
+            if getattr(importlib.import_module(module), "AOT", False):
+                out.append(f"{module}._kernel")
+    return tuple(out)
+
+
 def build(
-    modules: tuple[str, ...] = aot.MODULES,
+    modules: tuple[str, ...] | None = None,
     c_libraries: dict[str, str] | None = None,
     log: Callable[[str], None] | None = None,
     force: bool = False,
@@ -213,7 +232,8 @@ def build(
 ) -> dict:
     """Build the extensions of ``modules`` into :func:`~recon_cli.aot.build_dir`.
 
-    The C ``c_libraries`` (name -> source) are built there too.
+    ``modules`` defaults to :func:`modules_to_build`. The C ``c_libraries`` (name -> source)
+    are built there too.
 
     ``sigs`` gives each module's variants (``{module: signatures(module)}``, gathered from the
     warm-up's workers); by default those its kernels hold in this process. With ``submit``
@@ -225,6 +245,8 @@ def build(
 
     """
     t0 = time.perf_counter()
+    if modules is None:
+        modules = modules_to_build()
     target = aot.build_dir()
     out: dict[str, Any] = {
         "built": False,

@@ -497,9 +497,9 @@ def _failure_log(log: Callable[[str], None] | None) -> Callable[[tuple[str, str]
 
 
 def _aot_modules() -> tuple[str, ...]:
-    from recon_cli import aot
+    from recon_cli.aot.build import modules_to_build
 
-    return aot.MODULES
+    return modules_to_build()
 
 
 def run_phase(name: str, root: str, tick: Callable[[int], Any] | None = None) -> dict:

@@ -70,6 +70,9 @@ _MAX_GRID_CELLS = 2**62
 # extra passes of the largest ball over the holes left by cutting pinched fans
 REFILL_PASSES = 1
 
+# the command's work is smaller than numba's start-up: its kernels are built ahead of time
+AOT = True
+
 SPEC = StageSpec(
     name="ballpivot",
     summary="Ball-pivoting reconstruction of an oriented cloud.",

@@ -169,6 +169,9 @@ def _class_codes(v: Any) -> tuple:
     return tuple(sorted(codes))
 
 
+# the command's work is smaller than numba's start-up: its kernels are built ahead of time
+AOT = True
+
 SPEC = StageSpec(
     name="filter",
     summary="Drop invalid points, crop, select LAS classes, remove outliers, thin.",

@@ -66,6 +66,9 @@ def _origin3(origin: Any) -> np.ndarray:
     return o
 
 
+# the command's work is smaller than numba's start-up: its kernels are built ahead of time
+AOT = True
+
 SPEC = StageSpec(
     name="mcubes",
     summary="Marching cubes: mesh the zero level set of a grid.",
