@@ -23,11 +23,22 @@ from typing import Any
 from recon_cli.errors import ParameterError
 
 MIB = 1 << 20
-# the process before any stage's work: Python, numpy, scipy, numba and its compiled kernels
-# (bench/calibration.md, Memory model: BASE_BYTES)
-BASE_BYTES = 240 * MIB
-# torch and its threads, beside the base (bench/calibration.md, Memory model: TORCH_BYTES)
-TORCH_BYTES = 400 * MIB
+# the process before the stage's work (bench/calibration.md, Memory model: the bases): numba and
+# the cached kernels loaded, or the kernels built ahead of time without numba (recon_cli.aot)
+JIT_BASE = 160 * MIB
+AOT_BASE = 40 * MIB
+# torch and its threads instead (bench/calibration.md, Memory model: TORCH_BASE)
+TORCH_BASE = 400 * MIB
+
+
+def aot_base(module: str) -> int:
+    """The base of a stage whose kernels are ``module``.
+
+    :data:`AOT_BASE` when they are built ahead of time (no numba loaded), else :data:`JIT_BASE`.
+    """
+    from recon_cli import aot
+
+    return AOT_BASE if module in aot.manifest().get("modules", {}) else JIT_BASE
 
 
 @dataclass(frozen=True)
@@ -115,18 +126,21 @@ def _las_size(path: str) -> Size:
 # ---- the stages' models -------------------------------------------------------------------------
 # bytes per unit of input (bench/calibration.md, Memory model: the stage's row; re-measured by
 # bench/memory_model.py STAGE)
-NORMALS_POINT_BYTES = 330
-NORMALS_NEIGHBOUR_BYTES = 6
-BALLPIVOT_POINT_BYTES = 700
+NORMALS_POINT_BYTES = 440
+NORMALS_NEIGHBOUR_BYTES = 5
+BALLPIVOT_POINT_BYTES = 750
+SDF_BASE = 140 * MIB
 SDF_POINT_BYTES = 250
-SDF_FACE_BYTES = 400
-SDF_CELL_BYTES = 60
-MCUBES_CELL_BYTES = 60
-MESH_VERTEX_BYTES = 200
-MESH_FACE_BYTES = 200
-SIMPLIFY_FACE_BYTES = 500
-FILTER_POINT_BYTES = 120
-FILTER_KDTREE_POINT_BYTES = 250
+SDF_FACE_BYTES = 340
+SDF_CELL_BYTES = 105
+SDF_MESH_CELL_BYTES = 12
+MCUBES_CELL_BYTES = 7
+SIMPLIFY_FACE_BYTES = 400
+REPAIR_FACE_BYTES = 130
+SMOOTH_FACE_BYTES = 200
+FILTER_POINT_BYTES = 145
+FILTER_OUTLIERS_BASE = 100 * MIB
+FILTER_OUTLIERS_POINT_BYTES = 190
 FIT_POINT_BYTES = 100
 FIT_CELL_BYTES = 40
 
@@ -153,7 +167,7 @@ def _slabs(points: int, ex: Any, per_point: float, cap: int, local: Any) -> int 
 
 def _normals(size: Size, p: dict, ex: Any, data: Any) -> int | None:
     knn = p.get("knn") or 30
-    one = int(BASE_BYTES + (NORMALS_POINT_BYTES + NORMALS_NEIGHBOUR_BYTES * knn) * size.points)
+    one = int(JIT_BASE + (NORMALS_POINT_BYTES + NORMALS_NEIGHBOUR_BYTES * knn) * size.points)
     if p.get("backend", "native") != "native":
         return one
     from recon_cli.stages.normals.distributed import MAX_SLABS, slab_bytes_per_point, slab_count
@@ -168,35 +182,37 @@ def _normals(size: Size, p: dict, ex: Any, data: Any) -> int | None:
     if slabs == 1 and not (ex is not None and ex.distributed):
         return one
     held = NORMALS_POINT_BYTES * size.points if data is not None else 0
-    return int(BASE_BYTES + held + per * size.points / slabs)
+    return int(JIT_BASE + held + per * size.points / slabs)
 
 
 def _poisson(size: Size, p: dict, ex: Any, data: Any) -> int | None:
     from recon_cli.stages.poisson import memory as M
 
-    depth = int(p.get("depth", 8))
-    cells = None
+    depth, spn = int(p.get("depth", 8)), float(p.get("samples_per_node", 1.5))
     pts = _points_of(data)
     if pts is not None:
-        cells = M.count_cells(pts, depth, float(p.get("scale", 1.1)))
+        tree = M.tree_of(pts, depth, float(p.get("scale", 1.1)), spn)
+    else:
+        tree = M.tree_estimate(size.points, depth, spn)
     if p.get("backend", "native") != "native":
-        return M.one_piece_bytes(size.points, depth, cells)
+        return M.one_piece_bytes(size.points, tree)
     from recon_cli.stages.poisson.slab import MAX_PARTITIONS
     from recon_cli.stages.poisson.stage import local_slabs
 
-    per = M.slab_bytes(size.points, depth, 1, cells) / max(size.points, 1)
+    per = M.slab_bytes(size.points, tree, 1) / max(size.points, 1)
     slabs = _slabs(
         size.points, ex, per, MAX_PARTITIONS, lambda: local_slabs(size.points, ex, depth)
     )
     if slabs is None:
         return None
     if slabs == 1 and not (ex is not None and ex.distributed):
-        return M.one_piece_bytes(size.points, depth, cells)
-    return M.slab_run_bytes(size.points, depth, slabs, cells, in_memory=data is not None)
+        return M.one_piece_bytes(size.points, tree)
+    return M.slab_run_bytes(size.points, tree, slabs, in_memory=data is not None)
 
 
 def _ballpivot(size: Size, p: dict, ex: Any, data: Any) -> int:
-    return int(BASE_BYTES + BALLPIVOT_POINT_BYTES * size.points)
+    base = aot_base("recon_cli.stages.ballpivot._kernel")
+    return int(base + BALLPIVOT_POINT_BYTES * size.points)
 
 
 def grid_cells(size: Size, p: dict) -> int | None:
@@ -218,32 +234,35 @@ def _sdf(size: Size, p: dict, ex: Any, data: Any) -> int | None:
     cells = grid_cells(size, p)
     if cells is None:
         return None
-    per = SDF_FACE_BYTES * size.faces if size.faces else SDF_POINT_BYTES * size.points
-    return int(BASE_BYTES + per + SDF_CELL_BYTES * cells)
+    if size.faces:
+        return int(SDF_BASE + SDF_FACE_BYTES * size.faces + SDF_MESH_CELL_BYTES * cells)
+    return int(SDF_BASE + SDF_POINT_BYTES * size.points + SDF_CELL_BYTES * cells)
 
 
 def _mcubes(size: Size, p: dict, ex: Any, data: Any) -> int:
-    return int(BASE_BYTES + MCUBES_CELL_BYTES * size.cells)
+    return int(aot_base("recon_cli.stages.mcubes._kernel") + MCUBES_CELL_BYTES * size.cells)
 
 
-def _mesh(face_bytes: int) -> Callable[[Size, dict, Any, Any], int]:
+def _mesh(face_bytes: int, module: str | None) -> Callable[[Size, dict, Any, Any], int]:
     def model(size: Size, p: dict, ex: Any, data: Any) -> int:
-        return int(BASE_BYTES + MESH_VERTEX_BYTES * size.points + face_bytes * size.faces)
+        base = JIT_BASE if module is None else aot_base(module)
+        return int(base + face_bytes * size.faces)
 
     return model
 
 
 def _filter(size: Size, p: dict, ex: Any, data: Any) -> int:
-    tree = p.get("outliers") is not None or p.get("radius_outliers") is not None
-    per = FILTER_KDTREE_POINT_BYTES if tree else FILTER_POINT_BYTES
-    return int(BASE_BYTES + per * size.points)
+    if p.get("outliers") is not None or p.get("radius_outliers") is not None:  # a k-d tree
+        return int(FILTER_OUTLIERS_BASE + FILTER_OUTLIERS_POINT_BYTES * size.points)
+    base = aot_base("recon_cli.stages.filter._kernel")
+    return int(base + FILTER_POINT_BYTES * size.points)
 
 
 def _fit_sdf(size: Size, p: dict, ex: Any, data: Any) -> int | None:
     cells = grid_cells(size, {"resolution": p.get("resolution") or 128, **p})
     if cells is None:
         return None
-    return int(BASE_BYTES + TORCH_BYTES + FIT_POINT_BYTES * size.points + FIT_CELL_BYTES * cells)
+    return int(TORCH_BASE + FIT_POINT_BYTES * size.points + FIT_CELL_BYTES * cells)
 
 
 #: stage -> ``f(size, params, execution, data) -> bytes`` (None: the input's size does not say)
@@ -253,9 +272,9 @@ MODELS: dict[str, Callable[[Size, dict, Any, Any], int | None]] = {
     "ballpivot": _ballpivot,
     "sdf": _sdf,
     "mcubes": _mcubes,
-    "simplify": _mesh(SIMPLIFY_FACE_BYTES),
-    "repair": _mesh(MESH_FACE_BYTES),
-    "smooth": _mesh(MESH_FACE_BYTES),
+    "simplify": _mesh(SIMPLIFY_FACE_BYTES, None),
+    "repair": _mesh(REPAIR_FACE_BYTES, "recon_cli.mesh._topology_kernel"),
+    "smooth": _mesh(SMOOTH_FACE_BYTES, None),
     "filter": _filter,
     "fit-sdf": _fit_sdf,
 }

@@ -96,9 +96,9 @@ def slab_count(
 
     A slab's bytes per point: :func:`.memory.slab_bytes` of the cloud at ``depth``.
     """
-    from recon_cli.stages.poisson.memory import slab_bytes
+    from recon_cli.stages.poisson.memory import slab_bytes, tree_estimate
 
-    per = slab_bytes(npoints, depth, 1) / max(npoints, 1)
+    per = slab_bytes(npoints, tree_estimate(npoints, depth), 1) / max(npoints, 1)
     return plan.slab_count(
         partitions,
         npoints,

@@ -1,96 +1,136 @@
-"""Screened Poisson's peak memory, predicted from the cloud's size and the depth before a run.
+"""Screened Poisson's peak memory, predicted from the cloud and the depth before a run.
 
-The solve's state grows with the samples (the points) and with the tree's finest cells: the
-cells of level ``depth`` holding a sample, which follow the surface's area at that level (about
-``4**depth`` times the share of the cube the surface covers), and never outnumber the points.
-The figures are calibrated on noisy armadillo samples (``bench/memory_model.py``,
-``bench/calibration.md``: "Memory model").
+The solve's state grows with the samples (the points) and with the tree's nodes at its finest
+level: the children of the parents within one cell of a cell that holds a sample (the tree is
+complete in siblings, each node's neighbours made), the "ring parents". The tree is only as deep
+as the samples' density supports (``samples_per_node``, :func:`.splat.make_splats`): its depth is
+estimated from the points per cell of a coarse level. With the points at hand both are counted
+(:func:`tree_of`); from the point count alone (a file's header), estimated at the calibration
+cloud's coverage (:func:`tree_estimate`). The figures: ``bench/memory_model.py``,
+``bench/calibration.md`` ("Memory model").
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
-from recon_cli.memory_model import BASE_BYTES
+from recon_cli.memory_model import JIT_BASE
 
-# per point and per finest cell of a run in one piece (bench/calibration.md, Memory model:
-# POINT_BYTES, CELL_BYTES; bench/memory_model.py poisson)
-POINT_BYTES = 440
-CELL_BYTES = 900
-# finest cells a surface has per 4**depth, from the header alone (points not read yet): the
-# noisy armadillo's, a high figure (bench/calibration.md, Memory model: SURFACE_CELLS)
-SURFACE_CELLS = 5.0
-# a slab's own state per point and per cell of its own, its pads' included (bench/calibration.md,
-# Memory model: SLAB_POINT_BYTES, SLAB_CELL_BYTES)
-SLAB_POINT_BYTES = 900
-SLAB_CELL_BYTES = 1400
-# the coordinator's coarse levels: bytes per cell of the whole cube's coarse tree
-COARSE_CELL_BYTES = 1200
-# the in-memory cloud the stage holds beside its slabs (points, normals, a property)
+# a run in one piece: bytes per point and per ring parent of the finest level
+# (bench/calibration.md, Memory model: poisson POINT_BYTES, RING_BYTES)
+POINT_BYTES = 245
+RING_BYTES = 815
+# a slab's own state per point and per ring parent, its pads' included (bench/calibration.md,
+# Memory model: SLAB_POINT_BYTES, SLAB_RING_BYTES)
+SLAB_POINT_BYTES = 300
+SLAB_RING_BYTES = 900
+# the whole cube's coarse levels every slab and the coordinator hold, per ring parent of the coarse
+# depth (bench/calibration.md, Memory model: COARSE_RING_BYTES)
+COARSE_RING_BYTES = 1500
+# the cloud a run in slabs was given in memory, held beside them (points, normals, a property)
 CLOUD_BYTES = 64
+# the level whose points per cell set the tree's depth, and the levels the densest samples go
+# beyond the mean's (bench/calibration.md, Memory model: TREE_DEPTH_MARGIN)
+DENSITY_LEVEL = 6
+TREE_DEPTH_MARGIN = 1.0
+# without the points (a header's count): the calibration cloud's cells of level DENSITY_LEVEL and
+# ring parents per 4**level, and its ring parents per point at most (noisy armadillo samples)
+SURFACE_CELLS = 3.0
+SURFACE_RINGS = 15.0
+RINGS_PER_POINT = 3.5
 
 
-def finest_cells(points: int, depth: int, cells: int | None = None) -> int:
-    """The tree's finest cells: ``cells`` when counted, else estimated from the points alone.
+@dataclass(frozen=True)
+class Tree:
+    """The tree a solve builds: its finest ``depth`` and ``rings``, that level's ring parents."""
 
-    The estimate fills :data:`SURFACE_CELLS` ``* 4**depth`` surface cells with ``points``
-    samples thrown at random: ``S (1 - exp(-points / S))``.
-    """
-    if cells is not None:
-        return int(cells)
-    surface = SURFACE_CELLS * 4.0 ** min(int(depth), 20)
-    return int(surface * -math.expm1(-points / surface)) if points else 0
+    depth: int
+    rings: int
 
 
-def count_cells(points: np.ndarray, depth: int, scale: float) -> int:
-    """The cells of level ``depth`` of the solve's cube that hold a point (``points`` (n, 3))."""
+def _keys(points: np.ndarray, level: int, origin: np.ndarray, size: float) -> np.ndarray:
     from recon_cli.stages.poisson.octree import pack_keys, unique_keys
 
+    n = 1 << level
+    ijk = np.clip(((points - origin) * (n / size)).astype(np.int64), 0, n - 1)
+    return unique_keys(pack_keys(ijk))
+
+
+def _ring(keys: np.ndarray, n: int) -> int:
+    """The cells within one cell (27-neighbourhood) of ``keys`` (packed, level of side ``n``)."""
+    from recon_cli.stages.poisson.octree import unique_keys
+
+    mask = (1 << 21) - 1
+    for shift in (42, 21, 0):
+        c = (keys >> shift) & mask
+        step = np.int64(1) << np.int64(shift)
+        keys = unique_keys(np.concatenate([keys, keys[c > 0] - step, keys[c < n - 1] + step]))
+    return len(keys)
+
+
+def tree_depth(points: int, depth: int, coarse_cells: float, samples_per_node: float) -> int:
+    """The tree's depth, at most ``depth``.
+
+    Where the mean points per cell of :data:`DENSITY_LEVEL` (``coarse_cells`` of them hold a
+    point), a quarter of them a level finer, reach ``samples_per_node``; plus
+    :data:`TREE_DEPTH_MARGIN` (the densest samples').
+    """
+    level = min(DENSITY_LEVEL, depth)
+    per = max(points / max(coarse_cells, 1.0), 1e-9)
+    est = level + 0.5 * math.log2(max(per / samples_per_node, 1e-9)) + TREE_DEPTH_MARGIN
+    return int(min(depth, max(level, math.ceil(est))))
+
+
+def tree_of(points: np.ndarray, depth: int, scale: float, samples_per_node: float) -> Tree:
+    """The tree of the cloud ``points`` (n, 3): its depth estimated, its ring parents counted."""
     if len(points) == 0:
-        return 0
+        return Tree(0, 0)
     lo, hi = points.min(axis=0), points.max(axis=0)
     size = float((hi - lo).max()) * scale
     if not size > 0:
-        return 1
+        return Tree(0, 1)
     origin = 0.5 * (lo + hi) - 0.5 * size
-    n = 1 << int(depth)
-    ijk = np.clip(((points - origin) * (n / size)).astype(np.int64), 0, n - 1)
-    return len(unique_keys(pack_keys(ijk)))
+    coarse = len(_keys(points, min(DENSITY_LEVEL, depth), origin, size))
+    d = tree_depth(len(points), depth, coarse, samples_per_node)
+    if d < 1:
+        return Tree(d, 1)
+    finest = _keys(points, d, origin, size)
+    from recon_cli.stages.poisson.octree import pack_keys, unique_keys, unpack_keys
+
+    parents = unique_keys(pack_keys(unpack_keys(finest) >> 1))
+    return Tree(d, _ring(parents, 1 << (d - 1)))
 
 
-def one_piece_bytes(points: int, depth: int, cells: int | None = None) -> int:
+def tree_estimate(points: int, depth: int, samples_per_node: float = 1.5) -> Tree:
+    """The tree of a cloud of ``points`` points, its cells not counted (a header's count)."""
+    level = min(DENSITY_LEVEL, depth)
+    d = tree_depth(points, depth, SURFACE_CELLS * 4.0**level, samples_per_node)
+    rings = min(RINGS_PER_POINT * points, SURFACE_RINGS * 4.0 ** max(d - 1, 0))
+    return Tree(d, int(rings))
+
+
+def one_piece_bytes(points: int, tree: Tree) -> int:
     """Peak resident bytes of a run in one piece (the process's, imports included)."""
-    c = finest_cells(points, depth, cells)
-    return int(BASE_BYTES + POINT_BYTES * points + CELL_BYTES * c)
+    return int(JIT_BASE + POINT_BYTES * points + RING_BYTES * tree.rings)
 
 
-def coarse_bytes(depth: int, coarse_depth: int) -> int:
-    """The whole cube's coarse levels that the coordinator and every slab hold."""
-    return int(COARSE_CELL_BYTES * finest_cells(1 << 62, min(depth, coarse_depth)))
-
-
-def slab_bytes(points: int, depth: int, slabs: int, cells: int | None = None) -> int:
+def slab_bytes(points: int, tree: Tree, slabs: int) -> int:
     """A slab's own state, pads included: the part a slab count divides (bytes)."""
-    c = finest_cells(points, depth, cells)
-    return int((SLAB_POINT_BYTES * points + SLAB_CELL_BYTES * c) / max(int(slabs), 1))
+    return int((SLAB_POINT_BYTES * points + SLAB_RING_BYTES * tree.rings) / max(int(slabs), 1))
 
 
-def slab_run_bytes(
-    points: int, depth: int, slabs: int, cells: int | None = None, in_memory: bool = True
-) -> int:
-    """Peak resident bytes of a process running ``slabs`` slabs, one at a time.
+def slab_run_bytes(points: int, tree: Tree, slabs: int, in_memory: bool = True) -> int:
+    """Peak resident bytes of a process running ``slabs`` slabs, one at a time (or a worker's).
 
-    The process's base, the coarse levels, one slab's state and, with ``in_memory``, the cloud
-    the stage was given (a run from files never holds it).
+    The process's base, the whole cube's coarse levels, one slab's state and, with
+    ``in_memory``, the cloud the stage was given (a run from files never holds it).
     """
     from recon_cli.stages.poisson.distributed import coarse_depth_for
 
+    coarse = min(tree.depth, coarse_depth_for(tree.depth))
+    coarse_rings = min(tree.rings, SURFACE_RINGS * 4.0 ** max(coarse - 1, 0))
     held = CLOUD_BYTES * points if in_memory else 0
-    return int(
-        BASE_BYTES
-        + held
-        + coarse_bytes(depth, coarse_depth_for(depth))
-        + slab_bytes(points, depth, slabs, cells)
-    )
+    return int(JIT_BASE + held + COARSE_RING_BYTES * coarse_rings + slab_bytes(points, tree, slabs))
