@@ -28,7 +28,7 @@ MIB = 1 << 20
 JIT_BASE = 160 * MIB
 AOT_BASE = 40 * MIB
 # torch and its threads instead (bench/calibration.md, Memory model: TORCH_BASE)
-TORCH_BASE = 400 * MIB
+TORCH_BASE = 285 * MIB
 
 
 def aot_base(module: str) -> int:
@@ -128,7 +128,7 @@ def _las_size(path: str) -> Size:
 # bench/memory_model.py STAGE)
 NORMALS_POINT_BYTES = 440
 NORMALS_NEIGHBOUR_BYTES = 5
-BALLPIVOT_POINT_BYTES = 750
+BALLPIVOT_POINT_BYTES = 800
 SDF_BASE = 140 * MIB
 SDF_POINT_BYTES = 250
 SDF_FACE_BYTES = 340
@@ -141,8 +141,8 @@ SMOOTH_FACE_BYTES = 200
 FILTER_POINT_BYTES = 145
 FILTER_OUTLIERS_BASE = 100 * MIB
 FILTER_OUTLIERS_POINT_BYTES = 190
-FIT_POINT_BYTES = 100
-FIT_CELL_BYTES = 40
+FIT_POINT_BYTES = 890
+FIT_CELL_BYTES = 78
 
 
 def _slabs(points: int, ex: Any, per_point: float, cap: int, local: Any) -> int | None:

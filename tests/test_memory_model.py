@@ -169,19 +169,26 @@ def test_every_report_says_the_prediction_and_the_peak(tmp_path, capsys):
 
 
 def _process(argv: list[str]) -> tuple[int, str, str, int]:
-    """``recon ARGV`` as a process: exit status, stdout, stderr and its peak resident bytes
-    as the kernel counts them (``wait4``: imports, reading and writing included)."""
-    import os
+    """``recon ARGV`` as a process: exit status, stdout, stderr and its largest resident memory
+    sampled every 10 ms (reading IN included; ``wait4``'s figure would keep this process's)."""
     import tempfile
+    import time
 
     cmd = [sys.executable, "-m", "recon_cli.cli.main", *argv]
+    peak = 0
     with tempfile.TemporaryFile("w+") as so, tempfile.TemporaryFile("w+") as se:
         proc = subprocess.Popen(cmd, stdout=so, stderr=se, text=True)
-        _, status, usage = os.wait4(proc.pid, 0)
-        proc.returncode = os.waitstatus_to_exitcode(status)
+        while proc.poll() is None:
+            try:
+                with open(f"/proc/{proc.pid}/status") as f:
+                    rss = [ln for ln in f if ln.startswith("VmRSS:")]
+                peak = max([peak] + [int(ln.split()[1]) * 1024 for ln in rss])
+            except OSError:  # it ended between poll() and open()
+                pass
+            time.sleep(0.01)
         so.seek(0)
         se.seek(0)
-        return proc.returncode, so.read(), se.read(), usage.ru_maxrss * 1024
+        return proc.returncode, so.read(), se.read(), peak
 
 
 @pytest.fixture(scope="module")
@@ -198,20 +205,23 @@ PROCESS_RUNS = [
     ("filter", ["--voxel", "0.5"]),
     ("sdf", ["--resolution", "160"]),
     ("normals", ["--knn", "20"]),
-    ("poisson", ["--depth", "7"]),
+    ("poisson", ["--depth", "8"]),
+    ("poisson", ["--depth", "8", "--partitions", "3"]),  # in slabs, from the file
 ]
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("stage", "args"), PROCESS_RUNS, ids=[r[0] for r in PROCESS_RUNS])
+@pytest.mark.parametrize(
+    ("stage", "args"), PROCESS_RUNS, ids=[" ".join([r[0], *r[1]]) for r in PROCESS_RUNS]
+)
 def test_a_processs_peak_is_within_its_prediction(million, tmp_path, stage, args):
-    """``recon STAGE`` on 1M points as a process: its peak resident memory, as the kernel counts
-    it and as its report says, is within 1/1.5 to 1.5 times the prediction it made before."""
+    """``recon STAGE`` on 1M points as a process: its peak resident memory, sampled and as its
+    report says, is within 1/1.5 to 1.5 times the prediction it made before."""
     out = tmp_path / ("o.npz" if stage == "sdf" else "o.ply")
     code, so, se, rss = _process([stage, str(million), str(out), *args, "--json", "-q"])
     assert code == 0, se
     mem = json.loads(so)["memory"]
-    for peak in (rss, mem["peak_bytes"]):
+    for peak in (max(rss, mem["peak_bytes"]), mem["peak_bytes"]):
         assert 1 / 1.5 <= peak / mem["predicted_bytes"] <= 1.5, (stage, args, mem, rss)
 
 

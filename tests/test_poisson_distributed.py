@@ -800,11 +800,11 @@ def test_ctrl_c_mid_job_leaves_nothing(tmp_path):
 
 
 def _slab_bytes_per_point(monkeypatch, per_point: float) -> None:
-    """A Poisson slab's memory patched to ``per_point`` bytes a point (its cells' share 0)."""
+    """A Poisson slab's memory patched to ``per_point`` bytes a point (its rings' share 0)."""
     from recon_cli.stages.poisson import memory as PM
 
     monkeypatch.setattr(PM, "SLAB_POINT_BYTES", per_point)
-    monkeypatch.setattr(PM, "SLAB_CELL_BYTES", 0)
+    monkeypatch.setattr(PM, "SLAB_RING_BYTES", 0)
 
 
 def _refuse_loading(monkeypatch):

@@ -22,16 +22,19 @@ from recon_cli.memory_model import JIT_BASE
 # a run in one piece: bytes per point and per ring parent of the finest level
 # (bench/calibration.md, Memory model: poisson POINT_BYTES, RING_BYTES)
 POINT_BYTES = 245
-RING_BYTES = 815
+RING_BYTES = 700
 # a slab's own state per point and per ring parent, its pads' included (bench/calibration.md,
 # Memory model: SLAB_POINT_BYTES, SLAB_RING_BYTES)
-SLAB_POINT_BYTES = 300
-SLAB_RING_BYTES = 900
+SLAB_POINT_BYTES = 16
+SLAB_RING_BYTES = 471
 # the whole cube's coarse levels every slab and the coordinator hold, per ring parent of the coarse
 # depth (bench/calibration.md, Memory model: COARSE_RING_BYTES)
 COARSE_RING_BYTES = 1500
 # the cloud a run in slabs was given in memory, held beside them (points, normals, a property)
 CLOUD_BYTES = 64
+# what a run in slabs holds of every point beside the slab's state (bench/calibration.md,
+# Memory model: SLABS_POINT_BYTES)
+SLABS_POINT_BYTES = 215
 # the level whose points per cell set the tree's depth, and the levels the densest samples go
 # beyond the mean's (bench/calibration.md, Memory model: TREE_DEPTH_MARGIN)
 DENSITY_LEVEL = 6
@@ -39,7 +42,7 @@ TREE_DEPTH_MARGIN = 1.0
 # without the points (a header's count): the calibration cloud's cells of level DENSITY_LEVEL and
 # ring parents per 4**level, and its ring parents per point at most (noisy armadillo samples)
 SURFACE_CELLS = 3.0
-SURFACE_RINGS = 15.0
+SURFACE_RINGS = 11.0
 RINGS_PER_POINT = 3.5
 
 
@@ -117,9 +120,28 @@ def one_piece_bytes(points: int, tree: Tree) -> int:
     return int(JIT_BASE + POINT_BYTES * points + RING_BYTES * tree.rings)
 
 
+def read_share(depth: int, slabs: int) -> float:
+    """The share of the cube's width the widest of ``slabs`` slabs reads: its own and its pads.
+
+    The pads: :data:`.slab.PAD_CELLS` cells of the first level below the coarse depth beyond
+    each seam (:func:`.distributed.coarse_depth_for` of the tree's ``depth``).
+    """
+    if slabs <= 1:
+        return 1.0
+    from recon_cli.stages.poisson.distributed import coarse_depth_for
+    from recon_cli.stages.poisson.slab import PAD_CELLS
+
+    pad = PAD_CELLS / 2.0 ** (coarse_depth_for(depth) + 1)
+    return min(1.0, 1.0 / slabs + 2.0 * pad)
+
+
 def slab_bytes(points: int, tree: Tree, slabs: int) -> int:
-    """A slab's own state, pads included: the part a slab count divides (bytes)."""
-    return int((SLAB_POINT_BYTES * points + SLAB_RING_BYTES * tree.rings) / max(int(slabs), 1))
+    """A slab's own state, pads included: the part a slab count divides (bytes).
+
+    The whole cloud's at one slab; at more, the share the widest reads (:func:`read_share`).
+    """
+    share = read_share(tree.depth, int(slabs))
+    return int((SLAB_POINT_BYTES * points + SLAB_RING_BYTES * tree.rings) * share)
 
 
 def slab_run_bytes(points: int, tree: Tree, slabs: int, in_memory: bool = True) -> int:
@@ -132,5 +154,10 @@ def slab_run_bytes(points: int, tree: Tree, slabs: int, in_memory: bool = True) 
 
     coarse = min(tree.depth, coarse_depth_for(tree.depth))
     coarse_rings = min(tree.rings, SURFACE_RINGS * 4.0 ** max(coarse - 1, 0))
-    held = CLOUD_BYTES * points if in_memory else 0
-    return int(JIT_BASE + held + COARSE_RING_BYTES * coarse_rings + slab_bytes(points, tree, slabs))
+    held = (CLOUD_BYTES if in_memory else 0) + SLABS_POINT_BYTES
+    return int(
+        JIT_BASE
+        + held * points
+        + COARSE_RING_BYTES * coarse_rings
+        + slab_bytes(points, tree, slabs)
+    )
