@@ -1,4 +1,4 @@
-"""A stage's predicted peak memory (recon_cli.memory_model): figures, report, refusal."""
+"""A stage's predicted peak memory (recon_cli.stages.memory_model): figures, report, refusal."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ import sys
 import numpy as np
 import pytest
 
-from recon_cli import memory_model as MM
 from recon_cli.errors import ParameterError
 from recon_cli.geometry import PointCloud, TriangleMesh
 from recon_cli.io.load import load, save
+from recon_cli.stages import memory_model as MM
 from recon_cli.stages.poisson import memory as PM
 
 from shapes import sphere_cloud
@@ -111,6 +111,9 @@ def test_poisson_tree_estimated_from_the_count_alone():
     runs = [PM.slab_run_bytes(4 * 10**6, tree, k) for k in (1, 2, 4, 8)]
     assert runs == sorted(runs, reverse=True) and runs[0] > runs[-1]
     assert PM.slab_run_bytes(10**6, tree, 4, in_memory=False) < PM.slab_run_bytes(10**6, tree, 4)
+    from recon_cli.stages.poisson.distributed import coarse_depth_for
+
+    assert [PM.coarse_depth(d) for d in range(1, 15)] == [coarse_depth_for(d) for d in range(1, 15)]
 
 
 def test_the_refusal_is_one_line_with_the_least_memory_that_does():

@@ -17,6 +17,8 @@ from recon_cli.errors import InputError, ParameterError
 from recon_cli.geometry import PointCloud
 from recon_cli.io.load import load, save
 from recon_cli.mesh.topology import report as topology_report
+from recon_cli.slabs.plan import SLAB_MEMORY_SHARE
+from recon_cli.stages.poisson import memory as PM
 from recon_cli.stages.poisson import screened_poisson
 from recon_cli.stages.poisson.distributed import distributed_poisson
 
@@ -721,7 +723,6 @@ def test_command_reports_the_slab_count_and_why(tmp_path, monkeypatch, capsys):
     """``--workers 2 --memory 5GiB`` (2 GiB a worker) without ``--partitions``, on a cloud
     whose slab (at a patched bytes per point) fits a worker's share three times over: four
     slabs, two per worker, and ``--json`` says so; with ``--partitions 3``, three, given."""
-    from recon_cli.slabs.plan import SLAB_MEMORY_SHARE
 
     pts, nrm = sphere_cloud(6000, seed=15)
     src = tmp_path / "sphere.ply"
@@ -801,8 +802,6 @@ def test_ctrl_c_mid_job_leaves_nothing(tmp_path):
 
 def _slab_bytes_per_point(monkeypatch, per_point: float) -> None:
     """A Poisson slab's memory patched to ``per_point`` bytes a point (its rings' share 0)."""
-    from recon_cli.stages.poisson import memory as PM
-
     monkeypatch.setattr(PM, "SLAB_POINT_BYTES", per_point)
     monkeypatch.setattr(PM, "SLAB_RING_BYTES", 0)
 
@@ -825,7 +824,6 @@ def test_out_of_core_command_reads_the_file_by_chunks_in_this_process(
     the mesh is the in-memory run's in 3 slabs, closed and one piece; the spill folder beside OUT
     is gone; the report says how many slabs and why."""
     import recon_cli.io.chunks as C
-    from recon_cli.slabs.plan import SLAB_MEMORY_SHARE
 
     pts, nrm = sphere_cloud(9000, seed=21)
     src = tmp_path / "sphere.ply"
@@ -876,7 +874,6 @@ def test_run_on_memory_puts_the_library_call_in_slabs(monkeypatch):
     one piece, so the stage runs in slabs in this process (the report says so) and the mesh is
     the slabs' run; without the limit, the single-process solve."""
     import recon_cli
-    from recon_cli.slabs.plan import SLAB_MEMORY_SHARE
 
     pts, nrm = sphere_cloud(6000, seed=23)
     cloud = PointCloud(points=pts, normals=nrm)
@@ -891,7 +888,6 @@ def test_run_on_memory_puts_the_library_call_in_slabs(monkeypatch):
 
 def test_a_memory_too_small_for_the_most_slabs_is_refused_up_front(tmp_path, monkeypatch, capsys):
     """One line with the least memory that would do, exit 2, nothing written, IN not read."""
-
     pts, nrm = sphere_cloud(3000, seed=24)
     src = tmp_path / "s.ply"
     save(PointCloud(points=pts, normals=nrm), str(src))

@@ -108,7 +108,7 @@ def run_stage_command(
                 progress=progress,
             )
         if report is not None:
-            from recon_cli.memory_model import entry
+            from recon_cli.stages.memory_model import entry
 
             report["memory"] = entry(predicted)  # the largest of this process and its workers
             emit_report(ctx, report, json_=json_, data_on_stdout=(output == "-"))
@@ -142,7 +142,7 @@ def run_stage_command(
         report["read"] = read
     report["timings"] = {"read": t1 - t0, "stage": t2 - t1, "write": t3 - t2}
     if isinstance(report.get("memory"), dict):  # the peak of the stage and the write
-        from recon_cli.memory_model import peak_bytes
+        from recon_cli.stages.memory_model import peak_bytes
 
         report["memory"]["peak_bytes"] = peak_bytes()
     report["output"] = "<stdout>" if output == "-" else output
@@ -152,9 +152,9 @@ def run_stage_command(
 
 def header_prediction(stage: str, input: str, checked: dict, load_kw: dict) -> int | None:
     """The stage's peak memory from IN's header (None: not told), refused when over budget."""
-    from recon_cli import memory_model as MM
     from recon_cli.execution import current
     from recon_cli.stages import get_spec
+    from recon_cli.stages import memory_model as MM
 
     size = MM.size_from_header(input, load_kw.get("format"))
     if size is None:
@@ -171,11 +171,11 @@ def plan_report(stage: str, input: str, checked: dict, load_kw: dict) -> dict:
     Keys ``stage``, ``input``, ``points``, ``faces``, ``cells``, ``from`` (``header`` or
     ``data``), ``memory`` (``predicted_bytes``, ``budget_bytes``) and ``fits``.
     """
-    from recon_cli import memory_model as MM
     from recon_cli.errors import naming
     from recon_cli.execution import current
     from recon_cli.io.load import check_read, load
     from recon_cli.stages import get_spec, read_hint
+    from recon_cli.stages import memory_model as MM
 
     ex = current()
     params = {**get_spec(stage).defaults(), **checked}

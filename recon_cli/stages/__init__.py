@@ -392,7 +392,7 @@ def apply_stage(
         history.append(provenance_line(name, effective))
     result.report.setdefault("stage", name)
     if isinstance(result.report, dict):
-        from recon_cli.memory_model import entry
+        from recon_cli.stages.memory_model import entry
 
         result.report["memory"] = entry(predicted)
     from recon_cli.geometry import precision_note
@@ -410,21 +410,16 @@ def predicted_memory(name: str, data: Any, checked: dict[str, Any]) -> int | Non
 
     The budget is the execution's in force (:func:`recon_cli.execution.current`); ``checked``:
     the parameters given, checked. None where the stage has no model
-    (:mod:`recon_cli.memory_model`).
+    (:mod:`recon_cli.stages.memory_model`).
 
     Raises
     ------
     ParameterError
         The prediction exceeds the budget (one line: the figure and the least ``--memory``).
     """
-    from recon_cli import memory_model as MM
-    from recon_cli.execution import current
+    from recon_cli.stages.memory_model import predict_in_force
 
-    spec = get_spec(name)
-    ex = current()
-    predicted = MM.predict(name, MM.size_of(data), {**spec.defaults(), **checked}, ex, data)
-    MM.check_fits(name, predicted, ex.budget())
-    return predicted
+    return predict_in_force(name, data, {**get_spec(name).defaults(), **checked})
 
 
 def report_json(report: dict | list[dict]) -> str:

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from recon_cli.memory_model import JIT_BASE
+from recon_cli.memory import JIT_BASE
 
 # a run in one piece: bytes per point and per ring parent of the finest level
 # (bench/calibration.md, Memory model: poisson POINT_BYTES, RING_BYTES)
@@ -25,8 +25,8 @@ POINT_BYTES = 245
 RING_BYTES = 700
 # a slab's own state per point and per ring parent, its pads' included (bench/calibration.md,
 # Memory model: SLAB_POINT_BYTES, SLAB_RING_BYTES)
-SLAB_POINT_BYTES = 16
-SLAB_RING_BYTES = 471
+SLAB_POINT_BYTES = 20
+SLAB_RING_BYTES = 720
 # the whole cube's coarse levels every slab and the coordinator hold, per ring parent of the coarse
 # depth (bench/calibration.md, Memory model: COARSE_RING_BYTES)
 COARSE_RING_BYTES = 1500
@@ -34,7 +34,7 @@ COARSE_RING_BYTES = 1500
 CLOUD_BYTES = 64
 # what a run in slabs holds of every point beside the slab's state (bench/calibration.md,
 # Memory model: SLABS_POINT_BYTES)
-SLABS_POINT_BYTES = 215
+SLABS_POINT_BYTES = 170
 # the level whose points per cell set the tree's depth, and the levels the densest samples go
 # beyond the mean's (bench/calibration.md, Memory model: TREE_DEPTH_MARGIN)
 DENSITY_LEVEL = 6
@@ -120,18 +120,28 @@ def one_piece_bytes(points: int, tree: Tree) -> int:
     return int(JIT_BASE + POINT_BYTES * points + RING_BYTES * tree.rings)
 
 
+def coarse_depth(depth: int) -> int:
+    """The levels the coordinator solves for the whole cube at ``depth`` (up to 32 slabs).
+
+    As :func:`.distributed.coarse_depth_for` (not imported: that module imports this one).
+    """
+    from recon_cli.stages.poisson.slab import COARSE_MAX, COARSE_OFFSET, PARTITION_DEPTH
+
+    return min(depth, max(PARTITION_DEPTH, min(depth - COARSE_OFFSET, COARSE_MAX)))
+
+
 def read_share(depth: int, slabs: int) -> float:
     """The share of the cube's width the widest of ``slabs`` slabs reads: its own and its pads.
 
     The pads: :data:`.slab.PAD_CELLS` cells of the first level below the coarse depth beyond
-    each seam (:func:`.distributed.coarse_depth_for` of the tree's ``depth``).
+    each seam (:func:`coarse_depth` of the tree's ``depth``), and the
+    density's :data:`.slab.DENSITY_REACH` cells of that level beyond them.
     """
     if slabs <= 1:
         return 1.0
-    from recon_cli.stages.poisson.distributed import coarse_depth_for
-    from recon_cli.stages.poisson.slab import PAD_CELLS
+    from recon_cli.stages.poisson.slab import DENSITY_REACH, PAD_CELLS
 
-    pad = PAD_CELLS / 2.0 ** (coarse_depth_for(depth) + 1)
+    pad = (PAD_CELLS + DENSITY_REACH) / 2.0 ** (coarse_depth(depth) + 1)
     return min(1.0, 1.0 / slabs + 2.0 * pad)
 
 
@@ -150,9 +160,7 @@ def slab_run_bytes(points: int, tree: Tree, slabs: int, in_memory: bool = True) 
     The process's base, the whole cube's coarse levels, one slab's state and, with
     ``in_memory``, the cloud the stage was given (a run from files never holds it).
     """
-    from recon_cli.stages.poisson.distributed import coarse_depth_for
-
-    coarse = min(tree.depth, coarse_depth_for(tree.depth))
+    coarse = coarse_depth(tree.depth)
     coarse_rings = min(tree.rings, SURFACE_RINGS * 4.0 ** max(coarse - 1, 0))
     held = (CLOUD_BYTES if in_memory else 0) + SLABS_POINT_BYTES
     return int(

@@ -4,7 +4,7 @@ Each heavy stage has a model: the process's peak resident bytes from its input's
 faces, grid cells, read from the file's header where the format tells them) and the stage's
 parameters, with figures calibrated on generated clouds (``bench/memory_model.py``,
 ``bench/calibration.md``: "Memory model"). Poisson's lives in its package
-(:mod:`recon_cli.stages.poisson.memory`). A run whose prediction exceeds the execution's budget
+(``recon_cli.stages.poisson.memory``). A run whose prediction exceeds the execution's budget
 (:meth:`recon_cli.execution.Execution.budget`) and that cannot go in slabs is refused with the
 figure and the smallest ``--memory`` that would do; every stage's report says
 ``"memory": {"predicted_bytes": ..., "peak_bytes": ...}``.
@@ -21,20 +21,16 @@ from dataclasses import dataclass
 from typing import Any
 
 from recon_cli.errors import ParameterError
+from recon_cli.memory import AOT_BASE, JIT_BASE, TORCH_BASE
 
 MIB = 1 << 20
-# the process before the stage's work (bench/calibration.md, Memory model: the bases): numba and
-# the cached kernels loaded, or the kernels built ahead of time without numba (recon_cli.aot)
-JIT_BASE = 160 * MIB
-AOT_BASE = 40 * MIB
-# torch and its threads instead (bench/calibration.md, Memory model: TORCH_BASE)
-TORCH_BASE = 285 * MIB
 
 
 def aot_base(module: str) -> int:
     """The base of a stage whose kernels are ``module``.
 
-    :data:`AOT_BASE` when they are built ahead of time (no numba loaded), else :data:`JIT_BASE`.
+    ``AOT_BASE`` when they are built ahead of time (no numba loaded), else ``JIT_BASE``
+    (:mod:`recon_cli.memory`).
     """
     from recon_cli import aot
 
@@ -128,7 +124,7 @@ def _las_size(path: str) -> Size:
 # bench/memory_model.py STAGE)
 NORMALS_POINT_BYTES = 440
 NORMALS_NEIGHBOUR_BYTES = 5
-BALLPIVOT_POINT_BYTES = 800
+BALLPIVOT_POINT_BYTES = 790
 SDF_BASE = 140 * MIB
 SDF_POINT_BYTES = 250
 SDF_FACE_BYTES = 340
@@ -295,6 +291,25 @@ def predict(
     if model is None or (size.points == 0 and size.cells == 0):
         return None
     return model(size, params, execution, data)
+
+
+def predict_in_force(stage: str, data: Any, params: dict) -> int | None:
+    """:func:`predict` on loaded ``data`` under the execution in force, refused over its budget.
+
+    The execution: :func:`recon_cli.execution.current`; ``params``: the stage's checked
+    parameters, defaults filled in.
+
+    Raises
+    ------
+    ParameterError
+        The prediction exceeds the budget (:func:`check_fits`).
+    """
+    from recon_cli.execution import current
+
+    ex = current()
+    predicted = predict(stage, size_of(data), params, ex, data)
+    check_fits(stage, predicted, ex.budget())
+    return predicted
 
 
 def check_fits(stage: str, predicted: int | None, budget: int | None, where: str = "") -> None:
