@@ -10,6 +10,13 @@ from __future__ import annotations
 import sys
 from typing import Any
 
+# the process before a stage's work, the figures the stages' memory models build on
+# (bench/calibration.md, Memory model: the bases): numba and the cached kernels loaded, or the
+# kernels built ahead of time without numba (recon_cli.aot), or torch and its threads
+JIT_BASE = 160 << 20
+AOT_BASE = 40 << 20
+TORCH_BASE = 285 << 20
+
 
 def status_kb(field: str) -> int | None:
     """A ``/proc/self/status`` figure (``"VmRSS"``, ``"VmHWM"``, ...) in KiB, or None."""

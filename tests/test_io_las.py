@@ -133,14 +133,13 @@ def test_truncated_and_garbage_are_one_line_input_errors():
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-# LAS only: lazrs (the LAZ decoder under laspy) can abort the whole process on some corrupted LAZ
-# chunks (seen here: "Fatal Python error: Aborted" inside lazrs' read_n_points), which no Python
-# code can catch; docs/formats.md says so. Truncated and garbage LAZ files are tested above.
+# LAZ too: lazrs aborted the process on a corrupted chunk table ("memory allocation of 52230495040
+# bytes failed"), which decode_las now checks before lazrs reads it
 @given(
     cut=st.floats(0, 1),
     junk=st.binary(min_size=1, max_size=16),
     pos=st.floats(0, 1),
-    compress=st.just(False),
+    compress=st.booleans(),
 )
 def test_fuzz_truncated_or_corrupted_las_is_data_or_input_error(cut, junk, pos, compress):
     _, data = _laspy_file(1, 3, "1.2", compress, n=50)
@@ -443,3 +442,30 @@ def test_airborne_tile_at_utm_like_coordinates_meshes_like_the_same_tile_at_the_
     # offset, which moves a few crossings by millimetres (measured max 0.0066 ft; float32 output
     # rounded to 1/16 ft)
     assert np.quantile(diff, 0.99) < 1e-4 and diff.max() < 0.02
+
+
+@pytest.mark.parametrize(
+    ("where", "value", "what"),
+    [
+        ("table count", 3264405940, "declares 3264405940 chunks"),  # lazrs allocated 52 GB
+        ("table offset", 2**40, "chunk table at byte"),
+        ("table offset", 0, "chunk table at byte 0"),
+    ],
+)
+def test_a_corrupted_laz_chunk_table_is_refused_before_lazrs_decodes(where, value, what):
+    """The chunk table's offset (the points' first 8 bytes) or its count of chunks (after its
+    version, at the offset) corrupted: lazrs allocated by them and aborted the process; the
+    reader refuses them in one line first."""
+    import struct
+
+    _, data = _laspy_file(1, 3, "1.2", True, n=50)
+    raw = bytearray(data)
+    points = struct.unpack_from("<I", raw, 96)[0]
+    table = struct.unpack_from("<q", raw, points)[0]
+    if where == "table count":
+        struct.pack_into("<I", raw, table + 4, value)
+    else:
+        struct.pack_into("<q", raw, points, value)
+    with pytest.raises(InputError, match=what) as exc:
+        decode_las(bytes(raw), "bad.laz")
+    assert str(exc.value).startswith("bad.laz: ") and "\n" not in str(exc.value)

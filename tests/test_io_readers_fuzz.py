@@ -22,8 +22,9 @@ in five (drawn) also goes through ``recon convert``, to PLY or to its own format
 2 with one stderr line naming the file, the output that was there before untouched.
 
 ``make test`` runs :data:`QUICK` cases a reader; ``make fuzz`` (marker ``fuzz``) :data:`FUZZ`.
-LAZ files are broken in their header and records only: lazrs, the decoder under laspy, can
-abort the process on corrupted compressed points (README, known limitation).
+LAZ files are broken in their compressed points too, their chunk table included (lazrs, the
+decoder under laspy, aborted the process on a table it allocated gigabytes by: the reader checks
+the table first).
 """
 
 from __future__ import annotations
@@ -274,7 +275,7 @@ def _las_file(draw, compress: bool) -> tuple[bytes, str]:
 def _las_broken(draw, compress: bool) -> tuple[str, str, bytes]:
     data, what = _las_file(draw, compress)
     points = struct.unpack_from("<I", data, 96)[0]
-    kind = draw(st.sampled_from(["field", "field", "records", "cut", "none"]))
+    kind = draw(st.sampled_from(["field", "field", "records", "cut", "none", "points"]))
     if kind == "field":
         name, at, code = draw(st.sampled_from(_LAS_FIELDS))
         value = draw(st.sampled_from(_EDGE_FLOATS if code == "<d" else _EDGE_INTS))
@@ -285,12 +286,16 @@ def _las_broken(draw, compress: bool) -> tuple[str, str, bytes]:
         label, data = f"{name} = {value}", bytes(raw)
     elif kind == "records" and not compress:  # anywhere: the VLRs and the points
         label, data = draw(broken(data))
-    elif kind == "records":  # the VLRs only: lazrs may abort on broken compressed points
+    elif kind in ("records", "points"):  # LAZ: the VLRs, or the compressed points
+        # the points: the chunk table's offset (their first 8 bytes), the chunks, the table (the
+        # file's last bytes), whose sizes lazrs allocates by (an abort, were they not checked)
+        lo, hi = (227, points - 1) if kind == "records" else (points, len(data) - 1)
+        ends = st.sampled_from([lo, lo + 4, hi - 8, hi - 4, hi])
+        spots = draw(st.lists(st.integers(lo, max(lo, hi)) | ends, min_size=1, max_size=4))
         raw = bytearray(data)
-        spots = draw(st.lists(st.integers(227, max(227, points - 1)), min_size=1, max_size=4))
         for at in spots:
-            raw[at] = draw(st.integers(0, 255))
-        label, data = f"VLR bytes {spots} overwritten", bytes(raw)
+            raw[min(at, len(raw) - 1)] = draw(st.integers(0, 255))
+        label, data = f"{kind} bytes {spots} overwritten", bytes(raw)
     elif kind == "cut":
         at = draw(st.integers(0, len(data) - 1))
         label, data = f"cut at {at}", data[:at]

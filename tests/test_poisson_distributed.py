@@ -18,6 +18,8 @@ from recon_cli.errors import InputError, ParameterError
 from recon_cli.geometry import PointCloud
 from recon_cli.io.load import load, save
 from recon_cli.mesh.topology import report as topology_report
+from recon_cli.slabs.plan import SLAB_MEMORY_SHARE
+from recon_cli.stages.poisson import memory as PM
 from recon_cli.stages.poisson import screened_poisson
 from recon_cli.stages.poisson.distributed import distributed_poisson
 
@@ -624,14 +626,12 @@ def test_command_reports_the_slab_count_and_why(tmp_path, monkeypatch, capsys):
     """``--workers 2 --memory 5GiB`` (2 GiB a worker) without ``--partitions``, on a cloud
     whose slab (at a patched bytes per point) fits a worker's share three times over: four
     slabs, two per worker, and ``--json`` says so; with ``--partitions 3``, three, given."""
-    from recon_cli.slabs.plan import SLAB_MEMORY_SHARE
-    from recon_cli.stages.poisson import distributed as D
 
     pts, nrm = sphere_cloud(6000, seed=15)
     src = tmp_path / "sphere.ply"
     save(PointCloud(points=pts, normals=nrm), str(src))
     mem = 2 * 2**30
-    monkeypatch.setattr(D, "SLAB_BYTES_PER_POINT", 3 * SLAB_MEMORY_SHARE * mem / len(pts))
+    _slab_bytes_per_point(monkeypatch, 3 * SLAB_MEMORY_SHARE * mem / len(pts))
     argv = ["poisson", str(src), str(tmp_path / "m.ply"), "--workers", "2", "--depth", "7"]
     argv += ["--memory", "5GiB", "--json", "-q"]
     for extra, count, why in (
@@ -702,6 +702,12 @@ def test_ctrl_c_mid_job_leaves_nothing(tmp_path):
 # ---- in slabs in this process (out of core) -------------------------------------------------
 
 
+def _slab_bytes_per_point(monkeypatch, per_point: float) -> None:
+    """A Poisson slab's memory patched to ``per_point`` bytes a point (its rings' share 0)."""
+    monkeypatch.setattr(PM, "SLAB_POINT_BYTES", per_point)
+    monkeypatch.setattr(PM, "SLAB_RING_BYTES", 0)
+
+
 def _refuse_loading(monkeypatch):
     import recon_cli.io.load as L
 
@@ -720,15 +726,13 @@ def test_out_of_core_command_reads_the_file_by_chunks_in_this_process(
     the mesh is the in-memory run's in 3 slabs, closed and one piece; the spill folder beside OUT
     is gone; the report says how many slabs and why."""
     import recon_cli.io.chunks as C
-    from recon_cli.slabs.plan import SLAB_MEMORY_SHARE
-    from recon_cli.stages.poisson import distributed as D
 
     pts, nrm = sphere_cloud(9000, seed=21)
     src = tmp_path / "sphere.ply"
     save(PointCloud(points=pts, normals=nrm), str(src))
     monkeypatch.setattr(C, "CHUNK_ROWS", 4000)  # three chunks
     mem = 2**30
-    monkeypatch.setattr(D, "SLAB_BYTES_PER_POINT", 2.5 * SLAB_MEMORY_SHARE * mem / len(pts))
+    _slab_bytes_per_point(monkeypatch, 2.5 * SLAB_MEMORY_SHARE * mem / len(pts))
     _refuse_loading(monkeypatch)
     out = tmp_path / "mesh.ply"
     code = _recon(["poisson", str(src), str(out), "--depth", "7", "--memory", "1GiB", "--json"])
@@ -819,12 +823,10 @@ def test_run_on_memory_puts_the_library_call_in_slabs(monkeypatch):
     one piece, so the stage runs in slabs in this process (the report says so) and the mesh is
     the slabs' run; without the limit, the single-process solve."""
     import recon_cli
-    from recon_cli.slabs.plan import SLAB_MEMORY_SHARE
-    from recon_cli.stages.poisson import distributed as D
 
     pts, nrm = sphere_cloud(6000, seed=23)
     cloud = PointCloud(points=pts, normals=nrm)
-    monkeypatch.setattr(D, "SLAB_BYTES_PER_POINT", 1.5 * SLAB_MEMORY_SHARE * 2**30 / len(pts))
+    _slab_bytes_per_point(monkeypatch, 1.5 * SLAB_MEMORY_SHARE * 2**30 / len(pts))
     with recon_cli.run_on(memory="1GiB"):
         mesh = recon_cli.poisson(cloud, depth=7)
     ref = distributed_poisson(pts, nrm, depth=7, partitions=2).mesh
@@ -835,12 +837,10 @@ def test_run_on_memory_puts_the_library_call_in_slabs(monkeypatch):
 
 def test_a_memory_too_small_for_the_most_slabs_is_refused_up_front(tmp_path, monkeypatch, capsys):
     """One line with the least memory that would do, exit 2, nothing written, IN not read."""
-    from recon_cli.stages.poisson import distributed as D
-
     pts, nrm = sphere_cloud(3000, seed=24)
     src = tmp_path / "s.ply"
     save(PointCloud(points=pts, normals=nrm), str(src))
-    monkeypatch.setattr(D, "SLAB_BYTES_PER_POINT", 10**9)
+    _slab_bytes_per_point(monkeypatch, 10**9)
     _refuse_loading(monkeypatch)
     out = tmp_path / "o.ply"
     assert _recon(["poisson", str(src), str(out), "--memory", "2GB", "-q"]) == 2

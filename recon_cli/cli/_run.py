@@ -65,8 +65,12 @@ def run_stage_command(
     params: dict[str, Any],
     ascii_: bool = False,
     json_: bool = False,
+    plan: bool = False,
 ) -> dict:
-    """Load IN, run ``stage`` with ``params``, write OUT atomically, print and return the report."""
+    """Load IN, run ``stage`` with ``params``, write OUT atomically, print and return the report.
+
+    With ``plan``: print the predicted peak memory instead (:func:`plan_report`), running nothing.
+    """
     from recon_cli.cli._signals import immediate
     from recon_cli.errors import naming
     from recon_cli.geometry import TriangleMesh
@@ -75,12 +79,18 @@ def run_stage_command(
 
     spec = get_spec(stage)
     checked = spec.check(params, complete=False)  # parameters before reading anything
+    load_kw, save_kw = io_formats(ctx, input, output)
+    if plan:
+        report = plan_report(stage, input, checked, load_kw)
+        emit_report(ctx, report, json_=json_)
+        return report
+    # a run the memory cannot hold is refused before IN is read (its header's counts)
+    predicted = header_prediction(stage, input, checked, load_kw)
     hint = read_hint(stage, checked)  # what the stage keeps of IN: a COPC file reads only that
     check_destination(output, spec.gives)  # and the output path: a wrong one is known now
     progress = make_progress(ctx)  # before reading: a first run's compiling shows from the start
     # Ctrl-C / SIGTERM leave at once, even inside a numba kernel or while numba loads one:
     # nothing is written before save()
-    load_kw, save_kw = io_formats(ctx, input, output)
     if spec.from_files is not None:
         import importlib
 
@@ -98,6 +108,9 @@ def run_stage_command(
                 progress=progress,
             )
         if report is not None:
+            from recon_cli.stages.memory_model import entry
+
+            report["memory"] = entry(predicted)  # the largest of this process and its workers
             emit_report(ctx, report, json_=json_, data_on_stdout=(output == "-"))
             return report
     with immediate():
@@ -128,9 +141,61 @@ def run_stage_command(
     if read:
         report["read"] = read
     report["timings"] = {"read": t1 - t0, "stage": t2 - t1, "write": t3 - t2}
+    if isinstance(report.get("memory"), dict):  # the peak of the stage and the write
+        from recon_cli.stages.memory_model import peak_bytes
+
+        report["memory"]["peak_bytes"] = peak_bytes()
     report["output"] = "<stdout>" if output == "-" else output
     emit_report(ctx, report, json_=json_, data_on_stdout=(output == "-"))
     return report
+
+
+def header_prediction(stage: str, input: str, checked: dict, load_kw: dict) -> int | None:
+    """The stage's peak memory from IN's header (None: not told), refused when over budget."""
+    from recon_cli.execution import current
+    from recon_cli.stages import get_spec
+    from recon_cli.stages import memory_model as MM
+
+    size = MM.size_from_header(input, load_kw.get("format"))
+    if size is None:
+        return None
+    ex = current()
+    predicted = MM.predict(stage, size, {**get_spec(stage).defaults(), **checked}, ex)
+    MM.check_fits(stage, predicted, ex.budget(), "<stdin>" if input == "-" else input)
+    return predicted
+
+
+def plan_report(stage: str, input: str, checked: dict, load_kw: dict) -> dict:
+    """What a run would take: IN's size (its header's, else IN read) and the predicted peak.
+
+    Keys ``stage``, ``input``, ``points``, ``faces``, ``cells``, ``from`` (``header`` or
+    ``data``), ``memory`` (``predicted_bytes``, ``budget_bytes``) and ``fits``.
+    """
+    from recon_cli.errors import naming
+    from recon_cli.execution import current
+    from recon_cli.io.load import check_read, load
+    from recon_cli.stages import get_spec, read_hint
+    from recon_cli.stages import memory_model as MM
+
+    ex = current()
+    params = {**get_spec(stage).defaults(), **checked}
+    size, data = MM.size_from_header(input, load_kw.get("format")), None
+    if size is None or (stage == "poisson"):  # Poisson's finest cells: counted on the points
+        with naming(input):
+            data = check_read(load(input, hint=read_hint(stage, checked), **load_kw), input)
+        size = MM.size_of(data)
+    predicted = MM.predict(stage, size, params, ex, data)
+    budget = ex.budget()
+    return {
+        "stage": stage,
+        "input": "<stdin>" if input == "-" else input,
+        "points": size.points,
+        "faces": size.faces,
+        "cells": size.cells,
+        "from": "header" if data is None else "data",
+        "memory": {"predicted_bytes": predicted, "budget_bytes": budget},
+        "fits": None if predicted is None or budget is None else predicted <= budget,
+    }
 
 
 def emit_report(

@@ -10,6 +10,10 @@ output_arg = click.argument("output", metavar="OUT", type=click.Path(allow_dash=
 
 ASCII_HELP = "Write text: ASCII PLY / STL, PCD 'DATA ascii' (default binary little-endian)."
 JSON_HELP = "Print the report as JSON (on stdout, or stderr when OUT is '-')."
+PLAN_HELP = (
+    "Print the run's predicted peak memory and the memory it may use, then exit: nothing is "
+    "run or written (IN's header is read, or IN when the header does not tell)."
+)
 ascii_opt = click.option("--ascii", "ascii_", is_flag=True, help=ASCII_HELP)
 json_opt = click.option("--json", "json_", is_flag=True, help=JSON_HELP)
 
@@ -32,15 +36,23 @@ def _to_meta(ctx: click.Context, param: click.Parameter, value):
     return value
 
 
-_FORMAT_OPTIONS = (
-    (
-        ("--format", "format"),
-        "Format of '-' and of names without a suffix (ply, obj, off, stl, xyz, csv, pcd, las, "
-        "laz, e57).",
-    ),
-    (("--input-format", "input_format"), "Format of IN, whatever its name (e.g. IN is '-')."),
-    (("--output-format", "output_format"), "Format of OUT, whatever its name."),
-)
+def _format_options() -> tuple:
+    from recon_cli.io.load import format_choices  # the registry: one list for every option
+
+    return (
+        (
+            ("--format", "format"),
+            f"Format of '-' and of names without a suffix: {format_choices()}.",
+        ),
+        (
+            ("--input-format", "input_format"),
+            "Format of IN, whatever its name (e.g. IN is '-'); as --format.",
+        ),
+        (("--output-format", "output_format"), "Format of OUT, whatever its name; as --format."),
+    )
+
+
+_FORMAT_OPTIONS = _format_options()
 _POINTS_ONLY_HELP = (
     "Allow writing a mesh to a points-only format (XYZ, PCD, LAS): its vertices, without the faces."
 )
@@ -172,7 +184,13 @@ def stage_command(stage: str) -> click.Command:
 
     @click.pass_context
     def callback(
-        ctx: click.Context, input: str, output: str, ascii_: bool, json_: bool, **values
+        ctx: click.Context,
+        input: str,
+        output: str,
+        ascii_: bool,
+        json_: bool,
+        plan: bool,
+        **values,
     ) -> None:
         from recon_cli.cli._run import run_stage_command
         from recon_cli.execution import run_on
@@ -185,7 +203,7 @@ def stage_command(stage: str) -> click.Command:
         where = execution_values({p.name: values[p.name] for p in how}, output)
         with run_on(**where):
             report = run_stage_command(
-                ctx, spec.name, input, output, given, ascii_=ascii_, json_=json_
+                ctx, spec.name, input, output, given, ascii_=ascii_, json_=json_, plan=plan
             )
         if spec.keeps_partial and report.get("interrupted"):
             # the stage caught Ctrl-C and returned its best result, which is written: still 130
@@ -208,6 +226,7 @@ def stage_command(stage: str) -> click.Command:
         out_arg,
         click.Option(["--ascii", "ascii_"], is_flag=True, help=ASCII_HELP),
         click.Option(["--json", "json_"], is_flag=True, help=JSON_HELP),
+        click.Option(["--plan"], is_flag=True, help=PLAN_HELP),
     ]
     params += [option_for(p) for p in spec.params]
     params += [option_for(p) for p in how]

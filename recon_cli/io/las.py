@@ -124,6 +124,111 @@ def check_counts(head: bytes, size: int, where: str) -> None:
         )
 
 
+def check_chunk_table(read: Any, size: int, head: bytes, where: str) -> None:
+    """Refuse a LAZ whose chunk table cannot describe its points, before lazrs decodes them.
+
+    lazrs sizes its buffers by the table (the number of chunks, each chunk's points and bytes),
+    and a failed allocation aborts the process: no Python code can catch that. ``read(at, n)``
+    gives the file's ``n`` bytes at byte ``at``; ``head`` its first 375 bytes. The table must lie
+    after the points' start, hold no more chunks than the points' bytes (and, with chunks of a
+    fixed size, than the points fill), and its chunks' bytes fit before it (variable chunks:
+    their points sum to the header's count). A LAS file, or a LAZ without a LASzip record, is
+    left to laspy.
+    """
+    import struct
+
+    if len(head) < 227 or head[:4] != b"LASF" or not head[104] & 0xC0:
+        return
+    header_size = int.from_bytes(head[94:96], "little")
+    to_points = int.from_bytes(head[96:100], "little")
+    count = int.from_bytes(head[107:111], "little")
+    if head[25] >= 4 and len(head) >= 255:
+        count = int.from_bytes(head[247:255], "little") or count
+    record = _laszip_record(read, header_size, int.from_bytes(head[100:104], "little"))
+    if record is None or len(record) < 34:
+        return
+    chunk = int.from_bytes(record[12:16], "little")
+    (at,) = struct.unpack("<q", read(to_points, 8).ljust(8, b"\0"))
+    if at == -1 and size >= 8:  # written as a stream: the table's offset ends the file
+        (at,) = struct.unpack("<q", read(size - 8, 8))
+    if not to_points + 8 <= at <= size - 8:
+        raise InputError(
+            f"LAZ chunk table at byte {at}, outside the file's points ({to_points + 8}..{size})",
+            where,
+        )
+    _version, chunks = struct.unpack("<II", read(at, 8))
+    room = at - to_points - 8
+    variable = chunk == 0xFFFFFFFF
+    most = min(room, max(count, 1) if variable else -(-count // max(chunk, 1)))
+    if chunks > most:
+        raise InputError(
+            f"LAZ chunk table declares {chunks} chunks, more than its {count} points in "
+            f"{room} bytes can fill",
+            where,
+        )
+    _check_chunk_entries(read, to_points, record, (count, room, variable), where)
+
+
+def _laszip_record(read: Any, at: int, n_vlr: int) -> bytes | None:
+    """The LASzip VLR's payload among the ``n_vlr`` VLRs from byte ``at`` (None: none)."""
+    for _ in range(min(n_vlr, 1 << 16)):
+        vh = read(at, 54)
+        if len(vh) < 54:
+            return None
+        length = int.from_bytes(vh[20:22], "little")
+        if vh[2:18].rstrip(b"\0") == b"laszip encoded" and vh[18:20] == (22204).to_bytes(
+            2, "little"
+        ):
+            return read(at + 54, length)
+        at += 54 + length
+    return None
+
+
+def _check_chunk_entries(read: Any, to_points: int, record: bytes, fig: tuple, where: str) -> None:
+    """The decoded chunk table's entries against the points (``fig``: count, room, variable)."""
+    import lazrs
+
+    count, room, variable = fig
+
+    class _At(io.RawIOBase):  # the file from the points' start, as lazrs reads it
+        def __init__(self) -> None:
+            self.pos = 0
+
+        def readable(self) -> bool:
+            return True
+
+        def seekable(self) -> bool:
+            return True
+
+        def seek(self, off: int, whence: int = 0) -> int:
+            self.pos = off if whence == 0 else self.pos + off
+            return self.pos
+
+        def tell(self) -> int:
+            return self.pos
+
+        def readinto(self, b: Any) -> int:
+            got = read(self.pos, len(b))
+            b[: len(got)] = got
+            self.pos += len(got)
+            return len(got)
+
+    src = _At()
+    src.seek(to_points)
+    try:
+        table = lazrs.read_chunk_table(src, lazrs.LazVlr(record))
+    except Exception as exc:  # lazrs' errors: a table it cannot decode
+        raise InputError(f"not a readable LAZ chunk table ({first_line(exc)})", where) from None
+    points = sum(int(p) for p, _ in table or ())
+    nbytes = sum(int(b) for _, b in table or ())
+    if nbytes > room or (variable and points != count):
+        raise InputError(
+            f"LAZ chunk table gives {points} points in {nbytes} bytes; the header declares "
+            f"{count} points in {room} bytes",
+            where,
+        )
+
+
 def decode_las(data, where: str, path=None) -> tuple[PointCloud, dict]:
     """Decode a LAS/LAZ file (from ``path`` when given, else the bytes ``data``)."""
     laspy = _laspy()
@@ -135,10 +240,13 @@ def decode_las(data, where: str, path=None) -> tuple[PointCloud, dict]:
         except FileNotFoundError:
             raise InputError("no such file", where) from None
         check_counts(head, size, where)
+        with open(path, "rb") as f:
+            check_chunk_table(lambda at, n: _read_at(f, at, n), size, head, where)
         source = path
     else:
         raw = bytes(text.as_uint8(data).data)
         check_counts(raw[:375], len(raw), where)
+        check_chunk_table(lambda at, n: raw[at : at + n], len(raw), raw[:375], where)
         source = io.BytesIO(raw)
     try:
         with _laspy_silent():
@@ -155,6 +263,11 @@ def decode_las(data, where: str, path=None) -> tuple[PointCloud, dict]:
             where,
         )
     return cloud_from_points(las.points, las.header, where)
+
+
+def _read_at(f: Any, at: int, n: int) -> bytes:
+    f.seek(at)
+    return f.read(n)
 
 
 def first_line(exc: BaseException) -> str:

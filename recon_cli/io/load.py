@@ -158,6 +158,20 @@ def supported() -> str:
     return ", ".join(s for f in FORMATS.values() for s in f.suffixes)
 
 
+def format_choices() -> str:
+    """What ``--format`` and its kin take, for their help and messages.
+
+    Every format's name, its other suffixes in brackets (``las (laz)``), and whether recon
+    writes it.
+    """
+    out = []
+    for f in FORMATS.values():
+        others = [s[1:] for s in f.suffixes if s[1:] != f.name]
+        name = f"{f.name} ({', '.join(others)})" if others else f.name
+        out.append(name if f.writes else f"{name} [read only]")
+    return ", ".join(out)
+
+
 def format_named(name: str) -> Format:
     """The format called ``name`` (a name or a suffix, any case)."""
     key = name.lower().lstrip(".")
@@ -165,7 +179,7 @@ def format_named(name: str) -> Format:
         return FORMATS[key]
     if "." + key in _BY_SUFFIX:
         return _BY_SUFFIX["." + key]
-    raise ParameterError(f"unknown format {name!r} (formats: {', '.join(FORMATS)})")
+    raise ParameterError(f"unknown format {name!r} (formats: {format_choices()})")
 
 
 def format_of(path: str | os.PathLike, given: str | None = None) -> Format | None:

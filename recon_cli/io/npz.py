@@ -225,6 +225,13 @@ def _npy_header(zf: zipfile.ZipFile, name: str) -> tuple[tuple, np.dtype, int]:
         return tuple(shape), dtype, size - fh.tell()
 
 
+def grid_shape(path: str | os.PathLike) -> tuple[int, ...]:
+    """The shape of a grid file's ``sdf`` array, from its header alone (the values not read)."""
+    with zipfile.ZipFile(path) as zf:
+        name = next(n for n in zf.namelist() if n == "sdf.npy")
+        return tuple(int(k) for k in _npy_header(zf, name)[0])
+
+
 def write_grid(grid: Grid, path: str | os.PathLike) -> None:
     """Write ``grid`` atomically (``-``: standard output)."""
     write_bytes(path, grid_bytes(grid))

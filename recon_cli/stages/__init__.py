@@ -378,6 +378,10 @@ def apply_stage(
     params = {k.replace("-", "_"): v for k, v in (params or {}).items()}
     checked = spec.check(params, complete=False)  # names and values, before anything runs
     assert spec.run is not None
+    predicted = predicted_memory(name, data, checked)
+    from recon_cli.memory import reset_peak
+
+    reset_peak()  # the stage's own peak, not an earlier stage's of the same process
     result = spec.run(data, progress=progress, **params)
     effective = {**spec.defaults(), **checked}
     extra = result.report.get("provenance") if isinstance(result.report, dict) else None
@@ -387,6 +391,10 @@ def apply_stage(
     if history is not None:
         history.append(provenance_line(name, effective))
     result.report.setdefault("stage", name)
+    if isinstance(result.report, dict):
+        from recon_cli.stages.memory_model import entry
+
+        result.report["memory"] = entry(predicted)
     from recon_cli.geometry import precision_note
 
     note = precision_note(
@@ -395,6 +403,23 @@ def apply_stage(
     if note:
         result.report["precision"] = note
     return result
+
+
+def predicted_memory(name: str, data: Any, checked: dict[str, Any]) -> int | None:
+    """The peak bytes stage ``name`` is predicted to take on ``data``; refused when over budget.
+
+    The budget is the execution's in force (:func:`recon_cli.execution.current`); ``checked``:
+    the parameters given, checked. None where the stage has no model
+    (:mod:`recon_cli.stages.memory_model`).
+
+    Raises
+    ------
+    ParameterError
+        The prediction exceeds the budget (one line: the figure and the least ``--memory``).
+    """
+    from recon_cli.stages.memory_model import predict_in_force
+
+    return predict_in_force(name, data, {**get_spec(name).defaults(), **checked})
 
 
 def report_json(report: dict | list[dict]) -> str:

@@ -95,20 +95,21 @@ def slab_loads(plan: list[tuple], sub_counts: np.ndarray) -> list[float]:
     return [float(cum[round(p[1][1] * nsub)] - cum[round(p[1][0] * nsub)]) for p in plan]
 
 
-# a slab's peak memory per point of its own, its pads' points included
-# (bench/calibration.md, SLAB_BYTES_PER_POINT: 4103 at depth 11 in 4 slabs on 2 workers)
-SLAB_BYTES_PER_POINT = 4096
-
-
 def slab_count(
-    partitions: int | None, npoints: int, client: Any, budget: int | None = None
+    partitions: int | None, npoints: int, client: Any, budget: int | None, depth: int
 ) -> tuple[int, dict]:
-    """The Poisson slabs of a run and why (:func:`recon_cli.slabs.plan.slab_count`)."""
+    """The Poisson slabs of a run and why (:func:`recon_cli.slabs.plan.slab_count`).
+
+    A slab's bytes per point: :func:`.memory.slab_bytes` of the cloud at ``depth``.
+    """
+    from recon_cli.stages.poisson.memory import slab_bytes, tree_estimate
+
+    per = slab_bytes(npoints, tree_estimate(npoints, depth), 1) / max(npoints, 1)
     return plan.slab_count(
         partitions,
         npoints,
         client,
-        SLAB_BYTES_PER_POINT,
+        per,
         S.MAX_PARTITIONS,
         "poisson",
         f"the seams are level-{S.FINE_PARTITION_DEPTH} planes",
@@ -713,7 +714,7 @@ def distributed_poisson(
     t0 = time.perf_counter()
     lengths: list = []
     pts, _, keep = check_inputs(points, normals, lengths)
-    partitions, slab_choice = slab_count(partitions, len(pts), client, budget)
+    partitions, slab_choice = slab_count(partitions, len(pts), client, budget, depth)
     seam_params(params, depth, partitions)
     if SPEC.param("confidence").coerce(confidence):
         params["weight_mean"] = float(lengths[0].mean())

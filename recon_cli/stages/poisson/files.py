@@ -181,7 +181,7 @@ def reconstruct_files(
     scan_phase: dict = {}
     note_phase(scan_phase, "scan", scans, time.perf_counter() - t0)
     kept, rows, names, keep_colors, dtypes, color_type = _checked_scans(scans, attributes)
-    parts, slab_choice = D.slab_count(partitions, kept, client, budget)
+    parts, slab_choice = D.slab_count(partitions, kept, client, budget, depth)
     D.seam_params(params, depth, parts)
     nworkers = slab_choice["workers"]
     if SPEC.param("confidence").coerce(confidence):

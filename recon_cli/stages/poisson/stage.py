@@ -47,24 +47,26 @@ def run_from_files(input: str, output: str, params: dict, **kw: Any) -> dict | N
         chunks = plan_chunks(input)
         if any(c.kind == "whole" for c in chunks):
             return None  # rows not known before reading: loaded whole, the solve in slabs
-        if local_slabs(sum(c.stop - c.start for c in chunks), ex) == 1:
+        depth = SPEC.check(params, complete=True)["depth"]
+        if local_slabs(sum(c.stop - c.start for c in chunks), ex, depth) == 1:
             return None
     from recon_cli.stages.poisson.files import run_from_files as run
 
     return run(input, output, params, **kw)
 
 
-def local_slabs(npoints: int, ex: Any) -> int:
+def local_slabs(npoints: int, ex: Any, depth: int) -> int:
     """The slabs of a run in this process: 1 when the memory holds the whole solve.
 
-    ``ex``: the :class:`recon_cli.execution.Execution` (its ``partitions`` or its memory budget).
-    Refuses a memory too small for the most slabs (one line with the least that would do).
+    ``ex``: the :class:`recon_cli.execution.Execution` (its ``partitions`` or its memory budget);
+    ``depth``: the solve's (a slab's memory at that depth, :mod:`.memory`). Refuses a memory too
+    small for the most slabs (one line with the least that would do).
     """
     if ex.partitions is not None:
         return int(ex.partitions)
     from recon_cli.stages.poisson.distributed import slab_count
 
-    return slab_count(None, npoints, None, ex.budget())[0]
+    return slab_count(None, npoints, None, ex.budget(), depth)[0]
 
 
 @SPEC.runner
@@ -143,7 +145,8 @@ def run_stage(
         "confidence": confidence,
     }
     colors = cloud.colors if keep_colors else None
-    slabs = None if ex.distributed or backend != "native" else local_slabs(len(cloud.points), ex)
+    local = not ex.distributed and backend == "native"
+    slabs = local_slabs(len(cloud.points), ex, depth) if local else None
     if ex.distributed or (slabs or 1) > 1:
         from recon_cli.stages.poisson import distributed as D
 
