@@ -235,7 +235,7 @@ def test_sdf_refuses_grids_that_cannot_be_had(tmp_path, capsys):
     for vs in ("1e-9", "1e-4", "1e-300"):
         code, _, err = run(capsys, "sdf", src, out, "--voxel-size", vs)
         assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
-        assert ("needs about" in err and "available" in err) or "too small" in err, err
+        assert "needs" in err and ("it may use" in err or "no machine has it" in err), err
         assert not out.exists()
     code, _, err = run(capsys, "-q", "sdf", src, out, "--voxel-size", "0.25")
     assert code == 0 and read_grid(out).voxel_size == 0.25

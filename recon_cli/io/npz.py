@@ -226,10 +226,20 @@ def _npy_header(zf: zipfile.ZipFile, name: str) -> tuple[tuple, np.dtype, int]:
 
 
 def grid_shape(path: str | os.PathLike) -> tuple[int, ...]:
-    """The shape of a grid file's ``sdf`` array, from its header alone (the values not read)."""
+    """The shape of a grid file's ``sdf`` array, from its header alone (the values not read).
+
+    Raises
+    ------
+    InputError
+        The header claims more values than the file holds (as :func:`read_grid` says it).
+    """
     with zipfile.ZipFile(path) as zf:
         name = next(n for n in zf.namelist() if n == "sdf.npy")
-        return tuple(int(k) for k in _npy_header(zf, name)[0])
+        shape, dtype, left = _npy_header(zf, name)
+    if _count(shape) * dtype.itemsize > left:
+        dims = " x ".join(map(str, shape))
+        raise InputError(f"'sdf' claims {dims} values but the file is shorter", os.fspath(path))
+    return tuple(int(k) for k in shape)
 
 
 def write_grid(grid: Grid, path: str | os.PathLike) -> None:

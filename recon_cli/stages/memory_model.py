@@ -312,6 +312,10 @@ def predict_in_force(stage: str, data: Any, params: dict) -> int | None:
     return predicted
 
 
+# past this the figure is no use (a voxel of 1e-300 asks for 1e900 bytes): no machine has it
+HUGE_BYTES = 1 << 80
+
+
 def check_fits(stage: str, predicted: int | None, budget: int | None, where: str = "") -> None:
     """Refuse a run whose ``predicted`` peak exceeds ``budget`` bytes, with the least that does.
 
@@ -322,8 +326,13 @@ def check_fits(stage: str, predicted: int | None, budget: int | None, where: str
     """
     if predicted is None or budget is None or predicted <= budget:
         return
-    need = math.ceil(predicted / MIB)
+    # a grid of absurd size (a voxel of 1e-300) is past what a float prints: no machine has it
     head = f"{where}: " if where else ""
+    if predicted > HUGE_BYTES:
+        raise ParameterError(
+            f"{head}{stage} needs more than {_size(HUGE_BYTES)} of memory: no machine has it"
+        )
+    need = -(-predicted // MIB)
     raise ParameterError(
         f"{head}{stage} needs about {_size(predicted)} of memory, more than the "
         f"{_size(budget)} it may use; give --memory {need}MiB or more (or a machine with it)"
