@@ -24,7 +24,9 @@ Kazhdan, M. & Hoppe, H. (2013). Screened Poisson surface reconstruction. ACM TOG
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -219,6 +221,26 @@ def grid_of(
         history=list(history or []),
         point_dtype=point_dtype,
     )
+
+
+def checked_grid_path(grid: Any) -> str | None:
+    """``--grid``'s path, checked before the run (None: no grid asked for).
+
+    Raises
+    ------
+    ParameterError
+        ``-`` (standard output is the mesh's), or a path that cannot be written
+        (:func:`recon_cli.io.atomic.check_output`).
+    """
+    from recon_cli.io.atomic import check_output
+
+    if grid in (None, ""):
+        return None
+    path = os.fspath(grid)
+    if path == "-":
+        raise ParameterError("--grid needs a file name ('-' is the mesh's standard output)")
+    check_output(path)
+    return path
 
 
 def write_solved_grid(grid: Grid | None, path: str, depth: int, boundary: str, iso: float) -> dict:

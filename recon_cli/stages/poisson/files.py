@@ -392,13 +392,9 @@ def run_from_files(
     v = SPEC.check(params, complete=True)
     where = D.slab_reason(ex)
     D.check_slab_options(v["backend"], v["degree"], v["estimate_normals"], v["envelope"], where)
-    grid_path = None if v["grid"] in (None, "") else os.fspath(v["grid"])
-    if grid_path is not None:
-        from recon_cli.io.atomic import check_output
+    from recon_cli.stages.poisson.field import checked_grid_path
 
-        if grid_path == "-":
-            raise ParameterError("--grid needs a file name ('-' is the mesh's standard output)")
-        check_output(grid_path)
+    grid_path = checked_grid_path(v["grid"])
     if input == "-":
         raise ParameterError(f"a run {where} reads IN by chunks: give a file, not '-'")
     if load_kw.get("format"):

@@ -9,7 +9,6 @@ a reference backend (Open3D, PyMeshLab) when asked for by ``--backend``.
 from __future__ import annotations
 
 import logging
-import os
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -188,22 +187,18 @@ def _check_run_options(
             "the pymeshlab backend gives no densities: --density/--trim need native or open3d"
         )
     # ---- PoissonRecon parity options (free boundary, confidence, grid): the native solver only
-    grid_path = None if grid in (None, "") else os.fspath(grid)
     if backend != "native":
         for name, used in (
             ("--boundary free", boundary == "free"),
             ("--confidence", confidence),
-            ("--grid", grid_path is not None),
+            ("--grid", grid not in (None, "")),
             ("--envelope", envelope not in (None, "")),
         ):
             if used:
                 raise ParameterError(f"{name} needs the native backend")
-    if grid_path is not None:
-        from recon_cli.io.atomic import check_output
+    from recon_cli.stages.poisson.field import checked_grid_path
 
-        if grid_path == "-":
-            raise ParameterError("--grid needs a file name ('-' is the mesh's standard output)")
-        check_output(grid_path)
+    grid_path = checked_grid_path(grid)
     env = None
     if envelope not in (None, ""):
         if degree != 2:
