@@ -279,7 +279,9 @@ class _Grid:
             if self._tree is None:
                 from scipy.spatial import cKDTree
 
-                self._tree = cKDTree(self.points)
+                # only rows far from the points reach it: a tree of uncompacted, unbalanced nodes
+                # answers those several times faster (bench/calibration.md)
+                self._tree = cKDTree(self.points, balanced_tree=False, compact_nodes=False)
             rows = np.flatnonzero(far)
             d, i = self._tree.query(verts[rows], k=k, workers=-1)
             dist[rows], idx[rows] = d.reshape(len(rows), k), i.reshape(len(rows), k)
