@@ -1,9 +1,8 @@
 """Output paths of every kind: written right, or one line naming the path and nothing touched.
 
 Errors exit 2 (a full file system exits 1). The matrix: a new regular file, an existing one
-(replaced on success keeping its mode, kept
-on failure), a directory, a missing folder, a trailing slash, an empty path, an immutable
-file and folder (``chattr +i``, which binds root too), a read-only and a full file system
+(replaced on success keeping its mode, kept on failure), a directory, a missing folder, a
+trailing slash, an empty path, an immutable file and folder (``chattr +i``, which binds root too), a read-only and a full file system
 (tmpfs mounts, PLY and ``.npz``), a FIFO, a character device made with ``mknod``, symbolic
 links (written through), ``/dev/stdout``, a closed stdout, a process substitution and a
 broken pipe. Most run the CLI in-process; the shell cases share one subprocess.
