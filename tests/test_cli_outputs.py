@@ -2,10 +2,11 @@
 
 Errors exit 2 (a full file system exits 1). The matrix: a new regular file, an existing one
 (replaced on success keeping its mode, kept on failure), a directory, a missing folder, a
-trailing slash, an empty path, an immutable file and folder (``chattr +i``, which binds root too), a read-only and a full file system
-(tmpfs mounts, PLY and ``.npz``), a FIFO, a character device made with ``mknod``, symbolic
-links (written through), ``/dev/stdout``, a closed stdout, a process substitution and a
-broken pipe. Most run the CLI in-process; the shell cases share one subprocess.
+trailing slash, an empty path, an immutable file and folder (``chattr +i``, which binds root
+too), a read-only and a full file system (tmpfs mounts, PLY and ``.npz``), a FIFO, a character
+device made with ``mknod``, symbolic links (written through), ``/dev/stdout``, a closed stdout,
+a process substitution and a broken pipe. Most run the CLI in-process; the shell cases share one
+subprocess.
 """
 
 from __future__ import annotations
