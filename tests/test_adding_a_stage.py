@@ -65,6 +65,7 @@ GUIDE = "Moves every point of the cloud up by `--dz`, in the cloud's units. " * 
 
 
 def test_the_page_lists_three_places():
+    """The page's "three places" are numbered 1 to 3: the package, ``STAGES``, the tests."""
     text = PAGE.read_text(encoding="utf-8")
     section = text[text.index("## The three places") :].split("\n## ")[0]
     places = re.findall(r"^\d+\. \*\*(.+?)\*\*", section, re.M)
@@ -75,6 +76,7 @@ def test_the_page_lists_three_places():
 
 @pytest.fixture
 def toy_stage(tmp_path, monkeypatch):
+    """The toy stage's package and guide on ``sys.path``, its line in ``STAGES``; undone after."""
     pkg = tmp_path / "toy_shift_pkg"
     pkg.mkdir()
     (pkg / "__init__.py").write_text(textwrap.dedent(PACKAGE), encoding="utf-8")
@@ -88,6 +90,12 @@ def toy_stage(tmp_path, monkeypatch):
 
 
 def test_a_stage_is_its_package_and_its_registry_line(toy_stage):
+    """The toy stage's package and registry line alone give it every surface the page promises.
+
+    Its command (help, parameter checks, its line in ``recon --help``), pipeline stage, library
+    function, documentation page with its guide, command-line reference entry, warm-up step and
+    ahead-of-time kernel module.
+    """
     src, out = toy_stage / "in.ply", toy_stage / "out.ply"
     pts = np.random.default_rng(0).normal(size=(50, 3))
     write_ply(PointCloud(points=pts), str(src))

@@ -1,5 +1,4 @@
-"""recon_cli.aot: ahead-of-time kernels give the JIT kernels' results, and are used only when
-current.
+"""recon_cli.aot: ahead-of-time kernels give the JIT kernels' results, used only when current.
 
 One build for the whole module, in a temporary cache: the install's own when it is current (a
 copy), else one made here (``numba.pycc``, ~40 CPU s) from the kernels this process compiled
@@ -65,9 +64,12 @@ def _recon(*args: str) -> None:
 
 @pytest.fixture(autouse=True)
 def _numba_config_restored():
-    """numba re-reads its environment at each compile: a test that compiled with the build's
+    """Numba's configuration re-read from the environment after each test.
+
+    Numba re-reads its environment at each compile: a test that compiled with the build's
     NUMBA_CACHE_DIR would leave it numba's for every kernel module the worker imports next (they
-    would compile into the build's folder instead of loading the install's cache)."""
+    would compile into the build's folder instead of loading the install's cache).
+    """
     yield
     from numba.core import config as numba_config
 
@@ -77,7 +79,9 @@ def _numba_config_restored():
 @pytest.fixture(scope="module")
 def build(tmp_path_factory):
     """(build report, the cache directory holding it, the inputs): the commands ran JIT here first.
-    The xdist workers of one run share one build (the first to take the lock makes it)."""
+
+    The xdist workers of one run share one build (the first to take the lock makes it).
+    """
     import fcntl
 
     run = os.environ.get("PYTEST_XDIST_TESTRUNUID")
@@ -132,9 +136,11 @@ def _build(d: Path) -> tuple[dict, Path, dict[str, Path]]:
 
 
 def _install_build(cache: Path) -> dict | None:
-    """The build ``make install`` made, when it is current for these sources (on a clean clone,
-    always): conftest's copy of the install's numba cache holds it. Copied to ``cache``, it is
-    what the user's commands load; its report is the build's "up to date". None: build here."""
+    """The build ``make install`` made, when current for these sources (on a clean clone, always).
+
+    Conftest's copy of the install's numba cache holds it. Copied to ``cache``, it is what the
+    user's commands load; its report is the build's "up to date". None: build here.
+    """
     from recon_cli.cli._warmup import build_ahead_of_time
 
     snapshot = os.environ.get("RECON_TEST_WARM_CACHE")
@@ -170,6 +176,7 @@ def use_build(build, monkeypatch):
 
 
 def test_build_exports_the_command_kernels(build):
+    """The build holds every module warm-up names, the signal handler and the stages' kernels."""
     report, cache, _ = build
     assert report["built"] and report["reason"] in (None, "up to date"), report
     assert sorted(report["modules"]) == sorted(modules_to_build())
@@ -183,6 +190,7 @@ def test_build_exports_the_command_kernels(build):
 
 
 def test_built_kernels_are_used_and_compiled_by_pycc(use_build):
+    """With the build in use, ball pivoting's kernels are pycc's compiled variants, not numba's."""
     k = aot.kernels(BP)
     assert not isinstance(k, types.ModuleType)
     assert k.ball_pivot.aot_variants  # a dispatcher over compiled variants, not the numba kernel
@@ -202,6 +210,7 @@ def _ballpivot_family():
 
 
 def test_ballpivot_aot_and_jit_give_identical_meshes(use_build):
+    """Ball pivoting of scaled, far-off shapes and partial scans: AOT and JIT meshes identical."""
     from recon_cli.stages.ballpivot import ball_pivoting
 
     cases = list(_ballpivot_family())
@@ -216,6 +225,7 @@ def test_ballpivot_aot_and_jit_give_identical_meshes(use_build):
 
 
 def test_mcubes_aot_and_jit_give_identical_meshes(use_build):
+    """Marching cubes/tetrahedra on rotated grids with NaNs: AOT and JIT meshes are identical."""
     from recon_cli.stages.mcubes import marching_cubes
 
     rng = np.random.default_rng(5)
@@ -248,6 +258,7 @@ def test_mcubes_aot_and_jit_give_identical_meshes(use_build):
 
 
 def test_arguments_without_a_variant_run_the_jit_kernel(use_build):
+    """Fortran-order arrays and keywords fall back to numba, recorded, with the same result."""
     k = aot.kernels(BP)
     pts = np.random.default_rng(0).random((500, 3))
     lo, cell, dims = pts.min(axis=0), 0.1, np.full(3, 11, np.int64)
@@ -267,6 +278,7 @@ def test_arguments_without_a_variant_run_the_jit_kernel(use_build):
 
 
 def test_a_stale_build_is_never_loaded(build, monkeypatch):
+    """Kernel sources changed since the build: another build directory, no manifest, JIT kernels."""
     report, cache, _ = build
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))
     aot.reset()
@@ -281,6 +293,7 @@ def test_a_stale_build_is_never_loaded(build, monkeypatch):
 
 
 def test_a_missing_extension_falls_back_to_jit(build, tmp_path, monkeypatch):
+    """One module's extension deleted: that module runs JIT, the others still load the build."""
     report, _, _ = build
     copy = tmp_path / "cache"
     shutil.copytree(Path(report["dir"]).parent.parent, copy)
@@ -294,6 +307,7 @@ def test_a_missing_extension_falls_back_to_jit(build, tmp_path, monkeypatch):
 
 
 def test_switched_off_by_the_environment(build, monkeypatch):
+    """RECON_AOT=0 with a current build: no manifest read and the numba kernels used."""
     _, cache, _ = build
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))
     monkeypatch.setenv("RECON_AOT", "0")
@@ -319,6 +333,7 @@ RUN_COMMAND = (
 def test_the_command_as_a_process_never_loads_numba_and_writes_the_jit_result(
     build, tmp_path, command, args
 ):
+    """A command as a process with the build never imports numba and writes JIT's exact bytes."""
     report, cache, files = build
     src = str(files["grid"] if command == "mcubes" else files["cloud_float32"])
     outs = {}
@@ -378,6 +393,7 @@ def _typeof_cases():
 
 @pytest.mark.parametrize("value", _typeof_cases(), ids=lambda v: type(v).__name__)
 def test_type_key_is_numbas_type(value):
+    """``aot.type_key`` equals the key of ``numba.typeof`` for arrays, scalars, tuples and None."""
     import numba
 
     from recon_cli.aot.build import numba_type_key
@@ -387,6 +403,7 @@ def test_type_key_is_numbas_type(value):
 
 
 def test_values_numba_cannot_take_ahead_of_time_have_no_key():
+    """Lists, ints past 64 bits, big-endian or string arrays and str arguments have no type key."""
     assert aot.type_key([1, 2]) is None
     assert aot.type_key(2**64) is None
     assert aot.type_key(np.zeros(2, ">f8")) is None
@@ -405,6 +422,7 @@ NO_COMPILER = (
 
 
 def test_without_a_c_compiler_nothing_is_built_and_warmup_says_why(tmp_path):
+    """CC pointing nowhere: warm-up builds nothing, writes no aot folder and logs one line why."""
     env = dict(os.environ, CC=str(tmp_path / "no-such-cc"), NUMBA_CACHE_DIR=str(tmp_path / "cache"))
     r = subprocess.run(
         [sys.executable, "-c", NO_COMPILER], env=env, capture_output=True, text=True, cwd=ROOT

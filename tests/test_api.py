@@ -1,5 +1,8 @@
-"""The library (recon_cli.api): one function per stage made from its declaration, read/write,
-and the typed stub of the lazy names."""
+"""The library (recon_cli.api): a function per stage from its declaration, read/write, the stub.
+
+One function per stage is made from its declaration; ``read``/``write``; the typed stub of the
+lazy names.
+"""
 
 from __future__ import annotations
 
@@ -42,6 +45,7 @@ def _alternatives(annotation) -> set:
 # ---- made from the declaration -------------------------------------------------------------------
 @pytest.mark.parametrize("stage", BUILTIN)
 def test_signature_and_help_are_the_declaration(stage):
+    """Each stage's function: signature, annotations, return type and help are its declaration's."""
     spec = get_spec(stage)
     fn = getattr(recon_cli, function_name(stage))
     assert fn is getattr(recon_cli, function_name(stage))  # made once
@@ -78,6 +82,7 @@ def test_signature_and_help_are_the_declaration(stage):
 
 
 def test_stub_is_generated_from_the_declarations():
+    """``__init__.pyi`` is what ``stubs.render()`` writes, naming every name the package offers."""
     assert (ROOT / "recon_cli" / "__init__.pyi").read_text(encoding="utf-8") == stubs.render(), (
         "recon_cli/__init__.pyi is stale: python -m recon_cli.tools.stubs"
     )
@@ -90,6 +95,7 @@ def test_stub_is_generated_from_the_declarations():
 
 
 def test_a_plugin_stage_becomes_a_function_too():
+    """A registered plugin stage is a library function with its parameters until unregistered."""
     toy = StageSpec(
         "toy-shift",
         "Shift a cloud (toy).",
@@ -123,6 +129,7 @@ def test_a_plugin_stage_becomes_a_function_too():
 
 
 def test_importing_recon_cli_and_calling_a_stage_on_arrays_imports_no_other_library():
+    """``recon_cli.normals`` on arrays, in a new process, imports no other geometry library."""
     code = (
         "import sys, numpy as np, recon_cli\n"
         "from recon_cli import aot, memory\n"  # submodules: no stage function looked for
@@ -138,6 +145,7 @@ def test_importing_recon_cli_and_calling_a_stage_on_arrays_imports_no_other_libr
 # ---- bad arguments -------------------------------------------------------------------------------
 @pytest.mark.parametrize("stage", BUILTIN)
 def test_bad_arguments_say_what_the_command_line_says(stage, tmp_path):
+    """A bad value of each parameter raises the command line's one-line message, word for word."""
     from recon_cli.cli.main import cli
 
     spec = get_spec(stage)
@@ -162,6 +170,7 @@ def test_bad_arguments_say_what_the_command_line_says(stage, tmp_path):
 
 
 def test_bad_inputs_are_refused_in_one_line():
+    """Wrong shapes, non-numbers, mismatched normals and wrong kinds of data: one-line errors."""
     with pytest.raises(InputError, match=r"array of shape \(10, 2\)"):
         recon_cli.normals(np.zeros((10, 2)))
     with pytest.raises(InputError, match="not an array of numbers"):
@@ -179,6 +188,7 @@ def test_bad_inputs_are_refused_in_one_line():
 
 
 def test_progress_draws_on_the_given_progress(capsys):
+    """A given Progress draws the stage's steps; ``progress=True`` off a terminal draws nothing."""
     import io
 
     from recon_cli.progress import Progress
@@ -195,6 +205,11 @@ def test_progress_draws_on_the_given_progress(capsys):
 
 # ---- a session, as in trimesh's README -----------------------------------------------------------
 def test_the_guide_session_runs(tmp_path, monkeypatch):
+    """The user guide's Python session runs as written and gives a closed mesh on the scan.
+
+    Normals, poisson and repair in its history, a trimesh and an Open3D mesh of the same arrays, and
+    the OBJ and PLY written read back unchanged.
+    """
     # the user guide's Python session, as written: read a scan, normals, poisson, repair, trimesh
     import re
 
@@ -229,6 +244,7 @@ def test_the_guide_session_runs(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("seed", [1])
 def test_numpy_open3d_and_trimesh_inputs_give_the_same_mesh(seed):
+    """Poisson of a far-off sphere as arrays, Open3D or trimesh: one mesh, within 2 % of r=1."""
     # a sphere at an offset of 1e6 under a random rotation: double in, double out
     rng = np.random.default_rng(seed)
     pts, nrm = shape_cloud("sphere", 4000, rng, offset=1e6)
@@ -254,6 +270,7 @@ def test_numpy_open3d_and_trimesh_inputs_give_the_same_mesh(seed):
 
 
 def test_meshes_and_grids_from_trimesh_and_arrays():
+    """``sdf``, ``mcubes``, ``repair`` take trimesh meshes, (v, f) tuples and 3-d arrays alike."""
     rng = np.random.default_rng(5)
     v, f = icosphere(4)
     rot = random_rotation(rng)
@@ -276,6 +293,7 @@ def test_meshes_and_grids_from_trimesh_and_arrays():
 
 
 def test_read_and_write_every_format_round_trip(tmp_path):
+    """Meshes (PLY, OBJ, OFF) and clouds (PLY, XYZ, PCD) read back exactly; a cloud is no STL."""
     rng = np.random.default_rng(6)
     v, f = icosphere(2)
     mesh = TriangleMesh(vertices=v * 2 + 1e5, faces=f)

@@ -1,5 +1,7 @@
-"""Conversions to and from Open3D and trimesh (``to_open3d()``, ``to_trimesh()``,
-``geometry_from``): round trips keep double precision, colours, normals and attributes."""
+"""Conversions to and from Open3D and trimesh: ``to_open3d()``, ``to_trimesh()``, ``geometry_from``.
+
+Round trips keep double precision, colours, normals and attributes.
+"""
 
 from __future__ import annotations
 
@@ -32,6 +34,7 @@ def _same_cloud(a: PointCloud, b: PointCloud, attributes: bool = True) -> None:
 @settings(max_examples=15, deadline=None)
 @given(SEEDS)
 def test_cloud_round_trips(seed):
+    """Clouds through trimesh and Open3D come back exactly; legacy Open3D drops the attributes."""
     # clouds at offsets up to 1e6 and scales 1e-2 .. 1e3: every digit of the coordinates back
     c = cloud_family(seed)
     _same_cloud(c, geometry_from(c.to_trimesh()))
@@ -47,6 +50,7 @@ def test_cloud_round_trips(seed):
 @settings(max_examples=15, deadline=None)
 @given(SEEDS)
 def test_mesh_round_trips(seed):
+    """Meshes through trimesh and both Open3Ds keep vertices, faces, normals, colours and data."""
     m = mesh_family(seed)
     m.attributes["quality"] = np.arange(len(m.vertices), dtype=np.float32)
     m.face_attributes["label"] = np.arange(len(m.faces), dtype=np.int32) % 7
@@ -66,6 +70,7 @@ def test_mesh_round_trips(seed):
 
 
 def test_trimesh_mesh_keeps_its_vertex_order_and_given_normals_only():
+    """A trimesh copy keeps duplicate vertices in order; only normals that were given come back."""
     rng = np.random.default_rng(3)
     v = rng.normal(size=(6, 3)) + 1e6
     v[5] = v[0]  # a duplicate vertex: trimesh's processing would merge it
@@ -81,6 +86,7 @@ def test_trimesh_mesh_keeps_its_vertex_order_and_given_normals_only():
 
 
 def test_rgba_keeps_alpha_and_opaque_alpha_reads_as_rgb():
+    """RGBA colours keep their alpha through trimesh and Open3D; RGB colours stay three channels."""
     rng = np.random.default_rng(4)
     pts = rng.normal(size=(20, 3))
     rgba = rng.integers(0, 256, (20, 4)).astype(np.uint8)
@@ -93,6 +99,7 @@ def test_rgba_keeps_alpha_and_opaque_alpha_reads_as_rgb():
 
 
 def test_other_library_objects_are_refused_in_one_line():
+    """A LineSet, a trimesh Scene or a dict is refused with one line naming what it is."""
     assert library_of(np.zeros(3)) is None and library_of(trimesh.Trimesh()) == "trimesh"
     with pytest.raises(InputError, match="Open3D LineSet is not a point cloud or a triangle mesh"):
         geometry_from(o3d.geometry.LineSet())

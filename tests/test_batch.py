@@ -1,9 +1,8 @@
-"""recon batch: input expansion, skip rules, the per-input task, and real batches on a 2-worker
-LocalCluster.
+"""recon batch: input expansion, skip rules, the per-input task, real batches on a LocalCluster.
 
-The batch pipelines use test-only stages from ``tests/_batch_stages.py`` (registered in the
-workers through ``run_batch(extra_stages=...)``, in this process through monkeypatch), on
-the real files of ../shared/data.
+Real batches run on a 2-worker LocalCluster. The batch pipelines use test-only stages from
+``tests/_batch_stages.py`` (registered in the workers through ``run_batch(extra_stages=...)``, in
+this process through monkeypatch), on the real files of ../shared/data.
 """
 
 from __future__ import annotations
@@ -72,6 +71,7 @@ def _leftover_temporaries(folder: Path) -> list[str]:
 
 
 def test_expand_inputs_files_folders_globs(tmp_path):
+    """Folders give their .ply/.npz files sorted, globs and files add none twice; misses named."""
     d = tmp_path / "scans"
     d.mkdir()
     for name in ("b.ply", "a.PLY", "g.npz", "notes.txt"):
@@ -99,6 +99,7 @@ def test_expand_inputs_files_folders_globs(tmp_path):
 
 
 def test_plan_skips_only_outputs_newer_than_input_and_pipeline(tmp_path):
+    """Only an output newer than its input and the pipeline is skipped; ``force`` reruns all."""
     pipe = tmp_path / "p.toml"
     pipe.write_text("x")
     ins = []
@@ -128,6 +129,7 @@ def test_plan_skips_only_outputs_newer_than_input_and_pipeline(tmp_path):
 
 
 def test_plan_refuses_clashing_names_and_overwriting_inputs(tmp_path):
+    """Two inputs writing one output, an output over its input, or no inputs: refused."""
     (tmp_path / "x").mkdir()
     (tmp_path / "y").mkdir()
     (tmp_path / "x" / "s.ply").write_bytes(b"x")
@@ -145,6 +147,7 @@ def test_plan_refuses_clashing_names_and_overwriting_inputs(tmp_path):
 
 
 def test_run_batch_rejects_bad_options_before_starting(tmp_path, test_stages):
+    """Bad scheduler, workers, memory limit, pipeline or clashing names: refused, none written."""
     pipe = _pipeline(tmp_path / "p.toml", '[[stage]]\nname = "t_centre"\n')
     src = str(shared_path("mug"))
     with pytest.raises(ParameterError, match="local cluster"):
@@ -173,8 +176,11 @@ def test_run_batch_rejects_bad_options_before_starting(tmp_path, test_stages):
 
 
 def test_temporaries_of_a_dead_write_are_removed(tmp_path):
-    """What atomic_open leaves when its process is killed mid-write (.<name>.<random>.tmp) is
-    cleaned up for the batch's own outputs only."""
+    """A killed write's temporaries are removed for the batch's own outputs only.
+
+    What atomic_open leaves when its process is killed mid-write (.<name>.<random>.tmp) is cleaned
+    up for the batch's own outputs only.
+    """
     import tempfile
 
     for name in ("scan.ply", "scan.npz", "other.ply"):
@@ -191,6 +197,7 @@ def test_temporaries_of_a_dead_write_are_removed(tmp_path):
 
 
 def test_process_one_ok_failed_and_grid(tmp_path, test_stages):
+    """One input's task: a mesh's record and file, one-line failures with no output, a grid."""
     from recon_cli.io import read_ply
     from recon_cli.io.npz import read_grid
     from recon_cli.pipeline import load_pipeline
@@ -239,6 +246,7 @@ def test_process_one_ok_failed_and_grid(tmp_path, test_stages):
 
 
 def test_process_one_interrupted_write_leaves_nothing(tmp_path, test_stages, monkeypatch):
+    """A full disk during the write: a one-line NoSpace failure naming the output, no file left."""
     from recon_cli.io import atomic
     from recon_cli.pipeline import load_pipeline
 
@@ -262,8 +270,11 @@ def test_process_one_interrupted_write_leaves_nothing(tmp_path, test_stages, mon
 
 @pytest.mark.slow
 def test_batch_survives_a_killed_worker_then_rerun_skips_everything(tmp_path, test_stages, capsys):
-    """A worker killed while running an input: that input is rerun on a live worker, every input
-    ends ok, no partial output; a rerun does nothing and takes seconds."""
+    """A worker killed mid-input: the input reruns elsewhere and all end ok; a rerun skips all.
+
+    A worker killed while running an input: that input is rerun on a live worker, every input
+    ends ok, no partial output; a rerun does nothing and takes seconds.
+    """
     markers = tmp_path / "markers"
     markers.mkdir()
     pipe = _pipeline(
@@ -382,8 +393,10 @@ def _assert_rerun_skips_everything(pipe, inputs, out, names, markers, capsys):
 
 @pytest.fixture(scope="module")
 def cluster():
-    """A 2-worker, 1-thread-each LocalCluster (worker processes), set up as `recon batch` sets up
-    its own (an input whose worker dies is rerun once), shared by the tests that pass --scheduler.
+    """A 2-worker, 1-thread-each LocalCluster set up as ``recon batch`` sets up its own.
+
+    Worker processes; an input whose worker dies is rerun once. Shared by the tests that pass
+    --scheduler.
     """
     import logging
 
@@ -405,8 +418,11 @@ def cluster():
 
 @pytest.mark.slow
 def test_batch_real_normals_on_an_existing_cluster(tmp_path, cluster):
-    """The real `normals` stage on the real scans through --scheduler: the same files as `recon run`
-    alone."""
+    """The real ``normals`` stage via --scheduler writes the same files as ``recon run`` alone.
+
+    The real `normals` stage on the real scans through --scheduler: the same files as `recon run`
+    alone.
+    """
     from recon_cli.stages import get_stage
 
     get_stage("normals")  # built
@@ -443,9 +459,12 @@ def test_batch_real_normals_on_an_existing_cluster(tmp_path, cluster):
 
 @pytest.mark.slow
 def test_batch_mixed_inputs_on_two_workers(tmp_path, test_stages, capsys, cluster):
-    """`recon batch` on a 2-worker LocalCluster: good inputs give the same files as `recon run` on
+    """``recon batch`` of good and bad inputs on 2 workers: ``recon run``'s files, one-line errors.
+
+    `recon batch` on a 2-worker LocalCluster: good inputs give the same files as `recon run` on
     each alone; a stage failure, a corrupt file, a missing file and an input whose worker always
-    dies are reported with one-line errors; exit status 4."""
+    dies are reported with one-line errors; exit status 4.
+    """
     from recon_cli.cli.main import EXIT_BATCH_SOME_FAILED
     from recon_cli.io import read_ply
     from recon_cli.io.ply import write_ply
@@ -566,9 +585,10 @@ def _sigint_blocked(native_id: int) -> bool:
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self/task/*/status")
 def test_sigint_is_held_while_a_cluster_starts():
-    """A Ctrl-C while the local cluster starts is recorded, not raised mid-start; threads started
-    meanwhile (Dask's event loop, which starts the workers) keep SIGINT blocked; afterwards all is
-    as before.
+    """A Ctrl-C while the local cluster starts is recorded, not raised mid-start.
+
+    Threads started meanwhile (Dask's event loop, which starts the workers) keep SIGINT blocked;
+    afterwards all is as before.
     """
     # the test runner may have been started with SIGINT ignored (nohup, CI): act as a terminal does
     outer = signal.signal(signal.SIGINT, signal.default_int_handler)
@@ -611,9 +631,12 @@ def _outputs(folder: Path) -> list[str]:
 @pytest.mark.slow
 @pytest.mark.parametrize("target", ["group", "main"])
 def test_ctrl_c_stops_cleanly_and_a_rerun_resumes(tmp_path, target):
-    """SIGINT once the first output exists, to the whole process group (Ctrl-C on a terminal) or to
+    """SIGINT mid-batch: exit 130, no partial output or process left; a rerun does the rest.
+
+    SIGINT once the first output exists, to the whole process group (Ctrl-C on a terminal) or to
     the recon process alone: exit 130, no partial output, every process of the local cluster gone,
-    finished inputs kept; a rerun (after the Ctrl-C) skips those and does the rest."""
+    finished inputs kept; a rerun (after the Ctrl-C) skips those and does the rest.
+    """
     import subprocess
 
     import psutil

@@ -27,6 +27,7 @@ PLAIN = """## bench_ply (x)
 
 
 def test_a_row_more_than_10_percent_slower_is_named():
+    """A row more than 10 % slower than before is named; 9 % slower passes."""
     new = OLD.replace("| 1.32 |", "| 1.46 |").replace("| 0.888 |", "| 0.97 |")
     assert regressions(OLD, new) == [
         "kitten 100k, d8 / recon (process): s ours/o3d 1.32 -> 1.46 (+11%)"
@@ -34,6 +35,7 @@ def test_a_row_more_than_10_percent_slower_is_named():
 
 
 def test_the_same_faster_or_new_rows_pass():
+    """The same table, faster rows and new rows give no regression."""
     assert regressions(OLD, OLD) == []
     assert regressions(OLD, OLD.replace("| 1.32 |", "| 0.5 |")) == []
     assert regressions(OLD, OLD.replace("kitten 100k, d8", "kitten 200k, d8")) == []
@@ -41,6 +43,7 @@ def test_the_same_faster_or_new_rows_pass():
 
 
 def test_without_a_ratio_the_seconds_are_compared():
+    """Without a ratio column the seconds are compared: 11 % slower is named, 9 % is not."""
     assert regressions(PLAIN, PLAIN.replace("| 0.100 |", "| 0.111 |")) == [
         "ply / read 1M: ours s 0.1 -> 0.111 (+11%)"
     ]

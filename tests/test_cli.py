@@ -1,5 +1,4 @@
-"""The command line: exit codes, one-line errors, stdin/stdout, atomic output, info, run, startup
-cost."""
+"""Command line: exit codes, one-line errors, stdin/stdout, atomic output, info, run, start-up."""
 
 from __future__ import annotations
 
@@ -19,6 +18,7 @@ RECON = [sys.executable, "-m", "recon_cli.cli.main"]
 
 
 def recon(*args, input: bytes | None = None, cwd=None) -> subprocess.CompletedProcess:
+    """Run ``recon`` with ``args`` as a process (no COLUMNS), its output captured."""
     env = dict(os.environ)
     env.pop("COLUMNS", None)
     return subprocess.run(
@@ -27,6 +27,7 @@ def recon(*args, input: bytes | None = None, cwd=None) -> subprocess.CompletedPr
 
 
 def test_help_is_instant_and_imports_no_numpy():
+    """``recon --help`` imports no numpy and lists every stage with its declaration's summary."""
     code = (
         "import sys, recon_cli.cli.main as m; m.cli.main(['--help'], standalone_mode=False); "
         "print('numpy' in sys.modules)"
@@ -42,6 +43,7 @@ def test_help_is_instant_and_imports_no_numpy():
 
 
 def test_version():
+    """``recon --version`` exits 0 and prints the package's version."""
     from recon_cli import __version__
 
     r = recon("--version")
@@ -50,6 +52,7 @@ def test_version():
 
 
 def test_info_json_keys_are_stable():
+    """``recon info --json`` of the kitten: a one-entry list, every key, the counts and box."""
     r = recon("info", "--json", shared_path("kitten"))
     assert r.returncode == 0, r.stderr
     [rep] = json.loads(r.stdout)  # always a list, one entry per file
@@ -72,6 +75,7 @@ def test_info_json_keys_are_stable():
 
 
 def test_info_reads_stdin_and_several_files():
+    """``recon info`` reads a cloud from stdin, and several files in the order given."""
     data = shared_path("stereo_fragment").read_bytes()
     r = recon("info", "--json", "-", input=data)
     assert r.returncode == 0, r.stderr
@@ -94,6 +98,7 @@ def test_info_reads_stdin_and_several_files():
     ],
 )
 def test_bad_input_one_line_exit_2_no_output(tmp_path, content, needle):
+    """An empty, non-PLY or truncated input: exit 2, one line naming it, no traceback, no output."""
     bad = tmp_path / "bad.ply"
     bad.write_bytes(content)
     out = tmp_path / "out.ply"
@@ -108,17 +113,20 @@ def test_bad_input_one_line_exit_2_no_output(tmp_path, content, needle):
 
 
 def test_missing_file_exit_2(tmp_path):
+    """A missing input: exit 2 with "no such file"."""
     r = recon("info", tmp_path / "nope.ply")
     assert r.returncode == 2
     assert "no such file" in r.stderr.decode()
 
 
 def test_usage_error_exit_2():
+    """A command missing its arguments: exit 2."""
     r = recon("convert")
     assert r.returncode == 2
 
 
 def test_convert_pipes_through_stdin_stdout(tmp_path):
+    """ASCII then binary through two pipes: the mesh written at the end equals the source."""
     src = shared_path("kitten")
     p1 = subprocess.Popen([*RECON, "convert", "--ascii", str(src), "-"], stdout=subprocess.PIPE)
     p2 = subprocess.Popen([*RECON, "convert", "-", "-"], stdin=p1.stdout, stdout=subprocess.PIPE)
@@ -134,6 +142,7 @@ def test_convert_pipes_through_stdin_stdout(tmp_path):
 
 
 def test_existing_output_not_clobbered_on_error(tmp_path):
+    """A failed convert leaves an existing output's bytes as they were."""
     out = tmp_path / "out.ply"
     out.write_bytes(b"precious")
     bad = tmp_path / "bad.ply"
@@ -144,6 +153,7 @@ def test_existing_output_not_clobbered_on_error(tmp_path):
 
 
 def test_run_rejects_unknown_stage_naming_line(tmp_path):
+    """``recon run`` with an unknown stage: exit 2 naming the file and line, no output."""
     pipe = tmp_path / "p.toml"
     pipe.write_text('description = "x"\n\n[[stage]]\nname = "frobnicate"\n')
     r = recon("run", pipe, shared_path("kitten"), tmp_path / "o.ply")
@@ -154,6 +164,7 @@ def test_run_rejects_unknown_stage_naming_line(tmp_path):
 
 
 def test_run_rejects_bad_toml(tmp_path):
+    """``recon run`` with broken TOML: exit 2, "not valid TOML"."""
     pipe = tmp_path / "p.toml"
     pipe.write_text("[[stage]\nname=")
     r = recon("run", pipe, shared_path("kitten"), tmp_path / "o.ply")
@@ -162,6 +173,7 @@ def test_run_rejects_bad_toml(tmp_path):
 
 
 def test_pipeline_parameter_errors_name_the_line(monkeypatch):
+    """A misspelt parameter names file, line and stage; fixed, the pipeline runs, with history."""
     from recon_cli import stages
     from recon_cli.errors import ParameterError
     from recon_cli.pipeline import parse_pipeline
@@ -195,6 +207,7 @@ def _scale_stage(data, *, factor=1.0, progress=None):
 
 
 def test_pipeline_files_shipped_parse():
+    """Every pipeline shipped in pipelines/ (demo.toml among them) loads and checks."""
     # every shipped pipeline is fully checked: stages, parameter types and ranges, kinds of data
     # between stages
     from recon_cli.pipeline import load_pipeline

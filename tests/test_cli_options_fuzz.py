@@ -1,4 +1,6 @@
-"""Every option of filter, simplify and smooth, and poisson's newest (``--envelope``, ``--grid``,
+"""Generated option values, valid and not, alone and together: run, or refused in one line.
+
+Every option of filter, simplify and smooth, and poisson's newest (``--envelope``, ``--grid``,
 ``--attributes``, ``--boundary free``), and the formats and flags every stage has, given generated
 values, valid and not, alone and together.
 
@@ -54,8 +56,10 @@ def _flag(name: str) -> st.SearchStrategy:
 
 @pytest.fixture(scope="module")
 def inputs(tmp_path_factory) -> Path:
-    """The inputs: a cloud with normals, colours and attributes, its LAS, meshes closed and
-    open, a cloud, a broken file and a folder as envelopes."""
+    """The inputs: a cloud with normals, colours and attributes, its LAS, meshes, a broken file.
+
+    Meshes closed and open, a cloud, a broken file and a folder serve as envelopes.
+    """
     import laspy
 
     root = tmp_path_factory.mktemp("options")
@@ -241,6 +245,7 @@ def fuzz_stage(stage: str, examples: int, inputs: Path, folder: Path, capfd) -> 
 
 @pytest.mark.parametrize("stage", sorted(STAGES))
 def test_generated_options_run_or_are_refused_in_one_line(stage, inputs, tmp_path, capfd):
+    """:data:`QUICK` generated option sets a command: an output that reads back, or one line."""
     codes = fuzz_stage(stage, QUICK, inputs, tmp_path, capfd)
     assert sum(codes.values()) >= QUICK
 
@@ -248,6 +253,7 @@ def test_generated_options_run_or_are_refused_in_one_line(stage, inputs, tmp_pat
 @pytest.mark.fuzz
 @pytest.mark.parametrize("stage", sorted(STAGES))
 def test_fuzz_generated_options(stage, inputs, tmp_path, capfd):
+    """:data:`FUZZ` generated option sets a command, as the quick test; some run, some refused."""
     codes = fuzz_stage(stage, FUZZ, inputs, tmp_path, capfd)
     assert sum(codes.values()) >= FUZZ
     assert codes.get(0, 0) > 0 and codes.get(2, 0) > 0, codes

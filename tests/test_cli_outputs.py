@@ -1,12 +1,12 @@
-"""Output paths of every kind: written right, or one line naming the path (exit 2; a full file
-system exit 1) and nothing touched.
+"""Output paths of every kind: written right, or one line naming the path and nothing touched.
 
-The matrix: a new regular file, an existing one (replaced on success keeping its mode, kept
-on failure), a directory, a missing folder, a trailing slash, an empty path, an immutable
-file and folder (``chattr +i``, which binds root too), a read-only and a full file system
-(tmpfs mounts, PLY and ``.npz``), a FIFO, a character device made with ``mknod``, symbolic
-links (written through), ``/dev/stdout``, a closed stdout, a process substitution and a
-broken pipe. Most run the CLI in-process; the shell cases share one subprocess.
+Errors exit 2 (a full file system exits 1). The matrix: a new regular file, an existing one
+(replaced on success keeping its mode, kept on failure), a directory, a missing folder, a
+trailing slash, an empty path, an immutable file and folder (``chattr +i``, which binds root
+too), a read-only and a full file system (tmpfs mounts, PLY and ``.npz``), a FIFO, a character
+device made with ``mknod``, symbolic links (written through), ``/dev/stdout``, a closed stdout,
+a process substitution and a broken pipe. Most run the CLI in-process; the shell cases share one
+subprocess.
 """
 
 from __future__ import annotations
@@ -62,6 +62,7 @@ def _no_temporaries(folder) -> None:
 
 
 def test_new_and_existing_regular_file(src, tmp_path, capfd):
+    """A new file is written; an existing one replaced keeping its mode, or kept on failure."""
     out = tmp_path / "out.ply"
     code, _, err = _cli(["convert", src, out], capfd)
     assert (code, err) == (0, "")
@@ -83,6 +84,7 @@ def test_new_and_existing_regular_file(src, tmp_path, capfd):
 
 
 def test_stage_output_checked_before_the_work(src, tmp_path, capfd):
+    """A stage's output in a missing folder is refused in one line before the stage runs."""
     code, _, err = _cli(["normals", src, tmp_path / "missing" / "n.ply"], capfd)
     assert code == 2 and "output folder does not exist" in err
     _one_error_line(err, tmp_path / "missing" / "n.ply")
@@ -100,6 +102,7 @@ def test_stage_output_checked_before_the_work(src, tmp_path, capfd):
     ],
 )
 def test_unwritable_paths_one_line(src, tmp_path, capfd, name, reason):
+    """A directory, missing folder, trailing slash or empty path: exit 2, one line, no temporary."""
     (tmp_path / "folder").mkdir()
     path = str(tmp_path / name) if name else ""
     if name.endswith("/"):
@@ -113,6 +116,7 @@ def test_unwritable_paths_one_line(src, tmp_path, capfd, name, reason):
 
 @pytest.mark.skipif(not ROOT or shutil.which("chattr") is None, reason="chattr +i needs root")
 def test_immutable_file_and_folder(src, tmp_path, capfd):
+    """An immutable file or folder (even for root): exit 2, "Operation not permitted", unchanged."""
     out = tmp_path / "imm.ply"
     out.write_bytes(b"keep")
     folder = tmp_path / "immdir"
@@ -149,6 +153,7 @@ def _tmpfs(where: Path, options: str):
 
 
 def test_full_file_system_ply_and_npz(src, tmp_path, capfd):
+    """A full tmpfs, PLY or grid: exit 1, "No space left on device", old file kept, no temporary."""
     from recon_cli.geometry import TriangleMesh
 
     v, f = box_mesh()
@@ -169,6 +174,7 @@ def test_full_file_system_ply_and_npz(src, tmp_path, capfd):
 
 
 def test_read_only_file_system(src, tmp_path, capfd):
+    """A read-only file system: exit 2 "Read-only file system", the old file kept."""
     with _tmpfs(tmp_path / "ro", "size=1m") as mnt:
         (mnt / "out.ply").write_bytes(b"keep")
         subprocess.run(["mount", "-o", "remount,ro", mnt], check=True)
@@ -179,6 +185,7 @@ def test_read_only_file_system(src, tmp_path, capfd):
 
 
 def test_fifo_written_directly(src, tmp_path, capfd):
+    """A FIFO is written through, not replaced: the reader gets the input's bytes."""
     fifo = tmp_path / "fifo"
     os.mkfifo(fifo)
     got = []
@@ -193,6 +200,7 @@ def test_fifo_written_directly(src, tmp_path, capfd):
 
 @pytest.mark.skipif(not ROOT, reason="mknod of a device needs root")
 def test_character_device_is_not_replaced(src, tmp_path, capfd):
+    """A character device (a /dev/null made with mknod) is written to and stays that device."""
     dev = tmp_path / "null"
     os.mknod(dev, 0o666 | stat.S_IFCHR, os.makedev(1, 3))  # a /dev/null of our own
     code, _, err = _cli(["convert", src, dev], capfd)
@@ -202,6 +210,7 @@ def test_character_device_is_not_replaced(src, tmp_path, capfd):
 
 
 def test_symlinks_written_through(src, tmp_path, capfd):
+    """Symbolic links, dangling ones too, are written through to their targets, and stay links."""
     target = tmp_path / "target.ply"
     target.write_bytes(b"old")
     link = tmp_path / "link.ply"

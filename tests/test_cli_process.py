@@ -1,6 +1,9 @@
-"""The ``recon`` process around its command (recon_cli/cli/_process.py): OpenBLAS single-threaded
-unless the user set it, the cyclic collector back on while a stage computes, outputs and
-reports complete when the process exits without collecting its start-up garbage."""
+"""The ``recon`` process around its command (recon_cli/cli/_process.py).
+
+OpenBLAS single-threaded unless the user set it, the cyclic collector back on while a stage
+computes, outputs and reports complete when the process exits without collecting its start-up
+garbage.
+"""
 
 from __future__ import annotations
 
@@ -36,6 +39,7 @@ m.main()
 
 @pytest.fixture(scope="module")
 def grid(tmp_path_factory):
+    """A 24^3 grid of a ball's signed distance, written once for the module."""
     n = 24
     x = (np.arange(n) - (n - 1) / 2) / (n / 2)
     sdf = np.sqrt(x[:, None, None] ** 2 + x[None, :, None] ** 2 + x[None, None, :] ** 2) - 0.6
@@ -56,6 +60,7 @@ def _run(args, env_extra=None):
 
 @pytest.mark.parametrize("user", [None, "3"])
 def test_stage_runs_with_collector_on_and_blas_setting(grid, tmp_path, user):
+    """A stage runs with the collector on, OpenBLAS at 1 thread or the user's; report complete."""
     out = tmp_path / "m.ply"
     r = _run(
         ["mcubes", grid, out, "--json"], None if user is None else {"OPENBLAS_NUM_THREADS": user}
@@ -68,6 +73,7 @@ def test_stage_runs_with_collector_on_and_blas_setting(grid, tmp_path, user):
 
 
 def test_in_process_main_leaves_collector_alone(grid, tmp_path):
+    """``main`` called in a process leaves the collector enabled and nothing frozen."""
     import gc
 
     from recon_cli.cli.main import main

@@ -25,6 +25,7 @@ def _blocks() -> dict[str, str]:
 
 
 def test_every_command_has_its_help_on_the_page():
+    """Each command's section is its ``--help`` at the page's width, every stage included."""
     blocks = _blocks()
     names = command_names()
     assert set(stage_names()) <= set(names)
@@ -42,6 +43,7 @@ def test_every_command_has_its_help_on_the_page():
 
 
 def test_reference_is_written_once(tmp_path):
+    """``write_reference`` writes index.rst, then nothing when called again with nothing changed."""
     out = str(tmp_path / "cli")
     assert write_reference(out) == [str(tmp_path / "cli" / "index.rst")]
     assert write_reference(out) == []  # unchanged: the file keeps its time

@@ -1,6 +1,7 @@
-"""Every stage's output file is the same bytes whatever the thread count, run after run, and
-(the stages that run in slabs) wherever the slabs ran: in this process, spilled to files, on a
-Dask cluster of one worker or of two.
+"""Every stage's output file is the same bytes whatever the thread count, run after run.
+
+The same holds (the stages that run in slabs) wherever the slabs ran: in this process, spilled to
+files, on a Dask cluster of one worker or of two.
 
 The inputs are generated (``tests/shapes.py``); each run is one process (``NUMBA_NUM_THREADS``
 is read when numba loads) that runs every stage's command in turn through
@@ -194,6 +195,7 @@ def runs(tmp_path_factory) -> dict[str, Path]:
 
 @pytest.mark.parametrize("name", FILES)
 def test_same_bytes_in_every_run(runs, name):
+    """Each output file has the same bytes at 1, 2 and 4 threads, in-process and on Dask workers."""
     first = runs[RUNS[0][0]] / name
     data = first.read_bytes()
     assert len(data) > 1000
@@ -203,11 +205,13 @@ def test_same_bytes_in_every_run(runs, name):
 
 
 def test_runs_leave_only_their_outputs(runs):
+    """Each run's folder holds exactly the files its jobs write, nothing else."""
     for folder in runs.values():
         assert sorted(os.listdir(folder)) == FILES
 
 
 def test_fit_sdf_at_another_thread_count_within_its_bound(runs):
+    """fit-sdf at 1 and 3 threads: fields within :data:`FIT_SDF_THREADS_BOUND` of the diagonal."""
     from recon_cli.io.npz import read_grid
 
     a = read_grid(runs["t1"] / "fit-sdf.npz")

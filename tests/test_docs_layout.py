@@ -23,6 +23,7 @@ FIELDS = ("Where", "Value", "Measured", "Re-measure", "Notes")
 
 
 def test_readme_fits_two_screens_and_says_the_essentials():
+    """README.md: at most 80 lines, with install, make targets, three commands and their picture."""
     text = README.read_text(encoding="utf-8")
     lines = text.splitlines()
     assert len(lines) <= MAX_README_LINES, f"README.md: {len(lines)} lines"
@@ -38,6 +39,7 @@ def test_readme_fits_two_screens_and_says_the_essentials():
 
 
 def test_readme_links_point_at_files_in_the_tree():
+    """The README links at least 10 targets, and every local one exists in the tree."""
     targets = re.findall(r"\]\(([^)#]+)\)", README.read_text(encoding="utf-8"))
     assert len(targets) >= 10  # the guide's pages, not a copy of them
     missing = [t for t in targets if "://" not in t and not (ROOT / t).exists()]
@@ -54,6 +56,7 @@ ENTRIES = _entries()
 
 
 def test_calibration_has_entries_for_every_section():
+    """bench/calibration.md has 20+ entries in 5+ sections and no dated headings."""
     text = CALIBRATION.read_text(encoding="utf-8")
     sections = re.findall(r"^## (.*)$", text, re.M)
     assert len(ENTRIES) >= 20 and len(sections) >= 5
@@ -63,6 +66,7 @@ def test_calibration_has_entries_for_every_section():
 
 @pytest.mark.parametrize(("heading", "body"), ENTRIES, ids=[h[:40] for h, _ in ENTRIES])
 def test_calibration_entry_is_in_reference_form(heading, body):
+    """Each calibration entry: five fields, real files, a command, the heading's value in code."""
     fields = re.findall(r"^- \*\*([A-Za-z-]+)\*\*", body, re.M)
     assert tuple(fields) == FIELDS, (heading, fields)
     where = re.search(r"^- \*\*Where\*\*: (.*(?:\n  .*)*)", body, re.M).group(1)

@@ -23,6 +23,7 @@ from shapes import cut_sphere
 
 
 def run(capsys, *args) -> tuple[int, str, str]:
+    """Run the CLI in this process on ``args``: (exit code, stdout, stderr)."""
     with pytest.raises(SystemExit) as exc:
         main([str(a) for a in args])
     out, err = capsys.readouterr()
@@ -67,6 +68,7 @@ def files(tmp_path):
 
 
 def test_two_files_json_is_one_row(capsys, files):
+    """Plates 0.01 apart: one JSON row, every distance 0.01, F-score 0 then 1, open topology."""
     code, out, err = run(capsys, "diff", files["a"], files["gt"], "--samples", 3000, "--json")
     assert code == 0, err
     r = json.loads(out)
@@ -90,6 +92,7 @@ def test_two_files_json_is_one_row(capsys, files):
 
 
 def test_ref_with_several_candidates_table_csv(capsys, files, tmp_path):
+    """Two candidates against ``--ref``: a table, CSV rows with their distances, JSON as a list."""
     out_csv = tmp_path / "rows.csv"
     code, out, err = run(
         capsys,
@@ -126,6 +129,10 @@ def test_ref_with_several_candidates_table_csv(capsys, files, tmp_path):
 
 
 def test_heatmap_and_png(capsys, files, tmp_path):
+    """A sphere against a plate: the heatmap holds each vertex's true distance; the PNG has ink.
+
+    Several candidates get one heatmap each, named after the candidate.
+    """
     from PIL import Image
 
     heat, png = tmp_path / "heat.ply", tmp_path / "pic.png"
@@ -211,6 +218,7 @@ def test_heatmap_and_png(capsys, files, tmp_path):
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_png_completeness_is_red_where_the_candidate_misses_a_part(capsys, tmp_path, seed):
+    """A sphere missing a cap: completeness is red facing the cap, blue on the other side."""
     from PIL import Image
 
     from picture_checks import is_blue, is_red, view_towards
@@ -258,6 +266,7 @@ def test_png_completeness_is_red_where_the_candidate_misses_a_part(capsys, tmp_p
 
 
 def test_point_cloud_reference_is_stated(capsys, files):
+    """A cloud as reference: point-to-point accuracy, stated on stderr; completeness exact."""
     code, out, err = run(capsys, "diff", files["a"], files["cloud"], "--samples", 1000, "--json")
     assert code == 0, err
     r = json.loads(out)
@@ -268,6 +277,7 @@ def test_point_cloud_reference_is_stated(capsys, files):
 
 
 def test_bad_inputs_exit_2(capsys, files, tmp_path):
+    """Missing, empty, garbage files and bad options (tau, samples, view, vmax): exit 2."""
     code, out, err = run(capsys, "diff", tmp_path / "missing.ply", files["gt"])
     assert code == 2 and "missing.ply: no such file" in err
     empty = tmp_path / "empty.ply"
@@ -302,6 +312,7 @@ def test_bad_inputs_exit_2(capsys, files, tmp_path):
 
 
 def test_exit_code_through_the_entry_point(files, tmp_path):
+    """``recon diff`` with a missing file as a process: exit 2, "no such file"."""
     p = subprocess.run(
         [
             sys.executable,
@@ -340,6 +351,7 @@ def _fake_failing(data, *, progress=None):
 
 
 def test_parse_methods():
+    """``parse_methods`` splits stages, backends and parameters, and refuses malformed lists."""
     from recon_cli.errors import ParameterError
     from recon_cli.eval.compare import parse_methods
 
@@ -366,6 +378,7 @@ def test_parse_methods():
 
 
 def test_compare_methods_statuses_metrics_and_reports(tmp_path, monkeypatch):
+    """``compare_methods``: ok, unavailable and failed rows, their metrics, reports and pictures."""
     from recon_cli.eval.compare import compare_methods
     from recon_cli.stages import STAGES
 
@@ -476,6 +489,7 @@ def test_compare_methods_statuses_metrics_and_reports(tmp_path, monkeypatch):
 
 
 def test_compare_cli_runs_a_real_stage_in_a_child(tmp_path, capsys):
+    """``recon compare`` runs ball pivoting in a child: accurate, its radii and time reported."""
     from shared_data import sampled_cloud, shared_path
 
     cloud = sampled_cloud("kitten", 4000, seed=2)

@@ -22,6 +22,7 @@ def _sphere(r=1.0, sub=3):
 
 
 def test_sheet_size_labels_and_colour_bar_are_where_the_layout_says():
+    """A sheet's size, labels and colour bar are where ``layout`` says, no ink between tiles."""
     a = _sphere(1.0)
     d = np.linspace(0.0, 0.2, len(a.vertices))
     rows = [Row("shape of a", a, edges=True), Row("a coloured", a, d)]
@@ -70,6 +71,7 @@ def test_sheet_size_labels_and_colour_bar_are_where_the_layout_says():
 
 
 def test_vmax_fixes_the_scale():
+    """``vmax`` fixes the colour scale: above it red, far below it blue; by default the largest."""
     a = _sphere(1.0)
     d = np.full(len(a.vertices), 0.1)
     box = layout(1, 1, 64)
@@ -86,6 +88,7 @@ def test_vmax_fixes_the_scale():
 
 @pytest.mark.parametrize("seed", range(4))
 def test_completeness_heatmap_is_red_where_the_candidate_misses_a_part(seed):
+    """A sphere missing a cap: completeness red facing the cap, blue elsewhere; the rim drawn."""
     rng = np.random.default_rng(seed)
     ref, cand, direction, center, radius = cut_sphere(rng)
     acc, missed = vertex_distances(cand, ref), vertex_distances(ref, cand)
@@ -120,6 +123,7 @@ def test_completeness_heatmap_is_red_where_the_candidate_misses_a_part(seed):
 
 
 def test_scatter_plot_points_and_labels():
+    """The scatter plot draws labelled points on a log x axis, and names the NaN point below."""
     pts = [("fast", 1.0, 0.3), ("slow", 30.0, 0.1), ("broken", float("nan"), 0.2)]
     fig = scatter_plot(
         pts, x_label="time [s], lower is better", y_label="error [mm], lower is better", title="t"

@@ -38,6 +38,7 @@ def _quad(x0, x1, y0, y1, z):
 
 
 def test_sphere_silhouette_area():
+    """A sphere's silhouette in three views covers pi r^2 pixels within 1 %, centred."""
     size = 400
     px = 0.46 * size  # pixels per world unit with FRAME
     for r, view in ((0.8, "front"), (0.5, "iso"), (0.3, "top")):
@@ -58,6 +59,7 @@ def _centres(half_extent_px: float, size: int) -> int:
 
 
 def test_box_silhouette_and_depth():
+    """A box's silhouette is the pixel centres in its rectangle; the depth its front face's."""
     b = trimesh.creation.box(extents=(1.0, 0.5, 0.3))
     mesh = TriangleMesh(np.asarray(b.vertices), np.asarray(b.faces))
     size = 310  # box edges off the pixel centres (a centre on an edge counts as inside)
@@ -75,6 +77,7 @@ def test_box_silhouette_and_depth():
 
 
 def test_depth_order_of_overlapping_objects_does_not_depend_on_drawing_order():
+    """Two overlapping squares drawn in either order give the same picture, the near one on top."""
     vn, fn = _quad(-0.6, 0.2, -0.6, 0.2, 0.3)  # near (front view looks from +z)
     vf, ff = _quad(-0.2, 0.6, -0.2, 0.6, -0.3)  # far, overlapping the near one
     near_first = TriangleMesh(np.vstack([vn, vf]), np.vstack([fn, ff + 4]))
@@ -97,6 +100,7 @@ def test_depth_order_of_overlapping_objects_does_not_depend_on_drawing_order():
 
 
 def test_lambert_shading_of_a_facing_square():
+    """A square facing the camera has the Lambert shade of the light; tilted, another shade."""
     v, f = _quad(-0.5, 0.5, -0.5, 0.5, 0.0)
     out = render(TriangleMesh(v, f), "front", (64, 64), FRAME)
     rot = camera("front")
@@ -114,6 +118,7 @@ def test_lambert_shading_of_a_facing_square():
 
 
 def test_point_cloud_is_splatted():
+    """Points are drawn as discs of the given pixel radius."""
     pts = np.array([[0.0, 0.0, 0.0], [0.5, 0.5, 0.0]])
     out = render(PointCloud(points=pts), "front", (100, 100), FRAME, point_radius=2.0)
     # two discs of radius 2 px: 12 or 13 pixel centres each
@@ -122,6 +127,7 @@ def test_point_cloud_is_splatted():
 
 
 def test_cameras_are_orthonormal():
+    """Every named view's camera is a rotation; an unknown view is refused."""
     for name in VIEWS:
         r = camera(name)
         np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-12)
@@ -131,12 +137,14 @@ def test_cameras_are_orthonormal():
 
 
 def test_colormap():
+    """The colour ramp runs blue to red, clipped at its ends; NaN gets the low end's colour."""
     c = colormap(np.array([-1.0, 0.0, 0.5, 1.0, 9.0, np.nan]), 0.0, 1.0)
     assert (c[0] == c[1]).all() and (c[3] == c[4]).all() and (c[5] == c[1]).all()
     assert c[1][2] > c[1][0] and c[3][0] > c[3][2]  # blue low, red high
 
 
 def test_resolve_views():
+    """Views by name or azimuth/elevation get their labels; the default is the 4-view turntable."""
     tt = resolve_views(None)
     assert [a for _, a in tt] == list(TURNTABLE) and len(tt) == 4
     assert (
@@ -157,6 +165,7 @@ def _count(img, rgb, tol=30):
 
 
 def test_boundary_and_non_manifold_edges_are_drawn_where_visible():
+    """Boundary and non-manifold edges are drawn in their colours where visible, not when hidden."""
     # an open square: four boundary edges along its outline, none inside
     v, f = _quad(-0.5, 0.5, -0.5, 0.5, 0.0)
     sq = TriangleMesh(v, f)
@@ -196,6 +205,7 @@ def _box(size):
 
 
 def test_png_round_trip(tmp_path):
+    """A rendered picture written as PNG reads back the same pixels."""
     from PIL import Image
 
     img = render(_sphere(1.0, 3), "front", (64, 48), FRAME).image

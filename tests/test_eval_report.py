@@ -81,6 +81,7 @@ def _result(rows, unit="mm"):
 
 
 def test_table_heads_carry_units_and_directions():
+    """Every numeric column head has its unit and which way is better; failed rows show dashes."""
     head, body = result_table(_result([_row(), _row("ballpivot", "failed", metrics=False)]))
     assert head[:2] == ["method", "status"]
     assert "accuracy [mm] ↓" in head and "Chamfer-L1 [mm] ↓" in head and "stage time [s] ↓" in head
@@ -97,6 +98,7 @@ def test_table_heads_carry_units_and_directions():
 
 
 def test_parameter_lines_resolved_and_library_calls():
+    """A row's lines: resolved parameters, the library call, the stage's report; none if failed."""
     lines = parameter_lines(_row())
     assert lines[0].startswith(
         "stage parameters (the backend passes only those in its library call): depth=7, "
@@ -111,6 +113,7 @@ def test_parameter_lines_resolved_and_library_calls():
 
 
 def test_environment_and_provenance(tmp_path):
+    """The environment's date, machine and libraries; a file's hash, size, kind and history."""
     env = environment()
     assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ", env["date"])
     assert env["machine"]["cores"] >= 1 and env["machine"]["memory_gb"] > 0
@@ -136,6 +139,7 @@ def test_environment_and_provenance(tmp_path):
 
 
 def test_markdown_and_html_state_the_setting_and_sort_offline(tmp_path):
+    """Markdown and HTML reports state version, machine, units, provenance; HTML sorts offline."""
     res = _result([_row(), _row("ballpivot", seconds=0.5)])
     res["provenance"]["input"] = {
         "path": "in.ply",
@@ -168,6 +172,7 @@ def test_markdown_and_html_state_the_setting_and_sort_offline(tmp_path):
 
 @pytest.mark.slow
 def test_compare_records_the_reference_library_call(tmp_path):
+    """``compare_methods`` with Open3D's Poisson records its exact library call and arguments."""
     from recon_cli.eval.compare import compare_methods
 
     rng = np.random.default_rng(3)

@@ -31,6 +31,7 @@ CANVAS = (SIZE[0] - 260, SIZE[1])
 
 
 def run(capsys, *args) -> tuple[int, str, str]:
+    """Run the CLI in this process on ``args``: (exit code, stdout, stderr)."""
     with pytest.raises(SystemExit) as exc:
         main([str(a) for a in args])
     out, err = capsys.readouterr()
@@ -38,6 +39,7 @@ def run(capsys, *args) -> tuple[int, str, str]:
 
 
 def meta_of(doc: bytes) -> dict:
+    """The page's recon-meta JSON."""
     text = doc.decode()
     m = re.search(r'<script type="application/json" id="recon-meta">(.*?)</script>', text, re.S)
     assert m is not None
@@ -45,6 +47,7 @@ def meta_of(doc: bytes) -> dict:
 
 
 def blob(doc: bytes, element: str, dtype) -> np.ndarray:
+    """The page's base64 block ``element`` as an array of ``dtype``."""
     m = re.search(
         rf'<script type="application/octet-stream" id="{element}">(.*?)</script>', doc.decode()
     )
@@ -83,6 +86,7 @@ def shapes(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def browser():
+    """A headless Chromium context for the module."""
     with chromium() as context:
         yield context
 
@@ -91,6 +95,7 @@ def browser():
 
 
 def test_page_holds_everything_and_refers_to_nothing(shapes):
+    """The kitten's page refers to no URL or file, holds three.js once, and its data to float32."""
     d, objs = shapes
     doc = (d / "kitten.html").read_bytes()
     text = doc.decode()
@@ -112,6 +117,7 @@ def test_page_holds_everything_and_refers_to_nothing(shapes):
 
 
 def test_far_coordinates_keep_float32_precision_relative_to_the_centre(shapes):
+    """A torus 3.7e5 from the origin comes back within float32 rounding of the frame's radius."""
     d, objs = shapes
     doc = (d / "torus.html").read_bytes()
     meta = meta_of(doc)
@@ -122,6 +128,7 @@ def test_far_coordinates_keep_float32_precision_relative_to_the_centre(shapes):
 
 
 def test_cloud_page_carries_normals_and_colours_as_bytes():
+    """A 70k-point cloud's normals within half an int8 step, colours as bytes; big meshes uint32."""
     rng = np.random.default_rng(0)
     pts = rng.normal(size=(70_000, 3))
     normals = pts / np.linalg.norm(pts, axis=1, keepdims=True)
@@ -139,6 +146,7 @@ def test_cloud_page_carries_normals_and_colours_as_bytes():
 
 
 def test_z_up_turns_the_data_a_quarter_turn_and_keeps_the_distances():
+    """``up="z"`` turns the data a quarter turn (z becomes y), the same diff; "x" is refused."""
     rng = np.random.default_rng(2)
     pts = rng.normal(size=(500, 3)) * (3.0, 2.0, 0.2)  # flat in z, as terrain
     cloud = PointCloud(pts, normals=np.tile([0.0, 0.0, 1.0], (500, 1)))
@@ -157,6 +165,7 @@ def test_z_up_turns_the_data_a_quarter_turn_and_keeps_the_distances():
 
 
 def test_byte_colors_of_each_type():
+    """``byte_colors`` of 16-bit, 8-bit-in-16-bit, RGBA and float colours (NaN and out of range)."""
     assert byte_colors(None) is None
     u16 = np.array([[65535, 0, 32768]], dtype=np.uint16)
     np.testing.assert_array_equal(byte_colors(u16), [[255, 0, 128]])
@@ -169,6 +178,7 @@ def test_byte_colors_of_each_type():
 
 
 def test_text_cannot_break_out_of_the_page():
+    """Titles and layer names with ``</script>`` are escaped: no script ends early."""
     cube = TriangleMesh(np.eye(3), np.array([[0, 1, 2]]))
     title = "@@META@@ </script><b>"
     doc = html_page([Layer("a </script>", cube)], title=title).decode()
@@ -178,6 +188,7 @@ def test_text_cannot_break_out_of_the_page():
 
 
 def test_missing_three_bundle_is_one_parameter_error(monkeypatch, tmp_path):
+    """A missing three.js bundle is one ParameterError naming ``make viewer``; no page written."""
     monkeypatch.setattr(view_module, "THREE_BUNDLE", "no-such-bundle.js")
     with pytest.raises(ParameterError, match="make viewer"):
         view_files(tmp_path / "x.ply", tmp_path / "x.html")
@@ -189,6 +200,7 @@ def test_missing_three_bundle_is_one_parameter_error(monkeypatch, tmp_path):
 
 @pytest.mark.parametrize("name", ["kitten", "torus", "cloud"])
 def test_page_draws_our_rasteriser_silhouette(shapes, browser, name):
+    """In Chromium, each page's shaded picture matches our rasteriser's silhouette (IoU >= 0.98)."""
     d, objs = shapes
     opened = open_page(browser, d / f"{name}.html", SIZE)
     try:
@@ -226,6 +238,7 @@ def test_page_decodes_without_native_base64(shapes, browser):
 
 
 def test_first_frame_of_a_200k_face_mesh_is_quick(tmp_path, browser):
+    """A 200k-face mesh's page draws its first frame within 3 s."""
     v, f = torus(1.0, 0.3, 500, 200)
     write_ply(TriangleMesh(v, f), tmp_path / "t.ply")
     report = view_files(tmp_path / "t.ply", tmp_path / "t.html")
@@ -242,6 +255,7 @@ def test_first_frame_of_a_200k_face_mesh_is_quick(tmp_path, browser):
 
 
 def test_diff_page_shows_recon_diffs_scale_and_numbers(tmp_path, browser):
+    """A diff page has ``recon diff``'s numbers, heatmap colours and scale, hot on the bump."""
     write_ply(bumped_kitten(), tmp_path / "bump.ply")
     write_ply(load_shared("kitten"), tmp_path / "kitten.ply")
     (row,) = diff_files(
@@ -297,6 +311,7 @@ def test_diff_page_shows_recon_diffs_scale_and_numbers(tmp_path, browser):
 
 
 def test_cloud_against_mesh_diff_page_draws_heat_points(shapes, browser, tmp_path):
+    """A cloud diffed against its mesh draws its silhouette, nearly all blue (near zero)."""
     d, objs = shapes
     report = view_files(d / "cloud.ply", tmp_path / "c.html", d / "kitten.ply", samples=5000)
     assert report["kind"] == "cloud" and report["diff"]["mode_accuracy"] == "point-to-surface"
@@ -319,6 +334,7 @@ def test_cloud_against_mesh_diff_page_draws_heat_points(shapes, browser, tmp_pat
 
 
 def test_cli_writes_the_page_and_reports(tmp_path, capsysbinary):
+    """``recon view`` writes the page and its JSON report, or the page to stdout with -o -."""
     src = tmp_path / "k.ply"
     write_ply(load_shared("kitten"), src)
     code, out, err = run(capsysbinary, "view", src, "-o", tmp_path / "k.html", "--json")
@@ -346,6 +362,7 @@ def test_cli_writes_the_page_and_reports(tmp_path, capsysbinary):
     ],
 )
 def test_cli_bad_input_is_one_line_and_nothing_written(tmp_path, capsys, args, message):
+    """Missing, broken or empty inputs and bad options: exit 2, one line, nothing written."""
     write_ply(load_shared("kitten"), tmp_path / "k.ply")
     (tmp_path / "garbage.ply").write_bytes(b"ply\nformat nonsense\n")
     write_ply(PointCloud(np.zeros((0, 3))), tmp_path / "empty.ply")

@@ -23,16 +23,19 @@ from recon_cli.execution import MIN_MEMORY, Execution, current, parse_size, run_
     ],
 )
 def test_sizes(text, nbytes):
+    """Sizes with decimal or binary units, in any case, or plain numbers parse to their bytes."""
     assert parse_size(text) == nbytes
 
 
 @pytest.mark.parametrize("bad", ["lots", "6XB", "-1GB", "", "100MB", 1000, True, "nan", "inf"])
 def test_bad_sizes_are_refused(bad):
+    """Words, unknown units, negatives, empty, below MIN_MEMORY, booleans, NaN and inf: refused."""
     with pytest.raises(ValueError):
         parse_size(bad)
 
 
 def test_run_on_sets_the_execution_for_the_block_only():
+    """``run_on`` sets the current execution inside its block only."""
     assert current() == Execution()
     with run_on(memory="1GiB", partitions=3) as ex:
         assert current() is ex and ex.memory == 2**30 and ex.partitions == 3
@@ -59,6 +62,7 @@ def test_run_on_sets_the_execution_for_the_block_only():
     ],
 )
 def test_bad_options_are_refused_in_one_line(options, message):
+    """Bad execution options are refused in one line, the current execution untouched."""
     with pytest.raises(ParameterError, match=message) as err:
         with run_on(**options):
             pass
@@ -67,6 +71,7 @@ def test_bad_options_are_refused_in_one_line(options, message):
 
 
 def test_spill_folder_goes_beside_the_output(tmp_path):
+    """The spill folder goes beside the output or in temp_dir; none for stdout or no folder."""
     out = tmp_path / "mesh.ply"
     assert Execution().spill_parent(str(out)) == str(tmp_path)
     assert Execution(temp_dir=str(tmp_path)).spill_parent("/elsewhere/m.ply") == str(tmp_path)
@@ -76,6 +81,7 @@ def test_spill_folder_goes_beside_the_output(tmp_path):
 
 
 def test_budget_is_the_available_memory_by_default():
+    """By default the memory budget is the available memory, and no worker limit is set."""
     from recon_cli.memory import available_bytes
 
     got, avail = Execution().budget(), available_bytes()

@@ -1,5 +1,8 @@
-"""Tests of recon_cli.stages.filter: Open3D's outlier rules and voxel cells exactly, LAS classes
-and returns against laspy, every attribute kept, the command's refusals."""
+"""recon_cli.stages.filter: Open3D's rules exactly, LAS classes as laspy, attributes, refusals.
+
+Open3D's outlier rules and voxel cells exactly, LAS classes and returns against laspy, every
+attribute kept, the command's refusals.
+"""
 
 from __future__ import annotations
 
@@ -58,6 +61,7 @@ FAMILY = [(0, "origin"), (1, "1e6"), (2, "utm")]
 @pytest.mark.parametrize("seed,offset", FAMILY)
 @pytest.mark.parametrize("k,std", [(6, 0.5), (20, 2.0), (30, 1.0)])
 def test_statistical_outliers_keep_exactly_open3ds(seed, offset, k, std):
+    """Statistical outlier removal keeps exactly Open3D's points, on noisy scans at any offset."""
     pts, _, _ = _noisy_scan(seed, offset)
     keep, fig = statistical_outlier_mask(pts, k, std)
     ref = open3d_backend.statistical_outlier_indices(pts, k, std)
@@ -69,6 +73,7 @@ def test_statistical_outliers_keep_exactly_open3ds(seed, offset, k, std):
 @pytest.mark.parametrize("seed,offset", FAMILY)
 @pytest.mark.parametrize("spacing,n_min", [(1.0, 1), (2.0, 8), (4.0, 30)])
 def test_radius_outliers_keep_exactly_open3ds(seed, offset, spacing, n_min):
+    """Radius outlier removal keeps exactly Open3D's points, on noisy scans at any offset."""
     pts, _, scale = _noisy_scan(seed, offset)
     r = spacing * 0.02 * scale  # ~1-4 point spacings of the torus samples
     keep = radius_outlier_mask(pts, r, n_min)
@@ -78,6 +83,7 @@ def test_radius_outliers_keep_exactly_open3ds(seed, offset, spacing, n_min):
 
 
 def test_outlier_rules_at_their_edges_as_open3d():
+    """Duplicates, K=1 and neighbours at exactly R: both rules decide as Open3D does."""
     # duplicates: a point whose K nearest all coincide has mean distance 0 and is dropped
     p = np.array([[0, 0, 0], [0, 0, 0], [0, 0, 0], [1, 0, 0], [1.2, 0, 0], [5, 5, 5.0]])
     keep, _ = statistical_outlier_mask(p, 2, 1.0)
@@ -102,6 +108,7 @@ def test_outlier_rules_at_their_edges_as_open3d():
 @pytest.mark.parametrize("seed,offset", FAMILY)
 @pytest.mark.parametrize("cells", [5.0, 40.0])
 def test_voxel_centroids_equal_open3ds(seed, offset, cells):
+    """Voxel centroids, mean normals and colours equal Open3D's to its rounding at 1e6."""
     pts, nrm, scale = _noisy_scan(seed, offset)
     rng = np.random.default_rng(seed)
     colors = rng.integers(0, 256, (len(pts), 3)).astype(np.uint8)
@@ -122,6 +129,7 @@ def test_voxel_centroids_equal_open3ds(seed, offset, cells):
 
 
 def test_voxel_cells_follow_open3ds_anchor_exactly():
+    """Points on cell faces fall in Open3D's cells: a point on a face goes to the upper cell."""
     # points on the faces of Open3D's cells (min - S/2 + k S): the same cell as Open3D's floor
     size = 0.1
     g = np.arange(0, 1.0001, size / 2)
@@ -134,6 +142,7 @@ def test_voxel_cells_follow_open3ds_anchor_exactly():
 
 
 def test_fine_grids_over_a_wide_box_as_open3d(rng):
+    """Cells of 2e-7 over a unit box (over 2^62 cells) match Open3D; 1e-10 is refused."""
     # 5e6 cells a side: more than 2**62 in the box, the three-coordinate table
     pts = rng.uniform(0, 1, (400, 3))
     pts = np.vstack([pts, pts[:100] + rng.normal(scale=1e-7, size=(100, 3)), pts[:50]])
@@ -153,6 +162,7 @@ def test_fine_grids_over_a_wide_box_as_open3d(rng):
 
 
 def test_voxel_attributes_averaged_codes_by_majority():
+    """Voxel cells average measures (rounding to even) and take codes by majority, types kept."""
     # two cells of edge 1 anchored at -0.5: x in [-0.5, 0.5) and [0.5, 1.5)
     x = np.array([0.0, 0.1, 0.2, 1.0, 1.1])
     pts = np.column_stack([x, np.zeros(5), np.zeros(5)]).astype(np.float32)
@@ -188,6 +198,7 @@ def test_voxel_attributes_averaged_codes_by_majority():
 
 # ---- crop, classes, returns ----------------------------------------------------------------------
 def test_crop_keeps_points_on_the_faces_as_open3d(rng):
+    """Crop keeps the points on the box's faces as Open3D does; malformed boxes are refused."""
     g = np.arange(-2, 3, dtype=float)
     pts = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
     pts = np.vstack([pts, rng.uniform(-2, 2, (500, 3))])
@@ -208,6 +219,7 @@ def test_crop_keeps_points_on_the_faces_as_open3d(rng):
     n=st.integers(1, 3 * (1 << 14) + 5),
 )
 def test_box_codes_equal_the_numpy_expression(seed, dtype, layout, n):
+    """``box_codes`` equals the numpy expression for any dtype, layout and non-finite rows."""
     rng = np.random.default_rng(seed)
     g = np.arange(-2, 3, dtype=float)
     faces = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
@@ -236,6 +248,7 @@ def test_box_codes_equal_the_numpy_expression(seed, dtype, layout, n):
 
 
 def test_invalid_points_and_crop_counted_from_one_pass():
+    """Non-finite and cropped points are counted apart; a crop leaving nothing is refused."""
     g = np.arange(-2, 3, dtype=float)
     pts = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)  # 125 points
     pts[[0, 7, 62]] = [[np.nan, 0, 0], [0, np.inf, 0], [0, 0, -np.inf]]  # 62 was (0, 0, 0)
@@ -259,6 +272,7 @@ def _autzen():
 
 
 def test_classes_and_returns_count_as_laspy():
+    """Class and return filters on the Autzen tile keep exactly laspy's points and attributes."""
     laspy = pytest.importorskip("laspy")
     las = laspy.read(str(AUTZEN))
     cls = np.asarray(las.classification)
@@ -295,6 +309,7 @@ def test_classes_and_returns_count_as_laspy():
 
 
 def test_classes_refusals():
+    """Unknown classes or names, no point left, and clouds without LAS fields are refused."""
     cloud = _autzen()
     with pytest.raises(InputError, match=r"--classes 7 leaves no point .*present: 1, 2"):
         filter_cloud(cloud, classes=7)
@@ -311,6 +326,7 @@ def test_classes_refusals():
 @given(st.lists(st.one_of(st.integers(0, 255), st.sampled_from(sorted(CLASS_NAMES))), min_size=1))
 @settings(max_examples=60, deadline=None)
 def test_class_parser_text_and_list_agree(items):
+    """Classes given as text or a list, by number or name, parse to the same set."""
     p = SPEC.param("classes")
     want = tuple(sorted({CLASS_NAMES.get(x, x) if isinstance(x, str) else x for x in items}))
     assert p.coerce(items) == want
@@ -321,6 +337,7 @@ def test_class_parser_text_and_list_agree(items):
 @given(st.lists(st.floats(-1e6, 1e6), min_size=6, max_size=6))
 @settings(max_examples=60, deadline=None)
 def test_crop_parser_accepts_exactly_ordered_boxes(v):
+    """The crop parser takes six numbers with x0 <= x1 on each axis, and refuses the rest."""
     p = SPEC.param("crop")
     if all(v[i] <= v[i + 3] for i in range(3)):
         assert p.coerce(",".join(repr(x) for x in v)) == tuple(v)
@@ -332,6 +349,7 @@ def test_crop_parser_accepts_exactly_ordered_boxes(v):
 # ---- the stage: order, report, attributes, precision ---------------------------------------------
 @pytest.mark.parametrize("seed", [0, 3])
 def test_subsets_keep_every_attribute_and_the_precision(seed):
+    """Invalid, crop and outlier removal keep every field of the rows kept, float32 or float64."""
     cloud = cloud_family(seed, n=3000)
     f32 = PointCloud(
         points=cloud.points.astype(np.float32),
@@ -361,6 +379,7 @@ def test_subsets_keep_every_attribute_and_the_precision(seed):
 
 
 def test_depth_camera_frame_invalid_pixels_and_flying_pixels():
+    """A depth frame's misses are counted invalid; its flying pixels go as Open3D's rule says."""
     rng = np.random.default_rng(7)
     cam = DepthCamera(eye=np.array([0.0, -2.2, 1.3]), rotation=look_at((0, -2.2, 1.3), (0, 0, 0.2)))
     img = depth_image(cam, tabletop_scene(), rng, noise=1.0, flying=0.6)
@@ -375,6 +394,7 @@ def test_depth_camera_frame_invalid_pixels_and_flying_pixels():
 
 
 def test_organized_frame_keeps_pixels_and_camera_through_filter(tmp_path):
+    """An organized frame keeps its pixels and camera through filter; voxels keep the camera."""
     from recon_cli.io.load import load
 
     rng = np.random.default_rng(11)
@@ -400,6 +420,7 @@ def test_organized_frame_keeps_pixels_and_camera_through_filter(tmp_path):
 
 
 def test_other_ply_elements_travel_unless_they_index_the_points(rng):
+    """Other PLY elements travel; one indexing the points is refused when rows merge."""
     from recon_cli.io.ply import PlyElement, PlyProperty
 
     camera = PlyElement("camera", 1, [PlyProperty("k", "i2")], {"k": np.array([-3], np.int16)})
@@ -421,6 +442,7 @@ def test_other_ply_elements_travel_unless_they_index_the_points(rng):
 
 
 def test_library_function_drops_nan_rows_of_arrays(rng):
+    """``recon_cli.filter`` on arrays drops their NaN rows, then thins as Open3D does."""
     import recon_cli
 
     pts = rng.normal(size=(500, 3)) + 1e6
@@ -433,6 +455,7 @@ def test_library_function_drops_nan_rows_of_arrays(rng):
 
 
 def test_stage_order_report_and_pipeline_kinds(tmp_path):
+    """The stage's counts add up in order; it keeps normals, so Poisson may follow it."""
     from recon_cli.pipeline import check_pipeline, parse_pipeline
 
     pts, nrm, scale = _noisy_scan(4, "1e6", n=8000)
@@ -472,6 +495,7 @@ def test_stage_order_report_and_pipeline_kinds(tmp_path):
     ],
 )
 def test_command_refusals(tmp_path, args, needle):
+    """Bad classes, crops, voxels, outliers, or nothing left: exit 2, one line, no output."""
     src = tmp_path / "in.ply"
     write_ply(
         PointCloud(
@@ -490,6 +514,7 @@ def test_command_refusals(tmp_path, args, needle):
 
 
 def test_command_ground_of_the_airborne_tile(tmp_path):
+    """``recon filter --classes 2`` of the tile writes its 26107 ground points in float64."""
     pytest.importorskip("laspy")
     out = tmp_path / "ground.ply"
     r = subprocess.run(

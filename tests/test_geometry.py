@@ -29,6 +29,7 @@ finite = st.floats(-1e7, 1e7, allow_nan=False, allow_infinity=False)
     source=st.text(st.characters(min_codepoint=32, max_codepoint=126), max_size=30),
 )
 def test_sensor_line_round_trip(pos, quat, source):
+    """A sensor's line parses back to the same sensor, exactly."""
     s = Sensor(position=pos, orientation=quat, source=source)
     assert s.source == " ".join(source.split())
     back = parse_sensor_line(s.to_line())
@@ -36,6 +37,7 @@ def test_sensor_line_round_trip(pos, quat, source):
 
 
 def test_sensor_direction_is_unit_and_lines_split_from_others():
+    """Directions are made unit; sensor lines split from other records; bad sensors refused."""
     up = Sensor(direction=(0, 0, 5), source="LAS up")
     assert up.direction == (0.0, 0.0, 1.0) and "towards (0, 0, 1)" in up.describe()
     lines = ["las_version 1.4", up.to_line(), "pcd_viewpoint 1 2 3 1 0 0 0", "sensor position x"]
@@ -54,6 +56,7 @@ def test_sensor_direction_is_unit_and_lines_split_from_others():
 
 
 def test_cloud_parses_sensor_lines_and_carries_sensors_and_pixels():
+    """A cloud takes sensors from its records; subsets and copies carry sensors and pixels."""
     s = Sensor(position=(1.5, 0, 2), source="PCD VIEWPOINT")
     c = PointCloud(np.arange(12.0).reshape(4, 3), obj_info=["x", s.to_line()])
     assert c.sensors == [s] and c.obj_info == ["x"]
@@ -79,6 +82,7 @@ def test_cloud_parses_sensor_lines_and_carries_sensors_and_pixels():
     dtype=st.sampled_from([np.float32, np.float64]),
 )
 def test_drop_invalid_keeps_every_per_point_array_aligned(n, seed, frac, dtype):
+    """``drop_invalid`` drops non-finite rows from every per-point array alike, counting them."""
     rng = np.random.default_rng(seed)
     pts = (rng.normal(size=(n, 3)) * 1e3 + 1e6).astype(dtype)
     bad = rng.random(n) < frac
@@ -108,6 +112,7 @@ def test_drop_invalid_keeps_every_per_point_array_aligned(n, seed, frac, dtype):
 
 
 def test_drop_invalid_on_meshes_refuses_a_face_using_a_bad_vertex():
+    """An unused invalid vertex is dropped, faces renumbered; one a face uses is refused."""
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [np.nan, 0, 0], [0, 0, 1]], float)
     # an invalid vertex no face uses: dropped, faces renumbered
     m = TriangleMesh(v, [[0, 1, 2], [0, 2, 4]], attributes={"a": np.arange(5.0)})
@@ -176,6 +181,7 @@ def _interleaved(n: int, rng: np.random.Generator) -> tuple[np.ndarray, list[np.
     how=st.sampled_from(["mask", "sorted", "any", "negative", "empty"]),
 )
 def test_take_rows_equals_each_columns_fancy_index(n, seed, how):
+    """``take_rows`` equals indexing each column, for interleaved, separate and mixed columns."""
     rng = np.random.default_rng(seed)
     rec, interleaved = _interleaved(n, rng)
     separate = [np.array(c) for c in interleaved]  # the same values, each its own array
@@ -208,6 +214,7 @@ def test_take_rows_equals_each_columns_fancy_index(n, seed, how):
 
 
 def test_take_rows_refuses_mismatched_rows_and_columns():
+    """Columns of other lengths, wrong masks, indices out of range or not integers: refused."""
     a, b = np.zeros((5, 3)), np.zeros(4)
     with pytest.raises(InputError, match="different lengths"):
         take_rows([a, b], [0])
@@ -221,6 +228,7 @@ def test_take_rows_refuses_mismatched_rows_and_columns():
 
 
 def test_subset_and_drop_invalid_gather_every_column_of_a_read_ply(tmp_path, rng):
+    """``subset`` and ``drop_invalid`` of a read PLY gather every column of the kept rows."""
     from recon_cli.io.ply import read_ply, write_ply
 
     n = 2000

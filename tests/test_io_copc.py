@@ -1,7 +1,9 @@
-"""COPC by region: a window (box, octree levels) read equals the whole read cropped, bit for bit;
-levels and resolutions give exactly the levels asked; an empty window is refused; the header
-and the CRS are kept; ``recon info`` reads no point; the suffix and the content pick the reader;
-corrupted files (truncated, bad hierarchy, bad VLRs) are refused in one line, without a hang.
+"""COPC by region: a window read equals the whole read cropped, bit for bit.
+
+A window (box, octree levels) read equals the whole read cropped, bit for bit; levels and
+resolutions give exactly the levels asked; an empty window is refused; the header and the CRS
+are kept; ``recon info`` reads no point; the suffix and the content pick the reader; corrupted
+files (truncated, bad hierarchy, bad VLRs) are refused in one line, without a hang.
 
 The files are written by copc-lib around chunks lazrs compressed (``copc_files``): the Autzen
 tile (US feet, its WKT) and a synthetic terrain whose deeper levels sit in hierarchy pages of
@@ -124,6 +126,7 @@ def _no_hang(seconds=20.0):
 
 # ---- reading ------------------------------------------------------------------------------------
 def test_whole_read_is_the_las_readers_and_laspys(autzen):
+    """The whole COPC read equals the LAS reader's and laspy's points, with the same CRS."""
     las_cloud, las_details = decode_las(None, str(autzen["path"]), path=str(autzen["path"]))
     whole = autzen["whole"]
     assert autzen["fmt"].name == "copc" and autzen["details"]["format"] == "copc"
@@ -143,6 +146,7 @@ _BOX = st.tuples(*[st.floats(-0.2, 1.2)] * 6)
 )
 @given(fractions=_BOX, level=st.one_of(st.none(), st.integers(0, 6)))
 def test_window_reads_equal_the_whole_read_cropped(terrain, fractions, level):
+    """Random boxes and levels read equal the whole read cropped; an empty window is refused."""
     whole = terrain["whole"]
     lo, hi = whole.points.min(axis=0), whole.points.max(axis=0)
     f = np.asarray(fractions).reshape(2, 3)
@@ -164,6 +168,7 @@ def test_window_reads_equal_the_whole_read_cropped(terrain, fractions, level):
 
 
 def test_box_faces_on_points_keep_them_and_only_the_needed_nodes_are_decoded(autzen):
+    """Points on a box's faces are kept; a 1 % window decodes a small part of the file."""
     whole = autzen["whole"]
     pts = whole.points
     rng = np.random.default_rng(7)
@@ -185,6 +190,7 @@ def test_box_faces_on_points_keep_them_and_only_the_needed_nodes_are_decoded(aut
 
 @pytest.mark.parametrize("case", ["autzen", "terrain"])
 def test_levels_and_resolutions_give_exactly_the_levels_asked(case, request):
+    """``--level`` and ``--resolution`` read exactly the octree levels they name, no more."""
     c = request.getfixturevalue(case)
     whole, level, tree = c["whole"], c["level"], c["tree"]
     deepest = int(level.max())
@@ -206,6 +212,7 @@ def test_levels_and_resolutions_give_exactly_the_levels_asked(case, request):
 
 
 def test_an_empty_window_is_refused_not_an_empty_cloud(autzen, tmp_path, capfd):
+    """A window holding no point is refused in one line, by the library and the command."""
     pts = autzen["whole"].points
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     outside = (*(hi + 10), *(hi + 20))
@@ -221,6 +228,7 @@ def test_an_empty_window_is_refused_not_an_empty_cloud(autzen, tmp_path, capfd):
 
 
 def test_header_and_crs_kept_through_a_window_written_as_laz(autzen, tmp_path):
+    """A window written as LAZ keeps each record's bytes, the header's scale and the WKT."""
     whole = autzen["whole"]
     pts = whole.points
     box = (*pts.min(axis=0), *(pts.min(axis=0) + 0.3 * np.ptp(pts, axis=0)))
@@ -245,6 +253,7 @@ def test_header_and_crs_kept_through_a_window_written_as_laz(autzen, tmp_path):
 
 
 def test_info_reports_the_hierarchy_without_decoding_a_point(autzen, monkeypatch, capfd):
+    """``recon info`` reports counts per level, box and CRS without decoding a point."""
     import lazrs
 
     def no(*a, **k):
@@ -272,6 +281,7 @@ def test_info_reports_the_hierarchy_without_decoding_a_point(autzen, monkeypatch
 
 
 def test_suffix_and_content_choose_the_reader(autzen, tmp_path, monkeypatch):
+    """.copc.laz or COPC content picks the COPC reader; a plain LAZ so named is refused."""
     assert format_of("a.COPC.LAZ").name == "copc" and format_of("a.laz").name == "las"
     named_laz = tmp_path / "tile.laz"
     named_laz.write_bytes(autzen["data"])
@@ -292,6 +302,7 @@ def test_suffix_and_content_choose_the_reader(autzen, tmp_path, monkeypatch):
 
 
 def test_stdin_bytes_of_a_copc_file_read_in_part(autzen):
+    """A COPC file's bytes (as from stdin) are read in part, as the file is."""
     from recon_cli.io.load import decode
 
     box = (*autzen["whole"].points.min(axis=0), *autzen["whole"].points.mean(axis=0))
@@ -312,6 +323,7 @@ def _cli(args, capfd, stream="err"):
 
 
 def test_filter_pipeline_and_library_read_the_same_window(autzen, tmp_path, capfd):
+    """``recon filter``, a pipeline and the library read the same window of the file."""
     import recon_cli
 
     pts = autzen["whole"].points
@@ -448,6 +460,7 @@ def _refused(data, hint, label, what, name="bad.copc.laz"):
 
 @pytest.mark.parametrize("hint", [None, ReadHint(level=2), ReadHint(box=(0, 0, 0, 1e9, 1e9, 1e9))])
 def test_corrupted_hierarchy_and_vlrs_refused_in_one_line(autzen, hint, monkeypatch):
+    """Corrupted hierarchy pages and VLRs are refused in one line before lazrs decodes."""
     import lazrs
 
     def decoded(*a, **k):
@@ -459,6 +472,7 @@ def test_corrupted_hierarchy_and_vlrs_refused_in_one_line(autzen, hint, monkeypa
 
 
 def test_truncated_files_refused(terrain):
+    """A file cut anywhere, header to chunks, is refused in one line."""
     data = terrain["data"]
     root, size = _root_page(data)
     last_page = max(root + size, *(int(o) + int(n) for o, n in _page_ranges(data)))
@@ -485,6 +499,7 @@ def _page_ranges(data):
 
 
 def test_evlrs_read_from_a_corrupted_start_are_data_not_a_traceback(terrain):
+    """EVLRs read from a corrupted start are kept as data; the points read whole."""
     # the start of the EVLRs moved: laspy reads records whose text is not text (found by the fuzz)
     bad = terrain["data"][:234] + b"\0\0\1" + terrain["data"][237:]
     cloud, _ = decode_copc(bad, "f.copc.laz")
@@ -493,6 +508,7 @@ def test_evlrs_read_from_a_corrupted_start_are_data_not_a_traceback(terrain):
 
 
 def test_cli_refuses_corrupted_files_in_one_line_and_writes_nothing(autzen, tmp_path, capfd):
+    """Commands on corrupted files exit 2 with one line; the output keeps its bytes."""
     bad = tmp_path / "bad.copc.laz"
     out = tmp_path / "out.ply"
     out.write_bytes(b"before\n")
@@ -540,6 +556,7 @@ def _fuzz(terrain, draw_data, hint):
 )
 @given(draw_data=st.data(), hint=_HINTS)
 def test_fuzz_corrupted_copc_is_data_or_one_line(terrain, draw_data, hint):
+    """Generated corruptions of the terrain file read as data or are refused in one line."""
     _fuzz(terrain, draw_data, hint)
 
 
@@ -549,10 +566,12 @@ def test_fuzz_corrupted_copc_is_data_or_one_line(terrain, draw_data, hint):
 )
 @given(draw_data=st.data(), hint=_HINTS)
 def test_fuzz_long_corrupted_copc_is_data_or_one_line(terrain, draw_data, hint):
+    """The same fuzz at 3000 examples (make fuzz)."""
     _fuzz(terrain, draw_data, hint)
 
 
 def test_cli_on_randomly_broken_files_one_line_and_output_untouched(terrain, tmp_path, capfd):
+    """``recon convert`` of seeded cuts and junk: one line and the output untouched."""
     # as the PLY and glTF fuzzes check the command: seeded cuts and junk in each part of the file
     data = terrain["data"]
     root, _ = _root_page(data)
@@ -568,6 +587,7 @@ def test_cli_on_randomly_broken_files_one_line_and_output_untouched(terrain, tmp
 
 
 def test_window_of_bytes_equals_window_of_file(autzen):
+    """A window read from bytes equals the same window read from the file."""
     box = (*autzen["whole"].points.min(axis=0), *autzen["whole"].points.mean(axis=0))
     a, _ = decode_copc(None, "f", path=str(autzen["path"]), hint=ReadHint(box=box))
     b, _ = decode_copc(io.BytesIO(autzen["data"]).getvalue(), "f", hint=ReadHint(box=box))

@@ -159,8 +159,11 @@ def _read(path) -> tuple[object | None, str | None]:
 
 
 def _check(path, label: str, must_fail: bool) -> bool:
-    """Read ``path``: a valid object or a one-line InputError naming it. Returns whether it was
-    read."""
+    """Read ``path``: a valid object or a one-line InputError naming it.
+
+    Read ``path``: a valid object or a one-line InputError naming it. Returns whether it was
+    read.
+    """
     obj, msg = _read(path)
     if msg is not None:
         assert "\n" not in msg, f"{label}: message on several lines: {msg!r}"
@@ -176,6 +179,7 @@ def _check(path, label: str, must_fail: bool) -> bool:
 
 
 def test_bases_read_exactly(tmp_path):
+    """Each base PLY file, before any breakage, reads back exactly."""
     for name, data in BASES.items():
         p = tmp_path / f"{name}.ply"
         p.write_bytes(data)
@@ -202,6 +206,7 @@ def _truncations(data: bytes, rng) -> list[int]:
 
 @pytest.mark.parametrize("name", sorted(BASES))
 def test_truncations_refused(tmp_path, name):
+    """Each base file cut short is refused; an ASCII cut inside its last number may read."""
     data = BASES[name]
     rng = np.random.default_rng(1)
     ascii_ = b"format ascii" in data
@@ -245,6 +250,7 @@ def _header_mutations(data: bytes) -> list[tuple[str, bytes, bool]]:
 
 @pytest.mark.parametrize("name", sorted(BASES))
 def test_header_count_and_type_mutations(tmp_path, name):
+    """Header counts and types changed: read as valid data, or refused when they must be."""
     p = tmp_path / "h.ply"
     for label, data, must_fail in _header_mutations(BASES[name]):
         p.write_bytes(data)
@@ -336,6 +342,7 @@ def _ascii_token_mutations(data: bytes, rng) -> list[tuple[str, bytes, bool]]:
 
 @pytest.mark.parametrize("name", [n for n in sorted(BASES) if "ascii" in n])
 def test_ascii_token_mutations(tmp_path, name):
+    """ASCII tokens replaced: read as valid data, or refused when they must be."""
     rng = np.random.default_rng(2)
     p = tmp_path / "a.ply"
     for label, data, must_fail in _ascii_token_mutations(BASES[name], rng):
@@ -347,6 +354,7 @@ def test_ascii_token_mutations(tmp_path, name):
 
 
 def test_ascii_row_error_names_the_line(tmp_path):
+    """An ASCII row with an extra value is refused, naming its line."""
     data = BASES["cloud-ascii"].replace(b"\n1 0 0 0 1 0 0 255 0\n", b"\n1 0 0 0 1 0 0 255 0 9\n")
     p = tmp_path / "extra.ply"
     p.write_bytes(data)
@@ -357,6 +365,7 @@ def test_ascii_row_error_names_the_line(tmp_path):
 
 
 def test_uint_list_count_near_4e9_in_first_row(tmp_path):
+    """A face list count of 4e9 in the first row is "truncated", without allocating for it."""
     data = bytearray(BASES["mesh-le-uint"])
     pos = _body_start(bytes(data)) + 24 * len(PTS)
     data[pos : pos + 4] = struct.pack("<I", 4_000_000_000)
@@ -367,6 +376,7 @@ def test_uint_list_count_near_4e9_in_first_row(tmp_path):
 
 
 def test_nan_face_index_refused_without_warning(tmp_path):
+    """A NaN float face index is refused in one line, with no numpy warning."""
     data = bytearray(BASES["mesh-le-float-index"])
     pos = _body_start(bytes(data)) + 24 * len(PTS) + 1
     data[pos : pos + 4] = struct.pack("<f", float("nan"))
@@ -380,6 +390,7 @@ def test_nan_face_index_refused_without_warning(tmp_path):
 
 
 def test_cli_on_broken_files_one_line_and_output_untouched(tmp_path, capfd):
+    """``recon convert`` of broken PLY files: one line, the output untouched."""
     rng = np.random.default_rng(3)
     cases = []
     for name in sorted(BASES):

@@ -25,6 +25,7 @@ RECON = [sys.executable, "-m", "recon_cli.cli.main"]
 
 
 def tetra(dtype=np.float64, **kw) -> TriangleMesh:
+    """A closed tetrahedron in ``dtype``, with ``kw``'s normals, colours or attributes."""
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=dtype)
     f = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
     return TriangleMesh(vertices=v, faces=f, point_dtype=dtype, **kw)
@@ -89,6 +90,7 @@ def assert_same(a, b, exact: bool = True) -> None:
 
 @pytest.mark.parametrize("suffix", [".glb", ".gltf"])
 def test_round_trip_of_every_value_kind(tmp_path, suffix):
+    """A mesh with every kind of value through GLB and glTF: back in float64, with its records."""
     m = rich_mesh()
     save(m, tmp_path / f"m{suffix}")
     back = load(tmp_path / f"m{suffix}")
@@ -98,6 +100,7 @@ def test_round_trip_of_every_value_kind(tmp_path, suffix):
 
 @pytest.mark.parametrize("seed", range(6))
 def test_float32_meshes_and_clouds_come_back_bit_for_bit(tmp_path, seed):
+    """float32 meshes, and clouds with a sensor, come back bit for bit through GLB."""
     m = mesh_family(seed, np.float32)
     save(m, tmp_path / "m.glb")
     back = load(tmp_path / "m.glb")
@@ -114,6 +117,7 @@ def test_float32_meshes_and_clouds_come_back_bit_for_bit(tmp_path, seed):
 
 
 def test_float64_values_float32_holds_come_back_exact_and_double(tmp_path):
+    """float64 values that float32 holds: no translation written, back exactly as float64."""
     m = tetra(np.float64)
     save(m, tmp_path / "t.glb")
     doc = _json_of((tmp_path / "t.glb").read_bytes())
@@ -132,8 +136,11 @@ def test_float64_values_float32_holds_come_back_exact_and_double(tmp_path):
     points=st.booleans(),
 )
 def test_round_trip_random_meshes_offsets_and_rotations(seed, n, exponent, scale, points):
-    """Vertices come back within 1e-6 of the diagonal (float32 offsets plus a float64 node
-    translation), whatever the offset (up to 1e7) and rotation; faces exactly."""
+    """Random clouds and meshes at any offset and rotation come back within 1e-6 of the diagonal.
+
+    Vertices come back within 1e-6 of the diagonal (float32 offsets plus a float64 node
+    translation), whatever the offset (up to 1e7) and rotation; faces exactly.
+    """
     rng = np.random.default_rng(seed)
     v = rng.normal(size=(n, 3)) * scale
     v = v @ random_rotation(rng).T + rng.uniform(-1, 1, 3) * 10.0**exponent
@@ -170,6 +177,7 @@ def _autzen_mesh() -> TriangleMesh:
 
 
 def test_lidar_tile_mesh_round_trip_within_a_thousandth_of_a_foot(tmp_path):
+    """A mesh of the lidar tile at state-plane feet comes back within 1e-3 ft, its VLRs kept."""
     m = _autzen_mesh()
     assert np.abs(m.vertices).max() > 8e5  # state-plane feet
     save(m, tmp_path / "autzen.glb")
@@ -181,6 +189,7 @@ def test_lidar_tile_mesh_round_trip_within_a_thousandth_of_a_foot(tmp_path):
 
 
 def test_validator_passes_every_kind_of_file_we_write(tmp_path):
+    """The Khronos validator passes every kind of GLB and glTF file we write."""
     files = []
     m = mesh_family(1, np.float32)  # normals and uint8 colours
     for name, obj in {
@@ -255,6 +264,7 @@ def test_validator_passes_every_kind_of_file_we_write(tmp_path):
     ],
 )
 def test_what_gltf_cannot_hold_is_refused_and_nothing_written(tmp_path, obj, message):
+    """What glTF cannot hold is refused in one line naming the output; the old file is kept."""
     out = tmp_path / "out.glb"
     out.write_bytes(b"before")
     with pytest.raises(ParameterError) as exc:
@@ -266,6 +276,7 @@ def test_what_gltf_cannot_hold_is_refused_and_nothing_written(tmp_path, obj, mes
 
 
 def test_non_unit_normals_are_scaled_with_a_warning(tmp_path, caplog):
+    """Normals not of unit length are written scaled to unit length, with a warning."""
     m = tetra(normals=np.array([[0, 0, 2.0], [0, 3, 0], [1, 0, 0], [0, 1, 1]]))
     with caplog.at_level("WARNING", logger="recon"):
         save(m, tmp_path / "n.glb")
@@ -284,6 +295,7 @@ def _pos(b: Builder, v=SQUARE) -> int:
 
 
 def test_strips_fans_and_shared_vertices_of_several_primitives():
+    """Strips, fans and triangles sharing one vertex set become counter-clockwise triangles."""
     b = Builder()
     p = _pos(b)
     strip = b.accessor(np.array([0, 1, 3, 2, 5], np.uint16), "SCALAR", 5123)
@@ -304,6 +316,7 @@ def test_strips_fans_and_shared_vertices_of_several_primitives():
 
 
 def test_node_transforms_hierarchy_mirror_and_rtc():
+    """Nested node transforms, a mirror and CESIUM_RTC apply in float64; mirrored faces turned."""
     b = Builder()
     p = _pos(b)
     idx = b.accessor(np.array([0, 1, 2, 0, 2, 3], np.uint16), "SCALAR", 5123)
@@ -329,6 +342,7 @@ def test_node_transforms_hierarchy_mirror_and_rtc():
 
 
 def test_sparse_quantized_and_normalised_colour_accessors():
+    """Sparse, quantised positions and normalised uint8 colours decode to their values."""
     b = Builder()
     q = np.array([[0, 0, 0], [32767, 0, 0], [0, 32767, 0], [0, 0, 0]], np.int16)
     p = b.accessor(
@@ -356,6 +370,7 @@ def test_sparse_quantized_and_normalised_colour_accessors():
 
 
 def test_gltf_with_a_sibling_bin_file_and_uris_that_escape(tmp_path):
+    """A .gltf reads its sibling .bin; URIs leaving the folder, absolute or remote are refused."""
     b = Builder()
     p = _pos(b)
     idx = b.accessor(np.array([0, 1, 2], np.uint16), "SCALAR", 5123)
@@ -447,6 +462,7 @@ def _edit(path: str, value):
     ],
 )
 def test_bad_documents_are_refused_in_one_line(edit, message):
+    """Each malformed or unsupported document is refused in one line naming the fault."""
     data, doc = _tetra_glb()
     with pytest.raises(InputError) as exc:
         decode_gltf(_with_json(data, edit(doc)), "bad.glb")
@@ -455,6 +471,7 @@ def test_bad_documents_are_refused_in_one_line(edit, message):
 
 
 def test_draco_read_from_its_fallback_refused_without_one():
+    """A Draco primitive is read from its uncompressed fallback, refused without one."""
     data, doc = _tetra_glb()
     doc["meshes"][0]["primitives"][0]["extensions"] = {"KHR_draco_mesh_compression": {}}
     assert len(decode_gltf(_with_json(data, doc), "d.glb")[0].faces) == 4
@@ -468,6 +485,7 @@ def test_draco_read_from_its_fallback_refused_without_one():
 
 
 def test_indices_out_of_range_and_short_glb_refused():
+    """An index past the vertices, or a GLB shorter than its header says, is refused."""
     data, doc = _tetra_glb()
     raw = bytearray(data)
     acc = doc["accessors"][doc["meshes"][0]["primitives"][0]["indices"]]
@@ -481,6 +499,7 @@ def test_indices_out_of_range_and_short_glb_refused():
 
 
 def test_texcoords_dropped_with_a_warning_and_mixed_kinds_refused(caplog):
+    """Texture coordinates are dropped with a warning; points mixed with triangles are refused."""
     b = Builder()
     p = _pos(b)
     uv = b.accessor(SQUARE[:, :2].copy(), "VEC2", 5126)
@@ -495,6 +514,7 @@ def test_texcoords_dropped_with_a_warning_and_mixed_kinds_refused(caplog):
 
 
 def test_trimesh_reads_ours_and_we_read_trimesh(tmp_path):
+    """Our GLB reads exactly in trimesh, and trimesh's GLB reads here within 1e-6."""
     import trimesh
 
     m = mesh_family(1, np.float32)
@@ -514,6 +534,7 @@ def test_trimesh_reads_ours_and_we_read_trimesh(tmp_path):
 
 
 def test_registry_sniffing_and_stdout(tmp_path):
+    """.glb/.gltf name the format, their bytes are sniffed without one, and GLB goes to stdout."""
     assert format_of("x.GLB").name == "gltf" and format_of("x.gltf").name == "gltf"
     save(tetra(), tmp_path / "t.glb")
     save(tetra(), tmp_path / "t.gltf")
@@ -530,6 +551,7 @@ def test_registry_sniffing_and_stdout(tmp_path):
 
 
 def test_cli_stage_reads_and_writes_glb_and_refuses_bad_glb(tmp_path):
+    """A stage reads GLB and writes glTF; a truncated GLB is exit 2 with one line, no output."""
     m = mesh_family(2, np.float32)
     save(m, tmp_path / "m.glb")
     r = subprocess.run(

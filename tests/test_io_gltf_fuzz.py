@@ -97,12 +97,14 @@ def _check(data: bytes, name: str, label: str, must_fail: bool = False) -> bool:
 
 
 def test_bases_read():
+    """Each base glTF/GLB file, before any breakage, reads."""
     for name, data in BASES.items():
         assert _check(data, name, name)
 
 
 @pytest.mark.parametrize("name", sorted(BASES))
 def test_truncations_refused(name):
+    """Each base file cut at any byte is refused in one line."""
     data = BASES[name]
     rng = np.random.default_rng(1)
     offsets = set(range(0, min(len(data), 48))) | set(rng.integers(0, len(data), 80).tolist())
@@ -160,6 +162,7 @@ _VALUES = [
 
 @pytest.mark.parametrize("name", ["mesh.glb", "cloud.glb", "strips.glb"])
 def test_every_json_value_replaced_or_deleted(name):
+    """Every JSON value replaced or deleted: read or refused in one line, mostly refused."""
     doc, tail = _split(BASES[name])
     read = refused = 0
     for path in _leaves(doc):
@@ -177,6 +180,7 @@ def test_every_json_value_replaced_or_deleted(name):
 
 
 def test_gltf_json_values_replaced():
+    """A .gltf's values and its data URI replaced: read or refused in one line."""
     doc = json.loads(BASES["mesh.gltf"])
     rng = np.random.default_rng(4)
     paths = [p for p in _leaves(doc) if p and p[-1] != "uri"]
@@ -195,6 +199,7 @@ def test_gltf_json_values_replaced():
 
 @pytest.mark.parametrize("name", ["mesh.glb", "strips.glb"])
 def test_chunk_lengths_and_header_fields(name):
+    """GLB header fields and chunk lengths changed: read or refused in one line."""
     data = BASES[name]
     jlen = struct.unpack_from("<I", data, 12)[0]
     spots = {
@@ -215,6 +220,7 @@ def test_chunk_lengths_and_header_fields(name):
 
 @pytest.mark.parametrize("name", ["mesh.glb", "cloud.glb", "strips.glb"])
 def test_binary_buffer_bytes_flipped(name):
+    """Bytes flipped in the binary chunk: read as finite data or refused in one line."""
     data = BASES[name]
     start = 20 + struct.unpack_from("<I", data, 12)[0] + 8
     rng = np.random.default_rng(5)
@@ -231,6 +237,7 @@ def test_binary_buffer_bytes_flipped(name):
     prefix=st.sampled_from([b"", b"glTF\x02\0\0\0", b'{"asset":{"version":"2.0"},']),
 )
 def test_random_bytes(data, prefix):
+    """Random bytes, alone or after a GLB or JSON start: read or refused in one line."""
     raw = prefix + data
     if prefix[:4] == b"glTF" and len(raw) >= 12:  # a length that matches, so the chunks are parsed
         raw = raw[:8] + struct.pack("<I", len(raw)) + raw[12:]
@@ -238,6 +245,7 @@ def test_random_bytes(data, prefix):
 
 
 def test_cli_on_broken_files_one_line_and_output_untouched(tmp_path, capfd):
+    """``recon convert`` of broken glTF files: one line, the output untouched."""
     rng = np.random.default_rng(3)
     cases = []
     for name, data in BASES.items():

@@ -1,4 +1,6 @@
-"""Large inputs (issue 9): a PLY file whose header promises far more rows than the file holds is
+"""Large inputs (issue 9): a PLY header promising far more rows is refused before allocating.
+
+Large inputs (issue 9): a PLY file whose header promises far more rows than the file holds is
 rejected with a one-line error *before* anything of the promised size is allocated, on every path
 that reads a file: ``read_ply``, ``load``, the batch task and the CLI.
 
@@ -64,6 +66,7 @@ def _peak_while(fn):
 @pytest.mark.parametrize("fmt", sorted(FORMATS))
 @pytest.mark.parametrize("element,count", [("vertex", TERA), ("face", TERA), ("vertex", 10**30)])
 def test_lying_header_is_rejected_before_allocating(tmp_path, fmt, element, count):
+    """A few-hundred-byte file claiming 10^12 rows or more is refused before allocating for them."""
     from recon_cli.io.load import load
     from recon_cli.io.ply import read_ply
 
@@ -80,8 +83,11 @@ def test_lying_header_is_rejected_before_allocating(tmp_path, fmt, element, coun
 
 
 def test_the_same_file_with_honest_counts_reads(tmp_path):
-    """The lying files differ from a valid one only in the count (the test files are not broken
-    otherwise)."""
+    """With honest counts, the same files read.
+
+    The lying files differ from a valid one only in the count (the test files are not broken
+    otherwise).
+    """
     from recon_cli.io.ply import read_ply
 
     for fmt in FORMATS:
@@ -90,8 +96,11 @@ def test_the_same_file_with_honest_counts_reads(tmp_path):
 
 
 def test_batch_task_and_cli_report_the_lying_file(tmp_path, capsys):
-    """The batch task records it as failed (InputError, one line) without allocating; ``recon info``
-    exits 2."""
+    """The batch task and ``recon info`` report the lying file in one line.
+
+    The batch task records it as failed (InputError, one line) without allocating; ``recon info``
+    exits 2.
+    """
     from recon_cli import batch
     from recon_cli.cli.main import main
     from recon_cli.pipeline import load_pipeline

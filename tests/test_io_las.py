@@ -1,5 +1,8 @@
-"""LAS/LAZ through laspy: laspy's files read right, ours read back identically in laspy, the real
-airborne tile kept bit for bit, precision at UTM coordinates, errors and fuzz."""
+"""LAS/LAZ through laspy: both ways, the real tile bit for bit, UTM precision, errors, fuzz.
+
+LAS/LAZ through laspy: laspy's files read right, ours read back identically in laspy, the real
+airborne tile kept bit for bit, precision at UTM coordinates, errors and fuzz.
+"""
 
 from __future__ import annotations
 
@@ -60,6 +63,7 @@ def _laspy_file(seed, pf, version, compress, n=300):
 def test_laspy_written_files_read_with_coordinates_attributes_and_colours(
     seed, pf, version, compress
 ):
+    """Files laspy wrote (formats 0, 3, 6, 7; LAS, LAZ): exact coordinates, attributes, colours."""
     las, data = _laspy_file(seed, pf, version, compress)
     got, details = decode_las(data, "t.las")
     assert details["point_format"] == pf and details["version"] == version
@@ -80,6 +84,7 @@ def test_laspy_written_files_read_with_coordinates_attributes_and_colours(
 
 @pytest.mark.parametrize("compress", [False, True])
 def test_real_airborne_tile_round_trips_bit_for_bit_in_laspy(compress):
+    """The real airborne tile read and written again (LAS or LAZ): every point record's bytes."""
     src = laspy.read(AUTZEN)
     cloud, _ = decode_las(None, str(AUTZEN), path=str(AUTZEN))
     data = las_bytes(cloud, compress, "out")
@@ -93,6 +98,7 @@ def test_real_airborne_tile_round_trips_bit_for_bit_in_laspy(compress):
 
 @pytest.mark.parametrize("seed", range(4))
 def test_our_files_from_other_clouds_read_back_in_laspy(seed, caplog):
+    """Our LAS/LAZ of generated clouds in laspy: coordinates within 5e-9 of the extent, said."""
     c = cloud_family(seed)
     with caplog.at_level("WARNING", logger="recon"):
         data = las_bytes(c, seed % 2 == 1, "o.laz")
@@ -113,6 +119,7 @@ def test_our_files_from_other_clouds_read_back_in_laspy(seed, caplog):
 
 
 def test_attribute_that_does_not_fit_is_refused():
+    """A fractional classification cannot be written to LAS: refused, naming the attribute."""
     from recon_cli.errors import ParameterError
 
     c = PointCloud(
@@ -125,6 +132,7 @@ def test_attribute_that_does_not_fit_is_refused():
 
 
 def test_truncated_and_garbage_are_one_line_input_errors():
+    """Truncated tiles and garbage are one-line InputErrors naming the file."""
     data = AUTZEN.read_bytes()
     for variant in (data[:100], data[: len(data) // 2], b"LASF" + b"\0" * 300, b"not a las file"):
         with pytest.raises(InputError) as exc:
@@ -142,6 +150,7 @@ def test_truncated_and_garbage_are_one_line_input_errors():
     compress=st.booleans(),
 )
 def test_fuzz_truncated_or_corrupted_las_is_data_or_input_error(cut, junk, pos, compress):
+    """A cut or corrupted LAS/LAZ reads as finite points or is a one-line InputError."""
     _, data = _laspy_file(1, 3, "1.2", compress, n=50)
     k = int(cut * len(data))
     p = int(pos * k)
@@ -165,6 +174,7 @@ def test_fuzz_truncated_or_corrupted_las_is_data_or_input_error(cut, junk, pos, 
 )
 @pytest.mark.parametrize("from_path", [False, True])
 def test_header_counts_beyond_the_file_refused_before_reading(tmp_path, at, field, what, from_path):
+    """Header counts, offsets or scales beyond the file are refused in one line before reading."""
     # a corrupted count made laspy build millions of VLRs or allocate gigabytes (a fuzz case
     # took a test worker to 22 GB): the header is checked against the file's size first
     _, data = _laspy_file(1, 3, "1.2", False, n=50)
@@ -177,8 +187,11 @@ def test_header_counts_beyond_the_file_refused_before_reading(tmp_path, at, fiel
 
 
 def test_an_unparsable_coordinate_record_is_read_with_nothing_on_stderr(tmp_path, capfd):
-    """laspy logs a WKT record it cannot decode (and fewer points than declared, which the reader
-    refuses in its own line); the record is kept as bytes and nothing reaches stderr."""
+    """An undecodable WKT record is kept as bytes, with nothing on stderr.
+
+    laspy logs a WKT record it cannot decode (and fewer points than declared, which the reader
+    refuses in its own line); the record is kept as bytes and nothing reaches stderr.
+    """
     from recon_cli.cli.main import main
 
     h = laspy.LasHeader(point_format=3, version="1.2")
@@ -195,8 +208,11 @@ def test_an_unparsable_coordinate_record_is_read_with_nothing_on_stderr(tmp_path
 
 
 def test_an_extra_dimension_of_three_values_is_three_attributes_through_ply(tmp_path, capfd):
-    """An extra-bytes dimension of 3 floats a point (found by the readers' fuzz: convert to PLY
-    ended in a numpy traceback) is the attributes ``f_0 f_1 f_2``, one column each."""
+    """An extra-bytes dimension of 3 floats a point is three attributes through PLY.
+
+    An extra-bytes dimension of 3 floats a point (found by the readers' fuzz: convert to PLY
+    ended in a numpy traceback) is the attributes ``f_0 f_1 f_2``, one column each.
+    """
     from recon_cli.cli.main import main
     from recon_cli.io.load import load
 
@@ -220,8 +236,11 @@ def test_an_extra_dimension_of_three_values_is_three_attributes_through_ply(tmp_
 
 
 def test_a_record_description_that_is_no_text_is_kept_as_its_bytes(tmp_path):
-    """A VLR description laspy cannot decode comes as bytes (found by the readers' fuzz: an
-    AttributeError); it is kept byte for byte in the ``las_vlr`` line."""
+    """A VLR description that is no text is kept byte for byte.
+
+    A VLR description laspy cannot decode comes as bytes (found by the readers' fuzz: an
+    AttributeError); it is kept byte for byte in the ``las_vlr`` line.
+    """
     import base64
 
     h = laspy.LasHeader(point_format=3, version="1.2")
@@ -245,9 +264,12 @@ def test_a_record_description_that_is_no_text_is_kept_as_its_bytes(tmp_path):
 
 
 def test_signalling_nan_normals_are_written_to_ply_without_a_warning(tmp_path, capfd):
-    """Normals in float32 extra bytes that hold signalling NaNs (a point format byte set to 0 by
+    """Signalling-NaN normals are read as quiet NaNs and written to PLY without a warning.
+
+    Normals in float32 extra bytes that hold signalling NaNs (a point format byte set to 0 by
     the readers' fuzz made laspy read colours as them) next to float64 coordinates: numpy's
-    cast warning became a traceback. They are read as quiet NaNs; convert ends in exit 0."""
+    cast warning became a traceback. They are read as quiet NaNs; convert ends in exit 0.
+    """
     from recon_cli.cli.main import main
 
     h = laspy.LasHeader(point_format=0, version="1.2")
@@ -275,9 +297,12 @@ def test_signalling_nan_normals_are_written_to_ply_without_a_warning(tmp_path, c
 
 
 def test_a_corrupted_laszip_chunk_size_does_not_abort_the_process(tmp_path):
-    """A LAZ whose laszip record gives a chunk of 755 million points (the readers' fuzz) made
+    """A laszip record with a huge chunk size is read or refused, never aborts the process.
+
+    A LAZ whose laszip record gives a chunk of 755 million points (the readers' fuzz) made
     lazrs' parallel decoder abort the process on a 51 GB allocation; it is read (the points are
-    whole) or refused in one line. In a child process, as an abort would end this one."""
+    whole) or refused in one line. In a child process, as an abort would end this one.
+    """
     import struct
     import subprocess
     import sys
@@ -319,9 +344,12 @@ def test_a_corrupted_laszip_chunk_size_does_not_abort_the_process(tmp_path):
 
 
 def test_a_zero_scale_is_refused_and_a_bad_kept_grid_is_not_written(tmp_path):
-    """A header whose x scale is 0 (the readers' fuzz: read, then written back as LAS, a divide
+    """A zero x scale is refused in one line; a kept ``las_scale`` with a 0 is not reused.
+
+    A header whose x scale is 0 (the readers' fuzz: read, then written back as LAS, a divide
     by zero) is refused in one line; a cloud whose ``las_scale`` line has a 0 gets a grid of its
-    own when written."""
+    own when written.
+    """
     import struct
 
     _, data = _laspy_file(0, 0, "1.2", False, n=20)
@@ -350,8 +378,7 @@ def _las_extra_named(name: bytes) -> bytes:
 
 
 def _convert_extra_named(tmp_path, capfd, name: bytes, suffix: str):
-    """``recon convert`` of a LAS whose one extra dimension is named ``name``: (exit, stderr,
-    OUT)."""
+    """``recon convert`` of a LAS with one extra dimension named ``name``: (exit, stderr, OUT)."""
     from recon_cli.cli.main import main
 
     src = tmp_path / "a.las"
@@ -365,8 +392,11 @@ def _convert_extra_named(tmp_path, capfd, name: bytes, suffix: str):
 
 @pytest.mark.parametrize("suffix", [".ply", ".pcd"])
 def test_an_extra_dimension_named_x_is_refused_by_header_formats(tmp_path, capfd, suffix):
-    """An extra dimension named ``x`` (make fuzz): the PLY writer built a record with ``x`` twice
-    (numpy's ValueError, a traceback); PLY and PCD refuse it in one line naming the output."""
+    """An extra dimension named ``x`` is refused by PLY and PCD in one line.
+
+    An extra dimension named ``x`` (make fuzz): the PLY writer built a record with ``x`` twice
+    (numpy's ValueError, a traceback); PLY and PCD refuse it in one line naming the output.
+    """
     code, err, out = _convert_extra_named(tmp_path, capfd, b"x", suffix)
     assert code == 2 and err.count("\n") == 1, err
     assert err.startswith(f"recon: error: {out}: attribute 'x' has the name of a "), err
@@ -377,8 +407,11 @@ def test_an_extra_dimension_named_x_is_refused_by_header_formats(tmp_path, capfd
 def test_an_extra_dimension_named_with_a_space_is_refused_by_header_formats(
     tmp_path, capfd, suffix, code
 ):
-    """An extra dimension ``a c`` was written as the PLY property ``a c``, a file no reader takes
-    (exit 0 then); PLY and PCD refuse it in one line naming the output, LAS writes it."""
+    """An extra dimension named ``a c`` is refused by PLY and PCD, written by LAS.
+
+    An extra dimension ``a c`` was written as the PLY property ``a c``, a file no reader takes
+    (exit 0 then); PLY and PCD refuse it in one line naming the output, LAS writes it.
+    """
     got, err, out = _convert_extra_named(tmp_path, capfd, b"a c", suffix)
     assert got == code, err
     if code:
@@ -393,16 +426,18 @@ def test_an_extra_dimension_named_with_a_space_is_refused_by_header_formats(
 
 
 def test_an_extra_dimension_without_a_name_is_refused_in_one_line():
-    """An Extra Bytes record whose name's first byte is 0 (the readers' fuzz): laspy lists a
-    dimension ``''`` it cannot give the values of (a ValueError traceback); refused in one line."""
+    """An extra dimension with an empty name is refused in one line.
+
+    An Extra Bytes record whose name's first byte is 0 (the readers' fuzz): laspy lists a
+    dimension ``''`` it cannot give the values of (a ValueError traceback); refused in one line.
+    """
     with pytest.raises(InputError) as exc:
         decode_las(_las_extra_named(b"\0bc"), "a.las")
     assert str(exc.value) == "a.las: an extra-bytes dimension's name is empty or repeated: ''"
 
 
 def _normals_then_poisson(cloud):
-    """``recon normals IN - | recon poisson - OUT.ply`` in process: each stage's output through PLY
-    bytes."""
+    """``recon normals IN - | recon poisson - OUT.ply`` in process, through PLY bytes."""
     from recon_cli.io.ply import parse_ply, ply_bytes, ply_to_geometry
     from recon_cli.stages import apply_stage
 
@@ -415,6 +450,7 @@ def _normals_then_poisson(cloud):
 
 @pytest.mark.slow
 def test_airborne_tile_at_state_plane_coordinates_keeps_its_coordinates_through_normals():
+    """The tile at state-plane coordinates keeps its float64 points through normals and PLY."""
     cloud, _ = decode_las(None, str(AUTZEN), path=str(AUTZEN))
     from recon_cli.io.ply import parse_ply, ply_bytes, ply_to_geometry
     from recon_cli.stages import apply_stage
@@ -428,6 +464,7 @@ def test_airborne_tile_at_state_plane_coordinates_keeps_its_coordinates_through_
 
 @pytest.mark.slow
 def test_airborne_tile_at_utm_like_coordinates_meshes_like_the_same_tile_at_the_origin():
+    """60k tile points far off and at the origin give the same Poisson mesh, 99 % within 1e-4 ft."""
     cloud, _ = decode_las(None, str(AUTZEN), path=str(AUTZEN))
     cloud = cloud.subset(np.arange(60_000))
     shift = np.floor(cloud.points.min(axis=0))
@@ -453,9 +490,12 @@ def test_airborne_tile_at_utm_like_coordinates_meshes_like_the_same_tile_at_the_
     ],
 )
 def test_a_corrupted_laz_chunk_table_is_refused_before_lazrs_decodes(where, value, what):
-    """The chunk table's offset (the points' first 8 bytes) or its count of chunks (after its
+    """A corrupted LAZ chunk table is refused in one line before lazrs reads it.
+
+    The chunk table's offset (the points' first 8 bytes) or its count of chunks (after its
     version, at the offset) corrupted: lazrs allocated by them and aborted the process; the
-    reader refuses them in one line first."""
+    reader refuses them in one line first.
+    """
     import struct
 
     _, data = _laspy_file(1, 3, "1.2", True, n=50)

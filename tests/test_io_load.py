@@ -1,5 +1,8 @@
-"""The format registry and the commands on every format: convert between any two, info, stages
-by suffix, --format for streams, refusals (unknown suffix, faces to a points-only format)."""
+"""The format registry and the commands on every format: convert, info, stages, refusals.
+
+Convert between any two formats, info, stages by suffix, --format for streams, refusals (unknown
+suffix, faces to a points-only format).
+"""
 
 from __future__ import annotations
 
@@ -34,6 +37,7 @@ CLOUD_SUFFIXES = [
 
 
 def recon(*args, input: bytes | None = None):
+    """Run ``recon`` with ``args`` as a process, its output captured."""
     return subprocess.run([*RECON, *map(str, args)], input=input, capture_output=True, timeout=300)
 
 
@@ -50,6 +54,7 @@ def _same_mesh(a, b, exact=True):
 @pytest.mark.parametrize("src", MESH_SUFFIXES)
 @pytest.mark.parametrize("dst", MESH_SUFFIXES)
 def test_meshes_convert_between_any_two_mesh_formats(src, dst, tmp_path):
+    """A float32 mesh through any two mesh formats comes back exactly, STL welded again."""
     m = mesh_family(5, np.float32)  # float32: every format holds it exactly
     save(m, tmp_path / f"a{src}")
     got = load(tmp_path / f"a{src}")
@@ -61,6 +66,7 @@ def test_meshes_convert_between_any_two_mesh_formats(src, dst, tmp_path):
 
 @pytest.mark.parametrize("dst", CLOUD_SUFFIXES)
 def test_clouds_convert_to_every_cloud_format_and_back(dst, tmp_path):
+    """A cloud through each cloud format comes back exactly (LAS within its grid), normals too."""
     c = cloud_family(2)
     c.attributes = {}  # a LAS file adds its standard dimensions; checked in test_io_las
     save(c, tmp_path / f"c{dst}")
@@ -72,6 +78,7 @@ def test_clouds_convert_to_every_cloud_format_and_back(dst, tmp_path):
 
 
 def test_registry_suffixes_case_and_unknown(tmp_path):
+    """Suffixes in any case name their format; an unknown one is refused, listing the known."""
     assert (
         format_of("A.LAZ").name == "las"
         and format_of("x.Csv").name == "xyz"
@@ -86,6 +93,7 @@ def test_registry_suffixes_case_and_unknown(tmp_path):
 
 @pytest.mark.parametrize("suffix", [".ply", ".obj", ".off", ".stl", ".xyz", ".csv", ".pcd", ".las"])
 def test_sniffing_recognises_our_output(suffix, tmp_path):
+    """Each format we write is recognised by its content, and a file without a suffix reads."""
     obj = mesh_family(3, np.float32) if suffix in (".stl", ".off", ".obj") else cloud_family(1)
     save(obj, tmp_path / f"s{suffix}")
     want = format_of(f"s{suffix}")
@@ -96,6 +104,7 @@ def test_sniffing_recognises_our_output(suffix, tmp_path):
 
 
 def test_mesh_to_points_only_format_refused_or_points_only(tmp_path, caplog):
+    """A mesh to a points-only format is refused, or written as its vertices with points_only."""
     m = mesh_family(2)
     with pytest.raises(
         ParameterError, match="holds points only; the mesh's .* faces would be dropped"
@@ -111,12 +120,14 @@ def test_mesh_to_points_only_format_refused_or_points_only(tmp_path, caplog):
 
 
 def test_missing_extra_names_the_pip_install(tmp_path, monkeypatch):
+    """Writing LAS without laspy names the ``pip install 'recon[las]'`` that brings it."""
     monkeypatch.setitem(sys.modules, "laspy", None)
     with pytest.raises(ParameterError, match=r"pip install 'recon\[las\]'"):
         save(cloud_family(0), tmp_path / "c.las")
 
 
 def test_e57_written_by_pye57_reads_with_right_counts_and_coordinates(tmp_path):
+    """An E57 pye57 wrote reads exactly; E57 is not written, and a cut file is refused."""
     pye57 = pytest.importorskip("pye57")
     rng = np.random.default_rng(4)
     # pye57 stores float32 coordinates: values it holds exactly, at UTM-like magnitudes
@@ -146,6 +157,7 @@ def test_e57_written_by_pye57_reads_with_right_counts_and_coordinates(tmp_path):
 
 
 def test_cli_convert_info_and_errors(tmp_path):
+    """``recon convert`` and ``info`` across formats; unknown suffixes and faces to XYZ refused."""
     m = mesh_family(1, np.float32)
     save(m, tmp_path / "m.ply")
     r = recon("convert", tmp_path / "m.ply", tmp_path / "m.obj")
@@ -192,6 +204,7 @@ def test_cli_convert_info_and_errors(tmp_path):
 
 
 def test_cli_streams_with_formats(tmp_path):
+    """Streams are sniffed or named by --input-format/--output-format; stages write by suffix."""
     c = cloud_family(3, 200)
     save(c, tmp_path / "c.xyz")
     data = (tmp_path / "c.xyz").read_bytes()
@@ -214,6 +227,7 @@ def test_cli_streams_with_formats(tmp_path):
 
 
 def test_normals_on_a_mesh_says_it_writes_the_vertices(tmp_path):
+    """``recon normals`` of a mesh says it writes the vertices only."""
     save(mesh_family(4), tmp_path / "m.off")
     r = recon("normals", "--knn", "8", tmp_path / "m.off", tmp_path / "n.ply")
     assert r.returncode == 0 and "vertices only are written" in r.stderr.decode()
@@ -221,9 +235,12 @@ def test_normals_on_a_mesh_says_it_writes_the_vertices(tmp_path):
 
 @pytest.mark.parametrize("suffix", [".ply", ".obj", ".off", ".xyz", ".stl", ".pcd", ".las"])
 def test_history_of_any_characters_is_written_on_one_line(suffix, tmp_path):
-    """A history line read from a file (an STL's name in latin-1, a glTF string with a newline)
+    """Every writer writes any history line as one line of printable ASCII.
+
+    A history line read from a file (an STL's name in latin-1, a glTF string with a newline)
     is written by every writer as one line of printable ASCII (other characters escaped), and the
-    file reads back."""
+    file reads back.
+    """
     v = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
     f = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
     obj = TriangleMesh(vertices=v, faces=f) if suffix in (".ply", ".obj", ".off", ".stl") else None

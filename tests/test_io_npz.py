@@ -1,6 +1,9 @@
-"""Grid files (.npz): every header checked before use; `recon info` and `recon mcubes` on
+"""Grid files (.npz): headers checked before use; odd grids give a report or one line.
+
+Grid files (.npz): every header checked before use; `recon info` and `recon mcubes` on
 odd grids answer with a report or one line and exit 2, never a traceback (issue 15, items
-2, 9 and 14)."""
+2, 9 and 14).
+"""
 
 from __future__ import annotations
 
@@ -28,6 +31,7 @@ def run(capsys, *args) -> tuple[int, str, str]:
 
 
 def save(path, sdf, origin=(0.0, 0.0, 0.0), voxel_size=0.1, **extra):
+    """Write an .npz grid file of ``sdf`` and its frame, with ``extra`` members."""
     np.savez(path, sdf=sdf, origin=np.asarray(origin), voxel_size=np.asarray(voxel_size), **extra)
     return path
 
@@ -145,6 +149,7 @@ def test_bad_grid_files_are_refused(tmp_path, capsys, case, message):
 
 
 def test_grid_whose_memory_cannot_be_had_is_refused_before_reading(tmp_path, monkeypatch):
+    """A grid larger than the available memory is refused before it is read."""
     path = save(tmp_path / "g.npz", np.zeros((16, 16, 16), np.float32))
     assert read_grid(path).shape == (16, 16, 16)
     monkeypatch.setattr("recon_cli.memory.available_bytes", lambda: 10_000)
@@ -156,6 +161,7 @@ def test_grid_whose_memory_cannot_be_had_is_refused_before_reading(tmp_path, mon
 
 
 def test_grid_class_checks_its_frame():
+    """A Grid with a NaN origin, an infinite or negative voxel size, or no samples is refused."""
     for kw in (
         {"origin": (0, np.nan, 0)},
         {"voxel_size": np.inf},
@@ -168,6 +174,7 @@ def test_grid_class_checks_its_frame():
 
 
 def test_round_trip_and_compressed(tmp_path):
+    """Grids round-trip exactly, compressed too, in any layout and byte order numpy writes."""
     g = Grid(
         sdf=np.random.default_rng(0).normal(size=(3, 4, 5)),
         origin=(1.0, 2.0, 3.0),
@@ -199,8 +206,11 @@ def test_round_trip_and_compressed(tmp_path):
 
 @pytest.mark.parametrize("kind", ["constant", "all_nan", "one_sample", "nan_where_it_crosses"])
 def test_mcubes_refuses_an_empty_level_set(tmp_path, capsys, kind):
-    """A grid with no sign change (or no cell, or only unknown cells where it changes) is
-    exit 2 'nothing to mesh', never an empty mesh written with exit 0."""
+    """``recon mcubes`` of a grid with no surface is exit 2 "nothing to mesh".
+
+    A grid with no sign change (or no cell, or only unknown cells where it changes) is
+    exit 2 'nothing to mesh', never an empty mesh written with exit 0.
+    """
     sdf = {
         "constant": np.full((8, 8, 8), 0.5),
         "all_nan": np.full((4, 4, 4), np.nan),

@@ -22,6 +22,7 @@ trimesh = pytest.importorskip("trimesh")
 
 @pytest.mark.parametrize("seed", range(8))
 def test_trimesh_written_obj_reads_with_right_counts_and_coordinates(seed):
+    """OBJ files trimesh wrote read with their counts, faces and coordinates to 1e-14."""
     m = mesh_family(seed)
     tm = trimesh.Trimesh(m.vertices, m.faces, process=False)
     data = trimesh.exchange.obj.export_obj(tm, include_normals=bool(seed % 2), digits=15).encode()
@@ -37,6 +38,7 @@ def test_trimesh_written_obj_reads_with_right_counts_and_coordinates(seed):
 @pytest.mark.parametrize("seed", range(8))
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_our_obj_reads_back_identically_here_and_in_trimesh(seed, dtype):
+    """Our OBJ (float32 or float64) reads back bit for bit here, and the same in trimesh."""
     m = mesh_family(seed, dtype)
     m.history = ["made by a test", "second line"]
     data = obj_bytes(m)
@@ -55,6 +57,7 @@ def test_our_obj_reads_back_identically_here_and_in_trimesh(seed, dtype):
 
 
 def test_corner_forms_polygons_and_negative_indices():
+    """Corner forms, polygons and negative indices read right; comments become the history."""
     data = b"""# a square and a triangle
 v 0 0 0
 v 1 0 0
@@ -76,6 +79,7 @@ o name
 
 
 def test_split_normals_are_dropped_with_a_warning(caplog):
+    """Two normals for one vertex: the normals are dropped, with a warning."""
     data = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nvn 0 0 1\nvn 0 0 -1\nf 1//1 2//1 3//1\nf 1//2 3//2 2//2\n"
     with caplog.at_level("WARNING", logger="recon"):
         m, details = decode_obj(data, "s.obj")
@@ -84,6 +88,7 @@ def test_split_normals_are_dropped_with_a_warning(caplog):
 
 
 def test_points_only_obj_is_a_cloud_with_colours():
+    """An OBJ of ``v`` lines only is a cloud; its float colours become bytes."""
     data = b"v 1 2 3 1 0 0\nv 4 5 6 0 0.5019607843137255 1\n"
     c = decode_obj(data, "c.obj")[0]
     assert isinstance(c, PointCloud)
@@ -91,6 +96,7 @@ def test_points_only_obj_is_a_cloud_with_colours():
 
 
 def test_nonfinite_vertices_dropped_and_counted():
+    """Vertices with inf or NaN are dropped and counted in a cloud."""
     cloud, _ = decode_obj(b"v 1 inf 3\nv 0 0 0\nv\t1 -inf 3\nv nan 0 0\nv 4 5 6\n", "c.obj")
     assert cloud.invalid_dropped == 3 and cloud.points.tolist() == [[0, 0, 0], [4, 5, 6]]
 
@@ -118,6 +124,7 @@ def test_nonfinite_vertices_dropped_and_counted():
     ],
 )
 def test_malformed_files_name_the_line(data, message):
+    """Each malformed OBJ is a one-line InputError naming the line or the index at fault."""
     with pytest.raises(InputError) as exc:
         decode_obj(data, "bad.obj")
     assert str(exc.value).startswith("bad.obj: ") and message in str(exc.value)
@@ -129,6 +136,7 @@ def test_malformed_files_name_the_line(data, message):
     seed=st.integers(0, 50), cut=st.floats(0, 1), junk=st.binary(max_size=20), pos=st.floats(0, 1)
 )
 def test_fuzz_truncated_or_corrupted_obj_is_data_or_input_error(seed, cut, junk, pos):
+    """A cut or corrupted OBJ reads as finite points and valid faces, or is a one-line error."""
     data = obj_bytes(mesh_family(seed))
     k = int(cut * len(data))
     p = int(pos * k)
@@ -149,6 +157,7 @@ def test_fuzz_truncated_or_corrupted_obj_is_data_or_input_error(seed, cut, junk,
     fmt=st.sampled_from(["%r", "%.17g", "%.9g", "%.6f", "%.10f", "%.0f", "%.3e", "%.12E", "%g"]),
 )
 def test_number_parser_is_correctly_rounded(x, fmt):
+    """The number parser's fast path gives Python's correctly rounded float, in many formats."""
     tok = (fmt % x).encode()
     buf = as_uint8(tok)
     v, status = parse_float(buf, 0, len(buf))
@@ -158,6 +167,7 @@ def test_number_parser_is_correctly_rounded(x, fmt):
 
 
 def test_read_and_write_files(tmp_path):
+    """A mesh written to an OBJ file reads back exactly."""
     m = mesh_family(3)
     write_obj(m, tmp_path / "m.obj")
     got = read_obj(tmp_path / "m.obj")
@@ -165,8 +175,11 @@ def test_read_and_write_files(tmp_path):
 
 
 def _obj_text(m, rng) -> list[str]:
-    """OBJ lines of ``m`` written as other tools do: ``%r`` numbers, every corner form, some
-    negative (relative) indices; with normals, one ``vn`` per vertex and ``vt`` lines."""
+    """OBJ lines of ``m`` written as other tools write them.
+
+    OBJ lines of ``m`` written as other tools do: ``%r`` numbers, every corner form, some
+    negative (relative) indices; with normals, one ``vn`` per vertex and ``vt`` lines.
+    """
     nv = len(m.vertices)
     lines = ["v {!r} {!r} {!r}".format(*p) for p in m.vertices.tolist()]
     if m.normals is not None:
@@ -182,8 +195,11 @@ def _obj_text(m, rng) -> list[str]:
 
 
 def _perturbed(lines: list[str], rng) -> bytes:
-    """The same file with other white space on some lines: tabs, double and trailing spaces,
-    CR LF, leading blanks (such lines leave the reader's short path for the general one)."""
+    """The same file with other white space on some lines.
+
+    The same file with other white space on some lines: tabs, double and trailing spaces,
+    CR LF, leading blanks (such lines leave the reader's short path for the general one).
+    """
     out = []
     for line in lines:
         k = int(rng.integers(8))
@@ -204,6 +220,7 @@ def _perturbed(lines: list[str], rng) -> bytes:
 @settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 1000))
 def test_short_and_general_line_paths_read_alike(seed):
+    """Other tools' OBJ text, with odd white space or not, reads back bit for bit."""
     rng = np.random.default_rng(seed)
     m = mesh_family(seed)
     lines = _obj_text(m, rng)
@@ -232,6 +249,7 @@ def _big_mesh():
 @pytest.mark.parametrize("normals_late", [False, True])
 @pytest.mark.parametrize("no_estimate", [False, True])
 def test_arrays_sized_from_a_sample_grow_when_it_misses(normals_late, no_estimate, monkeypatch):
+    """A large file whose sample misses the geometry: arrays grow and read as the small file."""
     # a large file (sampled, not counted) whose geometry sits between long comment blocks
     # that most sample windows see: the arrays grow from an estimate far too small (or from
     # nothing at all, the estimate replaced by zeros)
@@ -261,6 +279,7 @@ def test_arrays_sized_from_a_sample_grow_when_it_misses(normals_late, no_estimat
 
 
 def test_a_polygon_after_triangles_is_fanned_in_place():
+    """A polygon after triangles is fanned in place; the triangles before it stay as they are."""
     # face lengths are kept only from the first polygon on: the triangles before it stay triangles
     data = (
         b"v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 2 2 2\nf 1 2 3\nf 1 3 4\nf 5 1 2 3 4\nf 2 3 4\n"
@@ -280,8 +299,11 @@ def test_a_polygon_after_triangles_is_fanned_in_place():
 
 
 def test_a_refused_file_says_one_line_not_a_warning_before_it(tmp_path, capfd):
-    """Normals that are not kept and no finite vertex (the readers' fuzz): the warning about the
-    normals came before the refusal, two lines; the refusal is the only one."""
+    """A refused file says one line, with no warning before it.
+
+    Normals that are not kept and no finite vertex (the readers' fuzz): the warning about the
+    normals came before the refusal, two lines; the refusal is the only one.
+    """
     from recon_cli.cli.main import main
 
     src = tmp_path / "a.obj"

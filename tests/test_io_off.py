@@ -20,6 +20,7 @@ trimesh = pytest.importorskip("trimesh")
 
 @pytest.mark.parametrize("seed", range(6))
 def test_trimesh_written_off_reads_with_right_counts_and_coordinates(seed):
+    """OFF files trimesh wrote read with their counts, faces and coordinates to 1e-15."""
     m = mesh_family(seed)
     tm = trimesh.Trimesh(m.vertices, m.faces, process=False)
     data = trimesh.exchange.off.export_off(tm, digits=17).encode()
@@ -32,6 +33,7 @@ def test_trimesh_written_off_reads_with_right_counts_and_coordinates(seed):
 @pytest.mark.parametrize("seed", range(6))
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_our_off_reads_back_identically_here_and_in_trimesh(seed, dtype):
+    """Our OFF (float32 or float64) reads back exactly here and in trimesh, history too."""
     m = mesh_family(seed, dtype)
     m.history = ["from a test"]
     data = off_bytes(m)
@@ -53,6 +55,7 @@ def test_our_off_reads_back_identically_here_and_in_trimesh(seed, dtype):
 
 
 def test_polygons_face_colours_and_counts_on_the_keyword_line():
+    """Polygons are fanned, face colours read, counts on the keyword line; no faces is a cloud."""
     data = (
         b"OFF 5 2 0\n# a comment\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n0 0 1\n4 0 1 2 3 255 0 0\n"
         b"3 0 1 4 0 255 0\n"
@@ -98,6 +101,7 @@ def test_polygons_face_colours_and_counts_on_the_keyword_line():
     ],
 )
 def test_malformed_files_name_the_line(data, message):
+    """Each malformed OFF is a one-line InputError naming its line."""
     with pytest.raises(InputError) as exc:
         decode_off(data, "bad.off")
     assert str(exc.value).startswith("bad.off: ") and message in str(exc.value), str(exc.value)
@@ -108,6 +112,7 @@ def test_malformed_files_name_the_line(data, message):
     seed=st.integers(0, 50), cut=st.floats(0, 1), junk=st.binary(max_size=20), pos=st.floats(0, 1)
 )
 def test_fuzz_truncated_or_corrupted_off_is_data_or_input_error(seed, cut, junk, pos):
+    """A cut or corrupted OFF reads as data or is a one-line InputError."""
     data = off_bytes(mesh_family(seed))
     k = int(cut * len(data))
     p = int(pos * k)
@@ -130,8 +135,11 @@ def test_an_infinite_count_is_refused_in_one_line():
 
 
 def test_a_face_count_past_int64_is_refused_in_one_line():
-    """A face row ``18446744073709551616`` (the readers' fuzz): numpy's cast warning, a
-    traceback under -W error."""
+    """A face row with a number past int64 is refused in one line.
+
+    A face row ``18446744073709551616`` (the readers' fuzz): numpy's cast warning, a
+    traceback under -W error.
+    """
     with pytest.raises(InputError) as exc:
         decode_off(b"OFF 0 1 0\n18446744073709551616\n", "a.off")
     assert str(exc.value) == (

@@ -1,5 +1,8 @@
-"""PCD: Open3D's ascii/binary/compressed files read right, ours read back identically (by us and
-Open3D), LZF round trips, errors, fuzz."""
+"""PCD: Open3D's files read right, ours read back identically, LZF, errors, fuzz.
+
+PCD: Open3D's ascii/binary/compressed files read right, ours read back identically (by us and
+Open3D), LZF round trips, errors, fuzz.
+"""
 
 from __future__ import annotations
 
@@ -24,6 +27,7 @@ DATA = ["ascii", "binary", "binary_compressed"]
 @pytest.mark.parametrize("seed", range(4))
 @pytest.mark.parametrize("data", DATA)
 def test_open3d_written_pcd_reads_with_right_counts_and_coordinates(seed, data, tmp_path):
+    """PCD files Open3D wrote (ASCII, binary, compressed) read with its counts, points, colours."""
     c = cloud_family(seed)
     path = tmp_path / "c.pcd"
     o3d.io.write_point_cloud(
@@ -44,6 +48,7 @@ def test_open3d_written_pcd_reads_with_right_counts_and_coordinates(seed, data, 
 @pytest.mark.parametrize("data", DATA)
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_our_pcd_reads_back_identically_here_and_in_open3d(seed, data, dtype, tmp_path):
+    """Our PCD in each encoding and precision reads back exactly here, and in Open3D."""
     c = cloud_family(seed)
     c.points = c.points.astype(dtype)
     c.point_dtype = dtype
@@ -69,6 +74,7 @@ def test_our_pcd_reads_back_identically_here_and_in_open3d(seed, data, dtype, tm
 
 
 def test_fields_with_counts_padding_and_viewpoint_kept():
+    """Fields with counts and padding become attributes; the viewpoint becomes a sensor, kept."""
     head = (
         b"VERSION .7\nFIELDS x y z _ label hist\nSIZE 4 4 4 1 2 4\nTYPE F F F U U F\n"
         b"COUNT 1 1 1 1 1 2\n"
@@ -108,6 +114,7 @@ def test_fields_with_counts_padding_and_viewpoint_kept():
     )
 )
 def test_lzf_round_trip(data):
+    """LZF compression then decompression gives back the bytes."""
     src = as_uint8(data)
     comp = lzf_compress(src)
     out = np.empty(len(src), np.uint8)
@@ -117,6 +124,7 @@ def test_lzf_round_trip(data):
 @settings(max_examples=300, deadline=None)
 @given(data=st.binary(max_size=200), size=st.integers(0, 400))
 def test_lzf_decoder_never_overruns(data, size):
+    """The LZF decoder on random bytes never writes past its output."""
     out = np.zeros(size, np.uint8)
     got = lzf_decompress(as_uint8(data), out)
     assert -len(data) - 1 <= got <= size
@@ -177,12 +185,14 @@ def test_lzf_decoder_never_overruns(data, size):
     ],
 )
 def test_malformed_files_are_one_line_errors(head, message):
+    """Each malformed PCD header is a one-line InputError naming the fault."""
     with pytest.raises(InputError) as exc:
         decode_pcd(("VERSION 0.7\n" + head).encode(), "bad.pcd")
     assert str(exc.value).startswith("bad.pcd: ") and message in str(exc.value), str(exc.value)
 
 
 def test_compressed_sizes_checked_before_allocation():
+    """Compressed sizes that disagree with the header are refused before allocating."""
     head = (
         b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH 300000000\nPOINTS 300000000\n"
         b"DATA binary_compressed\n"
@@ -202,6 +212,7 @@ def test_compressed_sizes_checked_before_allocation():
     data=st.sampled_from(DATA),
 )
 def test_fuzz_truncated_or_corrupted_pcd_is_data_or_input_error(seed, cut, junk, pos, data):
+    """A cut or corrupted PCD reads as data or is a one-line InputError."""
     raw = pcd_bytes(cloud_family(seed, 30), data)
     k = int(cut * len(raw))
     p = int(pos * k)
@@ -217,8 +228,11 @@ def test_fuzz_truncated_or_corrupted_pcd_is_data_or_input_error(seed, cut, junk,
 def test_signalling_nan_normals_beside_double_coordinates_convert_without_a_warning(
     tmp_path, capfd
 ):
-    """Float32 normals holding signalling NaNs beside float64 coordinates (the readers' fuzz): the
-    cast to the output's doubles raised numpy's warning; they are read as quiet NaNs."""
+    """Signalling-NaN float32 normals beside float64 points convert without a warning.
+
+    Float32 normals holding signalling NaNs beside float64 coordinates (the readers' fuzz): the
+    cast to the output's doubles raised numpy's warning; they are read as quiet NaNs.
+    """
     from recon_cli.cli.main import main
 
     head = (

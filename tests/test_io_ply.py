@@ -29,12 +29,14 @@ FORMATS = ["ascii", "binary_little_endian", "binary_big_endian"]
 
 
 def tetra() -> TriangleMesh:
+    """A closed tetrahedron, outward faces."""
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=np.float64)
     f = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
     return TriangleMesh(vertices=v, faces=f)
 
 
 def cube() -> TriangleMesh:
+    """The unit cube as 12 triangles."""
     v = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=np.float64)
     f = np.array(
         [
@@ -56,6 +58,7 @@ def cube() -> TriangleMesh:
 
 
 def colored_cloud() -> PointCloud:
+    """50 points with normals, RGBA colours and a float32 ``quality``, exact in float32."""
     rng = np.random.default_rng(3)
     p = rng.normal(size=(50, 3)).astype(np.float32).astype(np.float64)
     n = rng.normal(size=(50, 3)).astype(np.float32).astype(np.float64)
@@ -66,6 +69,7 @@ def colored_cloud() -> PointCloud:
 
 
 def single_triangle() -> TriangleMesh:
+    """One triangle in float64."""
     return TriangleMesh(
         vertices=np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.5]]),
         faces=np.array([[0, 1, 2]]),
@@ -82,6 +86,7 @@ CANONICAL = {
 
 
 def assert_same_geometry(a, b) -> None:
+    """Assert ``a`` and ``b`` have the same type, arrays and attributes, value for value."""
     assert type(a) is type(b)
     np.testing.assert_array_equal(a.points, b.points)
     if isinstance(a, TriangleMesh):
@@ -99,6 +104,7 @@ def assert_same_geometry(a, b) -> None:
 @pytest.mark.parametrize("name", sorted(CANONICAL))
 @pytest.mark.parametrize("fmt", FORMATS)
 def test_round_trip_canonical(name, fmt):
+    """Each canonical object through each PLY format comes back exactly."""
     obj = CANONICAL[name]()
     ply = parse_ply(ply_bytes(obj))
     ply.format = fmt
@@ -110,6 +116,7 @@ def test_round_trip_canonical(name, fmt):
 
 @pytest.mark.parametrize("name", ALL_MESHES + SCANS)
 def test_round_trip_shared_binary_exact(name, tmp_path):
+    """Every shared mesh and scan through binary PLY comes back exactly, in its own precision."""
     obj = load_shared(name)
     out = tmp_path / "x.ply"
     write_ply(obj, out)
@@ -120,6 +127,7 @@ def test_round_trip_shared_binary_exact(name, tmp_path):
 
 @pytest.mark.parametrize("name", ["kitten", "stereo_fragment"])
 def test_round_trip_shared_ascii(name, tmp_path):
+    """Shared files through ASCII PLY come back exactly: every float printed in full."""
     obj = load_shared(name)
     out = tmp_path / "x.ply"
     write_ply(obj, out, ascii=True)
@@ -142,6 +150,7 @@ def test_round_trip_shared_ascii(name, tmp_path):
 )
 @pytest.mark.parametrize("fmt", FORMATS)
 def test_every_type_name_and_alias(alias, fmt):
+    """Each PLY type, by name and alias, in each format, reads as its numpy type with its values."""
     values = np.array([0, 1, 2, 100, 7], dtype=np.float64)
     for tname in alias:
         header = (
@@ -178,6 +187,7 @@ def test_every_type_name_and_alias(alias, fmt):
     [("uchar", "int"), ("ushort", "uint"), ("int", "int"), ("uint8", "int32"), ("char", "uint16")],
 )
 def test_list_count_and_item_types(fmt, ctype, itype):
+    """Face lists with any count and index types read back the cube's faces."""
     mesh = cube()
     ply = parse_ply(ply_bytes(mesh))
     from recon_cli.io._ply_types import PLY_TYPES
@@ -191,6 +201,7 @@ def test_list_count_and_item_types(fmt, ctype, itype):
 
 @pytest.mark.parametrize("fmt", FORMATS)
 def test_polygons_fan_triangulated_and_mixed(fmt):
+    """Quads and pentagons among triangles are fan-triangulated; face properties follow."""
     # a quad and a pentagon and a triangle: ragged lists, and 'vertex_index' spelling
     verts = np.array(
         [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [2, 0, 0], [2, 1, 0], [3, 0.5, 0]], float
@@ -224,6 +235,7 @@ def test_polygons_fan_triangulated_and_mixed(fmt):
 
 @pytest.mark.parametrize("fmt", FORMATS)
 def test_unknown_elements_kept_and_order_free(fmt):
+    """Unknown elements and properties, in any order, are kept and written back."""
     # an element before the vertices, one between, unknown properties everywhere
     verts = np.arange(12, dtype=np.float64).reshape(4, 3)
     ply = PlyData(
@@ -276,6 +288,7 @@ def test_unknown_elements_kept_and_order_free(fmt):
 
 
 def test_crlf_header_and_comments():
+    """A header with CRLF line ends reads, its comment becoming the history."""
     body = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], "<f4").tobytes() + struct.pack(
         "<Biii", 3, 0, 1, 2
     )
@@ -295,6 +308,7 @@ def test_crlf_header_and_comments():
 @pytest.mark.parametrize("name", ["kitten", "stereo_fragment", "bunny_scan_000"])
 @pytest.mark.parametrize("ascii", [False, True])
 def test_open3d_written_files_read_identically(name, ascii, tmp_path):
+    """Files Open3D wrote (mesh or cloud, ASCII or binary) read as Open3D reads them."""
     import open3d as o3d
 
     src = load_shared(name)
@@ -324,6 +338,7 @@ def test_open3d_written_files_read_identically(name, ascii, tmp_path):
 @pytest.mark.parametrize("name", ["kitten", "mug"])
 @pytest.mark.parametrize("binary", [True, False])
 def test_pymeshlab_written_files_read_identically(name, binary, tmp_path):
+    """Files PyMeshLab wrote (binary or ASCII) read as PyMeshLab reads them."""
     import pymeshlab
 
     ms = pymeshlab.MeshSet()
@@ -340,6 +355,7 @@ def test_pymeshlab_written_files_read_identically(name, binary, tmp_path):
 
 @pytest.mark.parametrize("ascii", [False, True])
 def test_our_files_open_in_open3d_and_pymeshlab(ascii, tmp_path):
+    """Our PLY files (mesh and cloud, ASCII or binary) open in Open3D and PyMeshLab unchanged."""
     import open3d as o3d
     import pymeshlab
 
@@ -471,6 +487,7 @@ BAD_FILES = {
 
 @pytest.mark.parametrize("case", sorted(BAD_FILES))
 def test_bad_files_raise_one_line_input_error(case):
+    """Each malformed PLY is a one-line InputError naming the file and the fault."""
     data, needle = BAD_FILES[case]
     with pytest.raises(InputError) as exc:
         read_ply("bad.ply", data)
@@ -481,6 +498,7 @@ def test_bad_files_raise_one_line_input_error(case):
 
 
 def test_lying_header_does_not_allocate(tmp_path):
+    """A header promising 2^31 rows of doubles is refused without allocating for them."""
     # 2**31 - 1 doubles per row promised: any allocation of that size would take > 40 GB
     data = (
         GOOD_HEADER.replace("vertex 3", "vertex 2147483647").replace("float", "double").encode()
@@ -540,6 +558,7 @@ _element = st.tuples(
     crlf=st.booleans(),
 )
 def test_fuzz_reader_only_returns_data_or_input_error(fmt, elements, body, crlf):
+    """Generated headers and bodies read as finite data or a one-line InputError."""
     lines = ["ply", f"format {fmt} 1.0", "comment fuzz"]
     for name, count, props in elements:
         lines.append(f"element {name} {count}")
@@ -563,6 +582,7 @@ def test_fuzz_reader_only_returns_data_or_input_error(fmt, elements, body, crlf)
 @settings(max_examples=200, deadline=None)
 @given(data=st.binary(max_size=400))
 def test_fuzz_random_bytes(data):
+    """Random bytes, alone or after a PLY header's start, raise nothing but InputError."""
     for prefix in (
         b"",
         b"ply\nformat ascii 1.0\n",
@@ -583,6 +603,7 @@ def test_fuzz_random_bytes(data):
     dtype=st.sampled_from([np.float32, np.float64]),
 )
 def test_fuzz_round_trip_random_meshes(n, fmt, seed, dtype):
+    """Random meshes in float32 or float64 come back exactly through every format."""
     rng = np.random.default_rng(seed)
     v = rng.normal(size=(n + 2, 3)).astype(dtype)
     f = rng.integers(0, n + 2, size=(n, 3))
@@ -600,6 +621,7 @@ def test_fuzz_round_trip_random_meshes(n, fmt, seed, dtype):
 
 
 def test_write_is_atomic_on_failure(tmp_path):
+    """A write that fails (a string attribute) leaves the old file and no temporary."""
     target = tmp_path / "out.ply"
     target.write_bytes(b"old content")
 
@@ -616,6 +638,7 @@ def test_write_is_atomic_on_failure(tmp_path):
 
 @pytest.mark.parametrize("case", sorted(BAD_FILES))
 def test_bad_files_from_disk_same_error(case, tmp_path):
+    """Malformed files read from disk give the same one-line errors as from bytes."""
     # files are read into a numpy buffer, not bytes: the same one-line errors must come out
     data, needle = BAD_FILES[case]
     path = tmp_path / "bad.ply"
@@ -626,6 +649,7 @@ def test_bad_files_from_disk_same_error(case, tmp_path):
 
 
 def test_read_from_a_pipe_path(tmp_path):
+    """A FIFO path (size unknown until read) reads as the same bytes in memory do."""
     # `recon info <(cat scan.ply)`: a path whose size is unknown until read to the end
     import threading
 
@@ -643,6 +667,7 @@ def test_read_from_a_pipe_path(tmp_path):
 @pytest.mark.parametrize("order", ["<", ">"])
 @pytest.mark.parametrize("ftype", ["f4", "f8"])
 def test_float_fields_decode_bit_exact(order, ftype, tmp_path):
+    """Floats at an odd row stride, specials and -0.0 included, decode bit for bit, either order."""
     # odd row stride (a uchar first), special values: the byte-assembling decoder equals numpy's
     rng = np.random.default_rng(1)
     n = 1000
@@ -707,6 +732,7 @@ def _big_cloud_bytes(n: int, order: str, before: str = "") -> tuple[bytes, np.nd
     ids=["le", "be", "fixed-element-first", "list-element-first"],
 )
 def test_big_file_from_disk_equals_in_memory_parse(order, before, pre, tmp_path):
+    """A 300k-row file read from disk equals the parse of its bytes, with elements before it too."""
     # from disk the columns view a writable buffer; from bytes (read-only) the rows are copied
     head, rows = _big_cloud_bytes(300_000, order, before)
     data = head + pre + rows.tobytes()
@@ -720,6 +746,7 @@ def test_big_file_from_disk_equals_in_memory_parse(order, before, pre, tmp_path)
 
 
 def test_big_truncated_file_errors_like_in_memory(tmp_path):
+    """A big file cut short is "truncated", as its bytes would be."""
     head, rows = _big_cloud_bytes(300_000, "<")
     path = tmp_path / "cut.ply"
     path.write_bytes(head + rows.tobytes()[:-1000])
@@ -732,6 +759,7 @@ def test_big_truncated_file_errors_like_in_memory(tmp_path):
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
 @pytest.mark.parametrize("row,col", [(0, "x"), (4_999, "z"), (2_048, "y"), (9_999, "z")])
 def test_nonfinite_rows_found_and_dropped(order, ftype, bad, row, col, tmp_path):
+    """Rows with a NaN or infinite coordinate are dropped and counted; NaN normals are kept."""
     # block boundaries (2048 rows) and the last row; NaN in the normals is not an invalid point
     n = 10_000
     dt = np.dtype([("tag", "u1")] + [(c, order + ftype) for c in ("x", "y", "z", "nx")])
@@ -768,6 +796,7 @@ def _root(a):
 
 
 def test_columns_are_views_of_the_rows_in_the_files_precision(tmp_path):
+    """Columns are writable views of the rows in the file's precision; float64() copies once."""
     head, rows = _big_cloud_bytes(1000, "<")
     path = tmp_path / "c.ply"
     path.write_bytes(head + rows.tobytes())
@@ -807,6 +836,7 @@ def test_columns_are_views_of_the_rows_in_the_files_precision(tmp_path):
     [("double", np.float64), ("int", np.float64), ("short", np.float64), ("float", np.float32)],
 )
 def test_coordinate_types_map_to_float32_or_float64(xyz, want):
+    """Coordinates of type float read as float32; double and integer ones as float64."""
     t = np.dtype({"double": "<f8", "int": "<i4", "short": "<i2", "float": "<f4"}[xyz])
     vals = np.arange(12).reshape(4, 3).astype(t)
     head = (
@@ -819,6 +849,7 @@ def test_coordinate_types_map_to_float32_or_float64(xyz, want):
 
 
 def test_mesh_vertex_views_do_not_hold_the_face_bytes(tmp_path):
+    """A mesh's vertex columns are copied out, not views pinning the file's face bytes."""
     # a mesh's vertex rows are a small part of its file: they are copied, so the faces' bytes
     # are freed once read (the columns must not pin the whole file)
     side = 60
@@ -836,6 +867,7 @@ def test_mesh_vertex_views_do_not_hold_the_face_bytes(tmp_path):
 
 
 def test_mesh_columns_do_not_hold_the_file_when_rows_are_most_of_it(tmp_path):
+    """When vertex rows are most of the file, the columns are copies, not views of it."""
     # Poisson's output: double xyz and an int per vertex, 28 bytes a row against 26 of faces
     # per vertex; the rows are not copied, so the columns are (the file's bytes are freed)
     n = 500

@@ -1,4 +1,6 @@
-"""Generated files for every reader but PLY's (test_io_fuzz.py) and glTF's: read or refused in one
+"""Generated files for every reader but PLY's and glTF's: read or refused in one line.
+
+Generated files for every reader but PLY's (test_io_fuzz.py) and glTF's: read or refused in one
 line, never a traceback, never a hang.
 
 Hypothesis builds each file from its parts, then maybe breaks it:
@@ -76,8 +78,11 @@ EDGE_NUMBERS = [
 
 @st.composite
 def broken(draw, data: bytes, head: int | None = None, allow_body: bool = True) -> tuple:
-    """``data`` maybe broken: (label, bytes). ``head``: the length of a text header, whose
-    words may be replaced; ``allow_body`` False keeps the bytes after ``head`` intact."""
+    """``data`` maybe broken: (label, bytes).
+
+    ``data`` maybe broken: (label, bytes). ``head``: the length of a text header, whose
+    words may be replaced; ``allow_body`` False keeps the bytes after ``head`` intact.
+    """
     kinds = ["none", "cut"]
     if data and (allow_body or head):  # an empty file has no byte to overwrite
         kinds += ["overwrite", "insert"]
@@ -146,6 +151,7 @@ def _pcd_values(rng, t: str, size: int, count: int, n: int) -> np.ndarray:
 
 @st.composite
 def pcd_case(draw) -> tuple[str, str, bytes]:
+    """A generated PCD file, maybe broken: (label, name, bytes)."""
     from recon_cli.io._lzf_kernel import lzf_compress
 
     rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
@@ -309,10 +315,12 @@ def _las_broken(draw, compress: bool) -> tuple[str, str, bytes]:
 
 
 def las_case() -> st.SearchStrategy:
+    """Generated LAS files, maybe broken."""
     return _las_broken(False)
 
 
 def laz_case() -> st.SearchStrategy:
+    """Generated LAZ files, maybe broken (their chunk table too)."""
     return _las_broken(True)
 
 
@@ -345,6 +353,7 @@ def e57_pages(logical: bytes) -> bytes:
 
 @st.composite
 def e57_case(draw, folder=None) -> tuple[str, str, bytes]:
+    """A generated E57 file of one to three scans, maybe broken: (label, name, bytes)."""
     import os
     import tempfile
 
@@ -424,6 +433,7 @@ _NUMBER = st.one_of(
 
 @st.composite
 def obj_case(draw) -> tuple[str, str, bytes]:
+    """A generated OBJ file, maybe broken: (label, name, bytes)."""
     nv = draw(st.integers(0, 12))
     lines = []
     for _ in range(nv):
@@ -455,6 +465,7 @@ def obj_case(draw) -> tuple[str, str, bytes]:
 
 @st.composite
 def off_case(draw) -> tuple[str, str, bytes]:
+    """A generated OFF file, maybe broken: (label, name, bytes)."""
     nv = draw(st.integers(0, 10))
     nf = draw(st.integers(0, 6))
     colour = draw(st.booleans())
@@ -476,6 +487,7 @@ def off_case(draw) -> tuple[str, str, bytes]:
 
 @st.composite
 def stl_case(draw) -> tuple[str, str, bytes]:
+    """A generated binary STL file, maybe broken: (label, name, bytes)."""
     nf = draw(st.integers(0, 8))
     rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
     tris = rng.normal(size=(nf, 3, 3)).astype(np.float32)
@@ -568,6 +580,7 @@ def fuzz_reader(reader: str, examples: int, folder, capfd) -> dict:
 
 @pytest.mark.parametrize("reader", sorted(READERS))
 def test_generated_files_read_or_refused_in_one_line(reader, tmp_path, capfd):
+    """:data:`QUICK` generated files a reader: each read, or refused in one line."""
     counts = fuzz_reader(reader, QUICK, tmp_path, capfd)
     assert sum(counts.values()) >= QUICK
 
@@ -575,6 +588,7 @@ def test_generated_files_read_or_refused_in_one_line(reader, tmp_path, capfd):
 @pytest.mark.fuzz
 @pytest.mark.parametrize("reader", sorted(READERS))
 def test_fuzz_generated_files(reader, tmp_path, capfd):
+    """:data:`FUZZ` generated files a reader; some read and some refused."""
     counts = fuzz_reader(reader, FUZZ, tmp_path, capfd)
     assert sum(counts.values()) >= FUZZ
     assert counts["read"] > 0 and counts["refused"] > 0, counts

@@ -1,6 +1,9 @@
-"""Real sensor files in: NaN points dropped and counted by every reader, organized depth images
-(PCD WIDTH x HEIGHT, E57 structured scans) keep their pixels, scanner positions (PCD VIEWPOINT,
-E57 poses, LAS up) read, reported and written back."""
+"""Real sensor files in: NaN points dropped, depth images' pixels kept, scanner positions read.
+
+NaN points dropped and counted by every reader, organized depth images (PCD WIDTH x HEIGHT, E57
+structured scans) keep their pixels, scanner positions (PCD VIEWPOINT, E57 poses, LAS up) read,
+reported and written back.
+"""
 
 from __future__ import annotations
 
@@ -33,6 +36,7 @@ RECON = [sys.executable, "-m", "recon_cli.cli.main"]
 
 
 def recon(*args):
+    """Run ``recon`` with ``args`` as a process, its output captured."""
     return subprocess.run([*RECON, *map(str, args)], capture_output=True, timeout=300)
 
 
@@ -48,6 +52,7 @@ def with_nan_rows(cloud: PointCloud, rng, frac=0.2) -> tuple[PointCloud, np.ndar
 
 @pytest.mark.parametrize("suffix", [".ply", ".obj", ".off", ".xyz", ".csv", ".pts", ".pcd", ".PCD"])
 def test_every_cloud_reader_drops_nan_rows_keeping_the_rest_exactly(suffix, tmp_path):
+    """Every cloud reader drops the NaN rows and counts them, the other rows kept exactly."""
     rng = np.random.default_rng(len(suffix))
     src = cloud_family(3)  # rotated, scaled, offset up to 1e6, colours and attributes
     c, bad = with_nan_rows(src, rng)
@@ -64,6 +69,7 @@ def test_every_cloud_reader_drops_nan_rows_keeping_the_rest_exactly(suffix, tmp_
 
 
 def test_ply_ascii_and_big_endian_float32_rows_dropped(tmp_path):
+    """ASCII and big-endian float32 PLY drop their NaN rows, their attributes following."""
     rng = np.random.default_rng(5)
     pts = rng.random((300, 3)).astype(np.float32)
     pts[[0, 17, 299], 1] = np.nan
@@ -77,6 +83,7 @@ def test_ply_ascii_and_big_endian_float32_rows_dropped(tmp_path):
 
 
 def test_las_holds_no_nan_and_says_so(tmp_path):
+    """NaN points cannot be written to LAS, said and nothing written; LAS reads as looking up."""
     c, _ = with_nan_rows(cloud_family(1), np.random.default_rng(1))
     with pytest.raises(ParameterError, match="LAS cannot store the .* NaN or infinite"):
         save(c, tmp_path / "c.laz")
@@ -88,6 +95,7 @@ def test_las_holds_no_nan_and_says_so(tmp_path):
 
 @pytest.mark.parametrize("suffix", [".ply", ".obj", ".off"])
 def test_mesh_with_a_face_on_a_nan_vertex_is_refused_in_one_line(suffix, tmp_path):
+    """An unused NaN vertex is dropped; one a face uses refuses the mesh in one line."""
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [7, 7, 7]], float)
     ok = TriangleMesh(v, [[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]])
     v_bad = v.copy()
@@ -124,6 +132,7 @@ def test_mesh_with_a_face_on_a_nan_vertex_is_refused_in_one_line(suffix, tmp_pat
     sep=st.sampled_from([" ", ",", "\t"]),
 )
 def test_text_and_pcd_ascii_parsers_drop_exactly_the_nonfinite_rows(rows, sep):
+    """Text and ASCII PCD parsers drop exactly the rows with a NaN or infinity."""
     vals = np.array([[float(a), float(b), float(c)] for a, b, c, _ in rows])
     ok = np.isfinite(vals).all(axis=1)
     text = "".join(sep.join([a, b, c, str(i)]) + "\n" for a, b, c, i in rows)
@@ -172,6 +181,7 @@ def _scene(offset):
     ],
 )
 def test_organized_pcd_keeps_pixels_colours_and_viewpoint(data, dtype, offset, tmp_path):
+    """An organized PCD keeps each point's pixel, its colours and the viewpoint, in any encoding."""
     rng = np.random.default_rng(hash((data, dtype)) % 2**32)
     off = np.array([offset, -offset, 0.5 * offset])
     cam = _camera(rng, offset=off)
@@ -195,6 +205,7 @@ def test_organized_pcd_keeps_pixels_colours_and_viewpoint(data, dtype, offset, t
 
 
 def test_info_and_stage_reports_say_what_was_dropped(tmp_path):
+    """``recon info``, stage reports and convert say how many points were dropped."""
     rng = np.random.default_rng(3)
     cam = _camera(rng)
     org = depth_image(cam, tabletop_scene(), rng)
@@ -235,6 +246,7 @@ def test_info_and_stage_reports_say_what_was_dropped(tmp_path):
 
 
 def test_sensors_written_back_to_ply_and_pcd(tmp_path):
+    """Sensors survive PLY and PCD exactly; several sensors are kept in PLY only."""
     rng = np.random.default_rng(9)
     cam = _camera(rng, 32, 24)
     write_organized_pcd(tmp_path / "a.pcd", depth_image(cam, tabletop_scene(), rng), cam)
@@ -281,6 +293,7 @@ def _write_e57(path, scans):
 
 
 def test_e57_multi_scan_poses_invalid_points_and_structured_grids(tmp_path):
+    """A three-scan E57: poses applied, invalid points dropped, structured grids kept."""
     from scipy.spatial.transform import Rotation
 
     rng = np.random.default_rng(11)

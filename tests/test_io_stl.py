@@ -26,6 +26,7 @@ def _same_triangles(a, b):
 @pytest.mark.parametrize("seed", range(6))
 @pytest.mark.parametrize("ascii", [False, True])
 def test_trimesh_written_stl_reads_welded_with_the_topology_of_the_source(seed, ascii):
+    """STL files trimesh wrote weld back to the source's vertices: a closed torus, exact corners."""
     m = mesh_family(seed)
     tm = trimesh.Trimesh(m.vertices, m.faces, process=False)
     data = (
@@ -48,6 +49,7 @@ def test_trimesh_written_stl_reads_welded_with_the_topology_of_the_source(seed, 
 @pytest.mark.parametrize("seed", range(6))
 @pytest.mark.parametrize("ascii", [False, True])
 def test_our_stl_reads_back_identically_here_and_in_trimesh(seed, ascii):
+    """Our STL (binary or ASCII) reads back the same triangles here and in trimesh."""
     m = mesh_family(seed, np.float32)
     data = stl_bytes(m, ascii=ascii)
     got = decode_stl(data, "o.stl")[0]
@@ -64,6 +66,7 @@ def test_our_stl_reads_back_identically_here_and_in_trimesh(seed, ascii):
 
 
 def test_float64_to_binary_stl_warns_with_the_rounding(tmp_path, caplog):
+    """float64 far off written as binary STL warns of the float32 rounding; ASCII does not."""
     m = mesh_family(1)  # float64, possibly at large offsets
     m.vertices = m.vertices + 5e6
     with caplog.at_level("WARNING", logger="recon"):
@@ -77,6 +80,7 @@ def test_float64_to_binary_stl_warns_with_the_rounding(tmp_path, caplog):
 
 
 def test_negative_zero_welds_with_zero_and_attribute_kept():
+    """-0.0 welds with 0.0, and each facet's attribute word is kept."""
     m = TriangleMesh(
         vertices=np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [-0.0, 0, 0]], np.float32),
         faces=[[0, 1, 2], [3, 2, 1]],
@@ -106,12 +110,14 @@ def test_negative_zero_welds_with_zero_and_attribute_kept():
     ],
 )
 def test_malformed_files_name_the_line_or_size(data, message):
+    """Each malformed STL is a one-line InputError naming its line or its size."""
     with pytest.raises(InputError) as exc:
         decode_stl(data, "bad.stl")
     assert str(exc.value).startswith("bad.stl: ") and message in str(exc.value), str(exc.value)
 
 
 def test_nan_corner_is_refused():
+    """A NaN corner is refused, naming its triangle."""
     m = mesh_family(2, np.float32)
     data = bytearray(stl_bytes(m))
     data[84 + 12 : 84 + 16] = np.float32(np.nan).tobytes()
@@ -128,6 +134,7 @@ def test_nan_corner_is_refused():
     ascii=st.booleans(),
 )
 def test_fuzz_truncated_or_corrupted_stl_is_data_or_input_error(seed, cut, junk, pos, ascii):
+    """A cut or corrupted STL reads as data or is a one-line InputError."""
     data = stl_bytes(mesh_family(seed), ascii=ascii)
     k = int(cut * len(data))
     p = int(pos * k)

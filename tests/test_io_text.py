@@ -1,6 +1,9 @@
-"""The shared text kernel (recon_cli/io/_text_kernel.py via recon_cli/io/text.py): every number
-token reads bit for bit as Python's ``float`` reads it; malformed tokens are refused; rows and
-tables come out the same whatever the arrays' first capacity."""
+"""The shared text kernel: numbers read as Python's ``float`` reads them, bit for bit.
+
+The kernel is recon_cli/io/_text_kernel.py via recon_cli/io/text.py: every number token reads
+bit for bit as Python's ``float`` reads it; malformed tokens are refused; rows and tables come
+out the same whatever the arrays' first capacity.
+"""
 
 from __future__ import annotations
 
@@ -85,6 +88,7 @@ doubles = st.one_of(
     )
 )
 def test_every_printed_double_reads_as_python_float_reads_it(xs):
+    """Doubles printed many ways read bit for bit as ``float``; to 19 digits on the fast path."""
     tokens = []
     for x, fmt, neg in xs:
         x = -x if neg else x
@@ -98,8 +102,11 @@ def test_every_printed_double_reads_as_python_float_reads_it(xs):
 
 
 def _halfway(b: int) -> tuple[str, str]:
-    """The exact decimal half way between the double of bits ``b`` and the next one, in two
-    spellings."""
+    """The exact decimal half way between the double of bits ``b`` and the next, two spellings.
+
+    The exact decimal half way between the double of bits ``b`` and the next one, in two
+    spellings.
+    """
     x = _from_bits(b)
     y = math.nextafter(x, math.inf)
     with localcontext() as ctx:
@@ -114,6 +121,7 @@ def _halfway(b: int) -> tuple[str, str]:
     nudge=st.sampled_from(["", "1", "0000001"]),
 )
 def test_exact_halfway_cases_and_their_neighbours_round_as_python(b, nudge):
+    """Exact half-way decimals and their nudged neighbours round as Python rounds them."""
     for tok in _halfway(b):
         if len(tok) > 1100:
             continue
@@ -178,6 +186,7 @@ EDGE = [
 
 @pytest.mark.parametrize("tok", EDGE)
 def test_edge_cases_read_as_python_float(tok):
+    """Edge-case tokens (subnormals, overflow, long digit runs) read as ``float`` reads them."""
     _assert_identical([tok])
     buf = text.as_uint8(tok.encode())
     _, status = parse_float(buf, 0, len(buf))
@@ -217,6 +226,7 @@ BAD = [
 
 @pytest.mark.parametrize("tok", BAD)
 def test_malformed_tokens_are_refused(tok):
+    """Malformed tokens are refused, and in a row they name the file and line."""
     buf = text.as_uint8(tok.encode())
     assert parse_float(buf, 0, len(buf))[1] == 0
     if tok.strip(" ,") and tok != "1,5":
@@ -242,6 +252,7 @@ def test_malformed_tokens_are_refused(tok):
     ],
 )
 def test_integers(tok, ok):
+    """``scan_int`` reads up to 18 digits with a sign, and refuses all else."""
     buf = text.as_uint8(tok.encode())
     v, good, stop = scan_int(buf, 0, len(buf))
     assert (good and stop == len(buf)) == ok and (not ok or v == int(tok))
@@ -253,6 +264,7 @@ def test_integers(tok, ok):
     wide=st.integers(0, 200),
 )
 def test_tables_do_not_depend_on_the_first_capacity(rows, wide):
+    """Tables read the same from any first capacity; rows wider than it read whole."""
     body = "".join(" ".join(repr(v) for v in r) + "\n" for r in rows)
     body = "# a comment\n\n" + body + " ".join(["1"] * 3) + "\n"
     buf = text.as_uint8(body.encode())
@@ -269,6 +281,7 @@ def test_tables_do_not_depend_on_the_first_capacity(rows, wide):
 
 
 def test_a_row_with_other_column_count_names_its_line():
+    """A row with another column count is refused, naming its line and both counts."""
     data = text.as_uint8(b"1 2 3\n\n# c\n4 5 6\n7 8\n")
     with pytest.raises(InputError, match=r"^t\.xyz: line 5: 2 columns, the first row has 3$"):
         text.read_table(data, 0, len(data), "t.xyz")
@@ -281,6 +294,7 @@ _NON_DIGITS = [b for b in range(256) if not 48 <= b <= 57]
 
 @pytest.mark.parametrize("run", [0, 1, 5, 7, 8, 9, 15, 16, 17, 18, 19, 24])
 def test_digit_runs_stop_at_every_other_byte_with_more_bytes_after(run):
+    """Digit runs of any length stop at each non-digit byte, never reading past it."""
     digits = "".join(str((7 * k + 3) % 10) for k in range(run)) or ""
     for b in _NON_DIGITS:
         if run == 0 and b in (43, 45):  # a sign: the digits after it are the number
@@ -301,6 +315,7 @@ def test_digit_runs_stop_at_every_other_byte_with_more_bytes_after(run):
 
 @pytest.mark.parametrize("end", range(0, 21))
 def test_scanners_read_no_byte_at_or_after_the_end_they_are_given(end):
+    """The scanners stop at the end they are given, whatever bytes follow."""
     buf = text.as_uint8(b"12345678901234567890123.5e7 9")
     v, ok, stop = scan_int(buf, 0, end)
     assert stop == end and ok == (1 <= end <= 18) and (not ok or v == int(buf[:end].tobytes()))
@@ -328,6 +343,7 @@ LONG = [
 
 @pytest.mark.parametrize("tok", EDGE + LONG)
 def test_tokens_followed_by_more_fields_read_as_python_float(tok):
+    """Tokens followed by more fields read as ``float`` reads them, and so do the fields."""
     # the tokens alone end their buffer (short ones take the byte-by-byte tail); here more
     # fields follow, so every digit run of the token goes through the 8-byte loads
     got = _read_all([tok, "1", "22", "333", "4444", "55555", "-0.25"])
@@ -351,6 +367,7 @@ _WORDS = st.one_of(
 
 @given(st.lists(_WORDS, max_size=20), st.sampled_from(["<f4", "<f8"]))
 def test_quiet_nans_makes_every_nan_quiet_and_keeps_every_other_value(words, dtype):
+    """``quiet_nans`` makes a copy whose NaNs are quiet, every other value's bits kept."""
     raw = np.array(words, np.uint32)
     if dtype == "<f8":  # the words as the high halves: NaNs of both kinds and other values
         raw = (raw.astype(np.uint64) << np.uint64(32)) | np.uint64(1)

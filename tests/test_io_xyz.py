@@ -1,5 +1,8 @@
-"""Text clouds (XYZ/TXT/CSV/PTS): Open3D's files read right, ours read back identically (by us and
-Open3D), header and delimiter detection, errors by line, fuzz."""
+"""Text clouds (XYZ/TXT/CSV/PTS): Open3D's and ours read right, headers, errors, fuzz.
+
+Text clouds (XYZ/TXT/CSV/PTS): Open3D's files read right, ours read back identically (by us and
+Open3D), header and delimiter detection, errors by line, fuzz.
+"""
 
 from __future__ import annotations
 
@@ -18,6 +21,7 @@ o3d = pytest.importorskip("open3d")
 
 
 def o3d_cloud(c):
+    """An Open3D cloud of ``c``'s points, normals and colours."""
     p = o3d.geometry.PointCloud()
     p.points = o3d.utility.Vector3dVector(c.points)
     p.normals = o3d.utility.Vector3dVector(c.normals)
@@ -28,6 +32,7 @@ def o3d_cloud(c):
 @pytest.mark.parametrize("seed", range(4))
 @pytest.mark.parametrize("ext", ["xyz", "xyzn", "xyzrgb", "pts"])
 def test_open3d_written_files_read_with_right_counts_and_coordinates(seed, ext, tmp_path):
+    """Text clouds Open3D wrote read as Open3D reads them: counts, points, normals, colours."""
     c = cloud_family(seed)
     path = tmp_path / f"c.{ext}"
     o3d.io.write_point_cloud(str(path), o3d_cloud(c), print_progress=False)
@@ -48,6 +53,7 @@ def test_open3d_written_files_read_with_right_counts_and_coordinates(seed, ext, 
 @pytest.mark.parametrize("seed", range(4))
 @pytest.mark.parametrize("csv", [False, True])
 def test_our_files_read_back_identically_here_and_in_open3d(seed, csv, tmp_path):
+    """Our text clouds (spaces or CSV) read back exactly here, with their header and history."""
     c = cloud_family(seed)
     c.history = ["from a test"]
     data = xyz_bytes(c, csv=csv)
@@ -88,6 +94,7 @@ def test_our_files_read_back_identically_here_and_in_open3d(seed, csv, tmp_path)
     ],
 )
 def test_header_delimiter_and_column_detection(data, columns):
+    """Headers, delimiters and columns are detected from the text."""
     got, details = decode_xyz(data, "d.txt")
     assert details["columns"] == columns
     assert got.points[0].tolist() == [1.0, 2.0, 3.0]
@@ -107,6 +114,7 @@ def test_header_delimiter_and_column_detection(data, columns):
     ],
 )
 def test_malformed_files_name_the_line(data, message):
+    """Each malformed text cloud is a one-line InputError naming its line."""
     with pytest.raises(InputError) as exc:
         decode_xyz(data, "bad.xyz")
     assert str(exc.value).startswith("bad.xyz: ") and message in str(exc.value), str(exc.value)
@@ -121,6 +129,7 @@ def test_malformed_files_name_the_line(data, message):
     csv=st.booleans(),
 )
 def test_fuzz_truncated_or_corrupted_text_is_data_or_input_error(seed, cut, junk, pos, csv):
+    """A cut or corrupted text cloud reads as data or is a one-line InputError."""
     data = xyz_bytes(cloud_family(seed, 20), csv=csv)
     k = int(cut * len(data))
     p = int(pos * k)

@@ -1,5 +1,8 @@
-"""The bit-level intrinsics (recon_cli/_kernels/bits.py) and the borrowed array view
-(recon_cli/_kernels/arrays.py) against plain Python on random data."""
+"""The bit-level intrinsics and the borrowed array view against plain Python on random data.
+
+The bit-level intrinsics (recon_cli/_kernels/bits.py) and the borrowed array view
+(recon_cli/_kernels/arrays.py) against plain Python on random data.
+"""
 
 from __future__ import annotations
 
@@ -29,6 +32,7 @@ def _ctz(x):
 
 
 def test_load_u64le_reads_eight_bytes_at_any_offset_first_byte_lowest():
+    """``load_u64le`` reads eight bytes little-endian at any offset, odd addresses too."""
     rng = np.random.default_rng(0)
     buf = rng.integers(0, 256, 4099, dtype=np.uint8)
     at = np.concatenate([np.arange(16), rng.integers(0, len(buf) - 8, 500), [len(buf) - 8]]).astype(
@@ -44,6 +48,7 @@ def test_load_u64le_reads_eight_bytes_at_any_offset_first_byte_lowest():
 
 
 def test_ctz64_counts_trailing_zero_bits():
+    """``ctz64`` counts the trailing zero bits, 64 for zero."""
     rng = np.random.default_rng(1)
     x = np.concatenate(
         [[0, 1, 2, 1 << 63], rng.integers(1, 1 << 62, 200) << rng.integers(0, 2, 200)]
@@ -73,6 +78,7 @@ def _chunked_sum(a):
 
 
 def test_borrowed_view_reads_the_same_data_and_leaves_the_reference_count_alone():
+    """A borrowed view reads the array's data and leaves its reference count as it was."""
     a = np.random.default_rng(2).integers(0, 1000, 10_001).astype(np.int64)
     before = sys.getrefcount(a)
     assert _chunked_sum(a) == int(a.sum())

@@ -18,6 +18,7 @@ SETUP_IMPORT = "from recon_cli._kernels import numba_setup"
 
 
 def kernel_files() -> list[Path]:
+    """Every module of recon_cli that defines an ``@njit`` kernel."""
     return sorted(
         f
         for f in PACKAGE.rglob("*.py")
@@ -26,6 +27,7 @@ def kernel_files() -> list[Path]:
 
 
 def test_every_kernel_module_imports_numba_setup_before_its_first_kernel():
+    """Every kernel module (10 or more) imports numba_setup before it defines a kernel."""
     files = kernel_files()
     assert len(files) >= 10
     for f in files:
@@ -57,6 +59,7 @@ CALL_KERNEL = (
 
 
 def test_cache_goes_to_xdg_cache_home_not_the_package(tmp_path):
+    """Compiled kernels are cached under $XDG_CACHE_HOME/recon/numba/<fingerprint>."""
     out = _run(CALL_KERNEL, {"XDG_CACHE_HOME": str(tmp_path), "HOME": str(tmp_path / "home")})
     cache = tmp_path / "recon" / "numba" / kernel_sources_fingerprint()
     assert out.strip() == str(cache)
@@ -65,6 +68,7 @@ def test_cache_goes_to_xdg_cache_home_not_the_package(tmp_path):
 
 
 def test_numba_cache_dir_is_honoured(tmp_path):
+    """NUMBA_CACHE_DIR, when set, is where the kernels are cached, not the XDG folder."""
     mine = tmp_path / "mine"
     out = _run(CALL_KERNEL, {"NUMBA_CACHE_DIR": str(mine), "XDG_CACHE_HOME": str(tmp_path / "xdg")})
     assert out.strip() == str(mine)
@@ -73,6 +77,7 @@ def test_numba_cache_dir_is_honoured(tmp_path):
 
 
 def test_cache_set_even_when_numba_was_imported_first(tmp_path):
+    """With numba imported before recon, kernels still cache in recon's folder."""
     code = "import numba\n" + CALL_KERNEL
     out = _run(code, {"XDG_CACHE_HOME": str(tmp_path)})
     cache = tmp_path / "recon" / "numba" / kernel_sources_fingerprint()
@@ -81,6 +86,7 @@ def test_cache_set_even_when_numba_was_imported_first(tmp_path):
 
 
 def test_any_kernel_source_change_gets_a_cache_of_its_own(tmp_path):
+    """Any change to a kernel source moves the fingerprint; other files' changes do not."""
     # numba keys an entry by its own file only: a kernel calling into a changed module would
     # keep stale machine code; the fingerprint moves the whole cache when any kernel source changes
     pkg = tmp_path / "pkg"
@@ -113,8 +119,11 @@ def test_any_kernel_source_change_gets_a_cache_of_its_own(tmp_path):
 
 
 def test_numpy_submodules_numba_would_load_stay_lazy_until_used():
-    """numba's start-up (through scipy.linalg) star-imports numpy; numpy.f2py and numpy.testing
-    are not executed by it, and work as usual when first used."""
+    """numpy.f2py and numpy.testing stay unloaded by numba's start-up, and work when used.
+
+    numba's start-up (through scipy.linalg) star-imports numpy; numpy.f2py and numpy.testing
+    are not executed by it, and work as usual when first used.
+    """
     code = (
         "import sys, numpy as np\n"
         "from recon_cli._kernels.arrays import grow1\n"
@@ -134,6 +143,7 @@ def test_numpy_submodules_numba_would_load_stay_lazy_until_used():
 
 
 def test_threading_layer_survives_numba_rereading_its_environment(tmp_path):
+    """With numba imported before recon, the threading layer stays omp, never Open3D's TBB."""
     # numba imported first (as a library might), then recon: numba's compiler re-reads the
     # NUMBA_* variables at the next compile (NUMBA_CACHE_DIR changed) and must still find omp
     # first, never try the old TBB that Open3D ships (a NumbaWarning)
@@ -182,8 +192,11 @@ LEAN = (
 
 @pytest.mark.parametrize("full", [False, True])
 def test_cached_kernels_load_without_numba_registries_and_compiling_still_works(full):
-    """A cached kernel loads with numba's runtime only (no typing/lowering registries, no
-    scipy.linalg: ~0.2 CPU s per process); kernels compiled afterwards see the whole context."""
+    """A cached kernel loads with numba's runtime only; compiling afterwards still works.
+
+    A cached kernel loads with numba's runtime only (no typing/lowering registries, no
+    scipy.linalg: ~0.2 CPU s per process); kernels compiled afterwards see the whole context.
+    """
     _run(LEAN_LOADS, {})  # cache what LEAN loads (compiled the first time if the cache is cold)
     out = _run(LEAN, {"RECON_NUMBA_FULL_REFRESH": "1"} if full else {}).split()
     assert out == ["arraymath" if full else "lean", "True", "15.0"]
@@ -207,8 +220,11 @@ STAGES_WITHOUT_ARRAYMATH = (
 
 
 def test_ballpivot_and_mcubes_kernels_load_without_numba_arraymath():
-    """Their cached kernels call no numba.np.arraymath implementation (searchsorted, argmax,
-    cumsum are written out): loading them imports neither it nor scipy.linalg (~0.2 CPU s)."""
+    """Ball pivoting's and marching cubes' cached kernels load without numba's arraymath.
+
+    Their cached kernels call no numba.np.arraymath implementation (searchsorted, argmax,
+    cumsum are written out): loading them imports neither it nor scipy.linalg (~0.2 CPU s).
+    """
     code = STAGES_WITHOUT_ARRAYMATH % str(Path(__file__).resolve().parent)
     _run(code, {})  # cache the kernels (compiled the first time if the cache is cold)
     assert _run(code, {}).split() == ["True", "False", "False"]
@@ -235,6 +251,7 @@ SPIN = (
     ],
 )
 def test_idle_openmp_threads_spin_briefly_unless_the_user_says(tmp_path, env, expected):
+    """Idle OpenMP threads spin briefly by default; the user's own setting is kept."""
     full = {
         k: v
         for k, v in os.environ.items()

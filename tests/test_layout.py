@@ -26,8 +26,11 @@ MODULES = _modules()
 
 
 def _imports(path: Path, top_level_only: bool):
-    """(module imported, names imported, line) for every ``import``/``from`` of recon_cli in
-    ``path``."""
+    """(module, names, line) of every import of recon_cli in ``path``.
+
+    (module imported, names imported, line) for every ``import``/``from`` of recon_cli in
+    ``path``.
+    """
     tree = ast.parse(path.read_text(encoding="utf-8"))
     nodes = tree.body if top_level_only else list(ast.walk(tree))
     for node in nodes:
@@ -45,6 +48,7 @@ def _package_of(module: str) -> str:
 
 
 def test_no_module_imports_another_modules_private_name():
+    """No module imports another module's private (underscore) name."""
     bad = []
     for mod, path in MODULES.items():
         own_pkg = _package_of(mod)
@@ -68,6 +72,7 @@ def test_no_module_imports_another_modules_private_name():
 
 
 def test_no_import_cycle_at_module_level():
+    """No import cycle among recon_cli's modules at module level."""
     graph: dict[str, set[str]] = {m: set() for m in MODULES}
     for mod, path in MODULES.items():
         for target, names, _ in _imports(path, top_level_only=True):
@@ -103,6 +108,7 @@ def test_no_import_cycle_at_module_level():
 
 
 def test_no_import_cycle_through_function_level_imports():
+    """No import cycle even counting the imports inside functions."""
     # imports inside functions too: a deferred import hides a cycle from Python, not from readers
     graph: dict[str, set[str]] = {m: set() for m in MODULES}
     for mod, path in MODULES.items():
@@ -147,6 +153,7 @@ def test_no_import_cycle_through_function_level_imports():
 
 
 def test_library_is_free_of_click_and_kernels_never_import_their_stage():
+    """The library never imports click or the CLI, and kernels never import their stage."""
     for mod, path in MODULES.items():
         for target, _names, line in _imports(path, top_level_only=False):
             if not mod.startswith("recon_cli.cli"):
@@ -161,6 +168,7 @@ def test_library_is_free_of_click_and_kernels_never_import_their_stage():
 
 
 def test_reference_libraries_only_in_backends():
+    """Open3D and PyMeshLab are imported only in recon_cli.backends."""
     for mod, path in MODULES.items():
         if mod.startswith("recon_cli.backends"):
             continue
@@ -176,7 +184,10 @@ SIZE_RULES = {"C901", "PLR0912", "PLR0913", "PLR0915"}
 
 
 def _per_file_ignores() -> dict[str, list[str]]:
-    """pyproject's ``[tool.ruff.lint.per-file-ignores]``: pattern -> the rules it skips."""
+    """The per-file ignores of pyproject.toml: pattern -> the rules it skips.
+
+    pyproject's ``[tool.ruff.lint.per-file-ignores]``: pattern -> the rules it skips.
+    """
     try:
         import tomllib
     except ImportError:  # Python 3.10
@@ -207,6 +218,7 @@ def _our_python_files() -> list[Path]:
 
 
 def test_functions_and_modules_stay_short():
+    """No function of our code is over MAX_FUNCTION_LINES lines, no module over MAX_MODULE_LINES."""
     long = []
     for path in _our_python_files():
         text = path.read_text(encoding="utf-8")
@@ -227,11 +239,13 @@ TEMPORARY_EXEMPT = {"recon_cli/stages/poisson/**"}
 
 
 def test_size_exemptions_are_the_temporary_block_only():
+    """The only exemptions from the size rules are the temporary block's."""
     # the library, tests, benchmarks and tools meet the limits with no exemption but Poisson's
     assert set(_size_exempt()) <= TEMPORARY_EXEMPT, _size_exempt()
 
 
 def test_per_file_ignores_are_docstring_rules_outside_the_library():
+    """Per-file ignores skip only docstring rules outside the library, and the temporary block."""
     # no file of our own code skips a lint rule, but the docstring rules (D) in the tests,
     # benchmarks and the documentation's configuration, and Poisson's temporary block
     for pattern, rules in _per_file_ignores().items():

@@ -53,6 +53,7 @@ def sphere_fit():
 
 
 def test_sphere_zero_level_within_one_percent(sphere_fit):
+    """A fitted sphere's zero level and mesh lie within 1 % of r; normals radial; signs right."""
     centre, p, n, fit = sphere_fit
     r = 0.3
     # the field on the true sphere, and the surface the grid meshes to
@@ -71,6 +72,7 @@ def test_sphere_zero_level_within_one_percent(sphere_fit):
 
 
 def test_sphere_eikonal(sphere_fit):
+    """The fitted sphere's field has unit gradient within 0.1 on 90 % of cells and samples."""
     _, p, _, fit = sphere_fit
     g = _grid(fit, p)
     eik = eikonal_check(g)["near"]
@@ -95,6 +97,7 @@ def test_sphere_without_normals_igr():
 
 
 def test_fixed_seed_reproducible_other_seed_differs():
+    """The same seed gives the same field and history; another seed another field."""
     p, n = sphere_cloud(2000, 1.0, seed=2)
     kw = dict(FAST, iterations=40)
     a = fit_sdf(p, n, seed=7, **kw)
@@ -140,8 +143,11 @@ def test_torus(with_normals):
     [("sphere", 30), ("sphere", 120), ("rounded_box", 60), ("rounded_box", 200)],
 )
 def test_short_fits_do_not_fold(shape, iterations):
-    """A fit stopped early is still one closed surface of the input's genus: no spurious
-    sheets or bubbles in the empty space (SIREN's off-surface term keeps zero levels away)."""
+    """A fit stopped early is one closed surface of the input's genus.
+
+    A fit stopped early is still one closed surface of the input's genus: no spurious
+    sheets or bubbles in the empty space (SIREN's off-surface term keeps zero levels away).
+    """
     from recon_cli.mesh.topology import report
 
     from shapes import shape_cloud
@@ -155,6 +161,7 @@ def test_short_fits_do_not_fold(shape, iterations):
 
 
 def test_occupancy_field():
+    """An occupancy fit of a far sphere: values near -0.5/+0.5, mesh within 3 %; needs normals."""
     p, n = sphere_cloud(5000, 0.5, (2.0, 0.0, 0.0), seed=6)
     fit = fit_sdf(p, n, field="occupancy", seed=0, **dict(FAST, iterations=400))
     g = _grid(fit, p)
@@ -170,6 +177,7 @@ def test_occupancy_field():
 
 
 def test_interrupt_restores_best_and_says_so(monkeypatch):
+    """A KeyboardInterrupt mid-fit keeps the best field so far, marked as interrupted."""
     from recon_cli.stages.learned import _torch_net
 
     p, n = sphere_cloud(1000, 1.0, seed=3)
@@ -202,14 +210,18 @@ def test_interrupt_restores_best_and_says_so(monkeypatch):
     ],
 )
 def test_bad_parameters(kw, err):
+    """Zero width or iterations, an unknown field, negative weights, bad times: ParameterError."""
     p, n = sphere_cloud(100, 1.0)
     with pytest.raises(err):
         fit_sdf(p, n, **kw)
 
 
 def test_fit_options_are_the_declarations():
-    """fit_sdf's options named like the stage's parameters are checked by the declaration (the
-    command line's message) before any data is looked at; a keyword it has not is refused."""
+    """``fit_sdf``'s options are checked by the stage's declaration, with its messages.
+
+    fit_sdf's options named like the stage's parameters are checked by the declaration (the
+    command line's message) before any data is looked at; a keyword it has not is refused.
+    """
     from recon_cli.stages.learned import FIT_PARAMS, SPEC
 
     assert set(SPEC.defaults()) - set(FIT_PARAMS) == {"resolution", "padding", "model", "mesh"}
@@ -226,6 +238,7 @@ def test_fit_options_are_the_declarations():
 
 
 def test_bad_points():
+    """NaN points, too few points, or normals of another length are refused."""
     p, n = sphere_cloud(100, 1.0)
     p[3, 1] = np.nan
     with pytest.raises(InputError, match="NaN"):
@@ -237,6 +250,7 @@ def test_bad_points():
 
 
 def test_missing_torch_is_one_line(monkeypatch):
+    """Without torch, ``fit_sdf`` is one BackendError naming ``pip install recon[learned]``."""
     import recon_cli.stages.learned
 
     monkeypatch.setitem(sys.modules, "torch", None)
@@ -248,6 +262,7 @@ def test_missing_torch_is_one_line(monkeypatch):
 
 
 def test_model_file_round_trip(tmp_path, sphere_fit):
+    """A saved model loads back giving the same values; a file that is no model is refused."""
     _, p, _, fit = sphere_fit
     save_model(fit.model, tmp_path / "m.npz")
     back = load_model(tmp_path / "m.npz")
@@ -259,6 +274,7 @@ def test_model_file_round_trip(tmp_path, sphere_fit):
 
 
 def test_cli_grid_mcubes_info_mesh(tmp_path):
+    """``recon fit-sdf`` writes a grid, mesh and model; mcubes and info agree with its report."""
     p, n = sphere_cloud(3000, 1.0, (0.5, 0.5, 0.5), seed=8)
     src = tmp_path / "s.ply"
     write_ply(PointCloud(points=p, normals=n), src)
@@ -312,6 +328,7 @@ def test_cli_grid_mcubes_info_mesh(tmp_path):
 
 
 def test_cli_bad_input_is_one_line(tmp_path):
+    """``recon fit-sdf`` of a broken file: exit 2, one line, no output."""
     (tmp_path / "x.ply").write_bytes(b"ply\nformat nonsense\n")
     r = subprocess.run(
         [*RECON, "fit-sdf", tmp_path / "x.ply", tmp_path / "o.npz"],
@@ -323,6 +340,7 @@ def test_cli_bad_input_is_one_line(tmp_path):
 
 
 def test_cli_ctrl_c_writes_best_field(tmp_path):
+    """Ctrl-C during ``recon fit-sdf`` writes the best field so far and says so."""
     p, n = sphere_cloud(2000, 1.0, seed=8)
     src = tmp_path / "s.ply"
     write_ply(PointCloud(points=p, normals=n), src)
@@ -372,6 +390,7 @@ def test_cli_ctrl_c_writes_best_field(tmp_path):
 
 
 def test_compare_takes_fit_sdf(tmp_path):
+    """``compare_methods`` runs fit-sdf with its parameters: a mesh close to the sphere."""
     from recon_cli.eval.compare import compare_methods
 
     p, n = sphere_cloud(3000, 1.0, seed=9)
@@ -391,6 +410,7 @@ def test_compare_takes_fit_sdf(tmp_path):
 
 
 def test_stage_report_and_provenance():
+    """The stage gives a Grid, reports its iterations and records them in the history."""
     p, n = sphere_cloud(2000, 1.0, seed=10)
     res = apply_stage(
         "fit-sdf",
@@ -403,9 +423,12 @@ def test_stage_report_and_provenance():
 
 @pytest.mark.slow
 def test_defaults_meet_the_eikonal_target(tmp_path):
-    """At the defaults the written grid, as `recon info` measures it near the zero level,
+    """At the defaults, 90 % of the grid near the zero level has unit gradient within 0.1.
+
+    At the defaults the written grid, as `recon info` measures it near the zero level,
     has |grad s| within 0.1 of 1 on >= 90 % of the samples (a rounded box, its medial axis
-    reaching the band, rotated, scaled and 1e6 off); the stage reports the same figure."""
+    reaching the band, rotated, scaled and 1e6 off); the stage reports the same figure.
+    """
     from recon_cli.info import describe
     from recon_cli.io.npz import write_grid
 
@@ -424,6 +447,7 @@ def test_defaults_meet_the_eikonal_target(tmp_path):
 
 @pytest.mark.parametrize("sign", [1.0, -1.0])
 def test_a_field_of_one_sign_is_refused(monkeypatch, sign):
+    """A fitted grid of one sign everywhere fails the stage instead of being written."""
     # a fit with no zero level (thin parts beyond the network) is a failure, not a grid
     import recon_cli.stages.learned as learned
     from recon_cli.errors import StageFailed
@@ -443,8 +467,11 @@ def test_a_field_of_one_sign_is_refused(monkeypatch, sign):
 
 
 def test_distance_targets_signed_by_the_nearest_normal():
-    """The band samples' distance targets: |x - p| signed by p's normal, none near the points
-    (closer than p's spacing) or beside an edge (the side ambiguous)."""
+    """The band samples' distance targets are signed by the nearest point's normal.
+
+    The band samples' distance targets: |x - p| signed by p's normal, none near the points
+    (closer than p's spacing) or beside an edge (the side ambiguous).
+    """
     from scipy.spatial import cKDTree
 
     from recon_cli.stages.learned.training import distance_targets
@@ -477,6 +504,7 @@ def test_distance_targets_signed_by_the_nearest_normal():
 
 
 def test_distance_weight_needs_normals_and_sdf():
+    """The distance term is on only with normals and an SDF; asked otherwise it is refused."""
     p, n = sphere_cloud(500, 1.0, seed=2)
     kw = {"iterations": 2, "width": 8, "depth": 1, "threads": 1}
     assert fit_sdf(p, n, **kw).distance_weight == 1.0
