@@ -74,8 +74,10 @@ def _run(args: list[str], out: Path) -> tuple[float, float]:
 
 
 def _medians(commands: list[tuple[list[str], Path]], repeat: int) -> list[dict]:
-    """Each command's median (wall, peak MB) over ``repeat`` rounds, the commands interleaved
-    (a change of the machine's load then weighs on all of them alike)."""
+    """Each command's median (wall, peak MB) over ``repeat`` rounds, the commands interleaved.
+
+    Interleaving makes a change of the machine's load weigh on all of them alike.
+    """
     runs = [[_run(args, out) for args, out in commands] for _ in range(repeat)]
     return [
         {

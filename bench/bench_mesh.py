@@ -78,8 +78,11 @@ def _recon() -> str:
 
 
 def _ours(args: list[str], src: Path, dst: Path, env: dict | None = None):
-    """``recon ARGS SRC DST`` as a process (through a launcher: a child forked from this big
-    process would report this one's resident size as its peak): time, memory, the output."""
+    """``recon ARGS SRC DST`` as a process: time, memory, the output.
+
+    It runs through a launcher: a child forked from this big process would report this one's
+    resident size as its peak.
+    """
     from recon_cli.io import read_ply
 
     cmd = [_recon(), "-q", args[0], str(src), str(dst), *args[1:]]

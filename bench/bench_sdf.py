@@ -32,8 +32,10 @@ def _points32(origin, h, shape) -> np.ndarray:
 
 
 def _grid_rows(mesh, label: str, res: int, repeat: int) -> list[dict]:
-    """Our whole sdf stage, --sign winding and pseudonormal, against Open3D's signed distance
-    on the same res^3 grid: two rows."""
+    """Our whole sdf stage against Open3D's signed distance on the same res^3 grid.
+
+    Two rows: --sign winding and pseudonormal.
+    """
     from recon_cli.backends.open3d_backend import signed_distance
     from recon_cli.stages.sdf import grid_frame, run_stage
 

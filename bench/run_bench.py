@@ -52,8 +52,10 @@ KEYS = (
 
 
 def table(rows: list[dict], columns: list[tuple[str, str]] | None = None) -> list[str]:
-    """The rows as a markdown table: the usual ours-vs-reference columns, or a module's own
-    ``COLUMNS``."""
+    """The rows as a markdown table.
+
+    The usual ours-vs-reference columns, or a module's own ``COLUMNS``.
+    """
     head, keys = (
         (HEAD, KEYS)
         if columns is None

@@ -137,8 +137,10 @@ def torus(R: float = 1.0, r: float = 0.3, nu: int = 32, nv: int = 12):
 
 
 def implicit_mesh(fn, n: int = 48, lim: float = 1.2):
-    """A closed, outward mesh of the zero set of ``fn(X, Y, Z)`` (our marching cubes at n^3,
-    negative inside)."""
+    """A closed, outward mesh of the zero set of ``fn(X, Y, Z)``, negative inside.
+
+    Our marching cubes at n^3.
+    """
     from recon_cli.stages.mcubes import marching_cubes
 
     x = np.linspace(-lim, lim, n)
@@ -206,10 +208,12 @@ def transformed(v, rng, scale: float = 1.0, offset=(0.0, 0.0, 0.0), rotate: bool
 
 
 def sliver_splits(v, f, rng, fraction: float = 0.3, eps: float = 1e-9):
-    """Near-degenerate remesh of a closed mesh, still closed and consistently oriented:
-    a ``fraction`` of the triangles get a new vertex ``eps`` (relative) off the middle of
-    one of their edges, inside the triangle, and are split into three (one a sliver of
-    height ~eps), and up to 300 edges are split ``eps`` from one end (two needles each)."""
+    """Near-degenerate remesh of a closed mesh, still closed and consistently oriented.
+
+    A ``fraction`` of the triangles get a new vertex ``eps`` (relative) off the middle of one of
+    their edges, inside the triangle, and are split into three (one a sliver of height ~eps), and up
+    to 300 edges are split ``eps`` from one end (two needles each).
+    """
     v = np.array(v, float)
     f = np.array(f, np.int64)
     # 1. interior points near an edge: (a, b, c) -> (a, b, p), (b, c, p), (c, a, p)
@@ -254,8 +258,9 @@ def sliver_splits(v, f, rng, fraction: float = 0.3, eps: float = 1e-9):
 
 
 def cut_sphere(rng, subdivisions: int = 4, cap_height: float = 0.35):
-    """A sphere and a copy with a cap cut away, randomly rotated, scaled and moved (offsets up to
-    1e6).
+    """A sphere and a copy with a cap cut away, randomly rotated, scaled and moved.
+
+    Offsets up to 1e6.
 
     Returns
     -------
@@ -328,9 +333,11 @@ SHAPES = {
 
 
 def shape_cloud(name: str, n: int, rng, *, rotate=True, scale=1.0, offset=0.0):
-    """``n`` points near-uniform on a shape of :data:`SHAPES` with their outward normals,
-    randomly rotated, scaled and offset (the surface is found by projecting uniform points
-    of its bounding cube along the distance's gradient)."""
+    """``n`` points near-uniform on a shape of :data:`SHAPES` with outward normals, moved at random.
+
+    Randomly rotated, scaled and offset; the surface is found by projecting uniform points of its
+    bounding cube along the distance's gradient.
+    """
     sdf, ext = SHAPES[name]
     pts = np.zeros((0, 3))
     nrm = np.zeros((0, 3))
@@ -349,9 +356,11 @@ def shape_cloud(name: str, n: int, rng, *, rotate=True, scale=1.0, offset=0.0):
 
 
 def single_view_scan(name: str, rays: int, rng, direction=(0.0, 0.0, -1.0)):
-    """A partial scan: the first hits of parallel rays (a ``rays`` x ``rays`` grid, jittered)
-    cast along ``direction`` at a shape of :data:`SHAPES`, with outward normals; an open
-    surface, as a single-view depth sensor sees it."""
+    """A partial scan: a shape's first hits of parallel rays, with outward normals.
+
+    The rays (a ``rays`` x ``rays`` grid, jittered) are cast along ``direction`` at a shape of
+    :data:`SHAPES`; an open surface, as a single-view depth sensor sees it.
+    """
     sdf, ext = SHAPES[name]
     d = np.asarray(direction, float)
     d /= np.linalg.norm(d)
@@ -407,9 +416,11 @@ def mesh_family(seed, dtype=np.float64):
 
 
 def cloud_family(seed, n=500):
-    """Points on a rotated, scaled, offset (up to 1e6) ellipsoid with unit normals, uint8 colours
-    and attributes ``intensity`` (int64) and ``curvature`` (float64): a
-    :class:`recon_cli.geometry.PointCloud`."""
+    """A :class:`recon_cli.geometry.PointCloud` on a moved ellipsoid with every kind of property.
+
+    Points on a rotated, scaled, offset (up to 1e6) ellipsoid with unit normals, uint8 colours and
+    attributes ``intensity`` (int64) and ``curvature`` (float64).
+    """
     from recon_cli.geometry import PointCloud
 
     rng = np.random.default_rng(seed)

@@ -1,5 +1,6 @@
-"""Shared test data: the real meshes and scans in ../shared/data, and sampled clouds with true
-normals.
+"""Shared test data: the real meshes and scans in ../shared/data, and sampled clouds.
+
+The clouds come with true normals.
 
 Import from here (``from shared_data import load_shared``); conftest.py only holds fixtures.
 """

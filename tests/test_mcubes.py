@@ -22,8 +22,11 @@ def edge_counts(faces):
 
 
 def check_closed_manifold(v, f):
-    """Every edge in exactly two faces, each directed edge once (consistent winding),
-    every vertex's faces form one fan, no zero-area faces, no unused vertices."""
+    """Assert a mesh is closed, consistently wound, manifold, with no degenerate or unused parts.
+
+    Every edge in exactly two faces, each directed edge once (consistent winding), every vertex's
+    faces form one fan, no zero-area faces, no unused vertices.
+    """
     assert len(f) > 0
     counts = edge_counts(f)
     assert counts.min() == 2 and counts.max() == 2
@@ -105,9 +108,12 @@ def _cube_symmetries():
 
 
 def test_table_every_case_closes_along_face_segments():
-    """For all 256 cases and every decider choice on ambiguous faces: the triangles' boundary
-    (directed edges used once) is exactly the union of the face segments, and triangles only
-    use crossed edges (or the loop centre)."""
+    """Every case's triangles close exactly along its face segments, using only crossed edges.
+
+    For all 256 cases and every decider choice on ambiguous faces: the triangles' boundary (directed
+    edges used once) is exactly the union of the face segments, and triangles only use crossed edges
+    (or the loop centre).
+    """
     for case in range(256):
         amb = int(L.MC_AMBIGUOUS[case])
         crossed = {
@@ -132,8 +138,10 @@ def test_table_every_case_closes_along_face_segments():
 
 
 def test_table_base_cases():
-    """Classic counts: one corner -> 1 triangle, a face's 4 corners -> a quad (2), the
-    complement of a case has the same surface reversed."""
+    """Classic case counts, and a case's complement has the same surface reversed.
+
+    One corner -> 1 triangle, a face's 4 corners -> a quad (2).
+    """
     for c in range(8):
         assert L.MC_START[(1 << c) * 64 + 1] - L.MC_START[(1 << c) * 64] == 1
     quad = 0b00001111  # corners 0-3: the z = 0 face
@@ -155,8 +163,10 @@ def test_table_base_cases():
 
 
 def test_table_invariant_under_cube_symmetries():
-    """Each case's face segments map onto the transformed case's under all 48 symmetries
-    (direction reversed by reflections): the table is the symmetric closure of its base cases."""
+    """Each case's face segments map onto the transformed case's under all 48 cube symmetries.
+
+    Direction reversed by reflections: the table is the symmetric closure of its base cases.
+    """
     syms = _cube_symmetries()
     assert len(syms) == 48
     for case in range(256):
@@ -296,9 +306,11 @@ def test_nan_cells_are_skipped():
 @pytest.mark.parametrize("seed", range(12))
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_skipped_rows_and_left_out_cells(seed, dtype):
-    """Rows of cells with no crossing are skipped whole, rows with NaN or infinite samples
-    are not: the dense mesh equals the sparse one over every cell (which skips nothing),
-    and the stage reports exactly the cells with a NaN corner."""
+    """Rows of cells with no crossing are skipped whole, rows with NaN or infinite samples are not.
+
+    The dense mesh equals the sparse one over every cell (which skips nothing), and the stage
+    reports exactly the cells with a NaN corner.
+    """
     from recon_cli.grid import Grid
     from recon_cli.stages import apply_stage
 
@@ -441,8 +453,10 @@ def test_run_stage_and_cli(tmp_path):
 
 
 def test_stored_tables_are_the_derivation():
-    """_lut_data.npz (read by the stage) is exactly what _luts derives; regenerate with `python -m
-    recon_cli.stages.mcubes._luts`."""
+    """_lut_data.npz (read by the stage) is exactly what _luts derives.
+
+    Regenerate with `python -m recon_cli.stages.mcubes._luts`.
+    """
     from recon_cli.stages.mcubes import _lut_data as D
 
     derived = L.build_tables()
@@ -496,8 +510,10 @@ def test_boundary_edge_count_matches_unique(n_vertices, n_faces, seed):
 
 
 def _closed_meshes_for_pieces():
-    """(name, vertices, faces, resolution): one-piece closed meshes at a resolution that
-    resolves their thinnest part (>= 2 voxels)."""
+    """(name, vertices, faces, resolution) of one-piece closed meshes.
+
+    Each at a resolution that resolves its thinnest part (>= 2 voxels).
+    """
     import shapes as S
     from shared_data import load_shared
 
@@ -515,10 +531,12 @@ def _closed_meshes_for_pieces():
 @pytest.mark.parametrize("reverse", [False, True], ids=["outward", "inward"])
 @pytest.mark.parametrize("idx", range(6))
 def test_sdf_of_closed_mesh_meshes_to_one_piece(idx, reverse):
-    """Issue 15: ``recon sdf`` then ``recon mcubes`` of a closed one-piece mesh (moved,
-    rotated, rescaled; and wound inward) is one closed, manifold, outward piece whose
-    vertices all lie within half a voxel of the input: a sign error inside (a bubble)
-    adds a piece away from the surface."""
+    """Issue 15: sdf then mcubes of a closed one-piece mesh is one closed, outward piece on it.
+
+    ``recon sdf`` then ``recon mcubes`` of a closed one-piece mesh (moved, rotated, rescaled; and
+    wound inward) is one closed, manifold, outward piece whose vertices all lie within half a voxel
+    of the input: a sign error inside (a bubble) adds a piece away from the surface.
+    """
     from recon_cli.geometry import TriangleMesh
     from recon_cli.mesh.distance import closest_points
     from recon_cli.mesh.topology import Connectivity

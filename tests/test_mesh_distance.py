@@ -140,11 +140,13 @@ def test_winding_fast_matches_exact(rng):
 
 
 def test_disk_reject_coplanar_and_slivers(rng):
-    """The per-triangle reject (plane distance + in-plane distance to the bounding disk)
-    never drops the nearest triangle: a finely tessellated plane (many coplanar
-    triangles at almost the same distance), needle slivers and a tilted facet, queried
-    from far away, just off the plane and exactly on it; the answer equals a brute-force
-    minimum over the triangles, and a grid over it equals the pointwise answers."""
+    """The per-triangle disk reject never drops the nearest triangle, coplanar or sliver.
+
+    The reject is plane distance + in-plane distance to the bounding disk. Cases: a finely
+    tessellated plane (many coplanar triangles at almost the same distance), needle slivers and a
+    tilted facet, queried from far away, just off the plane and exactly on it; the answer equals a
+    brute-force minimum over the triangles, and a grid over it equals the pointwise answers.
+    """
     n = 12
     x, y = np.meshgrid(np.linspace(0, 1, n + 1), np.linspace(0, 1, n + 1), indexing="ij")
     v = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1)

@@ -54,8 +54,7 @@ def damaged(kind: str, name: str = "kitten") -> TriangleMesh:
 
 
 def _pinched(m: TriangleMesh) -> TriangleMesh:
-    """``m`` and a translated copy touching it at one shared vertex (a real mesh pinched at a
-    point)."""
+    """``m`` and a translated copy touching it at one shared vertex (a mesh pinched at a point)."""
     v0, n = m.vertices, len(m.vertices)
     rm, lm = int(np.argmax(v0[:, 0])), int(np.argmin(v0[:, 0]))
     f1 = m.faces + n
@@ -367,8 +366,11 @@ def test_union_find_labels_match_scipy(kind):
 
 
 def test_int32_faces_and_unpacked_keys_give_the_same_connectivity():
-    """int32 faces are used without a copy, and the argsort fallback (keys too large to pack
-    an index into) groups edges exactly as the packed sort does."""
+    """int32 faces and the argsort fallback give the packed sort's connectivity.
+
+    int32 faces are used without a copy, and the argsort fallback (keys too large to pack an index
+    into) groups edges exactly as the packed sort does.
+    """
     mesh = damaged("fins")
     c64 = Connectivity(mesh.faces, len(mesh.vertices))
     f32 = mesh.faces.astype(np.int32)

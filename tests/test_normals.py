@@ -370,9 +370,12 @@ def test_rotation_and_translation_equivariance(rng):
 
 
 def test_open_pieces_follow_the_anchor_with_a_bounded_vote(rng, monkeypatch):
-    """Two flat open pieces seeded opposite ways: the smaller (9000 points) turns to agree with
-    the largest, voting with at most ``_ALIGN_SAMPLES`` of its points (a nearest-anchor query
-    from far away is slow: all 9000 took seconds per 10^5 in a slab)."""
+    """The smaller of two open pieces turns to agree with the larger, by a bounded vote.
+
+    Two flat open pieces seeded opposite ways: the smaller (9000 points) turns to agree with the
+    largest, voting with at most ``_ALIGN_SAMPLES`` of its points (a nearest-anchor query from far
+    away is slow: all 9000 took seconds per 10^5 in a slab).
+    """
     import scipy.spatial
 
     import recon_cli.stages.normals as mod

@@ -1,6 +1,9 @@
-"""Normals of real sensor files: --orient camera towards the scanner position(s) the file gives
-(PCD VIEWPOINT, E57 poses with each point towards its own scan, LAS up), neighbourhoods from an
-organized cloud's pixels, and a raw organized PCD through `recon run` normals -> poisson."""
+"""Normals of real sensor files: camera orientation, organized clouds, raw PCD pipelines.
+
+--orient camera towards the scanner position(s) the file gives (PCD VIEWPOINT, E57 poses with each
+point towards its own scan, LAS up), neighbourhoods from an organized cloud's pixels, and a raw
+organized PCD through `recon run` normals -> poisson.
+"""
 
 from __future__ import annotations
 

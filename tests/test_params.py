@@ -1,5 +1,4 @@
-"""Stage declarations (recon_cli.params, recon_cli.stages): one declaration, everything derived from
-it."""
+"""Stage declarations (recon_cli.params, recon_cli.stages): one declaration, all derived from it."""
 
 from __future__ import annotations
 

@@ -54,8 +54,11 @@ def _samples(mesh) -> np.ndarray:
 
 
 def _quality_case(name: str, noise: float, depth: int, cross_check: bool = False) -> None:
-    """Ours against the true surface no worse than Open3D's; ``cross_check``: and our surface
-    within half a finest cell of Open3D's (Chamfer; in practice a third of a cell)."""
+    """Assert ours fits the true surface no worse than Open3D's (and, cross-checking, lies near it).
+
+    ``cross_check``: also our surface within half a finest cell of Open3D's (Chamfer; in practice a
+    third of a cell).
+    """
     truth = load_shared(name)
     tau = 0.005 * bbox_diagonal(truth.vertices)
     ours = _ours(name, noise, depth)
@@ -107,9 +110,11 @@ def test_untrimmed_output_is_watertight_manifold_and_outward(name):
 
 
 def _separation(a, b):
-    """The largest gap between the projections of triangles ``a`` and ``b`` (3, 3) over the
-    separating axes of two triangles (both normals, the nine edge cross products): > 0 when
-    they are apart, <= 0 when they touch or cross."""
+    """The largest gap between triangles ``a`` and ``b`` (3, 3) over their separating axes.
+
+    The axes: both normals and the nine edge cross products. > 0 when they are apart, <= 0 when they
+    touch or cross.
+    """
     ea = [a[1] - a[0], a[2] - a[1], a[0] - a[2]]
     eb = [b[1] - b[0], b[2] - b[1], b[0] - b[2]]
     best = -np.inf
@@ -163,9 +168,11 @@ def test_open3d_closed_manifold_no_self_intersections(name, depth):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["kitten", "armadillo"])
 def test_cross_check_pymeshlab_within_one_cell(name):
-    """Our surface (degree 2, the default) and PyMeshLab's lie within half a finest cell of
-    each other (Chamfer): depth 7 on 50k points, PyMeshLab being slow on a busy machine.
-    Against Open3D: ``test_quality_clean_depth8``."""
+    """Our surface and PyMeshLab's lie within half a finest cell of each other (Chamfer).
+
+    Degree 2 (the default), depth 7 on 50k points, PyMeshLab being slow on a busy machine. Against
+    Open3D: ``test_quality_clean_depth8``.
+    """
     from recon_cli.backends import pymeshlab_backend
 
     c = sampled_cloud(name, 50_000)

@@ -1,5 +1,7 @@
-"""Poisson's --attributes: every per-point property of the input on the vertices, in its dtype,
-codes by majority, measurements by mean, from the points on the vertex's side only."""
+"""Poisson's --attributes: every per-point property of the input on the vertices, in its dtype.
+
+Codes by majority, measurements by mean, from the points on the vertex's side only.
+"""
 
 from __future__ import annotations
 
@@ -199,8 +201,9 @@ def test_lidar_tile_has_intensity_classification_and_colour(tmp_path):
 
 
 def _kd_tree_transfer(points, normals, values, verts, vn, cell):
-    """The transfer as it was made with a k-d tree (every vertex's 16 nearest points, a block's
-    rows widened to the 64 of its fallback rows): the reference the grid must match bit for bit.
+    """The transfer as it was made with a k-d tree: the reference the grid must match bit for bit.
+
+    Every vertex's 16 nearest points, a block's rows widened to the 64 of its fallback rows.
     """
     tree = cKDTree(points)
     n = len(points)
@@ -240,11 +243,14 @@ def _kd_tree_transfer(points, normals, values, verts, vn, cell):
 @pytest.mark.parametrize("n", [5, 40, 3000])
 @pytest.mark.parametrize("seed", [0, 1])
 def test_transfer_is_the_k_d_tree_transfer_bit_for_bit(n, seed):
-    """The grid search finds the k-d tree's neighbours, in its order, at its distances: every
+    """The grid-search transfer is the k-d tree transfer bit for bit.
+
+    The grid search finds the k-d tree's neighbours, in its order, at its distances: every
     attribute, the fallback count and the reach are the same bits, for a sheet of points 1e6 from
-    the origin with vertices on it, off it, flipped (no agreeing point: the 64), outside the
-    points' box and far from every point (past the grid's shells: the k-d tree), and for fewer
-    points than 16 and 64."""
+    the origin with vertices on it, off it, flipped (no agreeing point: the 64), outside the points'
+    box and far from every point (past the grid's shells: the k-d tree), and for fewer points than
+    16 and 64.
+    """
     rng = np.random.default_rng(seed)
     rot = random_rotation(rng)
     uv = rng.random((n, 2)) * [3.0, 2.0]
@@ -286,9 +292,12 @@ def test_transfer_is_the_k_d_tree_transfer_bit_for_bit(n, seed):
 
 
 def test_grid_search_reads_past_its_shells_and_is_exact():
-    """Clustered points (dense blobs, lone points between them) and queries at every distance:
-    the grid's neighbours are the k-d tree's, the same bits, also for the queries past its shells
-    (answered by the k-d tree) and those outside the points' box."""
+    """The grid search's neighbours are the k-d tree's, bit for bit, on clustered points.
+
+    Clustered points (dense blobs, lone points between them) and queries at every distance: the same
+    bits, also for the queries past its shells (answered by the k-d tree) and those outside the
+    points' box.
+    """
     rng = np.random.default_rng(7)
     blobs = rng.normal(size=(6, 3)) * 50.0
     pts = np.concatenate(

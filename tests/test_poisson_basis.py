@@ -1,3 +1,5 @@
+"""Poisson's bases: degree 1 (trilinear) and 2 (quadratic B-spline), each meshing a sphere."""
+
 import numpy as np
 import pytest
 

@@ -1,7 +1,10 @@
-"""Poisson's degree-2 B-spline basis: the operators against their definitions (quadrature,
-partition of unity, exact refinement), and the surfaces it gives: sphere radius error below
-degree 1's and falling with depth, closed manifold one-piece output on generated shapes,
-agreement with Open3D (PoissonRecon's code, degree 1) and PyMeshLab."""
+"""Poisson's degree-2 B-spline basis: its operators and the surfaces it gives.
+
+The operators against their definitions (quadrature, partition of unity, exact refinement), and the
+surfaces it gives: sphere radius error below degree 1's and falling with depth, closed manifold
+one-piece output on generated shapes, agreement with Open3D (PoissonRecon's code, degree 1) and
+PyMeshLab.
+"""
 
 from __future__ import annotations
 
@@ -305,9 +308,11 @@ def test_neighbour_table_matches_a_dictionary(rng, top):
 
 
 def test_block_preconditioner_solves_each_block_as_numpy(rng):
-    """factor_blocks then apply_blocks on random SPD 8x8 blocks: each block's system solved as
-    numpy solves it, rows with no positive diagonal fixed at 0, and a block singular to rounding
-    (the constant in its kernel, as the pure Neumann level 1) left with its diagonal's inverse."""
+    """factor_blocks then apply_blocks solve each random SPD 8x8 block as numpy does.
+
+    Rows with no positive diagonal are fixed at 0, and a block singular to rounding (the constant in
+    its kernel, as the pure Neumann level 1) is left with its diagonal's inverse.
+    """
     nb = 60
     blocks = np.empty((nb, 8, 8))
     fixed = np.zeros((nb, 8), bool)
@@ -365,8 +370,11 @@ def _unpacked(inv: np.ndarray) -> np.ndarray:
 
 
 def test_packed_blocks_in_place_keep_every_entry(rng):
-    """pack_blocks packs each block's lower triangle into the start of the same buffer, block by
-    block (the first blocks' packed entries overlap their own rows): every entry read back."""
+    """pack_blocks packs each block's lower triangle in place: every entry reads back.
+
+    Each block's lower triangle goes into the start of the same buffer, block by block (the first
+    blocks' packed entries overlap their own rows).
+    """
     for nb in (0, 1, 2, 5):
         g = rng.normal(size=(nb, 8, 8))
         blocks = g + g.transpose(0, 2, 1)
@@ -379,10 +387,13 @@ def test_packed_blocks_in_place_keep_every_entry(rng):
 
 @pytest.mark.parametrize("boundary", ["neumann", "free"])
 def test_block_jacobi_level_solves_the_same_system_as_jacobi(monkeypatch, rng, boundary):
-    """Every level of a small cloud's solve: the sibling blocks are the operator's (columns of
+    """Block-Jacobi level solves converge to Jacobi's solution in fewer iterations.
+
+    Every level of a small cloud's solve: the sibling blocks are the operator's (columns of
     level_matvec), the preconditioner their inverse, and the block-Jacobi conjugate gradients
     converge to Jacobi's solution (the previous preconditioner) in fewer iterations, and at the
-    solve's own tolerance about as close to the exact solution."""
+    solve's own tolerance about as close to the exact solution.
+    """
     seen = []
     real = BO.level_pcg
 

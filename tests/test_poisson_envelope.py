@@ -1,6 +1,9 @@
-"""Poisson's --envelope: a closed mesh bounding the surface (chi clipped by it, unobserved space
-solid, so an open scan's closing sheet follows it), refused in one line when it is not a closed
-mesh; and --confidence (weights from the normals' lengths)."""
+"""Poisson's --envelope and --confidence.
+
+--envelope: a closed mesh bounding the surface (chi clipped by it, unobserved space solid, so an
+open scan's closing sheet follows it), refused in one line when it is not a closed mesh;
+--confidence: weights from the normals' lengths.
+"""
 
 from __future__ import annotations
 
@@ -37,8 +40,10 @@ def _bunny():
 
 
 def _sheet_cells(res, pts: np.ndarray, env: TriangleMesh) -> np.ndarray:
-    """The closing sheet's vertices (farther than 4 finest cells from the points): their
-    distance to the envelope in finest cells."""
+    """The closing sheet's vertices' distance to the envelope, in finest cells.
+
+    The sheet's vertices: those farther than 4 finest cells from the points.
+    """
     from scipy.spatial import cKDTree
 
     cell = res.report["finest_cell"]

@@ -1,8 +1,10 @@
-"""Poisson's extraction over the adaptive tree: on generated shapes (random rotations, scales,
-offsets of 1e6, thin parts, holes, sparse and dense halves, single-view scans) the untrimmed
-surface is closed, edge- and vertex-manifold, one piece, outward, with no duplicate vertices
-(checked with our topology and with trimesh); the surface is extracted at the leaves' own
-size, so its size follows the tree, not the depth asked for."""
+"""Poisson's extraction over the adaptive tree, on generated shapes.
+
+On random rotations, scales, offsets of 1e6, thin parts, holes, sparse and dense halves, single-view
+scans, the untrimmed surface is closed, edge- and vertex-manifold, one piece, outward, with no
+duplicate vertices (checked with our topology and with trimesh); the surface is extracted at the
+leaves' own size, so its size follows the tree, not the depth asked for.
+"""
 
 from __future__ import annotations
 
@@ -42,8 +44,11 @@ def _assert_closed_manifold_one_piece(mesh: TriangleMesh) -> None:
 
 @pytest.fixture(params=["auto", "leaves"])
 def method(request, monkeypatch):
-    """The extraction as chosen (``auto``), or over the leaves even where every leaf holding
-    surface is a finest cell (``leaves``), so that the leaf extraction meets every shape."""
+    """The extraction as chosen (``auto``), or over the leaves everywhere (``leaves``).
+
+    ``leaves`` extracts over the leaves even where every leaf holding surface is a finest cell, so
+    that the leaf extraction meets every shape.
+    """
     if request.param == "leaves":
         monkeypatch.setattr(extract_mod, "extract", extract_mod.extract_leaves)
     return request.param

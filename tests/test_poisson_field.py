@@ -1,5 +1,7 @@
-"""Poisson's --grid: the solved field on the finest lattice as recon's own grid file, whose zero
-level (recon mcubes) is the stage's surface and which is negative inside."""
+"""Poisson's --grid: the solved field on the finest lattice as recon's own grid file.
+
+Its zero level (recon mcubes) is the stage's surface, and it is negative inside.
+"""
 
 from __future__ import annotations
 

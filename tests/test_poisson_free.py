@@ -1,5 +1,8 @@
-"""Poisson's free boundary (--boundary free, PoissonRecon's BOUNDARY_FREE): the domain tables,
-open scans that do not bend to the cube's faces, closed shapes as accurate as Neumann's."""
+"""Poisson's free boundary (--boundary free, PoissonRecon's BOUNDARY_FREE).
+
+The domain tables, open scans that do not bend to the cube's faces, closed shapes as accurate as
+Neumann's.
+"""
 
 from __future__ import annotations
 
@@ -75,8 +78,11 @@ def test_level_tables_free_partition_of_unity():
 
 
 def _hugging_area(mesh, lo, size, cell, cells=3):
-    """Fraction of the area within ``cells`` finest cells of a cube face whose normal is
-    within 30 degrees of that face's: surface lying along the faces."""
+    """Fraction of the area lying along the cube's faces.
+
+    The area within ``cells`` finest cells of a cube face whose normal is within 30 degrees of that
+    face's.
+    """
     t = mesh.vertices[mesh.faces]
     c = t.mean(axis=1)
     nn = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])

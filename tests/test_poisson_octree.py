@@ -1,5 +1,7 @@
-"""Poisson's adaptive octree: samples splatted at the depth their density supports, the tree
-no deeper than the splats, so depth beyond the data costs (almost) nothing."""
+"""Poisson's adaptive octree: samples splatted at the depth their density supports.
+
+The tree is no deeper than the splats, so depth beyond the data costs (almost) nothing.
+"""
 
 from __future__ import annotations
 

@@ -1,3 +1,5 @@
+"""Poisson's phase timings (recon_cli.stages.poisson.timing)."""
+
 import time
 
 import pytest

@@ -200,8 +200,10 @@ def test_convert_keeps_doubles(ascii_, tmp_path):
 
 
 def test_utm_normals_then_poisson_on_the_command_line_as_at_origin(tmp_path):
-    """The issue's case: a double cloud at UTM-like coordinates, `recon normals | recon poisson
-    --depth 7`."""
+    """The issue's case: `recon normals | recon poisson --depth 7` at UTM-like coordinates.
+
+    A double cloud, meshed as at the origin.
+    """
     env = dict(os.environ)
     errors = {}
     for where in ("origin", "utm"):
@@ -287,8 +289,10 @@ def test_float32_source_far_away_is_written_double_with_a_note(where, tmp_path):
 
 
 def test_float32_values_in_a_float64_array_stay_float32(tmp_path):
-    """Float64 arrays holding float32 values (a stage that converted and kept them) lose nothing as
-    float32."""
+    """Float64 arrays holding float32 values lose nothing as float32.
+
+    As a stage that converted and kept them would hold them.
+    """
     p = (
         sphere_cloud(100, radius=10.0, centre=FAR_OFFSETS["utm"])[0]
         .astype(np.float32)

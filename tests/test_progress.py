@@ -67,8 +67,11 @@ def test_compiling_is_announced_while_numba_compiles():
 
 
 def test_a_display_made_before_numba_loads_announces_compiling_without_importing_numba_itself():
-    """A command running ahead-of-time kernels never loads numba, even with a progress display;
-    when a kernel module loads it later (a JIT fallback), the display still says it compiles."""
+    """A display made before numba loads still announces compiling, without importing numba.
+
+    A command running ahead-of-time kernels never loads numba, even with a progress display; when a
+    kernel module loads it later (a JIT fallback), the display still says it compiles.
+    """
     code = (
         "import io, sys\n"
         "from recon_cli.progress import COMPILING, Progress, task\n"
@@ -120,8 +123,11 @@ def test_expected_step_moves_on_the_rate_so_far_and_never_past_its_end():
 
 
 def test_poisson_solve_bar_is_weighted_by_each_levels_work():
-    """The exact levels and the big fine levels weigh what they cost: the solve's work
-    estimate follows the level sizes, not one unit per level."""
+    """The Poisson solve's bar weighs each level by its work, not one unit per level.
+
+    The exact levels and the big fine levels weigh what they cost: the solve's work estimate follows
+    the level sizes.
+    """
     from types import SimpleNamespace
 
     from recon_cli.stages.poisson.system import solve_work

@@ -1,5 +1,7 @@
-"""``recon repair``: manifold, oriented, volume kept, holes filled; checked with Open3D, trimesh,
-PyMeshLab."""
+"""``recon repair``: manifold, oriented, volume kept, holes filled.
+
+Checked with Open3D, trimesh, PyMeshLab.
+"""
 
 from __future__ import annotations
 

@@ -1,6 +1,8 @@
-"""``recon simplify``: quadric edge collapse that keeps manifolds manifold, faces unflipped,
-boundaries in place and every attribute; exact on planar and polyhedral shapes; as accurate
-as Open3D's and PyMeshLab's quadric decimation."""
+"""``recon simplify``: quadric edge collapse, exact and as accurate as Open3D and PyMeshLab.
+
+Keeps manifolds manifold, faces unflipped, boundaries in place and every attribute; exact on planar
+and polyhedral shapes; as accurate as Open3D's and PyMeshLab's quadric decimation.
+"""
 
 from __future__ import annotations
 
@@ -62,8 +64,10 @@ KINDS = ("sphere", "torus", "dumbbell", "sheet", "cut", "terrain")
 
 
 def family(seed: int) -> tuple[str, TriangleMesh]:
-    """A closed or open mesh (sphere, torus, thin rod, thin sheet, cut sphere, terrain) under
-    a random rotation, scale 1e-3..1e3 and offset up to 1e6."""
+    """A closed or open mesh under a random rotation, scale 1e-3..1e3 and offset up to 1e6.
+
+    Sphere, torus, thin rod, thin sheet, cut sphere or terrain.
+    """
     rng = np.random.default_rng(seed)
     kind = KINDS[seed % len(KINDS)]
     if kind == "sphere":
@@ -101,8 +105,10 @@ def to_segments(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def boundary_hausdorff(a: TriangleMesh, b: TriangleMesh) -> float:
-    """Hausdorff distance between the boundary edges of ``a`` and ``b`` (their end points to
-    the other's segments), over ``a``'s diagonal."""
+    """Hausdorff distance between the boundary edges of ``a`` and ``b``, over ``a``'s diagonal.
+
+    Measured from their end points to the other's segments.
+    """
     a0, a1 = boundary_segments(a)
     b0, b1 = boundary_segments(b)
     d = max(to_segments(b0, a0, a1).max(), to_segments(a0, b0, b1).max())
@@ -110,8 +116,10 @@ def boundary_hausdorff(a: TriangleMesh, b: TriangleMesh) -> float:
 
 
 def chamfer(a: TriangleMesh, b: TriangleMesh, n: int = 20_000) -> tuple[float, float]:
-    """Exact point-to-triangle Chamfer (mean of both directions) and Hausdorff of samples, over
-    ``a``'s diagonal."""
+    """Exact point-to-triangle Chamfer and Hausdorff of samples, over ``a``'s diagonal.
+
+    Chamfer: the mean of both directions.
+    """
     diag = bbox_diagonal(a.vertices)
     pa = sample_surface(a, n, seed=1).points
     pb = sample_surface(b, n, seed=2).points
@@ -121,8 +129,7 @@ def chamfer(a: TriangleMesh, b: TriangleMesh, n: int = 20_000) -> tuple[float, f
 
 
 def normal_agreement(inp: TriangleMesh, out: TriangleMesh) -> np.ndarray:
-    """Cosine between each output face's normal and the normal of the input face closest to
-    its centroid."""
+    """Cosine between each output face's normal and that of the input face nearest its centroid."""
     _, fi, _ = closest_points(inp.vertices, inp.faces, out.vertices[out.faces].mean(axis=1))
     n_in, _ = face_normals(inp.vertices, inp.faces)
     n_out, _ = face_normals(out.vertices, out.faces)
@@ -446,9 +453,12 @@ def test_same_bytes_for_any_thread_count_and_run(tmp_path):
 
 
 def depth_mesh(seed: int) -> TriangleMesh:
-    """A single-view scan as a mesh: a simulated Kinect image of a tabletop (noise, flying
-    pixels, NaN misses) triangulated over its pixel grid, no triangle across a depth jump.
-    Open, with holes and pinched (non-manifold) vertices where two triangles touch."""
+    """A single-view scan as a mesh: a simulated Kinect tabletop triangulated over its pixels.
+
+    A simulated Kinect image (noise, flying pixels, NaN misses) triangulated over its pixel grid, no
+    triangle across a depth jump. Open, with holes and pinched (non-manifold) vertices where two
+    triangles touch.
+    """
     import sensors
 
     rng = np.random.default_rng(seed)

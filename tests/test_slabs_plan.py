@@ -18,9 +18,11 @@ BPP = 4096.0  # bytes a point, as a stage declares
 
 
 def test_default_partitions_from_the_workers_memory():
-    """One slab per worker when a slab fits the worker's share; a cloud four times too big takes
-    four per worker; a count rounded up to whole rounds of the workers, capped; no limit: one per
-    worker."""
+    """Default partitions follow the workers' memory, in whole rounds of the workers.
+
+    One slab per worker when a slab fits the worker's share; a cloud four times too big takes four
+    per worker; a count rounded up to whole rounds of the workers, capped; no limit: one per worker.
+    """
     mem = 8 * 2**30
     per_slab = SLAB_MEMORY_SHARE * mem / BPP  # the points one slab may hold
     fits = int(4 * per_slab)
@@ -72,8 +74,7 @@ def test_slab_count_on_a_cluster_says_how_many_and_why():
 
 
 def test_slab_count_in_this_process_from_its_budget():
-    """No cluster: this process's budget sizes the slabs (any count, not whole rounds); none
-    given: one slab."""
+    """No cluster: this process's budget sizes the slabs (any count); none given: one slab."""
     mem = 2**30
     per_slab = int(SLAB_MEMORY_SHARE * mem / BPP)
     assert count(None, 10**9, None) == (

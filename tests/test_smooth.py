@@ -1,5 +1,7 @@
-"""``recon smooth``: Taubin lambda|mu smoothing removes noise and keeps the volume; the same
-filter as MeshLab's on closed meshes; boundaries, attributes and precision kept."""
+"""``recon smooth``: Taubin lambda|mu smoothing removes noise and keeps the volume.
+
+The same filter as MeshLab's on closed meshes; boundaries, attributes and precision kept.
+"""
 
 from __future__ import annotations
 

@@ -1,5 +1,4 @@
-"""recon_cli.tools.docs: the documentation's stage pages, their tables read back and compared
-with the declarations."""
+"""recon_cli.tools.docs: the documentation's stage pages, read back against the declarations."""
 
 from __future__ import annotations
 
