@@ -272,6 +272,12 @@ def alternating(args: list[str], reference, rounds: int) -> dict:
 
 
 def rows(quick: bool) -> list[dict]:
+    """The section's rows: each stage's command as a process, cold and warm, and the floors.
+
+    Every command runs as ``recon -q ARGS`` (cold with an empty numba cache, warm with it filled)
+    against numba's floor and the lean floor; ballpivot and mcubes 256^3 also against their
+    reference in-process (:func:`_against_reference`).
+    """
     repeat = 2 if quick else 3
     with tempfile.TemporaryDirectory(prefix="recon-bench-cli-") as tmpd:
         tmp = Path(tmpd)

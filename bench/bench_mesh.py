@@ -301,6 +301,11 @@ def _poisson_mesh(n: int, depth: int, work: Path):
 
 
 def rows(quick: bool) -> list[dict]:
+    """The section's rows: ``recon simplify`` and ``recon smooth`` as processes, against references.
+
+    Open3D and PyMeshLab run in-process on the same meshes: a Poisson mesh of the armadillo and a
+    split, noisy armadillo.
+    """
     from recon_cli.io import read_ply
 
     # warm our numba cache the way a user's install does (no compile time in the rows)

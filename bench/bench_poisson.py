@@ -230,6 +230,10 @@ def _trim_quantile(mesh, dens: np.ndarray, q: float):
 
 
 def open3d_poisson(cloud, depth: int, trimmed: bool):
+    """Open3D's screened Poisson of ``cloud`` on all cores, trimmed when asked.
+
+    Trimmed: the vertices below the ``REF_TRIM`` quantile of its density removed.
+    """
     from recon_cli.backends import open3d_backend
 
     mesh, dens = open3d_backend.poisson(cloud, depth=depth, threads=-1)  # its default: all cores

@@ -62,6 +62,11 @@ def _grid_rows(mesh, label: str, res: int, repeat: int) -> list[dict]:
 
 
 def rows(quick: bool) -> list[dict]:
+    """The section's rows: our sdf stage and closest points against Open3D's, in-process.
+
+    The armadillo at 128^3 and 256^3 (quick: 64^3), the mug at 256^3, and closest points of random
+    queries (the API ``recon diff`` uses).
+    """
     import numba
 
     # measurements fork after the warm-up: GNU OpenMP (numba's default layer here) aborts
