@@ -17,6 +17,7 @@ def box_mesh(lo=(0.0, 0.0, 0.0), hi=(1.0, 2.0, 3.0)):
 
 
 def box_distance(p, lo, hi):
+    """Signed distance of points ``p`` (n, 3) to the box [lo, hi], negative inside."""
     lo, hi = np.asarray(lo), np.asarray(hi)
     q = np.maximum(lo - p, 0) + np.maximum(p - hi, 0)
     outside = np.linalg.norm(q, axis=1)
@@ -298,15 +299,18 @@ def _project(sdf, p, iters=4, h=1e-6):
 
 
 def sphere_sdf(p, radius=1.0):
+    """Signed distance to the sphere of ``radius`` about the origin, negative inside."""
     return np.linalg.norm(p, axis=1) - radius
 
 
 def torus_sdf(p, major=1.0, minor=0.35):
+    """Signed distance to a torus about z (``major``, ``minor`` radii), negative inside."""
     q = np.stack([np.hypot(p[:, 0], p[:, 1]) - major, p[:, 2]], axis=1)
     return np.linalg.norm(q, axis=1) - minor
 
 
 def rounded_box_sdf(p, half=(1.0, 0.7, 0.5), radius=0.15):
+    """Signed distance to a box of half sizes ``half`` with edges rounded by ``radius``."""
     q = np.abs(p) - (np.asarray(half) - radius)
     return np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(axis=1), 0) - radius
 

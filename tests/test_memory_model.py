@@ -123,6 +123,7 @@ def test_poisson_tree_estimated_from_the_count_alone():
 
 
 def test_the_refusal_is_one_line_with_the_least_memory_that_does():
+    """The memory refusal is one line with the figure needed and the ``--memory`` that would do."""
     MM.check_fits("sdf", 10 * 2**30, 11 * 2**30)
     MM.check_fits("sdf", None, 2**30)
     MM.check_fits("sdf", 2**30, None)
@@ -155,6 +156,7 @@ def test_a_run_over_the_memory_is_refused_before_in_is_read(tmp_path, monkeypatc
 
 
 def test_plan_prints_the_prediction_and_runs_nothing(tmp_path, capsys):
+    """``--plan`` prints the prediction from the header and writes nothing."""
     pts, nrm = sphere_cloud(3000, seed=4)
     src, out = tmp_path / "s.ply", tmp_path / "g.npz"
     save(PointCloud(points=pts, normals=nrm), str(src))
@@ -170,6 +172,7 @@ def test_plan_prints_the_prediction_and_runs_nothing(tmp_path, capsys):
 
 
 def test_every_report_says_the_prediction_and_the_peak(tmp_path, capsys):
+    """Every ``--json`` report gives the prediction made before and the peak measured."""
     pts, nrm = sphere_cloud(3000, seed=5)
     src, out = tmp_path / "s.ply", tmp_path / "f.ply"
     save(PointCloud(points=pts, normals=nrm), str(src))

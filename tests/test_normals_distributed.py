@@ -68,6 +68,7 @@ def test_halo_widens_until_neighbourhoods_are_exact():
 
 
 def test_camera_and_keep():
+    """Camera orientation in 3 slabs: the single-process normals; ``keep``: the input's signs."""
     rng = np.random.default_rng(5)
     pts, truth = single_view_scan("torus", 120, rng, direction=(0.3, 0.2, -1.0))
     cam = -5 * np.array([0.3, 0.2, -1.0])
@@ -109,6 +110,7 @@ def test_camera_towards_each_points_own_scanner():
 
 
 def test_refused():
+    """More than 32 partitions, and ``keep`` without input normals, are refused."""
     p = np.random.default_rng(1).normal(size=(100, 3))
     refused = "--partitions must be 1..32 for normals, got 33"
     with run_on(partitions=33), pytest.raises(ParameterError, match=refused):
@@ -177,6 +179,7 @@ def test_command_keeps_every_property_and_row(tmp_path, monkeypatch, capsys, whe
 
 @pytest.fixture(scope="module")
 def cluster():
+    """A local Dask cluster of 2 workers for the module's tests (no memory limit, no stealing)."""
     from recon_cli.batch.cluster import open_client
 
     with open_client(workers=2, memory_limit="none", stealing=False) as (client, _info):
