@@ -44,7 +44,7 @@ def test_bool_words_are_exactly_the_documented_ones():
 
 
 def test_typed_values_must_have_the_declared_type():
-    """int and bool parameters take their type (or its text on the command line), in range.
+    """Integer and bool parameters take their type (or its text on the command line), in range.
 
     Floats, other types, out-of-range values and text in TOML are refused with the option's message.
     """

@@ -275,6 +275,7 @@ def test_progress_over_the_whole_job_reaches_its_total(kw):
     ],
 )
 def test_refused_options(kw, msg):
+    """Out-of-range partitions, depth, full depth and seams are refused with their message."""
     pts, nrm = sphere_cloud(2000, seed=1)
     with pytest.raises(ParameterError, match=msg):
         distributed_poisson(pts, nrm, **{"depth": 7, "partitions": 2, **kw})
@@ -335,6 +336,7 @@ def test_no_partitions_in_memory_is_one_slab_here():
 
 @pytest.fixture(scope="module")
 def cluster():
+    """A local Dask cluster of 2 workers for the module's tests (no memory limit, no stealing)."""
     from recon_cli.batch.cluster import open_client
 
     with open_client(workers=2, memory_limit="none", stealing=False) as (client, info):
@@ -708,6 +710,7 @@ def test_command_reports_the_slab_count_and_why(tmp_path, monkeypatch, capsys):
     ],
 )
 def test_command_refuses(tmp_path, capsys, args, msg):
+    """Options the slabs or the workers cannot honour exit 2 with a message naming them."""
     pts, nrm = sphere_cloud(500, seed=1)
     src = tmp_path / "s.ply"
     save(PointCloud(points=pts, normals=nrm), str(src))

@@ -20,6 +20,7 @@ from shapes import random_rotation, shape_cloud, single_view_scan, sphere_cloud
 
 
 def test_colours_and_density_per_vertex():
+    """Colours and density in 3 slabs match the single-process vertex nearest."""
     pts, nrm = sphere_cloud(8000, seed=9)
     colors = (np.clip(pts * 0.5 + 0.5, 0, 1) * 255).astype(np.uint8)
     res = distributed_poisson(pts, nrm, depth=7, partitions=3, colors=colors, density=True)

@@ -29,6 +29,7 @@ from shapes import SHAPES, shape_cloud
 
 
 def test_spread_keeps_each_levels_total_and_sits_on_cell_centres(rng):
+    """Spreading keeps each level's total and first moment, one item per cell centre."""
     pos = rng.uniform(0.1, 0.9, size=(500, 3))
     vec = rng.normal(size=(500, 3))
     lvl = rng.integers(
@@ -50,6 +51,7 @@ def test_spread_keeps_each_levels_total_and_sits_on_cell_centres(rng):
 
 
 def test_spread_bands_and_threads_give_the_one_walks_sums(rng, monkeypatch):
+    """Spreading in bands over threads gives the serial walk's sum in every cell, to the bit."""
     # spread splats bands of cells in threads, each walking all items in order: every cell
     # must hold the serial walk's sum to the bit, whatever the bands and threads
     import numba
@@ -95,6 +97,7 @@ def test_spread_bands_and_threads_give_the_one_walks_sums(rng, monkeypatch):
 
 
 def test_fit_roots_keeps_linear_roots_and_refuses_no_crossing():
+    """fit_roots keeps the linear root of a linear chi and marks an edge with no crossing (-1)."""
     f0 = np.array([1.0, 0.2, 3.0, -1.0])
     f1 = np.array([-1.0, -0.6, 4.0, 1.0])
     # chi linear along the line: the linear root
@@ -106,6 +109,7 @@ def test_fit_roots_keeps_linear_roots_and_refuses_no_crossing():
 
 @pytest.mark.parametrize("width", [0.7, 1.5, 3.0])
 def test_fit_roots_beats_the_linear_root_on_a_smooth_step(rng, width):
+    """On a smooth step the fitted root is nearer the true one than the secant's, on the edge."""
     # chi across a surface is a smooth step: sampled at the lattice, the fitted root is closer
     # to the true one than the secant's on average, and never leaves the edge
     x0 = rng.uniform(0.0, 1.0, size=2000)
