@@ -95,6 +95,10 @@ def test_bunny_scan_inside_a_sphere():
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_open_scans_follow_a_box_or_sphere_envelope(seed):
+    """Open scans in a box or sphere envelope: no vertex outside, closed, the sheet on it.
+
+    Single-view scans, randomly rotated and far from the origin; the box rotated with them.
+    """
     # single-view scans by ray casting, randomly rotated and far from the origin; the envelope a
     # box (rotated with them) 1.3x their extent, or a sphere 1.2x their radius: no vertex
     # outside, closed and manifold, the closing sheet on the envelope behind the scan

@@ -157,6 +157,7 @@ def _chamfer_to(mesh, sdf) -> float:
 
 @pytest.mark.parametrize("name, sdf", [("sphere", sphere_sdf), ("torus", torus_sdf)])
 def test_leaf_extraction_as_accurate_as_the_finest_lattice(rng, monkeypatch, name, sdf):
+    """Extraction at the leaves' size: within 5 % of the finest lattice's Chamfer, fewer faces."""
     # coarse leaves hold a trilinear chi: triangles at their size lose nothing measurable on a
     # smooth surface against refining every leaf to the finest lattice first
     # (within 5 %: on the finest cells the minimal-area triangulation follows the surface
