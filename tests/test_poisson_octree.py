@@ -78,6 +78,7 @@ def test_faces_barely_change_past_the_datas_depth(rng):
 
 
 def test_sparse_half_is_splatted_coarser(rng):
+    """A 16x sparser half is splatted about two levels coarser; the tree stops at its density."""
     # one cloud, a dense and a sparse half: the sparse half's samples go to coarser levels
     # (16x fewer samples per area: two levels coarser)
     p, nrm = shape_cloud("sphere", 64_000, rng, rotate=False)
