@@ -30,10 +30,12 @@ def analytic_mesh(fn, n=48, lim=1.2):
 
 
 def sphere_fn(X, Y, Z):
+    """Signed distance to a sphere of radius 0.8 about the origin."""
     return np.sqrt(X**2 + Y**2 + Z**2) - 0.8
 
 
 def torus_fn(X, Y, Z):
+    """Signed distance to a torus about z (radii 0.7 and 0.3)."""
     return np.sqrt((np.sqrt(X**2 + Y**2) - 0.7) ** 2 + Z**2) - 0.3
 
 
@@ -45,6 +47,7 @@ def chamfer(a: TriangleMesh, b: TriangleMesh) -> tuple[float, float]:
 
 
 def test_box_exact_to_float32():
+    """A box mesh's grid is the exact box distance to float32 rounding, inside negative."""
     v, f = box_mesh((0, 0, 0), (1, 2, 3))
     res = apply_stage("sdf", TriangleMesh(vertices=v, faces=f), {"resolution": 40, "padding": 0.2})
     g = res.output
@@ -58,6 +61,10 @@ def test_box_exact_to_float32():
 
 @pytest.mark.parametrize("fn", [sphere_fn, torus_fn], ids=["sphere", "torus"])
 def test_analytic_shapes(fn):
+    """Analytic sphere and torus meshes: exact distances, the analytic sign wherever it is clear.
+
+    Both sign methods; clear: farther from the surface than twice the tessellation error.
+    """
     mesh = analytic_mesh(fn)
     # the mesh deviates from the analytic surface by its tessellation error, at most:
     t = mesh.vertices[mesh.faces]
@@ -150,6 +157,7 @@ def test_against_open3d(name):
 
 @pytest.mark.parametrize("name", ALL_MESHES)
 def test_round_trip_mesh_sdf_mcubes(name):
+    """Each shared mesh through sdf then mcubes: watertight, within a voxel of it (Chamfer)."""
     m = load_shared(name)
     g = apply_stage("sdf", m, {"resolution": 48}).output
     out = apply_stage("mcubes", g, {}).output
@@ -168,6 +176,7 @@ def test_round_trip_mesh_sdf_mcubes(name):
 
 
 def test_band():
+    """A band keeps the full grid's values inside it and the band's magnitude, signed, beyond."""
     m = load_shared("mug")
     origin, h, shape = grid_frame(m.vertices.min(0), m.vertices.max(0), 40)
     full, _ = mesh_sdf(m.vertices, m.faces, origin, h, shape)
@@ -183,6 +192,10 @@ def test_band():
 
 
 def test_point_cloud_imls():
+    """A point cloud's IMLS grid meshes within a quarter voxel of the kitten, no far sheets.
+
+    A cloud without normals is refused.
+    """
     m = load_shared("kitten")
     cloud = sampled_cloud("kitten", 30_000)
     res = apply_stage("sdf", cloud, {"resolution": 64})
@@ -201,6 +214,7 @@ def test_point_cloud_imls():
 
 
 def test_eikonal_check_exact_sphere():
+    """The eikonal check of an exact sphere distance: mean slope 1; of a scaled one 0.3."""
     x = np.linspace(-1, 1, 41)
     X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
     g = Grid(sdf=np.sqrt(X**2 + Y**2 + Z**2) - 0.5, origin=(-1, -1, -1), voxel_size=x[1] - x[0])
@@ -240,6 +254,7 @@ def test_eikonal_check_near_exact_distance(name):
 
 
 def test_eikonal_check_near_without_zero_level():
+    """A grid with no zero level: the slope figure alone, "no zero level" in ``recon info``."""
     x = np.linspace(0, 1, 20)
     s = np.broadcast_to(x[:, None, None] + 0.5, (20, 20, 20)).copy()
     e = eikonal_check(Grid(sdf=s, origin=(0, 0, 0), voxel_size=x[1]))
@@ -281,6 +296,7 @@ def test_eikonal_check_slabs(monkeypatch):
 
 
 def test_validation_and_cli(tmp_path):
+    """Bad parameters are refused; the sdf command writes a grid ``recon info`` describes."""
     from click.testing import CliRunner
 
     from recon_cli.cli.main import cli
@@ -319,6 +335,7 @@ def test_validation_and_cli(tmp_path):
 
 
 def test_open3d_backend_agrees_with_native_and_is_meshes_only():
+    """The Open3D backend's grid agrees with ours to float32 rounding; clouds are refused."""
     from recon_cli.stages.sdf import run_stage as sdf_stage
 
     mesh = load_shared("kitten")
@@ -525,6 +542,7 @@ def test_side_classes_are_the_components_of_the_link_graph(seed):
 
 
 def test_boundary_free_and_signed_volume():
+    """is_boundary_free and signed_volume on spheres, holes, a flipped face and a hollow ball."""
     from recon_cli.stages.sdf import is_boundary_free, signed_volume
 
     from shapes import hollow_ball, icosphere
