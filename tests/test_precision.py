@@ -154,7 +154,7 @@ def test_repair_far_from_origin_as_at_origin(where, tmp_path):
 @pytest.mark.parametrize("where", FAR)
 @pytest.mark.parametrize("source", ["mesh", "cloud"])
 def test_sdf_and_mcubes_far_from_origin_as_at_origin(where, source, tmp_path):
-    """sdf then mcubes of a mesh or cloud moved far away: the origin's grid and surface, moved."""
+    """The sdf then mcubes of a mesh or cloud moved far: the origin's grid and surface, moved."""
     if source == "mesh":
         v, f = icosphere(3, radius=10.0)
         make = lambda c: TriangleMesh(v + c, f)  # noqa: E731

@@ -342,7 +342,7 @@ def test_repair_is_idempotent_on_open3d_ball_pivoting():
 
 
 def test_marching_cubes_output_passes_unchanged():
-    """skimage's marching cubes output of a torus passes through repair unchanged."""
+    """A torus by skimage's marching cubes passes through repair unchanged."""
     from skimage.measure import marching_cubes
 
     g = np.linspace(-1.5, 1.5, 48)

@@ -220,6 +220,7 @@ def test_normals_full_disk_while_spilling(tmp_path):
 
 
 def test_sigterm_mid_out_of_core_normals_leaves_nothing(tmp_path):
+    """SIGTERM while normals spill: exit 143, "recon: terminated", only the input left."""
     src = _cloud(tmp_path, 60_000, seed=9, normals=False)
     out = tmp_path / "n.ply"
     argv = [*RECON[:-1], "normals", src, out, "--partitions", "4", "--knn", "60"]
