@@ -202,10 +202,7 @@ def test_states_pickled_between_steps_give_the_same_mesh(monkeypatch):
 
 
 def test_an_empty_slab():
-    """A slab owning only empty space gives no faces, the others two closed spheres.
-
-    Two spheres apart along x, the middle slab owning only the empty space between them.
-    """
+    """Two spheres apart along x, the middle slab empty: no faces there, two closed spheres."""
     a, na = sphere_cloud(6000, centre=(-3.0, 0, 0), seed=7)
     b, nb = sphere_cloud(6000, centre=(3.0, 0, 0), seed=8)
     pts, nrm = np.vstack([a, b]), np.vstack([na, nb])
@@ -315,10 +312,7 @@ def test_a_slab_reads_its_part_of_a_global_density_table():
 
 
 def test_no_partitions_in_memory_is_one_slab_here():
-    """Without a cluster and ``partitions=None``, this process runs one slab: the single mesh.
-
-    The mesh is the single-process one, and the report says so.
-    """
+    """Without a cluster and ``partitions=None``: one slab here, the single mesh, reported so."""
     pts, nrm = sphere_cloud(8000, seed=3)
     res = distributed_poisson(pts, nrm, depth=7, partitions=None)
     ref = distributed_poisson(pts, nrm, depth=7, partitions=1)
@@ -357,10 +351,7 @@ def _kill_a_worker_soon(pids: dict, killed: list[int]) -> None:
 
 @pytest.mark.slow
 def test_killed_worker_mid_solve_gives_the_same_mesh(cluster):
-    """A worker SIGKILLed while the slabs solve: the undisturbed run's mesh, bit for bit.
-
-    Its slabs are recomputed on a live worker.
-    """
+    """A worker SIGKILLed mid-solve: its slabs rerun on a live worker, the same mesh bit for bit."""
     from recon_cli.slabs import runners as steps
 
     pts, nrm = sphere_cloud(12_000, seed=11)
@@ -722,10 +713,7 @@ def test_command_refuses(tmp_path, capsys, args, msg):
 
 @pytest.mark.slow
 def test_ctrl_c_mid_job_leaves_nothing(tmp_path):
-    """Ctrl-C mid job: exit 130, one line, no output, no temporary folder, no worker left.
-
-    The process group's SIGINT, sent once the workers have sorted the chunks.
-    """
+    """Ctrl-C (SIGINT to the group) once the chunks are sorted: exit 130, one line, nothing left."""
     import sys
 
     import psutil
@@ -806,10 +794,7 @@ def test_out_of_core_command_reads_the_file_by_chunks_in_this_process(
 
 
 def test_command_trims_auto_in_slabs_from_the_file(tmp_path, monkeypatch, capsys):
-    """``recon poisson --partitions 3 --trim auto`` reads IN by chunks and trims as in memory.
-
-    The mesh is the in-memory run's in 3 slabs.
-    """
+    """``--partitions 3 --trim auto`` on the file, read by chunks: the in-memory 3 slabs' mesh."""
     rng = np.random.default_rng(0)
     pts, nrm = single_view_scan("torus", 120, rng, direction=(0.3, 0.2, -1.0))
     src = tmp_path / "scan.ply"
@@ -831,10 +816,7 @@ def test_command_trims_auto_in_slabs_from_the_file(tmp_path, monkeypatch, capsys
 
 
 def test_command_writes_the_grid_in_slabs_from_the_file(tmp_path, monkeypatch, capsys):
-    """``recon poisson --partitions 2 --grid G`` reads IN by chunks; G is the in-memory slabs' grid.
-
-    G's history ends with how it was made.
-    """
+    """``--partitions 2 --grid G`` by chunks: G is the in-memory slabs' grid, with its history."""
     from recon_cli.io.npz import read_grid
 
     pts, nrm = shape_cloud("torus", 20_000, np.random.default_rng(5), offset=1e6)
@@ -857,10 +839,7 @@ def test_command_writes_the_grid_in_slabs_from_the_file(tmp_path, monkeypatch, c
 
 
 def test_spilled_states_give_the_same_mesh(tmp_path, monkeypatch):
-    """Every state spilled to its file between steps: the in-memory slabs' mesh to the bit.
-
-    The states went to the folder given, which is empty after the run.
-    """
+    """States spilled between steps: the in-memory slabs' mesh to the bit, the folder left empty."""
     from recon_cli.slabs import runners
 
     pts, nrm = sphere_cloud(6000, seed=22)
@@ -955,10 +934,7 @@ def test_a_full_disk_while_spilling_is_one_line_and_keeps_the_old_output(tmp_pat
 
 @pytest.mark.slow
 def test_sigterm_mid_out_of_core_run_leaves_nothing(tmp_path):
-    """SIGTERM mid out-of-core run: exit 143, one line, no output, no folder (a real process).
-
-    Sent once the chunks are sorted into the spill folder beside OUT.
-    """
+    """SIGTERM once the chunks are spilled beside OUT: exit 143, one line, no output, no folder."""
     import sys
 
     pts, nrm = sphere_cloud(60_000, seed=26)

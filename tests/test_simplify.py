@@ -173,9 +173,10 @@ def test_family_keeps_topology_orientation_boundary_and_reaches_the_target(seed)
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_cube_and_square_are_simplified_exactly(seed):
-    """A split cube ends as its 8 corners and 12 faces, a split square as 2 faces, exactly.
+    """A split cube ends as its 8 corners and 12 faces; a flat square as 4 faces, in place.
 
-    Randomly rotated, scaled and offset up to 1e6: the corners within a few ulps of the offset.
+    Randomly rotated, scaled and offset up to 1e6: the corners within a few ulps of the offset; the
+    square keeps its plane, its straight sides and its 4 corners.
     """
     rng = np.random.default_rng(seed)
     R = S.random_rotation(rng)
