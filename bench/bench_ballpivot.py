@@ -35,6 +35,11 @@ def _cloud(n: int):
 
 
 def rows(quick: bool) -> list[dict]:
+    """The section's rows: our ball pivoting against Open3D's and PyMeshLab's, in-process.
+
+    Each in a forked child on the same cloud with our automatic radii, at 100k and 1M points (quick:
+    20k); PyMeshLab runs once at 100k and not at 1M. The note gives faces and boundary edges.
+    """
     from recon_cli.backends import open3d_backend, pymeshlab_backend
     from recon_cli.stages.ballpivot import auto_radii, ball_pivoting
 

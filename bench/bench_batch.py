@@ -57,6 +57,11 @@ def _sequential(pipe_path: str, paths: list[str], out: str) -> int:
 
 
 def rows(quick: bool) -> list[dict]:
+    """The section's row: ``run_batch`` on 2 workers against the same inputs in one process.
+
+    The pipeline's wall time and each task's peak memory above its start, against the inputs run one
+    after another in this process.
+    """
     from recon_cli.batch import run_batch
 
     out_rows = []

@@ -98,8 +98,10 @@ def _cpu_children() -> float:
 
 
 def _wall(args: list[str], env: dict | None = None) -> tuple[float, str]:
-    """Wall time of the process (or its CPU time, user + system, when CPU_TIME is set) and its
-    stdout."""
+    """Wall time of the process (CPU time when CPU_TIME is set) and its stdout.
+
+    CPU time is user + system of the children.
+    """
     c0 = _cpu_children()
     t = time.perf_counter()
     r = subprocess.run(args, env=env, capture_output=True, text=True, cwd=ROOT)
@@ -137,8 +139,10 @@ def numpy_floor(repeat: int) -> float:
 
 
 def command(args: list[str], repeat: int, cold: bool) -> dict:
-    """cold (empty cache), first and warm (median) wall times of ``recon -q ARGS --json``, and its
-    report."""
+    """Cold, first and warm wall times of ``recon -q ARGS --json``, and its report.
+
+    Cold: an empty cache; warm: the median of ``repeat`` runs.
+    """
     out: dict = {}
     if cold:
         with tempfile.TemporaryDirectory(prefix="recon-cold-cache-") as cache:
@@ -218,8 +222,10 @@ def _skimage(grid_path: str):
 
 
 def _open3d_bpa(cloud_path: str):
-    """One in-process run of Open3D's ball pivoting on the cloud, with our automatic radii (warmed
-    up once)."""
+    """One in-process run of Open3D's ball pivoting on the cloud with our automatic radii.
+
+    Warmed up once.
+    """
     from recon_cli.backends import open3d_backend
     from recon_cli.io.ply import read_ply
     from recon_cli.stages.ballpivot import auto_radii
@@ -231,8 +237,11 @@ def _open3d_bpa(cloud_path: str):
 
 
 def alternating(args: list[str], reference, rounds: int) -> dict:
-    """Our command as a process and the reference in this process, back to back, ``rounds`` times
-    alternating: medians of CPU seconds (user + system, all threads) and wall seconds of each."""
+    """Our command as a process and the reference in this process, alternated ``rounds`` times.
+
+    The two run back to back each round: medians of CPU seconds (user + system, all threads) and
+    wall seconds of each.
+    """
     ours_cpu, ours_wall, ref_cpu, ref_wall = [], [], [], []
     report: dict = {}
     for _ in range(rounds):
@@ -263,6 +272,12 @@ def alternating(args: list[str], reference, rounds: int) -> dict:
 
 
 def rows(quick: bool) -> list[dict]:
+    """The section's rows: each stage's command as a process, cold and warm, and the floors.
+
+    Every command runs as ``recon -q ARGS`` (cold with an empty numba cache, warm with it filled)
+    against numba's floor and the lean floor; ballpivot and mcubes 256^3 also against their
+    reference in-process (:func:`_against_reference`).
+    """
     repeat = 2 if quick else 3
     with tempfile.TemporaryDirectory(prefix="recon-bench-cli-") as tmpd:
         tmp = Path(tmpd)
@@ -351,9 +366,11 @@ def rows(quick: bool) -> list[dict]:
 def _against_reference(
     r: dict, stage: str, case: str, args: list[str], p: dict, fl: float, lean: float, rounds: int
 ) -> dict:
-    """A row of ours as a process against the reference in-process, alternating
-    (:func:`alternating`): the row's figures are CPU or wall seconds as the rest of the table
-    (``RECON_BENCH_CPU``), the note gives both ratios."""
+    """A row of ours as a process against the reference in-process, run alternately.
+
+    The runs alternate (:func:`alternating`): the row's figures are CPU or wall seconds as the rest
+    of the table (``RECON_BENCH_CPU``), the note gives both ratios.
+    """
     if stage == "mcubes":
         r["ref"], ref = "skimage marching_cubes", _skimage(p["mb256"])
     else:

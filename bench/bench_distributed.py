@@ -140,6 +140,10 @@ def _case(folder: str, n: int, depth: int) -> dict:
 
 
 def rows(quick: bool) -> list[dict]:
+    """The section's rows: ``recon poisson --workers 2`` as a process against the single process.
+
+    One row per (points, depth): 200k at depth 9 (quick), else 1M at 10 and 4M at 11.
+    """
     cases = [(200_000, 9)] if quick else [(1_000_000, 10), (4_000_000, 11)]
     out = []
     with tempfile.TemporaryDirectory() as d:

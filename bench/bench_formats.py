@@ -49,8 +49,7 @@ def _cpu_of(fn):
 
 
 def measure(fn, repeat: int) -> dict:
-    """As ``_util.measure`` (median wall and peak memory over forked runs) plus the median CPU
-    seconds."""
+    """As ``_util.measure`` (median wall and peak memory over forked runs) plus median CPU time."""
     runs = [measure_once(_cpu_of(fn)) for _ in range(repeat)]
     return {
         "seconds": statistics.median(r[0] for r in runs),
@@ -140,6 +139,11 @@ def _grid_mesh(n_side: int):
 
 
 def rows(quick: bool) -> list[dict]:
+    """The section's rows: reading each format in-process against its reference library.
+
+    Clouds, OBJ and STL meshes; then ``recon info FILE`` of each file as a process (start-up and
+    imports included).
+    """
     rep = 3 if quick else 5
     n = 200_000 if quick else 1_000_000
     out: list[dict] = []
@@ -333,8 +337,11 @@ def _stl_row(mesh, d: str, rep: int, files: list) -> dict:
 
 
 def obj_rows(mesh, d: str, rep: int) -> tuple[list[dict], list[tuple[str, str]]]:
-    """OBJ read vs our binary PLY read of the same mesh (so the ratio is per vertex), the two
-    measured alternately (back to back on a loaded machine), and vs trimesh."""
+    """OBJ read against our binary PLY read of the same mesh, and against trimesh.
+
+    The same mesh makes the ratio per vertex; OBJ and PLY are measured alternately (back to back on
+    a loaded machine).
+    """
     import trimesh
 
     from recon_cli.io.load import load, save

@@ -73,6 +73,10 @@ def _poisson_stage(cloud) -> dict:
 
 
 def rows(quick: bool) -> list[dict]:
+    """The section's rows: the normals and poisson stages on 5M armadillo points, in-process.
+
+    Each run once in a forked child (quick: 1M points), no reference at this size.
+    """
     import numpy as np
 
     # compile / load the numba caches in a child: the parent starts no numba threads before forking

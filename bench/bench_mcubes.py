@@ -24,6 +24,10 @@ def metaballs(n: int, seed: int = 0) -> np.ndarray:
 
 
 def rows(quick: bool) -> list[dict]:
+    """The section's rows: our marching cubes (and ``--method mt``) against skimage's, in-process.
+
+    Metaballs at 128^3 and 256^3 (quick: 128^3), each in a forked child.
+    """
     from skimage.measure import marching_cubes as sk_mc
 
     from recon_cli.stages.mcubes import marching_cubes

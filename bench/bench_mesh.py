@@ -78,8 +78,11 @@ def _recon() -> str:
 
 
 def _ours(args: list[str], src: Path, dst: Path, env: dict | None = None):
-    """``recon ARGS SRC DST`` as a process (through a launcher: a child forked from this big
-    process would report this one's resident size as its peak): time, memory, the output."""
+    """``recon ARGS SRC DST`` as a process: time, memory, the output.
+
+    It runs through a launcher: a child forked from this big process would report this one's
+    resident size as its peak.
+    """
     from recon_cli.io import read_ply
 
     cmd = [_recon(), "-q", args[0], str(src), str(dst), *args[1:]]
@@ -298,6 +301,11 @@ def _poisson_mesh(n: int, depth: int, work: Path):
 
 
 def rows(quick: bool) -> list[dict]:
+    """The section's rows: ``recon simplify`` and ``recon smooth`` as processes, against references.
+
+    Open3D and PyMeshLab run in-process on the same meshes: a Poisson mesh of the armadillo and a
+    split, noisy armadillo.
+    """
     from recon_cli.io import read_ply
 
     # warm our numba cache the way a user's install does (no compile time in the rows)

@@ -183,8 +183,10 @@ REF_TRIM = 0.05  # Open3D's vertex-density quantile in the same rows
 
 
 def _ours_process(cloud, depth: int, trimmed, workdir: Path) -> tuple[dict, object]:
-    """``recon poisson`` as a process: wall seconds and peak RSS (MB) of the process, the mesh
-    (``trimmed``: False, True for ``--trim OUR_TRIM``, or the ``--trim`` value itself)."""
+    """``recon poisson`` as a process: wall seconds and peak RSS (MB) of the process, the mesh.
+
+    ``trimmed``: False, True for ``--trim OUR_TRIM``, or the ``--trim`` value itself.
+    """
     from recon_cli.io import read_ply, write_ply
 
     src, dst = workdir / "in.ply", workdir / "out.ply"
@@ -228,6 +230,10 @@ def _trim_quantile(mesh, dens: np.ndarray, q: float):
 
 
 def open3d_poisson(cloud, depth: int, trimmed: bool):
+    """Open3D's screened Poisson of ``cloud`` on all cores, trimmed when asked.
+
+    Trimmed: the vertices below the ``REF_TRIM`` quantile of its density removed.
+    """
     from recon_cli.backends import open3d_backend
 
     mesh, dens = open3d_backend.poisson(cloud, depth=depth, threads=-1)  # its default: all cores
@@ -235,8 +241,10 @@ def open3d_poisson(cloud, depth: int, trimmed: bool):
 
 
 def _pymeshlab(cloud, depth: int, trimmed: bool):
-    """PyMeshLab's screened Poisson; trimmed rows are not measured (its density is not exposed
-    here)."""
+    """PyMeshLab's screened Poisson; trimmed rows are not measured.
+
+    Its density is not exposed here.
+    """
     from recon_cli.backends import pymeshlab_backend
 
     return pymeshlab_backend.poisson(cloud, depth=depth)
@@ -321,8 +329,10 @@ SURFACE_TRIMMER = 7  # PoissonRecon's SurfaceTrimmer --trim in the trimmed rows 
 
 
 def _office_sdf():
-    """An office seen from inside: a 6 x 6 x 2.8 m room, two desks, a monitor, a cabinet, a
-    shelf, a person, a ball and a ring (metres)."""
+    """An office seen from inside, in metres.
+
+    A 6 x 6 x 2.8 m room, two desks, a monitor, a cabinet, a shelf, a person, a ball and a ring.
+    """
     sys.path.insert(0, str(ROOT / "tests"))
     from sensors import box_sdf, union
     from shapes import rounded_box_sdf, sphere_sdf, torus_sdf
@@ -379,8 +389,11 @@ def poissonrecon_dir() -> Path | None:
 
 
 def poissonrecon_process(cloud, depth: int, workdir: Path, bindir: Path):
-    """PoissonRecon --density then SurfaceTrimmer as processes (their defaults otherwise):
-    wall seconds and peak RSS of PoissonRecon, the trimmed mesh (in the input's frame)."""
+    """PoissonRecon --density then SurfaceTrimmer as processes (their defaults otherwise).
+
+    Returns the wall seconds and peak RSS of PoissonRecon and the trimmed mesh (in the input's
+    frame).
+    """
     from recon_cli.io import read_ply
 
     pts = np.asarray(cloud.points, np.float64)
@@ -408,9 +421,12 @@ def poissonrecon_process(cloud, depth: int, workdir: Path, bindir: Path):
 
 
 def _trim_figures(mesh, pts: np.ndarray, sdf) -> str:
-    """Issue 29's figures of a trimmed surface: input points within 0.5 % of the diagonal of
-    it, its area farther than 1 % from every input point, pieces, and its mean distance to
-    the true scene (area-weighted, a fraction of the diagonal)."""
+    """Issue 29's figures of a trimmed surface.
+
+    Input points within 0.5 % of the diagonal of it, its area farther than 1 % from every input
+    point, pieces, and its mean distance to the true scene (area-weighted, a fraction of the
+    diagonal).
+    """
     from scipy.spatial import cKDTree
 
     from recon_cli.mesh.topology import Connectivity
@@ -427,9 +443,12 @@ def _trim_figures(mesh, pts: np.ndarray, sdf) -> str:
 
 
 def _depth_camera_rows(scene: str, depth: int, work: Path, trimmed: bool) -> list[dict]:
-    """Untrimmed: ours (process) and Open3D, time and fit. Trimmed: ours ``--trim auto``,
-    Open3D's 5 % vertex-density quantile and (when found) PoissonRecon + SurfaceTrimmer
-    ``--trim 7``, with :func:`_trim_figures` in the note."""
+    """Depth-camera rows, untrimmed and trimmed, ours against Open3D and PoissonRecon.
+
+    Untrimmed: ours (process) and Open3D, time and fit. Trimmed: ours ``--trim auto``, Open3D's 5 %
+    vertex-density quantile and (when found) PoissonRecon + SurfaceTrimmer ``--trim 7``, with
+    :func:`_trim_figures` in the note.
+    """
     cloud, sdf = _depth_camera(scene)
     label = f"depth camera {scene} 640x480 ({len(cloud.points) // 1000}k), d{depth}"
     if not trimmed:

@@ -28,6 +28,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 
 def damaged_mesh(copies: int):
+    """The armadillo tiled ``copies`` times and damaged by every kind of :mod:`mesh_damage`.
+
+    Patches removed, faces flipped and duplicated, fins glued, vertices split; seeded.
+    """
     import mesh_damage as D
     from shared_data import load_shared
 
@@ -41,6 +45,10 @@ def damaged_mesh(copies: int):
 
 
 def rows(quick: bool) -> list[dict]:
+    """The section's row: our repair against PyMeshLab's on a damaged tiled armadillo, in-process.
+
+    Each in a forked child; the note gives the faces out and whether ours is manifold and oriented.
+    """
     from recon_cli.backends import pymeshlab_backend
     from recon_cli.mesh.topology import report
     from recon_cli.stages.repair import repair

@@ -218,6 +218,10 @@ def _seam_row(folder: str, n: int, depth: int) -> dict:
 
 
 def rows(quick: bool) -> list[dict]:
+    """The section's rows: Poisson out of core and on 2 workers against PoissonRecon, as processes.
+
+    4M points at depth 11 and 20M at 12 with 6 GiB (quick: 1M at 10 with 1 GB), then a seam row.
+    """
     cases = (
         [(1_000_000, 10, "1GB")] if quick else [(4_000_000, 11, "6GiB"), (20_000_000, 12, "6GiB")]
     )

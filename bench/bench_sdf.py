@@ -32,8 +32,10 @@ def _points32(origin, h, shape) -> np.ndarray:
 
 
 def _grid_rows(mesh, label: str, res: int, repeat: int) -> list[dict]:
-    """Our whole sdf stage, --sign winding and pseudonormal, against Open3D's signed distance
-    on the same res^3 grid: two rows."""
+    """Our whole sdf stage against Open3D's signed distance on the same res^3 grid.
+
+    Two rows: --sign winding and pseudonormal.
+    """
     from recon_cli.backends.open3d_backend import signed_distance
     from recon_cli.stages.sdf import grid_frame, run_stage
 
@@ -60,6 +62,11 @@ def _grid_rows(mesh, label: str, res: int, repeat: int) -> list[dict]:
 
 
 def rows(quick: bool) -> list[dict]:
+    """The section's rows: our sdf stage and closest points against Open3D's, in-process.
+
+    The armadillo at 128^3 and 256^3 (quick: 64^3), the mug at 256^3, and closest points of random
+    queries (the API ``recon diff`` uses).
+    """
     import numba
 
     # measurements fork after the warm-up: GNU OpenMP (numba's default layer here) aborts

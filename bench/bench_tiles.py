@@ -60,6 +60,10 @@ def _process(args: list[str]) -> tuple[float, float, str]:
 
 
 def rows(quick: bool) -> list[dict]:
+    """The section's rows: ``recon tiles`` against ``recon convert`` to one GLB, as processes.
+
+    Run alternately on the same terrain PLY; a second row loads the tileset in headless Chromium.
+    """
     from recon_cli.io.load import save
 
     mesh = terrain(400 if quick else 1582)

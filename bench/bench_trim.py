@@ -160,10 +160,13 @@ def _ground_row(work: Path) -> dict:
 
 
 def small_rows(seeds=(0, 1, 2, 3)) -> list[dict]:
-    """The test's scenes (``tests/test_poisson_trim.py``: 160 x 120, depth 8, rotated and moved
-    by up to 1e6), in process: ours ``trim="auto"`` and untrimmed against PoissonRecon +
-    SurfaceTrimmer 7 on the same points and normals. ``gap``: the largest distance of the
-    mesh (50k area samples) from every input point, and the area beyond 2 % of the diagonal."""
+    """The test's scenes in process: ours trimmed and untrimmed against PoissonRecon's trimmer.
+
+    The scenes of ``tests/test_poisson_trim.py`` (160 x 120, depth 8, rotated and moved by up to
+    1e6): ours ``trim="auto"`` and untrimmed against PoissonRecon + SurfaceTrimmer 7 on the same
+    points and normals. ``gap``: the largest distance of the mesh (50k area samples) from every
+    input point, and the area beyond 2 % of the diagonal.
+    """
     from scipy.spatial import cKDTree
 
     from recon_cli.geometry import PointCloud

@@ -148,6 +148,11 @@ def run(stage: str, src: str, out: str, args: list[str]) -> dict:
 
 
 def main(argv: list[str]) -> list[dict]:
+    """Run each stage's case as a process and tabulate predicted against measured memory.
+
+    ``--quick`` keeps the quick cases; other arguments name the stages to run. Prints a JSON line
+    per case and a markdown table; returns the rows.
+    """
     quick = "--quick" in argv
     stages = [a for a in argv if not a.startswith("--")]
     rows = []

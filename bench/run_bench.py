@@ -26,6 +26,7 @@ sys.path.insert(0, str(HERE.parent))
 
 
 def fmt(v, digits=3) -> str:
+    """A table cell: a float to ``digits`` significant digits (NaN: a dash), else the text."""
     if isinstance(v, float):
         if math.isnan(v):
             return "—"
@@ -52,8 +53,10 @@ KEYS = (
 
 
 def table(rows: list[dict], columns: list[tuple[str, str]] | None = None) -> list[str]:
-    """The rows as a markdown table: the usual ours-vs-reference columns, or a module's own
-    ``COLUMNS``."""
+    """The rows as a markdown table.
+
+    The usual ours-vs-reference columns, or a module's own ``COLUMNS``.
+    """
     head, keys = (
         (HEAD, KEYS)
         if columns is None
@@ -81,6 +84,10 @@ def old_sections(path: Path) -> dict[str, str]:
 
 
 def main() -> int:
+    """Run the bench modules' ``rows`` and write their sections to ``--out``.
+
+    Exit 1 when a row is more than 10 % slower than recorded in ``--out`` (unless ``--no-check``).
+    """
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--out", default=str(HERE / "results.md"))
     ap.add_argument(

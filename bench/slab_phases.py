@@ -40,6 +40,12 @@ def breakdown(slab) -> dict[str, float]:
 
 
 def main(n: int, depth: int, slabs: int, watch: int = 1) -> list[dict]:
+    """Each step's resident memory on slab ``watch`` of an in-process slab run of Poisson.
+
+    ``n`` noisy armadillo samples at ``depth`` in ``slabs`` slabs: per step, the resident memory
+    before, its rise, the slab state's size before and after and its largest arrays; prints JSON
+    lines.
+    """
     from recon_cli.io.ply import read_ply
     from recon_cli.memory import release_free_heap, rss_mb
     from recon_cli.mesh.sampling import sample_surface

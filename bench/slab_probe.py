@@ -36,6 +36,10 @@ CALLS = (
 
 
 def main(n: int, depth: int, slabs: int, watch: int = 1) -> None:
+    """The memory rise of each probed call on slab ``watch`` of an in-process slab run of Poisson.
+
+    ``n`` noisy armadillo samples at ``depth`` in ``slabs`` slabs; prints a JSON line per call.
+    """
     from recon_cli.io.ply import read_ply
     from recon_cli.memory import peak_mb, release_free_heap, reset_peak, rss_mb
     from recon_cli.mesh.sampling import sample_surface

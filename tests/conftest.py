@@ -14,6 +14,7 @@ import pytest
 
 @pytest.fixture
 def rng():
+    """A seeded generator (12345), the same for every test that asks for one."""
     return np.random.default_rng(12345)
 
 
@@ -24,6 +25,11 @@ _seen: list[tuple[str, float]] = []
 
 
 def pytest_configure(config):
+    """Snapshot the warm kernel cache (in the controller) and, when asked, log numba's compiles.
+
+    The compile log is on when ``_COMPILES`` names a file: each compile's kernel and seconds are
+    kept for :func:`pytest_runtest_protocol` to write.
+    """
     if not hasattr(config, "workerinput"):
         _snapshot_warm_cache()
     if not _COMPILES:
@@ -47,6 +53,10 @@ def pytest_configure(config):
 
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item, nextitem):
+    """Write one JSON line per test that compiled kernels: its id, count, seconds and kernels.
+
+    Only when the compile log is on (``_COMPILES``).
+    """
     _seen.clear()
     yield
     if _COMPILES and _seen:
@@ -74,6 +84,7 @@ def _snapshot_warm_cache() -> None:
 
 
 def pytest_unconfigure(config):
+    """Remove the warm cache's snapshot this session made (in the controller only)."""
     copy = os.environ.get(WARM_CACHE)
     if copy and not hasattr(config, "workerinput") and "recon-test-cache-" in copy:
         shutil.rmtree(os.path.dirname(copy), ignore_errors=True)

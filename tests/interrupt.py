@@ -22,9 +22,11 @@ RUN_RECON = "from recon_cli.cli.main import main\nmain(sys.argv[1:])\n"
 
 @dataclass
 class Interrupted:
-    """What an interrupted run left: its exit code, its stderr, the processes it had started
-    when the signal went (``psutil.Process``), the seconds from the signal to its exit and its
-    process id."""
+    """What an interrupted run left.
+
+    Its exit code, its stderr, the processes it had started when the signal went
+    (``psutil.Process``), the seconds from the signal to its exit and its process id.
+    """
 
     returncode: int
     err: str

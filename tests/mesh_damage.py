@@ -47,8 +47,11 @@ def glue_fins(m: TriangleMesh, rng, k: int = 20) -> TriangleMesh:
 def remove_patches(
     m: TriangleMesh, rng, k: int = 3, rings: int = 2, min_sep: float = 0.15
 ) -> TriangleMesh:
-    """Remove ``k`` disk-like patches: the faces within ``rings`` rings of seed vertices at least
-    ``min_sep`` times the diagonal apart (unreferenced vertices are kept)."""
+    """Remove ``k`` disk-like patches of faces; unreferenced vertices are kept.
+
+    A patch: the faces within ``rings`` rings of a seed vertex, the seeds at least ``min_sep`` times
+    the diagonal apart.
+    """
     v = m.vertices
     used = np.unique(m.faces)
     diag = np.linalg.norm(v[used].max(0) - v[used].min(0))

@@ -15,11 +15,13 @@ def ink(img: np.ndarray, box, tol: int = 40) -> int:
 
 
 def is_red(px) -> bool:
+    """Whether a pixel is clearly red (red well above green and blue)."""
     r, g, b = (int(c) for c in px)
     return r > 140 and r > 2 * g and r > 2 * b
 
 
 def is_blue(px) -> bool:
+    """Whether a pixel is clearly blue (blue well above red, above green)."""
     r, g, b = (int(c) for c in px)
     return b > 90 and b > 1.5 * r and b > g
 

@@ -15,7 +15,9 @@ from typing import Any
 
 
 def isolated(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
-    """``fn(*args, **kwargs)`` in a spawned child process (``fn`` importable, arguments and result
-    picklable)."""
+    """``fn(*args, **kwargs)`` in a spawned child process.
+
+    ``fn`` must be importable, its arguments and result picklable.
+    """
     with multiprocessing.get_context("spawn").Pool(1) as pool:
         return pool.apply(fn, args, kwargs)

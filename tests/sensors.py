@@ -50,8 +50,10 @@ def union(*fns):
 
 
 def tabletop_scene():
-    """A floor slab (z in [-0.05, 0]), a back wall, a sphere, a torus lying down and a rounded
-    box: metres, a room corner 3 m across. Returns the scene's sdf."""
+    """A tabletop scene's sdf, in metres: a room corner 3 m across.
+
+    A floor slab (z in [-0.05, 0]), a back wall, a sphere, a torus lying down and a rounded box.
+    """
     floor = lambda p: box_sdf(p, (-1.5, -1.5, -0.05), (1.5, 1.5, 0.0))  # noqa: E731
     wall = lambda p: box_sdf(p, (-1.5, 1.45, -0.05), (1.5, 1.5, 1.5))  # noqa: E731
     ball = lambda p: sphere_sdf(p - (-0.5, 0.2, 0.3), 0.3)  # noqa: E731
@@ -71,8 +73,11 @@ class Part:
 
 
 def bounded_union(parts: list[Part], *unbounded):
-    """The union of ``parts`` and ``unbounded`` solids; a part is evaluated only where its box is
-    nearer than the nearest solid so far (exact: its distance is at least its box's)."""
+    """The union of ``parts`` and ``unbounded`` solids, parts evaluated only near their box.
+
+    A part is evaluated only where its box is nearer than the nearest solid so far (exact: its
+    distance is at least its box's).
+    """
     lo = np.array([q.lo for q in parts])
     hi = np.array([q.hi for q in parts])
 
@@ -136,8 +141,10 @@ def _rbox(c, half, radius):
 
 
 def _placed(items, at, yaw: float) -> list[Part]:
-    """Local solids turned by ``yaw`` (radians, about z) and moved to ``at``: one part (a
-    union of its own, so that the scene's union skips the whole piece far from it)."""
+    """Local solids turned by ``yaw`` (radians, about z) and moved to ``at``, as one part.
+
+    The part is a union of its own, so that the scene's union skips the whole piece far from it.
+    """
     c, s = np.cos(yaw), np.sin(yaw)
     rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # local -> world
     at = np.asarray(at, float)
@@ -286,8 +293,11 @@ class Scene:
         )
 
     def image(self, width: int, height: int, seed: int, **effects) -> np.ndarray:
-        """The organized cloud (height, width, 3) of a Kinect v1 with every effect of
-        :class:`SensorEffects` (``effects`` overrides its fields), noise seeded by ``seed``."""
+        """The organized cloud (height, width, 3) of a Kinect v1 with every sensor effect.
+
+        Every effect of :class:`SensorEffects` (``effects`` overrides its fields), noise seeded by
+        ``seed``.
+        """
         fx = SensorEffects(absorb=self.absorb, **effects)
         rng = np.random.default_rng(seed)
         return depth_image(self.camera(width, height), self.sdf, rng, effects=fx)
@@ -322,8 +332,10 @@ def _room(lo, hi, recesses=()):
 
 
 def office_scene(seed: int) -> Scene:
-    """A cluttered office: desks with monitors, chairs, shelves of books, cabinets, a lamp, a
-    plant, boxes, people; walls and floor out to 5-8 m, a window returning nothing."""
+    """A cluttered office, walls and floor out to 5-8 m, a window returning nothing.
+
+    Desks with monitors, chairs, shelves of books, cabinets, a lamp, a plant, boxes, people.
+    """
     rng = np.random.default_rng(seed)
     W, D, H = rng.uniform(4.5, 7.0), rng.uniform(6.0, 8.0), rng.uniform(2.6, 3.0)
     lo, hi = np.array([-W / 2, 0.0]), np.array([W / 2, D])
@@ -424,8 +436,10 @@ def people_scene(seed: int) -> Scene:
 
 
 def corridor_scene(seed: int) -> Scene:
-    """A corridor longer than the sensor's range seen from beside one wall (both walls and the
-    floor at grazing angles), door recesses, cabinets, a bin, people walking."""
+    """A corridor longer than the sensor's range, seen from beside one wall.
+
+    Both walls and the floor at grazing angles, door recesses, cabinets, a bin, people walking.
+    """
     rng = np.random.default_rng(seed)
     W, H, L = rng.uniform(2.0, 2.8), rng.uniform(2.4, 2.9), 14.0
     recesses = []
@@ -460,8 +474,11 @@ CLUTTERED = {"office": office_scene, "people": people_scene, "corridor": corrido
 
 
 def cluttered_cloud(kind: str, seed: int, width: int = 160, height: int = 120):
-    """A :data:`CLUTTERED` scene's image as valid points (n, 3), rotated and moved by up to 1e6
-    (seeded by ``seed``), and the camera's place (3,) in that frame."""
+    """A :data:`CLUTTERED` scene's image as valid points, moved far, and the camera's place.
+
+    Points (n, 3) rotated and moved by up to 1e6 (seeded by ``seed``); the camera's place (3,) in
+    that frame.
+    """
     scene = CLUTTERED[kind](seed)
     p = valid_rows(scene.image(width, height, seed))
     rng = np.random.default_rng(seed)
@@ -511,6 +528,7 @@ class DepthCamera:
 
     @property
     def focal(self) -> float:
+        """Focal length in pixels, from the width and the horizontal field of view."""
         return 0.5 * self.width / np.tan(np.radians(self.fov) / 2)
 
     def rays(self) -> np.ndarray:
@@ -530,8 +548,11 @@ class DepthCamera:
 
 
 def sphere_trace(sdf, o, d: np.ndarray, t_max, steps: int, eps: float):
-    """March from ``o`` ((3,) or (n, 3)) along unit ``d`` (n, 3) up to ``t_max`` (scalar or (n,)):
-    (n,) distances reached and (n,) whether the ray came within ``eps`` of the scene."""
+    """Sphere-trace rays from ``o`` along unit ``d`` up to ``t_max``.
+
+    ``o``: (3,) or (n, 3); ``d``: (n, 3); ``t_max``: scalar or (n,). Returns (n,) distances reached
+    and (n,) whether the ray came within ``eps`` of the scene.
+    """
     o = np.asarray(o, float)
     t_max = np.broadcast_to(np.asarray(t_max, float), (len(d),))
     t = np.zeros(len(d))
@@ -558,8 +579,9 @@ def depth_image(
     flying: float = 0.5,
     effects: SensorEffects | None = None,
 ) -> np.ndarray:
-    """An organized cloud of ``sdf`` seen by ``camera``: (height, width, 3), NaN where nothing is
-    hit.
+    """An organized cloud of ``sdf`` seen by ``camera``.
+
+    (height, width, 3), NaN where nothing is hit.
 
     Parameters
     ----------
@@ -704,13 +726,14 @@ def write_organized_pcd(
     data: str = "binary",
     dtype: str = "f4",
 ) -> None:
-    """PCD of an organized cloud as PCL writes it: ``WIDTH``/``HEIGHT`` of the image, NaN pixels
-    kept, ``rgba`` packed as PCL packs it (0xAARRGGBB in 4 bytes), ``VIEWPOINT`` of the camera
-    (position and orientation quaternion w x y z).
+    """PCD of an organized cloud as PCL writes it.
 
-    ``data``: ``binary`` (PCL's default), ``ascii`` (NaN written ``nan``) or
-    ``binary_compressed`` (column-major, LZF: written as literal runs, which every LZF reader
-    decodes); ``dtype``: ``f4`` (as depth cameras give) or ``f8`` coordinates.
+    ``WIDTH``/``HEIGHT`` of the image, NaN pixels kept, ``rgba`` packed as PCL packs it (0xAARRGGBB
+    in 4 bytes), ``VIEWPOINT`` of the camera (position and orientation quaternion w x y z).
+
+    ``data``: ``binary`` (PCL's default), ``ascii`` (NaN written ``nan``) or ``binary_compressed``
+    (column-major, LZF: written as literal runs, which every LZF reader decodes); ``dtype``: ``f4``
+    (as depth cameras give) or ``f8`` coordinates.
     """
     h, w, _ = organized.shape
     n = h * w

@@ -17,6 +17,7 @@ def box_mesh(lo=(0.0, 0.0, 0.0), hi=(1.0, 2.0, 3.0)):
 
 
 def box_distance(p, lo, hi):
+    """Signed distance of points ``p`` (n, 3) to the box [lo, hi], negative inside."""
     lo, hi = np.asarray(lo), np.asarray(hi)
     q = np.maximum(lo - p, 0) + np.maximum(p - hi, 0)
     outside = np.linalg.norm(q, axis=1)
@@ -137,8 +138,10 @@ def torus(R: float = 1.0, r: float = 0.3, nu: int = 32, nv: int = 12):
 
 
 def implicit_mesh(fn, n: int = 48, lim: float = 1.2):
-    """A closed, outward mesh of the zero set of ``fn(X, Y, Z)`` (our marching cubes at n^3,
-    negative inside)."""
+    """A closed, outward mesh of the zero set of ``fn(X, Y, Z)``, negative inside.
+
+    Our marching cubes at n^3.
+    """
     from recon_cli.stages.mcubes import marching_cubes
 
     x = np.linspace(-lim, lim, n)
@@ -206,10 +209,12 @@ def transformed(v, rng, scale: float = 1.0, offset=(0.0, 0.0, 0.0), rotate: bool
 
 
 def sliver_splits(v, f, rng, fraction: float = 0.3, eps: float = 1e-9):
-    """Near-degenerate remesh of a closed mesh, still closed and consistently oriented:
-    a ``fraction`` of the triangles get a new vertex ``eps`` (relative) off the middle of
-    one of their edges, inside the triangle, and are split into three (one a sliver of
-    height ~eps), and up to 300 edges are split ``eps`` from one end (two needles each)."""
+    """Near-degenerate remesh of a closed mesh, still closed and consistently oriented.
+
+    A ``fraction`` of the triangles get a new vertex ``eps`` (relative) off the middle of one of
+    their edges, inside the triangle, and are split into three (one a sliver of height ~eps), and up
+    to 300 edges are split ``eps`` from one end (two needles each).
+    """
     v = np.array(v, float)
     f = np.array(f, np.int64)
     # 1. interior points near an edge: (a, b, c) -> (a, b, p), (b, c, p), (c, a, p)
@@ -254,8 +259,9 @@ def sliver_splits(v, f, rng, fraction: float = 0.3, eps: float = 1e-9):
 
 
 def cut_sphere(rng, subdivisions: int = 4, cap_height: float = 0.35):
-    """A sphere and a copy with a cap cut away, randomly rotated, scaled and moved (offsets up to
-    1e6).
+    """A sphere and a copy with a cap cut away, randomly rotated, scaled and moved.
+
+    Offsets up to 1e6.
 
     Returns
     -------
@@ -293,15 +299,18 @@ def _project(sdf, p, iters=4, h=1e-6):
 
 
 def sphere_sdf(p, radius=1.0):
+    """Signed distance to the sphere of ``radius`` about the origin, negative inside."""
     return np.linalg.norm(p, axis=1) - radius
 
 
 def torus_sdf(p, major=1.0, minor=0.35):
+    """Signed distance to a torus about z (``major``, ``minor`` radii), negative inside."""
     q = np.stack([np.hypot(p[:, 0], p[:, 1]) - major, p[:, 2]], axis=1)
     return np.linalg.norm(q, axis=1) - minor
 
 
 def rounded_box_sdf(p, half=(1.0, 0.7, 0.5), radius=0.15):
+    """Signed distance to a box of half sizes ``half`` with edges rounded by ``radius``."""
     q = np.abs(p) - (np.asarray(half) - radius)
     return np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(axis=1), 0) - radius
 
@@ -328,9 +337,11 @@ SHAPES = {
 
 
 def shape_cloud(name: str, n: int, rng, *, rotate=True, scale=1.0, offset=0.0):
-    """``n`` points near-uniform on a shape of :data:`SHAPES` with their outward normals,
-    randomly rotated, scaled and offset (the surface is found by projecting uniform points
-    of its bounding cube along the distance's gradient)."""
+    """``n`` points near-uniform on a shape of :data:`SHAPES` with outward normals, moved at random.
+
+    Randomly rotated, scaled and offset; the surface is found by projecting uniform points of its
+    bounding cube along the distance's gradient.
+    """
     sdf, ext = SHAPES[name]
     pts = np.zeros((0, 3))
     nrm = np.zeros((0, 3))
@@ -349,9 +360,11 @@ def shape_cloud(name: str, n: int, rng, *, rotate=True, scale=1.0, offset=0.0):
 
 
 def single_view_scan(name: str, rays: int, rng, direction=(0.0, 0.0, -1.0)):
-    """A partial scan: the first hits of parallel rays (a ``rays`` x ``rays`` grid, jittered)
-    cast along ``direction`` at a shape of :data:`SHAPES`, with outward normals; an open
-    surface, as a single-view depth sensor sees it."""
+    """A partial scan: a shape's first hits of parallel rays, with outward normals.
+
+    The rays (a ``rays`` x ``rays`` grid, jittered) are cast along ``direction`` at a shape of
+    :data:`SHAPES`; an open surface, as a single-view depth sensor sees it.
+    """
     sdf, ext = SHAPES[name]
     d = np.asarray(direction, float)
     d /= np.linalg.norm(d)
@@ -407,9 +420,11 @@ def mesh_family(seed, dtype=np.float64):
 
 
 def cloud_family(seed, n=500):
-    """Points on a rotated, scaled, offset (up to 1e6) ellipsoid with unit normals, uint8 colours
-    and attributes ``intensity`` (int64) and ``curvature`` (float64): a
-    :class:`recon_cli.geometry.PointCloud`."""
+    """A :class:`recon_cli.geometry.PointCloud` on a moved ellipsoid with every kind of property.
+
+    Points on a rotated, scaled, offset (up to 1e6) ellipsoid with unit normals, uint8 colours and
+    attributes ``intensity`` (int64) and ``curvature`` (float64).
+    """
     from recon_cli.geometry import PointCloud
 
     rng = np.random.default_rng(seed)

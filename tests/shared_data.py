@@ -1,5 +1,6 @@
-"""Shared test data: the real meshes and scans in ../shared/data, and sampled clouds with true
-normals.
+"""Shared test data: the real meshes and scans in ../shared/data, and sampled clouds.
+
+The clouds come with true normals.
 
 Import from here (``from shared_data import load_shared``); conftest.py only holds fixtures.
 """
@@ -19,6 +20,7 @@ SCANS = ["bunny_scan_000", "stereo_fragment"]
 
 
 def shared_path(name: str) -> Path:
+    """Path of the shared mesh or scan ``name``; FileNotFoundError naming it when missing."""
     p = SHARED / f"{name}.ply"
     if not p.exists():
         raise FileNotFoundError(f"shared data missing: {p} (CI has ../shared beside the checkout)")

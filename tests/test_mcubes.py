@@ -16,14 +16,18 @@ from recon_cli.stages.mcubes import marching_cubes, marching_cubes_sparse
 
 # --- small mesh checks (local: no dependence on the topology module) ------------------------
 def edge_counts(faces):
+    """How many faces use each undirected edge of ``faces``."""
     e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
     _, counts = np.unique(e, axis=0, return_counts=True)
     return counts
 
 
 def check_closed_manifold(v, f):
-    """Every edge in exactly two faces, each directed edge once (consistent winding),
-    every vertex's faces form one fan, no zero-area faces, no unused vertices."""
+    """Assert a mesh is closed, consistently wound, manifold, with no degenerate or unused parts.
+
+    Every edge in exactly two faces, each directed edge once (consistent winding), every vertex's
+    faces form one fan, no zero-area faces, no unused vertices.
+    """
     assert len(f) > 0
     counts = edge_counts(f)
     assert counts.min() == 2 and counts.max() == 2
@@ -56,17 +60,20 @@ def check_closed_manifold(v, f):
 
 
 def signed_volume(v, f):
+    """Signed volume enclosed by the mesh (positive when it is wound outward)."""
     t = v[f]
     return float(np.einsum("ij,ij->i", t[:, 0], np.cross(t[:, 1], t[:, 2])).sum() / 6.0)
 
 
 def sphere(n=40, r=0.7, c=(0.0, 0.0, 0.0)):
+    """A sphere's exact distance (radius ``r``, centre ``c``) at n^3 on [-1, 1]^3, and the step."""
     x = np.linspace(-1, 1, n)
     X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
     return np.sqrt((X - c[0]) ** 2 + (Y - c[1]) ** 2 + (Z - c[2]) ** 2) - r, x[1] - x[0]
 
 
 def all_cells(vol):
+    """Every cell of ``vol`` as (cell index (m, 3), its 8 corner values (m, 8))."""
     n = np.array(vol.shape) - 1
     idx = np.stack(np.meshgrid(*[np.arange(k) for k in n], indexing="ij"), -1).reshape(-1, 3)
     vals = np.stack(
@@ -105,9 +112,12 @@ def _cube_symmetries():
 
 
 def test_table_every_case_closes_along_face_segments():
-    """For all 256 cases and every decider choice on ambiguous faces: the triangles' boundary
-    (directed edges used once) is exactly the union of the face segments, and triangles only
-    use crossed edges (or the loop centre)."""
+    """Every case's triangles close exactly along its face segments, using only crossed edges.
+
+    For all 256 cases and every decider choice on ambiguous faces: the triangles' boundary (directed
+    edges used once) is exactly the union of the face segments, and triangles only use crossed edges
+    (or the loop centre).
+    """
     for case in range(256):
         amb = int(L.MC_AMBIGUOUS[case])
         crossed = {
@@ -132,8 +142,10 @@ def test_table_every_case_closes_along_face_segments():
 
 
 def test_table_base_cases():
-    """Classic counts: one corner -> 1 triangle, a face's 4 corners -> a quad (2), the
-    complement of a case has the same surface reversed."""
+    """Classic case counts, and a case's complement has the same surface reversed.
+
+    One corner -> 1 triangle, a face's 4 corners -> a quad (2).
+    """
     for c in range(8):
         assert L.MC_START[(1 << c) * 64 + 1] - L.MC_START[(1 << c) * 64] == 1
     quad = 0b00001111  # corners 0-3: the z = 0 face
@@ -155,8 +167,10 @@ def test_table_base_cases():
 
 
 def test_table_invariant_under_cube_symmetries():
-    """Each case's face segments map onto the transformed case's under all 48 symmetries
-    (direction reversed by reflections): the table is the symmetric closure of its base cases."""
+    """Each case's face segments map onto the transformed case's under all 48 cube symmetries.
+
+    Direction reversed by reflections: the table is the symmetric closure of its base cases.
+    """
     syms = _cube_symmetries()
     assert len(syms) == 48
     for case in range(256):
@@ -176,6 +190,7 @@ def test_table_invariant_under_cube_symmetries():
 
 
 def test_mt_table_cases():
+    """The tetrahedra table has triangles for every case but all out (0) and all in (255)."""
     for case in range(256):
         tris = L.MT_TRIS[L.MT_START[case] : L.MT_START[case + 1]]
         assert (len(tris) == 0) == (case in (0, 255))
@@ -183,6 +198,10 @@ def test_mt_table_cases():
 
 # --- dense and sparse on known fields ---------------------------------------------------------
 def test_sphere_closed_outward_and_accurate():
+    """A sphere's exact distance at 48^3: closed, outward, vertices within 0.05 cell of the sphere.
+
+    The enclosed volume within 0.3 % of the sphere's, vertex normals within 8 degrees of the radial.
+    """
     vol, h = sphere(48)
     v, f, n = marching_cubes(vol, spacing=h, origin=(-1, -1, -1))
     check_closed_manifold(v, f)
@@ -196,6 +215,10 @@ def test_sphere_closed_outward_and_accurate():
 
 
 def test_cross_check_skimage():
+    """Random unions of spheres: skimage's crossing vertices and surface, ours closed.
+
+    The crossings within 1e-3 of a cell, the surfaces' Chamfer (face centres) under 0.01 cell.
+    """
     from scipy.spatial import cKDTree
     from skimage.measure import marching_cubes as sk_mc
 
@@ -235,6 +258,10 @@ def test_cross_check_skimage():
 
 
 def test_sparse_equals_dense_and_subset_is_closed():
+    """The sparse path over every cell gives the dense mesh; over straddling cells, the same one.
+
+    Only the straddling cells, shuffled and shifted: still closed and the same surface.
+    """
     vol, h = sphere(24, r=0.6)
     cells, vals = all_cells(vol)
     v, f, n = marching_cubes(vol, spacing=h, origin=(-1, -1, -1))
@@ -264,6 +291,7 @@ def test_sparse_equals_dense_and_subset_is_closed():
 
 
 def test_sparse_negative_coordinates_and_validation():
+    """Sparse cells at negative indices shift the mesh; duplicate cells and bad arrays refused."""
     vol, h = sphere(10, r=0.5)
     cells, vals = all_cells(vol)
     v1, f1 = marching_cubes_sparse(cells - 7, vals)
@@ -282,6 +310,7 @@ def test_sparse_negative_coordinates_and_validation():
 
 
 def test_nan_cells_are_skipped():
+    """NaN samples leave their cells out: an open hemisphere, no sheet along the NaN border."""
     vol, h = sphere(30)
     vol = vol.copy()
     vol[15:, :, :] = np.nan  # unknown half: an open hemisphere, no sheet at the NaN border
@@ -296,9 +325,11 @@ def test_nan_cells_are_skipped():
 @pytest.mark.parametrize("seed", range(12))
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_skipped_rows_and_left_out_cells(seed, dtype):
-    """Rows of cells with no crossing are skipped whole, rows with NaN or infinite samples
-    are not: the dense mesh equals the sparse one over every cell (which skips nothing),
-    and the stage reports exactly the cells with a NaN corner."""
+    """Rows of cells with no crossing are skipped whole, rows with NaN or infinite samples are not.
+
+    The dense mesh equals the sparse one over every cell (which skips nothing), and the stage
+    reports exactly the cells with a NaN corner.
+    """
     from recon_cli.grid import Grid
     from recon_cli.stages import apply_stage
 
@@ -330,6 +361,7 @@ def test_skipped_rows_and_left_out_cells(seed, dtype):
 
 
 def test_marching_tetrahedra_closed():
+    """Marching tetrahedra on a sphere: closed, manifold, the sphere's volume within 1 %."""
     vol, h = sphere(30)
     v, f, n = marching_cubes(vol, spacing=h, origin=(-1, -1, -1), method="mt")
     check_closed_manifold(v, f)
@@ -337,6 +369,10 @@ def test_marching_tetrahedra_closed():
 
 
 def test_exact_iso_values_no_degenerate_and_allow_degenerate():
+    """A field with many samples exactly at the iso level: no degenerate faces unless allowed.
+
+    The mesh is closed and manifold; ``allow_degenerate=True`` keeps zero-area faces.
+    """
     # integer field with many values exactly at the iso level
     x = np.arange(-6, 7)
     X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
@@ -351,6 +387,7 @@ def test_exact_iso_values_no_degenerate_and_allow_degenerate():
 
 
 def test_validation():
+    """A 2-D array, an unknown method and a NaN iso are refused; a flat grid meshes to nothing."""
     with pytest.raises(InputError):
         marching_cubes(np.zeros((3, 3)))
     with pytest.raises(ParameterError):
@@ -380,6 +417,7 @@ fields = st.one_of(
 
 
 def make_field(kind, seed, n):
+    """A padded test field: random normals, random integers -1..1, or metaballs (``kind``)."""
     rng = np.random.default_rng(seed)
     if kind == "random":
         return _pad(rng.normal(size=(n, n, n)))
@@ -397,6 +435,7 @@ def make_field(kind, seed, n):
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(fields, st.sampled_from(["mc", "mt"]))
 def test_random_fields_closed_manifold_oriented(spec, method):
+    """Random fields, both methods: closed, manifold, outward; the sparse path the same surface."""
     vol = make_field(*spec)
     v, f, n = marching_cubes(vol, method=method)
     inside = (vol < 0).sum()
@@ -414,6 +453,7 @@ def test_random_fields_closed_manifold_oriented(spec, method):
 
 # --- stage and CLI ------------------------------------------------------------------------------
 def test_run_stage_and_cli(tmp_path):
+    """The mcubes stage and command: a shifted iso, the grid's history kept, bad methods refused."""
     from click.testing import CliRunner
 
     from recon_cli.cli.main import cli
@@ -441,8 +481,10 @@ def test_run_stage_and_cli(tmp_path):
 
 
 def test_stored_tables_are_the_derivation():
-    """_lut_data.npz (read by the stage) is exactly what _luts derives; regenerate with `python -m
-    recon_cli.stages.mcubes._luts`."""
+    """_lut_data.npz (read by the stage) is exactly what _luts derives.
+
+    Regenerate with `python -m recon_cli.stages.mcubes._luts`.
+    """
     from recon_cli.stages.mcubes import _lut_data as D
 
     derived = L.build_tables()
@@ -457,6 +499,7 @@ def test_stored_tables_are_the_derivation():
 
 
 def test_the_stage_derives_no_table():
+    """Meshing loads precomputed tables: the derivation module is neither imported nor run."""
     import subprocess
     import sys
 
@@ -477,6 +520,7 @@ def test_the_stage_derives_no_table():
 @settings(max_examples=40, deadline=None)
 @given(st.integers(1, 40), st.integers(0, 120), st.integers(0, 2**32 - 1))
 def test_boundary_edge_count_matches_unique(n_vertices, n_faces, seed):
+    """boundary_edge_count equals the count of edges used once, on random face soups."""
     from recon_cli.stages.mcubes import boundary_edge_count
 
     rng = np.random.default_rng(seed)
@@ -496,8 +540,10 @@ def test_boundary_edge_count_matches_unique(n_vertices, n_faces, seed):
 
 
 def _closed_meshes_for_pieces():
-    """(name, vertices, faces, resolution): one-piece closed meshes at a resolution that
-    resolves their thinnest part (>= 2 voxels)."""
+    """(name, vertices, faces, resolution) of one-piece closed meshes.
+
+    Each at a resolution that resolves its thinnest part (>= 2 voxels).
+    """
     import shapes as S
     from shared_data import load_shared
 
@@ -515,10 +561,12 @@ def _closed_meshes_for_pieces():
 @pytest.mark.parametrize("reverse", [False, True], ids=["outward", "inward"])
 @pytest.mark.parametrize("idx", range(6))
 def test_sdf_of_closed_mesh_meshes_to_one_piece(idx, reverse):
-    """Issue 15: ``recon sdf`` then ``recon mcubes`` of a closed one-piece mesh (moved,
-    rotated, rescaled; and wound inward) is one closed, manifold, outward piece whose
-    vertices all lie within half a voxel of the input: a sign error inside (a bubble)
-    adds a piece away from the surface."""
+    """Issue 15: sdf then mcubes of a closed one-piece mesh is one closed, outward piece on it.
+
+    ``recon sdf`` then ``recon mcubes`` of a closed one-piece mesh (moved, rotated, rescaled; and
+    wound inward) is one closed, manifold, outward piece whose vertices all lie within half a voxel
+    of the input: a sign error inside (a bubble) adds a piece away from the surface.
+    """
     from recon_cli.geometry import TriangleMesh
     from recon_cli.mesh.distance import closest_points
     from recon_cli.mesh.topology import Connectivity

@@ -80,8 +80,11 @@ def _cells(pts, level, scale=1.1):
 
 
 def test_poisson_tree_counted_on_the_points():
-    """The tree's depth from the coarse level's points per cell, its ring parents counted: the
-    parents of the finest cells holding a point and their 26 neighbours inside the cube."""
+    """The Poisson tree's depth and ring parents counted on the points.
+
+    The depth from the coarse level's points per cell; the ring parents: the parents of the finest
+    cells holding a point and their 26 neighbours inside the cube.
+    """
     pts, _ = sphere_cloud(20_000, seed=2)
     for depth, spn in ((5, 1.5), (7, 1.5), (9, 1.5), (9, 20.0)):
         tree = PM.tree_of(pts, depth, 1.1, spn)
@@ -100,8 +103,11 @@ def test_poisson_tree_counted_on_the_points():
 
 
 def test_poisson_tree_estimated_from_the_count_alone():
-    """From a header's count: never more ring parents than the bound per point, the depth within
-    ``depth``; more points or depth, more memory; more slabs, less a process."""
+    """The Poisson tree's estimate from a header's count alone is bounded and monotonic.
+
+    Never more ring parents than the bound per point, the depth within ``depth``; more points or
+    depth, more memory; more slabs, less a process.
+    """
     for points, depth in ((10, 12), (10**6, 4), (10**6, 10), (10**8, 12)):
         tree = PM.tree_estimate(points, depth)
         assert 0 < tree.rings <= PM.RINGS_PER_POINT * points and tree.depth <= depth
@@ -117,6 +123,7 @@ def test_poisson_tree_estimated_from_the_count_alone():
 
 
 def test_the_refusal_is_one_line_with_the_least_memory_that_does():
+    """The memory refusal is one line with the figure needed and the ``--memory`` that would do."""
     MM.check_fits("sdf", 10 * 2**30, 11 * 2**30)
     MM.check_fits("sdf", None, 2**30)
     MM.check_fits("sdf", 2**30, None)
@@ -130,8 +137,10 @@ def test_the_refusal_is_one_line_with_the_least_memory_that_does():
 
 
 def test_a_run_over_the_memory_is_refused_before_in_is_read(tmp_path, monkeypatch, capsys):
-    """``recon sdf`` of a cloud at a resolution whose grid the available memory cannot hold:
-    exit 2, one line with the figure, nothing written, IN not read (its header says enough)."""
+    """``recon sdf`` at a resolution the memory cannot hold is refused before IN is read.
+
+    Exit 2, one line with the figure, nothing written, IN not read (its header says enough).
+    """
     import recon_cli.memory
 
     pts, nrm = sphere_cloud(2000, seed=3)
@@ -147,6 +156,7 @@ def test_a_run_over_the_memory_is_refused_before_in_is_read(tmp_path, monkeypatc
 
 
 def test_plan_prints_the_prediction_and_runs_nothing(tmp_path, capsys):
+    """``--plan`` prints the prediction from the header and writes nothing."""
     pts, nrm = sphere_cloud(3000, seed=4)
     src, out = tmp_path / "s.ply", tmp_path / "g.npz"
     save(PointCloud(points=pts, normals=nrm), str(src))
@@ -162,6 +172,7 @@ def test_plan_prints_the_prediction_and_runs_nothing(tmp_path, capsys):
 
 
 def test_every_report_says_the_prediction_and_the_peak(tmp_path, capsys):
+    """Every ``--json`` report gives the prediction made before and the peak measured."""
     pts, nrm = sphere_cloud(3000, seed=5)
     src, out = tmp_path / "s.ply", tmp_path / "f.ply"
     save(PointCloud(points=pts, normals=nrm), str(src))
@@ -172,8 +183,11 @@ def test_every_report_says_the_prediction_and_the_peak(tmp_path, capsys):
 
 
 def _process(argv: list[str]) -> tuple[int, str, str, int]:
-    """``recon ARGV`` as a process: exit status, stdout, stderr and its largest resident memory
-    sampled every 10 ms (reading IN included; ``wait4``'s figure would keep this process's)."""
+    """``recon ARGV`` as a process: exit status, stdout, stderr and its largest resident memory.
+
+    The memory is sampled every 10 ms (reading IN included; ``wait4``'s figure would keep this
+    process's).
+    """
     import tempfile
     import time
 
@@ -218,8 +232,11 @@ PROCESS_RUNS = [
     ("stage", "args"), PROCESS_RUNS, ids=[" ".join([r[0], *r[1]]) for r in PROCESS_RUNS]
 )
 def test_a_processs_peak_is_within_its_prediction(million, tmp_path, stage, args):
-    """``recon STAGE`` on 1M points as a process: its peak resident memory, sampled and as its
-    report says, is within 1/1.5 to 1.5 times the prediction it made before."""
+    """``recon STAGE`` on 1M points: its peak memory is within 1.5x of its own prediction.
+
+    As a process: its peak resident memory, sampled and as its report says, is within 1/1.5 to 1.5
+    times the prediction it made before.
+    """
     out = tmp_path / ("o.npz" if stage == "sdf" else "o.ply")
     code, so, se, rss = _process([stage, str(million), str(out), *args, "--json", "-q"])
     assert code == 0, se
@@ -237,8 +254,11 @@ def test_a_processs_peak_is_within_its_prediction(million, tmp_path, stage, args
     ids=["machine", "--memory"],
 )
 def test_a_process_over_its_memory_is_refused_up_front(million, tmp_path, stage, args):
-    """Over the machine's memory, or over --memory even in slabs: exit 2 before the work, one
-    line naming the figure, no OUT and a small process (IN's header was enough for sdf)."""
+    """A process over the machine's memory, or over --memory even in slabs, is refused up front.
+
+    Exit 2 before the work, one line naming the figure, no OUT and a small process (IN's header was
+    enough for sdf).
+    """
     out = tmp_path / "o.npz"
     code, so, se, rss = _process([stage, str(million), str(out), *args])
     lines = se.strip().splitlines()

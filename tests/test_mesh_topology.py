@@ -39,6 +39,7 @@ TETRA_V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
 
 
 def damaged(kind: str, name: str = "kitten") -> TriangleMesh:
+    """A damaged copy of a shared mesh (or two cones), by the kind of damage."""
     rng = np.random.default_rng(7)
     if kind == "cones":
         return D.two_cones()
@@ -54,8 +55,7 @@ def damaged(kind: str, name: str = "kitten") -> TriangleMesh:
 
 
 def _pinched(m: TriangleMesh) -> TriangleMesh:
-    """``m`` and a translated copy touching it at one shared vertex (a real mesh pinched at a
-    point)."""
+    """``m`` and a translated copy touching it at one shared vertex (a mesh pinched at a point)."""
     v0, n = m.vertices, len(m.vertices)
     rm, lm = int(np.argmax(v0[:, 0])), int(np.argmin(v0[:, 0]))
     f1 = m.faces + n
@@ -101,6 +101,7 @@ def _compare_references(mesh: TriangleMesh, rep: dict) -> None:
 
 
 def test_faces_to_edges_matches_trimesh():
+    """faces_to_edges gives trimesh's edges, each face's three in order."""
     import trimesh
 
     f = load_shared("kitten").faces[:100]
@@ -112,6 +113,10 @@ def test_faces_to_edges_matches_trimesh():
 
 @pytest.mark.parametrize("name", ALL_MESHES)
 def test_report_shared_meshes_agree_with_references(name):
+    """The report of each shared mesh agrees with Open3D, PyMeshLab and trimesh.
+
+    Closed meshes: watertight, their volume and genus; the bunny: open with 5 boundary loops.
+    """
     import trimesh
 
     mesh = load_shared(name)
@@ -136,6 +141,7 @@ def test_report_shared_meshes_agree_with_references(name):
     "kind", ["flips", "duplicates", "fins", "patches", "split_vertices", "cones", "pinched"]
 )
 def test_report_damaged_meshes_agree_with_references(kind):
+    """The report of each kind of damage agrees with the references and counts the damage."""
     mesh = damaged(kind)
     rep = report(mesh)
     _compare_references(mesh, rep)
@@ -159,6 +165,7 @@ def test_report_damaged_meshes_agree_with_references(kind):
 
 
 def test_flips_orientation_agrees_with_trimesh():
+    """Flipped faces: not consistently oriented, as trimesh says; the intact kitten is."""
     import trimesh
 
     mesh = damaged("flips")
@@ -168,6 +175,7 @@ def test_flips_orientation_agrees_with_trimesh():
 
 
 def test_boundary_loops_follow_half_edges():
+    """The bunny's 5 boundary loops follow its boundary half-edges, each vertex once."""
     mesh = load_shared("bunny_zipper")
     c = Connectivity(mesh.faces, len(mesh.vertices))
     loops = c.boundary_loops
@@ -182,6 +190,7 @@ def test_boundary_loops_follow_half_edges():
 
 
 def test_predicates_on_small_meshes():
+    """The predicates on a tetrahedron, flipped, opened, with a fin, and on two cones."""
     assert is_watertight(TETRA) and is_edge_manifold(TETRA) and is_vertex_manifold(TETRA)
     assert is_consistently_oriented(TETRA)
     flipped = TETRA.copy()
@@ -200,6 +209,7 @@ def test_predicates_on_small_meshes():
 
 
 def test_mobius_strip_is_not_orientable():
+    """A Möbius strip is manifold and not orientable, for us and for Open3D."""
     n = 12
     t = np.linspace(0, 2 * np.pi, n, endpoint=False)
     # a strip whose ends are glued with a half twist: vertex i on one side meets i + n on the other
@@ -226,6 +236,7 @@ def test_mobius_strip_is_not_orientable():
 
 
 def test_duplicate_and_degenerate_counts():
+    """Duplicate faces (either winding), degenerate faces and unreferenced vertices are counted."""
     f = np.concatenate(
         [TETRA, TETRA[:1, [0, 2, 1]], np.roll(TETRA[1:2], 1, axis=1), [[0, 0, 1]], [[0, 1, 1]]]
     )
@@ -243,6 +254,7 @@ def test_duplicate_and_degenerate_counts():
 
 
 def test_per_component_genus_and_volume():
+    """Two shells: their own genus (largest first), the summed volume and Euler characteristics."""
     kitten = load_shared("kitten")
     arm = load_shared("armadillo")
     both = TriangleMesh(
@@ -261,6 +273,7 @@ def test_per_component_genus_and_volume():
 
 
 def test_invalid_faces_raise():
+    """Faces that are not triangles of valid integer indices are refused."""
     with pytest.raises(InputError):
         Connectivity(np.array([[0, 1]]))
     with pytest.raises(InputError):
@@ -272,12 +285,14 @@ def test_invalid_faces_raise():
 
 
 def test_empty_mesh_report():
+    """A mesh without faces reports zero faces, edges and components, not watertight, no genus."""
     rep = report(TriangleMesh(vertices=np.zeros((3, 3)), faces=np.zeros((0, 3), dtype=np.int64)))
     assert rep["faces"] == 0 and rep["edges"] == 0 and rep["components"] == 0
     assert rep["unreferenced_vertices"] == 3 and rep["watertight"] is False and rep["genus"] is None
 
 
 def test_info_cli_prints_topology():
+    """``recon info`` prints the mug's topology (genus 1, watertight), the bunny's boundary."""
     from click.testing import CliRunner
 
     from recon_cli.cli.main import cli
@@ -301,6 +316,7 @@ soups = st.integers(min_value=3, max_value=25).flatmap(
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(soups)
 def test_report_never_crashes_and_is_consistent(soup):
+    """Random face soups: the report never fails and its counts agree with one another."""
     v, f = soup
     mesh = TriangleMesh(
         vertices=np.array(v, dtype=float).reshape(-1, 3),
@@ -367,8 +383,11 @@ def test_union_find_labels_match_scipy(kind):
 
 
 def test_int32_faces_and_unpacked_keys_give_the_same_connectivity():
-    """int32 faces are used without a copy, and the argsort fallback (keys too large to pack
-    an index into) groups edges exactly as the packed sort does."""
+    """int32 faces and the argsort fallback give the packed sort's connectivity.
+
+    int32 faces are used without a copy, and the argsort fallback (keys too large to pack an index
+    into) groups edges exactly as the packed sort does.
+    """
     mesh = damaged("fins")
     c64 = Connectivity(mesh.faces, len(mesh.vertices))
     f32 = mesh.faces.astype(np.int32)
@@ -398,6 +417,7 @@ def test_int32_faces_and_unpacked_keys_give_the_same_connectivity():
 
 
 def test_vertex_faces_csr():
+    """The vertex-to-face lists are exactly the faces using each vertex."""
     mesh = damaged("cones")
     c = Connectivity(mesh.faces, len(mesh.vertices))
     for v in range(len(mesh.vertices)):
@@ -469,6 +489,7 @@ def test_report_memory_per_face_is_bounded():
 
 
 def test_forget_drops_the_arrays_and_the_answers_stay():
+    """forget() drops every array but the mesh's, and the answers stay the same."""
     # report() frees the adjacency this way before the areas: the same object answers again
     from shapes import torus
 

@@ -43,6 +43,11 @@ def _sphere(n, rng, center=(0.0, 0.0, 0.0), r=1.0):
 
 @pytest.mark.parametrize("name", ALL_MESHES)
 def test_unoriented_accuracy_vs_open3d(name):
+    """Unoriented normals of noisy samples: median error within 0.5 degree of Open3D's, same lines.
+
+    Unit normals, none degenerate, |cos| > 0.99 to Open3D's for 99 % of the points, curvature in [0,
+    1/3].
+    """
     cloud = sampled_cloud(name, 100_000, NOISE)
     ours, curv, deg = estimate_normals(cloud.points, knn=30)
     ref = open3d_backend.estimate_normals(cloud, knn=30)
@@ -57,6 +62,7 @@ def test_unoriented_accuracy_vs_open3d(name):
 
 
 def test_pca_matches_dense_eigh(rng):
+    """Closed-form 3x3 PCA gives LAPACK's smallest eigenvector and curvature, also 1e5 away."""
     # closed-form 3x3 eigenvectors against LAPACK on the same neighbourhoods, far from the origin
     # too
     pts = rng.normal(size=(3000, 3)) * [1.0, 1.0, 0.05]
@@ -73,6 +79,7 @@ def test_pca_matches_dense_eigh(rng):
 
 
 def test_single_plane_normals_and_curvature(rng):
+    """A plane: normals along z, zero curvature, one side; ``direction`` turns them down."""
     pts = np.c_[rng.random((5000, 2)), np.zeros(5000)]
     nrm, curv, deg = estimate_normals(pts)
     assert np.abs(nrm[:, 2]).min() > 1 - 1e-12
@@ -87,6 +94,7 @@ def test_single_plane_normals_and_curvature(rng):
 
 
 def test_sphere_curvature_larger_than_plane(rng):
+    """A sphere's surface variation is about a cap's a^2 / 8 (within a factor 3)."""
     pts, _ = _sphere(20_000, rng)
     _, curv, _ = estimate_normals(pts, knn=30)
     # surface variation of a spherical cap of angular radius a is about a^2 / 8 (a from K/n)
@@ -95,6 +103,7 @@ def test_sphere_curvature_larger_than_plane(rng):
 
 
 def test_radius_and_hybrid(rng):
+    """Radius and hybrid neighbourhoods give the kNN normal lines; a tiny radius: degenerate."""
     pts = np.c_[rng.random((4000, 2)), 0.001 * rng.random(4000)]
     knn_n, _, _ = estimate_normals(pts, knn=30)
     hyb_n, _, hyb_deg = estimate_normals(pts, knn=30, radius=0.05)
@@ -117,6 +126,7 @@ def test_radius_and_hybrid(rng):
 
 
 def test_two_points_and_one_point():
+    """One or two points: degenerate, finite unit normals, zero curvature, a warning."""
     for pts in (np.array([[0.0, 0, 0], [1.0, 0, 0]]), np.array([[1.0, 2, 3]])):
         nrm, curv, deg = estimate_normals(pts)
         assert deg.all() and np.isfinite(nrm).all() and (curv == 0).all()
@@ -129,6 +139,7 @@ def test_two_points_and_one_point():
 
 
 def test_collinear_points_are_degenerate():
+    """Collinear points are degenerate, with unit normals orthogonal to their line."""
     t = np.linspace(0, 1, 200)
     pts = np.c_[t, 2 * t, -t]
     nrm, _, deg = estimate_normals(pts, knn=10)
@@ -138,6 +149,7 @@ def test_collinear_points_are_degenerate():
 
 
 def test_nan_rows_rejected():
+    """Rows with NaN points or normals are refused, naming the count and the first row."""
     pts = np.zeros((10, 3))
     pts[:, 0] = np.arange(10)
     pts[:, 1] = np.arange(10) ** 2
@@ -152,6 +164,11 @@ def test_nan_rows_rejected():
 
 
 def test_duplicates(rng):
+    """A duplicated cloud keeps its normals; a pile of coincident points borrows one.
+
+    The 40 coincident points on a plane are degenerate and take a neighbour's normal, zero
+    curvature.
+    """
     cloud = sampled_cloud("kitten", 20_000)
     once, _, _ = estimate_normals(cloud.points, knn=30)
     twice, _, deg = estimate_normals(np.vstack([cloud.points, cloud.points]), knn=60)
@@ -176,6 +193,7 @@ def test_duplicates(rng):
 
 @pytest.mark.parametrize("name", CLOSED_MESHES)
 def test_mst_orientation_clean(name):
+    """MST orientation of 100k clean samples: one component, >= 99.9 % facing the true way."""
     cloud = sampled_cloud(name, 100_000)
     res = run_stage(PointCloud(cloud.points), knn=30, orient="mst")
     assert res.report["components"] == 1
@@ -186,6 +204,7 @@ def test_mst_orientation_clean(name):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", CLOSED_MESHES)
 def test_mst_orientation_noisy_vs_open3d(name):
+    """MST orientation of 50k noisy samples: at least Open3D's fraction right, >= 99.5 %."""
     cloud = sampled_cloud(name, 50_000, NOISE)
     ours = run_stage(PointCloud(cloud.points), knn=30, orient="mst").output.normals
     ref = open3d_backend.estimate_normals(cloud, knn=30, orient_tangent_plane=30)
@@ -198,6 +217,7 @@ def test_mst_orientation_noisy_vs_open3d(name):
 
 @pytest.mark.slow
 def test_mst_orientation_noisy_100k():
+    """MST orientation of 100k noisy samples: at least the measured fraction right, per mesh."""
     # absolute figures at 100k (Open3D measured: armadillo 0.9967, kitten 0.9998, mug 0.58)
     want = {"armadillo": 0.997, "kitten": 0.9997, "mug": 0.998}
     for name, f in want.items():
@@ -215,6 +235,7 @@ def _scan_truth():
 
 
 def test_raw_scan_camera_and_mst():
+    """A raw scan oriented towards the camera, or by MST: >= 99.5 % facing as the true normals."""
     scan, truth = _scan_truth()
     cam = run_stage(scan, orient="camera", camera="0,0,1")
     assert _same_way(cam.output.normals, truth) >= 0.995
@@ -224,6 +245,7 @@ def test_raw_scan_camera_and_mst():
 
 
 def test_two_disconnected_spheres_outward(rng):
+    """Two disconnected spheres: two components, each oriented outward entirely."""
     a, na = _sphere(8000, rng, (0, 0, 0), 1.0)
     b, nb = _sphere(3000, rng, (5, 0, 0), 0.5)
     res = run_stage(PointCloud(np.vstack([a, b])), knn=20)
@@ -234,6 +256,7 @@ def test_two_disconnected_spheres_outward(rng):
 
 
 def test_flux_check_flips_inside_out_seed(rng, monkeypatch):
+    """The flux check turns components seeded inward outward; without it they stay inside out."""
     # force every component seed to point inward: the flux check must turn the spheres out
     import recon_cli.stages.normals as mod
 
@@ -252,6 +275,10 @@ def test_flux_check_flips_inside_out_seed(rng, monkeypatch):
 
 
 def test_input_normals_replaced_or_kept():
+    """Input normals are replaced, or their signs kept with ``keep`` (zero rows follow neighbours).
+
+    ``keep`` without input normals is refused.
+    """
     cloud = sampled_cloud("kitten", 20_000)
     garbage = np.tile([1.0, 0.0, 0.0], (20_000, 1))
     res = run_stage(PointCloud(cloud.points, normals=garbage), orient="mst")
@@ -272,6 +299,7 @@ def test_input_normals_replaced_or_kept():
 
 
 def test_orient_normals_direct_methods(rng):
+    """orient_normals by camera, direction and MST: every normal on its side, flips counted."""
     pts, true = _sphere(2000, rng)
     out, info = orient_normals(pts, -true, "camera", camera=(0, 0, 10))
     assert (np.einsum("ij,ij->i", out, [0, 0, 10] - pts) >= 0).all()
@@ -286,6 +314,7 @@ def test_orient_normals_direct_methods(rng):
 
 
 def test_parameter_errors():
+    """Each bad parameter is refused with its message; camera orientation without a scanner too."""
     c = PointCloud(np.random.default_rng(0).random((50, 3)))
     for kwargs, msg in [
         ({"knn": 2}, "knn must be"),
@@ -309,6 +338,7 @@ def test_parameter_errors():
 
 
 def test_stage_report_history_and_open3d_backend():
+    """The stage's report keys, history and curvature attribute, and the Open3D backend's output."""
     cloud = sampled_cloud("mug", 20_000)
     res = apply_stage(
         "normals", PointCloud(cloud.points, history=["source"]), {"knn": 20, "curvature": True}
@@ -337,6 +367,7 @@ def test_stage_report_history_and_open3d_backend():
 
 
 def test_cli_normals(tmp_path, capsys):
+    """``recon normals`` writes oriented normals, curvature; ``--orient camera`` alone exits 2."""
     from recon_cli.cli.main import main
     from recon_cli.io import read_ply, write_ply
 
@@ -358,6 +389,7 @@ def test_cli_normals(tmp_path, capsys):
 
 
 def test_rotation_and_translation_equivariance(rng):
+    """Normals of a rotated, moved cloud are the rotated normals, orientation included."""
     from scipy.spatial.transform import Rotation
 
     cloud = sampled_cloud("kitten", 10_000, NOISE)
@@ -370,9 +402,12 @@ def test_rotation_and_translation_equivariance(rng):
 
 
 def test_open_pieces_follow_the_anchor_with_a_bounded_vote(rng, monkeypatch):
-    """Two flat open pieces seeded opposite ways: the smaller (9000 points) turns to agree with
-    the largest, voting with at most ``_ALIGN_SAMPLES`` of its points (a nearest-anchor query
-    from far away is slow: all 9000 took seconds per 10^5 in a slab)."""
+    """The smaller of two open pieces turns to agree with the larger, by a bounded vote.
+
+    Two flat open pieces seeded opposite ways: the smaller (9000 points) turns to agree with the
+    largest, voting with at most ``_ALIGN_SAMPLES`` of its points (a nearest-anchor query from far
+    away is slow: all 9000 took seconds per 10^5 in a slab).
+    """
     import scipy.spatial
 
     import recon_cli.stages.normals as mod

@@ -1,5 +1,8 @@
-"""Distributed normals (recon_cli.stages.normals.distributed): halos give the single-process
-neighbourhoods, orientation joined across slabs, the command reading and writing by chunks."""
+"""Distributed normals (recon_cli.stages.normals.distributed).
+
+Halos give the single-process neighbourhoods, orientation joined across slabs, the command reading
+and writing by chunks.
+"""
 
 from __future__ import annotations
 
@@ -29,9 +32,11 @@ def _single(points, method="mst", **kw):
 
 @pytest.mark.parametrize("name, parts", [("armadillo", 4), ("mug", 3)])
 def test_slabs_give_the_single_process_normals(name, parts):
-    """Rotated samples 1e6 from the origin in slabs: every normal and curvature is the
-    single-process one (halos make the neighbourhoods exact), oriented alike (the slabs'
-    components joined across seams)."""
+    """Rotated samples 1e6 from the origin in slabs: the single-process normals, oriented alike.
+
+    Every normal and curvature is the single-process one (halos make the neighbourhoods exact),
+    oriented alike (the slabs' components joined across seams).
+    """
     rng = np.random.default_rng(3)
     c = sampled_cloud(name, 40_000, 0.001, 1)
     pts = c.points @ random_rotation(rng).T + 1e6
@@ -46,8 +51,11 @@ def test_slabs_give_the_single_process_normals(name, parts):
 
 
 def test_halo_widens_until_neighbourhoods_are_exact():
-    """Sparse points (a few per sub-slab): the first halo cannot hold every point's 30
-    neighbours; it is widened and the normals are the single-process ones."""
+    """Sparse points: the halo widens until neighbourhoods are exact, as in the single process.
+
+    With a few points per sub-slab the first halo cannot hold every point's 30 neighbours; it is
+    widened and the normals are the single-process ones.
+    """
     rng = np.random.default_rng(4)
     p = rng.normal(size=(3000, 3))
     p[:, 0] *= 5
@@ -60,6 +68,7 @@ def test_halo_widens_until_neighbourhoods_are_exact():
 
 
 def test_camera_and_keep():
+    """Camera orientation in 3 slabs: the single-process normals; ``keep``: the input's signs."""
     rng = np.random.default_rng(5)
     pts, truth = single_view_scan("torus", 120, rng, direction=(0.3, 0.2, -1.0))
     cam = -5 * np.array([0.3, 0.2, -1.0])
@@ -75,8 +84,10 @@ def test_camera_and_keep():
 
 
 def test_camera_towards_each_points_own_scanner():
-    """``--orient camera`` without ``--camera``: each point towards the scanner that took it
-    (the cloud's sensors and its per-point scan index), as the single-process run."""
+    """``--orient camera`` without ``--camera`` in slabs: each point towards its own scanner.
+
+    The scanner is the cloud's sensor of the point's scan index, as in the single-process run.
+    """
     from recon_cli.geometry import SCAN_ATTRIBUTE, Sensor
     from recon_cli.stages.normals import run_stage, sensor_views
 
@@ -99,6 +110,7 @@ def test_camera_towards_each_points_own_scanner():
 
 
 def test_refused():
+    """More than 32 partitions, and ``keep`` without input normals, are refused."""
     p = np.random.default_rng(1).normal(size=(100, 3))
     refused = "--partitions must be 1..32 for normals, got 33"
     with run_on(partitions=33), pytest.raises(ParameterError, match=refused):
@@ -110,10 +122,13 @@ def test_refused():
 @pytest.mark.slow
 @pytest.mark.parametrize("where", [["--workers", "2"], ["--memory", "1GiB"]])
 def test_command_keeps_every_property_and_row(tmp_path, monkeypatch, capsys, where):
-    """``recon normals IN OUT --workers 2``, or in this process with a memory too small for IN
-    in one piece (at a patched bytes per point: 3 slabs): IN read by chunks (never whole by the
-    command), OUT written a chunk at a time: the same rows in the same order with every
-    property of IN, and the single-process normals."""
+    """``recon normals`` in slabs, read and written by chunks, keeps every property and row.
+
+    ``recon normals IN OUT --workers 2``, or in this process with a memory too small for IN in one
+    piece (at a patched bytes per point: 3 slabs): IN read by chunks (never whole by the command),
+    OUT written a chunk at a time: the same rows in the same order with every property of IN, and
+    the single-process normals.
+    """
     import recon_cli.io.chunks as C
     import recon_cli.io.load as L
     from recon_cli.cli.main import main
@@ -164,6 +179,7 @@ def test_command_keeps_every_property_and_row(tmp_path, monkeypatch, capsys, whe
 
 @pytest.fixture(scope="module")
 def cluster():
+    """A local Dask cluster of 2 workers for the module's tests (no memory limit, no stealing)."""
     from recon_cli.batch.cluster import open_client
 
     with open_client(workers=2, memory_limit="none", stealing=False) as (client, _info):
@@ -172,9 +188,11 @@ def cluster():
 
 @pytest.mark.slow
 def test_more_slabs_than_workers_spill_their_states(cluster, tmp_path, monkeypatch):
-    """Three slabs on two workers: a state written to its file between steps unless its
-    worker runs it next (a worker holds one slab at a time), the in-process slabs' normals
-    exactly, no file left."""
+    """Three slabs on two workers spill their states and give the in-process normals exactly.
+
+    A state is written to its file between steps unless its worker runs it next (a worker holds one
+    slab at a time); no file is left.
+    """
     from recon_cli.stages.normals import distributed as D
 
     c = sampled_cloud("armadillo", 30_000, 0.001, 1)
@@ -192,9 +210,12 @@ def test_more_slabs_than_workers_spill_their_states(cluster, tmp_path, monkeypat
 
 
 def test_slab_count_from_the_workers_memory():
-    """Without --partitions, the fewest slabs (whole rounds of the workers) whose one slab's
-    neighbourhoods and graph fit a share of a worker's memory: more neighbours, more slabs;
-    at most 32, and a cloud too large for 32 is refused with the memory it needs."""
+    """Without --partitions, the slab count is the fewest that fit a share of a worker's memory.
+
+    The fewest slabs (whole rounds of the workers) whose one slab's neighbourhoods and graph fit a
+    share of a worker's memory: more neighbours, more slabs; at most 32, and a cloud too large for
+    32 is refused with the memory it needs.
+    """
     from recon_cli.slabs.plan import SLAB_MEMORY_SHARE
     from recon_cli.stages.normals.distributed import MAX_SLABS, slab_bytes_per_point, slab_count
 

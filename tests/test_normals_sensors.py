@@ -1,6 +1,9 @@
-"""Normals of real sensor files: --orient camera towards the scanner position(s) the file gives
-(PCD VIEWPOINT, E57 poses with each point towards its own scan, LAS up), neighbourhoods from an
-organized cloud's pixels, and a raw organized PCD through `recon run` normals -> poisson."""
+"""Normals of real sensor files: camera orientation, organized clouds, raw PCD pipelines.
+
+--orient camera towards the scanner position(s) the file gives (PCD VIEWPOINT, E57 poses with each
+point towards its own scan, LAS up), neighbourhoods from an organized cloud's pixels, and a raw
+organized PCD through `recon run` normals -> poisson.
+"""
 
 from __future__ import annotations
 
@@ -31,6 +34,7 @@ RECON = [sys.executable, "-m", "recon_cli.cli.main"]
 
 
 def recon(*args):
+    """``recon ARGS`` as a process: its completed process (output captured)."""
     return subprocess.run([*RECON, *map(str, args)], capture_output=True, timeout=600)
 
 
@@ -66,6 +70,10 @@ def _angles(n, truth):
 
 @pytest.mark.parametrize("seed, offset", [(0, 0.0), (1, 1e6), (2, 0.0)])
 def test_orient_camera_uses_the_viewpoint_of_an_organized_pcd(seed, offset, tmp_path):
+    """An organized PCD's VIEWPOINT orients every normal towards the scanner, near the true normals.
+
+    Neighbourhoods from the pixels (15x15 window), the pixels and sensors carried to the output.
+    """
     org, cam, truth = _organized_case(seed, offset)
     path = tmp_path / "raw.pcd"
     write_organized_pcd(path, org, cam, dtype="f8")
@@ -82,6 +90,11 @@ def test_orient_camera_uses_the_viewpoint_of_an_organized_pcd(seed, offset, tmp_
 
 
 def test_pixel_neighbourhoods_as_accurate_as_the_kdtree():
+    """Pixel-window neighbourhoods are as accurate as the kd-tree's, within 2 %.
+
+    A radius or ``neighbours="kdtree"`` uses the kd-tree; pixels asked of an unorganized cloud are
+    refused.
+    """
     org, _, truth = _organized_case(4, w=160, h=120)
     flat = org.reshape(-1, 3)
     valid = np.isfinite(flat).all(axis=1)
@@ -114,6 +127,7 @@ def _sphere_scan(eye, n, rng):
 
 @pytest.mark.parametrize("backend", ["native", "open3d"])
 def test_e57_scans_each_oriented_towards_their_own_scanner(tmp_path, backend):
+    """E57 scans with their poses: each scan's points oriented towards their own scanner."""
     pye57 = pytest.importorskip("pye57")
     if backend == "open3d":
         pytest.importorskip("open3d")
@@ -159,6 +173,7 @@ def test_e57_scans_each_oriented_towards_their_own_scanner(tmp_path, backend):
 
 
 def test_las_up_orients_terrain_upwards(tmp_path):
+    """A LAS terrain tile with ``--orient camera``: normals oriented up (airborne)."""
     rng = np.random.default_rng(2)
     xy = rng.uniform(0, 300, (4000, 2))
     z = 20 * np.sin(xy[:, 0] / 40) + 10 * np.cos(xy[:, 1] / 25)
@@ -171,6 +186,10 @@ def test_las_up_orients_terrain_upwards(tmp_path):
 
 
 def test_no_scanner_position_is_a_one_line_error_naming_the_file(tmp_path):
+    """No scanner position: a one-line error naming the file, exit 2, no output.
+
+    Two scanner positions without a per-point scan index are refused too.
+    """
     save(PointCloud(np.random.default_rng(0).random((200, 3))), tmp_path / "plain.ply")
     r = recon("normals", tmp_path / "plain.ply", tmp_path / "o.ply", "--orient", "camera")
     err = r.stderr.decode().strip()
@@ -186,6 +205,11 @@ def test_no_scanner_position_is_a_one_line_error_naming_the_file(tmp_path):
 
 
 def test_raw_organized_pcd_through_recon_run_normals_camera_poisson(tmp_path):
+    """A raw organized PCD through ``recon run`` normals then poisson: a surface on the points.
+
+    The NaN pixels dropped and counted; the mesh within 5 mm (median) of the points, facing the
+    camera.
+    """
     from recon_cli.mesh.distance import closest_points
 
     org, cam, _ = _organized_case(5, offset=0.0, w=160, h=120)

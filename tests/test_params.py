@@ -1,5 +1,4 @@
-"""Stage declarations (recon_cli.params, recon_cli.stages): one declaration, everything derived from
-it."""
+"""Stage declarations (recon_cli.params, recon_cli.stages): one declaration, all derived from it."""
 
 from __future__ import annotations
 
@@ -34,6 +33,7 @@ from shared_data import ROOT
 
 
 def test_bool_words_are_exactly_the_documented_ones():
+    """parse_bool takes exactly the documented words, any case and padding, and refuses the rest."""
     for w in ("true", "YES", " on ", "1"):
         assert parse_bool(w) is True
     for w in ("false", "No", "off", "0"):
@@ -44,6 +44,10 @@ def test_bool_words_are_exactly_the_documented_ones():
 
 
 def test_typed_values_must_have_the_declared_type():
+    """Integer and bool parameters take their type (or its text on the command line), in range.
+
+    Floats, other types, out-of-range values and text in TOML are refused with the option's message.
+    """
     depth = Param("depth", "int", 8, "d", min=1, max=14)
     assert depth.coerce(9) == 9 and depth.coerce("9") == 9 and depth.coerce(np.int64(3)) == 3
     for bad in (True, False, 8.0, 8.5, "8.0", "x", [8], None):
@@ -68,6 +72,7 @@ def test_typed_values_must_have_the_declared_type():
 
 
 def test_floats_vectors_words_and_extra_values():
+    """float, vector, floats-with-words and extra values are coerced and checked as declared."""
     w = Param("trim", "float", 0.0, "t", min=0.0, max=1.0, max_open=True)
     assert w.coerce(0) == 0.0 and w.coerce("0.25") == 0.25
     for bad in (1.0, -0.1, float("nan"), float("inf"), "nan", True):
@@ -100,18 +105,21 @@ def test_floats_vectors_words_and_extra_values():
 
 @given(st.integers(min_value=-(10**12), max_value=10**12))
 def test_int_text_round_trip(n):
+    """Any integer's text coerces to the integer itself."""
     p = Param("n", "int", 0, "n")
     assert p.coerce(str(n)) == n == p.coerce(n)
 
 
 @given(st.floats(allow_nan=False, allow_infinity=False))
 def test_float_text_round_trip(x):
+    """Any finite float's repr coerces to the float itself."""
     p = Param("x", "float", 0.0, "x")
     assert p.coerce(repr(x)) == x == p.coerce(x)
 
 
 @given(st.text(max_size=12))
 def test_bool_parser_never_guesses(s):
+    """A bool parameter takes only the eight words (any case, padded) and refuses other text."""
     p = Param("f", "bool", False, "f")
     word = s.strip().lower()
     if word in ("true", "yes", "on", "1", "false", "no", "off", "0"):
@@ -124,6 +132,11 @@ def test_bool_parser_never_guesses(s):
 # ---- every built-in stage: declaration, library, command, docs -----------------------------------
 @pytest.mark.parametrize("name", BUILTIN)
 def test_builtin_stage_is_registered_and_derived_from_its_declaration(name):
+    """A built-in stage is registered, its function and command derived from its declaration.
+
+    The keyword defaults are the declaration's; the command has no module of its own and an option
+    per parameter.
+    """
     from recon_cli.cli.main import COMMANDS, cli
     from recon_cli.cli.options import stage_command
 
@@ -187,6 +200,11 @@ def _public_functions(spec: StageSpec):
 
 @pytest.mark.parametrize("name", BUILTIN)
 def test_public_functions_take_defaults_and_checks_from_the_declaration(name):
+    """A stage's public functions take their defaults and checks from the declaration.
+
+    A keyword named like a declared parameter defaults to the declared value and is refused with the
+    command line's message, before any data is looked at.
+    """
     # a keyword of a stage's public function named like a declared parameter defaults to the
     # declared value and is checked by the declaration (same message as the command line),
     # before any data is looked at
@@ -217,6 +235,10 @@ def test_public_functions_take_defaults_and_checks_from_the_declaration(name):
 
 
 def test_documentation_parameter_tables_match_the_declarations():
+    """Each stage page holds its declaration's parameter table once, its options in order.
+
+    No hand copy of a table is left in the README.
+    """
     # the tables live on the stage pages of the user guide, written from the declarations by
     # recon_cli.tools.docs at every build (tests/test_tools_docs.py reads them cell by cell)
     from recon_cli.tools import docs
@@ -234,6 +256,7 @@ def test_documentation_parameter_tables_match_the_declarations():
 
 
 def test_runner_refuses_a_function_that_differs_from_its_declaration():
+    """A runner whose keywords differ from the declaration is refused."""
     spec = StageSpec(
         "toy2", "t", takes=("cloud",), gives=("cloud",), params=(Param("a", "int", 1, "a"),)
     )
@@ -251,6 +274,7 @@ def test_runner_refuses_a_function_that_differs_from_its_declaration():
 
 
 def test_runner_hands_the_undeclared_keywords_to_rest():
+    """A runner's ``**rest`` gets the undeclared keywords with their defaults, checked."""
     # a stage may name some of its parameters and hand the others on together (fit-sdf's fit)
     spec = StageSpec(
         "toy3",
@@ -271,6 +295,7 @@ def test_runner_hands_the_undeclared_keywords_to_rest():
 
 
 def test_library_call_checks_values_and_input_kind():
+    """A library call refuses a badly typed value and an input of the wrong kind."""
     from recon_cli.stages.poisson import run_stage
 
     pts = np.random.default_rng(0).normal(size=(50, 3))
@@ -301,12 +326,14 @@ def _toy_run(data, *, factor, progress=None):
 
 @pytest.fixture
 def toy():
+    """The toy stage registered for one test, unregistered after."""
     register_stage(TOY)
     yield TOY
     unregister_stage(TOY.name)
 
 
 def test_toy_stage_runs_in_a_pipeline_and_as_a_command(toy, tmp_path):
+    """A registered toy stage runs in a pipeline (with ``--set``) and as a command."""
     from recon_cli.cli.main import cli
     from recon_cli.io import read_ply, write_ply
 
@@ -333,6 +360,7 @@ def test_toy_stage_runs_in_a_pipeline_and_as_a_command(toy, tmp_path):
 
 
 def test_entry_points_group_registers_stages(monkeypatch):
+    """A stage declared by an entry point is registered and runs."""
     import importlib.metadata as md
 
     ep = EntryPoint(name="toy-ep", value="test_params:TOY", group=stages.ENTRY_POINT_GROUP)
@@ -350,6 +378,7 @@ def test_entry_points_group_registers_stages(monkeypatch):
 
 # ---- global options after the subcommand ---------------------------------------------------------
 def test_global_options_before_and_after_the_subcommand(tmp_path):
+    """Global options work before and after the subcommand (-q silent, -v reports, --json)."""
     from recon_cli.cli.main import cli
     from recon_cli.io import write_ply
 
@@ -373,6 +402,7 @@ def test_global_options_before_and_after_the_subcommand(tmp_path):
 
 
 def test_validate_answers_fast_in_a_fresh_process(tmp_path):
+    """``recon run --validate`` of a bad stage 2 answers fast in a fresh process."""
     # the check runs before any stage (and without compiling anything): a bad value in stage 2
     pipe = tmp_path / "p.toml"
     pipe.write_text(

@@ -73,11 +73,13 @@ def _pipe(text: str, overrides=()):
     ],
 )
 def test_pipeline_errors_name_file_and_line(text, message):
+    """A bad pipeline value is refused with the file, line, stage and option in the message."""
     with pytest.raises(ParameterError, match=message):
         _pipe(text)
 
 
 def test_values_are_typed_and_mean_the_same_as_on_the_command_line():
+    """Pipeline values are typed and mean what the same option means on the command line."""
     pipe = _pipe(
         '[[stage]]\nname = "normals"\nknn = 0\nradius = 1\ncamera = "0,0,1"\n\n[[stage]]\n'
         'name = "ballpivot"\nradii = [0.5, 1]\n'
@@ -93,6 +95,7 @@ def test_values_are_typed_and_mean_the_same_as_on_the_command_line():
 
 
 def test_set_overrides_by_name_and_index():
+    """``--set`` overrides by stage name or index; bad targets and names are refused."""
     text = (
         '[[stage]]\nname = "normals"\n\n[[stage]]\nname = "poisson"\ndepth = 7\n\n[[stage]]\n'
         'name = "repair"\n'
@@ -117,6 +120,7 @@ def test_set_overrides_by_name_and_index():
 
 
 def test_estimate_normals_changes_what_poisson_takes():
+    """``estimate_normals`` lets poisson take points without normals; otherwise they are refused."""
     pipe = _pipe('[[stage]]\nname = "poisson"\n')
     bare = PointCloud(np.random.default_rng(0).normal(size=(20, 3)))
     with pytest.raises(
@@ -128,6 +132,10 @@ def test_estimate_normals_changes_what_poisson_takes():
 
 
 def test_run_checks_before_touching_the_output(tmp_path, monkeypatch):
+    """``recon run`` checks the whole pipeline before any stage runs or the output is touched.
+
+    ``--validate`` with a ``--set`` fix reports the pipeline valid, still running nothing.
+    """
     from recon_cli.cli.main import cli
     from recon_cli.stages import normals
 

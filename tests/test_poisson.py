@@ -54,8 +54,11 @@ def _samples(mesh) -> np.ndarray:
 
 
 def _quality_case(name: str, noise: float, depth: int, cross_check: bool = False) -> None:
-    """Ours against the true surface no worse than Open3D's; ``cross_check``: and our surface
-    within half a finest cell of Open3D's (Chamfer; in practice a third of a cell)."""
+    """Assert ours fits the true surface no worse than Open3D's (and, cross-checking, lies near it).
+
+    ``cross_check``: also our surface within half a finest cell of Open3D's (Chamfer; in practice a
+    third of a cell).
+    """
     truth = load_shared(name)
     tau = 0.005 * bbox_diagonal(truth.vertices)
     ours = _ours(name, noise, depth)
@@ -74,6 +77,7 @@ def _quality_case(name: str, noise: float, depth: int, cross_check: bool = False
 @pytest.mark.slow
 @pytest.mark.parametrize("name", CLOSED_MESHES + ["bunny_zipper"])
 def test_quality_clean_depth8(name):
+    """Clean samples at depth 8: ours fits each mesh no worse than Open3D."""
     # the same two meshes cross-check ours against Open3D on the shapes without thin parts
     _quality_case(name, 0.0, 8, cross_check=name in ("kitten", "armadillo"))
 
@@ -81,12 +85,14 @@ def test_quality_clean_depth8(name):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", CLOSED_MESHES + ["bunny_zipper"])
 def test_quality_noisy_depth8(name):
+    """Noisy samples (0.25 %) at depth 8: ours fits each mesh no worse than Open3D."""
     _quality_case(name, 0.0025, 8)
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("noise", [0.0, 0.0025])
 def test_quality_depth9_kitten(noise):
+    """The kitten at depth 9, clean and noisy: ours fits it no worse than Open3D."""
     # noisy depth 9 is where too strong a screening weight showed (ratio 1.06 before the
     # weight was calibrated); bench/quality_poisson.py prints every mesh
     _quality_case("kitten", noise, 9)
@@ -95,6 +101,10 @@ def test_quality_depth9_kitten(noise):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", CLOSED_MESHES)
 def test_untrimmed_output_is_watertight_manifold_and_outward(name):
+    """The untrimmed surface of each closed mesh is watertight, manifold, oriented and outward.
+
+    Checked with our topology and Open3D's own edge- and vertex-manifold predicates.
+    """
     mesh = _ours(name, 0.0, 8).mesh
     topo = topology_report(mesh)
     assert topo["watertight"] and topo["edge_manifold"] and topo["vertex_manifold"]
@@ -107,9 +117,11 @@ def test_untrimmed_output_is_watertight_manifold_and_outward(name):
 
 
 def _separation(a, b):
-    """The largest gap between the projections of triangles ``a`` and ``b`` (3, 3) over the
-    separating axes of two triangles (both normals, the nine edge cross products): > 0 when
-    they are apart, <= 0 when they touch or cross."""
+    """The largest gap between triangles ``a`` and ``b`` (3, 3) over their separating axes.
+
+    The axes: both normals and the nine edge cross products. > 0 when they are apart, <= 0 when they
+    touch or cross.
+    """
     ea = [a[1] - a[0], a[2] - a[1], a[0] - a[2]]
     eb = [b[1] - b[0], b[2] - b[1], b[0] - b[2]]
     best = -np.inf
@@ -124,6 +136,7 @@ def _separation(a, b):
 
 
 def test_separation_tells_crossing_from_apart():
+    """_separation is > 0 for triangles apart and <= 0 for triangles that cross or touch."""
     a = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
     assert _separation(a, np.array([[0.2, 0.2, -1], [0.3, 0.2, 1], [0.2, 0.3, 1]])) < 0  # pierces a
     assert _separation(a, a + [0, 0, 1e-3]) == pytest.approx(1e-3)  # parallel, above
@@ -138,6 +151,10 @@ def test_separation_tells_crossing_from_apart():
 
 @pytest.mark.parametrize(("name", "depth"), [("kitten", 7), ("armadillo", 8)])
 def test_open3d_closed_manifold_no_self_intersections(name, depth):
+    """Open3D's checks on our mesh: closed and manifold; the triangles it flags do not touch.
+
+    Each flagged pair is apart along one of its separating axes.
+    """
     # Open3D's own checks: no boundary edge, edge- and vertex-manifold, orientable. Its
     # is_watertight also asks for no self-intersecting triangles, and its test flags a few
     # pairs here (1 on the kitten at depth 7, 5 on the armadillo at depth 8): triangles
@@ -163,9 +180,11 @@ def test_open3d_closed_manifold_no_self_intersections(name, depth):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["kitten", "armadillo"])
 def test_cross_check_pymeshlab_within_one_cell(name):
-    """Our surface (degree 2, the default) and PyMeshLab's lie within half a finest cell of
-    each other (Chamfer): depth 7 on 50k points, PyMeshLab being slow on a busy machine.
-    Against Open3D: ``test_quality_clean_depth8``."""
+    """Our surface and PyMeshLab's lie within half a finest cell of each other (Chamfer).
+
+    Degree 2 (the default), depth 7 on 50k points, PyMeshLab being slow on a busy machine. Against
+    Open3D: ``test_quality_clean_depth8``.
+    """
     from recon_cli.backends import pymeshlab_backend
 
     c = sampled_cloud(name, 50_000)
@@ -177,6 +196,7 @@ def test_cross_check_pymeshlab_within_one_cell(name):
 
 @pytest.mark.parametrize("degree", [1, 2])
 def test_report_keys_and_solver_log(caplog, degree):
+    """The report's keys and values (iso value near 1/2, small residual) and the solver's log."""
     c = sampled_cloud("kitten", 20_000)
     with caplog.at_level(logging.INFO, logger="recon"):
         res = run_stage(c, depth=6, degree=degree)
@@ -206,6 +226,7 @@ def _sphere_cloud(n: int, r: float, rng) -> PointCloud:
 @pytest.mark.parametrize("degree", [1, 2])
 @pytest.mark.parametrize("boundary", ["neumann", "dirichlet"])
 def test_sphere_radius_within_half_a_cell(rng, boundary, degree):
+    """A sphere, both boundaries and degrees: within half a finest cell of it, watertight."""
     r = 2.0
     c = _sphere_cloud(60_000, r, rng)
     res = screened_poisson(c.points, c.normals, depth=7, boundary=boundary, degree=degree)
@@ -217,6 +238,7 @@ def test_sphere_radius_within_half_a_cell(rng, boundary, degree):
 
 @pytest.mark.parametrize("degree", [1, 2])
 def test_unscreened_sphere_is_closed_and_close(rng, degree):
+    """Without screening (point weight 0) a sphere is still closed and within a finest cell."""
     c = _sphere_cloud(30_000, 1.0, rng)
     res = screened_poisson(c.points, c.normals, depth=6, point_weight=0, degree=degree)
     dist = np.linalg.norm(res.mesh.vertices - np.array([1.0, -2.0, 0.5]), axis=1)
@@ -226,6 +248,7 @@ def test_unscreened_sphere_is_closed_and_close(rng, degree):
 
 @pytest.mark.parametrize("degree", [1, 2])
 def test_density_trim_and_colors(rng, degree):
+    """An open half sphere: density marks the closing cap, trim removes it, colours follow."""
     # an open half sphere: Poisson closes it with a low-density cap that trimming removes
     c = _sphere_cloud(20_000, 1.0, rng)
     keep = c.normals[:, 2] > -0.2
@@ -272,6 +295,7 @@ def test_density_trim_and_colors(rng, degree):
     ],
 )
 def test_bad_input(cloud, match):
+    """Inputs without usable normals, with coincident points or too few points are refused."""
     with pytest.raises(InputError, match=match):
         run_stage(cloud)
 
@@ -291,12 +315,14 @@ def test_bad_input(cloud, match):
     ],
 )
 def test_bad_parameters(params):
+    """Each out-of-range or unknown parameter value is refused."""
     c = sampled_cloud("kitten", 1000)
     with pytest.raises(ParameterError):
         run_stage(c, **params)
 
 
 def test_zero_normals_are_ignored_and_strings_accepted():
+    """Zero normals are ignored and counted; parameters given as text are accepted."""
     c = sampled_cloud("kitten", 20_000)
     c.normals[::10] = 0.0
     res = run_stage(c, depth="6", point_weight="4", boundary="Dirichlet", density="true")
@@ -306,6 +332,7 @@ def test_zero_normals_are_ignored_and_strings_accepted():
 
 @pytest.mark.slow
 def test_reference_backends_report():
+    """The Open3D and PyMeshLab backends report their backend and faces, no iso value."""
     c = sampled_cloud("kitten", 20_000)
     for backend in ("open3d", "pymeshlab"):
         res = run_stage(c, depth=6, backend=backend)
@@ -316,6 +343,7 @@ def test_reference_backends_report():
 
 
 def test_cli_poisson(tmp_path):
+    """``recon poisson`` writes a mesh with density; no normals: exit 2 naming the fix."""
     from click.testing import CliRunner
 
     from recon_cli.cli.main import cli

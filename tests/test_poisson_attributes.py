@@ -1,5 +1,7 @@
-"""Poisson's --attributes: every per-point property of the input on the vertices, in its dtype,
-codes by majority, measurements by mean, from the points on the vertex's side only."""
+"""Poisson's --attributes: every per-point property of the input on the vertices, in its dtype.
+
+Codes by majority, measurements by mean, from the points on the vertex's side only.
+"""
 
 from __future__ import annotations
 
@@ -31,6 +33,7 @@ from shapes import _project, random_rotation, rounded_box_sdf, shape_cloud
 
 
 def test_mean_and_majority_keep_dtypes_and_values():
+    """Mean and majority keep the values' dtypes and values; a tie goes to the smaller code."""
     idx = np.array([[0, 1, 2], [2, 2, 1]])
     w = np.array([[0.5, 0.25, 0.25], [0.2, 0.2, 0.6]])
     v8 = np.array([10, 20, 201], np.uint8)
@@ -51,6 +54,7 @@ def test_mean_and_majority_keep_dtypes_and_values():
     st.integers(0, 2**31 - 1),
 )
 def test_majority_picks_a_present_value_of_largest_weight(m, k, seed):
+    """The majority is a present value of the largest total weight, on random rows."""
     rng = np.random.default_rng(seed)
     values = rng.integers(-3, 4, size=10).astype(np.int16)
     idx = rng.integers(0, 10, size=(m, k))
@@ -67,6 +71,7 @@ def test_majority_picks_a_present_value_of_largest_weight(m, k, seed):
 
 
 def test_codes_and_measures():
+    """Classification, return numbers and flags are codes; intensity and times are measurements."""
     assert is_code("classification", np.zeros(1, np.uint8))
     assert is_code("return_number", np.zeros(1, np.uint8))
     assert is_code("flag", np.zeros(1, bool))
@@ -78,12 +83,14 @@ def test_codes_and_measures():
 @settings(max_examples=50, deadline=None)
 @given(st.lists(st.sampled_from(["a", "b", "c", "colors", "rgb"]), min_size=1, max_size=5))
 def test_select_names(words):
+    """select() keeps the named properties once, in order, and colours when asked."""
     names, colors = select(",".join(words), ["a", "b", "c"], True)
     assert names == [w for i, w in enumerate(words) if w in "abc" and w not in words[:i]]
     assert colors == any(w in ("colors", "rgb") for w in words)
 
 
 def test_select_all_none_and_unknown():
+    """select() of all, none, a list or nothing; an unknown property refused."""
     assert select("all", ["x"], True) == (["x"], True)
     assert select(None, ["x"], False) == (["x"], False)
     assert select("none", ["x"], True) == ([], False)
@@ -112,6 +119,10 @@ def _plate(rng, half_thickness):
 
 
 def test_thin_plate_colours_do_not_bleed(rng):
+    """A plate thinner than a cell: each face's vertices take their own side's colour, no bleeding.
+
+    A Gaussian over the nearest points of either side does bleed here, so the test can fail.
+    """
     # 0.016 thick at depth 7: under one finest cell (0.02), the other face's points are nearer
     # than a cell to every vertex
     p, n, col, rot = _plate(rng, 0.008)
@@ -136,6 +147,7 @@ def test_thin_plate_colours_do_not_bleed(rng):
 
 
 def test_every_attribute_in_its_dtype_and_none(rng):
+    """Colours and every attribute in their dtype, with the values of their side of a sphere."""
     p, n = shape_cloud("sphere", 5000, rng, offset=1e6)
     z = (p[:, 2] - 1e6) > 0
     cloud = PointCloud(
@@ -168,6 +180,7 @@ def test_every_attribute_in_its_dtype_and_none(rng):
 
 
 def test_cli_unknown_attribute_is_refused(tmp_path, rng):
+    """``--attributes`` naming a property the input lacks exits 2 and writes nothing."""
     p, n = shape_cloud("sphere", 2000, rng)
     src, out = tmp_path / "in.ply", tmp_path / "out.ply"
     write_ply(PointCloud(points=p, normals=n, attributes={"intensity": np.ones(len(p))}), src)
@@ -178,6 +191,10 @@ def test_cli_unknown_attribute_is_refused(tmp_path, rng):
 
 @pytest.mark.slow
 def test_lidar_tile_has_intensity_classification_and_colour(tmp_path):
+    """A lidar tile through normals and poisson: colour and LAS attributes in their dtypes.
+
+    The mesh's classes are classes of the tile, ground among them.
+    """
     from shared_data import SHARED
 
     las = SHARED / "autzen_trim.laz"
@@ -199,8 +216,9 @@ def test_lidar_tile_has_intensity_classification_and_colour(tmp_path):
 
 
 def _kd_tree_transfer(points, normals, values, verts, vn, cell):
-    """The transfer as it was made with a k-d tree (every vertex's 16 nearest points, a block's
-    rows widened to the 64 of its fallback rows): the reference the grid must match bit for bit.
+    """The transfer as it was made with a k-d tree: the reference the grid must match bit for bit.
+
+    Every vertex's 16 nearest points, a block's rows widened to the 64 of its fallback rows.
     """
     tree = cKDTree(points)
     n = len(points)
@@ -240,11 +258,14 @@ def _kd_tree_transfer(points, normals, values, verts, vn, cell):
 @pytest.mark.parametrize("n", [5, 40, 3000])
 @pytest.mark.parametrize("seed", [0, 1])
 def test_transfer_is_the_k_d_tree_transfer_bit_for_bit(n, seed):
-    """The grid search finds the k-d tree's neighbours, in its order, at its distances: every
+    """The grid-search transfer is the k-d tree transfer bit for bit.
+
+    The grid search finds the k-d tree's neighbours, in its order, at its distances: every
     attribute, the fallback count and the reach are the same bits, for a sheet of points 1e6 from
-    the origin with vertices on it, off it, flipped (no agreeing point: the 64), outside the
-    points' box and far from every point (past the grid's shells: the k-d tree), and for fewer
-    points than 16 and 64."""
+    the origin with vertices on it, off it, flipped (no agreeing point: the 64), outside the points'
+    box and far from every point (past the grid's shells: the k-d tree), and for fewer points than
+    16 and 64.
+    """
     rng = np.random.default_rng(seed)
     rot = random_rotation(rng)
     uv = rng.random((n, 2)) * [3.0, 2.0]
@@ -286,9 +307,12 @@ def test_transfer_is_the_k_d_tree_transfer_bit_for_bit(n, seed):
 
 
 def test_grid_search_reads_past_its_shells_and_is_exact():
-    """Clustered points (dense blobs, lone points between them) and queries at every distance:
-    the grid's neighbours are the k-d tree's, the same bits, also for the queries past its shells
-    (answered by the k-d tree) and those outside the points' box."""
+    """The grid search's neighbours are the k-d tree's, bit for bit, on clustered points.
+
+    Clustered points (dense blobs, lone points between them) and queries at every distance: the same
+    bits, also for the queries past its shells (answered by the k-d tree) and those outside the
+    points' box.
+    """
     rng = np.random.default_rng(7)
     blobs = rng.normal(size=(6, 3)) * 50.0
     pts = np.concatenate(
@@ -306,6 +330,7 @@ def test_grid_search_reads_past_its_shells_and_is_exact():
 
 
 def test_vertex_normal_sums_are_np_add_at_bits():
+    """vertex_normal_sums is np.add.at's sum of face normals, to the bit."""
     rng = np.random.default_rng(3)
     v = rng.normal(size=(500, 3)) * 1e3 + 1e5
     f = rng.integers(0, 500, (3000, 3))

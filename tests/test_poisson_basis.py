@@ -1,3 +1,5 @@
+"""Poisson's bases: degree 1 (trilinear) and 2 (quadratic B-spline), each meshing a sphere."""
+
 import numpy as np
 import pytest
 
@@ -6,6 +8,7 @@ from recon_cli.stages.poisson.basis import Quadratic, Trilinear, basis_for
 
 
 def test_basis_for_each_degree():
+    """basis_for gives the trilinear or quadratic basis and each basis's tree depth."""
     assert isinstance(basis_for(1), Trilinear) and basis_for(1).degree == 1
     assert isinstance(basis_for(2), Quadratic) and basis_for(2).degree == 2
     # level 0 carries no quadratic function (nor level 1 with the free boundary's cube)
@@ -15,6 +18,7 @@ def test_basis_for_each_degree():
 
 @pytest.mark.parametrize("degree", [1, 2])
 def test_both_bases_reconstruct_a_sphere(degree):
+    """Both bases mesh a sphere 1e6 away within half a finest cell, with the full report."""
     rng = np.random.default_rng(4)
     n = rng.normal(size=(6000, 3))
     n /= np.linalg.norm(n, axis=1, keepdims=True)

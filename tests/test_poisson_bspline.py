@@ -1,7 +1,10 @@
-"""Poisson's degree-2 B-spline basis: the operators against their definitions (quadrature,
-partition of unity, exact refinement), and the surfaces it gives: sphere radius error below
-degree 1's and falling with depth, closed manifold one-piece output on generated shapes,
-agreement with Open3D (PoissonRecon's code, degree 1) and PyMeshLab."""
+"""Poisson's degree-2 B-spline basis: its operators and the surfaces it gives.
+
+The operators against their definitions (quadrature, partition of unity, exact refinement), and the
+surfaces it gives: sphere radius error below degree 1's and falling with depth, closed manifold
+one-piece output on generated shapes, agreement with Open3D (PoissonRecon's code, degree 1) and
+PyMeshLab.
+"""
 
 from __future__ import annotations
 
@@ -39,6 +42,7 @@ def _db2(u):
 
 @pytest.mark.parametrize("rho", [0.125, 0.5, 1.0, 2.0, 8.0])
 def test_splat_factors_match_quadrature(rho):
+    """The B-spline splat factors (value and derivative) equal their integrals by quadrature."""
     # int B2(w) K(w - v) dw and int B2'(w) K(w - v) dw, K = B2(./rho)/rho, by the midpoint rule
     z = np.linspace(-20.0, 20.0, 2_000_001)
     dz = z[1] - z[0]
@@ -51,6 +55,7 @@ def test_splat_factors_match_quadrature(rho):
 
 @pytest.mark.parametrize("n", [1, 2, 3, 8, 64])
 def test_folded_tables_partition_of_unity_and_symmetry(n):
+    """The folded 1-D tables: partition of unity, symmetry, and Dirichlet positive definite."""
     m1, k1 = folded_tables(n, 1.0)
     # Neumann: the cells' functions sum to 1 on the cube, so each row of the mass is its
     # function's integral (1) and each row of the stiffness is 0
@@ -80,6 +85,7 @@ def _complete_levels(depth: int, boundary: str):
 
 @pytest.mark.parametrize("boundary", ["neumann", "dirichlet"])
 def test_prolongation_is_exact_and_the_field_reads_the_finest_level(rng, boundary):
+    """Prolongation is exact and the field reads the finest level, as the basis by definition."""
     # a random function of level 2, prolonged to level 3, is the same function (refinement
     # is exact, faces included)
     levels = _complete_levels(3, boundary)
@@ -125,6 +131,7 @@ def test_prolongation_is_exact_and_the_field_reads_the_finest_level(rng, boundar
 
 
 def test_refined_vertices_sit_on_their_edges_at_the_iso_value(rng):
+    """Refined vertices stay on their lattice edges, at the iso value."""
     levels = _complete_levels(3, "neumann")
     coarse, fine = level_field(levels[2], "neumann"), level_field(levels[3], "neumann")
     coarse.coef = np.zeros(8 * len(coarse.q_keys))
@@ -153,6 +160,7 @@ def _sphere_error(p, n, depth, degree):
 
 
 def test_sphere_radius_error_falls_with_depth(rng):
+    """Degree 2's sphere radius error falls by 30 % or more with each depth from 5 to 7."""
     # degree 2 was more accurate than degree 1 here until degree 1 got the B-spline normal
     # splat and the non-linear root fit (60k samples, depth 5-7: degree 1 3.4e-4, 1.1e-4,
     # 9.1e-5; degree 2 4.8e-4, 1.8e-4, 1.0e-4); what must hold is that its error falls as
@@ -164,6 +172,7 @@ def test_sphere_radius_error_falls_with_depth(rng):
 
 @pytest.mark.parametrize("name", sorted(SHAPES))
 def test_degree2_generated_shapes_closed_manifold_one_piece(rng, name):
+    """Degree 2 on each generated shape, scaled and moved: one closed, manifold, outward piece."""
     scale = 10.0 ** rng.uniform(-2, 2)
     p, n = shape_cloud(name, 12_000, rng, scale=scale, offset=rng.uniform(-1e6, 1e6, 3))
     rep = topology_report(screened_poisson(p, n, depth=7, degree=2).mesh)
@@ -175,6 +184,7 @@ def test_degree2_generated_shapes_closed_manifold_one_piece(rng, name):
 
 @pytest.mark.parametrize("boundary", ["neumann", "dirichlet"])
 def test_degree2_sphere_within_a_fraction_of_a_cell(rng, boundary):
+    """Degree 2, both boundaries: a sphere's vertices within 0.3 finest cell of it."""
     v = rng.normal(size=(40_000, 3))
     v /= np.linalg.norm(v, axis=1, keepdims=True)
     centre = np.array([1.0, -2.0, 0.5])
@@ -184,6 +194,7 @@ def test_degree2_sphere_within_a_fraction_of_a_cell(rng, boundary):
 
 
 def test_degree_is_validated():
+    """A degree other than 1 or 2 is refused."""
     p, n = shape_cloud("sphere", 500, np.random.default_rng(0))
     for bad in (0, 3, "x"):
         with pytest.raises(ParameterError):
@@ -192,6 +203,7 @@ def test_degree_is_validated():
 
 @pytest.mark.parametrize("name", ["sphere", "plate_with_hole"])
 def test_degree2_single_view_scan_closed_manifold_one_piece(rng, name):
+    """Degree 2 on a single-view scan: one closed, manifold piece with no degenerate faces."""
     from shapes import single_view_scan
 
     p, n = single_view_scan(name, 90, rng, direction=rng.normal(size=3))
@@ -213,6 +225,7 @@ def _exact_chamfer(mesh, sdf, truth_pts):
 
 @pytest.mark.slow
 def test_degree2_rounded_box_as_accurate_as_open3d():
+    """Degree 2 on a rounded box, depth 8: exact Chamfer at or below Open3D's."""
     # exact point-to-surface distances both ways (a sampled Chamfer hides a factor 1.5 under
     # its sampling noise): 100k clean samples, depth 8; measured 0.73x Open3D (degree 1: 1.57x)
     from recon_cli.backends import open3d_backend
@@ -244,6 +257,7 @@ RHS_CASES = [
 @pytest.mark.parametrize("boundary", ["neumann", "dirichlet"])
 @pytest.mark.parametrize("case", RHS_CASES)
 def test_normal_rhs_equals_the_direct_splat_at_every_level(rng, boundary, case):
+    """NormalRHS equals splatting every share at every level, both boundaries."""
     # NormalRHS (the field refined level to level, a 5x5x5 stencil per cell, the finer levels
     # restricted upward, folded at the faces) against splatting every share at every level
     assert KERNEL_WIDTH == 1.0
@@ -284,6 +298,7 @@ def test_normal_rhs_equals_the_direct_splat_at_every_level(rng, boundary, case):
 
 @pytest.mark.parametrize("top", [0, 1, 3, 40])
 def test_neighbour_table_matches_a_dictionary(rng, top):
+    """The merged neighbour table equals a dictionary lookup of the keys, faces included."""
     # the merged lookup (27 sorted cursors) against a dictionary of the keys: every offset,
     # the cube's faces (-1 outside [0, top]) and absent neighbours
     n = min(3 * (top + 1) ** 3 // 4 + 1, 5_000)
@@ -305,9 +320,11 @@ def test_neighbour_table_matches_a_dictionary(rng, top):
 
 
 def test_block_preconditioner_solves_each_block_as_numpy(rng):
-    """factor_blocks then apply_blocks on random SPD 8x8 blocks: each block's system solved as
-    numpy solves it, rows with no positive diagonal fixed at 0, and a block singular to rounding
-    (the constant in its kernel, as the pure Neumann level 1) left with its diagonal's inverse."""
+    """factor_blocks then apply_blocks solve each random SPD 8x8 block as numpy does.
+
+    Rows with no positive diagonal are fixed at 0, and a block singular to rounding (the constant in
+    its kernel, as the pure Neumann level 1) is left with its diagonal's inverse.
+    """
     nb = 60
     blocks = np.empty((nb, 8, 8))
     fixed = np.zeros((nb, 8), bool)
@@ -365,8 +382,11 @@ def _unpacked(inv: np.ndarray) -> np.ndarray:
 
 
 def test_packed_blocks_in_place_keep_every_entry(rng):
-    """pack_blocks packs each block's lower triangle into the start of the same buffer, block by
-    block (the first blocks' packed entries overlap their own rows): every entry read back."""
+    """pack_blocks packs each block's lower triangle in place: every entry reads back.
+
+    Each block's lower triangle goes into the start of the same buffer, block by block (the first
+    blocks' packed entries overlap their own rows).
+    """
     for nb in (0, 1, 2, 5):
         g = rng.normal(size=(nb, 8, 8))
         blocks = g + g.transpose(0, 2, 1)
@@ -379,10 +399,13 @@ def test_packed_blocks_in_place_keep_every_entry(rng):
 
 @pytest.mark.parametrize("boundary", ["neumann", "free"])
 def test_block_jacobi_level_solves_the_same_system_as_jacobi(monkeypatch, rng, boundary):
-    """Every level of a small cloud's solve: the sibling blocks are the operator's (columns of
+    """Block-Jacobi level solves converge to Jacobi's solution in fewer iterations.
+
+    Every level of a small cloud's solve: the sibling blocks are the operator's (columns of
     level_matvec), the preconditioner their inverse, and the block-Jacobi conjugate gradients
     converge to Jacobi's solution (the previous preconditioner) in fewer iterations, and at the
-    solve's own tolerance about as close to the exact solution."""
+    solve's own tolerance about as close to the exact solution.
+    """
     seen = []
     real = BO.level_pcg
 
@@ -448,6 +471,7 @@ def test_block_jacobi_level_solves_the_same_system_as_jacobi(monkeypatch, rng, b
 
 
 def test_screening_product_and_blocks_in_bands_are_the_one_walk(rng, monkeypatch):
+    """The screening product and blocks in bands over threads equal the one walk, bitwise."""
     # the CG's screening product runs in bands of parents over the threads, each band walking
     # the samples that reach it in order: every row must sum as the one walk does, to the bit
     import numba
@@ -488,6 +512,7 @@ def test_screening_product_and_blocks_in_bands_are_the_one_walk(rng, monkeypatch
 
 
 def test_level_cg_is_the_same_for_any_thread_count(monkeypatch):
+    """A level's conjugate gradients give the same iterate on one thread and two, to the bit."""
     # the CG's products run over the threads with every sum kept in one order: one thread
     # and two give the same iterate to the bit
     import numba

@@ -1,5 +1,8 @@
-"""Distributed Poisson (recon_cli.stages.poisson.distributed): seams, slabs of any density,
-empty slabs, one slab against the single-process solve, killed workers, the command."""
+"""Distributed Poisson (recon_cli.stages.poisson.distributed) against the single process.
+
+Seams, slabs of any density, empty slabs, one slab against the single-process solve, killed workers,
+the command.
+"""
 
 from __future__ import annotations
 
@@ -34,11 +37,14 @@ def _radial_error(mesh, centre, radius) -> float:
 
 @pytest.mark.parametrize("seed, n, mode", [(0, 12_000, "leaves"), (1, 40_000, "finest")])
 def test_sphere_cut_by_every_slab_plane_is_one_closed_piece(seed, n, mode):
-    """Four slabs of a rotated, scaled sphere 1e6 from the origin: every seam crosses it, the
-    mesh is one closed manifold piece, no vertex duplicated, the two sides' seam vertices are
-    the same bits, and it is as close to the sphere as the single-process mesh; sparse
-    samples (coarse leaves hold surface: the extraction at the leaves' own size) and dense
-    ones (the finest-lattice extraction), as the single-process solve chooses."""
+    """A sphere cut by every seam of four slabs is one closed manifold piece.
+
+    A rotated, scaled sphere 1e6 from the origin: the mesh is one closed manifold piece, no vertex
+    duplicated, the two sides' seam vertices are the same bits, and it is as close to the sphere as
+    the single-process mesh; sparse samples (coarse leaves hold surface: the extraction at the
+    leaves' own size) and dense ones (the finest-lattice extraction), as the single-process solve
+    chooses.
+    """
     rng = np.random.default_rng(seed)
     p, nrm0 = sphere_cloud(n, seed=seed)
     r = random_rotation(rng)
@@ -62,10 +68,13 @@ def test_sphere_cut_by_every_slab_plane_is_one_closed_piece(seed, n, mode):
 
 
 def test_sphere_cut_by_level6_seams_is_one_closed_piece():
-    """More slabs than level-5 planes (40): seams on level-6 planes, level 6 made complete so no
-    leaf crosses one; every seam crosses the sphere and the mesh is still one closed manifold
-    piece with no vertex twice, the seams' vertices the same bits on both sides, about as close to
-    the sphere as the single-process mesh."""
+    """A sphere cut by level-6 seams (40 slabs) is one closed manifold piece.
+
+    More slabs than level-5 planes: seams on level-6 planes, level 6 made complete so no leaf
+    crosses one; every seam crosses the sphere and the mesh is still one closed manifold piece with
+    no vertex twice, the seams' vertices the same bits on both sides, about as close to the sphere
+    as the single-process mesh.
+    """
     rng = np.random.default_rng(5)
     p, nrm0 = sphere_cloud(40_000, seed=5)
     r = random_rotation(rng)
@@ -82,8 +91,11 @@ def test_sphere_cut_by_level6_seams_is_one_closed_piece():
 
 @pytest.mark.parametrize("n", [8000, 40_000])
 def test_one_slab_is_the_single_process_mesh(n):
-    """With one slab, the coarse and fine solves split and the whole pipeline give the
-    single-process solve's mesh, to rounding (the same vertices), in both extractions."""
+    """With one slab, the slab pipeline gives the single-process mesh, in both extractions.
+
+    The coarse and fine solves split and the whole pipeline give the single-process solve's mesh, to
+    rounding (the same vertices).
+    """
     pts, nrm = sphere_cloud(n, seed=3)
     pts = pts * np.array([1.0, 0.8, 0.7])  # x the longest axis: the same frame
     res = distributed_poisson(pts, nrm, depth=7, partitions=1)
@@ -97,9 +109,12 @@ def test_one_slab_is_the_single_process_mesh(n):
 
 
 def test_slabs_of_very_different_density():
-    """One slab holds 16x the samples per area of the other (the seam through the middle of
-    an ellipsoid, x its longest axis): still one closed piece, and as close to the samples'
-    surface as the single-process mesh."""
+    """Slabs of 16x different density still give one closed piece as close as the single run.
+
+    One slab holds 16x the samples per area of the other (the seam through the middle of an
+    ellipsoid, x its longest axis): one closed piece, as close to the samples' surface as the
+    single-process mesh.
+    """
     rng = np.random.default_rng(5)
     p, n = sphere_cloud(40_000, seed=5)
     keep = (p[:, 0] > 0) | (rng.random(len(p)) < 1 / 16)
@@ -119,8 +134,11 @@ def test_slabs_of_very_different_density():
 
 
 def test_noise_blobs_are_specks_across_slabs(monkeypatch):
-    """A depth finer than the noise (about 2 finest cells): the slabs' merge drops the blobs
-    by the global noise median, as the single process does; a real second sphere stays."""
+    """Noise blobs are dropped across slabs by the global noise median; a real sphere stays.
+
+    A depth finer than the noise (about 2 finest cells): the slabs' merge drops the blobs as the
+    single process does; a real second sphere stays.
+    """
     import recon_cli.stages.poisson as P
 
     rng = np.random.default_rng(11)
@@ -144,9 +162,12 @@ def test_noise_blobs_are_specks_across_slabs(monkeypatch):
 
 
 def test_states_pickled_between_steps_give_the_same_mesh(monkeypatch):
-    """Every slab state pickled and read back after every step (as Dask spills or moves it):
-    the same mesh to the bit, and a pickled state is its size (the fields' views of the solve's
-    arrays are not copied)."""
+    """Slab states pickled after every step give the same mesh, and pickle at their size.
+
+    Every slab state pickled and read back after every step (as Dask spills or moves it): the same
+    mesh to the bit, and a pickled state is its size (the fields' views of the solve's arrays are
+    not copied).
+    """
     import pickle
 
     from recon_cli.slabs import runners as steps
@@ -181,8 +202,7 @@ def test_states_pickled_between_steps_give_the_same_mesh(monkeypatch):
 
 
 def test_an_empty_slab():
-    """Two spheres apart along x, the middle slab owning only the empty space between them:
-    it gives no faces, the others two closed spheres."""
+    """Two spheres apart along x, the middle slab empty: no faces there, two closed spheres."""
     a, na = sphere_cloud(6000, centre=(-3.0, 0, 0), seed=7)
     b, nb = sphere_cloud(6000, centre=(3.0, 0, 0), seed=8)
     pts, nrm = np.vstack([a, b]), np.vstack([na, nb])
@@ -226,8 +246,11 @@ class _Bars:
 
 @pytest.mark.parametrize("kw", [{}, {"trim": 0.2, "colors": True, "point_weight": 0.0}])
 def test_progress_over_the_whole_job_reaches_its_total(kw):
-    """The job's bar is advanced by every phase that runs, a slab at a time, to its total
-    exactly (no phase weighed that does not run, none run unweighed)."""
+    """The job's progress bar reaches its total exactly, a slab at a time.
+
+    It is advanced by every phase that runs (no phase weighed that does not run, none run
+    unweighed).
+    """
     pts, nrm = sphere_cloud(6000, seed=13)
     if kw.pop("colors", False):
         kw["colors"] = (np.abs(nrm) * 255).astype(np.uint8)
@@ -249,15 +272,18 @@ def test_progress_over_the_whole_job_reaches_its_total(kw):
     ],
 )
 def test_refused_options(kw, msg):
+    """Out-of-range partitions, depth, full depth and seams are refused with their message."""
     pts, nrm = sphere_cloud(2000, seed=1)
     with pytest.raises(ParameterError, match=msg):
         distributed_poisson(pts, nrm, **{"depth": 7, "partitions": 2, **kw})
 
 
 def test_a_slab_reads_its_part_of_a_global_density_table():
-    """The cells of a summed density table the coordinator sends a slab (table_part): the
-    density at every point of its usable x range the whole table's, to the bit; the part a
-    fraction of the whole."""
+    """A slab's part of a summed density table gives the whole table's density to the bit.
+
+    The cells the coordinator sends a slab (table_part): the density at every point of its usable x
+    range is the whole table's, to the bit; the part is a fraction of the whole.
+    """
     from recon_cli.stages.poisson import slab as S
     from recon_cli.stages.poisson.distributed import table_part
     from recon_cli.stages.poisson.splat import merge_samples
@@ -286,8 +312,7 @@ def test_a_slab_reads_its_part_of_a_global_density_table():
 
 
 def test_no_partitions_in_memory_is_one_slab_here():
-    """Without a cluster and ``partitions=None``, this process runs one slab: the
-    single-process mesh, and the report says so."""
+    """Without a cluster and ``partitions=None``: one slab here, the single mesh, reported so."""
     pts, nrm = sphere_cloud(8000, seed=3)
     res = distributed_poisson(pts, nrm, depth=7, partitions=None)
     ref = distributed_poisson(pts, nrm, depth=7, partitions=1)
@@ -305,6 +330,7 @@ def test_no_partitions_in_memory_is_one_slab_here():
 
 @pytest.fixture(scope="module")
 def cluster():
+    """A local Dask cluster of 2 workers for the module's tests (no memory limit, no stealing)."""
     from recon_cli.batch.cluster import open_client
 
     with open_client(workers=2, memory_limit="none", stealing=False) as (client, info):
@@ -325,8 +351,7 @@ def _kill_a_worker_soon(pids: dict, killed: list[int]) -> None:
 
 @pytest.mark.slow
 def test_killed_worker_mid_solve_gives_the_same_mesh(cluster):
-    """A worker SIGKILLed while the slabs solve: its slabs are recomputed on a live worker and
-    the mesh is the one an undisturbed run gives, bit for bit."""
+    """A worker SIGKILLed mid-solve: its slabs rerun on a live worker, the same mesh bit for bit."""
     from recon_cli.slabs import runners as steps
 
     pts, nrm = sphere_cloud(12_000, seed=11)
@@ -352,9 +377,11 @@ def test_killed_worker_mid_solve_gives_the_same_mesh(cluster):
 
 @pytest.mark.slow
 def test_more_slabs_than_workers_spill_their_states(cluster, tmp_path, monkeypatch):
-    """Three slabs on two workers, every state written to its file between steps and every
-    shared argument to its own, a worker SIGKILLed while the slabs solve: the in-process run's
-    mesh, bit for bit, and no file left."""
+    """Three slabs on two workers, states spilled, a worker killed: the in-process mesh exactly.
+
+    Every state written to its file between steps and every shared argument to its own, a worker
+    SIGKILLed while the slabs solve: the in-process run's mesh, bit for bit, and no file left.
+    """
     from recon_cli.stages.poisson import distributed as D
 
     pts, nrm = sphere_cloud(12_000, seed=14)
@@ -377,9 +404,11 @@ def test_more_slabs_than_workers_spill_their_states(cluster, tmp_path, monkeypat
 
 @pytest.mark.slow
 def test_parts_spread_by_their_loads(cluster):
-    """With the parts' loads, the heaviest go first, each to the least loaded worker: loads
-    5, 4, 3, 1 on two workers pair the parts (0, 3) and (1, 2), 6 and 7 (in turn: 8 and 5);
-    a slab's load is the points it reads, its pads included."""
+    """Parts are spread by their loads: the heaviest first, each to the least loaded worker.
+
+    Loads 5, 4, 3, 1 on two workers pair the parts (0, 3) and (1, 2), 6 and 7 (in turn: 8 and 5); a
+    slab's load is the points it reads, its pads included.
+    """
     from types import SimpleNamespace
 
     from recon_cli.slabs import runners as steps
@@ -414,12 +443,14 @@ def test_parts_spread_by_their_loads(cluster):
 
 
 def test_spilled_parts_keep_one_file_each(cluster, tmp_path):
-    """Three parts on two workers, every state spilled: after each step the folder holds at
-    most one file per part (the file a step read goes once it wrote its own: a 20M-point run's
-    48 slab states are tens of GB a round); each worker keeps the last part it ran in memory
-    and runs it first next time, so only the worker with two parts writes, one state a step;
-    a step that only reads its state writes none and removes none; the states come back
-    right."""
+    """Spilled parts keep at most one file each; only a worker with two parts writes.
+
+    Three parts on two workers, every state spilled: after each step the folder holds at most one
+    file per part (the file a step read goes once it wrote its own: a 20M-point run's 48 slab states
+    are tens of GB a round); each worker keeps the last part it ran in memory and runs it first next
+    time, so only the worker with two parts writes, one state a step; a step that only reads its
+    state writes none and removes none; the states come back right.
+    """
     import time
     from types import SimpleNamespace
 
@@ -461,11 +492,12 @@ def test_spilled_parts_keep_one_file_each(cluster, tmp_path):
 
 @pytest.mark.slow
 def test_an_argument_all_parts_share_is_written_once(cluster, tmp_path, monkeypatch):
-    """With a spill folder, a large argument every part's task shares goes to one file, the
-    tasks carrying its path (Dask would pickle it into each of them: 48 copies of the coarse
-    levels held the coordinator at 8.5 GiB and queued tasks took workers past their limit);
-    each task reads the value, a per-part argument stays in its task, and close() removes
-    the file."""
+    """With a spill folder, an argument every part's task shares is written to one file once.
+
+    The tasks carry its path (Dask would pickle it into each of them: 48 copies of the coarse levels
+    held the coordinator at 8.5 GiB and queued tasks took workers past their limit); each task reads
+    the value, a per-part argument stays in its task, and close() removes the file.
+    """
     from types import SimpleNamespace
 
     from recon_cli.slabs import runners as steps
@@ -506,10 +538,12 @@ def test_an_argument_all_parts_share_is_written_once(cluster, tmp_path, monkeypa
 
 @pytest.mark.slow
 def test_laz_tiles_read_by_chunks(cluster, tmp_path, monkeypatch):
-    """A folder of LAZ tiles (a sphere cut in two at 1e5), read by the workers in chunks of a
-    few rows (laspy seeking in the compressed files): the mesh of the in-memory run on the
-    same points, with the LAS classification carried as codes; a tile with colours the
-    others lack is refused and leaves no temporary folder."""
+    """A folder of LAZ tiles read by chunks gives the in-memory mesh; mixed tiles are refused.
+
+    A sphere cut in two at 1e5, read by the workers in chunks of a few rows (laspy seeking in the
+    compressed files): the mesh of the in-memory run on the same points, with the LAS classification
+    carried as codes; a tile with colours the others lack is refused and leaves no temporary folder.
+    """
     import recon_cli.io.chunks as C
     from recon_cli.io.las import write_las
     from recon_cli.stages.poisson.files import reconstruct_files
@@ -576,9 +610,12 @@ def _recon(argv: list[str]) -> int:
 
 @pytest.mark.slow
 def test_command_reads_the_file_by_chunks(tmp_path, monkeypatch, capsys):
-    """``recon poisson IN OUT --workers 2``: the command never loads IN (the workers read its
-    chunks, dropping and counting a NaN row as the reader does); the mesh is the in-memory
-    distributed run's, double in, double out, with the input's properties in their types."""
+    """``recon poisson IN OUT --workers 2`` reads IN by chunks: the in-memory distributed mesh.
+
+    The command never loads IN (the workers read its chunks, dropping and counting a NaN row as the
+    reader does); the mesh is the in-memory distributed run's, double in, double out, with the
+    input's properties in their types.
+    """
     import recon_cli.io.chunks as C
     import recon_cli.io.load as L
 
@@ -623,10 +660,12 @@ def test_command_reads_the_file_by_chunks(tmp_path, monkeypatch, capsys):
 
 @pytest.mark.slow
 def test_command_reports_the_slab_count_and_why(tmp_path, monkeypatch, capsys):
-    """``--workers 2 --memory 5GiB`` (2 GiB a worker) without ``--partitions``, on a cloud
-    whose slab (at a patched bytes per point) fits a worker's share three times over: four
-    slabs, two per worker, and ``--json`` says so; with ``--partitions 3``, three, given."""
+    """Without ``--partitions`` the slab count follows the workers' memory and ``--json`` says why.
 
+    ``--workers 2 --memory 5GiB`` (2 GiB a worker) on a cloud whose slab (at a patched bytes per
+    point) fits a worker's share three times over: four slabs, two per worker; with ``--partitions
+    3``, three, given.
+    """
     pts, nrm = sphere_cloud(6000, seed=15)
     src = tmp_path / "sphere.ply"
     save(PointCloud(points=pts, normals=nrm), str(src))
@@ -662,6 +701,7 @@ def test_command_reports_the_slab_count_and_why(tmp_path, monkeypatch, capsys):
     ],
 )
 def test_command_refuses(tmp_path, capsys, args, msg):
+    """Options the slabs or the workers cannot honour exit 2 with a message naming them."""
     pts, nrm = sphere_cloud(500, seed=1)
     src = tmp_path / "s.ply"
     save(PointCloud(points=pts, normals=nrm), str(src))
@@ -673,8 +713,7 @@ def test_command_refuses(tmp_path, capsys, args, msg):
 
 @pytest.mark.slow
 def test_ctrl_c_mid_job_leaves_nothing(tmp_path):
-    """Ctrl-C (the process group's SIGINT) once the workers have sorted the chunks: exit 130, one
-    line, no output, no temporary folder, no worker process left."""
+    """Ctrl-C (SIGINT to the group) once the chunks are sorted: exit 130, one line, nothing left."""
     import sys
 
     import psutil
@@ -721,10 +760,12 @@ def _refuse_loading(monkeypatch):
 def test_out_of_core_command_reads_the_file_by_chunks_in_this_process(
     tmp_path, monkeypatch, capsys
 ):
-    """``recon poisson IN OUT --memory 1GiB`` on a cloud too large for that in one piece (at
-    a patched bytes per point): this process runs 3 slabs from IN's chunks, never loading IN;
-    the mesh is the in-memory run's in 3 slabs, closed and one piece; the spill folder beside OUT
-    is gone; the report says how many slabs and why."""
+    """``recon poisson --memory 1GiB`` too small for the cloud runs 3 slabs from IN's chunks.
+
+    The cloud is too large for that in one piece (at a patched bytes per point): this process runs 3
+    slabs from IN's chunks, never loading IN; the mesh is the in-memory run's in 3 slabs, closed and
+    one piece; the spill folder beside OUT is gone; the report says how many slabs and why.
+    """
     import recon_cli.io.chunks as C
 
     pts, nrm = sphere_cloud(9000, seed=21)
@@ -753,8 +794,7 @@ def test_out_of_core_command_reads_the_file_by_chunks_in_this_process(
 
 
 def test_command_trims_auto_in_slabs_from_the_file(tmp_path, monkeypatch, capsys):
-    """``recon poisson IN OUT --partitions 3 --trim auto``: the slabs read IN by chunks and trim
-    as the in-memory run in 3 slabs does."""
+    """``--partitions 3 --trim auto`` on the file, read by chunks: the in-memory 3 slabs' mesh."""
     rng = np.random.default_rng(0)
     pts, nrm = single_view_scan("torus", 120, rng, direction=(0.3, 0.2, -1.0))
     src = tmp_path / "scan.ply"
@@ -776,8 +816,7 @@ def test_command_trims_auto_in_slabs_from_the_file(tmp_path, monkeypatch, capsys
 
 
 def test_command_writes_the_grid_in_slabs_from_the_file(tmp_path, monkeypatch, capsys):
-    """``recon poisson IN OUT --partitions 2 --grid G``: the slabs read IN by chunks and G is
-    the in-memory slabs' grid, its history ending with how it was made."""
+    """``--partitions 2 --grid G`` by chunks: G is the in-memory slabs' grid, with its history."""
     from recon_cli.io.npz import read_grid
 
     pts, nrm = shape_cloud("torus", 20_000, np.random.default_rng(5), offset=1e6)
@@ -800,9 +839,7 @@ def test_command_writes_the_grid_in_slabs_from_the_file(tmp_path, monkeypatch, c
 
 
 def test_spilled_states_give_the_same_mesh(tmp_path, monkeypatch):
-    """In this process with every state written to its file between steps (out of core), the
-    mesh is the in-memory slabs' to the bit; the states went to the folder given, which is
-    empty after the run."""
+    """States spilled between steps: the in-memory slabs' mesh to the bit, the folder left empty."""
     from recon_cli.slabs import runners
 
     pts, nrm = sphere_cloud(6000, seed=22)
@@ -819,9 +856,12 @@ def test_spilled_states_give_the_same_mesh(tmp_path, monkeypatch):
 
 
 def test_run_on_memory_puts_the_library_call_in_slabs(monkeypatch):
-    """``recon_cli.poisson`` in ``run_on(memory=...)``: the cloud needs more than the memory in
-    one piece, so the stage runs in slabs in this process (the report says so) and the mesh is
-    the slabs' run; without the limit, the single-process solve."""
+    """``recon_cli.poisson`` in ``run_on(memory=...)`` runs in slabs when the cloud needs it.
+
+    The cloud needs more than the memory in one piece, so the stage runs in slabs in this process
+    (the report says so) and the mesh is the slabs' run; without the limit, the single-process
+    solve.
+    """
     import recon_cli
 
     pts, nrm = sphere_cloud(6000, seed=23)
@@ -863,9 +903,11 @@ def _tmpfs(path, size: str):
 
 @pytest.mark.slow
 def test_a_full_disk_while_spilling_is_one_line_and_keeps_the_old_output(tmp_path):
-    """The spill folder on a 1 MiB file system: exit 1, one line naming the folder, the output
-    that was there before left as it was, nothing left in the folder (a real process, a real
-    full file system)."""
+    """A full disk while spilling: exit 1, one line, the old output kept, the folder emptied.
+
+    The spill folder on a 1 MiB file system: one line naming the folder, the output that was there
+    before left as it was, nothing left in the folder (a real process, a real full file system).
+    """
     import subprocess
     import sys
 
@@ -892,8 +934,7 @@ def test_a_full_disk_while_spilling_is_one_line_and_keeps_the_old_output(tmp_pat
 
 @pytest.mark.slow
 def test_sigterm_mid_out_of_core_run_leaves_nothing(tmp_path):
-    """SIGTERM once the chunks are sorted into the spill folder beside OUT: exit 143, one line,
-    no output, no folder (a real process)."""
+    """SIGTERM once the chunks are spilled beside OUT: exit 143, one line, no output, no folder."""
     import sys
 
     pts, nrm = sphere_cloud(60_000, seed=26)
@@ -919,10 +960,13 @@ def test_sigterm_mid_out_of_core_run_leaves_nothing(tmp_path):
 
 @pytest.mark.slow
 def test_the_mesh_does_not_depend_on_how_the_work_was_cut():
-    """Noisy armadillo samples turned at random, 1e6 from the origin, in 1, 2, 4 and 8 slabs of
-    this process: every pair within half a finest cell of each other (Hausdorff, exact
-    point-to-triangle distances both ways), face counts within 0.5 % of the one slab's, each
-    closed (0 boundary edges: no face lost at a seam), manifold, one piece, no vertex twice."""
+    """Noisy armadillo in 1, 2, 4 and 8 slabs: the same closed mesh within half a finest cell.
+
+    Samples turned at random, 1e6 from the origin, in slabs of this process: every pair within half
+    a finest cell of each other (Hausdorff, exact point-to-triangle distances both ways), face
+    counts within 0.5 % of the one slab's, each closed (0 boundary edges: no face lost at a seam),
+    manifold, one piece, no vertex twice.
+    """
     from recon_cli.mesh.distance import closest_points
 
     from shared_data import sampled_cloud

@@ -1,6 +1,9 @@
-"""Poisson's --envelope: a closed mesh bounding the surface (chi clipped by it, unobserved space
-solid, so an open scan's closing sheet follows it), refused in one line when it is not a closed
-mesh; and --confidence (weights from the normals' lengths)."""
+"""Poisson's --envelope and --confidence.
+
+--envelope: a closed mesh bounding the surface (chi clipped by it, unobserved space solid, so an
+open scan's closing sheet follows it), refused in one line when it is not a closed mesh;
+--confidence: weights from the normals' lengths.
+"""
 
 from __future__ import annotations
 
@@ -37,8 +40,10 @@ def _bunny():
 
 
 def _sheet_cells(res, pts: np.ndarray, env: TriangleMesh) -> np.ndarray:
-    """The closing sheet's vertices (farther than 4 finest cells from the points): their
-    distance to the envelope in finest cells."""
+    """The closing sheet's vertices' distance to the envelope, in finest cells.
+
+    The sheet's vertices: those farther than 4 finest cells from the points.
+    """
     from scipy.spatial import cKDTree
 
     cell = res.report["finest_cell"]
@@ -56,6 +61,11 @@ def _closed_manifold(mesh: TriangleMesh) -> None:
 
 @pytest.mark.slow
 def test_bunny_scan_inside_a_sphere():
+    """The bunny scan inside a sphere envelope: no vertex outside, the sheet follows the sphere.
+
+    Without the envelope the closing sheet runs outside; with it the mesh is closed and manifold,
+    its sheet a median under 2 cells from the sphere, and the scan itself kept.
+    """
     # the shared raw scan: its closing sheet runs outside a sphere just around it; with the
     # sphere as the envelope no vertex is outside, and the sheet follows the sphere behind the
     # scan (chi fixed to 0 outside, as PoissonRecon, left it a median 31 cells inside)
@@ -85,6 +95,10 @@ def test_bunny_scan_inside_a_sphere():
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_open_scans_follow_a_box_or_sphere_envelope(seed):
+    """Open scans in a box or sphere envelope: no vertex outside, closed, the sheet on it.
+
+    Single-view scans, randomly rotated and far from the origin; the box rotated with them.
+    """
     # single-view scans by ray casting, randomly rotated and far from the origin; the envelope a
     # box (rotated with them) 1.3x their extent, or a sphere 1.2x their radius: no vertex
     # outside, closed and manifold, the closing sheet on the envelope behind the scan
@@ -116,6 +130,10 @@ def test_open_scans_follow_a_box_or_sphere_envelope(seed):
 
 
 def test_carving_and_cube():
+    """Carving marks the space above a plane of samples free and below solid; the cube doubles.
+
+    The samples' own neighbourhood is left to chi; the doubled cube keeps the finest lattice.
+    """
     # a plane of samples facing +z in the middle of the cube: the space above is free, below
     # solid; the samples' own neighbourhood is left to chi; the cube doubles to hold a mesh
     g = (np.stack(np.meshgrid(np.linspace(0.2, 0.8, 60), np.linspace(0.2, 0.8, 60)), -1)).reshape(
@@ -136,6 +154,7 @@ def test_carving_and_cube():
 
 
 def test_refused_envelopes(tmp_path, rng):
+    """Envelopes that are open, not meshes, missing, unreadable or too small exit 2, naming why."""
     p, n = shape_cloud("sphere", 2000, rng)
     src, out = tmp_path / "in.ply", tmp_path / "out.ply"
     write_ply(PointCloud(points=p, normals=n), src)
@@ -182,6 +201,7 @@ def test_refused_envelopes(tmp_path, rng):
 
 
 def test_cli_envelope(tmp_path, rng):
+    """``recon poisson --envelope``: no point outside it and no vertex of the output outside."""
     p, n = shape_cloud("torus", 5000, rng, offset=1e6)
     src, out, env = tmp_path / "in.ply", tmp_path / "out.ply", tmp_path / "env.ply"
     write_ply(PointCloud(points=p, normals=n), src)
@@ -196,6 +216,11 @@ def test_cli_envelope(tmp_path, rng):
 
 
 def test_confidence_weights_the_points(rng):
+    """Confidence: equal normal lengths change nothing; short normals on wrong points are ignored.
+
+    The wrong points: a second, offset sphere's cap; with their weight low the surface is nearer the
+    unit sphere than without confidence.
+    """
     # the same lengths everywhere change nothing; short normals on a cluster of wrong points
     # (a second, offset sphere's cap) let the surface ignore it
     p, n = shape_cloud("sphere", 20_000, rng)
@@ -218,6 +243,10 @@ def test_confidence_weights_the_points(rng):
 
 
 def test_grid_with_an_envelope_is_the_surface(rng):
+    """With an envelope the grid's zero level is still the mesh, closing sheet included.
+
+    Negative only inside the envelope.
+    """
     # --grid reads the clipped field too: its zero level (marching cubes) is the mesh, the
     # closing sheet included, and it is negative inside the envelope only
     from recon_cli.mesh.distance import closest_points

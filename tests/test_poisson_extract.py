@@ -1,8 +1,10 @@
-"""Poisson's extraction over the adaptive tree: on generated shapes (random rotations, scales,
-offsets of 1e6, thin parts, holes, sparse and dense halves, single-view scans) the untrimmed
-surface is closed, edge- and vertex-manifold, one piece, outward, with no duplicate vertices
-(checked with our topology and with trimesh); the surface is extracted at the leaves' own
-size, so its size follows the tree, not the depth asked for."""
+"""Poisson's extraction over the adaptive tree, on generated shapes.
+
+On random rotations, scales, offsets of 1e6, thin parts, holes, sparse and dense halves, single-view
+scans, the untrimmed surface is closed, edge- and vertex-manifold, one piece, outward, with no
+duplicate vertices (checked with our topology and with trimesh); the surface is extracted at the
+leaves' own size, so its size follows the tree, not the depth asked for.
+"""
 
 from __future__ import annotations
 
@@ -42,8 +44,11 @@ def _assert_closed_manifold_one_piece(mesh: TriangleMesh) -> None:
 
 @pytest.fixture(params=["auto", "leaves"])
 def method(request, monkeypatch):
-    """The extraction as chosen (``auto``), or over the leaves even where every leaf holding
-    surface is a finest cell (``leaves``), so that the leaf extraction meets every shape."""
+    """The extraction as chosen (``auto``), or over the leaves everywhere (``leaves``).
+
+    ``leaves`` extracts over the leaves even where every leaf holding surface is a finest cell, so
+    that the leaf extraction meets every shape.
+    """
     if request.param == "leaves":
         monkeypatch.setattr(extract_mod, "extract", extract_mod.extract_leaves)
     return request.param
@@ -51,6 +56,7 @@ def method(request, monkeypatch):
 
 @pytest.mark.parametrize("name", sorted(SHAPES))
 def test_generated_shapes_closed_manifold_one_piece(rng, name, method):
+    """Each generated shape, scaled and moved at random: one closed, manifold, outward piece."""
     scale = 10.0 ** rng.uniform(-2, 2)
     p, n = shape_cloud(name, 12_000, rng, scale=scale, offset=rng.uniform(-1e6, 1e6, 3))
     _assert_closed_manifold_one_piece(screened_poisson(p, n, depth=int(rng.integers(6, 9))).mesh)
@@ -58,6 +64,7 @@ def test_generated_shapes_closed_manifold_one_piece(rng, name, method):
 
 @pytest.mark.parametrize("name", ["sphere", "torus", "rounded_box", "plate_with_hole"])
 def test_single_view_scans_closed_manifold_one_piece(rng, name, method):
+    """Single-view scans (open surfaces reaching the cube's faces) still close into one piece."""
     # an open surface: the solution runs into the sparse, coarse part of the tree and the
     # cube's faces, and must still close
     d = rng.normal(size=3)
@@ -66,12 +73,17 @@ def test_single_view_scans_closed_manifold_one_piece(rng, name, method):
 
 
 def test_sparse_and_dense_halves_closed_manifold_one_piece(rng, method):
+    """A torus with a dense and a 16x sparser half: one closed, manifold, outward piece."""
     p, n = shape_cloud("torus", 40_000, rng, rotate=False)
     keep = (p[:, 0] > 0) | (rng.random(len(p)) < 1 / 16)
     _assert_closed_manifold_one_piece(screened_poisson(p[keep], n[keep], depth=9).mesh)
 
 
 def test_sphere_radius_error_falls_with_depth(rng):
+    """A sphere's mean radial error falls with the finest cell from depth 5 to 7.
+
+    Under 1 % of the finest cell at depth 7, with enough samples not to limit it.
+    """
     # enough samples that depth 7 is not limited by them (3 per finest cell: the error
     # there is half the samples' noise, 60k samples give 9e-5 where 200k give 5.6e-5)
     p, n = shape_cloud("sphere", 200_000, rng)
@@ -85,6 +97,7 @@ def test_sphere_radius_error_falls_with_depth(rng):
 
 
 def test_trimmed_scan_stays_manifold(rng, method):
+    """A trimmed single-view scan stays edge- and vertex-manifold, open."""
     # the closing sheet of an open scan goes; what is left is an open, manifold surface
     p, n = single_view_scan("sphere", 90, rng, direction=rng.normal(size=3))
     mesh = screened_poisson(p, n, depth=8, trim=0.2).mesh
@@ -108,6 +121,10 @@ def _leaf_corner_values(levels, gvals):
 
 
 def test_leaves_agree_exactly_at_shared_corners(rng, monkeypatch):
+    """Every leaf with a corner at a lattice point gives the same value there, to the bit.
+
+    Otherwise the two sides of a face could disagree on a sign and crack.
+    """
     # the extraction reads a lattice point's value from whichever leaf holds it: every leaf with
     # a corner there must give the same bits (finer corrections vanish at a coarser leaf's
     # corners and the prolongation copies coincident nodes), or the two sides of a face could
@@ -140,6 +157,7 @@ def _chamfer_to(mesh, sdf) -> float:
 
 @pytest.mark.parametrize("name, sdf", [("sphere", sphere_sdf), ("torus", torus_sdf)])
 def test_leaf_extraction_as_accurate_as_the_finest_lattice(rng, monkeypatch, name, sdf):
+    """Extraction at the leaves' size: within 5 % of the finest lattice's Chamfer, fewer faces."""
     # coarse leaves hold a trilinear chi: triangles at their size lose nothing measurable on a
     # smooth surface against refining every leaf to the finest lattice first
     # (within 5 %: on the finest cells the minimal-area triangulation follows the surface
@@ -154,6 +172,10 @@ def test_leaf_extraction_as_accurate_as_the_finest_lattice(rng, monkeypatch, nam
 
 
 def test_root_fit_at_each_leafs_own_size(rng, monkeypatch):
+    """The root fit at each leaf's own edge length beats the linear roots on both halves.
+
+    A sphere dense on top, ten times sparser below (leaves two levels coarser), degree 1 at depth 9.
+    """
     # a sphere dense on top, ten times sparser below: the lower half's surface lies in leaves
     # two levels coarser than the finest. The non-linear root fit must take each minimal
     # edge's own length as its step; with the finest step everywhere it made both halves
@@ -176,6 +198,7 @@ def test_root_fit_at_each_leafs_own_size(rng, monkeypatch):
 
 
 def test_noise_specks_dropped_small_parts_kept(rng):
+    """Noise specks of a cell or two are dropped and counted; a small real sphere stays."""
     # noisy sparse samples screened hard leave closed specks of a cell or two around single
     # lattice points: they go (and are counted); a real part a few cells across stays (at the
     # default weight the measured noise lowers the screening and no speck forms here: degree 1,
@@ -199,6 +222,10 @@ def test_noise_specks_dropped_small_parts_kept(rng):
 
 @pytest.mark.parametrize("offset", [0.0, 1e6])
 def test_islands_need_ten_points_specks_always_go(rng, offset):
+    """drop_bubbles: specks always go; islands go with fewer than ten points near them.
+
+    Points farther away do not count; the largest piece always stays.
+    """
     # the rule of drop_bubbles on built pieces: beside a unit sphere, a speck (under two cells
     # across) goes whatever points it has; a sphere 10 cells across goes with 9 input points
     # within two cells of its box (an island around outliers) and stays with 10; points farther
@@ -237,6 +264,10 @@ def test_islands_need_ten_points_specks_always_go(rng, offset):
 
 @pytest.mark.parametrize("offset", [0.0, 1e6])
 def test_folds_go_a_thin_shell_and_a_part_out_of_the_band_stay(rng, offset):
+    """drop_bubbles' folds: a flat blob near a sphere goes; one farther, or a thin shell, stays.
+
+    Noise 4 cells; a blob on a second sphere goes too; all turned at random.
+    """
     # the folds' rule of drop_bubbles on built pieces, noise 4 cells (sigma 0.04): a flat blob
     # 0.5 across (over the specks' 8 sigma, under the folds' 16) lying within 0.11 of a unit
     # sphere goes; the same blob 0.3 out stays; so does a concentric sphere 0.1 inside (a thin
@@ -276,6 +307,10 @@ def test_folds_go_a_thin_shell_and_a_part_out_of_the_band_stay(rng, offset):
 
 @pytest.mark.parametrize("scale, offset", [(1.0, 0.0), (250.0, 1e6)])
 def test_noise_blobs_are_specks_and_a_real_part_stays(rng, monkeypatch, scale, offset):
+    """A depth finer than the noise: its blobs go as specks, a noisy second sphere stays.
+
+    Unit and 250x scale, at the origin and 1e6 away: two closed, manifold pieces.
+    """
     # a depth finer than the noise (sigma ~2.7 finest cells) leaves closed blobs in the band
     # the samples scatter over; a second sphere, 16 sigma across and as noisy, is a real part
     import recon_cli.stages.poisson as P
@@ -304,6 +339,7 @@ def test_noise_blobs_are_specks_and_a_real_part_stays(rng, monkeypatch, scale, o
 
 
 def test_faces_barely_change_past_the_density(rng):
+    """20k sphere samples at depth 10 and 11: the same tree, face counts within 2 %."""
     # 20k samples on a sphere support about depth 8-9: deeper levels are never built, and the
     # surface (extracted at the leaves) is the same
     p, n = shape_cloud("sphere", 20_000, rng)
@@ -324,6 +360,7 @@ def _bunny_scan_oriented():
 
 @pytest.mark.slow
 def test_raw_scan_faces_within_1_5x_open3d():
+    """A raw single-view scan at depth 9: one closed piece with at most 1.5x Open3D's faces."""
     # one raw single-view scan (the closing sheet runs through coarse leaves): the face count
     # follows the tree like PoissonRecon's does (it was 4x Open3D's when every straddling leaf
     # was refined to the finest lattice)
@@ -339,6 +376,7 @@ def test_raw_scan_faces_within_1_5x_open3d():
 
 
 def test_real_stereo_fragment_closed_and_manifold(method):
+    """The real stereo fragment: closed, manifold, oriented, one piece once specks and blobs go."""
     # noisy real data whose surface runs into the cube's faces: along a leaf edge leaving a
     # face the clamp can put two roots (a loop of no area, left out); the result is closed
     # and manifold; besides the surface, Poisson's solution has closed specks around noisy
@@ -362,6 +400,7 @@ def test_real_stereo_fragment_closed_and_manifold(method):
 
 
 def test_leaf_chunks_and_threads_give_one_mesh(rng, monkeypatch):
+    """Leaf extraction in any chunks and threads gives the one-chunk serial mesh, to the bit."""
     # leaf_polygons runs over chunks of cells in threads, welded in chunk order: the mesh must be
     # the one chunk's (the serial walk over all leaves) to the bit, for any chunks and threads
     import numba

@@ -1,5 +1,7 @@
-"""Poisson's --grid: the solved field on the finest lattice as recon's own grid file, whose zero
-level (recon mcubes) is the stage's surface and which is negative inside."""
+"""Poisson's --grid: the solved field on the finest lattice as recon's own grid file.
+
+Its zero level (recon mcubes) is the stage's surface, and it is negative inside.
+"""
 
 from __future__ import annotations
 
@@ -39,6 +41,11 @@ CASES = [
 
 @pytest.mark.parametrize("name,degree,boundary,offset,scale,bound", CASES)
 def test_mcubes_of_the_grid_is_the_surface(rng, name, degree, boundary, offset, scale, bound):
+    """Marching cubes of the grid is the stage's surface (Chamfer in cells), negative inside.
+
+    Shapes and a scan, both degrees, every boundary, moved and scaled; the grid on the finest
+    lattice.
+    """
     if name == "scan":
         p, n = single_view_scan("rounded_box", 80, rng, direction=rng.normal(size=3))
         p = p * scale + offset
@@ -74,6 +81,7 @@ def test_mcubes_of_the_grid_is_the_surface(rng, name, degree, boundary, offset, 
 
 
 def test_cli_grid_mcubes_info(tmp_path, rng):
+    """``recon poisson --grid`` then ``recon mcubes`` gives the mesh; ``recon info`` reads it."""
     p, n = shape_cloud("torus", 8000, rng, offset=1e6)
     src = tmp_path / "in.ply"
     write_ply(PointCloud(points=p, normals=n), src)
@@ -102,6 +110,7 @@ def test_cli_grid_mcubes_info(tmp_path, rng):
     ],
 )
 def test_cli_grid_refused(tmp_path, rng, grid, extra, match):
+    """``--grid`` to stdout, into a missing folder or with another backend exits 2."""
     p, n = shape_cloud("sphere", 2000, rng)
     src = tmp_path / "in.ply"
     write_ply(PointCloud(points=p, normals=n), src)

@@ -1,5 +1,8 @@
-"""Poisson's free boundary (--boundary free, PoissonRecon's BOUNDARY_FREE): the domain tables,
-open scans that do not bend to the cube's faces, closed shapes as accurate as Neumann's."""
+"""Poisson's free boundary (--boundary free, PoissonRecon's BOUNDARY_FREE).
+
+The domain tables, open scans that do not bend to the cube's faces, closed shapes as accurate as
+Neumann's.
+"""
 
 from __future__ import annotations
 
@@ -20,6 +23,7 @@ from shapes import FAR_OFFSETS, random_rotation, shape_cloud, single_view_scan
 
 
 def test_domain_tables_whole_line_are_the_unrestricted_tables():
+    """Over the whole line the domain tables are the unrestricted B-spline tables."""
     n = 12
     m1, k1, fv, fd = domain_tables(n, -3.0, n + 3.0)
     for i in range(n):
@@ -32,6 +36,7 @@ def test_domain_tables_whole_line_are_the_unrestricted_tables():
 
 @pytest.mark.parametrize("lo,hi", [(4.0, 12.0), (3.5, 7.25), (0.0, 16.0)])
 def test_domain_tables_are_integrals_over_the_interval(lo, hi):
+    """The domain tables are the B-splines' integrals over the interval (midpoint rule)."""
     n = 16
     m1, k1, _, fd = domain_tables(n, lo, hi)
     # midpoint rule over the interval against the closed forms of the B-splines
@@ -64,6 +69,7 @@ def test_domain_tables_are_integrals_over_the_interval(lo, hi):
 
 
 def test_level_tables_free_partition_of_unity():
+    """The free level tables: partition of unity over the domain; level 1 carries nothing."""
     # the free basis spans the constants on the domain: a row of the mass sums to the
     # integral of its function over the domain, a row of the stiffness to 0
     m1, k1, _, _ = level_tables(32, 1.0, True)
@@ -75,8 +81,11 @@ def test_level_tables_free_partition_of_unity():
 
 
 def _hugging_area(mesh, lo, size, cell, cells=3):
-    """Fraction of the area within ``cells`` finest cells of a cube face whose normal is
-    within 30 degrees of that face's: surface lying along the faces."""
+    """Fraction of the area lying along the cube's faces.
+
+    The area within ``cells`` finest cells of a cube face whose normal is within 30 degrees of that
+    face's.
+    """
     t = mesh.vertices[mesh.faces]
     c = t.mean(axis=1)
     nn = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
@@ -102,6 +111,10 @@ def _scan(seed: int, name: str):
 
 @pytest.mark.parametrize("seed,name", [(1, "sphere"), (2, "torus"), (3, "rounded_box")])
 def test_open_scans_do_not_bend_to_the_cube_faces(seed, name):
+    """Open scans with the free boundary do not hug the cube's faces, open only along them.
+
+    Neumann's surface hugs the faces more; the free one's boundary vertices all lie on a face.
+    """
     p, n = _scan(seed, name)
     lo, hi = p.min(axis=0), p.max(axis=0)
     size = float((hi - lo).max()) * 1.1
@@ -129,6 +142,10 @@ def test_open_scans_do_not_bend_to_the_cube_faces(seed, name):
 
 
 def test_terrain_stays_flat_to_the_faces(rng):
+    """A tilted plane at UTM offsets stays flat to the faces when free; Neumann's bends.
+
+    Free: within 2 finest cells of the plane; Neumann: more than 10.
+    """
     # a tilted plane over the whole footprint (an airborne tile's ground): the free surface is
     # the plane up to the cube's faces; Neumann's bends to meet them and hugs them
     m = 20_000
@@ -146,6 +163,7 @@ def test_terrain_stays_flat_to_the_faces(rng):
 
 
 def test_closed_shapes_as_accurate_as_neumann(rng):
+    """A closed sphere 1e6 away: the free boundary as accurate as Neumann's, closed, full depth."""
     p, n = shape_cloud("sphere", 20_000, rng, offset=1e6)
     r = {b: screened_poisson(p, n, depth=7, boundary=b) for b in ("neumann", "free")}
     for b, res in r.items():
@@ -162,6 +180,7 @@ def test_closed_shapes_as_accurate_as_neumann(rng):
 
 
 def test_free_needs_degree_2_and_the_native_backend(rng):
+    """The free boundary with degree 1 or a reference backend is refused."""
     p, n = shape_cloud("sphere", 500, rng)
     with pytest.raises(ParameterError, match="degree 2"):
         screened_poisson(p, n, depth=5, boundary="free", degree=1)

@@ -1,5 +1,7 @@
-"""Poisson's adaptive octree: samples splatted at the depth their density supports, the tree
-no deeper than the splats, so depth beyond the data costs (almost) nothing."""
+"""Poisson's adaptive octree: samples splatted at the depth their density supports.
+
+The tree is no deeper than the splats, so depth beyond the data costs (almost) nothing.
+"""
 
 from __future__ import annotations
 
@@ -25,6 +27,10 @@ def _unit(points: np.ndarray, scale: float = 1.1) -> np.ndarray:
 
 @pytest.mark.parametrize("n", [2_000, 30_000])
 def test_tree_depth_is_where_the_density_reaches_samples_per_node(rng, n):
+    """The tree stops one level past where the density reaches the samples per node.
+
+    Whatever ``--depth`` is; at most 2 % of the nodes deeper.
+    """
     # n points on a unit sphere in a cube of side 2.2: at level L a node's area is 4**-L of
     # the unit cube's faces, the sphere's area there 4 pi / 2.2**2, so samples-per-node 1.5
     # is reached at L* = log4(n / (1.5 * area)); the tree goes one level past L* (a
@@ -43,6 +49,7 @@ def test_tree_depth_is_where_the_density_reaches_samples_per_node(rng, n):
 
 
 def test_depth_beyond_the_data_adds_nothing(rng):
+    """1,000 points at depth 14 give depth 10's tree and surface (tree depth <= 6)."""
     # 1,000 points: --depth 14 builds the same tree and the same surface as --depth 10 (it
     # used to pass 11 GB at depth 12 and never finish at 14); only the merging of points
     # sharing a finest cell could differ
@@ -56,6 +63,7 @@ def test_depth_beyond_the_data_adds_nothing(rng):
 
 
 def test_faces_barely_change_past_the_datas_depth(rng):
+    """40k points at depths 9, 10 and 11: the same tree, face counts within 1 %."""
     # 40k points on a rounded box are exhausted near depth 7: depths 9, 10 and 11 give the
     # same tree and nearly the same surface (only the merging of points per finest cell
     # differs)
@@ -70,6 +78,7 @@ def test_faces_barely_change_past_the_datas_depth(rng):
 
 
 def test_sparse_half_is_splatted_coarser(rng):
+    """A 16x sparser half is splatted about two levels coarser; the tree stops at its density."""
     # one cloud, a dense and a sparse half: the sparse half's samples go to coarser levels
     # (16x fewer samples per area: two levels coarser)
     p, nrm = shape_cloud("sphere", 64_000, rng, rotate=False)
@@ -116,6 +125,11 @@ def _sibling_block(cells, ring: int, top: int) -> set:
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_own_ring_1_tree_is_poissonrecons(seed):
+    """With own_ring 1 each level is PoissonRecon's: the cells near its items, graded.
+
+    Items at two depths; the tree is a subset of own_ring 2's, graded, and holds every cell its
+    items' field reaches.
+    """
     # items at two depths in one cloud (a dense patch splatted at 6 inside a sparse sphere
     # splatted at 5): with own_ring 1 each level is exactly the cells within 1 of its own
     # items plus those within 2 of its cells over finer items, completed in siblings
@@ -158,6 +172,7 @@ def test_own_ring_1_tree_is_poissonrecons(seed):
 
 
 def test_own_ring_is_validated():
+    """An own_ring other than 1 or 2 is refused."""
     from recon_cli.stages.poisson.octree import build_levels
 
     with pytest.raises(ValueError, match="own_ring"):
@@ -167,6 +182,7 @@ def test_own_ring_is_validated():
 @settings(max_examples=60, deadline=None)
 @given(st.lists(st.integers(-(2**62), 2**62), max_size=300), st.integers(1, 4))
 def test_unique_keys_is_numpys_unique(values, repeat):
+    """unique_keys is np.unique's sorted distinct values, duplicates and empty input included."""
     # sort-and-compare gives exactly np.unique's sorted distinct values, duplicates and empty
     # input included (dtype kept)
     keys = np.repeat(np.asarray(values, np.int64), repeat)[::-1]
@@ -182,6 +198,7 @@ def test_unique_keys_is_numpys_unique(values, repeat):
 )
 @settings(max_examples=60, deadline=None)
 def test_points_in_boxes_as_a_brute_force(seed, n, k, offset):
+    """points_in_boxes and indices_in_boxes agree with a brute force, ties and faces included."""
     # the islands' count and the folds' targets (drop_bubbles): closed boxes, points on a
     # face counted, x ties kept; the indices in any box each once, sorted
     rng = np.random.default_rng(seed)
@@ -196,6 +213,7 @@ def test_points_in_boxes_as_a_brute_force(seed, n, k, offset):
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_finer_cells_give_the_levels_the_finer_items_give(seed):
+    """Level-dc cells standing for finer items give the levels those items give, bit for bit."""
     # the distributed coarse tree: the level-dc cells holding finer items stand for them, and
     # levels 0..dc are those the finer items (here at dc + 1 and dc + 2) would give, bit for
     # bit, without building the finer levels (the coordinator's largest arrays)

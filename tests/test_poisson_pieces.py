@@ -12,6 +12,7 @@ from recon_cli.stages.poisson.pieces import piece_boxes, piece_reach, vertex_lab
 @given(seed=st.integers(0, 2**31 - 1), nf=st.integers(1, 60), offset=st.sampled_from([0.0, 1e6]))
 @settings(max_examples=40, deadline=None)
 def test_boxes_labels_and_reach_as_a_brute_force(seed, nf, offset):
+    """Piece boxes, vertex labels and reach agree with a brute force on random soups."""
     rng = np.random.default_rng(seed)
     nv, n = 50, 4
     verts = rng.normal(size=(nv, 3)) + offset

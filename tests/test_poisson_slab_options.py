@@ -1,6 +1,8 @@
-"""Poisson's options in slabs (recon_cli.stages.poisson.distributed): colours, density, the
-input's attributes, confidence, trimming (a fraction or auto), the free boundary and the grid,
-each against the single-process run."""
+"""Poisson's options in slabs (recon_cli.stages.poisson.distributed) against the single process.
+
+Colours, density, the input's attributes, confidence, trimming (a fraction or auto), the free
+boundary and the grid, each against the single-process run.
+"""
 
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ from shapes import random_rotation, shape_cloud, single_view_scan, sphere_cloud
 
 
 def test_colours_and_density_per_vertex():
+    """Colours and density in 3 slabs match the single-process vertex nearest."""
     pts, nrm = sphere_cloud(8000, seed=9)
     colors = (np.clip(pts * 0.5 + 0.5, 0, 1) * 255).astype(np.uint8)
     res = distributed_poisson(pts, nrm, depth=7, partitions=3, colors=colors, density=True)
@@ -32,10 +35,12 @@ def test_colours_and_density_per_vertex():
 
 
 def test_attributes_carried_as_single():
-    """Every property keeps its dtype and comes from the points on the vertex's side, as in the
-    single-process run: codes (a classification by a plane the seams cross) only take codes
-    the points have and match the single-process vertex nearest; measurements (intensity,
-    colours) within a unit of it; no vertex's neighbours reach past its slab's pad."""
+    """Every input property is carried in slabs as in the single-process run, in its dtype.
+
+    Each comes from the points on the vertex's side: codes (a classification by a plane the seams
+    cross) only take codes the points have and match the single-process vertex nearest; measurements
+    (intensity, colours) within a unit of it; no vertex's neighbours reach past its slab's pad.
+    """
     rng = np.random.default_rng(21)
     p, n = sphere_cloud(20_000, seed=21)
     r = random_rotation(rng)
@@ -68,8 +73,10 @@ def test_attributes_carried_as_single():
 
 
 def test_one_slab_with_confidence_is_the_single_process_mesh():
-    """--confidence weighs each point by its normal's length over the mean of all of them:
-    with one slab the mesh is the single-process one, to the bit."""
+    """--confidence with one slab gives the single-process mesh, to the bit.
+
+    --confidence weighs each point by its normal's length over the mean of all of them.
+    """
     rng = np.random.default_rng(22)
     pts, nrm = sphere_cloud(12_000, seed=22)
     pts = pts * np.array([1.0, 0.8, 0.7])
@@ -85,9 +92,12 @@ def test_one_slab_with_confidence_is_the_single_process_mesh():
 
 
 def test_trim_of_an_open_scan_as_single():
-    """A single-view scan's closing sheet trimmed over three slabs: the holes and islands the
-    trim decides are joined across seams, the cut vertices on seams shared; the mesh is the
-    single-process one (faces, area removed, boundary loops), manifold, no vertex twice."""
+    """A single-view scan's closing sheet trimmed over three slabs: the single-process mesh.
+
+    The holes and islands the trim decides are joined across seams, the cut vertices on seams
+    shared; the mesh is the single-process one (faces, area removed, boundary loops), manifold, no
+    vertex twice.
+    """
     rng = np.random.default_rng(0)
     pts, nrm = single_view_scan("torus", 160, rng, direction=(0.3, 0.2, -1.0))
     single = screened_poisson(pts, nrm, depth=7, trim=0.2)
@@ -115,9 +125,12 @@ def _same_trim(single, res, cell: float, hausdorff_cells: float) -> None:
 
 
 def test_trim_auto_of_an_open_scan_as_single():
-    """``--trim auto`` over three slabs: the samples' spacing capped at the global median, the
-    vertices' support ratio, holes and islands joined across seams; the mesh is the single
-    process's (within a finest cell where the cut crosses a seam's neighbourhood)."""
+    """``--trim auto`` over three slabs gives the single process's mesh.
+
+    The samples' spacing capped at the global median, the vertices' support ratio, holes and islands
+    joined across seams; the mesh is the single process's (within a finest cell where the cut
+    crosses a seam's neighbourhood).
+    """
     rng = np.random.default_rng(0)
     pts, nrm = single_view_scan("torus", 160, rng, direction=(0.3, 0.2, -1.0))
     single = screened_poisson(pts, nrm, depth=7, trim="auto")
@@ -129,8 +142,10 @@ def test_trim_auto_of_an_open_scan_as_single():
 
 @pytest.mark.slow
 def test_trim_auto_of_a_cluttered_scene_as_single():
-    """A cluttered depth-camera office (near objects, far walls, flying pixels), turned and 1e6
-    away, trimmed by ``--trim auto`` in slabs: the single process's pieces, holes and area."""
+    """``--trim auto`` of a cluttered office in slabs: the single process's pieces, holes, area.
+
+    A cluttered depth-camera office (near objects, far walls, flying pixels), turned and 1e6 away.
+    """
     from recon_cli.stages import normals
 
     from sensors import cluttered_cloud
@@ -145,8 +160,10 @@ def test_trim_auto_of_a_cluttered_scene_as_single():
 
 
 def _open_along_the_domain(mesh, report) -> None:
-    """Every boundary vertex of a free-boundary mesh lies on a face of its domain (the points'
-    cube, the solve's middle half)."""
+    """Assert every boundary vertex of a free-boundary mesh lies on a face of its domain.
+
+    The domain: the points' cube, the solve's middle half.
+    """
     from recon_cli.mesh.topology import Connectivity
 
     c = Connectivity(mesh.faces, len(mesh.vertices))
@@ -162,9 +179,11 @@ def _open_along_the_domain(mesh, report) -> None:
 
 @pytest.mark.parametrize("parts", [1, 2, 4])
 def test_grid_as_single(parts):
-    """``--grid`` in slabs: the one-process grid (same lattice, values within 0.02 finest cell),
-    whose zero level is the slabs' own mesh; on a cloud whose longest axis is not x (the
-    slabs' axes are turned and the grid turned back)."""
+    """``--grid`` in slabs gives the one-process grid, whose zero level is the slabs' mesh.
+
+    Same lattice, values within 0.02 finest cell; on a cloud whose longest axis is not x (the slabs'
+    axes are turned and the grid turned back).
+    """
     from recon_cli.mesh.distance import closest_points
     from recon_cli.stages.mcubes import marching_cubes
 
@@ -183,9 +202,11 @@ def test_grid_as_single(parts):
 
 @pytest.mark.parametrize("parts", [1, 2, 4])
 def test_free_boundary_terrain_as_single(parts):
-    """A tilted plane over the whole footprint at UTM-like offsets, ``boundary="free"`` in 1, 2
-    and 4 slabs: the single process's surface (flat to the domain's faces, open only there),
-    within a hundredth of a finest cell."""
+    """A tilted plane at UTM-like offsets, free boundary, in 1, 2 and 4 slabs: the single mesh.
+
+    The plane covers the whole footprint; ``boundary="free"``: the single process's surface (flat to
+    the domain's faces, open only there), within a hundredth of a finest cell.
+    """
     from recon_cli.mesh.distance import closest_points
 
     from shapes import FAR_OFFSETS
@@ -209,9 +230,12 @@ def test_free_boundary_terrain_as_single(parts):
 
 
 def test_free_boundary_open_scan_as_single():
-    """A single-view scan, turned and 1e6 away, ``boundary="free"`` in 3 slabs: open only along
-    the domain's faces, the single process's pieces and loops, the same surface near the data;
-    the unsupported sheet (chi flat there) within half a cell."""
+    """A single-view scan, free boundary, in 3 slabs: the single process's open surface.
+
+    Turned and 1e6 away, ``boundary="free"``: open only along the domain's faces, the single
+    process's pieces and loops, the same surface near the data; the unsupported sheet (chi flat
+    there) within half a cell.
+    """
     from recon_cli.mesh.distance import closest_points
 
     rng = np.random.default_rng(1)

@@ -1,5 +1,7 @@
-"""The normals' splat (poisson/splat.py) and the roots' fit (poisson/extract.py,
-poisson/_extract.py): exact properties and accuracy on analytic shapes against Open3D."""
+"""The normals' splat (poisson/splat.py) and the roots' fit (poisson/extract.py, _extract.py).
+
+Exact properties and accuracy on analytic shapes against Open3D.
+"""
 
 from __future__ import annotations
 
@@ -27,6 +29,7 @@ from shapes import SHAPES, shape_cloud
 
 
 def test_spread_keeps_each_levels_total_and_sits_on_cell_centres(rng):
+    """Spreading keeps each level's total and first moment, one item per cell centre."""
     pos = rng.uniform(0.1, 0.9, size=(500, 3))
     vec = rng.normal(size=(500, 3))
     lvl = rng.integers(
@@ -48,6 +51,7 @@ def test_spread_keeps_each_levels_total_and_sits_on_cell_centres(rng):
 
 
 def test_spread_bands_and_threads_give_the_one_walks_sums(rng, monkeypatch):
+    """Spreading in bands over threads gives the serial walk's sum in every cell, to the bit."""
     # spread splats bands of cells in threads, each walking all items in order: every cell
     # must hold the serial walk's sum to the bit, whatever the bands and threads
     import numba
@@ -93,6 +97,7 @@ def test_spread_bands_and_threads_give_the_one_walks_sums(rng, monkeypatch):
 
 
 def test_fit_roots_keeps_linear_roots_and_refuses_no_crossing():
+    """fit_roots keeps the linear root of a linear chi and marks an edge with no crossing (-1)."""
     f0 = np.array([1.0, 0.2, 3.0, -1.0])
     f1 = np.array([-1.0, -0.6, 4.0, 1.0])
     # chi linear along the line: the linear root
@@ -104,6 +109,7 @@ def test_fit_roots_keeps_linear_roots_and_refuses_no_crossing():
 
 @pytest.mark.parametrize("width", [0.7, 1.5, 3.0])
 def test_fit_roots_beats_the_linear_root_on_a_smooth_step(rng, width):
+    """On a smooth step the fitted root is nearer the true one than the secant's, on the edge."""
     # chi across a surface is a smooth step: sampled at the lattice, the fitted root is closer
     # to the true one than the secant's on average, and never leaves the edge
     x0 = rng.uniform(0.0, 1.0, size=2000)
@@ -118,10 +124,12 @@ def test_fit_roots_beats_the_linear_root_on_a_smooth_step(rng, width):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["sphere", "torus"])
 def test_smooth_shapes_as_accurate_as_open3d(rng, name):
-    """Exact point-to-surface Chamfer (the shape's distance function: sampled Chamfer has a
-    noise floor that hides these differences) at depth 8, clean samples: at or below
-    Open3D's (0.85x and 0.89x; 1.55x and 2.23x before the normals' B-spline splat and
-    the roots' fit)."""
+    """Smooth shapes at depth 8: our exact Chamfer at or below Open3D's.
+
+    Exact point-to-surface Chamfer (the shape's distance function: sampled Chamfer has a noise floor
+    that hides these differences), clean samples (0.85x and 0.89x; 1.55x and 2.23x before the
+    normals' B-spline splat and the roots' fit).
+    """
     sdf = SHAPES[name][0]
     p, n = shape_cloud(name, 100_000, np.random.default_rng(0), rotate=False)
     truth, _ = shape_cloud(name, 50_000, np.random.default_rng(1), rotate=False)
@@ -141,9 +149,11 @@ def test_smooth_shapes_as_accurate_as_open3d(rng, name):
 
 
 def test_normal_field_rhs_is_the_direct_splat_of_the_spread_field(rng):
-    """The level-by-level right-hand side (refinement of the coarser fields, fixed stencils,
-    restriction of the finer ones) equals splatting every spread item at every level, on an
-    adaptive tree (a dense and a sparse half: splats from several levels)."""
+    """The level-by-level right-hand side equals splatting every spread item at every level.
+
+    Level by level: refinement of the coarser fields, fixed stencils, restriction of the finer ones;
+    on an adaptive tree (a dense and a sparse half: splats from several levels).
+    """
     from recon_cli.stages.poisson.octree import build_levels
     from recon_cli.stages.poisson.splat import NormalField, make_splats, merge_samples
 
@@ -169,10 +179,12 @@ def test_normal_field_rhs_is_the_direct_splat_of_the_spread_field(rng):
 
 
 def test_normal_field_rhs_in_slabs_is_bitwise_the_one_pass(rng, monkeypatch):
-    """The right-hand side made a slab of x at a time (to bound its memory) is bit for bit the
-    one made in one pass, at every level of an adaptive tree (dense and sparse halves, splats
-    of several levels, the field carried from level to level), and it consumes the fields of
-    a copy of the caller's dict, not the caller's."""
+    """The right-hand side made a slab of x at a time is bit for bit the one-pass one.
+
+    At every level of an adaptive tree (dense and sparse halves, splats of several levels, the field
+    carried from level to level); it consumes the fields of a copy of the caller's dict, not the
+    caller's.
+    """
     from recon_cli.stages.poisson import splat as splat_mod
     from recon_cli.stages.poisson.octree import build_levels
     from recon_cli.stages.poisson.splat import NormalField, make_splats, merge_samples
@@ -308,10 +320,13 @@ def _factors(v, rho, scale, vx, dx, done, a, t):
 @pytest.mark.parametrize("seed", range(4))
 @pytest.mark.parametrize("sigma", [0.0, 0.002, 0.006])
 def test_noise_is_the_points_scatter_about_the_surface(seed, sigma):
-    """A sphere of random radius, rotation and offset (up to 1e6), 60k points moved along their
-    normals by Gaussian noise: the report's median noise, in finest cells, times the finest
-    cell is that noise's standard deviation within 12 % (the sphere's own curvature, which the
-    quadratic fit explains, adds nothing: clean samples measure under 1 % of a cell)."""
+    """The report's median noise is the points' scatter about a sphere within 12 %.
+
+    A sphere of random radius, rotation and offset (up to 1e6), 60k points moved along their normals
+    by Gaussian noise: the median noise, in finest cells, times the finest cell is that noise's
+    standard deviation within 12 % (the sphere's own curvature, which the quadratic fit explains,
+    adds nothing: clean samples measure under 1 % of a cell).
+    """
     rng = np.random.default_rng(seed)
     radius = float(rng.uniform(0.5, 50.0))
     p, n = shape_cloud("sphere", 60_000, rng, scale=radius, offset=float(rng.choice([0.0, 1e6])))
@@ -325,8 +340,10 @@ def test_noise_is_the_points_scatter_about_the_surface(seed, sigma):
 
 
 def test_noise_of_a_thin_part_is_not_its_thickness(rng):
-    """Both sides of a plate thinner than a noise cell share cells whose normals cancel: those
-    cells are not read as noise (the plate is clean), and a plane with noise is."""
+    """A plate thinner than a noise cell is not read as noise; a noisy plane is.
+
+    Both sides of the plate share cells whose normals cancel: those cells are not read as noise.
+    """
     m = 40_000
     xy = rng.uniform(0.2, 0.8, size=(m, 2))
     side = rng.integers(0, 2, size=m)
@@ -348,9 +365,12 @@ def test_noise_of_a_thin_part_is_not_its_thickness(rng):
 
 
 def test_noisy_samples_are_screened_less_and_come_out_closer(rng, monkeypatch):
-    """On a noisy sphere (noise 0.4 % of the radius) the measured noise lowers the screening
-    (weight per sample between the clean and the noisy scale) and the surface is closer to the
-    true sphere than with the clean weight everywhere."""
+    """Measured noise lowers a noisy sphere's screening and brings the surface closer.
+
+    On a noisy sphere (noise 0.4 % of the radius) the weight per sample falls between the clean and
+    the noisy scale, and the surface is closer to the true sphere than with the clean weight
+    everywhere.
+    """
     from recon_cli.stages.poisson import splat as splat_mod
 
     p, n = shape_cloud("sphere", 80_000, rng)

@@ -1,3 +1,5 @@
+"""Poisson's phase timings (recon_cli.stages.poisson.timing)."""
+
 import time
 
 import pytest
@@ -6,6 +8,7 @@ from recon_cli.stages.poisson.timing import Timings
 
 
 def test_phases_in_order_and_total_covers_them():
+    """Phases are kept in order and the total covers them."""
     clock = Timings()
     with clock.phase("a"):
         time.sleep(0.01)
@@ -18,6 +21,7 @@ def test_phases_in_order_and_total_covers_them():
 
 
 def test_a_phase_that_raises_is_not_recorded():
+    """A phase that raises is not recorded."""
     clock = Timings()
     with pytest.raises(ValueError), clock.phase("bad"):
         raise ValueError("x")

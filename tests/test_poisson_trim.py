@@ -31,6 +31,10 @@ def _manifold_oriented(mesh) -> dict:
 
 @pytest.mark.parametrize("level", [-0.55, -0.1, 0.0, 0.3, 0.8])
 def test_cut_follows_the_contour_exactly(level):
+    """Density = height on a sphere: the cut is exactly the contour z = level, one loop.
+
+    Manifold, oriented, the boundary on the contour, the kept area the cap's.
+    """
     # density = height on a closed sphere: the cut is the circle z = level, exactly
     s = TriangleMesh(*icosphere(4))
     z = s.vertices[:, 2]
@@ -57,6 +61,7 @@ def test_cut_follows_the_contour_exactly(level):
 
 
 def test_small_islands_filled_and_dropped():
+    """A small low dip in the kept part is filled; a small high bump in the removed part goes."""
     s = TriangleMesh(*icosphere(6))
     x, z = s.vertices[:, 0], s.vertices[:, 2]
     d = z.copy()
@@ -81,6 +86,7 @@ def test_small_islands_filled_and_dropped():
 
 
 def test_small_islands_holding_data_stay():
+    """A small island holding a sample stays, an empty one goes; no mass trims as without it."""
     # two small high bumps in the removed part: the one a sample lies nearest to stays (data,
     # however small), the other goes; mass on removed vertices or on none changes nothing
     s = TriangleMesh(*icosphere(6))
@@ -101,6 +107,7 @@ def test_small_islands_holding_data_stay():
 
 
 def test_nothing_to_trim_returns_the_mesh():
+    """Nothing below the level: the same mesh back, nothing removed."""
     s = TriangleMesh(*icosphere(2))
     out = trim_by_density(s, np.ones(len(s.vertices)), 0.5)
     assert out.mesh is s and out.removed_area == 0.0 and out.untouched_faces == len(s.faces)
@@ -109,6 +116,10 @@ def test_nothing_to_trim_returns_the_mesh():
 @pytest.mark.parametrize("name", sorted(SHAPES))
 @pytest.mark.parametrize("seed", [0, 1])
 def test_single_view_scans_lose_the_sheet_keep_the_scan(name, seed):
+    """Single-view scans trimmed at 0.3: the closing sheet goes, the scan stays, manifold.
+
+    Randomly rotated and offset; the trimmed mesh lies on the shape and covers the scan.
+    """
     # a ray-cast partial scan, randomly rotated and offset: untrimmed the surface is closed by a
     # sheet far from the samples; trimmed (0.3) it is manifold, lies on the shape (the Poisson
     # surface bends away from it only along the scan's border) and covers the scan
@@ -143,6 +154,10 @@ def _lattice(n: int, h: float) -> np.ndarray:
 
 @pytest.mark.parametrize("h", [0.01, 3.0])
 def test_support_ratio_on_a_lattice_is_exact(h):
+    """On a lattice of step h the support ratio is exact: the spacing sqrt(2) h.
+
+    A point t above a sample has the ratio t / (sqrt(2) h); a cell's centre 1/2, kept.
+    """
     # a square lattice of step h: every inner sample's 8th neighbour is at sqrt(2) h, so its
     # spacing is sqrt(2) h; a point t above a sample has the ratio t / (sqrt(2) h), a cell's
     # centre (the farthest point of the sampled plane) 1/2: kept, as the whole plane is
@@ -164,6 +179,7 @@ def test_support_ratio_on_a_lattice_is_exact(h):
 
 
 def test_support_ratio_caps_the_spacing_of_strays():
+    """Strays far from a dense lattice get at most SPACING_CAP times the median spacing."""
     # strays far from a dense lattice (flying pixels) get at most SPACING_CAP times the median
     # spacing: a vertex half-way to a stray 20 steps off the plane is cut
     s = _lattice(30, 1.0)
@@ -175,6 +191,7 @@ def test_support_ratio_caps_the_spacing_of_strays():
 
 @pytest.mark.parametrize("name", sorted(SHAPES))
 def test_auto_single_view_scans_lose_the_sheet_keep_the_scan(name):
+    """``--trim auto`` on single-view scans: the sheet goes, the whole scan stays, one piece."""
     # as above with --trim auto: the sheet goes without a threshold to choose, the scan stays
     # whole (every sample within 2 cells of the mesh) and at least as much of it as with 0.3
     rng = np.random.default_rng(3)
@@ -205,6 +222,10 @@ def test_auto_single_view_scans_lose_the_sheet_keep_the_scan(name):
 
 @pytest.mark.slow
 def test_auto_depth_camera_keeps_far_floor_drops_sheet():
+    """``--trim auto`` on a depth camera's tabletop: the far floor stays whole, the sheet goes.
+
+    What stays beside the scene is small islands about flying pixels, each holding samples.
+    """
     # a 320 x 240 depth image of a tabletop (Kinect-like noise, flying pixels at the depth
     # edges, NaN misses): the floor's density falls with distance squared, yet it stays whole;
     # the closing sheet goes; what stays beside the scene are small islands about flying
@@ -246,6 +267,10 @@ def test_auto_depth_camera_keeps_far_floor_drops_sheet():
 
 @pytest.mark.slow
 def test_auto_keeps_sparse_airborne_ground():
+    """``--trim auto`` on an airborne tile's ground keeps the sparse ground a density cut drops.
+
+    >= 99.5 % of the ground points within 1 ft of the mesh; the closing sheet goes.
+    """
     # the shared airborne tile's ground class (US feet; 26k returns, sparse under canopy and
     # beside buildings), normals up: auto keeps >= 99.5 % of the ground points within 1 ft of
     # the mesh where a density cut (0.2) drops the sparse ground, and the closing sheet goes
@@ -282,6 +307,7 @@ def test_auto_keeps_sparse_airborne_ground():
 
 @pytest.mark.parametrize("backend", ["native", "open3d"])
 def test_auto_on_both_backends_keeps_the_density_attribute(backend):
+    """``--trim auto`` on both backends removes the closing cap and keeps density per vertex."""
     # an open half sphere: Poisson closes it with a cap below every sample (z >= 0.3); auto
     # removes the cap, and the density attribute follows the cut (one value per vertex, the
     # cut vertices' interpolated between their edge's ends)
@@ -312,6 +338,11 @@ def test_auto_on_both_backends_keeps_the_density_attribute(backend):
     ("kind", "seed", "kept"), [("office", 0, 0.945), ("people", 1, 0.985), ("corridor", 0, 0.98)]
 )
 def test_auto_cluttered_scene_keeps_what_the_sensor_saw(kind, seed, kept):
+    """``--trim auto`` of a cluttered scene keeps what the sensor saw and no far sheet.
+
+    Near objects and far walls: at least the untrimmed mesh's share of points near it, and no
+    surface farther than 2.5 % of the diagonal from every point.
+    """
     from scipy.spatial import cKDTree
 
     from recon_cli.geometry import PointCloud

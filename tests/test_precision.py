@@ -57,6 +57,11 @@ def _radius_errors(vertices: np.ndarray, centre: np.ndarray, radius: float) -> n
 
 @pytest.mark.parametrize("where", FAR)
 def test_normals_far_from_origin_as_at_origin(where, tmp_path):
+    """Normals of a sphere moved far away equal those at the origin, its points kept exactly.
+
+    Outward, within 1e-6 of the origin's normals, no precision note, written and read back as
+    double.
+    """
     p0, outward = sphere_cloud(3000, radius=10.0)
     ref = apply_stage("normals", PointCloud(points=p0)).output
     res = apply_stage("normals", PointCloud(points=p0 + _offset(where)))
@@ -72,6 +77,10 @@ def test_normals_far_from_origin_as_at_origin(where, tmp_path):
 
 @pytest.mark.parametrize("where", FAR)
 def test_poisson_far_from_origin_as_at_origin(where, tmp_path):
+    """Poisson of a sphere moved far away: as many faces and no larger radius errors than at 0.
+
+    Written as double, read back just as accurate.
+    """
     p0, n0 = sphere_cloud(20_000, radius=10.0)
     ref = apply_stage("poisson", PointCloud(points=p0, normals=n0), {"depth": 6}).output
     out = apply_stage(
@@ -93,6 +102,7 @@ def test_poisson_far_from_origin_as_at_origin(where, tmp_path):
 
 @pytest.mark.parametrize("where", FAR)
 def test_ballpivot_far_from_origin_as_at_origin(where, tmp_path):
+    """Ball pivoting of a sphere moved far away: the origin's triangles on the exact points."""
     p0, n0 = sphere_cloud(3000, radius=10.0, seed=1)
     ref = apply_stage("ballpivot", PointCloud(points=p0, normals=n0)).output
     out = apply_stage("ballpivot", PointCloud(points=p0 + _offset(where), normals=n0)).output
@@ -119,6 +129,10 @@ def _damaged_icosphere(centre):
 
 @pytest.mark.parametrize("where", FAR)
 def test_repair_far_from_origin_as_at_origin(where, tmp_path):
+    """Repair of a damaged sphere moved far away: the origin's faces, the input's exact vertices.
+
+    The same merges, fills and volume as at the origin; written as double.
+    """
     params = {"fill_holes": 8}
     v0, f0 = _damaged_icosphere(np.zeros(3))
     ref = apply_stage("repair", TriangleMesh(v0, f0), params)
@@ -140,6 +154,7 @@ def test_repair_far_from_origin_as_at_origin(where, tmp_path):
 @pytest.mark.parametrize("where", FAR)
 @pytest.mark.parametrize("source", ["mesh", "cloud"])
 def test_sdf_and_mcubes_far_from_origin_as_at_origin(where, source, tmp_path):
+    """The sdf then mcubes of a mesh or cloud moved far: the origin's grid and surface, moved."""
     if source == "mesh":
         v, f = icosphere(3, radius=10.0)
         make = lambda c: TriangleMesh(v + c, f)  # noqa: E731
@@ -188,6 +203,7 @@ def test_reference_backends_far_from_origin_as_at_origin():
 
 @pytest.mark.parametrize("ascii_", [False, True])
 def test_convert_keeps_doubles(ascii_, tmp_path):
+    """``recon convert`` (binary or ASCII) keeps double coordinates and normals at UTM offsets."""
     p, n = sphere_cloud(500, radius=10.0, centre=FAR_OFFSETS["utm"])
     src = tmp_path / "in.ply"
     write_ply(PointCloud(points=p, normals=n), src)
@@ -200,8 +216,10 @@ def test_convert_keeps_doubles(ascii_, tmp_path):
 
 
 def test_utm_normals_then_poisson_on_the_command_line_as_at_origin(tmp_path):
-    """The issue's case: a double cloud at UTM-like coordinates, `recon normals | recon poisson
-    --depth 7`."""
+    """The issue's case: `recon normals | recon poisson --depth 7` at UTM-like coordinates.
+
+    A double cloud, meshed as at the origin.
+    """
     env = dict(os.environ)
     errors = {}
     for where in ("origin", "utm"):
@@ -234,6 +252,7 @@ def test_utm_normals_then_poisson_on_the_command_line_as_at_origin(tmp_path):
 
 
 def test_library_float64_cloud_is_written_as_double(tmp_path):
+    """A float64 cloud or mesh from the library is written as double, its values exactly."""
     p, n = sphere_cloud(100, radius=1.0, centre=(0.1, 0.2, 0.3))
     back = read_ply(_file_of(PointCloud(points=p, normals=n), tmp_path))
     assert back.point_dtype == np.float64
@@ -250,6 +269,7 @@ def _file_of(obj, tmp_path):
 
 
 def test_float32_source_stays_float32_near_the_origin(tmp_path):
+    """A float32 source near the origin stays float32, computed coordinates included."""
     p, _ = sphere_cloud(100, radius=10.0, centre=(3.0, -2.0, 1.0))
     cloud = PointCloud(points=p.astype(np.float32))
     assert cloud.point_dtype == np.float32
@@ -263,6 +283,7 @@ def test_float32_source_stays_float32_near_the_origin(tmp_path):
 
 @pytest.mark.parametrize("where", FAR)
 def test_float32_source_far_away_is_written_double_with_a_note(where, tmp_path):
+    """A far float32 source: its coordinates stay float32, new ones are written double, noted."""
     p32 = sphere_cloud(4000, radius=10.0, centre=FAR_OFFSETS[where])[0].astype(np.float32)
     n = sphere_cloud(4000, radius=10.0)[1].astype(np.float32)
     cloud = PointCloud(points=p32, normals=n)
@@ -287,8 +308,10 @@ def test_float32_source_far_away_is_written_double_with_a_note(where, tmp_path):
 
 
 def test_float32_values_in_a_float64_array_stay_float32(tmp_path):
-    """Float64 arrays holding float32 values (a stage that converted and kept them) lose nothing as
-    float32."""
+    """Float64 arrays holding float32 values lose nothing as float32.
+
+    As a stage that converted and kept them would hold them.
+    """
     p = (
         sphere_cloud(100, radius=10.0, centre=FAR_OFFSETS["utm"])[0]
         .astype(np.float32)
@@ -301,6 +324,7 @@ def test_float32_values_in_a_float64_array_stay_float32(tmp_path):
 
 
 def test_grid_point_dtype_defaults_and_checks(tmp_path):
+    """A grid's point dtype defaults to float32, old files read as float32, a bad one refused."""
     g = Grid(sdf=np.zeros((2, 2, 2)), origin=(0, 0, 0), voxel_size=1.0)
     assert g.point_dtype == np.float32
     path = tmp_path / "g.npz"
@@ -345,6 +369,7 @@ def test_ply_source_type(types, double, tmp_path):
 
 
 def test_coordinates_beyond_float32_range_are_written_double(tmp_path):
+    """Coordinates beyond float32's range are written as double, with the report's note."""
     mesh = TriangleMesh(
         np.array([[0.0, 0.0, 0.0], [1e39, 0.0, 0.0], [0.0, 1e39, 0.0]]),
         [[0, 1, 2]],

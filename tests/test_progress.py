@@ -12,6 +12,7 @@ from recon_cli.progress import COMPILING, Progress, task
 
 
 def test_disabled_progress_draws_nothing_and_imports_no_rich():
+    """A disabled display draws nothing and imports neither rich nor numba (fresh process)."""
     code = (
         "import io, sys\n"
         "from recon_cli.progress import Progress, task\n"
@@ -29,6 +30,7 @@ def test_disabled_progress_draws_nothing_and_imports_no_rich():
 
 
 def test_bar_weighted_by_work_reaches_100_and_spinner_task_ends():
+    """A bar weighted by work reaches 100 %, with an eta; a spinner task ends finished too."""
     buf = io.StringIO()
     p = Progress(stream=buf, enabled=True)
     with task(p, "levels", 100) as t:
@@ -44,6 +46,8 @@ def test_bar_weighted_by_work_reaches_100_and_spinner_task_ends():
 
 
 def test_compiling_is_announced_while_numba_compiles():
+    """The display announces compiling while numba compiles, and stops listening once closed."""
+
     @njit  # not cached: compiles in this process
     def plus_one(x):
         return x + 1
@@ -67,8 +71,11 @@ def test_compiling_is_announced_while_numba_compiles():
 
 
 def test_a_display_made_before_numba_loads_announces_compiling_without_importing_numba_itself():
-    """A command running ahead-of-time kernels never loads numba, even with a progress display;
-    when a kernel module loads it later (a JIT fallback), the display still says it compiles."""
+    """A display made before numba loads still announces compiling, without importing numba.
+
+    A command running ahead-of-time kernels never loads numba, even with a progress display; when a
+    kernel module loads it later (a JIT fallback), the display still says it compiles.
+    """
     code = (
         "import io, sys\n"
         "from recon_cli.progress import COMPILING, Progress, task\n"
@@ -90,6 +97,7 @@ def test_a_display_made_before_numba_loads_announces_compiling_without_importing
 
 
 def test_expected_step_moves_on_the_rate_so_far_and_never_past_its_end():
+    """An expected step moves the bar at the rate so far, never backwards, never past its end."""
     import time
 
     buf = io.StringIO()
@@ -120,8 +128,11 @@ def test_expected_step_moves_on_the_rate_so_far_and_never_past_its_end():
 
 
 def test_poisson_solve_bar_is_weighted_by_each_levels_work():
-    """The exact levels and the big fine levels weigh what they cost: the solve's work
-    estimate follows the level sizes, not one unit per level."""
+    """The Poisson solve's bar weighs each level by its work, not one unit per level.
+
+    The exact levels and the big fine levels weigh what they cost: the solve's work estimate follows
+    the level sizes.
+    """
     from types import SimpleNamespace
 
     from recon_cli.stages.poisson.system import solve_work

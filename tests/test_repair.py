@@ -1,5 +1,7 @@
-"""``recon repair``: manifold, oriented, volume kept, holes filled; checked with Open3D, trimesh,
-PyMeshLab."""
+"""``recon repair``: manifold, oriented, volume kept, holes filled.
+
+Checked with Open3D, trimesh, PyMeshLab.
+"""
 
 from __future__ import annotations
 
@@ -74,6 +76,7 @@ def chamfer(a: TriangleMesh, b: TriangleMesh, n: int = 50_000) -> float:
 
 @pytest.mark.parametrize("name", ["armadillo", "bunny_zipper", "kitten", "mug"])
 def test_clean_meshes_pass_through_unchanged(name):
+    """Clean shared meshes pass through repair unchanged, with no change counted."""
     mesh = load_shared(name)
     if name == "bunny_zipper":  # its 1113 unreferenced vertices would be removed: drop them first
         mesh = compacted(mesh)
@@ -108,6 +111,7 @@ assert {n for n, _ in CASES} == set(CLOSED_MESHES)
 
 @pytest.mark.parametrize("name,kind", CASES)
 def test_damaged_closed_meshes_come_back(name, kind):
+    """Each kind of damage on a closed mesh is repaired: clean, the genus and volume back."""
     mesh = load_shared(name)
     ref = report(mesh)
     rng = np.random.default_rng(3)
@@ -138,6 +142,7 @@ def test_damaged_closed_meshes_come_back(name, kind):
 
 
 def test_inward_mesh_is_turned_outward():
+    """A mesh wound inward is turned outward: its one component reversed, every face flipped."""
     mesh = load_shared("mug")
     inward = TriangleMesh(vertices=mesh.vertices, faces=mesh.faces[:, [0, 2, 1]])
     assert report(inward)["volume"] < 0
@@ -147,6 +152,7 @@ def test_inward_mesh_is_turned_outward():
 
 
 def test_open_mesh_follows_vertex_normals():
+    """An open mesh's faces follow its vertex normals; without normals the larger area wins."""
     mesh = compacted(load_shared("bunny_zipper"))
     # the file is wound outward; true outward vertex normals from the faces
     fn = np.cross(
@@ -169,6 +175,7 @@ def test_open_mesh_follows_vertex_normals():
 
 
 def test_two_cones_are_split_at_the_tip():
+    """Two cones touching at the tip are split there into two closed components."""
     cones = D.two_cones()
     out, rep = repair(cones)
     after = assert_clean(out, closed=None)
@@ -181,6 +188,7 @@ def test_two_cones_are_split_at_the_tip():
 
 
 def test_pinched_real_mesh_is_split():
+    """The kitten and a copy pinched at a vertex: split into two pieces, twice the volume."""
     mesh = load_shared("kitten")
     v0, n = mesh.vertices, len(mesh.vertices)
     rm, lm = int(np.argmax(v0[:, 0])), int(np.argmin(v0[:, 0]))
@@ -200,6 +208,10 @@ def test_pinched_real_mesh_is_split():
 
 @pytest.mark.parametrize("name", ["kitten", "mug"])  # genus 0: the bunny test below
 def test_hole_filling_restores_watertight_same_genus(name):
+    """Holes cut in a closed mesh are filled: watertight, the same genus, near the original.
+
+    A limit below the longest hole's length leaves that hole open.
+    """
     mesh = load_shared(name)
     ref = report(mesh)
     k = 4
@@ -219,6 +231,7 @@ def test_hole_filling_restores_watertight_same_genus(name):
 
 
 def test_hole_filling_on_bunny_base():
+    """The bunny's 5 base holes are filled: watertight, genus 0, outward."""
     mesh = load_shared("bunny_zipper")
     out, rep = repair(mesh, fill_holes=400)
     after = assert_clean(out)
@@ -232,6 +245,7 @@ def test_hole_filling_on_bunny_base():
 
 
 def test_filled_planar_hole_is_flat_and_minimal():
+    """A planar hole is filled flat with the fewest faces: the area exactly the square's."""
     # a unit square grid with the middle 2x2 cells removed: the fill must lie in the plane
     n = 6
     x, y = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
@@ -252,6 +266,10 @@ def test_filled_planar_hole_is_flat_and_minimal():
 
 
 def test_merge_tolerance():
+    """Split vertices jittered by 1e-9 stay apart exactly and merge with a tolerance.
+
+    With ``merge_tolerance=1e-6`` every copy merges and the kitten is closed again.
+    """
     mesh = load_shared("kitten")
     rng = np.random.default_rng(5)
     soup = D.split_vertices(mesh, rng, 0.05)
@@ -271,6 +289,7 @@ def test_merge_tolerance():
 
 
 def test_small_components():
+    """Components under ``min_component`` of the faces go; ``keep_largest`` keeps the largest."""
     kitten = load_shared("kitten")
     arm = load_shared("armadillo")
     small = TriangleMesh(
@@ -290,6 +309,7 @@ def test_small_components():
 
 
 def test_pymeshlab_chain_agrees_on_counts():
+    """Repairing a damaged mug agrees with PyMeshLab's chain on every count and the volume."""
     mesh = load_shared("mug")
     rng = np.random.default_rng(9)
     bad = D.flip_faces(D.duplicate_faces(D.split_vertices(mesh, rng), rng), rng)
@@ -310,6 +330,7 @@ def test_pymeshlab_chain_agrees_on_counts():
 
 
 def test_repair_is_idempotent_on_open3d_ball_pivoting():
+    """Repair of Open3D's ball pivoting is clean, and a second repair changes nothing."""
     cloud = sampled_cloud("kitten", 20_000)
     diag = bbox_diagonal(cloud.points)
     bpa = open3d_backend.ball_pivoting(cloud, [0.01 * diag, 0.02 * diag])
@@ -321,6 +342,7 @@ def test_repair_is_idempotent_on_open3d_ball_pivoting():
 
 
 def test_marching_cubes_output_passes_unchanged():
+    """A torus by skimage's marching cubes passes through repair unchanged."""
     from skimage.measure import marching_cubes
 
     g = np.linspace(-1.5, 1.5, 48)
@@ -340,6 +362,7 @@ def test_marching_cubes_output_passes_unchanged():
 
 
 def test_attributes_follow_vertices():
+    """Vertex and face attributes follow their vertices and faces, split copies included."""
     cones = D.two_cones()
     cones.normals = cones.vertices / np.maximum(
         np.linalg.norm(cones.vertices, axis=1, keepdims=True), 1e-9
@@ -364,6 +387,7 @@ REPAIR_KEYS = [
 
 
 def test_parameters_strings_and_errors():
+    """Parameters given as text are accepted, bad ones refused; the report's keys are fixed."""
     mesh = load_shared("kitten")
     out, rep = repair(
         mesh, merge_tolerance="exact", fill_holes="5", min_component="0", keep_largest="false"
@@ -391,6 +415,7 @@ def test_parameters_strings_and_errors():
 
 
 def test_stage_and_cli(tmp_path):
+    """The repair stage and command: history, report, file output and exit codes."""
     from click.testing import CliRunner
 
     from recon_cli.cli.main import cli, main
@@ -441,6 +466,7 @@ soups = st.integers(min_value=3, max_value=30).flatmap(
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(soups)
 def test_repair_of_any_soup_is_manifold_and_oriented(soup):
+    """Repair of any face soup is manifold and oriented; a clean result is a fixed point."""
     v, f, fill, tolerance = soup
     mesh = TriangleMesh(
         vertices=np.array(v, dtype=float).reshape(-1, 3),
@@ -458,6 +484,7 @@ def test_repair_of_any_soup_is_manifold_and_oriented(soup):
 
 
 def test_our_marching_cubes_output_passes_unchanged():
+    """Our marching cubes output of a torus passes through repair unchanged."""
     from recon_cli.stages.mcubes import marching_cubes
 
     g = np.linspace(-1.5, 1.5, 40)
@@ -478,6 +505,7 @@ def test_our_marching_cubes_output_passes_unchanged():
 
 @pytest.mark.slow  # over 10 s on a cold numba cache of the ball-pivoting kernels
 def test_our_ball_pivoting_output_keeps_every_face():
+    """Our ball pivoting output keeps every face, in order; only unused points go."""
     from recon_cli.stages.ballpivot import ball_pivoting
 
     cloud = sampled_cloud("kitten", 10_000)

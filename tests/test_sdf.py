@@ -1,5 +1,8 @@
-"""Signed distance grids: analytic shapes, Open3D cross-check, winding sign with holes,
-point-cloud IMLS, the eikonal check and the mesh -> sdf -> mcubes round trip."""
+"""Signed distance grids against analytic shapes, Open3D and the mcubes round trip.
+
+Analytic shapes, Open3D cross-check, winding sign with holes, point-cloud IMLS, the eikonal check
+and the mesh -> sdf -> mcubes round trip.
+"""
 
 from __future__ import annotations
 
@@ -27,10 +30,12 @@ def analytic_mesh(fn, n=48, lim=1.2):
 
 
 def sphere_fn(X, Y, Z):
+    """Signed distance to a sphere of radius 0.8 about the origin."""
     return np.sqrt(X**2 + Y**2 + Z**2) - 0.8
 
 
 def torus_fn(X, Y, Z):
+    """Signed distance to a torus about z (radii 0.7 and 0.3)."""
     return np.sqrt((np.sqrt(X**2 + Y**2) - 0.7) ** 2 + Z**2) - 0.3
 
 
@@ -42,6 +47,7 @@ def chamfer(a: TriangleMesh, b: TriangleMesh) -> tuple[float, float]:
 
 
 def test_box_exact_to_float32():
+    """A box mesh's grid is the exact box distance to float32 rounding, inside negative."""
     v, f = box_mesh((0, 0, 0), (1, 2, 3))
     res = apply_stage("sdf", TriangleMesh(vertices=v, faces=f), {"resolution": 40, "padding": 0.2})
     g = res.output
@@ -55,6 +61,10 @@ def test_box_exact_to_float32():
 
 @pytest.mark.parametrize("fn", [sphere_fn, torus_fn], ids=["sphere", "torus"])
 def test_analytic_shapes(fn):
+    """Analytic sphere and torus meshes: exact distances, the analytic sign wherever it is clear.
+
+    Both sign methods; clear: farther from the surface than twice the tessellation error.
+    """
     mesh = analytic_mesh(fn)
     # the mesh deviates from the analytic surface by its tessellation error, at most:
     t = mesh.vertices[mesh.faces]
@@ -78,8 +88,7 @@ def test_analytic_shapes(fn):
 
 
 def test_removed_patch_keeps_inside():
-    """Winding-number sign: kitten with a hole has the same inside as the intact kitten
-    away from the hole."""
+    """Winding-number sign: the kitten with a hole has the intact kitten's inside away from it."""
     m = load_shared("kitten")
     diag = np.linalg.norm(m.vertices.max(0) - m.vertices.min(0))
     centre = m.vertices[0]
@@ -100,8 +109,10 @@ def test_removed_patch_keeps_inside():
 
 
 def test_mesh_lists_cover_shared_data():
-    """CLOSED_MESHES / ALL_MESHES are exactly the watertight / all meshes in ../shared/data,
-    so the Open3D agreement and the round trip below run on every one of them."""
+    """CLOSED_MESHES / ALL_MESHES are exactly the watertight / all meshes in ../shared/data.
+
+    So the Open3D agreement and the round trip below run on every one of them.
+    """
     from recon_cli.mesh.topology import is_watertight
 
     from shared_data import SHARED
@@ -119,9 +130,11 @@ def test_mesh_lists_cover_shared_data():
 @pytest.mark.slow
 @pytest.mark.parametrize("name", CLOSED_MESHES)
 def test_against_open3d(name):
-    """At 128^3 (the issue's resolution), both sign methods: |ours - Open3D| <= 1e-4 of the
-    bbox diagonal everywhere, same sign wherever Open3D's |distance| exceeds one voxel.
-    Open3D's grid is computed once per mesh; ours once per sign method."""
+    """At 128^3, both sign methods agree with Open3D's signed distance.
+
+    |ours - Open3D| <= 1e-4 of the bbox diagonal everywhere, same sign wherever Open3D's |distance|
+    exceeds one voxel. Open3D's grid is computed once per mesh; ours once per sign method.
+    """
     from recon_cli.backends.open3d_backend import signed_distance
 
     m = load_shared(name)
@@ -144,6 +157,7 @@ def test_against_open3d(name):
 
 @pytest.mark.parametrize("name", ALL_MESHES)
 def test_round_trip_mesh_sdf_mcubes(name):
+    """Each shared mesh through sdf then mcubes: watertight, within a voxel of it (Chamfer)."""
     m = load_shared(name)
     g = apply_stage("sdf", m, {"resolution": 48}).output
     out = apply_stage("mcubes", g, {}).output
@@ -162,6 +176,7 @@ def test_round_trip_mesh_sdf_mcubes(name):
 
 
 def test_band():
+    """A band keeps the full grid's values inside it and the band's magnitude, signed, beyond."""
     m = load_shared("mug")
     origin, h, shape = grid_frame(m.vertices.min(0), m.vertices.max(0), 40)
     full, _ = mesh_sdf(m.vertices, m.faces, origin, h, shape)
@@ -177,6 +192,10 @@ def test_band():
 
 
 def test_point_cloud_imls():
+    """A point cloud's IMLS grid meshes within a quarter voxel of the kitten, no far sheets.
+
+    A cloud without normals is refused.
+    """
     m = load_shared("kitten")
     cloud = sampled_cloud("kitten", 30_000)
     res = apply_stage("sdf", cloud, {"resolution": 64})
@@ -195,6 +214,7 @@ def test_point_cloud_imls():
 
 
 def test_eikonal_check_exact_sphere():
+    """The eikonal check of an exact sphere distance: mean slope 1; of a scaled one 0.3."""
     x = np.linspace(-1, 1, 41)
     X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
     g = Grid(sdf=np.sqrt(X**2 + Y**2 + Z**2) - 0.5, origin=(-1, -1, -1), voxel_size=x[1] - x[0])
@@ -207,8 +227,11 @@ def test_eikonal_check_exact_sphere():
 
 @pytest.mark.parametrize("name", ["rounded_box", "thin_plate", "plate_with_hole", "torus"])
 def test_eikonal_check_near_exact_distance(name):
-    """Exact distances, rotated, scaled and 1e6 off: near the zero level, but at the kinks of
-    the medial axis, the figure is the exact field's (>= 97 %); slope 0.8 scores nothing."""
+    """The eikonal check scores exact distances near the zero level >= 97 %, slope 0.8 nothing.
+
+    Exact distances, rotated, scaled and 1e6 off: near the zero level, but at the kinks of the
+    medial axis, the figure is the exact field's.
+    """
     from shapes import SHAPES, random_rotation
 
     rng = np.random.default_rng(len(name))
@@ -231,6 +254,7 @@ def test_eikonal_check_near_exact_distance(name):
 
 
 def test_eikonal_check_near_without_zero_level():
+    """A grid with no zero level: the slope figure alone, "no zero level" in ``recon info``."""
     x = np.linspace(0, 1, 20)
     s = np.broadcast_to(x[:, None, None] + 0.5, (20, 20, 20)).copy()
     e = eikonal_check(Grid(sdf=s, origin=(0, 0, 0), voxel_size=x[1]))
@@ -244,8 +268,10 @@ def test_eikonal_check_near_without_zero_level():
 
 
 def test_eikonal_check_slabs(monkeypatch):
-    """The slab-by-slab evaluation gives the same statistics whatever the slab size,
-    with NaN (unknown) samples and a band cap present."""
+    """The slab-by-slab eikonal check gives the same statistics whatever the slab size.
+
+    With NaN (unknown) samples and a band cap present.
+    """
     import recon_cli.stages.sdf as sdf_mod
 
     rng = np.random.default_rng(3)
@@ -270,6 +296,7 @@ def test_eikonal_check_slabs(monkeypatch):
 
 
 def test_validation_and_cli(tmp_path):
+    """Bad parameters are refused; the sdf command writes a grid ``recon info`` describes."""
     from click.testing import CliRunner
 
     from recon_cli.cli.main import cli
@@ -308,6 +335,7 @@ def test_validation_and_cli(tmp_path):
 
 
 def test_open3d_backend_agrees_with_native_and_is_meshes_only():
+    """The Open3D backend's grid agrees with ours to float32 rounding; clouds are refused."""
     from recon_cli.stages.sdf import run_stage as sdf_stage
 
     mesh = load_shared("kitten")
@@ -326,9 +354,11 @@ def test_open3d_backend_agrees_with_native_and_is_meshes_only():
 
 @pytest.mark.parametrize("name", CLOSED_MESHES)
 def test_closed_mesh_signs_by_classes_agree_with_pseudonormals(name):
-    """On a closed mesh ``sign="winding"`` evaluates one winding number per side class
-    (``sign_method`` "classes"): at most 2 % of the samples at 64^3 (the mug: 1.1 %, its thin walls
-    leave single samples), and on these clean outward meshes the same grid as the pseudonormal sign.
+    """On a closed mesh, winding by side classes matches the pseudonormal sign's grid.
+
+    ``sign="winding"`` evaluates one winding number per side class (``sign_method`` "classes"): at
+    most 2 % of the samples at 64^3 (the mug: 1.1 %, its thin walls leave single samples), and on
+    these clean outward meshes the same grid as the pseudonormal sign.
     """
     m = load_shared(name)
     origin, h, shape = grid_frame(m.vertices.min(0), m.vertices.max(0), 64)
@@ -344,9 +374,12 @@ def test_closed_mesh_signs_by_classes_agree_with_pseudonormals(name):
 
 
 def test_open_or_inverted_mesh():
-    """A mesh with a hole goes through winding numbers near the surface and per far
-    region; a closed mesh turned inside out gets its geometric inside (winding number -1
-    there: the nonzero rule), and the pseudonormal sign refuses it."""
+    """An open mesh goes through winding numbers; an inverted one gets its geometric inside.
+
+    A mesh with a hole goes through winding numbers near the surface and per far region; a closed
+    mesh turned inside out gets its geometric inside (winding number -1 there: the nonzero rule),
+    and the pseudonormal sign refuses it.
+    """
     m = load_shared("kitten")
     origin, h, shape = grid_frame(m.vertices.min(0), m.vertices.max(0), 32)
     closed_sdf, closed = mesh_sdf(m.vertices, m.faces, origin, h, shape)
@@ -370,9 +403,11 @@ def test_open_or_inverted_mesh():
 
 
 def _reference_winding(v, f, p):
-    """Winding numbers independent of the stage's side classes: the exact sum of solid
-    angles at every point for small problems; else Barill's tree with a stricter
-    acceptance (beta 3), and the exact sum wherever that is not within 0.02 of an integer."""
+    """Winding numbers independent of the stage's side classes.
+
+    The exact sum of solid angles at every point for small problems; else Barill's tree with a
+    stricter acceptance (beta 3), and the exact sum wherever that is not within 0.02 of an integer.
+    """
     from recon_cli.mesh.winding import WindingTree, winding_number
 
     if len(p) * len(f) <= 10_000_000:
@@ -385,8 +420,11 @@ def _reference_winding(v, f, p):
 
 
 def _closed_family():
-    """(name, vertices, faces, resolution): closed meshes with thin parts, cavities,
-    several shells, slivers, rotations, scales from 1e-3 to 1e3 and offsets to 1e6."""
+    """(name, vertices, faces, resolution) of hard closed meshes.
+
+    Thin parts, cavities, several shells, slivers, rotations, scales from 1e-3 to 1e3 and offsets to
+    1e6.
+    """
     import shapes as S
 
     rng = np.random.default_rng(15)
@@ -431,10 +469,13 @@ def _family():
 
 @pytest.mark.parametrize("idx", range(66))
 def test_closed_mesh_sign_is_exact_winding_number(idx):
-    """Issue 15 items 1-2: on closed meshes (shared ones, generated ones with thin parts,
-    cavities and several shells; rotated, rescaled, moved to 1e6, near-degenerate
-    remeshes; each also wound inward) every sample farther than half a voxel from the
-    surface is negative exactly where the exact winding number is not 0."""
+    """Issue 15 items 1-2: on closed meshes the sign is exactly the winding number's.
+
+    Closed meshes: shared ones, generated ones with thin parts, cavities and several shells;
+    rotated, rescaled, moved to 1e6, near-degenerate remeshes; each also wound inward. Every sample
+    farther than half a voxel from the surface is negative exactly where the exact winding number is
+    not 0.
+    """
     fam = _family()
     assert len(fam) == 66
     name, v, f, res = fam[idx]
@@ -459,8 +500,11 @@ def test_closed_mesh_sign_is_exact_winding_number(idx):
 
 @pytest.mark.parametrize("seed", range(4))
 def test_side_classes_are_the_components_of_the_link_graph(seed):
-    """The kernel's classes equal scipy's connected components of the graph joining
-    6-neighbours with d1 + d2 > link, and each representative is its class's farthest sample."""
+    """The kernel's side classes are scipy's connected components of the link graph.
+
+    The graph joins 6-neighbours with d1 + d2 > link, and each representative is its class's
+    farthest sample.
+    """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -498,6 +542,7 @@ def test_side_classes_are_the_components_of_the_link_graph(seed):
 
 
 def test_boundary_free_and_signed_volume():
+    """is_boundary_free and signed_volume on spheres, holes, a flipped face and a hollow ball."""
     from recon_cli.stages.sdf import is_boundary_free, signed_volume
 
     from shapes import hollow_ball, icosphere

@@ -1,6 +1,8 @@
-"""``recon simplify``: quadric edge collapse that keeps manifolds manifold, faces unflipped,
-boundaries in place and every attribute; exact on planar and polyhedral shapes; as accurate
-as Open3D's and PyMeshLab's quadric decimation."""
+"""``recon simplify``: quadric edge collapse, exact and as accurate as Open3D and PyMeshLab.
+
+Keeps manifolds manifold, faces unflipped, boundaries in place and every attribute; exact on planar
+and polyhedral shapes; as accurate as Open3D's and PyMeshLab's quadric decimation.
+"""
 
 from __future__ import annotations
 
@@ -52,6 +54,7 @@ def subdivided_cube(k: int = 8):
 
 
 def compact(v, f):
+    """The vertices ``f`` uses and ``f`` renumbered to them."""
     used = np.unique(f)
     remap = np.full(len(v), -1)
     remap[used] = np.arange(len(used))
@@ -62,8 +65,10 @@ KINDS = ("sphere", "torus", "dumbbell", "sheet", "cut", "terrain")
 
 
 def family(seed: int) -> tuple[str, TriangleMesh]:
-    """A closed or open mesh (sphere, torus, thin rod, thin sheet, cut sphere, terrain) under
-    a random rotation, scale 1e-3..1e3 and offset up to 1e6."""
+    """A closed or open mesh under a random rotation, scale 1e-3..1e3 and offset up to 1e6.
+
+    Sphere, torus, thin rod, thin sheet, cut sphere or terrain.
+    """
     rng = np.random.default_rng(seed)
     kind = KINDS[seed % len(KINDS)]
     if kind == "sphere":
@@ -86,6 +91,7 @@ def family(seed: int) -> tuple[str, TriangleMesh]:
 
 
 def boundary_segments(m: TriangleMesh) -> tuple[np.ndarray, np.ndarray]:
+    """The end points of the boundary edges of ``m``: two (n, 3) arrays."""
     c = Connectivity(m.faces, len(m.vertices))
     e = c.edges[c.boundary_edges]
     return m.vertices[e[:, 0]], m.vertices[e[:, 1]]
@@ -101,8 +107,10 @@ def to_segments(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def boundary_hausdorff(a: TriangleMesh, b: TriangleMesh) -> float:
-    """Hausdorff distance between the boundary edges of ``a`` and ``b`` (their end points to
-    the other's segments), over ``a``'s diagonal."""
+    """Hausdorff distance between the boundary edges of ``a`` and ``b``, over ``a``'s diagonal.
+
+    Measured from their end points to the other's segments.
+    """
     a0, a1 = boundary_segments(a)
     b0, b1 = boundary_segments(b)
     d = max(to_segments(b0, a0, a1).max(), to_segments(a0, b0, b1).max())
@@ -110,8 +118,10 @@ def boundary_hausdorff(a: TriangleMesh, b: TriangleMesh) -> float:
 
 
 def chamfer(a: TriangleMesh, b: TriangleMesh, n: int = 20_000) -> tuple[float, float]:
-    """Exact point-to-triangle Chamfer (mean of both directions) and Hausdorff of samples, over
-    ``a``'s diagonal."""
+    """Exact point-to-triangle Chamfer and Hausdorff of samples, over ``a``'s diagonal.
+
+    Chamfer: the mean of both directions.
+    """
     diag = bbox_diagonal(a.vertices)
     pa = sample_surface(a, n, seed=1).points
     pb = sample_surface(b, n, seed=2).points
@@ -121,8 +131,7 @@ def chamfer(a: TriangleMesh, b: TriangleMesh, n: int = 20_000) -> tuple[float, f
 
 
 def normal_agreement(inp: TriangleMesh, out: TriangleMesh) -> np.ndarray:
-    """Cosine between each output face's normal and the normal of the input face closest to
-    its centroid."""
+    """Cosine between each output face's normal and that of the input face nearest its centroid."""
     _, fi, _ = closest_points(inp.vertices, inp.faces, out.vertices[out.faces].mean(axis=1))
     n_in, _ = face_normals(inp.vertices, inp.faces)
     n_out, _ = face_normals(out.vertices, out.faces)
@@ -130,6 +139,7 @@ def normal_agreement(inp: TriangleMesh, out: TriangleMesh) -> np.ndarray:
 
 
 def assert_same_topology(inp: TriangleMesh, out: TriangleMesh) -> dict:
+    """Assert ``out`` is manifold, oriented, clean and of ``inp``'s topology; its report."""
     r0, r = report(inp), report(out)
     for k in ("edge_manifold", "vertex_manifold", "consistently_oriented"):
         assert r[k] is True, k
@@ -142,6 +152,7 @@ def assert_same_topology(inp: TriangleMesh, out: TriangleMesh) -> dict:
 
 @pytest.mark.parametrize("seed", range(12))
 def test_family_keeps_topology_orientation_boundary_and_reaches_the_target(seed):
+    """Random family meshes reach the target with the same topology, no face turned over."""
     kind, m = family(seed)
     target = max(4, int(len(m.faces) * (0.1, 0.3, 0.05)[seed % 3]))
     out, rep = simplify(m, faces=target)
@@ -162,6 +173,11 @@ def test_family_keeps_topology_orientation_boundary_and_reaches_the_target(seed)
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_cube_and_square_are_simplified_exactly(seed):
+    """A split cube ends as its 8 corners and 12 faces; a flat square as 4 faces, in place.
+
+    Randomly rotated, scaled and offset up to 1e6: the corners within a few ulps of the offset; the
+    square keeps its plane, its straight sides and its 4 corners.
+    """
     rng = np.random.default_rng(seed)
     R = S.random_rotation(rng)
     offset = rng.uniform(-1, 1, 3) * 1e6
@@ -191,6 +207,7 @@ def test_cube_and_square_are_simplified_exactly(seed):
 
 
 def test_unmoved_vertices_keep_their_exact_coordinates():
+    """Vertices no collapse moved keep their exact input coordinates."""
     _, m = family(5)  # terrain far from the origin
     d = Decimator(m.vertices, m.faces, 1000.0)
     d.run(len(m.faces) // 2, len(m.faces) // 2)
@@ -205,6 +222,7 @@ def test_unmoved_vertices_keep_their_exact_coordinates():
 
 
 def test_ratio_one_returns_the_input():
+    """Ratio 1 returns the input unchanged, no collapse made."""
     _, m = family(1)
     out, rep = simplify(m, ratio=1.0)
     assert rep["collapses"] == 0 and rep["stopped"] is None
@@ -212,6 +230,7 @@ def test_ratio_one_returns_the_input():
 
 
 def test_minimum_and_parity():
+    """A closed mesh goes down to a tetrahedron, stopping at even counts; an open one hits odd."""
     v, f = S.icosphere(2)
     m = TriangleMesh(v, f)
     out, rep = simplify(m, faces=4)  # the smallest closed surface: a tetrahedron
@@ -226,6 +245,7 @@ def test_minimum_and_parity():
 
 
 def test_topology_stops_it_early_and_says_why():
+    """A torus stops above 14 faces to keep its genus, and the report says why."""
     # a torus cannot go below 7 vertices (14 faces) without changing its genus
     v, f = S.torus(nu=12, nv=8)
     m = TriangleMesh(v, f)
@@ -237,6 +257,7 @@ def test_topology_stops_it_early_and_says_why():
 
 
 def test_non_manifold_parts_are_locked_and_the_rest_simplified():
+    """Fins and a pinched vertex are locked; the rest is simplified, their topology kept."""
     rng = np.random.default_rng(3)
     v, f = S.icosphere(4)
     m = D.glue_fins(TriangleMesh(v, f), rng, 5)
@@ -261,6 +282,7 @@ def test_non_manifold_parts_are_locked_and_the_rest_simplified():
 
 
 def test_attributes_follow_the_collapses_with_their_types():
+    """Colours, attributes and face attributes follow the collapses, in their types."""
     rng = np.random.default_rng(7)
     v, f = S.torus(nu=40, nv=20)
     v = v @ S.random_rotation(rng).T + 1e6
@@ -309,6 +331,7 @@ def test_attributes_follow_the_collapses_with_their_types():
 
 @pytest.mark.parametrize("name", ["mug", "armadillo"])
 def test_as_accurate_as_open3d_and_pymeshlab(name):
+    """To 10 % of the faces: Chamfer at most Open3D's and within 2 % of PyMeshLab's."""
     m = load_shared(name)
     target = len(m.faces) // 10
     out, rep = simplify(m, faces=target)
@@ -328,6 +351,7 @@ def test_as_accurate_as_open3d_and_pymeshlab(name):
     weight=st.sampled_from([0.0, 1.0, 1000.0]),
 )
 def test_invariants_on_random_meshes(seed, frac, weight):
+    """Random meshes, targets and boundary weights: at least the target, manifold, oriented."""
     rng = np.random.default_rng(seed)
     v, f = (S.icosphere(2), terrain(9), S.torus(nu=10, nv=6))[seed % 3]
     v = v + rng.normal(scale=0.02, size=v.shape)
@@ -344,6 +368,7 @@ def test_invariants_on_random_meshes(seed, frac, weight):
 
 
 def test_a_stage_in_pipelines():
+    """The simplify stage in pipelines; clouds, both targets, too many or too few faces refused."""
     v, f = S.icosphere(3)
     res = apply_stage("simplify", TriangleMesh(v, f, history=["x"]), {"faces": 100})
     assert len(res.output.faces) == 100 and res.report["faces_out"] == 100
@@ -371,6 +396,7 @@ CASES = [
 
 @pytest.mark.parametrize("args, message", CASES)
 def test_bad_input_one_line_exit_2_no_output(tmp_path, args, message):
+    """Bad input on the command line: exit 2, one line with the message, nothing written."""
     v, f = S.icosphere(2)
     src = tmp_path / "in.ply"
     write_ply(PointCloud(v) if args == "cloud" else TriangleMesh(v, f), src)
@@ -386,6 +412,7 @@ def test_bad_input_one_line_exit_2_no_output(tmp_path, args, message):
 
 
 def test_command_writes_the_simplified_mesh(tmp_path):
+    """``recon simplify --ratio 0.25`` writes a quarter of the icosphere's faces."""
     v, f = S.icosphere(3)
     src, dst = tmp_path / "in.ply", tmp_path / "out.ply"
     write_ply(TriangleMesh(v, f), src)
@@ -401,6 +428,7 @@ def test_command_writes_the_simplified_mesh(tmp_path):
 
 @pytest.mark.parametrize("room", [1.02, 4.0])
 def test_compacting_the_adjacency_lists_changes_nothing(room):
+    """Compacting the adjacency lists, tight or roomy, gives the same collapses in order."""
     # the vertex -> faces and vertex -> edges lists grow at their end with every collapse and
     # are compacted when full: tight (compacted every few collapses) or roomy (never), the
     # same collapses happen in the same order
@@ -423,6 +451,7 @@ def test_compacting_the_adjacency_lists_changes_nothing(room):
 
 
 def test_same_bytes_for_any_thread_count_and_run(tmp_path):
+    """``recon simplify`` writes the same bytes on 1, 2 and 4 threads and when run again."""
     rng = np.random.default_rng(4)
     v, f = S.torus(nu=120, nv=60)
     v = v + rng.normal(scale=1e-3, size=v.shape)
@@ -446,9 +475,12 @@ def test_same_bytes_for_any_thread_count_and_run(tmp_path):
 
 
 def depth_mesh(seed: int) -> TriangleMesh:
-    """A single-view scan as a mesh: a simulated Kinect image of a tabletop (noise, flying
-    pixels, NaN misses) triangulated over its pixel grid, no triangle across a depth jump.
-    Open, with holes and pinched (non-manifold) vertices where two triangles touch."""
+    """A single-view scan as a mesh: a simulated Kinect tabletop triangulated over its pixels.
+
+    A simulated Kinect image (noise, flying pixels, NaN misses) triangulated over its pixel grid, no
+    triangle across a depth jump. Open, with holes and pinched (non-manifold) vertices where two
+    triangles touch.
+    """
     import sensors
 
     rng = np.random.default_rng(seed)
@@ -471,6 +503,7 @@ def depth_mesh(seed: int) -> TriangleMesh:
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_depth_camera_scans_keep_holes_pinches_and_orientation(seed):
+    """Depth-camera meshes keep their holes, pinched vertices and orientation, simplified."""
     from recon_cli.stages.repair import repair
 
     raw = depth_mesh(seed)

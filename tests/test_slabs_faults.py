@@ -66,8 +66,11 @@ def _tmpfs(path: Path, size: str):
 
 
 def test_only_the_folders_of_dead_runs_are_removed(tmp_path):
-    """A folder whose owner lock is held (this run's) stays; one whose owner died goes; a
-    ``.recon-`` folder without an owner file and any other folder stay."""
+    """Only the spill folders of dead runs are removed.
+
+    A folder whose owner lock is held (this run's) stays; one whose owner died goes; a ``.recon-``
+    folder without an owner file and any other folder stay.
+    """
     dead = tmp_path / ".recon-poisson-dead"
     dead.mkdir()
     (dead / OWNER).write_text("999999\n")  # nobody holds its lock
@@ -86,11 +89,13 @@ def test_only_the_folders_of_dead_runs_are_removed(tmp_path):
 
 
 def test_a_killed_run_leaves_its_folder_to_the_next_run(tmp_path):
-    """Runs in slabs in this process beside an OUT that exists, SIGKILLed once they spill,
-    poisson then normals: OUT is as it was, no temporary file is beside it, the run's spill
-    folder stays with the killed process's id in its owner file. Each next run that spills there
-    removes the folder the killed one left: normals poisson's, then a small normals run the
-    killed normals'."""
+    """A run killed while spilling leaves OUT as it was and its folder for the next run.
+
+    Runs in slabs in this process beside an OUT that exists, SIGKILLed once they spill, poisson then
+    normals: OUT is as it was, no temporary file is beside it, the run's spill folder stays with the
+    killed process's id in its owner file. Each next run that spills there removes the folder the
+    killed one left: normals poisson's, then a small normals run the killed normals'.
+    """
     oriented = _cloud(tmp_path, 60_000, seed=3)
     bare = _cloud(tmp_path, 60_000, seed=4, normals=False)
     outs = {"poisson": tmp_path / "mesh.ply", "normals": tmp_path / "normals.ply"}
@@ -141,8 +146,11 @@ def _workers(pid: int) -> list:
     ],
 )
 def test_a_killed_worker_gives_the_same_bytes(tmp_path, stage, args):
-    """``recon STAGE IN OUT --workers 2 --partitions 2`` with one worker SIGKILLed once the chunks
-    are sorted: exit 0 and the bytes of the same two slabs run in this process."""
+    """A worker SIGKILLed once the chunks are sorted: exit 0 and the same bytes.
+
+    ``recon STAGE IN OUT --workers 2 --partitions 2``: the bytes of the same two slabs run in this
+    process.
+    """
     src = _cloud(tmp_path, 40_000, seed=6, normals=stage == "poisson")
     ref = tmp_path / "ref.ply"
     assert _recon_here([stage, src, ref, "--partitions", "2", *args]) == 0
@@ -174,9 +182,11 @@ def test_a_killed_worker_gives_the_same_bytes(tmp_path, stage, args):
 
 
 def test_a_full_disk_while_writing_out_is_one_line_exit_1(tmp_path, capfd):
-    """OUT on a 256 KiB file system, too small for the mesh (in one process and in slabs, whose
-    mesh goes to OUT a block of rows at a time): exit 1, one line naming OUT, the old output
-    kept, nothing else on that file system."""
+    """A full disk while writing OUT: exit 1, one line naming OUT, the old output kept.
+
+    OUT on a 256 KiB file system, too small for the mesh (in one process and in slabs, whose mesh
+    goes to OUT a block of rows at a time); nothing else is left on that file system.
+    """
     src = _cloud(tmp_path, 8000, seed=7)
     with _tmpfs(tmp_path / "small", "256k") as small:
         out = small / "mesh.ply"
@@ -191,8 +201,10 @@ def test_a_full_disk_while_writing_out_is_one_line_exit_1(tmp_path, capfd):
 
 
 def test_normals_full_disk_while_spilling(tmp_path):
-    """normals in slabs with its spill folder on a 256 KiB file system: exit 1, one line naming
-    the folder, the old output kept, nothing left in the folder."""
+    """``recon normals`` in slabs, spill disk full: exit 1, one line, old output kept, folder empty.
+
+    The spill folder on a 256 KiB file system; the line names the folder.
+    """
     src = _cloud(tmp_path, 20_000, seed=8, normals=False)
     out = tmp_path / "n.ply"
     out.write_bytes(OLD)
@@ -208,6 +220,7 @@ def test_normals_full_disk_while_spilling(tmp_path):
 
 
 def test_sigterm_mid_out_of_core_normals_leaves_nothing(tmp_path):
+    """SIGTERM while normals spill: exit 143, "recon: terminated", only the input left."""
     src = _cloud(tmp_path, 60_000, seed=9, normals=False)
     out = tmp_path / "n.ply"
     argv = [*RECON[:-1], "normals", src, out, "--partitions", "4", "--knn", "60"]

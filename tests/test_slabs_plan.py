@@ -18,9 +18,11 @@ BPP = 4096.0  # bytes a point, as a stage declares
 
 
 def test_default_partitions_from_the_workers_memory():
-    """One slab per worker when a slab fits the worker's share; a cloud four times too big takes
-    four per worker; a count rounded up to whole rounds of the workers, capped; no limit: one per
-    worker."""
+    """Default partitions follow the workers' memory, in whole rounds of the workers.
+
+    One slab per worker when a slab fits the worker's share; a cloud four times too big takes four
+    per worker; a count rounded up to whole rounds of the workers, capped; no limit: one per worker.
+    """
     mem = 8 * 2**30
     per_slab = SLAB_MEMORY_SHARE * mem / BPP  # the points one slab may hold
     fits = int(4 * per_slab)
@@ -51,10 +53,12 @@ class _Client:
 
 
 def count(partitions, npoints, client, budget=None):
+    """slab_count for poisson at the test's bytes per point, with at most 64 slabs."""
     return slab_count(partitions, npoints, client, BPP, 64, "poisson", "the seams", budget)
 
 
 def test_slab_count_on_a_cluster_says_how_many_and_why():
+    """On a cluster the slab count follows the smallest worker limit, and the report says why."""
     mem = 2**30
     per_slab = int(SLAB_MEMORY_SHARE * mem / BPP)
     # the smallest worker's limit decides; a worker without one does not
@@ -72,8 +76,7 @@ def test_slab_count_on_a_cluster_says_how_many_and_why():
 
 
 def test_slab_count_in_this_process_from_its_budget():
-    """No cluster: this process's budget sizes the slabs (any count, not whole rounds); none
-    given: one slab."""
+    """No cluster: this process's budget sizes the slabs (any count); none given: one slab."""
     mem = 2**30
     per_slab = int(SLAB_MEMORY_SHARE * mem / BPP)
     assert count(None, 10**9, None) == (
@@ -91,6 +94,7 @@ def test_slab_count_in_this_process_from_its_budget():
 
 
 def test_a_memory_too_small_for_the_most_slabs_is_refused_with_the_least_that_does():
+    """Memory too small even for 64 slabs is refused with the least memory that does."""
     mem = 2**30
     per_slab = int(SLAB_MEMORY_SHARE * mem / BPP)
     npoints = 65 * per_slab
@@ -105,6 +109,7 @@ def test_a_memory_too_small_for_the_most_slabs_is_refused_with_the_least_that_do
 
 @pytest.mark.parametrize("parts", [1, 2, 5])
 def test_seams_balance_the_counts(parts):
+    """Seams split the counts within one sub-slab of equal shares, increasing, in 1..31."""
     rng = np.random.default_rng(parts)
     counts = rng.integers(0, 1000, 32)
     seams = choose_seams(counts, parts)
@@ -119,11 +124,13 @@ def test_seams_balance_the_counts(parts):
 
 
 def test_as_many_seams_as_planes_take_every_plane():
+    """32 partitions take every plane; 33 are refused."""
     assert choose_seams(np.ones(32), 32) == list(range(1, 32))
     with pytest.raises(ParameterError, match="at most 32 partitions"):
         choose_seams(np.ones(32), 33)
 
 
 def test_sub_slab_of_unit_x():
+    """sub_slab gives the half of unit x each value falls in, clamped outside [0, 1)."""
     x = np.array([0.0, 0.49999, 0.5, 0.99999, 1.0, -0.1, 1.2])
     assert sub_slab(x, 2).tolist() == [0, 0, 1, 1, 1, 0, 1]

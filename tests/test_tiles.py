@@ -49,11 +49,13 @@ def _autzen_tileset(folder: str) -> dict:
 
 @pytest.fixture(scope="module")
 def autzen_dir(tmp_path_factory):
+    """The Autzen lidar tile's tileset, written once for the module: (folder, report)."""
     folder = tmp_path_factory.mktemp("autzen") / "tileset"
     return folder, _autzen_tileset(str(folder))
 
 
 def test_lidar_tileset_lands_in_place_on_the_globe(autzen_dir):
+    """The lidar tileset is valid glTF and lands at Autzen stadium on the globe."""
     import pyproj
 
     folder, rep = autzen_dir
@@ -86,6 +88,7 @@ def test_lidar_tileset_lands_in_place_on_the_globe(autzen_dir):
 
 
 def test_tileset_loads_in_a_browser_through_3d_tiles_renderer(autzen_dir):
+    """The tileset loads in a browser through 3d-tiles-renderer: every tile, the leaves drawn."""
     folder, rep = autzen_dir
     got = load_in_browser(folder)
     assert got["done"] and got["errors"] == [], got
@@ -95,6 +98,7 @@ def test_tileset_loads_in_a_browser_through_3d_tiles_renderer(autzen_dir):
 
 
 def test_terrain_is_a_quadtree_and_errors_bound_the_full_mesh(autzen_dir):
+    """Terrain tiles form a quadtree whose geometric errors bound the full mesh's distance."""
     folder, rep = autzen_dir
     found = check_tileset(folder)
     inner = [t for t, _ in found["tiles"] if t.get("children")]
@@ -122,6 +126,7 @@ def test_terrain_is_a_quadtree_and_errors_bound_the_full_mesh(autzen_dir):
 
 
 def test_compact_mesh_is_an_octree_in_its_own_units(tmp_path):
+    """A mesh without a coordinate system tiles as an octree in its own units, every face once."""
     m = mesh_family(4)  # a torus at a random offset and scale, no coordinate system
     m.history = ["made by the test"]
     ts = recon_cli.tiles(m, tile_faces=64)
@@ -149,6 +154,7 @@ def test_compact_mesh_is_an_octree_in_its_own_units(tmp_path):
 
 
 def test_crs_given_places_a_mesh_without_one(tmp_path):
+    """``crs`` places a mesh without one on the globe, near Autzen."""
     m = _autzen()
     bare = TriangleMesh(vertices=m.vertices, faces=m.faces[:3000])
     ts, rep = tiles(bare, tile_faces=2000, crs=2992)  # NAD83 / Oregon GIC Lambert (ft)
@@ -157,6 +163,7 @@ def test_crs_given_places_a_mesh_without_one(tmp_path):
 
 
 def test_existing_or_impossible_output_refused_nothing_written(tmp_path, monkeypatch):
+    """An existing or impossible output is refused in one line and nothing is written."""
     m = mesh_family(2, np.float32)
     save(m, tmp_path / "m.glb")
     (tmp_path / "out").mkdir()
@@ -190,6 +197,7 @@ def test_existing_or_impossible_output_refused_nothing_written(tmp_path, monkeyp
 
 
 def test_command_and_pipeline_stage(tmp_path):
+    """``recon tiles`` as a command and as the last stage of a pipeline."""
     m = mesh_family(1, np.float32)
     save(m, tmp_path / "m.ply")
     r = subprocess.run(

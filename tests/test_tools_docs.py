@@ -1,5 +1,4 @@
-"""recon_cli.tools.docs: the documentation's stage pages, their tables read back and compared
-with the declarations."""
+"""recon_cli.tools.docs: the documentation's stage pages, read back against the declarations."""
 
 from __future__ import annotations
 
@@ -35,6 +34,7 @@ def expected_row(p: Param) -> list[str]:
 
 @pytest.mark.parametrize("name", stage_names())
 def test_every_stage_table_equals_its_declaration(name):
+    """Each stage's parameter table holds exactly its declaration's rows and meanings."""
     spec = get_spec(name)
     rows = table_cells(docs.param_table(spec))
     assert rows[0] == list(spec.TABLE_COLUMNS)
@@ -50,6 +50,7 @@ def test_every_stage_table_equals_its_declaration(name):
 
 @pytest.mark.parametrize("name", stage_names())
 def test_every_stage_page_names_its_command_and_function(name):
+    """Each stage page names its command and function, its fields readable as reStructuredText."""
     page = docs.stage_page(name)
     fn = name.replace("-", "_")
     assert f"\n:Python: :func:`recon_cli.{fn}`\n" in page
@@ -131,6 +132,7 @@ def test_every_stage_page_includes_its_guide(name, tmp_path):
 
 
 def test_bench_summary_keeps_every_measured_ratio():
+    """The bench summary keeps every measured ratio of the results file."""
     results = """# recon benchmark
 
 ## bench_x (2026-12-01 10:00, 5 s)

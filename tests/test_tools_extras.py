@@ -25,6 +25,7 @@ REQUIRES = [
 
 
 def test_only_the_named_extras_requirements_without_markers():
+    """extra_requirements lists the named extras' requirements once, no markers, no core ones."""
     assert extra_requirements(["reference", "las"], REQUIRES) == [
         "laspy[lazrs]>=2.5",
         "open3d>=0.18",
@@ -36,6 +37,7 @@ def test_only_the_named_extras_requirements_without_markers():
 
 
 def test_the_installed_metadata_as_pip_reads_it():
+    """tools/extras.py reads the installed metadata: the extras' pins, no core package."""
     r = subprocess.run(
         [sys.executable, str(ROOT / "tools" / "extras.py"), "reference,learned"],
         capture_output=True,

@@ -86,6 +86,7 @@ print(json.dumps(compiled))
 
 @pytest.mark.slow
 def test_no_command_compiles_after_warmup(tmp_path):
+    """After ``recon warmup`` no command compiles a kernel."""
     # the install's cache, copied at the start of the run (an empty one without it): the warm-up
     # compiles what is missing or stale there
     cache = os.environ.get("RECON_TEST_WARM_CACHE") or str(tmp_path / "cache")
@@ -201,11 +202,13 @@ def _race(tmp_path, args: tuple[str, str]) -> list[int]:
 
 
 def test_workers_needing_one_kernel_at_once_compile_it_once(tmp_path):
+    """Two workers needing one kernel at once: it is compiled once, then loaded from the cache."""
     # the second waits for the first's compile, then loads it from the cache
     assert sorted(_race(tmp_path, ("1", "2"))) == [0, 1]
 
 
 def test_workers_compiling_two_variants_at_once_keep_both_in_the_cache(tmp_path):
+    """Two workers compiling two variants at once keep both in the cache; a third compiles none."""
     assert _race(tmp_path, ("1", "2.5")) == [1, 1]
     # a third process finds both in the kernel's cache index: it compiles nothing
     after = (
