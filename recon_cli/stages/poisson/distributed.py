@@ -36,6 +36,7 @@ from recon_cli.slabs.plan import choose_seams, sub_slab
 from recon_cli.slabs.runners import Overall
 from recon_cli.slabs.spill import spill_folder
 from recon_cli.stages.poisson import slab as S
+from recon_cli.stages.poisson import slab_envelope as E
 from recon_cli.stages.poisson import slab_surface as M
 from recon_cli.stages.poisson.splat import KERNEL_OFFSET, screening_alpha
 from recon_cli.stages.poisson.stitch import (
@@ -137,6 +138,7 @@ PHASE_WEIGHTS = {
     "density": 1.0,
     "place": 1.0,
     "noise": 8.0,
+    "envelope": 4.0,
     "items": 10.0,
     "restrict": 6.0,
     "coarse tree": 1.0,
@@ -155,10 +157,18 @@ PHASE_WEIGHTS = {
 
 
 def job_weights(
-    from_files: bool, noise: bool, trim: bool, carry: bool, write: bool, grid: bool = False
+    from_files: bool,
+    noise: bool,
+    trim: bool,
+    carry: bool,
+    write: bool,
+    grid: bool = False,
+    envelope: bool = False,
 ) -> dict:
     """The phases a run goes through and their weights (:data:`PHASE_WEIGHTS`)."""
     skip = set() if grid else {"grid"}
+    if not envelope:
+        skip.add("envelope")
     if not from_files:
         skip.add("sort")
     if not noise:
@@ -290,6 +300,7 @@ def make_job(origin, size, perm, depth, p: dict) -> S.Job:
         trim_auto=p["trim"] == "auto",
         domain=domain,
         grid=bool(p.get("grid")),
+        grown=int(p.get("grown", 0)),
     )
 
 
@@ -300,15 +311,17 @@ def reconstruct(
     progress: Any = None,
     out_dir: str | None = None,
     carry: bool = False,
+    envelope: Any = None,
 ) -> dict:
     """Every step after the slabs' ``load`` (whose messages are ``loaded``).
 
     Returns the mesh's parts per slab (in ``out_dir``'s files when given) and the report (module
-    docstring); ``carry``: the slabs carry the input's properties or colours onto their vertices.
+    docstring); ``carry``: the slabs carry the input's properties or colours onto their vertices;
+    ``envelope``: the checked :class:`.envelope.Envelope` in the job's axes (:mod:`.slab_envelope`).
     """
     timings: dict[str, float] = {}
     tables: dict[int, tuple] = {}
-    solved = _solve(runner, job, loaded, tables, timings)
+    solved = _solve(runner, job, loaded, tables, timings, envelope)
     surface = _surface(runner, job, solved, timings)
     t = time.perf_counter()
     parts, trimmed = _output(runner, job, loaded, tables, solved, surface, out_dir, carry, timings)
@@ -381,10 +394,13 @@ class _Solved:
     iterations: int
     residual: float
     bands: list
+    envelope: Any = None  # --envelope: its .slab_envelope.EnvelopeRun
 
 
-def _solve(runner, job: S.Job, loaded: list[dict], tables: dict, timings: dict) -> _Solved:
-    """Splat depths, noise, the trees, the coarse solve, the slabs' finer levels."""
+def _solve(
+    runner, job: S.Job, loaded: list[dict], tables: dict, timings: dict, envelope: Any = None
+) -> _Solved:
+    """Splat depths, noise, the envelope's carving, the trees, the coarse and finer solves."""
     t0 = time.perf_counter()
     # ---- the samples' splat depths: the slabs' own density levels, then the global ones
     tree_depth, alpha = _splat_depths(runner, job, loaded, tables)
@@ -398,6 +414,11 @@ def _solve(runner, job: S.Job, loaded: list[dict], tables: dict, timings: dict) 
             med = S.exact_median(runner, "sigma", S.noise_values, [m["hist"] for m in nm], "noise")
             fallback = 0.0 if med is None else med
     timings["noise"] = time.perf_counter() - t
+    env_run = None
+    if envelope is not None:  # the samples inside, the carving, the tree's items along both
+        t = time.perf_counter()
+        env_run = E.envelope_round(runner, job, envelope, tree_depth, [m["usable"] for m in loaded])
+        timings["envelope"] = time.perf_counter() - t
     # ---- items, fields, the slabs' trees; the coarse levels' data
     t = time.perf_counter()
     dc = min(job.coarse_depth, tree_depth)
@@ -431,6 +452,7 @@ def _solve(runner, job: S.Job, loaded: list[dict], tables: dict, timings: dict) 
             )
             for k in range(n)
         ],
+        envelope=env_run,
     )
 
 
@@ -440,12 +462,12 @@ def _surface(runner, job: S.Job, solved: _Solved, timings: dict) -> dict:
 
     t = time.perf_counter()
     bands, solved.bands = solved.bands, []  # released as the slabs get theirs
-    fm = runner.run("field", M.field, lambda k: (solved.iso, *bands[k]))
+    fm = runner.run("field", M.field, lambda k: (solved.iso, *bands[k], solved.envelope))
     bands = []  # the closure above held them
     # as the single-process extraction decides: at the leaves' own size when a coarse leaf
     # holds surface, else on the finest lattice (the same surface, faster)
     at_leaves = any(m["coarse"] for m in fm)
-    em = runner.run("extract", M.extract, lambda k: (solved.iso, at_leaves))
+    em = runner.run("extract", M.extract, lambda k: (solved.iso, at_leaves, solved.envelope))
     cell = job.size / (1 << solved.tree_depth)
     drop, dropped, seam_dev = merge_pieces(
         runner, em, cell, speck_cells(solved.noise), fold_cells(solved.noise)
@@ -478,7 +500,9 @@ def _output(
         return (dens_spec[0], *table_part(*dens_spec[1:], dens_spec[0], usable[k]))
 
     drop = surface["drop"]
-    pm = runner.run("prepare", M.prepare, lambda k: (drop[k], dens_part(k), job.trim > 0))
+    env = None if solved.envelope is None else solved.envelope.env
+    pm = runner.run("prepare", M.prepare, lambda k: (drop[k], dens_part(k), job.trim > 0, env))
+    surface["pulled"] = None if env is None else sum(m.get("pulled", 0) for m in pm)
     if job.grid:
         surface["grid"] = _field_grid(runner, job, solved, surface["extracted"])
     seam_keep: list[dict | None] = list(seams_used([m["seam_use"] for m in pm]))
@@ -514,7 +538,9 @@ def _report(job, loaded, solved: _Solved, surface: dict, parts, trimmed, timings
     """The run's report (keys as the single process's, plus ``distributed``)."""
     astats = [m.pop("attribute_stats", None) for m in parts]
     specks, islands, folds = surface["dropped"]
-    free = int(job.domain is not None)  # the free boundary's solve is one level deeper
+    # the free boundary's solve is one level deeper, an envelope's cube may be deeper still
+    free = int(job.domain is not None) + job.grown
+    env_run = solved.envelope
     return {
         "depth": job.depth - free,
         "tree_depth": solved.tree_depth - free,
@@ -530,6 +556,8 @@ def _report(job, loaded, solved: _Solved, surface: dict, parts, trimmed, timings
         "samples": int(sum(m["own_samples"] for m in loaded)),
         "attribute_fallback_vertices": sum(a["fallback"] for a in astats if a),
         "finest_cell": surface["cell"],
+        "envelope_outside_points": None if env_run is None else env_run.outside_points,
+        "envelope_pulled_vertices": surface.get("pulled"),
         "levels": solved.levels,
         "timings": timings,
         "distributed": {
@@ -670,6 +698,7 @@ def distributed_poisson(
     colors: np.ndarray | None = None,
     properties: dict[str, np.ndarray] | None = None,
     with_grid: bool = False,
+    envelope: Any = None,
     full_depth: int = 5,
     cg_tolerance: float = 1e-3,
     client: Any = None,
@@ -686,14 +715,15 @@ def distributed_poisson(
     With more slabs than workers (than one, in this process), the slabs' states wait in a
     temporary folder in ``temp_dir`` (default: the system's; the workers must share it) between
     their steps. Returns a :class:`.PoissonResult` like :func:`.screened_poisson`'s
-    (``confidence``, ``colors``, ``properties``, ``with_grid`` as there), whose report has a
-    ``distributed`` part (``partitions``: how many slabs and why).
+    (``confidence``, ``colors``, ``properties``, ``with_grid``, ``envelope`` as there), whose
+    report has a ``distributed`` part (``partitions``: how many slabs and why).
     """
     from recon_cli.stages.poisson import (
         SPEC,
         PoissonResult,
         check_inputs,
         check_options,
+        checked_envelope,
         kept_attributes,
     )
 
@@ -711,6 +741,7 @@ def distributed_poisson(
         grid=with_grid,
     )
     check_distributed(depth, params["full_depth"], 1 if partitions is None else partitions)
+    env = None if envelope is None else checked_envelope(envelope)
     t0 = time.perf_counter()
     lengths: list = []
     pts, _, keep = check_inputs(points, normals, lengths)
@@ -725,6 +756,9 @@ def distributed_poisson(
     colors, props = kept_attributes(keep, colors, properties)
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     origin, size, perm = frame_of(lo, hi, scale)
+    if env is not None:
+        origin, size, depth = E.grown_cube(env, origin, size, depth, params)
+        env = env.turned(perm)
     job = make_job(origin, size, perm, depth, params)
     pts = pts[:, list(perm)]
     nrm = nrm[:, list(perm)]
@@ -734,7 +768,9 @@ def distributed_poisson(
     plan = plan_slabs(job, sub_counts, partitions, seams)
     slabs = [S.slab_of(job, k, partitions, *plan[k]) for k in range(partitions)]
     carry = bool(props) or colors is not None
-    weights = job_weights(False, point_weight > 0, trim != 0, carry, False, with_grid)
+    weights = job_weights(
+        False, point_weight > 0, trim != 0, carry, False, with_grid, env is not None
+    )
 
     def load_args(k):
         pa, pb = (int(round(v * nsub)) for v in plan[k][1])
@@ -760,7 +796,7 @@ def distributed_poisson(
             )
             try:
                 loaded = runner.run("load", S.load, load_args)
-                out = reconstruct(runner, job, loaded, progress, carry=carry)
+                out = reconstruct(runner, job, loaded, progress, carry=carry, envelope=env)
             finally:
                 runner.close()
     mesh = assemble(out, job, perm, colors is not None)
@@ -831,16 +867,12 @@ def job_task(progress: Any, name: str, total: float) -> Any:
     return task(progress, name, total=total)
 
 
-def check_slab_options(
-    backend: str, degree: int, estimate_normals: bool, envelope: Any, where: str
-) -> None:
+def check_slab_options(backend: str, degree: int, estimate_normals: bool, where: str) -> None:
     """What a run in slabs does not take (one line each); ``where`` says why it is in slabs."""
     if backend != "native":
         raise ParameterError(f"{where} runs the native solver: leave out --backend")
     if degree != 2:
         raise ParameterError(f"{where} uses degree 2: leave out --degree 1")
-    if envelope not in (None, ""):
-        raise ParameterError(f"--envelope is not available {where}")
     if estimate_normals:
         raise ParameterError(f"--estimate-normals {where}: run 'recon normals' first")
 

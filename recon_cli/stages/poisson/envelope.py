@@ -114,6 +114,23 @@ class Envelope:
         self.bvh = build_bvh(v, f)
         self.winding = WindingTree(v, f, bvh=self.bvh)
 
+    def turned(self, perm: tuple[int, int, int]) -> Envelope:
+        """The envelope with its axes turned: column ``perm[a]`` becomes axis ``a``.
+
+        A run in slabs works in axes turned so that its slabs' axis is ``x``
+        (:func:`.distributed.frame_of`); the mesh is the checked one, its windings kept (a
+        cyclic turn keeps a mesh's orientation).
+        """
+        from recon_cli.mesh.distance import build_bvh
+        from recon_cli.mesh.winding import WindingTree
+
+        out = Envelope.__new__(Envelope)
+        out.vertices = np.ascontiguousarray(self.vertices[:, list(perm)])
+        out.faces = self.faces
+        out.bvh = build_bvh(out.vertices, out.faces)
+        out.winding = WindingTree(out.vertices, out.faces, bvh=out.bvh)
+        return out
+
     def inside(self, pts: np.ndarray) -> np.ndarray:
         """(m,) bool: the points strictly inside (|winding number| above 1/2)."""
         return np.abs(self.winding(pts)) > INSIDE
@@ -186,6 +203,42 @@ def covering_cube(
     return origin, size, depth
 
 
+def carving_masks(pos: np.ndarray, normal: np.ndarray, level: int) -> tuple[np.ndarray, np.ndarray]:
+    """The cells of :class:`Carving`'s grid a sample's ray crosses, and those holding a sample.
+
+    Parameters
+    ----------
+    pos, normal : (s, 3) float
+        Samples in unit-cube coordinates and their normals (any length).
+    level : int
+        The grid's level (``r = 2**level`` cells a side).
+
+    Returns
+    -------
+    free, held : (r**3,) bool
+        x-major cell flags. Each is an OR over the samples: the masks of a run's slabs, each
+        from its own samples, OR-ed are the whole cloud's.
+    """
+    r = 1 << level
+    nrm = normal / np.maximum(np.linalg.norm(normal, axis=1), 1e-300)[:, None]
+    free = np.zeros(r**3, bool)
+    step = 0.5 / r  # half a cell: a ray skips no cell it crosses
+    chunk = max(1, (1 << 22) // (2 * r))
+    for a in range(0, len(pos), chunk):
+        p, n = pos[a : a + chunk], nrm[a : a + chunk]
+        for k in range(1, int(np.ceil(np.sqrt(3.0) / step)) + 1):
+            q = p + (k * step) * n
+            ok = np.all((q >= 0.0) & (q < 1.0), axis=1)
+            if not ok.any():
+                break
+            c = (q[ok] * r).astype(np.int64)
+            free[(c[:, 0] * r + c[:, 1]) * r + c[:, 2]] = True
+    held = np.zeros(r**3, bool)
+    c = np.clip((pos * r).astype(np.int64), 0, r - 1)
+    held[(c[:, 0] * r + c[:, 1]) * r + c[:, 2]] = True
+    return free, held
+
+
 class Carving:
     """Free space seen in front of the samples, on a grid over the solve's unit cube.
 
@@ -205,29 +258,23 @@ class Carving:
     """
 
     def __init__(self, pos: np.ndarray, normal: np.ndarray, level: int):
+        self._set_masks(*carving_masks(pos, normal, level), level)
+
+    @classmethod
+    def of_masks(cls, free: np.ndarray, held: np.ndarray, level: int) -> Carving:
+        """The carving of :func:`carving_masks`' masks (OR-ed over a run's slabs)."""
+        out = cls.__new__(cls)
+        out._set_masks(free, held, level)
+        return out
+
+    def _set_masks(self, free: np.ndarray, held: np.ndarray, level: int) -> None:
         from scipy import ndimage
 
         r = 1 << level
         self.r = r
-        nrm = normal / np.maximum(np.linalg.norm(normal, axis=1), 1e-300)[:, None]
-        free = np.zeros(r**3, bool)
-        step = 0.5 / r  # half a cell: a ray skips no cell it crosses
-        chunk = max(1, (1 << 22) // (2 * r))
-        for a in range(0, len(pos), chunk):
-            p, n = pos[a : a + chunk], nrm[a : a + chunk]
-            for k in range(1, int(np.ceil(np.sqrt(3.0) / step)) + 1):
-                q = p + (k * step) * n
-                ok = np.all((q >= 0.0) & (q < 1.0), axis=1)
-                if not ok.any():
-                    break
-                c = (q[ok] * r).astype(np.int64)
-                free[(c[:, 0] * r + c[:, 1]) * r + c[:, 2]] = True
         solid = ndimage.gaussian_filter((~free).reshape(r, r, r).astype(np.float32), CARVE_SIGMA)
         self.solid_grid = solid - np.float32(0.5)
-        occ = np.ones((r, r, r), bool)
-        c = np.clip((pos * r).astype(np.int64), 0, r - 1)
-        occ[c[:, 0], c[:, 1], c[:, 2]] = False
-        self.dist_grid = ndimage.distance_transform_edt(occ).astype(np.float32)
+        self.dist_grid = ndimage.distance_transform_edt(~held.reshape(r, r, r)).astype(np.float32)
 
     def boundary_items(self) -> np.ndarray:
         """Unit-cube centres of the cells where the solid mask changes, away from the samples.

@@ -22,7 +22,7 @@ from recon_cli.slabs.runners import Overall, map_tasks
 from recon_cli.slabs.spill import spill_folder
 from recon_cli.stages.poisson import distributed as D
 from recon_cli.stages.poisson import slab as S
-from recon_cli.stages.poisson import stitch
+from recon_cli.stages.poisson import slab_envelope, stitch
 
 if TYPE_CHECKING:
     from recon_cli.stages.poisson import PoissonResult
@@ -144,6 +144,7 @@ def reconstruct_files(
     confidence: bool = False,
     attributes: Any = "all",
     with_grid: bool = False,
+    envelope: Any = None,
     full_depth: int = 5,
     cg_tolerance: float = 1e-3,
     temp_dir: str | None = None,
@@ -160,10 +161,10 @@ def reconstruct_files(
     :class:`.PoissonResult`; with ``output`` (a binary PLY path) the mesh is streamed there from the
     slabs' files instead (``history`` its comments, after the input's) and the result's mesh is
     None. ``attributes``: the input's properties carried onto the vertices
-    (:func:`.attributes.select`). ``with_grid``: the result's grid as
-    :func:`.screened_poisson`'s. ``partitions`` None: as many slabs as the workers' memory
-    needs, or without a ``client`` this process's ``budget`` of bytes (:func:`slab_count`, once
-    the chunks' points are counted).
+    (:func:`.attributes.select`). ``with_grid``, ``envelope`` (a checked
+    :class:`.envelope.Envelope`): as :func:`.screened_poisson`'s. ``partitions`` None: as many
+    slabs as the workers' memory needs, or without a ``client`` this process's ``budget`` of
+    bytes (:func:`slab_count`, once the chunks' points are counted).
     """
     from recon_cli.io.chunks import plan_chunks
     from recon_cli.slabs.runners import note_phase
@@ -191,10 +192,15 @@ def reconstruct_files(
     if not (hi - lo).max() > 0:
         raise InputError("all points coincide: there is no surface to reconstruct")
     origin, size, perm = D.frame_of(lo, hi, scale)
+    if envelope is not None:
+        origin, size, depth = slab_envelope.grown_cube(envelope, origin, size, depth, params)
+        envelope = envelope.turned(perm)
     job = D.make_job(origin, size, perm, depth, params)
     nsub = 1 << min(S.SUB_DEPTH, job.depth)
     carry = bool(names) or color_type is not None
-    weights = D.job_weights(True, point_weight > 0, trim != 0, carry, output is not None, with_grid)
+    weights = D.job_weights(
+        True, point_weight > 0, trim != 0, carry, output is not None, with_grid, bool(envelope)
+    )
     runner = None
     with spill_folder(temp_dir, "poisson") as tmp:
         with D.job_task(progress, "poisson: the whole job", sum(weights.values())) as job_bar:
@@ -226,7 +232,13 @@ def reconstruct_files(
                     "load", S.load_files, lambda k: (files, nsub, color_type, tuple(names), dtypes)
                 )
                 out = D.reconstruct(
-                    runner, job, loaded, progress, tmp if output is not None else None, carry=carry
+                    runner,
+                    job,
+                    loaded,
+                    progress,
+                    tmp if output is not None else None,
+                    carry=carry,
+                    envelope=envelope,
                 )
             finally:
                 runner.close()
@@ -391,10 +403,15 @@ def run_from_files(
     ex = current()
     v = SPEC.check(params, complete=True)
     where = D.slab_reason(ex)
-    D.check_slab_options(v["backend"], v["degree"], v["estimate_normals"], v["envelope"], where)
+    D.check_slab_options(v["backend"], v["degree"], v["estimate_normals"], where)
     from recon_cli.stages.poisson.field import checked_grid_path
 
     grid_path = checked_grid_path(v["grid"])
+    env = None
+    if v["envelope"] not in (None, ""):
+        from recon_cli.stages.poisson.envelope import load_envelope
+
+        env = load_envelope(v["envelope"])
     if input == "-":
         raise ParameterError(f"a run {where} reads IN by chunks: give a file, not '-'")
     if load_kw.get("format"):
@@ -431,6 +448,7 @@ def run_from_files(
             confidence=v["confidence"],
             attributes=v["attributes"],
             with_grid=grid_path is not None,
+            envelope=env,
             temp_dir=ex.spill_parent(output),
             output=output if stream else None,
             history=[prov],
@@ -443,6 +461,9 @@ def run_from_files(
     t2 = time.perf_counter()
     rep = res.report
     report = {k: rep[k] for k in REPORT_KEYS}
+    if env is not None:
+        for key in ("envelope_outside_points", "envelope_pulled_vertices"):
+            report[key] = rep[key]
     if grid_path is not None:
         from recon_cli.stages.poisson.field import write_solved_grid
 

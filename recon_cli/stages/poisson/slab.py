@@ -103,6 +103,7 @@ class Job:
     seam_depth: int = PARTITION_DEPTH  # the level whose planes the seams lie on
     trim_auto: bool = False  # --trim auto (trim is then 0)
     grid: bool = False  # --grid: the field on the finest lattice around the surface
+    grown: int = 0  # --envelope: the levels the cube grew to hold it (the finest lattice kept)
     # --boundary free: the reconstruction cube's bounds (unit cube, every axis) inside the solve's
     # cube, twice as large and one level deeper (:mod:`.free`); the mesh is clipped to it
     domain: tuple[float, float] | None = None
@@ -172,6 +173,10 @@ class Slab:
     mass: np.ndarray | None = None
     # --grid: what chi_at reads (:func:`.system.chi_levels`), kept from the extraction
     grid_levels: Any = None
+    # --envelope (:mod:`.slab_envelope`): (s,) the samples inside it (they screen and make the
+    # iso-value), and the items the tree is refined along (positions (m, 3), levels (m,))
+    sample_ok: np.ndarray | None = None
+    tree_items: tuple | None = None
 
     def __getstate__(self) -> dict:
         # a pickled view is a copy: the levels' fields (views of ``arrays``, shared with the
@@ -450,6 +455,8 @@ def items(slab: Slab, tree_depth: int, alpha: float, fallback: float | None) -> 
         clean = None
     sp = Splats(None, None, None, alpha * smp.count, alpha, tree_depth, clean=clean)
     slab.screen_w = sp.screening(SCREEN_CLEAN, SCREEN_NOISY)
+    if slab.sample_ok is not None:  # samples outside the envelope do not screen
+        slab.screen_w = slab.screen_w * slab.sample_ok
     # the splat items of the usable samples (the own ones first), as make_splats makes them
     splat = np.clip(np.nan_to_num(slab.splat), 0.0, job.depth)
     s_lo = np.floor(splat).astype(np.int64)
@@ -477,6 +484,12 @@ def items(slab: Slab, tree_depth: int, alpha: float, fallback: float | None) -> 
     fine = ~coarse
     msg: dict[str, Any] = {}
     msg["coarse_fields"] = spread_fields(pos[own & coarse], vec[own & coarse], lvl[own & coarse])
+    # the slab's own finer levels' fields (own + pad, and own alone for the coarse rhs)
+    slab.fine_fields = spread_fields(pos[fine], vec[fine], lvl[fine]) if fine.any() else {}
+    if slab.tree_items is not None:  # the tree (not the fields) refined along the envelope
+        pos, lvl, own = _with_tree_items(slab, pos, lvl, own)
+        coarse = lvl <= dc
+        fine = ~coarse
     # the cells (level dc + 1) the slab's own finer items occupy: all the coarse tree needs of them
     rep = np.unique(
         pack_keys(np.clip(np.floor(pos[own & fine] * (1 << (dc + 1))), 0, (1 << (dc + 1)) - 1))
@@ -490,8 +503,7 @@ def items(slab: Slab, tree_depth: int, alpha: float, fallback: float | None) -> 
     msg["screening"] = sums
     if slab.noise is not None:
         msg["noise_hist"] = float_histogram(slab.noise[slab.own_s])
-    # the slab's own finer levels: fields (own + pad, and own alone for the coarse rhs) and tree
-    slab.fine_fields = spread_fields(pos[fine], vec[fine], lvl[fine]) if fine.any() else {}
+    # the slab's own finer levels' tree
     if fine.any() and tree_depth > dc:
         levels = build_levels(
             pos[fine],
@@ -513,6 +525,24 @@ def items(slab: Slab, tree_depth: int, alpha: float, fallback: float | None) -> 
     slab.splat = slab.area = slab.use_s = None
     release_free_heap()
     return msg
+
+
+def _with_tree_items(slab: Slab, pos: np.ndarray, lvl: np.ndarray, own: np.ndarray) -> tuple:
+    """The items ``pos`` (m, 3), ``lvl`` (m,), ``own`` (m,) with the slab's tree-only items.
+
+    Those :mod:`.slab_envelope` gave it (within its usable range), own where their x is in the
+    slab's own range; ``slab.tree_items`` is let go.
+    """
+    assert slab.tree_items is not None  # given by .slab_envelope.take_tree_items
+    tpos, tlvl = slab.tree_items
+    slab.tree_items = None
+    tx = tpos[:, 0]
+    town = (tx >= slab.own[0]) & (tx < slab.own[1])
+    return (
+        np.concatenate([pos, tpos]),
+        np.concatenate([lvl, tlvl]),
+        np.concatenate([own, town]),
+    )
 
 
 def _drop_placement(slab: Slab, tree_depth: int) -> None:
@@ -836,8 +866,11 @@ def solve(slab: Slab, coefs: list, coarse: list[tuple], coarse_fields: dict) -> 
     own = slab.own_s
     if own.any():
         chi_s = slab.chi.at(smp.pos[own])
-        msg["iso_sum"] = float((chi_s * smp.count[own]).sum())
-        msg["iso_count"] = float(smp.count[own].sum())
+        count = smp.count[own]
+        if slab.sample_ok is not None:  # samples outside the envelope do not make the iso-value
+            count = count * slab.sample_ok[own]
+        msg["iso_sum"] = float((chi_s * count).sum())
+        msg["iso_count"] = float(count.sum())
     else:
         msg["iso_sum"] = msg["iso_count"] = 0.0
     msg["band_left"] = band_message(slab, -1) if slab.index > 0 else None

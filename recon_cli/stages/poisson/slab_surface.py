@@ -122,17 +122,24 @@ def _compact(slab: Slab, keep_faces: np.ndarray, extra: dict | None = None) -> N
 
 
 @timed
-def prepare(slab: Slab, drop: np.ndarray, density: tuple | None, at_samples: bool) -> dict:
+def prepare(
+    slab: Slab, drop: np.ndarray, density: tuple | None, at_samples: bool, envelope: Any = None
+) -> dict:
     """Drop the pieces the coordinator dropped.
 
     The density at the vertices (``density``: None, ``(level,)`` the slab's own table, ``(level,
     keys, dens)`` a global one) and, with ``at_samples``, the histogram of the own samples' density
-    (the trim's median).
+    (the trim's median). ``envelope`` (job axes): the vertices outside it pulled inside first
+    (``pulled``: how many of the slab's own).
     """
     job = slab.job
     keep = ~np.isin(slab.labels, drop) if len(drop) else np.ones(len(slab.faces), bool)
     slab.labels = None
     msg: dict[str, Any] = {}
+    if envelope is not None:
+        from recon_cli.stages.poisson.slab_envelope import pull_vertices
+
+        msg["pulled"] = pull_vertices(slab, envelope, keep)
     if density is not None:
         if len(density) == 1:
             table = slab.tables.get(density[0])
@@ -528,12 +535,19 @@ def _seam_order(lat: np.ndarray, on: np.ndarray) -> np.ndarray:
 
 
 @timed
-def field(slab: Slab, iso: float, band_left: dict | None, band_right: dict | None) -> dict:
+def field(
+    slab: Slab,
+    iso: float,
+    band_left: dict | None,
+    band_right: dict | None,
+    envelope: Any = None,
+) -> dict:
     """Take the neighbours' bands and set chi at every level's nodes.
 
     The finer side of a coarse leaf's faces is constrained to it, as the single-process solve does.
     Returns whether a leaf coarser than the finest the slab owns holds surface (then every slab
-    extracts at the leaves' own size, as :func:`.extract.extract` decides).
+    extracts at the leaves' own size, as :func:`.extract.extract` decides). ``envelope``
+    (:class:`.slab_envelope.EnvelopeRun`): chi clipped by it (:func:`.slab_envelope.field_clip`).
     """
     from recon_cli.stages.poisson.extract import FACE_MARGIN
 
@@ -558,7 +572,12 @@ def field(slab: Slab, iso: float, band_left: dict | None, band_right: dict | Non
         lev.cell_parent = None
         set_corners(lev, lev.node_keys)
     release_free_heap()
+    if envelope is not None:
+        from recon_cli.stages.poisson.slab_envelope import field_clip
+
+        chi.clip = field_clip(slab, envelope, iso)
     gvals = [chi.at_nodes(lev, lev.node_keys) for lev in levels]
+    chi.clip = None  # (the state between steps does not hold the envelope; extract sets it again)
     # the extraction interpolates each leaf from its corners: the finer side of a coarse
     # leaf's faces takes its values (bspline.solve)
     for d in range(1, len(levels)):
@@ -632,13 +651,14 @@ def _clip_to_domain(
 
 
 @timed
-def extract(slab: Slab, iso: float, at_leaves: bool) -> dict:
+def extract(slab: Slab, iso: float, at_leaves: bool, envelope: Any = None) -> dict:
     """The slab's part of the surface, over the leaves it owns.
 
     At the leaves' own size (``at_leaves``, :func:`.extract.extract_leaves`), else on the finest
     lattice (:func:`.extract.extract_finest`) with the points on its seams given the values both
-    slabs of a seam compute alike (:func:`plane_values`); vertices moved to chi's roots. Returns its
-    pieces (faces, boxes) and, per seam, its vertices there and their pieces.
+    slabs of a seam compute alike (:func:`plane_values`); vertices moved to chi's roots (chi
+    clipped by ``envelope``, as :func:`field`). Returns its pieces (faces, boxes) and, per seam,
+    its vertices there and their pieces.
     """
     from recon_cli.mesh.topology import Connectivity
     from recon_cli.stages.poisson.extract import extract_leaves
@@ -664,6 +684,10 @@ def extract(slab: Slab, iso: float, at_leaves: bool) -> dict:
     release_free_heap()
     origin = np.asarray(job.origin)
     verts = lat * np.repeat(job.size / R, 3) + origin
+    if envelope is not None:
+        from recon_cli.stages.poisson.slab_envelope import field_clip
+
+        chi.clip = field_clip(slab, envelope, iso)
     verts = chi.refine_vertices(verts, iso, origin, job.size, top)
     slab.chi = slab.lfs = slab.arrays = None
     release_free_heap()

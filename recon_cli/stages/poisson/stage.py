@@ -151,10 +151,10 @@ def run_stage(
 
         # the cloud is in memory: its normals were estimated above unless the run is on a cluster
         D.check_slab_options(
-            backend, degree, estimate_normals and ex.distributed, envelope, D.slab_reason(ex)
+            backend, degree, estimate_normals and ex.distributed, D.slab_reason(ex)
         )
         mesh, report = _run_distributed(
-            cloud, colors, props, solve, ex, slabs, grid_path, history, progress
+            cloud, colors, props, solve, ex, slabs, grid_path, history, progress, env
         )
     elif backend == "native":
         mesh, report = _run_native(
@@ -246,11 +246,13 @@ def _run_distributed(
     grid_path: str | None,
     history: list[str],
     progress: Any,
+    env: Any = None,
 ) -> tuple[TriangleMesh, dict]:
     """The cloud in slabs (:mod:`.distributed`): on ``ex``'s Dask cluster, or in this process.
 
     ``slabs``: their number in this process (None on a cluster: its workers' memory decides,
-    or ``ex.partitions``). Returns the mesh and the report; the grid written to ``grid_path``.
+    or ``ex.partitions``). ``env``: the checked envelope, or None. Returns the mesh and the
+    report; the grid written to ``grid_path``.
     """
     from recon_cli.stages.poisson.distributed import distributed_poisson
 
@@ -264,6 +266,7 @@ def _run_distributed(
             colors=colors,
             properties=props,
             with_grid=grid_path is not None,
+            envelope=env,
             client=client,
             temp_dir=ex.spill_parent(),
             progress=progress,
@@ -271,6 +274,9 @@ def _run_distributed(
     rep = res.report
     report = {k: rep[k] for k in REPORT_KEYS}
     report["distributed"] = {"cluster": info, **rep["distributed"]}
+    if env is not None:
+        report["envelope_outside_points"] = rep["envelope_outside_points"]
+        report["envelope_pulled_vertices"] = rep["envelope_pulled_vertices"]
     if grid_path is not None:
         report.update(_write_grid(res, grid_path, solve, history, cloud.point_dtype))
     return res.mesh, report
