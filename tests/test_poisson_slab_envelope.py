@@ -1,6 +1,8 @@
-"""Poisson's ``--envelope`` in slabs (recon_cli.stages.poisson.slab_envelope): an open scan,
-turned and far from the origin, closed along a box envelope in one and three slabs, in memory
-and from the file by the command, against the single-process run."""
+"""Poisson's ``--envelope`` in slabs against the single-process run.
+
+An open scan, turned and far from the origin, closed along a box envelope in one and three
+slabs (recon_cli.stages.poisson.slab_envelope), in memory and from the file by the command.
+"""
 
 from __future__ import annotations
 
@@ -27,9 +29,11 @@ DEPTH = 6
 
 @functools.cache
 def _scan(swap: tuple = (1, 2, 0)) -> tuple[np.ndarray, np.ndarray, TriangleMesh]:
-    """A single-view torus scan and a box 1.3 times its extent around it, turned together, far
-    away, their axes swapped (by default so that the slabs' axis is not the input's x: the slabs
-    turn theirs)."""
+    """A single-view torus scan and a box 1.3 times its extent around it, turned and far away.
+
+    Their axes swapped (by default so that the slabs' axis is not the input's x: the slabs
+    turn theirs).
+    """
     rng = np.random.default_rng(0)
     p, n = single_view_scan("torus", 120, rng, direction=rng.normal(size=3))
     lo, hi = p.min(axis=0), p.max(axis=0)
@@ -51,6 +55,7 @@ def _single(swap: tuple = (1, 2, 0)):
 
 
 def test_the_slabs_axes_are_turned():
+    """The slabs turn the input's and the envelope's axes when x is not the longest."""
     # the scan's longest axis is x as made, not once swapped: the slabs turn theirs, and the
     # envelope's, in the swapped scan
     for swap, turned in (((0, 1, 2), False), ((1, 2, 0), True)):
@@ -59,8 +64,10 @@ def test_the_slabs_axes_are_turned():
 
 
 def test_one_slab_is_the_single_process_mesh():
-    """One slab (the slabs' axes the input's): the single process's mesh, to the bit, its
-    report's envelope counts, depths and iso-value."""
+    """One slab gives the single process's mesh to the bit.
+
+    The slabs' axes are the input's; the report's envelope counts, depths and iso-value agree.
+    """
     p, n, env = _scan((0, 1, 2))
     single = _single((0, 1, 2))
     res = distributed_poisson(p, n, depth=DEPTH, partitions=1, envelope=env)
@@ -106,8 +113,11 @@ def _as_single(mesh: TriangleMesh, rep: dict, p: np.ndarray, env: TriangleMesh) 
 
 
 def test_three_slabs_close_the_scan_as_single():
-    """Three slabs: each its samples against the envelope and its part of the carving (OR-ed on
-    the coordinator), the tree refined along both, chi clipped, vertices pulled inside."""
+    """Three slabs close the scan as the single process does.
+
+    Each slab tests its samples against the envelope and makes its part of the carving (OR-ed on
+    the coordinator); the tree is refined along both, chi clipped, vertices pulled inside.
+    """
     p, n, env = _scan()
     res = distributed_poisson(p, n, depth=DEPTH, partitions=3, envelope=env)
     assert len(res.report["distributed"]["slabs"]) == 3
@@ -116,9 +126,11 @@ def test_three_slabs_close_the_scan_as_single():
 
 
 def test_command_closes_the_scan_in_slabs_from_the_file(tmp_path, monkeypatch, capsys):
-    """``recon poisson IN OUT --partitions 3 --envelope E``: the slabs read IN by chunks (the
-    command never loads it, only E); the report counts the points outside and the vertices
-    pulled; the mesh is the single process's."""
+    """``recon poisson IN OUT --partitions 3 --envelope E`` gives the single process's mesh.
+
+    The slabs read IN by chunks (the command never loads it, only E); the report counts the
+    points outside and the vertices pulled.
+    """
     import recon_cli.io.load as L
     from recon_cli.cli.main import main
 
