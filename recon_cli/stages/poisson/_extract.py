@@ -77,26 +77,24 @@ def _minimal_edges(tree, scratch, l0, e0, axis, hint, hxyz, m):
     """Append the minimal edges of a level-``l0`` lattice edge to the buffers, in order.
 
     The edge starts at ``e0`` (3,) along ``axis``; an edge is split when one of the 4 cells of its
-    level around it has children (:func:`_cells_around_edge`). Values come from a leaf of the
-    edge's level that holds it (every leaf with a corner at a point gives the same value: finer
-    corrections vanish there and the prolongation copies coincident nodes exactly). ``hint``:
-    index of a leaf of level ``l0`` holding the edge, lower corner ``hxyz`` (3,), or -1. ``tree``
-    is a :data:`TreeView`, ``scratch`` an :data:`EdgeScratch` whose buffers hold ``m`` edges.
-    Returns the new count.
+    level around it has children. Values come from a leaf of the edge's level that holds it (every
+    leaf with a corner at a point gives the same value: finer corrections vanish there and the
+    prolongation copies coincident nodes exactly). ``hint``: index of a leaf of level ``l0`` holding
+    the edge, lower corner ``hxyz`` (3,), or -1. ``tree`` is a :data:`TreeView`, ``scratch`` an
+    :data:`EdgeScratch` whose buffers hold ``m`` edges. Returns the new count.
+
+    Written out in one loop: each pop is a few lookups, and a helper per pop taking the tree's
+    arrays costs more than they do (``docs/design/poisson.md``).
     """
-    stack = scratch.stack
-    D = tree.D
-    stack[0, 0] = l0
-    stack[0, 1] = e0[0]
-    stack[0, 2] = e0[1]
-    stack[0, 3] = e0[2]
+    keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, R, cap = tree
+    stack, cell, buf_p, buf_len, buf_v = scratch
+    b = (axis + 1) % 3
+    c = (axis + 2) % 3
+    stack[0, 0], stack[0, 1], stack[0, 2], stack[0, 3] = l0, e0[0], e0[1], e0[2]
     top = 1
     while top > 0:
         top -= 1
-        lev = stack[top, 0]
-        x = stack[top, 1]
-        y = stack[top, 2]
-        z = stack[top, 3]
+        lev, x, y, z = stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3]
         split = False
         found = -1
         fq = 0
@@ -104,43 +102,11 @@ def _minimal_edges(tree, scratch, l0, e0, axis, hint, hxyz, m):
         if use_hint:
             found = hint
             fq = (x - hxyz[0]) | ((y - hxyz[1]) << 1) | ((z - hxyz[2]) << 2)
-        if not (use_hint and lev == D):  # the finest cells have no children: nothing to look up
-            split, found, fq = _cells_around_edge(
-                tree, scratch.cell, lev, x, y, z, axis, use_hint, hxyz, found, fq
-            )
-        if split:
-            # upper half pushed first: the lower one comes out first
-            for h in range(2):
-                stack[top + h, 0] = lev + 1
-                stack[top + h, 1] = 2 * x
-                stack[top + h, 2] = 2 * y
-                stack[top + h, 3] = 2 * z
-            stack[top, 1 + axis] += 1
-            top += 2
-            continue
-        _append_edge(tree, scratch, lev, found, fq, axis, x, y, z, m)
-        m += 1
-    return m
-
-
-@njit(cache=True)
-def _cells_around_edge(tree, cell, lev, x, y, z, axis, use_hint, hxyz, found, fq):
-    """The 4 cells of level ``lev`` around the edge from (x, y, z) along ``axis``.
-
-    Returns ``(split, found, fq)``: whether one of them has children, and the first leaf among
-    them with the edge's start as its corner ``fq`` (``found``, ``fq`` as given when already
-    known: ``use_hint``, the hint leaf of lower corner ``hxyz`` is not looked up). ``cell`` (3,)
-    is scratch.
-    """
-    keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, R, cap = tree
-    b = (axis + 1) % 3
-    c = (axis + 2) % 3
-    split = False
-    for db in range(2):
-        for dc in range(2):
-            cell[0] = x
-            cell[1] = y
-            cell[2] = z
+        # the 4 cells of the level around the edge (the finest cells have no children: with the
+        # hint, nothing to look up)
+        for t in range(0 if use_hint and lev == D else 4):
+            db, dc = t >> 1, t & 1
+            cell[0], cell[1], cell[2] = x, y, z
             cell[b] -= db
             cell[c] -= dc
             if use_hint and cell[0] == hxyz[0] and cell[1] == hxyz[1] and cell[2] == hxyz[2]:
@@ -151,42 +117,32 @@ def _cells_around_edge(tree, cell, lev, x, y, z, axis, use_hint, hxyz, found, fq
             elif s >= 0 and found < 0:
                 found = s
                 fq = (db << b) | (dc << c)
-    return split, found, fq
-
-
-@njit(cache=True)
-def _append_edge(tree, scratch, lev, found, fq, axis, x, y, z, m):
-    """Row ``m`` of the buffers := the level-``lev`` edge from (x, y, z) along ``axis``.
-
-    In finest-lattice units: its start, length and the values at its ends, read at corner ``fq``
-    of leaf ``found`` and the corner across the edge, clamped on the cube's faces.
-    """
-    keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, R, cap = tree
-    sh = D - lev
-    px = x << sh
-    py = y << sh
-    pz = z << sh
-    ln = np.int64(1) << sh
-    q1 = fq | (1 << axis)
-    if lev == D:
-        v0 = fg[fnodes[found - coff[D], fq & 3] + (fq >> 2)]
-        v1 = fg[fnodes[found - coff[D], q1 & 3] + (q1 >> 2)]
-    else:
-        v0 = g[goff[lev] + nodes[found, fq & 3] + (fq >> 2)]
-        v1 = g[goff[lev] + nodes[found, q1 & 3] + (q1 >> 2)]
-    v0 = clamp_faces(v0, px, py, pz, R, cap)
-    if axis == 0:
-        v1 = clamp_faces(v1, px + ln, py, pz, R, cap)
-    elif axis == 1:
-        v1 = clamp_faces(v1, px, py + ln, pz, R, cap)
-    else:
-        v1 = clamp_faces(v1, px, py, pz + ln, R, cap)
-    scratch.buf_p[m, 0] = px
-    scratch.buf_p[m, 1] = py
-    scratch.buf_p[m, 2] = pz
-    scratch.buf_len[m] = ln
-    scratch.buf_v[m, 0] = v0
-    scratch.buf_v[m, 1] = v1
+        if split:
+            # upper half pushed first: the lower one comes out first
+            for h in range(2):
+                stack[top + h, 0], stack[top + h, 1] = lev + 1, 2 * x
+                stack[top + h, 2], stack[top + h, 3] = 2 * y, 2 * z
+            stack[top, 1 + axis] += 1
+            top += 2
+            continue
+        sh = D - lev
+        px, py, pz = x << sh, y << sh, z << sh
+        ln = np.int64(1) << sh
+        q1 = fq | (1 << axis)
+        if lev == D:
+            v0 = fg[fnodes[found - coff[D], fq & 3] + (fq >> 2)]
+            v1 = fg[fnodes[found - coff[D], q1 & 3] + (q1 >> 2)]
+        else:
+            v0 = g[goff[lev] + nodes[found, fq & 3] + (fq >> 2)]
+            v1 = g[goff[lev] + nodes[found, q1 & 3] + (q1 >> 2)]
+        buf_p[m, 0], buf_p[m, 1], buf_p[m, 2] = px, py, pz
+        buf_len[m] = ln
+        buf_v[m, 0] = clamp_faces(v0, px, py, pz, R, cap)
+        # the far end along the axis
+        ex, ey, ez = (ln if axis == 0 else 0), (ln if axis == 1 else 0), (ln if axis == 2 else 0)
+        buf_v[m, 1] = clamp_faces(v1, px + ex, py + ey, pz + ez, R, cap)
+        m += 1
+    return m
 
 
 @njit(cache=True)
@@ -491,17 +447,6 @@ def _face_range(work, a, s):
 
 
 @njit(cache=True)
-def _far_state(tree, ll, a, na, u, vv):
-    """:func:`_state` of the level-``ll`` cell at ``na`` on axis ``a``, (u, vv) on the others."""
-    keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, R, cap = tree
-    if a == 0:
-        return _state(keys, leaf, coff, fkeys, D, ll, na, u, vv)
-    if a == 1:
-        return _state(keys, leaf, coff, fkeys, D, ll, vv, na, u)
-    return _state(keys, leaf, coff, fkeys, D, ll, u, vv, na)
-
-
-@njit(cache=True)
 def _leaf_segments(tree, scratch, work, lim, ci, lev, cell, roots, segs):
     """The iso-segments of the minimal faces covering a leaf's boundary (:func:`leaf_polygons`).
 
@@ -534,8 +479,13 @@ def _leaf_segments(tree, scratch, work, lim, ci, lev, cell, roots, segs):
                 ll, u, vv = qstack[top, 0], qstack[top, 1], qstack[top, 2]
                 wl = w << (ll - lev)
                 na = wl if s == 1 else wl - 1
-                # a finest leaf: the far side is no finer (and no lookup)
-                st = -1 if ll == D and ll == lev else _far_state(tree, ll, a, na, u, vv)
+                # the cell across (a finest leaf: the far side is no finer, and no lookup)
+                ix, iy, iz = (na, u, vv) if a == 0 else ((vv, na, u) if a == 1 else (u, vv, na))
+                st = (
+                    -1
+                    if ll == D and ll == lev
+                    else _state(keys, leaf, coff, fkeys, D, ll, ix, iy, iz)
+                )
                 if st <= -2:
                     for o in range(4):
                         qstack[top, 0] = ll + 1
@@ -794,7 +744,7 @@ def _loop_buffer(size):
     )
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _emit_loops(segs, ns, loop, work, R, out, counts, tr, order, sfrom):
     """Chain a leaf's ``ns`` segments into loops (:func:`_chain_loop`) and triangulate each.
 
