@@ -109,81 +109,55 @@ def grid_knn(grid, batch, k, max_shell, found):
     ``grid`` is ``(spts, sidx, starts, tk, tv, bits, lo, h, dims, slack)``: the points ``spts``
     (n, 3) sorted by grid cell (cubes of side ``h`` from ``lo``, ``dims`` per axis, cell key
     ``(x * dims[1] + y) * dims[2] + z``); ``sidx`` their indices in the caller's array; the cell
-    of key ``tk``/``tv`` (hash table, ``bits``) holds ``spts[starts[u]:starts[u + 1]]``;
-    ``slack`` the cell assignment's rounding. ``batch`` is ``(queries, qcell, order, groups)``:
-    the queries (m, 3), of which ``order[groups[g]:groups[g + 1]]`` share the cell ``qcell``
-    (clipped to -1..dims), whose two shells of cells each group looks up once
-    (:func:`_near_cells`). Shells of cells around the query's cell are read until the k-th
-    distance is below the distance to the unread cells, less ``slack`` (:func:`_query_knn`).
-    ``found`` is ``(dist, idx, far)``: fills ``dist`` (m, k) (Euclidean, world units) and
-    ``idx`` (m, k); a query still unfinished after ``max_shell`` shells is marked in ``far``
-    (m,) (its rows are left to the caller).
+    of key ``tk``/``tv`` (hash table, ``bits``) holds ``spts[starts[u]:starts[u + 1]]``.
+    ``batch`` is ``(queries, qcell, order, groups)``: the queries (m, 3), of which
+    ``order[groups[g]:groups[g + 1]]`` share the cell ``qcell`` (clipped to -1..dims), whose two
+    shells of cells each group looks up once. Shells of cells around the query's cell are read
+    until the k-th distance is below the distance to the unread cells (less ``slack``, the cell
+    assignment's rounding). ``found`` is ``(dist, idx, far)``: fills ``dist`` (m, k)
+    (Euclidean, world units) and ``idx`` (m, k); a query still unfinished after ``max_shell``
+    shells is marked in ``far`` (m,) (its rows are left to the caller). The tuples are unpacked
+    here, once: the loops read the arrays.
     """
+    spts, sidx, starts, tk, tv, bits, lo, h, dims, slack = grid
     queries, qcell, order, groups = batch
     dist, idx, far = found
+    near = 2  # shells each group looks up once
     for g in prange(len(groups) - 1):
         c = qcell[order[groups[g]]]
-        block, ends = _near_cells(grid, c)
+        block = np.empty(((2 * near + 1) ** 3, 5), np.int64)
         shell = np.empty((max(0, (2 * max_shell + 1) ** 3 - (2 * max_shell - 1) ** 3), 5), np.int64)
+        ends = np.empty(near + 1, np.int64)
+        n = 0
+        for r in range(near + 1):
+            n = _shell_cells(c, r, dims, tk, tv, bits, starts, block, n)
+            ends[r] = n
         bd = np.empty(k)
         bi = np.empty(k, np.int64)
         for t in range(groups[g], groups[g + 1]):
             i = order[t]
-            done = _query_knn(grid, c, block, ends, shell, max_shell, queries[i], bd, bi)
+            q = queries[i]
+            bd[:] = np.inf
+            bi[:] = -1
+            done = False
+            e0 = 0
+            for r in range(near + 1):
+                _scan(spts, sidx, block, e0, ends[r], lo, h, slack, q, k, bd, bi)
+                e0 = ends[r]
+                if _finished(c, r, dims, lo, h, slack, q, k, bd):
+                    done = True
+                    break
+            r = near + 1
+            while not done and r <= max_shell:
+                ns = _shell_cells(c, r, dims, tk, tv, bits, starts, shell, 0)
+                _scan(spts, sidx, shell, 0, ns, lo, h, slack, q, k, bd, bi)
+                done = _finished(c, r, dims, lo, h, slack, q, k, bd)
+                r += 1
             far[i] = not done
             if done:
                 for t2 in range(k):
                     dist[i, t2] = math.sqrt(bd[t2])
                     idx[i, t2] = bi[t2]
-
-
-# shells of cells around a group's cell that :func:`grid_knn` looks up once per group
-NEAR_SHELLS = 2
-
-
-@njit(cache=True, inline="always")
-def _near_cells(grid, c):
-    """The occupied cells within :data:`NEAR_SHELLS` of cell ``c``, shell by shell.
-
-    ``(block, ends)``: rows x, y, z, first point, end (:func:`_shell_cells`), shell ``r``'s
-    ending at ``ends[r]``. ``grid`` as :func:`grid_knn`'s.
-    """
-    spts, sidx, starts, tk, tv, bits, lo, h, dims, slack = grid
-    block = np.empty(((2 * NEAR_SHELLS + 1) ** 3, 5), np.int64)
-    ends = np.empty(NEAR_SHELLS + 1, np.int64)
-    n = 0
-    for r in range(NEAR_SHELLS + 1):
-        n = _shell_cells(c, r, dims, tk, tv, bits, starts, block, n)
-        ends[r] = n
-    return block, ends
-
-
-@njit(cache=True, inline="always")
-def _query_knn(grid, c, block, ends, shell, max_shell, q, bd, bi):
-    """The ``len(bd)`` nearest points of query ``q`` (3,) in cell ``c`` into ``bd``, ``bi``.
-
-    Squared distances and indices, nearest first: the near cells (``block``, ``ends``:
-    :func:`_near_cells`), then shell after shell (``shell`` their scratch) up to ``max_shell``.
-    Returns whether the search finished (:func:`_finished`).
-    """
-    spts, sidx, starts, tk, tv, bits, lo, h, dims, slack = grid
-    k = len(bd)
-    bd[:] = np.inf
-    bi[:] = -1
-    e0 = 0
-    for r in range(NEAR_SHELLS + 1):
-        _scan(spts, sidx, block, e0, ends[r], lo, h, slack, q, k, bd, bi)
-        e0 = ends[r]
-        if _finished(c, r, dims, lo, h, slack, q, k, bd):
-            return True
-    done = False
-    r = NEAR_SHELLS + 1
-    while not done and r <= max_shell:
-        ns = _shell_cells(c, r, dims, tk, tv, bits, starts, shell, 0)
-        _scan(spts, sidx, shell, 0, ns, lo, h, slack, q, k, bd, bi)
-        done = _finished(c, r, dims, lo, h, slack, q, k, bd)
-        r += 1
-    return done
 
 
 @njit(cache=True, parallel=True)
