@@ -49,7 +49,7 @@ def splat_rhs(pos, normal_w, splat_level, level, q_keys, inp, s, width):
     return b
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # inlined: no stage calls splat_rhs, no warm-up compiles it
 def _splat_factors(pos, p, rho, n, s, fv, fd, box):
     """Item ``p``'s 1D value and derivative factors per axis, at the cells in its reach.
 
@@ -87,7 +87,7 @@ def _splat_factors(pos, p, rho, n, s, fv, fd, box):
     return empty
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")  # inlined: no stage calls splat_rhs, no warm-up compiles it
 def _splat_parents(q_keys, inp, box, fv, fd, normal_w, p, b):
     """Add item ``p``'s share to ``b`` at the children in ``box`` of the flagged parents.
 
