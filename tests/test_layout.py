@@ -234,8 +234,13 @@ def test_functions_and_modules_stay_short():
     assert not long, "split along the algorithm's steps:\n" + "\n".join(long)
 
 
-# the one temporary exemption (issues 44/45): the Poisson engine, rewritten on its own branch
-TEMPORARY_EXEMPT = {"recon_cli/stages/poisson/**"}
+# the one temporary exemption (issues 44/45): the Poisson modules not yet split
+TEMPORARY_EXEMPT = {
+    "recon_cli/stages/poisson/__init__.py",
+    "recon_cli/stages/poisson/distributed.py",
+    "recon_cli/stages/poisson/files.py",
+    "recon_cli/stages/poisson/stage.py",
+}
 
 
 def test_size_exemptions_are_the_temporary_block_only():

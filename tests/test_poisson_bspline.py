@@ -421,8 +421,9 @@ def test_block_jacobi_level_solves_the_same_system_as_jacobi(monkeypatch, rng, b
     assert len(seen) >= 5
     fewer = 0
     for args in seen:
-        q_keys, nb, inp, cmap, m1, k1, h, n, s, scell, sloc, sw, rhs, inv, tol, max_iter = args
-        system = args[:12]
+        q_keys, nb, inp, cmap, stiffness, n, s, samples, rhs, inv, tol, max_iter = args
+        m1, k1, h = stiffness
+        system = args[:8]
         m = len(rhs)
 
         def energy(e, system=system, cmap=cmap):
@@ -432,8 +433,8 @@ def test_block_jacobi_level_solves_the_same_system_as_jacobi(monkeypatch, rng, b
 
         blocks = np.empty((len(inv), 8, 8))
         BO.stiffness_blocks(q_keys, inp, cmap, m1, k1, h, blocks)
-        if len(sw):
-            BO.screening_blocks(q_keys, nb, cmap, n, s, scell, sloc, sw, blocks)
+        if len(samples[2]):
+            BO.screening_blocks(q_keys, nb, cmap, n, s, samples, blocks)
         scale = np.abs(blocks).max()
         for b in rng.choice(len(blocks), min(12, len(blocks)), replace=False):
             for o in range(8):
@@ -486,11 +487,12 @@ def test_screening_product_and_blocks_in_bands_are_the_one_walk(rng, monkeypatch
     monkeypatch.setattr(BO, "level_pcg", spy)
     p, n = sphere_cloud(60_000, seed=1)
     screened_poisson(p, n, depth=7)
-    q_keys, nb, _inp, cmap, _m1, _k1, _h, nn, s, scell, sloc, sw = seen[-1][:12]
+    q_keys, nb, _inp, cmap, _stiffness, nn, s, samples = seen[-1][:8]
+    scell = samples[0]
     assert len(scell) >= BO.SCREEN_MIN_SAMPLES
     x = rng.normal(size=8 * int(cmap.max() + 1))
     one = np.zeros_like(x)
-    BO.screening_matvec(q_keys, nb, cmap, cmap, nn, s, scell, sloc, sw, x, one)
+    BO.screening_matvec(q_keys, nb, cmap, cmap, nn, s, samples, x, one)
     before = numba.get_num_threads()
     try:
         for bands, threads in [(1, 1), (BO.SCREEN_BANDS, 1), (BO.SCREEN_BANDS, 2), (3, 2)]:
@@ -498,11 +500,11 @@ def test_screening_product_and_blocks_in_bands_are_the_one_walk(rng, monkeypatch
             cut = BO.screening_bands(q_keys, scell, bands)
             assert len(cut) == bands  # the samples come in their parents' x order
             got = np.zeros_like(x)
-            BO.screening_matvec_bands(q_keys, nb, cmap, cmap, nn, s, scell, sloc, sw, x, got, cut)
+            BO.screening_matvec_bands(q_keys, nb, cmap, cmap, nn, s, samples, x, got, cut)
             assert np.array_equal(got, one), (bands, threads)
             # the sibling blocks of the preconditioner alike
             blocks = np.zeros((len(x) // 8, 8, 8))
-            BO.screening_blocks_bands(q_keys, nb, cmap, nn, s, scell, sloc, sw, blocks, cut)
+            BO.screening_blocks_bands(q_keys, nb, cmap, nn, s, samples, blocks, cut)
             if bands == 1:
                 one_blocks = blocks
             assert np.array_equal(blocks, one_blocks), (bands, threads)

@@ -103,22 +103,25 @@ def _finished(c, r, dims, lo, h, slack, q, k, bd):
 
 
 @njit(cache=True, parallel=True)
-def grid_knn(
-    spts, sidx, starts, tk, tv, bits, lo, h, dims, slack, queries, qcell, order, groups, k,
-    max_shell, dist, idx, far,
-):  # fmt: skip
+def grid_knn(grid, batch, k, max_shell, found):
     """The ``k`` nearest points of each query, nearest first (equal distances: smaller index).
 
-    The points ``spts`` (n, 3) are sorted by grid cell (cubes of side ``h`` from ``lo``,
-    ``dims`` per axis, cell key ``(x * dims[1] + y) * dims[2] + z``); ``sidx`` their indices in
-    the caller's array; the cell of key ``tk``/``tv`` (hash table, ``bits``) holds
-    ``spts[starts[u]:starts[u + 1]]``. The queries ``order[groups[g]:groups[g + 1]]`` share
-    the cell ``qcell`` (clipped to -1..dims), whose two shells of cells each group looks up
-    once. Shells of cells around the query's cell are read until the k-th distance is below
-    the distance to the unread cells (less ``slack``, the cell assignment's rounding). Fills
-    ``dist`` (m, k) (Euclidean, world units) and ``idx`` (m, k); a query still unfinished
-    after ``max_shell`` shells is marked in ``far`` (its rows are left to the caller).
+    ``grid`` is ``(spts, sidx, starts, tk, tv, bits, lo, h, dims, slack)``: the points ``spts``
+    (n, 3) sorted by grid cell (cubes of side ``h`` from ``lo``, ``dims`` per axis, cell key
+    ``(x * dims[1] + y) * dims[2] + z``); ``sidx`` their indices in the caller's array; the cell
+    of key ``tk``/``tv`` (hash table, ``bits``) holds ``spts[starts[u]:starts[u + 1]]``.
+    ``batch`` is ``(queries, qcell, order, groups)``: the queries (m, 3), of which
+    ``order[groups[g]:groups[g + 1]]`` share the cell ``qcell`` (clipped to -1..dims), whose two
+    shells of cells each group looks up once. Shells of cells around the query's cell are read
+    until the k-th distance is below the distance to the unread cells (less ``slack``, the cell
+    assignment's rounding). ``found`` is ``(dist, idx, far)``: fills ``dist`` (m, k)
+    (Euclidean, world units) and ``idx`` (m, k); a query still unfinished after ``max_shell``
+    shells is marked in ``far`` (m,) (its rows are left to the caller). The tuples are unpacked
+    here, once: the loops read the arrays.
     """
+    spts, sidx, starts, tk, tv, bits, lo, h, dims, slack = grid
+    queries, qcell, order, groups = batch
+    dist, idx, far = found
     near = 2  # shells each group looks up once
     for g in prange(len(groups) - 1):
         c = qcell[order[groups[g]]]

@@ -23,6 +23,26 @@ SCREEN_BANDS = 8
 SCREEN_MIN_SAMPLES = 1 << 14
 
 
+@njit(cache=True, inline="always")
+def _gather_block(X, nb, i, xmap, x):
+    """X (216,) := parent ``i``'s 6 x 6 x 6 block of ``x``, flat (z, y, x); 0 where there is none.
+
+    One neighbour block (8 siblings, contiguous) at a time: 27 reads of ``nb``, not 216. ``x``
+    holds parent ``p``'s block at ``8 xmap[p]`` (none where ``xmap[p]`` < 0).
+    """
+    for t in range(27):
+        p = nb[i, t]
+        if p >= 0:
+            p = xmap[p]
+        base = 2 * (t % 3) + 12 * ((t // 3) % 3) + 72 * (t // 9)
+        if p < 0:
+            for o in range(8):
+                X[base + (o & 1) + 6 * ((o >> 1) & 1) + 36 * (o >> 2)] = 0.0
+        else:
+            for o in range(8):
+                X[base + (o & 1) + 6 * ((o >> 1) & 1) + 36 * (o >> 2)] = x[8 * p + o]
+
+
 @njit(cache=True, parallel=True)
 def stiffness_matvec(q_keys, nb, inp, xmap, omap, m1, k1, h, x, out):
     """out[m] += h * the stiffness times x over the 125 cells within 2 of m, by parent blocks.
@@ -48,18 +68,7 @@ def stiffness_matvec(q_keys, nb, inp, xmap, omap, m1, k1, h, x, out):
         for i in range(ci * MATVEC_CHUNK, min(nq, (ci + 1) * MATVEC_CHUNK)):
             if not inp[i]:
                 continue
-            # one neighbour block (8 siblings, contiguous) at a time: 27 reads of nb, not 216
-            for t in range(27):
-                p = nb[i, t]
-                if p >= 0:
-                    p = xmap[p]
-                base = 2 * (t % 3) + 12 * ((t // 3) % 3) + 72 * (t // 9)
-                if p < 0:
-                    for o in range(8):
-                        X[base + (o & 1) + 6 * ((o >> 1) & 1) + 36 * (o >> 2)] = 0.0
-                else:
-                    for o in range(8):
-                        X[base + (o & 1) + 6 * ((o >> 1) & 1) + 36 * (o >> 2)] = x[8 * p + o]
+            _gather_block(X, nb, i, xmap, x)
             k = q_keys[i]
             px = 2 * ((k >> 42) & MASK21)
             py = 2 * ((k >> 21) & MASK21)
@@ -147,22 +156,24 @@ def stiffness_blocks(q_keys, inp, cmap, m1, k1, h, out):
 
 
 @njit(cache=True)
-def screening_matvec(q_keys, nb, xmap, omap, n, s, scell, sloc, sw, x, out):
+def screening_matvec(q_keys, nb, xmap, omap, n, s, samples, x, out):
     """Out += sum_p w_p B_i(p) sum_j B_j(p) x_j over the samples (cell, local coordinates).
 
-    ``x`` laid out by ``xmap``, ``out`` by ``omap`` (:func:`stiffness_matvec`).
+    ``samples`` is the level's screening samples ``(scell, sloc, sw)``: each one's child cell
+    ``8 i + o`` (k,), its position in that cell (k, 3) and its weight (k,). ``x`` laid out by
+    ``xmap``, ``out`` by ``omap`` (:func:`stiffness_matvec`).
 
     The 27 cells around a sample and their weights are written out here (and in
     :func:`screening_rhs`, :func:`screening_blocks`): through a helper taking the arrays
     (``_gather27``, inlined) the matvec was 1.7x slower (``docs/design/poisson.md``).
     """
     _screening_band(
-        q_keys, nb, xmap, omap, n, s, scell, sloc, sw, x, out, 0, len(scell), 0, len(q_keys)
+        q_keys, nb, xmap, omap, n, s, samples, x, out, (0, len(samples[0]), 0, len(q_keys))
     )
 
 
 @njit(cache=True, parallel=True)
-def screening_matvec_bands(q_keys, nb, xmap, omap, n, s, scell, sloc, sw, x, out, bands):
+def screening_matvec_bands(q_keys, nb, xmap, omap, n, s, samples, x, out, bands):
     """:func:`screening_matvec` over the threads, a band of parents each, the same bits.
 
     ``bands`` (b, 4) from :func:`screening_bands`: band ``b`` writes the rows of the parents
@@ -170,10 +181,8 @@ def screening_matvec_bands(q_keys, nb, xmap, omap, n, s, scell, sloc, sw, x, out
     ``bands[b, 1] - 1`` (all those that reach them), in order: every row sums as in one walk.
     """
     for b in prange(len(bands)):
-        _screening_band(
-            q_keys, nb, xmap, omap, n, s, scell, sloc, sw, x, out,
-            bands[b, 0], bands[b, 1], bands[b, 2], bands[b, 3],
-        )  # fmt: skip
+        band = (bands[b, 0], bands[b, 1], bands[b, 2], bands[b, 3])
+        _screening_band(q_keys, nb, xmap, omap, n, s, samples, x, out, band)
 
 
 @njit(cache=True)
@@ -208,8 +217,13 @@ def screening_bands(q_keys, scell, nbands):
 
 
 @njit(cache=True, inline="always")
-def _screening_band(q_keys, nb, xmap, omap, n, s, scell, sloc, sw, x, out, p0, p1, q0, q1):
-    """:func:`screening_matvec` from samples ``p0`` to ``p1 - 1`` into parents [q0, q1)'s rows."""
+def _screening_band(q_keys, nb, xmap, omap, n, s, samples, x, out, band):
+    """:func:`screening_matvec` from samples ``p0`` to ``p1 - 1`` into parents [q0, q1)'s rows.
+
+    ``band`` is ``(p0, p1, q0, q1)`` (a row of :func:`screening_bands`).
+    """
+    scell, sloc, sw = samples
+    p0, p1, q0, q1 = band
     wx = np.empty(3)
     wy = np.empty(3)
     wz = np.empty(3)
@@ -256,8 +270,9 @@ def _screening_band(q_keys, nb, xmap, omap, n, s, scell, sloc, sw, x, out, p0, p
 
 
 @njit(cache=True)
-def screening_rhs(q_keys, nb, n, s, scell, sloc, sw, target, rhs):
-    """Rhs += sum_p w_p target B_i(p), in place."""
+def screening_rhs(q_keys, nb, n, s, samples, target, rhs):
+    """Rhs += sum_p w_p target B_i(p), in place; ``samples`` as :func:`screening_matvec`'s."""
+    scell, sloc, sw = samples
     wx = np.empty(3)
     wy = np.empty(3)
     wz = np.empty(3)
@@ -285,30 +300,34 @@ def screening_rhs(q_keys, nb, n, s, scell, sloc, sw, target, rhs):
 
 
 @njit(cache=True)
-def screening_blocks(q_keys, nb, cmap, n, s, scell, sloc, sw, out):
+def screening_blocks(q_keys, nb, cmap, n, s, samples, out):
     """out[cmap[q], r, r2] += sum_p w_p B_r(p) B_r2(p) for siblings r, r2 of each flagged parent q.
 
     A sample touches 3 cells per axis, of two parents: the pairs within one parent are 5 of the 9
     per axis, 125 of the 729. Samples in order, so each entry sums in the same order whatever the
     caller; in bands of parents over the threads (:func:`screening_bands`), each writing its
-    parents' blocks only, from the samples in order: the same sums.
+    parents' blocks only, from the samples in order: the same sums. ``samples`` as
+    :func:`screening_matvec`'s.
     """
-    screening_blocks_bands(q_keys, nb, cmap, n, s, scell, sloc, sw, out, level_bands(q_keys, scell))
+    screening_blocks_bands(q_keys, nb, cmap, n, s, samples, out, level_bands(q_keys, samples[0]))
 
 
 @njit(cache=True, parallel=True)
-def screening_blocks_bands(q_keys, nb, cmap, n, s, scell, sloc, sw, out, bands):
+def screening_blocks_bands(q_keys, nb, cmap, n, s, samples, out, bands):
     """:func:`screening_blocks` in the given ``bands`` (:func:`screening_bands`), a thread each."""
     for b in prange(len(bands)):
-        _screening_blocks_band(
-            q_keys, nb, cmap, n, s, scell, sloc, sw, out,
-            bands[b, 0], bands[b, 1], bands[b, 2], bands[b, 3],
-        )  # fmt: skip
+        band = (bands[b, 0], bands[b, 1], bands[b, 2], bands[b, 3])
+        _screening_blocks_band(q_keys, nb, cmap, n, s, samples, out, band)
 
 
 @njit(cache=True, inline="always")
-def _screening_blocks_band(q_keys, nb, cmap, n, s, scell, sloc, sw, out, p0, p1, q0, q1):
-    """:func:`screening_blocks` from samples ``p0`` to ``p1 - 1`` into parents [q0, q1)'s blocks."""
+def _screening_blocks_band(q_keys, nb, cmap, n, s, samples, out, band):
+    """:func:`screening_blocks` from samples ``p0`` to ``p1 - 1`` into parents [q0, q1)'s blocks.
+
+    ``band`` is ``(p0, p1, q0, q1)`` (a row of :func:`screening_bands`).
+    """
+    scell, sloc, sw = samples
+    p0, p1, q0, q1 = band
     wx = np.empty(3)
     wy = np.empty(3)
     wz = np.empty(3)
@@ -356,41 +375,49 @@ PIVOT_FLOOR = 1e-10
 
 
 @njit(cache=True, inline="always")
-def _invert_block(A, idx, L, Li):
-    """A (8, 8) := the inverse of its rows and columns with a positive diagonal, 0 elsewhere.
+def _cholesky(A, idx, L):
+    """Cholesky factor L (na, na) of A (8, 8)'s rows and columns with a positive diagonal.
 
-    By Cholesky on the lower triangle; returns 1 and leaves the diagonal's inverse alone when a
-    pivot is not above ``PIVOT_FLOOR`` of its diagonal (the block is not numerically positive
-    definite: the pure Neumann level 1 without screening, one block holding the constant).
+    Their indices go to ``idx`` (na,); reads the lower triangle. Returns ``na``, or -1 when a
+    pivot is not above ``PIVOT_FLOOR`` of its diagonal.
     """
     na = 0
     for o in range(8):
         if A[o, o] > 0.0:
             idx[na] = o
             na += 1
-    ok = True
     for j in range(na):
         d = A[idx[j], idx[j]]
         for t in range(j):
             d -= L[j, t] * L[j, t]
         if not d > PIVOT_FLOOR * A[idx[j], idx[j]]:
-            ok = False
-            break
+            return -1
         L[j, j] = np.sqrt(d)
         for i in range(j + 1, na):
             v = A[idx[i], idx[j]]
             for t in range(j):
                 v -= L[i, t] * L[j, t]
             L[i, j] = v / L[j, j]
-    if not ok:
-        for o in range(8):
-            d = A[o, o]
-            for o2 in range(8):
-                A[o, o2] = 0.0
-            if d > 0.0:
-                A[o, o] = 1.0 / d
-        return 1
-    # L^-1 column by column, then A^-1 = L^-T L^-1
+    return na
+
+
+@njit(cache=True, inline="always")
+def _diagonal_inverse(A):
+    """A (8, 8) := the inverse of its diagonal, where positive (0 elsewhere)."""
+    for o in range(8):
+        d = A[o, o]
+        for o2 in range(8):
+            A[o, o2] = 0.0
+        if d > 0.0:
+            A[o, o] = 1.0 / d
+
+
+@njit(cache=True, inline="always")
+def _inverse_from_cholesky(A, idx, L, Li, na):
+    """A (8, 8) := L^-T L^-1 on the rows and columns ``idx[:na]`` (:func:`_cholesky`), 0 elsewhere.
+
+    L^-1 column by column into ``Li``, then the product.
+    """
     for j in range(na):
         Li[j, j] = 1.0 / L[j, j]
         for i in range(j + 1, na):
@@ -406,6 +433,21 @@ def _invert_block(A, idx, L, Li):
                 v += Li[t, i] * Li[t, j]
             A[idx[i], idx[j]] = v
             A[idx[j], idx[i]] = v
+
+
+@njit(cache=True, inline="always")
+def _invert_block(A, idx, L, Li):
+    """A (8, 8) := the inverse of its rows and columns with a positive diagonal, 0 elsewhere.
+
+    By Cholesky on the lower triangle; returns 1 and leaves the diagonal's inverse alone when a
+    pivot is not above ``PIVOT_FLOOR`` of its diagonal (the block is not numerically positive
+    definite: the pure Neumann level 1 without screening, one block holding the constant).
+    """
+    na = _cholesky(A, idx, L)
+    if na < 0:
+        _diagonal_inverse(A)
+        return 1
+    _inverse_from_cholesky(A, idx, L, Li, na)
     return 0
 
 
@@ -485,14 +527,16 @@ def apply_blocks(inv, r, z):
 
 
 @njit(cache=True)
-def level_matvec(q_keys, nb, inp, xmap, omap, m1, k1, h, n, s, scell, sloc, sw, x, out):
+def level_matvec(q_keys, nb, inp, xmap, omap, stiffness, n, s, samples, x, out):
     """Out = A x (stiffness and screening) at the unknowns.
 
     Elsewhere whatever A gives; ``x`` laid out by ``xmap``, ``out`` by ``omap``
-    (:func:`stiffness_matvec`).
+    (:func:`stiffness_matvec`). ``stiffness`` is ``(m1, k1, h)``, the level's 1D tables (n, 5)
+    and its cell size (:func:`stiffness_matvec`); ``samples`` the screening's
+    (:func:`screening_matvec`).
     """
-    bands = level_bands(q_keys, scell)
-    _level_product(q_keys, nb, inp, xmap, omap, m1, k1, h, n, s, scell, sloc, sw, bands, x, out)
+    bands = level_bands(q_keys, samples[0])
+    _level_product(q_keys, nb, inp, (xmap, omap), stiffness, n, s, samples, bands, x, out)
 
 
 @njit(cache=True)
@@ -505,14 +549,19 @@ def level_bands(q_keys, scell):
 
 
 @njit(cache=True, inline="always")
-def _level_product(q_keys, nb, inp, xmap, omap, m1, k1, h, n, s, scell, sloc, sw, bands, x, out):
-    """Out = A x (:func:`level_matvec`), the screening in ``bands`` (:func:`level_bands`)."""
+def _level_product(q_keys, nb, inp, maps, stiffness, n, s, samples, bands, x, out):
+    """Out = A x (:func:`level_matvec`), the screening in ``bands`` (:func:`level_bands`).
+
+    ``maps`` is ``(xmap, omap)``, the layouts of ``x`` and ``out`` (:func:`stiffness_matvec`).
+    """
+    xmap, omap = maps
+    m1, k1, h = stiffness
     out[:] = 0.0
     stiffness_matvec(q_keys, nb, inp, xmap, omap, m1, k1, h, x, out)
     if len(bands) > 1:
-        screening_matvec_bands(q_keys, nb, xmap, omap, n, s, scell, sloc, sw, x, out, bands)
-    elif len(sw):
-        screening_matvec(q_keys, nb, xmap, omap, n, s, scell, sloc, sw, x, out)
+        screening_matvec_bands(q_keys, nb, xmap, omap, n, s, samples, x, out, bands)
+    elif len(samples[2]):
+        screening_matvec(q_keys, nb, xmap, omap, n, s, samples, x, out)
 
 
 @njit(cache=True)
@@ -537,7 +586,7 @@ def _cg_update(x, r, p, q, a, inv):
 
 
 @njit(cache=True)
-def level_pcg(q_keys, nb, inp, cmap, m1, k1, h, n, s, scell, sloc, sw, rhs, inv, tol, max_iter):
+def level_pcg(q_keys, nb, inp, cmap, stiffness, n, s, samples, rhs, inv, tol, max_iter):
     """Block-Jacobi-preconditioned conjugate gradients on the unknown cells only.
 
     ``rhs`` and the solution hold the children of the flagged parents, parent ``i``'s at
@@ -546,7 +595,7 @@ def level_pcg(q_keys, nb, inp, cmap, m1, k1, h, n, s, scell, sloc, sw, rhs, inv,
     of siblings (:func:`factor_blocks`), 0 on the rows and columns that are fixed (no positive
     diagonal: the free boundary's cells outside), whose search directions and solution stay 0 and
     whose residual does not count; packed (u, 36) (:func:`pack_blocks`). ``rhs`` is overwritten by
-    the residual.
+    the residual. ``stiffness`` and ``samples`` as :func:`level_matvec`'s.
     Returns (x, iterations, relative residual).
     """
     m = len(rhs)
@@ -560,9 +609,10 @@ def level_pcg(q_keys, nb, inp, cmap, m1, k1, h, n, s, scell, sloc, sw, rhs, inv,
     q = np.empty(m)
     it = 0
     rel = 1.0
-    bands = level_bands(q_keys, scell)
+    bands = level_bands(q_keys, samples[0])
+    maps = (cmap, cmap)
     while it < max_iter:
-        _level_product(q_keys, nb, inp, cmap, cmap, m1, k1, h, n, s, scell, sloc, sw, bands, p, q)
+        _level_product(q_keys, nb, inp, maps, stiffness, n, s, samples, bands, p, q)
         pq = 0.0
         for i in range(m):
             pq += p[i] * q[i]

@@ -26,93 +26,116 @@ def splat_rhs(pos, normal_w, splat_level, level, q_keys, inp, s, width):
 
     The quadratic B-splines have their splat level's width (as the degree-1 solver did before
     :class:`recon_cli.stages.poisson.splat.NormalField`): per item and axis, the 1D factors of the
-    cells in reach (images folded), then the flagged parents in the box, walking their sorted keys,
-    and their children in it.
+    cells in reach (images folded, :func:`_splat_factors`), then the flagged parents in the box,
+    walking their sorted keys, and their children in it (:func:`_splat_parents`).
     """
     n_keys = len(q_keys)
     b = np.zeros(8 * n_keys)
     if n_keys == 0:
         return b
     n = 1 << level
-    scale = float(n)
     smin = level
     for p in range(pos.shape[0]):
         smin = min(smin, splat_level[p])
     wmax = min(2 * int(np.ceil(1.5 + 1.5 * width * 2.0 ** max(level - smin, 0))) + 4, n)
     fv = np.zeros((3, wmax))
     fd = np.zeros((3, wmax))
-    lo = np.empty(3, np.int64)
-    hi = np.empty(3, np.int64)
+    box = np.empty((2, 3), np.int64)
     for p in range(pos.shape[0]):
         rho = width * 2.0 ** (level - splat_level[p])
-        reach = 1.5 + 1.5 * rho
-        empty = False
-        for a in range(3):
-            u = pos[p, a] * scale
-            e0 = int(np.floor(u - 0.5 - reach))
-            e1 = int(np.ceil(u - 0.5 + reach))
-            lo[a] = max(e0, 0)
-            hi[a] = min(e1, n - 1, lo[a] + wmax - 1)
-            if hi[a] < lo[a]:
-                empty = True
-                continue
-            for t in range(hi[a] - lo[a] + 1):
-                fv[a, t] = 0.0
-                fd[a, t] = 0.0
-            for c in range(e0, e1 + 1):
-                v = u - (c + 0.5)
-                if abs(v) >= reach:
-                    continue
-                cf, sg = fold(c, n, s)
-                if cf < lo[a] or cf > hi[a]:
-                    continue
-                val, der = b2_factors(v, rho)
-                fv[a, cf - lo[a]] += sg * val
-                fd[a, cf - lo[a]] += sg * der * scale
-        if empty:
+        if _splat_factors(pos, p, rho, n, s, fv, fd, box):
             continue
-        nx = normal_w[p, 0]
-        ny = normal_w[p, 1]
-        nz = normal_w[p, 2]
-        l0 = lo[0] >> 1
-        l1 = lo[1] >> 1
-        l2 = lo[2] >> 1
-        h1 = hi[1] >> 1
-        h2 = hi[2] >> 1
-        for x in range(l0, (hi[0] >> 1) + 1):
-            kend = lattice_key(x, h1, h2)
-            j = lower_bound(q_keys, lattice_key(x, l1, l2), 0, n_keys)
-            while j < n_keys and q_keys[j] <= kend:
-                k = q_keys[j]
-                y = (k >> 21) & MASK21
-                z = k & MASK21
-                if z < l2:
-                    j = gallop(q_keys, lattice_key(x, y, l2), j, n_keys)
-                    continue
-                if z > h2:
-                    j = gallop(q_keys, lattice_key(x, y + 1, l2), j, n_keys)
-                    continue
-                if inp[j]:
-                    for o in range(8):
-                        cx = 2 * x + (o & 1) - lo[0]
-                        cy = 2 * y + ((o >> 1) & 1) - lo[1]
-                        cz = 2 * z + ((o >> 2) & 1) - lo[2]
-                        if (
-                            cx < 0
-                            or cy < 0
-                            or cz < 0
-                            or cx > hi[0] - lo[0]
-                            or cy > hi[1] - lo[1]
-                            or cz > hi[2] - lo[2]
-                        ):
-                            continue
-                        b[8 * j + o] += (
-                            nx * fd[0, cx] * fv[1, cy] * fv[2, cz]
-                            + ny * fv[0, cx] * fd[1, cy] * fv[2, cz]
-                            + nz * fv[0, cx] * fv[1, cy] * fd[2, cz]
-                        )
-                j += 1
+        _splat_parents(q_keys, inp, box, fv, fd, normal_w, p, b)
     return b
+
+
+@njit(cache=True, inline="always")  # inlined: no stage calls splat_rhs, no warm-up compiles it
+def _splat_factors(pos, p, rho, n, s, fv, fd, box):
+    """Item ``p``'s 1D value and derivative factors per axis, at the cells in its reach.
+
+    ``fv``, ``fd`` (3, w): row ``a`` holds the cells ``box[0, a]`` to ``box[1, a]`` (the reach,
+    clipped to the cube and to ``w`` cells), images beyond the faces folded on (sign ``s``).
+    ``rho`` is the B-spline's width in cells of the level (``n`` per axis). Returns True when the
+    box is empty.
+    """
+    wmax = fv.shape[1]
+    scale = float(n)
+    reach = 1.5 + 1.5 * rho
+    empty = False
+    for a in range(3):
+        u = pos[p, a] * scale
+        e0 = int(np.floor(u - 0.5 - reach))
+        e1 = int(np.ceil(u - 0.5 + reach))
+        box[0, a] = max(e0, 0)
+        box[1, a] = min(e1, n - 1, box[0, a] + wmax - 1)
+        if box[1, a] < box[0, a]:
+            empty = True
+            continue
+        for t in range(box[1, a] - box[0, a] + 1):
+            fv[a, t] = 0.0
+            fd[a, t] = 0.0
+        for c in range(e0, e1 + 1):
+            v = u - (c + 0.5)
+            if abs(v) >= reach:
+                continue
+            cf, sg = fold(c, n, s)
+            if cf < box[0, a] or cf > box[1, a]:
+                continue
+            val, der = b2_factors(v, rho)
+            fv[a, cf - box[0, a]] += sg * val
+            fd[a, cf - box[0, a]] += sg * der * scale
+    return empty
+
+
+@njit(cache=True, inline="always")  # inlined: no stage calls splat_rhs, no warm-up compiles it
+def _splat_parents(q_keys, inp, box, fv, fd, normal_w, p, b):
+    """Add item ``p``'s share to ``b`` at the children in ``box`` of the flagged parents.
+
+    Walks the parents' sorted keys whose cell is in the box halved, x by x; ``fv``, ``fd`` and
+    ``box`` from :func:`_splat_factors`.
+    """
+    n_keys = len(q_keys)
+    l1 = box[0, 1] >> 1
+    l2 = box[0, 2] >> 1
+    h1 = box[1, 1] >> 1
+    h2 = box[1, 2] >> 1
+    for x in range(box[0, 0] >> 1, (box[1, 0] >> 1) + 1):
+        kend = lattice_key(x, h1, h2)
+        j = lower_bound(q_keys, lattice_key(x, l1, l2), 0, n_keys)
+        while j < n_keys and q_keys[j] <= kend:
+            k = q_keys[j]
+            y = (k >> 21) & MASK21
+            z = k & MASK21
+            if z < l2:
+                j = gallop(q_keys, lattice_key(x, y, l2), j, n_keys)
+                continue
+            if z > h2:
+                j = gallop(q_keys, lattice_key(x, y + 1, l2), j, n_keys)
+                continue
+            if inp[j]:
+                _splat_children(box, fv, fd, normal_w, p, x, y, z, b, 8 * j)
+            j += 1
+
+
+@njit(cache=True, inline="always")
+def _splat_children(box, fv, fd, normal_w, p, x, y, z, b, base):
+    """b[base + o] += item ``p``'s share at child ``o`` of parent (x, y, z), those in ``box``."""
+    nx = normal_w[p, 0]
+    ny = normal_w[p, 1]
+    nz = normal_w[p, 2]
+    for o in range(8):
+        cx = 2 * x + (o & 1) - box[0, 0]
+        cy = 2 * y + ((o >> 1) & 1) - box[0, 1]
+        cz = 2 * z + ((o >> 2) & 1) - box[0, 2]
+        if min(cx, cy, cz) < 0:
+            continue
+        if cx > box[1, 0] - box[0, 0] or cy > box[1, 1] - box[0, 1] or cz > box[1, 2] - box[0, 2]:
+            continue
+        b[base + o] += (
+            nx * fd[0, cx] * fv[1, cy] * fv[2, cz]
+            + ny * fv[0, cx] * fd[1, cy] * fv[2, cz]
+            + nz * fv[0, cx] * fv[1, cy] * fd[2, cz]
+        )
 
 
 @njit(cache=True)
@@ -215,52 +238,52 @@ def prolong_field(q_keys, coarse_q_keys, coarse_nb, coarse, n_coarse, s):
     return out
 
 
-@njit(cache=True)
-def _block_rhs(X, z3, y3, k, n, s, fv, fd, out, base):
-    """The stencil of :func:`field_rhs` on one parent's 6 x 6 x 6 block ``X`` of the field.
+@njit(cache=True, inline="always")
+def _mirror_row(X, a, r, mr, s):
+    """Row ``r`` of block ``X`` (m, m, m, 3) across axis ``a`` := its mirror row ``mr``'s.
 
-    The block holds cells 2P - 2 .. 2P + 3 per axis (P the parent's cell ``k``), the cells beyond
-    the faces folded first: out[base + o] += for its 8 children. (A call per parent, thousands of
-    operations each: not the per-element helper call that costs in the hot loops.)
+    With sign ``s``, ``-s`` for the component along ``a`` (a reflection turns it over).
+    """
+    m = X.shape[0]
+    for u in range(m):
+        for v in range(m):
+            for comp in range(3):
+                sg = -s if comp == a else s
+                if a == 0:
+                    X[r, u, v, comp] = sg * X[mr, u, v, comp]
+                elif a == 1:
+                    X[u, r, v, comp] = sg * X[u, mr, v, comp]
+                else:
+                    X[u, v, r, comp] = sg * X[u, v, mr, comp]
+
+
+@njit(cache=True)
+def _fold_block(X, k, n, s):
+    """Fold the cells beyond the faces of parent ``k``'s 6 x 6 x 6 block ``X`` of the field.
+
+    Block rows 0, 1 at the low face mirror 3, 2; rows 4, 5 at the high face mirror 3, 2; axis by
+    axis (:func:`_mirror_row`).
+    """
+    for a in range(3):
+        p = (k >> (42 - 21 * a)) & MASK21
+        if p == 0:
+            _mirror_row(X, a, 0, 3, s)
+            _mirror_row(X, a, 1, 2, s)
+        if 2 * p + 2 >= n:
+            _mirror_row(X, a, 4, 3, s)
+            _mirror_row(X, a, 5, 2, s)
+
+
+@njit(cache=True)
+def _block_stencil(X, z3, y3, k, fv, fd, out, base):
+    """The separable stencil of :func:`field_rhs` on a folded block, one axis at a time.
+
+    out[base + o] += for the 8 children o of parent ``k``; ``z3`` (6, 6, 2, 3) and ``y3``
+    (6, 2, 2, 3) the passes' scratch.
     """
     px = (k >> 42) & MASK21
     py = (k >> 21) & MASK21
     pz = k & MASK21
-    # fold the cells beyond the faces (block rows 0, 1 at the low face mirror 3, 2; rows
-    # 4, 5 at the high face mirror 3, 2), axis by axis
-    lo_x = px == 0
-    hi_x = 2 * px + 2 >= n
-    lo_y = py == 0
-    hi_y = 2 * py + 2 >= n
-    lo_z = pz == 0
-    hi_z = 2 * pz + 2 >= n
-    for r in range(6):
-        if not ((r < 2 and lo_x) or (r > 3 and hi_x)):
-            continue
-        mr = 3 - r if r < 2 else 7 - r
-        for u in range(6):
-            for v in range(6):
-                X[r, u, v, 0] = -s * X[mr, u, v, 0]
-                X[r, u, v, 1] = s * X[mr, u, v, 1]
-                X[r, u, v, 2] = s * X[mr, u, v, 2]
-    for r in range(6):
-        if not ((r < 2 and lo_y) or (r > 3 and hi_y)):
-            continue
-        mr = 3 - r if r < 2 else 7 - r
-        for u in range(6):
-            for v in range(6):
-                X[u, r, v, 0] = s * X[u, mr, v, 0]
-                X[u, r, v, 1] = -s * X[u, mr, v, 1]
-                X[u, r, v, 2] = s * X[u, mr, v, 2]
-    for r in range(6):
-        if not ((r < 2 and lo_z) or (r > 3 and hi_z)):
-            continue
-        mr = 3 - r if r < 2 else 7 - r
-        for u in range(6):
-            for v in range(6):
-                X[u, v, r, 0] = s * X[u, v, mr, 0]
-                X[u, v, r, 1] = s * X[u, v, mr, 1]
-                X[u, v, r, 2] = -s * X[u, v, mr, 2]
     # z: value factor for the x and y components, derivative for z
     for oz in range(2):
         cz = 2 * pz + oz
@@ -303,6 +326,19 @@ def _block_rhs(X, z3, y3, k, n, s, fv, fd, out, base):
                 y3[ox + c, oy, oz, 1] + y3[ox + c, oy, oz, 2]
             )
         out[base + o] += v
+
+
+@njit(cache=True)
+def _block_rhs(X, z3, y3, k, n, s, fv, fd, out, base):
+    """The stencil of :func:`field_rhs` on one parent's 6 x 6 x 6 block ``X`` of the field.
+
+    The block holds cells 2P - 2 .. 2P + 3 per axis (P the parent's cell ``k``), the cells beyond
+    the faces folded first (:func:`_fold_block`): out[base + o] += for its 8 children
+    (:func:`_block_stencil`). (A call per parent, thousands of operations each: not the
+    per-element helper call that costs in the hot loops.)
+    """
+    _fold_block(X, k, n, s)
+    _block_stencil(X, z3, y3, k, fv, fd, out, base)
 
 
 @njit(cache=True, parallel=True)
@@ -367,17 +403,19 @@ def field_rhs(q_keys, nb, flag, n, s, fv, fd, vec, idx, rows, out):
 
 
 @njit(cache=True, parallel=True)
-def field_rhs_prolonged(q_keys, nb, flag, n, s, fv, fd, cq_keys, cnb, cvec, idx, rows, out):
-    """:func:`field_rhs` for the coarser level's field ``cvec``, refined on the fly.
+def field_rhs_prolonged(q_keys, nb, flag, n, s, fv, fd, coarse, idx, rows, out):
+    """:func:`field_rhs` for the coarser level's field, refined on the fly.
 
-    ``cvec`` lives on the coarser E, folded; it is refined (:func:`prolong_field`'s mask, per
-    parent: the coarser cells P - 2 .. P + 2 per axis give the block's cells 2P - 2 .. 2P + 3) plus
-    ``rows[idx]``: for the finest level, whose refined field on E (24 B a cell) would be the largest
-    array of the solve. Equal to :func:`field_rhs` of :func:`prolong_field`'s result to rounding.
+    ``coarse`` is ``(cq_keys, cnb, cvec)``: the coarser level's E (sorted parent keys, their 27
+    neighbours) and the field's coefficients on it (8qc, 3), folded. The field is refined
+    (:func:`prolong_field`'s mask, per parent: the coarser cells P - 2 .. P + 2 per axis give the
+    block's cells 2P - 2 .. 2P + 3, :func:`_coarse_block`, :func:`_refine_x` and on) plus
+    ``rows[idx]`` (:func:`_add_rows_block`): for the finest level, whose refined field on E (24 B a
+    cell) would be the largest array of the solve. Equal to :func:`field_rhs` of
+    :func:`prolong_field`'s result to rounding.
     Parents in chunks over the threads (each writes its own children only).
     """
     w = np.array([0.125, 0.375, 0.375, 0.125])
-    nc = n >> 1
     sparse = len(idx) > 0
     nq = len(q_keys)
     nchunks = (nq + MATVEC_CHUNK - 1) // MATVEC_CHUNK
@@ -392,95 +430,124 @@ def field_rhs_prolonged(q_keys, nb, flag, n, s, fv, fd, cq_keys, cnb, cvec, idx,
             if not flag[i]:
                 continue
             k = q_keys[i]
-            px = (k >> 42) & MASK21
-            py = (k >> 21) & MASK21
-            pz = k & MASK21
-            C[:] = 0.0
-            j = find_cell(cq_keys, px, py, pz)
-            if j >= 0:
-                jb = j >> 3
-                jo = j & 7
-                for c in range(5):
-                    bz = ((jo >> 2) & 1) + c - 2
-                    for b in range(5):
-                        by = ((jo >> 1) & 1) + b - 2
-                        for a in range(5):
-                            bx = (jo & 1) + a - 2
-                            q = cnb[jb, ((bx >> 1) + 1) + 3 * ((by >> 1) + 1) + 9 * ((bz >> 1) + 1)]
-                            if q >= 0:
-                                m = 8 * q + ((bx & 1) | ((by & 1) << 1) | ((bz & 1) << 2))
-                                C[a, b, c, 0] = cvec[m, 0]
-                                C[a, b, c, 1] = cvec[m, 1]
-                                C[a, b, c, 2] = cvec[m, 2]
-                # coarser cells beyond the faces: their mirrors' (sign s, -s for the component
-                # along the face's normal), axis by axis
-                for ax in range(3):
-                    pc = px if ax == 0 else (py if ax == 1 else pz)
-                    for a in range(5):
-                        cc = pc - 2 + a
-                        if cc < 0:
-                            ma = -1 - cc - (pc - 2)
-                        elif cc >= nc:
-                            ma = 2 * nc - 1 - cc - (pc - 2)
-                        else:
-                            continue
-                        for u in range(5):
-                            for v in range(5):
-                                for comp in range(3):
-                                    sg = -s if comp == ax else s
-                                    if ax == 0:
-                                        C[a, u, v, comp] = sg * C[ma, u, v, comp]
-                                    elif ax == 1:
-                                        C[u, a, v, comp] = sg * C[u, ma, v, comp]
-                                    else:
-                                        C[u, v, a, comp] = sg * C[u, v, ma, comp]
-            # refine, one axis at a time: block cell 2P - 2 + b takes coarser cell P - 2 + a with
-            # weight w[b + 3 - 2a]
-            for b in range(6):
-                for u in range(5):
-                    for v in range(5):
-                        for comp in range(3):
-                            t = 0.0
-                            for a in range(5):
-                                e = b + 3 - 2 * a
-                                if 0 <= e <= 3:
-                                    t += w[e] * C[a, u, v, comp]
-                            R1[b, u, v, comp] = t
-            for b in range(6):
-                for u in range(6):
-                    for v in range(5):
-                        for comp in range(3):
-                            t = 0.0
-                            for a in range(5):
-                                e = b + 3 - 2 * a
-                                if 0 <= e <= 3:
-                                    t += w[e] * R1[u, a, v, comp]
-                            R2[u, b, v, comp] = t
-            for b in range(6):
-                for u in range(6):
-                    for v in range(6):
-                        for comp in range(3):
-                            t = 0.0
-                            for a in range(5):
-                                e = b + 3 - 2 * a
-                                if 0 <= e <= 3:
-                                    t += w[e] * R2[u, v, a, comp]
-                            X[u, v, b, comp] = t
+            _coarse_block(C, coarse, k, n >> 1, s)
+            # refine, one axis at a time
+            _refine_x(C, R1, w)
+            _refine_y(R1, R2, w)
+            _refine_z(R2, X, w)
             if sparse:
-                for t27 in range(27):
-                    p = nb[i, t27]
-                    if p < 0:
-                        continue
-                    ax = 2 * (t27 % 3)
-                    ay = 2 * ((t27 // 3) % 3)
-                    az = 2 * (t27 // 9)
-                    for o in range(8):
-                        r = idx[8 * p + o]
-                        if r >= 0:
-                            X[ax + (o & 1), ay + ((o >> 1) & 1), az + (o >> 2), 0] += rows[r, 0]
-                            X[ax + (o & 1), ay + ((o >> 1) & 1), az + (o >> 2), 1] += rows[r, 1]
-                            X[ax + (o & 1), ay + ((o >> 1) & 1), az + (o >> 2), 2] += rows[r, 2]
+                _add_rows_block(X, nb, i, idx, rows)
             _block_rhs(X, z3, y3, k, n, s, fv, fd, out, 8 * i)
+
+
+@njit(cache=True)
+def _coarse_block(C, coarse, k, nc, s):
+    """C (5, 5, 5, 3) := the coarser cells P - 2 .. P + 2 per axis around parent ``k``'s cell P.
+
+    ``coarse`` as :func:`field_rhs_prolonged`'s, on a level of ``nc`` cells per axis; 0 where the
+    coarser E has none; the cells beyond the faces their mirrors' (sign ``s``, ``-s`` for the
+    component along the face's normal), axis by axis.
+    """
+    cq_keys, cnb, cvec = coarse
+    px = (k >> 42) & MASK21
+    py = (k >> 21) & MASK21
+    pz = k & MASK21
+    C[:] = 0.0
+    j = find_cell(cq_keys, px, py, pz)
+    if j < 0:
+        return
+    jb = j >> 3
+    jo = j & 7
+    for c in range(5):
+        bz = ((jo >> 2) & 1) + c - 2
+        for b in range(5):
+            by = ((jo >> 1) & 1) + b - 2
+            for a in range(5):
+                bx = (jo & 1) + a - 2
+                q = cnb[jb, ((bx >> 1) + 1) + 3 * ((by >> 1) + 1) + 9 * ((bz >> 1) + 1)]
+                if q >= 0:
+                    m = 8 * q + ((bx & 1) | ((by & 1) << 1) | ((bz & 1) << 2))
+                    C[a, b, c, 0] = cvec[m, 0]
+                    C[a, b, c, 1] = cvec[m, 1]
+                    C[a, b, c, 2] = cvec[m, 2]
+    for ax in range(3):
+        pc = (k >> (42 - 21 * ax)) & MASK21
+        for a in range(5):
+            cc = pc - 2 + a
+            if cc < 0:
+                _mirror_row(C, ax, a, -1 - cc - (pc - 2), s)
+            elif cc >= nc:
+                _mirror_row(C, ax, a, 2 * nc - 1 - cc - (pc - 2), s)
+
+
+# Refinement of a coarser block, one axis at a time (:func:`field_rhs_prolonged`): block cell
+# 2P - 2 + b takes coarser cell P - 2 + a with weight w[b + 3 - 2a].
+
+
+@njit(cache=True)
+def _refine_x(C, R1, w):
+    """R1 (6, 5, 5, 3) := C (5, 5, 5, 3) refined along its first axis."""
+    for b in range(6):
+        for u in range(5):
+            for v in range(5):
+                for comp in range(3):
+                    t = 0.0
+                    for a in range(5):
+                        e = b + 3 - 2 * a
+                        if 0 <= e <= 3:
+                            t += w[e] * C[a, u, v, comp]
+                    R1[b, u, v, comp] = t
+
+
+@njit(cache=True)
+def _refine_y(R1, R2, w):
+    """R2 (6, 6, 5, 3) := R1 (6, 5, 5, 3) refined along its second axis."""
+    for b in range(6):
+        for u in range(6):
+            for v in range(5):
+                for comp in range(3):
+                    t = 0.0
+                    for a in range(5):
+                        e = b + 3 - 2 * a
+                        if 0 <= e <= 3:
+                            t += w[e] * R1[u, a, v, comp]
+                    R2[u, b, v, comp] = t
+
+
+@njit(cache=True)
+def _refine_z(R2, X, w):
+    """X (6, 6, 6, 3) := R2 (6, 6, 5, 3) refined along its third axis."""
+    for b in range(6):
+        for u in range(6):
+            for v in range(6):
+                for comp in range(3):
+                    t = 0.0
+                    for a in range(5):
+                        e = b + 3 - 2 * a
+                        if 0 <= e <= 3:
+                            t += w[e] * R2[u, v, a, comp]
+                    X[u, v, b, comp] = t
+
+
+@njit(cache=True)
+def _add_rows_block(X, nb, i, idx, rows):
+    """X += the sparse field ``rows[idx[m]]`` at parent ``i``'s block's cells.
+
+    ``idx``, ``rows`` as :func:`field_rows` gives them.
+    """
+    for t27 in range(27):
+        p = nb[i, t27]
+        if p < 0:
+            continue
+        ax = 2 * (t27 % 3)
+        ay = 2 * ((t27 // 3) % 3)
+        az = 2 * (t27 // 9)
+        for o in range(8):
+            r = idx[8 * p + o]
+            if r >= 0:
+                X[ax + (o & 1), ay + ((o >> 1) & 1), az + (o >> 2), 0] += rows[r, 0]
+                X[ax + (o & 1), ay + ((o >> 1) & 1), az + (o >> 2), 1] += rows[r, 1]
+                X[ax + (o & 1), ay + ((o >> 1) & 1), az + (o >> 2), 2] += rows[r, 2]
 
 
 @njit(cache=True)
@@ -505,7 +572,9 @@ def restrict_rhs(q_keys, nb, flag, blocks, fine, n, s):
     The finer level's are ``fine`` (8qf,) on the finer E: a function of cell ``c`` is the finer ones
     of cells 2c - 1 .. 2c + 2 per axis with weights (1, 3, 3, 1) / 4 (a finer cell beyond a face is
     its mirror with sign ``s``); at the children of the parents flagged ``flag``, 0 elsewhere.
-    ``blocks`` is :func:`finer_blocks`; finer cells not in the finer E count as 0.
+    ``blocks`` is :func:`finer_blocks`; finer cells not in the finer E count as 0. Per parent: its
+    block of finer cells (:func:`_fine_block`), folded (:func:`_fold_fine_block`), restricted
+    (:func:`_restrict_block`).
     """
     out = np.zeros(8 * len(q_keys))
     X = np.zeros((6, 6, 6))
@@ -515,64 +584,87 @@ def restrict_rhs(q_keys, nb, flag, blocks, fine, n, s):
     for i in range(len(q_keys)):
         if not flag[i]:
             continue
-        X[:] = 0.0
-        # the cells 2P - 1 .. 2P + 2 per axis around the parent P (cell 2P - 1 + a is child
-        # (a + 1) & 1 of the parent at offset ((a + 1) >> 1) - 1) and their children: finer
-        # cells 4P - 1 .. 4P + 4, block rows 0..5 (row 2a - 1 + child)
-        for c in range(4):
-            for b in range(4):
-                for a in range(4):
-                    p = nb[i, ((a + 1) >> 1) + 3 * ((b + 1) >> 1) + 9 * ((c + 1) >> 1)]
-                    if p < 0:
-                        continue
-                    jf = blocks[
-                        8 * p + (((a + 1) & 1) | (((b + 1) & 1) << 1) | (((c + 1) & 1) << 2))
-                    ]
-                    if jf < 0:
-                        continue
-                    for of in range(8):
-                        rx = 2 * a - 1 + (of & 1)
-                        ry = 2 * b - 1 + ((of >> 1) & 1)
-                        rz = 2 * c - 1 + ((of >> 2) & 1)
-                        if rx < 0 or ry < 0 or rz < 0 or rx > 5 or ry > 5 or rz > 5:
-                            continue
-                        X[rx, ry, rz] = fine[8 * jf + of]
-        k = q_keys[i]
-        px = (k >> 42) & MASK21
-        py = (k >> 21) & MASK21
-        pz = k & MASK21
-        # finer cells beyond the faces: row 0 (cell -1) mirrors row 1, row 5 (cell 2n) row 4
-        if px == 0:
-            X[0, :, :] = s * X[1, :, :]
-        if 2 * px + 2 >= n:
-            X[5, :, :] = s * X[4, :, :]
-        if py == 0:
-            X[:, 0, :] = s * X[:, 1, :]
-        if 2 * py + 2 >= n:
-            X[:, 5, :] = s * X[:, 4, :]
-        if pz == 0:
-            X[:, :, 0] = s * X[:, :, 1]
-        if 2 * pz + 2 >= n:
-            X[:, :, 5] = s * X[:, :, 4]
-        # child o of the parent: finer rows 2 o .. 2 o + 3 per axis
-        for oz in range(2):
-            for bx in range(6):
-                for by in range(6):
-                    v = 0.0
-                    for c in range(4):
-                        v += r4[c] * X[bx, by, 2 * oz + c]
-                    zr[bx, by, oz] = v
-        for oy in range(2):
-            for bx in range(6):
-                for oz in range(2):
-                    v = 0.0
-                    for c in range(4):
-                        v += r4[c] * zr[bx, 2 * oy + c, oz]
-                    yr[bx, oy, oz] = v
-        for o in range(8):
-            ox = o & 1
-            v = 0.0
-            for c in range(4):
-                v += r4[c] * yr[2 * ox + c, (o >> 1) & 1, (o >> 2) & 1]
-            out[8 * i + o] = v
+        _fine_block(X, nb, i, blocks, fine)
+        _fold_fine_block(X, q_keys[i], n, s)
+        _restrict_block(X, zr, yr, r4, out, 8 * i)
     return out
+
+
+@njit(cache=True)
+def _fine_block(X, nb, i, blocks, fine):
+    """X (6, 6, 6) := the finer cells 4P - 1 .. 4P + 4 per axis around parent ``i``'s cell P.
+
+    The cells 2P - 1 .. 2P + 2 per axis (cell 2P - 1 + a is child (a + 1) & 1 of the parent at
+    offset ((a + 1) >> 1) - 1) and their children: block rows 0..5 (row 2a - 1 + child); 0 where
+    the finer E has none (``blocks``, ``fine`` as :func:`restrict_rhs`'s).
+    """
+    X[:] = 0.0
+    for c in range(4):
+        for b in range(4):
+            for a in range(4):
+                p = nb[i, ((a + 1) >> 1) + 3 * ((b + 1) >> 1) + 9 * ((c + 1) >> 1)]
+                if p < 0:
+                    continue
+                jf = blocks[8 * p + (((a + 1) & 1) | (((b + 1) & 1) << 1) | (((c + 1) & 1) << 2))]
+                if jf < 0:
+                    continue
+                for of in range(8):
+                    rx = 2 * a - 1 + (of & 1)
+                    ry = 2 * b - 1 + ((of >> 1) & 1)
+                    rz = 2 * c - 1 + ((of >> 2) & 1)
+                    if rx < 0 or ry < 0 or rz < 0 or rx > 5 or ry > 5 or rz > 5:
+                        continue
+                    X[rx, ry, rz] = fine[8 * jf + of]
+
+
+@njit(cache=True)
+def _fold_fine_block(X, k, n, s):
+    """The finer cells beyond the faces: row 0 (cell -1) mirrors row 1, row 5 (cell 2n) row 4.
+
+    Sign ``s``; ``X`` (6, 6, 6) is parent ``k``'s block (:func:`_fine_block`), ``n`` the cells
+    per axis of the parent's level.
+    """
+    px = (k >> 42) & MASK21
+    py = (k >> 21) & MASK21
+    pz = k & MASK21
+    if px == 0:
+        X[0, :, :] = s * X[1, :, :]
+    if 2 * px + 2 >= n:
+        X[5, :, :] = s * X[4, :, :]
+    if py == 0:
+        X[:, 0, :] = s * X[:, 1, :]
+    if 2 * py + 2 >= n:
+        X[:, 5, :] = s * X[:, 4, :]
+    if pz == 0:
+        X[:, :, 0] = s * X[:, :, 1]
+    if 2 * pz + 2 >= n:
+        X[:, :, 5] = s * X[:, :, 4]
+
+
+@njit(cache=True)
+def _restrict_block(X, zr, yr, r4, out, base):
+    """out[base + o] := the restriction of block ``X`` (6, 6, 6) to child ``o`` of its parent.
+
+    Child ``o``: finer rows 2 o .. 2 o + 3 per axis, weights ``r4``, one axis at a time (``zr``
+    (6, 6, 2), ``yr`` (6, 2, 2) the passes' scratch).
+    """
+    for oz in range(2):
+        for bx in range(6):
+            for by in range(6):
+                v = 0.0
+                for c in range(4):
+                    v += r4[c] * X[bx, by, 2 * oz + c]
+                zr[bx, by, oz] = v
+    for oy in range(2):
+        for bx in range(6):
+            for oz in range(2):
+                v = 0.0
+                for c in range(4):
+                    v += r4[c] * zr[bx, 2 * oy + c, oz]
+                yr[bx, oy, oz] = v
+    for o in range(8):
+        ox = o & 1
+        v = 0.0
+        for c in range(4):
+            v += r4[c] * yr[2 * ox + c, (o >> 1) & 1, (o >> 2) & 1]
+        out[base + o] = v

@@ -82,22 +82,19 @@ def _minimal_edges(tree, scratch, l0, e0, axis, hint, hxyz, m):
     prolongation copies coincident nodes exactly). ``hint``: index of a leaf of level ``l0`` holding
     the edge, lower corner ``hxyz`` (3,), or -1. ``tree`` is a :data:`TreeView`, ``scratch`` an
     :data:`EdgeScratch` whose buffers hold ``m`` edges. Returns the new count.
+
+    Written out in one loop: each pop is a few lookups, and a helper per pop taking the tree's
+    arrays costs more than they do (``docs/design/poisson.md``).
     """
     keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, R, cap = tree
     stack, cell, buf_p, buf_len, buf_v = scratch
     b = (axis + 1) % 3
     c = (axis + 2) % 3
-    stack[0, 0] = l0
-    stack[0, 1] = e0[0]
-    stack[0, 2] = e0[1]
-    stack[0, 3] = e0[2]
+    stack[0, 0], stack[0, 1], stack[0, 2], stack[0, 3] = l0, e0[0], e0[1], e0[2]
     top = 1
     while top > 0:
         top -= 1
-        lev = stack[top, 0]
-        x = stack[top, 1]
-        y = stack[top, 2]
-        z = stack[top, 3]
+        lev, x, y, z = stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3]
         split = False
         found = -1
         fq = 0
@@ -105,46 +102,31 @@ def _minimal_edges(tree, scratch, l0, e0, axis, hint, hxyz, m):
         if use_hint:
             found = hint
             fq = (x - hxyz[0]) | ((y - hxyz[1]) << 1) | ((z - hxyz[2]) << 2)
-            if lev == D:
-                top_done = True  # the finest cells have no children: nothing to look up
-            else:
-                top_done = False
-        else:
-            top_done = False
-        for db in range(2):
-            if top_done:
-                break
-            for dc in range(2):
-                cell[0] = x
-                cell[1] = y
-                cell[2] = z
-                cell[b] -= db
-                cell[c] -= dc
-                if use_hint and cell[0] == hxyz[0] and cell[1] == hxyz[1] and cell[2] == hxyz[2]:
-                    continue
-                s = _state(keys, leaf, coff, fkeys, D, lev, cell[0], cell[1], cell[2])
-                if s <= -2:
-                    split = True
-                elif s >= 0 and found < 0:
-                    found = s
-                    fq = (db << b) | (dc << c)
+        # the 4 cells of the level around the edge (the finest cells have no children: with the
+        # hint, nothing to look up)
+        for t in range(0 if use_hint and lev == D else 4):
+            db, dc = t >> 1, t & 1
+            cell[0], cell[1], cell[2] = x, y, z
+            cell[b] -= db
+            cell[c] -= dc
+            if use_hint and cell[0] == hxyz[0] and cell[1] == hxyz[1] and cell[2] == hxyz[2]:
+                continue
+            s = _state(keys, leaf, coff, fkeys, D, lev, cell[0], cell[1], cell[2])
+            if s <= -2:
+                split = True
+            elif s >= 0 and found < 0:
+                found = s
+                fq = (db << b) | (dc << c)
         if split:
             # upper half pushed first: the lower one comes out first
-            stack[top, 0] = lev + 1
-            stack[top, 1] = 2 * x
-            stack[top, 2] = 2 * y
-            stack[top, 3] = 2 * z
+            for h in range(2):
+                stack[top + h, 0], stack[top + h, 1] = lev + 1, 2 * x
+                stack[top + h, 2], stack[top + h, 3] = 2 * y, 2 * z
             stack[top, 1 + axis] += 1
-            stack[top + 1, 0] = lev + 1
-            stack[top + 1, 1] = 2 * x
-            stack[top + 1, 2] = 2 * y
-            stack[top + 1, 3] = 2 * z
             top += 2
             continue
         sh = D - lev
-        px = x << sh
-        py = y << sh
-        pz = z << sh
+        px, py, pz = x << sh, y << sh, z << sh
         ln = np.int64(1) << sh
         q1 = fq | (1 << axis)
         if lev == D:
@@ -153,19 +135,12 @@ def _minimal_edges(tree, scratch, l0, e0, axis, hint, hxyz, m):
         else:
             v0 = g[goff[lev] + nodes[found, fq & 3] + (fq >> 2)]
             v1 = g[goff[lev] + nodes[found, q1 & 3] + (q1 >> 2)]
-        v0 = clamp_faces(v0, px, py, pz, R, cap)
-        if axis == 0:
-            v1 = clamp_faces(v1, px + ln, py, pz, R, cap)
-        elif axis == 1:
-            v1 = clamp_faces(v1, px, py + ln, pz, R, cap)
-        else:
-            v1 = clamp_faces(v1, px, py, pz + ln, R, cap)
-        buf_p[m, 0] = px
-        buf_p[m, 1] = py
-        buf_p[m, 2] = pz
+        buf_p[m, 0], buf_p[m, 1], buf_p[m, 2] = px, py, pz
         buf_len[m] = ln
-        buf_v[m, 0] = v0
-        buf_v[m, 1] = v1
+        buf_v[m, 0] = clamp_faces(v0, px, py, pz, R, cap)
+        # the far end along the axis
+        ex, ey, ez = (ln if axis == 0 else 0), (ln if axis == 1 else 0), (ln if axis == 2 else 0)
+        buf_v[m, 1] = clamp_faces(v1, px + ex, py + ey, pz + ez, R, cap)
         m += 1
     return m
 
@@ -456,6 +431,21 @@ def _pair_roots(roots, nroots, centre_in, s, segs, ns):
     return ns, segs
 
 
+@njit(cache=True, inline="always")
+def _face_range(work, a, s):
+    """The range of a leaf's face across axis ``a`` (``s`` 0 low, 1 high): (min clamped, max).
+
+    Chi is bilinear on it; clamped points only lower it (``work.clv``, ``work.raw``).
+    """
+    flo = 1e300
+    fhi = -1e300
+    for q in range(8):
+        if ((q >> a) & 1) == s:
+            flo = min(flo, work.clv[q])
+            fhi = max(fhi, work.raw[q])
+    return flo, fhi
+
+
 @njit(cache=True)
 def _leaf_segments(tree, scratch, work, lim, ci, lev, cell, roots, segs):
     """The iso-segments of the minimal faces covering a leaf's boundary (:func:`leaf_polygons`).
@@ -476,13 +466,7 @@ def _leaf_segments(tree, scratch, work, lim, ci, lev, cell, roots, segs):
             w = ca + s
             if w == 0 or w == (np.int64(1) << lev):
                 continue  # on the cube's faces: outside
-            # the face's range (chi bilinear on it; clamped points only lower it)
-            flo = 1e300
-            fhi = -1e300
-            for q in range(8):
-                if ((q >> a) & 1) == s:
-                    flo = min(flo, work.clv[q])
-                    fhi = max(fhi, work.raw[q])
+            flo, fhi = _face_range(work, a, s)
             if flo > lim.iso + lim.eps or fhi < lim.iso - lim.eps:
                 continue
             # minimal faces: the leaves' faces on the far side where it is finer
@@ -495,14 +479,13 @@ def _leaf_segments(tree, scratch, work, lim, ci, lev, cell, roots, segs):
                 ll, u, vv = qstack[top, 0], qstack[top, 1], qstack[top, 2]
                 wl = w << (ll - lev)
                 na = wl if s == 1 else wl - 1
-                if ll == D and ll == lev:
-                    st = -1  # a finest leaf: the far side is no finer (and no lookup)
-                elif a == 0:
-                    st = _state(keys, leaf, coff, fkeys, D, ll, na, u, vv)
-                elif a == 1:
-                    st = _state(keys, leaf, coff, fkeys, D, ll, vv, na, u)
-                else:
-                    st = _state(keys, leaf, coff, fkeys, D, ll, u, vv, na)
+                # the cell across (a finest leaf: the far side is no finer, and no lookup)
+                ix, iy, iz = (na, u, vv) if a == 0 else ((vv, na, u) if a == 1 else (u, vv, na))
+                st = (
+                    -1
+                    if ll == D and ll == lev
+                    else _state(keys, leaf, coff, fkeys, D, ll, ix, iy, iz)
+                )
                 if st <= -2:
                     for o in range(4):
                         qstack[top, 0] = ll + 1
@@ -640,38 +623,21 @@ def _emit_loop(out, counts, loop, n, tr):
 
 
 @njit(cache=True, nogil=True)  # chunks of cells run in threads of their own (.extract)
-def leaf_polygons(
-    keys,
-    leaf,
-    nodes,
-    g,
-    coff,
-    goff,
-    fkeys,
-    fnodes,
-    fg,
-    D,
-    iso,
-    eps,
-    margin,
-    clamp,
-    xlo,
-    xhi,
-    c0,
-    c1,
-):
+def leaf_polygons(tree, surface, xlo, xhi, c0, c1):
     """Iso-surface triangles of the leaves numbered ``c0`` to ``c1 - 1`` at the leaf's own size.
 
     The leaves are those cells in [``c0``, ``c1``) (the levels' numbering below) whose lower x
     (finest-lattice units) is in [``xlo``, ``xhi``): a slab's part of the mesh. A chunk's
     vertices are its own; :func:`weld_chunks` joins the chunks' meshes.
 
-    ``keys``, ``leaf``, ``nodes``, ``g``, ``coff``, ``goff``: the levels' sorted cell keys, leaf
-    flags, the cells' corner nodes and chi at the nodes, concatenated (see above). Each leaf whose
-    corner range reaches ``iso`` (within ``eps``) gathers the iso-segments of the minimal faces
-    covering its boundary (:func:`_leaf_segments`), chains them into loops (:func:`_chain_loop`)
-    and triangulates each loop (:func:`_emit_loop`). Points on the cube's faces count as outside
-    (chi clamped to ``iso - margin``).
+    ``tree`` is ``(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D)``: the levels'
+    sorted cell keys, leaf flags, the cells' corner nodes and chi at the nodes, concatenated, and
+    the finest level D's as they are (see above). ``surface`` is ``(iso, eps, margin, clamp)``.
+    Each leaf whose corner range reaches ``iso`` (within ``eps``) gathers the iso-segments of
+    the minimal faces covering its boundary (:func:`_leaf_segments`), chains them into loops
+    and triangulates each loop (:func:`_emit_loops`). Points on the cube's faces count as
+    outside (chi clamped to ``iso - margin``); a root is kept ``clamp`` of its edge away from
+    the edge's ends.
 
     Returns ``tri`` (t, 3) int64 vertex indices, ``vpos`` (v, 3) the vertices (finest-lattice
     units): one per minimal edge crossing the level set, shared by every leaf around it (welded
@@ -679,10 +645,57 @@ def leaf_polygons(
     key (-1 for a fan centre); and the number of segment chains that did not close into a loop
     (0 unless something is wrong).
     """
+    keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D = tree
+    iso, eps, margin, clamp = surface
     R = np.int64(1) << D
-    tree = TreeView(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, R, iso - margin)
+    view = TreeView(keys, leaf, nodes, g, coff, goff, fkeys, fnodes, fg, D, R, iso - margin)
     lim = Level(iso, eps, clamp)
-    ne = 4 * R + 8
+    scratch, work, roots, segs, loop, out, tr = _buffers(D)
+    counts = np.array([0, 0, 0, 12], np.int64)
+    none = np.empty(0, np.int64)
+    broken = 0
+    for lev in range(D + 1):
+        side = np.int64(1) << (D - lev)
+        end = min(c1, coff[lev + 1] if lev < D else coff[D] + len(fkeys))
+        for ci in range(max(c0, coff[lev]), end):
+            if lev < D:
+                if not leaf[ci]:
+                    continue
+                k = keys[ci]
+            else:
+                k = fkeys[ci - coff[D]]
+            cx = (k >> 42) & MASK21
+            if cx * side < xlo or cx * side >= xhi:
+                continue
+            cy = (k >> 21) & MASK21
+            cz = k & MASK21
+            lo, hi = _leaf_range(view, ci, lev, cx, cy, cz, side, work)
+            if lo > iso + eps or hi < iso - eps:
+                continue
+            work.lo3[0] = cx * side
+            work.lo3[1] = cy * side
+            work.lo3[2] = cz * side
+            for q in range(3):
+                work.hi3[q] = work.lo3[q] + side
+            ns, roots, segs = _leaf_segments(
+                view, scratch, work, lim, ci, lev, (cx, cy, cz), roots, segs
+            )
+            if ns == 0:
+                continue
+            loop, out, nb = _emit_loops(segs, ns, loop, work, R, out, counts, tr, none, none)
+            broken += nb
+    return out.tri[: counts[0]], out.vpos[: counts[1]], out.vkey[: counts[1]], broken
+
+
+@njit(cache=True)
+def _buffers(D):
+    """The buffers of :func:`leaf_polygons` at their first sizes, for a tree of depth ``D``.
+
+    ``(scratch, work, roots, segs, loop, out, tr)``: an :data:`EdgeScratch`, a :data:`FaceWork`,
+    :data:`Roots`, :data:`Segments`, a :data:`Loop`, the mesh :data:`Out` and the
+    :data:`Triangulation`'s tables.
+    """
+    ne = 4 * (np.int64(1) << D) + 8
     scratch = EdgeScratch(
         np.empty((2 * (D + 3), 4), np.int64),
         np.empty(3, np.int64),
@@ -703,13 +716,6 @@ def leaf_polygons(
     )
     roots = Roots(np.empty(64, np.int64), np.empty(64, np.bool_), np.empty((64, 3)))
     segs = Segments(np.empty((64, 2), np.int64), np.empty((64, 6)))
-    loop = Loop(
-        np.empty(64, np.int64),
-        np.empty((64, 3)),
-        np.empty(64, np.int64),
-        np.empty(64, np.int64),
-        np.zeros(64, np.bool_),
-    )
     out = Out(
         np.empty((1024, 3), np.int64),
         np.empty((1024, 3)),
@@ -717,71 +723,56 @@ def leaf_polygons(
         np.full(1 << 12, -1, np.int64),
         np.empty(1 << 12, np.int64),
     )
-    counts = np.array([0, 0, 0, 12], np.int64)
     tr = Triangulation(
         np.empty((MAX_DP, MAX_DP)),
         np.empty((MAX_DP, MAX_DP), np.int64),
         np.empty((MAX_DP, 2), np.int64),
         np.empty((MAX_DP, 3), np.int64),
     )
-    order = np.empty(0, np.int64)
-    sfrom = np.empty(0, np.int64)
+    return scratch, work, roots, segs, _loop_buffer(64), out, tr
+
+
+@njit(cache=True)
+def _loop_buffer(size):
+    """A :data:`Loop` of ``size`` roots, none visited."""
+    return Loop(
+        np.empty(size, np.int64),
+        np.empty((size, 3)),
+        np.empty(size, np.int64),
+        np.empty(size, np.int64),
+        np.zeros(size, np.bool_),
+    )
+
+
+@njit(cache=True, inline="always")
+def _emit_loops(segs, ns, loop, work, R, out, counts, tr, order, sfrom):
+    """Chain a leaf's ``ns`` segments into loops (:func:`_chain_loop`) and triangulate each.
+
+    (:func:`_emit_loop`.) Returns ``(loop, out, broken)``: the buffers, grown when needed, and
+    the number of chains that did not close into a loop. ``order``, ``sfrom``: empty arrays,
+    :func:`_chain_loop`'s (made here for more than 16 segments).
+    """
+    if loop.visited.shape[0] < ns:
+        loop = _loop_buffer(segs.key.shape[0])
+    if ns > 16:
+        order = np.argsort(segs.key[:ns, 0])
+        sfrom = segs.key[:ns, 0][order]
+    loop.visited[:ns] = False
     broken = 0
-    for lev in range(D + 1):
-        side = np.int64(1) << (D - lev)
-        end = min(c1, coff[lev + 1] if lev < D else coff[D] + len(fkeys))
-        for ci in range(max(c0, coff[lev]), end):
-            if lev < D:
-                if not leaf[ci]:
-                    continue
-                k = keys[ci]
-            else:
-                k = fkeys[ci - coff[D]]
-            cx = (k >> 42) & MASK21
-            if cx * side < xlo or cx * side >= xhi:
-                continue
-            cy = (k >> 21) & MASK21
-            cz = k & MASK21
-            lo, hi = _leaf_range(tree, ci, lev, cx, cy, cz, side, work)
-            if lo > iso + eps or hi < iso - eps:
-                continue
-            work.lo3[0] = cx * side
-            work.lo3[1] = cy * side
-            work.lo3[2] = cz * side
-            for q in range(3):
-                work.hi3[q] = work.lo3[q] + side
-            ns, roots, segs = _leaf_segments(
-                tree, scratch, work, lim, ci, lev, (cx, cy, cz), roots, segs
-            )
-            if ns == 0:
-                continue
-            if loop.visited.shape[0] < ns:
-                sz = segs.key.shape[0]
-                loop = Loop(
-                    np.empty(sz, np.int64),
-                    np.empty((sz, 3)),
-                    np.empty(sz, np.int64),
-                    np.empty(sz, np.int64),
-                    np.zeros(sz, np.bool_),
-                )
-            if ns > 16:
-                order = np.argsort(segs.key[:ns, 0])
-                sfrom = segs.key[:ns, 0][order]
-            loop.visited[:ns] = False
-            for i0 in range(ns):
-                if loop.visited[i0]:
-                    continue
-                n, ok = _chain_loop(segs, ns, i0, order, sfrom, loop, work, R)
-                if ok and n == 2:
-                    # two roots on one edge of the leaf joined on both its faces there (chi
-                    # clamped at the cube's faces is not linear along such an edge): a loop of
-                    # no area, left out, which glues the leaves across those faces directly
-                    continue
-                if not ok or n < 3:
-                    broken += 1
-                    continue
-                out = _emit_loop(out, counts, loop, n, tr)
-    return out.tri[: counts[0]], out.vpos[: counts[1]], out.vkey[: counts[1]], broken
+    for i0 in range(ns):
+        if loop.visited[i0]:
+            continue
+        n, ok = _chain_loop(segs, ns, i0, order, sfrom, loop, work, R)
+        if ok and n == 2:
+            # two roots on one edge of the leaf joined on both its faces there (chi clamped at
+            # the cube's faces is not linear along such an edge): a loop of no area, left out,
+            # which glues the leaves across those faces directly
+            continue
+        if not ok or n < 3:
+            broken += 1
+            continue
+        out = _emit_loop(out, counts, loop, n, tr)
+    return loop, out, broken
 
 
 @njit(cache=True)

@@ -48,8 +48,8 @@ def refine_leaves(
     vals = np.empty(8)
     leaf_vals = np.empty(8)
     niso = -iso
-    cap = niso + margin  # the clamp, negated
-    res = np.int64(1) << depth
+    # the range tests: negated, the clamp (then) only raises values
+    limits = (niso - eps, niso + eps, niso + margin, np.int64(1) << depth)
     for c in range(cell_nodes.shape[0]):
         if not is_leaf[c]:
             continue
@@ -58,25 +58,8 @@ def refine_leaves(
             leaf_vals[q] = -g[j]
             leaf_vals[q + 4] = -g[j + 1]
         k = cell_keys[c]
-        lx = (k >> 42) & MASK21
-        ly = (k >> 21) & MASK21
-        lz = k & MASK21
-        # the clamp only raises values: the low end is the corners' raw minimum (a trilinear
-        # function's range is its corners'), the high end may be a clamped corner
-        lo = 1e300
-        hi = -1e300
-        for q in range(8):
-            v = leaf_vals[q]
-            lo = min(lo, v)
-            if _on_face(
-                (lx + (q & 1)) * side,
-                (ly + ((q >> 1) & 1)) * side,
-                (lz + ((q >> 2) & 1)) * side,
-                res,
-            ):
-                v = max(v, cap)
-            hi = max(hi, v)
-        if lo > niso + eps or hi < niso - eps:
+        org = (((k >> 42) & MASK21) * side, ((k >> 21) & MASK21) * side, (k & MASK21) * side)
+        if not _leaf_reaches(leaf_vals, org, side, limits):
             continue
         # sub-cells addressed in finest units relative to the leaf's lower corner
         stack_xyz[0, 0] = 0
@@ -86,54 +69,87 @@ def refine_leaves(
         top = 1
         while top > 0:
             top -= 1
-            sx = stack_xyz[top, 0]
-            sy = stack_xyz[top, 1]
-            sz = stack_xyz[top, 2]
+            sub = (stack_xyz[top, 0], stack_xyz[top, 1], stack_xyz[top, 2])
             sl = stack_lvl[top]
             size = side >> sl
-            lo = 1e300
-            hi = -1e300
-            for q in range(8):
-                fx = (sx + (q & 1) * size) / side
-                fy = (sy + ((q >> 1) & 1) * size) / side
-                fz = (sz + ((q >> 2) & 1) * size) / side
-                v = 0.0
-                for r in range(8):
-                    w = (
-                        (fx if r & 1 else 1.0 - fx)
-                        * (fy if (r >> 1) & 1 else 1.0 - fy)
-                        * (fz if (r >> 2) & 1 else 1.0 - fz)
-                    )
-                    v += w * leaf_vals[r]
-                lo = min(lo, v)
-                if _on_face(
-                    lx * side + sx + (q & 1) * size,
-                    ly * side + sy + ((q >> 1) & 1) * size,
-                    lz * side + sz + ((q >> 2) & 1) * size,
-                    res,
-                ):
-                    v = max(v, cap)
-                vals[q] = v
-                hi = max(hi, v)
-            if lo > niso + eps or hi < niso - eps:
+            if not _subcell_values(leaf_vals, org, sub, size, side, limits, vals):
                 continue
             if sl == steps:
                 if not count_only:
-                    out_xyz[m, 0] = lx * side + sx
-                    out_xyz[m, 1] = ly * side + sy
-                    out_xyz[m, 2] = lz * side + sz
+                    for a in range(3):
+                        out_xyz[m, a] = org[a] + sub[a]
                     for q in range(8):
                         out_val[m, q] = vals[q]
                 m += 1
                 continue
             half = size >> 1
             for o in range(8):
-                stack_xyz[top, 0] = sx + (o & 1) * half
-                stack_xyz[top, 1] = sy + ((o >> 1) & 1) * half
-                stack_xyz[top, 2] = sz + ((o >> 2) & 1) * half
+                stack_xyz[top, 0] = sub[0] + (o & 1) * half
+                stack_xyz[top, 1] = sub[1] + ((o >> 1) & 1) * half
+                stack_xyz[top, 2] = sub[2] + ((o >> 2) & 1) * half
                 stack_lvl[top] = sl + 1
                 top += 1
     return m
+
+
+@njit(cache=True, inline="always")
+def _leaf_reaches(leaf_vals, org, side, limits):
+    """Whether a leaf's (negated) corner range reaches the iso-value (:func:`refine_leaves`).
+
+    ``leaf_vals`` (8,) its corner values, ``org`` its lower corner and ``side`` its size
+    (finest-lattice units); ``limits`` is ``(low, high, cap, res)``: the range must reach
+    [low, high], a corner on the cube's faces (``res`` cells per axis) is raised to ``cap``.
+    The clamp only raises values: the low end is the corners' raw minimum (a trilinear
+    function's range is its corners'), the high end may be a clamped corner.
+    """
+    low, high, cap, res = limits
+    lo = 1e300
+    hi = -1e300
+    for q in range(8):
+        v = leaf_vals[q]
+        lo = min(lo, v)
+        if _on_face(
+            org[0] + (q & 1) * side, org[1] + ((q >> 1) & 1) * side, org[2] + (q >> 2) * side, res
+        ):
+            v = max(v, cap)
+        hi = max(hi, v)
+    return not (lo > high or hi < low)
+
+
+@njit(cache=True)
+def _subcell_values(leaf_vals, org, sub, size, side, limits, vals):
+    """A sub-cell's corner values into ``vals`` (8,); whether their range reaches the iso-value.
+
+    The sub-cell of ``size`` at ``sub`` from the lower corner ``org`` of its leaf of ``side``
+    (finest-lattice units), the leaf's trilinear function evaluated exactly, clamped on the
+    cube's faces (``limits`` as :func:`_leaf_reaches`').
+    """
+    low, high, cap, res = limits
+    lo = 1e300
+    hi = -1e300
+    for q in range(8):
+        fx = (sub[0] + (q & 1) * size) / side
+        fy = (sub[1] + ((q >> 1) & 1) * size) / side
+        fz = (sub[2] + ((q >> 2) & 1) * size) / side
+        v = 0.0
+        for r in range(8):
+            w = (
+                (fx if r & 1 else 1.0 - fx)
+                * (fy if (r >> 1) & 1 else 1.0 - fy)
+                * (fz if (r >> 2) & 1 else 1.0 - fz)
+            )
+            v += w * leaf_vals[r]
+        lo = min(lo, v)
+        if _on_face(
+            org[0] + sub[0] + (q & 1) * size,
+            org[1] + sub[1] + ((q >> 1) & 1) * size,
+            org[2] + sub[2] + ((q >> 2) & 1) * size,
+            res,
+        ):
+            v = max(v, cap)
+        vals[q] = v
+        hi = max(hi, v)
+    return not (lo > high or hi < low)
 
 
 @njit(cache=True)

@@ -259,19 +259,7 @@ def _residual_update(x, r, p, q, a, ncell, stiff, inv_stiff, sd_nodes, sd_vals, 
 
 @njit(cache=True, nogil=True)  # the progress display keeps drawing while it runs
 def level_pcg(
-    cell_nodes,
-    ke,
-    cell_screen,
-    scell,
-    sloc,
-    sw,
-    rhs,
-    ncell,
-    sd_nodes,
-    sd_vals,
-    unknown,
-    tol,
-    max_iter,
+    cell_nodes, ke, cell_screen, samples, rhs, ncell, sd_nodes, sd_vals, unknown, tol, max_iter
 ):
     """Jacobi-preconditioned conjugate gradients on the unknown nodes (others stay 0).
 
@@ -279,8 +267,10 @@ def level_pcg(
     count ``ncell`` (:func:`stiffness_diag_table`) plus the sparse screening diagonal
     (``sd_nodes`` sorted, ``sd_vals``), inverted in each pass; ``rhs`` is overwritten by the
     residual. At the finest level every (n,) vector is tens of MB, so the solver keeps only
-    x, p, q besides. Returns (x, iterations, relative residual).
+    x, p, q besides. ``samples`` is the screening's ``(scell, sloc, sw)`` and ``cell_screen``
+    its per-cell part (:func:`level_matvec`). Returns (x, iterations, relative residual).
     """
+    scell, sloc, sw = samples
     n = len(rhs)
     stiff = stiffness_diag_table(ke)
     inv_stiff = np.zeros(9)

@@ -271,10 +271,11 @@ class _Grid:
         order = np.argsort(key)
         key = key[order]
         groups = np.flatnonzero(np.r_[True, key[1:] != key[:-1], True]).astype(np.int64)
-        grid_knn(
+        grid = (
             self.spts, self.sidx, self.starts, self.tk, self.tv, self.bits, self.lo, self.h,
-            self.dims, self.slack, verts, qcell, order, groups, k, GRID_SHELLS, dist, idx, far,
+            self.dims, self.slack,
         )  # fmt: skip
+        grid_knn(grid, (verts, qcell, order, groups), k, GRID_SHELLS, (dist, idx, far))
         if far.any():
             if self._tree is None:
                 from scipy.spatial import cKDTree

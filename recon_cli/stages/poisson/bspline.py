@@ -512,9 +512,7 @@ class NormalRHS:
                 f.s,
                 fv,
                 fd,
-                p.q_keys,
-                p.nb,
-                carry,
+                (p.q_keys, p.nb, carry),
                 *(own if own is not None else (_NO_ROWS, _NO_FIELD)),
                 b,
             )
@@ -721,25 +719,11 @@ def solve_level(
     release_free_heap()
     # made after the prolonged field is gone: 64 doubles a parent, the largest of the solve's arrays
     inv = _sibling_block_inverses(f, cmap, m1, k1, scell, sloc, sw)
+    samples = (scell, sloc, sw)
     x, it, rel = BO.level_pcg(
-        f.q_keys,
-        f.nb,
-        f.inp,
-        cmap,
-        m1,
-        k1,
-        h,
-        n,
-        f.s,
-        scell,
-        sloc,
-        sw,
-        rhs,
-        inv,
-        tolerance,
-        max_iter,
+        f.q_keys, f.nb, f.inp, cmap, (m1, k1, h), n, f.s, samples, rhs, inv, tolerance, max_iter
     )
-    del rhs, inv, scell, sloc, sw, cmap
+    del rhs, inv, scell, sloc, sw, samples, cmap
     # the level's chi: the coarser field prolonged again (cheaper than keeping it on all of E
     # through the conjugate gradients) plus the correction
     f.coef = coef
@@ -774,7 +758,7 @@ def _screening_samples(
     have = scell >= 0
     scell, sloc, sw = scell[have], sloc[have], mw[have]
     del mp, mw, have
-    BO.screening_rhs(f.q_keys, f.nb, 1 << f.depth, f.s, scell, sloc, sw, TARGET, rhs)
+    BO.screening_rhs(f.q_keys, f.nb, 1 << f.depth, f.s, (scell, sloc, sw), TARGET, rhs)
     return scell, sloc, sw
 
 
@@ -806,7 +790,7 @@ def _sibling_block_inverses(
     blocks = flat.reshape(u, 8, 8)
     BO.stiffness_blocks(f.q_keys, f.inp, cmap, m1, k1, 1.0 / n, blocks)
     if len(sw):
-        BO.screening_blocks(f.q_keys, f.nb, cmap, n, f.s, scell, sloc, sw, blocks)
+        BO.screening_blocks(f.q_keys, f.nb, cmap, n, f.s, (scell, sloc, sw), blocks)
     singular = BO.factor_blocks(blocks)
     if singular:
         log.debug(
@@ -837,22 +821,9 @@ def _subtract_coarse(
     n = 1 << f.depth
     G = B.prolong(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s)
     AG = np.empty(len(rhs))
+    xmap = np.arange(len(f.q_keys))
     BO.level_matvec(
-        f.q_keys,
-        f.nb,
-        f.inp,
-        np.arange(len(f.q_keys)),
-        cmap,
-        m1,
-        k1,
-        1.0 / n,
-        n,
-        f.s,
-        scell,
-        sloc,
-        sw,
-        G,
-        AG,
+        f.q_keys, f.nb, f.inp, xmap, cmap, (m1, k1, 1.0 / n), n, f.s, (scell, sloc, sw), G, AG
     )
     rhs -= AG
 

@@ -217,25 +217,11 @@ def extract_leaves(
         nodes[coff[d] : coff[d + 1]] = lev.cell_nodes
         g[goff[d] : goff[d + 1]] = gvals.pop()
         del lev
-    args = (
-        keys,
-        leaf,
-        nodes,
-        g,
-        coff,
-        goff,
-        fine.cell_keys,
-        fine.cell_nodes,
-        fg,
-        depth,
-        iso,
-        1e-9,
-        FACE_MARGIN,
-        ROOT_CLAMP,
-        *((0, (1 << depth) + 1) if x_range is None else x_range),
-    )
+    tree = (keys, leaf, nodes, g, coff, goff, fine.cell_keys, fine.cell_nodes, fg, depth)
+    surface = (iso, 1e-9, FACE_MARGIN, ROOT_CLAMP)
+    args = (tree, surface, *((0, (1 << depth) + 1) if x_range is None else x_range))
     tri, vpos, broken = _leaf_polygons(args, int(coff[-1]) + len(fine.cell_keys))
-    del args, keys, leaf, nodes, g, fine, fg
+    del args, tree, keys, leaf, nodes, g, fine, fg
     if broken:
         raise StageFailed(
             f"poisson extraction: {broken} iso-segment chains did not close (please report "

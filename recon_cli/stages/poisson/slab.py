@@ -457,29 +457,7 @@ def items(slab: Slab, tree_depth: int, alpha: float, fallback: float | None) -> 
     slab.screen_w = sp.screening(SCREEN_CLEAN, SCREEN_NOISY)
     if slab.sample_ok is not None:  # samples outside the envelope do not screen
         slab.screen_w = slab.screen_w * slab.sample_ok
-    # the splat items of the usable samples (the own ones first), as make_splats makes them
-    splat = np.clip(np.nan_to_num(slab.splat), 0.0, job.depth)
-    s_lo = np.floor(splat).astype(np.int64)
-    s_frac = splat - s_lo
-    s_frac[s_lo == job.depth] = 0.0
-    normal_w = -slab.area[:, None] * smp.normal
-    parts = []
-    for sel in (slab.own_s, slab.use_s & ~slab.own_s):
-        if sel.any():
-            parts.append(
-                merge_splats(
-                    smp.pos[sel], normal_w[sel], smp.count[sel], s_lo[sel], s_frac[sel], False
-                )
-            )
-        else:
-            parts.append((np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)))
-    n_own = len(parts[0][0])
-    pos = np.concatenate([p[0] for p in parts])
-    vec = np.concatenate([p[1] for p in parts])
-    lvl = np.concatenate([p[2] for p in parts])
-    del parts, normal_w
-    own = np.zeros(len(pos), bool)
-    own[:n_own] = True
+    pos, vec, lvl, own = _splat_items(slab)
     coarse = lvl <= dc
     fine = ~coarse
     msg: dict[str, Any] = {}
@@ -525,6 +503,37 @@ def items(slab: Slab, tree_depth: int, alpha: float, fallback: float | None) -> 
     slab.splat = slab.area = slab.use_s = None
     release_free_heap()
     return msg
+
+
+def _splat_items(slab: Slab) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The splat items of the slab's usable samples, its own first, as make_splats makes them.
+
+    Returns their positions (i, 3), normal vectors (i, 3), levels (i,) and which are the
+    slab's own (i,).
+    """
+    job, smp = slab.job, slab.smp
+    splat = np.clip(np.nan_to_num(slab.splat), 0.0, job.depth)
+    s_lo = np.floor(splat).astype(np.int64)
+    s_frac = splat - s_lo
+    s_frac[s_lo == job.depth] = 0.0
+    normal_w = -slab.area[:, None] * smp.normal
+    parts = []
+    for sel in (slab.own_s, slab.use_s & ~slab.own_s):
+        if sel.any():
+            parts.append(
+                merge_splats(
+                    smp.pos[sel], normal_w[sel], smp.count[sel], s_lo[sel], s_frac[sel], False
+                )
+            )
+        else:
+            parts.append((np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)))
+    n_own = len(parts[0][0])
+    pos = np.concatenate([p[0] for p in parts])
+    vec = np.concatenate([p[1] for p in parts])
+    lvl = np.concatenate([p[2] for p in parts])
+    own = np.zeros(len(pos), bool)
+    own[:n_own] = True
+    return pos, vec, lvl, own
 
 
 def _with_tree_items(slab: Slab, pos: np.ndarray, lvl: np.ndarray, own: np.ndarray) -> tuple:

@@ -77,12 +77,7 @@ def reconstruct(
     basis, clock = basis_for(opts.degree), Timings()
     unit_nrm = nrm if (props or colors is not None) else None
     need_density = opts.density or (not isinstance(opts.trim, str) and opts.trim > 0)
-    setup = prepare(
-        pts, nrm, weight, envelope, basis, clock, progress,
-        depth=opts.depth, scale=opts.scale, boundary=opts.boundary, full_depth=opts.full_depth,
-        samples_per_node=opts.samples_per_node, point_weight=opts.point_weight,
-        density=need_density,
-    )  # fmt: skip
+    setup = prepare(pts, nrm, weight, envelope, basis, clock, progress, opts, density=need_density)
     del nrm  # memory: the normals are in the samples now
     sol, mesh, dropped, pulled, field_grid = solve_and_extract(
         setup, basis, opts, pts, clock, progress
@@ -107,16 +102,13 @@ def reconstruct(
         mesh,
         sol,
         clock.total(),
-        depth=opts.depth,
-        tree_depth=setup.tree_depth - (setup.depth - opts.depth),
-        samples=len(setup.smp.count),
+        setup,
+        opts.depth,
         ignored=int((~keep).sum()),
-        finest_cell=setup.size / res,
-        noise=setup.noise,
         removed=(*dropped, trimmed_faces, trimmed_area),
         fallback=fallback,
         attributes=sorted(props) + (["colors"] if colors is not None else []),
-        envelope=(setup.outside_points, pulled) if setup.env is not None else None,
+        pulled=pulled,
     )
     if field_grid is not None:
         rep["grid_shape"] = list(field_grid.shape)
@@ -211,36 +203,32 @@ def prepare(
     basis: Any,
     clock: Any,
     progress: Any,
+    opts: Options,
     *,
-    depth: int,
-    scale: float,
-    boundary: str,
-    full_depth: int,
-    samples_per_node: float,
-    point_weight: float,
     density: bool,
 ) -> Setup:
     """The unit cube, the samples, their splats and noise, the envelope and the tree.
 
     Points are merged per finest cell, as PoissonRecon does; the tree goes as deep as the splats,
-    no deeper. ``density``: the splats keep what the vertices' density needs.
+    no deeper. Of ``opts``, the depth, scale, boundary, full depth, samples per node and point
+    weight; ``density``: the splats keep what the vertices' density needs.
     """
     from recon_cli.stages.poisson.splat import make_splats, merge_samples
 
     with clock.phase("samples"):
-        origin, size, depth, domain = solve_cube(pts, scale, boundary, depth)
+        origin, size, depth, domain = solve_cube(pts, opts.scale, opts.boundary, opts.depth)
         if envelope is not None and domain is None:
             origin, size, depth = envelope_cube(envelope, origin, size, depth)
-        full_depth = min(full_depth, depth)
+        full_depth = min(opts.full_depth, depth)
         smp = merge_samples((pts - origin) / size, nrm, depth, weight)
     with clock.phase("density"):  # kernel density -> area per point and splat level
         splats = make_splats(
-            smp, depth, samples_per_node, point_weight, density, merge=basis.merge_splats
+            smp, depth, opts.samples_per_node, opts.point_weight, density, merge=basis.merge_splats
         )
         tree_depth = basis.tree_depth(splats.tree_depth, domain is not None)
         full_depth = min(full_depth, tree_depth)
     with clock.phase("noise"):  # noisy neighbourhoods are screened less (Splats.screening)
-        noise = screening_noise(pts, origin, size, smp, splats, tree_depth, point_weight)
+        noise = screening_noise(pts, origin, size, smp, splats, tree_depth, opts.point_weight)
     setup = Setup(origin, size, depth, tree_depth, full_depth, domain, smp, splats, [], noise)
     item_pos, item_level = splats.pos, splats.level
     if envelope is not None:  # chi clipped by it after the solve; the tree refined along it
@@ -252,7 +240,9 @@ def prepare(
     with clock.phase("tree"):
         assert item_pos is not None and item_level is not None  # the items, before the solve
         with task(progress, "poisson: tree"):
-            setup.levels = basis.build_tree(item_pos, item_level, tree_depth, full_depth, boundary)
+            setup.levels = basis.build_tree(
+                item_pos, item_level, tree_depth, full_depth, opts.boundary
+            )
         # memory: the splat items made the fields and the tree, the samples' normals and keys
         # the splats
         del item_pos, item_level
@@ -272,24 +262,24 @@ def report(
     mesh: TriangleMesh,
     sol: Any,
     timings: dict,
-    *,
+    setup: Setup,
     depth: int,
-    tree_depth: int,
-    samples: int,
+    *,
     ignored: int,
-    finest_cell: float,
-    noise: Any,
     removed: tuple,
     fallback: int,
     attributes: list[str],
-    envelope: tuple[int, int] | None,
+    pulled: int,
 ) -> dict[str, Any]:
     """The report of :func:`screened_poisson` (its keys are listed in its Returns section).
 
-    ``removed`` is (bubbles, islands, folds, trimmed faces, trimmed area); ``envelope`` is
-    (points outside, vertices pulled), or None without one.
+    ``setup`` gives the tree's depth (counted from the asked ``depth``), the samples, the finest
+    cell, the noise and the points outside the envelope; ``removed`` is (bubbles, islands, folds,
+    trimmed faces, trimmed area); ``pulled`` the vertices pulled inside the envelope.
     """
     bubbles, islands, folds, trimmed, trimmed_area = removed
+    tree_depth = setup.tree_depth - (setup.depth - depth)
+    envelope = (setup.outside_points, pulled) if setup.env is not None else None
     return {
         "vertices": len(mesh.vertices),
         "faces": len(mesh.faces),
@@ -303,14 +293,14 @@ def report(
         "folds_removed": folds,
         "trimmed_faces": int(trimmed),
         "trimmed_area": trimmed_area,
-        "noise": noise,
+        "noise": setup.noise,
         "attributes": attributes,
         "attribute_fallback_vertices": fallback,
         "envelope_outside_points": None if envelope is None else envelope[0],
         "envelope_pulled_vertices": None if envelope is None else envelope[1],
-        "samples": int(samples),
+        "samples": int(len(setup.smp.count)),
         "ignored_points": ignored,
-        "finest_cell": finest_cell,
+        "finest_cell": setup.size / (1 << setup.tree_depth),
         "levels": sol.per_level,
         "timings": timings,
     }
