@@ -526,6 +526,14 @@ REPORT_KEYS = (
     "attributes",
     "attribute_fallback_vertices",
 )
+# and with --envelope
+ENVELOPE_KEYS = ("envelope_outside_points", "envelope_pulled_vertices")
+
+
+def command_report(rep: dict, envelope: bool) -> dict:
+    """The entries of a run's report ``rep`` the command reports (with ``envelope``: its too)."""
+    return {k: rep[k] for k in REPORT_KEYS + (ENVELOPE_KEYS if envelope else ())}
+
 
 # the stage's runner (CLI, pipelines) registers itself on SPEC; it needs SPEC defined first
 from recon_cli.stages.poisson.stage import run_stage  # noqa: E402, F401

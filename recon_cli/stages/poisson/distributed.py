@@ -757,8 +757,7 @@ def distributed_poisson(
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     origin, size, perm = frame_of(lo, hi, scale)
     if env is not None:
-        origin, size, depth = E.grown_cube(env, origin, size, depth, params)
-        env = env.turned(perm)
+        origin, size, depth, env = E.grown_cube(env, origin, size, depth, perm, params)
     job = make_job(origin, size, perm, depth, params)
     pts = pts[:, list(perm)]
     nrm = nrm[:, list(perm)]

@@ -85,9 +85,7 @@ class Envelope:
     """
 
     def __init__(self, mesh, name: str = "the envelope"):
-        from recon_cli.mesh.distance import build_bvh
         from recon_cli.mesh.topology import Connectivity
-        from recon_cli.mesh.winding import WindingTree
 
         if not isinstance(mesh, TriangleMesh) or not len(mesh.faces):
             what = "a point cloud" if hasattr(mesh, "points") else type(mesh).__name__
@@ -110,6 +108,13 @@ class Envelope:
         if flip.any():  # windings made to agree (the inside test needs it), either way out
             f = f.copy()
             f[flip] = f[flip][:, ::-1]
+        self._index(v, f)
+
+    def _index(self, v: np.ndarray, f: np.ndarray) -> None:
+        """Keep the checked mesh (``v`` (n, 3), ``f`` (m, 3)) and its search trees."""
+        from recon_cli.mesh.distance import build_bvh
+        from recon_cli.mesh.winding import WindingTree
+
         self.vertices, self.faces = v, f
         self.bvh = build_bvh(v, f)
         self.winding = WindingTree(v, f, bvh=self.bvh)
@@ -121,14 +126,8 @@ class Envelope:
         (:func:`.distributed.frame_of`); the mesh is the checked one, its windings kept (a
         cyclic turn keeps a mesh's orientation).
         """
-        from recon_cli.mesh.distance import build_bvh
-        from recon_cli.mesh.winding import WindingTree
-
         out = Envelope.__new__(Envelope)
-        out.vertices = np.ascontiguousarray(self.vertices[:, list(perm)])
-        out.faces = self.faces
-        out.bvh = build_bvh(out.vertices, out.faces)
-        out.winding = WindingTree(out.vertices, out.faces, bvh=out.bvh)
+        out._index(np.ascontiguousarray(self.vertices[:, list(perm)]), self.faces)
         return out
 
     def inside(self, pts: np.ndarray) -> np.ndarray:
@@ -201,6 +200,16 @@ def covering_cube(
             break
         origin, size, depth = origin - 0.5 * size, 2.0 * size, depth + 1
     return origin, size, depth
+
+
+def carve_level(tree_depth: int) -> int:
+    """The carving grid's level for a tree of ``tree_depth`` levels."""
+    return max(1, min(CARVE_MAX_LEVEL, tree_depth - CARVE_OFFSET))
+
+
+def refine_level(tree_depth: int, full_depth: int) -> int:
+    """The level the tree is refined to along the envelope and the carving's sheet."""
+    return min(tree_depth, max(full_depth, tree_depth - REFINE_OFFSET))
 
 
 def carving_masks(pos: np.ndarray, normal: np.ndarray, level: int) -> tuple[np.ndarray, np.ndarray]:

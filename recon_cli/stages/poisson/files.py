@@ -193,8 +193,9 @@ def reconstruct_files(
         raise InputError("all points coincide: there is no surface to reconstruct")
     origin, size, perm = D.frame_of(lo, hi, scale)
     if envelope is not None:
-        origin, size, depth = slab_envelope.grown_cube(envelope, origin, size, depth, params)
-        envelope = envelope.turned(perm)
+        origin, size, depth, envelope = slab_envelope.grown_cube(
+            envelope, origin, size, depth, perm, params
+        )
     job = D.make_job(origin, size, perm, depth, params)
     nsub = 1 << min(S.SUB_DEPTH, job.depth)
     carry = bool(names) or color_type is not None
@@ -398,7 +399,7 @@ def run_from_files(
     """
     from recon_cli.execution import current
     from recon_cli.io.load import save
-    from recon_cli.stages.poisson import REPORT_KEYS, SPEC
+    from recon_cli.stages.poisson import SPEC, command_report
 
     ex = current()
     v = SPEC.check(params, complete=True)
@@ -460,10 +461,7 @@ def run_from_files(
         save(res.mesh, output, ascii=ascii, **save_kw)
     t2 = time.perf_counter()
     rep = res.report
-    report = {k: rep[k] for k in REPORT_KEYS}
-    if env is not None:
-        for key in ("envelope_outside_points", "envelope_pulled_vertices"):
-            report[key] = rep[key]
+    report = command_report(rep, env is not None)
     if grid_path is not None:
         from recon_cli.stages.poisson.field import write_solved_grid
 

@@ -47,29 +47,21 @@ class EnvelopeRun:
 
 
 def grown_cube(
-    envelope: Any, origin: np.ndarray, size: float, depth: int, params: dict
-) -> tuple[np.ndarray, float, int]:
+    envelope: Any, origin: np.ndarray, size: float, depth: int, perm: tuple, params: dict
+) -> tuple[np.ndarray, float, int, Any]:
     """The solve's cube (input axes) grown to hold ``envelope``, as one process grows it.
 
     Not with the free boundary (whose cube is the points' one doubled, as one process does).
     ``params["grown"]`` gets the levels added (the report's depths are the asked ones).
-    Returns (origin, size, depth).
+    Returns (origin, size, depth, the envelope turned to the job's axes ``perm``).
     """
     from recon_cli.stages.poisson.steps import envelope_cube
 
-    if params["boundary"] == "free":
-        params["grown"] = 0
-        return origin, size, depth
-    origin, size, deeper = envelope_cube(envelope, origin, size, depth)
+    deeper = depth
+    if params["boundary"] != "free":
+        origin, size, deeper = envelope_cube(envelope, origin, size, depth)
     params["grown"] = deeper - depth
-    return origin, size, deeper
-
-
-def carve_level(tree_depth: int) -> int:
-    """The carving grid's level for a tree of ``tree_depth`` (as :func:`.steps.envelope_setup`)."""
-    from recon_cli.stages.poisson.envelope import CARVE_MAX_LEVEL, CARVE_OFFSET
-
-    return max(1, min(CARVE_MAX_LEVEL, tree_depth - CARVE_OFFSET))
+    return origin, size, deeper, envelope.turned(perm)
 
 
 @timed
@@ -114,7 +106,7 @@ def envelope_round(runner: Any, job: Job, env: Any, tree_depth: int, usable: lis
     InputError
         Every point lies outside the envelope.
     """
-    from recon_cli.stages.poisson.envelope import REFINE_OFFSET, Carving
+    from recon_cli.stages.poisson.envelope import Carving, carve_level, refine_level
 
     level = carve_level(tree_depth)
     msgs = runner.run("envelope", envelope_samples, lambda k: (env, level))
@@ -128,7 +120,7 @@ def envelope_round(runner: Any, job: Job, env: Any, tree_depth: int, usable: lis
         held |= np.unpackbits(m.pop("held"), count=cells).astype(bool)
     carving = Carving.of_masks(free, held, level)
     del free, held
-    lv = min(tree_depth, max(min(job.full_depth, tree_depth), tree_depth - REFINE_OFFSET))
+    lv = refine_level(tree_depth, job.full_depth)
     extra = np.concatenate(
         [env.surface_items(np.asarray(job.origin), job.size, lv), carving.boundary_items()]
     )

@@ -17,9 +17,9 @@ from recon_cli.errors import InputError, ParameterError
 from recon_cli.execution import current
 from recon_cli.geometry import PointCloud, TriangleMesh, as_point_cloud, local_origin
 from recon_cli.stages.poisson import (
-    REPORT_KEYS,
     SPEC,
     check_inputs,
+    command_report,
     screened_poisson,
 )
 
@@ -272,11 +272,8 @@ def _run_distributed(
             progress=progress,
         )
     rep = res.report
-    report = {k: rep[k] for k in REPORT_KEYS}
+    report = command_report(rep, env is not None)
     report["distributed"] = {"cluster": info, **rep["distributed"]}
-    if env is not None:
-        report["envelope_outside_points"] = rep["envelope_outside_points"]
-        report["envelope_pulled_vertices"] = rep["envelope_pulled_vertices"]
     if grid_path is not None:
         report.update(_write_grid(res, grid_path, solve, history, cloud.point_dtype))
     return res.mesh, report
@@ -307,10 +304,7 @@ def _run_native(
         progress=progress,
     )
     rep = res.report
-    report = {k: rep[k] for k in REPORT_KEYS}
-    if env is not None:
-        report["envelope_outside_points"] = rep["envelope_outside_points"]
-        report["envelope_pulled_vertices"] = rep["envelope_pulled_vertices"]
+    report = command_report(rep, env is not None)
     if grid_path is not None:
         report.update(_write_grid(res, grid_path, solve, history, cloud.point_dtype))
     return res.mesh, report

@@ -413,11 +413,10 @@ def envelope_setup(
     import functools
 
     from recon_cli.stages.poisson.envelope import (
-        CARVE_MAX_LEVEL,
-        CARVE_OFFSET,
-        REFINE_OFFSET,
         Carving,
         FieldClip,
+        carve_level,
+        refine_level,
     )
 
     env = envelope  # checked by _checked_envelope
@@ -425,10 +424,9 @@ def envelope_setup(
     sample_ok = env.inside(origin + size * smp.pos)
     if not sample_ok.any():
         raise InputError("every point lies outside the envelope")
-    carve_level = max(1, min(CARVE_MAX_LEVEL, tree_depth - CARVE_OFFSET))
-    carving = Carving(smp.pos[sample_ok], smp.normal[sample_ok], carve_level)
+    carving = Carving(smp.pos[sample_ok], smp.normal[sample_ok], carve_level(tree_depth))
     clip = functools.partial(FieldClip, env, carving, origin, size, size / (1 << tree_depth))
-    lv = min(tree_depth, max(full_depth, tree_depth - REFINE_OFFSET))
+    lv = refine_level(tree_depth, full_depth)
     # the tree refined along the envelope and along the carving's sheet
     extra = np.concatenate([env.surface_items(origin, size, lv), carving.boundary_items()])
     item_pos = np.concatenate([splats.pos, extra])
