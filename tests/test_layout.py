@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import ast
-import fnmatch
 from pathlib import Path
 
 from shared_data import ROOT
@@ -183,38 +182,23 @@ MAX_MODULE_LINES = 1000
 SIZE_RULES = {"C901", "PLR0912", "PLR0913", "PLR0915"}
 
 
-def _per_file_ignores() -> dict[str, list[str]]:
-    """The per-file ignores of pyproject.toml: pattern -> the rules it skips.
-
-    pyproject's ``[tool.ruff.lint.per-file-ignores]``: pattern -> the rules it skips.
-    """
+def _ruff_lint() -> dict:
+    """pyproject.toml's ``[tool.ruff.lint]`` table."""
     try:
         import tomllib
     except ImportError:  # Python 3.10
         import tomli as tomllib
     with open(ROOT / "pyproject.toml", "rb") as f:
-        return tomllib.load(f)["tool"]["ruff"]["lint"]["per-file-ignores"]
-
-
-def _size_exempt() -> list[str]:
-    """The patterns of pyproject's temporary block: files that ignore the size rules."""
-    return [pattern for pattern, rules in _per_file_ignores().items() if SIZE_RULES & set(rules)]
+        return tomllib.load(f)["tool"]["ruff"]["lint"]
 
 
 def _our_python_files() -> list[Path]:
-    exempt = _size_exempt()
     files = [
         p
         for top in ("recon_cli", "tests", "bench", "tools", "docs")
         for p in (ROOT / top).rglob("*.py")
     ]
-    out = []
-    for p in sorted(files):
-        rel = p.relative_to(ROOT).as_posix()
-        if "_build" in p.parts or any(fnmatch.fnmatch(rel, pat) for pat in exempt):
-            continue
-        out.append(p)
-    return out
+    return [p for p in sorted(files) if "_build" not in p.parts]
 
 
 def test_functions_and_modules_stay_short():
@@ -234,27 +218,10 @@ def test_functions_and_modules_stay_short():
     assert not long, "split along the algorithm's steps:\n" + "\n".join(long)
 
 
-# the one temporary exemption (issues 44/45): the Poisson modules not yet split
-TEMPORARY_EXEMPT = {
-    "recon_cli/stages/poisson/__init__.py",
-    "recon_cli/stages/poisson/distributed.py",
-    "recon_cli/stages/poisson/files.py",
-    "recon_cli/stages/poisson/stage.py",
-}
-
-
-def test_size_exemptions_are_the_temporary_block_only():
-    """The only exemptions from the size rules are the temporary block's."""
-    # the library, tests, benchmarks and tools meet the limits with no exemption but Poisson's
-    assert set(_size_exempt()) <= TEMPORARY_EXEMPT, _size_exempt()
-
-
-def test_per_file_ignores_are_docstring_rules_outside_the_library():
-    """Per-file ignores skip only docstring rules outside the library, and the temporary block."""
-    # no file of our own code skips a lint rule, but the docstring rules (D) in the tests,
-    # benchmarks and the documentation's configuration, and Poisson's temporary block
-    for pattern, rules in _per_file_ignores().items():
-        if pattern in TEMPORARY_EXEMPT:
-            continue
-        assert not pattern.startswith("recon_cli/"), pattern
-        assert set(rules) == {"D"}, (pattern, rules)
+def test_no_file_skips_a_lint_rule():
+    """Lint selects the size rules, and no per-file ignore lets a file of ours skip a rule."""
+    # the size and docstring rules hold for the library, the tests, the benchmarks, the
+    # tools and the documentation's configuration alike
+    lint = _ruff_lint()
+    assert SIZE_RULES <= set(lint["select"]), lint["select"]
+    assert lint.get("per-file-ignores", {}) == {}

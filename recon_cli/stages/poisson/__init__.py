@@ -61,7 +61,8 @@ Kazhdan, M., Bolitho, M. & Hoppe, H. (2006). Poisson surface reconstruction. SGP
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import inspect
+from dataclasses import dataclass, field, fields
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -290,35 +291,65 @@ _CG_TOLERANCE = Param(
 )
 
 
-def check_options(
-    depth, scale, point_weight, samples_per_node, degree, boundary, density, trim
-) -> tuple:
-    """Validate and convert the options shared by :func:`screened_poisson` and :func:`run_stage`."""
-    v = SPEC.check(
-        dict(
-            depth=depth,
-            scale=scale,
-            point_weight=point_weight,
-            samples_per_node=samples_per_node,
-            degree=degree,
-            boundary=boundary,
-            density=density,
-            trim=trim,
-        ),
-        complete=False,
-    )
-    if v["boundary"] == "free" and v["degree"] != 2:
-        raise ParameterError("--boundary free needs --degree 2")
-    return (
-        v["depth"],
-        v["scale"],
-        v["point_weight"],
-        v["samples_per_node"],
-        v["degree"],
-        v["boundary"],
-        v["density"],
-        v["trim"],
-    )
+@dataclass(frozen=True)
+class PoissonOptions:
+    """The algorithm's parameters of one reconstruction, checked and converted when made.
+
+    The fields are :func:`screened_poisson`'s keywords (see there); a run in slabs takes the
+    same (:func:`.distributed.distributed_poisson`, degree 2 only). A wrong value raises
+    :class:`~recon_cli.errors.ParameterError` naming the option.
+    """
+
+    depth: int = SPEC.param("depth").default
+    scale: float = SPEC.param("scale").default
+    point_weight: float = SPEC.param("point_weight").default
+    samples_per_node: float = SPEC.param("samples_per_node").default
+    degree: int = SPEC.param("degree").default
+    boundary: str = SPEC.param("boundary").default
+    density: bool = SPEC.param("density").default
+    trim: float | str = SPEC.param("trim").default
+    confidence: bool = SPEC.param("confidence").default
+    with_grid: bool = False
+    full_depth: int = _FULL_DEPTH.default
+    cg_tolerance: float = _CG_TOLERANCE.default
+
+    def __post_init__(self) -> None:
+        own = {f.name for f in fields(self)}
+        names = [p.name for p in SPEC.params if p.name in own]  # those the stage declares
+        checked = SPEC.check({k: getattr(self, k) for k in names}, complete=False)
+        checked["full_depth"] = _FULL_DEPTH.coerce(self.full_depth)
+        checked["cg_tolerance"] = _CG_TOLERANCE.coerce(self.cg_tolerance)
+        checked["with_grid"] = bool(self.with_grid)
+        for k, v in checked.items():
+            object.__setattr__(self, k, v)  # frozen: set once, here
+        if self.boundary == "free" and self.degree != 2:
+            raise ParameterError("--boundary free needs --degree 2")
+
+    @classmethod
+    def of(cls, caller: str, values: dict[str, Any]) -> PoissonOptions:
+        """The options named in ``values``, the rest their defaults; ``caller`` for errors.
+
+        An unknown name raises TypeError, as Python does for an unexpected keyword.
+        """
+        unknown = sorted(set(values) - {f.name for f in fields(cls)})
+        if unknown:
+            raise TypeError(f"{caller}() got an unexpected keyword argument {unknown[0]!r}")
+        return cls(**values)
+
+
+def takes_options(fn: Any) -> Any:
+    """Show ``fn``'s ``**options`` as :class:`PoissonOptions`' keywords in its signature.
+
+    ``help()``, the API reference and editors then list them with their defaults.
+    """
+    sig = inspect.signature(fn)
+    own = [p for p in sig.parameters.values() if p.kind is not inspect.Parameter.VAR_KEYWORD]
+    extra = [
+        inspect.Parameter(f.name, inspect.Parameter.KEYWORD_ONLY, default=f.default)
+        for f in fields(PoissonOptions)
+    ]
+    fn.__signature__ = sig.replace(parameters=own + extra)
+    return fn
 
 
 def check_inputs(
@@ -356,26 +387,16 @@ def check_inputs(
 
 
 # ---------------------------------------------------------------------------------------------
+@takes_options
 def screened_poisson(
     points: np.ndarray,
     normals: np.ndarray,
     *,
-    depth: int = SPEC.param("depth").default,
-    scale: float = SPEC.param("scale").default,
-    point_weight: float = SPEC.param("point_weight").default,
-    samples_per_node: float = SPEC.param("samples_per_node").default,
-    degree: int = SPEC.param("degree").default,
-    boundary: str = SPEC.param("boundary").default,
-    density: bool = SPEC.param("density").default,
-    trim: float = SPEC.param("trim").default,
-    confidence: bool = SPEC.param("confidence").default,
     colors: np.ndarray | None = None,
     properties: dict[str, np.ndarray] | None = None,
-    with_grid: bool = False,
     envelope: Any = None,
-    full_depth: int = _FULL_DEPTH.default,
-    cg_tolerance: float = _CG_TOLERANCE.default,
     progress: Any = None,
+    **options: Any,
 ) -> PoissonResult:
     """Screened Poisson reconstruction of an oriented point set.
 
@@ -455,27 +476,18 @@ def screened_poisson(
     -------
     PoissonResult
     """
-    depth, scale, point_weight, samples_per_node, degree, boundary, density, trim = check_options(
-        depth, scale, point_weight, samples_per_node, degree, boundary, density, trim
-    )
-    full_depth = _FULL_DEPTH.coerce(full_depth)
-    cg_tolerance = _CG_TOLERANCE.coerce(cg_tolerance)
-    confidence = SPEC.param("confidence").coerce(confidence)
+    opts = PoissonOptions.of("screened_poisson", options)
     if envelope is not None:
-        if degree != 2:
+        if opts.degree != 2:
             raise ParameterError("--envelope needs --degree 2")
         envelope = checked_envelope(envelope)
     lengths: list = []
     pts, nrm, keep = check_inputs(points, normals, lengths)
-    weight = lengths[0] / float(lengths[0].mean()) if confidence else None
+    weight = lengths[0] / float(lengths[0].mean()) if opts.confidence else None
     del lengths
     colors, props = kept_attributes(keep, colors, properties)
-    from recon_cli.stages.poisson.steps import Options, reconstruct
+    from recon_cli.stages.poisson.steps import reconstruct
 
-    opts = Options(
-        depth, scale, point_weight, samples_per_node, degree, boundary, density, trim,
-        full_depth, cg_tolerance, with_grid,
-    )  # fmt: skip
     return reconstruct(pts, nrm, weight, keep, colors, props, envelope, opts, progress)
 
 

@@ -35,6 +35,7 @@ from recon_cli.slabs import plan
 from recon_cli.slabs.plan import choose_seams, sub_slab
 from recon_cli.slabs.runners import Overall
 from recon_cli.slabs.spill import spill_folder
+from recon_cli.stages.poisson import PoissonOptions, checked_envelope, takes_options
 from recon_cli.stages.poisson import slab as S
 from recon_cli.stages.poisson import slab_envelope as E
 from recon_cli.stages.poisson import slab_surface as M
@@ -682,72 +683,46 @@ def _density_spec(runner, job: S.Job, tree_depth: int, tables: dict[int, tuple])
     return (ko, *tables[ko])
 
 
+@takes_options
 def distributed_poisson(
     points: np.ndarray,
     normals: np.ndarray,
     *,
     partitions: int | None = 2,
-    depth: int = 8,
-    scale: float = 1.1,
-    point_weight: float = 4.0,
-    samples_per_node: float = 1.5,
-    boundary: str = "neumann",
-    density: bool = False,
-    trim: float | str = 0.0,
-    confidence: bool = False,
     colors: np.ndarray | None = None,
     properties: dict[str, np.ndarray] | None = None,
-    with_grid: bool = False,
     envelope: Any = None,
-    full_depth: int = 5,
-    cg_tolerance: float = 1e-3,
     client: Any = None,
     seams: list[int] | None = None,
     temp_dir: str | None = None,
     budget: int | None = None,
     progress: Any = None,
+    **options: Any,
 ):
     """Screened Poisson reconstruction in ``partitions`` slabs, the cloud given in memory.
 
-    See the module docstring. On the Dask ``client``'s cluster, or else all in this process
-    (:class:`recon_cli.slabs.runners.LocalRunner`). ``partitions`` None: as many as the workers'
-    memory needs, or without a cluster this process's ``budget`` of bytes (:func:`slab_count`).
-    With more slabs than workers (than one, in this process), the slabs' states wait in a
-    temporary folder in ``temp_dir`` (default: the system's; the workers must share it) between
-    their steps. Returns a :class:`.PoissonResult` like :func:`.screened_poisson`'s
-    (``confidence``, ``colors``, ``properties``, ``with_grid``, ``envelope`` as there), whose
+    See the module docstring. ``options``: the algorithm's parameters, as
+    :func:`.screened_poisson`'s (:class:`.PoissonOptions`; degree 2 only). On the Dask
+    ``client``'s cluster, or else all in this process
+    (:class:`recon_cli.slabs.runners.LocalRunner`).
+    ``partitions`` None: as many as the workers' memory needs, or without a cluster this
+    process's ``budget`` of bytes (:func:`slab_count`). With more slabs than workers (than one,
+    in this process), the slabs' states wait in a temporary folder in ``temp_dir`` (default: the
+    system's; the workers must share it) between their steps. Returns a :class:`.PoissonResult`
+    like :func:`.screened_poisson`'s (``colors``, ``properties``, ``envelope`` as there), whose
     report has a ``distributed`` part (``partitions``: how many slabs and why).
     """
-    from recon_cli.stages.poisson import (
-        SPEC,
-        PoissonResult,
-        check_inputs,
-        check_options,
-        checked_envelope,
-        kept_attributes,
-    )
+    from recon_cli.stages.poisson import PoissonResult, check_inputs, kept_attributes
 
-    depth, scale, point_weight, samples_per_node, _, boundary, density, trim = check_options(
-        depth, scale, point_weight, samples_per_node, 2, boundary, density, trim
-    )
-    params: dict[str, Any] = dict(
-        samples_per_node=samples_per_node,
-        point_weight=point_weight,
-        boundary=boundary,
-        full_depth=min(int(full_depth), depth),
-        cg_tolerance=float(cg_tolerance),
-        density=density,
-        trim=trim,
-        grid=with_grid,
-    )
-    check_distributed(depth, params["full_depth"], 1 if partitions is None else partitions)
+    opts = PoissonOptions.of("distributed_poisson", options)
+    depth, params = slab_params(opts, partitions)
     env = None if envelope is None else checked_envelope(envelope)
     t0 = time.perf_counter()
     lengths: list = []
     pts, _, keep = check_inputs(points, normals, lengths)
     partitions, slab_choice = slab_count(partitions, len(pts), client, budget, depth)
     seam_params(params, depth, partitions)
-    if SPEC.param("confidence").coerce(confidence):
+    if opts.confidence:
         params["weight_mean"] = float(lengths[0].mean())
     del lengths
     # the slabs get the normals as given (a slab weighs each point by its normal's length, and
@@ -755,7 +730,7 @@ def distributed_poisson(
     nrm = np.ascontiguousarray(normals, dtype=np.float64)[keep]
     colors, props = kept_attributes(keep, colors, properties)
     lo, hi = pts.min(axis=0), pts.max(axis=0)
-    origin, size, perm = frame_of(lo, hi, scale)
+    origin, size, perm = frame_of(lo, hi, opts.scale)
     if env is not None:
         origin, size, depth, env = E.grown_cube(env, origin, size, depth, perm, params)
     job = make_job(origin, size, perm, depth, params)
@@ -768,7 +743,13 @@ def distributed_poisson(
     slabs = [S.slab_of(job, k, partitions, *plan[k]) for k in range(partitions)]
     carry = bool(props) or colors is not None
     weights = job_weights(
-        False, point_weight > 0, trim != 0, carry, False, with_grid, env is not None
+        False,
+        opts.point_weight > 0,
+        opts.trim != 0,
+        carry,
+        False,
+        opts.with_grid,
+        env is not None,
     )
 
     def load_args(k):
@@ -805,6 +786,28 @@ def distributed_poisson(
     rep["attributes"] = sorted(props) + (["colors"] if colors is not None else [])
     rep["timings"]["total"] = time.perf_counter() - t0
     return PoissonResult(mesh, rep, grid_in_input_axes(out, job, perm))
+
+
+def slab_params(opts: PoissonOptions, partitions: int | None) -> tuple[int, dict[str, Any]]:
+    """The solve's depth and the slabs' parameters of ``opts`` (a run in slabs: degree 2).
+
+    ``partitions`` is checked against the depth now when given; a default slab count is, once
+    the points are counted (:func:`seam_params`).
+    """
+    if opts.degree != 2:
+        raise ParameterError("a run in slabs uses degree 2: leave out --degree 1")
+    params: dict[str, Any] = {
+        "samples_per_node": opts.samples_per_node,
+        "point_weight": opts.point_weight,
+        "boundary": opts.boundary,
+        "full_depth": min(opts.full_depth, opts.depth),
+        "cg_tolerance": opts.cg_tolerance,
+        "density": opts.density,
+        "trim": opts.trim,
+        "grid": opts.with_grid,
+    }
+    check_distributed(opts.depth, params["full_depth"], 1 if partitions is None else partitions)
+    return opts.depth, params
 
 
 def make_runner(

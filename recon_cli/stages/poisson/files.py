@@ -12,7 +12,7 @@ import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -20,12 +20,15 @@ from recon_cli.errors import InputError, ParameterError, StageFailed
 from recon_cli.slabs.plan import sub_slab
 from recon_cli.slabs.runners import Overall, map_tasks
 from recon_cli.slabs.spill import spill_folder
+from recon_cli.stages.poisson import (
+    PoissonOptions,
+    PoissonResult,
+    slab_envelope,
+    stitch,
+    takes_options,
+)
 from recon_cli.stages.poisson import distributed as D
 from recon_cli.stages.poisson import slab as S
-from recon_cli.stages.poisson import slab_envelope, stitch
-
-if TYPE_CHECKING:
-    from recon_cli.stages.poisson import PoissonResult
 
 
 def _scan_chunk(chunk) -> dict:
@@ -129,53 +132,40 @@ class Streamed:
     grid: Any = None
 
 
+@takes_options
 def reconstruct_files(
     inputs,
     *,
     client: Any,
     partitions: int | None = None,
-    depth: int = 8,
-    scale: float = 1.1,
-    point_weight: float = 4.0,
-    samples_per_node: float = 1.5,
-    boundary: str = "neumann",
-    density: bool = False,
-    trim: float | str = 0.0,
-    confidence: bool = False,
     attributes: Any = "all",
-    with_grid: bool = False,
     envelope: Any = None,
-    full_depth: int = 5,
-    cg_tolerance: float = 1e-3,
     temp_dir: str | None = None,
     output: str | None = None,
     history: list[str] | None = None,
     budget: int | None = None,
     progress: Any = None,
+    **options: Any,
 ) -> PoissonResult | Streamed:
     """:func:`distributed_poisson` from files that no process reads whole.
 
-    ``inputs``: a file, folder or pattern, or a list of them (:mod:`recon_cli.io.chunks`). The
+    ``inputs``: a file, folder or pattern, or a list of them (:mod:`recon_cli.io.chunks`);
+    ``options``: the algorithm's parameters (:class:`.PoissonOptions`, degree 2). The
     workers read the chunks, write them per sub-slab into a temporary folder (``temp_dir``, which
     the workers must share; removed at the end), and each slab reads its rows. Returns the
     :class:`.PoissonResult`; with ``output`` (a binary PLY path) the mesh is streamed there from the
     slabs' files instead (``history`` its comments, after the input's) and the result's mesh is
     None. ``attributes``: the input's properties carried onto the vertices
-    (:func:`.attributes.select`). ``with_grid``, ``envelope`` (a checked
-    :class:`.envelope.Envelope`): as :func:`.screened_poisson`'s. ``partitions`` None: as many
-    slabs as the workers' memory needs, or without a ``client`` this process's ``budget`` of
-    bytes (:func:`slab_count`, once the chunks' points are counted).
+    (:func:`.attributes.select`). ``envelope`` (a checked :class:`.envelope.Envelope`): as
+    :func:`.screened_poisson`'s. ``partitions`` None: as many slabs as the workers' memory needs,
+    or without a ``client`` this process's ``budget`` of bytes (:func:`slab_count`, once the
+    chunks' points are counted).
     """
     from recon_cli.io.chunks import plan_chunks
     from recon_cli.slabs.runners import note_phase
-    from recon_cli.stages.poisson import SPEC, PoissonResult
 
-    depth, scale, params = _job_params(
-        depth, scale, point_weight, samples_per_node, boundary, density, trim, full_depth,
-        cg_tolerance, partitions,
-    )  # fmt: skip
-    point_weight, trim = params["point_weight"], params["trim"]
-    params["grid"] = with_grid
+    opts = PoissonOptions.of("reconstruct_files", options)
+    depth, params = D.slab_params(opts, partitions)
     t0 = time.perf_counter()
     chunks = plan_chunks(inputs)
     scans = _scan_chunks(client, chunks, progress)
@@ -185,22 +175,19 @@ def reconstruct_files(
     parts, slab_choice = D.slab_count(partitions, kept, client, budget, depth)
     D.seam_params(params, depth, parts)
     nworkers = slab_choice["workers"]
-    if SPEC.param("confidence").coerce(confidence):
+    if opts.confidence:
         params["weight_mean"] = sum(s["length_sum"] for s in scans) / kept
-    lo = np.min([s["lo"] for s in scans if "lo" in s], axis=0)
-    hi = np.max([s["hi"] for s in scans if "lo" in s], axis=0)
-    if not (hi - lo).max() > 0:
-        raise InputError("all points coincide: there is no surface to reconstruct")
-    origin, size, perm = D.frame_of(lo, hi, scale)
-    if envelope is not None:
-        origin, size, depth, envelope = slab_envelope.grown_cube(
-            envelope, origin, size, depth, perm, params
-        )
-    job = D.make_job(origin, size, perm, depth, params)
+    job, size, perm, envelope = _scanned_job(scans, opts.scale, depth, params, envelope)
     nsub = 1 << min(S.SUB_DEPTH, job.depth)
     carry = bool(names) or color_type is not None
     weights = D.job_weights(
-        True, point_weight > 0, trim != 0, carry, output is not None, with_grid, bool(envelope)
+        True,
+        opts.point_weight > 0,
+        opts.trim != 0,
+        carry,
+        output is not None,
+        opts.with_grid,
+        bool(envelope),
     )
     runner = None
     with spill_folder(temp_dir, "poisson") as tmp:
@@ -254,10 +241,7 @@ def reconstruct_files(
         mesh.point_dtype = point_dtype
         mesh.history = hist
     rep = out["report"]
-    rep["ignored_points"] = int(rows - kept)
-    rep["invalid_dropped"] = sum(s["invalid_dropped"] for s in scans)
-    rep["points_read"] = int(rows)
-    rep["attributes"] = sorted(names) + (["colors"] if color_type is not None else [])
+    rep.update(_read_report(scans, rows, kept, names, color_type))
     rep["timings"].update(read=read_s, total=time.perf_counter() - t0)
     rep["distributed"].update(chunks=len(chunks), partitions=slab_choice)
     grid = D.grid_in_input_axes(out, job, perm)
@@ -268,36 +252,35 @@ def reconstruct_files(
     return PoissonResult(mesh, rep, grid)
 
 
-def _job_params(
-    depth,
-    scale,
-    point_weight,
-    samples_per_node,
-    boundary,
-    density,
-    trim,
-    full_depth,
-    cg_tolerance,
-    partitions,
-) -> tuple[int, float, dict[str, Any]]:
-    """The checked options: (depth, scale, the slabs' parameters)."""
-    from recon_cli.stages.poisson import check_options
+def _scanned_job(
+    scans: list[dict], scale: float, depth: int, params: dict, envelope: Any
+) -> tuple[Any, float, tuple, Any]:
+    """The job of the chunks' ``scans`` (their bounds): (job, the cube's side, turn, envelope).
 
-    depth, scale, point_weight, samples_per_node, _, boundary, density, trim = check_options(
-        depth, scale, point_weight, samples_per_node, 2, boundary, density, trim
-    )
-    params: dict[str, Any] = {
-        "samples_per_node": samples_per_node,
-        "point_weight": point_weight,
-        "boundary": boundary,
-        "full_depth": min(int(full_depth), depth),
-        "cg_tolerance": float(cg_tolerance),
-        "density": density,
-        "trim": trim,
+    The cube grows to hold a checked ``envelope``, which comes back turned to the job's axes.
+    """
+    lo = np.min([s["lo"] for s in scans if "lo" in s], axis=0)
+    hi = np.max([s["hi"] for s in scans if "lo" in s], axis=0)
+    if not (hi - lo).max() > 0:
+        raise InputError("all points coincide: there is no surface to reconstruct")
+    origin, size, perm = D.frame_of(lo, hi, scale)
+    if envelope is not None:
+        origin, size, depth, envelope = slab_envelope.grown_cube(
+            envelope, origin, size, depth, perm, params
+        )
+    return D.make_job(origin, size, perm, depth, params), size, perm, envelope
+
+
+def _read_report(
+    scans: list[dict], rows: int, kept: int, names: list[str], color_type: Any
+) -> dict[str, Any]:
+    """The report's entries on what was read: rows, those ignored, attributes carried."""
+    return {
+        "ignored_points": int(rows - kept),
+        "invalid_dropped": sum(s["invalid_dropped"] for s in scans),
+        "points_read": int(rows),
+        "attributes": sorted(names) + (["colors"] if color_type is not None else []),
     }
-    # the depths now, a default slab count once the points are counted
-    D.check_distributed(depth, params["full_depth"], 1 if partitions is None else partitions)
-    return depth, scale, params
 
 
 def _sort_into_slabs(

@@ -72,21 +72,14 @@ def local_slabs(npoints: int, ex: Any, depth: int) -> int:
 def run_stage(
     data: Any,
     *,
-    depth: int,
-    scale: float,
-    point_weight: float,
-    samples_per_node: float,
     degree: int,
-    boundary: str,
-    confidence: bool,
-    density: bool,
-    trim: float,
     attributes: Any,
     envelope: Any,
     grid: Any,
     estimate_normals: bool,
     backend: str,
     progress: Any = None,
+    **solve: Any,
 ) -> StageResult:
     """Stage ``poisson``: screened Poisson reconstruction of an oriented cloud.
 
@@ -99,7 +92,7 @@ def run_stage(
     data : PointCloud or TriangleMesh
         Oriented points (a mesh's vertices and vertex normals are used).
     depth, scale, point_weight, samples_per_node, degree, boundary, confidence, density, trim
-        See :func:`screened_poisson`.
+        See :func:`screened_poisson` (all but ``degree`` arrive in ``solve``).
     attributes : str or list of str
         ``all`` (every property of the input and its colours), ``none``, or names
         separated by commas (``colors`` for the colours): carried onto the vertices
@@ -129,23 +122,11 @@ def run_stage(
     from recon_cli.stages import StageResult
 
     ex = current()
-    grid_path, env = _check_run_options(
-        backend, degree, boundary, confidence, density, trim, envelope, grid
-    )
+    grid_path, env = _check_run_options(backend, degree, solve, envelope, grid)
     cloud, history, props, keep_colors = _stage_input(data, attributes, estimate_normals, progress)
-    solve = {
-        "depth": depth,
-        "scale": scale,
-        "point_weight": point_weight,
-        "samples_per_node": samples_per_node,
-        "boundary": boundary,
-        "density": density,
-        "trim": trim,
-        "confidence": confidence,
-    }
     colors = cloud.colors if keep_colors else None
     local = not ex.distributed and backend == "native"
-    slabs = local_slabs(len(cloud.points), ex, depth) if local else None
+    slabs = local_slabs(len(cloud.points), ex, solve["depth"]) if local else None
     if ex.distributed or (slabs or 1) > 1:
         from recon_cli.stages.poisson import distributed as D
 
@@ -172,17 +153,14 @@ def run_stage(
 
 
 def _check_run_options(
-    backend: str,
-    degree: int,
-    boundary: str,
-    confidence: bool,
-    density: bool,
-    trim: float | str,
-    envelope: Any,
-    grid: Any,
+    backend: str, degree: int, solve: dict[str, Any], envelope: Any, grid: Any
 ) -> tuple[str | None, Any]:
-    """The stage's checks of its options together; returns the grid's path and the envelope."""
-    if backend == "pymeshlab" and (density or trim != 0):
+    """The stage's checks of its options together; returns the grid's path and the envelope.
+
+    ``solve``: the solve's options by name (``boundary``, ``confidence``, ``density``, ``trim``).
+    """
+    boundary, confidence = solve["boundary"], solve["confidence"]
+    if backend == "pymeshlab" and (solve["density"] or solve["trim"] != 0):
         raise ParameterError(
             "the pymeshlab backend gives no densities: --density/--trim need native or open3d"
         )

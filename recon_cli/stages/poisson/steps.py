@@ -18,29 +18,13 @@ from recon_cli.geometry import TriangleMesh
 from recon_cli.progress import task
 from recon_cli.stages.poisson import (
     MAX_DEPTH,
+    PoissonOptions,
     PoissonResult,
     fold_cells,
     speck_cells,
 )
 
 log = logging.getLogger("recon")
-
-
-@dataclass(frozen=True)
-class Options:
-    """The checked options of one reconstruction (those of ``screened_poisson``)."""
-
-    depth: int
-    scale: float
-    point_weight: float
-    samples_per_node: float
-    degree: int
-    boundary: str
-    density: bool
-    trim: float | str
-    full_depth: int
-    cg_tolerance: float
-    with_grid: bool
 
 
 def reconstruct(
@@ -51,7 +35,7 @@ def reconstruct(
     colors: np.ndarray | None,
     props: dict[str, np.ndarray],
     envelope: Any,
-    opts: Options,
+    opts: PoissonOptions,
     progress: Any = None,
 ) -> PoissonResult:
     """Screened Poisson of checked samples: the steps in order.
@@ -68,7 +52,7 @@ def reconstruct(
     props : dict of str to (n,) array
         The kept points' colours and properties, carried onto the vertices.
     envelope : .envelope.Envelope or None
-    opts : Options
+    opts : PoissonOptions
     progress : Progress or None
     """
     from recon_cli.stages.poisson.basis import basis_for
@@ -116,7 +100,7 @@ def reconstruct(
 
 
 def solve_and_extract(
-    setup: Setup, basis: Any, opts: Options, pts: np.ndarray, clock: Any, progress: Any
+    setup: Setup, basis: Any, opts: PoissonOptions, pts: np.ndarray, clock: Any, progress: Any
 ) -> tuple[Any, TriangleMesh, tuple, int, Any]:
     """The cascadic solve, the iso-surface and (``--grid``) the field on a grid.
 
@@ -203,7 +187,7 @@ def prepare(
     basis: Any,
     clock: Any,
     progress: Any,
-    opts: Options,
+    opts: PoissonOptions,
     *,
     density: bool,
 ) -> Setup:
