@@ -591,7 +591,9 @@ def _splat_depths(runner, job: S.Job, loaded: list[dict], tables: dict[int, tupl
     """
     msgs = loaded
     usable = [m["usable"] for m in loaded]
-    level = job.local_density
+    # from the kernel's level down, as one process does: at a depth where the kernel's level
+    # is the coordinator's or coarser, the slabs hold no level of their own
+    level = min(job.local_density, max(job.depth - KERNEL_OFFSET, 0))
     while sum(m["unplaced"] for m in msgs) and level >= 0:
         keys, dens = _sum_tables(runner.run("density", S.own_table, lambda k, lv=level: (lv,)))
         tables[level] = (keys, dens)
