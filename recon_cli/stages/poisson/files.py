@@ -191,7 +191,7 @@ def reconstruct_files(
     hi = np.max([s["hi"] for s in scans if "lo" in s], axis=0)
     if not (hi - lo).max() > 0:
         raise InputError("all points coincide: there is no surface to reconstruct")
-    origin, size, perm = D.frame_of(lo, hi, scale)
+    origin, size, perm = D.frame_of(lo, hi, scale, parts)
     if envelope is not None:
         origin, size, depth, envelope = slab_envelope.grown_cube(
             envelope, origin, size, depth, perm, params
