@@ -257,14 +257,19 @@ def solve_coarse(
 # the whole run
 
 
-def frame_of(lo: np.ndarray, hi: np.ndarray, scale: float) -> tuple[np.ndarray, float, tuple]:
+def frame_of(
+    lo: np.ndarray, hi: np.ndarray, scale: float, parts: int
+) -> tuple[np.ndarray, float, tuple]:
     """The single-process solve's cube (origin, size) for the kept points' box.
 
-    And the cyclic turn of the axes that makes the longest one ``x``.
+    And the cyclic turn of the axes that makes the longest one ``x``, the slabs' axis, for a cut
+    into ``parts`` slabs. One slab is not cut: it keeps the input's axes, as one process does
+    (the solve's rounding depends on the axes' order: turned, one slab's mesh would not be the
+    single process's to the bit).
     """
     size = float((hi - lo).max()) * scale
     origin = 0.5 * (lo + hi) - 0.5 * size
-    axis = int(np.argmax(hi - lo))
+    axis = int(np.argmax(hi - lo)) if parts > 1 else 0
     perm = (axis, (axis + 1) % 3, (axis + 2) % 3)
     return origin, size, perm
 
@@ -592,7 +597,9 @@ def _splat_depths(runner, job: S.Job, loaded: list[dict], tables: dict[int, tupl
     """
     msgs = loaded
     usable = [m["usable"] for m in loaded]
-    level = job.local_density
+    # from the kernel's level down, as one process does: at a depth where the kernel's level
+    # is the coordinator's or coarser, the slabs hold no level of their own
+    level = min(job.local_density, max(job.depth - KERNEL_OFFSET, 0))
     while sum(m["unplaced"] for m in msgs) and level >= 0:
         keys, dens = _sum_tables(runner.run("density", S.own_table, lambda k, lv=level: (lv,)))
         tables[level] = (keys, dens)
@@ -730,7 +737,7 @@ def distributed_poisson(
     nrm = np.ascontiguousarray(normals, dtype=np.float64)[keep]
     colors, props = kept_attributes(keep, colors, properties)
     lo, hi = pts.min(axis=0), pts.max(axis=0)
-    origin, size, perm = frame_of(lo, hi, opts.scale)
+    origin, size, perm = frame_of(lo, hi, opts.scale, partitions)
     if env is not None:
         origin, size, depth, env = E.grown_cube(env, origin, size, depth, perm, params)
     job = make_job(origin, size, perm, depth, params)

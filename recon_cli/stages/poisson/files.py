@@ -177,7 +177,7 @@ def reconstruct_files(
     nworkers = slab_choice["workers"]
     if opts.confidence:
         params["weight_mean"] = sum(s["length_sum"] for s in scans) / kept
-    job, size, perm, envelope = _scanned_job(scans, opts.scale, depth, params, envelope)
+    job, size, perm, envelope = _scanned_job(scans, opts.scale, parts, depth, params, envelope)
     nsub = 1 << min(S.SUB_DEPTH, job.depth)
     carry = bool(names) or color_type is not None
     weights = D.job_weights(
@@ -253,9 +253,11 @@ def reconstruct_files(
 
 
 def _scanned_job(
-    scans: list[dict], scale: float, depth: int, params: dict, envelope: Any
+    scans: list[dict], scale: float, parts: int, depth: int, params: dict, envelope: Any
 ) -> tuple[Any, float, tuple, Any]:
-    """The job of the chunks' ``scans`` (their bounds): (job, the cube's side, turn, envelope).
+    """The job of the chunks' ``scans`` (their bounds) in ``parts`` slabs.
+
+    Returns (the job, the cube's side, the axes' turn, the envelope).
 
     The cube grows to hold a checked ``envelope``, which comes back turned to the job's axes.
     """
@@ -263,7 +265,7 @@ def _scanned_job(
     hi = np.max([s["hi"] for s in scans if "lo" in s], axis=0)
     if not (hi - lo).max() > 0:
         raise InputError("all points coincide: there is no surface to reconstruct")
-    origin, size, perm = D.frame_of(lo, hi, scale)
+    origin, size, perm = D.frame_of(lo, hi, scale, parts)
     if envelope is not None:
         origin, size, depth, envelope = slab_envelope.grown_cube(
             envelope, origin, size, depth, perm, params
