@@ -446,6 +446,25 @@ class DaskRunner:
                 )
             )
 
+    def _result(self, future: Any, k: int, name: str) -> Any:
+        """A step's result; its own error as it is, a worker that died as one line.
+
+        Raises :class:`~recon_cli.errors.StageFailed` when every worker that ran part ``k``'s
+        step died (killed, or over its memory limit): the scheduler gave up on it.
+        """
+        from distributed import KilledWorker
+
+        from recon_cli.errors import StageFailed
+
+        try:
+            return future.result()
+        except KilledWorker as exc:
+            raise StageFailed(
+                f"{self.label}: the worker processes running part {k + 1}'s {name} step died "
+                f"{exc.allowed_failures + 1} times (killed or out of memory): give the workers "
+                "more memory (--memory) or cut the cloud into more slabs (--partitions)"
+            ) from None
+
     def run(self, name: str, fn: Callable, args: Callable[[int], tuple]) -> list[dict]:
         """Step ``name``: ``fn(state, *args(k))`` on every part ``k``; returns their messages."""
         import dask
@@ -502,7 +521,7 @@ class DaskRunner:
         with task(self.progress, f"{self.label}: {name}", total=len(msgs_f)) as bar:
             for f in as_completed(msgs_f):
                 k = index[f.key]
-                out[k] = f.result()  # raises the step's own error
+                out[k] = self._result(f, k, name)
                 # the part's previous state is released now, not when the round ends, and
                 # its file goes: with every part spilled, the folder holds one round, not three
                 # (a state lost later is recomputed from the part's first step, which writes
