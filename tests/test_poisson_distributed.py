@@ -14,7 +14,6 @@ import time
 
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
 from slab_checks import closed_pieces
 
 from recon_cli.errors import InputError, ParameterError
@@ -87,45 +86,6 @@ def test_sphere_cut_by_level6_seams_is_one_closed_piece():
     single = screened_poisson(pts, nrm, depth=7)
     centre = np.full(3, 7.0)
     assert _radial_error(res.mesh, centre, 3.0) <= 1.02 * _radial_error(single.mesh, centre, 3.0)
-
-
-@pytest.mark.parametrize("n", [8000, 40_000])
-def test_one_slab_is_the_single_process_mesh(n):
-    """With one slab, the slab pipeline gives the single-process mesh, in both extractions.
-
-    The coarse and fine solves split and the whole pipeline give the single-process solve's mesh, to
-    rounding (the same vertices).
-    """
-    pts, nrm = sphere_cloud(n, seed=3)
-    pts = pts * np.array([1.0, 0.8, 0.7])  # x the longest axis: the same frame
-    res = distributed_poisson(pts, nrm, depth=7, partitions=1)
-    single = screened_poisson(pts, nrm, depth=7)
-    assert len(res.mesh.vertices) == len(single.mesh.vertices)
-    assert len(res.mesh.faces) == len(single.mesh.faces)
-    d, i = cKDTree(single.mesh.vertices).query(res.mesh.vertices)
-    assert d.max() < 1e-12
-    assert len(np.unique(i)) == len(i)
-    assert abs(res.report["iso_value"] - single.report["iso_value"]) < 1e-12
-
-
-@pytest.mark.parametrize("longest", [0, 1, 2])
-def test_one_slab_is_the_single_process_mesh_to_the_bit_whatever_the_longest_axis(longest):
-    """One slab gives the single process's mesh to the bit, whichever axis is the longest.
-
-    The same vertices and faces in the same order and the same iso-value: one slab keeps the
-    input's axes (only a cut into slabs turns them: the engine's rounding depends on the axes'
-    order). At depth 6 the kernel density's level is coarser than the coordinator's levels:
-    the samples are placed from it down, as in one process.
-    """
-    pts, nrm = sphere_cloud(8000, seed=3)
-    stretch = np.array([0.8, 0.7, 0.75])
-    stretch[longest] = 1.0
-    pts = pts * stretch + np.array([0.1, -0.2, 0.3])
-    res = distributed_poisson(pts, nrm, depth=6, partitions=1)
-    single = screened_poisson(pts, nrm, depth=6)
-    assert res.report["iso_value"] == single.report["iso_value"]
-    assert np.array_equal(res.mesh.faces, single.mesh.faces)
-    assert np.array_equal(res.mesh.vertices, single.mesh.vertices)
 
 
 def test_slabs_of_very_different_density():
@@ -396,30 +356,6 @@ def test_killed_worker_mid_solve_gives_the_same_mesh(cluster):
 
 
 @pytest.mark.slow
-def _exit_the_worker(state):
-    """A step that kills the worker process running it (as the kernel's OOM killer would)."""
-    os._exit(1)
-
-
-def test_a_step_whose_workers_all_die_is_one_line(cluster):
-    """A step whose every worker dies fails as one StageFailed line naming the step.
-
-    The scheduler retries the step on the other worker, which dies too.
-    """
-    from recon_cli.errors import StageFailed
-    from recon_cli.slabs.runners import DaskRunner
-
-    runner = DaskRunner(cluster, [{"part": 0}], label="poisson")
-    try:
-        with pytest.raises(StageFailed) as err:
-            runner.run("solve", _exit_the_worker, lambda k: ())
-    finally:
-        runner.close()
-    msg = str(err.value)
-    assert "\n" not in msg and msg.startswith("poisson: the worker processes running part 1's")
-    assert "solve step died" in msg and "--memory" in msg
-
-
 def test_more_slabs_than_workers_spill_their_states(cluster, tmp_path, monkeypatch):
     """Three slabs on two workers, states spilled, a worker killed: the in-process mesh exactly.
 
