@@ -158,23 +158,21 @@ PHASE_WEIGHTS = {
 
 
 def job_weights(
-    from_files: bool,
-    noise: bool,
-    trim: bool,
-    carry: bool,
-    write: bool,
-    grid: bool = False,
-    envelope: bool = False,
+    opts: PoissonOptions, *, from_files: bool, carry: bool, write: bool, envelope: bool
 ) -> dict:
-    """The phases a run goes through and their weights (:data:`PHASE_WEIGHTS`)."""
-    skip = set() if grid else {"grid"}
+    """The phases a run goes through and their weights (:data:`PHASE_WEIGHTS`).
+
+    ``opts`` says whether it screens (the noise phase), trims and writes a grid; ``carry``
+    whether it carries attributes, ``write`` whether the slabs write the mesh.
+    """
+    skip = set() if opts.with_grid else {"grid"}
     if not envelope:
         skip.add("envelope")
     if not from_files:
         skip.add("sort")
-    if not noise:
+    if not opts.point_weight > 0:
         skip.add("noise")
-    if not trim:
+    if opts.trim == 0:
         skip.add("trim")
     skip.update(("export",) if carry else ("seams", "attributes"))
     if not write:
@@ -272,6 +270,27 @@ def frame_of(
     axis = int(np.argmax(hi - lo)) if parts > 1 else 0
     perm = (axis, (axis + 1) % 3, (axis + 2) % 3)
     return origin, size, perm
+
+
+def job_of(
+    lo: np.ndarray,
+    hi: np.ndarray,
+    scale: float,
+    parts: int,
+    depth: int,
+    params: dict,
+    envelope: Any = None,
+) -> tuple[S.Job, tuple, Any]:
+    """The job of the kept points' box ``lo``..``hi`` (input axes) in ``parts`` slabs.
+
+    The single process's cube (:func:`frame_of`), grown to hold a checked ``envelope``
+    (:func:`.slab_envelope.grown_cube`). Returns the job, the axes' turn and the envelope
+    turned to the job's axes (None without one).
+    """
+    origin, size, perm = frame_of(lo, hi, scale, parts)
+    if envelope is not None:
+        origin, size, depth, envelope = E.grown_cube(envelope, origin, size, depth, perm, params)
+    return make_job(origin, size, perm, depth, params), perm, envelope
 
 
 def make_job(origin, size, perm, depth, p: dict) -> S.Job:
@@ -722,7 +741,7 @@ def distributed_poisson(
     from recon_cli.stages.poisson import PoissonResult, check_inputs, kept_attributes
 
     opts = PoissonOptions.of("distributed_poisson", options)
-    depth, params = slab_params(opts, partitions)
+    depth, params = opts.depth, slab_params(opts, partitions)
     env = None if envelope is None else checked_envelope(envelope)
     t0 = time.perf_counter()
     lengths: list = []
@@ -736,11 +755,9 @@ def distributed_poisson(
     # normalises them as the check did: normalising twice moved them by an ulp)
     nrm = np.ascontiguousarray(normals, dtype=np.float64)[keep]
     colors, props = kept_attributes(keep, colors, properties)
-    lo, hi = pts.min(axis=0), pts.max(axis=0)
-    origin, size, perm = frame_of(lo, hi, opts.scale, partitions)
-    if env is not None:
-        origin, size, depth, env = E.grown_cube(env, origin, size, depth, perm, params)
-    job = make_job(origin, size, perm, depth, params)
+    job, perm, env = job_of(
+        pts.min(axis=0), pts.max(axis=0), opts.scale, partitions, depth, params, env
+    )
     pts = pts[:, list(perm)]
     nrm = nrm[:, list(perm)]
     nsub = 1 << min(S.SUB_DEPTH, job.depth)
@@ -750,13 +767,7 @@ def distributed_poisson(
     slabs = [S.slab_of(job, k, partitions, *plan[k]) for k in range(partitions)]
     carry = bool(props) or colors is not None
     weights = job_weights(
-        False,
-        opts.point_weight > 0,
-        opts.trim != 0,
-        carry,
-        False,
-        opts.with_grid,
-        env is not None,
+        opts, from_files=False, carry=carry, write=False, envelope=env is not None
     )
 
     def load_args(k):
@@ -795,8 +806,8 @@ def distributed_poisson(
     return PoissonResult(mesh, rep, grid_in_input_axes(out, job, perm))
 
 
-def slab_params(opts: PoissonOptions, partitions: int | None) -> tuple[int, dict[str, Any]]:
-    """The solve's depth and the slabs' parameters of ``opts`` (a run in slabs: degree 2).
+def slab_params(opts: PoissonOptions, partitions: int | None) -> dict[str, Any]:
+    """The slabs' parameters of ``opts`` (a run in slabs: degree 2).
 
     ``partitions`` is checked against the depth now when given; a default slab count is, once
     the points are counted (:func:`seam_params`).
@@ -814,7 +825,7 @@ def slab_params(opts: PoissonOptions, partitions: int | None) -> tuple[int, dict
         "grid": opts.with_grid,
     }
     check_distributed(opts.depth, params["full_depth"], 1 if partitions is None else partitions)
-    return opts.depth, params
+    return params
 
 
 def make_runner(

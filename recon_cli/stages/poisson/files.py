@@ -23,7 +23,6 @@ from recon_cli.slabs.spill import spill_folder
 from recon_cli.stages.poisson import (
     PoissonOptions,
     PoissonResult,
-    slab_envelope,
     stitch,
     takes_options,
 )
@@ -165,7 +164,7 @@ def reconstruct_files(
     from recon_cli.slabs.runners import note_phase
 
     opts = PoissonOptions.of("reconstruct_files", options)
-    depth, params = D.slab_params(opts, partitions)
+    depth, params = opts.depth, D.slab_params(opts, partitions)
     t0 = time.perf_counter()
     chunks = plan_chunks(inputs)
     scans = _scan_chunks(client, chunks, progress)
@@ -177,17 +176,11 @@ def reconstruct_files(
     nworkers = slab_choice["workers"]
     if opts.confidence:
         params["weight_mean"] = sum(s["length_sum"] for s in scans) / kept
-    job, size, perm, envelope = _scanned_job(scans, opts.scale, parts, depth, params, envelope)
+    job, perm, envelope = _scanned_job(scans, opts.scale, parts, depth, params, envelope)
     nsub = 1 << min(S.SUB_DEPTH, job.depth)
     carry = bool(names) or color_type is not None
     weights = D.job_weights(
-        True,
-        opts.point_weight > 0,
-        opts.trim != 0,
-        carry,
-        output is not None,
-        opts.with_grid,
-        bool(envelope),
+        opts, from_files=True, carry=carry, write=output is not None, envelope=bool(envelope)
     )
     runner = None
     with spill_folder(temp_dir, "poisson") as tmp:
@@ -196,7 +189,7 @@ def reconstruct_files(
             files, counts, sort_phase = _sort_into_slabs(
                 client,
                 chunks,
-                (job.origin, size, perm, nsub),
+                (job.origin, job.size, perm, nsub),
                 tmp,
                 keep_colors,
                 names,
@@ -254,23 +247,16 @@ def reconstruct_files(
 
 def _scanned_job(
     scans: list[dict], scale: float, parts: int, depth: int, params: dict, envelope: Any
-) -> tuple[Any, float, tuple, Any]:
-    """The job of the chunks' ``scans`` (their bounds) in ``parts`` slabs.
+) -> tuple[Any, tuple, Any]:
+    """The job of the chunks' ``scans`` (their bounds) in ``parts`` slabs (:func:`.job_of`).
 
-    Returns (the job, the cube's side, the axes' turn, the envelope).
-
-    The cube grows to hold a checked ``envelope``, which comes back turned to the job's axes.
+    Returns (the job, the axes' turn, the envelope turned to the job's axes).
     """
     lo = np.min([s["lo"] for s in scans if "lo" in s], axis=0)
     hi = np.max([s["hi"] for s in scans if "lo" in s], axis=0)
     if not (hi - lo).max() > 0:
         raise InputError("all points coincide: there is no surface to reconstruct")
-    origin, size, perm = D.frame_of(lo, hi, scale, parts)
-    if envelope is not None:
-        origin, size, depth, envelope = slab_envelope.grown_cube(
-            envelope, origin, size, depth, perm, params
-        )
-    return D.make_job(origin, size, perm, depth, params), size, perm, envelope
+    return D.job_of(lo, hi, scale, parts, depth, params, envelope)
 
 
 def _read_report(
