@@ -707,7 +707,8 @@ def solve_level(
         f.coef = coef
         return {"depth": d, "nodes": ne, "unknowns": 0, "iterations": 0, "residual": 0.0}, False
     rhs = make_rhs()
-    scell, sloc, sw = _screening_samples(f, merged(d), rhs)
+    samples = _screening_samples(f, merged(d), rhs)
+    stiffness = (m1, k1, h)
     # the solve's vectors on the unknowns only (the children of the flagged parents), made before
     # the coarser levels' field is prolonged: on the finest level of a large solve the right-hand
     # side, the prolonged field and its product on all of E were alive at once
@@ -715,15 +716,14 @@ def solve_level(
     cmap[~f.inp] = -1
     rhs = rhs[unknown]
     if prev is not None:
-        _subtract_coarse(f, prev, cmap, m1, k1, scell, sloc, sw, rhs)
+        _subtract_coarse(f, prev, cmap, stiffness, samples, rhs)
     release_free_heap()
     # made after the prolonged field is gone: 64 doubles a parent, the largest of the solve's arrays
-    inv = _sibling_block_inverses(f, cmap, m1, k1, scell, sloc, sw)
-    samples = (scell, sloc, sw)
+    inv = _sibling_block_inverses(f, cmap, stiffness, samples)
     x, it, rel = BO.level_pcg(
-        f.q_keys, f.nb, f.inp, cmap, (m1, k1, h), n, f.s, samples, rhs, inv, tolerance, max_iter
+        f.q_keys, f.nb, f.inp, cmap, stiffness, n, f.s, samples, rhs, inv, tolerance, max_iter
     )
-    del rhs, inv, scell, sloc, sw, samples, cmap
+    del rhs, inv, samples, cmap
     # the level's chi: the coarser field prolonged again (cheaper than keeping it on all of E
     # through the conjugate gradients) plus the correction
     f.coef = coef
@@ -745,7 +745,10 @@ def _screening_samples(
     merged: tuple[np.ndarray, np.ndarray] | None,
     rhs: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The level's screening samples (cell, position in it, weight), their term added to ``rhs``.
+    """The level's screening samples ``(scell, sloc, sw)``, their term added to ``rhs``.
+
+    Each sample's child cell ``8 i + o`` (k,), its position in that cell (k, 3) and its weight
+    (k,), as :func:`._bspline_operator.screening_matvec` takes them.
 
     ``merged``: the samples merged per cell of the level (positions, weights); their screening
     is added to ``rhs`` (8q,) in place. None (empty arrays) without screening.
@@ -756,20 +759,17 @@ def _screening_samples(
     del merged
     scell, sloc = f.locate(mp)
     have = scell >= 0
-    scell, sloc, sw = scell[have], sloc[have], mw[have]
-    del mp, mw, have
-    BO.screening_rhs(f.q_keys, f.nb, 1 << f.depth, f.s, (scell, sloc, sw), TARGET, rhs)
-    return scell, sloc, sw
+    samples = (scell[have], sloc[have], mw[have])
+    del mp, mw, have, scell, sloc
+    BO.screening_rhs(f.q_keys, f.nb, 1 << f.depth, f.s, samples, TARGET, rhs)
+    return samples
 
 
 def _sibling_block_inverses(
     f: LevelField,
     cmap: np.ndarray,
-    m1: np.ndarray,
-    k1: np.ndarray,
-    scell: np.ndarray,
-    sloc: np.ndarray,
-    sw: np.ndarray,
+    stiffness: tuple,
+    samples: tuple,
 ) -> np.ndarray:
     """The conjugate gradients' block-Jacobi preconditioner: (u, 36), u flagged parents.
 
@@ -788,9 +788,9 @@ def _sibling_block_inverses(
     u = int(np.count_nonzero(f.inp))
     flat = np.empty(64 * u)
     blocks = flat.reshape(u, 8, 8)
-    BO.stiffness_blocks(f.q_keys, f.inp, cmap, m1, k1, 1.0 / n, blocks)
-    if len(sw):
-        BO.screening_blocks(f.q_keys, f.nb, cmap, n, f.s, (scell, sloc, sw), blocks)
+    BO.stiffness_blocks(f.q_keys, f.inp, cmap, *stiffness, blocks)
+    if len(samples[2]):
+        BO.screening_blocks(f.q_keys, f.nb, cmap, n, f.s, samples, blocks)
     singular = BO.factor_blocks(blocks)
     if singular:
         log.debug(
@@ -807,11 +807,8 @@ def _subtract_coarse(
     f: LevelField,
     prev: LevelField,
     cmap: np.ndarray,
-    m1: np.ndarray,
-    k1: np.ndarray,
-    scell: np.ndarray,
-    sloc: np.ndarray,
-    sw: np.ndarray,
+    stiffness: tuple,
+    samples: tuple,
     rhs: np.ndarray,
 ) -> None:
     """``rhs -= A G`` at the unknowns: the residual the coarser levels' field ``G`` leaves.
@@ -822,9 +819,7 @@ def _subtract_coarse(
     G = B.prolong(f.q_keys, prev.q_keys, prev.nb, prev.coef, n >> 1, f.s)
     AG = np.empty(len(rhs))
     xmap = np.arange(len(f.q_keys))
-    BO.level_matvec(
-        f.q_keys, f.nb, f.inp, xmap, cmap, (m1, k1, 1.0 / n), n, f.s, (scell, sloc, sw), G, AG
-    )
+    BO.level_matvec(f.q_keys, f.nb, f.inp, xmap, cmap, stiffness, n, f.s, samples, G, AG)
     rhs -= AG
 
 

@@ -74,11 +74,10 @@ def reconstruct(
     mesh, vdens, trimmed_faces, trimmed_area = trimmed(
         mesh, vdens, opts.trim, setup.smp, setup.splats, setup.origin, setup.size
     )
-    res = 1 << setup.tree_depth  # the finest cells of the tree
     fallback = 0
     if props or colors is not None:  # from the points on each vertex's side
         with clock.phase("attributes"):
-            fallback = carry_attributes(mesh, pts, unit_nrm, props, colors, setup.size / res)
+            fallback = carry_attributes(mesh, pts, unit_nrm, props, colors, setup.finest_cell)
     if opts.density:
         assert vdens is not None  # made above whenever density is asked for
         mesh.attributes["density"] = vdens
@@ -177,6 +176,11 @@ class Setup:
     sample_ok: Any = None
     clip: Any = None
     outside_points: int = 0
+
+    @property
+    def finest_cell(self) -> float:
+        """The side of the tree's finest cells (world units)."""
+        return self.size / (1 << self.tree_depth)
 
 
 def prepare(
@@ -284,7 +288,7 @@ def report(
         "envelope_pulled_vertices": None if envelope is None else envelope[1],
         "samples": int(len(setup.smp.count)),
         "ignored_points": ignored,
-        "finest_cell": setup.size / (1 << setup.tree_depth),
+        "finest_cell": setup.finest_cell,
         "levels": sol.per_level,
         "timings": timings,
     }
