@@ -443,6 +443,10 @@ def test_defaults_meet_the_eikonal_target(tmp_path):
     near = describe(tmp_path / "f.npz")["eikonal"]["near"]
     assert near == res.report["eikonal_near"]
     assert near["fraction_within_0.1"] >= 0.9 and near["cells"] > 100_000, near
+    # the whole grid too (issue 45's figure): beyond the band the exact distance to the surface
+    whole = res.report["eikonal"]
+    assert whole["fraction_within_0.1"] >= 0.9, whole
+    assert res.report["far_field"]["exact"] and res.report["far_field"]["redistanced"] > 0
 
 
 @pytest.mark.parametrize("sign", [1.0, -1.0])
@@ -455,9 +459,9 @@ def test_a_field_of_one_sign_is_refused(monkeypatch, sign):
     made = learned._written_grid
 
     def one_sign(*args, **kwargs):
-        g = made(*args, **kwargs)
+        g, far = made(*args, **kwargs)
         g.sdf = (sign * (np.abs(g.sdf) + 0.01)).astype(g.sdf.dtype)
-        return g
+        return g, far
 
     monkeypatch.setattr(learned, "_written_grid", one_sign)
     p, n = sphere_cloud(2000, 1.0, seed=10)

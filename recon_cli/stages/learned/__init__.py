@@ -83,9 +83,11 @@ SPEC = StageSpec(
     The grid is negative inside. With normals the loss holds the zero level on the points, the
     gradient on the normals, the gradient's norm at 1 (eikonal) and the value near the surface
     at the signed distance to the points; without, the zero level and the eikonal term (IGR).
-    `recon mcubes OUT.npz mesh.ply` extracts the surface; `recon info OUT.npz` reports the
-    eikonal statistics. Needs PyTorch (pip install recon[learned]). Ctrl-C stops training and
-    writes the best field so far (exit 130).""",
+    Beyond two cells of the grid's zero level the grid holds the exact distance to it (the
+    network extrapolates there; --model keeps the network). `recon mcubes OUT.npz mesh.ply`
+    extracts the surface; `recon info OUT.npz` reports the eikonal statistics. Needs PyTorch
+    (pip install recon[learned]). Ctrl-C stops training and writes the best field so far
+    (exit 130).""",
     takes=("cloud", "mesh"),
     gives=("grid",),
     output_suffix=".npz",
@@ -397,8 +399,10 @@ def run_stage(
         ``loss``, ``interrupted``, ``shape``, ``voxel_size``, ``eikonal``
         (:func:`recon_cli.stages.sdf.eikonal_check` on the written grid, as ``recon info``
         reports it), ``eikonal_near`` (its ``near`` part: the samples near the zero level
-        but kinks, the figure the fit aims at), and with ``mesh``: ``mesh_vertices``,
-        ``mesh_faces``.
+        but kinks, the figure the fit aims at), ``far_field`` (``sdf``: the samples beyond two
+        cells of the zero level, given the exact distance to it, ``redistanced``, and whether
+        exactly everywhere, ``exact``; None for ``occupancy``), and with ``mesh``:
+        ``mesh_vertices``, ``mesh_faces``.
     """
     from recon_cli.geometry import PointCloud, TriangleMesh, float64
     from recon_cli.stages import StageResult
@@ -409,7 +413,7 @@ def run_stage(
     model_path = None if model in (None, "") else os.fspath(model)
     mesh_path = None if mesh in (None, "") else os.fspath(mesh)
     fitted = fit_sdf(data.points, data.normals, progress=progress, **fit)
-    grid = _written_grid(fitted.model, data, resolution, padding, progress)
+    grid, far = _written_grid(fitted.model, data, resolution, padding, progress)
     values = np.asarray(grid.sdf)
     if not (np.nanmin(values) < 0.0 < np.nanmax(values)):
         # a field of one sign has no surface: the fit failed (thin parts beyond its capacity)
@@ -418,6 +422,7 @@ def run_stage(
             "everywhere on the grid (no surface); try more --iterations, --frequencies or --width"
         )
     report = _report(fitted, data, grid, model_path, mesh_path)
+    report["far_field"] = far
     if model_path is not None:
         save_model(fitted.model, model_path)
     if mesh_path is not None:
@@ -426,17 +431,28 @@ def run_stage(
 
 
 def _written_grid(model: SdfModel, data, resolution: int, padding: float, progress):
-    """The field sampled on the stage's grid (the frame of ``recon sdf``)."""
+    """The field sampled on the stage's grid (the frame of ``recon sdf``), and its far field.
+
+    ``sdf``: beyond two cells of the zero level the values are the exact signed distance to it
+    (:func:`recon_cli.stages.sdf.redistance.redistance`; the surface stays the same to the
+    bit); returns (the grid, the redistancing's figures, None for ``occupancy``).
+    """
     from recon_cli.grid import Grid
     from recon_cli.progress import task
     from recon_cli.stages.sdf import grid_frame
+    from recon_cli.stages.sdf.redistance import redistance
 
     pts = data.points
     origin, h, shape = grid_frame(pts.min(axis=0), pts.max(axis=0), resolution, None, padding)
-    with task(progress, "sampling the field", 1) as t:
+    far = None
+    with task(progress, "sampling the field", 2) as t:
         values = sample_grid(model, origin, h, shape)
         t.advance(1)
-    return Grid(sdf=values, origin=origin, voxel_size=h, history=list(data.history))
+        if model.field == "sdf":
+            values, far = redistance(values, origin, h)
+        t.advance(1)
+    grid = Grid(sdf=values, origin=origin, voxel_size=h, history=list(data.history))
+    return grid, far
 
 
 def _report(fitted: FitResult, data, grid, model_path, mesh_path) -> dict:
