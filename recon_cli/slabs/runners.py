@@ -168,10 +168,12 @@ def timed(fn: Callable) -> Callable:
 class LocalRunner:
     """Every part in this process, one after another.
 
-    With ``spill_dir``, a part's state of at least ``spill_bytes`` goes to a file there after
-    each step and is read back by its next step, so the process holds one part's state at a time
-    (out of core); the parts run in a snake order (the last part of a step first at the next
-    one), so the state in memory is the one that runs next.
+    With ``spill_dir``, a part's state goes to a file there after each step and is read back by
+    its next step, so the process holds one part's state at a time (out of core); the parts run
+    in a snake order (the last part of a step first at the next one), so the state in memory is
+    the one that runs next. Small states stay in memory as long as those held together come to
+    less than ``spill_bytes``: with many parts, small ones each, they added up past the slab's
+    own state the memory plan counts.
     """
 
     def __init__(
@@ -192,6 +194,7 @@ class LocalRunner:
         self.spill_bytes = SPILL_BYTES if spill_bytes is None else int(spill_bytes)
         self.round = 0
         self.spilled_bytes = 0
+        self.held: dict[int, int] = {}  # the bytes of each part's state in memory, but the next
 
     def run(self, name: str, fn: Callable, args: Callable[[int], tuple]) -> list[dict]:
         """Step ``name``: ``fn(state, *args(k))`` on every part ``k``; returns their messages."""
@@ -211,11 +214,15 @@ class LocalRunner:
             with task(self.progress, f"{self.label}: {name}", total=n) as bar:
                 for pos, k in enumerate(order):
                     spill = None
+                    self.held.pop(k, None)
                     if self.spill_dir is not None and writes and pos < n - 1:
-                        spill = (self._path(k), self.spill_bytes)
+                        room = self.spill_bytes - sum(self.held.values())
+                        spill = (self._path(k), max(room, 0))
                     before = self.states[k]
                     self.states[k], out[k] = _step(before, fn, args(k), spill)
                     now = self.states[k]
+                    if self.spill_dir is not None and pos < n - 1 and not isinstance(now, Spilled):
+                        self.held[k] = _sizeof(now)
                     if isinstance(now, Spilled) and spill is not None:
                         self.spilled_bytes += os.path.getsize(now.path)
                     elif isinstance(before, Spilled) and not isinstance(now, Spilled):
