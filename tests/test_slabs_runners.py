@@ -44,8 +44,8 @@ def _grow(state, nbytes):
     """A step that gives its part's state ``nbytes`` more of an array."""
     import numpy as np
 
-    state.a = np.zeros(len(state.a) + nbytes, np.uint8)
-    return {"held": len(state.a)}
+    state["a"] = np.zeros(len(state["a"]) + nbytes, np.uint8)
+    return {"held": len(state["a"])}
 
 
 @pytest.mark.parametrize("spill_bytes", [0, 1000, 2500])
@@ -55,21 +55,20 @@ def test_small_states_held_in_memory_stay_under_the_spill_bytes(tmp_path, spill_
     Before, any state under the threshold stayed: 20 parts of 500 bytes held 9,500 bytes
     beside the one that runs next, as 32 slabs of a 4M-point cloud held 0.8 GiB.
     """
-    from types import SimpleNamespace
-
     import numpy as np
 
     from recon_cli.slabs.runners import LocalRunner, Spilled, state_bytes
 
     n = 20
     runner = LocalRunner(
-        [SimpleNamespace(a=np.zeros(0, np.uint8)) for _ in range(n)],
+        # dicts: Dask's sizeof (once Dask is imported) and state_bytes both count their arrays
+        [{"a": np.zeros(0, np.uint8)} for _ in range(n)],
         spill_dir=str(tmp_path),
         spill_bytes=spill_bytes,
     )
     try:
         for step in range(3):
-            out = runner.run("grow", _grow, lambda k: (100 + 200 * step,))
+            out = runner.run("grow", _grow, lambda k, step=step: (100 + 200 * step,))
             assert [m["held"] for m in out] == [sum(100 + 200 * s for s in range(step + 1))] * n
             # the part that runs next (the last of the snake order) is in memory whatever its size
             nxt = n - 1 if step % 2 == 0 else 0

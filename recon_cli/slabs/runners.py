@@ -331,6 +331,8 @@ def _resolve(arg: Any) -> Any:
 def _step(state: Any, fn: Callable, args: tuple, spill: tuple | None = None) -> tuple[Any, dict]:
     import pickle
 
+    from recon_cli.memory import release_free_heap
+
     args = tuple(_resolve(a) for a in args)
     live = not isinstance(state, Spilled)
     spilled = state
@@ -340,6 +342,9 @@ def _step(state: Any, fn: Callable, args: tuple, spill: tuple | None = None) -> 
     msg = fn(state, *args)
     if getattr(fn, "reads_only", False):
         # the state is as it was: its file (or the live object) stays the state
+        if not live:
+            del state
+            release_free_heap()  # the copy read for this step goes (as below)
         return spilled, msg
     if spill is not None and _sizeof(state) >= spill[1]:
         path = spill[0]
@@ -351,6 +356,9 @@ def _step(state: Any, fn: Callable, args: tuple, spill: tuple | None = None) -> 
             # ends: its contents go now (a lost state is recomputed from the first step)
             vars(state).clear()
         state = Spilled(path)
+        # its arrays are freed: their heap goes back to the system, else the holes the states
+        # read back leave (glibc) kept 4M points in 32 slabs at 1.8-2.1 GB against 1.03 now
+        release_free_heap()
     return state, msg
 
 
