@@ -34,7 +34,7 @@ COARSE_RING_BYTES = 1500
 # steps' peak over the slab's state of one process's model (the state read back from its file
 # beside the step's arrays, the coarse levels' arguments unpickled), and the share of its memory
 # limit the plan lets it reach (the nanny restarts a worker past 95 %)
-WORKER_STATE_FACTOR = 1.3
+WORKER_STATE_FACTOR = 1.5
 WORKER_PEAK_SHARE = 0.9
 # the cloud a run in slabs was given in memory, held beside them (points, normals, a property)
 CLOUD_BYTES = 64
