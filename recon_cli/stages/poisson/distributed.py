@@ -21,6 +21,7 @@ Kazhdan, M. & Hoppe, H. (2013). Screened Poisson surface reconstruction. ACM TOG
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import math
 import os
@@ -117,6 +118,67 @@ def slab_count(
         f"the seams are level-{S.FINE_PARTITION_DEPTH} planes",
         budget,
     )
+
+
+def fitted_slab_count(
+    partitions: int | None, parts: int, entry: dict, job: S.Job, sub_counts: np.ndarray
+) -> int:
+    """The slabs of a run on workers, once the points per sub-slab (``sub_counts``) are known.
+
+    :func:`slab_count` sizes a slab as an even share of the points; the seams lie on level-5 (or
+    6) planes, so the densest slab of an uneven cloud reads more than that share with its pads,
+    and a worker holds the whole cube's coarse levels beside it. Unless ``partitions`` was
+    given, the fewest slabs, ``parts`` or more and a multiple of the workers, whose largest
+    slab's worker (:func:`.memory.worker_bytes` of the points it reads, :func:`plan_slabs`) fits
+    :data:`.memory.WORKER_PEAK_SHARE` of a worker's memory limit. When none does (a plane of
+    the seams' lattice holds too many points), the count whose largest slab is the smallest,
+    with a warning. The report's ``entry`` (:func:`slab_count`'s) gets the count, why, the
+    largest slab's points read and its worker's estimate.
+    """
+    from recon_cli.stages.poisson.memory import WORKER_PEAK_SHARE, tree_estimate, worker_bytes
+
+    memory = entry.get("memory_per_worker")
+    if partitions is not None or not memory or parts <= 1:
+        return parts
+    npoints = max(int(sub_counts.sum()), 1)
+    tree = tree_estimate(npoints, job.depth - (job.domain is not None) - job.grown)
+    nworkers = max(int(entry.get("workers") or 1), 1)
+
+    def need(p: int) -> tuple[int, int]:
+        pj = dataclasses.replace(job, seam_depth=S.seam_depth(p))
+        most = int(max(slab_loads(plan_slabs(pj, sub_counts, p), sub_counts)))
+        return worker_bytes(npoints, tree, most / npoints), most
+
+    p, (est, most) = parts, need(parts)
+    best = (est, p, most)
+    while est > WORKER_PEAK_SHARE * memory and p < S.MAX_PARTITIONS:
+        p = min(p + nworkers, S.MAX_PARTITIONS)
+        est, most = need(p)
+        best = min(best, (est, p, most))
+    est, p, most = best
+    entry["worker_bytes_estimate"] = int(est)
+    entry["largest_slab_points"] = most
+    fits = est <= WORKER_PEAK_SHARE * memory
+    if not fits:
+        log.warning(
+            "poisson: the largest of %d slabs reads %d points, about %.3g GiB of a worker's "
+            "memory, over %.0f%% of its %.3g GiB: it may be restarted (give the workers more "
+            "memory, or use fewer, larger ones)",
+            p,
+            most,
+            est / 2**30,
+            100 * WORKER_PEAK_SHARE,
+            memory / 2**30,
+        )
+    if p != parts or not fits:
+        rounds = f"{p // nworkers} per worker" if p % nworkers == 0 else f"{p} slabs"
+        entry.update(
+            count=p,
+            why=f"{rounds}: the largest slab reads {most} points with its pads, a worker "
+            f"~{est / 2**30:.3g} GiB of its {memory / 2**30:.3g} GiB"
+            + ("" if fits else " (over its share: the least the seams' planes allow)"),
+        )
+    return p
 
 
 def coarse_depth_for(depth: int, seam_depth: int = S.PARTITION_DEPTH) -> int:
@@ -746,6 +808,7 @@ def distributed_poisson(
     t0 = time.perf_counter()
     lengths: list = []
     pts, _, keep = check_inputs(points, normals, lengths)
+    asked = partitions
     partitions, slab_choice = slab_count(partitions, len(pts), client, budget, depth)
     seam_params(params, depth, partitions)
     if opts.confidence:
@@ -755,6 +818,7 @@ def distributed_poisson(
     # normalises them as the check did: normalising twice moved them by an ulp)
     nrm = np.ascontiguousarray(normals, dtype=np.float64)[keep]
     colors, props = kept_attributes(keep, colors, properties)
+    pts0, env0 = pts, env
     job, perm, env = job_of(
         pts.min(axis=0), pts.max(axis=0), opts.scale, partitions, depth, params, env
     )
@@ -763,6 +827,13 @@ def distributed_poisson(
     nsub = 1 << min(S.SUB_DEPTH, job.depth)
     sub = sub_slab((pts[:, 0] - job.origin[0]) / job.size, nsub)
     sub_counts = np.bincount(sub, minlength=nsub)
+    fitted = fitted_slab_count(asked, partitions, slab_choice, job, sub_counts)
+    if fitted != partitions:  # more slabs: the same cube and axes, maybe other seams' level
+        partitions = fitted
+        seam_params(params, depth, partitions)
+        job, _, env = job_of(
+            pts0.min(axis=0), pts0.max(axis=0), opts.scale, partitions, depth, params, env0
+        )
     plan = plan_slabs(job, sub_counts, partitions, seams)
     slabs = [S.slab_of(job, k, partitions, *plan[k]) for k in range(partitions)]
     carry = bool(props) or colors is not None

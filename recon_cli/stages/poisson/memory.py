@@ -30,6 +30,12 @@ SLAB_RING_BYTES = 720
 # the whole cube's coarse levels every slab and the coordinator hold, per ring parent of the coarse
 # depth (bench/calibration.md, Memory model: COARSE_RING_BYTES)
 COARSE_RING_BYTES = 1500
+# a Dask worker running one slab (bench/calibration.md, Memory model: WORKER_STATE_FACTOR): its
+# steps' peak over the slab's state of one process's model (the state read back from its file
+# beside the step's arrays, the coarse levels' arguments unpickled), and the share of its memory
+# limit the plan lets it reach (the nanny restarts a worker past 95 %)
+WORKER_STATE_FACTOR = 1.5
+WORKER_PEAK_SHARE = 0.9
 # the cloud a run in slabs was given in memory, held beside them (points, normals, a property)
 CLOUD_BYTES = 64
 # what a run in slabs holds of every point beside the slab's state (bench/calibration.md,
@@ -155,17 +161,34 @@ def slab_bytes(points: int, tree: Tree, slabs: int) -> int:
 
 
 def slab_run_bytes(points: int, tree: Tree, slabs: int, in_memory: bool = True) -> int:
-    """Peak resident bytes of a process running ``slabs`` slabs, one at a time (or a worker's).
+    """Peak resident bytes of a process running ``slabs`` slabs, one at a time.
 
     The process's base, the whole cube's coarse levels, one slab's state and, with
     ``in_memory``, the cloud the stage was given (a run from files never holds it).
     """
+    held = (CLOUD_BYTES if in_memory else 0) + SLABS_POINT_BYTES
+    return int(held * points + slab_peak_bytes(points, tree, read_share(tree.depth, int(slabs))))
+
+
+def slab_peak_bytes(points: int, tree: Tree, share: float) -> int:
+    """Peak resident bytes of a process running one slab that reads ``share`` of the points.
+
+    A worker's (:func:`worker_bytes`), or a process running slabs one at a time without what it
+    holds of every point (:func:`slab_run_bytes`): its base, the whole cube's coarse levels and
+    the slab's state, its pads included, at ``share`` of the cloud's (points and ring parents).
+    """
     coarse = coarse_depth(tree.depth)
     coarse_rings = min(tree.rings, SURFACE_RINGS * 4.0 ** max(coarse - 1, 0))
-    held = (CLOUD_BYTES if in_memory else 0) + SLABS_POINT_BYTES
-    return int(
-        JIT_BASE
-        + held * points
-        + COARSE_RING_BYTES * coarse_rings
-        + slab_bytes(points, tree, slabs)
-    )
+    state = (SLAB_POINT_BYTES * points + SLAB_RING_BYTES * tree.rings) * min(share, 1.0)
+    return int(JIT_BASE + COARSE_RING_BYTES * coarse_rings + state)
+
+
+def worker_bytes(points: int, tree: Tree, share: float) -> int:
+    """Peak resident bytes of a Dask worker running a slab that reads ``share`` of the points.
+
+    :func:`slab_peak_bytes` with the slab's state :data:`WORKER_STATE_FACTOR` times its size;
+    ``share``: the largest slab's points read (its pads' included) over the cloud's, from the
+    points per sub-slab (:func:`.distributed.fitted_slab_count`).
+    """
+    base = slab_peak_bytes(points, tree, 0.0)
+    return int(base + WORKER_STATE_FACTOR * (slab_peak_bytes(points, tree, share) - base))
