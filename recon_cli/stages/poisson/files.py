@@ -176,7 +176,8 @@ def reconstruct_files(
     nworkers = slab_choice["workers"]
     if opts.confidence:
         params["weight_mean"] = sum(s["length_sum"] for s in scans) / kept
-    env0 = envelope
+    # what the slabs are refitted from once the points per sub-slab are counted (_fitted)
+    refit = ((partitions, parts, slab_choice), (scans, opts.scale), (depth, params, envelope))
     job, perm, envelope = _scanned_job(scans, opts.scale, parts, depth, params, envelope)
     nsub = 1 << min(S.SUB_DEPTH, job.depth)
     carry = bool(names) or color_type is not None
@@ -198,14 +199,7 @@ def reconstruct_files(
                 progress,
             )
             read_s = time.perf_counter() - t0
-            parts, job, envelope = _fitted(
-                (partitions, parts, slab_choice),
-                job,
-                envelope,
-                counts,
-                (scans, opts.scale),
-                (depth, params, env0),
-            )
+            parts, job, envelope = _fitted(refit, job, envelope, counts)
             plan = D.plan_slabs(job, counts, parts)
             slabs = [S.slab_of(job, k, parts, *plan[k]) for k in range(parts)]
             # more slabs than workers: a worker (this process) keeps only the slab it runs
@@ -268,17 +262,15 @@ def _scanned_job(
     return D.job_of(lo, hi, scale, parts, depth, params, envelope)
 
 
-def _fitted(
-    count: tuple, job: Any, envelope: Any, counts: np.ndarray, scanned: tuple, made: tuple
-) -> tuple[int, Any, Any]:
+def _fitted(refit: tuple, job: Any, envelope: Any, counts: np.ndarray) -> tuple[int, Any, Any]:
     """The slabs, job and envelope refitted to the points per sub-slab (``counts``).
 
-    By :func:`.distributed.fitted_slab_count`. ``count``: (``--partitions``, the slabs so far,
-    the report's entry); ``scanned``: the chunks' scans and the cube's scale; ``made``: the
-    depth, the slabs' parameters and the envelope the job was made with. More slabs: the same
-    cube and axes, maybe another seams' level.
+    By :func:`.distributed.fitted_slab_count`. ``refit``: (``--partitions``, the slabs so far,
+    the report's entry), (the chunks' scans, the cube's scale) and (the depth, the slabs'
+    parameters, the envelope the job was made with). More slabs: the same cube and axes, maybe
+    another seams' level.
     """
-    partitions, parts, entry = count
+    (partitions, parts, entry), scanned, made = refit
     fitted = D.fitted_slab_count(partitions, parts, entry, job, counts)
     if fitted == parts:
         return parts, job, envelope
