@@ -181,6 +181,24 @@ def fitted_slab_count(
     return p
 
 
+def refitted_job(
+    partitions: int | None, entry: dict, job: S.Job, envelope: Any, sub_counts, made: tuple
+) -> tuple[int, S.Job, Any]:
+    """The slabs, job and envelope once the points per sub-slab (``sub_counts``) are known.
+
+    ``made``: :func:`job_of`'s arguments ``job`` and ``envelope`` (turned) came from, its slab
+    count among them; ``partitions`` and ``entry`` as :func:`fitted_slab_count`'s. More slabs:
+    the same cube and axes, maybe another seams' level (``made``'s parameters updated).
+    """
+    lo, hi, scale, parts, depth, params, given = made
+    fitted = fitted_slab_count(partitions, parts, entry, job, sub_counts)
+    if fitted == parts:
+        return parts, job, envelope
+    seam_params(params, depth, fitted)
+    job, _, envelope = job_of(lo, hi, scale, fitted, depth, params, given)
+    return fitted, job, envelope
+
+
 def coarse_depth_for(depth: int, seam_depth: int = S.PARTITION_DEPTH) -> int:
     """The levels the coordinator solves.
 
@@ -818,22 +836,14 @@ def distributed_poisson(
     # normalises them as the check did: normalising twice moved them by an ulp)
     nrm = np.ascontiguousarray(normals, dtype=np.float64)[keep]
     colors, props = kept_attributes(keep, colors, properties)
-    pts0, env0 = pts, env
-    job, perm, env = job_of(
-        pts.min(axis=0), pts.max(axis=0), opts.scale, partitions, depth, params, env
-    )
+    made = (pts.min(axis=0), pts.max(axis=0), opts.scale, partitions, depth, params, env)
+    job, perm, env = job_of(*made)
     pts = pts[:, list(perm)]
     nrm = nrm[:, list(perm)]
     nsub = 1 << min(S.SUB_DEPTH, job.depth)
     sub = sub_slab((pts[:, 0] - job.origin[0]) / job.size, nsub)
     sub_counts = np.bincount(sub, minlength=nsub)
-    fitted = fitted_slab_count(asked, partitions, slab_choice, job, sub_counts)
-    if fitted != partitions:  # more slabs: the same cube and axes, maybe other seams' level
-        partitions = fitted
-        seam_params(params, depth, partitions)
-        job, _, env = job_of(
-            pts0.min(axis=0), pts0.max(axis=0), opts.scale, partitions, depth, params, env0
-        )
+    partitions, job, env = refitted_job(asked, slab_choice, job, env, sub_counts, made)
     plan = plan_slabs(job, sub_counts, partitions, seams)
     slabs = [S.slab_of(job, k, partitions, *plan[k]) for k in range(partitions)]
     carry = bool(props) or colors is not None

@@ -176,9 +176,8 @@ def reconstruct_files(
     nworkers = slab_choice["workers"]
     if opts.confidence:
         params["weight_mean"] = sum(s["length_sum"] for s in scans) / kept
-    # what the slabs are refitted from once the points per sub-slab are counted (_fitted)
-    refit = ((partitions, parts, slab_choice), (scans, opts.scale), (depth, params, envelope))
-    job, perm, envelope = _scanned_job(scans, opts.scale, parts, depth, params, envelope)
+    made = (*_scanned_box(scans), opts.scale, parts, depth, params, envelope)
+    job, perm, envelope = D.job_of(*made)
     nsub = 1 << min(S.SUB_DEPTH, job.depth)
     carry = bool(names) or color_type is not None
     weights = D.job_weights(
@@ -199,7 +198,9 @@ def reconstruct_files(
                 progress,
             )
             read_s = time.perf_counter() - t0
-            parts, job, envelope = _fitted(refit, job, envelope, counts)
+            parts, job, envelope = D.refitted_job(
+                partitions, slab_choice, job, envelope, counts, made
+            )
             plan = D.plan_slabs(job, counts, parts)
             slabs = [S.slab_of(job, k, parts, *plan[k]) for k in range(parts)]
             # more slabs than workers: a worker (this process) keeps only the slab it runs
@@ -248,36 +249,13 @@ def reconstruct_files(
     return PoissonResult(mesh, rep, grid)
 
 
-def _scanned_job(
-    scans: list[dict], scale: float, parts: int, depth: int, params: dict, envelope: Any
-) -> tuple[Any, tuple, Any]:
-    """The job of the chunks' ``scans`` (their bounds) in ``parts`` slabs (:func:`.job_of`).
-
-    Returns (the job, the axes' turn, the envelope turned to the job's axes).
-    """
+def _scanned_box(scans: list[dict]) -> tuple[np.ndarray, np.ndarray]:
+    """The chunks' ``scans``' box: their points' least and greatest coordinates (input axes)."""
     lo = np.min([s["lo"] for s in scans if "lo" in s], axis=0)
     hi = np.max([s["hi"] for s in scans if "lo" in s], axis=0)
     if not (hi - lo).max() > 0:
         raise InputError("all points coincide: there is no surface to reconstruct")
-    return D.job_of(lo, hi, scale, parts, depth, params, envelope)
-
-
-def _fitted(refit: tuple, job: Any, envelope: Any, counts: np.ndarray) -> tuple[int, Any, Any]:
-    """The slabs, job and envelope refitted to the points per sub-slab (``counts``).
-
-    By :func:`.distributed.fitted_slab_count`. ``refit``: (``--partitions``, the slabs so far,
-    the report's entry), (the chunks' scans, the cube's scale) and (the depth, the slabs'
-    parameters, the envelope the job was made with). More slabs: the same cube and axes, maybe
-    another seams' level.
-    """
-    (partitions, parts, entry), scanned, made = refit
-    fitted = D.fitted_slab_count(partitions, parts, entry, job, counts)
-    if fitted == parts:
-        return parts, job, envelope
-    depth, params, env0 = made
-    D.seam_params(params, depth, fitted)
-    job, _, envelope = _scanned_job(scanned[0], scanned[1], fitted, depth, params, env0)
-    return fitted, job, envelope
+    return lo, hi
 
 
 def _read_report(
