@@ -564,25 +564,67 @@ def _level_product(q_keys, nb, inp, maps, stiffness, n, s, samples, bands, x, ou
         screening_matvec(q_keys, nb, xmap, omap, n, s, samples, x, out)
 
 
-@njit(cache=True)
+# blocks of 8 rows a chunk of the conjugate gradients' vector updates: the chunks' partial sums
+# add in chunk order, so the dot products have the same bits whatever the threads
+CG_CHUNK = 4096
+
+
+@njit(cache=True, parallel=True)
 def _cg_update(x, r, p, q, a, inv):
     """X += a p, r -= a q, q = the preconditioned residual, block by block; returns (r.r, r.z).
 
     ``r.r`` over the rows not fixed (a positive diagonal in ``inv``). With ``a`` = 0 and ``p``,
     ``q`` zero, x and r stay as they are and ``q`` receives the preconditioned residual (the
     start). Each block's ``q`` is read before its preconditioned residual overwrites it.
+    Chunks of :data:`CG_CHUNK` blocks over the threads.
     """
+    nb = len(inv)
+    nc = (nb + CG_CHUNK - 1) // CG_CHUNK
+    part = np.zeros((nc, 2))
+    for c in prange(nc):
+        rr = 0.0
+        rz = 0.0
+        for b in range(c * CG_CHUNK, min(nb, (c + 1) * CG_CHUNK)):
+            for o in range(8):
+                i = 8 * b + o
+                x[i] += a * p[i]
+                r[i] -= a * q[i]
+                if inv[b, _packed(o, o)] > 0.0:  # rows without a positive diagonal are fixed
+                    rr += r[i] * r[i]
+            rz += _apply_block(inv, b, r, q)
+        part[c, 0] = rr
+        part[c, 1] = rz
     rr = 0.0
     rz = 0.0
-    for b in range(len(inv)):
-        for o in range(8):
-            i = 8 * b + o
-            x[i] += a * p[i]
-            r[i] -= a * q[i]
-            if inv[b, _packed(o, o)] > 0.0:  # rows without a positive diagonal are fixed
-                rr += r[i] * r[i]
-        rz += _apply_block(inv, b, r, q)
+    for c in range(nc):
+        rr += part[c, 0]
+        rz += part[c, 1]
     return rr, rz
+
+
+@njit(cache=True, parallel=True)
+def _cg_dot(p, q):
+    """The dot product of p and q, in chunks of :data:`CG_CHUNK` blocks summed in order."""
+    m = len(p)
+    step = 8 * CG_CHUNK
+    nc = (m + step - 1) // step
+    part = np.zeros(nc)
+    for c in prange(nc):
+        v = 0.0
+        for i in range(c * step, min(m, (c + 1) * step)):
+            v += p[i] * q[i]
+        part[c] = v
+    v = 0.0
+    for c in range(nc):
+        v += part[c]
+    return v
+
+
+@njit(cache=True, parallel=True)
+def _cg_direction(p, q, beta):
+    """The next search direction: ``p`` := q + beta p, in place."""
+    for i in prange(len(p)):
+        p[i] = q[i] + beta * p[i]
 
 
 @njit(cache=True)
@@ -613,9 +655,7 @@ def level_pcg(q_keys, nb, inp, cmap, stiffness, n, s, samples, rhs, inv, tol, ma
     maps = (cmap, cmap)
     while it < max_iter:
         _level_product(q_keys, nb, inp, maps, stiffness, n, s, samples, bands, p, q)
-        pq = 0.0
-        for i in range(m):
-            pq += p[i] * q[i]
+        pq = _cg_dot(p, q)
         if pq <= 0.0:
             break
         a = rz / pq
@@ -625,7 +665,6 @@ def level_pcg(q_keys, nb, inp, cmap, stiffness, n, s, samples, rhs, inv, tol, ma
         if rel < tol:
             break
         beta = rz_new / rz
-        for i in range(m):
-            p[i] = q[i] + beta * p[i]
+        _cg_direction(p, q, beta)
         rz = rz_new
     return x, it, rel
