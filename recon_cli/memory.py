@@ -7,7 +7,9 @@ the process's lifetime maximum (``getrusage``) and the reset is not possible.
 
 from __future__ import annotations
 
+import contextlib
 import sys
+from collections.abc import Iterator
 from typing import Any
 
 # the process before a stage's work, the figures the stages' memory models build on
@@ -61,24 +63,67 @@ def reset_peak() -> bool:
 
 
 _TRIM: Any = None
+# while set (:func:`heap_kept`), freed memory stays in the process for reuse
+_KEEP = False
+# glibc's mallopt parameters, and where its own dynamic thresholds end after large frees
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
+MMAP_THRESHOLD_MAX, TRIM_THRESHOLD_MAX = 32 << 20, 64 << 20
+
+
+def _libc() -> Any:
+    """glibc, or False elsewhere."""
+    global _TRIM
+    if _TRIM is None:
+        import ctypes
+
+        try:
+            _TRIM = ctypes.CDLL("libc.so.6")
+            _TRIM.malloc_trim, _TRIM.mallopt  # noqa: B018  (both or neither)
+        except (OSError, AttributeError):  # not glibc
+            _TRIM = False
+    return _TRIM
 
 
 def release_free_heap() -> None:
     """Give freed heap memory back to the system (glibc's ``malloc_trim(0)``; elsewhere a no-op).
 
     glibc serves arrays below its mmap threshold (up to 32 MB) from the heap, and freed
-    ones stay resident as holes that later, larger (mmapped) arrays cannot reuse.
+    ones stay resident as holes that later, larger (mmapped) arrays cannot reuse. Within
+    :func:`heap_kept`, nothing.
     """
-    global _TRIM
-    if _TRIM is None:
-        import ctypes
+    libc = _libc()
+    if libc and not _KEEP:
+        libc.malloc_trim(0)
 
-        try:
-            _TRIM = ctypes.CDLL("libc.so.6").malloc_trim
-        except (OSError, AttributeError):  # not glibc
-            _TRIM = False
-    if _TRIM:
-        _TRIM(0)
+
+@contextlib.contextmanager
+def heap_kept(keep: bool = True) -> Iterator[None]:
+    """Keep freed memory in the process for the next arrays, while the block runs.
+
+    Every array the system gives is a page fault per page on first touch; a run that frees
+    and makes arrays of the same sizes phase after phase pays them again each time once the
+    memory went back (glibc maps its large arrays and trims its heap). Where memory is not
+    the constraint (``keep``: the caller's memory plan leaves room), large arrays come from
+    the heap, which is not trimmed, and :func:`release_free_heap` does nothing. The resident
+    peak grows (the heap's holes stay); on leaving, glibc's thresholds are set where its own
+    adjustment takes them and the heap is trimmed. Nothing where ``keep`` is false or on
+    other C libraries, and when already inside.
+    """
+    global _KEEP
+    libc = _libc()
+    if not keep or not libc or _KEEP:
+        yield
+        return
+    libc.mallopt(M_TRIM_THRESHOLD, 2**31 - 1)
+    libc.mallopt(M_MMAP_THRESHOLD, 2**31 - 1)
+    _KEEP = True
+    try:
+        yield
+    finally:
+        _KEEP = False
+        libc.mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_MAX)
+        libc.mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD_MAX)
+        libc.malloc_trim(0)
 
 
 def available_bytes() -> int | None:

@@ -202,7 +202,9 @@ def _poisson(size: Size, p: dict, ex: Any, data: Any) -> int | None:
     if slabs is None:
         return None
     if slabs == 1 and not (ex is not None and ex.distributed):
-        return M.one_piece_bytes(size.points, tree)
+        one = M.one_piece_bytes(size.points, tree)
+        kept = M.heap_room(size.points, depth, None if ex is None else ex.budget())
+        return M.kept_heap_bytes(one) if kept else one
     return M.slab_run_bytes(size.points, tree, slabs, in_memory=data is not None)
 
 

@@ -41,6 +41,11 @@ CLOUD_BYTES = 64
 # what a run in slabs holds of every point beside the slab's state (bench/calibration.md,
 # Memory model: SLABS_POINT_BYTES)
 SLABS_POINT_BYTES = 170
+# a run in one piece keeps its freed memory for reuse when its budget is this many times its
+# predicted peak, and the kept heap's holes raise the part of the peak beyond the base by
+# HEAP_GROWTH (bench/calibration.md, Memory model: HEAP_ROOM)
+HEAP_ROOM = 3.0
+HEAP_GROWTH = 1.5
 # the level whose points per cell set the tree's depth, and the levels the densest samples go
 # beyond the mean's (bench/calibration.md, Memory model: TREE_DEPTH_MARGIN)
 DENSITY_LEVEL = 6
@@ -124,6 +129,22 @@ def tree_estimate(points: int, depth: int, samples_per_node: float = 1.5) -> Tre
 def one_piece_bytes(points: int, tree: Tree) -> int:
     """Peak resident bytes of a run in one piece (the process's, imports included)."""
     return int(JIT_BASE + POINT_BYTES * points + RING_BYTES * tree.rings)
+
+
+def heap_room(points: int, depth: int, budget: int | None) -> bool:
+    """Whether a run in one piece may keep its freed memory (:func:`recon_cli.memory.heap_kept`).
+
+    When ``budget`` bytes hold :data:`HEAP_ROOM` times its predicted peak (its own estimate
+    of the tree); never when the budget is unknown.
+    """
+    if budget is None:
+        return False
+    return HEAP_ROOM * one_piece_bytes(points, tree_estimate(points, depth)) <= budget
+
+
+def kept_heap_bytes(one_piece: int) -> int:
+    """The peak of a run in one piece predicted at ``one_piece`` bytes, its freed heap kept."""
+    return int(JIT_BASE + HEAP_GROWTH * max(one_piece - JIT_BASE, 0))
 
 
 def coarse_depth(depth: int) -> int:
