@@ -62,7 +62,7 @@ def reset_peak() -> bool:
         return False
 
 
-_TRIM: Any = None
+_LIBC: Any = None
 # while set (:func:`heap_kept`), freed memory stays in the process for reuse
 _KEEP = False
 # glibc's mallopt parameters, and where its own dynamic thresholds end after large frees
@@ -72,16 +72,16 @@ MMAP_THRESHOLD_MAX, TRIM_THRESHOLD_MAX = 32 << 20, 64 << 20
 
 def _libc() -> Any:
     """glibc, or False elsewhere."""
-    global _TRIM
-    if _TRIM is None:
+    global _LIBC
+    if _LIBC is None:
         import ctypes
 
         try:
-            _TRIM = ctypes.CDLL("libc.so.6")
-            _TRIM.malloc_trim, _TRIM.mallopt  # noqa: B018  (both or neither)
+            _LIBC = ctypes.CDLL("libc.so.6")
+            _LIBC.malloc_trim, _LIBC.mallopt  # noqa: B018  (both or neither)
         except (OSError, AttributeError):  # not glibc
-            _TRIM = False
-    return _TRIM
+            _LIBC = False
+    return _LIBC
 
 
 def release_free_heap() -> None:
