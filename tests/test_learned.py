@@ -521,3 +521,30 @@ def test_distance_weight_needs_normals_and_sdf():
             fit_sdf(p, args.pop("normals"), distance_weight=1.0, **args, **kw)
     with pytest.raises(ParameterError, match="distance_weight"):
         fit_sdf(p, n, distance_weight=-1.0, **kw)
+
+
+def test_offset_targets_through_a_thin_wall():
+    """Samples off the points along their normals: the distance signed by the offset's side.
+
+    The target is the smaller of the offset and the distance to the nearest point (both bound
+    the distance to the surface from above); a sample that went through a wall thinner than its
+    offset (now on the other side of the nearest point) has none.
+    """
+    from scipy.spatial import cKDTree
+
+    from recon_cli.stages.learned.training import offset_targets
+
+    # a wall 0.06 thick: z = 0 facing -z and z = 0.06 facing +z, points 0.005 apart
+    g = np.linspace(-0.5, 0.5, 201)
+    xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    lower = np.column_stack([xy, np.zeros(len(xy))])
+    upper = np.column_stack([xy, np.full(len(xy), 0.06)])
+    q = np.concatenate([lower, upper]).astype(np.float32)
+    nrm = np.concatenate([np.tile([0.0, 0, -1], (len(xy), 1)), np.tile([0.0, 0, 1], (len(xy), 1))])
+    fn = offset_targets(cKDTree(q), q, nrm)
+    # offsets from the upper face's point at the origin: out, in, in past the middle, through
+    t = np.array([0.03, -0.02, -0.05, -0.08], np.float32)
+    x = (np.array([0.0, 0.0, 0.06]) + t[:, None] * np.array([0.0, 0, 1])).astype(np.float32)
+    d, keep = fn(x, t)
+    assert d.dtype == np.float32 and keep.tolist() == [True, True, True, False]
+    assert d[:3] == pytest.approx([0.03, -0.02, -0.01], abs=1e-6)
