@@ -160,6 +160,28 @@ def test_short_fits_do_not_fold(shape, iterations):
     assert topo["components"] == 1 and topo["watertight"] and topo["genus"] == 0, topo
 
 
+def test_thin_plate_keeps_its_inside():
+    """A plate 0.08 thick (1.25 % of its 2 x 1.6 sides) keeps a negative inside, meshed closed.
+
+    Without the samples along the normals and the eikonal ramp a short fit lost it: the field
+    positive everywhere, a valley touching zero on both faces.
+    """
+    from recon_cli.mesh.topology import report
+
+    from shapes import shape_cloud, thin_plate_sdf
+
+    offset = np.array([-7.0, 2.0, 30.0])
+    p, n = shape_cloud("thin_plate", 5000, np.random.default_rng(21), rotate=False, offset=offset)
+    fit = fit_sdf(p, n, seed=1, **dict(FAST, iterations=400))
+    g = _grid(fit, p, res=64)
+    assert g.sdf.min() < -0.02  # the plate's half-thickness is 0.04
+    v, f, _ = extract_mesh(fit.model, g)
+    d = np.abs(thin_plate_sdf(v - offset))
+    assert d.max() <= 0.03 and d.mean() <= 0.005, (d.max(), d.mean())
+    topo = report(TriangleMesh(vertices=v, faces=f))
+    assert topo["components"] == 1 and topo["watertight"] and topo["genus"] == 0, topo
+
+
 def test_occupancy_field():
     """An occupancy fit of a far sphere: values near -0.5/+0.5, mesh within 3 %; needs normals."""
     p, n = sphere_cloud(5000, 0.5, (2.0, 0.0, 0.0), seed=6)
