@@ -160,6 +160,28 @@ def test_short_fits_do_not_fold(shape, iterations):
     assert topo["components"] == 1 and topo["watertight"] and topo["genus"] == 0, topo
 
 
+def test_thin_plate_keeps_its_inside():
+    """A plate 0.08 thick (1.25 % of its 2 x 1.6 sides) keeps a negative inside, meshed closed.
+
+    Without the samples along the normals and the eikonal ramp a short fit lost it: the field
+    positive everywhere, a valley touching zero on both faces.
+    """
+    from recon_cli.mesh.topology import report
+
+    from shapes import shape_cloud, thin_plate_sdf
+
+    offset = np.array([-7.0, 2.0, 30.0])
+    p, n = shape_cloud("thin_plate", 5000, np.random.default_rng(21), rotate=False, offset=offset)
+    fit = fit_sdf(p, n, seed=1, **dict(FAST, iterations=400))
+    g = _grid(fit, p, res=64)
+    assert g.sdf.min() < -0.02  # the plate's half-thickness is 0.04
+    v, f, _ = extract_mesh(fit.model, g)
+    d = np.abs(thin_plate_sdf(v - offset))
+    assert d.max() <= 0.03 and d.mean() <= 0.005, (d.max(), d.mean())
+    topo = report(TriangleMesh(vertices=v, faces=f))
+    assert topo["components"] == 1 and topo["watertight"] and topo["genus"] == 0, topo
+
+
 def test_occupancy_field():
     """An occupancy fit of a far sphere: values near -0.5/+0.5, mesh within 3 %; needs normals."""
     p, n = sphere_cloud(5000, 0.5, (2.0, 0.0, 0.0), seed=6)
@@ -521,3 +543,30 @@ def test_distance_weight_needs_normals_and_sdf():
             fit_sdf(p, args.pop("normals"), distance_weight=1.0, **args, **kw)
     with pytest.raises(ParameterError, match="distance_weight"):
         fit_sdf(p, n, distance_weight=-1.0, **kw)
+
+
+def test_offset_targets_through_a_thin_wall():
+    """Samples off the points along their normals: the distance signed by the offset's side.
+
+    The target is the smaller of the offset and the distance to the nearest point (both bound
+    the distance to the surface from above); a sample that went through a wall thinner than its
+    offset (now on the other side of the nearest point) has none.
+    """
+    from scipy.spatial import cKDTree
+
+    from recon_cli.stages.learned.training import offset_targets
+
+    # a wall 0.06 thick: z = 0 facing -z and z = 0.06 facing +z, points 0.005 apart
+    g = np.linspace(-0.5, 0.5, 201)
+    xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    lower = np.column_stack([xy, np.zeros(len(xy))])
+    upper = np.column_stack([xy, np.full(len(xy), 0.06)])
+    q = np.concatenate([lower, upper]).astype(np.float32)
+    nrm = np.concatenate([np.tile([0.0, 0, -1], (len(xy), 1)), np.tile([0.0, 0, 1], (len(xy), 1))])
+    fn = offset_targets(cKDTree(q), q, nrm)
+    # offsets from the upper face's point at the origin: out, in, in past the middle, through
+    t = np.array([0.03, -0.02, -0.05, -0.08], np.float32)
+    x = (np.array([0.0, 0.0, 0.06]) + t[:, None] * np.array([0.0, 0, 1])).astype(np.float32)
+    d, keep = fn(x, t)
+    assert d.dtype == np.float32 and keep.tolist() == [True, True, True, False]
+    assert d[:3] == pytest.approx([0.03, -0.02, -0.01], abs=1e-6)

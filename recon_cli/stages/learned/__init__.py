@@ -10,8 +10,11 @@ keeps spurious zero levels out of the empty space, which a few CPU minutes of IG
 leave; and with normals the value on the samples away from the points is held at the distance
 to the nearest point, signed by its normal and clamped beyond the band (DeepSDF's clamped L1),
 so that the field rises at the true slope in thin walls and enclosed air, where the eikonal
-term alone lets it sag (figures in ``bench/calibration.md``). Without normals it is IGR's
-zero-level + eikonal form, oriented by the geometric (sphere) initialisation.
+term alone lets it sag (figures in ``bench/calibration.md``); samples off the points along
+their normals, signed by their offset, hold the inside of walls thinner than the band, and the
+eikonal weight is ramped in over the first quarter of the schedule, so that enclosed air (a
+cup's inside) opens before the slope is held (``docs/design/fit-sdf.md``). Without normals it
+is IGR's zero-level + eikonal form, oriented by the geometric (sphere) initialisation.
 ``field="occupancy"`` fits a logistic output instead (Occupancy Networks,
 Mescheder et al. 2019) to inside/outside labels taken from the normals of the nearest points.
 
@@ -279,7 +282,8 @@ def fit_sdf(
         Weight of the eikonal term (``sdf`` only). With normals it is the L1 form
         E| ||grad s|| - 1 |, on the samples near the points, uniform ones, and as many spread
         over the band of 5 % of the diagonal around the surface (the field's useful part,
-        where ``recon info`` judges it); None: 3.0. Without normals it is IGR's squared form
+        where ``recon info`` judges it); None: 3.0, ramped in from a tenth of it over the
+        first quarter of the schedule. Without normals it is IGR's squared form
         E(||grad s|| - 1)^2 with IGR's 0.1: nothing but the zero level holds the slope, and
         3.0 slows the fit. The squared penalty barely pulls deviations under 0.1; the L1 one
         pulls every sample to 1 alike (figures in ``bench/calibration.md``).
@@ -294,7 +298,12 @@ def fit_sdf(
         side is ambiguous) or farther from the points than the clamp; both clamped to twice
         the band's width (DeepSDF). It makes the field rise at the true slope inside thin walls
         and in enclosed air (a cup), where the eikonal term lets it sag and a larger
-        eikonal weight fills the cavity instead. None: 1.0 with normals, 0 otherwise.
+        eikonal weight fills the cavity instead. None: 1.0 with normals, 0 otherwise. With
+        it on, each surface point of a step also gives a sample x = p + t n_p along its
+        normal (t normal, 1.25 % of the cloud's longest side spread) whose value is held at
+        sign(t) min(|t|, distance to the nearest point), weight 3, except where x lies behind
+        that point's normal on the other side than t says (through a wall thinner than |t|):
+        walls thinner than the band keep their inside.
     batch : int
         Surface points per step; as many near-surface samples, half as many wider ones
         (sigma 0.1 of the network box), half as many uniform in the box and, with normals,

@@ -89,6 +89,10 @@ class TrainConfig:
     eikonal_l1: bool = False  # E| |grad s| - 1 | instead of E(|grad s| - 1)^2
     distance_weight: float = 0.0  # E|s(q) - d(q)| on the wide, uniform and band samples
     distance_clamp: float = math.inf  # s and d clamped to [-clamp, clamp] (DeepSDF)
+    offset_spread: float = 0.0  # samples p + t n_p, t ~ N(0, spread^2), one per surface point
+    offset_weight: float = 0.0  # E|s(p + t n_p) - d| on those kept, d from ``offset_fn``
+    eikonal_ramp: float = 0.0  # the eikonal weight rises linearly over this share of the schedule
+    eikonal_start: float = 1.0  # from this fraction of ``eikonal_weight``
 
 
 @dataclass
@@ -129,6 +133,7 @@ def train(
     cfg: TrainConfig,
     on_step: Callable[[int, float, float], None] | None = None,
     distance_fn: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
+    offset_fn: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> TrainOutcome:
     """Fit ``net`` to ``points`` (normalised coordinates, (n, 3) float32).
 
@@ -137,7 +142,11 @@ def train(
     and away from the surface (IGR) and on ``band_share`` * batch band samples
     + ``distance_weight`` * |clamp(s(q)) - clamp(d(q))| on the wide, uniform and band samples q that
     ``distance_fn`` gives a signed distance d for ((k, 3) float32 -> d (k,) float32, kept (k,)
-    bool), both clamped to [-``distance_clamp``, ``distance_clamp``].
+    bool), both clamped to [-``distance_clamp``, ``distance_clamp``]
+    + ``offset_weight`` * |s(x) - d(x)| on samples x = p + t n_p off the surface points along
+    their normals (t ~ N(0, ``offset_spread``^2)) that ``offset_fn`` gives a signed distance d
+    for ((k, 3) float32, t (k,) float32 -> d (k,) float32, kept (k,) bool). The eikonal weight
+    rises linearly from ``eikonal_start`` of it over the first ``eikonal_ramp`` of the schedule.
     occupancy: binary cross-entropy of p(inside) = sigmoid(-gain * s) on labelled samples
     (``labels_fn``: 1 inside) + |s| on the points. On KeyboardInterrupt (at any time, also
     before the first step) the best parameters so far are restored and the outcome says
@@ -154,7 +163,8 @@ def train(
     t0 = time.perf_counter()
     interrupted = False
     try:
-        _loop(net, points, normals, sigma, labels_fn, distance_fn, cfg, on_step, st, t0)
+        fns = (labels_fn, distance_fn, offset_fn)
+        _loop(net, points, normals, sigma, fns, cfg, on_step, st, t0)
     except KeyboardInterrupt:
         interrupted = True
     ema = st["ema"]
@@ -172,13 +182,13 @@ def _loop(
     points,
     normals,
     sigma,
-    labels_fn,
-    distance_fn,
+    fns: tuple,
     cfg: TrainConfig,
     on_step,
     st: dict,
     t0: float,
 ) -> None:
+    labels_fn, distance_fn, offset_fn = fns
     gen = torch.Generator().manual_seed(cfg.seed)
     pts = torch.from_numpy(points)
     nrm = torch.from_numpy(normals) if normals is not None else None
@@ -189,10 +199,13 @@ def _loop(
         elapsed = time.perf_counter() - t0
         if cfg.max_seconds is not None and elapsed >= cfg.max_seconds:
             break
-        _schedule(opt, cfg, it, elapsed)
+        frac = _schedule(opt, cfg, it, elapsed)
         idx, p, off, nb = _samples(pts, sig, cfg, gen)
         if cfg.field == "sdf":
-            loss = _sdf_loss(net, p, off, None if nrm is None else nrm[idx], nb, cfg, distance_fn)
+            n_p = None if nrm is None else nrm[idx]
+            loss = _sdf_loss(net, p, off, n_p, nb, cfg, distance_fn, _eikonal_weight(cfg, frac))
+            if cfg.offset_weight > 0 and cfg.offset_spread > 0 and offset_fn and n_p is not None:
+                loss = loss + _offset_loss(net, p, n_p, cfg, offset_fn, gen)
         else:
             lab = torch.from_numpy(labels_fn(off.numpy()))
             logit = -cfg.occupancy_gain * net(off)
@@ -205,14 +218,26 @@ def _loop(
             on_step(st["it"], st["ema"], time.perf_counter() - t0)
 
 
-def _schedule(opt, cfg: TrainConfig, it: int, elapsed: float) -> None:
-    """The step's learning rate: a cosine decay to 2 % over the iterations (or the time)."""
+def _schedule(opt, cfg: TrainConfig, it: int, elapsed: float) -> float:
+    """Set the step's learning rate: a cosine decay to 2 % over the iterations (or the time).
+
+    Returns the share of the schedule done.
+    """
     frac = it / cfg.iterations
     if cfg.max_seconds is not None:
         frac = max(frac, elapsed / cfg.max_seconds)
     lr = cfg.lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(1.0, frac))))
     for g in opt.param_groups:
         g["lr"] = lr
+    return min(1.0, frac)
+
+
+def _eikonal_weight(cfg: TrainConfig, frac: float) -> float:
+    """The eikonal weight at ``frac`` of the schedule (ramped in over ``eikonal_ramp``)."""
+    if cfg.eikonal_ramp <= 0 or frac >= cfg.eikonal_ramp:
+        return cfg.eikonal_weight
+    start = cfg.eikonal_start
+    return cfg.eikonal_weight * (start + (1.0 - start) * frac / cfg.eikonal_ramp)
 
 
 def _samples(pts, sig, cfg: TrainConfig, gen) -> tuple:
@@ -241,7 +266,9 @@ def _samples(pts, sig, cfg: TrainConfig, gen) -> tuple:
     return idx, p, off, nb
 
 
-def _sdf_loss(net, p, off, nrm, nb: int, cfg: TrainConfig, distance_fn) -> torch.Tensor:
+def _sdf_loss(
+    net, p, off, nrm, nb: int, cfg: TrainConfig, distance_fn, eikonal_weight: float
+) -> torch.Tensor:
     """The sdf field's loss on a step's samples (:func:`train`); ``nrm``: the points' normals."""
     b = cfg.batch
     # the wide, uniform and band samples (the near ones are mostly within the points'
@@ -262,7 +289,7 @@ def _sdf_loss(net, p, off, nrm, nb: int, cfg: TrainConfig, distance_fn) -> torch
         gp = _grad(sp, p, True)
         loss = loss + cfg.normal_weight * (gp - nrm).norm(dim=1).mean()
         eik = 0.5 * eik + 0.5 * _eikonal(gp, cfg.eikonal_l1)
-    loss = loss + cfg.eikonal_weight * eik
+    loss = loss + eikonal_weight * eik
     if cfg.offsurface_weight and nrm is not None:
         # SIREN's off-surface term: no zero level away from the points (with normals
         # only: without them nothing holds the slope and it fights the zero level)
@@ -273,6 +300,18 @@ def _sdf_loss(net, p, off, nrm, nb: int, cfg: TrainConfig, distance_fn) -> torch
         dev = (so[d0:].clamp(-c, c) - dist_t.clamp(-c, c)).abs()[keep_t]
         loss = loss + cfg.distance_weight * dev.sum() / len(keep_t)
     return loss
+
+
+def _offset_loss(net, p, nrm, cfg: TrainConfig, offset_fn, gen) -> torch.Tensor:
+    """The distance term on samples off the points ``p`` along their normals ``nrm``."""
+    t = torch.randn(len(p), generator=gen) * cfg.offset_spread
+    x = p.detach() + t[:, None] * nrm
+    d_np, keep_np = offset_fn(x.numpy(), t.numpy())
+    keep = torch.from_numpy(keep_np)
+    if not bool(keep.any()):
+        return torch.zeros(())
+    dev = (net(x[keep]) - torch.from_numpy(d_np)[keep]).abs()
+    return cfg.offset_weight * dev.sum() / len(keep)
 
 
 def _record(net, st: dict, last: float, iterations: int) -> None:

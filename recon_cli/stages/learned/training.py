@@ -20,6 +20,10 @@ DISTANCE_WEIGHT = 1.0  # the distance term's weight with normals
 DISTANCE_CLAMP = 2.0  # the distance term's clamp, in band widths (the band's edge is reached)
 GAP_NEIGHBOURS = 8  # no distance target closer to a point than its 8th neighbour
 DISTANCE_EPS = 0.1  # the targets' nearest point may be up to 10 % farther than the nearest
+OFFSET_SPREAD = 0.02  # samples p + t n_p, t ~ N(0, 0.02^2) network units (the cloud's side: 1.6)
+OFFSET_WEIGHT = 3.0  # the weight of their distance term
+EIKONAL_RAMP = 0.25  # with normals the eikonal weight rises over this share of the schedule
+EIKONAL_START = 0.1  # from this fraction of it
 
 
 @dataclass
@@ -136,6 +140,26 @@ def distance_targets(
     return distance_fn
 
 
+def offset_targets(tree, q: np.ndarray, normals: np.ndarray):
+    """The signed distance of samples ``x = p + t n_p`` off the points along their normals.
+
+    d(x) = sign(t) min(|t|, |x - p'|), p' the nearest point: both are at least the distance to
+    the surface (the nearest point's, as the surface passes between the points; the offset's,
+    as p is on it). Kept where x is on the side of p' that t says (not through a wall thinner
+    than |t|) and within 60 degrees of p''s normal line.
+    """
+    nq = normals.astype(np.float32)
+
+    def offset_fn(x: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        d, j = tree.query(x, k=1)
+        side = np.einsum("ij,ij->i", x - q[j], nq[j])
+        keep = (np.sign(side) == np.sign(t)) & (np.abs(side) >= 0.5 * d)
+        dd = np.minimum(np.abs(t), d)
+        return np.where(t < 0, -dd, dd).astype(np.float32), keep
+
+    return offset_fn
+
+
 def train_config(T, s: Settings, q: np.ndarray, with_normals: bool):
     """The loss and schedule of one fit (see :func:`recon_cli.stages.learned.fit_sdf`)."""
     band = BAND * float(np.linalg.norm(q.max(axis=0) - q.min(axis=0)))
@@ -158,10 +182,17 @@ def train_config(T, s: Settings, q: np.ndarray, with_normals: bool):
         # clamped beyond the band so that it does not fill thin cavities from far away
         distance_weight=s.distance_weight if with_normals else 0.0,
         distance_clamp=DISTANCE_CLAMP * band,
+        # with normals: samples along the normals, signed by their offset, so that thin walls
+        # keep their inside, and the eikonal weight ramped in, so that enclosed air (a cup's
+        # inside) opens before the slope is held (figures in docs/design/fit-sdf.md)
+        offset_spread=OFFSET_SPREAD if with_normals and s.distance_weight > 0 else 0.0,
+        offset_weight=OFFSET_WEIGHT,
+        eikonal_ramp=EIKONAL_RAMP if with_normals else 0.0,
+        eikonal_start=EIKONAL_START,
     )
 
 
-def _optimise(T, net, q, nrm, sigma, labels_fn, distance_fn, cfg, s: Settings, progress):
+def _optimise(T, net, q, nrm, sigma, labels_fn, fns, cfg, s: Settings, progress):
     """Run the optimiser with a progress bar showing the smoothed loss."""
     from recon_cli.progress import task
 
@@ -182,7 +213,18 @@ def _optimise(T, net, q, nrm, sigma, labels_fn, distance_fn, cfg, s: Settings, p
         if s.max_seconds is not None and hasattr(t, "total"):
             t.total = s.max_seconds
         nrm32 = None if nrm is None else nrm.astype(np.float32)
-        return T.train(net, q, nrm32, sigma, labels_fn, cfg, on_step, distance_fn=distance_fn)
+        distance_fn, offset_fn = fns
+        return T.train(
+            net,
+            q,
+            nrm32,
+            sigma,
+            labels_fn,
+            cfg,
+            on_step,
+            distance_fn=distance_fn,
+            offset_fn=offset_fn,
+        )
 
 
 def fit(
@@ -202,11 +244,12 @@ def fit(
         labels_fn = occupancy_labels(tree, q, nrm)
     net = T.build(s.width, s.depth, s.frequencies, RADIUS, s.seed)
     cfg = train_config(T, s, q, nrm is not None)
-    distance_fn = None
+    distance_fn = offset_fn = None
     if s.field == "sdf" and nrm is not None and s.distance_weight > 0:
         k = min(GAP_NEIGHBOURS, len(q) - 1)
         gap = tree.query(q, k=k + 1)[0][:, -1].astype(np.float32)
         distance_fn = distance_targets(tree, q, nrm, gap, cfg.distance_clamp)
+        offset_fn = offset_targets(tree, q, nrm)
     logging.getLogger("recon").info(
         "fit-sdf: training %s (%d points, %s normals, width %d, depth %d)",
         s.field,
@@ -215,7 +258,7 @@ def fit(
         s.width,
         s.depth,
     )
-    out = _optimise(T, net, q, nrm, sigma, labels_fn, distance_fn, cfg, s, progress)
+    out = _optimise(T, net, q, nrm, sigma, labels_fn, (distance_fn, offset_fn), cfg, s, progress)
     config = {"width": s.width, "depth": s.depth, "frequencies": s.frequencies}
     model = SdfModel(net=net, center=center, scale=scale, field=s.field, config=config)
     return FitResult(
