@@ -204,7 +204,12 @@ def _loop(
         if cfg.field == "sdf":
             n_p = None if nrm is None else nrm[idx]
             loss = _sdf_loss(net, p, off, n_p, nb, cfg, distance_fn, _eikonal_weight(cfg, frac))
-            if cfg.offset_weight > 0 and cfg.offset_spread > 0 and offset_fn and n_p is not None:
+            if (
+                cfg.offset_weight > 0
+                and cfg.offset_spread > 0
+                and offset_fn is not None
+                and n_p is not None
+            ):
                 loss = loss + _offset_loss(net, p, n_p, cfg, offset_fn, gen)
         else:
             lab = torch.from_numpy(labels_fn(off.numpy()))
